@@ -1,0 +1,37 @@
+//! The `visnav` command-line interface (clap). Each subcommand lives in `src/cli/<name>.rs`;
+//! this file only parses arguments, sets up logging and reports errors with context.
+
+mod cli;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser, Debug)]
+#[command(name = "visnav", version, about = "Vision-aided navigation for drones without GPS", long_about = None)]
+struct Args {
+    /// More log output (-v: debug, -vv: trace). RUST_LOG overrides this when set.
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    verbose: u8,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Load and validate a configuration file, printing every problem found.
+    CheckConfig(cli::check_config::CheckConfigArgs),
+}
+
+fn main() -> std::process::ExitCode {
+    let args = Args::parse();
+    cli::init_logging(args.verbose);
+    let result = match args.command {
+        Command::CheckConfig(a) => cli::check_config::run(a),
+    };
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}

@@ -1,7 +1,9 @@
-//! `visnav check-config FILE`: parse and validate a configuration file.
+//! `visnav check-config FILE`: parse and validate a configuration file, printing every problem.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
+
+use visnav::config::{Config, ConfigError};
 
 #[derive(clap::Args, Debug)]
 pub struct CheckConfigArgs {
@@ -10,9 +12,22 @@ pub struct CheckConfigArgs {
 }
 
 pub fn run(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
-    let text = std::fs::read_to_string(&args.file)
-        .map_err(|e| anyhow::anyhow!("{}: cannot read: {e}", args.file.display()))?;
-    let _value: toml::Table =
-        toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", args.file.display()))?;
-    Ok(ExitCode::SUCCESS)
+    match Config::load(&args.file) {
+        Ok(cfg) => {
+            println!(
+                "{}: OK (link {}, {} orthophoto(s), output {:?} at {} Hz)",
+                args.file.display(),
+                cfg.link.connection,
+                cfg.map.ortho.len(),
+                cfg.output.modes,
+                cfg.output.rate_hz
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Err(e @ (ConfigError::Invalid { .. } | ConfigError::Parse { .. })) => {
+            eprintln!("{e}");
+            Ok(ExitCode::from(2))
+        }
+        Err(e) => Err(e.into()),
+    }
 }

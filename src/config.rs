@@ -89,7 +89,6 @@ pub trait Validate {
     fn validate(&self, p: &mut Problems);
 }
 
-
 /// Why a configuration file could not be used. Every variant names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
@@ -216,19 +215,25 @@ impl Default for OutputConfig {
 impl Validate for LinkConfig {
     fn validate(&self, p: &mut Problems) {
         if let Err(reason) = check_connection(&self.connection) {
-            p.push(
-                "connection",
-                format!("\"{}\": {reason}", self.connection),
-            );
+            p.push("connection", format!("\"{}\": {reason}", self.connection));
         }
         if self.system_id == Some(0) {
-            p.push("system_id", "0 is the broadcast id; use 1..=255 or leave it out");
+            p.push(
+                "system_id",
+                "0 is the broadcast id; use 1..=255 or leave it out",
+            );
         }
         if self.component_id == 0 {
-            p.push("component_id", "0 is the broadcast id; use 1..=255 (default 197)");
+            p.push(
+                "component_id",
+                "0 is the broadcast id; use 1..=255 (default 197)",
+            );
         }
         if self.autopilot_system_id == Some(0) {
-            p.push("autopilot_system_id", "0 is the broadcast id; use 1..=255 or leave it out");
+            p.push(
+                "autopilot_system_id",
+                "0 is the broadcast id; use 1..=255 or leave it out",
+            );
         }
         p.range("heartbeat_hz", self.heartbeat_hz, 0.2, 10.0);
     }
@@ -239,7 +244,9 @@ impl Validate for LinkConfig {
 pub fn check_connection(s: &str) -> Result<(), String> {
     const SCHEMES: &str = "udpin, udpout, udpbcast, tcpin, tcpout, serial";
     let Some((scheme, rest)) = s.split_once(':') else {
-        return Err(format!("expected SCHEME:ADDRESS with SCHEME one of {SCHEMES}"));
+        return Err(format!(
+            "expected SCHEME:ADDRESS with SCHEME one of {SCHEMES}"
+        ));
     };
     match scheme {
         "udpin" | "udpout" | "udpbcast" | "tcpin" | "tcpout" => {
@@ -263,10 +270,14 @@ pub fn check_connection(s: &str) -> Result<(), String> {
             }
             match baud.parse::<u32>() {
                 Ok(b) if (1200..=12_000_000).contains(&b) => Ok(()),
-                _ => Err(format!("baud rate \"{baud}\" is not a number in 1200..=12000000")),
+                _ => Err(format!(
+                    "baud rate \"{baud}\" is not a number in 1200..=12000000"
+                )),
             }
         }
-        other => Err(format!("unknown scheme \"{other}\"; expected one of {SCHEMES}")),
+        other => Err(format!(
+            "unknown scheme \"{other}\"; expected one of {SCHEMES}"
+        )),
     }
     .and_then(|()| {
         mavlink::ConnectionAddress::parse_address(s)
@@ -307,7 +318,10 @@ impl Crs {
             Crs::Geographic | Crs::WebMercator => {}
             Crs::Utm { zone, .. } => {
                 if !(1..=60).contains(&zone) {
-                    p.push(&format!("{key}.zone"), format!("{zone} is not a UTM zone (1..=60)"));
+                    p.push(
+                        &format!("{key}.zone"),
+                        format!("{zone} is not a UTM zone (1..=60)"),
+                    );
                 }
             }
             Crs::TransverseMercator {
@@ -320,8 +334,18 @@ impl Crs {
                 p.range(&format!("{key}.lat0_deg"), lat0_deg, -90.0, 90.0);
                 p.range(&format!("{key}.lon0_deg"), lon0_deg, -180.0, 180.0);
                 p.range(&format!("{key}.k0"), k0, 0.9, 1.1);
-                p.range(&format!("{key}.false_easting_m"), false_easting_m, -1e8, 1e8);
-                p.range(&format!("{key}.false_northing_m"), false_northing_m, -1e8, 1e8);
+                p.range(
+                    &format!("{key}.false_easting_m"),
+                    false_easting_m,
+                    -1e8,
+                    1e8,
+                );
+                p.range(
+                    &format!("{key}.false_northing_m"),
+                    false_northing_m,
+                    -1e8,
+                    1e8,
+                );
             }
         }
     }
@@ -359,7 +383,13 @@ impl Validate for OutputConfig {
         }
         p.range("rate_hz", self.rate_hz, 1.0, 50.0);
         if self.gps_id > 1 {
-            p.push("gps_id", format!("{} is not a GPS instance of ArduPilot (0 or 1)", self.gps_id));
+            p.push(
+                "gps_id",
+                format!(
+                    "{} is not a GPS instance of ArduPilot (0 or 1)",
+                    self.gps_id
+                ),
+            );
         }
     }
 }

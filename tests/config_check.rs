@@ -57,7 +57,10 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
         &format!("[link]\nconnection = \"udpin:0.0.0.0:14550\"\nconection_typo = 1\n{good_map}"),
     );
     assert_eq!(code, 2, "{err}");
-    assert!(err.contains("bad.toml") && err.contains("conection_typo"), "{err}");
+    assert!(
+        err.contains("bad.toml") && err.contains("conection_typo"),
+        "{err}"
+    );
 
     // Bad connection string, out-of-range rate, missing file, both dem and ground height.
     let (code, err) = check(

@@ -8,8 +8,9 @@
 //! y_d = y (1 + k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y^2) + 2 p2 x y
 //! ```
 //!
-//! Undistortion inverts this by Newton's method on the 2x2 Jacobian (analytic), starting at the
-//! distorted point, and reports failure instead of returning an unconverged value.
+//! Undistortion inverts this by Newton's method on the 2x2 Jacobian (analytic), started at the exact
+//! inverse of the radial part (bisection on the increasing branch), and reports failure instead of
+//! returning an unconverged value.
 //!
 //! The radial polynomial is only one-to-one up to the radius where `d(r_d)/dr` first reaches zero
 //! (e.g. `k1 = -0.3` folds over at r = 1.05). Beyond it a far off-axis point would be mapped back
@@ -78,7 +79,7 @@ impl Distortion {
 
     /// Invert the distortion: the ideal normalised point whose distortion is `pd`.
     ///
-    /// Newton's method from `pd`; returns `None` if the input is not finite, the Jacobian becomes
+    /// Newton's method started at the exact inverse of the radial part; returns `None` if the input is not finite, the Jacobian becomes
     /// singular, the iteration does not reach a residual below 1e-12 (normalised units) within 30
     /// steps, or the solution lies beyond [`Self::max_radius`] (not the physically valid branch).
     /// Computes `max_radius` on each call; use [`Self::undistort_within`] with a cached value in loops.
@@ -94,20 +95,65 @@ impl Distortion {
         if self.is_zero() {
             return Some(*pd);
         }
-        let mut p = *pd;
+        // Start from the exact inverse of the radial part on the valid branch, then let Newton add
+        // the tangential terms. Steps that would leave the valid disc are halved.
+        let rd = pd.norm();
+        let mut p = if rd > 0.0 {
+            pd * (self.radial_inverse(rd, r_max) / rd)
+        } else {
+            *pd
+        };
         for _ in 0..MAX_ITERATIONS {
             let residual = self.distort(&p) - pd;
             if residual.norm() < TOLERANCE {
                 return (p.norm() <= r_max).then_some(p);
             }
-            let step = self.jacobian(&p).lu().solve(&residual)?;
-            p -= step;
+            let mut step = self.jacobian(&p).lu().solve(&residual)?;
+            let mut next = p - step;
+            let mut halvings = 0;
+            while next.norm() > r_max && halvings < 30 {
+                step *= 0.5;
+                next = p - step;
+                halvings += 1;
+            }
+            p = next;
             if !p.x.is_finite() || !p.y.is_finite() {
                 return None;
             }
         }
         let residual = self.distort(&p) - pd;
         (residual.norm() < TOLERANCE && p.norm() <= r_max).then_some(p)
+    }
+
+    /// Radius `r` in `[0, r_max]` with `r (1 + k1 r^2 + k2 r^4 + k3 r^6) = rd`, by bisection (the map is
+    /// increasing there). Returns the end of the interval when `rd` is beyond its image.
+    fn radial_inverse(&self, rd: f64, r_max: f64) -> f64 {
+        let g = |r: f64| {
+            let r2 = r * r;
+            r * (1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3)))
+        };
+        let mut hi = if r_max.is_finite() {
+            r_max
+        } else {
+            let mut h = rd.max(1e-3);
+            while g(h) < rd && h < 1e6 {
+                h *= 2.0;
+            }
+            h
+        };
+        if g(hi) <= rd {
+            return hi;
+        }
+        let mut lo = 0.0;
+        for _ in 0..64 {
+            let mid = 0.5 * (lo + hi);
+            if g(mid) < rd {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        0.5 * (lo + hi)
     }
 
     /// Largest ideal radius `r` up to which the radial map `r -> r (1 + k1 r^2 + k2 r^4 + k3 r^6)`

@@ -1,0 +1,1392 @@
+//! GeoTIFF reader (pure Rust on the `tiff` crate, no GDAL).
+//!
+//! Reads the first image of a TIFF file (overviews in later IFDs are ignored): stripped or tiled,
+//! chunky or planar, any compression the `tiff` crate decodes (none, deflate, LZW, packbits, JPEG),
+//! horizontal/floating-point predictors, 8/16/32/64-bit integer and 32/64-bit float samples, any
+//! number of bands. See `raster` for the sample storage and the pixel convention.
+//!
+//! Georeferencing follows the GeoTIFF 1.1 specification (OGC 19-008r4):
+//!
+//! * **Geotransform** from ModelPixelScaleTag (33550) + ModelTiepointTag (33922) (first tiepoint,
+//!   as GDAL does), else ModelTransformationTag (34264). With raster space `(I, J)`:
+//!   `x = X_tp + (I - I_tp) Sx`, `y = Y_tp - (J - J_tp) Sy`, or `x = m0 I + m1 J + m3`,
+//!   `y = m4 I + m5 J + m7`. GTRasterTypeGeoKey (1025) = RasterPixelIsArea (1, default): raster
+//!   `(0,0)` is the corner of the first pixel, which is already our convention;
+//!   RasterPixelIsPoint (2): raster `(0,0)` is the centre of the first pixel, so the transform is
+//!   shifted by half a pixel, `T_corner(c, r) = T_point(c - 0.5, r - 0.5)` (GDAL's default behaviour).
+//! * **CRS** from GeoKeyDirectoryTag (34735) + GeoDoubleParamsTag (34736) + GeoAsciiParamsTag
+//!   (34737), mapped onto [`Crs`]:
+//!   - GTModelTypeGeoKey 2 (geographic) with GeographicTypeGeoKey 4326 -> `Crs::Geographic`;
+//!   - ProjectedCSTypeGeoKey 32601-32660 / 32701-32760 (WGS84 UTM N/S) and 26901-26923 (NAD83 UTM
+//!     N, treated as WGS84) -> `Crs::Utm`; 3857 (and the legacy 3785) -> `Crs::WebMercator`;
+//!   - ProjectedCSTypeGeoKey 32767 (user-defined) with ProjectionGeoKey 16001-16060 / 16101-16160
+//!     (UTM N/S) -> `Crs::Utm`, or ProjCoordTransGeoKey = CT_TransverseMercator (1) with
+//!     ProjNatOriginLat/Long, ProjScaleAtNatOrigin, ProjFalseEasting/Northing ->
+//!     `Crs::TransverseMercator`. The user-defined case requires a WGS84 datum (GeographicTypeGeoKey
+//!     4326, or user-defined with GeogGeodeticDatumGeoKey 6326 / GeogEllipsoidGeoKey 7030 /
+//!     WGS84 semi-axes), Greenwich prime meridian, degrees (GeogAngularUnitsGeoKey 9102) and metres
+//!     (ProjLinearUnitsGeoKey 9001); anything else is an error naming the key.
+//!   - Vertical keys (4096-4099) are not interpreted: heights are taken as they are stored.
+//!
+//! When the CRS keys are missing or not understood, `crs_override` (from config) is used and a
+//! warning is logged; without an override that is an error. When the keys are understood and an
+//! override is given that disagrees, that is an error too ([`GeoTiffError::CrsConflict`]), so a
+//! config pointing at the wrong file cannot pass silently.
+//!
+//! Nodata comes from GDAL_NODATA (42113, ASCII; "nan" allowed). Malformed input never panics: all
+//! decoder errors are returned, and as defence in depth a panic inside the `tiff` crate is caught
+//! and reported as [`GeoTiffError::Decode`].
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::{BufReader, Read, Seek};
+use std::path::{Path, PathBuf};
+
+use tiff::decoder::{Decoder, DecodingResult, Limits};
+use tiff::tags::Tag;
+
+use super::Crs;
+use super::raster::{GeoTransform, Raster, RasterData, SampleType};
+
+/// Largest decoded image accepted, bytes (all bands, in the file's sample type).
+pub const MAX_DECODED_BYTES: usize = 2 << 30;
+
+/// Errors loading a GeoTIFF. Every variant names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum GeoTiffError {
+    /// The file cannot be opened or read.
+    #[error("{}: cannot read file: {source}", .path.display())]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// The TIFF structure or image data cannot be decoded (not a TIFF, truncated, unsupported
+    /// compression, ...).
+    #[error("{}: TIFF decoding failed: {reason}", .path.display())]
+    Decode { path: PathBuf, reason: String },
+    /// A TIFF tag is missing, malformed or has an unsupported value.
+    #[error("{}: tag {tag}: {reason}", .path.display())]
+    Tag {
+        path: PathBuf,
+        tag: String,
+        reason: String,
+    },
+    /// A GeoKey is missing, malformed or not understood, and no CRS override was given.
+    #[error("{}: GeoKey {key}: {reason} (set a CRS override in the config if the file is right)", .path.display())]
+    GeoKey {
+        path: PathBuf,
+        key: String,
+        reason: String,
+    },
+    /// The file's CRS was understood but differs from the configured override.
+    #[error("{}: the CRS in the file's GeoKeys ({file:?}) contradicts the configured override ({configured:?})", .path.display())]
+    CrsConflict {
+        path: PathBuf,
+        file: Crs,
+        configured: Crs,
+    },
+}
+
+/// A GeoKey problem, before the file name is attached.
+#[derive(Debug, Clone, PartialEq)]
+pub struct KeyError {
+    /// Key name and number, e.g. "ProjLinearUnitsGeoKey (3076)".
+    pub key: String,
+    pub reason: String,
+}
+
+impl KeyError {
+    fn new(id: u16, reason: impl Into<String>) -> Self {
+        Self {
+            key: key_label(id),
+            reason: reason.into(),
+        }
+    }
+}
+
+/// A tag problem, before the file name is attached.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TagError {
+    /// Tag name and number, e.g. "ModelPixelScaleTag (33550)".
+    pub tag: String,
+    pub reason: String,
+}
+
+impl TagError {
+    fn new(tag: &str, reason: impl Into<String>) -> Self {
+        Self {
+            tag: tag.to_string(),
+            reason: reason.into(),
+        }
+    }
+}
+
+const TAG_PIXEL_SCALE: &str = "ModelPixelScaleTag (33550)";
+const TAG_TIEPOINT: &str = "ModelTiepointTag (33922)";
+const TAG_TRANSFORMATION: &str = "ModelTransformationTag (34264)";
+const TAG_KEY_DIRECTORY: &str = "GeoKeyDirectoryTag (34735)";
+const TAG_DOUBLE_PARAMS: &str = "GeoDoubleParamsTag (34736)";
+const TAG_ASCII_PARAMS: &str = "GeoAsciiParamsTag (34737)";
+const TAG_NODATA: &str = "GDAL_NODATA (42113)";
+
+/// GeoKey ids (GeoTIFF 1.1, section 7).
+pub mod key {
+    pub const GT_MODEL_TYPE: u16 = 1024;
+    pub const GT_RASTER_TYPE: u16 = 1025;
+    pub const GT_CITATION: u16 = 1026;
+    pub const GEOGRAPHIC_TYPE: u16 = 2048;
+    pub const GEOG_CITATION: u16 = 2049;
+    pub const GEOG_GEODETIC_DATUM: u16 = 2050;
+    pub const GEOG_PRIME_MERIDIAN: u16 = 2051;
+    pub const GEOG_LINEAR_UNITS: u16 = 2052;
+    pub const GEOG_ANGULAR_UNITS: u16 = 2054;
+    pub const GEOG_ELLIPSOID: u16 = 2056;
+    pub const GEOG_SEMI_MAJOR_AXIS: u16 = 2057;
+    pub const GEOG_SEMI_MINOR_AXIS: u16 = 2058;
+    pub const GEOG_INV_FLATTENING: u16 = 2059;
+    pub const GEOG_PRIME_MERIDIAN_LONG: u16 = 2061;
+    pub const PROJECTED_CS_TYPE: u16 = 3072;
+    pub const PROJ_CITATION: u16 = 3073;
+    pub const PROJECTION: u16 = 3074;
+    pub const PROJ_COORD_TRANS: u16 = 3075;
+    pub const PROJ_LINEAR_UNITS: u16 = 3076;
+    pub const PROJ_NAT_ORIGIN_LONG: u16 = 3080;
+    pub const PROJ_NAT_ORIGIN_LAT: u16 = 3081;
+    pub const PROJ_FALSE_EASTING: u16 = 3082;
+    pub const PROJ_FALSE_NORTHING: u16 = 3083;
+    pub const PROJ_CENTER_LONG: u16 = 3088;
+    pub const PROJ_CENTER_LAT: u16 = 3089;
+    pub const PROJ_CENTER_EASTING: u16 = 3090;
+    pub const PROJ_CENTER_NORTHING: u16 = 3091;
+    pub const PROJ_SCALE_AT_NAT_ORIGIN: u16 = 3092;
+    pub const PROJ_SCALE_AT_CENTER: u16 = 3093;
+    pub const VERTICAL_CS_TYPE: u16 = 4096;
+    pub const VERTICAL_UNITS: u16 = 4099;
+}
+
+/// Human-readable "Name (id)" label of a GeoKey for error messages.
+pub fn key_label(id: u16) -> String {
+    let name = match id {
+        key::GT_MODEL_TYPE => "GTModelTypeGeoKey",
+        key::GT_RASTER_TYPE => "GTRasterTypeGeoKey",
+        key::GT_CITATION => "GTCitationGeoKey",
+        key::GEOGRAPHIC_TYPE => "GeographicTypeGeoKey",
+        key::GEOG_CITATION => "GeogCitationGeoKey",
+        key::GEOG_GEODETIC_DATUM => "GeogGeodeticDatumGeoKey",
+        key::GEOG_PRIME_MERIDIAN => "GeogPrimeMeridianGeoKey",
+        key::GEOG_LINEAR_UNITS => "GeogLinearUnitsGeoKey",
+        key::GEOG_ANGULAR_UNITS => "GeogAngularUnitsGeoKey",
+        key::GEOG_ELLIPSOID => "GeogEllipsoidGeoKey",
+        key::GEOG_SEMI_MAJOR_AXIS => "GeogSemiMajorAxisGeoKey",
+        key::GEOG_SEMI_MINOR_AXIS => "GeogSemiMinorAxisGeoKey",
+        key::GEOG_INV_FLATTENING => "GeogInvFlatteningGeoKey",
+        key::GEOG_PRIME_MERIDIAN_LONG => "GeogPrimeMeridianLongGeoKey",
+        key::PROJECTED_CS_TYPE => "ProjectedCSTypeGeoKey",
+        key::PROJ_CITATION => "PCSCitationGeoKey",
+        key::PROJECTION => "ProjectionGeoKey",
+        key::PROJ_COORD_TRANS => "ProjCoordTransGeoKey",
+        key::PROJ_LINEAR_UNITS => "ProjLinearUnitsGeoKey",
+        key::PROJ_NAT_ORIGIN_LONG => "ProjNatOriginLongGeoKey",
+        key::PROJ_NAT_ORIGIN_LAT => "ProjNatOriginLatGeoKey",
+        key::PROJ_FALSE_EASTING => "ProjFalseEastingGeoKey",
+        key::PROJ_FALSE_NORTHING => "ProjFalseNorthingGeoKey",
+        key::PROJ_CENTER_LONG => "ProjCenterLongGeoKey",
+        key::PROJ_CENTER_LAT => "ProjCenterLatGeoKey",
+        key::PROJ_CENTER_EASTING => "ProjCenterEastingGeoKey",
+        key::PROJ_CENTER_NORTHING => "ProjCenterNorthingGeoKey",
+        key::PROJ_SCALE_AT_NAT_ORIGIN => "ProjScaleAtNatOriginGeoKey",
+        key::PROJ_SCALE_AT_CENTER => "ProjScaleAtCenterGeoKey",
+        key::VERTICAL_CS_TYPE => "VerticalCSTypeGeoKey",
+        key::VERTICAL_UNITS => "VerticalUnitsGeoKey",
+        _ => "GeoKey",
+    };
+    format!("{name} ({id})")
+}
+
+/// Value of one GeoKey.
+#[derive(Debug, Clone, PartialEq)]
+pub enum GeoKeyValue {
+    /// A SHORT stored in the directory itself (TIFFTagLocation 0), or SHORTs stored in the
+    /// directory tag (location 34735).
+    Shorts(Vec<u16>),
+    /// DOUBLEs from GeoDoubleParamsTag.
+    Doubles(Vec<f64>),
+    /// ASCII from GeoAsciiParamsTag, with the trailing '|' separator removed.
+    Ascii(String),
+}
+
+/// Parsed GeoKeyDirectory.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct GeoKeys {
+    /// (KeyDirectoryVersion, KeyRevision, MinorRevision).
+    pub version: (u16, u16, u16),
+    pub entries: BTreeMap<u16, GeoKeyValue>,
+}
+
+/// Pixel-is-area vs pixel-is-point (GTRasterTypeGeoKey).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RasterType {
+    /// Raster (0,0) is the top-left corner of the first pixel (GeoTIFF default).
+    PixelIsArea,
+    /// Raster (0,0) is the centre of the first pixel.
+    PixelIsPoint,
+}
+
+impl GeoKeys {
+    /// Parses a GeoKeyDirectoryTag with its parameter tags. Fails (naming the directory or the
+    /// offending key) on a malformed directory; entries with an unknown location tag are skipped.
+    pub fn parse(
+        directory: &[u16],
+        doubles: Option<&[f64]>,
+        ascii: Option<&str>,
+    ) -> Result<Self, TagError> {
+        if directory.len() < 4 {
+            return Err(TagError::new(
+                TAG_KEY_DIRECTORY,
+                format!("{} values, need at least the 4-value header", directory.len()),
+            ));
+        }
+        if directory[0] != 1 {
+            return Err(TagError::new(
+                TAG_KEY_DIRECTORY,
+                format!("KeyDirectoryVersion {} is not 1", directory[0]),
+            ));
+        }
+        let n = usize::from(directory[3]);
+        if directory.len() < 4 + 4 * n {
+            return Err(TagError::new(
+                TAG_KEY_DIRECTORY,
+                format!(
+                    "declares {n} keys but holds only {} values (need {})",
+                    directory.len(),
+                    4 + 4 * n
+                ),
+            ));
+        }
+        let mut keys = GeoKeys {
+            version: (directory[0], directory[1], directory[2]),
+            entries: BTreeMap::new(),
+        };
+        for e in directory[4..4 + 4 * n].chunks_exact(4) {
+            let (id, loc, count, off) = (e[0], e[1], usize::from(e[2]), usize::from(e[3]));
+            let value = match loc {
+                0 => GeoKeyValue::Shorts(vec![e[3]]),
+                34735 => {
+                    let v = directory.get(off..off + count).ok_or_else(|| {
+                        TagError::new(
+                            TAG_KEY_DIRECTORY,
+                            format!("{}: SHORT values {off}..{} out of range", key_label(id), off + count),
+                        )
+                    })?;
+                    GeoKeyValue::Shorts(v.to_vec())
+                }
+                34736 => {
+                    let v = doubles
+                        .and_then(|d| d.get(off..off + count))
+                        .ok_or_else(|| {
+                            TagError::new(
+                                TAG_DOUBLE_PARAMS,
+                                format!(
+                                    "{}: values {off}..{} missing (tag absent or too short)",
+                                    key_label(id),
+                                    off + count
+                                ),
+                            )
+                        })?;
+                    GeoKeyValue::Doubles(v.to_vec())
+                }
+                34737 => {
+                    let v = ascii
+                        .and_then(|a| a.as_bytes().get(off..off + count))
+                        .ok_or_else(|| {
+                            TagError::new(
+                                TAG_ASCII_PARAMS,
+                                format!(
+                                    "{}: characters {off}..{} missing (tag absent or too short)",
+                                    key_label(id),
+                                    off + count
+                                ),
+                            )
+                        })?;
+                    let s = String::from_utf8_lossy(v);
+                    GeoKeyValue::Ascii(s.trim_end_matches(['|', '\0']).to_string())
+                }
+                other => {
+                    tracing::warn!(
+                        key = %key_label(id),
+                        location = other,
+                        "GeoKey stored in an unknown tag; ignored"
+                    );
+                    continue;
+                }
+            };
+            keys.entries.insert(id, value);
+        }
+        Ok(keys)
+    }
+
+    /// True when the key is present.
+    pub fn has(&self, id: u16) -> bool {
+        self.entries.contains_key(&id)
+    }
+
+    /// A single-SHORT key: `Ok(None)` when absent, error when present with another type or count.
+    pub fn short(&self, id: u16) -> Result<Option<u16>, KeyError> {
+        match self.entries.get(&id) {
+            None => Ok(None),
+            Some(GeoKeyValue::Shorts(v)) if v.len() == 1 => Ok(Some(v[0])),
+            Some(other) => Err(KeyError::new(
+                id,
+                format!("expected one SHORT, found {other:?}"),
+            )),
+        }
+    }
+
+    /// A single-DOUBLE key: `Ok(None)` when absent, error when present with another type or count
+    /// or a non-finite value.
+    pub fn double(&self, id: u16) -> Result<Option<f64>, KeyError> {
+        match self.entries.get(&id) {
+            None => Ok(None),
+            Some(GeoKeyValue::Doubles(v)) if v.len() == 1 && v[0].is_finite() => Ok(Some(v[0])),
+            Some(other) => Err(KeyError::new(
+                id,
+                format!("expected one finite DOUBLE, found {other:?}"),
+            )),
+        }
+    }
+
+    /// Raster type (GTRasterTypeGeoKey), PixelIsArea when absent.
+    pub fn raster_type(&self) -> Result<RasterType, KeyError> {
+        match self.short(key::GT_RASTER_TYPE)? {
+            None | Some(1) => Ok(RasterType::PixelIsArea),
+            Some(2) => Ok(RasterType::PixelIsPoint),
+            Some(v) => Err(KeyError::new(
+                key::GT_RASTER_TYPE,
+                format!("value {v} is neither RasterPixelIsArea (1) nor RasterPixelIsPoint (2)"),
+            )),
+        }
+    }
+
+    /// Maps the keys onto a [`Crs`] (rules in the module doc).
+    pub fn crs(&self) -> Result<Crs, KeyError> {
+        let model = match self.short(key::GT_MODEL_TYPE)? {
+            Some(m) => m,
+            None if self.has(key::PROJECTED_CS_TYPE) || self.has(key::PROJECTION) => 1,
+            None if self.has(key::GEOGRAPHIC_TYPE) => 2,
+            None => {
+                return Err(KeyError::new(
+                    key::GT_MODEL_TYPE,
+                    "missing, and neither ProjectedCSTypeGeoKey nor GeographicTypeGeoKey is present",
+                ));
+            }
+        };
+        match model {
+            1 => self.projected_crs(),
+            2 => {
+                self.check_wgs84_degrees()?;
+                Ok(Crs::Geographic)
+            }
+            3 => Err(KeyError::new(
+                key::GT_MODEL_TYPE,
+                "ModelTypeGeocentric (3) is not supported",
+            )),
+            v => Err(KeyError::new(
+                key::GT_MODEL_TYPE,
+                format!("unknown model type {v}"),
+            )),
+        }
+    }
+
+    fn projected_crs(&self) -> Result<Crs, KeyError> {
+        let pcs = self.short(key::PROJECTED_CS_TYPE)?;
+        let crs = match pcs {
+            Some(code @ 32601..=32660) => Crs::Utm {
+                zone: (code - 32600) as u8, // ok: 1..=60 fits
+                north: true,
+            },
+            Some(code @ 32701..=32760) => Crs::Utm {
+                zone: (code - 32700) as u8, // ok: 1..=60 fits
+                north: false,
+            },
+            Some(code @ 26901..=26923) => Crs::Utm {
+                zone: (code - 26900) as u8, // ok: 1..=23 fits
+                north: true,
+            },
+            Some(3857 | 3785) => Crs::WebMercator,
+            Some(32767) | None => return self.user_defined_projected(),
+            Some(code) => {
+                return Err(KeyError::new(
+                    key::PROJECTED_CS_TYPE,
+                    format!(
+                        "EPSG:{code} is not supported (supported: 326zz, 327zz, 269zz, 3857, \
+                         or user-defined 32767 transverse Mercator on WGS84)"
+                    ),
+                ));
+            }
+        };
+        self.check_linear_units_metres(false)?;
+        Ok(crs)
+    }
+
+    fn user_defined_projected(&self) -> Result<Crs, KeyError> {
+        self.check_wgs84_degrees()?;
+        self.check_linear_units_metres(true)?;
+        match self.short(key::PROJECTION)? {
+            Some(code @ 16001..=16060) => {
+                return Ok(Crs::Utm {
+                    zone: (code - 16000) as u8, // ok: 1..=60 fits
+                    north: true,
+                });
+            }
+            Some(code @ 16101..=16160) => {
+                return Ok(Crs::Utm {
+                    zone: (code - 16100) as u8, // ok: 1..=60 fits
+                    north: false,
+                });
+            }
+            Some(32767) | None => {}
+            Some(code) => {
+                return Err(KeyError::new(
+                    key::PROJECTION,
+                    format!("projection code {code} is not supported (only UTM 160zz/161zz or user-defined 32767)"),
+                ));
+            }
+        }
+        match self.short(key::PROJ_COORD_TRANS)? {
+            Some(1) => {}
+            Some(code) => {
+                return Err(KeyError::new(
+                    key::PROJ_COORD_TRANS,
+                    format!("coordinate transformation {code} is not supported (only CT_TransverseMercator = 1)"),
+                ));
+            }
+            None => {
+                return Err(KeyError::new(
+                    key::PROJ_COORD_TRANS,
+                    "missing for a user-defined projection",
+                ));
+            }
+        }
+        let param = |primary: u16, alt: u16| -> Result<f64, KeyError> {
+            match self.double(primary)? {
+                Some(v) => Ok(v),
+                None => self.double(alt)?.ok_or_else(|| {
+                    KeyError::new(
+                        primary,
+                        format!("missing (nor {}) for a user-defined transverse Mercator", key_label(alt)),
+                    )
+                }),
+            }
+        };
+        let lon0_deg = param(key::PROJ_NAT_ORIGIN_LONG, key::PROJ_CENTER_LONG)?;
+        let lat0_deg = param(key::PROJ_NAT_ORIGIN_LAT, key::PROJ_CENTER_LAT)?;
+        let k0 = param(key::PROJ_SCALE_AT_NAT_ORIGIN, key::PROJ_SCALE_AT_CENTER)?;
+        let false_easting_m = param(key::PROJ_FALSE_EASTING, key::PROJ_CENTER_EASTING)?;
+        let false_northing_m = param(key::PROJ_FALSE_NORTHING, key::PROJ_CENTER_NORTHING)?;
+        if !(-180.0..=180.0).contains(&lon0_deg) {
+            return Err(KeyError::new(
+                key::PROJ_NAT_ORIGIN_LONG,
+                format!("{lon0_deg} deg is outside [-180, 180]"),
+            ));
+        }
+        if !(-90.0..=90.0).contains(&lat0_deg) {
+            return Err(KeyError::new(
+                key::PROJ_NAT_ORIGIN_LAT,
+                format!("{lat0_deg} deg is outside [-90, 90]"),
+            ));
+        }
+        if !(k0 > 0.5 && k0 < 2.0) {
+            return Err(KeyError::new(
+                key::PROJ_SCALE_AT_NAT_ORIGIN,
+                format!("scale factor {k0} is implausible (expected about 1)"),
+            ));
+        }
+        Ok(Crs::TransverseMercator {
+            lat0_deg,
+            lon0_deg,
+            k0,
+            false_easting_m,
+            false_northing_m,
+        })
+    }
+
+    /// ProjLinearUnitsGeoKey must be metres (9001). `required`: whether absence is an error.
+    fn check_linear_units_metres(&self, required: bool) -> Result<(), KeyError> {
+        match self.short(key::PROJ_LINEAR_UNITS)? {
+            Some(9001) => Ok(()),
+            None if !required => Ok(()),
+            None => Err(KeyError::new(
+                key::PROJ_LINEAR_UNITS,
+                "missing for a user-defined projection (must be metres, 9001)",
+            )),
+            Some(v) => Err(KeyError::new(
+                key::PROJ_LINEAR_UNITS,
+                format!("unit {v} is not metres (9001)"),
+            )),
+        }
+    }
+
+    /// The geographic CRS must be WGS84 (4326 or a user-defined one with the WGS84 datum or
+    /// ellipsoid), on Greenwich, with angles in degrees.
+    fn check_wgs84_degrees(&self) -> Result<(), KeyError> {
+        let gcs = self.short(key::GEOGRAPHIC_TYPE)?;
+        match gcs {
+            Some(4326) => {}
+            Some(32767) | None => {
+                let datum = self.short(key::GEOG_GEODETIC_DATUM)?;
+                let ellipsoid = self.short(key::GEOG_ELLIPSOID)?;
+                let axis = self.double(key::GEOG_SEMI_MAJOR_AXIS)?;
+                let inv_f = self.double(key::GEOG_INV_FLATTENING)?;
+                let semi_minor = self.double(key::GEOG_SEMI_MINOR_AXIS)?;
+                match (datum, ellipsoid) {
+                    (Some(6326), _) => {}
+                    (Some(d), _) if d != 32767 => {
+                        return Err(KeyError::new(
+                            key::GEOG_GEODETIC_DATUM,
+                            format!("datum EPSG:{d} is not WGS84 (6326)"),
+                        ));
+                    }
+                    (_, Some(7030)) => {}
+                    (_, Some(e)) if e != 32767 => {
+                        return Err(KeyError::new(
+                            key::GEOG_ELLIPSOID,
+                            format!("ellipsoid EPSG:{e} is not WGS84 (7030)"),
+                        ));
+                    }
+                    _ if axis.is_some() && (inv_f.is_some() || semi_minor.is_some()) => {}
+                    _ => {
+                        return Err(KeyError::new(
+                            key::GEOGRAPHIC_TYPE,
+                            if gcs.is_none() {
+                                "missing: the datum cannot be established (must be WGS84)"
+                            } else {
+                                "user-defined without a WGS84 datum, ellipsoid or semi-axes"
+                            },
+                        ));
+                    }
+                }
+            }
+            Some(code) => {
+                return Err(KeyError::new(
+                    key::GEOGRAPHIC_TYPE,
+                    format!("geographic CRS EPSG:{code} is not WGS84 (4326)"),
+                ));
+            }
+        }
+        // Explicit ellipsoid parameters must agree with WGS84 whatever the codes say.
+        if let Some(a) = self.double(key::GEOG_SEMI_MAJOR_AXIS)?
+            && (a - super::wgs84::A_M).abs() > 1e-3
+        {
+            return Err(KeyError::new(
+                key::GEOG_SEMI_MAJOR_AXIS,
+                format!("{a} m is not the WGS84 semi-major axis {}", super::wgs84::A_M),
+            ));
+        }
+        if let Some(inv_f) = self.double(key::GEOG_INV_FLATTENING)?
+            && (inv_f - 1.0 / super::wgs84::F).abs() > 1e-6
+        {
+            return Err(KeyError::new(
+                key::GEOG_INV_FLATTENING,
+                format!("{inv_f} is not the WGS84 inverse flattening {}", 1.0 / super::wgs84::F),
+            ));
+        }
+        if let Some(b) = self.double(key::GEOG_SEMI_MINOR_AXIS)?
+            && (b - super::wgs84::B_M).abs() > 1e-3
+        {
+            return Err(KeyError::new(
+                key::GEOG_SEMI_MINOR_AXIS,
+                format!("{b} m is not the WGS84 semi-minor axis {}", super::wgs84::B_M),
+            ));
+        }
+        match self.short(key::GEOG_PRIME_MERIDIAN)? {
+            None | Some(8901) => {}
+            Some(pm) => {
+                return Err(KeyError::new(
+                    key::GEOG_PRIME_MERIDIAN,
+                    format!("prime meridian {pm} is not Greenwich (8901)"),
+                ));
+            }
+        }
+        if let Some(pm) = self.double(key::GEOG_PRIME_MERIDIAN_LONG)?
+            && pm != 0.0
+        {
+            return Err(KeyError::new(
+                key::GEOG_PRIME_MERIDIAN_LONG,
+                format!("prime meridian longitude {pm} is not 0"),
+            ));
+        }
+        match self.short(key::GEOG_ANGULAR_UNITS)? {
+            Some(9102) => Ok(()),
+            None if gcs == Some(4326) => Ok(()), // EPSG:4326 implies degrees
+            None => Err(KeyError::new(
+                key::GEOG_ANGULAR_UNITS,
+                "missing for a user-defined geographic CRS (must be degrees, 9102)",
+            )),
+            Some(u) => Err(KeyError::new(
+                key::GEOG_ANGULAR_UNITS,
+                format!("unit {u} is not degrees (9102)"),
+            )),
+        }
+    }
+}
+
+/// Builds the geotransform (corner convention) from the georeferencing tags.
+/// Precedence as in GDAL: pixel scale + first tiepoint, else the model transformation.
+pub fn geotransform_from_tags(
+    pixel_scale: Option<&[f64]>,
+    tiepoints: Option<&[f64]>,
+    transformation: Option<&[f64]>,
+    raster_type: RasterType,
+) -> Result<GeoTransform, TagError> {
+    let coeffs = match (pixel_scale, tiepoints, transformation) {
+        (Some(sc), Some(tp), _) => {
+            if sc.len() < 2 {
+                return Err(TagError::new(
+                    TAG_PIXEL_SCALE,
+                    format!("{} values, need at least 2", sc.len()),
+                ));
+            }
+            if tp.len() < 6 {
+                return Err(TagError::new(
+                    TAG_TIEPOINT,
+                    format!("{} values, need at least 6", tp.len()),
+                ));
+            }
+            let (sx, sy) = (sc[0], sc[1]);
+            if !(sx.is_finite() && sy.is_finite()) || sx == 0.0 || sy == 0.0 {
+                return Err(TagError::new(
+                    TAG_PIXEL_SCALE,
+                    format!("pixel scale ({sx}, {sy}) must be finite and non-zero"),
+                ));
+            }
+            if tp[..6].iter().any(|v| !v.is_finite()) {
+                return Err(TagError::new(TAG_TIEPOINT, "non-finite value"));
+            }
+            if tp.len() > 6 {
+                tracing::warn!(
+                    tiepoints = tp.len() / 6,
+                    "several tiepoints with a pixel scale; using the first one (as GDAL does)"
+                );
+            }
+            let (i, j, x, y) = (tp[0], tp[1], tp[3], tp[4]);
+            [x - i * sx, sx, 0.0, y + j * sy, 0.0, -sy]
+        }
+        (_, _, Some(m)) => {
+            if m.len() < 16 {
+                return Err(TagError::new(
+                    TAG_TRANSFORMATION,
+                    format!("{} values, need 16 (4x4 matrix)", m.len()),
+                ));
+            }
+            [m[3], m[0], m[1], m[7], m[4], m[5]]
+        }
+        (None, Some(tp), None) if tp.len() > 6 => {
+            return Err(TagError::new(
+                TAG_PIXEL_SCALE,
+                "missing: ground control points (several tiepoints without a pixel scale) are not supported",
+            ));
+        }
+        (None, _, None) => {
+            return Err(TagError::new(
+                TAG_PIXEL_SCALE,
+                "missing: no georeferencing (neither ModelPixelScaleTag + ModelTiepointTag nor ModelTransformationTag)",
+            ));
+        }
+        (Some(_), None, None) => {
+            return Err(TagError::new(
+                TAG_TIEPOINT,
+                "missing (a pixel scale alone does not locate the raster)",
+            ));
+        }
+    };
+    let [mut c0, c1, c2, mut c3, c4, c5] = coeffs;
+    if raster_type == RasterType::PixelIsPoint {
+        c0 -= 0.5 * (c1 + c2);
+        c3 -= 0.5 * (c4 + c5);
+    }
+    GeoTransform::new([c0, c1, c2, c3, c4, c5]).map_err(|e| {
+        TagError::new(
+            if pixel_scale.is_some() && tiepoints.is_some() {
+                TAG_PIXEL_SCALE
+            } else {
+                TAG_TRANSFORMATION
+            },
+            e.to_string(),
+        )
+    })
+}
+
+/// Two CRSs denote the same system (transverse Mercator parameters compared with tolerances of
+/// 1e-9 deg, 1e-9 in scale and 1 mm).
+pub fn crs_equivalent(a: &Crs, b: &Crs) -> bool {
+    match (a, b) {
+        (
+            Crs::TransverseMercator {
+                lat0_deg: a0,
+                lon0_deg: a1,
+                k0: a2,
+                false_easting_m: a3,
+                false_northing_m: a4,
+            },
+            Crs::TransverseMercator {
+                lat0_deg: b0,
+                lon0_deg: b1,
+                k0: b2,
+                false_easting_m: b3,
+                false_northing_m: b4,
+            },
+        ) => {
+            (a0 - b0).abs() <= 1e-9
+                && (a1 - b1).abs() <= 1e-9
+                && (a2 - b2).abs() <= 1e-9
+                && (a3 - b3).abs() <= 1e-3
+                && (a4 - b4).abs() <= 1e-3
+        }
+        _ => a == b,
+    }
+}
+
+/// Loads a GeoTIFF (first image) as a [`Raster`]. `crs_override` is used when the file's CRS keys
+/// are missing or not understood; see the module doc.
+pub fn load_geotiff(path: &Path, crs_override: Option<Crs>) -> Result<Raster, GeoTiffError> {
+    let file = File::open(path).map_err(|source| GeoTiffError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    read_geotiff(BufReader::new(file), path, crs_override)
+}
+
+/// Like [`load_geotiff`] but from any seekable reader; `path` is only used in error messages.
+pub fn read_geotiff<R: Read + Seek>(
+    reader: R,
+    path: &Path,
+    crs_override: Option<Crs>,
+) -> Result<Raster, GeoTiffError> {
+    // Defence in depth: the `tiff` crate must not panic on malformed input, but if it does we turn
+    // it into an error instead of bringing the daemon down.
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        read_geotiff_inner(reader, path, crs_override)
+    })) {
+        Ok(r) => r,
+        Err(_) => Err(GeoTiffError::Decode {
+            path: path.to_path_buf(),
+            reason: "the TIFF decoder panicked on this (malformed) file".into(),
+        }),
+    }
+}
+
+fn read_geotiff_inner<R: Read + Seek>(
+    reader: R,
+    path: &Path,
+    crs_override: Option<Crs>,
+) -> Result<Raster, GeoTiffError> {
+    let decode_err = |e: tiff::TiffError| GeoTiffError::Decode {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    };
+    let tag_err = |e: TagError| GeoTiffError::Tag {
+        path: path.to_path_buf(),
+        tag: e.tag,
+        reason: e.reason,
+    };
+    let key_err = |e: KeyError| GeoTiffError::GeoKey {
+        path: path.to_path_buf(),
+        key: e.key,
+        reason: e.reason,
+    };
+    let mut limits = Limits::default();
+    limits.decoding_buffer_size = MAX_DECODED_BYTES;
+    limits.intermediate_buffer_size = MAX_DECODED_BYTES;
+    let mut dec = Decoder::new(reader).map_err(decode_err)?.with_limits(limits);
+
+    // --- georeferencing tags (read before the pixels so a bad file fails fast) ---
+    let f64_tag = |dec: &mut Decoder<R>, tag: Tag, name: &str| -> Result<Option<Vec<f64>>, GeoTiffError> {
+        match dec.find_tag(tag) {
+            Ok(None) => Ok(None),
+            Ok(Some(v)) => v.into_f64_vec().map(Some).map_err(|e| {
+                tag_err(TagError::new(name, format!("not a list of DOUBLEs: {e}")))
+            }),
+            Err(e) => Err(tag_err(TagError::new(name, e.to_string()))),
+        }
+    };
+    let pixel_scale = f64_tag(&mut dec, Tag::ModelPixelScaleTag, TAG_PIXEL_SCALE)?;
+    let tiepoints = f64_tag(&mut dec, Tag::ModelTiepointTag, TAG_TIEPOINT)?;
+    let transformation = f64_tag(&mut dec, Tag::ModelTransformationTag, TAG_TRANSFORMATION)?;
+    let doubles = f64_tag(&mut dec, Tag::GeoDoubleParamsTag, TAG_DOUBLE_PARAMS)?;
+    let ascii_tag = |dec: &mut Decoder<R>, tag: Tag, name: &str| -> Result<Option<String>, GeoTiffError> {
+        match dec.find_tag(tag) {
+            Ok(None) => Ok(None),
+            Ok(Some(v)) => v
+                .into_string()
+                .map(Some)
+                .map_err(|e| tag_err(TagError::new(name, format!("not ASCII: {e}")))),
+            Err(e) => Err(tag_err(TagError::new(name, e.to_string()))),
+        }
+    };
+    let ascii = ascii_tag(&mut dec, Tag::GeoAsciiParamsTag, TAG_ASCII_PARAMS)?;
+    let nodata_text = ascii_tag(&mut dec, Tag::GdalNodata, TAG_NODATA)?;
+    let directory = match dec.find_tag(Tag::GeoKeyDirectoryTag) {
+        Ok(None) => None,
+        Ok(Some(v)) => Some(v.into_u16_vec().map_err(|e| {
+            tag_err(TagError::new(TAG_KEY_DIRECTORY, format!("not a list of SHORTs: {e}")))
+        })?),
+        Err(e) => return Err(tag_err(TagError::new(TAG_KEY_DIRECTORY, e.to_string()))),
+    };
+
+    let keys = match &directory {
+        Some(d) => Some(GeoKeys::parse(d, doubles.as_deref(), ascii.as_deref()).map_err(tag_err)?),
+        None => None,
+    };
+    let raster_type = match &keys {
+        Some(k) => k.raster_type().map_err(key_err)?,
+        None => RasterType::PixelIsArea,
+    };
+    let transform = geotransform_from_tags(
+        pixel_scale.as_deref(),
+        tiepoints.as_deref(),
+        transformation.as_deref(),
+        raster_type,
+    )
+    .map_err(tag_err)?;
+
+    let file_crs = match &keys {
+        Some(k) => k.crs(),
+        None => Err(KeyError {
+            key: TAG_KEY_DIRECTORY.to_string(),
+            reason: "missing: the file has no GeoKeys".into(),
+        }),
+    };
+    let crs = match (file_crs, crs_override) {
+        (Ok(c), None) => c,
+        (Ok(c), Some(o)) if crs_equivalent(&c, &o) => c,
+        (Ok(c), Some(o)) => {
+            return Err(GeoTiffError::CrsConflict {
+                path: path.to_path_buf(),
+                file: c,
+                configured: o,
+            });
+        }
+        (Err(e), Some(o)) => {
+            tracing::warn!(
+                file = %path.display(),
+                key = %e.key,
+                reason = %e.reason,
+                crs = ?o,
+                "GeoKeys not usable; using the configured CRS override"
+            );
+            o
+        }
+        (Err(e), None) => return Err(key_err(e)),
+    };
+
+    let nodata = match nodata_text {
+        None => None,
+        Some(t) => {
+            let t = t.trim_matches(|c: char| c == '\0' || c.is_whitespace());
+            let v: f64 = t.parse().map_err(|_| {
+                tag_err(TagError::new(TAG_NODATA, format!("'{t}' is not a number")))
+            })?;
+            Some(v)
+        }
+    };
+
+    // --- pixels ---
+    let (w, h) = dec.dimensions().map_err(decode_err)?;
+    let (width, height) = (w as usize, h as usize);
+    let bands = dec
+        .find_tag_unsigned::<u16>(Tag::SamplesPerPixel)
+        .map_err(|e| tag_err(TagError::new("SamplesPerPixel (277)", e.to_string())))?
+        .unwrap_or(1) as usize;
+    let planar = dec
+        .find_tag_unsigned::<u16>(Tag::PlanarConfiguration)
+        .map_err(|e| tag_err(TagError::new("PlanarConfiguration (284)", e.to_string())))?
+        .unwrap_or(1);
+    let pixels = width
+        .checked_mul(height)
+        .filter(|&n| n > 0 && bands > 0)
+        .ok_or_else(|| GeoTiffError::Decode {
+            path: path.to_path_buf(),
+            reason: format!("invalid dimensions {width} x {height} x {bands}"),
+        })?;
+    let mut result = DecodingResult::U8(Vec::new());
+    dec.read_image_to_buffer(&mut result).map_err(decode_err)?;
+
+    let expected = pixels * bands;
+    let planar = planar == 2 && bands > 1;
+    let check_len = |n: usize| -> Result<(), GeoTiffError> {
+        if n == expected {
+            Ok(())
+        } else {
+            Err(GeoTiffError::Decode {
+                path: path.to_path_buf(),
+                reason: format!(
+                    "decoded {n} samples, expected {expected} ({width} x {height} x {bands} bands)"
+                ),
+            })
+        }
+    };
+    let to_f32 = |v: Vec<f32>| -> Result<RasterData, GeoTiffError> {
+        check_len(v.len())?;
+        Ok(RasterData::F32(if planar { interleave(&v, pixels, bands) } else { v }))
+    };
+    let (data, source_type) = match result {
+        DecodingResult::U8(v) => {
+            check_len(v.len())?;
+            let v = if planar { interleave(&v, pixels, bands) } else { v };
+            (RasterData::U8(v), SampleType::U8)
+        }
+        DecodingResult::U16(v) => {
+            check_len(v.len())?;
+            let v = if planar { interleave(&v, pixels, bands) } else { v };
+            (RasterData::U16(v), SampleType::U16)
+        }
+        DecodingResult::I16(v) => (to_f32(v.into_iter().map(f32::from).collect())?, SampleType::I16),
+        DecodingResult::I8(v) => (to_f32(v.into_iter().map(f32::from).collect())?, SampleType::I16),
+        DecodingResult::U32(v) => (to_f32(v.into_iter().map(|s| s as f32).collect())?, SampleType::U32),
+        DecodingResult::I32(v) => (to_f32(v.into_iter().map(|s| s as f32).collect())?, SampleType::I32),
+        DecodingResult::F32(v) => (to_f32(v)?, SampleType::F32),
+        DecodingResult::F64(v) => (to_f32(v.into_iter().map(|s| s as f32).collect())?, SampleType::F64),
+        DecodingResult::F16(v) => (to_f32(v.into_iter().map(f32::from).collect())?, SampleType::F32),
+        DecodingResult::U64(_) | DecodingResult::I64(_) => {
+            return Err(GeoTiffError::Tag {
+                path: path.to_path_buf(),
+                tag: "BitsPerSample (258)".into(),
+                reason: "64-bit integer samples are not supported".into(),
+            });
+        }
+    };
+    let raster = Raster::new(width, height, bands, data, transform, crs, nodata)
+        .map_err(|e| GeoTiffError::Decode {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?
+        .with_source_type(source_type);
+    tracing::debug!(
+        file = %path.display(),
+        width, height, bands, ?source_type, ?crs, transform = ?transform.coeffs(), ?nodata,
+        "GeoTIFF loaded"
+    );
+    Ok(raster)
+}
+
+/// Planar (band-sequential) samples -> band-interleaved by pixel.
+fn interleave<T: Copy + Default>(planes: &[T], pixels: usize, bands: usize) -> Vec<T> {
+    let mut out = vec![T::default(); pixels * bands];
+    for (b, plane) in planes.chunks_exact(pixels).enumerate() {
+        for (p, &s) in plane.iter().enumerate() {
+            out[p * bands + b] = s;
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tiff::encoder::colortype::{self, ColorType};
+    use tiff::encoder::compression::DeflateLevel;
+    use tiff::encoder::{Compression, TiffEncoder, TiffValue};
+
+    /// A tag to write into a synthetic file.
+    enum TagVal {
+        F64(Vec<f64>),
+        U16(Vec<u16>),
+        Ascii(&'static str),
+    }
+
+    fn write_tiff<C: ColorType>(
+        path: &Path,
+        w: u32,
+        h: u32,
+        data: &[C::Inner],
+        tags: &[(Tag, TagVal)],
+        compression: Compression,
+    ) where
+        [C::Inner]: TiffValue,
+    {
+        let file = File::create(path).unwrap();
+        let mut enc = TiffEncoder::new(file)
+            .unwrap()
+            .with_compression(compression);
+        let mut img = enc.new_image::<C>(w, h).unwrap();
+        for (tag, v) in tags {
+            match v {
+                TagVal::F64(v) => img.encoder().write_tag(*tag, &v[..]).unwrap(),
+                TagVal::U16(v) => img.encoder().write_tag(*tag, &v[..]).unwrap(),
+                TagVal::Ascii(s) => img.encoder().write_tag(*tag, *s).unwrap(),
+            }
+        }
+        img.write_data(data).unwrap();
+    }
+
+    /// GeoKeyDirectory from (id, location, count, value) entries.
+    fn dir(entries: &[(u16, u16, u16, u16)]) -> Vec<u16> {
+        let mut d = vec![1, 1, 0, entries.len() as u16];
+        for &(a, b, c, e) in entries {
+            d.extend_from_slice(&[a, b, c, e]);
+        }
+        d
+    }
+
+    fn utm_tags(pcs: u16, raster_type: u16) -> Vec<(Tag, TagVal)> {
+        vec![
+            (Tag::ModelPixelScaleTag, TagVal::F64(vec![2.0, 3.0, 0.0])),
+            (
+                Tag::ModelTiepointTag,
+                TagVal::F64(vec![0.0, 0.0, 0.0, 500_000.0, 4_000_000.0, 0.0]),
+            ),
+            (
+                Tag::GeoKeyDirectoryTag,
+                TagVal::U16(dir(&[
+                    (1024, 0, 1, 1),
+                    (1025, 0, 1, raster_type),
+                    (3072, 0, 1, pcs),
+                    (3076, 0, 1, 9001),
+                ])),
+            ),
+        ]
+    }
+
+    const TM_DOUBLES: [f64; 5] = [0.0, 25.0, 1.0, 0.0, 0.0];
+
+    /// The NGI files' user-defined transverse Mercator keys (lat0 0, lon0 25, k 1, FE/FN 0).
+    fn tm_keys(extra: &[(u16, u16, u16, u16)]) -> Vec<(u16, u16, u16, u16)> {
+        let mut k = vec![
+            (1024, 0, 1, 1),
+            (1025, 0, 1, 1),
+            (2048, 0, 1, 4326),
+            (2054, 0, 1, 9102),
+            (3072, 0, 1, 32767),
+            (3074, 0, 1, 32767),
+            (3075, 0, 1, 1),
+            (3076, 0, 1, 9001),
+            (3080, 34736, 1, 1),
+            (3081, 34736, 1, 0),
+            (3082, 34736, 1, 3),
+            (3083, 34736, 1, 4),
+            (3092, 34736, 1, 2),
+        ];
+        for e in extra {
+            k.retain(|x| x.0 != e.0);
+            k.push(*e);
+        }
+        k.sort();
+        k
+    }
+
+    fn crs_of(entries: &[(u16, u16, u16, u16)], doubles: &[f64]) -> Result<Crs, KeyError> {
+        GeoKeys::parse(&dir(entries), Some(doubles), Some("WGS 84|"))
+            .unwrap()
+            .crs()
+    }
+
+    #[test]
+    fn epsg_codes_map_to_crs() {
+        let one = |pcs: u16| crs_of(&[(1024, 0, 1, 1), (3072, 0, 1, pcs)], &[]);
+        assert_eq!(one(32610), Ok(Crs::Utm { zone: 10, north: true }));
+        assert_eq!(one(32760), Ok(Crs::Utm { zone: 60, north: false }));
+        assert_eq!(one(26914), Ok(Crs::Utm { zone: 14, north: true }));
+        assert_eq!(one(3857), Ok(Crs::WebMercator));
+        let e = one(2994).unwrap_err();
+        assert!(e.key.contains("ProjectedCSTypeGeoKey (3072)") && e.reason.contains("2994"), "{e:?}");
+        assert_eq!(
+            crs_of(&[(1024, 0, 1, 2), (2048, 0, 1, 4326)], &[]),
+            Ok(Crs::Geographic)
+        );
+        let e = crs_of(&[(1024, 0, 1, 2), (2048, 0, 1, 4269)], &[]).unwrap_err();
+        assert!(e.key.contains("GeographicTypeGeoKey"), "{e:?}");
+        // Feet on an EPSG-coded UTM is contradictory.
+        let e = crs_of(&[(1024, 0, 1, 1), (3072, 0, 1, 32610), (3076, 0, 1, 9002)], &[])
+            .unwrap_err();
+        assert!(e.key.contains("ProjLinearUnitsGeoKey (3076)"), "{e:?}");
+        // Model type inferred when missing; geocentric rejected.
+        assert_eq!(
+            crs_of(&[(3072, 0, 1, 32614)], &[]),
+            Ok(Crs::Utm { zone: 14, north: true })
+        );
+        assert!(crs_of(&[(1024, 0, 1, 3)], &[]).is_err());
+        assert!(crs_of(&[(1025, 0, 1, 1)], &[]).unwrap_err().key.contains("GTModelTypeGeoKey"));
+        // User-defined PCS with a UTM projection code.
+        assert_eq!(
+            crs_of(
+                &[(1024, 0, 1, 1), (2048, 0, 1, 4326), (3072, 0, 1, 32767), (3074, 0, 1, 16135), (3076, 0, 1, 9001)],
+                &[]
+            ),
+            Ok(Crs::Utm { zone: 35, north: false })
+        );
+    }
+
+    #[test]
+    fn user_defined_transverse_mercator() {
+        let expect = Crs::TransverseMercator {
+            lat0_deg: 0.0,
+            lon0_deg: 25.0,
+            k0: 1.0,
+            false_easting_m: 0.0,
+            false_northing_m: 0.0,
+        };
+        assert_eq!(crs_of(&tm_keys(&[]), &TM_DOUBLES), Ok(expect));
+        // Explicit WGS84 ellipsoid parameters (as in the NGI orthos) are fine.
+        let d = [0.0, 25.0, 1.0, 0.0, 0.0, 298.257223563, 6378137.0];
+        let k = tm_keys(&[(2057, 34736, 1, 6), (2059, 34736, 1, 5)]);
+        assert_eq!(crs_of(&k, &d), Ok(expect));
+        // Other parameters.
+        let d = [-30.0, 31.0, 0.9996, 500_000.0, 10_000_000.0];
+        assert_eq!(
+            crs_of(&tm_keys(&[]), &d),
+            Ok(Crs::TransverseMercator {
+                lat0_deg: -30.0,
+                lon0_deg: 31.0,
+                k0: 0.9996,
+                false_easting_m: 500_000.0,
+                false_northing_m: 10_000_000.0,
+            })
+        );
+        // Each failure names its key.
+        let cases: Vec<(Vec<(u16, u16, u16, u16)>, Vec<f64>, &str)> = vec![
+            (tm_keys(&[(3076, 0, 1, 9002)]), TM_DOUBLES.to_vec(), "ProjLinearUnitsGeoKey"),
+            (tm_keys(&[(2054, 0, 1, 9101)]), TM_DOUBLES.to_vec(), "GeogAngularUnitsGeoKey"),
+            (tm_keys(&[(2048, 0, 1, 4148)]), TM_DOUBLES.to_vec(), "GeographicTypeGeoKey"),
+            (
+                tm_keys(&[(2048, 0, 1, 32767), (2050, 0, 1, 6269)]),
+                TM_DOUBLES.to_vec(),
+                "GeogGeodeticDatumGeoKey",
+            ),
+            (
+                tm_keys(&[(2048, 0, 1, 32767), (2056, 0, 1, 7019)]),
+                TM_DOUBLES.to_vec(),
+                "GeogEllipsoidGeoKey",
+            ),
+            (
+                tm_keys(&[(2057, 34736, 1, 5)]),
+                vec![0.0, 25.0, 1.0, 0.0, 0.0, 6378206.4],
+                "GeogSemiMajorAxisGeoKey",
+            ),
+            (tm_keys(&[(3075, 0, 1, 8)]), TM_DOUBLES.to_vec(), "ProjCoordTransGeoKey"),
+            (tm_keys(&[(2051, 0, 1, 8903)]), TM_DOUBLES.to_vec(), "GeogPrimeMeridianGeoKey"),
+            (
+                tm_keys(&[]).into_iter().filter(|k| k.0 != 3080).collect(),
+                TM_DOUBLES.to_vec(),
+                "ProjNatOriginLongGeoKey",
+            ),
+            (
+                tm_keys(&[]).into_iter().filter(|k| k.0 != 3075).collect(),
+                TM_DOUBLES.to_vec(),
+                "ProjCoordTransGeoKey",
+            ),
+            (
+                tm_keys(&[]).into_iter().filter(|k| k.0 != 3076).collect(),
+                TM_DOUBLES.to_vec(),
+                "ProjLinearUnitsGeoKey",
+            ),
+            (tm_keys(&[]), vec![0.0, 25.0, 0.0, 0.0, 0.0], "ProjScaleAtNatOriginGeoKey"),
+            (tm_keys(&[(3080, 0, 1, 25)]), TM_DOUBLES.to_vec(), "ProjNatOriginLongGeoKey"),
+        ];
+        for (keys, doubles, name) in cases {
+            let e = crs_of(&keys, &doubles).unwrap_err();
+            assert!(e.key.contains(name), "expected {name}, got {e:?}");
+        }
+        // Missing angular units are fine when the GCS is EPSG:4326 (the NGI DEM), not otherwise.
+        let k: Vec<_> = tm_keys(&[]).into_iter().filter(|k| k.0 != 2054).collect();
+        assert_eq!(crs_of(&k, &TM_DOUBLES), Ok(expect));
+        let k: Vec<_> = tm_keys(&[(2048, 0, 1, 32767), (2050, 0, 1, 6326)])
+            .into_iter()
+            .filter(|k| k.0 != 2054)
+            .collect();
+        assert!(crs_of(&k, &TM_DOUBLES).unwrap_err().key.contains("GeogAngularUnitsGeoKey"));
+    }
+
+    #[test]
+    fn malformed_directories_are_errors() {
+        assert!(GeoKeys::parse(&[1, 1], None, None).is_err());
+        assert!(GeoKeys::parse(&[2, 1, 0, 0], None, None).is_err());
+        assert!(GeoKeys::parse(&[1, 1, 0, 2, 1024, 0, 1, 1], None, None).is_err());
+        let e = GeoKeys::parse(&dir(&[(3080, 34736, 1, 7)]), Some(&[1.0]), None).unwrap_err();
+        assert!(e.tag.contains("GeoDoubleParamsTag"), "{e:?}");
+        let e = GeoKeys::parse(&dir(&[(1026, 34737, 10, 0)]), None, None).unwrap_err();
+        assert!(e.tag.contains("GeoAsciiParamsTag"), "{e:?}");
+        let k = GeoKeys::parse(&dir(&[(1026, 34737, 6, 0), (1025, 0, 1, 7)]), None, Some("hello|x"))
+            .unwrap();
+        assert_eq!(
+            k.entries.get(&1026),
+            Some(&GeoKeyValue::Ascii("hello".into()))
+        );
+        assert!(k.raster_type().unwrap_err().key.contains("GTRasterTypeGeoKey"));
+    }
+
+    #[test]
+    fn geotransform_tags_and_pixel_is_point() {
+        let sc = [2.0, 3.0, 0.0];
+        let tp = [10.0, 20.0, 0.0, 1000.0, 5000.0, 0.0];
+        let gt = geotransform_from_tags(Some(&sc), Some(&tp), None, RasterType::PixelIsArea).unwrap();
+        assert_eq!(gt.coeffs(), [980.0, 2.0, 0.0, 5060.0, 0.0, -3.0]);
+        assert_eq!(gt.pixel_to_map(10.0, 20.0), (1000.0, 5000.0));
+        let gp = geotransform_from_tags(Some(&sc), Some(&tp), None, RasterType::PixelIsPoint).unwrap();
+        // Pixel-is-point: the tiepoint is the centre of pixel (10, 20).
+        assert_eq!(gp.pixel_to_map(10.5, 20.5), (1000.0, 5000.0));
+        let m = [
+            2.0, 0.5, 0.0, 100.0, //
+            0.25, -3.0, 0.0, 200.0, //
+            0.0, 0.0, 0.0, 0.0, //
+            0.0, 0.0, 0.0, 1.0,
+        ];
+        let gm = geotransform_from_tags(None, None, Some(&m), RasterType::PixelIsArea).unwrap();
+        assert_eq!(gm.coeffs(), [100.0, 2.0, 0.5, 200.0, 0.25, -3.0]);
+        let gmp = geotransform_from_tags(None, None, Some(&m), RasterType::PixelIsPoint).unwrap();
+        assert_eq!(gmp.pixel_to_map(0.5, 0.5), (100.0, 200.0));
+        // Errors name the tag.
+        let e = geotransform_from_tags(None, None, None, RasterType::PixelIsArea).unwrap_err();
+        assert!(e.tag.contains("33550"));
+        let e = geotransform_from_tags(Some(&[0.0, 1.0]), Some(&tp), None, RasterType::PixelIsArea)
+            .unwrap_err();
+        assert!(e.tag.contains("ModelPixelScaleTag"));
+        let e = geotransform_from_tags(Some(&sc), Some(&tp[..5]), None, RasterType::PixelIsArea)
+            .unwrap_err();
+        assert!(e.tag.contains("ModelTiepointTag"));
+        let e = geotransform_from_tags(None, None, Some(&m[..12]), RasterType::PixelIsArea)
+            .unwrap_err();
+        assert!(e.tag.contains("ModelTransformationTag"));
+        let gcps = [tp, tp].concat();
+        assert!(geotransform_from_tags(None, Some(&gcps), None, RasterType::PixelIsArea).is_err());
+    }
+
+    #[test]
+    fn loads_synthetic_files_of_each_sample_type() {
+        let dirp = tempfile::tempdir().unwrap();
+        let p = dirp.path().join("f32.tif");
+        let mut tags = utm_tags(32633, 1);
+        tags.push((Tag::GdalNodata, TagVal::Ascii("-9999")));
+        let data: Vec<f32> = (0..12).map(|v| v as f32 * 1.5).collect();
+        write_tiff::<colortype::Gray32Float>(
+            &p,
+            4,
+            3,
+            &data,
+            &tags,
+            Compression::Deflate(DeflateLevel::default()),
+        );
+        let r = load_geotiff(&p, None).unwrap();
+        assert_eq!((r.width(), r.height(), r.bands()), (4, 3, 1));
+        assert_eq!(r.crs(), Crs::Utm { zone: 33, north: true });
+        assert_eq!(r.transform().coeffs(), [500_000.0, 2.0, 0.0, 4_000_000.0, 0.0, -3.0]);
+        assert_eq!(r.nodata(), Some(-9999.0));
+        assert_eq!(r.source_type(), SampleType::F32);
+        assert_eq!(r.sample(3, 2, 0), Some(16.5));
+
+        // u16, LZW, pixel-is-point, ModelTransformation instead of scale + tiepoint.
+        let p = dirp.path().join("u16.tif");
+        let m = vec![
+            2.0, 0.0, 0.0, 500_000.0, 0.0, -2.0, 0.0, 4_000_000.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+            0.0, 1.0,
+        ];
+        let tags = vec![
+            (Tag::ModelTransformationTag, TagVal::F64(m)),
+            (
+                Tag::GeoKeyDirectoryTag,
+                TagVal::U16(dir(&[(1024, 0, 1, 1), (1025, 0, 1, 2), (3072, 0, 1, 32733)])),
+            ),
+        ];
+        let data: Vec<u16> = (0..6).map(|v| v * 1000).collect();
+        write_tiff::<colortype::Gray16>(&p, 3, 2, &data, &tags, Compression::Lzw);
+        let r = load_geotiff(&p, None).unwrap();
+        assert_eq!(r.crs(), Crs::Utm { zone: 33, north: false });
+        assert_eq!(r.pixel_centre_to_map(0, 0), (500_000.0, 4_000_000.0));
+        assert!(matches!(r.data(), RasterData::U16(_)));
+        assert_eq!(r.sample(2, 1, 0), Some(5000.0));
+
+        // i16, u8 RGB, f64, u32, i32: values survive.
+        let p = dirp.path().join("i16.tif");
+        write_tiff::<colortype::GrayI16>(&p, 2, 2, &[-5, 7, -32768, 32767], &utm_tags(32610, 1), Compression::Uncompressed);
+        let r = load_geotiff(&p, None).unwrap();
+        assert_eq!(r.source_type(), SampleType::I16);
+        assert_eq!(r.sample(0, 1, 0), Some(-32768.0));
+        let p = dirp.path().join("rgb.tif");
+        let rgb: Vec<u8> = (0..24).collect();
+        write_tiff::<colortype::RGB8>(&p, 4, 2, &rgb, &utm_tags(32610, 1), Compression::Packbits);
+        let r = load_geotiff(&p, None).unwrap();
+        assert_eq!(r.bands(), 3);
+        assert_eq!(r.sample(1, 1, 2), Some(((4 + 1) * 3 + 2) as f64));
+        let p = dirp.path().join("f64.tif");
+        write_tiff::<colortype::Gray64Float>(&p, 2, 2, &[0.25, -1e6, 3.5, 1e-3], &utm_tags(32610, 1), Compression::Lzw);
+        let r = load_geotiff(&p, None).unwrap();
+        assert_eq!(r.source_type(), SampleType::F64);
+        assert_eq!(r.sample(1, 0, 0), Some(-1e6));
+        let p = dirp.path().join("u32.tif");
+        write_tiff::<colortype::Gray32>(&p, 2, 1, &[7, 4_000_000], &utm_tags(32610, 1), Compression::Uncompressed);
+        assert_eq!(load_geotiff(&p, None).unwrap().sample(1, 0, 0), Some(4e6));
+        let p = dirp.path().join("i32.tif");
+        write_tiff::<colortype::GrayI32>(&p, 2, 1, &[-7, 40], &utm_tags(32610, 1), Compression::Uncompressed);
+        assert_eq!(load_geotiff(&p, None).unwrap().sample(0, 0, 0), Some(-7.0));
+    }
+
+    #[test]
+    fn crs_override_rules() {
+        let dirp = tempfile::tempdir().unwrap();
+        let utm10 = Crs::Utm { zone: 10, north: true };
+        // No GeoKeys at all: error naming the directory tag, or the override.
+        let p = dirp.path().join("nokeys.tif");
+        let tags = vec![
+            (Tag::ModelPixelScaleTag, TagVal::F64(vec![1.0, 1.0, 0.0])),
+            (Tag::ModelTiepointTag, TagVal::F64(vec![0.0, 0.0, 0.0, 1.0, 2.0, 0.0])),
+        ];
+        write_tiff::<colortype::Gray8>(&p, 2, 2, &[1, 2, 3, 4], &tags, Compression::Uncompressed);
+        let e = load_geotiff(&p, None).unwrap_err();
+        let msg = e.to_string();
+        assert!(msg.contains("nokeys.tif") && msg.contains("GeoKeyDirectoryTag (34735)"), "{msg}");
+        assert_eq!(load_geotiff(&p, Some(utm10)).unwrap().crs(), utm10);
+        // Unsupported EPSG code: the override is used.
+        let p = dirp.path().join("lcc.tif");
+        write_tiff::<colortype::Gray8>(&p, 2, 2, &[1, 2, 3, 4], &utm_tags(2994, 1), Compression::Uncompressed);
+        let msg = load_geotiff(&p, None).unwrap_err().to_string();
+        assert!(msg.contains("ProjectedCSTypeGeoKey (3072)") && msg.contains("2994"), "{msg}");
+        assert_eq!(load_geotiff(&p, Some(utm10)).unwrap().crs(), utm10);
+        // Understood keys contradicting the override: conflict. Agreeing: fine.
+        let p = dirp.path().join("utm.tif");
+        write_tiff::<colortype::Gray8>(&p, 2, 2, &[1, 2, 3, 4], &utm_tags(32611, 1), Compression::Uncompressed);
+        assert!(matches!(
+            load_geotiff(&p, Some(utm10)),
+            Err(GeoTiffError::CrsConflict { .. })
+        ));
+        assert!(load_geotiff(&p, Some(Crs::Utm { zone: 11, north: true })).is_ok());
+        // No georeferencing tags: error naming the tag, even with an override.
+        let p = dirp.path().join("nogeo.tif");
+        write_tiff::<colortype::Gray8>(&p, 2, 2, &[1, 2, 3, 4], &[], Compression::Uncompressed);
+        let msg = load_geotiff(&p, Some(utm10)).unwrap_err().to_string();
+        assert!(msg.contains("ModelPixelScaleTag (33550)"), "{msg}");
+        // Bad nodata text.
+        let p = dirp.path().join("badnodata.tif");
+        let mut tags = utm_tags(32610, 1);
+        tags.push((Tag::GdalNodata, TagVal::Ascii("none")));
+        write_tiff::<colortype::Gray8>(&p, 2, 2, &[1, 2, 3, 4], &tags, Compression::Uncompressed);
+        let msg = load_geotiff(&p, None).unwrap_err().to_string();
+        assert!(msg.contains("GDAL_NODATA (42113)"), "{msg}");
+    }
+
+    #[test]
+    fn truncated_and_non_tiff_files_are_errors() {
+        let dirp = tempfile::tempdir().unwrap();
+        let p = dirp.path().join("full.tif");
+        let data: Vec<f32> = (0..64 * 64).map(|v| (v % 97) as f32).collect();
+        write_tiff::<colortype::Gray32Float>(&p, 64, 64, &data, &utm_tags(32610, 1), Compression::Uncompressed);
+        let bytes = std::fs::read(&p).unwrap();
+        assert!(load_geotiff(&p, None).is_ok());
+        // Truncate at many lengths: always an error, never a panic.
+        for cut in [0usize, 3, 8, 20, 100, 1000, bytes.len() / 2, bytes.len() - 1] {
+            let q = dirp.path().join(format!("cut{cut}.tif"));
+            std::fs::write(&q, &bytes[..cut.min(bytes.len())]).unwrap();
+            let e = load_geotiff(&q, None).unwrap_err();
+            assert!(e.to_string().contains(&format!("cut{cut}.tif")), "{e}");
+        }
+        let q = dirp.path().join("text.tif");
+        std::fs::write(&q, b"this is not a TIFF file at all, just text\n").unwrap();
+        assert!(matches!(load_geotiff(&q, None), Err(GeoTiffError::Decode { .. })));
+        let q = dirp.path().join("missing.tif");
+        assert!(matches!(load_geotiff(&q, None), Err(GeoTiffError::Io { .. })));
+    }
+
+    #[test]
+    fn interleave_planar() {
+        let planes = [1u8, 2, 3, 10, 20, 30];
+        assert_eq!(interleave(&planes, 3, 2), vec![1, 10, 2, 20, 3, 30]);
+    }
+}

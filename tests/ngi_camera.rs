@@ -1,0 +1,293 @@
+//! End-to-end check of the camera model and the omega-phi-kappa convention on real aerial frames.
+//!
+//! For each NGI frame (ngi_3324c, Intergraph DMC, 640 x 1152 px, f = 120 mm, no distortion), every
+//! pixel is cast as a ray from the aerial-triangulation pose (`frames_truth.csv`), intersected with
+//! the 24 m DEM, and the NGI 5 m orthophoto is sampled (bilinear) at the ground point. If the
+//! intrinsics, the pixel convention, the OPK rotation and the camera frame flip are right, the
+//! re-rendered image matches the frame: the grey-level Pearson correlation must be at least 0.9.
+//! With kappa + 180 deg (image turned upside down on the ground) it must collapse (< 0.3).
+//! The data lives in `../shared/data/ngi_3324c`; the test is skipped with a message without it.
+
+use nalgebra::{Point2, Vector3};
+use rayon::prelude::*;
+use std::path::{Path, PathBuf};
+use visnav::camera::{Camera, CameraConfig, CameraPose, Opk};
+use visnav::geo::dem::Dem;
+use visnav::geo::geotiff::load_geotiff;
+use visnav::geo::raster::{GeoTransform, Raster, RasterData};
+
+fn data_dir() -> Option<PathBuf> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/ngi_3324c");
+    if dir.join("frames_truth.csv").is_file() {
+        Some(dir)
+    } else {
+        eprintln!(
+            "SKIP: {} not found (shared NGI test data absent)",
+            dir.display()
+        );
+        None
+    }
+}
+
+struct Truth {
+    centre_m: Vector3<f64>,
+    opk: Opk,
+}
+
+fn read_truth(dir: &Path, frame: &str) -> Truth {
+    let text =
+        std::fs::read_to_string(dir.join("frames_truth.csv")).expect("read frames_truth.csv");
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().expect("header").split(',').collect();
+    assert_eq!(
+        header,
+        [
+            "frame",
+            "x_m",
+            "y_m",
+            "z_m",
+            "omega_deg",
+            "phi_deg",
+            "kappa_deg"
+        ]
+    );
+    for line in lines {
+        let f: Vec<&str> = line.trim().split(',').collect();
+        if f[0] == frame {
+            let v: Vec<f64> = f[1..7].iter().map(|s| s.parse().expect("number")).collect();
+            return Truth {
+                centre_m: Vector3::new(v[0], v[1], v[2]),
+                opk: Opk::from_deg(v[3], v[4], v[5]),
+            };
+        }
+    }
+    panic!("{frame} not in frames_truth.csv");
+}
+
+/// The NGI camera, built through the configuration path (focal length + sensor size form).
+fn ngi_camera() -> Camera {
+    let cfg: CameraConfig = toml::from_str(
+        "width_px = 640\nheight_px = 1152\nfocal_length_mm = 120.0\n\
+         sensor_width_mm = 92.16\nsensor_height_mm = 165.888\n",
+    )
+    .expect("camera toml");
+    let cam = cfg.build().expect("valid camera");
+    assert!((cam.intrinsics.fx_px - 833.333).abs() < 1e-2);
+    assert_eq!((cam.intrinsics.cx_px, cam.intrinsics.cy_px), (319.5, 575.5));
+    cam
+}
+
+/// Loads the orthophoto with `geo::geotiff`. WORKAROUND (remove once `geo::geotiff` reads it): the
+/// NGI orthos are tiled 256 x 256, deflate + predictor 2, PlanarConfiguration = 2 (separate band
+/// planes), and `tiff` 0.11's `read_image` asserts on planar tiled files (its docs: "for planar
+/// images [image_buffer_layout] only indicates the layout of the first data plane"), so the geo
+/// reader refuses them. Until it decodes per chunk, this test falls back to decoding the tiles itself
+/// (chunk by chunk, which `tiff` supports) with the georeferencing read from ModelPixelScale +
+/// ModelTiepoint (pixel-is-area) and the CRS of the DEM (same CRS per the data README).
+fn load_ortho(path: &Path, dem: &Dem) -> Raster {
+    match load_geotiff(path, None) {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!(
+                "WARNING: geo::geotiff cannot read {} ({e}); using the test-local planar-tile decoder",
+                path.display()
+            );
+            decode_planar_tiled(path, dem)
+        }
+    }
+}
+
+fn decode_planar_tiled(path: &Path, dem: &Dem) -> Raster {
+    use tiff::decoder::{Decoder, DecodingResult};
+    use tiff::tags::Tag;
+    let file = std::io::BufReader::new(std::fs::File::open(path).expect("open ortho"));
+    let mut dec = Decoder::new(file).expect("tiff header");
+    let (w, h) = dec.dimensions().expect("dimensions");
+    let (w, h) = (w as usize, h as usize);
+    let bands = dec
+        .get_tag_unsigned::<u16>(Tag::SamplesPerPixel)
+        .expect("spp") as usize;
+    let planar = dec
+        .find_tag_unsigned::<u16>(Tag::PlanarConfiguration)
+        .expect("planar tag")
+        .unwrap_or(1);
+    assert_eq!(planar, 2, "fallback only handles planar files");
+    let (tw, th) = dec.chunk_dimensions();
+    let (tw, th) = (tw as usize, th as usize);
+    let across = w.div_ceil(tw);
+    let down = h.div_ceil(th);
+    let mut data = vec![0u8; w * h * bands];
+    for b in 0..bands {
+        for ty in 0..down {
+            for tx in 0..across {
+                let idx = (b * across * down + ty * across + tx) as u32;
+                // `tiff` 0.11 gets the cropped size of edge chunks wrong after the first plane;
+                // compute the valid part here and accept cropped or padded chunks.
+                let (dw, dh) = (tw.min(w - tx * tw), th.min(h - ty * th));
+                let DecodingResult::U8(v) = dec.read_chunk(idx).expect("read chunk") else {
+                    panic!("ortho is not 8-bit");
+                };
+                // Rows: cropped or padded; columns: cropped (dw) or padded (tw).
+                let stride = if v.len() == dw * dh || v.len() == dw * th {
+                    dw
+                } else {
+                    tw
+                };
+                assert!(
+                    v.len() >= (dh - 1) * stride + dw,
+                    "chunk {idx}: {} samples",
+                    v.len()
+                );
+                for r in 0..dh {
+                    for c in 0..dw {
+                        let (col, row) = (tx * tw + c, ty * th + r);
+                        data[(row * w + col) * bands + b] = v[r * stride + c];
+                    }
+                }
+            }
+        }
+    }
+    let mut f64s = |tag| match dec.get_tag(tag).expect("georeferencing tag") {
+        tiff::decoder::ifd::Value::List(l) => l
+            .into_iter()
+            .map(|v| v.into_f64().expect("double"))
+            .collect::<Vec<f64>>(),
+        other => panic!("unexpected {other:?}"),
+    };
+    let scale = f64s(Tag::ModelPixelScaleTag);
+    let tie = f64s(Tag::ModelTiepointTag);
+    let transform = GeoTransform::new([
+        tie[3] - tie[0] * scale[0],
+        scale[0],
+        0.0,
+        tie[4] + tie[1] * scale[1],
+        0.0,
+        -scale[1],
+    ])
+    .expect("transform");
+    let nodata = dec
+        .find_tag(Tag::GdalNodata)
+        .ok()
+        .flatten()
+        .and_then(|v| v.into_string().ok())
+        .and_then(|s| s.trim_matches(char::from(0)).trim().parse::<f64>().ok());
+    Raster::new(
+        w,
+        h,
+        bands,
+        RasterData::U8(data),
+        transform,
+        dem.crs().expect("gridded DEM has a CRS"),
+        nodata,
+    )
+    .expect("raster")
+}
+
+/// Mean of the first three bands (or the single band) of the orthophoto at a map point.
+fn ortho_grey(ortho: &Raster, x_m: f64, y_m: f64) -> Option<f64> {
+    let bands = ortho.bands().min(3);
+    let mut sum = 0.0;
+    for b in 0..bands {
+        sum += ortho.bilinear(x_m, y_m, b)?;
+    }
+    Some(sum / bands as f64)
+}
+
+/// Pearson correlation of the frame's grey levels with the ortho re-rendered through `pose`, and
+/// the fraction of pixels that could be rendered.
+fn render_correlation(
+    cam: &Camera,
+    pose: &CameraPose,
+    dem: &Dem,
+    ortho: &Raster,
+    frame_grey: &[f64],
+) -> (f64, f64) {
+    let (w, h) = (cam.width_px() as usize, cam.height_px() as usize);
+    let origin = [
+        pose.centre_world_m.x,
+        pose.centre_world_m.y,
+        pose.centre_world_m.z,
+    ];
+    let rendered: Vec<Option<f64>> = (0..w * h)
+        .into_par_iter()
+        .map(|i| {
+            let px = Point2::new((i % w) as f64, (i / w) as f64);
+            let ray = pose.ray_world(cam, &px)?;
+            let hit = dem.intersect_ray(origin, [ray.x, ray.y, ray.z], 20_000.0)?;
+            ortho_grey(ortho, hit[0], hit[1])
+        })
+        .collect();
+    let pairs: Vec<(f64, f64)> = rendered
+        .iter()
+        .zip(frame_grey)
+        .filter_map(|(r, f)| r.map(|r| (*f, r)))
+        .collect();
+    let n = pairs.len() as f64;
+    assert!(n > 1000.0, "only {n} pixels rendered");
+    let (mf, mr) = pairs
+        .iter()
+        .fold((0.0, 0.0), |(a, b), (f, r)| (a + f / n, b + r / n));
+    let (mut sff, mut srr, mut sfr) = (0.0, 0.0, 0.0);
+    for (f, r) in &pairs {
+        sff += (f - mf) * (f - mf);
+        srr += (r - mr) * (r - mr);
+        sfr += (f - mf) * (r - mr);
+    }
+    (sfr / (sff * srr).sqrt(), n / (w * h) as f64)
+}
+
+fn check_frame(frame: &str, ortho_file: &str) {
+    let Some(dir) = data_dir() else { return };
+    let truth = read_truth(&dir, frame);
+    let cam = ngi_camera();
+    let dem = Dem::load_geotiff(&dir.join("dem.tif"), None).expect("load dem.tif");
+    let ortho = load_ortho(&dir.join(ortho_file), &dem);
+    let img = image::open(dir.join(frame)).expect("open frame").to_rgb8();
+    assert_eq!(
+        (img.width(), img.height()),
+        (cam.width_px(), cam.height_px())
+    );
+    let frame_grey: Vec<f64> = img
+        .pixels()
+        .map(|p| (f64::from(p[0]) + f64::from(p[1]) + f64::from(p[2])) / 3.0)
+        .collect();
+
+    let pose = CameraPose::from_opk(truth.centre_m, &truth.opk);
+    let (corr, covered) = render_correlation(&cam, &pose, &dem, &ortho, &frame_grey);
+    eprintln!(
+        "{frame}: grey correlation frame vs ortho through truth pose = {corr:.4} \
+         ({:.1} % of pixels rendered)",
+        100.0 * covered
+    );
+
+    let mut flipped = truth.opk;
+    flipped.kappa_rad += std::f64::consts::PI;
+    let pose_flipped = CameraPose::from_opk(truth.centre_m, &flipped);
+    let (corr_flipped, covered_flipped) =
+        render_correlation(&cam, &pose_flipped, &dem, &ortho, &frame_grey);
+    eprintln!(
+        "{frame}: with kappa + 180 deg = {corr_flipped:.4} ({:.1} % rendered)",
+        100.0 * covered_flipped
+    );
+
+    assert!(
+        covered > 0.8,
+        "{frame}: only {:.1} % rendered",
+        100.0 * covered
+    );
+    assert!(corr >= 0.9, "{frame}: correlation {corr} < 0.9");
+    assert!(
+        corr_flipped < 0.3 && corr - corr_flipped > 0.6,
+        "{frame}: kappa + 180 deg still correlates ({corr_flipped} vs {corr})"
+    );
+}
+
+#[test]
+fn ngi_frame_0182_reprojects_onto_ortho() {
+    check_frame("frame_05_0182.png", "ngi_ortho_5m_tile1.tif");
+}
+
+#[test]
+fn ngi_frame_0184_reprojects_onto_ortho() {
+    check_frame("frame_05_0184.png", "ngi_ortho_5m_tile2.tif");
+}

@@ -253,6 +253,34 @@ fn check_frame(frame: &str, ortho_file: &str) {
         .collect();
 
     let pose = CameraPose::from_opk(truth.centre_m, &truth.opk);
+    // Ray -> terrain -> back through the camera returns to the same pixel.
+    let origin = [
+        pose.centre_world_m.x,
+        pose.centre_world_m.y,
+        pose.centre_world_m.z,
+    ];
+    let mut worst_px: f64 = 0.0;
+    for v in (0..1152).step_by(64) {
+        for u in (0..640).step_by(64) {
+            let px = Point2::new(f64::from(u), f64::from(v));
+            let ray = pose.ray_world(&cam, &px).expect("ray");
+            assert!(
+                ray.z < -0.75,
+                "nadir camera (half diagonal FOV 38 deg) must look down, ray {ray:?}"
+            );
+            let hit = dem
+                .intersect_ray(origin, [ray.x, ray.y, ray.z], 20_000.0)
+                .expect("ray hits the DEM");
+            let back = pose
+                .project_world(&cam, &Vector3::from(hit))
+                .expect("ground point projects");
+            worst_px = worst_px.max((back - px).norm());
+        }
+    }
+    assert!(
+        worst_px < 1e-3,
+        "{frame}: ray/project round trip {worst_px} px"
+    );
     let (corr, covered) = render_correlation(&cam, &pose, &dem, &ortho, &frame_grey);
     eprintln!(
         "{frame}: grey correlation frame vs ortho through truth pose = {corr:.4} \

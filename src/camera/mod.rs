@@ -118,11 +118,16 @@ impl Camera {
     /// distortion model is valid (it would fold back into the image). The pixel may lie outside the
     /// image; check with [`Intrinsics::contains`] or use [`Self::project_in_image`].
     pub fn project(&self, p_cam: &Vector3<f64>) -> Option<Point2<f64>> {
-        if !(p_cam.z > MIN_DEPTH_M) || !p_cam.x.is_finite() || !p_cam.y.is_finite() {
+        if !p_cam.z.is_finite()
+            || p_cam.z <= MIN_DEPTH_M
+            || !p_cam.x.is_finite()
+            || !p_cam.y.is_finite()
+        {
             return None;
         }
         let n = p_cam.xy() / p_cam.z;
-        if !(n.norm() <= self.max_radius) {
+        let r = n.norm();
+        if r.is_nan() || r > self.max_radius {
             return None;
         }
         let px = self.intrinsics.to_pixel(&self.distortion.distort(&n));

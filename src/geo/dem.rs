@@ -532,14 +532,17 @@ mod tests {
             let dip = dip_deg.to_radians();
             let d = [dip.cos() * az.cos(), dip.cos() * az.sin(), -dip.sin()];
             // Analytic: o_z + t d_z = 100 + 0.3 (o_x + t d_x - x0) - 0.2 (o_y + t d_y - y0).
-            let t = (hf(o[0], o[1]) - o[2]) / (d[2] - 0.3 * d[0] + 0.2 * d[1]);
+            let den = d[2] - 0.3 * d[0] + 0.2 * d[1];
+            let t = (hf(o[0], o[1]) - o[2]) / den;
+            // Heights are stored as f32 (~3e-5 m here); a shallow crossing stretches that by 1/|den|.
+            let tol = 1e-4 + 3e-5 / den.abs();
             let expect = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
             let inside = dem.height_at(expect[0], expect[1]).is_some();
             match dem.intersect_ray(o, d, f64::INFINITY) {
                 Some(p) => {
                     prop_assert!(inside);
                     for k in 0..3 {
-                        prop_assert!((p[k] - expect[k]).abs() < 1e-4, "{:?} vs {:?}", p, expect);
+                        prop_assert!((p[k] - expect[k]).abs() < tol, "{:?} vs {:?}", p, expect);
                     }
                 }
                 None => prop_assert!(!inside, "missed an in-grid hit at {:?}", expect),
@@ -569,12 +572,18 @@ mod tests {
         let d2 = [1.0, 0.0, -0.1];
         let p2 = dem.intersect_ray(o2, d2, f64::INFINITY).unwrap();
         let h_at = |x: f64| dem.height_at(x, y).unwrap();
-        // The coarse marcher: samples at 5 m steps never see the ray below ground before the ridge.
-        let coarse_hit = (0..60).map(|k| k as f64 * 5.0).find(|&s| {
-            let x = o2[0] + s;
-            60.0 - 0.1 * s <= h_at(x)
-        });
-        assert!(coarse_hit.is_none_or(|s| o2[0] + s > xr + cell), "{coarse_hit:?}");
+        // A coarse marcher (samples every half cell, 5 m) never sees the ray below the ground
+        // anywhere on the grid, so it would report no hit at all.
+        let mut coarse_samples = 0;
+        for k in 0.. {
+            let s = k as f64 * 5.0;
+            let Some(h) = dem.height_at(o2[0] + s, y) else {
+                break;
+            };
+            coarse_samples += 1;
+            assert!(60.0 - 0.1 * s > h, "coarse sample {k} is below ground");
+        }
+        assert!(coarse_samples > 50);
         assert!(p2[0] < xr && p2[0] > xr - cell, "hit must be on the west flank: {p2:?}");
         assert!((p2[2] - h_at(p2[0])).abs() < 1e-4);
         // Grazing inside one cell: a ray crossing a peak cell diagonally, whose minimum clearance
@@ -611,18 +620,18 @@ mod tests {
         // Vertical ray into the hole: None. Next to it: hit.
         assert_eq!(dem.intersect_ray([xh, yh, 500.0], [0.0, 0.0, -1.0], 1e9), None);
         let (xg, yg) = centre(20.0, 20.0, cell);
-        assert_eq!(
-            dem.intersect_ray([xg, yg, 500.0], [0.0, 0.0, -1.0], 1e9),
-            Some([xg, yg, 100.0])
-        );
+        let p = dem
+            .intersect_ray([xg, yg, 500.0], [0.0, 0.0, -1.0], 1e9)
+            .unwrap();
+        assert!(p[0] == xg && p[1] == yg && (p[2] - 100.0).abs() < 1e-6, "{p:?}");
         // Low oblique ray passing over the hole at 100.5 m (below max_h + 1): None, because the
         // hole could hide a hit.
         let o = [xh - 50.0, yh, 100.5];
         assert_eq!(dem.intersect_ray(o, [1.0, 0.0, -0.001], 1e9), None);
         // The same ray passing high over the hole: fine.
-        let o = [xh - 50.0, yh, 400.0];
+        let o = [xh - 50.0, yh, 200.0];
         let p = dem.intersect_ray(o, [1.0, 0.0, -1.0], 1e9).unwrap();
-        assert!((p[0] - (xh + 250.0)).abs() < 1e-5 && (p[2] - 100.0).abs() < 1e-5);
+        assert!((p[0] - (xh + 50.0)).abs() < 1e-5 && (p[2] - 100.0).abs() < 1e-5);
         // A ray leaving the DEM above ground: None.
         let (xe, ye) = centre(28.0, 5.0, cell);
         assert_eq!(dem.intersect_ray([xe, ye, 100.5], [1.0, 0.0, -0.001], 1e9), None);

@@ -42,7 +42,7 @@ use std::fs::File;
 use std::io::{BufReader, Read, Seek};
 use std::path::{Path, PathBuf};
 
-use tiff::decoder::{Decoder, DecodingResult, Limits};
+use tiff::decoder::{ChunkType, Decoder, DecodingResult, Limits};
 use tiff::tags::Tag;
 
 use super::Crs;
@@ -908,53 +908,25 @@ fn read_geotiff_inner<R: Read + Seek>(
             path: path.to_path_buf(),
             reason: format!("invalid dimensions {width} x {height} x {bands}"),
         })?;
-    let mut result = DecodingResult::U8(Vec::new());
-    dec.read_image_to_buffer(&mut result).map_err(decode_err)?;
-
-    let expected = pixels * bands;
-    let planar = planar == 2 && bands > 1;
-    let check_len = |n: usize| -> Result<(), GeoTiffError> {
-        if n == expected {
-            Ok(())
-        } else {
-            Err(GeoTiffError::Decode {
-                path: path.to_path_buf(),
-                reason: format!(
-                    "decoded {n} samples, expected {expected} ({width} x {height} x {bands} bands)"
-                ),
-            })
-        }
-    };
-    let to_f32 = |v: Vec<f32>| -> Result<RasterData, GeoTiffError> {
-        check_len(v.len())?;
-        Ok(RasterData::F32(if planar { interleave(&v, pixels, bands) } else { v }))
-    };
-    let (data, source_type) = match result {
-        DecodingResult::U8(v) => {
-            check_len(v.len())?;
-            let v = if planar { interleave(&v, pixels, bands) } else { v };
-            (RasterData::U8(v), SampleType::U8)
-        }
-        DecodingResult::U16(v) => {
-            check_len(v.len())?;
-            let v = if planar { interleave(&v, pixels, bands) } else { v };
-            (RasterData::U16(v), SampleType::U16)
-        }
-        DecodingResult::I16(v) => (to_f32(v.into_iter().map(f32::from).collect())?, SampleType::I16),
-        DecodingResult::I8(v) => (to_f32(v.into_iter().map(f32::from).collect())?, SampleType::I16),
-        DecodingResult::U32(v) => (to_f32(v.into_iter().map(|s| s as f32).collect())?, SampleType::U32),
-        DecodingResult::I32(v) => (to_f32(v.into_iter().map(|s| s as f32).collect())?, SampleType::I32),
-        DecodingResult::F32(v) => (to_f32(v)?, SampleType::F32),
-        DecodingResult::F64(v) => (to_f32(v.into_iter().map(|s| s as f32).collect())?, SampleType::F64),
-        DecodingResult::F16(v) => (to_f32(v.into_iter().map(f32::from).collect())?, SampleType::F32),
-        DecodingResult::U64(_) | DecodingResult::I64(_) => {
-            return Err(GeoTiffError::Tag {
-                path: path.to_path_buf(),
-                tag: "BitsPerSample (258)".into(),
-                reason: "64-bit integer samples are not supported".into(),
-            });
-        }
-    };
+    let bits = dec
+        .find_tag_unsigned_vec::<u16>(Tag::BitsPerSample)
+        .map_err(|e| tag_err(TagError::new("BitsPerSample (258)", e.to_string())))?
+        .and_then(|v| v.first().copied())
+        .unwrap_or(1);
+    let expected = pixels
+        .checked_mul(bands)
+        .filter(|n| n.saturating_mul(usize::from(bits).div_ceil(8)) <= MAX_DECODED_BYTES)
+        .ok_or_else(|| GeoTiffError::Decode {
+            path: path.to_path_buf(),
+            reason: format!(
+                "{width} x {height} x {bands} samples of {bits} bits exceed the {MAX_DECODED_BYTES} byte limit"
+            ),
+        })?;
+    let (data, source_type) = decode_chunks(&mut dec, width, height, bands, planar == 2, expected)
+        .map_err(|reason| GeoTiffError::Decode {
+            path: path.to_path_buf(),
+            reason,
+        })?;
     let raster = Raster::new(width, height, bands, data, transform, crs, nodata)
         .map_err(|e| GeoTiffError::Decode {
             path: path.to_path_buf(),
@@ -969,15 +941,158 @@ fn read_geotiff_inner<R: Read + Seek>(
     Ok(raster)
 }
 
-/// Planar (band-sequential) samples -> band-interleaved by pixel.
-fn interleave<T: Copy + Default>(planes: &[T], pixels: usize, bands: usize) -> Vec<T> {
-    let mut out = vec![T::default(); pixels * bands];
-    for (b, plane) in planes.chunks_exact(pixels).enumerate() {
-        for (p, &s) in plane.iter().enumerate() {
-            out[p * bands + b] = s;
+/// Output accumulator: the storage type is fixed by the first chunk.
+enum Acc {
+    U8(Vec<u8>),
+    U16(Vec<u16>),
+    F32(Vec<f32>, SampleType),
+}
+
+/// Decodes the image chunk by chunk (strips or tiles, chunky or planar) into band-interleaved
+/// storage. Reading per chunk (rather than `Decoder::read_image_to_buffer`) also avoids a panic of
+/// tiff 0.11.3 on tiled planar files.
+fn decode_chunks<R: Read + Seek>(
+    dec: &mut Decoder<R>,
+    width: usize,
+    height: usize,
+    bands: usize,
+    planar: bool,
+    expected: usize,
+) -> Result<(RasterData, SampleType), String> {
+    let planar = planar && bands > 1;
+    let (cw, ch) = match dec.get_chunk_type() {
+        ChunkType::Tile => {
+            let tw = dec
+                .find_tag_unsigned::<u32>(Tag::TileWidth)
+                .map_err(|e| format!("TileWidth (322): {e}"))?
+                .ok_or("TileWidth (322) missing")?;
+            let th = dec
+                .find_tag_unsigned::<u32>(Tag::TileLength)
+                .map_err(|e| format!("TileLength (323): {e}"))?
+                .ok_or("TileLength (323) missing")?;
+            (tw as usize, th as usize)
+        }
+        ChunkType::Strip => {
+            let rps = dec
+                .find_tag_unsigned::<u32>(Tag::RowsPerStrip)
+                .map_err(|e| format!("RowsPerStrip (278): {e}"))?
+                .map_or(height, |r| (r as usize).min(height));
+            (width, rps)
+        }
+    };
+    if cw == 0 || ch == 0 {
+        return Err(format!("chunk size {cw} x {ch} is invalid"));
+    }
+    let across = width.div_ceil(cw);
+    let down = height.div_ceil(ch);
+    let per_plane = across * down;
+    let planes = if planar { bands } else { 1 };
+    let spc = if planar { 1 } else { bands }; // samples per pixel inside one chunk
+    let n_chunks = per_plane
+        .checked_mul(planes)
+        .filter(|&n| n <= u32::MAX as usize)
+        .ok_or("too many chunks")?;
+    let mut acc: Option<Acc> = None;
+    for idx in 0..n_chunks {
+        let plane = idx / per_plane;
+        let c = idx % per_plane;
+        let (x0, y0) = ((c % across) * cw, (c / across) * ch);
+        let (dw, dh) = (cw.min(width - x0), ch.min(height - y0));
+        let chunk = dec
+            .read_chunk(idx as u32) // ok: n_chunks <= u32::MAX checked above
+            .map_err(|e| format!("chunk {idx}: {e}"))?;
+        let acc = acc.get_or_insert_with(|| match &chunk {
+            DecodingResult::U8(_) => Acc::U8(vec![0; expected]),
+            DecodingResult::U16(_) => Acc::U16(vec![0; expected]),
+            DecodingResult::I8(_) | DecodingResult::I16(_) => Acc::F32(vec![0.0; expected], SampleType::I16),
+            DecodingResult::U32(_) => Acc::F32(vec![0.0; expected], SampleType::U32),
+            DecodingResult::I32(_) => Acc::F32(vec![0.0; expected], SampleType::I32),
+            DecodingResult::F64(_) => Acc::F32(vec![0.0; expected], SampleType::F64),
+            _ => Acc::F32(vec![0.0; expected], SampleType::F32),
+        });
+        let geom = ChunkGeom {
+            width,
+            bands,
+            spc,
+            plane,
+            x0,
+            y0,
+            dw,
+            dh,
+        };
+        match (acc, chunk) {
+            (Acc::U8(out), DecodingResult::U8(v)) => place(out, &v, &geom)?,
+            (Acc::U16(out), DecodingResult::U16(v)) => place(out, &v, &geom)?,
+            (Acc::F32(out, _), DecodingResult::F32(v)) => place(out, &v, &geom)?,
+            (Acc::F32(out, _), DecodingResult::I16(v)) => {
+                place(out, &v.iter().map(|&s| f32::from(s)).collect::<Vec<_>>(), &geom)?
+            }
+            (Acc::F32(out, _), DecodingResult::I8(v)) => {
+                place(out, &v.iter().map(|&s| f32::from(s)).collect::<Vec<_>>(), &geom)?
+            }
+            (Acc::F32(out, _), DecodingResult::U32(v)) => {
+                place(out, &v.iter().map(|&s| s as f32).collect::<Vec<_>>(), &geom)?
+            }
+            (Acc::F32(out, _), DecodingResult::I32(v)) => {
+                place(out, &v.iter().map(|&s| s as f32).collect::<Vec<_>>(), &geom)?
+            }
+            (Acc::F32(out, _), DecodingResult::F64(v)) => {
+                place(out, &v.iter().map(|&s| s as f32).collect::<Vec<_>>(), &geom)?
+            }
+            (Acc::F32(out, _), DecodingResult::F16(v)) => {
+                place(out, &v.iter().map(|&s| f32::from(s)).collect::<Vec<_>>(), &geom)?
+            }
+            (_, DecodingResult::U64(_) | DecodingResult::I64(_)) => {
+                return Err("64-bit integer samples are not supported".into());
+            }
+            _ => return Err(format!("chunk {idx} has a different sample type than chunk 0")),
         }
     }
-    out
+    match acc {
+        Some(Acc::U8(v)) => Ok((RasterData::U8(v), SampleType::U8)),
+        Some(Acc::U16(v)) => Ok((RasterData::U16(v), SampleType::U16)),
+        Some(Acc::F32(v, t)) => Ok((RasterData::F32(v), t)),
+        None => Err("the image has no data chunks".into()),
+    }
+}
+
+/// Where one decoded chunk goes in the output.
+struct ChunkGeom {
+    width: usize,
+    bands: usize,
+    /// Samples per pixel in the chunk (1 for planar, `bands` for chunky).
+    spc: usize,
+    plane: usize,
+    x0: usize,
+    y0: usize,
+    dw: usize,
+    dh: usize,
+}
+
+/// Copies a chunk (`dw x dh` pixels of `spc` samples, rows packed) into band-interleaved output.
+fn place<T: Copy>(out: &mut [T], chunk: &[T], g: &ChunkGeom) -> Result<(), String> {
+    let row_len = g.dw * g.spc;
+    if chunk.len() < row_len * g.dh {
+        return Err(format!(
+            "chunk at ({}, {}) holds {} samples, expected {}",
+            g.x0,
+            g.y0,
+            chunk.len(),
+            row_len * g.dh
+        ));
+    }
+    for r in 0..g.dh {
+        let src = &chunk[r * row_len..(r + 1) * row_len];
+        let base = ((g.y0 + r) * g.width + g.x0) * g.bands;
+        if g.spc == g.bands {
+            out[base..base + row_len].copy_from_slice(src);
+        } else {
+            for (c, &s) in src.iter().enumerate() {
+                out[base + c * g.bands + g.plane] = s;
+            }
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -1385,8 +1500,19 @@ mod tests {
     }
 
     #[test]
-    fn interleave_planar() {
-        let planes = [1u8, 2, 3, 10, 20, 30];
-        assert_eq!(interleave(&planes, 3, 2), vec![1, 10, 2, 20, 3, 30]);
+    fn place_planar_and_chunky_chunks() {
+        // 3 x 2 image, 2 bands, chunks 2 x 2 (the right chunk is 1 px wide).
+        let mut out = vec![0u8; 12];
+        let g = |plane, spc, x0, dw| ChunkGeom { width: 3, bands: 2, spc, plane, x0, y0: 0, dw, dh: 2 };
+        place(&mut out, &[1, 2, 4, 5], &g(0, 1, 0, 2)).unwrap();
+        place(&mut out, &[3, 6], &g(0, 1, 2, 1)).unwrap();
+        place(&mut out, &[10, 20, 40, 50], &g(1, 1, 0, 2)).unwrap();
+        place(&mut out, &[30, 60], &g(1, 1, 2, 1)).unwrap();
+        assert_eq!(out, vec![1, 10, 2, 20, 3, 30, 4, 40, 5, 50, 6, 60]);
+        let mut chunky = vec![0u8; 12];
+        place(&mut chunky, &[1, 10, 2, 20, 4, 40, 5, 50], &g(0, 2, 0, 2)).unwrap();
+        place(&mut chunky, &[3, 30, 6, 60], &g(0, 2, 2, 1)).unwrap();
+        assert_eq!(chunky, out);
+        assert!(place(&mut chunky, &[3, 30, 6], &g(0, 2, 2, 1)).is_err());
     }
 }

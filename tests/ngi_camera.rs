@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use visnav::camera::{Camera, CameraConfig, CameraPose, Opk};
 use visnav::geo::dem::Dem;
 use visnav::geo::geotiff::load_geotiff;
-use visnav::geo::raster::{GeoTransform, Raster, RasterData};
+use visnav::geo::raster::Raster;
 
 fn data_dir() -> Option<PathBuf> {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/ngi_3324c");
@@ -77,112 +77,6 @@ fn ngi_camera() -> Camera {
     cam
 }
 
-/// Loads the orthophoto with `geo::geotiff`. WORKAROUND (remove once `geo::geotiff` reads it): the
-/// NGI orthos are tiled 256 x 256, deflate + predictor 2, PlanarConfiguration = 2 (separate band
-/// planes), and `tiff` 0.11's `read_image` asserts on planar tiled files (its docs: "for planar
-/// images [image_buffer_layout] only indicates the layout of the first data plane"), so the geo
-/// reader refuses them. Until it decodes per chunk, this test falls back to decoding the tiles itself
-/// (chunk by chunk, which `tiff` supports) with the georeferencing read from ModelPixelScale +
-/// ModelTiepoint (pixel-is-area) and the CRS of the DEM (same CRS per the data README).
-fn load_ortho(path: &Path, dem: &Dem) -> Raster {
-    match load_geotiff(path, None) {
-        Ok(r) => r,
-        Err(e) => {
-            eprintln!(
-                "WARNING: geo::geotiff cannot read {} ({e}); using the test-local planar-tile decoder",
-                path.display()
-            );
-            decode_planar_tiled(path, dem)
-        }
-    }
-}
-
-fn decode_planar_tiled(path: &Path, dem: &Dem) -> Raster {
-    use tiff::decoder::{Decoder, DecodingResult};
-    use tiff::tags::Tag;
-    let file = std::io::BufReader::new(std::fs::File::open(path).expect("open ortho"));
-    let mut dec = Decoder::new(file).expect("tiff header");
-    let (w, h) = dec.dimensions().expect("dimensions");
-    let (w, h) = (w as usize, h as usize);
-    let bands = dec
-        .get_tag_unsigned::<u16>(Tag::SamplesPerPixel)
-        .expect("spp") as usize;
-    let planar = dec
-        .find_tag_unsigned::<u16>(Tag::PlanarConfiguration)
-        .expect("planar tag")
-        .unwrap_or(1);
-    assert_eq!(planar, 2, "fallback only handles planar files");
-    let (tw, th) = dec.chunk_dimensions();
-    let (tw, th) = (tw as usize, th as usize);
-    let across = w.div_ceil(tw);
-    let down = h.div_ceil(th);
-    let mut data = vec![0u8; w * h * bands];
-    for b in 0..bands {
-        for ty in 0..down {
-            for tx in 0..across {
-                let idx = (b * across * down + ty * across + tx) as u32;
-                // `tiff` 0.11 gets the cropped size of edge chunks wrong after the first plane;
-                // compute the valid part here and accept cropped or padded chunks.
-                let (dw, dh) = (tw.min(w - tx * tw), th.min(h - ty * th));
-                let DecodingResult::U8(v) = dec.read_chunk(idx).expect("read chunk") else {
-                    panic!("ortho is not 8-bit");
-                };
-                // Rows: cropped or padded; columns: cropped (dw) or padded (tw).
-                let stride = if v.len() == dw * dh || v.len() == dw * th {
-                    dw
-                } else {
-                    tw
-                };
-                assert!(
-                    v.len() >= (dh - 1) * stride + dw,
-                    "chunk {idx}: {} samples",
-                    v.len()
-                );
-                for r in 0..dh {
-                    for c in 0..dw {
-                        let (col, row) = (tx * tw + c, ty * th + r);
-                        data[(row * w + col) * bands + b] = v[r * stride + c];
-                    }
-                }
-            }
-        }
-    }
-    let mut f64s = |tag| match dec.get_tag(tag).expect("georeferencing tag") {
-        tiff::decoder::ifd::Value::List(l) => l
-            .into_iter()
-            .map(|v| v.into_f64().expect("double"))
-            .collect::<Vec<f64>>(),
-        other => panic!("unexpected {other:?}"),
-    };
-    let scale = f64s(Tag::ModelPixelScaleTag);
-    let tie = f64s(Tag::ModelTiepointTag);
-    let transform = GeoTransform::new([
-        tie[3] - tie[0] * scale[0],
-        scale[0],
-        0.0,
-        tie[4] + tie[1] * scale[1],
-        0.0,
-        -scale[1],
-    ])
-    .expect("transform");
-    let nodata = dec
-        .find_tag(Tag::GdalNodata)
-        .ok()
-        .flatten()
-        .and_then(|v| v.into_string().ok())
-        .and_then(|s| s.trim_matches(char::from(0)).trim().parse::<f64>().ok());
-    Raster::new(
-        w,
-        h,
-        bands,
-        RasterData::U8(data),
-        transform,
-        dem.crs().expect("gridded DEM has a CRS"),
-        nodata,
-    )
-    .expect("raster")
-}
-
 /// Mean of the first three bands (or the single band) of the orthophoto at a map point.
 fn ortho_grey(ortho: &Raster, x_m: f64, y_m: f64) -> Option<f64> {
     let bands = ortho.bands().min(3);
@@ -241,7 +135,7 @@ fn check_frame(frame: &str, ortho_file: &str) {
     let truth = read_truth(&dir, frame);
     let cam = ngi_camera();
     let dem = Dem::load_geotiff(&dir.join("dem.tif"), None).expect("load dem.tif");
-    let ortho = load_ortho(&dir.join(ortho_file), &dem);
+    let ortho = load_geotiff(&dir.join(ortho_file), None).expect("load ortho");
     let img = image::open(dir.join(frame)).expect("open frame").to_rgb8();
     assert_eq!(
         (img.width(), img.height()),
@@ -253,6 +147,34 @@ fn check_frame(frame: &str, ortho_file: &str) {
         .collect();
 
     let pose = CameraPose::from_opk(truth.centre_m, &truth.opk);
+    // Ray -> terrain -> back through the camera returns to the same pixel.
+    let origin = [
+        pose.centre_world_m.x,
+        pose.centre_world_m.y,
+        pose.centre_world_m.z,
+    ];
+    let mut worst_px: f64 = 0.0;
+    for v in (0..1152).step_by(64) {
+        for u in (0..640).step_by(64) {
+            let px = Point2::new(f64::from(u), f64::from(v));
+            let ray = pose.ray_world(&cam, &px).expect("ray");
+            assert!(
+                ray.z < -0.75,
+                "nadir camera (half diagonal FOV 38 deg) must look down, ray {ray:?}"
+            );
+            let hit = dem
+                .intersect_ray(origin, [ray.x, ray.y, ray.z], 20_000.0)
+                .expect("ray hits the DEM");
+            let back = pose
+                .project_world(&cam, &Vector3::from(hit))
+                .expect("ground point projects");
+            worst_px = worst_px.max((back - px).norm());
+        }
+    }
+    assert!(
+        worst_px < 1e-3,
+        "{frame}: ray/project round trip {worst_px} px"
+    );
     let (corr, covered) = render_correlation(&cam, &pose, &dem, &ortho, &frame_grey);
     eprintln!(
         "{frame}: grey correlation frame vs ortho through truth pose = {corr:.4} \

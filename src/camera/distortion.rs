@@ -262,6 +262,25 @@ mod tests {
     }
 
     #[test]
+    fn strong_pincushion_far_off_axis() {
+        // Found by proptest: Newton started at the distorted point (r_d = 1.33) lies beyond the
+        // fold-over radius and diverged; starting at the radial inverse converges.
+        let d = Distortion {
+            k1: 0.39236848175117567,
+            k2: -0.11486116457299761,
+            k3: -0.04178891438827657,
+            p1: 0.0,
+            p2: 0.0,
+        };
+        let p = Vector2::new(-0.7227100470973653, 0.7969682879797304);
+        assert!(p.norm() < d.max_radius());
+        let back = d
+            .undistort(&d.distort(&p))
+            .expect("inverse on the valid branch");
+        assert!((back - p).norm() < 1e-9);
+    }
+
+    #[test]
     fn non_finite_input_is_rejected() {
         assert!(wide().undistort(&Vector2::new(f64::NAN, 0.0)).is_none());
         assert!(

@@ -60,12 +60,15 @@ pub struct Camera {
 }
 
 impl Camera {
-    /// Assemble a camera. Non-finite distortion coefficients are rejected.
+    /// Assemble a camera. The intrinsics are re-checked (their fields are public), non-finite
+    /// distortion coefficients or mount values are rejected.
     pub fn new(
         intrinsics: Intrinsics,
         distortion: Distortion,
         mount: Mount,
     ) -> Result<Self, CameraError> {
+        let k = intrinsics;
+        Intrinsics::new(k.fx_px, k.fy_px, k.cx_px, k.cy_px, k.width_px, k.height_px)?;
         if !distortion.is_finite() {
             return Err(CameraError::InvalidParameter {
                 name: "distortion",
@@ -88,14 +91,9 @@ impl Camera {
         })
     }
 
-    /// Distortion-free camera on the nadir mount.
-    pub fn pinhole(intrinsics: Intrinsics) -> Self {
-        Self {
-            intrinsics,
-            distortion: Distortion::none(),
-            mount: Mount::nadir(),
-            max_radius: f64::INFINITY,
-        }
+    /// Distortion-free camera on the nadir mount (checks the intrinsics like [`Self::new`]).
+    pub fn pinhole(intrinsics: Intrinsics) -> Result<Self, CameraError> {
+        Self::new(intrinsics, Distortion::none(), Mount::nadir())
     }
 
     /// Image width in pixels.
@@ -118,11 +116,16 @@ impl Camera {
     /// distortion model is valid (it would fold back into the image). The pixel may lie outside the
     /// image; check with [`Intrinsics::contains`] or use [`Self::project_in_image`].
     pub fn project(&self, p_cam: &Vector3<f64>) -> Option<Point2<f64>> {
-        if !(p_cam.z > MIN_DEPTH_M) || !p_cam.x.is_finite() || !p_cam.y.is_finite() {
+        if !p_cam.z.is_finite()
+            || p_cam.z <= MIN_DEPTH_M
+            || !p_cam.x.is_finite()
+            || !p_cam.y.is_finite()
+        {
             return None;
         }
         let n = p_cam.xy() / p_cam.z;
-        if !(n.norm() <= self.max_radius) {
+        let r = n.norm();
+        if r.is_nan() || r > self.max_radius {
             return None;
         }
         let px = self.intrinsics.to_pixel(&self.distortion.distort(&n));
@@ -196,6 +199,7 @@ mod tests {
 
     fn ngi() -> Camera {
         Camera::pinhole(Intrinsics::from_focal_length_mm(120.0, 92.16, 165.888, 640, 1152).unwrap())
+            .unwrap()
     }
 
     fn wide() -> Camera {
@@ -252,6 +256,17 @@ mod tests {
         assert!(folding.project(&Vector3::new(1.0, 0.0, 1.0)).is_some());
         assert!(c.project_in_image(&Vector3::new(0.0, 0.0, 1.0)).is_some());
         assert!(c.project_in_image(&Vector3::new(5.0, 0.0, 1.0)).is_none());
+    }
+
+    #[test]
+    fn invalid_parts_rejected() {
+        let mut k = ngi().intrinsics;
+        k.fx_px = 0.0;
+        assert!(Camera::new(k, Distortion::none(), Mount::nadir()).is_err());
+        assert!(Camera::pinhole(k).is_err());
+        let mut m = Mount::nadir();
+        m.lever_arm_body_frd_m.x = f64::NAN;
+        assert!(Camera::new(ngi().intrinsics, Distortion::none(), m).is_err());
     }
 
     #[test]

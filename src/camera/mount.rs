@@ -97,10 +97,15 @@ impl Mount {
         Attitude::from_r_ned_body(&(r_ned_cam * self.r_body_cam.inverse()))
     }
 
+    /// Vehicle attitude from the camera orientation in ENU / map grid (`R_enu_cam`).
+    pub fn attitude_from_r_enu_cam(&self, r_enu_cam: &Rotation3<f64>) -> Attitude {
+        // R_ned_enu = R_enu_ned (involution).
+        self.attitude_from_r_ned_cam(&(r_enu_ned() * r_enu_cam))
+    }
+
     /// Vehicle attitude from camera omega-phi-kappa (world = ENU / map grid).
     pub fn attitude_from_opk(&self, opk: &Opk) -> Attitude {
-        // R_ned_enu = R_enu_ned (involution).
-        self.attitude_from_r_ned_cam(&(r_enu_ned() * opk.r_world_cam()))
+        self.attitude_from_r_enu_cam(&opk.r_world_cam())
     }
 
     /// Camera projection centre in NED from the body origin position and attitude.

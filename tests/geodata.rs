@@ -727,3 +727,51 @@ fn naip_flat_dem() {
     // 8-bit imagery stays u8 and can be handed out without copying.
     assert_eq!(map.data().as_u8().map(<[u8]>::len), Some(934 * 724 * 4));
 }
+
+/// Timing printout (not an assertion): `cargo test --test geodata -- --ignored --nocapture`.
+/// Numbers depend on the profile (dev = opt-level 1) and on the machine's load.
+#[test]
+#[ignore]
+fn bench_load_and_raycast() {
+    use std::time::Instant;
+    let Some(shared) = shared_dir() else { return };
+    let t = Instant::now();
+    let ortho = load_geotiff(&shared.join("autzen/autzen_ortho_0p3m_utm10n.tif"), None).unwrap();
+    eprintln!(
+        "load autzen ortho {}x{}x{}: {:.3} s",
+        ortho.width(),
+        ortho.height(),
+        ortho.bands(),
+        t.elapsed().as_secs_f64()
+    );
+    for (f, alt_m) in [
+        ("ngi_3324c/dem.tif", 1500.0),
+        ("autzen/autzen_dsm_1m_utm10n.tif", 400.0),
+    ] {
+        let dem = Dem::load_geotiff(&shared.join(f), None).unwrap();
+        let (lo, hi) = dem.height_range_m();
+        let Dem::Grid(g) = &dem else { unreachable!() };
+        let (c, r) = (g.width() as f64 / 2.0, g.height() as f64 / 2.0);
+        let (cx, cy) = g.transform().pixel_to_map(c, r);
+        let n = 100_000;
+        let t = Instant::now();
+        let mut hits = 0;
+        for i in 0..n {
+            let a = i as f64 * 0.618_033_988 * std::f64::consts::TAU;
+            let dip = (30.0 + 60.0 * ((i % 97) as f64 / 97.0)).to_radians();
+            let d = [dip.cos() * a.cos(), dip.cos() * a.sin(), -dip.sin()];
+            if dem
+                .intersect_ray([cx, cy, hi + alt_m], d, f64::INFINITY)
+                .is_some()
+            {
+                hits += 1;
+            }
+        }
+        let dt = t.elapsed().as_secs_f64();
+        eprintln!(
+            "{f}: heights {lo:.1}-{hi:.1} m, {n} rays from {alt_m} m above max, dip 30-90 deg: \
+             {hits} hits, {:.2} us/ray",
+            dt / n as f64 * 1e6
+        );
+    }
+}

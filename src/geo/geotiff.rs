@@ -1054,6 +1054,7 @@ fn decode_chunks<R: Read + Seek>(
             y0,
             dw,
             dh,
+            ch,
         };
         match (acc, chunk) {
             (Acc::U8(out), DecodingResult::U8(v)) => place(out, &v, &geom)?,
@@ -1112,12 +1113,18 @@ struct ChunkGeom {
     y0: usize,
     dw: usize,
     dh: usize,
+    /// Nominal chunk height (tile height or rows per strip).
+    ch: usize,
 }
 
 /// Copies a chunk (`dw x dh` pixels of `spc` samples, rows packed) into band-interleaved output.
+/// A chunk of any other length (e.g. packed sub-byte samples) is an error.
 fn place<T: Copy>(out: &mut [T], chunk: &[T], g: &ChunkGeom) -> Result<(), String> {
     let row_len = g.dw * g.spc;
-    if chunk.len() < row_len * g.dh {
+    // tiff 0.11.3 reports full-height chunks for the bottom tiles of planes >= 1 of planar files
+    // (its chunk_data_dimensions ignores the plane); rows are still packed at `dw`, so the first
+    // `dh` rows are the data. Any other length is an error.
+    if chunk.len() != row_len * g.dh && chunk.len() != row_len * g.ch {
         return Err(format!(
             "chunk at ({}, {}) holds {} samples, expected {}",
             g.x0,
@@ -1777,6 +1784,7 @@ mod tests {
             y0: 0,
             dw,
             dh: 2,
+            ch: 2,
         };
         place(&mut out, &[1, 2, 4, 5], &g(0, 1, 0, 2)).unwrap();
         place(&mut out, &[3, 6], &g(0, 1, 2, 1)).unwrap();
@@ -1788,5 +1796,21 @@ mod tests {
         place(&mut chunky, &[3, 30, 6, 60], &g(0, 2, 2, 1)).unwrap();
         assert_eq!(chunky, out);
         assert!(place(&mut chunky, &[3, 30, 6], &g(0, 2, 2, 1)).is_err());
+        // A full-height chunk for a 1-row-high bottom tile (tiff crate quirk): first row used.
+        let mut one = vec![0u8; 6];
+        let bottom = ChunkGeom {
+            width: 3,
+            bands: 2,
+            spc: 1,
+            plane: 1,
+            x0: 0,
+            y0: 0,
+            dw: 3,
+            dh: 1,
+            ch: 2,
+        };
+        place(&mut one, &[7, 8, 9, 99, 99, 99], &bottom).unwrap();
+        assert_eq!(one, vec![0, 7, 0, 8, 0, 9]);
+        assert!(place(&mut one, &[7, 8, 9, 99], &bottom).is_err());
     }
 }

@@ -1,7 +1,8 @@
 //! GeoTIFF reader (pure Rust on the `tiff` crate, no GDAL).
 //!
 //! Reads the first image of a TIFF file (overviews in later IFDs are ignored): stripped or tiled,
-//! chunky or planar, any compression the `tiff` crate decodes (none, deflate, LZW, packbits, JPEG),
+//! chunky or planar, any compression the `tiff` crate decodes (none, deflate, LZW, packbits, JPEG;
+//! YCbCr JPEG is converted to RGB with the JFIF equations),
 //! horizontal/floating-point predictors, 8/16/32/64-bit integer and 32/64-bit float samples, any
 //! number of bands. See `raster` for the sample storage and the pixel convention.
 //!
@@ -960,6 +961,31 @@ fn read_geotiff_inner<R: Read + Seek>(
             path: path.to_path_buf(),
             reason,
         })?;
+    let photometric = dec
+        .find_tag_unsigned::<u16>(Tag::PhotometricInterpretation)
+        .map_err(|e| {
+            tag_err(TagError::new(
+                "PhotometricInterpretation (262)",
+                e.to_string(),
+            ))
+        })?;
+    let data = if photometric == Some(6) {
+        // The tiff crate hands out YCbCr samples unconverted (JPEG included).
+        match data {
+            RasterData::U8(mut v) if bands == 3 => {
+                ycbcr_to_rgb_in_place(&mut v);
+                RasterData::U8(v)
+            }
+            _ => {
+                return Err(tag_err(TagError::new(
+                    "PhotometricInterpretation (262)",
+                    "YCbCr is supported only for 3-band 8-bit images",
+                )));
+            }
+        }
+    } else {
+        data
+    };
     let raster = Raster::new(width, height, bands, data, transform, crs, nodata)
         .map_err(|e| GeoTiffError::Decode {
             path: path.to_path_buf(),
@@ -972,6 +998,21 @@ fn read_geotiff_inner<R: Read + Seek>(
         "GeoTIFF loaded"
     );
     Ok(raster)
+}
+
+/// YCbCr -> RGB with the JFIF (ITU-R BT.601 full-range) equations that libjpeg and therefore
+/// GDAL use for JPEG-in-TIFF: `R = Y + 1.402 (Cr-128)`, `G = Y - 0.344136 (Cb-128) - 0.714136
+/// (Cr-128)`, `B = Y + 1.772 (Cb-128)`, rounded and clamped to 0..=255.
+fn ycbcr_to_rgb_in_place(v: &mut [u8]) {
+    for px in v.chunks_exact_mut(3) {
+        let y = f32::from(px[0]);
+        let cb = f32::from(px[1]) - 128.0;
+        let cr = f32::from(px[2]) - 128.0;
+        let to_u8 = |x: f32| x.round().clamp(0.0, 255.0) as u8; // ok: clamped to the u8 range
+        px[0] = to_u8(y + 1.402 * cr);
+        px[1] = to_u8(y - 0.344_136 * cb - 0.714_136 * cr);
+        px[2] = to_u8(y + 1.772 * cb);
+    }
 }
 
 /// Output accumulator: the storage type is fixed by the first chunk.

@@ -1249,3 +1249,64 @@ const U8_YCBCR_JPEG_26910: &str = concat!(
     "AAAAAAAAAAb/xAAdEQABAgcAAAAAAAAAAAAAAAADAAIBBQYSEzFx/9oADAMBAAIRAxEAPwDZTo7BhXCiaswFzKXBbDSThkQs",
     "LeL/2Q==",
 );
+
+#[test]
+fn corrupted_files_never_panic() {
+    // Deterministic byte corruption of the GDAL fixtures and a bundled map header: every load
+    // returns (Ok or Err) without a panic escaping; a panic inside the tiff crate would be caught
+    // and surface as a Decode error saying so (none occur for these inputs). TIFF has no checksums,
+    // so some corrupted files load with wrong pixel values: that is inherent to the format.
+    let mut files: Vec<(&str, Vec<u8>)> = vec![
+        ("u16_planar", b64(U16_PLANAR_LZW_UTM35S)),
+        ("i16_point", b64(I16_STRIP_DEFLATE_3857_POINT)),
+        ("f64_geo", b64(F64_TILED_PRED3_4326)),
+        ("jpeg_rgb", b64(U8_RGB_JPEG_26910)),
+        ("ycbcr", b64(U8_YCBCR_JPEG_26910)),
+        ("tm", b64(TM_CUSTOM)),
+    ];
+    files.push((
+        "naip_2014",
+        std::fs::read(repo_dir().join("sitl/maps/naip_nd_2014.tif")).unwrap(),
+    ));
+    let mut rng = 0x2545_f491_4f6c_dd1du64;
+    let mut next = move || {
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        rng
+    };
+    let (mut ok, mut err, mut crate_panics) = (0, 0, 0);
+    let mut total = 0;
+    for (name, bytes) in &files {
+        let rounds = if bytes.len() > 100_000 { 60 } else { 300 };
+        for _ in 0..rounds {
+            total += 1;
+            let mut b = bytes.clone();
+            // Corrupt 1-4 bytes, mostly in the first 2 KiB (header, IFD, tag values).
+            for _ in 0..1 + next() % 4 {
+                let span = if next() % 4 == 0 {
+                    b.len()
+                } else {
+                    b.len().min(2048)
+                };
+                let i = (next() % span as u64) as usize;
+                b[i] = next() as u8;
+            }
+            match read_geotiff(Cursor::new(b), Path::new(name), None) {
+                Ok(_) => ok += 1,
+                Err(e) => {
+                    if e.to_string().contains("panicked") {
+                        crate_panics += 1;
+                    }
+                    err += 1;
+                }
+            }
+        }
+    }
+    eprintln!("corrupted loads: {ok} ok, {err} errors ({crate_panics} caught tiff-crate panics)");
+    assert_eq!(ok + err, total);
+    assert_eq!(
+        crate_panics, 0,
+        "the tiff crate panicked on a corrupted file (caught)"
+    );
+}

@@ -2,7 +2,20 @@
 //!
 //! * `crs`: the coordinate reference systems visnav understands (shared by projections and GeoTIFF).
 //! * `wgs84`: ellipsoid constants.
+//! * `error`: `GeoError`, returned by every geodesy function on invalid input.
+//! * `ecef`: WGS84 geodetic (`Geodetic`) <-> ECEF.
+//! * `local`: local tangent frames (NED / ENU) about an origin (`LocalFrame`).
+//! * `projection`: `Crs::{from_geodetic, to_geodetic}`, EPSG codes, UTM zones, grid convergence.
+//! * `geoid`: EGM96 geoid undulation and AMSL <-> ellipsoidal height.
 
 pub mod crs;
+pub mod ecef;
+pub mod error;
+pub mod geoid;
+pub mod local;
+pub mod projection;
 pub mod wgs84;
 pub use crs::Crs;
+pub use ecef::Geodetic;
+pub use error::GeoError;
+pub use local::LocalFrame;

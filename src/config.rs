@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+use crate::camera::CameraConfig;
 use crate::geo::Crs;
 
 /// One invalid configuration value.
@@ -115,6 +116,8 @@ pub enum ConfigError {
 pub struct Config {
     /// MAVLink connection to the autopilot.
     pub link: LinkConfig,
+    /// The camera: intrinsics, distortion, mount.
+    pub camera: CameraConfig,
     /// Reference map sources.
     pub map: MapConfig,
     /// What is injected into the autopilot, and how often.
@@ -404,6 +407,7 @@ impl Config {
         let base = path.parent().unwrap_or(Path::new("."));
         let mut p = Problems::default();
         p.section("link", |p| cfg.link.validate(p));
+        p.section("camera", |p| cfg.camera.validate(p));
         p.section("map", |p| cfg.map.validate_in(base, p));
         p.section("output", |p| cfg.output.validate(p));
         if !p.list.is_empty() {
@@ -415,6 +419,49 @@ impl Config {
         cfg.map.ortho = cfg.map.ortho.iter().map(|f| resolve(base, f)).collect();
         cfg.map.dem = cfg.map.dem.as_deref().map(|f| resolve(base, f));
         Ok(cfg)
+    }
+
+    /// Open every data file the configuration names (orthophotos, DEM) and check that it is a
+    /// usable GeoTIFF with a known CRS, consistent with the others. Slower than [`Config::load`]
+    /// (it decodes the rasters), so `check-config` calls it and the daemon does it once at start.
+    pub fn check_data(&self, path: &Path) -> Result<(), ConfigError> {
+        use crate::geo::dem::Dem;
+        use crate::geo::geotiff::{crs_equivalent, load_geotiff};
+        let mut p = Problems::default();
+        let mut first_crs: Option<Crs> = None;
+        p.section("map", |p| {
+            for (i, f) in self.map.ortho.iter().enumerate() {
+                match load_geotiff(f, self.map.crs_override) {
+                    Ok(r) => match first_crs {
+                        None => first_crs = Some(r.crs()),
+                        Some(c) if !crs_equivalent(&c, &r.crs()) => p.push(
+                            &format!("ortho[{i}]"),
+                            format!(
+                                "{}: CRS {:?} differs from the first orthophoto's {:?}",
+                                f.display(),
+                                r.crs(),
+                                c
+                            ),
+                        ),
+                        Some(_) => {}
+                    },
+                    Err(e) => p.push(&format!("ortho[{i}]"), e.to_string()),
+                }
+            }
+            if let Some(f) = &self.map.dem {
+                if let Err(e) = Dem::load_geotiff(f, self.map.crs_override) {
+                    p.push("dem", e.to_string());
+                }
+            }
+        });
+        if p.list.is_empty() {
+            Ok(())
+        } else {
+            Err(ConfigError::Invalid {
+                path: path.to_path_buf(),
+                problems: p.list,
+            })
+        }
     }
 
     /// Read, parse and validate a configuration file.

@@ -448,10 +448,10 @@ impl Config {
                     Err(e) => p.push(&format!("ortho[{i}]"), e.to_string()),
                 }
             }
-            if let Some(f) = &self.map.dem {
-                if let Err(e) = Dem::load_geotiff(f, self.map.crs_override) {
-                    p.push("dem", e.to_string());
-                }
+            if let Some(f) = &self.map.dem
+                && let Err(e) = Dem::load_geotiff(f, self.map.crs_override)
+            {
+                p.push("dem", e.to_string());
             }
         });
         if p.list.is_empty() {

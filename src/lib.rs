@@ -10,3 +10,4 @@ pub mod camera;
 pub mod config;
 pub mod geo;
 pub mod nav;
+pub mod sitl;

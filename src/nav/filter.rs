@@ -554,7 +554,7 @@ impl NavFilter {
             _ => {}
         }
         if let Some(c) = &self.core
-            && c.p.cholesky().is_none()
+            && !c.is_pd(self.par.scale)
         {
             self.covariance_reset();
         }
@@ -780,6 +780,15 @@ impl NavFilter {
 }
 
 impl Core {
+    /// Positive definiteness of the active block (15 or 21 states).
+    fn is_pd(&self, scale: bool) -> bool {
+        if scale {
+            self.p.cholesky().is_some()
+        } else {
+            self.p.fixed_view::<15, 15>(0, 0).into_owned().cholesky().is_some()
+        }
+    }
+
     fn propagate(&mut self, par: &Params, s: &ImuSample) {
         let dt = dt_s(self.t_us, s.t_us);
         if dt <= 0.0 {

@@ -23,8 +23,8 @@ pub struct SimArgs {
 pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
     let sc = Scenario::load(&args.scenario)?;
     let t0 = Instant::now();
-    let vis = run(&sc, RunOptions { vision: true, seed_offset: 0 })?;
-    let ins = run(&sc, RunOptions { vision: false, seed_offset: 0 })?;
+    let vis = run(&sc, RunOptions::new(true, 0))?;
+    let ins = run(&sc, RunOptions::new(false, 0))?;
     let single_s = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
     let mc = if args.monte_carlo > 0 {

@@ -39,6 +39,20 @@ pub struct RunOptions {
     pub vision: bool,
     /// Added to the scenario seed.
     pub seed_offset: u64,
+    /// Control experiment: stamp vision fixes with their arrival time instead of the capture
+    /// time (what a filter without latency handling would do).
+    pub stamp_at_arrival: bool,
+}
+
+impl RunOptions {
+    /// Vision on/off, given seed offset, fixes stamped with their capture time.
+    pub fn new(vision: bool, seed_offset: u64) -> Self {
+        Self {
+            vision,
+            seed_offset,
+            stamp_at_arrival: false,
+        }
+    }
 }
 
 /// Result of one run.
@@ -243,7 +257,8 @@ pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
                 let cov = sym3([v.sigma_h_m.powi(2), v.sigma_h_m.powi(2), v.sigma_v_m.powi(2)]);
                 let lat_ms = v.latency_min_ms + rng.uniform() * (v.latency_max_ms - v.latency_min_ms);
                 let deliver = t_c + (lat_ms * 1e3) as u64;
-                pending.push((deliver, Measurement::Vision(offset_fix(&pc, &n, t_c, cov))));
+                let stamp = if opt.stamp_at_arrival { deliver } else { t_c };
+                pending.push((deliver, Measurement::Vision(offset_fix(&pc, &n, stamp, cov))));
             }
         }
         pending.sort_by_key(|p| p.0);
@@ -369,13 +384,7 @@ pub fn monte_carlo(sc: &Scenario, runs: usize) -> Result<MonteCarlo, RunError> {
     let results: Result<Vec<RunResult>, RunError> = (0..runs)
         .into_par_iter()
         .map(|i| {
-            run(
-                sc,
-                RunOptions {
-                    vision: true,
-                    seed_offset: 1000 + i as u64,
-                },
-            )
+            run(sc, RunOptions::new(true, 1000 + i as u64))
         })
         .collect();
     let results = results?;

@@ -84,20 +84,22 @@ impl Harness {
         for _ in 0..n {
             self.t_us += DT_US;
             let (dth, dv) = truth.step(DT_US as f64 * 1e-6);
-            let (dth, dv) = self.imu.corrupt(&mut self.rng, &dth, &dv, DT_US as f64 * 1e-6);
+            let (dth, dv) = self
+                .imu
+                .corrupt(&mut self.rng, &dth, &dv, DT_US as f64 * 1e-6);
             let ts = truth.state();
             self.filter.imu(&ImuSample {
                 t_us: self.t_us,
                 dtheta_rad_body_frd: dth,
                 dv_m_s_body_frd: dv,
             });
-            if self.t_us % 100_000 == 0 {
+            if self.t_us.is_multiple_of(100_000) {
                 self.filter.measure(Measurement::Attitude(AttitudeFix {
                     t_capture_us: self.t_us,
                     q_nb: ts.q_nb,
                 }));
             }
-            if gps && self.t_us % 200_000 == 0 {
+            if gps && self.t_us.is_multiple_of(200_000) {
                 let n = Vector3::new(self.rng.normal(), self.rng.normal(), self.rng.normal());
                 self.filter.measure(Measurement::GpsVelocity(VelocityFix {
                     t_capture_us: self.t_us,
@@ -105,7 +107,12 @@ impl Harness {
                     cov_ned_m2_s2: Matrix3::identity() * 0.01,
                 }));
                 let n = Vector3::new(self.rng.normal(), self.rng.normal(), self.rng.normal());
-                self.filter.measure(Measurement::GpsPosition(fix_at(&ts, self.t_us, n * 1.5, 1.5)));
+                self.filter.measure(Measurement::GpsPosition(fix_at(
+                    &ts,
+                    self.t_us,
+                    n * 1.5,
+                    1.5,
+                )));
             }
             each(&mut self.filter, self.t_us, &ts);
             self.states.push((self.t_us, ts));
@@ -128,7 +135,10 @@ fn check_pd(f: &NavFilter) {
     assert_eq!(p.nrows(), f.n_states());
     assert!((&p - p.transpose()).abs().max() <= 1e-12 * p.abs().max());
     let min_eig = p.clone().symmetric_eigenvalues().min();
-    assert!(min_eig > 0.0, "covariance not positive definite: min eigenvalue {min_eig}");
+    assert!(
+        min_eig > 0.0,
+        "covariance not positive definite: min eigenvalue {min_eig}"
+    );
 }
 
 #[test]
@@ -157,18 +167,32 @@ fn covariance_stays_symmetric_pd_and_outlier_is_gated() {
         Vector3::new(30.0, 40.0, 0.0),
         3.0,
     )));
-    assert!(matches!(out, Outcome::Rejected { nis, .. } if nis > 100.0), "{out:?}");
+    assert!(
+        matches!(out, Outcome::Rejected { nis, .. } if nis > 100.0),
+        "{out:?}"
+    );
     assert_eq!(h.filter.counters().vision.rejected, 1);
-    let out = h.filter.measure(Measurement::Vision(fix_at(&truth, t, Vector3::new(1.0, -1.0, 0.5), 3.0)));
+    let out = h.filter.measure(Measurement::Vision(fix_at(
+        &truth,
+        t,
+        Vector3::new(1.0, -1.0, 0.5),
+        3.0,
+    )));
     assert!(matches!(out, Outcome::Accepted { .. }), "{out:?}");
     assert_eq!(h.filter.counters().vision.accepted, 1);
     // Malformed and stale inputs are refused and counted.
     let mut bad = fix_at(&truth, t, Vector3::zeros(), 3.0);
     bad.lat_rad = f64::NAN;
-    assert!(matches!(h.filter.measure(Measurement::Vision(bad)), Outcome::Invalid(_)));
+    assert!(matches!(
+        h.filter.measure(Measurement::Vision(bad)),
+        Outcome::Invalid(_)
+    ));
     let mut bad = fix_at(&truth, t, Vector3::zeros(), 3.0);
     bad.cov_ned_m2[(0, 0)] = -1.0;
-    assert!(matches!(h.filter.measure(Measurement::Vision(bad)), Outcome::Invalid(_)));
+    assert!(matches!(
+        h.filter.measure(Measurement::Vision(bad)),
+        Outcome::Invalid(_)
+    ));
     let old = fix_at(&truth, t - 5_000_000, Vector3::zeros(), 3.0);
     assert_eq!(h.filter.measure(Measurement::Vision(old)), Outcome::TooOld);
     let c = h.filter.counters().vision;
@@ -185,7 +209,7 @@ fn divergence_reset_after_consecutive_rejections() {
     let n_reset = NavConfig::default().health.divergence_reject_count;
     let mut outcomes = Vec::new();
     h.fly(10.0, false, |f, t, ts| {
-        if t % 1_000_000 == 0 {
+        if t.is_multiple_of(1_000_000) {
             outcomes.push(f.measure(Measurement::Vision(fix_at(
                 ts,
                 t,
@@ -200,7 +224,10 @@ fn divergence_reset_after_consecutive_rejections() {
         outcomes.iter().position(|o| *o == Outcome::Reset),
         Some(n_reset as usize - 1)
     );
-    assert!(matches!(outcomes.last(), Some(Outcome::Accepted { .. })), "{outcomes:?}");
+    assert!(
+        matches!(outcomes.last(), Some(Outcome::Accepted { .. })),
+        "{outcomes:?}"
+    );
     assert_eq!(h.filter.counters().divergence_resets, 1);
     let e = h.pos_err();
     assert!((e.x - 300.0).abs() < 10.0 && e.y.abs() < 10.0, "{e:?}");
@@ -232,7 +259,7 @@ fn initialises_from_vision_and_attitude_without_gps() {
     let mut rng = Rng::new(11);
     let mut outs = Vec::new();
     h.fly(60.0, false, |f, t, ts| {
-        if t % 1_000_000 == 0 {
+        if t.is_multiple_of(1_000_000) {
             let n = Vector3::new(rng.normal(), rng.normal(), rng.normal()) * 2.5;
             outs.push(f.measure(Measurement::Vision(fix_at(ts, t, n, 2.5))));
         }
@@ -240,7 +267,12 @@ fn initialises_from_vision_and_attitude_without_gps() {
     // First fix held (no velocity yet), second initialises (velocity from the two fixes).
     assert_eq!(outs[0], Outcome::Held);
     assert_eq!(outs[1], Outcome::Initialised);
-    assert!(outs[2..].iter().all(|o| matches!(o, Outcome::Accepted { .. })), "{outs:?}");
+    assert!(
+        outs[2..]
+            .iter()
+            .all(|o| matches!(o, Outcome::Accepted { .. })),
+        "{outs:?}"
+    );
     let e = h.pos_err();
     assert!(e.xy().norm() < 6.0, "{e:?}");
     let p = h.filter.covariance().expect("p");
@@ -312,7 +344,10 @@ fn late_fixes_equal_on_time_fixes() {
     );
     assert_eq!(late.counters.vision.accepted, now.counters.vision.accepted);
     assert!(late.counters.replays >= 55);
-    assert!(d.norm() < 1e-3, "late and on-time results differ by {d:?} m");
+    assert!(
+        d.norm() < 1e-3,
+        "late and on-time results differ by {d:?} m"
+    );
     // Control: ignoring the latency (stamping the fix with its arrival time) is much worse.
     let naive = run(
         &sc,
@@ -331,8 +366,10 @@ fn late_fixes_equal_on_time_fixes() {
 
 #[test]
 fn fifteen_and_twentyone_states() {
-    let mut cfg = NavConfig::default();
-    cfg.scale_factor_states = true;
+    let cfg = NavConfig {
+        scale_factor_states: true,
+        ..Default::default()
+    };
     let mut h = Harness::new(cfg, SimImuConfig::perfect(100.0));
     h.fly(20.0, true, |_, _, _| {});
     assert_eq!(h.filter.n_states(), 21);

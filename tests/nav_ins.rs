@@ -30,7 +30,10 @@ fn stationary_perfect_imu_ten_minutes() {
         ins.step(&(w_b * dt), &(f_b * dt), dt);
     }
     let d = ned_err(&ins.state, &st);
-    eprintln!("stationary 10 min drift NED {d:?} m, v {:?}", ins.state.v_ned_m_s);
+    eprintln!(
+        "stationary 10 min drift NED {d:?} m, v {:?}",
+        ins.state.v_ned_m_s
+    );
     assert!(d.norm() < 0.05, "drift {d:?}");
     assert!(ins.state.v_ned_m_s.norm() < 1e-3);
     let att = (ins.state.q_nb * st.q_nb.inverse()).angle();

@@ -63,7 +63,12 @@ pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
         println!("scenario {}", sc.name);
         println!(
             "max error e/n/u [m]  vision: {:.2} / {:.2} / {:.2}   INS-only: {:.2} / {:.2} / {:.2}",
-            vis.max_err_m.e, vis.max_err_m.n, vis.max_err_m.u, ins.max_err_m.e, ins.max_err_m.n, ins.max_err_m.u
+            vis.max_err_m.e,
+            vis.max_err_m.n,
+            vis.max_err_m.u,
+            ins.max_err_m.e,
+            ins.max_err_m.n,
+            ins.max_err_m.u
         );
         println!(
             "max horizontal error [m]  vision: {:.2}  INS-only: {:.2}",

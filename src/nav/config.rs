@@ -127,7 +127,12 @@ impl Validate for ImuNoiseConfig {
         );
         p.range("gyro_scale_ppm", self.gyro_scale_ppm, 0.0, 1e5);
         p.positive("accel_vrw_m_s_sqrt_h", self.accel_vrw_m_s_sqrt_h);
-        p.range("accel_vrw_m_s_sqrt_h", self.accel_vrw_m_s_sqrt_h, 0.0, 100.0);
+        p.range(
+            "accel_vrw_m_s_sqrt_h",
+            self.accel_vrw_m_s_sqrt_h,
+            0.0,
+            100.0,
+        );
         p.range("accel_bias_ug", self.accel_bias_ug, 0.0, 1e6);
         p.range(
             "accel_bias_instability_ug",
@@ -225,8 +230,18 @@ impl Validate for InitConfig {
         p.positive("yaw_sigma_deg", self.yaw_sigma_deg);
         p.range("yaw_sigma_deg", self.yaw_sigma_deg, 0.0, 180.0);
         p.positive("vision_vel_sigma_m_s", self.vision_vel_sigma_m_s);
-        p.range("vision_init_min_dt_s", self.vision_init_min_dt_s, 0.05, 60.0);
-        p.range("vision_init_max_dt_s", self.vision_init_max_dt_s, 0.05, 60.0);
+        p.range(
+            "vision_init_min_dt_s",
+            self.vision_init_min_dt_s,
+            0.05,
+            60.0,
+        );
+        p.range(
+            "vision_init_max_dt_s",
+            self.vision_init_max_dt_s,
+            0.05,
+            60.0,
+        );
         if self.vision_init_max_dt_s < self.vision_init_min_dt_s {
             p.push(
                 "vision_init_max_dt_s",
@@ -368,9 +383,19 @@ impl Validate for NavConfig {
         p.range("output_rate_hz", self.output_rate_hz, 0.1, 1000.0);
         p.range("history_s", self.history_s, 0.0, 10.0);
         p.positive("attitude_sigma_tilt_deg", self.attitude_sigma_tilt_deg);
-        p.range("attitude_sigma_tilt_deg", self.attitude_sigma_tilt_deg, 0.0, 45.0);
+        p.range(
+            "attitude_sigma_tilt_deg",
+            self.attitude_sigma_tilt_deg,
+            0.0,
+            45.0,
+        );
         p.positive("attitude_sigma_yaw_deg", self.attitude_sigma_yaw_deg);
-        p.range("attitude_sigma_yaw_deg", self.attitude_sigma_yaw_deg, 0.0, 180.0);
+        p.range(
+            "attitude_sigma_yaw_deg",
+            self.attitude_sigma_yaw_deg,
+            0.0,
+            180.0,
+        );
         p.range("max_imu_gap_s", self.max_imu_gap_s, 0.001, 10.0);
         p.section("imu", |p| self.imu.validate(p));
         p.section("gates", |p| self.gates.validate(p));
@@ -399,8 +424,9 @@ mod tests {
         let e = toml::from_str::<NavConfig>("[imu]\ngyro_arw_deg_per_h = 1.0\n");
         assert!(e.is_err());
         assert!(format!("{:?}", e).contains("gyro_arw_deg_per_h"));
-        let c: NavConfig = toml::from_str("output_rate_hz = -1\n[imu]\ngyro_arw_deg_sqrt_h = nan\n")
-            .expect("parse");
+        let c: NavConfig =
+            toml::from_str("output_rate_hz = -1\n[imu]\ngyro_arw_deg_sqrt_h = nan\n")
+                .expect("parse");
         let mut p = Problems::default();
         p.section("nav", |p| c.validate(p));
         let keys: Vec<_> = p.list.iter().map(|i| i.key.as_str()).collect();

@@ -363,7 +363,10 @@ impl NavFilter {
         });
         let keep_us = (self.cfg.history_s * 1e6) as u64;
         while self.history.len() > 1
-            && self.history.front().is_some_and(|e| e.pre.t_us + keep_us < s.t_us)
+            && self
+                .history
+                .front()
+                .is_some_and(|e| e.pre.t_us + keep_us < s.t_us)
         {
             self.history.pop_front();
         }
@@ -744,10 +747,7 @@ impl NavFilter {
             v_ned_m_s: v,
             q_nb: att.q_nb,
         };
-        let p = self.initial_p(
-            Some(&(fix.cov_ned_m2 + vcov * dt * dt)),
-            Some(&vcov),
-        );
+        let p = self.initial_p(Some(&(fix.cov_ned_m2 + vcov * dt * dt)), Some(&vcov));
         let core = Core {
             t_us: t_now,
             ins: Strapdown::new(state),
@@ -785,7 +785,11 @@ impl Core {
         if scale {
             self.p.cholesky().is_some()
         } else {
-            self.p.fixed_view::<15, 15>(0, 0).into_owned().cholesky().is_some()
+            self.p
+                .fixed_view::<15, 15>(0, 0)
+                .into_owned()
+                .cholesky()
+                .is_some()
         }
     }
 
@@ -918,10 +922,13 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
     let v = st.v_ned_m_s;
     match m {
         Measurement::Vision(f) | Measurement::GpsPosition(f) => {
-            let dz = earth::ned_offset_m((st.lat_rad, st.lon_rad, st.h_m), (f.lat_rad, f.lon_rad, f.h_m))
-                + v * dt;
+            let dz = earth::ned_offset_m(
+                (st.lat_rad, st.lon_rad, st.h_m),
+                (f.lat_rad, f.lon_rad, f.h_m),
+            ) + v * dt;
             let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
-            h.fixed_view_mut::<3, 3>(0, IP).copy_from(&Matrix3::identity());
+            h.fixed_view_mut::<3, 3>(0, IP)
+                .copy_from(&Matrix3::identity());
             let gate = if matches!(m, Measurement::Vision(_)) {
                 par.gate_vision
             } else {
@@ -932,19 +939,27 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
         Measurement::GpsVelocity(f) => {
             let dz = v - f.v_ned_m_s;
             let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
-            h.fixed_view_mut::<3, 3>(0, IV).copy_from(&Matrix3::identity());
+            h.fixed_view_mut::<3, 3>(0, IV)
+                .copy_from(&Matrix3::identity());
             core.update(par, dz, h, f.cov_ned_m2_s2, par.gate_gps3)
         }
         Measurement::Altitude(f) => {
             let dz = SVector::<f64, 1>::new(st.h_m - v.z * dt - f.h_m);
             let mut h = SMatrix::<f64, 1, N_STATES>::zeros();
             h[(0, IP + 2)] = -1.0;
-            core.update(par, dz, h, SMatrix::<f64, 1, 1>::new(f.var_m2), par.gate_alt)
+            core.update(
+                par,
+                dz,
+                h,
+                SMatrix::<f64, 1, 1>::new(f.var_m2),
+                par.gate_alt,
+            )
         }
         Measurement::Attitude(f) => {
             let dz = (st.q_nb * f.q_nb.inverse()).scaled_axis();
             let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
-            h.fixed_view_mut::<3, 3>(0, IA).copy_from(&Matrix3::identity());
+            h.fixed_view_mut::<3, 3>(0, IA)
+                .copy_from(&Matrix3::identity());
             core.update(par, dz, h, par.r_att, par.gate_att)
         }
     }

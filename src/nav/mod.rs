@@ -22,6 +22,4 @@ pub mod measurement;
 pub use config::NavConfig;
 pub use filter::{Counters, Health, NavFilter, NavOutput, Outcome};
 pub use ins::{InsState, Strapdown};
-pub use measurement::{
-    AltitudeFix, AttitudeFix, ImuSample, Measurement, PositionFix, VelocityFix,
-};
+pub use measurement::{AltitudeFix, AttitudeFix, ImuSample, Measurement, PositionFix, VelocityFix};

@@ -102,21 +102,36 @@ impl Validate for SimImuConfig {
             0.0,
             36_000.0,
         );
-        p.range("gyro_bias_corr_time_s", self.gyro_bias_corr_time_s, 1.0, 1e7);
+        p.range(
+            "gyro_bias_corr_time_s",
+            self.gyro_bias_corr_time_s,
+            1.0,
+            1e7,
+        );
         p.range(
             "gyro_bias_rw_deg_h_sqrt_h",
             self.gyro_bias_rw_deg_h_sqrt_h,
             0.0,
             1e4,
         );
-        p.range("accel_vrw_m_s_sqrt_h", self.accel_vrw_m_s_sqrt_h, 0.0, 100.0);
+        p.range(
+            "accel_vrw_m_s_sqrt_h",
+            self.accel_vrw_m_s_sqrt_h,
+            0.0,
+            100.0,
+        );
         p.range(
             "accel_bias_instability_ug",
             self.accel_bias_instability_ug,
             0.0,
             1e6,
         );
-        p.range("accel_bias_corr_time_s", self.accel_bias_corr_time_s, 1.0, 1e7);
+        p.range(
+            "accel_bias_corr_time_s",
+            self.accel_bias_corr_time_s,
+            1.0,
+            1e7,
+        );
         p.range(
             "accel_bias_rw_ug_sqrt_h",
             self.accel_bias_rw_ug_sqrt_h,
@@ -183,10 +198,12 @@ impl ImuErrors {
             c.accel_bias_corr_time_s,
         );
         if c.gyro_bias_rw_deg_h_sqrt_h > 0.0 {
-            self.rw_g += rng.normal3() * (c.gyro_bias_rw_deg_h_sqrt_h * DEG_H_TO_RAD_S / 60.0 * dt_s.sqrt());
+            self.rw_g +=
+                rng.normal3() * (c.gyro_bias_rw_deg_h_sqrt_h * DEG_H_TO_RAD_S / 60.0 * dt_s.sqrt());
         }
         if c.accel_bias_rw_ug_sqrt_h > 0.0 {
-            self.rw_a += rng.normal3() * (c.accel_bias_rw_ug_sqrt_h * UG_TO_M_S2 / 60.0 * dt_s.sqrt());
+            self.rw_a +=
+                rng.normal3() * (c.accel_bias_rw_ug_sqrt_h * UG_TO_M_S2 / 60.0 * dt_s.sqrt());
         }
         let (bg, ba) = self.biases();
         let sg = Vector3::from(c.gyro_scale_ppm) * 1e-6;
@@ -226,7 +243,10 @@ mod tests {
             sum_dv += dv;
         }
         let density = (s2 / n as f64 / dt).sqrt();
-        assert!((density / (0.6f64.to_radians() / 60.0) - 1.0).abs() < 0.02, "{density}");
+        assert!(
+            (density / (0.6f64.to_radians() / 60.0) - 1.0).abs() < 0.02,
+            "{density}"
+        );
         let mean_acc = sum_dv.z / (n as f64 * dt);
         assert!((mean_acc - 1000.0 * UG_TO_M_S2).abs() < 1e-9);
     }

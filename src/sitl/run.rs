@@ -35,7 +35,8 @@ pub struct Enu {
 /// Options of one run.
 #[derive(Debug, Clone, Copy)]
 pub struct RunOptions {
-    /// Feed the vision fixes (false: INS-only control run).
+    /// Feed the vision fixes. False is the INS-only control run: the vision fixes captured inside
+    /// the evaluation window are withheld (earlier ones, if any, still initialise/calibrate).
     pub vision: bool,
     /// Added to the scenario seed.
     pub seed_offset: u64,
@@ -115,13 +116,30 @@ pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
     let (ev0, ev1) = ((ev.from_s * 1e6) as u64, (ev.until_s * 1e6) as u64);
     let nees_us = period(1.0 / ev.nees_interval_s);
     let mut next_nees = ev0;
-    let (mut maxe, mut sum2, mut n_eval, mut max_h) = (Enu::default(), Enu::default(), 0usize, 0.0f64);
+    let (mut maxe, mut sum2, mut n_eval, mut max_h) =
+        (Enu::default(), Enu::default(), 0usize, 0.0f64);
     let mut final_err = Enu::default();
     let mut final_health = String::new();
     let mut nees_pos = Vec::new();
     let mut nees_pva = Vec::new();
     let mut init_at = None;
     let mut prev_truth = truth.state();
+    // Next capture time of each sensor (fires at the first IMU epoch at or after it).
+    let mut next_att = 0u64;
+    let mut next_alt = 0u64;
+    let mut next_gps = 0u64;
+    let mut next_vis = 0u64;
+    let due = |next: &mut u64, t: u64, hz: f64| {
+        if t >= *next {
+            *next += period(hz);
+            if *next <= t {
+                *next = t + period(hz);
+            }
+            true
+        } else {
+            false
+        }
+    };
 
     filter.imu(&ImuSample {
         t_us: 0,
@@ -171,7 +189,10 @@ pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
             && let (Some(st), Some(p)) = (filter.state(), filter.covariance())
         {
             next_nees += nees_us;
-            let dr = earth::ned_offset_m((st.lat_rad, st.lon_rad, st.h_m), (ts.lat_rad, ts.lon_rad, ts.h_m));
+            let dr = earth::ned_offset_m(
+                (st.lat_rad, st.lon_rad, st.h_m),
+                (ts.lat_rad, ts.lon_rad, ts.h_m),
+            );
             let dvv = st.v_ned_m_s - ts.v_ned_m_s;
             let psi = (st.q_nb * ts.q_nb.inverse()).scaled_axis();
             let pp = p.view((0, 0), (3, 3)).into_owned();
@@ -189,7 +210,7 @@ pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
             }
         }
         // Sensors captured at this epoch.
-        if t_us % period(sc.attitude.rate_hz) == 0 {
+        if due(&mut next_att, t_us, sc.attitude.rate_hz) {
             let a = &sc.attitude;
             let n = Vector3::new(
                 a.sigma_tilt_deg.to_radians() * rng.normal(),
@@ -203,7 +224,7 @@ pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
             }));
         }
         if let Some(a) = &sc.altitude
-            && t_us % period(a.rate_hz) == 0
+            && due(&mut next_alt, t_us, a.rate_hz)
         {
             filter.measure(Measurement::Altitude(AltitudeFix {
                 t_capture_us: t_us,
@@ -213,27 +234,39 @@ pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
         }
         if let Some(g) = &sc.gps {
             let ts_s = t_us as f64 * 1e-6;
-            if t_us % period(g.rate_hz) == 0 && ts_s >= g.from_s && ts_s < g.until_s {
+            if ts_s >= g.from_s && ts_s < g.until_s && due(&mut next_gps, t_us, g.rate_hz) {
                 let vcov = sym3([g.sigma_vel_m_s.powi(2); 3]);
                 filter.measure(Measurement::GpsVelocity(VelocityFix {
                     t_capture_us: t_us,
                     v_ned_m_s: ts.v_ned_m_s + rng.normal3() * g.sigma_vel_m_s,
                     cov_ned_m2_s2: vcov,
                 }));
-                let cov = sym3([g.sigma_h_m.powi(2), g.sigma_h_m.powi(2), g.sigma_v_m.powi(2)]);
+                let cov = sym3([
+                    g.sigma_h_m.powi(2),
+                    g.sigma_h_m.powi(2),
+                    g.sigma_v_m.powi(2),
+                ]);
                 let n = Vector3::new(
                     g.sigma_h_m * rng.normal(),
                     g.sigma_h_m * rng.normal(),
                     g.sigma_v_m * rng.normal(),
                 );
-                filter.measure(Measurement::GpsPosition(offset_fix(&ts_pos(&ts), &n, t_us, cov)));
+                filter.measure(Measurement::GpsPosition(offset_fix(
+                    &ts_pos(&ts),
+                    &n,
+                    t_us,
+                    cov,
+                )));
             }
         }
-        if opt.vision
-            && let Some(v) = &sc.vision
-        {
+        if let Some(v) = &sc.vision {
             let ts_s = t_us as f64 * 1e-6;
-            if t_us % period(v.rate_hz) == 0 && ts_s >= v.from_s && ts_s <= v.until_s {
+            let withheld = !opt.vision && ts_s >= ev.from_s;
+            if ts_s >= v.from_s
+                && ts_s <= v.until_s
+                && due(&mut next_vis, t_us, v.rate_hz)
+                && !withheld
+            {
                 // Capture at a random instant inside the last IMU interval.
                 let frac = rng.uniform();
                 let t_c = t_us - (frac * dt_us as f64) as u64;
@@ -254,11 +287,19 @@ pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
                     let ang = 2.0 * std::f64::consts::PI * rng.uniform();
                     n += Vector3::new(ang.cos(), ang.sin(), 0.0) * v.outlier_m;
                 }
-                let cov = sym3([v.sigma_h_m.powi(2), v.sigma_h_m.powi(2), v.sigma_v_m.powi(2)]);
-                let lat_ms = v.latency_min_ms + rng.uniform() * (v.latency_max_ms - v.latency_min_ms);
+                let cov = sym3([
+                    v.sigma_h_m.powi(2),
+                    v.sigma_h_m.powi(2),
+                    v.sigma_v_m.powi(2),
+                ]);
+                let lat_ms =
+                    v.latency_min_ms + rng.uniform() * (v.latency_max_ms - v.latency_min_ms);
                 let deliver = t_c + (lat_ms * 1e3) as u64;
                 let stamp = if opt.stamp_at_arrival { deliver } else { t_c };
-                pending.push((deliver, Measurement::Vision(offset_fix(&pc, &n, stamp, cov))));
+                pending.push((
+                    deliver,
+                    Measurement::Vision(offset_fix(&pc, &n, stamp, cov)),
+                ));
             }
         }
         pending.sort_by_key(|p| p.0);
@@ -297,7 +338,12 @@ fn ts_pos(s: &crate::nav::InsState) -> (f64, f64, f64) {
     (s.lat_rad, s.lon_rad, s.h_m)
 }
 
-fn offset_fix(p: &(f64, f64, f64), n_ned: &Vector3<f64>, t_us: u64, cov: Matrix3<f64>) -> PositionFix {
+fn offset_fix(
+    p: &(f64, f64, f64),
+    n_ned: &Vector3<f64>,
+    t_us: u64,
+    cov: Matrix3<f64>,
+) -> PositionFix {
     let (rm, rn) = earth::radii_m(p.0);
     PositionFix {
         t_capture_us: t_us,
@@ -345,7 +391,10 @@ pub fn nees_summary(series: &[Vec<(f64, f64)>], dof: usize) -> Option<NeesSummar
         .map(|k| series.iter().map(|s| s[k].1).sum::<f64>() / runs as f64)
         .collect();
     let mean = avg.iter().sum::<f64>() / epochs as f64;
-    let inside = avg.iter().filter(|&&a| a >= band[0] && a <= band[1]).count();
+    let inside = avg
+        .iter()
+        .filter(|&&a| a >= band[0] && a <= band[1])
+        .count();
     Some(NeesSummary {
         dof,
         runs,
@@ -370,6 +419,12 @@ pub struct MonteCarlo {
     pub nees_pos: Option<NeesSummary>,
     /// Position/velocity/attitude NEES (9 dof).
     pub nees_pva: Option<NeesSummary>,
+    /// Mean over the vision runs of the max error per axis, m.
+    pub mean_max_err_m: Enu,
+    /// Mean over the INS-only control runs (same seeds) of the max error per axis, m.
+    pub ins_only_mean_max_err_m: Enu,
+    /// Mean over the INS-only control runs of the max horizontal error, m.
+    pub ins_only_mean_max_horiz_err_m: f64,
     /// Mean over runs of the max horizontal error, m.
     pub mean_max_horiz_err_m: f64,
     /// Largest max horizontal error over runs, m.
@@ -378,22 +433,42 @@ pub struct MonteCarlo {
     pub runs_over_target: usize,
 }
 
-/// Run `runs` vision runs with seeds `seed + 1000 + i` (in parallel).
+fn mean_enu(rs: &[RunResult]) -> Enu {
+    let n = rs.len().max(1) as f64;
+    Enu {
+        e: rs.iter().map(|r| r.max_err_m.e).sum::<f64>() / n,
+        n: rs.iter().map(|r| r.max_err_m.n).sum::<f64>() / n,
+        u: rs.iter().map(|r| r.max_err_m.u).sum::<f64>() / n,
+    }
+}
+
+/// Run `runs` vision runs with seeds `seed + 1000 + i` and the INS-only control runs with the
+/// same seeds (in parallel).
 pub fn monte_carlo(sc: &Scenario, runs: usize) -> Result<MonteCarlo, RunError> {
     use rayon::prelude::*;
-    let results: Result<Vec<RunResult>, RunError> = (0..runs)
+    let both: Result<Vec<(RunResult, RunResult)>, RunError> = (0..runs)
         .into_par_iter()
         .map(|i| {
-            run(sc, RunOptions::new(true, 1000 + i as u64))
+            Ok((
+                run(sc, RunOptions::new(true, 1000 + i as u64))?,
+                run(sc, RunOptions::new(false, 1000 + i as u64))?,
+            ))
         })
         .collect();
-    let results = results?;
+    let (results, ins): (Vec<RunResult>, Vec<RunResult>) = both?.into_iter().unzip();
     let pos: Vec<_> = results.iter().map(|r| r.nees_pos.clone()).collect();
     let pva: Vec<_> = results.iter().map(|r| r.nees_pva.clone()).collect();
     let mh: Vec<f64> = results.iter().map(|r| r.max_horiz_err_m).collect();
-    let target = sc.evaluation.target_max_horiz_err_m.unwrap_or(f64::INFINITY);
+    let target = sc
+        .evaluation
+        .target_max_horiz_err_m
+        .unwrap_or(f64::INFINITY);
     Ok(MonteCarlo {
         runs,
+        mean_max_err_m: mean_enu(&results),
+        ins_only_mean_max_err_m: mean_enu(&ins),
+        ins_only_mean_max_horiz_err_m: ins.iter().map(|r| r.max_horiz_err_m).sum::<f64>()
+            / runs.max(1) as f64,
         nees_pos: nees_summary(&pos, 3),
         nees_pva: nees_summary(&pva, 9),
         mean_max_horiz_err_m: mh.iter().sum::<f64>() / runs.max(1) as f64,

@@ -325,11 +325,19 @@ impl Validate for Scenario {
                     p.range("speed_m_s", v, 1.0, 400.0);
                     speed = v;
                 }
-                p.range("climb_rate_m_s", s.climb_rate_m_s, -0.5 * speed, 0.5 * speed);
+                p.range(
+                    "climb_rate_m_s",
+                    s.climb_rate_m_s,
+                    -0.5 * speed,
+                    0.5 * speed,
+                );
                 match s.kind {
                     SegmentKind::Straight => {
                         if s.turn_rate_deg_s != 0.0 || s.climb_rate_m_s != 0.0 {
-                            p.push("kind", "a straight segment has no turn_rate_deg_s or climb_rate_m_s");
+                            p.push(
+                                "kind",
+                                "a straight segment has no turn_rate_deg_s or climb_rate_m_s",
+                            );
                         }
                     }
                     SegmentKind::Turn => {
@@ -405,7 +413,10 @@ impl Validate for Scenario {
             });
         }
         if self.gps.is_none() && self.vision.is_none() {
-            p.push("gps", "a scenario needs gps or vision to initialise the filter");
+            p.push(
+                "gps",
+                "a scenario needs gps or vision to initialise the filter",
+            );
         }
         p.section("nav", |p| self.nav.validate(p));
     }

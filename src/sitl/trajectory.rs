@@ -123,11 +123,7 @@ impl Trajectory {
 
     /// Kinematics at time `t_s` (the last segment continues beyond the end).
     pub fn kinematics(&self, t_s: f64) -> Kinematics {
-        let i = self
-            .t0_s
-            .iter()
-            .rposition(|&t0| t0 <= t_s)
-            .unwrap_or(0);
+        let i = self.t0_s.iter().rposition(|&t0| t0 <= t_s).unwrap_or(0);
         let s = &self.segs[i]; // ok: a trajectory has at least one segment (validated)
         let (v0, r0, g0) = self.from[i];
         let tau = (t_s - self.t0_s[i]).max(0.0);
@@ -236,8 +232,16 @@ impl TruthIntegrator<'_> {
             earth::position_rates(lat, h, &self.traj.kinematics(t).v_ned_m_s)
         };
         let k1 = rate(t0, lat0, h0);
-        let k2 = rate(t0 + dt_s / 2.0, lat0 + k1.x * dt_s / 2.0, h0 + k1.z * dt_s / 2.0);
-        let k3 = rate(t0 + dt_s / 2.0, lat0 + k2.x * dt_s / 2.0, h0 + k2.z * dt_s / 2.0);
+        let k2 = rate(
+            t0 + dt_s / 2.0,
+            lat0 + k1.x * dt_s / 2.0,
+            h0 + k1.z * dt_s / 2.0,
+        );
+        let k3 = rate(
+            t0 + dt_s / 2.0,
+            lat0 + k2.x * dt_s / 2.0,
+            h0 + k2.z * dt_s / 2.0,
+        );
         let k4 = rate(t0 + dt_s, lat0 + k3.x * dt_s, h0 + k3.z * dt_s);
         let d = (k1 + 2.0 * k2 + 2.0 * k3 + k4) * (dt_s / 6.0);
         let (lat1, h1) = (lat0 + d.x, h0 + d.z);
@@ -245,7 +249,11 @@ impl TruthIntegrator<'_> {
         let c = (0.6f64).sqrt() / 2.0;
         let mut dth = Vector3::zeros();
         let mut dv = Vector3::zeros();
-        for (x, w) in [(0.5 - c, 5.0 / 18.0), (0.5, 8.0 / 18.0), (0.5 + c, 5.0 / 18.0)] {
+        for (x, w) in [
+            (0.5 - c, 5.0 / 18.0),
+            (0.5, 8.0 / 18.0),
+            (0.5 + c, 5.0 / 18.0),
+        ] {
             let (wb, fb) = self.body_rates(t0 + x * dt_s, lat0 + x * d.x, h0 + x * d.z);
             dth += wb * (w * dt_s);
             dv += fb * (w * dt_s);

@@ -85,6 +85,10 @@ pub struct RunResult {
     pub gyro_bias_err_deg_h: [f64; 3],
     /// Final accelerometer bias estimation error, micro-g.
     pub accel_bias_err_ug: [f64; 3],
+    /// Final filter sigma of the gyro bias, deg/h.
+    pub gyro_bias_sigma_deg_h: [f64; 3],
+    /// Final filter sigma of the accelerometer bias, micro-g.
+    pub accel_bias_sigma_ug: [f64; 3],
 }
 
 /// Run errors.
@@ -313,6 +317,14 @@ pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
         return Err(RunError::NeverInitialised(sc.name.clone()));
     };
     let (tbg, tba) = imu_err.biases();
+    let sig = |i: usize, unit: f64| -> [f64; 3] {
+        let p = filter.covariance();
+        std::array::from_fn(|k| {
+            p.as_ref()
+                .map(|p| p[(i + k, i + k)].max(0.0).sqrt() / unit)
+                .unwrap_or(f64::NAN)
+        })
+    };
     let n = n_eval.max(1) as f64;
     Ok(RunResult {
         max_err_m: maxe,
@@ -331,6 +343,8 @@ pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
         nees_pva,
         gyro_bias_err_deg_h: ((bg - tbg) / crate::nav::config::DEG_H_TO_RAD_S).into(),
         accel_bias_err_ug: ((ba - tba) / crate::nav::config::UG_TO_M_S2).into(),
+        gyro_bias_sigma_deg_h: sig(9, crate::nav::config::DEG_H_TO_RAD_S),
+        accel_bias_sigma_ug: sig(12, crate::nav::config::UG_TO_M_S2),
     })
 }
 

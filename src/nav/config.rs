@@ -27,7 +27,8 @@ pub struct ImuNoiseConfig {
     pub gyro_bias_deg_h: f64,
     /// Gyro bias instability (first-order Gauss-Markov sigma), deg/h.
     pub gyro_bias_instability_deg_h: f64,
-    /// Correlation time of the gyro bias instability, s.
+    /// Correlation time of the gyro bias instability, s (the filter uses the short-term random
+    /// walk of that Gauss-Markov process, `q = 2 sigma^2 / tau`).
     pub gyro_bias_corr_time_s: f64,
     /// Gyro bias (rate) random walk, deg/h/sqrt(h).
     pub gyro_bias_rw_deg_h_sqrt_h: f64,
@@ -39,7 +40,7 @@ pub struct ImuNoiseConfig {
     pub accel_bias_ug: f64,
     /// Accelerometer bias instability (first-order Gauss-Markov sigma), micro-g.
     pub accel_bias_instability_ug: f64,
-    /// Correlation time of the accelerometer bias instability, s.
+    /// Correlation time of the accelerometer bias instability, s (see the gyro's).
     pub accel_bias_corr_time_s: f64,
     /// Accelerometer bias random walk, micro-g/sqrt(h).
     pub accel_bias_rw_ug_sqrt_h: f64,

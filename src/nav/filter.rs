@@ -18,7 +18,7 @@
 //! d(dv)/dt   = -[f^n x] psi + (-[(2w_ie + w_en) x] + [v x] dW_en/dv) dv + dg/dr dr
 //!              - C_b^n (db_a + diag(f^b) ds_a)
 //! d(psi)/dt  = -[w_in x] psi - dW_en/dv dv - dW_ie/dr dr - C_b^n (db_g + diag(w^b) ds_g)
-//! d(b)/dt    = -b / tau + w   (first-order Gauss-Markov + random walk)
+//! d(b)/dt    = w   (random constant + random walk, q = 2 sigma_BI^2 / tau + q_RW)
 //! ```
 //! Discretisation `Phi = I + F dt`, `Qd = G Qc G^T dt` (noise is isotropic, so the rotation `G`
 //! drops out for the white-noise terms). Update in Joseph form, `P` symmetrised after every step,
@@ -196,8 +196,6 @@ struct Params {
     scale: bool,
     q_arw: f64,
     q_vrw: f64,
-    tau_g: f64,
-    tau_a: f64,
     q_bg: f64,
     q_ba: f64,
     gate_vision: f64,
@@ -241,8 +239,6 @@ impl NavFilter {
             scale: cfg.scale_factor_states,
             q_arw: imu.gyro_arw_si().powi(2),
             q_vrw: imu.accel_vrw_si().powi(2),
-            tau_g: imu.gyro_bias_corr_time_s,
-            tau_a: imu.accel_bias_corr_time_s,
             q_bg: gm(
                 imu.gyro_bias_instability_si(),
                 imu.gyro_bias_corr_time_s,
@@ -846,8 +842,9 @@ impl Core {
         fap.set_column(0, &(-d_wie_dn));
         set(&mut f, IA, IP, &fap);
         set(&mut f, IA, IBG, &(-c_bn));
-        set(&mut f, IBG, IBG, &(-Matrix3::identity() / par.tau_g));
-        set(&mut f, IBA, IBA, &(-Matrix3::identity() / par.tau_a));
+        // Bias states: random constant (turn-on bias) driven by the instability's short-term
+        // random walk (q = 2 sigma^2 / tau) and the bias random walk; no decay term, because a
+        // Gauss-Markov decay would shrink the turn-on bias uncertainty without information.
         if par.scale {
             set(&mut f, IA, ISG, &(-c_bn * Matrix3::from_diagonal(&w_b)));
             set(&mut f, IV, ISA, &(-c_bn * Matrix3::from_diagonal(&f_b)));

@@ -106,6 +106,15 @@ pub fn quantile(dof: f64, p: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #[test]
+        fn quantile_inverts_cdf(dof in 1u32..400, p in 0.001f64..0.999) {
+            let x = quantile(dof as f64, p);
+            prop_assert!((cdf(dof as f64, x) - p).abs() < 1e-9);
+        }
+    }
 
     #[test]
     fn known_quantiles() {

@@ -86,6 +86,19 @@ pub fn ned_offset_m(a: (f64, f64, f64), b: (f64, f64, f64)) -> Vector3<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        /// Geodetic offsets built from the radii of curvature come back through `ned_offset_m`.
+        #[test]
+        fn ned_offset_round_trip(lat in -1.4f64..1.4, lon in -3.1f64..3.1, h in -100.0f64..5000.0,
+                                 dn in -500.0f64..500.0, de in -500.0f64..500.0, dd in -100.0f64..100.0) {
+            let (rm, rn) = radii_m(lat);
+            let a = (lat + dn / (rm + h), lon + de / ((rn + h) * lat.cos()), h - dd);
+            let d = ned_offset_m(a, (lat, lon, h));
+            prop_assert!((d - Vector3::new(dn, de, dd)).norm() < 1e-6);
+        }
+    }
 
     #[test]
     fn gravity_equator_and_pole() {

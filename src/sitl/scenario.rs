@@ -13,12 +13,12 @@ use std::path::Path;
 #[derive(Debug, thiserror::Error)]
 pub enum ScenarioError {
     /// File unreadable.
-    #[error("{file}: cannot read: {source}")]
+    #[error("{file}: cannot read: {err}")]
     Read {
         /// File.
         file: String,
         /// Cause.
-        source: std::io::Error,
+        err: std::io::Error,
     },
     /// TOML syntax or schema error (names the key).
     #[error("{file}: {message}")]
@@ -241,9 +241,9 @@ impl Scenario {
     /// Read, parse and validate a scenario file.
     pub fn load(path: &Path) -> Result<Self, ScenarioError> {
         let file = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| ScenarioError::Read {
+        let text = std::fs::read_to_string(path).map_err(|err| ScenarioError::Read {
             file: file.clone(),
-            source,
+            err,
         })?;
         Self::parse(&text, &file)
     }

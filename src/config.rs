@@ -12,6 +12,7 @@ use serde::Deserialize;
 
 use crate::camera::CameraConfig;
 use crate::geo::Crs;
+use crate::nav::config::NavConfig;
 
 /// One invalid configuration value.
 #[derive(Debug, Clone, PartialEq)]
@@ -123,6 +124,9 @@ pub struct Config {
     /// What is injected into the autopilot, and how often.
     #[serde(default)]
     pub output: OutputConfig,
+    /// The navigation filter (INS + error-state EKF); every key has a default.
+    #[serde(default)]
+    pub nav: NavConfig,
 }
 
 /// `[link]`: the MAVLink connection.
@@ -410,6 +414,7 @@ impl Config {
         p.section("camera", |p| cfg.camera.validate(p));
         p.section("map", |p| cfg.map.validate_in(base, p));
         p.section("output", |p| cfg.output.validate(p));
+        p.section("nav", |p| cfg.nav.validate(p));
         if !p.list.is_empty() {
             return Err(ConfigError::Invalid {
                 path: path.to_path_buf(),

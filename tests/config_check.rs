@@ -69,6 +69,7 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
         "[link]\nconnection = \"udpin:0.0.0.0:99999\"\n\
          [camera]\nwidth_px = 640\nheight_px = 480\nhfov_deg = 200.0\n\
          [map]\northo = [\"nope.tif\"]\ndem = \"nope_dem.tif\"\nground_height_amsl_m = 3.0\n\
+         [nav.imu]\ngyro_arw_deg_sqrt_h = -1.0\n\
          [output]\nrate_hz = 500.0\nmodes = [\"gps_input\", \"gps_input\"]\n",
     );
     assert_eq!(code, 2, "{err}");
@@ -83,6 +84,7 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
         "500",
         "output.modes",
         "camera.hfov_deg",
+        "nav.imu.gyro_arw_deg_sqrt_h",
     ] {
         assert!(err.contains(needle), "missing {needle:?} in:\n{err}");
     }

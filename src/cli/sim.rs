@@ -9,9 +9,10 @@ use visnav::sitl::run::{RunOptions, monte_carlo, run};
 
 #[derive(clap::Args, Debug)]
 pub struct SimArgs {
-    /// Scenario file (sitl/scenarios/*.toml).
+    /// Scenario file (sitl/scenarios/*.toml). Default: the bundled seed GPS-outage experiment,
+    /// sitl/scenarios/seed_outage.toml (looked up in the current folder, then in the source tree).
     #[arg(long)]
-    pub scenario: PathBuf,
+    pub scenario: Option<PathBuf>,
     /// Print one JSON document on stdout.
     #[arg(long)]
     pub json: bool,
@@ -22,7 +23,8 @@ pub struct SimArgs {
 }
 
 pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
-    let sc = Scenario::load(&args.scenario)?;
+    let path = args.scenario.clone().unwrap_or_else(default_scenario);
+    let sc = Scenario::load(&path)?;
     let t0 = Instant::now();
     let vis = run(&sc, RunOptions::new(true, 0))?;
     let ins = run(&sc, RunOptions::new(false, 0))?;
@@ -81,4 +83,15 @@ pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
         println!("runtime: two runs {single_s:.2} s, monte carlo {mc_s:.2} s");
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The bundled default scenario: relative to the current folder (a checkout), else to the source
+/// tree this binary was built from.
+fn default_scenario() -> PathBuf {
+    let rel = PathBuf::from("sitl/scenarios/seed_outage.toml");
+    if rel.is_file() {
+        rel
+    } else {
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(rel)
+    }
 }

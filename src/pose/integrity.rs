@@ -7,9 +7,9 @@
 //! 2. reprojection RMS over the inliers, in pixels (root mean square of the 2-D pixel error norm);
 //! 3. a-posteriori standard deviation of unit weight `sigma0` (residuals larger than the stated pixel
 //!    sigmas mean a wrong model or wrong sigmas, so the covariance cannot be trusted);
-//! 4. spatial spread of the inliers in the image: occupied cells of a 3x3 grid, convex-hull area as a
-//!    fraction of the image, and `sqrt(lambda_min / lambda_max)` of the inliers' pixel scatter matrix
-//!    (near 0 = points on a line, the classic critical configuration);
+//! 4. spatial spread of the inliers in the image: `sqrt(lambda_min / lambda_max)` of the inliers'
+//!    pixel scatter matrix (near 0 = points on a line, the classic critical configuration), occupied
+//!    cells of a 3x3 grid, and the convex-hull area as a fraction of the image;
 //! 5. conditioning: the condition number of the Jacobi-scaled normal matrix (unit-free);
 //! 6. the size of the covariance: horizontal 1-sigma semi-major axis, vertical 1-sigma, largest
 //!    attitude 1-sigma;
@@ -278,16 +278,16 @@ fn first_failure(q: &FixQuality, cfg: &IntegrityConfig) -> Option<Rejection> {
             max: cfg.max_sigma0,
         });
     }
-    if q.grid_cells_3x3 < cfg.min_grid_cells {
-        return Some(GridCoverage {
-            cells: q.grid_cells_3x3,
-            min: cfg.min_grid_cells,
-        });
-    }
     if !(q.spread_eig_ratio >= cfg.min_spread_eig_ratio) {
         return Some(Collinear {
             ratio: q.spread_eig_ratio,
             min: cfg.min_spread_eig_ratio,
+        });
+    }
+    if q.grid_cells_3x3 < cfg.min_grid_cells {
+        return Some(GridCoverage {
+            cells: q.grid_cells_3x3,
+            min: cfg.min_grid_cells,
         });
     }
     if !(q.hull_area_fraction >= cfg.min_hull_area_fraction) {
@@ -592,8 +592,8 @@ mod tests {
                 "reprojection",
             ),
             (Box::new(|q| q.sigma0 = 9.0), "sigma0"),
-            (Box::new(|q| q.grid_cells_3x3 = 1), "grid cells"),
             (Box::new(|q| q.spread_eig_ratio = 0.01), "collinear"),
+            (Box::new(|q| q.grid_cells_3x3 = 1), "grid cells"),
             (Box::new(|q| q.hull_area_fraction = 0.01), "convex hull"),
             (
                 Box::new(|q| q.condition_number = f64::INFINITY),

@@ -75,14 +75,19 @@ fn recovers_true_pose_nadir_and_oblique_with_outliers() {
             fix.quality.inliers,
             fix.quality.ransac_iterations
         );
-        for a in 0..3 {
-            assert!(
-                err[a].abs() < 4.0 * cov[(a, a)].sqrt(),
-                "case {k} axis {a}: {err:?} vs {cov:?}"
-            );
-        }
+        // Joint 6-DoF Mahalanobis distance of the error (estimate minus truth, both parts)
+        // against chi-square(6) at 0.9999.
+        let phi = (fix.pose.r_world_cam * scene.truth.r_world_cam.inverse()).scaled_axis();
+        let e6 = nalgebra::Vector6::new(phi.x, phi.y, phi.z, err.x, err.y, err.z);
+        let cov6 = fix.covariance.conservative().try_inverse().unwrap();
+        let d2 = (e6.transpose() * cov6 * e6)[0];
+        assert!(d2 < chi2_quantile(0.9999, 6), "case {k}: 6-DoF d2 {d2}");
         assert!(err.norm() < 15.0, "case {k}: {err:?}");
-        assert!(att < 0.1, "case {k}: attitude error {att} deg");
+        let att_sigma = fix.quality.attitude_sigma_rad.to_degrees();
+        assert!(
+            att < 5.0 * att_sigma && att < 0.3,
+            "case {k}: attitude error {att} deg, sigma {att_sigma} deg"
+        );
         // The inliers are (nearly all) true inliers and most true inliers are found.
         let true_inl = scene.is_inlier.iter().filter(|b| **b).count();
         let wrong = fix.inliers.iter().filter(|&&i| !scene.is_inlier[i]).count();
@@ -364,7 +369,11 @@ fn attitude_prior_fusion_tightens_attitude() {
     );
     let mut cfg = ResectionConfig::default();
     let mut priors = correct_priors(&scene);
-    priors.attitude.as_mut().unwrap().cov_rad2 = Matrix3::from_diagonal_element(0.0005f64.powi(2));
+    priors.attitude = Some(AttitudePrior {
+        r_world_cam: Rotation3::from_scaled_axis(Vector3::new(0.0002, -0.0003, 0.0001))
+            * scene.truth.r_world_cam,
+        cov_rad2: Matrix3::from_diagonal_element(0.0005f64.powi(2)),
+    });
     let vision = resect(&scene.corrs, &scene.image, &priors, &cfg);
     cfg.refine.use_attitude_prior = true;
     let fused = resect(&scene.corrs, &scene.image, &priors, &cfg);
@@ -444,11 +453,7 @@ fn nan_inf_and_duplicates_never_escape() {
     assert_finite(&out);
     let fix = out.accepted().unwrap_or_else(|| panic!("{}", out.verdict));
     assert!((fix.pose.c_world - scene.truth.c_world).norm() < 15.0);
-    assert_eq!(
-        fix.quality.valid_correspondences,
-        200 + 50 + 2,
-        "1e300 values are finite, hence 'valid'"
-    );
+    assert_eq!(fix.quality.valid_correspondences, 200 + 50);
 
     // Everything invalid.
     let all_bad: Vec<Correspondence> = bad

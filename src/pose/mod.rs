@@ -2,8 +2,8 @@
 //! and its integrity.
 //!
 //! Pipeline of [`resect`]:
-//! 1. drop invalid correspondences (non-finite values, sigma <= 0) and centre the 3-D points on
-//!    their centroid (numbers stay well conditioned with map grid coordinates of 10^6 m);
+//! 1. drop invalid correspondences (non-finite or absurd values, sigma <= 0) and centre the 3-D
+//!    points on their coordinate-wise median (numbers stay well conditioned with map grid coordinates of 10^6 m);
 //! 2. LO-RANSAC + SPRT over Lambda Twist P3P ([`ransac`], [`p3p`]) with a pixel threshold;
 //! 3. Levenberg-Marquardt on the collinearity equations over the inliers ([`refine`]), inliers
 //!    re-selected with the refined pose and the adjustment repeated until the set is stable;
@@ -59,10 +59,17 @@ pub struct Correspondence {
 }
 
 impl Correspondence {
-    /// Finite values and a finite positive sigma.
+    /// Largest accepted world coordinate magnitude, metres (beyond any map grid on Earth).
+    pub const MAX_COORD_M: f64 = 1e8;
+    /// Largest accepted normalised image coordinate (89.9 deg off the optical axis).
+    pub const MAX_NORM: f64 = 500.0;
+
+    /// Finite values of plausible magnitude and a finite positive sigma.
     pub fn is_valid(&self) -> bool {
-        self.point_world.iter().all(|v| v.is_finite())
-            && self.obs_norm.iter().all(|v| v.is_finite())
+        self.point_world
+            .iter()
+            .all(|v| v.abs() <= Self::MAX_COORD_M)
+            && self.obs_norm.iter().all(|v| v.abs() <= Self::MAX_NORM)
             && self.sigma_px.is_finite()
             && self.sigma_px > 0.0
     }

@@ -584,7 +584,8 @@ mod tests {
     fn each_check_rejects_with_its_reason() {
         let cfg = IntegrityConfig::default();
         assert_eq!(check(&good(), &cfg), Verdict::Accepted);
-        let cases: Vec<(Box<dyn Fn(&mut FixQuality)>, &str)> = vec![
+        type Case = (Box<dyn Fn(&mut FixQuality)>, &'static str);
+        let cases: Vec<Case> = vec![
             (Box::new(|q| q.inliers = 5), "inlier count"),
             (Box::new(|q| q.inlier_ratio = 0.01), "inlier ratio"),
             (

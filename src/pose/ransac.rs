@@ -119,7 +119,7 @@ impl Model {
     #[inline]
     fn err2(&self, c: &Correspondence, fx: f64, fy: f64) -> f64 {
         let p = self.r * c.point_world + self.t;
-        if !(p.z > 0.0) {
+        if p.z.is_nan() || p.z <= 0.0 {
             return f64::INFINITY;
         }
         let iz = 1.0 / p.z;

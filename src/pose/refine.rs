@@ -162,7 +162,7 @@ pub(crate) fn residual_and_jacobian(
 ) -> Option<(Vector2<f64>, SMatrix<f64, 2, 6>)> {
     let d = corr.point_world - c_world;
     let p = r_cam_world * d;
-    if !(p.z > 0.0) {
+    if p.z.is_nan() || p.z <= 0.0 {
         return None;
     }
     let iz = 1.0 / p.z;
@@ -222,6 +222,7 @@ struct Normal {
     px_sq: f64,
 }
 
+#[allow(clippy::too_many_arguments)]
 fn accumulate(
     corrs: &[Correspondence],
     idx: &[usize],

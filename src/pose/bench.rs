@@ -105,3 +105,38 @@ pub fn bench_suite(trials: usize) -> Vec<BenchResult> {
         .map(|&(n, r)| bench_resection(n, r, trials, 1234))
         .collect()
 }
+
+/// Mean wall time of one Lambda Twist P3P call in microseconds, over `calls` random aerial triples.
+pub fn bench_p3p(calls: usize, seed: u64) -> f64 {
+    use nalgebra::Vector3;
+    let mut rng = Rng::new(seed);
+    let scene = make_scene(
+        &SceneConfig {
+            n: 300,
+            outlier_ratio: 0.0,
+            ..SceneConfig::default()
+        },
+        &mut rng,
+    );
+    let m = scene.corrs.len();
+    if m < 3 || calls == 0 {
+        return f64::NAN;
+    }
+    let samples: Vec<([Vector3<f64>; 3], [Vector3<f64>; 3])> = (0..calls)
+        .map(|_| {
+            let idx = [rng.below(m), rng.below(m), rng.below(m)];
+            let y = idx
+                .map(|i| Vector3::new(scene.corrs[i].obs_norm.x, scene.corrs[i].obs_norm.y, 1.0));
+            let x = idx.map(|i| scene.corrs[i].point_world - scene.truth.c_world);
+            (y, x)
+        })
+        .collect();
+    let start = Instant::now();
+    let mut found = 0usize;
+    for (y, x) in &samples {
+        found += super::p3p::p3p_lambda_twist(y, x).len();
+    }
+    let us = start.elapsed().as_secs_f64() * 1e6 / calls as f64;
+    // Keep the work observable so that it is not optimised away.
+    if found == usize::MAX { f64::NAN } else { us }
+}

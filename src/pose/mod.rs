@@ -183,6 +183,8 @@ pub struct PoseCovariance {
     pub sigma0_sq: f64,
     /// Redundancy of the adjustment.
     pub dof: usize,
+    /// Factor on the standard deviations of [`Self::conservative`] (`refine.sigma_inflation`).
+    pub inflation: f64,
 }
 
 impl PoseCovariance {
@@ -190,10 +192,10 @@ impl PoseCovariance {
     pub fn aposteriori(&self) -> Matrix6<f64> {
         self.apriori * self.sigma0_sq
     }
-    /// `max(1, sigma0^2) (J^T W J)^-1`: never smaller than the a-priori covariance. This is the one
-    /// used for the integrity checks and the one to hand to a filter.
+    /// `max(1, sigma0^2) inflation^2 (J^T W J)^-1`: never smaller than the a-priori covariance. This
+    /// is the one used for the integrity checks and the one to hand to a filter.
     pub fn conservative(&self) -> Matrix6<f64> {
-        self.apriori * self.sigma0_sq.max(1.0)
+        self.apriori * (self.sigma0_sq.max(1.0) * self.inflation * self.inflation)
     }
     /// Conservative position covariance, world frame, m^2.
     pub fn position_world_m2(&self) -> Matrix3<f64> {
@@ -405,6 +407,7 @@ pub fn resect(
         apriori: vision.cov_apriori,
         sigma0_sq: vision.sigma0_sq,
         dof: vision.dof,
+        inflation: cfg.refine.sigma_inflation,
     };
 
     // 5a. Prior consistency on the vision-only solution (in the centred frame).
@@ -444,6 +447,7 @@ pub fn resect(
         apriori: final_r.cov_apriori,
         sigma0_sq: final_r.sigma0_sq,
         dof: final_r.dof,
+        inflation: cfg.refine.sigma_inflation,
     };
 
     // 5b. Quality figures.

@@ -212,6 +212,7 @@ pub fn ransac_p3p(
         max_iterations: 8,
         loss: RobustLoss::Huber { k_sigma: 2.0 },
         use_attitude_prior: false,
+        sigma_inflation: 1.0,
     };
 
     while iterations < needed.max(cfg.min_iterations).min(cfg.max_iterations) {

@@ -75,6 +75,10 @@ pub struct RefineConfig {
     /// filter that already holds that attitude would count it twice. The consistency check with the
     /// prior is made on the vision-only solution either way.
     pub use_attitude_prior: bool,
+    /// Factor (>= 1) on every reported standard deviation: the conservative covariance is
+    /// `max(1, sigma0^2) * inflation^2 * Q`. 1 = the statistically honest covariance; a larger value
+    /// buys margin against unmodelled errors (DEM, map registration, lens model).
+    pub sigma_inflation: f64,
 }
 
 impl Default for RefineConfig {
@@ -83,6 +87,7 @@ impl Default for RefineConfig {
             max_iterations: 30,
             loss: RobustLoss::Huber { k_sigma: 3.0 },
             use_attitude_prior: false,
+            sigma_inflation: 1.0,
         }
     }
 }
@@ -95,6 +100,7 @@ impl Validate for RefineConfig {
                 format!("{} is outside 1..=1000", self.max_iterations),
             );
         }
+        p.range("sigma_inflation", self.sigma_inflation, 1.0, 10.0);
         match self.loss {
             RobustLoss::None => {}
             RobustLoss::Huber { k_sigma } => p.range("loss.k_sigma", k_sigma, 0.5, 100.0),

@@ -122,7 +122,8 @@ pub fn bench_p3p(calls: usize, seed: u64) -> f64 {
     if m < 3 || calls == 0 {
         return f64::NAN;
     }
-    let samples: Vec<([Vector3<f64>; 3], [Vector3<f64>; 3])> = (0..calls)
+    type Triple = [Vector3<f64>; 3];
+    let samples: Vec<(Triple, Triple)> = (0..calls)
         .map(|_| {
             let idx = [rng.below(m), rng.below(m), rng.below(m)];
             let y = idx

@@ -585,3 +585,43 @@ fn bench_helper_runs() {
         "{r}"
     );
 }
+
+/// Pixel noise four times larger than the stated sigma: the variance factor exposes it and the fix
+/// is rejected by the sigma0 check (the RMS limit is relaxed here to reach that check).
+#[test]
+fn understated_pixel_sigma_is_rejected_by_sigma0() {
+    let mut rng = Rng::new(11);
+    let mut scene = make_scene(
+        &SceneConfig {
+            n: 300,
+            outlier_ratio: 0.3,
+            noise_px: 4.0,
+            ..Default::default()
+        },
+        &mut rng,
+    );
+    for c in scene.corrs.iter_mut() {
+        c.sigma_px = 1.0;
+    }
+    let mut cfg = ResectionConfig::default();
+    cfg.ransac.threshold_px = 14.0;
+    cfg.integrity.max_reprojection_rms_px = 20.0;
+    let out = resect(&scene.corrs, &scene.image, &Priors::default(), &cfg);
+    assert_finite(&out);
+    let r = out.rejection().expect("understated sigma must be rejected");
+    assert!(
+        matches!(r, Rejection::Sigma0 { sigma0, .. } if *sigma0 > 3.0),
+        "{r}"
+    );
+    // With the honest sigma the same scene is accepted, and sigma0 is near 1.
+    for c in scene.corrs.iter_mut() {
+        c.sigma_px = 4.0;
+    }
+    let out = resect(&scene.corrs, &scene.image, &Priors::default(), &cfg);
+    let fix = out.accepted().unwrap_or_else(|| panic!("{}", out.verdict));
+    assert!(
+        (0.8..1.2).contains(&fix.quality.sigma0),
+        "{}",
+        fix.quality.sigma0
+    );
+}

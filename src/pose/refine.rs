@@ -21,8 +21,9 @@
 //! normal equations (weights `rho'(|e|^2)`).
 //!
 //! Covariance: `Q = (J^T W J)^-1` at the solution is the a-priori covariance (pixel sigmas taken at
-//! face value); the a-posteriori variance factor `sigma0^2 = sum w e^2 / (m - 6)` (m residual rows,
-//! prior rows included) scales it: `Cov = sigma0^2 Q`. Parameter order of both: `[phi (rad), C (m)]`.
+//! face value); the a-posteriori variance factor `sigma0^2 = sum e^2 / (m - 6)` (m residual rows,
+//! prior rows included; unweighted even with a robust loss, so that the loss cannot hide
+//! residuals larger than the stated sigmas) scales it: `Cov = sigma0^2 Q`. Parameter order of both: `[phi (rad), C (m)]`.
 
 use nalgebra::{Matrix3, Matrix6, Rotation3, SMatrix, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
@@ -224,7 +225,7 @@ struct Normal {
     h: Matrix6<f64>,
     g: Vector6<f64>,
     cost: f64,
-    weighted_sq: f64,
+    sum_sq: f64,
     px_sq: f64,
 }
 
@@ -245,7 +246,7 @@ fn accumulate(
         h: Matrix6::zeros(),
         g: Vector6::zeros(),
         cost: 0.0,
-        weighted_sq: 0.0,
+        sum_sq: 0.0,
         px_sq: 0.0,
     };
     for &i in idx {
@@ -254,7 +255,7 @@ fn accumulate(
         let s2 = e.norm_squared();
         let (rho, w) = loss.eval(s2);
         n.cost += rho;
-        n.weighted_sq += w * s2;
+        n.sum_sq += s2; // unweighted: a robust loss must not hide a wrong pixel sigma
         n.px_sq += s2 * c.sigma_px * c.sigma_px;
         if with_jacobian {
             let jt = j.transpose();
@@ -266,7 +267,7 @@ fn accumulate(
         let (r, j) = p.residual(&pose.r_world_cam);
         let s2 = r.norm_squared();
         n.cost += s2;
-        n.weighted_sq += s2;
+        n.sum_sq += s2;
         if with_jacobian {
             let jt = j.transpose();
             let mut hv = n.h.fixed_view_mut::<3, 3>(0, 0);
@@ -367,7 +368,7 @@ pub fn refine_pose(
         return Err(RefineError::NonFinite);
     }
     let dof = rows - 6;
-    let sigma0_sq = cur.weighted_sq / dof as f64;
+    let sigma0_sq = cur.sum_sq / dof as f64;
     let rms_px = (cur.px_sq / idx.len() as f64).sqrt();
     Ok(Refined {
         pose,

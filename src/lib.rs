@@ -10,4 +10,5 @@ pub mod camera;
 pub mod config;
 pub mod geo;
 pub mod nav;
+pub mod pose;
 pub mod sitl;

@@ -9,3 +9,5 @@
 pub mod camera;
 pub mod config;
 pub mod geo;
+pub mod link;
+pub mod sitl;

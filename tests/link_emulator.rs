@@ -5,7 +5,7 @@
 
 use std::time::Duration;
 
-use mavlink::ardupilotmega::{MavAutopilot, MavMessage};
+use mavlink::dialects::ardupilotmega::{MavAutopilot, MavMessage};
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use tokio::sync::watch;
 use visnav::link::config::{LinkConfig, OutputConfig, OutputMode, SigningSettings};
@@ -45,9 +45,11 @@ async fn wait_for(
     what: &str,
     f: impl Fn(&LinkStatus) -> bool,
 ) -> LinkStatus {
-    let r = tokio::time::timeout(Duration::from_secs_f64(secs), rx.wait_for(|s| f(s))).await;
+    let r = tokio::time::timeout(Duration::from_secs_f64(secs), rx.wait_for(|s| f(s)))
+        .await
+        .map(|r| r.map(|s| s.clone()));
     match r {
-        Ok(Ok(s)) => s.clone(),
+        Ok(Ok(s)) => s,
         _ => panic!("timed out waiting for {what}; status {:#?}", *rx.borrow()),
     }
 }
@@ -271,8 +273,9 @@ async fn udp_link_against_ardupilot_like_emulator() {
     assert!(from_ap > 500 && from_us > 50);
     // Every recorded packet decodes with a valid CRC.
     for (_, p) in &recs {
-        let mut r = mavlink::peek_reader::PeekReader::new(&p[..]);
-        mavlink::read_v2_msg::<MavMessage, _>(&mut r).expect("tlog packet decodes");
+        let mut r = mavlink::MavlinkReader::new(&p[..]);
+        r.read_message::<MavMessage>(mavlink::MavlinkVersion::V2)
+            .expect("tlog packet decodes");
     }
 }
 

@@ -28,7 +28,10 @@
 //! body frame `v_body = R_ned_body^T v_ned` with covariance `R^T P_v R`; angular rates are not
 //! estimated: sent as 0 with variance [`UNKNOWN_RATE_VAR`].
 
-use mavlink::ardupilotmega::{
+// SET_GPS_GLOBAL_ORIGIN is marked superseded by MAV_CMD_DO_SET_GLOBAL_ORIGIN (2025), but ArduPilot
+// and PX4 releases in the field still act on the message; it stays until they do not.
+#[allow(deprecated)]
+use mavlink::dialects::ardupilotmega::{
     GLOBAL_POSITION_SENSOR_DATA, GPS_INPUT_DATA, GlobalPositionFlags, GlobalPositionSrc,
     GpsFixType, GpsInputIgnoreFlags, MavEstimatorType, MavFrame, MavMessage, ODOMETRY_DATA,
     SET_GPS_GLOBAL_ORIGIN_DATA, VISION_POSITION_ESTIMATE_DATA,
@@ -511,6 +514,7 @@ pub fn global_position_sensor(
 }
 
 /// SET_GPS_GLOBAL_ORIGIN: lat/lon 1e7 degrees, altitude mm AMSL.
+#[allow(deprecated)] // see the import
 pub fn set_gps_global_origin(
     origin: &GeoOrigin,
     target_system: u8,
@@ -765,6 +769,7 @@ pub(crate) mod tests {
     }
 
     #[test]
+    #[allow(deprecated)]
     fn origin_message() {
         let o = GeoOrigin {
             lat_deg: -33.9,

@@ -19,7 +19,7 @@ use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use mavlink::ardupilotmega::{
+use mavlink::dialects::ardupilotmega::{
     COMMAND_LONG_DATA, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavMessage, MavModeFlag, MavSeverity,
     MavState, MavType, STATUSTEXT_DATA, TIMESYNC_DATA,
 };
@@ -485,7 +485,7 @@ impl Shared {
             text[..c.len()].copy_from_slice(c);
             let m = MavMessage::STATUSTEXT(STATUSTEXT_DATA {
                 severity,
-                text: text.into(),
+                text: mavlink::types::CharArray::new(text),
                 id,
                 chunk_seq: i as u8,
             });

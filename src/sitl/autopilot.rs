@@ -25,7 +25,8 @@ use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use mavlink::ardupilotmega::{
+#[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: still what ArduPilot acts on
+use mavlink::dialects::ardupilotmega::{
     ATTITUDE_DATA, COMMAND_ACK_DATA, GLOBAL_POSITION_INT_DATA, GPS_GLOBAL_ORIGIN_DATA,
     GPS_RAW_INT_DATA, GpsFixType, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavMessage, MavModeFlag,
     MavResult, MavState, MavType, RAW_IMU_DATA, SCALED_IMU_DATA, SCALED_PRESSURE_DATA,
@@ -262,6 +263,14 @@ async fn send(inner: &Inner, conn: &Conn, msg: &MavMessage) {
     let _ = conn.send(&header, msg).await;
 }
 
+struct AbortOnDrop(JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
 async fn run(inner: Arc<Inner>) {
     loop {
         let Ok(mut conn) = mavlink::connect_async::<MavMessage>(&inner.cfg.connection).await else {
@@ -273,7 +282,8 @@ async fn run(inner: Arc<Inner>) {
             conn.setup_signing(Some(SigningConfig::new(key, 0, true, false)));
         }
         let conn = Arc::new(conn);
-        let tx = tokio::spawn(tx_loop(inner.clone(), conn.clone()));
+        // Aborted when this task is (emulator dropped) or the client goes away.
+        let _tx = AbortOnDrop(tokio::spawn(tx_loop(inner.clone(), conn.clone())));
         loop {
             match conn.recv().await {
                 Ok((h, m)) => handle(&inner, &conn, h, m).await,
@@ -281,11 +291,11 @@ async fn run(inner: Arc<Inner>) {
                 Err(_) => continue,
             }
         }
-        tx.abort();
         // TCP client went away: listen again.
     }
 }
 
+#[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: still what ArduPilot acts on
 async fn handle(inner: &Inner, conn: &Conn, h: MavHeader, m: MavMessage) {
     let (t_boot_us, boot) = {
         let mut st = lock(&inner.state);

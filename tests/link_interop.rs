@@ -156,7 +156,8 @@ async fn pymavlink_decodes_and_checks_every_field() {
         Duration::from_secs(5),
         status.wait_for(|s| s.autopilot.is_some() && s.time_synced && s.origin.is_some()),
     )
-    .await;
+    .await
+    .map(|r| r.map(|s| s.clone())); // never hold the watch's read guard
     if let Ok(Ok(s)) = &ready {
         let o = s.origin.unwrap();
         assert!((o.lat_deg - origin.lat_deg).abs() < 1e-7, "{o:?}");

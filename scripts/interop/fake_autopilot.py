@@ -159,7 +159,7 @@ def main():
         elif t == "TIMESYNC":
             timesync_requests += 1
             c.ok(m.tc1 == 0 and m.ts1 > 0, f"TIMESYNC request tc1={m.tc1} ts1={m.ts1}")
-            mav.timesync_send(boot_us() * 1000, m.ts1, m.get_srcSystem(), m.get_srcComponent())
+            mav.timesync_send(boot_us() * 1000, m.ts1)
         elif t == "COMMAND_LONG":
             c.ok(m.target_system == ap_sys and m.target_component == ap_comp, "COMMAND_LONG target")
             if m.command == mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:

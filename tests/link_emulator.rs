@@ -11,9 +11,7 @@ use tokio::sync::watch;
 use visnav::link::config::{LinkConfig, OutputConfig, OutputMode, SigningSettings};
 use visnav::link::inject::local_ned_m;
 use visnav::link::{GeoOrigin, Health, Link, LinkStatus, NavEstimate};
-use visnav::sitl::autopilot::{
-    AutopilotEmulator, ConstantVelocity, EmulatorConfig, TruthSource,
-};
+use visnav::sitl::autopilot::{AutopilotEmulator, ConstantVelocity, EmulatorConfig, TruthSource};
 
 fn free_udp_port() -> u16 {
     std::net::UdpSocket::bind("127.0.0.1:0")
@@ -76,7 +74,10 @@ fn estimate_at(t_boot_us: u64, health: Health) -> NavEstimate {
 fn spawn_estimator(
     link: &Link,
     health: watch::Receiver<Health>,
-) -> (watch::Receiver<Option<NavEstimate>>, tokio::task::JoinHandle<()>) {
+) -> (
+    watch::Receiver<Option<NavEstimate>>,
+    tokio::task::JoinHandle<()>,
+) {
     let (tx, rx) = watch::channel(None);
     let clock = link.clock();
     let task = tokio::spawn(async move {
@@ -225,7 +226,10 @@ async fn udp_link_against_ardupilot_like_emulator() {
     assert_eq!(emu.stream_interval(30), Some(Duration::from_millis(20)));
     let mapped = link.autopilot_now_us().unwrap() as i64;
     let truth = emu.time_boot_us() as i64;
-    assert!((mapped - truth).abs() < 5_000, "after reboot {mapped} vs {truth}");
+    assert!(
+        (mapped - truth).abs() < 5_000,
+        "after reboot {mapped} vs {truth}"
+    );
     assert!(truth < 15_000_000);
 
     // 4. Lost: injection stops so the autopilot's failsafe takes over.
@@ -250,7 +254,10 @@ async fn udp_link_against_ardupilot_like_emulator() {
     // 5. Metrics endpoint and .tlog.
     let addr = link.metrics_addr().unwrap();
     let body = http_get(addr).await;
-    assert!(body.contains("visnav_link_autopilot_reboots_total 1"), "{body}");
+    assert!(
+        body.contains("visnav_link_autopilot_reboots_total 1"),
+        "{body}"
+    );
     let m = link.metrics();
     est_task.abort();
     link.shutdown().await;
@@ -267,7 +274,10 @@ async fn udp_link_against_ardupilot_like_emulator() {
     }
     let rx = m.rx_packets.load(std::sync::atomic::Ordering::Relaxed);
     let tx = m.tx_packets.load(std::sync::atomic::Ordering::Relaxed);
-    eprintln!("tlog: {} records ({from_ap} received, {from_us} sent); counters rx {rx} tx {tx}", recs.len());
+    eprintln!(
+        "tlog: {} records ({from_ap} received, {from_us} sent); counters rx {rx} tx {tx}",
+        recs.len()
+    );
     assert_eq!(from_ap as u64, rx);
     assert_eq!(from_us as u64, tx);
     assert!(from_ap > 500 && from_us > 50);
@@ -327,7 +337,12 @@ async fn tcp_reconnects_with_backoff() {
     })
     .await
     .expect("streams requested on the new connection");
-    assert!(link.metrics().connects.load(std::sync::atomic::Ordering::Relaxed) >= 2);
+    assert!(
+        link.metrics()
+            .connects
+            .load(std::sync::atomic::Ordering::Relaxed)
+            >= 2
+    );
     link.shutdown().await;
 }
 
@@ -343,7 +358,9 @@ async fn signing_is_required_and_honoured() {
     let port = free_udp_port();
     let mut emu_cfg = EmulatorConfig::new(&format!("udpout:127.0.0.1:{port}"));
     emu_cfg.signing_key = Some(key);
-    let emu = AutopilotEmulator::start(emu_cfg.clone(), TRUTH).await.unwrap();
+    let emu = AutopilotEmulator::start(emu_cfg.clone(), TRUTH)
+        .await
+        .unwrap();
     let unsigned = Link::start(
         LinkConfig::new(&format!("udpin:127.0.0.1:{port}")),
         OutputConfig::default(),
@@ -351,7 +368,11 @@ async fn signing_is_required_and_honoured() {
     .await
     .unwrap();
     tokio::time::sleep(Duration::from_secs(2)).await;
-    assert!(emu.received_counts().is_empty(), "{:?}", emu.received_counts());
+    assert!(
+        emu.received_counts().is_empty(),
+        "{:?}",
+        emu.received_counts()
+    );
     unsigned.shutdown().await;
     drop(emu);
 
@@ -372,7 +393,10 @@ async fn signing_is_required_and_honoured() {
         s.autopilot.is_some() && s.time_synced
     })
     .await;
-    assert!(emu.received_counts().get(&0).copied().unwrap_or(0) >= 1, "HEARTBEAT accepted");
+    assert!(
+        emu.received_counts().get(&0).copied().unwrap_or(0) >= 1,
+        "HEARTBEAT accepted"
+    );
     link.shutdown().await;
     drop(emu);
 
@@ -394,6 +418,11 @@ async fn signing_is_required_and_honoured() {
     let link = Link::start(cfg, OutputConfig::default()).await.unwrap();
     tokio::time::sleep(Duration::from_secs(2)).await;
     assert!(link.status().borrow().autopilot.is_none());
-    assert!(link.metrics().rx_packets.load(std::sync::atomic::Ordering::Relaxed) == 0);
+    assert!(
+        link.metrics()
+            .rx_packets
+            .load(std::sync::atomic::Ordering::Relaxed)
+            == 0
+    );
     link.shutdown().await;
 }

@@ -32,8 +32,15 @@ fn python() -> Option<PathBuf> {
             Some(repo().join(p))
         }
         Ok(o) => {
-            assert!(!ci, "CI: the pymavlink venv could not be set up ({})", o.status);
-            eprintln!("SKIP link_interop: pymavlink venv unavailable ({})", o.status);
+            assert!(
+                !ci,
+                "CI: the pymavlink venv could not be set up ({})",
+                o.status
+            );
+            eprintln!(
+                "SKIP link_interop: pymavlink venv unavailable ({})",
+                o.status
+            );
             None
         }
         Err(e) => {
@@ -182,13 +189,27 @@ async fn pymavlink_decodes_and_checks_every_field() {
     eprintln!("{stdout}");
     eprintln!("{}", String::from_utf8_lossy(&output.stderr));
     link.shutdown().await;
-    assert!(ready.is_ok(), "link was not ready (lock, time sync, origin)");
+    assert!(
+        ready.is_ok(),
+        "link was not ready (lock, time sync, origin)"
+    );
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(&report_file).unwrap()).unwrap();
     eprintln!("report: {report:#}");
-    assert!(output.status.success(), "pymavlink checks failed:\n{stdout}");
+    assert!(
+        output.status.success(),
+        "pymavlink checks failed:\n{stdout}"
+    );
     assert!(report["passed"].as_u64().unwrap() > 200, "{report}");
-    for m in ["GPS_INPUT", "VISION_POSITION_ESTIMATE", "ODOMETRY", "GLOBAL_POSITION_SENSOR"] {
-        assert!(report["counts"][m].as_u64().unwrap_or(0) >= 20, "{m}: {report}");
+    for m in [
+        "GPS_INPUT",
+        "VISION_POSITION_ESTIMATE",
+        "ODOMETRY",
+        "GLOBAL_POSITION_SENSOR",
+    ] {
+        assert!(
+            report["counts"][m].as_u64().unwrap_or(0) >= 20,
+            "{m}: {report}"
+        );
     }
 }

@@ -292,10 +292,7 @@ impl LinkConfig {
             if let Some(d) = dir
                 && !d.is_dir()
             {
-                p.push(
-                    "tlog",
-                    format!("the folder {} does not exist", d.display()),
-                );
+                p.push("tlog", format!("the folder {} does not exist", d.display()));
             }
         }
     }
@@ -462,7 +459,10 @@ impl Validate for OutputConfig {
         if self.gps_satellites > 60 {
             p.push(
                 "gps_satellites",
-                format!("{} is not a plausible satellite count (0..=60)", self.gps_satellites),
+                format!(
+                    "{} is not a plausible satellite count (0..=60)",
+                    self.gps_satellites
+                ),
             );
         }
         p.range("max_age_s", self.max_age_s, 0.01, 5.0);

@@ -289,7 +289,12 @@ pub fn r_ned_ecef(lat_deg: f64, lon_deg: f64) -> Matrix3<f64> {
 }
 
 /// Position of (lat, lon, alt AMSL) in the local NED frame about `origin`, metres.
-pub fn local_ned_m(origin: &GeoOrigin, lat_deg: f64, lon_deg: f64, alt_amsl_m: f64) -> Vector3<f64> {
+pub fn local_ned_m(
+    origin: &GeoOrigin,
+    lat_deg: f64,
+    lon_deg: f64,
+    alt_amsl_m: f64,
+) -> Vector3<f64> {
     let p = geodetic_to_ecef(lat_deg, lon_deg, alt_amsl_m);
     let o = geodetic_to_ecef(origin.lat_deg, origin.lon_deg, origin.alt_amsl_m);
     r_ned_ecef(origin.lat_deg, origin.lon_deg) * (p - o)
@@ -297,7 +302,12 @@ pub fn local_ned_m(origin: &GeoOrigin, lat_deg: f64, lon_deg: f64, alt_amsl_m: f
 
 /// Move a geodetic position by a small NED displacement (metres), using the meridian and
 /// prime-vertical radii of curvature at the start point.
-pub fn offset_geodetic(lat_deg: f64, lon_deg: f64, alt_m: f64, d_ned_m: &Vector3<f64>) -> (f64, f64, f64) {
+pub fn offset_geodetic(
+    lat_deg: f64,
+    lon_deg: f64,
+    alt_m: f64,
+    d_ned_m: &Vector3<f64>,
+) -> (f64, f64, f64) {
     let sl = lat_deg.to_radians().sin();
     let w = (1.0 - wgs84::E2 * sl * sl).sqrt();
     let rn = wgs84::A_M / w; // prime vertical
@@ -314,7 +324,11 @@ pub fn offset_geodetic(lat_deg: f64, lon_deg: f64, alt_m: f64, d_ned_m: &Vector3
 }
 
 /// GPS_INPUT for ArduPilot (see module docs for every field's meaning).
-pub fn gps_input(e: &NavEstimate, now: &SendTime, out: &OutputConfig) -> Result<MavMessage, InjectError> {
+pub fn gps_input(
+    e: &NavEstimate,
+    now: &SendTime,
+    out: &OutputConfig,
+) -> Result<MavMessage, InjectError> {
     usable(e)?;
     let age = age_s(e, now, out.max_age_s)?;
     let unix_us = now.unix_us.ok_or(InjectError::NoUtc)?;
@@ -414,22 +428,26 @@ pub fn vision_position_estimate(
 ) -> Result<MavMessage, InjectError> {
     usable(e)?;
     age_s(e, now, out.max_age_s)?;
-    let usec = now.validity_companion_us.ok_or(InjectError::NoCompanionTime)?;
+    let usec = now
+        .validity_companion_us
+        .ok_or(InjectError::NoCompanionTime)?;
     let p = local_ned_m(origin, e.lat_deg, e.lon_deg, e.alt_amsl_m);
     in_range("local position", p.amax(), 0.0, 1e6)?;
     let (roll, pitch, yaw) = e.q_ned_body.euler_angles();
     let att_var = Matrix3::from_diagonal(&e.att_sigma_rad.component_mul(&e.att_sigma_rad));
-    Ok(MavMessage::VISION_POSITION_ESTIMATE(VISION_POSITION_ESTIMATE_DATA {
-        usec,
-        x: f32_of("x", p.x)?,
-        y: f32_of("y", p.y)?,
-        z: f32_of("z", p.z)?,
-        roll: f32_of("roll", roll)?,
-        pitch: f32_of("pitch", pitch)?,
-        yaw: f32_of("yaw", yaw)?,
-        covariance: upper_triangle_6((&e.pos_cov_ned_m2, &att_var))?,
-        reset_counter: e.reset_counter,
-    }))
+    Ok(MavMessage::VISION_POSITION_ESTIMATE(
+        VISION_POSITION_ESTIMATE_DATA {
+            usec,
+            x: f32_of("x", p.x)?,
+            y: f32_of("y", p.y)?,
+            z: f32_of("z", p.z)?,
+            roll: f32_of("roll", roll)?,
+            pitch: f32_of("pitch", pitch)?,
+            yaw: f32_of("yaw", yaw)?,
+            covariance: upper_triangle_6((&e.pos_cov_ned_m2, &att_var))?,
+            reset_counter: e.reset_counter,
+        },
+    ))
 }
 
 /// ODOMETRY: pose in MAV_FRAME_LOCAL_FRD about `origin`, velocity in MAV_FRAME_BODY_FRD.
@@ -441,7 +459,9 @@ pub fn odometry(
 ) -> Result<MavMessage, InjectError> {
     usable(e)?;
     age_s(e, now, out.max_age_s)?;
-    let time_usec = now.validity_companion_us.ok_or(InjectError::NoCompanionTime)?;
+    let time_usec = now
+        .validity_companion_us
+        .ok_or(InjectError::NoCompanionTime)?;
     let p = local_ned_m(origin, e.lat_deg, e.lon_deg, e.alt_amsl_m);
     in_range("local position", p.amax(), 0.0, 1e6)?;
     let r = e.q_ned_body.to_rotation_matrix();
@@ -496,21 +516,23 @@ pub fn global_position_sensor(
     } else {
         GlobalPositionFlags::empty()
     };
-    Ok(MavMessage::GLOBAL_POSITION_SENSOR(GLOBAL_POSITION_SENSOR_DATA {
-        time_usec: unix_valid.unwrap_or(e.t_boot_us),
-        processing_time: (age * 1e6).round() as u32,
-        lat: deg_e7("lat_deg", e.lat_deg)?,
-        lon: deg_e7("lon_deg", e.lon_deg)?,
-        alt_ellipsoid: f32_of("alt_ellipsoid", e.alt_amsl_m + n)?,
-        alt: f32_of("alt", e.alt_amsl_m)?,
-        eph: f32_of("eph", lambda_max_ne(&e.pos_cov_ned_m2).sqrt())?,
-        epv: f32_of("epv", e.pos_cov_ned_m2[(2, 2)].max(0.0).sqrt())?,
-        target_system: target.0,
-        target_component: target.1,
-        id: out.sensor_id,
-        source: GlobalPositionSrc::GLOBAL_POSITION_SRC_VISION,
-        flags,
-    }))
+    Ok(MavMessage::GLOBAL_POSITION_SENSOR(
+        GLOBAL_POSITION_SENSOR_DATA {
+            time_usec: unix_valid.unwrap_or(e.t_boot_us),
+            processing_time: (age * 1e6).round() as u32,
+            lat: deg_e7("lat_deg", e.lat_deg)?,
+            lon: deg_e7("lon_deg", e.lon_deg)?,
+            alt_ellipsoid: f32_of("alt_ellipsoid", e.alt_amsl_m + n)?,
+            alt: f32_of("alt", e.alt_amsl_m)?,
+            eph: f32_of("eph", lambda_max_ne(&e.pos_cov_ned_m2).sqrt())?,
+            epv: f32_of("epv", e.pos_cov_ned_m2[(2, 2)].max(0.0).sqrt())?,
+            target_system: target.0,
+            target_component: target.1,
+            id: out.sensor_id,
+            source: GlobalPositionSrc::GLOBAL_POSITION_SRC_VISION,
+            flags,
+        },
+    ))
 }
 
 /// SET_GPS_GLOBAL_ORIGIN: lat/lon 1e7 degrees, altitude mm AMSL.
@@ -521,16 +543,21 @@ pub fn set_gps_global_origin(
     unix_us: Option<u64>,
 ) -> Result<MavMessage, InjectError> {
     let alt_mm = in_range("origin alt_amsl_m", origin.alt_amsl_m, -1000.0, 20_000.0)? * 1000.0;
-    Ok(MavMessage::SET_GPS_GLOBAL_ORIGIN(SET_GPS_GLOBAL_ORIGIN_DATA {
-        latitude: deg_e7("origin lat_deg", in_range("origin lat_deg", origin.lat_deg, -90.0, 90.0)?)?,
-        longitude: deg_e7(
-            "origin lon_deg",
-            in_range("origin lon_deg", origin.lon_deg, -180.0, 180.0)?,
-        )?,
-        altitude: alt_mm.round() as i32,
-        target_system,
-        time_usec: unix_us.unwrap_or(0),
-    }))
+    Ok(MavMessage::SET_GPS_GLOBAL_ORIGIN(
+        SET_GPS_GLOBAL_ORIGIN_DATA {
+            latitude: deg_e7(
+                "origin lat_deg",
+                in_range("origin lat_deg", origin.lat_deg, -90.0, 90.0)?,
+            )?,
+            longitude: deg_e7(
+                "origin lon_deg",
+                in_range("origin lon_deg", origin.lon_deg, -180.0, 180.0)?,
+            )?,
+            altitude: alt_mm.round() as i32,
+            target_system,
+            time_usec: unix_us.unwrap_or(0),
+        },
+    ))
 }
 
 #[cfg(test)]
@@ -595,7 +622,11 @@ pub(crate) mod tests {
         assert_eq!((g.vn, g.ve, g.vd), (10.0, -2.0, 0.5));
         // Horizontal: lambda_max([[9,1],[1,4]] + 0.04*0.04 I) = 6.5 + sqrt(6.25 + 1) + 0.0016.
         let h = (6.5 + 7.25f64.sqrt() + 0.0016).sqrt();
-        assert!((g.horiz_accuracy as f64 - h).abs() < 1e-5, "{}", g.horiz_accuracy);
+        assert!(
+            (g.horiz_accuracy as f64 - h).abs() < 1e-5,
+            "{}",
+            g.horiz_accuracy
+        );
         assert!((g.vert_accuracy as f64 - 16.0016f64.sqrt()).abs() < 1e-5);
         assert!((g.speed_accuracy - 0.2).abs() < 1e-6);
         assert!((g.hdop as f64 - h / DOP_UERE_M).abs() < 1e-5);
@@ -753,8 +784,7 @@ pub(crate) mod tests {
     #[test]
     fn global_position_sensor_fields() {
         let MavMessage::GLOBAL_POSITION_SENSOR(g) =
-            global_position_sensor(&estimate(), &now(), (1, 1), &OutputConfig::default())
-                .unwrap()
+            global_position_sensor(&estimate(), &now(), (1, 1), &OutputConfig::default()).unwrap()
         else {
             panic!()
         };
@@ -780,7 +810,10 @@ pub(crate) mod tests {
         else {
             panic!()
         };
-        assert_eq!((m.latitude, m.longitude, m.altitude), (-339_000_000, 184_000_000, 12_345));
+        assert_eq!(
+            (m.latitude, m.longitude, m.altitude),
+            (-339_000_000, 184_000_000, 12_345)
+        );
         assert_eq!(m.target_system, 7);
     }
 

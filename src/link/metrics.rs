@@ -39,19 +39,73 @@ impl Metrics {
     pub fn render(&self) -> String {
         let mut s = String::new();
         let items: [(&str, &str, &str, &AtomicU64); 10] = [
-            ("visnav_link_rx_packets_total", "counter", "MAVLink packets received", &self.rx_packets),
-            ("visnav_link_rx_autopilot_packets_total", "counter", "packets from the locked autopilot", &self.rx_autopilot),
-            ("visnav_link_tx_packets_total", "counter", "MAVLink packets sent", &self.tx_packets),
-            ("visnav_link_tx_errors_total", "counter", "send failures", &self.tx_errors),
-            ("visnav_link_connects_total", "counter", "connections established", &self.connects),
-            ("visnav_link_autopilot_reboots_total", "counter", "autopilot reboots detected", &self.reboots),
-            ("visnav_inject_sent_total", "counter", "injection messages sent", &self.injected),
-            ("visnav_inject_refused_total", "counter", "injections refused", &self.inject_refused),
-            ("visnav_link_timesync_rtt_us", "gauge", "last TIMESYNC round trip in microseconds", &self.timesync_rtt_us),
-            ("visnav_link_autopilot_alive", "gauge", "1 while the autopilot heartbeat is current", &self.autopilot_alive),
+            (
+                "visnav_link_rx_packets_total",
+                "counter",
+                "MAVLink packets received",
+                &self.rx_packets,
+            ),
+            (
+                "visnav_link_rx_autopilot_packets_total",
+                "counter",
+                "packets from the locked autopilot",
+                &self.rx_autopilot,
+            ),
+            (
+                "visnav_link_tx_packets_total",
+                "counter",
+                "MAVLink packets sent",
+                &self.tx_packets,
+            ),
+            (
+                "visnav_link_tx_errors_total",
+                "counter",
+                "send failures",
+                &self.tx_errors,
+            ),
+            (
+                "visnav_link_connects_total",
+                "counter",
+                "connections established",
+                &self.connects,
+            ),
+            (
+                "visnav_link_autopilot_reboots_total",
+                "counter",
+                "autopilot reboots detected",
+                &self.reboots,
+            ),
+            (
+                "visnav_inject_sent_total",
+                "counter",
+                "injection messages sent",
+                &self.injected,
+            ),
+            (
+                "visnav_inject_refused_total",
+                "counter",
+                "injections refused",
+                &self.inject_refused,
+            ),
+            (
+                "visnav_link_timesync_rtt_us",
+                "gauge",
+                "last TIMESYNC round trip in microseconds",
+                &self.timesync_rtt_us,
+            ),
+            (
+                "visnav_link_autopilot_alive",
+                "gauge",
+                "1 while the autopilot heartbeat is current",
+                &self.autopilot_alive,
+            ),
         ];
         for (name, kind, help, v) in items {
-            let _ = writeln!(s, "# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {}", v.load(Ordering::Relaxed));
+            let _ = writeln!(
+                s,
+                "# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {}",
+                v.load(Ordering::Relaxed)
+            );
         }
         s
     }
@@ -59,7 +113,10 @@ impl Metrics {
 
 /// Serve `metrics` on `addr` until the task is aborted. Returns the bound address (useful with
 /// port 0) once listening.
-pub async fn serve(addr: SocketAddr, metrics: Arc<Metrics>) -> std::io::Result<(SocketAddr, tokio::task::JoinHandle<()>)> {
+pub async fn serve(
+    addr: SocketAddr,
+    metrics: Arc<Metrics>,
+) -> std::io::Result<(SocketAddr, tokio::task::JoinHandle<()>)> {
     let listener = TcpListener::bind(addr).await?;
     let local = listener.local_addr()?;
     let task = tokio::spawn(async move {
@@ -70,7 +127,12 @@ pub async fn serve(addr: SocketAddr, metrics: Arc<Metrics>) -> std::io::Result<(
             let m = metrics.clone();
             tokio::spawn(async move {
                 let mut buf = [0u8; 1024];
-                let n = match tokio::time::timeout(std::time::Duration::from_secs(2), sock.read(&mut buf)).await {
+                let n = match tokio::time::timeout(
+                    std::time::Duration::from_secs(2),
+                    sock.read(&mut buf),
+                )
+                .await
+                {
                     Ok(Ok(n)) => n,
                     _ => return,
                 };
@@ -102,11 +164,16 @@ mod tests {
         m.tx_packets.store(7, Ordering::Relaxed);
         let (addr, task) = serve("127.0.0.1:0".parse().unwrap(), m).await.unwrap();
         let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
-        s.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n").await.unwrap();
+        s.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")
+            .await
+            .unwrap();
         let mut body = String::new();
         s.read_to_string(&mut body).await.unwrap();
         assert!(body.starts_with("HTTP/1.1 200"), "{body}");
-        assert!(body.contains("\nvisnav_link_tx_packets_total 7\n"), "{body}");
+        assert!(
+            body.contains("\nvisnav_link_tx_packets_total 7\n"),
+            "{body}"
+        );
         task.abort();
     }
 }

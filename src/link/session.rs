@@ -167,7 +167,12 @@ impl Link {
                 let out_cfg = SigningConfig::new(key, s.link_id, true, !s.reject_unsigned);
                 (
                     s.sign_outgoing.then(|| SigningData::from_config(out_cfg)),
-                    Some(SigningConfig::new(key, s.link_id, false, !s.reject_unsigned)),
+                    Some(SigningConfig::new(
+                        key,
+                        s.link_id,
+                        false,
+                        !s.reject_unsigned,
+                    )),
                 )
             }
             None => (None, None),
@@ -231,7 +236,10 @@ impl Link {
             telemetry: broadcast::channel(4096).0,
             status: watch::channel(LinkStatus::default()).0,
         });
-        tasks.push(tokio::spawn(supervise(shared.clone(), shutdown.subscribe())));
+        tasks.push(tokio::spawn(supervise(
+            shared.clone(),
+            shutdown.subscribe(),
+        )));
         Ok(Link {
             shared,
             shutdown,
@@ -510,7 +518,10 @@ impl Shared {
         })
     }
 
-    async fn inject(&self, est: &NavEstimate) -> Vec<(OutputMode, Result<&'static str, InjectError>)> {
+    async fn inject(
+        &self,
+        est: &NavEstimate,
+    ) -> Vec<(OutputMode, Result<&'static str, InjectError>)> {
         self.health_text(&est.health).await;
         let mut results = Vec::new();
         let Some(now) = self.send_time(est) else {
@@ -525,9 +536,11 @@ impl Shared {
                 .collect();
         };
         let target = self.target().unwrap_or((1, 1));
-        let needs_origin = self.out.modes.iter().any(|m| {
-            matches!(m, OutputMode::VisionPositionEstimate | OutputMode::Odometry)
-        });
+        let needs_origin = self
+            .out
+            .modes
+            .iter()
+            .any(|m| matches!(m, OutputMode::VisionPositionEstimate | OutputMode::Odometry));
         let origin = if needs_origin {
             self.ensure_origin(est, &now, target.0).await
         } else {
@@ -536,7 +549,9 @@ impl Shared {
         for mode in self.out.modes.clone() {
             let built = match mode {
                 OutputMode::GpsInput => match (&est.health, self.out.on_lost) {
-                    (Health::Lost { .. }, OnLost::NoFix) => inject::gps_input_no_fix(&now, &self.out),
+                    (Health::Lost { .. }, OnLost::NoFix) => {
+                        inject::gps_input_no_fix(&now, &self.out)
+                    }
                     _ => inject::gps_input(est, &now, &self.out),
                 },
                 OutputMode::VisionPositionEstimate => origin
@@ -576,7 +591,12 @@ impl Shared {
 
     /// The EKF origin for local positions: the autopilot's, or (with `output.set_origin`) one we
     /// set from a healthy estimate with SET_GPS_GLOBAL_ORIGIN (sent up to 3 times until echoed).
-    async fn ensure_origin(&self, est: &NavEstimate, now: &SendTime, target_sys: u8) -> Option<GeoOrigin> {
+    async fn ensure_origin(
+        &self,
+        est: &NavEstimate,
+        now: &SendTime,
+        target_sys: u8,
+    ) -> Option<GeoOrigin> {
         let (origin, resend) = {
             let mut st = lock(&self.state);
             if st.origin.is_none()
@@ -654,7 +674,10 @@ impl Shared {
         let mut texts: Vec<(MavSeverity, String)> = Vec::new();
         if let MavMessage::HEARTBEAT(hb) = &msg {
             let is_autopilot = hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
-                && !matches!(hb.mavtype, MavType::MAV_TYPE_GCS | MavType::MAV_TYPE_ONBOARD_CONTROLLER);
+                && !matches!(
+                    hb.mavtype,
+                    MavType::MAV_TYPE_GCS | MavType::MAV_TYPE_ONBOARD_CONTROLLER
+                );
             let mut st = lock(&self.state);
             if st.autopilot.is_none()
                 && is_autopilot
@@ -807,12 +830,8 @@ impl Shared {
                 st.stream_checks += 1;
             }
             let t = self.now_ns() as f64 * 1e-9;
-            let statuses = streams::evaluate(
-                specs,
-                &mut st.rates,
-                t,
-                self.cfg.streams.min_rate_fraction,
-            );
+            let statuses =
+                streams::evaluate(specs, &mut st.rates, t, self.cfg.streams.min_rate_fraction);
             (dirty, statuses)
         };
         let mut requests = Vec::new();
@@ -840,10 +859,14 @@ impl Shared {
             }
             if all_ok && !was_ok {
                 let _ = self
-                    .status_text(MavSeverity::MAV_SEVERITY_INFO, "visnav: telemetry streams OK")
+                    .status_text(
+                        MavSeverity::MAV_SEVERITY_INFO,
+                        "visnav: telemetry streams OK",
+                    )
                     .await;
             } else if !all_ok && was_ok {
-                let missing: Vec<&str> = statuses.iter().filter(|s| !s.ok).map(|s| s.name).collect();
+                let missing: Vec<&str> =
+                    statuses.iter().filter(|s| !s.ok).map(|s| s.name).collect();
                 let _ = self
                     .status_text(
                         MavSeverity::MAV_SEVERITY_WARNING,
@@ -909,7 +932,9 @@ async fn supervise(shared: Arc<Shared>, mut stop: watch::Receiver<bool>) {
                     backoff = min;
                 }
             }
-            Err(e) => warn!(%addr, "cannot connect: {e}; retrying in {:.1} s", backoff.as_secs_f64()),
+            Err(e) => {
+                warn!(%addr, "cannot connect: {e}; retrying in {:.1} s", backoff.as_secs_f64())
+            }
         }
         tokio::select! {
             _ = tokio::time::sleep(backoff) => {}
@@ -929,7 +954,8 @@ async fn run_connection(shared: &Arc<Shared>, conn: Arc<Conn>, stop: &mut watch:
                 Ok(raw) => {
                     let t_ns = shared.now_ns();
                     shared.record_rx(&raw);
-                    let Ok(msg) = MavMessage::parse(raw.version(), raw.message_id(), raw.payload()) else {
+                    let Ok(msg) = MavMessage::parse(raw.version(), raw.message_id(), raw.payload())
+                    else {
                         continue;
                     };
                     let header = MavHeader {

@@ -42,7 +42,11 @@ pub fn wanted_streams(r: &StreamRates) -> Vec<StreamSpec> {
     [
         ("ATTITUDE", vec![ATTITUDE], r.attitude_hz),
         ("IMU", vec![HIGHRES_IMU, SCALED_IMU, RAW_IMU], r.imu_hz),
-        ("GLOBAL_POSITION_INT", vec![GLOBAL_POSITION_INT], r.global_position_hz),
+        (
+            "GLOBAL_POSITION_INT",
+            vec![GLOBAL_POSITION_INT],
+            r.global_position_hz,
+        ),
         ("GPS_RAW_INT", vec![GPS_RAW_INT], r.gps_raw_hz),
         ("SYSTEM_TIME", vec![SYSTEM_TIME], r.system_time_hz),
         ("PRESSURE", vec![SCALED_PRESSURE, ALTITUDE], r.pressure_hz),

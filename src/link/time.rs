@@ -153,7 +153,8 @@ impl TimeSync {
     /// Note an autopilot boot time seen in any message (`time_boot_ms * 1000`, TIMESYNC tc1 / 1000).
     /// Returns true (and resets the filter) when it went backwards: the autopilot rebooted.
     pub fn observe_boot_time(&mut self, t_boot_us: u64) -> bool {
-        let reboot = matches!(self.last_autopilot_us, Some(last) if t_boot_us + REBOOT_BACKSTEP_US < last);
+        let reboot =
+            matches!(self.last_autopilot_us, Some(last) if t_boot_us + REBOOT_BACKSTEP_US < last);
         if reboot {
             let reboots = self.reboots + 1;
             self.reset();
@@ -247,7 +248,11 @@ impl UtcMap {
     /// Unix µs of autopilot time `t_boot_us`. `companion_unix_minus_boot_us` is the fallback
     /// (companion system clock minus the mapped boot time), used when the autopilot has no clock.
     /// `None` when neither is plausible.
-    pub fn unix_us(&self, t_boot_us: u64, companion_unix_minus_boot_us: Option<i128>) -> Option<u64> {
+    pub fn unix_us(
+        &self,
+        t_boot_us: u64,
+        companion_unix_minus_boot_us: Option<i128>,
+    ) -> Option<u64> {
         let off = self.autopilot_offset_us.or(companion_unix_minus_boot_us)?;
         let u = off + t_boot_us as i128;
         u64::try_from(u).ok().filter(|u| *u >= PLAUSIBLE_UNIX_US)
@@ -262,18 +267,12 @@ mod tests {
     #[test]
     fn gps_week_of_known_dates() {
         // 2024-01-01T00:00:00Z (a Monday): week 2295 began Sunday 2023-12-31; TOW = 1 day + 18 s.
-        assert_eq!(
-            gps_week_ms(1_704_067_200_000_000),
-            Some((2295, 86_418_000))
-        );
+        assert_eq!(gps_week_ms(1_704_067_200_000_000), Some((2295, 86_418_000)));
         // The GPS epoch itself: week 0, TOW = 18 s (the leap seconds we add).
         assert_eq!(gps_week_ms(GPS_EPOCH_UNIX_S * 1_000_000), Some((0, 18_000)));
         assert_eq!(gps_week_ms(0), None);
         // Sub-millisecond truncation.
-        assert_eq!(
-            gps_week_ms(1_704_067_200_000_999),
-            Some((2295, 86_418_000))
-        );
+        assert_eq!(gps_week_ms(1_704_067_200_000_999), Some((2295, 86_418_000)));
     }
 
     fn feed(ts: &mut TimeSync, offset_ns: f64, drift: f64, from_s: i64, n: i64, rtt_ns: i64) {
@@ -364,10 +363,7 @@ mod tests {
         assert!(!m.from_autopilot());
         m.observe_system_time(1_704_067_200_000_000, 2_000);
         assert!(m.from_autopilot());
-        assert_eq!(
-            m.unix_us(3_000_000, Some(0)),
-            Some(1_704_067_201_000_000)
-        );
+        assert_eq!(m.unix_us(3_000_000, Some(0)), Some(1_704_067_201_000_000));
     }
 
     proptest! {

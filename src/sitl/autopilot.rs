@@ -347,7 +347,11 @@ async fn handle(inner: &Inner, conn: &Conn, h: MavHeader, m: MavMessage) {
                         if c.param2 < 0.0 {
                             st.intervals.remove(&id);
                         } else {
-                            let us = if c.param2 == 0.0 { 250_000.0 } else { c.param2 as f64 };
+                            let us = if c.param2 == 0.0 {
+                                250_000.0
+                            } else {
+                                c.param2 as f64
+                            };
                             let d = Duration::from_secs_f64((us * 1e-6).max(0.001));
                             st.intervals.insert(id, (d, Instant::now()));
                         }

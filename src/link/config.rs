@@ -511,6 +511,42 @@ mod tests {
     }
 
     #[test]
+    fn files_are_checked_against_the_config_folder() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::write(d.path().join("key.hex"), "zz").unwrap();
+        let text = "connection = \"udpin:0.0.0.0:14550\"\ntlog = \"nofolder/x.tlog\"\n\
+                    [signing]\nkey_file = \"key.hex\"\nreject_unsigned = true\n";
+        let mut c: LinkConfig = toml::from_str(text).unwrap();
+        let mut p = Problems::default();
+        c.validate_in(d.path(), &mut p);
+        let s: Vec<String> = p.list.iter().map(|i| i.to_string()).collect();
+        assert!(
+            s.iter()
+                .any(|m| m.starts_with("signing.key_file") && m.contains("key.hex")),
+            "{s:?}"
+        );
+        assert!(
+            s.iter()
+                .any(|m| m.starts_with("tlog") && m.contains("nofolder")),
+            "{s:?}"
+        );
+        // A good key and folder pass, and paths become absolute.
+        std::fs::write(d.path().join("key.hex"), "ab".repeat(32)).unwrap();
+        std::fs::create_dir(d.path().join("nofolder")).unwrap();
+        let mut p = Problems::default();
+        c.validate_in(d.path(), &mut p);
+        assert!(p.list.is_empty(), "{:?}", p.list);
+        c.resolve_paths(d.path());
+        assert!(c.tlog.unwrap().is_absolute());
+        assert!(c.signing.unwrap().key_file.is_absolute());
+        // Unknown keys in the new sections are rejected.
+        assert!(
+            toml::from_str::<LinkConfig>("connection = \"udpin:0.0.0.0:1\"\n[streams]\nimu = 5\n")
+                .is_err()
+        );
+    }
+
+    #[test]
     fn connection_strings() {
         for ok in [
             "udpin:0.0.0.0:14550",

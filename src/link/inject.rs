@@ -138,6 +138,9 @@ pub enum InjectError {
     NoCompanionTime,
     #[error("geoid undulation unknown (needed for GLOBAL_POSITION_SENSOR.alt_ellipsoid)")]
     NoGeoid,
+    /// Built, but the link could not send it (not connected, socket error).
+    #[error("not sent: {reason}")]
+    NotSent { reason: String },
 }
 
 fn finite(field: &'static str, v: f64) -> Result<f64, InjectError> {

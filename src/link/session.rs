@@ -574,7 +574,9 @@ impl Shared {
                         }
                         Err(e) => {
                             debug!("inject {name}: {e}");
-                            Ok(name)
+                            Err(InjectError::NotSent {
+                                reason: e.to_string(),
+                            })
                         }
                     }
                 }

@@ -25,4 +25,4 @@ pub mod time;
 pub mod tlog;
 
 pub use inject::{GeoOrigin, Health, InjectError, NavEstimate};
-pub use session::{AutopilotInfo, Clock, Link, LinkError, LinkStatus, Telemetry};
+pub use session::{AutopilotInfo, Clock, Link, LinkError, LinkStatus, Telemetry, shutdown_signal};

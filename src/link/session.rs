@@ -896,6 +896,25 @@ impl Shared {
     }
 }
 
+/// Resolves on the first SIGINT or SIGTERM (Unix) / Ctrl-C (elsewhere): the daemon selects on it
+/// and then calls [`Link::shutdown`], which stops the tasks and flushes the .tlog.
+pub async fn shutdown_signal() -> std::io::Result<&'static str> {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{SignalKind, signal};
+        let mut term = signal(SignalKind::terminate())?;
+        let mut int = signal(SignalKind::interrupt())?;
+        tokio::select! {
+            _ = term.recv() => Ok("SIGTERM"),
+            _ = int.recv() => Ok("SIGINT"),
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        tokio::signal::ctrl_c().await.map(|()| "Ctrl-C")
+    }
+}
+
 async fn supervise(shared: Arc<Shared>, mut stop: watch::Receiver<bool>) {
     let min = Duration::from_secs_f64(shared.cfg.reconnect_min_s);
     let max = Duration::from_secs_f64(shared.cfg.reconnect_max_s);

@@ -14,6 +14,20 @@
 //! Clocks: the companion clock is `std::time::Instant` (CLOCK_MONOTONIC on Linux) expressed in ns
 //! since the link started plus 1 s ([`Link::companion_ns`]); the autopilot clock is its boot time
 //! `t_boot_us`. Camera frames are stamped by [`Link::to_autopilot_us`] of their capture instant.
+//!
+//! How the daemon uses it:
+//!
+//! ```text
+//! let mut link = Link::start(cfg.link, cfg.output).await?;      // connects, locks, syncs time
+//! let clock = link.clock();                                      // camera task: frame Instant -> t_boot_us
+//! let mut tel = link.telemetry();                                // IMU, attitude, baro, GPS for the EKF
+//! let (est_tx, est_rx) = watch::channel(None);                   // EKF publishes Some(NavEstimate)
+//! link.spawn_injector(est_rx);                                   // sends at output.rate_hz
+//! shutdown_signal().await?; link.shutdown().await;               // SIGINT/SIGTERM, .tlog flushed
+//! ```
+//!
+//! Never hold a `watch::Ref` from [`Link::status`] across an `.await`: it blocks the link's
+//! status updates (clone the value out instead).
 
 pub mod config;
 pub mod inject;

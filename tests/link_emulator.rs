@@ -304,6 +304,7 @@ async fn tcp_reconnects_with_backoff() {
     let mut cfg = LinkConfig::new(&format!("tcpout:127.0.0.1:{port}"));
     cfg.reconnect_min_s = 0.1;
     cfg.reconnect_max_s = 0.4;
+    cfg.heartbeat_timeout_s = 1.0;
     let link = Link::start(cfg, OutputConfig::default()).await.unwrap();
     let mut status = link.status();
     // Nothing listens yet: connection attempts fail and back off.
@@ -343,6 +344,20 @@ async fn tcp_reconnects_with_backoff() {
             .load(std::sync::atomic::Ordering::Relaxed)
             >= 2
     );
+    // A silent autopilot on an open TCP connection: reconnect after 3 heartbeat timeouts.
+    emu2.set_muted(true);
+    tokio::time::timeout(Duration::from_secs(15), async {
+        while link
+            .metrics()
+            .connects
+            .load(std::sync::atomic::Ordering::Relaxed)
+            < 3
+        {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await
+    .expect("reconnect after the heartbeat watchdog");
     link.shutdown().await;
 }
 

@@ -941,6 +941,7 @@ async fn supervise(shared: Arc<Shared>, mut stop: watch::Receiver<bool>) {
                 *lock(&shared.conn) = None;
                 {
                     let mut st = lock(&shared.state);
+                    st.last_heartbeat = None;
                     st.streams_dirty = true;
                     st.rates.clear();
                     st.pending_ts1.clear();
@@ -994,8 +995,26 @@ async fn run_connection(shared: &Arc<Shared>, conn: Arc<Conn>, stop: &mut watch:
             }
         }
     };
+    // Stream transports (TCP, serial) can stay open while the autopilot is gone (half-open TCP,
+    // a rebooted USB bridge): reopen them after 3 heartbeat timeouts of silence.
+    let stream_transport = !shared.cfg.connection.starts_with("udp");
+    let watchdog = async {
+        loop {
+            tokio::time::sleep(Duration::from_millis(250)).await;
+            let silent_s = lock(&shared.state)
+                .last_heartbeat
+                .map(|h| h.elapsed().as_secs_f64());
+            if stream_transport
+                && silent_s.is_some_and(|s| s > 3.0 * shared.cfg.heartbeat_timeout_s)
+            {
+                warn!("no autopilot heartbeat on the open connection; reconnecting");
+                return;
+            }
+        }
+    };
     tokio::select! {
         _ = rx => {}
+        _ = watchdog => {}
         _ = stop.changed() => {}
     }
     periodic.abort();

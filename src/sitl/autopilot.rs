@@ -155,6 +155,7 @@ struct EmuState {
     received: Vec<Received>,
     all_ids: HashMap<u32, u64>,
     companion: Option<(u8, u8)>,
+    muted: bool,
 }
 
 struct Inner {
@@ -193,6 +194,7 @@ impl AutopilotEmulator {
                 received: Vec::new(),
                 all_ids: HashMap::new(),
                 companion: None,
+                muted: false,
             }),
             seq: AtomicU8::new(0),
             truth: Box::new(truth),
@@ -215,6 +217,12 @@ impl AutopilotEmulator {
         st.boots += 1;
         st.intervals.clear();
         st.origin = None;
+    }
+
+    /// Stop (true) or resume (false) sending anything, keeping the connection open (a hung
+    /// autopilot or a half-open TCP connection).
+    pub fn set_muted(&self, muted: bool) {
+        lock(&self.inner.state).muted = muted;
     }
 
     /// Every recorded injection / status message so far.
@@ -255,6 +263,9 @@ impl Drop for AutopilotEmulator {
 }
 
 async fn send(inner: &Inner, conn: &Conn, msg: &MavMessage) {
+    if lock(&inner.state).muted {
+        return;
+    }
     let header = MavHeader {
         system_id: u32::from(inner.cfg.system_id),
         component_id: inner.cfg.component_id,

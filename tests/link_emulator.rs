@@ -142,7 +142,7 @@ async fn udp_link_against_ardupilot_like_emulator() {
     let mapped = link.autopilot_now_us().unwrap() as i64;
     let truth = emu.time_boot_us() as i64;
     eprintln!("time mapping error {} us", mapped - truth);
-    assert!((mapped - truth).abs() < 5_000, "{mapped} vs {truth}");
+    assert!((mapped - truth).abs() < 20_000, "{mapped} vs {truth}");
 
     // 2. Injection at 10 Hz.
     let (health_tx, health_rx) = watch::channel(Health::Ok);
@@ -227,7 +227,7 @@ async fn udp_link_against_ardupilot_like_emulator() {
     let mapped = link.autopilot_now_us().unwrap() as i64;
     let truth = emu.time_boot_us() as i64;
     assert!(
-        (mapped - truth).abs() < 5_000,
+        (mapped - truth).abs() < 20_000,
         "after reboot {mapped} vs {truth}"
     );
     assert!(truth < 15_000_000);

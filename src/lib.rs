@@ -9,6 +9,7 @@
 pub mod camera;
 pub mod config;
 pub mod geo;
+pub mod link;
 pub mod nav;
 pub mod pose;
 pub mod sitl;

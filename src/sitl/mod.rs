@@ -1,5 +1,6 @@
-//! Built-in software-in-the-loop simulator (issue 5 starts it): truth trajectories, IMU and
-//! sensor synthesis, scenario files and the runner that scores the navigation filter.
+//! Built-in software-in-the-loop simulator (see docs/architecture.md): truth trajectories, IMU and
+//! sensor synthesis, scenario files, the runner that scores the navigation filter, and a MAVLink
+//! autopilot emulator.
 //!
 //! * [`trajectory`]: lines, coordinated turns, climbs; exact ideal IMU increments.
 //! * [`imu`]: IMU error synthesis (white noise, turn-on bias, bias instability, random walk,
@@ -7,7 +8,9 @@
 //! * [`scenario`]: `sitl/scenarios/*.toml` schema and validation.
 //! * [`run`]: scenario runner, INS-only control, Monte Carlo NEES consistency.
 //! * [`rng`]: deterministic random numbers.
+//! * [`autopilot`]: a MAVLink 2 autopilot emulator speaking like ArduPilot over real sockets.
 
+pub mod autopilot;
 pub mod imu;
 pub mod rng;
 pub mod run;

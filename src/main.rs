@@ -19,6 +19,8 @@ struct Args {
 enum Command {
     /// Load and validate a configuration file, printing every problem found.
     CheckConfig(cli::check_config::CheckConfigArgs),
+    /// Benchmarks (`bench surf`: SURF speed, feature counts and quality table).
+    Bench(cli::bench::BenchArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -26,6 +28,7 @@ fn main() -> std::process::ExitCode {
     cli::init_logging(args.verbose);
     let result = match args.command {
         Command::CheckConfig(a) => cli::check_config::run(a),
+        Command::Bench(a) => cli::bench::run(a),
     };
     match result {
         Ok(code) => code,

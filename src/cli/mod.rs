@@ -1,5 +1,6 @@
 //! Subcommand implementations of the `visnav` binary.
 
+pub mod bench;
 pub mod check_config;
 
 /// Initialise `tracing` to stderr: `RUST_LOG` when set, otherwise info/debug/trace by `-v` count.

@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use visnav::vision::eval::{self, PairScore};
-use visnav::vision::{DescriptorKind, Features, GrayImage, Surf, SurfParams};
+use visnav::vision::{DescriptorKind, Features, GrayImage, IntegralImage, Surf, SurfParams};
 
 #[derive(clap::Args, Debug)]
 pub struct BenchArgs {
@@ -38,6 +38,9 @@ pub struct SurfBenchArgs {
     /// Hessian threshold (OpenCV meaning).
     #[arg(long, default_value_t = 100.0)]
     pub threshold: f32,
+    /// Which SURF modes to time: `both`, `upright` or `oriented`.
+    #[arg(long, default_value = "both")]
+    pub mode: String,
     /// Also compute the quality table on the bundled NAIP maps (sitl/maps).
     #[arg(long)]
     pub quality: bool,
@@ -55,6 +58,8 @@ struct Timing {
     threads: usize,
     median_ms: f64,
     min_ms: f64,
+    /// Median of integral image + detection alone.
+    detect_ms: f64,
     features: usize,
 }
 
@@ -84,25 +89,37 @@ fn repo_file(rel: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)
 }
 
+/// Median and minimum total ms, median detection ms (integral image + fast-Hessian), features.
 fn time_one(
     pool: &rayon::ThreadPool,
     surf: &Surf,
     img: &GrayImage,
     runs: usize,
-) -> (f64, f64, usize) {
+) -> (f64, f64, f64, usize) {
     let mut times = Vec::with_capacity(runs);
+    let mut det_times = Vec::with_capacity(runs);
     let mut n = 0;
     pool.install(|| {
         let _ = surf.detect_and_describe(img); // warm-up
         for _ in 0..runs.max(1) {
             let t = Instant::now();
-            let f = surf.detect_and_describe(img);
+            let ii = IntegralImage::new(img);
+            let kps = surf.detect(&ii);
+            let t_det = t.elapsed();
+            let f = surf.describe(&ii, kps);
             times.push(t.elapsed().as_secs_f64() * 1e3);
+            det_times.push(t_det.as_secs_f64() * 1e3);
             n = f.len();
         }
     });
     times.sort_by(f64::total_cmp);
-    (times[times.len() / 2], times[0], n)
+    det_times.sort_by(f64::total_cmp);
+    (
+        times[times.len() / 2],
+        times[0],
+        det_times[det_times.len() / 2],
+        n,
+    )
 }
 
 fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
@@ -124,6 +141,9 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
     } else {
         a.image.clone()
     };
+    if !["both", "upright", "oriented"].contains(&a.mode.as_str()) {
+        bail!("--mode {}: expected both, upright or oriented", a.mode);
+    }
     let all = std::thread::available_parallelism().map_or(1, |n| n.get());
     let pools = [1, all]
         .into_iter()
@@ -138,13 +158,16 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
     for path in &images {
         let img = GrayImage::load(path)?;
         for (mode, upright) in [("upright", true), ("oriented", false)] {
+            if a.mode != "both" && a.mode != mode {
+                continue;
+            }
             let surf = Surf::new(SurfParams {
                 hessian_threshold: a.threshold,
                 upright,
                 ..SurfParams::default()
             })?;
             for (n, pool) in &pools {
-                let (median, min, feats) = time_one(pool, &surf, &img, a.runs);
+                let (median, min, detect, feats) = time_one(pool, &surf, &img, a.runs);
                 timings.push(Timing {
                     image: path.display().to_string(),
                     width: img.width(),
@@ -153,6 +176,7 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
                     threads: *n,
                     median_ms: median,
                     min_ms: min,
+                    detect_ms: detect,
                     features: feats,
                 });
             }
@@ -172,20 +196,21 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
             a.threshold, a.runs
         );
         println!(
-            "{:<40} {:>9} {:>8} {:>7} {:>10} {:>8}",
-            "image", "size", "mode", "threads", "median ms", "features"
+            "{:<28} {:>9} {:>8} {:>7} {:>10} {:>10} {:>8}",
+            "image", "size", "mode", "threads", "median ms", "detect ms", "features"
         );
         for t in &timings {
             let name = Path::new(&t.image)
                 .file_name()
                 .map_or(t.image.clone(), |s| s.to_string_lossy().into_owned());
             println!(
-                "{:<40} {:>9} {:>8} {:>7} {:>10.2} {:>8}",
+                "{:<28} {:>9} {:>8} {:>7} {:>10.2} {:>10.2} {:>8}",
                 name,
                 format!("{}x{}", t.width, t.height),
                 t.mode,
                 t.threads,
                 t.median_ms,
+                t.detect_ms,
                 t.features
             );
         }

@@ -212,7 +212,9 @@ pub fn score_pair(
     for &(i, j, _) in &corr {
         ok.insert((i, j));
     }
-    // Any corresponding pair counts as correct (not only the greedy one-to-one assignment).
+    // Any corresponding pair counts as correct (not only the greedy one-to-one assignment), but
+    // each train region at most once so the score cannot exceed 1.
+    let mut trains = std::collections::HashSet::new();
     let correct = matches
         .iter()
         .filter(|m| {
@@ -222,6 +224,7 @@ pub fn score_pair(
                 a.is_some_and(|a| overlap_error(&a, &r2[j]) < MAX_ERR)
             }
         })
+        .filter(|m| trains.insert(m.train))
         .count();
     Ok(PairScore {
         n1,

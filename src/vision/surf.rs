@@ -459,89 +459,130 @@ fn compute_layer(
     if c1 < c0 || r1 < r0 {
         return det;
     }
-    let n = c1 - c0 + 1;
     let inv_a = 1.0 / (l * (2 * l - 1)) as f32;
     let inv_d = 1.0 / (l * l) as f32;
     let sw = ii.stride();
+    let g = RowGeom {
+        step,
+        hs,
+        l,
+        m,
+        c0,
+        c1,
+        inv_a,
+        inv_d,
+    };
     det.par_chunks_mut(cols)
         .enumerate()
         .with_min_len(8)
         .for_each_init(
             || (vec![0i32; sw], vec![0i32; sw], vec![0i32; sw]),
             |(e, sx, d), (r, out)| {
-                if r < r0 || r > r1 {
-                    return;
-                }
-                let y = r * step;
-                {
-                    let (a1, a0) = (ii.row(y + hs + 1), ii.row(y - hs));
-                    let (m1, m0) = (ii.row(y + m + 1), ii.row(y - m));
-                    for ((((ev, &a1), &a0), &m1), &m0) in
-                        e.iter_mut().zip(a1).zip(a0).zip(m1).zip(m0)
-                    {
-                        *ev = a1
-                            .wrapping_sub(a0)
-                            .wrapping_sub(3i32.wrapping_mul(m1.wrapping_sub(m0)));
-                    }
-                    let (x1, x0) = (ii.row(y + l), ii.row(y + 1 - l));
-                    for ((s, &p1), &p0) in sx.iter_mut().zip(x1).zip(x0) {
-                        *s = p1.wrapping_sub(p0);
-                    }
-                    let (t1, t0) = (ii.row(y), ii.row(y - l));
-                    let (b1, b0) = (ii.row(y + l + 1), ii.row(y + 1));
-                    for ((((dv, &t1), &t0), &b1), &b0) in
-                        d.iter_mut().zip(t1).zip(t0).zip(b1).zip(b0)
-                    {
-                        *dv = t1.wrapping_sub(t0).wrapping_sub(b1.wrapping_sub(b0));
-                    }
-                }
-                if step == 1 {
-                    let xs = c0;
-                    let e_hi = &e[xs + l..][..n];
-                    let e_lo = &e[xs + 1 - l..][..n];
-                    let sa = &sx[xs + hs + 1..][..n];
-                    let sb = &sx[xs - hs..][..n];
-                    let sc = &sx[xs + m + 1..][..n];
-                    let sd = &sx[xs - m..][..n];
-                    let d0 = &d[xs..][..n];
-                    let d1 = &d[xs - l..][..n];
-                    let d2 = &d[xs + l + 1..][..n];
-                    let d3 = &d[xs + 1..][..n];
-                    let out = &mut out[c0..c0 + n];
-                    for i in 0..n {
-                        let dyy = e_hi[i].wrapping_sub(e_lo[i]) as f32 * inv_a;
-                        let dxx = sa[i]
-                            .wrapping_sub(sb[i])
-                            .wrapping_sub(3i32.wrapping_mul(sc[i].wrapping_sub(sd[i])))
-                            as f32
-                            * inv_a;
-                        let dxy = d0[i]
-                            .wrapping_sub(d1[i])
-                            .wrapping_sub(d2[i])
-                            .wrapping_add(d3[i]) as f32
-                            * inv_d;
-                        out[i] = dxx * dyy - DXY_WEIGHT_SQ * dxy * dxy;
-                    }
-                } else {
-                    for c in c0..=c1 {
-                        let x = c * step;
-                        let dyy = e[x + l].wrapping_sub(e[x + 1 - l]) as f32 * inv_a;
-                        let dxx = sx[x + hs + 1]
-                            .wrapping_sub(sx[x - hs])
-                            .wrapping_sub(3i32.wrapping_mul(sx[x + m + 1].wrapping_sub(sx[x - m])))
-                            as f32
-                            * inv_a;
-                        let dxy = d[x]
-                            .wrapping_sub(d[x - l])
-                            .wrapping_sub(d[x + l + 1])
-                            .wrapping_add(d[x + 1]) as f32
-                            * inv_d;
-                        out[c] = dxx * dyy - DXY_WEIGHT_SQ * dxy * dxy;
-                    }
+                if r >= r0 && r <= r1 {
+                    layer_row(ii, &g, r * step, e, sx, d, out);
                 }
             },
         );
     det
+}
+
+/// Geometry of one response layer row (see `compute_layer`).
+#[derive(Clone, Copy)]
+struct RowGeom {
+    step: usize,
+    hs: usize,
+    l: usize,
+    m: usize,
+    c0: usize,
+    c1: usize,
+    inv_a: f32,
+    inv_d: f32,
+}
+
+/// Responses of one layer row at image row `y` (kept out of line for profiling).
+#[inline(never)]
+fn layer_row(
+    ii: &IntegralImage,
+    g: &RowGeom,
+    y: usize,
+    e: &mut [i32],
+    sx: &mut [i32],
+    d: &mut [i32],
+    out: &mut [f32],
+) {
+    let RowGeom {
+        step,
+        hs,
+        l,
+        m,
+        c0,
+        c1,
+        inv_a,
+        inv_d,
+    } = *g;
+    let n = c1 - c0 + 1;
+    {
+        let (a1, a0) = (ii.row(y + hs + 1), ii.row(y - hs));
+        let (m1, m0) = (ii.row(y + m + 1), ii.row(y - m));
+        for ((((ev, &a1), &a0), &m1), &m0) in e.iter_mut().zip(a1).zip(a0).zip(m1).zip(m0) {
+            *ev = a1
+                .wrapping_sub(a0)
+                .wrapping_sub(3i32.wrapping_mul(m1.wrapping_sub(m0)));
+        }
+        let (x1, x0) = (ii.row(y + l), ii.row(y + 1 - l));
+        for ((s, &p1), &p0) in sx.iter_mut().zip(x1).zip(x0) {
+            *s = p1.wrapping_sub(p0);
+        }
+        let (t1, t0) = (ii.row(y), ii.row(y - l));
+        let (b1, b0) = (ii.row(y + l + 1), ii.row(y + 1));
+        for ((((dv, &t1), &t0), &b1), &b0) in d.iter_mut().zip(t1).zip(t0).zip(b1).zip(b0) {
+            *dv = t1.wrapping_sub(t0).wrapping_sub(b1.wrapping_sub(b0));
+        }
+    }
+    if step == 1 {
+        let xs = c0;
+        let e_hi = &e[xs + l..][..n];
+        let e_lo = &e[xs + 1 - l..][..n];
+        let sa = &sx[xs + hs + 1..][..n];
+        let sb = &sx[xs - hs..][..n];
+        let sc = &sx[xs + m + 1..][..n];
+        let sd = &sx[xs - m..][..n];
+        let d0 = &d[xs..][..n];
+        let d1 = &d[xs - l..][..n];
+        let d2 = &d[xs + l + 1..][..n];
+        let d3 = &d[xs + 1..][..n];
+        let out = &mut out[c0..c0 + n];
+        for i in 0..n {
+            let dyy = e_hi[i].wrapping_sub(e_lo[i]) as f32 * inv_a;
+            let dxx = sa[i]
+                .wrapping_sub(sb[i])
+                .wrapping_sub(3i32.wrapping_mul(sc[i].wrapping_sub(sd[i])))
+                as f32
+                * inv_a;
+            let dxy = d0[i]
+                .wrapping_sub(d1[i])
+                .wrapping_sub(d2[i])
+                .wrapping_add(d3[i]) as f32
+                * inv_d;
+            out[i] = dxx * dyy - DXY_WEIGHT_SQ * dxy * dxy;
+        }
+    } else {
+        for c in c0..=c1 {
+            let x = c * step;
+            let dyy = e[x + l].wrapping_sub(e[x + 1 - l]) as f32 * inv_a;
+            let dxx = sx[x + hs + 1]
+                .wrapping_sub(sx[x - hs])
+                .wrapping_sub(3i32.wrapping_mul(sx[x + m + 1].wrapping_sub(sx[x - m])))
+                as f32
+                * inv_a;
+            let dxy = d[x]
+                .wrapping_sub(d[x - l])
+                .wrapping_sub(d[x + l + 1])
+                .wrapping_add(d[x + 1]) as f32
+                * inv_d;
+            out[c] = dxx * dyy - DXY_WEIGHT_SQ * dxy * dxy;
+        }
+    }
 }
 
 /// 3x3x3 non-maximum suppression in the middle layer and quadratic interpolation.
@@ -575,19 +616,44 @@ fn find_maxima(
         .flat_map_iter(|r| {
             let mut found = Vec::new();
             let row = &mid.det[r * cols..(r + 1) * cols];
-            for c in c_lo..=c_hi {
-                let v0 = row[c];
-                if v0 <= threshold {
-                    continue;
+            // Candidates: above the threshold and both row neighbours, tested 8 at a time with
+            // branch-free comparisons (vectorised) before the full 26-neighbour test.
+            let mut cands = Vec::new();
+            let mut c = c_lo;
+            while c <= c_hi {
+                let k = (c_hi + 1 - c).min(8);
+                let mut mask = 0u32;
+                if k == 8 {
+                    let v: &[f32; 8] = row[c..c + 8].try_into().expect("ok: 8-slice"); // ok: length 8
+                    let lft: &[f32; 8] = row[c - 1..c + 7].try_into().expect("ok: 8-slice"); // ok: length 8
+                    let rgt: &[f32; 8] = row[c + 1..c + 9].try_into().expect("ok: 8-slice"); // ok: length 8
+                    for q in 0..8 {
+                        let hit = (v[q] > threshold) & (v[q] > lft[q]) & (v[q] > rgt[q]);
+                        mask |= u32::from(hit) << q;
+                    }
+                } else {
+                    for q in 0..k {
+                        let v0 = row[c + q];
+                        let hit = (v0 > threshold) & (v0 > row[c + q - 1]) & (v0 > row[c + q + 1]);
+                        mask |= u32::from(hit) << q;
+                    }
                 }
+                while mask != 0 {
+                    cands.push(c + mask.trailing_zeros() as usize);
+                    mask &= mask - 1;
+                }
+                c += k;
+            }
+            for c in cands {
+                let v0 = row[c];
                 let at = |l: &Layer, dr: isize, dc: isize| -> f32 {
                     l.det[(r as isize + dr) as usize * cols + (c as isize + dc) as usize]
                 };
                 let mut is_max = true;
-                'outer: for (li, l) in [lo, mid, hi].into_iter().enumerate() {
+                'outer: for (li, l) in [mid, hi, lo].into_iter().enumerate() {
                     for dr in -1..=1 {
                         for dc in -1..=1 {
-                            if li == 1 && dr == 0 && dc == 0 {
+                            if li == 0 && dr == 0 && dc == 0 {
                                 continue;
                             }
                             if at(l, dr, dc) >= v0 {
@@ -694,6 +760,42 @@ pub fn select_spread(kps: Vec<KeyPoint>, n: usize, width: usize, height: usize) 
     out
 }
 
+/// Index of the pixel boundary nearest to continuous coordinate `f` (pixel centres at integers):
+/// `floor(f + 1)`, clamped to `[half, n - half]` so a box of half-side `half` fits. Truncation
+/// equals floor for non-negative values, and negative ones clamp to `half` anyway; `as` maps NaN
+/// to 0 and saturates, so any input is safe. (Avoids `floorf`, a libm call without SSE4.1.)
+#[inline(always)]
+fn boundary_index(f: f32, half: usize, n: usize) -> usize {
+    ((f + 1.0) as i32).clamp(half as i32, (n - half) as i32) as usize
+}
+
+/// `atan2(y, x)` within 1e-5 rad (polynomial, Abramowitz & Stegun 4.4.49 style); used only to bin
+/// orientation samples, `(0, 0)` maps to 0.
+#[inline(always)]
+fn fast_atan2(y: f32, x: f32) -> f32 {
+    use std::f32::consts::{FRAC_PI_2, PI};
+    let (ax, ay) = (x.abs(), y.abs());
+    let (mn, mx) = if ax < ay { (ax, ay) } else { (ay, ax) };
+    if mx == 0.0 {
+        return 0.0;
+    }
+    let a = mn / mx;
+    let t = a * a;
+    let mut r = ((((-0.013_480_47 * t + 0.057_477_314) * t - 0.121_239_071) * t + 0.195_635_925)
+        * t
+        - 0.332_994_597)
+        * t
+        * a
+        + 0.999_995_63 * a;
+    if ay > ax {
+        r = FRAC_PI_2 - r;
+    }
+    if x < 0.0 {
+        r = PI - r;
+    }
+    if y < 0.0 { -r } else { r }
+}
+
 /// Haar wavelet responses `(dx, dy)` of side `2 half` centred at continuous `(fx, fy)`, read from
 /// the integral image (9 cells). The box is shifted inside the image near borders.
 #[inline(always)]
@@ -703,9 +805,8 @@ fn haar(ii: &IntegralImage, fx: f32, fy: f32, half: usize) -> (f32, f32) {
     if 2 * half > w || 2 * half > h {
         return (0.0, 0.0);
     }
-    // Index of the pixel boundary nearest to the centre; `as` maps NaN to 0, saturates.
-    let xs = ((fx + 1.0).floor().max(0.0) as usize).clamp(half, w - half);
-    let ys = ((fy + 1.0).floor().max(0.0) as usize).clamp(half, h - half);
+    let xs = boundary_index(fx, half, w);
+    let ys = boundary_index(fy, half, h);
     let st = ii.stride();
     let d = ii.data();
     let r0 = (ys - half) * st;
@@ -748,7 +849,7 @@ fn orientation(ii: &IntegralImage, kp: &KeyPoint) -> f32 {
         if dx == 0.0 && dy == 0.0 {
             continue;
         }
-        let a = dy.atan2(dx); // (-pi, pi]
+        let a = fast_atan2(dy, dx); // [-pi, pi]
         let b = (((a + std::f32::consts::PI) * bin_scale) as usize).min(ORI_BINS - 1);
         bins[b][0] += wt * dx;
         bins[b][1] += wt * dy;
@@ -770,6 +871,7 @@ fn orientation(ii: &IntegralImage, kp: &KeyPoint) -> f32 {
 }
 
 /// Compute one descriptor into `out` (`kind.stride()` floats; padding left at zero).
+#[inline(never)]
 fn describe_one(
     ii: &IntegralImage,
     kp: &KeyPoint,
@@ -782,6 +884,11 @@ fn describe_one(
     let n = kind.samples();
     let nsub = kind.subregions();
     let per = n / nsub;
+    // Subregion column of each sample column (no integer division in the sample loops).
+    let mut sub_of = [0usize; 20];
+    for (k, v) in sub_of.iter_mut().enumerate().take(n) {
+        *v = k / per;
+    }
     let t = tables();
     let weights = if n == 18 { &t.desc18 } else { &t.desc20 };
     let sp = 20.0 / n as f32 * s;
@@ -794,9 +901,60 @@ fn describe_one(
     let extended = kind == DescriptorKind::Surf128;
     let vals = if extended { 8 } else { 4 };
     let mut acc = [0f32; 128];
+    let (w, h) = (ii.width(), ii.height());
+    if upright && 2 * half <= w && 2 * half <= h {
+        // Axis-aligned grid: the integral-image columns and rows of every sample are computed once
+        // per keypoint (20 + 20 instead of 400 per axis); per sample only 8 loads remain.
+        let mut cols = [0usize; 20];
+        let mut rows = [0usize; 20];
+        for k in 0..n {
+            let o = (k as f32 - c) * sp;
+            cols[k] = boundary_index(kp.x + o, half, w);
+            rows[k] = boundary_index(kp.y + o, half, h);
+        }
+        let st = ii.stride();
+        let d = ii.data();
+        for j in 0..n {
+            let y = rows[j];
+            let r0 = &d[(y - half) * st..][..st];
+            let r1 = &d[y * st..][..st];
+            let r2 = &d[(y + half) * st..][..st];
+            let row_sub = sub_of[j] * nsub;
+            let wrow = &weights[j * n..][..n];
+            for i in 0..n {
+                let x = cols[i];
+                let (x0, x2) = (x - half, x + half);
+                let (a00, a01, a02) = (r0[x0], r0[x], r0[x2]);
+                let (a10, a12) = (r1[x0], r1[x2]);
+                let (a20, a21, a22) = (r2[x0], r2[x], r2[x2]);
+                let dx = a22
+                    .wrapping_sub(a02)
+                    .wrapping_sub(a21.wrapping_mul(2))
+                    .wrapping_add(a01.wrapping_mul(2))
+                    .wrapping_add(a20)
+                    .wrapping_sub(a00);
+                let dy = a22
+                    .wrapping_sub(a12.wrapping_mul(2))
+                    .wrapping_sub(a20)
+                    .wrapping_add(a10.wrapping_mul(2))
+                    .wrapping_add(a02)
+                    .wrapping_sub(a00);
+                let rx = wrow[i] * dx as f32;
+                let ry = wrow[i] * dy as f32;
+                accumulate(
+                    &mut acc[(row_sub + sub_of[i]) * vals..][..vals],
+                    rx,
+                    ry,
+                    extended,
+                );
+            }
+        }
+        finish(&acc[..kind.len()], out);
+        return;
+    }
     for j in 0..n {
         let v = (j as f32 - c) * sp;
-        let row_sub = (j / per) * nsub;
+        let row_sub = sub_of[j] * nsub;
         for i in 0..n {
             let u = (i as f32 - c) * sp;
             let wt = weights[j * n + i];
@@ -808,34 +966,48 @@ fn describe_one(
             let (dx, dy) = haar(ii, fx, fy, half);
             let rx = wt * (co * dx + si * dy);
             let ry = wt * (co * dy - si * dx);
-            let a = &mut acc[(row_sub + i / per) * vals..][..vals];
-            if extended {
-                if ry >= 0.0 {
-                    a[0] += rx;
-                    a[1] += rx.abs();
-                } else {
-                    a[2] += rx;
-                    a[3] += rx.abs();
-                }
-                if rx >= 0.0 {
-                    a[4] += ry;
-                    a[5] += ry.abs();
-                } else {
-                    a[6] += ry;
-                    a[7] += ry.abs();
-                }
-            } else {
-                a[0] += rx;
-                a[1] += ry;
-                a[2] += rx.abs();
-                a[3] += ry.abs();
-            }
+            accumulate(
+                &mut acc[(row_sub + sub_of[i]) * vals..][..vals],
+                rx,
+                ry,
+                extended,
+            );
         }
     }
-    let len = kind.len();
-    let norm2: f32 = acc[..len].iter().map(|v| v * v).sum();
+    finish(&acc[..kind.len()], out);
+}
+
+/// Add one rotated, weighted response to its subregion's sums (4 or 8 values, OpenCV's order).
+#[inline(always)]
+fn accumulate(a: &mut [f32], rx: f32, ry: f32, extended: bool) {
+    if extended {
+        if ry >= 0.0 {
+            a[0] += rx;
+            a[1] += rx.abs();
+        } else {
+            a[2] += rx;
+            a[3] += rx.abs();
+        }
+        if rx >= 0.0 {
+            a[4] += ry;
+            a[5] += ry.abs();
+        } else {
+            a[6] += ry;
+            a[7] += ry.abs();
+        }
+    } else {
+        a[0] += rx;
+        a[1] += ry;
+        a[2] += rx.abs();
+        a[3] += ry.abs();
+    }
+}
+
+/// L2-normalise `acc` into `out` (all zeros stay zeros).
+fn finish(acc: &[f32], out: &mut [f32]) {
+    let norm2: f32 = acc.iter().map(|v| v * v).sum();
     let inv = if norm2 > 0.0 { 1.0 / norm2.sqrt() } else { 0.0 };
-    for (o, a) in out[..len].iter_mut().zip(&acc[..len]) {
+    for (o, a) in out.iter_mut().zip(acc) {
         *o = a * inv;
     }
 }
@@ -894,6 +1066,63 @@ mod tests {
                         (got - want).abs() <= 1e-3 * want.abs().max(1.0),
                         "{size} {step} {r} {c}: {got} vs {want}"
                     );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn fast_atan2_is_accurate() {
+        for k in 0..3600 {
+            let a = (k as f32 / 10.0 - 180.0).to_radians();
+            for r in [0.001f32, 1.0, 1000.0] {
+                let (y, x) = (r * a.sin(), r * a.cos());
+                let d = (fast_atan2(y, x) - y.atan2(x)).abs();
+                assert!(
+                    d < 2e-5 || (d - std::f32::consts::TAU).abs() < 2e-5,
+                    "{a} {d}"
+                );
+            }
+        }
+        assert_eq!(fast_atan2(0.0, 0.0), 0.0);
+    }
+
+    #[test]
+    fn upright_fast_path_equals_general_path_at_zero_orientation() {
+        let mut s = 99u64;
+        let img = GrayImage::from_fn(120, 100, |x, y| {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 33) % 64) as f32 + (x + y) as f32
+        });
+        let ii = IntegralImage::new(&img);
+        for kind in [
+            DescriptorKind::Surf36,
+            DescriptorKind::Surf64,
+            DescriptorKind::Surf128,
+        ] {
+            for (x, y, sc) in [
+                (60.0f32, 50.0f32, 1.6f32),
+                (10.3, 90.2, 2.5),
+                (115.0, 3.0, 4.0),
+            ] {
+                let kp = KeyPoint {
+                    x,
+                    y,
+                    size: sc * 7.5,
+                    scale: sc,
+                    response: 1.0,
+                    orientation_rad: 0.0,
+                    laplacian: 1,
+                    octave: 0,
+                };
+                let mut a = vec![0f32; kind.stride()];
+                let mut b = vec![0f32; kind.stride()];
+                describe_one(&ii, &kp, kind, true, &mut a);
+                describe_one(&ii, &kp, kind, false, &mut b);
+                for (p, q) in a.iter().zip(&b) {
+                    assert!((p - q).abs() < 1e-5, "{kind:?} {x} {y}");
                 }
             }
         }

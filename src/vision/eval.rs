@@ -114,6 +114,9 @@ fn inside(r: &Region, w: usize, h: usize) -> bool {
         && r.y + r.radius <= h as f64 - 0.5
 }
 
+/// Indices of the regions kept in image 1 and image 2, and the pairs `(i1, i2, overlap_error)`.
+pub type Correspondences = (Vec<usize>, Vec<usize>, Vec<(usize, usize, f64)>);
+
 /// The common-part filter and the greedy one-to-one correspondences. Returns the indices of the
 /// regions kept in each image and the corresponding pairs `(i1, i2, overlap_error)`.
 pub fn correspondences(
@@ -123,7 +126,7 @@ pub fn correspondences(
     size1: (usize, usize),
     size2: (usize, usize),
     max_overlap_error: f64,
-) -> Result<(Vec<usize>, Vec<usize>, Vec<(usize, usize, f64)>), VisionError> {
+) -> Result<Correspondences, VisionError> {
     let h21 = h12.try_inverse().ok_or_else(|| VisionError::InvalidParam {
         name: "h12",
         reason: "homography is singular".into(),

@@ -146,7 +146,8 @@ pub fn match_features(
             let [px, py] = pred[qi];
             let (dx, dy) = (tk.x - px, tk.y - py);
             // NaN predictions fail this comparison and exclude the pair.
-            if !(dx * dx + dy * dy <= r2) {
+            let within = dx * dx + dy * dy <= r2;
+            if !within {
                 return false;
             }
         }

@@ -63,6 +63,7 @@ pub enum DescriptorKind {
 
 impl DescriptorKind {
     /// Number of descriptor values.
+    #[allow(clippy::len_without_is_empty)] // a descriptor kind is never empty
     pub fn len(self) -> usize {
         match self {
             Self::Surf36 => 36,
@@ -354,7 +355,10 @@ impl Surf {
             for k in 0..n_layers {
                 let size = filter_size(o, k);
                 // Reuse a finer layer of the same size by subsampling (octaves overlap).
-                let det = match layers.iter().find(|l| l.size == size && step % l.step == 0) {
+                let det = match layers
+                    .iter()
+                    .find(|l| l.size == size && step.is_multiple_of(l.step))
+                {
                     Some(src) => subsample(src, step / src.step, rows, cols, take(&mut spare)),
                     None => compute_layer(ii, size, step, rows, cols, take(&mut spare)),
                 };
@@ -597,7 +601,7 @@ fn layer_row(
             out[i] = dxx * dyy - DXY_WEIGHT_SQ * dxy * dxy;
         }
     } else {
-        for c in c0..=c1 {
+        for (c, o) in out.iter_mut().enumerate().take(c1 + 1).skip(c0) {
             let x = c * step;
             let dyy = e[x + l].wrapping_sub(e[x + 1 - l]) as f32 * inv_a;
             let dxx = sx[x + hs + 1]
@@ -610,7 +614,7 @@ fn layer_row(
                 .wrapping_sub(d[x + l + 1])
                 .wrapping_add(d[x + 1]) as f32
                 * inv_d;
-            out[c] = dxx * dyy - DXY_WEIGHT_SQ * dxy * dxy;
+            *o = dxx * dyy - DXY_WEIGHT_SQ * dxy * dxy;
         }
     }
 }
@@ -811,12 +815,11 @@ fn fast_atan2(y: f32, x: f32) -> f32 {
     }
     let a = mn / mx;
     let t = a * a;
-    let mut r = ((((-0.013_480_47 * t + 0.057_477_314) * t - 0.121_239_071) * t + 0.195_635_925)
-        * t
-        - 0.332_994_597)
+    let mut r = ((((-0.013_480_47 * t + 0.057_477_31) * t - 0.121_239_07) * t + 0.195_635_93) * t
+        - 0.332_994_6)
         * t
         * a
-        + 0.999_995_63 * a;
+        + 0.999_995_6 * a;
     if ay > ax {
         r = FRAC_PI_2 - r;
     }

@@ -38,6 +38,12 @@ pub struct SurfBenchArgs {
     /// Hessian threshold (OpenCV meaning).
     #[arg(long, default_value_t = 100.0)]
     pub threshold: f32,
+    /// Sampling step of the first octave (OpenCV: 1, OpenSURF: 2).
+    #[arg(long, default_value_t = 1)]
+    pub init_step: usize,
+    /// Layers searched per octave (OpenCV's nOctaveLayers).
+    #[arg(long, default_value_t = 2)]
+    pub octave_layers: usize,
     /// Which SURF modes to time: `both`, `upright` or `oriented`.
     #[arg(long, default_value = "both")]
     pub mode: String,
@@ -164,6 +170,8 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
             let surf = Surf::new(SurfParams {
                 hessian_threshold: a.threshold,
                 upright,
+                init_sample_step: a.init_step,
+                n_octave_layers: a.octave_layers,
                 ..SurfParams::default()
             })?;
             for (n, pool) in &pools {
@@ -183,7 +191,7 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
         }
     }
     let quality = if a.quality || a.export_pairs.is_some() {
-        Some(quality_table(a.threshold, a.export_pairs.as_deref())?)
+        Some(quality_table(&a, a.export_pairs.as_deref())?)
     } else {
         None
     };
@@ -240,7 +248,7 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
 
 /// The quality table of docs/surf.md: the standard changes on a 320x320 window of the 2014 map and
 /// the 2009-vs-2014 pair; optionally exported for scripts/bench_opencv.py.
-fn quality_table(threshold: f32, export: Option<&Path>) -> anyhow::Result<Vec<QualityRow>> {
+fn quality_table(a: &SurfBenchArgs, export: Option<&Path>) -> anyhow::Result<Vec<QualityRow>> {
     let p14 = repo_file("sitl/maps/naip_nd_2014.tif");
     let p09 = repo_file("sitl/maps/naip_nd_2009.tif");
     let m14 = GrayImage::load(&p14)?;
@@ -263,9 +271,11 @@ fn quality_table(threshold: f32, export: Option<&Path>) -> anyhow::Result<Vec<Qu
     });
     let mk = |upright, descriptor| {
         Surf::new(SurfParams {
-            hessian_threshold: threshold,
+            hessian_threshold: a.threshold,
             upright,
             descriptor,
+            init_sample_step: a.init_step,
+            n_octave_layers: a.octave_layers,
             ..SurfParams::default()
         })
     };

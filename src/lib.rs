@@ -13,3 +13,4 @@ pub mod link;
 pub mod nav;
 pub mod pose;
 pub mod sitl;
+pub mod vision;

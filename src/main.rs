@@ -21,6 +21,8 @@ enum Command {
     CheckConfig(cli::check_config::CheckConfigArgs),
     /// Run a SITL scenario through the navigation filter and print errors against truth.
     Sim(cli::sim::SimArgs),
+    /// Benchmarks (`bench surf`: SURF speed, feature counts and quality table).
+    Bench(cli::bench::BenchArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -29,6 +31,7 @@ fn main() -> std::process::ExitCode {
     let result = match args.command {
         Command::CheckConfig(a) => cli::check_config::run(a),
         Command::Sim(a) => cli::sim::run_cmd(a),
+        Command::Bench(a) => cli::bench::run(a),
     };
     match result {
         Ok(code) => code,

@@ -1,5 +1,6 @@
 //! Subcommand implementations of the `visnav` binary.
 
+pub mod bench;
 pub mod check_config;
 pub mod sim;
 

@@ -13,4 +13,5 @@ pub mod link;
 pub mod nav;
 pub mod pose;
 pub mod sitl;
+pub mod stats;
 pub mod vision;

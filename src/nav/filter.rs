@@ -37,11 +37,11 @@
 //! definiteness is re-initialised; a non-finite state or an IMU gap resets the filter to
 //! "not initialised".
 
-use super::chi2;
 use super::config::NavConfig;
 use super::earth;
 use super::ins::{InsState, Strapdown, skew_matrix};
 use super::measurement::{ImuSample, Measurement, PositionFix, VelocityFix};
+use crate::stats::chi2_quantile;
 use nalgebra::{Matrix3, SMatrix, SVector, UnitQuaternion, Vector3};
 use serde::Serialize;
 use std::collections::VecDeque;
@@ -249,10 +249,10 @@ impl NavFilter {
                 imu.accel_bias_corr_time_s,
                 imu.accel_bias_rw_si(),
             ),
-            gate_vision: chi2::quantile(3.0, cfg.gates.vision_prob),
-            gate_gps3: chi2::quantile(3.0, cfg.gates.gps_prob),
-            gate_alt: chi2::quantile(1.0, cfg.gates.altitude_prob),
-            gate_att: chi2::quantile(3.0, cfg.gates.attitude_prob),
+            gate_vision: chi2_quantile(3.0, cfg.gates.vision_prob),
+            gate_gps3: chi2_quantile(3.0, cfg.gates.gps_prob),
+            gate_alt: chi2_quantile(1.0, cfg.gates.altitude_prob),
+            gate_att: chi2_quantile(3.0, cfg.gates.attitude_prob),
             r_att: Matrix3::from_diagonal(&Vector3::new(tilt * tilt, tilt * tilt, yaw * yaw)),
             use_att: cfg.use_autopilot_attitude,
         };

@@ -415,99 +415,10 @@ pub fn convex_hull_area(points: &[Vector2<f64>]) -> f64 {
     (0.5 * area2).abs()
 }
 
-fn ln_gamma(x: f64) -> f64 {
-    // Lanczos approximation (g = 7, n = 9), accurate to ~1e-15 for x > 0.
-    const G: f64 = 7.0;
-    const C: [f64; 9] = [
-        0.999_999_999_999_809_9,
-        676.520_368_121_885_1,
-        -1_259.139_216_722_402_8,
-        771.323_428_777_653_1,
-        -176.615_029_162_140_6,
-        12.507_343_278_686_905,
-        -0.138_571_095_265_720_12,
-        9.984_369_578_019_572e-6,
-        1.505_632_735_149_311_6e-7,
-    ];
-    let x = x - 1.0;
-    let mut a = C[0];
-    let t = x + G + 0.5;
-    for (i, c) in C.iter().enumerate().skip(1) {
-        a += c / (x + i as f64);
-    }
-    0.5 * (2.0 * std::f64::consts::PI).ln() + (x + 0.5) * t.ln() - t + a.ln()
-}
-
-/// Regularised lower incomplete gamma `P(a, x)`.
-fn gamma_p(a: f64, x: f64) -> f64 {
-    if x <= 0.0 {
-        return 0.0;
-    }
-    let gln = ln_gamma(a);
-    if x < a + 1.0 {
-        let (mut ap, mut sum) = (a, 1.0 / a);
-        let mut del = sum;
-        for _ in 0..500 {
-            ap += 1.0;
-            del *= x / ap;
-            sum += del;
-            if del.abs() < sum.abs() * 1e-15 {
-                break;
-            }
-        }
-        sum * (-x + a * x.ln() - gln).exp()
-    } else {
-        // Continued fraction for Q (modified Lentz).
-        let tiny = 1e-300;
-        let mut b = x + 1.0 - a;
-        let mut c = 1.0 / tiny;
-        let mut d = 1.0 / b;
-        let mut h = d;
-        for i in 1..500 {
-            let an = -(i as f64) * (i as f64 - a);
-            b += 2.0;
-            d = an * d + b;
-            if d.abs() < tiny {
-                d = tiny;
-            }
-            c = b + an / c;
-            if c.abs() < tiny {
-                c = tiny;
-            }
-            d = 1.0 / d;
-            let del = d * c;
-            h *= del;
-            if (del - 1.0).abs() < 1e-15 {
-                break;
-            }
-        }
-        1.0 - (-x + a * x.ln() - gln).exp() * h
-    }
-}
-
-/// Chi-square cumulative distribution with `dof` degrees of freedom.
-pub fn chi2_cdf(x: f64, dof: usize) -> f64 {
-    gamma_p(0.5 * dof as f64, 0.5 * x)
-}
-
-/// Chi-square quantile: the `x` with `chi2_cdf(x, dof) = p` (bisection, p in (0, 1)).
+/// Chi-square quantile for `dof` degrees of freedom at probability `p` (NaN for invalid input);
+/// see [`crate::stats::chi2_quantile`].
 pub fn chi2_quantile(p: f64, dof: usize) -> f64 {
-    if !(p > 0.0 && p < 1.0) || dof == 0 {
-        return f64::NAN;
-    }
-    let (mut lo, mut hi) = (0.0, 10.0 + 10.0 * dof as f64);
-    while chi2_cdf(hi, dof) < p {
-        hi *= 2.0;
-    }
-    for _ in 0..200 {
-        let mid = 0.5 * (lo + hi);
-        if chi2_cdf(mid, dof) < p {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    0.5 * (lo + hi)
+    crate::stats::chi2_quantile(dof as f64, p)
 }
 
 #[cfg(test)]

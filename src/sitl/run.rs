@@ -398,8 +398,8 @@ pub fn nees_summary(series: &[Vec<(f64, f64)>], dof: usize) -> Option<NeesSummar
     }
     let nd = (runs * dof) as f64;
     let band = [
-        crate::nav::chi2::quantile(nd, 0.025) / runs as f64,
-        crate::nav::chi2::quantile(nd, 0.975) / runs as f64,
+        crate::stats::chi2_quantile(nd, 0.025) / runs as f64,
+        crate::stats::chi2_quantile(nd, 0.975) / runs as f64,
     ];
     let avg: Vec<f64> = (0..epochs)
         .map(|k| series.iter().map(|s| s[k].1).sum::<f64>() / runs as f64)

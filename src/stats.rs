@@ -1,4 +1,5 @@
-//! Chi-square distribution: CDF and quantiles for innovation gates and NEES consistency bands.
+//! Statistics shared by the pose integrity checks and the navigation filter: the chi-square
+//! distribution's CDF and quantiles (innovation gates, prior-consistency gates, NEES bands).
 //!
 //! CDF `P(k/2, x/2)` via the regularized lower incomplete gamma function (series for
 //! `x < a + 1`, Lentz continued fraction otherwise; Numerical Recipes 6.2), `ln Gamma` by the
@@ -77,21 +78,25 @@ fn gamma_p(a: f64, x: f64) -> f64 {
 }
 
 /// Chi-square CDF with `dof` degrees of freedom at `x`.
-pub fn cdf(dof: f64, x: f64) -> f64 {
+pub fn chi2_cdf(dof: f64, x: f64) -> f64 {
     gamma_p(0.5 * dof, 0.5 * x)
 }
 
-/// Chi-square quantile: the `x` with `cdf(dof, x) = p` (`0 < p < 1`).
-pub fn quantile(dof: f64, p: f64) -> f64 {
+/// Chi-square quantile: the `x` with `chi2_cdf(dof, x) = p`. NaN unless `0 < p < 1` and `dof > 0`
+/// (a gate computed from a bad probability must not silently pass everything).
+pub fn chi2_quantile(dof: f64, p: f64) -> f64 {
+    if !(p > 0.0 && p < 1.0 && dof > 0.0 && dof.is_finite()) {
+        return f64::NAN;
+    }
     let p = p.clamp(1e-12, 1.0 - 1e-12);
     let mut lo = 0.0;
     let mut hi = dof.max(1.0);
-    while cdf(dof, hi) < p {
+    while chi2_cdf(dof, hi) < p {
         hi *= 2.0;
     }
     for _ in 0..200 {
         let mid = 0.5 * (lo + hi);
-        if cdf(dof, mid) < p {
+        if chi2_cdf(dof, mid) < p {
             lo = mid;
         } else {
             hi = mid;
@@ -110,25 +115,36 @@ mod tests {
 
     proptest! {
         #[test]
-        fn quantile_inverts_cdf(dof in 1u32..400, p in 0.001f64..0.999) {
-            let x = quantile(dof as f64, p);
-            prop_assert!((cdf(dof as f64, x) - p).abs() < 1e-9);
+        fn quantile_inverts_chi2_cdf(dof in 1u32..400, p in 0.001f64..0.999) {
+            let x = chi2_quantile(dof as f64, p);
+            prop_assert!((chi2_cdf(dof as f64, x) - p).abs() < 1e-9);
         }
     }
 
     #[test]
     fn known_quantiles() {
         // Tabulated chi-square quantiles.
-        assert!((quantile(1.0, 0.95) - 3.841_458_8).abs() < 1e-5);
-        assert!((quantile(3.0, 0.95) - 7.814_727_9).abs() < 1e-5);
-        assert!((quantile(3.0, 0.999) - 16.266_236).abs() < 1e-4);
+        assert!((chi2_quantile(1.0, 0.95) - 3.841_458_8).abs() < 1e-5);
+        assert!((chi2_quantile(3.0, 0.95) - 7.814_727_9).abs() < 1e-5);
+        assert!((chi2_quantile(3.0, 0.999) - 16.266_236).abs() < 1e-4);
         // Large dof: the Wilson-Hilferty approximation is accurate to ~0.01 here
         // (k = 150: 117.98 and 185.80).
         let wh =
             |k: f64, z: f64| k * (1.0 - 2.0 / (9.0 * k) + z * (2.0 / (9.0 * k)).sqrt()).powi(3);
-        assert!((quantile(150.0, 0.025) - wh(150.0, -1.959_964)).abs() < 0.05);
-        assert!((quantile(150.0, 0.975) - wh(150.0, 1.959_964)).abs() < 0.05);
-        assert!((quantile(150.0, 0.975) - 185.80).abs() < 0.05);
-        assert!((cdf(2.0, 2.0) - (1.0 - (-1.0f64).exp())).abs() < 1e-12);
+        assert!((chi2_quantile(150.0, 0.025) - wh(150.0, -1.959_964)).abs() < 0.05);
+        assert!((chi2_quantile(150.0, 0.975) - wh(150.0, 1.959_964)).abs() < 0.05);
+        assert!((chi2_quantile(150.0, 0.975) - 185.80).abs() < 0.05);
+        assert!((chi2_cdf(2.0, 2.0) - (1.0 - (-1.0f64).exp())).abs() < 1e-12);
+        // More table values (p, dof, x).
+        for (p, k, x) in [
+            (0.95, 2.0, 5.991_465),
+            (0.99, 6.0, 16.811_89),
+            (0.5, 3.0, 2.365_974),
+        ] {
+            assert!((chi2_quantile(k, p) - x).abs() < 1e-4, "chi2({k}) at {p}");
+        }
+        assert!(chi2_quantile(3.0, f64::NAN).is_nan());
+        assert!(chi2_quantile(3.0, 1.0).is_nan());
+        assert!(chi2_quantile(0.0, 0.5).is_nan());
     }
 }

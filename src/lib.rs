@@ -9,3 +9,4 @@
 pub mod camera;
 pub mod config;
 pub mod geo;
+pub mod sitl;

@@ -1,0 +1,2 @@
+//! Software-in-the-loop simulation: the simulated camera (`render`) and, later, the vehicle and link.
+pub mod render;

@@ -170,7 +170,7 @@ fn nadir_gsd_is_altitude_over_focal_length() {
     let scene = Scene::new(&ortho, Dem::flat(580.0).unwrap(), ColourMode::Rgb).unwrap();
     for agl in [1200.0, 2500.0] {
         let p = pose(X0 + 2000.0, Y0 - 2000.0, 580.0 + agl, 0.0, 0.0);
-        let fr = ren.render(&scene, &p, 0).unwrap();
+        let fr = ren.render_radiance(&scene, &p).unwrap();
         assert_eq!(fr.valid_fraction(), 1.0);
         let expect = agl / f;
         // Every horizontal and vertical neighbour step, anywhere in the image.
@@ -214,7 +214,7 @@ fn tilted_footprint_matches_hand_cast_corner_rays() {
     let scene = Scene::new(&ortho, Dem::flat(h).unwrap(), ColourMode::Rgb).unwrap();
     for (tilt, heading) in [(20.0, 30.0), (12.0, 200.0)] {
         let p = pose(X0 + 5000.0, Y0 - 5000.0, h + 2000.0, tilt, heading);
-        let fr = ren.render(&scene, &p, 0).unwrap();
+        let fr = ren.render_radiance(&scene, &p).unwrap();
         assert_eq!(fr.valid_fraction(), 1.0);
         for (u, v) in [(0usize, 0usize), (639, 0), (639, 479), (0, 479), (320, 240)] {
             // Hand-made pinhole ray: (u - cx)/fx, (v - cy)/fy, 1, rotated, to z = h.
@@ -297,7 +297,8 @@ fn distortion_moves_markers_as_the_forward_model_says() {
 #[test]
 fn anti_aliasing_averages_sub_pixel_texture() {
     // 1 m checkerboard of 40 / 200 DN seen from 2200 m: 4 m camera pixels. Point sampling would
-    // alias into a random-looking pattern (std ~ 80 DN); a box-filtered render is close to 120.
+    // alias into a random-looking pattern (bilinear point samples: sd ~ 80/3 DN); a box-filtered
+    // render is close to the mean, 120.
     let ortho = ortho_u8(3000, 1.0, |x, y| {
         if ((x - X0).floor() as i64 + (Y0 - y).floor() as i64) % 2 == 0 {
             40.0
@@ -332,6 +333,22 @@ fn anti_aliasing_averages_sub_pixel_texture() {
             (mean - 120.0).abs() < 2.0 && sd < 6.0,
             "mean {mean}, sd {sd}"
         );
+        // The same pixels point-sampled (one bilinear lookup at the ray's ground point) alias.
+        let mut point = Vec::new();
+        for row in (0..480).step_by(3) {
+            for col in (0..640).step_by(3) {
+                let px = Point2::new(col as f64, row as f64);
+                if let Some(g) = ren.ground_point(&scene, &p, &px)
+                    && let Some(v) = ortho.bilinear(g.x, g.y, 0)
+                {
+                    point.push(v);
+                }
+            }
+        }
+        let pm = point.iter().sum::<f64>() / point.len() as f64;
+        let psd = (point.iter().map(|v| (v - pm).powi(2)).sum::<f64>() / point.len() as f64).sqrt();
+        eprintln!("  point sampling instead: mean {pm:.2} sd {psd:.2} DN");
+        assert!(psd > 20.0, "point sampling should alias: sd {psd}");
     }
 }
 

@@ -86,7 +86,10 @@ pub enum Dem {
 impl Dem {
     /// Loads a one-band GeoTIFF of heights (metres). See `geotiff::load_geotiff` for `crs_override`.
     pub fn load_geotiff(path: &Path, crs_override: Option<Crs>) -> Result<Self, DemError> {
-        Ok(Dem::Grid(GridDem::from_raster(&load_geotiff(path, crs_override)?)?))
+        Ok(Dem::Grid(GridDem::from_raster(&load_geotiff(
+            path,
+            crs_override,
+        )?)?))
     }
 
     /// Wraps a one-band raster of heights (metres).
@@ -508,17 +511,29 @@ mod tests {
             .unwrap();
         assert!((q[2] - p[2]).abs() < 1e-5);
         // Upward ray, ray starting below ground, zero direction: None.
-        assert_eq!(dem.intersect_ray([x, y, 2000.0], [0.0, 0.0, 1.0], 1e9), None);
+        assert_eq!(
+            dem.intersect_ray([x, y, 2000.0], [0.0, 0.0, 1.0], 1e9),
+            None
+        );
         assert_eq!(
             dem.intersect_ray([x, y, hf(x, y) - 1.0], [0.0, 0.1, -1.0], 1e9),
             None
         );
         assert_eq!(dem.intersect_ray([x, y, 2000.0], [0.0; 3], 1e9), None);
-        assert_eq!(dem.intersect_ray([x, y, f64::NAN], [0.0, 0.0, -1.0], 1e9), None);
+        assert_eq!(
+            dem.intersect_ray([x, y, f64::NAN], [0.0, 0.0, -1.0], 1e9),
+            None
+        );
         // Out of range.
         let range = 2000.0 - hf(x, y);
-        assert!(dem.intersect_ray([x, y, 2000.0], [0.0, 0.0, -1.0], range - 0.01).is_none());
-        assert!(dem.intersect_ray([x, y, 2000.0], [0.0, 0.0, -1.0], range + 0.01).is_some());
+        assert!(
+            dem.intersect_ray([x, y, 2000.0], [0.0, 0.0, -1.0], range - 0.01)
+                .is_none()
+        );
+        assert!(
+            dem.intersect_ray([x, y, 2000.0], [0.0, 0.0, -1.0], range + 0.01)
+                .is_some()
+        );
     }
 
     proptest! {
@@ -557,7 +572,13 @@ mod tests {
     fn sharp_ridge_is_not_tunnelled() {
         let cell = 10.0;
         let ridge_col = 20usize;
-        let dem = grid(40, 40, cell, None, |c, _| if c == ridge_col { 50.0 } else { 0.0 });
+        let dem = grid(
+            40,
+            40,
+            cell,
+            None,
+            |c, _| if c == ridge_col { 50.0 } else { 0.0 },
+        );
         let (xr, y) = centre(ridge_col as f64, 20.0, cell);
         // Horizontal ray 1 cm below the crest, coming from the west.
         let o = [xr - 150.0, y, 49.99];
@@ -584,11 +605,20 @@ mod tests {
             assert!(60.0 - 0.1 * s > h, "coarse sample {k} is below ground");
         }
         assert!(coarse_samples > 50);
-        assert!(p2[0] < xr && p2[0] > xr - cell, "hit must be on the west flank: {p2:?}");
+        assert!(
+            p2[0] < xr && p2[0] > xr - cell,
+            "hit must be on the west flank: {p2:?}"
+        );
         assert!((p2[2] - h_at(p2[0])).abs() < 1e-4);
         // Grazing inside one cell: a ray crossing a peak cell diagonally, whose minimum clearance
         // is inside the cell and whose ends are above ground (interior-minimum case).
-        let dem3 = grid(4, 4, cell, None, |c, r| if (c, r) == (1, 1) { 10.0 } else { 0.0 });
+        let dem3 = grid(
+            4,
+            4,
+            cell,
+            None,
+            |c, r| if (c, r) == (1, 1) { 10.0 } else { 0.0 },
+        );
         // Cell (1,1)-(2,2) has h00 = 10, others 0: h = 10 (1-a)(1-b). Along a = b = s the
         // height is 10 (1-s)^2; a horizontal ray at z = 2.5 along the anti-diagonal a + b = 1
         // (h = 10 a (1-a), max 2.5 at a = 0.5) touches it; at z = 2.4 it crosses twice inside.
@@ -596,11 +626,16 @@ mod tests {
         let (xb, yb) = centre(2.0, 1.0, cell); // a = 1, b = 0
         let d3 = [xb - xa, yb - ya, 0.0];
         let o3 = [xa, ya, 2.4];
-        let p3 = dem3.intersect_ray(o3, d3, f64::INFINITY).expect("graze hit");
+        let p3 = dem3
+            .intersect_ray(o3, d3, f64::INFINITY)
+            .expect("graze hit");
         let a = (p3[0] - xa) / (xb - xa);
         let expect_a = (1.0 - (1.0f64 - 4.0 * 0.24).sqrt()) / 2.0; // 10 a (1-a) = 2.4
         assert!((a - expect_a).abs() < 1e-6, "{a} vs {expect_a}");
-        assert!(dem3.intersect_ray([xa, ya, 2.6], d3, f64::INFINITY).is_none());
+        assert!(
+            dem3.intersect_ray([xa, ya, 2.6], d3, f64::INFINITY)
+                .is_none()
+        );
     }
 
     #[test]
@@ -618,12 +653,18 @@ mod tests {
         assert_eq!(dem.height_at(xh, yh), None);
         assert_eq!(dem.height_range_m(), (100.0, 100.0));
         // Vertical ray into the hole: None. Next to it: hit.
-        assert_eq!(dem.intersect_ray([xh, yh, 500.0], [0.0, 0.0, -1.0], 1e9), None);
+        assert_eq!(
+            dem.intersect_ray([xh, yh, 500.0], [0.0, 0.0, -1.0], 1e9),
+            None
+        );
         let (xg, yg) = centre(20.0, 20.0, cell);
         let p = dem
             .intersect_ray([xg, yg, 500.0], [0.0, 0.0, -1.0], 1e9)
             .unwrap();
-        assert!(p[0] == xg && p[1] == yg && (p[2] - 100.0).abs() < 1e-6, "{p:?}");
+        assert!(
+            p[0] == xg && p[1] == yg && (p[2] - 100.0).abs() < 1e-6,
+            "{p:?}"
+        );
         // Low oblique ray passing over the hole at 100.5 m (below max_h + 1): None, because the
         // hole could hide a hit.
         let o = [xh - 50.0, yh, 100.5];
@@ -634,7 +675,10 @@ mod tests {
         assert!((p[0] - (xh + 50.0)).abs() < 1e-5 && (p[2] - 100.0).abs() < 1e-5);
         // A ray leaving the DEM above ground: None.
         let (xe, ye) = centre(28.0, 5.0, cell);
-        assert_eq!(dem.intersect_ray([xe, ye, 100.5], [1.0, 0.0, -0.001], 1e9), None);
+        assert_eq!(
+            dem.intersect_ray([xe, ye, 100.5], [1.0, 0.0, -0.001], 1e9),
+            None
+        );
         // A ray coming from outside the DEM high above it and descending inside: hit.
         let p = dem
             .intersect_ray([499_900.0, ye, 400.0], [1.0, 0.0, -1.0], 1e9)
@@ -656,9 +700,18 @@ mod tests {
             .intersect_ray([100.0, 200.0, 1080.0], [3.0, 4.0, -5.0], f64::INFINITY)
             .unwrap();
         assert!((p[0] - 400.0).abs() < 1e-9 && (p[1] - 600.0).abs() < 1e-9 && p[2] == 580.0);
-        assert_eq!(dem.intersect_ray([0.0, 0.0, 1080.0], [3.0, 4.0, -5.0], 700.0), None);
-        assert_eq!(dem.intersect_ray([0.0, 0.0, 1080.0], [0.0, 0.0, 1.0], 1e9), None);
-        assert_eq!(dem.intersect_ray([0.0, 0.0, 570.0], [0.0, 0.0, -1.0], 1e9), None);
+        assert_eq!(
+            dem.intersect_ray([0.0, 0.0, 1080.0], [3.0, 4.0, -5.0], 700.0),
+            None
+        );
+        assert_eq!(
+            dem.intersect_ray([0.0, 0.0, 1080.0], [0.0, 0.0, 1.0], 1e9),
+            None
+        );
+        assert_eq!(
+            dem.intersect_ray([0.0, 0.0, 570.0], [0.0, 0.0, -1.0], 1e9),
+            None
+        );
         assert!(Dem::flat(f64::NAN).is_err());
         // Same interface as a gridded constant DEM.
         let g = grid(50, 50, 10.0, None, |_, _| 580.0);
@@ -675,10 +728,19 @@ mod tests {
     fn rejects_bad_rasters() {
         let gt = GeoTransform::north_up(0.0, 0.0, 1.0, 1.0).unwrap();
         let r = Raster::new(1, 5, 1, RasterData::F32(vec![0.0; 5]), gt, UTM, None).unwrap();
-        assert!(matches!(Dem::from_raster(&r), Err(DemError::TooSmall { .. })));
+        assert!(matches!(
+            Dem::from_raster(&r),
+            Err(DemError::TooSmall { .. })
+        ));
         let r = Raster::new(2, 2, 2, RasterData::F32(vec![0.0; 8]), gt, UTM, None).unwrap();
-        assert!(matches!(Dem::from_raster(&r), Err(DemError::NotOneBand { .. })));
+        assert!(matches!(
+            Dem::from_raster(&r),
+            Err(DemError::NotOneBand { .. })
+        ));
         let r = Raster::new(2, 2, 1, RasterData::F32(vec![f32::NAN; 4]), gt, UTM, None).unwrap();
-        assert!(matches!(Dem::from_raster(&r), Err(DemError::NoValidHeights)));
+        assert!(matches!(
+            Dem::from_raster(&r),
+            Err(DemError::NoValidHeights)
+        ));
     }
 }

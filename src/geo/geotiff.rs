@@ -243,7 +243,10 @@ impl GeoKeys {
         if directory.len() < 4 {
             return Err(TagError::new(
                 TAG_KEY_DIRECTORY,
-                format!("{} values, need at least the 4-value header", directory.len()),
+                format!(
+                    "{} values, need at least the 4-value header",
+                    directory.len()
+                ),
             ));
         }
         if directory[0] != 1 {
@@ -275,7 +278,11 @@ impl GeoKeys {
                     let v = directory.get(off..off + count).ok_or_else(|| {
                         TagError::new(
                             TAG_KEY_DIRECTORY,
-                            format!("{}: SHORT values {off}..{} out of range", key_label(id), off + count),
+                            format!(
+                                "{}: SHORT values {off}..{} out of range",
+                                key_label(id),
+                                off + count
+                            ),
                         )
                     })?;
                     GeoKeyValue::Shorts(v.to_vec())
@@ -448,7 +455,9 @@ impl GeoKeys {
             Some(code) => {
                 return Err(KeyError::new(
                     key::PROJECTION,
-                    format!("projection code {code} is not supported (only UTM 160zz/161zz or user-defined 32767)"),
+                    format!(
+                        "projection code {code} is not supported (only UTM 160zz/161zz or user-defined 32767)"
+                    ),
                 ));
             }
         }
@@ -457,7 +466,9 @@ impl GeoKeys {
             Some(code) => {
                 return Err(KeyError::new(
                     key::PROJ_COORD_TRANS,
-                    format!("coordinate transformation {code} is not supported (only CT_TransverseMercator = 1)"),
+                    format!(
+                        "coordinate transformation {code} is not supported (only CT_TransverseMercator = 1)"
+                    ),
                 ));
             }
             None => {
@@ -473,7 +484,10 @@ impl GeoKeys {
                 None => self.double(alt)?.ok_or_else(|| {
                     KeyError::new(
                         primary,
-                        format!("missing (nor {}) for a user-defined transverse Mercator", key_label(alt)),
+                        format!(
+                            "missing (nor {}) for a user-defined transverse Mercator",
+                            key_label(alt)
+                        ),
                     )
                 }),
             }
@@ -579,7 +593,10 @@ impl GeoKeys {
         {
             return Err(KeyError::new(
                 key::GEOG_SEMI_MAJOR_AXIS,
-                format!("{a} m is not the WGS84 semi-major axis {}", super::wgs84::A_M),
+                format!(
+                    "{a} m is not the WGS84 semi-major axis {}",
+                    super::wgs84::A_M
+                ),
             ));
         }
         if let Some(inv_f) = self.double(key::GEOG_INV_FLATTENING)?
@@ -587,7 +604,10 @@ impl GeoKeys {
         {
             return Err(KeyError::new(
                 key::GEOG_INV_FLATTENING,
-                format!("{inv_f} is not the WGS84 inverse flattening {}", 1.0 / super::wgs84::F),
+                format!(
+                    "{inv_f} is not the WGS84 inverse flattening {}",
+                    1.0 / super::wgs84::F
+                ),
             ));
         }
         if let Some(b) = self.double(key::GEOG_SEMI_MINOR_AXIS)?
@@ -595,7 +615,10 @@ impl GeoKeys {
         {
             return Err(KeyError::new(
                 key::GEOG_SEMI_MINOR_AXIS,
-                format!("{b} m is not the WGS84 semi-minor axis {}", super::wgs84::B_M),
+                format!(
+                    "{b} m is not the WGS84 semi-minor axis {}",
+                    super::wgs84::B_M
+                ),
             ));
         }
         match self.short(key::GEOG_PRIME_MERIDIAN)? {
@@ -797,38 +820,45 @@ fn read_geotiff_inner<R: Read + Seek>(
     let mut limits = Limits::default();
     limits.decoding_buffer_size = MAX_DECODED_BYTES;
     limits.intermediate_buffer_size = MAX_DECODED_BYTES;
-    let mut dec = Decoder::new(reader).map_err(decode_err)?.with_limits(limits);
+    let mut dec = Decoder::new(reader)
+        .map_err(decode_err)?
+        .with_limits(limits);
 
     // --- georeferencing tags (read before the pixels so a bad file fails fast) ---
-    let f64_tag = |dec: &mut Decoder<R>, tag: Tag, name: &str| -> Result<Option<Vec<f64>>, GeoTiffError> {
-        match dec.find_tag(tag) {
-            Ok(None) => Ok(None),
-            Ok(Some(v)) => v.into_f64_vec().map(Some).map_err(|e| {
-                tag_err(TagError::new(name, format!("not a list of DOUBLEs: {e}")))
-            }),
-            Err(e) => Err(tag_err(TagError::new(name, e.to_string()))),
-        }
-    };
+    let f64_tag =
+        |dec: &mut Decoder<R>, tag: Tag, name: &str| -> Result<Option<Vec<f64>>, GeoTiffError> {
+            match dec.find_tag(tag) {
+                Ok(None) => Ok(None),
+                Ok(Some(v)) => v.into_f64_vec().map(Some).map_err(|e| {
+                    tag_err(TagError::new(name, format!("not a list of DOUBLEs: {e}")))
+                }),
+                Err(e) => Err(tag_err(TagError::new(name, e.to_string()))),
+            }
+        };
     let pixel_scale = f64_tag(&mut dec, Tag::ModelPixelScaleTag, TAG_PIXEL_SCALE)?;
     let tiepoints = f64_tag(&mut dec, Tag::ModelTiepointTag, TAG_TIEPOINT)?;
     let transformation = f64_tag(&mut dec, Tag::ModelTransformationTag, TAG_TRANSFORMATION)?;
     let doubles = f64_tag(&mut dec, Tag::GeoDoubleParamsTag, TAG_DOUBLE_PARAMS)?;
-    let ascii_tag = |dec: &mut Decoder<R>, tag: Tag, name: &str| -> Result<Option<String>, GeoTiffError> {
-        match dec.find_tag(tag) {
-            Ok(None) => Ok(None),
-            Ok(Some(v)) => v
-                .into_string()
-                .map(Some)
-                .map_err(|e| tag_err(TagError::new(name, format!("not ASCII: {e}")))),
-            Err(e) => Err(tag_err(TagError::new(name, e.to_string()))),
-        }
-    };
+    let ascii_tag =
+        |dec: &mut Decoder<R>, tag: Tag, name: &str| -> Result<Option<String>, GeoTiffError> {
+            match dec.find_tag(tag) {
+                Ok(None) => Ok(None),
+                Ok(Some(v)) => v
+                    .into_string()
+                    .map(Some)
+                    .map_err(|e| tag_err(TagError::new(name, format!("not ASCII: {e}")))),
+                Err(e) => Err(tag_err(TagError::new(name, e.to_string()))),
+            }
+        };
     let ascii = ascii_tag(&mut dec, Tag::GeoAsciiParamsTag, TAG_ASCII_PARAMS)?;
     let nodata_text = ascii_tag(&mut dec, Tag::GdalNodata, TAG_NODATA)?;
     let directory = match dec.find_tag(Tag::GeoKeyDirectoryTag) {
         Ok(None) => None,
         Ok(Some(v)) => Some(v.into_u16_vec().map_err(|e| {
-            tag_err(TagError::new(TAG_KEY_DIRECTORY, format!("not a list of SHORTs: {e}")))
+            tag_err(TagError::new(
+                TAG_KEY_DIRECTORY,
+                format!("not a list of SHORTs: {e}"),
+            ))
         })?),
         Err(e) => return Err(tag_err(TagError::new(TAG_KEY_DIRECTORY, e.to_string()))),
     };
@@ -1004,7 +1034,9 @@ fn decode_chunks<R: Read + Seek>(
         let acc = acc.get_or_insert_with(|| match &chunk {
             DecodingResult::U8(_) => Acc::U8(vec![0; expected]),
             DecodingResult::U16(_) => Acc::U16(vec![0; expected]),
-            DecodingResult::I8(_) | DecodingResult::I16(_) => Acc::F32(vec![0.0; expected], SampleType::I16),
+            DecodingResult::I8(_) | DecodingResult::I16(_) => {
+                Acc::F32(vec![0.0; expected], SampleType::I16)
+            }
             DecodingResult::U32(_) => Acc::F32(vec![0.0; expected], SampleType::U32),
             DecodingResult::I32(_) => Acc::F32(vec![0.0; expected], SampleType::I32),
             DecodingResult::F64(_) => Acc::F32(vec![0.0; expected], SampleType::F64),
@@ -1024,12 +1056,16 @@ fn decode_chunks<R: Read + Seek>(
             (Acc::U8(out), DecodingResult::U8(v)) => place(out, &v, &geom)?,
             (Acc::U16(out), DecodingResult::U16(v)) => place(out, &v, &geom)?,
             (Acc::F32(out, _), DecodingResult::F32(v)) => place(out, &v, &geom)?,
-            (Acc::F32(out, _), DecodingResult::I16(v)) => {
-                place(out, &v.iter().map(|&s| f32::from(s)).collect::<Vec<_>>(), &geom)?
-            }
-            (Acc::F32(out, _), DecodingResult::I8(v)) => {
-                place(out, &v.iter().map(|&s| f32::from(s)).collect::<Vec<_>>(), &geom)?
-            }
+            (Acc::F32(out, _), DecodingResult::I16(v)) => place(
+                out,
+                &v.iter().map(|&s| f32::from(s)).collect::<Vec<_>>(),
+                &geom,
+            )?,
+            (Acc::F32(out, _), DecodingResult::I8(v)) => place(
+                out,
+                &v.iter().map(|&s| f32::from(s)).collect::<Vec<_>>(),
+                &geom,
+            )?,
             (Acc::F32(out, _), DecodingResult::U32(v)) => {
                 place(out, &v.iter().map(|&s| s as f32).collect::<Vec<_>>(), &geom)?
             }
@@ -1039,13 +1075,19 @@ fn decode_chunks<R: Read + Seek>(
             (Acc::F32(out, _), DecodingResult::F64(v)) => {
                 place(out, &v.iter().map(|&s| s as f32).collect::<Vec<_>>(), &geom)?
             }
-            (Acc::F32(out, _), DecodingResult::F16(v)) => {
-                place(out, &v.iter().map(|&s| f32::from(s)).collect::<Vec<_>>(), &geom)?
-            }
+            (Acc::F32(out, _), DecodingResult::F16(v)) => place(
+                out,
+                &v.iter().map(|&s| f32::from(s)).collect::<Vec<_>>(),
+                &geom,
+            )?,
             (_, DecodingResult::U64(_) | DecodingResult::I64(_)) => {
                 return Err("64-bit integer samples are not supported".into());
             }
-            _ => return Err(format!("chunk {idx} has a different sample type than chunk 0")),
+            _ => {
+                return Err(format!(
+                    "chunk {idx} has a different sample type than chunk 0"
+                ));
+            }
         }
     }
     match acc {
@@ -1198,12 +1240,33 @@ mod tests {
     #[test]
     fn epsg_codes_map_to_crs() {
         let one = |pcs: u16| crs_of(&[(1024, 0, 1, 1), (3072, 0, 1, pcs)], &[]);
-        assert_eq!(one(32610), Ok(Crs::Utm { zone: 10, north: true }));
-        assert_eq!(one(32760), Ok(Crs::Utm { zone: 60, north: false }));
-        assert_eq!(one(26914), Ok(Crs::Utm { zone: 14, north: true }));
+        assert_eq!(
+            one(32610),
+            Ok(Crs::Utm {
+                zone: 10,
+                north: true
+            })
+        );
+        assert_eq!(
+            one(32760),
+            Ok(Crs::Utm {
+                zone: 60,
+                north: false
+            })
+        );
+        assert_eq!(
+            one(26914),
+            Ok(Crs::Utm {
+                zone: 14,
+                north: true
+            })
+        );
         assert_eq!(one(3857), Ok(Crs::WebMercator));
         let e = one(2994).unwrap_err();
-        assert!(e.key.contains("ProjectedCSTypeGeoKey (3072)") && e.reason.contains("2994"), "{e:?}");
+        assert!(
+            e.key.contains("ProjectedCSTypeGeoKey (3072)") && e.reason.contains("2994"),
+            "{e:?}"
+        );
         assert_eq!(
             crs_of(&[(1024, 0, 1, 2), (2048, 0, 1, 4326)], &[]),
             Ok(Crs::Geographic)
@@ -1211,23 +1274,43 @@ mod tests {
         let e = crs_of(&[(1024, 0, 1, 2), (2048, 0, 1, 4269)], &[]).unwrap_err();
         assert!(e.key.contains("GeographicTypeGeoKey"), "{e:?}");
         // Feet on an EPSG-coded UTM is contradictory.
-        let e = crs_of(&[(1024, 0, 1, 1), (3072, 0, 1, 32610), (3076, 0, 1, 9002)], &[])
-            .unwrap_err();
+        let e = crs_of(
+            &[(1024, 0, 1, 1), (3072, 0, 1, 32610), (3076, 0, 1, 9002)],
+            &[],
+        )
+        .unwrap_err();
         assert!(e.key.contains("ProjLinearUnitsGeoKey (3076)"), "{e:?}");
         // Model type inferred when missing; geocentric rejected.
         assert_eq!(
             crs_of(&[(3072, 0, 1, 32614)], &[]),
-            Ok(Crs::Utm { zone: 14, north: true })
+            Ok(Crs::Utm {
+                zone: 14,
+                north: true
+            })
         );
         assert!(crs_of(&[(1024, 0, 1, 3)], &[]).is_err());
-        assert!(crs_of(&[(1025, 0, 1, 1)], &[]).unwrap_err().key.contains("GTModelTypeGeoKey"));
+        assert!(
+            crs_of(&[(1025, 0, 1, 1)], &[])
+                .unwrap_err()
+                .key
+                .contains("GTModelTypeGeoKey")
+        );
         // User-defined PCS with a UTM projection code.
         assert_eq!(
             crs_of(
-                &[(1024, 0, 1, 1), (2048, 0, 1, 4326), (3072, 0, 1, 32767), (3074, 0, 1, 16135), (3076, 0, 1, 9001)],
+                &[
+                    (1024, 0, 1, 1),
+                    (2048, 0, 1, 4326),
+                    (3072, 0, 1, 32767),
+                    (3074, 0, 1, 16135),
+                    (3076, 0, 1, 9001)
+                ],
                 &[]
             ),
-            Ok(Crs::Utm { zone: 35, north: false })
+            Ok(Crs::Utm {
+                zone: 35,
+                north: false
+            })
         );
     }
 
@@ -1259,9 +1342,21 @@ mod tests {
         );
         // Each failure names its key.
         let cases: Vec<(Vec<(u16, u16, u16, u16)>, Vec<f64>, &str)> = vec![
-            (tm_keys(&[(3076, 0, 1, 9002)]), TM_DOUBLES.to_vec(), "ProjLinearUnitsGeoKey"),
-            (tm_keys(&[(2054, 0, 1, 9101)]), TM_DOUBLES.to_vec(), "GeogAngularUnitsGeoKey"),
-            (tm_keys(&[(2048, 0, 1, 4148)]), TM_DOUBLES.to_vec(), "GeographicTypeGeoKey"),
+            (
+                tm_keys(&[(3076, 0, 1, 9002)]),
+                TM_DOUBLES.to_vec(),
+                "ProjLinearUnitsGeoKey",
+            ),
+            (
+                tm_keys(&[(2054, 0, 1, 9101)]),
+                TM_DOUBLES.to_vec(),
+                "GeogAngularUnitsGeoKey",
+            ),
+            (
+                tm_keys(&[(2048, 0, 1, 4148)]),
+                TM_DOUBLES.to_vec(),
+                "GeographicTypeGeoKey",
+            ),
             (
                 tm_keys(&[(2048, 0, 1, 32767), (2050, 0, 1, 6269)]),
                 TM_DOUBLES.to_vec(),
@@ -1277,8 +1372,16 @@ mod tests {
                 vec![0.0, 25.0, 1.0, 0.0, 0.0, 6378206.4],
                 "GeogSemiMajorAxisGeoKey",
             ),
-            (tm_keys(&[(3075, 0, 1, 8)]), TM_DOUBLES.to_vec(), "ProjCoordTransGeoKey"),
-            (tm_keys(&[(2051, 0, 1, 8903)]), TM_DOUBLES.to_vec(), "GeogPrimeMeridianGeoKey"),
+            (
+                tm_keys(&[(3075, 0, 1, 8)]),
+                TM_DOUBLES.to_vec(),
+                "ProjCoordTransGeoKey",
+            ),
+            (
+                tm_keys(&[(2051, 0, 1, 8903)]),
+                TM_DOUBLES.to_vec(),
+                "GeogPrimeMeridianGeoKey",
+            ),
             (
                 tm_keys(&[]).into_iter().filter(|k| k.0 != 3080).collect(),
                 TM_DOUBLES.to_vec(),
@@ -1294,8 +1397,16 @@ mod tests {
                 TM_DOUBLES.to_vec(),
                 "ProjLinearUnitsGeoKey",
             ),
-            (tm_keys(&[]), vec![0.0, 25.0, 0.0, 0.0, 0.0], "ProjScaleAtNatOriginGeoKey"),
-            (tm_keys(&[(3080, 0, 1, 25)]), TM_DOUBLES.to_vec(), "ProjNatOriginLongGeoKey"),
+            (
+                tm_keys(&[]),
+                vec![0.0, 25.0, 0.0, 0.0, 0.0],
+                "ProjScaleAtNatOriginGeoKey",
+            ),
+            (
+                tm_keys(&[(3080, 0, 1, 25)]),
+                TM_DOUBLES.to_vec(),
+                "ProjNatOriginLongGeoKey",
+            ),
         ];
         for (keys, doubles, name) in cases {
             let e = crs_of(&keys, &doubles).unwrap_err();
@@ -1308,7 +1419,12 @@ mod tests {
             .into_iter()
             .filter(|k| k.0 != 2054)
             .collect();
-        assert!(crs_of(&k, &TM_DOUBLES).unwrap_err().key.contains("GeogAngularUnitsGeoKey"));
+        assert!(
+            crs_of(&k, &TM_DOUBLES)
+                .unwrap_err()
+                .key
+                .contains("GeogAngularUnitsGeoKey")
+        );
     }
 
     #[test]
@@ -1320,23 +1436,34 @@ mod tests {
         assert!(e.tag.contains("GeoDoubleParamsTag"), "{e:?}");
         let e = GeoKeys::parse(&dir(&[(1026, 34737, 10, 0)]), None, None).unwrap_err();
         assert!(e.tag.contains("GeoAsciiParamsTag"), "{e:?}");
-        let k = GeoKeys::parse(&dir(&[(1026, 34737, 6, 0), (1025, 0, 1, 7)]), None, Some("hello|x"))
-            .unwrap();
+        let k = GeoKeys::parse(
+            &dir(&[(1026, 34737, 6, 0), (1025, 0, 1, 7)]),
+            None,
+            Some("hello|x"),
+        )
+        .unwrap();
         assert_eq!(
             k.entries.get(&1026),
             Some(&GeoKeyValue::Ascii("hello".into()))
         );
-        assert!(k.raster_type().unwrap_err().key.contains("GTRasterTypeGeoKey"));
+        assert!(
+            k.raster_type()
+                .unwrap_err()
+                .key
+                .contains("GTRasterTypeGeoKey")
+        );
     }
 
     #[test]
     fn geotransform_tags_and_pixel_is_point() {
         let sc = [2.0, 3.0, 0.0];
         let tp = [10.0, 20.0, 0.0, 1000.0, 5000.0, 0.0];
-        let gt = geotransform_from_tags(Some(&sc), Some(&tp), None, RasterType::PixelIsArea).unwrap();
+        let gt =
+            geotransform_from_tags(Some(&sc), Some(&tp), None, RasterType::PixelIsArea).unwrap();
         assert_eq!(gt.coeffs(), [980.0, 2.0, 0.0, 5060.0, 0.0, -3.0]);
         assert_eq!(gt.pixel_to_map(10.0, 20.0), (1000.0, 5000.0));
-        let gp = geotransform_from_tags(Some(&sc), Some(&tp), None, RasterType::PixelIsPoint).unwrap();
+        let gp =
+            geotransform_from_tags(Some(&sc), Some(&tp), None, RasterType::PixelIsPoint).unwrap();
         // Pixel-is-point: the tiepoint is the centre of pixel (10, 20).
         assert_eq!(gp.pixel_to_map(10.5, 20.5), (1000.0, 5000.0));
         let m = [
@@ -1382,8 +1509,17 @@ mod tests {
         );
         let r = load_geotiff(&p, None).unwrap();
         assert_eq!((r.width(), r.height(), r.bands()), (4, 3, 1));
-        assert_eq!(r.crs(), Crs::Utm { zone: 33, north: true });
-        assert_eq!(r.transform().coeffs(), [500_000.0, 2.0, 0.0, 4_000_000.0, 0.0, -3.0]);
+        assert_eq!(
+            r.crs(),
+            Crs::Utm {
+                zone: 33,
+                north: true
+            }
+        );
+        assert_eq!(
+            r.transform().coeffs(),
+            [500_000.0, 2.0, 0.0, 4_000_000.0, 0.0, -3.0]
+        );
         assert_eq!(r.nodata(), Some(-9999.0));
         assert_eq!(r.source_type(), SampleType::F32);
         assert_eq!(r.sample(3, 2, 0), Some(16.5));
@@ -1391,27 +1527,58 @@ mod tests {
         // u16, LZW, pixel-is-point, ModelTransformation instead of scale + tiepoint.
         let p = dirp.path().join("u16.tif");
         let m = vec![
-            2.0, 0.0, 0.0, 500_000.0, 0.0, -2.0, 0.0, 4_000_000.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
-            0.0, 1.0,
+            2.0,
+            0.0,
+            0.0,
+            500_000.0,
+            0.0,
+            -2.0,
+            0.0,
+            4_000_000.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            1.0,
         ];
         let tags = vec![
             (Tag::ModelTransformationTag, TagVal::F64(m)),
             (
                 Tag::GeoKeyDirectoryTag,
-                TagVal::U16(dir(&[(1024, 0, 1, 1), (1025, 0, 1, 2), (3072, 0, 1, 32733)])),
+                TagVal::U16(dir(&[
+                    (1024, 0, 1, 1),
+                    (1025, 0, 1, 2),
+                    (3072, 0, 1, 32733),
+                ])),
             ),
         ];
         let data: Vec<u16> = (0..6).map(|v| v * 1000).collect();
         write_tiff::<colortype::Gray16>(&p, 3, 2, &data, &tags, Compression::Lzw);
         let r = load_geotiff(&p, None).unwrap();
-        assert_eq!(r.crs(), Crs::Utm { zone: 33, north: false });
+        assert_eq!(
+            r.crs(),
+            Crs::Utm {
+                zone: 33,
+                north: false
+            }
+        );
         assert_eq!(r.pixel_centre_to_map(0, 0), (500_000.0, 4_000_000.0));
         assert!(matches!(r.data(), RasterData::U16(_)));
         assert_eq!(r.sample(2, 1, 0), Some(5000.0));
 
         // i16, u8 RGB, f64, u32, i32: values survive.
         let p = dirp.path().join("i16.tif");
-        write_tiff::<colortype::GrayI16>(&p, 2, 2, &[-5, 7, -32768, 32767], &utm_tags(32610, 1), Compression::Uncompressed);
+        write_tiff::<colortype::GrayI16>(
+            &p,
+            2,
+            2,
+            &[-5, 7, -32768, 32767],
+            &utm_tags(32610, 1),
+            Compression::Uncompressed,
+        );
         let r = load_geotiff(&p, None).unwrap();
         assert_eq!(r.source_type(), SampleType::I16);
         assert_eq!(r.sample(0, 1, 0), Some(-32768.0));
@@ -1422,47 +1589,103 @@ mod tests {
         assert_eq!(r.bands(), 3);
         assert_eq!(r.sample(1, 1, 2), Some(((4 + 1) * 3 + 2) as f64));
         let p = dirp.path().join("f64.tif");
-        write_tiff::<colortype::Gray64Float>(&p, 2, 2, &[0.25, -1e6, 3.5, 1e-3], &utm_tags(32610, 1), Compression::Lzw);
+        write_tiff::<colortype::Gray64Float>(
+            &p,
+            2,
+            2,
+            &[0.25, -1e6, 3.5, 1e-3],
+            &utm_tags(32610, 1),
+            Compression::Lzw,
+        );
         let r = load_geotiff(&p, None).unwrap();
         assert_eq!(r.source_type(), SampleType::F64);
         assert_eq!(r.sample(1, 0, 0), Some(-1e6));
         let p = dirp.path().join("u32.tif");
-        write_tiff::<colortype::Gray32>(&p, 2, 1, &[7, 4_000_000], &utm_tags(32610, 1), Compression::Uncompressed);
+        write_tiff::<colortype::Gray32>(
+            &p,
+            2,
+            1,
+            &[7, 4_000_000],
+            &utm_tags(32610, 1),
+            Compression::Uncompressed,
+        );
         assert_eq!(load_geotiff(&p, None).unwrap().sample(1, 0, 0), Some(4e6));
         let p = dirp.path().join("i32.tif");
-        write_tiff::<colortype::GrayI32>(&p, 2, 1, &[-7, 40], &utm_tags(32610, 1), Compression::Uncompressed);
+        write_tiff::<colortype::GrayI32>(
+            &p,
+            2,
+            1,
+            &[-7, 40],
+            &utm_tags(32610, 1),
+            Compression::Uncompressed,
+        );
         assert_eq!(load_geotiff(&p, None).unwrap().sample(0, 0, 0), Some(-7.0));
     }
 
     #[test]
     fn crs_override_rules() {
         let dirp = tempfile::tempdir().unwrap();
-        let utm10 = Crs::Utm { zone: 10, north: true };
+        let utm10 = Crs::Utm {
+            zone: 10,
+            north: true,
+        };
         // No GeoKeys at all: error naming the directory tag, or the override.
         let p = dirp.path().join("nokeys.tif");
         let tags = vec![
             (Tag::ModelPixelScaleTag, TagVal::F64(vec![1.0, 1.0, 0.0])),
-            (Tag::ModelTiepointTag, TagVal::F64(vec![0.0, 0.0, 0.0, 1.0, 2.0, 0.0])),
+            (
+                Tag::ModelTiepointTag,
+                TagVal::F64(vec![0.0, 0.0, 0.0, 1.0, 2.0, 0.0]),
+            ),
         ];
         write_tiff::<colortype::Gray8>(&p, 2, 2, &[1, 2, 3, 4], &tags, Compression::Uncompressed);
         let e = load_geotiff(&p, None).unwrap_err();
         let msg = e.to_string();
-        assert!(msg.contains("nokeys.tif") && msg.contains("GeoKeyDirectoryTag (34735)"), "{msg}");
+        assert!(
+            msg.contains("nokeys.tif") && msg.contains("GeoKeyDirectoryTag (34735)"),
+            "{msg}"
+        );
         assert_eq!(load_geotiff(&p, Some(utm10)).unwrap().crs(), utm10);
         // Unsupported EPSG code: the override is used.
         let p = dirp.path().join("lcc.tif");
-        write_tiff::<colortype::Gray8>(&p, 2, 2, &[1, 2, 3, 4], &utm_tags(2994, 1), Compression::Uncompressed);
+        write_tiff::<colortype::Gray8>(
+            &p,
+            2,
+            2,
+            &[1, 2, 3, 4],
+            &utm_tags(2994, 1),
+            Compression::Uncompressed,
+        );
         let msg = load_geotiff(&p, None).unwrap_err().to_string();
-        assert!(msg.contains("ProjectedCSTypeGeoKey (3072)") && msg.contains("2994"), "{msg}");
+        assert!(
+            msg.contains("ProjectedCSTypeGeoKey (3072)") && msg.contains("2994"),
+            "{msg}"
+        );
         assert_eq!(load_geotiff(&p, Some(utm10)).unwrap().crs(), utm10);
         // Understood keys contradicting the override: conflict. Agreeing: fine.
         let p = dirp.path().join("utm.tif");
-        write_tiff::<colortype::Gray8>(&p, 2, 2, &[1, 2, 3, 4], &utm_tags(32611, 1), Compression::Uncompressed);
+        write_tiff::<colortype::Gray8>(
+            &p,
+            2,
+            2,
+            &[1, 2, 3, 4],
+            &utm_tags(32611, 1),
+            Compression::Uncompressed,
+        );
         assert!(matches!(
             load_geotiff(&p, Some(utm10)),
             Err(GeoTiffError::CrsConflict { .. })
         ));
-        assert!(load_geotiff(&p, Some(Crs::Utm { zone: 11, north: true })).is_ok());
+        assert!(
+            load_geotiff(
+                &p,
+                Some(Crs::Utm {
+                    zone: 11,
+                    north: true
+                })
+            )
+            .is_ok()
+        );
         // No georeferencing tags: error naming the tag, even with an override.
         let p = dirp.path().join("nogeo.tif");
         write_tiff::<colortype::Gray8>(&p, 2, 2, &[1, 2, 3, 4], &[], Compression::Uncompressed);
@@ -1482,11 +1705,27 @@ mod tests {
         let dirp = tempfile::tempdir().unwrap();
         let p = dirp.path().join("full.tif");
         let data: Vec<f32> = (0..64 * 64).map(|v| (v % 97) as f32).collect();
-        write_tiff::<colortype::Gray32Float>(&p, 64, 64, &data, &utm_tags(32610, 1), Compression::Uncompressed);
+        write_tiff::<colortype::Gray32Float>(
+            &p,
+            64,
+            64,
+            &data,
+            &utm_tags(32610, 1),
+            Compression::Uncompressed,
+        );
         let bytes = std::fs::read(&p).unwrap();
         assert!(load_geotiff(&p, None).is_ok());
         // Truncate at many lengths: always an error, never a panic.
-        for cut in [0usize, 3, 8, 20, 100, 1000, bytes.len() / 2, bytes.len() - 1] {
+        for cut in [
+            0usize,
+            3,
+            8,
+            20,
+            100,
+            1000,
+            bytes.len() / 2,
+            bytes.len() - 1,
+        ] {
             let q = dirp.path().join(format!("cut{cut}.tif"));
             std::fs::write(&q, &bytes[..cut.min(bytes.len())]).unwrap();
             let e = load_geotiff(&q, None).unwrap_err();
@@ -1494,16 +1733,31 @@ mod tests {
         }
         let q = dirp.path().join("text.tif");
         std::fs::write(&q, b"this is not a TIFF file at all, just text\n").unwrap();
-        assert!(matches!(load_geotiff(&q, None), Err(GeoTiffError::Decode { .. })));
+        assert!(matches!(
+            load_geotiff(&q, None),
+            Err(GeoTiffError::Decode { .. })
+        ));
         let q = dirp.path().join("missing.tif");
-        assert!(matches!(load_geotiff(&q, None), Err(GeoTiffError::Io { .. })));
+        assert!(matches!(
+            load_geotiff(&q, None),
+            Err(GeoTiffError::Io { .. })
+        ));
     }
 
     #[test]
     fn place_planar_and_chunky_chunks() {
         // 3 x 2 image, 2 bands, chunks 2 x 2 (the right chunk is 1 px wide).
         let mut out = vec![0u8; 12];
-        let g = |plane, spc, x0, dw| ChunkGeom { width: 3, bands: 2, spc, plane, x0, y0: 0, dw, dh: 2 };
+        let g = |plane, spc, x0, dw| ChunkGeom {
+            width: 3,
+            bands: 2,
+            spc,
+            plane,
+            x0,
+            y0: 0,
+            dw,
+            dh: 2,
+        };
         place(&mut out, &[1, 2, 4, 5], &g(0, 1, 0, 2)).unwrap();
         place(&mut out, &[3, 6], &g(0, 1, 2, 1)).unwrap();
         place(&mut out, &[10, 20, 40, 50], &g(1, 1, 0, 2)).unwrap();

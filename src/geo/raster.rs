@@ -119,14 +119,20 @@ impl GeoTransform {
     #[inline]
     pub fn pixel_to_map(&self, col: f64, row: f64) -> (f64, f64) {
         let c = &self.c;
-        (c[0] + c[1] * col + c[2] * row, c[3] + c[4] * col + c[5] * row)
+        (
+            c[0] + c[1] * col + c[2] * row,
+            c[3] + c[4] * col + c[5] * row,
+        )
     }
 
     /// Map coordinates `(x_m, y_m)` -> continuous pixel coordinates `(col, row)` (corner convention).
     #[inline]
     pub fn map_to_pixel(&self, x_m: f64, y_m: f64) -> (f64, f64) {
         let i = &self.inv;
-        (i[0] + i[1] * x_m + i[2] * y_m, i[3] + i[4] * x_m + i[5] * y_m)
+        (
+            i[0] + i[1] * x_m + i[2] * y_m,
+            i[3] + i[4] * x_m + i[5] * y_m,
+        )
     }
 
     /// Linear part only: a map-space displacement `(dx_m, dy_m)` -> pixel displacement.
@@ -571,7 +577,10 @@ mod tests {
             mk(0, 2, 1, 0),
             Err(RasterError::BadDimensions { .. })
         ));
-        assert!(matches!(mk(2, 2, 1, 3), Err(RasterError::DataLength { .. })));
+        assert!(matches!(
+            mk(2, 2, 1, 3),
+            Err(RasterError::DataLength { .. })
+        ));
         assert!(mk(2, 2, 1, 4).is_ok());
         assert!(GeoTransform::new([0.0, 1.0, 0.0, 0.0, 0.0, 0.0]).is_err());
         assert!(GeoTransform::new([0.0, 1.0, 0.0, f64::NAN, 0.0, -1.0]).is_err());

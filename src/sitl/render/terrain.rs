@@ -106,7 +106,7 @@ impl Terrain {
         match (&self.dem, &self.grid) {
             (Dem::Flat { height_m }, _) => {
                 let f0 = o[2] - height_m;
-                if !(f0 >= 0.0) || !(d[2] < 0.0) {
+                if f0.is_nan() || f0 < 0.0 || d[2].is_nan() || d[2] >= 0.0 {
                     return None;
                 }
                 let t = f0 / -d[2];
@@ -135,7 +135,7 @@ impl TileGrid {
     /// Range along the ray up to which it is provably above the terrain (0 when nothing can be
     /// skipped). Never beyond the point where it leaves the DEM or `max_range_m`.
     fn skip(&self, o: [f64; 3], d: [f64; 3], max_range_m: f64) -> f64 {
-        if !(d[2] < 0.0) {
+        if d[2].is_nan() || d[2] >= 0.0 {
             return 0.0; // level or ascending rays: rare for a camera; no skipping
         }
         // Entry into the height band.
@@ -185,7 +185,8 @@ impl TileGrid {
         for _ in 0..(self.tiles_x + self.tiles_y + 2) {
             let t_exit = t_next_x.min(t_next_y).min(max_range_m);
             let z_low = o[2] + t_exit * d[2];
-            if !(z_low > self.max_h_m[ty * self.tiles_x + tx] + MARGIN_M) {
+            let clear = z_low > self.max_h_m[ty * self.tiles_x + tx] + MARGIN_M;
+            if !clear {
                 return t.max(0.0);
             }
             if t_exit >= max_range_m {

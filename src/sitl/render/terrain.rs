@@ -19,9 +19,9 @@
 use crate::geo::dem::Dem;
 use crate::geo::raster::GeoTransform;
 
-/// Dual cells per tile side.
+/// Dual cells per tile side of the coarse level.
 const TILE: usize = 8;
-/// Clearance added to tile maxima, metres (covers the f32 storage of heights and rounding).
+/// Clearance added to maxima, metres (covers the f32 storage of heights and rounding).
 const MARGIN_M: f64 = 0.05;
 
 /// A DEM prepared for fast ray casting.
@@ -31,18 +31,54 @@ pub struct Terrain {
     grid: Option<TileGrid>,
 }
 
+/// Maxima of blocks of `block` x `block` dual cells.
+#[derive(Debug, Clone)]
+struct MaxLevel {
+    block: usize,
+    n_x: usize,
+    n_y: usize,
+    /// Row-major block maxima (`+inf` for blocks touching a hole).
+    max_h_m: Vec<f32>,
+}
+
 #[derive(Debug, Clone)]
 struct TileGrid {
     transform: GeoTransform,
     /// Sample counts of the DEM.
     width: usize,
     height: usize,
-    tiles_x: usize,
-    tiles_y: usize,
-    /// Tile maxima, row-major; `+inf` for tiles touching a hole.
-    max_h_m: Vec<f64>,
+    /// Coarse (8 x 8 cells) and fine (single cell) maxima.
+    levels: [MaxLevel; 2],
     /// Top of the DEM height band (max height + 1 m, as in `geo::dem`).
     z_top_m: f64,
+}
+
+impl MaxLevel {
+    /// Block maxima over the samples at the corners of the block's cells.
+    fn new(samples: &[f64], w: usize, h: usize, block: usize) -> Self {
+        let n_x = (w - 1).div_ceil(block);
+        let n_y = (h - 1).div_ceil(block);
+        let mut max_h_m = vec![f32::NEG_INFINITY; n_x * n_y];
+        for by in 0..n_y {
+            for bx in 0..n_x {
+                let mut m = f64::NEG_INFINITY;
+                for j in by * block..=((by + 1) * block).min(h - 1) {
+                    for i in bx * block..=((bx + 1) * block).min(w - 1) {
+                        m = m.max(samples[j * w + i]);
+                    }
+                }
+                // Round up so the f32 never understates the maximum.
+                let mf = m as f32;
+                max_h_m[by * n_x + bx] = if f64::from(mf) < m { mf.next_up() } else { mf };
+            }
+        }
+        Self {
+            block,
+            n_x,
+            n_y,
+            max_h_m,
+        }
+    }
 }
 
 impl Terrain {
@@ -64,29 +100,14 @@ impl Terrain {
                         }
                     }
                 }
-                let cells_x = w - 1;
-                let cells_y = h - 1;
-                let tiles_x = cells_x.div_ceil(TILE);
-                let tiles_y = cells_y.div_ceil(TILE);
-                let mut max_h_m = vec![f64::NEG_INFINITY; tiles_x * tiles_y];
-                for ty in 0..tiles_y {
-                    for tx in 0..tiles_x {
-                        let mut m = f64::NEG_INFINITY;
-                        for j in ty * TILE..=((ty + 1) * TILE).min(h - 1) {
-                            for i in tx * TILE..=((tx + 1) * TILE).min(w - 1) {
-                                m = m.max(samples[j * w + i]);
-                            }
-                        }
-                        max_h_m[ty * tiles_x + tx] = m;
-                    }
-                }
                 Some(TileGrid {
                     transform: tf,
                     width: w,
                     height: h,
-                    tiles_x,
-                    tiles_y,
-                    max_h_m,
+                    levels: [
+                        MaxLevel::new(&samples, w, h, TILE),
+                        MaxLevel::new(&samples, w, h, 1),
+                    ],
                     z_top_m: dem.height_range_m().1 + 1.0,
                 })
             }
@@ -133,7 +154,9 @@ impl Terrain {
 
 impl TileGrid {
     /// Range along the ray up to which it is provably above the terrain (0 when nothing can be
-    /// skipped). Never beyond the point where it leaves the DEM or `max_range_m`.
+    /// skipped): the coarse level is walked from the entry into the height band, then the
+    /// single-cell level from where the coarse walk stopped. Never beyond the point where the ray
+    /// leaves the DEM or `max_range_m`.
     fn skip(&self, o: [f64; 3], d: [f64; 3], max_range_m: f64) -> f64 {
         if d[2].is_nan() || d[2] >= 0.0 {
             return 0.0; // level or ascending rays: rare for a camera; no skipping
@@ -144,20 +167,35 @@ impl TileGrid {
         } else {
             0.0
         };
-        // Horizontal path in centre-index space (fx = col - 0.5), in units of tiles.
+        let t = self.walk(&self.levels[0], o, d, t_band, max_range_m);
+        self.walk(&self.levels[1], o, d, t, max_range_m).max(0.0)
+    }
+
+    /// Amanatides-Woo walk over the blocks of `level` from range `t_start` while the ray's lowest
+    /// point over each block (its exit, the ray descending) clears the block maximum. Returns the
+    /// range where it stopped (`t_start` when the start is outside the grid).
+    fn walk(
+        &self,
+        level: &MaxLevel,
+        o: [f64; 3],
+        d: [f64; 3],
+        t_start: f64,
+        max_range_m: f64,
+    ) -> f64 {
+        // Horizontal path in centre-index space (fx = col - 0.5), in units of blocks.
         let (c0, r0) = self.transform.map_to_pixel(o[0], o[1]);
         let (dcx, dcy) = self.transform.map_delta_to_pixel(d[0], d[1]);
-        let s = 1.0 / TILE as f64;
+        let s = 1.0 / level.block as f64;
         let (ox, oy) = ((c0 - 0.5) * s, (r0 - 0.5) * s);
         let (dx, dy) = (dcx * s, dcy * s);
         let (wx, wy) = ((self.width - 1) as f64 * s, (self.height - 1) as f64 * s);
-        let (px, py) = (ox + t_band * dx, oy + t_band * dy);
+        let (px, py) = (ox + t_start * dx, oy + t_start * dy);
         // Only start inside the grid (outside, the DEM's own rules decide).
         if !(px >= 0.0 && py >= 0.0 && px <= wx && py <= wy) {
-            return 0.0;
+            return t_start;
         }
-        let mut tx = (px.floor() as usize).min(self.tiles_x - 1); // ok: px >= 0 finite
-        let mut ty = (py.floor() as usize).min(self.tiles_y - 1); // ok: py >= 0 finite
+        let mut bx = (px.floor() as usize).min(level.n_x - 1); // ok: px >= 0 finite
+        let mut by = (py.floor() as usize).min(level.n_y - 1); // ok: py >= 0 finite
         let step_x: i64 = if dx > 0.0 { 1 } else { -1 };
         let step_y: i64 = if dy > 0.0 { 1 } else { -1 };
         let next_boundary = |p: f64, idx: usize, dp: f64| -> f64 {
@@ -169,8 +207,8 @@ impl TileGrid {
                 f64::INFINITY
             }
         };
-        let mut t_next_x = t_band + next_boundary(px, tx, dx);
-        let mut t_next_y = t_band + next_boundary(py, ty, dy);
+        let mut t_next_x = t_start + next_boundary(px, bx, dx);
+        let mut t_next_y = t_start + next_boundary(py, by, dy);
         let dtx = if dx != 0.0 {
             (1.0 / dx).abs()
         } else {
@@ -181,35 +219,32 @@ impl TileGrid {
         } else {
             f64::INFINITY
         };
-        let mut t = t_band;
-        for _ in 0..(self.tiles_x + self.tiles_y + 2) {
+        let mut t = t_start;
+        for _ in 0..(level.n_x + level.n_y + 2) {
             let t_exit = t_next_x.min(t_next_y).min(max_range_m);
             let z_low = o[2] + t_exit * d[2];
-            let clear = z_low > self.max_h_m[ty * self.tiles_x + tx] + MARGIN_M;
-            if !clear {
-                return t.max(0.0);
-            }
-            if t_exit >= max_range_m {
-                return t.max(0.0);
+            let clear = z_low > f64::from(level.max_h_m[by * level.n_x + bx]) + MARGIN_M;
+            if !clear || t_exit >= max_range_m {
+                return t;
             }
             t = t_exit;
             if t_next_x <= t_next_y {
-                let n = tx as i64 + step_x;
-                if n < 0 || n >= self.tiles_x as i64 {
-                    return t.max(0.0);
+                let n = bx as i64 + step_x;
+                if n < 0 || n >= level.n_x as i64 {
+                    return t;
                 }
-                tx = n as usize;
+                bx = n as usize;
                 t_next_x += dtx;
             } else {
-                let n = ty as i64 + step_y;
-                if n < 0 || n >= self.tiles_y as i64 {
-                    return t.max(0.0);
+                let n = by as i64 + step_y;
+                if n < 0 || n >= level.n_y as i64 {
+                    return t;
                 }
-                ty = n as usize;
+                by = n as usize;
                 t_next_y += dty;
             }
         }
-        t.max(0.0)
+        t
     }
 }
 

@@ -5,16 +5,19 @@
 //!
 //! Gridded DEM: the exact first-hit search of [`Dem::intersect_ray`] (cell-by-cell traversal with
 //! exact roots of the bilinear patches) is started from a point that is provably above the terrain
-//! for the whole ray segment before it. To find it, the DEM's dual cells are grouped in tiles of
-//! `TILE` x `TILE` cells, each with the maximum of the height samples at its corners (the maximum of
-//! a bilinear patch is at a corner; a tile touching a hole gets `+inf`). The ray's horizontal
-//! projection is walked through the tiles (Amanatides & Woo 1987) from where it enters the DEM's
-//! height band; while the ray's lowest point over a tile (its exit point when descending) is above
-//! the tile maximum plus a margin, the tile cannot contain a hit and is skipped. The exact search
-//! then starts at the entry of the first tile that could. This is the "max-mipmap" empty-space
-//! skipping used in terrain ray casting (e.g. Tevs, Ihrke, Seidel, "Maximum mipmaps for fast,
-//! accurate, and scalable dynamic height field rendering", I3D 2008), with one level. It never
-//! changes the result: skipped segments contain no terrain crossing.
+//! for the whole ray segment before it. To find it, two levels of height maxima are kept: blocks of
+//! `TILE` x `TILE` dual cells and single cells, each with the maximum of the height samples at its
+//! corners (the maximum of a bilinear patch is at a corner; a block touching a hole gets `+inf`).
+//! The ray's horizontal projection is walked through the blocks (Amanatides & Woo, "A fast voxel
+//! traversal algorithm for ray tracing", 1987) from where it enters the DEM's height band; while
+//! the ray's lowest point over a block (its exit point, the ray descending) is above the block
+//! maximum plus a margin, the block cannot contain a hit and is skipped. The coarse walk stops at
+//! the first block that could hold a hit, the single-cell walk continues from there, and the exact
+//! search starts at the entry of the first cell that could. This is the "maximum mipmap"
+//! empty-space skipping of terrain ray casting (Tevs, Ihrke, Seidel, "Maximum mipmaps for fast,
+//! accurate, and scalable dynamic height field rendering", I3D 2008) with two levels. It never
+//! changes the result: skipped segments contain no terrain crossing (property test against the
+//! plain search).
 
 use crate::geo::dem::Dem;
 use crate::geo::raster::GeoTransform;
@@ -49,6 +52,8 @@ struct TileGrid {
     height: usize,
     /// Coarse (8 x 8 cells) and fine (single cell) maxima.
     levels: [MaxLevel; 2],
+    /// Height samples (row-major, `+inf` where `height_at` is undefined next to a hole).
+    samples: Vec<f64>,
     /// Top of the DEM height band (max height + 1 m, as in `geo::dem`).
     z_top_m: f64,
 }
@@ -108,6 +113,7 @@ impl Terrain {
                         MaxLevel::new(&samples, w, h, TILE),
                         MaxLevel::new(&samples, w, h, 1),
                     ],
+                    samples,
                     z_top_m: dem.height_range_m().1 + 1.0,
                 })
             }
@@ -134,7 +140,10 @@ impl Terrain {
                 (t <= max_range_m).then(|| ([o[0] + t * d[0], o[1] + t * d[1], *height_m], t))
             }
             (Dem::Grid(_), Some(grid)) => {
-                let t0 = grid.skip(o, d, max_range_m);
+                let t0 = match grid.cast(o, d, max_range_m) {
+                    Ok(hit) => return Some(hit),
+                    Err(t0) => t0,
+                };
                 let start = [o[0] + t0 * d[0], o[1] + t0 * d[1], o[2] + t0 * d[2]];
                 let p = self.dem.intersect_ray(start, d, max_range_m - t0)?;
                 let t = t0
@@ -171,6 +180,59 @@ impl TileGrid {
         self.walk(&self.levels[1], o, d, t, max_range_m).max(0.0)
     }
 
+    /// Skips empty space (see [`Self::skip`]), then walks single cells solving the ray/patch
+    /// quadratic exactly in each cell that could hold a hit. `Ok` is the first hit and its range;
+    /// `Err(t)` hands over to the exact search of `geo::dem` from range `t` for everything
+    /// unusual (start below the terrain or outside the grid, holes, leaving the grid, range limit).
+    fn cast(&self, o: [f64; 3], d: [f64; 3], max_range_m: f64) -> Result<([f64; 3], f64), f64> {
+        let t_start = self.skip(o, d, max_range_m);
+        if d[2].is_nan() || d[2] >= 0.0 {
+            return Err(t_start);
+        }
+        let Some(mut dda) = Dda::new(self, 1, o, d, t_start) else {
+            return Err(t_start);
+        };
+        let w = self.width;
+        let mut first = true;
+        for _ in 0..256 {
+            let (i, j) = (dda.bx, dda.by);
+            let t0 = dda.t;
+            let t1 = dda.t_exit().min(max_range_m);
+            let c = [
+                self.samples[j * w + i],
+                self.samples[j * w + i + 1],
+                self.samples[(j + 1) * w + i],
+                self.samples[(j + 1) * w + i + 1],
+            ];
+            if c.iter().any(|v| !v.is_finite()) {
+                return Err(t0);
+            }
+            // f(s) = z - h along the segment, s = t - t0: A s^2 + B s + C.
+            let a0 = dda.ox + t0 * dda.dx - i as f64;
+            let b0 = dda.oy + t0 * dda.dy - j as f64;
+            let (da, db) = (dda.dx, dda.dy);
+            let e1 = c[1] - c[0];
+            let e2 = c[2] - c[0];
+            let k = c[0] - c[1] - c[2] + c[3];
+            let z0 = o[2] + t0 * d[2];
+            let cc = z0 - (c[0] + e1 * a0 + e2 * b0 + k * a0 * b0);
+            if first && cc <= 0.0 {
+                return Err(t_start); // starts at or below the surface: the DEM's rules decide
+            }
+            first = false;
+            let bb = d[2] - e1 * da - e2 * db - k * (a0 * db + b0 * da);
+            let aa = -k * da * db;
+            if let Some(sr) = first_root(aa, bb, cc, t1 - t0) {
+                let t = t0 + sr;
+                return Ok(([o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]], t));
+            }
+            if t1 >= max_range_m || !dda.step() {
+                return Err(t0);
+            }
+        }
+        Err(dda.t)
+    }
+
     /// Amanatides-Woo walk over the blocks of `level` from range `t_start` while the ray's lowest
     /// point over each block (its exit, the ray descending) clears the block maximum. Returns the
     /// range where it stopped (`t_start` when the start is outside the grid).
@@ -182,23 +244,61 @@ impl TileGrid {
         t_start: f64,
         max_range_m: f64,
     ) -> f64 {
-        // Horizontal path in centre-index space (fx = col - 0.5), in units of blocks.
-        let (c0, r0) = self.transform.map_to_pixel(o[0], o[1]);
-        let (dcx, dcy) = self.transform.map_delta_to_pixel(d[0], d[1]);
-        let s = 1.0 / level.block as f64;
+        let Some(mut dda) = Dda::new(self, level.block, o, d, t_start) else {
+            return t_start;
+        };
+        dda.bx = dda.bx.min(level.n_x - 1);
+        dda.by = dda.by.min(level.n_y - 1);
+        for _ in 0..(level.n_x + level.n_y + 2) {
+            let t_exit = dda.t_exit().min(max_range_m);
+            let z_low = o[2] + t_exit * d[2];
+            let clear = z_low > f64::from(level.max_h_m[dda.by * level.n_x + dda.bx]) + MARGIN_M;
+            if !clear || t_exit >= max_range_m || !dda.step() {
+                return dda.t;
+            }
+        }
+        dda.t
+    }
+}
+
+/// Grid traversal state (Amanatides & Woo) in centre-index space scaled to blocks of `block`
+/// cells: the ray's horizontal position is `(ox + t dx, oy + t dy)` block units at range `t`.
+struct Dda {
+    ox: f64,
+    oy: f64,
+    dx: f64,
+    dy: f64,
+    n_x: usize,
+    n_y: usize,
+    bx: usize,
+    by: usize,
+    t: f64,
+    t_next_x: f64,
+    t_next_y: f64,
+    dtx: f64,
+    dty: f64,
+}
+
+impl Dda {
+    /// Starts at range `t_start`; `None` when that point is outside the grid.
+    fn new(g: &TileGrid, block: usize, o: [f64; 3], d: [f64; 3], t_start: f64) -> Option<Self> {
+        let (c0, r0) = g.transform.map_to_pixel(o[0], o[1]);
+        let (dcx, dcy) = g.transform.map_delta_to_pixel(d[0], d[1]);
+        let s = 1.0 / block as f64;
         let (ox, oy) = ((c0 - 0.5) * s, (r0 - 0.5) * s);
         let (dx, dy) = (dcx * s, dcy * s);
-        let (wx, wy) = ((self.width - 1) as f64 * s, (self.height - 1) as f64 * s);
+        let (n_x, n_y) = (
+            (g.width - 1).div_ceil(block),
+            (g.height - 1).div_ceil(block),
+        );
+        let (wx, wy) = ((g.width - 1) as f64 * s, (g.height - 1) as f64 * s);
         let (px, py) = (ox + t_start * dx, oy + t_start * dy);
-        // Only start inside the grid (outside, the DEM's own rules decide).
         if !(px >= 0.0 && py >= 0.0 && px <= wx && py <= wy) {
-            return t_start;
+            return None;
         }
-        let mut bx = (px.floor() as usize).min(level.n_x - 1); // ok: px >= 0 finite
-        let mut by = (py.floor() as usize).min(level.n_y - 1); // ok: py >= 0 finite
-        let step_x: i64 = if dx > 0.0 { 1 } else { -1 };
-        let step_y: i64 = if dy > 0.0 { 1 } else { -1 };
-        let next_boundary = |p: f64, idx: usize, dp: f64| -> f64 {
+        let bx = (px.floor() as usize).min(n_x - 1); // ok: px >= 0 finite
+        let by = (py.floor() as usize).min(n_y - 1); // ok: py >= 0 finite
+        let next = |p: f64, idx: usize, dp: f64| -> f64 {
             if dp > 0.0 {
                 (idx as f64 + 1.0 - p) / dp
             } else if dp < 0.0 {
@@ -207,45 +307,78 @@ impl TileGrid {
                 f64::INFINITY
             }
         };
-        let mut t_next_x = t_start + next_boundary(px, bx, dx);
-        let mut t_next_y = t_start + next_boundary(py, by, dy);
-        let dtx = if dx != 0.0 {
-            (1.0 / dx).abs()
-        } else {
-            f64::INFINITY
-        };
-        let dty = if dy != 0.0 {
-            (1.0 / dy).abs()
-        } else {
-            f64::INFINITY
-        };
-        let mut t = t_start;
-        for _ in 0..(level.n_x + level.n_y + 2) {
-            let t_exit = t_next_x.min(t_next_y).min(max_range_m);
-            let z_low = o[2] + t_exit * d[2];
-            let clear = z_low > f64::from(level.max_h_m[by * level.n_x + bx]) + MARGIN_M;
-            if !clear || t_exit >= max_range_m {
-                return t;
-            }
-            t = t_exit;
-            if t_next_x <= t_next_y {
-                let n = bx as i64 + step_x;
-                if n < 0 || n >= level.n_x as i64 {
-                    return t;
-                }
-                bx = n as usize;
-                t_next_x += dtx;
+        Some(Self {
+            ox,
+            oy,
+            dx,
+            dy,
+            n_x,
+            n_y,
+            bx,
+            by,
+            t: t_start,
+            t_next_x: t_start + next(px, bx, dx).max(0.0),
+            t_next_y: t_start + next(py, by, dy).max(0.0),
+            dtx: if dx != 0.0 {
+                (1.0 / dx).abs()
             } else {
-                let n = by as i64 + step_y;
-                if n < 0 || n >= level.n_y as i64 {
-                    return t;
-                }
-                by = n as usize;
-                t_next_y += dty;
-            }
-        }
-        t
+                f64::INFINITY
+            },
+            dty: if dy != 0.0 {
+                (1.0 / dy).abs()
+            } else {
+                f64::INFINITY
+            },
+        })
     }
+
+    /// Range where the ray leaves the current block.
+    #[inline]
+    fn t_exit(&self) -> f64 {
+        self.t_next_x.min(self.t_next_y)
+    }
+
+    /// Moves to the next block; false when the ray leaves the grid.
+    #[inline]
+    fn step(&mut self) -> bool {
+        if self.t_next_x <= self.t_next_y {
+            let n = self.bx as i64 + if self.dx > 0.0 { 1 } else { -1 };
+            if n < 0 || n >= self.n_x as i64 {
+                return false;
+            }
+            self.t = self.t_next_x;
+            self.bx = n as usize;
+            self.t_next_x += self.dtx;
+        } else {
+            let n = self.by as i64 + if self.dy > 0.0 { 1 } else { -1 };
+            if n < 0 || n >= self.n_y as i64 {
+                return false;
+            }
+            self.t = self.t_next_y;
+            self.by = n as usize;
+            self.t_next_y += self.dty;
+        }
+        true
+    }
+}
+
+/// Smallest root in `[0, s_max]` of `a s^2 + b s + c` given `c > 0` (the ray starts above the
+/// patch), `None` when the quadratic stays positive there. Roots by the numerically stable form
+/// `q = -(b + sign(b) sqrt(D)) / 2`, roots `q / a` and `c / q`.
+#[inline]
+fn first_root(a: f64, b: f64, c: f64, s_max: f64) -> Option<f64> {
+    let ok = |s: f64| (s.is_finite() && (0.0..=s_max).contains(&s)).then_some(s);
+    if a.abs() <= 1e-12 * (b.abs() + c.abs() / s_max.max(1e-9)) {
+        return if b < 0.0 { ok(-c / b) } else { None };
+    }
+    let disc = b * b - 4.0 * a * c;
+    if disc < 0.0 {
+        return None;
+    }
+    let q = -0.5 * (b + b.signum() * disc.sqrt());
+    let (r1, r2) = (q / a, if q != 0.0 { c / q } else { f64::INFINITY });
+    let (lo, hi) = if r1 <= r2 { (r1, r2) } else { (r2, r1) };
+    ok(lo).or_else(|| if lo < 0.0 { ok(hi) } else { None })
 }
 
 #[cfg(test)]

@@ -42,13 +42,18 @@ fn print(name: &str, t: &RenderTiming) {
     );
 }
 
+/// Runs per configuration: 10 in release, 2 in the (slow) dev profile.
+fn runs() -> usize {
+    if cfg!(debug_assertions) { 2 } else { 10 }
+}
+
 #[test]
 fn timing_flat_and_grid_dem() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let naip = load_geotiff(&root.join("sitl/maps/naip_nd_2014.tif"), None).expect("NAIP 2014");
     let scene = Scene::new(&naip, Dem::flat(580.0).unwrap(), ColourMode::Grey).unwrap();
     for agl in [1200.0, 2500.0] {
-        let t = bench_vga(&scene, spec(), agl, 10).unwrap();
+        let t = bench_vga(&scene, spec(), agl, runs()).unwrap();
         print(&format!("NAIP flat DEM, {agl} m AGL"), &t);
         assert!(t.valid_fraction > 0.9);
     }
@@ -61,7 +66,7 @@ fn timing_flat_and_grid_dem() {
     let ortho = load_geotiff(&ngi.join("ngi_ortho_5m_tile1.tif"), None).expect("NGI ortho");
     let scene = Scene::new(&ortho, dem, ColourMode::Grey).unwrap();
     for agl in [1200.0, 2500.0] {
-        let t = bench_vga(&scene, spec(), agl, 10).unwrap();
+        let t = bench_vga(&scene, spec(), agl, runs()).unwrap();
         print(&format!("NGI grid DEM (24 m), {agl} m AGL"), &t);
         assert!(t.valid_fraction > 0.5);
     }

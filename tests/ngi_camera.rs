@@ -169,6 +169,18 @@ fn check_frame(frame: &str, ortho_file: &str) {
         100.0 * covered
     );
 
+    // For a visual check next to the real frame.
+    let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("target");
+    if std::fs::create_dir_all(&out).is_ok() {
+        let rendered = renderer
+            .render(&scene, &RenderPose::from_camera_pose(&pose), 0)
+            .expect("render");
+        let name = format!("render_ngi_{}", frame);
+        if let Err(e) = rendered.to_gray_image().save(out.join(&name)) {
+            eprintln!("could not write target/{name}: {e}");
+        }
+    }
+
     let mut flipped = truth.opk;
     flipped.kappa_rad += std::f64::consts::PI;
     let pose_flipped = CameraPose::from_opk(truth.centre_m, &flipped);

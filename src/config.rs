@@ -10,7 +10,12 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+use crate::camera::CameraConfig;
 use crate::geo::Crs;
+pub use crate::link::config::{
+    LinkConfig, OnLost, OutputConfig, OutputMode, SigningSettings, StreamRates, check_connection,
+};
+use crate::nav::config::NavConfig;
 
 /// One invalid configuration value.
 #[derive(Debug, Clone, PartialEq)]
@@ -115,40 +120,16 @@ pub enum ConfigError {
 pub struct Config {
     /// MAVLink connection to the autopilot.
     pub link: LinkConfig,
+    /// The camera: intrinsics, distortion, mount.
+    pub camera: CameraConfig,
     /// Reference map sources.
     pub map: MapConfig,
     /// What is injected into the autopilot, and how often.
     #[serde(default)]
     pub output: OutputConfig,
-}
-
-/// `[link]`: the MAVLink connection.
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct LinkConfig {
-    /// mavlink connection string: `udpin:ADDR:PORT`, `udpout:HOST:PORT`, `tcpin:ADDR:PORT`,
-    /// `tcpout:HOST:PORT` or `serial:DEVICE:BAUD`.
-    pub connection: String,
-    /// Our MAVLink system id; absent = adopt the autopilot's (the MAVLink convention for a
-    /// companion computer).
+    /// The navigation filter (INS + error-state EKF); every key has a default.
     #[serde(default)]
-    pub system_id: Option<u8>,
-    /// Our MAVLink component id (default 197 = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY).
-    #[serde(default = "default_component_id")]
-    pub component_id: u8,
-    /// Only talk to this autopilot system id; absent = lock onto the first autopilot heard.
-    #[serde(default)]
-    pub autopilot_system_id: Option<u8>,
-    /// Our HEARTBEAT rate.
-    #[serde(default = "default_heartbeat_hz")]
-    pub heartbeat_hz: f64,
-}
-
-fn default_component_id() -> u8 {
-    197
-}
-fn default_heartbeat_hz() -> f64 {
-    1.0
+    pub nav: NavConfig,
 }
 
 /// `[map]`: the georeferenced imagery and terrain the fixes are computed against.
@@ -166,124 +147,6 @@ pub struct MapConfig {
     /// CRS to assume for rasters whose GeoKeys are missing or not understood.
     #[serde(default)]
     pub crs_override: Option<Crs>,
-}
-
-/// One way of injecting the navigation solution into the autopilot.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum OutputMode {
-    /// GPS_INPUT (ArduPilot GPS1_TYPE = 14).
-    GpsInput,
-    /// VISION_POSITION_ESTIMATE (ArduPilot ExternalNav, PX4 external vision).
-    VisionPositionEstimate,
-    /// ODOMETRY (MAV_FRAME_LOCAL_FRD / MAV_FRAME_BODY_FRD).
-    Odometry,
-}
-
-/// `[output]`: injection into the autopilot.
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct OutputConfig {
-    /// One or several injection modes.
-    #[serde(default = "default_modes")]
-    pub modes: Vec<OutputMode>,
-    /// Injection rate (PX4 external vision needs at least 5 Hz).
-    #[serde(default = "default_rate_hz")]
-    pub rate_hz: f64,
-    /// GPS_INPUT.gps_id: must equal the autopilot's GPS instance (ArduPilot drops any other).
-    #[serde(default)]
-    pub gps_id: u8,
-}
-
-fn default_modes() -> Vec<OutputMode> {
-    vec![OutputMode::GpsInput]
-}
-fn default_rate_hz() -> f64 {
-    5.0
-}
-
-impl Default for OutputConfig {
-    fn default() -> Self {
-        Self {
-            modes: default_modes(),
-            rate_hz: default_rate_hz(),
-            gps_id: 0,
-        }
-    }
-}
-
-impl Validate for LinkConfig {
-    fn validate(&self, p: &mut Problems) {
-        if let Err(reason) = check_connection(&self.connection) {
-            p.push("connection", format!("\"{}\": {reason}", self.connection));
-        }
-        if self.system_id == Some(0) {
-            p.push(
-                "system_id",
-                "0 is the broadcast id; use 1..=255 or leave it out",
-            );
-        }
-        if self.component_id == 0 {
-            p.push(
-                "component_id",
-                "0 is the broadcast id; use 1..=255 (default 197)",
-            );
-        }
-        if self.autopilot_system_id == Some(0) {
-            p.push(
-                "autopilot_system_id",
-                "0 is the broadcast id; use 1..=255 or leave it out",
-            );
-        }
-        p.range("heartbeat_hz", self.heartbeat_hz, 0.2, 10.0);
-    }
-}
-
-/// Check a mavlink connection string beyond what the mavlink crate parses: a known scheme, and for
-/// network schemes a host and a numeric port; for serial a device and a numeric baud rate.
-pub fn check_connection(s: &str) -> Result<(), String> {
-    const SCHEMES: &str = "udpin, udpout, udpbcast, tcpin, tcpout, serial";
-    let Some((scheme, rest)) = s.split_once(':') else {
-        return Err(format!(
-            "expected SCHEME:ADDRESS with SCHEME one of {SCHEMES}"
-        ));
-    };
-    match scheme {
-        "udpin" | "udpout" | "udpbcast" | "tcpin" | "tcpout" => {
-            let Some((host, port)) = rest.rsplit_once(':') else {
-                return Err("expected HOST:PORT after the scheme".into());
-            };
-            if host.is_empty() {
-                return Err("the host is empty (use 0.0.0.0 to listen on every interface)".into());
-            }
-            match port.parse::<u16>() {
-                Ok(0) | Err(_) => Err(format!("port \"{port}\" is not a number in 1..=65535")),
-                Ok(_) => Ok(()),
-            }
-        }
-        "serial" => {
-            let Some((dev, baud)) = rest.rsplit_once(':') else {
-                return Err("expected serial:DEVICE:BAUD".into());
-            };
-            if dev.is_empty() {
-                return Err("the serial device is empty".into());
-            }
-            match baud.parse::<u32>() {
-                Ok(b) if (1200..=12_000_000).contains(&b) => Ok(()),
-                _ => Err(format!(
-                    "baud rate \"{baud}\" is not a number in 1200..=12000000"
-                )),
-            }
-        }
-        other => Err(format!(
-            "unknown scheme \"{other}\"; expected one of {SCHEMES}"
-        )),
-    }
-    .and_then(|()| {
-        mavlink::ConnectionAddress::parse_address(s)
-            .map(|_| ())
-            .map_err(|e| e.to_string())
-    })
 }
 
 impl MapConfig {
@@ -369,31 +232,6 @@ pub fn resolve(base: &Path, f: &Path) -> PathBuf {
     }
 }
 
-impl Validate for OutputConfig {
-    fn validate(&self, p: &mut Problems) {
-        if self.modes.is_empty() {
-            p.push("modes", "at least one output mode is needed");
-        }
-        let mut seen = Vec::new();
-        for m in &self.modes {
-            if seen.contains(m) {
-                p.push("modes", format!("{m:?} is listed twice"));
-            }
-            seen.push(*m);
-        }
-        p.range("rate_hz", self.rate_hz, 1.0, 50.0);
-        if self.gps_id > 1 {
-            p.push(
-                "gps_id",
-                format!(
-                    "{} is not a GPS instance of ArduPilot (0 or 1)",
-                    self.gps_id
-                ),
-            );
-        }
-    }
-}
-
 impl Config {
     /// Parse TOML text. `path` is used in messages and `base` (its folder) to resolve relative paths.
     pub fn from_toml_str(text: &str, path: &Path) -> Result<Config, ConfigError> {
@@ -403,9 +241,11 @@ impl Config {
         })?;
         let base = path.parent().unwrap_or(Path::new("."));
         let mut p = Problems::default();
-        p.section("link", |p| cfg.link.validate(p));
+        p.section("link", |p| cfg.link.validate_in(base, p));
+        p.section("camera", |p| cfg.camera.validate(p));
         p.section("map", |p| cfg.map.validate_in(base, p));
         p.section("output", |p| cfg.output.validate(p));
+        p.section("nav", |p| cfg.nav.validate(p));
         if !p.list.is_empty() {
             return Err(ConfigError::Invalid {
                 path: path.to_path_buf(),
@@ -414,7 +254,51 @@ impl Config {
         }
         cfg.map.ortho = cfg.map.ortho.iter().map(|f| resolve(base, f)).collect();
         cfg.map.dem = cfg.map.dem.as_deref().map(|f| resolve(base, f));
+        cfg.link.resolve_paths(base);
         Ok(cfg)
+    }
+
+    /// Open every data file the configuration names (orthophotos, DEM) and check that it is a
+    /// usable GeoTIFF with a known CRS, consistent with the others. Slower than [`Config::load`]
+    /// (it decodes the rasters), so `check-config` calls it and the daemon does it once at start.
+    pub fn check_data(&self, path: &Path) -> Result<(), ConfigError> {
+        use crate::geo::dem::Dem;
+        use crate::geo::geotiff::{crs_equivalent, load_geotiff};
+        let mut p = Problems::default();
+        let mut first_crs: Option<Crs> = None;
+        p.section("map", |p| {
+            for (i, f) in self.map.ortho.iter().enumerate() {
+                match load_geotiff(f, self.map.crs_override) {
+                    Ok(r) => match first_crs {
+                        None => first_crs = Some(r.crs()),
+                        Some(c) if !crs_equivalent(&c, &r.crs()) => p.push(
+                            &format!("ortho[{i}]"),
+                            format!(
+                                "{}: CRS {:?} differs from the first orthophoto's {:?}",
+                                f.display(),
+                                r.crs(),
+                                c
+                            ),
+                        ),
+                        Some(_) => {}
+                    },
+                    Err(e) => p.push(&format!("ortho[{i}]"), e.to_string()),
+                }
+            }
+            if let Some(f) = &self.map.dem
+                && let Err(e) = Dem::load_geotiff(f, self.map.crs_override)
+            {
+                p.push("dem", e.to_string());
+            }
+        });
+        if p.list.is_empty() {
+            Ok(())
+        } else {
+            Err(ConfigError::Invalid {
+                path: path.to_path_buf(),
+                problems: p.list,
+            })
+        }
     }
 
     /// Read, parse and validate a configuration file.

@@ -9,4 +9,8 @@
 pub mod camera;
 pub mod config;
 pub mod geo;
+pub mod link;
+pub mod nav;
+pub mod pose;
 pub mod sitl;
+pub mod vision;

@@ -19,6 +19,10 @@ struct Args {
 enum Command {
     /// Load and validate a configuration file, printing every problem found.
     CheckConfig(cli::check_config::CheckConfigArgs),
+    /// Run a SITL scenario through the navigation filter and print errors against truth.
+    Sim(cli::sim::SimArgs),
+    /// Benchmarks (`bench surf`: SURF speed, feature counts and quality table).
+    Bench(cli::bench::BenchArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -26,6 +30,8 @@ fn main() -> std::process::ExitCode {
     cli::init_logging(args.verbose);
     let result = match args.command {
         Command::CheckConfig(a) => cli::check_config::run(a),
+        Command::Sim(a) => cli::sim::run_cmd(a),
+        Command::Bench(a) => cli::bench::run(a),
     };
     match result {
         Ok(code) => code,

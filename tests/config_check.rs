@@ -47,7 +47,8 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
     let dir = tempfile::tempdir().unwrap();
     let ortho = repo().join("sitl/maps/naip_nd_2009.tif");
     let good_map = format!(
-        "[map]\northo = [\"{}\"]\nground_height_amsl_m = 580.0\n",
+        "[camera]\nwidth_px = 640\nheight_px = 480\nhfov_deg = 60.0\n\
+         [map]\northo = [\"{}\"]\nground_height_amsl_m = 580.0\n",
         ortho.display()
     );
 
@@ -66,7 +67,9 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
     let (code, err) = check(
         dir.path(),
         "[link]\nconnection = \"udpin:0.0.0.0:99999\"\n\
+         [camera]\nwidth_px = 640\nheight_px = 480\nhfov_deg = 200.0\n\
          [map]\northo = [\"nope.tif\"]\ndem = \"nope_dem.tif\"\nground_height_amsl_m = 3.0\n\
+         [nav.imu]\ngyro_arw_deg_sqrt_h = -1.0\n\
          [output]\nrate_hz = 500.0\nmodes = [\"gps_input\", \"gps_input\"]\n",
     );
     assert_eq!(code, 2, "{err}");
@@ -80,6 +83,8 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
         "output.rate_hz",
         "500",
         "output.modes",
+        "camera.hfov_deg",
+        "nav.imu.gyro_arw_deg_sqrt_h",
     ] {
         assert!(err.contains(needle), "missing {needle:?} in:\n{err}");
     }
@@ -91,6 +96,24 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
     );
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("connection"), "{err}");
+
+    // A file that exists but is not a GeoTIFF: check-config opens the map data and names it.
+    let not_tiff = dir.path().join("not_a_tiff.tif");
+    std::fs::write(&not_tiff, b"this is not a TIFF file").unwrap();
+    let (code, err) = check(
+        dir.path(),
+        &format!(
+            "[link]\nconnection = \"udpin:0.0.0.0:14550\"\n\
+             [camera]\nwidth_px = 640\nheight_px = 480\nhfov_deg = 60.0\n\
+             [map]\northo = [\"{}\"]\nground_height_amsl_m = 580.0\n",
+            not_tiff.display()
+        ),
+    );
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("map.ortho[0]") && err.contains("not_a_tiff.tif"),
+        "{err}"
+    );
 
     // Missing file is a plain error, not a panic.
     let out = visnav()

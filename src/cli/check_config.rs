@@ -12,12 +12,14 @@ pub struct CheckConfigArgs {
 }
 
 pub fn run(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
-    match Config::load(&args.file) {
+    match Config::load(&args.file).and_then(|cfg| cfg.check_data(&args.file).map(|()| cfg)) {
         Ok(cfg) => {
             println!(
-                "{}: OK (link {}, {} orthophoto(s), output {:?} at {} Hz)",
+                "{}: OK (link {}, camera {}x{} px, {} orthophoto(s) loaded, output {:?} at {} Hz)",
                 args.file.display(),
                 cfg.link.connection,
+                cfg.camera.width_px,
+                cfg.camera.height_px,
                 cfg.map.ortho.len(),
                 cfg.output.modes,
                 cfg.output.rate_hz

@@ -1,6 +1,8 @@
 //! Subcommand implementations of the `visnav` binary.
 
+pub mod bench;
 pub mod check_config;
+pub mod sim;
 
 /// Initialise `tracing` to stderr: `RUST_LOG` when set, otherwise info/debug/trace by `-v` count.
 pub fn init_logging(verbose: u8) {

@@ -302,7 +302,7 @@ impl GridDem {
             f64::INFINITY
         };
         let t_hi = t_band_end.min(max_range_m);
-        if !(t_lo <= t_hi) {
+        if t_lo > t_hi {
             return None;
         }
 

@@ -1,7 +1,8 @@
 //! GeoTIFF reader (pure Rust on the `tiff` crate, no GDAL).
 //!
 //! Reads the first image of a TIFF file (overviews in later IFDs are ignored): stripped or tiled,
-//! chunky or planar, any compression the `tiff` crate decodes (none, deflate, LZW, packbits, JPEG),
+//! chunky or planar, any compression the `tiff` crate decodes (none, deflate, LZW, packbits, JPEG;
+//! YCbCr JPEG is converted to RGB with the JFIF equations),
 //! horizontal/floating-point predictors, 8/16/32/64-bit integer and 32/64-bit float samples, any
 //! number of bands. See `raster` for the sample storage and the pixel convention.
 //!
@@ -35,7 +36,9 @@
 //!
 //! Nodata comes from GDAL_NODATA (42113, ASCII; "nan" allowed). Malformed input never panics: all
 //! decoder errors are returned, and as defence in depth a panic inside the `tiff` crate is caught
-//! and reported as [`GeoTiffError::Decode`].
+//! and reported as [`GeoTiffError::Decode`]. Pixels are decoded chunk by chunk (`read_chunk`)
+//! because `Decoder::read_image_to_buffer` of tiff 0.11.3 panics on tiled planar files (e.g. the
+//! NGI orthophotos).
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -863,13 +866,20 @@ fn read_geotiff_inner<R: Read + Seek>(
         Err(e) => return Err(tag_err(TagError::new(TAG_KEY_DIRECTORY, e.to_string()))),
     };
 
-    let keys = match &directory {
-        Some(d) => Some(GeoKeys::parse(d, doubles.as_deref(), ascii.as_deref()).map_err(tag_err)?),
-        None => None,
+    // A malformed directory counts as "keys not understood": the CRS override may stand in.
+    let keys: Result<GeoKeys, KeyError> = match &directory {
+        Some(d) => GeoKeys::parse(d, doubles.as_deref(), ascii.as_deref()).map_err(|e| KeyError {
+            key: e.tag,
+            reason: e.reason,
+        }),
+        None => Err(KeyError {
+            key: TAG_KEY_DIRECTORY.to_string(),
+            reason: "missing: the file has no GeoKeys".into(),
+        }),
     };
     let raster_type = match &keys {
-        Some(k) => k.raster_type().map_err(key_err)?,
-        None => RasterType::PixelIsArea,
+        Ok(k) => k.raster_type().map_err(key_err)?,
+        Err(_) => RasterType::PixelIsArea,
     };
     let transform = geotransform_from_tags(
         pixel_scale.as_deref(),
@@ -879,13 +889,7 @@ fn read_geotiff_inner<R: Read + Seek>(
     )
     .map_err(tag_err)?;
 
-    let file_crs = match &keys {
-        Some(k) => k.crs(),
-        None => Err(KeyError {
-            key: TAG_KEY_DIRECTORY.to_string(),
-            reason: "missing: the file has no GeoKeys".into(),
-        }),
-    };
+    let file_crs = keys.and_then(|k| k.crs());
     let crs = match (file_crs, crs_override) {
         (Ok(c), None) => c,
         (Ok(c), Some(o)) if crs_equivalent(&c, &o) => c,
@@ -957,6 +961,31 @@ fn read_geotiff_inner<R: Read + Seek>(
             path: path.to_path_buf(),
             reason,
         })?;
+    let photometric = dec
+        .find_tag_unsigned::<u16>(Tag::PhotometricInterpretation)
+        .map_err(|e| {
+            tag_err(TagError::new(
+                "PhotometricInterpretation (262)",
+                e.to_string(),
+            ))
+        })?;
+    let data = if photometric == Some(6) {
+        // The tiff crate hands out YCbCr samples unconverted (JPEG included).
+        match data {
+            RasterData::U8(mut v) if bands == 3 => {
+                ycbcr_to_rgb_in_place(&mut v);
+                RasterData::U8(v)
+            }
+            _ => {
+                return Err(tag_err(TagError::new(
+                    "PhotometricInterpretation (262)",
+                    "YCbCr is supported only for 3-band 8-bit images",
+                )));
+            }
+        }
+    } else {
+        data
+    };
     let raster = Raster::new(width, height, bands, data, transform, crs, nodata)
         .map_err(|e| GeoTiffError::Decode {
             path: path.to_path_buf(),
@@ -969,6 +998,21 @@ fn read_geotiff_inner<R: Read + Seek>(
         "GeoTIFF loaded"
     );
     Ok(raster)
+}
+
+/// YCbCr -> RGB with the JFIF (ITU-R BT.601 full-range) equations that libjpeg and therefore
+/// GDAL use for JPEG-in-TIFF: `R = Y + 1.402 (Cr-128)`, `G = Y - 0.344136 (Cb-128) - 0.714136
+/// (Cr-128)`, `B = Y + 1.772 (Cb-128)`, rounded and clamped to 0..=255.
+fn ycbcr_to_rgb_in_place(v: &mut [u8]) {
+    for px in v.chunks_exact_mut(3) {
+        let y = f32::from(px[0]);
+        let cb = f32::from(px[1]) - 128.0;
+        let cr = f32::from(px[2]) - 128.0;
+        let to_u8 = |x: f32| x.round().clamp(0.0, 255.0) as u8; // ok: clamped to the u8 range
+        px[0] = to_u8(y + 1.402 * cr);
+        px[1] = to_u8(y - 0.344_136 * cb - 0.714_136 * cr);
+        px[2] = to_u8(y + 1.772 * cb);
+    }
 }
 
 /// Output accumulator: the storage type is fixed by the first chunk.
@@ -1051,6 +1095,7 @@ fn decode_chunks<R: Read + Seek>(
             y0,
             dw,
             dh,
+            ch,
         };
         match (acc, chunk) {
             (Acc::U8(out), DecodingResult::U8(v)) => place(out, &v, &geom)?,
@@ -1109,12 +1154,18 @@ struct ChunkGeom {
     y0: usize,
     dw: usize,
     dh: usize,
+    /// Nominal chunk height (tile height or rows per strip).
+    ch: usize,
 }
 
 /// Copies a chunk (`dw x dh` pixels of `spc` samples, rows packed) into band-interleaved output.
+/// A chunk of any other length (e.g. packed sub-byte samples) is an error.
 fn place<T: Copy>(out: &mut [T], chunk: &[T], g: &ChunkGeom) -> Result<(), String> {
     let row_len = g.dw * g.spc;
-    if chunk.len() < row_len * g.dh {
+    // tiff 0.11.3 reports full-height chunks for the bottom tiles of planes >= 1 of planar files
+    // (its chunk_data_dimensions ignores the plane); rows are still packed at `dw`, so the first
+    // `dh` rows are the data. Any other length is an error.
+    if chunk.len() != row_len * g.dh && chunk.len() != row_len * g.ch {
         return Err(format!(
             "chunk at ({}, {}) holds {} samples, expected {}",
             g.x0,
@@ -1175,6 +1226,9 @@ mod tests {
         }
         img.write_data(data).unwrap();
     }
+
+    /// One GeoKey directory entry: (id, location, count, value).
+    type Key = (u16, u16, u16, u16);
 
     /// GeoKeyDirectory from (id, location, count, value) entries.
     fn dir(entries: &[(u16, u16, u16, u16)]) -> Vec<u16> {
@@ -1341,7 +1395,7 @@ mod tests {
             })
         );
         // Each failure names its key.
-        let cases: Vec<(Vec<(u16, u16, u16, u16)>, Vec<f64>, &str)> = vec![
+        let cases: Vec<(Vec<Key>, Vec<f64>, &str)> = vec![
             (
                 tm_keys(&[(3076, 0, 1, 9002)]),
                 TM_DOUBLES.to_vec(),
@@ -1686,6 +1740,20 @@ mod tests {
             )
             .is_ok()
         );
+        // Malformed GeoKeyDirectory (declares 3 keys, holds 1): error, or the override.
+        let p = dirp.path().join("badkeys.tif");
+        let mut tags = utm_tags(32610, 1);
+        tags[2] = (
+            Tag::GeoKeyDirectoryTag,
+            TagVal::U16(vec![1, 1, 0, 3, 1024, 0, 1, 1]),
+        );
+        write_tiff::<colortype::Gray8>(&p, 2, 2, &[1, 2, 3, 4], &tags, Compression::Uncompressed);
+        let msg = load_geotiff(&p, None).unwrap_err().to_string();
+        assert!(
+            msg.contains("GeoKeyDirectoryTag (34735)") && msg.contains("declares 3 keys"),
+            "{msg}"
+        );
+        assert_eq!(load_geotiff(&p, Some(utm10)).unwrap().crs(), utm10);
         // No georeferencing tags: error naming the tag, even with an override.
         let p = dirp.path().join("nogeo.tif");
         write_tiff::<colortype::Gray8>(&p, 2, 2, &[1, 2, 3, 4], &[], Compression::Uncompressed);
@@ -1757,6 +1825,7 @@ mod tests {
             y0: 0,
             dw,
             dh: 2,
+            ch: 2,
         };
         place(&mut out, &[1, 2, 4, 5], &g(0, 1, 0, 2)).unwrap();
         place(&mut out, &[3, 6], &g(0, 1, 2, 1)).unwrap();
@@ -1768,5 +1837,21 @@ mod tests {
         place(&mut chunky, &[3, 30, 6, 60], &g(0, 2, 2, 1)).unwrap();
         assert_eq!(chunky, out);
         assert!(place(&mut chunky, &[3, 30, 6], &g(0, 2, 2, 1)).is_err());
+        // A full-height chunk for a 1-row-high bottom tile (tiff crate quirk): first row used.
+        let mut one = vec![0u8; 6];
+        let bottom = ChunkGeom {
+            width: 3,
+            bands: 2,
+            spc: 1,
+            plane: 1,
+            x0: 0,
+            y0: 0,
+            dw: 3,
+            dh: 1,
+            ch: 2,
+        };
+        place(&mut one, &[7, 8, 9, 99, 99, 99], &bottom).unwrap();
+        assert_eq!(one, vec![0, 7, 0, 8, 0, 9]);
+        assert!(place(&mut one, &[7, 8, 9, 99], &bottom).is_err());
     }
 }

@@ -10,11 +10,11 @@
 //! * Positions: `p_ned = R_ned_ecef (p_ecef - origin_ecef)`, `p_ecef = origin_ecef + R_ecef_ned p_ned`.
 //!
 //! With phi = origin latitude and lambda = origin longitude (Groves, "Principles of GNSS, Inertial,
-//! and Multisensor Integrated Navigation Systems", 2nd ed., eq. 2.150):
+//! and Multisensor Integrated Navigation Systems", 2nd ed., chapter 2):
 //! ```text
-//!            | -sin(phi) cos(lambda)  -sin(phi) sin(lambda)   cos(phi) |
-//! R_ned_ecef = | -sin(lambda)            cos(lambda)            0        |
-//!            | -cos(phi) cos(lambda)  -cos(phi) sin(lambda)  -sin(phi) |
+//!              | -sin(phi) cos(lambda)   -sin(phi) sin(lambda)    cos(phi) |
+//! R_ned_ecef = | -sin(lambda)             cos(lambda)             0        |
+//!              | -cos(phi) cos(lambda)   -cos(phi) sin(lambda)   -sin(phi) |
 //! ```
 //! The frame is the tangent plane at the origin: it does not follow the earth's curvature, so a
 //! point 10 km away on the ellipsoid has a NED z of about +7.8 m (below the plane).

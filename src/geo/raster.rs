@@ -205,6 +205,31 @@ impl RasterData {
         self.len() == 0
     }
 
+    /// The samples if stored as `u8` (8-bit imagery), e.g. to wrap them in an `image` buffer
+    /// without copying.
+    pub fn as_u8(&self) -> Option<&[u8]> {
+        match self {
+            RasterData::U8(v) => Some(v),
+            _ => None,
+        }
+    }
+
+    /// The samples if stored as `u16`.
+    pub fn as_u16(&self) -> Option<&[u16]> {
+        match self {
+            RasterData::U16(v) => Some(v),
+            _ => None,
+        }
+    }
+
+    /// The samples if stored as `f32`.
+    pub fn as_f32(&self) -> Option<&[f32]> {
+        match self {
+            RasterData::F32(v) => Some(v),
+            _ => None,
+        }
+    }
+
     /// Sample at a flat index as f64 (caller guarantees the index is in range).
     #[inline]
     fn get(&self, idx: usize) -> f64 {

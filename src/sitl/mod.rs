@@ -1,2 +1,23 @@
-//! Software-in-the-loop simulation: the simulated camera (`render`) and, later, the vehicle and link.
+//! Built-in software-in-the-loop simulator (see docs/architecture.md): truth trajectories, IMU and
+//! sensor synthesis, scenario files, the runner that scores the navigation filter, and a MAVLink
+//! autopilot emulator.
+//!
+//! * [`trajectory`]: lines, coordinated turns, climbs; exact ideal IMU increments.
+//! * [`imu`]: IMU error synthesis (white noise, turn-on bias, bias instability, random walk,
+//!   scale factor, sample rate).
+//! * [`scenario`]: `sitl/scenarios/*.toml` schema and validation.
+//! * [`run`]: scenario runner, INS-only control, Monte Carlo NEES consistency.
+//! * [`rng`]: deterministic random numbers.
+//! * [`autopilot`]: a MAVLink 2 autopilot emulator speaking like ArduPilot over real sockets.
+//! * [`render`]: the simulated camera (perspective view of an orthophoto on a DEM, lens
+//!   distortion, exposure, blur, noise).
+
+pub mod autopilot;
+pub mod imu;
 pub mod render;
+pub mod rng;
+pub mod run;
+pub mod scenario;
+pub mod trajectory;
+
+pub use scenario::Scenario;

@@ -21,11 +21,11 @@
 //!
 //! Off-map pixels are set to `fill_dn` at the end and skipped by every step.
 //!
-//! Noise is deterministic: each image row draws from its own SplitMix64 stream (Steele, Lea,
-//! Flood, "Fast splittable pseudorandom number generators", OOPSLA 2014) seeded from
-//! `(seed, frame_index, row)`, Gaussian deviates by the Box-Muller transform, so results do not
+//! Noise is deterministic: each image row draws from its own [`crate::sitl::rng::Rng`] stream
+//! (xoshiro256**, Box-Muller normals) seeded from `(seed, frame_index, row)`, so results do not
 //! depend on the number of threads.
 
+use crate::sitl::rng::Rng;
 use rayon::prelude::*;
 
 /// Photometric parameters (see the module doc for the model). `Default` is the identity apart
@@ -128,13 +128,16 @@ pub(crate) fn apply(p: &mut Planes<'_>, spec: &PhotometricSpec, frame_index: u64
         spec.conversion_gain_dn_per_e,
         spec.gamma,
     );
-    let seed = mix(mix(spec.seed) ^ frame_index.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    // Frame stream seed from (seed, frame index); rows seeded from it (Rng::new mixes its seed
+    // through SplitMix64, so neighbouring seeds give unrelated streams).
+    let seed = Rng::new(spec.seed ^ frame_index.wrapping_mul(0x9E37_79B9_7F4A_7C15)).next_u64();
     let (quantise, fill) = (spec.quantise, spec.fill_dn as f32);
     p.data
         .par_chunks_mut(w * ch)
         .enumerate()
         .for_each(|(row, line)| {
-            let mut rng = SplitMix64::new(seed ^ mix(row as u64 + 1));
+            let mut rng =
+                Rng::new(seed.wrapping_add((row as u64).wrapping_mul(0xD1B5_4A32_D192_ED03)));
             for col in 0..w {
                 let px = &mut line[col * ch..(col + 1) * ch];
                 if !valid[row * w + col] {
@@ -144,10 +147,10 @@ pub(crate) fn apply(p: &mut Planes<'_>, spec: &PhotometricSpec, frame_index: u64
                 for v in px {
                     let mut x = f64::from(*v);
                     if conv > 0.0 {
-                        x += (x.max(0.0) * conv).sqrt() * rng.gaussian();
+                        x += (x.max(0.0) * conv).sqrt() * rng.normal();
                     }
                     if read > 0.0 {
-                        x += read * rng.gaussian();
+                        x += read * rng.normal();
                     }
                     x = x.clamp(0.0, 255.0);
                     if gamma != 1.0 {
@@ -288,56 +291,6 @@ fn motion_blur(p: &mut Planes<'_>, length_px: f64, angle_rad: f64) {
         });
 }
 
-/// SplitMix64 finaliser (a bijective 64-bit mix).
-#[inline]
-fn mix(mut z: u64) -> u64 {
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
-
-/// SplitMix64 generator with Box-Muller Gaussian deviates.
-#[derive(Debug, Clone)]
-pub(crate) struct SplitMix64 {
-    state: u64,
-    spare: Option<f64>,
-}
-
-impl SplitMix64 {
-    pub(crate) fn new(seed: u64) -> Self {
-        Self {
-            state: seed,
-            spare: None,
-        }
-    }
-
-    #[inline]
-    pub(crate) fn next_u64(&mut self) -> u64 {
-        self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        mix(self.state)
-    }
-
-    /// Uniform in (0, 1] (53 random bits).
-    #[inline]
-    fn uniform_open0(&mut self) -> f64 {
-        ((self.next_u64() >> 11) + 1) as f64 * (1.0 / (1u64 << 53) as f64)
-    }
-
-    /// Standard normal deviate (Box-Muller, both outputs used).
-    #[inline]
-    pub(crate) fn gaussian(&mut self) -> f64 {
-        if let Some(s) = self.spare.take() {
-            return s;
-        }
-        let u1 = self.uniform_open0();
-        let u2 = self.uniform_open0();
-        let r = (-2.0 * u1.ln()).sqrt();
-        let (s, c) = (std::f64::consts::TAU * u2).sin_cos();
-        self.spare = Some(r * s);
-        r * c
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -353,17 +306,6 @@ mod tests {
             cy_px: (h as f64 - 1.0) / 2.0,
         };
         apply(&mut p, spec, k);
-    }
-
-    #[test]
-    fn gaussian_statistics() {
-        let mut g = SplitMix64::new(42);
-        let n = 200_000;
-        let xs: Vec<f64> = (0..n).map(|_| g.gaussian()).collect();
-        let mean = xs.iter().sum::<f64>() / n as f64;
-        let var = xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n as f64;
-        assert!(mean.abs() < 0.01, "{mean}");
-        assert!((var - 1.0).abs() < 0.02, "{var}");
     }
 
     #[test]

@@ -1,0 +1,346 @@
+//! `visnav bench surf [--image F]... [--json] [--quality] [--export-pairs DIR]`: time SURF
+//! detect+describe (median of `--runs`) on 1 thread and on all threads, upright and rotation
+//! invariant, on the bench images of ../shared/data/bench; optionally run the repeatability /
+//! matching-score table on the bundled NAIP maps and export the pairs for scripts/bench_opencv.py.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use visnav::vision::eval::{self, PairScore};
+use visnav::vision::{DescriptorKind, Features, GrayImage, IntegralImage, Surf, SurfParams};
+
+#[derive(clap::Args, Debug)]
+pub struct BenchArgs {
+    #[command(subcommand)]
+    pub what: BenchWhat,
+}
+
+#[derive(clap::Subcommand, Debug)]
+pub enum BenchWhat {
+    /// Time SURF detect+describe and count features.
+    Surf(SurfBenchArgs),
+}
+
+#[derive(clap::Args, Debug)]
+pub struct SurfBenchArgs {
+    /// Image to time (repeatable). Default: naip2014_640x480.png and naip2014_1280x960.png in
+    /// ../shared/data/bench.
+    #[arg(long)]
+    pub image: Vec<PathBuf>,
+    /// Print one JSON document instead of a table.
+    #[arg(long)]
+    pub json: bool,
+    /// Timed runs per configuration (the median is reported).
+    #[arg(long, default_value_t = 15)]
+    pub runs: usize,
+    /// Hessian threshold (OpenCV meaning).
+    #[arg(long, default_value_t = 100.0)]
+    pub threshold: f32,
+    /// Sampling step of the first octave (OpenCV: 1, OpenSURF: 2).
+    #[arg(long, default_value_t = 1)]
+    pub init_step: usize,
+    /// Layers searched per octave (OpenCV's nOctaveLayers).
+    #[arg(long, default_value_t = 2)]
+    pub octave_layers: usize,
+    /// Which SURF modes to time: `both`, `upright` or `oriented`.
+    #[arg(long, default_value = "both")]
+    pub mode: String,
+    /// Also compute the quality table on the bundled NAIP maps (sitl/maps).
+    #[arg(long)]
+    pub quality: bool,
+    /// Write the quality pairs (PNG), homographies and SURF keypoints to DIR (implies --quality).
+    #[arg(long)]
+    pub export_pairs: Option<PathBuf>,
+}
+
+#[derive(serde::Serialize)]
+struct Timing {
+    image: String,
+    width: usize,
+    height: usize,
+    mode: &'static str,
+    threads: usize,
+    median_ms: f64,
+    min_ms: f64,
+    /// Median of integral image + detection alone.
+    detect_ms: f64,
+    features: usize,
+}
+
+#[derive(serde::Serialize)]
+struct QualityRow {
+    change: String,
+    repeatability: f64,
+    n1: usize,
+    n2: usize,
+    ms_usurf64: f64,
+    ms_surf64: f64,
+    ms_surf128: f64,
+    ms_surf36: f64,
+}
+
+pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
+    match args.what {
+        BenchWhat::Surf(a) => run_surf(a),
+    }
+}
+
+fn repo_file(rel: &str) -> PathBuf {
+    let cwd = PathBuf::from(rel);
+    if cwd.exists() {
+        return cwd;
+    }
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)
+}
+
+/// Median and minimum total ms, median detection ms (integral image + fast-Hessian), features.
+fn time_one(
+    pool: &rayon::ThreadPool,
+    surf: &Surf,
+    img: &GrayImage,
+    runs: usize,
+) -> (f64, f64, f64, usize) {
+    let mut times = Vec::with_capacity(runs);
+    let mut det_times = Vec::with_capacity(runs);
+    let mut n = 0;
+    pool.install(|| {
+        let _ = surf.detect_and_describe(img); // warm-up
+        for _ in 0..runs.max(1) {
+            let t = Instant::now();
+            let ii = IntegralImage::new(img);
+            let kps = surf.detect(&ii);
+            let t_det = t.elapsed();
+            let f = surf.describe(&ii, kps);
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+            det_times.push(t_det.as_secs_f64() * 1e3);
+            n = f.len();
+        }
+    });
+    times.sort_by(f64::total_cmp);
+    det_times.sort_by(f64::total_cmp);
+    (
+        times[times.len() / 2],
+        times[0],
+        det_times[det_times.len() / 2],
+        n,
+    )
+}
+
+fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
+    let images = if a.image.is_empty() {
+        let dir = repo_file("../shared/data/bench");
+        let v = vec![
+            dir.join("naip2014_640x480.png"),
+            dir.join("naip2014_1280x960.png"),
+        ];
+        for p in &v {
+            if !p.exists() {
+                bail!(
+                    "{}: bench image missing (expected ../shared/data/bench; pass --image FILE)",
+                    p.display()
+                );
+            }
+        }
+        v
+    } else {
+        a.image.clone()
+    };
+    if !["both", "upright", "oriented"].contains(&a.mode.as_str()) {
+        bail!("--mode {}: expected both, upright or oriented", a.mode);
+    }
+    let all = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let pools = [1, all]
+        .into_iter()
+        .map(|n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .map(|p| (n, p))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut timings = Vec::new();
+    for path in &images {
+        let img = GrayImage::load(path)?;
+        for (mode, upright) in [("upright", true), ("oriented", false)] {
+            if a.mode != "both" && a.mode != mode {
+                continue;
+            }
+            let surf = Surf::new(SurfParams {
+                hessian_threshold: a.threshold,
+                upright,
+                init_sample_step: a.init_step,
+                n_octave_layers: a.octave_layers,
+                ..SurfParams::default()
+            })?;
+            for (n, pool) in &pools {
+                let (median, min, detect, feats) = time_one(pool, &surf, &img, a.runs);
+                timings.push(Timing {
+                    image: path.display().to_string(),
+                    width: img.width(),
+                    height: img.height(),
+                    mode,
+                    threads: *n,
+                    median_ms: median,
+                    min_ms: min,
+                    detect_ms: detect,
+                    features: feats,
+                });
+            }
+        }
+    }
+    let quality = if a.quality || a.export_pairs.is_some() {
+        Some(quality_table(&a, a.export_pairs.as_deref())?)
+    } else {
+        None
+    };
+    if a.json {
+        let doc = serde_json::json!({ "surf": timings, "quality": quality });
+        println!("{}", serde_json::to_string_pretty(&doc)?);
+    } else {
+        println!(
+            "SURF-64 detect+describe, hessian_threshold {}, median of {} runs",
+            a.threshold, a.runs
+        );
+        println!(
+            "{:<28} {:>9} {:>8} {:>7} {:>10} {:>10} {:>8}",
+            "image", "size", "mode", "threads", "median ms", "detect ms", "features"
+        );
+        for t in &timings {
+            let name = Path::new(&t.image)
+                .file_name()
+                .map_or(t.image.clone(), |s| s.to_string_lossy().into_owned());
+            println!(
+                "{:<28} {:>9} {:>8} {:>7} {:>10.2} {:>10.2} {:>8}",
+                name,
+                format!("{}x{}", t.width, t.height),
+                t.mode,
+                t.threads,
+                t.median_ms,
+                t.detect_ms,
+                t.features
+            );
+        }
+        if let Some(q) = &quality {
+            println!();
+            println!(
+                "| change | n1 | n2 | repeatability | MS U-SURF-64 | MS SURF-64 | MS SURF-128 | MS SURF-36 |"
+            );
+            println!("|---|---|---|---|---|---|---|---|");
+            for r in q {
+                println!(
+                    "| {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} |",
+                    r.change,
+                    r.n1,
+                    r.n2,
+                    r.repeatability,
+                    r.ms_usurf64,
+                    r.ms_surf64,
+                    r.ms_surf128,
+                    r.ms_surf36
+                );
+            }
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The quality table of docs/surf.md: the standard changes on a 320x320 window of the 2014 map and
+/// the 2009-vs-2014 pair; optionally exported for scripts/bench_opencv.py.
+fn quality_table(a: &SurfBenchArgs, export: Option<&Path>) -> anyhow::Result<Vec<QualityRow>> {
+    let p14 = repo_file("sitl/maps/naip_nd_2014.tif");
+    let p09 = repo_file("sitl/maps/naip_nd_2009.tif");
+    let m14 = GrayImage::load(&p14)?;
+    let m09 = GrayImage::load(&p09)?;
+    let window = (307, 202, 320, 320);
+    let mut pairs = Vec::new();
+    for c in eval::standard_changes() {
+        pairs.push(eval::make_pair(&m14, window, c)?);
+    }
+    let (x0, y0, w, h) = window;
+    let crop = |m: &GrayImage| {
+        m.crop(x0, y0, w, h)
+            .context("quality window outside the map")
+    };
+    pairs.push(eval::ImagePair {
+        label: "2009 vs 2014 (same window)".into(),
+        img1: crop(&m09)?,
+        img2: crop(&m14)?,
+        h12: nalgebra::Matrix3::identity(),
+    });
+    let mk = |upright, descriptor| {
+        Surf::new(SurfParams {
+            hessian_threshold: a.threshold,
+            upright,
+            descriptor,
+            init_sample_step: a.init_step,
+            n_octave_layers: a.octave_layers,
+            ..SurfParams::default()
+        })
+    };
+    let configs = [
+        mk(true, DescriptorKind::Surf64)?,
+        mk(false, DescriptorKind::Surf64)?,
+        mk(false, DescriptorKind::Surf128)?,
+        mk(false, DescriptorKind::Surf36)?,
+    ];
+    if let Some(dir) = export {
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("{}: cannot create", dir.display()))?;
+    }
+    let mut rows = Vec::new();
+    let mut manifest = Vec::new();
+    for (i, pair) in pairs.iter().enumerate() {
+        let mut scores: Vec<PairScore> = Vec::new();
+        let mut feats: Vec<(Features, Features)> = Vec::new();
+        for s in &configs {
+            let f1 = s.detect_and_describe(&pair.img1);
+            let f2 = s.detect_and_describe(&pair.img2);
+            scores.push(eval::score_pair(
+                &f1,
+                &f2,
+                &pair.h12,
+                (pair.img1.width(), pair.img1.height()),
+                (pair.img2.width(), pair.img2.height()),
+            )?);
+            feats.push((f1, f2));
+        }
+        rows.push(QualityRow {
+            change: pair.label.clone(),
+            repeatability: scores[1].repeatability,
+            n1: scores[1].n1,
+            n2: scores[1].n2,
+            ms_usurf64: scores[0].matching_score,
+            ms_surf64: scores[1].matching_score,
+            ms_surf128: scores[2].matching_score,
+            ms_surf36: scores[3].matching_score,
+        });
+        if let Some(dir) = export {
+            let f1 = dir.join(format!("pair{i:02}_1.png"));
+            let f2 = dir.join(format!("pair{i:02}_2.png"));
+            pair.img1.save_png(&f1)?;
+            pair.img2.save_png(&f2)?;
+            let kp = |f: &Features| -> Vec<[f32; 3]> {
+                f.keypoints.iter().map(|k| [k.x, k.y, k.scale]).collect()
+            };
+            manifest.push(serde_json::json!({
+                "label": pair.label,
+                "img1": f1.file_name().map(|s| s.to_string_lossy().into_owned()),
+                "img2": f2.file_name().map(|s| s.to_string_lossy().into_owned()),
+                "h12": [pair.h12.row(0).iter().copied().collect::<Vec<_>>(),
+                        pair.h12.row(1).iter().copied().collect::<Vec<_>>(),
+                        pair.h12.row(2).iter().copied().collect::<Vec<_>>()],
+                "surf_kp1": kp(&feats[1].0),
+                "surf_kp2": kp(&feats[1].1),
+                "surf_repeatability": scores[1].repeatability,
+            }));
+        }
+    }
+    if let Some(dir) = export {
+        let path = dir.join("pairs.json");
+        std::fs::write(&path, serde_json::to_string_pretty(&manifest)?)
+            .with_context(|| format!("{}: cannot write", path.display()))?;
+    }
+    Ok(rows)
+}

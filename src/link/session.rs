@@ -1,0 +1,1085 @@
+//! The running link: a supervisor task that (re)connects with exponential backoff and, per
+//! connection, a receive loop plus heartbeat, TIMESYNC and stream-manager loops. The rest of
+//! visnav talks to it through [`Link`]: telemetry (broadcast), status (watch), clock mapping,
+//! injection and STATUSTEXT.
+//!
+//! Protocol behaviour:
+//! * We send HEARTBEAT as MAV_TYPE_ONBOARD_CONTROLLER / MAV_AUTOPILOT_INVALID with our system id
+//!   (configured, else the autopilot's once locked, else the configured autopilot id, else 1) and
+//!   component id (default 197).
+//! * The first HEARTBEAT from an autopilot (autopilot != MAV_AUTOPILOT_INVALID, and matching
+//!   `autopilot_system_id` when configured) locks the link onto its (system, component); every
+//!   other system is ignored (still recorded in the .tlog).
+//! * After the lock, after a reconnect and after an autopilot reboot, every wanted stream is
+//!   requested with MAV_CMD_SET_MESSAGE_INTERVAL; every 2 s the measured rates are checked and
+//!   missing streams are requested again (with their alternative ids).
+//! * Outgoing packets are MAVLink 2, signed when configured; each is appended to the .tlog.
+
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use mavlink::dialects::ardupilotmega::{
+    COMMAND_LONG_DATA, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavMessage, MavModeFlag, MavSeverity,
+    MavState, MavType, STATUSTEXT_DATA, TIMESYNC_DATA,
+};
+use mavlink::error::MessageReadError;
+use mavlink::{
+    AsyncMavConnection, MAVLinkMessageRaw, MAVLinkV2MessageRaw, MavHeader, Message, SigningConfig,
+    SigningData,
+};
+use tokio::sync::{broadcast, watch};
+use tokio::task::JoinHandle;
+use tracing::{debug, info, warn};
+
+use crate::link::config::{LinkConfig, OnLost, OutputConfig, OutputMode};
+use crate::link::inject::{self, GeoOrigin, Health, InjectError, NavEstimate, SendTime};
+use crate::link::metrics::Metrics;
+use crate::link::streams::{self, RateMonitor, StreamSpec, StreamStatus, ids};
+use crate::link::time::{SyncUpdate, TimeSync, TimesyncSample, UtcMap};
+use crate::link::tlog::{Tlog, expand_name, unix_now_us};
+
+type Conn = mavlink::AsyncConnection<MavMessage>;
+
+/// Why the link could not start or a send failed.
+#[derive(Debug, thiserror::Error)]
+pub enum LinkError {
+    #[error("link.signing.key_file: {0}")]
+    Key(#[from] crate::link::signing::KeyError),
+    #[error("link.tlog: {path}: {source}")]
+    Tlog {
+        path: std::path::PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("link.metrics_listen: {addr}: {source}")]
+    Metrics {
+        addr: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("not connected")]
+    NotConnected,
+    #[error("send failed: {0}")]
+    Send(String),
+}
+
+/// The autopilot the link is locked onto.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AutopilotInfo {
+    /// Its system id.
+    pub system_id: u8,
+    /// Its component id.
+    pub component_id: u8,
+    /// Its flight stack (ArduPilot, PX4, ...).
+    pub autopilot: MavAutopilot,
+    /// Vehicle type.
+    pub vehicle: MavType,
+}
+
+/// Snapshot of the link's state (published through a `watch` channel).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct LinkStatus {
+    /// A transport is open.
+    pub connected: bool,
+    /// The locked autopilot.
+    pub autopilot: Option<AutopilotInfo>,
+    /// Its heartbeat is current.
+    pub alive: bool,
+    /// The TIMESYNC mapping is converged.
+    pub time_synced: bool,
+    /// Autopilot reboots detected.
+    pub reboots: u32,
+    /// Every wanted stream arrives at its rate.
+    pub streams_ok: bool,
+    /// Per-stream rates at the last check.
+    pub streams: Vec<StreamStatus>,
+    /// The EKF origin used for local positions.
+    pub origin: Option<GeoOrigin>,
+}
+
+/// One telemetry message from the locked autopilot.
+#[derive(Debug, Clone)]
+pub struct Telemetry {
+    /// Companion clock at reception (ns, [`Link::companion_ns`]).
+    pub t_companion_ns: i64,
+    /// Autopilot boot time at reception, if the clock mapping is converged.
+    pub t_boot_us: Option<u64>,
+    /// Packet header.
+    pub header: MavHeader,
+    /// The message.
+    pub msg: MavMessage,
+}
+
+#[derive(Debug)]
+struct State {
+    autopilot: Option<AutopilotInfo>,
+    last_heartbeat: Option<Instant>,
+    timesync: TimeSync,
+    utc: UtcMap,
+    rates: RateMonitor,
+    /// Outstanding TIMESYNC requests (ts1 values).
+    pending_ts1: Vec<i64>,
+    /// Streams need (re)requesting from scratch.
+    streams_dirty: bool,
+    origin: Option<GeoOrigin>,
+    origin_from_autopilot: bool,
+    origin_sent: u32,
+    last_health: Option<String>,
+    stream_checks: u32,
+}
+
+struct Shared {
+    cfg: LinkConfig,
+    out: OutputConfig,
+    t0: Instant,
+    conn: Mutex<Option<Arc<Conn>>>,
+    state: Mutex<State>,
+    signing_out: Option<SigningData>,
+    signing_in: Option<SigningConfig>,
+    seq: AtomicU8,
+    tlog: Mutex<Option<Tlog>>,
+    metrics: Arc<Metrics>,
+    telemetry: broadcast::Sender<Telemetry>,
+    status: watch::Sender<LinkStatus>,
+}
+
+/// The running link. Dropping it (or [`Link::shutdown`]) stops every task.
+pub struct Link {
+    shared: Arc<Shared>,
+    shutdown: watch::Sender<bool>,
+    tasks: Vec<JoinHandle<()>>,
+    metrics_addr: Option<std::net::SocketAddr>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    // A panic while holding one of these locks is a bug elsewhere; keep going with the data.
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+impl Link {
+    /// Open the .tlog and metrics endpoint, load the signing key, and start connecting.
+    /// Relative paths in `cfg` must already be resolved (`Config::load` does it).
+    pub async fn start(cfg: LinkConfig, out: OutputConfig) -> Result<Link, LinkError> {
+        let (signing_out, signing_in) = match &cfg.signing {
+            Some(s) => {
+                let key = crate::link::signing::load_key(&s.key_file)?;
+                let out_cfg = SigningConfig::new(key, s.link_id, true, !s.reject_unsigned);
+                (
+                    s.sign_outgoing.then(|| SigningData::from_config(out_cfg)),
+                    Some(SigningConfig::new(
+                        key,
+                        s.link_id,
+                        false,
+                        !s.reject_unsigned,
+                    )),
+                )
+            }
+            None => (None, None),
+        };
+        let tlog = match &cfg.tlog {
+            Some(p) => {
+                let path = expand_name(p, unix_now_us() / 1_000_000);
+                let t = Tlog::create(&path).map_err(|source| LinkError::Tlog {
+                    path: path.clone(),
+                    source,
+                })?;
+                info!(path = %path.display(), "recording telemetry log");
+                Some(t)
+            }
+            None => None,
+        };
+        let metrics = Arc::new(Metrics::default());
+        let (shutdown, _) = watch::channel(false);
+        let mut tasks = Vec::new();
+        let mut metrics_addr = None;
+        if let Some(addr) = &cfg.metrics_listen {
+            let sa = addr.parse().map_err(|_| LinkError::Metrics {
+                addr: addr.clone(),
+                source: std::io::Error::new(std::io::ErrorKind::InvalidInput, "not IP:PORT"),
+            })?;
+            let (bound, task) = crate::link::metrics::serve(sa, metrics.clone())
+                .await
+                .map_err(|source| LinkError::Metrics {
+                    addr: addr.clone(),
+                    source,
+                })?;
+            info!(%bound, "Prometheus metrics at http://{bound}/metrics");
+            metrics_addr = Some(bound);
+            tasks.push(task);
+        }
+        let state = State {
+            autopilot: None,
+            last_heartbeat: None,
+            timesync: TimeSync::new(cfg.timesync_max_rtt_ms),
+            utc: UtcMap::default(),
+            rates: RateMonitor::new(2.0),
+            pending_ts1: Vec::new(),
+            streams_dirty: true,
+            origin: None,
+            origin_from_autopilot: false,
+            origin_sent: 0,
+            last_health: None,
+            stream_checks: 0,
+        };
+        let shared = Arc::new(Shared {
+            cfg,
+            out,
+            t0: Instant::now(),
+            conn: Mutex::new(None),
+            state: Mutex::new(state),
+            signing_out,
+            signing_in,
+            seq: AtomicU8::new(0),
+            tlog: Mutex::new(tlog),
+            metrics,
+            telemetry: broadcast::channel(4096).0,
+            status: watch::channel(LinkStatus::default()).0,
+        });
+        tasks.push(tokio::spawn(supervise(
+            shared.clone(),
+            shutdown.subscribe(),
+        )));
+        Ok(Link {
+            shared,
+            shutdown,
+            tasks,
+            metrics_addr,
+        })
+    }
+
+    /// Bound address of the metrics endpoint, if enabled.
+    pub fn metrics_addr(&self) -> Option<std::net::SocketAddr> {
+        self.metrics_addr
+    }
+
+    /// The link's counters.
+    pub fn metrics(&self) -> Arc<Metrics> {
+        self.shared.metrics.clone()
+    }
+
+    /// Subscribe to the locked autopilot's telemetry.
+    pub fn telemetry(&self) -> broadcast::Receiver<Telemetry> {
+        self.shared.telemetry.subscribe()
+    }
+
+    /// Watch the link status.
+    pub fn status(&self) -> watch::Receiver<LinkStatus> {
+        self.shared.status.subscribe()
+    }
+
+    /// Companion clock in ns of an instant (monotonic, arbitrary origin; the value this link
+    /// answers TIMESYNC requests with).
+    pub fn companion_ns(&self, t: Instant) -> i64 {
+        self.shared.companion_ns(t)
+    }
+
+    /// Autopilot boot time (µs) of a companion instant, e.g. a camera frame's capture time.
+    /// `None` until TIMESYNC has converged.
+    pub fn to_autopilot_us(&self, t: Instant) -> Option<u64> {
+        let ns = self.shared.companion_ns(t);
+        lock(&self.shared.state).timesync.to_autopilot_us(ns)
+    }
+
+    /// Autopilot boot time now.
+    pub fn autopilot_now_us(&self) -> Option<u64> {
+        self.to_autopilot_us(Instant::now())
+    }
+
+    /// A cloneable handle on the clock mapping (for camera and estimator tasks).
+    pub fn clock(&self) -> Clock {
+        Clock {
+            shared: self.shared.clone(),
+        }
+    }
+
+    /// Send one message to the autopilot (MAVLink 2, signed if configured, recorded).
+    pub async fn send(&self, msg: &MavMessage) -> Result<(), LinkError> {
+        self.shared.send(msg).await
+    }
+
+    /// Send a STATUSTEXT (split into 50-character chunks when longer).
+    pub async fn status_text(&self, severity: MavSeverity, text: &str) -> Result<(), LinkError> {
+        self.shared.status_text(severity, text).await
+    }
+
+    /// Build and send the configured injection messages for one estimate. Returns, per mode,
+    /// the message name sent or why it was not sent.
+    pub async fn inject(
+        &self,
+        est: &NavEstimate,
+    ) -> Vec<(OutputMode, Result<&'static str, InjectError>)> {
+        self.shared.inject(est).await
+    }
+
+    /// Inject the latest estimate from `rx` at `output.rate_hz` until the link shuts down.
+    pub fn spawn_injector(&mut self, mut rx: watch::Receiver<Option<NavEstimate>>) {
+        let shared = self.shared.clone();
+        let mut stop = self.shutdown.subscribe();
+        let period = Duration::from_secs_f64(1.0 / shared.out.rate_hz);
+        self.tasks.push(tokio::spawn(async move {
+            let mut tick = tokio::time::interval(period);
+            tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                tokio::select! {
+                    _ = tick.tick() => {}
+                    _ = stop.changed() => return,
+                }
+                let est = rx.borrow_and_update().clone();
+                if let Some(e) = est {
+                    shared.inject(&e).await;
+                }
+            }
+        }));
+    }
+
+    /// Stop every task, flush the .tlog.
+    pub async fn shutdown(mut self) {
+        self.stop_tasks().await;
+    }
+
+    async fn stop_tasks(&mut self) {
+        let _ = self.shutdown.send(true);
+        for t in self.tasks.drain(..) {
+            t.abort();
+            let _ = t.await;
+        }
+        if let Some(t) = lock(&self.shared.tlog).as_mut() {
+            let _ = t.flush();
+        }
+    }
+}
+
+/// Cloneable handle on the link's companion -> autopilot clock mapping.
+#[derive(Clone)]
+pub struct Clock {
+    shared: Arc<Shared>,
+}
+
+impl Clock {
+    /// Autopilot boot time (µs) of a companion instant; `None` until TIMESYNC has converged.
+    pub fn to_autopilot_us(&self, t: Instant) -> Option<u64> {
+        let ns = self.shared.companion_ns(t);
+        lock(&self.shared.state).timesync.to_autopilot_us(ns)
+    }
+
+    /// Autopilot boot time now.
+    pub fn autopilot_now_us(&self) -> Option<u64> {
+        self.to_autopilot_us(Instant::now())
+    }
+}
+
+impl Drop for Link {
+    fn drop(&mut self) {
+        let _ = self.shutdown.send(true);
+        for t in &self.tasks {
+            t.abort();
+        }
+        if let Some(t) = lock(&self.shared.tlog).as_mut() {
+            let _ = t.flush();
+        }
+    }
+}
+
+impl Shared {
+    fn companion_ns(&self, t: Instant) -> i64 {
+        // +1 s so the clock is never 0 (TIMESYNC uses 0 as "request").
+        t.saturating_duration_since(self.t0).as_nanos() as i64 + 1_000_000_000
+    }
+
+    fn now_ns(&self) -> i64 {
+        self.companion_ns(Instant::now())
+    }
+
+    fn our_system_id(&self) -> u8 {
+        self.cfg
+            .system_id
+            .or_else(|| lock(&self.state).autopilot.map(|a| a.system_id))
+            .or(self.cfg.autopilot_system_id)
+            .unwrap_or(1)
+    }
+
+    fn target(&self) -> Option<(u8, u8)> {
+        lock(&self.state)
+            .autopilot
+            .map(|a| (a.system_id, a.component_id))
+    }
+
+    fn publish_status(&self) {
+        let st = lock(&self.state);
+        let connected = lock(&self.conn).is_some();
+        let alive = st
+            .last_heartbeat
+            .is_some_and(|t| t.elapsed().as_secs_f64() < self.cfg.heartbeat_timeout_s);
+        self.metrics
+            .autopilot_alive
+            .store(u64::from(alive), Ordering::Relaxed);
+        let new = LinkStatus {
+            connected,
+            autopilot: st.autopilot,
+            alive,
+            time_synced: st.timesync.converged(),
+            reboots: st.timesync.reboots,
+            streams_ok: self.status.borrow().streams_ok,
+            streams: self.status.borrow().streams.clone(),
+            origin: st.origin,
+        };
+        drop(st);
+        self.status.send_if_modified(|s| {
+            let changed = s.connected != new.connected
+                || s.autopilot != new.autopilot
+                || s.alive != new.alive
+                || s.time_synced != new.time_synced
+                || s.reboots != new.reboots
+                || s.origin != new.origin;
+            if changed {
+                *s = new;
+            }
+            changed
+        });
+    }
+
+    async fn send(&self, msg: &MavMessage) -> Result<(), LinkError> {
+        let conn = lock(&self.conn).clone().ok_or(LinkError::NotConnected)?;
+        let header = MavHeader {
+            system_id: u32::from(self.our_system_id()),
+            component_id: self.cfg.component_id,
+            sequence: self.seq.fetch_add(1, Ordering::Relaxed),
+        };
+        let mut raw = MAVLinkV2MessageRaw::new();
+        match &self.signing_out {
+            Some(s) => {
+                raw.serialize_message_for_signing(header, msg);
+                s.sign_message(&mut raw);
+            }
+            None => raw.serialize_message(header, msg),
+        }
+        let bytes = raw.raw_bytes().to_vec();
+        match conn.send_raw(&MAVLinkMessageRaw::V2(raw)).await {
+            Ok(n) => {
+                if n > 0 {
+                    self.metrics.tx_packets.fetch_add(1, Ordering::Relaxed);
+                    if let Some(t) = lock(&self.tlog).as_mut()
+                        && let Err(e) = t.write(unix_now_us(), &bytes)
+                    {
+                        warn!("tlog write failed: {e}");
+                    }
+                }
+                Ok(())
+            }
+            Err(e) => {
+                self.metrics.tx_errors.fetch_add(1, Ordering::Relaxed);
+                Err(LinkError::Send(e.to_string()))
+            }
+        }
+    }
+
+    async fn status_text(&self, severity: MavSeverity, text: &str) -> Result<(), LinkError> {
+        info!(target: "statustext", "{text}");
+        let bytes = text.as_bytes();
+        let chunks: Vec<&[u8]> = if bytes.is_empty() {
+            vec![&[][..]]
+        } else {
+            bytes.chunks(50).collect()
+        };
+        // Multi-chunk texts share a non-zero id (MAVLink STATUSTEXT chunking).
+        let id = if chunks.len() > 1 {
+            (self.now_ns() as u16).max(1)
+        } else {
+            0
+        };
+        for (i, c) in chunks.iter().enumerate() {
+            let mut text = [0u8; 50];
+            text[..c.len()].copy_from_slice(c);
+            let m = MavMessage::STATUSTEXT(STATUSTEXT_DATA {
+                severity,
+                text: mavlink::types::CharArray::new(text),
+                id,
+                chunk_seq: i as u8,
+            });
+            self.send(&m).await?;
+        }
+        Ok(())
+    }
+
+    fn send_time(&self, est: &NavEstimate) -> Option<SendTime> {
+        let now_ns = self.now_ns();
+        let st = lock(&self.state);
+        let t_boot_us = st.timesync.to_autopilot_us(now_ns)?;
+        // Fallback UTC: the companion's system clock (used when the autopilot has no clock).
+        let companion_unix_minus_boot = Some(unix_now_us() as i128 - t_boot_us as i128);
+        Some(SendTime {
+            t_boot_us,
+            unix_us: st.utc.unix_us(t_boot_us, companion_unix_minus_boot),
+            validity_companion_us: st
+                .timesync
+                .to_companion_ns(est.t_boot_us)
+                .and_then(|ns| u64::try_from(ns / 1000).ok()),
+        })
+    }
+
+    async fn inject(
+        &self,
+        est: &NavEstimate,
+    ) -> Vec<(OutputMode, Result<&'static str, InjectError>)> {
+        self.health_text(&est.health).await;
+        let mut results = Vec::new();
+        let Some(now) = self.send_time(est) else {
+            self.metrics
+                .inject_refused
+                .fetch_add(self.out.modes.len() as u64, Ordering::Relaxed);
+            return self
+                .out
+                .modes
+                .iter()
+                .map(|m| (*m, Err(InjectError::NoCompanionTime)))
+                .collect();
+        };
+        let target = self.target().unwrap_or((1, 1));
+        let needs_origin = self
+            .out
+            .modes
+            .iter()
+            .any(|m| matches!(m, OutputMode::VisionPositionEstimate | OutputMode::Odometry));
+        let origin = if needs_origin {
+            self.ensure_origin(est, &now, target.0).await
+        } else {
+            None
+        };
+        for mode in self.out.modes.clone() {
+            let built = match mode {
+                OutputMode::GpsInput => match (&est.health, self.out.on_lost) {
+                    (Health::Lost { .. }, OnLost::NoFix) => {
+                        inject::gps_input_no_fix(&now, &self.out)
+                    }
+                    _ => inject::gps_input(est, &now, &self.out),
+                },
+                OutputMode::VisionPositionEstimate => origin
+                    .ok_or(InjectError::NoOrigin)
+                    .and_then(|o| inject::vision_position_estimate(est, &now, &o, &self.out)),
+                OutputMode::Odometry => origin
+                    .ok_or(InjectError::NoOrigin)
+                    .and_then(|o| inject::odometry(est, &now, &o, &self.out)),
+                OutputMode::GlobalPositionSensor => {
+                    inject::global_position_sensor(est, &now, target, &self.out)
+                }
+            };
+            let r = match built {
+                Ok(m) => {
+                    let name = m.message_name();
+                    match self.send(&m).await {
+                        Ok(()) => {
+                            self.metrics.injected.fetch_add(1, Ordering::Relaxed);
+                            Ok(name)
+                        }
+                        Err(e) => {
+                            debug!("inject {name}: {e}");
+                            Err(InjectError::NotSent {
+                                reason: e.to_string(),
+                            })
+                        }
+                    }
+                }
+                Err(e) => {
+                    self.metrics.inject_refused.fetch_add(1, Ordering::Relaxed);
+                    debug!("inject {mode:?} refused: {e}");
+                    Err(e)
+                }
+            };
+            results.push((mode, r));
+        }
+        results
+    }
+
+    /// The EKF origin for local positions: the autopilot's, or (with `output.set_origin`) one we
+    /// set from a healthy estimate with SET_GPS_GLOBAL_ORIGIN (sent up to 3 times until echoed).
+    async fn ensure_origin(
+        &self,
+        est: &NavEstimate,
+        now: &SendTime,
+        target_sys: u8,
+    ) -> Option<GeoOrigin> {
+        let (origin, resend) = {
+            let mut st = lock(&self.state);
+            if st.origin.is_none()
+                && self.out.set_origin
+                && est.health == Health::Ok
+                && inject::check_estimate(est).is_ok()
+            {
+                st.origin = Some(GeoOrigin {
+                    lat_deg: est.lat_deg,
+                    lon_deg: est.lon_deg,
+                    alt_amsl_m: est.alt_amsl_m,
+                });
+            }
+            let resend = !st.origin_from_autopilot && st.origin.is_some() && st.origin_sent < 3;
+            if resend {
+                st.origin_sent += 1;
+            }
+            (st.origin, resend)
+        };
+        if resend && let Some(o) = origin {
+            match inject::set_gps_global_origin(&o, target_sys, now.unix_us) {
+                Ok(m) => {
+                    if let Err(e) = self.send(&m).await {
+                        debug!("SET_GPS_GLOBAL_ORIGIN: {e}");
+                    }
+                }
+                Err(e) => warn!("SET_GPS_GLOBAL_ORIGIN refused: {e}"),
+            }
+        }
+        self.publish_status();
+        origin
+    }
+
+    async fn health_text(&self, h: &Health) {
+        let text = match h {
+            Health::Ok => "visnav: navigation OK".to_string(),
+            Health::Degraded { reason } => format!("visnav: navigation degraded: {reason}"),
+            Health::Lost { reason } => format!("visnav: navigation lost: {reason}"),
+        };
+        let changed = {
+            let mut st = lock(&self.state);
+            let c = st.last_health.as_deref() != Some(text.as_str());
+            st.last_health = Some(text.clone());
+            c
+        };
+        if changed {
+            let sev = match h {
+                Health::Ok => MavSeverity::MAV_SEVERITY_INFO,
+                Health::Degraded { .. } => MavSeverity::MAV_SEVERITY_WARNING,
+                Health::Lost { .. } => MavSeverity::MAV_SEVERITY_CRITICAL,
+            };
+            let _ = self.status_text(sev, &text).await;
+        }
+    }
+
+    fn record_rx(&self, raw: &MAVLinkMessageRaw) {
+        self.metrics.rx_packets.fetch_add(1, Ordering::Relaxed);
+        let bytes = match raw {
+            MAVLinkMessageRaw::V1(m) => m.raw_bytes(),
+            MAVLinkMessageRaw::V2(m) => m.raw_bytes(),
+        };
+        if let Some(t) = lock(&self.tlog).as_mut()
+            && let Err(e) = t.write(unix_now_us(), bytes)
+        {
+            warn!("tlog write failed: {e}");
+        }
+    }
+
+    /// Handle one message. Returns texts to send as STATUSTEXT and replies to send.
+    async fn handle(&self, header: MavHeader, msg: MavMessage, t_ns: i64) {
+        let Ok(sys) = u8::try_from(header.system_id) else {
+            return;
+        };
+        // Lock-on.
+        let mut texts: Vec<(MavSeverity, String)> = Vec::new();
+        if let MavMessage::HEARTBEAT(hb) = &msg {
+            let is_autopilot = hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
+                && !matches!(
+                    hb.mavtype,
+                    MavType::MAV_TYPE_GCS | MavType::MAV_TYPE_ONBOARD_CONTROLLER
+                );
+            let mut st = lock(&self.state);
+            if st.autopilot.is_none()
+                && is_autopilot
+                && self.cfg.autopilot_system_id.is_none_or(|s| s == sys)
+            {
+                let info = AutopilotInfo {
+                    system_id: sys,
+                    component_id: header.component_id,
+                    autopilot: hb.autopilot,
+                    vehicle: hb.mavtype,
+                };
+                info!(?info, "locked onto autopilot");
+                st.autopilot = Some(info);
+                st.streams_dirty = true;
+                texts.push((
+                    MavSeverity::MAV_SEVERITY_INFO,
+                    format!("visnav: linked to {:?} sys {sys}", hb.autopilot)
+                        .replace("MAV_AUTOPILOT_", ""),
+                ));
+            }
+        }
+        let Some(ap) = self.target() else { return };
+        if sys != ap.0 || header.component_id != ap.1 {
+            return;
+        }
+        self.metrics.rx_autopilot.fetch_add(1, Ordering::Relaxed);
+        let mut reply = None;
+        let mut rebooted = false;
+        {
+            let mut st = lock(&self.state);
+            st.rates.record(msg.message_id(), t_ns as f64 * 1e-9);
+            let boot_ms = match &msg {
+                MavMessage::HEARTBEAT(_) => {
+                    st.last_heartbeat = Some(Instant::now());
+                    None
+                }
+                MavMessage::SYSTEM_TIME(m) => {
+                    st.utc.observe_system_time(m.time_unix_usec, m.time_boot_ms);
+                    Some(m.time_boot_ms)
+                }
+                MavMessage::ATTITUDE(m) => Some(m.time_boot_ms),
+                MavMessage::GLOBAL_POSITION_INT(m) => Some(m.time_boot_ms),
+                MavMessage::SCALED_IMU(m) => Some(m.time_boot_ms),
+                MavMessage::SCALED_PRESSURE(m) => Some(m.time_boot_ms),
+                MavMessage::TIMESYNC(m) => {
+                    if m.tc1 == 0 {
+                        // The autopilot's own time sync request: answer with our clock.
+                        reply = Some(MavMessage::TIMESYNC(TIMESYNC_DATA {
+                            tc1: self.now_ns(),
+                            ts1: m.ts1,
+                            target_system: ap.0,
+                            target_component: ap.1,
+                        }));
+                    } else if let Some(i) = st.pending_ts1.iter().position(|t| *t == m.ts1) {
+                        st.pending_ts1.drain(..=i);
+                        let u = st.timesync.update(TimesyncSample {
+                            sent_companion_ns: m.ts1,
+                            autopilot_ns: m.tc1,
+                            received_companion_ns: t_ns,
+                        });
+                        if u == SyncUpdate::Reboot {
+                            rebooted = true;
+                        } else if u == SyncUpdate::Accepted {
+                            self.metrics.timesync_rtt_us.store(
+                                (st.timesync.last_rtt_ns / 1000.0) as u64,
+                                Ordering::Relaxed,
+                            );
+                        }
+                    }
+                    None
+                }
+                MavMessage::GPS_GLOBAL_ORIGIN(m) => {
+                    let o = GeoOrigin {
+                        lat_deg: f64::from(m.latitude) * 1e-7,
+                        lon_deg: f64::from(m.longitude) * 1e-7,
+                        alt_amsl_m: f64::from(m.altitude) * 1e-3,
+                    };
+                    if st.origin != Some(o) {
+                        info!(?o, "autopilot EKF origin");
+                    }
+                    st.origin = Some(o);
+                    st.origin_from_autopilot = true;
+                    None
+                }
+                MavMessage::COMMAND_ACK(m) => {
+                    debug!(command = ?m.command, result = ?m.result, "COMMAND_ACK");
+                    None
+                }
+                _ => None,
+            };
+            if let Some(ms) = boot_ms
+                && st.timesync.observe_boot_time(u64::from(ms) * 1000)
+            {
+                rebooted = true;
+            }
+            if rebooted {
+                st.utc.reset();
+                st.rates.clear();
+                st.streams_dirty = true;
+                if !st.origin_from_autopilot || self.out.set_origin {
+                    st.origin_sent = 0;
+                }
+                st.origin_from_autopilot = false;
+            }
+        }
+        if rebooted {
+            self.metrics.reboots.fetch_add(1, Ordering::Relaxed);
+            warn!("autopilot rebooted (its clock went backwards); time sync and streams reset");
+            texts.push((
+                MavSeverity::MAV_SEVERITY_WARNING,
+                "visnav: autopilot reboot detected, resyncing".into(),
+            ));
+        }
+        if let Some(r) = reply {
+            let _ = self.send(&r).await;
+        }
+        self.publish_status();
+        let t_boot_us = lock(&self.state).timesync.to_autopilot_us(t_ns);
+        let _ = self.telemetry.send(Telemetry {
+            t_companion_ns: t_ns,
+            t_boot_us,
+            header,
+            msg,
+        });
+        for (sev, t) in texts {
+            let _ = self.status_text(sev, &t).await;
+        }
+    }
+
+    fn set_message_interval(&self, target: (u8, u8), id: u32, hz: f64) -> MavMessage {
+        MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            param1: id as f32,
+            param2: (1e6 / hz) as f32,
+            target_system: target.0,
+            target_component: target.1,
+            command: MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+            ..COMMAND_LONG_DATA::DEFAULT
+        })
+    }
+
+    /// One stream-manager step: request everything when dirty, else re-request streams below rate.
+    async fn manage_streams(&self, specs: &[StreamSpec]) {
+        let Some(target) = self.target() else { return };
+        let (dirty, statuses) = {
+            let mut st = lock(&self.state);
+            let dirty = std::mem::replace(&mut st.streams_dirty, false);
+            if dirty {
+                st.stream_checks = 0;
+            } else {
+                st.stream_checks += 1;
+            }
+            let t = self.now_ns() as f64 * 1e-9;
+            let statuses =
+                streams::evaluate(specs, &mut st.rates, t, self.cfg.streams.min_rate_fraction);
+            (dirty, statuses)
+        };
+        let mut requests = Vec::new();
+        if dirty {
+            for s in specs {
+                requests.push((s.ids[0], s.hz));
+            }
+            requests.push((ids::GPS_GLOBAL_ORIGIN, 0.0)); // 0.0: one-shot REQUEST_MESSAGE
+        } else {
+            for (s, stat) in specs.iter().zip(&statuses) {
+                if !stat.ok {
+                    // The preferred id is missing: ask for the alternatives too.
+                    for id in &s.ids {
+                        requests.push((*id, s.hz));
+                    }
+                }
+            }
+            let all_ok = statuses.iter().all(|s| s.ok);
+            let was_ok = self.status.borrow().streams_ok;
+            if all_ok != was_ok || self.status.borrow().streams != statuses {
+                self.status.send_modify(|s| {
+                    s.streams_ok = all_ok;
+                    s.streams = statuses.clone();
+                });
+            }
+            if all_ok && !was_ok {
+                let _ = self
+                    .status_text(
+                        MavSeverity::MAV_SEVERITY_INFO,
+                        "visnav: telemetry streams OK",
+                    )
+                    .await;
+            } else if !all_ok && was_ok {
+                let missing: Vec<&str> =
+                    statuses.iter().filter(|s| !s.ok).map(|s| s.name).collect();
+                let _ = self
+                    .status_text(
+                        MavSeverity::MAV_SEVERITY_WARNING,
+                        &format!("visnav: streams low: {}", missing.join(",")),
+                    )
+                    .await;
+            }
+        }
+        for (id, hz) in requests {
+            let m = if hz > 0.0 {
+                self.set_message_interval(target, id, hz)
+            } else {
+                MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                    param1: id as f32,
+                    target_system: target.0,
+                    target_component: target.1,
+                    command: MavCmd::MAV_CMD_REQUEST_MESSAGE,
+                    ..COMMAND_LONG_DATA::DEFAULT
+                })
+            };
+            if let Err(e) = self.send(&m).await {
+                debug!("stream request: {e}");
+            }
+        }
+    }
+}
+
+/// Resolves on the first SIGINT or SIGTERM (Unix) / Ctrl-C (elsewhere): the daemon selects on it
+/// and then calls [`Link::shutdown`], which stops the tasks and flushes the .tlog.
+pub async fn shutdown_signal() -> std::io::Result<&'static str> {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{SignalKind, signal};
+        let mut term = signal(SignalKind::terminate())?;
+        let mut int = signal(SignalKind::interrupt())?;
+        tokio::select! {
+            _ = term.recv() => Ok("SIGTERM"),
+            _ = int.recv() => Ok("SIGINT"),
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        tokio::signal::ctrl_c().await.map(|()| "Ctrl-C")
+    }
+}
+
+async fn supervise(shared: Arc<Shared>, mut stop: watch::Receiver<bool>) {
+    let min = Duration::from_secs_f64(shared.cfg.reconnect_min_s);
+    let max = Duration::from_secs_f64(shared.cfg.reconnect_max_s);
+    let mut backoff = min;
+    loop {
+        if *stop.borrow() {
+            return;
+        }
+        let addr = shared.cfg.connection.clone();
+        let connected = tokio::select! {
+            c = mavlink::connect_async::<MavMessage>(&addr) => c,
+            _ = stop.changed() => return,
+        };
+        match connected {
+            Ok(mut conn) => {
+                conn.set_allow_recv_any_version(true);
+                if let Some(s) = &shared.signing_in {
+                    conn.setup_signing(Some(s.clone()));
+                }
+                shared.metrics.connects.fetch_add(1, Ordering::Relaxed);
+                info!(%addr, "connected");
+                let started = Instant::now();
+                run_connection(&shared, Arc::new(conn), &mut stop).await;
+                *lock(&shared.conn) = None;
+                {
+                    let mut st = lock(&shared.state);
+                    st.last_heartbeat = None;
+                    st.streams_dirty = true;
+                    st.rates.clear();
+                    st.pending_ts1.clear();
+                }
+                shared.publish_status();
+                if *stop.borrow() {
+                    return;
+                }
+                if started.elapsed() > max {
+                    backoff = min;
+                }
+            }
+            Err(e) => {
+                warn!(%addr, "cannot connect: {e}; retrying in {:.1} s", backoff.as_secs_f64())
+            }
+        }
+        tokio::select! {
+            _ = tokio::time::sleep(backoff) => {}
+            _ = stop.changed() => return,
+        }
+        backoff = (backoff * 2).min(max);
+    }
+}
+
+async fn run_connection(shared: &Arc<Shared>, conn: Arc<Conn>, stop: &mut watch::Receiver<bool>) {
+    *lock(&shared.conn) = Some(conn.clone());
+    shared.publish_status();
+    let periodic = tokio::spawn(periodic_loop(shared.clone()));
+    let rx = async {
+        loop {
+            match conn.recv_raw().await {
+                Ok(raw) => {
+                    let t_ns = shared.now_ns();
+                    shared.record_rx(&raw);
+                    let Ok(msg) = MavMessage::parse(raw.version(), raw.message_id(), raw.payload())
+                    else {
+                        continue;
+                    };
+                    let header = MavHeader {
+                        system_id: raw.system_id(),
+                        component_id: raw.component_id(),
+                        sequence: raw.sequence(),
+                    };
+                    shared.handle(header, msg, t_ns).await;
+                }
+                Err(MessageReadError::Io(e)) => {
+                    warn!("connection lost: {e}");
+                    return;
+                }
+                Err(MessageReadError::Parse(e)) => debug!("dropped a packet: {e}"),
+            }
+        }
+    };
+    // Stream transports (TCP, serial) can stay open while the autopilot is gone (half-open TCP,
+    // a rebooted USB bridge): reopen them after 3 heartbeat timeouts of silence.
+    let stream_transport = !shared.cfg.connection.starts_with("udp");
+    let watchdog = async {
+        loop {
+            tokio::time::sleep(Duration::from_millis(250)).await;
+            let silent_s = lock(&shared.state)
+                .last_heartbeat
+                .map(|h| h.elapsed().as_secs_f64());
+            if stream_transport
+                && silent_s.is_some_and(|s| s > 3.0 * shared.cfg.heartbeat_timeout_s)
+            {
+                warn!("no autopilot heartbeat on the open connection; reconnecting");
+                return;
+            }
+        }
+    };
+    tokio::select! {
+        _ = rx => {}
+        _ = watchdog => {}
+        _ = stop.changed() => {}
+    }
+    periodic.abort();
+    let _ = periodic.await;
+}
+
+/// Heartbeat, TIMESYNC requests, liveness and stream management on one timer.
+async fn periodic_loop(shared: Arc<Shared>) {
+    let specs = streams::wanted_streams(&shared.cfg.streams);
+    let tick_s = 0.05;
+    let mut tick = tokio::time::interval(Duration::from_secs_f64(tick_s));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let hb_every = 1.0 / shared.cfg.heartbeat_hz;
+    let ts_every = 1.0 / shared.cfg.timesync_hz;
+    let (mut next_hb, mut next_ts, mut next_streams) = (0.0, 0.0, 0.5);
+    let start = Instant::now();
+    let mut was_alive = false;
+    loop {
+        tick.tick().await;
+        let t = start.elapsed().as_secs_f64();
+        if t >= next_hb {
+            next_hb = t + hb_every;
+            let hb = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                custom_mode: 0,
+                mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+                autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+                base_mode: MavModeFlag::empty(),
+                system_status: MavState::MAV_STATE_ACTIVE,
+                mavlink_version: 3,
+            });
+            let _ = shared.send(&hb).await;
+            let alive = lock(&shared.state)
+                .last_heartbeat
+                .is_some_and(|h| h.elapsed().as_secs_f64() < shared.cfg.heartbeat_timeout_s);
+            if was_alive && !alive {
+                warn!("autopilot heartbeat lost");
+            }
+            was_alive = alive;
+            shared.publish_status();
+        }
+        if t >= next_ts {
+            next_ts = t + ts_every;
+            if let Some(target) = shared.target() {
+                let ts1 = shared.now_ns();
+                {
+                    let mut st = lock(&shared.state);
+                    st.pending_ts1.push(ts1);
+                    let n = st.pending_ts1.len();
+                    if n > 16 {
+                        st.pending_ts1.drain(..n - 16);
+                    }
+                }
+                let m = MavMessage::TIMESYNC(TIMESYNC_DATA {
+                    tc1: 0,
+                    ts1,
+                    target_system: target.0,
+                    target_component: target.1,
+                });
+                let _ = shared.send(&m).await;
+            }
+        }
+        let dirty = lock(&shared.state).streams_dirty;
+        if t >= next_streams || (dirty && shared.target().is_some()) {
+            next_streams = t + 2.0;
+            shared.manage_streams(&specs).await;
+        }
+    }
+}

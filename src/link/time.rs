@@ -1,0 +1,379 @@
+//! Time: mapping the companion's monotonic clock to the autopilot's boot time (TIMESYNC), UTC of
+//! the autopilot (SYSTEM_TIME), and GPS week / time of week.
+//!
+//! # Clock mapping
+//! The MAVLink TIMESYNC protocol (<https://mavlink.io/en/services/timesync.html>): we send
+//! `TIMESYNC{tc1 = 0, ts1 = t_c}` with `t_c` our monotonic time in ns; the autopilot answers
+//! `TIMESYNC{tc1 = t_a, ts1 = t_c}` with `t_a` its boot time in ns. Received at our time `t_r`,
+//! the round trip is `rtt = t_r - t_c` and, assuming a symmetric path, the offset sample is
+//! `o = t_a - (t_c + t_r) / 2`, so that `t_autopilot = t_companion + o`.
+//!
+//! The samples go through an alpha-beta filter on (offset, drift): prediction
+//! `o_pred = o + d (t - t_last)`, residual `r = o_meas - o_pred`, `o <- o_pred + alpha r`,
+//! `d <- d + beta r / dt`, with `alpha = max(1 / n, 0.05)` and `beta = alpha^2 / (2 - alpha)`
+//! (the critically damped alpha-beta pair). Samples whose round trip exceeds the configured
+//! limit are dropped; once converged, a residual above [`OUTLIER_NS`] is dropped unless three in
+//! a row agree (then the filter restarts: a step of the autopilot clock).
+//!
+//! # Reboot
+//! An autopilot reboot shows as its time going backwards: a TIMESYNC `tc1`, a HEARTBEAT-paced
+//! `time_boot_ms` (SYSTEM_TIME, ATTITUDE, ...) more than [`REBOOT_BACKSTEP_US`] below the last
+//! one. [`TimeSync::observe_boot_time`] reports it; the filter is then reset.
+//!
+//! # GPS time
+//! GPS time = UTC + leap seconds (18 s since 2017-01-01, [`GPS_LEAP_S`]), counted from the GPS
+//! epoch 1980-01-06 00:00:00 UTC (Unix 315 964 800 s); week = floor(t / 604 800 s),
+//! time of week = t mod 604 800 s.
+
+/// Unix time of the GPS epoch (1980-01-06T00:00:00Z), seconds.
+pub const GPS_EPOCH_UNIX_S: u64 = 315_964_800;
+/// GPS - UTC in seconds (valid since 2017-01-01; no leap second announced since).
+pub const GPS_LEAP_S: u64 = 18;
+/// Seconds in a GPS week.
+pub const WEEK_S: u64 = 604_800;
+/// After convergence, TIMESYNC residuals larger than this are outliers (ns).
+pub const OUTLIER_NS: f64 = 10e6;
+/// The autopilot's time going back by more than this means it rebooted (µs).
+pub const REBOOT_BACKSTEP_US: u64 = 1_000_000;
+/// Accepted samples before the mapping is considered usable.
+pub const CONVERGED_AFTER: u32 = 4;
+
+/// GPS week number and time of week in milliseconds for a Unix time in microseconds.
+/// `None` before the GPS epoch.
+pub fn gps_week_ms(unix_us: u64) -> Option<(u16, u32)> {
+    let gps_us = unix_us.checked_sub(GPS_EPOCH_UNIX_S * 1_000_000)? + GPS_LEAP_S * 1_000_000;
+    let week = gps_us / (WEEK_S * 1_000_000);
+    let tow_ms = (gps_us % (WEEK_S * 1_000_000)) / 1000;
+    Some((u16::try_from(week).ok()?, tow_ms as u32)) // ok: tow_ms < 604_800_000 < u32::MAX
+}
+
+/// Earliest plausible Unix time of a real clock (2020-01-01); earlier means "clock not set".
+pub const PLAUSIBLE_UNIX_US: u64 = 1_577_836_800_000_000;
+
+/// One TIMESYNC round trip, all in nanoseconds.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TimesyncSample {
+    /// Our monotonic time when the request left (echoed back as `ts1`).
+    pub sent_companion_ns: i64,
+    /// The autopilot's boot time in the reply (`tc1`).
+    pub autopilot_ns: i64,
+    /// Our monotonic time when the reply arrived.
+    pub received_companion_ns: i64,
+}
+
+/// What one sample did to the filter.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SyncUpdate {
+    /// Used.
+    Accepted,
+    /// Round trip too long, negative, or an outlier.
+    Rejected,
+    /// The autopilot's time went backwards: it rebooted; the filter was reset.
+    Reboot,
+}
+
+/// Filtered companion-monotonic -> autopilot-boot clock mapping (see module docs).
+#[derive(Debug, Clone)]
+pub struct TimeSync {
+    max_rtt_ns: f64,
+    offset_ns: f64,
+    drift: f64,
+    t_last_ns: i64,
+    n: u32,
+    outliers_in_row: u32,
+    last_autopilot_us: Option<u64>,
+    /// Last accepted round-trip time, ns.
+    pub last_rtt_ns: f64,
+    /// Number of reboots detected.
+    pub reboots: u32,
+}
+
+impl TimeSync {
+    /// A filter that drops round trips longer than `max_rtt_ms`.
+    pub fn new(max_rtt_ms: f64) -> Self {
+        Self {
+            max_rtt_ns: max_rtt_ms * 1e6,
+            offset_ns: 0.0,
+            drift: 0.0,
+            t_last_ns: 0,
+            n: 0,
+            outliers_in_row: 0,
+            last_autopilot_us: None,
+            last_rtt_ns: f64::NAN,
+            reboots: 0,
+        }
+    }
+
+    /// Forget the mapping (after a reboot or a reconnect).
+    pub fn reset(&mut self) {
+        let (max, reboots) = (self.max_rtt_ns, self.reboots);
+        *self = Self::new(max / 1e6);
+        self.reboots = reboots;
+    }
+
+    /// True once enough samples agree.
+    pub fn converged(&self) -> bool {
+        self.n >= CONVERGED_AFTER
+    }
+
+    /// Number of accepted samples since the last reset.
+    pub fn samples(&self) -> u32 {
+        self.n
+    }
+
+    /// Estimated offset (autopilot - companion) at companion time `t_ns`, in ns.
+    pub fn offset_ns_at(&self, t_ns: i64) -> Option<f64> {
+        self.converged()
+            .then(|| self.offset_ns + self.drift * (t_ns - self.t_last_ns) as f64)
+    }
+
+    /// Estimated drift of the autopilot's clock relative to ours (dimensionless, 1e-6 = 1 ppm).
+    pub fn drift(&self) -> f64 {
+        self.drift
+    }
+
+    /// Autopilot boot time in µs at companion monotonic time `t_ns`; `None` until converged or if
+    /// the result would be before the autopilot's boot.
+    pub fn to_autopilot_us(&self, t_ns: i64) -> Option<u64> {
+        let a_ns = t_ns as f64 + self.offset_ns_at(t_ns)?;
+        (a_ns.is_finite() && a_ns >= 0.0).then(|| (a_ns / 1000.0).round() as u64)
+    }
+
+    /// Companion monotonic time in ns of autopilot boot time `t_boot_us` (inverse mapping).
+    pub fn to_companion_ns(&self, t_boot_us: u64) -> Option<i64> {
+        if !self.converged() {
+            return None;
+        }
+        // t_a = t_c + o + d (t_c - t_last)  =>  t_c = (t_a - o + d t_last) / (1 + d)
+        let a = t_boot_us as f64 * 1000.0;
+        let c = (a - self.offset_ns + self.drift * self.t_last_ns as f64) / (1.0 + self.drift);
+        c.is_finite().then(|| c.round() as i64)
+    }
+
+    /// Note an autopilot boot time seen in any message (`time_boot_ms * 1000`, TIMESYNC tc1 / 1000).
+    /// Returns true (and resets the filter) when it went backwards: the autopilot rebooted.
+    pub fn observe_boot_time(&mut self, t_boot_us: u64) -> bool {
+        let reboot =
+            matches!(self.last_autopilot_us, Some(last) if t_boot_us + REBOOT_BACKSTEP_US < last);
+        if reboot {
+            let reboots = self.reboots + 1;
+            self.reset();
+            self.reboots = reboots;
+        }
+        self.last_autopilot_us = Some(match self.last_autopilot_us {
+            Some(last) if !reboot => last.max(t_boot_us),
+            _ => t_boot_us,
+        });
+        reboot
+    }
+
+    /// Feed one TIMESYNC round trip.
+    pub fn update(&mut self, s: TimesyncSample) -> SyncUpdate {
+        if s.autopilot_ns > 0 && self.observe_boot_time((s.autopilot_ns / 1000) as u64) {
+            return SyncUpdate::Reboot;
+        }
+        let rtt = (s.received_companion_ns - s.sent_companion_ns) as f64;
+        if !(0.0..=self.max_rtt_ns).contains(&rtt) || s.autopilot_ns <= 0 {
+            return SyncUpdate::Rejected;
+        }
+        let t = s.sent_companion_ns / 2 + s.received_companion_ns / 2;
+        let measured = s.autopilot_ns as f64 - t as f64;
+        if self.n == 0 {
+            self.offset_ns = measured;
+            self.drift = 0.0;
+            self.t_last_ns = t;
+            self.n = 1;
+            self.last_rtt_ns = rtt;
+            return SyncUpdate::Accepted;
+        }
+        let dt = (t - self.t_last_ns) as f64;
+        if dt <= 0.0 {
+            return SyncUpdate::Rejected;
+        }
+        let predicted = self.offset_ns + self.drift * dt;
+        let r = measured - predicted;
+        if self.converged() && r.abs() > OUTLIER_NS.max(rtt) {
+            self.outliers_in_row += 1;
+            if self.outliers_in_row >= 3 {
+                // The autopilot's clock stepped: start over from this sample.
+                let (reboots, last) = (self.reboots, self.last_autopilot_us);
+                self.reset();
+                self.reboots = reboots;
+                self.last_autopilot_us = last;
+                return self.update(s);
+            }
+            return SyncUpdate::Rejected;
+        }
+        self.outliers_in_row = 0;
+        let alpha = (1.0 / (self.n as f64 + 1.0)).max(0.05);
+        let beta = alpha * alpha / (2.0 - alpha);
+        self.offset_ns = predicted + alpha * r;
+        // Drift is only meaningful over a useful baseline; clamp to +-500 ppm (crystal clocks).
+        self.drift = (self.drift + beta * r / dt).clamp(-5e-4, 5e-4);
+        self.t_last_ns = t;
+        self.n += 1;
+        self.last_rtt_ns = rtt;
+        SyncUpdate::Accepted
+    }
+}
+
+/// Maps autopilot boot time to Unix time: from SYSTEM_TIME (`time_unix_usec` at `time_boot_ms`)
+/// when the autopilot has a real clock, else from the companion's system clock through the
+/// TIMESYNC mapping.
+#[derive(Debug, Clone, Default)]
+pub struct UtcMap {
+    /// Unix µs minus boot µs, from the autopilot's SYSTEM_TIME.
+    autopilot_offset_us: Option<i128>,
+}
+
+impl UtcMap {
+    /// Feed a SYSTEM_TIME message. Ignored when the autopilot's clock is not set.
+    pub fn observe_system_time(&mut self, time_unix_usec: u64, time_boot_ms: u32) {
+        if time_unix_usec >= PLAUSIBLE_UNIX_US {
+            self.autopilot_offset_us =
+                Some(time_unix_usec as i128 - i128::from(time_boot_ms) * 1000);
+        }
+    }
+
+    /// Forget the autopilot's clock (reboot).
+    pub fn reset(&mut self) {
+        self.autopilot_offset_us = None;
+    }
+
+    /// True if the autopilot reported a real clock.
+    pub fn from_autopilot(&self) -> bool {
+        self.autopilot_offset_us.is_some()
+    }
+
+    /// Unix µs of autopilot time `t_boot_us`. `companion_unix_minus_boot_us` is the fallback
+    /// (companion system clock minus the mapped boot time), used when the autopilot has no clock.
+    /// `None` when neither is plausible.
+    pub fn unix_us(
+        &self,
+        t_boot_us: u64,
+        companion_unix_minus_boot_us: Option<i128>,
+    ) -> Option<u64> {
+        let off = self.autopilot_offset_us.or(companion_unix_minus_boot_us)?;
+        let u = off + t_boot_us as i128;
+        u64::try_from(u).ok().filter(|u| *u >= PLAUSIBLE_UNIX_US)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    #[test]
+    fn gps_week_of_known_dates() {
+        // 2024-01-01T00:00:00Z (a Monday): week 2295 began Sunday 2023-12-31; TOW = 1 day + 18 s.
+        assert_eq!(gps_week_ms(1_704_067_200_000_000), Some((2295, 86_418_000)));
+        // The GPS epoch itself: week 0, TOW = 18 s (the leap seconds we add).
+        assert_eq!(gps_week_ms(GPS_EPOCH_UNIX_S * 1_000_000), Some((0, 18_000)));
+        assert_eq!(gps_week_ms(0), None);
+        // Sub-millisecond truncation.
+        assert_eq!(gps_week_ms(1_704_067_200_000_999), Some((2295, 86_418_000)));
+    }
+
+    fn feed(ts: &mut TimeSync, offset_ns: f64, drift: f64, from_s: i64, n: i64, rtt_ns: i64) {
+        for k in 0..n {
+            let sent = (from_s + k) * 1_000_000_000 / 2;
+            let mid = sent + rtt_ns / 2;
+            let a = mid as f64 + offset_ns + drift * mid as f64;
+            ts.update(TimesyncSample {
+                sent_companion_ns: sent,
+                autopilot_ns: a as i64,
+                received_companion_ns: sent + rtt_ns,
+            });
+        }
+    }
+
+    #[test]
+    fn converges_to_offset_and_drift() {
+        let mut ts = TimeSync::new(50.0);
+        assert!(ts.to_autopilot_us(0).is_none());
+        // Autopilot 12.3 s ahead, running 40 ppm fast; 2 Hz samples for 200 s, 3 ms round trip.
+        feed(&mut ts, 12.3e9, 40e-6, 0, 400, 3_000_000);
+        assert!(ts.converged());
+        let t = 200_000_000_000i64;
+        let truth_us = (t as f64 + 12.3e9 + 40e-6 * t as f64) / 1000.0;
+        let got = ts.to_autopilot_us(t).unwrap() as f64;
+        assert!((got - truth_us).abs() < 50.0, "error {} us", got - truth_us);
+        assert!((ts.drift() - 40e-6).abs() < 5e-6, "drift {}", ts.drift());
+        // Inverse.
+        let back = ts.to_companion_ns(got as u64).unwrap();
+        assert!((back - t).abs() < 2_000, "{back} vs {t}");
+    }
+
+    #[test]
+    fn long_round_trips_and_outliers_are_rejected() {
+        let mut ts = TimeSync::new(20.0);
+        assert_eq!(
+            ts.update(TimesyncSample {
+                sent_companion_ns: 0,
+                autopilot_ns: 5_000_000_000,
+                received_companion_ns: 30_000_000,
+            }),
+            SyncUpdate::Rejected
+        );
+        feed(&mut ts, 1e9, 0.0, 0, 20, 1_000_000);
+        let before = ts.to_autopilot_us(20_000_000_000).unwrap();
+        // One sample 200 ms off: rejected, mapping unchanged.
+        let u = ts.update(TimesyncSample {
+            sent_companion_ns: 10_500_000_000,
+            autopilot_ns: 11_700_000_000,
+            received_companion_ns: 10_501_000_000,
+        });
+        assert_eq!(u, SyncUpdate::Rejected);
+        assert_eq!(ts.to_autopilot_us(20_000_000_000).unwrap(), before);
+    }
+
+    #[test]
+    fn reboot_is_detected_and_resets() {
+        let mut ts = TimeSync::new(50.0);
+        feed(&mut ts, 100e9, 0.0, 0, 10, 1_000_000);
+        assert!(ts.converged());
+        // The autopilot rebooted: its time is now small.
+        let u = ts.update(TimesyncSample {
+            sent_companion_ns: 6_000_000_000,
+            autopilot_ns: 2_000_000_000,
+            received_companion_ns: 6_001_000_000,
+        });
+        assert_eq!(u, SyncUpdate::Reboot);
+        assert_eq!(ts.reboots, 1);
+        assert!(!ts.converged());
+        // Re-converges on the new offset.
+        feed(&mut ts, -4e9, 0.0, 13, 10, 1_000_000);
+        let got = ts.to_autopilot_us(10_000_000_000).unwrap();
+        assert!((got as i64 - 6_000_000).abs() < 10, "{got}");
+        // A small backwards step (jitter) is not a reboot.
+        assert!(!ts.observe_boot_time(6_500_000));
+    }
+
+    #[test]
+    fn utc_map_prefers_autopilot_clock() {
+        let mut m = UtcMap::default();
+        assert_eq!(m.unix_us(1_000_000, None), None);
+        assert_eq!(
+            m.unix_us(1_000_000, Some(1_700_000_000_000_000)),
+            Some(1_700_000_001_000_000)
+        );
+        // Autopilot without a clock: ignored.
+        m.observe_system_time(5_000_000, 1000);
+        assert!(!m.from_autopilot());
+        m.observe_system_time(1_704_067_200_000_000, 2_000);
+        assert!(m.from_autopilot());
+        assert_eq!(m.unix_us(3_000_000, Some(0)), Some(1_704_067_201_000_000));
+    }
+
+    proptest! {
+        #[test]
+        fn gps_tow_is_in_range(unix_us in GPS_EPOCH_UNIX_S * 1_000_000..4_000_000_000_000_000u64) {
+            let (w, ms) = gps_week_ms(unix_us).unwrap();
+            prop_assert!(ms < 604_800_000);
+            let back = (w as u64 * WEEK_S * 1000 + ms as u64) * 1000
+                + GPS_EPOCH_UNIX_S * 1_000_000 - GPS_LEAP_S * 1_000_000;
+            prop_assert!(unix_us - back < 1000);
+        }
+    }
+}

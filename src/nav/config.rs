@@ -1,0 +1,452 @@
+//! Navigation filter configuration (the `[nav]` section of the main configuration).
+//!
+//! IMU noise and bias parameters are given in datasheet units and converted to SI by the
+//! accessor methods (`*_si`). Conversions: angle random walk `deg/sqrt(h)` -> `rad/sqrt(s)`:
+//! `x * pi/180 / 60`; velocity random walk `m/s/sqrt(h)` -> `m/s/sqrt(s)`: `x / 60`; bias
+//! `deg/h` -> `rad/s`: `x * pi/180 / 3600`; `ug` -> `m/s^2`: `x * 1e-6 * 9.80665`; bias random walk
+//! `deg/h/sqrt(h)` -> `rad/s/sqrt(s)`: `x * pi/180 / 3600 / 60`; `ug/sqrt(h)` -> `m/s^2/sqrt(s)`:
+//! `x * 9.80665e-6 / 60`.
+
+use crate::config::{Problems, Validate};
+use serde::{Deserialize, Serialize};
+
+/// Standard gravity used for `g` and `ug` units, m/s^2.
+pub const G0_M_S2: f64 = 9.806_65;
+/// deg/h -> rad/s.
+pub const DEG_H_TO_RAD_S: f64 = std::f64::consts::PI / 180.0 / 3600.0;
+/// micro-g -> m/s^2.
+pub const UG_TO_M_S2: f64 = 1e-6 * G0_M_S2;
+
+/// IMU error model in datasheet units (1-sigma values).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ImuNoiseConfig {
+    /// Gyro angle random walk, deg/sqrt(h).
+    pub gyro_arw_deg_sqrt_h: f64,
+    /// Gyro turn-on bias (initial uncertainty, 1 sigma per axis), deg/h.
+    pub gyro_bias_deg_h: f64,
+    /// Gyro bias instability (first-order Gauss-Markov sigma), deg/h.
+    pub gyro_bias_instability_deg_h: f64,
+    /// Correlation time of the gyro bias instability, s (the filter uses the short-term random
+    /// walk of that Gauss-Markov process, `q = 2 sigma^2 / tau`).
+    pub gyro_bias_corr_time_s: f64,
+    /// Gyro bias (rate) random walk, deg/h/sqrt(h).
+    pub gyro_bias_rw_deg_h_sqrt_h: f64,
+    /// Gyro scale-factor uncertainty (1 sigma per axis), ppm (used with 21 states).
+    pub gyro_scale_ppm: f64,
+    /// Accelerometer velocity random walk, m/s/sqrt(h).
+    pub accel_vrw_m_s_sqrt_h: f64,
+    /// Accelerometer turn-on bias (initial uncertainty, 1 sigma per axis), micro-g.
+    pub accel_bias_ug: f64,
+    /// Accelerometer bias instability (first-order Gauss-Markov sigma), micro-g.
+    pub accel_bias_instability_ug: f64,
+    /// Correlation time of the accelerometer bias instability, s (see the gyro's).
+    pub accel_bias_corr_time_s: f64,
+    /// Accelerometer bias random walk, micro-g/sqrt(h).
+    pub accel_bias_rw_ug_sqrt_h: f64,
+    /// Accelerometer scale-factor uncertainty (1 sigma per axis), ppm (used with 21 states).
+    pub accel_scale_ppm: f64,
+}
+
+impl Default for ImuNoiseConfig {
+    /// A tactical-grade MEMS IMU.
+    fn default() -> Self {
+        Self {
+            gyro_arw_deg_sqrt_h: 0.1,
+            gyro_bias_deg_h: 10.0,
+            gyro_bias_instability_deg_h: 0.5,
+            gyro_bias_corr_time_s: 300.0,
+            gyro_bias_rw_deg_h_sqrt_h: 0.0,
+            gyro_scale_ppm: 300.0,
+            accel_vrw_m_s_sqrt_h: 0.03,
+            accel_bias_ug: 100.0,
+            accel_bias_instability_ug: 10.0,
+            accel_bias_corr_time_s: 300.0,
+            accel_bias_rw_ug_sqrt_h: 0.0,
+            accel_scale_ppm: 300.0,
+        }
+    }
+}
+
+impl ImuNoiseConfig {
+    /// Gyro white-noise density, rad/sqrt(s) (= rad/s/sqrt(Hz)).
+    pub fn gyro_arw_si(&self) -> f64 {
+        self.gyro_arw_deg_sqrt_h.to_radians() / 60.0
+    }
+    /// Accelerometer white-noise density, m/s/sqrt(s).
+    pub fn accel_vrw_si(&self) -> f64 {
+        self.accel_vrw_m_s_sqrt_h / 60.0
+    }
+    /// Gyro turn-on bias sigma, rad/s.
+    pub fn gyro_bias_si(&self) -> f64 {
+        self.gyro_bias_deg_h * DEG_H_TO_RAD_S
+    }
+    /// Gyro bias instability sigma, rad/s.
+    pub fn gyro_bias_instability_si(&self) -> f64 {
+        self.gyro_bias_instability_deg_h * DEG_H_TO_RAD_S
+    }
+    /// Gyro bias random walk, rad/s/sqrt(s).
+    pub fn gyro_bias_rw_si(&self) -> f64 {
+        self.gyro_bias_rw_deg_h_sqrt_h * DEG_H_TO_RAD_S / 60.0
+    }
+    /// Accelerometer turn-on bias sigma, m/s^2.
+    pub fn accel_bias_si(&self) -> f64 {
+        self.accel_bias_ug * UG_TO_M_S2
+    }
+    /// Accelerometer bias instability sigma, m/s^2.
+    pub fn accel_bias_instability_si(&self) -> f64 {
+        self.accel_bias_instability_ug * UG_TO_M_S2
+    }
+    /// Accelerometer bias random walk, m/s^2/sqrt(s).
+    pub fn accel_bias_rw_si(&self) -> f64 {
+        self.accel_bias_rw_ug_sqrt_h * UG_TO_M_S2 / 60.0
+    }
+}
+
+impl Validate for ImuNoiseConfig {
+    fn validate(&self, p: &mut Problems) {
+        p.positive("gyro_arw_deg_sqrt_h", self.gyro_arw_deg_sqrt_h);
+        p.range("gyro_arw_deg_sqrt_h", self.gyro_arw_deg_sqrt_h, 0.0, 100.0);
+        p.range("gyro_bias_deg_h", self.gyro_bias_deg_h, 0.0, 36_000.0);
+        p.range(
+            "gyro_bias_instability_deg_h",
+            self.gyro_bias_instability_deg_h,
+            0.0,
+            36_000.0,
+        );
+        p.range(
+            "gyro_bias_corr_time_s",
+            self.gyro_bias_corr_time_s,
+            1.0,
+            1e7,
+        );
+        p.range(
+            "gyro_bias_rw_deg_h_sqrt_h",
+            self.gyro_bias_rw_deg_h_sqrt_h,
+            0.0,
+            1e4,
+        );
+        p.range("gyro_scale_ppm", self.gyro_scale_ppm, 0.0, 1e5);
+        p.positive("accel_vrw_m_s_sqrt_h", self.accel_vrw_m_s_sqrt_h);
+        p.range(
+            "accel_vrw_m_s_sqrt_h",
+            self.accel_vrw_m_s_sqrt_h,
+            0.0,
+            100.0,
+        );
+        p.range("accel_bias_ug", self.accel_bias_ug, 0.0, 1e6);
+        p.range(
+            "accel_bias_instability_ug",
+            self.accel_bias_instability_ug,
+            0.0,
+            1e6,
+        );
+        p.range(
+            "accel_bias_corr_time_s",
+            self.accel_bias_corr_time_s,
+            1.0,
+            1e7,
+        );
+        p.range(
+            "accel_bias_rw_ug_sqrt_h",
+            self.accel_bias_rw_ug_sqrt_h,
+            0.0,
+            1e6,
+        );
+        p.range("accel_scale_ppm", self.accel_scale_ppm, 0.0, 1e5);
+    }
+}
+
+/// Chi-square innovation gates: the probability mass accepted per measurement type (the
+/// threshold is the chi-square quantile of that probability for the measurement's dimension).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GateConfig {
+    /// Vision position fixes (3 dof).
+    pub vision_prob: f64,
+    /// GPS position (3 dof) and velocity (3 dof).
+    pub gps_prob: f64,
+    /// Barometric / AMSL altitude (1 dof).
+    pub altitude_prob: f64,
+    /// Autopilot attitude (3 dof).
+    pub attitude_prob: f64,
+}
+
+impl Default for GateConfig {
+    fn default() -> Self {
+        Self {
+            vision_prob: 0.9999,
+            gps_prob: 0.9999,
+            altitude_prob: 0.9999,
+            attitude_prob: 0.9999,
+        }
+    }
+}
+
+impl Validate for GateConfig {
+    fn validate(&self, p: &mut Problems) {
+        for (k, v) in [
+            ("vision_prob", self.vision_prob),
+            ("gps_prob", self.gps_prob),
+            ("altitude_prob", self.altitude_prob),
+            ("attitude_prob", self.attitude_prob),
+        ] {
+            p.range(k, v, 0.5, 0.999_999_9);
+        }
+    }
+}
+
+/// Initial uncertainties not given by the initialising measurements.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct InitConfig {
+    /// Roll/pitch uncertainty of the autopilot attitude used for initialisation, deg.
+    pub tilt_sigma_deg: f64,
+    /// Yaw uncertainty of the autopilot attitude used for initialisation, deg.
+    pub yaw_sigma_deg: f64,
+    /// Velocity uncertainty added to a velocity derived from two vision fixes, m/s.
+    pub vision_vel_sigma_m_s: f64,
+    /// Minimum spacing of the two vision fixes that give the initial velocity, s.
+    pub vision_init_min_dt_s: f64,
+    /// Maximum spacing of the two vision fixes that give the initial velocity, s.
+    pub vision_init_max_dt_s: f64,
+}
+
+impl Default for InitConfig {
+    fn default() -> Self {
+        Self {
+            tilt_sigma_deg: 1.0,
+            yaw_sigma_deg: 3.0,
+            vision_vel_sigma_m_s: 2.0,
+            vision_init_min_dt_s: 0.5,
+            vision_init_max_dt_s: 3.0,
+        }
+    }
+}
+
+impl Validate for InitConfig {
+    fn validate(&self, p: &mut Problems) {
+        p.positive("tilt_sigma_deg", self.tilt_sigma_deg);
+        p.range("tilt_sigma_deg", self.tilt_sigma_deg, 0.0, 45.0);
+        p.positive("yaw_sigma_deg", self.yaw_sigma_deg);
+        p.range("yaw_sigma_deg", self.yaw_sigma_deg, 0.0, 180.0);
+        p.positive("vision_vel_sigma_m_s", self.vision_vel_sigma_m_s);
+        p.range(
+            "vision_init_min_dt_s",
+            self.vision_init_min_dt_s,
+            0.05,
+            60.0,
+        );
+        p.range(
+            "vision_init_max_dt_s",
+            self.vision_init_max_dt_s,
+            0.05,
+            60.0,
+        );
+        if self.vision_init_max_dt_s < self.vision_init_min_dt_s {
+            p.push(
+                "vision_init_max_dt_s",
+                format!(
+                    "{} must be >= vision_init_min_dt_s ({})",
+                    self.vision_init_max_dt_s, self.vision_init_min_dt_s
+                ),
+            );
+        }
+    }
+}
+
+/// Health thresholds, divergence detection and reset.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct HealthConfig {
+    /// Horizontal position sigma above which health is `degraded`, m.
+    pub degraded_pos_sigma_m: f64,
+    /// Horizontal position sigma above which health is `lost`, m.
+    pub lost_pos_sigma_m: f64,
+    /// Time without an accepted position fix after which health is `degraded`, s.
+    pub degraded_no_fix_s: f64,
+    /// Time without an accepted position fix after which health is `lost`, s.
+    pub lost_no_fix_s: f64,
+    /// Consecutive gate rejections of position fixes that declare divergence and reset the
+    /// position/velocity onto the next fix.
+    pub divergence_reject_count: u32,
+    /// Velocity sigma after a divergence reset, m/s.
+    pub reset_vel_sigma_m_s: f64,
+    /// Health stays at least `degraded` this long after a reset, s.
+    pub reset_degraded_s: f64,
+}
+
+impl Default for HealthConfig {
+    fn default() -> Self {
+        Self {
+            degraded_pos_sigma_m: 15.0,
+            lost_pos_sigma_m: 100.0,
+            degraded_no_fix_s: 10.0,
+            lost_no_fix_s: 120.0,
+            divergence_reject_count: 5,
+            reset_vel_sigma_m_s: 5.0,
+            reset_degraded_s: 10.0,
+        }
+    }
+}
+
+impl Validate for HealthConfig {
+    fn validate(&self, p: &mut Problems) {
+        p.positive("degraded_pos_sigma_m", self.degraded_pos_sigma_m);
+        p.positive("lost_pos_sigma_m", self.lost_pos_sigma_m);
+        if self.lost_pos_sigma_m < self.degraded_pos_sigma_m {
+            p.push(
+                "lost_pos_sigma_m",
+                format!(
+                    "{} must be >= degraded_pos_sigma_m ({})",
+                    self.lost_pos_sigma_m, self.degraded_pos_sigma_m
+                ),
+            );
+        }
+        p.positive("degraded_no_fix_s", self.degraded_no_fix_s);
+        p.positive("lost_no_fix_s", self.lost_no_fix_s);
+        if self.lost_no_fix_s < self.degraded_no_fix_s {
+            p.push(
+                "lost_no_fix_s",
+                format!(
+                    "{} must be >= degraded_no_fix_s ({})",
+                    self.lost_no_fix_s, self.degraded_no_fix_s
+                ),
+            );
+        }
+        if self.divergence_reject_count == 0 || self.divergence_reject_count > 1000 {
+            p.push(
+                "divergence_reject_count",
+                format!("{} is outside [1, 1000]", self.divergence_reject_count),
+            );
+        }
+        p.positive("reset_vel_sigma_m_s", self.reset_vel_sigma_m_s);
+        p.range("reset_degraded_s", self.reset_degraded_s, 0.0, 3600.0);
+    }
+}
+
+/// The `[nav]` section.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct NavConfig {
+    /// Estimate gyro and accelerometer scale factors (21 states) instead of 15 states.
+    pub scale_factor_states: bool,
+    /// Output (position/velocity/attitude/covariance) rate, Hz.
+    pub output_rate_hz: f64,
+    /// Length of the state/covariance history used to apply late measurements at their capture
+    /// time, s. Older measurements are rejected as `too_old`.
+    pub history_s: f64,
+    /// Use the autopilot attitude as a measurement (it is always used for initialisation).
+    pub use_autopilot_attitude: bool,
+    /// Autopilot attitude measurement noise, roll/pitch, deg (1 sigma).
+    pub attitude_sigma_tilt_deg: f64,
+    /// Autopilot attitude measurement noise, yaw, deg (1 sigma).
+    pub attitude_sigma_yaw_deg: f64,
+    /// Largest accepted gap between IMU samples; larger gaps reset the filter, s.
+    pub max_imu_gap_s: f64,
+    /// IMU error model.
+    pub imu: ImuNoiseConfig,
+    /// Innovation gates.
+    pub gates: GateConfig,
+    /// Initialisation.
+    pub init: InitConfig,
+    /// Health and divergence handling.
+    pub health: HealthConfig,
+}
+
+impl Default for NavConfig {
+    fn default() -> Self {
+        Self {
+            scale_factor_states: false,
+            output_rate_hz: 50.0,
+            history_s: 1.0,
+            use_autopilot_attitude: false,
+            attitude_sigma_tilt_deg: 1.0,
+            attitude_sigma_yaw_deg: 3.0,
+            max_imu_gap_s: 0.1,
+            imu: ImuNoiseConfig::default(),
+            gates: GateConfig::default(),
+            init: InitConfig::default(),
+            health: HealthConfig::default(),
+        }
+    }
+}
+
+impl NavConfig {
+    /// Number of error states (15 or 21).
+    pub fn n_states(&self) -> usize {
+        if self.scale_factor_states { 21 } else { 15 }
+    }
+}
+
+impl Validate for NavConfig {
+    fn validate(&self, p: &mut Problems) {
+        p.range("output_rate_hz", self.output_rate_hz, 0.1, 1000.0);
+        p.range("history_s", self.history_s, 0.0, 10.0);
+        p.positive("attitude_sigma_tilt_deg", self.attitude_sigma_tilt_deg);
+        p.range(
+            "attitude_sigma_tilt_deg",
+            self.attitude_sigma_tilt_deg,
+            0.0,
+            45.0,
+        );
+        p.positive("attitude_sigma_yaw_deg", self.attitude_sigma_yaw_deg);
+        p.range(
+            "attitude_sigma_yaw_deg",
+            self.attitude_sigma_yaw_deg,
+            0.0,
+            180.0,
+        );
+        p.range("max_imu_gap_s", self.max_imu_gap_s, 0.001, 10.0);
+        p.section("imu", |p| self.imu.validate(p));
+        p.section("gates", |p| self.gates.validate(p));
+        p.section("init", |p| self.init.validate(p));
+        p.section("health", |p| self.health.validate(p));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_is_valid_and_round_trips() {
+        let c = NavConfig::default();
+        let mut p = Problems::default();
+        c.validate(&mut p);
+        assert!(p.list.is_empty(), "{:?}", p.list);
+        let text = toml::to_string(&c).expect("serialise");
+        let back: NavConfig = toml::from_str(&text).expect("parse");
+        assert_eq!(back, c);
+    }
+
+    #[test]
+    fn unknown_key_and_bad_value_are_named() {
+        let e = toml::from_str::<NavConfig>("[imu]\ngyro_arw_deg_per_h = 1.0\n");
+        assert!(e.is_err());
+        assert!(format!("{:?}", e).contains("gyro_arw_deg_per_h"));
+        let c: NavConfig =
+            toml::from_str("output_rate_hz = -1\n[imu]\ngyro_arw_deg_sqrt_h = nan\n")
+                .expect("parse");
+        let mut p = Problems::default();
+        p.section("nav", |p| c.validate(p));
+        let keys: Vec<_> = p.list.iter().map(|i| i.key.as_str()).collect();
+        assert!(keys.contains(&"nav.output_rate_hz"), "{keys:?}");
+        assert!(keys.contains(&"nav.imu.gyro_arw_deg_sqrt_h"), "{keys:?}");
+    }
+
+    #[test]
+    fn unit_conversions() {
+        let c = ImuNoiseConfig {
+            gyro_arw_deg_sqrt_h: 60.0,
+            gyro_bias_deg_h: 3600.0,
+            accel_bias_ug: 1e6,
+            accel_vrw_m_s_sqrt_h: 60.0,
+            ..Default::default()
+        };
+        assert!((c.gyro_arw_si() - 1f64.to_radians()).abs() < 1e-15);
+        assert!((c.gyro_bias_si() - 1f64.to_radians()).abs() < 1e-15);
+        assert!((c.accel_bias_si() - G0_M_S2).abs() < 1e-12);
+        assert!((c.accel_vrw_si() - 1.0).abs() < 1e-15);
+    }
+}

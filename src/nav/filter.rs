@@ -1,0 +1,963 @@
+//! Error-state (indirect) extended Kalman filter around the strapdown INS, closed loop.
+//!
+//! Follows Sheta 2012 ch. 5 (21-state error model) and Groves 2013 ch. 14 (local-navigation-frame
+//! error equations); Chan 2022 for the image-position aiding at ~1 Hz.
+//!
+//! Error state `dx` (estimate minus truth), indices:
+//! `0..3` position error in NED metres (`dN = dlat (R_M+h)`, `dE = dlon (R_N+h) cos lat`,
+//! `dD = -dh`); `3..6` velocity error NED; `6..9` attitude error `psi` in NED with
+//! `C_b^n(est) = (I + [psi x]) C_b^n(true)`; `9..12` gyro bias error (rad/s); `12..15` accelerometer
+//! bias error (m/s^2); `15..18` gyro scale-factor error; `18..21` accelerometer scale-factor
+//! error. In 15-state mode the scale-factor states are frozen at zero with zero covariance (they
+//! never receive a gain), which is exactly the 15-state filter.
+//!
+//! Sensor model: `w_meas = (1 + s_g) w + b_g + n`, `f_meas = (1 + s_a) f + b_a + n`; the INS
+//! integrates `w = (w_meas - b_g_est) / (1 + s_g_est)`. Continuous error dynamics (first order):
+//! ```text
+//! d(dr)/dt   = dv
+//! d(dv)/dt   = -[f^n x] psi + (-[(2w_ie + w_en) x] + [v x] dW_en/dv) dv + dg/dr dr
+//!              - C_b^n (db_a + diag(f^b) ds_a)
+//! d(psi)/dt  = -[w_in x] psi - dW_en/dv dv - dW_ie/dr dr - C_b^n (db_g + diag(w^b) ds_g)
+//! d(b)/dt    = w   (random constant + random walk, q = 2 sigma_BI^2 / tau + q_RW)
+//! ```
+//! Discretisation `Phi = I + F dt`, `Qd = G Qc G^T dt` (noise is isotropic, so the rotation `G`
+//! drops out for the white-noise terms). Update in Joseph form, `P` symmetrised after every step,
+//! then the estimated error is fed back into the INS and the bias/scale estimates (closed loop) and
+//! reset to zero. Attitude feedback: `q_nb <- exp(-psi) * q_nb`.
+//!
+//! Late measurements: every IMU epoch keeps the state/covariance before its measurements, the IMU
+//! sample that led to it and the measurements applied at it; a late measurement is applied at the
+//! epoch containing its capture time (with the predicted measurement extrapolated over the
+//! sub-sample time by the velocity) and the later epochs are re-propagated with their stored IMU
+//! samples and measurements.
+//!
+//! Each measurement type has a chi-square innovation gate on the normalised innovation squared
+//! `NIS = dz^T S^-1 dz` and counters. Divergence: `divergence_reject_count` consecutive rejected
+//! position fixes reset position/velocity onto the fix; a covariance that loses positive
+//! definiteness is re-initialised; a non-finite state or an IMU gap resets the filter to
+//! "not initialised".
+
+use super::chi2;
+use super::config::NavConfig;
+use super::earth;
+use super::ins::{InsState, Strapdown, skew_matrix};
+use super::measurement::{ImuSample, Measurement, PositionFix, VelocityFix};
+use nalgebra::{Matrix3, SMatrix, SVector, UnitQuaternion, Vector3};
+use serde::Serialize;
+use std::collections::VecDeque;
+
+/// Size of the error state carried internally.
+pub const N_STATES: usize = 21;
+type Mat = SMatrix<f64, N_STATES, N_STATES>;
+type Vecn = SVector<f64, N_STATES>;
+const IP: usize = 0;
+const IV: usize = 3;
+const IA: usize = 6;
+const IBG: usize = 9;
+const IBA: usize = 12;
+const ISG: usize = 15;
+const ISA: usize = 18;
+
+/// Filter health.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Health {
+    /// Aided, covariance within bounds.
+    Ok,
+    /// Usable but aiding missing for a while, covariance large or recently reset.
+    Degraded,
+    /// Not initialised or not trustworthy.
+    Lost,
+}
+
+/// Counters of one measurement type.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct TypeCounters {
+    /// Passed the gate and applied.
+    pub accepted: u64,
+    /// Failed the chi-square gate.
+    pub rejected: u64,
+    /// Older than the history window.
+    pub too_old: u64,
+    /// Malformed (non-finite, bad covariance, capture time in the future).
+    pub invalid: u64,
+}
+
+/// All counters.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct Counters {
+    /// Vision fixes.
+    pub vision: TypeCounters,
+    /// GPS positions.
+    pub gps_position: TypeCounters,
+    /// GPS velocities.
+    pub gps_velocity: TypeCounters,
+    /// Altitudes.
+    pub altitude: TypeCounters,
+    /// Autopilot attitudes.
+    pub attitude: TypeCounters,
+    /// Initialisations (first and after hard resets).
+    pub initialisations: u64,
+    /// Position/velocity resets after consecutive rejections.
+    pub divergence_resets: u64,
+    /// Covariance re-initialisations after loss of positive definiteness.
+    pub covariance_resets: u64,
+    /// Hard resets (non-finite state, IMU gap).
+    pub hard_resets: u64,
+    /// IMU samples dropped (non-finite, time not increasing).
+    pub imu_invalid: u64,
+    /// Delayed measurements applied by re-propagation.
+    pub replays: u64,
+}
+
+/// What happened to a measurement.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Outcome {
+    /// Applied; normalised innovation squared.
+    Accepted {
+        /// Normalised innovation squared.
+        nis: f64,
+    },
+    /// Rejected by the chi-square gate.
+    Rejected {
+        /// Normalised innovation squared.
+        nis: f64,
+        /// Gate threshold.
+        gate: f64,
+    },
+    /// Capture time older than the history.
+    TooOld,
+    /// Malformed.
+    Invalid(&'static str),
+    /// Used to initialise the filter.
+    Initialised,
+    /// Kept for initialisation (filter not yet initialised).
+    Held,
+    /// Not used (e.g. attitude aiding disabled).
+    Ignored,
+    /// Caused a divergence reset of position/velocity onto this fix.
+    Reset,
+}
+
+/// Output record of the filter.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct NavOutput {
+    /// Time, microseconds.
+    pub t_us: u64,
+    /// Latitude, deg.
+    pub lat_deg: f64,
+    /// Longitude, deg.
+    pub lon_deg: f64,
+    /// Height above the WGS84 ellipsoid, m.
+    pub h_m: f64,
+    /// Velocity NED, m/s.
+    pub v_ned_m_s: [f64; 3],
+    /// Attitude quaternion body FRD -> NED, `[w, x, y, z]`.
+    pub q_nb_wxyz: [f64; 4],
+    /// ZYX Euler angles `[roll, pitch, yaw]`, deg.
+    pub rpy_deg: [f64; 3],
+    /// Position covariance NED, m^2 (row major).
+    pub cov_pos_ned_m2: [[f64; 3]; 3],
+    /// Velocity covariance NED, (m/s)^2.
+    pub cov_vel_ned_m2_s2: [[f64; 3]; 3],
+    /// Attitude error sigma (NED axes), deg.
+    pub att_sigma_deg: [f64; 3],
+    /// Estimated gyro bias, deg/h.
+    pub gyro_bias_deg_h: [f64; 3],
+    /// Estimated accelerometer bias, micro-g.
+    pub accel_bias_ug: [f64; 3],
+    /// Health state.
+    pub health: Health,
+    /// Why the health is not `ok` (empty when ok).
+    pub reason: String,
+}
+
+#[derive(Debug, Clone)]
+struct Core {
+    t_us: u64,
+    ins: Strapdown,
+    bg: Vector3<f64>,
+    ba: Vector3<f64>,
+    sg: Vector3<f64>,
+    sa: Vector3<f64>,
+    p: Mat,
+}
+
+#[derive(Debug, Clone)]
+struct Epoch {
+    imu: ImuSample,
+    pre: Core,
+    meas: Vec<Measurement>,
+}
+
+/// Constants derived from the configuration.
+#[derive(Debug, Clone)]
+struct Params {
+    scale: bool,
+    q_arw: f64,
+    q_vrw: f64,
+    q_bg: f64,
+    q_ba: f64,
+    gate_vision: f64,
+    gate_gps3: f64,
+    gate_alt: f64,
+    gate_att: f64,
+    r_att: Matrix3<f64>,
+    use_att: bool,
+}
+
+/// The navigation filter.
+#[derive(Debug, Clone)]
+pub struct NavFilter {
+    cfg: NavConfig,
+    par: Params,
+    core: Option<Core>,
+    history: VecDeque<Epoch>,
+    last_imu_t_us: Option<u64>,
+    last_attitude: Option<super::measurement::AttitudeFix>,
+    last_gps_vel: Option<VelocityFix>,
+    last_pos_for_init: Option<(bool, PositionFix)>,
+    counters: Counters,
+    last_pos_fix_t_us: Option<u64>,
+    consecutive_rejects: u32,
+    last_reset: Option<(u64, String)>,
+    next_output_t_us: Option<u64>,
+}
+
+fn dt_s(a_us: u64, b_us: u64) -> f64 {
+    (b_us as f64 - a_us as f64) * 1e-6
+}
+
+impl NavFilter {
+    /// New filter (not initialised) from a validated configuration.
+    pub fn new(cfg: NavConfig) -> Self {
+        let imu = &cfg.imu;
+        let gm = |sigma: f64, tau: f64, rw: f64| 2.0 * sigma * sigma / tau + rw * rw;
+        let tilt = cfg.attitude_sigma_tilt_deg.to_radians();
+        let yaw = cfg.attitude_sigma_yaw_deg.to_radians();
+        let par = Params {
+            scale: cfg.scale_factor_states,
+            q_arw: imu.gyro_arw_si().powi(2),
+            q_vrw: imu.accel_vrw_si().powi(2),
+            q_bg: gm(
+                imu.gyro_bias_instability_si(),
+                imu.gyro_bias_corr_time_s,
+                imu.gyro_bias_rw_si(),
+            ),
+            q_ba: gm(
+                imu.accel_bias_instability_si(),
+                imu.accel_bias_corr_time_s,
+                imu.accel_bias_rw_si(),
+            ),
+            gate_vision: chi2::quantile(3.0, cfg.gates.vision_prob),
+            gate_gps3: chi2::quantile(3.0, cfg.gates.gps_prob),
+            gate_alt: chi2::quantile(1.0, cfg.gates.altitude_prob),
+            gate_att: chi2::quantile(3.0, cfg.gates.attitude_prob),
+            r_att: Matrix3::from_diagonal(&Vector3::new(tilt * tilt, tilt * tilt, yaw * yaw)),
+            use_att: cfg.use_autopilot_attitude,
+        };
+        Self {
+            cfg,
+            par,
+            core: None,
+            history: VecDeque::new(),
+            last_imu_t_us: None,
+            last_attitude: None,
+            last_gps_vel: None,
+            last_pos_for_init: None,
+            counters: Counters::default(),
+            last_pos_fix_t_us: None,
+            consecutive_rejects: 0,
+            last_reset: None,
+            next_output_t_us: None,
+        }
+    }
+
+    /// Configuration in use.
+    pub fn config(&self) -> &NavConfig {
+        &self.cfg
+    }
+
+    /// Number of estimated error states (15 or 21).
+    pub fn n_states(&self) -> usize {
+        self.cfg.n_states()
+    }
+
+    /// True once initialised.
+    pub fn is_initialised(&self) -> bool {
+        self.core.is_some()
+    }
+
+    /// Current navigation state.
+    pub fn state(&self) -> Option<&InsState> {
+        self.core.as_ref().map(|c| &c.ins.state)
+    }
+
+    /// Time of the current state, microseconds.
+    pub fn t_us(&self) -> Option<u64> {
+        self.core.as_ref().map(|c| c.t_us)
+    }
+
+    /// Error covariance (`n_states` x `n_states`, index layout in the module doc).
+    pub fn covariance(&self) -> Option<nalgebra::DMatrix<f64>> {
+        let n = self.n_states();
+        self.core
+            .as_ref()
+            .map(|c| nalgebra::DMatrix::from_fn(n, n, |i, j| c.p[(i, j)]))
+    }
+
+    /// Estimated gyro bias (rad/s) and accelerometer bias (m/s^2), body FRD.
+    pub fn biases(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
+        self.core.as_ref().map(|c| (c.bg, c.ba))
+    }
+
+    /// Estimated gyro and accelerometer scale-factor errors (dimensionless).
+    pub fn scale_factors(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
+        self.core.as_ref().map(|c| (c.sg, c.sa))
+    }
+
+    /// Counters.
+    pub fn counters(&self) -> &Counters {
+        &self.counters
+    }
+
+    /// Process one IMU sample. Returns an output record when one is due at the configured rate.
+    pub fn imu(&mut self, s: &ImuSample) -> Option<NavOutput> {
+        if !(s.dtheta_rad_body_frd.iter().all(|x| x.is_finite())
+            && s.dv_m_s_body_frd.iter().all(|x| x.is_finite()))
+        {
+            self.counters.imu_invalid += 1;
+            return None;
+        }
+        let Some(last) = self.last_imu_t_us else {
+            self.last_imu_t_us = Some(s.t_us);
+            return None;
+        };
+        if s.t_us <= last {
+            self.counters.imu_invalid += 1;
+            return None;
+        }
+        self.last_imu_t_us = Some(s.t_us);
+        let dt = dt_s(last, s.t_us);
+        if dt > self.cfg.max_imu_gap_s {
+            if self.core.is_some() {
+                self.hard_reset(s.t_us, format!("IMU gap of {dt:.3} s"));
+            }
+            return None;
+        }
+        let core = self.core.as_mut()?;
+        core.propagate(&self.par, s);
+        if !core.ins.state.is_finite() || !core.p.iter().all(|x| x.is_finite()) {
+            self.hard_reset(s.t_us, "non-finite state after propagation".into());
+            return None;
+        }
+        let pre = core.clone();
+        self.history.push_back(Epoch {
+            imu: *s,
+            pre,
+            meas: Vec::new(),
+        });
+        let keep_us = (self.cfg.history_s * 1e6) as u64;
+        while self.history.len() > 1
+            && self
+                .history
+                .front()
+                .is_some_and(|e| e.pre.t_us + keep_us < s.t_us)
+        {
+            self.history.pop_front();
+        }
+        let period_us = (1e6 / self.cfg.output_rate_hz).round().max(1.0) as u64;
+        let due = self.next_output_t_us.unwrap_or(s.t_us);
+        if s.t_us >= due {
+            self.next_output_t_us = Some(due.max(s.t_us.saturating_sub(period_us)) + period_us);
+            return self.output();
+        }
+        None
+    }
+
+    /// The current output record (None before initialisation).
+    pub fn output(&self) -> Option<NavOutput> {
+        let c = self.core.as_ref()?;
+        let (health, reason) = self.health();
+        let s = &c.ins.state;
+        let (r, p, y) = s.q_nb.euler_angles();
+        let blk = |i: usize| {
+            let mut m = [[0.0; 3]; 3];
+            for (a, row) in m.iter_mut().enumerate() {
+                for (b, v) in row.iter_mut().enumerate() {
+                    *v = c.p[(i + a, i + b)];
+                }
+            }
+            m
+        };
+        let q = s.q_nb.coords; // ok: nalgebra stores [x, y, z, w]
+        Some(NavOutput {
+            t_us: c.t_us,
+            lat_deg: s.lat_rad.to_degrees(),
+            lon_deg: s.lon_rad.to_degrees(),
+            h_m: s.h_m,
+            v_ned_m_s: [s.v_ned_m_s.x, s.v_ned_m_s.y, s.v_ned_m_s.z],
+            q_nb_wxyz: [q[3], q[0], q[1], q[2]],
+            rpy_deg: [r.to_degrees(), p.to_degrees(), y.to_degrees()],
+            cov_pos_ned_m2: blk(IP),
+            cov_vel_ned_m2_s2: blk(IV),
+            att_sigma_deg: [
+                c.p[(IA, IA)].sqrt().to_degrees(),
+                c.p[(IA + 1, IA + 1)].sqrt().to_degrees(),
+                c.p[(IA + 2, IA + 2)].sqrt().to_degrees(),
+            ],
+            gyro_bias_deg_h: (c.bg / super::config::DEG_H_TO_RAD_S).into(),
+            accel_bias_ug: (c.ba / super::config::UG_TO_M_S2).into(),
+            health,
+            reason,
+        })
+    }
+
+    /// Health state and its reason.
+    pub fn health(&self) -> (Health, String) {
+        let Some(c) = self.core.as_ref() else {
+            let why = match &self.last_reset {
+                Some((_, r)) => format!("not initialised (after reset: {r})"),
+                None => "not initialised: waiting for a position fix and autopilot attitude".into(),
+            };
+            return (Health::Lost, why);
+        };
+        let h = &self.cfg.health;
+        let sig_h = (c.p[(0, 0)] + c.p[(1, 1)]).max(0.0).sqrt();
+        let since_fix = self
+            .last_pos_fix_t_us
+            .map(|t| dt_s(t, c.t_us).max(0.0))
+            .unwrap_or(f64::INFINITY);
+        if sig_h > h.lost_pos_sigma_m {
+            return (
+                Health::Lost,
+                format!("horizontal sigma {sig_h:.1} m > {} m", h.lost_pos_sigma_m),
+            );
+        }
+        if since_fix > h.lost_no_fix_s {
+            return (
+                Health::Lost,
+                format!("no accepted position fix for {since_fix:.1} s"),
+            );
+        }
+        let mut reasons = Vec::new();
+        if sig_h > h.degraded_pos_sigma_m {
+            reasons.push(format!(
+                "horizontal sigma {sig_h:.1} m > {} m",
+                h.degraded_pos_sigma_m
+            ));
+        }
+        if since_fix > h.degraded_no_fix_s {
+            reasons.push(format!("no accepted position fix for {since_fix:.1} s"));
+        }
+        if let Some((t, r)) = &self.last_reset
+            && dt_s(*t, c.t_us) < h.reset_degraded_s
+        {
+            reasons.push(format!("recent reset: {r}"));
+        }
+        if self.consecutive_rejects > 0 {
+            reasons.push(format!(
+                "{} consecutive position fixes rejected",
+                self.consecutive_rejects
+            ));
+        }
+        if reasons.is_empty() {
+            (Health::Ok, String::new())
+        } else {
+            (Health::Degraded, reasons.join("; "))
+        }
+    }
+
+    fn hard_reset(&mut self, t_us: u64, reason: String) {
+        tracing::warn!("nav filter hard reset: {reason}");
+        self.core = None;
+        self.history.clear();
+        self.counters.hard_resets += 1;
+        self.consecutive_rejects = 0;
+        self.last_pos_for_init = None;
+        self.last_reset = Some((t_us, reason));
+    }
+
+    fn type_counters(&mut self, m: &Measurement) -> &mut TypeCounters {
+        match m {
+            Measurement::Vision(_) => &mut self.counters.vision,
+            Measurement::GpsPosition(_) => &mut self.counters.gps_position,
+            Measurement::GpsVelocity(_) => &mut self.counters.gps_velocity,
+            Measurement::Altitude(_) => &mut self.counters.altitude,
+            Measurement::Attitude(_) => &mut self.counters.attitude,
+        }
+    }
+
+    /// Process one aiding measurement (possibly late: applied at its capture time).
+    pub fn measure(&mut self, m: Measurement) -> Outcome {
+        if let Err(why) = m.check() {
+            self.type_counters(&m).invalid += 1;
+            return Outcome::Invalid(why);
+        }
+        match &m {
+            Measurement::Attitude(a) => self.last_attitude = Some(*a),
+            Measurement::GpsVelocity(v) => self.last_gps_vel = Some(*v),
+            _ => {}
+        }
+        if self.core.is_none() {
+            return self.try_initialise(&m);
+        }
+        if matches!(m, Measurement::Attitude(_)) && !self.par.use_att {
+            return Outcome::Ignored;
+        }
+        let t_c = m.t_capture_us();
+        let Some(cur_t) = self.t_us() else {
+            return Outcome::Held;
+        };
+        if t_c > cur_t + 200_000 {
+            self.type_counters(&m).invalid += 1;
+            return Outcome::Invalid("capture time more than 0.2 s after the latest IMU sample");
+        }
+        let is_pos = matches!(m, Measurement::Vision(_) | Measurement::GpsPosition(_));
+        let out = if t_c >= cur_t || self.history.back().is_some_and(|e| t_c >= e.pre.t_us) {
+            // On time: apply at the current epoch.
+            let par = self.par.clone();
+            let Some(core) = self.core.as_mut() else {
+                return Outcome::Held;
+            };
+            let out = apply(&par, core, &m);
+            if matches!(out, Outcome::Accepted { .. })
+                && let Some(e) = self.history.back_mut()
+            {
+                e.meas.push(m);
+            }
+            out
+        } else {
+            self.apply_delayed(m, t_c)
+        };
+        match &out {
+            Outcome::Accepted { .. } => {
+                self.type_counters(&m).accepted += 1;
+                if is_pos {
+                    self.consecutive_rejects = 0;
+                    self.last_pos_fix_t_us = Some(self.last_pos_fix_t_us.unwrap_or(0).max(t_c));
+                }
+            }
+            Outcome::Rejected { .. } => {
+                self.type_counters(&m).rejected += 1;
+                if is_pos {
+                    self.consecutive_rejects += 1;
+                    if self.consecutive_rejects >= self.cfg.health.divergence_reject_count {
+                        self.divergence_reset(&m);
+                        return Outcome::Reset;
+                    }
+                }
+            }
+            Outcome::TooOld => self.type_counters(&m).too_old += 1,
+            Outcome::Invalid(_) => self.type_counters(&m).invalid += 1,
+            _ => {}
+        }
+        if let Some(c) = &self.core
+            && !c.is_pd(self.par.scale)
+        {
+            self.covariance_reset();
+        }
+        out
+    }
+
+    fn apply_delayed(&mut self, m: Measurement, t_c: u64) -> Outcome {
+        // Epoch j: last epoch with t <= t_c.
+        let Some(j) = self.history.iter().rposition(|e| e.pre.t_us <= t_c) else {
+            return Outcome::TooOld;
+        };
+        let par = self.par.clone();
+        let mut core = self.history[j].pre.clone();
+        let pos = self.history[j]
+            .meas
+            .iter()
+            .position(|x| x.t_capture_us() > t_c)
+            .unwrap_or(self.history[j].meas.len());
+        for x in &self.history[j].meas[..pos] {
+            apply(&par, &mut core, x);
+        }
+        let out = apply(&par, &mut core, &m);
+        if !matches!(out, Outcome::Accepted { .. }) {
+            return out;
+        }
+        for x in &self.history[j].meas[pos..] {
+            apply(&par, &mut core, x);
+        }
+        self.history[j].meas.insert(pos, m);
+        for i in j + 1..self.history.len() {
+            let imu = self.history[i].imu;
+            core.propagate(&par, &imu);
+            self.history[i].pre = core.clone();
+            for x in &self.history[i].meas {
+                apply(&par, &mut core, x);
+            }
+        }
+        self.counters.replays += 1;
+        self.core = Some(core);
+        out
+    }
+
+    fn divergence_reset(&mut self, m: &Measurement) {
+        let (Measurement::Vision(f) | Measurement::GpsPosition(f)) = m else {
+            return;
+        };
+        let Some(core) = self.core.as_mut() else {
+            return;
+        };
+        let reason = format!(
+            "{} consecutive position fixes rejected: position reset onto the fix",
+            self.consecutive_rejects
+        );
+        tracing::warn!("nav filter divergence: {reason}");
+        let dt = dt_s(f.t_capture_us, core.t_us);
+        let v = core.ins.state.v_ned_m_s;
+        let (rm, rn) = earth::radii_m(f.lat_rad);
+        core.ins.state.lat_rad = f.lat_rad + v.x * dt / (rm + f.h_m);
+        core.ins.state.lon_rad = f.lon_rad + v.y * dt / ((rn + f.h_m) * f.lat_rad.cos());
+        core.ins.state.h_m = f.h_m - v.z * dt;
+        for i in 0..6 {
+            for k in 0..N_STATES {
+                core.p[(i, k)] = 0.0;
+                core.p[(k, i)] = 0.0;
+            }
+        }
+        let vs = self.cfg.health.reset_vel_sigma_m_s.powi(2);
+        for a in 0..3 {
+            for b in 0..3 {
+                core.p[(IP + a, IP + b)] = f.cov_ned_m2[(a, b)];
+            }
+            core.p[(IV + a, IV + a)] = vs;
+        }
+        let now = core.t_us;
+        let pre = core.clone();
+        self.history.clear();
+        self.history.push_back(Epoch {
+            imu: ImuSample {
+                t_us: now,
+                dtheta_rad_body_frd: Vector3::zeros(),
+                dv_m_s_body_frd: Vector3::zeros(),
+            },
+            pre,
+            meas: Vec::new(),
+        });
+        self.counters.divergence_resets += 1;
+        self.consecutive_rejects = 0;
+        self.last_pos_fix_t_us = Some(f.t_capture_us);
+        self.last_reset = Some((now, reason));
+    }
+
+    fn covariance_reset(&mut self) {
+        let p0 = self.initial_p(None, None);
+        if let Some(c) = self.core.as_mut() {
+            tracing::warn!("nav filter covariance lost positive definiteness: re-initialised");
+            let mut p = p0;
+            for i in 0..6 {
+                p[(i, i)] = c.p[(i, i)].abs().max(p0[(i, i)]);
+            }
+            c.p = p;
+            let now = c.t_us;
+            self.history.clear();
+            self.counters.covariance_resets += 1;
+            self.last_reset = Some((now, "covariance not positive definite".into()));
+        }
+    }
+
+    /// Initial covariance; position/velocity blocks from the given covariances (or 100 m, 10 m/s).
+    fn initial_p(&self, pos: Option<&Matrix3<f64>>, vel: Option<&Matrix3<f64>>) -> Mat {
+        let imu = &self.cfg.imu;
+        let mut p = Mat::zeros();
+        let pos = pos.copied().unwrap_or(Matrix3::identity() * 1e4);
+        let vel = vel.copied().unwrap_or(Matrix3::identity() * 100.0);
+        let tilt = self.cfg.init.tilt_sigma_deg.to_radians().powi(2);
+        let yaw = self.cfg.init.yaw_sigma_deg.to_radians().powi(2);
+        let bg = imu.gyro_bias_si().powi(2) + imu.gyro_bias_instability_si().powi(2);
+        let ba = imu.accel_bias_si().powi(2) + imu.accel_bias_instability_si().powi(2);
+        for a in 0..3 {
+            for b in 0..3 {
+                p[(IP + a, IP + b)] = pos[(a, b)];
+                p[(IV + a, IV + b)] = vel[(a, b)];
+            }
+            p[(IBG + a, IBG + a)] = bg.max(1e-20);
+            p[(IBA + a, IBA + a)] = ba.max(1e-20);
+            if self.par.scale {
+                p[(ISG + a, ISG + a)] = (imu.gyro_scale_ppm * 1e-6).powi(2).max(1e-20);
+                p[(ISA + a, ISA + a)] = (imu.accel_scale_ppm * 1e-6).powi(2).max(1e-20);
+            }
+        }
+        p[(IA, IA)] = tilt;
+        p[(IA + 1, IA + 1)] = tilt;
+        p[(IA + 2, IA + 2)] = yaw;
+        p
+    }
+
+    fn try_initialise(&mut self, m: &Measurement) -> Outcome {
+        let (is_gps, fix) = match m {
+            Measurement::Vision(f) => (false, *f),
+            Measurement::GpsPosition(f) => (true, *f),
+            _ => return Outcome::Held,
+        };
+        let Some(t_now) = self.last_imu_t_us else {
+            return Outcome::Held;
+        };
+        let Some(att) = self.last_attitude else {
+            return Outcome::Held;
+        };
+        if dt_s(att.t_capture_us, fix.t_capture_us).abs() > 1.0 {
+            return Outcome::Held;
+        }
+        // Velocity: a recent GPS velocity, else the difference of two fixes of the same source.
+        let mut vel = None;
+        if let Some(v) = self.last_gps_vel
+            && dt_s(v.t_capture_us, fix.t_capture_us).abs() <= 0.5
+        {
+            vel = Some((v.v_ned_m_s, v.cov_ned_m2_s2));
+        }
+        if vel.is_none()
+            && let Some((prev_gps, prev)) = self.last_pos_for_init
+            && prev_gps == is_gps
+        {
+            let dt = dt_s(prev.t_capture_us, fix.t_capture_us);
+            let ic = &self.cfg.init;
+            if dt >= ic.vision_init_min_dt_s && dt <= ic.vision_init_max_dt_s {
+                let d = earth::ned_offset_m(
+                    (fix.lat_rad, fix.lon_rad, fix.h_m),
+                    (prev.lat_rad, prev.lon_rad, prev.h_m),
+                );
+                let cov = (fix.cov_ned_m2 + prev.cov_ned_m2) / (dt * dt)
+                    + Matrix3::identity() * ic.vision_vel_sigma_m_s.powi(2);
+                vel = Some((d / dt, cov));
+            }
+        }
+        self.last_pos_for_init = Some((is_gps, fix));
+        let Some((v, vcov)) = vel else {
+            return Outcome::Held;
+        };
+        let dt = dt_s(fix.t_capture_us, t_now);
+        if !(-0.5..=1.0).contains(&dt) {
+            return Outcome::Held;
+        }
+        let (rm, rn) = earth::radii_m(fix.lat_rad);
+        let state = InsState {
+            lat_rad: fix.lat_rad + v.x * dt / (rm + fix.h_m),
+            lon_rad: fix.lon_rad + v.y * dt / ((rn + fix.h_m) * fix.lat_rad.cos()),
+            h_m: fix.h_m - v.z * dt,
+            v_ned_m_s: v,
+            q_nb: att.q_nb,
+        };
+        let p = self.initial_p(Some(&(fix.cov_ned_m2 + vcov * dt * dt)), Some(&vcov));
+        let core = Core {
+            t_us: t_now,
+            ins: Strapdown::new(state),
+            bg: Vector3::zeros(),
+            ba: Vector3::zeros(),
+            sg: Vector3::zeros(),
+            sa: Vector3::zeros(),
+            p,
+        };
+        self.history.clear();
+        self.history.push_back(Epoch {
+            imu: ImuSample {
+                t_us: t_now,
+                dtheta_rad_body_frd: Vector3::zeros(),
+                dv_m_s_body_frd: Vector3::zeros(),
+            },
+            pre: core.clone(),
+            meas: Vec::new(),
+        });
+        self.core = Some(core);
+        self.counters.initialisations += 1;
+        self.last_pos_fix_t_us = Some(fix.t_capture_us);
+        self.consecutive_rejects = 0;
+        tracing::info!(
+            "nav filter initialised from {} fix",
+            if is_gps { "GPS" } else { "vision" }
+        );
+        Outcome::Initialised
+    }
+}
+
+impl Core {
+    /// Positive definiteness of the active block (15 or 21 states).
+    fn is_pd(&self, scale: bool) -> bool {
+        if scale {
+            self.p.cholesky().is_some()
+        } else {
+            self.p
+                .fixed_view::<15, 15>(0, 0)
+                .into_owned()
+                .cholesky()
+                .is_some()
+        }
+    }
+
+    fn propagate(&mut self, par: &Params, s: &ImuSample) {
+        let dt = dt_s(self.t_us, s.t_us);
+        if dt <= 0.0 {
+            return;
+        }
+        let one = Vector3::repeat(1.0);
+        let dth = (s.dtheta_rad_body_frd - self.bg * dt).component_div(&(one + self.sg));
+        let dv = (s.dv_m_s_body_frd - self.ba * dt).component_div(&(one + self.sa));
+        self.ins.step(&dth, &dv, dt);
+        self.t_us = s.t_us;
+
+        let st = &self.ins.state;
+        let (lat, h, v) = (st.lat_rad, st.h_m, st.v_ned_m_s);
+        let (rm, rn) = earth::radii_m(lat);
+        let c_bn = st.q_nb.to_rotation_matrix().into_inner();
+        let w_b = dth / dt;
+        let f_b = dv / dt;
+        let f_n = c_bn * f_b;
+        let w_ie = earth::earth_rate_ned(lat);
+        let w_en = earth::transport_rate_ned(lat, h, &v);
+        let g = earth::normal_gravity_m_s2(lat, h);
+        let om = crate::geo::wgs84::OMEGA_E_RAD_S;
+        // dW_en / dv
+        let mut d_wen_dv = Matrix3::zeros();
+        d_wen_dv[(0, 1)] = 1.0 / (rn + h);
+        d_wen_dv[(1, 0)] = -1.0 / (rm + h);
+        d_wen_dv[(2, 1)] = -lat.tan() / (rn + h);
+        // dW_ie / dN (per metre north)
+        let d_wie_dn = Vector3::new(-om * lat.sin(), 0.0, -om * lat.cos()) / (rm + h);
+
+        let mut f = Mat::zeros();
+        let set = |f: &mut Mat, r: usize, c: usize, m: &Matrix3<f64>| {
+            f.fixed_view_mut::<3, 3>(r, c).copy_from(m);
+        };
+        set(&mut f, IP, IV, &Matrix3::identity());
+        set(&mut f, IV, IA, &(-skew_matrix(&f_n)));
+        set(
+            &mut f,
+            IV,
+            IV,
+            &(-skew_matrix(&(2.0 * w_ie + w_en)) + skew_matrix(&v) * d_wen_dv),
+        );
+        let mut fvp = Matrix3::zeros();
+        fvp.set_column(0, &(skew_matrix(&v) * (2.0 * d_wie_dn)));
+        fvp[(2, 2)] += 2.0 * g / ((rm * rn).sqrt() + h);
+        set(&mut f, IV, IP, &fvp);
+        set(&mut f, IV, IBA, &(-c_bn));
+        set(&mut f, IA, IA, &(-skew_matrix(&(w_ie + w_en))));
+        set(&mut f, IA, IV, &(-d_wen_dv));
+        let mut fap = Matrix3::zeros();
+        fap.set_column(0, &(-d_wie_dn));
+        set(&mut f, IA, IP, &fap);
+        set(&mut f, IA, IBG, &(-c_bn));
+        // Bias states: random constant (turn-on bias) driven by the instability's short-term
+        // random walk (q = 2 sigma^2 / tau) and the bias random walk; no decay term, because a
+        // Gauss-Markov decay would shrink the turn-on bias uncertainty without information.
+        if par.scale {
+            set(&mut f, IA, ISG, &(-c_bn * Matrix3::from_diagonal(&w_b)));
+            set(&mut f, IV, ISA, &(-c_bn * Matrix3::from_diagonal(&f_b)));
+        }
+        let phi = Mat::identity() + f * dt;
+        let mut p = phi * self.p * phi.transpose();
+        for a in 0..3 {
+            p[(IV + a, IV + a)] += par.q_vrw * dt;
+            p[(IA + a, IA + a)] += par.q_arw * dt;
+            p[(IBG + a, IBG + a)] += par.q_bg * dt;
+            p[(IBA + a, IBA + a)] += par.q_ba * dt;
+        }
+        self.p = 0.5 * (p + p.transpose());
+    }
+
+    /// Generic Joseph-form update with `dz = h(x_est) - z`; returns the NIS or the rejection.
+    fn update<const M: usize>(
+        &mut self,
+        par: &Params,
+        dz: SVector<f64, M>,
+        h: SMatrix<f64, M, N_STATES>,
+        r: SMatrix<f64, M, M>,
+        gate: f64,
+    ) -> Outcome {
+        let ph = self.p * h.transpose();
+        let s = h * ph + r;
+        let Some(s_inv) = s.try_inverse() else {
+            return Outcome::Invalid("singular innovation covariance");
+        };
+        let nis = dz.dot(&(s_inv * dz));
+        if !nis.is_finite() {
+            return Outcome::Invalid("non-finite innovation");
+        }
+        if nis > gate {
+            return Outcome::Rejected { nis, gate };
+        }
+        let k = ph * s_inv;
+        let dx: Vecn = k * dz;
+        let ikh = Mat::identity() - k * h;
+        let p = ikh * self.p * ikh.transpose() + k * r * k.transpose();
+        self.p = 0.5 * (p + p.transpose());
+        self.feedback(par, &dx);
+        Outcome::Accepted { nis }
+    }
+
+    /// Closed-loop correction: remove the estimated error `dx` (estimate minus truth).
+    fn feedback(&mut self, par: &Params, dx: &Vecn) {
+        let st = &mut self.ins.state;
+        let (rm, rn) = earth::radii_m(st.lat_rad);
+        st.lat_rad -= dx[IP] / (rm + st.h_m);
+        st.lon_rad -= dx[IP + 1] / ((rn + st.h_m) * st.lat_rad.cos());
+        st.h_m += dx[IP + 2];
+        st.v_ned_m_s -= dx.fixed_rows::<3>(IV);
+        let psi: Vector3<f64> = dx.fixed_rows::<3>(IA).into();
+        st.q_nb = UnitQuaternion::from_scaled_axis(-psi) * st.q_nb;
+        st.q_nb.renormalize();
+        self.bg -= dx.fixed_rows::<3>(IBG);
+        self.ba -= dx.fixed_rows::<3>(IBA);
+        if par.scale {
+            self.sg -= dx.fixed_rows::<3>(ISG);
+            self.sa -= dx.fixed_rows::<3>(ISA);
+        }
+    }
+}
+
+/// Apply one measurement to `core`, whose epoch time is `core.t_us <= t_c`; the prediction is
+/// extrapolated over `t_c - core.t_us`.
+fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
+    let t_c = m.t_capture_us();
+    let dt = dt_s(core.t_us, t_c);
+    let st = &core.ins.state;
+    let v = st.v_ned_m_s;
+    match m {
+        Measurement::Vision(f) | Measurement::GpsPosition(f) => {
+            let dz = earth::ned_offset_m(
+                (st.lat_rad, st.lon_rad, st.h_m),
+                (f.lat_rad, f.lon_rad, f.h_m),
+            ) + v * dt;
+            let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
+            h.fixed_view_mut::<3, 3>(0, IP)
+                .copy_from(&Matrix3::identity());
+            let gate = if matches!(m, Measurement::Vision(_)) {
+                par.gate_vision
+            } else {
+                par.gate_gps3
+            };
+            core.update(par, dz, h, f.cov_ned_m2, gate)
+        }
+        Measurement::GpsVelocity(f) => {
+            let dz = v - f.v_ned_m_s;
+            let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
+            h.fixed_view_mut::<3, 3>(0, IV)
+                .copy_from(&Matrix3::identity());
+            core.update(par, dz, h, f.cov_ned_m2_s2, par.gate_gps3)
+        }
+        Measurement::Altitude(f) => {
+            let dz = SVector::<f64, 1>::new(st.h_m - v.z * dt - f.h_m);
+            let mut h = SMatrix::<f64, 1, N_STATES>::zeros();
+            h[(0, IP + 2)] = -1.0;
+            core.update(
+                par,
+                dz,
+                h,
+                SMatrix::<f64, 1, 1>::new(f.var_m2),
+                par.gate_alt,
+            )
+        }
+        Measurement::Attitude(f) => {
+            let dz = (st.q_nb * f.q_nb.inverse()).scaled_axis();
+            let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
+            h.fixed_view_mut::<3, 3>(0, IA)
+                .copy_from(&Matrix3::identity());
+            core.update(par, dz, h, par.r_att, par.gate_att)
+        }
+    }
+}

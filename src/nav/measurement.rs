@@ -1,0 +1,156 @@
+//! Inputs of the navigation filter: IMU increments and aiding measurements.
+//!
+//! Every measurement carries the time it describes (`t_capture_us`, microseconds on the
+//! autopilot's boot clock, the same clock as the IMU samples). A measurement may arrive late (a
+//! vision fix is delivered after the frame has been processed); the filter applies it at its
+//! capture time. Covariances are in NED (north, east, down), metres / metres per second.
+//! Heights are above the WGS84 ellipsoid; the caller converts AMSL altitudes with its geoid model.
+
+use nalgebra::{Matrix3, UnitQuaternion, Vector3};
+
+/// One IMU sample: increments over the interval ending at `t_us` (body FRD).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ImuSample {
+    /// End of the integration interval, microseconds.
+    pub t_us: u64,
+    /// Integrated angular rate w.r.t. inertial space, rad.
+    pub dtheta_rad_body_frd: Vector3<f64>,
+    /// Integrated specific force, m/s.
+    pub dv_m_s_body_frd: Vector3<f64>,
+}
+
+impl ImuSample {
+    /// Build from rates (rad/s, m/s^2) held over `dt_s` (for IMUs that report rates).
+    pub fn from_rates(
+        t_us: u64,
+        gyro_rad_s_body_frd: Vector3<f64>,
+        accel_m_s2_body_frd: Vector3<f64>,
+        dt_s: f64,
+    ) -> Self {
+        Self {
+            t_us,
+            dtheta_rad_body_frd: gyro_rad_s_body_frd * dt_s,
+            dv_m_s_body_frd: accel_m_s2_body_frd * dt_s,
+        }
+    }
+}
+
+/// A global position fix (vision resection or GPS).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PositionFix {
+    /// Capture time of the fix, microseconds.
+    pub t_capture_us: u64,
+    /// Geodetic latitude, rad.
+    pub lat_rad: f64,
+    /// Longitude, rad.
+    pub lon_rad: f64,
+    /// Height above the WGS84 ellipsoid, m.
+    pub h_m: f64,
+    /// Position covariance in NED, m^2.
+    pub cov_ned_m2: Matrix3<f64>,
+}
+
+/// A velocity measurement (GPS).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VelocityFix {
+    /// Capture time, microseconds.
+    pub t_capture_us: u64,
+    /// Velocity in NED, m/s.
+    pub v_ned_m_s: Vector3<f64>,
+    /// Covariance in NED, (m/s)^2.
+    pub cov_ned_m2_s2: Matrix3<f64>,
+}
+
+/// A height measurement (barometric or AMSL altitude converted to ellipsoidal height).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AltitudeFix {
+    /// Capture time, microseconds.
+    pub t_capture_us: u64,
+    /// Height above the WGS84 ellipsoid, m.
+    pub h_m: f64,
+    /// Variance, m^2.
+    pub var_m2: f64,
+}
+
+/// The autopilot's attitude estimate (noise from the configuration).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AttitudeFix {
+    /// Capture time, microseconds.
+    pub t_capture_us: u64,
+    /// Rotates body FRD vectors into NED.
+    pub q_nb: UnitQuaternion<f64>,
+}
+
+/// Any aiding measurement.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Measurement {
+    /// Image-derived global position fix.
+    Vision(PositionFix),
+    /// GPS position.
+    GpsPosition(PositionFix),
+    /// GPS velocity.
+    GpsVelocity(VelocityFix),
+    /// Barometric / AMSL altitude.
+    Altitude(AltitudeFix),
+    /// Autopilot attitude.
+    Attitude(AttitudeFix),
+}
+
+impl Measurement {
+    /// Capture time, microseconds.
+    pub fn t_capture_us(&self) -> u64 {
+        match self {
+            Measurement::Vision(f) | Measurement::GpsPosition(f) => f.t_capture_us,
+            Measurement::GpsVelocity(f) => f.t_capture_us,
+            Measurement::Altitude(f) => f.t_capture_us,
+            Measurement::Attitude(f) => f.t_capture_us,
+        }
+    }
+
+    /// Check that every value is finite and every covariance symmetric positive definite.
+    pub fn check(&self) -> Result<(), &'static str> {
+        let cov_ok = |c: &Matrix3<f64>| {
+            c.iter().all(|x| x.is_finite())
+                && (c - c.transpose()).abs().max() <= 1e-9 * c.abs().max().max(1e-12)
+                && c.cholesky().is_some()
+        };
+        match self {
+            Measurement::Vision(f) | Measurement::GpsPosition(f) => {
+                if !(f.lat_rad.is_finite() && f.lon_rad.is_finite() && f.h_m.is_finite()) {
+                    return Err("non-finite position");
+                }
+                if f.lat_rad.abs() > 1.5 || f.lon_rad.abs() > std::f64::consts::PI + 1e-9 {
+                    return Err("latitude beyond +-86 deg or longitude beyond +-180 deg");
+                }
+                if f.h_m.abs() > 100_000.0 {
+                    return Err("height beyond +-100 km");
+                }
+                if !cov_ok(&f.cov_ned_m2) {
+                    return Err("position covariance not symmetric positive definite");
+                }
+            }
+            Measurement::GpsVelocity(f) => {
+                if !f.v_ned_m_s.iter().all(|x| x.is_finite()) || f.v_ned_m_s.norm() > 1000.0 {
+                    return Err("non-finite or implausible velocity");
+                }
+                if !cov_ok(&f.cov_ned_m2_s2) {
+                    return Err("velocity covariance not symmetric positive definite");
+                }
+            }
+            Measurement::Altitude(f) => {
+                if !f.h_m.is_finite() || f.h_m.abs() > 100_000.0 {
+                    return Err("non-finite or implausible height");
+                }
+                if !(f.var_m2.is_finite() && f.var_m2 > 0.0) {
+                    return Err("altitude variance not positive");
+                }
+            }
+            Measurement::Attitude(f) => {
+                if !f.q_nb.coords.iter().all(|x| x.is_finite()) {
+                    return Err("non-finite attitude");
+                }
+            }
+        }
+        Ok(())
+    }
+}

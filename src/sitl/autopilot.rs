@@ -1,0 +1,569 @@
+//! MAVLink autopilot emulator: a tokio task that behaves like ArduPilot on a telemetry link, over
+//! real UDP/TCP sockets, for the link's end-to-end tests and the closed-loop simulator.
+//!
+//! Behaviour (as ArduPilot 4.x on a serial/UDP port):
+//! * HEARTBEAT at 1 Hz as MAV_TYPE_QUADROTOR / MAV_AUTOPILOT_ARDUPILOTMEGA, MAVLink 2.
+//! * Streams nothing else until MAV_CMD_SET_MESSAGE_INTERVAL asks; then honours the interval
+//!   (param2 µs; -1 disables; 0 = default rate, taken as 4 Hz). Supported: SYSTEM_TIME,
+//!   GPS_RAW_INT, SCALED_IMU, RAW_IMU, SCALED_PRESSURE, ATTITUDE, GLOBAL_POSITION_INT. Others
+//!   (e.g. HIGHRES_IMU, which ArduPilot does not send) are answered MAV_RESULT_FAILED.
+//! * Every COMMAND_LONG is answered with COMMAND_ACK; MAV_CMD_REQUEST_MESSAGE for
+//!   GPS_GLOBAL_ORIGIN sends the origin when one is set.
+//! * TIMESYNC requests (tc1 = 0) are answered with tc1 = boot time in ns.
+//! * SET_GPS_GLOBAL_ORIGIN sets the origin and is echoed with GPS_GLOBAL_ORIGIN.
+//! * [`AutopilotEmulator::reboot`] restarts its boot clock at 0 and forgets intervals and origin.
+//! * Every GPS_INPUT, VISION_POSITION_ESTIMATE, ODOMETRY, GLOBAL_POSITION_SENSOR,
+//!   SET_GPS_GLOBAL_ORIGIN and STATUSTEXT received is recorded with its boot time of arrival.
+//!
+//! Telemetry comes from a caller-provided [`TruthSource`] evaluated at the boot time in seconds.
+//! Units sent follow the MAVLink definitions (ATTITUDE rad, GLOBAL_POSITION_INT 1e7 deg / mm /
+//! cm/s, SCALED_IMU mG / mrad/s, SCALED_PRESSURE hPa from the ISA troposphere model
+//! `p = 1013.25 (1 - 2.25577e-5 h)^5.25588`).
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+#[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: still what ArduPilot acts on
+use mavlink::dialects::ardupilotmega::{
+    ATTITUDE_DATA, COMMAND_ACK_DATA, GLOBAL_POSITION_INT_DATA, GPS_GLOBAL_ORIGIN_DATA,
+    GPS_RAW_INT_DATA, GpsFixType, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavMessage, MavModeFlag,
+    MavResult, MavState, MavType, RAW_IMU_DATA, SCALED_IMU_DATA, SCALED_PRESSURE_DATA,
+    SYSTEM_TIME_DATA, TIMESYNC_DATA,
+};
+use mavlink::{AsyncMavConnection, MavHeader, Message, SigningConfig};
+use tokio::task::JoinHandle;
+
+/// Standard gravity, m/s^2.
+const G0_M_S2: f64 = 9.806_65;
+
+/// Vehicle truth at one instant (the emulator's sensors read it without error).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TruthState {
+    /// Latitude, degrees.
+    pub lat_deg: f64,
+    /// Longitude, degrees.
+    pub lon_deg: f64,
+    /// Altitude AMSL, metres.
+    pub alt_amsl_m: f64,
+    /// Velocity NED, m/s.
+    pub vel_ned_m_s: [f64; 3],
+    /// Roll, pitch, yaw (ZYX, `R_ned_body = Rz(yaw) Ry(pitch) Rx(roll)`), rad.
+    pub rpy_rad: [f64; 3],
+    /// Body angular rate (FRD), rad/s.
+    pub gyro_body_rad_s: [f64; 3],
+    /// Specific force in body FRD (accelerometer reading), m/s^2.
+    pub accel_body_m_s2: [f64; 3],
+}
+
+/// Source of truth: the vehicle state at autopilot boot time `t_s`.
+pub trait TruthSource: Send + Sync + 'static {
+    /// State at `t_s` seconds since (the last) boot.
+    fn state(&self, t_s: f64) -> TruthState;
+}
+
+impl<F: Fn(f64) -> TruthState + Send + Sync + 'static> TruthSource for F {
+    fn state(&self, t_s: f64) -> TruthState {
+        self(t_s)
+    }
+}
+
+/// Level flight at constant NED velocity from a start point (small-area flat-earth propagation).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ConstantVelocity {
+    /// Start latitude, degrees.
+    pub lat_deg: f64,
+    /// Start longitude, degrees.
+    pub lon_deg: f64,
+    /// Start altitude AMSL, metres.
+    pub alt_amsl_m: f64,
+    /// Velocity NED, m/s.
+    pub vel_ned_m_s: [f64; 3],
+    /// Heading, rad.
+    pub yaw_rad: f64,
+}
+
+impl TruthSource for ConstantVelocity {
+    fn state(&self, t_s: f64) -> TruthState {
+        let r_earth_m = 6_371_000.0;
+        let [vn, ve, vd] = self.vel_ned_m_s;
+        TruthState {
+            lat_deg: self.lat_deg + (vn * t_s / r_earth_m).to_degrees(),
+            lon_deg: self.lon_deg
+                + (ve * t_s / (r_earth_m * self.lat_deg.to_radians().cos())).to_degrees(),
+            alt_amsl_m: self.alt_amsl_m - vd * t_s,
+            vel_ned_m_s: self.vel_ned_m_s,
+            rpy_rad: [0.0, 0.0, self.yaw_rad],
+            gyro_body_rad_s: [0.0; 3],
+            accel_body_m_s2: [0.0, 0.0, -G0_M_S2],
+        }
+    }
+}
+
+/// Emulator settings.
+#[derive(Debug, Clone)]
+pub struct EmulatorConfig {
+    /// mavlink connection string: `udpout:127.0.0.1:PORT` (like SITL's `--out`) or
+    /// `tcpin:127.0.0.1:PORT` (like SITL's TCP 5760 server).
+    pub connection: String,
+    /// Our system id.
+    pub system_id: u8,
+    /// Our component id (1 = MAV_COMP_ID_AUTOPILOT1).
+    pub component_id: u8,
+    /// Unix time at boot (µs) for SYSTEM_TIME; `None` = no clock (GPS-denied: time_unix_usec 0).
+    pub unix_at_boot_us: Option<u64>,
+    /// GPS_RAW_INT reports a 3D fix (true) or NO_FIX (false).
+    pub gps_fix: bool,
+    /// Require signed messages with this key (MAVLink 2 signing); unsigned ones are dropped.
+    pub signing_key: Option<[u8; 32]>,
+}
+
+impl EmulatorConfig {
+    /// ArduPilot-like defaults on `connection`: system 1, component 1, no clock, no GPS fix.
+    pub fn new(connection: &str) -> Self {
+        Self {
+            connection: connection.to_string(),
+            system_id: 1,
+            component_id: 1,
+            unix_at_boot_us: None,
+            gps_fix: false,
+            signing_key: None,
+        }
+    }
+}
+
+/// A message received by the emulator.
+#[derive(Debug, Clone)]
+pub struct Received {
+    /// Emulator boot time at arrival, µs.
+    pub t_boot_us: u64,
+    /// Boot counter at arrival (0 before the first reboot).
+    pub boot: u32,
+    /// Sender header.
+    pub header: MavHeader,
+    /// The message.
+    pub msg: MavMessage,
+}
+
+#[derive(Debug)]
+struct EmuState {
+    boot: Instant,
+    boots: u32,
+    intervals: HashMap<u32, (Duration, Instant)>,
+    origin: Option<GPS_GLOBAL_ORIGIN_DATA>,
+    received: Vec<Received>,
+    all_ids: HashMap<u32, u64>,
+    companion: Option<(u8, u8)>,
+    muted: bool,
+}
+
+struct Inner {
+    cfg: EmulatorConfig,
+    state: Mutex<EmuState>,
+    seq: AtomicU8,
+    truth: Box<dyn TruthSource>,
+}
+
+/// A running emulator. Dropping it stops it.
+pub struct AutopilotEmulator {
+    inner: Arc<Inner>,
+    task: JoinHandle<()>,
+}
+
+type Conn = mavlink::AsyncConnection<MavMessage>;
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Message ids the emulator can stream.
+pub const STREAMABLE: [u32; 7] = [2, 24, 26, 27, 29, 30, 33];
+
+impl AutopilotEmulator {
+    /// Open the connection and start emulating. For `tcpin` this returns at once and the task
+    /// waits for the client.
+    pub async fn start(cfg: EmulatorConfig, truth: impl TruthSource) -> std::io::Result<Self> {
+        let inner = Arc::new(Inner {
+            cfg,
+            state: Mutex::new(EmuState {
+                boot: Instant::now(),
+                boots: 0,
+                intervals: HashMap::new(),
+                origin: None,
+                received: Vec::new(),
+                all_ids: HashMap::new(),
+                companion: None,
+                muted: false,
+            }),
+            seq: AtomicU8::new(0),
+            truth: Box::new(truth),
+        });
+        // Validate the address now so a typo fails the caller, not the task.
+        mavlink::ConnectionAddress::parse_address(&inner.cfg.connection)?;
+        let task = tokio::spawn(run(inner.clone()));
+        Ok(Self { inner, task })
+    }
+
+    /// Boot time now, µs.
+    pub fn time_boot_us(&self) -> u64 {
+        lock(&self.inner.state).boot.elapsed().as_micros() as u64
+    }
+
+    /// Restart the boot clock at 0; forget stream intervals and the EKF origin (like a reboot).
+    pub fn reboot(&self) {
+        let mut st = lock(&self.inner.state);
+        st.boot = Instant::now();
+        st.boots += 1;
+        st.intervals.clear();
+        st.origin = None;
+    }
+
+    /// Stop (true) or resume (false) sending anything, keeping the connection open (a hung
+    /// autopilot or a half-open TCP connection).
+    pub fn set_muted(&self, muted: bool) {
+        lock(&self.inner.state).muted = muted;
+    }
+
+    /// Every recorded injection / status message so far.
+    pub fn received(&self) -> Vec<Received> {
+        lock(&self.inner.state).received.clone()
+    }
+
+    /// Count of messages received per message id (everything, not only recorded ones).
+    pub fn received_counts(&self) -> HashMap<u32, u64> {
+        lock(&self.inner.state).all_ids.clone()
+    }
+
+    /// Current interval of a stream, if requested.
+    pub fn stream_interval(&self, id: u32) -> Option<Duration> {
+        lock(&self.inner.state).intervals.get(&id).map(|(d, _)| *d)
+    }
+
+    /// The (system, component) of the last companion heard.
+    pub fn companion(&self) -> Option<(u8, u8)> {
+        lock(&self.inner.state).companion
+    }
+
+    /// The origin set by SET_GPS_GLOBAL_ORIGIN, if any.
+    pub fn origin(&self) -> Option<GPS_GLOBAL_ORIGIN_DATA> {
+        lock(&self.inner.state).origin.clone()
+    }
+
+    /// Stop the emulator.
+    pub fn stop(self) {
+        self.task.abort();
+    }
+}
+
+impl Drop for AutopilotEmulator {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+async fn send(inner: &Inner, conn: &Conn, msg: &MavMessage) {
+    if lock(&inner.state).muted {
+        return;
+    }
+    let header = MavHeader {
+        system_id: u32::from(inner.cfg.system_id),
+        component_id: inner.cfg.component_id,
+        sequence: inner.seq.fetch_add(1, Ordering::Relaxed),
+    };
+    let _ = conn.send(&header, msg).await;
+}
+
+struct AbortOnDrop(JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+async fn run(inner: Arc<Inner>) {
+    loop {
+        let Ok(mut conn) = mavlink::connect_async::<MavMessage>(&inner.cfg.connection).await else {
+            tokio::time::sleep(Duration::from_millis(200)).await;
+            continue;
+        };
+        conn.set_allow_recv_any_version(true);
+        if let Some(key) = inner.cfg.signing_key {
+            conn.setup_signing(Some(SigningConfig::new(key, 0, true, false)));
+        }
+        let conn = Arc::new(conn);
+        // Aborted when this task is (emulator dropped) or the client goes away.
+        let _tx = AbortOnDrop(tokio::spawn(tx_loop(inner.clone(), conn.clone())));
+        loop {
+            match conn.recv().await {
+                Ok((h, m)) => handle(&inner, &conn, h, m).await,
+                Err(mavlink::error::MessageReadError::Io(_)) => break,
+                Err(_) => continue,
+            }
+        }
+        // TCP client went away: listen again.
+    }
+}
+
+#[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: still what ArduPilot acts on
+async fn handle(inner: &Inner, conn: &Conn, h: MavHeader, m: MavMessage) {
+    let (t_boot_us, boot) = {
+        let mut st = lock(&inner.state);
+        *st.all_ids.entry(m.message_id()).or_default() += 1;
+        if let MavMessage::HEARTBEAT(_) = &m {
+            st.companion = u8::try_from(h.system_id).ok().map(|s| (s, h.component_id));
+        }
+        (st.boot.elapsed().as_micros() as u64, st.boots)
+    };
+    let record = matches!(
+        m,
+        MavMessage::GPS_INPUT(_)
+            | MavMessage::VISION_POSITION_ESTIMATE(_)
+            | MavMessage::ODOMETRY(_)
+            | MavMessage::GLOBAL_POSITION_SENSOR(_)
+            | MavMessage::SET_GPS_GLOBAL_ORIGIN(_)
+            | MavMessage::STATUSTEXT(_)
+    );
+    if record {
+        lock(&inner.state).received.push(Received {
+            t_boot_us,
+            boot,
+            header: h,
+            msg: m.clone(),
+        });
+    }
+    match m {
+        MavMessage::TIMESYNC(t) if t.tc1 == 0 => {
+            let r = MavMessage::TIMESYNC(TIMESYNC_DATA {
+                tc1: t_boot_us as i64 * 1000,
+                ts1: t.ts1,
+                target_system: u8::try_from(h.system_id).unwrap_or(0),
+                target_component: h.component_id,
+            });
+            send(inner, conn, &r).await;
+        }
+        MavMessage::COMMAND_LONG(c) => {
+            if c.target_system != inner.cfg.system_id && c.target_system != 0 {
+                return;
+            }
+            let mut extra = None;
+            let result = match c.command {
+                MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL => {
+                    let id = c.param1 as u32;
+                    if !STREAMABLE.contains(&id) {
+                        MavResult::MAV_RESULT_FAILED
+                    } else {
+                        let mut st = lock(&inner.state);
+                        if c.param2 < 0.0 {
+                            st.intervals.remove(&id);
+                        } else {
+                            let us = if c.param2 == 0.0 {
+                                250_000.0
+                            } else {
+                                c.param2 as f64
+                            };
+                            let d = Duration::from_secs_f64((us * 1e-6).max(0.001));
+                            st.intervals.insert(id, (d, Instant::now()));
+                        }
+                        MavResult::MAV_RESULT_ACCEPTED
+                    }
+                }
+                MavCmd::MAV_CMD_REQUEST_MESSAGE => {
+                    if c.param1 as u32 == 49 {
+                        match lock(&inner.state).origin.clone() {
+                            Some(o) => {
+                                extra = Some(MavMessage::GPS_GLOBAL_ORIGIN(o));
+                                MavResult::MAV_RESULT_ACCEPTED
+                            }
+                            None => MavResult::MAV_RESULT_FAILED,
+                        }
+                    } else {
+                        MavResult::MAV_RESULT_UNSUPPORTED
+                    }
+                }
+                _ => MavResult::MAV_RESULT_UNSUPPORTED,
+            };
+            let ack = MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+                command: c.command,
+                result,
+                progress: 0,
+                result_param2: 0,
+                target_system: u8::try_from(h.system_id).unwrap_or(0),
+                target_component: h.component_id,
+            });
+            send(inner, conn, &ack).await;
+            if let Some(e) = extra {
+                send(inner, conn, &e).await;
+            }
+        }
+        MavMessage::SET_GPS_GLOBAL_ORIGIN(o) if o.target_system == inner.cfg.system_id => {
+            let origin = GPS_GLOBAL_ORIGIN_DATA {
+                latitude: o.latitude,
+                longitude: o.longitude,
+                altitude: o.altitude,
+                time_usec: t_boot_us,
+            };
+            lock(&inner.state).origin = Some(origin.clone());
+            send(inner, conn, &MavMessage::GPS_GLOBAL_ORIGIN(origin)).await;
+        }
+        _ => {}
+    }
+}
+
+fn sat_i16(v: f64) -> i16 {
+    v.round().clamp(f64::from(i16::MIN), f64::from(i16::MAX)) as i16
+}
+
+fn isa_pressure_hpa(alt_m: f64) -> f64 {
+    1013.25 * (1.0 - 2.255_77e-5 * alt_m).powf(5.255_88)
+}
+
+/// The telemetry message `id` at boot time `t_us`.
+fn telemetry(inner: &Inner, id: u32, t_us: u64) -> Option<MavMessage> {
+    let s = inner.truth.state(t_us as f64 * 1e-6);
+    let boot_ms = (t_us / 1000) as u32;
+    let acc_mg = s.accel_body_m_s2.map(|a| sat_i16(a / G0_M_S2 * 1000.0));
+    let gyro_mrad = s.gyro_body_rad_s.map(|g| sat_i16(g * 1000.0));
+    Some(match id {
+        2 => MavMessage::SYSTEM_TIME(SYSTEM_TIME_DATA {
+            time_unix_usec: inner.cfg.unix_at_boot_us.map_or(0, |u| u + t_us),
+            time_boot_ms: boot_ms,
+        }),
+        24 => MavMessage::GPS_RAW_INT(GPS_RAW_INT_DATA {
+            time_usec: t_us,
+            fix_type: if inner.cfg.gps_fix {
+                GpsFixType::GPS_FIX_TYPE_3D_FIX
+            } else {
+                GpsFixType::GPS_FIX_TYPE_NO_FIX
+            },
+            lat: (s.lat_deg * 1e7).round() as i32,
+            lon: (s.lon_deg * 1e7).round() as i32,
+            alt: (s.alt_amsl_m * 1000.0).round() as i32,
+            eph: u16::MAX,
+            epv: u16::MAX,
+            vel: u16::MAX,
+            cog: u16::MAX,
+            satellites_visible: if inner.cfg.gps_fix { 12 } else { 0 },
+            ..GPS_RAW_INT_DATA::DEFAULT
+        }),
+        26 => MavMessage::SCALED_IMU(SCALED_IMU_DATA {
+            time_boot_ms: boot_ms,
+            xacc: acc_mg[0],
+            yacc: acc_mg[1],
+            zacc: acc_mg[2],
+            xgyro: gyro_mrad[0],
+            ygyro: gyro_mrad[1],
+            zgyro: gyro_mrad[2],
+            ..SCALED_IMU_DATA::DEFAULT
+        }),
+        27 => MavMessage::RAW_IMU(RAW_IMU_DATA {
+            time_usec: t_us,
+            xacc: acc_mg[0],
+            yacc: acc_mg[1],
+            zacc: acc_mg[2],
+            xgyro: gyro_mrad[0],
+            ygyro: gyro_mrad[1],
+            zgyro: gyro_mrad[2],
+            ..RAW_IMU_DATA::DEFAULT
+        }),
+        29 => MavMessage::SCALED_PRESSURE(SCALED_PRESSURE_DATA {
+            time_boot_ms: boot_ms,
+            press_abs: isa_pressure_hpa(s.alt_amsl_m) as f32,
+            temperature: 2000,
+            ..SCALED_PRESSURE_DATA::DEFAULT
+        }),
+        30 => MavMessage::ATTITUDE(ATTITUDE_DATA {
+            time_boot_ms: boot_ms,
+            roll: s.rpy_rad[0] as f32,
+            pitch: s.rpy_rad[1] as f32,
+            yaw: s.rpy_rad[2] as f32,
+            rollspeed: s.gyro_body_rad_s[0] as f32,
+            pitchspeed: s.gyro_body_rad_s[1] as f32,
+            yawspeed: s.gyro_body_rad_s[2] as f32,
+        }),
+        33 => MavMessage::GLOBAL_POSITION_INT(GLOBAL_POSITION_INT_DATA {
+            time_boot_ms: boot_ms,
+            lat: (s.lat_deg * 1e7).round() as i32,
+            lon: (s.lon_deg * 1e7).round() as i32,
+            alt: (s.alt_amsl_m * 1000.0).round() as i32,
+            relative_alt: 0,
+            vx: sat_i16(s.vel_ned_m_s[0] * 100.0),
+            vy: sat_i16(s.vel_ned_m_s[1] * 100.0),
+            vz: sat_i16(s.vel_ned_m_s[2] * 100.0),
+            hdg: (s.rpy_rad[2].to_degrees().rem_euclid(360.0) * 100.0).round() as u16 % 36000,
+        }),
+        _ => return None,
+    })
+}
+
+async fn tx_loop(inner: Arc<Inner>, conn: Arc<Conn>) {
+    let mut tick = tokio::time::interval(Duration::from_millis(2));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut next_hb = Instant::now();
+    loop {
+        tick.tick().await;
+        let now = Instant::now();
+        if now >= next_hb {
+            next_hb = now + Duration::from_secs(1);
+            let hb = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                custom_mode: 0,
+                mavtype: MavType::MAV_TYPE_QUADROTOR,
+                autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+                base_mode: MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                system_status: MavState::MAV_STATE_STANDBY,
+                mavlink_version: 3,
+            });
+            send(&inner, &conn, &hb).await;
+        }
+        let (due, t_us): (Vec<u32>, u64) = {
+            let mut st = lock(&inner.state);
+            let t_us = st.boot.elapsed().as_micros() as u64;
+            let mut due = Vec::new();
+            for (id, (every, next)) in st.intervals.iter_mut() {
+                if now >= *next {
+                    due.push(*id);
+                    // Keep the long-run rate exact; if far behind, resynchronise.
+                    *next += *every;
+                    if *next < now {
+                        *next = now + *every;
+                    }
+                }
+            }
+            (due, t_us)
+        };
+        for id in due {
+            if let Some(m) = telemetry(&inner, id, t_us) {
+                send(&inner, &conn, &m).await;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn constant_velocity_truth_moves() {
+        let cv = ConstantVelocity {
+            lat_deg: 47.0,
+            lon_deg: -97.0,
+            alt_amsl_m: 500.0,
+            vel_ned_m_s: [10.0, 5.0, -1.0],
+            yaw_rad: 0.3,
+        };
+        let s = cv.state(10.0);
+        let dn = (s.lat_deg - 47.0).to_radians() * 6_371_000.0;
+        assert!((dn - 100.0).abs() < 1e-6);
+        assert!((s.alt_amsl_m - 510.0).abs() < 1e-9);
+        assert_eq!(s.rpy_rad[2], 0.3);
+    }
+
+    #[test]
+    fn isa_pressure() {
+        assert!((isa_pressure_hpa(0.0) - 1013.25).abs() < 1e-9);
+        // ~ 898.7 hPa at 1000 m (ISA table).
+        assert!((isa_pressure_hpa(1000.0) - 898.75).abs() < 0.1);
+    }
+}

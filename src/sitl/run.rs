@@ -1,0 +1,492 @@
+//! Runs a scenario through the navigation filter and measures the errors against truth.
+//!
+//! Per IMU epoch: advance the truth, synthesise the IMU sample, feed the filter; capture the
+//! sensors due at that epoch (GPS, altitude, attitude delivered at once; vision captured at a
+//! random sub-sample instant and delivered after its latency). Errors are evaluated on the
+//! filter's output records inside the evaluation window; NEES (position, 3 dof, and
+//! position/velocity/attitude, 9 dof) every `nees_interval_s`.
+//!
+//! Monte Carlo consistency (Bar-Shalom, Li & Kirubarajan 2001, 5.4.2): the N-run average NEES
+//! `eps_bar(t)` is compared with the two-sided 95 % band `[chi2_{0.025}(N n) / N,
+//! chi2_{0.975}(N n) / N]`.
+
+use super::imu::ImuErrors;
+use super::rng::Rng;
+use super::scenario::Scenario;
+use crate::nav::earth;
+use crate::nav::filter::Counters;
+use crate::nav::{
+    AltitudeFix, AttitudeFix, ImuSample, Measurement, NavFilter, PositionFix, VelocityFix,
+};
+use nalgebra::{Matrix3, UnitQuaternion, Vector3};
+use serde::Serialize;
+
+/// East/north/up triple.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct Enu {
+    /// East, m.
+    pub e: f64,
+    /// North, m.
+    pub n: f64,
+    /// Up, m.
+    pub u: f64,
+}
+
+/// Options of one run.
+#[derive(Debug, Clone, Copy)]
+pub struct RunOptions {
+    /// Feed the vision fixes. False is the INS-only control run: the vision fixes captured inside
+    /// the evaluation window are withheld (earlier ones, if any, still initialise/calibrate).
+    pub vision: bool,
+    /// Added to the scenario seed.
+    pub seed_offset: u64,
+    /// Control experiment: stamp vision fixes with their arrival time instead of the capture
+    /// time (what a filter without latency handling would do).
+    pub stamp_at_arrival: bool,
+}
+
+impl RunOptions {
+    /// Vision on/off, given seed offset, fixes stamped with their capture time.
+    pub fn new(vision: bool, seed_offset: u64) -> Self {
+        Self {
+            vision,
+            seed_offset,
+            stamp_at_arrival: false,
+        }
+    }
+}
+
+/// Result of one run.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunResult {
+    /// Maximum absolute error per axis in the evaluation window, m.
+    pub max_err_m: Enu,
+    /// RMS error per axis in the window, m.
+    pub rms_err_m: Enu,
+    /// Maximum horizontal error in the window, m.
+    pub max_horiz_err_m: f64,
+    /// Error at the end of the window, m.
+    pub final_err_m: Enu,
+    /// Number of output records evaluated.
+    pub n_eval: usize,
+    /// Filter counters.
+    pub counters: Counters,
+    /// Health at the end of the window and its reason.
+    pub final_health: String,
+    /// Time of initialisation, s.
+    pub initialised_at_s: Option<f64>,
+    /// Position NEES samples `(t_s, nees)`.
+    #[serde(skip)]
+    pub nees_pos: Vec<(f64, f64)>,
+    /// Position/velocity/attitude NEES samples.
+    #[serde(skip)]
+    pub nees_pva: Vec<(f64, f64)>,
+    /// Final gyro bias estimation error, deg/h.
+    pub gyro_bias_err_deg_h: [f64; 3],
+    /// Final accelerometer bias estimation error, micro-g.
+    pub accel_bias_err_ug: [f64; 3],
+    /// Final filter sigma of the gyro bias, deg/h.
+    pub gyro_bias_sigma_deg_h: [f64; 3],
+    /// Final filter sigma of the accelerometer bias, micro-g.
+    pub accel_bias_sigma_ug: [f64; 3],
+}
+
+/// Run errors.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// The filter never initialised.
+    #[error("scenario {0}: the filter never initialised (check gps/vision/attitude sections)")]
+    NeverInitialised(String),
+}
+
+fn sym3(d: [f64; 3]) -> Matrix3<f64> {
+    Matrix3::from_diagonal(&Vector3::from(d))
+}
+
+/// Run a scenario once.
+pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
+    let traj = sc.trajectory();
+    let mut truth = traj.truth();
+    let seed = sc.seed.wrapping_add(opt.seed_offset);
+    let mut rng = Rng::new(seed);
+    let mut imu_err = ImuErrors::new(sc.imu.clone());
+    let mut filter = NavFilter::new(sc.nav.clone());
+    let dt_us = (1e6 / sc.imu.rate_hz).round() as u64;
+    let dt_s = dt_us as f64 * 1e-6;
+    let n_steps = (sc.duration_s() / dt_s).floor() as u64;
+    let period = |hz: f64| (1e6 / hz).round() as u64;
+    let mut pending: Vec<(u64, Measurement)> = Vec::new();
+    let ev = &sc.evaluation;
+    let (ev0, ev1) = ((ev.from_s * 1e6) as u64, (ev.until_s * 1e6) as u64);
+    let nees_us = period(1.0 / ev.nees_interval_s);
+    let mut next_nees = ev0;
+    let (mut maxe, mut sum2, mut n_eval, mut max_h) =
+        (Enu::default(), Enu::default(), 0usize, 0.0f64);
+    let mut final_err = Enu::default();
+    let mut final_health = String::new();
+    let mut nees_pos = Vec::new();
+    let mut nees_pva = Vec::new();
+    let mut init_at = None;
+    let mut prev_truth = truth.state();
+    // Next capture time of each sensor (fires at the first IMU epoch at or after it).
+    let mut next_att = 0u64;
+    let mut next_alt = 0u64;
+    let mut next_gps = 0u64;
+    let mut next_vis = 0u64;
+    let due = |next: &mut u64, t: u64, hz: f64| {
+        if t >= *next {
+            *next += period(hz);
+            if *next <= t {
+                *next = t + period(hz);
+            }
+            true
+        } else {
+            false
+        }
+    };
+
+    filter.imu(&ImuSample {
+        t_us: 0,
+        dtheta_rad_body_frd: Vector3::zeros(),
+        dv_m_s_body_frd: Vector3::zeros(),
+    });
+    for k in 1..=n_steps {
+        let t_us = k * dt_us;
+        let (dth, dv) = truth.step(dt_s);
+        let (mdth, mdv) = imu_err.corrupt(&mut rng, &dth, &dv, dt_s);
+        let ts = truth.state();
+        let out = filter.imu(&ImuSample {
+            t_us,
+            dtheta_rad_body_frd: mdth,
+            dv_m_s_body_frd: mdv,
+        });
+        if init_at.is_none() && filter.is_initialised() {
+            init_at = Some(t_us as f64 * 1e-6);
+        }
+        // Evaluation.
+        if let Some(o) = &out
+            && t_us >= ev0
+            && t_us <= ev1
+        {
+            let d = earth::ned_offset_m(
+                (o.lat_deg.to_radians(), o.lon_deg.to_radians(), o.h_m),
+                (ts.lat_rad, ts.lon_rad, ts.h_m),
+            );
+            let e = Enu {
+                e: d.y,
+                n: d.x,
+                u: -d.z,
+            };
+            maxe.e = maxe.e.max(e.e.abs());
+            maxe.n = maxe.n.max(e.n.abs());
+            maxe.u = maxe.u.max(e.u.abs());
+            sum2.e += e.e * e.e;
+            sum2.n += e.n * e.n;
+            sum2.u += e.u * e.u;
+            max_h = max_h.max(e.e.hypot(e.n));
+            n_eval += 1;
+            final_err = e;
+            final_health = format!("{:?}: {}", o.health, o.reason);
+        }
+        if t_us >= next_nees
+            && t_us <= ev1
+            && let (Some(st), Some(p)) = (filter.state(), filter.covariance())
+        {
+            next_nees += nees_us;
+            let dr = earth::ned_offset_m(
+                (st.lat_rad, st.lon_rad, st.h_m),
+                (ts.lat_rad, ts.lon_rad, ts.h_m),
+            );
+            let dvv = st.v_ned_m_s - ts.v_ned_m_s;
+            let psi = (st.q_nb * ts.q_nb.inverse()).scaled_axis();
+            let pp = p.view((0, 0), (3, 3)).into_owned();
+            if let Some(inv) = pp.clone().try_inverse() {
+                let x = nalgebra::DVector::from_column_slice(dr.as_slice());
+                nees_pos.push((t_us as f64 * 1e-6, (x.transpose() * inv * &x)[(0, 0)]));
+            }
+            let p9 = p.view((0, 0), (9, 9)).into_owned();
+            if let Some(inv) = p9.try_inverse() {
+                let mut x = nalgebra::DVector::zeros(9);
+                x.rows_mut(0, 3).copy_from(&dr);
+                x.rows_mut(3, 3).copy_from(&dvv);
+                x.rows_mut(6, 3).copy_from(&psi);
+                nees_pva.push((t_us as f64 * 1e-6, (x.transpose() * inv * &x)[(0, 0)]));
+            }
+        }
+        // Sensors captured at this epoch.
+        if due(&mut next_att, t_us, sc.attitude.rate_hz) {
+            let a = &sc.attitude;
+            let n = Vector3::new(
+                a.sigma_tilt_deg.to_radians() * rng.normal(),
+                a.sigma_tilt_deg.to_radians() * rng.normal(),
+                a.sigma_yaw_deg.to_radians() * rng.normal(),
+            );
+            let q = UnitQuaternion::from_scaled_axis(n) * ts.q_nb;
+            filter.measure(Measurement::Attitude(AttitudeFix {
+                t_capture_us: t_us,
+                q_nb: q,
+            }));
+        }
+        if let Some(a) = &sc.altitude
+            && due(&mut next_alt, t_us, a.rate_hz)
+        {
+            filter.measure(Measurement::Altitude(AltitudeFix {
+                t_capture_us: t_us,
+                h_m: ts.h_m + a.bias_m + a.sigma_m * rng.normal(),
+                var_m2: a.sigma_m * a.sigma_m,
+            }));
+        }
+        if let Some(g) = &sc.gps {
+            let ts_s = t_us as f64 * 1e-6;
+            if ts_s >= g.from_s && ts_s < g.until_s && due(&mut next_gps, t_us, g.rate_hz) {
+                let vcov = sym3([g.sigma_vel_m_s.powi(2); 3]);
+                filter.measure(Measurement::GpsVelocity(VelocityFix {
+                    t_capture_us: t_us,
+                    v_ned_m_s: ts.v_ned_m_s + rng.normal3() * g.sigma_vel_m_s,
+                    cov_ned_m2_s2: vcov,
+                }));
+                let cov = sym3([
+                    g.sigma_h_m.powi(2),
+                    g.sigma_h_m.powi(2),
+                    g.sigma_v_m.powi(2),
+                ]);
+                let n = Vector3::new(
+                    g.sigma_h_m * rng.normal(),
+                    g.sigma_h_m * rng.normal(),
+                    g.sigma_v_m * rng.normal(),
+                );
+                filter.measure(Measurement::GpsPosition(offset_fix(
+                    &ts_pos(&ts),
+                    &n,
+                    t_us,
+                    cov,
+                )));
+            }
+        }
+        if let Some(v) = &sc.vision {
+            let ts_s = t_us as f64 * 1e-6;
+            let withheld = !opt.vision && ts_s >= ev.from_s;
+            if ts_s >= v.from_s
+                && ts_s <= v.until_s
+                && due(&mut next_vis, t_us, v.rate_hz)
+                && !withheld
+            {
+                // Capture at a random instant inside the last IMU interval.
+                let frac = rng.uniform();
+                let t_c = t_us - (frac * dt_us as f64) as u64;
+                let a = (t_c - (t_us - dt_us)) as f64 / dt_us as f64;
+                let p0 = ts_pos(&prev_truth);
+                let p1 = ts_pos(&ts);
+                let pc = (
+                    p0.0 + a * (p1.0 - p0.0),
+                    p0.1 + a * (p1.1 - p0.1),
+                    p0.2 + a * (p1.2 - p0.2),
+                );
+                let mut n = Vector3::new(
+                    v.sigma_h_m * rng.normal(),
+                    v.sigma_h_m * rng.normal(),
+                    v.sigma_v_m * rng.normal(),
+                );
+                if v.outlier_prob > 0.0 && rng.uniform() < v.outlier_prob {
+                    let ang = 2.0 * std::f64::consts::PI * rng.uniform();
+                    n += Vector3::new(ang.cos(), ang.sin(), 0.0) * v.outlier_m;
+                }
+                let cov = sym3([
+                    v.sigma_h_m.powi(2),
+                    v.sigma_h_m.powi(2),
+                    v.sigma_v_m.powi(2),
+                ]);
+                let lat_ms =
+                    v.latency_min_ms + rng.uniform() * (v.latency_max_ms - v.latency_min_ms);
+                let deliver = t_c + (lat_ms * 1e3) as u64;
+                let stamp = if opt.stamp_at_arrival { deliver } else { t_c };
+                pending.push((
+                    deliver,
+                    Measurement::Vision(offset_fix(&pc, &n, stamp, cov)),
+                ));
+            }
+        }
+        pending.sort_by_key(|p| p.0);
+        while pending.first().is_some_and(|p| p.0 <= t_us) {
+            let (_, m) = pending.remove(0);
+            filter.measure(m);
+        }
+        prev_truth = ts;
+    }
+    let Some((bg, ba)) = filter.biases() else {
+        return Err(RunError::NeverInitialised(sc.name.clone()));
+    };
+    let (tbg, tba) = imu_err.biases();
+    let sig = |i: usize, unit: f64| -> [f64; 3] {
+        let p = filter.covariance();
+        std::array::from_fn(|k| {
+            p.as_ref()
+                .map(|p| p[(i + k, i + k)].max(0.0).sqrt() / unit)
+                .unwrap_or(f64::NAN)
+        })
+    };
+    let n = n_eval.max(1) as f64;
+    Ok(RunResult {
+        max_err_m: maxe,
+        rms_err_m: Enu {
+            e: (sum2.e / n).sqrt(),
+            n: (sum2.n / n).sqrt(),
+            u: (sum2.u / n).sqrt(),
+        },
+        max_horiz_err_m: max_h,
+        final_err_m: final_err,
+        n_eval,
+        counters: *filter.counters(),
+        final_health,
+        initialised_at_s: init_at,
+        nees_pos,
+        nees_pva,
+        gyro_bias_err_deg_h: ((bg - tbg) / crate::nav::config::DEG_H_TO_RAD_S).into(),
+        accel_bias_err_ug: ((ba - tba) / crate::nav::config::UG_TO_M_S2).into(),
+        gyro_bias_sigma_deg_h: sig(9, crate::nav::config::DEG_H_TO_RAD_S),
+        accel_bias_sigma_ug: sig(12, crate::nav::config::UG_TO_M_S2),
+    })
+}
+
+fn ts_pos(s: &crate::nav::InsState) -> (f64, f64, f64) {
+    (s.lat_rad, s.lon_rad, s.h_m)
+}
+
+fn offset_fix(
+    p: &(f64, f64, f64),
+    n_ned: &Vector3<f64>,
+    t_us: u64,
+    cov: Matrix3<f64>,
+) -> PositionFix {
+    let (rm, rn) = earth::radii_m(p.0);
+    PositionFix {
+        t_capture_us: t_us,
+        lat_rad: p.0 + n_ned.x / (rm + p.2),
+        lon_rad: p.1 + n_ned.y / ((rn + p.2) * p.0.cos()),
+        h_m: p.2 - n_ned.z,
+        cov_ned_m2: cov,
+    }
+}
+
+/// NEES consistency summary of a Monte Carlo.
+#[derive(Debug, Clone, Serialize)]
+pub struct NeesSummary {
+    /// Degrees of freedom per sample.
+    pub dof: usize,
+    /// Number of runs.
+    pub runs: usize,
+    /// Number of epochs.
+    pub epochs: usize,
+    /// Mean over epochs of the run-averaged NEES.
+    pub mean: f64,
+    /// Smallest and largest run-averaged NEES over the epochs.
+    pub min_max: [f64; 2],
+    /// Two-sided 95 % band for the run-averaged NEES.
+    pub band_95: [f64; 2],
+    /// Fraction of epochs whose run-averaged NEES lies in the band (about 0.95 expected).
+    pub fraction_inside: f64,
+    /// Whether the mean lies in the band.
+    pub mean_inside: bool,
+}
+
+/// Summarise per-run NEES series (same epochs in every run).
+pub fn nees_summary(series: &[Vec<(f64, f64)>], dof: usize) -> Option<NeesSummary> {
+    let runs = series.len();
+    let epochs = series.iter().map(|s| s.len()).min()?;
+    if runs == 0 || epochs == 0 {
+        return None;
+    }
+    let nd = (runs * dof) as f64;
+    let band = [
+        crate::nav::chi2::quantile(nd, 0.025) / runs as f64,
+        crate::nav::chi2::quantile(nd, 0.975) / runs as f64,
+    ];
+    let avg: Vec<f64> = (0..epochs)
+        .map(|k| series.iter().map(|s| s[k].1).sum::<f64>() / runs as f64)
+        .collect();
+    let mean = avg.iter().sum::<f64>() / epochs as f64;
+    let inside = avg
+        .iter()
+        .filter(|&&a| a >= band[0] && a <= band[1])
+        .count();
+    Some(NeesSummary {
+        dof,
+        runs,
+        epochs,
+        mean,
+        min_max: [
+            avg.iter().copied().fold(f64::INFINITY, f64::min),
+            avg.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+        ],
+        band_95: band,
+        fraction_inside: inside as f64 / epochs as f64,
+        mean_inside: mean >= band[0] && mean <= band[1],
+    })
+}
+
+/// Monte Carlo result.
+#[derive(Debug, Clone, Serialize)]
+pub struct MonteCarlo {
+    /// Runs.
+    pub runs: usize,
+    /// Position NEES (3 dof).
+    pub nees_pos: Option<NeesSummary>,
+    /// Position/velocity/attitude NEES (9 dof).
+    pub nees_pva: Option<NeesSummary>,
+    /// Mean over the vision runs of the max error per axis, m.
+    pub mean_max_err_m: Enu,
+    /// Mean over the INS-only control runs (same seeds) of the max error per axis, m.
+    pub ins_only_mean_max_err_m: Enu,
+    /// Mean over the INS-only control runs of the max horizontal error, m.
+    pub ins_only_mean_max_horiz_err_m: f64,
+    /// Mean over runs of the max horizontal error, m.
+    pub mean_max_horiz_err_m: f64,
+    /// Largest max horizontal error over runs, m.
+    pub worst_max_horiz_err_m: f64,
+    /// Runs whose max horizontal error exceeds the scenario target.
+    pub runs_over_target: usize,
+}
+
+fn mean_enu(rs: &[RunResult]) -> Enu {
+    let n = rs.len().max(1) as f64;
+    Enu {
+        e: rs.iter().map(|r| r.max_err_m.e).sum::<f64>() / n,
+        n: rs.iter().map(|r| r.max_err_m.n).sum::<f64>() / n,
+        u: rs.iter().map(|r| r.max_err_m.u).sum::<f64>() / n,
+    }
+}
+
+/// Run `runs` vision runs with seeds `seed + 1000 + i` and the INS-only control runs with the
+/// same seeds (in parallel).
+pub fn monte_carlo(sc: &Scenario, runs: usize) -> Result<MonteCarlo, RunError> {
+    use rayon::prelude::*;
+    let both: Result<Vec<(RunResult, RunResult)>, RunError> = (0..runs)
+        .into_par_iter()
+        .map(|i| {
+            Ok((
+                run(sc, RunOptions::new(true, 1000 + i as u64))?,
+                run(sc, RunOptions::new(false, 1000 + i as u64))?,
+            ))
+        })
+        .collect();
+    let (results, ins): (Vec<RunResult>, Vec<RunResult>) = both?.into_iter().unzip();
+    let pos: Vec<_> = results.iter().map(|r| r.nees_pos.clone()).collect();
+    let pva: Vec<_> = results.iter().map(|r| r.nees_pva.clone()).collect();
+    let mh: Vec<f64> = results.iter().map(|r| r.max_horiz_err_m).collect();
+    let target = sc
+        .evaluation
+        .target_max_horiz_err_m
+        .unwrap_or(f64::INFINITY);
+    Ok(MonteCarlo {
+        runs,
+        mean_max_err_m: mean_enu(&results),
+        ins_only_mean_max_err_m: mean_enu(&ins),
+        ins_only_mean_max_horiz_err_m: ins.iter().map(|r| r.max_horiz_err_m).sum::<f64>()
+            / runs.max(1) as f64,
+        nees_pos: nees_summary(&pos, 3),
+        nees_pva: nees_summary(&pva, 9),
+        mean_max_horiz_err_m: mh.iter().sum::<f64>() / runs.max(1) as f64,
+        worst_max_horiz_err_m: mh.iter().copied().fold(0.0, f64::max),
+        runs_over_target: mh.iter().filter(|&&m| m > target).count(),
+    })
+}

@@ -1,0 +1,423 @@
+//! Scenario files (`sitl/scenarios/*.toml`): trajectory, simulated sensors, evaluation window and
+//! the `[nav]` filter configuration. Parsed with `deny_unknown_fields` and validated; every error
+//! names the file and the dotted key.
+
+use super::imu::SimImuConfig;
+use super::trajectory::{Segment, Trajectory};
+use crate::config::{Problems, Validate};
+use crate::nav::NavConfig;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Scenario loading errors.
+#[derive(Debug, thiserror::Error)]
+pub enum ScenarioError {
+    /// File unreadable.
+    #[error("{file}: cannot read: {err}")]
+    Read {
+        /// File.
+        file: String,
+        /// Cause.
+        err: std::io::Error,
+    },
+    /// TOML syntax or schema error (names the key).
+    #[error("{file}: {message}")]
+    Parse {
+        /// File.
+        file: String,
+        /// Parser message.
+        message: String,
+    },
+    /// Values out of range.
+    #[error("{file}: invalid values: {}", .problems.join("; "))]
+    Invalid {
+        /// File.
+        file: String,
+        /// `key: reason` for every problem.
+        problems: Vec<String>,
+    },
+}
+
+/// Start of the trajectory.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StartConfig {
+    /// Latitude, deg.
+    pub lat_deg: f64,
+    /// Longitude, deg.
+    pub lon_deg: f64,
+    /// Height above the WGS84 ellipsoid, m.
+    pub height_m: f64,
+    /// Ground speed, m/s.
+    pub speed_m_s: f64,
+    /// Heading, deg (0 = north, 90 = east).
+    pub heading_deg: f64,
+}
+
+/// Segment kind.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SegmentKind {
+    /// Constant heading and height.
+    Straight,
+    /// Coordinated turn (may also climb).
+    Turn,
+    /// Straight climb or descent.
+    Climb,
+}
+
+/// One `[[segments]]` entry.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SegmentConfig {
+    /// Kind.
+    pub kind: SegmentKind,
+    /// Duration, s.
+    pub duration_s: f64,
+    /// Turn rate, deg/s (turn only; positive = right).
+    #[serde(default)]
+    pub turn_rate_deg_s: f64,
+    /// Climb rate, m/s (climb or turn; negative = descent).
+    #[serde(default)]
+    pub climb_rate_m_s: f64,
+    /// New speed, m/s (default: keep).
+    #[serde(default)]
+    pub speed_m_s: Option<f64>,
+    /// Transition time, s.
+    #[serde(default = "default_ramp")]
+    pub ramp_s: f64,
+}
+
+fn default_ramp() -> f64 {
+    3.0
+}
+
+/// Simulated GPS (white noise, no latency).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GpsConfig {
+    /// Rate, Hz.
+    pub rate_hz: f64,
+    /// Available from this time, s.
+    #[serde(default)]
+    pub from_s: f64,
+    /// Available until this time (the outage starts here), s.
+    pub until_s: f64,
+    /// Horizontal position sigma per axis, m.
+    pub sigma_h_m: f64,
+    /// Vertical position sigma, m.
+    pub sigma_v_m: f64,
+    /// Velocity sigma per axis, m/s.
+    pub sigma_vel_m_s: f64,
+}
+
+/// Simulated vision fixes: truth plus white noise, delivered late.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VisionConfig {
+    /// Rate, Hz.
+    pub rate_hz: f64,
+    /// First capture time, s.
+    pub from_s: f64,
+    /// Last capture time, s.
+    pub until_s: f64,
+    /// Horizontal sigma per axis (used for the noise and the reported covariance), m.
+    pub sigma_h_m: f64,
+    /// Vertical sigma, m.
+    pub sigma_v_m: f64,
+    /// Delivery latency after capture, uniform in [min, max], ms.
+    pub latency_min_ms: f64,
+    /// See `latency_min_ms`.
+    pub latency_max_ms: f64,
+    /// Probability that a fix is an outlier (wrong match).
+    #[serde(default)]
+    pub outlier_prob: f64,
+    /// Horizontal offset of an outlier, m.
+    #[serde(default = "default_outlier")]
+    pub outlier_m: f64,
+}
+
+fn default_outlier() -> f64 {
+    50.0
+}
+
+/// Simulated altitude (white noise plus a constant bias).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AltitudeConfig {
+    /// Rate, Hz.
+    pub rate_hz: f64,
+    /// Sigma, m.
+    pub sigma_m: f64,
+    /// Constant bias of the simulated sensor (not known to the filter), m.
+    #[serde(default)]
+    pub bias_m: f64,
+}
+
+/// Simulated autopilot attitude (truth plus white noise).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AttitudeConfig {
+    /// Rate, Hz.
+    pub rate_hz: f64,
+    /// Roll/pitch noise sigma, deg.
+    pub sigma_tilt_deg: f64,
+    /// Yaw noise sigma, deg.
+    pub sigma_yaw_deg: f64,
+}
+
+/// Evaluation window and consistency sampling.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EvaluationConfig {
+    /// Window start, s.
+    pub from_s: f64,
+    /// Window end, s.
+    pub until_s: f64,
+    /// Interval of the NEES samples, s.
+    #[serde(default = "default_nees_interval")]
+    pub nees_interval_s: f64,
+    /// Maximum horizontal error target for the vision run, m (reported as pass/fail).
+    #[serde(default)]
+    pub target_max_horiz_err_m: Option<f64>,
+}
+
+fn default_nees_interval() -> f64 {
+    1.0
+}
+
+/// Reference numbers (e.g. the seed paper's) printed beside the results.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReferenceConfig {
+    /// Where the numbers come from.
+    pub source: String,
+    /// INS-only max error `[e, n, u]`, m.
+    pub ins_only_max_err_enu_m: [f64; 3],
+    /// With-vision max error `[e, n, u]`, m.
+    pub vision_max_err_enu_m: [f64; 3],
+}
+
+/// A whole scenario file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scenario {
+    /// Name.
+    pub name: String,
+    /// Free text.
+    #[serde(default)]
+    pub description: String,
+    /// Random seed of run 0 (Monte Carlo run i uses seed + i).
+    #[serde(default)]
+    pub seed: u64,
+    /// Start point.
+    pub start: StartConfig,
+    /// Trajectory segments.
+    pub segments: Vec<SegmentConfig>,
+    /// Simulated IMU.
+    pub imu: SimImuConfig,
+    /// Simulated GPS.
+    #[serde(default)]
+    pub gps: Option<GpsConfig>,
+    /// Simulated vision fixes.
+    #[serde(default)]
+    pub vision: Option<VisionConfig>,
+    /// Simulated altitude.
+    #[serde(default)]
+    pub altitude: Option<AltitudeConfig>,
+    /// Simulated autopilot attitude (needed for initialisation).
+    pub attitude: AttitudeConfig,
+    /// Evaluation.
+    pub evaluation: EvaluationConfig,
+    /// Reference numbers.
+    #[serde(default)]
+    pub reference: Option<ReferenceConfig>,
+    /// Filter configuration.
+    #[serde(default)]
+    pub nav: NavConfig,
+}
+
+impl Scenario {
+    /// Read, parse and validate a scenario file.
+    pub fn load(path: &Path) -> Result<Self, ScenarioError> {
+        let file = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|err| ScenarioError::Read {
+            file: file.clone(),
+            err,
+        })?;
+        Self::parse(&text, &file)
+    }
+
+    /// Parse and validate scenario text; `file` is used in messages.
+    pub fn parse(text: &str, file: &str) -> Result<Self, ScenarioError> {
+        let sc: Scenario = toml::from_str(text).map_err(|e| ScenarioError::Parse {
+            file: file.to_string(),
+            message: e.to_string(),
+        })?;
+        let mut p = Problems::default();
+        sc.validate(&mut p);
+        if !p.list.is_empty() {
+            return Err(ScenarioError::Invalid {
+                file: file.to_string(),
+                problems: p.list.iter().map(|i| i.to_string()).collect(),
+            });
+        }
+        Ok(sc)
+    }
+
+    /// Build the trajectory.
+    pub fn trajectory(&self) -> Trajectory {
+        let mut speed = self.start.speed_m_s;
+        let segs = self
+            .segments
+            .iter()
+            .map(|s| {
+                if let Some(v) = s.speed_m_s {
+                    speed = v;
+                }
+                Segment {
+                    duration_s: s.duration_s,
+                    speed_m_s: speed,
+                    turn_rate_rad_s: s.turn_rate_deg_s.to_radians(),
+                    path_angle_rad: (s.climb_rate_m_s / speed).clamp(-1.0, 1.0).asin(),
+                    ramp_s: s.ramp_s,
+                }
+            })
+            .collect();
+        Trajectory::new(
+            self.start.lat_deg.to_radians(),
+            self.start.lon_deg.to_radians(),
+            self.start.height_m,
+            self.start.speed_m_s,
+            self.start.heading_deg.to_radians(),
+            segs,
+        )
+    }
+
+    /// Total duration, s.
+    pub fn duration_s(&self) -> f64 {
+        self.segments.iter().map(|s| s.duration_s).sum()
+    }
+}
+
+impl Validate for Scenario {
+    fn validate(&self, p: &mut Problems) {
+        if self.name.trim().is_empty() {
+            p.push("name", "must not be empty");
+        }
+        p.section("start", |p| {
+            p.range("lat_deg", self.start.lat_deg, -80.0, 80.0);
+            p.range("lon_deg", self.start.lon_deg, -180.0, 180.0);
+            p.range("height_m", self.start.height_m, -500.0, 20_000.0);
+            p.range("speed_m_s", self.start.speed_m_s, 1.0, 400.0);
+            p.range("heading_deg", self.start.heading_deg, -360.0, 360.0);
+        });
+        if self.segments.is_empty() {
+            p.push("segments", "at least one segment is required");
+        }
+        let mut speed = self.start.speed_m_s;
+        for (i, s) in self.segments.iter().enumerate() {
+            p.section(&format!("segments[{i}]"), |p| {
+                p.range("duration_s", s.duration_s, 0.1, 86_400.0);
+                p.range("ramp_s", s.ramp_s, 0.1, 600.0);
+                p.range("turn_rate_deg_s", s.turn_rate_deg_s, -30.0, 30.0);
+                if let Some(v) = s.speed_m_s {
+                    p.range("speed_m_s", v, 1.0, 400.0);
+                    speed = v;
+                }
+                p.range(
+                    "climb_rate_m_s",
+                    s.climb_rate_m_s,
+                    -0.5 * speed,
+                    0.5 * speed,
+                );
+                match s.kind {
+                    SegmentKind::Straight => {
+                        if s.turn_rate_deg_s != 0.0 || s.climb_rate_m_s != 0.0 {
+                            p.push(
+                                "kind",
+                                "a straight segment has no turn_rate_deg_s or climb_rate_m_s",
+                            );
+                        }
+                    }
+                    SegmentKind::Turn => {
+                        if s.turn_rate_deg_s == 0.0 {
+                            p.push("turn_rate_deg_s", "a turn needs a non-zero turn rate");
+                        }
+                    }
+                    SegmentKind::Climb => {
+                        if s.turn_rate_deg_s != 0.0 {
+                            p.push("turn_rate_deg_s", "a climb has no turn rate (use a turn)");
+                        }
+                        if s.climb_rate_m_s == 0.0 {
+                            p.push("climb_rate_m_s", "a climb needs a non-zero climb rate");
+                        }
+                    }
+                }
+            });
+        }
+        let dur = self.duration_s();
+        p.section("imu", |p| self.imu.validate(p));
+        if let Some(g) = &self.gps {
+            p.section("gps", |p| {
+                p.range("rate_hz", g.rate_hz, 0.1, 100.0);
+                p.range("from_s", g.from_s, 0.0, dur);
+                p.range("until_s", g.until_s, g.from_s, dur);
+                p.positive("sigma_h_m", g.sigma_h_m);
+                p.positive("sigma_v_m", g.sigma_v_m);
+                p.positive("sigma_vel_m_s", g.sigma_vel_m_s);
+            });
+        }
+        if let Some(v) = &self.vision {
+            p.section("vision", |p| {
+                p.range("rate_hz", v.rate_hz, 0.1, 100.0);
+                p.range("from_s", v.from_s, 0.0, dur);
+                p.range("until_s", v.until_s, v.from_s, dur);
+                p.positive("sigma_h_m", v.sigma_h_m);
+                p.positive("sigma_v_m", v.sigma_v_m);
+                p.range("latency_min_ms", v.latency_min_ms, 0.0, 5000.0);
+                p.range("latency_max_ms", v.latency_max_ms, v.latency_min_ms, 5000.0);
+                p.range("outlier_prob", v.outlier_prob, 0.0, 1.0);
+                p.range("outlier_m", v.outlier_m, 0.0, 10_000.0);
+            });
+        }
+        if let Some(a) = &self.altitude {
+            p.section("altitude", |p| {
+                p.range("rate_hz", a.rate_hz, 0.1, 100.0);
+                p.positive("sigma_m", a.sigma_m);
+                p.range("bias_m", a.bias_m, -1000.0, 1000.0);
+            });
+        }
+        p.section("attitude", |p| {
+            p.range("rate_hz", self.attitude.rate_hz, 0.1, 400.0);
+            p.positive("sigma_tilt_deg", self.attitude.sigma_tilt_deg);
+            p.positive("sigma_yaw_deg", self.attitude.sigma_yaw_deg);
+        });
+        p.section("evaluation", |p| {
+            let e = &self.evaluation;
+            p.range("from_s", e.from_s, 0.0, dur);
+            p.range("until_s", e.until_s, e.from_s, dur);
+            p.range("nees_interval_s", e.nees_interval_s, 0.01, 3600.0);
+            if let Some(t) = e.target_max_horiz_err_m {
+                p.positive("target_max_horiz_err_m", t);
+            }
+        });
+        if let Some(r) = &self.reference {
+            p.section("reference", |p| {
+                for v in r.ins_only_max_err_enu_m {
+                    p.range("ins_only_max_err_enu_m", v, 0.0, 1e7);
+                }
+                for v in r.vision_max_err_enu_m {
+                    p.range("vision_max_err_enu_m", v, 0.0, 1e7);
+                }
+            });
+        }
+        if self.gps.is_none() && self.vision.is_none() {
+            p.push(
+                "gps",
+                "a scenario needs gps or vision to initialise the filter",
+            );
+        }
+        p.section("nav", |p| self.nav.validate(p));
+    }
+}

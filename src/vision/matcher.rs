@@ -1,0 +1,318 @@
+//! Brute-force descriptor matching: 2-nearest-neighbour search in L2 distance, Lowe's ratio test
+//! (Lowe 2004, sec. 7.1), the Laplacian-sign gate of SURF (Bay et al. 2008, sec. 4.3: only
+//! keypoints with the same sign of the trace are compared), an optional mutual (cross) check and an
+//! optional spatial gate (only train keypoints within a radius of a predicted location).
+//!
+//! Layout: descriptors are stored row-major with a stride that is a multiple of 8 floats (see
+//! `Features`), and the squared distance accumulates into 8 independent lanes, which the compiler
+//! turns into SIMD adds and multiplies (a plain `sum()` would be serial because float addition is
+//! not associative). Queries run in parallel (rayon).
+
+use rayon::prelude::*;
+
+use super::{Features, VisionError};
+
+/// Matching options.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct MatchParams {
+    /// Accept when `d1 < ratio * d2` (distances, not squared); 1.0 disables the test. With the test
+    /// on, a query with a single candidate is rejected.
+    pub ratio: f32,
+    /// Compare only keypoints with the same Laplacian sign.
+    pub laplacian_gate: bool,
+    /// Keep a match only when the query is also the train keypoint's nearest neighbour (among
+    /// the candidates that pass the same gates).
+    pub mutual: bool,
+    /// When set, a train keypoint is a candidate only if it lies within this many pixels of the
+    /// query's predicted location (passed to [`match_features`]).
+    pub spatial_radius_px: Option<f32>,
+}
+
+impl Default for MatchParams {
+    fn default() -> Self {
+        Self {
+            ratio: 0.8,
+            laplacian_gate: true,
+            mutual: false,
+            spatial_radius_px: None,
+        }
+    }
+}
+
+/// A match from query keypoint `query` to train keypoint `train`.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct Match {
+    pub query: usize,
+    pub train: usize,
+    /// L2 distance to the nearest train descriptor.
+    pub distance: f32,
+    /// L2 distance to the second nearest (infinite when there was only one candidate).
+    pub second_distance: f32,
+}
+
+/// Squared L2 distance of two equally long rows whose length is a multiple of 8.
+#[inline]
+pub fn dist2(a: &[f32], b: &[f32]) -> f32 {
+    let mut acc = [0f32; 8];
+    for (ca, cb) in a.chunks_exact(8).zip(b.chunks_exact(8)) {
+        for k in 0..8 {
+            let d = ca[k] - cb[k];
+            acc[k] += d * d;
+        }
+    }
+    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]))
+}
+
+/// Nearest and second nearest `(index, d1^2, d2^2)` of row `qi` of `q` among rows of `t` that pass
+/// `accept`.
+fn two_nn(
+    q: &Features,
+    qi: usize,
+    t: &Features,
+    accept: &impl Fn(usize) -> bool,
+) -> Option<(usize, f32, f32)> {
+    let st = q.kind().stride();
+    let qd = &q.descriptors_padded()[qi * st..(qi + 1) * st];
+    let td = t.descriptors_padded();
+    let (mut best, mut b1, mut b2) = (usize::MAX, f32::INFINITY, f32::INFINITY);
+    for (ti, row) in td.chunks_exact(st).enumerate() {
+        if !accept(ti) {
+            continue;
+        }
+        let d = dist2(qd, row);
+        if d < b1 {
+            b2 = b1;
+            b1 = d;
+            best = ti;
+        } else if d < b2 {
+            b2 = d;
+        }
+    }
+    (best != usize::MAX).then_some((best, b1, b2))
+}
+
+/// Match every query feature against the train features.
+///
+/// `predicted_in_train`: with `params.spatial_radius_px`, the predicted train-image location of
+/// each query keypoint (one per query; a non-finite prediction excludes that query). The mutual
+/// check uses the same gates in reverse (a train keypoint's candidates are the queries whose
+/// prediction lies within the radius of it). Returns matches ordered by query index.
+pub fn match_features(
+    query: &Features,
+    train: &Features,
+    params: &MatchParams,
+    predicted_in_train: Option<&[[f32; 2]]>,
+) -> Result<Vec<Match>, VisionError> {
+    if query.kind() != train.kind() {
+        return Err(VisionError::Matcher(format!(
+            "descriptor kinds differ: query {:?}, train {:?}",
+            query.kind(),
+            train.kind()
+        )));
+    }
+    if !(params.ratio.is_finite() && params.ratio > 0.0 && params.ratio <= 1.0) {
+        return Err(VisionError::Matcher(format!(
+            "ratio {} must be in (0, 1]",
+            params.ratio
+        )));
+    }
+    let gate = match params.spatial_radius_px {
+        None => None,
+        Some(r) => {
+            if !(r.is_finite() && r > 0.0) {
+                return Err(VisionError::Matcher(format!(
+                    "spatial_radius_px {r} must be positive"
+                )));
+            }
+            let pred = predicted_in_train.ok_or_else(|| {
+                VisionError::Matcher("spatial gate set but no predicted locations given".into())
+            })?;
+            if pred.len() != query.len() {
+                return Err(VisionError::Matcher(format!(
+                    "{} predicted locations for {} query keypoints",
+                    pred.len(),
+                    query.len()
+                )));
+            }
+            Some((pred, r * r))
+        }
+    };
+    let compatible = |qi: usize, ti: usize| -> bool {
+        let (qk, tk) = (&query.keypoints[qi], &train.keypoints[ti]);
+        if params.laplacian_gate && qk.laplacian != tk.laplacian {
+            return false;
+        }
+        if let Some((pred, r2)) = gate {
+            let [px, py] = pred[qi];
+            let (dx, dy) = (tk.x - px, tk.y - py);
+            // NaN predictions fail this comparison and exclude the pair.
+            let within = dx * dx + dy * dy <= r2;
+            if !within {
+                return false;
+            }
+        }
+        true
+    };
+    let ratio2 = params.ratio * params.ratio;
+    let forward: Vec<Option<Match>> = (0..query.len())
+        .into_par_iter()
+        .with_min_len(32)
+        .map(|qi| {
+            let (ti, d1, d2) = two_nn(query, qi, train, &|ti| compatible(qi, ti))?;
+            // A lone candidate (d2 infinite) gives no evidence of distinctiveness: rejected.
+            if params.ratio < 1.0 && !(d2.is_finite() && d1 < ratio2 * d2) {
+                return None;
+            }
+            Some(Match {
+                query: qi,
+                train: ti,
+                distance: d1.max(0.0).sqrt(),
+                second_distance: d2.max(0.0).sqrt(),
+            })
+        })
+        .collect();
+    let mut out: Vec<Match> = forward.into_iter().flatten().collect();
+    if params.mutual {
+        out = out
+            .into_par_iter()
+            .with_min_len(32)
+            .filter(|m| {
+                two_nn(train, m.train, query, &|qi| compatible(qi, m.train))
+                    .is_some_and(|(qi, _, _)| qi == m.query)
+            })
+            .collect();
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::vision::{DescriptorKind, KeyPoint};
+
+    fn kp(x: f32, y: f32, lap: i8) -> KeyPoint {
+        KeyPoint {
+            x,
+            y,
+            size: 9.0,
+            scale: 1.2,
+            response: 1.0,
+            orientation_rad: 0.0,
+            laplacian: lap,
+            octave: 0,
+        }
+    }
+
+    fn features(rows: &[(KeyPoint, Vec<f32>)]) -> Features {
+        let kind = DescriptorKind::Surf36;
+        let mut d = Vec::new();
+        for (_, v) in rows {
+            let mut r = v.clone();
+            r.resize(kind.stride(), 0.0);
+            d.extend(r);
+        }
+        Features::new(rows.iter().map(|r| r.0).collect(), d, kind).unwrap()
+    }
+
+    fn unit(i: usize, eps: f32) -> Vec<f32> {
+        let mut v = vec![0.0; 36];
+        v[i] = 1.0;
+        v[(i + 1) % 36] = eps;
+        v
+    }
+
+    #[test]
+    fn dist2_matches_naive() {
+        let a: Vec<f32> = (0..64).map(|i| (i as f32 * 0.37).sin()).collect();
+        let b: Vec<f32> = (0..64).map(|i| (i as f32 * 0.11).cos()).collect();
+        let naive: f32 = a.iter().zip(&b).map(|(x, y)| (x - y) * (x - y)).sum();
+        assert!((dist2(&a, &b) - naive).abs() < 1e-4);
+    }
+
+    #[test]
+    fn ratio_laplacian_mutual_and_spatial_gates() {
+        let q = features(&[
+            (kp(10.0, 10.0, 1), unit(0, 0.0)),
+            (kp(20.0, 20.0, 1), unit(5, 0.0)),
+            (kp(30.0, 30.0, -1), unit(9, 0.0)),
+        ]);
+        let t = features(&[
+            (kp(11.0, 10.0, 1), unit(0, 0.1)),  // good match of q0
+            (kp(90.0, 90.0, 1), unit(5, 0.05)), // q1 ambiguous with t2
+            (kp(21.0, 20.0, 1), unit(5, 0.06)),
+            (kp(31.0, 30.0, 1), unit(9, 0.0)), // q2's twin but opposite Laplacian sign
+            (kp(50.0, 50.0, -1), unit(20, 0.0)), // unrelated, same sign as q2
+            (kp(22.0, 21.0, 1), unit(30, 0.0)), // unrelated, near q1's prediction
+        ]);
+        let m = match_features(&q, &t, &MatchParams::default(), None).unwrap();
+        assert_eq!(m.len(), 1, "{m:?}");
+        assert_eq!((m[0].query, m[0].train), (0, 0));
+
+        // Without the Laplacian gate q2 matches t3.
+        let p = MatchParams {
+            laplacian_gate: false,
+            ..Default::default()
+        };
+        let m = match_features(&q, &t, &p, None).unwrap();
+        assert!(m.iter().any(|m| (m.query, m.train) == (2, 3)));
+
+        // Spatial gate resolves the ambiguity of q1 (t1 is far from the prediction).
+        let pred = [[10.0, 10.0], [20.0, 20.0], [30.0, 30.0]];
+        let p = MatchParams {
+            spatial_radius_px: Some(5.0),
+            ..Default::default()
+        };
+        let m = match_features(&q, &t, &p, Some(&pred)).unwrap();
+        assert!(m.iter().any(|m| (m.query, m.train) == (1, 2)), "{m:?}");
+        assert!(m.iter().all(|m| m.train != 1));
+
+        // Mutual: two queries wanting the same train keypoint, only the closer survives.
+        let q2 = features(&[
+            (kp(0.0, 0.0, 1), unit(0, 0.0)),
+            (kp(1.0, 0.0, 1), unit(0, 0.3)),
+        ]);
+        let t2 = features(&[
+            (kp(0.0, 0.0, 1), unit(0, 0.0)),
+            (kp(5.0, 5.0, 1), unit(30, 0.0)),
+        ]);
+        let p = MatchParams {
+            ratio: 1.0,
+            mutual: true,
+            ..Default::default()
+        };
+        let m = match_features(&q2, &t2, &p, None).unwrap();
+        assert_eq!(m.len(), 1);
+        assert_eq!((m[0].query, m[0].train), (0, 0));
+        let p = MatchParams {
+            ratio: 1.0,
+            ..Default::default()
+        };
+        assert_eq!(match_features(&q2, &t2, &p, None).unwrap().len(), 2);
+    }
+
+    #[test]
+    fn bad_inputs_are_errors() {
+        let q = features(&[(kp(0.0, 0.0, 1), unit(0, 0.0))]);
+        let p = MatchParams {
+            spatial_radius_px: Some(3.0),
+            ..Default::default()
+        };
+        assert!(match_features(&q, &q, &p, None).is_err());
+        assert!(match_features(&q, &q, &p, Some(&[])).is_err());
+        let p = MatchParams {
+            ratio: 0.0,
+            ..Default::default()
+        };
+        assert!(match_features(&q, &q, &p, None).is_err());
+        // NaN prediction excludes the query instead of panicking.
+        let p = MatchParams {
+            spatial_radius_px: Some(3.0),
+            ..Default::default()
+        };
+        assert!(
+            match_features(&q, &q, &p, Some(&[[f32::NAN, 0.0]]))
+                .unwrap()
+                .is_empty()
+        );
+    }
+}

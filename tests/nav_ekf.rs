@@ -1,0 +1,392 @@
+//! Error-state EKF behaviour: bias estimation under GPS, late fixes applied at capture time,
+//! gating, covariance health, divergence reset, initialisation from vision, health states.
+
+use nalgebra::{Matrix3, Vector3};
+use visnav::nav::earth;
+use visnav::nav::filter::Health;
+use visnav::nav::{
+    AttitudeFix, ImuSample, InsState, Measurement, NavConfig, NavFilter, Outcome, PositionFix,
+    VelocityFix,
+};
+use visnav::sitl::Scenario;
+use visnav::sitl::imu::{ImuErrors, SimImuConfig};
+use visnav::sitl::rng::Rng;
+use visnav::sitl::run::{RunOptions, run};
+use visnav::sitl::trajectory::{Segment, Trajectory};
+
+/// Straight-and-level truth flown with an optional noisy IMU, feeding GPS at 5 Hz.
+struct Harness {
+    traj: Trajectory,
+    filter: NavFilter,
+    rng: Rng,
+    imu: ImuErrors,
+    t_us: u64,
+    states: Vec<(u64, InsState)>,
+}
+
+const DT_US: u64 = 10_000;
+
+fn straight() -> Trajectory {
+    Trajectory::new(
+        46.9f64.to_radians(),
+        (-100.8f64).to_radians(),
+        1500.0,
+        51.44,
+        90f64.to_radians(),
+        vec![Segment {
+            duration_s: 3600.0,
+            speed_m_s: 51.44,
+            turn_rate_rad_s: 0.0,
+            path_angle_rad: 0.0,
+            ramp_s: 1.0,
+        }],
+    )
+}
+
+fn fix_at(s: &InsState, t_us: u64, offset_ned: Vector3<f64>, sigma: f64) -> PositionFix {
+    let (rm, rn) = earth::radii_m(s.lat_rad);
+    PositionFix {
+        t_capture_us: t_us,
+        lat_rad: s.lat_rad + offset_ned.x / (rm + s.h_m),
+        lon_rad: s.lon_rad + offset_ned.y / ((rn + s.h_m) * s.lat_rad.cos()),
+        h_m: s.h_m - offset_ned.z,
+        cov_ned_m2: Matrix3::identity() * sigma * sigma,
+    }
+}
+
+impl Harness {
+    fn new(cfg: NavConfig, imu: SimImuConfig) -> Self {
+        let mut f = NavFilter::new(cfg);
+        f.imu(&ImuSample {
+            t_us: 0,
+            dtheta_rad_body_frd: Vector3::zeros(),
+            dv_m_s_body_frd: Vector3::zeros(),
+        });
+        Self {
+            traj: straight(),
+            filter: f,
+            rng: Rng::new(5),
+            imu: ImuErrors::new(imu),
+            t_us: 0,
+            states: Vec::new(),
+        }
+    }
+
+    /// Fly `secs` seconds; GPS (position 1.5 m, velocity 0.1 m/s) when `gps`, attitude at 10 Hz.
+    fn fly(&mut self, secs: f64, gps: bool, mut each: impl FnMut(&mut NavFilter, u64, &InsState)) {
+        let mut truth = self.traj.truth();
+        // Re-integrate the truth up to the current time (the harness restarts the integrator).
+        let steps_done = self.t_us / DT_US;
+        for _ in 0..steps_done {
+            truth.step(DT_US as f64 * 1e-6);
+        }
+        let n = (secs * 1e6 / DT_US as f64).round() as u64;
+        for _ in 0..n {
+            self.t_us += DT_US;
+            let (dth, dv) = truth.step(DT_US as f64 * 1e-6);
+            let (dth, dv) = self
+                .imu
+                .corrupt(&mut self.rng, &dth, &dv, DT_US as f64 * 1e-6);
+            let ts = truth.state();
+            self.filter.imu(&ImuSample {
+                t_us: self.t_us,
+                dtheta_rad_body_frd: dth,
+                dv_m_s_body_frd: dv,
+            });
+            if self.t_us.is_multiple_of(100_000) {
+                self.filter.measure(Measurement::Attitude(AttitudeFix {
+                    t_capture_us: self.t_us,
+                    q_nb: ts.q_nb,
+                }));
+            }
+            if gps && self.t_us.is_multiple_of(200_000) {
+                let n = Vector3::new(self.rng.normal(), self.rng.normal(), self.rng.normal());
+                self.filter.measure(Measurement::GpsVelocity(VelocityFix {
+                    t_capture_us: self.t_us,
+                    v_ned_m_s: ts.v_ned_m_s + n * 0.1,
+                    cov_ned_m2_s2: Matrix3::identity() * 0.01,
+                }));
+                let n = Vector3::new(self.rng.normal(), self.rng.normal(), self.rng.normal());
+                self.filter.measure(Measurement::GpsPosition(fix_at(
+                    &ts,
+                    self.t_us,
+                    n * 1.5,
+                    1.5,
+                )));
+            }
+            each(&mut self.filter, self.t_us, &ts);
+            self.states.push((self.t_us, ts));
+        }
+    }
+
+    fn truth_at(&self, t_us: u64) -> InsState {
+        self.states[(t_us / DT_US - 1) as usize].1.clone()
+    }
+
+    fn pos_err(&self) -> Vector3<f64> {
+        let s = self.filter.state().expect("initialised");
+        let t = self.truth_at(self.filter.t_us().expect("t"));
+        earth::ned_offset_m((s.lat_rad, s.lon_rad, s.h_m), (t.lat_rad, t.lon_rad, t.h_m))
+    }
+}
+
+fn check_pd(f: &NavFilter) {
+    let p = f.covariance().expect("covariance");
+    assert_eq!(p.nrows(), f.n_states());
+    assert!((&p - p.transpose()).abs().max() <= 1e-12 * p.abs().max());
+    let min_eig = p.clone().symmetric_eigenvalues().min();
+    assert!(
+        min_eig > 0.0,
+        "covariance not positive definite: min eigenvalue {min_eig}"
+    );
+}
+
+#[test]
+fn covariance_stays_symmetric_pd_and_outlier_is_gated() {
+    let mut imu = SimImuConfig::perfect(100.0);
+    imu.gyro_arw_deg_sqrt_h = 0.1;
+    imu.accel_vrw_m_s_sqrt_h = 0.03;
+    let mut h = Harness::new(NavConfig::default(), imu);
+    assert_eq!(h.filter.health().0, Health::Lost);
+    let mut k = 0;
+    h.fly(60.0, true, |f, _, _| {
+        k += 1;
+        if k % 250 == 0 && f.is_initialised() {
+            check_pd(f);
+        }
+    });
+    assert!(h.filter.is_initialised());
+    assert_eq!(h.filter.health().0, Health::Ok, "{:?}", h.filter.health());
+    assert!(h.pos_err().norm() < 3.0, "{:?}", h.pos_err());
+    // A vision fix 50 m off with a 3 m sigma is rejected and counted; a good one is accepted.
+    let t = h.filter.t_us().expect("t");
+    let truth = h.truth_at(t);
+    let out = h.filter.measure(Measurement::Vision(fix_at(
+        &truth,
+        t,
+        Vector3::new(30.0, 40.0, 0.0),
+        3.0,
+    )));
+    assert!(
+        matches!(out, Outcome::Rejected { nis, .. } if nis > 100.0),
+        "{out:?}"
+    );
+    assert_eq!(h.filter.counters().vision.rejected, 1);
+    let out = h.filter.measure(Measurement::Vision(fix_at(
+        &truth,
+        t,
+        Vector3::new(1.0, -1.0, 0.5),
+        3.0,
+    )));
+    assert!(matches!(out, Outcome::Accepted { .. }), "{out:?}");
+    assert_eq!(h.filter.counters().vision.accepted, 1);
+    // Malformed and stale inputs are refused and counted.
+    let mut bad = fix_at(&truth, t, Vector3::zeros(), 3.0);
+    bad.lat_rad = f64::NAN;
+    assert!(matches!(
+        h.filter.measure(Measurement::Vision(bad)),
+        Outcome::Invalid(_)
+    ));
+    let mut bad = fix_at(&truth, t, Vector3::zeros(), 3.0);
+    bad.cov_ned_m2[(0, 0)] = -1.0;
+    assert!(matches!(
+        h.filter.measure(Measurement::Vision(bad)),
+        Outcome::Invalid(_)
+    ));
+    let old = fix_at(&truth, t - 5_000_000, Vector3::zeros(), 3.0);
+    assert_eq!(h.filter.measure(Measurement::Vision(old)), Outcome::TooOld);
+    let c = h.filter.counters().vision;
+    assert_eq!((c.invalid, c.too_old), (2, 1));
+    check_pd(&h.filter);
+}
+
+#[test]
+fn divergence_reset_after_consecutive_rejections() {
+    let mut h = Harness::new(NavConfig::default(), SimImuConfig::perfect(100.0));
+    h.fly(30.0, true, |_, _, _| {});
+    // The aircraft is really 300 m north of where the filter thinks (e.g. after a wrong init):
+    // fixes keep being rejected until the divergence detector resets onto them.
+    let n_reset = NavConfig::default().health.divergence_reject_count;
+    let mut outcomes = Vec::new();
+    h.fly(10.0, false, |f, t, ts| {
+        if t.is_multiple_of(1_000_000) {
+            outcomes.push(f.measure(Measurement::Vision(fix_at(
+                ts,
+                t,
+                Vector3::new(300.0, 0.0, 0.0),
+                3.0,
+            ))));
+        }
+    });
+    let resets = outcomes.iter().filter(|o| **o == Outcome::Reset).count();
+    assert_eq!(resets, 1, "{outcomes:?}");
+    assert_eq!(
+        outcomes.iter().position(|o| *o == Outcome::Reset),
+        Some(n_reset as usize - 1)
+    );
+    assert!(
+        matches!(outcomes.last(), Some(Outcome::Accepted { .. })),
+        "{outcomes:?}"
+    );
+    assert_eq!(h.filter.counters().divergence_resets, 1);
+    let e = h.pos_err();
+    assert!((e.x - 300.0).abs() < 10.0 && e.y.abs() < 10.0, "{e:?}");
+    let (health, why) = h.filter.health();
+    assert_eq!(health, Health::Degraded);
+    assert!(why.contains("reset"), "{why}");
+}
+
+#[test]
+fn health_degrades_without_fixes() {
+    let mut h = Harness::new(NavConfig::default(), SimImuConfig::perfect(100.0));
+    h.fly(20.0, true, |_, _, _| {});
+    assert_eq!(h.filter.health().0, Health::Ok);
+    h.fly(12.0, false, |_, _, _| {});
+    let (health, why) = h.filter.health();
+    assert_eq!(health, Health::Degraded);
+    assert!(why.contains("no accepted position fix"), "{why}");
+    let out = h.filter.output().expect("output");
+    assert_eq!(out.health, Health::Degraded);
+    assert!(out.cov_pos_ned_m2[0][0] > 0.0);
+}
+
+#[test]
+fn initialises_from_vision_and_attitude_without_gps() {
+    let mut imu = SimImuConfig::perfect(100.0);
+    imu.gyro_arw_deg_sqrt_h = 0.1;
+    imu.accel_vrw_m_s_sqrt_h = 0.03;
+    let mut h = Harness::new(NavConfig::default(), imu);
+    let mut rng = Rng::new(11);
+    let mut outs = Vec::new();
+    h.fly(60.0, false, |f, t, ts| {
+        if t.is_multiple_of(1_000_000) {
+            let n = Vector3::new(rng.normal(), rng.normal(), rng.normal()) * 2.5;
+            outs.push(f.measure(Measurement::Vision(fix_at(ts, t, n, 2.5))));
+        }
+    });
+    // First fix held (no velocity yet), second initialises (velocity from the two fixes).
+    assert_eq!(outs[0], Outcome::Held);
+    assert_eq!(outs[1], Outcome::Initialised);
+    assert!(
+        outs[2..]
+            .iter()
+            .all(|o| matches!(o, Outcome::Accepted { .. })),
+        "{outs:?}"
+    );
+    let e = h.pos_err();
+    assert!(e.xy().norm() < 6.0, "{e:?}");
+    let p = h.filter.covariance().expect("p");
+    assert!(p[(0, 0)].sqrt() < 5.0);
+    check_pd(&h.filter);
+}
+
+#[test]
+fn bias_estimation_converges_under_gps_with_manoeuvres() {
+    let text = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/sitl/scenarios/gps_calibration.toml"
+    ))
+    .expect("scenario file");
+    let sc = Scenario::parse(&text, "gps_calibration.toml").expect("valid scenario");
+    let r = run(&sc, RunOptions::new(false, 0)).expect("run");
+    eprintln!(
+        "bias errors: gyro {:?} deg/h (truth {:?}), accel {:?} ug (truth {:?})",
+        r.gyro_bias_err_deg_h, sc.imu.gyro_bias_deg_h, r.accel_bias_err_ug, sc.imu.accel_bias_ug
+    );
+    eprintln!(
+        "filter sigmas: gyro {:?} deg/h, accel {:?} ug",
+        r.gyro_bias_sigma_deg_h, r.accel_bias_sigma_ug
+    );
+    // With turns and climbs under GPS all six biases become observable: starting from zero (100 %
+    // error) the residual must be a small fraction of the truth, and within 4 sigma of the
+    // filter's own uncertainty.
+    for i in 0..3 {
+        let (eg, sg, tg) = (
+            r.gyro_bias_err_deg_h[i].abs(),
+            r.gyro_bias_sigma_deg_h[i],
+            sc.imu.gyro_bias_deg_h[i].abs(),
+        );
+        let (ea, sa, ta) = (
+            r.accel_bias_err_ug[i].abs(),
+            r.accel_bias_sigma_ug[i],
+            sc.imu.accel_bias_ug[i].abs(),
+        );
+        assert!(
+            eg < 0.4 * tg && eg < 4.0 * sg,
+            "gyro axis {i}: error {eg} sigma {sg}"
+        );
+        assert!(
+            ea < 0.4 * ta && ea < 4.0 * sa,
+            "accel axis {i}: error {ea} sigma {sa}"
+        );
+        assert!(sg < 0.2 * tg && sa < 0.2 * ta, "axis {i}: sigmas {sg} {sa}");
+    }
+}
+
+#[test]
+fn late_fixes_equal_on_time_fixes() {
+    let text = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/sitl/scenarios/seed_outage.toml"
+    ))
+    .expect("scenario file");
+    let mut sc = Scenario::parse(&text, "seed_outage.toml").expect("valid scenario");
+    // Shorten: 60 s GPS, 30 s vision.
+    sc.segments[0].duration_s = 91.0;
+    let gps = sc.gps.as_mut().expect("gps");
+    gps.until_s = 60.0;
+    let v = sc.vision.as_mut().expect("vision");
+    v.from_s = 60.0;
+    v.until_s = 90.0;
+    v.rate_hz = 2.0;
+    sc.evaluation.from_s = 60.0;
+    sc.evaluation.until_s = 91.0;
+    let mut on_time = sc.clone();
+    let vt = on_time.vision.as_mut().expect("vision");
+    vt.latency_min_ms = 0.0;
+    vt.latency_max_ms = 0.0;
+    let late = run(&sc, RunOptions::new(true, 0)).expect("run");
+    let now = run(&on_time, RunOptions::new(true, 0)).expect("run");
+    let d = Vector3::new(
+        late.final_err_m.e - now.final_err_m.e,
+        late.final_err_m.n - now.final_err_m.n,
+        late.final_err_m.u - now.final_err_m.u,
+    );
+    eprintln!(
+        "final error late {:?} vs on time {:?}; replays {} / {}",
+        late.final_err_m, now.final_err_m, late.counters.replays, now.counters.replays
+    );
+    assert_eq!(late.counters.vision.accepted, now.counters.vision.accepted);
+    assert!(late.counters.replays >= 55);
+    assert!(
+        d.norm() < 1e-3,
+        "late and on-time results differ by {d:?} m"
+    );
+    // Control: ignoring the latency (stamping the fix with its arrival time) is much worse.
+    let naive = run(
+        &sc,
+        RunOptions {
+            stamp_at_arrival: true,
+            ..RunOptions::new(true, 0)
+        },
+    )
+    .expect("run");
+    eprintln!(
+        "max horizontal error: at capture time {:.2} m, stamped at arrival {:.2} m",
+        late.max_horiz_err_m, naive.max_horiz_err_m
+    );
+    assert!(naive.max_horiz_err_m > 2.0 * late.max_horiz_err_m);
+}
+
+#[test]
+fn fifteen_and_twentyone_states() {
+    let cfg = NavConfig {
+        scale_factor_states: true,
+        ..Default::default()
+    };
+    let mut h = Harness::new(cfg, SimImuConfig::perfect(100.0));
+    h.fly(20.0, true, |_, _, _| {});
+    assert_eq!(h.filter.n_states(), 21);
+    check_pd(&h.filter);
+    assert!(h.pos_err().norm() < 3.0);
+}

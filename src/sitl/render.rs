@@ -53,10 +53,10 @@ pub use terrain::Terrain;
 use crate::camera::frames::{r_enu_ned, rot_z};
 use crate::camera::{Attitude, Camera, CameraPose, Intrinsics, Mount, Opk};
 use crate::config::Invalid;
-use crate::geo::Crs;
 use crate::geo::dem::Dem;
 use crate::geo::geotiff::crs_equivalent;
 use crate::geo::raster::Raster;
+use crate::geo::{Crs, GeoError};
 use nalgebra::{Point2, Rotation3, Vector3};
 use rayon::prelude::*;
 use std::time::Instant;
@@ -119,6 +119,14 @@ impl Scene {
     pub fn terrain(&self) -> &Terrain {
         &self.terrain
     }
+}
+
+/// Grid convergence at map point `(x_m, y_m)` of `crs`, radians: the bearing of grid north
+/// clockwise from true north (`Crs::grid_convergence_deg` at the point's geodetic position), the
+/// `grid_convergence_rad` argument of [`RenderPose::from_body`].
+pub fn grid_convergence_rad(crs: &Crs, x_m: f64, y_m: f64) -> Result<f64, GeoError> {
+    let (lat_deg, lon_deg) = crs.to_geodetic(x_m, y_m)?;
+    Ok(crs.grid_convergence_deg(lat_deg, lon_deg)?.to_radians())
 }
 
 /// Camera pose in the map grid frame (see the module doc).
@@ -661,6 +669,24 @@ mod tests {
         let m = Mount::from_angles(0.0, 0.0, 0.0, Vector3::new(1.0, 0.0, 0.0));
         let a = RenderPose::from_body(p, &Attitude::from_deg(0.0, 0.0, 90.0), &m, 0.0);
         assert!((a.centre_map_m - (p + Vector3::x())).norm() < 1e-12);
+    }
+
+    #[test]
+    fn grid_convergence_sign_and_size() {
+        // UTM 14N (central meridian 99 W) at about 47 N: zero on the central meridian, about
+        // dlon * sin(lat) = +0.73 deg one degree (~76 km) east of it, negative west of it.
+        let c = utm();
+        let (x_cm, y) = (500_000.0, 5_206_000.0);
+        assert!(grid_convergence_rad(&c, x_cm, y).unwrap().abs() < 1e-9);
+        let g_east = grid_convergence_rad(&c, x_cm + 76_000.0, y)
+            .unwrap()
+            .to_degrees();
+        let g_west = grid_convergence_rad(&c, x_cm - 76_000.0, y)
+            .unwrap()
+            .to_degrees();
+        assert!((g_east - 0.73).abs() < 0.02, "{g_east}");
+        assert!((g_east + g_west).abs() < 1e-9);
+        assert!(grid_convergence_rad(&Crs::Geographic, 0.0, 0.0).is_err());
     }
 
     #[test]

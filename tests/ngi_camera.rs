@@ -1,20 +1,20 @@
 //! End-to-end check of the camera model and the omega-phi-kappa convention on real aerial frames.
 //!
-//! For each NGI frame (ngi_3324c, Intergraph DMC, 640 x 1152 px, f = 120 mm, no distortion), every
-//! pixel is cast as a ray from the aerial-triangulation pose (`frames_truth.csv`), intersected with
-//! the 24 m DEM, and the NGI 5 m orthophoto is sampled (bilinear) at the ground point. If the
+//! For each NGI frame (ngi_3324c, Intergraph DMC, 640 x 1152 px, f = 120 mm, no distortion), the
+//! simulator's camera renderer (`sitl::render`) casts every pixel as a ray from the
+//! aerial-triangulation pose (`frames_truth.csv`), intersects it with the 24 m DEM and samples the
+//! NGI 5 m orthophoto (anti-aliased) at the ground point. If the
 //! intrinsics, the pixel convention, the OPK rotation and the camera frame flip are right, the
 //! re-rendered image matches the frame: the grey-level Pearson correlation must be at least 0.9.
 //! With kappa + 180 deg (image turned upside down on the ground) it must collapse (< 0.3).
 //! The data lives in `../shared/data/ngi_3324c`; the test is skipped with a message without it.
 
 use nalgebra::{Point2, Vector3};
-use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 use visnav::camera::{Camera, CameraConfig, CameraPose, Opk};
 use visnav::geo::dem::Dem;
 use visnav::geo::geotiff::load_geotiff;
-use visnav::geo::raster::Raster;
+use visnav::sitl::render::{ColourMode, LUMA_REC601, RenderPose, RenderSpec, Renderer, Scene};
 
 fn data_dir() -> Option<PathBuf> {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/ngi_3324c");
@@ -77,44 +77,25 @@ fn ngi_camera() -> Camera {
     cam
 }
 
-/// Mean of the first three bands (or the single band) of the orthophoto at a map point.
-fn ortho_grey(ortho: &Raster, x_m: f64, y_m: f64) -> Option<f64> {
-    let bands = ortho.bands().min(3);
-    let mut sum = 0.0;
-    for b in 0..bands {
-        sum += ortho.bilinear(x_m, y_m, b)?;
-    }
-    Some(sum / bands as f64)
-}
-
-/// Pearson correlation of the frame's grey levels with the ortho re-rendered through `pose`, and
-/// the fraction of pixels that could be rendered.
+/// Pearson correlation of the frame's grey levels with the ortho re-rendered through `pose` by the
+/// simulator's camera renderer (`sitl::render`: per-pixel ray cast onto the DEM, anti-aliased
+/// orthophoto sampling, no photometric effect), and the fraction of pixels that could be rendered.
 fn render_correlation(
-    cam: &Camera,
+    renderer: &Renderer,
+    scene: &Scene,
     pose: &CameraPose,
-    dem: &Dem,
-    ortho: &Raster,
     frame_grey: &[f64],
 ) -> (f64, f64) {
-    let (w, h) = (cam.width_px() as usize, cam.height_px() as usize);
-    let origin = [
-        pose.centre_world_m.x,
-        pose.centre_world_m.y,
-        pose.centre_world_m.z,
-    ];
-    let rendered: Vec<Option<f64>> = (0..w * h)
-        .into_par_iter()
-        .map(|i| {
-            let px = Point2::new((i % w) as f64, (i / w) as f64);
-            let ray = pose.ray_world(cam, &px)?;
-            let hit = dem.intersect_ray(origin, [ray.x, ray.y, ray.z], 20_000.0)?;
-            ortho_grey(ortho, hit[0], hit[1])
-        })
-        .collect();
+    let rendered = renderer
+        .render(scene, &RenderPose::from_camera_pose(pose), 0)
+        .expect("render");
     let pairs: Vec<(f64, f64)> = rendered
+        .data
         .iter()
+        .zip(&rendered.valid)
         .zip(frame_grey)
-        .filter_map(|(r, f)| r.map(|r| (*f, r)))
+        .filter(|((_, valid), _)| **valid)
+        .map(|((r, _), f)| (*f, f64::from(*r)))
         .collect();
     let n = pairs.len() as f64;
     assert!(n > 1000.0, "only {n} pixels rendered");
@@ -127,7 +108,7 @@ fn render_correlation(
         srr += (r - mr) * (r - mr);
         sfr += (f - mf) * (r - mr);
     }
-    (sfr / (sff * srr).sqrt(), n / (w * h) as f64)
+    (sfr / (sff * srr).sqrt(), n / frame_grey.len() as f64)
 }
 
 fn check_frame(frame: &str, ortho_file: &str) {
@@ -143,8 +124,14 @@ fn check_frame(frame: &str, ortho_file: &str) {
     );
     let frame_grey: Vec<f64> = img
         .pixels()
-        .map(|p| (f64::from(p[0]) + f64::from(p[1]) + f64::from(p[2])) / 3.0)
+        .map(|p| {
+            (0..3)
+                .map(|c| f64::from(LUMA_REC601[c]) * f64::from(p[c]))
+                .sum::<f64>()
+        })
         .collect();
+    let scene = Scene::new(&ortho, dem.clone(), ColourMode::Grey).expect("scene");
+    let renderer = Renderer::new(cam, RenderSpec::clean()).expect("renderer");
 
     let pose = CameraPose::from_opk(truth.centre_m, &truth.opk);
     // Ray -> terrain -> back through the camera returns to the same pixel.
@@ -175,18 +162,30 @@ fn check_frame(frame: &str, ortho_file: &str) {
         worst_px < 1e-3,
         "{frame}: ray/project round trip {worst_px} px"
     );
-    let (corr, covered) = render_correlation(&cam, &pose, &dem, &ortho, &frame_grey);
+    let (corr, covered) = render_correlation(&renderer, &scene, &pose, &frame_grey);
     eprintln!(
         "{frame}: grey correlation frame vs ortho through truth pose = {corr:.4} \
          ({:.1} % of pixels rendered)",
         100.0 * covered
     );
 
+    // For a visual check next to the real frame.
+    let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("target");
+    if std::fs::create_dir_all(&out).is_ok() {
+        let rendered = renderer
+            .render(&scene, &RenderPose::from_camera_pose(&pose), 0)
+            .expect("render");
+        let name = format!("render_ngi_{}", frame);
+        if let Err(e) = rendered.to_gray_image().save(out.join(&name)) {
+            eprintln!("could not write target/{name}: {e}");
+        }
+    }
+
     let mut flipped = truth.opk;
     flipped.kappa_rad += std::f64::consts::PI;
     let pose_flipped = CameraPose::from_opk(truth.centre_m, &flipped);
     let (corr_flipped, covered_flipped) =
-        render_correlation(&cam, &pose_flipped, &dem, &ortho, &frame_grey);
+        render_correlation(&renderer, &scene, &pose_flipped, &frame_grey);
     eprintln!(
         "{frame}: with kappa + 180 deg = {corr_flipped:.4} ({:.1} % rendered)",
         100.0 * covered_flipped

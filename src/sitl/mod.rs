@@ -9,9 +9,12 @@
 //! * [`run`]: scenario runner, INS-only control, Monte Carlo NEES consistency.
 //! * [`rng`]: deterministic random numbers.
 //! * [`autopilot`]: a MAVLink 2 autopilot emulator speaking like ArduPilot over real sockets.
+//! * [`render`]: the simulated camera (perspective view of an orthophoto on a DEM, lens
+//!   distortion, exposure, blur, noise).
 
 pub mod autopilot;
 pub mod imu;
+pub mod render;
 pub mod rng;
 pub mod run;
 pub mod scenario;

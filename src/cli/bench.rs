@@ -2,6 +2,7 @@
 //! detect+describe (median of `--runs`) on 1 thread and on all threads, upright and rotation
 //! invariant, on the bench images of ../shared/data/bench; optionally run the repeatability /
 //! matching-score table on the bundled NAIP maps and export the pairs for scripts/bench_opencv.py.
+//! `visnav bench pose`: the resection's timing suite. `visnav bench render`: the camera renderer.
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -21,6 +22,28 @@ pub struct BenchArgs {
 pub enum BenchWhat {
     /// Time SURF detect+describe and count features.
     Surf(SurfBenchArgs),
+    /// Time the space resection (P3P RANSAC + LM + integrity) on synthetic aerial scenes.
+    Pose(PoseBenchArgs),
+    /// Time the camera renderer (VGA, 60 deg FOV) over the bundled NAIP 2014 map (flat ground) and,
+    /// when ../shared/data is present, the NGI ortho over its 24 m DEM.
+    Render(RenderBenchArgs),
+}
+
+#[derive(clap::Args, Debug)]
+pub struct PoseBenchArgs {
+    /// Trials per case (100/300/1000 correspondences at 50 % outliers, 300 at 90 %).
+    #[arg(long, default_value_t = 50)]
+    pub trials: usize,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct RenderBenchArgs {
+    /// Timed renders per scene.
+    #[arg(long, default_value_t = 20)]
+    pub iterations: usize,
+    /// Height above ground, metres.
+    #[arg(long, default_value_t = 1500.0)]
+    pub agl_m: f64,
 }
 
 #[derive(clap::Args, Debug)]
@@ -84,7 +107,63 @@ struct QualityRow {
 pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
     match args.what {
         BenchWhat::Surf(a) => run_surf(a),
+        BenchWhat::Pose(a) => run_pose(a),
+        BenchWhat::Render(a) => run_render(a),
     }
+}
+
+fn run_pose(a: PoseBenchArgs) -> anyhow::Result<ExitCode> {
+    if a.trials == 0 {
+        bail!("--trials must be at least 1");
+    }
+    for r in visnav::pose::bench::bench_suite(a.trials) {
+        println!("{r}");
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn run_render(a: RenderBenchArgs) -> anyhow::Result<ExitCode> {
+    use visnav::geo::dem::Dem;
+    use visnav::geo::geotiff::load_geotiff;
+    use visnav::sitl::render::{ColourMode, RenderSpec, Scene, bench_vga};
+    if a.iterations == 0 || !(a.agl_m.is_finite() && a.agl_m > 10.0) {
+        bail!("--iterations must be at least 1 and --agl-m a height above 10 m");
+    }
+    let mut scenes = Vec::new();
+    let naip = repo_file("sitl/maps/naip_nd_2014.tif");
+    let ortho = load_geotiff(&naip, None).with_context(|| format!("{}", naip.display()))?;
+    scenes.push(("NAIP 2014, flat ground 580 m", ortho, Dem::flat(580.0)?));
+    let ngi = repo_file("../shared/data/ngi_3324c");
+    if ngi.is_dir() {
+        let o = ngi.join("ngi_ortho_5m_tile1.tif");
+        let d = ngi.join("dem.tif");
+        let ortho = load_geotiff(&o, None).with_context(|| format!("{}", o.display()))?;
+        let dem = Dem::load_geotiff(&d, None).with_context(|| format!("{}", d.display()))?;
+        scenes.push(("NGI 5 m ortho, 24 m DEM", ortho, dem));
+    } else {
+        eprintln!("skipping the NGI scene: {} not found", ngi.display());
+    }
+    for (name, ortho, dem) in scenes {
+        let scene = Scene::new(&ortho, dem, ColourMode::Grey)?;
+        for (label, spec) in [
+            ("clean", RenderSpec::clean()),
+            ("default spec", RenderSpec::default()),
+        ] {
+            let t = bench_vga(&scene, spec, a.agl_m, a.iterations)?;
+            println!(
+                "render {name}, {label}: {}x{} at {} m AGL  geometry min {:.1} / median {:.1} ms  effects min {:.1} / median {:.1} ms  valid {:.1} %",
+                t.width,
+                t.height,
+                a.agl_m,
+                t.radiance_min_ms,
+                t.radiance_median_ms,
+                t.photometric_min_ms,
+                t.photometric_median_ms,
+                100.0 * t.valid_fraction
+            );
+        }
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 fn repo_file(rel: &str) -> PathBuf {

@@ -854,6 +854,16 @@ fn haar(ii: &IntegralImage, fx: f32, fy: f32, half: usize) -> (f32, f32) {
     let a20 = d[r2 + x0];
     let a21 = d[r2 + x1];
     let a22 = d[r2 + x2];
+    let (dx, dy) = haar_from_corners([a00, a01, a02], [a10, a12], [a20, a21, a22]);
+    (dx as f32, dy as f32)
+}
+
+/// Haar wavelet responses from the integral-image samples at the 3x3 corner grid of a square of
+/// side `2 * half` (rows top/middle/bottom, columns left/centre/right; the middle row's centre is
+/// not needed). Wrapping arithmetic matches the wrapping integral image.
+#[inline(always)]
+fn haar_from_corners(top: [i32; 3], mid: [i32; 2], bot: [i32; 3]) -> (i32, i32) {
+    let ([a00, a01, a02], [a10, a12], [a20, a21, a22]) = (top, mid, bot);
     // right - left = (a22 - a02 - a21 + a01) - (a21 - a01 - a20 + a00)
     let dx = a22
         .wrapping_sub(a02)
@@ -868,7 +878,7 @@ fn haar(ii: &IntegralImage, fx: f32, fy: f32, half: usize) -> (f32, f32) {
         .wrapping_add(a10.wrapping_mul(2))
         .wrapping_add(a02)
         .wrapping_sub(a00);
-    (dx as f32, dy as f32)
+    (dx, dy)
 }
 
 /// Dominant orientation (Bay sec. 4.1), radians in `(-pi, pi]`.
@@ -957,21 +967,11 @@ fn describe_one(
             for i in 0..n {
                 let x = cols[i];
                 let (x0, x2) = (x - half, x + half);
-                let (a00, a01, a02) = (r0[x0], r0[x], r0[x2]);
-                let (a10, a12) = (r1[x0], r1[x2]);
-                let (a20, a21, a22) = (r2[x0], r2[x], r2[x2]);
-                let dx = a22
-                    .wrapping_sub(a02)
-                    .wrapping_sub(a21.wrapping_mul(2))
-                    .wrapping_add(a01.wrapping_mul(2))
-                    .wrapping_add(a20)
-                    .wrapping_sub(a00);
-                let dy = a22
-                    .wrapping_sub(a12.wrapping_mul(2))
-                    .wrapping_sub(a20)
-                    .wrapping_add(a10.wrapping_mul(2))
-                    .wrapping_add(a02)
-                    .wrapping_sub(a00);
+                let (dx, dy) = haar_from_corners(
+                    [r0[x0], r0[x], r0[x2]],
+                    [r1[x0], r1[x2]],
+                    [r2[x0], r2[x], r2[x2]],
+                );
                 let rx = wrow[i] * dx as f32;
                 let ry = wrow[i] * dy as f32;
                 accumulate(

@@ -421,6 +421,36 @@ fn quality(h: &Health) -> i8 {
     }
 }
 
+/// What the local-frame injectors (VISION_POSITION_ESTIMATE, ODOMETRY) share, after the checks
+/// they share: the estimate is usable and fresh, the companion time is known, the position is
+/// within 1000 km of the origin.
+struct LocalPose {
+    t_companion_us: u64,
+    p_ned_m: Vector3<f64>,
+    att_var_rad2: Matrix3<f64>,
+}
+
+fn local_pose(
+    e: &NavEstimate,
+    now: &SendTime,
+    origin: &GeoOrigin,
+    out: &OutputConfig,
+) -> Result<LocalPose, InjectError> {
+    usable(e)?;
+    age_s(e, now, out.max_age_s)?;
+    let t_companion_us = now
+        .validity_companion_us
+        .ok_or(InjectError::NoCompanionTime)?;
+    let p_ned_m = local_ned_m(origin, e.lat_deg, e.lon_deg, e.alt_amsl_m);
+    in_range("local position", p_ned_m.amax(), 0.0, 1e6)?;
+    let att_var_rad2 = Matrix3::from_diagonal(&e.att_sigma_rad.component_mul(&e.att_sigma_rad));
+    Ok(LocalPose {
+        t_companion_us,
+        p_ned_m,
+        att_var_rad2,
+    })
+}
+
 /// VISION_POSITION_ESTIMATE: local NED about `origin`, Euler angles (ZYX), 6x6 covariance
 /// (x, y, z, roll, pitch, yaw) upper triangle, the filter's reset counter.
 pub fn vision_position_estimate(
@@ -429,15 +459,12 @@ pub fn vision_position_estimate(
     origin: &GeoOrigin,
     out: &OutputConfig,
 ) -> Result<MavMessage, InjectError> {
-    usable(e)?;
-    age_s(e, now, out.max_age_s)?;
-    let usec = now
-        .validity_companion_us
-        .ok_or(InjectError::NoCompanionTime)?;
-    let p = local_ned_m(origin, e.lat_deg, e.lon_deg, e.alt_amsl_m);
-    in_range("local position", p.amax(), 0.0, 1e6)?;
+    let LocalPose {
+        t_companion_us: usec,
+        p_ned_m: p,
+        att_var_rad2: att_var,
+    } = local_pose(e, now, origin, out)?;
     let (roll, pitch, yaw) = e.q_ned_body.euler_angles();
-    let att_var = Matrix3::from_diagonal(&e.att_sigma_rad.component_mul(&e.att_sigma_rad));
     Ok(MavMessage::VISION_POSITION_ESTIMATE(
         VISION_POSITION_ESTIMATE_DATA {
             usec,
@@ -460,17 +487,14 @@ pub fn odometry(
     origin: &GeoOrigin,
     out: &OutputConfig,
 ) -> Result<MavMessage, InjectError> {
-    usable(e)?;
-    age_s(e, now, out.max_age_s)?;
-    let time_usec = now
-        .validity_companion_us
-        .ok_or(InjectError::NoCompanionTime)?;
-    let p = local_ned_m(origin, e.lat_deg, e.lon_deg, e.alt_amsl_m);
-    in_range("local position", p.amax(), 0.0, 1e6)?;
+    let LocalPose {
+        t_companion_us: time_usec,
+        p_ned_m: p,
+        att_var_rad2: att_var,
+    } = local_pose(e, now, origin, out)?;
     let r = e.q_ned_body.to_rotation_matrix();
     let v_body = r.inverse() * e.vel_ned_m_s;
     let pv_body = r.matrix().transpose() * e.vel_cov_ned_m2_s2 * r.matrix();
-    let att_var = Matrix3::from_diagonal(&e.att_sigma_rad.component_mul(&e.att_sigma_rad));
     let rate_var = Matrix3::from_diagonal_element(f64::from(UNKNOWN_RATE_VAR));
     let q = e.q_ned_body.coords; // nalgebra stores (i, j, k, w)
     Ok(MavMessage::ODOMETRY(ODOMETRY_DATA {

@@ -1,0 +1,121 @@
+//! The vision position fix: one camera frame plus a prior (or none) to an absolute, integrity-checked
+//! camera/vehicle pose.
+//!
+//! Data flow (Sheta 2012 ch. 4; Kong: predicted reference view):
+//! 1. footprint: the image corners ray-cast onto the DEM from the prior pose, grown by the prior's
+//!    uncertainty, select the reference-map features (`map`);
+//! 2. rectification: the frame resampled with the prior attitude onto a north-up map-grid raster at the
+//!    map level's ground sample distance, so upright SURF sees the same geometry as the map; every
+//!    rectified pixel keeps the original frame pixel it came from, so matches go back to the original
+//!    pixel coordinates for the solve;
+//! 3. matching (`vision::match_features`) with the ratio test and the spatial gate around the position
+//!    predicted from the prior;
+//! 4. resection (`pose::resect`) in a local east-north-up frame about the footprint (exact geodesy:
+//!    map grid -> geodetic -> ECEF -> ENU), integrity checks, covariance to NED;
+//! 5. with no prior: global relocalisation, coarse to fine over the whole map within a time budget.
+//!
+//! Types here are the interface the daemon and the CLI use ([`FixPrior`] in, [`FixReport`] out).
+
+use nalgebra::Matrix3;
+use serde::Serialize;
+
+use crate::camera::Attitude;
+
+/// Prior position of the camera: geodetic latitude/longitude, altitude above mean sea level
+/// (EGM96), and 1-sigma horizontal / vertical uncertainty.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PositionPriorGeo {
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+    pub alt_amsl_m: f64,
+    pub sigma_h_m: f64,
+    pub sigma_v_m: f64,
+}
+
+/// Prior vehicle attitude (body FRD relative to NED, aerospace ZYX Euler angles, see
+/// `camera::frames`) with a 1-sigma per-axis uncertainty.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AttitudePriorNed {
+    pub attitude: Attitude,
+    pub sigma_rad: f64,
+}
+
+/// What the fix knows before looking at the frame.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct FixPrior {
+    /// Capture time of the frame in autopilot boot time, microseconds (0 when unknown).
+    pub t_capture_us: u64,
+    /// None: global relocalisation over the whole map.
+    pub position: Option<PositionPriorGeo>,
+    /// None: the attitude is solved for without a prior (rectification assumes a nadir view).
+    pub attitude: Option<AttitudePriorNed>,
+}
+
+/// The result of one fix attempt. Angles and positions are finite whenever `accepted` is true.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FixReport {
+    pub accepted: bool,
+    /// "ok" when accepted, otherwise why the fix was rejected (or could not be computed).
+    pub reason: String,
+    /// Capture time copied from the prior, microseconds.
+    pub t_capture_us: u64,
+    /// Camera projection centre, geodetic, altitude AMSL (EGM96), metres.
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+    pub alt_amsl_m: f64,
+    /// Height above the WGS84 ellipsoid, metres.
+    pub h_ellip_m: f64,
+    /// Camera projection centre in the map's CRS (grid easting, northing) and height AMSL.
+    pub x_m: f64,
+    pub y_m: f64,
+    pub z_m: f64,
+    /// Vehicle attitude (body FRD to NED, aerospace ZYX), degrees.
+    pub roll_deg: f64,
+    pub pitch_deg: f64,
+    pub yaw_deg: f64,
+    /// Position covariance in NED, m^2 (row-major 3x3).
+    pub cov_ned_m2: [[f64; 3]; 3],
+    /// Attitude covariance as an NED rotation vector, rad^2.
+    pub cov_att_ned_rad2: [[f64; 3]; 3],
+    pub inliers: usize,
+    pub matches: usize,
+    pub reproj_rms_px: f64,
+    /// Map pyramid level used.
+    pub level: usize,
+    /// Wall time from frame to fix, milliseconds.
+    pub ms: f64,
+}
+
+impl FixReport {
+    /// A rejected report with the given reason and no pose (NaN fields are never serialised as
+    /// numbers: JSON writers emit null for them).
+    pub fn rejected(reason: impl Into<String>, t_capture_us: u64, ms: f64) -> Self {
+        Self {
+            accepted: false,
+            reason: reason.into(),
+            t_capture_us,
+            lat_deg: f64::NAN,
+            lon_deg: f64::NAN,
+            alt_amsl_m: f64::NAN,
+            h_ellip_m: f64::NAN,
+            x_m: f64::NAN,
+            y_m: f64::NAN,
+            z_m: f64::NAN,
+            roll_deg: f64::NAN,
+            pitch_deg: f64::NAN,
+            yaw_deg: f64::NAN,
+            cov_ned_m2: [[f64::NAN; 3]; 3],
+            cov_att_ned_rad2: [[f64::NAN; 3]; 3],
+            inliers: 0,
+            matches: 0,
+            reproj_rms_px: f64::NAN,
+            level: 0,
+            ms,
+        }
+    }
+
+    /// The position covariance as a matrix.
+    pub fn cov_ned(&self) -> Matrix3<f64> {
+        Matrix3::from_fn(|r, c| self.cov_ned_m2[r][c])
+    }
+}

@@ -119,3 +119,10 @@ impl FixReport {
         Matrix3::from_fn(|r, c| self.cov_ned_m2[r][c])
     }
 }
+
+pub mod engine;
+pub mod rectify;
+pub mod reference;
+
+pub use engine::{FixEngine, FixError, FixParams};
+pub use reference::{MemoryReference, RefFeature, RefSelection, Reference};

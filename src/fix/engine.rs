@@ -1,0 +1,1252 @@
+//! The fix pipeline (see the module doc of `fix`): rectify, detect, predict, gate, vote, match,
+//! resect, convert.
+//!
+//! Frames used here:
+//! * map grid: the reference's CRS, x grid east, y grid north, z up = height AMSL (the DEM's datum).
+//!   Used for rectification, prediction and selection (all approximate, prior-driven steps).
+//! * `_enu`: a local east-north-up frame (true north, ellipsoidal heights, exact geodesy through
+//!   ECEF) about the footprint; the resection runs in it, so neither the projection's scale factor
+//!   nor the Earth's curvature biases the fix.
+//! * `R_map_cam = Rz(gamma) R_enu_ned R_ned_body R_body_cam`, `gamma` the grid convergence (bearing
+//!   of grid north clockwise from true north), as in `sitl::render::RenderPose::from_body`.
+//!
+//! Matching with a prior, in "level pixels" (map metres / level gsd, y down):
+//! 1. each query keypoint's ray (from the prior pose) is cast onto the DEM: its predicted map position;
+//! 2. coarse: nearest neighbours within the prior's 3-sigma gate (ratio 0.9) vote for the offset
+//!    between prediction and map (a 2-D histogram; the prior's position error and most of its attitude
+//!    error are such a common shift);
+//! 3. fine: matching again with the predictions shifted by the voted offset, a tight gate and the
+//!    ratio test, which is where cross-date matches survive (a raw ratio test over the whole footprint
+//!    keeps few correct ones, see docs/surf.md).
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use nalgebra::{Rotation3, Vector2, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::rectify::Rectification;
+use super::reference::{RefSelection, Reference};
+use super::{AttitudePriorNed, FixPrior, FixReport, PositionPriorGeo};
+use crate::camera::frames::{r_enu_ned, rot_z};
+use crate::camera::{Attitude, Camera};
+use crate::config::{Problems, Validate};
+use crate::geo::geoid::geoid_undulation_m;
+use crate::geo::{Crs, Geodetic, LocalFrame};
+use crate::pose::{
+    AttitudePrior, Correspondence, ImageGeometry, PositionPrior, Priors, ResectionConfig, resect,
+};
+use crate::vision::matcher::dist2;
+use crate::vision::{Features, GrayImage, KeyPoint, MatchParams, Surf, match_features};
+
+/// Settings of the fix pipeline (`[fix]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FixParams {
+    /// Keep at most this many query keypoints (strongest, evenly spread).
+    pub max_query_features: usize,
+    /// Largest side of the rectified image, pixels.
+    pub max_rect_side_px: usize,
+    /// Rays further than this from the vertical are not rectified, degrees.
+    pub max_off_nadir_deg: f64,
+    /// Lowe ratio of the fine matching.
+    pub ratio: f32,
+    /// Gate of the coarse matching in prior standard deviations.
+    pub gate_sigmas: f64,
+    /// Smallest coarse gate, metres (covers DEM and map registration errors).
+    pub min_gate_m: f64,
+    /// Radius of the fine gate around the similarity-corrected prediction, level pixels.
+    pub fine_radius_px: f64,
+    /// The fine ratio test compares with the second-best candidate within this many fine radii.
+    pub fine_wide_factor: f64,
+    /// Keypoint localisation 1-sigma in rectified pixels (converted to frame pixels for the solve).
+    pub sigma_rect_px: f64,
+    /// Below this many fine matches the fix is rejected before the solve.
+    pub min_matches: usize,
+    /// The fine matches must number at least `min_matches + null_factor * chance`, where chance is
+    /// the count obtained with the predictions displaced to unrelated places.
+    pub null_factor: f64,
+    /// Time budget of a global relocalisation (no position prior), milliseconds.
+    pub reloc_budget_ms: f64,
+    /// Attitude 1-sigma assumed when the prior gives none, degrees (nadir, any heading is searched).
+    pub reloc_tilt_sigma_deg: f64,
+    /// Resection, RANSAC and integrity settings.
+    pub pose: ResectionConfig,
+}
+
+impl Default for FixParams {
+    fn default() -> Self {
+        Self {
+            max_query_features: 1500,
+            max_rect_side_px: 1024,
+            max_off_nadir_deg: 60.0,
+            ratio: 0.8,
+            gate_sigmas: 3.0,
+            min_gate_m: 30.0,
+            fine_radius_px: 4.0,
+            fine_wide_factor: 3.0,
+            sigma_rect_px: 0.7,
+            min_matches: 12,
+            null_factor: 1.5,
+            reloc_budget_ms: 5000.0,
+            reloc_tilt_sigma_deg: 5.0,
+            pose: default_pose_config(),
+        }
+    }
+}
+
+/// Resection settings of the fix pipeline: the autopilot's attitude is fused (it bounds the
+/// position-tilt ambiguity of a narrow field of view over flat ground), and the covariance is
+/// inflated by 3 (calibrated on NAIP cross-date frames, see docs/fix.md: cross-date keypoints are
+/// displaced by a few pixels in a spatially correlated way that sigma0 alone does not capture).
+/// Fixes up to 60 m / 3 deg (1 sigma) are accepted: the navigation filter weighs them.
+pub fn default_pose_config() -> ResectionConfig {
+    let mut c = ResectionConfig::default();
+    c.refine.use_attitude_prior = true;
+    c.refine.sigma_inflation = 3.0;
+    c.integrity.max_horizontal_sigma_m = 60.0;
+    c.integrity.max_vertical_sigma_m = 60.0;
+    c.integrity.max_attitude_sigma_deg = 3.0;
+    c
+}
+
+impl Validate for FixParams {
+    fn validate(&self, p: &mut Problems) {
+        if self.max_query_features < 10 {
+            p.push("max_query_features", "must be at least 10");
+        }
+        if self.max_rect_side_px < 64 {
+            p.push("max_rect_side_px", "must be at least 64");
+        }
+        p.range("max_off_nadir_deg", self.max_off_nadir_deg, 1.0, 85.0);
+        p.range("ratio", f64::from(self.ratio), 0.1, 1.0);
+        p.positive("gate_sigmas", self.gate_sigmas);
+        p.positive("min_gate_m", self.min_gate_m);
+        p.positive("fine_radius_px", self.fine_radius_px);
+        p.range("fine_wide_factor", self.fine_wide_factor, 1.0, 20.0);
+        p.positive("sigma_rect_px", self.sigma_rect_px);
+        if self.min_matches < 4 {
+            p.push("min_matches", "must be at least 4");
+        }
+        p.range("null_factor", self.null_factor, 0.0, 100.0);
+        p.positive("reloc_budget_ms", self.reloc_budget_ms);
+        p.range(
+            "reloc_tilt_sigma_deg",
+            self.reloc_tilt_sigma_deg,
+            0.01,
+            45.0,
+        );
+        p.section("pose", |p| self.pose.validate(p));
+    }
+}
+
+/// Why an engine could not be built.
+#[derive(Debug, thiserror::Error)]
+pub enum FixError {
+    #[error("fix settings: {0}")]
+    Config(String),
+    #[error("the reference map has no levels")]
+    EmptyMap,
+    #[error("SURF settings of the map: {0}")]
+    Surf(#[from] crate::vision::VisionError),
+}
+
+/// The vision fix engine: a reference map, a camera and settings. `fix` takes `&self` and may be
+/// called from several threads at once.
+pub struct FixEngine {
+    reference: Arc<dyn Reference>,
+    camera: Camera,
+    params: FixParams,
+    surf: Surf,
+    levels_gsd_m: Vec<f64>,
+}
+
+/// Diagnostics of one attempt (for tests and benchmarks).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Attempt {
+    pub level: usize,
+    pub query_features: usize,
+    pub map_features: usize,
+    pub coarse_matches: usize,
+    pub vote_peak: usize,
+    pub fine_matches: usize,
+    /// Matches obtained with the predictions displaced to unrelated places (chance level).
+    pub null_matches: usize,
+    /// The fine matches: frame pixel (distorted) and map point (grid x, y, height AMSL).
+    pub pairs: Vec<([f64; 2], [f64; 3])>,
+}
+
+/// The prior in the map grid and in the local ENU frame.
+struct PriorGeom {
+    c_map: Vector3<f64>,
+    r_map_cam: Rotation3<f64>,
+    r_enu_cam: Rotation3<f64>,
+    sigma_h_m: f64,
+    sigma_v_m: f64,
+    sigma_att_rad: f64,
+}
+
+impl FixEngine {
+    /// An engine over `reference`; the query SURF uses the map's settings (upright recommended).
+    pub fn new(
+        reference: Arc<dyn Reference>,
+        camera: Camera,
+        params: FixParams,
+    ) -> Result<Self, FixError> {
+        let mut problems = Problems::default();
+        params.validate(&mut problems);
+        if let Some(first) = problems.list.first() {
+            return Err(FixError::Config(first.to_string()));
+        }
+        let levels_gsd_m = reference.level_gsd_m();
+        if levels_gsd_m.is_empty() {
+            return Err(FixError::EmptyMap);
+        }
+        let mut sp = reference.surf_params();
+        sp.max_features = None;
+        let surf = Surf::new(sp)?;
+        Ok(Self {
+            reference,
+            camera,
+            params,
+            surf,
+            levels_gsd_m,
+        })
+    }
+
+    /// The settings.
+    pub fn params(&self) -> &FixParams {
+        &self.params
+    }
+    /// The camera.
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+    /// The reference.
+    pub fn reference(&self) -> &Arc<dyn Reference> {
+        &self.reference
+    }
+
+    /// One fix. With a position prior: the prior-driven pipeline; without: global relocalisation.
+    pub fn fix(&self, frame: &GrayImage, prior: &FixPrior) -> FixReport {
+        self.fix_with_attempt(frame, prior).0
+    }
+
+    /// [`Self::fix`] with diagnostics.
+    pub fn fix_with_attempt(&self, frame: &GrayImage, prior: &FixPrior) -> (FixReport, Attempt) {
+        let t0 = Instant::now();
+        let ms = |t0: Instant| t0.elapsed().as_secs_f64() * 1e3;
+        if frame.width() != self.camera.width_px() as usize
+            || frame.height() != self.camera.height_px() as usize
+        {
+            let reason = format!(
+                "frame is {}x{} but the camera is {}x{}",
+                frame.width(),
+                frame.height(),
+                self.camera.width_px(),
+                self.camera.height_px()
+            );
+            return (
+                FixReport::rejected(reason, prior.t_capture_us, ms(t0)),
+                Attempt::default(),
+            );
+        }
+        match prior.position {
+            Some(pos) => {
+                let att = prior.attitude.unwrap_or(AttitudePriorNed {
+                    attitude: Attitude::new(0.0, 0.0, 0.0),
+                    sigma_rad: std::f64::consts::PI,
+                });
+                let (mut r, a) = self.fix_prior(frame, &pos, &att, prior.t_capture_us);
+                r.ms = ms(t0);
+                (r, a)
+            }
+            None => {
+                let (mut r, a) = self.relocalise(frame, prior, t0);
+                r.ms = ms(t0);
+                (r, a)
+            }
+        }
+    }
+
+    fn prior_geom(
+        &self,
+        pos: &PositionPriorGeo,
+        att: &AttitudePriorNed,
+    ) -> Result<PriorGeom, String> {
+        let crs: Crs = self.reference.crs();
+        let (x, y) = crs
+            .from_geodetic(pos.lat_deg, pos.lon_deg)
+            .map_err(|e| format!("prior position: {e}"))?;
+        let gamma = crs
+            .grid_convergence_deg(pos.lat_deg, pos.lon_deg)
+            .map_err(|e| format!("prior position: {e}"))?
+            .to_radians();
+        let r_ned_cam = self.camera.mount.r_ned_cam(&att.attitude);
+        let r_enu_cam = r_enu_ned() * r_ned_cam;
+        let ok = |v: f64| v.is_finite() && v > 0.0;
+        if !(ok(pos.sigma_h_m)
+            && ok(pos.sigma_v_m)
+            && ok(att.sigma_rad)
+            && pos.alt_amsl_m.is_finite())
+        {
+            return Err("prior sigmas must be finite and positive".into());
+        }
+        Ok(PriorGeom {
+            c_map: Vector3::new(x, y, pos.alt_amsl_m),
+            r_map_cam: rot_z(gamma) * r_enu_cam,
+            r_enu_cam,
+            sigma_h_m: pos.sigma_h_m,
+            sigma_v_m: pos.sigma_v_m,
+            sigma_att_rad: att.sigma_rad,
+        })
+    }
+
+    /// Ground height below the camera's principal ray (or straight below, or the DEM's middle).
+    fn ground_below(&self, g: &PriorGeom) -> f64 {
+        let dem = self.reference.dem();
+        let axis = g.r_map_cam * Vector3::z();
+        let o = [g.c_map.x, g.c_map.y, g.c_map.z];
+        if let Some(p) = dem.intersect_ray(o, [axis.x, axis.y, axis.z], 1e6) {
+            return p[2];
+        }
+        if let Some(h) = dem.height_at(g.c_map.x, g.c_map.y) {
+            return h;
+        }
+        let (lo, hi) = dem.height_range_m();
+        0.5 * (lo + hi)
+    }
+
+    /// The level whose gsd is the smallest not finer than 0.8 x the camera's nadir gsd.
+    fn pick_level(&self, cam_gsd_m: f64) -> usize {
+        self.levels_gsd_m
+            .iter()
+            .position(|&g| g >= 0.8 * cam_gsd_m)
+            .unwrap_or(self.levels_gsd_m.len() - 1)
+    }
+
+    fn fix_prior(
+        &self,
+        frame: &GrayImage,
+        pos: &PositionPriorGeo,
+        att: &AttitudePriorNed,
+        t_us: u64,
+    ) -> (FixReport, Attempt) {
+        let rej = |reason: String, a: Attempt| (FixReport::rejected(reason, t_us, 0.0), a);
+        let g = match self.prior_geom(pos, att) {
+            Ok(g) => g,
+            Err(e) => return rej(e, Attempt::default()),
+        };
+        let agl_m = g.c_map.z - self.ground_below(&g);
+        if agl_m.is_nan() || agl_m <= 1.0 {
+            return rej(
+                format!(
+                    "prior altitude {:.1} m AMSL is not above the terrain",
+                    g.c_map.z
+                ),
+                Attempt::default(),
+            );
+        }
+        let cam_gsd_m = agl_m / self.camera.intrinsics.fx_px;
+        let level = self.pick_level(cam_gsd_m);
+        self.match_and_solve(frame, &g, level, agl_m, t_us)
+    }
+
+    /// Rectify at `level`, detect, predict, gate, vote, match and resect.
+    fn match_and_solve(
+        &self,
+        frame: &GrayImage,
+        g: &PriorGeom,
+        level: usize,
+        agl_m: f64,
+        t_us: u64,
+    ) -> (FixReport, Attempt) {
+        let mut a = Attempt {
+            level,
+            ..Attempt::default()
+        };
+        let rej = |reason: String, a: Attempt| (FixReport::rejected(reason, t_us, 0.0), a);
+        let gsd = self.levels_gsd_m[level];
+        let scale = agl_m / gsd / self.camera.intrinsics.fx_px;
+        let Some(rect) = Rectification::new(
+            frame,
+            &self.camera,
+            &g.r_map_cam,
+            scale,
+            self.params.max_rect_side_px,
+            self.params.max_off_nadir_deg.to_radians(),
+        ) else {
+            return rej(
+                "the frame does not see the ground (rectification empty)".into(),
+                a,
+            );
+        };
+        // Query features on valid ground, strongest first, capped.
+        let feats = self.surf.detect_and_describe(&rect.image);
+        let dem = self.reference.dem();
+        let mut keep: Vec<(usize, [f64; 2])> = Vec::new();
+        for (i, k) in feats.keypoints.iter().enumerate() {
+            if keep.len() >= self.params.max_query_features {
+                break;
+            }
+            if !rect.window_valid(f64::from(k.x), f64::from(k.y), 10.0 * f64::from(k.scale)) {
+                continue;
+            }
+            let ray = rect.ray_map(f64::from(k.x), f64::from(k.y));
+            let o = [g.c_map.x, g.c_map.y, g.c_map.z];
+            let Some(p) = dem.intersect_ray(o, [ray.x, ray.y, ray.z], 20.0 * agl_m.max(100.0))
+            else {
+                continue;
+            };
+            keep.push((i, [p[0], p[1]]));
+        }
+        a.query_features = keep.len();
+        if keep.len() < self.params.min_matches {
+            return rej(format!("only {} features in the frame", keep.len()), a);
+        }
+        // Selection: predicted footprint grown by the coarse gate.
+        let gate_m = (self.params.gate_sigmas
+            * (g.sigma_h_m.powi(2) + (agl_m * g.sigma_att_rad.min(0.5)).powi(2)).sqrt())
+        .max(self.params.min_gate_m);
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for (_, p) in &keep {
+            lo = [lo[0].min(p[0]), lo[1].min(p[1])];
+            hi = [hi[0].max(p[0]), hi[1].max(p[1])];
+        }
+        let sel = self.reference.select(
+            level,
+            [
+                lo[0] - gate_m,
+                lo[1] - gate_m,
+                hi[0] + gate_m,
+                hi[1] + gate_m,
+            ],
+        );
+        a.map_features = sel.features.len();
+        if sel.features.len() < self.params.min_matches {
+            return rej(
+                format!(
+                    "only {} map features under the footprint (outside the map?)",
+                    sel.features.len()
+                ),
+                a,
+            );
+        }
+        // Level-pixel coordinates: origin at the selection's top-left, y down.
+        let (ox, oy) = (lo[0] - gate_m, hi[1] + gate_m);
+        let to_lp = |x: f64, y: f64| [((x - ox) / gsd) as f32, ((oy - y) / gsd) as f32];
+        let train = match train_features(&sel, gsd, to_lp) {
+            Ok(t) => t,
+            Err(e) => return rej(e, a),
+        };
+        let query = match subset(&feats, keep.iter().map(|(i, _)| *i)) {
+            Ok(q) => q,
+            Err(e) => return rej(e, a),
+        };
+        let pred: Vec<[f32; 2]> = keep.iter().map(|(_, p)| to_lp(p[0], p[1])).collect();
+
+        // Coarse: gated nearest neighbours (no ratio test: the gate holds many look-alikes) and a
+        // RANSAC 2-D similarity between predicted and map positions. The prior's position error
+        // is a shift, its yaw error a rotation and its height error a scale of this map.
+        let gate_px = (gate_m / gsd) as f32;
+        let fine_r = self.params.fine_radius_px as f32;
+        let mut sim = Sim2::identity();
+        if gate_px > fine_r {
+            let coarse = MatchParams {
+                ratio: 1.0,
+                laplacian_gate: true,
+                mutual: false,
+                spatial_radius_px: Some(gate_px),
+            };
+            let m = match match_features(&query, &train, &coarse, Some(&pred)) {
+                Ok(m) => m,
+                Err(e) => return rej(format!("matching: {e}"), a),
+            };
+            a.coarse_matches = m.len();
+            let src: Vec<[f32; 2]> = m.iter().map(|mm| pred[mm.query]).collect();
+            let dst: Vec<[f32; 2]> = m
+                .iter()
+                .map(|mm| [train.keypoints[mm.train].x, train.keypoints[mm.train].y])
+                .collect();
+            let max_rot = (self.params.gate_sigmas * g.sigma_att_rad).min(0.5) + 0.02;
+            let max_log_scale = (self.params.gate_sigmas * g.sigma_v_m / agl_m).min(0.7) + 0.05;
+            match ransac_similarity(&src, &dst, fine_r, max_rot, max_log_scale, 0x5EED) {
+                Some((s, n)) => {
+                    sim = s;
+                    a.vote_peak = n;
+                }
+                None => {
+                    return rej(format!("no consistent coarse matches among {}", m.len()), a);
+                }
+            }
+        }
+        let pred_fine: Vec<[f32; 2]> = pred.iter().map(|p| sim.apply(*p)).collect();
+        let matches = gated_match(
+            &query,
+            &train,
+            &pred_fine,
+            fine_r,
+            self.params.fine_wide_factor as f32 * fine_r,
+            self.params.ratio,
+        );
+        a.fine_matches = matches.len();
+        // A-contrario check (Moisan & Stival 2004 in spirit): the same gated matching with the
+        // predictions displaced to unrelated map areas counts the matches chance alone produces
+        // here (texture density, gate size, ratio test). A genuine view must beat that clearly.
+        let d = 3.0 * self.params.fine_wide_factor as f32 * fine_r;
+        let null = [[d, 0.0], [-d, 0.0], [0.0, d], [0.0, -d]]
+            .iter()
+            .map(|o| {
+                let shifted: Vec<[f32; 2]> = pred_fine
+                    .iter()
+                    .map(|p| [p[0] + o[0], p[1] + o[1]])
+                    .collect();
+                gated_match(
+                    &query,
+                    &train,
+                    &shifted,
+                    fine_r,
+                    self.params.fine_wide_factor as f32 * fine_r,
+                    self.params.ratio,
+                )
+                .len()
+            })
+            .max()
+            .unwrap_or(0);
+        a.null_matches = null;
+        let needed =
+            self.params.min_matches + (self.params.null_factor * null as f64).ceil() as usize;
+        if matches.len() < needed {
+            return rej(
+                format!(
+                    "only {} matches where chance gives {} (need {})",
+                    matches.len(),
+                    null,
+                    needed
+                ),
+                a,
+            );
+        }
+        if matches.len() < self.params.min_matches {
+            return rej(
+                format!(
+                    "only {} matches (min {})",
+                    matches.len(),
+                    self.params.min_matches
+                ),
+                a,
+            );
+        }
+
+        // Correspondences in a local ENU frame about the footprint.
+        let crs = self.reference.crs();
+        let mid = sel.features[sel.features.len() / 2];
+        let origin = match crs.to_geodetic(mid.x_m, mid.y_m).and_then(|(lat, lon)| {
+            Geodetic::new(lat, lon, mid.z_amsl_m + geoid_undulation_m(lat, lon)?)
+        }) {
+            Ok(o) => o,
+            Err(e) => return rej(format!("map geodesy: {e}"), a),
+        };
+        let Ok(local) = LocalFrame::new(origin) else {
+            return rej("map geodesy: bad local frame".into(), a);
+        };
+        let sigma_px = (self.params.sigma_rect_px / scale).max(0.5);
+        let mut corrs = Vec::with_capacity(matches.len());
+        for m in &matches {
+            let q = &query.keypoints[m.query];
+            let f = &sel.features[m.train];
+            let Some(px) = rect.to_frame_px(f64::from(q.x), f64::from(q.y)) else {
+                continue;
+            };
+            a.pairs.push(([px.x, px.y], [f.x_m, f.y_m, f.z_amsl_m]));
+            let Some(ray) = self.camera.unproject(&px) else {
+                continue;
+            };
+            let r = ray.into_inner();
+            if r.z <= 0.0 {
+                continue;
+            }
+            let Ok(p_enu) = map_to_enu(&crs, &local, f.x_m, f.y_m, f.z_amsl_m) else {
+                continue;
+            };
+            // SURF localises a keypoint to a fraction of its scale s (rectified pixels).
+            let s_rect = f64::from(q.scale.max(f.scale_m / gsd as f32));
+            corrs.push(Correspondence {
+                point_world: p_enu,
+                obs_norm: Vector2::new(r.x / r.z, r.y / r.z),
+                sigma_px: sigma_px * (s_rect / 2.0).max(1.0),
+            });
+        }
+        let k = &self.camera.intrinsics;
+        let image = ImageGeometry {
+            fx_px: k.fx_px,
+            fy_px: k.fy_px,
+            cx_px: k.cx_px,
+            cy_px: k.cy_px,
+            width_px: k.width_px,
+            height_px: k.height_px,
+        };
+        let c_enu = match map_to_enu(&crs, &local, g.c_map.x, g.c_map.y, g.c_map.z) {
+            Ok(c) => c,
+            Err(e) => return rej(format!("prior geodesy: {e}"), a),
+        };
+        let priors = Priors {
+            attitude: (g.sigma_att_rad < 0.5).then(|| AttitudePrior {
+                r_world_cam: g.r_enu_cam,
+                cov_rad2: nalgebra::Matrix3::identity() * g.sigma_att_rad.powi(2),
+            }),
+            position: Some(PositionPrior {
+                c_world: c_enu,
+                cov_m2: nalgebra::Matrix3::from_diagonal(&Vector3::new(
+                    g.sigma_h_m.powi(2),
+                    g.sigma_h_m.powi(2),
+                    g.sigma_v_m.powi(2),
+                )),
+            }),
+        };
+        // Pixel thresholds are in frame pixels; a frame finer than the map level sees its
+        // localisation errors magnified by 1/scale.
+        let mut cfg = self.params.pose.clone();
+        let mag = (1.0 / scale).max(1.0);
+        cfg.ransac.threshold_px *= mag;
+        cfg.integrity.max_reprojection_rms_px *= mag;
+        let outcome = resect(&corrs, &image, &priors, &cfg);
+        let quality_inliers = outcome.fix.as_ref().map_or(0, |f| f.quality.inliers);
+        let Some(fix) = outcome.fix.as_ref() else {
+            let mut r = FixReport::rejected(outcome.verdict.to_string(), t_us, 0.0);
+            r.matches = matches.len();
+            r.level = level;
+            return (r, a);
+        };
+        let mut report =
+            match self.report_from(&crs, &local, fix, t_us, outcome.verdict.is_accepted()) {
+                Ok(r) => r,
+                Err(e) => return rej(e, a),
+            };
+        if !report.accepted {
+            report.reason = outcome.verdict.to_string();
+        }
+        report.matches = matches.len();
+        report.inliers = quality_inliers;
+        report.level = level;
+        (report, a)
+    }
+
+    fn report_from(
+        &self,
+        crs: &Crs,
+        local: &LocalFrame,
+        fix: &crate::pose::Fix,
+        t_us: u64,
+        accepted: bool,
+    ) -> Result<FixReport, String> {
+        let geo = local
+            .enu_to_geodetic(&fix.pose.c_world)
+            .map_err(|e| format!("fix geodesy: {e}"))?;
+        let n = geoid_undulation_m(geo.lat_deg, geo.lon_deg).map_err(|e| format!("geoid: {e}"))?;
+        let (x, y) = crs
+            .from_geodetic(geo.lat_deg, geo.lon_deg)
+            .map_err(|e| format!("fix to map grid: {e}"))?;
+        // Local ENU axes differ from the NED axes at the fix by the angle between the two
+        // verticals (distance / Earth radius, < 0.01 deg over a footprint): ignored.
+        let r_ned_enu = r_enu_ned().inverse();
+        let r_ned_cam = r_ned_enu * fix.pose.r_world_cam;
+        let att = self.camera.mount.attitude_from_r_ned_cam(&r_ned_cam);
+        let cov = fix.covariance.position_ned_m2(&r_ned_enu);
+        let cov_att = fix.covariance.attitude_ned_rad2(&r_ned_enu);
+        let to_arr = |m: &nalgebra::Matrix3<f64>| {
+            [
+                [m[(0, 0)], m[(0, 1)], m[(0, 2)]],
+                [m[(1, 0)], m[(1, 1)], m[(1, 2)]],
+                [m[(2, 0)], m[(2, 1)], m[(2, 2)]],
+            ]
+        };
+        let r = FixReport {
+            accepted,
+            reason: if accepted { "ok".into() } else { String::new() },
+            t_capture_us: t_us,
+            lat_deg: geo.lat_deg,
+            lon_deg: geo.lon_deg,
+            alt_amsl_m: geo.h_ellip_m - n,
+            h_ellip_m: geo.h_ellip_m,
+            x_m: x,
+            y_m: y,
+            z_m: geo.h_ellip_m - n,
+            roll_deg: att.roll_rad.to_degrees(),
+            pitch_deg: att.pitch_rad.to_degrees(),
+            yaw_deg: att.yaw_rad.to_degrees(),
+            cov_ned_m2: to_arr(&cov),
+            cov_att_ned_rad2: to_arr(&cov_att),
+            inliers: fix.quality.inliers,
+            matches: 0,
+            reproj_rms_px: fix.quality.reprojection_rms_px,
+            level: 0,
+            ms: 0.0,
+        };
+        let finite = [
+            r.lat_deg,
+            r.lon_deg,
+            r.alt_amsl_m,
+            r.x_m,
+            r.y_m,
+            r.roll_deg,
+            r.pitch_deg,
+            r.yaw_deg,
+        ]
+        .iter()
+        .chain(r.cov_ned_m2.iter().flatten())
+        .all(|v| v.is_finite());
+        if !finite {
+            return Err("fix has non-finite values".into());
+        }
+        Ok(r)
+    }
+
+    /// Global relocalisation: no position prior. The altitude is unknown, so every level is tried
+    /// (coarse to fine), each with the frame rectified to that level's scale at an assumed height
+    /// chosen to make the virtual image about the frame's size; SURF's scale invariance absorbs the
+    /// remaining scale error. Matches are voted in (log scale, translation) space like Lowe's
+    /// Hough transform, the winning cluster's 3-D points seed a resection whose pose then serves
+    /// as the prior of the normal pipeline. Without an attitude prior, headings are searched in
+    /// 30 degree steps (upright SURF tolerates about +-15 degrees).
+    fn relocalise(&self, frame: &GrayImage, prior: &FixPrior, t0: Instant) -> (FixReport, Attempt) {
+        let t_us = prior.t_capture_us;
+        let budget_ms = self.params.reloc_budget_ms;
+        let headings: Vec<AttitudePriorNed> = match prior.attitude {
+            Some(a) => vec![a],
+            None => (0..12)
+                .map(|i| AttitudePriorNed {
+                    attitude: Attitude::new(0.0, 0.0, f64::from(i) * 30f64.to_radians()),
+                    sigma_rad: self.params.reloc_tilt_sigma_deg.to_radians(),
+                })
+                .collect(),
+        };
+        let mut best: Option<(FixReport, Attempt)> = None;
+        let mut last_reason = String::from("no level produced a fix");
+        'outer: for level in (0..self.levels_gsd_m.len()).rev() {
+            for att in &headings {
+                if t0.elapsed().as_secs_f64() * 1e3 > budget_ms {
+                    last_reason = format!("relocalisation budget of {budget_ms} ms exhausted");
+                    break 'outer;
+                }
+                match self.reloc_level(frame, att, level, t_us) {
+                    Ok(Some((r, a))) => {
+                        let better = best.as_ref().is_none_or(|(b, _)| r.inliers > b.inliers);
+                        if better {
+                            best = Some((r, a));
+                        }
+                    }
+                    Ok(None) => {}
+                    Err(e) => last_reason = e,
+                }
+            }
+            if best.is_some() {
+                break;
+            }
+        }
+        best.unwrap_or_else(|| {
+            (
+                FixReport::rejected(format!("relocalisation: {last_reason}"), t_us, 0.0),
+                Attempt::default(),
+            )
+        })
+    }
+
+    /// One relocalisation try at `level` and attitude `att`: returns the refined fix (through the
+    /// prior pipeline) when the Hough cluster yields an accepted coarse fix.
+    fn reloc_level(
+        &self,
+        frame: &GrayImage,
+        att: &AttitudePriorNed,
+        level: usize,
+        t_us: u64,
+    ) -> Result<Option<(FixReport, Attempt)>, String> {
+        let gsd = self.levels_gsd_m[level];
+        let r_ned_cam = self.camera.mount.r_ned_cam(&att.attitude);
+        let r_map_cam = r_enu_ned() * r_ned_cam; // grid convergence unknown yet: < 3 deg in a zone
+        let Some(rect) = Rectification::new(
+            frame,
+            &self.camera,
+            &r_map_cam,
+            1.0,
+            self.params.max_rect_side_px,
+            self.params.max_off_nadir_deg.to_radians(),
+        ) else {
+            return Err("the frame does not see the ground".into());
+        };
+        let feats = self.surf.detect_and_describe(&rect.image);
+        let idx: Vec<usize> = feats
+            .keypoints
+            .iter()
+            .enumerate()
+            .filter(|(_, k)| {
+                rect.window_valid(f64::from(k.x), f64::from(k.y), 10.0 * f64::from(k.scale))
+            })
+            .map(|(i, _)| i)
+            .take(self.params.max_query_features)
+            .collect();
+        if idx.len() < self.params.min_matches {
+            return Err(format!("only {} features in the frame", idx.len()));
+        }
+        let query = subset(&feats, idx.iter().copied())?;
+        let sel = self.reference.select(level, self.reference.bounds_m());
+        if sel.features.len() < self.params.min_matches {
+            return Err(format!("level {level} has {} features", sel.features.len()));
+        }
+        let b = self.reference.bounds_m();
+        let (ox, oy) = (b[0], b[3]);
+        let to_lp = |x: f64, y: f64| [((x - ox) / gsd) as f32, ((oy - y) / gsd) as f32];
+        let train = train_features(&sel, gsd, to_lp)?;
+        let m = match_features(
+            &query,
+            &train,
+            &MatchParams {
+                ratio: self.params.ratio,
+                laplacian_gate: true,
+                mutual: false,
+                spatial_radius_px: None,
+            },
+            None,
+        )
+        .map_err(|e| format!("matching: {e}"))?;
+        if m.len() < self.params.min_matches {
+            return Err(format!("level {level}: only {} matches", m.len()));
+        }
+        // Hough vote: scale s = train.scale / query.scale (log2 bins of 0.5), translation of the
+        // virtual principal point in level pixels (bins of 8 % of the image size at that scale).
+        let mut votes: std::collections::HashMap<(i32, i32, i32), Vec<usize>> =
+            std::collections::HashMap::new();
+        let size = rect.width().max(rect.height()) as f32;
+        for (j, mm) in m.iter().enumerate() {
+            let q = &query.keypoints[mm.query];
+            let t = &train.keypoints[mm.train];
+            let s = t.scale / q.scale;
+            if !(s.is_finite() && s > 0.0) {
+                continue;
+            }
+            let ls = s.log2() * 2.0;
+            let tx = t.x - s * (q.x - rect.cx_px as f32);
+            let ty = t.y - s * (q.y - rect.cy_px as f32);
+            let bin = 0.08 * size * s;
+            for ds in [0.0f32, 0.5] {
+                let key = (
+                    (ls + ds).floor() as i32,
+                    (tx / bin).floor() as i32,
+                    (ty / bin).floor() as i32,
+                );
+                votes.entry(key).or_default().push(j);
+                for (dx, dy) in [(1, 0), (0, 1), (1, 1)] {
+                    let key2 = (key.0, key.1 + dx, key.2 + dy);
+                    votes.entry(key2).or_default().push(j);
+                }
+            }
+        }
+        let Some((_, cluster)) = votes.into_iter().max_by_key(|(_, v)| v.len()) else {
+            return Ok(None);
+        };
+        let mut cluster = cluster;
+        cluster.sort_unstable();
+        cluster.dedup();
+        if cluster.len() < 6 {
+            return Ok(None);
+        }
+        // Scale and translation of the cluster: camera height and nadir point.
+        let mut ss: Vec<f32> = cluster
+            .iter()
+            .map(|&j| train.keypoints[m[j].train].scale / query.keypoints[m[j].query].scale)
+            .collect();
+        ss.sort_by(f32::total_cmp);
+        let s = f64::from(ss[ss.len() / 2]);
+        let mut txs: Vec<f64> = Vec::new();
+        let mut tys: Vec<f64> = Vec::new();
+        for &j in &cluster {
+            let q = &query.keypoints[m[j].query];
+            let t = &train.keypoints[m[j].train];
+            txs.push(f64::from(t.x) - s * (f64::from(q.x) - rect.cx_px));
+            tys.push(f64::from(t.y) - s * (f64::from(q.y) - rect.cy_px));
+        }
+        txs.sort_by(f64::total_cmp);
+        tys.sort_by(f64::total_cmp);
+        let (nx, ny) = (txs[txs.len() / 2], tys[tys.len() / 2]);
+        let x = ox + nx * gsd;
+        let y = oy - ny * gsd;
+        // One virtual pixel covers s level pixels: height above ground = f_v * s * gsd.
+        let agl = rect.f_px * s * gsd;
+        let ground = self.reference.height_amsl_m(x, y).unwrap_or_else(|| {
+            let (lo, hi) = self.reference.dem().height_range_m();
+            0.5 * (lo + hi)
+        });
+        let crs = self.reference.crs();
+        let (lat, lon) = crs
+            .to_geodetic(x, y)
+            .map_err(|e| format!("map geodesy: {e}"))?;
+        let pos = PositionPriorGeo {
+            lat_deg: lat,
+            lon_deg: lon,
+            alt_amsl_m: ground + agl,
+            // The cluster locates the nadir point to a few bins and the height to a scale bin.
+            sigma_h_m: (0.2 * agl).max(3.0 * gsd),
+            sigma_v_m: (0.3 * agl).max(3.0 * gsd),
+        };
+        let (r, a) = self.fix_prior(frame, &pos, att, t_us);
+        if !r.accepted {
+            return Err(format!("level {level}: {}", r.reason));
+        }
+        // Second pass from the first fix: tight prior, exact heading.
+        let refined_pos = PositionPriorGeo {
+            lat_deg: r.lat_deg,
+            lon_deg: r.lon_deg,
+            alt_amsl_m: r.alt_amsl_m,
+            sigma_h_m: 3.0 * r.cov_ned_m2[0][0].max(r.cov_ned_m2[1][1]).sqrt().max(gsd),
+            sigma_v_m: 3.0 * r.cov_ned_m2[2][2].sqrt().max(gsd),
+        };
+        let refined_att = AttitudePriorNed {
+            attitude: Attitude::from_deg(r.roll_deg, r.pitch_deg, r.yaw_deg),
+            sigma_rad: 1f64.to_radians(),
+        };
+        let (r2, a2) = self.fix_prior(frame, &refined_pos, &refined_att, t_us);
+        // The refined pass used the first fix as a prior: the reported fix must not be checked
+        // against itself, so its chi-square prior test is loose by construction; it is only kept
+        // when it has more inliers.
+        if r2.accepted && r2.inliers >= r.inliers {
+            Ok(Some((r2, a2)))
+        } else {
+            Ok(Some((r, a)))
+        }
+    }
+}
+
+/// Map grid point (height AMSL) to the local ENU frame.
+fn map_to_enu(
+    crs: &Crs,
+    local: &LocalFrame,
+    x_m: f64,
+    y_m: f64,
+    z_amsl_m: f64,
+) -> Result<Vector3<f64>, crate::geo::GeoError> {
+    let (lat, lon) = crs.to_geodetic(x_m, y_m)?;
+    let h = z_amsl_m + geoid_undulation_m(lat, lon)?;
+    local.geodetic_to_enu(&Geodetic::new(lat, lon, h)?)
+}
+
+/// Train features in level-pixel coordinates.
+fn train_features(
+    sel: &RefSelection,
+    gsd_m: f64,
+    to_lp: impl Fn(f64, f64) -> [f32; 2],
+) -> Result<Features, String> {
+    let kps = sel
+        .features
+        .iter()
+        .map(|f| {
+            let p = to_lp(f.x_m, f.y_m);
+            KeyPoint {
+                x: p[0],
+                y: p[1],
+                size: f.scale_m / gsd_m as f32 * 9.0 / 1.2,
+                scale: f.scale_m / gsd_m as f32,
+                response: 0.0,
+                orientation_rad: 0.0,
+                laplacian: f.laplacian,
+                octave: 0,
+            }
+        })
+        .collect();
+    Features::new(kps, sel.descriptors.clone(), sel.kind).map_err(|e| format!("map features: {e}"))
+}
+
+/// The features at `idx` (in that order).
+fn subset(f: &Features, idx: impl Iterator<Item = usize>) -> Result<Features, String> {
+    let st = f.kind().stride();
+    let mut kps = Vec::new();
+    let mut desc = Vec::new();
+    for i in idx {
+        kps.push(f.keypoints[i]);
+        desc.extend_from_slice(&f.descriptors_padded()[i * st..(i + 1) * st]);
+    }
+    Features::new(kps, desc, f.kind()).map_err(|e| format!("query features: {e}"))
+}
+
+/// A match accepted by [`gated_match`]: query index, train index.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GatedMatch {
+    pub query: usize,
+    pub train: usize,
+}
+
+/// Spatially gated matching: for each query with a finite prediction, the nearest train descriptor
+/// (same Laplacian sign) among the train keypoints within `r_wide` of the prediction is accepted when
+/// it lies within `r_fine` of the prediction and passes Lowe's ratio test against the second nearest
+/// in `r_wide` (a lone candidate passes). Brute force over a grid of `r_wide` cells.
+pub fn gated_match(
+    query: &Features,
+    train: &Features,
+    pred: &[[f32; 2]],
+    r_fine: f32,
+    r_wide: f32,
+    ratio: f32,
+) -> Vec<GatedMatch> {
+    use std::collections::HashMap;
+    let cell = r_wide.max(1.0);
+    let key = |x: f32, y: f32| ((x / cell).floor() as i32, (y / cell).floor() as i32);
+    let mut grid: HashMap<(i32, i32), Vec<usize>> = HashMap::new();
+    for (j, k) in train.keypoints.iter().enumerate() {
+        if k.x.is_finite() && k.y.is_finite() {
+            grid.entry(key(k.x, k.y)).or_default().push(j);
+        }
+    }
+    let st = query.kind().stride();
+    let qd = query.descriptors_padded();
+    let td = train.descriptors_padded();
+    let mut out = Vec::new();
+    for (i, q) in query.keypoints.iter().enumerate() {
+        let Some(p) = pred.get(i) else {
+            break;
+        };
+        if !(p[0].is_finite() && p[1].is_finite()) {
+            continue;
+        }
+        let (cx, cy) = key(p[0], p[1]);
+        let (mut d1, mut d2, mut b1) = (f32::INFINITY, f32::INFINITY, usize::MAX);
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                let Some(c) = grid.get(&(cx + dx, cy + dy)) else {
+                    continue;
+                };
+                for &j in c {
+                    let t = &train.keypoints[j];
+                    if t.laplacian != q.laplacian {
+                        continue;
+                    }
+                    let (ex, ey) = (t.x - p[0], t.y - p[1]);
+                    if ex * ex + ey * ey > r_wide * r_wide {
+                        continue;
+                    }
+                    let d = dist2(&qd[i * st..(i + 1) * st], &td[j * st..(j + 1) * st]);
+                    if d < d1 {
+                        d2 = d1;
+                        d1 = d;
+                        b1 = j;
+                    } else if d < d2 {
+                        d2 = d;
+                    }
+                }
+            }
+        }
+        if b1 == usize::MAX {
+            continue;
+        }
+        let t = &train.keypoints[b1];
+        let (ex, ey) = (t.x - p[0], t.y - p[1]);
+        if ex * ex + ey * ey > r_fine * r_fine {
+            continue;
+        }
+        if d2.is_finite() && d1.sqrt() >= ratio * d2.sqrt() {
+            continue;
+        }
+        out.push(GatedMatch {
+            query: i,
+            train: b1,
+        });
+    }
+    out
+}
+
+/// A 2-D similarity `p -> s R(theta) p + t`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sim2 {
+    pub scale: f32,
+    pub theta_rad: f32,
+    pub t: [f32; 2],
+}
+
+impl Sim2 {
+    /// The identity.
+    pub fn identity() -> Self {
+        Self {
+            scale: 1.0,
+            theta_rad: 0.0,
+            t: [0.0, 0.0],
+        }
+    }
+    /// Apply to a point.
+    pub fn apply(&self, p: [f32; 2]) -> [f32; 2] {
+        let (s, c) = self.theta_rad.sin_cos();
+        [
+            self.scale * (c * p[0] - s * p[1]) + self.t[0],
+            self.scale * (s * p[0] + c * p[1]) + self.t[1],
+        ]
+    }
+    /// Least-squares similarity from point pairs (Umeyama 1991, 2-D closed form); None when
+    /// degenerate.
+    pub fn fit(src: &[[f32; 2]], dst: &[[f32; 2]]) -> Option<Self> {
+        let n = src.len().min(dst.len());
+        if n < 2 {
+            return None;
+        }
+        let nf = n as f64;
+        let (mut ms, mut md) = ([0f64; 2], [0f64; 2]);
+        for i in 0..n {
+            for k in 0..2 {
+                ms[k] += f64::from(src[i][k]) / nf;
+                md[k] += f64::from(dst[i][k]) / nf;
+            }
+        }
+        let (mut a, mut b, mut var) = (0f64, 0f64, 0f64);
+        for i in 0..n {
+            let (sx, sy) = (f64::from(src[i][0]) - ms[0], f64::from(src[i][1]) - ms[1]);
+            let (dx, dy) = (f64::from(dst[i][0]) - md[0], f64::from(dst[i][1]) - md[1]);
+            a += sx * dx + sy * dy;
+            b += sx * dy - sy * dx;
+            var += sx * sx + sy * sy;
+        }
+        if var.is_nan() || var <= 1e-9 {
+            return None;
+        }
+        let theta = b.atan2(a);
+        let scale = (a * a + b * b).sqrt() / var;
+        let (s, c) = theta.sin_cos();
+        let t = [
+            md[0] - scale * (c * ms[0] - s * ms[1]),
+            md[1] - scale * (s * ms[0] + c * ms[1]),
+        ];
+        let out = Self {
+            scale: scale as f32,
+            theta_rad: theta as f32,
+            t: [t[0] as f32, t[1] as f32],
+        };
+        (out.scale.is_finite() && out.t.iter().all(|v| v.is_finite())).then_some(out)
+    }
+}
+
+/// RANSAC over 2-point similarities between `src` and `dst` (pairs), with rotation and log-scale
+/// limits (a similarity outside them is not a plausible prior error); the best model is refitted
+/// to its inliers (distance <= `thresh`). Returns it with its inlier count (at least 3).
+pub fn ransac_similarity(
+    src: &[[f32; 2]],
+    dst: &[[f32; 2]],
+    thresh: f32,
+    max_rot_rad: f64,
+    max_abs_log_scale: f64,
+    seed: u64,
+) -> Option<(Sim2, usize)> {
+    let n = src.len().min(dst.len());
+    if n < 3 {
+        return None;
+    }
+    let plausible = |s: &Sim2| {
+        f64::from(s.theta_rad).abs() <= max_rot_rad
+            && f64::from(s.scale).ln().abs() <= max_abs_log_scale
+    };
+    let count = |s: &Sim2| -> Vec<usize> {
+        (0..n)
+            .filter(|&i| {
+                let p = s.apply(src[i]);
+                let (dx, dy) = (p[0] - dst[i][0], p[1] - dst[i][1]);
+                dx * dx + dy * dy <= thresh * thresh
+            })
+            .collect()
+    };
+    let mut state = seed | 1;
+    let mut next = |m: usize| {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state % m as u64) as usize
+    };
+    let mut best: Vec<usize> = Vec::new();
+    let iters = 2000.min(n * n);
+    for _ in 0..iters {
+        let (i, j) = (next(n), next(n));
+        if i == j {
+            continue;
+        }
+        let Some(s) = Sim2::fit(&[src[i], src[j]], &[dst[i], dst[j]]) else {
+            continue;
+        };
+        if !plausible(&s) {
+            continue;
+        }
+        let inl = count(&s);
+        if inl.len() > best.len() {
+            best = inl;
+        }
+    }
+    if best.len() < 3 {
+        return None;
+    }
+    // Refit on the inliers twice (inliers re-selected with the refined model).
+    let mut model = None;
+    for _ in 0..2 {
+        let s: Vec<[f32; 2]> = best.iter().map(|&i| src[i]).collect();
+        let d: Vec<[f32; 2]> = best.iter().map(|&i| dst[i]).collect();
+        let Some(m) = Sim2::fit(&s, &d).filter(|m| plausible(m)) else {
+            break;
+        };
+        let inl = count(&m);
+        if inl.len() < 3 {
+            break;
+        }
+        best = inl;
+        model = Some(m);
+    }
+    model.map(|m| (m, best.len()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ransac_similarity_finds_the_prior_error_among_outliers() {
+        let truth = Sim2 {
+            scale: 1.05,
+            theta_rad: 0.03,
+            t: [37.0, -12.0],
+        };
+        let mut s = 12345u64;
+        let mut rnd = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 33) as f32 / (1u64 << 31) as f32) - 0.5
+        };
+        let (mut src, mut dst) = (Vec::new(), Vec::new());
+        for _ in 0..20 {
+            let p = [300.0 * rnd() + 150.0, 300.0 * rnd() + 150.0];
+            let q = truth.apply(p);
+            src.push(p);
+            dst.push([q[0] + 0.5 * rnd(), q[1] + 0.5 * rnd()]);
+        }
+        for _ in 0..150 {
+            src.push([300.0 * rnd() + 150.0, 300.0 * rnd() + 150.0]);
+            dst.push([400.0 * rnd() + 150.0, 400.0 * rnd() + 150.0]);
+        }
+        let (m, n) = ransac_similarity(&src, &dst, 3.0, 0.2, 0.2, 1).unwrap();
+        assert!(n >= 20, "{n}");
+        let p = m.apply([100.0, 200.0]);
+        let q = truth.apply([100.0, 200.0]);
+        assert!(
+            (p[0] - q[0]).abs() < 1.0 && (p[1] - q[1]).abs() < 1.0,
+            "{m:?}"
+        );
+        // Outside the rotation limit the true model is not accepted.
+        let far = ransac_similarity(&src, &dst, 3.0, 0.001, 0.2, 1);
+        assert!(far.is_none_or(|(_, n)| n < 20));
+        assert!(ransac_similarity(&src[..2], &dst[..2], 3.0, 0.2, 0.2, 1).is_none());
+    }
+
+    #[test]
+    fn params_validate() {
+        let mut p = Problems::default();
+        FixParams::default().validate(&mut p);
+        assert!(p.list.is_empty(), "{:?}", p.list);
+        let bad = FixParams {
+            ratio: 0.0,
+            ..FixParams::default()
+        };
+        let mut p = Problems::default();
+        bad.validate(&mut p);
+        assert!(p.list.iter().any(|i| i.key == "ratio"), "{:?}", p.list);
+    }
+}

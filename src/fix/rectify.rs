@@ -1,0 +1,303 @@
+//! Rectification of a camera frame to a virtual nadir, north-up (map-grid) camera at a chosen scale.
+//!
+//! The virtual camera shares the real camera's projection centre; only its orientation and focal
+//! length differ, so the warp is the infinite homography `H = K_v R_virt_cam K^-1` (plus the real
+//! lens's distortion) and needs neither the position nor the terrain. Its axes, in the map grid
+//! frame (x east, y north, z up): `x_virt` = east, `y_virt` = south (image down), `z_virt` = down
+//! (optical axis), i.e. `R_map_virt = diag(1, -1, -1)`. With focal length `f_v = AGL / gsd` a pixel
+//! of the virtual image covers `gsd` metres of flat ground at AGL below, the scale of a map level, so
+//! upright SURF (no orientation) sees the same geometry in the frame and in the map.
+//!
+//! Every virtual pixel remembers the frame pixel it was sampled from ([`Rectification::to_frame_px`],
+//! the same function used for sampling), so keypoints found in the rectified image map back to the
+//! original (distorted) pixel coordinates exactly, whatever the error of the attitude used.
+//!
+//! Downsampling is antialiased: the frame is first halved (2x2 means) `k` times so the remaining
+//! resampling factor lies in about [0.6, 1.25].
+
+use nalgebra::{Matrix3, Point2, Rotation3, Vector3};
+
+use super::reference::half_size;
+use crate::camera::Camera;
+use crate::vision::GrayImage;
+
+/// `R_map_virt`: the virtual nadir camera's axes in the map grid frame.
+pub fn r_map_virt() -> Rotation3<f64> {
+    Rotation3::from_matrix_unchecked(Matrix3::new(
+        1.0, 0.0, 0.0, //
+        0.0, -1.0, 0.0, //
+        0.0, 0.0, -1.0,
+    ))
+}
+
+/// A rectified frame.
+#[derive(Debug, Clone)]
+pub struct Rectification {
+    /// The virtual image; pixels not covered by the frame hold the mean of the covered ones.
+    pub image: GrayImage,
+    /// `row * width + col`: true where the pixel was sampled from the frame.
+    pub valid: Vec<bool>,
+    /// Virtual focal length, pixels.
+    pub f_px: f64,
+    /// Virtual principal point, pixels.
+    pub cx_px: f64,
+    pub cy_px: f64,
+    /// `R_cam_virt`: virtual-camera rays into the real camera frame.
+    r_cam_virt: Rotation3<f64>,
+    camera: Camera,
+}
+
+impl Rectification {
+    /// Rectify `frame` (taken by `camera` with attitude `r_map_cam`) to a virtual nadir camera whose
+    /// focal length is `scale` times the real `fx`. The virtual image covers the frame's footprint up
+    /// to `max_off_nadir_rad` from the vertical and at most `max_side_px` per side (cropped about the
+    /// nadir point's image). `None` when the frame does not see the ground below the horizon limit.
+    pub fn new(
+        frame: &GrayImage,
+        camera: &Camera,
+        r_map_cam: &Rotation3<f64>,
+        scale: f64,
+        max_side_px: usize,
+        max_off_nadir_rad: f64,
+    ) -> Option<Self> {
+        if !(scale.is_finite() && scale > 0.0) || frame.width() < 2 || frame.height() < 2 {
+            return None;
+        }
+        let f_px = camera.intrinsics.fx_px * scale;
+        let r_cam_virt = r_map_cam.inverse() * r_map_virt();
+        // Footprint of the frame border in virtual normalised coordinates.
+        let (w, h) = (frame.width() as f64, frame.height() as f64);
+        let tan_max = max_off_nadir_rad.tan();
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        let n_edge = 16;
+        for i in 0..=n_edge {
+            let t = i as f64 / n_edge as f64;
+            for (px, py) in [
+                (t * (w - 1.0), 0.0),
+                (t * (w - 1.0), h - 1.0),
+                (0.0, t * (h - 1.0)),
+                (w - 1.0, t * (h - 1.0)),
+            ] {
+                let Some(ray_cam) = camera.unproject(&Point2::new(px, py)) else {
+                    continue;
+                };
+                let rv = r_cam_virt.inverse() * ray_cam.into_inner();
+                // Rays above the limit are clipped to it (the image continues to the horizon).
+                let z = rv.z.max((rv.x * rv.x + rv.y * rv.y).sqrt() / tan_max);
+                if z <= 0.0 {
+                    continue;
+                }
+                let (x, y) = (rv.x / z, rv.y / z);
+                lo = [lo[0].min(x), lo[1].min(y)];
+                hi = [hi[0].max(x), hi[1].max(y)];
+            }
+        }
+        if !(lo[0].is_finite() && hi[0] > lo[0] && hi[1] > lo[1]) {
+            return None;
+        }
+        let max_side = max_side_px as f64;
+        let span = |a: f64, b: f64| -> (f64, f64) {
+            // Pixels from the nadir point (0 normalised) to the edges, cropped symmetrically.
+            let (mut a, mut b) = (a * f_px, b * f_px);
+            if b - a > max_side {
+                let c = (0f64).clamp(a + max_side / 2.0, b - max_side / 2.0);
+                a = c - max_side / 2.0;
+                b = c + max_side / 2.0;
+            }
+            (a.floor(), b.ceil())
+        };
+        let (x0, x1) = span(lo[0], hi[0]);
+        let (y0, y1) = span(lo[1], hi[1]);
+        let width = (x1 - x0) as usize + 1;
+        let height = (y1 - y0) as usize + 1;
+        if width < 32 || height < 32 {
+            return None;
+        }
+        let (cx_px, cy_px) = (-x0, -y0);
+
+        // Antialiasing pyramid level k: resample factor scale * 2^k in about [0.6, 1.25].
+        let mut k = 0u32;
+        let mut src = frame.clone();
+        while scale * f64::from(1u32 << (k + 1)) <= 1.25 && src.width() >= 64 && src.height() >= 64
+        {
+            src = half_size(&src);
+            k += 1;
+        }
+        let f = f64::from(1u32 << k);
+
+        let mut rect = Self {
+            image: GrayImage::from_fn(1, 1, |_, _| 0.0),
+            valid: vec![false; width * height],
+            f_px,
+            cx_px,
+            cy_px,
+            r_cam_virt,
+            camera: *camera,
+        };
+        let mut data = vec![f32::NAN; width * height];
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        // The warp is smooth: evaluate it exactly on a grid every STEP pixels and interpolate.
+        const STEP: usize = 4;
+        let gw = width.div_ceil(STEP) + 1;
+        let gh = height.div_ceil(STEP) + 1;
+        let mut grid = vec![[f64::NAN; 2]; gw * gh];
+        for gy in 0..gh {
+            for gx in 0..gw {
+                if let Some(p) = rect.to_frame_px((gx * STEP) as f64, (gy * STEP) as f64) {
+                    grid[gy * gw + gx] = [p.x, p.y];
+                }
+            }
+        }
+        for v in 0..height {
+            let (gy, fy) = (v / STEP, (v % STEP) as f64 / STEP as f64);
+            for u in 0..width {
+                let (gx, fx) = (u / STEP, (u % STEP) as f64 / STEP as f64);
+                let g = |i: usize, j: usize| grid[(gy + j) * gw + gx + i];
+                let (a, b, c, d) = (g(0, 0), g(1, 0), g(0, 1), g(1, 1));
+                let px = (1.0 - fy) * ((1.0 - fx) * a[0] + fx * b[0])
+                    + fy * ((1.0 - fx) * c[0] + fx * d[0]);
+                let py = (1.0 - fy) * ((1.0 - fx) * a[1] + fx * b[1])
+                    + fy * ((1.0 - fx) * c[1] + fx * d[1]);
+                if !(px.is_finite() && py.is_finite()) {
+                    continue;
+                }
+                // Virtual pixels beyond the off-nadir limit stay invalid.
+                let (nx, ny) = ((u as f64 - cx_px) / f_px, (v as f64 - cy_px) / f_px);
+                if nx * nx + ny * ny > tan_max * tan_max {
+                    continue;
+                }
+                if px < -0.5 || py < -0.5 || px > w - 0.5 || py > h - 0.5 {
+                    continue;
+                }
+                let (sx, sy) = ((px + 0.5) / f - 0.5, (py + 0.5) / f - 0.5);
+                let sx = sx.clamp(0.0, (src.width() - 1) as f64);
+                let sy = sy.clamp(0.0, (src.height() - 1) as f64);
+                if let Some(val) = src.sample_bilinear(sx, sy)
+                    && val.is_finite()
+                {
+                    data[v * width + u] = val;
+                    rect.valid[v * width + u] = true;
+                    sum += f64::from(val);
+                    n += 1;
+                }
+            }
+        }
+        if n == 0 {
+            return None;
+        }
+        let mean = (sum / n as f64) as f32;
+        for v in data.iter_mut().filter(|v| !v.is_finite()) {
+            *v = mean;
+        }
+        rect.image = GrayImage::new(width, height, data).ok()?;
+        Some(rect)
+    }
+
+    /// Width of the virtual image.
+    pub fn width(&self) -> usize {
+        self.image.width()
+    }
+    /// Height of the virtual image.
+    pub fn height(&self) -> usize {
+        self.image.height()
+    }
+
+    /// Ray of virtual pixel `(u, v)` in the map grid frame (not normalised; `z < 0`, pointing down).
+    pub fn ray_map(&self, u: f64, v: f64) -> Vector3<f64> {
+        r_map_virt()
+            * Vector3::new(
+                (u - self.cx_px) / self.f_px,
+                (v - self.cy_px) / self.f_px,
+                1.0,
+            )
+    }
+
+    /// The (distorted) frame pixel that virtual pixel `(u, v)` was sampled from; `None` when that
+    /// ray is behind the real camera or outside its lens model.
+    pub fn to_frame_px(&self, u: f64, v: f64) -> Option<Point2<f64>> {
+        let rv = Vector3::new(
+            (u - self.cx_px) / self.f_px,
+            (v - self.cy_px) / self.f_px,
+            1.0,
+        );
+        self.camera.project(&(self.r_cam_virt * rv))
+    }
+
+    /// True when the square of half-side `r` pixels about `(u, v)` lies on valid pixels (checked at
+    /// its corners, edge midpoints and centre).
+    pub fn window_valid(&self, u: f64, v: f64, r: f64) -> bool {
+        let (w, h) = (self.width() as f64, self.height() as f64);
+        [-1.0, 0.0, 1.0].iter().all(|&i| {
+            [-1.0, 0.0, 1.0].iter().all(|&j| {
+                let (x, y) = ((u + i * r).round(), (v + j * r).round());
+                x >= 0.0
+                    && y >= 0.0
+                    && x < w
+                    && y < h
+                    && self.valid[y as usize * self.width() + x as usize]
+            })
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::frames::{r_enu_ned, rot_z};
+    use crate::camera::{Attitude, Intrinsics, Mount};
+
+    fn cam() -> Camera {
+        Camera::pinhole(Intrinsics::from_hfov(60f64.to_radians(), 640, 480).unwrap()).unwrap()
+    }
+
+    #[test]
+    fn nadir_north_up_frame_is_a_pure_scaling() {
+        let c = cam();
+        let att = Attitude::from_deg(0.0, 0.0, 0.0);
+        let r_map_cam = rot_z(0.0) * r_enu_ned() * Mount::nadir().r_ned_cam(&att);
+        let frame = GrayImage::from_fn(640, 480, |x, y| ((x * 7 + y * 13) % 255) as f32);
+        let r = Rectification::new(&frame, &c, &r_map_cam, 1.0, 2048, 1.4).unwrap();
+        // Scale 1: the virtual image is the frame, possibly rotated by a multiple of 90 deg.
+        for (u, v) in [(10.0, 20.0), (320.0, 240.0), (600.0, 400.0)] {
+            let p = r.to_frame_px(u, v).unwrap();
+            let back = c.project(
+                &(r.r_cam_virt * Vector3::new((u - r.cx_px) / r.f_px, (v - r.cy_px) / r.f_px, 1.0)),
+            );
+            assert!((back.unwrap() - p).norm() < 1e-9);
+        }
+        // Nadir mount has the image top towards the nose = north: virtual up (north) = frame up.
+        let top = r.to_frame_px(r.cx_px, r.cy_px - 100.0).unwrap();
+        let centre = r.to_frame_px(r.cx_px, r.cy_px).unwrap();
+        assert!((centre.x - c.intrinsics.cx_px).abs() < 1e-9, "{centre:?}");
+        assert!(
+            (top.y - (centre.y - 100.0)).abs() < 1e-6,
+            "{top:?} {centre:?}"
+        );
+        assert!((top.x - centre.x).abs() < 1e-6);
+        assert_eq!((r.width(), r.height()), (641, 481));
+    }
+
+    #[test]
+    fn heading_east_rotates_the_virtual_image() {
+        let c = cam();
+        // Yaw 90 deg: nose (image top) east. Virtual east (+u) is then the frame's up (-v).
+        let att = Attitude::from_deg(0.0, 0.0, 90.0);
+        let r_map_cam = r_enu_ned() * Mount::nadir().r_ned_cam(&att);
+        let frame = GrayImage::from_fn(640, 480, |x, _| x as f32);
+        let r = Rectification::new(&frame, &c, &r_map_cam, 0.5, 2048, 1.4).unwrap();
+        let centre = r.to_frame_px(r.cx_px, r.cy_px).unwrap();
+        let east = r.to_frame_px(r.cx_px + 50.0, r.cy_px).unwrap();
+        assert!(
+            (east.y - (centre.y - 100.0)).abs() < 1e-6,
+            "{east:?} {centre:?}"
+        );
+        // Scale 0.5: the virtual image is half the size, rotated.
+        assert!((r.width() as i64 - 241).abs() <= 2 && (r.height() as i64 - 321).abs() <= 2);
+        // Interpolated sampling reproduces the ramp (frame x) at a virtual pixel.
+        let (u, v) = (100usize, 150usize);
+        let p = r.to_frame_px(u as f64, v as f64).unwrap();
+        let got = r.image.get(u, v);
+        // The 2x2 antialiasing mean of a ramp x is x at the block centre.
+        assert!((f64::from(got) - p.x).abs() < 0.6, "{got} vs {}", p.x);
+    }
+}

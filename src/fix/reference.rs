@@ -1,0 +1,239 @@
+//! The reference the fix matches against: georeferenced SURF features with DEM heights, in pyramid
+//! levels, selectable by a map-grid rectangle. [`Reference`] is implemented by the memory-mapped
+//! `.vnm` map (`crate::map`) and by [`MemoryReference`], which extracts the features from an
+//! orthophoto held in memory (tests, the simulator, small maps).
+//!
+//! Pixel convention: GeoTIFF rasters are GDAL style (pixel (0,0) is the outer corner, pixel centres
+//! at i+0.5), SURF keypoints have pixel centres at integers, so keypoint `(u, v)` of a level image
+//! lies at raster pixel `(u + 0.5, v + 0.5)` of that level.
+
+use crate::geo::Crs;
+use crate::geo::dem::Dem;
+use crate::geo::raster::Raster;
+use crate::vision::{DescriptorKind, GrayImage, Surf, SurfParams, VisionError};
+
+/// One reference feature: its map-grid position, height above mean sea level (the DEM's datum),
+/// scale on the ground and Laplacian sign.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RefFeature {
+    pub x_m: f64,
+    pub y_m: f64,
+    pub z_amsl_m: f64,
+    /// SURF scale `s` on the ground, metres.
+    pub scale_m: f32,
+    pub laplacian: i8,
+}
+
+/// Features selected from one level, with their descriptors (row-major, `kind.stride()` floats per
+/// row, zero padded beyond `kind.len()`, the layout of `vision::Features`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RefSelection {
+    pub features: Vec<RefFeature>,
+    pub descriptors: Vec<f32>,
+    pub kind: DescriptorKind,
+}
+
+impl RefSelection {
+    /// An empty selection of the given descriptor kind.
+    pub fn empty(kind: DescriptorKind) -> Self {
+        Self {
+            features: Vec::new(),
+            descriptors: Vec::new(),
+            kind,
+        }
+    }
+}
+
+/// A map the fix can match against.
+pub trait Reference: Send + Sync {
+    /// The map grid's CRS (x east, y north, metres).
+    fn crs(&self) -> Crs;
+    /// Ground sample distance of each pyramid level, metres per pixel, finest first.
+    fn level_gsd_m(&self) -> Vec<f64>;
+    /// The SURF settings the features were extracted with (the query uses the same).
+    fn surf_params(&self) -> SurfParams;
+    /// Bounds of the mapped area `[min_x, min_y, max_x, max_y]`, metres.
+    fn bounds_m(&self) -> [f64; 4];
+    /// Ground height at a map position (AMSL, the DEM's datum), when known.
+    fn height_amsl_m(&self, x_m: f64, y_m: f64) -> Option<f64>;
+    /// The terrain for ray casting (map grid coordinates, heights AMSL).
+    fn dem(&self) -> &Dem;
+    /// Features of `level` whose position lies in `[min_x, min_y, max_x, max_y]`.
+    fn select(&self, level: usize, rect_m: [f64; 4]) -> RefSelection;
+}
+
+/// Features of an orthophoto extracted in memory, level by level (level `L` is the orthophoto
+/// averaged over `2^L x 2^L` blocks).
+#[derive(Debug)]
+pub struct MemoryReference {
+    crs: Crs,
+    params: SurfParams,
+    bounds_m: [f64; 4],
+    levels: Vec<(f64, RefSelection)>,
+    dem: Dem,
+}
+
+/// Grey level of an orthophoto (Rec. 601 luma of the first three bands, or band 0), with the
+/// raster's nodata/missing samples as NaN.
+pub fn raster_grey(raster: &Raster) -> GrayImage {
+    let (w, h) = (raster.width(), raster.height());
+    let rgb = raster.bands() >= 3;
+    GrayImage::from_fn(w, h, |x, y| {
+        if rgb {
+            match (
+                raster.value(x, y, 0),
+                raster.value(x, y, 1),
+                raster.value(x, y, 2),
+            ) {
+                (Some(r), Some(g), Some(b)) => (0.299 * r + 0.587 * g + 0.114 * b) as f32,
+                _ => f32::NAN,
+            }
+        } else {
+            raster.value(x, y, 0).map_or(f32::NAN, |v| v as f32)
+        }
+    })
+}
+
+/// 2x2 block average (odd trailing row/column dropped); NaN propagates.
+pub fn half_size(img: &GrayImage) -> GrayImage {
+    let (w, h) = (img.width() / 2, img.height() / 2);
+    GrayImage::from_fn(w, h, |x, y| {
+        0.25 * (img.get(2 * x, 2 * y)
+            + img.get(2 * x + 1, 2 * y)
+            + img.get(2 * x, 2 * y + 1)
+            + img.get(2 * x + 1, 2 * y + 1))
+    })
+}
+
+impl MemoryReference {
+    /// Extract `n_levels` levels of features from an axis-aligned north-up orthophoto, with heights
+    /// from `dem` (same CRS as the orthophoto). Keypoints on or next to missing pixels, or without a
+    /// height, are dropped.
+    pub fn from_raster(
+        raster: &Raster,
+        dem: Dem,
+        params: SurfParams,
+        n_levels: usize,
+    ) -> Result<Self, VisionError> {
+        params.validate()?;
+        let tf = *raster.transform();
+        let c = tf.coeffs();
+        if !(tf.is_axis_aligned() && c[1] > 0.0 && c[5] < 0.0) {
+            return Err(VisionError::InvalidParam {
+                name: "raster",
+                reason: "the orthophoto must be north-up and axis-aligned".into(),
+            });
+        }
+        let surf = Surf::new(params.clone())?;
+        let b = raster.bounds();
+        let bounds_m = [b.min_x_m, b.min_y_m, b.max_x_m, b.max_y_m];
+        let mut img = raster_grey(raster);
+        let mut levels = Vec::new();
+        for level in 0..n_levels.max(1) {
+            if img.width() < 64 || img.height() < 64 {
+                break;
+            }
+            let f = 1u32 << level;
+            let gsd_m = c[1] * f64::from(f);
+            // Missing pixels become the mean so SURF runs; keypoints near them are dropped below.
+            let (sum, n) = img
+                .data()
+                .iter()
+                .filter(|v| v.is_finite())
+                .fold((0.0f64, 0usize), |(s, n), &v| (s + f64::from(v), n + 1));
+            let mean = if n > 0 { (sum / n as f64) as f32 } else { 0.0 };
+            let filled = GrayImage::from_fn(img.width(), img.height(), |x, y| {
+                let v = img.get(x, y);
+                if v.is_finite() { v } else { mean }
+            });
+            let feats = surf.detect_and_describe(&filled);
+            let st = feats.kind().stride();
+            let mut sel = RefSelection::empty(feats.kind());
+            for (i, k) in feats.keypoints.iter().enumerate() {
+                let r = (10.0 * k.scale).ceil() as i64;
+                let (kx, ky) = (k.x.round() as i64, k.y.round() as i64);
+                let near_missing =
+                    [(-r, -r), (r, -r), (-r, r), (r, r), (0, 0)]
+                        .iter()
+                        .any(|&(dx, dy)| {
+                            let (x, y) = (kx + dx, ky + dy);
+                            x < 0
+                                || y < 0
+                                || x >= img.width() as i64
+                                || y >= img.height() as i64
+                                || !img.get(x as usize, y as usize).is_finite()
+                        });
+                if near_missing {
+                    continue;
+                }
+                let (x_m, y_m) = tf.pixel_to_map(
+                    (f64::from(k.x) + 0.5) * f64::from(f),
+                    (f64::from(k.y) + 0.5) * f64::from(f),
+                );
+                let Some(z) = dem.height_at(x_m, y_m) else {
+                    continue;
+                };
+                sel.features.push(RefFeature {
+                    x_m,
+                    y_m,
+                    z_amsl_m: z,
+                    scale_m: k.scale * gsd_m as f32,
+                    laplacian: k.laplacian,
+                });
+                sel.descriptors
+                    .extend_from_slice(&feats.descriptors_padded()[i * st..(i + 1) * st]);
+            }
+            levels.push((gsd_m, sel));
+            img = half_size(&img);
+        }
+        Ok(Self {
+            crs: raster.crs(),
+            params,
+            bounds_m,
+            levels,
+            dem,
+        })
+    }
+
+    /// Number of features per level.
+    pub fn counts(&self) -> Vec<usize> {
+        self.levels.iter().map(|(_, s)| s.features.len()).collect()
+    }
+}
+
+impl Reference for MemoryReference {
+    fn crs(&self) -> Crs {
+        self.crs
+    }
+    fn level_gsd_m(&self) -> Vec<f64> {
+        self.levels.iter().map(|(g, _)| *g).collect()
+    }
+    fn surf_params(&self) -> SurfParams {
+        self.params.clone()
+    }
+    fn bounds_m(&self) -> [f64; 4] {
+        self.bounds_m
+    }
+    fn height_amsl_m(&self, x_m: f64, y_m: f64) -> Option<f64> {
+        self.dem.height_at(x_m, y_m)
+    }
+    fn dem(&self) -> &Dem {
+        &self.dem
+    }
+    fn select(&self, level: usize, rect_m: [f64; 4]) -> RefSelection {
+        let Some((_, all)) = self.levels.get(level) else {
+            return RefSelection::empty(self.params.descriptor);
+        };
+        let st = all.kind.stride();
+        let mut out = RefSelection::empty(all.kind);
+        for (i, f) in all.features.iter().enumerate() {
+            if f.x_m >= rect_m[0] && f.x_m <= rect_m[2] && f.y_m >= rect_m[1] && f.y_m <= rect_m[3]
+            {
+                out.features.push(*f);
+                out.descriptors
+                    .extend_from_slice(&all.descriptors[i * st..(i + 1) * st]);
+            }
+        }
+        out
+    }
+}

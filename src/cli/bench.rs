@@ -27,6 +27,9 @@ pub enum BenchWhat {
     /// Time the camera renderer (VGA, 60 deg FOV) over the bundled NAIP 2014 map (flat ground) and,
     /// when ../shared/data is present, the NGI ortho over its 24 m DEM.
     Render(RenderBenchArgs),
+    /// The vision fix on NAIP cross-date frames (map 2009, frames 2014): fix rate, error
+    /// against truth, frame-to-fix time p50/p95.
+    Fix(super::bench_fix::FixBenchArgs),
 }
 
 #[derive(clap::Args, Debug)]
@@ -109,6 +112,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
         BenchWhat::Surf(a) => run_surf(a),
         BenchWhat::Pose(a) => run_pose(a),
         BenchWhat::Render(a) => run_render(a),
+        BenchWhat::Fix(a) => super::bench_fix::run(a),
     }
 }
 
@@ -166,7 +170,7 @@ fn run_render(a: RenderBenchArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-fn repo_file(rel: &str) -> PathBuf {
+pub fn repo_file(rel: &str) -> PathBuf {
     let cwd = PathBuf::from(rel);
     if cwd.exists() {
         return cwd;

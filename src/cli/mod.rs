@@ -1,6 +1,7 @@
 //! Subcommand implementations of the `visnav` binary.
 
 pub mod bench;
+pub mod bench_fix;
 pub mod check_config;
 pub mod sim;
 

@@ -13,6 +13,7 @@
 //!   distortion, exposure, blur, noise).
 
 pub mod autopilot;
+pub mod fixeval;
 pub mod imu;
 pub mod render;
 pub mod rng;

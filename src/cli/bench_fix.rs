@@ -1,0 +1,72 @@
+//! `visnav bench fix [--frames N] [--seed S] [--json] [--verbose]`: the NAIP cross-date acceptance
+//! run of the vision fix (frames rendered from the 2014 orthophoto, map from 2009; see
+//! `visnav::sitl::fixeval`) with its frame-to-fix timing (p50/p95). Build with `--release`.
+
+use std::process::ExitCode;
+
+use anyhow::Context;
+use visnav::fix::FixParams;
+use visnav::sitl::fixeval::NaipEval;
+
+#[derive(clap::Args, Debug)]
+pub struct FixBenchArgs {
+    /// Number of frames.
+    #[arg(long, default_value_t = 100)]
+    pub frames: usize,
+    /// Random seed of the poses and priors.
+    #[arg(long, default_value_t = 2024)]
+    pub seed: u64,
+    /// Print one JSON document instead of a summary.
+    #[arg(long)]
+    pub json: bool,
+    /// Print one line per frame (stderr).
+    #[arg(long)]
+    pub verbose: bool,
+}
+
+pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
+    let maps = super::bench::repo_file("sitl/maps");
+    let eval = NaipEval::new(&maps, FixParams::default())
+        .map_err(anyhow::Error::msg)
+        .context("setting up the NAIP cross-date evaluation")?;
+    let verbose = a.verbose;
+    let s = eval
+        .run(a.frames, a.seed, &mut |line| {
+            if verbose {
+                eprintln!("{line}");
+            }
+        })
+        .map_err(anyhow::Error::msg)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&s)?);
+    } else {
+        println!(
+            "NAIP cross-date (map 2009, frames 2014, VGA 60 deg, 1200-2500 m AGL, tilt <= 20 deg): {} frames",
+            s.frames
+        );
+        println!(
+            "  accepted {} ({:.0} %), beyond 3 sigma {}",
+            s.accepted,
+            100.0 * s.fix_rate,
+            s.beyond_3_sigma
+        );
+        println!(
+            "  horizontal error median {:.1} m ({:.2} map px) p90 {:.1} max {:.1}; vertical median {:.1} p90 {:.1} max {:.1}",
+            s.err_h_m.median,
+            s.median_err_map_px,
+            s.err_h_m.p90,
+            s.err_h_m.max,
+            s.err_v_m.median,
+            s.err_v_m.p90,
+            s.err_v_m.max
+        );
+        println!(
+            "  frame to fix: p50 {:.1} ms, p95 {:.1} ms",
+            s.ms_p50, s.ms_p95
+        );
+        for (reason, n) in &s.rejections {
+            println!("  rejected {n:3}: {reason}");
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,303 @@
+//! Cross-date evaluation of the vision fix over the bundled NAIP maps (issue 4, acceptance 7b):
+//! frames rendered from the 2014 orthophoto (640x480, 60 deg HFOV, 1200-2500 m above ground, tilt up
+//! to 20 deg, any heading) matched to a reference built from the 2009 orthophoto. The errors come
+//! from the renderer's truth. Used by `tests/fix_naip.rs` and `visnav bench fix`.
+//!
+//! Priors (what a navigation filter in GPS-denied cruise would give): position 100 m off (1 sigma,
+//! stated 150 m), altitude 20 m off (stated 30 m), attitude 0.3 deg off per axis (stated 0.5 deg).
+
+use std::path::Path;
+use std::sync::Arc;
+
+use nalgebra::Vector3;
+use serde::Serialize;
+
+use super::render::{
+    ColourMode, RenderPose, RenderSpec, Renderer, Scene, grid_convergence_rad, vga_camera,
+};
+use super::rng::Rng;
+use crate::camera::{Attitude, Mount};
+use crate::fix::engine::Attempt;
+use crate::fix::{
+    AttitudePriorNed, FixEngine, FixParams, FixPrior, FixReport, MemoryReference, PositionPriorGeo,
+};
+use crate::geo::Crs;
+use crate::geo::dem::Dem;
+use crate::geo::geotiff::load_geotiff;
+use crate::geo::raster::Raster;
+use crate::vision::{GrayImage, SurfParams};
+
+/// Ground height of the bundled NAIP area, metres AMSL (flat prairie, see sitl/maps/README.md).
+pub const NAIP_GROUND_M: f64 = 580.0;
+
+/// The evaluation set-up: the 2009 reference, the fix engine and the 2014 renderer.
+pub struct NaipEval {
+    pub map_raster: Raster,
+    pub engine: FixEngine,
+    pub scene: Scene,
+    pub renderer: Renderer,
+    pub crs: Crs,
+}
+
+/// One random frame of the acceptance envelope.
+#[derive(Debug, Clone, Copy)]
+pub struct Case {
+    pub pose: RenderPose,
+    pub attitude: Attitude,
+    pub grid_convergence_rad: f64,
+}
+
+/// Errors of one fix against the truth.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Score {
+    pub err_h_m: f64,
+    pub err_v_m: f64,
+    /// Largest per-axis (N, E, D) error in units of the fix's own sigma.
+    pub err_sigma: f64,
+}
+
+/// Median, 90th percentile and maximum.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Stats {
+    pub median: f64,
+    pub p90: f64,
+    pub max: f64,
+}
+
+impl Stats {
+    /// Of a sample (NaN when empty).
+    pub fn of(v: &[f64]) -> Self {
+        Self {
+            median: percentile(v, 0.5),
+            p90: percentile(v, 0.9),
+            max: percentile(v, 1.0),
+        }
+    }
+}
+
+/// The `p` quantile (nearest rank), NaN for an empty sample.
+pub fn percentile(v: &[f64], p: f64) -> f64 {
+    let mut v: Vec<f64> = v.iter().copied().filter(|x| !x.is_nan()).collect();
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * p).round() as usize]
+}
+
+/// Summary of an evaluation run.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Summary {
+    pub frames: usize,
+    pub accepted: usize,
+    pub fix_rate: f64,
+    pub err_h_m: Stats,
+    pub err_v_m: Stats,
+    /// Median horizontal error in map pixels.
+    pub median_err_map_px: f64,
+    pub beyond_3_sigma: usize,
+    /// Frame-to-fix wall time, milliseconds.
+    pub ms_p50: f64,
+    pub ms_p95: f64,
+    /// Rejection reasons with their counts.
+    pub rejections: Vec<(String, usize)>,
+}
+
+fn uni(rng: &mut Rng, lo: f64, hi: f64) -> f64 {
+    lo + (hi - lo) * rng.uniform()
+}
+
+impl NaipEval {
+    /// Loads `naip_nd_2009.tif` (map) and `naip_nd_2014.tif` (camera) from `maps_dir`.
+    pub fn new(maps_dir: &Path, params: FixParams) -> Result<Self, String> {
+        let load = |name: &str| {
+            load_geotiff(&maps_dir.join(name), None)
+                .map_err(|e| format!("{}: {e}", maps_dir.join(name).display()))
+        };
+        let map_raster = load("naip_nd_2009.tif")?;
+        let cam_raster = load("naip_nd_2014.tif")?;
+        let flat = || Dem::flat(NAIP_GROUND_M).map_err(|e| e.to_string());
+        let surf = SurfParams {
+            upright: true,
+            ..SurfParams::default()
+        };
+        let reference = MemoryReference::from_raster(&map_raster, flat()?, surf, 4)
+            .map_err(|e| format!("reference: {e}"))?;
+        let engine = FixEngine::new(Arc::new(reference), vga_camera(), params)
+            .map_err(|e| format!("engine: {e}"))?;
+        let scene = Scene::new(&cam_raster, flat()?, ColourMode::Grey)
+            .map_err(|e| format!("scene: {e}"))?;
+        let renderer = Renderer::new(
+            vga_camera(),
+            RenderSpec {
+                seed: 7,
+                ..RenderSpec::default()
+            },
+        )
+        .map_err(|e| format!("renderer: {e}"))?;
+        let crs = map_raster.crs();
+        Ok(Self {
+            map_raster,
+            engine,
+            scene,
+            renderer,
+            crs,
+        })
+    }
+
+    /// Map pixel size, metres.
+    pub fn map_gsd_m(&self) -> f64 {
+        self.map_raster.transform().pixel_size().0
+    }
+
+    /// A random pose of the envelope with its body (nadir point) over `(x, y)`.
+    pub fn random_case(&self, rng: &mut Rng, x_m: f64, y_m: f64) -> Case {
+        let agl_m = uni(rng, 1200.0, 2500.0);
+        let tilt_deg = uni(rng, 0.0, 20.0);
+        let dir = uni(rng, 0.0, std::f64::consts::TAU);
+        let attitude = Attitude::from_deg(
+            tilt_deg * dir.cos(),
+            tilt_deg * dir.sin(),
+            uni(rng, -180.0, 180.0),
+        );
+        let gamma = grid_convergence_rad(&self.crs, x_m, y_m).unwrap_or(0.0);
+        let body = Vector3::new(x_m, y_m, NAIP_GROUND_M + agl_m);
+        Case {
+            pose: RenderPose::from_body(body, &attitude, &Mount::nadir(), gamma),
+            attitude,
+            grid_convergence_rad: gamma,
+        }
+    }
+
+    /// The frame of `case` rendered from `scene` (the 2014 scene unless another is given).
+    pub fn frame(
+        &self,
+        case: &Case,
+        index: u64,
+        scene: Option<&Scene>,
+    ) -> Result<GrayImage, String> {
+        let f = self
+            .renderer
+            .render(scene.unwrap_or(&self.scene), &case.pose, index)
+            .map_err(|e| format!("render: {e}"))?;
+        GrayImage::new(f.width, f.height, f.grey()).map_err(|e| e.to_string())
+    }
+
+    /// The prior a filter would give (see the module doc).
+    pub fn prior(&self, rng: &mut Rng, case: &Case, index: u64) -> Result<FixPrior, String> {
+        let c = case.pose.centre_map_m;
+        let (px, py) = (c.x + 100.0 * rng.normal(), c.y + 100.0 * rng.normal());
+        let (lat, lon) = self.crs.to_geodetic(px, py).map_err(|e| e.to_string())?;
+        let n = 0.3f64.to_radians();
+        let a = &case.attitude;
+        Ok(FixPrior {
+            t_capture_us: index,
+            position: Some(PositionPriorGeo {
+                lat_deg: lat,
+                lon_deg: lon,
+                alt_amsl_m: c.z + 20.0 * rng.normal(),
+                sigma_h_m: 150.0,
+                sigma_v_m: 30.0,
+            }),
+            attitude: Some(AttitudePriorNed {
+                attitude: Attitude::new(
+                    a.roll_rad + n * rng.normal(),
+                    a.pitch_rad + n * rng.normal(),
+                    a.yaw_rad + n * rng.normal(),
+                ),
+                sigma_rad: 0.5f64.to_radians(),
+            }),
+        })
+    }
+
+    /// Errors of an accepted report against the case's truth.
+    pub fn score(&self, r: &FixReport, case: &Case) -> Score {
+        let t = case.pose.centre_map_m;
+        let (ex, ey, ez) = (r.x_m - t.x, r.y_m - t.y, r.z_m - t.z);
+        let (s, c) = case.grid_convergence_rad.sin_cos();
+        let e_n = ey * c - ex * s;
+        let e_e = ex * c + ey * s;
+        let err_sigma = (e_n / r.cov_ned_m2[0][0].sqrt())
+            .abs()
+            .max((e_e / r.cov_ned_m2[1][1].sqrt()).abs())
+            .max((ez / r.cov_ned_m2[2][2].sqrt()).abs());
+        Score {
+            err_h_m: ex.hypot(ey),
+            err_v_m: ez.abs(),
+            err_sigma,
+        }
+    }
+
+    /// Number of fine matches whose map point projects within 3 px of the query keypoint
+    /// through the true pose.
+    pub fn correct_pairs(&self, a: &Attempt, case: &Case) -> usize {
+        a.pairs
+            .iter()
+            .filter(|(px, p)| {
+                case.pose
+                    .project(self.renderer.camera(), &Vector3::new(p[0], p[1], p[2]))
+                    .is_some_and(|q| (q.x - px[0]).hypot(q.y - px[1]) < 3.0)
+            })
+            .count()
+    }
+
+    /// The acceptance run: `n` frames with their nadir points at least 600 m inside the map.
+    /// `log` receives one line per frame.
+    pub fn run(&self, n: usize, seed: u64, log: &mut dyn FnMut(String)) -> Result<Summary, String> {
+        let b = self.map_raster.bounds();
+        let mut rng = Rng::new(seed);
+        let (mut eh, mut ev, mut ms) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut accepted, mut beyond) = (0, 0);
+        let mut reasons: std::collections::BTreeMap<String, usize> = Default::default();
+        for i in 0..n {
+            let x = uni(&mut rng, b.min_x_m + 600.0, b.max_x_m - 600.0);
+            let y = uni(&mut rng, b.min_y_m + 600.0, b.max_y_m - 600.0);
+            let case = self.random_case(&mut rng, x, y);
+            let img = self.frame(&case, i as u64, None)?;
+            let prior = self.prior(&mut rng, &case, i as u64)?;
+            let (r, a) = self.engine.fix_with_attempt(&img, &prior);
+            ms.push(r.ms);
+            let good = self.correct_pairs(&a, &case);
+            if r.accepted {
+                let s = self.score(&r, &case);
+                accepted += 1;
+                eh.push(s.err_h_m);
+                ev.push(s.err_v_m);
+                if s.err_sigma > 3.0 {
+                    beyond += 1;
+                }
+                log(format!(
+                    "frame {i:3}: accepted, {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:.1} m = {:.2} sigma, {:.1} ms",
+                    r.inliers, r.matches, a.null_matches, s.err_h_m, s.err_v_m, s.err_sigma, r.ms
+                ));
+            } else {
+                // Group reasons by their text before the first digit.
+                let key: String = r
+                    .reason
+                    .split(|c: char| c.is_ascii_digit())
+                    .next()
+                    .unwrap_or("")
+                    .trim()
+                    .to_string();
+                *reasons.entry(key).or_default() += 1;
+                log(format!(
+                    "frame {i:3}: {} ({} matches, {good} correct, chance {}), {:.1} ms",
+                    r.reason, r.matches, a.null_matches, r.ms
+                ));
+            }
+        }
+        let err_h_m = Stats::of(&eh);
+        Ok(Summary {
+            frames: n,
+            accepted,
+            fix_rate: accepted as f64 / n.max(1) as f64,
+            median_err_map_px: err_h_m.median / self.map_gsd_m(),
+            err_h_m,
+            err_v_m: Stats::of(&ev),
+            beyond_3_sigma: beyond,
+            ms_p50: percentile(&ms, 0.5),
+            ms_p95: percentile(&ms, 0.95),
+            rejections: reasons.into_iter().collect(),
+        })
+    }
+}

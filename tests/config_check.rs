@@ -125,27 +125,43 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("absent.toml"));
 }
 
-#[test]
-fn every_subcommand_has_help() {
-    let out = visnav().arg("--help").output().unwrap();
-    assert!(out.status.success());
-    let text = String::from_utf8_lossy(&out.stdout).into_owned();
-    // Subcommand names are listed as the first word of indented lines under "Commands:".
-    let cmds: Vec<String> = text
-        .lines()
+/// Subcommand names listed under "Commands:" in a help text.
+fn listed_commands(help: &str) -> Vec<String> {
+    help.lines()
         .skip_while(|l| !l.starts_with("Commands:"))
         .skip(1)
         .take_while(|l| l.starts_with("  "))
         .filter_map(|l| l.split_whitespace().next().map(str::to_string))
         .filter(|c| c != "help")
-        .collect();
+        .collect()
+}
+
+#[test]
+fn every_subcommand_has_help() {
+    let out = visnav().arg("--help").output().unwrap();
+    assert!(out.status.success());
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    let cmds = listed_commands(&text);
     assert!(cmds.contains(&"check-config".to_string()), "{text}");
+    // Top-level subcommands and their own subcommands (e.g. `bench fix`).
+    let mut paths: Vec<Vec<String>> = Vec::new();
     for c in cmds {
         let out = visnav().arg(&c).arg("--help").output().unwrap();
         assert!(out.status.success(), "visnav {c} --help failed");
+        let help = String::from_utf8_lossy(&out.stdout).into_owned();
+        assert!(help.contains("Usage:"), "visnav {c} --help");
+        for sub in listed_commands(&help) {
+            paths.push(vec![c.clone(), sub]);
+        }
+        paths.push(vec![c]);
+    }
+    for p in paths {
+        let out = visnav().args(&p).arg("--help").output().unwrap();
         assert!(
-            String::from_utf8_lossy(&out.stdout).contains("Usage:"),
-            "visnav {c} --help"
+            out.status.success() && String::from_utf8_lossy(&out.stdout).contains("Usage:"),
+            "visnav {} --help: {}",
+            p.join(" "),
+            String::from_utf8_lossy(&out.stderr)
         );
     }
 }

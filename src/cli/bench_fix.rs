@@ -1,4 +1,4 @@
-//! `visnav bench fix [--frames N] [--seed S] [--json] [--verbose]`: the NAIP cross-date acceptance
+//! `visnav bench fix [--frames N] [--seed S] [--json] [--per-frame]`: the NAIP cross-date acceptance
 //! run of the vision fix (frames rendered from the 2014 orthophoto, map from 2009; see
 //! `visnav::sitl::fixeval`) with its frame-to-fix timing (p50/p95). Build with `--release`.
 
@@ -7,6 +7,7 @@ use std::process::ExitCode;
 use anyhow::Context;
 use visnav::fix::FixParams;
 use visnav::sitl::fixeval::NaipEval;
+use visnav::vision::{DescriptorKind, SurfParams};
 
 #[derive(clap::Args, Debug)]
 pub struct FixBenchArgs {
@@ -21,18 +22,48 @@ pub struct FixBenchArgs {
     pub json: bool,
     /// Print one line per frame (stderr).
     #[arg(long)]
-    pub verbose: bool,
+    pub per_frame: bool,
+    /// SURF Hessian threshold of the map and the query.
+    #[arg(long, default_value_t = 100.0)]
+    pub hessian_threshold: f32,
+    /// Descriptor: 36, 64 or 128.
+    #[arg(long, default_value_t = 64)]
+    pub descriptor: usize,
+    /// Override `[fix]` settings with a TOML snippet, e.g. 'ratio = 0.9' (keys of the `[fix]` section).
+    #[arg(long)]
+    pub set: Option<String>,
 }
 
 pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
     let maps = super::bench::repo_file("sitl/maps");
-    let eval = NaipEval::new(&maps, FixParams::default())
+    let params: FixParams = match &a.set {
+        Some(t) => {
+            let v: toml::Value = toml::from_str(t).context("--set: not valid TOML")?;
+            FixParams::from_toml(v)
+                .map_err(anyhow::Error::msg)
+                .context("--set: not valid [fix] settings")?
+        }
+        None => FixParams::default(),
+    };
+    let descriptor = match a.descriptor {
+        36 => DescriptorKind::Surf36,
+        64 => DescriptorKind::Surf64,
+        128 => DescriptorKind::Surf128,
+        other => anyhow::bail!("--descriptor {other}: expected 36, 64 or 128"),
+    };
+    let surf = SurfParams {
+        upright: true,
+        hessian_threshold: a.hessian_threshold,
+        descriptor,
+        ..SurfParams::default()
+    };
+    let eval = NaipEval::with_surf(&maps, params, surf)
         .map_err(anyhow::Error::msg)
         .context("setting up the NAIP cross-date evaluation")?;
-    let verbose = a.verbose;
+    let per_frame = a.per_frame;
     let s = eval
         .run(a.frames, a.seed, &mut |line| {
-            if verbose {
+            if per_frame {
                 eprintln!("{line}");
             }
         })

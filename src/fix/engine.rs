@@ -80,7 +80,7 @@ impl Default for FixParams {
             max_query_features: 1500,
             max_rect_side_px: 1024,
             max_off_nadir_deg: 60.0,
-            ratio: 0.8,
+            ratio: 0.9,
             gate_sigmas: 3.0,
             min_gate_m: 30.0,
             fine_radius_px: 4.0,
@@ -97,17 +97,56 @@ impl Default for FixParams {
 
 /// Resection settings of the fix pipeline: the autopilot's attitude is fused (it bounds the
 /// position-tilt ambiguity of a narrow field of view over flat ground), and the covariance is
-/// inflated by 3 (calibrated on NAIP cross-date frames, see docs/fix.md: cross-date keypoints are
-/// displaced by a few pixels in a spatially correlated way that sigma0 alone does not capture).
-/// Fixes up to 60 m / 3 deg (1 sigma) are accepted: the navigation filter weighs them.
+/// inflated by 4 (calibrated on 200 NAIP cross-date frames, see docs/fix.md: cross-date keypoints
+/// are displaced by a few pixels in a spatially correlated way that sigma0 alone does not
+/// capture). Fixes up to 80 m / 3 deg (1 sigma) are accepted: the navigation filter weighs them.
 pub fn default_pose_config() -> ResectionConfig {
     let mut c = ResectionConfig::default();
+    // Cross-date keypoints scatter by 2-3 px; a 3 px consensus admits near-miss wrong matches
+    // that bias the pose (NAIP cross-date: 2 px halves the fixes beyond 3 sigma).
+    c.ransac.threshold_px = 2.0;
     c.refine.use_attitude_prior = true;
-    c.refine.sigma_inflation = 3.0;
-    c.integrity.max_horizontal_sigma_m = 60.0;
-    c.integrity.max_vertical_sigma_m = 60.0;
+    c.refine.sigma_inflation = 4.0;
+    c.integrity.max_horizontal_sigma_m = 80.0;
+    c.integrity.max_vertical_sigma_m = 80.0;
     c.integrity.max_attitude_sigma_deg = 3.0;
     c
+}
+
+impl FixParams {
+    /// Settings from a `[fix]` TOML table whose keys override the defaults at any depth (a partial
+    /// `[fix.pose.ransac]` keeps every other default of the pipeline, which serde's own defaults
+    /// would reset to the resection module's). Unknown keys are errors naming the key.
+    pub fn from_toml(user: toml::Value) -> Result<Self, String> {
+        let mut base = toml::Value::try_from(Self::default()).map_err(|e| e.to_string())?;
+        merge_toml(&mut base, user);
+        base.try_into::<Self>().map_err(|e| e.to_string())
+    }
+}
+
+/// Deep merge of `over` into `base` (tables merged key by key, other values replaced).
+fn merge_toml(base: &mut toml::Value, over: toml::Value) {
+    match (base, over) {
+        (toml::Value::Table(b), toml::Value::Table(o)) => {
+            for (k, v) in o {
+                match b.get_mut(&k) {
+                    Some(slot) => merge_toml(slot, v),
+                    None => {
+                        b.insert(k, v);
+                    }
+                }
+            }
+        }
+        (slot, v) => *slot = v,
+    }
+}
+
+/// `deserialize_with` helper for a `[fix]` section: [`FixParams::from_toml`].
+pub fn deserialize_fix_params<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> Result<FixParams, D::Error> {
+    let user = toml::Value::deserialize(d)?;
+    FixParams::from_toml(user).map_err(serde::de::Error::custom)
 }
 
 impl Validate for FixParams {
@@ -1234,6 +1273,24 @@ mod tests {
         let far = ransac_similarity(&src, &dst, 3.0, 0.001, 0.2, 1);
         assert!(far.is_none_or(|(_, n)| n < 20));
         assert!(ransac_similarity(&src[..2], &dst[..2], 3.0, 0.2, 0.2, 1).is_none());
+    }
+
+    #[test]
+    fn partial_toml_keeps_the_pipeline_defaults() {
+        let v: toml::Value =
+            toml::from_str("ratio = 0.9\n[pose.ransac]\nthreshold_px = 2.0\n").unwrap();
+        let p = FixParams::from_toml(v).unwrap();
+        assert_eq!(p.ratio, 0.9);
+        assert_eq!(p.pose.ransac.threshold_px, 2.0);
+        // Untouched nested defaults are the pipeline's, not the resection module's.
+        assert_eq!(
+            p.pose.refine.sigma_inflation,
+            default_pose_config().refine.sigma_inflation
+        );
+        assert!(p.pose.refine.use_attitude_prior);
+        let bad: toml::Value = toml::from_str("[pose.ransac]\nthreshhold_px = 2.0\n").unwrap();
+        let e = FixParams::from_toml(bad).unwrap_err();
+        assert!(e.contains("threshhold_px"), "{e}");
     }
 
     #[test]

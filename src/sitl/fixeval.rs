@@ -110,6 +110,15 @@ fn uni(rng: &mut Rng, lo: f64, hi: f64) -> f64 {
 impl NaipEval {
     /// Loads `naip_nd_2009.tif` (map) and `naip_nd_2014.tif` (camera) from `maps_dir`.
     pub fn new(maps_dir: &Path, params: FixParams) -> Result<Self, String> {
+        let surf = SurfParams {
+            upright: true,
+            ..SurfParams::default()
+        };
+        Self::with_surf(maps_dir, params, surf)
+    }
+
+    /// [`Self::new`] with the reference's SURF settings (the query uses the same).
+    pub fn with_surf(maps_dir: &Path, params: FixParams, surf: SurfParams) -> Result<Self, String> {
         let load = |name: &str| {
             load_geotiff(&maps_dir.join(name), None)
                 .map_err(|e| format!("{}: {e}", maps_dir.join(name).display()))
@@ -117,10 +126,6 @@ impl NaipEval {
         let map_raster = load("naip_nd_2009.tif")?;
         let cam_raster = load("naip_nd_2014.tif")?;
         let flat = || Dem::flat(NAIP_GROUND_M).map_err(|e| e.to_string());
-        let surf = SurfParams {
-            upright: true,
-            ..SurfParams::default()
-        };
         let reference = MemoryReference::from_raster(&map_raster, flat()?, surf, 4)
             .map_err(|e| format!("reference: {e}"))?;
         let engine = FixEngine::new(Arc::new(reference), vga_camera(), params)
@@ -271,14 +276,17 @@ impl NaipEval {
                     r.inliers, r.matches, a.null_matches, s.err_h_m, s.err_v_m, s.err_sigma, r.ms
                 ));
             } else {
-                // Group reasons by their text before the first digit.
-                let key: String = r
-                    .reason
-                    .split(|c: char| c.is_ascii_digit())
-                    .next()
-                    .unwrap_or("")
-                    .trim()
-                    .to_string();
+                // Group reasons by their text with the numbers blanked out.
+                let mut key = String::new();
+                for c in r.reason.chars() {
+                    if c.is_ascii_digit() || c == '.' {
+                        if !key.ends_with('#') {
+                            key.push('#');
+                        }
+                    } else {
+                        key.push(c);
+                    }
+                }
                 *reasons.entry(key).or_default() += 1;
                 log(format!(
                     "frame {i:3}: {} ({} matches, {good} correct, chance {}), {:.1} ms",

@@ -21,6 +21,8 @@ enum Command {
     CheckConfig(cli::check_config::CheckConfigArgs),
     /// Run a SITL scenario through the navigation filter and print errors against truth.
     Sim(cli::sim::SimArgs),
+    /// One vision fix from one camera frame against a reference map.
+    Fix(cli::fix::FixArgs),
     /// Benchmarks (`bench surf`: SURF speed, feature counts and quality table).
     Bench(cli::bench::BenchArgs),
 }
@@ -32,6 +34,7 @@ fn main() -> std::process::ExitCode {
         Command::CheckConfig(a) => cli::check_config::run(a),
         Command::Sim(a) => cli::sim::run_cmd(a),
         Command::Bench(a) => cli::bench::run(a),
+        Command::Fix(a) => cli::fix::run(a),
     };
     match result {
         Ok(code) => code,

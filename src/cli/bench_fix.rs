@@ -29,6 +29,9 @@ pub struct FixBenchArgs {
     /// Descriptor: 36, 64 or 128.
     #[arg(long, default_value_t = 64)]
     pub descriptor: usize,
+    /// No position prior: global relocalisation (attitude prior only).
+    #[arg(long)]
+    pub no_prior: bool,
     /// Override `[fix]` settings with a TOML snippet, e.g. 'ratio = 0.9' (keys of the `[fix]` section).
     #[arg(long)]
     pub set: Option<String>,
@@ -62,7 +65,7 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
         .context("setting up the NAIP cross-date evaluation")?;
     let per_frame = a.per_frame;
     let s = eval
-        .run(a.frames, a.seed, &mut |line| {
+        .run_with(a.frames, a.seed, !a.no_prior, &mut |line| {
             if per_frame {
                 eprintln!("{line}");
             }

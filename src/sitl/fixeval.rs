@@ -249,6 +249,18 @@ impl NaipEval {
     /// The acceptance run: `n` frames with their nadir points at least 600 m inside the map.
     /// `log` receives one line per frame.
     pub fn run(&self, n: usize, seed: u64, log: &mut dyn FnMut(String)) -> Result<Summary, String> {
+        self.run_with(n, seed, true, log)
+    }
+
+    /// [`Self::run`]; without the position prior when `position_prior` is false (global
+    /// relocalisation with the attitude prior only).
+    pub fn run_with(
+        &self,
+        n: usize,
+        seed: u64,
+        position_prior: bool,
+        log: &mut dyn FnMut(String),
+    ) -> Result<Summary, String> {
         let b = self.map_raster.bounds();
         let mut rng = Rng::new(seed);
         let (mut eh, mut ev, mut ms) = (Vec::new(), Vec::new(), Vec::new());
@@ -259,7 +271,10 @@ impl NaipEval {
             let y = uni(&mut rng, b.min_y_m + 600.0, b.max_y_m - 600.0);
             let case = self.random_case(&mut rng, x, y);
             let img = self.frame(&case, i as u64, None)?;
-            let prior = self.prior(&mut rng, &case, i as u64)?;
+            let mut prior = self.prior(&mut rng, &case, i as u64)?;
+            if !position_prior {
+                prior.position = None;
+            }
             let (r, a) = self.engine.fix_with_attempt(&img, &prior);
             ms.push(r.ms);
             let good = self.correct_pairs(&a, &case);

@@ -292,11 +292,10 @@ impl FixEngine {
         }
         match prior.position {
             Some(pos) => {
-                let att = prior.attitude.unwrap_or(AttitudePriorNed {
-                    attitude: Attitude::new(0.0, 0.0, 0.0),
-                    sigma_rad: std::f64::consts::PI,
-                });
-                let (mut r, a) = self.fix_prior(frame, &pos, &att, prior.t_capture_us);
+                let (mut r, a) = match prior.attitude {
+                    Some(att) => self.fix_prior(frame, &pos, &att, prior.t_capture_us),
+                    None => self.fix_any_heading(frame, &pos, prior.t_capture_us),
+                };
                 r.ms = ms(t0);
                 (r, a)
             }
@@ -338,6 +337,42 @@ impl FixEngine {
             sigma_h_m: pos.sigma_h_m,
             sigma_v_m: pos.sigma_v_m,
             sigma_att_rad: att.sigma_rad,
+        })
+    }
+
+    /// A position prior without attitude: near-nadir views at [`HEADINGS`] headings (upright
+    /// SURF degrades quickly beyond about +-10 deg); the accepted fix with the most inliers wins.
+    fn fix_any_heading(
+        &self,
+        frame: &GrayImage,
+        pos: &PositionPriorGeo,
+        t_us: u64,
+    ) -> (FixReport, Attempt) {
+        let mut best: Option<(FixReport, Attempt)> = None;
+        let mut last = None;
+        for i in 0..HEADINGS {
+            let att = AttitudePriorNed {
+                attitude: Attitude::new(0.0, 0.0, f64::from(i) * HEADING_STEP_DEG.to_radians()),
+                sigma_rad: self.params.reloc_tilt_sigma_deg.to_radians(),
+            };
+            let (r, a) = self.fix_prior(frame, pos, &att, t_us);
+            if r.accepted {
+                if best.as_ref().is_none_or(|(b, _)| r.inliers > b.inliers) {
+                    best = Some((r, a));
+                }
+            } else if last
+                .as_ref()
+                .is_none_or(|(l, _): &(FixReport, Attempt)| r.matches > l.matches)
+            {
+                // Report the heading that got furthest (most matches).
+                last = Some((r, a));
+            }
+        }
+        best.or(last).unwrap_or_else(|| {
+            (
+                FixReport::rejected("no heading tried", t_us, 0.0),
+                Attempt::default(),
+            )
         })
     }
 
@@ -753,9 +788,9 @@ impl FixEngine {
         let budget_ms = self.params.reloc_budget_ms;
         let headings: Vec<AttitudePriorNed> = match prior.attitude {
             Some(a) => vec![a],
-            None => (0..12)
+            None => (0..HEADINGS)
                 .map(|i| AttitudePriorNed {
-                    attitude: Attitude::new(0.0, 0.0, f64::from(i) * 30f64.to_radians()),
+                    attitude: Attitude::new(0.0, 0.0, f64::from(i) * HEADING_STEP_DEG.to_radians()),
                     sigma_rad: self.params.reloc_tilt_sigma_deg.to_radians(),
                 })
                 .collect(),
@@ -954,6 +989,11 @@ impl FixEngine {
         }
     }
 }
+
+/// Number of heading hypotheses when the attitude is unknown.
+const HEADINGS: u32 = 24;
+/// Their spacing, degrees.
+const HEADING_STEP_DEG: f64 = 15.0;
 
 /// Map grid point (height AMSL) to the local ENU frame.
 fn map_to_enu(

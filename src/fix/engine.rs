@@ -1333,6 +1333,144 @@ mod tests {
         assert!(e.contains("threshhold_px"), "{e}");
     }
 
+    fn features(points: &[([f32; 2], i8, [f32; 8])]) -> Features {
+        let kind = crate::vision::DescriptorKind::Surf64;
+        let st = kind.stride();
+        let mut desc = Vec::new();
+        let kps = points
+            .iter()
+            .map(|(p, lap, d)| {
+                let mut row = vec![0f32; st];
+                row[..8].copy_from_slice(d);
+                desc.extend(row);
+                KeyPoint {
+                    x: p[0],
+                    y: p[1],
+                    size: 9.0,
+                    scale: 1.2,
+                    response: 1.0,
+                    orientation_rad: 0.0,
+                    laplacian: *lap,
+                    octave: 0,
+                }
+            })
+            .collect();
+        Features::new(kps, desc, kind).unwrap()
+    }
+
+    #[test]
+    fn gated_match_rules() {
+        let a = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let b = [0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let a2 = [0.95, 0.05, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let query = features(&[([0.0, 0.0], 1, a)]);
+        // A lone candidate within the fine radius passes.
+        let train = features(&[([102.0, 100.0], 1, a)]);
+        let m = gated_match(&query, &train, &[[100.0, 100.0]], 4.0, 12.0, 0.9);
+        assert_eq!(m, vec![GatedMatch { query: 0, train: 0 }]);
+        // Outside the fine radius (but inside the wide one): no match.
+        let m = gated_match(&query, &train, &[[95.0, 100.0]], 4.0, 12.0, 0.9);
+        assert!(m.is_empty());
+        // Other Laplacian sign: no candidate.
+        let train_l = features(&[([100.0, 100.0], -1, a)]);
+        assert!(gated_match(&query, &train_l, &[[100.0, 100.0]], 4.0, 12.0, 0.9).is_empty());
+        // An ambiguous look-alike 8 px away fails the ratio test; a distinct one does not.
+        let a3 = [0.95, -0.05, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let amb = features(&[([100.0, 100.0], 1, a2), ([108.0, 100.0], 1, a3)]);
+        assert!(gated_match(&query, &amb, &[[100.0, 100.0]], 4.0, 12.0, 0.9).is_empty());
+        let dis = features(&[([100.0, 100.0], 1, a), ([108.0, 100.0], 1, b)]);
+        assert_eq!(
+            gated_match(&query, &dis, &[[100.0, 100.0]], 4.0, 12.0, 0.9).len(),
+            1
+        );
+        // Non-finite predictions are skipped.
+        assert!(gated_match(&query, &train, &[[f32::NAN, 0.0]], 4.0, 12.0, 0.9).is_empty());
+    }
+
+    #[test]
+    fn bad_frames_and_priors_are_rejected_with_a_reason() {
+        use crate::fix::reference::MemoryReference;
+        use crate::geo::raster::{GeoTransform, Raster, RasterData};
+        // A small textured ortho in UTM 14N.
+        let (w, h) = (256usize, 256usize);
+        let data: Vec<u8> = (0..w * h)
+            .map(|i| (((i % w) / 8 + (i / w) / 8) % 2 * 200 + 20) as u8)
+            .collect();
+        let gt = GeoTransform::north_up(500_000.0, 5_200_000.0, 5.0, 5.0).unwrap();
+        let crs = Crs::Utm {
+            zone: 14,
+            north: true,
+        };
+        let raster = Raster::new(w, h, 1, RasterData::U8(data), gt, crs, None).unwrap();
+        let surf = crate::vision::SurfParams {
+            upright: true,
+            ..Default::default()
+        };
+        let dem = crate::geo::dem::Dem::flat(300.0).unwrap();
+        let reference = MemoryReference::from_raster(&raster, dem, surf, 2).unwrap();
+        let camera = Camera::pinhole(
+            crate::camera::Intrinsics::from_hfov(60f64.to_radians(), 320, 240).unwrap(),
+        )
+        .unwrap();
+        let engine = FixEngine::new(Arc::new(reference), camera, FixParams::default()).unwrap();
+        let (lat, lon) = crs.to_geodetic(500_640.0, 5_199_360.0).unwrap();
+        let att = Some(AttitudePriorNed {
+            attitude: Attitude::new(0.0, 0.0, 0.0),
+            sigma_rad: 0.01,
+        });
+        let pos = |alt: f64, s: f64| {
+            Some(PositionPriorGeo {
+                lat_deg: lat,
+                lon_deg: lon,
+                alt_amsl_m: alt,
+                sigma_h_m: s,
+                sigma_v_m: s,
+            })
+        };
+        // Wrong frame size.
+        let small = GrayImage::from_fn(100, 100, |_, _| 0.0);
+        let r = engine.fix(
+            &small,
+            &FixPrior {
+                t_capture_us: 7,
+                position: pos(1300.0, 50.0),
+                attitude: att,
+            },
+        );
+        assert!(!r.accepted && r.reason.contains("100x100"), "{}", r.reason);
+        assert_eq!(r.t_capture_us, 7);
+        let frame = GrayImage::from_fn(320, 240, |x, y| ((x / 8 + y / 8) % 2 * 200) as f32);
+        // Prior below the terrain, non-finite prior, zero sigma: rejected, never a panic.
+        for (p, what) in [
+            (pos(100.0, 50.0), "terrain"),
+            (pos(f64::NAN, 50.0), ""),
+            (pos(1300.0, 0.0), "sigma"),
+        ] {
+            let r = engine.fix(
+                &frame,
+                &FixPrior {
+                    t_capture_us: 1,
+                    position: p,
+                    attitude: att,
+                },
+            );
+            assert!(!r.accepted, "{what}");
+            assert!(r.reason.contains(what), "{what}: {}", r.reason);
+            assert!(r.lat_deg.is_nan());
+        }
+        // A blank frame: no features.
+        let blank = GrayImage::from_fn(320, 240, |_, _| 90.0);
+        let r = engine.fix(
+            &blank,
+            &FixPrior {
+                t_capture_us: 1,
+                position: pos(1300.0, 50.0),
+                attitude: att,
+            },
+        );
+        assert!(!r.accepted && r.reason.contains("features"), "{}", r.reason);
+    }
+
     #[test]
     fn params_validate() {
         let mut p = Problems::default();

@@ -130,6 +130,12 @@ pub struct Config {
     /// The navigation filter (INS + error-state EKF); every key has a default.
     #[serde(default)]
     pub nav: NavConfig,
+    /// The vision fix pipeline; every key has a default, a partial table merges over them.
+    #[serde(
+        default,
+        deserialize_with = "crate::fix::engine::deserialize_fix_params"
+    )]
+    pub fix: crate::fix::FixParams,
 }
 
 /// `[map]`: the georeferenced imagery and terrain the fixes are computed against.
@@ -246,6 +252,7 @@ impl Config {
         p.section("map", |p| cfg.map.validate_in(base, p));
         p.section("output", |p| cfg.output.validate(p));
         p.section("nav", |p| cfg.nav.validate(p));
+        p.section("fix", |p| cfg.fix.validate(p));
         if !p.list.is_empty() {
             return Err(ConfigError::Invalid {
                 path: path.to_path_buf(),

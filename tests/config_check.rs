@@ -89,6 +89,23 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
         assert!(err.contains(needle), "missing {needle:?} in:\n{err}");
     }
 
+    // [fix]: a typo in a nested key and an out-of-range value are named with their section.
+    let (code, err) = check(
+        dir.path(),
+        &format!(
+            "[link]\nconnection = \"udpin:0.0.0.0:14550\"\n{good_map}\
+             [fix]\nratio = 1.5\n[fix.pose.ransac]\nthreshhold_px = 2.0\n"
+        ),
+    );
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("threshhold_px"), "{err}");
+    let (code, err) = check(
+        dir.path(),
+        &format!("[link]\nconnection = \"udpin:0.0.0.0:14550\"\n{good_map}[fix]\nratio = 1.5\n"),
+    );
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("fix.ratio"), "{err}");
+
     // Wrong type.
     let (code, err) = check(
         dir.path(),

@@ -23,6 +23,8 @@ enum Command {
     Sim(cli::sim::SimArgs),
     /// Benchmarks (`bench surf`: SURF speed, feature counts and quality table).
     Bench(cli::bench::BenchArgs),
+    /// Reference maps (`map build`: orthophoto + DEM -> .vnm; `map info`: print a map's header).
+    Map(cli::map::MapArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -32,6 +34,7 @@ fn main() -> std::process::ExitCode {
         Command::CheckConfig(a) => cli::check_config::run(a),
         Command::Sim(a) => cli::sim::run_cmd(a),
         Command::Bench(a) => cli::bench::run(a),
+        Command::Map(a) => cli::map::run(a),
     };
     match result {
         Ok(code) => code,

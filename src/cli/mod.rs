@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod check_config;
+pub mod map;
 pub mod sim;
 
 /// Initialise `tracing` to stderr: `RUST_LOG` when set, otherwise info/debug/trace by `-v` count.

@@ -714,8 +714,9 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let tif = dir.path().join("blob.tif");
         let (x0, y0, px) = (500_000.0, 4_000_000.0, 2.0);
-        // Blob centre at continuous pixel (100.0, 76.0) (a pixel corner) -> map coordinate:
-        let (bc, br) = (100.0, 76.0);
+        // Blob centre at continuous pixel (100.3, 76.6) (off the pixel grid, so that no two SURF
+        // samples tie by symmetry) -> map coordinate:
+        let (bc, br) = (100.3, 76.6);
         let (bx, by) = (x0 + bc * px, y0 - br * px);
         write_tif(&tif, 200, 160, px, x0, y0, |x, y| {
             let dx = x as f64 + 0.5 - bc;

@@ -56,7 +56,9 @@ fn check_select_against_brute_force(m: &ReferenceMap, rect: [f64; 4]) -> usize {
         let mut want: Vec<_> = m
             .all_features(level)
             .iter()
-            .filter(|f| f.x_m >= rect[0] && f.x_m <= rect[2] && f.y_m >= rect[1] && f.y_m <= rect[3])
+            .filter(|f| {
+                f.x_m >= rect[0] && f.x_m <= rect[2] && f.y_m >= rect[1] && f.y_m <= rect[3]
+            })
             .map(key)
             .collect();
         got.sort_unstable();
@@ -67,9 +69,11 @@ fn check_select_against_brute_force(m: &ReferenceMap, rect: [f64; 4]) -> usize {
             let d = sel.descriptor(i);
             let n: f32 = d.iter().map(|v| v * v).sum::<f32>().sqrt();
             assert!((n - 1.0).abs() < 1e-3, "descriptor norm {n}");
-            assert!(sel.descriptors[i * kind.stride() + kind.len()..(i + 1) * kind.stride()]
-                .iter()
-                .all(|v| *v == 0.0));
+            assert!(
+                sel.descriptors[i * kind.stride() + kind.len()..(i + 1) * kind.stride()]
+                    .iter()
+                    .all(|v| *v == 0.0)
+            );
         }
         total += sel.len();
     }
@@ -95,7 +99,11 @@ fn naip_constant_height_map() {
     // 934 x 724 px: the short side halves to 362 (>= 256), then 181: 2 levels.
     assert_eq!(h.levels.len(), 2);
     assert!((h.levels[0].gsd_m - 5.0).abs() < 1e-3 && (h.levels[1].gsd_m - 10.0).abs() < 2e-3);
-    assert!(h.levels.iter().all(|l| l.n_features > 100), "{:?}", h.levels);
+    assert!(
+        h.levels.iter().all(|l| l.n_features > 100),
+        "{:?}",
+        h.levels
+    );
     assert_eq!(h.n_features(), summary.header.n_features());
     let all = sorted_features(&m);
     assert!(all.iter().all(|f| f.z_amsl_m == 580.0
@@ -119,12 +127,21 @@ fn naip_constant_height_map() {
     let t2 = Instant::now();
     let sel = m.select(0, cx - 1000.0, cy - 1000.0, cx + 1000.0, cy + 1000.0);
     let sel_s = t2.elapsed().as_secs_f64();
-    eprintln!("select 2 km x 2 km at level 0: {} features in {:.3} ms", sel.len(), sel_s * 1e3);
+    eprintln!(
+        "select 2 km x 2 km at level 0: {} features in {:.3} ms",
+        sel.len(),
+        sel_s * 1e3
+    );
     assert!(!sel.is_empty());
     for rect in [
         [cx - 1000.0, cy - 1000.0, cx + 1000.0, cy + 1000.0],
         [cx - 333.3, cy - 77.7, cx + 12.5, cy + 1500.0],
-        [h.bounds.min_x_m - 10.0, h.bounds.min_y_m - 10.0, h.bounds.max_x_m + 10.0, h.bounds.max_y_m + 10.0],
+        [
+            h.bounds.min_x_m - 10.0,
+            h.bounds.min_y_m - 10.0,
+            h.bounds.max_x_m + 10.0,
+            h.bounds.max_y_m + 10.0,
+        ],
     ] {
         assert!(check_select_against_brute_force(&m, rect) > 0);
     }
@@ -141,7 +158,10 @@ fn naip_constant_height_map() {
     assert_eq!(all.len(), all2.len(), "feature count depends on the tiling");
     for (a, b) in all.iter().zip(&all2) {
         assert_eq!(a.level, b.level);
-        assert!((a.x_m - b.x_m).abs() < 1e-3 && (a.y_m - b.y_m).abs() < 1e-3, "{a:?} vs {b:?}");
+        assert!(
+            (a.x_m - b.x_m).abs() < 1e-3 && (a.y_m - b.y_m).abs() < 1e-3,
+            "{a:?} vs {b:?}"
+        );
         assert!((a.response - b.response).abs() <= 1e-3 * a.response.abs());
         assert_eq!(a.laplacian, b.laplacian);
         assert!((a.scale_m - b.scale_m).abs() < 1e-3);
@@ -160,7 +180,12 @@ fn naip_constant_height_map() {
                         && s_b.features[j].response == s_a.features[i].response
                 })
                 .expect("same feature in both maps");
-            let d: f32 = s_a.descriptor(i).iter().zip(s_b.descriptor(j)).map(|(x, y)| (x - y).abs()).sum();
+            let d: f32 = s_a
+                .descriptor(i)
+                .iter()
+                .zip(s_b.descriptor(j))
+                .map(|(x, y)| (x - y).abs())
+                .sum();
             assert!(d < 1e-3, "descriptor differs by {d}");
         }
     }
@@ -198,10 +223,12 @@ fn descriptor_quantisation_keeps_nearest_neighbours() {
         let s = quantise(map.descriptor(i), &mut q);
         dequantise(&q, s, &mut deq[i * len..(i + 1) * len]);
     }
-    let nn = |d: &[f32], db: &dyn Fn(usize) -> &[f32]| -> (usize, f32, f32) {
+    // Nearest and second-nearest squared distances of `d` in a flat table of rows of `stride`.
+    let nn = |d: &[f32], db: &[f32], stride: usize| -> (usize, f32, f32) {
         let (mut b1, mut b2, mut bi) = (f32::INFINITY, f32::INFINITY, 0);
         for j in 0..map.len() {
-            let e: f32 = d.iter().zip(db(j)).map(|(a, b)| (a - b) * (a - b)).sum();
+            let row = &db[j * stride..j * stride + len];
+            let e: f32 = d.iter().zip(row).map(|(a, b)| (a - b) * (a - b)).sum();
             if e < b1 {
                 b2 = b1;
                 b1 = e;
@@ -216,8 +243,8 @@ fn descriptor_quantisation_keeps_nearest_neighbours() {
     let (mut same, mut same_ratio, mut n_ratio) = (0usize, 0usize, 0usize);
     for i in 0..n_q {
         let d = qry.descriptor(i);
-        let (a, a1, a2) = nn(d, &|j| map.descriptor(j));
-        let (b, _, _) = nn(d, &|j| &deq[j * len..(j + 1) * len]);
+        let (a, a1, a2) = nn(d, map.descriptors_padded(), kind.stride());
+        let (b, _, _) = nn(d, &deq, len);
         same += usize::from(a == b);
         // Among the matches a ratio test (0.8) would keep.
         if a1.sqrt() < 0.8 * a2.sqrt() {
@@ -261,17 +288,25 @@ fn ngi_ortho_with_dem_heights() {
     let m = ReferenceMap::open(&out).unwrap();
     let dem = Dem::load_geotiff(&dem_path, None).unwrap();
     let (lo, hi) = dem.height_range_m();
-    assert!(matches!(m.header().crs, visnav::geo::Crs::TransverseMercator { .. }));
+    assert!(matches!(
+        m.header().crs,
+        visnav::geo::Crs::TransverseMercator { .. }
+    ));
     let all = sorted_features(&m);
     assert!(all.len() > 100);
     for f in &all {
-        let z = dem.height_at(f.x_m, f.y_m).expect("features have DEM heights");
+        let z = dem
+            .height_at(f.x_m, f.y_m)
+            .expect("features have DEM heights");
         assert!((f.z_amsl_m - z).abs() < 1e-9, "{f:?} vs {z}");
         assert!(f.z_amsl_m >= lo - 1e-6 && f.z_amsl_m <= hi + 1e-6);
     }
     let b = m.header().bounds;
     let (cx, cy) = (0.5 * (b.min_x_m + b.max_x_m), 0.5 * (b.min_y_m + b.max_y_m));
-    assert!(check_select_against_brute_force(&m, [cx - 1000.0, cy - 1000.0, cx + 1000.0, cy + 1000.0]) > 0);
+    assert!(
+        check_select_against_brute_force(&m, [cx - 1000.0, cy - 1000.0, cx + 1000.0, cy + 1000.0])
+            > 0
+    );
 
     // Two orthos of one CRS share the index.
     let Some(ortho2) = shared("ngi_3324c/ngi_ortho_5m_tile2.tif") else {
@@ -284,8 +319,15 @@ fn ngi_ortho_with_dem_heights() {
     assert_eq!(m2.header().orthos.len(), 2);
     assert!(s2.header.n_features() > s.header.n_features());
     let b2 = m2.header().bounds;
-    assert!(b2.min_x_m <= b.min_x_m && b2.max_x_m >= b.max_x_m && b2.min_y_m <= b.min_y_m && b2.max_y_m >= b.max_y_m);
-    assert!(check_select_against_brute_force(&m2, [b2.min_x_m, b2.min_y_m, b2.max_x_m, b2.max_y_m]) > 0);
+    assert!(
+        b2.min_x_m <= b.min_x_m
+            && b2.max_x_m >= b.max_x_m
+            && b2.min_y_m <= b.min_y_m
+            && b2.max_y_m >= b.max_y_m
+    );
+    assert!(
+        check_select_against_brute_force(&m2, [b2.min_x_m, b2.min_y_m, b2.max_x_m, b2.max_y_m]) > 0
+    );
 }
 
 #[test]
@@ -297,7 +339,10 @@ fn mismatched_inputs_are_refused_with_the_file_name() {
     // NAIP (UTM 14N) with the NGI DEM (transverse Mercator 25E): refused, naming the DEM.
     let spec = BuildSpec::new(vec![naip2009()], HeightSource::Dem(dem.clone()));
     let e = build_map(&spec, &dir.path().join("x.vnm"), &mut |_| {}).unwrap_err();
-    assert!(e.to_string().contains("dem.tif") && e.to_string().contains("CRS"), "{e}");
+    assert!(
+        e.to_string().contains("dem.tif") && e.to_string().contains("CRS"),
+        "{e}"
+    );
     // Orthos in two CRSs: refused, naming the second.
     let Some(ngi) = shared("ngi_3324c/ngi_ortho_5m_tile1.tif") else {
         return;
@@ -322,11 +367,19 @@ fn cli_build_and_info() {
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(String::from_utf8_lossy(&o.stdout).contains("features in 1 level"));
-    let o = Command::new(bin).args(["map", "info"]).arg(&out).output().unwrap();
+    let o = Command::new(bin)
+        .args(["map", "info"])
+        .arg(&out)
+        .output()
+        .unwrap();
     assert!(o.status.success());
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(text.contains("level 0") && text.contains("Utm"), "{text}");
-    let o = Command::new(bin).args(["map", "info", "--json"]).arg(&out).output().unwrap();
+    let o = Command::new(bin)
+        .args(["map", "info", "--json"])
+        .arg(&out)
+        .output()
+        .unwrap();
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(v["levels"].as_array().unwrap().len(), 1);
     // Neither or both height sources: a usage error.
@@ -340,11 +393,18 @@ fn cli_build_and_info() {
     assert!(!o.status.success());
     // A corrupt file: error naming it.
     std::fs::write(dir.path().join("bad.vnm"), b"VNMAP\r\n\x1a garbage").unwrap();
-    let o = Command::new(bin).args(["map", "info"]).arg(dir.path().join("bad.vnm")).output().unwrap();
+    let o = Command::new(bin)
+        .args(["map", "info"])
+        .arg(dir.path().join("bad.vnm"))
+        .output()
+        .unwrap();
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("bad.vnm"));
     for sub in ["build", "info"] {
-        let o = Command::new(bin).args(["map", sub, "--help"]).output().unwrap();
+        let o = Command::new(bin)
+            .args(["map", sub, "--help"])
+            .output()
+            .unwrap();
         assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("Usage:"));
     }
 }

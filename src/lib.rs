@@ -11,6 +11,7 @@ pub mod config;
 pub mod fix;
 pub mod geo;
 pub mod link;
+pub mod map;
 pub mod nav;
 pub mod pose;
 pub mod sitl;

@@ -25,6 +25,8 @@ enum Command {
     Fix(cli::fix::FixArgs),
     /// Benchmarks (`bench surf`: SURF speed, feature counts and quality table).
     Bench(cli::bench::BenchArgs),
+    /// Reference maps (`map build`: orthophoto + DEM -> .vnm; `map info`: print a map's header).
+    Map(cli::map::MapArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -35,6 +37,7 @@ fn main() -> std::process::ExitCode {
         Command::Sim(a) => cli::sim::run_cmd(a),
         Command::Bench(a) => cli::bench::run(a),
         Command::Fix(a) => cli::fix::run(a),
+        Command::Map(a) => cli::map::run(a),
     };
     match result {
         Ok(code) => code,

@@ -181,4 +181,10 @@ fn every_subcommand_has_help() {
             String::from_utf8_lossy(&out.stderr)
         );
     }
+    // Nested subcommands.
+    for sub in [["map", "build"], ["map", "info"]] {
+        let out = visnav().args(sub).arg("--help").output().unwrap();
+        assert!(out.status.success(), "visnav {sub:?} --help failed");
+        assert!(String::from_utf8_lossy(&out.stdout).contains("Usage:"));
+    }
 }

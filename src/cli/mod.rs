@@ -4,6 +4,7 @@ pub mod bench;
 pub mod bench_fix;
 pub mod check_config;
 pub mod fix;
+pub mod map;
 pub mod sim;
 
 /// Initialise `tracing` to stderr: `RUST_LOG` when set, otherwise info/debug/trace by `-v` count.

@@ -1,0 +1,209 @@
+//! `visnav map build` (orthophoto(s) + DEM -> `.vnm` reference map) and `visnav map info`.
+
+use std::io::{IsTerminal, Write};
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::Context;
+use visnav::geo::Crs;
+use visnav::map::{BuildProgress, BuildSpec, HeightInfo, HeightSource, ReferenceMap, build_map};
+
+#[derive(clap::Args, Debug)]
+pub struct MapArgs {
+    #[command(subcommand)]
+    pub command: MapCommand,
+}
+
+#[derive(clap::Subcommand, Debug)]
+pub enum MapCommand {
+    /// Build a reference map (.vnm) from orthophoto(s) and a DEM or constant ground height.
+    Build(BuildArgs),
+    /// Print a map file's header: CRS, levels, feature counts, bounds, sources.
+    Info(InfoArgs),
+}
+
+#[derive(clap::Args, Debug)]
+#[command(group(clap::ArgGroup::new("heights").required(true).args(["dem", "ground_height"])))]
+pub struct BuildArgs {
+    /// Orthophoto GeoTIFF (repeat for several; one CRS and pixel size).
+    #[arg(long, required = true)]
+    pub ortho: Vec<PathBuf>,
+    /// DEM GeoTIFF in the orthophotos' CRS (heights in its own datum, normally AMSL).
+    #[arg(long)]
+    pub dem: Option<PathBuf>,
+    /// Constant ground height, metres AMSL, instead of a DEM.
+    #[arg(long, allow_negative_numbers = true)]
+    pub ground_height: Option<f64>,
+    /// Output map file.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Number of pyramid levels (default: halve while the short side is >= 256 px, at most 6).
+    #[arg(long)]
+    pub levels: Option<usize>,
+    /// Tile core side in level pixels.
+    #[arg(long, default_value_t = 1024)]
+    pub tile_px: usize,
+    /// Feature cap per tile and level (even spatial spread).
+    #[arg(long, default_value_t = 4000)]
+    pub max_features_per_tile: usize,
+    /// SURF Hessian threshold (OpenCV meaning).
+    #[arg(long, default_value_t = 100.0)]
+    pub hessian_threshold: f32,
+    /// SURF octaves.
+    #[arg(long, default_value_t = 4)]
+    pub octaves: usize,
+    /// UTM zone to assume for files whose GeoKeys are missing, e.g. "32614" (EPSG code of a
+    /// WGS84/NAD83 UTM zone).
+    #[arg(long)]
+    pub crs_override_epsg: Option<u32>,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct InfoArgs {
+    /// The map file.
+    pub file: PathBuf,
+    /// Print the header as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(args: MapArgs) -> anyhow::Result<ExitCode> {
+    match args.command {
+        MapCommand::Build(a) => build(a),
+        MapCommand::Info(a) => info(a),
+    }
+}
+
+fn epsg_crs(code: u32) -> anyhow::Result<Crs> {
+    let (zone, north) = match code {
+        32601..=32660 => (code - 32600, true),
+        32701..=32760 => (code - 32700, false),
+        26901..=26923 => (code - 26900, true),
+        3857 => return Ok(Crs::WebMercator),
+        _ => anyhow::bail!(
+            "--crs-override-epsg {code}: only UTM (326zz, 327zz, 269zz) and 3857 are supported"
+        ),
+    };
+    Ok(Crs::Utm {
+        zone: zone as u8, // ok: 1..=60
+        north,
+    })
+}
+
+fn build(a: BuildArgs) -> anyhow::Result<ExitCode> {
+    let height = match (a.dem, a.ground_height) {
+        (Some(d), None) => HeightSource::Dem(d),
+        (None, Some(h)) => HeightSource::ConstantAmsl(h),
+        _ => anyhow::bail!("give exactly one of --dem and --ground-height"),
+    };
+    let mut spec = BuildSpec::new(a.ortho, height);
+    spec.levels = a.levels;
+    spec.tile_px = a.tile_px;
+    spec.max_features_per_tile = a.max_features_per_tile;
+    spec.surf.hessian_threshold = a.hessian_threshold;
+    spec.surf.n_octaves = a.octaves;
+    spec.crs_override = a.crs_override_epsg.map(epsg_crs).transpose()?;
+    let tty = std::io::stderr().is_terminal();
+    let mut last_log = Instant::now();
+    let mut progress = |p: BuildProgress| {
+        let pct = 100.0 * p.tiles_done as f64 / p.tiles_total.max(1) as f64;
+        if tty {
+            let mut e = std::io::stderr();
+            let _ = write!(
+                e,
+                "\r[{:<30}] {pct:5.1} %  tile {}/{}  ortho {} level {}  {} features",
+                "#".repeat((pct / 100.0 * 30.0) as usize),
+                p.tiles_done,
+                p.tiles_total,
+                p.ortho,
+                p.level,
+                p.features
+            );
+            let _ = e.flush();
+        } else if last_log.elapsed().as_secs_f64() > 5.0 || p.tiles_done == p.tiles_total {
+            last_log = Instant::now();
+            tracing::info!(
+                tiles_done = p.tiles_done,
+                tiles_total = p.tiles_total,
+                features = p.features,
+                "map build {pct:.1} %"
+            );
+        }
+    };
+    let s = build_map(&spec, &a.out, &mut progress)
+        .with_context(|| format!("building {}", a.out.display()))?;
+    if tty {
+        eprintln!();
+    }
+    println!(
+        "{}: {} features in {} level(s), {} bytes, {:.2} s ({} tiles; dropped {} at nodata, {} without height)",
+        a.out.display(),
+        s.header.n_features(),
+        s.header.levels.len(),
+        s.file_bytes,
+        s.elapsed_s,
+        s.tiles,
+        s.dropped_nodata,
+        s.dropped_no_height
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+fn info(a: InfoArgs) -> anyhow::Result<ExitCode> {
+    let t0 = Instant::now();
+    let m = ReferenceMap::open(&a.file)?;
+    let open_s = t0.elapsed().as_secs_f64();
+    let h = m.header();
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(h)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    println!(
+        "{} (format v{}, opened in {:.1} ms)",
+        a.file.display(),
+        h.version,
+        open_s * 1e3
+    );
+    println!("  built by {} at unix {}", h.built_by, h.built_unix_s);
+    println!("  CRS {:?}", h.crs);
+    println!(
+        "  bounds x {:.2} .. {:.2} m, y {:.2} .. {:.2} m ({:.0} x {:.0} m)",
+        h.bounds.min_x_m,
+        h.bounds.max_x_m,
+        h.bounds.min_y_m,
+        h.bounds.max_y_m,
+        h.bounds.max_x_m - h.bounds.min_x_m,
+        h.bounds.max_y_m - h.bounds.min_y_m
+    );
+    match &h.height {
+        HeightInfo::Dem { file, min_m, max_m } => {
+            println!("  heights from DEM {file} ({min_m:.1} .. {max_m:.1} m)")
+        }
+        HeightInfo::Constant { amsl_m } => println!("  constant ground height {amsl_m} m AMSL"),
+    }
+    println!("  vertical datum: {}", h.vertical_datum);
+    println!(
+        "  SURF {:?}, threshold {}, {} octaves x {} layers, upright {}; tile {} px, cap {} per tile",
+        h.surf.descriptor,
+        h.surf.hessian_threshold,
+        h.surf.n_octaves,
+        h.surf.n_octave_layers,
+        h.surf.upright,
+        h.tile_px,
+        h.max_features_per_tile
+    );
+    for (i, l) in h.levels.iter().enumerate() {
+        println!(
+            "  level {i}: {:.3} m/px, {} features, index {} x {} cells of {:.0} m",
+            l.gsd_m, l.n_features, l.grid.cols, l.grid.rows, l.grid.cell_m
+        );
+    }
+    for o in &h.orthos {
+        println!(
+            "  ortho {} ({} x {} px, {} bands, {} m/px)",
+            o.file, o.width_px, o.height_px, o.bands, o.pixel_size_m
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}

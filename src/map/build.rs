@@ -1,0 +1,768 @@
+//! `build_map`: orthophoto(s) + heights -> `.vnm` reference map, tile by tile.
+//!
+//! For every orthophoto and pyramid level (see the conventions in `map`), the level image is cut
+//! into square tile cores of `tile_px` level pixels (rounded up to a multiple of the coarsest SURF
+//! sampling step) on a grid anchored at the ortho's top-left pixel. Each tile is read with a margin
+//! ([`tile_margin_px`]: the largest box filter plus the neighbour samples and the interpolation
+//! offset, or the descriptor window of the largest scale, whichever is larger, also a multiple of
+//! the coarsest step) so that every keypoint whose centre lies in the core is detected and
+//! described exactly as in the whole image: tile origins are multiples of every octave's sampling
+//! step, so the SURF sample grids coincide, and the integral image is exact. Only keypoints whose
+//! centre lies in the core are kept, so the result does not depend on the tiling (up to float
+//! rounding of coordinates); the per-tile cap (`max_features_per_tile`, SURF's even-spread
+//! selection over the core) is the one tiling-dependent step.
+//!
+//! Keypoints whose descriptor window touches a missing pixel (nodata) are dropped, as are those
+//! without a DEM height. Features go to a spill file while per-cell counters are kept; the final
+//! file is laid out cell by cell (the index cells are the tile cores of the first ortho).
+//!
+//! Memory: each orthophoto is decoded whole (`geo::geotiff::load_geotiff`, its samples in their
+//! file type, e.g. 4 bytes/px for RGBN u8), plus one tile's working set (grey, integral image,
+//! SURF response layers: a few tens of MB at the default 1024 px tiles), plus the DEM, plus
+//! 8 bytes per index cell. The level images are never held whole: a tile of level `L` is averaged
+//! on the fly from the level-0 samples. So peak memory grows with the largest single orthophoto
+//! (not with the number of orthophotos or levels); a windowed GeoTIFF reader would remove that.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use super::format::SpillWriter;
+use super::{HeightInfo, IndexGrid, LevelInfo, MapError, MapFeature, MapHeader, OrthoInfo};
+use crate::geo::Crs;
+use crate::geo::dem::Dem;
+use crate::geo::geotiff::{crs_equivalent, load_geotiff};
+use crate::geo::raster::{Bounds, Raster, RasterData};
+use crate::vision::{GrayImage, IntegralImage, KeyPoint, Surf, SurfParams};
+
+/// Rec. 601 luma weights (as `vision::GrayImage::from_dynamic` and the renderer).
+const LUMA: [f32; 3] = [0.299, 0.587, 0.114];
+/// Auto level count: keep halving while the short side stays at or above this many pixels.
+const AUTO_MIN_SIDE_PX: f64 = 256.0;
+/// Auto level count: at most this many levels.
+const AUTO_MAX_LEVELS: usize = 6;
+
+/// Where the feature heights come from.
+#[derive(Clone, Debug, PartialEq)]
+pub enum HeightSource {
+    /// A one-band GeoTIFF DEM in the orthos' CRS (heights in its own vertical datum).
+    Dem(PathBuf),
+    /// A constant ground height, metres AMSL.
+    ConstantAmsl(f64),
+}
+
+/// What to build.
+#[derive(Clone, Debug)]
+pub struct BuildSpec {
+    /// Orthophotos (GeoTIFF, north-up, square pixels, one CRS, one pixel size).
+    pub orthos: Vec<PathBuf>,
+    pub height: HeightSource,
+    /// CRS for files whose GeoKeys are missing or not understood.
+    pub crs_override: Option<Crs>,
+    /// Number of pyramid levels; `None`: halve while the short side stays >= 256 px, at most 6.
+    pub levels: Option<usize>,
+    /// SURF parameters (`max_features` is ignored: the cap is per tile).
+    pub surf: SurfParams,
+    /// Tile core side in level pixels (rounded up to a multiple of the coarsest SURF step).
+    pub tile_px: usize,
+    /// Keep at most this many features per tile core (even spread), per level.
+    pub max_features_per_tile: usize,
+}
+
+impl BuildSpec {
+    /// Defaults: upright SURF-64 (U-SURF), threshold 100, 4 octaves; 1024 px tiles, 4000
+    /// features per tile; automatic level count.
+    pub fn new(orthos: Vec<PathBuf>, height: HeightSource) -> Self {
+        Self {
+            orthos,
+            height,
+            crs_override: None,
+            levels: None,
+            surf: SurfParams {
+                upright: true,
+                ..SurfParams::default()
+            },
+            tile_px: 1024,
+            max_features_per_tile: 4000,
+        }
+    }
+}
+
+/// Progress report, after every tile.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BuildProgress {
+    pub ortho: usize,
+    pub level: usize,
+    pub tiles_done: u64,
+    pub tiles_total: u64,
+    pub features: u64,
+}
+
+/// Outcome of a build.
+#[derive(Clone, Debug)]
+pub struct BuildSummary {
+    /// The header as written.
+    pub header: MapHeader,
+    pub file_bytes: u64,
+    /// Keypoints dropped because their descriptor window touched nodata.
+    pub dropped_nodata: u64,
+    /// Keypoints dropped because the DEM has no height there.
+    pub dropped_no_height: u64,
+    pub tiles: u64,
+    pub elapsed_s: f64,
+}
+
+/// Margin around a tile core, level pixels: enough for every keypoint in the core to be detected
+/// and described as in the whole image; a multiple of the coarsest sampling step.
+pub fn tile_margin_px(p: &SurfParams) -> usize {
+    let n_layers = p.n_octave_layers + 2;
+    let mut m = 0usize;
+    for o in 0..p.n_octaves {
+        let step = p.init_sample_step << o;
+        // Filter size of layer k in octave o: 3 (2^(o+1) (k+1) + 1) (Bay sec. 3.3; vision::surf).
+        let top = 3 * ((2usize << o) * n_layers + 1);
+        // Half the largest filter at a neighbour sample, plus the refinement offset (one step).
+        let det = (top - 1) / 2 + 3 * step;
+        let s = 1.2 * top as f64 / 9.0;
+        m = m
+            .max(det)
+            .max(descriptor_radius_px(s as f32, p.upright).ceil() as usize);
+    }
+    m.div_ceil(max_step(p)) * max_step(p)
+}
+
+/// Half-side of the square that holds every sample of a keypoint's orientation and descriptor
+/// windows (20s window, Haar side 2s, rotated by up to 45 deg unless upright), pixels.
+fn descriptor_radius_px(scale: f32, upright: bool) -> f32 {
+    if upright {
+        10.5 * scale + 2.0
+    } else {
+        14.5 * scale + 2.0
+    }
+}
+
+/// Sampling step of the coarsest octave.
+fn max_step(p: &SurfParams) -> usize {
+    p.init_sample_step << (p.n_octaves - 1)
+}
+
+/// Geometry of one ortho, read in the first pass.
+struct OrthoGeom {
+    path: PathBuf,
+    width: usize,
+    height: usize,
+    bands: usize,
+    gsd_m: f64,
+    bounds: Bounds,
+}
+
+fn check_ortho(path: &Path, r: &Raster, crs: Option<Crs>) -> Result<OrthoGeom, MapError> {
+    let bad = |reason: String| MapError::Input {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let t = r.transform();
+    if !t.is_axis_aligned() {
+        return Err(bad(
+            "the orthophoto is rotated (geotransform has rotation terms); warp it north-up first"
+                .into(),
+        ));
+    }
+    let c = t.coeffs();
+    if !(c[1] > 0.0 && c[5] < 0.0) {
+        return Err(bad(format!(
+            "the orthophoto is not north-up (pixel steps {} x {}, expected positive x, negative y)",
+            c[1], c[5]
+        )));
+    }
+    let (px, py) = t.pixel_size();
+    if (px - py).abs() > 1e-3 * px {
+        return Err(bad(format!(
+            "pixels are not square ({px} x {py} m); resample the orthophoto"
+        )));
+    }
+    if matches!(r.crs(), Crs::Geographic) {
+        return Err(bad(
+            "the orthophoto is in geographic coordinates (degrees); a projected CRS in metres is required"
+                .into(),
+        ));
+    }
+    if let Some(c0) = crs
+        && !crs_equivalent(&c0, &r.crs())
+    {
+        return Err(bad(format!(
+            "CRS {:?} differs from the first orthophoto's {c0:?}; all orthophotos of a map must share one CRS",
+            r.crs()
+        )));
+    }
+    Ok(OrthoGeom {
+        path: path.to_path_buf(),
+        width: r.width(),
+        height: r.height(),
+        bands: r.bands(),
+        gsd_m: px,
+        bounds: r.bounds(),
+    })
+}
+
+/// Builds the map `out` from `spec`. `progress` is called after every tile.
+pub fn build_map(
+    spec: &BuildSpec,
+    out: &Path,
+    progress: &mut dyn FnMut(BuildProgress),
+) -> Result<BuildSummary, MapError> {
+    let t0 = Instant::now();
+    let param = |name, reason: &str| MapError::Param {
+        name,
+        reason: reason.to_string(),
+    };
+    if spec.orthos.is_empty() {
+        return Err(param("orthos", "at least one orthophoto is required"));
+    }
+    if spec.orthos.len() > 255 {
+        return Err(param("orthos", "at most 255 orthophotos per map"));
+    }
+    if !(64..=16384).contains(&spec.tile_px) {
+        return Err(param("tile_px", "must be in 64..=16384"));
+    }
+    if spec.max_features_per_tile == 0 {
+        return Err(param("max_features_per_tile", "must be positive"));
+    }
+    if let Some(n) = spec.levels
+        && !(1..=12).contains(&n)
+    {
+        return Err(param("levels", "must be in 1..=12"));
+    }
+    let mut surf_params = spec.surf.clone();
+    surf_params.max_features = None;
+    let surf = Surf::new(surf_params.clone()).map_err(|e| param("surf", &e.to_string()))?;
+
+    // Pass 1: geometry of every ortho (the last one stays loaded for pass 2).
+    let mut geoms: Vec<OrthoGeom> = Vec::new();
+    let mut crs: Option<Crs> = None;
+    let mut last: Option<Raster> = None;
+    for path in &spec.orthos {
+        drop(last.take()); // free the previous ortho before decoding the next
+        let r = load_geotiff(path, spec.crs_override)?;
+        let g = check_ortho(path, &r, crs)?;
+        if let Some(g0) = geoms.first()
+            && (g.gsd_m - g0.gsd_m).abs() > 1e-3 * g0.gsd_m
+        {
+            return Err(MapError::Input {
+                path: path.clone(),
+                reason: format!(
+                    "pixel size {} m differs from the first orthophoto's {} m; resample to one pixel size",
+                    g.gsd_m, g0.gsd_m
+                ),
+            });
+        }
+        crs.get_or_insert(r.crs());
+        geoms.push(g);
+        last = Some(r);
+    }
+    let crs = crs.ok_or_else(|| param("orthos", "no orthophoto loaded"))?; // non-empty checked
+    let gsd0 = geoms[0].gsd_m;
+    let bounds = geoms.iter().skip(1).fold(geoms[0].bounds, |b, g| Bounds {
+        min_x_m: b.min_x_m.min(g.bounds.min_x_m),
+        min_y_m: b.min_y_m.min(g.bounds.min_y_m),
+        max_x_m: b.max_x_m.max(g.bounds.max_x_m),
+        max_y_m: b.max_y_m.max(g.bounds.max_y_m),
+    });
+
+    // Heights.
+    let (dem, height_info, datum) = match &spec.height {
+        HeightSource::ConstantAmsl(h) => {
+            let d = Dem::flat(*h).map_err(|e| param("ground_height", &e.to_string()))?;
+            (
+                d,
+                HeightInfo::Constant { amsl_m: *h },
+                "constant ground height, metres AMSL".to_string(),
+            )
+        }
+        HeightSource::Dem(p) => {
+            let d = Dem::load_geotiff(p, spec.crs_override).map_err(|source| MapError::Dem {
+                path: p.clone(),
+                source,
+            })?;
+            if let Some(dc) = d.crs()
+                && !crs_equivalent(&dc, &crs)
+            {
+                return Err(MapError::Input {
+                    path: p.clone(),
+                    reason: format!(
+                        "DEM CRS {dc:?} differs from the orthophotos' {crs:?}; reproject the DEM to the orthophotos' CRS"
+                    ),
+                });
+            }
+            let (lo, hi) = d.height_range_m();
+            (
+                d,
+                HeightInfo::Dem {
+                    file: p.display().to_string(),
+                    min_m: lo,
+                    max_m: hi,
+                },
+                "the DEM's vertical datum (orthometric heights, ~AMSL, unless the DEM says otherwise)"
+                    .to_string(),
+            )
+        }
+    };
+
+    // Levels and index grids.
+    let short_px = ((bounds.max_x_m - bounds.min_x_m).min(bounds.max_y_m - bounds.min_y_m)) / gsd0;
+    let n_levels = spec.levels.unwrap_or_else(|| {
+        (1..AUTO_MAX_LEVELS)
+            .take_while(|&l| short_px / f64::from(1u32 << l) >= AUTO_MIN_SIDE_PX)
+            .count()
+            + 1
+    });
+    let step = max_step(&surf_params);
+    let core = spec.tile_px.div_ceil(step) * step;
+    let margin = tile_margin_px(&surf_params);
+    let grids: Vec<IndexGrid> = (0..n_levels)
+        .map(|l| {
+            let cell_m = core as f64 * gsd0 * f64::from(1u32 << l);
+            let cols = ((bounds.max_x_m - bounds.min_x_m) / cell_m).ceil().max(1.0);
+            let rows = ((bounds.max_y_m - bounds.min_y_m) / cell_m).ceil().max(1.0);
+            IndexGrid {
+                origin_x_m: bounds.min_x_m,
+                origin_y_m: bounds.max_y_m,
+                cell_m,
+                cols: cols.min(f64::from(u32::MAX)) as u32, // ok: clamped
+                rows: rows.min(f64::from(u32::MAX)) as u32, // ok: clamped
+            }
+        })
+        .collect();
+    let tiles_total: u64 = geoms
+        .iter()
+        .map(|g| {
+            (0..n_levels)
+                .map(|l| {
+                    let (w, h) = (g.width >> l, g.height >> l);
+                    (w.div_ceil(core) * h.div_ceil(core)) as u64
+                })
+                .sum::<u64>()
+        })
+        .sum();
+    tracing::info!(
+        orthos = geoms.len(),
+        levels = n_levels,
+        gsd_m = gsd0,
+        core_px = core,
+        margin_px = margin,
+        tiles = tiles_total,
+        "building reference map"
+    );
+
+    let spill_path = out.with_extension("vnm.spill");
+    let mut writer = SpillWriter::new(&spill_path, surf_params.descriptor, grids.clone())?;
+    let mut st = Stats::default();
+    // Pass 2, last ortho first (it is still loaded).
+    for oi in (0..geoms.len()).rev() {
+        let raster = match last.take() {
+            Some(r) => r,
+            None => load_geotiff(&geoms[oi].path, spec.crs_override)?,
+        };
+        for level in 0..n_levels {
+            let ctx = TileCtx {
+                raster: &raster,
+                level,
+                core,
+                margin,
+                surf: &surf,
+                cap: spec.max_features_per_tile,
+                dem: &dem,
+                source: oi as u8, // ok: <= 255 orthos checked
+            };
+            let (lw, lh) = (raster.width() >> level, raster.height() >> level);
+            for ty in 0..lh.div_ceil(core) {
+                for tx in 0..lw.div_ceil(core) {
+                    process_tile(&ctx, tx * core, ty * core, &mut writer, &mut st)?;
+                    st.tiles += 1;
+                    progress(BuildProgress {
+                        ortho: oi,
+                        level,
+                        tiles_done: st.tiles,
+                        tiles_total,
+                        features: st.features,
+                    });
+                }
+            }
+        }
+    }
+
+    let header = MapHeader {
+        version: super::FORMAT_VERSION,
+        crs,
+        surf: surf_params,
+        levels: (0..n_levels)
+            .map(|l| LevelInfo {
+                gsd_m: gsd0 * f64::from(1u32 << l),
+                n_features: 0,
+                grid: grids[l],
+                cells_offset: 0,
+                records_offset: 0,
+                descriptors_offset: 0,
+            })
+            .collect(),
+        bounds,
+        height: height_info,
+        vertical_datum: datum,
+        orthos: geoms
+            .iter()
+            .map(|g| OrthoInfo {
+                file: g.path.display().to_string(),
+                width_px: g.width as u64,
+                height_px: g.height as u64,
+                bands: g.bands as u32,
+                pixel_size_m: g.gsd_m,
+            })
+            .collect(),
+        tile_px: core as u32,
+        max_features_per_tile: spec.max_features_per_tile.min(u32::MAX as usize) as u32,
+        built_unix_s: std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs()),
+        built_by: format!("visnav {}", env!("CARGO_PKG_VERSION")),
+    };
+    let (header, file_bytes) = writer.finish(header, out)?;
+    Ok(BuildSummary {
+        header,
+        file_bytes,
+        dropped_nodata: st.dropped_nodata,
+        dropped_no_height: st.dropped_no_height,
+        tiles: st.tiles,
+        elapsed_s: t0.elapsed().as_secs_f64(),
+    })
+}
+
+#[derive(Default)]
+struct Stats {
+    tiles: u64,
+    features: u64,
+    dropped_nodata: u64,
+    dropped_no_height: u64,
+}
+
+struct TileCtx<'a> {
+    raster: &'a Raster,
+    level: usize,
+    core: usize,
+    margin: usize,
+    surf: &'a Surf,
+    cap: usize,
+    dem: &'a Dem,
+    source: u8,
+}
+
+/// Extracts the features of the tile whose core's top-left level pixel is `(cx0, cy0)`.
+fn process_tile(
+    ctx: &TileCtx,
+    cx0: usize,
+    cy0: usize,
+    writer: &mut SpillWriter,
+    st: &mut Stats,
+) -> Result<(), MapError> {
+    let (lw, lh) = (
+        ctx.raster.width() >> ctx.level,
+        ctx.raster.height() >> ctx.level,
+    );
+    let (cw, ch) = (ctx.core.min(lw - cx0), ctx.core.min(lh - cy0));
+    let wx0 = cx0.saturating_sub(ctx.margin);
+    let wy0 = cy0.saturating_sub(ctx.margin);
+    let wx1 = (cx0 + cw + ctx.margin).min(lw);
+    let wy1 = (cy0 + ch + ctx.margin).min(lh);
+    let (ww, wh) = (wx1 - wx0, wy1 - wy0);
+    let (grey, valid) = level_window(ctx.raster, ctx.level, wx0, wy0, ww, wh);
+    if !valid.iter().any(|&v| v) {
+        return Ok(());
+    }
+    // Integral of missing pixels, (ww+1) x (wh+1).
+    let mut holes = vec![0u32; (ww + 1) * (wh + 1)];
+    for y in 0..wh {
+        let mut run = 0u32;
+        for x in 0..ww {
+            run += u32::from(!valid[y * ww + x]);
+            holes[(y + 1) * (ww + 1) + x + 1] = holes[y * (ww + 1) + x + 1] + run;
+        }
+    }
+    let any_hole = holes[(ww + 1) * (wh + 1) - 1] > 0;
+    let img = GrayImage::new(ww, wh, grey).map_err(|e| MapError::Param {
+        name: "tile",
+        reason: e.to_string(),
+    })?;
+    let ii = IntegralImage::new(&img);
+    let kps = ctx.surf.detect(&ii);
+    let upright = ctx.surf.params().upright;
+    let mut kept: Vec<KeyPoint> = Vec::new();
+    for kp in kps {
+        // Continuous level coordinates (GDAL corner convention) of the keypoint centre.
+        let gx = wx0 as f64 + f64::from(kp.x) + 0.5;
+        let gy = wy0 as f64 + f64::from(kp.y) + 0.5;
+        if !(gx >= cx0 as f64
+            && gx < (cx0 + cw) as f64
+            && gy >= cy0 as f64
+            && gy < (cy0 + ch) as f64)
+        {
+            continue;
+        }
+        if any_hole {
+            let r = descriptor_radius_px(kp.scale, upright).ceil() as i64;
+            let (x, y) = (kp.x.round() as i64, kp.y.round() as i64);
+            let cl = |v: i64, n: usize| v.clamp(0, n as i64) as usize;
+            let (x0, x1) = (cl(x - r, ww), cl(x + r + 1, ww));
+            let (y0, y1) = (cl(y - r, wh), cl(y + r + 1, wh));
+            let s = |xx: usize, yy: usize| i64::from(holes[yy * (ww + 1) + xx]);
+            if s(x1, y1) - s(x0, y1) - s(x1, y0) + s(x0, y0) > 0 {
+                st.dropped_nodata += 1;
+                continue;
+            }
+        }
+        // Core-relative coordinates for the even-spread cap.
+        let mut k = kp;
+        k.x -= (cx0 - wx0) as f32;
+        k.y -= (cy0 - wy0) as f32;
+        kept.push(k);
+    }
+    let mut kept = crate::vision::surf::select_spread(kept, ctx.cap, cw, ch);
+    for k in &mut kept {
+        k.x += (cx0 - wx0) as f32;
+        k.y += (cy0 - wy0) as f32;
+    }
+    let feats = ctx.surf.describe(&ii, kept);
+    let f = f64::from(1u32 << ctx.level);
+    let t = ctx.raster.transform();
+    for (i, kp) in feats.keypoints.iter().enumerate() {
+        let col0 = (wx0 as f64 + f64::from(kp.x) + 0.5) * f;
+        let row0 = (wy0 as f64 + f64::from(kp.y) + 0.5) * f;
+        let (x_m, y_m) = t.pixel_to_map(col0, row0);
+        let Some(z) = ctx.dem.height_at(x_m, y_m) else {
+            st.dropped_no_height += 1;
+            continue;
+        };
+        let mf = MapFeature {
+            x_m,
+            y_m,
+            z_amsl_m: z,
+            scale_m: (f64::from(kp.scale) * t.pixel_size().0 * f) as f32,
+            response: kp.response,
+            laplacian: kp.laplacian,
+            level: ctx.level as u8, // ok: <= 12 levels
+        };
+        writer.push(ctx.level, &mf, feats.descriptor(i), ctx.source)?;
+        st.features += 1;
+    }
+    Ok(())
+}
+
+/// Grey values (8-bit scale) and validity of the level-`level` window with top-left level pixel
+/// `(x0, y0)` and size `w x h` (inside the level image). A level pixel is the mean of the valid
+/// level-0 luma values of its `2^level` block, missing (value 0) when under 3/4 are valid.
+pub fn level_window(
+    r: &Raster,
+    level: usize,
+    x0: usize,
+    y0: usize,
+    w: usize,
+    h: usize,
+) -> (Vec<f32>, Vec<bool>) {
+    let f = 1usize << level;
+    let mut grey = vec![0f32; w * h];
+    let mut valid = vec![false; w * h];
+    let need = (3 * f * f).div_ceil(4) as u32;
+    grey.par_chunks_mut(w)
+        .zip(valid.par_chunks_mut(w))
+        .enumerate()
+        .for_each_init(
+            || (vec![0f32; w * f], vec![0f32; w], vec![0u32; w]),
+            |(row, sum, cnt), (yy, (g_out, v_out))| {
+                sum.iter_mut().for_each(|v| *v = 0.0);
+                cnt.iter_mut().for_each(|v| *v = 0);
+                for j in 0..f {
+                    luma_row(r, (y0 + yy) * f + j, x0 * f, row);
+                    for (i, v) in row.iter().enumerate() {
+                        if !v.is_nan() {
+                            sum[i / f] += v;
+                            cnt[i / f] += 1;
+                        }
+                    }
+                }
+                for i in 0..w {
+                    if cnt[i] >= need {
+                        g_out[i] = sum[i] / cnt[i] as f32;
+                        v_out[i] = true;
+                    }
+                }
+            },
+        );
+    (grey, valid)
+}
+
+/// Luma of level-0 pixels `c0 .. c0 + out.len()` of `row`, NaN where a used band is missing.
+fn luma_row(r: &Raster, row: usize, c0: usize, out: &mut [f32]) {
+    let bands = r.bands();
+    let start = (row * r.width() + c0) * bands;
+    let n = out.len();
+    let nodata = r.nodata();
+    let rgb = bands >= 3;
+    macro_rules! conv {
+        ($v:expr, $scale:expr) => {{
+            let px = &$v[start..start + n * bands];
+            for (o, p) in out.iter_mut().zip(px.chunks_exact(bands)) {
+                let miss = |s: f64| s.is_nan() || nodata == Some(s);
+                *o = if rgb {
+                    let (a, b, c) = (f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+                    if miss(a) || miss(b) || miss(c) {
+                        f32::NAN
+                    } else {
+                        (LUMA[0] * a as f32 + LUMA[1] * b as f32 + LUMA[2] * c as f32) * $scale
+                    }
+                } else {
+                    let a = f64::from(p[0]);
+                    if miss(a) { f32::NAN } else { a as f32 * $scale }
+                };
+            }
+        }};
+    }
+    match r.data() {
+        RasterData::U8(v) => conv!(v, 1.0f32),
+        RasterData::U16(v) => conv!(v, 255.0f32 / 65535.0),
+        RasterData::F32(v) => conv!(v, 1.0f32),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geo::raster::GeoTransform;
+    use crate::map::ReferenceMap;
+
+    const UTM: Crs = Crs::Utm {
+        zone: 14,
+        north: true,
+    };
+
+    fn write_tif(
+        path: &Path,
+        w: usize,
+        h: usize,
+        px_m: f64,
+        x0: f64,
+        y0: f64,
+        f: impl Fn(usize, usize) -> u8,
+    ) {
+        // Minimal GeoTIFF writer via the tiff crate (1 band u8, UTM 14N, pixel-is-area).
+        use tiff::encoder::{TiffEncoder, colortype};
+        use tiff::tags::Tag;
+        let data: Vec<u8> = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| f(x, y))
+            .collect();
+        let file = std::fs::File::create(path).unwrap();
+        let mut enc = TiffEncoder::new(file).unwrap();
+        let mut img = enc
+            .new_image::<colortype::Gray8>(w as u32, h as u32)
+            .unwrap();
+        img.encoder()
+            .write_tag(Tag::ModelPixelScaleTag, &[px_m, px_m, 0.0][..])
+            .unwrap();
+        img.encoder()
+            .write_tag(Tag::ModelTiepointTag, &[0.0, 0.0, 0.0, x0, y0, 0.0][..])
+            .unwrap();
+        // GeoKeyDirectory: version 1.1.0, 3 keys: model type projected, raster pixel-is-area, EPSG 32614.
+        let keys: [u16; 16] = [1, 1, 0, 3, 1024, 0, 1, 1, 1025, 0, 1, 1, 3072, 0, 1, 32614];
+        img.encoder()
+            .write_tag(Tag::GeoKeyDirectoryTag, &keys[..])
+            .unwrap();
+        img.write_data(&data).unwrap();
+    }
+
+    #[test]
+    fn level_window_averages_blocks_and_marks_holes() {
+        let gt = GeoTransform::north_up(0.0, 0.0, 1.0, 1.0).unwrap();
+        let data: Vec<u8> = (0..8 * 4).map(|i| (i % 8) as u8 * 10 + 1).collect();
+        let mut d = data.clone();
+        d[9] = 0; // one nodata pixel in block (0..2, 0..2) of row 1 -> 3/4 valid, still valid
+        d[2] = 0;
+        d[3] = 0;
+        d[10] = 0; // block (2..4) rows 0-1: 3 of 4 missing -> missing
+        let r = Raster::new(8, 4, 1, RasterData::U8(d), gt, UTM, Some(0.0)).unwrap();
+        let (g, v) = level_window(&r, 1, 0, 0, 4, 2);
+        assert!(v[0] && !v[1] && v[2] && v[3]);
+        assert!((g[0] - (1.0 + 11.0 + 1.0) / 3.0).abs() < 1e-5, "{}", g[0]);
+        assert!((g[2] - (41.0 + 51.0) / 2.0).abs() < 1e-5);
+        // RGB luma, 16-bit scaled.
+        let r = Raster::new(
+            1,
+            1,
+            3,
+            RasterData::U16(vec![65535, 0, 65535]),
+            gt,
+            UTM,
+            None,
+        )
+        .unwrap();
+        let (g, _) = level_window(&r, 0, 0, 0, 1, 1);
+        assert!((g[0] - 255.0 * (0.299 + 0.114)).abs() < 1e-3);
+    }
+
+    /// A dark Gaussian blob at a known map coordinate: the feature lands on it within a fraction
+    /// of a pixel at every level (half-pixel conventions), with the constant height.
+    #[test]
+    fn blob_lands_at_its_map_coordinate() {
+        let dir = tempfile::tempdir().unwrap();
+        let tif = dir.path().join("blob.tif");
+        let (x0, y0, px) = (500_000.0, 4_000_000.0, 2.0);
+        // Blob centre at continuous pixel (100.3, 76.6) (off the pixel grid, so that no two SURF
+        // samples tie by symmetry) -> map coordinate:
+        let (bc, br) = (100.3, 76.6);
+        let (bx, by) = (x0 + bc * px, y0 - br * px);
+        write_tif(&tif, 200, 160, px, x0, y0, |x, y| {
+            let dx = x as f64 + 0.5 - bc;
+            let dy = y as f64 + 0.5 - br;
+            let s = 6.0;
+            (200.0 - 150.0 * (-(dx * dx + dy * dy) / (2.0 * s * s)).exp()) as u8
+        });
+        let mut spec = BuildSpec::new(vec![tif], HeightSource::ConstantAmsl(321.0));
+        spec.levels = Some(2);
+        spec.surf.n_octaves = 2;
+        spec.tile_px = 64;
+        let out = dir.path().join("blob.vnm");
+        let summary = build_map(&spec, &out, &mut |_| {}).unwrap();
+        assert_eq!(summary.header.levels.len(), 2);
+        let m = ReferenceMap::open(&out).unwrap();
+        for level in 0..2 {
+            let gsd = px * f64::from(1u32 << level);
+            let sel = m.select(
+                level,
+                bx - 10.0 * gsd,
+                by - 10.0 * gsd,
+                bx + 10.0 * gsd,
+                by + 10.0 * gsd,
+            );
+            let best = sel
+                .features
+                .iter()
+                .max_by(|a, b| a.response.total_cmp(&b.response))
+                .unwrap_or_else(|| panic!("no feature near the blob at level {level}"));
+            let err = (best.x_m - bx).hypot(best.y_m - by);
+            assert!(
+                err < 0.25 * gsd,
+                "level {level}: {best:?} vs ({bx}, {by}), err {err} m"
+            );
+            assert_eq!(best.laplacian, 1, "dark blob");
+            assert_eq!(best.z_amsl_m, 321.0);
+            assert!(best.scale_m > 0.0);
+        }
+    }
+
+    #[test]
+    fn margin_covers_the_largest_filter_and_is_step_aligned() {
+        let p = SurfParams::default();
+        let m = tile_margin_px(&p);
+        assert_eq!(m % 8, 0);
+        assert!(m >= 195 / 2 + 3 * 8);
+        assert!(m as f32 >= descriptor_radius_px(1.2 * 195.0 / 9.0, false));
+    }
+}

@@ -1,0 +1,841 @@
+//! The `.vnm` reference-map file: writing (streamed, bounded memory) and reading (memory mapped).
+//!
+//! Byte layout (all integers and floats little-endian; full description in `docs/map-format.md`):
+//!
+//! ```text
+//! 0   8  magic  "VNMAP\r\n\x1a"
+//! 8   4  u32    format version (FORMAT_VERSION)
+//! 12  4  u32    flags (0)
+//! 16  8  u64    header_len: bytes of the JSON header at offset 64
+//! 24  8  u64    data_offset: start of the level sections = 64 + header_len rounded up to 8
+//! 32  8  u64    file_len: total file size
+//! 40  16        reserved (0)
+//! 56  4  u32    CRC-32 (IEEE, crc32fast) of bytes [0, 56) followed by [60, file_len)
+//! 60  4         reserved (0)
+//! 64     JSON   MapHeader (serde_json), then zero padding to data_offset
+//! data_offset + LevelInfo offsets, per level:
+//!   cells_offset:       (n_cells + 1) u64, cumulative feature counts (row-major cells, row 0 north)
+//!   records_offset:     n_features records of RECORD_BYTES (see `encode_record`)
+//!   descriptors_offset: n_features x kind.len() i8 (quantised descriptors)
+//! ```
+//!
+//! Feature record (40 bytes): `x_m f64 @0, y_m f64 @8, z_amsl_m f64 @16, scale_m f32 @24,
+//! response f32 @28, desc_scale f32 @32, laplacian i8 @36, level u8 @37, source u8 @38 (ortho
+//! index), reserved u8 @39`. Descriptor value `d_i = q_i * desc_scale` (re-normalised to unit length
+//! on reading).
+//!
+//! Reading never trusts the file: every field is decoded with `from_le_bytes` from a bounds-checked
+//! slice (no casts of the mapped bytes, so alignment does not matter), the checksum is verified
+//! before the header is parsed, and every table is checked against the file size.
+
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Seek, SeekFrom, Write};
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+
+use memmap2::Mmap;
+
+use super::{IndexGrid, MapError, MapFeature, MapHeader, MapSelection};
+use crate::vision::DescriptorKind;
+
+/// File magic (PNG-style: a CR-LF and a ^Z catch text-mode transfers).
+pub const MAGIC: [u8; 8] = *b"VNMAP\r\n\x1a";
+/// The format version this code writes and reads.
+pub const FORMAT_VERSION: u32 = 1;
+/// Size of the fixed preamble.
+pub const PREAMBLE_BYTES: usize = 64;
+/// Size of one feature record.
+pub const RECORD_BYTES: usize = 40;
+/// Offset of the CRC field.
+const CRC_AT: usize = 56;
+/// Largest number of index cells per level accepted when opening (guards allocation).
+const MAX_CELLS: u64 = 1 << 32;
+
+fn align8(n: u64) -> u64 {
+    n.div_ceil(8) * 8
+}
+
+/// Quantises a descriptor to `i8` with one scale: `scale = max|d| / 127`, `q = round(d / scale)`.
+pub fn quantise(desc: &[f32], out: &mut [i8]) -> f32 {
+    let m = desc
+        .iter()
+        .filter(|v| v.is_finite())
+        .fold(0f32, |a, v| a.max(v.abs()));
+    if m <= 0.0 {
+        out.iter_mut().for_each(|q| *q = 0);
+        return 0.0;
+    }
+    let scale = m / 127.0;
+    for (q, &d) in out.iter_mut().zip(desc) {
+        let v = if d.is_finite() { d / scale } else { 0.0 };
+        *q = v.round().clamp(-127.0, 127.0) as i8; // ok: clamped to the i8 range
+    }
+    scale
+}
+
+/// Dequantises into `out` (`q.len()` values) and re-normalises to unit length.
+pub fn dequantise(q: &[i8], scale: f32, out: &mut [f32]) {
+    let mut n2 = 0f32;
+    for (o, &v) in out.iter_mut().zip(q) {
+        *o = f32::from(v) * scale;
+        n2 += *o * *o;
+    }
+    if n2 > 0.0 && n2.is_finite() {
+        let inv = 1.0 / n2.sqrt();
+        out.iter_mut().for_each(|o| *o *= inv);
+    }
+}
+
+/// Encodes one feature record (layout in the module doc).
+pub fn encode_record(f: &MapFeature, desc_scale: f32, source: u8) -> [u8; RECORD_BYTES] {
+    let mut b = [0u8; RECORD_BYTES];
+    b[0..8].copy_from_slice(&f.x_m.to_le_bytes());
+    b[8..16].copy_from_slice(&f.y_m.to_le_bytes());
+    b[16..24].copy_from_slice(&f.z_amsl_m.to_le_bytes());
+    b[24..28].copy_from_slice(&f.scale_m.to_le_bytes());
+    b[28..32].copy_from_slice(&f.response.to_le_bytes());
+    b[32..36].copy_from_slice(&desc_scale.to_le_bytes());
+    b[36] = f.laplacian.to_le_bytes()[0];
+    b[37] = f.level;
+    b[38] = source;
+    b
+}
+
+#[inline]
+fn rd8(b: &[u8], at: usize) -> [u8; 8] {
+    let mut a = [0u8; 8];
+    a.copy_from_slice(&b[at..at + 8]);
+    a
+}
+#[inline]
+fn rd4(b: &[u8], at: usize) -> [u8; 4] {
+    let mut a = [0u8; 4];
+    a.copy_from_slice(&b[at..at + 4]);
+    a
+}
+
+/// Decodes a record: the feature and its descriptor scale. `b` must hold `RECORD_BYTES`.
+pub fn decode_record(b: &[u8]) -> (MapFeature, f32) {
+    (
+        MapFeature {
+            x_m: f64::from_le_bytes(rd8(b, 0)),
+            y_m: f64::from_le_bytes(rd8(b, 8)),
+            z_amsl_m: f64::from_le_bytes(rd8(b, 16)),
+            scale_m: f32::from_le_bytes(rd4(b, 24)),
+            response: f32::from_le_bytes(rd4(b, 28)),
+            laplacian: i8::from_le_bytes([b[36]]),
+            level: b[37],
+        },
+        f32::from_le_bytes(rd4(b, 32)),
+    )
+}
+
+/// Checksum of a whole file image (everything but the CRC field).
+fn crc_of(bytes: &[u8]) -> u32 {
+    let mut h = crc32fast::Hasher::new();
+    h.update(&bytes[..CRC_AT]);
+    h.update(&bytes[CRC_AT + 4..]);
+    h.finalize()
+}
+
+// ------------------------------------------------------------------------------------------------
+// Writing
+
+/// Streams features into a temporary spill file (in production order) while counting them per
+/// index cell; [`SpillWriter::finish`] then lays out the final file cell by cell. Memory: the
+/// per-cell counters only.
+pub struct SpillWriter {
+    spill_path: PathBuf,
+    spill: BufWriter<File>,
+    kind: DescriptorKind,
+    grids: Vec<IndexGrid>,
+    counts: Vec<Vec<u64>>,
+    qbuf: Vec<i8>,
+}
+
+impl SpillWriter {
+    /// Creates the spill file `spill_path` for levels with the given index grids.
+    pub fn new(
+        spill_path: &Path,
+        kind: DescriptorKind,
+        grids: Vec<IndexGrid>,
+    ) -> Result<Self, MapError> {
+        let f = File::create(spill_path).map_err(|source| MapError::Io {
+            path: spill_path.to_path_buf(),
+            what: "cannot create the temporary feature file",
+            source,
+        })?;
+        let counts = grids.iter().map(|g| vec![0u64; g.n_cells()]).collect();
+        Ok(Self {
+            spill_path: spill_path.to_path_buf(),
+            spill: BufWriter::with_capacity(1 << 20, f),
+            kind,
+            grids,
+            counts,
+            qbuf: vec![0; kind.len()],
+        })
+    }
+
+    /// Number of features pushed to `level` so far.
+    pub fn count(&self, level: usize) -> u64 {
+        self.counts.get(level).map_or(0, |c| c.iter().sum())
+    }
+
+    /// Appends a feature with its (f32, `kind.len()` values) descriptor.
+    pub fn push(
+        &mut self,
+        level: usize,
+        f: &MapFeature,
+        desc: &[f32],
+        source: u8,
+    ) -> Result<(), MapError> {
+        let grid = self.grids[level]; // ok: levels are created by the builder
+        let cell = grid.cell_of(f.x_m, f.y_m);
+        self.counts[level][cell] += 1;
+        let scale = quantise(&desc[..self.kind.len()], &mut self.qbuf);
+        let rec = encode_record(f, scale, source);
+        let io = |source| MapError::Io {
+            path: self.spill_path.clone(),
+            what: "cannot write the temporary feature file",
+            source,
+        };
+        self.spill
+            .write_all(&(level as u32).to_le_bytes())
+            .map_err(io)?;
+        self.spill
+            .write_all(&(cell as u64).to_le_bytes())
+            .map_err(io)?;
+        self.spill.write_all(&rec).map_err(io)?;
+        let qb: Vec<u8> = self.qbuf.iter().map(|q| q.to_le_bytes()[0]).collect();
+        self.spill.write_all(&qb).map_err(io)?;
+        Ok(())
+    }
+
+    /// Writes the final file `out` (via `out.partial` and a rename). `header.levels` must list the
+    /// levels in order with `gsd_m`; counts, grids and offsets are filled in here. Returns the
+    /// header as written and the file size. The spill file is removed.
+    pub fn finish(
+        mut self,
+        mut header: MapHeader,
+        out: &Path,
+    ) -> Result<(MapHeader, u64), MapError> {
+        let spill_io = |what, source| MapError::Io {
+            path: self.spill_path.clone(),
+            what,
+            source,
+        };
+        self.spill
+            .flush()
+            .map_err(|e| spill_io("cannot write the temporary feature file", e))?;
+        let len = self.kind.len() as u64;
+        // Layout.
+        let mut off = 0u64;
+        let mut starts: Vec<Vec<u64>> = Vec::new();
+        for (l, grid) in self.grids.iter().enumerate() {
+            let counts = &self.counts[l];
+            let mut table = Vec::with_capacity(counts.len() + 1);
+            let mut acc = 0u64;
+            table.push(0);
+            for &c in counts {
+                acc += c;
+                table.push(acc);
+            }
+            let cells_offset = off;
+            off = align8(off + 8 * table.len() as u64);
+            let records_offset = off;
+            off = align8(off + RECORD_BYTES as u64 * acc);
+            let descriptors_offset = off;
+            off = align8(off + len * acc);
+            let info = header.levels.get_mut(l).ok_or(MapError::Param {
+                name: "levels",
+                reason: "header lists fewer levels than the index".into(),
+            })?;
+            info.n_features = acc;
+            info.grid = *grid;
+            info.cells_offset = cells_offset;
+            info.records_offset = records_offset;
+            info.descriptors_offset = descriptors_offset;
+            starts.push(table);
+        }
+        header.version = FORMAT_VERSION;
+        let json = serde_json::to_vec(&header).map_err(|e| MapError::Format {
+            path: out.to_path_buf(),
+            reason: format!("cannot encode the header: {e}"),
+        })?;
+        let data_offset = align8(PREAMBLE_BYTES as u64 + json.len() as u64);
+        let file_len = data_offset + off;
+
+        let partial = out.with_extension("vnm.partial");
+        let out_io = |what, source| MapError::Io {
+            path: partial.clone(),
+            what,
+            source,
+        };
+        let file = File::options()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .open(&partial)
+            .map_err(|e| out_io("cannot create the map file", e))?;
+        file.set_len(file_len)
+            .map_err(|e| out_io("cannot size the map file", e))?;
+        let mut pre = [0u8; PREAMBLE_BYTES];
+        pre[0..8].copy_from_slice(&MAGIC);
+        pre[8..12].copy_from_slice(&FORMAT_VERSION.to_le_bytes());
+        pre[16..24].copy_from_slice(&(json.len() as u64).to_le_bytes());
+        pre[24..32].copy_from_slice(&data_offset.to_le_bytes());
+        pre[32..40].copy_from_slice(&file_len.to_le_bytes());
+        let wr = |buf: &[u8], at: u64| {
+            file.write_all_at(buf, at)
+                .map_err(|e| out_io("cannot write the map file", e))
+        };
+        wr(&pre, 0)?;
+        wr(&json, PREAMBLE_BYTES as u64)?;
+        for (l, table) in starts.iter().enumerate() {
+            let bytes: Vec<u8> = table.iter().flat_map(|v| v.to_le_bytes()).collect();
+            wr(&bytes, data_offset + header.levels[l].cells_offset)?;
+        }
+        // Place the spilled features cell by cell.
+        let mut cursor: Vec<Vec<u64>> = starts.clone();
+        let spill = File::open(&self.spill_path)
+            .map_err(|e| spill_io("cannot reopen the temporary feature file", e))?;
+        let mut rd = BufReader::with_capacity(1 << 20, spill);
+        let item = 4 + 8 + RECORD_BYTES + len as usize;
+        let mut buf = vec![0u8; item];
+        let mut rec_run = Run::default();
+        let mut desc_run = Run::default();
+        loop {
+            match rd.read_exact(&mut buf) {
+                Ok(()) => {}
+                Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => break,
+                Err(e) => return Err(spill_io("cannot read the temporary feature file", e)),
+            }
+            let level = u32::from_le_bytes(rd4(&buf, 0)) as usize;
+            let cell = u64::from_le_bytes(rd8(&buf, 4)) as usize;
+            let info = &header.levels[level];
+            let idx = cursor[level][cell];
+            cursor[level][cell] += 1;
+            let rec_at = data_offset + info.records_offset + idx * RECORD_BYTES as u64;
+            let desc_at = data_offset + info.descriptors_offset + idx * len;
+            rec_run.put(&file, rec_at, &buf[12..12 + RECORD_BYTES], &partial)?;
+            desc_run.put(&file, desc_at, &buf[12 + RECORD_BYTES..], &partial)?;
+        }
+        rec_run.flush(&file, &partial)?;
+        desc_run.flush(&file, &partial)?;
+        drop(rd);
+        let _ = std::fs::remove_file(&self.spill_path);
+        // Checksum: stream the file once.
+        let mut h = crc32fast::Hasher::new();
+        let mut f2 = &file;
+        f2.seek(SeekFrom::Start(0))
+            .map_err(|e| out_io("cannot read back the map file", e))?;
+        let mut chunk = vec![0u8; 1 << 20];
+        let mut pos = 0u64;
+        loop {
+            let n = f2
+                .read(&mut chunk)
+                .map_err(|e| out_io("cannot read back the map file", e))?;
+            if n == 0 {
+                break;
+            }
+            // Hash the slice, skipping the CRC field when it falls inside this chunk.
+            let (a, b) = (pos, pos + n as u64);
+            let (c0, c1) = (CRC_AT as u64, CRC_AT as u64 + 4);
+            if b <= c0 || a >= c1 {
+                h.update(&chunk[..n]);
+            } else {
+                let s0 = (c0.saturating_sub(a)) as usize;
+                let s1 = ((c1 - a) as usize).min(n);
+                h.update(&chunk[..s0]);
+                h.update(&chunk[s1..n]);
+            }
+            pos = b;
+        }
+        wr(&h.finalize().to_le_bytes(), CRC_AT as u64)?;
+        file.sync_all()
+            .map_err(|e| out_io("cannot flush the map file", e))?;
+        drop(file);
+        std::fs::rename(&partial, out).map_err(|source| MapError::Io {
+            path: out.to_path_buf(),
+            what: "cannot move the finished map into place",
+            source,
+        })?;
+        Ok((header, file_len))
+    }
+}
+
+impl Drop for SpillWriter {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.spill_path);
+    }
+}
+
+/// Coalesces writes to consecutive offsets into one `write_all_at` (features of a cell arrive in
+/// runs, e.g. a whole tile at once).
+#[derive(Default)]
+struct Run {
+    at: u64,
+    buf: Vec<u8>,
+}
+
+impl Run {
+    fn put(&mut self, f: &File, at: u64, bytes: &[u8], path: &Path) -> Result<(), MapError> {
+        if self.buf.is_empty() || at != self.at + self.buf.len() as u64 || self.buf.len() > 1 << 20
+        {
+            self.flush(f, path)?;
+            self.at = at;
+        }
+        self.buf.extend_from_slice(bytes);
+        Ok(())
+    }
+    fn flush(&mut self, f: &File, path: &Path) -> Result<(), MapError> {
+        if !self.buf.is_empty() {
+            f.write_all_at(&self.buf, self.at)
+                .map_err(|source| MapError::Io {
+                    path: path.to_path_buf(),
+                    what: "cannot write the map file",
+                    source,
+                })?;
+            self.buf.clear();
+        }
+        Ok(())
+    }
+}
+
+// ------------------------------------------------------------------------------------------------
+// Reading
+
+/// An opened, memory-mapped reference map.
+#[derive(Debug)]
+pub struct ReferenceMap {
+    path: PathBuf,
+    mmap: Mmap,
+    header: MapHeader,
+    data_offset: usize,
+}
+
+impl ReferenceMap {
+    /// Opens and validates a map file: magic, version, sizes, checksum, header, tables. Errors
+    /// name the file and what is wrong; a malformed file never panics.
+    pub fn open(path: &Path) -> Result<Self, MapError> {
+        let file = File::open(path).map_err(|source| MapError::Io {
+            path: path.to_path_buf(),
+            what: "cannot open the map file",
+            source,
+        })?;
+        // SAFETY: the map is read-only for us; the file must not be truncated or rewritten by
+        // another process while it is mapped (maps are written to a temporary name and renamed
+        // into place, so a rebuild replaces the directory entry, not these pages).
+        let mmap = unsafe { Mmap::map(&file) }.map_err(|source| MapError::Io {
+            path: path.to_path_buf(),
+            what: "cannot memory-map the map file",
+            source,
+        })?;
+        let (header, data_offset) = validate(&mmap).map_err(|reason| MapError::Format {
+            path: path.to_path_buf(),
+            reason,
+        })?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            mmap,
+            header,
+            data_offset,
+        })
+    }
+
+    /// The file this map was opened from.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// The header.
+    pub fn header(&self) -> &MapHeader {
+        &self.header
+    }
+
+    /// Features of `level` whose `(x_m, y_m)` lies inside the closed rectangle, via the spatial
+    /// index (only cells overlapping the rectangle are read). An unknown level or an empty/NaN
+    /// rectangle gives an empty selection. Features are in file order (cell by cell, row 0 =
+    /// north first).
+    pub fn select(
+        &self,
+        level: usize,
+        min_x_m: f64,
+        min_y_m: f64,
+        max_x_m: f64,
+        max_y_m: f64,
+    ) -> MapSelection {
+        let kind = self.header.surf.descriptor;
+        let mut sel = MapSelection {
+            features: Vec::new(),
+            descriptors: Vec::new(),
+            kind,
+        };
+        let Some(info) = self.header.levels.get(level) else {
+            return sel;
+        };
+        if !(min_x_m <= max_x_m && min_y_m <= max_y_m) {
+            return sel;
+        }
+        let g = &info.grid;
+        let (c0, c1) = (g.col_of(min_x_m), g.col_of(max_x_m));
+        let (r0, r1) = (g.row_of(max_y_m), g.row_of(min_y_m));
+        let base = self.data_offset;
+        let cells = &self.mmap[base + info.cells_offset as usize..];
+        let recs = &self.mmap[base + info.records_offset as usize..];
+        let descs = &self.mmap[base + info.descriptors_offset as usize..];
+        let (len, stride) = (kind.len(), kind.stride());
+        let mut q = vec![0i8; len];
+        for r in r0..=r1 {
+            for c in c0..=c1 {
+                let cell = r * g.cols as usize + c;
+                let start = u64::from_le_bytes(rd8(cells, 8 * cell)) as usize;
+                let end = u64::from_le_bytes(rd8(cells, 8 * cell + 8)) as usize;
+                for i in start..end {
+                    let rb = &recs[i * RECORD_BYTES..(i + 1) * RECORD_BYTES];
+                    let x = f64::from_le_bytes(rd8(rb, 0));
+                    let y = f64::from_le_bytes(rd8(rb, 8));
+                    if !(x >= min_x_m && x <= max_x_m && y >= min_y_m && y <= max_y_m) {
+                        continue;
+                    }
+                    let (f, scale) = decode_record(rb);
+                    sel.features.push(f);
+                    for (k, v) in descs[i * len..(i + 1) * len].iter().enumerate() {
+                        q[k] = i8::from_le_bytes([*v]);
+                    }
+                    let at = sel.descriptors.len();
+                    sel.descriptors.resize(at + stride, 0.0);
+                    dequantise(&q, scale, &mut sel.descriptors[at..at + len]);
+                }
+            }
+        }
+        sel
+    }
+
+    /// Every feature of `level` (brute force, for tests and tools).
+    pub fn all_features(&self, level: usize) -> Vec<MapFeature> {
+        let Some(info) = self.header.levels.get(level) else {
+            return Vec::new();
+        };
+        let base = self.data_offset + info.records_offset as usize;
+        (0..info.n_features as usize)
+            .map(|i| {
+                decode_record(&self.mmap[base + i * RECORD_BYTES..base + (i + 1) * RECORD_BYTES]).0
+            })
+            .collect()
+    }
+}
+
+/// Checks the whole file image; returns the parsed header and the data offset, or the reason.
+fn validate(b: &[u8]) -> Result<(MapHeader, usize), String> {
+    if b.len() < PREAMBLE_BYTES {
+        return Err(format!(
+            "truncated: {} bytes, the preamble alone has {PREAMBLE_BYTES}",
+            b.len()
+        ));
+    }
+    if b[0..8] != MAGIC {
+        return Err(format!(
+            "wrong magic {:?} (expected {:?}): not a .vnm map",
+            String::from_utf8_lossy(&b[0..8]),
+            String::from_utf8_lossy(&MAGIC)
+        ));
+    }
+    let version = u32::from_le_bytes(rd4(b, 8));
+    if version != FORMAT_VERSION {
+        return Err(format!(
+            "format version {version}, this visnav reads version {FORMAT_VERSION} (rebuild the map with `visnav map build`)"
+        ));
+    }
+    let header_len = u64::from_le_bytes(rd8(b, 16));
+    let data_offset = u64::from_le_bytes(rd8(b, 24));
+    let file_len = u64::from_le_bytes(rd8(b, 32));
+    if file_len != b.len() as u64 {
+        return Err(format!(
+            "the preamble records {file_len} bytes but the file has {} (truncated or appended to)",
+            b.len()
+        ));
+    }
+    let expect_data = PREAMBLE_BYTES as u64 + header_len;
+    if header_len > file_len || data_offset != align8(expect_data) || data_offset > file_len {
+        return Err(format!(
+            "inconsistent preamble: header_len {header_len}, data_offset {data_offset}, file_len {file_len}"
+        ));
+    }
+    let stored = u32::from_le_bytes(rd4(b, CRC_AT));
+    let actual = crc_of(b);
+    if stored != actual {
+        return Err(format!(
+            "checksum mismatch (stored {stored:08x}, computed {actual:08x}): the file is corrupted"
+        ));
+    }
+    let hdr_bytes = &b[PREAMBLE_BYTES..PREAMBLE_BYTES + header_len as usize];
+    let header: MapHeader =
+        serde_json::from_slice(hdr_bytes).map_err(|e| format!("header JSON: {e}"))?;
+    if header.version != version {
+        return Err(format!(
+            "header version {} differs from the preamble's {version}",
+            header.version
+        ));
+    }
+    header
+        .surf
+        .validate()
+        .map_err(|e| format!("header SURF parameters: {e}"))?;
+    let data_len = file_len - data_offset;
+    let data = &b[data_offset as usize..];
+    let len = header.surf.descriptor.len() as u64;
+    for (l, info) in header.levels.iter().enumerate() {
+        let g = &info.grid;
+        if !(g.cell_m.is_finite() && g.cell_m > 0.0)
+            || !(g.origin_x_m.is_finite() && g.origin_y_m.is_finite())
+            || g.cols == 0
+            || g.rows == 0
+            || g.cols as u64 * g.rows as u64 > MAX_CELLS
+        {
+            return Err(format!("level {l}: invalid index grid {g:?}"));
+        }
+        if !(info.gsd_m.is_finite() && info.gsd_m > 0.0) {
+            return Err(format!("level {l}: invalid gsd_m {}", info.gsd_m));
+        }
+        let n = info.n_features;
+        let n_cells = g.n_cells() as u64;
+        let sections = [
+            (
+                "cell table",
+                info.cells_offset,
+                (n_cells + 1).checked_mul(8),
+            ),
+            (
+                "records",
+                info.records_offset,
+                n.checked_mul(RECORD_BYTES as u64),
+            ),
+            ("descriptors", info.descriptors_offset, n.checked_mul(len)),
+        ];
+        for (name, at, size) in sections {
+            let end = size.and_then(|s| at.checked_add(s));
+            if end.is_none_or(|e| e > data_len) {
+                return Err(format!(
+                    "level {l}: {name} at {at} (+{size:?} bytes) exceed the {data_len} data bytes (truncated?)"
+                ));
+            }
+        }
+        let cells = &data[info.cells_offset as usize..];
+        let mut prev = 0u64;
+        for k in 0..=n_cells as usize {
+            let v = u64::from_le_bytes(rd8(cells, 8 * k));
+            if (k == 0 && v != 0) || v < prev || v > n {
+                return Err(format!(
+                    "level {l}: cell table entry {k} = {v} is not a cumulative count (previous {prev}, {n} features)"
+                ));
+            }
+            prev = v;
+        }
+        if prev != n {
+            return Err(format!(
+                "level {l}: cell table ends at {prev}, header says {n} features"
+            ));
+        }
+    }
+    Ok((header, data_offset as usize))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geo::Crs;
+    use crate::geo::raster::Bounds;
+    use crate::map::{HeightInfo, LevelInfo};
+    use crate::vision::SurfParams;
+
+    pub(crate) fn tiny_header(levels: usize) -> MapHeader {
+        MapHeader {
+            version: FORMAT_VERSION,
+            crs: Crs::Utm {
+                zone: 14,
+                north: true,
+            },
+            surf: SurfParams {
+                upright: true,
+                ..SurfParams::default()
+            },
+            levels: (0..levels)
+                .map(|l| LevelInfo {
+                    gsd_m: 5.0 * f64::from(1u32 << l),
+                    n_features: 0,
+                    grid: IndexGrid {
+                        origin_x_m: 0.0,
+                        origin_y_m: 0.0,
+                        cell_m: 1.0,
+                        cols: 1,
+                        rows: 1,
+                    },
+                    cells_offset: 0,
+                    records_offset: 0,
+                    descriptors_offset: 0,
+                })
+                .collect(),
+            bounds: Bounds {
+                min_x_m: 1000.0,
+                min_y_m: 2000.0,
+                max_x_m: 1100.0,
+                max_y_m: 2100.0,
+            },
+            height: HeightInfo::Constant { amsl_m: 580.0 },
+            vertical_datum: "constant".into(),
+            orthos: vec![],
+            tile_px: 64,
+            max_features_per_tile: 100,
+            built_unix_s: 0,
+            built_by: "test".into(),
+        }
+    }
+
+    /// Writes a map with pseudo-random features in [1000, 1100] x [2000, 2100] on 2 levels.
+    fn tiny_map(dir: &Path, n: usize) -> (PathBuf, Vec<(MapFeature, Vec<f32>)>) {
+        let grid = IndexGrid {
+            origin_x_m: 1000.0,
+            origin_y_m: 2100.0,
+            cell_m: 30.0,
+            cols: 4,
+            rows: 4,
+        };
+        let kind = DescriptorKind::Surf64;
+        let mut w = SpillWriter::new(&dir.join("t.spill"), kind, vec![grid, grid]).unwrap();
+        let mut rng = 12345u64;
+        let mut next = || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            (rng >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut all = Vec::new();
+        for i in 0..n {
+            let level = (i % 2) as u8;
+            let f = MapFeature {
+                x_m: 1000.0 + 100.0 * next(),
+                y_m: 2000.0 + 100.0 * next(),
+                z_amsl_m: 500.0 + next(),
+                scale_m: 3.0,
+                response: 1000.0 * next() as f32,
+                laplacian: if i % 3 == 0 { -1 } else { 1 },
+                level,
+            };
+            let mut d: Vec<f32> = (0..64).map(|_| next() as f32 - 0.5).collect();
+            let n2: f32 = d.iter().map(|v| v * v).sum::<f32>().sqrt();
+            d.iter_mut().for_each(|v| *v /= n2);
+            w.push(usize::from(level), &f, &d, 0).unwrap();
+            all.push((f, d));
+        }
+        let path = dir.join("t.vnm");
+        w.finish(tiny_header(2), &path).unwrap();
+        (path, all)
+    }
+
+    #[test]
+    fn round_trip_and_select_matches_brute_force() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, all) = tiny_map(dir.path(), 500);
+        let m = ReferenceMap::open(&path).unwrap();
+        assert_eq!(m.header().n_features(), 500);
+        assert_eq!(m.header().levels[0].n_features, 250);
+        for level in 0..2 {
+            for rect in [
+                (1010.0, 2020.0, 1050.0, 2070.0),
+                (900.0, 1900.0, 1200.0, 2200.0),
+                (1031.0, 2031.0, 1032.0, 2099.0),
+            ] {
+                let sel = m.select(level, rect.0, rect.1, rect.2, rect.3);
+                let mut expect: Vec<&(MapFeature, Vec<f32>)> = all
+                    .iter()
+                    .filter(|(f, _)| {
+                        usize::from(f.level) == level
+                            && f.x_m >= rect.0
+                            && f.x_m <= rect.2
+                            && f.y_m >= rect.1
+                            && f.y_m <= rect.3
+                    })
+                    .collect();
+                assert_eq!(sel.len(), expect.len(), "{rect:?}");
+                assert_eq!(sel.descriptors.len(), sel.len() * 64);
+                expect.sort_by(|a, b| a.0.x_m.total_cmp(&b.0.x_m));
+                let mut got: Vec<usize> = (0..sel.len()).collect();
+                got.sort_by(|&a, &b| sel.features[a].x_m.total_cmp(&sel.features[b].x_m));
+                for (e, &g) in expect.iter().zip(&got) {
+                    assert_eq!(e.0, sel.features[g]);
+                    let d = sel.descriptor(g);
+                    let err: f32 = d.iter().zip(&e.1).map(|(a, b)| (a - b).abs()).sum();
+                    assert!(err < 64.0 * 0.01, "descriptor error {err}");
+                }
+            }
+        }
+        assert!(m.select(5, 0.0, 0.0, 1e9, 1e9).is_empty());
+        assert!(m.select(0, f64::NAN, 0.0, 1e9, 1e9).is_empty());
+        assert!(m.select(0, 1100.0, 0.0, 1000.0, 1e9).is_empty());
+    }
+
+    #[test]
+    fn quantisation_round_trip() {
+        let d: Vec<f32> = (0..64).map(|i| ((i as f32) * 0.37).sin()).collect();
+        let n: f32 = d.iter().map(|v| v * v).sum::<f32>().sqrt();
+        let d: Vec<f32> = d.iter().map(|v| v / n).collect();
+        let mut q = vec![0i8; 64];
+        let s = quantise(&d, &mut q);
+        let mut back = vec![0f32; 64];
+        dequantise(&q, s, &mut back);
+        for (a, b) in d.iter().zip(&back) {
+            assert!((a - b).abs() <= s, "{a} vs {b}");
+        }
+        let z = quantise(&[0.0; 64], &mut q);
+        assert_eq!(z, 0.0);
+        dequantise(&q, z, &mut back);
+        assert!(back.iter().all(|v| *v == 0.0));
+    }
+
+    /// Truncations and byte flips anywhere give a `Format` error naming the file, never a panic
+    /// and never a silently accepted file.
+    #[test]
+    fn corrupted_files_are_rejected() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, _) = tiny_map(dir.path(), 60);
+        let good = std::fs::read(&path).unwrap();
+        let bad = dir.path().join("bad.vnm");
+        let check = |bytes: &[u8], what: &str| {
+            std::fs::write(&bad, bytes).unwrap();
+            match ReferenceMap::open(&bad) {
+                Err(MapError::Format { path, reason }) => {
+                    assert_eq!(path, bad, "{what}");
+                    assert!(!reason.is_empty());
+                    reason
+                }
+                other => panic!("{what}: expected a format error, got {other:?}"),
+            }
+        };
+        for cut in [0, 7, 63, 64, 100, good.len() / 2, good.len() - 1] {
+            check(&good[..cut], &format!("truncated at {cut}"));
+        }
+        let step = (good.len() / 97).max(1);
+        for at in (0..good.len()).step_by(step) {
+            let mut b = good.clone();
+            b[at] ^= 0x5a;
+            check(&b, &format!("flipped byte {at}"));
+        }
+        let mut b = good.clone();
+        b[8..12].copy_from_slice(&2u32.to_le_bytes());
+        let r = check(&b, "version");
+        assert!(r.contains("version 2"), "{r}");
+        let mut b = good.clone();
+        b[0] = b'X';
+        assert!(check(&b, "magic").contains("magic"));
+        let mut b = good.clone();
+        b.extend_from_slice(&[0; 8]);
+        check(&b, "appended");
+        // A missing file: an Io error naming it.
+        match ReferenceMap::open(&dir.path().join("absent.vnm")) {
+            Err(e @ MapError::Io { .. }) => assert!(e.to_string().contains("absent.vnm")),
+            other => panic!("{other:?}"),
+        }
+    }
+}

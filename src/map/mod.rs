@@ -1,0 +1,280 @@
+//! The reference map: SURF features of georeferenced orthophotos with 3-D world coordinates,
+//! built once offline (`visnav map build`) and memory-mapped by the fix pipeline.
+//!
+//! * `build`: [`build_map`] tiles the orthophoto(s) level by level, extracts SURF per tile, attaches
+//!   DEM heights and streams the features into a `.vnm` file with bounded memory.
+//! * `format`: the `.vnm` byte layout ([`ReferenceMap::open`], [`ReferenceMap::select`]); the full
+//!   layout is documented in `docs/map-format.md`.
+//!
+//! # Conventions
+//! * Pyramid levels: level 0 has the orthophoto's own pixel size `gsd_m`; level `L` has pixel size
+//!   `gsd_m * 2^L`, and its pixel `(i, j)` is the mean of the `2^L x 2^L` block of level-0 pixels
+//!   `[i 2^L, (i+1) 2^L) x [j 2^L, (j+1) 2^L)` (area averaging, the same as `L` successive 2 x 2
+//!   box averages). Level `L` is `floor(W / 2^L) x floor(H / 2^L)` pixels (a partial block at the
+//!   right/bottom edge is dropped).
+//! * Grey: Rec. 601 luma `0.299 R + 0.587 G + 0.114 B` of bands 1-3 (a 4th band such as NIR is
+//!   ignored), the single band of a 1-2-band image; on the 8-bit scale (16-bit samples are scaled
+//!   by 255/65535), as `vision::GrayImage::from_dynamic` and the renderer's `ColourMode::Grey`.
+//!   A pixel with a missing sample (nodata/NaN) in any used band is missing; a level pixel is
+//!   missing when under 3/4 of its block is valid.
+//! * Pixel coordinates: SURF keypoints have pixel centres at integer coordinates, rasters are
+//!   GDAL pixel-is-area (centre of pixel `i` at `i + 0.5`). A keypoint at level-`L` SURF coordinate
+//!   `(u, v)` therefore lies at level-0 continuous raster coordinate `((u + 0.5) 2^L, (v + 0.5) 2^L)`,
+//!   which the ortho's geotransform maps to `(x_m, y_m)`.
+//! * Heights: `z_amsl_m` is the DEM's bilinear height at `(x_m, y_m)` in the DEM's vertical datum
+//!   (orthometric/AMSL for the DEMs visnav uses, see `docs/conventions.md`), or the constant ground
+//!   height. Keypoints without a DEM height are dropped and counted.
+//! * Scale: `scale_m = KeyPoint::scale * gsd_m * 2^L` (SURF's `s = 1.2 L / 9`, in ground metres).
+//! * Descriptors are stored as `i8` with one `f32` scale per feature (`d = q * scale`, `q` in
+//!   `-127..=127`, `scale = max|d| / 127`), then re-normalised to unit length when read.
+
+pub mod build;
+pub mod format;
+
+use std::path::PathBuf;
+
+use serde::{Deserialize, Serialize};
+
+use crate::geo::Crs;
+use crate::geo::raster::Bounds;
+use crate::vision::{DescriptorKind, SurfParams};
+
+pub use build::{BuildProgress, BuildSpec, BuildSummary, HeightSource, build_map};
+pub use format::{FORMAT_VERSION, MAGIC, ReferenceMap};
+
+/// Errors building or opening a reference map. Every variant names the file involved.
+#[derive(Debug, thiserror::Error)]
+pub enum MapError {
+    /// Reading or writing a file failed.
+    #[error("{}: {what}: {source}", .path.display())]
+    Io {
+        path: PathBuf,
+        what: &'static str,
+        source: std::io::Error,
+    },
+    /// An orthophoto or DEM GeoTIFF could not be loaded.
+    #[error(transparent)]
+    GeoTiff(#[from] crate::geo::geotiff::GeoTiffError),
+    /// The DEM is unusable.
+    #[error("{}: DEM: {source}", .path.display())]
+    Dem {
+        path: PathBuf,
+        source: crate::geo::dem::DemError,
+    },
+    /// An input raster cannot be used for a map (rotated, non-square pixels, CRS mismatch, ...).
+    #[error("{}: {reason}", .path.display())]
+    Input { path: PathBuf, reason: String },
+    /// The build parameters are invalid.
+    #[error("invalid map build parameter `{name}`: {reason}")]
+    Param { name: &'static str, reason: String },
+    /// A `.vnm` file is malformed: wrong magic, unsupported version, truncated, bad checksum,
+    /// inconsistent tables.
+    #[error("{}: not a valid visnav map: {reason}", .path.display())]
+    Format { path: PathBuf, reason: String },
+}
+
+/// One map feature (decoded from the file).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MapFeature {
+    /// Map CRS grid easting of the keypoint centre, metres.
+    pub x_m: f64,
+    /// Map CRS grid northing of the keypoint centre, metres.
+    pub y_m: f64,
+    /// Terrain height at `(x_m, y_m)`: the DEM's datum (orthometric/AMSL) or the constant height.
+    pub z_amsl_m: f64,
+    /// SURF scale `s` on the ground, metres (`KeyPoint::scale * level gsd`).
+    pub scale_m: f32,
+    /// SURF `det(H)` response at the level it was detected.
+    pub response: f32,
+    /// Sign of the Laplacian: -1 bright blob, +1 dark blob.
+    pub laplacian: i8,
+    /// Pyramid level (0 = the ortho's own resolution).
+    pub level: u8,
+}
+
+/// The spatial index grid of one level: cells of `cell_m` x `cell_m` metres, row 0 at the top
+/// (north). Cell `(c, r)` covers `x in [origin_x_m + c cell_m, origin_x_m + (c+1) cell_m)`,
+/// `y in (origin_y_m - (r+1) cell_m, origin_y_m - r cell_m]`; points outside are clamped into the
+/// border cells.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct IndexGrid {
+    /// West edge of column 0, metres.
+    pub origin_x_m: f64,
+    /// North edge of row 0, metres.
+    pub origin_y_m: f64,
+    /// Cell side, metres.
+    pub cell_m: f64,
+    pub cols: u32,
+    pub rows: u32,
+}
+
+impl IndexGrid {
+    /// Number of cells.
+    pub fn n_cells(&self) -> usize {
+        self.cols as usize * self.rows as usize
+    }
+    /// Column of easting `x_m`, clamped to the grid (NaN maps to 0).
+    pub fn col_of(&self, x_m: f64) -> usize {
+        clamp_index((x_m - self.origin_x_m) / self.cell_m, self.cols)
+    }
+    /// Row of northing `y_m`, clamped to the grid (NaN maps to 0).
+    pub fn row_of(&self, y_m: f64) -> usize {
+        clamp_index((self.origin_y_m - y_m) / self.cell_m, self.rows)
+    }
+    /// Cell index (row-major) of a point.
+    pub fn cell_of(&self, x_m: f64, y_m: f64) -> usize {
+        self.row_of(y_m) * self.cols as usize + self.col_of(x_m)
+    }
+}
+
+fn clamp_index(f: f64, n: u32) -> usize {
+    let f = f.floor();
+    if f >= 0.0 {
+        (f as u64).min(u64::from(n.saturating_sub(1))) as usize // ok: n >= 1, saturating cast
+    } else {
+        0
+    }
+}
+
+/// One pyramid level of the map.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LevelInfo {
+    /// Pixel size of this level on the ground, metres (`gsd_m` of level 0 times `2^level`).
+    pub gsd_m: f64,
+    /// Number of features stored for this level.
+    pub n_features: u64,
+    /// Spatial index geometry.
+    pub grid: IndexGrid,
+    /// File layout: byte offsets from the data start (see `docs/map-format.md`).
+    pub cells_offset: u64,
+    pub records_offset: u64,
+    pub descriptors_offset: u64,
+}
+
+/// Where the feature heights come from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum HeightInfo {
+    /// A gridded DEM (file name as given, height range over its valid samples, metres).
+    Dem {
+        file: String,
+        min_m: f64,
+        max_m: f64,
+    },
+    /// A constant ground height, metres AMSL.
+    Constant { amsl_m: f64 },
+}
+
+/// One source orthophoto.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct OrthoInfo {
+    /// File name as given to the build.
+    pub file: String,
+    pub width_px: u64,
+    pub height_px: u64,
+    pub bands: u32,
+    /// Ground pixel size, metres.
+    pub pixel_size_m: f64,
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(remote = "Bounds")]
+struct BoundsDef {
+    min_x_m: f64,
+    min_y_m: f64,
+    max_x_m: f64,
+    max_y_m: f64,
+}
+
+/// The map file header (stored as JSON after the fixed preamble).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MapHeader {
+    /// Format version ([`FORMAT_VERSION`]).
+    pub version: u32,
+    /// Horizontal CRS of all coordinates.
+    pub crs: Crs,
+    /// SURF parameters the features were extracted with (apply the same to camera frames).
+    pub surf: SurfParams,
+    /// Pyramid levels, finest first.
+    pub levels: Vec<LevelInfo>,
+    /// Union of the orthophotos' outer pixel edges, metres.
+    #[serde(with = "BoundsDef")]
+    pub bounds: Bounds,
+    /// Height source.
+    pub height: HeightInfo,
+    /// Vertical datum of `z_amsl_m`, free text (e.g. "DEM datum (orthometric, AMSL)").
+    pub vertical_datum: String,
+    /// Source orthophotos.
+    pub orthos: Vec<OrthoInfo>,
+    /// Tile core size in level pixels and per-tile feature cap used by the build.
+    pub tile_px: u32,
+    pub max_features_per_tile: u32,
+    /// Build time, seconds since the Unix epoch (UTC).
+    pub built_unix_s: u64,
+    /// visnav version that built the file.
+    pub built_by: String,
+}
+
+impl MapHeader {
+    /// Descriptor variant of every feature.
+    pub fn descriptor_kind(&self) -> DescriptorKind {
+        self.surf.descriptor
+    }
+    /// Total number of features over all levels.
+    pub fn n_features(&self) -> u64 {
+        self.levels.iter().map(|l| l.n_features).sum()
+    }
+}
+
+/// Features selected from one level, with dequantised descriptors.
+#[derive(Clone, Debug)]
+pub struct MapSelection {
+    pub features: Vec<MapFeature>,
+    /// Row-major, `kind.stride()` floats per row, zero padded beyond `kind.len()` (the layout of
+    /// `vision::Features::descriptors_padded`), unit length.
+    pub descriptors: Vec<f32>,
+    pub kind: DescriptorKind,
+}
+
+impl MapSelection {
+    /// Number of features.
+    pub fn len(&self) -> usize {
+        self.features.len()
+    }
+    /// True when nothing was selected.
+    pub fn is_empty(&self) -> bool {
+        self.features.is_empty()
+    }
+    /// Descriptor `i` (`kind.len()` values).
+    pub fn descriptor(&self, i: usize) -> &[f32] {
+        let k = self.kind;
+        &self.descriptors[i * k.stride()..i * k.stride() + k.len()]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn index_grid_clamps_and_orders_rows_north_first() {
+        let g = IndexGrid {
+            origin_x_m: 100.0,
+            origin_y_m: 1000.0,
+            cell_m: 10.0,
+            cols: 3,
+            rows: 2,
+        };
+        assert_eq!(g.col_of(100.0), 0);
+        assert_eq!(g.col_of(109.999), 0);
+        assert_eq!(g.col_of(110.0), 1);
+        assert_eq!(g.col_of(1e9), 2);
+        assert_eq!(g.col_of(-1e9), 0);
+        assert_eq!(g.col_of(f64::NAN), 0);
+        assert_eq!(g.row_of(1000.0), 0);
+        assert_eq!(g.row_of(990.5), 0);
+        assert_eq!(g.row_of(985.0), 1);
+        assert_eq!(g.cell_of(125.0, 985.0), 5);
+        assert_eq!(g.n_cells(), 6);
+    }
+}

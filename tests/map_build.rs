@@ -1,0 +1,410 @@
+//! End-to-end: `map::build_map` on real orthophotos, `ReferenceMap::open` / `select`, and the
+//! `visnav map` CLI. Prints build/open/select timings and the descriptor-quantisation effect on
+//! nearest neighbours (numbers for the report, no timed assertions).
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+use visnav::geo::dem::Dem;
+use visnav::geo::geotiff::load_geotiff;
+use visnav::map::build::level_window;
+use visnav::map::format::{dequantise, quantise};
+use visnav::map::{BuildSpec, HeightSource, MapFeature, ReferenceMap, build_map};
+use visnav::vision::{GrayImage, Surf};
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn shared(rel: &str) -> Option<PathBuf> {
+    let p = repo().join("../shared/data").join(rel);
+    if p.exists() {
+        Some(p)
+    } else {
+        eprintln!("skipping: {} is absent", p.display());
+        None
+    }
+}
+
+fn naip2009() -> PathBuf {
+    repo().join("sitl/maps/naip_nd_2009.tif")
+}
+
+/// All features of a map, every level, sorted by (level, x, y).
+fn sorted_features(m: &ReferenceMap) -> Vec<MapFeature> {
+    let mut v: Vec<MapFeature> = (0..m.header().levels.len())
+        .flat_map(|l| m.all_features(l))
+        .collect();
+    v.sort_by(|a, b| {
+        a.level
+            .cmp(&b.level)
+            .then(a.x_m.total_cmp(&b.x_m))
+            .then(a.y_m.total_cmp(&b.y_m))
+    });
+    v
+}
+
+fn check_select_against_brute_force(m: &ReferenceMap, rect: [f64; 4]) -> usize {
+    let mut total = 0;
+    for level in 0..m.header().levels.len() {
+        let sel = m.select(level, rect[0], rect[1], rect[2], rect[3]);
+        let kind = m.header().surf.descriptor;
+        assert_eq!(sel.descriptors.len(), sel.len() * kind.stride());
+        let key = |f: &MapFeature| (f.x_m.to_bits(), f.y_m.to_bits(), f.response.to_bits());
+        let mut got: Vec<_> = sel.features.iter().map(key).collect();
+        let mut want: Vec<_> = m
+            .all_features(level)
+            .iter()
+            .filter(|f| {
+                f.x_m >= rect[0] && f.x_m <= rect[2] && f.y_m >= rect[1] && f.y_m <= rect[3]
+            })
+            .map(key)
+            .collect();
+        got.sort_unstable();
+        want.sort_unstable();
+        assert_eq!(got, want, "level {level}, rect {rect:?}");
+        assert!(sel.features.iter().all(|f| usize::from(f.level) == level));
+        for i in 0..sel.len() {
+            let d = sel.descriptor(i);
+            let n: f32 = d.iter().map(|v| v * v).sum::<f32>().sqrt();
+            assert!((n - 1.0).abs() < 1e-3, "descriptor norm {n}");
+            assert!(
+                sel.descriptors[i * kind.stride() + kind.len()..(i + 1) * kind.stride()]
+                    .iter()
+                    .all(|v| *v == 0.0)
+            );
+        }
+        total += sel.len();
+    }
+    total
+}
+
+#[test]
+fn naip_constant_height_map() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("naip.vnm");
+    let mut spec = BuildSpec::new(vec![naip2009()], HeightSource::ConstantAmsl(580.0));
+    spec.max_features_per_tile = 1_000_000; // no cap: tiling independence must hold exactly
+    let t0 = Instant::now();
+    let summary = build_map(&spec, &out, &mut |_| {}).unwrap();
+    let build_s = t0.elapsed().as_secs_f64();
+    let t1 = Instant::now();
+    let m = ReferenceMap::open(&out).unwrap();
+    let open_s = t1.elapsed().as_secs_f64();
+    let h = m.header();
+    let r = load_geotiff(&naip2009(), None).unwrap();
+    assert_eq!(h.crs, r.crs());
+    assert_eq!(h.bounds, r.bounds());
+    // 934 x 724 px: the short side halves to 362 (>= 256), then 181: 2 levels.
+    assert_eq!(h.levels.len(), 2);
+    assert!((h.levels[0].gsd_m - 5.0).abs() < 1e-3 && (h.levels[1].gsd_m - 10.0).abs() < 2e-3);
+    assert!(
+        h.levels.iter().all(|l| l.n_features > 100),
+        "{:?}",
+        h.levels
+    );
+    assert_eq!(h.n_features(), summary.header.n_features());
+    let all = sorted_features(&m);
+    assert!(all.iter().all(|f| f.z_amsl_m == 580.0
+        && h.bounds.contains(f.x_m, f.y_m)
+        && f.scale_m > 0.0
+        && (f.laplacian == 1 || f.laplacian == -1)));
+    eprintln!(
+        "naip_nd_2009 (934x724 px): {} features ({:?}), {} bytes, build {:.2} s, open {:.2} ms",
+        h.n_features(),
+        h.levels.iter().map(|l| l.n_features).collect::<Vec<_>>(),
+        summary.file_bytes,
+        build_s,
+        open_s * 1e3
+    );
+
+    // select == brute force, for a few rectangles (2 km x 2 km timed).
+    let (cx, cy) = (
+        0.5 * (h.bounds.min_x_m + h.bounds.max_x_m),
+        0.5 * (h.bounds.min_y_m + h.bounds.max_y_m),
+    );
+    let t2 = Instant::now();
+    let sel = m.select(0, cx - 1000.0, cy - 1000.0, cx + 1000.0, cy + 1000.0);
+    let sel_s = t2.elapsed().as_secs_f64();
+    eprintln!(
+        "select 2 km x 2 km at level 0: {} features in {:.3} ms",
+        sel.len(),
+        sel_s * 1e3
+    );
+    assert!(!sel.is_empty());
+    for rect in [
+        [cx - 1000.0, cy - 1000.0, cx + 1000.0, cy + 1000.0],
+        [cx - 333.3, cy - 77.7, cx + 12.5, cy + 1500.0],
+        [
+            h.bounds.min_x_m - 10.0,
+            h.bounds.min_y_m - 10.0,
+            h.bounds.max_x_m + 10.0,
+            h.bounds.max_y_m + 10.0,
+        ],
+    ] {
+        assert!(check_select_against_brute_force(&m, rect) > 0);
+    }
+
+    // Tiling independence: small tiles (many tile borders through the image) give the same set.
+    let out2 = dir.path().join("naip_small_tiles.vnm");
+    let mut spec2 = spec.clone();
+    spec2.tile_px = 200;
+    let s2 = build_map(&spec2, &out2, &mut |_| {}).unwrap();
+    assert!(s2.tiles > summary.tiles);
+    let m2 = ReferenceMap::open(&out2).unwrap();
+    assert!(m2.header().levels[0].grid.n_cells() > 1);
+    let all2 = sorted_features(&m2);
+    assert_eq!(all.len(), all2.len(), "feature count depends on the tiling");
+    for (a, b) in all.iter().zip(&all2) {
+        assert_eq!(a.level, b.level);
+        assert!(
+            (a.x_m - b.x_m).abs() < 1e-3 && (a.y_m - b.y_m).abs() < 1e-3,
+            "{a:?} vs {b:?}"
+        );
+        assert!((a.response - b.response).abs() <= 1e-3 * a.response.abs());
+        assert_eq!(a.laplacian, b.laplacian);
+        assert!((a.scale_m - b.scale_m).abs() < 1e-3);
+    }
+    // Descriptors agree too (compare a selection from both).
+    let r1 = [cx - 500.0, cy - 500.0, cx + 500.0, cy + 500.0];
+    for level in 0..2 {
+        let s_a = m.select(level, r1[0], r1[1], r1[2], r1[3]);
+        let s_b = m2.select(level, r1[0], r1[1], r1[2], r1[3]);
+        assert_eq!(s_a.len(), s_b.len());
+        for i in 0..s_a.len() {
+            let j = (0..s_b.len())
+                .find(|&j| {
+                    (s_b.features[j].x_m - s_a.features[i].x_m).abs() < 1e-3
+                        && (s_b.features[j].y_m - s_a.features[i].y_m).abs() < 1e-3
+                        && s_b.features[j].response == s_a.features[i].response
+                })
+                .expect("same feature in both maps");
+            let d: f32 = s_a
+                .descriptor(i)
+                .iter()
+                .zip(s_b.descriptor(j))
+                .map(|(x, y)| (x - y).abs())
+                .sum();
+            assert!(d < 1e-3, "descriptor differs by {d}");
+        }
+    }
+
+    // A binding per-tile cap limits each tile.
+    let out3 = dir.path().join("naip_capped.vnm");
+    let mut spec3 = spec.clone();
+    spec3.max_features_per_tile = 50;
+    spec3.tile_px = 256;
+    let s3 = build_map(&spec3, &out3, &mut |_| {}).unwrap();
+    assert!(s3.header.n_features() <= 50 * s3.tiles);
+    assert!(s3.header.n_features() < h.n_features());
+}
+
+/// Fraction of query nearest neighbours (2014 NAIP features against 2009 map features) that are
+/// unchanged when the map descriptors are i8-quantised.
+#[test]
+fn descriptor_quantisation_keeps_nearest_neighbours() {
+    let Some(q_path) = shared("naip_nd/m_4709963_se_14_1_20140720.tif") else {
+        return;
+    };
+    let grey = |p: &Path| {
+        let r = load_geotiff(p, None).unwrap();
+        let (g, _) = level_window(&r, 0, 0, 0, r.width(), r.height());
+        GrayImage::new(r.width(), r.height(), g).unwrap()
+    };
+    let surf = Surf::new(BuildSpec::new(vec![], HeightSource::ConstantAmsl(0.0)).surf).unwrap();
+    let map = surf.detect_and_describe(&grey(&naip2009()));
+    let qry = surf.detect_and_describe(&grey(&q_path));
+    let kind = map.kind();
+    let len = kind.len();
+    let mut deq = vec![0f32; map.len() * len];
+    let mut q = vec![0i8; len];
+    for i in 0..map.len() {
+        let s = quantise(map.descriptor(i), &mut q);
+        dequantise(&q, s, &mut deq[i * len..(i + 1) * len]);
+    }
+    // Nearest and second-nearest squared distances of `d` in a flat table of rows of `stride`.
+    let nn = |d: &[f32], db: &[f32], stride: usize| -> (usize, f32, f32) {
+        let (mut b1, mut b2, mut bi) = (f32::INFINITY, f32::INFINITY, 0);
+        for j in 0..map.len() {
+            let row = &db[j * stride..j * stride + len];
+            let e: f32 = d.iter().zip(row).map(|(a, b)| (a - b) * (a - b)).sum();
+            if e < b1 {
+                b2 = b1;
+                b1 = e;
+                bi = j;
+            } else if e < b2 {
+                b2 = e;
+            }
+        }
+        (bi, b1, b2)
+    };
+    let n_q = qry.len().min(1500);
+    let (mut same, mut same_ratio, mut n_ratio) = (0usize, 0usize, 0usize);
+    for i in 0..n_q {
+        let d = qry.descriptor(i);
+        let (a, a1, a2) = nn(d, map.descriptors_padded(), kind.stride());
+        let (b, _, _) = nn(d, &deq, len);
+        same += usize::from(a == b);
+        // Among the matches a ratio test (0.8) would keep.
+        if a1.sqrt() < 0.8 * a2.sqrt() {
+            n_ratio += 1;
+            same_ratio += usize::from(a == b);
+        }
+    }
+    let f_all = same as f64 / n_q as f64;
+    let f_ratio = same_ratio as f64 / n_ratio.max(1) as f64;
+    eprintln!(
+        "i8 descriptors: nearest neighbour unchanged for {:.2} % of {n_q} queries, {:.2} % of the {n_ratio} passing the 0.8 ratio test ({} map features)",
+        100.0 * f_all,
+        100.0 * f_ratio,
+        map.len()
+    );
+    assert!(f_all > 0.9, "{f_all}");
+    assert!(f_ratio > 0.97, "{f_ratio}");
+}
+
+#[test]
+fn ngi_ortho_with_dem_heights() {
+    let (Some(ortho), Some(dem_path)) = (
+        shared("ngi_3324c/ngi_ortho_5m_tile1.tif"),
+        shared("ngi_3324c/dem.tif"),
+    ) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("ngi.vnm");
+    let spec = BuildSpec::new(vec![ortho.clone()], HeightSource::Dem(dem_path.clone()));
+    let t0 = Instant::now();
+    let s = build_map(&spec, &out, &mut |_| {}).unwrap();
+    eprintln!(
+        "ngi tile1 + DEM: {} features, {} bytes, {:.2} s, dropped {} at nodata, {} without height",
+        s.header.n_features(),
+        s.file_bytes,
+        t0.elapsed().as_secs_f64(),
+        s.dropped_nodata,
+        s.dropped_no_height
+    );
+    let m = ReferenceMap::open(&out).unwrap();
+    let dem = Dem::load_geotiff(&dem_path, None).unwrap();
+    let (lo, hi) = dem.height_range_m();
+    assert!(matches!(
+        m.header().crs,
+        visnav::geo::Crs::TransverseMercator { .. }
+    ));
+    let all = sorted_features(&m);
+    assert!(all.len() > 100);
+    for f in &all {
+        let z = dem
+            .height_at(f.x_m, f.y_m)
+            .expect("features have DEM heights");
+        assert!((f.z_amsl_m - z).abs() < 1e-9, "{f:?} vs {z}");
+        assert!(f.z_amsl_m >= lo - 1e-6 && f.z_amsl_m <= hi + 1e-6);
+    }
+    let b = m.header().bounds;
+    let (cx, cy) = (0.5 * (b.min_x_m + b.max_x_m), 0.5 * (b.min_y_m + b.max_y_m));
+    assert!(
+        check_select_against_brute_force(&m, [cx - 1000.0, cy - 1000.0, cx + 1000.0, cy + 1000.0])
+            > 0
+    );
+
+    // Two orthos of one CRS share the index.
+    let Some(ortho2) = shared("ngi_3324c/ngi_ortho_5m_tile2.tif") else {
+        return;
+    };
+    let out2 = dir.path().join("ngi2.vnm");
+    let spec2 = BuildSpec::new(vec![ortho, ortho2], HeightSource::Dem(dem_path));
+    let s2 = build_map(&spec2, &out2, &mut |_| {}).unwrap();
+    let m2 = ReferenceMap::open(&out2).unwrap();
+    assert_eq!(m2.header().orthos.len(), 2);
+    assert!(s2.header.n_features() > s.header.n_features());
+    let b2 = m2.header().bounds;
+    assert!(
+        b2.min_x_m <= b.min_x_m
+            && b2.max_x_m >= b.max_x_m
+            && b2.min_y_m <= b.min_y_m
+            && b2.max_y_m >= b.max_y_m
+    );
+    assert!(
+        check_select_against_brute_force(&m2, [b2.min_x_m, b2.min_y_m, b2.max_x_m, b2.max_y_m]) > 0
+    );
+}
+
+#[test]
+fn mismatched_inputs_are_refused_with_the_file_name() {
+    let Some(dem) = shared("ngi_3324c/dem.tif") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    // NAIP (UTM 14N) with the NGI DEM (transverse Mercator 25E): refused, naming the DEM.
+    let spec = BuildSpec::new(vec![naip2009()], HeightSource::Dem(dem.clone()));
+    let e = build_map(&spec, &dir.path().join("x.vnm"), &mut |_| {}).unwrap_err();
+    assert!(
+        e.to_string().contains("dem.tif") && e.to_string().contains("CRS"),
+        "{e}"
+    );
+    // Orthos in two CRSs: refused, naming the second.
+    let Some(ngi) = shared("ngi_3324c/ngi_ortho_5m_tile1.tif") else {
+        return;
+    };
+    let spec = BuildSpec::new(vec![naip2009(), ngi], HeightSource::ConstantAmsl(0.0));
+    let e = build_map(&spec, &dir.path().join("y.vnm"), &mut |_| {}).unwrap_err();
+    assert!(e.to_string().contains("ngi_ortho_5m_tile1.tif"), "{e}");
+    assert!(!dir.path().join("y.vnm").exists());
+}
+
+#[test]
+fn cli_build_and_info() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("cli.vnm");
+    let bin = env!("CARGO_BIN_EXE_visnav");
+    let o = Command::new(bin)
+        .args(["map", "build", "--ortho"])
+        .arg(naip2009())
+        .args(["--ground-height", "580", "--levels", "1", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("features in 1 level"));
+    let o = Command::new(bin)
+        .args(["map", "info"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success());
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(text.contains("level 0") && text.contains("Utm"), "{text}");
+    let o = Command::new(bin)
+        .args(["map", "info", "--json"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v["levels"].as_array().unwrap().len(), 1);
+    // Neither or both height sources: a usage error.
+    let o = Command::new(bin)
+        .args(["map", "build", "--ortho"])
+        .arg(naip2009())
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    // A corrupt file: error naming it.
+    std::fs::write(dir.path().join("bad.vnm"), b"VNMAP\r\n\x1a garbage").unwrap();
+    let o = Command::new(bin)
+        .args(["map", "info"])
+        .arg(dir.path().join("bad.vnm"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("bad.vnm"));
+    for sub in ["build", "info"] {
+        let o = Command::new(bin)
+            .args(["map", sub, "--help"])
+            .output()
+            .unwrap();
+        assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("Usage:"));
+    }
+}

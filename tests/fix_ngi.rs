@@ -10,11 +10,10 @@ use nalgebra::{Rotation3, Vector3};
 use visnav::camera::frames::{r_enu_ned, rot_z};
 use visnav::camera::{Attitude, Camera, CameraConfig, Opk};
 use visnav::fix::{AttitudePriorNed, FixEngine, FixParams, FixPrior, FixReport};
-use visnav::fix::{MemoryReference, PositionPriorGeo};
+use visnav::fix::{MapReference, PositionPriorGeo, Reference};
 use visnav::geo::Crs;
-use visnav::geo::dem::Dem;
-use visnav::geo::geotiff::load_geotiff;
-use visnav::vision::{GrayImage, SurfParams};
+use visnav::map::{BuildSpec, HeightSource, build_map};
+use visnav::vision::GrayImage;
 
 fn data_dir() -> Option<PathBuf> {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/ngi_3324c");
@@ -169,15 +168,26 @@ fn run(
 }
 
 fn engine_for(dir: &Path, ortho: &str, levels: usize) -> Option<(FixEngine, Camera, Crs)> {
-    let raster = load_geotiff(&dir.join(ortho), None).ok()?;
-    let dem = Dem::load_geotiff(&dir.join("dem.tif"), None).ok()?;
-    let crs = raster.crs();
-    let params = SurfParams {
-        upright: true,
-        ..SurfParams::default()
-    };
-    let reference = MemoryReference::from_raster(&raster, dem, params, levels).ok()?;
-    eprintln!("{ortho}: features per level {:?}", reference.counts());
+    // The product path: a .vnm map built from the orthophoto and the DEM.
+    let mut spec = BuildSpec::new(
+        vec![dir.join(ortho)],
+        HeightSource::Dem(dir.join("dem.tif")),
+    );
+    spec.levels = Some(levels);
+    let tmp = tempfile::tempdir().ok()?;
+    let path = tmp.path().join("map.vnm");
+    let summary = build_map(&spec, &path, &mut |_| {}).ok()?;
+    eprintln!(
+        "{ortho}: features per level {:?}",
+        summary
+            .header
+            .levels
+            .iter()
+            .map(|l| l.n_features)
+            .collect::<Vec<_>>()
+    );
+    let reference = MapReference::open(&path, None).ok()?;
+    let crs = reference.crs();
     let camera = ngi_camera();
     let engine = FixEngine::new(Arc::new(reference), camera, FixParams::default()).ok()?;
     Some((engine, camera, crs))

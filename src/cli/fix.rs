@@ -12,7 +12,8 @@ use anyhow::{Context, bail};
 use visnav::camera::{Attitude, Camera, CameraConfig};
 use visnav::config::{Problems, Validate};
 use visnav::fix::{
-    AttitudePriorNed, FixEngine, FixParams, FixPrior, MemoryReference, PositionPriorGeo, Reference,
+    AttitudePriorNed, FixEngine, FixParams, FixPrior, MapReference, MemoryReference,
+    PositionPriorGeo, Reference,
 };
 use visnav::geo::dem::Dem;
 use visnav::geo::geotiff::load_geotiff;
@@ -45,10 +46,11 @@ pub struct FixArgs {
     /// Settings of the `[fix]` section (TOML file with the keys at the top level).
     #[arg(long)]
     pub settings: Option<PathBuf>,
-    /// With a GeoTIFF --map: the DEM (heights AMSL, same CRS).
+    /// The DEM (heights AMSL, same CRS): needed with a GeoTIFF --map; with a .vnm map it
+    /// replaces the DEM the map was built from.
     #[arg(long, conflicts_with = "ground_height")]
     pub dem: Option<PathBuf>,
-    /// With a GeoTIFF --map: constant ground height AMSL, metres.
+    /// Constant ground height AMSL, metres (instead of --dem).
     #[arg(long)]
     pub ground_height: Option<f64>,
     /// Print the result as one JSON document.
@@ -115,7 +117,18 @@ fn load_reference(a: &FixArgs) -> anyhow::Result<Arc<dyn Reference>> {
             .with_context(|| format!("extracting features of {}", a.map.display()))?;
         return Ok(Arc::new(r));
     }
-    bail!("{}: expected an orthophoto GeoTIFF (.tif)", a.map.display())
+    // A .vnm map: its own terrain unless --dem / --ground-height override it.
+    let dem = match (&a.dem, a.ground_height) {
+        (Some(p), _) => Some(
+            Dem::load_geotiff(p, None)
+                .with_context(|| format!("loading the DEM {}", p.display()))?,
+        ),
+        (None, Some(h)) => Some(Dem::flat(h).context("--ground-height")?),
+        (None, None) => None,
+    };
+    let r = MapReference::open(&a.map, dem)
+        .with_context(|| format!("opening the map {}", a.map.display()))?;
+    Ok(Arc::new(r))
 }
 
 pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {

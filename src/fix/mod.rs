@@ -125,4 +125,4 @@ pub mod rectify;
 pub mod reference;
 
 pub use engine::{FixEngine, FixError, FixParams};
-pub use reference::{MemoryReference, RefFeature, RefSelection, Reference};
+pub use reference::{MapReference, MemoryReference, RefFeature, RefSelection, Reference};

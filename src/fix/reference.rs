@@ -237,3 +237,113 @@ impl Reference for MemoryReference {
         out
     }
 }
+
+/// A `.vnm` reference map (memory-mapped, `crate::map`) with the terrain for ray casting.
+pub struct MapReference {
+    map: crate::map::ReferenceMap,
+    dem: Dem,
+}
+
+/// Why a map reference could not be opened.
+#[derive(Debug, thiserror::Error)]
+pub enum MapReferenceError {
+    #[error(transparent)]
+    Map(#[from] crate::map::MapError),
+    #[error(
+        "{map}: the DEM it was built from ({dem}) was not found next to the map or at that path; give the DEM explicitly"
+    )]
+    DemNotFound { map: String, dem: String },
+    #[error("{map}: DEM {dem}: {reason}")]
+    Dem {
+        map: String,
+        dem: String,
+        reason: String,
+    },
+}
+
+impl MapReference {
+    /// Opens `path`. The terrain: `dem` when given, otherwise the map's constant ground height,
+    /// or the DEM file it was built from (looked up next to the map first, then as recorded).
+    pub fn open(path: &std::path::Path, dem: Option<Dem>) -> Result<Self, MapReferenceError> {
+        let map = crate::map::ReferenceMap::open(path)?;
+        let dem = match (dem, &map.header().height) {
+            (Some(d), _) => d,
+            (None, crate::map::HeightInfo::Constant { amsl_m }) => {
+                Dem::flat(*amsl_m).map_err(|e| MapReferenceError::Dem {
+                    map: path.display().to_string(),
+                    dem: format!("constant {amsl_m} m"),
+                    reason: e.to_string(),
+                })?
+            }
+            (None, crate::map::HeightInfo::Dem { file, .. }) => {
+                let recorded = std::path::PathBuf::from(file);
+                let beside = path
+                    .parent()
+                    .unwrap_or(std::path::Path::new("."))
+                    .join(recorded.file_name().unwrap_or_default());
+                let found = [beside, recorded]
+                    .into_iter()
+                    .find(|p| p.is_file())
+                    .ok_or_else(|| MapReferenceError::DemNotFound {
+                        map: path.display().to_string(),
+                        dem: file.clone(),
+                    })?;
+                Dem::load_geotiff(&found, Some(map.header().crs)).map_err(|e| {
+                    MapReferenceError::Dem {
+                        map: path.display().to_string(),
+                        dem: found.display().to_string(),
+                        reason: e.to_string(),
+                    }
+                })?
+            }
+        };
+        Ok(Self { map, dem })
+    }
+
+    /// The underlying map file.
+    pub fn map(&self) -> &crate::map::ReferenceMap {
+        &self.map
+    }
+}
+
+impl Reference for MapReference {
+    fn crs(&self) -> Crs {
+        self.map.header().crs
+    }
+    fn level_gsd_m(&self) -> Vec<f64> {
+        self.map.header().levels.iter().map(|l| l.gsd_m).collect()
+    }
+    fn surf_params(&self) -> SurfParams {
+        self.map.header().surf.clone()
+    }
+    fn bounds_m(&self) -> [f64; 4] {
+        let b = &self.map.header().bounds;
+        [b.min_x_m, b.min_y_m, b.max_x_m, b.max_y_m]
+    }
+    fn height_amsl_m(&self, x_m: f64, y_m: f64) -> Option<f64> {
+        self.dem.height_at(x_m, y_m)
+    }
+    fn dem(&self) -> &Dem {
+        &self.dem
+    }
+    fn select(&self, level: usize, rect_m: [f64; 4]) -> RefSelection {
+        let s = self
+            .map
+            .select(level, rect_m[0], rect_m[1], rect_m[2], rect_m[3]);
+        RefSelection {
+            features: s
+                .features
+                .iter()
+                .map(|f| RefFeature {
+                    x_m: f.x_m,
+                    y_m: f.y_m,
+                    z_amsl_m: f.z_amsl_m,
+                    scale_m: f.scale_m,
+                    laplacian: f.laplacian,
+                })
+                .collect(),
+            descriptors: s.descriptors,
+            kind: s.kind,
+        }
+    }
+}

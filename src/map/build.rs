@@ -283,7 +283,7 @@ pub fn build_map(
         HeightSource::Dem(p) => {
             let d = Dem::load_geotiff(p, spec.crs_override).map_err(|source| MapError::Dem {
                 path: p.clone(),
-                source,
+                source: Box::new(source),
             })?;
             if let Some(dc) = d.crs()
                 && !crs_equivalent(&dc, &crs)

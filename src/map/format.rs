@@ -588,8 +588,10 @@ fn validate(b: &[u8]) -> Result<(MapHeader, usize), String> {
     let len = header.surf.descriptor.len() as u64;
     for (l, info) in header.levels.iter().enumerate() {
         let g = &info.grid;
-        if !(g.cell_m.is_finite() && g.cell_m > 0.0)
-            || !(g.origin_x_m.is_finite() && g.origin_y_m.is_finite())
+        if !(g.cell_m.is_finite()
+            && g.cell_m > 0.0
+            && g.origin_x_m.is_finite()
+            && g.origin_y_m.is_finite())
             || g.cols == 0
             || g.rows == 0
             || g.cols as u64 * g.rows as u64 > MAX_CELLS

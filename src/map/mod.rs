@@ -54,12 +54,12 @@ pub enum MapError {
     },
     /// An orthophoto or DEM GeoTIFF could not be loaded.
     #[error(transparent)]
-    GeoTiff(#[from] crate::geo::geotiff::GeoTiffError),
+    GeoTiff(Box<crate::geo::geotiff::GeoTiffError>),
     /// The DEM is unusable.
     #[error("{}: DEM: {source}", .path.display())]
     Dem {
         path: PathBuf,
-        source: crate::geo::dem::DemError,
+        source: Box<crate::geo::dem::DemError>,
     },
     /// An input raster cannot be used for a map (rotated, non-square pixels, CRS mismatch, ...).
     #[error("{}: {reason}", .path.display())]
@@ -71,6 +71,12 @@ pub enum MapError {
     /// inconsistent tables.
     #[error("{}: not a valid visnav map: {reason}", .path.display())]
     Format { path: PathBuf, reason: String },
+}
+
+impl From<crate::geo::geotiff::GeoTiffError> for MapError {
+    fn from(e: crate::geo::geotiff::GeoTiffError) -> Self {
+        MapError::GeoTiff(Box::new(e))
+    }
 }
 
 /// One map feature (decoded from the file).

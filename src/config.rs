@@ -142,7 +142,14 @@ pub struct Config {
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MapConfig {
-    /// Orthophoto GeoTIFF file(s), relative to the config file's folder unless absolute.
+    /// The reference map (`.vnm`, built by `visnav map build`), relative to the config file's
+    /// folder unless absolute. With it, `ortho` may be empty and `dem` / `ground_height_amsl_m`
+    /// are optional (they override the map's own terrain).
+    #[serde(default)]
+    pub file: Option<PathBuf>,
+    /// Orthophoto GeoTIFF file(s), relative to the config file's folder unless absolute. Without
+    /// `file`, the daemon extracts their features in memory at start (small areas).
+    #[serde(default)]
     pub ortho: Vec<PathBuf>,
     /// Elevation model GeoTIFF (heights AMSL). Exactly one of `dem` and `ground_height_amsl_m`.
     #[serde(default)]
@@ -157,8 +164,13 @@ pub struct MapConfig {
 
 impl MapConfig {
     fn validate_in(&self, base: &Path, p: &mut Problems) {
-        if self.ortho.is_empty() {
-            p.push("ortho", "at least one orthophoto GeoTIFF is needed");
+        if let Some(f) = &self.file {
+            check_file(p, "file", base, f);
+        } else if self.ortho.is_empty() {
+            p.push(
+                "ortho",
+                "give a reference map (file) or at least one orthophoto GeoTIFF (ortho)",
+            );
         }
         for (i, f) in self.ortho.iter().enumerate() {
             check_file(p, &format!("ortho[{i}]"), base, f);
@@ -168,6 +180,7 @@ impl MapConfig {
                 "dem",
                 "give either dem or ground_height_amsl_m, not both",
             ),
+            (None, None) if self.file.is_some() => {}
             (None, None) => p.push(
                 "dem",
                 "missing: give a DEM GeoTIFF (dem) or a constant ground height (ground_height_amsl_m)",
@@ -260,6 +273,7 @@ impl Config {
             });
         }
         cfg.map.ortho = cfg.map.ortho.iter().map(|f| resolve(base, f)).collect();
+        cfg.map.file = cfg.map.file.as_deref().map(|f| resolve(base, f));
         cfg.map.dem = cfg.map.dem.as_deref().map(|f| resolve(base, f));
         cfg.link.resolve_paths(base);
         Ok(cfg)
@@ -274,6 +288,11 @@ impl Config {
         let mut p = Problems::default();
         let mut first_crs: Option<Crs> = None;
         p.section("map", |p| {
+            if let Some(f) = &self.map.file
+                && let Err(e) = crate::map::ReferenceMap::open(f)
+            {
+                p.push("file", e.to_string());
+            }
             for (i, f) in self.map.ortho.iter().enumerate() {
                 match load_geotiff(f, self.map.crs_override) {
                     Ok(r) => match first_crs {

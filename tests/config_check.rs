@@ -188,3 +188,39 @@ fn every_subcommand_has_help() {
         assert!(String::from_utf8_lossy(&out.stdout).contains("Usage:"));
     }
 }
+
+#[test]
+fn example_configs_build_a_fix_engine_and_a_vnm_map_config_loads() {
+    let cfg = visnav::config::Config::load(&repo().join("config/demo.toml")).unwrap();
+    let engine = visnav::fix::engine_from_config(&cfg).expect("demo engine");
+    assert!(!engine.reference().level_gsd_m().is_empty());
+    // A config naming a .vnm map (no ortho), built here.
+    let dir = tempfile::tempdir().unwrap();
+    let map = dir.path().join("m.vnm");
+    let spec = visnav::map::BuildSpec::new(
+        vec![repo().join("sitl/maps/naip_nd_2009.tif")],
+        visnav::map::HeightSource::ConstantAmsl(580.0),
+    );
+    visnav::map::build_map(&spec, &map, &mut |_| {}).unwrap();
+    let text = "[link]\nconnection = \"udpin:0.0.0.0:14550\"\n\
+                [camera]\nwidth_px = 640\nheight_px = 480\nhfov_deg = 60.0\n\
+                [map]\nfile = \"m.vnm\"\n[fix]\nratio = 0.85\n";
+    let path = dir.path().join("c.toml");
+    std::fs::write(&path, text).unwrap();
+    let out = visnav().arg("check-config").arg(&path).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let cfg = visnav::config::Config::load(&path).unwrap();
+    assert_eq!(cfg.fix.ratio, 0.85);
+    let engine = visnav::fix::engine_from_config(&cfg).expect("vnm engine");
+    assert_eq!(engine.reference().level_gsd_m()[0], 5.0);
+    // A corrupt map file: check-config names map.file.
+    std::fs::write(&map, b"garbage").unwrap();
+    let out = visnav().arg("check-config").arg(&path).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("map.file") && err.contains("m.vnm"), "{err}");
+}

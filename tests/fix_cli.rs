@@ -121,6 +121,66 @@ fn fix_json_has_the_issue_keys() {
 }
 
 #[test]
+fn map_build_then_fix_against_the_vnm() {
+    let dir = tempfile::tempdir().unwrap();
+    let (png, camera, truth, att) = naip_frame(dir.path());
+    let map = dir.path().join("naip2009.vnm");
+    let out = visnav()
+        .args(["map", "build", "--ground-height", "580"])
+        .arg("--ortho")
+        .arg(maps().join("naip_nd_2009.tif"))
+        .arg("--out")
+        .arg(&map)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let out = visnav()
+        .args(["fix", "--json"])
+        .arg("--map")
+        .arg(&map)
+        .arg("--image")
+        .arg(&png)
+        .arg("--camera")
+        .arg(&camera)
+        .arg("--attitude")
+        .arg(format!(
+            "{},{},{}",
+            att.roll_rad.to_degrees(),
+            att.pitch_rad.to_degrees(),
+            att.yaw_rad.to_degrees()
+        ))
+        .args(["--attitude-sigma-deg", "0.5"])
+        .arg("--prior")
+        .arg(format!("{},{},{},150", truth[0], truth[1], truth[2]))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    eprintln!("{stdout}");
+    let v: serde_json::Value = serde_json::from_str(&stdout).expect("JSON");
+    assert_eq!(v["accepted"].as_bool(), Some(out.status.code() == Some(0)));
+    assert!(v["ms"].as_f64().is_some());
+    // A corrupt map is an error naming the file.
+    let bad = dir.path().join("bad.vnm");
+    std::fs::write(&bad, b"VNMAP not really").unwrap();
+    let out = visnav()
+        .arg("fix")
+        .arg("--map")
+        .arg(&bad)
+        .arg("--image")
+        .arg(&png)
+        .arg("--camera")
+        .arg(&camera)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("bad.vnm"));
+}
+
+#[test]
 fn fix_reports_bad_input_clearly() {
     let dir = tempfile::tempdir().unwrap();
     let camera = dir.path().join("camera.toml");

@@ -126,3 +126,54 @@ pub mod reference;
 
 pub use engine::{FixEngine, FixError, FixParams};
 pub use reference::{MapReference, MemoryReference, RefFeature, RefSelection, Reference};
+
+/// The engine a configuration describes: the `.vnm` map of `[map] file` (terrain overridden by
+/// `dem` / `ground_height_amsl_m` when given), or, without one, a map built at start into a
+/// temporary file from `[map] ortho` (small areas); the camera of `[camera]`; `[fix]` settings.
+/// Paths must already be resolved (as `Config::load` does).
+pub fn engine_from_config(cfg: &crate::config::Config) -> Result<FixEngine, String> {
+    use crate::geo::dem::Dem;
+    let camera = cfg.camera.build().map_err(|e| format!("[camera]: {e}"))?;
+    let dem = match (&cfg.map.dem, cfg.map.ground_height_amsl_m) {
+        (Some(p), _) => Some(
+            Dem::load_geotiff(p, cfg.map.crs_override)
+                .map_err(|e| format!("[map] dem {}: {e}", p.display()))?,
+        ),
+        (None, Some(h)) => {
+            Some(Dem::flat(h).map_err(|e| format!("[map] ground_height_amsl_m: {e}"))?)
+        }
+        (None, None) => None,
+    };
+    let reference: std::sync::Arc<dyn Reference> = match &cfg.map.file {
+        Some(f) => {
+            std::sync::Arc::new(MapReference::open(f, dem).map_err(|e| format!("[map] file: {e}"))?)
+        }
+        None => {
+            let height = match (&cfg.map.dem, cfg.map.ground_height_amsl_m) {
+                (Some(p), _) => crate::map::HeightSource::Dem(p.clone()),
+                (None, Some(h)) => crate::map::HeightSource::ConstantAmsl(h),
+                (None, None) => {
+                    return Err(
+                        "[map]: give file, or ortho with dem or ground_height_amsl_m".into(),
+                    );
+                }
+            };
+            let mut spec = crate::map::BuildSpec::new(cfg.map.ortho.clone(), height);
+            spec.crs_override = cfg.map.crs_override;
+            let tmp = std::env::temp_dir().join(format!(
+                "visnav-{}-{}.vnm",
+                std::process::id(),
+                std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0, |d| d.as_nanos())
+            ));
+            crate::map::build_map(&spec, &tmp, &mut |_| {})
+                .map_err(|e| format!("[map] ortho: building the in-memory map: {e}"))?;
+            // Mapped, then unlinked: the mapping keeps the data alive.
+            let r = MapReference::open(&tmp, dem).map_err(|e| format!("[map]: {e}"));
+            let _ = std::fs::remove_file(&tmp);
+            std::sync::Arc::new(r?)
+        }
+    };
+    FixEngine::new(reference, camera, cfg.fix.clone()).map_err(|e| format!("[fix]: {e}"))
+}

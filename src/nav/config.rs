@@ -329,8 +329,14 @@ impl Validate for HealthConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct NavConfig {
-    /// Estimate gyro and accelerometer scale factors (21 states) instead of 15 states.
+    /// Estimate gyro and accelerometer scale factors (6 more states).
     pub scale_factor_states: bool,
+    /// Carry the bias instability as its own first-order Gauss-Markov states (6 more states:
+    /// gyro and accelerometer drift, sigma `*_bias_instability_*`, correlation time
+    /// `*_bias_corr_time_s`) beside the constant turn-on bias states. False: one bias state per
+    /// axis, a random constant driven by the short-term random walk `q = 2 sigma^2 / tau` of the
+    /// instability (conservative).
+    pub bias_drift_states: bool,
     /// Output (position/velocity/attitude/covariance) rate, Hz.
     pub output_rate_hz: f64,
     /// Length of the state/covariance history used to apply late measurements at their capture
@@ -358,6 +364,7 @@ impl Default for NavConfig {
     fn default() -> Self {
         Self {
             scale_factor_states: false,
+            bias_drift_states: true,
             output_rate_hz: 50.0,
             history_s: 1.0,
             use_autopilot_attitude: false,
@@ -373,9 +380,9 @@ impl Default for NavConfig {
 }
 
 impl NavConfig {
-    /// Number of error states (15 or 21).
+    /// Number of error states: 15, plus 6 with scale factors, plus 6 with bias drift states.
     pub fn n_states(&self) -> usize {
-        if self.scale_factor_states { 21 } else { 15 }
+        15 + 6 * usize::from(self.scale_factor_states) + 6 * usize::from(self.bias_drift_states)
     }
 }
 

@@ -8,17 +8,30 @@
 //! `dD = -dh`); `3..6` velocity error NED; `6..9` attitude error `psi` in NED with
 //! `C_b^n(est) = (I + [psi x]) C_b^n(true)`; `9..12` gyro bias error (rad/s); `12..15` accelerometer
 //! bias error (m/s^2); `15..18` gyro scale-factor error; `18..21` accelerometer scale-factor
-//! error. In 15-state mode the scale-factor states are frozen at zero with zero covariance (they
-//! never receive a gain), which is exactly the 15-state filter.
+//! error; `21..24` gyro bias drift error (rad/s); `24..27` accelerometer bias drift error
+//! (m/s^2). Inactive groups (scale factors without `scale_factor_states`, drifts without
+//! `bias_drift_states`) are frozen at zero with zero covariance (they never receive a gain),
+//! which is exactly the smaller filter; the public covariance lists the active states in that
+//! order (15, 21 or 27).
+//!
+//! Bias model (with `bias_drift_states`, the default): the bias of each axis is
+//! `b = b_c + b_d`, `b_c` the turn-on bias (random constant, prior sigma `*_bias_deg_h` /
+//! `*_bias_ug`, plus the datasheet bias random walk if any) and `b_d` the bias instability, a
+//! first-order Gauss-Markov process (sigma `*_bias_instability_*`, correlation time `tau`):
+//! `d(b_d)/dt = -b_d / tau + w`, `E[w^2] = 2 sigma^2 / tau`, discretised exactly
+//! (`phi = e^{-dt/tau}`, `Qd = sigma^2 (1 - e^{-2 dt/tau})`); the drift estimate decays with
+//! `phi` between updates. The total bias compensates the IMU. Without drift states one state per
+//! axis carries both (random constant with `q = 2 sigma^2 / tau + q_RW`, conservative).
 //!
 //! Sensor model: `w_meas = (1 + s_g) w + b_g + n`, `f_meas = (1 + s_a) f + b_a + n`; the INS
 //! integrates `w = (w_meas - b_g_est) / (1 + s_g_est)`. Continuous error dynamics (first order):
 //! ```text
 //! d(dr)/dt   = dv
 //! d(dv)/dt   = -[f^n x] psi + (-[(2w_ie + w_en) x] + [v x] dW_en/dv) dv + dg/dr dr
-//!              - C_b^n (db_a + diag(f^b) ds_a)
-//! d(psi)/dt  = -[w_in x] psi - dW_en/dv dv - dW_ie/dr dr - C_b^n (db_g + diag(w^b) ds_g)
-//! d(b)/dt    = w   (random constant + random walk, q = 2 sigma_BI^2 / tau + q_RW)
+//!              - C_b^n (db_a + db_ad + diag(f^b) ds_a)
+//! d(psi)/dt  = -[w_in x] psi - dW_en/dv dv - dW_ie/dr dr - C_b^n (db_g + db_gd + diag(w^b) ds_g)
+//! d(b_c)/dt  = w_RW
+//! d(b_d)/dt  = -b_d / tau + w_GM
 //! ```
 //! Discretisation `Phi = I + F dt`, `Qd = G Qc G^T dt` (noise is isotropic, so the rotation `G`
 //! drops out for the white-noise terms). Update in Joseph form, `P` symmetrised after every step,
@@ -47,7 +60,7 @@ use serde::Serialize;
 use std::collections::VecDeque;
 
 /// Size of the error state carried internally.
-pub const N_STATES: usize = 21;
+pub const N_STATES: usize = 27;
 type Mat = SMatrix<f64, N_STATES, N_STATES>;
 type Vecn = SVector<f64, N_STATES>;
 const IP: usize = 0;
@@ -57,6 +70,8 @@ const IBG: usize = 9;
 const IBA: usize = 12;
 const ISG: usize = 15;
 const ISA: usize = 18;
+const IDG: usize = 21;
+const IDA: usize = 24;
 
 /// Filter health.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -180,6 +195,10 @@ struct Core {
     ba: Vector3<f64>,
     sg: Vector3<f64>,
     sa: Vector3<f64>,
+    /// Gauss-Markov bias drift estimates (gyro rad/s, accelerometer m/s^2); zero without drift
+    /// states.
+    dg: Vector3<f64>,
+    da: Vector3<f64>,
     p: Mat,
 }
 
@@ -194,6 +213,15 @@ struct Epoch {
 #[derive(Debug, Clone)]
 struct Params {
     scale: bool,
+    drift: bool,
+    /// Active error-state indices (15, 21 or 27 of them).
+    active: Vec<usize>,
+    /// Gauss-Markov correlation times (gyro, accelerometer), s.
+    tau_g: f64,
+    tau_a: f64,
+    /// Gauss-Markov variances (gyro (rad/s)^2, accelerometer (m/s^2)^2).
+    var_dg: f64,
+    var_da: f64,
     q_arw: f64,
     q_vrw: f64,
     q_bg: f64,
@@ -232,11 +260,33 @@ impl NavFilter {
     /// New filter (not initialised) from a validated configuration.
     pub fn new(cfg: NavConfig) -> Self {
         let imu = &cfg.imu;
-        let gm = |sigma: f64, tau: f64, rw: f64| 2.0 * sigma * sigma / tau + rw * rw;
+        let drift = cfg.bias_drift_states;
+        // Without drift states the bias instability is carried as the short-term random walk of
+        // the Gauss-Markov process, q = 2 sigma^2 / tau, on the constant bias state.
+        let gm = |sigma: f64, tau: f64, rw: f64| {
+            if drift {
+                rw * rw
+            } else {
+                2.0 * sigma * sigma / tau + rw * rw
+            }
+        };
         let tilt = cfg.attitude_sigma_tilt_deg.to_radians();
         let yaw = cfg.attitude_sigma_yaw_deg.to_radians();
+        let mut active: Vec<usize> = (0..15).collect();
+        if cfg.scale_factor_states {
+            active.extend(ISG..ISA + 3);
+        }
+        if drift {
+            active.extend(IDG..IDA + 3);
+        }
         let par = Params {
             scale: cfg.scale_factor_states,
+            drift,
+            active,
+            tau_g: imu.gyro_bias_corr_time_s,
+            tau_a: imu.accel_bias_corr_time_s,
+            var_dg: imu.gyro_bias_instability_si().powi(2),
+            var_da: imu.accel_bias_instability_si().powi(2),
             q_arw: imu.gyro_arw_si().powi(2),
             q_vrw: imu.accel_vrw_si().powi(2),
             q_bg: gm(
@@ -278,7 +328,7 @@ impl NavFilter {
         &self.cfg
     }
 
-    /// Number of estimated error states (15 or 21).
+    /// Number of estimated error states (15, 21 or 27).
     pub fn n_states(&self) -> usize {
         self.cfg.n_states()
     }
@@ -298,17 +348,45 @@ impl NavFilter {
         self.core.as_ref().map(|c| c.t_us)
     }
 
-    /// Error covariance (`n_states` x `n_states`, index layout in the module doc).
+    /// Error covariance of the active states (`n_states` x `n_states`): the 15 navigation
+    /// states, then the scale factors (if `scale_factor_states`), then the bias drifts (if
+    /// `bias_drift_states`); see the module doc.
     pub fn covariance(&self) -> Option<nalgebra::DMatrix<f64>> {
-        let n = self.n_states();
+        let a = &self.par.active;
+        let n = a.len();
         self.core
             .as_ref()
-            .map(|c| nalgebra::DMatrix::from_fn(n, n, |i, j| c.p[(i, j)]))
+            .map(|c| nalgebra::DMatrix::from_fn(n, n, |i, j| c.p[(a[i], a[j])]))
     }
 
-    /// Estimated gyro bias (rad/s) and accelerometer bias (m/s^2), body FRD.
+    /// Covariance of the 15 navigation errors `[dr_ned, dv_ned, psi_ned, db_gyro, db_accel]`
+    /// where the bias errors are those of the total bias used to compensate the IMU (turn-on
+    /// plus drift: `T P T^T` with `T` summing the two bias states).
+    pub fn nav_error_covariance(&self) -> Option<SMatrix<f64, 15, 15>> {
+        let c = self.core.as_ref()?;
+        let mut t = SMatrix::<f64, 15, N_STATES>::zeros();
+        for i in 0..15 {
+            t[(i, i)] = 1.0;
+        }
+        if self.par.drift {
+            for a in 0..3 {
+                t[(IBG + a, IDG + a)] = 1.0;
+                t[(IBA + a, IDA + a)] = 1.0;
+            }
+        }
+        Some(t * c.p * t.transpose())
+    }
+
+    /// Estimated total gyro bias (rad/s) and accelerometer bias (m/s^2), body FRD (turn-on plus
+    /// drift).
     pub fn biases(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
-        self.core.as_ref().map(|c| (c.bg, c.ba))
+        self.core.as_ref().map(|c| (c.bg + c.dg, c.ba + c.da))
+    }
+
+    /// Estimated bias drift (Gauss-Markov states: gyro rad/s, accelerometer m/s^2); zero without
+    /// `bias_drift_states`.
+    pub fn bias_drifts(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
+        self.core.as_ref().map(|c| (c.dg, c.da))
     }
 
     /// Estimated gyro and accelerometer scale-factor errors (dimensionless).
@@ -406,8 +484,8 @@ impl NavFilter {
                 c.p[(IA + 1, IA + 1)].sqrt().to_degrees(),
                 c.p[(IA + 2, IA + 2)].sqrt().to_degrees(),
             ],
-            gyro_bias_deg_h: (c.bg / super::config::DEG_H_TO_RAD_S).into(),
-            accel_bias_ug: (c.ba / super::config::UG_TO_M_S2).into(),
+            gyro_bias_deg_h: ((c.bg + c.dg) / super::config::DEG_H_TO_RAD_S).into(),
+            accel_bias_ug: ((c.ba + c.da) / super::config::UG_TO_M_S2).into(),
             health,
             reason,
         })
@@ -553,7 +631,7 @@ impl NavFilter {
             _ => {}
         }
         if let Some(c) = &self.core
-            && !c.is_pd(self.par.scale)
+            && !c.is_pd(&self.par.active)
         {
             self.covariance_reset();
         }
@@ -669,8 +747,16 @@ impl NavFilter {
         let vel = vel.copied().unwrap_or(Matrix3::identity() * 100.0);
         let tilt = self.cfg.init.tilt_sigma_deg.to_radians().powi(2);
         let yaw = self.cfg.init.yaw_sigma_deg.to_radians().powi(2);
-        let bg = imu.gyro_bias_si().powi(2) + imu.gyro_bias_instability_si().powi(2);
-        let ba = imu.accel_bias_si().powi(2) + imu.accel_bias_instability_si().powi(2);
+        // With drift states the turn-on bias and the Gauss-Markov drift have their own states;
+        // without, the constant bias state carries both variances.
+        let (bg, ba) = if self.par.drift {
+            (imu.gyro_bias_si().powi(2), imu.accel_bias_si().powi(2))
+        } else {
+            (
+                imu.gyro_bias_si().powi(2) + imu.gyro_bias_instability_si().powi(2),
+                imu.accel_bias_si().powi(2) + imu.accel_bias_instability_si().powi(2),
+            )
+        };
         for a in 0..3 {
             for b in 0..3 {
                 p[(IP + a, IP + b)] = pos[(a, b)];
@@ -681,6 +767,10 @@ impl NavFilter {
             if self.par.scale {
                 p[(ISG + a, ISG + a)] = (imu.gyro_scale_ppm * 1e-6).powi(2).max(1e-20);
                 p[(ISA + a, ISA + a)] = (imu.accel_scale_ppm * 1e-6).powi(2).max(1e-20);
+            }
+            if self.par.drift {
+                p[(IDG + a, IDG + a)] = self.par.var_dg.max(1e-20);
+                p[(IDA + a, IDA + a)] = self.par.var_da.max(1e-20);
             }
         }
         p[(IA, IA)] = tilt;
@@ -751,6 +841,8 @@ impl NavFilter {
             ba: Vector3::zeros(),
             sg: Vector3::zeros(),
             sa: Vector3::zeros(),
+            dg: Vector3::zeros(),
+            da: Vector3::zeros(),
             p,
         };
         self.history.clear();
@@ -776,17 +868,12 @@ impl NavFilter {
 }
 
 impl Core {
-    /// Positive definiteness of the active block (15 or 21 states).
-    fn is_pd(&self, scale: bool) -> bool {
-        if scale {
-            self.p.cholesky().is_some()
-        } else {
-            self.p
-                .fixed_view::<15, 15>(0, 0)
-                .into_owned()
-                .cholesky()
-                .is_some()
-        }
+    /// Positive definiteness of the active block (15, 21 or 27 states).
+    fn is_pd(&self, active: &[usize]) -> bool {
+        let n = active.len();
+        nalgebra::DMatrix::from_fn(n, n, |i, j| self.p[(active[i], active[j])])
+            .cholesky()
+            .is_some()
     }
 
     fn propagate(&mut self, par: &Params, s: &ImuSample) {
@@ -795,10 +882,19 @@ impl Core {
             return;
         }
         let one = Vector3::repeat(1.0);
-        let dth = (s.dtheta_rad_body_frd - self.bg * dt).component_div(&(one + self.sg));
-        let dv = (s.dv_m_s_body_frd - self.ba * dt).component_div(&(one + self.sa));
+        let dth =
+            (s.dtheta_rad_body_frd - (self.bg + self.dg) * dt).component_div(&(one + self.sg));
+        let dv = (s.dv_m_s_body_frd - (self.ba + self.da) * dt).component_div(&(one + self.sa));
         self.ins.step(&dth, &dv, dt);
         self.t_us = s.t_us;
+        // The drift estimates decay like the Gauss-Markov mean.
+        let (phi_g, phi_a) = if par.drift {
+            ((-dt / par.tau_g).exp(), (-dt / par.tau_a).exp())
+        } else {
+            (1.0, 1.0)
+        };
+        self.dg *= phi_g;
+        self.da *= phi_a;
 
         let st = &self.ins.state;
         let (lat, h, v) = (st.lat_rad, st.h_m, st.v_ned_m_s);
@@ -849,13 +945,29 @@ impl Core {
             set(&mut f, IA, ISG, &(-c_bn * Matrix3::from_diagonal(&w_b)));
             set(&mut f, IV, ISA, &(-c_bn * Matrix3::from_diagonal(&f_b)));
         }
-        let phi = Mat::identity() + f * dt;
+        if par.drift {
+            set(&mut f, IA, IDG, &(-c_bn));
+            set(&mut f, IV, IDA, &(-c_bn));
+        }
+        let mut phi = Mat::identity() + f * dt;
+        if par.drift {
+            // Exact first-order Gauss-Markov transition and noise:
+            // phi = e^{-dt/tau}, Qd = sigma^2 (1 - e^{-2 dt/tau}).
+            for a in 0..3 {
+                phi[(IDG + a, IDG + a)] = phi_g;
+                phi[(IDA + a, IDA + a)] = phi_a;
+            }
+        }
         let mut p = phi * self.p * phi.transpose();
         for a in 0..3 {
             p[(IV + a, IV + a)] += par.q_vrw * dt;
             p[(IA + a, IA + a)] += par.q_arw * dt;
             p[(IBG + a, IBG + a)] += par.q_bg * dt;
             p[(IBA + a, IBA + a)] += par.q_ba * dt;
+            if par.drift {
+                p[(IDG + a, IDG + a)] += par.var_dg * (1.0 - phi_g * phi_g);
+                p[(IDA + a, IDA + a)] += par.var_da * (1.0 - phi_a * phi_a);
+            }
         }
         self.p = 0.5 * (p + p.transpose());
     }
@@ -906,6 +1018,10 @@ impl Core {
         if par.scale {
             self.sg -= dx.fixed_rows::<3>(ISG);
             self.sa -= dx.fixed_rows::<3>(ISA);
+        }
+        if par.drift {
+            self.dg -= dx.fixed_rows::<3>(IDG);
+            self.da -= dx.fixed_rows::<3>(IDA);
         }
     }
 }

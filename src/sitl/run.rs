@@ -43,6 +43,9 @@ pub struct RunOptions {
     /// Control experiment: stamp vision fixes with their arrival time instead of the capture
     /// time (what a filter without latency handling would do).
     pub stamp_at_arrival: bool,
+    /// Draw the IMU turn-on biases from `[imu] gyro_bias_sigma_deg_h` / `accel_bias_sigma_ug`
+    /// (Monte Carlo runs) instead of using the fixed `gyro_bias_deg_h` / `accel_bias_ug`.
+    pub draw_turn_on_bias: bool,
 }
 
 impl RunOptions {
@@ -52,6 +55,7 @@ impl RunOptions {
             vision,
             seed_offset,
             stamp_at_arrival: false,
+            draw_turn_on_bias: false,
         }
     }
 }
@@ -75,12 +79,9 @@ pub struct RunResult {
     pub final_health: String,
     /// Time of initialisation, s.
     pub initialised_at_s: Option<f64>,
-    /// Position NEES samples `(t_s, nees)`.
+    /// NEES samples every `nees_interval_s` inside the evaluation window.
     #[serde(skip)]
-    pub nees_pos: Vec<(f64, f64)>,
-    /// Position/velocity/attitude NEES samples.
-    #[serde(skip)]
-    pub nees_pva: Vec<(f64, f64)>,
+    pub nees: Vec<NeesSample>,
     /// Final gyro bias estimation error, deg/h.
     pub gyro_bias_err_deg_h: [f64; 3],
     /// Final accelerometer bias estimation error, micro-g.
@@ -99,6 +100,55 @@ pub enum RunError {
     NeverInitialised(String),
 }
 
+/// The NEES blocks of the 15 navigation error states `[dr_ned (m), dv_ned (m/s), psi_ned (rad),
+/// db_gyro (rad/s), db_accel (m/s^2)]` (estimate minus truth; the bias errors are the errors of the
+/// total bias, turn-on plus drift): name, first index, size.
+pub const NEES_BLOCKS: [(&str, usize, usize); 7] = [
+    ("position", 0, 3),
+    ("velocity", 3, 3),
+    ("attitude", 6, 3),
+    ("pos_vel_att", 0, 9),
+    ("gyro_bias", 9, 3),
+    ("accel_bias", 12, 3),
+    ("all15", 0, 15),
+];
+
+/// Names of the 15 navigation error states (for the per-state normalised squared errors).
+pub const STATE_NAMES: [&str; 15] = [
+    "pos_n", "pos_e", "pos_d", "vel_n", "vel_e", "vel_d", "att_n", "att_e", "att_d", "bg_x",
+    "bg_y", "bg_z", "ba_x", "ba_y", "ba_z",
+];
+
+/// One NEES sample of one run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NeesSample {
+    /// Time, s.
+    pub t_s: f64,
+    /// `x_b^T P_b^-1 x_b` for every block of [`NEES_BLOCKS`].
+    pub block: [f64; NEES_BLOCKS.len()],
+    /// Per-state normalised squared error `x_i^2 / P_ii`.
+    pub nse: [f64; 15],
+}
+
+impl NeesSample {
+    /// From the 15 navigation errors and their covariance; None if a block is singular.
+    pub fn new(
+        t_s: f64,
+        x: &nalgebra::SVector<f64, 15>,
+        p: &nalgebra::SMatrix<f64, 15, 15>,
+    ) -> Option<Self> {
+        let mut block = [0.0; NEES_BLOCKS.len()];
+        for (b, &(_, i0, n)) in block.iter_mut().zip(NEES_BLOCKS.iter()) {
+            let pb = p.view((i0, i0), (n, n)).into_owned();
+            let xb = x.rows(i0, n).into_owned();
+            let chol = pb.cholesky()?;
+            *b = xb.dot(&chol.solve(&xb));
+        }
+        let nse = std::array::from_fn(|i| x[i] * x[i] / p[(i, i)]);
+        Some(Self { t_s, block, nse })
+    }
+}
+
 fn sym3(d: [f64; 3]) -> Matrix3<f64> {
     Matrix3::from_diagonal(&Vector3::from(d))
 }
@@ -109,7 +159,7 @@ pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
     let mut truth = traj.truth();
     let seed = sc.seed.wrapping_add(opt.seed_offset);
     let mut rng = Rng::new(seed);
-    let mut imu_err = ImuErrors::new(sc.imu.clone());
+    let mut imu_err = ImuErrors::for_run(sc.imu.clone(), &mut rng, opt.draw_turn_on_bias);
     let mut filter = NavFilter::new(sc.nav.clone());
     let dt_us = (1e6 / sc.imu.rate_hz).round() as u64;
     let dt_s = dt_us as f64 * 1e-6;
@@ -124,8 +174,7 @@ pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
         (Enu::default(), Enu::default(), 0usize, 0.0f64);
     let mut final_err = Enu::default();
     let mut final_health = String::new();
-    let mut nees_pos = Vec::new();
-    let mut nees_pva = Vec::new();
+    let mut nees = Vec::new();
     let mut init_at = None;
     let mut prev_truth = truth.state();
     // Next capture time of each sensor (fires at the first IMU epoch at or after it).
@@ -190,27 +239,24 @@ pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
         }
         if t_us >= next_nees
             && t_us <= ev1
-            && let (Some(st), Some(p)) = (filter.state(), filter.covariance())
+            && let (Some(st), Some(p)) = (filter.state(), filter.nav_error_covariance())
+            && let Some((bg, ba)) = filter.biases()
         {
             next_nees += nees_us;
-            let dr = earth::ned_offset_m(
+            let (tbg, tba) = imu_err.biases();
+            let mut x = nalgebra::SVector::<f64, 15>::zeros();
+            x.fixed_rows_mut::<3>(0).copy_from(&earth::ned_offset_m(
                 (st.lat_rad, st.lon_rad, st.h_m),
                 (ts.lat_rad, ts.lon_rad, ts.h_m),
-            );
-            let dvv = st.v_ned_m_s - ts.v_ned_m_s;
-            let psi = (st.q_nb * ts.q_nb.inverse()).scaled_axis();
-            let pp = p.view((0, 0), (3, 3)).into_owned();
-            if let Some(inv) = pp.clone().try_inverse() {
-                let x = nalgebra::DVector::from_column_slice(dr.as_slice());
-                nees_pos.push((t_us as f64 * 1e-6, (x.transpose() * inv * &x)[(0, 0)]));
-            }
-            let p9 = p.view((0, 0), (9, 9)).into_owned();
-            if let Some(inv) = p9.try_inverse() {
-                let mut x = nalgebra::DVector::zeros(9);
-                x.rows_mut(0, 3).copy_from(&dr);
-                x.rows_mut(3, 3).copy_from(&dvv);
-                x.rows_mut(6, 3).copy_from(&psi);
-                nees_pva.push((t_us as f64 * 1e-6, (x.transpose() * inv * &x)[(0, 0)]));
+            ));
+            x.fixed_rows_mut::<3>(3)
+                .copy_from(&(st.v_ned_m_s - ts.v_ned_m_s));
+            x.fixed_rows_mut::<3>(6)
+                .copy_from(&(st.q_nb * ts.q_nb.inverse()).scaled_axis());
+            x.fixed_rows_mut::<3>(9).copy_from(&(bg - tbg));
+            x.fixed_rows_mut::<3>(12).copy_from(&(ba - tba));
+            if let Some(s) = NeesSample::new(t_us as f64 * 1e-6, &x, &p) {
+                nees.push(s);
             }
         }
         // Sensors captured at this epoch.
@@ -339,8 +385,7 @@ pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
         counters: *filter.counters(),
         final_health,
         initialised_at_s: init_at,
-        nees_pos,
-        nees_pva,
+        nees,
         gyro_bias_err_deg_h: ((bg - tbg) / crate::nav::config::DEG_H_TO_RAD_S).into(),
         accel_bias_err_ug: ((ba - tba) / crate::nav::config::UG_TO_M_S2).into(),
         gyro_bias_sigma_deg_h: sig(9, crate::nav::config::DEG_H_TO_RAD_S),
@@ -433,6 +478,12 @@ pub struct MonteCarlo {
     pub nees_pos: Option<NeesSummary>,
     /// Position/velocity/attitude NEES (9 dof).
     pub nees_pva: Option<NeesSummary>,
+    /// Every block of [`NEES_BLOCKS`] by name (position, velocity, attitude, pos_vel_att,
+    /// gyro_bias, accel_bias, all15).
+    pub nees: Vec<(String, Option<NeesSummary>)>,
+    /// Mean over runs and epochs of `x_i^2 / P_ii` per navigation error state (1 expected), by
+    /// [`STATE_NAMES`].
+    pub state_nse_mean: Vec<(String, f64)>,
     /// Mean over the vision runs of the max error per axis, m.
     pub mean_max_err_m: Enu,
     /// Mean over the INS-only control runs (same seeds) of the max error per axis, m.
@@ -457,21 +508,43 @@ fn mean_enu(rs: &[RunResult]) -> Enu {
 }
 
 /// Run `runs` vision runs with seeds `seed + 1000 + i` and the INS-only control runs with the
-/// same seeds (in parallel).
+/// same seeds (in parallel); every run draws its IMU turn-on biases (`draw_turn_on_bias`).
 pub fn monte_carlo(sc: &Scenario, runs: usize) -> Result<MonteCarlo, RunError> {
     use rayon::prelude::*;
     let both: Result<Vec<(RunResult, RunResult)>, RunError> = (0..runs)
         .into_par_iter()
         .map(|i| {
-            Ok((
-                run(sc, RunOptions::new(true, 1000 + i as u64))?,
-                run(sc, RunOptions::new(false, 1000 + i as u64))?,
-            ))
+            let opt = |vision| RunOptions {
+                draw_turn_on_bias: true,
+                ..RunOptions::new(vision, 1000 + i as u64)
+            };
+            Ok((run(sc, opt(true))?, run(sc, opt(false))?))
         })
         .collect();
     let (results, ins): (Vec<RunResult>, Vec<RunResult>) = both?.into_iter().unzip();
-    let pos: Vec<_> = results.iter().map(|r| r.nees_pos.clone()).collect();
-    let pva: Vec<_> = results.iter().map(|r| r.nees_pva.clone()).collect();
+    let series = |b: usize| -> Vec<Vec<(f64, f64)>> {
+        results
+            .iter()
+            .map(|r| r.nees.iter().map(|s| (s.t_s, s.block[b])).collect())
+            .collect()
+    };
+    let nees: Vec<(String, Option<NeesSummary>)> = NEES_BLOCKS
+        .iter()
+        .enumerate()
+        .map(|(b, &(name, _, n))| (name.to_string(), nees_summary(&series(b), n)))
+        .collect();
+    let n_samples = results.iter().map(|r| r.nees.len()).sum::<usize>().max(1) as f64;
+    let state_nse_mean = STATE_NAMES
+        .iter()
+        .enumerate()
+        .map(|(i, name)| {
+            let sum: f64 = results
+                .iter()
+                .flat_map(|r| r.nees.iter().map(move |s| s.nse[i]))
+                .sum();
+            (name.to_string(), sum / n_samples)
+        })
+        .collect();
     let mh: Vec<f64> = results.iter().map(|r| r.max_horiz_err_m).collect();
     let target = sc
         .evaluation
@@ -483,8 +556,10 @@ pub fn monte_carlo(sc: &Scenario, runs: usize) -> Result<MonteCarlo, RunError> {
         ins_only_mean_max_err_m: mean_enu(&ins),
         ins_only_mean_max_horiz_err_m: ins.iter().map(|r| r.max_horiz_err_m).sum::<f64>()
             / runs.max(1) as f64,
-        nees_pos: nees_summary(&pos, 3),
-        nees_pva: nees_summary(&pva, 9),
+        nees_pos: nees[0].1.clone(),
+        nees_pva: nees[3].1.clone(),
+        nees,
+        state_nse_mean,
         mean_max_horiz_err_m: mh.iter().sum::<f64>() / runs.max(1) as f64,
         worst_max_horiz_err_m: mh.iter().copied().fold(0.0, f64::max),
         runs_over_target: mh.iter().filter(|&&m| m > target).count(),

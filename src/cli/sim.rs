@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 use visnav::sitl::Scenario;
-use visnav::sitl::run::{RunOptions, monte_carlo, run};
+use visnav::sitl::run::{RunOptions, TruthPlusNoise, VisionFixSource, monte_carlo, run};
 
 #[derive(clap::Args, Debug)]
 pub struct SimArgs {
@@ -38,8 +38,13 @@ pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
     let mc_s = t1.elapsed().as_secs_f64();
     let vision_source = sc.vision.as_ref().map(|v| {
         format!(
-            "truth+noise (fix pipeline not landed): white noise sigma {} m horizontal per axis, {} m vertical, {} Hz, delivered {}-{} ms after capture and applied at capture time, outlier probability {}",
-            v.sigma_h_m, v.sigma_v_m, v.rate_hz, v.latency_min_ms, v.latency_max_ms, v.outlier_prob
+            "{}; {} Hz, delivered {}-{} ms after capture and applied at capture time; true camera lever arm {:?} m body FRD, filter's {:?} m",
+            TruthPlusNoise::from_config(v).describe(),
+            v.rate_hz,
+            v.latency_min_ms,
+            v.latency_max_ms,
+            v.lever_arm_body_frd_m,
+            sc.nav.camera_lever_arm()
         )
     });
     let target = sc.evaluation.target_max_horiz_err_m;

@@ -199,6 +199,9 @@ struct Core {
     /// states.
     dg: Vector3<f64>,
     da: Vector3<f64>,
+    /// Compensated body rate w.r.t. inertial space of the last IMU sample, rad/s (for the
+    /// lever-arm velocity).
+    w_b: Vector3<f64>,
     p: Mat,
 }
 
@@ -232,6 +235,9 @@ struct Params {
     gate_att: f64,
     r_att: Matrix3<f64>,
     use_att: bool,
+    /// Camera and GPS antenna lever arms, body FRD, m.
+    l_cam: Vector3<f64>,
+    l_gps: Vector3<f64>,
 }
 
 /// The navigation filter.
@@ -305,6 +311,8 @@ impl NavFilter {
             gate_att: chi2_quantile(3.0, cfg.gates.attitude_prob),
             r_att: Matrix3::from_diagonal(&Vector3::new(tilt * tilt, tilt * tilt, yaw * yaw)),
             use_att: cfg.use_autopilot_attitude,
+            l_cam: Vector3::from(cfg.camera_lever_arm()),
+            l_gps: Vector3::from(cfg.gps_lever_arm_body_frd_m),
         };
         Self {
             cfg,
@@ -688,10 +696,18 @@ impl NavFilter {
         tracing::warn!("nav filter divergence: {reason}");
         let dt = dt_s(f.t_capture_us, core.t_us);
         let v = core.ins.state.v_ned_m_s;
-        let (rm, rn) = earth::radii_m(f.lat_rad);
-        core.ins.state.lat_rad = f.lat_rad + v.x * dt / (rm + f.h_m);
-        core.ins.state.lon_rad = f.lon_rad + v.y * dt / ((rn + f.h_m) * f.lat_rad.cos());
-        core.ins.state.h_m = f.h_m - v.z * dt;
+        let l = if matches!(m, Measurement::Vision(_)) {
+            self.par.l_cam
+        } else {
+            self.par.l_gps
+        };
+        let (lat, lon, h) = shift_ned(
+            (f.lat_rad, f.lon_rad, f.h_m),
+            &(v * dt - core.ins.state.q_nb * l),
+        );
+        core.ins.state.lat_rad = lat;
+        core.ins.state.lon_rad = lon;
+        core.ins.state.h_m = h;
         for i in 0..6 {
             for k in 0..N_STATES {
                 core.p[(i, k)] = 0.0;
@@ -825,11 +841,18 @@ impl NavFilter {
         if !(-0.5..=1.0).contains(&dt) {
             return Outcome::Held;
         }
-        let (rm, rn) = earth::radii_m(fix.lat_rad);
+        // The fix is the camera / antenna position: move it to the IMU and to the current time.
+        let l = if is_gps {
+            self.par.l_gps
+        } else {
+            self.par.l_cam
+        };
+        let (lat_rad, lon_rad, h_m) =
+            shift_ned((fix.lat_rad, fix.lon_rad, fix.h_m), &(v * dt - att.q_nb * l));
         let state = InsState {
-            lat_rad: fix.lat_rad + v.x * dt / (rm + fix.h_m),
-            lon_rad: fix.lon_rad + v.y * dt / ((rn + fix.h_m) * fix.lat_rad.cos()),
-            h_m: fix.h_m - v.z * dt,
+            lat_rad,
+            lon_rad,
+            h_m,
             v_ned_m_s: v,
             q_nb: att.q_nb,
         };
@@ -843,6 +866,7 @@ impl NavFilter {
             sa: Vector3::zeros(),
             dg: Vector3::zeros(),
             da: Vector3::zeros(),
+            w_b: Vector3::zeros(),
             p,
         };
         self.history.clear();
@@ -901,6 +925,7 @@ impl Core {
         let (rm, rn) = earth::radii_m(lat);
         let c_bn = st.q_nb.to_rotation_matrix().into_inner();
         let w_b = dth / dt;
+        self.w_b = w_b;
         let f_b = dv / dt;
         let f_n = c_bn * f_b;
         let w_ie = earth::earth_rate_ned(lat);
@@ -1026,6 +1051,22 @@ impl Core {
     }
 }
 
+/// Jacobian of `C_b^n(est) l` with respect to the attitude error `psi` (`C_est = (I + [psi x])
+/// C_true`): `d(C l) = [psi x] C l = -[(C l) x] psi`, `l_n = C_est l`.
+fn lever_arm_jacobian(l_n: &Vector3<f64>) -> Matrix3<f64> {
+    -skew_matrix(l_n)
+}
+
+/// The geodetic position `p` moved by `d_ned` metres (first order, fine for metres to a few km).
+fn shift_ned(p: (f64, f64, f64), d_ned: &Vector3<f64>) -> (f64, f64, f64) {
+    let (rm, rn) = earth::radii_m(p.0);
+    (
+        p.0 + d_ned.x / (rm + p.2),
+        p.1 + d_ned.y / ((rn + p.2) * p.0.cos()),
+        p.2 - d_ned.z,
+    )
+}
+
 /// Apply one measurement to `core`, whose epoch time is `core.t_us <= t_c`; the prediction is
 /// extrapolated over `t_c - core.t_us`.
 fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
@@ -1035,13 +1076,24 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
     let v = st.v_ned_m_s;
     match m {
         Measurement::Vision(f) | Measurement::GpsPosition(f) => {
+            // The fix is the position of the camera / antenna, `r + C_b^n l`; with
+            // `C_est = (I + [psi x]) C_true`: `dz = dr + [psi x] C l = dr - [(C l) x] psi`.
+            let l = if matches!(m, Measurement::Vision(_)) {
+                par.l_cam
+            } else {
+                par.l_gps
+            };
+            let l_n = st.q_nb * l;
             let dz = earth::ned_offset_m(
                 (st.lat_rad, st.lon_rad, st.h_m),
                 (f.lat_rad, f.lon_rad, f.h_m),
-            ) + v * dt;
+            ) + v * dt
+                + l_n;
             let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
             h.fixed_view_mut::<3, 3>(0, IP)
                 .copy_from(&Matrix3::identity());
+            h.fixed_view_mut::<3, 3>(0, IA)
+                .copy_from(&lever_arm_jacobian(&l_n));
             let gate = if matches!(m, Measurement::Vision(_)) {
                 par.gate_vision
             } else {
@@ -1050,10 +1102,15 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
             core.update(par, dz, h, f.cov_ned_m2, gate)
         }
         Measurement::GpsVelocity(f) => {
-            let dz = v - f.v_ned_m_s;
+            // Antenna velocity `v + C_b^n (w x l)` (the earth/transport rate part of `w` is
+            // below 1e-4 rad/s and neglected); Jacobian wrt psi as for the position.
+            let lv_n = st.q_nb * core.w_b.cross(&par.l_gps);
+            let dz = v + lv_n - f.v_ned_m_s;
             let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
             h.fixed_view_mut::<3, 3>(0, IV)
                 .copy_from(&Matrix3::identity());
+            h.fixed_view_mut::<3, 3>(0, IA)
+                .copy_from(&lever_arm_jacobian(&lv_n));
             core.update(par, dz, h, f.cov_ned_m2_s2, par.gate_gps3)
         }
         Measurement::Altitude(f) => {
@@ -1074,6 +1131,29 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
             h.fixed_view_mut::<3, 3>(0, IA)
                 .copy_from(&Matrix3::identity());
             core.update(par, dz, h, par.r_att, par.gate_att)
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lever_arm_jacobian_matches_finite_difference() {
+        let q_true = UnitQuaternion::from_euler_angles(0.3, -0.2, 2.0);
+        let l = Vector3::new(1.5, -0.8, 0.6);
+        for psi in [
+            Vector3::new(1e-4, 0.0, 0.0),
+            Vector3::new(0.0, -2e-4, 0.0),
+            Vector3::new(0.0, 0.0, 3e-4),
+            Vector3::new(1e-4, 2e-4, -1e-4),
+        ] {
+            // Estimate with attitude error psi (estimate minus truth, NED).
+            let q_est = UnitQuaternion::from_scaled_axis(psi) * q_true;
+            let dz = q_est * l - q_true * l;
+            let lin = lever_arm_jacobian(&(q_est * l)) * psi;
+            assert!((dz - lin).norm() < 1e-3 * psi.norm() * l.norm(), "{dz} {lin}");
         }
     }
 }

@@ -189,8 +189,16 @@ fn camera_lever_arm_bias_without_correction_none_with_it() {
         cor.max_horiz_err_m
     );
     // Ignored: the estimate sits on the camera, estimate - truth = the lever arm (forward, right).
-    assert!((b(&unc)[0] - b(&base)[0] - 1.5).abs() < 0.3, "{:?}", b(&unc));
-    assert!((b(&unc)[1] - b(&base)[1] - 0.8).abs() < 0.3, "{:?}", b(&unc));
+    assert!(
+        (b(&unc)[0] - b(&base)[0] - 1.5).abs() < 0.3,
+        "{:?}",
+        b(&unc)
+    );
+    assert!(
+        (b(&unc)[1] - b(&base)[1] - 0.8).abs() < 0.3,
+        "{:?}",
+        b(&unc)
+    );
     // Corrected: no lever-arm bias left.
     for k in 0..2 {
         assert!((b(&cor)[k] - b(&base)[k]).abs() < 0.15, "{:?}", b(&cor));
@@ -223,8 +231,16 @@ fn gps_lever_arm_bias_without_correction_none_with_it() {
         b(&unc),
         b(&cor)
     );
-    assert!((b(&unc)[0] - b(&base)[0] - 0.4).abs() < 0.2, "{:?}", b(&unc));
-    assert!((b(&unc)[2] - b(&base)[2] + 1.2).abs() < 0.3, "{:?}", b(&unc));
+    assert!(
+        (b(&unc)[0] - b(&base)[0] - 0.4).abs() < 0.2,
+        "{:?}",
+        b(&unc)
+    );
+    assert!(
+        (b(&unc)[2] - b(&base)[2] + 1.2).abs() < 0.3,
+        "{:?}",
+        b(&unc)
+    );
     for k in 0..3 {
         assert!((b(&cor)[k] - b(&base)[k]).abs() < 0.15, "{:?}", b(&cor));
     }

@@ -847,8 +847,10 @@ impl NavFilter {
         } else {
             self.par.l_cam
         };
-        let (lat_rad, lon_rad, h_m) =
-            shift_ned((fix.lat_rad, fix.lon_rad, fix.h_m), &(v * dt - att.q_nb * l));
+        let (lat_rad, lon_rad, h_m) = shift_ned(
+            (fix.lat_rad, fix.lon_rad, fix.h_m),
+            &(v * dt - att.q_nb * l),
+        );
         let state = InsState {
             lat_rad,
             lon_rad,
@@ -1153,7 +1155,10 @@ mod tests {
             let q_est = UnitQuaternion::from_scaled_axis(psi) * q_true;
             let dz = q_est * l - q_true * l;
             let lin = lever_arm_jacobian(&(q_est * l)) * psi;
-            assert!((dz - lin).norm() < 1e-3 * psi.norm() * l.norm(), "{dz} {lin}");
+            assert!(
+                (dz - lin).norm() < 1e-3 * psi.norm() * l.norm(),
+                "{dz} {lin}"
+            );
         }
     }
 }

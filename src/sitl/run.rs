@@ -109,8 +109,11 @@ pub trait VisionFixSource: Sync {
     fn describe(&self) -> String;
     /// Error to add to the true camera projection centre (NED, m) and the NED covariance to
     /// report with the fix, for a frame taken with the true attitude `q_nb_true`.
-    fn sample(&self, rng: &mut Rng, q_nb_true: &UnitQuaternion<f64>)
-    -> (Vector3<f64>, Matrix3<f64>);
+    fn sample(
+        &self,
+        rng: &mut Rng,
+        q_nb_true: &UnitQuaternion<f64>,
+    ) -> (Vector3<f64>, Matrix3<f64>);
 }
 
 /// Truth plus Gaussian noise (the stand-in until the fix pipeline lands): covariance
@@ -257,11 +260,7 @@ fn sym3(d: [f64; 3]) -> Matrix3<f64> {
 /// Run a scenario once, vision fixes from [`TruthPlusNoise`] of the `[vision]` section.
 pub fn run(sc: &Scenario, opt: RunOptions) -> Result<RunResult, RunError> {
     let src = sc.vision.as_ref().map(TruthPlusNoise::from_config);
-    run_with_source(
-        sc,
-        opt,
-        src.as_ref().map(|s| s as &dyn VisionFixSource),
-    )
+    run_with_source(sc, opt, src.as_ref().map(|s| s as &dyn VisionFixSource))
 }
 
 /// Run a scenario once with the given vision fix source (timing, rate and latency from the
@@ -611,10 +610,26 @@ pub struct MonteCarlo {
     pub ins_only_mean_max_horiz_err_m: f64,
     /// Mean over runs of the max horizontal error, m.
     pub mean_max_horiz_err_m: f64,
+    /// Median over runs of the max horizontal error, m.
+    pub median_max_horiz_err_m: f64,
     /// Largest max horizontal error over runs, m.
     pub worst_max_horiz_err_m: f64,
     /// Runs whose max horizontal error exceeds the scenario target.
     pub runs_over_target: usize,
+}
+
+fn median(v: &[f64]) -> f64 {
+    let mut s: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    if s.is_empty() {
+        return f64::NAN;
+    }
+    s.sort_by(f64::total_cmp);
+    let m = s.len() / 2;
+    if s.len() % 2 == 1 {
+        s[m]
+    } else {
+        0.5 * (s[m - 1] + s[m])
+    }
 }
 
 fn mean_enu(rs: &[RunResult]) -> Enu {
@@ -680,6 +695,7 @@ pub fn monte_carlo(sc: &Scenario, runs: usize) -> Result<MonteCarlo, RunError> {
         nees,
         state_nse_mean,
         mean_max_horiz_err_m: mh.iter().sum::<f64>() / runs.max(1) as f64,
+        median_max_horiz_err_m: median(&mh),
         worst_max_horiz_err_m: mh.iter().copied().fold(0.0, f64::max),
         runs_over_target: mh.iter().filter(|&&m| m > target).count(),
     })

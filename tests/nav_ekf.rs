@@ -379,14 +379,26 @@ fn late_fixes_equal_on_time_fixes() {
 }
 
 #[test]
-fn fifteen_and_twentyone_states() {
-    let cfg = NavConfig {
-        scale_factor_states: true,
-        ..Default::default()
-    };
-    let mut h = Harness::new(cfg, SimImuConfig::perfect(100.0));
-    h.fly(20.0, true, |_, _, _| {});
-    assert_eq!(h.filter.n_states(), 21);
-    check_pd(&h.filter);
-    assert!(h.pos_err().norm() < 3.0);
+fn fifteen_twentyone_and_twentyseven_states() {
+    for (scale, drift, n) in [
+        (false, false, 15),
+        (true, false, 21),
+        (false, true, 21),
+        (true, true, 27),
+    ] {
+        let cfg = NavConfig {
+            scale_factor_states: scale,
+            bias_drift_states: drift,
+            ..Default::default()
+        };
+        let mut h = Harness::new(cfg, SimImuConfig::perfect(100.0));
+        h.fly(20.0, true, |_, _, _| {});
+        assert_eq!(h.filter.n_states(), n);
+        check_pd(&h.filter);
+        assert!(h.pos_err().norm() < 3.0, "{n} states: {}", h.pos_err());
+        // The 15 navigation errors with the total bias: symmetric PD whatever the layout.
+        let p = h.filter.nav_error_covariance().expect("p15");
+        assert!((p - p.transpose()).abs().max() < 1e-12);
+        assert!(p.cholesky().is_some());
+    }
 }

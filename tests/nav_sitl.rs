@@ -48,8 +48,8 @@ fn scenario_errors_name_file_and_key() {
             "until_s = 900.0\nsigma_h_m = 2.5",
         )
         .replace(
-            "gyro_arw_deg_sqrt_h = 0.1\ngyro_bias_deg_h = 10.0",
-            "gyro_arw_deg_sqrt_h = 0.0\ngyro_bias_deg_h = 10.0",
+            "[nav.imu]                  # the filter's model: the simulated IMU's datasheet values\ngyro_arw_deg_sqrt_h = 0.1",
+            "[nav.imu]\ngyro_arw_deg_sqrt_h = 0.0",
         );
     let e = Scenario::parse(&bad, "y.toml")
         .expect_err("invalid")
@@ -133,11 +133,118 @@ fn short_monte_carlo_is_consistent() {
     );
     // About 95 % of the epochs are expected inside the band; allow for a short run.
     assert!(pos.fraction_inside >= 0.8, "{}", pos.fraction_inside);
-    let pva = mc.nees_pva.as_ref().expect("nees");
-    assert!(
-        pva.mean_inside,
-        "mean 9-dof NEES {} outside {:?}",
-        pva.mean, pva.band_95
-    );
+    // Every navigation block (position, velocity, attitude, all nine): the run-averaged NEES
+    // inside its 95 % band. The bias blocks barely change over the 60 s window, so with 10 runs
+    // their time average is about one chi-square(30) draw: reported by the 50/100-run Monte
+    // Carlo of `visnav sim`, not asserted here.
+    for (name, s) in &mc.nees {
+        if name.contains("bias") || name == "all15" {
+            continue;
+        }
+        let s = s.as_ref().expect("nees block");
+        assert!(
+            s.mean_inside,
+            "mean {name} NEES {} outside {:?}",
+            s.mean, s.band_95
+        );
+    }
     assert_eq!(mc.runs_over_target, 0);
+}
+
+fn scenario_text(name: &str) -> String {
+    std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("sitl/scenarios")
+            .join(name),
+    )
+    .expect("read scenario")
+}
+
+/// Camera lever arm through turns and climbs (vision only): the fixes are positions of the camera
+/// projection centre 1.5 m forward, 0.8 m right and 0.6 m above the IMU. A filter that ignores the
+/// lever arm puts its IMU position on the camera (mean error in body axes = the lever arm); with
+/// `[nav] camera_lever_arm_body_frd_m` the mean error is that of the run without a lever arm.
+#[test]
+fn camera_lever_arm_bias_without_correction_none_with_it() {
+    let text = scenario_text("turns_vision_only.toml");
+    let arm = "lever_arm_body_frd_m = [1.5, 0.8, -0.6]";
+    let truth_arm = text.replace("outlier_m = 50.0", &format!("outlier_m = 50.0\n{arm}"));
+    let corrected = truth_arm.replace(
+        "[nav]\n",
+        "[nav]\ncamera_lever_arm_body_frd_m = [1.5, 0.8, -0.6]\n",
+    );
+    let go = |t: &str| {
+        let sc = Scenario::parse(t, "turns_vision_only.toml").expect("valid");
+        run(&sc, RunOptions::new(true, 0)).expect("run")
+    };
+    let (base, unc, cor) = (go(&text), go(&truth_arm), go(&corrected));
+    let b = |r: &visnav::sitl::run::RunResult| r.mean_err_body_frd_m;
+    eprintln!(
+        "mean error body FRD [m]: no lever arm {:.3?}, lever arm ignored {:.3?}, corrected {:.3?}; max horizontal {:.2} / {:.2} / {:.2}",
+        b(&base),
+        b(&unc),
+        b(&cor),
+        base.max_horiz_err_m,
+        unc.max_horiz_err_m,
+        cor.max_horiz_err_m
+    );
+    // Ignored: the estimate sits on the camera, estimate - truth = the lever arm (forward, right;
+    // measured 1.50 / 1.10 m: the vertical part, pulled to the barometer, leaks into body y in
+    // the banked turns).
+    assert!(
+        (b(&unc)[0] - b(&base)[0] - 1.5).abs() < 0.4,
+        "{:?}",
+        b(&unc)
+    );
+    assert!(
+        (b(&unc)[1] - b(&base)[1] - 0.8).abs() < 0.4,
+        "{:?}",
+        b(&unc)
+    );
+    // Corrected: no lever-arm bias left (same noise draws as the run without a lever arm;
+    // measured within 2 mm).
+    for k in 0..3 {
+        assert!((b(&cor)[k] - b(&base)[k]).abs() < 0.05, "{:?}", b(&cor));
+    }
+    assert!(cor.counters.vision.accepted >= 190);
+}
+
+/// GPS antenna 0.4 m forward and 1.2 m above the IMU on the calibration racetrack (turns, climbs):
+/// the GPS update with the lever arm and its attitude Jacobian removes the bias.
+#[test]
+fn gps_lever_arm_bias_without_correction_none_with_it() {
+    let text = scenario_text("gps_calibration.toml");
+    let truth_arm = text.replace(
+        "sigma_vel_m_s = 0.1",
+        "sigma_vel_m_s = 0.1\nlever_arm_body_frd_m = [0.4, 0.0, -1.2]",
+    );
+    let corrected = truth_arm.replace(
+        "[nav.imu]",
+        "[nav]\ngps_lever_arm_body_frd_m = [0.4, 0.0, -1.2]\n\n[nav.imu]",
+    );
+    let go = |t: &str| {
+        let sc = Scenario::parse(t, "gps_calibration.toml").expect("valid");
+        run(&sc, RunOptions::new(false, 0)).expect("run")
+    };
+    let (base, unc, cor) = (go(&text), go(&truth_arm), go(&corrected));
+    let b = |r: &visnav::sitl::run::RunResult| r.mean_err_body_frd_m;
+    eprintln!(
+        "GPS lever arm, mean error body FRD [m]: none {:.3?}, ignored {:.3?}, corrected {:.3?}",
+        b(&base),
+        b(&unc),
+        b(&cor)
+    );
+    assert!(
+        (b(&unc)[0] - b(&base)[0] - 0.4).abs() < 0.2,
+        "{:?}",
+        b(&unc)
+    );
+    assert!(
+        (b(&unc)[2] - b(&base)[2] + 1.2).abs() < 0.3,
+        "{:?}",
+        b(&unc)
+    );
+    for k in 0..3 {
+        assert!((b(&cor)[k] - b(&base)[k]).abs() < 0.05, "{:?}", b(&cor));
+    }
 }

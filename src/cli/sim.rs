@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 use visnav::sitl::Scenario;
-use visnav::sitl::run::{RunOptions, monte_carlo, run};
+use visnav::sitl::run::{RunOptions, TruthPlusNoise, VisionFixSource, monte_carlo, run};
 
 #[derive(clap::Args, Debug)]
 pub struct SimArgs {
@@ -38,8 +38,13 @@ pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
     let mc_s = t1.elapsed().as_secs_f64();
     let vision_source = sc.vision.as_ref().map(|v| {
         format!(
-            "truth+noise (fix pipeline not landed): white noise sigma {} m horizontal per axis, {} m vertical, {} Hz, delivered {}-{} ms after capture and applied at capture time, outlier probability {}",
-            v.sigma_h_m, v.sigma_v_m, v.rate_hz, v.latency_min_ms, v.latency_max_ms, v.outlier_prob
+            "{}; {} Hz, delivered {}-{} ms after capture and applied at capture time; true camera lever arm {:?} m body FRD, filter's {:?} m",
+            TruthPlusNoise::from_config(v).describe(),
+            v.rate_hz,
+            v.latency_min_ms,
+            v.latency_max_ms,
+            v.lever_arm_body_frd_m,
+            sc.nav.camera_lever_arm()
         )
     });
     let target = sc.evaluation.target_max_horiz_err_m;
@@ -78,7 +83,38 @@ pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
             vis.max_horiz_err_m, ins.max_horiz_err_m
         );
         if let Some(mc) = &mc {
-            println!("monte carlo: {}", serde_json::to_string(mc)?);
+            println!(
+                "monte carlo, {} runs: max horizontal error with vision mean {:.2} m, median {:.2} m, worst {:.2} m, {} runs over target; INS-only mean {:.2} m",
+                mc.runs,
+                mc.mean_max_horiz_err_m,
+                mc.median_max_horiz_err_m,
+                mc.worst_max_horiz_err_m,
+                mc.runs_over_target,
+                mc.ins_only_mean_max_horiz_err_m
+            );
+            println!("NEES (run average; two-sided 95 % band; fraction of epochs inside):");
+            for (name, s) in &mc.nees {
+                if let Some(s) = s {
+                    println!(
+                        "  {name:<12} dof {:>2}  mean {:>7.3}  band [{:.3}, {:.3}]  {}  inside {:.0} %",
+                        s.dof,
+                        s.mean,
+                        s.band_95[0],
+                        s.band_95[1],
+                        if s.mean_inside { "in " } else { "OUT" },
+                        100.0 * s.fraction_inside
+                    );
+                }
+            }
+            let nse: Vec<String> = mc
+                .state_nse_mean
+                .iter()
+                .map(|(n, v)| format!("{n} {v:.2}"))
+                .collect();
+            println!(
+                "mean normalised squared error per state: {}",
+                nse.join(", ")
+            );
         }
         println!("runtime: two runs {single_s:.2} s, monte carlo {mc_s:.2} s");
     }

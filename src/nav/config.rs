@@ -329,8 +329,14 @@ impl Validate for HealthConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct NavConfig {
-    /// Estimate gyro and accelerometer scale factors (21 states) instead of 15 states.
+    /// Estimate gyro and accelerometer scale factors (6 more states).
     pub scale_factor_states: bool,
+    /// Carry the bias instability as its own first-order Gauss-Markov states (6 more states:
+    /// gyro and accelerometer drift, sigma `*_bias_instability_*`, correlation time
+    /// `*_bias_corr_time_s`) beside the constant turn-on bias states. False: one bias state per
+    /// axis, a random constant driven by the short-term random walk `q = 2 sigma^2 / tau` of the
+    /// instability (conservative).
+    pub bias_drift_states: bool,
     /// Output (position/velocity/attitude/covariance) rate, Hz.
     pub output_rate_hz: f64,
     /// Length of the state/covariance history used to apply late measurements at their capture
@@ -344,6 +350,13 @@ pub struct NavConfig {
     pub attitude_sigma_yaw_deg: f64,
     /// Largest accepted gap between IMU samples; larger gaps reset the filter, s.
     pub max_imu_gap_s: f64,
+    /// Camera projection centre in the body frame (FRD, metres from the IMU, the point the
+    /// filter's position refers to): vision fixes are positions of this point. Not set: the
+    /// caller fills it from `[camera.mount] lever_arm_body_frd_m`
+    /// ([`NavConfig::with_camera_lever_arm`]); the filter treats "not set" as zero.
+    pub camera_lever_arm_body_frd_m: Option<[f64; 3]>,
+    /// GPS antenna phase centre in the body frame (FRD, metres from the IMU).
+    pub gps_lever_arm_body_frd_m: [f64; 3],
     /// IMU error model.
     pub imu: ImuNoiseConfig,
     /// Innovation gates.
@@ -358,12 +371,15 @@ impl Default for NavConfig {
     fn default() -> Self {
         Self {
             scale_factor_states: false,
+            bias_drift_states: true,
             output_rate_hz: 50.0,
             history_s: 1.0,
             use_autopilot_attitude: false,
             attitude_sigma_tilt_deg: 1.0,
             attitude_sigma_yaw_deg: 3.0,
             max_imu_gap_s: 0.1,
+            camera_lever_arm_body_frd_m: None,
+            gps_lever_arm_body_frd_m: [0.0; 3],
             imu: ImuNoiseConfig::default(),
             gates: GateConfig::default(),
             init: InitConfig::default(),
@@ -373,9 +389,23 @@ impl Default for NavConfig {
 }
 
 impl NavConfig {
-    /// Number of error states (15 or 21).
+    /// This configuration with the camera lever arm taken from the camera mount when `[nav]`
+    /// does not give one.
+    pub fn with_camera_lever_arm(mut self, mount_lever_arm_body_frd_m: [f64; 3]) -> Self {
+        if self.camera_lever_arm_body_frd_m.is_none() {
+            self.camera_lever_arm_body_frd_m = Some(mount_lever_arm_body_frd_m);
+        }
+        self
+    }
+
+    /// Camera lever arm in use (zero when not set).
+    pub fn camera_lever_arm(&self) -> [f64; 3] {
+        self.camera_lever_arm_body_frd_m.unwrap_or([0.0; 3])
+    }
+
+    /// Number of error states: 15, plus 6 with scale factors, plus 6 with bias drift states.
     pub fn n_states(&self) -> usize {
-        if self.scale_factor_states { 21 } else { 15 }
+        15 + 6 * usize::from(self.scale_factor_states) + 6 * usize::from(self.bias_drift_states)
     }
 }
 
@@ -398,6 +428,12 @@ impl Validate for NavConfig {
             180.0,
         );
         p.range("max_imu_gap_s", self.max_imu_gap_s, 0.001, 10.0);
+        for v in self.camera_lever_arm_body_frd_m.unwrap_or([0.0; 3]) {
+            p.range("camera_lever_arm_body_frd_m", v, -100.0, 100.0);
+        }
+        for v in self.gps_lever_arm_body_frd_m {
+            p.range("gps_lever_arm_body_frd_m", v, -100.0, 100.0);
+        }
         p.section("imu", |p| self.imu.validate(p));
         p.section("gates", |p| self.gates.validate(p));
         p.section("init", |p| self.init.validate(p));

@@ -8,17 +8,30 @@
 //! `dD = -dh`); `3..6` velocity error NED; `6..9` attitude error `psi` in NED with
 //! `C_b^n(est) = (I + [psi x]) C_b^n(true)`; `9..12` gyro bias error (rad/s); `12..15` accelerometer
 //! bias error (m/s^2); `15..18` gyro scale-factor error; `18..21` accelerometer scale-factor
-//! error. In 15-state mode the scale-factor states are frozen at zero with zero covariance (they
-//! never receive a gain), which is exactly the 15-state filter.
+//! error; `21..24` gyro bias drift error (rad/s); `24..27` accelerometer bias drift error
+//! (m/s^2). Inactive groups (scale factors without `scale_factor_states`, drifts without
+//! `bias_drift_states`) are frozen at zero with zero covariance (they never receive a gain),
+//! which is exactly the smaller filter; the public covariance lists the active states in that
+//! order (15, 21 or 27).
+//!
+//! Bias model (with `bias_drift_states`, the default): the bias of each axis is
+//! `b = b_c + b_d`, `b_c` the turn-on bias (random constant, prior sigma `*_bias_deg_h` /
+//! `*_bias_ug`, plus the datasheet bias random walk if any) and `b_d` the bias instability, a
+//! first-order Gauss-Markov process (sigma `*_bias_instability_*`, correlation time `tau`):
+//! `d(b_d)/dt = -b_d / tau + w`, `E[w^2] = 2 sigma^2 / tau`, discretised exactly
+//! (`phi = e^{-dt/tau}`, `Qd = sigma^2 (1 - e^{-2 dt/tau})`); the drift estimate decays with
+//! `phi` between updates. The total bias compensates the IMU. Without drift states one state per
+//! axis carries both (random constant with `q = 2 sigma^2 / tau + q_RW`, conservative).
 //!
 //! Sensor model: `w_meas = (1 + s_g) w + b_g + n`, `f_meas = (1 + s_a) f + b_a + n`; the INS
 //! integrates `w = (w_meas - b_g_est) / (1 + s_g_est)`. Continuous error dynamics (first order):
 //! ```text
 //! d(dr)/dt   = dv
 //! d(dv)/dt   = -[f^n x] psi + (-[(2w_ie + w_en) x] + [v x] dW_en/dv) dv + dg/dr dr
-//!              - C_b^n (db_a + diag(f^b) ds_a)
-//! d(psi)/dt  = -[w_in x] psi - dW_en/dv dv - dW_ie/dr dr - C_b^n (db_g + diag(w^b) ds_g)
-//! d(b)/dt    = w   (random constant + random walk, q = 2 sigma_BI^2 / tau + q_RW)
+//!              - C_b^n (db_a + db_ad + diag(f^b) ds_a)
+//! d(psi)/dt  = -[w_in x] psi - dW_en/dv dv - dW_ie/dr dr - C_b^n (db_g + db_gd + diag(w^b) ds_g)
+//! d(b_c)/dt  = w_RW
+//! d(b_d)/dt  = -b_d / tau + w_GM
 //! ```
 //! Discretisation `Phi = I + F dt`, `Qd = G Qc G^T dt` (noise is isotropic, so the rotation `G`
 //! drops out for the white-noise terms). Update in Joseph form, `P` symmetrised after every step,
@@ -47,7 +60,7 @@ use serde::Serialize;
 use std::collections::VecDeque;
 
 /// Size of the error state carried internally.
-pub const N_STATES: usize = 21;
+pub const N_STATES: usize = 27;
 type Mat = SMatrix<f64, N_STATES, N_STATES>;
 type Vecn = SVector<f64, N_STATES>;
 const IP: usize = 0;
@@ -57,6 +70,8 @@ const IBG: usize = 9;
 const IBA: usize = 12;
 const ISG: usize = 15;
 const ISA: usize = 18;
+const IDG: usize = 21;
+const IDA: usize = 24;
 
 /// Filter health.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -180,6 +195,13 @@ struct Core {
     ba: Vector3<f64>,
     sg: Vector3<f64>,
     sa: Vector3<f64>,
+    /// Gauss-Markov bias drift estimates (gyro rad/s, accelerometer m/s^2); zero without drift
+    /// states.
+    dg: Vector3<f64>,
+    da: Vector3<f64>,
+    /// Compensated body rate w.r.t. inertial space of the last IMU sample, rad/s (for the
+    /// lever-arm velocity).
+    w_b: Vector3<f64>,
     p: Mat,
 }
 
@@ -194,6 +216,15 @@ struct Epoch {
 #[derive(Debug, Clone)]
 struct Params {
     scale: bool,
+    drift: bool,
+    /// Active error-state indices (15, 21 or 27 of them).
+    active: Vec<usize>,
+    /// Gauss-Markov correlation times (gyro, accelerometer), s.
+    tau_g: f64,
+    tau_a: f64,
+    /// Gauss-Markov variances (gyro (rad/s)^2, accelerometer (m/s^2)^2).
+    var_dg: f64,
+    var_da: f64,
     q_arw: f64,
     q_vrw: f64,
     q_bg: f64,
@@ -204,6 +235,9 @@ struct Params {
     gate_att: f64,
     r_att: Matrix3<f64>,
     use_att: bool,
+    /// Camera and GPS antenna lever arms, body FRD, m.
+    l_cam: Vector3<f64>,
+    l_gps: Vector3<f64>,
 }
 
 /// The navigation filter.
@@ -232,11 +266,33 @@ impl NavFilter {
     /// New filter (not initialised) from a validated configuration.
     pub fn new(cfg: NavConfig) -> Self {
         let imu = &cfg.imu;
-        let gm = |sigma: f64, tau: f64, rw: f64| 2.0 * sigma * sigma / tau + rw * rw;
+        let drift = cfg.bias_drift_states;
+        // Without drift states the bias instability is carried as the short-term random walk of
+        // the Gauss-Markov process, q = 2 sigma^2 / tau, on the constant bias state.
+        let gm = |sigma: f64, tau: f64, rw: f64| {
+            if drift {
+                rw * rw
+            } else {
+                2.0 * sigma * sigma / tau + rw * rw
+            }
+        };
         let tilt = cfg.attitude_sigma_tilt_deg.to_radians();
         let yaw = cfg.attitude_sigma_yaw_deg.to_radians();
+        let mut active: Vec<usize> = (0..15).collect();
+        if cfg.scale_factor_states {
+            active.extend(ISG..ISA + 3);
+        }
+        if drift {
+            active.extend(IDG..IDA + 3);
+        }
         let par = Params {
             scale: cfg.scale_factor_states,
+            drift,
+            active,
+            tau_g: imu.gyro_bias_corr_time_s,
+            tau_a: imu.accel_bias_corr_time_s,
+            var_dg: imu.gyro_bias_instability_si().powi(2),
+            var_da: imu.accel_bias_instability_si().powi(2),
             q_arw: imu.gyro_arw_si().powi(2),
             q_vrw: imu.accel_vrw_si().powi(2),
             q_bg: gm(
@@ -255,6 +311,8 @@ impl NavFilter {
             gate_att: chi2_quantile(3.0, cfg.gates.attitude_prob),
             r_att: Matrix3::from_diagonal(&Vector3::new(tilt * tilt, tilt * tilt, yaw * yaw)),
             use_att: cfg.use_autopilot_attitude,
+            l_cam: Vector3::from(cfg.camera_lever_arm()),
+            l_gps: Vector3::from(cfg.gps_lever_arm_body_frd_m),
         };
         Self {
             cfg,
@@ -278,7 +336,7 @@ impl NavFilter {
         &self.cfg
     }
 
-    /// Number of estimated error states (15 or 21).
+    /// Number of estimated error states (15, 21 or 27).
     pub fn n_states(&self) -> usize {
         self.cfg.n_states()
     }
@@ -298,17 +356,45 @@ impl NavFilter {
         self.core.as_ref().map(|c| c.t_us)
     }
 
-    /// Error covariance (`n_states` x `n_states`, index layout in the module doc).
+    /// Error covariance of the active states (`n_states` x `n_states`): the 15 navigation
+    /// states, then the scale factors (if `scale_factor_states`), then the bias drifts (if
+    /// `bias_drift_states`); see the module doc.
     pub fn covariance(&self) -> Option<nalgebra::DMatrix<f64>> {
-        let n = self.n_states();
+        let a = &self.par.active;
+        let n = a.len();
         self.core
             .as_ref()
-            .map(|c| nalgebra::DMatrix::from_fn(n, n, |i, j| c.p[(i, j)]))
+            .map(|c| nalgebra::DMatrix::from_fn(n, n, |i, j| c.p[(a[i], a[j])]))
     }
 
-    /// Estimated gyro bias (rad/s) and accelerometer bias (m/s^2), body FRD.
+    /// Covariance of the 15 navigation errors `[dr_ned, dv_ned, psi_ned, db_gyro, db_accel]`
+    /// where the bias errors are those of the total bias used to compensate the IMU (turn-on
+    /// plus drift: `T P T^T` with `T` summing the two bias states).
+    pub fn nav_error_covariance(&self) -> Option<SMatrix<f64, 15, 15>> {
+        let c = self.core.as_ref()?;
+        let mut t = SMatrix::<f64, 15, N_STATES>::zeros();
+        for i in 0..15 {
+            t[(i, i)] = 1.0;
+        }
+        if self.par.drift {
+            for a in 0..3 {
+                t[(IBG + a, IDG + a)] = 1.0;
+                t[(IBA + a, IDA + a)] = 1.0;
+            }
+        }
+        Some(t * c.p * t.transpose())
+    }
+
+    /// Estimated total gyro bias (rad/s) and accelerometer bias (m/s^2), body FRD (turn-on plus
+    /// drift).
     pub fn biases(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
-        self.core.as_ref().map(|c| (c.bg, c.ba))
+        self.core.as_ref().map(|c| (c.bg + c.dg, c.ba + c.da))
+    }
+
+    /// Estimated bias drift (Gauss-Markov states: gyro rad/s, accelerometer m/s^2); zero without
+    /// `bias_drift_states`.
+    pub fn bias_drifts(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
+        self.core.as_ref().map(|c| (c.dg, c.da))
     }
 
     /// Estimated gyro and accelerometer scale-factor errors (dimensionless).
@@ -406,8 +492,8 @@ impl NavFilter {
                 c.p[(IA + 1, IA + 1)].sqrt().to_degrees(),
                 c.p[(IA + 2, IA + 2)].sqrt().to_degrees(),
             ],
-            gyro_bias_deg_h: (c.bg / super::config::DEG_H_TO_RAD_S).into(),
-            accel_bias_ug: (c.ba / super::config::UG_TO_M_S2).into(),
+            gyro_bias_deg_h: ((c.bg + c.dg) / super::config::DEG_H_TO_RAD_S).into(),
+            accel_bias_ug: ((c.ba + c.da) / super::config::UG_TO_M_S2).into(),
             health,
             reason,
         })
@@ -553,7 +639,7 @@ impl NavFilter {
             _ => {}
         }
         if let Some(c) = &self.core
-            && !c.is_pd(self.par.scale)
+            && !c.is_pd(&self.par.active)
         {
             self.covariance_reset();
         }
@@ -610,10 +696,18 @@ impl NavFilter {
         tracing::warn!("nav filter divergence: {reason}");
         let dt = dt_s(f.t_capture_us, core.t_us);
         let v = core.ins.state.v_ned_m_s;
-        let (rm, rn) = earth::radii_m(f.lat_rad);
-        core.ins.state.lat_rad = f.lat_rad + v.x * dt / (rm + f.h_m);
-        core.ins.state.lon_rad = f.lon_rad + v.y * dt / ((rn + f.h_m) * f.lat_rad.cos());
-        core.ins.state.h_m = f.h_m - v.z * dt;
+        let l = if matches!(m, Measurement::Vision(_)) {
+            self.par.l_cam
+        } else {
+            self.par.l_gps
+        };
+        let (lat, lon, h) = shift_ned(
+            (f.lat_rad, f.lon_rad, f.h_m),
+            &(v * dt - core.ins.state.q_nb * l),
+        );
+        core.ins.state.lat_rad = lat;
+        core.ins.state.lon_rad = lon;
+        core.ins.state.h_m = h;
         for i in 0..6 {
             for k in 0..N_STATES {
                 core.p[(i, k)] = 0.0;
@@ -669,8 +763,16 @@ impl NavFilter {
         let vel = vel.copied().unwrap_or(Matrix3::identity() * 100.0);
         let tilt = self.cfg.init.tilt_sigma_deg.to_radians().powi(2);
         let yaw = self.cfg.init.yaw_sigma_deg.to_radians().powi(2);
-        let bg = imu.gyro_bias_si().powi(2) + imu.gyro_bias_instability_si().powi(2);
-        let ba = imu.accel_bias_si().powi(2) + imu.accel_bias_instability_si().powi(2);
+        // With drift states the turn-on bias and the Gauss-Markov drift have their own states;
+        // without, the constant bias state carries both variances.
+        let (bg, ba) = if self.par.drift {
+            (imu.gyro_bias_si().powi(2), imu.accel_bias_si().powi(2))
+        } else {
+            (
+                imu.gyro_bias_si().powi(2) + imu.gyro_bias_instability_si().powi(2),
+                imu.accel_bias_si().powi(2) + imu.accel_bias_instability_si().powi(2),
+            )
+        };
         for a in 0..3 {
             for b in 0..3 {
                 p[(IP + a, IP + b)] = pos[(a, b)];
@@ -681,6 +783,10 @@ impl NavFilter {
             if self.par.scale {
                 p[(ISG + a, ISG + a)] = (imu.gyro_scale_ppm * 1e-6).powi(2).max(1e-20);
                 p[(ISA + a, ISA + a)] = (imu.accel_scale_ppm * 1e-6).powi(2).max(1e-20);
+            }
+            if self.par.drift {
+                p[(IDG + a, IDG + a)] = self.par.var_dg.max(1e-20);
+                p[(IDA + a, IDA + a)] = self.par.var_da.max(1e-20);
             }
         }
         p[(IA, IA)] = tilt;
@@ -735,11 +841,20 @@ impl NavFilter {
         if !(-0.5..=1.0).contains(&dt) {
             return Outcome::Held;
         }
-        let (rm, rn) = earth::radii_m(fix.lat_rad);
+        // The fix is the camera / antenna position: move it to the IMU and to the current time.
+        let l = if is_gps {
+            self.par.l_gps
+        } else {
+            self.par.l_cam
+        };
+        let (lat_rad, lon_rad, h_m) = shift_ned(
+            (fix.lat_rad, fix.lon_rad, fix.h_m),
+            &(v * dt - att.q_nb * l),
+        );
         let state = InsState {
-            lat_rad: fix.lat_rad + v.x * dt / (rm + fix.h_m),
-            lon_rad: fix.lon_rad + v.y * dt / ((rn + fix.h_m) * fix.lat_rad.cos()),
-            h_m: fix.h_m - v.z * dt,
+            lat_rad,
+            lon_rad,
+            h_m,
             v_ned_m_s: v,
             q_nb: att.q_nb,
         };
@@ -751,6 +866,9 @@ impl NavFilter {
             ba: Vector3::zeros(),
             sg: Vector3::zeros(),
             sa: Vector3::zeros(),
+            dg: Vector3::zeros(),
+            da: Vector3::zeros(),
+            w_b: Vector3::zeros(),
             p,
         };
         self.history.clear();
@@ -776,17 +894,12 @@ impl NavFilter {
 }
 
 impl Core {
-    /// Positive definiteness of the active block (15 or 21 states).
-    fn is_pd(&self, scale: bool) -> bool {
-        if scale {
-            self.p.cholesky().is_some()
-        } else {
-            self.p
-                .fixed_view::<15, 15>(0, 0)
-                .into_owned()
-                .cholesky()
-                .is_some()
-        }
+    /// Positive definiteness of the active block (15, 21 or 27 states).
+    fn is_pd(&self, active: &[usize]) -> bool {
+        let n = active.len();
+        nalgebra::DMatrix::from_fn(n, n, |i, j| self.p[(active[i], active[j])])
+            .cholesky()
+            .is_some()
     }
 
     fn propagate(&mut self, par: &Params, s: &ImuSample) {
@@ -795,16 +908,26 @@ impl Core {
             return;
         }
         let one = Vector3::repeat(1.0);
-        let dth = (s.dtheta_rad_body_frd - self.bg * dt).component_div(&(one + self.sg));
-        let dv = (s.dv_m_s_body_frd - self.ba * dt).component_div(&(one + self.sa));
+        let dth =
+            (s.dtheta_rad_body_frd - (self.bg + self.dg) * dt).component_div(&(one + self.sg));
+        let dv = (s.dv_m_s_body_frd - (self.ba + self.da) * dt).component_div(&(one + self.sa));
         self.ins.step(&dth, &dv, dt);
         self.t_us = s.t_us;
+        // The drift estimates decay like the Gauss-Markov mean.
+        let (phi_g, phi_a) = if par.drift {
+            ((-dt / par.tau_g).exp(), (-dt / par.tau_a).exp())
+        } else {
+            (1.0, 1.0)
+        };
+        self.dg *= phi_g;
+        self.da *= phi_a;
 
         let st = &self.ins.state;
         let (lat, h, v) = (st.lat_rad, st.h_m, st.v_ned_m_s);
         let (rm, rn) = earth::radii_m(lat);
         let c_bn = st.q_nb.to_rotation_matrix().into_inner();
         let w_b = dth / dt;
+        self.w_b = w_b;
         let f_b = dv / dt;
         let f_n = c_bn * f_b;
         let w_ie = earth::earth_rate_ned(lat);
@@ -849,13 +972,29 @@ impl Core {
             set(&mut f, IA, ISG, &(-c_bn * Matrix3::from_diagonal(&w_b)));
             set(&mut f, IV, ISA, &(-c_bn * Matrix3::from_diagonal(&f_b)));
         }
-        let phi = Mat::identity() + f * dt;
+        if par.drift {
+            set(&mut f, IA, IDG, &(-c_bn));
+            set(&mut f, IV, IDA, &(-c_bn));
+        }
+        let mut phi = Mat::identity() + f * dt;
+        if par.drift {
+            // Exact first-order Gauss-Markov transition and noise:
+            // phi = e^{-dt/tau}, Qd = sigma^2 (1 - e^{-2 dt/tau}).
+            for a in 0..3 {
+                phi[(IDG + a, IDG + a)] = phi_g;
+                phi[(IDA + a, IDA + a)] = phi_a;
+            }
+        }
         let mut p = phi * self.p * phi.transpose();
         for a in 0..3 {
             p[(IV + a, IV + a)] += par.q_vrw * dt;
             p[(IA + a, IA + a)] += par.q_arw * dt;
             p[(IBG + a, IBG + a)] += par.q_bg * dt;
             p[(IBA + a, IBA + a)] += par.q_ba * dt;
+            if par.drift {
+                p[(IDG + a, IDG + a)] += par.var_dg * (1.0 - phi_g * phi_g);
+                p[(IDA + a, IDA + a)] += par.var_da * (1.0 - phi_a * phi_a);
+            }
         }
         self.p = 0.5 * (p + p.transpose());
     }
@@ -907,7 +1046,27 @@ impl Core {
             self.sg -= dx.fixed_rows::<3>(ISG);
             self.sa -= dx.fixed_rows::<3>(ISA);
         }
+        if par.drift {
+            self.dg -= dx.fixed_rows::<3>(IDG);
+            self.da -= dx.fixed_rows::<3>(IDA);
+        }
     }
+}
+
+/// Jacobian of `C_b^n(est) l` with respect to the attitude error `psi` (`C_est = (I + [psi x])
+/// C_true`): `d(C l) = [psi x] C l = -[(C l) x] psi`, `l_n = C_est l`.
+fn lever_arm_jacobian(l_n: &Vector3<f64>) -> Matrix3<f64> {
+    -skew_matrix(l_n)
+}
+
+/// The geodetic position `p` moved by `d_ned` metres (first order, fine for metres to a few km).
+fn shift_ned(p: (f64, f64, f64), d_ned: &Vector3<f64>) -> (f64, f64, f64) {
+    let (rm, rn) = earth::radii_m(p.0);
+    (
+        p.0 + d_ned.x / (rm + p.2),
+        p.1 + d_ned.y / ((rn + p.2) * p.0.cos()),
+        p.2 - d_ned.z,
+    )
 }
 
 /// Apply one measurement to `core`, whose epoch time is `core.t_us <= t_c`; the prediction is
@@ -919,13 +1078,24 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
     let v = st.v_ned_m_s;
     match m {
         Measurement::Vision(f) | Measurement::GpsPosition(f) => {
+            // The fix is the position of the camera / antenna, `r + C_b^n l`; with
+            // `C_est = (I + [psi x]) C_true`: `dz = dr + [psi x] C l = dr - [(C l) x] psi`.
+            let l = if matches!(m, Measurement::Vision(_)) {
+                par.l_cam
+            } else {
+                par.l_gps
+            };
+            let l_n = st.q_nb * l;
             let dz = earth::ned_offset_m(
                 (st.lat_rad, st.lon_rad, st.h_m),
                 (f.lat_rad, f.lon_rad, f.h_m),
-            ) + v * dt;
+            ) + v * dt
+                + l_n;
             let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
             h.fixed_view_mut::<3, 3>(0, IP)
                 .copy_from(&Matrix3::identity());
+            h.fixed_view_mut::<3, 3>(0, IA)
+                .copy_from(&lever_arm_jacobian(&l_n));
             let gate = if matches!(m, Measurement::Vision(_)) {
                 par.gate_vision
             } else {
@@ -934,10 +1104,15 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
             core.update(par, dz, h, f.cov_ned_m2, gate)
         }
         Measurement::GpsVelocity(f) => {
-            let dz = v - f.v_ned_m_s;
+            // Antenna velocity `v + C_b^n (w x l)` (the earth/transport rate part of `w` is
+            // below 1e-4 rad/s and neglected); Jacobian wrt psi as for the position.
+            let lv_n = st.q_nb * core.w_b.cross(&par.l_gps);
+            let dz = v + lv_n - f.v_ned_m_s;
             let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
             h.fixed_view_mut::<3, 3>(0, IV)
                 .copy_from(&Matrix3::identity());
+            h.fixed_view_mut::<3, 3>(0, IA)
+                .copy_from(&lever_arm_jacobian(&lv_n));
             core.update(par, dz, h, f.cov_ned_m2_s2, par.gate_gps3)
         }
         Measurement::Altitude(f) => {
@@ -958,6 +1133,32 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
             h.fixed_view_mut::<3, 3>(0, IA)
                 .copy_from(&Matrix3::identity());
             core.update(par, dz, h, par.r_att, par.gate_att)
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lever_arm_jacobian_matches_finite_difference() {
+        let q_true = UnitQuaternion::from_euler_angles(0.3, -0.2, 2.0);
+        let l = Vector3::new(1.5, -0.8, 0.6);
+        for psi in [
+            Vector3::new(1e-4, 0.0, 0.0),
+            Vector3::new(0.0, -2e-4, 0.0),
+            Vector3::new(0.0, 0.0, 3e-4),
+            Vector3::new(1e-4, 2e-4, -1e-4),
+        ] {
+            // Estimate with attitude error psi (estimate minus truth, NED).
+            let q_est = UnitQuaternion::from_scaled_axis(psi) * q_true;
+            let dz = q_est * l - q_true * l;
+            let lin = lever_arm_jacobian(&(q_est * l)) * psi;
+            assert!(
+                (dz - lin).norm() < 1e-3 * psi.norm() * l.norm(),
+                "{dz} {lin}"
+            );
         }
     }
 }

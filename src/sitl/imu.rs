@@ -6,6 +6,14 @@
 //! `b_rw(k+1) = b_rw(k) + q sqrt(dt) N(0,1)` and white noise whose increment has sigma
 //! `N sqrt(dt)` (`N` the angle/velocity random walk density). Datasheet units as in
 //! [`crate::nav::config`].
+//!
+//! Per run ([`ImuErrors::for_run`]) the Gauss-Markov bias starts from its stationary distribution
+//! `N(0, sigma^2)` (a bias instability is already wandering at switch-on), and with
+//! `draw_turn_on = true` (the Monte Carlo runs) the turn-on bias of every axis is drawn from
+//! `N(0, gyro_bias_sigma_deg_h^2)` / `N(0, accel_bias_sigma_ug^2)` instead of the fixed
+//! `gyro_bias_deg_h` / `accel_bias_ug`: a NEES consistency test needs the truth drawn from the
+//! filter's prior, and a fixed bias smaller than the prior sigma sits in the unobservable directions
+//! (vertical gyro, horizontal accelerometers in level flight) and makes the NEES too small.
 
 use super::rng::Rng;
 use crate::config::{Problems, Validate};
@@ -25,6 +33,14 @@ pub struct SimImuConfig {
     /// Fixed accelerometer turn-on bias per axis, micro-g.
     #[serde(default)]
     pub accel_bias_ug: [f64; 3],
+    /// Turn-on gyro bias sigma per axis for runs that draw it (Monte Carlo), deg/h; 0 keeps the
+    /// fixed `gyro_bias_deg_h`.
+    #[serde(default)]
+    pub gyro_bias_sigma_deg_h: f64,
+    /// Turn-on accelerometer bias sigma per axis for runs that draw it, micro-g; 0 keeps the fixed
+    /// `accel_bias_ug`.
+    #[serde(default)]
+    pub accel_bias_sigma_ug: f64,
     /// Gyro scale-factor error per axis, ppm.
     #[serde(default)]
     pub gyro_scale_ppm: [f64; 3],
@@ -68,6 +84,8 @@ impl SimImuConfig {
             rate_hz,
             gyro_bias_deg_h: [0.0; 3],
             accel_bias_ug: [0.0; 3],
+            gyro_bias_sigma_deg_h: 0.0,
+            accel_bias_sigma_ug: 0.0,
             gyro_scale_ppm: [0.0; 3],
             accel_scale_ppm: [0.0; 3],
             gyro_arw_deg_sqrt_h: 0.0,
@@ -95,6 +113,13 @@ impl Validate for SimImuConfig {
                 p.range(k, *v, -hi, hi);
             }
         }
+        p.range(
+            "gyro_bias_sigma_deg_h",
+            self.gyro_bias_sigma_deg_h,
+            0.0,
+            36_000.0,
+        );
+        p.range("accel_bias_sigma_ug", self.accel_bias_sigma_ug, 0.0, 1e6);
         p.range("gyro_arw_deg_sqrt_h", self.gyro_arw_deg_sqrt_h, 0.0, 100.0);
         p.range(
             "gyro_bias_instability_deg_h",
@@ -145,6 +170,8 @@ impl Validate for SimImuConfig {
 #[derive(Debug, Clone)]
 pub struct ImuErrors {
     cfg: SimImuConfig,
+    bg0: Vector3<f64>,
+    ba0: Vector3<f64>,
     gm_g: Vector3<f64>,
     gm_a: Vector3<f64>,
     rw_g: Vector3<f64>,
@@ -155,6 +182,8 @@ impl ImuErrors {
     /// Start with zero time-varying bias (the turn-on bias is fixed by the configuration).
     pub fn new(cfg: SimImuConfig) -> Self {
         Self {
+            bg0: Vector3::from(cfg.gyro_bias_deg_h) * DEG_H_TO_RAD_S,
+            ba0: Vector3::from(cfg.accel_bias_ug) * UG_TO_M_S2,
             cfg,
             gm_g: Vector3::zeros(),
             gm_a: Vector3::zeros(),
@@ -163,10 +192,32 @@ impl ImuErrors {
         }
     }
 
+    /// The errors of one simulation run: the Gauss-Markov biases start from their stationary
+    /// distribution; with `draw_turn_on` the turn-on biases are drawn from their sigmas (axes
+    /// whose sigma is 0 keep the fixed values).
+    pub fn for_run(cfg: SimImuConfig, rng: &mut Rng, draw_turn_on: bool) -> Self {
+        let mut e = Self::new(cfg);
+        let c = &e.cfg;
+        if draw_turn_on && c.gyro_bias_sigma_deg_h > 0.0 {
+            e.bg0 = rng.normal3() * (c.gyro_bias_sigma_deg_h * DEG_H_TO_RAD_S);
+        }
+        if draw_turn_on && c.accel_bias_sigma_ug > 0.0 {
+            e.ba0 = rng.normal3() * (c.accel_bias_sigma_ug * UG_TO_M_S2);
+        }
+        e.gm_g = rng.normal3() * (c.gyro_bias_instability_deg_h * DEG_H_TO_RAD_S);
+        e.gm_a = rng.normal3() * (c.accel_bias_instability_ug * UG_TO_M_S2);
+        e
+    }
+
+    /// Turn-on gyro bias (rad/s) and accelerometer bias (m/s^2) of this run.
+    pub fn turn_on_biases(&self) -> (Vector3<f64>, Vector3<f64>) {
+        (self.bg0, self.ba0)
+    }
+
     /// Current total gyro bias (rad/s) and accelerometer bias (m/s^2).
     pub fn biases(&self) -> (Vector3<f64>, Vector3<f64>) {
-        let bg = Vector3::from(self.cfg.gyro_bias_deg_h) * DEG_H_TO_RAD_S + self.gm_g + self.rw_g;
-        let ba = Vector3::from(self.cfg.accel_bias_ug) * UG_TO_M_S2 + self.gm_a + self.rw_a;
+        let bg = self.bg0 + self.gm_g + self.rw_g;
+        let ba = self.ba0 + self.gm_a + self.rw_a;
         (bg, ba)
     }
 

@@ -109,6 +109,24 @@ pub struct GpsConfig {
     pub sigma_v_m: f64,
     /// Velocity sigma per axis, m/s.
     pub sigma_vel_m_s: f64,
+    /// True antenna position in the body frame (FRD, m from the IMU); the filter's is
+    /// `[nav] gps_lever_arm_body_frd_m`.
+    #[serde(default)]
+    pub lever_arm_body_frd_m: [f64; 3],
+}
+
+/// Frame of the simulated vision noise.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum VisionNoiseFrame {
+    /// `sigma_h_m` across the camera's line of sight (boresight `+z` of the body frame, i.e. a
+    /// nadir camera), `sigma_v_m` along it, rotated with the true attitude: at nadir
+    /// `diag(sigma_h^2, sigma_h^2, sigma_v^2)`, banked or pitched the horizontal and vertical
+    /// errors are correlated.
+    #[default]
+    LineOfSight,
+    /// `diag(sigma_h^2, sigma_h^2, sigma_v^2)` in NED whatever the attitude.
+    Ned,
 }
 
 /// Simulated vision fixes: truth plus white noise, delivered late.
@@ -135,6 +153,13 @@ pub struct VisionConfig {
     /// Horizontal offset of an outlier, m.
     #[serde(default = "default_outlier")]
     pub outlier_m: f64,
+    /// Frame of the noise model (default: line of sight).
+    #[serde(default)]
+    pub noise_frame: VisionNoiseFrame,
+    /// True camera projection centre in the body frame (FRD, m from the IMU): the fixes are
+    /// positions of this point; the filter's is `[nav] camera_lever_arm_body_frd_m`.
+    #[serde(default)]
+    pub lever_arm_body_frd_m: [f64; 3],
 }
 
 fn default_outlier() -> f64 {
@@ -366,6 +391,9 @@ impl Validate for Scenario {
                 p.positive("sigma_h_m", g.sigma_h_m);
                 p.positive("sigma_v_m", g.sigma_v_m);
                 p.positive("sigma_vel_m_s", g.sigma_vel_m_s);
+                for v in g.lever_arm_body_frd_m {
+                    p.range("lever_arm_body_frd_m", v, -100.0, 100.0);
+                }
             });
         }
         if let Some(v) = &self.vision {
@@ -379,6 +407,9 @@ impl Validate for Scenario {
                 p.range("latency_max_ms", v.latency_max_ms, v.latency_min_ms, 5000.0);
                 p.range("outlier_prob", v.outlier_prob, 0.0, 1.0);
                 p.range("outlier_m", v.outlier_m, 0.0, 10_000.0);
+                for x in v.lever_arm_body_frd_m {
+                    p.range("lever_arm_body_frd_m", x, -100.0, 100.0);
+                }
             });
         }
         if let Some(a) = &self.altitude {

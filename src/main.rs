@@ -23,6 +23,8 @@ enum Command {
     Sim(cli::sim::SimArgs),
     /// Benchmarks (`bench surf`: SURF speed, feature counts and quality table).
     Bench(cli::bench::BenchArgs),
+    /// Run the navigation service: autopilot link, navigation filter, injection.
+    Run(cli::run::RunArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -32,6 +34,7 @@ fn main() -> std::process::ExitCode {
         Command::CheckConfig(a) => cli::check_config::run(a),
         Command::Sim(a) => cli::sim::run_cmd(a),
         Command::Bench(a) => cli::bench::run(a),
+        Command::Run(a) => cli::run::run(a),
     };
     match result {
         Ok(code) => code,

@@ -139,7 +139,9 @@ fn every_subcommand_has_help() {
         .filter_map(|l| l.split_whitespace().next().map(str::to_string))
         .filter(|c| c != "help")
         .collect();
-    assert!(cmds.contains(&"check-config".to_string()), "{text}");
+    for want in ["check-config", "sim", "bench", "run"] {
+        assert!(cmds.contains(&want.to_string()), "{want} missing: {text}");
+    }
     for c in cmds {
         let out = visnav().arg(&c).arg("--help").output().unwrap();
         assert!(out.status.success(), "visnav {c} --help failed");

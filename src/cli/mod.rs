@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod check_config;
+pub mod run;
 pub mod sim;
 
 /// Initialise `tracing` to stderr: `RUST_LOG` when set, otherwise info/debug/trace by `-v` count.

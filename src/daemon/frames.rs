@@ -126,17 +126,26 @@ pub trait PriorSource: Send + Sync + 'static {
     fn prior_at(&self, t_capture_us: u64) -> FixPrior;
 }
 
-/// The reader thread: source -> slot until the source ends, fails or `stop` is set.
+/// The reader thread: source -> slot until the source ends, fails or `stop` is set. It starts
+/// reading once the link's clock mapping is available (frames before that could not be stamped
+/// on the autopilot clock).
 pub fn spawn_reader(
     mut source: Box<dyn FrameSource>,
     slot: Arc<Slot<Frame>>,
     lossless: bool,
+    clock: Clock,
     stop: Arc<AtomicBool>,
     metrics: Arc<DaemonMetrics>,
 ) -> std::io::Result<std::thread::JoinHandle<()>> {
     std::thread::Builder::new()
         .name("visnav-frames".into())
         .spawn(move || {
+            while clock.autopilot_now_us().is_none() {
+                if stop.load(Ordering::Relaxed) {
+                    return;
+                }
+                std::thread::sleep(Duration::from_millis(50));
+            }
             info!("frames: {}", source.describe());
             while !stop.load(Ordering::Relaxed) {
                 match source.next_frame() {

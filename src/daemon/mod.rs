@@ -232,6 +232,7 @@ impl Daemon {
                 fp.source,
                 slot.clone(),
                 fp.lossless,
+                link.clock(),
                 stop_threads.clone(),
                 metrics.clone(),
             )?);

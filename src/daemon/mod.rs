@@ -465,7 +465,8 @@ impl NavTask {
     /// Before initialisation the filter derives the velocity from two position fixes of the same
     /// kind taken `init.vision_init_min_dt_s..=vision_init_max_dt_s` apart, using the previous
     /// fix it was given: fixes arriving faster would never initialise it. So until it is
-    /// initialised, position fixes of each kind are passed at most every `init_spacing_us`.
+    /// initialised, position fixes of each kind are passed at most every 1.5 x
+    /// `vision_init_min_dt_s` (capped at 0.9 x `vision_init_max_dt_s`).
     fn init_spacing_ok(&mut self, m: &Measurement) -> bool {
         if self.filter.is_initialised() {
             return true;
@@ -475,6 +476,16 @@ impl NavTask {
             Measurement::Vision(f) => (1, f.t_capture_us),
             _ => return true,
         };
+        // The filter pairs a fix only with the previous fix given to it and only of the same
+        // kind: interleaved GPS and vision fixes would never initialise it. While GPS arrives,
+        // it alone initialises the filter.
+        if i == 1
+            && self
+                .inputs
+                .gps_recent(self.link.companion_ns(Instant::now()), 2.0)
+        {
+            return false;
+        }
         let ic = &self.nav_cfg.init;
         let spacing_us =
             ((ic.vision_init_min_dt_s * 1.5).min(ic.vision_init_max_dt_s * 0.9) * 1e6) as u64;

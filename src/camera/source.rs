@@ -863,7 +863,7 @@ mod tests {
         for v in [0u16, 1023, 512, 1023] {
             f.extend_from_slice(&v.to_le_bytes());
         }
-        f.extend(std::iter::repeat_n(0u8, 2 * 2 * 1 * 1)); // 420 chroma of 2x2: 2 planes of 1
+        f.extend(std::iter::repeat_n(0u8, 4)); // 420 chroma of 2x2: 2 planes of 1 sample, 2 bytes
         let p = d.path().join("p10.y4m");
         std::fs::write(&p, y4m_bytes("YUV4MPEG2 W2 H2 F25:1 C420p10", &[f])).unwrap();
         let g = Y4mSource::open(&p).unwrap().next_frame().unwrap().unwrap();

@@ -171,26 +171,20 @@ impl Inputs {
         let mg = |v: i16| f64::from(v) * 1e-3 * G0_M_S2;
         let mrad = |v: i16| f64::from(v) * 1e-3;
         match &tel.msg {
-            MavMessage::HIGHRES_IMU(m) => {
-                if self.imu_allowed(ImuKind::Highres, t_ns) {
-                    let g = Vector3::new(m.xgyro, m.ygyro, m.zgyro).cast::<f64>();
-                    let a = Vector3::new(m.xacc, m.yacc, m.zacc).cast::<f64>();
-                    self.imu(m.time_usec, g, a, &mut out);
-                }
+            MavMessage::HIGHRES_IMU(m) if self.imu_allowed(ImuKind::Highres, t_ns) => {
+                let g = Vector3::new(m.xgyro, m.ygyro, m.zgyro).cast::<f64>();
+                let a = Vector3::new(m.xacc, m.yacc, m.zacc).cast::<f64>();
+                self.imu(m.time_usec, g, a, &mut out);
             }
-            MavMessage::SCALED_IMU(m) => {
-                if self.imu_allowed(ImuKind::Scaled, t_ns) {
-                    let g = Vector3::new(mrad(m.xgyro), mrad(m.ygyro), mrad(m.zgyro));
-                    let a = Vector3::new(mg(m.xacc), mg(m.yacc), mg(m.zacc));
-                    self.imu(u64::from(m.time_boot_ms) * 1000, g, a, &mut out);
-                }
+            MavMessage::SCALED_IMU(m) if self.imu_allowed(ImuKind::Scaled, t_ns) => {
+                let g = Vector3::new(mrad(m.xgyro), mrad(m.ygyro), mrad(m.zgyro));
+                let a = Vector3::new(mg(m.xacc), mg(m.yacc), mg(m.zacc));
+                self.imu(u64::from(m.time_boot_ms) * 1000, g, a, &mut out);
             }
-            MavMessage::RAW_IMU(m) => {
-                if self.imu_allowed(ImuKind::Raw, t_ns) {
-                    let g = Vector3::new(mrad(m.xgyro), mrad(m.ygyro), mrad(m.zgyro));
-                    let a = Vector3::new(mg(m.xacc), mg(m.yacc), mg(m.zacc));
-                    self.imu(m.time_usec, g, a, &mut out);
-                }
+            MavMessage::RAW_IMU(m) if self.imu_allowed(ImuKind::Raw, t_ns) => {
+                let g = Vector3::new(mrad(m.xgyro), mrad(m.ygyro), mrad(m.zgyro));
+                let a = Vector3::new(mg(m.xacc), mg(m.yacc), mg(m.zacc));
+                self.imu(m.time_usec, g, a, &mut out);
             }
             MavMessage::ATTITUDE(m) => {
                 let (r, p, y) = (f64::from(m.roll), f64::from(m.pitch), f64::from(m.yaw));

@@ -19,7 +19,8 @@
 //!   `h = (1 - (p / 1013.25)^(1/5.25588)) / 2.25577e-5`, plus an offset calibrated against the
 //!   GPS ellipsoidal height (running mean) or, without GPS, once against a healthy filter
 //!   height; not used before the offset is known.
-//! * Autopilot reboot: an IMU time more than 1 s behind the previous one.
+//! * Autopilot reboot: an IMU time more than [`REBOOT_BACKSTEP_US`] behind the previous one
+//!   (reordered UDP packets are a few ms apart; duplicates and small steps back are dropped).
 //! * Output: `NavOutput` to the injector's `NavEstimate` (AMSL = h - N, quaternion, covariances,
 //!   health with a reason whose wording is kept while only its numbers change, so the link's
 //!   health STATUSTEXT is sent on real changes only).
@@ -44,6 +45,8 @@ use crate::nav::{
 /// A lower-priority IMU message is ignored while a higher-priority one arrived this recently, s.
 pub const IMU_SOURCE_HOLD_S: f64 = 0.5;
 const G0_M_S2: f64 = 9.806_65;
+/// An IMU time this far behind the previous one is an autopilot reboot, µs.
+pub const REBOOT_BACKSTEP_US: u64 = 100_000;
 
 /// What one telemetry message means for the filter.
 #[derive(Debug, Clone, PartialEq)]
@@ -149,7 +152,7 @@ impl Inputs {
             return;
         }
         match self.last_imu_t_us {
-            Some(prev) if t_us + 1_000_000 < prev => {
+            Some(prev) if t_us + REBOOT_BACKSTEP_US < prev => {
                 self.reset_times();
                 self.last_imu_t_us = Some(t_us);
                 out.push(NavInput::Reboot);

@@ -226,31 +226,43 @@ impl Daemon {
         let stop_threads = Arc::new(AtomicBool::new(false));
         let mut threads = Vec::new();
         let mut slot_out = None;
-        if let (Some(fp), Some(fixer)) = (frames, fixer) {
-            let slot = Arc::new(Slot::default());
-            threads.push(frames::spawn_reader(
-                fp.source,
-                slot.clone(),
-                fp.lossless,
-                link.clock(),
-                stop_threads.clone(),
-                metrics.clone(),
-            )?);
-            for i in 0..fp.workers.max(1) {
-                threads.push(frames::spawn_worker(
-                    i,
-                    frames::WorkerCtx {
-                        slot: slot.clone(),
-                        fixer: fixer.clone(),
-                        priors: shared.clone(),
-                        clock: link.clock(),
-                        max_age_s: fp.max_age_s,
-                        results: fix_tx.clone(),
-                        metrics: metrics.clone(),
-                    },
+        let spawned: std::io::Result<()> = (|| {
+            if let (Some(fp), Some(fixer)) = (frames, fixer) {
+                let slot = Arc::new(Slot::default());
+                threads.push(frames::spawn_reader(
+                    fp.source,
+                    slot.clone(),
+                    fp.lossless,
+                    link.clock(),
+                    stop_threads.clone(),
+                    metrics.clone(),
                 )?);
+                for i in 0..fp.workers.max(1) {
+                    threads.push(frames::spawn_worker(
+                        i,
+                        frames::WorkerCtx {
+                            slot: slot.clone(),
+                            fixer: fixer.clone(),
+                            priors: shared.clone(),
+                            clock: link.clock(),
+                            max_age_s: fp.max_age_s,
+                            results: fix_tx.clone(),
+                            metrics: metrics.clone(),
+                        },
+                    )?);
+                }
+                slot_out = Some(slot);
             }
-            slot_out = Some(slot);
+            Ok(())
+        })();
+        if let Err(e) = spawned {
+            // Stop what was started (the navigation task holds the link).
+            stop_threads.store(true, Ordering::Relaxed);
+            if let Some(s) = &slot_out {
+                s.close();
+            }
+            let _ = stop.send(true);
+            return Err(e.into());
         }
         drop(fix_tx);
         Ok(Daemon {

@@ -136,6 +136,12 @@ pub struct Config {
         deserialize_with = "crate::fix::engine::deserialize_fix_params"
     )]
     pub fix: crate::fix::FixParams,
+    /// Camera frame source (absent: no vision fixes, IMU/GPS/attitude only).
+    #[serde(default)]
+    pub frames: Option<crate::camera::source::FramesConfig>,
+    /// The daemon's pipeline settings; every key has a default.
+    #[serde(default)]
+    pub daemon: crate::daemon::DaemonConfig,
 }
 
 /// `[map]`: the georeferenced imagery and terrain the fixes are computed against.
@@ -266,6 +272,10 @@ impl Config {
         p.section("output", |p| cfg.output.validate(p));
         p.section("nav", |p| cfg.nav.validate(p));
         p.section("fix", |p| cfg.fix.validate(p));
+        if let Some(f) = &cfg.frames {
+            p.section("frames", |p| f.validate_in(base, p));
+        }
+        p.section("daemon", |p| cfg.daemon.validate_in(&cfg.output, p));
         if !p.list.is_empty() {
             return Err(ConfigError::Invalid {
                 path: path.to_path_buf(),
@@ -276,6 +286,9 @@ impl Config {
         cfg.map.file = cfg.map.file.as_deref().map(|f| resolve(base, f));
         cfg.map.dem = cfg.map.dem.as_deref().map(|f| resolve(base, f));
         cfg.link.resolve_paths(base);
+        if let Some(f) = &mut cfg.frames {
+            f.resolve_paths(base);
+        }
         Ok(cfg)
     }
 

@@ -8,6 +8,7 @@
 
 pub mod camera;
 pub mod config;
+pub mod daemon;
 pub mod fix;
 pub mod geo;
 pub mod link;

@@ -27,6 +27,8 @@ enum Command {
     Bench(cli::bench::BenchArgs),
     /// Reference maps (`map build`: orthophoto + DEM -> .vnm; `map info`: print a map's header).
     Map(cli::map::MapArgs),
+    /// Run the navigation service: autopilot link, navigation filter, injection.
+    Run(cli::run::RunArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -38,6 +40,7 @@ fn main() -> std::process::ExitCode {
         Command::Bench(a) => cli::bench::run(a),
         Command::Fix(a) => cli::fix::run(a),
         Command::Map(a) => cli::map::run(a),
+        Command::Run(a) => cli::run::run(a),
     };
     match result {
         Ok(code) => code,

@@ -161,6 +161,9 @@ fn every_subcommand_has_help() {
     let cmds = listed_commands(&text);
     assert!(cmds.contains(&"check-config".to_string()), "{text}");
     // Top-level subcommands and their own subcommands (e.g. `bench fix`).
+    for want in ["check-config", "sim", "bench", "run", "fix", "map"] {
+        assert!(cmds.contains(&want.to_string()), "{want} missing: {text}");
+    }
     let mut paths: Vec<Vec<String>> = Vec::new();
     for c in cmds {
         let out = visnav().arg(&c).arg("--help").output().unwrap();

@@ -24,6 +24,7 @@ pub mod distortion;
 pub mod frames;
 pub mod intrinsics;
 pub mod mount;
+pub mod source;
 
 pub use config::{CameraConfig, DistortionConfig, MountConfig};
 pub use distortion::Distortion;

@@ -5,6 +5,7 @@ pub mod bench_fix;
 pub mod check_config;
 pub mod fix;
 pub mod map;
+pub mod run;
 pub mod sim;
 
 /// Initialise `tracing` to stderr: `RUST_LOG` when set, otherwise info/debug/trace by `-v` count.

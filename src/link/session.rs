@@ -966,10 +966,21 @@ async fn supervise(shared: Arc<Shared>, mut stop: watch::Receiver<bool>) {
     }
 }
 
+struct AbortOnDrop(JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
 async fn run_connection(shared: &Arc<Shared>, conn: Arc<Conn>, stop: &mut watch::Receiver<bool>) {
     *lock(&shared.conn) = Some(conn.clone());
     shared.publish_status();
-    let periodic = tokio::spawn(periodic_loop(shared.clone()));
+    // Aborted on drop too: `Link::shutdown` aborts the supervisor, which drops this future
+    // before it reaches the abort below, and a detached heartbeat/TIMESYNC loop would keep
+    // sending after shutdown.
+    let mut periodic = AbortOnDrop(tokio::spawn(periodic_loop(shared.clone())));
     let rx = async {
         loop {
             match conn.recv_raw().await {
@@ -1017,8 +1028,8 @@ async fn run_connection(shared: &Arc<Shared>, conn: Arc<Conn>, stop: &mut watch:
         _ = watchdog => {}
         _ = stop.changed() => {}
     }
-    periodic.abort();
-    let _ = periodic.await;
+    periodic.0.abort();
+    let _ = (&mut periodic.0).await;
 }
 
 /// Heartbeat, TIMESYNC requests, liveness and stream management on one timer.

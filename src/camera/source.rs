@@ -1,0 +1,1035 @@
+//! Camera frame sources (I/O, synchronous: call them from a blocking thread, never from an async
+//! task). Each source yields [`Frame`]s: a grayscale image, its capture time and a sequence number.
+//!
+//! Sources:
+//! * [`DirectorySource`]: an image directory with a `frames.csv` timestamps file (format below).
+//! * [`Y4mSource`]: a YUV4MPEG2 (`.y4m`) file; only the luma plane is used.
+//! * Live capture (V4L2, GStreamer) is not built into this binary: [`open`] reports it clearly.
+//!
+//! # `frames.csv`
+//! ```text
+//! # comment lines start with '#'; blank lines are ignored
+//! file,t_boot_us            <- header: first column `file`, second `t_boot_us` or `t_s`
+//! 000001.png,81234567       <- file relative to the directory, capture time
+//! 000002.png,81334567
+//! ```
+//! * `t_boot_us`: capture time on the autopilot's boot clock, integer microseconds (what the
+//!   autopilot's CAMERA_FEEDBACK / a hardware trigger logs). Usable with `stamp = "source"`.
+//! * `t_s`: capture time in seconds from any origin (e.g. the companion's clock when recorded);
+//!   only the differences are used, for pacing; frames are then stamped on arrival.
+//!
+//! Times must be strictly increasing. Images are any format the `image` crate reads (PNG, JPEG,
+//! TIFF), converted to gray with the BT.601 luma weights (`vision::GrayImage::load`).
+//!
+//! # YUV4MPEG2
+//! Header `YUV4MPEG2 W<width> H<height> F<num>:<den> [I..] [A..] [C<colour space>] [X..]`, then
+//! per frame `FRAME[ params]\n` and the planes. Supported colour spaces: `420jpeg`, `420paldv`,
+//! `420mpeg2`, `420` (the default), `422`, `444`, `444alpha`, `mono` (8 bit) and the 16-bit
+//! containers `420p10/12/16`, `422p10/12/16`, `444p10/12/16`, `mono16` (little endian, scaled to
+//! 0..255). Luma values are used as they are (no limited-range expansion of 16..235 video).
+//! Frame rate from `F` unless `rate_hz` overrides it.
+//!
+//! # Capture time
+//! [`CaptureTime::AutopilotBootUs`] when the source knows the autopilot boot time of the capture,
+//! else [`CaptureTime::Companion`] (the companion's monotonic clock when the frame was read or, with
+//! pacing, when it was released); the daemon maps the latter with `link::Clock::to_autopilot_us`.
+//! [`Paced`] releases frames at the source's recorded rate (real-time replay).
+
+use std::fs::File;
+use std::io::{BufRead, BufReader, Read};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use serde::Deserialize;
+
+use crate::config::{Problems, Validate};
+use crate::vision::GrayImage;
+
+/// Capture time of a frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum CaptureTime {
+    /// Autopilot boot time, microseconds.
+    AutopilotBootUs(u64),
+    /// Companion monotonic clock.
+    Companion(Instant),
+}
+
+/// One camera frame.
+#[derive(Debug, Clone)]
+pub struct Frame {
+    /// Gray image, 8-bit scale.
+    pub image: GrayImage,
+    /// When the frame was captured.
+    pub t_capture: CaptureTime,
+    /// Time within the recording, seconds from its first frame (pacing only).
+    pub t_rel_s: f64,
+    /// 0-based sequence number within the source.
+    pub seq: u64,
+}
+
+/// Why a frame could not be read. Every message names the file (and frame where relevant).
+#[derive(Debug, thiserror::Error)]
+pub enum FrameError {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: not a usable YUV4MPEG2 file: {reason}")]
+    Y4mHeader { path: PathBuf, reason: String },
+    #[error("{path}: frame {frame}: {reason}")]
+    Y4mFrame {
+        path: PathBuf,
+        frame: u64,
+        reason: String,
+    },
+    #[error("{path}:{line}: {reason}")]
+    Csv {
+        path: PathBuf,
+        line: usize,
+        reason: String,
+    },
+    #[error("{path} (frame {frame}): {reason}")]
+    Image {
+        path: PathBuf,
+        frame: u64,
+        reason: String,
+    },
+    #[error(
+        "frame source \"{kind}\" is not available: visnav was built without live capture ({reason})"
+    )]
+    NotBuilt { kind: &'static str, reason: String },
+    #[error("frames: {0}")]
+    Config(String),
+}
+
+/// A source of camera frames (blocking I/O).
+pub trait FrameSource: Send {
+    /// The next frame; `Ok(None)` at the end of a recording.
+    fn next_frame(&mut self) -> Result<Option<Frame>, FrameError>;
+    /// Human-readable description (file name, size, rate).
+    fn describe(&self) -> String;
+    /// Nominal frame rate, Hz, when known.
+    fn rate_hz(&self) -> Option<f64> {
+        None
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Configuration
+
+/// Kind of frame source.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SourceKind {
+    /// Image directory with `frames.csv`.
+    Directory,
+    /// YUV4MPEG2 file.
+    Y4m,
+    /// Video4Linux2 live capture (not built).
+    V4l2,
+    /// GStreamer pipeline (not built).
+    Gstreamer,
+}
+
+/// Which clock the frames are stamped with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum StampMode {
+    /// The companion's monotonic clock when the frame is released (mapped to the autopilot clock
+    /// through TIMESYNC).
+    #[default]
+    Arrival,
+    /// The source's own autopilot boot times (`frames.csv` with a `t_boot_us` column).
+    Source,
+}
+
+/// `[frames]`: where camera frames come from.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct FramesConfig {
+    /// `directory` (with `frames.csv`) or `y4m`.
+    pub source: SourceKind,
+    /// The directory or the `.y4m` file; relative to the config file's folder unless absolute.
+    pub path: PathBuf,
+    /// Capture-time clock.
+    #[serde(default)]
+    pub stamp: StampMode,
+    /// Release frames at the recorded rate (true) or as fast as the fix pipeline takes them,
+    /// without dropping any (false).
+    #[serde(default = "default_true")]
+    pub realtime: bool,
+    /// Replay rate override, Hz (absent: the y4m header rate / the frames.csv times).
+    #[serde(default)]
+    pub rate_hz: Option<f64>,
+    /// Frames older than this when a fix worker is free are dropped, s.
+    #[serde(default = "default_max_age_s")]
+    pub max_age_s: f64,
+    /// Fix worker threads.
+    #[serde(default = "default_workers")]
+    pub workers: usize,
+}
+
+fn default_true() -> bool {
+    true
+}
+fn default_max_age_s() -> f64 {
+    1.0
+}
+fn default_workers() -> usize {
+    1
+}
+
+impl FramesConfig {
+    /// Defaults for a source at `path`.
+    pub fn new(source: SourceKind, path: impl Into<PathBuf>) -> Self {
+        Self {
+            source,
+            path: path.into(),
+            stamp: StampMode::Arrival,
+            realtime: true,
+            rate_hz: None,
+            max_age_s: default_max_age_s(),
+            workers: default_workers(),
+        }
+    }
+
+    /// Validate, checking the path against `base` (the config file's folder).
+    pub fn validate_in(&self, base: &Path, p: &mut Problems) {
+        self.validate(p);
+        let full = crate::config::resolve(base, &self.path);
+        match self.source {
+            SourceKind::Directory => {
+                if !full.is_dir() {
+                    p.push("path", format!("{} is not a directory", full.display()));
+                } else if !full.join(FRAMES_CSV).is_file() {
+                    p.push("path", format!("{} has no {FRAMES_CSV}", full.display()));
+                }
+            }
+            SourceKind::Y4m => {
+                if !full.is_file() {
+                    p.push("path", format!("{} is not a file", full.display()));
+                }
+            }
+            SourceKind::V4l2 | SourceKind::Gstreamer => {}
+        }
+    }
+
+    /// Make `path` absolute against `base`.
+    pub fn resolve_paths(&mut self, base: &Path) {
+        self.path = crate::config::resolve(base, &self.path);
+    }
+}
+
+impl Validate for FramesConfig {
+    fn validate(&self, p: &mut Problems) {
+        match self.source {
+            SourceKind::V4l2 | SourceKind::Gstreamer => p.push(
+                "source",
+                format!(
+                    "{:?}: live capture is not built into this binary; use \"directory\" or \"y4m\"",
+                    self.source
+                )
+                .to_lowercase(),
+            ),
+            SourceKind::Y4m if self.stamp == StampMode::Source => p.push(
+                "stamp",
+                "\"source\" needs autopilot boot times, which a y4m file does not carry; use \"arrival\"",
+            ),
+            _ => {}
+        }
+        if let Some(r) = self.rate_hz {
+            p.range("rate_hz", r, 0.01, 1000.0);
+        }
+        p.range("max_age_s", self.max_age_s, 0.01, 60.0);
+        if !(1..=16).contains(&self.workers) {
+            p.push("workers", format!("{} is outside [1, 16]", self.workers));
+        }
+    }
+}
+
+/// Open the configured source (paths already resolved), paced when `realtime`.
+pub fn open(cfg: &FramesConfig) -> Result<Box<dyn FrameSource>, FrameError> {
+    let inner: Box<dyn FrameSource> = match cfg.source {
+        SourceKind::Directory => Box::new(DirectorySource::open(&cfg.path)?),
+        SourceKind::Y4m => Box::new(Y4mSource::open(&cfg.path)?),
+        SourceKind::V4l2 => {
+            return Err(FrameError::NotBuilt {
+                kind: "v4l2",
+                reason: "no V4L2 capture backend is compiled in".into(),
+            });
+        }
+        SourceKind::Gstreamer => {
+            return Err(FrameError::NotBuilt {
+                kind: "gstreamer",
+                reason: "no GStreamer backend is compiled in".into(),
+            });
+        }
+    };
+    let stamp_arrival = cfg.stamp == StampMode::Arrival;
+    if !stamp_arrival && !matches!(cfg.source, SourceKind::Directory) {
+        return Err(FrameError::Config(
+            "stamp = \"source\" needs a directory source with t_boot_us times".into(),
+        ));
+    }
+    Ok(Box::new(Paced::new(
+        inner,
+        cfg.realtime,
+        cfg.rate_hz,
+        stamp_arrival,
+    )))
+}
+
+// ---------------------------------------------------------------------------------------------
+// Pacing
+
+/// Releases the frames of a recording at its rate (or a fixed `rate_hz`), restamping them with
+/// the release instant when `stamp_arrival`.
+pub struct Paced {
+    inner: Box<dyn FrameSource>,
+    realtime: bool,
+    rate_hz: Option<f64>,
+    stamp_arrival: bool,
+    start: Option<(Instant, f64)>,
+    n: u64,
+}
+
+impl Paced {
+    /// Wrap `inner`.
+    pub fn new(
+        inner: Box<dyn FrameSource>,
+        realtime: bool,
+        rate_hz: Option<f64>,
+        stamp_arrival: bool,
+    ) -> Self {
+        Self {
+            inner,
+            realtime,
+            rate_hz,
+            stamp_arrival,
+            start: None,
+            n: 0,
+        }
+    }
+}
+
+impl FrameSource for Paced {
+    fn next_frame(&mut self) -> Result<Option<Frame>, FrameError> {
+        let Some(mut f) = self.inner.next_frame()? else {
+            return Ok(None);
+        };
+        if self.realtime {
+            let t_rel = match self.rate_hz {
+                Some(r) => self.n as f64 / r,
+                None => f.t_rel_s,
+            };
+            let (t0, rel0) = *self.start.get_or_insert((Instant::now(), t_rel));
+            let due = t0 + Duration::from_secs_f64((t_rel - rel0).clamp(0.0, 1e7));
+            let now = Instant::now();
+            if due > now {
+                std::thread::sleep(due - now);
+            }
+        }
+        self.n += 1;
+        if self.stamp_arrival {
+            f.t_capture = CaptureTime::Companion(Instant::now());
+        }
+        Ok(Some(f))
+    }
+
+    fn describe(&self) -> String {
+        let pace = match (self.realtime, self.rate_hz) {
+            (false, _) => "as fast as processed".to_string(),
+            (true, Some(r)) => format!("at {r} Hz"),
+            (true, None) => "at the recorded rate".to_string(),
+        };
+        format!("{}, {pace}", self.inner.describe())
+    }
+
+    fn rate_hz(&self) -> Option<f64> {
+        self.rate_hz.or(self.inner.rate_hz())
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Directory + frames.csv
+
+/// Name of the timestamps file in an image directory.
+pub const FRAMES_CSV: &str = "frames.csv";
+
+#[derive(Debug, Clone, PartialEq)]
+struct Entry {
+    file: PathBuf,
+    t_rel_s: f64,
+    t_boot_us: Option<u64>,
+}
+
+/// Images listed in `frames.csv` (see the module docs).
+pub struct DirectorySource {
+    dir: PathBuf,
+    entries: Vec<Entry>,
+    next: usize,
+}
+
+impl DirectorySource {
+    /// Read `dir/frames.csv` (the images are read one by one by [`FrameSource::next_frame`]).
+    pub fn open(dir: &Path) -> Result<Self, FrameError> {
+        let csv = dir.join(FRAMES_CSV);
+        let text = std::fs::read_to_string(&csv).map_err(|source| FrameError::Io {
+            path: csv.clone(),
+            source,
+        })?;
+        let entries = parse_frames_csv(&text, &csv)?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            entries,
+            next: 0,
+        })
+    }
+
+    /// Number of frames listed.
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// No frames listed.
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+}
+
+fn parse_frames_csv(text: &str, path: &Path) -> Result<Vec<Entry>, FrameError> {
+    let err = |line: usize, reason: String| FrameError::Csv {
+        path: path.to_path_buf(),
+        line,
+        reason,
+    };
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| (i + 1, l.trim()))
+        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
+    let Some((hl, header)) = lines.next() else {
+        return Err(err(
+            1,
+            "empty: expected a header \"file,t_boot_us\" or \"file,t_s\"".into(),
+        ));
+    };
+    let cols: Vec<&str> = header.split(',').map(str::trim).collect();
+    let boot = match cols.as_slice() {
+        ["file", "t_boot_us"] => true,
+        ["file", "t_s"] => false,
+        _ => {
+            return Err(err(
+                hl,
+                format!("header \"{header}\": expected \"file,t_boot_us\" or \"file,t_s\""),
+            ));
+        }
+    };
+    let mut out: Vec<Entry> = Vec::new();
+    let mut t0: Option<f64> = None;
+    for (ln, l) in lines {
+        let parts: Vec<&str> = l.split(',').map(str::trim).collect();
+        let [file, t] = parts.as_slice() else {
+            return Err(err(
+                ln,
+                format!("expected 2 columns, found {}", parts.len()),
+            ));
+        };
+        if file.is_empty() {
+            return Err(err(ln, "empty file name".into()));
+        }
+        let (t_s, t_boot_us) = if boot {
+            let us: u64 = t.parse().map_err(|_| {
+                err(
+                    ln,
+                    format!("t_boot_us \"{t}\" is not a non-negative integer"),
+                )
+            })?;
+            (us as f64 * 1e-6, Some(us))
+        } else {
+            let s: f64 = t
+                .parse()
+                .ok()
+                .filter(|v: &f64| v.is_finite())
+                .ok_or_else(|| err(ln, format!("t_s \"{t}\" is not a finite number")))?;
+            (s, None)
+        };
+        if let Some(prev) = out.last() {
+            let prev_t = prev.t_rel_s + t0.unwrap_or(0.0);
+            if t_s <= prev_t {
+                return Err(err(
+                    ln,
+                    format!("time {t} is not after the previous frame's"),
+                ));
+            }
+        }
+        let base = *t0.get_or_insert(t_s);
+        out.push(Entry {
+            file: PathBuf::from(file),
+            t_rel_s: t_s - base,
+            t_boot_us,
+        });
+    }
+    if out.is_empty() {
+        return Err(err(hl, "no frames listed".into()));
+    }
+    Ok(out)
+}
+
+impl FrameSource for DirectorySource {
+    fn next_frame(&mut self) -> Result<Option<Frame>, FrameError> {
+        let Some(e) = self.entries.get(self.next) else {
+            return Ok(None);
+        };
+        let seq = self.next as u64;
+        self.next += 1;
+        let path = self.dir.join(&e.file);
+        let image = GrayImage::load(&path).map_err(|x| FrameError::Image {
+            path: path.clone(),
+            frame: seq,
+            reason: x.to_string(),
+        })?;
+        Ok(Some(Frame {
+            image,
+            t_capture: match e.t_boot_us {
+                Some(us) => CaptureTime::AutopilotBootUs(us),
+                None => CaptureTime::Companion(Instant::now()),
+            },
+            t_rel_s: e.t_rel_s,
+            seq,
+        }))
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "image directory {} ({} frames)",
+            self.dir.display(),
+            self.entries.len()
+        )
+    }
+
+    fn rate_hz(&self) -> Option<f64> {
+        let n = self.entries.len();
+        let span = self.entries.last()?.t_rel_s;
+        (n > 1 && span > 0.0).then(|| (n - 1) as f64 / span)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// YUV4MPEG2
+
+/// Plane layout of a y4m colour space.
+#[derive(Debug, Clone, Copy)]
+struct Layout {
+    /// Bytes per sample (1 or 2).
+    bytes: usize,
+    /// Maximum sample value (255, 1023, 4095, 65535).
+    max: f64,
+    /// Bytes after the luma plane in one frame, as a function of W, H.
+    chroma: fn(usize, usize) -> usize,
+}
+
+fn chroma_420(w: usize, h: usize) -> usize {
+    2 * w.div_ceil(2) * h.div_ceil(2)
+}
+fn chroma_422(w: usize, h: usize) -> usize {
+    2 * w.div_ceil(2) * h
+}
+fn chroma_444(w: usize, h: usize) -> usize {
+    2 * w * h
+}
+fn chroma_444a(w: usize, h: usize) -> usize {
+    3 * w * h
+}
+fn chroma_none(_: usize, _: usize) -> usize {
+    0
+}
+
+fn layout(c: &str) -> Option<Layout> {
+    let l8 = |chroma| Layout {
+        bytes: 1,
+        max: 255.0,
+        chroma,
+    };
+    let l16 = |bits: u32, chroma| Layout {
+        bytes: 2,
+        max: f64::from((1u32 << bits) - 1),
+        chroma,
+    };
+    Some(match c {
+        "420jpeg" | "420paldv" | "420mpeg2" | "420" => l8(chroma_420),
+        "422" => l8(chroma_422),
+        "444" => l8(chroma_444),
+        "444alpha" => l8(chroma_444a),
+        "mono" => l8(chroma_none),
+        "mono16" => l16(16, chroma_none),
+        _ => {
+            let (base, bits) = c.split_once('p')?;
+            let bits: u32 = bits.parse().ok().filter(|b| [10, 12, 16].contains(b))?;
+            let chroma: fn(usize, usize) -> usize = match base {
+                "420" => chroma_420,
+                "422" => chroma_422,
+                "444" => chroma_444,
+                _ => return None,
+            };
+            l16(bits, chroma)
+        }
+    })
+}
+
+/// A YUV4MPEG2 file (see the module docs).
+pub struct Y4mSource {
+    path: PathBuf,
+    r: BufReader<File>,
+    width: usize,
+    height: usize,
+    fps: f64,
+    colour: String,
+    lay: Layout,
+    next: u64,
+    buf: Vec<u8>,
+}
+
+/// Read one '\n'-terminated line of at most `max` bytes; None at a clean EOF.
+fn read_line_limited(r: &mut impl BufRead, max: usize) -> std::io::Result<Option<Vec<u8>>> {
+    let mut out = Vec::new();
+    let n = r.take(max as u64 + 1).read_until(b'\n', &mut out)?;
+    if n == 0 {
+        return Ok(None);
+    }
+    Ok(Some(out))
+}
+
+impl Y4mSource {
+    /// Open and parse the stream header.
+    pub fn open(path: &Path) -> Result<Self, FrameError> {
+        let f = File::open(path).map_err(|source| FrameError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let mut r = BufReader::new(f);
+        let herr = |reason: String| FrameError::Y4mHeader {
+            path: path.to_path_buf(),
+            reason,
+        };
+        let line = read_line_limited(&mut r, 1024)
+            .map_err(|source| FrameError::Io {
+                path: path.to_path_buf(),
+                source,
+            })?
+            .ok_or_else(|| herr("the file is empty".into()))?;
+        if line.last() != Some(&b'\n') {
+            return Err(herr(
+                "header line is not terminated within 1024 bytes".into(),
+            ));
+        }
+        let text = std::str::from_utf8(&line[..line.len() - 1])
+            .map_err(|_| herr("header is not ASCII".into()))?;
+        let mut tok = text.split(' ').filter(|t| !t.is_empty());
+        if tok.next() != Some("YUV4MPEG2") {
+            return Err(herr("missing the \"YUV4MPEG2\" signature".into()));
+        }
+        let (mut w, mut h, mut fps, mut colour) = (None, None, None, "420".to_string());
+        for t in tok {
+            let (k, v) = t.split_at(1);
+            match k {
+                "W" => w = v.parse::<usize>().ok(),
+                "H" => h = v.parse::<usize>().ok(),
+                "F" => {
+                    fps = v.split_once(':').and_then(|(n, d)| {
+                        let n: f64 = n.parse().ok()?;
+                        let d: f64 = d.parse().ok()?;
+                        (n > 0.0 && d > 0.0).then_some(n / d)
+                    });
+                    if fps.is_none() {
+                        return Err(herr(format!(
+                            "frame rate \"F{v}\" is not N:D with N, D > 0"
+                        )));
+                    }
+                }
+                "C" => colour = v.to_string(),
+                _ => {} // I (interlacing), A (aspect), X (comments): irrelevant for luma
+            }
+        }
+        let width = w.filter(|v| (1..=16384).contains(v));
+        let height = h.filter(|v| (1..=16384).contains(v));
+        let (Some(width), Some(height)) = (width, height) else {
+            return Err(herr("W and H must be present and within 1..=16384".into()));
+        };
+        let lay = layout(&colour)
+            .ok_or_else(|| herr(format!("colour space \"C{colour}\" is not supported")))?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            r,
+            width,
+            height,
+            fps: fps.unwrap_or(25.0),
+            colour,
+            lay,
+            next: 0,
+            buf: Vec::new(),
+        })
+    }
+
+    /// Image size, pixels.
+    pub fn size(&self) -> (usize, usize) {
+        (self.width, self.height)
+    }
+
+    fn ferr(&self, reason: String) -> FrameError {
+        FrameError::Y4mFrame {
+            path: self.path.clone(),
+            frame: self.next,
+            reason,
+        }
+    }
+}
+
+impl FrameSource for Y4mSource {
+    fn next_frame(&mut self) -> Result<Option<Frame>, FrameError> {
+        let io = |e: std::io::Error, s: &Self| s.ferr(e.to_string());
+        let Some(line) = read_line_limited(&mut self.r, 1024).map_err(|e| io(e, self))? else {
+            return Ok(None);
+        };
+        if !line.starts_with(b"FRAME") || line.last() != Some(&b'\n') {
+            return Err(
+                self.ferr("missing the \"FRAME\" marker (corrupt or truncated file)".into())
+            );
+        }
+        let n_luma = self.width * self.height * self.lay.bytes;
+        let n_total = n_luma + (self.lay.chroma)(self.width, self.height) * self.lay.bytes;
+        self.buf.resize(n_total, 0);
+        let mut got = 0;
+        while got < n_total {
+            match self.r.read(&mut self.buf[got..]) {
+                Ok(0) => {
+                    return Err(self.ferr(format!(
+                        "truncated: {got} of {n_total} bytes ({}x{} C{})",
+                        self.width, self.height, self.colour
+                    )));
+                }
+                Ok(n) => got += n,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(io(e, self)),
+            }
+        }
+        let luma = &self.buf[..n_luma];
+        let data: Vec<f32> = if self.lay.bytes == 1 {
+            luma.iter().map(|&v| f32::from(v)).collect()
+        } else {
+            let k = 255.0 / self.lay.max;
+            luma.chunks_exact(2)
+                .map(|b| (f64::from(u16::from_le_bytes([b[0], b[1]])) * k).min(255.0) as f32)
+                .collect()
+        };
+        let image =
+            GrayImage::new(self.width, self.height, data).map_err(|e| self.ferr(e.to_string()))?;
+        let seq = self.next;
+        self.next += 1;
+        Ok(Some(Frame {
+            image,
+            t_capture: CaptureTime::Companion(Instant::now()),
+            t_rel_s: seq as f64 / self.fps,
+            seq,
+        }))
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "y4m {} ({}x{} C{}, {:.3} fps)",
+            self.path.display(),
+            self.width,
+            self.height,
+            self.colour,
+            self.fps
+        )
+    }
+
+    fn rate_hz(&self) -> Option<f64> {
+        Some(self.fps)
+    }
+}
+
+/// Write frames as a YUV4MPEG2 file (`C420jpeg`, neutral chroma): for tests and recordings.
+pub fn write_y4m(
+    path: &Path,
+    frames: &[GrayImage],
+    fps_num: u32,
+    fps_den: u32,
+) -> std::io::Result<()> {
+    use std::io::Write;
+    let mut w = std::io::BufWriter::new(File::create(path)?);
+    let (wd, ht) = frames
+        .first()
+        .map(|f| (f.width(), f.height()))
+        .unwrap_or((1, 1));
+    writeln!(
+        w,
+        "YUV4MPEG2 W{wd} H{ht} F{fps_num}:{fps_den} Ip A1:1 C420jpeg"
+    )?;
+    for f in frames {
+        if (f.width(), f.height()) != (wd, ht) {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                "all frames must have the same size",
+            ));
+        }
+        w.write_all(b"FRAME\n")?;
+        let luma: Vec<u8> = f
+            .data()
+            .iter()
+            .map(|v| {
+                if v.is_finite() {
+                    v.round().clamp(0.0, 255.0) as u8
+                } else {
+                    0
+                }
+            })
+            .collect();
+        w.write_all(&luma)?;
+        w.write_all(&vec![128u8; chroma_420(wd, ht)])?;
+    }
+    w.flush()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn img(w: usize, h: usize, k: f32) -> GrayImage {
+        GrayImage::from_fn(w, h, |x, y| ((x + 2 * y) as f32 + k) % 256.0)
+    }
+
+    #[test]
+    fn y4m_round_trip_420_odd_size() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("a.y4m");
+        let frames: Vec<_> = (0..3).map(|i| img(7, 5, i as f32 * 10.0)).collect();
+        write_y4m(&p, &frames, 30000, 1001).unwrap();
+        let mut s = Y4mSource::open(&p).unwrap();
+        assert_eq!(s.size(), (7, 5));
+        assert!((s.rate_hz().unwrap() - 29.97).abs() < 0.01);
+        for (i, f) in frames.iter().enumerate() {
+            let g = s.next_frame().unwrap().unwrap();
+            assert_eq!(g.seq, i as u64);
+            assert_eq!(&g.image, f);
+            assert!((g.t_rel_s - i as f64 * 1001.0 / 30000.0).abs() < 1e-12);
+        }
+        assert!(s.next_frame().unwrap().is_none());
+    }
+
+    fn y4m_bytes(header: &str, frames: &[Vec<u8>]) -> Vec<u8> {
+        let mut b = header.as_bytes().to_vec();
+        b.push(b'\n');
+        for f in frames {
+            b.extend_from_slice(b"FRAME\n");
+            b.extend_from_slice(f);
+        }
+        b
+    }
+
+    #[test]
+    fn y4m_colour_spaces() {
+        let d = tempfile::tempdir().unwrap();
+        // 4x2 luma 0..8, then chroma of the right size for each layout.
+        let luma: Vec<u8> = (0..8).collect();
+        for (c, chroma) in [
+            ("mono", 0),
+            ("422", 8),
+            ("444", 16),
+            ("444alpha", 24),
+            ("420", 4),
+        ] {
+            let mut f = luma.clone();
+            f.extend(std::iter::repeat_n(200u8, chroma));
+            let p = d.path().join(format!("{c}.y4m"));
+            let hdr = format!("YUV4MPEG2 W4 H2 F10:1 C{c}");
+            std::fs::write(&p, y4m_bytes(&hdr, &[f.clone(), f])).unwrap();
+            let mut s = Y4mSource::open(&p).unwrap();
+            for _ in 0..2 {
+                let g = s.next_frame().unwrap().unwrap();
+                assert_eq!(
+                    g.image.data(),
+                    &(0..8).map(|v| v as f32).collect::<Vec<_>>()[..],
+                    "{c}"
+                );
+            }
+            assert!(s.next_frame().unwrap().is_none(), "{c}");
+        }
+        // 10-bit little endian: 1023 -> 255.
+        let mut f: Vec<u8> = Vec::new();
+        for v in [0u16, 1023, 512, 1023] {
+            f.extend_from_slice(&v.to_le_bytes());
+        }
+        f.extend(std::iter::repeat_n(0u8, 4)); // 420 chroma of 2x2: 2 planes of 1 sample, 2 bytes
+        let p = d.path().join("p10.y4m");
+        std::fs::write(&p, y4m_bytes("YUV4MPEG2 W2 H2 F25:1 C420p10", &[f])).unwrap();
+        let g = Y4mSource::open(&p).unwrap().next_frame().unwrap().unwrap();
+        assert_eq!(g.image.get(1, 0), 255.0);
+        assert_eq!(g.image.get(0, 0), 0.0);
+    }
+
+    #[test]
+    fn corrupt_y4m_errors_name_file_and_frame() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("bad.y4m");
+        // Truncated second frame.
+        let full = vec![1u8; 4 * 2 + 4];
+        let mut b = y4m_bytes("YUV4MPEG2 W4 H2 F10:1 C420jpeg", &[full]);
+        b.extend_from_slice(b"FRAME\n\x01\x02");
+        std::fs::write(&p, &b).unwrap();
+        let mut s = Y4mSource::open(&p).unwrap();
+        assert!(s.next_frame().unwrap().is_some());
+        let e = s.next_frame().unwrap_err().to_string();
+        assert!(
+            e.contains("bad.y4m") && e.contains("frame 1") && e.contains("truncated"),
+            "{e}"
+        );
+        // Garbage instead of a FRAME marker.
+        std::fs::write(&p, b"YUV4MPEG2 W4 H2 F10:1\nFRAMX\n").unwrap();
+        let e = Y4mSource::open(&p)
+            .unwrap()
+            .next_frame()
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("frame 0") && e.contains("FRAME"), "{e}");
+        // Header problems.
+        for (hdr, want) in [
+            (&b"P5 4 2 255\n"[..], "signature"),
+            (b"YUV4MPEG2 W0 H2 F10:1\n", "W and H"),
+            (b"YUV4MPEG2 W4 H2 F10:0\n", "frame rate"),
+            (b"YUV4MPEG2 W4 H2 F10:1 C411\n", "C411"),
+            (b"", "empty"),
+            (&[b'Y'; 3000][..], "1024"),
+        ] {
+            std::fs::write(&p, hdr).unwrap();
+            let e = Y4mSource::open(&p).err().unwrap().to_string();
+            assert!(e.contains("bad.y4m") && e.contains(want), "{e}");
+        }
+        let e = Y4mSource::open(&d.path().join("missing.y4m"))
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("missing.y4m"), "{e}");
+    }
+
+    #[test]
+    fn directory_source_reads_csv_and_images() {
+        let d = tempfile::tempdir().unwrap();
+        for i in 0..3 {
+            img(6, 4, i as f32)
+                .save_png(&d.path().join(format!("{i}.png")))
+                .unwrap();
+        }
+        std::fs::write(
+            d.path().join(FRAMES_CSV),
+            "# recorded\nfile,t_boot_us\n0.png,1000000\n1.png,1100000\n\n2.png,1250000\n",
+        )
+        .unwrap();
+        let mut s = DirectorySource::open(d.path()).unwrap();
+        assert_eq!(s.len(), 3);
+        let f = s.next_frame().unwrap().unwrap();
+        assert_eq!(f.t_capture, CaptureTime::AutopilotBootUs(1_000_000));
+        assert_eq!(f.image, img(6, 4, 0.0));
+        let f = s.next_frame().unwrap().unwrap();
+        assert!((f.t_rel_s - 0.1).abs() < 1e-9);
+        assert_eq!(f.seq, 1);
+        assert!((s.rate_hz().unwrap() - 8.0).abs() < 1e-9);
+        s.next_frame().unwrap().unwrap();
+        assert!(s.next_frame().unwrap().is_none());
+    }
+
+    #[test]
+    fn directory_source_errors() {
+        let d = tempfile::tempdir().unwrap();
+        let csv = d.path().join(FRAMES_CSV);
+        for (text, want) in [
+            ("", "header"),
+            ("name,t\n", "header"),
+            ("file,t_s\n", "no frames"),
+            ("file,t_s\na.png,1.0\nb.png,0.5\n", ":3:"),
+            ("file,t_boot_us\na.png,-5\n", "non-negative"),
+            ("file,t_s\na.png,nan\n", "finite"),
+            ("file,t_s\na.png\n", "2 columns"),
+        ] {
+            std::fs::write(&csv, text).unwrap();
+            let e = DirectorySource::open(d.path()).err().unwrap().to_string();
+            assert!(
+                e.contains("frames.csv") && e.contains(want),
+                "{text:?}: {e}"
+            );
+        }
+        // A listed image that is missing / not an image: named with its frame number.
+        std::fs::write(&csv, "file,t_s\nmissing.png,0\n").unwrap();
+        let e = DirectorySource::open(d.path())
+            .unwrap()
+            .next_frame()
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("missing.png") && e.contains("frame 0"), "{e}");
+        std::fs::write(d.path().join("junk.png"), b"not a png").unwrap();
+        std::fs::write(&csv, "file,t_s\njunk.png,0\n").unwrap();
+        let e = DirectorySource::open(d.path())
+            .unwrap()
+            .next_frame()
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("junk.png"), "{e}");
+        let e = DirectorySource::open(&d.path().join("nodir"))
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("nodir"), "{e}");
+    }
+
+    #[test]
+    fn pacing_and_arrival_stamps() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("a.y4m");
+        let frames: Vec<_> = (0..4).map(|i| img(4, 4, i as f32)).collect();
+        write_y4m(&p, &frames, 50, 1).unwrap();
+        let cfg = FramesConfig::new(SourceKind::Y4m, &p);
+        let mut s = open(&cfg).unwrap();
+        let t0 = Instant::now();
+        let mut stamps = Vec::new();
+        while let Some(f) = s.next_frame().unwrap() {
+            match f.t_capture {
+                CaptureTime::Companion(t) => stamps.push(t),
+                CaptureTime::AutopilotBootUs(_) => panic!("arrival stamp expected"),
+            }
+        }
+        assert_eq!(stamps.len(), 4);
+        // 3 intervals of 20 ms: at least 60 ms of wall time (a lower bound only; never timed upper).
+        assert!(t0.elapsed() >= Duration::from_millis(58));
+        assert!(stamps.windows(2).all(|w| w[1] > w[0]));
+    }
+
+    #[test]
+    fn config_validation_names_keys() {
+        let d = tempfile::tempdir().unwrap();
+        let mut c = FramesConfig::new(SourceKind::Y4m, "nofile.y4m");
+        c.stamp = StampMode::Source;
+        c.max_age_s = 0.0;
+        c.workers = 0;
+        c.rate_hz = Some(-1.0);
+        let mut p = Problems::default();
+        c.validate_in(d.path(), &mut p);
+        let s: Vec<String> = p.list.iter().map(|i| i.to_string()).collect();
+        for k in ["stamp", "max_age_s", "workers", "rate_hz", "path"] {
+            assert!(s.iter().any(|m| m.starts_with(k)), "{k} missing in {s:?}");
+        }
+        let c = FramesConfig::new(SourceKind::V4l2, "/dev/video0");
+        let mut p = Problems::default();
+        c.validate(&mut p);
+        assert!(p.list[0].to_string().contains("not built"), "{:?}", p.list);
+        assert!(matches!(open(&c), Err(FrameError::NotBuilt { .. })));
+        assert!(
+            toml::from_str::<FramesConfig>("source = \"y4m\"\npath = \"a\"\nfps = 3\n").is_err()
+        );
+        let c: FramesConfig =
+            toml::from_str("source = \"directory\"\npath = \"a\"\nrealtime = false\n").unwrap();
+        assert!(!c.realtime && c.workers == 1 && c.stamp == StampMode::Arrival);
+    }
+}

@@ -1,0 +1,172 @@
+//! `[daemon]` configuration section: which autopilot telemetry aids the filter and how much it is
+//! trusted, and the daemon's watchdogs. Every key has a default.
+//!
+//! ```toml
+//! [daemon]
+//! gps = "auto"            # "auto" | "gps1" (GPS_RAW_INT) | "gps2" (GPS2_RAW) | "none"
+//! gps_sigma_h_m = 2.5     # used when the message carries no h_acc
+//! gps_sigma_v_m = 5.0     # used when the message carries no v_acc
+//! gps_vel_sigma_m_s = 0.5 # horizontal velocity (ground speed + course), when vel_acc is absent
+//! gps_vz_sigma_m_s = 5.0  # GPS_RAW_INT has no vertical velocity: 0 with this sigma
+//! baro = true             # SCALED_PRESSURE altitude, offset calibrated against GPS / the filter
+//! baro_sigma_m = 2.0
+//! imu_timeout_s = 0.5     # no IMU for this long: the solution is declared lost (nothing injected)
+//! log_interval_s = 10.0   # metrics summary in the log
+//! ```
+//!
+//! Feedback guard: with `output.modes` containing `gps_input`, the autopilot reports our own
+//! injection back as the GPS instance `output.gps_id` (GPS_RAW_INT for instance 0, GPS2_RAW for
+//! instance 1). Fusing it would feed the solution back into itself, so `auto` picks the other
+//! instance and an explicit choice of the injected instance is rejected by validation.
+
+use serde::Deserialize;
+
+use crate::config::{OutputConfig, OutputMode, Problems, Validate};
+
+/// Which autopilot GPS message aids the filter.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum GpsSource {
+    /// `gps2` when we inject GPS_INPUT into instance 0, else `gps1`.
+    #[default]
+    Auto,
+    /// GPS_RAW_INT (the autopilot's first GPS).
+    Gps1,
+    /// GPS2_RAW (the second GPS; requested by the daemon).
+    Gps2,
+    /// No GPS aiding.
+    None,
+}
+
+/// `[daemon]` section.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DaemonConfig {
+    /// GPS aiding source.
+    pub gps: GpsSource,
+    /// GPS horizontal sigma when the message has no accuracy, m.
+    pub gps_sigma_h_m: f64,
+    /// GPS vertical sigma when the message has no accuracy, m.
+    pub gps_sigma_v_m: f64,
+    /// GPS horizontal velocity sigma when the message has no accuracy, m/s.
+    pub gps_vel_sigma_m_s: f64,
+    /// Sigma of the (unmeasured, zero) vertical GPS velocity, m/s.
+    pub gps_vz_sigma_m_s: f64,
+    /// Use the barometric altitude.
+    pub baro: bool,
+    /// Barometric altitude sigma, m.
+    pub baro_sigma_m: f64,
+    /// No IMU sample for this long: solution lost, s.
+    pub imu_timeout_s: f64,
+    /// Interval of the metrics summary in the log, s (0 = off).
+    pub log_interval_s: f64,
+}
+
+impl Default for DaemonConfig {
+    fn default() -> Self {
+        Self {
+            gps: GpsSource::Auto,
+            gps_sigma_h_m: 2.5,
+            gps_sigma_v_m: 5.0,
+            gps_vel_sigma_m_s: 0.5,
+            gps_vz_sigma_m_s: 5.0,
+            baro: true,
+            baro_sigma_m: 2.0,
+            imu_timeout_s: 0.5,
+            log_interval_s: 10.0,
+        }
+    }
+}
+
+/// The GPS instance our GPS_INPUT feeds, if any.
+fn injected_gps(out: &OutputConfig) -> Option<GpsSource> {
+    out.modes
+        .contains(&OutputMode::GpsInput)
+        .then_some(if out.gps_id == 0 {
+            GpsSource::Gps1
+        } else {
+            GpsSource::Gps2
+        })
+}
+
+impl DaemonConfig {
+    /// The GPS source actually used (resolves `auto` against the output configuration).
+    pub fn gps_source(&self, out: &OutputConfig) -> GpsSource {
+        match self.gps {
+            GpsSource::Auto => match injected_gps(out) {
+                Some(GpsSource::Gps1) => GpsSource::Gps2,
+                _ => GpsSource::Gps1,
+            },
+            g => g,
+        }
+    }
+
+    /// Validate, including the feedback guard against `[output]`.
+    pub fn validate_in(&self, out: &OutputConfig, p: &mut Problems) {
+        self.validate(p);
+        if let Some(inj) = injected_gps(out)
+            && self.gps == inj
+        {
+            p.push(
+                "gps",
+                format!(
+                    "{inj:?} is the GPS instance our GPS_INPUT feeds (output.gps_id = {}): fusing it \
+                     would feed the solution back into itself; use \"auto\" or the other instance",
+                    out.gps_id
+                )
+                .to_lowercase(),
+            );
+        }
+    }
+}
+
+impl Validate for DaemonConfig {
+    fn validate(&self, p: &mut Problems) {
+        p.range("gps_sigma_h_m", self.gps_sigma_h_m, 0.01, 1000.0);
+        p.range("gps_sigma_v_m", self.gps_sigma_v_m, 0.01, 1000.0);
+        p.range("gps_vel_sigma_m_s", self.gps_vel_sigma_m_s, 0.01, 100.0);
+        p.range("gps_vz_sigma_m_s", self.gps_vz_sigma_m_s, 0.01, 100.0);
+        p.range("baro_sigma_m", self.baro_sigma_m, 0.01, 1000.0);
+        p.range("imu_timeout_s", self.imu_timeout_s, 0.05, 10.0);
+        p.range("log_interval_s", self.log_interval_s, 0.0, 3600.0);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn feedback_guard_and_auto() {
+        let mut out = OutputConfig::default(); // gps_input, gps_id 0
+        let mut c = DaemonConfig::default();
+        assert_eq!(c.gps_source(&out), GpsSource::Gps2);
+        c.gps = GpsSource::Gps1;
+        let mut p = Problems::default();
+        c.validate_in(&out, &mut p);
+        assert_eq!(p.list.len(), 1);
+        assert!(
+            p.list[0].key == "gps" && p.list[0].reason.contains("feed"),
+            "{:?}",
+            p.list
+        );
+        out.gps_id = 1;
+        let mut p = Problems::default();
+        c.validate_in(&out, &mut p);
+        assert!(p.list.is_empty());
+        c.gps = GpsSource::Auto;
+        assert_eq!(c.gps_source(&out), GpsSource::Gps1);
+        out.modes = vec![OutputMode::Odometry];
+        assert_eq!(c.gps_source(&out), GpsSource::Gps1);
+    }
+
+    #[test]
+    fn parse_and_ranges() {
+        let c: DaemonConfig = toml::from_str("gps = \"none\"\nbaro_sigma_m = -1\n").unwrap();
+        assert_eq!(c.gps, GpsSource::None);
+        let mut p = Problems::default();
+        c.validate(&mut p);
+        assert!(p.list.iter().any(|i| i.key == "baro_sigma_m"));
+        assert!(toml::from_str::<DaemonConfig>("gps_sigma = 1\n").is_err());
+    }
+}

@@ -1,0 +1,146 @@
+//! The daemon's counters (atomics, updated from any task or thread) and their snapshot.
+
+use std::collections::BTreeMap;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use serde::Serialize;
+
+/// Live counters.
+#[derive(Debug, Default)]
+pub struct DaemonMetrics {
+    pub telemetry_lagged: AtomicU64,
+    pub imu_samples: AtomicU64,
+    pub nav_outputs: AtomicU64,
+    pub autopilot_reboots: AtomicU64,
+    pub imu_timeouts: AtomicU64,
+    pub health_changes: AtomicU64,
+    pub frames_in: AtomicU64,
+    pub frames_superseded: AtomicU64,
+    pub frames_stale: AtomicU64,
+    pub frames_no_time: AtomicU64,
+    pub frame_errors: AtomicU64,
+    pub queue_depth_max: AtomicU64,
+    pub fixes_attempted: AtomicU64,
+    pub fixes_accepted: AtomicU64,
+    pub fixes_filter_rejected: AtomicU64,
+    pub fixes_too_old: AtomicU64,
+    pub fixes_invalid: AtomicU64,
+    pub fixes_unused_before_init: AtomicU64,
+    pub fix_latency_ms_last: AtomicU64,
+    pub fix_latency_ms_max: AtomicU64,
+    pub fix_latency_ms_sum: AtomicU64,
+    /// Engine rejections by reason.
+    pub engine_rejected: Mutex<BTreeMap<String, u64>>,
+}
+
+/// A copy of the counters.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct MetricsSnapshot {
+    /// Telemetry messages lost because the navigation task fell behind.
+    pub telemetry_lagged: u64,
+    /// IMU samples given to the filter.
+    pub imu_samples: u64,
+    /// Filter outputs published.
+    pub nav_outputs: u64,
+    /// Autopilot reboots seen (filter restarted).
+    pub autopilot_reboots: u64,
+    /// IMU stream timeouts (solution declared lost).
+    pub imu_timeouts: u64,
+    /// Health state changes.
+    pub health_changes: u64,
+    /// Frames read from the source.
+    pub frames_in: u64,
+    /// Frames replaced in the queue by a newer one before a worker took them.
+    pub frames_superseded: u64,
+    /// Frames older than `frames.max_age_s` when a worker was free.
+    pub frames_stale: u64,
+    /// Frames dropped because their capture time could not be mapped (no time sync yet).
+    pub frames_no_time: u64,
+    /// Frames that could not be read.
+    pub frame_errors: u64,
+    /// Largest number of frames waiting at once (the queue bound is 1).
+    pub queue_depth_max: u64,
+    /// Frames given to the fix engine.
+    pub fixes_attempted: u64,
+    /// Fixes accepted by the filter.
+    pub fixes_accepted: u64,
+    /// Fixes rejected by the filter's innovation gate.
+    pub fixes_filter_rejected: u64,
+    /// Fixes older than the filter's history.
+    pub fixes_too_old: u64,
+    /// Fixes the filter found malformed.
+    pub fixes_invalid: u64,
+    /// Fixes not given to the filter while it waits for two fixes spaced for initialisation.
+    pub fixes_unused_before_init: u64,
+    /// Engine rejections by reason.
+    pub engine_rejected: BTreeMap<String, u64>,
+    /// Frame-to-fix latency of the last fix, ms.
+    pub fix_latency_ms_last: u64,
+    /// Largest frame-to-fix latency, ms.
+    pub fix_latency_ms_max: u64,
+    /// Mean frame-to-fix latency, ms.
+    pub fix_latency_ms_mean: f64,
+}
+
+impl DaemonMetrics {
+    /// Count one engine rejection.
+    pub fn engine_reject(&self, reason: &str) {
+        let mut m = self
+            .engine_rejected
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        // Bound the map: reasons with numbers could otherwise grow it without limit.
+        let key = if m.len() < 64 || m.contains_key(reason) {
+            reason.to_string()
+        } else {
+            "other".to_string()
+        };
+        *m.entry(key).or_default() += 1;
+    }
+
+    /// Record one fix latency.
+    pub fn latency(&self, ms: u64) {
+        self.fix_latency_ms_last.store(ms, Ordering::Relaxed);
+        self.fix_latency_ms_max.fetch_max(ms, Ordering::Relaxed);
+        self.fix_latency_ms_sum.fetch_add(ms, Ordering::Relaxed);
+    }
+
+    /// Copy the counters.
+    pub fn snapshot(&self) -> MetricsSnapshot {
+        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        let attempted = g(&self.fixes_attempted);
+        MetricsSnapshot {
+            telemetry_lagged: g(&self.telemetry_lagged),
+            imu_samples: g(&self.imu_samples),
+            nav_outputs: g(&self.nav_outputs),
+            autopilot_reboots: g(&self.autopilot_reboots),
+            imu_timeouts: g(&self.imu_timeouts),
+            health_changes: g(&self.health_changes),
+            frames_in: g(&self.frames_in),
+            frames_superseded: g(&self.frames_superseded),
+            frames_stale: g(&self.frames_stale),
+            frames_no_time: g(&self.frames_no_time),
+            frame_errors: g(&self.frame_errors),
+            queue_depth_max: g(&self.queue_depth_max),
+            fixes_attempted: attempted,
+            fixes_accepted: g(&self.fixes_accepted),
+            fixes_filter_rejected: g(&self.fixes_filter_rejected),
+            fixes_too_old: g(&self.fixes_too_old),
+            fixes_invalid: g(&self.fixes_invalid),
+            fixes_unused_before_init: g(&self.fixes_unused_before_init),
+            engine_rejected: self
+                .engine_rejected
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .clone(),
+            fix_latency_ms_last: g(&self.fix_latency_ms_last),
+            fix_latency_ms_max: g(&self.fix_latency_ms_max),
+            fix_latency_ms_mean: if attempted > 0 {
+                g(&self.fix_latency_ms_sum) as f64 / attempted as f64
+            } else {
+                0.0
+            },
+        }
+    }
+}

@@ -522,7 +522,8 @@ fn visnav_run_subprocess_injects_and_reports() {
     eprintln!("visnav run: {n_gps} GPS_INPUT; {m}");
     assert!(n_gps >= 5, "{n_gps} GPS_INPUT; {stderr}");
 
-    // [frames] without the engine: a clear error.
+    // [frames] makes run build the vision fix engine from [map]: the placeholder orthophoto is
+    // refused with a clear error naming it.
     std::fs::write(dir.path().join("a.y4m"), b"YUV4MPEG2 W2 H2 F1:1\n").unwrap();
     std::fs::write(
         &cfg,
@@ -536,7 +537,10 @@ fn visnav_run_subprocess_injects_and_reports() {
         .unwrap();
     assert!(!out.status.success());
     let e = String::from_utf8_lossy(&out.stderr);
-    assert!(e.contains("vision fix engine is not available"), "{e}");
+    assert!(
+        e.contains("vision fix engine") && e.contains("ortho.tif"),
+        "{e}"
+    );
     // A misspelt key in [frames] names the key.
     std::fs::write(
         &cfg,

@@ -25,20 +25,20 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         Some(s) => anyhow::bail!("--duration {s}: expected a positive number of seconds"),
         None => None,
     };
-    if cfg.frames.is_some() {
-        // The lead wires the vision fix engine here (src/fix); until then a configured frame
-        // source cannot be served.
-        anyhow::bail!(
-            "{}: [frames] is configured but the vision fix engine is not available in this build \
-             (remove [frames] to run with IMU, GPS, attitude and baro only)",
-            args.config.display()
-        );
-    }
+    // With a frame source, the vision fix engine of [map], [camera] and [fix].
+    let fixer: Option<std::sync::Arc<dyn visnav::daemon::FrameFixer>> = if cfg.frames.is_some() {
+        let engine = visnav::fix::engine_from_config(&cfg)
+            .map_err(anyhow::Error::msg)
+            .with_context(|| format!("{}: vision fix engine", args.config.display()))?;
+        Some(std::sync::Arc::new(engine))
+    } else {
+        None
+    };
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
         .context("cannot start the async runtime")?;
-    let m = rt.block_on(visnav::daemon::run(&cfg, None, duration))?;
+    let m = rt.block_on(visnav::daemon::run(&cfg, fixer, duration))?;
     println!("{}", serde_json::to_string(&m)?);
     Ok(ExitCode::SUCCESS)
 }

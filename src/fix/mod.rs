@@ -177,3 +177,9 @@ pub fn engine_from_config(cfg: &crate::config::Config) -> Result<FixEngine, Stri
     };
     FixEngine::new(reference, camera, cfg.fix.clone()).map_err(|e| format!("[fix]: {e}"))
 }
+
+impl crate::daemon::FrameFixer for FixEngine {
+    fn fix(&self, image: &crate::vision::GrayImage, prior: &FixPrior) -> FixReport {
+        FixEngine::fix(self, image, prior)
+    }
+}

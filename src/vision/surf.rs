@@ -914,7 +914,7 @@ fn orientation(ii: &IntegralImage, kp: &KeyPoint) -> f32 {
     let n = t.ori_idx.len();
     let mut gx = [0f32; 113];
     let mut gy = [0f32; 113];
-    for (q, &(ci, cj, wt)) in t.ori_idx.iter().enumerate() {
+    for (q, &(ci, cj, _)) in t.ori_idx.iter().enumerate() {
         let y = rows[cj as usize];
         let x = cols[ci as usize];
         let (r0, r1, r2) = ((y - half) * st, y * st, (y + half) * st);
@@ -934,7 +934,7 @@ fn orientation(ii: &IntegralImage, kp: &KeyPoint) -> f32 {
     for q in 0..n {
         // A zero response adds nothing wherever it is binned.
         let a = fast_atan2(gy[q], gx[q]); // [-pi, pi]
-        bidx[q] = (((a + std::f32::consts::PI) * bin_scale) as usize).min(ORI_BINS - 1) as u8;
+        bidx[q] = bin_floor((a + std::f32::consts::PI) * bin_scale).min(ORI_BINS as u32 - 1) as u8;
     }
     let mut bins = [[[0f32; 2]; ORI_BINS]; 2];
     for (q, &(_, _, wt)) in t.ori_idx.iter().enumerate().take(n) {
@@ -948,6 +948,17 @@ fn orientation(ii: &IntegralImage, kp: &KeyPoint) -> f32 {
         o[1] += e[1];
     }
     best_window(&sum)
+}
+
+/// `floor(f)` for `f` in `[0, 2^22)` without a float-to-integer conversion (whose saturation
+/// checks kept the binning loop scalar): adding `2^23` rounds to an integer held in the mantissa
+/// bits; one is taken off when that rounded up.
+#[inline(always)]
+fn bin_floor(f: f32) -> u32 {
+    const MAGIC: f32 = 8_388_608.0; // 2^23
+    let r = f + MAGIC;
+    let up = u32::from(r - MAGIC > f);
+    (r.to_bits() & 0x007f_ffff) - up
 }
 
 /// The sliding `pi/3` window over the orientation bins: direction of the longest sum vector.
@@ -1017,8 +1028,9 @@ fn describe_one(
             let r0 = &d[(y - half) * st..][..st];
             let r1 = &d[y * st..][..st];
             let r2 = &d[(y + half) * st..][..st];
-            let row_sub = sub_of[j] * nsub;
             let wrow = &weights[j * n..][..n];
+            let mut rxs = [0f32; 20];
+            let mut rys = [0f32; 20];
             for i in 0..n {
                 let x = cols[i];
                 let (x0, x2) = (x - half, x + half);
@@ -1027,15 +1039,17 @@ fn describe_one(
                     [r1[x0], r1[x2]],
                     [r2[x0], r2[x], r2[x2]],
                 );
-                let rx = wrow[i] * dx as f32;
-                let ry = wrow[i] * dy as f32;
-                accumulate(
-                    &mut acc[(row_sub + sub_of[i]) * vals..][..vals],
-                    rx,
-                    ry,
-                    extended,
-                );
+                rxs[i] = wrow[i] * dx as f32;
+                rys[i] = wrow[i] * dy as f32;
             }
+            accumulate_row(
+                &mut acc,
+                &rxs[..n],
+                &rys[..n],
+                sub_of[j] * nsub,
+                nsub,
+                extended,
+            );
         }
         finish(&acc[..kind.len()], out);
         return;
@@ -1100,7 +1114,6 @@ fn describe_rotated(
     let m = n + 1;
     let nsub = kind.subregions();
     let extended = kind == DescriptorKind::Surf128;
-    let vals = if extended { 8 } else { 4 };
     let s = kp.scale;
     let sp = 20.0 / n as f32 * s;
     let c = (s.round() as usize).max(1);
@@ -1148,22 +1161,56 @@ fn describe_rotated(
                 .wrapping_add(d[i0]) as f32;
         }
     }
+    let mut rxs = [0f32; 20];
+    let mut rys = [0f32; 20];
     for j in 0..n {
         let r0 = &cells[j * m..][..m];
         let r1 = &cells[(j + 1) * m..][..m];
         let wrow = &weights[j * n..][..n];
-        let row_sub = sub_of[j] * nsub;
         for i in 0..n {
             let (a, b, p, q) = (r0[i], r0[i + 1], r1[i], r1[i + 1]);
-            let rx = wrow[i] * ((b + q) - (a + p));
-            let ry = wrow[i] * ((p + q) - (a + b));
-            accumulate(
-                &mut acc[(row_sub + sub_of[i]) * vals..][..vals],
-                rx,
-                ry,
-                extended,
-            );
+            rxs[i] = wrow[i] * ((b + q) - (a + p));
+            rys[i] = wrow[i] * ((p + q) - (a + b));
         }
+        accumulate_row(acc, &rxs[..n], &rys[..n], sub_of[j] * nsub, nsub, extended);
+    }
+}
+
+/// Add one row of weighted, rotated responses to the subregion sums of descriptor row `row_sub`
+/// (`row_sub / nsub`). SURF-36/64 sum each subregion's samples in registers first and touch the
+/// accumulator once per subregion (no chain of dependent stores); SURF-128 splits by sign per
+/// sample.
+#[inline(always)]
+fn accumulate_row(
+    acc: &mut [f32; 128],
+    rxs: &[f32],
+    rys: &[f32],
+    row_sub: usize,
+    nsub: usize,
+    extended: bool,
+) {
+    let per = rxs.len() / nsub;
+    if extended {
+        for (i, (&rx, &ry)) in rxs.iter().zip(rys).enumerate() {
+            let k = (row_sub + i / per) * 8;
+            accumulate(&mut acc[k..k + 8], rx, ry, true);
+        }
+        return;
+    }
+    for b in 0..nsub {
+        let (xs, ys) = (&rxs[b * per..][..per], &rys[b * per..][..per]);
+        let (mut s0, mut s1, mut s2, mut s3) = (0f32, 0f32, 0f32, 0f32);
+        for (&rx, &ry) in xs.iter().zip(ys) {
+            s0 += rx;
+            s1 += ry;
+            s2 += rx.abs();
+            s3 += ry.abs();
+        }
+        let a = &mut acc[(row_sub + b) * 4..][..4];
+        a[0] += s0;
+        a[1] += s1;
+        a[2] += s2;
+        a[3] += s3;
     }
 }
 
@@ -1258,6 +1305,17 @@ mod tests {
                     );
                 }
             }
+        }
+    }
+
+    #[test]
+    fn bin_floor_is_floor() {
+        for k in 0..=720_000u32 {
+            let f = k as f32 * 1e-4;
+            assert_eq!(bin_floor(f), f.floor() as u32, "{f}");
+        }
+        for f in [0.0f32, 0.5, 1.5, 2.5, 71.999_99, 72.0, 4_000_000.5] {
+            assert_eq!(bin_floor(f), f.floor() as u32, "{f}");
         }
     }
 

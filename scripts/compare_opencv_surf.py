@@ -282,6 +282,10 @@ def main():
     ap.add_argument("--out", default=os.path.join(ROOT, "target", "opencv-surf"))
     ap.add_argument("--skip-visnav", action="store_true", help="reuse DIR from a previous run")
     ap.add_argument("--json", help="also write all results to this JSON file")
+    ap.add_argument("--top", type=int, default=0,
+                    help="protocol pairs: keep only the N strongest keypoints per image for every "
+                         "detector (equal counts; 0 keeps all)")
+    ap.add_argument("--pairs-only", action="store_true", help="skip the timing and agreement part")
     args = ap.parse_args()
     ensure_interpreter(args.python)
     import cv2
@@ -320,6 +324,8 @@ def main():
 
     # --- speed and keypoint agreement on the bench images -------------------------------------
     images = []
+    if args.pairs_only:
+        bench["surf"] = []
     for t in bench["surf"]:
         if t["image"] not in images:
             images.append(t["image"])
@@ -385,18 +391,31 @@ def main():
         def load_desc(tag, k):
             return np.fromfile(os.path.join(pairs_dir, f"pair{i:02}_{k}_{tag}.f32"), dtype="<f4").reshape(-1, 64)
 
-        o1, o2 = p["surf_keypoints1"], p["surf_keypoints2"]
+        def strongest(kps, desc, resp):
+            if args.top <= 0 or len(kps) <= args.top:
+                return kps, desc
+            order = sorted(range(len(kps)), key=lambda i: -resp(kps[i]))[:args.top]
+            return [kps[i] for i in order], (desc[order] if desc is not None else None)
+
         reg = lambda kps: [(k[0], k[1], 3.0 * k[3]) for k in kps]  # noqa: E731
         lap = lambda kps: [int(k[5]) for k in kps]  # noqa: E731
-        rep_o, ms_o, n1o, _ = score(reg(o1), reg(o2), load_desc("surf64", 1), load_desc("surf64", 2), lap(o1), lap(o2), h, s1, s2)
-        u1, u2 = p["usurf_keypoints1"], p["usurf_keypoints2"]
-        _, ms_ou, _, _ = score(reg(u1), reg(u2), load_desc("usurf64", 1), load_desc("usurf64", 2), lap(u1), lap(u2), h, s1, s2)
+        o1, d1o = strongest(p["surf_keypoints1"], load_desc("surf64", 1), lambda k: k[6])
+        o2, d2o = strongest(p["surf_keypoints2"], load_desc("surf64", 2), lambda k: k[6])
+        rep_o, ms_o, n1o, _ = score(reg(o1), reg(o2), d1o, d2o, lap(o1), lap(o2), h, s1, s2)
+        u1, d1u = strongest(p["usurf_keypoints1"], load_desc("usurf64", 1), lambda k: k[6])
+        u2, d2u = strongest(p["usurf_keypoints2"], load_desc("usurf64", 2), lambda k: k[6])
+        _, ms_ou, _, _ = score(reg(u1), reg(u2), d1u, d2u, lap(u1), lap(u2), h, s1, s2)
+        if args.top > 0:
+            # The Rust figures use all keypoints; show the port's equal-count figures instead.
+            p["surf_repeatability"], p["surf_matching_score"], p["usurf_matching_score"] = rep_o, ms_o, ms_ou
 
         def cv_score(det, metric="l2", radius=lambda k: 3.0 * k.size * 1.2 / 9.0, gate=True):
             k1, d1 = det.detectAndCompute(i1, None)
             k2, d2 = det.detectAndCompute(i2, None)
             if d1 is None or d2 is None:
                 return 0.0, 0.0, 0
+            k1, d1 = strongest(list(k1), d1, lambda k: k.response)
+            k2, d2 = strongest(list(k2), d2, lambda k: k.response)
             r1 = [(k.pt[0], k.pt[1], radius(k)) for k in k1]
             r2 = [(k.pt[0], k.pt[1], radius(k)) for k in k2]
             l1 = [k.class_id for k in k1] if gate else None

@@ -30,9 +30,15 @@
 //! attitude-rectified images, faster and more distinctive.
 //!
 //! **Descriptor (sec. 4.2).** A square window of side `20s` oriented along the keypoint is sampled
-//! on a regular grid (20 x 20 samples, spacing `s`) with Haar wavelets of side `2s`; responses are
-//! rotated into the keypoint frame, weighted with a Gaussian `sigma = 3.3s` centred on the keypoint,
-//! and summed per subregion as `(sum dx, sum dy, sum |dx|, sum |dy|)`:
+//! on a regular grid (20 x 20 samples, spacing `s`) with Haar wavelets of side `2s`, weighted with
+//! a Gaussian `sigma = 3.3s` centred on the keypoint, and summed per subregion as
+//! `(sum dx, sum dy, sum |dx|, sum |dy|)`. Upright keypoints sample axis-aligned wavelets. For
+//! oriented SURF-36/64 the window is covered by a grid of `(n+1)^2` cells (axis-aligned `s x s`
+//! pixel boxes at the rotated cell centres, 4 integral-image loads each) and each wavelet is the
+//! difference of two pairs of neighbouring cells along the keypoint axes (OpenCV's rotated-patch
+//! scheme, without its warp); SURF-128 samples an axis-aligned wavelet at each rotated sample and
+//! rotates the response vector (Bay's formulation). Both give the same descriptor at orientation
+//! 0 (integer `s`, window inside the image):
 //! * `Surf64`: 4 x 4 subregions of 5 x 5 samples, 64 values;
 //! * `Surf128` ("extended"): the sums of `dx, |dx|` split by the sign of `dy` and those of
 //!   `dy, |dy|` split by the sign of `dx` (OpenCV's order), 128 values;

@@ -77,8 +77,14 @@ pub struct SurfBenchArgs {
     #[arg(long)]
     pub quality: bool,
     /// Write the quality pairs (PNG), homographies and SURF keypoints to DIR (implies --quality).
+    /// Per pair also `pairNN_{1,2}_{usurf64,surf64}.f32`: the SURF-64 descriptors (little-endian
+    /// f32, 64 per keypoint, keypoints in the manifest's order).
     #[arg(long)]
     pub export_pairs: Option<PathBuf>,
+    /// Write the keypoints and SURF-64 descriptors of every timed image and mode to DIR as
+    /// `<image stem>_<mode>.json` (for scripts/compare_opencv_surf.py).
+    #[arg(long)]
+    pub export_features: Option<PathBuf>,
 }
 
 #[derive(serde::Serialize)]
@@ -257,6 +263,9 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
                 n_octave_layers: a.octave_layers,
                 ..SurfParams::default()
             })?;
+            if let Some(dir) = &a.export_features {
+                export_features(dir, path, mode, &surf, &img, a.threshold)?;
+            }
             for (n, pool) in &pools {
                 let (median, min, detect, feats) = time_one(pool, &surf, &img, a.runs);
                 timings.push(Timing {
@@ -327,6 +336,66 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Keypoints as `[x, y, size, scale, orientation_rad, laplacian, response, octave]` rows.
+fn keypoint_rows(f: &Features) -> Vec<[f32; 8]> {
+    f.keypoints
+        .iter()
+        .map(|k| {
+            [
+                k.x,
+                k.y,
+                k.size,
+                k.scale,
+                k.orientation_rad,
+                f32::from(k.laplacian),
+                k.response,
+                f32::from(k.octave),
+            ]
+        })
+        .collect()
+}
+
+/// `<dir>/<image stem>_<mode>.json`: parameters, keypoints and descriptors of one image.
+fn export_features(
+    dir: &Path,
+    image: &Path,
+    mode: &str,
+    surf: &Surf,
+    img: &GrayImage,
+    threshold: f32,
+) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+    let f = surf.detect_and_describe(img);
+    let stem = image
+        .file_stem()
+        .map_or("image".into(), |s| s.to_string_lossy().into_owned());
+    let desc: Vec<&[f32]> = (0..f.len()).map(|i| f.descriptor(i)).collect();
+    let doc = serde_json::json!({
+        "image": image.display().to_string(),
+        "mode": mode,
+        "params": surf.params(),
+        "hessian_threshold": threshold,
+        "columns": ["x", "y", "size", "scale", "orientation_rad", "laplacian", "response", "octave"],
+        "keypoints": keypoint_rows(&f),
+        "descriptors": desc,
+    });
+    let path = dir.join(format!("{stem}_{mode}.json"));
+    std::fs::write(&path, serde_json::to_string(&doc)?)
+        .with_context(|| format!("{}: cannot write", path.display()))?;
+    Ok(())
+}
+
+/// Write the descriptors of `f` as little-endian f32 rows of `kind().len()` values.
+fn write_descriptors(path: &Path, f: &Features) -> anyhow::Result<()> {
+    let mut bytes = Vec::with_capacity(f.len() * f.kind().len() * 4);
+    for i in 0..f.len() {
+        for v in f.descriptor(i) {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    std::fs::write(path, bytes).with_context(|| format!("{}: cannot write", path.display()))
 }
 
 /// The quality table of docs/surf.md: the standard changes on a 320x320 window of the 2014 map and
@@ -417,7 +486,19 @@ fn quality_table(a: &SurfBenchArgs, export: Option<&Path>) -> anyhow::Result<Vec
                 "surf_kp1": kp(&feats[1].0),
                 "surf_kp2": kp(&feats[1].1),
                 "surf_repeatability": scores[1].repeatability,
+                "surf_matching_score": scores[1].matching_score,
+                "usurf_matching_score": scores[0].matching_score,
+                "keypoint_columns": ["x", "y", "size", "scale", "orientation_rad", "laplacian", "response", "octave"],
+                "surf_keypoints1": keypoint_rows(&feats[1].0),
+                "surf_keypoints2": keypoint_rows(&feats[1].1),
+                "usurf_keypoints1": keypoint_rows(&feats[0].0),
+                "usurf_keypoints2": keypoint_rows(&feats[0].1),
+                "params": configs[1].params(),
             }));
+            for (k, tag) in [(0, "usurf64"), (1, "surf64")] {
+                write_descriptors(&dir.join(format!("pair{i:02}_1_{tag}.f32")), &feats[k].0)?;
+                write_descriptors(&dir.join(format!("pair{i:02}_2_{tag}.f32")), &feats[k].1)?;
+            }
         }
     }
     if let Some(dir) = export {

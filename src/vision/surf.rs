@@ -30,9 +30,15 @@
 //! attitude-rectified images, faster and more distinctive.
 //!
 //! **Descriptor (sec. 4.2).** A square window of side `20s` oriented along the keypoint is sampled
-//! on a regular grid (20 x 20 samples, spacing `s`) with Haar wavelets of side `2s`; responses are
-//! rotated into the keypoint frame, weighted with a Gaussian `sigma = 3.3s` centred on the keypoint,
-//! and summed per subregion as `(sum dx, sum dy, sum |dx|, sum |dy|)`:
+//! on a regular grid (20 x 20 samples, spacing `s`) with Haar wavelets of side `2s`, weighted with
+//! a Gaussian `sigma = 3.3s` centred on the keypoint, and summed per subregion as
+//! `(sum dx, sum dy, sum |dx|, sum |dy|)`. Upright keypoints sample axis-aligned wavelets. For
+//! oriented SURF-36/64 the window is covered by a grid of `(n+1)^2` cells (axis-aligned `s x s`
+//! pixel boxes at the rotated cell centres, 4 integral-image loads each) and each wavelet is the
+//! difference of two pairs of neighbouring cells along the keypoint axes (OpenCV's rotated-patch
+//! scheme, without its warp); SURF-128 samples an axis-aligned wavelet at each rotated sample and
+//! rotates the response vector (Bay's formulation). Both give the same descriptor at orientation
+//! 0 (integer `s`, window inside the image):
 //! * `Surf64`: 4 x 4 subregions of 5 x 5 samples, 64 values;
 //! * `Surf128` ("extended"): the sums of `dx, |dx|` split by the sign of `dy` and those of
 //!   `dy, |dy|` split by the sign of `dx` (OpenCV's order), 128 values;
@@ -255,8 +261,9 @@ const ORI_BINS: usize = 72;
 const ORI_WIN_BINS: usize = 12; // 60 degrees
 
 struct Tables {
-    /// (i, j, weight) in units of s, i^2 + j^2 <= 36, Gaussian sigma 2.
-    ori: Vec<(f32, f32, f32)>,
+    /// (i + 6, j + 6, weight): the 113 orientation samples `(i s, j s)`, i^2 + j^2 <= 36, as grid
+    /// indices, with the Gaussian weight of sigma 2 (units of s).
+    ori_idx: Vec<(u8, u8, f32)>,
     /// Gaussian sigma 3.3 (units of s) on the 20x20 sample grid.
     desc20: Vec<f32>,
     /// Same on the 18x18 grid of SURF-36.
@@ -266,12 +273,12 @@ struct Tables {
 fn tables() -> &'static Tables {
     static T: OnceLock<Tables> = OnceLock::new();
     T.get_or_init(|| {
-        let mut ori = Vec::new();
+        let mut ori_idx = Vec::new();
         for j in -6i32..=6 {
             for i in -6i32..=6 {
                 let r2 = (i * i + j * j) as f32;
                 if r2 <= 36.0 {
-                    ori.push((i as f32, j as f32, (-r2 / 8.0).exp()));
+                    ori_idx.push(((i + 6) as u8, (j + 6) as u8, (-r2 / 8.0).exp()));
                 }
             }
         }
@@ -289,7 +296,7 @@ fn tables() -> &'static Tables {
             w
         };
         Tables {
-            ori,
+            ori_idx,
             desc20: grid(20),
             desc18: grid(18),
         }
@@ -804,28 +811,24 @@ fn boundary_index(f: f32, half: usize, n: usize) -> usize {
 }
 
 /// `atan2(y, x)` within 1e-5 rad (polynomial, Abramowitz & Stegun 4.4.49 style); used only to bin
-/// orientation samples, `(0, 0)` maps to 0.
+/// orientation samples, `(0, 0)` maps to 0. Written with selects only (no data-dependent
+/// branches: the signs of gradient samples are random, mispredictions dominated the old version).
 #[inline(always)]
 fn fast_atan2(y: f32, x: f32) -> f32 {
     use std::f32::consts::{FRAC_PI_2, PI};
     let (ax, ay) = (x.abs(), y.abs());
-    let (mn, mx) = if ax < ay { (ax, ay) } else { (ay, ax) };
-    if mx == 0.0 {
-        return 0.0;
-    }
-    let a = mn / mx;
+    let mn = ax.min(ay);
+    let mx = ax.max(ay);
+    // 0 / tiny = 0 covers (0, 0).
+    let a = mn / mx.max(f32::MIN_POSITIVE);
     let t = a * a;
-    let mut r = ((((-0.013_480_47 * t + 0.057_477_31) * t - 0.121_239_07) * t + 0.195_635_93) * t
+    let r = ((((-0.013_480_47 * t + 0.057_477_31) * t - 0.121_239_07) * t + 0.195_635_93) * t
         - 0.332_994_6)
         * t
         * a
         + 0.999_995_6 * a;
-    if ay > ax {
-        r = FRAC_PI_2 - r;
-    }
-    if x < 0.0 {
-        r = PI - r;
-    }
+    let r = if ay > ax { FRAC_PI_2 - r } else { r };
+    let r = if x < 0.0 { PI - r } else { r };
     if y < 0.0 { -r } else { r }
 }
 
@@ -882,21 +885,90 @@ fn haar_from_corners(top: [i32; 3], mid: [i32; 2], bot: [i32; 3]) -> (i32, i32) 
 }
 
 /// Dominant orientation (Bay sec. 4.1), radians in `(-pi, pi]`.
+///
+/// The 113 sample points lie on the grid `(kp.x + i s, kp.y + j s)`, `|i|, |j| <= 6`, so the
+/// integral-image columns of the 13 grid columns and the rows of the 13 grid rows are computed once
+/// per keypoint; every sample then needs only its 8 corner loads (no float-to-index conversion or
+/// clamping per sample). The Haar responses are gathered first, their bins computed in a
+/// branch-free pass, and they are summed into two interleaved bin arrays (breaking the chains of
+/// dependent stores when neighbouring samples fall in the same bin). Same samples and weights as
+/// sampling each point with `haar()`; only the summation order differs (the test
+/// `orientation_equals_per_sample_reference` bounds the difference).
 fn orientation(ii: &IntegralImage, kp: &KeyPoint) -> f32 {
+    const N: usize = 13;
     let s = kp.scale;
-    let half = ((2.0 * s).round() as usize).max(1); // wavelet side 4s
-    let mut bins = [[0f32; 2]; ORI_BINS];
-    let bin_scale = ORI_BINS as f32 / std::f32::consts::TAU;
-    for &(i, j, wt) in &tables().ori {
-        let (dx, dy) = haar(ii, kp.x + i * s, kp.y + j * s, half);
-        if dx == 0.0 && dy == 0.0 {
-            continue;
-        }
-        let a = fast_atan2(dy, dx); // [-pi, pi]
-        let b = (((a + std::f32::consts::PI) * bin_scale) as usize).min(ORI_BINS - 1);
-        bins[b][0] += wt * dx;
-        bins[b][1] += wt * dy;
+    let (w, h) = (ii.width(), ii.height());
+    // Wavelet side 4s, shrunk for tiny images exactly as `haar()` does.
+    let half = ((2.0 * s).round() as usize)
+        .max(1)
+        .min(w / 2)
+        .min(h / 2)
+        .max(1);
+    if 2 * half > w || 2 * half > h {
+        return 0.0;
     }
+    let mut cols = [0usize; N];
+    let mut rows = [0usize; N];
+    for k in 0..N {
+        let o = (k as f32 - 6.0) * s;
+        cols[k] = boundary_index(kp.x + o, half, w);
+        rows[k] = boundary_index(kp.y + o, half, h);
+    }
+    let st = ii.stride();
+    let d = ii.data();
+    let t = tables();
+    let n = t.ori_idx.len();
+    let mut gx = [0f32; 113];
+    let mut gy = [0f32; 113];
+    for (q, &(ci, cj, _)) in t.ori_idx.iter().enumerate() {
+        let y = rows[cj as usize];
+        let x = cols[ci as usize];
+        let (r0, r1, r2) = ((y - half) * st, y * st, (y + half) * st);
+        let (x0, x2) = (x - half, x + half);
+        let (dx, dy) = haar_from_corners(
+            [d[r0 + x0], d[r0 + x], d[r0 + x2]],
+            [d[r1 + x0], d[r1 + x2]],
+            [d[r2 + x0], d[r2 + x], d[r2 + x2]],
+        );
+        gx[q] = dx as f32;
+        gy[q] = dy as f32;
+    }
+    // Bin indices in a branch-free pass (vectorisable), then two interleaved bin arrays so that
+    // neighbouring samples of similar direction do not wait on each other's stores.
+    let bin_scale = ORI_BINS as f32 / std::f32::consts::TAU;
+    let mut bidx = [0u8; 113];
+    for q in 0..n {
+        // A zero response adds nothing wherever it is binned.
+        let a = fast_atan2(gy[q], gx[q]); // [-pi, pi]
+        bidx[q] = bin_floor((a + std::f32::consts::PI) * bin_scale).min(ORI_BINS as u32 - 1) as u8;
+    }
+    let mut bins = [[[0f32; 2]; ORI_BINS]; 2];
+    for (q, &(_, _, wt)) in t.ori_idx.iter().enumerate().take(n) {
+        let b = &mut bins[q & 1][bidx[q] as usize];
+        b[0] += wt * gx[q];
+        b[1] += wt * gy[q];
+    }
+    let mut sum = bins[0];
+    for (o, e) in sum.iter_mut().zip(&bins[1]) {
+        o[0] += e[0];
+        o[1] += e[1];
+    }
+    best_window(&sum)
+}
+
+/// `floor(f)` for `f` in `[0, 2^22)` without a float-to-integer conversion (whose saturation
+/// checks kept the binning loop scalar): adding `2^23` rounds to an integer held in the mantissa
+/// bits; one is taken off when that rounded up.
+#[inline(always)]
+fn bin_floor(f: f32) -> u32 {
+    const MAGIC: f32 = 8_388_608.0; // 2^23
+    let r = f + MAGIC;
+    let up = u32::from(r - MAGIC > f);
+    (r.to_bits() & 0x007f_ffff) - up
+}
+
+/// The sliding `pi/3` window over the orientation bins: direction of the longest sum vector.
+fn best_window(bins: &[[f32; 2]; ORI_BINS]) -> f32 {
     let mut sx: f32 = bins[..ORI_WIN_BINS].iter().map(|b| b[0]).sum();
     let mut sy: f32 = bins[..ORI_WIN_BINS].iter().map(|b| b[1]).sum();
     let (mut best, mut bx, mut by) = (sx * sx + sy * sy, sx, sy);
@@ -962,8 +1034,9 @@ fn describe_one(
             let r0 = &d[(y - half) * st..][..st];
             let r1 = &d[y * st..][..st];
             let r2 = &d[(y + half) * st..][..st];
-            let row_sub = sub_of[j] * nsub;
             let wrow = &weights[j * n..][..n];
+            let mut rxs = [0f32; 20];
+            let mut rys = [0f32; 20];
             for i in 0..n {
                 let x = cols[i];
                 let (x0, x2) = (x - half, x + half);
@@ -972,19 +1045,32 @@ fn describe_one(
                     [r1[x0], r1[x2]],
                     [r2[x0], r2[x], r2[x2]],
                 );
-                let rx = wrow[i] * dx as f32;
-                let ry = wrow[i] * dy as f32;
-                accumulate(
-                    &mut acc[(row_sub + sub_of[i]) * vals..][..vals],
-                    rx,
-                    ry,
-                    extended,
-                );
+                rxs[i] = wrow[i] * dx as f32;
+                rys[i] = wrow[i] * dy as f32;
             }
+            accumulate_row(
+                &mut acc,
+                &rxs[..n],
+                &rys[..n],
+                sub_of[j] * nsub,
+                nsub,
+                extended,
+            );
         }
         finish(&acc[..kind.len()], out);
         return;
     }
+    // The fixed-point cell grid needs coordinates far from the i64 range (any keypoint of a real
+    // image); anything else takes the per-sample path, which clamps whatever it gets.
+    let sane = kp.x.abs() < 1e7 && kp.y.abs() < 1e7 && s < 1e5 && kp.orientation_rad.is_finite();
+    // SURF-128 keeps the per-sample path: its sign-split sums lost 2-5 points of matching score
+    // with the cell grid on the protocol pairs (SURF-36/64 stayed within +-1 point).
+    if !upright && kind != DescriptorKind::Surf128 && half <= w && half <= h && sane {
+        describe_rotated(ii, kp, kind, &sub_of, weights, &mut acc);
+        finish(&acc[..kind.len()], out);
+        return;
+    }
+    // Per-sample fallback (upright keypoints on images smaller than the wavelet).
     for j in 0..n {
         let v = (j as f32 - c) * sp;
         let row_sub = sub_of[j] * nsub;
@@ -1008,6 +1094,132 @@ fn describe_one(
         }
     }
     finish(&acc[..kind.len()], out);
+}
+
+/// Rotated descriptor window sampled as a grid of cells (OpenCV's patch scheme without the warp).
+///
+/// The `20s` window, rotated by the keypoint orientation, is covered by `(n+1) x (n+1)` cells of
+/// spacing `sp = 20s/n` centred at `(k - n/2) sp` along the keypoint axes `u = (cos, sin)`,
+/// `v = (-sin, cos)`. Each cell is the sum of the axis-aligned `c x c` pixel box (`c = round(s)`)
+/// nearest to its centre: 4 integral-image loads, no per-sample warp or interpolation. The Haar
+/// responses of side `2c` at the `n x n` sample points (the cell corners' centres
+/// `(i - (n-1)/2) sp`) are then differences of the four neighbouring cells, directly along `u`
+/// and `v`: `dx = (right pair) - (left pair)`, `dy = (lower pair) - (upper pair)`, which are the
+/// wavelets of the paper evaluated in the keypoint frame (OpenCV samples a rotated patch the same
+/// way). At orientation 0 with integer `s` this equals the upright path exactly. Cells whose box
+/// would leave the image are shifted inside it (the same rule as `haar()`); a window entirely
+/// inside the image skips those clamps.
+fn describe_rotated(
+    ii: &IntegralImage,
+    kp: &KeyPoint,
+    kind: DescriptorKind,
+    sub_of: &[usize; 20],
+    weights: &[f32],
+    acc: &mut [f32; 128],
+) {
+    const M: usize = 21;
+    let n = kind.samples();
+    let m = n + 1;
+    let nsub = kind.subregions();
+    let extended = kind == DescriptorKind::Surf128;
+    let s = kp.scale;
+    let sp = 20.0 / n as f32 * s;
+    let c = (s.round() as usize).max(1);
+    let (w, h) = (ii.width(), ii.height());
+    let (si, co) = kp.orientation_rad.sin_cos();
+    let (ux, uy) = (sp * co, sp * si);
+    let (vx, vy) = (-sp * si, sp * co);
+    let half_n = n as f32 / 2.0;
+    // Top-left pixel of cell (k, l)'s box: floor(centre + 1 - c/2) (see `boundary_index`).
+    let off = 1.0 - c as f32 / 2.0;
+    let ox = kp.x + off - half_n * (ux + vx);
+    let oy = kp.y + off - half_n * (uy + vy);
+    // Box origins in 48.16 fixed point: floor is an arithmetic shift, no float-to-integer
+    // conversion (with its saturation checks) per cell.
+    const FX: f32 = 65536.0;
+    let fix = |v: f32| (f64::from(v) * f64::from(FX)).round() as i64;
+    let (ox, oy, ux, uy, vx, vy) = (fix(ox), fix(oy), fix(ux), fix(uy), fix(vx), fix(vy));
+    let (xm, ym) = ((w - c) as i64, (h - c) as i64);
+    let ni = n as i64;
+    let inside = [(0, 0), (ni, 0), (0, ni), (ni, ni)].iter().all(|&(k, l)| {
+        let x = (ox + k * ux + l * vx) >> 16;
+        let y = (oy + k * uy + l * vy) >> 16;
+        (0..=xm).contains(&x) && (0..=ym).contains(&y)
+    });
+    let st = ii.stride();
+    let d = ii.data();
+    let (cs, ce) = (c * st, c * st + c);
+    let mut cells = [0f32; M * M];
+    for l in 0..m {
+        let li = l as i64;
+        let (rx, ry) = (ox + li * vx, oy + li * vy);
+        let row = &mut cells[l * m..][..m];
+        for (k, cell) in row.iter_mut().enumerate() {
+            let ki = k as i64;
+            let mut x = (rx + ki * ux) >> 16;
+            let mut y = (ry + ki * uy) >> 16;
+            if !inside {
+                x = x.clamp(0, xm);
+                y = y.clamp(0, ym);
+            }
+            let i0 = y as usize * st + x as usize;
+            *cell = d[i0 + ce]
+                .wrapping_sub(d[i0 + cs])
+                .wrapping_sub(d[i0 + c])
+                .wrapping_add(d[i0]) as f32;
+        }
+    }
+    let mut rxs = [0f32; 20];
+    let mut rys = [0f32; 20];
+    for j in 0..n {
+        let r0 = &cells[j * m..][..m];
+        let r1 = &cells[(j + 1) * m..][..m];
+        let wrow = &weights[j * n..][..n];
+        for i in 0..n {
+            let (a, b, p, q) = (r0[i], r0[i + 1], r1[i], r1[i + 1]);
+            rxs[i] = wrow[i] * ((b + q) - (a + p));
+            rys[i] = wrow[i] * ((p + q) - (a + b));
+        }
+        accumulate_row(acc, &rxs[..n], &rys[..n], sub_of[j] * nsub, nsub, extended);
+    }
+}
+
+/// Add one row of weighted, rotated responses to the subregion sums of descriptor row `row_sub`
+/// (`row_sub / nsub`). SURF-36/64 sum each subregion's samples in registers first and touch the
+/// accumulator once per subregion (no chain of dependent stores); SURF-128 splits by sign per
+/// sample.
+#[inline(always)]
+fn accumulate_row(
+    acc: &mut [f32; 128],
+    rxs: &[f32],
+    rys: &[f32],
+    row_sub: usize,
+    nsub: usize,
+    extended: bool,
+) {
+    let per = rxs.len() / nsub;
+    if extended {
+        for (i, (&rx, &ry)) in rxs.iter().zip(rys).enumerate() {
+            let k = (row_sub + i / per) * 8;
+            accumulate(&mut acc[k..k + 8], rx, ry, true);
+        }
+        return;
+    }
+    for b in 0..nsub {
+        let (xs, ys) = (&rxs[b * per..][..per], &rys[b * per..][..per]);
+        let (mut s0, mut s1, mut s2, mut s3) = (0f32, 0f32, 0f32, 0f32);
+        for (&rx, &ry) in xs.iter().zip(ys) {
+            s0 += rx;
+            s1 += ry;
+            s2 += rx.abs();
+            s3 += ry.abs();
+        }
+        let a = &mut acc[(row_sub + b) * 4..][..4];
+        a[0] += s0;
+        a[1] += s1;
+        a[2] += s2;
+        a[3] += s3;
+    }
 }
 
 /// Add one rotated, weighted response to its subregion's sums (4 or 8 values, OpenCV's order).
@@ -1105,6 +1317,17 @@ mod tests {
     }
 
     #[test]
+    fn bin_floor_is_floor() {
+        for k in 0..=720_000u32 {
+            let f = k as f32 * 1e-4;
+            assert_eq!(bin_floor(f), f.floor() as u32, "{f}");
+        }
+        for f in [0.0f32, 0.5, 1.5, 2.5, 71.999_99, 72.0, 4_000_000.5] {
+            assert_eq!(bin_floor(f), f.floor() as u32, "{f}");
+        }
+    }
+
+    #[test]
     fn fast_atan2_is_accurate() {
         for k in 0..3600 {
             let a = (k as f32 / 10.0 - 180.0).to_radians();
@@ -1120,45 +1343,195 @@ mod tests {
         assert_eq!(fast_atan2(0.0, 0.0), 0.0);
     }
 
-    #[test]
-    fn upright_fast_path_equals_general_path_at_zero_orientation() {
-        let mut s = 99u64;
-        let img = GrayImage::from_fn(120, 100, |x, y| {
+    fn noise_image(w: usize, h: usize, seed: u64) -> GrayImage {
+        let mut s = seed;
+        GrayImage::from_fn(w, h, |x, y| {
             s = s
                 .wrapping_mul(6364136223846793005)
                 .wrapping_add(1442695040888963407);
-            ((s >> 33) % 64) as f32 + (x + y) as f32
-        });
+            ((s >> 33) % 64) as f32 + (x + y) as f32 * 0.5
+        })
+    }
+
+    fn test_kp(x: f32, y: f32, scale: f32, orientation_rad: f32) -> KeyPoint {
+        KeyPoint {
+            x,
+            y,
+            size: scale * 7.5,
+            scale,
+            response: 1.0,
+            orientation_rad,
+            laplacian: 1,
+            octave: 0,
+        }
+    }
+
+    /// The previous implementation: every sample through `haar()`, binned on the fly.
+    fn orientation_reference(ii: &IntegralImage, kp: &KeyPoint) -> f32 {
+        let s = kp.scale;
+        let half = ((2.0 * s).round() as usize).max(1);
+        let mut bins = [[0f32; 2]; ORI_BINS];
+        let bin_scale = ORI_BINS as f32 / std::f32::consts::TAU;
+        for &(ci, cj, wt) in &tables().ori_idx {
+            let (i, j) = (f32::from(ci) - 6.0, f32::from(cj) - 6.0);
+            let (dx, dy) = haar(ii, kp.x + i * s, kp.y + j * s, half);
+            if dx == 0.0 && dy == 0.0 {
+                continue;
+            }
+            let a = fast_atan2(dy, dx);
+            let b = (((a + std::f32::consts::PI) * bin_scale) as usize).min(ORI_BINS - 1);
+            bins[b][0] += wt * dx;
+            bins[b][1] += wt * dy;
+        }
+        best_window(&bins)
+    }
+
+    /// The previous rotated descriptor: axis-aligned Haar at each rotated sample, response rotated.
+    fn descriptor_reference(ii: &IntegralImage, kp: &KeyPoint, kind: DescriptorKind) -> Vec<f32> {
+        let s = kp.scale;
+        let half = (s.round() as usize).max(1);
+        let (n, nsub) = (kind.samples(), kind.subregions());
+        let per = n / nsub;
+        let t = tables();
+        let weights = if n == 18 { &t.desc18 } else { &t.desc20 };
+        let sp = 20.0 / n as f32 * s;
+        let c = (n as f32 - 1.0) / 2.0;
+        let (si, co) = kp.orientation_rad.sin_cos();
+        let extended = kind == DescriptorKind::Surf128;
+        let vals = if extended { 8 } else { 4 };
+        let mut acc = [0f32; 128];
+        for j in 0..n {
+            let v = (j as f32 - c) * sp;
+            for i in 0..n {
+                let u = (i as f32 - c) * sp;
+                let (fx, fy) = (kp.x + co * u - si * v, kp.y + si * u + co * v);
+                let (dx, dy) = haar(ii, fx, fy, half);
+                let wt = weights[j * n + i];
+                let rx = wt * (co * dx + si * dy);
+                let ry = wt * (co * dy - si * dx);
+                let idx = ((j / per) * nsub + i / per) * vals;
+                accumulate(&mut acc[idx..idx + vals], rx, ry, extended);
+            }
+        }
+        let mut out = vec![0f32; kind.stride()];
+        finish(&acc[..kind.len()], &mut out);
+        out
+    }
+
+    fn cosine(a: &[f32], b: &[f32]) -> f32 {
+        let dot: f32 = a.iter().zip(b).map(|(p, q)| p * q).sum();
+        let na: f32 = a.iter().map(|p| p * p).sum::<f32>().sqrt();
+        let nb: f32 = b.iter().map(|p| p * p).sum::<f32>().sqrt();
+        dot / (na * nb).max(1e-12)
+    }
+
+    #[test]
+    fn orientation_equals_per_sample_reference() {
+        let img = noise_image(150, 110, 7);
         let ii = IntegralImage::new(&img);
-        for kind in [
-            DescriptorKind::Surf36,
-            DescriptorKind::Surf64,
-            DescriptorKind::Surf128,
-        ] {
+        let mut n = 0;
+        for y in [0.0f32, 3.3, 20.0, 55.5, 90.25, 109.0] {
+            for x in [0.0f32, 2.7, 31.0, 75.5, 120.1, 149.0] {
+                for sc in [1.2f32, 1.6, 2.5, 4.0, 7.3] {
+                    let kp = test_kp(x, y, sc, 0.0);
+                    let (a, b) = (orientation(&ii, &kp), orientation_reference(&ii, &kp));
+                    // Same samples, bins and weights; only the summation order differs.
+                    let d = (a - b).abs();
+                    assert!(
+                        d < 1e-4 || (d - std::f32::consts::TAU).abs() < 1e-4,
+                        "{x} {y} {sc}: {a} vs {b}"
+                    );
+                    n += 1;
+                }
+            }
+        }
+        assert_eq!(n, 180);
+        // Images smaller than the wavelet.
+        let tiny = IntegralImage::new(&noise_image(5, 4, 3));
+        let kp = test_kp(2.0, 2.0, 3.0, 0.0);
+        assert_eq!(orientation(&tiny, &kp), orientation_reference(&tiny, &kp));
+    }
+
+    #[test]
+    fn rotated_descriptor_equals_upright_at_zero_for_integer_scales() {
+        let ii = IntegralImage::new(&noise_image(120, 100, 99));
+        for kind in [DescriptorKind::Surf64, DescriptorKind::Surf128] {
             for (x, y, sc) in [
-                (60.0f32, 50.0f32, 1.6f32),
-                (10.3, 90.2, 2.5),
-                (115.0, 3.0, 4.0),
+                // Windows inside the image (at the border the two paths shift boxes differently).
+                (60.0f32, 50.0f32, 2.0f32),
+                (40.3, 50.2, 3.0),
+                (60.5, 48.7, 4.0),
+                (47.6, 52.2, 1.0),
             ] {
-                let kp = KeyPoint {
-                    x,
-                    y,
-                    size: sc * 7.5,
-                    scale: sc,
-                    response: 1.0,
-                    orientation_rad: 0.0,
-                    laplacian: 1,
-                    octave: 0,
-                };
+                let kp = test_kp(x, y, sc, 0.0);
                 let mut a = vec![0f32; kind.stride()];
                 let mut b = vec![0f32; kind.stride()];
                 describe_one(&ii, &kp, kind, true, &mut a);
                 describe_one(&ii, &kp, kind, false, &mut b);
                 for (p, q) in a.iter().zip(&b) {
-                    assert!((p - q).abs() < 1e-5, "{kind:?} {x} {y}");
+                    assert!((p - q).abs() < 1e-5, "{kind:?} {x} {y} {sc}");
                 }
             }
         }
+    }
+
+    #[test]
+    fn rotated_descriptor_agrees_with_the_per_sample_reference() {
+        // Same window, same Gaussian, Haar boxes in the keypoint frame instead of rotated
+        // axis-aligned responses: the descriptors stay close (cosine similarity).
+        let img = blob_image(
+            160,
+            140,
+            &[
+                (70.0, 60.0, 5.0, 90.0),
+                (85.0, 75.0, 3.0, -70.0),
+                (60.0, 80.0, 8.0, 40.0),
+            ],
+        );
+        let ii = IntegralImage::new(&img);
+        let mut worst = 1.0f32;
+        for kind in [
+            DescriptorKind::Surf36,
+            DescriptorKind::Surf64,
+            DescriptorKind::Surf128,
+        ] {
+            for deg in [0.0f32, 17.0, 45.0, 90.0, 133.0, -60.0, 180.0] {
+                for sc in [1.6f32, 2.5, 3.3] {
+                    let kp = test_kp(75.0, 70.0, sc, deg.to_radians());
+                    let mut a = vec![0f32; kind.stride()];
+                    describe_one(&ii, &kp, kind, false, &mut a);
+                    let b = descriptor_reference(&ii, &kp, kind);
+                    worst = worst.min(cosine(&a, &b));
+                }
+            }
+        }
+        assert!(worst > 0.95, "worst cosine {worst}");
+    }
+
+    #[test]
+    fn rotated_descriptor_near_the_border_is_finite_and_normalised() {
+        let ii = IntegralImage::new(&noise_image(64, 48, 5));
+        for (x, y) in [(0.0f32, 0.0f32), (63.0, 47.0), (-5.0, 20.0), (30.0, 60.0)] {
+            for deg in [0.0f32, 30.0, 200.0] {
+                let kp = test_kp(x, y, 3.1, deg.to_radians());
+                let mut a = vec![0f32; DescriptorKind::Surf64.stride()];
+                describe_one(&ii, &kp, DescriptorKind::Surf64, false, &mut a);
+                let n: f32 = a.iter().map(|v| v * v).sum();
+                assert!(a.iter().all(|v| v.is_finite()));
+                assert!((n - 1.0).abs() < 1e-4, "{x} {y} {deg}: norm {n}");
+            }
+        }
+        // Smaller than a cell: all zeros, no panic.
+        let tiny = IntegralImage::new(&noise_image(3, 3, 1));
+        let mut a = vec![0f32; DescriptorKind::Surf64.stride()];
+        describe_one(
+            &tiny,
+            &test_kp(1.0, 1.0, 6.0, 0.5),
+            DescriptorKind::Surf64,
+            false,
+            &mut a,
+        );
+        assert!(a.iter().all(|v| v.is_finite()));
     }
 
     #[test]

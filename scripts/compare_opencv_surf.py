@@ -66,48 +66,10 @@ def ensure_interpreter(python):
     sys.exit(2)
 
 
-# --- the evaluation protocol of src/vision/eval.rs ----------------------------------------------
+# --- the evaluation protocol of src/vision/eval.rs: shared with bench_opencv.py ---------------
 
-def project(h, x, y):
-    u = h[0][0] * x + h[0][1] * y + h[0][2]
-    v = h[1][0] * x + h[1][1] * y + h[1][2]
-    w = h[2][0] * x + h[2][1] * y + h[2][2]
-    if abs(w) < 1e-12:
-        return None
-    return u / w, v / w
-
-
-def project_region(h, r):
-    x, y, rad = r
-    p = project(h, x, y)
-    px = project(h, x + 1e-3, y)
-    py = project(h, x, y + 1e-3)
-    if p is None or px is None or py is None:
-        return None
-    det = ((px[0] - p[0]) * (py[1] - p[1]) - (py[0] - p[0]) * (px[1] - p[1])) / 1e-6
-    return (p[0], p[1], rad * math.sqrt(abs(det)))
-
-
-def intersection(a, b):
-    d = math.hypot(a[0] - b[0], a[1] - b[1])
-    r1, r2 = a[2], b[2]
-    if d >= r1 + r2:
-        return 0.0
-    if d <= abs(r1 - r2):
-        return math.pi * min(r1, r2) ** 2
-    a1 = math.acos(max(-1.0, min(1.0, (d * d + r1 * r1 - r2 * r2) / (2 * d * r1))))
-    a2 = math.acos(max(-1.0, min(1.0, (d * d + r2 * r2 - r1 * r1) / (2 * d * r2))))
-    return r1 * r1 * (a1 - math.sin(a1) * math.cos(a1)) + r2 * r2 * (a2 - math.sin(a2) * math.cos(a2))
-
-
-def overlap_error(a, b):
-    i = intersection(a, b)
-    u = math.pi * (a[2] ** 2 + b[2] ** 2) - i
-    return 1.0 if u <= 0 else 1.0 - i / u
-
-
-def inside(r, w, h):
-    return r[0] - r[2] >= -0.5 and r[1] - r[2] >= -0.5 and r[0] + r[2] <= w - 0.5 and r[1] + r[2] <= h - 0.5
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_opencv import project, project_region, intersection, overlap_error, inside  # noqa: E402,F401
 
 
 def score(r1, r2, d1, d2, lap1, lap2, h12, size1, size2, metric="l2", max_err=0.4):

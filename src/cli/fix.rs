@@ -1,7 +1,7 @@
 //! `visnav fix --map MAP --image F --camera cam.toml [--attitude R,P,Y] [--prior LAT,LON,ALT,SIGMA_M]
 //! [--json]`: one vision fix from one frame. MAP is a reference map (`.vnm`, see `visnav map build`)
-//! or, for small areas, an orthophoto GeoTIFF used directly (its features are extracted in memory;
-//! give `--dem` or `--ground-height`). Exit status: 0 accepted, 2 rejected (the JSON or the text
+//! or, for small areas, an orthophoto GeoTIFF used directly (a map is built from it into a
+//! temporary file; give `--dem` or `--ground-height`). Exit status: 0 accepted, 2 rejected (the JSON or the text
 //! says why), 1 on an error (bad file, bad argument).
 
 use std::path::{Path, PathBuf};
@@ -12,12 +12,11 @@ use anyhow::{Context, bail};
 use visnav::camera::{Attitude, Camera, CameraConfig};
 use visnav::config::{Problems, Validate};
 use visnav::fix::{
-    AttitudePriorNed, FixEngine, FixParams, FixPrior, MapReference, MemoryReference,
-    PositionPriorGeo, Reference,
+    AttitudePriorNed, FixEngine, FixParams, FixPrior, MapReference, PositionPriorGeo, Reference,
 };
 use visnav::geo::dem::Dem;
-use visnav::geo::geotiff::load_geotiff;
-use visnav::vision::{GrayImage, SurfParams};
+use visnav::map::{BuildSpec, HeightSource};
+use visnav::vision::GrayImage;
 
 #[derive(clap::Args, Debug)]
 pub struct FixArgs {
@@ -100,24 +99,7 @@ fn load_reference(a: &FixArgs) -> anyhow::Result<Arc<dyn Reference>> {
         .and_then(|e| e.to_str())
         .unwrap_or("")
         .to_ascii_lowercase();
-    if ext == "tif" || ext == "tiff" {
-        let raster = load_geotiff(&a.map, None)
-            .with_context(|| format!("loading the orthophoto {}", a.map.display()))?;
-        let dem = match (&a.dem, a.ground_height) {
-            (Some(p), _) => Dem::load_geotiff(p, None)
-                .with_context(|| format!("loading the DEM {}", p.display()))?,
-            (None, Some(h)) => Dem::flat(h).context("--ground-height")?,
-            (None, None) => bail!("a GeoTIFF --map needs --dem F.tif or --ground-height M"),
-        };
-        let surf = SurfParams {
-            upright: true,
-            ..SurfParams::default()
-        };
-        let r = MemoryReference::from_raster(&raster, dem, surf, 5)
-            .with_context(|| format!("extracting features of {}", a.map.display()))?;
-        return Ok(Arc::new(r));
-    }
-    // A .vnm map: its own terrain unless --dem / --ground-height override it.
+    // The terrain: required with a GeoTIFF map, an override of the map's own with a .vnm.
     let dem = match (&a.dem, a.ground_height) {
         (Some(p), _) => Some(
             Dem::load_geotiff(p, None)
@@ -126,6 +108,19 @@ fn load_reference(a: &FixArgs) -> anyhow::Result<Arc<dyn Reference>> {
         (None, Some(h)) => Some(Dem::flat(h).context("--ground-height")?),
         (None, None) => None,
     };
+    if ext == "tif" || ext == "tiff" {
+        // The same map build as `visnav map build`, into a temporary file.
+        let height = match (&a.dem, a.ground_height) {
+            (Some(p), _) => HeightSource::Dem(p.clone()),
+            (None, Some(h)) => HeightSource::ConstantAmsl(h),
+            (None, None) => bail!("a GeoTIFF --map needs --dem F.tif or --ground-height M"),
+        };
+        let spec = BuildSpec::new(vec![a.map.clone()], height);
+        let r = MapReference::build_temporary(&spec, dem)
+            .map_err(anyhow::Error::msg)
+            .with_context(|| format!("building a map from {}", a.map.display()))?;
+        return Ok(Arc::new(r));
+    }
     let r = MapReference::open(&a.map, dem)
         .with_context(|| format!("opening the map {}", a.map.display()))?;
     Ok(Arc::new(r))

@@ -160,19 +160,10 @@ pub fn engine_from_config(cfg: &crate::config::Config) -> Result<FixEngine, Stri
             };
             let mut spec = crate::map::BuildSpec::new(cfg.map.ortho.clone(), height);
             spec.crs_override = cfg.map.crs_override;
-            let tmp = std::env::temp_dir().join(format!(
-                "visnav-{}-{}.vnm",
-                std::process::id(),
-                std::time::SystemTime::now()
-                    .duration_since(std::time::UNIX_EPOCH)
-                    .map_or(0, |d| d.as_nanos())
-            ));
-            crate::map::build_map(&spec, &tmp, &mut |_| {})
-                .map_err(|e| format!("[map] ortho: building the in-memory map: {e}"))?;
-            // Mapped, then unlinked: the mapping keeps the data alive.
-            let r = MapReference::open(&tmp, dem).map_err(|e| format!("[map]: {e}"));
-            let _ = std::fs::remove_file(&tmp);
-            std::sync::Arc::new(r?)
+            std::sync::Arc::new(
+                MapReference::build_temporary(&spec, dem)
+                    .map_err(|e| format!("[map] ortho: {e}"))?,
+            )
         }
     };
     FixEngine::new(reference, camera, cfg.fix.clone()).map_err(|e| format!("[fix]: {e}"))

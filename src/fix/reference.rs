@@ -300,6 +300,23 @@ impl MapReference {
         Ok(Self { map, dem })
     }
 
+    /// Builds a map from `spec` into a temporary file, maps it and unlinks it (the mapping keeps
+    /// the data alive): the in-memory path for small areas given as orthophotos. `dem` as in
+    /// [`Self::open`].
+    pub fn build_temporary(spec: &crate::map::BuildSpec, dem: Option<Dem>) -> Result<Self, String> {
+        let tmp = std::env::temp_dir().join(format!(
+            "visnav-{}-{}.vnm",
+            std::process::id(),
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos())
+        ));
+        crate::map::build_map(spec, &tmp, &mut |_| {}).map_err(|e| format!("map build: {e}"))?;
+        let r = Self::open(&tmp, dem).map_err(|e| e.to_string());
+        let _ = std::fs::remove_file(&tmp);
+        r
+    }
+
     /// The underlying map file.
     pub fn map(&self) -> &crate::map::ReferenceMap {
         &self.map

@@ -25,7 +25,7 @@ use crate::geo::Crs;
 use crate::geo::dem::Dem;
 use crate::geo::geotiff::load_geotiff;
 use crate::geo::raster::Raster;
-use crate::map::{BuildSpec, HeightSource, build_map};
+use crate::map::{BuildSpec, HeightSource};
 use crate::vision::{GrayImage, SurfParams};
 
 /// Ground height of the bundled NAIP area, metres AMSL (flat prairie, see sitl/maps/README.md).
@@ -127,24 +127,13 @@ impl NaipEval {
         let map_raster = load("naip_nd_2009.tif")?;
         let cam_raster = load("naip_nd_2014.tif")?;
         let flat = || Dem::flat(NAIP_GROUND_M).map_err(|e| e.to_string());
-        // The product path: a .vnm map built from the 2009 orthophoto, memory-mapped. The file is
-        // unlinked once mapped.
+        // The product path: a .vnm map built from the 2009 orthophoto, memory-mapped.
         let mut spec = BuildSpec::new(
             vec![maps_dir.join("naip_nd_2009.tif")],
             HeightSource::ConstantAmsl(NAIP_GROUND_M),
         );
         spec.surf = surf;
-        let tmp = std::env::temp_dir().join(format!(
-            "visnav-fixeval-{}-{}.vnm",
-            std::process::id(),
-            std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_or(0, |d| d.as_nanos())
-        ));
-        build_map(&spec, &tmp, &mut |_| {}).map_err(|e| format!("map build: {e}"))?;
-        let reference = MapReference::open(&tmp, None).map_err(|e| format!("map: {e}"));
-        let _ = std::fs::remove_file(&tmp);
-        let reference = reference?;
+        let reference = MapReference::build_temporary(&spec, None)?;
         let engine = FixEngine::new(Arc::new(reference), vga_camera(), params)
             .map_err(|e| format!("engine: {e}"))?;
         let scene = Scene::new(&cam_raster, flat()?, ColourMode::Grey)

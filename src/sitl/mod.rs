@@ -9,10 +9,12 @@
 //! * [`run`]: scenario runner, INS-only control, Monte Carlo NEES consistency.
 //! * [`rng`]: deterministic random numbers.
 //! * [`autopilot`]: a MAVLink 2 autopilot emulator speaking like ArduPilot over real sockets.
+//! * [`camera_sim`]: the simulated camera as a frame source, rendering at the truth pose.
 //! * [`render`]: the simulated camera (perspective view of an orthophoto on a DEM, lens
 //!   distortion, exposure, blur, noise).
 
 pub mod autopilot;
+pub mod camera_sim;
 pub mod fixeval;
 pub mod imu;
 pub mod render;

@@ -27,6 +27,10 @@ use crate::vision::GrayImage;
 pub trait TruthFeed: Send + Sync {
     /// `None` until the first truth sample is known (the camera waits).
     fn latest(&self) -> Option<(u64, TruthState)>;
+    /// True when no more truth will come (the camera ends its stream).
+    fn ended(&self) -> bool {
+        false
+    }
 }
 
 /// What the simulated camera renders and how often.
@@ -111,6 +115,9 @@ impl FrameSource for SimCamera {
             match self.feed.latest() {
                 Some((t, s)) if self.last_t_us.is_none_or(|l| t > l) => break (t, s),
                 _ => {}
+            }
+            if self.feed.ended() {
+                return Ok(None);
             }
             if wait_from.elapsed() > Duration::from_secs(10) {
                 return Err(FrameError::Config(

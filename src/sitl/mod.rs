@@ -15,6 +15,8 @@
 
 pub mod autopilot;
 pub mod camera_sim;
+pub mod closed_loop;
+pub mod report;
 pub mod fixeval;
 pub mod imu;
 pub mod render;

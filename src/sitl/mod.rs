@@ -9,12 +9,14 @@
 //! * [`run`]: scenario runner, INS-only control, Monte Carlo NEES consistency.
 //! * [`rng`]: deterministic random numbers.
 //! * [`autopilot`]: a MAVLink 2 autopilot emulator speaking like ArduPilot over real sockets.
+//! * [`plot`]: PNG charts and map track plots for the report folder (built-in bitmap font).
 //! * [`render`]: the simulated camera (perspective view of an orthophoto on a DEM, lens
 //!   distortion, exposure, blur, noise).
 
 pub mod autopilot;
 pub mod fixeval;
 pub mod imu;
+pub mod plot;
 pub mod render;
 pub mod rng;
 pub mod run;

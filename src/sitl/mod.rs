@@ -10,6 +10,9 @@
 //! * [`rng`]: deterministic random numbers.
 //! * [`autopilot`]: a MAVLink 2 autopilot emulator speaking like ArduPilot over real sockets.
 //! * [`camera_sim`]: the simulated camera as a frame source, rendering at the truth pose.
+//! * [`closed_loop`]: `visnav sim`'s closed loop (emulator + daemon + camera) and its scoring;
+//!   [`report`] writes its report folder.
+//! * [`plot`]: PNG charts and map track plots for the report folder (built-in bitmap font).
 //! * [`render`]: the simulated camera (perspective view of an orthophoto on a DEM, lens
 //!   distortion, exposure, blur, noise).
 
@@ -19,6 +22,7 @@ pub mod closed_loop;
 pub mod report;
 pub mod fixeval;
 pub mod imu;
+pub mod plot;
 pub mod render;
 pub mod rng;
 pub mod run;

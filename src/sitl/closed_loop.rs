@@ -505,6 +505,51 @@ pub struct ClosedLoopRun {
     pub steps: Vec<StepRow>,
     pub fixes: Vec<FixRow>,
     pub injections: Vec<InjectionRow>,
+    /// CRS of the camera-year orthophoto (the plots' map frame).
+    pub crs: crate::geo::Crs,
+    /// The camera-year orthophoto as an RGB image (at most ~1600 px wide) and its extent
+    /// `[min_x, min_y, max_x, max_y]` in `crs`, the track plot's background.
+    pub background: Option<(image::RgbImage, [f64; 4])>,
+    /// GPS outage start, s (for the plots).
+    pub gps_until_s: Option<f64>,
+}
+
+/// An RGB picture of a raster (bands 1-3, or the first band as grey), decimated to at most
+/// `max_px` on its longer side, and its extent.
+fn background_of(raster: &crate::geo::raster::Raster, max_px: usize) -> Option<(image::RgbImage, [f64; 4])> {
+    let (w, h) = (raster.width(), raster.height());
+    if w == 0 || h == 0 {
+        return None;
+    }
+    let step = w.max(h).div_ceil(max_px).max(1);
+    let (ow, oh) = (w.div_ceil(step), h.div_ceil(step));
+    let bands = raster.bands();
+    // 16-bit and float rasters are stretched by their 98th percentile of band 1.
+    let mut vals: Vec<f64> = (0..oh)
+        .flat_map(|r| (0..ow).map(move |c| (c, r)))
+        .filter_map(|(c, r)| raster.value(c * step, r * step, 0))
+        .collect();
+    let scale = match raster.data() {
+        crate::geo::raster::RasterData::U8(_) => 1.0,
+        _ => {
+            let p98 = percentile(&std::mem::take(&mut vals), 0.98);
+            if p98.is_finite() && p98 > 0.0 { 255.0 / p98 } else { 1.0 }
+        }
+    };
+    let mut img = image::RgbImage::new(ow as u32, oh as u32);
+    for r in 0..oh {
+        for c in 0..ow {
+            let get = |b: usize| {
+                raster
+                    .value(c * step, r * step, b.min(bands - 1))
+                    .map_or(0u8, |v| (v * scale).clamp(0.0, 255.0) as u8)
+            };
+            let px = if bands >= 3 { [get(0), get(1), get(2)] } else { [get(0); 3] };
+            img.put_pixel(c as u32, r as u32, image::Rgb(px));
+        }
+    }
+    let b = raster.bounds();
+    Some((img, [b.min_x_m, b.min_y_m, b.max_x_m, b.max_y_m]))
 }
 
 fn free_udp_port() -> Result<u16, ClosedLoopError> {
@@ -575,6 +620,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         }
     };
     let crs = raster.crs();
+    let background = background_of(&raster, 1600);
     let scene = Arc::new(
         Scene::new(&raster, dem, ColourMode::Grey)
             .map_err(|e| setup_err(format!("camera scene: {e}")))?,
@@ -840,6 +886,9 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         steps,
         fixes,
         injections,
+        crs,
+        background,
+        gps_until_s: sc.gps.as_ref().map(|g| g.until_s),
     })
 }
 

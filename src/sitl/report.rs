@@ -17,6 +17,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use super::closed_loop::{ClosedLoopError, ClosedLoopRun};
+use super::plot::{self, Band, PlotSpec, Series, Style};
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ClosedLoopError + '_ {
     move |source| ClosedLoopError::Io {
@@ -196,7 +197,102 @@ pub fn write_text_files(run: &ClosedLoopRun, dir: &Path) -> Result<Vec<PathBuf>,
     ])
 }
 
+const TRUTH_RGB: [u8; 3] = [20, 20, 20];
+const VISNAV_RGB: [u8; 3] = [0, 90, 220];
+const CONTROL_RGB: [u8; 3] = [220, 40, 30];
+const FIX_RGB: [u8; 3] = [0, 170, 60];
+
+/// `track.png`: truth, visnav and the control over the camera-year orthophoto, map CRS metres.
+pub fn track_png(run: &ClosedLoopRun) -> image::RgbImage {
+    let xy = |lat: f64, lon: f64| -> (f64, f64) {
+        if !(lat.is_finite() && lon.is_finite()) {
+            return (f64::NAN, f64::NAN);
+        }
+        run.crs.from_geodetic(lat, lon).unwrap_or((f64::NAN, f64::NAN))
+    };
+    let truth = run.steps.iter().map(|r| xy(r.truth_lat_deg, r.truth_lon_deg)).collect();
+    let vis = run.steps.iter().map(|r| xy(r.vis_lat_deg, r.vis_lon_deg)).collect();
+    let ctl = run.steps.iter().map(|r| xy(r.ctl_lat_deg, r.ctl_lon_deg)).collect();
+    let fixes = run
+        .fixes
+        .iter()
+        .filter(|f| f.accepted)
+        .map(|f| xy(f.lat_deg, f.lon_deg))
+        .collect();
+    let series = vec![
+        Series::new("accepted vision fixes", FIX_RGB, Style::Dots, fixes),
+        Series::new("no-vision control", CONTROL_RGB, Style::Line, ctl),
+        Series::new("truth", TRUTH_RGB, Style::Line, truth),
+        Series::new("visnav", VISNAV_RGB, Style::Line, vis),
+    ];
+    let spec = PlotSpec::new(
+        1200,
+        900,
+        format!("{}: track over the camera-year orthophoto", run.summary.scenario),
+        "easting [m]",
+        "northing [m]",
+    );
+    plot::track(&spec, run.background.as_ref().map(|(i, e)| (i, *e)), &series)
+}
+
+/// `errors.png`: horizontal error against time with visnav's 3-sigma bound and the outage start.
+pub fn errors_png(run: &ClosedLoopRun) -> image::RgbImage {
+    let h = |e: &[f64; 3]| e[0].hypot(e[1]);
+    let vis: Vec<(f64, f64)> = run.steps.iter().map(|r| (r.t_s, h(&r.vis_err_ned_m))).collect();
+    let ctl: Vec<(f64, f64)> = run.steps.iter().map(|r| (r.t_s, h(&r.ctl_err_ned_m))).collect();
+    let fixes: Vec<(f64, f64)> = run
+        .fixes
+        .iter()
+        .filter(|f| f.accepted)
+        .map(|f| (f.t_capture_s, h(&f.err_ned_m)))
+        .collect();
+    let band = Band {
+        name: "visnav 3-sigma (horizontal)".into(),
+        rgb: VISNAV_RGB,
+        points: run
+            .steps
+            .iter()
+            .map(|r| (r.t_s, 0.0, 3.0 * r.vis_sigma_h_m))
+            .collect(),
+    };
+    let top = vis
+        .iter()
+        .chain(&ctl)
+        .chain(&fixes)
+        .map(|p| p.1)
+        .filter(|v| v.is_finite())
+        .fold(1.0f64, f64::max);
+    let mut series = vec![
+        Series::new("accepted vision fixes", FIX_RGB, Style::Dots, fixes),
+        Series::new("no-vision control", CONTROL_RGB, Style::Line, ctl),
+        Series::new("visnav", VISNAV_RGB, Style::Line, vis),
+    ];
+    if let Some(t) = run.gps_until_s {
+        series.push(Series::new(
+            "GPS lost",
+            [120, 120, 120],
+            Style::Line,
+            vec![(t, 0.0), (t, top * 1.05)],
+        ));
+    }
+    let mut spec = PlotSpec::new(
+        1200,
+        600,
+        format!("{}: horizontal position error", run.summary.scenario),
+        "time [s]",
+        "horizontal error [m]",
+    );
+    spec.y_range = Some((0.0, top * 1.1));
+    plot::chart(&spec, &[band], &series)
+}
+
 /// Writes the whole report folder (text files and plots); returns the files written.
 pub fn write_report(run: &ClosedLoopRun, dir: &Path) -> Result<Vec<PathBuf>, ClosedLoopError> {
-    write_text_files(run, dir)
+    let mut files = write_text_files(run, dir)?;
+    for (name, img) in [("track.png", track_png(run)), ("errors.png", errors_png(run))] {
+        let p = dir.join(name);
+        plot::save_png(&img, &p).map_err(|e| ClosedLoopError::Setup(e.to_string()))?;
+        files.push(p);
+    }
+    Ok(files)
 }

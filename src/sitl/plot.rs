@@ -3,8 +3,8 @@
 //! ([`track`]).
 //!
 //! Pure module: every function returns an [`image::RgbImage`]; the only I/O is [`save_png`]. No font
-//! files are needed: text uses a built-in 5x7 bitmap font (ASCII 32..126, 6 px advance, scaled by an
-//! integer factor; other characters are drawn as `?`).
+//! files are needed: text uses a built-in 5x7 bitmap font with a descender row (ASCII 32..126,
+//! 6 px advance, scaled by an integer factor; other characters are drawn as `?`).
 //!
 //! # Drawing model
 //!
@@ -261,11 +261,11 @@ fn tick_labels(ticks: &[f64], step: f64) -> Vec<String> {
 // Font
 // ---------------------------------------------------------------------------------------------
 
-/// Glyph cell: 5 columns x 8 rows (capitals and digits use rows 0..7, descenders of g j p q y
+/// Glyph cell: 5 columns x 8 rows (capitals and digits use rows 0..=6, descenders of g j p q y
 /// and the comma reach row 7); the advance is one blank column more.
 const GLYPH_W: u32 = 5;
 const GLYPH_H: u32 = 8;
-/// Height of capitals and digits (rows 0..7), for vertical centring.
+/// Height of capitals and digits (rows 0..=6), for vertical centring.
 const CAP_H: u32 = 7;
 /// Horizontal advance per character at scale 1, pixels.
 pub const GLYPH_ADVANCE: u32 = 6;

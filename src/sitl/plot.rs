@@ -3,8 +3,8 @@
 //! ([`track`]).
 //!
 //! Pure module: every function returns an [`image::RgbImage`]; the only I/O is [`save_png`]. No font
-//! files are needed: text uses a built-in 5x7 bitmap font (ASCII 32..126, 6 px advance, scaled by an
-//! integer factor; other characters are drawn as `?`).
+//! files are needed: text uses a built-in 5x7 bitmap font with a descender row (ASCII 32..126,
+//! 6 px advance, scaled by an integer factor; other characters are drawn as `?`).
 //!
 //! # Drawing model
 //!
@@ -73,7 +73,12 @@ pub struct Series {
 
 impl Series {
     /// Convenience constructor.
-    pub fn new(name: impl Into<String>, rgb: [u8; 3], style: Style, points: Vec<(f64, f64)>) -> Self {
+    pub fn new(
+        name: impl Into<String>,
+        rgb: [u8; 3],
+        style: Style,
+        points: Vec<(f64, f64)>,
+    ) -> Self {
         Series {
             name: name.into(),
             rgb,
@@ -256,14 +261,17 @@ fn tick_labels(ticks: &[f64], step: f64) -> Vec<String> {
 // Font
 // ---------------------------------------------------------------------------------------------
 
-/// Glyph cell: 5 columns x 7 rows of ink; the advance is one blank column more.
+/// Glyph cell: 5 columns x 8 rows (capitals and digits use rows 0..=6, descenders of g j p q y
+/// and the comma reach row 7); the advance is one blank column more.
 const GLYPH_W: u32 = 5;
-const GLYPH_H: u32 = 7;
+const GLYPH_H: u32 = 8;
+/// Height of capitals and digits (rows 0..=6), for vertical centring.
+const CAP_H: u32 = 7;
 /// Horizontal advance per character at scale 1, pixels.
 pub const GLYPH_ADVANCE: u32 = 6;
 
-/// 5x7 font for ASCII 32..=126, one byte per column, bit 0 = top row (the classic HD44780-style
-/// table, public domain).
+/// 5x7 font for ASCII 32..=126 (plus one descender row), one byte per column, bit 0 = top row
+/// (after the classic HD44780-style table, public domain; lower-case descenders redrawn).
 #[rustfmt::skip]
 const FONT: [[u8; 5]; 95] = [
     [0x00, 0x00, 0x00, 0x00, 0x00], // ' '
@@ -278,7 +286,7 @@ const FONT: [[u8; 5]; 95] = [
     [0x00, 0x41, 0x22, 0x1C, 0x00], // )
     [0x08, 0x2A, 0x1C, 0x2A, 0x08], // *
     [0x08, 0x08, 0x3E, 0x08, 0x08], // +
-    [0x00, 0x50, 0x30, 0x00, 0x00], // ,
+    [0x00, 0x80, 0x60, 0x00, 0x00], // ,
     [0x08, 0x08, 0x08, 0x08, 0x08], // -
     [0x00, 0x60, 0x60, 0x00, 0x00], // .
     [0x20, 0x10, 0x08, 0x04, 0x02], // /
@@ -293,7 +301,7 @@ const FONT: [[u8; 5]; 95] = [
     [0x36, 0x49, 0x49, 0x49, 0x36], // 8
     [0x06, 0x49, 0x49, 0x29, 0x1E], // 9
     [0x00, 0x36, 0x36, 0x00, 0x00], // :
-    [0x00, 0x56, 0x36, 0x00, 0x00], // ;
+    [0x00, 0x80, 0x66, 0x06, 0x00], // ;
     [0x08, 0x14, 0x22, 0x41, 0x00], // <
     [0x14, 0x14, 0x14, 0x14, 0x14], // =
     [0x00, 0x41, 0x22, 0x14, 0x08], // >
@@ -337,17 +345,17 @@ const FONT: [[u8; 5]; 95] = [
     [0x38, 0x44, 0x44, 0x48, 0x7F], // d
     [0x38, 0x54, 0x54, 0x54, 0x18], // e
     [0x08, 0x7E, 0x09, 0x01, 0x02], // f
-    [0x0C, 0x52, 0x52, 0x52, 0x3E], // g
+    [0x98, 0xA4, 0xA4, 0xA4, 0x7C], // g
     [0x7F, 0x08, 0x04, 0x04, 0x78], // h
     [0x00, 0x44, 0x7D, 0x40, 0x00], // i
-    [0x20, 0x40, 0x44, 0x3D, 0x00], // j
+    [0x40, 0x80, 0x84, 0x7D, 0x00], // j
     [0x7F, 0x10, 0x28, 0x44, 0x00], // k
     [0x00, 0x41, 0x7F, 0x40, 0x00], // l
     [0x7C, 0x04, 0x18, 0x04, 0x78], // m
     [0x7C, 0x08, 0x04, 0x04, 0x78], // n
     [0x38, 0x44, 0x44, 0x44, 0x38], // o
-    [0x7C, 0x14, 0x14, 0x14, 0x08], // p
-    [0x08, 0x14, 0x14, 0x18, 0x7C], // q
+    [0xFC, 0x24, 0x24, 0x24, 0x18], // p
+    [0x18, 0x24, 0x24, 0x24, 0xFC], // q
     [0x7C, 0x08, 0x04, 0x04, 0x08], // r
     [0x48, 0x54, 0x54, 0x54, 0x20], // s
     [0x04, 0x3F, 0x44, 0x40, 0x20], // t
@@ -355,7 +363,7 @@ const FONT: [[u8; 5]; 95] = [
     [0x1C, 0x20, 0x40, 0x20, 0x1C], // v
     [0x3C, 0x40, 0x30, 0x40, 0x3C], // w
     [0x44, 0x28, 0x10, 0x28, 0x44], // x
-    [0x0C, 0x50, 0x50, 0x50, 0x3C], // y
+    [0x9C, 0xA0, 0xA0, 0xA0, 0x7C], // y
     [0x44, 0x64, 0x54, 0x4C, 0x44], // z
     [0x00, 0x08, 0x36, 0x41, 0x00], // {
     [0x00, 0x00, 0x7F, 0x00, 0x00], // |
@@ -374,7 +382,7 @@ fn glyph(c: char) -> &'static [u8; 5] {
 }
 
 /// Size `(width, height)` in pixels of `text` drawn at `scale` (>= 1): `chars x 6 x scale` by
-/// `7 x scale`.
+/// `8 x scale`.
 pub fn text_size(text: &str, scale: u32) -> (u32, u32) {
     let s = scale.max(1);
     let n = u32::try_from(text.chars().count()).unwrap_or(u32::MAX);
@@ -401,7 +409,7 @@ fn for_each_ink(text: &str, scale: u32, mut ink: impl FnMut(i64, i64)) {
             break; // the rest cannot be on any image
         }
     }
-    debug_assert!(GLYPH_W < GLYPH_ADVANCE);
+    const { assert!(GLYPH_W < GLYPH_ADVANCE) };
 }
 
 /// Draws `text` with its top-left corner at `(x, y)`, clipped to the image.
@@ -698,8 +706,12 @@ impl Frame {
     #[cfg(test)]
     fn to_pixel(&self, x: f64, y: f64) -> Option<(i64, i64)> {
         let (u, v) = self.to_local(x, y);
-        (u.is_finite() && v.is_finite())
-            .then(|| (self.plot.x + u.floor() as i64, self.plot.y + v.floor() as i64))
+        (u.is_finite() && v.is_finite()).then(|| {
+            (
+                self.plot.x + u.floor() as i64,
+                self.plot.y + v.floor() as i64,
+            )
+        })
     }
 }
 
@@ -783,7 +795,11 @@ fn widen_degenerate(lo: f64, hi: f64) -> (f64, f64) {
     if hi - lo > tiny && (hi - lo) > 0.0 {
         return (lo, hi);
     }
-    let d = if mid.abs() > 0.0 { mid.abs() * 0.05 } else { 1.0 };
+    let d = if mid.abs() > 0.0 {
+        mid.abs() * 0.05
+    } else {
+        1.0
+    };
     let (a, b) = (mid - d, mid + d);
     if a < b && a.is_finite() && b.is_finite() {
         (a, b)
@@ -810,7 +826,8 @@ fn auto_scale(spec: &PlotSpec, w: u32, h: u32) -> u32 {
     if spec.font_scale > 0 {
         spec.font_scale.min(16)
     } else {
-        (w.min(h) / 350).clamp(1, 4)
+        // 1 up to ~900 x 600 px, 2 for 1000 x 700, ...
+        (w.min(h.saturating_mul(3) / 2) / 450).clamp(1, 4)
     }
 }
 
@@ -863,7 +880,6 @@ fn layout(
     let mut xr = xr;
     let mut yr = yr;
     let mut left = pad + ylab_w + tick_len + 3 * si + 4 * i64::from(GLYPH_ADVANCE) * si;
-    let mut x_ticks = (Vec::new(), 0.0);
     let mut y_ticks = (Vec::new(), 0.0);
     // The left margin depends on the y tick labels, which depend on the range, which (equal
     // aspect) depends on the plot width: a few fixed-point passes settle it.
@@ -893,10 +909,7 @@ fn layout(
     // x labels: leave room for about 8 characters per tick.
     let x_max_ticks =
         usize::try_from((plot_w / (10 * i64::from(GLYPH_ADVANCE) * si)).max(2)).unwrap_or(2);
-    x_ticks = {
-        let _ = x_ticks;
-        nice_ticks_step(xr.0, xr.1, x_max_ticks)
-    };
+    let mut x_ticks = nice_ticks_step(xr.0, xr.1, x_max_ticks);
     // Make sure the x labels do not overlap: thin the ticks if needed.
     let xl = tick_labels(&x_ticks.0, x_ticks.1);
     let widest_x = xl
@@ -1015,7 +1028,7 @@ fn draw_axes(img: &mut RgbImage, f: &Frame, spec: &PlotSpec) {
         draw_text(
             img,
             p.x - 1 - tick_len - 3 * si - tw,
-            py - char_h / 2,
+            py - i64::from(CAP_H) * si / 2,
             l,
             s,
             TEXT,
@@ -1098,7 +1111,7 @@ fn series_mask(f: &Frame, s: &Series, half_w: f64, dot_r: f64) -> Mask {
                 if run_len == 1
                     && let Some(q) = prev
                 {
-                    m.disc(q, half_w);
+                    m.disc(q, dot_r);
                 }
                 prev = None;
                 run_len = 0;
@@ -1107,7 +1120,7 @@ fn series_mask(f: &Frame, s: &Series, half_w: f64, dot_r: f64) -> Mask {
         if run_len == 1
             && let Some(q) = prev
         {
-            m.disc(q, half_w);
+            m.disc(q, dot_r);
         }
     }
     if matches!(s.style, Style::Dots | Style::LineDots) {
@@ -1199,12 +1212,7 @@ fn draw_legend(
     let best = corners
         .iter()
         .map(|&(x, y)| {
-            let r = Rect {
-                x,
-                y,
-                w: bw,
-                h: bh,
-            };
+            let r = Rect { x, y, w: bw, h: bh };
             let n = points
                 .iter()
                 .filter(|&&(u, v)| {
@@ -1235,7 +1243,7 @@ fn draw_legend(
     let half_w = line_half_width(s);
     for (k, (name, rgb, sw)) in entries.iter().enumerate() {
         let ry = box_r.y + pad + k as i64 * row_h;
-        let cy = ry + i64::from(GLYPH_H) * si / 2;
+        let cy = ry + i64::from(CAP_H) * si / 2;
         let sx = box_r.x + pad;
         let mut mk = Mask::new((sw_w + 2) as usize, (row_h + 2) as usize);
         let local_cy = (cy - ry) as f64 + 1.5;
@@ -1381,17 +1389,19 @@ fn track_frame(spec: &PlotSpec, bg: Option<(&RgbImage, [f64; 4])>, series: &[Ser
     let (w, h) = clamp_size(spec);
     let (ex, ey) = data_extent(&[], series);
     let (mut ex, mut ey) = (ex, ey);
+    // A margin of 8 % of the larger side (at least 20 m) around the track, 2 % around a
+    // background shown alone.
+    let mut rel_margin = 0.08;
     if !(ex.valid() && ey.valid())
         && let Some((_, e)) = bg
     {
-        // No track: show the whole background.
         ex = Extent { lo: e[0], hi: e[2] };
         ey = Extent { lo: e[1], hi: e[3] };
+        rel_margin = 0.02;
     }
-    // A margin of 8 % of the larger side (at least 20 m) around the track.
     let span = (ex.hi / 2.0 - ex.lo / 2.0).max(ey.hi / 2.0 - ey.lo / 2.0) * 2.0;
     let margin = if span.is_finite() {
-        (span * 0.08).max(20.0)
+        (span * rel_margin).max(20.0)
     } else {
         0.0
     };
@@ -1447,7 +1457,10 @@ fn bilinear(im: &RgbImage, col: f64, row: f64) -> [f64; 3] {
     let c0 = col.floor();
     let r0 = row.floor();
     let (fc, fr) = (col - c0, row - r0);
-    let px = |c: i64, r: i64| im.get_pixel(c.clamp(0, w - 1) as u32, r.clamp(0, h - 1) as u32).0;
+    let px = |c: i64, r: i64| {
+        im.get_pixel(c.clamp(0, w - 1) as u32, r.clamp(0, h - 1) as u32)
+            .0
+    };
     let (c0, r0) = (c0 as i64, r0 as i64);
     let a = px(c0, r0);
     let b = px(c0 + 1, r0);
@@ -1551,8 +1564,14 @@ mod tests {
 
     #[test]
     fn nice_ticks_examples() {
-        assert_eq!(nice_ticks(0.0, 10.0, 5), vec![0.0, 2.0, 4.0, 6.0, 8.0, 10.0]);
-        assert_eq!(nice_ticks(10.0, 0.0, 5), vec![0.0, 2.0, 4.0, 6.0, 8.0, 10.0]);
+        assert_eq!(
+            nice_ticks(0.0, 10.0, 5),
+            vec![0.0, 2.0, 4.0, 6.0, 8.0, 10.0]
+        );
+        assert_eq!(
+            nice_ticks(10.0, 0.0, 5),
+            vec![0.0, 2.0, 4.0, 6.0, 8.0, 10.0]
+        );
         assert_eq!(nice_ticks(-3.0, 7.0, 2), vec![0.0, 5.0]);
         assert_eq!(nice_ticks(3.0, 3.0, 5), vec![3.0]);
         assert!(nice_ticks(f64::NAN, 1.0, 5).is_empty());
@@ -1573,7 +1592,11 @@ mod tests {
         let (t, s) = nice_ticks_step(5_234_000.0, 5_236_000.0, 4);
         assert_eq!(tick_labels(&t, s)[0], "5234000");
         let (t, s) = nice_ticks_step(-1e12, 1e12, 4);
-        assert!(tick_labels(&t, s).iter().all(|l| l.contains('e') || l == "0"));
+        assert!(
+            tick_labels(&t, s)
+                .iter()
+                .all(|l| l.contains('e') || l == "0")
+        );
     }
 
     proptest! {
@@ -1625,7 +1648,10 @@ mod tests {
             );
             // First and last characters reach near the box edges.
             assert!(ink.iter().any(|&(x, _)| x < 10 + scale));
-            assert!(ink.iter().any(|&(x, _)| x >= 10 + w - GLYPH_ADVANCE * scale));
+            assert!(
+                ink.iter()
+                    .any(|&(x, _)| x >= 10 + w - GLYPH_ADVANCE * scale)
+            );
         }
         // Every printable character except the space has ink, and distinct glyphs for letters.
         for c in '!'..='~' {
@@ -1670,7 +1696,10 @@ mod tests {
             if !near {
                 outside += 1;
                 // The legend swatch: near a plot corner band, never in the middle rows.
-                assert!((i64::from(y) - legend_y).abs() > f.plot.h / 4, "stray at {x},{y}");
+                assert!(
+                    (i64::from(y) - legend_y).abs() > f.plot.h / 4,
+                    "stray at {x},{y}"
+                );
             }
         }
         assert!(outside > 0, "legend swatch expected");
@@ -1702,7 +1731,9 @@ mod tests {
         let blueish = |p: &Rgb<u8>| p.0[2] > 150 && p.0[0] < 150;
         // Both segments are drawn ...
         assert!(blueish(img.get_pixel(((x0 + x1) / 2) as u32, y as u32)));
-        assert!(blueish(img.get_pixel(((x1 + x3) / 2 + (x3 - x1)) as u32, y as u32)));
+        assert!(blueish(
+            img.get_pixel(((x1 + x3) / 2 + (x3 - x1)) as u32, y as u32)
+        ));
         // ... and nothing between them.
         let hw = line_half_width(f.scale).ceil() as i64 + 2;
         for px in x1 + hw..x3 - hw {
@@ -1774,7 +1805,12 @@ mod tests {
             mk((0.0, 0.0), 0),
             mk((100.0, 0.0), 1),
             mk((0.0, 100.0), 2),
-            Series::new("", [9, 9, 9], Style::Line, vec![(-300.0, 0.0), (800.0, 40.0)]),
+            Series::new(
+                "",
+                [9, 9, 9],
+                Style::Line,
+                vec![(-300.0, 0.0), (800.0, 40.0)],
+            ),
         ];
         for (w, h) in [(500, 700), (900, 400)] {
             for img_f in [
@@ -1848,9 +1884,19 @@ mod tests {
         let cases: Vec<Vec<Series>> = vec![
             vec![],
             vec![Series::new("empty", RED, Style::Line, vec![])],
-            vec![Series::new("nan", RED, Style::LineDots, vec![(nan, nan), (nan, 1.0)])],
+            vec![Series::new(
+                "nan",
+                RED,
+                Style::LineDots,
+                vec![(nan, nan), (nan, 1.0)],
+            )],
             vec![Series::new("one", RED, Style::Line, vec![(3.0, 4.0)])],
-            vec![Series::new("flat", RED, Style::Line, vec![(3.0, 4.0), (3.0, 4.0)])],
+            vec![Series::new(
+                "flat",
+                RED,
+                Style::Line,
+                vec![(3.0, 4.0), (3.0, 4.0)],
+            )],
             vec![Series::new(
                 "huge",
                 RED,
@@ -1930,7 +1976,12 @@ mod tests {
         let data = chart(
             &sp,
             &[],
-            &[Series::new("x", RED, Style::Line, vec![(0.0, 1.0), (1.0, 2.0)])],
+            &[Series::new(
+                "x",
+                RED,
+                Style::Line,
+                vec![(0.0, 1.0), (1.0, 2.0)],
+            )],
         );
         assert_eq!(count_rgb(&data, note), 0);
         assert!(count_rgb(&track(&sp, None, &[]), note) > 10);
@@ -1990,13 +2041,35 @@ mod tests {
         let path = target_dir().join("plot_demo_chart.png");
         save_png(&img, &path).expect("target/ is writable");
         eprintln!("wrote {}", path.display());
+        // Small and degenerate plots, for looking at the layout.
+        let small = PlotSpec::new(320, 220, "one point", "x [s]", "y [m]");
+        let one = chart(
+            &small,
+            &[],
+            &[Series::new(
+                "p",
+                [200, 30, 30],
+                Style::Line,
+                vec![(5.0, 5.0)],
+            )],
+        );
+        save_png(&one, &target_dir().join("plot_demo_small.png")).expect("target/ is writable");
+        let none = chart(&small, &[], &[]);
+        save_png(&none, &target_dir().join("plot_demo_nodata.png")).expect("target/ is writable");
         // Font sheet, for looking at the glyphs.
         let mut sheet = RgbImage::from_pixel(700, 90, Rgb(WHITE));
         let all: String = (' '..='~').collect();
         let (a, b) = all.split_at(48);
         draw_text(&mut sheet, 5, 5, a, 2, TEXT);
         draw_text(&mut sheet, 5, 30, b, 2, TEXT);
-        draw_text(&mut sheet, 5, 60, "+-3 sigma: 12.5% (x/y) [m] a_b, A=B", 2, TEXT);
+        draw_text(
+            &mut sheet,
+            5,
+            60,
+            "+-3 sigma: 12.5% (x/y) [m] a_b, A=B",
+            2,
+            TEXT,
+        );
         save_png(&sheet, &target_dir().join("plot_demo_font.png")).expect("target/ is writable");
     }
 

@@ -85,7 +85,11 @@ impl DaemonSetup {
         Self {
             link: cfg.link.clone(),
             output: cfg.output.clone(),
-            nav: cfg.nav.clone(),
+            // Vision fixes are positions of the camera: its lever arm from the mount unless
+            // [nav] gives one.
+            nav: cfg.nav.clone().with_camera_lever_arm(
+                cfg.camera.mount.to_mount().lever_arm_body_frd_m.into(),
+            ),
             daemon: cfg.daemon.clone(),
             frames: cfg.frames.clone(),
         }

@@ -651,7 +651,10 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     let mk_setup = |port: u16| {
         let mut s = DaemonSetup::from_config(&cfg);
         s.link.connection = format!("udpin:127.0.0.1:{port}");
-        s.nav = sc.nav.clone();
+        s.nav = sc
+            .nav
+            .clone()
+            .with_camera_lever_arm(mount.lever_arm_body_frd_m.into());
         s.frames = None;
         s
     };

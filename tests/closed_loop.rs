@@ -31,8 +31,12 @@ fn visnav_sim_default_closed_loop() {
         .expect("run visnav sim");
     let stderr = String::from_utf8_lossy(&res.stderr);
     assert!(res.status.success(), "visnav sim failed: {stderr}");
-    let v: serde_json::Value = serde_json::from_slice(&res.stdout)
-        .unwrap_or_else(|e| panic!("stdout is not JSON ({e}): {}", String::from_utf8_lossy(&res.stdout)));
+    let v: serde_json::Value = serde_json::from_slice(&res.stdout).unwrap_or_else(|e| {
+        panic!(
+            "stdout is not JSON ({e}): {}",
+            String::from_utf8_lossy(&res.stdout)
+        )
+    });
     eprintln!("{}", serde_json::to_string_pretty(&v).unwrap());
 
     // The keys the issue names.
@@ -44,22 +48,34 @@ fn visnav_sim_default_closed_loop() {
     let fix_rate = v["fix_rate"].as_f64().expect("fix_rate");
     let lat_p50 = stat(&v, "latency_ms", "p50");
     let lat_p95 = stat(&v, "latency_ms", "p95");
-    assert!(lat_p50 > 0.0 && lat_p95 >= lat_p50 && lat_p95 < 2000.0, "latency {lat_p50} {lat_p95}");
+    assert!(
+        lat_p50 > 0.0 && lat_p95 >= lat_p50 && lat_p95 < 2000.0,
+        "latency {lat_p50} {lat_p95}"
+    );
 
     // Vision works across the years (the release build measured 64-85 % and a median of 12-14 m).
     let attempts = v["fix_attempts"].as_u64().unwrap_or(0);
-    assert!(attempts >= 60, "only {attempts} fix attempts in the 60 s outage at 2 Hz");
+    assert!(
+        attempts >= 60,
+        "only {attempts} fix attempts in the 60 s outage at 2 Hz"
+    );
     assert!(fix_rate >= 0.3, "fix rate {fix_rate}");
     let fix_med = stat(&v, "fix_err_m", "median");
     assert!(fix_med < 40.0, "fix error median {fix_med} m");
     // Integrity: accepted fixes beyond their own 3-sigma ellipse stay rare.
     let accepted = v["fixes_accepted"].as_u64().unwrap_or(0);
     let beyond = v["fix_beyond_3sigma"].as_u64().unwrap_or(u64::MAX);
-    assert!(beyond * 20 <= accepted, "{beyond} of {accepted} accepted fixes beyond 3 sigma");
+    assert!(
+        beyond * 20 <= accepted,
+        "{beyond} of {accepted} accepted fixes beyond 3 sigma"
+    );
 
     // The injected solution: present all along, and better than the no-vision control.
     let inj = v["injections"].as_u64().unwrap_or(0);
-    assert!(inj >= 200, "only {inj} GPS_INPUT in the 60 s window at 5 Hz");
+    assert!(
+        inj >= 200,
+        "only {inj} GPS_INPUT in the 60 s window at 5 Hz"
+    );
     let nav_p90 = stat(&v, "nav_err_m", "p90");
     let nav_max = stat(&v, "nav_err_m", "max");
     let ctl_max = stat(&v, "control_err_m", "max");
@@ -92,7 +108,10 @@ fn visnav_sim_default_closed_loop() {
     assert!(rows.iter().all(|r| r.split(',').count() == ncol));
     let inj_csv = std::fs::read_to_string(out.join("injections.csv")).unwrap();
     for r in inj_csv.lines().skip(1) {
-        assert!(!r.contains("NaN") && !r.contains("inf"), "non-finite injection: {r}");
+        assert!(
+            !r.contains("NaN") && !r.contains("inf"),
+            "non-finite injection: {r}"
+        );
     }
     let gj: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("track.geojson")).unwrap()).unwrap();
@@ -108,4 +127,53 @@ fn visnav_sim_default_closed_loop() {
     assert!(img.width() >= 800 && img.height() >= 600);
     assert!(Path::new(&out).join("errors.png").is_file());
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// The golden rule is enforced: a camera rendered from the map's own image is refused, with a
+/// message naming the key; a broken scenario names the file.
+#[test]
+fn refuses_camera_from_the_map_image_and_bad_scenarios() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(root.join("sitl/scenarios/closed_loop_demo.toml")).unwrap();
+    let abs = |rel: &str| root.join(rel).display().to_string();
+    let same = text
+        .replace(
+            "\"../../config/demo.toml\"",
+            &format!("{:?}", abs("config/demo.toml")),
+        )
+        .replace(
+            "\"../maps/naip_nd_2014.tif\"",
+            &format!("{:?}", abs("sitl/maps/naip_nd_2009.tif")),
+        );
+    let dir = std::env::temp_dir().join(format!("visnav-sim-bad-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let f = dir.join("same_year.toml");
+    std::fs::write(&f, same).unwrap();
+    let res = Command::new(env!("CARGO_BIN_EXE_visnav"))
+        .args(["sim", "--scenario"])
+        .arg(&f)
+        .arg("--out")
+        .arg(dir.join("out"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&res.stderr);
+    assert!(!res.status.success());
+    assert!(
+        err.contains("camera_ortho") && err.contains("also a map orthophoto"),
+        "{err}"
+    );
+    let broken = dir.join("broken.toml");
+    std::fs::write(&broken, text.replace("workers = 1", "workers = 0")).unwrap();
+    let res = Command::new(env!("CARGO_BIN_EXE_visnav"))
+        .args(["sim", "--scenario"])
+        .arg(&broken)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&res.stderr);
+    assert!(!res.status.success());
+    assert!(
+        err.contains("broken.toml") && err.contains("closed_loop.workers"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -178,7 +178,12 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
     if args.json {
         println!("{}", serde_json::to_string_pretty(s)?);
     } else {
-        println!("scenario {} ({:.0} s, wall {:.0} s)", s.scenario, s.duration_s, t0.elapsed().as_secs_f64());
+        println!(
+            "scenario {} ({:.0} s, wall {:.0} s)",
+            s.scenario,
+            s.duration_s,
+            t0.elapsed().as_secs_f64()
+        );
         println!("{}", s.description);
         println!(
             "evaluation window {:.0}-{:.0} s{}",
@@ -200,8 +205,15 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
         );
         println!("horizontal error median / p90 / max [m]");
         println!("  vision fixes             {}", fmt_stats(&s.fix_err_m));
-        println!("  injected (GPS_INPUT)     {}   ({} messages)", fmt_stats(&s.nav_err_m), s.injections);
-        println!("  visnav filter output     {}", fmt_stats(&s.nav_output_err_m));
+        println!(
+            "  injected (GPS_INPUT)     {}   ({} messages)",
+            fmt_stats(&s.nav_err_m),
+            s.injections
+        );
+        println!(
+            "  visnav filter output     {}",
+            fmt_stats(&s.nav_output_err_m)
+        );
         println!("  no-vision control        {}", fmt_stats(&s.control_err_m));
         println!(
             "max error e/n/u [m]  visnav {:.1} / {:.1} / {:.1}   no-vision {:.1} / {:.1} / {:.1}",

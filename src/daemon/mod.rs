@@ -87,9 +87,10 @@ impl DaemonSetup {
             output: cfg.output.clone(),
             // Vision fixes are positions of the camera: its lever arm from the mount unless
             // [nav] gives one.
-            nav: cfg.nav.clone().with_camera_lever_arm(
-                cfg.camera.mount.to_mount().lever_arm_body_frd_m.into(),
-            ),
+            nav: cfg
+                .nav
+                .clone()
+                .with_camera_lever_arm(cfg.camera.mount.to_mount().lever_arm_body_frd_m.into()),
             daemon: cfg.daemon.clone(),
             frames: cfg.frames.clone(),
         }

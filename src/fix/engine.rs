@@ -546,7 +546,8 @@ impl FixEngine {
                 .iter()
                 .map(|mm| [train.keypoints[mm.train].x, train.keypoints[mm.train].y])
                 .collect();
-            let max_rot = (self.params.gate_sigmas * g.sigma_yaw_rad.max(g.sigma_tilt_rad)).min(0.5) + 0.02;
+            let max_rot =
+                (self.params.gate_sigmas * g.sigma_yaw_rad.max(g.sigma_tilt_rad)).min(0.5) + 0.02;
             let max_log_scale = (self.params.gate_sigmas * g.sigma_v_m / agl_m).min(0.7) + 0.05;
             match ransac_similarity(&src, &dst, fine_r, max_rot, max_log_scale, 0x5EED) {
                 Some((s, n)) => {
@@ -1425,7 +1426,10 @@ mod tests {
         .unwrap();
         let engine = FixEngine::new(Arc::new(reference), camera, FixParams::default()).unwrap();
         let (lat, lon) = crs.to_geodetic(500_640.0, 5_199_360.0).unwrap();
-        let att = Some(AttitudePriorNed::isotropic(Attitude::new(0.0, 0.0, 0.0), 0.01));
+        let att = Some(AttitudePriorNed::isotropic(
+            Attitude::new(0.0, 0.0, 0.0),
+            0.01,
+        ));
         let pos = |alt: f64, s: f64| {
             Some(PositionPriorGeo {
                 lat_deg: lat,

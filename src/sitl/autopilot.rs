@@ -30,8 +30,8 @@ use std::time::{Duration, Instant};
 #[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: still what ArduPilot acts on
 use mavlink::dialects::ardupilotmega::{
     ATTITUDE_DATA, COMMAND_ACK_DATA, GLOBAL_POSITION_INT_DATA, GPS_GLOBAL_ORIGIN_DATA,
-    GPS_RAW_INT_DATA, GPS2_RAW_DATA, GpsFixType, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavMessage, MavModeFlag,
-    MavResult, MavState, MavType, RAW_IMU_DATA, SCALED_IMU_DATA, SCALED_PRESSURE_DATA,
+    GPS_RAW_INT_DATA, GPS2_RAW_DATA, GpsFixType, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavMessage,
+    MavModeFlag, MavResult, MavState, MavType, RAW_IMU_DATA, SCALED_IMU_DATA, SCALED_PRESSURE_DATA,
     SYSTEM_TIME_DATA, TIMESYNC_DATA,
 };
 use mavlink::{AsyncMavConnection, MavHeader, Message, SigningConfig};

@@ -128,20 +128,16 @@ impl TruthTable {
             let (lat_deg, lon_deg) = (st.lat_rad.to_degrees(), st.lon_rad.to_degrees());
             // The geoid changes by millimetres over a scenario's area: refreshed every 10 s.
             if i % 2000 == 0 || undulation.is_none() {
-                undulation = Some(
-                    geoid_undulation_m(lat_deg, lon_deg)
-                        .map_err(|e| format!("truth at t = {} s: geoid: {e}", i as f64 * TRUTH_DT_S))?,
-                );
+                undulation = Some(geoid_undulation_m(lat_deg, lon_deg).map_err(|e| {
+                    format!("truth at t = {} s: geoid: {e}", i as f64 * TRUTH_DT_S)
+                })?);
             }
             let n_m = undulation.unwrap_or(0.0);
             let (roll, pitch, yaw) = st.q_nb.euler_angles();
             // Rates over the next interval (the last sample repeats the previous ones).
             let rates = if i + 1 < n {
                 let (dth, dv) = integ.step(TRUTH_DT_S);
-                let r = (
-                    (dth / TRUTH_DT_S).into(),
-                    (dv / TRUTH_DT_S).into(),
-                );
+                let r = ((dth / TRUTH_DT_S).into(), (dv / TRUTH_DT_S).into());
                 prev_rates = r;
                 r
             } else {
@@ -159,9 +155,10 @@ impl TruthTable {
                 accel_body_m_s2: rates.1,
             });
         }
-        if samples.iter().any(|s| {
-            !(s.lat_deg.is_finite() && s.lon_deg.is_finite() && s.h_ellip_m.is_finite())
-        }) {
+        if samples
+            .iter()
+            .any(|s| !(s.lat_deg.is_finite() && s.lon_deg.is_finite() && s.h_ellip_m.is_finite()))
+        {
             return Err("the trajectory integration produced non-finite positions".into());
         }
         Ok(Self { samples })
@@ -172,13 +169,23 @@ impl TruthTable {
         let last = self.samples.len().saturating_sub(1);
         let i = (x.floor() as usize).min(last);
         let j = (i + 1).min(last);
-        (self.samples[i], self.samples[j], (x - i as f64).clamp(0.0, 1.0)) // ok: non-empty table
+        (
+            self.samples[i],
+            self.samples[j],
+            (x - i as f64).clamp(0.0, 1.0),
+        ) // ok: non-empty table
     }
 
     /// The true state at scenario time `t_s` (held at the ends).
     pub fn at(&self, t_s: f64) -> TruthState {
         let (a, b, u) = self.sample_at(t_s);
-        let l3 = |x: [f64; 3], y: [f64; 3]| [lerp(x[0], y[0], u), lerp(x[1], y[1], u), lerp(x[2], y[2], u)];
+        let l3 = |x: [f64; 3], y: [f64; 3]| {
+            [
+                lerp(x[0], y[0], u),
+                lerp(x[1], y[1], u),
+                lerp(x[2], y[2], u),
+            ]
+        };
         TruthState {
             lat_deg: lerp(a.lat_deg, b.lat_deg, u),
             lon_deg: lerp(a.lon_deg, b.lon_deg, u),
@@ -266,14 +273,16 @@ impl SimSensors {
         let j = (i + 1).min(n - 1);
         let u = (x - i as f64).clamp(0.0, 1.0);
         let (a, b) = (self.ahrs_err_rad[i], self.ahrs_err_rad[j]);
-        [lerp(a[0], b[0], u), lerp(a[1], b[1], u), lerp(a[2], b[2], u)]
+        [
+            lerp(a[0], b[0], u),
+            lerp(a[1], b[1], u),
+            lerp(a[2], b[2], u),
+        ]
     }
 
     /// Whether the GPS has a fix at `t_s`.
     pub fn gps_on(&self, t_s: f64) -> bool {
-        self.gps
-            .as_ref()
-            .is_some_and(|g| t_s >= g.from_s && t_s < g.until_s)
+        self.gps.as_ref().is_some_and(|g| g.available(t_s))
     }
 }
 
@@ -284,8 +293,8 @@ impl TruthSource for SensorsHandle {
     fn state(&self, t_s: f64) -> TruthState {
         let mut s = self.0.table.at(t_s);
         let e = self.0.ahrs_error_rad(t_s);
-        for k in 0..3 {
-            s.rpy_rad[k] = wrap_pi(s.rpy_rad[k] + e[k]);
+        for (a, d) in s.rpy_rad.iter_mut().zip(e) {
+            *a = wrap_pi(*a + d);
         }
         s
     }
@@ -516,7 +525,10 @@ pub struct ClosedLoopRun {
 
 /// An RGB picture of a raster (bands 1-3, or the first band as grey), decimated to at most
 /// `max_px` on its longer side, and its extent.
-fn background_of(raster: &crate::geo::raster::Raster, max_px: usize) -> Option<(image::RgbImage, [f64; 4])> {
+fn background_of(
+    raster: &crate::geo::raster::Raster,
+    max_px: usize,
+) -> Option<(image::RgbImage, [f64; 4])> {
     let (w, h) = (raster.width(), raster.height());
     if w == 0 || h == 0 {
         return None;
@@ -533,7 +545,11 @@ fn background_of(raster: &crate::geo::raster::Raster, max_px: usize) -> Option<(
         crate::geo::raster::RasterData::U8(_) => 1.0,
         _ => {
             let p98 = percentile(&std::mem::take(&mut vals), 0.98);
-            if p98.is_finite() && p98 > 0.0 { 255.0 / p98 } else { 1.0 }
+            if p98.is_finite() && p98 > 0.0 {
+                255.0 / p98
+            } else {
+                1.0
+            }
         }
     };
     let mut img = image::RgbImage::new(ow as u32, oh as u32);
@@ -544,7 +560,11 @@ fn background_of(raster: &crate::geo::raster::Raster, max_px: usize) -> Option<(
                     .value(c * step, r * step, b.min(bands - 1))
                     .map_or(0u8, |v| (v * scale).clamp(0.0, 255.0) as u8)
             };
-            let px = if bands >= 3 { [get(0), get(1), get(2)] } else { [get(0); 3] };
+            let px = if bands >= 3 {
+                [get(0), get(1), get(2)]
+            } else {
+                [get(0); 3]
+            };
             img.put_pixel(c as u32, r as u32, image::Rgb(px));
         }
     }
@@ -589,11 +609,14 @@ fn hnorm(e: &[f64; 3]) -> f64 {
 
 /// Runs the scenario's closed loop. `base` is the scenario file's folder (for its paths).
 pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoopError> {
-    let cl = sc.closed_loop.as_ref().ok_or(ClosedLoopError::NotClosedLoop)?;
+    let cl = sc
+        .closed_loop
+        .as_ref()
+        .ok_or(ClosedLoopError::NotClosedLoop)?;
     let setup_err = ClosedLoopError::Setup;
     let cfg_path = crate::config::resolve(base, &cl.config);
-    let cfg = Config::load(&cfg_path)
-        .map_err(|e| setup_err(format!("[closed_loop] config: {e}")))?;
+    let cfg =
+        Config::load(&cfg_path).map_err(|e| setup_err(format!("[closed_loop] config: {e}")))?;
     let cam_ortho = crate::config::resolve(base, &cl.camera_ortho);
     if cfg.map.ortho.iter().any(|m| same_file(m, &cam_ortho)) {
         return Err(setup_err(format!(
@@ -603,8 +626,12 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         )));
     }
     // Scene of the camera year.
-    let raster = load_geotiff(&cam_ortho, cfg.map.crs_override)
-        .map_err(|e| setup_err(format!("[closed_loop] camera_ortho {}: {e}", cam_ortho.display())))?;
+    let raster = load_geotiff(&cam_ortho, cfg.map.crs_override).map_err(|e| {
+        setup_err(format!(
+            "[closed_loop] camera_ortho {}: {e}",
+            cam_ortho.display()
+        ))
+    })?;
     let dem = match (&cl.camera_dem, cl.camera_ground_height_amsl_m) {
         (Some(p), _) => {
             let p = crate::config::resolve(base, p);
@@ -634,13 +661,15 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         Renderer::new(camera, cl.render)
             .map_err(|e| setup_err(format!("[closed_loop.render]: {e}")))?,
     );
-    info!("building the vision fix engine (map) from {}", cfg_path.display());
+    info!(
+        "building the vision fix engine (map) from {}",
+        cfg_path.display()
+    );
     let engine = crate::fix::engine_from_config(&cfg)
         .map_err(|e| setup_err(format!("{}: vision fix engine: {e}", cfg_path.display())))?;
     let engine: Arc<dyn FrameFixer> = Arc::new(engine);
-    let table = Arc::new(
-        TruthTable::from_scenario(sc).map_err(|e| setup_err(format!("truth: {e}")))?,
-    );
+    let table =
+        Arc::new(TruthTable::from_scenario(sc).map_err(|e| setup_err(format!("truth: {e}")))?);
     let duration_s = sc.duration_s();
     let unix_now_us = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -798,7 +827,11 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     let in_window = |t: f64| t >= w0 && t <= w1;
     let injections = collect_injections(&emu_v, &table, false)
         .into_iter()
-        .chain(emu_c.iter().flat_map(|e| collect_injections(e, &table, true)))
+        .chain(
+            emu_c
+                .iter()
+                .flat_map(|e| collect_injections(e, &table, true)),
+        )
         .collect::<Vec<_>>();
     let log = fixer.log.lock().map(|l| l.clone()).unwrap_or_default();
     let fixes: Vec<FixRow> = log.iter().map(|r| score_fix(r, &table, &mount)).collect();
@@ -814,7 +847,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             None => rejections.push((key, 1)),
         }
     }
-    rejections.sort_by(|a, b| b.1.cmp(&a.1));
+    rejections.sort_by_key(|r| std::cmp::Reverse(r.1));
     let inj_v: Vec<&InjectionRow> = injections
         .iter()
         .filter(|i| !i.control && in_window(i.t_s))
@@ -857,14 +890,33 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         fixes_filter_rejected: metrics_v.fixes_filter_rejected,
         fix_err_m: Stats::of(&fix_errs),
         fix_beyond_3sigma: accepted.iter().filter(|f| f.beyond_3sigma).count(),
-        nav_err_m: Stats::of(&inj_v.iter().map(|i| hnorm(&i.err_ned_m)).collect::<Vec<_>>()),
-        nav_vert_err_m: Stats::of(&inj_v.iter().map(|i| i.err_ned_m[2].abs()).collect::<Vec<_>>()),
-        nav_output_err_m: Stats::of(
-            &ws.iter().map(|s| hnorm(&s.vis_err_ned_m)).collect::<Vec<_>>(),
+        nav_err_m: Stats::of(
+            &inj_v
+                .iter()
+                .map(|i| hnorm(&i.err_ned_m))
+                .collect::<Vec<_>>(),
         ),
-        control_err_m: Stats::of(&ws.iter().map(|s| hnorm(&s.ctl_err_ned_m)).collect::<Vec<_>>()),
+        nav_vert_err_m: Stats::of(
+            &inj_v
+                .iter()
+                .map(|i| i.err_ned_m[2].abs())
+                .collect::<Vec<_>>(),
+        ),
+        nav_output_err_m: Stats::of(
+            &ws.iter()
+                .map(|s| hnorm(&s.vis_err_ned_m))
+                .collect::<Vec<_>>(),
+        ),
+        control_err_m: Stats::of(
+            &ws.iter()
+                .map(|s| hnorm(&s.ctl_err_ned_m))
+                .collect::<Vec<_>>(),
+        ),
         control_injected_err_m: Stats::of(
-            &inj_c.iter().map(|i| hnorm(&i.err_ned_m)).collect::<Vec<_>>(),
+            &inj_c
+                .iter()
+                .map(|i| hnorm(&i.err_ned_m))
+                .collect::<Vec<_>>(),
         ),
         max_err_m: MaxErr {
             vision: max_enu(&|s| s.vis_err_ned_m),
@@ -877,8 +929,14 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         injections: inj_v.len(),
         control_injections: inj_c.len(),
         rejections,
-        vision_final_health: steps.last().map(|s| s.vis_health.clone()).unwrap_or_default(),
-        control_final_health: steps.last().map(|s| s.ctl_health.clone()).unwrap_or_default(),
+        vision_final_health: steps
+            .last()
+            .map(|s| s.vis_health.clone())
+            .unwrap_or_default(),
+        control_final_health: steps
+            .last()
+            .map(|s| s.ctl_health.clone())
+            .unwrap_or_default(),
         report_dir: None,
     };
     if summary.injections == 0 {
@@ -895,7 +953,11 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     })
 }
 
-fn collect_injections(emu: &AutopilotEmulator, table: &TruthTable, control: bool) -> Vec<InjectionRow> {
+fn collect_injections(
+    emu: &AutopilotEmulator,
+    table: &TruthTable,
+    control: bool,
+) -> Vec<InjectionRow> {
     emu.received()
         .into_iter()
         .filter_map(|r| match r.msg {
@@ -930,7 +992,8 @@ fn score_fix(r: &FixRecord, table: &TruthTable, mount: &crate::camera::Mount) ->
     let (m_m, n_m) = radii_m(s.lat_deg);
     let cam = (
         s.lat_deg + (lever_ned.x / (m_m + s.alt_amsl_m)).to_degrees(),
-        s.lon_deg + (lever_ned.y / ((n_m + s.alt_amsl_m) * s.lat_deg.to_radians().cos())).to_degrees(),
+        s.lon_deg
+            + (lever_ned.y / ((n_m + s.alt_amsl_m) * s.lat_deg.to_radians().cos())).to_degrees(),
         s.alt_amsl_m - lever_ned.z,
     );
     let (err, sig, beyond) = if rep.accepted {
@@ -985,7 +1048,9 @@ mod tests {
             490.0,
         );
         let d = ned_diff_m(a, b);
-        assert!((d[0] - 100.0).abs() < 1e-6 && (d[1] - 50.0).abs() < 1e-6 && (d[2] - 10.0).abs() < 1e-9);
+        assert!(
+            (d[0] - 100.0).abs() < 1e-6 && (d[1] - 50.0).abs() < 1e-6 && (d[2] - 10.0).abs() < 1e-9
+        );
     }
 
     #[test]

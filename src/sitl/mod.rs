@@ -19,11 +19,11 @@
 pub mod autopilot;
 pub mod camera_sim;
 pub mod closed_loop;
-pub mod report;
 pub mod fixeval;
 pub mod imu;
 pub mod plot;
 pub mod render;
+pub mod report;
 pub mod rng;
 pub mod run;
 pub mod scenario;

@@ -208,11 +208,25 @@ pub fn track_png(run: &ClosedLoopRun) -> image::RgbImage {
         if !(lat.is_finite() && lon.is_finite()) {
             return (f64::NAN, f64::NAN);
         }
-        run.crs.from_geodetic(lat, lon).unwrap_or((f64::NAN, f64::NAN))
+        run.crs
+            .from_geodetic(lat, lon)
+            .unwrap_or((f64::NAN, f64::NAN))
     };
-    let truth = run.steps.iter().map(|r| xy(r.truth_lat_deg, r.truth_lon_deg)).collect();
-    let vis = run.steps.iter().map(|r| xy(r.vis_lat_deg, r.vis_lon_deg)).collect();
-    let ctl = run.steps.iter().map(|r| xy(r.ctl_lat_deg, r.ctl_lon_deg)).collect();
+    let truth = run
+        .steps
+        .iter()
+        .map(|r| xy(r.truth_lat_deg, r.truth_lon_deg))
+        .collect();
+    let vis = run
+        .steps
+        .iter()
+        .map(|r| xy(r.vis_lat_deg, r.vis_lon_deg))
+        .collect();
+    let ctl = run
+        .steps
+        .iter()
+        .map(|r| xy(r.ctl_lat_deg, r.ctl_lon_deg))
+        .collect();
     let fixes = run
         .fixes
         .iter()
@@ -228,18 +242,33 @@ pub fn track_png(run: &ClosedLoopRun) -> image::RgbImage {
     let spec = PlotSpec::new(
         1200,
         900,
-        format!("{}: track over the camera-year orthophoto", run.summary.scenario),
+        format!(
+            "{}: track over the camera-year orthophoto",
+            run.summary.scenario
+        ),
         "easting [m]",
         "northing [m]",
     );
-    plot::track(&spec, run.background.as_ref().map(|(i, e)| (i, *e)), &series)
+    plot::track(
+        &spec,
+        run.background.as_ref().map(|(i, e)| (i, *e)),
+        &series,
+    )
 }
 
 /// `errors.png`: horizontal error against time with visnav's 3-sigma bound and the outage start.
 pub fn errors_png(run: &ClosedLoopRun) -> image::RgbImage {
     let h = |e: &[f64; 3]| e[0].hypot(e[1]);
-    let vis: Vec<(f64, f64)> = run.steps.iter().map(|r| (r.t_s, h(&r.vis_err_ned_m))).collect();
-    let ctl: Vec<(f64, f64)> = run.steps.iter().map(|r| (r.t_s, h(&r.ctl_err_ned_m))).collect();
+    let vis: Vec<(f64, f64)> = run
+        .steps
+        .iter()
+        .map(|r| (r.t_s, h(&r.vis_err_ned_m)))
+        .collect();
+    let ctl: Vec<(f64, f64)> = run
+        .steps
+        .iter()
+        .map(|r| (r.t_s, h(&r.ctl_err_ned_m)))
+        .collect();
     let fixes: Vec<(f64, f64)> = run
         .fixes
         .iter()
@@ -289,7 +318,10 @@ pub fn errors_png(run: &ClosedLoopRun) -> image::RgbImage {
 /// Writes the whole report folder (text files and plots); returns the files written.
 pub fn write_report(run: &ClosedLoopRun, dir: &Path) -> Result<Vec<PathBuf>, ClosedLoopError> {
     let mut files = write_text_files(run, dir)?;
-    for (name, img) in [("track.png", track_png(run)), ("errors.png", errors_png(run))] {
+    for (name, img) in [
+        ("track.png", track_png(run)),
+        ("errors.png", errors_png(run)),
+    ] {
         let p = dir.join(name);
         plot::save_png(&img, &p).map_err(|e| ClosedLoopError::Setup(e.to_string()))?;
         files.push(p);

@@ -113,6 +113,20 @@ pub struct GpsConfig {
     /// `[nav] gps_lever_arm_body_frd_m`.
     #[serde(default)]
     pub lever_arm_body_frd_m: [f64; 3],
+    /// More outage windows `[[from_s, until_s], ...]` inside `from_s..until_s` (e.g. jamming
+    /// bursts), s.
+    #[serde(default)]
+    pub outages_s: Vec<[f64; 2]>,
+}
+
+impl GpsConfig {
+    /// Whether the receiver has a fix at `t_s`: inside `from_s..until_s` and outside every
+    /// `outages_s` window.
+    pub fn available(&self, t_s: f64) -> bool {
+        t_s >= self.from_s
+            && t_s < self.until_s
+            && !self.outages_s.iter().any(|w| t_s >= w[0] && t_s < w[1])
+    }
 }
 
 /// Frame of the simulated vision noise.
@@ -475,6 +489,10 @@ impl Validate for Scenario {
                 for v in g.lever_arm_body_frd_m {
                     p.range("lever_arm_body_frd_m", v, -100.0, 100.0);
                 }
+                for w in &g.outages_s {
+                    p.range("outages_s", w[0], 0.0, dur);
+                    p.range("outages_s", w[1], w[0], dur);
+                }
             });
         }
         if let Some(v) = &self.vision {
@@ -557,5 +575,68 @@ impl Validate for Scenario {
                 p.section("render", |p| c.render.validate(p));
             });
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bundled(name: &str) -> Scenario {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("sitl/scenarios")
+            .join(name);
+        Scenario::load(&p).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    #[test]
+    fn every_bundled_scenario_loads() {
+        for n in [
+            "seed_outage.toml",
+            "gps_calibration.toml",
+            "turns_vision_only.toml",
+            "closed_loop_demo.toml",
+            "closed_loop_long.toml",
+            "seed_outage_closed_loop.toml",
+        ] {
+            let sc = bundled(n);
+            assert_eq!(sc.closed_loop.is_some(), n.contains("closed_loop"), "{n}");
+        }
+    }
+
+    #[test]
+    fn gps_outage_windows() {
+        let mut sc = bundled("closed_loop_demo.toml");
+        let g = sc.gps.as_mut().unwrap();
+        g.outages_s = vec![[10.0, 12.0]];
+        assert!(g.available(9.99) && !g.available(10.0) && !g.available(11.9) && g.available(12.0));
+        assert!(!g.available(30.0), "the outage after until_s");
+        let text = std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("sitl/scenarios/closed_loop_demo.toml"),
+        )
+        .unwrap()
+        .replace(
+            "until_s = 30.0\n",
+            "until_s = 30.0\noutages_s = [[20.0, 10.0]]\n",
+        );
+        let e = Scenario::parse(&text, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("gps.outages_s"), "{e}");
+    }
+
+    #[test]
+    fn closed_loop_section_is_validated() {
+        let text = std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("sitl/scenarios/closed_loop_demo.toml"),
+        )
+        .unwrap();
+        let bad = text.replace("camera_rate_hz = 2.0", "camera_rate_hz = -2.0");
+        let e = Scenario::parse(&bad, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("closed_loop.camera_rate_hz"), "{e}");
+        let bad = text.replace("camera_ground_height_amsl_m = 580.0\n", "");
+        let e = Scenario::parse(&bad, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("closed_loop.camera_ground_height_amsl_m"), "{e}");
+        let bad = text.replace("control = true", "contrl = true");
+        let e = Scenario::parse(&bad, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("contrl"), "{e}");
     }
 }

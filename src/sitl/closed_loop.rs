@@ -427,6 +427,8 @@ pub struct StepRow {
 #[derive(Debug, Clone, Serialize)]
 pub struct InjectionRow {
     pub t_s: f64,
+    /// `gps_input`, `vision_position_estimate` or `odometry`.
+    pub kind: &'static str,
     pub lat_deg: f64,
     pub lon_deg: f64,
     pub alt_amsl_m: f64,
@@ -492,7 +494,12 @@ pub struct ClosedLoopSummary {
     pub control_injected_err_m: Stats,
     pub max_err_m: MaxErr,
     pub latency_ms: Latency,
+    /// Position messages of the scored kind received in the window.
     pub injections: usize,
+    /// The message `nav_err_m` scores (the first of `[output] modes`).
+    pub injected_message: String,
+    /// Every injected position message kind: (count, horizontal error stats) in the window.
+    pub nav_err_by_message: std::collections::BTreeMap<String, (usize, Stats)>,
     pub control_injections: usize,
     pub rejections: Vec<(String, usize)>,
     pub vision_final_health: String,
@@ -848,13 +855,30 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         }
     }
     rejections.sort_by_key(|r| std::cmp::Reverse(r.1));
+    // nav_err_m scores the first configured output message; every kind is in nav_err_by_message.
+    let scored_kind = match cfg.output.modes.first() {
+        Some(crate::config::OutputMode::VisionPositionEstimate) => "vision_position_estimate",
+        Some(crate::config::OutputMode::Odometry) => "odometry",
+        _ => "gps_input",
+    };
+    let mut nav_err_by_message = std::collections::BTreeMap::new();
+    for kind in ["gps_input", "vision_position_estimate", "odometry"] {
+        let e: Vec<f64> = injections
+            .iter()
+            .filter(|i| !i.control && i.kind == kind && in_window(i.t_s))
+            .map(|i| hnorm(&i.err_ned_m))
+            .collect();
+        if !e.is_empty() {
+            nav_err_by_message.insert(kind.to_string(), (e.len(), Stats::of(&e)));
+        }
+    }
     let inj_v: Vec<&InjectionRow> = injections
         .iter()
-        .filter(|i| !i.control && in_window(i.t_s))
+        .filter(|i| !i.control && i.kind == scored_kind && in_window(i.t_s))
         .collect();
     let inj_c: Vec<&InjectionRow> = injections
         .iter()
-        .filter(|i| i.control && in_window(i.t_s))
+        .filter(|i| i.control && i.kind == scored_kind && in_window(i.t_s))
         .collect();
     let ws: Vec<&StepRow> = steps.iter().filter(|s| in_window(s.t_s)).collect();
     let max_enu = |f: &dyn Fn(&StepRow) -> [f64; 3]| {
@@ -927,6 +951,8 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             p95: percentile(&lat, 0.95),
         },
         injections: inj_v.len(),
+        injected_message: scored_kind.to_string(),
+        nav_err_by_message,
         control_injections: inj_c.len(),
         rejections,
         vision_final_health: steps
@@ -953,33 +979,81 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     })
 }
 
+/// Every position injection the emulator received (GPS_INPUT with a 3D fix,
+/// VISION_POSITION_ESTIMATE, ODOMETRY), scored against the truth at its arrival. Local positions
+/// (VISION_POSITION_ESTIMATE, ODOMETRY: NED about the EKF origin) are compared in that frame with
+/// the origin in force when they arrived (SET_GPS_GLOBAL_ORIGIN as received).
 fn collect_injections(
     emu: &AutopilotEmulator,
     table: &TruthTable,
     control: bool,
 ) -> Vec<InjectionRow> {
-    emu.received()
-        .into_iter()
-        .filter_map(|r| match r.msg {
+    use crate::link::GeoOrigin;
+    use crate::link::inject::{local_ned_m, offset_geodetic};
+    let mut origin: Option<GeoOrigin> = None;
+    let mut rows = Vec::new();
+    for r in emu.received() {
+        let t = r.t_boot_us as f64 * 1e-6;
+        let s = table.at(t);
+        #[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: what ArduPilot acts on
+        let local = match &r.msg {
+            MavMessage::SET_GPS_GLOBAL_ORIGIN(o) => {
+                origin = Some(GeoOrigin {
+                    lat_deg: f64::from(o.latitude) * 1e-7,
+                    lon_deg: f64::from(o.longitude) * 1e-7,
+                    alt_amsl_m: f64::from(o.altitude) * 1e-3,
+                });
+                None
+            }
             MavMessage::GPS_INPUT(g) if g.fix_type as u8 >= 3 => {
-                let t = r.t_boot_us as f64 * 1e-6;
-                let s = table.at(t);
                 let (lat, lon) = (f64::from(g.lat) * 1e-7, f64::from(g.lon) * 1e-7);
                 let alt = f64::from(g.alt);
-                let err = ned_diff_m((s.lat_deg, s.lon_deg, s.alt_amsl_m), (lat, lon, alt));
-                Some(InjectionRow {
+                rows.push(InjectionRow {
                     t_s: t,
+                    kind: "gps_input",
                     lat_deg: lat,
                     lon_deg: lon,
                     alt_amsl_m: alt,
                     horiz_accuracy_m: f64::from(g.horiz_accuracy),
-                    err_ned_m: err,
+                    err_ned_m: ned_diff_m((s.lat_deg, s.lon_deg, s.alt_amsl_m), (lat, lon, alt)),
                     control,
-                })
+                });
+                None
             }
+            MavMessage::VISION_POSITION_ESTIMATE(v) => Some((
+                "vision_position_estimate",
+                [v.x, v.y, v.z],
+                f64::from(v.covariance[0].max(v.covariance[6])),
+            )),
+            MavMessage::ODOMETRY(o) => Some((
+                "odometry",
+                [o.x, o.y, o.z],
+                f64::from(o.pose_covariance[0].max(o.pose_covariance[6])),
+            )),
             _ => None,
-        })
-        .collect()
+        };
+        if let (Some((kind, xyz, var_h)), Some(o)) = (local, origin.as_ref()) {
+            let p = Vector3::new(f64::from(xyz[0]), f64::from(xyz[1]), f64::from(xyz[2]));
+            let truth = local_ned_m(o, s.lat_deg, s.lon_deg, s.alt_amsl_m);
+            let (lat, lon, alt) = offset_geodetic(o.lat_deg, o.lon_deg, o.alt_amsl_m, &p);
+            let e = p - truth;
+            rows.push(InjectionRow {
+                t_s: t,
+                kind,
+                lat_deg: lat,
+                lon_deg: lon,
+                alt_amsl_m: alt,
+                horiz_accuracy_m: if var_h.is_finite() && var_h >= 0.0 {
+                    var_h.sqrt()
+                } else {
+                    f64::NAN
+                },
+                err_ned_m: [e.x, e.y, e.z],
+                control,
+            });
+        }
+    }
+    rows
 }
 
 fn score_fix(r: &FixRecord, table: &TruthTable, mount: &crate::camera::Mount) -> FixRow {

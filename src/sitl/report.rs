@@ -112,14 +112,15 @@ pub fn fixes_csv(run: &ClosedLoopRun) -> String {
 /// `injections.csv`.
 pub fn injections_csv(run: &ClosedLoopRun) -> String {
     let mut s = String::from(
-        "t_s,run,lat_deg,lon_deg,alt_amsl_m,horiz_accuracy_m,err_n_m,err_e_m,err_d_m\n",
+        "t_s,run,message,lat_deg,lon_deg,alt_amsl_m,horiz_accuracy_m,err_n_m,err_e_m,err_d_m\n",
     );
     for r in &run.injections {
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{}",
             f(r.t_s),
             if r.control { "control" } else { "vision" },
+            r.kind,
             deg(r.lat_deg),
             deg(r.lon_deg),
             f(r.alt_amsl_m),

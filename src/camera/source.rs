@@ -38,9 +38,12 @@
 use std::fs::File;
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStderr, ChildStdout, Command, Stdio};
+use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
 use serde::Deserialize;
+use tracing::{debug, info};
 
 use crate::config::{Problems, Validate};
 use crate::vision::GrayImage;
@@ -102,6 +105,8 @@ pub enum FrameError {
     NotBuilt { kind: &'static str, reason: String },
     #[error("frames: {0}")]
     Config(String),
+    #[error("{command}: {reason}")]
+    Command { command: String, reason: String },
 }
 
 /// A source of camera frames (blocking I/O).
@@ -127,10 +132,13 @@ pub enum SourceKind {
     Directory,
     /// YUV4MPEG2 file.
     Y4m,
-    /// Video4Linux2 live capture (not built).
-    V4l2,
-    /// GStreamer pipeline (not built).
+    /// A capture process writing YUV4MPEG2 to stdout (`command = [...]`).
+    Command,
+    /// A GStreamer pipeline run by `gst-launch-1.0` (`pipeline = "..."`), see
+    /// [`gstreamer_command`].
     Gstreamer,
+    /// Video4Linux2 direct capture (not built into this binary).
+    V4l2,
 }
 
 /// Which clock the frames are stamped with.
@@ -149,10 +157,27 @@ pub enum StampMode {
 #[derive(Debug, Clone, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct FramesConfig {
-    /// `directory` (with `frames.csv`) or `y4m`.
+    /// `directory` (with `frames.csv`), `y4m`, `command` or `gstreamer`.
     pub source: SourceKind,
     /// The directory or the `.y4m` file; relative to the config file's folder unless absolute.
+    /// Not used by `command` / `gstreamer`.
+    #[serde(default)]
     pub path: PathBuf,
+    /// `command`: the program and its arguments (no shell). A relative program path containing
+    /// a `/` is relative to the config file's folder; a bare name is looked up in `PATH`.
+    #[serde(default)]
+    pub command: Vec<String>,
+    /// `gstreamer`: the pipeline up to the raw video (e.g. `"v4l2src device=/dev/video0"`); the
+    /// conversion to I420 y4m on stdout is appended.
+    #[serde(default)]
+    pub pipeline: Option<String>,
+    /// `command` / `gstreamer`: no frame for this long is an error (the process is stopped), s.
+    #[serde(default = "default_timeout_s")]
+    pub timeout_s: f64,
+    /// `command` / `gstreamer`: time from exposure to the frame's arrival, subtracted from the
+    /// arrival stamp, s.
+    #[serde(default)]
+    pub latency_s: f64,
     /// Capture-time clock.
     #[serde(default)]
     pub stamp: StampMode,
@@ -180,6 +205,15 @@ fn default_max_age_s() -> f64 {
 fn default_workers() -> usize {
     1
 }
+fn default_timeout_s() -> f64 {
+    5.0
+}
+
+/// Is `prog` an executable name found in `PATH`?
+fn in_path(prog: &str) -> bool {
+    std::env::var_os("PATH")
+        .is_some_and(|p| std::env::split_paths(&p).any(|d| d.join(prog).is_file()))
+}
 
 impl FramesConfig {
     /// Defaults for a source at `path`.
@@ -187,6 +221,10 @@ impl FramesConfig {
         Self {
             source,
             path: path.into(),
+            command: Vec::new(),
+            pipeline: None,
+            timeout_s: default_timeout_s(),
+            latency_s: 0.0,
             stamp: StampMode::Arrival,
             realtime: true,
             rate_hz: None,
@@ -195,11 +233,53 @@ impl FramesConfig {
         }
     }
 
+    /// A capture process source (`command` or `gstreamer`) with this argv.
+    pub fn command(argv: &[&str]) -> Self {
+        let mut c = Self::new(SourceKind::Command, "");
+        c.command = argv.iter().map(|a| a.to_string()).collect();
+        c
+    }
+
+    /// The argv run for `command` / `gstreamer` (empty for the other sources).
+    pub fn argv(&self) -> Vec<String> {
+        match (self.source, &self.pipeline) {
+            (SourceKind::Command, _) => self.command.clone(),
+            (SourceKind::Gstreamer, Some(p)) => gstreamer_command(p),
+            _ => Vec::new(),
+        }
+    }
+
     /// Validate, checking the path against `base` (the config file's folder).
     pub fn validate_in(&self, base: &Path, p: &mut Problems) {
         self.validate(p);
         let full = crate::config::resolve(base, &self.path);
+        let needs_path = matches!(self.source, SourceKind::Directory | SourceKind::Y4m);
+        if needs_path && self.path.as_os_str().is_empty() {
+            return; // reported by validate()
+        }
         match self.source {
+            SourceKind::Command | SourceKind::Gstreamer => {
+                if let Some(prog) = self.argv().first().filter(|s| !s.is_empty()) {
+                    let found = if prog.contains('/') {
+                        crate::config::resolve(base, Path::new(prog)).is_file()
+                    } else {
+                        in_path(prog)
+                    };
+                    if !found {
+                        let key = if self.source == SourceKind::Command {
+                            "command"
+                        } else {
+                            "pipeline"
+                        };
+                        p.push(
+                            key,
+                            format!(
+                                "the program \"{prog}\" is not found (not a file / not in PATH)"
+                            ),
+                        );
+                    }
+                }
+            }
             SourceKind::Directory => {
                 if !full.is_dir() {
                     p.push("path", format!("{} is not a directory", full.display()));
@@ -212,32 +292,87 @@ impl FramesConfig {
                     p.push("path", format!("{} is not a file", full.display()));
                 }
             }
-            SourceKind::V4l2 | SourceKind::Gstreamer => {}
+            SourceKind::V4l2 => {}
         }
     }
 
-    /// Make `path` absolute against `base`.
+    /// Make `path` (and a relative program path in `command`) absolute against `base`.
     pub fn resolve_paths(&mut self, base: &Path) {
-        self.path = crate::config::resolve(base, &self.path);
+        if !self.path.as_os_str().is_empty() {
+            self.path = crate::config::resolve(base, &self.path);
+        }
+        if let Some(prog) = self.command.first_mut()
+            && prog.contains('/')
+        {
+            *prog = crate::config::resolve(base, Path::new(prog.as_str()))
+                .to_string_lossy()
+                .into_owned();
+        }
     }
 }
 
 impl Validate for FramesConfig {
     fn validate(&self, p: &mut Problems) {
+        let kind = format!("{:?}", self.source).to_lowercase();
+        let live = matches!(self.source, SourceKind::Command | SourceKind::Gstreamer);
         match self.source {
-            SourceKind::V4l2 | SourceKind::Gstreamer => p.push(
+            SourceKind::V4l2 => p.push(
                 "source",
-                format!(
-                    "{:?}: live capture is not built into this binary; use \"directory\" or \"y4m\"",
-                    self.source
+                "v4l2: direct V4L2 capture is not built into this binary; use source = \"gstreamer\" \
+                 (pipeline = \"v4l2src device=/dev/video0\") or \"command\"",
+            ),
+            SourceKind::Directory | SourceKind::Y4m if self.path.as_os_str().is_empty() => {
+                p.push("path", format!("required with source = \"{kind}\""))
+            }
+            SourceKind::Command if self.command.first().is_none_or(|c| c.is_empty()) => p.push(
+                "command",
+                "required with source = \"command\": the program and its arguments, e.g. \
+                 [\"ffmpeg\", \"-f\", \"v4l2\", \"-i\", \"/dev/video0\", \"-f\", \"yuv4mpegpipe\", \"-\"]",
+            ),
+            SourceKind::Gstreamer if self.pipeline.as_deref().is_none_or(|s| s.trim().is_empty()) => {
+                p.push(
+                    "pipeline",
+                    "required with source = \"gstreamer\", e.g. \"v4l2src device=/dev/video0\"",
                 )
-                .to_lowercase(),
-            ),
-            SourceKind::Y4m if self.stamp == StampMode::Source => p.push(
-                "stamp",
-                "\"source\" needs autopilot boot times, which a y4m file does not carry; use \"arrival\"",
-            ),
+            }
             _ => {}
+        }
+        if self.stamp == StampMode::Source && self.source != SourceKind::Directory {
+            p.push(
+                "stamp",
+                format!(
+                    "\"source\" needs autopilot boot times, which a {kind} source does not carry; \
+                     use \"arrival\""
+                ),
+            );
+        }
+        if !self.command.is_empty() && self.source != SourceKind::Command {
+            p.push(
+                "command",
+                format!("only used with source = \"command\", not \"{kind}\""),
+            );
+        }
+        if self.pipeline.is_some() && self.source != SourceKind::Gstreamer {
+            p.push(
+                "pipeline",
+                format!("only used with source = \"gstreamer\", not \"{kind}\""),
+            );
+        }
+        if live {
+            if !self.path.as_os_str().is_empty() {
+                p.push("path", format!("not used with source = \"{kind}\""));
+            }
+            if self.rate_hz.is_some() {
+                p.push(
+                    "rate_hz",
+                    format!(
+                        "not used with source = \"{kind}\": the process sets the rate (replay a \
+                         video at its rate with ffmpeg -re)"
+                    ),
+                );
+            }
+            p.range("timeout_s", self.timeout_s, 0.1, 600.0);
+            p.range("latency_s", self.latency_s, 0.0, 10.0);
         }
         if let Some(r) = self.rate_hz {
             p.range("rate_hz", r, 0.01, 1000.0);
@@ -257,14 +392,24 @@ pub fn open(cfg: &FramesConfig) -> Result<Box<dyn FrameSource>, FrameError> {
         SourceKind::V4l2 => {
             return Err(FrameError::NotBuilt {
                 kind: "v4l2",
-                reason: "no V4L2 capture backend is compiled in".into(),
+                reason: "no direct V4L2 backend is compiled in; use source = \"gstreamer\" \
+                         or \"command\""
+                    .into(),
             });
         }
-        SourceKind::Gstreamer => {
-            return Err(FrameError::NotBuilt {
-                kind: "gstreamer",
-                reason: "no GStreamer backend is compiled in".into(),
-            });
+        SourceKind::Command | SourceKind::Gstreamer => {
+            if cfg.stamp != StampMode::Arrival {
+                return Err(FrameError::Config(
+                    "stamp = \"source\" needs a directory source with t_boot_us times".into(),
+                ));
+            }
+            // Live: stamped on arrival by the source itself, never paced.
+            return Ok(Box::new(CommandSource::spawn(
+                &cfg.argv(),
+                cfg.timeout_s,
+                cfg.latency_s,
+                !cfg.realtime,
+            )?));
         }
     };
     let stamp_arrival = cfg.stamp == StampMode::Arrival;
@@ -579,10 +724,11 @@ fn layout(c: &str) -> Option<Layout> {
     })
 }
 
-/// A YUV4MPEG2 file (see the module docs).
+/// A YUV4MPEG2 stream (see the module docs): a file ([`Y4mSource::open`]) or any reader
+/// ([`Y4mSource::from_reader`], e.g. a capture process's stdout).
 pub struct Y4mSource {
     path: PathBuf,
-    r: BufReader<File>,
+    r: Box<dyn BufRead + Send>,
     width: usize,
     height: usize,
     fps: f64,
@@ -591,6 +737,10 @@ pub struct Y4mSource {
     next: u64,
     buf: Vec<u8>,
 }
+
+/// Largest frame accepted from a y4m stream, pixels (8192 x 8192): a corrupt header cannot
+/// make the reader allocate gigabytes.
+pub const MAX_Y4M_PIXELS: usize = 1 << 26;
 
 /// Read one '\n'-terminated line of at most `max` bytes; None at a clean EOF.
 fn read_line_limited(r: &mut impl BufRead, max: usize) -> std::io::Result<Option<Vec<u8>>> {
@@ -603,13 +753,18 @@ fn read_line_limited(r: &mut impl BufRead, max: usize) -> std::io::Result<Option
 }
 
 impl Y4mSource {
-    /// Open and parse the stream header.
+    /// Open a file and parse the stream header.
     pub fn open(path: &Path) -> Result<Self, FrameError> {
         let f = File::open(path).map_err(|source| FrameError::Io {
             path: path.to_path_buf(),
             source,
         })?;
-        let mut r = BufReader::new(f);
+        Self::from_reader(Box::new(BufReader::new(f)), path)
+    }
+
+    /// Parse the stream header from `r`; `path` names the stream in errors (a file name, or a
+    /// description of a process). Blocks until the header line arrived.
+    pub fn from_reader(mut r: Box<dyn BufRead + Send>, path: &Path) -> Result<Self, FrameError> {
         let herr = |reason: String| FrameError::Y4mHeader {
             path: path.to_path_buf(),
             reason,
@@ -625,6 +780,9 @@ impl Y4mSource {
                 "header line is not terminated within 1024 bytes".into(),
             ));
         }
+        if line.contains(&0) {
+            return Err(herr("header contains NUL bytes (binary data)".into()));
+        }
         let text = std::str::from_utf8(&line[..line.len() - 1])
             .map_err(|_| herr("header is not ASCII".into()))?;
         let mut tok = text.split(' ').filter(|t| !t.is_empty());
@@ -633,11 +791,14 @@ impl Y4mSource {
         }
         let (mut w, mut h, mut fps, mut colour) = (None, None, None, "420".to_string());
         for t in tok {
-            let (k, v) = t.split_at(1);
+            // Split after the first character (a byte split could cut a UTF-8 character).
+            let mut chars = t.chars();
+            let k = chars.next().unwrap_or(' ');
+            let v = chars.as_str();
             match k {
-                "W" => w = v.parse::<usize>().ok(),
-                "H" => h = v.parse::<usize>().ok(),
-                "F" => {
+                'W' => w = v.parse::<usize>().ok(),
+                'H' => h = v.parse::<usize>().ok(),
+                'F' => {
                     fps = v.split_once(':').and_then(|(n, d)| {
                         let n: f64 = n.parse().ok()?;
                         let d: f64 = d.parse().ok()?;
@@ -649,7 +810,7 @@ impl Y4mSource {
                         )));
                     }
                 }
-                "C" => colour = v.to_string(),
+                'C' => colour = v.to_string(),
                 _ => {} // I (interlacing), A (aspect), X (comments): irrelevant for luma
             }
         }
@@ -658,6 +819,11 @@ impl Y4mSource {
         let (Some(width), Some(height)) = (width, height) else {
             return Err(herr("W and H must be present and within 1..=16384".into()));
         };
+        if width * height > MAX_Y4M_PIXELS {
+            return Err(herr(format!(
+                "{width}x{height} exceeds the {MAX_Y4M_PIXELS} pixels accepted per frame"
+            )));
+        }
         let lay = layout(&colour)
             .ok_or_else(|| herr(format!("colour space \"C{colour}\" is not supported")))?;
         Ok(Self {
@@ -676,6 +842,16 @@ impl Y4mSource {
     /// Image size, pixels.
     pub fn size(&self) -> (usize, usize) {
         (self.width, self.height)
+    }
+
+    /// Frame rate of the header (25 when absent), Hz.
+    pub fn fps(&self) -> f64 {
+        self.fps
+    }
+
+    /// The header's colour space (`C` parameter; `420` when absent).
+    pub fn colour(&self) -> &str {
+        &self.colour
     }
 
     fn ferr(&self, reason: String) -> FrameError {
@@ -749,6 +925,440 @@ impl FrameSource for Y4mSource {
 
     fn rate_hz(&self) -> Option<f64> {
         Some(self.fps)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Capture process (live capture through GStreamer, ffmpeg or any program writing y4m)
+
+/// How long [`CommandSource`] waits for the process to exit after its output ended.
+const EXIT_WAIT: Duration = Duration::from_secs(2);
+/// Bytes of the process's stderr kept for error messages.
+const STDERR_TAIL_BYTES: usize = 2048;
+
+/// The argv of `source = "gstreamer"`: `gst-launch-1.0 -q <pipeline> ! videoconvert !
+/// video/x-raw,format=I420 ! y4menc ! fdsink fd=1` (`-q`: gst-launch prints nothing else on
+/// stdout). The pipeline is split at whitespace into arguments, as a shell would without quotes
+/// (gst-launch escapes the spaces inside one argument); use `source = "command"` for a pipeline
+/// that needs quoting.
+pub fn gstreamer_command(pipeline: &str) -> Vec<String> {
+    let tail = "! videoconvert ! video/x-raw,format=I420 ! y4menc ! fdsink fd=1";
+    ["gst-launch-1.0", "-q"]
+        .into_iter()
+        .chain(pipeline.split_whitespace())
+        .chain(tail.split(' '))
+        .map(str::to_string)
+        .collect()
+}
+
+/// Shell-like rendering of an argv for messages.
+fn show_argv(argv: &[String]) -> String {
+    argv.iter()
+        .map(|a| {
+            if !a.is_empty()
+                && a.chars()
+                    .all(|c| c.is_ascii_alphanumeric() || "-_./=:,!+@%".contains(c))
+            {
+                a.clone()
+            } else {
+                format!("'{}'", a.replace('\'', "'\\''"))
+            }
+        })
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+#[derive(Default)]
+struct PumpState {
+    /// The newest complete frame not yet taken.
+    frame: Option<Frame>,
+    /// Set once the stream ended: `Ok` for a clean end, else the error.
+    end: Option<Result<(), FrameError>>,
+    /// Header facts, once parsed: (width, height, fps, colour).
+    header: Option<(usize, usize, f64, String)>,
+    /// Frames replaced before they were taken.
+    dropped: u64,
+    /// The consumer is gone (stop reading).
+    stop: bool,
+}
+
+struct Pump {
+    state: Mutex<PumpState>,
+    cv: Condvar,
+}
+
+impl Pump {
+    fn lock(&self) -> std::sync::MutexGuard<'_, PumpState> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// Live frames from a capture process: runs `argv` (no shell) with stdout piped, reads the
+/// YUV4MPEG2 stream it writes with [`Y4mSource`] on a pump thread, and stamps each frame with the
+/// companion clock when its last byte arrived, minus `latency_s`. The pump reads continuously, so
+/// frames never wait in the pipe (which would make the arrival stamps late); when the consumer is
+/// slower, the newest frame replaces the waiting one (`lossless = false`) or the pump waits
+/// (`lossless = true`, for replay commands; the process is then throttled by the pipe).
+///
+/// Errors name the command and carry its exit status and the tail of its stderr: a process that
+/// cannot start, exits or stops writing for `timeout_s`, or writes something that is not y4m. A
+/// clean end (exit status 0 at a frame boundary) is the end of the stream (`Ok(None)`).
+/// The process is killed when the source is dropped. It is started directly (not through a
+/// shell); a `sh -c` wrapper should `exec` the program so that the kill reaches it.
+pub struct CommandSource {
+    label: String,
+    child: Arc<Mutex<Child>>,
+    pump: Arc<Pump>,
+    stderr_tail: Arc<Mutex<Vec<u8>>>,
+    timeout: Duration,
+    next_seq: u64,
+    reported_dropped: u64,
+}
+
+impl CommandSource {
+    /// Start `argv` (`argv[0]` is looked up in `PATH` unless it contains a `/`).
+    pub fn spawn(
+        argv: &[String],
+        timeout_s: f64,
+        latency_s: f64,
+        lossless: bool,
+    ) -> Result<Self, FrameError> {
+        let label = format!("capture command `{}`", show_argv(argv));
+        let cerr = |reason: String| FrameError::Command {
+            command: label.clone(),
+            reason,
+        };
+        let Some((prog, args)) = argv.split_first() else {
+            return Err(cerr("frames.command is empty".into()));
+        };
+        if !(timeout_s.is_finite() && timeout_s > 0.0)
+            || !(latency_s.is_finite() && latency_s >= 0.0)
+        {
+            return Err(cerr(format!(
+                "timeout_s = {timeout_s} must be > 0 and latency_s = {latency_s} >= 0"
+            )));
+        }
+        let mut child = Command::new(prog)
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .map_err(|e| cerr(format!("cannot start \"{prog}\": {e}")))?;
+        let (Some(stdout), Some(stderr)) = (child.stdout.take(), child.stderr.take()) else {
+            let _ = child.kill();
+            let _ = child.wait();
+            return Err(cerr("no stdout/stderr pipe".into())); // ok: piped above; defensive
+        };
+        info!(pid = child.id(), "{label} started");
+        let child = Arc::new(Mutex::new(child));
+        let stderr_tail = Arc::new(Mutex::new(Vec::new()));
+        let pump = Arc::new(Pump {
+            state: Mutex::new(PumpState::default()),
+            cv: Condvar::new(),
+        });
+        let me = Self {
+            label: label.clone(),
+            child: child.clone(),
+            pump: pump.clone(),
+            stderr_tail: stderr_tail.clone(),
+            timeout: Duration::from_secs_f64(timeout_s.min(3600.0)),
+            next_seq: 0,
+            reported_dropped: 0,
+        };
+        let tail = stderr_tail.clone();
+        let lab = label.clone();
+        std::thread::Builder::new()
+            .name("visnav-capture-stderr".into())
+            .spawn(move || drain_stderr(stderr, &tail, &lab))
+            .map_err(|e| cerr(format!("cannot start a thread: {e}")))?;
+        let ctx = PumpCtx {
+            label: label.clone(),
+            child,
+            pump,
+            stderr_tail,
+            latency: Duration::from_secs_f64(latency_s.min(10.0)),
+            lossless,
+        };
+        std::thread::Builder::new()
+            .name("visnav-capture".into())
+            .spawn(move || ctx.run(stdout))
+            .map_err(|e| cerr(format!("cannot start a thread: {e}")))?;
+        Ok(me)
+    }
+
+    fn kill(&self) {
+        let mut c = self.child.lock().unwrap_or_else(|e| e.into_inner());
+        if matches!(c.try_wait(), Ok(None)) {
+            let _ = c.kill();
+        }
+        let _ = c.wait();
+    }
+
+    fn error(&self, reason: String) -> FrameError {
+        FrameError::Command {
+            command: self.label.clone(),
+            reason: with_stderr(reason, &self.stderr_tail),
+        }
+    }
+}
+
+/// Keep the last [`STDERR_TAIL_BYTES`] of the process's stderr; log each line at debug level.
+fn drain_stderr(stderr: ChildStderr, tail: &Mutex<Vec<u8>>, label: &str) {
+    let mut r = BufReader::new(stderr);
+    loop {
+        match read_line_limited(&mut r, 4096) {
+            Ok(Some(line)) => {
+                let text = String::from_utf8_lossy(&line);
+                debug!("{label} stderr: {}", text.trim_end());
+                let mut t = tail.lock().unwrap_or_else(|e| e.into_inner());
+                t.extend_from_slice(&line);
+                if t.len() > STDERR_TAIL_BYTES {
+                    let cut = t.len() - STDERR_TAIL_BYTES;
+                    t.drain(..cut);
+                }
+            }
+            Ok(None) | Err(_) => return,
+        }
+    }
+}
+
+/// `reason` plus the stderr tail, if any.
+fn with_stderr(reason: String, tail: &Mutex<Vec<u8>>) -> String {
+    let t = tail.lock().unwrap_or_else(|e| e.into_inner());
+    let text = String::from_utf8_lossy(&t);
+    let text = text.trim();
+    if text.is_empty() {
+        format!("{reason}; its stderr is empty")
+    } else {
+        format!(
+            "{reason}; its stderr ends with: {}",
+            text.replace('\n', " | ")
+        )
+    }
+}
+
+struct PumpCtx {
+    label: String,
+    child: Arc<Mutex<Child>>,
+    pump: Arc<Pump>,
+    stderr_tail: Arc<Mutex<Vec<u8>>>,
+    latency: Duration,
+    lossless: bool,
+}
+
+impl PumpCtx {
+    fn stopped(&self) -> bool {
+        self.pump.lock().stop
+    }
+
+    fn finish(&self, end: Result<(), FrameError>) {
+        let mut g = self.pump.lock();
+        g.end.get_or_insert(end);
+        self.pump.cv.notify_all();
+    }
+
+    /// Exit status once the process exited (waiting up to [`EXIT_WAIT`]); `None`: still running
+    /// (then killed).
+    fn exit_status(&self) -> Option<std::process::ExitStatus> {
+        let t0 = Instant::now();
+        loop {
+            {
+                let mut c = self.child.lock().unwrap_or_else(|e| e.into_inner());
+                if let Ok(Some(s)) = c.try_wait() {
+                    return Some(s);
+                }
+                if t0.elapsed() >= EXIT_WAIT {
+                    let _ = c.kill();
+                    let _ = c.wait();
+                    return None;
+                }
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// End with an error carrying the exit status and stderr. `garbage`: the output is not y4m,
+    /// so the process is stopped at once instead of waiting for it to exit.
+    fn fail(&self, what: String, garbage: bool) {
+        if self.stopped() {
+            return;
+        }
+        if garbage {
+            let mut c = self.child.lock().unwrap_or_else(|e| e.into_inner());
+            if matches!(c.try_wait(), Ok(None)) {
+                let _ = c.kill();
+            }
+        }
+        let status = match self.exit_status() {
+            Some(s) => format!("the process exited ({s})"),
+            None => "the process was still running and was stopped".into(),
+        };
+        // Give the stderr thread a moment to collect the last words.
+        std::thread::sleep(Duration::from_millis(50));
+        self.finish(Err(FrameError::Command {
+            command: self.label.clone(),
+            reason: with_stderr(format!("{what}; {status}"), &self.stderr_tail),
+        }));
+    }
+
+    fn run(self, stdout: ChildStdout) {
+        let name = PathBuf::from(&self.label);
+        let reader = Box::new(BufReader::with_capacity(1 << 20, stdout));
+        let mut y4m = match Y4mSource::from_reader(reader, &name) {
+            Ok(y) => y,
+            Err(FrameError::Io { source, .. }) => {
+                return self.fail(format!("reading its output: {source}"), false);
+            }
+            Err(FrameError::Y4mHeader { reason, .. }) if reason.contains("empty") => {
+                return self.fail("its output ended before a YUV4MPEG2 header".into(), false);
+            }
+            Err(FrameError::Y4mHeader { reason, .. }) => {
+                return self.fail(
+                    format!(
+                        "its output is not YUV4MPEG2 ({reason}); the pipeline must end in \
+                     `y4menc ! fdsink fd=1` (gst-launch-1.0 with -q) or `-f yuv4mpegpipe -` \
+                     (ffmpeg) and print nothing else on stdout"
+                    ),
+                    true,
+                );
+            }
+            Err(e) => return self.fail(e.to_string(), true),
+        };
+        let (w, h) = y4m.size();
+        self.pump.lock().header = Some((w, h, y4m.fps(), y4m.colour().to_string()));
+        loop {
+            match y4m.next_frame() {
+                Ok(Some(mut f)) => {
+                    let arrival = Instant::now();
+                    f.t_capture = CaptureTime::Companion(
+                        arrival.checked_sub(self.latency).unwrap_or(arrival),
+                    );
+                    let mut g = self.pump.lock();
+                    while self.lossless && g.frame.is_some() && !g.stop {
+                        g = self
+                            .pump
+                            .cv
+                            .wait_timeout(g, Duration::from_millis(100))
+                            .map(|r| r.0)
+                            .unwrap_or_else(|e| e.into_inner().0);
+                    }
+                    if g.stop {
+                        return;
+                    }
+                    if g.frame.replace(f).is_some() {
+                        g.dropped += 1;
+                    }
+                    self.pump.cv.notify_all();
+                }
+                Ok(None) => {
+                    if self.stopped() {
+                        return;
+                    }
+                    match self.exit_status() {
+                        Some(s) if s.success() => {
+                            info!("{}: end of its output ({s})", self.label);
+                            return self.finish(Ok(()));
+                        }
+                        _ => return self.fail("its output ended".into(), false),
+                    }
+                }
+                Err(FrameError::Y4mFrame { frame, reason, .. }) => {
+                    let garbage = !reason.contains("truncated");
+                    return self.fail(format!("frame {frame}: {reason}"), garbage);
+                }
+                Err(e) => return self.fail(e.to_string(), true),
+            }
+        }
+    }
+}
+
+impl FrameSource for CommandSource {
+    fn next_frame(&mut self) -> Result<Option<Frame>, FrameError> {
+        let deadline = Instant::now() + self.timeout;
+        let mut g = self.pump.lock();
+        loop {
+            if let Some(mut f) = g.frame.take() {
+                self.pump.cv.notify_all();
+                if g.dropped > self.reported_dropped {
+                    debug!(
+                        "{}: {} frames replaced before they were taken",
+                        self.label, g.dropped
+                    );
+                    self.reported_dropped = g.dropped;
+                }
+                drop(g);
+                f.seq = self.next_seq;
+                self.next_seq += 1;
+                return Ok(Some(f));
+            }
+            if let Some(end) = &g.end {
+                return match end {
+                    Ok(()) => Ok(None),
+                    Err(FrameError::Command { command, reason }) => Err(FrameError::Command {
+                        command: command.clone(),
+                        reason: reason.clone(),
+                    }),
+                    Err(e) => Err(self.error(e.to_string())),
+                };
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                drop(g);
+                let what = if self.next_seq == 0 {
+                    "no frame"
+                } else {
+                    "no new frame"
+                };
+                let reason = with_stderr(
+                    format!(
+                        "{what} for {:.1} s (frames.timeout_s); the process was stopped",
+                        self.timeout.as_secs_f64()
+                    ),
+                    &self.stderr_tail,
+                );
+                self.kill();
+                let mut g = self.pump.lock();
+                g.stop = true;
+                g.end = Some(Err(FrameError::Command {
+                    command: self.label.clone(),
+                    reason: reason.clone(),
+                }));
+                self.pump.cv.notify_all();
+                return Err(FrameError::Command {
+                    command: self.label.clone(),
+                    reason,
+                });
+            }
+            g = self
+                .pump
+                .cv
+                .wait_timeout(g, deadline - now)
+                .map(|r| r.0)
+                .unwrap_or_else(|e| e.into_inner().0);
+        }
+    }
+
+    fn describe(&self) -> String {
+        match &self.pump.lock().header {
+            Some((w, h, fps, c)) => format!("{} ({w}x{h} C{c}, {fps:.3} fps)", self.label),
+            None => format!("{} (no header yet)", self.label),
+        }
+    }
+
+    fn rate_hz(&self) -> Option<f64> {
+        self.pump.lock().header.as_ref().map(|h| h.2)
+    }
+}
+
+impl Drop for CommandSource {
+    fn drop(&mut self) {
+        {
+            let mut g = self.pump.lock();
+            g.stop = true;
+            self.pump.cv.notify_all();
+        }
+        self.kill();
     }
 }
 

@@ -67,8 +67,10 @@ fn http(addr: SocketAddr, request: &[u8]) -> (String, String, String) {
     (status.to_string(), headers.to_string(), body.to_string())
 }
 
+/// Label pairs of a sample.
+type Labels = Vec<(String, String)>;
 /// A parsed sample: metric name and labels (sorted) -> value.
-type Samples = BTreeMap<(String, Vec<(String, String)>), f64>;
+type Samples = BTreeMap<(String, Labels), f64>;
 
 fn valid_name(n: &str) -> bool {
     let mut c = n.chars();
@@ -78,7 +80,7 @@ fn valid_name(n: &str) -> bool {
 }
 
 /// Parse `{k="v",...}` with the format's escapes; returns the labels and the rest of the line.
-fn parse_labels(s: &str) -> Result<(Vec<(String, String)>, &str), String> {
+fn parse_labels(s: &str) -> Result<(Labels, &str), String> {
     let mut labels = Vec::new();
     let b = s.as_bytes();
     let mut i = 1; // after '{'

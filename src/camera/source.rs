@@ -4,7 +4,38 @@
 //! Sources:
 //! * [`DirectorySource`]: an image directory with a `frames.csv` timestamps file (format below).
 //! * [`Y4mSource`]: a YUV4MPEG2 (`.y4m`) file; only the luma plane is used.
-//! * Live capture (V4L2, GStreamer) is not built into this binary: [`open`] reports it clearly.
+//! * [`CommandSource`]: live capture through a capture process that writes YUV4MPEG2 to its
+//!   stdout (`source = "command"`, or `source = "gstreamer"` which runs `gst-launch-1.0`).
+//! * Direct V4L2 capture (`source = "v4l2"`) is not built into this binary: [`open`] and the
+//!   validation say so and point to `gstreamer` / `command` (`v4l2src` reads the same devices).
+//!
+//! # Live capture (`command`, `gstreamer`)
+//! ```toml
+//! [frames]
+//! source = "gstreamer"
+//! pipeline = "v4l2src device=/dev/video0 ! video/x-raw,width=1280,height=960,framerate=10/1"
+//! latency_s = 0.03   # exposure to arrival, subtracted from the arrival stamp (default 0)
+//! timeout_s = 5.0    # no frame for this long: error, the process is stopped (default 5)
+//! ```
+//! runs `gst-launch-1.0 -q <pipeline> ! videoconvert ! video/x-raw,format=I420 ! y4menc ! fdsink
+//! fd=1` ([`gstreamer_command`]; the pipeline is split at whitespace). Any other program:
+//! ```toml
+//! [frames]
+//! source = "command"
+//! command = ["ffmpeg", "-loglevel", "error", "-f", "v4l2", "-i", "/dev/video0",
+//!            "-pix_fmt", "gray", "-f", "yuv4mpegpipe", "-"]
+//! ```
+//! The program is started without a shell (a relative path with a `/` is relative to the config
+//! file's folder, a bare name is looked up in `PATH`), with stdin closed, stdout read as y4m and
+//! stderr kept (its tail goes into error messages, its lines into the debug log). Frames are
+//! stamped with the companion clock when their last byte arrives, minus `latency_s`; a pump
+//! thread reads continuously, so a frame never waits in the pipe (which would make its stamp
+//! late): with `realtime = true` (default) a frame not yet taken is replaced by the newer one,
+//! with `realtime = false` the pump waits (for replay commands; `rate_hz` is not used: the
+//! process sets the rate, e.g. `ffmpeg -re`). The process is killed when the source is dropped
+//! (daemon shutdown). Errors name the command, its exit status and its stderr: a program that
+//! cannot start, output that is not y4m, a process that exits (exit status 0 at a frame boundary
+//! is the clean end of the stream), and no frame within `timeout_s`.
 //!
 //! # `frames.csv`
 //! ```text
@@ -27,7 +58,7 @@
 //! `420mpeg2`, `420` (the default), `422`, `444`, `444alpha`, `mono` (8 bit) and the 16-bit
 //! containers `420p10/12/16`, `422p10/12/16`, `444p10/12/16`, `mono16` (little endian, scaled to
 //! 0..255). Luma values are used as they are (no limited-range expansion of 16..235 video).
-//! Frame rate from `F` unless `rate_hz` overrides it.
+//! Frame rate from `F` unless `rate_hz` overrides it. At most [`MAX_Y4M_PIXELS`] per frame.
 //!
 //! # Capture time
 //! [`CaptureTime::AutopilotBootUs`] when the source knows the autopilot boot time of the capture,
@@ -1031,9 +1062,9 @@ impl CommandSource {
         let Some((prog, args)) = argv.split_first() else {
             return Err(cerr("frames.command is empty".into()));
         };
-        if !(timeout_s.is_finite() && timeout_s > 0.0)
-            || !(latency_s.is_finite() && latency_s >= 0.0)
-        {
+        let sane =
+            timeout_s.is_finite() && timeout_s > 0.0 && latency_s.is_finite() && latency_s >= 0.0;
+        if !sane {
             return Err(cerr(format!(
                 "timeout_s = {timeout_s} must be > 0 and latency_s = {latency_s} >= 0"
             )));

@@ -309,3 +309,107 @@ fn gstreamer_videotestsrc_pipeline() {
     assert!(changed >= 10, "the ball does not move: {changed}");
     assert!(s.describe().contains("160x120"));
 }
+
+/// Counts frames and rejects them (tests the plumbing, not the vision fix).
+struct CountingFixer(std::sync::atomic::AtomicU64);
+
+impl visnav::daemon::FrameFixer for CountingFixer {
+    fn fix(&self, image: &GrayImage, prior: &visnav::fix::FixPrior) -> visnav::fix::FixReport {
+        assert_eq!((image.width(), image.height()), (32, 24));
+        self.0.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        visnav::fix::FixReport::rejected("test engine: no map", prior.t_capture_us, 0.0)
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn daemon_runs_a_live_capture_process_and_kills_it_on_shutdown() {
+    use std::sync::Arc;
+    use visnav::config::{LinkConfig, OutputConfig, OutputMode};
+    use visnav::daemon::{Daemon, DaemonConfig, DaemonSetup};
+    use visnav::sitl::autopilot::{AutopilotEmulator, ConstantVelocity, EmulatorConfig};
+
+    let d = tempfile::tempdir().unwrap();
+    // One 32x24 frame, written again and again at about 20 Hz by a shell loop.
+    let clip = d.path().join("one.y4m");
+    write_y4m(&clip, &[img(32, 24, 1)], 20, 1).unwrap();
+    let bytes = std::fs::read(&clip).unwrap();
+    let split = bytes.iter().position(|&b| b == b'\n').unwrap() + 1;
+    std::fs::write(d.path().join("header"), &bytes[..split]).unwrap();
+    std::fs::write(d.path().join("frame"), &bytes[split..]).unwrap();
+    let pid_file = d.path().join("pid");
+    let script = "echo $$ > pid; cat header; while cat frame; do sleep 0.05; done";
+    let mut frames = FramesConfig::command(&[
+        "sh",
+        "-c",
+        &format!("cd '{}' && {script}", d.path().display()),
+    ]);
+    frames.max_age_s = 5.0;
+
+    let port = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let truth = ConstantVelocity {
+        lat_deg: 46.9,
+        lon_deg: -96.8,
+        alt_amsl_m: 400.0,
+        vel_ned_m_s: [8.0, -3.0, 0.0],
+        yaw_rad: 0.7,
+    };
+    let emu = AutopilotEmulator::start(
+        EmulatorConfig::new(&format!("udpout:127.0.0.1:{port}")),
+        truth,
+    )
+    .await
+    .unwrap();
+    let setup = DaemonSetup {
+        link: LinkConfig::new(&format!("udpin:127.0.0.1:{port}")),
+        output: OutputConfig {
+            modes: vec![OutputMode::GpsInput],
+            gps_id: 1,
+            ..OutputConfig::default()
+        },
+        nav: visnav::nav::NavConfig {
+            max_imu_gap_s: 0.5,
+            ..Default::default()
+        },
+        daemon: DaemonConfig {
+            imu_timeout_s: 1.0,
+            ..DaemonConfig::default()
+        },
+        frames: Some(frames),
+    };
+    let fixer = Arc::new(CountingFixer(Default::default()));
+    let daemon = Daemon::start(setup, Some(fixer.clone())).await.unwrap();
+    let t0 = Instant::now();
+    while daemon.metrics().fixes_attempted < 10 {
+        assert!(
+            t0.elapsed() < Duration::from_secs(20),
+            "no fixes from the capture process: {:?}",
+            daemon.metrics()
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let m = daemon.shutdown().await;
+    emu.stop();
+    eprintln!(
+        "frames in {}, attempted {}, superseded {}, stale {}, no time {}",
+        m.frames_in, m.fixes_attempted, m.frames_superseded, m.frames_stale, m.frames_no_time
+    );
+    assert!(m.frames_in >= 10 && m.frame_errors == 0, "{m:?}");
+    assert_eq!(
+        m.engine_rejected.get("test engine: no map").copied(),
+        Some(fixer.0.load(std::sync::atomic::Ordering::Relaxed)),
+        "{m:?}"
+    );
+    let pid: u32 = std::fs::read_to_string(&pid_file)
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap();
+    assert!(
+        !Path::new(&format!("/proc/{pid}")).exists(),
+        "capture process {pid} still alive after the daemon's shutdown"
+    );
+}

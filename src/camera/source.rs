@@ -205,10 +205,19 @@ pub struct FramesConfig {
     /// `command` / `gstreamer`: no frame for this long is an error (the process is stopped), s.
     #[serde(default = "default_timeout_s")]
     pub timeout_s: f64,
-    /// `command` / `gstreamer`: time from exposure to the frame's arrival, subtracted from the
-    /// arrival stamp, s.
+    /// `command` / `gstreamer` / `v4l2`: time from exposure to the frame's arrival (or to the
+    /// driver's timestamp), subtracted from the stamp, s.
     #[serde(default)]
     pub latency_s: f64,
+    /// `v4l2`: capture width, pixels (must match the camera calibration).
+    #[serde(default)]
+    pub width_px: Option<usize>,
+    /// `v4l2`: capture height, pixels.
+    #[serde(default)]
+    pub height_px: Option<usize>,
+    /// `v4l2`: pixel format asked from the device: `"YUYV"` (default), `"GREY"` or `"MJPG"`.
+    #[serde(default)]
+    pub pixel_format: PixelFormat,
     /// Capture-time clock.
     #[serde(default)]
     pub stamp: StampMode,
@@ -256,6 +265,9 @@ impl FramesConfig {
             pipeline: None,
             timeout_s: default_timeout_s(),
             latency_s: 0.0,
+            width_px: None,
+            height_px: None,
+            pixel_format: PixelFormat::default(),
             stamp: StampMode::Arrival,
             realtime: true,
             rate_hz: None,
@@ -347,11 +359,25 @@ impl Validate for FramesConfig {
         let kind = format!("{:?}", self.source).to_lowercase();
         let live = matches!(self.source, SourceKind::Command | SourceKind::Gstreamer);
         match self.source {
-            SourceKind::V4l2 => p.push(
+            SourceKind::V4l2 if !cfg!(feature = "v4l2") => p.push(
                 "source",
-                "v4l2: direct V4L2 capture is not built into this binary; use source = \"gstreamer\" \
-                 (pipeline = \"v4l2src device=/dev/video0\") or \"command\"",
+                "v4l2: direct V4L2 capture is not built into this binary (cargo feature \"v4l2\"); \
+                 use source = \"gstreamer\" (pipeline = \"v4l2src device=/dev/video0\") or \"command\"",
             ),
+            SourceKind::V4l2 => {
+                if self.path.as_os_str().is_empty() {
+                    p.push("path", "required with source = \"v4l2\": the device, e.g. /dev/video0");
+                }
+                for (k, v) in [("width_px", self.width_px), ("height_px", self.height_px)] {
+                    match v {
+                        None => p.push(k, "required with source = \"v4l2\""),
+                        Some(v) if !(1..=16384).contains(&v) => {
+                            p.push(k, format!("{v} is outside [1, 16384]"))
+                        }
+                        Some(_) => {}
+                    }
+                }
+            }
             SourceKind::Directory | SourceKind::Y4m if self.path.as_os_str().is_empty() => {
                 p.push("path", format!("required with source = \"{kind}\""))
             }
@@ -389,6 +415,20 @@ impl Validate for FramesConfig {
                 format!("only used with source = \"gstreamer\", not \"{kind}\""),
             );
         }
+        if self.source != SourceKind::V4l2 {
+            for (k, v) in [("width_px", self.width_px), ("height_px", self.height_px)] {
+                if v.is_some() {
+                    p.push(
+                        k,
+                        format!("only used with source = \"v4l2\", not \"{kind}\""),
+                    );
+                }
+            }
+        }
+        if self.source == SourceKind::V4l2 {
+            p.range("timeout_s", self.timeout_s, 0.1, 600.0);
+            p.range("latency_s", self.latency_s, 0.0, 10.0);
+        }
         if live {
             if !self.path.as_os_str().is_empty() {
                 p.push("path", format!("not used with source = \"{kind}\""));
@@ -420,13 +460,35 @@ pub fn open(cfg: &FramesConfig) -> Result<Box<dyn FrameSource>, FrameError> {
     let inner: Box<dyn FrameSource> = match cfg.source {
         SourceKind::Directory => Box::new(DirectorySource::open(&cfg.path)?),
         SourceKind::Y4m => Box::new(Y4mSource::open(&cfg.path)?),
+        #[cfg(not(feature = "v4l2"))]
         SourceKind::V4l2 => {
             return Err(FrameError::NotBuilt {
                 kind: "v4l2",
-                reason: "no direct V4L2 backend is compiled in; use source = \"gstreamer\" \
-                         or \"command\""
+                reason: "no direct V4L2 backend is compiled in (cargo feature \"v4l2\"); use \
+                         source = \"gstreamer\" or \"command\""
                     .into(),
             });
+        }
+        #[cfg(feature = "v4l2")]
+        SourceKind::V4l2 => {
+            if cfg.stamp != StampMode::Arrival {
+                return Err(FrameError::Config(
+                    "stamp = \"source\" needs a directory source with t_boot_us times".into(),
+                ));
+            }
+            let (Some(w), Some(h)) = (cfg.width_px, cfg.height_px) else {
+                return Err(FrameError::Config(
+                    "source = \"v4l2\" needs width_px and height_px".into(),
+                ));
+            };
+            return Ok(Box::new(V4l2Source::open(
+                &cfg.path,
+                w,
+                h,
+                cfg.pixel_format,
+                cfg.timeout_s,
+                cfg.latency_s,
+            )?));
         }
         SourceKind::Command | SourceKind::Gstreamer => {
             if cfg.stamp != StampMode::Arrival {
@@ -1393,6 +1455,522 @@ impl Drop for CommandSource {
     }
 }
 
+// ---------------------------------------------------------------------------------------------
+// V4L2 (direct capture with the `v4l2` cargo feature)
+
+/// Pixel format asked from a V4L2 device (`pixel_format`; only the luma is used).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+pub enum PixelFormat {
+    /// 8-bit gray (`GREY`).
+    #[serde(rename = "GREY")]
+    Grey,
+    /// Packed 4:2:2 `Y0 U Y1 V` (`YUYV`), what most USB (UVC) cameras give uncompressed.
+    #[default]
+    #[serde(rename = "YUYV")]
+    Yuyv,
+    /// Motion JPEG (`MJPG`), decoded with the `image` crate.
+    #[serde(rename = "MJPG")]
+    Mjpg,
+}
+
+/// The V4L2 kernel ABI used by the `v4l2` feature (linux/videodev2.h, 64-bit Linux), written out
+/// by hand: the `v4l` crate generates it with bindgen, which needs libclang at build time. The
+/// sizes and ioctl numbers are checked against the kernel's values in the tests.
+pub mod v4l2_abi {
+    #![allow(dead_code)] // used by the `v4l2` feature only
+
+    /// `v4l2_fourcc(a, b, c, d)`.
+    pub const fn fourcc(c: &[u8; 4]) -> u32 {
+        (c[0] as u32) | ((c[1] as u32) << 8) | ((c[2] as u32) << 16) | ((c[3] as u32) << 24)
+    }
+    pub const PIX_FMT_GREY: u32 = fourcc(b"GREY");
+    pub const PIX_FMT_YUYV: u32 = fourcc(b"YUYV");
+    pub const PIX_FMT_MJPEG: u32 = fourcc(b"MJPG");
+    pub const BUF_TYPE_VIDEO_CAPTURE: u32 = 1;
+    pub const MEMORY_MMAP: u32 = 1;
+    pub const FIELD_ANY: u32 = 0;
+    pub const CAP_VIDEO_CAPTURE: u32 = 0x0000_0001;
+    pub const CAP_STREAMING: u32 = 0x0400_0000;
+    pub const CAP_DEVICE_CAPS: u32 = 0x8000_0000;
+    pub const BUF_FLAG_ERROR: u32 = 0x0000_0040;
+    pub const BUF_FLAG_TIMESTAMP_MASK: u32 = 0x0000_e000;
+    pub const BUF_FLAG_TIMESTAMP_MONOTONIC: u32 = 0x0000_2000;
+
+    /// `_IOC(dir, 'V', nr, size)` (asm-generic: dir bits 30..32, size 16..30, type 8..16).
+    const fn ioc(dir: u64, nr: u64, size: usize) -> u64 {
+        (dir << 30) | ((size as u64) << 16) | ((b'V' as u64) << 8) | nr
+    }
+    const R: u64 = 2;
+    const W: u64 = 1;
+    pub const VIDIOC_QUERYCAP: u64 = ioc(R, 0, size_of::<Capability>());
+    pub const VIDIOC_S_FMT: u64 = ioc(R | W, 5, size_of::<Format>());
+    pub const VIDIOC_REQBUFS: u64 = ioc(R | W, 8, size_of::<RequestBuffers>());
+    pub const VIDIOC_QUERYBUF: u64 = ioc(R | W, 9, size_of::<Buffer>());
+    pub const VIDIOC_QBUF: u64 = ioc(R | W, 15, size_of::<Buffer>());
+    pub const VIDIOC_DQBUF: u64 = ioc(R | W, 17, size_of::<Buffer>());
+    pub const VIDIOC_STREAMON: u64 = ioc(W, 18, size_of::<i32>());
+    pub const VIDIOC_STREAMOFF: u64 = ioc(W, 19, size_of::<i32>());
+
+    /// `struct v4l2_capability`.
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, Default)]
+    pub struct Capability {
+        pub driver: [u8; 16],
+        pub card: [u8; 32],
+        pub bus_info: [u8; 32],
+        pub version: u32,
+        pub capabilities: u32,
+        pub device_caps: u32,
+        pub reserved: [u32; 3],
+    }
+
+    /// `struct v4l2_pix_format`.
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, Default)]
+    pub struct PixFormat {
+        pub width: u32,
+        pub height: u32,
+        pub pixelformat: u32,
+        pub field: u32,
+        pub bytesperline: u32,
+        pub sizeimage: u32,
+        pub colorspace: u32,
+        pub priv_: u32,
+        pub flags: u32,
+        pub ycbcr_enc: u32,
+        pub quantization: u32,
+        pub xfer_func: u32,
+    }
+
+    /// `struct v4l2_format` with the `pix` member of its 200-byte union (8-byte aligned on
+    /// 64-bit: hence the padding after `type_`).
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy)]
+    pub struct Format {
+        pub type_: u32,
+        pub pad: u32,
+        pub pix: PixFormat,
+        pub rest: [u8; 200 - 48],
+    }
+
+    impl Default for Format {
+        fn default() -> Self {
+            Self {
+                type_: 0,
+                pad: 0,
+                pix: PixFormat::default(),
+                rest: [0; 152],
+            }
+        }
+    }
+
+    /// `struct v4l2_requestbuffers`.
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, Default)]
+    pub struct RequestBuffers {
+        pub count: u32,
+        pub type_: u32,
+        pub memory: u32,
+        pub capabilities: u32,
+        pub flags: u8,
+        pub reserved: [u8; 3],
+    }
+
+    /// `struct v4l2_timecode`.
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, Default)]
+    pub struct Timecode {
+        pub type_: u32,
+        pub flags: u32,
+        pub frames: u8,
+        pub seconds: u8,
+        pub minutes: u8,
+        pub hours: u8,
+        pub userbits: [u8; 4],
+    }
+
+    /// `struct v4l2_buffer` (single-planar; `m` is the union of offset / userptr / fd).
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, Default)]
+    pub struct Buffer {
+        pub index: u32,
+        pub type_: u32,
+        pub bytesused: u32,
+        pub flags: u32,
+        pub field: u32,
+        /// `struct timeval` (tv_sec, tv_usec) of the 64-bit ABI.
+        pub timestamp: [i64; 2],
+        pub timecode: Timecode,
+        pub sequence: u32,
+        pub memory: u32,
+        /// `m.offset` in the low 32 bits (little endian) for MMAP buffers.
+        pub m: u64,
+        pub length: u32,
+        pub reserved2: u32,
+        pub request_fd: i32,
+    }
+}
+
+/// The luma plane of a frame as delivered by a V4L2 device: `GREY` and `YUYV` with a row stride
+/// of `bytes_per_line` (`0`: packed), `MJPG` decoded. Errors say what does not fit.
+pub fn v4l2_luma(
+    fmt: PixelFormat,
+    data: &[u8],
+    width: usize,
+    height: usize,
+    bytes_per_line: usize,
+) -> Result<GrayImage, String> {
+    let row_bytes = match fmt {
+        PixelFormat::Grey => width,
+        PixelFormat::Yuyv => 2 * width,
+        PixelFormat::Mjpg => {
+            let img = image::load_from_memory_with_format(data, image::ImageFormat::Jpeg)
+                .map_err(|e| format!("MJPG frame of {} bytes: {e}", data.len()))?;
+            let g = GrayImage::from_dynamic(&img);
+            if (g.width(), g.height()) != (width, height) {
+                return Err(format!(
+                    "MJPG frame is {}x{}, the format is {width}x{height}",
+                    g.width(),
+                    g.height()
+                ));
+            }
+            return Ok(g);
+        }
+    };
+    let stride = if bytes_per_line == 0 {
+        row_bytes
+    } else {
+        bytes_per_line
+    };
+    if stride < row_bytes {
+        return Err(format!(
+            "bytes per line {stride} < {row_bytes} for {width} pixels"
+        ));
+    }
+    let need = stride * height.saturating_sub(1) + row_bytes;
+    if height == 0 || width == 0 || data.len() < need {
+        return Err(format!(
+            "{} bytes, {need} needed for {width}x{height} {fmt:?}",
+            data.len()
+        ));
+    }
+    let step = if fmt == PixelFormat::Yuyv { 2 } else { 1 };
+    let mut out = Vec::with_capacity(width * height);
+    for row in data.chunks(stride).take(height) {
+        out.extend(row[..row_bytes].iter().step_by(step).map(|&v| f32::from(v)));
+    }
+    GrayImage::new(width, height, out).map_err(|e| e.to_string())
+}
+
+#[cfg(feature = "v4l2")]
+pub use v4l2_capture::V4l2Source;
+
+#[cfg(feature = "v4l2")]
+mod v4l2_capture {
+    use super::v4l2_abi::*;
+    use super::*;
+    use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+
+    /// Direct V4L2 capture (`source = "v4l2"`, cargo feature `v4l2`): memory-mapped streaming
+    /// I/O with 4 buffers. The frame's capture time is the driver's buffer timestamp when it is
+    /// on CLOCK_MONOTONIC (the clock of `std::time::Instant` on Linux), else its arrival, minus
+    /// `latency_s`.
+    pub struct V4l2Source {
+        device: PathBuf,
+        fd: OwnedFd,
+        buffers: Vec<(*mut libc::c_void, usize)>,
+        fmt: PixelFormat,
+        width: usize,
+        height: usize,
+        bytes_per_line: usize,
+        timeout: Duration,
+        latency: Duration,
+        seq: u64,
+        streaming: bool,
+    }
+
+    // The mapped buffers belong to this source only (moved to the reader thread, never shared).
+    unsafe impl Send for V4l2Source {}
+
+    fn ioctl<T>(fd: i32, req: u64, arg: &mut T) -> std::io::Result<()> {
+        loop {
+            // SAFETY: `arg` is the #[repr(C)] struct the request number encodes (size checked
+            // in the tests); the kernel writes at most size_of::<T>() bytes.
+            let r = unsafe { libc::ioctl(fd, req as _, arg as *mut T) };
+            if r != -1 {
+                return Ok(());
+            }
+            let e = std::io::Error::last_os_error();
+            if e.kind() != std::io::ErrorKind::Interrupted {
+                return Err(e);
+            }
+        }
+    }
+
+    impl V4l2Source {
+        /// Open `device`, set `width` x `height` in `fmt`, map the buffers and start streaming.
+        pub fn open(
+            device: &Path,
+            width: usize,
+            height: usize,
+            fmt: PixelFormat,
+            timeout_s: f64,
+            latency_s: f64,
+        ) -> Result<Self, FrameError> {
+            let err = |what: &str, e: std::io::Error| FrameError::Io {
+                path: device.to_path_buf(),
+                source: std::io::Error::new(e.kind(), format!("{what}: {e}")),
+            };
+            let cpath =
+                std::ffi::CString::new(device.as_os_str().as_encoded_bytes()).map_err(|_| {
+                    FrameError::Config(format!("{}: NUL in the path", device.display()))
+                })?;
+            // SAFETY: a valid C string; the returned descriptor is owned below.
+            let raw = unsafe {
+                libc::open(
+                    cpath.as_ptr(),
+                    libc::O_RDWR | libc::O_NONBLOCK | libc::O_CLOEXEC,
+                )
+            };
+            if raw < 0 {
+                return Err(err("open", std::io::Error::last_os_error()));
+            }
+            // SAFETY: `raw` is a fresh descriptor nobody else owns.
+            let fd = unsafe { OwnedFd::from_raw_fd(raw) };
+            let mut me = Self {
+                device: device.to_path_buf(),
+                fd,
+                buffers: Vec::new(),
+                fmt,
+                width,
+                height,
+                bytes_per_line: 0,
+                timeout: Duration::from_secs_f64(timeout_s.clamp(0.1, 600.0)),
+                latency: Duration::from_secs_f64(latency_s.clamp(0.0, 10.0)),
+                seq: 0,
+                streaming: false,
+            };
+            let fd = me.fd.as_raw_fd();
+            let mut cap = Capability::default();
+            ioctl(fd, VIDIOC_QUERYCAP, &mut cap)
+                .map_err(|e| err("not a V4L2 device (VIDIOC_QUERYCAP)", e))?;
+            let caps = if cap.capabilities & CAP_DEVICE_CAPS != 0 {
+                cap.device_caps
+            } else {
+                cap.capabilities
+            };
+            let card = String::from_utf8_lossy(&cap.card)
+                .trim_end_matches('\0')
+                .to_string();
+            if caps & CAP_VIDEO_CAPTURE == 0 || caps & CAP_STREAMING == 0 {
+                return Err(FrameError::Config(format!(
+                    "{} ({card}) is not a video capture device with streaming I/O",
+                    device.display()
+                )));
+            }
+            let fourcc = match fmt {
+                PixelFormat::Grey => PIX_FMT_GREY,
+                PixelFormat::Yuyv => PIX_FMT_YUYV,
+                PixelFormat::Mjpg => PIX_FMT_MJPEG,
+            };
+            let mut f = Format {
+                type_: BUF_TYPE_VIDEO_CAPTURE,
+                ..Format::default()
+            };
+            f.pix.width = width as u32;
+            f.pix.height = height as u32;
+            f.pix.pixelformat = fourcc;
+            f.pix.field = FIELD_ANY;
+            ioctl(fd, VIDIOC_S_FMT, &mut f).map_err(|e| err("VIDIOC_S_FMT", e))?;
+            if f.pix.pixelformat != fourcc
+                || (f.pix.width as usize, f.pix.height as usize) != (width, height)
+            {
+                let got = f.pix.pixelformat.to_le_bytes();
+                return Err(FrameError::Config(format!(
+                    "{} ({card}) does not capture {width}x{height} {fmt:?}: it offers {}x{} {} \
+                     (the camera calibration must match the capture size)",
+                    device.display(),
+                    f.pix.width,
+                    f.pix.height,
+                    String::from_utf8_lossy(&got)
+                )));
+            }
+            me.bytes_per_line = f.pix.bytesperline as usize;
+            let mut req = RequestBuffers {
+                count: 4,
+                type_: BUF_TYPE_VIDEO_CAPTURE,
+                memory: MEMORY_MMAP,
+                ..RequestBuffers::default()
+            };
+            ioctl(fd, VIDIOC_REQBUFS, &mut req).map_err(|e| err("VIDIOC_REQBUFS", e))?;
+            if req.count < 2 {
+                return Err(FrameError::Config(format!(
+                    "{}: only {} capture buffers",
+                    device.display(),
+                    req.count
+                )));
+            }
+            for i in 0..req.count {
+                let mut b = Buffer {
+                    index: i,
+                    type_: BUF_TYPE_VIDEO_CAPTURE,
+                    memory: MEMORY_MMAP,
+                    ..Buffer::default()
+                };
+                ioctl(fd, VIDIOC_QUERYBUF, &mut b).map_err(|e| err("VIDIOC_QUERYBUF", e))?;
+                let len = b.length as usize;
+                let offset = (b.m & 0xffff_ffff) as libc::off_t;
+                // SAFETY: maps the driver's buffer `i` (length and offset from QUERYBUF);
+                // unmapped in Drop.
+                let p = unsafe {
+                    libc::mmap(
+                        std::ptr::null_mut(),
+                        len,
+                        libc::PROT_READ | libc::PROT_WRITE,
+                        libc::MAP_SHARED,
+                        fd,
+                        offset,
+                    )
+                };
+                if p == libc::MAP_FAILED {
+                    return Err(err("mmap", std::io::Error::last_os_error()));
+                }
+                me.buffers.push((p, len));
+                ioctl(fd, VIDIOC_QBUF, &mut b).map_err(|e| err("VIDIOC_QBUF", e))?;
+            }
+            let mut t = BUF_TYPE_VIDEO_CAPTURE as i32;
+            ioctl(fd, VIDIOC_STREAMON, &mut t).map_err(|e| err("VIDIOC_STREAMON", e))?;
+            me.streaming = true;
+            info!("{}: V4L2 capture from {card}", me.describe());
+            Ok(me)
+        }
+
+        fn ferr(&self, reason: String) -> FrameError {
+            FrameError::Image {
+                path: self.device.clone(),
+                frame: self.seq,
+                reason,
+            }
+        }
+    }
+
+    /// The CLOCK_MONOTONIC time `tv` as an `Instant` (None when in the future or unreadable).
+    fn monotonic_instant(tv: [i64; 2]) -> Option<Instant> {
+        let now_i = Instant::now();
+        let mut ts = libc::timespec {
+            tv_sec: 0,
+            tv_nsec: 0,
+        };
+        // SAFETY: writes one timespec.
+        if unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) } != 0 {
+            return None;
+        }
+        let now_ns = i128::from(ts.tv_sec) * 1_000_000_000 + i128::from(ts.tv_nsec);
+        let t_ns = i128::from(tv[0]) * 1_000_000_000 + i128::from(tv[1]) * 1000;
+        let age_ns = u64::try_from(now_ns - t_ns).ok()?;
+        now_i.checked_sub(Duration::from_nanos(age_ns))
+    }
+
+    impl FrameSource for V4l2Source {
+        fn next_frame(&mut self) -> Result<Option<Frame>, FrameError> {
+            let fd = self.fd.as_raw_fd();
+            let deadline = Instant::now() + self.timeout;
+            let mut b = loop {
+                let mut b = Buffer {
+                    type_: BUF_TYPE_VIDEO_CAPTURE,
+                    memory: MEMORY_MMAP,
+                    ..Buffer::default()
+                };
+                match ioctl(fd, VIDIOC_DQBUF, &mut b) {
+                    Ok(()) => break b,
+                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
+                    Err(e) => {
+                        return Err(FrameError::Io {
+                            path: self.device.clone(),
+                            source: e,
+                        });
+                    }
+                }
+                let left = deadline.saturating_duration_since(Instant::now());
+                if left.is_zero() {
+                    return Err(self.ferr(format!(
+                        "no frame for {:.1} s (frames.timeout_s)",
+                        self.timeout.as_secs_f64()
+                    )));
+                }
+                let mut pfd = libc::pollfd {
+                    fd,
+                    events: libc::POLLIN,
+                    revents: 0,
+                };
+                // SAFETY: one pollfd.
+                unsafe { libc::poll(&mut pfd, 1, left.as_millis().min(1000) as i32) };
+            };
+            let arrival = Instant::now();
+            let idx = b.index as usize;
+            let result = match self.buffers.get(idx) {
+                Some(&(p, len)) if b.flags & BUF_FLAG_ERROR == 0 => {
+                    let used = (b.bytesused as usize).min(len);
+                    // SAFETY: buffer `idx` is mapped with `len` bytes and dequeued (the driver
+                    // does not write it until it is queued again below).
+                    let data = unsafe { std::slice::from_raw_parts(p as *const u8, used) };
+                    v4l2_luma(self.fmt, data, self.width, self.height, self.bytes_per_line)
+                }
+                Some(_) => Err("the driver flagged the buffer as corrupt".to_string()),
+                None => Err(format!("buffer index {idx} out of range")),
+            };
+            let stamp = if b.flags & BUF_FLAG_TIMESTAMP_MASK == BUF_FLAG_TIMESTAMP_MONOTONIC {
+                monotonic_instant(b.timestamp).unwrap_or(arrival)
+            } else {
+                arrival
+            };
+            if idx < self.buffers.len() {
+                ioctl(fd, VIDIOC_QBUF, &mut b).map_err(|e| FrameError::Io {
+                    path: self.device.clone(),
+                    source: e,
+                })?;
+            }
+            let seq = self.seq;
+            self.seq += 1;
+            let image = result.map_err(|r| FrameError::Image {
+                path: self.device.clone(),
+                frame: seq,
+                reason: r,
+            })?;
+            Ok(Some(Frame {
+                image,
+                t_capture: CaptureTime::Companion(stamp.checked_sub(self.latency).unwrap_or(stamp)),
+                t_rel_s: 0.0,
+                seq,
+            }))
+        }
+
+        fn describe(&self) -> String {
+            format!(
+                "V4L2 {} ({}x{} {:?})",
+                self.device.display(),
+                self.width,
+                self.height,
+                self.fmt
+            )
+        }
+    }
+
+    impl Drop for V4l2Source {
+        fn drop(&mut self) {
+            let fd = self.fd.as_raw_fd();
+            if self.streaming {
+                let mut t = BUF_TYPE_VIDEO_CAPTURE as i32;
+                let _ = ioctl(fd, VIDIOC_STREAMOFF, &mut t);
+            }
+            for &(p, len) in &self.buffers {
+                // SAFETY: mapped in open() with this length; not used after this.
+                unsafe { libc::munmap(p, len) };
+            }
+        }
+    }
+}
+
 /// Write frames as a YUV4MPEG2 file (`C420jpeg`, neutral chroma): for tests and recordings.
 pub fn write_y4m(
     path: &Path,
@@ -1672,5 +2250,124 @@ mod tests {
         let c: FramesConfig =
             toml::from_str("source = \"directory\"\npath = \"a\"\nrealtime = false\n").unwrap();
         assert!(!c.realtime && c.workers == 1 && c.stamp == StampMode::Arrival);
+    }
+
+    #[test]
+    fn v4l2_abi_matches_the_kernel() {
+        use v4l2_abi::*;
+        // Sizes and request numbers of linux/videodev2.h on 64-bit Linux.
+        assert_eq!(size_of::<Capability>(), 104);
+        assert_eq!(size_of::<Format>(), 208);
+        assert_eq!(size_of::<RequestBuffers>(), 20);
+        assert_eq!(size_of::<Buffer>(), 88);
+        assert_eq!(std::mem::offset_of!(Buffer, timestamp), 24);
+        assert_eq!(std::mem::offset_of!(Buffer, m), 64);
+        assert_eq!(VIDIOC_QUERYCAP, 0x8068_5600);
+        assert_eq!(VIDIOC_S_FMT, 0xc0d0_5605);
+        assert_eq!(VIDIOC_REQBUFS, 0xc014_5608);
+        assert_eq!(VIDIOC_QUERYBUF, 0xc058_5609);
+        assert_eq!(VIDIOC_QBUF, 0xc058_560f);
+        assert_eq!(VIDIOC_DQBUF, 0xc058_5611);
+        assert_eq!(VIDIOC_STREAMON, 0x4004_5612);
+        assert_eq!(VIDIOC_STREAMOFF, 0x4004_5613);
+        assert_eq!(PIX_FMT_YUYV, 0x5659_5559);
+        assert_eq!(PIX_FMT_GREY, 0x5945_5247);
+        assert_eq!(PIX_FMT_MJPEG, 0x4750_4a4d);
+    }
+
+    #[test]
+    fn v4l2_luma_of_grey_yuyv_and_mjpg() {
+        // GREY 3x2 with a stride of 4 (one padding byte per row).
+        let grey = [10u8, 20, 30, 99, 40, 50, 60];
+        let g = v4l2_luma(PixelFormat::Grey, &grey, 3, 2, 4).unwrap();
+        assert_eq!(g.data(), &[10.0, 20.0, 30.0, 40.0, 50.0, 60.0]);
+        // YUYV 2x2 packed: Y0 U Y1 V.
+        let yuyv = [1u8, 128, 2, 128, 3, 128, 4, 128];
+        let g = v4l2_luma(PixelFormat::Yuyv, &yuyv, 2, 2, 0).unwrap();
+        assert_eq!(g.data(), &[1.0, 2.0, 3.0, 4.0]);
+        // Short buffer, stride too small, empty size: errors, no panic.
+        let e = v4l2_luma(PixelFormat::Yuyv, &yuyv[..7], 2, 2, 0).unwrap_err();
+        assert!(e.contains("7 bytes"), "{e}");
+        assert!(v4l2_luma(PixelFormat::Yuyv, &yuyv, 2, 2, 3).is_err());
+        assert!(v4l2_luma(PixelFormat::Grey, &grey, 0, 2, 0).is_err());
+        // MJPG: a JPEG of a smooth gradient decodes to about the same luma.
+        let src = image::GrayImage::from_fn(16, 8, |x, y| image::Luma([(x * 12 + y * 4) as u8]));
+        let mut jpg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpg, 95)
+            .encode_image(&src)
+            .unwrap();
+        let g = v4l2_luma(PixelFormat::Mjpg, &jpg, 16, 8, 0).unwrap();
+        let err = g
+            .data()
+            .iter()
+            .zip(src.as_raw())
+            .map(|(a, &b)| (a - f32::from(b)).abs())
+            .fold(0.0f32, f32::max);
+        assert!(err < 8.0, "JPEG luma error {err}");
+        let e = v4l2_luma(PixelFormat::Mjpg, &jpg, 32, 8, 0).unwrap_err();
+        assert!(e.contains("16x8"), "{e}");
+        let e = v4l2_luma(PixelFormat::Mjpg, b"not a jpeg", 16, 8, 0).unwrap_err();
+        assert!(e.contains("MJPG"), "{e}");
+    }
+
+    #[test]
+    fn v4l2_config_keys() {
+        let c: FramesConfig = toml::from_str(
+            "source = \"v4l2\"\npath = \"/dev/video0\"\nwidth_px = 640\nheight_px = 480\npixel_format = \"MJPG\"\n",
+        )
+        .unwrap();
+        assert_eq!(c.pixel_format, PixelFormat::Mjpg);
+        assert!(
+            toml::from_str::<FramesConfig>("source = \"v4l2\"\npixel_format = \"RGB3\"\n").is_err()
+        );
+        let mut p = Problems::default();
+        let mut bad = FramesConfig::new(SourceKind::V4l2, "");
+        bad.width_px = Some(0);
+        bad.validate(&mut p);
+        let keys: Vec<&str> = p.list.iter().map(|i| i.key.as_str()).collect();
+        if cfg!(feature = "v4l2") {
+            for k in ["path", "width_px", "height_px"] {
+                assert!(keys.contains(&k), "{k}: {:?}", p.list);
+            }
+        } else {
+            assert_eq!(keys, ["source"], "{:?}", p.list);
+        }
+        let mut p = Problems::default();
+        let mut y = FramesConfig::new(SourceKind::Y4m, "a.y4m");
+        y.width_px = Some(640);
+        y.validate(&mut p);
+        assert!(p.list.iter().any(|i| i.key == "width_px"), "{:?}", p.list);
+    }
+
+    #[cfg(feature = "v4l2")]
+    #[test]
+    fn v4l2_open_errors_name_the_device() {
+        let e = V4l2Source::open(
+            Path::new("/dev/null"),
+            640,
+            480,
+            PixelFormat::Yuyv,
+            1.0,
+            0.0,
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(
+            e.contains("/dev/null") && e.contains("not a V4L2 device"),
+            "{e}"
+        );
+        let e = V4l2Source::open(
+            Path::new("/dev/video-none"),
+            640,
+            480,
+            PixelFormat::Yuyv,
+            1.0,
+            0.0,
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(e.contains("/dev/video-none") && e.contains("open"), "{e}");
     }
 }

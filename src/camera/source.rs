@@ -1288,6 +1288,7 @@ impl PumpCtx {
             }
         }
         let status = match self.exit_status() {
+            Some(_) if garbage => "the process was stopped".to_string(),
             Some(s) => format!("the process exited ({s})"),
             None => "the process was still running and was stopped".into(),
         };

@@ -1362,7 +1362,7 @@ impl PumpCtx {
                     }
                 }
                 Err(FrameError::Y4mFrame { frame, reason, .. }) => {
-                    let garbage = !reason.contains("truncated");
+                    let garbage = !reason.starts_with("truncated");
                     return self.fail(format!("frame {frame}: {reason}"), garbage);
                 }
                 Err(e) => return self.fail(e.to_string(), true),

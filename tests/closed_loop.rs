@@ -12,6 +12,11 @@
 
 use std::path::Path;
 use std::process::Command;
+use std::sync::Mutex;
+
+/// The two real-time closed loops run one after the other: together they would share the two
+/// cores and measure each other's load.
+static REAL_TIME: Mutex<()> = Mutex::new(());
 
 fn stat(v: &serde_json::Value, key: &str, field: &str) -> f64 {
     v[key][field]
@@ -21,6 +26,7 @@ fn stat(v: &serde_json::Value, key: &str, field: &str) -> f64 {
 
 #[test]
 fn visnav_sim_default_closed_loop() {
+    let _serial = REAL_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let out = std::env::temp_dir().join(format!("visnav-sim-test-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
     let res = Command::new(env!("CARGO_BIN_EXE_visnav"))
@@ -183,6 +189,7 @@ fn refuses_camera_from_the_map_image_and_bad_scenarios() {
 /// 25 s outage), both messages scored in the local frame of the origin the emulator received.
 #[test]
 fn closed_loop_with_external_vision_output() {
+    let _serial = REAL_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let dir = std::env::temp_dir().join(format!("visnav-sim-ev-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();

@@ -7,7 +7,7 @@
 //! gps_sigma_h_m = 2.5     # used when the message carries no h_acc
 //! gps_sigma_v_m = 5.0     # used when the message carries no v_acc
 //! gps_vel_sigma_m_s = 0.5 # horizontal velocity (ground speed + course), when vel_acc is absent
-//! gps_vz_sigma_m_s = 5.0  # GPS_RAW_INT has no vertical velocity: 0 with this sigma
+//! gps_vz_sigma_m_s = 30.0 # GPS_RAW_INT has no vertical velocity: 0 with this sigma
 //! baro = true             # SCALED_PRESSURE altitude, offset calibrated against GPS / the filter
 //! baro_sigma_m = 2.0
 //! imu_timeout_s = 0.5     # no IMU for this long: the solution is declared lost (nothing injected)
@@ -55,7 +55,10 @@ pub struct DaemonConfig {
     pub gps_sigma_v_m: f64,
     /// GPS horizontal velocity sigma when the message has no accuracy, m/s.
     pub gps_vel_sigma_m_s: f64,
-    /// Sigma of the (unmeasured, zero) vertical GPS velocity, m/s.
+    /// Sigma of the (unmeasured, zero) vertical GPS velocity, m/s. GPS_RAW_INT / GPS2_RAW carry
+    /// no vertical velocity; the default 30 m/s makes the zero carry almost no weight, so a
+    /// climbing copter (8 m/s in ArduPilot SITL) does not pull the filter into resets, as 5 m/s
+    /// did (docs/real-sitl.md, run 1).
     pub gps_vz_sigma_m_s: f64,
     /// Use the barometric altitude.
     pub baro: bool,
@@ -76,7 +79,7 @@ impl Default for DaemonConfig {
             gps_sigma_h_m: 2.5,
             gps_sigma_v_m: 5.0,
             gps_vel_sigma_m_s: 0.5,
-            gps_vz_sigma_m_s: 5.0,
+            gps_vz_sigma_m_s: 30.0,
             baro: true,
             baro_sigma_m: 2.0,
             imu_timeout_s: 0.5,

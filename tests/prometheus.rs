@@ -14,23 +14,10 @@ use std::time::{Duration, Instant};
 use visnav::config::{LinkConfig, OutputConfig, OutputMode};
 use visnav::daemon::{Daemon, DaemonConfig, DaemonError, DaemonSetup};
 use visnav::nav::NavConfig;
-use visnav::sitl::autopilot::{AutopilotEmulator, ConstantVelocity, EmulatorConfig};
+use visnav::sitl::autopilot::{AutopilotEmulator, EmulatorConfig};
 
-const TRUTH: ConstantVelocity = ConstantVelocity {
-    lat_deg: 46.9,
-    lon_deg: -96.8,
-    alt_amsl_m: 400.0,
-    vel_ned_m_s: [8.0, -3.0, 0.0],
-    yaw_rad: 0.7,
-};
-
-fn free_udp_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
+mod common;
+use common::{TRUTH, free_udp_port};
 
 fn setup(port: u16, metrics_listen: &str) -> DaemonSetup {
     DaemonSetup {

@@ -610,6 +610,27 @@ fn output_error(out: &NavOutput, table: &TruthTable) -> [f64; 3] {
     )
 }
 
+/// A filter output as a step row's columns: lat, lon, NED error, horizontal sigma, health (NaN
+/// and "uninitialised" before the first output).
+fn sample_output(o: Option<&NavOutput>, table: &TruthTable) -> (f64, f64, [f64; 3], f64, String) {
+    match o {
+        Some(o) => (
+            o.lat_deg,
+            o.lon_deg,
+            output_error(o, table),
+            sigma_h_m(&o.cov_pos_ned_m2),
+            format!("{:?}", o.health).to_lowercase(),
+        ),
+        None => (
+            f64::NAN,
+            f64::NAN,
+            [f64::NAN; 3],
+            f64::NAN,
+            "uninitialised".into(),
+        ),
+    }
+}
+
 fn hnorm(e: &[f64; 3]) -> f64 {
     e[0].hypot(e[1])
 }
@@ -775,27 +796,8 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         let s = table.at(t_s);
         let ov = out_v.borrow().clone();
         let oc = out_c.as_ref().and_then(|o| o.borrow().clone());
-        let nan3 = [f64::NAN; 3];
-        let (vlat, vlon, verr, vsig, vh) = match &ov {
-            Some(o) => (
-                o.lat_deg,
-                o.lon_deg,
-                output_error(o, &table),
-                sigma_h_m(&o.cov_pos_ned_m2),
-                format!("{:?}", o.health).to_lowercase(),
-            ),
-            None => (f64::NAN, f64::NAN, nan3, f64::NAN, "uninitialised".into()),
-        };
-        let (clat, clon, cerr, csig, ch) = match &oc {
-            Some(o) => (
-                o.lat_deg,
-                o.lon_deg,
-                output_error(o, &table),
-                sigma_h_m(&o.cov_pos_ned_m2),
-                format!("{:?}", o.health).to_lowercase(),
-            ),
-            None => (f64::NAN, f64::NAN, nan3, f64::NAN, "uninitialised".into()),
-        };
+        let (vlat, vlon, verr, vsig, vh) = sample_output(ov.as_ref(), &table);
+        let (clat, clon, cerr, csig, ch) = sample_output(oc.as_ref(), &table);
         if t_s - last_log_s >= 10.0 {
             last_log_s = t_s;
             info!(

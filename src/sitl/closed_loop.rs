@@ -59,9 +59,6 @@ use crate::vision::GrayImage;
 const TRUTH_DT_S: f64 = 0.005;
 /// Extra truth beyond the scenario's end (the daemons stop a little later), s.
 const TRUTH_MARGIN_S: f64 = 30.0;
-/// WGS84 semi-major axis, m, and first eccentricity squared.
-const WGS84_A_M: f64 = 6_378_137.0;
-const WGS84_E2: f64 = 6.694_379_990_14e-3;
 /// Chi-square 2 dof at 99.73 % (the 3-sigma ellipse).
 const CHI2_2DOF_3SIGMA: f64 = 11.829;
 
@@ -336,9 +333,7 @@ impl TruthSource for SensorsHandle {
 
 /// Meridian and prime-vertical radii of curvature at `lat_deg`, m.
 fn radii_m(lat_deg: f64) -> (f64, f64) {
-    let s = lat_deg.to_radians().sin();
-    let w = (1.0 - WGS84_E2 * s * s).sqrt();
-    (WGS84_A_M * (1.0 - WGS84_E2) / (w * w * w), WGS84_A_M / w)
+    crate::nav::earth::radii_m(lat_deg.to_radians())
 }
 
 /// NED difference `b - a`, m (small distances).

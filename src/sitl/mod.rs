@@ -9,6 +9,8 @@
 //! * [`run`]: scenario runner, INS-only control, Monte Carlo NEES consistency.
 //! * [`rng`]: deterministic random numbers.
 //! * [`autopilot`]: a MAVLink 2 autopilot emulator speaking like ArduPilot over real sockets.
+//! * [`real_sitl`]: truth (SIMSTATE/SIM_STATE, HIL_STATE_QUATERNION) from a real ArduPilot/PX4
+//!   SITL as a [`camera_sim::TruthFeed`].
 //! * [`camera_sim`]: the simulated camera as a frame source, rendering at the truth pose.
 //! * [`render`]: the simulated camera (perspective view of an orthophoto on a DEM, lens
 //!   distortion, exposure, blur, noise).
@@ -19,6 +21,7 @@ pub mod fixeval;
 pub mod imu;
 pub mod render;
 pub mod rng;
+pub mod real_sitl;
 pub mod run;
 pub mod scenario;
 pub mod trajectory;

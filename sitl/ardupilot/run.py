@@ -120,6 +120,7 @@ def start_visnav(args, workdir):
                 break
     if exe is None:
         sys.exit("no visnav binary: cargo build --release, or give --visnav")
+    exe = os.path.abspath(exe)
     cmd = [exe, "sitl-run", "--config", os.path.join(HERE, "visnav.toml"),
            "--truth", f"udpin:127.0.0.1:{TRUTH_PORT}", "--kind", "ardupilot",
            "--ortho", os.path.join(REPO, "sitl", "maps", "naip_nd_2014.tif"),
@@ -128,6 +129,12 @@ def start_visnav(args, workdir):
     return subprocess.Popen(cmd, cwd=workdir, stdout=open(os.path.join(workdir, "visnav.json"), "w"),
                             stderr=open(os.path.join(workdir, "visnav.log"), "w"),
                             start_new_session=True)
+
+
+def is_autopilot(m, hb):
+    """The autopilot's own HEARTBEAT (ArduPilot forwards visnav's, same system id, to this link)."""
+    return (hb.get_srcSystem() == m.target_system and hb.get_srcComponent() == 1
+            and hb.autopilot != mavutil.mavlink.MAV_AUTOPILOT_INVALID)
 
 
 def request_rates(m, rates):
@@ -217,14 +224,23 @@ def main():
     ap.add_argument("--visnav", help="visnav binary (default: target/release/visnav, else target/debug)")
     ap.add_argument("--no-visnav", action="store_true", help="the GPS-off control run (no visnav)")
     ap.add_argument("--mission", default=os.path.join(HERE, "mission.waypoints"))
-    ap.add_argument("--gps-off-alt", type=float, default=1150.0,
-                    help="switch the simulated GPS off at this height above home, m")
+    ap.add_argument("--gps-off-alt", type=float, default=1000.0,
+                    help="switch the simulated GPS off at this true height above home, m (EKF3's "
+                         "barometric height reads about 4 %% high at 1200 m in SITL)")
     ap.add_argument("--camera-hz", type=float, default=2.0)
     ap.add_argument("--after-gps-off", type=float, default=None,
                     help="stop this many seconds after the GPS is off (default: at the last waypoint)")
     ap.add_argument("--timeout", type=float, default=1500.0, help="whole run, s")
     ap.add_argument("--workdir", help="logs and report (default: a new temporary directory)")
     args = ap.parse_args()
+
+    def stop(signum, _frame):
+        # Also when started in the background (SIGINT ignored): clean up in `finally`.
+        raise SystemExit(f"stopped by signal {signum}")
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGHUP, stop)
 
     workdir = args.workdir or tempfile.mkdtemp(prefix="visnav-ardupilot-sitl-")
     os.makedirs(workdir, exist_ok=True)
@@ -250,7 +266,7 @@ def main():
         if hb is None:
             sys.exit("no HEARTBEAT from SITL within 60 s (see sitl.log)")
         log(f"SITL heartbeat: system {m.target_system}")
-        rates = {33: 10, 164: 50, 108: 50, 24: 2, 124: 2, 193: 2, 42: 2, 253: 5}
+        rates = {33: 10, 164: 50, 108: 50, 24: 2, 124: 2, 193: 2, 42: 2}
         request_rates(m, rates)
         truth = Truth()
         t0 = time.time()
@@ -303,7 +319,7 @@ def main():
                 truth.on(r, time.time())
                 if r.get_type() == "STATUSTEXT":
                     log(f"STATUSTEXT {r.text}")
-                elif r.get_type() == "HEARTBEAT" and r.get_srcSystem() == m.target_system and r.type != 6:
+                elif r.get_type() == "HEARTBEAT" and is_autopilot(m, r):
                     armed = bool(r.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         log("armed in AUTO: taking off")
         # 3. Fly; GPS off after take-off; measure.
@@ -337,7 +353,7 @@ def main():
                 if r.seq >= last_seq:
                     why = "last waypoint reached"
                     break
-            elif typ == "HEARTBEAT" and r.get_srcSystem() == m.target_system and r.type != 6:
+            elif typ == "HEARTBEAT" and is_autopilot(m, r):
                 mode = mavutil.mode_string_v10(r)
                 if not modes or modes[-1][1] != mode:
                     modes.append((round(now - t_fly, 1), mode))

@@ -128,11 +128,19 @@ def main():
     ap.add_argument("--visnav", help="visnav binary (default: target/release/visnav)")
     ap.add_argument("--no-visnav", action="store_true", help="the GPS-off control run")
     ap.add_argument("--mission", default=os.path.join(HERE, "mission.waypoints"))
-    ap.add_argument("--gps-off-alt", type=float, default=1150.0)
+    ap.add_argument("--gps-off-alt", type=float, default=1000.0)
     ap.add_argument("--camera-hz", type=float, default=2.0)
     ap.add_argument("--timeout", type=float, default=1500.0)
     ap.add_argument("--workdir")
     args = ap.parse_args()
+
+    def stop(signum, _frame):
+        # Also when started in the background (SIGINT ignored): clean up in `finally`.
+        raise SystemExit(f"stopped by signal {signum}")
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGHUP, stop)
 
     workdir = args.workdir or tempfile.mkdtemp(prefix="visnav-px4-sitl-")
     os.makedirs(workdir, exist_ok=True)
@@ -153,7 +161,7 @@ def main():
                                                   stdout=open(os.path.join(workdir, "px4.log"), "w"),
                                                   stderr=subprocess.STDOUT, start_new_session=True)))
         if not args.no_visnav:
-            exe = args.visnav or os.path.join(REPO, "target", "release", "visnav")
+            exe = os.path.abspath(args.visnav or os.path.join(REPO, "target", "release", "visnav"))
             cmd = [exe, "sitl-run", "--kind", "px4", "--config", os.path.join(HERE, "visnav.toml"),
                    "--truth", f"udpin:127.0.0.1:{TRUTH_PORT}",
                    "--ortho", os.path.join(REPO, "sitl", "maps", "naip_nd_2014.tif"),

@@ -177,7 +177,10 @@ async fn ardupilot_simstate_and_sim_state_decode_exactly() {
     // anything arrived; udpin answers the last sender, so wait for a request round after ours).
     let got = wait_for(|| {
         let a = asked.try_lock().ok()?;
-        [164u32, 108, 30].iter().all(|id| a.contains(id)).then_some(())
+        [164u32, 108, 30]
+            .iter()
+            .all(|id| a.contains(id))
+            .then_some(())
     });
     tokio::time::timeout(Duration::from_secs(6), got)
         .await
@@ -209,17 +212,19 @@ async fn px4_hil_state_quaternion_decodes_exactly() {
         conn,
         1,
         move |k| {
-            vec![MavMessage::HIL_STATE_QUATERNION(HIL_STATE_QUATERNION_DATA {
-                time_usec: 90_000_000 + 20_000 * u64::from(k),
-                attitude_quaternion: qf,
-                lat: 470_100_000,
-                lon: -991_400_000,
-                alt: 1_080_500,
-                vx: 1000,
-                vy: -250,
-                vz: 30,
-                ..HIL_STATE_QUATERNION_DATA::DEFAULT
-            })]
+            vec![MavMessage::HIL_STATE_QUATERNION(
+                HIL_STATE_QUATERNION_DATA {
+                    time_usec: 90_000_000 + 20_000 * u64::from(k),
+                    attitude_quaternion: qf,
+                    lat: 470_100_000,
+                    lon: -991_400_000,
+                    alt: 1_080_500,
+                    vx: 1000,
+                    vy: -250,
+                    vz: 30,
+                    ..HIL_STATE_QUATERNION_DATA::DEFAULT
+                },
+            )]
         },
         asked.clone(),
     );

@@ -11,8 +11,8 @@ NOT RUN in the project (PX4 was not built here): written and checked against the
 documentation only; see docs/real-sitl.md. It does not build PX4.
 
 What runs (loopback):
-* PX4 SITL with SIH (PX4_SYS_AUTOSTART=10040 sihsim_quadx), home at the centre of sitl/maps
-  (PX4_HOME_LAT/LON/ALT). PX4's onboard (API) MAVLink instance sends to UDP 14540 (visnav's link),
+* PX4 SITL with SIH (PX4_SIM_MODEL=sihsim_quadx, airframe 10040), home at the centre of
+  sitl/maps (PX4_HOME_LAT/LON/ALT). PX4's onboard (API) MAVLink instance sends to UDP 14540 (visnav's link),
   its GCS instance to UDP 14550 (this script).
 * `visnav sitl-run --kind px4 --config sitl/px4/visnav.toml --truth udpin:127.0.0.1:14552 ...`.
   PX4 has no spare MAVLink port for the truth, so this script relays the GROUND_TRUTH stream
@@ -149,15 +149,18 @@ def main():
     report = {"run": "control (no visnav)" if args.no_visnav else "visnav ODOMETRY"}
     try:
         if args.px4_build:
-            env = dict(os.environ, PX4_SYS_AUTOSTART="10040", PX4_SIMULATOR="sihsim",
-                       PX4_SIM_MODEL="sihsim_quadx", PX4_HOME_LAT=str(HOME_LAT),
-                       PX4_HOME_LON=str(HOME_LON), PX4_HOME_ALT=str(HOME_ALT_M))
-            rootfs = os.path.join(workdir, "rootfs")
-            os.makedirs(rootfs, exist_ok=True)
-            cmd = [os.path.join(args.px4_build, "bin", "px4"), "-d",
-                   os.path.join(args.px4_build, "etc"), "-w", rootfs]
+            # As PX4's `make px4_sitl sihsim_quadx` target does
+            # (src/modules/simulation/simulator_sih/CMakeLists.txt): the px4 binary in the build's
+            # rootfs with PX4_SIM_MODEL / PX4_SIMULATOR; -d: no interactive shell.
+            env = dict(os.environ, PX4_SIMULATOR="sihsim", PX4_SIM_MODEL="sihsim_quadx",
+                       PX4_HOME_LAT=str(HOME_LAT), PX4_HOME_LON=str(HOME_LON),
+                       PX4_HOME_ALT=str(HOME_ALT_M))
+            rootfs = os.path.join(args.px4_build, "rootfs")
+            if not os.path.isdir(rootfs):
+                sys.exit(f"{rootfs}: not a PX4 SITL build (make px4_sitl_default first)")
+            cmd = [os.path.join(args.px4_build, "bin", "px4"), "-d"]
             log("PX4: " + " ".join(cmd))
-            procs.append(("px4", subprocess.Popen(cmd, env=env, stdin=subprocess.DEVNULL,
+            procs.append(("px4", subprocess.Popen(cmd, env=env, cwd=rootfs, stdin=subprocess.DEVNULL,
                                                   stdout=open(os.path.join(workdir, "px4.log"), "w"),
                                                   stderr=subprocess.STDOUT, start_new_session=True)))
         if not args.no_visnav:

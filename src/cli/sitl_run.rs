@@ -117,7 +117,10 @@ pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
         .context("cannot start the async runtime")?;
     rt.block_on(async move {
         let truth = TruthLink::start(tcfg).await?;
-        eprintln!("sitl-run: waiting for the simulator's truth on {}", args.truth);
+        eprintln!(
+            "sitl-run: waiting for the simulator's truth on {}",
+            args.truth
+        );
         if !truth.wait_first(Duration::from_secs(120)).await {
             anyhow::bail!("no truth from the simulator on {} within 120 s", args.truth);
         }

@@ -53,11 +53,11 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use mavlink::{AsyncMavConnection, MavHeader};
 use mavlink::dialects::ardupilotmega::{
     COMMAND_LONG_DATA, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavMessage, MavModeFlag, MavState,
     MavType,
 };
+use mavlink::{AsyncMavConnection, MavHeader};
 use nalgebra::{Quaternion, UnitQuaternion};
 use tokio::sync::watch;
 use tokio::task::JoinHandle;

@@ -6,12 +6,14 @@
 
 use std::collections::HashSet;
 use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use mavlink::MavHeader;
 use mavlink::dialects::ardupilotmega::{
-    ATTITUDE_DATA, HIL_STATE_QUATERNION_DATA, MavCmd, MavMessage, SIM_STATE_DATA, SIMSTATE_DATA,
+    ATTITUDE_DATA, HEARTBEAT_DATA, HIL_STATE_QUATERNION_DATA, MavAutopilot, MavCmd, MavMessage,
+    MavType, SIM_STATE_DATA, SIMSTATE_DATA,
 };
+use mavlink::{AsyncMavConnection, MavHeader};
 use nalgebra::UnitQuaternion;
 use tokio::sync::Mutex;
 use visnav::sitl::camera_sim::TruthFeed;
@@ -24,28 +26,43 @@ fn free_udp_port() -> u16 {
 
 type Conn = mavlink::AsyncConnection<MavMessage>;
 
-/// Sends `msgs(k)` as system `sysid` every 20 ms; collects the message ids asked with
-/// SET_MESSAGE_INTERVAL.
+/// Plays a simulator as system `sysid`: a HEARTBEAT every second and, every 20 ms, those of
+/// `msgs(k)` whose id was asked for with SET_MESSAGE_INTERVAL (as ArduPilot, which streams
+/// nothing else until asked), or all of them when `unasked` (an intruder). Collects the asked ids.
 fn play(
     conn: Arc<Conn>,
     sysid: u8,
+    unasked: bool,
     msgs: impl Fn(u32) -> Vec<MavMessage> + Send + 'static,
     asked: Arc<Mutex<HashSet<u32>>>,
 ) -> tokio::task::JoinHandle<()> {
     let rx = conn.clone();
+    let asked_rx = asked.clone();
     tokio::spawn(async move {
         while let Ok((_, m)) = rx.recv().await {
             if let MavMessage::COMMAND_LONG(c) = m
                 && c.command == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL
             {
-                asked.lock().await.insert(c.param1 as u32);
+                asked_rx.lock().await.insert(c.param1 as u32);
             }
         }
     });
     tokio::spawn(async move {
         let mut k = 0u32;
         loop {
-            for m in msgs(k) {
+            let mut out = msgs(k);
+            if !unasked {
+                let a = asked.lock().await;
+                out.retain(|m| a.contains(&mavlink::Message::message_id(m)));
+            }
+            if k % 50 == 0 {
+                out.push(MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                    mavtype: MavType::MAV_TYPE_QUADROTOR,
+                    autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+                    ..HEARTBEAT_DATA::DEFAULT
+                }));
+            }
+            for m in out {
                 let h = MavHeader {
                     system_id: u32::from(sysid),
                     component_id: 1,
@@ -60,13 +77,15 @@ fn play(
 }
 
 async fn wait_for<T>(mut f: impl FnMut() -> Option<T>) -> T {
-    for _ in 0..500 {
+    // The first requests go out at start; udpin learns where to reply from the first datagram,
+    // so the first answered request is the one 2 s later.
+    for _ in 0..800 {
         if let Some(v) = f() {
             return v;
         }
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
-    panic!("no truth sample within 5 s");
+    panic!("no truth sample within 8 s");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -93,6 +112,7 @@ async fn ardupilot_simstate_and_sim_state_decode_exactly() {
     let intruder_task = play(
         intruder,
         7,
+        true,
         |k| {
             // Only at the start: later, SET_MESSAGE_INTERVAL answers must reach the simulator
             // (udpin replies to the last sender).
@@ -120,6 +140,7 @@ async fn ardupilot_simstate_and_sim_state_decode_exactly() {
     let sim = play(
         conn,
         1,
+        false,
         |k| {
             vec![
                 MavMessage::ATTITUDE(ATTITUDE_DATA {
@@ -173,18 +194,13 @@ async fn ardupilot_simstate_and_sim_state_decode_exactly() {
     tokio::time::sleep(Duration::from_millis(200)).await;
     let (t2, _) = feed.latest().expect("still a sample");
     assert!(t2 > t_us + 100_000, "{t2} vs {t_us}");
-    // It asked for SIMSTATE, SIM_STATE and ATTITUDE (the first requests go out at start, before
-    // anything arrived; udpin answers the last sender, so wait for a request round after ours).
-    let got = wait_for(|| {
-        let a = asked.try_lock().ok()?;
-        [164u32, 108, 30]
-            .iter()
-            .all(|id| a.contains(id))
-            .then_some(())
-    });
-    tokio::time::timeout(Duration::from_secs(6), got)
-        .await
-        .expect("SET_MESSAGE_INTERVAL for 164, 108 and 30");
+    // The simulator streams only what was asked: SIMSTATE, SIM_STATE and ATTITUDE were.
+    assert_eq!(
+        *asked.lock().await,
+        HashSet::from([164u32, 108, 30]),
+        "SET_MESSAGE_INTERVAL requests"
+    );
+    assert!(link.feed().counters.requests.load(Ordering::Relaxed) >= 3);
     sim.abort();
     intruder_task.abort();
     link.shutdown().await;
@@ -211,6 +227,7 @@ async fn px4_hil_state_quaternion_decodes_exactly() {
     let sim = play(
         conn,
         1,
+        false,
         move |k| {
             vec![MavMessage::HIL_STATE_QUATERNION(
                 HIL_STATE_QUATERNION_DATA {
@@ -237,10 +254,10 @@ async fn px4_hil_state_quaternion_decodes_exactly() {
     for (a, b) in s.rpy_rad.iter().zip([r, p, y]) {
         assert!((a - b).abs() < 1e-6, "{a} vs {b}");
     }
-    let got = wait_for(|| asked.try_lock().ok()?.contains(&115).then_some(()));
-    tokio::time::timeout(Duration::from_secs(6), got)
-        .await
-        .expect("SET_MESSAGE_INTERVAL for 115");
+    assert!(
+        asked.lock().await.contains(&115),
+        "SET_MESSAGE_INTERVAL for 115"
+    );
     sim.abort();
     link.shutdown().await;
 }

@@ -20,8 +20,8 @@ What runs (all on loopback):
   sitl/maps/naip_nd_2014.tif` (the camera sees the 2014 image; the map is the 2009 one).
 * This script: waits for EKF3 to have a position (and, with visnav, for visnav's GPS_INPUT to be
   a 3D fix), uploads mission.waypoints, sets AUTO and arms (AUTO_OPTIONS = 3 takes off without
-  throttle), sets SIM_GPS_DISABLE = 1 (4.6+: SIM_GPS1_ENABLE = 0) once the copter is
-  --gps-off-alt metres up, and stops at the last waypoint (or --timeout, or when the copter lands
+  throttle), sets SIM_GPS_DISABLE = 1 (4.6+: SIM_GPS1_ENABLE = 0) once the copter reaches the
+  first corner of the loop at 1800 m (--gps-off-wp; or --gps-off-alt metres up), and stops at the last waypoint (or --timeout, or when the copter lands
   or disarms).
 
 Measured: every GLOBAL_POSITION_INT (EKF3's output, 10 Hz) against the truth of the same instant
@@ -190,6 +190,14 @@ def upload_mission(m, path):
     sys.exit("mission upload timed out")
 
 
+def gps_off(m):
+    """Switch SITL's simulated GPS 1 off (4.5: SIM_GPS_DISABLE, 4.6+: SIM_GPS1_ENABLE)."""
+    if not (set_param(m, "SIM_GPS_DISABLE", 1) or set_param(m, "SIM_GPS1_ENABLE", 0)):
+        sys.exit("cannot switch the simulated GPS off (SIM_GPS_DISABLE / SIM_GPS1_ENABLE)")
+    log("simulated GPS OFF")
+    return time.time()
+
+
 class Truth:
     """Latest SIMSTATE (lat/lng degE7) and SIM_STATE (alt, NED velocity) with arrival times."""
 
@@ -224,9 +232,11 @@ def main():
     ap.add_argument("--visnav", help="visnav binary (default: target/release/visnav, else target/debug)")
     ap.add_argument("--no-visnav", action="store_true", help="the GPS-off control run (no visnav)")
     ap.add_argument("--mission", default=os.path.join(HERE, "mission.waypoints"))
-    ap.add_argument("--gps-off-alt", type=float, default=1000.0,
-                    help="switch the simulated GPS off at this true height above home, m (EKF3's "
-                         "barometric height reads about 4 %% high at 1200 m in SITL)")
+    ap.add_argument("--gps-off-wp", type=int, default=2,
+                    help="switch the simulated GPS off when this mission item is reached (2: the "
+                         "first corner, after the climb; visnav's filter lags fast climbs)")
+    ap.add_argument("--gps-off-alt", type=float, default=None,
+                    help="instead, switch it off at this true height above home, m")
     ap.add_argument("--camera-hz", type=float, default=2.0)
     ap.add_argument("--after-gps-off", type=float, default=None,
                     help="stop this many seconds after the GPS is off (default: at the last waypoint)")
@@ -350,6 +360,8 @@ def main():
             elif typ == "MISSION_ITEM_REACHED":
                 reached = max(reached, r.seq)
                 log(f"waypoint {r.seq} reached")
+                if t_gps_off is None and args.gps_off_alt is None and r.seq >= args.gps_off_wp:
+                    t_gps_off = gps_off(m)
                 if r.seq >= last_seq:
                     why = "last waypoint reached"
                     break
@@ -372,12 +384,8 @@ def main():
                 eh = math.hypot(dn, de)
                 ev = r.alt * 1e-3 - alt_t
                 agl = alt_t - HOME_ALT_M
-                if t_gps_off is None and agl > args.gps_off_alt:
-                    ok = set_param(m, "SIM_GPS_DISABLE", 1) or set_param(m, "SIM_GPS1_ENABLE", 0)
-                    if not ok:
-                        sys.exit("cannot switch the simulated GPS off (SIM_GPS_DISABLE / SIM_GPS1_ENABLE)")
-                    t_gps_off = time.time()
-                    log(f"simulated GPS OFF at {agl:.0f} m above home")
+                if t_gps_off is None and args.gps_off_alt is not None and agl > args.gps_off_alt:
+                    t_gps_off = gps_off(m)
                     continue
                 phase = "gps_off" if t_gps_off is not None else "gps_on"
                 if agl > 5:

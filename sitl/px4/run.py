@@ -19,8 +19,9 @@ What runs (loopback):
   (HIL_STATE_QUATERNION) and ATTITUDE (for the time) it receives on 14550 to UDP 14552.
 * This script: sets visnav-ev.params with PARAM_SET, waits for a global position, uploads
   ../ardupilot/mission.waypoints' twin (mission.waypoints), arms, starts the mission, sets
-  EKF2_GPS_CTRL = 0 once --gps-off-alt metres up (EKF2 stops fusing GPS; visnav never uses it:
-  [daemon] gps = "none"), and stops at the last waypoint.
+  EKF2_GPS_CTRL = 0 (EKF2 stops fusing GPS; visnav never uses it:
+  [daemon] gps = "none") when the first corner of the loop is reached (--gps-off-wp; or
+  --gps-off-alt metres up), and stops at the last waypoint.
 
 Measured: GLOBAL_POSITION_INT (EKF2) against HIL_STATE_QUATERNION (truth) propagated over the
 arrival gap with the true velocity: horizontal and vertical error, median / p90 / max, with the GPS
@@ -128,7 +129,11 @@ def main():
     ap.add_argument("--visnav", help="visnav binary (default: target/release/visnav)")
     ap.add_argument("--no-visnav", action="store_true", help="the GPS-off control run")
     ap.add_argument("--mission", default=os.path.join(HERE, "mission.waypoints"))
-    ap.add_argument("--gps-off-alt", type=float, default=1000.0)
+    ap.add_argument("--gps-off-wp", type=int, default=1,
+                    help="EKF2_GPS_CTRL = 0 when this mission item (0-based, no home item) is "
+                         "reached: 1 = the first corner, after the climb")
+    ap.add_argument("--gps-off-alt", type=float, default=None,
+                    help="instead, at this true height above home, m")
     ap.add_argument("--camera-hz", type=float, default=2.0)
     ap.add_argument("--timeout", type=float, default=1500.0)
     ap.add_argument("--workdir")
@@ -243,6 +248,11 @@ def main():
             typ = r.get_type()
             if typ == "MISSION_ITEM_REACHED":
                 log(f"mission item {r.seq} reached")
+                if t_gps_off is None and args.gps_off_alt is None and r.seq >= args.gps_off_wp:
+                    if not set_param(m, "EKF2_GPS_CTRL", 0):
+                        sys.exit("cannot set EKF2_GPS_CTRL = 0")
+                    t_gps_off = time.time()
+                    log("EKF2_GPS_CTRL = 0")
                 if r.seq >= n - 1:
                     why = "last waypoint reached"
                     break
@@ -254,7 +264,7 @@ def main():
                 eh = math.hypot((r.lat * 1e-7 - lat) * m_lat, (r.lon * 1e-7 - lon) * m_lon)
                 ev = r.alt * 1e-3 - alt
                 agl = alt - HOME_ALT_M
-                if t_gps_off is None and agl > args.gps_off_alt:
+                if t_gps_off is None and args.gps_off_alt is not None and agl > args.gps_off_alt:
                     if not set_param(m, "EKF2_GPS_CTRL", 0):
                         sys.exit("cannot set EKF2_GPS_CTRL = 0")
                     t_gps_off = time.time()

@@ -28,7 +28,8 @@
 //! arrival with its vertical velocity (`alt = alt_108 - vd * dt`).
 //!
 //! **PX4 SITL** (SIH or Gazebo): `HIL_STATE_QUATERNION` (id 115), which PX4's mavlink stream
-//! `GROUND_TRUTH` (`src/modules/mavlink/streams/GROUND_TRUTH.hpp`) fills from the simulator's
+//! `HIL_STATE_QUATERNION` (called `GROUND_TRUTH` in older versions,
+//! `src/modules/mavlink/streams/`) fills from the simulator's
 //! `vehicle_*_groundtruth` topics: attitude quaternion (`R_ned_body`, Hamilton, w first), body
 //! rates, lat/lon degE7, alt mm AMSL, velocity cm/s NED. That stream leaves `time_usec` at 0, so
 //! the time comes from the latest `time_boot_ms` as for ArduPilot (ATTITUDE is requested too); a

@@ -53,6 +53,7 @@ REPO = os.path.abspath(os.path.join(HERE, "..", ".."))
 # Centre of sitl/maps/naip_nd_2009.tif (EPSG:26914 x 488235, y 5207437), ground ~580 m AMSL.
 HOME_LAT, HOME_LON, HOME_ALT_M, HOME_HDG = 47.0203485, -99.1548094, 580.0, 0
 VISNAV_PORT, TRUTH_PORT, CONTROL_PORT = 14551, 14552, 5760
+STOP = None  # set by SIGTERM/SIGINT/SIGHUP during the flight
 
 
 def log(msg):
@@ -245,13 +246,19 @@ def main():
     args = ap.parse_args()
 
     def stop(signum, _frame):
-        # Also when started in the background (SIGINT ignored): clean up in `finally`.
-        raise SystemExit(f"stopped by signal {signum}")
+        # Also when started in the background (SIGINT ignored). In flight: end the flight loop and
+        # report; before: exit (cleaning up in `finally`).
+        global STOP
+        if in_flight:
+            STOP = f"stopped by signal {signum}"
+        else:
+            raise SystemExit(f"stopped by signal {signum}")
 
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     signal.signal(signal.SIGHUP, stop)
 
+    in_flight = False
     workdir = args.workdir or tempfile.mkdtemp(prefix="visnav-ardupilot-sitl-")
     os.makedirs(workdir, exist_ok=True)
     log(f"workdir {workdir}")
@@ -332,6 +339,7 @@ def main():
                 elif r.get_type() == "HEARTBEAT" and is_autopilot(m, r):
                     armed = bool(r.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         log("armed in AUTO: taking off")
+        in_flight = True
         # 3. Fly; GPS off after take-off; measure.
         errs = {"gps_on": ([], []), "gps_off": ([], [])}
         samples = []
@@ -342,6 +350,9 @@ def main():
         why = "timeout"
         while True:
             now = time.time()
+            if STOP:
+                why = STOP
+                break
             if now - t_fly > args.timeout:
                 break
             if t_gps_off is not None and args.after_gps_off and now - t_gps_off > args.after_gps_off:

@@ -55,7 +55,7 @@ fn play(
                 let a = asked.lock().await;
                 out.retain(|m| a.contains(&mavlink::Message::message_id(m)));
             }
-            if k % 50 == 0 {
+            if k.is_multiple_of(50) {
                 out.push(MavMessage::HEARTBEAT(HEARTBEAT_DATA {
                     mavtype: MavType::MAV_TYPE_QUADROTOR,
                     autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,

@@ -154,7 +154,7 @@ def main():
     report = {"run": "control (no visnav)" if args.no_visnav else "visnav ODOMETRY"}
     try:
         if args.px4_build:
-            # As PX4's `make px4_sitl sihsim_quadx` target does
+            # As PX4's sihsim_quadx run target does
             # (src/modules/simulation/simulator_sih/CMakeLists.txt): the px4 binary in the build's
             # rootfs with PX4_SIM_MODEL / PX4_SIMULATOR; -d: no interactive shell.
             env = dict(os.environ, PX4_SIMULATOR="sihsim", PX4_SIM_MODEL="sihsim_quadx",
@@ -162,7 +162,7 @@ def main():
                        PX4_HOME_ALT=str(HOME_ALT_M))
             rootfs = os.path.join(args.px4_build, "rootfs")
             if not os.path.isdir(rootfs):
-                sys.exit(f"{rootfs}: not a PX4 SITL build (make px4_sitl_default first)")
+                sys.exit(f"{rootfs}: not a PX4 SITL build directory")
             cmd = [os.path.join(args.px4_build, "bin", "px4"), "-d"]
             log("PX4: " + " ".join(cmd))
             procs.append(("px4", subprocess.Popen(cmd, env=env, cwd=rootfs, stdin=subprocess.DEVNULL,

@@ -18,25 +18,12 @@ use visnav::fix::{FixPrior, FixReport};
 use visnav::link::GeoOrigin;
 use visnav::link::inject::local_ned_m;
 use visnav::nav::NavConfig;
-use visnav::sitl::autopilot::{AutopilotEmulator, ConstantVelocity, EmulatorConfig, TruthSource};
+use visnav::sitl::autopilot::{AutopilotEmulator, EmulatorConfig, TruthSource};
 use visnav::sitl::rng::Rng;
 use visnav::vision::GrayImage;
 
-const TRUTH: ConstantVelocity = ConstantVelocity {
-    lat_deg: 46.9,
-    lon_deg: -96.8,
-    alt_amsl_m: 400.0,
-    vel_ned_m_s: [8.0, -3.0, 0.0],
-    yaw_rad: 0.7,
-};
-
-fn free_udp_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
+mod common;
+use common::{TRUTH, free_udp_port};
 
 async fn emulator(port: u16, gps: bool) -> AutopilotEmulator {
     let mut cfg = EmulatorConfig::new(&format!("udpout:127.0.0.1:{port}"));

@@ -103,10 +103,7 @@ fn run(
     let prior = FixPrior {
         t_capture_us: 1,
         position,
-        attitude: Some(AttitudePriorNed {
-            attitude: prior_att,
-            sigma_rad: 0.5f64.to_radians(),
-        }),
+        attitude: Some(AttitudePriorNed::isotropic(prior_att, 0.5f64.to_radians())),
     };
     let (report, attempt) = engine.fix_with_attempt(&img, &prior);
     // Residuals of the fine matches at the truth pose (map grid taken as Cartesian).

@@ -11,15 +11,10 @@ use tokio::sync::watch;
 use visnav::link::config::{LinkConfig, OutputConfig, OutputMode, SigningSettings};
 use visnav::link::inject::local_ned_m;
 use visnav::link::{GeoOrigin, Health, Link, LinkStatus, NavEstimate};
-use visnav::sitl::autopilot::{AutopilotEmulator, ConstantVelocity, EmulatorConfig, TruthSource};
+use visnav::sitl::autopilot::{AutopilotEmulator, EmulatorConfig, TruthSource};
 
-fn free_udp_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
+mod common;
+use common::{TRUTH, free_udp_port};
 
 fn free_tcp_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
@@ -28,14 +23,6 @@ fn free_tcp_port() -> u16 {
         .unwrap()
         .port()
 }
-
-const TRUTH: ConstantVelocity = ConstantVelocity {
-    lat_deg: 46.9,
-    lon_deg: -96.8,
-    alt_amsl_m: 400.0,
-    vel_ned_m_s: [8.0, -3.0, 0.0],
-    yaw_rad: 0.7,
-};
 
 async fn wait_for(
     rx: &mut watch::Receiver<LinkStatus>,

@@ -4,7 +4,42 @@
 //! Sources:
 //! * [`DirectorySource`]: an image directory with a `frames.csv` timestamps file (format below).
 //! * [`Y4mSource`]: a YUV4MPEG2 (`.y4m`) file; only the luma plane is used.
-//! * Live capture (V4L2, GStreamer) is not built into this binary: [`open`] reports it clearly.
+//! * [`CommandSource`]: live capture through a capture process that writes YUV4MPEG2 to its
+//!   stdout (`source = "command"`, or `source = "gstreamer"` which runs `gst-launch-1.0`).
+//! * `V4l2Source` (cargo feature `v4l2`, off by default): direct V4L2 capture (`source =
+//!   "v4l2"`, `path` = the device, `width_px`, `height_px`, `pixel_format` = `YUYV` | `GREY` |
+//!   `MJPG`), memory-mapped streaming, stamped with the driver's CLOCK_MONOTONIC timestamp. The
+//!   kernel ABI is written out in [`v4l2_abi`] (the `v4l` crate needs bindgen/libclang to build).
+//!   Without the feature, [`open`] and the validation reject `v4l2` and point to `gstreamer` /
+//!   `command` (`v4l2src` reads the same devices).
+//!
+//! # Live capture (`command`, `gstreamer`)
+//! ```toml
+//! [frames]
+//! source = "gstreamer"
+//! pipeline = "v4l2src device=/dev/video0 ! video/x-raw,width=1280,height=960,framerate=10/1"
+//! latency_s = 0.03   # exposure to arrival, subtracted from the arrival stamp (default 0)
+//! timeout_s = 5.0    # no frame for this long: error, the process is stopped (default 5)
+//! ```
+//! runs `gst-launch-1.0 -q <pipeline> ! videoconvert ! video/x-raw,format=I420 ! y4menc ! fdsink
+//! fd=1` ([`gstreamer_command`]; the pipeline is split at whitespace). Any other program:
+//! ```toml
+//! [frames]
+//! source = "command"
+//! command = ["ffmpeg", "-loglevel", "error", "-f", "v4l2", "-i", "/dev/video0",
+//!            "-pix_fmt", "gray", "-f", "yuv4mpegpipe", "-"]
+//! ```
+//! The program is started without a shell (a relative path with a `/` is relative to the config
+//! file's folder, a bare name is looked up in `PATH`), with stdin closed, stdout read as y4m and
+//! stderr kept (its tail goes into error messages, its lines into the debug log). Frames are
+//! stamped with the companion clock when their last byte arrives, minus `latency_s`; a pump
+//! thread reads continuously, so a frame never waits in the pipe (which would make its stamp
+//! late): with `realtime = true` (default) a frame not yet taken is replaced by the newer one,
+//! with `realtime = false` the pump waits (for replay commands; `rate_hz` is not used: the
+//! process sets the rate, e.g. `ffmpeg -re`). The process is killed when the source is dropped
+//! (daemon shutdown). Errors name the command, its exit status and its stderr: a program that
+//! cannot start, output that is not y4m, a process that exits (exit status 0 at a frame boundary
+//! is the clean end of the stream), and no frame within `timeout_s`.
 //!
 //! # `frames.csv`
 //! ```text
@@ -27,7 +62,7 @@
 //! `420mpeg2`, `420` (the default), `422`, `444`, `444alpha`, `mono` (8 bit) and the 16-bit
 //! containers `420p10/12/16`, `422p10/12/16`, `444p10/12/16`, `mono16` (little endian, scaled to
 //! 0..255). Luma values are used as they are (no limited-range expansion of 16..235 video).
-//! Frame rate from `F` unless `rate_hz` overrides it.
+//! Frame rate from `F` unless `rate_hz` overrides it. At most [`MAX_Y4M_PIXELS`] per frame.
 //!
 //! # Capture time
 //! [`CaptureTime::AutopilotBootUs`] when the source knows the autopilot boot time of the capture,
@@ -38,9 +73,12 @@
 use std::fs::File;
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStderr, ChildStdout, Command, Stdio};
+use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
 use serde::Deserialize;
+use tracing::{debug, info};
 
 use crate::config::{Problems, Validate};
 use crate::vision::GrayImage;
@@ -102,6 +140,8 @@ pub enum FrameError {
     NotBuilt { kind: &'static str, reason: String },
     #[error("frames: {0}")]
     Config(String),
+    #[error("{command}: {reason}")]
+    Command { command: String, reason: String },
 }
 
 /// A source of camera frames (blocking I/O).
@@ -127,10 +167,13 @@ pub enum SourceKind {
     Directory,
     /// YUV4MPEG2 file.
     Y4m,
-    /// Video4Linux2 live capture (not built).
-    V4l2,
-    /// GStreamer pipeline (not built).
+    /// A capture process writing YUV4MPEG2 to stdout (`command = [...]`).
+    Command,
+    /// A GStreamer pipeline run by `gst-launch-1.0` (`pipeline = "..."`), see
+    /// [`gstreamer_command`].
     Gstreamer,
+    /// Video4Linux2 direct capture (not built into this binary).
+    V4l2,
 }
 
 /// Which clock the frames are stamped with.
@@ -149,10 +192,36 @@ pub enum StampMode {
 #[derive(Debug, Clone, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct FramesConfig {
-    /// `directory` (with `frames.csv`) or `y4m`.
+    /// `directory` (with `frames.csv`), `y4m`, `command` or `gstreamer`.
     pub source: SourceKind,
     /// The directory or the `.y4m` file; relative to the config file's folder unless absolute.
+    /// Not used by `command` / `gstreamer`.
+    #[serde(default)]
     pub path: PathBuf,
+    /// `command`: the program and its arguments (no shell). A relative program path containing
+    /// a `/` is relative to the config file's folder; a bare name is looked up in `PATH`.
+    #[serde(default)]
+    pub command: Vec<String>,
+    /// `gstreamer`: the pipeline up to the raw video (e.g. `"v4l2src device=/dev/video0"`); the
+    /// conversion to I420 y4m on stdout is appended.
+    #[serde(default)]
+    pub pipeline: Option<String>,
+    /// `command` / `gstreamer`: no frame for this long is an error (the process is stopped), s.
+    #[serde(default = "default_timeout_s")]
+    pub timeout_s: f64,
+    /// `command` / `gstreamer` / `v4l2`: time from exposure to the frame's arrival (or to the
+    /// driver's timestamp), subtracted from the stamp, s.
+    #[serde(default)]
+    pub latency_s: f64,
+    /// `v4l2`: capture width, pixels (must match the camera calibration).
+    #[serde(default)]
+    pub width_px: Option<usize>,
+    /// `v4l2`: capture height, pixels.
+    #[serde(default)]
+    pub height_px: Option<usize>,
+    /// `v4l2`: pixel format asked from the device: `"YUYV"` (default), `"GREY"` or `"MJPG"`.
+    #[serde(default)]
+    pub pixel_format: PixelFormat,
     /// Capture-time clock.
     #[serde(default)]
     pub stamp: StampMode,
@@ -180,6 +249,15 @@ fn default_max_age_s() -> f64 {
 fn default_workers() -> usize {
     1
 }
+fn default_timeout_s() -> f64 {
+    5.0
+}
+
+/// Is `prog` an executable name found in `PATH`?
+fn in_path(prog: &str) -> bool {
+    std::env::var_os("PATH")
+        .is_some_and(|p| std::env::split_paths(&p).any(|d| d.join(prog).is_file()))
+}
 
 impl FramesConfig {
     /// Defaults for a source at `path`.
@@ -187,6 +265,13 @@ impl FramesConfig {
         Self {
             source,
             path: path.into(),
+            command: Vec::new(),
+            pipeline: None,
+            timeout_s: default_timeout_s(),
+            latency_s: 0.0,
+            width_px: None,
+            height_px: None,
+            pixel_format: PixelFormat::default(),
             stamp: StampMode::Arrival,
             realtime: true,
             rate_hz: None,
@@ -195,11 +280,53 @@ impl FramesConfig {
         }
     }
 
+    /// A capture process source (`command` or `gstreamer`) with this argv.
+    pub fn command(argv: &[&str]) -> Self {
+        let mut c = Self::new(SourceKind::Command, "");
+        c.command = argv.iter().map(|a| a.to_string()).collect();
+        c
+    }
+
+    /// The argv run for `command` / `gstreamer` (empty for the other sources).
+    pub fn argv(&self) -> Vec<String> {
+        match (self.source, &self.pipeline) {
+            (SourceKind::Command, _) => self.command.clone(),
+            (SourceKind::Gstreamer, Some(p)) => gstreamer_command(p),
+            _ => Vec::new(),
+        }
+    }
+
     /// Validate, checking the path against `base` (the config file's folder).
     pub fn validate_in(&self, base: &Path, p: &mut Problems) {
         self.validate(p);
         let full = crate::config::resolve(base, &self.path);
+        let needs_path = matches!(self.source, SourceKind::Directory | SourceKind::Y4m);
+        if needs_path && self.path.as_os_str().is_empty() {
+            return; // reported by validate()
+        }
         match self.source {
+            SourceKind::Command | SourceKind::Gstreamer => {
+                if let Some(prog) = self.argv().first().filter(|s| !s.is_empty()) {
+                    let found = if prog.contains('/') {
+                        crate::config::resolve(base, Path::new(prog)).is_file()
+                    } else {
+                        in_path(prog)
+                    };
+                    if !found {
+                        let key = if self.source == SourceKind::Command {
+                            "command"
+                        } else {
+                            "pipeline"
+                        };
+                        p.push(
+                            key,
+                            format!(
+                                "the program \"{prog}\" is not found (not a file / not in PATH)"
+                            ),
+                        );
+                    }
+                }
+            }
             SourceKind::Directory => {
                 if !full.is_dir() {
                     p.push("path", format!("{} is not a directory", full.display()));
@@ -212,32 +339,115 @@ impl FramesConfig {
                     p.push("path", format!("{} is not a file", full.display()));
                 }
             }
-            SourceKind::V4l2 | SourceKind::Gstreamer => {}
+            SourceKind::V4l2 => {}
         }
     }
 
-    /// Make `path` absolute against `base`.
+    /// Make `path` (and a relative program path in `command`) absolute against `base`.
     pub fn resolve_paths(&mut self, base: &Path) {
-        self.path = crate::config::resolve(base, &self.path);
+        if !self.path.as_os_str().is_empty() {
+            self.path = crate::config::resolve(base, &self.path);
+        }
+        if let Some(prog) = self.command.first_mut()
+            && prog.contains('/')
+        {
+            *prog = crate::config::resolve(base, Path::new(prog.as_str()))
+                .to_string_lossy()
+                .into_owned();
+        }
     }
 }
 
 impl Validate for FramesConfig {
     fn validate(&self, p: &mut Problems) {
+        let kind = format!("{:?}", self.source).to_lowercase();
+        let live = matches!(self.source, SourceKind::Command | SourceKind::Gstreamer);
         match self.source {
-            SourceKind::V4l2 | SourceKind::Gstreamer => p.push(
+            SourceKind::V4l2 if !cfg!(feature = "v4l2") => p.push(
                 "source",
-                format!(
-                    "{:?}: live capture is not built into this binary; use \"directory\" or \"y4m\"",
-                    self.source
+                "v4l2: direct V4L2 capture is not built into this binary (cargo feature \"v4l2\"); \
+                 use source = \"gstreamer\" (pipeline = \"v4l2src device=/dev/video0\") or \"command\"",
+            ),
+            SourceKind::V4l2 => {
+                if self.path.as_os_str().is_empty() {
+                    p.push("path", "required with source = \"v4l2\": the device, e.g. /dev/video0");
+                }
+                for (k, v) in [("width_px", self.width_px), ("height_px", self.height_px)] {
+                    match v {
+                        None => p.push(k, "required with source = \"v4l2\""),
+                        Some(v) if !(1..=16384).contains(&v) => {
+                            p.push(k, format!("{v} is outside [1, 16384]"))
+                        }
+                        Some(_) => {}
+                    }
+                }
+            }
+            SourceKind::Directory | SourceKind::Y4m if self.path.as_os_str().is_empty() => {
+                p.push("path", format!("required with source = \"{kind}\""))
+            }
+            SourceKind::Command if self.command.first().is_none_or(|c| c.is_empty()) => p.push(
+                "command",
+                "required with source = \"command\": the program and its arguments, e.g. \
+                 [\"ffmpeg\", \"-f\", \"v4l2\", \"-i\", \"/dev/video0\", \"-f\", \"yuv4mpegpipe\", \"-\"]",
+            ),
+            SourceKind::Gstreamer if self.pipeline.as_deref().is_none_or(|s| s.trim().is_empty()) => {
+                p.push(
+                    "pipeline",
+                    "required with source = \"gstreamer\", e.g. \"v4l2src device=/dev/video0\"",
                 )
-                .to_lowercase(),
-            ),
-            SourceKind::Y4m if self.stamp == StampMode::Source => p.push(
-                "stamp",
-                "\"source\" needs autopilot boot times, which a y4m file does not carry; use \"arrival\"",
-            ),
+            }
             _ => {}
+        }
+        if self.stamp == StampMode::Source && self.source != SourceKind::Directory {
+            p.push(
+                "stamp",
+                format!(
+                    "\"source\" needs autopilot boot times, which a {kind} source does not carry; \
+                     use \"arrival\""
+                ),
+            );
+        }
+        if !self.command.is_empty() && self.source != SourceKind::Command {
+            p.push(
+                "command",
+                format!("only used with source = \"command\", not \"{kind}\""),
+            );
+        }
+        if self.pipeline.is_some() && self.source != SourceKind::Gstreamer {
+            p.push(
+                "pipeline",
+                format!("only used with source = \"gstreamer\", not \"{kind}\""),
+            );
+        }
+        if self.source != SourceKind::V4l2 {
+            for (k, v) in [("width_px", self.width_px), ("height_px", self.height_px)] {
+                if v.is_some() {
+                    p.push(
+                        k,
+                        format!("only used with source = \"v4l2\", not \"{kind}\""),
+                    );
+                }
+            }
+        }
+        if self.source == SourceKind::V4l2 {
+            p.range("timeout_s", self.timeout_s, 0.1, 600.0);
+            p.range("latency_s", self.latency_s, 0.0, 10.0);
+        }
+        if live {
+            if !self.path.as_os_str().is_empty() {
+                p.push("path", format!("not used with source = \"{kind}\""));
+            }
+            if self.rate_hz.is_some() {
+                p.push(
+                    "rate_hz",
+                    format!(
+                        "not used with source = \"{kind}\": the process sets the rate (replay a \
+                         video at its rate with ffmpeg -re)"
+                    ),
+                );
+            }
+            p.range("timeout_s", self.timeout_s, 0.1, 600.0);
+            p.range("latency_s", self.latency_s, 0.0, 10.0);
         }
         if let Some(r) = self.rate_hz {
             p.range("rate_hz", r, 0.01, 1000.0);
@@ -254,17 +464,49 @@ pub fn open(cfg: &FramesConfig) -> Result<Box<dyn FrameSource>, FrameError> {
     let inner: Box<dyn FrameSource> = match cfg.source {
         SourceKind::Directory => Box::new(DirectorySource::open(&cfg.path)?),
         SourceKind::Y4m => Box::new(Y4mSource::open(&cfg.path)?),
+        #[cfg(not(feature = "v4l2"))]
         SourceKind::V4l2 => {
             return Err(FrameError::NotBuilt {
                 kind: "v4l2",
-                reason: "no V4L2 capture backend is compiled in".into(),
+                reason: "no direct V4L2 backend is compiled in (cargo feature \"v4l2\"); use \
+                         source = \"gstreamer\" or \"command\""
+                    .into(),
             });
         }
-        SourceKind::Gstreamer => {
-            return Err(FrameError::NotBuilt {
-                kind: "gstreamer",
-                reason: "no GStreamer backend is compiled in".into(),
-            });
+        #[cfg(feature = "v4l2")]
+        SourceKind::V4l2 => {
+            if cfg.stamp != StampMode::Arrival {
+                return Err(FrameError::Config(
+                    "stamp = \"source\" needs a directory source with t_boot_us times".into(),
+                ));
+            }
+            let (Some(w), Some(h)) = (cfg.width_px, cfg.height_px) else {
+                return Err(FrameError::Config(
+                    "source = \"v4l2\" needs width_px and height_px".into(),
+                ));
+            };
+            return Ok(Box::new(V4l2Source::open(
+                &cfg.path,
+                w,
+                h,
+                cfg.pixel_format,
+                cfg.timeout_s,
+                cfg.latency_s,
+            )?));
+        }
+        SourceKind::Command | SourceKind::Gstreamer => {
+            if cfg.stamp != StampMode::Arrival {
+                return Err(FrameError::Config(
+                    "stamp = \"source\" needs a directory source with t_boot_us times".into(),
+                ));
+            }
+            // Live: stamped on arrival by the source itself, never paced.
+            return Ok(Box::new(CommandSource::spawn(
+                &cfg.argv(),
+                cfg.timeout_s,
+                cfg.latency_s,
+                !cfg.realtime,
+            )?));
         }
     };
     let stamp_arrival = cfg.stamp == StampMode::Arrival;
@@ -579,10 +821,11 @@ fn layout(c: &str) -> Option<Layout> {
     })
 }
 
-/// A YUV4MPEG2 file (see the module docs).
+/// A YUV4MPEG2 stream (see the module docs): a file ([`Y4mSource::open`]) or any reader
+/// ([`Y4mSource::from_reader`], e.g. a capture process's stdout).
 pub struct Y4mSource {
     path: PathBuf,
-    r: BufReader<File>,
+    r: Box<dyn BufRead + Send>,
     width: usize,
     height: usize,
     fps: f64,
@@ -591,6 +834,10 @@ pub struct Y4mSource {
     next: u64,
     buf: Vec<u8>,
 }
+
+/// Largest frame accepted from a y4m stream, pixels (8192 x 8192): a corrupt header cannot
+/// make the reader allocate gigabytes.
+pub const MAX_Y4M_PIXELS: usize = 1 << 26;
 
 /// Read one '\n'-terminated line of at most `max` bytes; None at a clean EOF.
 fn read_line_limited(r: &mut impl BufRead, max: usize) -> std::io::Result<Option<Vec<u8>>> {
@@ -603,13 +850,18 @@ fn read_line_limited(r: &mut impl BufRead, max: usize) -> std::io::Result<Option
 }
 
 impl Y4mSource {
-    /// Open and parse the stream header.
+    /// Open a file and parse the stream header.
     pub fn open(path: &Path) -> Result<Self, FrameError> {
         let f = File::open(path).map_err(|source| FrameError::Io {
             path: path.to_path_buf(),
             source,
         })?;
-        let mut r = BufReader::new(f);
+        Self::from_reader(Box::new(BufReader::new(f)), path)
+    }
+
+    /// Parse the stream header from `r`; `path` names the stream in errors (a file name, or a
+    /// description of a process). Blocks until the header line arrived.
+    pub fn from_reader(mut r: Box<dyn BufRead + Send>, path: &Path) -> Result<Self, FrameError> {
         let herr = |reason: String| FrameError::Y4mHeader {
             path: path.to_path_buf(),
             reason,
@@ -625,6 +877,9 @@ impl Y4mSource {
                 "header line is not terminated within 1024 bytes".into(),
             ));
         }
+        if line.contains(&0) {
+            return Err(herr("header contains NUL bytes (binary data)".into()));
+        }
         let text = std::str::from_utf8(&line[..line.len() - 1])
             .map_err(|_| herr("header is not ASCII".into()))?;
         let mut tok = text.split(' ').filter(|t| !t.is_empty());
@@ -633,11 +888,14 @@ impl Y4mSource {
         }
         let (mut w, mut h, mut fps, mut colour) = (None, None, None, "420".to_string());
         for t in tok {
-            let (k, v) = t.split_at(1);
+            // Split after the first character (a byte split could cut a UTF-8 character).
+            let mut chars = t.chars();
+            let k = chars.next().unwrap_or(' ');
+            let v = chars.as_str();
             match k {
-                "W" => w = v.parse::<usize>().ok(),
-                "H" => h = v.parse::<usize>().ok(),
-                "F" => {
+                'W' => w = v.parse::<usize>().ok(),
+                'H' => h = v.parse::<usize>().ok(),
+                'F' => {
                     fps = v.split_once(':').and_then(|(n, d)| {
                         let n: f64 = n.parse().ok()?;
                         let d: f64 = d.parse().ok()?;
@@ -649,7 +907,7 @@ impl Y4mSource {
                         )));
                     }
                 }
-                "C" => colour = v.to_string(),
+                'C' => colour = v.to_string(),
                 _ => {} // I (interlacing), A (aspect), X (comments): irrelevant for luma
             }
         }
@@ -658,6 +916,11 @@ impl Y4mSource {
         let (Some(width), Some(height)) = (width, height) else {
             return Err(herr("W and H must be present and within 1..=16384".into()));
         };
+        if width * height > MAX_Y4M_PIXELS {
+            return Err(herr(format!(
+                "{width}x{height} exceeds the {MAX_Y4M_PIXELS} pixels accepted per frame"
+            )));
+        }
         let lay = layout(&colour)
             .ok_or_else(|| herr(format!("colour space \"C{colour}\" is not supported")))?;
         Ok(Self {
@@ -676,6 +939,16 @@ impl Y4mSource {
     /// Image size, pixels.
     pub fn size(&self) -> (usize, usize) {
         (self.width, self.height)
+    }
+
+    /// Frame rate of the header (25 when absent), Hz.
+    pub fn fps(&self) -> f64 {
+        self.fps
+    }
+
+    /// The header's colour space (`C` parameter; `420` when absent).
+    pub fn colour(&self) -> &str {
+        &self.colour
     }
 
     fn ferr(&self, reason: String) -> FrameError {
@@ -749,6 +1022,957 @@ impl FrameSource for Y4mSource {
 
     fn rate_hz(&self) -> Option<f64> {
         Some(self.fps)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Capture process (live capture through GStreamer, ffmpeg or any program writing y4m)
+
+/// How long [`CommandSource`] waits for the process to exit after its output ended.
+const EXIT_WAIT: Duration = Duration::from_secs(2);
+/// Bytes of the process's stderr kept for error messages.
+const STDERR_TAIL_BYTES: usize = 2048;
+
+/// The argv of `source = "gstreamer"`: `gst-launch-1.0 -q <pipeline> ! videoconvert !
+/// video/x-raw,format=I420 ! y4menc ! fdsink fd=1` (`-q`: gst-launch prints nothing else on
+/// stdout). The pipeline is split at whitespace into arguments, as a shell would without quotes
+/// (gst-launch escapes the spaces inside one argument); use `source = "command"` for a pipeline
+/// that needs quoting.
+pub fn gstreamer_command(pipeline: &str) -> Vec<String> {
+    let tail = "! videoconvert ! video/x-raw,format=I420 ! y4menc ! fdsink fd=1";
+    ["gst-launch-1.0", "-q"]
+        .into_iter()
+        .chain(pipeline.split_whitespace())
+        .chain(tail.split(' '))
+        .map(str::to_string)
+        .collect()
+}
+
+/// Shell-like rendering of an argv for messages.
+fn show_argv(argv: &[String]) -> String {
+    argv.iter()
+        .map(|a| {
+            if !a.is_empty()
+                && a.chars()
+                    .all(|c| c.is_ascii_alphanumeric() || "-_./=:,!+@%".contains(c))
+            {
+                a.clone()
+            } else {
+                format!("'{}'", a.replace('\'', "'\\''"))
+            }
+        })
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+#[derive(Default)]
+struct PumpState {
+    /// The newest complete frame not yet taken.
+    frame: Option<Frame>,
+    /// Set once the stream ended: `Ok` for a clean end, else the error.
+    end: Option<Result<(), FrameError>>,
+    /// Header facts, once parsed: (width, height, fps, colour).
+    header: Option<(usize, usize, f64, String)>,
+    /// Frames replaced before they were taken.
+    dropped: u64,
+    /// The consumer is gone (stop reading).
+    stop: bool,
+}
+
+struct Pump {
+    state: Mutex<PumpState>,
+    cv: Condvar,
+}
+
+impl Pump {
+    fn lock(&self) -> std::sync::MutexGuard<'_, PumpState> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// Live frames from a capture process: runs `argv` (no shell) with stdout piped, reads the
+/// YUV4MPEG2 stream it writes with [`Y4mSource`] on a pump thread, and stamps each frame with the
+/// companion clock when its last byte arrived, minus `latency_s`. The pump reads continuously, so
+/// frames never wait in the pipe (which would make the arrival stamps late); when the consumer is
+/// slower, the newest frame replaces the waiting one (`lossless = false`) or the pump waits
+/// (`lossless = true`, for replay commands; the process is then throttled by the pipe).
+///
+/// Errors name the command and carry its exit status and the tail of its stderr: a process that
+/// cannot start, exits or stops writing for `timeout_s`, or writes something that is not y4m. A
+/// clean end (exit status 0 at a frame boundary) is the end of the stream (`Ok(None)`).
+/// The process is killed when the source is dropped. It is started directly (not through a
+/// shell); a `sh -c` wrapper should `exec` the program so that the kill reaches it.
+pub struct CommandSource {
+    label: String,
+    child: Arc<Mutex<Child>>,
+    pump: Arc<Pump>,
+    stderr_tail: Arc<Mutex<Vec<u8>>>,
+    timeout: Duration,
+    next_seq: u64,
+    reported_dropped: u64,
+}
+
+impl CommandSource {
+    /// Start `argv` (`argv[0]` is looked up in `PATH` unless it contains a `/`).
+    pub fn spawn(
+        argv: &[String],
+        timeout_s: f64,
+        latency_s: f64,
+        lossless: bool,
+    ) -> Result<Self, FrameError> {
+        let label = format!("capture command `{}`", show_argv(argv));
+        let cerr = |reason: String| FrameError::Command {
+            command: label.clone(),
+            reason,
+        };
+        let Some((prog, args)) = argv.split_first() else {
+            return Err(cerr("frames.command is empty".into()));
+        };
+        let sane =
+            timeout_s.is_finite() && timeout_s > 0.0 && latency_s.is_finite() && latency_s >= 0.0;
+        if !sane {
+            return Err(cerr(format!(
+                "timeout_s = {timeout_s} must be > 0 and latency_s = {latency_s} >= 0"
+            )));
+        }
+        let mut child = Command::new(prog)
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .map_err(|e| cerr(format!("cannot start \"{prog}\": {e}")))?;
+        let (Some(stdout), Some(stderr)) = (child.stdout.take(), child.stderr.take()) else {
+            let _ = child.kill();
+            let _ = child.wait();
+            return Err(cerr("no stdout/stderr pipe".into())); // ok: piped above; defensive
+        };
+        info!(pid = child.id(), "{label} started");
+        let child = Arc::new(Mutex::new(child));
+        let stderr_tail = Arc::new(Mutex::new(Vec::new()));
+        let pump = Arc::new(Pump {
+            state: Mutex::new(PumpState::default()),
+            cv: Condvar::new(),
+        });
+        let me = Self {
+            label: label.clone(),
+            child: child.clone(),
+            pump: pump.clone(),
+            stderr_tail: stderr_tail.clone(),
+            timeout: Duration::from_secs_f64(timeout_s.min(3600.0)),
+            next_seq: 0,
+            reported_dropped: 0,
+        };
+        let tail = stderr_tail.clone();
+        let lab = label.clone();
+        std::thread::Builder::new()
+            .name("visnav-capture-stderr".into())
+            .spawn(move || drain_stderr(stderr, &tail, &lab))
+            .map_err(|e| cerr(format!("cannot start a thread: {e}")))?;
+        let ctx = PumpCtx {
+            label: label.clone(),
+            child,
+            pump,
+            stderr_tail,
+            latency: Duration::from_secs_f64(latency_s.min(10.0)),
+            lossless,
+        };
+        std::thread::Builder::new()
+            .name("visnav-capture".into())
+            .spawn(move || ctx.run(stdout))
+            .map_err(|e| cerr(format!("cannot start a thread: {e}")))?;
+        Ok(me)
+    }
+
+    fn kill(&self) {
+        let mut c = self.child.lock().unwrap_or_else(|e| e.into_inner());
+        if matches!(c.try_wait(), Ok(None)) {
+            let _ = c.kill();
+        }
+        let _ = c.wait();
+    }
+
+    fn error(&self, reason: String) -> FrameError {
+        FrameError::Command {
+            command: self.label.clone(),
+            reason: with_stderr(reason, &self.stderr_tail),
+        }
+    }
+}
+
+/// Keep the last [`STDERR_TAIL_BYTES`] of the process's stderr; log each line at debug level.
+fn drain_stderr(stderr: ChildStderr, tail: &Mutex<Vec<u8>>, label: &str) {
+    let mut r = BufReader::new(stderr);
+    loop {
+        match read_line_limited(&mut r, 4096) {
+            Ok(Some(line)) => {
+                let text = String::from_utf8_lossy(&line);
+                debug!("{label} stderr: {}", text.trim_end());
+                let mut t = tail.lock().unwrap_or_else(|e| e.into_inner());
+                t.extend_from_slice(&line);
+                if t.len() > STDERR_TAIL_BYTES {
+                    let cut = t.len() - STDERR_TAIL_BYTES;
+                    t.drain(..cut);
+                }
+            }
+            Ok(None) | Err(_) => return,
+        }
+    }
+}
+
+/// `reason` plus the stderr tail, if any.
+fn with_stderr(reason: String, tail: &Mutex<Vec<u8>>) -> String {
+    let t = tail.lock().unwrap_or_else(|e| e.into_inner());
+    let text = String::from_utf8_lossy(&t);
+    let text = text.trim();
+    if text.is_empty() {
+        format!("{reason}; its stderr is empty")
+    } else {
+        format!(
+            "{reason}; its stderr ends with: {}",
+            text.replace('\n', " | ")
+        )
+    }
+}
+
+struct PumpCtx {
+    label: String,
+    child: Arc<Mutex<Child>>,
+    pump: Arc<Pump>,
+    stderr_tail: Arc<Mutex<Vec<u8>>>,
+    latency: Duration,
+    lossless: bool,
+}
+
+impl PumpCtx {
+    fn stopped(&self) -> bool {
+        self.pump.lock().stop
+    }
+
+    fn finish(&self, end: Result<(), FrameError>) {
+        let mut g = self.pump.lock();
+        g.end.get_or_insert(end);
+        self.pump.cv.notify_all();
+    }
+
+    /// Exit status once the process exited (waiting up to [`EXIT_WAIT`]); `None`: still running
+    /// (then killed).
+    fn exit_status(&self) -> Option<std::process::ExitStatus> {
+        let t0 = Instant::now();
+        loop {
+            {
+                let mut c = self.child.lock().unwrap_or_else(|e| e.into_inner());
+                if let Ok(Some(s)) = c.try_wait() {
+                    return Some(s);
+                }
+                if t0.elapsed() >= EXIT_WAIT {
+                    let _ = c.kill();
+                    let _ = c.wait();
+                    return None;
+                }
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// End with an error carrying the exit status and stderr. `garbage`: the output is not y4m,
+    /// so the process is stopped at once instead of waiting for it to exit.
+    fn fail(&self, what: String, garbage: bool) {
+        if self.stopped() {
+            return;
+        }
+        if garbage {
+            let mut c = self.child.lock().unwrap_or_else(|e| e.into_inner());
+            if matches!(c.try_wait(), Ok(None)) {
+                let _ = c.kill();
+            }
+        }
+        let status = match self.exit_status() {
+            Some(_) if garbage => "the process was stopped".to_string(),
+            Some(s) => format!("the process exited ({s})"),
+            None => "the process was still running and was stopped".into(),
+        };
+        // Give the stderr thread a moment to collect the last words.
+        std::thread::sleep(Duration::from_millis(50));
+        self.finish(Err(FrameError::Command {
+            command: self.label.clone(),
+            reason: with_stderr(format!("{what}; {status}"), &self.stderr_tail),
+        }));
+    }
+
+    fn run(self, stdout: ChildStdout) {
+        let name = PathBuf::from(&self.label);
+        let reader = Box::new(BufReader::with_capacity(1 << 20, stdout));
+        let mut y4m = match Y4mSource::from_reader(reader, &name) {
+            Ok(y) => y,
+            Err(FrameError::Io { source, .. }) => {
+                return self.fail(format!("reading its output: {source}"), false);
+            }
+            Err(FrameError::Y4mHeader { reason, .. }) if reason.contains("empty") => {
+                return self.fail("its output ended before a YUV4MPEG2 header".into(), false);
+            }
+            Err(FrameError::Y4mHeader { reason, .. }) => {
+                return self.fail(
+                    format!(
+                        "its output is not YUV4MPEG2 ({reason}); the pipeline must end in \
+                     `y4menc ! fdsink fd=1` (gst-launch-1.0 with -q) or `-f yuv4mpegpipe -` \
+                     (ffmpeg) and print nothing else on stdout"
+                    ),
+                    true,
+                );
+            }
+            Err(e) => return self.fail(e.to_string(), true),
+        };
+        let (w, h) = y4m.size();
+        self.pump.lock().header = Some((w, h, y4m.fps(), y4m.colour().to_string()));
+        loop {
+            match y4m.next_frame() {
+                Ok(Some(mut f)) => {
+                    let arrival = Instant::now();
+                    f.t_capture = CaptureTime::Companion(
+                        arrival.checked_sub(self.latency).unwrap_or(arrival),
+                    );
+                    let mut g = self.pump.lock();
+                    while self.lossless && g.frame.is_some() && !g.stop {
+                        g = self
+                            .pump
+                            .cv
+                            .wait_timeout(g, Duration::from_millis(100))
+                            .map(|r| r.0)
+                            .unwrap_or_else(|e| e.into_inner().0);
+                    }
+                    if g.stop {
+                        return;
+                    }
+                    if g.frame.replace(f).is_some() {
+                        g.dropped += 1;
+                    }
+                    self.pump.cv.notify_all();
+                }
+                Ok(None) => {
+                    if self.stopped() {
+                        return;
+                    }
+                    match self.exit_status() {
+                        Some(s) if s.success() => {
+                            info!("{}: end of its output ({s})", self.label);
+                            return self.finish(Ok(()));
+                        }
+                        _ => return self.fail("its output ended".into(), false),
+                    }
+                }
+                Err(FrameError::Y4mFrame { frame, reason, .. }) => {
+                    let garbage = !reason.starts_with("truncated");
+                    return self.fail(format!("frame {frame}: {reason}"), garbage);
+                }
+                Err(e) => return self.fail(e.to_string(), true),
+            }
+        }
+    }
+}
+
+impl FrameSource for CommandSource {
+    fn next_frame(&mut self) -> Result<Option<Frame>, FrameError> {
+        let deadline = Instant::now() + self.timeout;
+        let mut g = self.pump.lock();
+        loop {
+            if let Some(mut f) = g.frame.take() {
+                self.pump.cv.notify_all();
+                if g.dropped > self.reported_dropped {
+                    debug!(
+                        "{}: {} frames replaced before they were taken",
+                        self.label, g.dropped
+                    );
+                    self.reported_dropped = g.dropped;
+                }
+                drop(g);
+                f.seq = self.next_seq;
+                self.next_seq += 1;
+                return Ok(Some(f));
+            }
+            if let Some(end) = &g.end {
+                return match end {
+                    Ok(()) => Ok(None),
+                    Err(FrameError::Command { command, reason }) => Err(FrameError::Command {
+                        command: command.clone(),
+                        reason: reason.clone(),
+                    }),
+                    Err(e) => Err(self.error(e.to_string())),
+                };
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                drop(g);
+                let what = if self.next_seq == 0 {
+                    "no frame"
+                } else {
+                    "no new frame"
+                };
+                let reason = with_stderr(
+                    format!(
+                        "{what} for {:.1} s (frames.timeout_s); the process was stopped",
+                        self.timeout.as_secs_f64()
+                    ),
+                    &self.stderr_tail,
+                );
+                self.kill();
+                let mut g = self.pump.lock();
+                g.stop = true;
+                g.end = Some(Err(FrameError::Command {
+                    command: self.label.clone(),
+                    reason: reason.clone(),
+                }));
+                self.pump.cv.notify_all();
+                return Err(FrameError::Command {
+                    command: self.label.clone(),
+                    reason,
+                });
+            }
+            g = self
+                .pump
+                .cv
+                .wait_timeout(g, deadline - now)
+                .map(|r| r.0)
+                .unwrap_or_else(|e| e.into_inner().0);
+        }
+    }
+
+    fn describe(&self) -> String {
+        match &self.pump.lock().header {
+            Some((w, h, fps, c)) => format!("{} ({w}x{h} C{c}, {fps:.3} fps)", self.label),
+            None => format!("{} (no header yet)", self.label),
+        }
+    }
+
+    fn rate_hz(&self) -> Option<f64> {
+        self.pump.lock().header.as_ref().map(|h| h.2)
+    }
+}
+
+impl Drop for CommandSource {
+    fn drop(&mut self) {
+        {
+            let mut g = self.pump.lock();
+            g.stop = true;
+            self.pump.cv.notify_all();
+        }
+        self.kill();
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// V4L2 (direct capture with the `v4l2` cargo feature)
+
+/// Pixel format asked from a V4L2 device (`pixel_format`; only the luma is used).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+pub enum PixelFormat {
+    /// 8-bit gray (`GREY`).
+    #[serde(rename = "GREY")]
+    Grey,
+    /// Packed 4:2:2 `Y0 U Y1 V` (`YUYV`), what most USB (UVC) cameras give uncompressed.
+    #[default]
+    #[serde(rename = "YUYV")]
+    Yuyv,
+    /// Motion JPEG (`MJPG`), decoded with the `image` crate.
+    #[serde(rename = "MJPG")]
+    Mjpg,
+}
+
+/// The V4L2 kernel ABI used by the `v4l2` feature (linux/videodev2.h, 64-bit Linux), written out
+/// by hand: the `v4l` crate generates it with bindgen, which needs libclang at build time. The
+/// sizes and ioctl numbers are checked against the kernel's values in the tests.
+pub mod v4l2_abi {
+    #![allow(dead_code)] // used by the `v4l2` feature only
+
+    /// `v4l2_fourcc(a, b, c, d)`.
+    pub const fn fourcc(c: &[u8; 4]) -> u32 {
+        (c[0] as u32) | ((c[1] as u32) << 8) | ((c[2] as u32) << 16) | ((c[3] as u32) << 24)
+    }
+    pub const PIX_FMT_GREY: u32 = fourcc(b"GREY");
+    pub const PIX_FMT_YUYV: u32 = fourcc(b"YUYV");
+    pub const PIX_FMT_MJPEG: u32 = fourcc(b"MJPG");
+    pub const BUF_TYPE_VIDEO_CAPTURE: u32 = 1;
+    pub const MEMORY_MMAP: u32 = 1;
+    pub const FIELD_ANY: u32 = 0;
+    pub const CAP_VIDEO_CAPTURE: u32 = 0x0000_0001;
+    pub const CAP_STREAMING: u32 = 0x0400_0000;
+    pub const CAP_DEVICE_CAPS: u32 = 0x8000_0000;
+    pub const BUF_FLAG_ERROR: u32 = 0x0000_0040;
+    pub const BUF_FLAG_TIMESTAMP_MASK: u32 = 0x0000_e000;
+    pub const BUF_FLAG_TIMESTAMP_MONOTONIC: u32 = 0x0000_2000;
+
+    /// `_IOC(dir, 'V', nr, size)` (asm-generic: dir bits 30..32, size 16..30, type 8..16).
+    const fn ioc(dir: u64, nr: u64, size: usize) -> u64 {
+        (dir << 30) | ((size as u64) << 16) | ((b'V' as u64) << 8) | nr
+    }
+    const R: u64 = 2;
+    const W: u64 = 1;
+    pub const VIDIOC_QUERYCAP: u64 = ioc(R, 0, size_of::<Capability>());
+    pub const VIDIOC_S_FMT: u64 = ioc(R | W, 5, size_of::<Format>());
+    pub const VIDIOC_REQBUFS: u64 = ioc(R | W, 8, size_of::<RequestBuffers>());
+    pub const VIDIOC_QUERYBUF: u64 = ioc(R | W, 9, size_of::<Buffer>());
+    pub const VIDIOC_QBUF: u64 = ioc(R | W, 15, size_of::<Buffer>());
+    pub const VIDIOC_DQBUF: u64 = ioc(R | W, 17, size_of::<Buffer>());
+    pub const VIDIOC_STREAMON: u64 = ioc(W, 18, size_of::<i32>());
+    pub const VIDIOC_STREAMOFF: u64 = ioc(W, 19, size_of::<i32>());
+
+    /// `struct v4l2_capability`.
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, Default)]
+    pub struct Capability {
+        pub driver: [u8; 16],
+        pub card: [u8; 32],
+        pub bus_info: [u8; 32],
+        pub version: u32,
+        pub capabilities: u32,
+        pub device_caps: u32,
+        pub reserved: [u32; 3],
+    }
+
+    /// `struct v4l2_pix_format`.
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, Default)]
+    pub struct PixFormat {
+        pub width: u32,
+        pub height: u32,
+        pub pixelformat: u32,
+        pub field: u32,
+        pub bytesperline: u32,
+        pub sizeimage: u32,
+        pub colorspace: u32,
+        pub priv_: u32,
+        pub flags: u32,
+        pub ycbcr_enc: u32,
+        pub quantization: u32,
+        pub xfer_func: u32,
+    }
+
+    /// `struct v4l2_format` with the `pix` member of its 200-byte union (8-byte aligned on
+    /// 64-bit: hence the padding after `type_`).
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy)]
+    pub struct Format {
+        pub type_: u32,
+        pub pad: u32,
+        pub pix: PixFormat,
+        pub rest: [u8; 200 - 48],
+    }
+
+    impl Default for Format {
+        fn default() -> Self {
+            Self {
+                type_: 0,
+                pad: 0,
+                pix: PixFormat::default(),
+                rest: [0; 152],
+            }
+        }
+    }
+
+    /// `struct v4l2_requestbuffers`.
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, Default)]
+    pub struct RequestBuffers {
+        pub count: u32,
+        pub type_: u32,
+        pub memory: u32,
+        pub capabilities: u32,
+        pub flags: u8,
+        pub reserved: [u8; 3],
+    }
+
+    /// `struct v4l2_timecode`.
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, Default)]
+    pub struct Timecode {
+        pub type_: u32,
+        pub flags: u32,
+        pub frames: u8,
+        pub seconds: u8,
+        pub minutes: u8,
+        pub hours: u8,
+        pub userbits: [u8; 4],
+    }
+
+    /// `struct v4l2_buffer` (single-planar; `m` is the union of offset / userptr / fd).
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, Default)]
+    pub struct Buffer {
+        pub index: u32,
+        pub type_: u32,
+        pub bytesused: u32,
+        pub flags: u32,
+        pub field: u32,
+        /// `struct timeval` (tv_sec, tv_usec) of the 64-bit ABI.
+        pub timestamp: [i64; 2],
+        pub timecode: Timecode,
+        pub sequence: u32,
+        pub memory: u32,
+        /// `m.offset` in the low 32 bits (little endian) for MMAP buffers.
+        pub m: u64,
+        pub length: u32,
+        pub reserved2: u32,
+        pub request_fd: i32,
+    }
+}
+
+/// The luma plane of a frame as delivered by a V4L2 device: `GREY` and `YUYV` with a row stride
+/// of `bytes_per_line` (`0`: packed), `MJPG` decoded. Errors say what does not fit.
+pub fn v4l2_luma(
+    fmt: PixelFormat,
+    data: &[u8],
+    width: usize,
+    height: usize,
+    bytes_per_line: usize,
+) -> Result<GrayImage, String> {
+    let row_bytes = match fmt {
+        PixelFormat::Grey => width,
+        PixelFormat::Yuyv => 2 * width,
+        PixelFormat::Mjpg => {
+            let img = image::load_from_memory_with_format(data, image::ImageFormat::Jpeg)
+                .map_err(|e| format!("MJPG frame of {} bytes: {e}", data.len()))?;
+            let g = GrayImage::from_dynamic(&img);
+            if (g.width(), g.height()) != (width, height) {
+                return Err(format!(
+                    "MJPG frame is {}x{}, the format is {width}x{height}",
+                    g.width(),
+                    g.height()
+                ));
+            }
+            return Ok(g);
+        }
+    };
+    let stride = if bytes_per_line == 0 {
+        row_bytes
+    } else {
+        bytes_per_line
+    };
+    if stride < row_bytes {
+        return Err(format!(
+            "bytes per line {stride} < {row_bytes} for {width} pixels"
+        ));
+    }
+    let need = stride * height.saturating_sub(1) + row_bytes;
+    if height == 0 || width == 0 || data.len() < need {
+        return Err(format!(
+            "{} bytes, {need} needed for {width}x{height} {fmt:?}",
+            data.len()
+        ));
+    }
+    let step = if fmt == PixelFormat::Yuyv { 2 } else { 1 };
+    let mut out = Vec::with_capacity(width * height);
+    for row in data.chunks(stride).take(height) {
+        out.extend(row[..row_bytes].iter().step_by(step).map(|&v| f32::from(v)));
+    }
+    GrayImage::new(width, height, out).map_err(|e| e.to_string())
+}
+
+#[cfg(feature = "v4l2")]
+pub use v4l2_capture::V4l2Source;
+
+#[cfg(feature = "v4l2")]
+mod v4l2_capture {
+    use super::v4l2_abi::*;
+    use super::*;
+    use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+
+    /// Direct V4L2 capture (`source = "v4l2"`, cargo feature `v4l2`): memory-mapped streaming
+    /// I/O with 4 buffers. The frame's capture time is the driver's buffer timestamp when it is
+    /// on CLOCK_MONOTONIC (the clock of `std::time::Instant` on Linux), else its arrival, minus
+    /// `latency_s`.
+    pub struct V4l2Source {
+        device: PathBuf,
+        fd: OwnedFd,
+        buffers: Vec<(*mut libc::c_void, usize)>,
+        fmt: PixelFormat,
+        width: usize,
+        height: usize,
+        bytes_per_line: usize,
+        timeout: Duration,
+        latency: Duration,
+        seq: u64,
+        streaming: bool,
+    }
+
+    // The mapped buffers belong to this source only (moved to the reader thread, never shared).
+    unsafe impl Send for V4l2Source {}
+
+    fn ioctl<T>(fd: i32, req: u64, arg: &mut T) -> std::io::Result<()> {
+        loop {
+            // SAFETY: `arg` is the #[repr(C)] struct the request number encodes (size checked
+            // in the tests); the kernel writes at most size_of::<T>() bytes.
+            let r = unsafe { libc::ioctl(fd, req as _, arg as *mut T) };
+            if r != -1 {
+                return Ok(());
+            }
+            let e = std::io::Error::last_os_error();
+            if e.kind() != std::io::ErrorKind::Interrupted {
+                return Err(e);
+            }
+        }
+    }
+
+    impl V4l2Source {
+        /// Open `device`, set `width` x `height` in `fmt`, map the buffers and start streaming.
+        pub fn open(
+            device: &Path,
+            width: usize,
+            height: usize,
+            fmt: PixelFormat,
+            timeout_s: f64,
+            latency_s: f64,
+        ) -> Result<Self, FrameError> {
+            let err = |what: &str, e: std::io::Error| FrameError::Io {
+                path: device.to_path_buf(),
+                source: std::io::Error::new(e.kind(), format!("{what}: {e}")),
+            };
+            let cpath =
+                std::ffi::CString::new(device.as_os_str().as_encoded_bytes()).map_err(|_| {
+                    FrameError::Config(format!("{}: NUL in the path", device.display()))
+                })?;
+            // SAFETY: a valid C string; the returned descriptor is owned below.
+            let raw = unsafe {
+                libc::open(
+                    cpath.as_ptr(),
+                    libc::O_RDWR | libc::O_NONBLOCK | libc::O_CLOEXEC,
+                )
+            };
+            if raw < 0 {
+                return Err(err("open", std::io::Error::last_os_error()));
+            }
+            // SAFETY: `raw` is a fresh descriptor nobody else owns.
+            let fd = unsafe { OwnedFd::from_raw_fd(raw) };
+            let mut me = Self {
+                device: device.to_path_buf(),
+                fd,
+                buffers: Vec::new(),
+                fmt,
+                width,
+                height,
+                bytes_per_line: 0,
+                timeout: Duration::from_secs_f64(timeout_s.clamp(0.1, 600.0)),
+                latency: Duration::from_secs_f64(latency_s.clamp(0.0, 10.0)),
+                seq: 0,
+                streaming: false,
+            };
+            let fd = me.fd.as_raw_fd();
+            let mut cap = Capability::default();
+            ioctl(fd, VIDIOC_QUERYCAP, &mut cap)
+                .map_err(|e| err("not a V4L2 device (VIDIOC_QUERYCAP)", e))?;
+            let caps = if cap.capabilities & CAP_DEVICE_CAPS != 0 {
+                cap.device_caps
+            } else {
+                cap.capabilities
+            };
+            let card = String::from_utf8_lossy(&cap.card)
+                .trim_end_matches('\0')
+                .to_string();
+            if caps & CAP_VIDEO_CAPTURE == 0 || caps & CAP_STREAMING == 0 {
+                return Err(FrameError::Config(format!(
+                    "{} ({card}) is not a video capture device with streaming I/O",
+                    device.display()
+                )));
+            }
+            let fourcc = match fmt {
+                PixelFormat::Grey => PIX_FMT_GREY,
+                PixelFormat::Yuyv => PIX_FMT_YUYV,
+                PixelFormat::Mjpg => PIX_FMT_MJPEG,
+            };
+            let mut f = Format {
+                type_: BUF_TYPE_VIDEO_CAPTURE,
+                ..Format::default()
+            };
+            f.pix.width = width as u32;
+            f.pix.height = height as u32;
+            f.pix.pixelformat = fourcc;
+            f.pix.field = FIELD_ANY;
+            ioctl(fd, VIDIOC_S_FMT, &mut f).map_err(|e| err("VIDIOC_S_FMT", e))?;
+            if f.pix.pixelformat != fourcc
+                || (f.pix.width as usize, f.pix.height as usize) != (width, height)
+            {
+                let got = f.pix.pixelformat.to_le_bytes();
+                return Err(FrameError::Config(format!(
+                    "{} ({card}) does not capture {width}x{height} {fmt:?}: it offers {}x{} {} \
+                     (the camera calibration must match the capture size)",
+                    device.display(),
+                    f.pix.width,
+                    f.pix.height,
+                    String::from_utf8_lossy(&got)
+                )));
+            }
+            me.bytes_per_line = f.pix.bytesperline as usize;
+            let mut req = RequestBuffers {
+                count: 4,
+                type_: BUF_TYPE_VIDEO_CAPTURE,
+                memory: MEMORY_MMAP,
+                ..RequestBuffers::default()
+            };
+            ioctl(fd, VIDIOC_REQBUFS, &mut req).map_err(|e| err("VIDIOC_REQBUFS", e))?;
+            if req.count < 2 {
+                return Err(FrameError::Config(format!(
+                    "{}: only {} capture buffers",
+                    device.display(),
+                    req.count
+                )));
+            }
+            for i in 0..req.count {
+                let mut b = Buffer {
+                    index: i,
+                    type_: BUF_TYPE_VIDEO_CAPTURE,
+                    memory: MEMORY_MMAP,
+                    ..Buffer::default()
+                };
+                ioctl(fd, VIDIOC_QUERYBUF, &mut b).map_err(|e| err("VIDIOC_QUERYBUF", e))?;
+                let len = b.length as usize;
+                let offset = (b.m & 0xffff_ffff) as libc::off_t;
+                // SAFETY: maps the driver's buffer `i` (length and offset from QUERYBUF);
+                // unmapped in Drop.
+                let p = unsafe {
+                    libc::mmap(
+                        std::ptr::null_mut(),
+                        len,
+                        libc::PROT_READ | libc::PROT_WRITE,
+                        libc::MAP_SHARED,
+                        fd,
+                        offset,
+                    )
+                };
+                if p == libc::MAP_FAILED {
+                    return Err(err("mmap", std::io::Error::last_os_error()));
+                }
+                me.buffers.push((p, len));
+                ioctl(fd, VIDIOC_QBUF, &mut b).map_err(|e| err("VIDIOC_QBUF", e))?;
+            }
+            let mut t = BUF_TYPE_VIDEO_CAPTURE as i32;
+            ioctl(fd, VIDIOC_STREAMON, &mut t).map_err(|e| err("VIDIOC_STREAMON", e))?;
+            me.streaming = true;
+            info!("{}: V4L2 capture from {card}", me.describe());
+            Ok(me)
+        }
+
+        fn ferr(&self, reason: String) -> FrameError {
+            FrameError::Image {
+                path: self.device.clone(),
+                frame: self.seq,
+                reason,
+            }
+        }
+    }
+
+    /// The CLOCK_MONOTONIC time `tv` as an `Instant` (None when in the future or unreadable).
+    fn monotonic_instant(tv: [i64; 2]) -> Option<Instant> {
+        let now_i = Instant::now();
+        let mut ts = libc::timespec {
+            tv_sec: 0,
+            tv_nsec: 0,
+        };
+        // SAFETY: writes one timespec.
+        if unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) } != 0 {
+            return None;
+        }
+        let now_ns = i128::from(ts.tv_sec) * 1_000_000_000 + i128::from(ts.tv_nsec);
+        let t_ns = i128::from(tv[0]) * 1_000_000_000 + i128::from(tv[1]) * 1000;
+        let age_ns = u64::try_from(now_ns - t_ns).ok()?;
+        now_i.checked_sub(Duration::from_nanos(age_ns))
+    }
+
+    impl FrameSource for V4l2Source {
+        fn next_frame(&mut self) -> Result<Option<Frame>, FrameError> {
+            let fd = self.fd.as_raw_fd();
+            let deadline = Instant::now() + self.timeout;
+            let mut b = loop {
+                let mut b = Buffer {
+                    type_: BUF_TYPE_VIDEO_CAPTURE,
+                    memory: MEMORY_MMAP,
+                    ..Buffer::default()
+                };
+                match ioctl(fd, VIDIOC_DQBUF, &mut b) {
+                    Ok(()) => break b,
+                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
+                    Err(e) => {
+                        return Err(FrameError::Io {
+                            path: self.device.clone(),
+                            source: e,
+                        });
+                    }
+                }
+                let left = deadline.saturating_duration_since(Instant::now());
+                if left.is_zero() {
+                    return Err(self.ferr(format!(
+                        "no frame for {:.1} s (frames.timeout_s)",
+                        self.timeout.as_secs_f64()
+                    )));
+                }
+                let mut pfd = libc::pollfd {
+                    fd,
+                    events: libc::POLLIN,
+                    revents: 0,
+                };
+                // SAFETY: one pollfd.
+                unsafe { libc::poll(&mut pfd, 1, left.as_millis().min(1000) as i32) };
+            };
+            let arrival = Instant::now();
+            let idx = b.index as usize;
+            let result = match self.buffers.get(idx) {
+                Some(&(p, len)) if b.flags & BUF_FLAG_ERROR == 0 => {
+                    let used = (b.bytesused as usize).min(len);
+                    // SAFETY: buffer `idx` is mapped with `len` bytes and dequeued (the driver
+                    // does not write it until it is queued again below).
+                    let data = unsafe { std::slice::from_raw_parts(p as *const u8, used) };
+                    v4l2_luma(self.fmt, data, self.width, self.height, self.bytes_per_line)
+                }
+                Some(_) => Err("the driver flagged the buffer as corrupt".to_string()),
+                None => Err(format!("buffer index {idx} out of range")),
+            };
+            let stamp = if b.flags & BUF_FLAG_TIMESTAMP_MASK == BUF_FLAG_TIMESTAMP_MONOTONIC {
+                monotonic_instant(b.timestamp).unwrap_or(arrival)
+            } else {
+                arrival
+            };
+            if idx < self.buffers.len() {
+                ioctl(fd, VIDIOC_QBUF, &mut b).map_err(|e| FrameError::Io {
+                    path: self.device.clone(),
+                    source: e,
+                })?;
+            }
+            let seq = self.seq;
+            self.seq += 1;
+            let image = result.map_err(|r| FrameError::Image {
+                path: self.device.clone(),
+                frame: seq,
+                reason: r,
+            })?;
+            Ok(Some(Frame {
+                image,
+                t_capture: CaptureTime::Companion(stamp.checked_sub(self.latency).unwrap_or(stamp)),
+                t_rel_s: 0.0,
+                seq,
+            }))
+        }
+
+        fn describe(&self) -> String {
+            format!(
+                "V4L2 {} ({}x{} {:?})",
+                self.device.display(),
+                self.width,
+                self.height,
+                self.fmt
+            )
+        }
+    }
+
+    impl Drop for V4l2Source {
+        fn drop(&mut self) {
+            let fd = self.fd.as_raw_fd();
+            if self.streaming {
+                let mut t = BUF_TYPE_VIDEO_CAPTURE as i32;
+                let _ = ioctl(fd, VIDIOC_STREAMOFF, &mut t);
+            }
+            for &(p, len) in &self.buffers {
+                // SAFETY: mapped in open() with this length; not used after this.
+                unsafe { libc::munmap(p, len) };
+            }
+        }
     }
 }
 
@@ -1023,13 +2247,137 @@ mod tests {
         let c = FramesConfig::new(SourceKind::V4l2, "/dev/video0");
         let mut p = Problems::default();
         c.validate(&mut p);
-        assert!(p.list[0].to_string().contains("not built"), "{:?}", p.list);
-        assert!(matches!(open(&c), Err(FrameError::NotBuilt { .. })));
+        if cfg!(feature = "v4l2") {
+            assert!(p.list[0].to_string().contains("width_px"), "{:?}", p.list);
+            assert!(open(&c).is_err());
+        } else {
+            assert!(p.list[0].to_string().contains("not built"), "{:?}", p.list);
+            assert!(matches!(open(&c), Err(FrameError::NotBuilt { .. })));
+        }
         assert!(
             toml::from_str::<FramesConfig>("source = \"y4m\"\npath = \"a\"\nfps = 3\n").is_err()
         );
         let c: FramesConfig =
             toml::from_str("source = \"directory\"\npath = \"a\"\nrealtime = false\n").unwrap();
         assert!(!c.realtime && c.workers == 1 && c.stamp == StampMode::Arrival);
+    }
+
+    #[test]
+    fn v4l2_abi_matches_the_kernel() {
+        use v4l2_abi::*;
+        // Sizes and request numbers of linux/videodev2.h on 64-bit Linux.
+        assert_eq!(size_of::<Capability>(), 104);
+        assert_eq!(size_of::<Format>(), 208);
+        assert_eq!(size_of::<RequestBuffers>(), 20);
+        assert_eq!(size_of::<Buffer>(), 88);
+        assert_eq!(std::mem::offset_of!(Buffer, timestamp), 24);
+        assert_eq!(std::mem::offset_of!(Buffer, m), 64);
+        assert_eq!(VIDIOC_QUERYCAP, 0x8068_5600);
+        assert_eq!(VIDIOC_S_FMT, 0xc0d0_5605);
+        assert_eq!(VIDIOC_REQBUFS, 0xc014_5608);
+        assert_eq!(VIDIOC_QUERYBUF, 0xc058_5609);
+        assert_eq!(VIDIOC_QBUF, 0xc058_560f);
+        assert_eq!(VIDIOC_DQBUF, 0xc058_5611);
+        assert_eq!(VIDIOC_STREAMON, 0x4004_5612);
+        assert_eq!(VIDIOC_STREAMOFF, 0x4004_5613);
+        assert_eq!(PIX_FMT_YUYV, 0x5659_5559);
+        assert_eq!(PIX_FMT_GREY, 0x5945_5247);
+        assert_eq!(PIX_FMT_MJPEG, 0x4750_4a4d);
+    }
+
+    #[test]
+    fn v4l2_luma_of_grey_yuyv_and_mjpg() {
+        // GREY 3x2 with a stride of 4 (one padding byte per row).
+        let grey = [10u8, 20, 30, 99, 40, 50, 60];
+        let g = v4l2_luma(PixelFormat::Grey, &grey, 3, 2, 4).unwrap();
+        assert_eq!(g.data(), &[10.0, 20.0, 30.0, 40.0, 50.0, 60.0]);
+        // YUYV 2x2 packed: Y0 U Y1 V.
+        let yuyv = [1u8, 128, 2, 128, 3, 128, 4, 128];
+        let g = v4l2_luma(PixelFormat::Yuyv, &yuyv, 2, 2, 0).unwrap();
+        assert_eq!(g.data(), &[1.0, 2.0, 3.0, 4.0]);
+        // Short buffer, stride too small, empty size: errors, no panic.
+        let e = v4l2_luma(PixelFormat::Yuyv, &yuyv[..7], 2, 2, 0).unwrap_err();
+        assert!(e.contains("7 bytes"), "{e}");
+        assert!(v4l2_luma(PixelFormat::Yuyv, &yuyv, 2, 2, 3).is_err());
+        assert!(v4l2_luma(PixelFormat::Grey, &grey, 0, 2, 0).is_err());
+        // MJPG: a JPEG of a smooth gradient decodes to about the same luma.
+        let src = image::GrayImage::from_fn(16, 8, |x, y| image::Luma([(x * 12 + y * 4) as u8]));
+        let mut jpg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpg, 95)
+            .encode_image(&src)
+            .unwrap();
+        let g = v4l2_luma(PixelFormat::Mjpg, &jpg, 16, 8, 0).unwrap();
+        let err = g
+            .data()
+            .iter()
+            .zip(src.as_raw())
+            .map(|(a, &b)| (a - f32::from(b)).abs())
+            .fold(0.0f32, f32::max);
+        assert!(err < 8.0, "JPEG luma error {err}");
+        let e = v4l2_luma(PixelFormat::Mjpg, &jpg, 32, 8, 0).unwrap_err();
+        assert!(e.contains("16x8"), "{e}");
+        let e = v4l2_luma(PixelFormat::Mjpg, b"not a jpeg", 16, 8, 0).unwrap_err();
+        assert!(e.contains("MJPG"), "{e}");
+    }
+
+    #[test]
+    fn v4l2_config_keys() {
+        let c: FramesConfig = toml::from_str(
+            "source = \"v4l2\"\npath = \"/dev/video0\"\nwidth_px = 640\nheight_px = 480\npixel_format = \"MJPG\"\n",
+        )
+        .unwrap();
+        assert_eq!(c.pixel_format, PixelFormat::Mjpg);
+        assert!(
+            toml::from_str::<FramesConfig>("source = \"v4l2\"\npixel_format = \"RGB3\"\n").is_err()
+        );
+        let mut p = Problems::default();
+        let mut bad = FramesConfig::new(SourceKind::V4l2, "");
+        bad.width_px = Some(0);
+        bad.validate(&mut p);
+        let keys: Vec<&str> = p.list.iter().map(|i| i.key.as_str()).collect();
+        if cfg!(feature = "v4l2") {
+            for k in ["path", "width_px", "height_px"] {
+                assert!(keys.contains(&k), "{k}: {:?}", p.list);
+            }
+        } else {
+            assert_eq!(keys, ["source"], "{:?}", p.list);
+        }
+        let mut p = Problems::default();
+        let mut y = FramesConfig::new(SourceKind::Y4m, "a.y4m");
+        y.width_px = Some(640);
+        y.validate(&mut p);
+        assert!(p.list.iter().any(|i| i.key == "width_px"), "{:?}", p.list);
+    }
+
+    #[cfg(feature = "v4l2")]
+    #[test]
+    fn v4l2_open_errors_name_the_device() {
+        let e = V4l2Source::open(
+            Path::new("/dev/null"),
+            640,
+            480,
+            PixelFormat::Yuyv,
+            1.0,
+            0.0,
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(
+            e.contains("/dev/null") && e.contains("not a V4L2 device"),
+            "{e}"
+        );
+        let e = V4l2Source::open(
+            Path::new("/dev/video-none"),
+            640,
+            480,
+            PixelFormat::Yuyv,
+            1.0,
+            0.0,
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(e.contains("/dev/video-none") && e.contains("open"), "{e}");
     }
 }

@@ -160,10 +160,10 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
             if !(a.attitude_sigma_deg.is_finite() && a.attitude_sigma_deg > 0.0) {
                 bail!("--attitude-sigma-deg must be positive");
             }
-            Some(AttitudePriorNed {
-                attitude: Attitude::from_deg(v[0], v[1], v[2]),
-                sigma_rad: a.attitude_sigma_deg.to_radians(),
-            })
+            Some(AttitudePriorNed::isotropic(
+                Attitude::from_deg(v[0], v[1], v[2]),
+                a.attitude_sigma_deg.to_radians(),
+            ))
         }
         None => None,
     };

@@ -1,5 +1,10 @@
-//! `visnav sim --scenario FILE [--json] [--monte-carlo N]`: run a SITL scenario through the
-//! navigation filter, with vision and as the INS-only control, and print the errors against truth.
+//! `visnav sim [--scenario FILE] [--out DIR] [--json] [--monte-carlo N]`.
+//!
+//! A scenario with a `[closed_loop]` section (the default, `sitl/scenarios/closed_loop_demo.toml`)
+//! runs the closed loop (`visnav::sitl::closed_loop`): autopilot emulator + visnav daemon over
+//! loopback MAVLink, the camera rendered at the true pose, a no-vision control beside it; it
+//! prints the summary and writes the report folder. Other scenarios run offline through the
+//! navigation filter, with simulated vision fixes and as the INS-only control.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -9,10 +14,15 @@ use visnav::sitl::run::{RunOptions, TruthPlusNoise, VisionFixSource, monte_carlo
 
 #[derive(clap::Args, Debug)]
 pub struct SimArgs {
-    /// Scenario file (sitl/scenarios/*.toml). Default: the bundled seed GPS-outage experiment,
-    /// sitl/scenarios/seed_outage.toml (looked up in the current folder, then in the source tree).
+    /// Scenario file (sitl/scenarios/*.toml). Default: the bundled closed-loop demo,
+    /// sitl/scenarios/closed_loop_demo.toml (looked up in the current folder, then in the source
+    /// tree).
     #[arg(long)]
     pub scenario: Option<PathBuf>,
+    /// Report folder of a closed-loop run (CSV, PNG plots, GeoJSON, summary.json). Default:
+    /// sim-report/<scenario name> in the current folder.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
     /// Print one JSON document on stdout.
     #[arg(long)]
     pub json: bool,
@@ -25,6 +35,9 @@ pub struct SimArgs {
 pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
     let path = args.scenario.clone().unwrap_or_else(default_scenario);
     let sc = Scenario::load(&path)?;
+    if sc.closed_loop.is_some() {
+        return closed_loop(&sc, &path, &args);
+    }
     let t0 = Instant::now();
     let vis = run(&sc, RunOptions::new(true, 0))?;
     let ins = run(&sc, RunOptions::new(false, 0))?;
@@ -124,10 +137,101 @@ pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
 /// The bundled default scenario: relative to the current folder (a checkout), else to the source
 /// tree this binary was built from.
 fn default_scenario() -> PathBuf {
-    let rel = PathBuf::from("sitl/scenarios/seed_outage.toml");
+    let rel = PathBuf::from("sitl/scenarios/closed_loop_demo.toml");
     if rel.is_file() {
         rel
     } else {
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(rel)
     }
+}
+
+fn fmt_stats(s: &visnav::sitl::fixeval::Stats) -> String {
+    format!("{:.1} / {:.1} / {:.1}", s.median, s.p90, s.max)
+}
+
+/// The closed loop: run, write the report folder, print the summary.
+fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow::Result<ExitCode> {
+    use anyhow::Context;
+    if args.monte_carlo > 0 {
+        anyhow::bail!(
+            "--monte-carlo runs offline scenarios only; {} is a closed-loop scenario (real time)",
+            path.display()
+        );
+    }
+    let base = path.parent().unwrap_or(std::path::Path::new("."));
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("sim-report").join(&sc.name));
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    let t0 = Instant::now();
+    let mut run = rt
+        .block_on(visnav::sitl::closed_loop::run(sc, base))
+        .with_context(|| format!("{}: closed loop", path.display()))?;
+    run.summary.report_dir = Some(out.display().to_string());
+    let files = visnav::sitl::report::write_report(&run, &out)
+        .with_context(|| format!("report folder {}", out.display()))?;
+    let s = &run.summary;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(s)?);
+    } else {
+        println!(
+            "scenario {} ({:.0} s, wall {:.0} s)",
+            s.scenario,
+            s.duration_s,
+            t0.elapsed().as_secs_f64()
+        );
+        println!("{}", s.description);
+        println!(
+            "evaluation window {:.0}-{:.0} s{}",
+            s.evaluation_window_s[0],
+            s.evaluation_window_s[1],
+            s.gps_outage_s
+                .map(|o| format!(", GPS outage from {:.0} s", o[0]))
+                .unwrap_or_default()
+        );
+        println!(
+            "vision fixes: {} accepted of {} attempts (fix rate {:.0} %), {} frames rendered, {} dropped, {} beyond 3 sigma, {} rejected by the filter gate",
+            s.fixes_accepted,
+            s.fix_attempts,
+            100.0 * s.fix_rate,
+            s.frames_rendered,
+            s.frames_dropped,
+            s.fix_beyond_3sigma,
+            s.fixes_filter_rejected
+        );
+        println!("horizontal error median / p90 / max [m]");
+        println!("  vision fixes             {}", fmt_stats(&s.fix_err_m));
+        println!(
+            "  injected (GPS_INPUT)     {}   ({} messages)",
+            fmt_stats(&s.nav_err_m),
+            s.injections
+        );
+        println!(
+            "  visnav filter output     {}",
+            fmt_stats(&s.nav_output_err_m)
+        );
+        println!("  no-vision control        {}", fmt_stats(&s.control_err_m));
+        println!(
+            "max error e/n/u [m]  visnav {:.1} / {:.1} / {:.1}   no-vision {:.1} / {:.1} / {:.1}",
+            s.max_err_m.vision.e,
+            s.max_err_m.vision.n,
+            s.max_err_m.vision.u,
+            s.max_err_m.control.e,
+            s.max_err_m.control.n,
+            s.max_err_m.control.u
+        );
+        println!(
+            "capture-to-fix latency p50 / p95 [ms]: {:.0} / {:.0}",
+            s.latency_ms.p50, s.latency_ms.p95
+        );
+        println!("report: {}", out.display());
+        for f in files {
+            println!("  {}", f.display());
+        }
+    }
+    Ok(ExitCode::SUCCESS)
 }

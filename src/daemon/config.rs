@@ -7,12 +7,17 @@
 //! gps_sigma_h_m = 2.5     # used when the message carries no h_acc
 //! gps_sigma_v_m = 5.0     # used when the message carries no v_acc
 //! gps_vel_sigma_m_s = 0.5 # horizontal velocity (ground speed + course), when vel_acc is absent
-//! gps_vz_sigma_m_s = 5.0  # GPS_RAW_INT has no vertical velocity: 0 with this sigma
+//! gps_vz_sigma_m_s = 30.0 # GPS_RAW_INT has no vertical velocity: 0 with this sigma
 //! baro = true             # SCALED_PRESSURE altitude, offset calibrated against GPS / the filter
 //! baro_sigma_m = 2.0
 //! imu_timeout_s = 0.5     # no IMU for this long: the solution is declared lost (nothing injected)
 //! log_interval_s = 10.0   # metrics summary in the log
+//! # metrics_listen = "127.0.0.1:9187"  # Prometheus endpoint GET /metrics (absent: off)
 //! ```
+//!
+//! `metrics_listen` serves every counter of the daemon and the link plus the navigation health
+//! ([`crate::daemon::prometheus`], docs/operations.md). It is an `IP:PORT` socket address; port 0
+//! picks a free port ([`crate::daemon::Daemon::metrics_addr`] tells which).
 //!
 //! Feedback guard: with `output.modes` containing `gps_input`, the autopilot reports our own
 //! injection back as the GPS instance `output.gps_id` (GPS_RAW_INT for instance 0, GPS2_RAW for
@@ -50,7 +55,10 @@ pub struct DaemonConfig {
     pub gps_sigma_v_m: f64,
     /// GPS horizontal velocity sigma when the message has no accuracy, m/s.
     pub gps_vel_sigma_m_s: f64,
-    /// Sigma of the (unmeasured, zero) vertical GPS velocity, m/s.
+    /// Sigma of the (unmeasured, zero) vertical GPS velocity, m/s. GPS_RAW_INT / GPS2_RAW carry
+    /// no vertical velocity; the default 30 m/s makes the zero carry almost no weight, so a
+    /// climbing copter (8 m/s in ArduPilot SITL) does not pull the filter into resets, as 5 m/s
+    /// did (docs/real-sitl.md, run 1).
     pub gps_vz_sigma_m_s: f64,
     /// Use the barometric altitude.
     pub baro: bool,
@@ -60,6 +68,8 @@ pub struct DaemonConfig {
     pub imu_timeout_s: f64,
     /// Interval of the metrics summary in the log, s (0 = off).
     pub log_interval_s: f64,
+    /// Prometheus endpoint address (`IP:PORT`); `None` = off.
+    pub metrics_listen: Option<String>,
 }
 
 impl Default for DaemonConfig {
@@ -69,11 +79,12 @@ impl Default for DaemonConfig {
             gps_sigma_h_m: 2.5,
             gps_sigma_v_m: 5.0,
             gps_vel_sigma_m_s: 0.5,
-            gps_vz_sigma_m_s: 5.0,
+            gps_vz_sigma_m_s: 30.0,
             baro: true,
             baro_sigma_m: 2.0,
             imu_timeout_s: 0.5,
             log_interval_s: 10.0,
+            metrics_listen: None,
         }
     }
 }
@@ -99,6 +110,11 @@ impl DaemonConfig {
             },
             g => g,
         }
+    }
+
+    /// The parsed `metrics_listen` address (`None` when off or not an `IP:PORT`).
+    pub fn metrics_addr(&self) -> Option<std::net::SocketAddr> {
+        self.metrics_listen.as_deref()?.trim().parse().ok()
     }
 
     /// Validate, including the feedback guard against `[output]`.
@@ -129,6 +145,17 @@ impl Validate for DaemonConfig {
         p.range("baro_sigma_m", self.baro_sigma_m, 0.01, 1000.0);
         p.range("imu_timeout_s", self.imu_timeout_s, 0.05, 10.0);
         p.range("log_interval_s", self.log_interval_s, 0.0, 3600.0);
+        if let Some(m) = &self.metrics_listen
+            && self.metrics_addr().is_none()
+        {
+            p.push(
+                "metrics_listen",
+                format!(
+                    "\"{m}\" is not an IP:PORT socket address (e.g. \"127.0.0.1:9187\"; \
+                     host names are not resolved)"
+                ),
+            );
+        }
     }
 }
 
@@ -168,5 +195,29 @@ mod tests {
         c.validate(&mut p);
         assert!(p.list.iter().any(|i| i.key == "baro_sigma_m"));
         assert!(toml::from_str::<DaemonConfig>("gps_sigma = 1\n").is_err());
+    }
+
+    #[test]
+    fn metrics_listen_parses_and_validates() {
+        assert_eq!(DaemonConfig::default().metrics_listen, None);
+        let c: DaemonConfig = toml::from_str("metrics_listen = \"127.0.0.1:9187\"\n").unwrap();
+        assert_eq!(c.metrics_addr(), Some("127.0.0.1:9187".parse().unwrap()));
+        let mut p = Problems::default();
+        c.validate(&mut p);
+        assert!(p.list.is_empty(), "{:?}", p.list);
+        let c: DaemonConfig = toml::from_str("metrics_listen = \"[::1]:0\"\n").unwrap();
+        assert!(c.metrics_addr().is_some_and(|a| a.is_ipv6()));
+        for bad in ["localhost:9187", "127.0.0.1", "127.0.0.1:99999", ""] {
+            let c = DaemonConfig {
+                metrics_listen: Some(bad.into()),
+                ..DaemonConfig::default()
+            };
+            let mut p = Problems::default();
+            c.validate(&mut p);
+            assert_eq!(p.list.len(), 1, "{bad}: {:?}", p.list);
+            assert_eq!(p.list[0].key, "metrics_listen");
+            assert!(p.list[0].reason.contains("IP:PORT"), "{:?}", p.list);
+        }
+        assert!(toml::from_str::<DaemonConfig>("metrics_listen = 9187\n").is_err());
     }
 }

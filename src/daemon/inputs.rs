@@ -468,11 +468,14 @@ pub fn prior_at(
             .filter(|q| q.lat_deg.is_finite() && q.lon_deg.is_finite() && q.alt_amsl_m.is_finite());
         }
         let [r, pi, y] = o.rpy_deg;
-        let s = o.att_sigma_deg.iter().fold(0.0f64, |a, b| a.max(*b));
-        if r.is_finite() && pi.is_finite() && y.is_finite() && s.is_finite() {
+        // att_sigma_deg is per NED axis: north and east are the tilt, down the heading.
+        let [sn, se, sd] = o.att_sigma_deg;
+        let tilt = sn.max(se);
+        if r.is_finite() && pi.is_finite() && y.is_finite() && tilt.is_finite() && sd.is_finite() {
             prior.attitude = Some(AttitudePriorNed {
                 attitude: Attitude::from_deg(r, pi, y),
-                sigma_rad: s.to_radians(),
+                sigma_rad: tilt.to_radians(),
+                sigma_yaw_rad: sd.to_radians(),
             });
         }
     }
@@ -481,10 +484,8 @@ pub fn prior_at(
     {
         prior.attitude = Some(AttitudePriorNed {
             attitude: a,
-            sigma_rad: nav
-                .attitude_sigma_tilt_deg
-                .max(nav.attitude_sigma_yaw_deg)
-                .to_radians(),
+            sigma_rad: nav.attitude_sigma_tilt_deg.to_radians(),
+            sigma_yaw_rad: nav.attitude_sigma_yaw_deg.to_radians(),
         });
     }
     prior
@@ -732,7 +733,9 @@ mod tests {
         assert!((dn - 5.0).abs() < 0.05, "{dn}");
         assert!((pos.sigma_h_m - (9.0f64 + 0.0025).sqrt()).abs() < 1e-9);
         assert!((pos.sigma_v_m - (16.0f64 + 0.0025).sqrt()).abs() < 1e-9);
-        assert!((p.attitude.unwrap().sigma_rad - 2f64.to_radians()).abs() < 1e-12);
+        // The filter's attitude sigmas [0.5, 0.5, 2] deg: tilt 0.5, heading 2.
+        assert!((p.attitude.unwrap().sigma_rad - 0.5f64.to_radians()).abs() < 1e-12);
+        assert!((p.attitude.unwrap().sigma_yaw_rad - 2f64.to_radians()).abs() < 1e-12);
         // Lost / no output: no position; the autopilot attitude is used.
         let lost = output(1_000_000, NavHealth::Lost);
         let p = prior_at(
@@ -743,7 +746,9 @@ mod tests {
         );
         assert!(p.position.is_none());
         assert_eq!(p.attitude.unwrap().attitude.yaw_rad, 1.0);
-        assert!((p.attitude.unwrap().sigma_rad - 3f64.to_radians()).abs() < 1e-12);
+        // Tilt and heading sigmas from the nav config (1 and 3 deg by default).
+        assert!((p.attitude.unwrap().sigma_rad - 1f64.to_radians()).abs() < 1e-12);
+        assert!((p.attitude.unwrap().sigma_yaw_rad - 3f64.to_radians()).abs() < 1e-12);
         let mut book = OutputBook::default();
         book.push(output(1_000_000, NavHealth::Ok));
         book.push(output(1_020_000, NavHealth::Ok));

@@ -1,10 +1,14 @@
-//! The daemon's counters (atomics, updated from any task or thread) and their snapshot.
+//! The daemon's counters (atomics, updated from any task or thread) and their snapshot. The
+//! optional Prometheus endpoint (`daemon.metrics_listen`, [`crate::daemon::prometheus`]) renders
+//! them together with the link's counters.
 
 use std::collections::BTreeMap;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use serde::Serialize;
+
+use crate::link::Health as LinkHealth;
 
 /// Live counters.
 #[derive(Debug, Default)]
@@ -30,8 +34,70 @@ pub struct DaemonMetrics {
     pub fix_latency_ms_last: AtomicU64,
     pub fix_latency_ms_max: AtomicU64,
     pub fix_latency_ms_sum: AtomicU64,
+    /// Number of latencies recorded (the count behind `fix_latency_ms_sum`).
+    pub fix_latency_count: AtomicU64,
+    /// Navigation health as a [`HealthState`] code (0 = no solution yet).
+    pub health: AtomicU64,
     /// Engine rejections by reason.
     pub engine_rejected: Mutex<BTreeMap<String, u64>>,
+}
+
+/// Navigation health as the daemon last published it (the injector's view).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum HealthState {
+    /// No filter output yet.
+    #[default]
+    None,
+    /// Fixes arriving and consistent.
+    Ok,
+    /// Usable with inflated covariance.
+    Degraded,
+    /// Not usable; nothing injected.
+    Lost,
+}
+
+impl HealthState {
+    /// All states, in code order.
+    pub const ALL: [HealthState; 4] = [Self::None, Self::Ok, Self::Degraded, Self::Lost];
+
+    /// Lower-case name (the `state` label of `visnav_nav_health`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::None => "none",
+            Self::Ok => "ok",
+            Self::Degraded => "degraded",
+            Self::Lost => "lost",
+        }
+    }
+
+    fn code(self) -> u64 {
+        match self {
+            Self::None => 0,
+            Self::Ok => 1,
+            Self::Degraded => 2,
+            Self::Lost => 3,
+        }
+    }
+
+    fn from_code(c: u64) -> Self {
+        match c {
+            1 => Self::Ok,
+            2 => Self::Degraded,
+            3 => Self::Lost,
+            _ => Self::None,
+        }
+    }
+}
+
+impl From<&LinkHealth> for HealthState {
+    fn from(h: &LinkHealth) -> Self {
+        match h {
+            LinkHealth::Ok => Self::Ok,
+            LinkHealth::Degraded { .. } => Self::Degraded,
+            LinkHealth::Lost { .. } => Self::Lost,
+        }
+    }
 }
 
 /// A copy of the counters.
@@ -81,6 +147,12 @@ pub struct MetricsSnapshot {
     pub fix_latency_ms_max: u64,
     /// Mean frame-to-fix latency, ms.
     pub fix_latency_ms_mean: f64,
+    /// Sum of all frame-to-fix latencies, ms.
+    pub fix_latency_ms_sum: u64,
+    /// Number of latencies recorded.
+    pub fix_latency_count: u64,
+    /// Navigation health last published.
+    pub health: HealthState,
 }
 
 impl DaemonMetrics {
@@ -104,12 +176,21 @@ impl DaemonMetrics {
         self.fix_latency_ms_last.store(ms, Ordering::Relaxed);
         self.fix_latency_ms_max.fetch_max(ms, Ordering::Relaxed);
         self.fix_latency_ms_sum.fetch_add(ms, Ordering::Relaxed);
+        self.fix_latency_count.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Record the navigation health just published.
+    pub fn set_health(&self, h: &LinkHealth) {
+        self.health
+            .store(HealthState::from(h).code(), Ordering::Relaxed);
     }
 
     /// Copy the counters.
     pub fn snapshot(&self) -> MetricsSnapshot {
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
         let attempted = g(&self.fixes_attempted);
+        let n_latency = g(&self.fix_latency_count);
+        let sum_latency = g(&self.fix_latency_ms_sum);
         MetricsSnapshot {
             telemetry_lagged: g(&self.telemetry_lagged),
             imu_samples: g(&self.imu_samples),
@@ -136,11 +217,44 @@ impl DaemonMetrics {
                 .clone(),
             fix_latency_ms_last: g(&self.fix_latency_ms_last),
             fix_latency_ms_max: g(&self.fix_latency_ms_max),
-            fix_latency_ms_mean: if attempted > 0 {
-                g(&self.fix_latency_ms_sum) as f64 / attempted as f64
+            fix_latency_ms_mean: if n_latency > 0 {
+                sum_latency as f64 / n_latency as f64
             } else {
                 0.0
             },
+            fix_latency_ms_sum: sum_latency,
+            fix_latency_count: n_latency,
+            health: HealthState::from_code(g(&self.health)),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn latency_mean_and_health_round_trip() {
+        let m = DaemonMetrics::default();
+        assert_eq!(m.snapshot().health, HealthState::None);
+        assert_eq!(m.snapshot().fix_latency_ms_mean, 0.0);
+        m.latency(100);
+        m.latency(300);
+        let s = m.snapshot();
+        assert_eq!((s.fix_latency_count, s.fix_latency_ms_sum), (2, 400));
+        assert_eq!(s.fix_latency_ms_mean, 200.0);
+        assert_eq!((s.fix_latency_ms_last, s.fix_latency_ms_max), (300, 300));
+        for (h, want) in [
+            (LinkHealth::Ok, HealthState::Ok),
+            (
+                LinkHealth::Degraded { reason: "x".into() },
+                HealthState::Degraded,
+            ),
+            (LinkHealth::Lost { reason: "y".into() }, HealthState::Lost),
+        ] {
+            m.set_health(&h);
+            assert_eq!(m.snapshot().health, want);
+            assert_eq!(HealthState::from_code(want.code()), want);
         }
     }
 }

@@ -16,6 +16,8 @@
 //!   fix threads drop frames older than `frames.max_age_s`, build the [`FixPrior`] at the
 //!   capture time and call the [`FrameFixer`].
 //!
+//! * the optional Prometheus endpoint (`[daemon] metrics_listen`, [`prometheus`]).
+//!
 //! Shutdown: [`Daemon::shutdown`] (or SIGINT/SIGTERM in [`run`]) closes the slot, stops the
 //! navigation task, joins the threads (waiting up to 5 s for a running fix) and shuts the link
 //! down (flushing the .tlog).
@@ -24,6 +26,7 @@ pub mod config;
 pub mod frames;
 pub mod inputs;
 pub mod metrics;
+pub mod prometheus;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -67,6 +70,12 @@ pub enum DaemonError {
     NoFixer,
     #[error("cannot start a thread: {0}")]
     Thread(#[from] std::io::Error),
+    #[error("daemon.metrics_listen: {addr}: {source}")]
+    Metrics {
+        addr: String,
+        #[source]
+        source: std::io::Error,
+    },
 }
 
 /// Everything the daemon needs from the configuration.
@@ -85,7 +94,12 @@ impl DaemonSetup {
         Self {
             link: cfg.link.clone(),
             output: cfg.output.clone(),
-            nav: cfg.nav.clone(),
+            // Vision fixes are positions of the camera: its lever arm from the mount unless
+            // [nav] gives one.
+            nav: cfg
+                .nav
+                .clone()
+                .with_camera_lever_arm(cfg.camera.mount.to_mount().lever_arm_body_frd_m.into()),
             daemon: cfg.daemon.clone(),
             frames: cfg.frames.clone(),
         }
@@ -154,6 +168,7 @@ pub struct Daemon {
     metrics: Arc<DaemonMetrics>,
     est_rx: watch::Receiver<Option<NavEstimate>>,
     out_rx: watch::Receiver<Option<NavOutput>>,
+    prometheus: Option<prometheus::MetricsServer>,
 }
 
 impl Daemon {
@@ -186,6 +201,10 @@ impl Daemon {
         };
         let gps = setup.daemon.gps_source(&setup.output);
         info!(?gps, "GPS aiding source");
+        let endpoint = match &setup.daemon.metrics_listen {
+            Some(a) => Some(metrics_endpoint(a).await?),
+            None => None,
+        };
         let mut link = Link::start(setup.link.clone(), setup.output.clone()).await?;
         let (est_tx, est_rx) = watch::channel(None);
         let (out_tx, out_rx) = watch::channel(None);
@@ -193,6 +212,8 @@ impl Daemon {
         let tel = link.telemetry();
         let link = Arc::new(link);
         let metrics = Arc::new(DaemonMetrics::default());
+        let prometheus =
+            endpoint.map(|e| e.serve(prometheus::renderer(metrics.clone(), link.metrics())));
         let shared = Arc::new(SharedPriors {
             nav: setup.nav.clone(),
             book: Mutex::new(OutputBook::default()),
@@ -275,7 +296,13 @@ impl Daemon {
             metrics,
             est_rx,
             out_rx,
+            prometheus,
         })
+    }
+
+    /// Where the Prometheus endpoint listens (`None` when `daemon.metrics_listen` is off).
+    pub fn metrics_addr(&self) -> Option<std::net::SocketAddr> {
+        self.prometheus.as_ref().map(|p| p.local_addr())
     }
 
     /// The link (status, clock, link metrics).
@@ -300,6 +327,9 @@ impl Daemon {
 
     /// Stop everything; returns the final counters.
     pub async fn shutdown(mut self) -> MetricsSnapshot {
+        if let Some(p) = self.prometheus.take() {
+            p.stop().await;
+        }
         self.stop_threads.store(true, Ordering::Relaxed);
         if let Some(s) = &self.slot {
             s.close();
@@ -325,6 +355,21 @@ impl Daemon {
         }
         snap
     }
+}
+
+/// Bind the Prometheus endpoint (before the link starts, so a taken port fails first).
+async fn metrics_endpoint(addr: &str) -> Result<prometheus::Endpoint, DaemonError> {
+    let err = |source| DaemonError::Metrics {
+        addr: addr.to_string(),
+        source,
+    };
+    let sa = addr.trim().parse().map_err(|_| {
+        err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            "not an IP:PORT socket address",
+        ))
+    })?;
+    prometheus::Endpoint::bind(sa).await.map_err(err)
 }
 
 /// `visnav run`: start, run until SIGINT/SIGTERM or `duration`, shut down cleanly.
@@ -516,6 +561,7 @@ impl NavTask {
             .last_health
             .as_ref()
             .is_none_or(|p| std::mem::discriminant(p) != std::mem::discriminant(&new));
+        self.metrics.set_health(&new);
         if changed {
             self.metrics.health_changes.fetch_add(1, Ordering::Relaxed);
             info!(health = ?new, "navigation health");

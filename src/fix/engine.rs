@@ -222,7 +222,9 @@ struct PriorGeom {
     r_enu_cam: Rotation3<f64>,
     sigma_h_m: f64,
     sigma_v_m: f64,
-    sigma_att_rad: f64,
+    /// Tilt (about north/east) and heading sigmas, rad.
+    sigma_tilt_rad: f64,
+    sigma_yaw_rad: f64,
 }
 
 impl FixEngine {
@@ -326,6 +328,7 @@ impl FixEngine {
         if !(ok(pos.sigma_h_m)
             && ok(pos.sigma_v_m)
             && ok(att.sigma_rad)
+            && ok(att.sigma_yaw_rad)
             && pos.alt_amsl_m.is_finite())
         {
             return Err("prior sigmas must be finite and positive".into());
@@ -336,7 +339,8 @@ impl FixEngine {
             r_enu_cam,
             sigma_h_m: pos.sigma_h_m,
             sigma_v_m: pos.sigma_v_m,
-            sigma_att_rad: att.sigma_rad,
+            sigma_tilt_rad: att.sigma_rad,
+            sigma_yaw_rad: att.sigma_yaw_rad,
         })
     }
 
@@ -351,10 +355,10 @@ impl FixEngine {
         let mut best: Option<(FixReport, Attempt)> = None;
         let mut last = None;
         for i in 0..HEADINGS {
-            let att = AttitudePriorNed {
-                attitude: Attitude::new(0.0, 0.0, f64::from(i) * HEADING_STEP_DEG.to_radians()),
-                sigma_rad: self.params.reloc_tilt_sigma_deg.to_radians(),
-            };
+            let att = AttitudePriorNed::isotropic(
+                Attitude::new(0.0, 0.0, f64::from(i) * HEADING_STEP_DEG.to_radians()),
+                self.params.reloc_tilt_sigma_deg.to_radians(),
+            );
             let (r, a) = self.fix_prior(frame, pos, &att, t_us);
             if r.accepted {
                 if best.as_ref().is_none_or(|(b, _)| r.inliers > b.inliers) {
@@ -480,7 +484,7 @@ impl FixEngine {
         }
         // Selection: predicted footprint grown by the coarse gate.
         let gate_m = (self.params.gate_sigmas
-            * (g.sigma_h_m.powi(2) + (agl_m * g.sigma_att_rad.min(0.5)).powi(2)).sqrt())
+            * (g.sigma_h_m.powi(2) + (agl_m * g.sigma_tilt_rad.min(0.5)).powi(2)).sqrt())
         .max(self.params.min_gate_m);
         let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
         for (_, p) in &keep {
@@ -542,7 +546,8 @@ impl FixEngine {
                 .iter()
                 .map(|mm| [train.keypoints[mm.train].x, train.keypoints[mm.train].y])
                 .collect();
-            let max_rot = (self.params.gate_sigmas * g.sigma_att_rad).min(0.5) + 0.02;
+            let max_rot =
+                (self.params.gate_sigmas * g.sigma_yaw_rad.max(g.sigma_tilt_rad)).min(0.5) + 0.02;
             let max_log_scale = (self.params.gate_sigmas * g.sigma_v_m / agl_m).min(0.7) + 0.05;
             match ransac_similarity(&src, &dst, fine_r, max_rot, max_log_scale, 0x5EED) {
                 Some((s, n)) => {
@@ -665,9 +670,14 @@ impl FixEngine {
             Err(e) => return rej(format!("prior geodesy: {e}"), a),
         };
         let priors = Priors {
-            attitude: (g.sigma_att_rad < 0.5).then(|| AttitudePrior {
+            // World = local ENU: tilt about east/north, heading about up.
+            attitude: (g.sigma_tilt_rad.max(g.sigma_yaw_rad) < 0.5).then(|| AttitudePrior {
                 r_world_cam: g.r_enu_cam,
-                cov_rad2: nalgebra::Matrix3::identity() * g.sigma_att_rad.powi(2),
+                cov_rad2: nalgebra::Matrix3::from_diagonal(&Vector3::new(
+                    g.sigma_tilt_rad.powi(2),
+                    g.sigma_tilt_rad.powi(2),
+                    g.sigma_yaw_rad.powi(2),
+                )),
             }),
             position: Some(PositionPrior {
                 c_world: c_enu,
@@ -789,9 +799,11 @@ impl FixEngine {
         let headings: Vec<AttitudePriorNed> = match prior.attitude {
             Some(a) => vec![a],
             None => (0..HEADINGS)
-                .map(|i| AttitudePriorNed {
-                    attitude: Attitude::new(0.0, 0.0, f64::from(i) * HEADING_STEP_DEG.to_radians()),
-                    sigma_rad: self.params.reloc_tilt_sigma_deg.to_radians(),
+                .map(|i| {
+                    AttitudePriorNed::isotropic(
+                        Attitude::new(0.0, 0.0, f64::from(i) * HEADING_STEP_DEG.to_radians()),
+                        self.params.reloc_tilt_sigma_deg.to_radians(),
+                    )
                 })
                 .collect(),
         };
@@ -974,10 +986,10 @@ impl FixEngine {
             sigma_h_m: 3.0 * r.cov_ned_m2[0][0].max(r.cov_ned_m2[1][1]).sqrt().max(gsd),
             sigma_v_m: 3.0 * r.cov_ned_m2[2][2].sqrt().max(gsd),
         };
-        let refined_att = AttitudePriorNed {
-            attitude: Attitude::from_deg(r.roll_deg, r.pitch_deg, r.yaw_deg),
-            sigma_rad: 1f64.to_radians(),
-        };
+        let refined_att = AttitudePriorNed::isotropic(
+            Attitude::from_deg(r.roll_deg, r.pitch_deg, r.yaw_deg),
+            1f64.to_radians(),
+        );
         let (r2, a2) = self.fix_prior(frame, &refined_pos, &refined_att, t_us);
         // The refined pass used the first fix as a prior: the reported fix must not be checked
         // against itself, so its chi-square prior test is loose by construction; it is only kept
@@ -1414,10 +1426,10 @@ mod tests {
         .unwrap();
         let engine = FixEngine::new(Arc::new(reference), camera, FixParams::default()).unwrap();
         let (lat, lon) = crs.to_geodetic(500_640.0, 5_199_360.0).unwrap();
-        let att = Some(AttitudePriorNed {
-            attitude: Attitude::new(0.0, 0.0, 0.0),
-            sigma_rad: 0.01,
-        });
+        let att = Some(AttitudePriorNed::isotropic(
+            Attitude::new(0.0, 0.0, 0.0),
+            0.01,
+        ));
         let pos = |alt: f64, s: f64| {
             Some(PositionPriorGeo {
                 lat_deg: lat,

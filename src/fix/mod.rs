@@ -33,11 +33,27 @@ pub struct PositionPriorGeo {
 }
 
 /// Prior vehicle attitude (body FRD relative to NED, aerospace ZYX Euler angles, see
-/// `camera::frames`) with a 1-sigma per-axis uncertainty.
+/// `camera::frames`) with 1-sigma uncertainties: `sigma_rad` of the tilt (rotation-vector error
+/// about the north and east axes) and `sigma_yaw_rad` of the heading (about down). An autopilot's
+/// AHRS knows its tilt far better than its heading; a single isotropic sigma would either
+/// overstate the heading or throw the tilt information away (position and tilt trade against
+/// each other in a resection over flat ground).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AttitudePriorNed {
     pub attitude: Attitude,
     pub sigma_rad: f64,
+    pub sigma_yaw_rad: f64,
+}
+
+impl AttitudePriorNed {
+    /// The same sigma about every axis.
+    pub fn isotropic(attitude: Attitude, sigma_rad: f64) -> Self {
+        Self {
+            attitude,
+            sigma_rad,
+            sigma_yaw_rad: sigma_rad,
+        }
+    }
 }
 
 /// What the fix knows before looking at the frame.

@@ -350,6 +350,13 @@ pub struct NavConfig {
     pub attitude_sigma_yaw_deg: f64,
     /// Largest accepted gap between IMU samples; larger gaps reset the filter, s.
     pub max_imu_gap_s: f64,
+    /// Correlation time of the vision fixes' errors, s (0 = independent fixes). Consecutive
+    /// frames see the same ground against the same map, so their errors (changed ground between
+    /// the map's and the camera's year, a weak geometry) persist for seconds; fused as if
+    /// independent, N fixes within that time would shrink the covariance N-fold although the
+    /// error stays. Each fix's covariance is multiplied by `max(1, tau / dt)`, `dt` the time
+    /// since the last applied vision fix (the information of one independent fix per `tau`).
+    pub vision_error_corr_time_s: f64,
     /// Camera projection centre in the body frame (FRD, metres from the IMU, the point the
     /// filter's position refers to): vision fixes are positions of this point. Not set: the
     /// caller fills it from `[camera.mount] lever_arm_body_frd_m`
@@ -378,6 +385,7 @@ impl Default for NavConfig {
             attitude_sigma_tilt_deg: 1.0,
             attitude_sigma_yaw_deg: 3.0,
             max_imu_gap_s: 0.1,
+            vision_error_corr_time_s: 0.0,
             camera_lever_arm_body_frd_m: None,
             gps_lever_arm_body_frd_m: [0.0; 3],
             imu: ImuNoiseConfig::default(),
@@ -428,6 +436,12 @@ impl Validate for NavConfig {
             180.0,
         );
         p.range("max_imu_gap_s", self.max_imu_gap_s, 0.001, 10.0);
+        p.range(
+            "vision_error_corr_time_s",
+            self.vision_error_corr_time_s,
+            0.0,
+            600.0,
+        );
         for v in self.camera_lever_arm_body_frd_m.unwrap_or([0.0; 3]) {
             p.range("camera_lever_arm_body_frd_m", v, -100.0, 100.0);
         }

@@ -203,6 +203,8 @@ struct Core {
     /// lever-arm velocity).
     w_b: Vector3<f64>,
     p: Mat,
+    /// Capture time of the last applied vision fix, µs (see `vision_error_corr_time_s`).
+    last_vision_us: Option<u64>,
 }
 
 #[derive(Debug, Clone)]
@@ -230,6 +232,7 @@ struct Params {
     q_bg: f64,
     q_ba: f64,
     gate_vision: f64,
+    vision_corr_s: f64,
     gate_gps3: f64,
     gate_alt: f64,
     gate_att: f64,
@@ -306,6 +309,7 @@ impl NavFilter {
                 imu.accel_bias_rw_si(),
             ),
             gate_vision: chi2_quantile(3.0, cfg.gates.vision_prob),
+            vision_corr_s: cfg.vision_error_corr_time_s,
             gate_gps3: chi2_quantile(3.0, cfg.gates.gps_prob),
             gate_alt: chi2_quantile(1.0, cfg.gates.altitude_prob),
             gate_att: chi2_quantile(3.0, cfg.gates.attitude_prob),
@@ -870,6 +874,7 @@ impl NavFilter {
             da: Vector3::zeros(),
             w_b: Vector3::zeros(),
             p,
+            last_vision_us: None,
         };
         self.history.clear();
         self.history.push_back(Epoch {
@@ -1096,12 +1101,25 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
                 .copy_from(&Matrix3::identity());
             h.fixed_view_mut::<3, 3>(0, IA)
                 .copy_from(&lever_arm_jacobian(&l_n));
-            let gate = if matches!(m, Measurement::Vision(_)) {
+            let is_vision = matches!(m, Measurement::Vision(_));
+            let gate = if is_vision {
                 par.gate_vision
             } else {
                 par.gate_gps3
             };
-            core.update(par, dz, h, f.cov_ned_m2, gate)
+            let mut r = f.cov_ned_m2;
+            if is_vision && par.vision_corr_s > 0.0 {
+                // Correlated fix errors (NavConfig::vision_error_corr_time_s).
+                let dt_v = core
+                    .last_vision_us
+                    .map_or(f64::INFINITY, |l| dt_s(l, t_c).abs());
+                r *= (par.vision_corr_s / dt_v.max(1e-3)).clamp(1.0, 1e4);
+            }
+            let out = core.update(par, dz, h, r, gate);
+            if is_vision && matches!(out, Outcome::Accepted { .. }) {
+                core.last_vision_us = Some(t_c);
+            }
+            out
         }
         Measurement::GpsVelocity(f) => {
             // Antenna velocity `v + C_b^n (w x l)` (the earth/transport rate part of `w` is

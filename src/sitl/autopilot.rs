@@ -5,7 +5,7 @@
 //! * HEARTBEAT at 1 Hz as MAV_TYPE_QUADROTOR / MAV_AUTOPILOT_ARDUPILOTMEGA, MAVLink 2.
 //! * Streams nothing else until MAV_CMD_SET_MESSAGE_INTERVAL asks; then honours the interval
 //!   (param2 µs; -1 disables; 0 = default rate, taken as 4 Hz). Supported: SYSTEM_TIME,
-//!   GPS_RAW_INT, SCALED_IMU, RAW_IMU, SCALED_PRESSURE, ATTITUDE, GLOBAL_POSITION_INT. Others
+//!   GPS_RAW_INT, GPS2_RAW (the same receiver data), SCALED_IMU, RAW_IMU, SCALED_PRESSURE, ATTITUDE, GLOBAL_POSITION_INT. Others
 //!   (e.g. HIGHRES_IMU, which ArduPilot does not send) are answered MAV_RESULT_FAILED.
 //! * Every COMMAND_LONG is answered with COMMAND_ACK; MAV_CMD_REQUEST_MESSAGE for
 //!   GPS_GLOBAL_ORIGIN sends the origin when one is set.
@@ -15,7 +15,9 @@
 //! * Every GPS_INPUT, VISION_POSITION_ESTIMATE, ODOMETRY, GLOBAL_POSITION_SENSOR,
 //!   SET_GPS_GLOBAL_ORIGIN and STATUSTEXT received is recorded with its boot time of arrival.
 //!
-//! Telemetry comes from a caller-provided [`TruthSource`] evaluated at the boot time in seconds.
+//! Telemetry comes from a caller-provided [`TruthSource`] evaluated at the boot time in seconds
+//! (its `imu` and `gps` methods give the IMU and GPS readings, by default the truth itself; the
+//! closed-loop simulator adds sensor errors and GPS outages there).
 //! Units sent follow the MAVLink definitions (ATTITUDE rad, GLOBAL_POSITION_INT 1e7 deg / mm /
 //! cm/s, SCALED_IMU mG / mrad/s, SCALED_PRESSURE hPa from the ISA troposphere model
 //! `p = 1013.25 (1 - 2.25577e-5 h)^5.25588`).
@@ -28,8 +30,8 @@ use std::time::{Duration, Instant};
 #[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: still what ArduPilot acts on
 use mavlink::dialects::ardupilotmega::{
     ATTITUDE_DATA, COMMAND_ACK_DATA, GLOBAL_POSITION_INT_DATA, GPS_GLOBAL_ORIGIN_DATA,
-    GPS_RAW_INT_DATA, GpsFixType, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavMessage, MavModeFlag,
-    MavResult, MavState, MavType, RAW_IMU_DATA, SCALED_IMU_DATA, SCALED_PRESSURE_DATA,
+    GPS_RAW_INT_DATA, GPS2_RAW_DATA, GpsFixType, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavMessage,
+    MavModeFlag, MavResult, MavState, MavType, RAW_IMU_DATA, SCALED_IMU_DATA, SCALED_PRESSURE_DATA,
     SYSTEM_TIME_DATA, TIMESYNC_DATA,
 };
 use mavlink::{AsyncMavConnection, MavHeader, Message, SigningConfig};
@@ -61,6 +63,19 @@ pub struct TruthState {
 pub trait TruthSource: Send + Sync + 'static {
     /// State at `t_s` seconds since (the last) boot.
     fn state(&self, t_s: f64) -> TruthState;
+    /// The IMU sample sent at `t_s` (SCALED_IMU / RAW_IMU): `(gyro_body_rad_s,
+    /// accel_body_m_s2)`. Default: the truth without error. Called once per IMU message, with
+    /// increasing `t_s`, so a source can model sensor errors over the interval since the last
+    /// call.
+    fn imu(&self, t_s: f64) -> ([f64; 3], [f64; 3]) {
+        let s = self.state(t_s);
+        (s.gyro_body_rad_s, s.accel_body_m_s2)
+    }
+    /// What the GPS receiver reports at `t_s` (GPS_RAW_INT): `None` = no fix (an outage).
+    /// Default: the truth without error, always available.
+    fn gps(&self, t_s: f64) -> Option<TruthState> {
+        Some(self.state(t_s))
+    }
 }
 
 impl<F: Fn(f64) -> TruthState + Send + Sync + 'static> TruthSource for F {
@@ -178,7 +193,7 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 }
 
 /// Message ids the emulator can stream.
-pub const STREAMABLE: [u32; 7] = [2, 24, 26, 27, 29, 30, 33];
+pub const STREAMABLE: [u32; 8] = [2, 24, 26, 27, 29, 30, 33, 124];
 
 impl AutopilotEmulator {
     /// Open the connection and start emulating. For `tcpin` this returns at once and the task
@@ -421,52 +436,90 @@ fn isa_pressure_hpa(alt_m: f64) -> f64 {
 
 /// The telemetry message `id` at boot time `t_us`.
 fn telemetry(inner: &Inner, id: u32, t_us: u64) -> Option<MavMessage> {
-    let s = inner.truth.state(t_us as f64 * 1e-6);
+    let t_s = t_us as f64 * 1e-6;
+    let s = inner.truth.state(t_s);
     let boot_ms = (t_us / 1000) as u32;
-    let acc_mg = s.accel_body_m_s2.map(|a| sat_i16(a / G0_M_S2 * 1000.0));
-    let gyro_mrad = s.gyro_body_rad_s.map(|g| sat_i16(g * 1000.0));
+    let imu = || {
+        let (gyro, accel) = inner.truth.imu(t_s);
+        (
+            gyro.map(|g| sat_i16(g * 1000.0)),
+            accel.map(|a| sat_i16(a / G0_M_S2 * 1000.0)),
+        )
+    };
     Some(match id {
         2 => MavMessage::SYSTEM_TIME(SYSTEM_TIME_DATA {
             time_unix_usec: inner.cfg.unix_at_boot_us.map_or(0, |u| u + t_us),
             time_boot_ms: boot_ms,
         }),
-        24 => MavMessage::GPS_RAW_INT(GPS_RAW_INT_DATA {
-            time_usec: t_us,
-            fix_type: if inner.cfg.gps_fix {
-                GpsFixType::GPS_FIX_TYPE_3D_FIX
-            } else {
-                GpsFixType::GPS_FIX_TYPE_NO_FIX
-            },
-            lat: (s.lat_deg * 1e7).round() as i32,
-            lon: (s.lon_deg * 1e7).round() as i32,
-            alt: (s.alt_amsl_m * 1000.0).round() as i32,
-            eph: u16::MAX,
-            epv: u16::MAX,
-            vel: u16::MAX,
-            cog: u16::MAX,
-            satellites_visible: if inner.cfg.gps_fix { 12 } else { 0 },
-            ..GPS_RAW_INT_DATA::DEFAULT
-        }),
-        26 => MavMessage::SCALED_IMU(SCALED_IMU_DATA {
-            time_boot_ms: boot_ms,
-            xacc: acc_mg[0],
-            yacc: acc_mg[1],
-            zacc: acc_mg[2],
-            xgyro: gyro_mrad[0],
-            ygyro: gyro_mrad[1],
-            zgyro: gyro_mrad[2],
-            ..SCALED_IMU_DATA::DEFAULT
-        }),
-        27 => MavMessage::RAW_IMU(RAW_IMU_DATA {
-            time_usec: t_us,
-            xacc: acc_mg[0],
-            yacc: acc_mg[1],
-            zacc: acc_mg[2],
-            xgyro: gyro_mrad[0],
-            ygyro: gyro_mrad[1],
-            zgyro: gyro_mrad[2],
-            ..RAW_IMU_DATA::DEFAULT
-        }),
+        24 | 124 => {
+            // No fix: what a receiver without satellites reports (zero position, no sats).
+            let fix = inner.cfg.gps_fix.then(|| inner.truth.gps(t_s)).flatten();
+            let (fix_type, lat, lon, alt, sats) = match fix {
+                Some(g) => (
+                    GpsFixType::GPS_FIX_TYPE_3D_FIX,
+                    (g.lat_deg * 1e7).round() as i32,
+                    (g.lon_deg * 1e7).round() as i32,
+                    (g.alt_amsl_m * 1000.0).round() as i32,
+                    12,
+                ),
+                None => (GpsFixType::GPS_FIX_TYPE_NO_FIX, 0, 0, 0, 0),
+            };
+            if id == 124 {
+                // The second receiver (the real GPS when GPS_INPUT feeds instance 0).
+                return Some(MavMessage::GPS2_RAW(GPS2_RAW_DATA {
+                    time_usec: t_us,
+                    fix_type,
+                    lat,
+                    lon,
+                    alt,
+                    eph: u16::MAX,
+                    epv: u16::MAX,
+                    vel: u16::MAX,
+                    cog: u16::MAX,
+                    satellites_visible: sats,
+                    ..GPS2_RAW_DATA::DEFAULT
+                }));
+            }
+            MavMessage::GPS_RAW_INT(GPS_RAW_INT_DATA {
+                time_usec: t_us,
+                fix_type,
+                lat,
+                lon,
+                alt,
+                eph: u16::MAX,
+                epv: u16::MAX,
+                vel: u16::MAX,
+                cog: u16::MAX,
+                satellites_visible: sats,
+                ..GPS_RAW_INT_DATA::DEFAULT
+            })
+        }
+        26 => {
+            let (gyro_mrad, acc_mg) = imu();
+            MavMessage::SCALED_IMU(SCALED_IMU_DATA {
+                time_boot_ms: boot_ms,
+                xacc: acc_mg[0],
+                yacc: acc_mg[1],
+                zacc: acc_mg[2],
+                xgyro: gyro_mrad[0],
+                ygyro: gyro_mrad[1],
+                zgyro: gyro_mrad[2],
+                ..SCALED_IMU_DATA::DEFAULT
+            })
+        }
+        27 => {
+            let (gyro_mrad, acc_mg) = imu();
+            MavMessage::RAW_IMU(RAW_IMU_DATA {
+                time_usec: t_us,
+                xacc: acc_mg[0],
+                yacc: acc_mg[1],
+                zacc: acc_mg[2],
+                xgyro: gyro_mrad[0],
+                ygyro: gyro_mrad[1],
+                zgyro: gyro_mrad[2],
+                ..RAW_IMU_DATA::DEFAULT
+            })
+        }
         29 => MavMessage::SCALED_PRESSURE(SCALED_PRESSURE_DATA {
             time_boot_ms: boot_ms,
             press_abs: isa_pressure_hpa(s.alt_amsl_m) as f32,

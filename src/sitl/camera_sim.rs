@@ -27,6 +27,10 @@ use crate::vision::GrayImage;
 pub trait TruthFeed: Send + Sync {
     /// `None` until the first truth sample is known (the camera waits).
     fn latest(&self) -> Option<(u64, TruthState)>;
+    /// True when no more truth will come (the camera ends its stream).
+    fn ended(&self) -> bool {
+        false
+    }
 }
 
 /// What the simulated camera renders and how often.
@@ -105,14 +109,21 @@ impl FrameSource for SimCamera {
                 std::thread::sleep(at - now);
             }
         }
-        // Wait for a truth sample newer than the last frame's (at most 10 s).
+        // Wait for a truth sample newer than the last frame's: as long as it takes for the
+        // first one (the feed may start the camera late), at most 10 s once it has run (a
+        // stalled feed is an error).
         let wait_from = Instant::now();
         let (t_us, state) = loop {
-            match self.feed.latest() {
+            let latest = self.feed.latest();
+            match latest {
                 Some((t, s)) if self.last_t_us.is_none_or(|l| t > l) => break (t, s),
                 _ => {}
             }
-            if wait_from.elapsed() > Duration::from_secs(10) {
+            if self.feed.ended() {
+                return Ok(None);
+            }
+            let started = self.last_t_us.is_some() || latest.is_some();
+            if started && wait_from.elapsed() > Duration::from_secs(10) {
                 return Err(FrameError::Config(
                     "simulated camera: no new truth sample for 10 s".into(),
                 ));

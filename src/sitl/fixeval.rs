@@ -210,14 +210,14 @@ impl NaipEval {
                 sigma_h_m: 150.0,
                 sigma_v_m: 30.0,
             }),
-            attitude: Some(AttitudePriorNed {
-                attitude: Attitude::new(
+            attitude: Some(AttitudePriorNed::isotropic(
+                Attitude::new(
                     a.roll_rad + n * rng.normal(),
                     a.pitch_rad + n * rng.normal(),
                     a.yaw_rad + n * rng.normal(),
                 ),
-                sigma_rad: 0.5f64.to_radians(),
-            }),
+                0.5f64.to_radians(),
+            )),
         })
     }
 

@@ -12,15 +12,21 @@
 //! * [`real_sitl`]: truth (SIMSTATE/SIM_STATE, HIL_STATE_QUATERNION) from a real ArduPilot/PX4
 //!   SITL as a [`camera_sim::TruthFeed`].
 //! * [`camera_sim`]: the simulated camera as a frame source, rendering at the truth pose.
+//! * [`closed_loop`]: `visnav sim`'s closed loop (emulator + daemon + camera) and its scoring;
+//!   [`report`] writes its report folder.
+//! * [`plot`]: PNG charts and map track plots for the report folder (built-in bitmap font).
 //! * [`render`]: the simulated camera (perspective view of an orthophoto on a DEM, lens
 //!   distortion, exposure, blur, noise).
 
 pub mod autopilot;
 pub mod camera_sim;
+pub mod closed_loop;
 pub mod fixeval;
 pub mod imu;
+pub mod plot;
 pub mod real_sitl;
 pub mod render;
+pub mod report;
 pub mod rng;
 pub mod run;
 pub mod scenario;

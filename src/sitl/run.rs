@@ -403,7 +403,7 @@ pub fn run_with_source(
         }
         if let Some(g) = &sc.gps {
             let ts_s = t_us as f64 * 1e-6;
-            if ts_s >= g.from_s && ts_s < g.until_s && due(&mut next_gps, t_us, g.rate_hz) {
+            if g.available(ts_s) && due(&mut next_gps, t_us, g.rate_hz) {
                 let vcov = sym3([g.sigma_vel_m_s.powi(2); 3]);
                 let l_b = Vector3::from(g.lever_arm_body_frd_m);
                 let lv_n = ts.q_nb * truth.kin.w_nb_body_rad_s.cross(&l_b);

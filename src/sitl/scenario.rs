@@ -113,6 +113,20 @@ pub struct GpsConfig {
     /// `[nav] gps_lever_arm_body_frd_m`.
     #[serde(default)]
     pub lever_arm_body_frd_m: [f64; 3],
+    /// More outage windows `[[from_s, until_s], ...]` inside `from_s..until_s` (e.g. jamming
+    /// bursts), s.
+    #[serde(default)]
+    pub outages_s: Vec<[f64; 2]>,
+}
+
+impl GpsConfig {
+    /// Whether the receiver has a fix at `t_s`: inside `from_s..until_s` and outside every
+    /// `outages_s` window.
+    pub fn available(&self, t_s: f64) -> bool {
+        t_s >= self.from_s
+            && t_s < self.until_s
+            && !self.outages_s.iter().any(|w| t_s >= w[0] && t_s < w[1])
+    }
 }
 
 /// Frame of the simulated vision noise.
@@ -223,6 +237,84 @@ pub struct ReferenceConfig {
     pub vision_max_err_enu_m: [f64; 3],
 }
 
+fn default_camera_rate() -> f64 {
+    2.0
+}
+
+fn default_true() -> bool {
+    true
+}
+
+fn default_max_age() -> f64 {
+    1.0
+}
+
+/// `[closed_loop]`: run the scenario in the closed loop (`visnav sim`): the autopilot emulator and
+/// the visnav daemon over real loopback MAVLink, the camera rendered at the true pose. Paths are
+/// relative to the scenario file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ClosedLoopConfig {
+    /// The visnav configuration the daemon runs with (`[camera]`, `[map]`, `[fix]`, `[output]`,
+    /// `[daemon]`, `[link] streams`); its `[link] connection` is replaced by a free loopback port
+    /// and its `[nav]` by the scenario's (which matches the simulated IMU).
+    pub config: std::path::PathBuf,
+    /// The camera-year orthophoto the frames are rendered from. Must not be a map orthophoto
+    /// (the matcher would see its own image).
+    pub camera_ortho: std::path::PathBuf,
+    /// DEM under the camera-year orthophoto (heights AMSL), or
+    #[serde(default)]
+    pub camera_dem: Option<std::path::PathBuf>,
+    /// a flat ground at this height AMSL, m.
+    #[serde(default)]
+    pub camera_ground_height_amsl_m: Option<f64>,
+    /// Camera frame rate, Hz.
+    #[serde(default = "default_camera_rate")]
+    pub camera_rate_hz: f64,
+    /// First camera frame at this time, s (before it the camera is off).
+    #[serde(default)]
+    pub camera_from_s: f64,
+    /// Frames older than this when a fix worker is free are dropped, s.
+    #[serde(default = "default_max_age")]
+    pub frame_max_age_s: f64,
+    /// Fix worker threads.
+    #[serde(default = "default_workers")]
+    pub workers: usize,
+    /// Also run the no-vision control (same truth and sensors, no camera).
+    #[serde(default = "default_true")]
+    pub control: bool,
+    /// The autopilot's attitude estimate (ATTITUDE) errs from the truth by a first-order
+    /// Gauss-Markov process per axis (an AHRS's slowly wandering tilt and heading errors, not
+    /// white noise): roll/pitch sigma, deg ...
+    #[serde(default = "default_ahrs_tilt")]
+    pub ahrs_tilt_sigma_deg: f64,
+    /// ... heading sigma, deg ...
+    #[serde(default = "default_ahrs_yaw")]
+    pub ahrs_yaw_sigma_deg: f64,
+    /// ... and correlation time, s.
+    #[serde(default = "default_ahrs_tau")]
+    pub ahrs_corr_time_s: f64,
+    /// Light, blur and noise of the simulated camera (`sitl::render::RenderSpec`).
+    #[serde(default)]
+    pub render: super::render::RenderSpec,
+}
+
+fn default_ahrs_tilt() -> f64 {
+    0.3
+}
+
+fn default_ahrs_yaw() -> f64 {
+    1.5
+}
+
+fn default_ahrs_tau() -> f64 {
+    60.0
+}
+
+fn default_workers() -> usize {
+    1
+}
+
 /// A whole scenario file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -260,6 +352,9 @@ pub struct Scenario {
     /// Filter configuration.
     #[serde(default)]
     pub nav: NavConfig,
+    /// Closed-loop settings (`visnav sim` runs the closed loop when present).
+    #[serde(default)]
+    pub closed_loop: Option<ClosedLoopConfig>,
 }
 
 impl Scenario {
@@ -394,6 +489,10 @@ impl Validate for Scenario {
                 for v in g.lever_arm_body_frd_m {
                     p.range("lever_arm_body_frd_m", v, -100.0, 100.0);
                 }
+                for w in &g.outages_s {
+                    p.range("outages_s", w[0], 0.0, dur);
+                    p.range("outages_s", w[1], w[0], dur);
+                }
             });
         }
         if let Some(v) = &self.vision {
@@ -450,5 +549,94 @@ impl Validate for Scenario {
             );
         }
         p.section("nav", |p| self.nav.validate(p));
+        if let Some(c) = &self.closed_loop {
+            p.section("closed_loop", |p| {
+                p.range("camera_rate_hz", c.camera_rate_hz, 0.05, 30.0);
+                p.range("camera_from_s", c.camera_from_s, 0.0, dur);
+                p.range("frame_max_age_s", c.frame_max_age_s, 0.01, 60.0);
+                p.range("ahrs_tilt_sigma_deg", c.ahrs_tilt_sigma_deg, 0.0, 20.0);
+                p.range("ahrs_yaw_sigma_deg", c.ahrs_yaw_sigma_deg, 0.0, 90.0);
+                p.range("ahrs_corr_time_s", c.ahrs_corr_time_s, 0.1, 1e6);
+                if c.workers == 0 || c.workers > 16 {
+                    p.push("workers", "must be 1 to 16");
+                }
+                match (&c.camera_dem, c.camera_ground_height_amsl_m) {
+                    (Some(_), Some(_)) => p.push(
+                        "camera_dem",
+                        "give camera_dem or camera_ground_height_amsl_m, not both",
+                    ),
+                    (None, None) => p.push(
+                        "camera_ground_height_amsl_m",
+                        "give camera_dem or camera_ground_height_amsl_m",
+                    ),
+                    (None, Some(h)) => p.range("camera_ground_height_amsl_m", h, -500.0, 9000.0),
+                    _ => {}
+                }
+                p.section("render", |p| c.render.validate(p));
+            });
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bundled(name: &str) -> Scenario {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("sitl/scenarios")
+            .join(name);
+        Scenario::load(&p).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    #[test]
+    fn every_bundled_scenario_loads() {
+        for n in [
+            "seed_outage.toml",
+            "gps_calibration.toml",
+            "turns_vision_only.toml",
+            "closed_loop_demo.toml",
+            "closed_loop_long.toml",
+            "seed_outage_closed_loop.toml",
+        ] {
+            let sc = bundled(n);
+            assert_eq!(sc.closed_loop.is_some(), n.contains("closed_loop"), "{n}");
+        }
+    }
+
+    #[test]
+    fn gps_outage_windows() {
+        let mut sc = bundled("closed_loop_demo.toml");
+        let g = sc.gps.as_mut().unwrap();
+        g.outages_s = vec![[10.0, 12.0]];
+        assert!(g.available(9.99) && !g.available(10.0) && !g.available(11.9) && g.available(12.0));
+        assert!(!g.available(30.0), "the outage after until_s");
+        let text = std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("sitl/scenarios/closed_loop_demo.toml"),
+        )
+        .unwrap()
+        .replace(
+            "until_s = 30.0\n",
+            "until_s = 30.0\noutages_s = [[20.0, 10.0]]\n",
+        );
+        let e = Scenario::parse(&text, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("gps.outages_s"), "{e}");
+    }
+
+    #[test]
+    fn closed_loop_section_is_validated() {
+        let text = std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("sitl/scenarios/closed_loop_demo.toml"),
+        )
+        .unwrap();
+        let bad = text.replace("camera_rate_hz = 2.0", "camera_rate_hz = -2.0");
+        let e = Scenario::parse(&bad, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("closed_loop.camera_rate_hz"), "{e}");
+        let bad = text.replace("camera_ground_height_amsl_m = 580.0\n", "");
+        let e = Scenario::parse(&bad, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("closed_loop.camera_ground_height_amsl_m"), "{e}");
+        let bad = text.replace("control = true", "contrl = true");
+        let e = Scenario::parse(&bad, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("contrl"), "{e}");
     }
 }

@@ -1,0 +1,331 @@
+//! The closed loop's report folder (`visnav sim --out DIR`):
+//!
+//! | file | content |
+//! | --- | --- |
+//! | `summary.json` | the summary `visnav sim --json` prints |
+//! | `steps.csv` | every 0.1 s: truth, the vision and the control filters' positions, NED errors, horizontal 1-sigma, health |
+//! | `fixes.csv` | every vision fix: capture time, latency, accepted/reason, position, NED error, sigma, 3-sigma test |
+//! | `injections.csv` | every GPS_INPUT the emulators received (vision and control), with its NED error |
+//! | `track.geojson` | truth, visnav and no-vision tracks (LineString, WGS84 lon/lat) and the accepted fixes (Point), for QGIS |
+//! | `track.png` | the tracks over the map orthophoto |
+//! | `errors.png` | horizontal error against time: visnav, no-vision, accepted fixes, visnav's 3-sigma bound, the GPS outage |
+//!
+//! CSV: comma separated, a header line, `NaN` for missing values (before the filter is
+//! initialised, rejected fixes), times in scenario seconds.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use super::closed_loop::{ClosedLoopError, ClosedLoopRun};
+use super::plot::{self, Band, PlotSpec, Series, Style};
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ClosedLoopError + '_ {
+    move |source| ClosedLoopError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+fn write(dir: &Path, name: &str, text: &str) -> Result<PathBuf, ClosedLoopError> {
+    let p = dir.join(name);
+    std::fs::write(&p, text).map_err(io_err(&p))?;
+    Ok(p)
+}
+
+fn f(v: f64) -> String {
+    if v.is_finite() {
+        format!("{v:.3}")
+    } else {
+        "NaN".into()
+    }
+}
+
+fn deg(v: f64) -> String {
+    if v.is_finite() {
+        format!("{v:.8}")
+    } else {
+        "NaN".into()
+    }
+}
+
+/// `steps.csv`.
+pub fn steps_csv(run: &ClosedLoopRun) -> String {
+    let mut s = String::from(
+        "t_s,gps_on,truth_lat_deg,truth_lon_deg,truth_alt_amsl_m,vis_lat_deg,vis_lon_deg,vis_err_n_m,vis_err_e_m,vis_err_d_m,vis_sigma_h_m,vis_health,ctl_lat_deg,ctl_lon_deg,ctl_err_n_m,ctl_err_e_m,ctl_err_d_m,ctl_sigma_h_m,ctl_health\n",
+    );
+    for r in &run.steps {
+        let _ = writeln!(
+            s,
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            f(r.t_s),
+            u8::from(r.gps_on),
+            deg(r.truth_lat_deg),
+            deg(r.truth_lon_deg),
+            f(r.truth_alt_amsl_m),
+            deg(r.vis_lat_deg),
+            deg(r.vis_lon_deg),
+            f(r.vis_err_ned_m[0]),
+            f(r.vis_err_ned_m[1]),
+            f(r.vis_err_ned_m[2]),
+            f(r.vis_sigma_h_m),
+            r.vis_health,
+            deg(r.ctl_lat_deg),
+            deg(r.ctl_lon_deg),
+            f(r.ctl_err_ned_m[0]),
+            f(r.ctl_err_ned_m[1]),
+            f(r.ctl_err_ned_m[2]),
+            f(r.ctl_sigma_h_m),
+            r.ctl_health,
+        );
+    }
+    s
+}
+
+/// `fixes.csv`.
+pub fn fixes_csv(run: &ClosedLoopRun) -> String {
+    let mut s = String::from(
+        "t_capture_s,latency_ms,accepted,reason,lat_deg,lon_deg,err_n_m,err_e_m,err_d_m,sigma_h_m,beyond_3sigma,inliers,fix_ms\n",
+    );
+    for r in &run.fixes {
+        let reason = r.reason.replace([',', '\n', '"'], ";");
+        let _ = writeln!(
+            s,
+            "{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            f(r.t_capture_s),
+            f(r.latency_ms),
+            u8::from(r.accepted),
+            reason,
+            deg(r.lat_deg),
+            deg(r.lon_deg),
+            f(r.err_ned_m[0]),
+            f(r.err_ned_m[1]),
+            f(r.err_ned_m[2]),
+            f(r.sigma_h_m),
+            u8::from(r.beyond_3sigma),
+            r.inliers,
+            f(r.ms),
+        );
+    }
+    s
+}
+
+/// `injections.csv`.
+pub fn injections_csv(run: &ClosedLoopRun) -> String {
+    let mut s = String::from(
+        "t_s,run,message,lat_deg,lon_deg,alt_amsl_m,horiz_accuracy_m,err_n_m,err_e_m,err_d_m\n",
+    );
+    for r in &run.injections {
+        let _ = writeln!(
+            s,
+            "{},{},{},{},{},{},{},{},{},{}",
+            f(r.t_s),
+            if r.control { "control" } else { "vision" },
+            r.kind,
+            deg(r.lat_deg),
+            deg(r.lon_deg),
+            f(r.alt_amsl_m),
+            f(r.horiz_accuracy_m),
+            f(r.err_ned_m[0]),
+            f(r.err_ned_m[1]),
+            f(r.err_ned_m[2]),
+        );
+    }
+    s
+}
+
+/// `track.geojson`: a FeatureCollection (RFC 7946, WGS84 lon/lat).
+pub fn geojson(run: &ClosedLoopRun) -> serde_json::Value {
+    let line = |name: &str, pts: Vec<[f64; 2]>| {
+        serde_json::json!({
+            "type": "Feature",
+            "properties": { "name": name },
+            "geometry": { "type": "LineString", "coordinates": pts },
+        })
+    };
+    let finite = |p: &[f64; 2]| p[0].is_finite() && p[1].is_finite();
+    let truth: Vec<[f64; 2]> = run
+        .steps
+        .iter()
+        .map(|r| [r.truth_lon_deg, r.truth_lat_deg])
+        .filter(finite)
+        .collect();
+    let vis: Vec<[f64; 2]> = run
+        .steps
+        .iter()
+        .map(|r| [r.vis_lon_deg, r.vis_lat_deg])
+        .filter(finite)
+        .collect();
+    let ctl: Vec<[f64; 2]> = run
+        .steps
+        .iter()
+        .map(|r| [r.ctl_lon_deg, r.ctl_lat_deg])
+        .filter(finite)
+        .collect();
+    let mut features = vec![
+        line("truth", truth),
+        line("visnav", vis),
+        line("no-vision control", ctl),
+    ];
+    for fx in run.fixes.iter().filter(|f| f.accepted) {
+        if fx.lat_deg.is_finite() && fx.lon_deg.is_finite() {
+            features.push(serde_json::json!({
+                "type": "Feature",
+                "properties": {
+                    "name": "vision fix",
+                    "t_capture_s": fx.t_capture_s,
+                    "err_h_m": fx.err_ned_m[0].hypot(fx.err_ned_m[1]),
+                    "sigma_h_m": fx.sigma_h_m,
+                    "inliers": fx.inliers,
+                },
+                "geometry": { "type": "Point", "coordinates": [fx.lon_deg, fx.lat_deg] },
+            }));
+        }
+    }
+    serde_json::json!({ "type": "FeatureCollection", "features": features })
+}
+
+/// Writes the text files of the report folder (creating it); returns the files written.
+pub fn write_text_files(run: &ClosedLoopRun, dir: &Path) -> Result<Vec<PathBuf>, ClosedLoopError> {
+    std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+    let summary = serde_json::to_string_pretty(&run.summary).unwrap_or_default();
+    let gj = serde_json::to_string(&geojson(run)).unwrap_or_default();
+    Ok(vec![
+        write(dir, "summary.json", &summary)?,
+        write(dir, "steps.csv", &steps_csv(run))?,
+        write(dir, "fixes.csv", &fixes_csv(run))?,
+        write(dir, "injections.csv", &injections_csv(run))?,
+        write(dir, "track.geojson", &gj)?,
+    ])
+}
+
+const TRUTH_RGB: [u8; 3] = [20, 20, 20];
+const VISNAV_RGB: [u8; 3] = [0, 90, 220];
+const CONTROL_RGB: [u8; 3] = [220, 40, 30];
+const FIX_RGB: [u8; 3] = [0, 170, 60];
+
+/// `track.png`: truth, visnav and the control over the camera-year orthophoto, map CRS metres.
+pub fn track_png(run: &ClosedLoopRun) -> image::RgbImage {
+    let xy = |lat: f64, lon: f64| -> (f64, f64) {
+        if !(lat.is_finite() && lon.is_finite()) {
+            return (f64::NAN, f64::NAN);
+        }
+        run.crs
+            .from_geodetic(lat, lon)
+            .unwrap_or((f64::NAN, f64::NAN))
+    };
+    let truth = run
+        .steps
+        .iter()
+        .map(|r| xy(r.truth_lat_deg, r.truth_lon_deg))
+        .collect();
+    let vis = run
+        .steps
+        .iter()
+        .map(|r| xy(r.vis_lat_deg, r.vis_lon_deg))
+        .collect();
+    let ctl = run
+        .steps
+        .iter()
+        .map(|r| xy(r.ctl_lat_deg, r.ctl_lon_deg))
+        .collect();
+    let fixes = run
+        .fixes
+        .iter()
+        .filter(|f| f.accepted)
+        .map(|f| xy(f.lat_deg, f.lon_deg))
+        .collect();
+    let series = vec![
+        Series::new("accepted vision fixes", FIX_RGB, Style::Dots, fixes),
+        Series::new("no-vision control", CONTROL_RGB, Style::Line, ctl),
+        Series::new("truth", TRUTH_RGB, Style::Line, truth),
+        Series::new("visnav", VISNAV_RGB, Style::Line, vis),
+    ];
+    let spec = PlotSpec::new(
+        1200,
+        900,
+        format!(
+            "{}: track over the camera-year orthophoto",
+            run.summary.scenario
+        ),
+        "easting [m]",
+        "northing [m]",
+    );
+    plot::track(
+        &spec,
+        run.background.as_ref().map(|(i, e)| (i, *e)),
+        &series,
+    )
+}
+
+/// `errors.png`: horizontal error against time with visnav's 3-sigma bound and the outage start.
+pub fn errors_png(run: &ClosedLoopRun) -> image::RgbImage {
+    let h = |e: &[f64; 3]| e[0].hypot(e[1]);
+    let vis: Vec<(f64, f64)> = run
+        .steps
+        .iter()
+        .map(|r| (r.t_s, h(&r.vis_err_ned_m)))
+        .collect();
+    let ctl: Vec<(f64, f64)> = run
+        .steps
+        .iter()
+        .map(|r| (r.t_s, h(&r.ctl_err_ned_m)))
+        .collect();
+    let fixes: Vec<(f64, f64)> = run
+        .fixes
+        .iter()
+        .filter(|f| f.accepted)
+        .map(|f| (f.t_capture_s, h(&f.err_ned_m)))
+        .collect();
+    let band = Band {
+        name: "visnav 3-sigma (horizontal)".into(),
+        rgb: VISNAV_RGB,
+        points: run
+            .steps
+            .iter()
+            .map(|r| (r.t_s, 0.0, 3.0 * r.vis_sigma_h_m))
+            .collect(),
+    };
+    let top = vis
+        .iter()
+        .chain(&ctl)
+        .chain(&fixes)
+        .map(|p| p.1)
+        .filter(|v| v.is_finite())
+        .fold(1.0f64, f64::max);
+    let mut series = vec![
+        Series::new("accepted vision fixes", FIX_RGB, Style::Dots, fixes),
+        Series::new("no-vision control", CONTROL_RGB, Style::Line, ctl),
+        Series::new("visnav", VISNAV_RGB, Style::Line, vis),
+    ];
+    if let Some(t) = run.gps_until_s {
+        series.push(Series::new(
+            "GPS lost",
+            [120, 120, 120],
+            Style::Line,
+            vec![(t, 0.0), (t, top * 1.05)],
+        ));
+    }
+    let mut spec = PlotSpec::new(
+        1200,
+        600,
+        format!("{}: horizontal position error", run.summary.scenario),
+        "time [s]",
+        "horizontal error [m]",
+    );
+    spec.y_range = Some((0.0, top * 1.1));
+    plot::chart(&spec, &[band], &series)
+}
+
+/// Writes the whole report folder (text files and plots); returns the files written.
+pub fn write_report(run: &ClosedLoopRun, dir: &Path) -> Result<Vec<PathBuf>, ClosedLoopError> {
+    let mut files = write_text_files(run, dir)?;
+    for (name, img) in [
+        ("track.png", track_png(run)),
+        ("errors.png", errors_png(run)),
+    ] {
+        let p = dir.join(name);
+        plot::save_png(&img, &p).map_err(|e| ClosedLoopError::Setup(e.to_string()))?;
+        files.push(p);
+    }
+    Ok(files)
+}

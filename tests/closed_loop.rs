@@ -1,0 +1,280 @@
+//! The README's first command end to end: `visnav sim` with no scenario runs the bundled
+//! closed-loop demo (sitl/scenarios/closed_loop_demo.toml): the built-in autopilot emulator and the
+//! visnav daemon over real loopback UDP MAVLink, the camera rendered from the 2014 NAIP image at
+//! the true pose, the map built from 2009, a 60 s GPS outage, and the no-vision control beside it.
+//! Real time: about 90 s.
+//!
+//! The bounds are loose and honest (the measured figures are in docs/closed-loop.md): the vision
+//! fixes must work across the years (a fix rate and an error that only a working pipeline
+//! reaches), no accepted fix may lie outside its own 3-sigma ellipse more than rarely, every
+//! injected message must be finite, and vision must beat the no-vision control over the outage.
+//! The report folder must hold every file with the documented columns.
+
+use std::path::Path;
+use std::process::Command;
+use std::sync::Mutex;
+
+/// The two real-time closed loops run one after the other: together they would share the two
+/// cores and measure each other's load.
+static REAL_TIME: Mutex<()> = Mutex::new(());
+
+fn stat(v: &serde_json::Value, key: &str, field: &str) -> f64 {
+    v[key][field]
+        .as_f64()
+        .unwrap_or_else(|| panic!("{key}.{field} missing or not a number in {v}"))
+}
+
+#[test]
+fn visnav_sim_default_closed_loop() {
+    let _serial = REAL_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let out = std::env::temp_dir().join(format!("visnav-sim-test-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let res = Command::new(env!("CARGO_BIN_EXE_visnav"))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .args(["sim", "--json", "--out"])
+        .arg(&out)
+        .output()
+        .expect("run visnav sim");
+    let stderr = String::from_utf8_lossy(&res.stderr);
+    assert!(res.status.success(), "visnav sim failed: {stderr}");
+    let v: serde_json::Value = serde_json::from_slice(&res.stdout).unwrap_or_else(|e| {
+        panic!(
+            "stdout is not JSON ({e}): {}",
+            String::from_utf8_lossy(&res.stdout)
+        )
+    });
+    eprintln!("{}", serde_json::to_string_pretty(&v).unwrap());
+
+    // The keys the issue names.
+    for key in ["fix_err_m", "nav_err_m", "control_err_m"] {
+        for f in ["median", "p90", "max"] {
+            assert!(v[key][f].is_number() || v[key][f].is_null(), "{key}.{f}");
+        }
+    }
+    let fix_rate = v["fix_rate"].as_f64().expect("fix_rate");
+    let lat_p50 = stat(&v, "latency_ms", "p50");
+    let lat_p95 = stat(&v, "latency_ms", "p95");
+    assert!(
+        lat_p50 > 0.0 && lat_p95 >= lat_p50 && lat_p95 < 2000.0,
+        "latency {lat_p50} {lat_p95}"
+    );
+
+    // Vision works across the years (the release build measured 64-85 % and a median of 12-14 m).
+    let attempts = v["fix_attempts"].as_u64().unwrap_or(0);
+    assert!(
+        attempts >= 60,
+        "only {attempts} fix attempts in the 60 s outage at 2 Hz"
+    );
+    assert!(fix_rate >= 0.3, "fix rate {fix_rate}");
+    let fix_med = stat(&v, "fix_err_m", "median");
+    assert!(fix_med < 40.0, "fix error median {fix_med} m");
+    // Integrity: accepted fixes beyond their own 3-sigma ellipse stay rare.
+    let accepted = v["fixes_accepted"].as_u64().unwrap_or(0);
+    let beyond = v["fix_beyond_3sigma"].as_u64().unwrap_or(u64::MAX);
+    assert!(
+        beyond * 20 <= accepted,
+        "{beyond} of {accepted} accepted fixes beyond 3 sigma"
+    );
+
+    // The injected solution: present all along, and better than the no-vision control.
+    let inj = v["injections"].as_u64().unwrap_or(0);
+    assert!(
+        inj >= 200,
+        "only {inj} GPS_INPUT in the 60 s window at 5 Hz"
+    );
+    let nav_p90 = stat(&v, "nav_err_m", "p90");
+    let nav_max = stat(&v, "nav_err_m", "max");
+    let ctl_max = stat(&v, "control_err_m", "max");
+    assert!(nav_max < 80.0, "injected position error max {nav_max} m");
+    assert!(
+        nav_p90 < stat(&v, "control_err_m", "p90") || nav_max < ctl_max,
+        "vision does not beat the no-vision control: {v}"
+    );
+
+    // The report folder.
+    for f in [
+        "summary.json",
+        "steps.csv",
+        "fixes.csv",
+        "injections.csv",
+        "track.geojson",
+        "track.png",
+        "errors.png",
+    ] {
+        let p = out.join(f);
+        let len = std::fs::metadata(&p).map(|m| m.len()).unwrap_or(0);
+        assert!(len > 100, "{} missing or empty", p.display());
+    }
+    let steps = std::fs::read_to_string(out.join("steps.csv")).unwrap();
+    let header = steps.lines().next().unwrap();
+    assert!(header.starts_with("t_s,gps_on,truth_lat_deg"), "{header}");
+    let ncol = header.split(',').count();
+    let rows: Vec<&str> = steps.lines().skip(1).collect();
+    assert!(rows.len() > 800, "{} steps for 90 s at 10 Hz", rows.len());
+    assert!(rows.iter().all(|r| r.split(',').count() == ncol));
+    let inj_csv = std::fs::read_to_string(out.join("injections.csv")).unwrap();
+    for r in inj_csv.lines().skip(1) {
+        assert!(
+            !r.contains("NaN") && !r.contains("inf"),
+            "non-finite injection: {r}"
+        );
+    }
+    let gj: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("track.geojson")).unwrap()).unwrap();
+    assert_eq!(gj["type"], "FeatureCollection");
+    let lines = gj["features"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|f| f["geometry"]["type"] == "LineString")
+        .count();
+    assert_eq!(lines, 3, "truth, visnav and control tracks");
+    let img = image::open(out.join("track.png")).expect("track.png decodes");
+    assert!(img.width() >= 800 && img.height() >= 600);
+    assert!(Path::new(&out).join("errors.png").is_file());
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// The golden rule is enforced: a camera rendered from the map's own image is refused, with a
+/// message naming the key; a broken scenario names the file.
+#[test]
+fn refuses_camera_from_the_map_image_and_bad_scenarios() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(root.join("sitl/scenarios/closed_loop_demo.toml")).unwrap();
+    let abs = |rel: &str| root.join(rel).display().to_string();
+    let same = text
+        .replace(
+            "\"../../config/demo.toml\"",
+            &format!("{:?}", abs("config/demo.toml")),
+        )
+        .replace(
+            "\"../maps/naip_nd_2014.tif\"",
+            &format!("{:?}", abs("sitl/maps/naip_nd_2009.tif")),
+        );
+    let dir = std::env::temp_dir().join(format!("visnav-sim-bad-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let f = dir.join("same_year.toml");
+    std::fs::write(&f, same).unwrap();
+    let res = Command::new(env!("CARGO_BIN_EXE_visnav"))
+        .args(["sim", "--scenario"])
+        .arg(&f)
+        .arg("--out")
+        .arg(dir.join("out"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&res.stderr);
+    assert!(!res.status.success());
+    assert!(
+        err.contains("camera_ortho") && err.contains("also a map orthophoto"),
+        "{err}"
+    );
+    let broken = dir.join("broken.toml");
+    std::fs::write(&broken, text.replace("workers = 1", "workers = 0")).unwrap();
+    let res = Command::new(env!("CARGO_BIN_EXE_visnav"))
+        .args(["sim", "--scenario"])
+        .arg(&broken)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&res.stderr);
+    assert!(!res.status.success());
+    assert!(
+        err.contains("broken.toml") && err.contains("closed_loop.workers"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The closed loop with external-vision output (VISION_POSITION_ESTIMATE + ODOMETRY about the
+/// EKF origin the daemon sets, as for ArduPilot ExternalNav / PX4): a shorter flight (20 s GPS,
+/// 25 s outage), both messages scored in the local frame of the origin the emulator received.
+#[test]
+fn closed_loop_with_external_vision_output() {
+    let _serial = REAL_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = std::env::temp_dir().join(format!("visnav-sim-ev-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let abs = |rel: &str| format!("{:?}", root.join(rel).display().to_string());
+    let cfg = std::fs::read_to_string(root.join("config/demo.toml"))
+        .unwrap()
+        .replace(
+            "\"../sitl/maps/naip_nd_2009.tif\"",
+            &abs("sitl/maps/naip_nd_2009.tif"),
+        )
+        .replace(
+            "modes = [\"gps_input\"]",
+            "modes = [\"vision_position_estimate\", \"odometry\"]",
+        );
+    assert!(
+        cfg.contains("odometry"),
+        "config/demo.toml changed: update this test"
+    );
+    std::fs::write(dir.join("ev.toml"), cfg).unwrap();
+    let sc = std::fs::read_to_string(root.join("sitl/scenarios/closed_loop_demo.toml"))
+        .unwrap()
+        .replace(
+            "\"../../config/demo.toml\"",
+            &format!("{:?}", dir.join("ev.toml").display().to_string()),
+        )
+        .replace(
+            "\"../maps/naip_nd_2014.tif\"",
+            &abs("sitl/maps/naip_nd_2014.tif"),
+        )
+        // Start 700 m further east: the western fields changed between the years and give
+        // few fixes (docs/closed-loop.md); this test is about the messages.
+        .replace("lat_deg = 47.01279 ", "lat_deg = 47.01280 ")
+        .replace("lon_deg = -99.17367", "lon_deg = -99.16446")
+        .replace("duration_s = 50.0", "duration_s = 25.0")
+        .replace(
+            "duration_s = 20.0\nturn_rate_deg_s",
+            "duration_s = 10.0\nturn_rate_deg_s",
+        )
+        .replace(
+            "[[segments]]\nkind = \"straight\"\nduration_s = 20.0\n",
+            "[[segments]]\nkind = \"straight\"\nduration_s = 10.0\n",
+        )
+        .replace("until_s = 30.0\nsigma_h_m", "until_s = 20.0\nsigma_h_m")
+        .replace(
+            "from_s = 30.0\nuntil_s = 90.0",
+            "from_s = 20.0\nuntil_s = 45.0",
+        );
+    let f = dir.join("ev_scenario.toml");
+    std::fs::write(&f, sc).unwrap();
+    let res = Command::new(env!("CARGO_BIN_EXE_visnav"))
+        .args(["sim", "--json", "--scenario"])
+        .arg(&f)
+        .arg("--out")
+        .arg(dir.join("out"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&res.stderr);
+    assert!(res.status.success(), "visnav sim failed: {stderr}");
+    let v: serde_json::Value = serde_json::from_slice(&res.stdout).unwrap();
+    eprintln!("{}", serde_json::to_string_pretty(&v).unwrap());
+    assert_eq!(v["duration_s"].as_f64(), Some(45.0), "the shortened flight");
+    let steps = std::fs::read_to_string(dir.join("out/steps.csv")).unwrap();
+    let first: Vec<&str> = steps.lines().nth(1).unwrap().split(',').collect();
+    let lon: f64 = first[3].parse().unwrap();
+    assert!(
+        (lon + 99.1645).abs() < 0.001,
+        "the start was not moved east: {lon}"
+    );
+    assert_eq!(v["injected_message"], "vision_position_estimate");
+    let by = &v["nav_err_by_message"];
+    let vpe_n = by["vision_position_estimate"][0].as_u64().unwrap_or(0);
+    let odo_n = by["odometry"][0].as_u64().unwrap_or(0);
+    assert!(
+        vpe_n >= 80 && odo_n >= 80,
+        "VPE {vpe_n}, ODOMETRY {odo_n} in 25 s at 5 Hz"
+    );
+    assert!(
+        by.get("gps_input").is_none(),
+        "no GPS_INPUT configured: {by}"
+    );
+    let vpe_max = by["vision_position_estimate"][1]["max"].as_f64().unwrap();
+    let odo_max = by["odometry"][1]["max"].as_f64().unwrap();
+    assert!(vpe_max < 80.0 && odo_max < 80.0, "{vpe_max} {odo_max}");
+    // The same estimate in both messages.
+    assert!((vpe_max - odo_max).abs() < 5.0, "{vpe_max} {odo_max}");
+    assert!(v["fixes_accepted"].as_u64().unwrap_or(0) >= 10);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -29,6 +29,8 @@ enum Command {
     Map(cli::map::MapArgs),
     /// Run the navigation service: autopilot link, navigation filter, injection.
     Run(cli::run::RunArgs),
+    /// The service against a real ArduPilot/PX4 SITL, the camera rendered from the simulator's truth.
+    SitlRun(cli::sitl_run::SitlRunArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -41,6 +43,7 @@ fn main() -> std::process::ExitCode {
         Command::Fix(a) => cli::fix::run(a),
         Command::Map(a) => cli::map::run(a),
         Command::Run(a) => cli::run::run(a),
+        Command::SitlRun(a) => cli::sitl_run::run(a),
     };
     match result {
         Ok(code) => code,

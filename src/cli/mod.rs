@@ -7,6 +7,7 @@ pub mod fix;
 pub mod map;
 pub mod run;
 pub mod sim;
+pub mod sitl_run;
 
 /// Initialise `tracing` to stderr: `RUST_LOG` when set, otherwise info/debug/trace by `-v` count.
 pub fn init_logging(verbose: u8) {

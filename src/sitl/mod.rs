@@ -9,6 +9,8 @@
 //! * [`run`]: scenario runner, INS-only control, Monte Carlo NEES consistency.
 //! * [`rng`]: deterministic random numbers.
 //! * [`autopilot`]: a MAVLink 2 autopilot emulator speaking like ArduPilot over real sockets.
+//! * [`real_sitl`]: truth (SIMSTATE/SIM_STATE, HIL_STATE_QUATERNION) from a real ArduPilot/PX4
+//!   SITL as a [`camera_sim::TruthFeed`].
 //! * [`camera_sim`]: the simulated camera as a frame source, rendering at the truth pose.
 //! * [`closed_loop`]: `visnav sim`'s closed loop (emulator + daemon + camera) and its scoring;
 //!   [`report`] writes its report folder.
@@ -22,6 +24,7 @@ pub mod closed_loop;
 pub mod fixeval;
 pub mod imu;
 pub mod plot;
+pub mod real_sitl;
 pub mod render;
 pub mod report;
 pub mod rng;

@@ -1,0 +1,178 @@
+//! `visnav sitl-run --config F --truth CONN --ortho CAMERA_YEAR.tif`: the navigation service
+//! against a real autopilot SITL (ArduPilot or PX4), with the camera rendered from the
+//! simulator's own truth.
+//!
+//! The daemon is the one `visnav run` starts (`[link]`, `[output]`, `[nav]`, `[daemon]` and the
+//! vision fix engine of `[map]`/`[camera]`/`[fix]` from the configuration); only the frame source
+//! differs: a [`SimCamera`] rendering `--ortho` (the camera year, never the map's image) on a flat
+//! ground at `--ground-height` (default `map.ground_height_amsl_m`) at the pose the simulator
+//! reports on a second MAVLink connection (`--truth`, [`visnav::sitl::real_sitl`]). `[frames]` in
+//! the configuration is ignored. Recipes: sitl/ardupilot/run.py, sitl/px4/run.py, docs/real-sitl.md.
+//!
+//! At the end (SIGINT/SIGTERM or `--duration`) one JSON line goes to stdout: the daemon's
+//! counters and the truth connection's.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::Context;
+use visnav::config::Config;
+use visnav::daemon::{Daemon, DaemonSetup, FramePipeline};
+use visnav::geo::dem::Dem;
+use visnav::geo::geotiff::load_geotiff;
+use visnav::sitl::camera_sim::{SimCamera, SimCameraSpec, TruthFeed};
+use visnav::sitl::real_sitl::{SitlKind, TruthLink, TruthLinkConfig};
+use visnav::sitl::render::{ColourMode, RenderSpec, Renderer, Scene};
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum Kind {
+    /// ArduPilot SITL: SIMSTATE + SIM_STATE.
+    Ardupilot,
+    /// PX4 SITL (SIH or Gazebo): HIL_STATE_QUATERNION.
+    Px4,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct SitlRunArgs {
+    /// The TOML configuration file (as for `visnav run`; `[frames]` is ignored).
+    #[arg(long)]
+    pub config: PathBuf,
+    /// MAVLink connection on which the simulator sends its truth (e.g. udpin:127.0.0.1:14552).
+    #[arg(long, default_value = "udpin:127.0.0.1:14552")]
+    pub truth: String,
+    /// Which simulator speaks on `--truth`.
+    #[arg(long, value_enum, default_value = "ardupilot")]
+    pub kind: Kind,
+    /// The orthophoto the camera sees (the camera year, e.g. sitl/maps/naip_nd_2014.tif).
+    #[arg(long)]
+    pub ortho: PathBuf,
+    /// Ground height AMSL of the rendered scene, m (default: map.ground_height_amsl_m).
+    #[arg(long)]
+    pub ground_height: Option<f64>,
+    /// Camera frame rate, Hz.
+    #[arg(long, default_value_t = 2.0)]
+    pub rate_hz: f64,
+    /// Rate asked for the truth messages, Hz.
+    #[arg(long, default_value_t = 50.0)]
+    pub truth_rate_hz: f64,
+    /// Fix worker threads.
+    #[arg(long, default_value_t = 1)]
+    pub workers: usize,
+    /// Frames older than this when a worker is free are dropped, s.
+    #[arg(long, default_value_t = 1.0)]
+    pub max_age_s: f64,
+    /// Stop after this many seconds (default: run until SIGINT/SIGTERM).
+    #[arg(long)]
+    pub duration: Option<f64>,
+}
+
+pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
+    let cfg = Config::load(&args.config)?;
+    if !(args.rate_hz.is_finite() && args.rate_hz > 0.0 && args.rate_hz <= 50.0) {
+        anyhow::bail!("--rate-hz {}: expected 0 < rate <= 50", args.rate_hz);
+    }
+    if !(args.max_age_s.is_finite() && args.max_age_s > 0.0) {
+        anyhow::bail!("--max-age-s {}: expected a positive number", args.max_age_s);
+    }
+    let duration = match args.duration {
+        Some(s) if s.is_finite() && s > 0.0 && s < 1e9 => Some(Duration::from_secs_f64(s)),
+        Some(s) => anyhow::bail!("--duration {s}: expected a positive number of seconds"),
+        None => None,
+    };
+    let ground_m = match (args.ground_height, cfg.map.ground_height_amsl_m) {
+        (Some(h), _) | (None, Some(h)) if h.is_finite() => h,
+        _ => anyhow::bail!(
+            "give --ground-height (the configuration has no finite map.ground_height_amsl_m)"
+        ),
+    };
+    let engine = visnav::fix::engine_from_config(&cfg)
+        .map_err(anyhow::Error::msg)
+        .with_context(|| format!("{}: vision fix engine", args.config.display()))?;
+    let camera = cfg
+        .camera
+        .build()
+        .with_context(|| format!("{}: [camera]", args.config.display()))?;
+    let mount = camera.mount;
+    let raster = load_geotiff(&args.ortho, cfg.map.crs_override)
+        .with_context(|| format!("--ortho {}", args.ortho.display()))?;
+    let crs = raster.crs();
+    let dem = Dem::flat(ground_m).with_context(|| format!("--ground-height {ground_m}"))?;
+    let scene = Scene::new(&raster, dem, ColourMode::Grey)
+        .with_context(|| format!("--ortho {}: scene", args.ortho.display()))?;
+    let renderer = Renderer::new(camera, RenderSpec::default()).context("camera renderer")?;
+    let kind = match args.kind {
+        Kind::Ardupilot => SitlKind::ArduPilot,
+        Kind::Px4 => SitlKind::Px4,
+    };
+    let mut tcfg = TruthLinkConfig::new(args.truth.clone(), kind);
+    tcfg.rate_hz = args.truth_rate_hz;
+    if let Some(id) = cfg.link.autopilot_system_id {
+        tcfg.autopilot_system_id = id;
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    rt.block_on(async move {
+        let truth = TruthLink::start(tcfg).await?;
+        eprintln!(
+            "sitl-run: waiting for the simulator's truth on {}",
+            args.truth
+        );
+        if !truth.wait_first(Duration::from_secs(120)).await {
+            anyhow::bail!("no truth from the simulator on {} within 120 s", args.truth);
+        }
+        let feed: Arc<dyn TruthFeed> = truth.feed();
+        let source = SimCamera::new(
+            SimCameraSpec {
+                scene: Arc::new(scene),
+                renderer: Arc::new(renderer),
+                crs,
+                mount,
+                rate_hz: args.rate_hz,
+                max_frames: None,
+            },
+            feed,
+        );
+        let pipeline = FramePipeline {
+            source: Box::new(source),
+            lossless: false,
+            max_age_s: args.max_age_s,
+            workers: args.workers.max(1),
+        };
+        let daemon = Daemon::start_with(
+            DaemonSetup::from_config(&cfg),
+            Some(Arc::new(engine)),
+            Some(pipeline),
+        )
+        .await?;
+        let limit = async {
+            match duration {
+                Some(t) => tokio::time::sleep(t).await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            s = visnav::link::shutdown_signal() => {
+                eprintln!("sitl-run: {}", s.unwrap_or("signal handler failed"));
+            }
+            _ = limit => eprintln!("sitl-run: run duration elapsed"),
+        }
+        let m = daemon.shutdown().await;
+        let feed = truth.feed();
+        let c = &feed.counters;
+        let out = serde_json::json!({
+            "daemon": m,
+            "truth": {
+                "samples": c.samples.load(std::sync::atomic::Ordering::Relaxed),
+                "rejected": c.rejected.load(std::sync::atomic::Ordering::Relaxed),
+                "requests": c.requests.load(std::sync::atomic::Ordering::Relaxed),
+            }
+        });
+        truth.shutdown().await;
+        println!("{out}");
+        Ok(ExitCode::SUCCESS)
+    })
+}

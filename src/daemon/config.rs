@@ -6,6 +6,8 @@
 //! gps = "auto"            # "auto" | "gps1" (GPS_RAW_INT) | "gps2" (GPS2_RAW) | "none"
 //! gps_sigma_h_m = 2.5     # used when the message carries no h_acc
 //! gps_sigma_v_m = 5.0     # used when the message carries no v_acc
+//! gps_min_sigma_h_m = 1.5 # floor of the receiver's own h_acc (see below)
+//! gps_min_sigma_v_m = 3.0 # floor of the receiver's own v_acc
 //! gps_vel_sigma_m_s = 0.5 # horizontal velocity (ground speed + course), when vel_acc is absent
 //! gps_vz_sigma_m_s = 30.0 # GPS_RAW_INT has no vertical velocity: 0 with this sigma
 //! baro = true             # SCALED_PRESSURE altitude, offset calibrated against GPS / the filter
@@ -18,6 +20,13 @@
 //! `metrics_listen` serves every counter of the daemon and the link plus the navigation health
 //! ([`crate::daemon::prometheus`], docs/operations.md). It is an `IP:PORT` socket address; port 0
 //! picks a free port ([`crate::daemon::Daemon::metrics_addr`] tells which).
+//!
+//! Sigma floors: a receiver's h_acc / v_acc describe its position at the fix time, but the daemon
+//! time-stamps GPS_RAW_INT / GPS2_RAW on arrival (ArduPilot's `time_usec` is the Unix time now,
+//! not of the fix): the fix is up to a receiver lag plus one update period old (0.1-0.3 s). An
+//! ArduCopter SITL receiver reports h_acc of a few decimetres; at 8 m/s that age is metres, and
+//! every fix failed the filter's gate (resets every 2-8 s, docs/real-sitl.md). The floors keep
+//! the sigma at least that age's error.
 //!
 //! Feedback guard: with `output.modes` containing `gps_input`, the autopilot reports our own
 //! injection back as the GPS instance `output.gps_id` (GPS_RAW_INT for instance 0, GPS2_RAW for
@@ -55,6 +64,10 @@ pub struct DaemonConfig {
     pub gps_sigma_v_m: f64,
     /// GPS horizontal velocity sigma when the message has no accuracy, m/s.
     pub gps_vel_sigma_m_s: f64,
+    /// Smallest horizontal GPS sigma used, whatever the message says, m.
+    pub gps_min_sigma_h_m: f64,
+    /// Smallest vertical GPS sigma used, m.
+    pub gps_min_sigma_v_m: f64,
     /// Sigma of the (unmeasured, zero) vertical GPS velocity, m/s. GPS_RAW_INT / GPS2_RAW carry
     /// no vertical velocity; the default 30 m/s makes the zero carry almost no weight, so a
     /// climbing copter (8 m/s in ArduPilot SITL) does not pull the filter into resets, as 5 m/s
@@ -79,6 +92,8 @@ impl Default for DaemonConfig {
             gps_sigma_h_m: 2.5,
             gps_sigma_v_m: 5.0,
             gps_vel_sigma_m_s: 0.5,
+            gps_min_sigma_h_m: 1.5,
+            gps_min_sigma_v_m: 3.0,
             gps_vz_sigma_m_s: 30.0,
             baro: true,
             baro_sigma_m: 2.0,
@@ -142,6 +157,8 @@ impl Validate for DaemonConfig {
         p.range("gps_sigma_v_m", self.gps_sigma_v_m, 0.01, 1000.0);
         p.range("gps_vel_sigma_m_s", self.gps_vel_sigma_m_s, 0.01, 100.0);
         p.range("gps_vz_sigma_m_s", self.gps_vz_sigma_m_s, 0.01, 100.0);
+        p.range("gps_min_sigma_h_m", self.gps_min_sigma_h_m, 0.0, 1000.0);
+        p.range("gps_min_sigma_v_m", self.gps_min_sigma_v_m, 0.0, 1000.0);
         p.range("baro_sigma_m", self.baro_sigma_m, 0.01, 1000.0);
         p.range("imu_timeout_s", self.imu_timeout_s, 0.05, 10.0);
         p.range("log_interval_s", self.log_interval_s, 0.0, 3600.0);

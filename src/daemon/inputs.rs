@@ -272,16 +272,19 @@ impl Inputs {
             return;
         }
         let h = f64::from(g.alt_mm) * 1e-3 + n;
+        // The receiver's accuracy, floored (the message is time-stamped on arrival: config doc).
         let sh = if g.h_acc > 0 {
             f64::from(g.h_acc) * 1e-3
         } else {
             self.cfg.gps_sigma_h_m
-        };
+        }
+        .max(self.cfg.gps_min_sigma_h_m);
         let sv = if g.v_acc > 0 {
             f64::from(g.v_acc) * 1e-3
         } else {
             self.cfg.gps_sigma_v_m
-        };
+        }
+        .max(self.cfg.gps_min_sigma_v_m);
         out.push(NavInput::Meas(Measurement::GpsPosition(PositionFix {
             t_capture_us: t_us,
             lat_rad: lat.to_radians(),
@@ -663,6 +666,26 @@ mod tests {
         let out = s.convert(&tel(3000, m));
         assert_eq!(out.len(), 1, "no velocity when unknown");
         assert!(matches!(&out[0], NavInput::Meas(m) if m.t_capture_us() == 3_000_000));
+        // A receiver's own (optimistic) accuracy is floored; a larger one is kept.
+        for (h_acc, v_acc, sh, sv) in [(300, 500, 1.5, 3.0), (4000, 7000, 4.0, 7.0)] {
+            let m = MavMessage::GPS_RAW_INT(GPS_RAW_INT_DATA {
+                time_usec: 3_100_000,
+                fix_type: GpsFixType::GPS_FIX_TYPE_3D_FIX,
+                lat: 470_000_000,
+                lon: -970_000_000,
+                h_acc,
+                v_acc,
+                vel: u16::MAX,
+                cog: u16::MAX,
+                ..GPS_RAW_INT_DATA::DEFAULT
+            });
+            let out = s.convert(&tel(3100, m));
+            let NavInput::Meas(Measurement::GpsPosition(p)) = &out[0] else {
+                panic!("{out:?}")
+            };
+            assert!((p.cov_ned_m2[(0, 0)] - sh * sh).abs() < 1e-9, "{h_acc}");
+            assert!((p.cov_ned_m2[(2, 2)] - sv * sv).abs() < 1e-9, "{v_acc}");
+        }
     }
 
     #[test]

@@ -333,7 +333,9 @@ async fn tcp_reconnects_with_backoff() {
     );
     // A silent autopilot on an open TCP connection: reconnect after 3 heartbeat timeouts.
     emu2.set_muted(true);
-    tokio::time::timeout(Duration::from_secs(15), async {
+    // 3 s of watchdog and < 1 s of backoff normally; 30 s leaves room for a loaded CI machine
+    // (one CI run out of many timed out at 15 s; the message below says where it stood).
+    let waited = tokio::time::timeout(Duration::from_secs(30), async {
         while link
             .metrics()
             .connects
@@ -343,8 +345,17 @@ async fn tcp_reconnects_with_backoff() {
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
     })
-    .await
-    .expect("reconnect after the heartbeat watchdog");
+    .await;
+    if waited.is_err() {
+        panic!(
+            "no reconnect 30 s after the heartbeat watchdog: connects {}, status {:?}, emulator companion {:?}",
+            link.metrics()
+                .connects
+                .load(std::sync::atomic::Ordering::Relaxed),
+            *status.borrow(),
+            emu2.companion()
+        );
+    }
     link.shutdown().await;
 }
 

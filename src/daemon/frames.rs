@@ -234,14 +234,19 @@ fn process(ctx: &WorkerCtx, f: Frame) -> bool {
         });
     let latency_ms = start.elapsed().as_millis() as u64;
     m.latency(latency_ms);
-    ctx.results
+    let sent = ctx
+        .results
         .blocking_send(FixResult {
             t_capture_us: t_c,
             seq: f.seq,
             report,
             latency_ms,
         })
-        .is_ok()
+        .is_ok();
+    if !sent {
+        m.fixes_dropped_at_shutdown.fetch_add(1, Ordering::Relaxed);
+    }
+    sent
 }
 
 #[cfg(test)]

@@ -31,6 +31,7 @@ pub struct DaemonMetrics {
     pub fixes_too_old: AtomicU64,
     pub fixes_invalid: AtomicU64,
     pub fixes_unused_before_init: AtomicU64,
+    pub fixes_dropped_at_shutdown: AtomicU64,
     pub fix_latency_ms_last: AtomicU64,
     pub fix_latency_ms_max: AtomicU64,
     pub fix_latency_ms_sum: AtomicU64,
@@ -139,6 +140,8 @@ pub struct MetricsSnapshot {
     pub fixes_invalid: u64,
     /// Fixes not given to the filter while it waits for two fixes spaced for initialisation.
     pub fixes_unused_before_init: u64,
+    /// Fixes finished by a worker after the navigation task had stopped (shutdown).
+    pub fixes_dropped_at_shutdown: u64,
     /// Engine rejections by reason.
     pub engine_rejected: BTreeMap<String, u64>,
     /// Frame-to-fix latency of the last fix, ms.
@@ -210,6 +213,7 @@ impl DaemonMetrics {
             fixes_too_old: g(&self.fixes_too_old),
             fixes_invalid: g(&self.fixes_invalid),
             fixes_unused_before_init: g(&self.fixes_unused_before_init),
+            fixes_dropped_at_shutdown: g(&self.fixes_dropped_at_shutdown),
             engine_rejected: self
                 .engine_rejected
                 .lock()

@@ -432,7 +432,15 @@ impl NavTask {
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             tokio::select! {
-                _ = stop.changed() => return,
+                _ = stop.changed() => {
+                    // Results already queued, and any a worker finishes from now on (its send
+                    // fails on the closed channel), are counted, not silently lost.
+                    fixes.close();
+                    while fixes.try_recv().is_ok() {
+                        self.metrics.fixes_dropped_at_shutdown.fetch_add(1, Ordering::Relaxed);
+                    }
+                    return;
+                }
                 r = tel.recv() => match r {
                     Ok(t) => self.telemetry(&t),
                     Err(broadcast::error::RecvError::Lagged(n)) => {

@@ -208,6 +208,7 @@ pub fn render(d: &MetricsSnapshot, link: &LinkMetrics) -> String {
         ("too_old", d.fixes_too_old),
         ("invalid", d.fixes_invalid),
         ("unused_before_init", d.fixes_unused_before_init),
+        ("dropped_at_shutdown", d.fixes_dropped_at_shutdown),
     ] {
         w.sample("visnav_fixes_total", &[("outcome", outcome)], c(v));
     }

@@ -29,6 +29,8 @@ enum Command {
     Map(cli::map::MapArgs),
     /// Run the navigation service: autopilot link, navigation filter, injection.
     Run(cli::run::RunArgs),
+    /// Run a recorded .tlog through the navigation filter offline: NIS per measurement type, resets.
+    Replay(cli::replay::ReplayArgs),
     /// The service against a real ArduPilot/PX4 SITL, the camera rendered from the simulator's truth.
     SitlRun(cli::sitl_run::SitlRunArgs),
 }
@@ -44,6 +46,7 @@ fn main() -> std::process::ExitCode {
         Command::Map(a) => cli::map::run(a),
         Command::Run(a) => cli::run::run(a),
         Command::SitlRun(a) => cli::sitl_run::run(a),
+        Command::Replay(a) => cli::replay::run(a),
     };
     match result {
         Ok(code) => code,

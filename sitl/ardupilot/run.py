@@ -122,7 +122,15 @@ def start_visnav(args, workdir):
     if exe is None:
         sys.exit("no visnav binary: cargo build --release, or give --visnav")
     exe = os.path.abspath(exe)
-    cmd = [exe, "sitl-run", "--config", os.path.join(HERE, "visnav.toml"),
+    # The config, copied into the work folder with absolute map paths and a .tlog of all link
+    # traffic (`visnav replay` runs it through the filter offline).
+    text = open(os.path.join(HERE, "visnav.toml")).read()
+    text = text.replace('"../maps/', '"' + os.path.join(REPO, "sitl", "maps") + "/")
+    text = text.replace("[link]\n", '[link]\ntlog = "visnav.tlog"\n', 1)
+    config = os.path.join(workdir, "visnav.toml")
+    with open(config, "w") as f:
+        f.write(text)
+    cmd = [exe, "sitl-run", "--config", config,
            "--truth", f"udpin:127.0.0.1:{TRUTH_PORT}", "--kind", "ardupilot",
            "--ortho", os.path.join(REPO, "sitl", "maps", "naip_nd_2014.tif"),
            "--rate-hz", str(args.camera_hz)]

@@ -5,6 +5,7 @@ pub mod bench_fix;
 pub mod check_config;
 pub mod fix;
 pub mod map;
+pub mod replay;
 pub mod run;
 pub mod sim;
 pub mod sitl_run;

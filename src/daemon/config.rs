@@ -68,11 +68,27 @@ pub struct DaemonConfig {
     pub gps_min_sigma_h_m: f64,
     /// Smallest vertical GPS sigma used, m.
     pub gps_min_sigma_v_m: f64,
+    /// Smallest horizontal GPS velocity sigma used, m/s. Receivers report a few cm/s (ArduPilot
+    /// SITL: 0.04), but the message is stamped on arrival with the receiver's latency not
+    /// modelled: 0.1 s at 2 m/s^2 is 0.2 m/s.
+    pub gps_min_sigma_vel_m_s: f64,
     /// Sigma of the (unmeasured, zero) vertical GPS velocity, m/s. GPS_RAW_INT / GPS2_RAW carry
     /// no vertical velocity; the default 30 m/s makes the zero carry almost no weight, so a
     /// climbing copter (8 m/s in ArduPilot SITL) does not pull the filter into resets, as 5 m/s
     /// did (docs/real-sitl.md, run 1).
     pub gps_vz_sigma_m_s: f64,
+    /// GPS receiver latency, s: a GPS message's position and velocity are applied this long before
+    /// its time stamp (ArduPilot stamps GPS_RAW_INT / GPS2_RAW with the time the receiver's
+    /// message arrived; u-blox receivers lag about 0.1-0.2 s). 0.1 s fitted ArduCopter SITL's
+    /// GPS2 best in `visnav replay` (0.0 / 0.1 / 0.2 s: cruise position 1.1 / 0.5 / 1.3 m from
+    /// EKF3's).
+    pub gps_delay_s: f64,
+    /// Take the gyro rates from ATTITUDE's float `rollspeed/pitchspeed/yawspeed` (body rates,
+    /// the latest within 0.06 s) instead of SCALED_IMU / RAW_IMU, whose 16-bit mrad/s integers
+    /// (truncated toward zero by ArduPilot) lose every rotation slower than 1 mrad/s = 206 deg/h:
+    /// in ArduCopter SITL this tilted the filter 0.7 deg in 25 s of climb and reset it every
+    /// 5-10 s (docs/real-sitl.md, run 6). HIGHRES_IMU (float) is always used as it is.
+    pub gyro_from_attitude: bool,
     /// Use the barometric altitude.
     pub baro: bool,
     /// Barometric altitude sigma, m.
@@ -94,7 +110,10 @@ impl Default for DaemonConfig {
             gps_vel_sigma_m_s: 0.5,
             gps_min_sigma_h_m: 1.5,
             gps_min_sigma_v_m: 3.0,
+            gps_min_sigma_vel_m_s: 0.3,
             gps_vz_sigma_m_s: 30.0,
+            gps_delay_s: 0.1,
+            gyro_from_attitude: true,
             baro: true,
             baro_sigma_m: 2.0,
             imu_timeout_s: 0.5,
@@ -159,6 +178,12 @@ impl Validate for DaemonConfig {
         p.range("gps_vz_sigma_m_s", self.gps_vz_sigma_m_s, 0.01, 100.0);
         p.range("gps_min_sigma_h_m", self.gps_min_sigma_h_m, 0.0, 1000.0);
         p.range("gps_min_sigma_v_m", self.gps_min_sigma_v_m, 0.0, 1000.0);
+        p.range(
+            "gps_min_sigma_vel_m_s",
+            self.gps_min_sigma_vel_m_s,
+            0.0,
+            100.0,
+        );
         p.range("baro_sigma_m", self.baro_sigma_m, 0.01, 1000.0);
         p.range("imu_timeout_s", self.imu_timeout_s, 0.05, 10.0);
         p.range("log_interval_s", self.log_interval_s, 0.0, 3600.0);

@@ -6,7 +6,10 @@
 //!   mrad/s values, `time_usec` boot time). A lower-priority message is used only when no
 //!   higher-priority one arrived within [`IMU_SOURCE_HOLD_S`], so samples are never double
 //!   counted. Each sample is the rate at `t` held over the interval since the previous sample:
-//!   `dtheta = w dt`, `dv = f dt` (body FRD, `ImuSample::from_rates`).
+//!   `dtheta = w dt`, `dv = f dt` (body FRD, `ImuSample::from_rates`). The gyro of the 16-bit
+//!   messages (1 mrad/s steps, truncated by ArduPilot) is replaced by ATTITUDE's float body
+//!   rates when they are at most [`ATT_RATES_MAX_AGE_US`] from the sample
+//!   (`DaemonConfig::gyro_from_attitude`).
 //! * Attitude: ATTITUDE roll/pitch/yaw (ZYX, `R_ned_body = Rz(yaw) Ry(pitch) Rx(roll)`) at
 //!   `time_boot_ms`.
 //! * GPS: GPS_RAW_INT or GPS2_RAW with a 3D fix or better: position (AMSL `alt` converted to
@@ -45,6 +48,8 @@ use crate::nav::{
 /// A lower-priority IMU message is ignored while a higher-priority one arrived this recently, s.
 pub const IMU_SOURCE_HOLD_S: f64 = 0.5;
 const G0_M_S2: f64 = 9.806_65;
+/// ATTITUDE rates replace a 16-bit IMU message's gyro when within this of its time, µs.
+pub const ATT_RATES_MAX_AGE_US: u64 = 60_000;
 /// An IMU time this far behind the previous one is an autopilot reboot, µs.
 pub const REBOOT_BACKSTEP_US: u64 = 100_000;
 
@@ -67,6 +72,50 @@ enum ImuKind {
     Raw = 2,
 }
 
+/// Before initialisation the filter derives the velocity from two position fixes of the same
+/// kind taken `init.vision_init_min_dt_s..=vision_init_max_dt_s` apart, using the previous fix it
+/// was given: fixes arriving faster would never initialise it. So until it is initialised,
+/// position fixes of each kind are passed at most every 1.5 x `vision_init_min_dt_s` (capped at
+/// 0.9 x `vision_init_max_dt_s`). The filter pairs a fix only with the previous fix of the same
+/// kind: interleaved GPS and vision fixes would never initialise it, so while GPS arrives it
+/// alone initialises the filter.
+#[derive(Debug, Clone, Default)]
+pub struct InitSpacing {
+    last_us: [Option<u64>; 2],
+}
+
+impl InitSpacing {
+    /// Whether `m` goes to the filter (`gps_recent`: a GPS fix arrived within 2 s).
+    pub fn ok(
+        &mut self,
+        initialised: bool,
+        m: &Measurement,
+        gps_recent: bool,
+        ic: &crate::nav::config::InitConfig,
+    ) -> bool {
+        if initialised {
+            return true;
+        }
+        let (i, t) = match m {
+            Measurement::GpsPosition(f) => (0, f.t_capture_us),
+            Measurement::Vision(f) => (1, f.t_capture_us),
+            _ => return true,
+        };
+        if i == 1 && gps_recent {
+            return false;
+        }
+        let spacing_us =
+            ((ic.vision_init_min_dt_s * 1.5).min(ic.vision_init_max_dt_s * 0.9) * 1e6) as u64;
+        match self.last_us[i] {
+            Some(prev) if t >= prev && t - prev < spacing_us => false,
+            _ => {
+                self.last_us[i] = Some(t);
+                true
+            }
+        }
+    }
+}
+
 /// Telemetry-to-filter conversion state.
 #[derive(Debug, Clone)]
 pub struct Inputs {
@@ -81,6 +130,8 @@ pub struct Inputs {
     attitudes: VecDeque<(u64, Attitude)>,
     /// A GPS fix was used recently (arrival, companion ns).
     last_gps_ns: Option<i64>,
+    /// Latest ATTITUDE body rates (boot time µs, rad/s).
+    att_rates: Option<(u64, Vector3<f64>)>,
 }
 
 /// ISA altitude of a static pressure (inverse of the emulator's / ICAO troposphere model), m.
@@ -100,6 +151,7 @@ impl Inputs {
             baro_offset: None,
             attitudes: VecDeque::new(),
             last_gps_ns: None,
+            att_rates: None,
         }
     }
 
@@ -147,6 +199,19 @@ impl Inputs {
             .all(|t| t.is_none_or(|t| (t_ns - t) as f64 * 1e-9 > IMU_SOURCE_HOLD_S))
     }
 
+    /// The gyro of a 16-bit IMU message, or ATTITUDE's float body rates when they are enabled
+    /// and recent (see `DaemonConfig::gyro_from_attitude`).
+    fn fine_gyro(&self, t_us: u64, coarse: Vector3<f64>) -> Vector3<f64> {
+        match self.att_rates {
+            Some((t, w))
+                if self.cfg.gyro_from_attitude && t.abs_diff(t_us) <= ATT_RATES_MAX_AGE_US =>
+            {
+                w
+            }
+            _ => coarse,
+        }
+    }
+
     fn imu(&mut self, t_us: u64, gyro: Vector3<f64>, acc: Vector3<f64>, out: &mut Vec<NavInput>) {
         if !(gyro.iter().all(|v| v.is_finite()) && acc.iter().all(|v| v.is_finite())) {
             return;
@@ -180,16 +245,27 @@ impl Inputs {
                 self.imu(m.time_usec, g, a, &mut out);
             }
             MavMessage::SCALED_IMU(m) if self.imu_allowed(ImuKind::Scaled, t_ns) => {
-                let g = Vector3::new(mrad(m.xgyro), mrad(m.ygyro), mrad(m.zgyro));
+                let t_us = u64::from(m.time_boot_ms) * 1000;
+                let g = self.fine_gyro(
+                    t_us,
+                    Vector3::new(mrad(m.xgyro), mrad(m.ygyro), mrad(m.zgyro)),
+                );
                 let a = Vector3::new(mg(m.xacc), mg(m.yacc), mg(m.zacc));
-                self.imu(u64::from(m.time_boot_ms) * 1000, g, a, &mut out);
+                self.imu(t_us, g, a, &mut out);
             }
             MavMessage::RAW_IMU(m) if self.imu_allowed(ImuKind::Raw, t_ns) => {
-                let g = Vector3::new(mrad(m.xgyro), mrad(m.ygyro), mrad(m.zgyro));
+                let g = self.fine_gyro(
+                    m.time_usec,
+                    Vector3::new(mrad(m.xgyro), mrad(m.ygyro), mrad(m.zgyro)),
+                );
                 let a = Vector3::new(mg(m.xacc), mg(m.yacc), mg(m.zacc));
                 self.imu(m.time_usec, g, a, &mut out);
             }
             MavMessage::ATTITUDE(m) => {
+                let w = Vector3::new(m.rollspeed, m.pitchspeed, m.yawspeed).cast::<f64>();
+                if w.iter().all(|v| v.is_finite()) {
+                    self.att_rates = Some((u64::from(m.time_boot_ms) * 1000, w));
+                }
                 let (r, p, y) = (f64::from(m.roll), f64::from(m.pitch), f64::from(m.yaw));
                 if r.is_finite() && p.is_finite() && y.is_finite() {
                     let t_us = u64::from(m.time_boot_ms) * 1000;
@@ -258,11 +334,13 @@ impl Inputs {
             return;
         }
         // Capture time: a plausible boot time in the message, else the mapped arrival time.
-        let t_us = match tel.t_boot_us {
+        let t_stamp_us = match tel.t_boot_us {
             Some(arr) if g.time_usec.abs_diff(arr) < 2_000_000 => g.time_usec,
             Some(arr) => arr,
             None => return,
         };
+        // The receiver's latency (`gps_delay_s`): the fix describes an earlier time.
+        let t_us = t_stamp_us.saturating_sub((self.cfg.gps_delay_s * 1e6) as u64);
         let lat = f64::from(g.lat) * 1e-7;
         let lon = f64::from(g.lon) * 1e-7;
         let Ok(n) = geoid_undulation_m(lat, lon) else {
@@ -299,7 +377,8 @@ impl Inputs {
                 f64::from(g.vel_acc) * 1e-3
             } else {
                 self.cfg.gps_vel_sigma_m_s
-            };
+            }
+            .max(self.cfg.gps_min_sigma_vel_m_s);
             let sz = self.cfg.gps_vz_sigma_m_s;
             out.push(NavInput::Meas(Measurement::GpsVelocity(VelocityFix {
                 t_capture_us: t_us,
@@ -310,7 +389,7 @@ impl Inputs {
         self.last_gps_ns = Some(tel.t_companion_ns);
         // Barometric offset: running mean of GPS height minus ISA altitude (baro within 0.5 s).
         if let Some((tb, isa)) = self.baro_isa_m
-            && tb.abs_diff(t_us) < 500_000
+            && tb.abs_diff(t_stamp_us) < 500_000
         {
             let d = h - isa;
             self.baro_offset = Some(match self.baro_offset {
@@ -640,6 +719,19 @@ mod tests {
             panic!()
         };
         assert!((v.v_ned_m_s - Vector3::new(0.0, 10.0, 0.0)).norm() < 1e-9);
+        // No vel_acc: the configured sigma; a receiver's 4 cm/s is floored.
+        assert!((v.cov_ned_m2_s2[(0, 0)] - 0.5f64.powi(2)).abs() < 1e-12);
+        let mut tight = Inputs::new(DaemonConfig::default(), GpsSource::Gps1);
+        tight.baro_isa_m = None;
+        let mut g = gps(GpsFixType::GPS_FIX_TYPE_3D_FIX);
+        if let MavMessage::GPS_RAW_INT(d) = &mut g {
+            d.vel_acc = 40;
+        }
+        let out2 = tight.convert(&tel(2060, g));
+        let NavInput::Meas(Measurement::GpsVelocity(v2)) = &out2[1] else {
+            panic!("{out2:?}")
+        };
+        assert!((v2.cov_ned_m2_s2[(1, 1)] - 0.3f64.powi(2)).abs() < 1e-12);
         assert!(s.baro_calibrated());
         // The same pressure now gives the GPS height.
         let out = s.convert(&tel(2100, baro));
@@ -810,5 +902,50 @@ mod tests {
                 .unwrap_err()
                 .contains("covariance")
         );
+    }
+
+    #[test]
+    fn gyro_from_attitude_rates_replaces_the_16_bit_gyro() {
+        let att = |t_ms: u32, w: [f32; 3]| {
+            MavMessage::ATTITUDE(ATTITUDE_DATA {
+                time_boot_ms: t_ms,
+                rollspeed: w[0],
+                pitchspeed: w[1],
+                yawspeed: w[2],
+                ..ATTITUDE_DATA::DEFAULT
+            })
+        };
+        // The rate of the sample at t_ms (the previous one was at t_ms - 10).
+        let gyro = |s: &mut Inputs, t_ms: u32| {
+            let out = s.convert(&tel(i64::from(t_ms), scaled(t_ms)));
+            let NavInput::Imu(i) = &out[0] else {
+                panic!("{out:?}")
+            };
+            i.dtheta_rad_body_frd / 0.01
+        };
+        // A slow rotation (0.4 mrad/s: zero in SCALED_IMU) comes through from ATTITUDE.
+        let mut s = Inputs::new(DaemonConfig::default(), GpsSource::Gps1);
+        s.convert(&tel(1000, scaled(1000)));
+        s.convert(&tel(1005, att(1005, [4e-4, -2e-4, 1e-4])));
+        let w = gyro(&mut s, 1010);
+        assert!((w - Vector3::new(4e-4, -2e-4, 1e-4)).norm() < 1e-9, "{w}");
+        // Rates older than 60 ms: the message's own (10 mrad/s about x).
+        s.convert(&tel(1060, scaled(1060)));
+        let w = gyro(&mut s, 1070);
+        assert!((w - Vector3::new(0.01, 0.0, 0.0)).norm() < 1e-12, "{w}");
+        // Non-finite rates are not taken.
+        s.convert(&tel(1075, att(1075, [f32::NAN, 0.0, 0.0])));
+        let w = gyro(&mut s, 1080);
+        assert!((w - Vector3::new(0.01, 0.0, 0.0)).norm() < 1e-12, "{w}");
+        // Switched off: always the message's gyro.
+        let cfg = DaemonConfig {
+            gyro_from_attitude: false,
+            ..DaemonConfig::default()
+        };
+        let mut s = Inputs::new(cfg, GpsSource::Gps1);
+        s.convert(&tel(1000, scaled(1000)));
+        s.convert(&tel(1005, att(1005, [4e-4, -2e-4, 1e-4])));
+        let w = gyro(&mut s, 1010);
+        assert!((w - Vector3::new(0.01, 0.0, 0.0)).norm() < 1e-12, "{w}");
     }
 }

@@ -158,6 +158,27 @@ pub struct MetricsSnapshot {
     pub health: HealthState,
 }
 
+/// `reason` with each number (digits with an optional sign and decimals) replaced by `N`.
+pub fn reason_wording(reason: &str) -> String {
+    let mut out = String::with_capacity(reason.len());
+    let mut chars = reason.chars().peekable();
+    while let Some(c) = chars.next() {
+        let sign_digit = (c == '-' || c == '+') && chars.peek().is_some_and(|d| d.is_ascii_digit());
+        if c.is_ascii_digit() || sign_digit {
+            while chars
+                .peek()
+                .is_some_and(|d| d.is_ascii_digit() || *d == '.')
+            {
+                chars.next();
+            }
+            out.push('N');
+        } else {
+            out.push(c);
+        }
+    }
+    out
+}
+
 impl DaemonMetrics {
     /// Count one engine rejection.
     pub fn engine_reject(&self, reason: &str) {
@@ -165,9 +186,11 @@ impl DaemonMetrics {
             .engine_rejected
             .lock()
             .unwrap_or_else(|e| e.into_inner());
-        // Bound the map: reasons with numbers could otherwise grow it without limit.
-        let key = if m.len() < 64 || m.contains_key(reason) {
-            reason.to_string()
+        // Key by wording: every number becomes `N` ("only N features in the frame"), so the
+        // reasons group and the map stays small; still bounded, for unexpected wordings.
+        let worded = reason_wording(reason);
+        let key = if m.len() < 64 || m.contains_key(&worded) {
+            worded
         } else {
             "other".to_string()
         };
@@ -235,6 +258,28 @@ impl DaemonMetrics {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn reasons_group_by_wording() {
+        use super::reason_wording as w;
+        assert_eq!(
+            w("only 2 matches where chance gives 3 (need 17)"),
+            "only N matches where chance gives N (need N)"
+        );
+        assert_eq!(
+            w("prior altitude 580.1 m AMSL is not above the terrain"),
+            "prior altitude N m AMSL is not above the terrain"
+        );
+        assert_eq!(w("offset -12.5 m, x-ray"), "offset N m, x-ray");
+        assert_eq!(w("no map"), "no map");
+        let m = super::DaemonMetrics::default();
+        for i in 0..200 {
+            m.engine_reject(&format!("only {i} features in the frame"));
+        }
+        let s = m.snapshot();
+        assert_eq!(s.engine_rejected.len(), 1);
+        assert_eq!(s.engine_rejected["only N features in the frame"], 200);
+    }
+
     use super::*;
 
     #[test]

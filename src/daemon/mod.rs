@@ -27,6 +27,7 @@ pub mod frames;
 pub mod inputs;
 pub mod metrics;
 pub mod prometheus;
+pub mod replay;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -241,7 +242,7 @@ impl Daemon {
             imu_lost: false,
             gps2_asked: None,
             last_log: Instant::now(),
-            init_last: [None; 2],
+            init_spacing: inputs::InitSpacing::default(),
         };
         let nav_task = tokio::spawn(nav.run(tel, fix_rx, stop_rx));
         let stop_threads = Arc::new(AtomicBool::new(false));
@@ -418,7 +419,7 @@ struct NavTask {
     imu_lost: bool,
     gps2_asked: Option<Instant>,
     last_log: Instant,
-    init_last: [Option<u64>; 2],
+    init_spacing: inputs::InitSpacing,
 }
 
 impl NavTask {
@@ -527,40 +528,17 @@ impl NavTask {
         }
     }
 
-    /// Before initialisation the filter derives the velocity from two position fixes of the same
-    /// kind taken `init.vision_init_min_dt_s..=vision_init_max_dt_s` apart, using the previous
-    /// fix it was given: fixes arriving faster would never initialise it. So until it is
-    /// initialised, position fixes of each kind are passed at most every 1.5 x
-    /// `vision_init_min_dt_s` (capped at 0.9 x `vision_init_max_dt_s`).
+    /// See [`inputs::InitSpacing`].
     fn init_spacing_ok(&mut self, m: &Measurement) -> bool {
-        if self.filter.is_initialised() {
-            return true;
-        }
-        let (i, t) = match m {
-            Measurement::GpsPosition(f) => (0, f.t_capture_us),
-            Measurement::Vision(f) => (1, f.t_capture_us),
-            _ => return true,
-        };
-        // The filter pairs a fix only with the previous fix given to it and only of the same
-        // kind: interleaved GPS and vision fixes would never initialise it. While GPS arrives,
-        // it alone initialises the filter.
-        if i == 1
-            && self
-                .inputs
-                .gps_recent(self.link.companion_ns(Instant::now()), 2.0)
-        {
-            return false;
-        }
-        let ic = &self.nav_cfg.init;
-        let spacing_us =
-            ((ic.vision_init_min_dt_s * 1.5).min(ic.vision_init_max_dt_s * 0.9) * 1e6) as u64;
-        match self.init_last[i] {
-            Some(prev) if t >= prev && t - prev < spacing_us => false,
-            _ => {
-                self.init_last[i] = Some(t);
-                true
-            }
-        }
+        let gps_recent = self
+            .inputs
+            .gps_recent(self.link.companion_ns(Instant::now()), 2.0);
+        self.init_spacing.ok(
+            self.filter.is_initialised(),
+            m,
+            gps_recent,
+            &self.nav_cfg.init,
+        )
     }
 
     fn health(&mut self, h: NavHealth, reason: &str) -> LinkHealth {

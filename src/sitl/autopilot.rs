@@ -71,6 +71,11 @@ pub trait TruthSource: Send + Sync + 'static {
         let s = self.state(t_s);
         (s.gyro_body_rad_s, s.accel_body_m_s2)
     }
+    /// The body rates ATTITUDE reports at `t_s` (`rollspeed`, `pitchspeed`, `yawspeed`, float
+    /// rad/s; ArduPilot sends its AHRS's gyro). Default: the truth.
+    fn attitude_rates(&self, t_s: f64) -> [f64; 3] {
+        self.state(t_s).gyro_body_rad_s
+    }
     /// What the GPS receiver reports at `t_s` (GPS_RAW_INT): `None` = no fix (an outage).
     /// Default: the truth without error, always available.
     fn gps(&self, t_s: f64) -> Option<TruthState> {
@@ -430,6 +435,10 @@ fn sat_i16(v: f64) -> i16 {
     v.round().clamp(f64::from(i16::MIN), f64::from(i16::MAX)) as i16
 }
 
+fn trunc_i16(v: f64) -> i16 {
+    v.trunc().clamp(f64::from(i16::MIN), f64::from(i16::MAX)) as i16
+}
+
 fn isa_pressure_hpa(alt_m: f64) -> f64 {
     1013.25 * (1.0 - 2.255_77e-5 * alt_m).powf(5.255_88)
 }
@@ -441,9 +450,10 @@ fn telemetry(inner: &Inner, id: u32, t_us: u64) -> Option<MavMessage> {
     let boot_ms = (t_us / 1000) as u32;
     let imu = || {
         let (gyro, accel) = inner.truth.imu(t_s);
+        // Truncated toward zero, as ArduPilot's C float-to-int16 conversion does.
         (
-            gyro.map(|g| sat_i16(g * 1000.0)),
-            accel.map(|a| sat_i16(a / G0_M_S2 * 1000.0)),
+            gyro.map(|g| trunc_i16(g * 1000.0)),
+            accel.map(|a| trunc_i16(a / G0_M_S2 * 1000.0)),
         )
     };
     Some(match id {
@@ -526,15 +536,18 @@ fn telemetry(inner: &Inner, id: u32, t_us: u64) -> Option<MavMessage> {
             temperature: 2000,
             ..SCALED_PRESSURE_DATA::DEFAULT
         }),
-        30 => MavMessage::ATTITUDE(ATTITUDE_DATA {
-            time_boot_ms: boot_ms,
-            roll: s.rpy_rad[0] as f32,
-            pitch: s.rpy_rad[1] as f32,
-            yaw: s.rpy_rad[2] as f32,
-            rollspeed: s.gyro_body_rad_s[0] as f32,
-            pitchspeed: s.gyro_body_rad_s[1] as f32,
-            yawspeed: s.gyro_body_rad_s[2] as f32,
-        }),
+        30 => {
+            let rates = inner.truth.attitude_rates(t_s);
+            MavMessage::ATTITUDE(ATTITUDE_DATA {
+                time_boot_ms: boot_ms,
+                roll: s.rpy_rad[0] as f32,
+                pitch: s.rpy_rad[1] as f32,
+                yaw: s.rpy_rad[2] as f32,
+                rollspeed: rates[0] as f32,
+                pitchspeed: rates[1] as f32,
+                yawspeed: rates[2] as f32,
+            })
+        }
         33 => MavMessage::GLOBAL_POSITION_INT(GLOBAL_POSITION_INT_DATA {
             time_boot_ms: boot_ms,
             lat: (s.lat_deg * 1e7).round() as i32,

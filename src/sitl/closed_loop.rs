@@ -207,6 +207,8 @@ impl TruthTable {
 
 struct ImuState {
     last_t_s: Option<f64>,
+    /// The last gyro sample (rad/s), what ATTITUDE reports as the body rates.
+    last_gyro: Option<[f64; 3]>,
     errors: ImuErrors,
     rng: Rng,
 }
@@ -251,6 +253,7 @@ impl SimSensors {
             ahrs_err_rad,
             imu: Mutex::new(ImuState {
                 last_t_s: None,
+                last_gyro: None,
                 errors,
                 rng,
             }),
@@ -311,7 +314,14 @@ impl TruthSource for SensorsHandle {
         let (dth, dv) = errors.corrupt(rng, &w, &f, dt_s);
         let g = dth / dt_s;
         let a = dv / dt_s;
+        st.last_gyro = Some([g.x, g.y, g.z]);
         ([g.x, g.y, g.z], [a.x, a.y, a.z])
+    }
+
+    fn attitude_rates(&self, t_s: f64) -> [f64; 3] {
+        let st = self.0.imu.lock().unwrap_or_else(|e| e.into_inner());
+        st.last_gyro
+            .unwrap_or_else(|| self.0.table.at(t_s).gyro_body_rad_s)
     }
 
     fn gps(&self, t_s: f64) -> Option<TruthState> {

@@ -142,7 +142,8 @@ fn the_16_bit_gyro_alone_tilts_the_filter_off() {
 fn autopilot_attitude_aiding_pulls_the_heading_onto_the_autopilots() {
     // The filter initialises (9.5 s) before ArduPilot's compass yaw alignment (16 s): its
     // heading starts several degrees off and a hovering or climbing copter does not make it
-    // observable. With the autopilot attitude as a measurement it converges.
+    // observable. With the autopilot's heading as a measurement it converges (default IMU
+    // model here; the shipped ArduPilot config's MEMS model converges faster, test above).
     let base = run(DaemonConfig::default(), NavConfig::default());
     let aided = run(
         DaemonConfig::default(),
@@ -159,8 +160,9 @@ fn autopilot_attitude_aiding_pulls_the_heading_onto_the_autopilots() {
         "yaw difference after 100 s: {:.2} deg unaided, {:.2} deg aided",
         b[2], a[2]
     );
-    assert!(a[2] < 1.0, "{a:?}");
-    assert!(a[2] < b[2], "{a:?} vs {b:?}");
+    // Heading only, each sample's weight cut by the AHRS error's correlation time: it pulls
+    // the heading over, without collapsing the filter's heading sigma at 50 Hz.
+    assert!(a[2] < 0.5 * b[2], "{a:?} vs {b:?}");
     assert_eq!(aided.resets.len(), 1, "{:?}", aided.resets);
 }
 

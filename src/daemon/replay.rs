@@ -136,13 +136,13 @@ pub struct ReplayReport {
     pub states: Vec<StateRow>,
 }
 
-fn kind_of(m: &Measurement) -> (&'static str, u32) {
+fn kind_of(m: &Measurement, att_tilt: bool) -> (&'static str, u32) {
     match m {
         Measurement::Vision(_) => ("vision", 3),
         Measurement::GpsPosition(_) => ("gps_position", 3),
         Measurement::GpsVelocity(_) => ("gps_velocity", 3),
         Measurement::Altitude(_) => ("altitude", 1),
-        Measurement::Attitude(_) => ("attitude", 3),
+        Measurement::Attitude(_) => ("attitude", if att_tilt { 3 } else { 1 }),
     }
 }
 
@@ -338,7 +338,7 @@ pub fn replay(records: &[(u64, Vec<u8>)], opts: &ReplayOptions) -> ReplayReport 
                     if !spacing.ok(filter.is_initialised(), &m, gps_recent, &opts.nav.init) {
                         continue;
                     }
-                    let (kind, dof) = kind_of(&m);
+                    let (kind, dof) = kind_of(&m, opts.nav.autopilot_attitude_tilt);
                     let (innov, sigma, filter_sigma) = innovation(&filter, &m);
                     let t_filter = filter.t_us();
                     let t_c = m.t_capture_us();

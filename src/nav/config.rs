@@ -342,8 +342,20 @@ pub struct NavConfig {
     /// Length of the state/covariance history used to apply late measurements at their capture
     /// time, s. Older measurements are rejected as `too_old`.
     pub history_s: f64,
-    /// Use the autopilot attitude as a measurement (it is always used for initialisation).
+    /// Use the autopilot attitude as a measurement (it is always used for initialisation). By
+    /// default only its heading is fused (see `autopilot_attitude_tilt`).
     pub use_autopilot_attitude: bool,
+    /// Also fuse the autopilot's roll and pitch. Off by default: while visnav feeds the
+    /// autopilot, the autopilot's tilt follows visnav's own errors (its EKF fits its attitude to
+    /// the injected velocity), so fusing it closes a loop: in ArduCopter SITL with the GPS off
+    /// both tilts drifted 1.4 deg together and the filter reported a 6 m sigma at 85 m of error
+    /// (docs/real-sitl.md, run 8). The heading comes from the compass and stays independent.
+    pub autopilot_attitude_tilt: bool,
+    /// Correlation time of the autopilot attitude's errors, s (0 = independent samples). An
+    /// AHRS's error persists for seconds to minutes; ATTITUDE arrives at 10-50 Hz. Each
+    /// sample's covariance is multiplied by `max(1, tau / dt)`, `dt` the time since the last
+    /// fused attitude, like `vision_error_corr_time_s`.
+    pub attitude_error_corr_time_s: f64,
     /// Autopilot attitude measurement noise, roll/pitch, deg (1 sigma).
     pub attitude_sigma_tilt_deg: f64,
     /// Autopilot attitude measurement noise, yaw, deg (1 sigma).
@@ -382,6 +394,8 @@ impl Default for NavConfig {
             output_rate_hz: 50.0,
             history_s: 1.0,
             use_autopilot_attitude: false,
+            autopilot_attitude_tilt: false,
+            attitude_error_corr_time_s: 1.0,
             attitude_sigma_tilt_deg: 1.0,
             attitude_sigma_yaw_deg: 3.0,
             max_imu_gap_s: 0.1,

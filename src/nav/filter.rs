@@ -205,6 +205,8 @@ struct Core {
     p: Mat,
     /// Capture time of the last applied vision fix, µs (see `vision_error_corr_time_s`).
     last_vision_us: Option<u64>,
+    /// Capture time of the last applied autopilot attitude, µs.
+    last_att_us: Option<u64>,
 }
 
 #[derive(Debug, Clone)]
@@ -236,7 +238,10 @@ struct Params {
     gate_gps3: f64,
     gate_alt: f64,
     gate_att: f64,
+    gate_att1: f64,
     r_att: Matrix3<f64>,
+    att_tilt: bool,
+    att_corr_s: f64,
     use_att: bool,
     /// Camera and GPS antenna lever arms, body FRD, m.
     l_cam: Vector3<f64>,
@@ -315,6 +320,9 @@ impl NavFilter {
             gate_att: chi2_quantile(3.0, cfg.gates.attitude_prob),
             r_att: Matrix3::from_diagonal(&Vector3::new(tilt * tilt, tilt * tilt, yaw * yaw)),
             use_att: cfg.use_autopilot_attitude,
+            att_tilt: cfg.autopilot_attitude_tilt,
+            att_corr_s: cfg.attitude_error_corr_time_s,
+            gate_att1: chi2_quantile(1.0, cfg.gates.attitude_prob),
             l_cam: Vector3::from(cfg.camera_lever_arm()),
             l_gps: Vector3::from(cfg.gps_lever_arm_body_frd_m),
         };
@@ -875,6 +883,7 @@ impl NavFilter {
             w_b: Vector3::zeros(),
             p,
             last_vision_us: None,
+            last_att_us: None,
         };
         self.history.clear();
         self.history.push_back(Epoch {
@@ -1146,11 +1155,39 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
             )
         }
         Measurement::Attitude(f) => {
+            let t_c = f.t_capture_us;
+            // Correlated AHRS errors (NavConfig::attitude_error_corr_time_s).
+            let k = if par.att_corr_s > 0.0 {
+                let dt_a = core
+                    .last_att_us
+                    .map_or(f64::INFINITY, |l| dt_s(l, t_c).abs());
+                (par.att_corr_s / dt_a.max(1e-3)).clamp(1.0, 1e5)
+            } else {
+                1.0
+            };
+            // Attitude error (estimate relative to the measurement), NED small-angle vector.
             let dz = (st.q_nb * f.q_nb.inverse()).scaled_axis();
-            let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
-            h.fixed_view_mut::<3, 3>(0, IA)
-                .copy_from(&Matrix3::identity());
-            core.update(par, dz, h, par.r_att, par.gate_att)
+            let out = if par.att_tilt {
+                let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
+                h.fixed_view_mut::<3, 3>(0, IA)
+                    .copy_from(&Matrix3::identity());
+                core.update(par, dz, h, par.r_att * k, par.gate_att)
+            } else {
+                // Heading only: the rotation about the down axis.
+                let mut h = SMatrix::<f64, 1, N_STATES>::zeros();
+                h[(0, IA + 2)] = 1.0;
+                core.update(
+                    par,
+                    SVector::<f64, 1>::new(dz.z),
+                    h,
+                    SMatrix::<f64, 1, 1>::new(par.r_att[(2, 2)] * k),
+                    par.gate_att1,
+                )
+            };
+            if matches!(out, Outcome::Accepted { .. }) {
+                core.last_att_us = Some(t_c);
+            }
+            out
         }
     }
 }

@@ -286,6 +286,7 @@ impl Config {
         cfg.map.file = cfg.map.file.as_deref().map(|f| resolve(base, f));
         cfg.map.dem = cfg.map.dem.as_deref().map(|f| resolve(base, f));
         cfg.link.resolve_paths(base);
+        cfg.daemon.fix_log = cfg.daemon.fix_log.as_deref().map(|f| resolve(base, f));
         if let Some(f) = &mut cfg.frames {
             f.resolve_paths(base);
         }

@@ -362,6 +362,8 @@ async fn frame_plumbing_vision_only_init_with_truth_plus_noise_fixer() {
     let mut fc = FramesConfig::new(SourceKind::Y4m, y4m(dir.path(), 400, 10));
     fc.max_age_s = 0.5;
     s.frames = Some(fc);
+    let fix_log = dir.path().join("fixes.jsonl");
+    s.daemon.fix_log = Some(fix_log.clone());
     let fixer = TruthPlusNoise::new(1.5, Duration::from_millis(30));
     let d = Daemon::start(s, Some(fixer.clone() as Arc<dyn FrameFixer>))
         .await
@@ -400,7 +402,29 @@ async fn frame_plumbing_vision_only_init_with_truth_plus_noise_fixer() {
     assert!(perr_max < 10.0, "prior error {perr_max} m");
     assert!(m.fix_latency_ms_max >= 30, "{m:?}");
     assert_eq!(m.queue_depth_max, 1);
-    d.shutdown().await;
+    let m = d.shutdown().await;
+    // The fix log has one record per result the navigation task received, with its outcome.
+    let log =
+        visnav::daemon::fixlog::read_fix_log(&std::fs::read_to_string(&fix_log).unwrap()).unwrap();
+    let count = |o: &str| log.iter().filter(|r| r.outcome == o).count() as u64;
+    eprintln!("fix log: {} records", log.len());
+    assert_eq!(count("unused_before_init"), m.fixes_unused_before_init);
+    assert!(count("accepted") + count("initialised") + count("held") >= 10);
+    assert_eq!(
+        count("accepted") + count("initialised") + count("held") + count("reset"),
+        m.fixes_accepted
+    );
+    for r in &log {
+        assert!(
+            r.accepted && r.lat_deg.is_some() && r.cov_ned_m2.is_some(),
+            "{r:?}"
+        );
+        assert!(r.arrival_unix_us > 1_700_000_000_000_000);
+    }
+    assert!(
+        log.windows(2)
+            .all(|w| w[0].arrival_unix_us <= w[1].arrival_unix_us)
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

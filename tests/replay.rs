@@ -22,6 +22,7 @@ fn run(daemon: DaemonConfig, nav: NavConfig) -> ReplayReport {
     let records = visnav::link::tlog::read_tlog(&bytes);
     replay(
         &records,
+        &[],
         &ReplayOptions {
             daemon,
             // GPS_INPUT feeds instance 0: the SITL's receiver is GPS2_RAW.

@@ -122,11 +122,14 @@ def start_visnav(args, workdir):
     if exe is None:
         sys.exit("no visnav binary: cargo build --release, or give --visnav")
     exe = os.path.abspath(exe)
-    # The config, copied into the work folder with absolute map paths and a .tlog of all link
-    # traffic (`visnav replay` runs it through the filter offline).
+    # The config, copied into the work folder with absolute map paths, a .tlog of all link
+    # traffic and the vision fix log.
     text = open(os.path.join(HERE, "visnav.toml")).read()
     text = text.replace('"../maps/', '"' + os.path.join(REPO, "sitl", "maps") + "/")
     text = text.replace("[link]\n", '[link]\ntlog = "visnav.tlog"\n', 1)
+    text += '\n[daemon]\nfix_log = "fixes.jsonl"\n'
+    # (`visnav replay --config visnav.toml --tlog visnav.tlog --fixes fixes.jsonl` in the work
+    # folder replays the flight through the filter offline.)
     config = os.path.join(workdir, "visnav.toml")
     with open(config, "w") as f:
         f.write(text)

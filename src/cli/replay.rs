@@ -1,6 +1,7 @@
 //! `visnav replay --config F --tlog LOG [--out DIR] [--json]`: run a recorded .tlog through the
 //! daemon's telemetry conversion and navigation filter offline (see `visnav::daemon::replay`) and
-//! print the per-measurement-type NIS statistics and the filter's resets; `--out` writes
+//! print the per-measurement-type NIS statistics and the filter's resets; `--fixes` adds the
+//! vision fixes of the flight's fix log (`[daemon] fix_log`); `--out` writes
 //! `measurements.csv` (every aiding measurement with outcome, NIS and innovation) and
 //! `states.csv` (the filter state at 10 Hz).
 
@@ -20,6 +21,10 @@ pub struct ReplayArgs {
     /// The .tlog file (the daemon writes one with `[link] tlog = "F"`).
     #[arg(long)]
     pub tlog: PathBuf,
+    /// The vision fix log of the same flight (`[daemon] fix_log`): its fixes are given to the
+    /// filter when they arrived.
+    #[arg(long)]
+    pub fixes: Option<PathBuf>,
     /// Folder for measurements.csv and states.csv.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -46,7 +51,16 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<ExitCode> {
         autopilot_system_id: cfg.link.autopilot_system_id,
         state_interval_s: 0.1,
     };
-    let rep = replay(&records, &opts);
+    let fixes = match &args.fixes {
+        Some(f) => {
+            let text =
+                std::fs::read_to_string(f).with_context(|| format!("reading {}", f.display()))?;
+            visnav::daemon::fixlog::read_fix_log(&text)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", f.display()))?
+        }
+        None => Vec::new(),
+    };
+    let rep = replay(&records, &fixes, &opts);
     if rep.from_autopilot == 0 {
         anyhow::bail!(
             "{}: no packet from an autopilot (no autopilot HEARTBEAT{})",
@@ -91,6 +105,9 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<ExitCode> {
             "{:<14} {:>7} {:>8} {:>8} {:>4} {:>9.2} {:>9.2} {:>9.2}",
             k, s.n, s.accepted, s.rejected, s.dof, s.nis_mean, s.nis_p50, s.nis_p95
         );
+    }
+    if args.fixes.is_some() {
+        println!("vision fix results replayed: {}", rep.vision_results);
     }
     println!("resets: {}", rep.resets.len());
     for (t, r) in rep.resets.iter().take(20) {

@@ -99,6 +99,10 @@ pub struct DaemonConfig {
     pub log_interval_s: f64,
     /// Prometheus endpoint address (`IP:PORT`); `None` = off.
     pub metrics_listen: Option<String>,
+    /// Vision fix log (JSON lines, one per fix result, `visnav replay --fixes`), relative to the
+    /// config file's folder unless absolute; `{t}` becomes the start time in Unix seconds.
+    /// `None` = off.
+    pub fix_log: Option<std::path::PathBuf>,
 }
 
 impl Default for DaemonConfig {
@@ -119,6 +123,7 @@ impl Default for DaemonConfig {
             imu_timeout_s: 0.5,
             log_interval_s: 10.0,
             metrics_listen: None,
+            fix_log: None,
         }
     }
 }

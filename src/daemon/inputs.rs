@@ -712,7 +712,8 @@ mod tests {
             panic!("{out:?}")
         };
         let n = geoid_undulation_m(47.0, -97.0).unwrap();
-        assert_eq!(p.t_capture_us, 2_050_000);
+        // The time stamp minus the receiver delay (gps_delay_s = 0.1).
+        assert_eq!(p.t_capture_us, 2_050_000 - 100_000);
         assert!((p.h_m - (1000.0 + n)).abs() < 1e-9);
         assert!((p.cov_ned_m2[(0, 0)] - 2.5f64.powi(2)).abs() < 1e-12);
         let NavInput::Meas(Measurement::GpsVelocity(v)) = &out[1] else {
@@ -757,7 +758,7 @@ mod tests {
         });
         let out = s.convert(&tel(3000, m));
         assert_eq!(out.len(), 1, "no velocity when unknown");
-        assert!(matches!(&out[0], NavInput::Meas(m) if m.t_capture_us() == 3_000_000));
+        assert!(matches!(&out[0], NavInput::Meas(m) if m.t_capture_us() == 3_000_000 - 100_000));
         // A receiver's own (optimistic) accuracy is floored; a larger one is kept.
         for (h_acc, v_acc, sh, sv) in [(300, 500, 1.5, 3.0), (4000, 7000, 4.0, 7.0)] {
             let m = MavMessage::GPS_RAW_INT(GPS_RAW_INT_DATA {

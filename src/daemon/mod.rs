@@ -23,6 +23,7 @@
 //! down (flushing the .tlog).
 
 pub mod config;
+pub mod fixlog;
 pub mod frames;
 pub mod inputs;
 pub mod metrics;
@@ -71,6 +72,12 @@ pub enum DaemonError {
     NoFixer,
     #[error("cannot start a thread: {0}")]
     Thread(#[from] std::io::Error),
+    #[error("daemon.fix_log: {path}: {source}")]
+    FixLog {
+        path: std::path::PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
     #[error("daemon.metrics_listen: {addr}: {source}")]
     Metrics {
         addr: String,
@@ -202,6 +209,19 @@ impl Daemon {
         };
         let gps = setup.daemon.gps_source(&setup.output);
         info!(?gps, "GPS aiding source");
+        let fix_log = match &setup.daemon.fix_log {
+            Some(p) => {
+                let p =
+                    crate::link::tlog::expand_name(p, crate::link::tlog::unix_now_us() / 1_000_000);
+                let log = fixlog::FixLog::create(&p).map_err(|source| DaemonError::FixLog {
+                    path: p.clone(),
+                    source,
+                })?;
+                info!(path = %p.display(), "vision fix log");
+                Some(log)
+            }
+            None => None,
+        };
         let endpoint = match &setup.daemon.metrics_listen {
             Some(a) => Some(metrics_endpoint(a).await?),
             None => None,
@@ -243,6 +263,7 @@ impl Daemon {
             gps2_asked: None,
             last_log: Instant::now(),
             init_spacing: inputs::InitSpacing::default(),
+            fix_log,
         };
         let nav_task = tokio::spawn(nav.run(tel, fix_rx, stop_rx));
         let stop_threads = Arc::new(AtomicBool::new(false));
@@ -420,6 +441,7 @@ struct NavTask {
     gps2_asked: Option<Instant>,
     last_log: Instant,
     init_spacing: inputs::InitSpacing,
+    fix_log: Option<fixlog::FixLog>,
 }
 
 impl NavTask {
@@ -508,22 +530,40 @@ impl NavTask {
 
     fn fix(&mut self, f: FixResult) {
         let m = self.metrics.clone();
-        match inputs::vision_measurement(&f.report, f.t_capture_us) {
-            Err(reason) => m.engine_reject(&reason),
+        let outcome = match inputs::vision_measurement(&f.report, f.t_capture_us) {
+            Err(reason) => {
+                m.engine_reject(&reason);
+                "engine_rejected"
+            }
             Ok(meas) if !self.init_spacing_ok(&meas) => {
                 m.fixes_unused_before_init.fetch_add(1, Ordering::Relaxed);
+                "unused_before_init"
             }
             Ok(meas) => {
-                let c = match self.filter.measure(meas) {
-                    Outcome::Accepted { .. }
-                    | Outcome::Initialised
-                    | Outcome::Held
-                    | Outcome::Reset => &m.fixes_accepted,
-                    Outcome::Rejected { .. } => &m.fixes_filter_rejected,
-                    Outcome::TooOld => &m.fixes_too_old,
-                    Outcome::Invalid(_) | Outcome::Ignored => &m.fixes_invalid,
+                let (c, name) = match self.filter.measure(meas) {
+                    Outcome::Accepted { .. } => (&m.fixes_accepted, "accepted"),
+                    Outcome::Initialised => (&m.fixes_accepted, "initialised"),
+                    Outcome::Held => (&m.fixes_accepted, "held"),
+                    Outcome::Reset => (&m.fixes_accepted, "reset"),
+                    Outcome::Rejected { .. } => (&m.fixes_filter_rejected, "rejected"),
+                    Outcome::TooOld => (&m.fixes_too_old, "too_old"),
+                    Outcome::Invalid(_) | Outcome::Ignored => (&m.fixes_invalid, "invalid"),
                 };
                 c.fetch_add(1, Ordering::Relaxed);
+                name
+            }
+        };
+        if let Some(log) = self.fix_log.as_mut() {
+            let r = fixlog::FixLogRecord::new(
+                crate::link::tlog::unix_now_us(),
+                f.seq,
+                f.latency_ms,
+                &f.report,
+                outcome,
+            );
+            if let Err(e) = log.write(&r) {
+                warn!("fix log {}: {e}; logging stopped", log.path().display());
+                self.fix_log = None;
             }
         }
     }

@@ -6,7 +6,9 @@
 //! time.
 //!
 //! What differs from the live daemon: vision fixes are not in a tlog (they are computed inside
-//! the daemon), so only the autopilot's own data (IMU, attitude, GPS, barometer) are replayed;
+//! the daemon); they come from the daemon's fix log (`[daemon] fix_log`), each given to the
+//! filter when it arrived in the recorded flight (by the companion's Unix time, the tlog's
+//! clock), once the filter is initialised;
 //! the autopilot boot time at each packet's arrival (used for GPS messages stamped in Unix time)
 //! is the recorded arrival time minus the smallest arrival-minus-boot-time offset seen in IMU
 //! and ATTITUDE messages so far (the link's TIMESYNC mapping is not recorded).
@@ -21,7 +23,8 @@ use mavlink::dialects::ardupilotmega::{MavAutopilot, MavMessage, MavType};
 use serde::Serialize;
 
 use crate::daemon::config::{DaemonConfig, GpsSource};
-use crate::daemon::inputs::{InitSpacing, Inputs, NavInput};
+use crate::daemon::fixlog::FixLogRecord;
+use crate::daemon::inputs::{InitSpacing, Inputs, NavInput, vision_measurement};
 use crate::link::Telemetry;
 use crate::nav::{Measurement, NavConfig, NavFilter, Outcome};
 
@@ -128,6 +131,8 @@ pub struct ReplayReport {
     pub resets: Vec<(f64, String)>,
     /// Autopilot reboots seen.
     pub reboots: u64,
+    /// Vision fix results read from the fix log and reached in the replay.
+    pub vision_results: u64,
     /// Every aiding measurement.
     #[serde(skip)]
     pub meas: Vec<MeasRow>,
@@ -220,6 +225,42 @@ fn innovation(filter: &NavFilter, m: &Measurement) -> ([f64; 3], [f64; 3], [f64;
     }
 }
 
+fn apply_meas(
+    filter: &mut NavFilter,
+    m: Measurement,
+    rep: &mut ReplayReport,
+    nis: &mut BTreeMap<&'static str, Vec<f64>>,
+    opts: &ReplayOptions,
+) {
+    let (kind, dof) = kind_of(&m, opts.nav.autopilot_attitude_tilt);
+    let (innov, sigma, filter_sigma) = innovation(filter, &m);
+    let t_filter = filter.t_us();
+    let t_c = m.t_capture_us();
+    let out = filter.measure(m);
+    let (outcome, v) = outcome_name(&out);
+    let st = rep.kinds.entry(kind.to_string()).or_default();
+    st.n += 1;
+    st.dof = dof;
+    match out {
+        Outcome::Accepted { .. } => st.accepted += 1,
+        Outcome::Rejected { .. } | Outcome::Reset => st.rejected += 1,
+        _ => {}
+    }
+    if v.is_finite() {
+        nis.entry(kind).or_default().push(v);
+    }
+    rep.meas.push(MeasRow {
+        t_s: t_filter.map_or(t_c as f64 * 1e-6, |t| t as f64 * 1e-6),
+        lag_s: t_filter.map_or(0.0, |t| (t_c as f64 - t as f64) * 1e-6),
+        kind,
+        outcome,
+        nis: v,
+        innov,
+        sigma,
+        filter_sigma,
+    });
+}
+
 fn percentile(sorted: &[f64], q: f64) -> f64 {
     if sorted.is_empty() {
         return f64::NAN;
@@ -228,8 +269,13 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
     sorted[i.min(sorted.len() - 1)]
 }
 
-/// Replay `records` (from [`crate::link::tlog::read_tlog`]).
-pub fn replay(records: &[(u64, Vec<u8>)], opts: &ReplayOptions) -> ReplayReport {
+/// Replay `records` (from [`crate::link::tlog::read_tlog`]), with the vision fixes of a fix log
+/// (`[daemon] fix_log`) given to the filter when they arrived in the recorded flight.
+pub fn replay(
+    records: &[(u64, Vec<u8>)],
+    fixes: &[FixLogRecord],
+    opts: &ReplayOptions,
+) -> ReplayReport {
     let mut rep = ReplayReport {
         autopilot_system_id: opts.autopilot_system_id,
         t_span_s: [f64::NAN; 2],
@@ -245,8 +291,20 @@ pub fn replay(records: &[(u64, Vec<u8>)], opts: &ReplayOptions) -> ReplayReport 
     let mut next_state_t_s = f64::NEG_INFINITY;
     let mut nis: BTreeMap<&'static str, Vec<f64>> = BTreeMap::new();
     let mut resets_seen = (0u64, 0u64, 0u64);
+    let mut fixes = fixes.iter().peekable();
     for (unix_us, packet) in records {
         rep.packets += 1;
+        // Vision fixes that arrived before this packet.
+        while let Some(fx) = fixes.next_if(|f| f.arrival_unix_us <= *unix_us) {
+            rep.vision_results += 1;
+            let Ok(m) = vision_measurement(&fx.report(), fx.t_capture_us) else {
+                continue;
+            };
+            if !filter.is_initialised() {
+                continue;
+            }
+            apply_meas(&mut filter, m, &mut rep, &mut nis, opts);
+        }
         let mut reader = mavlink::MavlinkReader::new(&packet[..]);
         let Ok((header, msg)) = reader.read_any_message::<MavMessage>() else {
             rep.undecodable += 1;
@@ -338,33 +396,7 @@ pub fn replay(records: &[(u64, Vec<u8>)], opts: &ReplayOptions) -> ReplayReport 
                     if !spacing.ok(filter.is_initialised(), &m, gps_recent, &opts.nav.init) {
                         continue;
                     }
-                    let (kind, dof) = kind_of(&m, opts.nav.autopilot_attitude_tilt);
-                    let (innov, sigma, filter_sigma) = innovation(&filter, &m);
-                    let t_filter = filter.t_us();
-                    let t_c = m.t_capture_us();
-                    let out = filter.measure(m);
-                    let (outcome, v) = outcome_name(&out);
-                    let st = rep.kinds.entry(kind.to_string()).or_default();
-                    st.n += 1;
-                    st.dof = dof;
-                    match out {
-                        Outcome::Accepted { .. } => st.accepted += 1,
-                        Outcome::Rejected { .. } | Outcome::Reset => st.rejected += 1,
-                        _ => {}
-                    }
-                    if v.is_finite() {
-                        nis.entry(kind).or_default().push(v);
-                    }
-                    rep.meas.push(MeasRow {
-                        t_s: t_filter.map_or(t_c as f64 * 1e-6, |t| t as f64 * 1e-6),
-                        lag_s: t_filter.map_or(0.0, |t| (t_c as f64 - t as f64) * 1e-6),
-                        kind,
-                        outcome,
-                        nis: v,
-                        innov,
-                        sigma,
-                        filter_sigma,
-                    });
+                    apply_meas(&mut filter, m, &mut rep, &mut nis, opts);
                 }
                 NavInput::Reboot => {
                     rep.reboots += 1;

@@ -1,0 +1,168 @@
+//! The vision fix log (`[daemon] fix_log`): one JSON line per fix result the navigation task
+//! received, with what the filter did with it, stamped with the companion's Unix time (the clock
+//! of the `.tlog`), so `visnav replay --fixes` can put the vision fixes back into a replayed
+//! flight at the moment they arrived.
+
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::fix::FixReport;
+
+/// One fix result.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FixLogRecord {
+    /// Companion Unix time when the result reached the navigation task, µs.
+    pub arrival_unix_us: u64,
+    /// Capture time of the frame, autopilot boot µs.
+    pub t_capture_us: u64,
+    /// Frame sequence number.
+    pub seq: u64,
+    /// Frame-to-fix latency, ms.
+    pub latency_ms: u64,
+    /// The engine accepted the fix.
+    pub accepted: bool,
+    /// The engine's reason (rejections).
+    pub reason: String,
+    /// What the daemon did with it: `accepted`, `rejected` (filter gate), `too_old`, `invalid`,
+    /// `unused_before_init`, `engine_rejected`, `initialised`, `held`, `reset`.
+    pub outcome: String,
+    /// Latitude, deg (accepted fixes).
+    pub lat_deg: Option<f64>,
+    /// Longitude, deg.
+    pub lon_deg: Option<f64>,
+    /// Height above the WGS84 ellipsoid, m.
+    pub h_ellip_m: Option<f64>,
+    /// Altitude AMSL, m.
+    pub alt_amsl_m: Option<f64>,
+    /// Position covariance NED, m^2.
+    pub cov_ned_m2: Option<[[f64; 3]; 3]>,
+    /// Inliers of the resection.
+    pub inliers: usize,
+    /// Reprojection RMS, px.
+    pub reproj_rms_px: Option<f64>,
+}
+
+impl FixLogRecord {
+    /// The record of `report` (NaN and infinite numbers become `None`).
+    pub fn new(
+        arrival_unix_us: u64,
+        seq: u64,
+        latency_ms: u64,
+        report: &FixReport,
+        outcome: &str,
+    ) -> Self {
+        let f = |v: f64| v.is_finite().then_some(v);
+        let cov = report.cov_ned_m2;
+        Self {
+            arrival_unix_us,
+            t_capture_us: report.t_capture_us,
+            seq,
+            latency_ms,
+            accepted: report.accepted,
+            reason: report.reason.clone(),
+            outcome: outcome.to_string(),
+            lat_deg: f(report.lat_deg),
+            lon_deg: f(report.lon_deg),
+            h_ellip_m: f(report.h_ellip_m),
+            alt_amsl_m: f(report.alt_amsl_m),
+            cov_ned_m2: cov.iter().flatten().all(|v| v.is_finite()).then_some(cov),
+            inliers: report.inliers,
+            reproj_rms_px: f(report.reproj_rms_px),
+        }
+    }
+
+    /// Back to a report (for `vision_measurement`); missing numbers are NaN.
+    pub fn report(&self) -> FixReport {
+        let mut r = FixReport::rejected(
+            self.reason.clone(),
+            self.t_capture_us,
+            self.latency_ms as f64,
+        );
+        r.accepted = self.accepted;
+        let n = |v: Option<f64>| v.unwrap_or(f64::NAN);
+        r.lat_deg = n(self.lat_deg);
+        r.lon_deg = n(self.lon_deg);
+        r.h_ellip_m = n(self.h_ellip_m);
+        r.alt_amsl_m = n(self.alt_amsl_m);
+        r.cov_ned_m2 = self.cov_ned_m2.unwrap_or([[f64::NAN; 3]; 3]);
+        r.inliers = self.inliers;
+        r.reproj_rms_px = n(self.reproj_rms_px);
+        r
+    }
+}
+
+/// An open fix log.
+pub struct FixLog {
+    path: PathBuf,
+    out: BufWriter<File>,
+}
+
+impl FixLog {
+    /// Create (truncate) the file.
+    pub fn create(path: &Path) -> std::io::Result<Self> {
+        Ok(Self {
+            path: path.to_path_buf(),
+            out: BufWriter::new(File::create(path)?),
+        })
+    }
+
+    /// The file's path.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Append one record and flush (a few per second).
+    pub fn write(&mut self, r: &FixLogRecord) -> std::io::Result<()> {
+        let line = serde_json::to_string(r).map_err(std::io::Error::other)?;
+        self.out.write_all(line.as_bytes())?;
+        self.out.write_all(b"\n")?;
+        self.out.flush()
+    }
+}
+
+/// Parse a fix log; an error names the line.
+pub fn read_fix_log(text: &str) -> Result<Vec<FixLogRecord>, String> {
+    text.lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty())
+        .map(|(i, l)| serde_json::from_str(l).map_err(|e| format!("line {}: {e}", i + 1)))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trip_and_errors() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("fixes.jsonl");
+        let mut good = FixReport::rejected("", 5_000_000, 30.0);
+        good.accepted = true;
+        good.lat_deg = 47.0;
+        good.lon_deg = -99.0;
+        good.h_ellip_m = 2400.0;
+        good.alt_amsl_m = 2410.0;
+        good.cov_ned_m2 = [[25.0, 1.0, 0.0], [1.0, 30.0, 0.0], [0.0, 0.0, 90.0]];
+        good.inliers = 40;
+        good.reproj_rms_px = 1.2;
+        let bad = FixReport::rejected("only 3 features in the frame", 5_500_000, 12.0);
+        let mut log = FixLog::create(&p).unwrap();
+        let r1 = FixLogRecord::new(1_700_000_000_000_000, 7, 30, &good, "accepted");
+        let r2 = FixLogRecord::new(1_700_000_000_500_000, 8, 12, &bad, "engine_rejected");
+        log.write(&r1).unwrap();
+        log.write(&r2).unwrap();
+        drop(log);
+        let back = read_fix_log(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        assert_eq!(back, vec![r1.clone(), r2.clone()]);
+        assert_eq!(back[1].lat_deg, None);
+        let rep = back[0].report();
+        assert!(rep.accepted && rep.lat_deg == 47.0 && rep.cov_ned_m2[1][1] == 30.0);
+        assert!(back[1].report().lat_deg.is_nan());
+        let e = read_fix_log("{\"arrival_unix_us\": 1}\nnot json\n").unwrap_err();
+        assert!(e.starts_with("line 1"), "{e}");
+    }
+}

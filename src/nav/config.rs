@@ -349,7 +349,7 @@ pub struct NavConfig {
     /// autopilot, the autopilot's tilt follows visnav's own errors (its EKF fits its attitude to
     /// the injected velocity), so fusing it closes a loop: in ArduCopter SITL with the GPS off
     /// both tilts drifted 1.4 deg together and the filter reported a 6 m sigma at 85 m of error
-    /// (docs/real-sitl.md, run 8). The heading comes from the compass and stays independent.
+    /// (docs/real-sitl.md, run 7). The heading comes from the compass and stays independent.
     pub autopilot_attitude_tilt: bool,
     /// Correlation time of the autopilot attitude's errors, s (0 = independent samples). An
     /// AHRS's error persists for seconds to minutes; ATTITUDE arrives at 10-50 Hz. Each

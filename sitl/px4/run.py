@@ -283,6 +283,11 @@ def main():
                          "reached: 1 = the first corner, after the climb")
     ap.add_argument("--gps-off-alt", type=float, default=None,
                     help="instead, at this true height above home, m")
+    ap.add_argument("--visnav-from", choices=["armed", "boot"], default="armed",
+                    help="start visnav once the copter is armed (default), or with PX4")
+    ap.add_argument("--ev-from", choices=["armed", "boot"], default="boot",
+                    help="EKF2 fuses visnav from arming (EKF2_EV_CTRL 0 at boot, the file's value "
+                         "once armed) or from boot")
     ap.add_argument("--camera-hz", type=float, default=2.0)
     ap.add_argument("--after-gps-off", type=float, default=None,
                     help="stop this many seconds after the GPS is off (default: last waypoint)")
@@ -313,9 +318,14 @@ def main():
     report = {"run": "control (no visnav)" if args.no_visnav else "visnav ODOMETRY",
               "home": [HOME_LAT, HOME_LON, HOME_ALT_M]}
     try:
+        ev_ctrl = dict(params).get("EKF2_EV_CTRL", "0")
+        if args.ev_from == "armed":
+            # EKF2 may fuse visnav only once the copter is armed (this alone does not let PX4 arm
+            # with visnav running from boot: see --visnav-from).
+            params = [(n, "0" if n == "EKF2_EV_CTRL" else v) for n, v in params]
         if args.px4_build:
             procs.append(("px4", start_px4(args, workdir, sih_params() + params)))
-        if not args.no_visnav:
+        if not args.no_visnav and args.visnav_from == "boot":
             procs.append(("visnav", start_visnav(args, workdir)))
         m = mavutil.mavlink_connection(f"udpin:0.0.0.0:{GCS_PORT}", source_system=255)
         relay = mavutil.mavlink_connection(f"udpout:127.0.0.1:{args.truth_port}", source_system=255)
@@ -410,6 +420,15 @@ def main():
                 if r.get_type() == "HEARTBEAT" and is_autopilot(m, r):
                     armed = bool(r.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         log("armed, mission started")
+        if not args.no_visnav and args.visnav_from == "armed":
+            # visnav's ODOMETRY velocity wanders by 0.5-3 m/s while the copter stands on the
+            # ground; EKF2 computes the vision velocity innovation even while not fusing it and
+            # its pre-flight check (0.5 m/s, PreFlightChecker.cpp) then refuses to arm.
+            procs.append(("visnav", start_visnav(args, workdir)))
+        if args.ev_from == "armed" and not args.no_visnav:
+            if not set_param(m, "EKF2_EV_CTRL", ev_ctrl, on=on):
+                sys.exit(f"cannot set EKF2_EV_CTRL = {ev_ctrl}")
+            log(f"EKF2_EV_CTRL = {ev_ctrl}: EKF2 fuses visnav's ODOMETRY from now on")
         in_flight = True
         errs = {"gps_on": ([], []), "gps_off": ([], [])}
         samples = []

@@ -3,13 +3,16 @@
 visnav's ODOMETRY (external vision) fused by EKF2, stop EKF2 from using the GPS after take-off,
 and report EKF2's position error against the simulator's ground truth.
 
-    python3 sitl/px4/run.py --px4-build /path/to/PX4-Autopilot/build/px4_sitl_default
+    python3 sitl/px4/run.py --px4-build /path/to/PX4-Autopilot/build/px4_sitl_nolockstep
     python3 sitl/px4/run.py --px4-build ... --no-visnav   # the GPS-off control run
     python3 sitl/px4/run.py --attach        # PX4 SITL (SIH) already running, see docs/
 
 It does not build PX4 (docs/real-sitl-px4-run.md says how it was built and run). Needs pymavlink
 (`bash scripts/interop/setup_venv.sh` prints a venv python that has it) and a built visnav
-(`cargo build --release`, or give --visnav). Run with PX4 v1.14 (release/1.14, SIH as SITL).
+(`cargo build --release`, or give --visnav). Run with PX4 v1.14 (release/1.14, SIH as SITL),
+built as px4_sitl_nolockstep: with the lockstep build PX4's clock is SIH's simulated time, which
+falls behind real time on a loaded machine (1.6 % in irregular steps here) and visnav's TIMESYNC
+filter, made for real clocks, then drops half the camera frames.
 
 What runs (all on loopback):
 * PX4 SITL with SIH (PX4_SIM_MODEL=sihsim_quadx, airframe 10040, 250 Hz, real time), as PX4's
@@ -22,7 +25,9 @@ What runs (all on loopback):
   PX4's onboard (API) MAVLink instance sends to UDP 14540 (visnav's link, visnav.toml), its GCS
   instance to UDP 14550 (this script).
 * `visnav sitl-run --kind px4 --config WORKDIR/visnav.toml --truth udpin:127.0.0.1:TRUTH_PORT
-  --ortho sitl/maps/naip_nd_2014.tif` (the camera sees the 2014 image; the map is the 2009 one).
+  --ortho sitl/maps/naip_nd_2014.tif` (the camera sees the 2014 image; the map is the 2009 one),
+  started once PX4 is armed (--visnav-from: PX4 cannot arm while visnav's velocity wanders on the
+  ground, docs/real-sitl-px4-run.md).
   PX4 has no spare MAVLink port for the truth, so this script asks for HIL_STATE_QUATERNION
   (PX4's ground truth stream) and ATTITUDE (for the time) at 50 Hz on the GCS link and relays both
   packets unchanged to UDP TRUTH_PORT (--truth-port, default 14562: ArduPilot's recipe uses 14551

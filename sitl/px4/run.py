@@ -1,39 +1,58 @@
 #!/usr/bin/env python3
-"""visnav against a real PX4 SITL (SIH quadrotor, or Gazebo): fly a mission over the bundled NAIP
-map with visnav's ODOMETRY (external vision) fused by EKF2, stop EKF2 from using the GPS after
-take-off, and report EKF2's position error against the simulator's ground truth.
+"""visnav against a real PX4 SITL (SIH quadrotor): fly a mission over the bundled NAIP map with
+visnav's ODOMETRY (external vision) fused by EKF2, stop EKF2 from using the GPS after take-off,
+and report EKF2's position error against the simulator's ground truth.
 
-    python3 sitl/px4/run.py --px4-build /path/to/PX4-Autopilot/build/px4_sitl_default
-    python3 sitl/px4/run.py --attach        # PX4 SITL already running (see docs/real-sitl.md)
+    python3 sitl/px4/run.py --px4-build /path/to/PX4-Autopilot/build/px4_sitl_nolockstep
     python3 sitl/px4/run.py --px4-build ... --no-visnav   # the GPS-off control run
+    python3 sitl/px4/run.py --attach        # PX4 SITL (SIH) already running, see docs/
 
-NOT RUN in the project (PX4 was not built here): written and checked against the PX4
-documentation only; see docs/real-sitl.md. It does not build PX4.
+It does not build PX4 (docs/real-sitl-px4-run.md says how it was built and run). Needs pymavlink
+(`bash scripts/interop/setup_venv.sh` prints a venv python that has it) and a built visnav
+(`cargo build --release`, or give --visnav). Run with PX4 v1.14 (release/1.14, SIH as SITL),
+built as px4_sitl_nolockstep: with the lockstep build PX4's clock is SIH's simulated time, which
+falls behind real time on a loaded machine (1.6 % in irregular steps here) and visnav's TIMESYNC
+filter, made for real clocks, then drops half the camera frames.
 
-What runs (loopback):
-* PX4 SITL with SIH (PX4_SIM_MODEL=sihsim_quadx, airframe 10040), home at the centre of
-  sitl/maps (PX4_HOME_LAT/LON/ALT). PX4's onboard (API) MAVLink instance sends to UDP 14540 (visnav's link),
-  its GCS instance to UDP 14550 (this script).
-* `visnav sitl-run --kind px4 --config sitl/px4/visnav.toml --truth udpin:127.0.0.1:14552 ...`.
-  PX4 has no spare MAVLink port for the truth, so this script relays the GROUND_TRUTH stream
-  (HIL_STATE_QUATERNION) and ATTITUDE (for the time) it receives on 14550 to UDP 14552.
-* This script: sets visnav-ev.params with PARAM_SET, waits for a global position, uploads
-  ../ardupilot/mission.waypoints' twin (mission.waypoints), arms, starts the mission, sets
-  EKF2_GPS_CTRL = 0 (EKF2 stops fusing GPS; visnav never uses it:
-  [daemon] gps = "none") when the first corner of the loop is reached (--gps-off-wp; or
-  --gps-off-alt metres up), and stops at the last waypoint.
+What runs (all on loopback):
+* PX4 SITL with SIH (PX4_SIM_MODEL=sihsim_quadx, airframe 10040, 250 Hz, real time), as PX4's
+  `sihsim_quadx` run target starts it, but in WORKDIR/px4 with a copy of the build's `etc` whose
+  `init.d-posix/px4-rc.params` (PX4's hook for parameters, sourced by rcS before the modules
+  start) sets the SIH home to the centre of sitl/maps (SIH_LOC_LAT0/LON0 degE7, SIH_LOC_H0
+  580 m; PX4 v1.14 has no PX4_HOME_ALT for SIH and its PX4_HOME_LAT/LON path writes degrees
+  into these integer degE7 parameters) and every parameter of visnav-ev.params. A fresh
+  working directory: no parameters left from an earlier run.
+  PX4's onboard (API) MAVLink instance sends to UDP 14540 (visnav's link, visnav.toml), its GCS
+  instance to UDP 14550 (this script).
+* `visnav sitl-run --kind px4 --config WORKDIR/visnav.toml --truth udpin:127.0.0.1:TRUTH_PORT
+  --ortho sitl/maps/naip_nd_2014.tif` (the camera sees the 2014 image; the map is the 2009 one),
+  started once PX4 is armed (--visnav-from: PX4 cannot arm while visnav's velocity wanders on the
+  ground, docs/real-sitl-px4-run.md).
+  PX4 has no spare MAVLink port for the truth, so this script asks for HIL_STATE_QUATERNION
+  (PX4's ground truth stream) and ATTITUDE (for the time) at 50 Hz on the GCS link and relays both
+  packets unchanged to UDP TRUTH_PORT (--truth-port, default 14562: ArduPilot's recipe uses 14551
+  and 14552, so both can run on one machine).
+* This script: waits for EKF2's global position, uploads mission.waypoints (without ArduPilot's
+  home item), arms and starts the mission, sets EKF2_GPS_CTRL = 0 (EKF2 stops fusing GPS; visnav
+  never uses it: [daemon] gps = "none") when the first corner of the loop is reached
+  (--gps-off-wp; or --gps-off-alt metres up), and stops at the last waypoint (or --timeout, or
+  --after-gps-off seconds, or when the copter lands / disarms).
 
-Measured: GLOBAL_POSITION_INT (EKF2) against HIL_STATE_QUATERNION (truth) propagated over the
-arrival gap with the true velocity: horizontal and vertical error, median / p90 / max, with the GPS
-fused (airborne) and after EKF2_GPS_CTRL = 0.
+Measured: every GLOBAL_POSITION_INT (EKF2's output) against HIL_STATE_QUATERNION (truth)
+propagated over the arrival gap with the true velocity: horizontal and vertical error, median /
+p90 / max, with the GPS fused (airborne) and after EKF2_GPS_CTRL = 0. Written to
+WORKDIR/report.json (with visnav's last metrics line) and printed; every sample in
+WORKDIR/samples.json.
 """
 
 import argparse
 import json
 import math
 import os
+import shutil
 import signal
 import statistics
+import struct
 import subprocess
 import sys
 import tempfile
@@ -42,12 +61,15 @@ import time
 try:
     from pymavlink import mavutil
 except ImportError:
-    sys.exit("run.py needs pymavlink: python3 -m pip install pymavlink")
+    sys.exit("run.py needs pymavlink: python3 -m pip install pymavlink "
+             "(or use the venv python printed by scripts/interop/setup_venv.sh)")
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.abspath(os.path.join(HERE, "..", ".."))
+# Centre of sitl/maps/naip_nd_2009.tif (EPSG:26914 x 488235, y 5207437), ground ~580 m AMSL.
 HOME_LAT, HOME_LON, HOME_ALT_M = 47.0203485, -99.1548094, 580.0
-GCS_PORT, TRUTH_PORT = 14550, 14552
+GCS_PORT = 14550
+STOP = None  # set by SIGTERM/SIGINT/SIGHUP during the flight
 
 
 def log(msg):
@@ -70,24 +92,126 @@ def stats(v):
 
 
 def read_params(path):
+    """(name, value text) pairs of a `NAME VALUE` file (# comments)."""
     out = []
     with open(path) as f:
         for line in f:
             line = line.split("#", 1)[0].strip()
             if line:
                 name, value = line.split()
-                out.append((name, float(value)))
+                float(value)  # a number, or stop here
+                out.append((name, value))
     return out
 
 
-def set_param(m, name, value, timeout=5.0):
+def sih_params():
+    return [("SIH_LOC_LAT0", str(int(round(HOME_LAT * 1e7)))),
+            ("SIH_LOC_LON0", str(int(round(HOME_LON * 1e7)))),
+            ("SIH_LOC_H0", f"{HOME_ALT_M:.2f}")]
+
+
+def start_px4(args, workdir, params):
+    """PX4 SITL + SIH in WORKDIR/px4 with the parameters in a private copy of `etc`."""
+    build = os.path.abspath(args.px4_build)
+    exe = os.path.join(build, "bin", "px4")
+    etc_src = os.path.join(build, "etc")
+    if not (os.path.exists(exe) and os.path.isdir(os.path.join(etc_src, "init.d-posix"))):
+        sys.exit(f"{build}: not a PX4 SITL build directory (no bin/px4, etc/init.d-posix)")
+    etc = os.path.join(workdir, "px4-etc")
+    shutil.rmtree(etc, ignore_errors=True)
+    shutil.copytree(etc_src, etc, symlinks=True)
+    with open(os.path.join(etc, "init.d-posix", "px4-rc.params"), "w") as f:
+        f.write("#!/bin/sh\n# Written by sitl/px4/run.py: SIH home and visnav-ev.params.\n")
+        for name, value in params:
+            f.write(f"param set {name} {value}\n")
+    wd = os.path.join(workdir, "px4")
+    os.makedirs(wd, exist_ok=True)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PX4_HOME_")}
+    env.update(PX4_SIMULATOR="sihsim", PX4_SIM_MODEL="sihsim_quadx")
+    cmd = [exe, "-d", "-w", wd, etc]
+    log("PX4: PX4_SIMULATOR=sihsim PX4_SIM_MODEL=sihsim_quadx " + " ".join(cmd))
+    return subprocess.Popen(cmd, env=env, cwd=wd, stdin=subprocess.DEVNULL,
+                            stdout=open(os.path.join(workdir, "px4.log"), "w"),
+                            stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def start_visnav(args, workdir):
+    exe = args.visnav
+    if exe is None:
+        for c in ("target/release/visnav", "target/debug/visnav"):
+            if os.path.exists(os.path.join(REPO, c)):
+                exe = os.path.join(REPO, c)
+                break
+    if exe is None:
+        sys.exit("no visnav binary: cargo build --release, or give --visnav")
+    exe = os.path.abspath(exe)
+    # The config, copied into the work folder with absolute map paths and a .tlog of all link
+    # traffic (`visnav replay` runs it through the filter offline).
+    text = open(args.config).read()
+    text = text.replace('"../maps/', '"' + os.path.join(REPO, "sitl", "maps") + "/")
+    text = text.replace("[link]\n", '[link]\ntlog = "visnav.tlog"\n', 1)
+    config = os.path.join(workdir, "visnav.toml")
+    with open(config, "w") as f:
+        f.write(text)
+    cmd = [exe, "sitl-run", "--kind", "px4", "--config", config,
+           "--truth", f"udpin:127.0.0.1:{args.truth_port}",
+           "--ortho", os.path.join(REPO, "sitl", "maps", "naip_nd_2014.tif"),
+           "--rate-hz", str(args.camera_hz)]
+    log("visnav: " + " ".join(cmd))
+    return subprocess.Popen(cmd, cwd=workdir, stdout=open(os.path.join(workdir, "visnav.json"), "w"),
+                            stderr=open(os.path.join(workdir, "visnav.log"), "w"),
+                            start_new_session=True)
+
+
+def is_autopilot(m, hb):
+    return (hb.get_srcSystem() == m.target_system and hb.get_srcComponent() == 1
+            and hb.autopilot != mavutil.mavlink.MAV_AUTOPILOT_INVALID)
+
+
+def recv(m, typ, timeout, on):
+    """The next `typ` message within `timeout` s; every other message goes to `on(msg, t)`."""
     end = time.time() + timeout
     while time.time() < end:
-        m.mav.param_set_send(m.target_system, m.target_component, name.encode(), float(value),
-                             mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
-        r = m.recv_match(type="PARAM_VALUE", blocking=True, timeout=1.0)
+        r = m.recv_match(blocking=True, timeout=max(0.01, end - time.time()))
+        if r is None:
+            continue
+        if r.get_type() == typ:
+            return r
+        if on is not None:
+            on(r, time.time())
+    return None
+
+
+def get_param(m, name, timeout=5.0, on=None):
+    """(value as float or int, MAV_PARAM_TYPE) or None. PX4 sends INT32 bytewise in the float."""
+    end = time.time() + timeout
+    while time.time() < end:
+        m.mav.param_request_read_send(m.target_system, m.target_component, name.encode(), -1)
+        r = recv(m, "PARAM_VALUE", 1.0, on)
         if r is not None and r.param_id == name:
-            return True
+            if r.param_type == mavutil.mavlink.MAV_PARAM_TYPE_INT32:
+                return struct.unpack("<i", struct.pack("<f", r.param_value))[0], r.param_type
+            return r.param_value, r.param_type
+    return None
+
+
+def set_param(m, name, value, timeout=5.0, on=None):
+    """PARAM_SET with PX4's bytewise encoding of integers; True when echoed with the value."""
+    cur = get_param(m, name, on=on)
+    if cur is None:
+        return False
+    ptype = cur[1]
+    if ptype == mavutil.mavlink.MAV_PARAM_TYPE_INT32:
+        wire = struct.unpack("<f", struct.pack("<i", int(float(value))))[0]
+    else:
+        wire = float(value)
+    end = time.time() + timeout
+    while time.time() < end:
+        m.mav.param_set_send(m.target_system, m.target_component, name.encode(), wire, ptype)
+        r = recv(m, "PARAM_VALUE", 1.0, on)
+        if r is not None and r.param_id == name:
+            got = get_param(m, name, on=on)
+            return got is not None and abs(float(got[0]) - float(value)) < 1e-3
     return False
 
 
@@ -102,6 +226,7 @@ def upload_mission(m, path):
                 items.append(v)
     m.mav.mission_count_send(m.target_system, m.target_component, len(items),
                              mavutil.mavlink.MAV_MISSION_TYPE_MISSION)
+    sent = set()
     end = time.time() + 30
     while time.time() < end:
         r = m.recv_match(type=["MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"],
@@ -109,7 +234,7 @@ def upload_mission(m, path):
         if r is None:
             continue
         if r.get_type() == "MISSION_ACK":
-            if r.type == mavutil.mavlink.MAV_MISSION_ACCEPTED:
+            if r.type == mavutil.mavlink.MAV_MISSION_ACCEPTED and len(sent) == len(items):
                 return len(items)
             sys.exit(f"mission upload refused: MISSION_ACK type {r.type}")
         v = items[r.seq]
@@ -118,104 +243,155 @@ def upload_mission(m, path):
                                     float(v[6]), float(v[7]), int(round(float(v[8]) * 1e7)),
                                     int(round(float(v[9]) * 1e7)), float(v[10]),
                                     mavutil.mavlink.MAV_MISSION_TYPE_MISSION)
+        sent.add(r.seq)
     sys.exit("mission upload timed out")
+
+
+class Truth:
+    """Latest HIL_STATE_QUATERNION (PX4's ground truth) with its arrival time."""
+
+    def __init__(self):
+        self.s = None  # (t_arrival, lat, lon, alt, vn, ve, vd)
+
+    def on(self, r, t):
+        if r.get_type() == "HIL_STATE_QUATERNION":
+            self.s = (t, r.lat * 1e-7, r.lon * 1e-7, r.alt * 1e-3, r.vx * 0.01, r.vy * 0.01,
+                      r.vz * 0.01)
+
+    def at(self, t):
+        """(lat, lon, alt) propagated to arrival time `t`, or None when older than 0.1 s."""
+        if self.s is None or t - self.s[0] > 0.1:
+            return None
+        ts, lat, lon, alt, vn, ve, vd = self.s
+        dt = t - ts
+        m_lat, m_lon = metres_per_deg(lat)
+        return lat + vn * dt / m_lat, lon + ve * dt / m_lon, alt - vd * dt
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     g = ap.add_mutually_exclusive_group(required=True)
     g.add_argument("--px4-build", help="PX4 SITL build directory (build/px4_sitl_default)")
-    g.add_argument("--attach", action="store_true", help="PX4 SITL is already running")
+    g.add_argument("--attach", action="store_true",
+                   help="PX4 SITL (SIH, home as above) is already running: parameters are set "
+                        "with PARAM_SET")
     ap.add_argument("--visnav", help="visnav binary (default: target/release/visnav)")
+    ap.add_argument("--config", default=os.path.join(HERE, "visnav.toml"),
+                    help="visnav configuration (default: sitl/px4/visnav.toml)")
     ap.add_argument("--no-visnav", action="store_true", help="the GPS-off control run")
+    ap.add_argument("--params", default=os.path.join(HERE, "visnav-ev.params"))
     ap.add_argument("--mission", default=os.path.join(HERE, "mission.waypoints"))
+    ap.add_argument("--truth-port", type=int, default=14562,
+                    help="UDP port the truth is relayed to (visnav sitl-run --truth)")
     ap.add_argument("--gps-off-wp", type=int, default=1,
                     help="EKF2_GPS_CTRL = 0 when this mission item (0-based, no home item) is "
                          "reached: 1 = the first corner, after the climb")
     ap.add_argument("--gps-off-alt", type=float, default=None,
                     help="instead, at this true height above home, m")
+    ap.add_argument("--visnav-from", choices=["armed", "boot"], default="armed",
+                    help="start visnav once the copter is armed (default), or with PX4")
+    ap.add_argument("--ev-from", choices=["armed", "boot"], default="boot",
+                    help="EKF2 fuses visnav from arming (EKF2_EV_CTRL 0 at boot, the file's value "
+                         "once armed) or from boot")
     ap.add_argument("--camera-hz", type=float, default=2.0)
-    ap.add_argument("--timeout", type=float, default=1500.0)
+    ap.add_argument("--after-gps-off", type=float, default=None,
+                    help="stop this many seconds after the GPS is off (default: last waypoint)")
+    ap.add_argument("--timeout", type=float, default=1500.0, help="flight, s")
     ap.add_argument("--workdir")
     args = ap.parse_args()
 
+    in_flight = False
+
     def stop(signum, _frame):
-        # Also when started in the background (SIGINT ignored): clean up in `finally`.
-        raise SystemExit(f"stopped by signal {signum}")
+        # Also when started in the background (SIGINT ignored). In flight: end the flight loop and
+        # report; before: exit (cleaning up in `finally`).
+        global STOP
+        if in_flight:
+            STOP = f"stopped by signal {signum}"
+        else:
+            raise SystemExit(f"stopped by signal {signum}")
 
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     signal.signal(signal.SIGHUP, stop)
 
-    workdir = args.workdir or tempfile.mkdtemp(prefix="visnav-px4-sitl-")
+    workdir = os.path.abspath(args.workdir or tempfile.mkdtemp(prefix="visnav-px4-sitl-"))
     os.makedirs(workdir, exist_ok=True)
     log(f"workdir {workdir}")
+    params = read_params(args.params)
     procs = []
-    report = {"run": "control (no visnav)" if args.no_visnav else "visnav ODOMETRY"}
+    report = {"run": "control (no visnav)" if args.no_visnav else "visnav ODOMETRY",
+              "home": [HOME_LAT, HOME_LON, HOME_ALT_M]}
     try:
+        ev_ctrl = dict(params).get("EKF2_EV_CTRL", "0")
+        if args.ev_from == "armed":
+            # EKF2 may fuse visnav only once the copter is armed (this alone does not let PX4 arm
+            # with visnav running from boot: see --visnav-from).
+            params = [(n, "0" if n == "EKF2_EV_CTRL" else v) for n, v in params]
         if args.px4_build:
-            # As PX4's sihsim_quadx run target does
-            # (src/modules/simulation/simulator_sih/CMakeLists.txt): the px4 binary in the build's
-            # rootfs with PX4_SIM_MODEL / PX4_SIMULATOR; -d: no interactive shell.
-            env = dict(os.environ, PX4_SIMULATOR="sihsim", PX4_SIM_MODEL="sihsim_quadx",
-                       PX4_HOME_LAT=str(HOME_LAT), PX4_HOME_LON=str(HOME_LON),
-                       PX4_HOME_ALT=str(HOME_ALT_M))
-            rootfs = os.path.join(args.px4_build, "rootfs")
-            if not os.path.isdir(rootfs):
-                sys.exit(f"{rootfs}: not a PX4 SITL build directory")
-            cmd = [os.path.join(args.px4_build, "bin", "px4"), "-d"]
-            log("PX4: " + " ".join(cmd))
-            procs.append(("px4", subprocess.Popen(cmd, env=env, cwd=rootfs, stdin=subprocess.DEVNULL,
-                                                  stdout=open(os.path.join(workdir, "px4.log"), "w"),
-                                                  stderr=subprocess.STDOUT, start_new_session=True)))
-        if not args.no_visnav:
-            exe = os.path.abspath(args.visnav or os.path.join(REPO, "target", "release", "visnav"))
-            cmd = [exe, "sitl-run", "--kind", "px4", "--config", os.path.join(HERE, "visnav.toml"),
-                   "--truth", f"udpin:127.0.0.1:{TRUTH_PORT}",
-                   "--ortho", os.path.join(REPO, "sitl", "maps", "naip_nd_2014.tif"),
-                   "--rate-hz", str(args.camera_hz)]
-            log("visnav: " + " ".join(cmd))
-            procs.append(("visnav", subprocess.Popen(
-                cmd, stdout=open(os.path.join(workdir, "visnav.json"), "w"),
-                stderr=open(os.path.join(workdir, "visnav.log"), "w"), start_new_session=True)))
+            procs.append(("px4", start_px4(args, workdir, sih_params() + params)))
+        if not args.no_visnav and args.visnav_from == "boot":
+            procs.append(("visnav", start_visnav(args, workdir)))
         m = mavutil.mavlink_connection(f"udpin:0.0.0.0:{GCS_PORT}", source_system=255)
-        relay = mavutil.mavlink_connection(f"udpout:127.0.0.1:{TRUTH_PORT}", source_system=1)
-        if m.wait_heartbeat(timeout=120) is None:
-            sys.exit("no HEARTBEAT from PX4 on UDP 14550")
+        relay = mavutil.mavlink_connection(f"udpout:127.0.0.1:{args.truth_port}", source_system=255)
+        hb = None
+        end = time.time() + 120
+        while hb is None and time.time() < end:
+            r = m.recv_match(type="HEARTBEAT", blocking=True, timeout=1.0)
+            if r is not None and r.autopilot == mavutil.mavlink.MAV_AUTOPILOT_PX4:
+                hb = r
+        if hb is None:
+            sys.exit(f"no PX4 HEARTBEAT on UDP {GCS_PORT} within 120 s (see px4.log)")
+        m.target_system, m.target_component = hb.get_srcSystem(), hb.get_srcComponent()
         log(f"PX4 heartbeat: system {m.target_system}")
-        for name, value in read_params(os.path.join(HERE, "visnav-ev.params")):
-            if args.no_visnav and name.startswith("EKF2_EV"):
-                continue
-            if not set_param(m, name, value):
-                log(f"parameter {name} not acknowledged (absent in this PX4 version?)")
-        rates = {115: 50, 30: 50, 33: 10}
+        # A GCS heartbeat: PX4 answers to this socket from now on.
+        m.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID,
+                             0, 0, 0)
+        todo = (sih_params() + params) if args.attach else [
+            ("SIH_LOC_H0", f"{HOME_ALT_M:.2f}"), ("EKF2_EV_CTRL", None), ("EKF2_GPS_CTRL", None)]
+        for name, value in todo:
+            if value is None:
+                value = dict(params).get(name)
+                got = get_param(m, name)
+                log(f"parameter {name} = {None if got is None else got[0]} (file: {value})")
+                if got is None or value is None or abs(float(got[0]) - float(value)) > 1e-3:
+                    sys.exit(f"parameter {name} is not as px4-rc.params set it: see px4.log")
+            elif not set_param(m, name, value):
+                log(f"parameter {name} not set (absent in this PX4 version?)")
+        # 115 HIL_STATE_QUATERNION, 30 ATTITUDE (truth for visnav), 33 GLOBAL_POSITION_INT
+        # (EKF2), 230 ESTIMATOR_STATUS.
+        rates = {115: 50, 30: 50, 33: 10, 230: 2}
 
         def ask():
             for msg_id, hz in rates.items():
                 m.mav.command_long_send(m.target_system, m.target_component,
                                         mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
                                         msg_id, 1e6 / hz, 0, 0, 0, 0, 0)
+            m.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS,
+                                 mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
 
         ask()
-        truth = None  # (t_arrival, lat, lon, alt, vn, ve, vd)
+        truth = Truth()
+        est_flags = [None]
 
         def on(r, now):
-            nonlocal truth
             typ = r.get_type()
-            if typ in ("HIL_STATE_QUATERNION", "ATTITUDE"):
+            if typ in ("HIL_STATE_QUATERNION", "ATTITUDE") and r.get_srcSystem() == m.target_system:
                 relay.write(r.get_msgbuf())
-            if typ == "HIL_STATE_QUATERNION":
-                truth = (now, r.lat * 1e-7, r.lon * 1e-7, r.alt * 1e-3, r.vx * 0.01, r.vy * 0.01,
-                         r.vz * 0.01)
-            elif typ == "STATUSTEXT":
+            truth.on(r, now)
+            if typ == "STATUSTEXT":
                 log(f"STATUSTEXT {r.text}")
+            elif typ == "ESTIMATOR_STATUS" and (r.flags & ~0x40) != est_flags[0]:
+                # Bit 0x40 (terrain height) toggles all the time in SIH: not logged.
+                log(f"ESTIMATOR_STATUS flags {r.flags & ~0x40:#06x}")
+                est_flags[0] = r.flags & ~0x40
 
         t0 = time.time()
         last_ask = t0
         while True:
             r = m.recv_match(blocking=True, timeout=1.0)
             now = time.time()
-            if now - last_ask > 5:
+            if now - last_ask > 2:
                 ask()
                 last_ask = now
             if now - t0 > 240:
@@ -223,62 +399,131 @@ def main():
             if r is None:
                 continue
             on(r, now)
-            if r.get_type() == "GLOBAL_POSITION_INT" and r.lat != 0 and now - t0 > 20:
+            if (r.get_type() == "GLOBAL_POSITION_INT" and r.lat != 0 and now - t0 > 30
+                    and truth.at(now) is not None):
                 break
         n = upload_mission(m, args.mission)
         log(f"mission: {n} items")
-        m.mav.command_long_send(m.target_system, m.target_component,
-                                mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
-        time.sleep(1)
-        m.mav.command_long_send(m.target_system, m.target_component,
-                                mavutil.mavlink.MAV_CMD_MISSION_START, 0, 0, n - 1, 0, 0, 0, 0, 0)
+        last_seq = n - 1
+        armed = False
+        t_arm = time.time()
+        while not armed:
+            if time.time() - t_arm > 60:
+                sys.exit("could not arm and start the mission within 60 s")
+            m.mav.command_long_send(m.target_system, m.target_component,
+                                    mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0,
+                                    0, 0, 0)
+            m.mav.command_long_send(m.target_system, m.target_component,
+                                    mavutil.mavlink.MAV_CMD_MISSION_START, 0, 0, last_seq, 0, 0,
+                                    0, 0, 0)
+            end = time.time() + 3
+            while time.time() < end:
+                r = m.recv_match(blocking=True, timeout=0.5)
+                if r is None:
+                    continue
+                on(r, time.time())
+                if r.get_type() == "HEARTBEAT" and is_autopilot(m, r):
+                    armed = bool(r.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+        log("armed, mission started")
+        if not args.no_visnav and args.visnav_from == "armed":
+            # visnav's ODOMETRY velocity wanders by 0.5-3 m/s while the copter stands on the
+            # ground; EKF2 computes the vision velocity innovation even while not fusing it and
+            # its pre-flight check (0.5 m/s, PreFlightChecker.cpp) then refuses to arm.
+            procs.append(("visnav", start_visnav(args, workdir)))
+        if args.ev_from == "armed" and not args.no_visnav:
+            if not set_param(m, "EKF2_EV_CTRL", ev_ctrl, on=on):
+                sys.exit(f"cannot set EKF2_EV_CTRL = {ev_ctrl}")
+            log(f"EKF2_EV_CTRL = {ev_ctrl}: EKF2 fuses visnav's ODOMETRY from now on")
+        in_flight = True
         errs = {"gps_on": ([], []), "gps_off": ([], [])}
+        samples = []
         t_fly = time.time()
         t_gps_off = None
+        reached = -1
+        modes = []
         why = "timeout"
-        while time.time() - t_fly < args.timeout:
-            r = m.recv_match(blocking=True, timeout=1.0)
+
+        def gps_off(where):
+            # The simulated receiver reports no fix (SIM_GPS_USED < 4: fix_type 0, eph 100 m,
+            # PX4 v1.14 sensor_gps_sim), as ArduPilot's SIM_GPS_DISABLE does: GPS_RAW_INT has no
+            # fix, so visnav ([daemon] gps = "gps1") stops using it too; and EKF2 stops fusing GPS
+            # at once (EKF2_GPS_CTRL = 0) rather than after its GPS checks time out.
+            if not set_param(m, "SIM_GPS_USED", 0, on=on):
+                sys.exit("cannot set SIM_GPS_USED = 0")
+            if not set_param(m, "EKF2_GPS_CTRL", 0, on=on):
+                sys.exit("cannot set EKF2_GPS_CTRL = 0")
+            log(f"GPS off: SIM_GPS_USED = 0, EKF2_GPS_CTRL = 0 ({where})")
+            return time.time()
+
+        while True:
             now = time.time()
-            if now - last_ask > 5:
+            if STOP:
+                why = STOP
+                break
+            if now - t_fly > args.timeout:
+                break
+            if t_gps_off is not None and args.after_gps_off and now - t_gps_off > args.after_gps_off:
+                why = f"{args.after_gps_off:.0f} s after GPS off"
+                break
+            if now - last_ask > 2:
                 ask()
                 last_ask = now
+            r = m.recv_match(blocking=True, timeout=1.0)
             if r is None:
                 continue
             on(r, now)
             typ = r.get_type()
             if typ == "MISSION_ITEM_REACHED":
-                log(f"mission item {r.seq} reached")
+                if r.seq > reached:
+                    log(f"mission item {r.seq} reached")
+                reached = max(reached, r.seq)
                 if t_gps_off is None and args.gps_off_alt is None and r.seq >= args.gps_off_wp:
-                    if not set_param(m, "EKF2_GPS_CTRL", 0):
-                        sys.exit("cannot set EKF2_GPS_CTRL = 0")
-                    t_gps_off = time.time()
-                    log("EKF2_GPS_CTRL = 0")
-                if r.seq >= n - 1:
+                    t_gps_off = gps_off(f"mission item {r.seq}")
+                if r.seq >= last_seq:
                     why = "last waypoint reached"
                     break
-            elif typ == "GLOBAL_POSITION_INT" and truth is not None and now - truth[0] < 0.1:
-                tt, lat, lon, alt, vn, ve, vd = truth
-                dt = now - tt
-                m_lat, m_lon = metres_per_deg(lat)
-                lat, lon, alt = lat + vn * dt / m_lat, lon + ve * dt / m_lon, alt - vd * dt
-                eh = math.hypot((r.lat * 1e-7 - lat) * m_lat, (r.lon * 1e-7 - lon) * m_lon)
-                ev = r.alt * 1e-3 - alt
-                agl = alt - HOME_ALT_M
-                if t_gps_off is None and args.gps_off_alt is not None and agl > args.gps_off_alt:
-                    if not set_param(m, "EKF2_GPS_CTRL", 0):
-                        sys.exit("cannot set EKF2_GPS_CTRL = 0")
-                    t_gps_off = time.time()
-                    log(f"EKF2_GPS_CTRL = 0 at {agl:.0f} m above home")
+            elif typ == "HEARTBEAT" and is_autopilot(m, r):
+                mode = mavutil.mode_string_v10(r)
+                if not modes or modes[-1][1] != mode:
+                    modes.append((round(now - t_fly, 1), mode))
+                    log(f"mode {mode}")
+                if not r.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED and now - t_fly > 10:
+                    why = "disarmed (landed)"
+                    break
+            elif typ == "GLOBAL_POSITION_INT":
+                tr = truth.at(now)
+                if tr is None:
                     continue
+                lat_t, lon_t, alt_t = tr
+                m_lat, m_lon = metres_per_deg(lat_t)
+                dn = (r.lat * 1e-7 - lat_t) * m_lat
+                de = (r.lon * 1e-7 - lon_t) * m_lon
+                eh = math.hypot(dn, de)
+                ev = r.alt * 1e-3 - alt_t
+                agl = alt_t - HOME_ALT_M
+                if t_gps_off is None and args.gps_off_alt is not None and agl > args.gps_off_alt:
+                    t_gps_off = gps_off(f"{agl:.0f} m above home")
+                    continue
+                phase = "gps_off" if t_gps_off is not None else "gps_on"
                 if agl > 5:
-                    ph = "gps_off" if t_gps_off else "gps_on"
-                    errs[ph][0].append(eh)
-                    errs[ph][1].append(abs(ev))
+                    errs[phase][0].append(eh)
+                    errs[phase][1].append(abs(ev))
+                samples.append([round(now - t_fly, 2), phase, round(agl, 1), round(dn, 2),
+                                round(de, 2), round(ev, 2)])
+                if len(samples) % 100 == 0:
+                    log(f"t {now - t_fly:.0f} s {phase} agl {agl:.0f} m: EKF2 error "
+                        f"horizontal {eh:.1f} m vertical {ev:+.1f} m")
         report.update({
             "ended": why,
+            "flight_s": round(time.time() - t_fly, 1),
+            "gps_off_after_s": None if t_gps_off is None else round(t_gps_off - t_fly, 1),
+            "last_mission_item_reached": reached,
+            "modes": modes,
             "ekf2_error": {ph: {"horizontal": stats(h), "vertical": stats(v)}
                            for ph, (h, v) in errs.items()},
         })
+        with open(os.path.join(workdir, "samples.json"), "w") as f:
+            json.dump(samples, f)
     finally:
         for name, p in procs:
             if p.poll() is None:
@@ -288,9 +533,19 @@ def main():
                 p.wait(timeout=15)
             except subprocess.TimeoutExpired:
                 os.killpg(p.pid, signal.SIGKILL)
+        vj = os.path.join(workdir, "visnav.json")
+        if os.path.exists(vj):
+            try:
+                with open(vj) as f:
+                    lines = [ln for ln in f if ln.strip()]
+                if lines:
+                    report["visnav"] = json.loads(lines[-1])
+            except ValueError:
+                pass
         with open(os.path.join(workdir, "report.json"), "w") as f:
             json.dump(report, f, indent=1)
         print(json.dumps(report, indent=1))
+        log(f"report: {os.path.join(workdir, 'report.json')}")
 
 
 if __name__ == "__main__":

@@ -23,18 +23,23 @@
 //! # VISION_POSITION_ESTIMATE / ODOMETRY
 //! Time-stamped with the validity time in the clock this link answers TIMESYNC requests with
 //! (the companion's monotonic clock, as MAVROS does), so PX4 and ArduPilot map it with their own
-//! time sync / jitter correction. ODOMETRY: `frame_id = MAV_FRAME_LOCAL_FRD` (our local frame is
-//! north-aligned NED, a special case), `child_frame_id = MAV_FRAME_BODY_FRD`, velocity in the
-//! body frame `v_body = R_ned_body^T v_ned` with covariance `R^T P_v R`; angular rates are not
-//! estimated: sent as 0 with variance [`UNKNOWN_RATE_VAR`].
+//! time sync / jitter correction. ODOMETRY: `child_frame_id = MAV_FRAME_BODY_FRD`, velocity in
+//! the body frame `v_body = R_ned_body^T v_ned` with covariance `R^T P_v R`; angular rates are not
+//! estimated: sent as 0 with variance [`UNKNOWN_RATE_VAR`]. `frame_id` ([`PoseFrame`]) is
+//! `MAV_FRAME_LOCAL_NED` for PX4 and `MAV_FRAME_LOCAL_FRD` for every other autopilot; the position
+//! is the same north-aligned NED vector in both. ArduPilot takes only LOCAL_FRD (with BODY_FRD).
+//! PX4's EKF2 treats LOCAL_FRD as an arbitrary vision frame: without vision yaw fusion it rotates
+//! the position by `R(q_ekf2 * q_odometry^-1)` (`ev_pos_control.cpp`, PX4 v1.14), the full 3-D
+//! difference between its attitude and ours, so at 1800 m above the origin 1 deg of tilt
+//! difference moves the measurement 31 m horizontally; LOCAL_NED is used as it is.
 
 // SET_GPS_GLOBAL_ORIGIN is marked superseded by MAV_CMD_DO_SET_GLOBAL_ORIGIN (2025), but ArduPilot
 // and PX4 releases in the field still act on the message; it stays until they do not.
 #[allow(deprecated)]
 use mavlink::dialects::ardupilotmega::{
     GLOBAL_POSITION_SENSOR_DATA, GPS_INPUT_DATA, GlobalPositionFlags, GlobalPositionSrc,
-    GpsFixType, GpsInputIgnoreFlags, MavEstimatorType, MavFrame, MavMessage, ODOMETRY_DATA,
-    SET_GPS_GLOBAL_ORIGIN_DATA, VISION_POSITION_ESTIMATE_DATA,
+    GpsFixType, GpsInputIgnoreFlags, MavAutopilot, MavEstimatorType, MavFrame, MavMessage,
+    ODOMETRY_DATA, SET_GPS_GLOBAL_ORIGIN_DATA, VISION_POSITION_ESTIMATE_DATA,
 };
 use nalgebra::{Matrix3, SymmetricEigen, UnitQuaternion, Vector3};
 
@@ -480,12 +485,39 @@ pub fn vision_position_estimate(
     ))
 }
 
-/// ODOMETRY: pose in MAV_FRAME_LOCAL_FRD about `origin`, velocity in MAV_FRAME_BODY_FRD.
+/// ODOMETRY `frame_id` for the north-aligned NED position (see the module doc).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PoseFrame {
+    /// MAV_FRAME_LOCAL_NED: PX4 (EKF2 uses it as its own frame).
+    LocalNed,
+    /// MAV_FRAME_LOCAL_FRD: ArduPilot (the only frame it accepts) and others.
+    LocalFrd,
+}
+
+impl PoseFrame {
+    /// The frame to send to an autopilot of this flight stack.
+    pub fn for_autopilot(autopilot: Option<MavAutopilot>) -> Self {
+        match autopilot {
+            Some(MavAutopilot::MAV_AUTOPILOT_PX4) => PoseFrame::LocalNed,
+            _ => PoseFrame::LocalFrd,
+        }
+    }
+
+    fn mav_frame(self) -> MavFrame {
+        match self {
+            PoseFrame::LocalNed => MavFrame::MAV_FRAME_LOCAL_NED,
+            PoseFrame::LocalFrd => MavFrame::MAV_FRAME_LOCAL_FRD,
+        }
+    }
+}
+
+/// ODOMETRY: pose (north-aligned NED about `origin`) in `frame`, velocity in MAV_FRAME_BODY_FRD.
 pub fn odometry(
     e: &NavEstimate,
     now: &SendTime,
     origin: &GeoOrigin,
     out: &OutputConfig,
+    frame: PoseFrame,
 ) -> Result<MavMessage, InjectError> {
     let LocalPose {
         t_companion_us: time_usec,
@@ -516,7 +548,7 @@ pub fn odometry(
         yawspeed: 0.0,
         pose_covariance: upper_triangle_6((&e.pos_cov_ned_m2, &att_var))?,
         velocity_covariance: upper_triangle_6((&pv_body, &rate_var))?,
-        frame_id: MavFrame::MAV_FRAME_LOCAL_FRD,
+        frame_id: frame.mav_frame(),
         child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
         reset_counter: e.reset_counter,
         estimator_type: MavEstimatorType::MAV_ESTIMATOR_TYPE_VIO,
@@ -784,8 +816,14 @@ pub(crate) mod tests {
             lon_deg: -96.8,
             alt_amsl_m: 400.0,
         };
-        let MavMessage::ODOMETRY(m) = odometry(&e, &now(), &o, &OutputConfig::default()).unwrap()
-        else {
+        let MavMessage::ODOMETRY(m) = odometry(
+            &e,
+            &now(),
+            &o,
+            &OutputConfig::default(),
+            PoseFrame::for_autopilot(Some(MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA)),
+        )
+        .unwrap() else {
             panic!()
         };
         assert_eq!(m.frame_id, MavFrame::MAV_FRAME_LOCAL_FRD);
@@ -806,6 +844,35 @@ pub(crate) mod tests {
         assert!(m.velocity_covariance[1].abs() < 1e-7);
         assert_eq!(m.velocity_covariance[15], UNKNOWN_RATE_VAR);
         assert!(m.rollspeed.is_finite());
+    }
+
+    #[test]
+    fn odometry_frame_for_px4_is_local_ned_with_the_same_position() {
+        let e = estimate();
+        let o = GeoOrigin {
+            lat_deg: 46.9,
+            lon_deg: -96.8,
+            alt_amsl_m: 400.0,
+        };
+        assert_eq!(PoseFrame::for_autopilot(None), PoseFrame::LocalFrd);
+        let build = |ap| {
+            let f = PoseFrame::for_autopilot(Some(ap));
+            match odometry(&e, &now(), &o, &OutputConfig::default(), f).unwrap() {
+                MavMessage::ODOMETRY(m) => m,
+                _ => panic!("not ODOMETRY"),
+            }
+        };
+        let px4 = build(MavAutopilot::MAV_AUTOPILOT_PX4);
+        let ap = build(MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA);
+        assert_eq!(px4.frame_id, MavFrame::MAV_FRAME_LOCAL_NED);
+        assert_eq!(ap.frame_id, MavFrame::MAV_FRAME_LOCAL_FRD);
+        assert_eq!(px4.child_frame_id, MavFrame::MAV_FRAME_BODY_FRD);
+        // Only the frame id differs: the north-aligned NED position, the body velocity and the
+        // covariances are the same numbers.
+        assert_eq!((px4.x, px4.y, px4.z), (ap.x, ap.y, ap.z));
+        assert_eq!((px4.vx, px4.vy, px4.vz), (ap.vx, ap.vy, ap.vz));
+        assert_eq!(px4.pose_covariance, ap.pose_covariance);
+        assert_eq!(px4.q, ap.q);
     }
 
     #[test]
@@ -867,7 +934,8 @@ pub(crate) mod tests {
             prop_assert!(g.yaw >= 1 && g.yaw <= 36000);
             prop_assert!(g.lat.abs() <= 900_000_000 && g.lon.abs() <= 1_800_000_000);
             let o = GeoOrigin { lat_deg: lat, lon_deg: lon, alt_amsl_m: alt };
-            let MavMessage::ODOMETRY(m) = odometry(&e, &t, &o, &out).unwrap() else { panic!() };
+            let MavMessage::ODOMETRY(m) = odometry(&e, &t, &o, &out, PoseFrame::LocalNed).unwrap() else { panic!() };
+            prop_assert!(m.frame_id == MavFrame::MAV_FRAME_LOCAL_NED);
             prop_assert!(m.q.iter().chain(m.pose_covariance.iter()).chain(m.velocity_covariance.iter()).all(|v| v.is_finite()));
         }
     }

@@ -557,9 +557,11 @@ impl Shared {
                 OutputMode::VisionPositionEstimate => origin
                     .ok_or(InjectError::NoOrigin)
                     .and_then(|o| inject::vision_position_estimate(est, &now, &o, &self.out)),
-                OutputMode::Odometry => origin
-                    .ok_or(InjectError::NoOrigin)
-                    .and_then(|o| inject::odometry(est, &now, &o, &self.out)),
+                OutputMode::Odometry => origin.ok_or(InjectError::NoOrigin).and_then(|o| {
+                    let ap = lock(&self.state).autopilot.map(|a| a.autopilot);
+                    let frame = inject::PoseFrame::for_autopilot(ap);
+                    inject::odometry(est, &now, &o, &self.out, frame)
+                }),
                 OutputMode::GlobalPositionSensor => {
                     inject::global_position_sensor(est, &now, target, &self.out)
                 }

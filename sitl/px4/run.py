@@ -7,7 +7,7 @@ and report EKF2's position error against the simulator's ground truth.
     python3 sitl/px4/run.py --px4-build ... --no-visnav   # the GPS-off control run
     python3 sitl/px4/run.py --attach        # PX4 SITL (SIH) already running, see docs/
 
-It does not build PX4 (docs/real-sitl-px4-run.md says how it was built and run). Needs pymavlink
+It does not build PX4 (docs/real-sitl.md (PX4 section) says how it was built and run). Needs pymavlink
 (`bash scripts/interop/setup_venv.sh` prints a venv python that has it) and a built visnav
 (`cargo build --release`, or give --visnav). Run with PX4 v1.14 (release/1.14, SIH as SITL),
 built as px4_sitl_nolockstep: with the lockstep build PX4's clock is SIH's simulated time, which
@@ -27,7 +27,7 @@ What runs (all on loopback):
 * `visnav sitl-run --kind px4 --config WORKDIR/visnav.toml --truth udpin:127.0.0.1:TRUTH_PORT
   --ortho sitl/maps/naip_nd_2014.tif` (the camera sees the 2014 image; the map is the 2009 one),
   started once PX4 is armed (--visnav-from: PX4 cannot arm while visnav's velocity wanders on the
-  ground, docs/real-sitl-px4-run.md).
+  ground, docs/real-sitl.md (PX4 section)).
   PX4 has no spare MAVLink port for the truth, so this script asks for HIL_STATE_QUATERNION
   (PX4's ground truth stream) and ATTITUDE (for the time) at 50 Hz on the GCS link and relays both
   packets unchanged to UDP TRUTH_PORT (--truth-port, default 14562: ArduPilot's recipe uses 14551

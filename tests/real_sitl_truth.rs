@@ -19,10 +19,8 @@ use tokio::sync::Mutex;
 use visnav::sitl::camera_sim::TruthFeed;
 use visnav::sitl::real_sitl::{SitlKind, TruthLink, TruthLinkConfig};
 
-fn free_udp_port() -> u16 {
-    let s = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind an ephemeral port");
-    s.local_addr().expect("local address").port()
-}
+mod common;
+use common::free_udp_port;
 
 type Conn = mavlink::AsyncConnection<MavMessage>;
 
@@ -76,6 +74,28 @@ fn play(
     })
 }
 
+/// A simulator-side connection to the truth link on loopback port `port`.
+async fn simulator(port: u16, what: &str) -> Arc<Conn> {
+    Arc::new(
+        mavlink::connect_async::<MavMessage>(&format!("udpout:127.0.0.1:{port}"))
+            .await
+            .unwrap_or_else(|e| panic!("{what}: {e}")),
+    )
+}
+
+/// The truth link of `kind` listening on a free loopback port, and the simulator's side.
+async fn truth_pair(kind: SitlKind) -> (u16, TruthLink, Arc<Conn>) {
+    let port = free_udp_port();
+    let link = TruthLink::start(TruthLinkConfig::new(
+        format!("udpin:127.0.0.1:{port}"),
+        kind,
+    ))
+    .await
+    .expect("truth connection");
+    let conn = simulator(port, "simulator side").await;
+    (port, link, conn)
+}
+
 async fn wait_for<T>(mut f: impl FnMut() -> Option<T>) -> T {
     // The first requests go out at start; udpin learns where to reply from the first datagram,
     // so the first answered request is the one 2 s later.
@@ -90,24 +110,9 @@ async fn wait_for<T>(mut f: impl FnMut() -> Option<T>) -> T {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn ardupilot_simstate_and_sim_state_decode_exactly() {
-    let port = free_udp_port();
-    let link = TruthLink::start(TruthLinkConfig::new(
-        format!("udpin:127.0.0.1:{port}"),
-        SitlKind::ArduPilot,
-    ))
-    .await
-    .expect("truth connection");
-    let conn = Arc::new(
-        mavlink::connect_async::<MavMessage>(&format!("udpout:127.0.0.1:{port}"))
-            .await
-            .expect("simulator side"),
-    );
+    let (port, link, conn) = truth_pair(SitlKind::ArduPilot).await;
     // Another system first, with a different position: must be ignored.
-    let intruder = Arc::new(
-        mavlink::connect_async::<MavMessage>(&format!("udpout:127.0.0.1:{port}"))
-            .await
-            .expect("intruder side"),
-    );
+    let intruder = simulator(port, "intruder side").await;
     let asked = Arc::new(Mutex::new(HashSet::new()));
     let intruder_task = play(
         intruder,
@@ -208,18 +213,7 @@ async fn ardupilot_simstate_and_sim_state_decode_exactly() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn px4_hil_state_quaternion_decodes_exactly() {
-    let port = free_udp_port();
-    let link = TruthLink::start(TruthLinkConfig::new(
-        format!("udpin:127.0.0.1:{port}"),
-        SitlKind::Px4,
-    ))
-    .await
-    .expect("truth connection");
-    let conn = Arc::new(
-        mavlink::connect_async::<MavMessage>(&format!("udpout:127.0.0.1:{port}"))
-            .await
-            .expect("simulator side"),
-    );
+    let (_, link, conn) = truth_pair(SitlKind::Px4).await;
     let (r, p, y) = (0.1f64, 0.05f64, 1.25f64);
     let q = UnitQuaternion::from_euler_angles(r, p, y);
     let qf = [q.w as f32, q.i as f32, q.j as f32, q.k as f32];

@@ -36,6 +36,7 @@ use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
 
 use crate::camera::Attitude;
 use crate::daemon::config::{DaemonConfig, GpsSource};
+use crate::daemon::metrics::reason_wording;
 use crate::fix::{AttitudePriorNed, FixPrior, FixReport, PositionPriorGeo};
 use crate::geo::geoid::geoid_undulation_m;
 use crate::link::inject::offset_geodetic;
@@ -416,18 +417,11 @@ struct GpsRaw {
     vel_acc: u32,
 }
 
-/// The reason text with its numbers removed (to compare wordings).
-fn wording(s: &str) -> String {
-    s.chars()
-        .filter(|c| !(c.is_ascii_digit() || *c == '.'))
-        .collect()
-}
-
 /// Map the filter's health to the injector's, keeping `prev`'s reason while only its numbers
 /// changed (so the link's health STATUSTEXT is sent on a real change only).
 pub fn link_health(h: NavHealth, reason: &str, prev: Option<&LinkHealth>) -> LinkHealth {
     let keep = |p: &str| {
-        if wording(p) == wording(reason) {
+        if reason_wording(p) == reason_wording(reason) {
             p.to_string()
         } else {
             reason.to_string()

@@ -27,6 +27,7 @@ use crate::daemon::fixlog::FixLogRecord;
 use crate::daemon::inputs::{InitSpacing, Inputs, NavInput, vision_measurement};
 use crate::link::Telemetry;
 use crate::nav::{Measurement, NavConfig, NavFilter, Outcome};
+use crate::sitl::fixeval::percentile;
 
 const R_EARTH_M: f64 = 6_378_137.0;
 
@@ -261,14 +262,6 @@ fn apply_meas(
     });
 }
 
-fn percentile(sorted: &[f64], q: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    let i = ((sorted.len() - 1) as f64 * q).round() as usize;
-    sorted[i.min(sorted.len() - 1)]
-}
-
 /// Replay `records` (from [`crate::link::tlog::read_tlog`]), with the vision fixes of a fix log
 /// (`[daemon] fix_log`) given to the filter when they arrived in the recorded flight.
 pub fn replay(
@@ -425,8 +418,7 @@ pub fn replay(
             }
         }
     }
-    for (kind, mut v) in nis {
-        v.sort_by(f64::total_cmp);
+    for (kind, v) in nis {
         if let Some(st) = rep.kinds.get_mut(kind) {
             st.nis_mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
             st.nis_p50 = percentile(&v, 0.5);

@@ -570,6 +570,9 @@ impl NavTask {
 
     /// See [`inputs::InitSpacing`].
     fn init_spacing_ok(&mut self, m: &Measurement) -> bool {
+        if self.filter.is_initialised() {
+            return true; // the common case: no clock read per measurement
+        }
         let gps_recent = self
             .inputs
             .gps_recent(self.link.companion_ns(Instant::now()), 2.0);

@@ -333,8 +333,10 @@ async fn tcp_reconnects_with_backoff() {
     );
     // A silent autopilot on an open TCP connection: reconnect after 3 heartbeat timeouts.
     emu2.set_muted(true);
-    // 3 s of watchdog and < 1 s of backoff normally; 30 s leaves room for a loaded CI machine
-    // (one CI run out of many timed out at 15 s; the message below says where it stood).
+    // 3 s of watchdog and < 1 s of backoff normally; 30 s leaves room for a loaded CI machine.
+    // Two CI runs timed out here: the emulator was muted before its first heartbeat on the new
+    // connection, and the watchdog then only counted silence from a heartbeat (fixed; see
+    // `tcp_peer_that_never_speaks_is_reopened`).
     let waited = tokio::time::timeout(Duration::from_secs(30), async {
         while link
             .metrics()
@@ -438,4 +440,48 @@ async fn signing_is_required_and_honoured() {
             == 0
     );
     link.shutdown().await;
+}
+
+/// A TCP peer that accepts the connection and never sends a heartbeat (a port forwarder whose far
+/// end is gone, or an autopilot that goes quiet before its first heartbeat on a new connection):
+/// the link must reopen it after 3 heartbeat timeouts, not wait for a first heartbeat forever.
+/// CI once caught the second case in `tcp_reconnects_with_backoff` (the muted emulator had not yet
+/// sent a heartbeat on the new connection, and the watchdog only counted from a heartbeat).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tcp_peer_that_never_speaks_is_reopened() {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = listener.local_addr().unwrap().port();
+    let accepts = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+    let counter = accepts.clone();
+    let server = tokio::spawn(async move {
+        let mut held = Vec::new();
+        while let Ok((sock, _)) = listener.accept().await {
+            counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            held.push(sock); // keep it open and silent
+        }
+    });
+    let mut cfg = LinkConfig::new(&format!("tcpout:127.0.0.1:{port}"));
+    cfg.reconnect_min_s = 0.1;
+    cfg.reconnect_max_s = 0.4;
+    cfg.heartbeat_timeout_s = 1.0;
+    let link = Link::start(cfg, OutputConfig::default()).await.unwrap();
+    // 3 s of watchdog per connection; 30 s leaves room for a loaded machine.
+    let reopened = tokio::time::timeout(Duration::from_secs(30), async {
+        while accepts.load(std::sync::atomic::Ordering::Relaxed) < 2 {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    let connects = link
+        .metrics()
+        .connects
+        .load(std::sync::atomic::Ordering::Relaxed);
+    link.shutdown().await;
+    server.abort();
+    assert!(
+        reopened.is_ok(),
+        "a silent TCP peer was never reopened: accepts {}, link connects {connects}",
+        accepts.load(std::sync::atomic::Ordering::Relaxed)
+    );
+    assert!(connects >= 2, "link connects {connects}");
 }

@@ -1009,17 +1009,20 @@ async fn run_connection(shared: &Arc<Shared>, conn: Arc<Conn>, stop: &mut watch:
         }
     };
     // Stream transports (TCP, serial) can stay open while the autopilot is gone (half-open TCP,
-    // a rebooted USB bridge): reopen them after 3 heartbeat timeouts of silence.
+    // a rebooted USB bridge): reopen them after 3 heartbeat timeouts of silence. Silence counts
+    // from the last heartbeat on *this* connection, or from its opening when none has come yet:
+    // a peer that accepts the connection and never speaks (or goes quiet before its first
+    // heartbeat) must not hold the link open forever.
     let stream_transport = !shared.cfg.connection.starts_with("udp");
+    let opened = Instant::now();
     let watchdog = async {
         loop {
             tokio::time::sleep(Duration::from_millis(250)).await;
             let silent_s = lock(&shared.state)
                 .last_heartbeat
-                .map(|h| h.elapsed().as_secs_f64());
-            if stream_transport
-                && silent_s.is_some_and(|s| s > 3.0 * shared.cfg.heartbeat_timeout_s)
-            {
+                .map_or_else(|| opened.elapsed(), |h| h.elapsed())
+                .as_secs_f64();
+            if stream_transport && silent_s > 3.0 * shared.cfg.heartbeat_timeout_s {
                 warn!("no autopilot heartbeat on the open connection; reconnecting");
                 return;
             }

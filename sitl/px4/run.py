@@ -46,12 +46,9 @@ WORKDIR/samples.json.
 """
 
 import argparse
-import json
-import math
 import os
 import shutil
 import signal
-import statistics
 import struct
 import subprocess
 import sys
@@ -66,29 +63,16 @@ except ImportError:
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.abspath(os.path.join(HERE, "..", ".."))
-# Centre of sitl/maps/naip_nd_2009.tif (EPSG:26914 x 488235, y 5207437), ground ~580 m AMSL.
-HOME_LAT, HOME_LON, HOME_ALT_M = 47.0203485, -99.1548094, 580.0
+sys.path.insert(0, os.path.dirname(HERE))
+import sitl_common  # noqa: E402
+from sitl_common import (HOME_ALT_M, HOME_LAT, HOME_LON, ErrorScore, finish_run,  # noqa: E402
+                         metres_per_deg)
 GCS_PORT = 14550
 STOP = None  # set by SIGTERM/SIGINT/SIGHUP during the flight
 
 
 def log(msg):
     print(f"[px4 run.py {time.strftime('%H:%M:%S')}] {msg}", flush=True)
-
-
-def metres_per_deg(lat_deg):
-    p = math.radians(lat_deg)
-    return (111132.954 - 559.822 * math.cos(2 * p) + 1.175 * math.cos(4 * p),
-            111412.84 * math.cos(p) - 93.5 * math.cos(3 * p))
-
-
-def stats(v):
-    if not v:
-        return None
-    s = sorted(v)
-    p90 = s[min(len(s) - 1, int(math.ceil(0.9 * len(s))) - 1)]
-    return {"n": len(s), "median_m": round(statistics.median(s), 2), "p90_m": round(p90, 2),
-            "max_m": round(s[-1], 2)}
 
 
 def read_params(path):
@@ -136,31 +120,8 @@ def start_px4(args, workdir, params):
 
 
 def start_visnav(args, workdir):
-    exe = args.visnav
-    if exe is None:
-        for c in ("target/release/visnav", "target/debug/visnav"):
-            if os.path.exists(os.path.join(REPO, c)):
-                exe = os.path.join(REPO, c)
-                break
-    if exe is None:
-        sys.exit("no visnav binary: cargo build --release, or give --visnav")
-    exe = os.path.abspath(exe)
-    # The config, copied into the work folder with absolute map paths and a .tlog of all link
-    # traffic (`visnav replay` runs it through the filter offline).
-    text = open(args.config).read()
-    text = text.replace('"../maps/', '"' + os.path.join(REPO, "sitl", "maps") + "/")
-    text = text.replace("[link]\n", '[link]\ntlog = "visnav.tlog"\n', 1)
-    config = os.path.join(workdir, "visnav.toml")
-    with open(config, "w") as f:
-        f.write(text)
-    cmd = [exe, "sitl-run", "--kind", "px4", "--config", config,
-           "--truth", f"udpin:127.0.0.1:{args.truth_port}",
-           "--ortho", os.path.join(REPO, "sitl", "maps", "naip_nd_2014.tif"),
-           "--rate-hz", str(args.camera_hz)]
-    log("visnav: " + " ".join(cmd))
-    return subprocess.Popen(cmd, cwd=workdir, stdout=open(os.path.join(workdir, "visnav.json"), "w"),
-                            stderr=open(os.path.join(workdir, "visnav.log"), "w"),
-                            start_new_session=True)
+    return sitl_common.start_visnav(args.visnav, args.config, workdir, "px4", args.truth_port,
+                                    args.camera_hz, REPO, log)
 
 
 def is_autopilot(m, hb):
@@ -405,9 +366,12 @@ def main():
         n = upload_mission(m, args.mission)
         log(f"mission: {n} items")
         last_seq = n - 1
-        armed = False
+        # Arm and start until PX4 is armed *in* MISSION mode: PX4 checks an uploaded mission
+        # asynchronously, and a start that comes first is denied ("Mission start denied! No valid
+        # mission") while the copter stays armed in LOITER (and then disarms): start again.
+        armed = in_mission = False
         t_arm = time.time()
-        while not armed:
+        while not (armed and in_mission):
             if time.time() - t_arm > 60:
                 sys.exit("could not arm and start the mission within 60 s")
             m.mav.command_long_send(m.target_system, m.target_component,
@@ -424,6 +388,9 @@ def main():
                 on(r, time.time())
                 if r.get_type() == "HEARTBEAT" and is_autopilot(m, r):
                     armed = bool(r.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                    in_mission = mavutil.mode_string_v10(r) == "MISSION"
+                    if armed and in_mission:
+                        break
         log("armed, mission started")
         if not args.no_visnav and args.visnav_from == "armed":
             # visnav's ODOMETRY velocity wanders by 0.5-3 m/s while the copter stands on the
@@ -435,8 +402,7 @@ def main():
                 sys.exit(f"cannot set EKF2_EV_CTRL = {ev_ctrl}")
             log(f"EKF2_EV_CTRL = {ev_ctrl}: EKF2 fuses visnav's ODOMETRY from now on")
         in_flight = True
-        errs = {"gps_on": ([], []), "gps_off": ([], [])}
-        samples = []
+        score = ErrorScore("EKF2", log)
         t_fly = time.time()
         t_gps_off = None
         reached = -1
@@ -494,58 +460,23 @@ def main():
                 tr = truth.at(now)
                 if tr is None:
                     continue
-                lat_t, lon_t, alt_t = tr
-                m_lat, m_lon = metres_per_deg(lat_t)
-                dn = (r.lat * 1e-7 - lat_t) * m_lat
-                de = (r.lon * 1e-7 - lon_t) * m_lon
-                eh = math.hypot(dn, de)
-                ev = r.alt * 1e-3 - alt_t
-                agl = alt_t - HOME_ALT_M
+                agl = tr[2] - HOME_ALT_M
                 if t_gps_off is None and args.gps_off_alt is not None and agl > args.gps_off_alt:
                     t_gps_off = gps_off(f"{agl:.0f} m above home")
                     continue
-                phase = "gps_off" if t_gps_off is not None else "gps_on"
-                if agl > 5:
-                    errs[phase][0].append(eh)
-                    errs[phase][1].append(abs(ev))
-                samples.append([round(now - t_fly, 2), phase, round(agl, 1), round(dn, 2),
-                                round(de, 2), round(ev, 2)])
-                if len(samples) % 100 == 0:
-                    log(f"t {now - t_fly:.0f} s {phase} agl {agl:.0f} m: EKF2 error "
-                        f"horizontal {eh:.1f} m vertical {ev:+.1f} m")
+                score.add(now - t_fly, t_gps_off is not None, r.lat * 1e-7, r.lon * 1e-7,
+                          r.alt * 1e-3, *tr)
         report.update({
             "ended": why,
             "flight_s": round(time.time() - t_fly, 1),
             "gps_off_after_s": None if t_gps_off is None else round(t_gps_off - t_fly, 1),
             "last_mission_item_reached": reached,
             "modes": modes,
-            "ekf2_error": {ph: {"horizontal": stats(h), "vertical": stats(v)}
-                           for ph, (h, v) in errs.items()},
+            "ekf2_error": score.summary(),
         })
-        with open(os.path.join(workdir, "samples.json"), "w") as f:
-            json.dump(samples, f)
+        score.save(workdir)
     finally:
-        for name, p in procs:
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGINT if name == "visnav" else signal.SIGTERM)
-        for name, p in procs:
-            try:
-                p.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
-        vj = os.path.join(workdir, "visnav.json")
-        if os.path.exists(vj):
-            try:
-                with open(vj) as f:
-                    lines = [ln for ln in f if ln.strip()]
-                if lines:
-                    report["visnav"] = json.loads(lines[-1])
-            except ValueError:
-                pass
-        with open(os.path.join(workdir, "report.json"), "w") as f:
-            json.dump(report, f, indent=1)
-        print(json.dumps(report, indent=1))
-        log(f"report: {os.path.join(workdir, 'report.json')}")
+        finish_run(procs, workdir, report, log)
 
 
 if __name__ == "__main__":

@@ -23,28 +23,16 @@ import argparse
 import bisect
 import json
 import math
-import statistics
+import os
 import sys
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from sitl_common import metres_per_deg, stats  # noqa: E402
 
 try:
     from pyulog import ULog
 except ImportError:
     sys.exit("ulog_error.py needs pyulog: python3 -m pip install pyulog")
-
-
-def metres_per_deg(lat_deg):
-    p = math.radians(lat_deg)
-    return (111132.954 - 559.822 * math.cos(2 * p) + 1.175 * math.cos(4 * p),
-            111412.84 * math.cos(p) - 93.5 * math.cos(3 * p))
-
-
-def stats(v):
-    if not v:
-        return None
-    s = sorted(v)
-    p90 = s[min(len(s) - 1, int(math.ceil(0.9 * len(s))) - 1)]
-    return {"n": len(s), "median_m": round(statistics.median(s), 2), "p90_m": round(p90, 2),
-            "max_m": round(s[-1], 2)}
 
 
 def topic(ulog, name):

@@ -28,6 +28,19 @@ fn naip_cross_date_fixes_with_prior() {
     eprintln!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
     // Integrity first: no accepted fix outside its 3-sigma bounds on any axis.
     assert_eq!(s.beyond_3_sigma, 0, "accepted fixes beyond 3 sigma");
+    // The image-only pose ([nav] vision_attitude fuses it) is honest jointly, all six degrees of
+    // freedom: measured NEES mean 6.6 (chi-square 6 dof: 6), none beyond the 99 % quantile.
+    assert!(
+        (3.0..=10.0).contains(&s.vision_only_nees6_mean),
+        "image-only pose NEES mean {}",
+        s.vision_only_nees6_mean
+    );
+    assert!(
+        s.vision_only_beyond_chi2_99 * 10 <= s.accepted,
+        "{} of {} image-only poses beyond the chi-square(6) 99 % quantile",
+        s.vision_only_beyond_chi2_99,
+        s.accepted
+    );
     // Regression guards below today's measurement (22/40 accepted, median 4.7 map px); the
     // issue's targets (90 %, 0.5 map px) are not met on this scene, see docs/fix.md.
     assert!(s.fix_rate >= 0.4, "fix rate {}", s.fix_rate);

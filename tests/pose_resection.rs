@@ -625,3 +625,64 @@ fn understated_pixel_sigma_is_rejected_by_sigma0() {
         fix.quality.sigma0
     );
 }
+
+/// The vision-only pose and its full 6x6 covariance (what the navigation filter fuses when
+/// `[nav] vision_attitude` is on) are consistent *jointly*, in the filter's sign convention:
+/// `psi` with `R_est = Exp(psi) R_true` and `dC = C_est - C_true`, ordered `[psi, dC]` like the
+/// covariance. Over flat-ish ground the position and tilt errors are strongly correlated, so a
+/// wrong sign of the cross-covariance would give a NEES far above 6 (checked below too).
+#[test]
+fn vision_only_six_dof_covariance_is_honest_monte_carlo() {
+    use nalgebra::{Matrix6, Vector6};
+    let mut rng = Rng::new(11);
+    let cfg = ResectionConfig::default();
+    let trials = 200;
+    let (mut sum, mut sum_flipped, mut max_corr) = (0.0, 0.0, 0.0_f64);
+    for t in 0..trials {
+        let sc = SceneConfig {
+            height_agl_m: rng.range(1000.0, 2500.0),
+            tilt_rad: if t % 2 == 0 { 0.0 } else { rng.range(0.2, 0.6) },
+            yaw_rad: rng.range(-3.0, 3.0),
+            n: 150,
+            outlier_ratio: 0.3,
+            ..Default::default()
+        };
+        let scene = make_scene(&sc, &mut rng);
+        // An attitude prior (0.5 deg) is fused into `pose`; `vision_pose` must not contain it.
+        let priors = correct_priors(&scene);
+        let out = resect(&scene.corrs, &scene.image, &priors, &cfg);
+        let fix = out
+            .accepted()
+            .unwrap_or_else(|| panic!("trial {t}: {}", out.verdict));
+        let v = &fix.vision_pose;
+        let psi = (v.r_world_cam * scene.truth.r_world_cam.inverse()).scaled_axis();
+        let dc = v.c_world - scene.truth.c_world;
+        let e = Vector6::new(psi.x, psi.y, psi.z, dc.x, dc.y, dc.z);
+        let cov: Matrix6<f64> = fix.vision_covariance.conservative();
+        let inv = cov.try_inverse().unwrap();
+        sum += (e.transpose() * inv * e)[0];
+        let ef = Vector6::new(-psi.x, -psi.y, -psi.z, dc.x, dc.y, dc.z);
+        sum_flipped += (ef.transpose() * inv * ef)[0];
+        for i in 0..3 {
+            for j in 3..6 {
+                max_corr = max_corr.max((cov[(i, j)] / (cov[(i, i)] * cov[(j, j)]).sqrt()).abs());
+            }
+        }
+    }
+    let mean = sum / trials as f64;
+    let flipped = sum_flipped / trials as f64;
+    eprintln!(
+        "6-dof NEES mean {mean:.2} (expect <= 6), with the attitude sign flipped {flipped:.1}; \
+         largest position/attitude correlation {max_corr:.3}"
+    );
+    // Mean of 200 chi2(6) samples: sd 0.24; the conservative covariance pulls it below 6.
+    assert!((4.5..=7.0).contains(&mean), "6-dof NEES mean {mean}");
+    assert!(
+        max_corr > 0.5,
+        "expected strong position/tilt correlation, max {max_corr}"
+    );
+    assert!(
+        flipped > 2.0 * mean,
+        "the sign test cannot tell: {flipped} vs {mean}"
+    );
+}

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::fix::FixReport;
+use crate::fix::{FixReport, VisionOnlyPose};
 
 /// One fix result.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -43,6 +43,9 @@ pub struct FixLogRecord {
     pub inliers: usize,
     /// Reprojection RMS, px.
     pub reproj_rms_px: Option<f64>,
+    /// The image-only pose with its 6x6 covariance (logs written before it existed lack it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vision_only: Option<VisionOnlyPose>,
 }
 
 impl FixLogRecord {
@@ -71,6 +74,7 @@ impl FixLogRecord {
             cov_ned_m2: cov.iter().flatten().all(|v| v.is_finite()).then_some(cov),
             inliers: report.inliers,
             reproj_rms_px: f(report.reproj_rms_px),
+            vision_only: report.vision_only.filter(VisionOnlyPose::is_finite),
         }
     }
 
@@ -90,6 +94,7 @@ impl FixLogRecord {
         r.cov_ned_m2 = self.cov_ned_m2.unwrap_or([[f64::NAN; 3]; 3]);
         r.inliers = self.inliers;
         r.reproj_rms_px = n(self.reproj_rms_px);
+        r.vision_only = self.vision_only;
         r
     }
 }
@@ -149,6 +154,21 @@ mod tests {
         good.cov_ned_m2 = [[25.0, 1.0, 0.0], [1.0, 30.0, 0.0], [0.0, 0.0, 90.0]];
         good.inliers = 40;
         good.reproj_rms_px = 1.2;
+        let mut cov6 = [[0.0; 6]; 6];
+        for (i, row) in cov6.iter_mut().enumerate() {
+            row[i] = if i < 3 { 400.0 } else { 1e-4 };
+        }
+        cov6[1][3] = 0.19;
+        cov6[3][1] = 0.19;
+        good.vision_only = Some(crate::fix::VisionOnlyPose {
+            lat_deg: 47.0001,
+            lon_deg: -99.0001,
+            h_ellip_m: 2401.0,
+            roll_deg: 1.0,
+            pitch_deg: -2.0,
+            yaw_deg: 91.0,
+            cov6_ned: cov6,
+        });
         let bad = FixReport::rejected("only 3 features in the frame", 5_500_000, 12.0);
         let mut log = FixLog::create(&p).unwrap();
         let r1 = FixLogRecord::new(1_700_000_000_000_000, 7, 30, &good, "accepted");
@@ -161,6 +181,10 @@ mod tests {
         assert_eq!(back[1].lat_deg, None);
         let rep = back[0].report();
         assert!(rep.accepted && rep.lat_deg == 47.0 && rep.cov_ned_m2[1][1] == 30.0);
+        assert_eq!(rep.vision_only, good.vision_only, "image-only pose kept");
+        // A log written before the image-only pose existed still reads.
+        let old = r#"{"arrival_unix_us":1,"t_capture_us":2,"seq":3,"latency_ms":4,"accepted":false,"reason":"x","outcome":"engine_rejected","lat_deg":null,"lon_deg":null,"h_ellip_m":null,"alt_amsl_m":null,"cov_ned_m2":null,"inliers":0,"reproj_rms_px":null}"#;
+        assert_eq!(read_fix_log(old).unwrap()[0].vision_only, None);
         assert!(back[1].report().lat_deg.is_nan());
         let e = read_fix_log("{\"arrival_unix_us\": 1}\nnot json\n").unwrap_err();
         assert!(e.starts_with("line 1"), "{e}");

@@ -43,7 +43,7 @@ use crate::link::inject::offset_geodetic;
 use crate::link::{Health as LinkHealth, NavEstimate, Telemetry};
 use crate::nav::{
     AltitudeFix, AttitudeFix, Health as NavHealth, ImuSample, Measurement, NavConfig, NavOutput,
-    PositionFix, VelocityFix,
+    PoseFix, PositionFix, VelocityFix,
 };
 
 /// A lower-priority IMU message is ignored while a higher-priority one arrived this recently, s.
@@ -55,6 +55,10 @@ pub const ATT_RATES_MAX_AGE_US: u64 = 60_000;
 pub const REBOOT_BACKSTEP_US: u64 = 100_000;
 
 /// What one telemetry message means for the filter.
+// A pose fix (6x6 covariance) is about 400 bytes, the others under 110: measurements are few
+// per second and short-lived (the late-measurement history keeps a few seconds), so they stay
+// unboxed and `Copy`.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, PartialEq)]
 pub enum NavInput {
     /// An IMU sample.
@@ -567,8 +571,14 @@ pub fn prior_at(
     prior
 }
 
-/// Why an engine report is not turned into a measurement.
-pub fn vision_measurement(r: &FixReport, t_capture_us: u64) -> Result<Measurement, String> {
+/// The measurement of an accepted engine report (or why it gives none): the position fix, or
+/// with `with_attitude` (`[nav] vision_attitude`) and an image-only pose in the report, that pose
+/// with its 6x6 covariance (`Measurement::VisionPose`).
+pub fn vision_measurement(
+    r: &FixReport,
+    t_capture_us: u64,
+    with_attitude: bool,
+) -> Result<Measurement, String> {
     if !r.accepted {
         return Err(r.reason.clone());
     }
@@ -581,14 +591,37 @@ pub fn vision_measurement(r: &FixReport, t_capture_us: u64) -> Result<Measuremen
         let n = geoid_undulation_m(r.lat_deg, r.lon_deg).map_err(|e| e.to_string())?;
         r.alt_amsl_m + n
     };
-    let c = r.cov_ned();
-    let m = Measurement::Vision(PositionFix {
-        t_capture_us,
-        lat_rad: r.lat_deg.to_radians(),
-        lon_rad: r.lon_deg.to_radians(),
-        h_m: h,
-        cov_ned_m2: (c + c.transpose()) * 0.5,
-    });
+    let m = match r.vision_only.filter(|v| with_attitude && v.is_finite()) {
+        Some(v) => {
+            let c6 = v.cov6();
+            let c6 = (c6 + c6.transpose()) * 0.5;
+            Measurement::VisionPose(PoseFix {
+                position: PositionFix {
+                    t_capture_us,
+                    lat_rad: v.lat_deg.to_radians(),
+                    lon_rad: v.lon_deg.to_radians(),
+                    h_m: v.h_ellip_m,
+                    cov_ned_m2: c6.fixed_view::<3, 3>(0, 0).into_owned(),
+                },
+                q_nb: UnitQuaternion::from_euler_angles(
+                    v.roll_deg.to_radians(),
+                    v.pitch_deg.to_radians(),
+                    v.yaw_deg.to_radians(),
+                ),
+                cov6: c6,
+            })
+        }
+        None => {
+            let c = r.cov_ned();
+            Measurement::Vision(PositionFix {
+                t_capture_us,
+                lat_rad: r.lat_deg.to_radians(),
+                lon_rad: r.lon_deg.to_radians(),
+                h_m: h,
+                cov_ned_m2: (c + c.transpose()) * 0.5,
+            })
+        }
+    };
     m.check()
         .map_err(|e| format!("accepted report unusable: {e}"))?;
     Ok(m)
@@ -869,14 +902,17 @@ mod tests {
     #[test]
     fn report_to_measurement() {
         let mut r = FixReport::rejected("too few inliers", 5, 1.0);
-        assert_eq!(vision_measurement(&r, 5).unwrap_err(), "too few inliers");
+        assert_eq!(
+            vision_measurement(&r, 5, false).unwrap_err(),
+            "too few inliers"
+        );
         r.accepted = true;
-        assert!(vision_measurement(&r, 5).is_err(), "NaN position");
+        assert!(vision_measurement(&r, 5, false).is_err(), "NaN position");
         r.lat_deg = 47.0;
         r.lon_deg = -97.0;
         r.alt_amsl_m = 800.0;
         r.cov_ned_m2 = [[4.0, 0.0, 0.0], [0.0, 4.0, 0.0], [0.0, 0.0, 9.0]];
-        let Measurement::Vision(f) = vision_measurement(&r, 7).unwrap() else {
+        let Measurement::Vision(f) = vision_measurement(&r, 7, false).unwrap() else {
             panic!()
         };
         assert_eq!(f.t_capture_us, 7);
@@ -887,16 +923,51 @@ mod tests {
             "h from AMSL + N when h_ellip is NaN"
         );
         r.h_ellip_m = 780.0;
-        let Measurement::Vision(f) = vision_measurement(&r, 7).unwrap() else {
+        let Measurement::Vision(f) = vision_measurement(&r, 7, false).unwrap() else {
             panic!()
         };
         assert_eq!(f.h_m, 780.0);
         r.cov_ned_m2[0][0] = -1.0;
         assert!(
-            vision_measurement(&r, 7)
+            vision_measurement(&r, 7, false)
                 .unwrap_err()
                 .contains("covariance")
         );
+        // With `[nav] vision_attitude` and an image-only pose: that pose, its 6x6 covariance.
+        r.cov_ned_m2[0][0] = 4.0;
+        let mut cov6 = [[0.0; 6]; 6];
+        for (i, row) in cov6.iter_mut().enumerate() {
+            row[i] = if i < 3 { 900.0 } else { 3e-4 };
+        }
+        cov6[1][3] = 0.5; // east position with the tilt about north
+        cov6[3][1] = 0.5;
+        r.vision_only = Some(crate::fix::VisionOnlyPose {
+            lat_deg: 47.001,
+            lon_deg: -97.0,
+            h_ellip_m: 790.0,
+            roll_deg: 2.0,
+            pitch_deg: 0.0,
+            yaw_deg: 90.0,
+            cov6_ned: cov6,
+        });
+        let Measurement::VisionPose(p) = vision_measurement(&r, 7, true).unwrap() else {
+            panic!("a pose measurement")
+        };
+        assert!((p.position.lat_rad - 47.001f64.to_radians()).abs() < 1e-15);
+        assert_eq!(p.position.h_m, 790.0);
+        assert_eq!(p.position.cov_ned_m2[(1, 1)], 900.0);
+        assert_eq!(p.cov6[(1, 3)], 0.5);
+        assert!((p.q_nb.euler_angles().0 - 2f64.to_radians()).abs() < 1e-12);
+        // Without the option the prior-fused position as before.
+        assert!(matches!(
+            vision_measurement(&r, 7, false),
+            Ok(Measurement::Vision(f)) if f.h_m == 780.0
+        ));
+        // A covariance that is not positive definite is refused.
+        cov6[1][3] = 1e3;
+        cov6[3][1] = 1e3;
+        r.vision_only.as_mut().unwrap().cov6_ned = cov6;
+        assert!(vision_measurement(&r, 7, true).is_err());
     }
 
     #[test]

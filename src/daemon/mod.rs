@@ -530,7 +530,11 @@ impl NavTask {
 
     fn fix(&mut self, f: FixResult) {
         let m = self.metrics.clone();
-        let outcome = match inputs::vision_measurement(&f.report, f.t_capture_us) {
+        let outcome = match inputs::vision_measurement(
+            &f.report,
+            f.t_capture_us,
+            self.filter.config().vision_attitude,
+        ) {
             Err(reason) => {
                 m.engine_reject(&reason);
                 "engine_rejected"

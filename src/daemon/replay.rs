@@ -145,6 +145,7 @@ pub struct ReplayReport {
 fn kind_of(m: &Measurement, att_tilt: bool) -> (&'static str, u32) {
     match m {
         Measurement::Vision(_) => ("vision", 3),
+        Measurement::VisionPose(_) => ("vision_pose", 6),
         Measurement::GpsPosition(_) => ("gps_position", 3),
         Measurement::GpsVelocity(_) => ("gps_velocity", 3),
         Measurement::Altitude(_) => ("altitude", 1),
@@ -180,7 +181,11 @@ fn innovation(filter: &NavFilter, m: &Measurement) -> ([f64; 3], [f64; 3], [f64;
         return (nan, nan, nan);
     };
     match m {
-        Measurement::Vision(f) | Measurement::GpsPosition(f) => {
+        Measurement::Vision(_) | Measurement::GpsPosition(_) | Measurement::VisionPose(_) => {
+            // Position part only (the CSV has three innovation columns).
+            let Some((f, _)) = m.position_fix() else {
+                return (nan, nan, nan);
+            };
             let lat0 = o.lat_deg.to_radians();
             let d = [
                 (f.lat_rad - lat0) * R_EARTH_M,
@@ -290,7 +295,8 @@ pub fn replay(
         // Vision fixes that arrived before this packet.
         while let Some(fx) = fixes.next_if(|f| f.arrival_unix_us <= *unix_us) {
             rep.vision_results += 1;
-            let Ok(m) = vision_measurement(&fx.report(), fx.t_capture_us) else {
+            let Ok(m) = vision_measurement(&fx.report(), fx.t_capture_us, opts.nav.vision_attitude)
+            else {
                 continue;
             };
             if !filter.is_initialised() {

@@ -764,6 +764,7 @@ impl FixEngine {
             inliers: fix.quality.inliers,
             matches: 0,
             reproj_rms_px: fix.quality.reprojection_rms_px,
+            vision_only: self.vision_only_pose(local, fix, &r_ned_enu),
             level: 0,
             ms: 0.0,
         };
@@ -784,6 +785,41 @@ impl FixEngine {
             return Err("fix has non-finite values".into());
         }
         Ok(r)
+    }
+
+    /// The image-only pose of `fix` in geodetic / NED terms, its 6x6 covariance reordered to
+    /// `[position NED, attitude NED]` (the pose module orders `[phi, C]` in the local ENU frame
+    /// and uses the same error signs as the filter: `tests/pose_resection.rs` checks them). None
+    /// when a number is not finite.
+    fn vision_only_pose(
+        &self,
+        local: &LocalFrame,
+        fix: &crate::pose::Fix,
+        r_ned_enu: &nalgebra::Rotation3<f64>,
+    ) -> Option<super::VisionOnlyPose> {
+        let geo = local.enu_to_geodetic(&fix.vision_pose.c_world).ok()?;
+        let att = self
+            .camera
+            .mount
+            .attitude_from_r_ned_cam(&(r_ned_enu * fix.vision_pose.r_world_cam));
+        let c = fix.vision_covariance.conservative();
+        let r = r_ned_enu.matrix();
+        // Rotate both 3-blocks into NED and swap them: [phi, C] -> [C, phi].
+        let mut t = nalgebra::Matrix6::<f64>::zeros();
+        t.fixed_view_mut::<3, 3>(0, 3).copy_from(r);
+        t.fixed_view_mut::<3, 3>(3, 0).copy_from(r);
+        let cov = t * c * t.transpose();
+        let cov = (cov + cov.transpose()) * 0.5;
+        let v = super::VisionOnlyPose {
+            lat_deg: geo.lat_deg,
+            lon_deg: geo.lon_deg,
+            h_ellip_m: geo.h_ellip_m,
+            roll_deg: att.roll_rad.to_degrees(),
+            pitch_deg: att.pitch_rad.to_degrees(),
+            yaw_deg: att.yaw_rad.to_degrees(),
+            cov6_ned: std::array::from_fn(|i| std::array::from_fn(|j| cov[(i, j)])),
+        };
+        v.is_finite().then_some(v)
     }
 
     /// Global relocalisation: no position prior. The altitude is unknown, so every level is tried

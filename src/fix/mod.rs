@@ -16,8 +16,8 @@
 //!
 //! Types here are the interface the daemon and the CLI use ([`FixPrior`] in, [`FixReport`] out).
 
-use nalgebra::Matrix3;
-use serde::Serialize;
+use nalgebra::{Matrix3, Matrix6};
+use serde::{Deserialize, Serialize};
 
 use crate::camera::Attitude;
 
@@ -96,10 +96,61 @@ pub struct FixReport {
     pub inliers: usize,
     pub matches: usize,
     pub reproj_rms_px: f64,
+    /// The image-only pose and its full covariance (no attitude prior in it); `None` when no
+    /// pose was computed. The pose above fuses the attitude prior when `[fix.pose.refine]
+    /// use_attitude_prior` is on; a filter that supplied that prior fuses this one instead.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub vision_only: Option<VisionOnlyPose>,
     /// Map pyramid level used.
     pub level: usize,
     /// Wall time from frame to fix, milliseconds.
     pub ms: f64,
+}
+
+/// The camera pose from the image alone, with the covariance of all six degrees of freedom.
+///
+/// Over flat ground seen by a narrow or near-nadir camera, a small tilt and a horizontal shift of
+/// the camera move the image almost alike: the position and the tilt of this pose are each
+/// uncertain along that direction but tightly correlated (|rho| above 0.99 is common). Fusing
+/// both with their correlation lets a navigation filter use its own tilt knowledge once.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct VisionOnlyPose {
+    /// Camera projection centre, geodetic, degrees.
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+    /// Height above the WGS84 ellipsoid, m.
+    pub h_ellip_m: f64,
+    /// Vehicle attitude (body FRD to NED, aerospace ZYX) from the camera attitude through the
+    /// camera mount, degrees.
+    pub roll_deg: f64,
+    pub pitch_deg: f64,
+    pub yaw_deg: f64,
+    /// Covariance of `[position error NED (m, 3), attitude error (rad, 3)]`, row-major 6x6. The
+    /// attitude error is the NED rotation vector `psi` with `R_estimate = Exp(psi) R_true`, the
+    /// position error `estimate - true`: the navigation filter's error convention.
+    pub cov6_ned: [[f64; 6]; 6],
+}
+
+impl VisionOnlyPose {
+    /// The covariance as a matrix.
+    pub fn cov6(&self) -> Matrix6<f64> {
+        Matrix6::from_fn(|r, c| self.cov6_ned[r][c])
+    }
+
+    /// All numbers finite.
+    pub fn is_finite(&self) -> bool {
+        [
+            self.lat_deg,
+            self.lon_deg,
+            self.h_ellip_m,
+            self.roll_deg,
+            self.pitch_deg,
+            self.yaw_deg,
+        ]
+        .iter()
+        .chain(self.cov6_ned.iter().flatten())
+        .all(|v| v.is_finite())
+    }
 }
 
 impl FixReport {
@@ -125,6 +176,7 @@ impl FixReport {
             inliers: 0,
             matches: 0,
             reproj_rms_px: f64::NAN,
+            vision_only: None,
             level: 0,
             ms,
         }

@@ -369,6 +369,14 @@ pub struct NavConfig {
     /// error stays. Each fix's covariance is multiplied by `max(1, tau / dt)`, `dt` the time
     /// since the last applied vision fix (the information of one independent fix per `tau`).
     pub vision_error_corr_time_s: f64,
+    /// Fuse each vision fix as a full pose: the image-only position and attitude with their 6x6
+    /// covariance (`fix::VisionOnlyPose`), instead of the position alone. The position of a fix
+    /// is computed with the filter's attitude as a prior, so over flat ground (position and tilt
+    /// correlated above 0.99) it carries the filter's own tilt error back into the filter as if
+    /// confirmed; the joint pose does not, and it makes the tilt and heading observable at every
+    /// fix (what a noisy gyro needs). Fixes whose report has no image-only pose are fused as
+    /// positions.
+    pub vision_attitude: bool,
     /// Camera projection centre in the body frame (FRD, metres from the IMU, the point the
     /// filter's position refers to): vision fixes are positions of this point. Not set: the
     /// caller fills it from `[camera.mount] lever_arm_body_frd_m`
@@ -400,6 +408,7 @@ impl Default for NavConfig {
             attitude_sigma_yaw_deg: 3.0,
             max_imu_gap_s: 0.1,
             vision_error_corr_time_s: 0.0,
+            vision_attitude: false,
             camera_lever_arm_body_frd_m: None,
             gps_lever_arm_body_frd_m: [0.0; 3],
             imu: ImuNoiseConfig::default(),

@@ -234,6 +234,7 @@ struct Params {
     q_bg: f64,
     q_ba: f64,
     gate_vision: f64,
+    gate_vision6: f64,
     vision_corr_s: f64,
     gate_gps3: f64,
     gate_alt: f64,
@@ -314,6 +315,7 @@ impl NavFilter {
                 imu.accel_bias_rw_si(),
             ),
             gate_vision: chi2_quantile(3.0, cfg.gates.vision_prob),
+            gate_vision6: chi2_quantile(6.0, cfg.gates.vision_prob),
             vision_corr_s: cfg.vision_error_corr_time_s,
             gate_gps3: chi2_quantile(3.0, cfg.gates.gps_prob),
             gate_alt: chi2_quantile(1.0, cfg.gates.altitude_prob),
@@ -578,7 +580,7 @@ impl NavFilter {
 
     fn type_counters(&mut self, m: &Measurement) -> &mut TypeCounters {
         match m {
-            Measurement::Vision(_) => &mut self.counters.vision,
+            Measurement::Vision(_) | Measurement::VisionPose(_) => &mut self.counters.vision,
             Measurement::GpsPosition(_) => &mut self.counters.gps_position,
             Measurement::GpsVelocity(_) => &mut self.counters.gps_velocity,
             Measurement::Altitude(_) => &mut self.counters.altitude,
@@ -611,7 +613,7 @@ impl NavFilter {
             self.type_counters(&m).invalid += 1;
             return Outcome::Invalid("capture time more than 0.2 s after the latest IMU sample");
         }
-        let is_pos = matches!(m, Measurement::Vision(_) | Measurement::GpsPosition(_));
+        let is_pos = m.position_fix().is_some();
         let out = if t_c >= cur_t || self.history.back().is_some_and(|e| t_c >= e.pre.t_us) {
             // On time: apply at the current epoch.
             let par = self.par.clone();
@@ -695,7 +697,7 @@ impl NavFilter {
     }
 
     fn divergence_reset(&mut self, m: &Measurement) {
-        let (Measurement::Vision(f) | Measurement::GpsPosition(f)) = m else {
+        let Some((f, is_vision)) = m.position_fix() else {
             return;
         };
         let Some(core) = self.core.as_mut() else {
@@ -708,7 +710,7 @@ impl NavFilter {
         tracing::warn!("nav filter divergence: {reason}");
         let dt = dt_s(f.t_capture_us, core.t_us);
         let v = core.ins.state.v_ned_m_s;
-        let l = if matches!(m, Measurement::Vision(_)) {
+        let l = if is_vision {
             self.par.l_cam
         } else {
             self.par.l_gps
@@ -810,6 +812,7 @@ impl NavFilter {
     fn try_initialise(&mut self, m: &Measurement) -> Outcome {
         let (is_gps, fix) = match m {
             Measurement::Vision(f) => (false, *f),
+            Measurement::VisionPose(f) => (false, f.position),
             Measurement::GpsPosition(f) => (true, *f),
             _ => return Outcome::Held,
         };
@@ -1091,14 +1094,13 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
     let st = &core.ins.state;
     let v = st.v_ned_m_s;
     match m {
-        Measurement::Vision(f) | Measurement::GpsPosition(f) => {
+        Measurement::Vision(_) | Measurement::GpsPosition(_) | Measurement::VisionPose(_) => {
+            let Some((f, is_vision)) = m.position_fix() else {
+                return Outcome::Ignored;
+            };
             // The fix is the position of the camera / antenna, `r + C_b^n l`; with
             // `C_est = (I + [psi x]) C_true`: `dz = dr + [psi x] C l = dr - [(C l) x] psi`.
-            let l = if matches!(m, Measurement::Vision(_)) {
-                par.l_cam
-            } else {
-                par.l_gps
-            };
+            let l = if is_vision { par.l_cam } else { par.l_gps };
             let l_n = st.q_nb * l;
             let dz = earth::ned_offset_m(
                 (st.lat_rad, st.lon_rad, st.h_m),
@@ -1110,21 +1112,33 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
                 .copy_from(&Matrix3::identity());
             h.fixed_view_mut::<3, 3>(0, IA)
                 .copy_from(&lever_arm_jacobian(&l_n));
-            let is_vision = matches!(m, Measurement::Vision(_));
-            let gate = if is_vision {
-                par.gate_vision
-            } else {
-                par.gate_gps3
-            };
-            let mut r = f.cov_ned_m2;
-            if is_vision && par.vision_corr_s > 0.0 {
-                // Correlated fix errors (NavConfig::vision_error_corr_time_s).
+            // Correlated fix errors (NavConfig::vision_error_corr_time_s).
+            let corr = if is_vision && par.vision_corr_s > 0.0 {
                 let dt_v = core
                     .last_vision_us
                     .map_or(f64::INFINITY, |l| dt_s(l, t_c).abs());
-                r *= (par.vision_corr_s / dt_v.max(1e-3)).clamp(1.0, 1e4);
-            }
-            let out = core.update(par, dz, h, r, gate);
+                (par.vision_corr_s / dt_v.max(1e-3)).clamp(1.0, 1e4)
+            } else {
+                1.0
+            };
+            let out = if let Measurement::VisionPose(p) = m {
+                // Position and attitude jointly: `[dz_pos; psi_est - psi_meas]` against the
+                // image-only pose's 6x6 covariance (position/tilt correlation included).
+                let dz_att = (st.q_nb * p.q_nb.inverse()).scaled_axis();
+                let dz6 = SVector::<f64, 6>::new(dz.x, dz.y, dz.z, dz_att.x, dz_att.y, dz_att.z);
+                let mut h6 = SMatrix::<f64, 6, N_STATES>::zeros();
+                h6.fixed_view_mut::<3, N_STATES>(0, 0).copy_from(&h);
+                h6.fixed_view_mut::<3, 3>(3, IA)
+                    .copy_from(&Matrix3::identity());
+                core.update(par, dz6, h6, p.cov6 * corr, par.gate_vision6)
+            } else {
+                let gate = if is_vision {
+                    par.gate_vision
+                } else {
+                    par.gate_gps3
+                };
+                core.update(par, dz, h, f.cov_ned_m2 * corr, gate)
+            };
             if is_vision && matches!(out, Outcome::Accepted { .. }) {
                 core.last_vision_us = Some(t_c);
             }

@@ -6,7 +6,7 @@
 //! capture time. Covariances are in NED (north, east, down), metres / metres per second.
 //! Heights are above the WGS84 ellipsoid; the caller converts AMSL altitudes with its geoid model.
 
-use nalgebra::{Matrix3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Matrix6, UnitQuaternion, Vector3};
 
 /// One IMU sample: increments over the interval ending at `t_us` (body FRD).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -81,11 +81,32 @@ pub struct AttitudeFix {
     pub q_nb: UnitQuaternion<f64>,
 }
 
+/// A vision fix with the attitude: the image-only camera pose and the covariance of all six
+/// degrees of freedom (`fix::VisionOnlyPose`). The position and the tilt of a resection over
+/// flat ground are strongly correlated; fused jointly they make the tilt (and the heading)
+/// observable at every fix without counting the filter's own attitude prior twice.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PoseFix {
+    /// The camera position; its `cov_ned_m2` is the position block of `cov6`.
+    pub position: PositionFix,
+    /// Vehicle attitude (body FRD to NED) from the camera attitude through the mount.
+    pub q_nb: UnitQuaternion<f64>,
+    /// Covariance of `[position error NED (m), attitude error psi NED (rad)]` with
+    /// `R_estimate = Exp(psi) R_true` (the filter's convention).
+    pub cov6: Matrix6<f64>,
+}
+
 /// Any aiding measurement.
+// A pose fix (6x6 covariance) is about 400 bytes, the others under 110: measurements are few
+// per second and short-lived (the late-measurement history keeps a few seconds), so they stay
+// unboxed and `Copy`.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Measurement {
     /// Image-derived global position fix.
     Vision(PositionFix),
+    /// Image-derived position and attitude with their joint covariance.
+    VisionPose(PoseFix),
     /// GPS position.
     GpsPosition(PositionFix),
     /// GPS velocity.
@@ -101,9 +122,21 @@ impl Measurement {
     pub fn t_capture_us(&self) -> u64 {
         match self {
             Measurement::Vision(f) | Measurement::GpsPosition(f) => f.t_capture_us,
+            Measurement::VisionPose(f) => f.position.t_capture_us,
             Measurement::GpsVelocity(f) => f.t_capture_us,
             Measurement::Altitude(f) => f.t_capture_us,
             Measurement::Attitude(f) => f.t_capture_us,
+        }
+    }
+
+    /// The position fix in it (GPS position, vision, vision pose) and whether it is a vision
+    /// fix (the camera's lever arm) rather than a GPS one (the antenna's).
+    pub fn position_fix(&self) -> Option<(&PositionFix, bool)> {
+        match self {
+            Measurement::Vision(f) => Some((f, true)),
+            Measurement::VisionPose(f) => Some((&f.position, true)),
+            Measurement::GpsPosition(f) => Some((f, false)),
+            _ => None,
         }
     }
 
@@ -114,7 +147,28 @@ impl Measurement {
                 && (c - c.transpose()).abs().max() <= 1e-9 * c.abs().max().max(1e-12)
                 && c.cholesky().is_some()
         };
+        if let Measurement::VisionPose(f) = self {
+            if !f.q_nb.coords.iter().all(|x| x.is_finite()) {
+                return Err("non-finite attitude");
+            }
+            let c = &f.cov6;
+            if !(c.iter().all(|x| x.is_finite())
+                && (c - c.transpose()).abs().max() <= 1e-9 * c.abs().max().max(1e-12)
+                && c.cholesky().is_some())
+            {
+                return Err("pose covariance not symmetric positive definite");
+            }
+            if (c.fixed_view::<3, 3>(0, 0) - f.position.cov_ned_m2)
+                .abs()
+                .max()
+                > 1e-9 * c.abs().max().max(1e-12)
+            {
+                return Err("pose covariance and position covariance differ");
+            }
+            return Measurement::Vision(f.position).check();
+        }
         match self {
+            Measurement::VisionPose(_) => {}
             Measurement::Vision(f) | Measurement::GpsPosition(f) => {
                 if !(f.lat_rad.is_finite() && f.lon_rad.is_finite() && f.h_m.is_finite()) {
                     return Err("non-finite position");

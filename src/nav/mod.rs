@@ -20,4 +20,6 @@ pub mod measurement;
 pub use config::NavConfig;
 pub use filter::{Counters, Health, NavFilter, NavOutput, Outcome};
 pub use ins::{InsState, Strapdown};
-pub use measurement::{AltitudeFix, AttitudeFix, ImuSample, Measurement, PositionFix, VelocityFix};
+pub use measurement::{
+    AltitudeFix, AttitudeFix, ImuSample, Measurement, PoseFix, PositionFix, VelocityFix,
+};

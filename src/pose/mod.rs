@@ -224,6 +224,11 @@ pub struct Fix {
     pub covariance: PoseCovariance,
     /// The vision-only pose (equal to `pose` unless the attitude prior was fused).
     pub vision_pose: Pose,
+    /// The covariance of `vision_pose` (the image alone: no prior in it). A navigation filter
+    /// that holds the attitude the prior came from fuses this pose and covariance, all six
+    /// degrees of freedom with their correlation, rather than `pose`, whose position already
+    /// carries the filter's own attitude (fused twice, and its errors then look confirmed).
+    pub vision_covariance: PoseCovariance,
     /// Quality figures.
     pub quality: FixQuality,
     /// Indices into the input slice of the inliers used by the final adjustment.
@@ -491,6 +496,7 @@ pub fn resect(
         pose: uncentre(&final_r.pose),
         covariance,
         vision_pose: uncentre(&vision.pose),
+        vision_covariance: vision_cov,
         quality,
         inliers: inliers.iter().map(|&i| valid_idx[i]).collect(),
         attitude_prior_fused: fused,

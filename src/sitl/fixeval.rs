@@ -9,7 +9,7 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use nalgebra::Vector3;
+use nalgebra::{UnitQuaternion, Vector3, Vector6};
 use serde::Serialize;
 
 use super::render::{
@@ -55,6 +55,9 @@ pub struct Score {
     pub err_v_m: f64,
     /// Largest per-axis (N, E, D) error in units of the fix's own sigma.
     pub err_sigma: f64,
+    /// Normalised error squared of the image-only pose (position and attitude against the
+    /// truth, with its 6x6 covariance): chi-square with 6 dof when the covariance is honest.
+    pub nees6: Option<f64>,
 }
 
 /// Median, 90th percentile and maximum.
@@ -97,6 +100,10 @@ pub struct Summary {
     /// Median horizontal error in map pixels.
     pub median_err_map_px: f64,
     pub beyond_3_sigma: usize,
+    /// Image-only pose of the accepted fixes: mean 6-dof NEES (6 when honest) and how many fall
+    /// beyond the chi-square(6) 99 % quantile (16.8; about 1 % when honest).
+    pub vision_only_nees6_mean: f64,
+    pub vision_only_beyond_chi2_99: usize,
     /// Frame-to-fix wall time, milliseconds.
     pub ms_p50: f64,
     pub ms_p95: f64,
@@ -236,7 +243,35 @@ impl NaipEval {
             err_h_m: ex.hypot(ey),
             err_v_m: ez.abs(),
             err_sigma,
+            nees6: self.nees6(r, case),
         }
+    }
+
+    /// 6-dof NEES of the report's image-only pose (None without one).
+    fn nees6(&self, r: &FixReport, case: &Case) -> Option<f64> {
+        let v = r.vision_only?;
+        let t = case.pose.centre_map_m;
+        let (x, y) = self.crs.from_geodetic(v.lat_deg, v.lon_deg).ok()?;
+        let n = crate::geo::geoid::geoid_undulation_m(v.lat_deg, v.lon_deg).ok()?;
+        let (ex, ey, ez) = (x - t.x, y - t.y, v.h_ellip_m - n - t.z);
+        let (sg, cg) = case.grid_convergence_rad.sin_cos();
+        let q_true = UnitQuaternion::from_rotation_matrix(&case.attitude.r_ned_body());
+        let q_meas = UnitQuaternion::from_euler_angles(
+            v.roll_deg.to_radians(),
+            v.pitch_deg.to_radians(),
+            v.yaw_deg.to_radians(),
+        );
+        let psi = (q_meas * q_true.inverse()).scaled_axis();
+        let e = Vector6::new(
+            ey * cg - ex * sg,
+            ex * cg + ey * sg,
+            -ez,
+            psi.x,
+            psi.y,
+            psi.z,
+        );
+        let inv = v.cov6().try_inverse()?;
+        Some((e.transpose() * inv * e)[0])
     }
 
     /// Number of fine matches whose map point projects within 3 px of the query keypoint
@@ -271,6 +306,7 @@ impl NaipEval {
         let mut rng = Rng::new(seed);
         let (mut eh, mut ev, mut ms) = (Vec::new(), Vec::new(), Vec::new());
         let (mut accepted, mut beyond) = (0, 0);
+        let mut nees6 = Vec::new();
         let mut reasons: std::collections::BTreeMap<String, usize> = Default::default();
         for i in 0..n {
             let x = uni(&mut rng, b.min_x_m + 600.0, b.max_x_m - 600.0);
@@ -292,9 +328,17 @@ impl NaipEval {
                 if s.err_sigma > 3.0 {
                     beyond += 1;
                 }
+                nees6.extend(s.nees6);
                 log(format!(
-                    "frame {i:3}: accepted, {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:.1} m = {:.2} sigma, {:.1} ms",
-                    r.inliers, r.matches, a.null_matches, s.err_h_m, s.err_v_m, s.err_sigma, r.ms
+                    "frame {i:3}: accepted, {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:.1} m = {:.2} sigma, image-only pose NEES {:.1}, {:.1} ms",
+                    r.inliers,
+                    r.matches,
+                    a.null_matches,
+                    s.err_h_m,
+                    s.err_v_m,
+                    s.err_sigma,
+                    s.nees6.unwrap_or(f64::NAN),
+                    r.ms
                 ));
             } else {
                 // Group reasons by their text with the numbers blanked out.
@@ -324,6 +368,8 @@ impl NaipEval {
             err_h_m,
             err_v_m: Stats::of(&ev),
             beyond_3_sigma: beyond,
+            vision_only_nees6_mean: nees6.iter().sum::<f64>() / nees6.len().max(1) as f64,
+            vision_only_beyond_chi2_99: nees6.iter().filter(|&&x| x > 16.81).count(),
             ms_p50: percentile(&ms, 0.5),
             ms_p95: percentile(&ms, 0.95),
             rejections: reasons.into_iter().collect(),

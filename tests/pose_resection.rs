@@ -120,6 +120,20 @@ fn same_seed_same_fix() {
     assert!(a.accepted().is_some());
 }
 
+/// Trial `t` of the Monte Carlo tests: 1000-2500 m above ground, nadir (even trials) or tilted
+/// 11-34 deg, any heading, 150 correspondences of which 30 % are outliers.
+fn monte_carlo_scene(rng: &mut Rng, t: usize) -> visnav::pose::synth::Scene {
+    let sc = SceneConfig {
+        height_agl_m: rng.range(1000.0, 2500.0),
+        tilt_rad: if t % 2 == 0 { 0.0 } else { rng.range(0.2, 0.6) },
+        yaw_rad: rng.range(-3.0, 3.0),
+        n: 150,
+        outlier_ratio: 0.3,
+        ..Default::default()
+    };
+    make_scene(&sc, rng)
+}
+
 /// Monte Carlo: the normalised estimation error squared of the position (3 dof) averages near 3 and
 /// about 95 % of the trials fall inside the chi-square 95 % bound.
 #[test]
@@ -130,15 +144,7 @@ fn covariance_is_honest_monte_carlo() {
     let gate95 = chi2_quantile(0.95, 3);
     let (mut sum, mut inside, mut att_sum) = (0.0, 0, 0.0);
     for t in 0..trials {
-        let sc = SceneConfig {
-            height_agl_m: rng.range(1000.0, 2500.0),
-            tilt_rad: if t % 2 == 0 { 0.0 } else { rng.range(0.2, 0.6) },
-            yaw_rad: rng.range(-3.0, 3.0),
-            n: 150,
-            outlier_ratio: 0.3,
-            ..Default::default()
-        };
-        let scene = make_scene(&sc, &mut rng);
+        let scene = monte_carlo_scene(&mut rng, t);
         let out = resect(&scene.corrs, &scene.image, &Priors::default(), &cfg);
         let fix = out
             .accepted()
@@ -639,15 +645,7 @@ fn vision_only_six_dof_covariance_is_honest_monte_carlo() {
     let trials = 200;
     let (mut sum, mut sum_flipped, mut max_corr) = (0.0, 0.0, 0.0_f64);
     for t in 0..trials {
-        let sc = SceneConfig {
-            height_agl_m: rng.range(1000.0, 2500.0),
-            tilt_rad: if t % 2 == 0 { 0.0 } else { rng.range(0.2, 0.6) },
-            yaw_rad: rng.range(-3.0, 3.0),
-            n: 150,
-            outlier_ratio: 0.3,
-            ..Default::default()
-        };
-        let scene = make_scene(&sc, &mut rng);
+        let scene = monte_carlo_scene(&mut rng, t);
         // An attitude prior (0.5 deg) is fused into `pose`; `vision_pose` must not contain it.
         let priors = correct_priors(&scene);
         let out = resect(&scene.corrs, &scene.image, &priors, &cfg);

@@ -125,7 +125,11 @@ fn same_seed_same_fix() {
 fn monte_carlo_scene(rng: &mut Rng, t: usize) -> visnav::pose::synth::Scene {
     let sc = SceneConfig {
         height_agl_m: rng.range(1000.0, 2500.0),
-        tilt_rad: if t % 2 == 0 { 0.0 } else { rng.range(0.2, 0.6) },
+        tilt_rad: if t.is_multiple_of(2) {
+            0.0
+        } else {
+            rng.range(0.2, 0.6)
+        },
         yaw_rad: rng.range(-3.0, 3.0),
         n: 150,
         outlier_ratio: 0.3,

@@ -27,11 +27,12 @@ type Conn = mavlink::AsyncConnection<MavMessage>;
 /// Plays a simulator as system `sysid`: a HEARTBEAT every second and, every 20 ms, those of
 /// `msgs(k)` whose id was asked for with SET_MESSAGE_INTERVAL (as ArduPilot, which streams
 /// nothing else until asked), or all of them when `unasked` (an intruder). Collects the asked ids.
+/// `msgs` returning `None` ends the simulator (it sends nothing more, not even HEARTBEATs).
 fn play(
     conn: Arc<Conn>,
     sysid: u8,
     unasked: bool,
-    msgs: impl Fn(u32) -> Vec<MavMessage> + Send + 'static,
+    msgs: impl Fn(u32) -> Option<Vec<MavMessage>> + Send + 'static,
     asked: Arc<Mutex<HashSet<u32>>>,
 ) -> tokio::task::JoinHandle<()> {
     let rx = conn.clone();
@@ -48,7 +49,9 @@ fn play(
     tokio::spawn(async move {
         let mut k = 0u32;
         loop {
-            let mut out = msgs(k);
+            let Some(mut out) = msgs(k) else {
+                return;
+            };
             if !unasked {
                 let a = asked.lock().await;
                 out.retain(|m| a.contains(&mavlink::Message::message_id(m)));
@@ -119,12 +122,14 @@ async fn ardupilot_simstate_and_sim_state_decode_exactly() {
         7,
         true,
         |k| {
-            // Only at the start: later, SET_MESSAGE_INTERVAL answers must reach the simulator
-            // (udpin replies to the last sender).
+            // Only at the start, then silent, HEARTBEATs included: udpin sends to the last
+            // sender, so while the intruder kept its 1 Hz HEARTBEAT some SET_MESSAGE_INTERVAL
+            // requests went to it instead of the simulator (a CI run saw no truth for 8 s). The
+            // real recipe has one simulator per truth port.
             if k >= 10 {
-                return vec![];
+                return None;
             }
-            vec![
+            Some(vec![
                 MavMessage::ATTITUDE(ATTITUDE_DATA {
                     time_boot_ms: 1,
                     ..ATTITUDE_DATA::DEFAULT
@@ -138,7 +143,7 @@ async fn ardupilot_simstate_and_sim_state_decode_exactly() {
                     lng: 100,
                     ..SIMSTATE_DATA::DEFAULT
                 }),
-            ]
+            ])
         },
         Arc::new(Mutex::new(HashSet::new())),
     );
@@ -147,7 +152,7 @@ async fn ardupilot_simstate_and_sim_state_decode_exactly() {
         1,
         false,
         |k| {
-            vec![
+            Some(vec![
                 MavMessage::ATTITUDE(ATTITUDE_DATA {
                     time_boot_ms: 600_000 + 20 * k,
                     ..ATTITUDE_DATA::DEFAULT
@@ -175,7 +180,7 @@ async fn ardupilot_simstate_and_sim_state_decode_exactly() {
                     lat: 470_203_485,
                     lng: -991_548_094,
                 }),
-            ]
+            ])
         },
         asked.clone(),
     );
@@ -223,7 +228,7 @@ async fn px4_hil_state_quaternion_decodes_exactly() {
         1,
         false,
         move |k| {
-            vec![MavMessage::HIL_STATE_QUATERNION(
+            Some(vec![MavMessage::HIL_STATE_QUATERNION(
                 HIL_STATE_QUATERNION_DATA {
                     time_usec: 90_000_000 + 20_000 * u64::from(k),
                     attitude_quaternion: qf,
@@ -235,7 +240,7 @@ async fn px4_hil_state_quaternion_decodes_exactly() {
                     vz: 30,
                     ..HIL_STATE_QUATERNION_DATA::DEFAULT
                 },
-            )]
+            )])
         },
         asked.clone(),
     );

@@ -1088,6 +1088,17 @@ fn shift_ned(p: (f64, f64, f64), d_ned: &Vector3<f64>) -> (f64, f64, f64) {
 
 /// Apply one measurement to `core`, whose epoch time is `core.t_us <= t_c`; the prediction is
 /// extrapolated over `t_c - core.t_us`.
+/// The factor on the covariance of a measurement whose errors persist for `tau_s` (0: independent
+/// samples): `max(1, tau / dt)`, `dt` the time since the last fused one of its kind (none yet:
+/// 1), capped at `cap`. Fused at that factor, N samples within `tau` carry the information of one.
+fn correlation_factor(tau_s: f64, last_us: Option<u64>, t_c: u64, cap: f64) -> f64 {
+    if tau_s <= 0.0 {
+        return 1.0;
+    }
+    let dt = last_us.map_or(f64::INFINITY, |l| dt_s(l, t_c).abs());
+    (tau_s / dt.max(1e-3)).clamp(1.0, cap)
+}
+
 fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
     let t_c = m.t_capture_us();
     let dt = dt_s(core.t_us, t_c);
@@ -1113,11 +1124,8 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
             h.fixed_view_mut::<3, 3>(0, IA)
                 .copy_from(&lever_arm_jacobian(&l_n));
             // Correlated fix errors (NavConfig::vision_error_corr_time_s).
-            let corr = if is_vision && par.vision_corr_s > 0.0 {
-                let dt_v = core
-                    .last_vision_us
-                    .map_or(f64::INFINITY, |l| dt_s(l, t_c).abs());
-                (par.vision_corr_s / dt_v.max(1e-3)).clamp(1.0, 1e4)
+            let corr = if is_vision {
+                correlation_factor(par.vision_corr_s, core.last_vision_us, t_c, 1e4)
             } else {
                 1.0
             };
@@ -1171,14 +1179,7 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
         Measurement::Attitude(f) => {
             let t_c = f.t_capture_us;
             // Correlated AHRS errors (NavConfig::attitude_error_corr_time_s).
-            let k = if par.att_corr_s > 0.0 {
-                let dt_a = core
-                    .last_att_us
-                    .map_or(f64::INFINITY, |l| dt_s(l, t_c).abs());
-                (par.att_corr_s / dt_a.max(1e-3)).clamp(1.0, 1e5)
-            } else {
-                1.0
-            };
+            let k = correlation_factor(par.att_corr_s, core.last_att_us, t_c, 1e5);
             // Attitude error (estimate relative to the measurement), NED small-angle vector.
             let dz = (st.q_nb * f.q_nb.inverse()).scaled_axis();
             let out = if par.att_tilt {

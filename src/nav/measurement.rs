@@ -6,7 +6,7 @@
 //! capture time. Covariances are in NED (north, east, down), metres / metres per second.
 //! Heights are above the WGS84 ellipsoid; the caller converts AMSL altitudes with its geoid model.
 
-use nalgebra::{Matrix3, Matrix6, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Matrix6, SMatrix, UnitQuaternion, Vector3};
 
 /// One IMU sample: increments over the interval ending at `t_us` (body FRD).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -96,6 +96,13 @@ pub struct PoseFix {
     pub cov6: Matrix6<f64>,
 }
 
+/// Every entry finite, symmetric (to 1e-9 relative) and positive definite (Cholesky succeeds).
+fn symmetric_pd<const N: usize>(c: &SMatrix<f64, N, N>) -> bool {
+    c.iter().all(|x| x.is_finite())
+        && (c - c.transpose()).abs().max() <= 1e-9 * c.abs().max().max(1e-12)
+        && c.cholesky().is_some()
+}
+
 /// Any aiding measurement.
 // A pose fix (6x6 covariance) is about 400 bytes, the others under 110: measurements are few
 // per second and short-lived (the late-measurement history keeps a few seconds), so they stay
@@ -142,20 +149,12 @@ impl Measurement {
 
     /// Check that every value is finite and every covariance symmetric positive definite.
     pub fn check(&self) -> Result<(), &'static str> {
-        let cov_ok = |c: &Matrix3<f64>| {
-            c.iter().all(|x| x.is_finite())
-                && (c - c.transpose()).abs().max() <= 1e-9 * c.abs().max().max(1e-12)
-                && c.cholesky().is_some()
-        };
         if let Measurement::VisionPose(f) = self {
             if !f.q_nb.coords.iter().all(|x| x.is_finite()) {
                 return Err("non-finite attitude");
             }
             let c = &f.cov6;
-            if !(c.iter().all(|x| x.is_finite())
-                && (c - c.transpose()).abs().max() <= 1e-9 * c.abs().max().max(1e-12)
-                && c.cholesky().is_some())
-            {
+            if !symmetric_pd(c) {
                 return Err("pose covariance not symmetric positive definite");
             }
             if (c.fixed_view::<3, 3>(0, 0) - f.position.cov_ned_m2)
@@ -179,7 +178,7 @@ impl Measurement {
                 if f.h_m.abs() > 100_000.0 {
                     return Err("height beyond +-100 km");
                 }
-                if !cov_ok(&f.cov_ned_m2) {
+                if !symmetric_pd(&f.cov_ned_m2) {
                     return Err("position covariance not symmetric positive definite");
                 }
             }
@@ -187,7 +186,7 @@ impl Measurement {
                 if !f.v_ned_m_s.iter().all(|x| x.is_finite()) || f.v_ned_m_s.norm() > 1000.0 {
                     return Err("non-finite or implausible velocity");
                 }
-                if !cov_ok(&f.cov_ned_m2_s2) {
+                if !symmetric_pd(&f.cov_ned_m2_s2) {
                     return Err("velocity covariance not symmetric positive definite");
                 }
             }

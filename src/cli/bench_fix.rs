@@ -32,6 +32,11 @@ pub struct FixBenchArgs {
     /// No position prior: global relocalisation (attitude prior only).
     #[arg(long)]
     pub no_prior: bool,
+    /// Build the map from this orthophoto instead of the bundled 2009 one (repeat to stack
+    /// several co-registered years of the NAIP area, e.g. ../shared/data/naip_nd/*2010*.tif). The
+    /// camera year (2014) is refused.
+    #[arg(long = "map-ortho", value_name = "TIF")]
+    pub map_ortho: Vec<std::path::PathBuf>,
     /// Override `[fix]` settings with a TOML snippet, e.g. 'ratio = 0.9' (keys of the `[fix]` section).
     #[arg(long)]
     pub set: Option<String>,
@@ -60,7 +65,12 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
         descriptor,
         ..SurfParams::default()
     };
-    let eval = NaipEval::with_surf(&maps, params, surf)
+    let map_orthos = if a.map_ortho.is_empty() {
+        vec![maps.join("naip_nd_2009.tif")]
+    } else {
+        a.map_ortho.clone()
+    };
+    let eval = NaipEval::with_map(&maps, &map_orthos, params, surf)
         .map_err(anyhow::Error::msg)
         .context("setting up the NAIP cross-date evaluation")?;
     let per_frame = a.per_frame;
@@ -75,7 +85,12 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&s)?);
     } else {
         println!(
-            "NAIP cross-date (map 2009, frames 2014, VGA 60 deg, 1200-2500 m AGL, tilt <= 20 deg): {} frames",
+            "NAIP cross-date (map {}, frames 2014, VGA 60 deg, 1200-2500 m AGL, tilt <= 20 deg): {} frames",
+            map_orthos
+                .iter()
+                .map(|p| p.file_name().unwrap_or_default().to_string_lossy())
+                .collect::<Vec<_>>()
+                .join(" + "),
             s.frames
         );
         println!(

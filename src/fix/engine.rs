@@ -107,6 +107,8 @@ pub fn default_pose_config() -> ResectionConfig {
     c.ransac.threshold_px = 2.0;
     c.refine.use_attitude_prior = true;
     c.refine.sigma_inflation = 4.0;
+    // Per-fix evidence of shared errors (a displaced or changed map area) on top of the floor.
+    c.refine.split_variance = true;
     c.integrity.max_horizontal_sigma_m = 80.0;
     c.integrity.max_vertical_sigma_m = 80.0;
     c.integrity.max_attitude_sigma_deg = 3.0;
@@ -569,6 +571,12 @@ impl FixEngine {
             self.params.ratio,
         );
         a.fine_matches = matches.len();
+        for m in &matches {
+            let (q, f) = (&query.keypoints[m.query], &sel.features[m.train]);
+            if let Some(px) = rect.to_frame_px(f64::from(q.x), f64::from(q.y)) {
+                a.pairs.push(([px.x, px.y], [f.x_m, f.y_m, f.z_amsl_m]));
+            }
+        }
         // A-contrario check (Moisan & Stival 2004 in spirit): the same gated matching with the
         // predictions displaced to unrelated map areas counts the matches chance alone produces
         // here (texture density, gate size, ratio test). A genuine view must beat that clearly.
@@ -637,7 +645,6 @@ impl FixEngine {
             let Some(px) = rect.to_frame_px(f64::from(q.x), f64::from(q.y)) else {
                 continue;
             };
-            a.pairs.push(([px.x, px.y], [f.x_m, f.y_m, f.z_amsl_m]));
             let Some(ray) = self.camera.unproject(&px) else {
                 continue;
             };

@@ -38,7 +38,7 @@ pub mod refine;
 pub mod rng;
 pub mod synth;
 
-use nalgebra::{Matrix3, Matrix6, Rotation3, Vector2, Vector3};
+use nalgebra::{Matrix3, Matrix6, Rotation3, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
 use crate::config::{Problems, Validate};
@@ -185,6 +185,8 @@ pub struct PoseCovariance {
     pub dof: usize,
     /// Factor on the standard deviations of [`Self::conservative`] (`refine.sigma_inflation`).
     pub inflation: f64,
+    /// Split-sample variance factor (1 when not estimated; see [`split_variance_factor`]).
+    pub split_factor: f64,
 }
 
 impl PoseCovariance {
@@ -192,10 +194,16 @@ impl PoseCovariance {
     pub fn aposteriori(&self) -> Matrix6<f64> {
         self.apriori * self.sigma0_sq
     }
-    /// `max(1, sigma0^2) inflation^2 (J^T W J)^-1`: never smaller than the a-priori covariance. This
-    /// is the one used for the integrity checks and the one to hand to a filter.
+    /// The factor of [`Self::conservative`]:
+    /// `max(1, sigma0^2) max(1, split_factor) inflation^2`.
+    pub fn factor(&self) -> f64 {
+        self.sigma0_sq.max(1.0) * self.split_factor.max(1.0) * self.inflation * self.inflation
+    }
+    /// `max(1, sigma0^2) max(1, split_factor) inflation^2 (J^T W J)^-1`: never smaller than the
+    /// a-priori covariance. This is the one used for the integrity checks and the one to hand to a
+    /// filter.
     pub fn conservative(&self) -> Matrix6<f64> {
-        self.apriori * (self.sigma0_sq.max(1.0) * self.inflation * self.inflation)
+        self.apriori * self.factor()
     }
     /// Conservative position covariance, world frame, m^2.
     pub fn position_world_m2(&self) -> Matrix3<f64> {
@@ -408,11 +416,17 @@ pub fn resect(
             detail: "no iteration".into(),
         });
     };
+    let split_factor = if cfg.refine.split_variance {
+        split_variance_factor(&local, &inliers, &vision, image, &cfg.refine)
+    } else {
+        1.0
+    };
     let vision_cov = PoseCovariance {
         apriori: vision.cov_apriori,
         sigma0_sq: vision.sigma0_sq,
         dof: vision.dof,
         inflation: cfg.refine.sigma_inflation,
+        split_factor,
     };
 
     // 5a. Prior consistency on the vision-only solution (in the centred frame).
@@ -428,13 +442,32 @@ pub fn resect(
         inv3(&s).map_or(f64::INFINITY, |si| (phi.transpose() * si * phi)[0])
     });
 
-    // 6. Optional fusion of the attitude prior.
+    // 6. Optional fusion of the attitude prior. The image's real covariance is
+    //    `k Q_img` with `k = max(1, sigma0^2) inflation^2` (the conservative covariance), so the
+    //    prior enters the whitened least squares with `P / k`: the fused normal matrix is then
+    //    `Q_img^-1 + k P^-1` and `k (Q_img^-1 + k P^-1)^-1 = ((k Q_img)^-1 + P^-1)^-1`, the
+    //    information-weighted combination of the image and the prior. Without the scaling the prior
+    //    is under-weighted by `k` (16 with the fix pipeline's inflation of 4) and the image's
+    //    correlated errors leak into the tilt along the position/tilt ambiguity.
+    let k_image = vision_cov.factor();
     let mut final_r = vision.clone();
     let mut fused = false;
     if cfg.refine.use_attitude_prior
         && let Some(a) = priors.attitude.as_ref()
     {
-        match refine_pose(&local, &inliers, &vision.pose, fx, fy, Some(a), &cfg.refine) {
+        let scaled = AttitudePrior {
+            r_world_cam: a.r_world_cam,
+            cov_rad2: a.cov_rad2 / k_image,
+        };
+        match refine_pose(
+            &local,
+            &inliers,
+            &vision.pose,
+            fx,
+            fy,
+            Some(&scaled),
+            &cfg.refine,
+        ) {
             Ok(r) => {
                 lm_iterations += r.iterations;
                 final_r = r;
@@ -448,11 +481,14 @@ pub fn resect(
             }
         }
     }
+    // The fused covariance scales with the image's variance factor (see step 6): the prior rows'
+    // residuals say nothing about the pixel sigmas.
     let covariance = PoseCovariance {
         apriori: final_r.cov_apriori,
-        sigma0_sq: final_r.sigma0_sq,
+        sigma0_sq: vision.sigma0_sq,
         dof: final_r.dof,
         inflation: cfg.refine.sigma_inflation,
+        split_factor,
     };
 
     // 5b. Quality figures.
@@ -517,4 +553,67 @@ pub fn resect(
         fix: Some(fix),
         verdict,
     }
+}
+/// Split-sample variance factor of a vision-only solution: the inliers are split into the four
+/// quadrants about their median pixel position, the pose is re-solved from each quadrant alone
+/// (LM from the full solution, no prior), and each quadrant's pose difference `d_g` to the full
+/// solution is compared with its covariance. For disjoint subsets of equally informative data the
+/// full solution is the information-weighted mean, so `Cov(d_g) = Cov_g - Cov_full ~ (1 - n_g/n)
+/// Cov_g` with `Cov_g = max(1, sigma0_g^2) Q_g`. The factor is the mean of
+/// `d_g^T Cov_g^-1 d_g / (1 - n_g/n)` over the quadrants, divided by 6: about 1 when the pixel
+/// errors are independent, larger when neighbouring observations share an error (a displaced map
+/// area, changed ground), which the residual scatter `sigma0` cannot see because a shared error is
+/// absorbed by the pose. A quadrant with fewer than 8 inliers or a failed solve is skipped;
+/// with fewer than two quadrants the factor is 1 (no evidence). This is a delete-a-group
+/// jackknife in spirit (Efron 1982), on spatial blocks as for correlated data (Kunsch 1989).
+pub fn split_variance_factor(
+    corrs: &[Correspondence],
+    inliers: &[usize],
+    full: &Refined,
+    image: &ImageGeometry,
+    cfg: &RefineConfig,
+) -> f64 {
+    let n = inliers.len();
+    if n < 16 {
+        return 1.0;
+    }
+    let px: Vec<Vector2<f64>> = inliers
+        .iter()
+        .map(|&i| image.to_pixel(&corrs[i].obs_norm))
+        .collect();
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let mx = median(px.iter().map(|p| p.x).collect());
+    let my = median(px.iter().map(|p| p.y).collect());
+    let mut groups: [Vec<usize>; 4] = Default::default();
+    for (k, p) in px.iter().enumerate() {
+        let q = usize::from(p.x >= mx) + 2 * usize::from(p.y >= my);
+        groups[q].push(inliers[k]);
+    }
+    let mut sum = 0.0;
+    let mut used = 0usize;
+    for g in groups.iter().filter(|g| g.len() >= 8) {
+        let Ok(r) = refine_pose(corrs, g, &full.pose, image.fx_px, image.fy_px, None, cfg) else {
+            continue;
+        };
+        let cov_g = r.cov_apriori * r.sigma0_sq.max(1.0);
+        let Some(inv) = cov_g.try_inverse() else {
+            continue;
+        };
+        let phi = (r.pose.r_world_cam * full.pose.r_world_cam.inverse()).scaled_axis();
+        let dc = r.pose.c_world - full.pose.c_world;
+        let d = Vector6::new(phi.x, phi.y, phi.z, dc.x, dc.y, dc.z);
+        let shrink = 1.0 - g.len() as f64 / n as f64;
+        let d2 = (d.transpose() * inv * d)[0] / shrink.max(0.1);
+        if d2.is_finite() {
+            sum += d2;
+            used += 1;
+        }
+    }
+    if used < 2 {
+        return 1.0;
+    }
+    sum / (6.0 * used as f64)
 }

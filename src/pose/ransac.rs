@@ -213,6 +213,7 @@ pub fn ransac_p3p(
         loss: RobustLoss::Huber { k_sigma: 2.0 },
         use_attitude_prior: false,
         sigma_inflation: 1.0,
+        split_variance: false,
     };
 
     while iterations < needed.max(cfg.min_iterations).min(cfg.max_iterations) {

@@ -80,6 +80,11 @@ pub struct RefineConfig {
     /// `max(1, sigma0^2) * inflation^2 * Q`. 1 = the statistically honest covariance; a larger value
     /// buys margin against unmodelled errors (DEM, map registration, lens model).
     pub sigma_inflation: f64,
+    /// Estimate a per-fix variance factor for errors shared by neighbouring observations (map
+    /// registration, changed ground) from the disagreement of the poses solved from the four image
+    /// quadrants' inliers alone (see [`super::split_variance_factor`]); the covariance is scaled by
+    /// it when it exceeds 1. Off by default (independent pixel errors need no such factor).
+    pub split_variance: bool,
 }
 
 impl Default for RefineConfig {
@@ -89,6 +94,7 @@ impl Default for RefineConfig {
             loss: RobustLoss::Huber { k_sigma: 3.0 },
             use_attitude_prior: false,
             sigma_inflation: 1.0,
+            split_variance: false,
         }
     }
 }

@@ -6,7 +6,7 @@
 //! Priors (what a navigation filter in GPS-denied cruise would give): position 100 m off (1 sigma,
 //! stated 150 m), altitude 20 m off (stated 30 m), attitude 0.3 deg off per axis (stated 0.5 deg).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use nalgebra::{UnitQuaternion, Vector3, Vector6};
@@ -58,6 +58,12 @@ pub struct Score {
     /// Normalised error squared of the image-only pose (position and attitude against the
     /// truth, with its 6x6 covariance): chi-square with 6 dof when the covariance is honest.
     pub nees6: Option<f64>,
+    /// Horizontal error of the ground point under the image centre (boresight cast onto the
+    /// ground plane at the truth's ground height): the map registration part of the error, free of
+    /// the position/tilt ambiguity.
+    pub ground_err_m: f64,
+    /// Tilt error of the fix's attitude (angle between the estimated and true body z axes), deg.
+    pub tilt_err_deg: f64,
 }
 
 /// Median, 90th percentile and maximum.
@@ -127,16 +133,40 @@ impl NaipEval {
 
     /// [`Self::new`] with the reference's SURF settings (the query uses the same).
     pub fn with_surf(maps_dir: &Path, params: FixParams, surf: SurfParams) -> Result<Self, String> {
-        let load = |name: &str| {
-            load_geotiff(&maps_dir.join(name), None)
-                .map_err(|e| format!("{}: {e}", maps_dir.join(name).display()))
-        };
-        let map_raster = load("naip_nd_2009.tif")?;
-        let cam_raster = load("naip_nd_2014.tif")?;
+        Self::with_map(maps_dir, &[maps_dir.join("naip_nd_2009.tif")], params, surf)
+    }
+
+    /// [`Self::with_surf`] with the map built from `map_orthos` (co-registered orthophotos of the
+    /// NAIP area, e.g. several years stacked; never the 2014 camera year). The first one gives the
+    /// map's pixel size and the area the frames are drawn from.
+    pub fn with_map(
+        maps_dir: &Path,
+        map_orthos: &[PathBuf],
+        params: FixParams,
+        surf: SurfParams,
+    ) -> Result<Self, String> {
+        let load =
+            |path: &Path| load_geotiff(path, None).map_err(|e| format!("{}: {e}", path.display()));
+        let first = map_orthos
+            .first()
+            .ok_or_else(|| "at least one map orthophoto is required".to_string())?;
+        let map_raster = load(first)?;
+        let cam_path = maps_dir.join("naip_nd_2014.tif");
+        let cam_raster = load(&cam_path)?;
+        for p in map_orthos {
+            let r = if p == first { None } else { Some(load(p)?) };
+            let r = r.as_ref().unwrap_or(&map_raster);
+            if r.data() == cam_raster.data() {
+                return Err(format!(
+                    "{}: the map must not be built from the camera's own image (naip_nd_2014.tif)",
+                    p.display()
+                ));
+            }
+        }
         let flat = || Dem::flat(NAIP_GROUND_M).map_err(|e| e.to_string());
-        // The product path: a .vnm map built from the 2009 orthophoto, memory-mapped.
+        // The product path: a .vnm map built from the map orthophoto(s), memory-mapped.
         let mut spec = BuildSpec::new(
-            vec![maps_dir.join("naip_nd_2009.tif")],
+            map_orthos.to_vec(),
             HeightSource::ConstantAmsl(NAIP_GROUND_M),
         );
         spec.surf = surf;
@@ -239,11 +269,29 @@ impl NaipEval {
             .abs()
             .max((e_e / r.cov_ned_m2[1][1].sqrt()).abs())
             .max((ez / r.cov_ned_m2[2][2].sqrt()).abs());
+        // Boresight (body z of the nadir mount) cast onto the ground plane, in grid axes.
+        let down = |a: &Attitude| {
+            let d = a.r_ned_body() * Vector3::z();
+            // NED -> grid east/north (grid convergence gamma: grid north = true north rotated).
+            (d.y * c - d.x * s, d.x * c + d.y * s, d.z)
+        };
+        let ground = |a: &Attitude, x: f64, y: f64, h: f64| {
+            let (de, dn, dd) = down(a);
+            (x + de * h / dd, y + dn * h / dd)
+        };
+        let a_est = Attitude::from_deg(r.roll_deg, r.pitch_deg, r.yaw_deg);
+        let h_true = t.z - NAIP_GROUND_M;
+        let g_est = ground(&a_est, r.x_m, r.y_m, r.z_m - NAIP_GROUND_M);
+        let g_true = ground(&case.attitude, t.x, t.y, h_true);
+        let z_est = a_est.r_ned_body() * Vector3::z();
+        let z_true = case.attitude.r_ned_body() * Vector3::z();
         Score {
             err_h_m: ex.hypot(ey),
             err_v_m: ez.abs(),
             err_sigma,
             nees6: self.nees6(r, case),
+            ground_err_m: (g_est.0 - g_true.0).hypot(g_est.1 - g_true.1),
+            tilt_err_deg: z_est.angle(&z_true).to_degrees(),
         }
     }
 
@@ -330,13 +378,15 @@ impl NaipEval {
                 }
                 nees6.extend(s.nees6);
                 log(format!(
-                    "frame {i:3}: accepted, {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:.1} m = {:.2} sigma, image-only pose NEES {:.1}, {:.1} ms",
+                    "frame {i:3}: accepted, {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:.1} m = {:.2} sigma, ground {:.1} m tilt {:.2} deg, image-only pose NEES {:.1}, {:.1} ms",
                     r.inliers,
                     r.matches,
                     a.null_matches,
                     s.err_h_m,
                     s.err_v_m,
                     s.err_sigma,
+                    s.ground_err_m,
+                    s.tilt_err_deg,
                     s.nees6.unwrap_or(f64::NAN),
                     r.ms
                 ));

@@ -51,6 +51,7 @@ fn fix_at(s: &InsState, t_us: u64, offset_ned: Vector3<f64>, sigma: f64) -> Posi
         lon_rad: s.lon_rad + offset_ned.y / ((rn + s.h_m) * s.lat_rad.cos()),
         h_m: s.h_m - offset_ned.z,
         cov_ned_m2: Matrix3::identity() * sigma * sigma,
+        att_dependence_ned: None,
     }
 }
 

@@ -195,6 +195,7 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
             t_capture_us: 0,
             position,
             attitude,
+            attitude_from_filter: false,
         },
     );
     if a.json {

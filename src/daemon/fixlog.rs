@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::fix::{FixReport, VisionOnlyPose};
+use crate::fix::{FixReport, PriorDependenceNed, VisionOnlyPose};
 
 /// One fix result.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -46,6 +46,12 @@ pub struct FixLogRecord {
     /// The image-only pose with its 6x6 covariance (logs written before it existed lack it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub vision_only: Option<VisionOnlyPose>,
+    /// The position's dependence on the attitude prior and whether that prior was the filter's
+    /// own attitude (logs written before they existed lack them).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub prior_dependence: Option<PriorDependenceNed>,
+    #[serde(default)]
+    pub prior_attitude_from_filter: bool,
 }
 
 impl FixLogRecord {
@@ -75,6 +81,10 @@ impl FixLogRecord {
             inliers: report.inliers,
             reproj_rms_px: f(report.reproj_rms_px),
             vision_only: report.vision_only.filter(VisionOnlyPose::is_finite),
+            prior_dependence: report
+                .prior_dependence
+                .filter(PriorDependenceNed::is_finite),
+            prior_attitude_from_filter: report.prior_attitude_from_filter,
         }
     }
 
@@ -95,6 +105,8 @@ impl FixLogRecord {
         r.inliers = self.inliers;
         r.reproj_rms_px = n(self.reproj_rms_px);
         r.vision_only = self.vision_only;
+        r.prior_dependence = self.prior_dependence;
+        r.prior_attitude_from_filter = self.prior_attitude_from_filter;
         r
     }
 }

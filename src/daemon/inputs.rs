@@ -374,6 +374,7 @@ impl Inputs {
             lon_rad: lon.to_radians(),
             h_m: h,
             cov_ned_m2: Matrix3::from_diagonal(&Vector3::new(sh * sh, sh * sh, sv * sv)),
+            att_dependence_ned: None,
         })));
         if g.vel != u16::MAX && g.cog != u16::MAX {
             let v = f64::from(g.vel) * 0.01;
@@ -531,6 +532,7 @@ pub fn prior_at(
         t_capture_us: t_us,
         position: None,
         attitude: None,
+        attitude_from_filter: false,
     };
     if let Some(o) = out.filter(|o| o.health != NavHealth::Lost) {
         let dt = (t_us as f64 - o.t_us as f64) * 1e-6;
@@ -557,6 +559,7 @@ pub fn prior_at(
                 sigma_rad: tilt.to_radians(),
                 sigma_yaw_rad: sd.to_radians(),
             });
+            prior.attitude_from_filter = true;
         }
     }
     if prior.attitude.is_none()
@@ -578,6 +581,7 @@ pub fn vision_measurement(
     r: &FixReport,
     t_capture_us: u64,
     with_attitude: bool,
+    with_dependence: bool,
 ) -> Result<Measurement, String> {
     if !r.accepted {
         return Err(r.reason.clone());
@@ -602,6 +606,7 @@ pub fn vision_measurement(
                     lon_rad: v.lon_deg.to_radians(),
                     h_m: v.h_ellip_m,
                     cov_ned_m2: c6.fixed_view::<3, 3>(0, 0).into_owned(),
+                    att_dependence_ned: None,
                 },
                 q_nb: UnitQuaternion::from_euler_angles(
                     v.roll_deg.to_radians(),
@@ -612,13 +617,22 @@ pub fn vision_measurement(
             })
         }
         None => {
-            let c = r.cov_ned();
+            // Solved with the filter's own attitude as its prior: the position depends on the
+            // filter's attitude error; fuse it with that dependence and the image's covariance.
+            let dep = r
+                .prior_dependence
+                .filter(|d| with_dependence && r.prior_attitude_from_filter && d.is_finite());
+            let c = match dep {
+                Some(d) => Matrix3::from_fn(|i, j| d.image_cov_ned_m2[i][j]),
+                None => r.cov_ned(),
+            };
             Measurement::Vision(PositionFix {
                 t_capture_us,
                 lat_rad: r.lat_deg.to_radians(),
                 lon_rad: r.lon_deg.to_radians(),
                 h_m: h,
                 cov_ned_m2: (c + c.transpose()) * 0.5,
+                att_dependence_ned: dep.map(|d| Matrix3::from_fn(|i, j| d.d_pos_d_att[i][j])),
             })
         }
     };
@@ -903,16 +917,19 @@ mod tests {
     fn report_to_measurement() {
         let mut r = FixReport::rejected("too few inliers", 5, 1.0);
         assert_eq!(
-            vision_measurement(&r, 5, false).unwrap_err(),
+            vision_measurement(&r, 5, false, false).unwrap_err(),
             "too few inliers"
         );
         r.accepted = true;
-        assert!(vision_measurement(&r, 5, false).is_err(), "NaN position");
+        assert!(
+            vision_measurement(&r, 5, false, false).is_err(),
+            "NaN position"
+        );
         r.lat_deg = 47.0;
         r.lon_deg = -97.0;
         r.alt_amsl_m = 800.0;
         r.cov_ned_m2 = [[4.0, 0.0, 0.0], [0.0, 4.0, 0.0], [0.0, 0.0, 9.0]];
-        let Measurement::Vision(f) = vision_measurement(&r, 7, false).unwrap() else {
+        let Measurement::Vision(f) = vision_measurement(&r, 7, false, false).unwrap() else {
             panic!()
         };
         assert_eq!(f.t_capture_us, 7);
@@ -923,13 +940,13 @@ mod tests {
             "h from AMSL + N when h_ellip is NaN"
         );
         r.h_ellip_m = 780.0;
-        let Measurement::Vision(f) = vision_measurement(&r, 7, false).unwrap() else {
+        let Measurement::Vision(f) = vision_measurement(&r, 7, false, false).unwrap() else {
             panic!()
         };
         assert_eq!(f.h_m, 780.0);
         r.cov_ned_m2[0][0] = -1.0;
         assert!(
-            vision_measurement(&r, 7, false)
+            vision_measurement(&r, 7, false, false)
                 .unwrap_err()
                 .contains("covariance")
         );
@@ -950,7 +967,7 @@ mod tests {
             yaw_deg: 90.0,
             cov6_ned: cov6,
         });
-        let Measurement::VisionPose(p) = vision_measurement(&r, 7, true).unwrap() else {
+        let Measurement::VisionPose(p) = vision_measurement(&r, 7, true, false).unwrap() else {
             panic!("a pose measurement")
         };
         assert!((p.position.lat_rad - 47.001f64.to_radians()).abs() < 1e-15);
@@ -960,14 +977,14 @@ mod tests {
         assert!((p.q_nb.euler_angles().0 - 2f64.to_radians()).abs() < 1e-12);
         // Without the option the prior-fused position as before.
         assert!(matches!(
-            vision_measurement(&r, 7, false),
+            vision_measurement(&r, 7, false, false),
             Ok(Measurement::Vision(f)) if f.h_m == 780.0
         ));
         // A covariance that is not positive definite is refused.
         cov6[1][3] = 1e3;
         cov6[3][1] = 1e3;
         r.vision_only.as_mut().unwrap().cov6_ned = cov6;
-        assert!(vision_measurement(&r, 7, true).is_err());
+        assert!(vision_measurement(&r, 7, true, false).is_err());
     }
 
     #[test]

@@ -534,6 +534,7 @@ impl NavTask {
             &f.report,
             f.t_capture_us,
             self.filter.config().vision_attitude,
+            self.filter.config().vision_prior_dependence,
         ) {
             Err(reason) => {
                 m.engine_reject(&reason);

@@ -295,8 +295,12 @@ pub fn replay(
         // Vision fixes that arrived before this packet.
         while let Some(fx) = fixes.next_if(|f| f.arrival_unix_us <= *unix_us) {
             rep.vision_results += 1;
-            let Ok(m) = vision_measurement(&fx.report(), fx.t_capture_us, opts.nav.vision_attitude)
-            else {
+            let Ok(m) = vision_measurement(
+                &fx.report(),
+                fx.t_capture_us,
+                opts.nav.vision_attitude,
+                opts.nav.vision_prior_dependence,
+            ) else {
                 continue;
             };
             if !filter.is_initialised() {

@@ -227,6 +227,8 @@ struct PriorGeom {
     /// Tilt (about north/east) and heading sigmas, rad.
     sigma_tilt_rad: f64,
     sigma_yaw_rad: f64,
+    /// The attitude is the navigation filter's own (FixPrior::attitude_from_filter).
+    att_from_filter: bool,
 }
 
 impl FixEngine {
@@ -297,7 +299,17 @@ impl FixEngine {
         match prior.position {
             Some(pos) => {
                 let (mut r, a) = match prior.attitude {
-                    Some(att) => self.fix_prior(frame, &pos, &att, prior.t_capture_us),
+                    Some(att) => {
+                        let (mut r, a) = self.fix_prior(
+                            frame,
+                            &pos,
+                            &att,
+                            prior.t_capture_us,
+                            prior.attitude_from_filter,
+                        );
+                        r.prior_attitude_from_filter = prior.attitude_from_filter;
+                        (r, a)
+                    }
                     None => self.fix_any_heading(frame, &pos, prior.t_capture_us),
                 };
                 r.ms = ms(t0);
@@ -343,6 +355,7 @@ impl FixEngine {
             sigma_v_m: pos.sigma_v_m,
             sigma_tilt_rad: att.sigma_rad,
             sigma_yaw_rad: att.sigma_yaw_rad,
+            att_from_filter: false,
         })
     }
 
@@ -361,7 +374,7 @@ impl FixEngine {
                 Attitude::new(0.0, 0.0, f64::from(i) * HEADING_STEP_DEG.to_radians()),
                 self.params.reloc_tilt_sigma_deg.to_radians(),
             );
-            let (r, a) = self.fix_prior(frame, pos, &att, t_us);
+            let (r, a) = self.fix_prior(frame, pos, &att, t_us, false);
             if r.accepted {
                 if best.as_ref().is_none_or(|(b, _)| r.inliers > b.inliers) {
                     best = Some((r, a));
@@ -411,10 +424,14 @@ impl FixEngine {
         pos: &PositionPriorGeo,
         att: &AttitudePriorNed,
         t_us: u64,
+        att_from_filter: bool,
     ) -> (FixReport, Attempt) {
         let rej = |reason: String, a: Attempt| (FixReport::rejected(reason, t_us, 0.0), a);
         let g = match self.prior_geom(pos, att) {
-            Ok(g) => g,
+            Ok(g) => PriorGeom {
+                att_from_filter,
+                ..g
+            },
             Err(e) => return rej(e, Attempt::default()),
         };
         let agl_m = g.c_map.z - self.ground_below(&g);
@@ -698,6 +715,11 @@ impl FixEngine {
         // Pixel thresholds are in frame pixels; a frame finer than the map level sees its
         // localisation errors magnified by 1/scale.
         let mut cfg = self.params.pose.clone();
+        // The filter's own attitude is not an independent prior: weigh it as before this
+        // weighting became the information-weighted one (docs/fix.md, "The attitude prior").
+        if g.att_from_filter {
+            cfg.refine.prior_against_conservative = false;
+        }
         let mag = (1.0 / scale).max(1.0);
         cfg.ransac.threshold_px *= mag;
         cfg.integrity.max_reprojection_rms_px *= mag;
@@ -772,6 +794,20 @@ impl FixEngine {
             matches: 0,
             reproj_rms_px: fix.quality.reprojection_rms_px,
             vision_only: self.vision_only_pose(local, fix, &r_ned_enu),
+            // Position world = ENU, attitude errors as world rotation vectors: D_ned =
+            // R_ned_enu G R_enu_ned (R_world_cam = R_enu_ned R_ned_body R_body_cam, so a body
+            // error Exp(psi_ned) is the world error Exp(R_enu_ned psi_ned)).
+            prior_dependence: fix
+                .prior_dependence
+                .map(|d| {
+                    let r = r_ned_enu.matrix();
+                    crate::fix::PriorDependenceNed {
+                        d_pos_d_att: to_arr(&(r * d.d_position_d_prior_att * r.transpose())),
+                        image_cov_ned_m2: to_arr(&(r * d.image_position_cov_m2 * r.transpose())),
+                    }
+                })
+                .filter(crate::fix::PriorDependenceNed::is_finite),
+            prior_attitude_from_filter: false,
             level: 0,
             ms: 0.0,
         };
@@ -1017,7 +1053,7 @@ impl FixEngine {
             sigma_h_m: (0.2 * agl).max(3.0 * gsd),
             sigma_v_m: (0.3 * agl).max(3.0 * gsd),
         };
-        let (r, a) = self.fix_prior(frame, &pos, att, t_us);
+        let (r, a) = self.fix_prior(frame, &pos, att, t_us, false);
         if !r.accepted {
             return Err(format!("level {level}: {}", r.reason));
         }
@@ -1033,7 +1069,7 @@ impl FixEngine {
             Attitude::from_deg(r.roll_deg, r.pitch_deg, r.yaw_deg),
             1f64.to_radians(),
         );
-        let (r2, a2) = self.fix_prior(frame, &refined_pos, &refined_att, t_us);
+        let (r2, a2) = self.fix_prior(frame, &refined_pos, &refined_att, t_us, false);
         // The refined pass used the first fix as a prior: the reported fix must not be checked
         // against itself, so its chi-square prior test is loose by construction; it is only kept
         // when it has more inliers.
@@ -1490,6 +1526,7 @@ mod tests {
                 t_capture_us: 7,
                 position: pos(1300.0, 50.0),
                 attitude: att,
+                attitude_from_filter: false,
             },
         );
         assert!(!r.accepted && r.reason.contains("100x100"), "{}", r.reason);
@@ -1507,6 +1544,7 @@ mod tests {
                     t_capture_us: 1,
                     position: p,
                     attitude: att,
+                    attitude_from_filter: false,
                 },
             );
             assert!(!r.accepted, "{what}");
@@ -1521,6 +1559,7 @@ mod tests {
                 t_capture_us: 1,
                 position: pos(1300.0, 50.0),
                 attitude: att,
+                attitude_from_filter: false,
             },
         );
         assert!(!r.accepted && r.reason.contains("features"), "{}", r.reason);

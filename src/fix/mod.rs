@@ -65,6 +65,9 @@ pub struct FixPrior {
     pub position: Option<PositionPriorGeo>,
     /// None: the attitude is solved for without a prior (rectification assumes a nadir view).
     pub attitude: Option<AttitudePriorNed>,
+    /// The attitude prior is the navigation filter's own attitude (its errors are the filter's
+    /// attitude error state): copied into [`FixReport::prior_attitude_from_filter`].
+    pub attitude_from_filter: bool,
 }
 
 /// The result of one fix attempt. Angles and positions are finite whenever `accepted` is true.
@@ -101,10 +104,42 @@ pub struct FixReport {
     /// use_attitude_prior` is on; a filter that supplied that prior fuses this one instead.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub vision_only: Option<VisionOnlyPose>,
+    /// How the position above depends on the attitude prior it fused (None when no prior was
+    /// fused): see [`PriorDependenceNed`].
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub prior_dependence: Option<PriorDependenceNed>,
+    /// Whether the attitude prior was the navigation filter's own attitude
+    /// ([`FixPrior::attitude_from_filter`]).
+    pub prior_attitude_from_filter: bool,
     /// Map pyramid level used.
     pub level: usize,
     /// Wall time from frame to fix, milliseconds.
     pub ms: f64,
+}
+
+/// The fused position's dependence on the attitude prior: to first order the reported position is
+/// `p_true + D psi_prior + e` with `psi_prior` the prior's attitude error (NED rotation vector,
+/// `R_prior = Exp(psi) R_true`) and `e` the image's error with covariance `image_cov_ned_m2`;
+/// `cov_ned_m2 = image_cov_ned_m2 + D P D^T` with `P` the prior's covariance. A filter whose own
+/// attitude was the prior fuses the position with `D` in its attitude Jacobian and the image's
+/// covariance, instead of treating `D psi` as independent noise.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PriorDependenceNed {
+    /// `D`, metres per radian, row-major (rows N, E, D position; columns N, E, D rotation).
+    pub d_pos_d_att: [[f64; 3]; 3],
+    /// Position covariance from the image alone, NED, m^2.
+    pub image_cov_ned_m2: [[f64; 3]; 3],
+}
+
+impl PriorDependenceNed {
+    /// All numbers finite.
+    pub fn is_finite(&self) -> bool {
+        self.d_pos_d_att
+            .iter()
+            .chain(self.image_cov_ned_m2.iter())
+            .flatten()
+            .all(|v| v.is_finite())
+    }
 }
 
 /// The camera pose from the image alone, with the covariance of all six degrees of freedom.
@@ -177,6 +212,8 @@ impl FixReport {
             matches: 0,
             reproj_rms_px: f64::NAN,
             vision_only: None,
+            prior_dependence: None,
+            prior_attitude_from_filter: false,
             level: 0,
             ms,
         }

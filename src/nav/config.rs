@@ -377,6 +377,13 @@ pub struct NavConfig {
     /// fix (what a noisy gyro needs). Fixes whose report has no image-only pose are fused as
     /// positions.
     pub vision_attitude: bool,
+    /// Fuse a position fix (not a pose) with its dependence on the attitude prior it was solved
+    /// with, when that prior was this filter's own attitude (`fix::PriorDependenceNed`): the
+    /// measurement Jacobian gets `-D` in its attitude columns and the covariance is the image's
+    /// part alone, so the filter's attitude is not fused a second time through the position.
+    /// Off by default: in the closed-loop demo it has not yet shown a gain over the plain
+    /// position (docs/fix.md, "The attitude prior").
+    pub vision_prior_dependence: bool,
     /// Camera projection centre in the body frame (FRD, metres from the IMU, the point the
     /// filter's position refers to): vision fixes are positions of this point. Not set: the
     /// caller fills it from `[camera.mount] lever_arm_body_frd_m`
@@ -409,6 +416,7 @@ impl Default for NavConfig {
             max_imu_gap_s: 0.1,
             vision_error_corr_time_s: 0.0,
             vision_attitude: false,
+            vision_prior_dependence: false,
             camera_lever_arm_body_frd_m: None,
             gps_lever_arm_body_frd_m: [0.0; 3],
             imu: ImuNoiseConfig::default(),

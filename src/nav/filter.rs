@@ -1123,6 +1123,15 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
                 .copy_from(&Matrix3::identity());
             h.fixed_view_mut::<3, 3>(0, IA)
                 .copy_from(&lever_arm_jacobian(&l_n));
+            // A fix solved with this filter's attitude as its prior: `z = p + D psi + e`, so
+            // `dz = dp - D psi - e` (PositionFix::att_dependence_ned).
+            if let (Some(d), false) = (
+                f.att_dependence_ned,
+                matches!(m, Measurement::VisionPose(_)),
+            ) {
+                let mut ha = h.fixed_view_mut::<3, 3>(0, IA);
+                ha -= d;
+            }
             // Correlated fix errors (NavConfig::vision_error_corr_time_s).
             let corr = if is_vision {
                 correlation_factor(par.vision_corr_s, core.last_vision_us, t_c, 1e4)

@@ -48,6 +48,13 @@ pub struct PositionFix {
     pub h_m: f64,
     /// Position covariance in NED, m^2.
     pub cov_ned_m2: Matrix3<f64>,
+    /// A vision fix solved with the filter's own attitude as a prior depends on that attitude's
+    /// error: `z = p + D psi + e` (D in m/rad, `psi` the filter's attitude error, NED rotation
+    /// vector, `R_est = Exp(psi) R_true`), and `cov_ned_m2` is then `Cov(e)`, the image's part
+    /// alone. The filter puts `-D` into the measurement Jacobian's attitude columns (the
+    /// innovation is `estimate - measurement`), so its attitude is not fused a second time
+    /// through the position. `None`: no such dependence (GPS, image-only positions).
+    pub att_dependence_ned: Option<Matrix3<f64>>,
 }
 
 /// A velocity measurement (GPS).
@@ -177,6 +184,11 @@ impl Measurement {
                 }
                 if f.h_m.abs() > 100_000.0 {
                     return Err("height beyond +-100 km");
+                }
+                if f.att_dependence_ned
+                    .is_some_and(|d| !d.iter().all(|v| v.is_finite()))
+                {
+                    return Err("non-finite attitude dependence");
                 }
                 if !symmetric_pd(&f.cov_ned_m2) {
                     return Err("position covariance not symmetric positive definite");

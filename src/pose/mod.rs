@@ -243,6 +243,44 @@ pub struct Fix {
     pub inliers: Vec<usize>,
     /// Whether the attitude prior was fused into `pose`.
     pub attitude_prior_fused: bool,
+    /// With the attitude prior fused: how the fused position depends on the prior's attitude,
+    /// `d C_world / d phi_prior` (m/rad, world frame; `phi_prior` the world-frame rotation vector of
+    /// the prior's error, `R_prior = Exp(phi_prior) R_true`), and the part of the position
+    /// covariance that comes from the image alone (m^2, world). The fused position is, to first
+    /// order, `C_true + G phi_prior + e_img` with `Cov(e_img)` this part; a filter that supplied
+    /// the prior models `G phi` as a dependence on its own attitude error instead of noise, so its
+    /// attitude is not fused a second time through the position (`Cov = e_img + G P G^T`).
+    pub prior_dependence: Option<PriorDependence>,
+}
+
+/// See [`Fix::prior_dependence`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PriorDependence {
+    /// `d C_world / d phi_prior`, m/rad, world frame.
+    pub d_position_d_prior_att: Matrix3<f64>,
+    /// Position covariance from the image alone, world frame, m^2.
+    pub image_position_cov_m2: Matrix3<f64>,
+}
+
+/// The fused estimate is `x_f = C (I_img x_img + I_P x_P)` with `C = (I_img + I_P)^-1`,
+/// `I_img = (k Q_img)^-1` and `I_P` the prior's information on the attitude block, so
+/// `d x_f / d x_P = C I_P` and the image's share of the covariance is `C I_img C`.
+fn prior_dependence(
+    fused: &PoseCovariance,
+    image: &PoseCovariance,
+    prior: &AttitudePrior,
+) -> Option<PriorDependence> {
+    let c = fused.conservative();
+    let i_img = image.conservative().try_inverse()?;
+    let p_inv = prior.cov_rad2.try_inverse()?;
+    let g = c.fixed_view::<3, 3>(3, 0) * p_inv;
+    let img = c * i_img * c;
+    let cov = img.fixed_view::<3, 3>(3, 3).into_owned();
+    let cov = 0.5 * (cov + cov.transpose());
+    (g.iter().chain(cov.iter()).all(|v| v.is_finite())).then_some(PriorDependence {
+        d_position_d_prior_att: g,
+        image_position_cov_m2: cov,
+    })
 }
 
 /// Outcome of [`resect`]: the fix when one could be computed, and the decision.
@@ -449,7 +487,11 @@ pub fn resect(
     //    information-weighted combination of the image and the prior. Without the scaling the prior
     //    is under-weighted by `k` (16 with the fix pipeline's inflation of 4) and the image's
     //    correlated errors leak into the tilt along the position/tilt ambiguity.
-    let k_image = vision_cov.factor();
+    let k_image = if cfg.refine.prior_against_conservative {
+        vision_cov.factor()
+    } else {
+        1.0
+    };
     let mut final_r = vision.clone();
     let mut fused = false;
     if cfg.refine.use_attitude_prior
@@ -536,6 +578,18 @@ pub fn resect(
         quality,
         inliers: inliers.iter().map(|&i| valid_idx[i]).collect(),
         attitude_prior_fused: fused,
+        prior_dependence: if fused {
+            // The prior as the fusion weighed it: `P k / k_image` (see step 6).
+            priors.attitude.as_ref().and_then(|a| {
+                let effective = AttitudePrior {
+                    r_world_cam: a.r_world_cam,
+                    cov_rad2: a.cov_rad2 * (vision_cov.factor() / k_image),
+                };
+                prior_dependence(&covariance, &vision_cov, &effective)
+            })
+        } else {
+            None
+        },
     };
     let finite = fix.pose.c_world.iter().all(|v| v.is_finite())
         && fix.pose.r_world_cam.matrix().iter().all(|v| v.is_finite())

@@ -214,6 +214,7 @@ pub fn ransac_p3p(
         use_attitude_prior: false,
         sigma_inflation: 1.0,
         split_variance: false,
+        prior_against_conservative: true,
     };
 
     while iterations < needed.max(cfg.min_iterations).min(cfg.max_iterations) {

@@ -85,6 +85,13 @@ pub struct RefineConfig {
     /// quadrants' inliers alone (see [`super::split_variance_factor`]); the covariance is scaled by
     /// it when it exceeds 1. Off by default (independent pixel errors need no such factor).
     pub split_variance: bool,
+    /// Fuse the attitude prior against the image's conservative covariance (`k Q`, the
+    /// information-weighted combination; the default) rather than its a-priori one (`Q`, which
+    /// weighs the prior `k` times less). The weaker weighting is for a prior that is not
+    /// independent of what the fix will be fused with: a navigation filter's own attitude, whose
+    /// errors would otherwise come back to it through the fix's position (see
+    /// docs/fix.md, "The attitude prior").
+    pub prior_against_conservative: bool,
 }
 
 impl Default for RefineConfig {
@@ -95,6 +102,7 @@ impl Default for RefineConfig {
             use_attitude_prior: false,
             sigma_inflation: 1.0,
             split_variance: false,
+            prior_against_conservative: true,
         }
     }
 }

@@ -255,6 +255,7 @@ impl NaipEval {
                 ),
                 0.5f64.to_radians(),
             )),
+            attitude_from_filter: false,
         })
     }
 

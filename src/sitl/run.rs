@@ -528,6 +528,7 @@ fn offset_fix(
         lon_rad: p.1 + n_ned.y / ((rn + p.2) * p.0.cos()),
         h_m: p.2 - n_ned.z,
         cov_ned_m2: cov,
+        att_dependence_ned: None,
     }
 }
 

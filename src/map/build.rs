@@ -16,13 +16,21 @@
 //! without a DEM height. Features go to a spill file while per-cell counters are kept; the final
 //! file is laid out cell by cell (the index cells are the tile cores of the first ortho).
 //!
-//! Memory: each orthophoto is decoded whole (`geo::geotiff::load_geotiff`, its samples in their
-//! file type, e.g. 4 bytes/px for RGBN u8), plus one tile's working set (grey, integral image,
-//! SURF response layers: a few tens of MB at the default 1024 px tiles), plus the DEM, plus
-//! 8 bytes per index cell. The level images are never held whole: a tile of level `L` is averaged
-//! on the fly from the level-0 samples. So peak memory grows with the largest single orthophoto
-//! (not with the number of orthophotos or levels); a windowed GeoTIFF reader would remove that.
+//! Memory: the orthophotos are never decoded whole. Each tile window (core + margin, in level
+//! pixels) is read through `geo::window::GeoTiffWindowReader`, which decodes only the strips/tiles
+//! under it and keeps a bounded LRU cache of decoded chunks ([`ORTHO_CACHE_BYTES`]); a tile of
+//! level `L` (each level pixel the mean of a `2^L x 2^L` block of level-0 pixels) is averaged from
+//! level-0 row bands of at most about [`BAND_BYTES`], so a level-5 tile does not need its
+//! 32x larger level-0 footprint at once. Add one tile's working set (grey, integral image, SURF
+//! response layers: a few tens of MB at the default 1024 px tiles), the DEM (loaded whole: DEMs
+//! are usually much coarser than the orthophoto), and 8 bytes per index cell. Peak memory thus no
+//! longer grows with the orthophoto size (docs/map-format.md has measurements). The price is
+//! decoding: the margins overlap and every level reads the level-0 pixels again, so each chunk is
+//! decoded about `n_levels` x (1 to 1.5) times. [`BuildSpec::decode_whole`] restores the old
+//! behaviour (decode each orthophoto whole once; memory grows with the orthophoto) and gives the
+//! same features: the level windows are bit-identical either way.
 
+use std::io::{Read, Seek};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -32,8 +40,9 @@ use super::format::SpillWriter;
 use super::{HeightInfo, IndexGrid, LevelInfo, MapError, MapFeature, MapHeader, OrthoInfo};
 use crate::geo::Crs;
 use crate::geo::dem::Dem;
-use crate::geo::geotiff::{crs_equivalent, load_geotiff};
-use crate::geo::raster::{Bounds, Raster, RasterData};
+use crate::geo::geotiff::{GeoTiffError, GeoTiffInfo, crs_equivalent, load_geotiff};
+use crate::geo::raster::{Bounds, GeoTransform, Raster, RasterData};
+use crate::geo::window::{GeoTiffWindowReader, open_geotiff_window};
 use crate::vision::{GrayImage, IntegralImage, KeyPoint, Surf, SurfParams};
 
 /// Rec. 601 luma weights (as `vision::GrayImage::from_dynamic` and the renderer).
@@ -42,6 +51,10 @@ const LUMA: [f32; 3] = [0.299, 0.587, 0.114];
 const AUTO_MIN_SIDE_PX: f64 = 256.0;
 /// Auto level count: at most this many levels.
 const AUTO_MAX_LEVELS: usize = 6;
+/// Bound of each orthophoto reader's decoded-chunk cache, bytes.
+pub const ORTHO_CACHE_BYTES: usize = 64 << 20;
+/// Target size of one band of level-0 samples read to average a window of a coarser level, bytes.
+pub const BAND_BYTES: usize = 32 << 20;
 
 /// Where the feature heights come from.
 #[derive(Clone, Debug, PartialEq)]
@@ -68,6 +81,9 @@ pub struct BuildSpec {
     pub tile_px: usize,
     /// Keep at most this many features per tile core (even spread), per level.
     pub max_features_per_tile: usize,
+    /// Decode each orthophoto whole before tiling it (memory grows with the orthophoto; fewer
+    /// decodes) instead of reading tile windows (bounded memory, the default). Same features.
+    pub decode_whole: bool,
 }
 
 impl BuildSpec {
@@ -85,6 +101,7 @@ impl BuildSpec {
             },
             tile_px: 1024,
             max_features_per_tile: 4000,
+            decode_whole: false,
         }
     }
 }
@@ -155,14 +172,15 @@ struct OrthoGeom {
     bands: usize,
     gsd_m: f64,
     bounds: Bounds,
+    transform: GeoTransform,
 }
 
-fn check_ortho(path: &Path, r: &Raster, crs: Option<Crs>) -> Result<OrthoGeom, MapError> {
+fn check_ortho(path: &Path, r: &GeoTiffInfo, crs: Option<Crs>) -> Result<OrthoGeom, MapError> {
     let bad = |reason: String| MapError::Input {
         path: path.to_path_buf(),
         reason,
     };
-    let t = r.transform();
+    let t = &r.transform;
     if !t.is_axis_aligned() {
         return Err(bad(
             "the orthophoto is rotated (geotransform has rotation terms); warp it north-up first"
@@ -182,27 +200,28 @@ fn check_ortho(path: &Path, r: &Raster, crs: Option<Crs>) -> Result<OrthoGeom, M
             "pixels are not square ({px} x {py} m); resample the orthophoto"
         )));
     }
-    if matches!(r.crs(), Crs::Geographic) {
+    if matches!(r.crs, Crs::Geographic) {
         return Err(bad(
             "the orthophoto is in geographic coordinates (degrees); a projected CRS in metres is required"
                 .into(),
         ));
     }
     if let Some(c0) = crs
-        && !crs_equivalent(&c0, &r.crs())
+        && !crs_equivalent(&c0, &r.crs)
     {
         return Err(bad(format!(
             "CRS {:?} differs from the first orthophoto's {c0:?}; all orthophotos of a map must share one CRS",
-            r.crs()
+            r.crs
         )));
     }
     Ok(OrthoGeom {
         path: path.to_path_buf(),
-        width: r.width(),
-        height: r.height(),
-        bands: r.bands(),
+        width: r.width,
+        height: r.height,
+        bands: r.bands,
         gsd_m: px,
         bounds: r.bounds(),
+        transform: r.transform,
     })
 }
 
@@ -238,14 +257,12 @@ pub fn build_map(
     surf_params.max_features = None;
     let surf = Surf::new(surf_params.clone()).map_err(|e| param("surf", &e.to_string()))?;
 
-    // Pass 1: geometry of every ortho (the last one stays loaded for pass 2).
+    // Pass 1: geometry of every ortho (headers only).
     let mut geoms: Vec<OrthoGeom> = Vec::new();
     let mut crs: Option<Crs> = None;
-    let mut last: Option<Raster> = None;
     for path in &spec.orthos {
-        drop(last.take()); // free the previous ortho before decoding the next
-        let r = load_geotiff(path, spec.crs_override)?;
-        let g = check_ortho(path, &r, crs)?;
+        let r = open_geotiff_window(path, spec.crs_override)?;
+        let g = check_ortho(path, r.info(), crs)?;
         if let Some(g0) = geoms.first()
             && (g.gsd_m - g0.gsd_m).abs() > 1e-3 * g0.gsd_m
         {
@@ -257,9 +274,8 @@ pub fn build_map(
                 ),
             });
         }
-        crs.get_or_insert(r.crs());
+        crs.get_or_insert(r.info().crs);
         geoms.push(g);
-        last = Some(r);
     }
     let crs = crs.ok_or_else(|| param("orthos", "no orthophoto loaded"))?; // non-empty checked
     let gsd0 = geoms[0].gsd_m;
@@ -358,15 +374,27 @@ pub fn build_map(
     let spill_path = out.with_extension("vnm.spill");
     let mut writer = SpillWriter::new(&spill_path, surf_params.descriptor, grids.clone())?;
     let mut st = Stats::default();
-    // Pass 2, last ortho first (it is still loaded).
+    // Pass 2, last ortho first (the order of the features in the file depends on it).
     for oi in (0..geoms.len()).rev() {
-        let raster = match last.take() {
-            Some(r) => r,
-            None => load_geotiff(&geoms[oi].path, spec.crs_override)?,
+        let g = &geoms[oi];
+        let mut source: Box<dyn LevelSource> = if spec.decode_whole {
+            Box::new(load_geotiff(&g.path, spec.crs_override)?)
+        } else {
+            let mut r = open_geotiff_window(&g.path, spec.crs_override)?;
+            r.set_cache_bytes(ORTHO_CACHE_BYTES);
+            Box::new(r)
         };
+        if source.dims() != (g.width, g.height) {
+            return Err(MapError::Input {
+                path: g.path.clone(),
+                reason: "the file changed during the build".into(),
+            });
+        }
         for level in 0..n_levels {
             let ctx = TileCtx {
-                raster: &raster,
+                width: g.width,
+                height: g.height,
+                transform: g.transform,
                 level,
                 core,
                 margin,
@@ -375,10 +403,12 @@ pub fn build_map(
                 dem: &dem,
                 source: oi as u8, // ok: <= 255 orthos checked
             };
-            let (lw, lh) = (raster.width() >> level, raster.height() >> level);
+            let (lw, lh) = (g.width >> level, g.height >> level);
             for ty in 0..lh.div_ceil(core) {
                 for tx in 0..lw.div_ceil(core) {
-                    process_tile(&ctx, tx * core, ty * core, &mut writer, &mut st)?;
+                    let win = TileWindow::new(&ctx, tx * core, ty * core);
+                    let (grey, valid) = source.level_window(level, win.x0, win.y0, win.w, win.h)?;
+                    process_tile(&ctx, &win, grey, &valid, &mut writer, &mut st)?;
                     st.tiles += 1;
                     progress(BuildProgress {
                         ortho: oi,
@@ -446,7 +476,10 @@ struct Stats {
 }
 
 struct TileCtx<'a> {
-    raster: &'a Raster,
+    /// Level-0 size and transform of the ortho.
+    width: usize,
+    height: usize,
+    transform: GeoTransform,
     level: usize,
     core: usize,
     margin: usize,
@@ -456,25 +489,108 @@ struct TileCtx<'a> {
     source: u8,
 }
 
-/// Extracts the features of the tile whose core's top-left level pixel is `(cx0, cy0)`.
-fn process_tile(
-    ctx: &TileCtx,
+/// A tile of a level image: core `(cx0, cy0)`, `cw x ch`, inside the window `(x0, y0)`, `w x h`
+/// (the core plus the margin, clipped to the level image), level pixels.
+struct TileWindow {
     cx0: usize,
     cy0: usize,
+    cw: usize,
+    ch: usize,
+    x0: usize,
+    y0: usize,
+    w: usize,
+    h: usize,
+}
+
+impl TileWindow {
+    fn new(ctx: &TileCtx, cx0: usize, cy0: usize) -> Self {
+        let (lw, lh) = (ctx.width >> ctx.level, ctx.height >> ctx.level);
+        let (cw, ch) = (ctx.core.min(lw - cx0), ctx.core.min(lh - cy0));
+        let x0 = cx0.saturating_sub(ctx.margin);
+        let y0 = cy0.saturating_sub(ctx.margin);
+        let x1 = (cx0 + cw + ctx.margin).min(lw);
+        let y1 = (cy0 + ch + ctx.margin).min(lh);
+        Self {
+            cx0,
+            cy0,
+            cw,
+            ch,
+            x0,
+            y0,
+            w: x1 - x0,
+            h: y1 - y0,
+        }
+    }
+}
+
+/// Where a build reads level windows from: a whole decoded ortho or a windowed reader.
+trait LevelSource {
+    /// Level-0 width and height.
+    fn dims(&self) -> (usize, usize);
+    /// As [`level_window`].
+    fn level_window(
+        &mut self,
+        level: usize,
+        x0: usize,
+        y0: usize,
+        w: usize,
+        h: usize,
+    ) -> Result<(Vec<f32>, Vec<bool>), MapError>;
+}
+
+impl LevelSource for Raster {
+    fn dims(&self) -> (usize, usize) {
+        (self.width(), self.height())
+    }
+    fn level_window(
+        &mut self,
+        level: usize,
+        x0: usize,
+        y0: usize,
+        w: usize,
+        h: usize,
+    ) -> Result<(Vec<f32>, Vec<bool>), MapError> {
+        Ok(level_window(self, level, x0, y0, w, h))
+    }
+}
+
+impl<R: Read + Seek> LevelSource for GeoTiffWindowReader<R> {
+    fn dims(&self) -> (usize, usize) {
+        (self.info().width, self.info().height)
+    }
+    fn level_window(
+        &mut self,
+        level: usize,
+        x0: usize,
+        y0: usize,
+        w: usize,
+        h: usize,
+    ) -> Result<(Vec<f32>, Vec<bool>), MapError> {
+        Ok(level_window_from_reader(
+            self, level, x0, y0, w, h, BAND_BYTES,
+        )?)
+    }
+}
+
+/// Extracts the features of the tile `win` from its level window `grey` / `valid`.
+fn process_tile(
+    ctx: &TileCtx,
+    win: &TileWindow,
+    grey: Vec<f32>,
+    valid: &[bool],
     writer: &mut SpillWriter,
     st: &mut Stats,
 ) -> Result<(), MapError> {
-    let (lw, lh) = (
-        ctx.raster.width() >> ctx.level,
-        ctx.raster.height() >> ctx.level,
-    );
-    let (cw, ch) = (ctx.core.min(lw - cx0), ctx.core.min(lh - cy0));
-    let wx0 = cx0.saturating_sub(ctx.margin);
-    let wy0 = cy0.saturating_sub(ctx.margin);
-    let wx1 = (cx0 + cw + ctx.margin).min(lw);
-    let wy1 = (cy0 + ch + ctx.margin).min(lh);
-    let (ww, wh) = (wx1 - wx0, wy1 - wy0);
-    let (grey, valid) = level_window(ctx.raster, ctx.level, wx0, wy0, ww, wh);
+    let TileWindow {
+        cx0,
+        cy0,
+        cw,
+        ch,
+        x0: wx0,
+        y0: wy0,
+        w: ww,
+        h: wh,
+    } = *win;
     if !valid.iter().any(|&v| v) {
         return Ok(());
     }
@@ -532,7 +648,7 @@ fn process_tile(
     }
     let feats = ctx.surf.describe(&ii, kept);
     let f = f64::from(1u32 << ctx.level);
-    let t = ctx.raster.transform();
+    let t = &ctx.transform;
     for (i, kp) in feats.keypoints.iter().enumerate() {
         let col0 = (wx0 as f64 + f64::from(kp.x) + 0.5) * f;
         let row0 = (wy0 as f64 + f64::from(kp.y) + 0.5) * f;
@@ -597,6 +713,42 @@ pub fn level_window(
             },
         );
     (grey, valid)
+}
+
+/// [`level_window`] read through a windowed GeoTIFF reader: the level-0 pixels under the level
+/// window are read in bands of whole `2^level`-row blocks of about `band_bytes` (at least one
+/// block row), each averaged with [`level_window`] itself, so the result is bit-identical to
+/// `level_window` on the whole decoded image while only one band is held at a time.
+pub fn level_window_from_reader<R: Read + Seek>(
+    reader: &mut GeoTiffWindowReader<R>,
+    level: usize,
+    x0: usize,
+    y0: usize,
+    w: usize,
+    h: usize,
+    band_bytes: usize,
+) -> Result<(Vec<f32>, Vec<bool>), GeoTiffError> {
+    let f = 1usize << level;
+    let info = reader.info();
+    let sample_bytes = usize::from(info.bits_per_sample).div_ceil(8).max(1);
+    // Level-0 bytes of one level row of the window.
+    let row_bytes = (w * f)
+        .saturating_mul(f)
+        .saturating_mul(info.bands)
+        .saturating_mul(sample_bytes);
+    let rows_per_band = (band_bytes / row_bytes.max(1)).clamp(1, h.max(1));
+    let mut grey = Vec::with_capacity(w * h);
+    let mut valid = Vec::with_capacity(w * h);
+    let mut ya = 0;
+    while ya < h {
+        let n = rows_per_band.min(h - ya);
+        let band = reader.read_window(x0 * f, (y0 + ya) * f, w * f, n * f)?;
+        let (g, v) = level_window(&band, level, 0, 0, w, n);
+        grey.extend_from_slice(&g);
+        valid.extend_from_slice(&v);
+        ya += n;
+    }
+    Ok((grey, valid))
 }
 
 /// Luma of level-0 pixels `c0 .. c0 + out.len()` of `row`, NaN where a used band is missing.

@@ -51,10 +51,11 @@ const LUMA: [f32; 3] = [0.299, 0.587, 0.114];
 const AUTO_MIN_SIDE_PX: f64 = 256.0;
 /// Auto level count: at most this many levels.
 const AUTO_MAX_LEVELS: usize = 6;
-/// Bound of each orthophoto reader's decoded-chunk cache, bytes.
-pub const ORTHO_CACHE_BYTES: usize = 64 << 20;
+/// Bound of each orthophoto reader's decoded-chunk cache, bytes (it keeps the chunks shared by
+/// neighbouring tile windows).
+pub const ORTHO_CACHE_BYTES: usize = 16 << 20;
 /// Target size of one band of level-0 samples read to average a window of a coarser level, bytes.
-pub const BAND_BYTES: usize = 32 << 20;
+pub const BAND_BYTES: usize = 16 << 20;
 
 /// Where the feature heights come from.
 #[derive(Clone, Debug, PartialEq)]
@@ -718,7 +719,9 @@ pub fn level_window(
 /// [`level_window`] read through a windowed GeoTIFF reader: the level-0 pixels under the level
 /// window are read in bands of whole `2^level`-row blocks of about `band_bytes` (at least one
 /// block row), each averaged with [`level_window`] itself, so the result is bit-identical to
-/// `level_window` on the whole decoded image while only one band is held at a time.
+/// `level_window` on the whole decoded image while only one band is held at a time. When a band
+/// holds several chunk rows, band ends fall on chunk-row boundaries so that no strip/tile is
+/// needed by two bands (each is decoded once per window even without the cache).
 pub fn level_window_from_reader<R: Read + Seek>(
     reader: &mut GeoTiffWindowReader<R>,
     level: usize,
@@ -737,11 +740,21 @@ pub fn level_window_from_reader<R: Read + Seek>(
         .saturating_mul(info.bands)
         .saturating_mul(sample_bytes);
     let rows_per_band = (band_bytes / row_bytes.max(1)).clamp(1, h.max(1));
+    // Level rows per aligned unit: lcm(2^level, chunk height) level-0 rows.
+    let ch = info.chunk_height.max(1);
+    let unit = (f / gcd(f, ch)).saturating_mul(ch) / f;
     let mut grey = Vec::with_capacity(w * h);
     let mut valid = Vec::with_capacity(w * h);
     let mut ya = 0;
     while ya < h {
-        let n = rows_per_band.min(h - ya);
+        let mut n = rows_per_band.min(h - ya);
+        if ya + n < h && unit <= rows_per_band {
+            // End the band on a unit boundary (absolute level row a multiple of `unit`).
+            let end = (y0 + ya + n) / unit * unit;
+            if end > y0 + ya {
+                n = end - y0 - ya;
+            }
+        }
         let band = reader.read_window(x0 * f, (y0 + ya) * f, w * f, n * f)?;
         let (g, v) = level_window(&band, level, 0, 0, w, n);
         grey.extend_from_slice(&g);
@@ -749,6 +762,10 @@ pub fn level_window_from_reader<R: Read + Seek>(
         ya += n;
     }
     Ok((grey, valid))
+}
+
+fn gcd(a: usize, b: usize) -> usize {
+    if b == 0 { a } else { gcd(b, a % b) }
 }
 
 /// Luma of level-0 pixels `c0 .. c0 + out.len()` of `row`, NaN where a used band is missing.

@@ -263,7 +263,7 @@ fn sub(r: &Raster, c0: usize, r0: usize, w: usize, h: usize) -> RasterData {
 
 /// `read_window` == the same part of the whole image: samples (bit for bit), size, bands, CRS,
 /// nodata, sample type, and the window's geotransform.
-fn check_window<R: std::io::Read + std::io::Seek>(
+fn check_window<R: std::io::Read + std::io::Seek + Send>(
     rd: &mut GeoTiffWindowReader<R>,
     whole: &Raster,
     (c0, r0, w, h): (usize, usize, usize, usize),
@@ -337,8 +337,9 @@ fn check_file(path: &Path, n_random: usize, what: &str) {
         .into_iter()
         .enumerate()
     {
-        // Alternate cached and uncached reads.
+        // Alternate cached and uncached reads, and 1 to 3 decoding threads.
         rd.set_cache_bytes(if i % 3 == 2 { 0 } else { 1 << 20 });
+        rd.set_decode_threads(1 + i % 4 / 2 * 2).unwrap();
         check_window(&mut rd, &whole, win, what);
     }
 }
@@ -449,6 +450,14 @@ fn only_the_chunks_under_the_window_are_decoded_and_cached() {
     assert_eq!(rd.cached_bytes(), 12 * 256);
     rd.set_cache_bytes(256);
     assert!(rd.cached_bytes() <= 256);
+    // Parallel decoding: the same chunks are decoded, once each.
+    rd.set_cache_bytes(0);
+    rd.set_decode_threads(3).unwrap();
+    let n0 = rd.chunks_decoded();
+    let par = rd.read_window(10, 10, 20, 20).unwrap();
+    assert_eq!(rd.chunks_decoded(), n0 + 12);
+    rd.set_decode_threads(1).unwrap();
+    assert_eq!(rd.read_window(10, 10, 20, 20).unwrap(), par);
     // Whole image through the reader == load_geotiff.
     let whole = load_geotiff(&p, None).unwrap();
     assert_eq!(rd.read_window(0, 0, 100, 70).unwrap(), whole);

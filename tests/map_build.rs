@@ -444,7 +444,10 @@ fn windowed_build_is_byte_identical_to_the_whole_image_build() {
         shared("autzen/autzen_dsm_1m_utm10n.tif"),
     ) {
         // 1024 px tiles over 256 px deflate tiles: windows straddle chunks at every level.
-        cases.push(("autzen_t1024".into(), BuildSpec::new(vec![o], HeightSource::Dem(d))));
+        cases.push((
+            "autzen_t1024".into(),
+            BuildSpec::new(vec![o], HeightSource::Dem(d)),
+        ));
     }
     for (name, spec) in cases {
         assert!(!spec.decode_whole, "windowed reading is the default");

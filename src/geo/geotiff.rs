@@ -789,7 +789,7 @@ pub fn load_geotiff(path: &Path, crs_override: Option<Crs>) -> Result<Raster, Ge
 }
 
 /// Like [`load_geotiff`] but from any seekable reader; `path` is only used in error messages.
-pub fn read_geotiff<R: Read + Seek>(
+pub fn read_geotiff<R: Read + Seek + Send>(
     reader: R,
     path: &Path,
     crs_override: Option<Crs>,

@@ -63,8 +63,11 @@ pub fn open_geotiff_window(
 }
 
 /// A GeoTIFF opened for reading pixel windows (see the module doc).
-pub struct GeoTiffWindowReader<R: Read + Seek> {
+pub struct GeoTiffWindowReader<R: Read + Seek + Send> {
     dec: Decoder<R>,
+    /// More decoders on their own handles of the file: `read_window` decodes the chunks it
+    /// misses in parallel, one group per decoder ([`GeoTiffWindowReader::set_decode_threads`]).
+    helpers: Vec<Decoder<R>>,
     path: PathBuf,
     info: GeoTiffInfo,
     cache: ChunkCache,
@@ -75,7 +78,7 @@ pub struct GeoTiffWindowReader<R: Read + Seek> {
     chunks_decoded: u64,
 }
 
-impl<R: Read + Seek> std::fmt::Debug for GeoTiffWindowReader<R> {
+impl<R: Read + Seek + Send> std::fmt::Debug for GeoTiffWindowReader<R> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("GeoTiffWindowReader")
             .field("path", &self.path)
@@ -86,7 +89,7 @@ impl<R: Read + Seek> std::fmt::Debug for GeoTiffWindowReader<R> {
     }
 }
 
-impl<R: Read + Seek> GeoTiffWindowReader<R> {
+impl<R: Read + Seek + Send> GeoTiffWindowReader<R> {
     /// Parses the header of the first image of `reader`; `path` is used in error messages only.
     pub fn new(reader: R, path: &Path, crs_override: Option<Crs>) -> Result<Self, GeoTiffError> {
         guarded(path, || Self::new_unguarded(reader, path, crs_override))
@@ -102,6 +105,7 @@ impl<R: Read + Seek> GeoTiffWindowReader<R> {
         let info = read_info(&mut dec, path, crs_override)?;
         Ok(Self {
             dec,
+            helpers: Vec::new(),
             path: path.to_path_buf(),
             info,
             cache: ChunkCache::new(DEFAULT_CACHE_BYTES),
@@ -207,6 +211,20 @@ impl<R: Read + Seek> GeoTiffWindowReader<R> {
         {
             return Err(decode_err("too many chunks".into()));
         }
+        let chunk_ids = || {
+            (0..planes).flat_map(move |plane| {
+                (row0 / ch..=(row0 + height - 1) / ch).flat_map(move |ty| {
+                    (col0 / cw..=(col0 + width - 1) / cw)
+                        .map(move |tx| (plane * per_plane + ty * across + tx) as u32) // ok: < n_chunks <= u32::MAX
+                })
+            })
+        };
+        let mut prefetched = if self.helpers.is_empty() {
+            HashMap::new()
+        } else {
+            let missing: Vec<u32> = chunk_ids().filter(|&i| !self.cache.has(i)).collect();
+            self.decode_parallel(&missing)?
+        };
         let mut out: Option<Acc> = None;
         for plane in 0..planes {
             for ty in row0 / ch..=(row0 + height - 1) / ch {
@@ -214,7 +232,10 @@ impl<R: Read + Seek> GeoTiffWindowReader<R> {
                     let idx = plane * per_plane + ty * across + tx;
                     let (x0, y0) = (tx * cw, ty * ch);
                     let (dw, dh) = (cw.min(info.width - x0), ch.min(info.height - y0));
-                    let chunk = self.chunk(idx as u32)?; // ok: idx < n_chunks <= u32::MAX
+                    let chunk = match prefetched.remove(&(idx as u32)) {
+                        Some(c) => c,
+                        None => self.chunk(idx as u32)?, // ok: idx < n_chunks <= u32::MAX
+                    };
                     let (ix0, iy0) = (x0.max(col0), y0.max(row0));
                     let (ix1, iy1) = ((x0 + dw).min(col0 + width), (y0 + dh).min(row0 + height));
                     let geom = ChunkGeom {
@@ -276,17 +297,44 @@ impl<R: Read + Seek> GeoTiffWindowReader<R> {
         if let Some(c) = self.cache.get(idx) {
             return Ok(c);
         }
+        let decoded = decode_one(&mut self.dec, idx);
+        self.accept(idx, decoded)
+    }
+
+    /// Decodes the chunks `ids` on the main decoder and the helpers at once (contiguous groups,
+    /// one per decoder), caching them; returns them all.
+    fn decode_parallel(&mut self, ids: &[u32]) -> Result<HashMap<u32, Arc<Chunk>>, GeoTiffError> {
+        use rayon::prelude::*;
+        let n = (1 + self.helpers.len()).min(ids.len()).max(1);
+        let per = ids.len().div_ceil(n).max(1);
+        let decs: Vec<&mut Decoder<R>> = std::iter::once(&mut self.dec)
+            .chain(self.helpers.iter_mut())
+            .take(n)
+            .collect();
+        let groups: Vec<Vec<(u32, Result<Chunk, String>)>> = decs
+            .into_par_iter()
+            .zip(ids.par_chunks(per))
+            .map(|(dec, group)| group.iter().map(|&i| (i, decode_one(dec, i))).collect())
+            .collect();
+        let mut out = HashMap::with_capacity(ids.len());
+        for (i, decoded) in groups.into_iter().flatten() {
+            out.insert(i, self.accept(i, decoded)?);
+        }
+        Ok(out)
+    }
+
+    /// Counts, type-checks and caches a freshly decoded chunk.
+    fn accept(
+        &mut self,
+        idx: u32,
+        decoded: Result<Chunk, String>,
+    ) -> Result<Arc<Chunk>, GeoTiffError> {
         let decode_err = |reason: String| GeoTiffError::Decode {
             path: self.path.clone(),
             reason,
         };
-        let raw = self
-            .dec
-            .read_chunk(idx)
-            .map_err(|e| decode_err(format!("chunk {idx}: {e}")))?;
         self.chunks_decoded += 1;
-        let chunk =
-            Chunk::from_decoded(raw).map_err(|e| decode_err(format!("chunk {idx}: {e}")))?;
+        let chunk = decoded.map_err(|e| decode_err(format!("chunk {idx}: {e}")))?;
         match self.sample_type {
             None => self.sample_type = Some(chunk.sample_type),
             Some(t) if t == chunk.sample_type => {}
@@ -300,6 +348,32 @@ impl<R: Read + Seek> GeoTiffWindowReader<R> {
         let chunk = Arc::new(chunk);
         self.cache.insert(idx, Arc::clone(&chunk));
         Ok(chunk)
+    }
+}
+
+/// Reads and converts chunk `idx`.
+fn decode_one<R: Read + Seek>(dec: &mut Decoder<R>, idx: u32) -> Result<Chunk, String> {
+    let raw = dec.read_chunk(idx).map_err(|e| e.to_string())?;
+    Chunk::from_decoded(raw)
+}
+
+impl GeoTiffWindowReader<BufReader<File>> {
+    /// Decode up to `n` chunks at once (on rayon's pool) in `read_window`, each thread on its own
+    /// handle of the file. `n <= 1`: one decoder (the default). The chunks a window misses are
+    /// then all decoded before they are placed (held at once: about the window's size).
+    pub fn set_decode_threads(&mut self, n: usize) -> Result<(), GeoTiffError> {
+        let n = n.max(1);
+        self.helpers.truncate(n - 1);
+        while self.helpers.len() + 1 < n {
+            let path = self.path.clone();
+            let file = File::open(&path).map_err(|source| GeoTiffError::Io {
+                path: path.clone(),
+                source,
+            })?;
+            let dec = guarded(&path, || new_decoder(BufReader::new(file), &path))?;
+            self.helpers.push(dec);
+        }
+        Ok(())
     }
 }
 
@@ -472,6 +546,10 @@ impl ChunkCache {
             map: HashMap::new(),
             order: BTreeMap::new(),
         }
+    }
+
+    fn has(&self, idx: u32) -> bool {
+        self.map.contains_key(&idx)
     }
 
     fn get(&mut self, idx: u32) -> Option<Arc<Chunk>> {

@@ -383,6 +383,7 @@ pub fn build_map(
         } else {
             let mut r = open_geotiff_window(&g.path, spec.crs_override)?;
             r.set_cache_bytes(ORTHO_CACHE_BYTES);
+            r.set_decode_threads(rayon::current_num_threads())?;
             Box::new(r)
         };
         if source.dims() != (g.width, g.height) {
@@ -555,7 +556,7 @@ impl LevelSource for Raster {
     }
 }
 
-impl<R: Read + Seek> LevelSource for GeoTiffWindowReader<R> {
+impl<R: Read + Seek + Send> LevelSource for GeoTiffWindowReader<R> {
     fn dims(&self) -> (usize, usize) {
         (self.info().width, self.info().height)
     }
@@ -722,7 +723,7 @@ pub fn level_window(
 /// `level_window` on the whole decoded image while only one band is held at a time. When a band
 /// holds several chunk rows, band ends fall on chunk-row boundaries so that no strip/tile is
 /// needed by two bands (each is decoded once per window even without the cache).
-pub fn level_window_from_reader<R: Read + Seek>(
+pub fn level_window_from_reader<R: Read + Seek + Send>(
     reader: &mut GeoTiffWindowReader<R>,
     level: usize,
     x0: usize,

@@ -393,6 +393,7 @@ pub fn build_map(
             });
         }
         for level in 0..n_levels {
+            let decoded_before = source.chunks_decoded();
             let ctx = TileCtx {
                 width: g.width,
                 height: g.height,
@@ -407,10 +408,19 @@ pub fn build_map(
             };
             let (lw, lh) = (g.width >> level, g.height >> level);
             for ty in 0..lh.div_ceil(core) {
+                let mut prev: Option<LevelPatch> = None;
                 for tx in 0..lw.div_ceil(core) {
                     let win = TileWindow::new(&ctx, tx * core, ty * core);
-                    let (grey, valid) = source.level_window(level, win.x0, win.y0, win.w, win.h)?;
-                    process_tile(&ctx, &win, grey, &valid, &mut writer, &mut st)?;
+                    let patch = read_reusing(source.as_mut(), level, &win, prev.take())?;
+                    process_tile(
+                        &ctx,
+                        &win,
+                        patch.grey.clone(),
+                        &patch.valid,
+                        &mut writer,
+                        &mut st,
+                    )?;
+                    prev = Some(patch);
                     st.tiles += 1;
                     progress(BuildProgress {
                         ortho: oi,
@@ -421,6 +431,12 @@ pub fn build_map(
                     });
                 }
             }
+            tracing::debug!(
+                ortho = oi,
+                level,
+                chunks_decoded = source.chunks_decoded() - decoded_before,
+                "level done"
+            );
         }
     }
 
@@ -525,10 +541,77 @@ impl TileWindow {
     }
 }
 
+/// A level window: `w x h` level pixels at `(x0, y0)`, grey values and validity.
+struct LevelPatch {
+    x0: usize,
+    y0: usize,
+    w: usize,
+    h: usize,
+    grey: Vec<f32>,
+    valid: Vec<bool>,
+}
+
+/// The level window of `win`, reusing the columns it shares with `prev`, the window of the tile to
+/// its left (the two margins): only the new columns are read. Level pixels do not depend on the
+/// window they are read in, so the result is the same as reading the whole window.
+fn read_reusing(
+    source: &mut dyn LevelSource,
+    level: usize,
+    win: &TileWindow,
+    prev: Option<LevelPatch>,
+) -> Result<LevelPatch, MapError> {
+    let shared = match &prev {
+        Some(p)
+            if p.y0 == win.y0
+                && p.h == win.h
+                && p.x0 <= win.x0
+                && win.x0 < p.x0 + p.w
+                && p.x0 + p.w <= win.x0 + win.w =>
+        {
+            p.x0 + p.w - win.x0
+        }
+        _ => 0,
+    };
+    let (x0, y0, w, h) = (win.x0, win.y0, win.w, win.h);
+    let (grey, valid) = match prev {
+        Some(p) if shared > 0 => {
+            let new_w = w - shared;
+            let (g_new, v_new) = if new_w > 0 {
+                source.level_window(level, x0 + shared, y0, new_w, h)?
+            } else {
+                (Vec::new(), Vec::new())
+            };
+            let off = x0 - p.x0;
+            let mut grey = Vec::with_capacity(w * h);
+            let mut valid = Vec::with_capacity(w * h);
+            for y in 0..h {
+                grey.extend_from_slice(&p.grey[y * p.w + off..y * p.w + off + shared]);
+                grey.extend_from_slice(&g_new[y * new_w..(y + 1) * new_w]);
+                valid.extend_from_slice(&p.valid[y * p.w + off..y * p.w + off + shared]);
+                valid.extend_from_slice(&v_new[y * new_w..(y + 1) * new_w]);
+            }
+            (grey, valid)
+        }
+        _ => source.level_window(level, x0, y0, w, h)?,
+    };
+    Ok(LevelPatch {
+        x0,
+        y0,
+        w,
+        h,
+        grey,
+        valid,
+    })
+}
+
 /// Where a build reads level windows from: a whole decoded ortho or a windowed reader.
 trait LevelSource {
     /// Level-0 width and height.
     fn dims(&self) -> (usize, usize);
+    /// Chunks decoded so far (0 for a decoded image).
+    fn chunks_decoded(&self) -> u64 {
+        0
+    }
     /// As [`level_window`].
     fn level_window(
         &mut self,
@@ -559,6 +642,9 @@ impl LevelSource for Raster {
 impl<R: Read + Seek + Send> LevelSource for GeoTiffWindowReader<R> {
     fn dims(&self) -> (usize, usize) {
         (self.info().width, self.info().height)
+    }
+    fn chunks_decoded(&self) -> u64 {
+        GeoTiffWindowReader::chunks_decoded(self)
     }
     fn level_window(
         &mut self,

@@ -16,19 +16,21 @@
 //! without a DEM height. Features go to a spill file while per-cell counters are kept; the final
 //! file is laid out cell by cell (the index cells are the tile cores of the first ortho).
 //!
-//! Memory: the orthophotos are never decoded whole. Each tile window (core + margin, in level
-//! pixels) is read through `geo::window::GeoTiffWindowReader`, which decodes only the strips/tiles
-//! under it and keeps a bounded LRU cache of decoded chunks ([`ORTHO_CACHE_BYTES`]); a tile of
-//! level `L` (each level pixel the mean of a `2^L x 2^L` block of level-0 pixels) is averaged from
-//! level-0 row bands of at most about [`BAND_BYTES`], so a level-5 tile does not need its
-//! 32x larger level-0 footprint at once. Add one tile's working set (grey, integral image, SURF
-//! response layers: a few tens of MB at the default 1024 px tiles), the DEM (loaded whole: DEMs
-//! are usually much coarser than the orthophoto), and 8 bytes per index cell. Peak memory thus no
-//! longer grows with the orthophoto size (docs/map-format.md has measurements). The price is
-//! decoding: the margins overlap and every level reads the level-0 pixels again, so each chunk is
-//! decoded about `n_levels` x (1 to 1.5) times. [`BuildSpec::decode_whole`] restores the old
-//! behaviour (decode each orthophoto whole once; memory grows with the orthophoto) and gives the
-//! same features: the level windows are bit-identical either way.
+//! Memory: an orthophoto whose decoded samples exceed [`BuildSpec::whole_decode_max_bytes`]
+//! (default [`WHOLE_DECODE_MAX_BYTES`], 256 MiB) is never decoded whole. Each tile window (core +
+//! margin, in level pixels) is read through `geo::window::GeoTiffWindowReader`, which decodes only
+//! the strips/tiles under it (in parallel on rayon's threads) and keeps a bounded LRU cache of
+//! decoded chunks ([`ORTHO_CACHE_BYTES`]); a tile of level `L` (each level pixel the mean of a
+//! `2^L x 2^L` block of level-0 pixels) is averaged from level-0 row bands of about
+//! [`BAND_BYTES`], so a level-5 tile never needs its 32x larger level-0 footprint at once; the
+//! columns a tile's window shares with its left neighbour's are reused, not read again. Add one
+//! tile's working set (grey, integral image, SURF response layers: a few tens of MB at the default
+//! 1024 px tiles), the DEM (loaded whole: DEMs are usually much coarser than the orthophoto), and
+//! 8 bytes per index cell. Peak memory thus no longer grows with the orthophoto size
+//! (docs/map-format.md has measurements). The price is decoding time: the window margins overlap
+//! vertically and every level reads the level-0 pixels again, so each chunk is decoded about
+//! 1.5-2 times per level. Smaller orthophotos are decoded whole once (fastest). The features are
+//! the same either way: the level windows are bit-identical.
 
 use std::io::{Read, Seek};
 use std::path::{Path, PathBuf};
@@ -51,6 +53,8 @@ const LUMA: [f32; 3] = [0.299, 0.587, 0.114];
 const AUTO_MIN_SIDE_PX: f64 = 256.0;
 /// Auto level count: at most this many levels.
 const AUTO_MAX_LEVELS: usize = 6;
+/// Default [`BuildSpec::whole_decode_max_bytes`].
+pub const WHOLE_DECODE_MAX_BYTES: usize = 256 << 20;
 /// Bound of each orthophoto reader's decoded-chunk cache, bytes (it keeps the chunks shared by
 /// neighbouring tile windows).
 pub const ORTHO_CACHE_BYTES: usize = 16 << 20;
@@ -82,9 +86,11 @@ pub struct BuildSpec {
     pub tile_px: usize,
     /// Keep at most this many features per tile core (even spread), per level.
     pub max_features_per_tile: usize,
-    /// Decode each orthophoto whole before tiling it (memory grows with the orthophoto; fewer
-    /// decodes) instead of reading tile windows (bounded memory, the default). Same features.
-    pub decode_whole: bool,
+    /// Orthophotos whose decoded samples take at most this many bytes are decoded whole once
+    /// (fastest; memory grows with the orthophoto); larger ones are read tile window by tile window
+    /// (bounded memory, more decoding). 0: always windows; `usize::MAX`: always whole. Same
+    /// features either way.
+    pub whole_decode_max_bytes: usize,
 }
 
 impl BuildSpec {
@@ -102,7 +108,7 @@ impl BuildSpec {
             },
             tile_px: 1024,
             max_features_per_tile: 4000,
-            decode_whole: false,
+            whole_decode_max_bytes: WHOLE_DECODE_MAX_BYTES,
         }
     }
 }
@@ -174,6 +180,8 @@ struct OrthoGeom {
     gsd_m: f64,
     bounds: Bounds,
     transform: GeoTransform,
+    /// Bytes per decoded sample (as `Raster` stores them: 1, 2 or 4).
+    sample_bytes: usize,
 }
 
 fn check_ortho(path: &Path, r: &GeoTiffInfo, crs: Option<Crs>) -> Result<OrthoGeom, MapError> {
@@ -223,6 +231,11 @@ fn check_ortho(path: &Path, r: &GeoTiffInfo, crs: Option<Crs>) -> Result<OrthoGe
         gsd_m: px,
         bounds: r.bounds(),
         transform: r.transform,
+        sample_bytes: match r.bits_per_sample {
+            0..=8 => 1,
+            9..=16 => 2,
+            _ => 4,
+        },
     })
 }
 
@@ -378,7 +391,14 @@ pub fn build_map(
     // Pass 2, last ortho first (the order of the features in the file depends on it).
     for oi in (0..geoms.len()).rev() {
         let g = &geoms[oi];
-        let mut source: Box<dyn LevelSource> = if spec.decode_whole {
+        let decoded_bytes = g
+            .width
+            .saturating_mul(g.height)
+            .saturating_mul(g.bands)
+            .saturating_mul(g.sample_bytes);
+        let whole = decoded_bytes <= spec.whole_decode_max_bytes;
+        tracing::debug!(ortho = oi, decoded_bytes, whole, "reading the orthophoto");
+        let mut source: Box<dyn LevelSource> = if whole {
             Box::new(load_geotiff(&g.path, spec.crs_override)?)
         } else {
             let mut r = open_geotiff_window(&g.path, spec.crs_override)?;

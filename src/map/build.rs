@@ -431,16 +431,13 @@ pub fn build_map(
                 let mut prev: Option<LevelPatch> = None;
                 for tx in 0..lw.div_ceil(core) {
                     let win = TileWindow::new(&ctx, tx * core, ty * core);
-                    let patch = read_reusing(source.as_mut(), level, &win, prev.take())?;
-                    process_tile(
-                        &ctx,
-                        &win,
-                        patch.grey.clone(),
-                        &patch.valid,
-                        &mut writer,
-                        &mut st,
-                    )?;
-                    prev = Some(patch);
+                    let (grey, valid) = read_reusing(source.as_mut(), level, &win, prev.take())?;
+                    // Keep the columns the next tile's window starts with.
+                    let next_x0 = (win.cx0 + core)
+                        .saturating_sub(margin)
+                        .clamp(win.x0, win.x0 + win.w);
+                    prev = Some(LevelPatch::columns(&win, &grey, &valid, next_x0));
+                    process_tile(&ctx, &win, grey, &valid, &mut writer, &mut st)?;
                     st.tiles += 1;
                     progress(BuildProgress {
                         ortho: oi,
@@ -561,7 +558,7 @@ impl TileWindow {
     }
 }
 
-/// A level window: `w x h` level pixels at `(x0, y0)`, grey values and validity.
+/// Part of a level window: `w x h` level pixels at `(x0, y0)`, grey values and validity.
 struct LevelPatch {
     x0: usize,
     y0: usize,
@@ -571,15 +568,36 @@ struct LevelPatch {
     valid: Vec<bool>,
 }
 
-/// The level window of `win`, reusing the columns it shares with `prev`, the window of the tile to
-/// its left (the two margins): only the new columns are read. Level pixels do not depend on the
-/// window they are read in, so the result is the same as reading the whole window.
+impl LevelPatch {
+    /// Columns `from ..` of the window `win` (grey / valid as read for it).
+    fn columns(win: &TileWindow, grey: &[f32], valid: &[bool], from: usize) -> Self {
+        let (off, w) = (from - win.x0, win.x0 + win.w - from);
+        let rows = |y: usize| y * win.w + off..y * win.w + off + w;
+        Self {
+            x0: from,
+            y0: win.y0,
+            w,
+            h: win.h,
+            grey: (0..win.h)
+                .flat_map(|y| grey[rows(y)].iter().copied())
+                .collect(),
+            valid: (0..win.h)
+                .flat_map(|y| valid[rows(y)].iter().copied())
+                .collect(),
+        }
+    }
+}
+
+/// The level window of `win` (grey, valid), reusing the columns it shares with `prev`, kept from
+/// the window of the tile to its left (the two margins): only the new columns are read. Level
+/// pixels do not depend on the window they are read in, so the result is the same as reading the
+/// whole window.
 fn read_reusing(
     source: &mut dyn LevelSource,
     level: usize,
     win: &TileWindow,
     prev: Option<LevelPatch>,
-) -> Result<LevelPatch, MapError> {
+) -> Result<(Vec<f32>, Vec<bool>), MapError> {
     let shared = match &prev {
         Some(p)
             if p.y0 == win.y0
@@ -593,7 +611,7 @@ fn read_reusing(
         _ => 0,
     };
     let (x0, y0, w, h) = (win.x0, win.y0, win.w, win.h);
-    let (grey, valid) = match prev {
+    match prev {
         Some(p) if shared > 0 => {
             let new_w = w - shared;
             let (g_new, v_new) = if new_w > 0 {
@@ -610,18 +628,10 @@ fn read_reusing(
                 valid.extend_from_slice(&p.valid[y * p.w + off..y * p.w + off + shared]);
                 valid.extend_from_slice(&v_new[y * new_w..(y + 1) * new_w]);
             }
-            (grey, valid)
+            Ok((grey, valid))
         }
-        _ => source.level_window(level, x0, y0, w, h)?,
-    };
-    Ok(LevelPatch {
-        x0,
-        y0,
-        w,
-        h,
-        grey,
-        valid,
-    })
+        _ => source.level_window(level, x0, y0, w, h),
+    }
 }
 
 /// Where a build reads level windows from: a whole decoded ortho or a windowed reader.

@@ -18,7 +18,7 @@
 //!   corner ([`GeoTransform::window`]), so map coordinates are unchanged;
 //! * a window must be non-empty and lie wholly inside the image: anything else is an error
 //!   ([`GeoTiffError::Window`]) naming the file, the window and the image size; windows are never
-//!   clipped or padded silently;
+//!   clipped or padded silently; a window is at most [`MAX_DECODED_BYTES`] decoded;
 //! * samples are stored as `load_geotiff` stores them (u8, u16, else f32), with the file's sample
 //!   type recorded; every chunk of a file must have the same sample type.
 //!
@@ -42,7 +42,7 @@ use tiff::decoder::{Decoder, DecodingResult};
 
 use super::Crs;
 use super::geotiff::{
-    GeoTiffError, GeoTiffInfo, YCBCR_ONLY_RGB8, guarded, new_decoder, read_info,
+    GeoTiffError, GeoTiffInfo, MAX_DECODED_BYTES, YCBCR_ONLY_RGB8, guarded, new_decoder, read_info,
     ycbcr_to_rgb_in_place,
 };
 use super::raster::{GeoTransform, Raster, RasterData, SampleType};
@@ -198,7 +198,24 @@ impl<R: Read + Seek + Send> GeoTiffWindowReader<R> {
             path: path.clone(),
             reason,
         };
-        let samples = width * height * info.bands; // ok: <= image size, which fits (u32 dims)
+        // Stored as u8, u16 or f32.
+        let stored_bytes = match info.bits_per_sample {
+            0..=8 => 1,
+            9..=16 => 2,
+            _ => 4,
+        };
+        let samples = width
+            .checked_mul(height)
+            .and_then(|n| n.checked_mul(info.bands))
+            .filter(|n| n.saturating_mul(stored_bytes) <= MAX_DECODED_BYTES)
+            .ok_or_else(|| GeoTiffError::Window {
+                path: self.path.clone(),
+                reason: format!(
+                    "window of {width} x {height} px x {} bands exceeds the {MAX_DECODED_BYTES} \
+                     byte limit",
+                    info.bands
+                ),
+            })?;
         let (cw, ch) = (info.chunk_width, info.chunk_height);
         let across = info.width.div_ceil(cw);
         let down = info.height.div_ceil(ch);

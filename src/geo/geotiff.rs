@@ -36,20 +36,22 @@
 //!
 //! Nodata comes from GDAL_NODATA (42113, ASCII; "nan" allowed). Malformed input never panics: all
 //! decoder errors are returned, and as defence in depth a panic inside the `tiff` crate is caught
-//! and reported as [`GeoTiffError::Decode`]. Pixels are decoded chunk by chunk (`read_chunk`)
-//! because `Decoder::read_image_to_buffer` of tiff 0.11.3 panics on tiled planar files (e.g. the
-//! NGI orthophotos).
+//! and reported as [`GeoTiffError::Decode`]. Pixels are decoded chunk by chunk (`read_chunk`, in
+//! `super::window`, which [`load_geotiff`] shares with the windowed reader) because
+//! `Decoder::read_image_to_buffer` of tiff 0.11.3 panics on tiled planar files (e.g. the NGI
+//! orthophotos).
 
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::{BufReader, Read, Seek};
 use std::path::{Path, PathBuf};
 
-use tiff::decoder::{ChunkType, Decoder, DecodingResult, Limits};
+use tiff::decoder::{ChunkType, Decoder, Limits};
 use tiff::tags::Tag;
 
 use super::Crs;
-use super::raster::{GeoTransform, Raster, RasterData, SampleType};
+use super::raster::{Bounds, GeoTransform, Raster};
+use super::window::GeoTiffWindowReader;
 
 /// Largest decoded image accepted, bytes (all bands, in the file's sample type).
 pub const MAX_DECODED_BYTES: usize = 2 << 30;
@@ -81,6 +83,9 @@ pub enum GeoTiffError {
         key: String,
         reason: String,
     },
+    /// A pixel window that is empty or not inside the image (`super::window`).
+    #[error("{}: {reason}", .path.display())]
+    Window { path: PathBuf, reason: String },
     /// The file's CRS was understood but differs from the configured override.
     #[error("{}: the CRS in the file's GeoKeys ({file:?}) contradicts the configured override ({configured:?})", .path.display())]
     CrsConflict {
@@ -773,7 +778,8 @@ pub fn crs_equivalent(a: &Crs, b: &Crs) -> bool {
 }
 
 /// Loads a GeoTIFF (first image) as a [`Raster`]. `crs_override` is used when the file's CRS keys
-/// are missing or not understood; see the module doc.
+/// are missing or not understood; see the module doc. For large files read windows instead
+/// ([`super::window::open_geotiff_window`]).
 pub fn load_geotiff(path: &Path, crs_override: Option<Crs>) -> Result<Raster, GeoTiffError> {
     let file = File::open(path).map_err(|source| GeoTiffError::Io {
         path: path.to_path_buf(),
@@ -783,16 +789,50 @@ pub fn load_geotiff(path: &Path, crs_override: Option<Crs>) -> Result<Raster, Ge
 }
 
 /// Like [`load_geotiff`] but from any seekable reader; `path` is only used in error messages.
-pub fn read_geotiff<R: Read + Seek>(
+pub fn read_geotiff<R: Read + Seek + Send>(
     reader: R,
     path: &Path,
     crs_override: Option<Crs>,
 ) -> Result<Raster, GeoTiffError> {
-    // Defence in depth: the `tiff` crate must not panic on malformed input, but if it does we turn
-    // it into an error instead of bringing the daemon down.
-    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        read_geotiff_inner(reader, path, crs_override)
-    })) {
+    guarded(path, || {
+        let mut r = GeoTiffWindowReader::new_unguarded(reader, path, crs_override)?;
+        // Every chunk is decoded exactly once: no cache.
+        r.set_cache_bytes(0);
+        let info = r.info().clone();
+        let bytes = info
+            .width
+            .checked_mul(info.height)
+            .and_then(|n| n.checked_mul(info.bands))
+            .map(|n| n.saturating_mul(usize::from(info.bits_per_sample).div_ceil(8)));
+        if bytes.is_none_or(|b| b > MAX_DECODED_BYTES) {
+            return Err(GeoTiffError::Decode {
+                path: path.to_path_buf(),
+                reason: format!(
+                    "{} x {} x {} samples of {} bits exceed the {MAX_DECODED_BYTES} byte limit",
+                    info.width, info.height, info.bands, info.bits_per_sample
+                ),
+            });
+        }
+        let raster = r.read_window_unguarded(0, 0, info.width, info.height)?;
+        tracing::debug!(
+            file = %path.display(),
+            width = info.width, height = info.height, bands = info.bands,
+            source_type = ?raster.source_type(), crs = ?info.crs,
+            transform = ?info.transform.coeffs(), nodata = ?info.nodata,
+            "GeoTIFF loaded"
+        );
+        Ok(raster)
+    })
+}
+
+/// Runs `f`, turning a panic (inside the `tiff` crate, on a malformed file) into
+/// [`GeoTiffError::Decode`] naming `path`. Defence in depth: the crate must not panic on malformed
+/// input, but if it does we return an error instead of bringing the daemon down.
+pub(crate) fn guarded<T>(
+    path: &Path,
+    f: impl FnOnce() -> Result<T, GeoTiffError>,
+) -> Result<T, GeoTiffError> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
         Ok(r) => r,
         Err(_) => Err(GeoTiffError::Decode {
             path: path.to_path_buf(),
@@ -801,14 +841,50 @@ pub fn read_geotiff<R: Read + Seek>(
     }
 }
 
-fn read_geotiff_inner<R: Read + Seek>(
-    reader: R,
+/// Everything known about a GeoTIFF's first image before its pixels are decoded.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GeoTiffInfo {
+    /// Image width, pixels.
+    pub width: usize,
+    /// Image height, pixels.
+    pub height: usize,
+    /// Samples per pixel.
+    pub bands: usize,
+    /// BitsPerSample of the first band.
+    pub bits_per_sample: u16,
+    /// Pixel (corner convention) -> map transform of the whole image.
+    pub transform: GeoTransform,
+    pub crs: Crs,
+    /// GDAL_NODATA value (may be NaN; `Raster` stores a NaN nodata as `None`).
+    pub nodata: Option<f64>,
+    /// PlanarConfiguration = 2 (one plane per band) with more than one band.
+    pub planar: bool,
+    /// PhotometricInterpretation = YCbCr (6): samples are converted to RGB on reading.
+    pub ycbcr: bool,
+    /// Tiles (true) or strips (false).
+    pub tiled: bool,
+    /// Nominal chunk size, pixels: the tile size, or (width, rows per strip).
+    pub chunk_width: usize,
+    pub chunk_height: usize,
+}
+
+impl GeoTiffInfo {
+    /// Map-coordinate bounding box of the outer pixel edges (as [`Raster::bounds`]).
+    pub fn bounds(&self) -> Bounds {
+        self.transform.bounds(self.width, self.height)
+    }
+}
+
+/// Reads the georeferencing tags, GeoKeys, nodata and image layout of the decoder's current image
+/// (rules in the module doc). No pixel is decoded.
+pub(crate) fn read_info<R: Read + Seek>(
+    dec: &mut Decoder<R>,
     path: &Path,
     crs_override: Option<Crs>,
-) -> Result<Raster, GeoTiffError> {
-    let decode_err = |e: tiff::TiffError| GeoTiffError::Decode {
+) -> Result<GeoTiffInfo, GeoTiffError> {
+    let decode_err = |reason: String| GeoTiffError::Decode {
         path: path.to_path_buf(),
-        reason: e.to_string(),
+        reason,
     };
     let tag_err = |e: TagError| GeoTiffError::Tag {
         path: path.to_path_buf(),
@@ -820,12 +896,6 @@ fn read_geotiff_inner<R: Read + Seek>(
         key: e.key,
         reason: e.reason,
     };
-    let mut limits = Limits::default();
-    limits.decoding_buffer_size = MAX_DECODED_BYTES;
-    limits.intermediate_buffer_size = MAX_DECODED_BYTES;
-    let mut dec = Decoder::new(reader)
-        .map_err(decode_err)?
-        .with_limits(limits);
 
     // --- georeferencing tags (read before the pixels so a bad file fails fast) ---
     let f64_tag =
@@ -838,10 +908,10 @@ fn read_geotiff_inner<R: Read + Seek>(
                 Err(e) => Err(tag_err(TagError::new(name, e.to_string()))),
             }
         };
-    let pixel_scale = f64_tag(&mut dec, Tag::ModelPixelScaleTag, TAG_PIXEL_SCALE)?;
-    let tiepoints = f64_tag(&mut dec, Tag::ModelTiepointTag, TAG_TIEPOINT)?;
-    let transformation = f64_tag(&mut dec, Tag::ModelTransformationTag, TAG_TRANSFORMATION)?;
-    let doubles = f64_tag(&mut dec, Tag::GeoDoubleParamsTag, TAG_DOUBLE_PARAMS)?;
+    let pixel_scale = f64_tag(dec, Tag::ModelPixelScaleTag, TAG_PIXEL_SCALE)?;
+    let tiepoints = f64_tag(dec, Tag::ModelTiepointTag, TAG_TIEPOINT)?;
+    let transformation = f64_tag(dec, Tag::ModelTransformationTag, TAG_TRANSFORMATION)?;
+    let doubles = f64_tag(dec, Tag::GeoDoubleParamsTag, TAG_DOUBLE_PARAMS)?;
     let ascii_tag =
         |dec: &mut Decoder<R>, tag: Tag, name: &str| -> Result<Option<String>, GeoTiffError> {
             match dec.find_tag(tag) {
@@ -853,8 +923,8 @@ fn read_geotiff_inner<R: Read + Seek>(
                 Err(e) => Err(tag_err(TagError::new(name, e.to_string()))),
             }
         };
-    let ascii = ascii_tag(&mut dec, Tag::GeoAsciiParamsTag, TAG_ASCII_PARAMS)?;
-    let nodata_text = ascii_tag(&mut dec, Tag::GdalNodata, TAG_NODATA)?;
+    let ascii = ascii_tag(dec, Tag::GeoAsciiParamsTag, TAG_ASCII_PARAMS)?;
+    let nodata_text = ascii_tag(dec, Tag::GdalNodata, TAG_NODATA)?;
     let directory = match dec.find_tag(Tag::GeoKeyDirectoryTag) {
         Ok(None) => None,
         Ok(Some(v)) => Some(v.into_u16_vec().map_err(|e| {
@@ -924,8 +994,8 @@ fn read_geotiff_inner<R: Read + Seek>(
         }
     };
 
-    // --- pixels ---
-    let (w, h) = dec.dimensions().map_err(decode_err)?;
+    // --- image layout ---
+    let (w, h) = dec.dimensions().map_err(|e| decode_err(e.to_string()))?;
     let (width, height) = (w as usize, h as usize);
     let bands = dec
         .find_tag_unsigned::<u16>(Tag::SamplesPerPixel)
@@ -935,32 +1005,16 @@ fn read_geotiff_inner<R: Read + Seek>(
         .find_tag_unsigned::<u16>(Tag::PlanarConfiguration)
         .map_err(|e| tag_err(TagError::new("PlanarConfiguration (284)", e.to_string())))?
         .unwrap_or(1);
-    let pixels = width
-        .checked_mul(height)
-        .filter(|&n| n > 0 && bands > 0)
-        .ok_or_else(|| GeoTiffError::Decode {
-            path: path.to_path_buf(),
-            reason: format!("invalid dimensions {width} x {height} x {bands}"),
-        })?;
-    let bits = dec
+    if width == 0 || height == 0 || bands == 0 {
+        return Err(decode_err(format!(
+            "invalid dimensions {width} x {height} x {bands}"
+        )));
+    }
+    let bits_per_sample = dec
         .find_tag_unsigned_vec::<u16>(Tag::BitsPerSample)
         .map_err(|e| tag_err(TagError::new("BitsPerSample (258)", e.to_string())))?
         .and_then(|v| v.first().copied())
         .unwrap_or(1);
-    let expected = pixels
-        .checked_mul(bands)
-        .filter(|n| n.saturating_mul(usize::from(bits).div_ceil(8)) <= MAX_DECODED_BYTES)
-        .ok_or_else(|| GeoTiffError::Decode {
-            path: path.to_path_buf(),
-            reason: format!(
-                "{width} x {height} x {bands} samples of {bits} bits exceed the {MAX_DECODED_BYTES} byte limit"
-            ),
-        })?;
-    let (data, source_type) = decode_chunks(&mut dec, width, height, bands, planar == 2, expected)
-        .map_err(|reason| GeoTiffError::Decode {
-            path: path.to_path_buf(),
-            reason,
-        })?;
     let photometric = dec
         .find_tag_unsigned::<u16>(Tag::PhotometricInterpretation)
         .map_err(|e| {
@@ -969,41 +1023,75 @@ fn read_geotiff_inner<R: Read + Seek>(
                 e.to_string(),
             ))
         })?;
-    let data = if photometric == Some(6) {
-        // The tiff crate hands out YCbCr samples unconverted (JPEG included).
-        match data {
-            RasterData::U8(mut v) if bands == 3 => {
-                ycbcr_to_rgb_in_place(&mut v);
-                RasterData::U8(v)
-            }
-            _ => {
-                return Err(tag_err(TagError::new(
-                    "PhotometricInterpretation (262)",
-                    "YCbCr is supported only for 3-band 8-bit images",
-                )));
-            }
-        }
+    let ycbcr = photometric == Some(6);
+    if ycbcr && !(bands == 3 && bits_per_sample == 8) {
+        return Err(tag_err(TagError::new(
+            "PhotometricInterpretation (262)",
+            YCBCR_ONLY_RGB8,
+        )));
+    }
+    let tiled = matches!(dec.get_chunk_type(), ChunkType::Tile);
+    let (chunk_width, chunk_height) = if tiled {
+        let tw = dec
+            .find_tag_unsigned::<u32>(Tag::TileWidth)
+            .map_err(|e| decode_err(format!("TileWidth (322): {e}")))?
+            .ok_or_else(|| decode_err("TileWidth (322) missing".into()))?;
+        let th = dec
+            .find_tag_unsigned::<u32>(Tag::TileLength)
+            .map_err(|e| decode_err(format!("TileLength (323): {e}")))?
+            .ok_or_else(|| decode_err("TileLength (323) missing".into()))?;
+        (tw as usize, th as usize)
     } else {
-        data
+        let rps = dec
+            .find_tag_unsigned::<u32>(Tag::RowsPerStrip)
+            .map_err(|e| decode_err(format!("RowsPerStrip (278): {e}")))?
+            .map_or(height, |r| (r as usize).min(height));
+        (width, rps)
     };
-    let raster = Raster::new(width, height, bands, data, transform, crs, nodata)
+    if chunk_width == 0 || chunk_height == 0 {
+        return Err(decode_err(format!(
+            "chunk size {chunk_width} x {chunk_height} is invalid"
+        )));
+    }
+    Ok(GeoTiffInfo {
+        width,
+        height,
+        bands,
+        bits_per_sample,
+        transform,
+        crs,
+        nodata,
+        planar: planar == 2 && bands > 1,
+        ycbcr,
+        tiled,
+        chunk_width,
+        chunk_height,
+    })
+}
+
+/// Error text for a YCbCr image that is not 3-band 8-bit.
+pub(crate) const YCBCR_ONLY_RGB8: &str = "YCbCr is supported only for 3-band 8-bit images";
+
+/// Opens a `tiff` decoder with the crate limits raised to [`MAX_DECODED_BYTES`].
+pub(crate) fn new_decoder<R: Read + Seek>(
+    reader: R,
+    path: &Path,
+) -> Result<Decoder<R>, GeoTiffError> {
+    let mut limits = Limits::default();
+    limits.decoding_buffer_size = MAX_DECODED_BYTES;
+    limits.intermediate_buffer_size = MAX_DECODED_BYTES;
+    Ok(Decoder::new(reader)
         .map_err(|e| GeoTiffError::Decode {
             path: path.to_path_buf(),
             reason: e.to_string(),
         })?
-        .with_source_type(source_type);
-    tracing::debug!(
-        file = %path.display(),
-        width, height, bands, ?source_type, ?crs, transform = ?transform.coeffs(), ?nodata,
-        "GeoTIFF loaded"
-    );
-    Ok(raster)
+        .with_limits(limits))
 }
 
 /// YCbCr -> RGB with the JFIF (ITU-R BT.601 full-range) equations that libjpeg and therefore
 /// GDAL use for JPEG-in-TIFF: `R = Y + 1.402 (Cr-128)`, `G = Y - 0.344136 (Cb-128) - 0.714136
 /// (Cr-128)`, `B = Y + 1.772 (Cb-128)`, rounded and clamped to 0..=255.
-fn ycbcr_to_rgb_in_place(v: &mut [u8]) {
+pub(crate) fn ycbcr_to_rgb_in_place(v: &mut [u8]) {
     for px in v.chunks_exact_mut(3) {
         let y = f32::from(px[0]);
         let cb = f32::from(px[1]) - 128.0;
@@ -1015,182 +1103,10 @@ fn ycbcr_to_rgb_in_place(v: &mut [u8]) {
     }
 }
 
-/// Output accumulator: the storage type is fixed by the first chunk.
-enum Acc {
-    U8(Vec<u8>),
-    U16(Vec<u16>),
-    F32(Vec<f32>, SampleType),
-}
-
-/// Decodes the image chunk by chunk (strips or tiles, chunky or planar) into band-interleaved
-/// storage. Reading per chunk (rather than `Decoder::read_image_to_buffer`) also avoids a panic of
-/// tiff 0.11.3 on tiled planar files.
-fn decode_chunks<R: Read + Seek>(
-    dec: &mut Decoder<R>,
-    width: usize,
-    height: usize,
-    bands: usize,
-    planar: bool,
-    expected: usize,
-) -> Result<(RasterData, SampleType), String> {
-    let planar = planar && bands > 1;
-    let (cw, ch) = match dec.get_chunk_type() {
-        ChunkType::Tile => {
-            let tw = dec
-                .find_tag_unsigned::<u32>(Tag::TileWidth)
-                .map_err(|e| format!("TileWidth (322): {e}"))?
-                .ok_or("TileWidth (322) missing")?;
-            let th = dec
-                .find_tag_unsigned::<u32>(Tag::TileLength)
-                .map_err(|e| format!("TileLength (323): {e}"))?
-                .ok_or("TileLength (323) missing")?;
-            (tw as usize, th as usize)
-        }
-        ChunkType::Strip => {
-            let rps = dec
-                .find_tag_unsigned::<u32>(Tag::RowsPerStrip)
-                .map_err(|e| format!("RowsPerStrip (278): {e}"))?
-                .map_or(height, |r| (r as usize).min(height));
-            (width, rps)
-        }
-    };
-    if cw == 0 || ch == 0 {
-        return Err(format!("chunk size {cw} x {ch} is invalid"));
-    }
-    let across = width.div_ceil(cw);
-    let down = height.div_ceil(ch);
-    let per_plane = across * down;
-    let planes = if planar { bands } else { 1 };
-    let spc = if planar { 1 } else { bands }; // samples per pixel inside one chunk
-    let n_chunks = per_plane
-        .checked_mul(planes)
-        .filter(|&n| n <= u32::MAX as usize)
-        .ok_or("too many chunks")?;
-    let mut acc: Option<Acc> = None;
-    for idx in 0..n_chunks {
-        let plane = idx / per_plane;
-        let c = idx % per_plane;
-        let (x0, y0) = ((c % across) * cw, (c / across) * ch);
-        let (dw, dh) = (cw.min(width - x0), ch.min(height - y0));
-        let chunk = dec
-            .read_chunk(idx as u32) // ok: n_chunks <= u32::MAX checked above
-            .map_err(|e| format!("chunk {idx}: {e}"))?;
-        let acc = acc.get_or_insert_with(|| match &chunk {
-            DecodingResult::U8(_) => Acc::U8(vec![0; expected]),
-            DecodingResult::U16(_) => Acc::U16(vec![0; expected]),
-            DecodingResult::I8(_) | DecodingResult::I16(_) => {
-                Acc::F32(vec![0.0; expected], SampleType::I16)
-            }
-            DecodingResult::U32(_) => Acc::F32(vec![0.0; expected], SampleType::U32),
-            DecodingResult::I32(_) => Acc::F32(vec![0.0; expected], SampleType::I32),
-            DecodingResult::F64(_) => Acc::F32(vec![0.0; expected], SampleType::F64),
-            _ => Acc::F32(vec![0.0; expected], SampleType::F32),
-        });
-        let geom = ChunkGeom {
-            width,
-            bands,
-            spc,
-            plane,
-            x0,
-            y0,
-            dw,
-            dh,
-            ch,
-        };
-        match (acc, chunk) {
-            (Acc::U8(out), DecodingResult::U8(v)) => place(out, &v, &geom)?,
-            (Acc::U16(out), DecodingResult::U16(v)) => place(out, &v, &geom)?,
-            (Acc::F32(out, _), DecodingResult::F32(v)) => place(out, &v, &geom)?,
-            (Acc::F32(out, _), DecodingResult::I16(v)) => place(
-                out,
-                &v.iter().map(|&s| f32::from(s)).collect::<Vec<_>>(),
-                &geom,
-            )?,
-            (Acc::F32(out, _), DecodingResult::I8(v)) => place(
-                out,
-                &v.iter().map(|&s| f32::from(s)).collect::<Vec<_>>(),
-                &geom,
-            )?,
-            (Acc::F32(out, _), DecodingResult::U32(v)) => {
-                place(out, &v.iter().map(|&s| s as f32).collect::<Vec<_>>(), &geom)?
-            }
-            (Acc::F32(out, _), DecodingResult::I32(v)) => {
-                place(out, &v.iter().map(|&s| s as f32).collect::<Vec<_>>(), &geom)?
-            }
-            (Acc::F32(out, _), DecodingResult::F64(v)) => {
-                place(out, &v.iter().map(|&s| s as f32).collect::<Vec<_>>(), &geom)?
-            }
-            (Acc::F32(out, _), DecodingResult::F16(v)) => place(
-                out,
-                &v.iter().map(|&s| f32::from(s)).collect::<Vec<_>>(),
-                &geom,
-            )?,
-            (_, DecodingResult::U64(_) | DecodingResult::I64(_)) => {
-                return Err("64-bit integer samples are not supported".into());
-            }
-            _ => {
-                return Err(format!(
-                    "chunk {idx} has a different sample type than chunk 0"
-                ));
-            }
-        }
-    }
-    match acc {
-        Some(Acc::U8(v)) => Ok((RasterData::U8(v), SampleType::U8)),
-        Some(Acc::U16(v)) => Ok((RasterData::U16(v), SampleType::U16)),
-        Some(Acc::F32(v, t)) => Ok((RasterData::F32(v), t)),
-        None => Err("the image has no data chunks".into()),
-    }
-}
-
-/// Where one decoded chunk goes in the output.
-struct ChunkGeom {
-    width: usize,
-    bands: usize,
-    /// Samples per pixel in the chunk (1 for planar, `bands` for chunky).
-    spc: usize,
-    plane: usize,
-    x0: usize,
-    y0: usize,
-    dw: usize,
-    dh: usize,
-    /// Nominal chunk height (tile height or rows per strip).
-    ch: usize,
-}
-
-/// Copies a chunk (`dw x dh` pixels of `spc` samples, rows packed) into band-interleaved output.
-/// A chunk of any other length (e.g. packed sub-byte samples) is an error.
-fn place<T: Copy>(out: &mut [T], chunk: &[T], g: &ChunkGeom) -> Result<(), String> {
-    let row_len = g.dw * g.spc;
-    // tiff 0.11.3 reports full-height chunks for the bottom tiles of planes >= 1 of planar files
-    // (its chunk_data_dimensions ignores the plane); rows are still packed at `dw`, so the first
-    // `dh` rows are the data. Any other length is an error.
-    if chunk.len() != row_len * g.dh && chunk.len() != row_len * g.ch {
-        return Err(format!(
-            "chunk at ({}, {}) holds {} samples, expected {}",
-            g.x0,
-            g.y0,
-            chunk.len(),
-            row_len * g.dh
-        ));
-    }
-    for r in 0..g.dh {
-        let src = &chunk[r * row_len..(r + 1) * row_len];
-        let base = ((g.y0 + r) * g.width + g.x0) * g.bands;
-        if g.spc == g.bands {
-            out[base..base + row_len].copy_from_slice(src);
-        } else {
-            for (c, &s) in src.iter().enumerate() {
-                out[base + c * g.bands + g.plane] = s;
-            }
-        }
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::geo::raster::{RasterData, SampleType};
     use tiff::encoder::colortype::{self, ColorType};
     use tiff::encoder::compression::DeflateLevel;
     use tiff::encoder::{Compression, TiffEncoder, TiffValue};
@@ -1810,48 +1726,5 @@ mod tests {
             load_geotiff(&q, None),
             Err(GeoTiffError::Io { .. })
         ));
-    }
-
-    #[test]
-    fn place_planar_and_chunky_chunks() {
-        // 3 x 2 image, 2 bands, chunks 2 x 2 (the right chunk is 1 px wide).
-        let mut out = vec![0u8; 12];
-        let g = |plane, spc, x0, dw| ChunkGeom {
-            width: 3,
-            bands: 2,
-            spc,
-            plane,
-            x0,
-            y0: 0,
-            dw,
-            dh: 2,
-            ch: 2,
-        };
-        place(&mut out, &[1, 2, 4, 5], &g(0, 1, 0, 2)).unwrap();
-        place(&mut out, &[3, 6], &g(0, 1, 2, 1)).unwrap();
-        place(&mut out, &[10, 20, 40, 50], &g(1, 1, 0, 2)).unwrap();
-        place(&mut out, &[30, 60], &g(1, 1, 2, 1)).unwrap();
-        assert_eq!(out, vec![1, 10, 2, 20, 3, 30, 4, 40, 5, 50, 6, 60]);
-        let mut chunky = vec![0u8; 12];
-        place(&mut chunky, &[1, 10, 2, 20, 4, 40, 5, 50], &g(0, 2, 0, 2)).unwrap();
-        place(&mut chunky, &[3, 30, 6, 60], &g(0, 2, 2, 1)).unwrap();
-        assert_eq!(chunky, out);
-        assert!(place(&mut chunky, &[3, 30, 6], &g(0, 2, 2, 1)).is_err());
-        // A full-height chunk for a 1-row-high bottom tile (tiff crate quirk): first row used.
-        let mut one = vec![0u8; 6];
-        let bottom = ChunkGeom {
-            width: 3,
-            bands: 2,
-            spc: 1,
-            plane: 1,
-            x0: 0,
-            y0: 0,
-            dw: 3,
-            dh: 1,
-            ch: 2,
-        };
-        place(&mut one, &[7, 8, 9, 99, 99, 99], &bottom).unwrap();
-        assert_eq!(one, vec![0, 7, 0, 8, 0, 9]);
-        assert!(place(&mut one, &[7, 8, 9, 99], &bottom).is_err());
     }
 }

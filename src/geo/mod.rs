@@ -9,6 +9,7 @@
 //! * `geoid`: EGM96 geoid undulation and AMSL <-> ellipsoidal height.
 //! * `raster`: georeferenced rasters (geotransform, nodata-aware bilinear sampling).
 //! * `geotiff`: GeoTIFF reader (tiff crate, no GDAL) producing a `Raster`.
+//! * `window`: windowed GeoTIFF reader (decodes only the strips/tiles under a pixel window).
 //! * `dem`: terrain heights and ray/terrain intersection (gridded DEM or constant height).
 
 pub mod crs;
@@ -21,6 +22,7 @@ pub mod local;
 pub mod projection;
 pub mod raster;
 pub mod wgs84;
+pub mod window;
 pub use crs::Crs;
 pub use ecef::Geodetic;
 pub use error::GeoError;

@@ -148,6 +148,54 @@ impl GeoTransform {
         (self.c[1].hypot(self.c[4]), self.c[2].hypot(self.c[5]))
     }
 
+    /// Map-coordinate bounding box of the outer edges of a `width x height` pixel raster (for a
+    /// rotated transform, the box around the four outer corners).
+    pub fn bounds(&self, width: usize, height: usize) -> Bounds {
+        let (w, h) = (width as f64, height as f64);
+        let corners = [
+            self.pixel_to_map(0.0, 0.0),
+            self.pixel_to_map(w, 0.0),
+            self.pixel_to_map(0.0, h),
+            self.pixel_to_map(w, h),
+        ];
+        let mut b = Bounds {
+            min_x_m: f64::INFINITY,
+            min_y_m: f64::INFINITY,
+            max_x_m: f64::NEG_INFINITY,
+            max_y_m: f64::NEG_INFINITY,
+        };
+        for (x, y) in corners {
+            b.min_x_m = b.min_x_m.min(x);
+            b.min_y_m = b.min_y_m.min(y);
+            b.max_x_m = b.max_x_m.max(x);
+            b.max_y_m = b.max_y_m.max(y);
+        }
+        b
+    }
+
+    /// The transform of the sub-raster whose pixel `(0, 0)` is this raster's pixel
+    /// `(col0, row0)`: same linear part, origin moved to `pixel_to_map(col0, row0)`.
+    pub fn window(&self, col0: usize, row0: usize) -> Self {
+        if col0 == 0 && row0 == 0 {
+            return *self;
+        }
+        let (x0, y0) = self.pixel_to_map(col0 as f64, row0 as f64);
+        let c = self.c;
+        let inv = self.inv;
+        // Inverse of the shifted transform: the same linear part, offsets shifted by the window.
+        Self {
+            c: [x0, c[1], c[2], y0, c[4], c[5]],
+            inv: [
+                inv[0] - col0 as f64,
+                inv[1],
+                inv[2],
+                inv[3] - row0 as f64,
+                inv[4],
+                inv[5],
+            ],
+        }
+    }
+
     /// True when the transform has no rotation/shear terms (`c2 == c4 == 0`).
     pub fn is_axis_aligned(&self) -> bool {
         self.c[2] == 0.0 && self.c[4] == 0.0
@@ -348,26 +396,7 @@ impl Raster {
     /// Map-coordinate bounding box of the outer pixel edges (for a rotated transform, the box
     /// around the four outer corners).
     pub fn bounds(&self) -> Bounds {
-        let (w, h) = (self.width as f64, self.height as f64);
-        let corners = [
-            self.transform.pixel_to_map(0.0, 0.0),
-            self.transform.pixel_to_map(w, 0.0),
-            self.transform.pixel_to_map(0.0, h),
-            self.transform.pixel_to_map(w, h),
-        ];
-        let mut b = Bounds {
-            min_x_m: f64::INFINITY,
-            min_y_m: f64::INFINITY,
-            max_x_m: f64::NEG_INFINITY,
-            max_y_m: f64::NEG_INFINITY,
-        };
-        for (x, y) in corners {
-            b.min_x_m = b.min_x_m.min(x);
-            b.min_y_m = b.min_y_m.min(y);
-            b.max_x_m = b.max_x_m.max(x);
-            b.max_y_m = b.max_y_m.max(y);
-        }
-        b
+        self.transform.bounds(self.width, self.height)
     }
 
     /// Map coordinates of the centre of pixel `(col, row)` (integer indices).

@@ -16,13 +16,23 @@
 //! without a DEM height. Features go to a spill file while per-cell counters are kept; the final
 //! file is laid out cell by cell (the index cells are the tile cores of the first ortho).
 //!
-//! Memory: each orthophoto is decoded whole (`geo::geotiff::load_geotiff`, its samples in their
-//! file type, e.g. 4 bytes/px for RGBN u8), plus one tile's working set (grey, integral image,
-//! SURF response layers: a few tens of MB at the default 1024 px tiles), plus the DEM, plus
-//! 8 bytes per index cell. The level images are never held whole: a tile of level `L` is averaged
-//! on the fly from the level-0 samples. So peak memory grows with the largest single orthophoto
-//! (not with the number of orthophotos or levels); a windowed GeoTIFF reader would remove that.
+//! Memory: an orthophoto whose decoded samples exceed [`BuildSpec::whole_decode_max_bytes`]
+//! (default [`WHOLE_DECODE_MAX_BYTES`], 256 MiB) is never decoded whole. Each tile window (core +
+//! margin, in level pixels) is read through `geo::window::GeoTiffWindowReader`, which decodes only
+//! the strips/tiles under it (in parallel on rayon's threads) and keeps a bounded LRU cache of
+//! decoded chunks ([`ORTHO_CACHE_BYTES`]); a tile of level `L` (each level pixel the mean of a
+//! `2^L x 2^L` block of level-0 pixels) is averaged from level-0 row bands of about
+//! [`BAND_BYTES`], so a level-5 tile never needs its 32x larger level-0 footprint at once; the
+//! columns a tile's window shares with its left neighbour's are reused, not read again. Add one
+//! tile's working set (grey, integral image, SURF response layers: a few tens of MB at the default
+//! 1024 px tiles), the DEM (loaded whole: DEMs are usually much coarser than the orthophoto), and
+//! 8 bytes per index cell. Peak memory thus no longer grows with the orthophoto size
+//! (docs/map-format.md has measurements). The price is decoding time: the window margins overlap
+//! vertically and every level reads the level-0 pixels again, so each chunk is decoded about
+//! 1.5-2 times per level. Smaller orthophotos are decoded whole once (fastest). The features are
+//! the same either way: the level windows are bit-identical.
 
+use std::io::{Read, Seek};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -32,8 +42,9 @@ use super::format::SpillWriter;
 use super::{HeightInfo, IndexGrid, LevelInfo, MapError, MapFeature, MapHeader, OrthoInfo};
 use crate::geo::Crs;
 use crate::geo::dem::Dem;
-use crate::geo::geotiff::{crs_equivalent, load_geotiff};
-use crate::geo::raster::{Bounds, Raster, RasterData};
+use crate::geo::geotiff::{GeoTiffError, GeoTiffInfo, crs_equivalent, load_geotiff};
+use crate::geo::raster::{Bounds, GeoTransform, Raster, RasterData};
+use crate::geo::window::{GeoTiffWindowReader, open_geotiff_window};
 use crate::vision::{GrayImage, IntegralImage, KeyPoint, Surf, SurfParams};
 
 /// Rec. 601 luma weights (as `vision::GrayImage::from_dynamic` and the renderer).
@@ -42,6 +53,13 @@ const LUMA: [f32; 3] = [0.299, 0.587, 0.114];
 const AUTO_MIN_SIDE_PX: f64 = 256.0;
 /// Auto level count: at most this many levels.
 const AUTO_MAX_LEVELS: usize = 6;
+/// Default [`BuildSpec::whole_decode_max_bytes`].
+pub const WHOLE_DECODE_MAX_BYTES: usize = 256 << 20;
+/// Bound of each orthophoto reader's decoded-chunk cache, bytes (it keeps the chunks shared by
+/// neighbouring tile windows).
+pub const ORTHO_CACHE_BYTES: usize = 16 << 20;
+/// Target size of one band of level-0 samples read to average a window of a coarser level, bytes.
+pub const BAND_BYTES: usize = 16 << 20;
 
 /// Where the feature heights come from.
 #[derive(Clone, Debug, PartialEq)]
@@ -68,6 +86,11 @@ pub struct BuildSpec {
     pub tile_px: usize,
     /// Keep at most this many features per tile core (even spread), per level.
     pub max_features_per_tile: usize,
+    /// Orthophotos whose decoded samples take at most this many bytes are decoded whole once
+    /// (fastest; memory grows with the orthophoto); larger ones are read tile window by tile window
+    /// (bounded memory, more decoding). 0: always windows; `usize::MAX`: always whole. Same
+    /// features either way.
+    pub whole_decode_max_bytes: usize,
 }
 
 impl BuildSpec {
@@ -85,6 +108,7 @@ impl BuildSpec {
             },
             tile_px: 1024,
             max_features_per_tile: 4000,
+            whole_decode_max_bytes: WHOLE_DECODE_MAX_BYTES,
         }
     }
 }
@@ -155,14 +179,17 @@ struct OrthoGeom {
     bands: usize,
     gsd_m: f64,
     bounds: Bounds,
+    transform: GeoTransform,
+    /// Bytes per decoded sample (as `Raster` stores them: 1, 2 or 4).
+    sample_bytes: usize,
 }
 
-fn check_ortho(path: &Path, r: &Raster, crs: Option<Crs>) -> Result<OrthoGeom, MapError> {
+fn check_ortho(path: &Path, r: &GeoTiffInfo, crs: Option<Crs>) -> Result<OrthoGeom, MapError> {
     let bad = |reason: String| MapError::Input {
         path: path.to_path_buf(),
         reason,
     };
-    let t = r.transform();
+    let t = &r.transform;
     if !t.is_axis_aligned() {
         return Err(bad(
             "the orthophoto is rotated (geotransform has rotation terms); warp it north-up first"
@@ -182,27 +209,33 @@ fn check_ortho(path: &Path, r: &Raster, crs: Option<Crs>) -> Result<OrthoGeom, M
             "pixels are not square ({px} x {py} m); resample the orthophoto"
         )));
     }
-    if matches!(r.crs(), Crs::Geographic) {
+    if matches!(r.crs, Crs::Geographic) {
         return Err(bad(
             "the orthophoto is in geographic coordinates (degrees); a projected CRS in metres is required"
                 .into(),
         ));
     }
     if let Some(c0) = crs
-        && !crs_equivalent(&c0, &r.crs())
+        && !crs_equivalent(&c0, &r.crs)
     {
         return Err(bad(format!(
             "CRS {:?} differs from the first orthophoto's {c0:?}; all orthophotos of a map must share one CRS",
-            r.crs()
+            r.crs
         )));
     }
     Ok(OrthoGeom {
         path: path.to_path_buf(),
-        width: r.width(),
-        height: r.height(),
-        bands: r.bands(),
+        width: r.width,
+        height: r.height,
+        bands: r.bands,
         gsd_m: px,
         bounds: r.bounds(),
+        transform: r.transform,
+        sample_bytes: match r.bits_per_sample {
+            0..=8 => 1,
+            9..=16 => 2,
+            _ => 4,
+        },
     })
 }
 
@@ -238,14 +271,12 @@ pub fn build_map(
     surf_params.max_features = None;
     let surf = Surf::new(surf_params.clone()).map_err(|e| param("surf", &e.to_string()))?;
 
-    // Pass 1: geometry of every ortho (the last one stays loaded for pass 2).
+    // Pass 1: geometry of every ortho (headers only).
     let mut geoms: Vec<OrthoGeom> = Vec::new();
     let mut crs: Option<Crs> = None;
-    let mut last: Option<Raster> = None;
     for path in &spec.orthos {
-        drop(last.take()); // free the previous ortho before decoding the next
-        let r = load_geotiff(path, spec.crs_override)?;
-        let g = check_ortho(path, &r, crs)?;
+        let r = open_geotiff_window(path, spec.crs_override)?;
+        let g = check_ortho(path, r.info(), crs)?;
         if let Some(g0) = geoms.first()
             && (g.gsd_m - g0.gsd_m).abs() > 1e-3 * g0.gsd_m
         {
@@ -257,9 +288,8 @@ pub fn build_map(
                 ),
             });
         }
-        crs.get_or_insert(r.crs());
+        crs.get_or_insert(r.info().crs);
         geoms.push(g);
-        last = Some(r);
     }
     let crs = crs.ok_or_else(|| param("orthos", "no orthophoto loaded"))?; // non-empty checked
     let gsd0 = geoms[0].gsd_m;
@@ -358,15 +388,36 @@ pub fn build_map(
     let spill_path = out.with_extension("vnm.spill");
     let mut writer = SpillWriter::new(&spill_path, surf_params.descriptor, grids.clone())?;
     let mut st = Stats::default();
-    // Pass 2, last ortho first (it is still loaded).
+    // Pass 2, last ortho first (the order of the features in the file depends on it).
     for oi in (0..geoms.len()).rev() {
-        let raster = match last.take() {
-            Some(r) => r,
-            None => load_geotiff(&geoms[oi].path, spec.crs_override)?,
+        let g = &geoms[oi];
+        let decoded_bytes = g
+            .width
+            .saturating_mul(g.height)
+            .saturating_mul(g.bands)
+            .saturating_mul(g.sample_bytes);
+        let whole = decoded_bytes <= spec.whole_decode_max_bytes;
+        tracing::debug!(ortho = oi, decoded_bytes, whole, "reading the orthophoto");
+        let mut source: Box<dyn LevelSource> = if whole {
+            Box::new(load_geotiff(&g.path, spec.crs_override)?)
+        } else {
+            let mut r = open_geotiff_window(&g.path, spec.crs_override)?;
+            r.set_cache_bytes(ORTHO_CACHE_BYTES);
+            r.set_decode_threads(rayon::current_num_threads())?;
+            Box::new(r)
         };
+        if source.dims() != (g.width, g.height) {
+            return Err(MapError::Input {
+                path: g.path.clone(),
+                reason: "the file changed during the build".into(),
+            });
+        }
         for level in 0..n_levels {
+            let decoded_before = source.chunks_decoded();
             let ctx = TileCtx {
-                raster: &raster,
+                width: g.width,
+                height: g.height,
+                transform: g.transform,
                 level,
                 core,
                 margin,
@@ -375,10 +426,18 @@ pub fn build_map(
                 dem: &dem,
                 source: oi as u8, // ok: <= 255 orthos checked
             };
-            let (lw, lh) = (raster.width() >> level, raster.height() >> level);
+            let (lw, lh) = (g.width >> level, g.height >> level);
             for ty in 0..lh.div_ceil(core) {
+                let mut prev: Option<LevelPatch> = None;
                 for tx in 0..lw.div_ceil(core) {
-                    process_tile(&ctx, tx * core, ty * core, &mut writer, &mut st)?;
+                    let win = TileWindow::new(&ctx, tx * core, ty * core);
+                    let (grey, valid) = read_reusing(source.as_mut(), level, &win, prev.take())?;
+                    // Keep the columns the next tile's window starts with.
+                    let next_x0 = (win.cx0 + core)
+                        .saturating_sub(margin)
+                        .clamp(win.x0, win.x0 + win.w);
+                    prev = Some(LevelPatch::columns(&win, &grey, &valid, next_x0));
+                    process_tile(&ctx, &win, grey, &valid, &mut writer, &mut st)?;
                     st.tiles += 1;
                     progress(BuildProgress {
                         ortho: oi,
@@ -389,6 +448,12 @@ pub fn build_map(
                     });
                 }
             }
+            tracing::debug!(
+                ortho = oi,
+                level,
+                chunks_decoded = source.chunks_decoded() - decoded_before,
+                "level done"
+            );
         }
     }
 
@@ -446,7 +511,10 @@ struct Stats {
 }
 
 struct TileCtx<'a> {
-    raster: &'a Raster,
+    /// Level-0 size and transform of the ortho.
+    width: usize,
+    height: usize,
+    transform: GeoTransform,
     level: usize,
     core: usize,
     margin: usize,
@@ -456,25 +524,191 @@ struct TileCtx<'a> {
     source: u8,
 }
 
-/// Extracts the features of the tile whose core's top-left level pixel is `(cx0, cy0)`.
-fn process_tile(
-    ctx: &TileCtx,
+/// A tile of a level image: core `(cx0, cy0)`, `cw x ch`, inside the window `(x0, y0)`, `w x h`
+/// (the core plus the margin, clipped to the level image), level pixels.
+struct TileWindow {
     cx0: usize,
     cy0: usize,
+    cw: usize,
+    ch: usize,
+    x0: usize,
+    y0: usize,
+    w: usize,
+    h: usize,
+}
+
+impl TileWindow {
+    fn new(ctx: &TileCtx, cx0: usize, cy0: usize) -> Self {
+        let (lw, lh) = (ctx.width >> ctx.level, ctx.height >> ctx.level);
+        let (cw, ch) = (ctx.core.min(lw - cx0), ctx.core.min(lh - cy0));
+        let x0 = cx0.saturating_sub(ctx.margin);
+        let y0 = cy0.saturating_sub(ctx.margin);
+        let x1 = (cx0 + cw + ctx.margin).min(lw);
+        let y1 = (cy0 + ch + ctx.margin).min(lh);
+        Self {
+            cx0,
+            cy0,
+            cw,
+            ch,
+            x0,
+            y0,
+            w: x1 - x0,
+            h: y1 - y0,
+        }
+    }
+}
+
+/// Part of a level window: `w x h` level pixels at `(x0, y0)`, grey values and validity.
+struct LevelPatch {
+    x0: usize,
+    y0: usize,
+    w: usize,
+    h: usize,
+    grey: Vec<f32>,
+    valid: Vec<bool>,
+}
+
+impl LevelPatch {
+    /// Columns `from ..` of the window `win` (grey / valid as read for it).
+    fn columns(win: &TileWindow, grey: &[f32], valid: &[bool], from: usize) -> Self {
+        let (off, w) = (from - win.x0, win.x0 + win.w - from);
+        let rows = |y: usize| y * win.w + off..y * win.w + off + w;
+        Self {
+            x0: from,
+            y0: win.y0,
+            w,
+            h: win.h,
+            grey: (0..win.h)
+                .flat_map(|y| grey[rows(y)].iter().copied())
+                .collect(),
+            valid: (0..win.h)
+                .flat_map(|y| valid[rows(y)].iter().copied())
+                .collect(),
+        }
+    }
+}
+
+/// The level window of `win` (grey, valid), reusing the columns it shares with `prev`, kept from
+/// the window of the tile to its left (the two margins): only the new columns are read. Level
+/// pixels do not depend on the window they are read in, so the result is the same as reading the
+/// whole window.
+fn read_reusing(
+    source: &mut dyn LevelSource,
+    level: usize,
+    win: &TileWindow,
+    prev: Option<LevelPatch>,
+) -> Result<(Vec<f32>, Vec<bool>), MapError> {
+    let shared = match &prev {
+        Some(p)
+            if p.y0 == win.y0
+                && p.h == win.h
+                && p.x0 <= win.x0
+                && win.x0 < p.x0 + p.w
+                && p.x0 + p.w <= win.x0 + win.w =>
+        {
+            p.x0 + p.w - win.x0
+        }
+        _ => 0,
+    };
+    let (x0, y0, w, h) = (win.x0, win.y0, win.w, win.h);
+    match prev {
+        Some(p) if shared > 0 => {
+            let new_w = w - shared;
+            let (g_new, v_new) = if new_w > 0 {
+                source.level_window(level, x0 + shared, y0, new_w, h)?
+            } else {
+                (Vec::new(), Vec::new())
+            };
+            let off = x0 - p.x0;
+            let mut grey = Vec::with_capacity(w * h);
+            let mut valid = Vec::with_capacity(w * h);
+            for y in 0..h {
+                grey.extend_from_slice(&p.grey[y * p.w + off..y * p.w + off + shared]);
+                grey.extend_from_slice(&g_new[y * new_w..(y + 1) * new_w]);
+                valid.extend_from_slice(&p.valid[y * p.w + off..y * p.w + off + shared]);
+                valid.extend_from_slice(&v_new[y * new_w..(y + 1) * new_w]);
+            }
+            Ok((grey, valid))
+        }
+        _ => source.level_window(level, x0, y0, w, h),
+    }
+}
+
+/// Where a build reads level windows from: a whole decoded ortho or a windowed reader.
+trait LevelSource {
+    /// Level-0 width and height.
+    fn dims(&self) -> (usize, usize);
+    /// Chunks decoded so far (0 for a decoded image).
+    fn chunks_decoded(&self) -> u64 {
+        0
+    }
+    /// As [`level_window`].
+    fn level_window(
+        &mut self,
+        level: usize,
+        x0: usize,
+        y0: usize,
+        w: usize,
+        h: usize,
+    ) -> Result<(Vec<f32>, Vec<bool>), MapError>;
+}
+
+impl LevelSource for Raster {
+    fn dims(&self) -> (usize, usize) {
+        (self.width(), self.height())
+    }
+    fn level_window(
+        &mut self,
+        level: usize,
+        x0: usize,
+        y0: usize,
+        w: usize,
+        h: usize,
+    ) -> Result<(Vec<f32>, Vec<bool>), MapError> {
+        Ok(level_window(self, level, x0, y0, w, h))
+    }
+}
+
+impl<R: Read + Seek + Send> LevelSource for GeoTiffWindowReader<R> {
+    fn dims(&self) -> (usize, usize) {
+        (self.info().width, self.info().height)
+    }
+    fn chunks_decoded(&self) -> u64 {
+        GeoTiffWindowReader::chunks_decoded(self)
+    }
+    fn level_window(
+        &mut self,
+        level: usize,
+        x0: usize,
+        y0: usize,
+        w: usize,
+        h: usize,
+    ) -> Result<(Vec<f32>, Vec<bool>), MapError> {
+        Ok(level_window_from_reader(
+            self, level, x0, y0, w, h, BAND_BYTES,
+        )?)
+    }
+}
+
+/// Extracts the features of the tile `win` from its level window `grey` / `valid`.
+fn process_tile(
+    ctx: &TileCtx,
+    win: &TileWindow,
+    grey: Vec<f32>,
+    valid: &[bool],
     writer: &mut SpillWriter,
     st: &mut Stats,
 ) -> Result<(), MapError> {
-    let (lw, lh) = (
-        ctx.raster.width() >> ctx.level,
-        ctx.raster.height() >> ctx.level,
-    );
-    let (cw, ch) = (ctx.core.min(lw - cx0), ctx.core.min(lh - cy0));
-    let wx0 = cx0.saturating_sub(ctx.margin);
-    let wy0 = cy0.saturating_sub(ctx.margin);
-    let wx1 = (cx0 + cw + ctx.margin).min(lw);
-    let wy1 = (cy0 + ch + ctx.margin).min(lh);
-    let (ww, wh) = (wx1 - wx0, wy1 - wy0);
-    let (grey, valid) = level_window(ctx.raster, ctx.level, wx0, wy0, ww, wh);
+    let TileWindow {
+        cx0,
+        cy0,
+        cw,
+        ch,
+        x0: wx0,
+        y0: wy0,
+        w: ww,
+        h: wh,
+    } = *win;
     if !valid.iter().any(|&v| v) {
         return Ok(());
     }
@@ -532,7 +766,7 @@ fn process_tile(
     }
     let feats = ctx.surf.describe(&ii, kept);
     let f = f64::from(1u32 << ctx.level);
-    let t = ctx.raster.transform();
+    let t = &ctx.transform;
     for (i, kp) in feats.keypoints.iter().enumerate() {
         let col0 = (wx0 as f64 + f64::from(kp.x) + 0.5) * f;
         let row0 = (wy0 as f64 + f64::from(kp.y) + 0.5) * f;
@@ -597,6 +831,58 @@ pub fn level_window(
             },
         );
     (grey, valid)
+}
+
+/// [`level_window`] read through a windowed GeoTIFF reader: the level-0 pixels under the level
+/// window are read in bands of whole `2^level`-row blocks of about `band_bytes` (at least one
+/// block row), each averaged with [`level_window`] itself, so the result is bit-identical to
+/// `level_window` on the whole decoded image while only one band is held at a time. When a band
+/// holds several chunk rows, band ends fall on chunk-row boundaries so that no strip/tile is
+/// needed by two bands (each is decoded once per window even without the cache).
+pub fn level_window_from_reader<R: Read + Seek + Send>(
+    reader: &mut GeoTiffWindowReader<R>,
+    level: usize,
+    x0: usize,
+    y0: usize,
+    w: usize,
+    h: usize,
+    band_bytes: usize,
+) -> Result<(Vec<f32>, Vec<bool>), GeoTiffError> {
+    let f = 1usize << level;
+    let info = reader.info();
+    let sample_bytes = usize::from(info.bits_per_sample).div_ceil(8).max(1);
+    // Level-0 bytes of one level row of the window.
+    let row_bytes = (w * f)
+        .saturating_mul(f)
+        .saturating_mul(info.bands)
+        .saturating_mul(sample_bytes);
+    let rows_per_band = (band_bytes / row_bytes.max(1)).clamp(1, h.max(1));
+    // Level rows per aligned unit: lcm(2^level, chunk height) level-0 rows.
+    let ch = info.chunk_height.max(1);
+    let unit = (f / gcd(f, ch)).saturating_mul(ch) / f;
+    let mut grey = Vec::with_capacity(w * h);
+    let mut valid = Vec::with_capacity(w * h);
+    let mut ya = 0;
+    while ya < h {
+        let mut n = rows_per_band.min(h - ya);
+        if ya + n < h && unit <= rows_per_band {
+            // End the band on a unit boundary (absolute level row a multiple of `unit`).
+            let end = (y0 + ya + n) / unit * unit;
+            if end > y0 + ya {
+                n = end - y0 - ya;
+            }
+        }
+        let band = reader.read_window(x0 * f, (y0 + ya) * f, w * f, n * f)?;
+        let (g, v) = level_window(&band, level, 0, 0, w, n);
+        grey.extend_from_slice(&g);
+        valid.extend_from_slice(&v);
+        ya += n;
+    }
+    Ok((grey, valid))
+}
+
+fn gcd(a: usize, b: usize) -> usize {
+    if b == 0 { a } else { gcd(b, a % b) }
 }
 
 /// Luma of level-0 pixels `c0 .. c0 + out.len()` of `row`, NaN where a used band is missing.

@@ -503,3 +503,83 @@ fn vision_pose_fixes_keep_the_tilt_observable_with_a_noisy_gyro() {
     assert!(pos_pose < pos_pos, "{pos_pose} vs {pos_pos}");
     assert!((4.0..8.0).contains(&nis_pose), "6-dof NIS mean {nis_pose}");
 }
+
+/// A position fix solved with the filter's own attitude as its prior follows that attitude's
+/// error: `z = p + D psi_filter + e`. Fused with `D` in the attitude Jacobian
+/// (`PositionFix::att_dependence_ned`) and the image's covariance, the filter does not read its
+/// own tilt back as a position confirmation; fused as a plain position with the total covariance
+/// (`Cov(e) + D P D^T`, what the fix reports), it does, and its position error grows.
+#[test]
+fn position_fixes_with_their_prior_dependence_are_not_double_counted() {
+    // A 5 deg/sqrt(h) gyro without autopilot attitude: the filter's tilt wanders by tenths of a
+    // degree, hundreds of metres per radian at this height.
+    let height_m = 1500.0;
+    // The fix follows 90 % of the prior's tilt (a strong prior over flat ground).
+    let w = 0.9 * height_m;
+    let d = Matrix3::new(0.0, -w, 0.0, w, 0.0, 0.0, 0.0, 0.0, 0.0);
+    let img_sd = 4.0;
+    let prior_tilt_sd = 0.5f64.to_radians();
+    let p_prior = Matrix3::from_diagonal(&Vector3::new(
+        prior_tilt_sd * prior_tilt_sd,
+        prior_tilt_sd * prior_tilt_sd,
+        0.0,
+    ));
+    let total = Matrix3::identity() * img_sd * img_sd + d * p_prior * d.transpose();
+    let run = |model: bool| -> (f64, f64) {
+        let mut imu = SimImuConfig::perfect(100.0);
+        imu.gyro_arw_deg_sqrt_h = 5.0;
+        imu.accel_vrw_m_s_sqrt_h = 0.5;
+        let mut cfg = NavConfig::default();
+        cfg.imu.gyro_arw_deg_sqrt_h = 5.0;
+        cfg.imu.accel_vrw_m_s_sqrt_h = 0.5;
+        cfg.attitude_sigma_tilt_deg = 0.5;
+        let mut h = Harness::new(cfg, imu);
+        h.fly(30.0, true, |_, _, _| {});
+        assert!(h.filter.is_initialised());
+        let mut rng = Rng::new(17);
+        let (mut pos2, mut n, mut nis_sum, mut nis_n) = (0.0, 0usize, 0.0, 0usize);
+        let t_off = h.t_us;
+        h.fly(120.0, false, |f, t, ts| {
+            if t.is_multiple_of(500_000) {
+                let s = f.state().expect("initialised");
+                let psi = (s.q_nb * ts.q_nb.inverse()).scaled_axis();
+                let e = Vector3::new(rng.normal(), rng.normal(), rng.normal()) * img_sd;
+                let fix = fix_at(ts, t, d * psi + e, img_sd);
+                let m = if model {
+                    PositionFix {
+                        att_dependence_ned: Some(d),
+                        ..fix
+                    }
+                } else {
+                    PositionFix {
+                        cov_ned_m2: total,
+                        ..fix
+                    }
+                };
+                if let Outcome::Accepted { nis } = f.measure(Measurement::Vision(m)) {
+                    nis_sum += nis;
+                    nis_n += 1;
+                }
+            }
+            if t > t_off + 60_000_000 && t.is_multiple_of(100_000) {
+                let s = f.state().expect("initialised");
+                let dp = earth::ned_offset_m(
+                    (s.lat_rad, s.lon_rad, s.h_m),
+                    (ts.lat_rad, ts.lon_rad, ts.h_m),
+                );
+                pos2 += dp.x * dp.x + dp.y * dp.y;
+                n += 1;
+            }
+        });
+        assert!(nis_n > 150, "fixes accepted: {nis_n}");
+        ((pos2 / n as f64).sqrt(), nis_sum / nis_n as f64)
+    };
+    let (pos_model, nis_model) = run(true);
+    let (pos_plain, nis_plain) = run(false);
+    eprintln!(
+        "last 60 s horizontal RMS: with the dependence {pos_model:.1} m (NIS {nis_model:.2}), \
+         plain position {pos_plain:.1} m (NIS {nis_plain:.2})"
+    );
+    assert!(pos_model < 0.7 * pos_plain, "{pos_model} vs {pos_plain}");
+    assert!((1.5..5.0).contains(&nis_model), "NIS {nis_model}");
+}

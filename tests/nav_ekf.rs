@@ -131,6 +131,16 @@ impl Harness {
     }
 }
 
+/// Squared horizontal distance of the filter's position from the truth `ts`, m^2.
+fn horizontal_err2(f: &NavFilter, ts: &InsState) -> f64 {
+    let s = f.state().expect("initialised");
+    let d = earth::ned_offset_m(
+        (s.lat_rad, s.lon_rad, s.h_m),
+        (ts.lat_rad, ts.lon_rad, ts.h_m),
+    );
+    d.x * d.x + d.y * d.y
+}
+
 fn check_pd(f: &NavFilter) {
     let p = f.covariance().expect("covariance");
     assert_eq!(p.nrows(), f.n_states());
@@ -474,11 +484,7 @@ fn vision_pose_fixes_keep_the_tilt_observable_with_a_noisy_gyro() {
                 let s = f.state().expect("initialised");
                 let tilt = (s.q_nb * ts.q_nb.inverse()).scaled_axis();
                 tilt2 += tilt.x * tilt.x + tilt.y * tilt.y;
-                let d = earth::ned_offset_m(
-                    (s.lat_rad, s.lon_rad, s.h_m),
-                    (ts.lat_rad, ts.lon_rad, ts.h_m),
-                );
-                pos2 += d.x * d.x + d.y * d.y;
+                pos2 += horizontal_err2(f, ts);
                 n += 1;
             }
         });
@@ -562,12 +568,7 @@ fn position_fixes_with_their_prior_dependence_are_not_double_counted() {
                 }
             }
             if t > t_off + 60_000_000 && t.is_multiple_of(100_000) {
-                let s = f.state().expect("initialised");
-                let dp = earth::ned_offset_m(
-                    (s.lat_rad, s.lon_rad, s.h_m),
-                    (ts.lat_rad, ts.lon_rad, ts.h_m),
-                );
-                pos2 += dp.x * dp.x + dp.y * dp.y;
+                pos2 += horizontal_err2(f, ts);
                 n += 1;
             }
         });

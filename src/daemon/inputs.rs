@@ -893,6 +893,8 @@ mod tests {
         // The filter's attitude sigmas [0.5, 0.5, 2] deg: tilt 0.5, heading 2.
         assert!((p.attitude.unwrap().sigma_rad - 0.5f64.to_radians()).abs() < 1e-12);
         assert!((p.attitude.unwrap().sigma_yaw_rad - 2f64.to_radians()).abs() < 1e-12);
+        // The filter's own attitude: the engine weighs it as a dependent prior.
+        assert!(p.attitude_from_filter);
         // Lost / no output: no position; the autopilot attitude is used.
         let lost = output(1_000_000, NavHealth::Lost);
         let p = prior_at(
@@ -903,6 +905,10 @@ mod tests {
         );
         assert!(p.position.is_none());
         assert_eq!(p.attitude.unwrap().attitude.yaw_rad, 1.0);
+        assert!(
+            !p.attitude_from_filter,
+            "the autopilot's attitude is not the filter's"
+        );
         // Tilt and heading sigmas from the nav config (1 and 3 deg by default).
         assert!((p.attitude.unwrap().sigma_rad - 1f64.to_radians()).abs() < 1e-12);
         assert!((p.attitude.unwrap().sigma_yaw_rad - 3f64.to_radians()).abs() < 1e-12);
@@ -985,6 +991,26 @@ mod tests {
         cov6[3][1] = 1e3;
         r.vision_only.as_mut().unwrap().cov6_ned = cov6;
         assert!(vision_measurement(&r, 7, true, false).is_err());
+        // With `[nav] vision_prior_dependence` and a prior from the filter: the image's
+        // covariance and the dependence; otherwise the reported covariance, no dependence.
+        r.vision_only = None;
+        r.prior_dependence = Some(crate::fix::PriorDependenceNed {
+            d_pos_d_att: [[0.0, -900.0, 0.0], [900.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
+            image_cov_ned_m2: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 2.0]],
+        });
+        let plain = |r: &FixReport, dep: bool| match vision_measurement(r, 7, false, dep) {
+            Ok(Measurement::Vision(f)) => f,
+            other => panic!("a position fix, got {other:?}"),
+        };
+        r.prior_attitude_from_filter = true;
+        let f = plain(&r, true);
+        assert_eq!(f.att_dependence_ned.unwrap()[(1, 0)], 900.0);
+        assert_eq!(f.cov_ned_m2[(2, 2)], 2.0);
+        let f = plain(&r, false);
+        assert!(f.att_dependence_ned.is_none());
+        assert_eq!(f.cov_ned_m2[(0, 0)], 4.0);
+        r.prior_attitude_from_filter = false;
+        assert!(plain(&r, true).att_dependence_ned.is_none());
     }
 
     #[test]

@@ -480,8 +480,8 @@ pub fn resect(
         inv3(&s).map_or(f64::INFINITY, |si| (phi.transpose() * si * phi)[0])
     });
 
-    // 6. Optional fusion of the attitude prior. The image's real covariance is
-    //    `k Q_img` with `k = max(1, sigma0^2) inflation^2` (the conservative covariance), so the
+    // 6. Optional fusion of the attitude prior. The image's real covariance is `k Q_img` with
+    //    `k = PoseCovariance::factor()` (the conservative covariance's factor), so the
     //    prior enters the whitened least squares with `P / k`: the fused normal matrix is then
     //    `Q_img^-1 + k P^-1` and `k (Q_img^-1 + k P^-1)^-1 = ((k Q_img)^-1 + P^-1)^-1`, the
     //    information-weighted combination of the image and the prior. Without the scaling the prior

@@ -329,7 +329,8 @@ impl TruthSource for SensorsHandle {
         if !self.0.gps_on(t_s) {
             return None;
         }
-        let mut s = self.0.table.at(t_s);
+        // The receiver's epoch: `latency_s` before the message's time stamp.
+        let mut s = self.0.table.at((t_s - g.latency_s).max(0.0));
         let mut rng = self.0.gps_rng.lock().unwrap_or_else(|e| e.into_inner());
         let (m_m, n_m) = radii_m(s.lat_deg);
         s.lat_deg += (g.sigma_h_m * rng.normal() / (m_m + s.alt_amsl_m)).to_degrees();
@@ -1140,5 +1141,72 @@ mod tests {
         assert!((sigma_h_m(&c) - 3.0).abs() < 1e-12);
         let c = [[5.0, 4.0, 0.0], [4.0, 5.0, 0.0], [0.0, 0.0, 1.0]];
         assert!((sigma_h_m(&c) - 3.0).abs() < 1e-12);
+    }
+}
+
+#[cfg(test)]
+mod gps_latency_tests {
+    use super::*;
+    use crate::sitl::scenario::Scenario;
+
+    const SCENARIO: &str = r#"
+name = "gps_latency"
+seed = 3
+[start]
+lat_deg = 47.0
+lon_deg = -99.3
+height_m = 2000.0
+speed_m_s = 50.0
+heading_deg = 90.0
+[[segments]]
+kind = "straight"
+duration_s = 20.0
+[imu]
+rate_hz = 100.0
+[attitude]
+rate_hz = 10.0
+sigma_tilt_deg = 0.5
+sigma_yaw_deg = 2.0
+[evaluation]
+from_s = 0.0
+until_s = 20.0
+[gps]
+rate_hz = 5.0
+until_s = 20.0
+sigma_h_m = 0.001
+sigma_v_m = 0.001
+sigma_vel_m_s = 0.001
+"#;
+
+    /// Along-track distance (east) of the reported fix from the truth at its time stamp, m.
+    fn lag_m(latency: Option<f64>) -> f64 {
+        let mut text = SCENARIO.to_string();
+        if let Some(l) = latency {
+            text.push_str(&format!("latency_s = {l}\n"));
+        }
+        let sc = Scenario::parse(&text, "gps_latency.toml").unwrap();
+        let table = Arc::new(TruthTable::from_scenario(&sc).unwrap());
+        let h = SensorsHandle(Arc::new(SimSensors::new(&sc, table.clone())));
+        let fix = h.gps(10.0).unwrap();
+        let truth = table.at(10.0);
+        let d = ned_diff_m(
+            (fix.lat_deg, fix.lon_deg, fix.alt_amsl_m),
+            (truth.lat_deg, truth.lon_deg, truth.alt_amsl_m),
+        );
+        assert!(d[0].abs() < 0.05, "{d:?}");
+        d[1]
+    }
+
+    #[test]
+    fn the_simulated_receiver_reports_the_state_its_latency_ago() {
+        // Default 0.1 s (the daemon's gps_delay_s): 5 m behind at 50 m/s.
+        assert!((lag_m(None) - 5.0).abs() < 0.05, "{}", lag_m(None));
+        assert!((lag_m(Some(0.2)) - 10.0).abs() < 0.05);
+        assert!(lag_m(Some(0.0)).abs() < 0.05);
+        let bad = format!("{SCENARIO}latency_s = -1.0\n");
+        let e = Scenario::parse(&bad, "gps_latency.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("latency_s"), "{e}");
     }
 }

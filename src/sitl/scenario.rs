@@ -117,6 +117,18 @@ pub struct GpsConfig {
     /// bursts), s.
     #[serde(default)]
     pub outages_s: Vec<[f64; 2]>,
+    /// Receiver latency, s (closed loop): the autopilot emulator's GPS_RAW_INT / GPS2_RAW stamped
+    /// at `t` report the state at `t - latency_s`, as a real receiver's fix arrives 0.1-0.2 s
+    /// after its epoch. The daemon's `[daemon] gps_delay_s` (default 0.1 s) undoes it; a mismatch
+    /// offsets the GPS-aided position along the track by speed x mismatch (5 m at 51 m/s and
+    /// 0.1 s). The filter-only `visnav sim` applies GPS at its true epoch and ignores this key.
+    #[serde(default = "default_gps_latency_s")]
+    pub latency_s: f64,
+}
+
+/// The simulated receiver's latency: 0.1 s, the daemon's default `gps_delay_s`.
+fn default_gps_latency_s() -> f64 {
+    0.1
 }
 
 impl GpsConfig {
@@ -486,6 +498,7 @@ impl Validate for Scenario {
                 p.positive("sigma_h_m", g.sigma_h_m);
                 p.positive("sigma_v_m", g.sigma_v_m);
                 p.positive("sigma_vel_m_s", g.sigma_vel_m_s);
+                p.range("latency_s", g.latency_s, 0.0, 2.0);
                 for v in g.lever_arm_body_frd_m {
                     p.range("lever_arm_body_frd_m", v, -100.0, 100.0);
                 }

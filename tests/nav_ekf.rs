@@ -584,3 +584,119 @@ fn position_fixes_with_their_prior_dependence_are_not_double_counted() {
     assert!(pos_model < 0.7 * pos_plain, "{pos_model} vs {pos_plain}");
     assert!((1.5..5.0).contains(&nis_model), "NIS {nis_model}");
 }
+
+/// The vision position bias states (`[nav] vision_bias_*`): fixes whose error is mostly a
+/// ground-shared bias (a Gauss-Markov process in distance, the model's own) plus 3 m of noise.
+/// GPS for 60 s with fixes (the bias is calibrated), then 120 s of fixes alone, then 30 s without
+/// anything. Without bias states the filter follows the biased fixes and claims their white
+/// noise's accuracy; with them it starts the outage on the calibrated bias and its covariance
+/// covers the error throughout.
+#[test]
+fn vision_bias_states_calibrate_the_map_offset_and_stay_honest() {
+    let (sig_h, sig_v, dist_m, noise_m) = (6.0, 4.0, 3000.0, 3.0);
+    // corr_s > 0: no bias states, the fixes de-weighted by `vision_error_corr_time_s` instead.
+    let run = |bias_states: bool, corr_s: f64, seed: u64| -> (f64, f64, f64) {
+        let mut imu = SimImuConfig::perfect(100.0);
+        imu.gyro_arw_deg_sqrt_h = 0.3;
+        imu.accel_vrw_m_s_sqrt_h = 0.1;
+        let mut cfg = NavConfig::default();
+        cfg.imu.gyro_arw_deg_sqrt_h = 0.3;
+        cfg.imu.accel_vrw_m_s_sqrt_h = 0.1;
+        cfg.attitude_sigma_tilt_deg = 0.5;
+        if bias_states {
+            cfg.vision_bias_sigma_h_m = sig_h;
+            cfg.vision_bias_sigma_v_m = sig_v;
+            cfg.vision_bias_corr_dist_m = dist_m;
+        }
+        cfg.vision_error_corr_time_s = corr_s;
+        let n_states = cfg.n_states();
+        let mut h = Harness::new(cfg, imu);
+        assert_eq!(h.filter.n_states(), n_states);
+        let mut rng = Rng::new(seed);
+        let sig = Vector3::new(sig_h, sig_h, sig_v);
+        let mut b = sig.component_mul(&Vector3::new(rng.normal(), rng.normal(), rng.normal()));
+        // Truth bias: the same Gauss-Markov process in distance (51.44 m/s, fixes at 2 Hz).
+        let phi = (-51.44 * 0.5 / dist_m).exp();
+        let mut step_fix = |f: &mut NavFilter, t: u64, ts: &InsState, rng: &mut Rng| {
+            let w = Vector3::new(rng.normal(), rng.normal(), rng.normal());
+            b = b * phi + sig.component_mul(&w) * (1.0 - phi * phi).sqrt();
+            let e = Vector3::new(rng.normal(), rng.normal(), rng.normal()) * noise_m;
+            f.measure(Measurement::Vision(fix_at(ts, t, b + e, noise_m)));
+        };
+        h.fly(60.0, true, |f, t, ts| {
+            if t.is_multiple_of(500_000) {
+                step_fix(f, t, ts, &mut rng);
+            }
+        });
+        let t_off = h.t_us;
+        let (mut e2_early, mut n_early, mut nees, mut n_nees) = (0.0, 0usize, 0.0, 0usize);
+        h.fly(150.0, false, |f, t, ts| {
+            if t <= t_off + 120_000_000 && t.is_multiple_of(500_000) {
+                step_fix(f, t, ts, &mut rng);
+            }
+            if t.is_multiple_of(1_000_000) {
+                let e2 = horizontal_err2(f, ts);
+                if t <= t_off + 30_000_000 {
+                    e2_early += e2;
+                    n_early += 1;
+                }
+                // Horizontal NEES (2 dof) against the filter's position covariance.
+                let s = f.state().expect("initialised");
+                let d = earth::ned_offset_m(
+                    (s.lat_rad, s.lon_rad, s.h_m),
+                    (ts.lat_rad, ts.lon_rad, ts.h_m),
+                );
+                let p = f.covariance().expect("covariance");
+                let c = nalgebra::Matrix2::new(p[(0, 0)], p[(0, 1)], p[(1, 0)], p[(1, 1)]);
+                let dh = nalgebra::Vector2::new(d.x, d.y);
+                nees += dh.dot(&(c.try_inverse().expect("pd") * dh));
+                n_nees += 1;
+            }
+        });
+        check_pd(&h.filter);
+        if bias_states {
+            let (_, pb) = h.filter.vision_bias().expect("bias states");
+            assert!(pb[(0, 0)] > 0.0 && pb[(2, 2)] > 0.0);
+        } else {
+            assert!(h.filter.vision_bias().is_none());
+        }
+        (
+            (e2_early / n_early as f64).sqrt(),
+            nees / n_nees as f64,
+            h.filter.counters().vision.accepted as f64,
+        )
+    };
+    let (mut rms_b, mut nees_b, mut rms_p, mut nees_p) = (0.0, 0.0, 0.0, 0.0);
+    let (mut rms_c, mut nees_c) = (0.0, 0.0);
+    let seeds = [3u64, 8, 21, 34];
+    for &seed in &seeds {
+        let (r, n, acc) = run(true, 0.0, seed);
+        assert!(acc > 300.0, "fixes accepted with bias states: {acc}");
+        let (r0, n0, _) = run(false, 0.0, seed);
+        // The correlation time of the truth bias: L / v.
+        let (rc, nc, _) = run(false, dist_m / 51.44, seed);
+        eprintln!(
+            "seed {seed}: first 30 s without GPS horizontal RMS {r:.2} m (bias states) vs \
+             {r0:.2} m (none) and {rc:.2} m (correlation time); horizontal NEES over the \
+             outage {n:.2} vs {n0:.2} and {nc:.2}"
+        );
+        rms_b += r / seeds.len() as f64;
+        nees_b += n / seeds.len() as f64;
+        rms_p += r0 / seeds.len() as f64;
+        nees_p += n0 / seeds.len() as f64;
+        rms_c += rc / seeds.len() as f64;
+        nees_c += nc / seeds.len() as f64;
+    }
+    eprintln!(
+        "mean: RMS {rms_b:.2} vs {rms_p:.2} and {rms_c:.2} m, NEES {nees_b:.2} vs {nees_p:.2} \
+         and {nees_c:.2} (2 dof: 2 is honest)"
+    );
+    // The correlation time de-weights the fixes enough here, but its covariance is less honest.
+    assert!(nees_c > nees_b, "{nees_c} vs {nees_b}");
+    assert!(rms_b < 0.6 * rms_p, "{rms_b} vs {rms_p}");
+    assert!(
+        (0.5..4.0).contains(&nees_b),
+        "NEES with bias states {nees_b}"
+    );
+    assert!(nees_p > 2.0 * nees_b, "NEES without bias states {nees_p}");
+}

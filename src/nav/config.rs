@@ -384,6 +384,21 @@ pub struct NavConfig {
     /// Off by default: in the closed-loop demo it has not yet shown a gain over the plain
     /// position (docs/fix.md, "The attitude prior").
     pub vision_prior_dependence: bool,
+    /// Vision position bias states (3 more error states, NED): the part of the fixes' error that
+    /// the ground shares over a distance, chiefly the reference map's registration against the
+    /// true ground (a few metres for NAIP, up to ~10 m for Sentinel-2) and the changed ground
+    /// between the map's and the camera's year. Modelled as a first-order Gauss-Markov process
+    /// in distance flown, `b(s + ds) = e^{-ds/L} b(s) + w`, stationary sigma `sigma_h` per
+    /// horizontal axis and `sigma_v` down, `L = vision_bias_corr_dist_m`; a fix is
+    /// `z = p_cam + b + e`. With GPS on, fixes calibrate `b` and it is carried into the outage;
+    /// without GPS the position covariance never shrinks below `b`'s, so the filter stays
+    /// honest after long vision-only flight. Horizontal sigma, m; 0 (default) = no bias states.
+    pub vision_bias_sigma_h_m: f64,
+    /// Vision position bias: vertical sigma, m (with `vision_bias_sigma_h_m` > 0).
+    pub vision_bias_sigma_v_m: f64,
+    /// Vision position bias: correlation distance `L`, m (the decay per metre flown
+    /// horizontally; a hovering vehicle keeps its bias).
+    pub vision_bias_corr_dist_m: f64,
     /// Camera projection centre in the body frame (FRD, metres from the IMU, the point the
     /// filter's position refers to): vision fixes are positions of this point. Not set: the
     /// caller fills it from `[camera.mount] lever_arm_body_frd_m`
@@ -417,6 +432,9 @@ impl Default for NavConfig {
             vision_error_corr_time_s: 0.0,
             vision_attitude: false,
             vision_prior_dependence: false,
+            vision_bias_sigma_h_m: 0.0,
+            vision_bias_sigma_v_m: 0.0,
+            vision_bias_corr_dist_m: 2000.0,
             camera_lever_arm_body_frd_m: None,
             gps_lever_arm_body_frd_m: [0.0; 3],
             imu: ImuNoiseConfig::default(),
@@ -442,9 +460,17 @@ impl NavConfig {
         self.camera_lever_arm_body_frd_m.unwrap_or([0.0; 3])
     }
 
-    /// Number of error states: 15, plus 6 with scale factors, plus 6 with bias drift states.
+    /// Number of error states: 15, plus 6 with scale factors, plus 6 with bias drift states,
+    /// plus 3 with vision position bias states.
     pub fn n_states(&self) -> usize {
-        15 + 6 * usize::from(self.scale_factor_states) + 6 * usize::from(self.bias_drift_states)
+        15 + 6 * usize::from(self.scale_factor_states)
+            + 6 * usize::from(self.bias_drift_states)
+            + 3 * usize::from(self.vision_bias_states())
+    }
+
+    /// Whether the vision position bias states are estimated (`vision_bias_sigma_h_m` > 0).
+    pub fn vision_bias_states(&self) -> bool {
+        self.vision_bias_sigma_h_m > 0.0
     }
 }
 
@@ -467,6 +493,24 @@ impl Validate for NavConfig {
             180.0,
         );
         p.range("max_imu_gap_s", self.max_imu_gap_s, 0.001, 10.0);
+        p.range(
+            "vision_bias_sigma_h_m",
+            self.vision_bias_sigma_h_m,
+            0.0,
+            1000.0,
+        );
+        p.range(
+            "vision_bias_sigma_v_m",
+            self.vision_bias_sigma_v_m,
+            0.0,
+            1000.0,
+        );
+        p.range(
+            "vision_bias_corr_dist_m",
+            self.vision_bias_corr_dist_m,
+            1.0,
+            1e7,
+        );
         p.range(
             "vision_error_corr_time_s",
             self.vision_error_corr_time_s,

@@ -9,10 +9,17 @@
 //! `C_b^n(est) = (I + [psi x]) C_b^n(true)`; `9..12` gyro bias error (rad/s); `12..15` accelerometer
 //! bias error (m/s^2); `15..18` gyro scale-factor error; `18..21` accelerometer scale-factor
 //! error; `21..24` gyro bias drift error (rad/s); `24..27` accelerometer bias drift error
-//! (m/s^2). Inactive groups (scale factors without `scale_factor_states`, drifts without
-//! `bias_drift_states`) are frozen at zero with zero covariance (they never receive a gain),
-//! which is exactly the smaller filter; the public covariance lists the active states in that
-//! order (15, 21 or 27).
+//! (m/s^2); `27..30` vision position bias (NED, m: `b_est - b_true`). Inactive groups (scale
+//! factors without `scale_factor_states`, drifts without `bias_drift_states`, the vision bias
+//! without `vision_bias_sigma_h_m`) are frozen at zero with zero covariance (they never receive
+//! a gain), which is exactly the smaller filter; the public covariance lists the active states in
+//! that order (15 to 30).
+//!
+//! Vision position bias (`NavConfig::vision_bias_sigma_h_m`): a vision fix measures
+//! `z = r_cam + b + e`, `b` a first-order Gauss-Markov process in horizontal distance flown
+//! (`phi = e^{-|v_h| dt / L}`, `Qd = sigma^2 (1 - phi^2)` per axis), `e` the fix's own error.
+//! GPS fixes do not see `b`, so with both the filter calibrates it; the estimate decays with
+//! `phi` like the drift estimates.
 //!
 //! Bias model (with `bias_drift_states`, the default): the bias of each axis is
 //! `b = b_c + b_d`, `b_c` the turn-on bias (random constant, prior sigma `*_bias_deg_h` /
@@ -60,7 +67,7 @@ use serde::Serialize;
 use std::collections::VecDeque;
 
 /// Size of the error state carried internally.
-pub const N_STATES: usize = 27;
+pub const N_STATES: usize = 30;
 type Mat = SMatrix<f64, N_STATES, N_STATES>;
 type Vecn = SVector<f64, N_STATES>;
 const IP: usize = 0;
@@ -72,6 +79,7 @@ const ISG: usize = 15;
 const ISA: usize = 18;
 const IDG: usize = 21;
 const IDA: usize = 24;
+const IVB: usize = 27;
 
 /// Filter health.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -199,6 +207,8 @@ struct Core {
     /// states.
     dg: Vector3<f64>,
     da: Vector3<f64>,
+    /// Vision position bias estimate, NED, m (zero without bias states).
+    vb: Vector3<f64>,
     /// Compensated body rate w.r.t. inertial space of the last IMU sample, rad/s (for the
     /// lever-arm velocity).
     w_b: Vector3<f64>,
@@ -221,7 +231,12 @@ struct Epoch {
 struct Params {
     scale: bool,
     drift: bool,
-    /// Active error-state indices (15, 21 or 27 of them).
+    /// Vision position bias states.
+    vbias: bool,
+    /// Their stationary variances (N, E, D), m^2, and correlation distance, m.
+    var_vb: Vector3<f64>,
+    vb_dist_m: f64,
+    /// Active error-state indices (15 to 30 of them).
     active: Vec<usize>,
     /// Gauss-Markov correlation times (gyro, accelerometer), s.
     tau_g: f64,
@@ -294,9 +309,17 @@ impl NavFilter {
         if drift {
             active.extend(IDG..IDA + 3);
         }
+        let vbias = cfg.vision_bias_states();
+        if vbias {
+            active.extend(IVB..IVB + 3);
+        }
+        let (bh, bv) = (cfg.vision_bias_sigma_h_m, cfg.vision_bias_sigma_v_m);
         let par = Params {
             scale: cfg.scale_factor_states,
             drift,
+            vbias,
+            var_vb: Vector3::new(bh * bh, bh * bh, bv * bv),
+            vb_dist_m: cfg.vision_bias_corr_dist_m,
             active,
             tau_g: imu.gyro_bias_corr_time_s,
             tau_a: imu.accel_bias_corr_time_s,
@@ -350,7 +373,7 @@ impl NavFilter {
         &self.cfg
     }
 
-    /// Number of estimated error states (15, 21 or 27).
+    /// Number of estimated error states (15 to 30).
     pub fn n_states(&self) -> usize {
         self.cfg.n_states()
     }
@@ -372,7 +395,8 @@ impl NavFilter {
 
     /// Error covariance of the active states (`n_states` x `n_states`): the 15 navigation
     /// states, then the scale factors (if `scale_factor_states`), then the bias drifts (if
-    /// `bias_drift_states`); see the module doc.
+    /// `bias_drift_states`), then the vision position bias (if `vision_bias_sigma_h_m` > 0);
+    /// see the module doc.
     pub fn covariance(&self) -> Option<nalgebra::DMatrix<f64>> {
         let a = &self.par.active;
         let n = a.len();
@@ -409,6 +433,13 @@ impl NavFilter {
     /// `bias_drift_states`.
     pub fn bias_drifts(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
         self.core.as_ref().map(|c| (c.dg, c.da))
+    }
+
+    /// Estimated vision position bias (NED, m: what the fixes add to the camera position) and
+    /// its covariance, m^2; None before initialisation or without bias states.
+    pub fn vision_bias(&self) -> Option<(Vector3<f64>, Matrix3<f64>)> {
+        let c = self.core.as_ref().filter(|_| self.par.vbias)?;
+        Some((c.vb, c.p.fixed_view::<3, 3>(IVB, IVB).into_owned()))
     }
 
     /// Estimated gyro and accelerometer scale-factor errors (dimensionless).
@@ -722,7 +753,15 @@ impl NavFilter {
         core.ins.state.lat_rad = lat;
         core.ins.state.lon_rad = lon;
         core.ins.state.h_m = h;
-        for i in 0..6 {
+        // A vision reset also restarts the bias (the fixes were rejected: its estimate may be
+        // the cause); the position then carries the bias's error as at initialisation.
+        let vision_bias = is_vision && self.par.vbias;
+        let mut rows: Vec<usize> = (0..6).collect();
+        if vision_bias {
+            rows.extend(IVB..IVB + 3);
+            core.vb = Vector3::zeros();
+        }
+        for i in rows {
             for k in 0..N_STATES {
                 core.p[(i, k)] = 0.0;
                 core.p[(k, i)] = 0.0;
@@ -734,6 +773,13 @@ impl NavFilter {
                 core.p[(IP + a, IP + b)] = f.cov_ned_m2[(a, b)];
             }
             core.p[(IV + a, IV + a)] = vs;
+            if vision_bias {
+                let vb = self.par.var_vb[a];
+                core.p[(IP + a, IP + a)] += vb;
+                core.p[(IVB + a, IVB + a)] = vb;
+                core.p[(IP + a, IVB + a)] = -vb;
+                core.p[(IVB + a, IP + a)] = -vb;
+            }
         }
         let now = core.t_us;
         let pre = core.clone();
@@ -801,6 +847,9 @@ impl NavFilter {
             if self.par.drift {
                 p[(IDG + a, IDG + a)] = self.par.var_dg.max(1e-20);
                 p[(IDA + a, IDA + a)] = self.par.var_da.max(1e-20);
+            }
+            if self.par.vbias {
+                p[(IVB + a, IVB + a)] = self.par.var_vb[a].max(1e-20);
             }
         }
         p[(IA, IA)] = tilt;
@@ -873,7 +922,17 @@ impl NavFilter {
             v_ned_m_s: v,
             q_nb: att.q_nb,
         };
-        let p = self.initial_p(Some(&(fix.cov_ned_m2 + vcov * dt * dt)), Some(&vcov));
+        let mut p = self.initial_p(Some(&(fix.cov_ned_m2 + vcov * dt * dt)), Some(&vcov));
+        if !is_gps && self.par.vbias {
+            // Initialised on a vision fix, the position error is the fix's bias plus its own
+            // error: `dr = b + e`, `db = 0 - b`, so `Cov(dr) += Sb`, `Cov(dr, db) = -Sb`.
+            for a in 0..3 {
+                let vb = self.par.var_vb[a];
+                p[(IP + a, IP + a)] += vb;
+                p[(IP + a, IVB + a)] = -vb;
+                p[(IVB + a, IP + a)] = -vb;
+            }
+        }
         let core = Core {
             t_us: t_now,
             ins: Strapdown::new(state),
@@ -883,6 +942,7 @@ impl NavFilter {
             sa: Vector3::zeros(),
             dg: Vector3::zeros(),
             da: Vector3::zeros(),
+            vb: Vector3::zeros(),
             w_b: Vector3::zeros(),
             p,
             last_vision_us: None,
@@ -911,7 +971,7 @@ impl NavFilter {
 }
 
 impl Core {
-    /// Positive definiteness of the active block (15, 21 or 27 states).
+    /// Positive definiteness of the active block (15 to 30 states).
     fn is_pd(&self, active: &[usize]) -> bool {
         let n = active.len();
         nalgebra::DMatrix::from_fn(n, n, |i, j| self.p[(active[i], active[j])])
@@ -938,6 +998,15 @@ impl Core {
         };
         self.dg *= phi_g;
         self.da *= phi_a;
+        // The vision bias decorrelates with the horizontal distance flown (Gauss-Markov in
+        // distance): its estimate decays like its mean.
+        let phi_b = if par.vbias {
+            let v = self.ins.state.v_ned_m_s;
+            (-v.x.hypot(v.y) * dt / par.vb_dist_m).exp()
+        } else {
+            1.0
+        };
+        self.vb *= phi_b;
 
         let st = &self.ins.state;
         let (lat, h, v) = (st.lat_rad, st.h_m, st.v_ned_m_s);
@@ -1002,6 +1071,11 @@ impl Core {
                 phi[(IDA + a, IDA + a)] = phi_a;
             }
         }
+        if par.vbias {
+            for a in 0..3 {
+                phi[(IVB + a, IVB + a)] = phi_b;
+            }
+        }
         let mut p = phi * self.p * phi.transpose();
         for a in 0..3 {
             p[(IV + a, IV + a)] += par.q_vrw * dt;
@@ -1011,6 +1085,9 @@ impl Core {
             if par.drift {
                 p[(IDG + a, IDG + a)] += par.var_dg * (1.0 - phi_g * phi_g);
                 p[(IDA + a, IDA + a)] += par.var_da * (1.0 - phi_a * phi_a);
+            }
+            if par.vbias {
+                p[(IVB + a, IVB + a)] += par.var_vb[a] * (1.0 - phi_b * phi_b);
             }
         }
         self.p = 0.5 * (p + p.transpose());
@@ -1067,6 +1144,9 @@ impl Core {
             self.dg -= dx.fixed_rows::<3>(IDG);
             self.da -= dx.fixed_rows::<3>(IDA);
         }
+        if par.vbias {
+            self.vb -= dx.fixed_rows::<3>(IVB);
+        }
     }
 }
 
@@ -1113,7 +1193,7 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
             // `C_est = (I + [psi x]) C_true`: `dz = dr + [psi x] C l = dr - [(C l) x] psi`.
             let l = if is_vision { par.l_cam } else { par.l_gps };
             let l_n = st.q_nb * l;
-            let dz = earth::ned_offset_m(
+            let mut dz = earth::ned_offset_m(
                 (st.lat_rad, st.lon_rad, st.h_m),
                 (f.lat_rad, f.lon_rad, f.h_m),
             ) + v * dt
@@ -1123,6 +1203,12 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
                 .copy_from(&Matrix3::identity());
             h.fixed_view_mut::<3, 3>(0, IA)
                 .copy_from(&lever_arm_jacobian(&l_n));
+            // A vision fix also measures the bias: `z = r_cam + b + e`.
+            if is_vision && par.vbias {
+                dz += core.vb;
+                h.fixed_view_mut::<3, 3>(0, IVB)
+                    .copy_from(&Matrix3::identity());
+            }
             // A fix solved with this filter's attitude as its prior: `z = p + D psi + e`, so
             // `dz = dp - D psi - e` (PositionFix::att_dependence_ned).
             if let (Some(d), false) = (

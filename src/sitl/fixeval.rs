@@ -378,14 +378,22 @@ impl NaipEval {
                     beyond += 1;
                 }
                 nees6.extend(s.nees6);
+                let prior_dv_m = prior
+                    .position
+                    .as_ref()
+                    .map_or(f64::NAN, |p| p.alt_amsl_m - case.pose.centre_map_m.z);
                 log(format!(
-                    "frame {i:3}: accepted, {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:.1} m = {:.2} sigma, ground {:.1} m tilt {:.2} deg, image-only pose NEES {:.1}, {:.1} ms",
+                    "frame {i:3}: accepted, {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:+.1} m = {:.2} sigma (sigma h {:.1} v {:.1} m; {:.0} m above ground, prior altitude {:+.1} m), ground {:.1} m tilt {:.2} deg, image-only pose NEES {:.1}, {:.1} ms",
                     r.inliers,
                     r.matches,
                     a.null_matches,
                     s.err_h_m,
-                    s.err_v_m,
+                    r.z_m - case.pose.centre_map_m.z,
                     s.err_sigma,
+                    r.cov_ned_m2[0][0].max(r.cov_ned_m2[1][1]).sqrt(),
+                    r.cov_ned_m2[2][2].sqrt(),
+                    case.pose.centre_map_m.z - NAIP_GROUND_M,
+                    prior_dv_m,
                     s.ground_err_m,
                     s.tilt_err_deg,
                     s.nees6.unwrap_or(f64::NAN),

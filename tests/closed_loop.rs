@@ -7,7 +7,8 @@
 //! The bounds are loose and honest (the measured figures are in docs/closed-loop.md): the vision
 //! fixes must work across the years (a fix rate and an error that only a working pipeline
 //! reaches), no accepted fix may lie outside its own 3-sigma ellipse more than rarely, every
-//! injected message must be finite, and vision must beat the no-vision control over the outage.
+//! injected message must be finite, the injected accuracy must be much tighter than the
+//! no-vision control's and cover the error (error over sigma below 5).
 //! The report folder must hold every file with the documented columns.
 
 use std::path::Path;
@@ -76,20 +77,34 @@ fn visnav_sim_default_closed_loop() {
         "{beyond} of {accepted} accepted fixes beyond 3 sigma"
     );
 
-    // The injected solution: present all along, and better than the no-vision control.
+    // The injected solution: present all along, bounded, and more certain than the control.
     let inj = v["injections"].as_u64().unwrap_or(0);
     assert!(
         inj >= 200,
         "only {inj} GPS_INPUT in the 60 s window at 5 Hz"
     );
-    let nav_p90 = stat(&v, "nav_err_m", "p90");
     let nav_max = stat(&v, "nav_err_m", "max");
-    let ctl_max = stat(&v, "control_err_m", "max");
     assert!(nav_max < 80.0, "injected position error max {nav_max} m");
+    // Vision narrows the accuracy the autopilot is told (release runs: max 15-17 m against the
+    // control's 68 m). The errors themselves are not compared: this consumer IMU's 60 s drift
+    // ranges from 8 to 43 m between runs (the control's model is conservative), so a lucky
+    // control beats 15 m fixes in some runs (docs/closed-loop.md).
+    let nav_sig = stat(&v, "nav_sigma_h_m", "max");
+    let ctl_sig = stat(&v, "control_sigma_h_m", "max");
     assert!(
-        nav_p90 < stat(&v, "control_err_m", "p90") || nav_max < ctl_max,
-        "vision does not beat the no-vision control: {v}"
+        nav_sig < 0.5 * ctl_sig,
+        "vision does not narrow the claimed accuracy: sigma max {nav_sig} m vs the control's {ctl_sig} m"
     );
+
+    // Integrity of the claimed accuracy: the injected sigma covers the error (release runs:
+    // max 1.1-2.2; an honest round ellipse exceeds 3 for 1 % of the time, 5 almost never).
+    let ratio_med = stat(&v, "nav_err_over_sigma", "median");
+    let ratio_max = stat(&v, "nav_err_over_sigma", "max");
+    assert!(
+        ratio_med > 0.0 && ratio_max < 5.0,
+        "horizontal error over the filter's sigma: median {ratio_med}, max {ratio_max}"
+    );
+    assert!(stat(&v, "control_err_over_sigma", "max") > 0.0);
 
     // The report folder.
     for f in [

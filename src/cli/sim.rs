@@ -216,6 +216,24 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
         );
         println!("  no-vision control        {}", fmt_stats(&s.control_err_m));
         println!(
+            "horizontal sigma claimed [m]  visnav {}   no-vision {}",
+            fmt_stats(&s.nav_sigma_h_m),
+            fmt_stats(&s.control_sigma_h_m)
+        );
+        println!(
+            "horizontal error / the filter's own sigma median / p90 / max (honest: ~1.2 / 2.1 / <3.5)"
+        );
+        println!(
+            "  visnav filter output     {:.2} / {:.2} / {:.2}",
+            s.nav_err_over_sigma.median, s.nav_err_over_sigma.p90, s.nav_err_over_sigma.max
+        );
+        println!(
+            "  no-vision control        {:.2} / {:.2} / {:.2}",
+            s.control_err_over_sigma.median,
+            s.control_err_over_sigma.p90,
+            s.control_err_over_sigma.max
+        );
+        println!(
             "max error e/n/u [m]  visnav {:.1} / {:.1} / {:.1}   no-vision {:.1} / {:.1} / {:.1}",
             s.max_err_m.vision.e,
             s.max_err_m.vision.n,

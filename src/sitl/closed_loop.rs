@@ -27,6 +27,12 @@
 //!   truth at its arrival (visnav propagates GPS_INPUT to the send time);
 //! * `nav_output_err_m` / `control_err_m`: the vision and the control filters' outputs, sampled
 //!   at 10 Hz, against the truth at the output's own time;
+//! * `nav_err_over_sigma` / `control_err_over_sigma`: the same horizontal errors divided by the
+//!   filter's own horizontal 1-sigma (major semi-axis of its covariance, what GPS_INPUT's
+//!   `horiz_accuracy` reports): the integrity of the claimed accuracy. For an honest filter with
+//!   a round error ellipse the ratio is Rayleigh-distributed: median 1.18, above 3 for 1.1 % of
+//!   the time (e^{-4.5}); an elongated ellipse gives smaller ratios; `nav_sigma_h_m` /
+//!   `control_sigma_h_m`: that sigma itself (the accuracy each filter claims);
 //! * `latency_ms`: capture to fix result (autopilot clock).
 
 use std::path::{Path, PathBuf};
@@ -498,6 +504,12 @@ pub struct ClosedLoopSummary {
     pub nav_output_err_m: Stats,
     pub control_err_m: Stats,
     pub control_injected_err_m: Stats,
+    /// Horizontal error over the filter's horizontal sigma (module doc), vision and control.
+    pub nav_err_over_sigma: Stats,
+    pub control_err_over_sigma: Stats,
+    /// The filters' horizontal 1-sigma (major semi-axis), m.
+    pub nav_sigma_h_m: Stats,
+    pub control_sigma_h_m: Stats,
     pub max_err_m: MaxErr,
     pub latency_ms: Latency,
     /// Position messages of the scored kind received in the window.
@@ -950,6 +962,20 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
                 .map(|i| hnorm(&i.err_ned_m))
                 .collect::<Vec<_>>(),
         ),
+        nav_err_over_sigma: Stats::of(
+            &ws.iter()
+                .map(|s| hnorm(&s.vis_err_ned_m) / s.vis_sigma_h_m)
+                .filter(|r| r.is_finite())
+                .collect::<Vec<_>>(),
+        ),
+        control_err_over_sigma: Stats::of(
+            &ws.iter()
+                .map(|s| hnorm(&s.ctl_err_ned_m) / s.ctl_sigma_h_m)
+                .filter(|r| r.is_finite())
+                .collect::<Vec<_>>(),
+        ),
+        nav_sigma_h_m: Stats::of(&ws.iter().map(|s| s.vis_sigma_h_m).collect::<Vec<_>>()),
+        control_sigma_h_m: Stats::of(&ws.iter().map(|s| s.ctl_sigma_h_m).collect::<Vec<_>>()),
         max_err_m: MaxErr {
             vision: max_enu(&|s| s.vis_err_ned_m),
             control: max_enu(&|s| s.ctl_err_ned_m),

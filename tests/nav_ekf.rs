@@ -609,9 +609,9 @@ fn vision_bias_states_calibrate_the_map_offset_and_stay_honest() {
             cfg.vision_bias_corr_dist_m = dist_m;
         }
         cfg.vision_error_corr_time_s = corr_s;
-        let n_states = cfg.n_states();
         let mut h = Harness::new(cfg, imu);
-        assert_eq!(h.filter.n_states(), n_states);
+        // 15 + 6 drift states (default) + 3 bias states.
+        assert_eq!(h.filter.n_states(), if bias_states { 24 } else { 21 });
         let mut rng = Rng::new(seed);
         let sig = Vector3::new(sig_h, sig_h, sig_v);
         let mut b = sig.component_mul(&Vector3::new(rng.normal(), rng.normal(), rng.normal()));
@@ -655,8 +655,10 @@ fn vision_bias_states_calibrate_the_map_offset_and_stay_honest() {
         });
         check_pd(&h.filter);
         if bias_states {
+            // The bias was calibrated under GPS and then decayed over 9 km: its variance is back
+            // near the stationary one, not collapsed.
             let (_, pb) = h.filter.vision_bias().expect("bias states");
-            assert!(pb[(0, 0)] > 0.0 && pb[(2, 2)] > 0.0);
+            assert!(pb[(0, 0)] > 0.25 * sig_h * sig_h && pb[(2, 2)] > 0.25 * sig_v * sig_v);
         } else {
             assert!(h.filter.vision_bias().is_none());
         }
@@ -699,4 +701,57 @@ fn vision_bias_states_calibrate_the_map_offset_and_stay_honest() {
         "NEES with bias states {nees_b}"
     );
     assert!(nees_p > 2.0 * nees_b, "NEES without bias states {nees_p}");
+}
+
+/// Bias states with a horizontal bias only (`vision_bias_sigma_v_m = 0`): initialised from vision,
+/// then a divergence reset onto vision fixes 300 m off. The zero vertical variance is floored, so
+/// the reset does not leave a singular covariance (which would trigger a covariance reset).
+#[test]
+fn vision_bias_states_survive_init_and_reset_from_vision_with_a_zero_vertical_sigma() {
+    let mut imu = SimImuConfig::perfect(100.0);
+    imu.gyro_arw_deg_sqrt_h = 0.1;
+    imu.accel_vrw_m_s_sqrt_h = 0.03;
+    let cfg = NavConfig {
+        vision_bias_sigma_h_m: 5.0,
+        vision_bias_sigma_v_m: 0.0,
+        ..NavConfig::default()
+    };
+    let n_reset = cfg.health.divergence_reject_count;
+    let mut h = Harness::new(cfg, imu);
+    let mut rng = Rng::new(13);
+    let mut outs = Vec::new();
+    h.fly(20.0, false, |f, t, ts| {
+        if t.is_multiple_of(1_000_000) {
+            let n = Vector3::new(rng.normal(), rng.normal(), rng.normal()) * 2.0;
+            outs.push(f.measure(Measurement::Vision(fix_at(ts, t, n, 2.0))));
+        }
+    });
+    assert_eq!(outs[1], Outcome::Initialised, "{outs:?}");
+    // Initialised on a vision fix: the position carries the bias's variance.
+    let p = h.filter.covariance().expect("covariance");
+    assert!(p[(0, 0)] > 2.0 * 2.0, "{}", p[(0, 0)]);
+    let mut resets = 0;
+    h.fly(2.0 * n_reset as f64, false, |f, t, ts| {
+        if t.is_multiple_of(1_000_000) {
+            let o = f.measure(Measurement::Vision(fix_at(
+                ts,
+                t,
+                Vector3::new(300.0, 0.0, 0.0),
+                2.0,
+            )));
+            resets += usize::from(o == Outcome::Reset);
+        }
+    });
+    let c = h.filter.counters();
+    assert_eq!((resets, c.divergence_resets), (1, 1));
+    assert_eq!(
+        c.covariance_resets, 0,
+        "the reset left a singular covariance"
+    );
+    let (b, pb) = h.filter.vision_bias().expect("bias states");
+    assert!(b.iter().all(|x| x.is_finite()));
+    assert!(
+        (pb[(0, 0)] - 25.0).abs() < 25.0 && pb[(2, 2)] >= 0.0,
+        "{pb}"
+    );
 }

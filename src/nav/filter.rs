@@ -318,7 +318,9 @@ impl NavFilter {
             scale: cfg.scale_factor_states,
             drift,
             vbias,
-            var_vb: Vector3::new(bh * bh, bh * bh, bv * bv),
+            // Floored like the other prior variances: a zero (e.g. `vision_bias_sigma_v_m = 0`
+            // beside a horizontal bias) would leave an exactly singular active block.
+            var_vb: Vector3::new(bh * bh, bh * bh, bv * bv).map(|v| v.max(1e-20)),
             vb_dist_m: cfg.vision_bias_corr_dist_m,
             active,
             tau_g: imu.gyro_bias_corr_time_s,
@@ -849,7 +851,7 @@ impl NavFilter {
                 p[(IDA + a, IDA + a)] = self.par.var_da.max(1e-20);
             }
             if self.par.vbias {
-                p[(IVB + a, IVB + a)] = self.par.var_vb[a].max(1e-20);
+                p[(IVB + a, IVB + a)] = self.par.var_vb[a];
             }
         }
         p[(IA, IA)] = tilt;

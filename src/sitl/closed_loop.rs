@@ -965,13 +965,14 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         nav_err_over_sigma: Stats::of(
             &ws.iter()
                 .map(|s| hnorm(&s.vis_err_ned_m) / s.vis_sigma_h_m)
-                .filter(|r| r.is_finite())
+                // NaN: no output yet; an error over a zero sigma stays (infinite).
+                .filter(|r| !r.is_nan())
                 .collect::<Vec<_>>(),
         ),
         control_err_over_sigma: Stats::of(
             &ws.iter()
                 .map(|s| hnorm(&s.ctl_err_ned_m) / s.ctl_sigma_h_m)
-                .filter(|r| r.is_finite())
+                .filter(|r| !r.is_nan())
                 .collect::<Vec<_>>(),
         ),
         nav_sigma_h_m: Stats::of(&ws.iter().map(|s| s.vis_sigma_h_m).collect::<Vec<_>>()),

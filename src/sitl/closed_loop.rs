@@ -914,6 +914,19 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             u: m(2),
         }
     };
+    // Horizontal error over the claimed sigma; NaN (no output yet) is left out, an error over a
+    // zero sigma stays (infinite).
+    let over_sigma = |f: &dyn Fn(&StepRow) -> ([f64; 3], f64)| {
+        Stats::of(
+            &ws.iter()
+                .map(|s| {
+                    let (e, sigma) = f(s);
+                    hnorm(&e) / sigma
+                })
+                .filter(|r| !r.is_nan())
+                .collect::<Vec<_>>(),
+        )
+    };
     let gps_outage_s = sc.gps.as_ref().map(|g| [g.until_s, duration_s]);
     let summary = ClosedLoopSummary {
         scenario: sc.name.clone(),
@@ -962,19 +975,8 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
                 .map(|i| hnorm(&i.err_ned_m))
                 .collect::<Vec<_>>(),
         ),
-        nav_err_over_sigma: Stats::of(
-            &ws.iter()
-                .map(|s| hnorm(&s.vis_err_ned_m) / s.vis_sigma_h_m)
-                // NaN: no output yet; an error over a zero sigma stays (infinite).
-                .filter(|r| !r.is_nan())
-                .collect::<Vec<_>>(),
-        ),
-        control_err_over_sigma: Stats::of(
-            &ws.iter()
-                .map(|s| hnorm(&s.ctl_err_ned_m) / s.ctl_sigma_h_m)
-                .filter(|r| !r.is_nan())
-                .collect::<Vec<_>>(),
-        ),
+        nav_err_over_sigma: over_sigma(&|s| (s.vis_err_ned_m, s.vis_sigma_h_m)),
+        control_err_over_sigma: over_sigma(&|s| (s.ctl_err_ned_m, s.ctl_sigma_h_m)),
         nav_sigma_h_m: Stats::of(&ws.iter().map(|s| s.vis_sigma_h_m).collect::<Vec<_>>()),
         control_sigma_h_m: Stats::of(&ws.iter().map(|s| s.ctl_sigma_h_m).collect::<Vec<_>>()),
         max_err_m: MaxErr {
@@ -1137,6 +1139,7 @@ fn score_fix(r: &FixRecord, table: &TruthTable, mount: &crate::camera::Mount) ->
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sitl::scenario::Scenario;
 
     #[test]
     fn angle_interpolation_takes_the_short_arc() {
@@ -1169,12 +1172,6 @@ mod tests {
         let c = [[5.0, 4.0, 0.0], [4.0, 5.0, 0.0], [0.0, 0.0, 1.0]];
         assert!((sigma_h_m(&c) - 3.0).abs() < 1e-12);
     }
-}
-
-#[cfg(test)]
-mod gps_latency_tests {
-    use super::*;
-    use crate::sitl::scenario::Scenario;
 
     const SCENARIO: &str = r#"
 name = "gps_latency"

@@ -144,7 +144,7 @@ fn run(
         (f64::NAN, f64::NAN, f64::NAN)
     };
     eprintln!(
-        "{frame} prior {:?}: accepted {} ({}), rms {:.2} px, inliers {} of {} matches, error h {eh:.1} m (dx {:.1} dy {:.1} dz {:.1}) v {ev:.1} m attitude {ea:.3} deg, sigma h {:.1} m, {:.0} ms",
+        "{frame} prior {:?}: accepted {} ({}), rms {:.2} px, inliers {} of {} matches, error h {eh:.1} m (dx {:.1} dy {:.1} dz {:.1}) v {ev:.1} m attitude {ea:.3} deg, sigma h {:.1} m (sigma0 {:.2}, covariance factor {:.1}), {:.0} ms",
         prior_m,
         report.accepted,
         report.reason,
@@ -155,6 +155,8 @@ fn run(
         report.y_m - truth.centre_m.y,
         report.z_m - truth.centre_m.z,
         report.cov_ned_m2[0][0].max(report.cov_ned_m2[1][1]).sqrt(),
+        report.sigma0,
+        report.cov_factor,
         report.ms
     );
     Some(Outcome {

@@ -32,6 +32,10 @@ pub struct FixBenchArgs {
     /// No position prior: global relocalisation (attitude prior only).
     #[arg(long)]
     pub no_prior: bool,
+    /// Standard deviation of the prior attitude's error per axis, degrees (the prior states
+    /// 0.5 deg). The frames and the other draws stay the same for every value.
+    #[arg(long, default_value_t = 0.3)]
+    pub attitude_error_deg: f64,
     /// Build the map from this orthophoto instead of the bundled 2009 one (repeat to stack
     /// several co-registered years of the NAIP area, e.g. ../shared/data/naip_nd/*2010*.tif). The
     /// camera year (2014) is refused.
@@ -70,9 +74,16 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
     } else {
         a.map_ortho.clone()
     };
-    let eval = NaipEval::with_map(&maps, &map_orthos, params, surf)
+    if !(a.attitude_error_deg.is_finite() && a.attitude_error_deg >= 0.0) {
+        anyhow::bail!(
+            "--attitude-error-deg {}: expected a finite value >= 0",
+            a.attitude_error_deg
+        );
+    }
+    let mut eval = NaipEval::with_map(&maps, &map_orthos, params, surf)
         .map_err(anyhow::Error::msg)
         .context("setting up the NAIP cross-date evaluation")?;
+    eval.attitude_prior_error_rad = a.attitude_error_deg.to_radians();
     let per_frame = a.per_frame;
     let s = eval
         .run_with(a.frames, a.seed, !a.no_prior, &mut |line| {

@@ -21,6 +21,32 @@ pub enum MapCommand {
     Build(BuildArgs),
     /// Print a map file's header: CRS, levels, feature counts, bounds, sources.
     Info(InfoArgs),
+    /// Measure how two orthophotos of the same area are registered to each other (e.g. the map's
+    /// year against another year): per-patch shifts and their mean over footprint-sized windows.
+    Compare(CompareArgs),
+}
+
+#[derive(clap::Args, Debug)]
+pub struct CompareArgs {
+    /// The reference orthophoto (GeoTIFF); shifts are given on its pixel grid.
+    pub a: PathBuf,
+    /// The other orthophoto of the same area, same CRS (any pixel size and grid).
+    pub b: PathBuf,
+    /// Side of the windows over which the shift is averaged (a camera footprint), metres.
+    #[arg(long, default_value_t = 1500.0)]
+    pub window_m: f64,
+    /// Minimum peak normalised cross-correlation for a patch to count.
+    #[arg(long, default_value_t = 0.85)]
+    pub min_ncc: f64,
+    /// Largest shift searched, pixels of A.
+    #[arg(long, default_value_t = 4)]
+    pub search_px: usize,
+    /// Write every matched patch (x_m, y_m, dx_m, dy_m, ncc) to this CSV file.
+    #[arg(long)]
+    pub patches_csv: Option<PathBuf>,
+    /// Print the report as JSON (without the per-patch list; see --patches-csv).
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -72,7 +98,85 @@ pub fn run(args: MapArgs) -> anyhow::Result<ExitCode> {
     match args.command {
         MapCommand::Build(a) => build(a),
         MapCommand::Info(a) => info(a),
+        MapCommand::Compare(a) => compare(a),
     }
+}
+
+fn compare(a: CompareArgs) -> anyhow::Result<ExitCode> {
+    use visnav::geo::geotiff::load_geotiff;
+    use visnav::map::coreg::{CoregParams, coregister};
+    let t0 = Instant::now();
+    let ra = load_geotiff(&a.a, None).with_context(|| format!("reading {}", a.a.display()))?;
+    let rb = load_geotiff(&a.b, None).with_context(|| format!("reading {}", a.b.display()))?;
+    let params = CoregParams {
+        window_m: a.window_m,
+        min_ncc: a.min_ncc,
+        search_px: a.search_px,
+        ..CoregParams::default()
+    };
+    let mut r = coregister(&ra, &rb, &params)
+        .with_context(|| format!("comparing {} with {}", a.a.display(), a.b.display()))?;
+    if let Some(path) = &a.patches_csv {
+        let mut f = std::io::BufWriter::new(
+            std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?,
+        );
+        writeln!(f, "x_m,y_m,dx_m,dy_m,ncc")?;
+        for p in &r.patches {
+            writeln!(
+                f,
+                "{:.2},{:.2},{:.3},{:.3},{:.4}",
+                p.x_m, p.y_m, p.dx_m, p.dy_m, p.ncc
+            )?;
+        }
+        f.flush()
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
+    if a.json {
+        r.patches.clear();
+        println!("{}", serde_json::to_string_pretty(&r)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    println!(
+        "{} -> {} ({:.1} s)",
+        a.a.display(),
+        a.b.display(),
+        t0.elapsed().as_secs_f64()
+    );
+    println!(
+        "  patches: {} matched of {} textured ({:.1} m pixels of A)",
+        r.patches_matched, r.patches_tried, r.pixel_m
+    );
+    if r.patches_matched == 0 {
+        println!("  no patch shows the same structure in both images: nothing measured");
+        return Ok(ExitCode::SUCCESS);
+    }
+    println!(
+        "  shift per patch: median {:.2} m ({:.2} px), p90 {:.2} m ({:.2} px), max {:.2} m",
+        r.shift_m.median, r.shift_px.median, r.shift_m.p90, r.shift_px.p90, r.shift_m.max
+    );
+    println!(
+        "  median shift: {:+.2} m along x, {:+.2} m along y (the ground of A lies there in B)",
+        r.median_dx_m, r.median_dy_m
+    );
+    if r.windows.is_empty() {
+        println!(
+            "  no {:.0} m window holds enough matched patches for a window mean",
+            r.window_m
+        );
+    } else {
+        println!(
+            "  mean shift over {} windows of {:.0} m: median {:.2} m ({:.2} px), p90 {:.2} m ({:.2} px), max {:.2} m ({:.2} px)",
+            r.windows.len(),
+            r.window_m,
+            r.window_shift_m.median,
+            r.window_shift_px.median,
+            r.window_shift_m.p90,
+            r.window_shift_px.p90,
+            r.window_shift_m.max,
+            r.window_shift_px.max
+        );
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 fn epsg_crs(code: u32) -> anyhow::Result<Crs> {

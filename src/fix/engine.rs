@@ -97,16 +97,21 @@ impl Default for FixParams {
 
 /// Resection settings of the fix pipeline: the autopilot's attitude is fused (it bounds the
 /// position-tilt ambiguity of a narrow field of view over flat ground), and the covariance is
-/// inflated by 4 (calibrated on 200 NAIP cross-date frames, see docs/fix.md: cross-date keypoints
-/// are displaced by a few pixels in a spatially correlated way that sigma0 alone does not
-/// capture). Fixes up to 80 m / 3 deg (1 sigma) are accepted: the navigation filter weighs them.
+/// `max(0.25^2, sigma0^2) 4.5^2` times the a-priori one: the inflation covers keypoint errors
+/// shared across the footprint (cross-date keypoints are displaced by a few pixels in a spatially
+/// correlated way that sigma0 alone does not capture), and scales with the observed scatter
+/// `sigma0` down to a floor, so that same-source imagery (sigma0 about 0.3 against 0.86
+/// cross-date) is not weighed like changed ground (calibrated on 200 NAIP frames each, cross-date
+/// and a same-year control; docs/fix.md, "The covariance factor"). Fixes up to 80 m / 3 deg
+/// (1 sigma) are accepted: the navigation filter weighs them.
 pub fn default_pose_config() -> ResectionConfig {
     let mut c = ResectionConfig::default();
     // Cross-date keypoints scatter by 2-3 px; a 3 px consensus admits near-miss wrong matches
     // that bias the pose (NAIP cross-date: 2 px halves the fixes beyond 3 sigma).
     c.ransac.threshold_px = 2.0;
     c.refine.use_attitude_prior = true;
-    c.refine.sigma_inflation = 4.0;
+    c.refine.sigma_inflation = 4.5;
+    c.refine.sigma0_floor = 0.25;
     // Per-fix evidence of shared errors (a displaced or changed map area) on top of the floor.
     c.refine.split_variance = true;
     c.integrity.max_horizontal_sigma_m = 80.0;
@@ -793,6 +798,8 @@ impl FixEngine {
             inliers: fix.quality.inliers,
             matches: 0,
             reproj_rms_px: fix.quality.reprojection_rms_px,
+            sigma0: fix.quality.sigma0,
+            cov_factor: fix.covariance.factor(),
             vision_only: self.vision_only_pose(local, fix, &r_ned_enu),
             // Position world = ENU, attitude errors as world rotation vectors: D_ned =
             // R_ned_enu G R_enu_ned (R_world_cam = R_enu_ned R_ned_body R_body_cam, so a body

@@ -99,6 +99,12 @@ pub struct FixReport {
     pub inliers: usize,
     pub matches: usize,
     pub reproj_rms_px: f64,
+    /// A-posteriori standard deviation of unit weight of the image-only adjustment (the RMS of
+    /// the whitened residuals: 1 when the keypoint sigmas the engine assumes are right).
+    pub sigma0: f64,
+    /// The factor on the a-priori covariance behind the reported one (see
+    /// `pose::PoseCovariance::factor`).
+    pub cov_factor: f64,
     /// The image-only pose and its full covariance (no attitude prior in it); `None` when no
     /// pose was computed. The pose above fuses the attitude prior when `[fix.pose.refine]
     /// use_attitude_prior` is on; a filter that supplied that prior fuses this one instead.
@@ -211,6 +217,8 @@ impl FixReport {
             inliers: 0,
             matches: 0,
             reproj_rms_px: f64::NAN,
+            sigma0: f64::NAN,
+            cov_factor: f64::NAN,
             vision_only: None,
             prior_dependence: None,
             prior_attitude_from_filter: false,

@@ -29,6 +29,7 @@
 //!   `-127..=127`, `scale = max|d| / 127`), then re-normalised to unit length when read.
 
 pub mod build;
+pub mod coreg;
 pub mod format;
 
 use std::path::PathBuf;

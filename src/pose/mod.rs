@@ -187,6 +187,8 @@ pub struct PoseCovariance {
     pub inflation: f64,
     /// Split-sample variance factor (1 when not estimated; see [`split_variance_factor`]).
     pub split_factor: f64,
+    /// Lower bound on `sigma0` where it scales the covariance (`refine.sigma0_floor`).
+    pub sigma0_floor: f64,
 }
 
 impl PoseCovariance {
@@ -195,12 +197,15 @@ impl PoseCovariance {
         self.apriori * self.sigma0_sq
     }
     /// The factor of [`Self::conservative`]:
-    /// `max(1, sigma0^2) max(1, split_factor) inflation^2`.
+    /// `max(sigma0_floor^2, sigma0^2) max(1, split_factor) inflation^2`.
     pub fn factor(&self) -> f64 {
-        self.sigma0_sq.max(1.0) * self.split_factor.max(1.0) * self.inflation * self.inflation
+        self.sigma0_sq.max(self.sigma0_floor * self.sigma0_floor)
+            * self.split_factor.max(1.0)
+            * self.inflation
+            * self.inflation
     }
-    /// `max(1, sigma0^2) max(1, split_factor) inflation^2 (J^T W J)^-1`: never smaller than the
-    /// a-priori covariance. This is the one used for the integrity checks and the one to hand to a
+    /// `max(sigma0_floor^2, sigma0^2) max(1, split_factor) inflation^2 (J^T W J)^-1`: never
+    /// smaller than the a-priori covariance when `sigma0_floor * inflation >= 1`. This is the one used for the integrity checks and the one to hand to a
     /// filter.
     pub fn conservative(&self) -> Matrix6<f64> {
         self.apriori * self.factor()
@@ -465,6 +470,7 @@ pub fn resect(
         dof: vision.dof,
         inflation: cfg.refine.sigma_inflation,
         split_factor,
+        sigma0_floor: cfg.refine.sigma0_floor,
     };
 
     // 5a. Prior consistency on the vision-only solution (in the centred frame).
@@ -531,6 +537,7 @@ pub fn resect(
         dof: final_r.dof,
         inflation: cfg.refine.sigma_inflation,
         split_factor,
+        sigma0_floor: cfg.refine.sigma0_floor,
     };
 
     // 5b. Quality figures.
@@ -613,7 +620,7 @@ pub fn resect(
 /// (LM from the full solution, no prior), and each quadrant's pose difference `d_g` to the full
 /// solution is compared with its covariance. For disjoint subsets of equally informative data the
 /// full solution is the information-weighted mean, so `Cov(d_g) = Cov_g - Cov_full ~ (1 - n_g/n)
-/// Cov_g` with `Cov_g = max(1, sigma0_g^2) Q_g`. The factor is the mean of
+/// Cov_g` with `Cov_g = max(f^2, sigma0_g^2) Q_g` (`f` = `refine.sigma0_floor`). The factor is the mean of
 /// `d_g^T Cov_g^-1 d_g / (1 - n_g/n)` over the quadrants, divided by 6: about 1 when the pixel
 /// errors are independent, larger when neighbouring observations share an error (a displaced map
 /// area, changed ground), which the residual scatter `sigma0` cannot see because a shared error is
@@ -652,7 +659,7 @@ pub fn split_variance_factor(
         let Ok(r) = refine_pose(corrs, g, &full.pose, image.fx_px, image.fy_px, None, cfg) else {
             continue;
         };
-        let cov_g = r.cov_apriori * r.sigma0_sq.max(1.0);
+        let cov_g = r.cov_apriori * r.sigma0_sq.max(cfg.sigma0_floor * cfg.sigma0_floor);
         let Some(inv) = cov_g.try_inverse() else {
             continue;
         };

@@ -213,6 +213,7 @@ pub fn ransac_p3p(
         loss: RobustLoss::Huber { k_sigma: 2.0 },
         use_attitude_prior: false,
         sigma_inflation: 1.0,
+        sigma0_floor: 1.0,
         split_variance: false,
         prior_against_conservative: true,
     };

@@ -77,9 +77,15 @@ pub struct RefineConfig {
     /// prior is made on the vision-only solution either way.
     pub use_attitude_prior: bool,
     /// Factor (>= 1) on every reported standard deviation: the conservative covariance is
-    /// `max(1, sigma0^2) * inflation^2 * Q`. 1 = the statistically honest covariance; a larger value
+    /// `max(sigma0_floor^2, sigma0^2) * inflation^2 * Q`. 1 = the statistically honest covariance; a larger value
     /// buys margin against unmodelled errors (DEM, map registration, lens model).
     pub sigma_inflation: f64,
+    /// Lower bound on the a-posteriori standard deviation of unit weight `sigma0` where it scales
+    /// the covariance (`max(sigma0_floor^2, sigma0^2)`). 1 never lets the data claim better
+    /// keypoints than the assumed sigmas; below 1 a fix whose residuals are smaller than assumed
+    /// (same-source imagery) gets the smaller covariance they show, and the shared-error
+    /// inflation then scales with the observed scatter rather than with the assumption.
+    pub sigma0_floor: f64,
     /// Estimate a per-fix variance factor for errors shared by neighbouring observations (map
     /// registration, changed ground) from the disagreement of the poses solved from the four image
     /// quadrants' inliers alone (see [`super::split_variance_factor`]); the covariance is scaled by
@@ -101,6 +107,7 @@ impl Default for RefineConfig {
             loss: RobustLoss::Huber { k_sigma: 3.0 },
             use_attitude_prior: false,
             sigma_inflation: 1.0,
+            sigma0_floor: 1.0,
             split_variance: false,
             prior_against_conservative: true,
         }
@@ -116,6 +123,7 @@ impl Validate for RefineConfig {
             );
         }
         p.range("sigma_inflation", self.sigma_inflation, 1.0, 10.0);
+        p.range("sigma0_floor", self.sigma0_floor, 0.05, 1.0);
         match self.loss {
             RobustLoss::None => {}
             RobustLoss::Huber { k_sigma } => p.range("loss.k_sigma", k_sigma, 0.5, 100.0),

@@ -4,7 +4,8 @@
 //! from the renderer's truth. Used by `tests/fix_naip.rs` and `visnav bench fix`.
 //!
 //! Priors (what a navigation filter in GPS-denied cruise would give): position 100 m off (1 sigma,
-//! stated 150 m), altitude 20 m off (stated 30 m), attitude 0.3 deg off per axis (stated 0.5 deg).
+//! stated 150 m), altitude 20 m off (stated 30 m), attitude 0.3 deg off per axis (stated 0.5 deg;
+//! `NaipEval::attitude_prior_error_rad` changes the error, not the stated sigma).
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -38,6 +39,10 @@ pub struct NaipEval {
     pub scene: Scene,
     pub renderer: Renderer,
     pub crs: Crs,
+    /// Standard deviation of the prior attitude's error per axis, radians (default 0.3 deg; the
+    /// prior states 0.5 deg whatever this is). The random draws do not depend on it, so runs
+    /// with different values see the same frames.
+    pub attitude_prior_error_rad: f64,
 }
 
 /// One random frame of the acceptance envelope.
@@ -190,6 +195,7 @@ impl NaipEval {
             scene,
             renderer,
             crs,
+            attitude_prior_error_rad: 0.3f64.to_radians(),
         })
     }
 
@@ -236,7 +242,7 @@ impl NaipEval {
         let c = case.pose.centre_map_m;
         let (px, py) = (c.x + 100.0 * rng.normal(), c.y + 100.0 * rng.normal());
         let (lat, lon) = self.crs.to_geodetic(px, py).map_err(|e| e.to_string())?;
-        let n = 0.3f64.to_radians();
+        let n = self.attitude_prior_error_rad;
         let a = &case.attitude;
         Ok(FixPrior {
             t_capture_us: index,
@@ -383,7 +389,7 @@ impl NaipEval {
                     .as_ref()
                     .map_or(f64::NAN, |p| p.alt_amsl_m - case.pose.centre_map_m.z);
                 log(format!(
-                    "frame {i:3}: accepted, {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:+.1} m = {:.2} sigma (sigma h {:.1} v {:.1} m; {:.0} m above ground, prior altitude {:+.1} m), ground {:.1} m tilt {:.2} deg, image-only pose NEES {:.1}, {:.1} ms",
+                    "frame {i:3}: accepted, {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:+.1} m = {:.2} sigma (sigma h {:.1} v {:.1} m; {:.0} m above ground, prior altitude {:+.1} m), ground {:.1} m tilt {:.2} deg, image-only pose NEES {:.1}, reprojection RMS {:.2} px, sigma0 {:.2}, covariance factor {:.1}, {:.1} ms",
                     r.inliers,
                     r.matches,
                     a.null_matches,
@@ -397,6 +403,9 @@ impl NaipEval {
                     s.ground_err_m,
                     s.tilt_err_deg,
                     s.nees6.unwrap_or(f64::NAN),
+                    r.reproj_rms_px,
+                    r.sigma0,
+                    r.cov_factor,
                     r.ms
                 ));
             } else {

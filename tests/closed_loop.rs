@@ -169,30 +169,61 @@ fn refuses_camera_from_the_map_image_and_bad_scenarios() {
         );
     let dir = std::env::temp_dir().join(format!("visnav-sim-bad-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let f = dir.join("same_year.toml");
-    std::fs::write(&f, same).unwrap();
-    let res = Command::new(env!("CARGO_BIN_EXE_visnav"))
-        .args(["sim", "--scenario"])
-        .arg(&f)
-        .arg("--out")
-        .arg(dir.join("out"))
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&res.stderr);
-    assert!(!res.status.success());
+    // `visnav sim --scenario F --out DIR` on a scenario text: (success, stderr).
+    let sim = |name: &str, text: &str| {
+        let f = dir.join(name);
+        std::fs::write(&f, text).unwrap();
+        let res = Command::new(env!("CARGO_BIN_EXE_visnav"))
+            .args(["sim", "--scenario"])
+            .arg(&f)
+            .arg("--out")
+            .arg(dir.join("out"))
+            .output()
+            .unwrap();
+        (
+            res.status.success(),
+            String::from_utf8_lossy(&res.stderr).into_owned(),
+        )
+    };
+    let (ok, err) = sim("same_year.toml", &same);
+    assert!(!ok);
     assert!(
         err.contains("camera_ortho") && err.contains("also a map orthophoto"),
         "{err}"
     );
-    let broken = dir.join("broken.toml");
-    std::fs::write(&broken, text.replace("workers = 1", "workers = 0")).unwrap();
-    let res = Command::new(env!("CARGO_BIN_EXE_visnav"))
-        .args(["sim", "--scenario"])
-        .arg(&broken)
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&res.stderr);
-    assert!(!res.status.success());
+    // The scenario's own map year: a map_ortho override that is the camera image is refused
+    // the same way, and a missing one is named.
+    let fixed_paths = text.replace(
+        "\"../../config/demo.toml\"",
+        &format!("{:?}", abs("config/demo.toml")),
+    );
+    for (map, want) in [
+        (abs("sitl/maps/naip_nd_2014.tif"), "also a map orthophoto"),
+        (abs("sitl/maps/no_such_year.tif"), "no such file"),
+    ] {
+        let t = fixed_paths
+            .replace(
+                "\"../maps/naip_nd_2014.tif\"",
+                &format!("{:?}", abs("sitl/maps/naip_nd_2014.tif")),
+            )
+            .replace(
+                "[closed_loop]\n",
+                &format!("[closed_loop]\nmap_ortho = [{map:?}]\n"),
+            );
+        assert!(
+            t.contains("map_ortho"),
+            "the demo scenario has no [closed_loop] line"
+        );
+        let (ok, err) = sim("map_override.toml", &t);
+        assert!(!ok);
+        assert!(
+            err.contains("map_ortho") || err.contains("camera_ortho"),
+            "{err}"
+        );
+        assert!(err.contains(want), "{err}");
+    }
+    let (ok, err) = sim("broken.toml", &text.replace("workers = 1", "workers = 0"));
+    assert!(!ok);
     assert!(
         err.contains("broken.toml") && err.contains("closed_loop.workers"),
         "{err}"

@@ -193,3 +193,58 @@ fn naip_position_prior_without_attitude_stays_honest() {
     // sigma limit; what must hold is integrity (checked above) and a reason for each rejection.
     eprintln!("position prior without attitude: {accepted} of {n} accepted");
 }
+
+/// `[fix] map_registration_sigma_px`: the map's registration shift is added to the horizontal
+/// position covariance of the fix and of its image-only pose, whole (in metres of the map's
+/// finest pixel), and nothing else changes.
+#[test]
+fn map_registration_sigma_widens_only_the_horizontal_position_covariance() {
+    let maps = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("sitl/maps");
+    let plain = eval();
+    let with_reg = NaipEval::new(
+        &maps,
+        FixParams {
+            map_registration_sigma_px: 0.8,
+            ..FixParams::default()
+        },
+    )
+    .expect("NAIP evaluation set-up");
+    let reg_var = (0.8 * plain.map_gsd_m()).powi(2);
+    let b = plain.map_raster.bounds();
+    let mut rng = Rng::new(5);
+    let mut compared = 0;
+    for i in 0..12u64 {
+        let x = b.min_x_m + 600.0 + (b.max_x_m - b.min_x_m - 1200.0) * rng.uniform();
+        let y = b.min_y_m + 600.0 + (b.max_y_m - b.min_y_m - 1200.0) * rng.uniform();
+        let case = plain.random_case(&mut rng, x, y);
+        let img = plain.frame(&case, i, None).expect("render");
+        let prior = plain.prior(&mut rng, &case, i).expect("prior");
+        let a = plain.engine.fix(&img, &prior);
+        let r = with_reg.engine.fix(&img, &prior);
+        assert_eq!(
+            a.accepted, r.accepted,
+            "frame {i}: {} / {}",
+            a.reason, r.reason
+        );
+        if !a.accepted {
+            continue;
+        }
+        compared += 1;
+        assert_eq!((a.x_m, a.y_m, a.z_m), (r.x_m, r.y_m, r.z_m), "frame {i}");
+        for (k, l) in [(0, 0), (1, 1)] {
+            let d = r.cov_ned_m2[k][l] - a.cov_ned_m2[k][l];
+            assert!(
+                (d - reg_var).abs() < 1e-6 * reg_var.max(1.0),
+                "frame {i}: {d}"
+            );
+        }
+        assert_eq!(r.cov_ned_m2[2][2], a.cov_ned_m2[2][2]);
+        assert_eq!(r.cov_ned_m2[0][1], a.cov_ned_m2[0][1]);
+        let (va, vr) = (a.vision_only.expect("pose"), r.vision_only.expect("pose"));
+        assert!((vr.cov6_ned[0][0] - va.cov6_ned[0][0] - reg_var).abs() < 1e-6 * reg_var);
+        assert!((vr.cov6_ned[1][1] - va.cov6_ned[1][1] - reg_var).abs() < 1e-6 * reg_var);
+        assert_eq!(vr.cov6_ned[2][2], va.cov6_ned[2][2]);
+        assert_eq!(vr.cov6_ned[3][3], va.cov6_ned[3][3]);
+    }
+    assert!(compared >= 4, "only {compared} accepted fixes compared");
+}

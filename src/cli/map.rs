@@ -146,35 +146,35 @@ fn compare(a: CompareArgs) -> anyhow::Result<ExitCode> {
         "  patches: {} matched of {} textured ({:.1} m pixels of A)",
         r.patches_matched, r.patches_tried, r.pixel_m
     );
-    if r.patches_matched == 0 {
+    let (Some(sm), Some(sp), Some(dx), Some(dy)) =
+        (r.shift_m, r.shift_px, r.median_dx_m, r.median_dy_m)
+    else {
         println!("  no patch shows the same structure in both images: nothing measured");
         return Ok(ExitCode::SUCCESS);
-    }
+    };
     println!(
         "  shift per patch: median {:.2} m ({:.2} px), p90 {:.2} m ({:.2} px), max {:.2} m",
-        r.shift_m.median, r.shift_px.median, r.shift_m.p90, r.shift_px.p90, r.shift_m.max
+        sm.median, sp.median, sm.p90, sp.p90, sm.max
     );
     println!(
-        "  median shift: {:+.2} m along x, {:+.2} m along y (the ground of A lies there in B)",
-        r.median_dx_m, r.median_dy_m
+        "  median shift: {dx:+.2} m along x, {dy:+.2} m along y (the ground of A lies there in B)"
     );
-    if r.windows.is_empty() {
-        println!(
-            "  no {:.0} m window holds enough matched patches for a window mean",
-            r.window_m
-        );
-    } else {
-        println!(
+    match (r.window_shift_m, r.window_shift_px) {
+        (Some(wm), Some(wp)) => println!(
             "  mean shift over {} windows of {:.0} m: median {:.2} m ({:.2} px), p90 {:.2} m ({:.2} px), max {:.2} m ({:.2} px)",
             r.windows.len(),
             r.window_m,
-            r.window_shift_m.median,
-            r.window_shift_px.median,
-            r.window_shift_m.p90,
-            r.window_shift_px.p90,
-            r.window_shift_m.max,
-            r.window_shift_px.max
-        );
+            wm.median,
+            wp.median,
+            wm.p90,
+            wp.p90,
+            wm.max,
+            wp.max
+        ),
+        _ => println!(
+            "  no {:.0} m window holds enough matched patches for a window mean",
+            r.window_m
+        ),
     }
     Ok(ExitCode::SUCCESS)
 }

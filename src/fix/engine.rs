@@ -61,6 +61,12 @@ pub struct FixParams {
     pub fine_wide_factor: f64,
     /// Keypoint localisation 1-sigma in rectified pixels (converted to frame pixels for the solve).
     pub sigma_rect_px: f64,
+    /// 1-sigma per horizontal axis of the map's registration against the world the camera sees,
+    /// in pixels of the map's finest level (0 = none): a shift every fix over that map inherits
+    /// whole, however well its keypoints fit, so it is added to the fix's horizontal position
+    /// covariance (and the image-only pose's) rather than scaled by sigma0. `visnav map compare`
+    /// measures it against another image of the area (docs/map-format.md).
+    pub map_registration_sigma_px: f64,
     /// Below this many fine matches the fix is rejected before the solve.
     pub min_matches: usize,
     /// The fine matches must number at least `min_matches + null_factor * chance`, where chance is
@@ -86,6 +92,7 @@ impl Default for FixParams {
             fine_radius_px: 4.0,
             fine_wide_factor: 3.0,
             sigma_rect_px: 0.7,
+            map_registration_sigma_px: 0.0,
             min_matches: 12,
             null_factor: 1.5,
             reloc_budget_ms: 5000.0,
@@ -97,21 +104,21 @@ impl Default for FixParams {
 
 /// Resection settings of the fix pipeline: the autopilot's attitude is fused (it bounds the
 /// position-tilt ambiguity of a narrow field of view over flat ground), and the covariance is
-/// `max(0.25^2, sigma0^2) 4.5^2` times the a-priori one: the inflation covers keypoint errors
-/// shared across the footprint (cross-date keypoints are displaced by a few pixels in a spatially
-/// correlated way that sigma0 alone does not capture), and scales with the observed scatter
-/// `sigma0` down to a floor, so that same-source imagery (sigma0 about 0.3 against 0.86
-/// cross-date) is not weighed like changed ground (calibrated on 200 NAIP frames each, cross-date
-/// and a same-year control; docs/fix.md, "The covariance factor"). Fixes up to 80 m / 3 deg
-/// (1 sigma) are accepted: the navigation filter weighs them.
+/// inflated by 4 on `max(1, sigma0)` (calibrated on 200 NAIP cross-date frames, see docs/fix.md:
+/// cross-date keypoints are displaced by a few pixels in a spatially correlated way that sigma0
+/// alone does not capture, and the map itself can be shifted against the world the camera sees).
+/// `[fix.pose.refine] sigma0_floor` below 1 lets the covariance follow keypoints better than
+/// assumed (same-source imagery: 0.69 -> 0.27 map px on a same-year control with 0.25), but it
+/// is not the default: a map's registration shift does not shrink with sigma0, and in the closed
+/// loop it made cross-date fixes over-confident (docs/fix.md, "The covariance factor").
+/// Fixes up to 80 m / 3 deg (1 sigma) are accepted: the navigation filter weighs them.
 pub fn default_pose_config() -> ResectionConfig {
     let mut c = ResectionConfig::default();
     // Cross-date keypoints scatter by 2-3 px; a 3 px consensus admits near-miss wrong matches
     // that bias the pose (NAIP cross-date: 2 px halves the fixes beyond 3 sigma).
     c.ransac.threshold_px = 2.0;
     c.refine.use_attitude_prior = true;
-    c.refine.sigma_inflation = 4.5;
-    c.refine.sigma0_floor = 0.25;
+    c.refine.sigma_inflation = 4.0;
     // Per-fix evidence of shared errors (a displaced or changed map area) on top of the floor.
     c.refine.split_variance = true;
     c.integrity.max_horizontal_sigma_m = 80.0;
@@ -171,6 +178,12 @@ impl Validate for FixParams {
         p.positive("fine_radius_px", self.fine_radius_px);
         p.range("fine_wide_factor", self.fine_wide_factor, 1.0, 20.0);
         p.positive("sigma_rect_px", self.sigma_rect_px);
+        p.range(
+            "map_registration_sigma_px",
+            self.map_registration_sigma_px,
+            0.0,
+            20.0,
+        );
         if self.min_matches < 4 {
             p.push("min_matches", "must be at least 4");
         }
@@ -770,7 +783,10 @@ impl FixEngine {
         let r_ned_enu = r_enu_ned().inverse();
         let r_ned_cam = r_ned_enu * fix.pose.r_world_cam;
         let att = self.camera.mount.attitude_from_r_ned_cam(&r_ned_cam);
-        let cov = fix.covariance.position_ned_m2(&r_ned_enu);
+        let mut cov = fix.covariance.position_ned_m2(&r_ned_enu);
+        let reg_var = self.map_registration_var_m2();
+        cov[(0, 0)] += reg_var;
+        cov[(1, 1)] += reg_var;
         let cov_att = fix.covariance.attitude_ned_rad2(&r_ned_enu);
         let to_arr = |m: &nalgebra::Matrix3<f64>| {
             [
@@ -808,9 +824,14 @@ impl FixEngine {
                 .prior_dependence
                 .map(|d| {
                     let r = r_ned_enu.matrix();
+                    // The registration shift is part of the image's share (cov = image_cov +
+                    // D P D^T holds with it).
+                    let mut image_cov = r * d.image_position_cov_m2 * r.transpose();
+                    image_cov[(0, 0)] += reg_var;
+                    image_cov[(1, 1)] += reg_var;
                     crate::fix::PriorDependenceNed {
                         d_pos_d_att: to_arr(&(r * d.d_position_d_prior_att * r.transpose())),
-                        image_cov_ned_m2: to_arr(&(r * d.image_position_cov_m2 * r.transpose())),
+                        image_cov_ned_m2: to_arr(&image_cov),
                     }
                 })
                 .filter(crate::fix::PriorDependenceNed::is_finite),
@@ -837,6 +858,13 @@ impl FixEngine {
         Ok(r)
     }
 
+    /// Variance of the map's horizontal registration per axis, m^2
+    /// (`FixParams::map_registration_sigma_px` in finest-level pixels).
+    fn map_registration_var_m2(&self) -> f64 {
+        let gsd = self.levels_gsd_m.first().copied().unwrap_or(0.0);
+        (self.params.map_registration_sigma_px * gsd).powi(2)
+    }
+
     /// The image-only pose of `fix` in geodetic / NED terms, its 6x6 covariance reordered to
     /// `[position NED, attitude NED]` (the pose module orders `[phi, C]` in the local ENU frame
     /// and uses the same error signs as the filter: `tests/pose_resection.rs` checks them). None
@@ -859,7 +887,10 @@ impl FixEngine {
         t.fixed_view_mut::<3, 3>(0, 3).copy_from(r);
         t.fixed_view_mut::<3, 3>(3, 0).copy_from(r);
         let cov = t * c * t.transpose();
-        let cov = (cov + cov.transpose()) * 0.5;
+        let mut cov = (cov + cov.transpose()) * 0.5;
+        let reg_var = self.map_registration_var_m2();
+        cov[(0, 0)] += reg_var;
+        cov[(1, 1)] += reg_var;
         let v = super::VisionOnlyPose {
             lat_deg: geo.lat_deg,
             lon_deg: geo.lon_deg,

@@ -87,6 +87,15 @@ pub enum CoregError {
     },
     #[error("image a has no grey variation to correlate (standard deviation {std})")]
     Flat { std: f64 },
+    #[error(
+        "image a ({width} x {height} px) is too small for {side} px patches searched +-{search} px"
+    )]
+    TooSmall {
+        width: usize,
+        height: usize,
+        side: usize,
+        search: usize,
+    },
 }
 
 /// The shift measured at one patch.
@@ -103,7 +112,7 @@ pub struct PatchShift {
 }
 
 /// Median / 90th percentile / maximum of a set of values.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Spread {
     pub median: f64,
     pub p90: f64,
@@ -111,18 +120,18 @@ pub struct Spread {
 }
 
 impl Spread {
-    fn of(values: &[f64]) -> Self {
+    fn of(values: &[f64]) -> Option<Self> {
         if values.is_empty() {
-            return Self::default();
+            return None;
         }
         let mut v = values.to_vec();
         v.sort_by(f64::total_cmp);
         let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
-        Self {
+        Some(Self {
             median: q(0.5),
             p90: q(0.9),
             max: v[v.len() - 1],
-        }
+        })
     }
 }
 
@@ -146,19 +155,20 @@ pub struct CoregReport {
     pub patches_tried: usize,
     /// Patches whose correlation passed every test (same structure in both images).
     pub patches_matched: usize,
-    /// Length of each matched patch's shift, metres.
-    pub shift_m: Spread,
+    /// Length of each matched patch's shift, metres (`None` when no patch matched).
+    pub shift_m: Option<Spread>,
     /// The same in pixels of image `a`.
-    pub shift_px: Spread,
+    pub shift_px: Option<Spread>,
     /// Median shift per axis over all matched patches, metres (a robust global offset).
-    pub median_dx_m: f64,
-    pub median_dy_m: f64,
+    pub median_dx_m: Option<f64>,
+    pub median_dy_m: Option<f64>,
     /// Window side used for `window_shift_m`, metres.
     pub window_m: f64,
-    /// Length of the mean shift over each window with enough patches, metres.
-    pub window_shift_m: Spread,
+    /// Length of the mean shift over each window with enough patches, metres (`None` when no
+    /// window has enough).
+    pub window_shift_m: Option<Spread>,
     /// The same in pixels of image `a`.
-    pub window_shift_px: Spread,
+    pub window_shift_px: Option<Spread>,
     pub windows: Vec<WindowShift>,
     pub patches: Vec<PatchShift>,
 }
@@ -210,8 +220,15 @@ fn check(params: &CoregParams) -> Result<(), CoregError> {
     if params.step_px == 0 {
         return bad("step_px", 0.0, "at least 1");
     }
-    if params.search_px < 2 {
-        return bad("search_px", params.search_px as f64, "at least 2");
+    if params.search_px < 2 || params.search_px > params.patch_half_px {
+        return bad(
+            "search_px",
+            params.search_px as f64,
+            "at least 2 and at most patch_half_px",
+        );
+    }
+    if params.patch_half_px > 1024 {
+        return bad("patch_half_px", params.patch_half_px as f64, "at most 1024");
     }
     if !(params.min_ncc > -1.0 && params.min_ncc < 1.0) {
         return bad("min_ncc", params.min_ncc, "between -1 and 1");
@@ -286,6 +303,14 @@ fn match_patch(
             ncc[(dy + r) as usize * dim + (dx + r) as usize] = c / (n * ts * bs);
         }
     }
+    peak(&ncc, dim, p.min_ncc, p.min_curvature)
+        .map(|(ox, oy, best)| (ox - r as f64, oy - r as f64, best))
+}
+
+/// The sub-pixel peak of a `dim x dim` correlation surface (row-major, `ncc[y * dim + x]`):
+/// `(x, y, value)` in surface cells, or `None` when the maximum is below `min_ncc`, on the
+/// border, or not curved down by at least `min_curvature` in every direction (module doc, 3).
+fn peak(ncc: &[f64], dim: usize, min_ncc: f64, min_curvature: f64) -> Option<(f64, f64, f64)> {
     let (mut best, mut bi) = (f64::NEG_INFINITY, 0usize);
     for (i, &v) in ncc.iter().enumerate() {
         if v > best {
@@ -293,11 +318,11 @@ fn match_patch(
             bi = i;
         }
     }
-    if best.is_nan() || best < p.min_ncc {
+    if best.is_nan() || best < min_ncc {
         return None;
     }
     let (iy, ix) = (bi / dim, bi % dim);
-    if ix == 0 || iy == 0 || ix == dim - 1 || iy == dim - 1 {
+    if ix == 0 || iy == 0 || ix + 1 >= dim || iy + 1 >= dim {
         return None;
     }
     let at = |x: usize, y: usize| ncc[y * dim + x];
@@ -319,7 +344,7 @@ fn match_patch(
     let det = hxx * hyy - hxy * hxy;
     let disc = (0.25 * tr * tr - det).max(0.0).sqrt();
     let lmax = 0.5 * tr + disc;
-    if lmax.is_nan() || lmax > -p.min_curvature || !det.is_finite() || det <= 0.0 {
+    if lmax.is_nan() || lmax > -min_curvature || !det.is_finite() || det <= 0.0 {
         return None;
     }
     // Peak of the quadratic: -H^-1 g.
@@ -328,7 +353,7 @@ fn match_patch(
     if !(sx.abs() <= 1.0 && sy.abs() <= 1.0) {
         return None;
     }
-    Some((ix as f64 - r as f64 + sx, iy as f64 - r as f64 + sy, best))
+    Some((ix as f64 + sx, iy as f64 + sy, best))
 }
 
 /// Measures how the ground of image `a` is displaced in image `b` (module doc). Both images
@@ -372,7 +397,12 @@ pub fn coregister(a: &Raster, b: &Raster, params: &CoregParams) -> Result<CoregR
     let min_std = (params.min_rel_std * global_std).max(1e-9);
     let margin = params.patch_half_px + params.search_px + 1;
     if w <= 2 * margin || h <= 2 * margin {
-        return Err(CoregError::NoOverlap);
+        return Err(CoregError::TooSmall {
+            width: w,
+            height: h,
+            side: 2 * params.patch_half_px,
+            search: params.search_px,
+        });
     }
     let centres: Vec<(usize, usize)> = (margin..h - margin)
         .step_by(params.step_px)
@@ -416,42 +446,67 @@ pub fn coregister(a: &Raster, b: &Raster, params: &CoregParams) -> Result<CoregR
     let lens: Vec<f64> = patches.iter().map(|p| p.dx_m.hypot(p.dy_m)).collect();
     let med = |mut v: Vec<f64>| {
         if v.is_empty() {
-            return 0.0;
+            return None;
         }
         v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
+        Some(v[v.len() / 2])
     };
     let median_dx_m = med(patches.iter().map(|p| p.dx_m).collect());
     let median_dy_m = med(patches.iter().map(|p| p.dy_m).collect());
-    // Windows: a square grid of side window_m with half overlap, over a's bounds.
-    let mut windows = Vec::new();
+    // Windows: a square grid of side window_m with half overlap over a's bounds, plus a last
+    // window flush with the far edge; each patch is added to the windows that contain it.
     let step = 0.5 * params.window_m;
-    let mut y0 = ab.min_y_m;
-    while y0 + params.window_m <= ab.max_y_m + 1e-9 {
-        let mut x0 = ab.min_x_m;
-        while x0 + params.window_m <= ab.max_x_m + 1e-9 {
-            let inside: Vec<&PatchShift> = patches
-                .iter()
-                .filter(|p| {
-                    p.x_m >= x0
-                        && p.x_m < x0 + params.window_m
-                        && p.y_m >= y0
-                        && p.y_m < y0 + params.window_m
-                })
-                .collect();
-            if inside.len() >= params.min_patches_per_window.max(1) {
-                let k = inside.len() as f64;
+    let starts = |lo: f64, hi: f64| -> Result<Vec<f64>, CoregError> {
+        let extent = hi - lo;
+        if extent < params.window_m {
+            return Ok(Vec::new());
+        }
+        let n = ((extent - params.window_m) / step).floor() + 1.0;
+        if n.is_nan() || n > MAX_WINDOWS_PER_AXIS {
+            return Err(CoregError::BadParam {
+                key: "window_m",
+                value: params.window_m,
+                reason: "too small for the image (more than 1000 windows per axis)",
+            });
+        }
+        let mut v: Vec<f64> = (0..n as usize).map(|i| lo + i as f64 * step).collect();
+        let last = hi - params.window_m;
+        if v.last().is_some_and(|&x| last - x > 1e-6 * params.window_m) {
+            v.push(last);
+        }
+        Ok(v)
+    };
+    let xs = starts(ab.min_x_m, ab.max_x_m)?;
+    let ys = starts(ab.min_y_m, ab.max_y_m)?;
+    // Indices of the sorted window starts whose window [s, s + window_m) contains v.
+    let containing = |st: &[f64], v: f64| {
+        st.partition_point(|&s| s + params.window_m <= v)..st.partition_point(|&s| s <= v)
+    };
+    let mut acc = vec![(0usize, 0.0f64, 0.0f64); xs.len() * ys.len()];
+    for p in &patches {
+        for j in containing(&ys, p.y_m) {
+            for i in containing(&xs, p.x_m) {
+                let a = &mut acc[j * xs.len() + i];
+                a.0 += 1;
+                a.1 += p.dx_m;
+                a.2 += p.dy_m;
+            }
+        }
+    }
+    let mut windows = Vec::new();
+    for (j, &y0) in ys.iter().enumerate() {
+        for (i, &x0) in xs.iter().enumerate() {
+            let (n, sx, sy) = acc[j * xs.len() + i];
+            if n >= params.min_patches_per_window.max(1) {
                 windows.push(WindowShift {
                     x_m: x0 + 0.5 * params.window_m,
                     y_m: y0 + 0.5 * params.window_m,
-                    patches: inside.len(),
-                    dx_m: inside.iter().map(|p| p.dx_m).sum::<f64>() / k,
-                    dy_m: inside.iter().map(|p| p.dy_m).sum::<f64>() / k,
+                    patches: n,
+                    dx_m: sx / n as f64,
+                    dy_m: sy / n as f64,
                 });
             }
-            x0 += step;
         }
-        y0 += step;
     }
     let wl: Vec<f64> = windows.iter().map(|w| w.dx_m.hypot(w.dy_m)).collect();
     let px = |s: Spread| Spread {
@@ -466,16 +521,19 @@ pub fn coregister(a: &Raster, b: &Raster, params: &CoregParams) -> Result<CoregR
         patches_tried,
         patches_matched: patches.len(),
         shift_m,
-        shift_px: px(shift_m),
+        shift_px: shift_m.map(px),
         median_dx_m,
         median_dy_m,
         window_m: params.window_m,
         window_shift_m,
-        window_shift_px: px(window_shift_m),
+        window_shift_px: window_shift_m.map(px),
         windows,
         patches,
     })
 }
+
+/// Upper bound on the number of windows along one axis.
+const MAX_WINDOWS_PER_AXIS: f64 = 1000.0;
 
 #[cfg(test)]
 mod tests {
@@ -550,15 +608,25 @@ mod tests {
         let r = coregister(&a, &b, &p).unwrap();
         assert!(r.windows.len() >= 4, "{} windows", r.windows.len());
         assert!(r.patches_matched > 50, "{} patches", r.patches_matched);
-        assert!((r.median_dx_m - 6.5).abs() < 0.25, "dx {}", r.median_dx_m);
-        assert!((r.median_dy_m + 3.5).abs() < 0.25, "dy {}", r.median_dy_m);
+        let (dx, dy) = (r.median_dx_m.unwrap(), r.median_dy_m.unwrap());
+        assert!((dx - 6.5).abs() < 0.25, "dx {dx}");
+        assert!((dy + 3.5).abs() < 0.25, "dy {dy}");
         let want = 6.5f64.hypot(3.5);
+        let ws = r.window_shift_m.unwrap();
+        assert!((ws.median - want).abs() < 0.25, "{ws:?}");
+        assert!((r.window_shift_px.unwrap().median - want / 5.0).abs() < 0.05);
+        // Every patch lies in at least one window (the last one is flush with the far edges).
+        let b = a.bounds();
         assert!(
-            (r.window_shift_m.median - want).abs() < 0.25,
-            "{:?}",
-            r.window_shift_m
+            r.windows
+                .iter()
+                .any(|w| (w.x_m + 300.0 - b.max_x_m).abs() < 1e-6)
         );
-        assert!((r.window_shift_px.median - want / 5.0).abs() < 0.05);
+        assert!(
+            r.windows
+                .iter()
+                .any(|w| (w.y_m + 300.0 - b.max_y_m).abs() < 1e-6)
+        );
     }
 
     #[test]
@@ -568,15 +636,51 @@ mod tests {
         let a = raster(t.clone(), w, h, 0.0, 1000.0, 2.0);
         let same = coregister(&a, &a, &CoregParams::default()).unwrap();
         assert!(same.patches_matched > 30);
-        assert!(same.shift_m.max < 0.05, "{:?}", same.shift_m);
+        assert!(same.shift_m.unwrap().max < 0.05, "{:?}", same.shift_m);
         let other = raster(texture(w, h, 99), w, h, 0.0, 1000.0, 2.0);
         let r = coregister(&a, &other, &CoregParams::default()).unwrap();
         assert!(r.patches_tried > 30);
         assert_eq!(r.patches_matched, 0, "{:?}", r.shift_m);
+        assert!(r.shift_m.is_none() && r.median_dx_m.is_none() && r.window_shift_m.is_none());
+    }
+
+    /// The peak analysis on synthetic correlation surfaces: a quadratic peak is found exactly;
+    /// a ridge (a straight edge, located across itself only) is refused however high it is; a
+    /// maximum on the border or below the threshold is refused.
+    #[test]
+    fn peak_is_subpixel_and_refuses_ridges_and_borders() {
+        let dim = 9;
+        let surf = |f: &dyn Fn(f64, f64) -> f64| -> Vec<f64> {
+            (0..dim * dim)
+                .map(|k| f((k % dim) as f64, (k / dim) as f64))
+                .collect()
+        };
+        let sharp = surf(&|x, y| 0.95 - 0.1 * (x - 4.3).powi(2) - 0.08 * (y - 3.8).powi(2));
+        let (x, y, v) = peak(&sharp, dim, 0.85, 0.01).unwrap();
+        assert!((x - 4.3).abs() < 1e-9 && (y - 3.8).abs() < 1e-9, "{x} {y}");
+        assert!((v - 0.95).abs() < 0.02);
+        // Sharp across (x), nearly flat along (y): an edge.
+        let ridge = surf(&|x, y| 0.97 - 0.1 * (x - 4.0).powi(2) - 0.001 * (y - 4.0).powi(2));
+        assert!(peak(&ridge, dim, 0.85, 0.01).is_none());
+        // The same ridge rotated by 45 degrees.
+        let diag = surf(&|x, y| {
+            let (u, w) = ((x - 4.0 + y - 4.0) / 2f64.sqrt(), (x - y) / 2f64.sqrt());
+            0.97 - 0.1 * u * u - 0.001 * w * w
+        });
+        assert!(peak(&diag, dim, 0.85, 0.01).is_none());
+        assert!(
+            peak(&diag, dim, 0.85, 0.0).is_some(),
+            "curved down a little: found"
+        );
+        let border = surf(&|x, _| 0.9 + 0.01 * x);
+        assert!(peak(&border, dim, 0.85, 0.0).is_none());
+        assert!(peak(&sharp, dim, 0.96, 0.01).is_none());
+        let nan = vec![f64::NAN; dim * dim];
+        assert!(peak(&nan, dim, 0.85, 0.01).is_none());
     }
 
     #[test]
-    fn a_straight_edge_is_not_located_along_itself() {
+    fn a_straight_edge_image_gives_no_shift() {
         // Vertical stripes only: every patch is an edge (aperture problem), none may count.
         let (w, h) = (160, 160);
         let t: Vec<u8> = (0..w * h)
@@ -585,6 +689,7 @@ mod tests {
         let a = raster(t.clone(), w, h, 0.0, 1000.0, 1.0);
         let b = raster(t, w, h, 0.0, 1001.5, 1.0);
         let r = coregister(&a, &b, &CoregParams::default()).unwrap();
+        assert!(r.patches_tried > 0);
         assert_eq!(r.patches_matched, 0, "{:?}", r.patches.first());
     }
 
@@ -625,6 +730,34 @@ mod tests {
                 key: "window_m",
                 ..
             })
+        ));
+        let p = CoregParams {
+            search_px: 1000,
+            ..CoregParams::default()
+        };
+        assert!(matches!(
+            coregister(&a, &a, &p),
+            Err(CoregError::BadParam {
+                key: "search_px",
+                ..
+            })
+        ));
+        // A window so small that the grid would be huge is refused, not looped over.
+        let p = CoregParams {
+            window_m: 1e-9,
+            ..CoregParams::default()
+        };
+        assert!(matches!(
+            coregister(&a, &a, &p),
+            Err(CoregError::BadParam {
+                key: "window_m",
+                ..
+            })
+        ));
+        let tiny = raster(texture(40, 40, 2), 40, 40, 0.0, 1000.0, 1.0);
+        assert!(matches!(
+            coregister(&tiny, &tiny, &CoregParams::default()),
+            Err(CoregError::TooSmall { .. })
         ));
         let flat = raster(vec![7; 100 * 100], 100, 100, 0.0, 1000.0, 1.0);
         assert!(matches!(

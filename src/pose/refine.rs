@@ -124,6 +124,15 @@ impl Validate for RefineConfig {
         }
         p.range("sigma_inflation", self.sigma_inflation, 1.0, 10.0);
         p.range("sigma0_floor", self.sigma0_floor, 0.05, 1.0);
+        if self.sigma0_floor * self.sigma_inflation < 1.0 - 1e-12 {
+            p.push(
+                "sigma0_floor",
+                format!(
+                    "sigma0_floor x sigma_inflation = {} is below 1: the covariance could fall below the a-priori one and shrink a fused prior's share",
+                    self.sigma0_floor * self.sigma_inflation
+                ),
+            );
+        }
         match self.loss {
             RobustLoss::None => {}
             RobustLoss::Huber { k_sigma } => p.range("loss.k_sigma", k_sigma, 0.5, 100.0),
@@ -413,7 +422,27 @@ pub fn rotate_cov3(cov_b: &Matrix3<f64>, r_a_b: &Rotation3<f64>) -> Matrix3<f64>
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::{Problems, Validate};
     use crate::pose::rng::Rng;
+
+    #[test]
+    fn a_sigma0_floor_below_the_inflations_inverse_is_refused() {
+        let check = |floor: f64, inflation: f64| {
+            let mut p = Problems::default();
+            RefineConfig {
+                sigma0_floor: floor,
+                sigma_inflation: inflation,
+                ..RefineConfig::default()
+            }
+            .validate(&mut p);
+            p.list.iter().map(|i| i.to_string()).collect::<Vec<_>>()
+        };
+        assert!(check(1.0, 1.0).is_empty());
+        assert!(check(0.25, 4.0).is_empty());
+        let e = check(0.25, 2.0);
+        assert!(e.iter().any(|m| m.contains("sigma0_floor")), "{e:?}");
+        assert!(!check(0.01, 4.0).is_empty(), "out of range");
+    }
 
     fn scene(rng: &mut Rng, n: usize) -> (Vec<Correspondence>, Pose) {
         let pose = Pose {

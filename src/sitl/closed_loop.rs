@@ -661,8 +661,31 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         .ok_or(ClosedLoopError::NotClosedLoop)?;
     let setup_err = ClosedLoopError::Setup;
     let cfg_path = crate::config::resolve(base, &cl.config);
-    let cfg =
+    let mut cfg =
         Config::load(&cfg_path).map_err(|e| setup_err(format!("[closed_loop] config: {e}")))?;
+    if !cl.map_ortho.is_empty() {
+        if let Some(f) = &cfg.map.file {
+            return Err(setup_err(format!(
+                "[closed_loop] map_ortho replaces [map] ortho, but {} uses the map file {}: remove one",
+                cfg_path.display(),
+                f.display()
+            )));
+        }
+        for p in &cl.map_ortho {
+            let p = crate::config::resolve(base, p);
+            if !p.is_file() {
+                return Err(setup_err(format!(
+                    "[closed_loop] map_ortho {}: no such file",
+                    p.display()
+                )));
+            }
+        }
+        cfg.map.ortho = cl
+            .map_ortho
+            .iter()
+            .map(|p| crate::config::resolve(base, p))
+            .collect();
+    }
     let cam_ortho = crate::config::resolve(base, &cl.camera_ortho);
     if cfg.map.ortho.iter().any(|m| same_file(m, &cam_ortho)) {
         return Err(setup_err(format!(

@@ -271,6 +271,10 @@ pub struct ClosedLoopConfig {
     /// `[daemon]`, `[link] streams`); its `[link] connection` is replaced by a free loopback port
     /// and its `[nav]` by the scenario's (which matches the simulated IMU).
     pub config: std::path::PathBuf,
+    /// The map-year orthophoto(s): when given, they replace the configuration's `[map] ortho`
+    /// (same height source), so a scenario states its map year beside its camera year.
+    #[serde(default)]
+    pub map_ortho: Vec<std::path::PathBuf>,
     /// The camera-year orthophoto the frames are rendered from. Must not be a map orthophoto
     /// (the matcher would see its own image).
     pub camera_ortho: std::path::PathBuf,

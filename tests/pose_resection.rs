@@ -138,6 +138,24 @@ fn monte_carlo_scene(rng: &mut Rng, t: usize) -> visnav::pose::synth::Scene {
     make_scene(&sc, rng)
 }
 
+/// Resects `scene` without priors (trial `t` must be accepted) and returns the fix with its
+/// position NEES against the truth.
+fn resect_position_nees(
+    scene: &visnav::pose::synth::Scene,
+    cfg: &ResectionConfig,
+    t: usize,
+) -> (Fix, f64) {
+    let out = resect(&scene.corrs, &scene.image, &Priors::default(), cfg);
+    let fix = out
+        .accepted()
+        .unwrap_or_else(|| panic!("trial {t}: {}", out.verdict))
+        .clone();
+    let err = fix.pose.c_world - scene.truth.c_world;
+    let cov = fix.covariance.position_world_m2();
+    let nees = (err.transpose() * cov.try_inverse().unwrap() * err)[0];
+    (fix, nees)
+}
+
 /// Monte Carlo: the normalised estimation error squared of the position (3 dof) averages near 3 and
 /// about 95 % of the trials fall inside the chi-square 95 % bound.
 #[test]
@@ -149,13 +167,7 @@ fn covariance_is_honest_monte_carlo() {
     let (mut sum, mut inside, mut att_sum) = (0.0, 0, 0.0);
     for t in 0..trials {
         let scene = monte_carlo_scene(&mut rng, t);
-        let out = resect(&scene.corrs, &scene.image, &Priors::default(), &cfg);
-        let fix = out
-            .accepted()
-            .unwrap_or_else(|| panic!("trial {t}: {}", out.verdict));
-        let err = fix.pose.c_world - scene.truth.c_world;
-        let cov = fix.covariance.position_world_m2();
-        let nees = (err.transpose() * cov.try_inverse().unwrap() * err)[0];
+        let (fix, nees) = resect_position_nees(&scene, &cfg, t);
         sum += nees;
         if nees <= gate95 {
             inside += 1;
@@ -837,13 +849,8 @@ fn sigma0_floor_lets_the_covariance_follow_better_than_stated_keypoints() {
             for c in scene.corrs.iter_mut() {
                 c.sigma_px = stated_px;
             }
-            let out = resect(&scene.corrs, &scene.image, &Priors::default(), &cfg);
-            let fix = out
-                .accepted()
-                .unwrap_or_else(|| panic!("trial {t}: {}", out.verdict));
-            let err = fix.pose.c_world - scene.truth.c_world;
-            let cov = fix.covariance.position_world_m2();
-            sum += (err.transpose() * cov.try_inverse().unwrap() * err)[0];
+            let (fix, nees) = resect_position_nees(&scene, &cfg, t);
+            sum += nees;
             assert!(fix.covariance.factor() >= 16.0 * floor * floor);
         }
         sum / trials as f64

@@ -263,24 +263,21 @@ fn block_stats(g: &[f32], w: usize, x0: usize, y0: usize, side: usize) -> Option
     Some((m, (s2 / n - m * m).max(0.0).sqrt()))
 }
 
-/// One patch: the sub-pixel shift `(ox, oy)` in pixels of `a` and the peak NCC, or `None`.
+/// One patch, given its template's mean and standard deviation: the sub-pixel shift `(ox, oy)`
+/// in pixels of `a` and the peak NCC, or `None`.
 fn match_patch(
     ga: &[f32],
     gb: &[f32],
     w: usize,
     cx: usize,
     cy: usize,
-    min_std: f64,
+    (tm, ts): (f64, f64),
     p: &CoregParams,
 ) -> Option<(f64, f64, f64)> {
     let half = p.patch_half_px;
     let side = 2 * half;
     let r = p.search_px as isize;
     let (x0, y0) = (cx - half, cy - half);
-    let (tm, ts) = block_stats(ga, w, x0, y0, side)?;
-    if ts < min_std {
-        return None;
-    }
     let n = (side * side) as f64;
     let dim = (2 * r + 1) as usize;
     let mut ncc = vec![f64::NAN; dim * dim];
@@ -418,13 +415,14 @@ pub fn coregister(a: &Raster, b: &Raster, params: &CoregParams) -> Result<CoregR
         .par_iter()
         .map(|&(cx, cy)| {
             let half = params.patch_half_px;
-            let textured = block_stats(&ga, w, cx - half, cy - half, 2 * half)
-                .is_some_and(|(_, sd)| sd >= min_std)
-                && block_stats(&gb, w, cx - half, cy - half, 2 * half).is_some();
-            if !textured {
+            // Textured in a and sampleable in b at zero shift.
+            let template = block_stats(&ga, w, cx - half, cy - half, 2 * half)
+                .filter(|&(_, sd)| sd >= min_std)
+                .filter(|_| block_stats(&gb, w, cx - half, cy - half, 2 * half).is_some());
+            let Some(template) = template else {
                 return (false, None);
-            }
-            let shift = match_patch(&ga, &gb, w, cx, cy, min_std, params).map(|(ox, oy, ncc)| {
+            };
+            let shift = match_patch(&ga, &gb, w, cx, cy, template, params).map(|(ox, oy, ncc)| {
                 // Patch centre: the corner between pixels cx-1 and cx (the template spans
                 // [cx - half, cx + half)).
                 let (x_m, y_m) = tf.pixel_to_map(cx as f64, cy as f64);

@@ -166,6 +166,12 @@ pub struct MapConfig {
     /// CRS to assume for rasters whose GeoKeys are missing or not understood.
     #[serde(default)]
     pub crs_override: Option<Crs>,
+    /// With `ortho`: extract the finest level's features at 1, 2 or 4 times the orthophotos'
+    /// resolution (cubic interpolation before SURF; default 1). It pays off when the camera's
+    /// ground pixel is finer than the map's (docs/map-format.md, "Upsampling"). A `.vnm` file
+    /// keeps the setting it was built with (`visnav map build --upsample`).
+    #[serde(default)]
+    pub upsample: Option<usize>,
 }
 
 impl MapConfig {
@@ -196,6 +202,15 @@ impl MapConfig {
         }
         if let Some(crs) = &self.crs_override {
             crs.validate_in("crs_override", p);
+        }
+        match self.upsample {
+            None => {}
+            Some(_) if self.file.is_some() => p.push(
+                "upsample",
+                "applies to building from ortho; a map file keeps the setting it was built with (visnav map build --upsample)",
+            ),
+            Some(1 | 2 | 4) => {}
+            Some(n) => p.push("upsample", format!("{n}: must be 1, 2 or 4")),
         }
     }
 }

@@ -222,6 +222,19 @@ fn refuses_camera_from_the_map_image_and_bad_scenarios() {
         );
         assert!(err.contains(want), "{err}");
     }
+    // The map's upsampling outside 1, 2, 4 is refused with its key.
+    let t = fixed_paths
+        .replace(
+            "\"../maps/naip_nd_2014.tif\"",
+            &format!("{:?}", abs("sitl/maps/naip_nd_2014.tif")),
+        )
+        .replace("[closed_loop]\n", "[closed_loop]\nmap_upsample = 3\n");
+    let (ok, err) = sim("upsample.toml", &t);
+    assert!(!ok);
+    assert!(
+        err.contains("map_upsample 3") && err.contains("must be 1, 2 or 4"),
+        "{err}"
+    );
     let (ok, err) = sim("broken.toml", &text.replace("workers = 1", "workers = 0"));
     assert!(!ok);
     assert!(

@@ -68,7 +68,7 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
         dir.path(),
         "[link]\nconnection = \"udpin:0.0.0.0:99999\"\n\
          [camera]\nwidth_px = 640\nheight_px = 480\nhfov_deg = 200.0\n\
-         [map]\northo = [\"nope.tif\"]\ndem = \"nope_dem.tif\"\nground_height_amsl_m = 3.0\n\
+         [map]\northo = [\"nope.tif\"]\ndem = \"nope_dem.tif\"\nground_height_amsl_m = 3.0\nupsample = 3\n\
          [nav.imu]\ngyro_arw_deg_sqrt_h = -1.0\n\
          [output]\nrate_hz = 500.0\nmodes = [\"gps_input\", \"gps_input\"]\n",
     );
@@ -80,6 +80,8 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
         "map.ortho[0]",
         "nope.tif",
         "map.dem",
+        "map.upsample",
+        "must be 1, 2 or 4",
         "output.rate_hz",
         "500",
         "output.modes",

@@ -5,7 +5,7 @@ use nalgebra::{Matrix3, Vector3};
 use visnav::nav::earth;
 use visnav::nav::filter::Health;
 use visnav::nav::{
-    AttitudeFix, ImuSample, InsState, Measurement, NavConfig, NavFilter, Outcome, PositionFix,
+    AltitudeFix, AttitudeFix, ImuSample, InsState, Measurement, NavConfig, NavFilter, Outcome, PositionFix,
     VelocityFix,
 };
 use visnav::sitl::Scenario;
@@ -57,6 +57,10 @@ fn fix_at(s: &InsState, t_us: u64, offset_ned: Vector3<f64>, sigma: f64) -> Posi
 
 impl Harness {
     fn new(cfg: NavConfig, imu: SimImuConfig) -> Self {
+        Self::with_trajectory(cfg, imu, straight())
+    }
+
+    fn with_trajectory(cfg: NavConfig, imu: SimImuConfig, traj: Trajectory) -> Self {
         let mut f = NavFilter::new(cfg);
         f.imu(&ImuSample {
             t_us: 0,
@@ -64,7 +68,7 @@ impl Harness {
             dv_m_s_body_frd: Vector3::zeros(),
         });
         Self {
-            traj: straight(),
+            traj,
             filter: f,
             rng: Rng::new(5),
             imu: ImuErrors::new(imu),
@@ -753,5 +757,86 @@ fn vision_bias_states_survive_init_and_reset_from_vision_with_a_zero_vertical_si
     assert!(
         (pb[(0, 0)] - 25.0).abs() < 25.0 && pb[(2, 2)] >= 0.0,
         "{pb}"
+    );
+}
+
+/// In a steep turn the specific force has a horizontal part, so a tilt error drives a vertical
+/// velocity error and the barometer observes the tilt (PX4 SIH replays, session 8: barometer
+/// updates at 15-34 deg of bank moved the roll by about 2 deg). Those corrections must go the
+/// right way: with a gyro that lets the tilt wander, a 30 deg turn on the barometer alone keeps
+/// the tilt within the filter's own bounds and no worse than flying the turn without it. A
+/// wrong-signed coupling would feed the barometer's noise into the tilt.
+#[test]
+fn barometer_in_a_steep_turn_corrects_the_tilt_the_right_way() {
+    let g = 9.80665;
+    let v = 51.44;
+    let turn_rate = g * 30f64.to_radians().tan() / v; // coordinated, 30 deg of bank
+    let traj = || {
+        let seg = |duration_s: f64, turn_rate_rad_s: f64| Segment {
+            duration_s,
+            speed_m_s: v,
+            turn_rate_rad_s,
+            path_angle_rad: 0.0,
+            ramp_s: 2.0,
+        };
+        Trajectory::new(
+            46.9f64.to_radians(),
+            (-100.8f64).to_radians(),
+            1500.0,
+            v,
+            90f64.to_radians(),
+            vec![seg(60.0, 0.0), seg(90.0, turn_rate), seg(600.0, 0.0)],
+        )
+    };
+    // Returns (RMS tilt error deg, largest tilt NEES (2 dof), largest bank deg) over the turn.
+    let fly = |baro: bool| -> (f64, f64, f64) {
+        let mut imu = SimImuConfig::perfect(100.0);
+        imu.gyro_arw_deg_sqrt_h = 3.0;
+        imu.accel_vrw_m_s_sqrt_h = 0.1;
+        let mut cfg = NavConfig::default();
+        cfg.imu.gyro_arw_deg_sqrt_h = 3.0;
+        cfg.imu.accel_vrw_m_s_sqrt_h = 0.1;
+        let mut h = Harness::with_trajectory(cfg, imu, traj());
+        h.fly(60.0, true, |_, _, _| {});
+        assert!(h.filter.is_initialised());
+        let mut rng = Rng::new(21);
+        let (mut sum2, mut n, mut nees_max, mut bank_max) = (0.0, 0usize, 0.0f64, 0.0f64);
+        h.fly(90.0, false, |f, t, ts| {
+            if !t.is_multiple_of(100_000) {
+                return;
+            }
+            if baro {
+                let out = f.measure(Measurement::Altitude(AltitudeFix {
+                    t_capture_us: t,
+                    h_m: ts.h_m + 0.5 * rng.normal(),
+                    var_m2: 0.25,
+                }));
+                assert!(matches!(out, Outcome::Accepted { .. }), "{out:?}");
+            }
+            let s = f.state().expect("initialised");
+            let psi = (s.q_nb * ts.q_nb.inverse()).scaled_axis();
+            let p = f.nav_error_covariance().expect("covariance");
+            let p2 = p.fixed_view::<2, 2>(6, 6).into_owned();
+            let e = nalgebra::Vector2::new(psi.x, psi.y);
+            let nees = (e.transpose() * p2.try_inverse().expect("pd") * e)[0];
+            nees_max = nees_max.max(nees);
+            sum2 += e.norm_squared();
+            n += 1;
+            let (roll, _, _) = ts.q_nb.euler_angles();
+            bank_max = bank_max.max(roll.abs().to_degrees());
+        });
+        ((sum2 / n as f64).sqrt().to_degrees(), nees_max, bank_max)
+    };
+    let (rms_baro, nees_baro, bank) = fly(true);
+    let (rms_free, nees_free, _) = fly(false);
+    eprintln!(
+        "30 deg turn: tilt RMS {rms_baro:.3} deg with the barometer (NEES max {nees_baro:.1}), {rms_free:.3} deg without ({nees_free:.1}); bank {bank:.1} deg"
+    );
+    assert!((25.0..35.0).contains(&bank), "bank {bank}");
+    // chi-square(2) 99.9 % is 13.8; over 900 correlated epochs allow a little more.
+    assert!(nees_baro < 16.0, "tilt NEES {nees_baro} with the barometer");
+    assert!(
+        rms_baro <= 1.1 * rms_free + 0.005,
+        "the barometer made the tilt worse: {rms_baro} vs {rms_free} deg"
     );
 }

@@ -41,6 +41,17 @@ pub struct FixBenchArgs {
     /// camera year (2014) is refused.
     #[arg(long = "map-ortho", value_name = "TIF")]
     pub map_ortho: Vec<std::path::PathBuf>,
+    /// Build the map's finest level at 1, 2 or 4 times the orthophoto's resolution
+    /// (`[map] upsample`).
+    #[arg(long, default_value_t = 1)]
+    pub map_upsample: usize,
+    /// Heights above ground of the frames, metres: `LO:HI` (uniform) or one value (default: the
+    /// acceptance envelope, 1200:2500).
+    #[arg(long, value_name = "LO[:HI]")]
+    pub agl_m: Option<String>,
+    /// Largest tilt of the frames from level, degrees (default 20).
+    #[arg(long, default_value_t = 20.0)]
+    pub max_tilt_deg: f64,
     /// Override `[fix]` settings with a TOML snippet, e.g. 'ratio = 0.9' (keys of the `[fix]` section).
     #[arg(long)]
     pub set: Option<String>,
@@ -80,10 +91,19 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
             a.attitude_error_deg
         );
     }
-    let mut eval = NaipEval::with_map(&maps, &map_orthos, params, surf)
+    let agl_range_m = match &a.agl_m {
+        None => (1200.0, 2500.0),
+        Some(t) => parse_range(t).with_context(|| format!("--agl-m {t}"))?,
+    };
+    if !(a.max_tilt_deg.is_finite() && (0.0..=60.0).contains(&a.max_tilt_deg)) {
+        anyhow::bail!("--max-tilt-deg {}: expected 0 to 60", a.max_tilt_deg);
+    }
+    let mut eval = NaipEval::with_map(&maps, &map_orthos, a.map_upsample, params, surf)
         .map_err(anyhow::Error::msg)
         .context("setting up the NAIP cross-date evaluation")?;
     eval.attitude_prior_error_rad = a.attitude_error_deg.to_radians();
+    eval.agl_range_m = agl_range_m;
+    eval.max_tilt_deg = a.max_tilt_deg;
     let per_frame = a.per_frame;
     let s = eval
         .run_with(a.frames, a.seed, !a.no_prior, &mut |line| {
@@ -96,12 +116,16 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&s)?);
     } else {
         println!(
-            "NAIP cross-date (map {}, frames 2014, VGA 60 deg, 1200-2500 m AGL, tilt <= 20 deg): {} frames",
+            "NAIP cross-date (map {} x{}, frames 2014, VGA 60 deg, {:.0}-{:.0} m AGL, tilt <= {} deg): {} frames",
             map_orthos
                 .iter()
                 .map(|p| p.file_name().unwrap_or_default().to_string_lossy())
                 .collect::<Vec<_>>()
                 .join(" + "),
+            a.map_upsample,
+            agl_range_m.0,
+            agl_range_m.1,
+            a.max_tilt_deg,
             s.frames
         );
         println!(
@@ -129,4 +153,43 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// `LO:HI` or one value (LO = HI), metres above ground: finite, 100 m to 10 km, LO <= HI.
+fn parse_range(t: &str) -> anyhow::Result<(f64, f64)> {
+    let num = |s: &str| -> anyhow::Result<f64> {
+        s.trim()
+            .parse::<f64>()
+            .with_context(|| format!("{s:?} is not a number"))
+    };
+    let (lo, hi) = match t.split_once(':') {
+        Some((l, h)) => (num(l)?, num(h)?),
+        None => {
+            let v = num(t)?;
+            (v, v)
+        }
+    };
+    if !(lo.is_finite()
+        && hi.is_finite()
+        && (100.0..=10_000.0).contains(&lo)
+        && lo <= hi
+        && hi <= 10_000.0)
+    {
+        anyhow::bail!("expected heights from 100 to 10000 m with LO <= HI");
+    }
+    Ok((lo, hi))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_range;
+
+    #[test]
+    fn agl_range_parses_and_refuses() {
+        assert_eq!(parse_range("1000").ok(), Some((1000.0, 1000.0)));
+        assert_eq!(parse_range("900:1100").ok(), Some((900.0, 1100.0)));
+        for bad in ["", "abc", "1100:900", "50", "NaN", "1000:inf", "1:2:3"] {
+            assert!(parse_range(bad).is_err(), "{bad}");
+        }
+    }
 }

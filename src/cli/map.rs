@@ -79,6 +79,11 @@ pub struct BuildArgs {
     /// SURF octaves.
     #[arg(long, default_value_t = 4)]
     pub octaves: usize,
+    /// Build the finest level at 1, 2 or 4 times the orthophotos' resolution (cubic
+    /// interpolation before SURF): more features when the camera's ground pixel is finer than the
+    /// map's (a 5 m map from 1000 m), at about 4x the features and time per factor of 2.
+    #[arg(long, default_value_t = 1)]
+    pub upsample: usize,
     /// UTM zone to assume for files whose GeoKeys are missing, e.g. "32614" (EPSG code of a
     /// WGS84/NAD83 UTM zone).
     #[arg(long)]
@@ -207,6 +212,7 @@ fn build(a: BuildArgs) -> anyhow::Result<ExitCode> {
     spec.max_features_per_tile = a.max_features_per_tile;
     spec.surf.hessian_threshold = a.hessian_threshold;
     spec.surf.n_octaves = a.octaves;
+    spec.upsample = a.upsample;
     spec.crs_override = a.crs_override_epsg.map(epsg_crs).transpose()?;
     let tty = std::io::stderr().is_terminal();
     let mut last_log = Instant::now();

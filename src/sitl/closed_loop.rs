@@ -686,6 +686,21 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             .map(|p| crate::config::resolve(base, p))
             .collect();
     }
+    if let Some(n) = cl.map_upsample {
+        if let Some(f) = &cfg.map.file {
+            return Err(setup_err(format!(
+                "[closed_loop] map_upsample applies to a map built from ortho, but {} uses the map file {}: remove one",
+                cfg_path.display(),
+                f.display()
+            )));
+        }
+        if !matches!(n, 1 | 2 | 4) {
+            return Err(setup_err(format!(
+                "[closed_loop] map_upsample {n}: must be 1, 2 or 4"
+            )));
+        }
+        cfg.map.upsample = Some(n);
+    }
     let cam_ortho = crate::config::resolve(base, &cl.camera_ortho);
     if cfg.map.ortho.iter().any(|m| same_file(m, &cam_ortho)) {
         return Err(setup_err(format!(

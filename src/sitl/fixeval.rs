@@ -43,6 +43,11 @@ pub struct NaipEval {
     /// prior states 0.5 deg whatever this is). The random draws do not depend on it, so runs
     /// with different values see the same frames.
     pub attitude_prior_error_rad: f64,
+    /// Heights above ground the frames are drawn from, uniform in `[lo, hi]` metres (default
+    /// 1200-2500 m, the acceptance envelope).
+    pub agl_range_m: (f64, f64),
+    /// Largest tilt of the body from level, degrees (uniform in `[0, max]`; default 20).
+    pub max_tilt_deg: f64,
 }
 
 /// One random frame of the acceptance envelope.
@@ -138,15 +143,23 @@ impl NaipEval {
 
     /// [`Self::new`] with the reference's SURF settings (the query uses the same).
     pub fn with_surf(maps_dir: &Path, params: FixParams, surf: SurfParams) -> Result<Self, String> {
-        Self::with_map(maps_dir, &[maps_dir.join("naip_nd_2009.tif")], params, surf)
+        Self::with_map(
+            maps_dir,
+            &[maps_dir.join("naip_nd_2009.tif")],
+            1,
+            params,
+            surf,
+        )
     }
 
     /// [`Self::with_surf`] with the map built from `map_orthos` (co-registered orthophotos of the
     /// NAIP area, e.g. several years stacked; never the 2014 camera year). The first one gives the
-    /// map's pixel size and the area the frames are drawn from.
+    /// map's pixel size and the area the frames are drawn from. `upsample` as
+    /// [`BuildSpec::upsample`].
     pub fn with_map(
         maps_dir: &Path,
         map_orthos: &[PathBuf],
+        upsample: usize,
         params: FixParams,
         surf: SurfParams,
     ) -> Result<Self, String> {
@@ -175,6 +188,7 @@ impl NaipEval {
             HeightSource::ConstantAmsl(NAIP_GROUND_M),
         );
         spec.surf = surf;
+        spec.upsample = upsample;
         let reference = MapReference::build_temporary(&spec, None)?;
         let engine = FixEngine::new(Arc::new(reference), vga_camera(), params)
             .map_err(|e| format!("engine: {e}"))?;
@@ -196,6 +210,8 @@ impl NaipEval {
             renderer,
             crs,
             attitude_prior_error_rad: 0.3f64.to_radians(),
+            agl_range_m: (1200.0, 2500.0),
+            max_tilt_deg: 20.0,
         })
     }
 
@@ -206,8 +222,8 @@ impl NaipEval {
 
     /// A random pose of the envelope with its body (nadir point) over `(x, y)`.
     pub fn random_case(&self, rng: &mut Rng, x_m: f64, y_m: f64) -> Case {
-        let agl_m = uni(rng, 1200.0, 2500.0);
-        let tilt_deg = uni(rng, 0.0, 20.0);
+        let agl_m = uni(rng, self.agl_range_m.0, self.agl_range_m.1);
+        let tilt_deg = uni(rng, 0.0, self.max_tilt_deg);
         let dir = uni(rng, 0.0, std::f64::consts::TAU);
         let attitude = Attitude::from_deg(
             tilt_deg * dir.cos(),

@@ -275,6 +275,11 @@ pub struct ClosedLoopConfig {
     /// (same height source), so a scenario states its map year beside its camera year.
     #[serde(default)]
     pub map_ortho: Vec<std::path::PathBuf>,
+    /// Replaces the configuration's `[map] upsample` (1, 2 or 4: the finest level's features at
+    /// that many times the orthophotos' resolution), so a low flight over a coarse map says so
+    /// beside its map year.
+    #[serde(default)]
+    pub map_upsample: Option<usize>,
     /// The camera-year orthophoto the frames are rendered from. Must not be a map orthophoto
     /// (the matcher would see its own image).
     pub camera_ortho: std::path::PathBuf,

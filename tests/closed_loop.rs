@@ -232,7 +232,7 @@ fn refuses_camera_from_the_map_image_and_bad_scenarios() {
     let (ok, err) = sim("upsample.toml", &t);
     assert!(!ok);
     assert!(
-        err.contains("map_upsample 3") && err.contains("must be 1, 2 or 4"),
+        err.contains("map_upsample") && err.contains("3: must be 1, 2 or 4"),
         "{err}"
     );
     let (ok, err) = sim("broken.toml", &text.replace("workers = 1", "workers = 0"));

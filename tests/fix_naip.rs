@@ -248,3 +248,61 @@ fn map_registration_sigma_widens_only_the_horizontal_position_covariance() {
     }
     assert!(compared >= 4, "only {compared} accepted fixes compared");
 }
+
+/// An upsampled map (`[map] upsample = 2`: level 0 at 2.5 m over the 5 m orthophoto) keeps
+/// `map_registration_sigma_px` in orthophoto pixels, as `visnav map compare` measures it: 0.8 px
+/// adds (0.8 x 5 m)^2, not (0.8 x 2.5 m)^2, on the frames that solve on the 2.5 m level.
+#[test]
+fn upsampled_map_keeps_the_registration_in_orthophoto_pixels() {
+    let maps = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("sitl/maps");
+    let map = [maps.join("naip_nd_2010.tif")];
+    let surf = visnav::vision::SurfParams {
+        upright: true,
+        ..visnav::vision::SurfParams::default()
+    };
+    let build = |reg_px: f64| {
+        let mut e = NaipEval::with_map(
+            &maps,
+            &map,
+            2,
+            FixParams {
+                map_registration_sigma_px: reg_px,
+                ..FixParams::default()
+            },
+            surf.clone(),
+        )
+        .expect("NAIP evaluation set-up");
+        e.agl_range_m = (1000.0, 1100.0);
+        e.max_tilt_deg = 3.0;
+        e
+    };
+    let (plain, with_reg) = (build(0.0), build(0.8));
+    let reference = plain.engine.reference();
+    assert_eq!(reference.level_gsd_m()[0], 2.5);
+    assert_eq!(reference.ortho_pixel_m(), 5.0);
+    let reg_var = (0.8f64 * 5.0).powi(2);
+    let b = plain.map_raster.bounds();
+    let mut rng = Rng::new(11);
+    let mut compared = 0;
+    for i in 0..20u64 {
+        let x = b.min_x_m + 600.0 + (b.max_x_m - b.min_x_m - 1200.0) * rng.uniform();
+        let y = b.min_y_m + 600.0 + (b.max_y_m - b.min_y_m - 1200.0) * rng.uniform();
+        let case = plain.random_case(&mut rng, x, y);
+        let img = plain.frame(&case, i, None).expect("render");
+        let prior = plain.prior(&mut rng, &case, i).expect("prior");
+        let (a, at) = plain.engine.fix_with_attempt(&img, &prior);
+        let r = with_reg.engine.fix(&img, &prior);
+        assert_eq!(a.accepted, r.accepted, "frame {i}");
+        if !a.accepted {
+            continue;
+        }
+        assert_eq!(
+            at.level, 0,
+            "frame {i}: 1000-1100 m solves on the 2.5 m level"
+        );
+        compared += 1;
+        let d = r.cov_ned_m2[0][0] - a.cov_ned_m2[0][0];
+        assert!((d - reg_var).abs() < 1e-6 * reg_var, "frame {i}: {d}");
+    }
+    assert!(compared >= 3, "only {compared} accepted fixes compared");
+}

@@ -434,11 +434,14 @@ fn without_build_time(path: &Path) -> Vec<u8> {
 fn windowed_build_is_byte_identical_to_the_whole_image_build() {
     let dir = tempfile::tempdir().unwrap();
     let mut cases: Vec<(String, BuildSpec)> = Vec::new();
-    for (tile_px, levels) in [(1024, None), (128, Some(3))] {
+    for (tile_px, levels, upsample) in [(1024, None, 1), (128, Some(3), 1), (128, Some(3), 2)] {
         let mut spec = BuildSpec::new(vec![naip2009()], HeightSource::ConstantAmsl(580.0));
         spec.tile_px = tile_px;
         spec.levels = levels;
-        cases.push((format!("naip2009_t{tile_px}"), spec));
+        // Upsampled: interpolated level-0 windows with the left tile's columns reused, over the
+        // odd 723 px height.
+        spec.upsample = upsample;
+        cases.push((format!("naip2009_t{tile_px}_x{upsample}"), spec));
     }
     if let (Some(o), Some(d)) = (
         shared("autzen/autzen_ortho_0p3m_utm10n.tif"),

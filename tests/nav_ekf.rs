@@ -5,8 +5,8 @@ use nalgebra::{Matrix3, Vector3};
 use visnav::nav::earth;
 use visnav::nav::filter::Health;
 use visnav::nav::{
-    AltitudeFix, AttitudeFix, ImuSample, InsState, Measurement, NavConfig, NavFilter, Outcome, PositionFix,
-    VelocityFix,
+    AltitudeFix, AttitudeFix, ImuSample, InsState, Measurement, NavConfig, NavFilter, Outcome,
+    PositionFix, VelocityFix,
 };
 use visnav::sitl::Scenario;
 use visnav::sitl::imu::{ImuErrors, SimImuConfig};
@@ -835,8 +835,10 @@ fn barometer_in_a_steep_turn_corrects_the_tilt_the_right_way() {
     assert!((25.0..35.0).contains(&bank), "bank {bank}");
     // chi-square(2) 99.9 % is 13.8; over 900 correlated epochs allow a little more.
     assert!(nees_baro < 16.0, "tilt NEES {nees_baro} with the barometer");
+    // The barometer observes the tilt in the turn (0.22 against 0.43 deg when written): it must
+    // correct it, not merely leave it alone.
     assert!(
-        rms_baro <= 1.1 * rms_free + 0.005,
-        "the barometer made the tilt worse: {rms_baro} vs {rms_free} deg"
+        rms_baro < 0.8 * rms_free,
+        "the barometer did not correct the tilt: {rms_baro} vs {rms_free} deg"
     );
 }

@@ -62,7 +62,8 @@ pub struct FixParams {
     /// Keypoint localisation 1-sigma in rectified pixels (converted to frame pixels for the solve).
     pub sigma_rect_px: f64,
     /// 1-sigma per horizontal axis of the map's registration against the world the camera sees,
-    /// in pixels of the map's finest level (0 = none): a shift every fix over that map inherits
+    /// in pixels of the orthophoto the map was built from (0 = none; not of an upsampled map's
+    /// finer level 0): a shift every fix over that map inherits
     /// whole, however well its keypoints fit, so it is added to the fix's horizontal position
     /// covariance (and the image-only pose's) rather than scaled by sigma0. `visnav map compare`
     /// measures it against another image of the area (docs/map-format.md).
@@ -859,10 +860,9 @@ impl FixEngine {
     }
 
     /// Variance of the map's horizontal registration per axis, m^2
-    /// (`FixParams::map_registration_sigma_px` in finest-level pixels).
+    /// (`FixParams::map_registration_sigma_px` in orthophoto pixels, whatever the map's upsampling).
     fn map_registration_var_m2(&self) -> f64 {
-        let gsd = self.levels_gsd_m.first().copied().unwrap_or(0.0);
-        (self.params.map_registration_sigma_px * gsd).powi(2)
+        (self.params.map_registration_sigma_px * self.reference.ortho_pixel_m()).powi(2)
     }
 
     /// The image-only pose of `fix` in geodetic / NED terms, its 6x6 covariance reordered to

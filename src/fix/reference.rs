@@ -50,6 +50,12 @@ pub trait Reference: Send + Sync {
     fn crs(&self) -> Crs;
     /// Ground sample distance of each pyramid level, metres per pixel, finest first.
     fn level_gsd_m(&self) -> Vec<f64>;
+    /// Pixel size of the (first) orthophoto the map was built from, metres: the unit of
+    /// `map_registration_sigma_px` (`visnav map compare` measures in orthophoto pixels). The
+    /// finest level's unless the map was upsampled.
+    fn ortho_pixel_m(&self) -> f64 {
+        self.level_gsd_m().first().copied().unwrap_or(0.0)
+    }
     /// The SURF settings the features were extracted with (the query uses the same).
     fn surf_params(&self) -> SurfParams;
     /// Bounds of the mapped area `[min_x, min_y, max_x, max_y]`, metres.
@@ -329,6 +335,14 @@ impl Reference for MapReference {
     }
     fn level_gsd_m(&self) -> Vec<f64> {
         self.map.header().levels.iter().map(|l| l.gsd_m).collect()
+    }
+    fn ortho_pixel_m(&self) -> f64 {
+        let h = self.map.header();
+        h.orthos
+            .first()
+            .map(|o| o.pixel_size_m)
+            .or_else(|| h.levels.first().map(|l| l.gsd_m))
+            .unwrap_or(0.0)
     }
     fn surf_params(&self) -> SurfParams {
         self.map.header().surf.clone()

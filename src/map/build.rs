@@ -94,8 +94,10 @@ pub struct BuildSpec {
     /// Build the finest level at this many times the orthophotos' resolution (1, 2 or 4): the
     /// orthophoto is interpolated (Keys cubic) before SURF, as Lowe doubles the image for SIFT, so
     /// blobs under SURF's smallest filter (9 px, sigma 1.2) become features. It pays off when the
-    /// camera's ground pixel is finer than the map's (a 5 m map seen from 1000 m: 23 -> 61 % of the
-    /// frames fixed, docs/map-format.md); coarser levels are the orthophoto's own block means.
+    /// camera's ground pixel is finer than the map's (a 5 m map seen from 1000 m: 23 -> 66 % of the
+    /// frames fixed, docs/map-format.md). Levels finer than the orthophoto are interpolated from it
+    /// (x4: levels 0 and 1); the others are the orthophoto's own block means. The automatic level
+    /// count adds the interpolated levels to the plain build's.
     pub upsample: usize,
 }
 
@@ -210,8 +212,8 @@ impl OrthoGeom {
             reason: format!("too large to upsample by {k}"),
         };
         Ok(Self {
-            width: self.width.checked_shl(shift as u32).ok_or_else(too_big)?,
-            height: self.height.checked_shl(shift as u32).ok_or_else(too_big)?,
+            width: self.width.checked_mul(1 << shift).ok_or_else(too_big)?,
+            height: self.height.checked_mul(1 << shift).ok_or_else(too_big)?,
             gsd_m: self.gsd_m / k,
             transform,
             ..self.clone()
@@ -387,8 +389,10 @@ pub fn build_map(
 
     // Levels and index grids.
     let short_px = ((bounds.max_x_m - bounds.min_x_m).min(bounds.max_y_m - bounds.min_y_m)) / gsd0;
+    // The automatic count keeps the coarsest level of a plain build: the interpolated levels come
+    // on top of the cap.
     let n_levels = spec.levels.unwrap_or_else(|| {
-        (1..AUTO_MAX_LEVELS)
+        (1..AUTO_MAX_LEVELS + up_shift)
             .take_while(|&l| short_px / f64::from(1u32 << l) >= AUTO_MIN_SIDE_PX)
             .count()
             + 1
@@ -1213,10 +1217,18 @@ mod tests {
                 scales.push((upsample, gsd, best.scale_m));
             }
         }
-        // The blob's metric scale does not depend on the grid it was detected on (the 2 m level
-        // of both builds, within SURF's scale sampling).
-        let at = |u: usize| scales.iter().find(|s| s.0 == u && s.1 == px).unwrap().2;
-        assert!((at(1) / at(2) - 1.0).abs() < 0.2, "{scales:?}");
+        // The blob's metric scale does not depend on the grid it was detected on: the
+        // interpolated 1 m level of the x2 build against the plain build's 2 m level 0 (within
+        // SURF's scale sampling); a scale kept in orthophoto pixels would be off by 2.
+        let at = |u: usize, gsd: f64| {
+            scales
+                .iter()
+                .find(|s| s.0 == u && (s.1 - gsd).abs() < 1e-9)
+                .unwrap()
+                .2
+        };
+        let ratio = at(2, px / 2.0) / at(1, px);
+        assert!((ratio - 1.0).abs() < 0.2, "{ratio}: {scales:?}");
         let mut spec = BuildSpec::new(vec![tif], HeightSource::ConstantAmsl(0.0));
         spec.upsample = 3;
         let e = build_map(&spec, &dir.path().join("x.vnm"), &mut |_| {}).unwrap_err();
@@ -1269,8 +1281,8 @@ mod tests {
             up.level_window(1, 2, 3, 5, 4).unwrap(),
             level_window(&r, 0, 2, 3, 5, 4)
         );
-        // A hole at source (6, 4) invalidates the outputs whose taps reach it: columns 10..=15
-        // (u in [5, 8)) of rows 6..=11, and nothing else.
+        // A hole at source (6, 4) invalidates the outputs whose taps reach it: columns 9..=16
+        // (u in [4, 8)) of rows 5..=12, and nothing else.
         let mut d = data;
         d[4 * w + 6] = 0;
         let r = Raster::new(w, h, 1, RasterData::U8(d), gt, UTM, Some(0.0)).unwrap();

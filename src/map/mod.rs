@@ -11,7 +11,12 @@
 //!   `gsd_m * 2^L`, and its pixel `(i, j)` is the mean of the `2^L x 2^L` block of level-0 pixels
 //!   `[i 2^L, (i+1) 2^L) x [j 2^L, (j+1) 2^L)` (area averaging, the same as `L` successive 2 x 2
 //!   box averages). Level `L` is `floor(W / 2^L) x floor(H / 2^L)` pixels (a partial block at the
-//!   right/bottom edge is dropped).
+//!   right/bottom edge is dropped). A map built with `upsample = 2^s` (`BuildSpec::upsample`) has
+//!   its level-0 grid `2^s` times finer than the orthophoto (`gsd_m / 2^s`, `W 2^s x H 2^s`, the
+//!   orthophoto's geotransform with its pixel steps divided by `2^s`): its levels `L < s` are the
+//!   orthophoto interpolated (Keys cubic) by `2^(s - L)`, its levels `L >= s` the orthophoto's own
+//!   level `L - s`; "level 0" and "the geotransform" below mean that grid. The header's `orthos`
+//!   keep the orthophotos' own sizes and pixel.
 //! * Grey: Rec. 601 luma `0.299 R + 0.587 G + 0.114 B` of bands 1-3 (a 4th band such as NIR is
 //!   ignored), the single band of a 1-2-band image; on the 8-bit scale (16-bit samples are scaled
 //!   by 255/65535), as `vision::GrayImage::from_dynamic` and the renderer's `ColourMode::Grey`.
@@ -20,7 +25,7 @@
 //! * Pixel coordinates: SURF keypoints have pixel centres at integer coordinates, rasters are
 //!   GDAL pixel-is-area (centre of pixel `i` at `i + 0.5`). A keypoint at level-`L` SURF coordinate
 //!   `(u, v)` therefore lies at level-0 continuous raster coordinate `((u + 0.5) 2^L, (v + 0.5) 2^L)`,
-//!   which the ortho's geotransform maps to `(x_m, y_m)`.
+//!   which the level-0 grid's geotransform maps to `(x_m, y_m)`.
 //! * Heights: `z_amsl_m` is the DEM's bilinear height at `(x_m, y_m)` in the DEM's vertical datum
 //!   (orthometric/AMSL for the DEMs visnav uses, see `docs/conventions.md`), or the constant ground
 //!   height. Keypoints without a DEM height are dropped and counted.

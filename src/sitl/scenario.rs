@@ -582,6 +582,11 @@ impl Validate for Scenario {
                 if c.workers == 0 || c.workers > 16 {
                     p.push("workers", "must be 1 to 16");
                 }
+                if let Some(n) = c.map_upsample
+                    && !matches!(n, 1 | 2 | 4)
+                {
+                    p.push("map_upsample", format!("{n}: must be 1, 2 or 4"));
+                }
                 match (&c.camera_dem, c.camera_ground_height_amsl_m) {
                     (Some(_), Some(_)) => p.push(
                         "camera_dem",
@@ -657,6 +662,12 @@ mod tests {
         let bad = text.replace("camera_ground_height_amsl_m = 580.0\n", "");
         let e = Scenario::parse(&bad, "x.toml").unwrap_err().to_string();
         assert!(e.contains("closed_loop.camera_ground_height_amsl_m"), "{e}");
+        let bad = text.replace("[closed_loop]\n", "[closed_loop]\nmap_upsample = 3\n");
+        let e = Scenario::parse(&bad, "x.toml").unwrap_err().to_string();
+        assert!(
+            e.contains("closed_loop.map_upsample") && e.contains("must be 1, 2 or 4"),
+            "{e}"
+        );
         let bad = text.replace("control = true", "contrl = true");
         let e = Scenario::parse(&bad, "x.toml").unwrap_err().to_string();
         assert!(e.contains("contrl"), "{e}");

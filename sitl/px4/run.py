@@ -6,6 +6,8 @@ and report EKF2's position error against the simulator's ground truth.
     python3 sitl/px4/run.py --px4-build /path/to/PX4-Autopilot/build/px4_sitl_nolockstep
     python3 sitl/px4/run.py --px4-build ... --no-visnav   # the GPS-off control run
     python3 sitl/px4/run.py --attach        # PX4 SITL (SIH) already running, see docs/
+    python3 sitl/px4/run.py --sim jmavsim --jmavsim-jar /path/to/jMAVSim/out/production/jmavsim_run.jar \
+        --px4-build ...                     # jMAVSim instead of SIH (a realistic IMU)
 
 It does not build PX4 (docs/real-sitl.md (PX4 section) says how it was built and run). Needs pymavlink
 (`bash scripts/interop/setup_venv.sh` prints a venv python that has it) and a built visnav
@@ -15,6 +17,14 @@ falls behind real time on a loaded machine (1.6 % in irregular steps here) and v
 filter, made for real clocks, then drops half the camera frames.
 
 What runs (all on loopback):
+* With --sim jmavsim: jMAVSim (the user's build of PX4/jMAVSim, docs/real-sitl.md, PX4 section)
+  headless, real time (no lockstep), 250 Hz, home at the centre of sitl/maps (PX4_HOME_LAT/LON/
+  ALT), listening on TCP 4560; then PX4 with PX4_SIM_MODEL=jmavsim_iris (airframe 10017) instead
+  of SIH, whose private `px4-rc.simulator` no longer kills and starts jMAVSim itself
+  (patch_rc_simulator_for_jmavsim); SIH_* parameters dropped, SYS_FAILURE_EN 1 and
+  EKF2_GPS_DELAY 200 added; visnav-jmavsim.toml. jMAVSim's HIL_STATE_QUATERNION carries its local
+  z as the altitude: run.py turns it into the altitude AMSL before relaying and scoring it. GPS
+  off is MAV_CMD_INJECT_FAILURE (GPS, off) + EKF2_GPS_CTRL 0.
 * PX4 SITL with SIH (PX4_SIM_MODEL=sihsim_quadx, airframe 10040, 250 Hz, real time), as PX4's
   `sihsim_quadx` run target starts it, but in WORKDIR/px4 with a copy of the build's `etc` whose
   `init.d-posix/px4-rc.params` (PX4's hook for parameters, sourced by rcS before the modules

@@ -21,8 +21,9 @@ What runs (all on loopback):
   headless, real time (no lockstep), 250 Hz, home at the centre of sitl/maps (PX4_HOME_LAT/LON/
   ALT), listening on TCP 4560; then PX4 with PX4_SIM_MODEL=jmavsim_iris (airframe 10017) instead
   of SIH, whose private `px4-rc.simulator` no longer kills and starts jMAVSim itself
-  (patch_rc_simulator_for_jmavsim); SIH_* parameters dropped, SYS_FAILURE_EN 1 and
-  EKF2_GPS_DELAY 200 added; visnav-jmavsim.toml. jMAVSim's HIL_STATE_QUATERNION carries its local
+  (patch_rc_simulator_for_jmavsim); SIH_* parameters dropped, SYS_FAILURE_EN 1,
+  EKF2_GPS_DELAY 200 and jMAVSim's magnetic declination (EKF2_DECL_TYPE 0, EKF2_MAG_DECL 2.72)
+  added; visnav-jmavsim.toml. jMAVSim's HIL_STATE_QUATERNION carries its local
   z as the altitude: run.py turns it into the altitude AMSL before relaying and scoring it. GPS
   off is MAV_CMD_INJECT_FAILURE (GPS, off) + EKF2_GPS_CTRL 0.
 * PX4 SITL with SIH (PX4_SIM_MODEL=sihsim_quadx, airframe 10040, 250 Hz, real time), as PX4's
@@ -79,6 +80,9 @@ from sitl_common import (HOME_ALT_M, HOME_LAT, HOME_LON, ErrorScore, finish_run,
                          metres_per_deg)
 GCS_PORT = 14550
 JMAVSIM_PORT = 4560  # PX4 instance 0's simulator_mavlink TCP port
+# Declination of jMAVSim's fixed magnetic field (Simulator.DEFAULT_MAG_FIELD, N / E / D gauss
+# 0.21506 / 0.01021 / 0.42974), deg.
+JMAVSIM_MAG_DECL_DEG = 2.718
 STOP = None  # set by SIGTERM/SIGINT/SIGHUP during the flight
 
 
@@ -423,9 +427,15 @@ def main():
     if jmavsim:
         # SIH's parameters do not apply; the GPS is switched off by failure injection
         # (gps_off below), which PX4 accepts only with SYS_FAILURE_EN = 1; jMAVSim's GPS is
-        # 200 ms late (imu_check.py; EKF2's default delay is 110 ms).
+        # 200 ms late (imu_check.py; EKF2's default delay is 110 ms). jMAVSim's magnetic field
+        # is a constant (Simulator.DEFAULT_MAG_FIELD, Zurich's: declination atan2(0.01021,
+        # 0.21506) = 2.72 deg) wherever home is, and EKF2 would take the declination of home
+        # from its tables (WMM): EKF2's heading was then 1.5-1.8 deg off the truth before
+        # take-off and drifted to 2-3 deg off once the GPS was off (flight jm-v1), which visnav
+        # follows ([nav] use_autopilot_attitude). EKF2_DECL_TYPE 0: EKF2 uses EKF2_MAG_DECL.
         params = [(n, v) for n, v in params if not n.startswith("SIH_")]
-        params += [("SYS_FAILURE_EN", "1"), ("EKF2_GPS_DELAY", "200")]
+        params += [("SYS_FAILURE_EN", "1"), ("EKF2_GPS_DELAY", "200"),
+                   ("EKF2_DECL_TYPE", "0"), ("EKF2_MAG_DECL", f"{JMAVSIM_MAG_DECL_DEG:.2f}")]
     sim_params = [] if jmavsim else sih_params()
     procs = []
     report = {"run": "control (no visnav)" if args.no_visnav else "visnav ODOMETRY",

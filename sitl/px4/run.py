@@ -1,13 +1,13 @@
 #!/usr/bin/env python3
-"""visnav against a real PX4 SITL (SIH quadrotor): fly a mission over the bundled NAIP map with
+"""visnav against a real PX4 SITL (SIH quadrotor, or jMAVSim): fly a mission over the bundled NAIP map with
 visnav's ODOMETRY (external vision) fused by EKF2, stop EKF2 from using the GPS after take-off,
 and report EKF2's position error against the simulator's ground truth.
 
     python3 sitl/px4/run.py --px4-build /path/to/PX4-Autopilot/build/px4_sitl_nolockstep
     python3 sitl/px4/run.py --px4-build ... --no-visnav   # the GPS-off control run
     python3 sitl/px4/run.py --attach        # PX4 SITL (SIH) already running, see docs/
-    python3 sitl/px4/run.py --sim jmavsim --jmavsim-jar /path/to/jMAVSim/out/production/jmavsim_run.jar \
-        --px4-build ...                     # jMAVSim instead of SIH (a realistic IMU)
+    python3 sitl/px4/run.py --sim jmavsim --px4-build ... \
+        --jmavsim-jar /path/to/jMAVSim/out/production/jmavsim_run.jar   # a realistic IMU
 
 It does not build PX4 (docs/real-sitl.md (PX4 section) says how it was built and run). Needs pymavlink
 (`bash scripts/interop/setup_venv.sh` prints a venv python that has it) and a built visnav
@@ -189,7 +189,8 @@ def tcp_listening(port):
 
 
 def start_px4(args, workdir, params):
-    """PX4 SITL + SIH in WORKDIR/px4 with the parameters in a private copy of `etc`."""
+    """PX4 SITL (with SIH, or for the running jMAVSim) in WORKDIR/px4 with the parameters in a
+    private copy of `etc`."""
     build = os.path.abspath(args.px4_build)
     exe = os.path.join(build, "bin", "px4")
     etc_src = os.path.join(build, "etc")

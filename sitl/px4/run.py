@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
-"""visnav against a real PX4 SITL (SIH quadrotor, or jMAVSim): fly a mission over the bundled NAIP map with
-visnav's ODOMETRY (external vision) fused by EKF2, stop EKF2 from using the GPS after take-off,
-and report EKF2's position error against the simulator's ground truth.
+"""visnav against a real PX4 SITL (SIH quadrotor, or jMAVSim): fly a mission over the bundled NAIP
+map with visnav's ODOMETRY (external vision) fused by EKF2, stop EKF2 from using the GPS after
+take-off, and report EKF2's position error against the simulator's ground truth.
 
     python3 sitl/px4/run.py --px4-build /path/to/PX4-Autopilot/build/px4_sitl_nolockstep
     python3 sitl/px4/run.py --px4-build ... --no-visnav   # the GPS-off control run

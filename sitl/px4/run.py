@@ -1,11 +1,13 @@
 #!/usr/bin/env python3
-"""visnav against a real PX4 SITL (SIH quadrotor): fly a mission over the bundled NAIP map with
-visnav's ODOMETRY (external vision) fused by EKF2, stop EKF2 from using the GPS after take-off,
-and report EKF2's position error against the simulator's ground truth.
+"""visnav against a real PX4 SITL (SIH quadrotor, or jMAVSim): fly a mission over the bundled NAIP
+map with visnav's ODOMETRY (external vision) fused by EKF2, stop EKF2 from using the GPS after
+take-off, and report EKF2's position error against the simulator's ground truth.
 
     python3 sitl/px4/run.py --px4-build /path/to/PX4-Autopilot/build/px4_sitl_nolockstep
     python3 sitl/px4/run.py --px4-build ... --no-visnav   # the GPS-off control run
     python3 sitl/px4/run.py --attach        # PX4 SITL (SIH) already running, see docs/
+    python3 sitl/px4/run.py --sim jmavsim --px4-build ... \
+        --jmavsim-jar /path/to/jMAVSim/out/production/jmavsim_run.jar   # a realistic IMU
 
 It does not build PX4 (docs/real-sitl.md (PX4 section) says how it was built and run). Needs pymavlink
 (`bash scripts/interop/setup_venv.sh` prints a venv python that has it) and a built visnav
@@ -15,6 +17,15 @@ falls behind real time on a loaded machine (1.6 % in irregular steps here) and v
 filter, made for real clocks, then drops half the camera frames.
 
 What runs (all on loopback):
+* With --sim jmavsim: jMAVSim (the user's build of PX4/jMAVSim, docs/real-sitl.md, PX4 section)
+  headless, real time (no lockstep), 250 Hz, home at the centre of sitl/maps (PX4_HOME_LAT/LON/
+  ALT), listening on TCP 4560; then PX4 with PX4_SIM_MODEL=jmavsim_iris (airframe 10017) instead
+  of SIH, whose private `px4-rc.simulator` no longer kills and starts jMAVSim itself
+  (patch_rc_simulator_for_jmavsim); SIH_* parameters dropped, SYS_FAILURE_EN 1,
+  EKF2_GPS_DELAY 200 and jMAVSim's magnetic declination (EKF2_DECL_TYPE 0, EKF2_MAG_DECL 2.72)
+  added; visnav-jmavsim.toml. jMAVSim's HIL_STATE_QUATERNION carries its local
+  z as the altitude: run.py turns it into the altitude AMSL before relaying and scoring it. GPS
+  off is MAV_CMD_INJECT_FAILURE (GPS, off) + EKF2_GPS_CTRL 0.
 * PX4 SITL with SIH (PX4_SIM_MODEL=sihsim_quadx, airframe 10040, 250 Hz, real time), as PX4's
   `sihsim_quadx` run target starts it, but in WORKDIR/px4 with a copy of the build's `etc` whose
   `init.d-posix/px4-rc.params` (PX4's hook for parameters, sourced by rcS before the modules
@@ -68,6 +79,10 @@ import sitl_common  # noqa: E402
 from sitl_common import (HOME_ALT_M, HOME_LAT, HOME_LON, ErrorScore, finish_run,  # noqa: E402
                          metres_per_deg)
 GCS_PORT = 14550
+JMAVSIM_PORT = 4560  # PX4 instance 0's simulator_mavlink TCP port
+# Declination of jMAVSim's fixed magnetic field (Simulator.DEFAULT_MAG_FIELD, N / E / D gauss
+# 0.21506 / 0.01021 / 0.42974), deg.
+JMAVSIM_MAG_DECL_DEG = 2.718
 STOP = None  # set by SIGTERM/SIGINT/SIGHUP during the flight
 
 
@@ -94,8 +109,88 @@ def sih_params():
             ("SIH_LOC_H0", f"{HOME_ALT_M:.2f}")]
 
 
+# PX4 v1.14's px4-rc.simulator, jMAVSim branch (PX4_SIM_MODEL=jmavsim_iris): it kills every
+# running jMAVSim (`jps`) and starts its own from ./jmavsim_run.sh in lockstep (`-l`), which this
+# script's real-time (nolockstep) PX4 cannot serve. The private copy keeps only IMU_INTEG_RATE and
+# `simulator_mavlink start -h localhost 4560` (PX4 connects to jMAVSim, the TCP server).
+RC_JMAVSIM_START = """	if jps | grep -i jmavsim; then
+		kill "$(jps | grep -i jmavsim | awk '{print $1}')" || true
+		sleep 1
+	fi
+
+	param set IMU_INTEG_RATE 250
+	./jmavsim_run.sh -l -r 250 &
+"""
+
+
+def patch_rc_simulator_for_jmavsim(path):
+    with open(path) as f:
+        text = f.read()
+    if RC_JMAVSIM_START not in text:
+        sys.exit(f"{path}: not PX4 v1.14's jMAVSim start (this script patches it, see run.py)")
+    with open(path, "w") as f:
+        f.write(text.replace(RC_JMAVSIM_START, "\tparam set IMU_INTEG_RATE 250\n", 1))
+
+
+def start_jmavsim(args, workdir):
+    """jMAVSim (jmavsim_run.jar, built by the user: docs/real-sitl.md, PX4 section) headless, real
+    time (no -lockstep), 250 Hz, TCP server on 127.0.0.1:4560 for PX4's simulator_mavlink, with
+    home at the centre of sitl/maps (PX4_HOME_LAT/LON/ALT, which jMAVSim reads). It runs in the
+    jar's folder, which must hold the jar's resources (`ant copy_res`: mavlink/, models/,
+    environment/)."""
+    jar = os.path.abspath(args.jmavsim_jar)
+    here = os.path.dirname(jar)
+    schema = os.path.join(here, "mavlink", "message_definitions", "common.xml")
+    if not os.path.exists(jar) or not os.path.exists(schema):
+        sys.exit(f"{jar}: no jMAVSim jar with its resources ({schema}) beside it")
+    if tcp_listening(JMAVSIM_PORT):
+        sys.exit(f"TCP port {JMAVSIM_PORT} is in use (another jMAVSim or simulator?)")
+    env = dict(os.environ, PX4_HOME_LAT=f"{HOME_LAT:.7f}", PX4_HOME_LON=f"{HOME_LON:.7f}",
+               PX4_HOME_ALT=f"{HOME_ALT_M:.2f}")
+    env.pop("PX4_SIM_SPEED_FACTOR", None)
+    cmd = ["java", "--add-exports", "java.base/java.lang=ALL-UNNAMED",
+           "--add-exports", "java.desktop/sun.awt=ALL-UNNAMED",
+           "--add-exports", "java.desktop/sun.java2d=ALL-UNNAMED",
+           "-XX:GCTimeRatio=20", "-Djava.ext.dirs=", "-jar", jar,
+           "-tcp", f"127.0.0.1:{JMAVSIM_PORT}", "-r", "250", "-no-gui"]
+    log(f"jMAVSim (in {here}): PX4_HOME_LAT={env['PX4_HOME_LAT']} PX4_HOME_LON="
+        f"{env['PX4_HOME_LON']} PX4_HOME_ALT={env['PX4_HOME_ALT']} " + " ".join(cmd))
+    out = os.path.join(workdir, "jmavsim.log")
+    p = subprocess.Popen(cmd, env=env, cwd=here, stdin=subprocess.DEVNULL, stdout=open(out, "w"),
+                         stderr=subprocess.STDOUT, start_new_session=True)
+    end = time.time() + 30
+    while time.time() < end:
+        with open(out) as f:
+            text = f.read()
+        if p.poll() is not None or "Failed to open MAV port" in text:
+            break
+        if tcp_listening(JMAVSIM_PORT):
+            return p
+        time.sleep(0.5)
+    if p.poll() is None:
+        os.killpg(p.pid, signal.SIGKILL)
+    sys.exit(f"jMAVSim did not open TCP {JMAVSIM_PORT} (see {out})")
+
+
+def tcp_listening(port):
+    """Something listens on TCP `port` (Linux /proc/net/tcp*, state 0A), without connecting: a
+    connection would be jMAVSim's one autopilot link."""
+    for name in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            with open(name) as f:
+                next(f)
+                for line in f:
+                    v = line.split()
+                    if v[3] == "0A" and int(v[1].rsplit(":", 1)[1], 16) == port:
+                        return True
+        except OSError:
+            pass
+    return False
+
+
 def start_px4(args, workdir, params):
-    """PX4 SITL + SIH in WORKDIR/px4 with the parameters in a private copy of `etc`."""
+    """PX4 SITL (with SIH, or for the running jMAVSim) in WORKDIR/px4 with the parameters in a
+    private copy of `etc`."""
     build = os.path.abspath(args.px4_build)
     exe = os.path.join(build, "bin", "px4")
     etc_src = os.path.join(build, "etc")
@@ -110,10 +205,17 @@ def start_px4(args, workdir, params):
             f.write(f"param set {name} {value}\n")
     wd = os.path.join(workdir, "px4")
     os.makedirs(wd, exist_ok=True)
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PX4_HOME_")}
-    env.update(PX4_SIMULATOR="sihsim", PX4_SIM_MODEL="sihsim_quadx")
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith("PX4_HOME_") and k not in ("PX4_SIMULATOR", "PX4_SIM_MODEL")}
+    if args.sim == "jmavsim":
+        patch_rc_simulator_for_jmavsim(os.path.join(etc, "init.d-posix", "px4-rc.simulator"))
+        env.update(PX4_SIM_MODEL="jmavsim_iris")
+        shown = "PX4_SIM_MODEL=jmavsim_iris "
+    else:
+        env.update(PX4_SIMULATOR="sihsim", PX4_SIM_MODEL="sihsim_quadx")
+        shown = "PX4_SIMULATOR=sihsim PX4_SIM_MODEL=sihsim_quadx "
     cmd = [exe, "-d", "-w", wd, etc]
-    log("PX4: PX4_SIMULATOR=sihsim PX4_SIM_MODEL=sihsim_quadx " + " ".join(cmd))
+    log("PX4: " + shown + " ".join(cmd))
     return subprocess.Popen(cmd, env=env, cwd=wd, stdin=subprocess.DEVNULL,
                             stdout=open(os.path.join(workdir, "px4.log"), "w"),
                             stderr=subprocess.STDOUT, start_new_session=True)
@@ -176,6 +278,30 @@ def set_param(m, name, value, timeout=5.0, on=None):
     return False
 
 
+def inject_gps_off(m, on, timeout=5.0):
+    """MAV_CMD_INJECT_FAILURE (FAILURE_UNIT_SENSOR_GPS, FAILURE_TYPE_OFF); True when acknowledged
+    as accepted (needs SYS_FAILURE_EN = 1)."""
+    cmd = mavutil.mavlink.MAV_CMD_INJECT_FAILURE
+    end = time.time() + timeout
+    while time.time() < end:
+        m.mav.command_long_send(m.target_system, m.target_component, cmd, 0,
+                                mavutil.mavlink.FAILURE_UNIT_SENSOR_GPS,
+                                mavutil.mavlink.FAILURE_TYPE_OFF, 0, 0, 0, 0, 0)
+        # Several modules see the command (simulator_mavlink, battery_simulator): any accepted.
+        results = []
+        t_end = time.time() + 1.5
+        while time.time() < t_end:
+            r = recv(m, "COMMAND_ACK", t_end - time.time(), on)
+            if r is not None and r.command == cmd:
+                results.append(r.result)
+        if mavutil.mavlink.MAV_RESULT_ACCEPTED in results:
+            return True
+        if results:
+            log(f"MAV_CMD_INJECT_FAILURE acknowledged with {results}")
+            return False
+    return False
+
+
 def upload_mission(m, path):
     items = []
     with open(path) as f:
@@ -208,6 +334,13 @@ def upload_mission(m, path):
     sys.exit("mission upload timed out")
 
 
+def jmavsim_truth_alt(r):
+    """jMAVSim (66b764a, MAVLinkHILSystem.java) fills HIL_STATE_QUATERNION.alt with its local z
+    (NED down, metres from the home ground, in mm) instead of the altitude AMSL, and PX4 passes it
+    on unchanged: the truth's altitude AMSL is home altitude - z. Rewrites `r` in place."""
+    r.alt = int(round(HOME_ALT_M * 1000.0)) - r.alt
+
+
 class Truth:
     """Latest HIL_STATE_QUATERNION (PX4's ground truth) with its arrival time."""
 
@@ -236,9 +369,15 @@ def main():
     g.add_argument("--attach", action="store_true",
                    help="PX4 SITL (SIH, home as above) is already running: parameters are set "
                         "with PARAM_SET")
+    ap.add_argument("--sim", choices=["sih", "jmavsim"], default="sih",
+                    help="PX4's simulator: SIH (built in, default) or jMAVSim (--jmavsim-jar)")
+    ap.add_argument("--jmavsim-jar",
+                    help="jMAVSim's jmavsim_run.jar with its resources beside it (not built here: "
+                         "docs/real-sitl.md, PX4 section)")
     ap.add_argument("--visnav", help="visnav binary (default: target/release/visnav)")
-    ap.add_argument("--config", default=os.path.join(HERE, "visnav.toml"),
-                    help="visnav configuration (default: sitl/px4/visnav.toml)")
+    ap.add_argument("--config",
+                    help="visnav configuration (default: sitl/px4/visnav.toml for SIH, "
+                         "sitl/px4/visnav-jmavsim.toml for jMAVSim)")
     ap.add_argument("--no-visnav", action="store_true", help="the GPS-off control run")
     ap.add_argument("--params", default=os.path.join(HERE, "visnav-ev.params"))
     ap.add_argument("--mission", default=os.path.join(HERE, "mission.waypoints"))
@@ -260,6 +399,12 @@ def main():
     ap.add_argument("--timeout", type=float, default=1500.0, help="flight, s")
     ap.add_argument("--workdir")
     args = ap.parse_args()
+    if args.config is None:
+        args.config = os.path.join(HERE, "visnav-jmavsim.toml" if args.sim == "jmavsim"
+                                   else "visnav.toml")
+    if args.sim == "jmavsim" and args.px4_build and not args.jmavsim_jar:
+        ap.error("--sim jmavsim needs --jmavsim-jar (or --attach with jMAVSim running)")
+    jmavsim = args.sim == "jmavsim"
 
     in_flight = False
 
@@ -280,9 +425,22 @@ def main():
     os.makedirs(workdir, exist_ok=True)
     log(f"workdir {workdir}")
     params = read_params(args.params)
+    if jmavsim:
+        # SIH's parameters do not apply; the GPS is switched off by failure injection
+        # (gps_off below), which PX4 accepts only with SYS_FAILURE_EN = 1; jMAVSim's GPS is
+        # 200 ms late (imu_check.py; EKF2's default delay is 110 ms). jMAVSim's magnetic field
+        # is a constant (Simulator.DEFAULT_MAG_FIELD, Zurich's: declination atan2(0.01021,
+        # 0.21506) = 2.72 deg) wherever home is, and EKF2 would take the declination of home
+        # from its tables (WMM): EKF2's heading was then 1.5-1.8 deg off the truth before
+        # take-off and drifted to 2-3 deg off once the GPS was off (flight jm-v1), which visnav
+        # follows ([nav] use_autopilot_attitude). EKF2_DECL_TYPE 0: EKF2 uses EKF2_MAG_DECL.
+        params = [(n, v) for n, v in params if not n.startswith("SIH_")]
+        params += [("SYS_FAILURE_EN", "1"), ("EKF2_GPS_DELAY", "200"),
+                   ("EKF2_DECL_TYPE", "0"), ("EKF2_MAG_DECL", f"{JMAVSIM_MAG_DECL_DEG:.2f}")]
+    sim_params = [] if jmavsim else sih_params()
     procs = []
     report = {"run": "control (no visnav)" if args.no_visnav else "visnav ODOMETRY",
-              "home": [HOME_LAT, HOME_LON, HOME_ALT_M]}
+              "sim": args.sim, "home": [HOME_LAT, HOME_LON, HOME_ALT_M]}
     try:
         ev_ctrl = dict(params).get("EKF2_EV_CTRL", "0")
         if args.ev_from == "armed":
@@ -290,7 +448,9 @@ def main():
             # with visnav running from boot: see --visnav-from).
             params = [(n, "0" if n == "EKF2_EV_CTRL" else v) for n, v in params]
         if args.px4_build:
-            procs.append(("px4", start_px4(args, workdir, sih_params() + params)))
+            if jmavsim:
+                procs.append(("jmavsim", start_jmavsim(args, workdir)))
+            procs.append(("px4", start_px4(args, workdir, sim_params + params)))
         if not args.no_visnav and args.visnav_from == "boot":
             procs.append(("visnav", start_visnav(args, workdir)))
         m = mavutil.mavlink_connection(f"udpin:0.0.0.0:{GCS_PORT}", source_system=255)
@@ -308,8 +468,9 @@ def main():
         # A GCS heartbeat: PX4 answers to this socket from now on.
         m.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID,
                              0, 0, 0)
-        todo = (sih_params() + params) if args.attach else [
-            ("SIH_LOC_H0", f"{HOME_ALT_M:.2f}"), ("EKF2_EV_CTRL", None), ("EKF2_GPS_CTRL", None)]
+        todo = (sim_params + params) if args.attach else (
+            [] if jmavsim else [("SIH_LOC_H0", f"{HOME_ALT_M:.2f}")]) + [
+            ("EKF2_EV_CTRL", None), ("EKF2_GPS_CTRL", None)]
         for name, value in todo:
             if value is None:
                 value = dict(params).get(name)
@@ -335,10 +496,19 @@ def main():
         truth = Truth()
         est_flags = [None]
 
+        # Re-encodes a rewritten truth message as PX4's (visnav listens to PX4's system id).
+        enc = mavutil.mavlink.MAVLink(None)
+
         def on(r, now):
             typ = r.get_type()
             if typ in ("HIL_STATE_QUATERNION", "ATTITUDE") and r.get_srcSystem() == m.target_system:
-                relay.write(r.get_msgbuf())
+                if jmavsim and typ == "HIL_STATE_QUATERNION":
+                    jmavsim_truth_alt(r)
+                    enc.srcSystem, enc.srcComponent = r.get_srcSystem(), r.get_srcComponent()
+                    enc.seq = r.get_seq()
+                    relay.write(r.pack(enc))
+                else:
+                    relay.write(r.get_msgbuf())
             truth.on(r, now)
             if typ == "STATUSTEXT":
                 log(f"STATUSTEXT {r.text}")
@@ -410,15 +580,24 @@ def main():
         why = "timeout"
 
         def gps_off(where):
-            # The simulated receiver reports no fix (SIM_GPS_USED < 4: fix_type 0, eph 100 m,
-            # PX4 v1.14 sensor_gps_sim), as ArduPilot's SIM_GPS_DISABLE does: GPS_RAW_INT has no
-            # fix, so visnav ([daemon] gps = "gps1") stops using it too; and EKF2 stops fusing GPS
-            # at once (EKF2_GPS_CTRL = 0) rather than after its GPS checks time out.
-            if not set_param(m, "SIM_GPS_USED", 0, on=on):
-                sys.exit("cannot set SIM_GPS_USED = 0")
+            # SIH: the simulated receiver reports no fix (SIM_GPS_USED < 4: fix_type 0, eph
+            # 100 m, PX4 v1.14 sensor_gps_sim), as ArduPilot's SIM_GPS_DISABLE does: GPS_RAW_INT
+            # has no fix, so visnav ([daemon] gps = "gps1") stops using it too.
+            # jMAVSim: MAV_CMD_INJECT_FAILURE GPS off (simulator_mavlink drops jMAVSim's HIL_GPS:
+            # no GPS sample at all, so GPS_RAW_INT stops).
+            # Both: EKF2 stops fusing GPS at once (EKF2_GPS_CTRL = 0) rather than after its GPS
+            # checks time out.
+            if jmavsim:
+                if not inject_gps_off(m, on):
+                    sys.exit("MAV_CMD_INJECT_FAILURE (GPS off) not accepted")
+                what = "MAV_CMD_INJECT_FAILURE GPS off"
+            else:
+                if not set_param(m, "SIM_GPS_USED", 0, on=on):
+                    sys.exit("cannot set SIM_GPS_USED = 0")
+                what = "SIM_GPS_USED = 0"
             if not set_param(m, "EKF2_GPS_CTRL", 0, on=on):
                 sys.exit("cannot set EKF2_GPS_CTRL = 0")
-            log(f"GPS off: SIM_GPS_USED = 0, EKF2_GPS_CTRL = 0 ({where})")
+            log(f"GPS off: {what}, EKF2_GPS_CTRL = 0 ({where})")
             return time.time()
 
         while True:

@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""EKF2's position error against SIH's ground truth from a PX4 SITL flight log (.ulg).
+"""EKF2's position error against the simulator's ground truth (SIH, jMAVSim) from a PX4 SITL
+flight log (.ulg).
 
     python3 sitl/px4/ulog_error.py WORKDIR/px4/log/*/*.ulg [--json out.json]
 
@@ -11,7 +12,9 @@ writes in every SITL run instead:
 * EKF2: `vehicle_local_position` (x, y, z NED metres about its origin `ref_lat`, `ref_lon`,
   `ref_alt`; published whether or not the position is valid, with `xy_valid`), turned into
   latitude / longitude / altitude with the local flat-earth metres per degree at the origin.
-* Truth: `vehicle_global_position_groundtruth` (SIH), linearly interpolated to each EKF2 sample.
+* Truth: `vehicle_global_position_groundtruth` (SIH, jMAVSim), linearly interpolated to each EKF2
+  sample. jMAVSim's altitude there is its local z (down) from the home ground: turned into
+  HOME_ALT_M - z (`--sim`, detected from SYS_AUTOSTART 10017).
 * GPS off: the time of the logged parameter change `EKF2_GPS_CTRL` to 0 (run.py sets it).
 
 Horizontal and |vertical| error median / p90 / max: airborne (true height above the first
@@ -27,7 +30,7 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from sitl_common import metres_per_deg, stats  # noqa: E402
+from sitl_common import HOME_ALT_M, metres_per_deg, stats  # noqa: E402
 
 try:
     from pyulog import ULog
@@ -46,10 +49,20 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("ulg")
     ap.add_argument("--json", help="write the result here too")
+    ap.add_argument("--sim", choices=["auto", "sih", "jmavsim"], default="auto",
+                    help="the simulator (auto: jMAVSim when SYS_AUTOSTART is 10017)")
     args = ap.parse_args()
     u = ULog(args.ulg, ["vehicle_local_position", "vehicle_global_position_groundtruth"])
     lp = topic(u, "vehicle_local_position")
     gt = topic(u, "vehicle_global_position_groundtruth")
+    sim = args.sim
+    if sim == "auto":
+        sim = "jmavsim" if int(u.initial_parameters.get("SYS_AUTOSTART", 0)) == 10017 else "sih"
+    if sim == "jmavsim":
+        # jMAVSim's HIL_STATE_QUATERNION.alt is its local z (down, from the home ground), not the
+        # altitude AMSL (run.py, jmavsim_truth_alt): the truth's altitude is home - z.
+        gt = dict(gt)
+        gt["alt"] = HOME_ALT_M - gt["alt"].astype(float)
     t_gps_off = None
     for t, name, value in u.changed_parameters:
         if name == "EKF2_GPS_CTRL" and value == 0 and t > 0:
@@ -104,6 +117,7 @@ def main():
             errs["gps_on"][1].append(ev)
     out = {
         "ulg": args.ulg,
+        "sim": sim,
         "gps_off_at_s": None if t_gps_off is None else round(t_gps_off * 1e-6, 1),
         "log_end_s": round(int(lp["timestamp"][-1]) * 1e-6, 1),
         "ekf2_error": {ph: {"horizontal": stats(h), "vertical": stats(v)}

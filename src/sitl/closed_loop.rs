@@ -694,11 +694,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
                 f.display()
             )));
         }
-        if !matches!(n, 1 | 2 | 4) {
-            return Err(setup_err(format!(
-                "[closed_loop] map_upsample {n}: must be 1, 2 or 4"
-            )));
-        }
+        // The value (1, 2 or 4) is checked by `Scenario::parse`.
         cfg.map.upsample = Some(n);
     }
     let cam_ortho = crate::config::resolve(base, &cl.camera_ortho);

@@ -136,3 +136,12 @@ class ErrorScore:
     def save(self, workdir):
         with open(os.path.join(workdir, "samples.json"), "w") as f:
             json.dump(self.samples, f)
+
+
+def ulog_topic(ulog, name):
+    """The first instance of a pyulog ULog's topic `name` (its data dict); exits naming the topic
+    when the log does not have it."""
+    for d in ulog.data_list:
+        if d.name == name and d.multi_id == 0:
+            return d.data
+    sys.exit(f"topic {name} not in the log")

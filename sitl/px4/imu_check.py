@@ -34,7 +34,12 @@ import glob
 import math
 import sys
 
+import os
+
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from sitl_common import ulog_topic as topic  # noqa: E402
 
 try:
     from pyulog import ULog
@@ -59,13 +64,6 @@ def r_nb(q):
         np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
         np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
         np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
-
-
-def topic(u, name):
-    for d in u.data_list:
-        if d.name == name and d.multi_id == 0:
-            return d.data
-    sys.exit(f"the log has no {name}")
 
 
 def main():

@@ -30,19 +30,12 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from sitl_common import HOME_ALT_M, metres_per_deg, stats  # noqa: E402
+from sitl_common import HOME_ALT_M, metres_per_deg, stats, ulog_topic as topic  # noqa: E402
 
 try:
     from pyulog import ULog
 except ImportError:
     sys.exit("ulog_error.py needs pyulog: python3 -m pip install pyulog")
-
-
-def topic(ulog, name):
-    for d in ulog.data_list:
-        if d.name == name and d.multi_id == 0:
-            return d.data
-    sys.exit(f"topic {name} not in the log")
 
 
 def main():

@@ -25,6 +25,7 @@
 pub mod config;
 pub mod fixlog;
 pub mod frames;
+pub mod imu_bias;
 pub mod inputs;
 pub mod metrics;
 pub mod prometheus;

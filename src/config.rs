@@ -291,6 +291,16 @@ impl Config {
             p.section("frames", |p| f.validate_in(base, p));
         }
         p.section("daemon", |p| cfg.daemon.validate_in(&cfg.output, p));
+        if cfg.daemon.imu_bias_restore == crate::daemon::config::ImuBiasRestore::ScaledImu
+            && cfg.link.streams.scaled_imu_hz <= 0.0
+        {
+            p.push(
+                "daemon.imu_bias_restore",
+                "\"scaled_imu\" pairs HIGHRES_IMU with SCALED_IMU, which is not requested: set \
+                 link.streams.scaled_imu_hz (to link.streams.imu_hz)"
+                    .to_string(),
+            );
+        }
         if !p.list.is_empty() {
             return Err(ConfigError::Invalid {
                 path: path.to_path_buf(),

@@ -108,6 +108,37 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("fix.ratio"), "{err}");
 
+    // The PX4 IMU bias restoration needs SCALED_IMU requested; an unknown mode is named.
+    let (code, err) = check(
+        dir.path(),
+        &format!(
+            "[link]\nconnection = \"udpin:0.0.0.0:14550\"\n{good_map}\
+             [daemon]\nimu_bias_restore = \"scaled_imu\"\n"
+        ),
+    );
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("daemon.imu_bias_restore") && err.contains("link.streams.scaled_imu_hz"),
+        "{err}"
+    );
+    let (code, err) = check(
+        dir.path(),
+        &format!(
+            "[link]\nconnection = \"udpin:0.0.0.0:14550\"\n[link.streams]\nscaled_imu_hz = 250.0\n\
+             {good_map}[daemon]\nimu_bias_restore = \"scaled_imu\"\n"
+        ),
+    );
+    assert_eq!(code, 0, "{err}");
+    let (code, err) = check(
+        dir.path(),
+        &format!(
+            "[link]\nconnection = \"udpin:0.0.0.0:14550\"\n{good_map}\
+             [daemon]\nimu_bias_restore = \"ekf2\"\n"
+        ),
+    );
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("imu_bias_restore") && err.contains("ekf2"), "{err}");
+
     // Wrong type.
     let (code, err) = check(
         dir.path(),

@@ -13,6 +13,8 @@
 //! baro = true             # SCALED_PRESSURE altitude, offset calibrated against GPS / the filter
 //! baro_sigma_m = 2.0
 //! imu_timeout_s = 0.5     # no IMU for this long: the solution is declared lost (nothing injected)
+//! imu_bias_restore = "off" # "scaled_imu" on PX4: HIGHRES_IMU minus EKF2's bias, restored from
+//!                          # SCALED_IMU (needs link.streams.scaled_imu_hz; see below)
 //! log_interval_s = 10.0   # metrics summary in the log
 //! # metrics_listen = "127.0.0.1:9187"  # Prometheus endpoint GET /metrics (absent: off)
 //! ```
@@ -52,6 +54,18 @@ pub enum GpsSource {
     None,
 }
 
+/// Whether the autopilot's bias estimates are added back to HIGHRES_IMU.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum ImuBiasRestore {
+    /// HIGHRES_IMU is the raw IMU (ArduPilot does not send it; a companion IMU bridge).
+    #[default]
+    Off,
+    /// HIGHRES_IMU is the IMU minus the autopilot's bias estimates (PX4): restored with the
+    /// SCALED_IMU of the same samples ([`crate::daemon::imu_bias`]).
+    ScaledImu,
+}
+
 /// `[daemon]` section.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -89,6 +103,13 @@ pub struct DaemonConfig {
     /// in ArduCopter SITL this tilted the filter 0.7 deg in 25 s of climb and reset it every
     /// 5-10 s (docs/real-sitl.md, run 6). HIGHRES_IMU (float) is always used as it is.
     pub gyro_from_attitude: bool,
+    /// Add the autopilot's bias estimates back to HIGHRES_IMU. PX4 (v1.14) sends HIGHRES_IMU
+    /// minus EKF2's gyro and accelerometer bias estimates, which swing by 100-220 deg/h once
+    /// EKF2 loses the GPS: integrated as the raw IMU that tilted visnav by 0.5-0.7 deg in 20 s
+    /// (docs/real-sitl.md, PX4 session 9). `"scaled_imu"` restores the raw samples from the
+    /// SCALED_IMU of the same samples (int16, without the bias) and needs
+    /// `link.streams.scaled_imu_hz` (set it to `imu_hz`).
+    pub imu_bias_restore: ImuBiasRestore,
     /// Use the barometric altitude.
     pub baro: bool,
     /// Barometric altitude sigma, m.
@@ -118,6 +139,7 @@ impl Default for DaemonConfig {
             gps_vz_sigma_m_s: 30.0,
             gps_delay_s: 0.1,
             gyro_from_attitude: true,
+            imu_bias_restore: ImuBiasRestore::Off,
             baro: true,
             baro_sigma_m: 2.0,
             imu_timeout_s: 0.5,

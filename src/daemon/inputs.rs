@@ -9,7 +9,10 @@
 //!   `dtheta = w dt`, `dv = f dt` (body FRD, `ImuSample::from_rates`). The gyro of the 16-bit
 //!   messages (1 mrad/s steps, truncated by ArduPilot) is replaced by ATTITUDE's float body
 //!   rates when they are at most [`ATT_RATES_MAX_AGE_US`] from the sample
-//!   (`DaemonConfig::gyro_from_attitude`).
+//!   (`DaemonConfig::gyro_from_attitude`). With `imu_bias_restore = "scaled_imu"` (PX4, whose
+//!   HIGHRES_IMU is the IMU minus EKF2's bias estimates) every SCALED_IMU goes to an
+//!   [`ImuBiasRestorer`] and HIGHRES_IMU samples leave with the estimates added back
+//!   ([`crate::daemon::imu_bias`]); before the first estimate they pass as sent.
 //! * Attitude: ATTITUDE roll/pitch/yaw (ZYX, `R_ned_body = Rz(yaw) Ry(pitch) Rx(roll)`) at
 //!   `time_boot_ms`.
 //! * GPS: GPS_RAW_INT or GPS2_RAW with a 3D fix or better: position (AMSL `alt` converted to
@@ -35,7 +38,8 @@ use mavlink::dialects::ardupilotmega::{GpsFixType, MavMessage};
 use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
 
 use crate::camera::Attitude;
-use crate::daemon::config::{DaemonConfig, GpsSource};
+use crate::daemon::config::{DaemonConfig, GpsSource, ImuBiasRestore};
+use crate::daemon::imu_bias::{ImuBiasRestorer, RestoreStatus};
 use crate::daemon::metrics::reason_wording;
 use crate::fix::{AttitudePriorNed, FixPrior, FixReport, PositionPriorGeo};
 use crate::geo::geoid::geoid_undulation_m;
@@ -137,6 +141,8 @@ pub struct Inputs {
     last_gps_ns: Option<i64>,
     /// Latest ATTITUDE body rates (boot time µs, rad/s).
     att_rates: Option<(u64, Vector3<f64>)>,
+    /// Adds the autopilot's bias estimates back to HIGHRES_IMU (`imu_bias_restore`).
+    restorer: Option<ImuBiasRestorer>,
 }
 
 /// ISA altitude of a static pressure (inverse of the emulator's / ICAO troposphere model), m.
@@ -147,7 +153,10 @@ pub fn isa_altitude_m(p_hpa: f64) -> f64 {
 impl Inputs {
     /// New state; `gps` is the resolved source ([`DaemonConfig::gps_source`]).
     pub fn new(cfg: DaemonConfig, gps: GpsSource) -> Self {
+        let restorer =
+            (cfg.imu_bias_restore == ImuBiasRestore::ScaledImu).then(ImuBiasRestorer::new);
         Self {
+            restorer,
             cfg,
             gps,
             last_kind_ns: [None; 3],
@@ -165,6 +174,14 @@ impl Inputs {
         self.last_imu_t_us = None;
         self.attitudes.clear();
         self.baro_isa_m = None;
+        if let Some(r) = &mut self.restorer {
+            r.reset();
+        }
+    }
+
+    /// The bias restorer's counters and estimate (`None` when `imu_bias_restore` is off).
+    pub fn imu_bias_status(&self) -> Option<RestoreStatus> {
+        self.restorer.as_ref().map(ImuBiasRestorer::status)
     }
 
     /// The barometric offset is known.
@@ -245,12 +262,27 @@ impl Inputs {
         let mrad = |v: i16| f64::from(v) * 1e-3;
         match &tel.msg {
             MavMessage::HIGHRES_IMU(m) if self.imu_allowed(ImuKind::Highres, t_ns) => {
-                let g = Vector3::new(m.xgyro, m.ygyro, m.zgyro).cast::<f64>();
-                let a = Vector3::new(m.xacc, m.yacc, m.zacc).cast::<f64>();
+                let mut g = Vector3::new(m.xgyro, m.ygyro, m.zgyro).cast::<f64>();
+                let mut a = Vector3::new(m.xacc, m.yacc, m.zacc).cast::<f64>();
+                if let Some(r) = &mut self.restorer {
+                    let (rg, ra, _) = r.on_highres(m.time_usec, g.into(), a.into());
+                    g = rg.into();
+                    a = ra.into();
+                }
                 self.imu(m.time_usec, g, a, &mut out);
             }
-            MavMessage::SCALED_IMU(m) if self.imu_allowed(ImuKind::Scaled, t_ns) => {
+            MavMessage::SCALED_IMU(m) => {
                 let t_us = u64::from(m.time_boot_ms) * 1000;
+                if let Some(r) = &mut self.restorer {
+                    r.on_scaled(
+                        t_us,
+                        [m.xgyro, m.ygyro, m.zgyro],
+                        [m.xacc, m.yacc, m.zacc],
+                    );
+                }
+                if !self.imu_allowed(ImuKind::Scaled, t_ns) {
+                    return out;
+                }
                 let g = self.fine_gyro(
                     t_us,
                     Vector3::new(mrad(m.xgyro), mrad(m.ygyro), mrad(m.zgyro)),

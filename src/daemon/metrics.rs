@@ -8,6 +8,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use serde::Serialize;
 
+use crate::daemon::imu_bias::RestoreStatus;
 use crate::link::Health as LinkHealth;
 
 /// Live counters.
@@ -41,6 +42,38 @@ pub struct DaemonMetrics {
     pub health: AtomicU64,
     /// Engine rejections by reason.
     pub engine_rejected: Mutex<BTreeMap<String, u64>>,
+    /// The IMU bias restorer's state (`daemon.imu_bias_restore`; `None` when off).
+    pub imu_bias: Mutex<Option<RestoreStatus>>,
+}
+
+/// The IMU bias restorer in a snapshot (`daemon.imu_bias_restore = "scaled_imu"`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct ImuBiasSnapshot {
+    /// SCALED_IMU paired with a HIGHRES_IMU.
+    pub paired: u64,
+    /// SCALED_IMU no HIGHRES_IMU matched.
+    pub unpaired: u64,
+    /// Estimates bootstrapped (1 after a normal start; more after autopilot bias resets).
+    pub bootstraps: u64,
+    /// HIGHRES_IMU samples passed on without an estimate.
+    pub not_restored: u64,
+    /// The autopilot's gyro bias estimate added back, deg/h (body FRD); `None` before the first.
+    pub gyro_bias_deg_h: Option<[f64; 3]>,
+    /// The autopilot's accelerometer bias estimate added back, mg.
+    pub accel_bias_mg: Option<[f64; 3]>,
+}
+
+impl From<RestoreStatus> for ImuBiasSnapshot {
+    fn from(s: RestoreStatus) -> Self {
+        Self {
+            paired: s.paired,
+            unpaired: s.unpaired,
+            bootstraps: s.bootstraps,
+            not_restored: s.not_restored,
+            gyro_bias_deg_h: s.bias.map(|b| b.0.map(|v| v.to_degrees() * 3600.0)),
+            accel_bias_mg: s.bias.map(|b| b.1.map(|v| v / 9.806_65 * 1e3)),
+        }
+    }
 }
 
 /// Navigation health as the daemon last published it (the injector's view).
@@ -156,6 +189,9 @@ pub struct MetricsSnapshot {
     pub fix_latency_count: u64,
     /// Navigation health last published.
     pub health: HealthState,
+    /// The IMU bias restorer (absent when `daemon.imu_bias_restore` is off).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub imu_bias: Option<ImuBiasSnapshot>,
 }
 
 /// `reason` with each number (digits with an optional sign and decimals) replaced by `N`.
@@ -252,6 +288,11 @@ impl DaemonMetrics {
             fix_latency_ms_sum: sum_latency,
             fix_latency_count: n_latency,
             health: HealthState::from_code(g(&self.health)),
+            imu_bias: self
+                .imu_bias
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .map(ImuBiasSnapshot::from),
         }
     }
 }

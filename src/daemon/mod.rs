@@ -48,7 +48,7 @@ use crate::link::{Health as LinkHealth, Link, LinkError, NavEstimate, Telemetry}
 use crate::nav::{Health as NavHealth, Measurement, NavConfig, NavFilter, NavOutput, Outcome};
 use crate::vision::GrayImage;
 
-pub use config::{DaemonConfig, GpsSource};
+pub use config::{DaemonConfig, GpsSource, ImuBiasRestore};
 pub use frames::{FixResult, Slot};
 pub use metrics::{DaemonMetrics, MetricsSnapshot};
 
@@ -654,6 +654,13 @@ impl NavTask {
             let (_, why) = self.filter.health();
             self.publish_lost(&why);
         }
+        if let Some(st) = self.inputs.imu_bias_status() {
+            *self
+                .metrics
+                .imu_bias
+                .lock()
+                .unwrap_or_else(|e| e.into_inner()) = Some(st);
+        }
         let now_ns = self.link.companion_ns(Instant::now());
         if self.dcfg.baro
             && !self.inputs.baro_calibrated()
@@ -683,6 +690,22 @@ impl NavTask {
                 latency_ms = m.fix_latency_ms_last,
                 "daemon"
             );
+            if let Some(b) = &m.imu_bias {
+                let f = |v: Option<[f64; 3]>, d: usize| {
+                    v.map_or("none".to_string(), |v| {
+                        format!("{:.d$} {:.d$} {:.d$}", v[0], v[1], v[2])
+                    })
+                };
+                info!(
+                    paired = b.paired,
+                    unpaired = b.unpaired,
+                    bootstraps = b.bootstraps,
+                    not_restored = b.not_restored,
+                    gyro_deg_h = %f(b.gyro_bias_deg_h, 1),
+                    accel_mg = %f(b.accel_bias_mg, 2),
+                    "autopilot IMU bias restored"
+                );
+            }
         }
     }
 

@@ -157,6 +157,51 @@ pub fn render(d: &MetricsSnapshot, link: &LinkMetrics) -> String {
     ] {
         w.single(name, "counter", help, c(v));
     }
+    if let Some(b) = &d.imu_bias {
+        for (name, help, v) in [
+            (
+                "visnav_imu_bias_pairs_total",
+                "SCALED_IMU paired with a HIGHRES_IMU (daemon.imu_bias_restore)",
+                b.paired,
+            ),
+            (
+                "visnav_imu_bias_unpaired_total",
+                "SCALED_IMU that no HIGHRES_IMU matched",
+                b.unpaired,
+            ),
+            (
+                "visnav_imu_bias_bootstraps_total",
+                "autopilot bias estimates bootstrapped (more than 1: the autopilot's estimate jumped)",
+                b.bootstraps,
+            ),
+            (
+                "visnav_imu_samples_not_restored_total",
+                "HIGHRES_IMU samples passed on without the autopilot's bias added back",
+                b.not_restored,
+            ),
+        ] {
+            w.single(name, "counter", help, c(v));
+        }
+        for (name, help, v) in [
+            (
+                "visnav_imu_bias_gyro_deg_per_hour",
+                "the autopilot's gyro bias estimate added back to HIGHRES_IMU, body FRD",
+                b.gyro_bias_deg_h,
+            ),
+            (
+                "visnav_imu_bias_accel_mg",
+                "the autopilot's accelerometer bias estimate added back to HIGHRES_IMU, body FRD",
+                b.accel_bias_mg,
+            ),
+        ] {
+            if let Some(v) = v {
+                w.family(name, "gauge", help);
+                for (axis, x) in ["x", "y", "z"].iter().zip(v) {
+                    w.sample(name, &[("axis", axis)], x);
+                }
+            }
+        }
+    }
 
     // Frames.
     w.single(
@@ -570,6 +615,14 @@ mod tests {
         d.set_health(&LinkHealth::Degraded {
             reason: "coasting".into(),
         });
+        *d.imu_bias.lock().unwrap() = Some(crate::daemon::imu_bias::RestoreStatus {
+            paired: 10,
+            unpaired: 2,
+            bootstraps: 1,
+            not_restored: 3,
+            bias: Some(([0.0, -0.5e-3, 0.0], [0.0; 3])),
+            bias_t_us: Some(1),
+        });
         let l = LinkMetrics::default();
         l.rx_packets.store(99, Ordering::Relaxed);
         l.timesync_rtt_us.store(1500, Ordering::Relaxed);
@@ -583,6 +636,11 @@ mod tests {
         assert!(t.ends_with('\n'));
         for want in [
             "visnav_imu_samples_total 1234",
+            "visnav_imu_bias_pairs_total 10",
+            "visnav_imu_bias_unpaired_total 2",
+            "visnav_imu_samples_not_restored_total 3",
+            "visnav_imu_bias_gyro_deg_per_hour{axis=\"x\"} 0",
+            "visnav_imu_bias_accel_mg{axis=\"z\"} 0",
             "visnav_frames_dropped_total{reason=\"stale\"} 3",
             "visnav_fixes_total{outcome=\"accepted\"} 7",
             "visnav_fix_latency_seconds_sum 1",

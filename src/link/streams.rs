@@ -42,6 +42,7 @@ pub fn wanted_streams(r: &StreamRates) -> Vec<StreamSpec> {
     [
         ("ATTITUDE", vec![ATTITUDE], r.attitude_hz),
         ("IMU", vec![HIGHRES_IMU, SCALED_IMU, RAW_IMU], r.imu_hz),
+        ("SCALED_IMU", vec![SCALED_IMU], r.scaled_imu_hz),
         (
             "GLOBAL_POSITION_INT",
             vec![GLOBAL_POSITION_INT],

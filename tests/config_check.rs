@@ -137,7 +137,10 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
         ),
     );
     assert_eq!(code, 2, "{err}");
-    assert!(err.contains("imu_bias_restore") && err.contains("ekf2"), "{err}");
+    assert!(
+        err.contains("imu_bias_restore") && err.contains("ekf2"),
+        "{err}"
+    );
 
     // Wrong type.
     let (code, err) = check(

@@ -567,3 +567,87 @@ fn visnav_run_subprocess_injects_and_reports() {
     assert!(!out.status.success() && e.contains("fps"), "{e}");
     drop(emu);
 }
+
+/// The emulator's vehicle with jMAVSim's IMU noise (0.006 rad/s, 0.03 m/s^2 per sample) and
+/// PX4's EKF2 bias estimate, which a PX4-like emulator subtracts from HIGHRES_IMU.
+struct NoisyPx4 {
+    rng: Mutex<Rng>,
+}
+
+const EKF2_GYRO_BIAS: [f64; 3] = [0.002, -0.001, 0.0005];
+const EKF2_ACCEL_BIAS: [f64; 3] = [0.1, -0.05, 0.02];
+
+impl TruthSource for NoisyPx4 {
+    fn state(&self, t_s: f64) -> visnav::sitl::autopilot::TruthState {
+        TRUTH.state(t_s)
+    }
+    fn imu(&self, t_s: f64) -> ([f64; 3], [f64; 3]) {
+        let s = TRUTH.state(t_s);
+        let mut r = self.rng.lock().unwrap();
+        (
+            s.gyro_body_rad_s.map(|v| v + 0.006 * r.normal()),
+            s.accel_body_m_s2.map(|v| v + 0.03 * r.normal()),
+        )
+    }
+    fn autopilot_imu_bias(&self, _t_s: f64) -> ([f64; 3], [f64; 3]) {
+        (EKF2_GYRO_BIAS, EKF2_ACCEL_BIAS)
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn px4_highres_imu_bias_is_restored_over_udp() {
+    let port = free_udp_port();
+    let mut ecfg = EmulatorConfig::new(&format!("udpout:127.0.0.1:{port}"));
+    ecfg.gps_fix = true;
+    ecfg.px4_imu = true;
+    let emu = AutopilotEmulator::start(
+        ecfg,
+        NoisyPx4 {
+            rng: Mutex::new(Rng::new(3)),
+        },
+    )
+    .await
+    .unwrap();
+    let mut s = setup(port);
+    s.link.streams.imu_hz = 250.0;
+    s.link.streams.scaled_imu_hz = 250.0;
+    s.daemon.imu_bias_restore = visnav::daemon::ImuBiasRestore::ScaledImu;
+    let d = Daemon::start(s, None).await.unwrap();
+    wait_until(15.0, "filter initialisation from GPS", || initialised(&d)).await;
+    assert_eq!(
+        emu.stream_interval(105),
+        Some(Duration::from_millis(4)),
+        "HIGHRES_IMU 250 Hz"
+    );
+    assert_eq!(
+        emu.stream_interval(26),
+        Some(Duration::from_millis(4)),
+        "SCALED_IMU 250 Hz"
+    );
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let m = d.metrics();
+    let b = m.imu_bias.clone().expect("restorer status in the metrics");
+    eprintln!("restorer over UDP: {b:?}; imu samples {}", m.imu_samples);
+    let deg_h = |v: f64| v.to_degrees() * 3600.0;
+    let g = b.gyro_bias_deg_h.expect("a gyro bias estimate");
+    let a = b.accel_bias_mg.expect("an accelerometer bias estimate");
+    for i in 0..3 {
+        // 412 / -206 / 103 deg/h and 10.2 / -5.1 / 2.0 mg added back; the tracker's noise is
+        // about 5 deg/h and 0.02 mg (1 sigma) with this IMU noise.
+        let want_g = deg_h(EKF2_GYRO_BIAS[i]);
+        let want_a = EKF2_ACCEL_BIAS[i] / 9.806_65 * 1e3;
+        assert!(
+            (g[i] - want_g).abs() < 25.0,
+            "gyro {i}: {} vs {want_g}",
+            g[i]
+        );
+        assert!(
+            (a[i] - want_a).abs() < 0.5,
+            "accel {i}: {} vs {want_a}",
+            a[i]
+        );
+    }
+    assert_eq!(b.bootstraps, 1, "{b:?}");
+    assert!(b.paired > 300 && b.unpaired * 10 < b.paired, "{b:?}");
+    let _ = tokio::time::timeout(Duration::from_secs(10), d.shutdown()).await;
+}

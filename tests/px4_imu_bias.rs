@@ -190,15 +190,18 @@ fn fly(stream: Stream, after_s: f64) -> (f64, f64, u64) {
     }
     let ts = last.expect("flown");
     let s = filter.state().expect("initialised");
-    assert_eq!(filter.t_us(), Some(n * DT_US), "{stream:?}: IMU samples lost");
+    assert_eq!(
+        filter.t_us(),
+        Some(n * DT_US),
+        "{stream:?}: IMU samples lost"
+    );
     let psi = (s.q_nb * ts.q_nb.inverse()).scaled_axis();
-    let d = earth::ned_offset_m((s.lat_rad, s.lon_rad, s.h_m), (ts.lat_rad, ts.lon_rad, ts.h_m));
+    let d = earth::ned_offset_m(
+        (s.lat_rad, s.lon_rad, s.h_m),
+        (ts.lat_rad, ts.lon_rad, ts.h_m),
+    );
     let boots = inputs.imu_bias_status().map_or(0, |b| b.bootstraps);
-    (
-        psi.xy().norm().to_degrees(),
-        d.xy().norm(),
-        boots,
-    )
+    (psi.xy().norm().to_degrees(), d.xy().norm(), boots)
 }
 
 #[test]

@@ -419,9 +419,10 @@ impl ImuBiasRestorer {
         }
         let tol = tolerances(s);
         // A competing hypothesis as well supported but more than 2 LSB away: ambiguous.
-        let rival = scored.iter().skip(1).any(|(m, g, _, _)| {
-            *m >= need && (0..6).any(|c| (g[c] - h[c]).abs() > 2.0 + tol[c])
-        });
+        let rival = scored
+            .iter()
+            .skip(1)
+            .any(|(m, g, _, _)| *m >= need && (0..6).any(|c| (g[c] - h[c]).abs() > 2.0 + tol[c]));
         if rival {
             return;
         }
@@ -611,7 +612,11 @@ mod tests {
         assert!(n > 14_000.0);
         // Restored within the first half second.
         let first = out.iter().find(|(_, o)| o.restored.2 == Restored::Yes);
-        assert!(first.is_some_and(|(t, _)| *t < 0.5), "{:?}", first.map(|f| f.0));
+        assert!(
+            first.is_some_and(|(t, _)| *t < 0.5),
+            "{:?}",
+            first.map(|f| f.0)
+        );
     }
 
     #[test]
@@ -622,9 +627,14 @@ mod tests {
         s.gyro_noise_rad_s = 0.0004;
         s.acc_noise_m_s2 = 0.004;
         let mut r = ImuBiasRestorer::new();
-        let out = s.run(&mut r, 20.0, |_| ([0.0004, -0.0012, 0.0021], [0.05, -0.02, 0.1]));
+        let out = s.run(&mut r, 20.0, |_| {
+            ([0.0004, -0.0012, 0.0021], [0.05, -0.02, 0.1])
+        });
         let ((g_rms, g_max, a_rms, a_max), _) = errors(&out, 2.0);
-        assert!(g_max < 110.0 && g_rms < 60.0, "gyro {g_rms} / {g_max} deg/h");
+        assert!(
+            g_max < 110.0 && g_rms < 60.0,
+            "gyro {g_rms} / {g_max} deg/h"
+        );
         assert!(a_max < 0.6 && a_rms < 0.4, "accel {a_rms} / {a_max} mG");
     }
 
@@ -662,11 +672,7 @@ mod tests {
         let out = Px4Streams::new(4).run(&mut r, 30.0, jump);
         let ((g_rms, g_max, _, _), _) = errors(&out[..out.len() * 19 / 30], 1.0);
         assert!(g_rms < 8.0 && g_max < 30.0, "before: {g_rms} / {g_max}");
-        let after: Vec<_> = out
-            .iter()
-            .copied()
-            .filter(|(t, _)| *t >= 21.0)
-            .collect();
+        let after: Vec<_> = out.iter().copied().filter(|(t, _)| *t >= 21.0).collect();
         let ((g_rms, g_max, _, _), _) = errors(&after, 21.0);
         assert!(g_rms < 8.0 && g_max < 30.0, "after: {g_rms} / {g_max}");
         assert_eq!(r.status().bootstraps, 2);
@@ -685,12 +691,18 @@ mod tests {
             r.on_highres(2_004_000 + k * 4000, [1e9, -1e9, 0.0], [1e9, 0.0, -1e9]);
         }
         let st = r.status();
-        assert!(st.bias.is_some_and(|b| b.0.iter().chain(&b.1).all(|v| v.is_finite())));
+        assert!(
+            st.bias
+                .is_some_and(|b| b.0.iter().chain(&b.1).all(|v| v.is_finite()))
+        );
         let moved = |b: ([f64; 3], [f64; 3])| {
             let a = before.unwrap_or(b);
             (0..3).map(|i| (b.0[i] - a.0[i]).abs()).fold(0.0, f64::max)
         };
-        assert!(st.bias.is_some_and(|b| moved(b) < 1e-4), "{st:?} {before:?}");
+        assert!(
+            st.bias.is_some_and(|b| moved(b) < 1e-4),
+            "{st:?} {before:?}"
+        );
         r.reset();
         assert_eq!(r.status().bias, None);
         assert!(r.status().paired > 0);

@@ -274,11 +274,7 @@ impl Inputs {
             MavMessage::SCALED_IMU(m) => {
                 let t_us = u64::from(m.time_boot_ms) * 1000;
                 if let Some(r) = &mut self.restorer {
-                    r.on_scaled(
-                        t_us,
-                        [m.xgyro, m.ygyro, m.zgyro],
-                        [m.xacc, m.yacc, m.zacc],
-                    );
+                    r.on_scaled(t_us, [m.xgyro, m.ygyro, m.zgyro], [m.xacc, m.yacc, m.zacc]);
                 }
                 if !self.imu_allowed(ImuKind::Scaled, t_ns) {
                     return out;

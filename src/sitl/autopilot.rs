@@ -12,6 +12,11 @@
 //! * TIMESYNC requests (tc1 = 0) are answered with tc1 = boot time in ns.
 //! * SET_GPS_GLOBAL_ORIGIN sets the origin and is echoed with GPS_GLOBAL_ORIGIN.
 //! * [`AutopilotEmulator::reboot`] restarts its boot clock at 0 and forgets intervals and origin.
+//! * [`EmulatorConfig::px4_imu`]: the IMU as PX4 v1.14 streams it instead. HEARTBEAT says
+//!   MAV_AUTOPILOT_PX4; HIGHRES_IMU becomes streamable and carries the IMU sample minus the
+//!   autopilot's bias estimate ([`TruthSource::autopilot_imu_bias`], EKF2's), while SCALED_IMU
+//!   carries the same sample without it, truncated to int16 mrad/s and mG; both take the newest
+//!   sample of a 250 Hz IMU (PX4's `vehicle_imu`), so the two streams share samples.
 //! * Every GPS_INPUT, VISION_POSITION_ESTIMATE, ODOMETRY, GLOBAL_POSITION_SENSOR,
 //!   SET_GPS_GLOBAL_ORIGIN and STATUSTEXT received is recorded with its boot time of arrival.
 //!
@@ -30,9 +35,9 @@ use std::time::{Duration, Instant};
 #[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: still what ArduPilot acts on
 use mavlink::dialects::ardupilotmega::{
     ATTITUDE_DATA, COMMAND_ACK_DATA, GLOBAL_POSITION_INT_DATA, GPS_GLOBAL_ORIGIN_DATA,
-    GPS_RAW_INT_DATA, GPS2_RAW_DATA, GpsFixType, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavMessage,
-    MavModeFlag, MavResult, MavState, MavType, RAW_IMU_DATA, SCALED_IMU_DATA, SCALED_PRESSURE_DATA,
-    SYSTEM_TIME_DATA, TIMESYNC_DATA,
+    GPS_RAW_INT_DATA, GPS2_RAW_DATA, GpsFixType, HEARTBEAT_DATA, HIGHRES_IMU_DATA, MavAutopilot,
+    MavCmd, MavMessage, MavModeFlag, MavResult, MavState, MavType, RAW_IMU_DATA, SCALED_IMU_DATA,
+    SCALED_PRESSURE_DATA, SYSTEM_TIME_DATA, TIMESYNC_DATA,
 };
 use mavlink::{AsyncMavConnection, MavHeader, Message, SigningConfig};
 use tokio::task::JoinHandle;
@@ -75,6 +80,12 @@ pub trait TruthSource: Send + Sync + 'static {
     /// rad/s; ArduPilot sends its AHRS's gyro). Default: the truth.
     fn attitude_rates(&self, t_s: f64) -> [f64; 3] {
         self.state(t_s).gyro_body_rad_s
+    }
+    /// The autopilot's own IMU bias estimate at `t_s` that a PX4-like emulator subtracts from
+    /// HIGHRES_IMU ([`EmulatorConfig::px4_imu`]): `(gyro rad/s, accel m/s^2)`. Default: zero.
+    fn autopilot_imu_bias(&self, t_s: f64) -> ([f64; 3], [f64; 3]) {
+        let _ = t_s;
+        ([0.0; 3], [0.0; 3])
     }
     /// What the GPS receiver reports at `t_s` (GPS_RAW_INT): `None` = no fix (an outage).
     /// Default: the truth without error, always available.
@@ -137,6 +148,8 @@ pub struct EmulatorConfig {
     pub gps_fix: bool,
     /// Require signed messages with this key (MAVLink 2 signing); unsigned ones are dropped.
     pub signing_key: Option<[u8; 32]>,
+    /// Stream the IMU as PX4 does (see the module doc) and announce MAV_AUTOPILOT_PX4.
+    pub px4_imu: bool,
 }
 
 impl EmulatorConfig {
@@ -149,6 +162,7 @@ impl EmulatorConfig {
             unix_at_boot_us: None,
             gps_fix: false,
             signing_key: None,
+            px4_imu: false,
         }
     }
 }
@@ -183,7 +197,12 @@ struct Inner {
     state: Mutex<EmuState>,
     seq: AtomicU8,
     truth: Box<dyn TruthSource>,
+    /// PX4 mode: the newest 250 Hz IMU sample (slot index, gyro rad/s, accel m/s^2).
+    px4_sample: Mutex<Option<(u64, [f64; 3], [f64; 3])>>,
 }
+
+/// PX4's `vehicle_imu` interval, µs.
+const PX4_IMU_SLOT_US: u64 = 4_000;
 
 /// A running emulator. Dropping it stops it.
 pub struct AutopilotEmulator {
@@ -197,7 +216,7 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// Message ids the emulator can stream.
+/// Message ids the emulator can stream (and HIGHRES_IMU, 105, with `px4_imu`).
 pub const STREAMABLE: [u32; 8] = [2, 24, 26, 27, 29, 30, 33, 124];
 
 impl AutopilotEmulator {
@@ -218,6 +237,7 @@ impl AutopilotEmulator {
             }),
             seq: AtomicU8::new(0),
             truth: Box::new(truth),
+            px4_sample: Mutex::new(None),
         });
         // Validate the address now so a typo fails the caller, not the task.
         mavlink::ConnectionAddress::parse_address(&inner.cfg.connection)?;
@@ -371,7 +391,7 @@ async fn handle(inner: &Inner, conn: &Conn, h: MavHeader, m: MavMessage) {
             let result = match c.command {
                 MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL => {
                     let id = c.param1 as u32;
-                    if !STREAMABLE.contains(&id) {
+                    if !(STREAMABLE.contains(&id) || (id == 105 && inner.cfg.px4_imu)) {
                         MavResult::MAV_RESULT_FAILED
                     } else {
                         let mut st = lock(&inner.state);
@@ -448,8 +468,27 @@ fn telemetry(inner: &Inner, id: u32, t_us: u64) -> Option<MavMessage> {
     let t_s = t_us as f64 * 1e-6;
     let s = inner.truth.state(t_s);
     let boot_ms = (t_us / 1000) as u32;
+    // PX4: the newest sample of a 250 Hz IMU, shared by HIGHRES_IMU and SCALED_IMU.
+    let px4_sample = || {
+        let slot = t_us / PX4_IMU_SLOT_US;
+        let mut cache = lock(&inner.px4_sample);
+        match *cache {
+            Some((k, g, a)) if k == slot => (slot * PX4_IMU_SLOT_US, g, a),
+            _ => {
+                let t_slot_us = slot * PX4_IMU_SLOT_US;
+                let (g, a) = inner.truth.imu(t_slot_us as f64 * 1e-6);
+                *cache = Some((slot, g, a));
+                (t_slot_us, g, a)
+            }
+        }
+    };
     let imu = || {
-        let (gyro, accel) = inner.truth.imu(t_s);
+        let (gyro, accel) = if inner.cfg.px4_imu {
+            let (_, g, a) = px4_sample();
+            (g, a)
+        } else {
+            inner.truth.imu(t_s)
+        };
         // Truncated toward zero, as ArduPilot's C float-to-int16 conversion does.
         (
             gyro.map(|g| trunc_i16(g * 1000.0)),
@@ -502,6 +541,21 @@ fn telemetry(inner: &Inner, id: u32, t_us: u64) -> Option<MavMessage> {
                 cog: u16::MAX,
                 satellites_visible: sats,
                 ..GPS_RAW_INT_DATA::DEFAULT
+            })
+        }
+        105 if inner.cfg.px4_imu => {
+            let (t_sample_us, g, a) = px4_sample();
+            let (bg, ba) = inner.truth.autopilot_imu_bias(t_sample_us as f64 * 1e-6);
+            MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
+                time_usec: t_sample_us,
+                xacc: (a[0] - ba[0]) as f32,
+                yacc: (a[1] - ba[1]) as f32,
+                zacc: (a[2] - ba[2]) as f32,
+                xgyro: (g[0] - bg[0]) as f32,
+                ygyro: (g[1] - bg[1]) as f32,
+                zgyro: (g[2] - bg[2]) as f32,
+                abs_pressure: isa_pressure_hpa(s.alt_amsl_m) as f32,
+                ..HIGHRES_IMU_DATA::DEFAULT
             })
         }
         26 => {
@@ -575,7 +629,11 @@ async fn tx_loop(inner: Arc<Inner>, conn: Arc<Conn>) {
             let hb = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
                 custom_mode: 0,
                 mavtype: MavType::MAV_TYPE_QUADROTOR,
-                autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+                autopilot: if inner.cfg.px4_imu {
+                    MavAutopilot::MAV_AUTOPILOT_PX4
+                } else {
+                    MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA
+                },
                 base_mode: MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
                 system_status: MavState::MAV_STATE_STANDBY,
                 mavlink_version: 3,

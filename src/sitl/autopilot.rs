@@ -198,8 +198,11 @@ struct Inner {
     seq: AtomicU8,
     truth: Box<dyn TruthSource>,
     /// PX4 mode: the newest 250 Hz IMU sample (slot index, gyro rad/s, accel m/s^2).
-    px4_sample: Mutex<Option<(u64, [f64; 3], [f64; 3])>>,
+    px4_sample: Mutex<Option<Px4Sample>>,
 }
+
+/// A PX4 `vehicle_imu` sample: (slot index, gyro rad/s, accel m/s^2).
+type Px4Sample = (u64, [f64; 3], [f64; 3]);
 
 /// PX4's `vehicle_imu` interval, µs.
 const PX4_IMU_SLOT_US: u64 = 4_000;

@@ -291,15 +291,18 @@ impl Config {
             p.section("frames", |p| f.validate_in(base, p));
         }
         p.section("daemon", |p| cfg.daemon.validate_in(&cfg.output, p));
-        if cfg.daemon.imu_bias_restore == crate::daemon::config::ImuBiasRestore::ScaledImu
-            && cfg.link.streams.scaled_imu_hz <= 0.0
-        {
-            p.push(
-                "daemon.imu_bias_restore",
-                "\"scaled_imu\" pairs HIGHRES_IMU with SCALED_IMU, which is not requested: set \
-                 link.streams.scaled_imu_hz (to link.streams.imu_hz)"
-                    .to_string(),
-            );
+        if cfg.daemon.imu_bias_restore == crate::daemon::config::ImuBiasRestore::ScaledImu {
+            match cfg.link.streams.scaled_imu_hz {
+                Some(hz) if hz <= 0.0 => p.push(
+                    "daemon.imu_bias_restore",
+                    "\"scaled_imu\" pairs HIGHRES_IMU with SCALED_IMU, which \
+                     link.streams.scaled_imu_hz = 0 does not request: remove that key (SCALED_IMU \
+                     at link.streams.imu_hz) or give a rate"
+                        .to_string(),
+                ),
+                // None: the daemon requests it at the IMU rate whatever the autopilot.
+                _ => {}
+            }
         }
         if !p.list.is_empty() {
             return Err(ConfigError::Invalid {

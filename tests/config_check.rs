@@ -108,12 +108,13 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("fix.ratio"), "{err}");
 
-    // The PX4 IMU bias restoration needs SCALED_IMU requested; an unknown mode is named.
+    // The PX4 IMU bias restoration needs SCALED_IMU: refused when it is switched off; an unknown
+    // mode is named.
     let (code, err) = check(
         dir.path(),
         &format!(
-            "[link]\nconnection = \"udpin:0.0.0.0:14550\"\n{good_map}\
-             [daemon]\nimu_bias_restore = \"scaled_imu\"\n"
+            "[link]\nconnection = \"udpin:0.0.0.0:14550\"\n[link.streams]\nscaled_imu_hz = 0.0\n\
+             {good_map}[daemon]\nimu_bias_restore = \"scaled_imu\"\n"
         ),
     );
     assert_eq!(code, 2, "{err}");
@@ -121,14 +122,16 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
         err.contains("daemon.imu_bias_restore") && err.contains("link.streams.scaled_imu_hz"),
         "{err}"
     );
-    let (code, err) = check(
-        dir.path(),
-        &format!(
-            "[link]\nconnection = \"udpin:0.0.0.0:14550\"\n[link.streams]\nscaled_imu_hz = 250.0\n\
-             {good_map}[daemon]\nimu_bias_restore = \"scaled_imu\"\n"
-        ),
-    );
-    assert_eq!(code, 0, "{err}");
+    for ok in ["", "[link.streams]\nscaled_imu_hz = 250.0\n"] {
+        let (code, err) = check(
+            dir.path(),
+            &format!(
+                "[link]\nconnection = \"udpin:0.0.0.0:14550\"\n{ok}\
+                 {good_map}[daemon]\nimu_bias_restore = \"scaled_imu\"\n"
+            ),
+        );
+        assert_eq!(code, 0, "{ok}: {err}");
+    }
     let (code, err) = check(
         dir.path(),
         &format!(

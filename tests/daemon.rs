@@ -608,10 +608,15 @@ async fn px4_highres_imu_bias_is_restored_over_udp() {
     )
     .await
     .unwrap();
+    // Defaults but the IMU rate: `imu_bias_restore = "auto"` restores because the HEARTBEAT says
+    // PX4, and the link asks PX4 for SCALED_IMU at the IMU rate by itself.
     let mut s = setup(port);
     s.link.streams.imu_hz = 250.0;
-    s.link.streams.scaled_imu_hz = 250.0;
-    s.daemon.imu_bias_restore = visnav::daemon::ImuBiasRestore::ScaledImu;
+    assert_eq!(
+        s.daemon.imu_bias_restore,
+        visnav::daemon::ImuBiasRestore::Auto
+    );
+    assert_eq!(s.link.streams.scaled_imu_hz, None);
     let d = Daemon::start(s, None).await.unwrap();
     wait_until(15.0, "filter initialisation from GPS", || initialised(&d)).await;
     assert_eq!(

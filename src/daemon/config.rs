@@ -13,8 +13,8 @@
 //! baro = true             # SCALED_PRESSURE altitude, offset calibrated against GPS / the filter
 //! baro_sigma_m = 2.0
 //! imu_timeout_s = 0.5     # no IMU for this long: the solution is declared lost (nothing injected)
-//! imu_bias_restore = "off" # "scaled_imu" on PX4: HIGHRES_IMU minus EKF2's bias, restored from
-//!                          # SCALED_IMU (needs link.streams.scaled_imu_hz; see below)
+//! imu_bias_restore = "auto" # "auto" (PX4: on) | "scaled_imu" | "off": PX4's HIGHRES_IMU is
+//!                           # the IMU minus EKF2's bias, restored with SCALED_IMU (see below)
 //! log_interval_s = 10.0   # metrics summary in the log
 //! # metrics_listen = "127.0.0.1:9187"  # Prometheus endpoint GET /metrics (absent: off)
 //! ```
@@ -58,8 +58,11 @@ pub enum GpsSource {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum ImuBiasRestore {
-    /// HIGHRES_IMU is the raw IMU (ArduPilot does not send it; a companion IMU bridge).
+    /// `scaled_imu` when the locked autopilot's HEARTBEAT says MAV_AUTOPILOT_PX4, else `off`
+    /// (the link then also asks PX4 for SCALED_IMU at the IMU rate).
     #[default]
+    Auto,
+    /// HIGHRES_IMU is the raw IMU (ArduPilot does not send it; a companion IMU bridge).
     Off,
     /// HIGHRES_IMU is the IMU minus the autopilot's bias estimates (PX4): restored with the
     /// SCALED_IMU of the same samples ([`crate::daemon::imu_bias`]).
@@ -107,8 +110,9 @@ pub struct DaemonConfig {
     /// minus EKF2's gyro and accelerometer bias estimates, which swing by 100-220 deg/h once
     /// EKF2 loses the GPS: integrated as the raw IMU that tilted visnav by 0.5-0.7 deg in 20 s
     /// (docs/real-sitl.md, PX4 session 9). `"scaled_imu"` restores the raw samples from the
-    /// SCALED_IMU of the same samples (int16, without the bias) and needs
-    /// `link.streams.scaled_imu_hz` (set it to `imu_hz`).
+    /// SCALED_IMU of the same samples (int16, without the bias; the link requests it at
+    /// `link.streams.imu_hz` unless `link.streams.scaled_imu_hz` says otherwise); `"auto"`
+    /// (default) does so when the autopilot is PX4.
     pub imu_bias_restore: ImuBiasRestore,
     /// Use the barometric altitude.
     pub baro: bool,
@@ -139,7 +143,7 @@ impl Default for DaemonConfig {
             gps_vz_sigma_m_s: 30.0,
             gps_delay_s: 0.1,
             gyro_from_attitude: true,
-            imu_bias_restore: ImuBiasRestore::Off,
+            imu_bias_restore: ImuBiasRestore::Auto,
             baro: true,
             baro_sigma_m: 2.0,
             imu_timeout_s: 0.5,

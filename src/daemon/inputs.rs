@@ -9,10 +9,11 @@
 //!   `dtheta = w dt`, `dv = f dt` (body FRD, `ImuSample::from_rates`). The gyro of the 16-bit
 //!   messages (1 mrad/s steps, truncated by ArduPilot) is replaced by ATTITUDE's float body
 //!   rates when they are at most [`ATT_RATES_MAX_AGE_US`] from the sample
-//!   (`DaemonConfig::gyro_from_attitude`). With `imu_bias_restore = "scaled_imu"` (PX4, whose
-//!   HIGHRES_IMU is the IMU minus EKF2's bias estimates) every SCALED_IMU goes to an
-//!   [`ImuBiasRestorer`] and HIGHRES_IMU samples leave with the estimates added back
-//!   ([`crate::daemon::imu_bias`]); before the first estimate they pass as sent.
+//!   (`DaemonConfig::gyro_from_attitude`). With `imu_bias_restore = "scaled_imu"`, or `"auto"`
+//!   once a HEARTBEAT says MAV_AUTOPILOT_PX4 (PX4's HIGHRES_IMU is the IMU minus EKF2's bias
+//!   estimates), every SCALED_IMU goes to an [`ImuBiasRestorer`] and HIGHRES_IMU samples leave
+//!   with the estimates added back ([`crate::daemon::imu_bias`]); before the first estimate (or
+//!   without SCALED_IMU) they pass as sent.
 //! * Attitude: ATTITUDE roll/pitch/yaw (ZYX, `R_ned_body = Rz(yaw) Ry(pitch) Rx(roll)`) at
 //!   `time_boot_ms`.
 //! * GPS: GPS_RAW_INT or GPS2_RAW with a 3D fix or better: position (AMSL `alt` converted to
@@ -34,7 +35,7 @@
 
 use std::collections::VecDeque;
 
-use mavlink::dialects::ardupilotmega::{GpsFixType, MavMessage};
+use mavlink::dialects::ardupilotmega::{GpsFixType, MavAutopilot, MavMessage};
 use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
 
 use crate::camera::Attitude;
@@ -261,6 +262,17 @@ impl Inputs {
         let mg = |v: i16| f64::from(v) * 1e-3 * G0_M_S2;
         let mrad = |v: i16| f64::from(v) * 1e-3;
         match &tel.msg {
+            MavMessage::HEARTBEAT(hb)
+                if self.cfg.imu_bias_restore == ImuBiasRestore::Auto
+                    && self.restorer.is_none()
+                    && hb.autopilot == MavAutopilot::MAV_AUTOPILOT_PX4 =>
+            {
+                tracing::info!(
+                    "PX4: its HIGHRES_IMU is the IMU minus EKF2's bias estimates; restoring the \
+                     raw IMU with SCALED_IMU (daemon.imu_bias_restore = \"auto\")"
+                );
+                self.restorer = Some(ImuBiasRestorer::new());
+            }
             MavMessage::HIGHRES_IMU(m) if self.imu_allowed(ImuKind::Highres, t_ns) => {
                 let mut g = Vector3::new(m.xgyro, m.ygyro, m.zgyro).cast::<f64>();
                 let mut a = Vector3::new(m.xacc, m.yacc, m.zacc).cast::<f64>();

@@ -227,7 +227,14 @@ impl Daemon {
             Some(a) => Some(metrics_endpoint(a).await?),
             None => None,
         };
-        let mut link = Link::start(setup.link.clone(), setup.output.clone()).await?;
+        let mut link_cfg = setup.link.clone();
+        if setup.daemon.imu_bias_restore == ImuBiasRestore::ScaledImu
+            && link_cfg.streams.scaled_imu_hz.is_none()
+        {
+            // Restoring needs SCALED_IMU beside HIGHRES_IMU whatever the autopilot says it is.
+            link_cfg.streams.scaled_imu_hz = Some(link_cfg.streams.imu_hz);
+        }
+        let mut link = Link::start(link_cfg, setup.output.clone()).await?;
         let (est_tx, est_rx) = watch::channel(None);
         let (out_tx, out_rx) = watch::channel(None);
         link.spawn_injector(est_rx.clone());

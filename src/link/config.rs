@@ -70,10 +70,12 @@ pub struct StreamRates {
     /// HIGHRES_IMU (falls back to SCALED_IMU and RAW_IMU when it does not arrive).
     #[serde(default = "default_imu_hz")]
     pub imu_hz: f64,
-    /// SCALED_IMU besides HIGHRES_IMU (0 = only as HIGHRES_IMU's fallback): what
-    /// `daemon.imu_bias_restore = "scaled_imu"` pairs HIGHRES_IMU with; set it to `imu_hz`.
+    /// SCALED_IMU besides HIGHRES_IMU, what `daemon.imu_bias_restore` pairs HIGHRES_IMU with
+    /// (PX4). Absent (automatic): at `imu_hz` when the autopilot is PX4 or
+    /// `daemon.imu_bias_restore = "scaled_imu"`, else only as HIGHRES_IMU's fallback; 0: never
+    /// besides HIGHRES_IMU.
     #[serde(default)]
-    pub scaled_imu_hz: f64,
+    pub scaled_imu_hz: Option<f64>,
     /// GLOBAL_POSITION_INT.
     #[serde(default = "default_position_hz")]
     pub global_position_hz: f64,
@@ -97,7 +99,7 @@ impl Default for StreamRates {
         Self {
             attitude_hz: default_attitude_hz(),
             imu_hz: default_imu_hz(),
-            scaled_imu_hz: 0.0,
+            scaled_imu_hz: None,
             global_position_hz: default_position_hz(),
             gps_raw_hz: default_gps_raw_hz(),
             system_time_hz: default_system_time_hz(),
@@ -368,7 +370,7 @@ impl Validate for StreamRates {
         for (k, v) in [
             ("attitude_hz", self.attitude_hz),
             ("imu_hz", self.imu_hz),
-            ("scaled_imu_hz", self.scaled_imu_hz),
+            ("scaled_imu_hz", self.scaled_imu_hz.unwrap_or(0.0)),
             ("global_position_hz", self.global_position_hz),
             ("gps_raw_hz", self.gps_raw_hz),
             ("system_time_hz", self.system_time_hz),

@@ -1039,7 +1039,6 @@ async fn run_connection(shared: &Arc<Shared>, conn: Arc<Conn>, stop: &mut watch:
 
 /// Heartbeat, TIMESYNC requests, liveness and stream management on one timer.
 async fn periodic_loop(shared: Arc<Shared>) {
-    let specs = streams::wanted_streams(&shared.cfg.streams);
     let tick_s = 0.05;
     let mut tick = tokio::time::interval(Duration::from_secs_f64(tick_s));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -1095,6 +1094,8 @@ async fn periodic_loop(shared: Arc<Shared>) {
         let dirty = lock(&shared.state).streams_dirty;
         if t >= next_streams || (dirty && shared.target().is_some()) {
             next_streams = t + 2.0;
+            let autopilot = lock(&shared.state).autopilot.map(|a| a.autopilot);
+            let specs = streams::wanted_streams(&shared.cfg.streams, autopilot);
             shared.manage_streams(&specs).await;
         }
     }

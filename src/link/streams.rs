@@ -9,6 +9,8 @@
 
 use std::collections::{HashMap, VecDeque};
 
+use mavlink::dialects::ardupilotmega::MavAutopilot;
+
 use crate::link::config::StreamRates;
 
 /// MAVLink message ids used here.
@@ -36,13 +38,23 @@ pub struct StreamSpec {
     pub hz: f64,
 }
 
-/// The streams visnav needs, at the configured rates (rate 0 = not requested).
-pub fn wanted_streams(r: &StreamRates) -> Vec<StreamSpec> {
+/// The streams visnav needs from `autopilot` (the locked one's flight stack, when known), at the
+/// configured rates (rate 0 = not requested). SCALED_IMU beside HIGHRES_IMU: at `scaled_imu_hz`
+/// when set, else (automatic) at `imu_hz` from PX4, whose HIGHRES_IMU it restores
+/// (`crate::daemon::imu_bias`), and not from others.
+pub fn wanted_streams(r: &StreamRates, autopilot: Option<MavAutopilot>) -> Vec<StreamSpec> {
     use ids::*;
+    let scaled_hz =
+        r.scaled_imu_hz
+            .unwrap_or(if autopilot == Some(MavAutopilot::MAV_AUTOPILOT_PX4) {
+                r.imu_hz
+            } else {
+                0.0
+            });
     [
         ("ATTITUDE", vec![ATTITUDE], r.attitude_hz),
         ("IMU", vec![HIGHRES_IMU, SCALED_IMU, RAW_IMU], r.imu_hz),
-        ("SCALED_IMU", vec![SCALED_IMU], r.scaled_imu_hz),
+        ("SCALED_IMU", vec![SCALED_IMU], scaled_hz),
         (
             "GLOBAL_POSITION_INT",
             vec![GLOBAL_POSITION_INT],
@@ -147,8 +159,40 @@ mod tests {
 
     #[test]
     fn measures_rates_and_picks_alternatives() {
-        let specs = wanted_streams(&StreamRates::default());
+        let specs = wanted_streams(&StreamRates::default(), None);
         assert_eq!(specs.len(), 6);
+        // From PX4, SCALED_IMU is wanted beside HIGHRES_IMU at the IMU rate (automatic), from
+        // ArduPilot not; an explicit rate holds for any autopilot, 0 switches it off.
+        let px4 = wanted_streams(
+            &StreamRates::default(),
+            Some(MavAutopilot::MAV_AUTOPILOT_PX4),
+        );
+        let scaled = px4
+            .iter()
+            .find(|s| s.name == "SCALED_IMU")
+            .expect("SCALED_IMU");
+        assert_eq!(
+            (scaled.ids.as_slice(), scaled.hz),
+            (&[ids::SCALED_IMU][..], 100.0)
+        );
+        let ap = MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA;
+        assert_eq!(wanted_streams(&StreamRates::default(), Some(ap)).len(), 6);
+        let mut r = StreamRates {
+            scaled_imu_hz: Some(50.0),
+            ..StreamRates::default()
+        };
+        assert!(
+            wanted_streams(&r, Some(ap))
+                .iter()
+                .any(|s| s.name == "SCALED_IMU" && s.hz == 50.0)
+        );
+        r.scaled_imu_hz = Some(0.0);
+        let px4 = Some(MavAutopilot::MAV_AUTOPILOT_PX4);
+        assert!(
+            wanted_streams(&r, px4)
+                .iter()
+                .all(|s| s.name != "SCALED_IMU")
+        );
         let mut m = RateMonitor::new(2.0);
         // 3 s of ATTITUDE at 50 Hz, SCALED_IMU (not HIGHRES) at 100 Hz, SYSTEM_TIME at 0.2 Hz.
         for k in 0..300 {
@@ -180,6 +224,10 @@ mod tests {
             pressure_hz: 0.0,
             ..StreamRates::default()
         };
-        assert!(wanted_streams(&r).iter().all(|s| s.name != "PRESSURE"));
+        assert!(
+            wanted_streams(&r, None)
+                .iter()
+                .all(|s| s.name != "PRESSURE")
+        );
     }
 }

@@ -609,9 +609,10 @@ async fn px4_highres_imu_bias_is_restored_over_udp() {
     .await
     .unwrap();
     // Defaults but the IMU rate: `imu_bias_restore = "auto"` restores because the HEARTBEAT says
-    // PX4, and the link asks PX4 for SCALED_IMU at the IMU rate by itself.
+    // PX4, and the link asks PX4 for SCALED_IMU at the IMU rate by itself. 100 Hz (PX4 sends
+    // 250): lighter beside the other daemon tests on a loaded CI machine.
     let mut s = setup(port);
-    s.link.streams.imu_hz = 250.0;
+    s.link.streams.imu_hz = 100.0;
     assert_eq!(
         s.daemon.imu_bias_restore,
         visnav::daemon::ImuBiasRestore::Auto
@@ -621,13 +622,13 @@ async fn px4_highres_imu_bias_is_restored_over_udp() {
     wait_until(15.0, "filter initialisation from GPS", || initialised(&d)).await;
     assert_eq!(
         emu.stream_interval(105),
-        Some(Duration::from_millis(4)),
-        "HIGHRES_IMU 250 Hz"
+        Some(Duration::from_millis(10)),
+        "HIGHRES_IMU 100 Hz"
     );
     assert_eq!(
         emu.stream_interval(26),
-        Some(Duration::from_millis(4)),
-        "SCALED_IMU 250 Hz"
+        Some(Duration::from_millis(10)),
+        "SCALED_IMU 100 Hz beside it (automatic for PX4)"
     );
     tokio::time::sleep(Duration::from_secs(3)).await;
     let m = d.metrics();
@@ -653,6 +654,7 @@ async fn px4_highres_imu_bias_is_restored_over_udp() {
         );
     }
     assert_eq!(b.bootstraps, 1, "{b:?}");
-    assert!(b.paired > 300 && b.unpaired * 10 < b.paired, "{b:?}");
+    assert!(b.paired > 150 && b.unpaired * 10 < b.paired, "{b:?}");
+    assert!(b.restoring && b.age_s.is_some_and(|a| a < 1.0), "{b:?}");
     let _ = tokio::time::timeout(Duration::from_secs(10), d.shutdown()).await;
 }

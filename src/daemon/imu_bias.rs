@@ -39,9 +39,19 @@
 //! bootstrapped from [`BOOT_MESSAGES`] SCALED_IMU: the bias hypothesis consistent with a
 //! candidate of at least 80 % of them, and no competing hypothesis as well supported.
 //!
+//! Gyro scale. PX4's SCALED_IMU divides the gyro's delta angle by the *accelerometer's*
+//! integration interval, HIGHRES_IMU by the gyro's. They are equal where one chip samples both at
+//! one rate (SITL, ICM-42688-class), but can differ by several percent where the accelerometer and
+//! gyro run at different rates (BMI088-class: 6.25 % at 1.6 / 2 kHz), and then `s` is off by that
+//! fraction of the rate. Pairs then fail the consistency check when the vehicle rotates, and a
+//! bootstrap during a steady turn would take `(k - 1) x rate` for the bias: so a bootstrap uses
+//! only gyro midpoints of samples below [`BOOT_GYRO_MAX_LSB`] (at most 1.3 LSB off at 6.25 %) and
+//! needs [`BOOT_MIN_PER_CHANNEL`] of them on every channel.
+//!
 //! A wrong IMU is worse than a biased one: until the bias is known the HIGHRES_IMU sample is
-//! passed on unchanged and reported as [`Restored::NotYet`]; a known estimate is held (EKF2's
-//! bias moves slowly) when pairs stop, and its age is reported.
+//! passed on unchanged and reported as [`Restored::NotYet`]; a known estimate is held when pairs
+//! stop (EKF2's bias moves slowly) for at most [`MAX_HOLD_S`], then the samples pass as sent again
+//! ([`Restored::Stale`]); the estimate's age and every unpaired SCALED_IMU are reported.
 
 use std::collections::VecDeque;
 
@@ -59,15 +69,22 @@ pub const BOOT_MESSAGES: usize = 40;
 pub const REBOOTSTRAP_AFTER: u32 = 50;
 /// Time constant of the bias tracker, s.
 pub const AVERAGE_TAU_S: f64 = 0.7;
+/// Longest an estimate is applied without a new pair, s.
+pub const MAX_HOLD_S: f64 = 5.0;
+/// A bootstrap takes gyro midpoints only from samples whose |SCALED_IMU gyro| is at most this,
+/// LSB (mrad/s): bounds the error of a gyro scale mismatch between the two messages.
+pub const BOOT_GYRO_MAX_LSB: i16 = 20;
+/// Usable midpoints a bootstrap needs on every channel.
+pub const BOOT_MIN_PER_CHANNEL: u32 = 10;
 /// HIGHRES_IMU messages kept for pairing.
 const RING: usize = 16;
 /// SCALED_IMU messages waiting for later HIGHRES_IMU (beyond: the oldest is dropped, unpaired).
 const PENDING_MAX: usize = 64;
 /// Consistency tolerance beyond the interval, LSB: float rounding, the estimate's own error.
 const TOL_LSB: f64 = 0.3;
-/// Tolerance proportional to the value (PX4 divides SCALED_IMU's gyro by the accelerometer's
-/// integration interval, HIGHRES_IMU's by the gyro's; equal in SITL, within microseconds on
-/// hardware).
+/// Tolerance proportional to the value (float rounding; PX4 divides SCALED_IMU's gyro by the
+/// accelerometer's integration interval, HIGHRES_IMU's by the gyro's: equal in SITL and where one
+/// chip samples both at one rate, several percent apart otherwise, see the module doc).
 const TOL_REL: f64 = 1e-3;
 /// Bootstrap hypotheses are tested with this much more tolerance (a hypothesis is one midpoint,
 /// itself up to half an LSB off), LSB.
@@ -80,6 +97,8 @@ pub enum Restored {
     Yes,
     /// No estimate yet: the sample is passed on as the autopilot sent it.
     NotYet,
+    /// The estimate is older than [`MAX_HOLD_S`]: the sample is passed on as sent.
+    Stale,
 }
 
 /// Counters and the current estimate, for metrics and logs.
@@ -87,16 +106,31 @@ pub enum Restored {
 pub struct RestoreStatus {
     /// SCALED_IMU paired with a HIGHRES_IMU.
     pub paired: u64,
-    /// SCALED_IMU that no HIGHRES_IMU matched (dropped).
+    /// SCALED_IMU that no HIGHRES_IMU matched (inconsistent with the estimate, or left over
+    /// from a bootstrap that found none).
     pub unpaired: u64,
     /// Times the estimate was bootstrapped (1 after a normal start).
     pub bootstraps: u64,
-    /// HIGHRES_IMU samples passed on without an estimate.
+    /// HIGHRES_IMU samples passed on without the estimate (none yet, or stale).
     pub not_restored: u64,
     /// The autopilot's bias estimate now: gyro rad/s (body FRD), accelerometer m/s^2.
     pub bias: Option<([f64; 3], [f64; 3])>,
     /// HIGHRES_IMU time of the newest pair behind the estimate, µs.
     pub bias_t_us: Option<u64>,
+    /// HIGHRES_IMU time of the newest sample, µs.
+    pub last_sample_t_us: Option<u64>,
+    /// The newest sample had the estimate added back.
+    pub restoring: bool,
+}
+
+impl RestoreStatus {
+    /// Age of the estimate at the newest sample, s.
+    pub fn age_s(&self) -> Option<f64> {
+        match (self.bias_t_us, self.last_sample_t_us) {
+            (Some(b), Some(t)) => Some(t.saturating_sub(b) as f64 * 1e-6),
+            _ => None,
+        }
+    }
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -118,12 +152,17 @@ struct Sc {
 /// The bias interval one (SCALED, HIGHRES) pair gives, per channel: (midpoint, half width).
 type Intervals = [(f64, f64); 6];
 
+/// A SCALED_IMU kept for the bootstrap: tolerances, SCALED gyro, candidates.
+type BootMsg = ([f64; 6], [i16; 3], Vec<(Intervals, u64)>);
+
 fn intervals(s: &Sc, h: &Hi) -> Intervals {
     std::array::from_fn(|c| {
         let sv = s.lsb[c];
         let r = f64::from(sv) - h.lsb[c];
         if sv == i16::MAX || sv == i16::MIN {
-            (r, f64::INFINITY) // saturated: no information
+            // Saturated by a saturating cast: no information. (PX4's C cast of an out-of-range
+            // float is undefined and wraps on ARM: such a value fails the consistency check.)
+            (r, f64::INFINITY)
         } else if sv > 0 {
             (r + 0.5, 0.5)
         } else if sv < 0 {
@@ -163,7 +202,10 @@ struct Estimate {
     b: [f64; 6],
     /// Its rate of change, LSB/s.
     rate: [f64; 6],
+    /// SCALED_IMU time of the newest pair (the tracker's clock), µs.
     t_us: u64,
+    /// HIGHRES_IMU time of the newest pair, µs.
+    t_hi_us: u64,
 }
 
 /// Pairs HIGHRES_IMU with SCALED_IMU and adds the autopilot's bias estimate back.
@@ -172,8 +214,9 @@ pub struct ImuBiasRestorer {
     ring: VecDeque<Hi>,
     next_seq: u64,
     pending: VecDeque<Sc>,
-    /// Bootstrap messages: each one's tolerances and candidate intervals.
-    boot: VecDeque<([f64; 6], Vec<Intervals>)>,
+    /// Bootstrap messages: each one's tolerances, SCALED_IMU gyro and candidate intervals (with
+    /// the candidate's HIGHRES_IMU time).
+    boot: VecDeque<BootMsg>,
     est: Option<Estimate>,
     /// Bootstrapping again (the held estimate stays applied meanwhile).
     rebootstrap: bool,
@@ -278,8 +321,9 @@ impl ImuBiasRestorer {
                 }
             }
         }
-        match self.est {
-            Some(e) => {
+        self.status.last_sample_t_us = Some(t_us);
+        let out = match self.est {
+            Some(e) if t_us.saturating_sub(e.t_hi_us) as f64 * 1e-6 <= MAX_HOLD_S => {
                 let (bg, ba) = from_lsb(&e.b);
                 (
                     std::array::from_fn(|i| gyro_rad_s[i] + bg[i]),
@@ -287,14 +331,17 @@ impl ImuBiasRestorer {
                     Restored::Yes,
                 )
             }
-            None => {
-                self.status.not_restored += 1;
-                (gyro_rad_s, acc_m_s2, Restored::NotYet)
-            }
+            Some(_) => (gyro_rad_s, acc_m_s2, Restored::Stale),
+            None => (gyro_rad_s, acc_m_s2, Restored::NotYet),
+        };
+        self.status.restoring = out.2 == Restored::Yes;
+        if !self.status.restoring {
+            self.status.not_restored += 1;
         }
+        out
     }
 
-    fn candidates(&self, s: &Sc) -> Vec<Intervals> {
+    fn candidates(&self, s: &Sc) -> Vec<(Intervals, u64)> {
         self.ring
             .iter()
             .filter(|h| {
@@ -302,41 +349,48 @@ impl ImuBiasRestorer {
                     && h.seq < s.after + LOOK_AHEAD
                     && h.t_us.abs_diff(s.t_us) <= CANDIDATE_WINDOW_US
             })
-            .map(|h| intervals(s, h))
+            .map(|h| (intervals(s, h), h.t_us))
             .collect()
     }
 
     fn unpaired(&mut self) {
         self.status.unpaired += 1;
         self.unpaired_run += 1;
-        if self.unpaired_run >= REBOOTSTRAP_AFTER && self.est.is_some() {
-            // The autopilot's estimate jumped (an EKF reset) or the streams changed: start
-            // again, holding the old estimate until a new one is found.
+        if self.unpaired_run >= REBOOTSTRAP_AFTER && !self.rebootstrap {
+            // The autopilot's estimate jumped (an EKF reset) or the streams changed: bootstrap
+            // again, holding the old estimate (for at most MAX_HOLD_S) until a new one is found.
             self.boot.clear();
-            self.unpaired_run = 0;
             self.rebootstrap = true;
         }
     }
 
     fn pair(&mut self, s: &Sc) {
         let cands = self.candidates(s);
-        if self.rebootstrap || self.est.is_none() {
-            self.bootstrap_step(s, cands);
-            return;
-        }
-        let Some(est) = self.est else { return };
-        let best = cands
-            .iter()
-            .filter_map(|iv| score(iv, &tolerances(s), &est.b, 0.0).map(|q| (q, iv)))
-            .min_by(|a, b| a.0.total_cmp(&b.0));
-        let Some((_, iv)) = best else {
+        let tol = tolerances(s);
+        if let Some(est) = self.est {
+            let best = cands
+                .iter()
+                .filter_map(|(iv, t)| score(iv, &tol, &est.b, 0.0).map(|q| (q, iv, *t)))
+                .min_by(|a, b| a.0.total_cmp(&b.0));
+            if let Some((_, iv, t_hi)) = best {
+                self.track(s, iv, t_hi, est);
+                return;
+            }
             self.unpaired();
-            return;
-        };
+            if !self.rebootstrap {
+                return;
+            }
+        }
+        self.bootstrap_step(s, tol, cands);
+    }
+
+    /// One consistent pair: the critically damped level + trend tracker (alpha-beta, time
+    /// constant AVERAGE_TAU_S) follows a steady swing of the autopilot's estimate without lag.
+    fn track(&mut self, s: &Sc, iv: &Intervals, t_hi_us: u64, est: Estimate) {
         self.unpaired_run = 0;
+        self.rebootstrap = false;
+        self.boot.clear();
         self.status.paired += 1;
-        // Critically damped level + trend tracker (alpha-beta, time constant AVERAGE_TAU_S):
-        // follows a steady swing of the autopilot's estimate without lag.
         let dt_s = (s.t_us.saturating_sub(est.t_us) as f64 * 1e-6).clamp(0.0, 0.1);
         let k_level = (2.0 * dt_s / AVERAGE_TAU_S).min(1.0);
         let k_trend = dt_s / (AVERAGE_TAU_S * AVERAGE_TAU_S);
@@ -353,19 +407,29 @@ impl ImuBiasRestorer {
                 b[c] = pred;
             }
         }
-        self.set_estimate(b, rate, s.t_us.max(est.t_us));
+        self.set_estimate(b, rate, s.t_us.max(est.t_us), t_hi_us.max(est.t_hi_us));
     }
 
-    fn set_estimate(&mut self, b: [f64; 6], rate: [f64; 6], t_us: u64) {
-        self.est = Some(Estimate { b, rate, t_us });
+    fn set_estimate(&mut self, b: [f64; 6], rate: [f64; 6], t_us: u64, t_hi_us: u64) {
+        self.est = Some(Estimate {
+            b,
+            rate,
+            t_us,
+            t_hi_us,
+        });
         self.status.bias = Some(from_lsb(&b));
-        self.status.bias_t_us = Some(t_us);
+        self.status.bias_t_us = Some(t_hi_us);
     }
 
-    fn bootstrap_step(&mut self, s: &Sc, cands: Vec<Intervals>) {
-        self.boot.push_back((tolerances(s), cands));
-        while self.boot.len() > BOOT_MESSAGES {
+    fn bootstrap_step(&mut self, s: &Sc, tol: [f64; 6], cands: Vec<(Intervals, u64)>) {
+        let gyro_s = [s.lsb[0], s.lsb[1], s.lsb[2]];
+        self.boot.push_back((tol, gyro_s, cands));
+        if self.boot.len() > BOOT_MESSAGES {
             self.boot.pop_front();
+            if self.est.is_none() {
+                // Left the window without a bootstrap (with an estimate it was counted already).
+                self.status.unpaired += 1;
+            }
         }
         if self.boot.len() < BOOT_MESSAGES {
             return;
@@ -376,68 +440,59 @@ impl ImuBiasRestorer {
             .iter()
             .rev()
             .take(6)
-            .flat_map(|(_, c)| c)
-            .map(|iv| std::array::from_fn(|c| iv[c].0))
+            .flat_map(|(_, _, c)| c)
+            .map(|(iv, _)| std::array::from_fn(|c| iv[c].0))
             .collect();
-        let support = |h: &[f64; 6]| -> (usize, [f64; 6], [u32; 6]) {
-            let mut n = 0;
-            let mut sum = [0.0; 6];
-            let mut k = [0u32; 6];
-            for (tol, msg) in &self.boot {
+        // (support, hypothesis, sum of usable midpoints, their count per channel, newest HIGHRES
+        // time of the supporting pairs).
+        type Scored = (usize, [f64; 6], [f64; 6], [u32; 6], u64);
+        let support = |h: &[f64; 6]| -> Scored {
+            let (mut n, mut sum, mut k, mut t_hi) = (0, [0.0; 6], [0u32; 6], 0u64);
+            for (tol, gyro_s, msg) in &self.boot {
                 let best = msg
                     .iter()
-                    .filter_map(|iv| score(iv, tol, h, BOOT_TOL_LSB).map(|q| (q, iv)))
+                    .filter_map(|(iv, t)| score(iv, tol, h, BOOT_TOL_LSB).map(|q| (q, iv, *t)))
                     .min_by(|a, b| a.0.total_cmp(&b.0));
-                if let Some((_, iv)) = best {
+                if let Some((_, iv, t)) = best {
                     n += 1;
+                    t_hi = t_hi.max(t);
                     for c in 0..6 {
-                        if iv[c].1 <= 0.5 {
+                        // Gyro channels only from slow samples (a scale mismatch between the
+                        // two messages grows with the rate: module doc).
+                        let slow = c >= 3 || gyro_s[c].unsigned_abs() <= BOOT_GYRO_MAX_LSB as u16;
+                        if iv[c].1 <= 0.5 && slow {
                             sum[c] += iv[c].0;
                             k[c] += 1;
                         }
                     }
                 }
             }
-            (n, sum, k)
+            (n, *h, sum, k, t_hi)
         };
-        // (support, hypothesis, sum of supporting midpoints, their count) per channel.
-        type Scored = (usize, [f64; 6], [f64; 6], [u32; 6]);
-        let mut scored: Vec<Scored> = hyps
-            .iter()
-            .map(|h| {
-                let (n, sum, k) = support(h);
-                (n, *h, sum, k)
-            })
-            .collect();
+        let mut scored: Vec<Scored> = hyps.iter().map(support).collect();
         scored.sort_by_key(|h| std::cmp::Reverse(h.0));
         let need = BOOT_MESSAGES * 4 / 5;
-        let Some(&(n, h, sum, k)) = scored.first() else {
+        let Some(&(n, h, sum, k, t_hi)) = scored.first() else {
             return;
         };
-        if n < need {
+        // Well supported, with usable midpoints on every channel (a gyro axis that read 0 in
+        // every sample, or only fast samples, bounds nothing).
+        if n < need || k.iter().any(|&kc| kc < BOOT_MIN_PER_CHANNEL) {
             return;
         }
-        let tol = tolerances(s);
         // A competing hypothesis as well supported but more than 2 LSB away: ambiguous.
-        let rival = scored
-            .iter()
-            .skip(1)
-            .any(|(m, g, _, _)| *m >= need && (0..6).any(|c| (g[c] - h[c]).abs() > 2.0 + tol[c]));
+        let rival = scored.iter().skip(1).any(|(m, g, _, _, _)| {
+            *m >= need && (0..6).any(|c| (g[c] - h[c]).abs() > 2.0 + tol[c])
+        });
         if rival {
             return;
         }
-        let b: [f64; 6] = std::array::from_fn(|c| {
-            if k[c] > 0 {
-                sum[c] / f64::from(k[c])
-            } else {
-                h[c]
-            }
-        });
+        let b: [f64; 6] = std::array::from_fn(|c| sum[c] / f64::from(k[c]));
         self.boot.clear();
         self.rebootstrap = false;
         self.unpaired_run = 0;
         self.status.bootstraps += 1;
-        self.set_estimate(b, [0.0; 6], s.t_us);
+        self.set_estimate(b, [0.0; 6], s.t_us, t_hi);
     }
 }
 
@@ -458,6 +513,13 @@ mod tests {
         skip: f64,
         /// SCALED_IMU from another IMU instance (independent noise) than HIGHRES_IMU.
         other_instance: bool,
+        /// Manoeuvre amplitude (1: turns up to 0.3 rad/s; 0: still).
+        motion: f64,
+        /// SCALED_IMU's gyro scale against HIGHRES_IMU's (PX4 divides by the accelerometer's
+        /// interval: 1.0625 for a 1.6 / 2 kHz accelerometer / gyro).
+        scaled_gyro_scale: f64,
+        /// SCALED_IMU stops after this time, s.
+        scaled_until_s: f64,
     }
 
     #[derive(Debug, Clone, Copy)]
@@ -479,15 +541,18 @@ mod tests {
                 acc_noise_m_s2: 0.03,
                 skip: 0.03,
                 other_instance: false,
+                motion: 1.0,
+                scaled_gyro_scale: 1.0,
+                scaled_until_s: f64::INFINITY,
             }
         }
 
         fn sample(&mut self, t: f64) -> ([f64; 3], [f64; 3]) {
-            let w = 0.3 * (0.4 * t).sin(); // manoeuvres
+            let w = self.motion * 0.3 * (0.4 * t).sin(); // manoeuvres
             let g = [
                 w + self.gyro_noise_rad_s * self.rng.normal(),
                 0.5 * w + self.gyro_noise_rad_s * self.rng.normal(),
-                0.05 + self.gyro_noise_rad_s * self.rng.normal(),
+                self.motion * 0.08 * (0.25 * t).sin() + self.gyro_noise_rad_s * self.rng.normal(),
             ];
             let a = [
                 0.8 * w + self.acc_noise_m_s2 * self.rng.normal(),
@@ -518,12 +583,12 @@ mod tests {
                 } else {
                     (g, a)
                 };
-                let sgi = sg.map(|v| (f32r(v) * 1000.0) as i16);
+                let sgi = sg.map(|v| (f32r(v * self.scaled_gyro_scale) * 1000.0) as i16);
                 let sai = sa.map(|v| (f32r(v) * 1000.0 / G0_M_S2) as i16);
                 let t_pub_us = t_us + 300;
                 let scaled_first = self.rng.uniform() < 0.5;
                 let skip_h = self.rng.uniform() < self.skip;
-                let skip_s = self.rng.uniform() < self.skip;
+                let skip_s = self.rng.uniform() < self.skip || t >= self.scaled_until_s;
                 if scaled_first && !skip_s {
                     r.on_scaled(t_pub_us / 1000 * 1000, sgi, sai);
                 }
@@ -659,9 +724,13 @@ mod tests {
 
     #[test]
     fn a_jump_of_the_autopilot_estimate_is_found_again() {
-        // An EKF reset moves the estimate by 1000 deg/h at once: the pairing fails, the held
-        // estimate stays applied, and a new one is bootstrapped within a second.
+        // An EKF reset moves the estimate by 1000 deg/h at once in cruise (slow manoeuvres):
+        // the pairing fails, the held estimate stays applied, and a new one is bootstrapped
+        // within a second. (While the vehicle turns faster than BOOT_GYRO_MAX_LSB a bootstrap
+        // waits: `a_gyro_scale_mismatch_between_the_messages_never_adds_a_large_error`.)
         let mut r = ImuBiasRestorer::new();
+        let mut streams = Px4Streams::new(4);
+        streams.motion = 0.05;
         let jump = |t: f64| {
             let (mut g, a) = swing(t);
             if t >= 20.0 {
@@ -669,7 +738,7 @@ mod tests {
             }
             (g, a)
         };
-        let out = Px4Streams::new(4).run(&mut r, 30.0, jump);
+        let out = streams.run(&mut r, 30.0, jump);
         let ((g_rms, g_max, _, _), _) = errors(&out[..out.len() * 19 / 30], 1.0);
         assert!(g_rms < 8.0 && g_max < 30.0, "before: {g_rms} / {g_max}");
         let after: Vec<_> = out.iter().copied().filter(|(t, _)| *t >= 21.0).collect();
@@ -706,5 +775,68 @@ mod tests {
         r.reset();
         assert_eq!(r.status().bias, None);
         assert!(r.status().paired > 0);
+    }
+
+    #[test]
+    fn a_still_scaled_imu_of_another_imu_is_not_taken_either() {
+        // Both IMUs quiet on the ground (noise 0.3 LSB): the gyro reads 0 in almost every
+        // sample and bounds nothing, so no bootstrap can be made of it.
+        let mut s = Px4Streams::new(6);
+        s.other_instance = true;
+        s.motion = 0.0;
+        s.gyro_noise_rad_s = 0.0003;
+        s.acc_noise_m_s2 = 0.002;
+        let mut r = ImuBiasRestorer::new();
+        let out = s.run(&mut r, 20.0, |_| ([0.0; 3], [0.0; 3]));
+        assert!(out.iter().all(|(_, o)| o.restored.2 == Restored::NotYet));
+        let st = r.status();
+        assert_eq!((st.paired, st.bootstraps), (0, 0), "{st:?}");
+        assert!(st.unpaired > 4000, "{st:?}");
+    }
+
+    #[test]
+    fn the_estimate_is_held_five_seconds_then_samples_pass_as_sent() {
+        let mut s = Px4Streams::new(7);
+        s.scaled_until_s = 10.0;
+        let mut r = ImuBiasRestorer::new();
+        let out = s.run(&mut r, 20.0, swing);
+        for (t, o) in &out {
+            let want = if *t < 10.0 + MAX_HOLD_S - 0.05 && *t > 2.0 {
+                Restored::Yes
+            } else if *t > 10.0 + MAX_HOLD_S + 0.05 {
+                Restored::Stale
+            } else {
+                continue;
+            };
+            assert_eq!(o.restored.2, want, "at {t} s");
+            if want == Restored::Stale {
+                assert_eq!((o.restored.0, o.restored.1), o.sent);
+            }
+        }
+        let st = r.status();
+        assert!(
+            !st.restoring && st.age_s().is_some_and(|a| a > 9.0),
+            "{st:?}"
+        );
+    }
+
+    #[test]
+    fn a_gyro_scale_mismatch_between_the_messages_never_adds_a_large_error() {
+        // SCALED_IMU's gyro 6.25 % larger (a 1.6 kHz accelerometer beside a 2 kHz gyro). Pairs
+        // fail while the vehicle turns, and a bootstrap in a turn must not take the scale error
+        // for a bias: the restored gyro may be biased a little, never by the turn rate's 6 %.
+        let mut s = Px4Streams::new(8);
+        s.scaled_gyro_scale = 1.0625;
+        let mut r = ImuBiasRestorer::new();
+        let out = s.run(&mut r, 60.0, swing);
+        let worst = out
+            .iter()
+            .filter(|(_, o)| o.restored.2 == Restored::Yes)
+            .flat_map(|(_, o)| (0..3).map(move |i| ((o.restored.0[i] - o.raw.0[i]) / DEG_H).abs()))
+            .fold(0.0, f64::max);
+        let st = r.status();
+        eprintln!("gyro scale mismatch 6.25 %: worst restored gyro error {worst:.0} deg/h; {st:?}");
+        // The bias swing as sent reaches 200 deg/h; 6.25 % of the 0.3 rad/s turns is 3900 deg/h.
+        assert!(worst < 300.0, "worst restored gyro error {worst} deg/h");
     }
 }

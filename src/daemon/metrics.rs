@@ -55,8 +55,12 @@ pub struct ImuBiasSnapshot {
     pub unpaired: u64,
     /// Estimates bootstrapped (1 after a normal start; more after autopilot bias resets).
     pub bootstraps: u64,
-    /// HIGHRES_IMU samples passed on without an estimate.
+    /// HIGHRES_IMU samples passed on without the estimate (none yet, or older than 5 s).
     pub not_restored: u64,
+    /// The newest HIGHRES_IMU sample had the estimate added back.
+    pub restoring: bool,
+    /// Time since the newest pair behind the estimate, s (at the newest sample).
+    pub age_s: Option<f64>,
     /// The autopilot's gyro bias estimate added back, deg/h (body FRD); `None` before the first.
     pub gyro_bias_deg_h: Option<[f64; 3]>,
     /// The autopilot's accelerometer bias estimate added back, mg.
@@ -70,6 +74,8 @@ impl From<RestoreStatus> for ImuBiasSnapshot {
             unpaired: s.unpaired,
             bootstraps: s.bootstraps,
             not_restored: s.not_restored,
+            restoring: s.restoring,
+            age_s: s.age_s(),
             gyro_bias_deg_h: s.bias.map(|b| b.0.map(|v| v.to_degrees() * 3600.0)),
             accel_bias_mg: s.bias.map(|b| b.1.map(|v| v / 9.806_65 * 1e3)),
         }

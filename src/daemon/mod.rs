@@ -270,6 +270,7 @@ impl Daemon {
             imu_lost: false,
             gps2_asked: None,
             last_log: Instant::now(),
+            imu_bias_restoring: false,
             init_spacing: inputs::InitSpacing::default(),
             fix_log,
         };
@@ -448,6 +449,8 @@ struct NavTask {
     imu_lost: bool,
     gps2_asked: Option<Instant>,
     last_log: Instant,
+    /// The IMU bias restorer was restoring at the last watchdog tick (for its log lines).
+    imu_bias_restoring: bool,
     init_spacing: inputs::InitSpacing,
     fix_log: Option<fixlog::FixLog>,
 }
@@ -662,6 +665,20 @@ impl NavTask {
             self.publish_lost(&why);
         }
         if let Some(st) = self.inputs.imu_bias_status() {
+            if st.restoring != self.imu_bias_restoring {
+                self.imu_bias_restoring = st.restoring;
+                if st.restoring {
+                    info!("autopilot IMU bias: restoring HIGHRES_IMU with SCALED_IMU");
+                } else if st.bias.is_some() {
+                    warn!(
+                        unpaired = st.unpaired,
+                        paired = st.paired,
+                        "autopilot IMU bias: no consistent SCALED_IMU / HIGHRES_IMU pair for 5 s \
+                         (SCALED_IMU stopped, the two come from different IMUs, or their gyro \
+                         scales differ); HIGHRES_IMU is used as sent"
+                    );
+                }
+            }
             *self
                 .metrics
                 .imu_bias
@@ -708,6 +725,8 @@ impl NavTask {
                     unpaired = b.unpaired,
                     bootstraps = b.bootstraps,
                     not_restored = b.not_restored,
+                    restoring = b.restoring,
+                    age_s = b.age_s.map_or(-1.0, |a| (a * 10.0).round() / 10.0),
                     gyro_deg_h = %f(b.gyro_bias_deg_h, 1),
                     accel_mg = %f(b.accel_bias_mg, 2),
                     "autopilot IMU bias restored"

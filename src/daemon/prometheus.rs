@@ -182,6 +182,20 @@ pub fn render(d: &MetricsSnapshot, link: &LinkMetrics) -> String {
         ] {
             w.single(name, "counter", help, c(v));
         }
+        if let Some(a) = b.age_s {
+            w.single(
+                "visnav_imu_bias_age_seconds",
+                "gauge",
+                "time since the last SCALED_IMU / HIGHRES_IMU pair (the estimate is dropped after 5 s)",
+                a,
+            );
+        }
+        w.single(
+            "visnav_imu_bias_restoring",
+            "gauge",
+            "1 while HIGHRES_IMU samples get the autopilot's bias estimate added back",
+            if b.restoring { 1.0 } else { 0.0 },
+        );
         for (name, help, v) in [
             (
                 "visnav_imu_bias_gyro_deg_per_hour",
@@ -621,7 +635,9 @@ mod tests {
             bootstraps: 1,
             not_restored: 3,
             bias: Some(([0.0, -0.5e-3, 0.0], [0.0; 3])),
-            bias_t_us: Some(1),
+            bias_t_us: Some(1_000_000),
+            last_sample_t_us: Some(3_500_000),
+            restoring: true,
         });
         let l = LinkMetrics::default();
         l.rx_packets.store(99, Ordering::Relaxed);
@@ -641,6 +657,8 @@ mod tests {
             "visnav_imu_samples_not_restored_total 3",
             "visnav_imu_bias_gyro_deg_per_hour{axis=\"x\"} 0",
             "visnav_imu_bias_accel_mg{axis=\"z\"} 0",
+            "visnav_imu_bias_age_seconds 2.5",
+            "visnav_imu_bias_restoring 1",
             "visnav_frames_dropped_total{reason=\"stale\"} 3",
             "visnav_fixes_total{outcome=\"accepted\"} 7",
             "visnav_fix_latency_seconds_sum 1",

@@ -53,7 +53,17 @@ pub fn wanted_streams(r: &StreamRates, autopilot: Option<MavAutopilot>) -> Vec<S
             });
     [
         ("ATTITUDE", vec![ATTITUDE], r.attitude_hz),
-        ("IMU", vec![HIGHRES_IMU, SCALED_IMU, RAW_IMU], r.imu_hz),
+        // With SCALED_IMU requested beside HIGHRES_IMU it cannot stand in for a missing
+        // HIGHRES_IMU in the IMU stream's health (the restorer needs both).
+        (
+            "IMU",
+            if scaled_hz > 0.0 {
+                vec![HIGHRES_IMU, RAW_IMU]
+            } else {
+                vec![HIGHRES_IMU, SCALED_IMU, RAW_IMU]
+            },
+            r.imu_hz,
+        ),
         ("SCALED_IMU", vec![SCALED_IMU], scaled_hz),
         (
             "GLOBAL_POSITION_INT",

@@ -56,7 +56,7 @@
 use std::collections::VecDeque;
 
 /// Standard gravity PX4 uses for mG (`CONSTANTS_ONE_G`), m/s^2.
-const G0_M_S2: f64 = 9.806_65;
+pub(crate) const G0_M_S2: f64 = 9.806_65;
 /// Later HIGHRES_IMU messages awaited before a SCALED_IMU is paired.
 pub const LOOK_AHEAD: u64 = 3;
 /// HIGHRES_IMU messages received before a SCALED_IMU that are still candidates for it.
@@ -221,6 +221,8 @@ pub struct ImuBiasRestorer {
     /// Bootstrapping again (the held estimate stays applied meanwhile).
     rebootstrap: bool,
     unpaired_run: u32,
+    /// Counters; `bias` and `bias_t_us` stay `None` here ([`Self::status`] derives them from
+    /// `est`).
     status: RestoreStatus,
 }
 
@@ -254,20 +256,19 @@ impl ImuBiasRestorer {
 
     /// Forget everything but the counters (autopilot reboot).
     pub fn reset(&mut self) {
-        let status = RestoreStatus {
-            bias: None,
-            bias_t_us: None,
-            ..self.status
-        };
         *self = Self {
-            status,
+            status: self.status,
             ..Self::default()
         };
     }
 
     /// Counters and the current estimate.
     pub fn status(&self) -> RestoreStatus {
-        self.status
+        RestoreStatus {
+            bias: self.est.map(|e| from_lsb(&e.b)),
+            bias_t_us: self.est.map(|e| e.t_hi_us),
+            ..self.status
+        }
     }
 
     /// One SCALED_IMU: its time (µs, from `time_boot_ms`), gyro (mrad/s) and accelerometer (mG)
@@ -388,8 +389,10 @@ impl ImuBiasRestorer {
     /// constant AVERAGE_TAU_S) follows a steady swing of the autopilot's estimate without lag.
     fn track(&mut self, s: &Sc, iv: &Intervals, t_hi_us: u64, est: Estimate) {
         self.unpaired_run = 0;
-        self.rebootstrap = false;
-        self.boot.clear();
+        if self.rebootstrap {
+            self.rebootstrap = false;
+            self.boot.clear();
+        }
         self.status.paired += 1;
         let dt_s = (s.t_us.saturating_sub(est.t_us) as f64 * 1e-6).clamp(0.0, 0.1);
         let k_level = (2.0 * dt_s / AVERAGE_TAU_S).min(1.0);
@@ -417,8 +420,6 @@ impl ImuBiasRestorer {
             t_us,
             t_hi_us,
         });
-        self.status.bias = Some(from_lsb(&b));
-        self.status.bias_t_us = Some(t_hi_us);
     }
 
     fn bootstrap_step(&mut self, s: &Sc, tol: [f64; 6], cands: Vec<(Intervals, u64)>) {

@@ -8,7 +8,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use serde::Serialize;
 
-use crate::daemon::imu_bias::RestoreStatus;
+use crate::daemon::imu_bias::{G0_M_S2, RestoreStatus};
 use crate::link::Health as LinkHealth;
 
 /// Live counters.
@@ -77,7 +77,7 @@ impl From<RestoreStatus> for ImuBiasSnapshot {
             restoring: s.restoring,
             age_s: s.age_s(),
             gyro_bias_deg_h: s.bias.map(|b| b.0.map(|v| v.to_degrees() * 3600.0)),
-            accel_bias_mg: s.bias.map(|b| b.1.map(|v| v / 9.806_65 * 1e3)),
+            accel_bias_mg: s.bias.map(|b| b.1.map(|v| v / G0_M_S2 * 1e3)),
         }
     }
 }

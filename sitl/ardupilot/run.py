@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """visnav against a real ArduPilot SITL (ArduCopter): fly an AUTO mission over the bundled NAIP
-map, switch the simulated GPS off after take-off, and report EKF3's position error against the
-simulator's truth.
+map, switch the simulated GPS off after take-off, score EKF3's position against the simulator's
+truth and give a verdict.
 
     python3 sitl/ardupilot/run.py --arducopter /path/to/ardupilot/build/sitl/bin/arducopter
     python3 sitl/ardupilot/run.py --sim-vehicle /path/to/ardupilot/Tools/autotest/sim_vehicle.py
@@ -11,24 +11,56 @@ It does not build ArduPilot (see docs/real-sitl.md). Needs pymavlink (`bash
 scripts/interop/setup_venv.sh` prints a venv python that has it) and a built visnav
 (`cargo build --release`, or give --visnav).
 
-What runs (all on loopback):
-* SITL, home at the centre of sitl/maps (47.0203485 N, 99.1548094 W, 580 m AMSL), parameters
-  Tools/autotest/default_params/copter.parm + visnav-gps-input.parm (or control-no-visnav.parm);
-  SERIAL0 tcp:5760 = this script, SERIAL1 udpclient 14551 = visnav's autopilot link, SERIAL2
-  udpclient 14552 = visnav's truth connection (SIMSTATE + SIM_STATE for the simulated camera).
-* `visnav sitl-run --config sitl/ardupilot/visnav.toml --truth udpin:127.0.0.1:14552 --ortho
+What runs (all on loopback; N = the SITL instance, --instance, by default the first free one):
+* SITL `-I N`, home at the centre of sitl/maps (47.0203485 N, 99.1548094 W, 580 m AMSL),
+  parameters Tools/autotest/default_params/copter.parm + visnav-gps-input.parm (or
+  control-no-visnav.parm); SERIAL0 tcp 5760 + 10 N = this script, SERIAL1 udpclient VISNAV_PORT =
+  visnav's autopilot link, SERIAL2 udpclient TRUTH_PORT = visnav's truth connection (SIMSTATE +
+  SIM_STATE for the simulated camera). `-I N` moves every SITL port by 10 N (TCP 5760-5768, UDP
+  5501 RC input); the instance is taken only when all of them are free (bind test) and no other
+  run.py holds its lock (TMPDIR/visnav-sitl-ardupilot-N.lock), so runs can share a host.
+  VISNAV_PORT / TRUTH_PORT (--visnav-port / --truth-port): 14551 / 14552 on instance 0 when free,
+  else free UDP ports picked by the OS; the work folder's copy of visnav.toml gets VISNAV_PORT.
+* `visnav sitl-run --config WORKDIR/visnav.toml --truth udpin:127.0.0.1:TRUTH_PORT --ortho
   sitl/maps/naip_nd_2014.tif` (the camera sees the 2014 image; the map is the 2009 one).
 * This script: waits for EKF3 to have a position (and, with visnav, for visnav's GPS_INPUT to be
   a 3D fix), uploads mission.waypoints, sets AUTO and arms (AUTO_OPTIONS = 3 takes off without
   throttle), sets SIM_GPS_DISABLE = 1 (4.6+: SIM_GPS1_ENABLE = 0) once the copter reaches the
-  first corner of the loop at 1800 m (--gps-off-wp; or --gps-off-alt metres up), and stops at the last waypoint (or --timeout, or when the copter lands
-  or disarms).
+  first corner of the loop at 1800 m (--gps-off-wp; or --gps-off-alt metres up), and stops at the
+  last waypoint (or --timeout, --after-gps-off, or when the copter lands or disarms).
 
-Measured: every GLOBAL_POSITION_INT (EKF3's output, 10 Hz) against the truth of the same instant
-(SIMSTATE latitude/longitude degE7 and SIM_STATE altitude, 50 Hz, propagated over the arrival gap
-with the true velocity): horizontal and vertical error, median / p90 / max, separately while the
-GPS is on (airborne) and after it is switched off. Written to WORKDIR/report.json and printed.
+Measured (sitl_common.py):
+* every GLOBAL_POSITION_INT (EKF3's output, 10 Hz) against the truth of the same instant
+  (SIMSTATE latitude/longitude degE7 and SIM_STATE altitude, 50 Hz, propagated over the arrival
+  gap with the true velocity): horizontal and vertical error, median / p90 / max, while the GPS
+  is on (airborne), after it is off (all airborne samples), and after it is off split by whether
+  EKF3 was aiding (EKF_STATUS_REPORT flags: EKF_POS_HORIZ_ABS set, not EKF_CONST_POS_MODE /
+  EKF_UNINITIALIZED). Once EKF3 stops aiding it holds its last position: those samples are
+  reported as "gps_off_not_aiding", with the not-aiding time (first loss after GPS off, total).
+* visnav runs: the injected position as ArduPilot echoes it, GPS_RAW_INT of GPS instance 0 (=
+  GPS1 = visnav's GPS_INPUT, visnav-gps-input.parm), against the truth at the fix's time
+  (time_usec: ArduPilot's fix time, mapped onto this computer's clock through the autopilot's
+  time_boot_ms): error, h_acc (MAVLink 2 extension, 1 sigma) and error / h_acc.
+* STATUSTEXT after arming (failsafes: "EKF Failsafe", "EKF variance", "GPS Glitch", any
+  "failsafe") and the flight modes after arming.
+Written to WORKDIR/report.json (with "verdict") and printed; WORKDIR/samples.json (every EKF3
+sample with its aiding flag), WORKDIR/injected.json (every scored GPS_RAW_INT).
+
+Verdict (sitl_common.verdict; bounds --max-p90-m 25, --max-error-m 50, --max-ratio 3,
+--max-not-aiding-s 0, --max-sample-gap-s 2): pass only when the last waypoint was reached in AUTO
+(no other mode after arming), no failsafe STATUSTEXT came, the GPS went off, EKF3 aided all
+through the GPS-off period, its horizontal error over every GPS-off airborne sample has p90 and
+max within the bounds, and (visnav runs) every injected position was within 3 x its h_acc of the
+truth. With --after-gps-off the mission is not completed: such a run always fails.
+
+Exit code: 0 = a visnav run passed; 1 = its verdict failed. The control run (--no-visnav) gets the
+same verdict, printed as "control: ..." (it is expected to fail: without aiding EKF3 stops
+aiding and the EKF failsafe lands the copter); it exits 0 when the control run itself completed
+(the GPS went off and the flight ended on its own: last waypoint, --after-gps-off, landed or
+--timeout), 1 when it did not (stopped by a signal, never reached the GPS-off point). 2 = the run
+could not be made (SITL or visnav did not start, not ready, could not arm, an error in flight).
 """
+
 
 import argparse
 import os
@@ -37,21 +69,27 @@ import subprocess
 import sys
 import tempfile
 import time
+import traceback
 
+# MAVLink 2 from the start: GPS_RAW_INT's h_acc is a MAVLink 2 extension field.
+os.environ.setdefault("MAVLINK20", "1")
 try:
     from pymavlink import mavutil
 except ImportError:
-    sys.exit("run.py needs pymavlink: python3 -m pip install pymavlink "
-             "(or use the venv python printed by scripts/interop/setup_venv.sh)")
+    print("run.py needs pymavlink: python3 -m pip install pymavlink "
+          "(or use the venv python printed by scripts/interop/setup_venv.sh)", file=sys.stderr)
+    sys.exit(2)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.abspath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, os.path.dirname(HERE))
 import sitl_common  # noqa: E402
-from sitl_common import (HOME_ALT_M, HOME_LAT, HOME_LON, ErrorScore, finish_run,  # noqa: E402
-                         metres_per_deg)
+from sitl_common import (HOME_ALT_M, HOME_LAT, HOME_LON, BootClock, ErrorScore,  # noqa: E402
+                         IntegrityScore, TruthHistory, ekf_aiding, finish_run, metres_per_deg)
 HOME_HDG = 0  # SITL start heading, deg
-VISNAV_PORT, TRUTH_PORT, CONTROL_PORT = 14551, 14552, 5760
+# Instance 0's visnav link and truth ports (other instances: free ports picked by the OS).
+VISNAV_PORT, TRUTH_PORT = 14551, 14552
+MAX_INSTANCE = 31
 STOP = None  # set by SIGTERM/SIGINT/SIGHUP during the flight
 
 
@@ -70,10 +108,43 @@ def find_copter_parm(path):
     return None
 
 
-def start_sitl(args, workdir):
+def choose_ports(args):
+    """SITL instance N (--instance, or the first whose ports are free and whose lock no other
+    run.py holds), its SERIAL0 TCP port and visnav's link / truth UDP ports. Returns (instance,
+    control port, visnav port, truth port, held lock file)."""
+    lock = (lambda n: sitl_common.try_lock(sitl_common.instance_lock_path("ardupilot", n)))
+    if args.instance is None:
+        n, held = sitl_common.choose_instance(sitl_common.ardupilot_ports,
+                                              range(MAX_INSTANCE + 1), lock=lock)
+        if n is None:
+            sys.exit(f"no free ArduPilot SITL instance in 0-{MAX_INSTANCE}")
+    else:
+        n = args.instance
+        busy = [f"{proto} {port}" for proto, port in sitl_common.ardupilot_ports(n)
+                if not sitl_common.port_free(port, proto)]
+        if busy:
+            sys.exit(f"instance {n}: ports in use ({', '.join(busy)}); another SITL? "
+                     f"(--instance auto picks a free one)")
+        held = lock(n)
+        if held is None:
+            sys.exit(f"instance {n} is used by another run.py "
+                     f"({sitl_common.instance_lock_path('ardupilot', n)})")
+    ports = []
+    for given, default in ((args.visnav_port, VISNAV_PORT), (args.truth_port, TRUTH_PORT)):
+        if given is not None:
+            if given in ports or not sitl_common.port_free(given, "udp"):
+                sys.exit(f"UDP port {given} is in use")
+            ports.append(given)
+        else:
+            ports.append(sitl_common.pick_port(default if n == 0 else None, "udp",
+                                               taken=set(ports)))
+    return n, 5760 + 10 * n, ports[0], ports[1], held
+
+
+def start_sitl(args, workdir, instance, visnav_port, truth_port):
     parms = [os.path.join(HERE, "control-no-visnav.parm" if args.no_visnav else "visnav-gps-input.parm")]
-    serials = [f"--serial1=udpclient:127.0.0.1:{VISNAV_PORT}",
-               f"--serial2=udpclient:127.0.0.1:{TRUTH_PORT}"]
+    serials = [f"--serial1=udpclient:127.0.0.1:{visnav_port}",
+               f"--serial2=udpclient:127.0.0.1:{truth_port}"]
     home = f"{HOME_LAT},{HOME_LON},{HOME_ALT_M},{HOME_HDG}"
     if args.arducopter:
         base = args.defaults or find_copter_parm(args.arducopter)
@@ -81,12 +152,12 @@ def start_sitl(args, workdir):
             sys.exit("cannot find Tools/autotest/default_params/copter.parm beside the binary: give --defaults")
         # The control parameters go after visnav-gps-input.parm (same flight, GPS types changed).
         files = [base, os.path.join(HERE, "visnav-gps-input.parm")] + (parms if args.no_visnav else [])
-        cmd = [args.arducopter, "-S", "--model", "+", "--speedup", "1", "--home", home, "-I0",
-               "--wipe", "--defaults", ",".join(files)] + serials
+        cmd = [args.arducopter, "-S", "--model", "+", "--speedup", "1", "--home", home,
+               f"-I{instance}", "--wipe", "--defaults", ",".join(files)] + serials
     else:
         files = [os.path.join(HERE, "visnav-gps-input.parm")] + (parms if args.no_visnav else [])
         cmd = [sys.executable, args.sim_vehicle, "-v", "ArduCopter", "-f", "quad", "--no-rebuild",
-               "--no-mavproxy", "-w", "-l", home, "-A", " ".join(serials)]
+               "--no-mavproxy", "-I", str(instance), "-w", "-l", home, "-A", " ".join(serials)]
         for f in files:
             cmd += ["--add-param-file", f]
     log("SITL: " + " ".join(cmd))
@@ -95,9 +166,10 @@ def start_sitl(args, workdir):
                             start_new_session=True)
 
 
-def start_visnav(args, workdir):
+def start_visnav(args, workdir, visnav_port, truth_port):
     return sitl_common.start_visnav(args.visnav, os.path.join(HERE, "visnav.toml"), workdir,
-                                    "ardupilot", TRUTH_PORT, args.camera_hz, REPO, log)
+                                    "ardupilot", truth_port, args.camera_hz, REPO, log,
+                                    link_port=visnav_port)
 
 
 def is_autopilot(m, hb):
@@ -113,15 +185,22 @@ def request_rates(m, rates):
                                 msg_id, 1e6 / hz, 0, 0, 0, 0, 0)
 
 
-def set_param(m, name, value, timeout=5.0):
-    """PARAM_SET and wait for the PARAM_VALUE echo; False when the autopilot has no such name."""
+def set_param(m, name, value, timeout=5.0, on=None):
+    """PARAM_SET and wait for the PARAM_VALUE echo; False when the autopilot has no such name.
+    Every other message meanwhile goes to `on(msg)` (when given)."""
     end = time.time() + timeout
     while time.time() < end:
         m.mav.param_set_send(m.target_system, m.target_component, name.encode(), float(value),
                              mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
-        r = m.recv_match(type="PARAM_VALUE", blocking=True, timeout=1.0)
-        if r is not None and r.param_id == name:
-            return abs(r.param_value - value) < 1e-3
+        t_ask = time.time() + 1.0
+        while time.time() < t_ask:
+            r = m.recv_match(blocking=True, timeout=max(0.01, t_ask - time.time()))
+            if r is None:
+                continue
+            if r.get_type() == "PARAM_VALUE" and r.param_id == name:
+                return abs(r.param_value - value) < 1e-3
+            if on is not None:
+                on(r)
     return False
 
 
@@ -159,9 +238,10 @@ def upload_mission(m, path):
     sys.exit("mission upload timed out")
 
 
-def gps_off(m):
-    """Switch SITL's simulated GPS 1 off (4.5: SIM_GPS_DISABLE, 4.6+: SIM_GPS1_ENABLE)."""
-    if not (set_param(m, "SIM_GPS_DISABLE", 1) or set_param(m, "SIM_GPS1_ENABLE", 0)):
+def gps_off(m, on=None):
+    """Switch SITL's simulated GPS 1 off (4.5: SIM_GPS_DISABLE, 4.6+: SIM_GPS1_ENABLE); returns
+    the time the autopilot echoed the change."""
+    if not (set_param(m, "SIM_GPS_DISABLE", 1, on=on) or set_param(m, "SIM_GPS1_ENABLE", 0, on=on)):
         sys.exit("cannot switch the simulated GPS off (SIM_GPS_DISABLE / SIM_GPS1_ENABLE)")
     log("simulated GPS OFF")
     return time.time()
@@ -192,7 +272,7 @@ class Truth:
         return (lat + vn * (t - tp) / m_lat, lon + ve * (t - tp) / m_lon, alt - vd * (t - ta))
 
 
-def main():
+def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     g = ap.add_mutually_exclusive_group(required=True)
     g.add_argument("--arducopter", help="path of the arducopter SITL binary (build/sitl/bin/arducopter)")
@@ -208,10 +288,27 @@ def main():
                     help="instead, switch it off at this true height above home, m")
     ap.add_argument("--camera-hz", type=float, default=2.0)
     ap.add_argument("--after-gps-off", type=float, default=None,
-                    help="stop this many seconds after the GPS is off (default: at the last waypoint)")
+                    help="stop this many seconds after the GPS is off (default: at the last "
+                         "waypoint); a run stopped so has not completed its mission: it fails")
     ap.add_argument("--timeout", type=float, default=1500.0, help="whole run, s")
     ap.add_argument("--workdir", help="logs and report (default: a new temporary directory)")
-    args = ap.parse_args()
+    ap.add_argument("--instance", type=sitl_common.instance_arg, default=None, metavar="N|auto",
+                    help="SITL instance (-I N: ports 5760 + 10 N ...); default auto: the first "
+                         "free one")
+    ap.add_argument("--visnav-port", type=int, default=None,
+                    help="UDP port of visnav's autopilot link (SITL SERIAL1); default 14551 on "
+                         "instance 0 if free, else a free port")
+    ap.add_argument("--truth-port", type=int, default=None,
+                    help="UDP port of visnav's truth connection (SITL SERIAL2); default 14552 on "
+                         "instance 0 if free, else a free port")
+    sitl_common.add_bounds_args(ap)
+    return ap.parse_args(argv)
+
+
+def main():
+    args = parse_args()
+    bounds = sitl_common.bounds_from_args(args)
+    in_flight = False
 
     def stop(signum, _frame):
         # Also when started in the background (SIGINT ignored). In flight: end the flight loop and
@@ -226,34 +323,52 @@ def main():
     signal.signal(signal.SIGINT, stop)
     signal.signal(signal.SIGHUP, stop)
 
-    in_flight = False
-    workdir = args.workdir or tempfile.mkdtemp(prefix="visnav-ardupilot-sitl-")
+    workdir = os.path.abspath(args.workdir or tempfile.mkdtemp(prefix="visnav-ardupilot-sitl-"))
     os.makedirs(workdir, exist_ok=True)
     log(f"workdir {workdir}")
     procs = []
     report = {"run": "control (no visnav)" if args.no_visnav else "visnav GPS_INPUT",
               "home": [HOME_LAT, HOME_LON, HOME_ALT_M]}
+    # What the verdict needs, filled in as the run goes.
+    score = ErrorScore("EKF3", log)
+    integ = None if args.no_visnav else IntegrityScore(bounds.ratio)
+    modes, texts = [], []
+    error = None
+    why = None
+    t_fly = t_gps_off = None
+    reached, last_seq = -1, None
+    held = None
     try:
+        instance, control_port, visnav_port, truth_port, held = choose_ports(args)
+        report.update({"instance": instance,
+                       "ports": {"sitl_serial0_tcp": control_port, "visnav_udp": visnav_port,
+                                 "truth_udp": truth_port}})
+        log(f"SITL instance {instance}: SERIAL0 tcp {control_port}, visnav link udp "
+            f"{visnav_port}, truth udp {truth_port}")
         if not args.no_visnav:
-            procs.append(("visnav", start_visnav(args, workdir)))
-        procs.append(("sitl", start_sitl(args, workdir)))
+            procs.append(("visnav", start_visnav(args, workdir, visnav_port, truth_port)))
+        procs.append(("sitl", start_sitl(args, workdir, instance, visnav_port, truth_port)))
         m = None
         end = time.time() + 60
         while m is None and time.time() < end:
             try:
-                m = mavutil.mavlink_connection(f"tcp:127.0.0.1:{CONTROL_PORT}", source_system=255,
+                m = mavutil.mavlink_connection(f"tcp:127.0.0.1:{control_port}", source_system=255,
                                                autoreconnect=True)
             except OSError:
                 time.sleep(0.5)
         if m is None:
-            sys.exit("cannot connect to SITL on tcp 5760 (see sitl.log)")
+            sys.exit(f"cannot connect to SITL on tcp {control_port} (see sitl.log)")
         hb = m.wait_heartbeat(timeout=60)
         if hb is None:
             sys.exit("no HEARTBEAT from SITL within 60 s (see sitl.log)")
         log(f"SITL heartbeat: system {m.target_system}")
-        rates = {33: 10, 164: 50, 108: 50, 24: 2, 124: 2, 193: 2, 42: 2}
+        # 33 GLOBAL_POSITION_INT, 164 SIMSTATE, 108 SIM_STATE (truth), 24 GPS_RAW_INT (GPS1 =
+        # visnav's injection), 124 GPS2_RAW, 193 EKF_STATUS_REPORT, 42 MISSION_CURRENT.
+        rates = {33: 10, 164: 50, 108: 50, 24: 5, 124: 2, 193: 5, 42: 2}
         request_rates(m, rates)
         truth = Truth()
+        history = TruthHistory()
+        clock = BootClock()
         t0 = time.time()
         last_ask = t0
         ready = False
@@ -309,12 +424,66 @@ def main():
         log("armed in AUTO: taking off")
         in_flight = True
         # 3. Fly; GPS off after take-off; measure.
-        score = ErrorScore("EKF3", log)
-        t_gps_off = None
-        reached = -1
         t_fly = time.time()
-        modes = []
         why = "timeout"
+        aiding = None
+        last_fix_us = None
+        n_over = 0
+
+        # Everything but the flight's own decisions (waypoints, modes, GPS off): also for the
+        # messages that arrive while a parameter is being set.
+        def observe(r, now):
+            nonlocal aiding
+            typ = r.get_type()
+            truth.on(r, now)
+            if typ in ("SIMSTATE", "SIM_STATE"):
+                tr = truth.at(now)
+                if tr is not None:
+                    history.add(now, *tr)
+                return
+            own = r.get_srcSystem() == m.target_system and r.get_srcComponent() == 1
+            if own and getattr(r, "time_boot_ms", None):
+                clock.on(r.time_boot_ms, now)
+            if typ == "STATUSTEXT":
+                log(f"STATUSTEXT {r.text}")
+                texts.append((round(now - t_fly, 1), r.text))
+            elif typ == "EKF_STATUS_REPORT" and own:
+                score.status(now - t_fly, r.flags)
+                if ekf_aiding(r.flags) != aiding:
+                    aiding = ekf_aiding(r.flags)
+                    when = "" if t_gps_off is None else f" ({now - t_gps_off:+.1f} s after GPS off)"
+                    log(f"EKF3 {'aiding' if aiding else 'NOT aiding'}: flags {r.flags:#x}{when}")
+            elif typ == "GPS_RAW_INT" and own and integ is not None:
+                injected(r)
+
+        def injected(r):
+            # GPS instance 0 = visnav's GPS_INPUT; time_usec = its fix time (boot clock).
+            nonlocal last_fix_us, n_over
+            if r.fix_type < 3:
+                integ.skip("no_fix")
+                return
+            if r.time_usec == last_fix_us:
+                return  # the same fix sent again
+            last_fix_us = r.time_usec
+            t_fix = clock.local(r.time_usec * 1e-6)
+            tr = None if t_fix is None else history.at(t_fix)
+            if tr is None:
+                integ.skip("no_truth")
+                return
+            phase = "gps_off" if t_gps_off is not None and t_fix >= t_gps_off else "gps_on"
+            h_acc = getattr(r, "h_acc", 0) * 1e-3
+            ratio = integ.add(t_fix - t_fly, phase, r.lat * 1e-7, r.lon * 1e-7, h_acc, tr[0], tr[1])
+            if ratio is None or ratio > bounds.ratio:
+                n_over += 1
+                if n_over <= 5 or n_over % 50 == 0:
+                    log(f"injected position {integ.samples[-1][2]} m from the truth, h_acc "
+                        f"{h_acc:.2f} m ({n_over} over {bounds.ratio:g} x h_acc so far)")
+
+        def switch_gps_off():
+            t = gps_off(m, on=lambda r: observe(r, time.time()))
+            score.gps_switched_off(t - t_fly)
+            return t
+
         while True:
             now = time.time()
             if STOP:
@@ -331,15 +500,14 @@ def main():
             r = m.recv_match(blocking=True, timeout=1.0)
             if r is None:
                 continue
+            now = time.time()
+            observe(r, now)
             typ = r.get_type()
-            truth.on(r, now)
-            if typ == "STATUSTEXT":
-                log(f"STATUSTEXT {r.text}")
-            elif typ == "MISSION_ITEM_REACHED":
+            if typ == "MISSION_ITEM_REACHED":
                 reached = max(reached, r.seq)
                 log(f"waypoint {r.seq} reached")
                 if t_gps_off is None and args.gps_off_alt is None and r.seq >= args.gps_off_wp:
-                    t_gps_off = gps_off(m)
+                    t_gps_off = switch_gps_off()
                 if r.seq >= last_seq:
                     why = "last waypoint reached"
                     break
@@ -357,22 +525,73 @@ def main():
                     continue
                 agl = tr[2] - HOME_ALT_M
                 if t_gps_off is None and args.gps_off_alt is not None and agl > args.gps_off_alt:
-                    t_gps_off = gps_off(m)
+                    t_gps_off = switch_gps_off()
                     continue
                 score.add(now - t_fly, t_gps_off is not None, r.lat * 1e-7, r.lon * 1e-7,
                           r.alt * 1e-3, *tr)
-        report.update({
-            "ended": why,
-            "flight_s": round(time.time() - t_fly, 1),
-            "gps_off_after_s": None if t_gps_off is None else round(t_gps_off - t_fly, 1),
-            "last_waypoint_reached": reached,
-            "modes": modes,
-            "ekf3_error": score.summary(),
-        })
-        score.save(workdir)
+    except SystemExit as e:
+        if e.code not in (None, 0):
+            error = str(e.code)
+            log(f"error: {error}")
+    except Exception as e:  # a bug or an I/O error: still stop the processes and report
+        traceback.print_exc()
+        error = f"{type(e).__name__}: {e}"
     finally:
+        code, lines = conclude(args, report, score, integ, modes, texts, error, why, t_fly,
+                               t_gps_off, reached, last_seq, bounds, workdir)
         finish_run(procs, workdir, report, log)
+        for line in lines:
+            print(line, flush=True)
+        if held is not None:
+            held.close()
+    return code
+
+
+def conclude(args, report, score, integ, modes, texts, error, why, t_fly, t_gps_off, reached,
+             last_seq, bounds, workdir):
+    """Fill the report (statistics, verdict) and save the samples; returns the exit code and the
+    verdict's lines (module docstring)."""
+    label = "control" if args.no_visnav else "visnav"
+    if t_fly is None:
+        # Never flew: nothing to score.
+        v = {"pass": False, "reasons": [f"run_error: {error or 'did not fly'}"], "notes": [],
+             "bounds": bounds.as_dict()}
+        report["verdict"] = v
+        return 2, sitl_common.verdict_lines(label, v)
+    t_end = time.time() - t_fly
+    ekf = score.summary(t_end)
+    completed = last_seq is not None and reached >= last_seq
+    report.update({
+        "ended": why if error is None else f"error: {error}",
+        "flight_s": round(t_end, 1),
+        "gps_off_after_s": None if t_gps_off is None else round(t_gps_off - t_fly, 1),
+        "last_waypoint_reached": reached,
+        "mission_completed": completed,
+        "modes": modes,
+        "statustext": texts,
+        "ekf3_error": ekf,
+    })
+    if integ is not None:
+        report["injected_integrity"] = integ.summary()
+        integ.save(workdir)
+    score.save(workdir)
+    v = sitl_common.verdict(
+        estimator="EKF3", mission_completed=completed,
+        mission_detail=f"reached item {reached} of {last_seq} (ended: {report['ended']})",
+        modes=modes, allowed_modes={"AUTO"}, texts=texts, ekf=ekf,
+        integrity=report.get("injected_integrity"), integrity_expected=not args.no_visnav,
+        error=error, bounds=bounds)
+    report["verdict"] = v
+    if error is not None:
+        return 2, sitl_common.verdict_lines(label, v)
+    run_completed = t_gps_off is not None and not (why or "").startswith("stopped by signal")
+    lines = sitl_common.verdict_lines(label, v)
+    if args.no_visnav:
+        lines.append(f"control: the control run {'completed' if run_completed else 'did NOT complete'}"
+                     f" (exit {sitl_common.exit_code(v, True, run_completed)}); its verdict is "
+                     f"the baseline for the visnav run")
+    return sitl_common.exit_code(v, args.no_visnav, run_completed), lines
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

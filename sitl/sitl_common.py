@@ -591,6 +591,24 @@ def px4_instance_running(n):
     return False
 
 
+def px4_rc_mavlink_with_ports(text, gcs_port, link_port):
+    """PX4's init.d-posix/px4-rc.mavlink (v1.14) with its GCS link sending to UDP `gcs_port`
+    (`-o gcs_port` added to the GCS `mavlink start`, whose remote port is otherwise 14550 for every
+    instance) and its onboard (API) link to `link_port` (udp_offboard_port_remote, set just before
+    the first `mavlink start`). ValueError when the file does not look like that."""
+    lines = text.split("\n")
+    starts = [i for i, ln in enumerate(lines) if ln.lstrip().startswith("mavlink start")]
+    gcs = [i for i in starts if "$udp_gcs_port_local" in lines[i]]
+    if not starts or len(gcs) != 1 or " -o " in lines[gcs[0]] + " ":
+        raise ValueError("no GCS `mavlink start -u $udp_gcs_port_local` line without -o")
+    if not any("-o $udp_offboard_port_remote" in lines[i] for i in starts):
+        raise ValueError("no onboard `mavlink start ... -o $udp_offboard_port_remote` line")
+    lines[gcs[0]] = lines[gcs[0]].rstrip() + f" -o {gcs_port}"
+    lines.insert(starts[0], f"udp_offboard_port_remote={link_port}  # sitl/px4/run.py")
+    lines.insert(starts[0], "# sitl/px4/run.py: this run's ports (GCS link -o below).")
+    return "\n".join(lines)
+
+
 CONNECTION_RE = re.compile(r'^(\s*connection\s*=\s*"udpin:[^"]*:)(\d+)(")', re.M)
 
 

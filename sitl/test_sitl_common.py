@@ -432,6 +432,29 @@ class Ports(unittest.TestCase):
             with open(os.path.join(here, rel)) as f:
                 self.assertEqual(sc.connection_port(f.read()), port, rel)
 
+    def test_px4_rc_mavlink_ports(self):
+        rc = ("#!/bin/sh\n"
+              "udp_offboard_port_local=$((14580+px4_instance))\n"
+              "udp_offboard_port_remote=$((14540+px4_instance))\n"
+              "[ $px4_instance -gt 9 ] && udp_offboard_port_remote=14549\n"
+              "udp_gcs_port_local=$((18570+px4_instance))\n\n"
+              "# GCS link\n"
+              "mavlink start -x -u $udp_gcs_port_local -r 4000000 -f\n"
+              "mavlink stream -r 50 -s ATTITUDE -u $udp_gcs_port_local\n\n"
+              "# API/Offboard link\n"
+              "mavlink start -x -u $udp_offboard_port_local -r 4000000 -f -m onboard "
+              "-o $udp_offboard_port_remote\n")
+        out = sc.px4_rc_mavlink_with_ports(rc, 40001, 40002).split("\n")
+        self.assertIn("mavlink start -x -u $udp_gcs_port_local -r 4000000 -f -o 40001", out)
+        i = out.index("udp_offboard_port_remote=40002  # sitl/px4/run.py")
+        # After PX4's own assignments (also the > 9 one), before the first mavlink start.
+        self.assertGreater(i, out.index("[ $px4_instance -gt 9 ] && udp_offboard_port_remote=14549"))
+        self.assertLess(i, out.index("mavlink start -x -u $udp_gcs_port_local -r 4000000 -f -o 40001"))
+        with self.assertRaises(ValueError):
+            sc.px4_rc_mavlink_with_ports("mavlink start -u 14556\n", 1, 2)
+        with self.assertRaises(ValueError):  # already has a remote port
+            sc.px4_rc_mavlink_with_ports("\n".join(out), 1, 2)
+
     def test_instance_arg(self):
         self.assertIsNone(sc.instance_arg("auto"))
         self.assertEqual(sc.instance_arg("3"), 3)

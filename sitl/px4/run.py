@@ -33,16 +33,28 @@ What runs (all on loopback):
   580 m; PX4 v1.14 has no PX4_HOME_ALT for SIH and its PX4_HOME_LAT/LON path writes degrees
   into these integer degE7 parameters) and every parameter of visnav-ev.params. A fresh
   working directory: no parameters left from an earlier run.
-  PX4's onboard (API) MAVLink instance sends to UDP 14540 (visnav's link, visnav.toml), its GCS
-  instance to UDP 14550 (this script).
+  PX4's onboard (API) MAVLink instance sends to UDP LINK_PORT (visnav's link, visnav.toml), its
+  GCS instance to UDP GCS_PORT (this script).
+* Ports and instance (so that runs can share a host): PX4 runs as instance N (`px4 -i N`,
+  --instance, by default the first N in 0-9 whose ports are free (bind test), whose
+  /tmp/px4_lock-N no PX4 holds and whose lock (TMPDIR/visnav-sitl-px4-N.lock) no other run.py
+  holds). `-i N` moves PX4's own local ports (UDP 18570 + N GCS link, 14580 + N onboard link,
+  14280/13030/19450 + N, jMAVSim TCP 4560 + N) and its system id (rcS: MAV_SYS_ID = N + 1, set
+  back to 1 here in px4-rc.params, the system visnav.toml expects). The ports PX4 sends *to* do
+  not all move (every instance's GCS link sends to 14550): GCS_PORT (--gcs-port; 14550 on
+  instance 0 when free, else a free port), LINK_PORT (--link-port; 14540 + N when free, else a
+  free port) and TRUTH_PORT (--truth-port; 14562 on instance 0 when free, else a free port)
+  are written into the work folder's copy of px4-rc.mavlink (`-o GCS_PORT` on the GCS link,
+  udp_offboard_port_remote = LINK_PORT) and visnav.toml. Instance 0 with the default ports runs PX4's files unchanged. With --attach
+  nothing is chosen: GCS_PORT 14550 (or --gcs-port), the link as in the configuration.
 * `visnav sitl-run --kind px4 --config WORKDIR/visnav.toml --truth udpin:127.0.0.1:TRUTH_PORT
   --ortho sitl/maps/naip_nd_2014.tif` (the camera sees the 2014 image; the map is the 2009 one),
   started once PX4 is armed (--visnav-from: PX4 cannot arm while visnav's velocity wanders on the
   ground, docs/real-sitl.md (PX4 section)).
   PX4 has no spare MAVLink port for the truth, so this script asks for HIL_STATE_QUATERNION
   (PX4's ground truth stream) and ATTITUDE (for the time) at 50 Hz on the GCS link and relays both
-  packets unchanged to UDP TRUTH_PORT (--truth-port, default 14562: ArduPilot's recipe uses 14551
-  and 14552, so both can run on one machine).
+  packets unchanged to UDP TRUTH_PORT (--truth-port, 14562 on instance 0: ArduPilot's recipe
+  uses 14551 and 14552 on its instance 0).
 * This script: waits for EKF2's global position, uploads mission.waypoints (without ArduPilot's
   home item), arms and starts the mission, sets EKF2_GPS_CTRL = 0 (EKF2 stops fusing GPS; visnav
   never uses it: [daemon] gps = "none") when the first corner of the loop is reached
@@ -51,9 +63,27 @@ What runs (all on loopback):
 
 Measured: every GLOBAL_POSITION_INT (EKF2's output) against HIL_STATE_QUATERNION (truth)
 propagated over the arrival gap with the true velocity: horizontal and vertical error, median /
-p90 / max, with the GPS fused (airborne) and after EKF2_GPS_CTRL = 0. Written to
-WORKDIR/report.json (with visnav's last metrics line) and printed; every sample in
-WORKDIR/samples.json.
+p90 / max, with the GPS fused (airborne), after EKF2_GPS_CTRL = 0 (all airborne samples), and
+after it split by whether EKF2 was aiding (ESTIMATOR_STATUS flags: ESTIMATOR_POS_HORIZ_ABS set,
+not ESTIMATOR_CONST_POS_MODE; sitl_common.py), with the time it was not aiding (first loss after
+GPS off, total). PX4 stops GLOBAL_POSITION_INT while its global position is invalid: that time
+shows as not aiding and as a sample gap. STATUSTEXT after arming (failsafes: "Failsafe
+activated", any "failsafe") and the flight modes after arming. Written to WORKDIR/report.json
+(with visnav's last metrics line and "verdict") and printed; every sample (with its aiding flag)
+in WORKDIR/samples.json.
+
+Injected-position integrity is NOT measured here: PX4 does not send back the ODOMETRY it fuses
+(ArduPilot echoes GPS_INPUT as GPS_RAW_INT; PX4's ODOMETRY stream sends its own estimate unless
+the MAV_ODOM_LP loopback is set, which this recipe does not use). visnav's ODOMETRY is in its own
+WORKDIR/visnav.tlog; sitl/px4/replay_error.py and ulog_error.py score visnav and EKF2 offline.
+The report says so (a note in the verdict, not a failure).
+
+Verdict (sitl_common.verdict, the same rules as sitl/ardupilot/run.py, mission mode MISSION;
+bounds --max-p90-m 25, --max-error-m 50, --max-not-aiding-s 0, --max-sample-gap-s 2) and exit
+code: 0 = a visnav run passed, 1 = it failed; the control run (--no-visnav) prints its verdict
+as "control: ..." and exits 0 when the control run itself completed (the GPS went off and the
+flight ended on its own), 1 when not; 2 = the run could not be made (PX4 did not start, no
+position, could not arm, an error in flight).
 """
 
 import argparse
@@ -65,21 +95,27 @@ import subprocess
 import sys
 import tempfile
 import time
+import traceback
 
 try:
     from pymavlink import mavutil
 except ImportError:
-    sys.exit("run.py needs pymavlink: python3 -m pip install pymavlink "
-             "(or use the venv python printed by scripts/interop/setup_venv.sh)")
+    print("run.py needs pymavlink: python3 -m pip install pymavlink "
+          "(or use the venv python printed by scripts/interop/setup_venv.sh)", file=sys.stderr)
+    sys.exit(2)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.abspath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, os.path.dirname(HERE))
 import sitl_common  # noqa: E402
-from sitl_common import (HOME_ALT_M, HOME_LAT, HOME_LON, ErrorScore, finish_run,  # noqa: E402
-                         metres_per_deg)
-GCS_PORT = 14550
-JMAVSIM_PORT = 4560  # PX4 instance 0's simulator_mavlink TCP port
+from sitl_common import (HOME_ALT_M, HOME_LAT, HOME_LON, ErrorScore, ekf_aiding,  # noqa: E402
+                         finish_run, metres_per_deg)
+# PX4's defaults for instance 0: the GCS link's remote port, the onboard link's (+ N), the truth
+# relay (this recipe's), jMAVSim's TCP port (+ N).
+GCS_PORT, LINK_PORT, TRUTH_PORT, JMAVSIM_PORT = 14550, 14540, 14562, 4560
+MAX_INSTANCE = 9  # px4-rc.mavlink sends every instance above 9 to the same onboard port
+INTEGRITY_NOTE = ("injected position integrity not measured: PX4 does not echo the ODOMETRY it "
+                  "receives (visnav's own is in visnav.tlog)")
 # Declination of jMAVSim's fixed magnetic field (Simulator.DEFAULT_MAG_FIELD, N / E / D gauss
 # 0.21506 / 0.01021 / 0.42974), deg.
 JMAVSIM_MAG_DECL_DEG = 2.718
@@ -132,9 +168,10 @@ def patch_rc_simulator_for_jmavsim(path):
         f.write(text.replace(RC_JMAVSIM_START, "\tparam set IMU_INTEG_RATE 250\n", 1))
 
 
-def start_jmavsim(args, workdir):
+def start_jmavsim(args, workdir, port):
     """jMAVSim (jmavsim_run.jar, built by the user: docs/real-sitl.md, PX4 section) headless, real
-    time (no -lockstep), 250 Hz, TCP server on 127.0.0.1:4560 for PX4's simulator_mavlink, with
+    time (no -lockstep), 250 Hz, TCP server on 127.0.0.1:PORT (4560 + PX4's instance) for PX4's
+    simulator_mavlink, with
     home at the centre of sitl/maps (PX4_HOME_LAT/LON/ALT, which jMAVSim reads). It runs in the
     jar's folder, which must hold the jar's resources (`ant copy_res`: mavlink/, models/,
     environment/)."""
@@ -143,8 +180,8 @@ def start_jmavsim(args, workdir):
     schema = os.path.join(here, "mavlink", "message_definitions", "common.xml")
     if not os.path.exists(jar) or not os.path.exists(schema):
         sys.exit(f"{jar}: no jMAVSim jar with its resources ({schema}) beside it")
-    if tcp_listening(JMAVSIM_PORT):
-        sys.exit(f"TCP port {JMAVSIM_PORT} is in use (another jMAVSim or simulator?)")
+    if tcp_listening(port):
+        sys.exit(f"TCP port {port} is in use (another jMAVSim or simulator?)")
     env = dict(os.environ, PX4_HOME_LAT=f"{HOME_LAT:.7f}", PX4_HOME_LON=f"{HOME_LON:.7f}",
                PX4_HOME_ALT=f"{HOME_ALT_M:.2f}")
     env.pop("PX4_SIM_SPEED_FACTOR", None)
@@ -152,7 +189,7 @@ def start_jmavsim(args, workdir):
            "--add-exports", "java.desktop/sun.awt=ALL-UNNAMED",
            "--add-exports", "java.desktop/sun.java2d=ALL-UNNAMED",
            "-XX:GCTimeRatio=20", "-Djava.ext.dirs=", "-jar", jar,
-           "-tcp", f"127.0.0.1:{JMAVSIM_PORT}", "-r", "250", "-no-gui"]
+           "-tcp", f"127.0.0.1:{port}", "-r", "250", "-no-gui"]
     log(f"jMAVSim (in {here}): PX4_HOME_LAT={env['PX4_HOME_LAT']} PX4_HOME_LON="
         f"{env['PX4_HOME_LON']} PX4_HOME_ALT={env['PX4_HOME_ALT']} " + " ".join(cmd))
     out = os.path.join(workdir, "jmavsim.log")
@@ -164,12 +201,12 @@ def start_jmavsim(args, workdir):
             text = f.read()
         if p.poll() is not None or "Failed to open MAV port" in text:
             break
-        if tcp_listening(JMAVSIM_PORT):
+        if tcp_listening(port):
             return p
         time.sleep(0.5)
     if p.poll() is None:
         os.killpg(p.pid, signal.SIGKILL)
-    sys.exit(f"jMAVSim did not open TCP {JMAVSIM_PORT} (see {out})")
+    sys.exit(f"jMAVSim did not open TCP {port} (see {out})")
 
 
 def tcp_listening(port):
@@ -188,9 +225,61 @@ def tcp_listening(port):
     return False
 
 
-def start_px4(args, workdir, params):
-    """PX4 SITL (with SIH, or for the running jMAVSim) in WORKDIR/px4 with the parameters in a
-    private copy of `etc`."""
+def choose_ports(args):
+    """PX4's instance N and the GCS / onboard-link / truth ports (module docstring). Returns a
+    namespace (instance, gcs, link, truth, jmavsim, held lock file)."""
+    net = argparse.Namespace(instance=None, gcs=args.gcs_port, link=args.link_port,
+                             truth=args.truth_port, jmavsim=None, held=None)
+    if args.attach:
+        net.gcs = GCS_PORT if net.gcs is None else net.gcs
+        net.truth = TRUTH_PORT if net.truth is None else net.truth
+        return net
+
+    def lock(n):
+        if sitl_common.px4_instance_running(n):
+            return None
+        return sitl_common.try_lock(sitl_common.instance_lock_path("px4", n))
+
+    if args.instance is None:
+        n, held = sitl_common.choose_instance(sitl_common.px4_ports, range(MAX_INSTANCE + 1),
+                                              lock=lock)
+        if n is None:
+            sys.exit(f"no free PX4 SITL instance in 0-{MAX_INSTANCE}")
+    else:
+        n = args.instance
+        if n > MAX_INSTANCE:
+            sys.exit(f"--instance {n}: PX4 shares its onboard port above {MAX_INSTANCE}")
+        busy = [f"{proto} {port}" for proto, port in sitl_common.px4_ports(n)
+                if not sitl_common.port_free(port, proto)]
+        if busy:
+            sys.exit(f"instance {n}: ports in use ({', '.join(busy)}); another PX4? "
+                     f"(--instance auto picks a free one)")
+        held = lock(n)
+        if held is None:
+            sys.exit(f"instance {n} is used by another PX4 or run.py")
+    net.instance, net.held, net.jmavsim = n, held, JMAVSIM_PORT + n
+    taken = set()
+    # Instance 0 keeps PX4's and this recipe's usual ports when free; another instance never
+    # takes instance 0's (its run may start later).
+    defaults = (("gcs", GCS_PORT if n == 0 else None), ("link", LINK_PORT + n),
+                ("truth", TRUTH_PORT if n == 0 else None))
+    for name, default in defaults:
+        given = getattr(net, name)
+        if given is not None:
+            if given in taken or not sitl_common.port_free(given, "udp"):
+                sys.exit(f"UDP port {given} (--{name}-port) is in use")
+            port = given
+        else:
+            port = sitl_common.pick_port(default, "udp", taken=taken)
+        setattr(net, name, port)
+        taken.add(port)
+    return net
+
+
+def start_px4(args, workdir, params, net):
+    """PX4 SITL (with SIH, or for the running jMAVSim) as instance net.instance in WORKDIR/px4
+    with the parameters in a private copy of `etc`, whose px4-rc.mavlink sends to net.gcs and
+    net.link when they are not PX4's defaults."""
     build = os.path.abspath(args.px4_build)
     exe = os.path.join(build, "bin", "px4")
     etc_src = os.path.join(build, "etc")
@@ -203,6 +292,26 @@ def start_px4(args, workdir, params):
         f.write("#!/bin/sh\n# Written by sitl/px4/run.py: SIH home and visnav-ev.params.\n")
         for name, value in params:
             f.write(f"param set {name} {value}\n")
+        if net.instance:
+            # rcS set MAV_SYS_ID = instance + 1 before sourcing this file; visnav.toml expects 1
+            # (each instance has its own ports).
+            f.write("param set MAV_SYS_ID 1\n")
+    if (net.gcs, net.link) != (GCS_PORT, LINK_PORT + net.instance):
+        rc = os.path.join(etc, "init.d-posix", "px4-rc.mavlink")
+        with open(rc) as f:
+            text = f.read()
+        try:
+            text = sitl_common.px4_rc_mavlink_with_ports(text, net.gcs, net.link)
+        except ValueError as e:
+            sys.exit(f"{rc}: {e}; run with --instance 0 --gcs-port {GCS_PORT} "
+                     f"--link-port {LINK_PORT}")
+        with open(rc, "w") as f:
+            f.write(text)
+    if args.sim == "jmavsim" and net.instance:
+        with open(os.path.join(etc, "init.d-posix", "px4-rc.simulator")) as f:
+            if "4560+px4_instance" not in f.read().replace(" ", ""):
+                sys.exit("this PX4's px4-rc.simulator connects jMAVSim on a fixed port: "
+                         "run with --instance 0")
     wd = os.path.join(workdir, "px4")
     os.makedirs(wd, exist_ok=True)
     env = {k: v for k, v in os.environ.items()
@@ -214,16 +323,16 @@ def start_px4(args, workdir, params):
     else:
         env.update(PX4_SIMULATOR="sihsim", PX4_SIM_MODEL="sihsim_quadx")
         shown = "PX4_SIMULATOR=sihsim PX4_SIM_MODEL=sihsim_quadx "
-    cmd = [exe, "-d", "-w", wd, etc]
+    cmd = [exe, "-d", "-i", str(net.instance), "-w", wd, etc]
     log("PX4: " + shown + " ".join(cmd))
     return subprocess.Popen(cmd, env=env, cwd=wd, stdin=subprocess.DEVNULL,
                             stdout=open(os.path.join(workdir, "px4.log"), "w"),
                             stderr=subprocess.STDOUT, start_new_session=True)
 
 
-def start_visnav(args, workdir):
-    return sitl_common.start_visnav(args.visnav, args.config, workdir, "px4", args.truth_port,
-                                    args.camera_hz, REPO, log)
+def start_visnav(args, workdir, net):
+    return sitl_common.start_visnav(args.visnav, args.config, workdir, "px4", net.truth,
+                                    args.camera_hz, REPO, log, link_port=net.link)
 
 
 def is_autopilot(m, hb):
@@ -381,8 +490,17 @@ def main():
     ap.add_argument("--no-visnav", action="store_true", help="the GPS-off control run")
     ap.add_argument("--params", default=os.path.join(HERE, "visnav-ev.params"))
     ap.add_argument("--mission", default=os.path.join(HERE, "mission.waypoints"))
-    ap.add_argument("--truth-port", type=int, default=14562,
-                    help="UDP port the truth is relayed to (visnav sitl-run --truth)")
+    ap.add_argument("--instance", type=sitl_common.instance_arg, default=None, metavar="N|auto",
+                    help="PX4 instance (px4 -i N); default auto: the first free one in 0-9")
+    ap.add_argument("--gcs-port", type=int, default=None,
+                    help="UDP port PX4's GCS link sends to (this script); default 14550 on "
+                         "instance 0 if free, else a free port")
+    ap.add_argument("--link-port", type=int, default=None,
+                    help="UDP port PX4's onboard link sends to (visnav's link); default 14540 + N "
+                         "if free, else a free port (with --attach: the configuration's)")
+    ap.add_argument("--truth-port", type=int, default=None,
+                    help="UDP port the truth is relayed to (visnav sitl-run --truth); default "
+                         "14562 on instance 0 if free, else a free port")
     ap.add_argument("--gps-off-wp", type=int, default=1,
                     help="EKF2_GPS_CTRL = 0 when this mission item (0-based, no home item) is "
                          "reached: 1 = the first corner, after the climb")
@@ -395,10 +513,13 @@ def main():
                          "once armed) or from boot")
     ap.add_argument("--camera-hz", type=float, default=2.0)
     ap.add_argument("--after-gps-off", type=float, default=None,
-                    help="stop this many seconds after the GPS is off (default: last waypoint)")
+                    help="stop this many seconds after the GPS is off (default: last waypoint); "
+                         "a run stopped so has not completed its mission: it fails")
     ap.add_argument("--timeout", type=float, default=1500.0, help="flight, s")
     ap.add_argument("--workdir")
+    sitl_common.add_bounds_args(ap)
     args = ap.parse_args()
+    bounds = sitl_common.bounds_from_args(args)
     if args.config is None:
         args.config = os.path.join(HERE, "visnav-jmavsim.toml" if args.sim == "jmavsim"
                                    else "visnav.toml")
@@ -441,7 +562,20 @@ def main():
     procs = []
     report = {"run": "control (no visnav)" if args.no_visnav else "visnav ODOMETRY",
               "sim": args.sim, "home": [HOME_LAT, HOME_LON, HOME_ALT_M]}
+    # What the verdict needs, filled in as the run goes.
+    score = ErrorScore("EKF2", log)
+    modes, texts = [], []
+    error = why = None
+    t_fly = t_gps_off = None
+    reached, last_seq = -1, None
+    net = None
     try:
+        net = choose_ports(args)
+        report.update({"instance": net.instance,
+                       "ports": {"gcs_udp": net.gcs, "visnav_link_udp": net.link,
+                                 "truth_udp": net.truth, "jmavsim_tcp": net.jmavsim}})
+        log(f"PX4 instance {net.instance}: GCS link udp {net.gcs}, visnav link udp "
+            f"{'(configuration)' if net.link is None else net.link}, truth udp {net.truth}")
         ev_ctrl = dict(params).get("EKF2_EV_CTRL", "0")
         if args.ev_from == "armed":
             # EKF2 may fuse visnav only once the copter is armed (this alone does not let PX4 arm
@@ -449,12 +583,13 @@ def main():
             params = [(n, "0" if n == "EKF2_EV_CTRL" else v) for n, v in params]
         if args.px4_build:
             if jmavsim:
-                procs.append(("jmavsim", start_jmavsim(args, workdir)))
-            procs.append(("px4", start_px4(args, workdir, sim_params + params)))
+                procs.append(("jmavsim", start_jmavsim(args, workdir, net.jmavsim)))
+            procs.append(("px4", start_px4(args, workdir, sim_params + params, net)))
         if not args.no_visnav and args.visnav_from == "boot":
-            procs.append(("visnav", start_visnav(args, workdir)))
-        m = mavutil.mavlink_connection(f"udpin:0.0.0.0:{GCS_PORT}", source_system=255)
-        relay = mavutil.mavlink_connection(f"udpout:127.0.0.1:{args.truth_port}", source_system=255)
+            procs.append(("visnav", start_visnav(args, workdir, net)))
+        host = "0.0.0.0" if args.attach else "127.0.0.1"
+        m = mavutil.mavlink_connection(f"udpin:{host}:{net.gcs}", source_system=255)
+        relay = mavutil.mavlink_connection(f"udpout:127.0.0.1:{net.truth}", source_system=255)
         hb = None
         end = time.time() + 120
         while hb is None and time.time() < end:
@@ -462,7 +597,7 @@ def main():
             if r is not None and r.autopilot == mavutil.mavlink.MAV_AUTOPILOT_PX4:
                 hb = r
         if hb is None:
-            sys.exit(f"no PX4 HEARTBEAT on UDP {GCS_PORT} within 120 s (see px4.log)")
+            sys.exit(f"no PX4 HEARTBEAT on UDP {net.gcs} within 120 s (see px4.log)")
         m.target_system, m.target_component = hb.get_srcSystem(), hb.get_srcComponent()
         log(f"PX4 heartbeat: system {m.target_system}")
         # A GCS heartbeat: PX4 answers to this socket from now on.
@@ -482,7 +617,7 @@ def main():
                 log(f"parameter {name} not set (absent in this PX4 version?)")
         # 115 HIL_STATE_QUATERNION, 30 ATTITUDE (truth for visnav), 33 GLOBAL_POSITION_INT
         # (EKF2), 230 ESTIMATOR_STATUS.
-        rates = {115: 50, 30: 50, 33: 10, 230: 2}
+        rates = {115: 50, 30: 50, 33: 10, 230: 5}
 
         def ask():
             for msg_id, hz in rates.items():
@@ -512,10 +647,17 @@ def main():
             truth.on(r, now)
             if typ == "STATUSTEXT":
                 log(f"STATUSTEXT {r.text}")
-            elif typ == "ESTIMATOR_STATUS" and (r.flags & ~0x40) != est_flags[0]:
-                # Bit 0x40 (terrain height) toggles all the time in SIH: not logged.
-                log(f"ESTIMATOR_STATUS flags {r.flags & ~0x40:#06x}")
-                est_flags[0] = r.flags & ~0x40
+                if t_fly is not None:
+                    texts.append((round(now - t_fly, 1), r.text))
+            elif typ == "ESTIMATOR_STATUS" and r.get_srcSystem() == m.target_system:
+                if t_fly is not None:
+                    score.status(now - t_fly, r.flags)
+                if (r.flags & ~0x40) != est_flags[0]:
+                    # Bit 0x40 (terrain height) toggles all the time in SIH: not logged.
+                    when = "" if t_gps_off is None else f", {now - t_gps_off:+.1f} s after GPS off"
+                    log(f"ESTIMATOR_STATUS flags {r.flags & ~0x40:#06x} (EKF2 "
+                        f"{'aiding' if ekf_aiding(r.flags) else 'NOT aiding'}{when})")
+                    est_flags[0] = r.flags & ~0x40
 
         t0 = time.time()
         last_ask = t0
@@ -566,17 +708,13 @@ def main():
             # visnav's ODOMETRY velocity wanders by 0.5-3 m/s while the copter stands on the
             # ground; EKF2 computes the vision velocity innovation even while not fusing it and
             # its pre-flight check (0.5 m/s, PreFlightChecker.cpp) then refuses to arm.
-            procs.append(("visnav", start_visnav(args, workdir)))
+            procs.append(("visnav", start_visnav(args, workdir, net)))
         if args.ev_from == "armed" and not args.no_visnav:
             if not set_param(m, "EKF2_EV_CTRL", ev_ctrl, on=on):
                 sys.exit(f"cannot set EKF2_EV_CTRL = {ev_ctrl}")
             log(f"EKF2_EV_CTRL = {ev_ctrl}: EKF2 fuses visnav's ODOMETRY from now on")
         in_flight = True
-        score = ErrorScore("EKF2", log)
         t_fly = time.time()
-        t_gps_off = None
-        reached = -1
-        modes = []
         why = "timeout"
 
         def gps_off(where):
@@ -598,7 +736,9 @@ def main():
             if not set_param(m, "EKF2_GPS_CTRL", 0, on=on):
                 sys.exit("cannot set EKF2_GPS_CTRL = 0")
             log(f"GPS off: {what}, EKF2_GPS_CTRL = 0 ({where})")
-            return time.time()
+            t = time.time()
+            score.gps_switched_off(t - t_fly)
+            return t
 
         while True:
             now = time.time()
@@ -645,18 +785,67 @@ def main():
                     continue
                 score.add(now - t_fly, t_gps_off is not None, r.lat * 1e-7, r.lon * 1e-7,
                           r.alt * 1e-3, *tr)
-        report.update({
-            "ended": why,
-            "flight_s": round(time.time() - t_fly, 1),
-            "gps_off_after_s": None if t_gps_off is None else round(t_gps_off - t_fly, 1),
-            "last_mission_item_reached": reached,
-            "modes": modes,
-            "ekf2_error": score.summary(),
-        })
-        score.save(workdir)
+    except SystemExit as e:
+        if e.code not in (None, 0):
+            error = str(e.code)
+            log(f"error: {error}")
+    except Exception as e:  # a bug or an I/O error: still stop the processes and report
+        traceback.print_exc()
+        error = f"{type(e).__name__}: {e}"
     finally:
+        code, lines = conclude(args, report, score, modes, texts, error, why, t_fly, t_gps_off,
+                               reached, last_seq, bounds, workdir)
         finish_run(procs, workdir, report, log)
+        for line in lines:
+            print(line, flush=True)
+        if net is not None and net.held is not None:
+            net.held.close()
+    return code
+
+
+def conclude(args, report, score, modes, texts, error, why, t_fly, t_gps_off, reached, last_seq,
+             bounds, workdir):
+    """Fill the report (statistics, verdict) and save the samples; returns the exit code and the
+    verdict's lines (module docstring)."""
+    label = "control" if args.no_visnav else "visnav"
+    if t_fly is None:
+        v = {"pass": False, "reasons": [f"run_error: {error or 'did not fly'}"], "notes": [],
+             "bounds": bounds.as_dict()}
+        report["verdict"] = v
+        return 2, sitl_common.verdict_lines(label, v)
+    t_end = time.time() - t_fly
+    ekf = score.summary(t_end)
+    completed = last_seq is not None and reached >= last_seq
+    report.update({
+        "ended": why if error is None else f"error: {error}",
+        "flight_s": round(t_end, 1),
+        "gps_off_after_s": None if t_gps_off is None else round(t_gps_off - t_fly, 1),
+        "last_mission_item_reached": reached,
+        "mission_completed": completed,
+        "modes": modes,
+        "statustext": texts,
+        "ekf2_error": ekf,
+        "injected_integrity": None if args.no_visnav else {"measured": False,
+                                                           "why": INTEGRITY_NOTE},
+    })
+    score.save(workdir)
+    v = sitl_common.verdict(
+        estimator="EKF2", mission_completed=completed,
+        mission_detail=f"reached item {reached} of {last_seq} (ended: {report['ended']})",
+        modes=modes, allowed_modes={"MISSION"}, texts=texts, ekf=ekf, integrity=None,
+        integrity_expected=False, integrity_note=None if args.no_visnav else INTEGRITY_NOTE,
+        error=error, bounds=bounds)
+    report["verdict"] = v
+    lines = sitl_common.verdict_lines(label, v)
+    if error is not None:
+        return 2, lines
+    run_completed = t_gps_off is not None and not (why or "").startswith("stopped by signal")
+    if args.no_visnav:
+        lines.append(f"control: the control run {'completed' if run_completed else 'did NOT complete'}"
+                     f" (exit {sitl_common.exit_code(v, True, run_completed)}); its verdict is "
+                     f"the baseline for the visnav run")
+    return sitl_common.exit_code(v, args.no_visnav, run_completed), lines
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -1,9 +1,21 @@
 #!/usr/bin/env bash
-# Creates (once) the Python venv used by the MAVLink interop test: target/pyenv with pymavlink.
-# Prints the venv's python path on success. Exit 3 = python3/venv/pip unavailable (the test skips).
+# Creates (once) the Python venv used by the MAVLink interop test and the SITL recipes:
+# target/pyenv with pymavlink (VISNAV_PYENV overrides; a relative path is taken from the
+# repository root). Prints the venv python's absolute path on success, from any working
+# directory. Exit 3 = python3/venv/pip unavailable (the test skips).
 set -euo pipefail
-cd "$(dirname "$0")/../.."
+SRC="${BASH_SOURCE[0]}"
+case "$SRC" in
+    */*) HERE="${SRC%/*}" ;;
+    *) HERE=. ;;
+esac
+REPO="$(cd "$HERE/../.." && pwd -P)"
+cd "$REPO"
 VENV="${VISNAV_PYENV:-target/pyenv}"
+case "$VENV" in
+    /*) ;;
+    *) VENV="$REPO/$VENV" ;;
+esac
 PY="$VENV/bin/python"
 if [ -x "$PY" ] && "$PY" -c "import pymavlink" >/dev/null 2>&1; then
     echo "$PY"

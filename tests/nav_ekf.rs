@@ -251,6 +251,45 @@ fn divergence_reset_after_consecutive_rejections() {
     assert!(why.contains("reset"), "{why}");
 }
 
+/// Wrong relocalisations (issue 18/19: fixes without a prior land hundreds of metres off, each
+/// claiming tens of metres) disagree with each other: the filter must not reset onto any of them,
+/// however many it rejects, and says why in its health.
+#[test]
+fn scattered_wrong_fixes_never_reset_the_filter() {
+    let mut h = Harness::new(NavConfig::default(), SimImuConfig::perfect(100.0));
+    h.fly(30.0, true, |_, _, _| {});
+    let offsets = [
+        Vector3::new(310.0, -40.0, 0.0),
+        Vector3::new(-250.0, 380.0, 0.0),
+        Vector3::new(20.0, 600.0, 0.0),
+        Vector3::new(500.0, 90.0, 0.0),
+        Vector3::new(-330.0, -280.0, 0.0),
+        Vector3::new(420.0, -510.0, 0.0),
+        Vector3::new(-60.0, 350.0, 0.0),
+    ];
+    let mut outcomes = Vec::new();
+    h.fly(8.0, false, |f, t, ts| {
+        if t.is_multiple_of(1_000_000) {
+            let k = outcomes.len() % offsets.len();
+            outcomes.push(f.measure(Measurement::Vision(fix_at(ts, t, offsets[k], 40.0))));
+        }
+    });
+    assert!(
+        outcomes
+            .iter()
+            .all(|o| matches!(o, Outcome::Rejected { .. })),
+        "{outcomes:?}"
+    );
+    let c = h.filter.counters();
+    assert_eq!(c.divergence_resets, 0);
+    assert!(c.resets_refused >= 1, "{c:?}");
+    let e = h.pos_err();
+    assert!(e.x.abs() < 5.0 && e.y.abs() < 5.0, "{e:?}");
+    let (health, why) = h.filter.health();
+    assert_eq!(health, Health::Degraded);
+    assert!(why.contains("disagree"), "{why}");
+}
+
 #[test]
 fn health_degrades_without_fixes() {
     let mut h = Harness::new(NavConfig::default(), SimImuConfig::perfect(100.0));

@@ -58,6 +58,7 @@
 //! "not initialised".
 
 use super::config::NavConfig;
+use super::divergence::{RejectedFix, RejectedWindow};
 use super::earth;
 use super::ins::{InsState, Strapdown, skew_matrix};
 use super::measurement::{ImuSample, Measurement, PositionFix, VelocityFix};
@@ -123,6 +124,9 @@ pub struct Counters {
     pub initialisations: u64,
     /// Position/velocity resets after consecutive rejections.
     pub divergence_resets: u64,
+    /// Resets refused: the consecutive rejected fixes disagreed with each other
+    /// ([`super::divergence`]).
+    pub resets_refused: u64,
     /// Covariance re-initialisations after loss of positive definiteness.
     pub covariance_resets: u64,
     /// Hard resets (non-finite state, IMU gap).
@@ -278,6 +282,10 @@ pub struct NavFilter {
     counters: Counters,
     last_pos_fix_t_us: Option<u64>,
     consecutive_rejects: u32,
+    /// The latest consecutive rejected position fixes (`divergence`).
+    rejected: RejectedWindow,
+    /// Resets refused because the rejected fixes disagreed with each other.
+    last_refusal: Option<String>,
     last_reset: Option<(u64, String)>,
     next_output_t_us: Option<u64>,
 }
@@ -365,6 +373,8 @@ impl NavFilter {
             counters: Counters::default(),
             last_pos_fix_t_us: None,
             consecutive_rejects: 0,
+            rejected: RejectedWindow::default(),
+            last_refusal: None,
             last_reset: None,
             next_output_t_us: None,
         }
@@ -594,6 +604,9 @@ impl NavFilter {
                 self.consecutive_rejects
             ));
         }
+        if let Some(why) = &self.last_refusal {
+            reasons.push(format!("no reset onto them: {why}"));
+        }
         if reasons.is_empty() {
             (Health::Ok, String::new())
         } else {
@@ -607,6 +620,8 @@ impl NavFilter {
         self.history.clear();
         self.counters.hard_resets += 1;
         self.consecutive_rejects = 0;
+        self.rejected.clear();
+        self.last_refusal = None;
         self.last_pos_for_init = None;
         self.last_reset = Some((t_us, reason));
     }
@@ -668,6 +683,8 @@ impl NavFilter {
                 self.type_counters(&m).accepted += 1;
                 if is_pos {
                     self.consecutive_rejects = 0;
+                    self.rejected.clear();
+                    self.last_refusal = None;
                     self.last_pos_fix_t_us = Some(self.last_pos_fix_t_us.unwrap_or(0).max(t_c));
                 }
             }
@@ -675,9 +692,25 @@ impl NavFilter {
                 self.type_counters(&m).rejected += 1;
                 if is_pos {
                     self.consecutive_rejects += 1;
+                    self.note_rejected(&m);
                     if self.consecutive_rejects >= self.cfg.health.divergence_reject_count {
-                        self.divergence_reset(&m);
-                        return Outcome::Reset;
+                        match self.rejected.consistent() {
+                            Ok(_) => {
+                                self.divergence_reset(&m);
+                                return Outcome::Reset;
+                            }
+                            Err(why) => {
+                                self.counters.resets_refused += 1;
+                                if self.last_refusal.is_none() {
+                                    tracing::warn!(
+                                        "nav filter: {} consecutive position fixes rejected, no \
+                                         reset onto them: {why}",
+                                        self.consecutive_rejects
+                                    );
+                                }
+                                self.last_refusal = Some(why);
+                            }
+                        }
                     }
                 }
             }
@@ -727,6 +760,36 @@ impl NavFilter {
         self.counters.replays += 1;
         self.core = Some(core);
         out
+    }
+
+    /// Keep a rejected position fix's horizontal innovation for the divergence test.
+    fn note_rejected(&mut self, m: &Measurement) {
+        let (Some((f, is_vision)), Some(core)) = (m.position_fix(), self.core.as_ref()) else {
+            return;
+        };
+        let st = &core.ins.state;
+        let l = if is_vision {
+            self.par.l_cam
+        } else {
+            self.par.l_gps
+        };
+        let dt = dt_s(core.t_us, f.t_capture_us);
+        let d = earth::ned_offset_m(
+            (st.lat_rad, st.lon_rad, st.h_m),
+            (f.lat_rad, f.lon_rad, f.h_m),
+        ) + st.v_ned_m_s * dt
+            + st.q_nb * l;
+        let c = f.cov_ned_m2.fixed_view::<2, 2>(0, 0).into_owned();
+        let var_h = c.symmetric_eigenvalues().max();
+        let cap = self.cfg.health.divergence_reject_count.max(3) as usize;
+        self.rejected.push(
+            RejectedFix {
+                t_s: f.t_capture_us as f64 * 1e-6,
+                innov_ne_m: nalgebra::Vector2::new(d.x, d.y),
+                var_h_m2: var_h,
+            },
+            cap,
+        );
     }
 
     fn divergence_reset(&mut self, m: &Measurement) {
@@ -797,6 +860,8 @@ impl NavFilter {
         });
         self.counters.divergence_resets += 1;
         self.consecutive_rejects = 0;
+        self.rejected.clear();
+        self.last_refusal = None;
         self.last_pos_fix_t_us = Some(f.t_capture_us);
         self.last_reset = Some((now, reason));
     }
@@ -964,6 +1029,8 @@ impl NavFilter {
         self.counters.initialisations += 1;
         self.last_pos_fix_t_us = Some(fix.t_capture_us);
         self.consecutive_rejects = 0;
+        self.rejected.clear();
+        self.last_refusal = None;
         tracing::info!(
             "nav filter initialised from {} fix",
             if is_gps { "GPS" } else { "vision" }

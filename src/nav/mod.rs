@@ -5,6 +5,8 @@
 //! * [`ins`]: strapdown mechanization with coning and sculling corrections (Sheta 2012 ch. 2).
 //! * [`filter`]: 15/21-state closed-loop error-state EKF with delayed-measurement handling,
 //!   chi-square gates, divergence detection and health (Sheta 2012 ch. 5, Chan 2022).
+//! * [`divergence`]: whether a run of rejected position fixes agree with each other enough to
+//!   reset the filter onto them.
 //! * [`measurement`]: the filter's inputs; [`config`]: the `[nav]` configuration section;
 //!
 //! Conventions: NED local-level frame; body frame FRD; `q_nb` rotates body vectors into NED;
@@ -12,6 +14,7 @@
 //! autopilot clock. Error states are "estimate minus truth".
 
 pub mod config;
+pub mod divergence;
 pub mod earth;
 pub mod filter;
 pub mod ins;

@@ -35,7 +35,7 @@
 
 use std::collections::VecDeque;
 
-use mavlink::dialects::ardupilotmega::{GpsFixType, MavAutopilot, MavMessage};
+use mavlink::dialects::ardupilotmega::{GpsFixType, MavAutopilot, MavMessage, MavType};
 use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
 
 use crate::camera::Attitude;
@@ -72,6 +72,27 @@ pub enum NavInput {
     Meas(Measurement),
     /// The autopilot's clock went backwards: restart the filter.
     Reboot,
+    /// The autopilot's HEARTBEAT says (again, or now differently) whether the vehicle is a
+    /// multirotor (`[nav.drag] mode = "auto"`).
+    Vehicle {
+        /// Quad/hexa/octo/tri/coaxial rotorcraft or helicopter.
+        multirotor: bool,
+    },
+}
+
+/// Whether a HEARTBEAT's vehicle type flies on rotors whose drag `nav::drag` models.
+pub fn is_multirotor(t: MavType) -> bool {
+    matches!(
+        t,
+        MavType::MAV_TYPE_QUADROTOR
+            | MavType::MAV_TYPE_HEXAROTOR
+            | MavType::MAV_TYPE_OCTOROTOR
+            | MavType::MAV_TYPE_TRICOPTER
+            | MavType::MAV_TYPE_COAXIAL
+            | MavType::MAV_TYPE_HELICOPTER
+            | MavType::MAV_TYPE_DODECAROTOR
+            | MavType::MAV_TYPE_DECAROTOR
+    )
 }
 
 /// Which message an IMU sample came from (lower = preferred).
@@ -144,6 +165,8 @@ pub struct Inputs {
     att_rates: Option<(u64, Vector3<f64>)>,
     /// Adds the autopilot's bias estimates back to HIGHRES_IMU (`imu_bias_restore`).
     restorer: Option<ImuBiasRestorer>,
+    /// Whether the autopilot's HEARTBEAT says multirotor (None before the first).
+    multirotor: Option<bool>,
 }
 
 /// ISA altitude of a static pressure (inverse of the emulator's / ICAO troposphere model), m.
@@ -167,7 +190,13 @@ impl Inputs {
             attitudes: VecDeque::new(),
             last_gps_ns: None,
             att_rates: None,
+            multirotor: None,
         }
+    }
+
+    /// Whether the autopilot's HEARTBEAT said multirotor (false before the first).
+    pub fn multirotor(&self) -> bool {
+        self.multirotor.unwrap_or(false)
     }
 
     /// Forget times (after an autopilot reboot).
@@ -259,6 +288,15 @@ impl Inputs {
     pub fn convert(&mut self, tel: &Telemetry) -> Vec<NavInput> {
         let mut out = Vec::new();
         let t_ns = tel.t_companion_ns;
+        if let MavMessage::HEARTBEAT(hb) = &tel.msg
+            && hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
+        {
+            let multirotor = is_multirotor(hb.mavtype);
+            if self.multirotor != Some(multirotor) {
+                self.multirotor = Some(multirotor);
+                out.push(NavInput::Vehicle { multirotor });
+            }
+        }
         let mg = |v: i16| f64::from(v) * 1e-3 * G0_M_S2;
         let mrad = |v: i16| f64::from(v) * 1e-3;
         match &tel.msg {

@@ -522,12 +522,14 @@ impl NavTask {
                         self.filter.measure(m);
                     }
                 }
+                NavInput::Vehicle { multirotor } => self.filter.set_multirotor(multirotor),
                 NavInput::Reboot => {
                     warn!("autopilot reboot: navigation filter restarted");
                     self.metrics
                         .autopilot_reboots
                         .fetch_add(1, Ordering::Relaxed);
                     self.filter = NavFilter::new(self.nav_cfg.clone());
+                    self.filter.set_multirotor(self.inputs.multirotor());
                     self.shared
                         .book
                         .lock()

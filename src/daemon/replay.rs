@@ -150,6 +150,7 @@ fn kind_of(m: &Measurement, att_tilt: bool) -> (&'static str, u32) {
         Measurement::GpsVelocity(_) => ("gps_velocity", 3),
         Measurement::Altitude(_) => ("altitude", 1),
         Measurement::Attitude(_) => ("attitude", if att_tilt { 3 } else { 1 }),
+        Measurement::Drag(d) => ("drag", d.model.iter().flatten().count() as u32),
     }
 }
 
@@ -228,6 +229,8 @@ fn innovation(filter: &NavFilter, m: &Measurement) -> ([f64; 3], [f64; 3], [f64;
                 o.att_sigma_deg,
             )
         }
+        // Generated inside the filter from its own IMU samples (nav::drag): not replayed here.
+        Measurement::Drag(_) => (nan, nan, nan),
     }
 }
 
@@ -404,8 +407,10 @@ pub fn replay(
                 NavInput::Reboot => {
                     rep.reboots += 1;
                     filter = NavFilter::new(opts.nav.clone());
+                    filter.set_multirotor(inputs.multirotor());
                     spacing = InitSpacing::default();
                 }
+                NavInput::Vehicle { multirotor } => filter.set_multirotor(multirotor),
             }
             let c = filter.counters();
             let now = (
@@ -427,6 +432,22 @@ pub fn replay(
                 resets_seen = now;
             }
         }
+    }
+    // Drag measurements are made inside the filter from its IMU samples: counted, not gated here.
+    let d = filter.counters().drag;
+    if d.accepted + d.rejected > 0 {
+        rep.kinds.insert(
+            "drag".to_string(),
+            KindStats {
+                n: d.accepted + d.rejected + d.too_old + d.invalid,
+                accepted: d.accepted,
+                rejected: d.rejected,
+                dof: 2,
+                nis_mean: f64::NAN,
+                nis_p50: f64::NAN,
+                nis_p95: f64::NAN,
+            },
+        );
     }
     for (kind, v) in nis {
         if let Some(st) = rep.kinds.get_mut(kind) {

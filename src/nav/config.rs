@@ -255,6 +255,50 @@ impl Validate for InitConfig {
     }
 }
 
+/// When the multirotor drag law aids the velocity (`[nav.drag] mode`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DragMode {
+    /// Learn always; fuse once the GPS is gone when the vehicle is a multirotor (the daemon
+    /// tells the filter from the autopilot's HEARTBEAT type).
+    Auto,
+    /// Learn always; fuse once the GPS is gone whatever the vehicle.
+    On,
+    /// Neither learn nor fuse.
+    Off,
+}
+
+/// Multirotor drag aiding (`nav::drag`): the horizontal body velocity from the accelerometer,
+/// with the drag law learned while the GPS aids the filter.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DragConfig {
+    /// Auto (default): multirotors only; on; off.
+    pub mode: DragMode,
+    /// How far the wind may have changed since the law was learned, m/s (1 sigma): the wind is
+    /// not estimated, so this enters each measurement's noise.
+    pub wind_sigma_m_s: f64,
+    /// Fuse once no GPS velocity has been accepted for this long, s.
+    pub after_gps_s: f64,
+}
+
+impl Default for DragConfig {
+    fn default() -> Self {
+        Self {
+            mode: DragMode::Auto,
+            wind_sigma_m_s: 1.0,
+            after_gps_s: 2.0,
+        }
+    }
+}
+
+impl Validate for DragConfig {
+    fn validate(&self, p: &mut Problems) {
+        p.range("wind_sigma_m_s", self.wind_sigma_m_s, 0.0, 50.0);
+        p.range("after_gps_s", self.after_gps_s, 0.0, 600.0);
+    }
+}
+
 /// Health thresholds, divergence detection and reset.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -414,6 +458,8 @@ pub struct NavConfig {
     pub init: InitConfig,
     /// Health and divergence handling.
     pub health: HealthConfig,
+    /// Multirotor drag aiding.
+    pub drag: DragConfig,
 }
 
 impl Default for NavConfig {
@@ -441,6 +487,7 @@ impl Default for NavConfig {
             gates: GateConfig::default(),
             init: InitConfig::default(),
             health: HealthConfig::default(),
+            drag: DragConfig::default(),
         }
     }
 }
@@ -527,6 +574,7 @@ impl Validate for NavConfig {
         p.section("gates", |p| self.gates.validate(p));
         p.section("init", |p| self.init.validate(p));
         p.section("health", |p| self.health.validate(p));
+        p.section("drag", |p| self.drag.validate(p));
     }
 }
 

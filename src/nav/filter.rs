@@ -57,8 +57,10 @@
 //! definiteness is re-initialised; a non-finite state or an IMU gap resets the filter to
 //! "not initialised".
 
+use super::config::DragMode;
 use super::config::NavConfig;
 use super::divergence::{RejectedFix, RejectedWindow};
+use super::drag::{DragFix, DragLearner};
 use super::earth;
 use super::ins::{InsState, Strapdown, skew_matrix};
 use super::measurement::{ImuSample, Measurement, PositionFix, VelocityFix};
@@ -120,6 +122,8 @@ pub struct Counters {
     pub altitude: TypeCounters,
     /// Autopilot attitudes.
     pub attitude: TypeCounters,
+    /// Multirotor drag velocity measurements (`nav::drag`).
+    pub drag: TypeCounters,
     /// Initialisations (first and after hard resets).
     pub initialisations: u64,
     /// Position/velocity resets after consecutive rejections.
@@ -221,6 +225,8 @@ struct Core {
     last_vision_us: Option<u64>,
     /// Capture time of the last applied autopilot attitude, µs.
     last_att_us: Option<u64>,
+    /// Capture time of the last applied drag measurement, µs (`drag::ERROR_CORR_TIME_S`).
+    last_drag_us: Option<u64>,
 }
 
 #[derive(Debug, Clone)]
@@ -228,6 +234,16 @@ struct Epoch {
     imu: ImuSample,
     pre: Core,
     meas: Vec<Measurement>,
+}
+
+/// Averages of the bias-corrected specific force and the body velocity over one
+/// `drag::WINDOW_S` window.
+#[derive(Debug, Clone, Copy, Default)]
+struct DragWindow {
+    t0_us: Option<u64>,
+    f_dt: nalgebra::Vector2<f64>,
+    v_dt: nalgebra::Vector2<f64>,
+    dt_s: f64,
 }
 
 /// Constants derived from the configuration.
@@ -259,6 +275,8 @@ struct Params {
     gate_alt: f64,
     gate_att: f64,
     gate_att1: f64,
+    gate_drag1: f64,
+    gate_drag2: f64,
     r_att: Matrix3<f64>,
     att_tilt: bool,
     att_corr_s: f64,
@@ -286,6 +304,12 @@ pub struct NavFilter {
     rejected: RejectedWindow,
     /// Resets refused because the rejected fixes disagreed with each other.
     last_refusal: Option<String>,
+    /// Multirotor drag: the law learned while the GPS aids, the current averaging window, the
+    /// vehicle type (set by the caller) and the capture time of the last accepted GPS velocity.
+    drag_learner: DragLearner,
+    drag_window: DragWindow,
+    multirotor: bool,
+    last_gps_vel_us: Option<u64>,
     last_reset: Option<(u64, String)>,
     next_output_t_us: Option<u64>,
 }
@@ -358,6 +382,8 @@ impl NavFilter {
             att_tilt: cfg.autopilot_attitude_tilt,
             att_corr_s: cfg.attitude_error_corr_time_s,
             gate_att1: chi2_quantile(1.0, cfg.gates.attitude_prob),
+            gate_drag1: chi2_quantile(1.0, cfg.gates.gps_prob),
+            gate_drag2: chi2_quantile(2.0, cfg.gates.gps_prob),
             l_cam: Vector3::from(cfg.camera_lever_arm()),
             l_gps: Vector3::from(cfg.gps_lever_arm_body_frd_m),
         };
@@ -375,6 +401,10 @@ impl NavFilter {
             consecutive_rejects: 0,
             rejected: RejectedWindow::default(),
             last_refusal: None,
+            drag_learner: DragLearner::default(),
+            drag_window: DragWindow::default(),
+            multirotor: false,
+            last_gps_vel_us: None,
             last_reset: None,
             next_output_t_us: None,
         }
@@ -509,6 +539,9 @@ impl NavFilter {
         {
             self.history.pop_front();
         }
+        if let Some(d) = self.drag_sample(s, dt) {
+            self.measure(Measurement::Drag(d));
+        }
         let period_us = (1e6 / self.cfg.output_rate_hz).round().max(1.0) as u64;
         let due = self.next_output_t_us.unwrap_or(s.t_us);
         if s.t_us >= due {
@@ -516,6 +549,62 @@ impl NavFilter {
             return self.output();
         }
         None
+    }
+
+    /// Tell the filter whether the vehicle is a multirotor (`[nav.drag] mode = "auto"` fuses
+    /// the drag law only then).
+    pub fn set_multirotor(&mut self, multirotor: bool) {
+        self.multirotor = multirotor;
+    }
+
+    /// The learned drag law per body axis (x, y), or why it is not usable yet.
+    pub fn drag_status(&self) -> [Result<super::drag::AxisModel, String>; 2] {
+        [self.drag_learner.axis(0), self.drag_learner.axis(1)]
+    }
+
+    /// Accumulate the drag window with one IMU sample; at the window's end, learn from it while
+    /// the GPS aids, or return it as a measurement once the GPS has been gone
+    /// `[nav.drag] after_gps_s` (see `nav::drag`).
+    fn drag_sample(&mut self, s: &ImuSample, dt: f64) -> Option<DragFix> {
+        let cfg = &self.cfg.drag;
+        if cfg.mode == DragMode::Off || dt <= 0.0 {
+            return None;
+        }
+        let core = self.core.as_ref()?;
+        let st = &core.ins.state;
+        let f_b = s.dv_m_s_body_frd / dt - (core.ba + core.da);
+        let v_b = st.q_nb.inverse() * st.v_ned_m_s;
+        let w = &mut self.drag_window;
+        let t0 = *w
+            .t0_us
+            .get_or_insert(s.t_us.saturating_sub((dt * 1e6) as u64));
+        w.f_dt += f_b.xy() * dt;
+        w.v_dt += v_b.xy() * dt;
+        w.dt_s += dt;
+        if w.dt_s < super::drag::WINDOW_S {
+            return None;
+        }
+        let (f, v, t_mid) = (w.f_dt / w.dt_s, w.v_dt / w.dt_s, t0 + (s.t_us - t0) / 2);
+        *w = DragWindow::default();
+        let since_gps_s = self
+            .last_gps_vel_us
+            .map(|t| dt_s(t, t_mid))
+            .unwrap_or(f64::INFINITY);
+        if since_gps_s < 1.0 {
+            self.drag_learner.add(v, f);
+            return None;
+        }
+        let fuse = cfg.mode == DragMode::On || self.multirotor;
+        if !fuse || since_gps_s < cfg.after_gps_s {
+            return None;
+        }
+        let model = self.drag_learner.models();
+        model.iter().any(|m| m.is_some()).then_some(DragFix {
+            t_capture_us: t_mid,
+            f_body_xy_m_s2: f,
+            model,
+            wind_sigma_m_s: cfg.wind_sigma_m_s,
+        })
     }
 
     /// The current output record (None before initialisation).
@@ -633,6 +722,7 @@ impl NavFilter {
             Measurement::GpsVelocity(_) => &mut self.counters.gps_velocity,
             Measurement::Altitude(_) => &mut self.counters.altitude,
             Measurement::Attitude(_) => &mut self.counters.attitude,
+            Measurement::Drag(_) => &mut self.counters.drag,
         }
     }
 
@@ -681,6 +771,10 @@ impl NavFilter {
         match &out {
             Outcome::Accepted { .. } => {
                 self.type_counters(&m).accepted += 1;
+                if let Measurement::GpsVelocity(v) = &m {
+                    self.last_gps_vel_us =
+                        Some(self.last_gps_vel_us.unwrap_or(0).max(v.t_capture_us));
+                }
                 if is_pos {
                     self.consecutive_rejects = 0;
                     self.rejected.clear();
@@ -1014,6 +1108,7 @@ impl NavFilter {
             p,
             last_vision_us: None,
             last_att_us: None,
+            last_drag_us: None,
         };
         self.history.clear();
         self.history.push_back(Epoch {
@@ -1248,6 +1343,75 @@ fn correlation_factor(tau_s: f64, last_us: Option<u64>, t_c: u64, cap: f64) -> f
     (tau_s / dt.max(1e-3)).clamp(1.0, cap)
 }
 
+/// The drag law as a measurement of the body velocity (`nav::drag`): per fused axis `k`,
+/// `z = f_k` (bias-corrected specific force), `h(x) = law_k((C_n^b v)_k)`. With
+/// `C_est = (I + [psi x]) C_true`, `v_b,est = v_b + C_n^b [v x] psi`; the accelerometer bias error
+/// enters with +1 (the measured force is corrected by the estimate).
+fn apply_drag(par: &Params, core: &mut Core, d: &DragFix) -> Outcome {
+    let st = &core.ins.state;
+    let c_nb = st.q_nb.inverse().to_rotation_matrix().into_inner();
+    let v_b = c_nb * st.v_ned_m_s;
+    let d_vb_d_psi = c_nb * skew_matrix(&st.v_ned_m_s);
+    let rows: Vec<(usize, super::drag::AxisModel)> = d
+        .model
+        .iter()
+        .enumerate()
+        .filter_map(|(k, m)| m.map(|m| (k, m)))
+        .collect();
+    let row = |k: usize, m: &super::drag::AxisModel| {
+        let slope = m.slope(v_b[k]);
+        let mut h = SMatrix::<f64, 1, N_STATES>::zeros();
+        for j in 0..3 {
+            h[(0, IV + j)] = slope * c_nb[(k, j)];
+            h[(0, IA + j)] = slope * d_vb_d_psi[(k, j)];
+        }
+        h[(0, IBA + k)] = 1.0;
+        if par.drift {
+            h[(0, IDA + k)] = 1.0;
+        }
+        let dz = m.force(v_b[k]) - d.f_body_xy_m_s2[k];
+        (h, dz, m.variance(v_b[k], d.wind_sigma_m_s))
+    };
+    // The law's error and the wind persist: one independent measurement per correlation time.
+    let corr = correlation_factor(
+        super::drag::ERROR_CORR_TIME_S,
+        core.last_drag_us,
+        d.t_capture_us,
+        1e4,
+    );
+    let out = match rows.as_slice() {
+        [(k, m)] => {
+            let (h, dz, var) = row(*k, m);
+            core.update(
+                par,
+                SVector::<f64, 1>::new(dz),
+                h,
+                SMatrix::<f64, 1, 1>::new(var * corr),
+                par.gate_drag1,
+            )
+        }
+        [(k0, m0), (k1, m1)] => {
+            let (h0, dz0, var0) = row(*k0, m0);
+            let (h1, dz1, var1) = row(*k1, m1);
+            let mut h = SMatrix::<f64, 2, N_STATES>::zeros();
+            h.set_row(0, &h0);
+            h.set_row(1, &h1);
+            core.update(
+                par,
+                SVector::<f64, 2>::new(dz0, dz1),
+                h,
+                SMatrix::<f64, 2, 2>::new(var0 * corr, 0.0, 0.0, var1 * corr),
+                par.gate_drag2,
+            )
+        }
+        _ => Outcome::Ignored,
+    };
+    if matches!(out, Outcome::Accepted { .. }) {
+        core.last_drag_us = Some(d.t_capture_us);
+    }
+    out
+}
+
 fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
     let t_c = m.t_capture_us();
     let dt = dt_s(core.t_us, t_c);
@@ -1340,6 +1504,7 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
                 par.gate_alt,
             )
         }
+        Measurement::Drag(d) => apply_drag(par, core, d),
         Measurement::Attitude(f) => {
             let t_c = f.t_capture_us;
             // Correlated AHRS errors (NavConfig::attitude_error_corr_time_s).

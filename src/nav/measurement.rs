@@ -129,6 +129,9 @@ pub enum Measurement {
     Altitude(AltitudeFix),
     /// Autopilot attitude.
     Attitude(AttitudeFix),
+    /// Multirotor drag: the body-frame horizontal specific force as a measurement of the body
+    /// velocity ([`super::drag`]).
+    Drag(super::drag::DragFix),
 }
 
 impl Measurement {
@@ -140,6 +143,7 @@ impl Measurement {
             Measurement::GpsVelocity(f) => f.t_capture_us,
             Measurement::Altitude(f) => f.t_capture_us,
             Measurement::Attitude(f) => f.t_capture_us,
+            Measurement::Drag(f) => f.t_capture_us,
         }
     }
 
@@ -213,6 +217,24 @@ impl Measurement {
             Measurement::Attitude(f) => {
                 if !f.q_nb.coords.iter().all(|x| x.is_finite()) {
                     return Err("non-finite attitude");
+                }
+            }
+            Measurement::Drag(f) => {
+                if !(f.f_body_xy_m_s2.iter().all(|x| x.is_finite())
+                    && f.wind_sigma_m_s.is_finite()
+                    && f.wind_sigma_m_s >= 0.0)
+                {
+                    return Err("non-finite drag specific force or wind sigma");
+                }
+                if f.model
+                    .iter()
+                    .flatten()
+                    .any(|m| !(m.a.is_finite() && m.b.is_finite() && m.resid_m_s2.is_finite()))
+                {
+                    return Err("non-finite drag law");
+                }
+                if f.model.iter().all(|m| m.is_none()) {
+                    return Err("drag measurement without a learned law");
                 }
             }
         }

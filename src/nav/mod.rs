@@ -7,6 +7,8 @@
 //!   chi-square gates, divergence detection and health (Sheta 2012 ch. 5, Chan 2022).
 //! * [`divergence`]: whether a run of rejected position fixes agree with each other enough to
 //!   reset the filter onto them.
+//! * [`drag`]: a multirotor's horizontal body velocity from its accelerometer (drag law learned
+//!   while the GPS aids).
 //! * [`measurement`]: the filter's inputs; [`config`]: the `[nav]` configuration section;
 //!
 //! Conventions: NED local-level frame; body frame FRD; `q_nb` rotates body vectors into NED;
@@ -15,6 +17,7 @@
 
 pub mod config;
 pub mod divergence;
+pub mod drag;
 pub mod earth;
 pub mod filter;
 pub mod ins;

@@ -1,0 +1,337 @@
+//! Multirotor drag: the horizontal body-frame velocity from the accelerometer alone.
+//!
+//! A multirotor's thrust acts along body -z, so in steady flight the accelerometer's body x / y
+//! readings are the aerodynamic drag (rotor momentum drag and body drag): a function of the
+//! air-relative velocity in body axes, `f_x = a_x v_x + b_x v_x |v_x|` (same for y), with
+//! `a < 0` (momentum drag, linear) and `b <= 0` (body drag, quadratic). ArduPilot EKF3
+//! (`EK3_DRAG_BCOEF_*`, `EK3_DRAG_MCOEF`) and PX4 EKF2 (`EKF2_BCOEF_*`, `EKF2_MCOEF`) fuse the
+//! same physics to bound their velocity without GPS. Here the coefficients are not configured
+//! but learned while the GPS aids the filter: a least-squares fit of the averaged specific force
+//! against the GPS-aided body velocity ([`DragLearner`]). Once the GPS is gone, every averaged
+//! specific force is a measurement of the body velocity ([`DragFix`], fused by the filter).
+//!
+//! Limits, stated where they act:
+//! * the wind is not estimated: the fit and the measurement use the ground velocity, and the
+//!   difference between the wind during learning and now enters the measurement noise as
+//!   `[nav.drag] wind_sigma_m_s`;
+//! * a fixed-wing aircraft's accelerometer x is thrust minus drag, close to zero at any speed:
+//!   its fit explains nothing and never becomes ready ([`MIN_EXPLAINED`]).
+
+use nalgebra::{Matrix2, Vector2};
+
+/// Averaging window of the specific force for one learning sample or one measurement, s: long
+/// enough to average a real airframe's vibration (tens of Hz), short enough that the velocity
+/// changes little within it at a copter's 2-3 m/s^2.
+pub const WINDOW_S: f64 = 0.2;
+
+/// Samples an axis needs before its fit is used (at 5 per second: 40 s of GPS-aided flight).
+pub const MIN_SAMPLES: f64 = 200.0;
+
+/// Speed range an axis must have covered in the fit, m/s: a fit over hover alone cannot
+/// separate drag from an accelerometer bias, nor extrapolate to cruise.
+pub const MIN_SPEED_SPAN_M_S: f64 = 4.0;
+
+/// Share of the specific force's variance the fit must explain (R^2): drag dominates a
+/// multirotor's body x / y accelerations (0.99 in ArduCopter SITL), not a fixed-wing's.
+pub const MIN_EXPLAINED: f64 = 0.8;
+
+/// Learning forgets with this time constant, s (equivalent: older samples weigh less), so the
+/// fit follows a payload change while keeping several minutes of flight.
+pub const FORGET_TIME_S: f64 = 600.0;
+
+/// The fit's residual scatter under-states the error of using it later (another attitude,
+/// another speed): the measurement noise is this many times the residual RMS.
+pub const RESIDUAL_INFLATION: f64 = 3.0;
+
+/// Floor of the measurement noise in velocity terms, m/s: no drag model is better than this
+/// outside the flight it was fitted on.
+pub const MIN_VELOCITY_SIGMA_M_S: f64 = 0.3;
+
+/// Correlation time of the drag measurement's error, s: the wind and the law's mismatch change
+/// over tens of seconds, not between two 0.2 s windows; fused as independent, 50 windows would
+/// shrink the velocity covariance 50-fold while the error stays. Each measurement's covariance is
+/// multiplied by `max(1, tau / dt)` like the vision fixes' (`vision_error_corr_time_s`).
+pub const ERROR_CORR_TIME_S: f64 = 5.0;
+
+/// Relative error of an axis's law borrowed from the other axis, when the flight so far gave
+/// that axis too little speed to fit (a multirotor flies forward: its body y rarely sees more
+/// than 1 m/s while the GPS aids). The rotor momentum drag, the linear term, is the same on both
+/// axes (PX4 and ArduPilot model it with one coefficient); the body drag differs with the frame's
+/// side area, taken here as up to 30 %.
+pub const BORROWED_LAW_REL_ERR: f64 = 0.3;
+
+/// One axis's drag law `f = a v + b v |v|` (specific force, m/s^2, for body velocity v, m/s).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AxisModel {
+    /// Linear coefficient, 1/s (negative).
+    pub a: f64,
+    /// Quadratic coefficient, 1/m (zero or negative).
+    pub b: f64,
+    /// RMS residual of the fit, m/s^2.
+    pub resid_m_s2: f64,
+    /// Relative error of the law when it is the other axis's ([`BORROWED_LAW_REL_ERR`]); 0 for
+    /// the axis's own fit.
+    pub borrowed_rel_err: f64,
+}
+
+impl AxisModel {
+    /// Specific force for body velocity `v`, m/s^2.
+    pub fn force(&self, v: f64) -> f64 {
+        self.a * v + self.b * v * v.abs()
+    }
+
+    /// d force / d v, 1/s.
+    pub fn slope(&self, v: f64) -> f64 {
+        self.a + 2.0 * self.b * v.abs()
+    }
+
+    /// Measurement variance of an averaged specific force at body velocity `v`, (m/s^2)^2.
+    pub fn variance(&self, v: f64, wind_sigma_m_s: f64) -> f64 {
+        let s = self.slope(v).abs();
+        let model = (RESIDUAL_INFLATION * self.resid_m_s2).powi(2);
+        let floor = (s * MIN_VELOCITY_SIGMA_M_S).powi(2);
+        let borrowed = (self.borrowed_rel_err * self.force(v)).powi(2);
+        model.max(floor) + (s * wind_sigma_m_s).powi(2) + borrowed
+    }
+}
+
+/// A drag measurement: the averaged body-frame specific force (bias-corrected) over a window
+/// centred on `t_capture_us`, and the learned law per axis (None: that axis is not fused).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DragFix {
+    /// Window centre, microseconds.
+    pub t_capture_us: u64,
+    /// Measured specific force, body x / y, m/s^2.
+    pub f_body_xy_m_s2: Vector2<f64>,
+    /// Learned law, body x / y.
+    pub model: [Option<AxisModel>; 2],
+    /// Wind uncertainty added to the noise, m/s.
+    pub wind_sigma_m_s: f64,
+}
+
+/// Least-squares fit of one axis with exponential forgetting.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct AxisFit {
+    s: Matrix2<f64>,
+    r: Vector2<f64>,
+    sff: f64,
+    sf: f64,
+    n: f64,
+    v_min: f64,
+    v_max: f64,
+}
+
+impl AxisFit {
+    fn add(&mut self, v: f64, f: f64, keep: f64) {
+        if self.n == 0.0 {
+            self.v_min = v;
+            self.v_max = v;
+        }
+        let x = Vector2::new(v, v * v.abs());
+        self.s = self.s * keep + x * x.transpose();
+        self.r = self.r * keep + x * f;
+        self.sff = self.sff * keep + f * f;
+        self.sf = self.sf * keep + f;
+        self.n = self.n * keep + 1.0;
+        self.v_min = self.v_min.min(v);
+        self.v_max = self.v_max.max(v);
+    }
+
+    fn model(&self) -> Result<AxisModel, String> {
+        if self.n < MIN_SAMPLES {
+            return Err(format!("{:.0} of {MIN_SAMPLES:.0} samples", self.n));
+        }
+        let span = self.v_max - self.v_min;
+        if span < MIN_SPEED_SPAN_M_S {
+            return Err(format!(
+                "speed span {span:.1} m/s < {MIN_SPEED_SPAN_M_S} m/s"
+            ));
+        }
+        let inv = self
+            .s
+            .try_inverse()
+            .ok_or_else(|| "singular fit".to_string())?;
+        let th = inv * self.r;
+        let ssr =
+            (self.sff - 2.0 * th.dot(&self.r) + (th.transpose() * self.s * th)[(0, 0)]).max(0.0);
+        let sst = (self.sff - self.sf * self.sf / self.n).max(1e-12);
+        let explained = 1.0 - ssr / sst;
+        if explained < MIN_EXPLAINED {
+            return Err(format!(
+                "the fit explains {:.0} % of the specific force (< {:.0} %)",
+                explained * 100.0,
+                MIN_EXPLAINED * 100.0
+            ));
+        }
+        let m = AxisModel {
+            a: th.x,
+            b: th.y,
+            resid_m_s2: (ssr / (self.n - 2.0).max(1.0)).sqrt(),
+            borrowed_rel_err: 0.0,
+        };
+        // Drag opposes the motion over the whole fitted range.
+        let vmax = self.v_min.abs().max(self.v_max.abs());
+        if !(m.a.is_finite() && m.b.is_finite()) || m.slope(0.0) >= 0.0 || m.slope(vmax) >= 0.0 {
+            return Err(format!(
+                "fitted law is not a drag (a {:.3}, b {:.4})",
+                m.a, m.b
+            ));
+        }
+        Ok(m)
+    }
+}
+
+/// Learns the drag law of both horizontal body axes from averaged specific forces and
+/// GPS-aided body velocities.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct DragLearner {
+    axes: [AxisFit; 2],
+}
+
+impl DragLearner {
+    /// Add one window: body velocity (x, y) and mean specific force (x, y).
+    pub fn add(&mut self, v_body_xy: Vector2<f64>, f_body_xy: Vector2<f64>) {
+        if !(v_body_xy.iter().all(|v| v.is_finite()) && f_body_xy.iter().all(|v| v.is_finite())) {
+            return;
+        }
+        let keep = (-WINDOW_S / FORGET_TIME_S).exp();
+        for k in 0..2 {
+            self.axes[k].add(v_body_xy[k], f_body_xy[k], keep);
+        }
+    }
+
+    /// The law of axis `k` (0 = x, 1 = y), or why it is not usable yet.
+    pub fn axis(&self, k: usize) -> Result<AxisModel, String> {
+        self.axes[k.min(1)].model()
+    }
+
+    /// Both axes' laws: each axis's own fit, else the other axis's with
+    /// [`BORROWED_LAW_REL_ERR`], else None.
+    pub fn models(&self) -> [Option<AxisModel>; 2] {
+        let own = [self.axis(0).ok(), self.axis(1).ok()];
+        let borrow = |m: Option<AxisModel>| {
+            m.map(|m| AxisModel {
+                borrowed_rel_err: BORROWED_LAW_REL_ERR,
+                ..m
+            })
+        };
+        [own[0].or(borrow(own[1])), own[1].or(borrow(own[0]))]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Deterministic pseudo-noise in [-1, 1].
+    fn wobble(i: usize) -> f64 {
+        ((i as f64 * 12.9898).sin() * 43_758.545).rem_euclid(1.0) * 2.0 - 1.0
+    }
+
+    fn fly(learner: &mut DragLearner, n: usize, a: f64, b: f64, noise: f64) {
+        for i in 0..n {
+            // Hover, climb-out and cruise speeds, forward and sideways.
+            let vx = 12.0 * ((i as f64) * 0.01).sin().abs();
+            let vy = 6.0 * ((i as f64) * 0.013).sin();
+            let f = |v: f64| a * v + b * v * v.abs();
+            learner.add(
+                Vector2::new(vx, vy),
+                Vector2::new(f(vx) + noise * wobble(i), f(vy) + noise * wobble(i + 7)),
+            );
+        }
+    }
+
+    #[test]
+    fn learns_arducopter_sitl_like_drag() {
+        // ArduCopter SITL's quad, fitted from its log: a -0.215 / s, b -0.028 / m.
+        let mut l = DragLearner::default();
+        assert!(l.axis(0).is_err());
+        fly(&mut l, 600, -0.215, -0.028, 0.05);
+        for k in 0..2 {
+            let m = l.axis(k).unwrap();
+            assert!((m.a + 0.215).abs() < 0.02, "{m:?}");
+            assert!((m.b + 0.028).abs() < 0.003, "{m:?}");
+            assert!(m.resid_m_s2 < 0.06, "{m:?}");
+            assert!((m.force(10.0) + 4.95).abs() < 0.1);
+        }
+    }
+
+    #[test]
+    fn a_fixed_wing_or_a_hover_never_becomes_ready() {
+        // Thrust balances drag: the body x specific force is noise at every speed.
+        let mut l = DragLearner::default();
+        fly(&mut l, 600, 0.0, 0.0, 0.3);
+        assert!(
+            l.axis(0).unwrap_err().contains("explains"),
+            "{:?}",
+            l.axis(0)
+        );
+        // Hover only: no speed span.
+        let mut h = DragLearner::default();
+        for i in 0..600 {
+            let v = 0.5 * wobble(i);
+            h.add(Vector2::new(v, v), Vector2::new(-0.3 * v, -0.3 * v));
+        }
+        assert!(h.axis(0).unwrap_err().contains("span"), "{:?}", h.axis(0));
+        // Too few samples.
+        let mut s = DragLearner::default();
+        fly(&mut s, 50, -0.2, -0.03, 0.0);
+        assert!(s.axis(1).unwrap_err().contains("samples"));
+    }
+
+    #[test]
+    fn a_thrust_like_law_is_refused() {
+        let mut l = DragLearner::default();
+        fly(&mut l, 600, 0.3, 0.0, 0.01);
+        assert!(
+            l.axis(0).unwrap_err().contains("not a drag"),
+            "{:?}",
+            l.axis(0)
+        );
+    }
+
+    #[test]
+    fn noise_floor_and_wind_enter_the_variance() {
+        let m = AxisModel {
+            a: -0.2,
+            b: -0.03,
+            resid_m_s2: 0.001,
+            borrowed_rel_err: 0.0,
+        };
+        let s = m.slope(10.0).abs();
+        let calm = m.variance(10.0, 0.0);
+        assert!((calm - (s * MIN_VELOCITY_SIGMA_M_S).powi(2)).abs() < 1e-12);
+        let windy = m.variance(10.0, 2.0);
+        assert!((windy - calm - (s * 2.0).powi(2)).abs() < 1e-12);
+        let noisy = AxisModel {
+            resid_m_s2: 0.5,
+            ..m
+        };
+        assert!((noisy.variance(10.0, 0.0) - (RESIDUAL_INFLATION * 0.5).powi(2)).abs() < 1e-12);
+        let lent = AxisModel {
+            borrowed_rel_err: BORROWED_LAW_REL_ERR,
+            ..m
+        };
+        let extra = (BORROWED_LAW_REL_ERR * m.force(10.0)).powi(2);
+        assert!((lent.variance(10.0, 0.0) - calm - extra).abs() < 1e-12);
+    }
+
+    #[test]
+    fn an_axis_without_speed_borrows_the_other_axis_law() {
+        // Forward flight only: body y stays within +-0.5 m/s.
+        let mut l = DragLearner::default();
+        for i in 0..600 {
+            let vx = 12.0 * ((i as f64) * 0.01).sin().abs();
+            let vy = 0.5 * wobble(i);
+            let f = |v: f64| -0.21 * v - 0.028 * v * v.abs();
+            l.add(Vector2::new(vx, vy), Vector2::new(f(vx), f(vy)));
+        }
+        assert!(l.axis(1).is_err());
+        let [x, y] = l.models();
+        let (x, y) = (x.unwrap(), y.unwrap());
+        assert_eq!(x.borrowed_rel_err, 0.0);
+        assert_eq!(y.borrowed_rel_err, BORROWED_LAW_REL_ERR);
+        assert_eq!((x.a, x.b), (y.a, y.b));
+        assert!(DragLearner::default().models().iter().all(|m| m.is_none()));
+    }
+}

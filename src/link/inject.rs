@@ -53,6 +53,15 @@ pub const DOP_UERE_M: f64 = 4.0;
 pub const UNKNOWN_RATE_VAR: f32 = 1e4;
 /// Estimates stamped more than this in the future of the send time are refused (s).
 pub const MAX_FUTURE_S: f64 = 0.05;
+/// Smallest horizontal accuracy GPS_INPUT claims, m. The filter fuses a receiver's 5 Hz fixes
+/// as independent while their errors persist for minutes, so its sigma sinks below any
+/// receiver's real accuracy (0.3 m from 1.5 m fixes in ArduCopter SITL), and the position is
+/// carried to the send time with the estimated velocity (0.1 s of timing error at 15 m/s is
+/// 1.5 m). Measured there: injected positions up to 2.5 m off the truth at a claimed 0.3 m
+/// (docs/real-sitl.md). No claim below this.
+pub const MIN_CLAIMED_H_ACC_M: f64 = 1.0;
+/// Smallest vertical accuracy GPS_INPUT claims, m (the same reasons; barometric heights).
+pub const MIN_CLAIMED_V_ACC_M: f64 = 1.5;
 
 /// Health of the navigation solution, as the filter judges it.
 #[derive(Debug, Clone, PartialEq)]
@@ -345,8 +354,8 @@ pub fn gps_input(
     let d = e.vel_ned_m_s * age;
     let (lat, lon, alt) = offset_geodetic(e.lat_deg, e.lon_deg, e.alt_amsl_m, &d);
     let p = e.pos_cov_ned_m2 + e.vel_cov_ned_m2_s2 * (age * age);
-    let h_acc = lambda_max_ne(&p).sqrt();
-    let v_acc = p[(2, 2)].max(0.0).sqrt();
+    let h_acc = lambda_max_ne(&p).sqrt().max(MIN_CLAIMED_H_ACC_M);
+    let v_acc = p[(2, 2)].max(0.0).sqrt().max(MIN_CLAIMED_V_ACC_M);
     let s_acc = lambda_max3(&e.vel_cov_ned_m2_s2).sqrt();
 
     let yaw = if out.gps_yaw && e.att_sigma_rad.z < 10f64.to_radians() {
@@ -691,6 +700,17 @@ pub(crate) mod tests {
         assert!((g.hdop as f64 - h / DOP_UERE_M).abs() < 1e-5);
         // Yaw 1.2 rad = 68.75 deg.
         assert_eq!(g.yaw, (1.2f64.to_degrees() * 100.0).round() as u16);
+    }
+
+    #[test]
+    fn claimed_accuracies_never_sink_below_the_floors() {
+        let mut e = estimate();
+        e.pos_cov_ned_m2 = Matrix3::identity() * 0.01; // a GPS-fed filter claiming 0.1 m
+        e.vel_cov_ned_m2_s2 = Matrix3::identity() * 1e-6;
+        let g = gps(gps_input(&e, &now(), &OutputConfig::default()).unwrap());
+        assert_eq!(g.horiz_accuracy as f64, MIN_CLAIMED_H_ACC_M);
+        assert_eq!(g.vert_accuracy as f64, MIN_CLAIMED_V_ACC_M);
+        assert!((g.hdop as f64 - MIN_CLAIMED_H_ACC_M / DOP_UERE_M).abs() < 1e-6);
     }
 
     #[test]

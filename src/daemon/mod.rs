@@ -271,6 +271,7 @@ impl Daemon {
             gps2_asked: None,
             last_log: Instant::now(),
             imu_bias_restoring: false,
+            drag_logged: [false; 2],
             init_spacing: inputs::InitSpacing::default(),
             fix_log,
         };
@@ -451,6 +452,8 @@ struct NavTask {
     last_log: Instant,
     /// The IMU bias restorer was restoring at the last watchdog tick (for its log lines).
     imu_bias_restoring: bool,
+    /// Whether the learned drag law of body x / y was logged (`nav::drag`).
+    drag_logged: [bool; 2],
     init_spacing: inputs::InitSpacing,
     fix_log: Option<fixlog::FixLog>,
 }
@@ -530,6 +533,7 @@ impl NavTask {
                         .fetch_add(1, Ordering::Relaxed);
                     self.filter = NavFilter::new(self.nav_cfg.clone());
                     self.filter.set_multirotor(self.inputs.multirotor());
+                    self.drag_logged = [false; 2];
                     self.shared
                         .book
                         .lock()
@@ -665,6 +669,18 @@ impl NavTask {
         } else if !self.filter.is_initialised() && self.last_est.is_some() {
             let (_, why) = self.filter.health();
             self.publish_lost(&why);
+        }
+        for (k, law) in self.filter.drag_status().into_iter().enumerate() {
+            if let (Ok(m), false) = (law, self.drag_logged[k]) {
+                self.drag_logged[k] = true;
+                info!(
+                    axis = ["x", "y"][k],
+                    linear_per_s = (m.a * 1e4).round() / 1e4,
+                    quadratic_per_m = (m.b * 1e5).round() / 1e5,
+                    residual_m_s2 = (m.resid_m_s2 * 1e3).round() / 1e3,
+                    "multirotor drag law learned (fused when the GPS is gone, nav.drag)"
+                );
+            }
         }
         if let Some(st) = self.inputs.imu_bias_status() {
             if st.restoring != self.imu_bias_restoring {

@@ -132,6 +132,19 @@ impl TruthSource for ConstantVelocity {
     }
 }
 
+/// GPS_RAW_INT's `vel` (ground speed, cm/s) and `cog` (course over ground, cdeg in
+/// [0, 36000)) of a NED velocity; a speed beyond the field's range is sent as unknown.
+fn gps_vel_cog(v_ned_m_s: [f64; 3]) -> (u16, u16) {
+    let speed_cm_s = (v_ned_m_s[0].hypot(v_ned_m_s[1]) * 100.0).round();
+    if !(speed_cm_s.is_finite() && (0.0..f64::from(u16::MAX)).contains(&speed_cm_s)) {
+        return (u16::MAX, u16::MAX);
+    }
+    let cog_cdeg = (v_ned_m_s[1].atan2(v_ned_m_s[0]).to_degrees() * 100.0)
+        .round()
+        .rem_euclid(36_000.0);
+    (speed_cm_s as u16, cog_cdeg as u16)
+}
+
 /// Emulator settings.
 #[derive(Debug, Clone)]
 pub struct EmulatorConfig {
@@ -150,6 +163,10 @@ pub struct EmulatorConfig {
     pub signing_key: Option<[u8; 32]>,
     /// Stream the IMU as PX4 does (see the module doc) and announce MAV_AUTOPILOT_PX4.
     pub px4_imu: bool,
+    /// GPS_RAW_INT / GPS2_RAW carry the receiver's ground speed and course (`vel` cm/s, `cog`
+    /// cdeg, from [`TruthSource::gps`]'s velocity), as ArduPilot sends them; false: both
+    /// UINT16_MAX (unknown).
+    pub gps_velocity: bool,
 }
 
 impl EmulatorConfig {
@@ -163,6 +180,7 @@ impl EmulatorConfig {
             gps_fix: false,
             signing_key: None,
             px4_imu: false,
+            gps_velocity: false,
         }
     }
 }
@@ -506,7 +524,7 @@ fn telemetry(inner: &Inner, id: u32, t_us: u64) -> Option<MavMessage> {
         24 | 124 => {
             // No fix: what a receiver without satellites reports (zero position, no sats).
             let fix = inner.cfg.gps_fix.then(|| inner.truth.gps(t_s)).flatten();
-            let (fix_type, lat, lon, alt, sats) = match fix {
+            let (fix_type, lat, lon, alt, sats) = match &fix {
                 Some(g) => (
                     GpsFixType::GPS_FIX_TYPE_3D_FIX,
                     (g.lat_deg * 1e7).round() as i32,
@@ -515,6 +533,10 @@ fn telemetry(inner: &Inner, id: u32, t_us: u64) -> Option<MavMessage> {
                     12,
                 ),
                 None => (GpsFixType::GPS_FIX_TYPE_NO_FIX, 0, 0, 0, 0),
+            };
+            let (vel, cog) = match &fix {
+                Some(g) if inner.cfg.gps_velocity => gps_vel_cog(g.vel_ned_m_s),
+                _ => (u16::MAX, u16::MAX),
             };
             if id == 124 {
                 // The second receiver (the real GPS when GPS_INPUT feeds instance 0).
@@ -526,8 +548,8 @@ fn telemetry(inner: &Inner, id: u32, t_us: u64) -> Option<MavMessage> {
                     alt,
                     eph: u16::MAX,
                     epv: u16::MAX,
-                    vel: u16::MAX,
-                    cog: u16::MAX,
+                    vel,
+                    cog,
                     satellites_visible: sats,
                     ..GPS2_RAW_DATA::DEFAULT
                 }));
@@ -540,8 +562,8 @@ fn telemetry(inner: &Inner, id: u32, t_us: u64) -> Option<MavMessage> {
                 alt,
                 eph: u16::MAX,
                 epv: u16::MAX,
-                vel: u16::MAX,
-                cog: u16::MAX,
+                vel,
+                cog,
                 satellites_visible: sats,
                 ..GPS_RAW_INT_DATA::DEFAULT
             })
@@ -692,5 +714,16 @@ mod tests {
         assert!((isa_pressure_hpa(0.0) - 1013.25).abs() < 1e-9);
         // ~ 898.7 hPa at 1000 m (ISA table).
         assert!((isa_pressure_hpa(1000.0) - 898.75).abs() < 0.1);
+    }
+
+    #[test]
+    fn gps_ground_speed_and_course() {
+        assert_eq!(gps_vel_cog([3.0, 4.0, 1.0]), (500, 5313));
+        assert_eq!(gps_vel_cog([0.0, -12.0, 0.0]), (1200, 27000));
+        assert_eq!(gps_vel_cog([-12.0, -0.0001, 0.0]), (1200, 18000));
+        assert_eq!(gps_vel_cog([0.0, 0.0, 0.0]), (0, 0));
+        assert_eq!(gps_vel_cog([700.0, 0.0, 0.0]), (u16::MAX, u16::MAX));
+        assert_eq!(gps_vel_cog([f64::NAN, 0.0, 0.0]), (u16::MAX, u16::MAX));
+        assert!(!EmulatorConfig::new("udpout:127.0.0.1:1").gps_velocity);
     }
 }

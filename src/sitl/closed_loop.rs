@@ -14,9 +14,13 @@
 //! * IMU: the scenario's `[imu]` errors (`sitl::imu`) applied over each interval between two IMU
 //!   messages, sent as SCALED_IMU / RAW_IMU (mG, mrad/s: what ArduPilot streams);
 //! * GPS: truth + white noise (`[gps] sigma_h_m`, `sigma_v_m`) inside `[gps] from_s..until_s`,
-//!   NO_FIX outside (the outage), on GPS_RAW_INT and GPS2_RAW;
+//!   NO_FIX outside (the outage), on GPS_RAW_INT and GPS2_RAW; with `[closed_loop]
+//!   gps_velocity` also the ground speed and course (+ `sigma_vel_m_s` per axis), else unknown;
 //! * ATTITUDE (and GLOBAL_POSITION_INT's heading): the truth plus the AHRS error, a first-order
 //!   Gauss-Markov process per axis (`[closed_loop] ahrs_*`; sampled at 1 Hz, interpolated);
+//!   ATTITUDE's body rates: the last simulated gyro sample plus, with
+//!   `[closed_loop] ahrs_rate_error_deg_h` > 0, another such process per axis (`ahrs_rate_*`:
+//!   ArduPilot's rates are its gyro minus EKF3's wandering bias estimate);
 //! * GLOBAL_POSITION_INT, SCALED_PRESSURE: the true position (not used by visnav's filter).
 //!
 //! Scoring (`[evaluation] from_s..until_s`, horizontal errors unless named otherwise):
@@ -224,39 +228,44 @@ pub struct SimSensors {
     table: Arc<TruthTable>,
     /// AHRS error (roll, pitch, yaw) at 1 Hz, rad.
     ahrs_err_rad: Vec<[f64; 3]>,
+    /// Error of ATTITUDE's body rates (x, y, z) at 1 Hz, rad/s (empty: none).
+    ahrs_rate_err_rad_s: Vec<[f64; 3]>,
     imu: Mutex<ImuState>,
     gps: Option<GpsConfig>,
     gps_rng: Mutex<Rng>,
+    /// Whether the GPS messages carry a (noisy) velocity (`[closed_loop] gps_velocity`).
+    gps_velocity: bool,
 }
 
 impl SimSensors {
     pub fn new(sc: &Scenario, table: Arc<TruthTable>) -> Self {
         let mut rng = Rng::new(sc.seed);
         let errors = ImuErrors::for_run(sc.imu.clone(), &mut rng, false);
+        let n_s = (sc.duration_s() + TRUTH_MARGIN_S).ceil() as usize + 2;
         let mut ahrs_err_rad = Vec::new();
+        let mut ahrs_rate_err_rad_s = Vec::new();
         if let Some(cl) = &sc.closed_loop {
-            let mut arng = Rng::new(sc.seed.wrapping_add(0x51_7cc1));
             let s = [
                 cl.ahrs_tilt_sigma_deg.to_radians(),
                 cl.ahrs_tilt_sigma_deg.to_radians(),
                 cl.ahrs_yaw_sigma_deg.to_radians(),
             ];
-            let a = (-1.0 / cl.ahrs_corr_time_s).exp();
-            let q = (1.0 - a * a).sqrt();
-            let mut e = [0.0; 3];
-            for k in 0..3 {
-                e[k] = s[k] * arng.normal();
-            }
-            for _ in 0..(sc.duration_s() + TRUTH_MARGIN_S).ceil() as usize + 2 {
-                ahrs_err_rad.push(e);
-                for k in 0..3 {
-                    e[k] = a * e[k] + s[k] * q * arng.normal();
-                }
+            ahrs_err_rad =
+                gauss_markov_1hz(sc.seed.wrapping_add(0x51_7cc1), s, cl.ahrs_corr_time_s, n_s);
+            if cl.ahrs_rate_error_deg_h > 0.0 {
+                let s = (cl.ahrs_rate_error_deg_h / 3600.0).to_radians();
+                ahrs_rate_err_rad_s = gauss_markov_1hz(
+                    sc.seed.wrapping_add(0x7a7e_5eed),
+                    [s; 3],
+                    cl.ahrs_rate_corr_time_s,
+                    n_s,
+                );
             }
         }
         Self {
             table,
             ahrs_err_rad,
+            ahrs_rate_err_rad_s,
             imu: Mutex::new(ImuState {
                 last_t_s: None,
                 last_gyro: None,
@@ -265,31 +274,63 @@ impl SimSensors {
             }),
             gps: sc.gps.clone(),
             gps_rng: Mutex::new(Rng::new(sc.seed.wrapping_add(0x9e37_79b9))),
+            gps_velocity: sc.closed_loop.as_ref().is_some_and(|c| c.gps_velocity),
         }
     }
 
     /// The AHRS attitude error (roll, pitch, yaw) at `t_s`, rad.
     pub fn ahrs_error_rad(&self, t_s: f64) -> [f64; 3] {
-        let n = self.ahrs_err_rad.len();
-        if n == 0 {
-            return [0.0; 3];
-        }
-        let x = t_s.max(0.0);
-        let i = (x.floor() as usize).min(n - 1);
-        let j = (i + 1).min(n - 1);
-        let u = (x - i as f64).clamp(0.0, 1.0);
-        let (a, b) = (self.ahrs_err_rad[i], self.ahrs_err_rad[j]);
-        [
-            lerp(a[0], b[0], u),
-            lerp(a[1], b[1], u),
-            lerp(a[2], b[2], u),
-        ]
+        at_1hz(&self.ahrs_err_rad, t_s)
+    }
+
+    /// The error of ATTITUDE's body rates (x, y, z) at `t_s`, rad/s (zero unless
+    /// `[closed_loop] ahrs_rate_error_deg_h` > 0).
+    pub fn ahrs_rate_error_rad_s(&self, t_s: f64) -> [f64; 3] {
+        at_1hz(&self.ahrs_rate_err_rad_s, t_s)
     }
 
     /// Whether the GPS has a fix at `t_s`.
     pub fn gps_on(&self, t_s: f64) -> bool {
         self.gps.as_ref().is_some_and(|g| g.available(t_s))
     }
+}
+
+/// `n` samples at 1 Hz of a first-order Gauss-Markov process per axis (stationary: the first
+/// sample is drawn with the full sigma), seeded.
+fn gauss_markov_1hz(seed: u64, sigma: [f64; 3], corr_time_s: f64, n: usize) -> Vec<[f64; 3]> {
+    let mut rng = Rng::new(seed);
+    let a = (-1.0 / corr_time_s).exp();
+    let q = (1.0 - a * a).sqrt();
+    let mut e = [0.0; 3];
+    for k in 0..3 {
+        e[k] = sigma[k] * rng.normal();
+    }
+    let mut out = Vec::with_capacity(n);
+    for _ in 0..n {
+        out.push(e);
+        for k in 0..3 {
+            e[k] = a * e[k] + sigma[k] * q * rng.normal();
+        }
+    }
+    out
+}
+
+/// A 1 Hz series at `t_s`, interpolated linearly (held at the ends; zero when empty).
+fn at_1hz(series: &[[f64; 3]], t_s: f64) -> [f64; 3] {
+    let n = series.len();
+    if n == 0 {
+        return [0.0; 3];
+    }
+    let x = t_s.max(0.0);
+    let i = (x.floor() as usize).min(n - 1);
+    let j = (i + 1).min(n - 1);
+    let u = (x - i as f64).clamp(0.0, 1.0);
+    let (a, b) = (series[i], series[j]);
+    [
+        lerp(a[0], b[0], u),
+        lerp(a[1], b[1], u),
+        lerp(a[2], b[2], u),
+    ]
 }
 
 /// Shares one [`SimSensors`] with the emulator.
@@ -325,9 +366,13 @@ impl TruthSource for SensorsHandle {
     }
 
     fn attitude_rates(&self, t_s: f64) -> [f64; 3] {
-        let st = self.0.imu.lock().unwrap_or_else(|e| e.into_inner());
-        st.last_gyro
-            .unwrap_or_else(|| self.0.table.at(t_s).gyro_body_rad_s)
+        let gyro = {
+            let st = self.0.imu.lock().unwrap_or_else(|e| e.into_inner());
+            st.last_gyro
+                .unwrap_or_else(|| self.0.table.at(t_s).gyro_body_rad_s)
+        };
+        let e = self.0.ahrs_rate_error_rad_s(t_s);
+        [gyro[0] + e[0], gyro[1] + e[1], gyro[2] + e[2]]
     }
 
     fn gps(&self, t_s: f64) -> Option<TruthState> {
@@ -344,6 +389,11 @@ impl TruthSource for SensorsHandle {
             / ((n_m + s.alt_amsl_m) * s.lat_deg.to_radians().cos()))
         .to_degrees();
         s.alt_amsl_m += g.sigma_v_m * rng.normal();
+        if self.0.gps_velocity {
+            for v in &mut s.vel_ned_m_s {
+                *v += g.sigma_vel_m_s * rng.normal();
+            }
+        }
         Some(s)
     }
 }
@@ -433,6 +483,10 @@ pub struct StepRow {
     pub ctl_err_ned_m: [f64; 3],
     pub ctl_sigma_h_m: f64,
     pub ctl_health: String,
+    /// Velocity error NED of the vision and the control filters' outputs (NaN before
+    /// initialisation), m/s (not in steps.csv).
+    pub vis_vel_err_ned_m_s: [f64; 3],
+    pub ctl_vel_err_ned_m_s: [f64; 3],
 }
 
 /// An injected position as the emulator received it.
@@ -510,6 +564,10 @@ pub struct ClosedLoopSummary {
     /// The filters' horizontal 1-sigma (major semi-axis), m.
     pub nav_sigma_h_m: Stats,
     pub control_sigma_h_m: Stats,
+    /// Horizontal velocity error of the vision and the control filters' outputs (10 Hz samples),
+    /// m/s: a filter whose velocity collapses while the vehicle flies on (issue 18) shows here.
+    pub nav_vel_err_m_s: Stats,
+    pub control_vel_err_m_s: Stats,
     pub max_err_m: MaxErr,
     pub latency_ms: Latency,
     /// Position messages of the scored kind received in the window.
@@ -616,6 +674,16 @@ fn sigma_h_m(cov: &[[f64; 3]; 3]) -> f64 {
     let tr = 0.5 * (a + b);
     let det = (0.25 * (a - b) * (a - b) + c * c).sqrt();
     (tr + det).max(0.0).sqrt()
+}
+
+/// A filter output's velocity against the truth at the output's time, NED, m/s.
+fn output_vel_error(out: &NavOutput, table: &TruthTable) -> [f64; 3] {
+    let v = table.at(out.t_us as f64 * 1e-6).vel_ned_m_s;
+    [
+        out.v_ned_m_s[0] - v[0],
+        out.v_ned_m_s[1] - v[1],
+        out.v_ned_m_s[2] - v[2],
+    ]
 }
 
 /// The vision + control daemons' output sampled against the truth.
@@ -771,6 +839,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         let sensors = Arc::new(SimSensors::new(sc, table.clone()));
         let mut ecfg = EmulatorConfig::new(&format!("udpout:127.0.0.1:{port}"));
         ecfg.gps_fix = true;
+        ecfg.gps_velocity = cl.gps_velocity;
         ecfg.unix_at_boot_us = unix_now_us;
         (ecfg, sensors)
     };
@@ -850,6 +919,8 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         let oc = out_c.as_ref().and_then(|o| o.borrow().clone());
         let (vlat, vlon, verr, vsig, vh) = sample_output(ov.as_ref(), &table);
         let (clat, clon, cerr, csig, ch) = sample_output(oc.as_ref(), &table);
+        let vel_err =
+            |o: Option<&NavOutput>| o.map_or([f64::NAN; 3], |o| output_vel_error(o, &table));
         if t_s - last_log_s >= 10.0 {
             last_log_s = t_s;
             info!(
@@ -876,6 +947,8 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             ctl_err_ned_m: cerr,
             ctl_sigma_h_m: csig,
             ctl_health: ch,
+            vis_vel_err_ned_m_s: vel_err(ov.as_ref()),
+            ctl_vel_err_ned_m_s: vel_err(oc.as_ref()),
         });
     }
     let metrics_v = d_v.shutdown().await;
@@ -1013,6 +1086,16 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         control_err_over_sigma: over_sigma(&|s| (s.ctl_err_ned_m, s.ctl_sigma_h_m)),
         nav_sigma_h_m: Stats::of(&ws.iter().map(|s| s.vis_sigma_h_m).collect::<Vec<_>>()),
         control_sigma_h_m: Stats::of(&ws.iter().map(|s| s.ctl_sigma_h_m).collect::<Vec<_>>()),
+        nav_vel_err_m_s: Stats::of(
+            &ws.iter()
+                .map(|s| hnorm(&s.vis_vel_err_ned_m_s))
+                .collect::<Vec<_>>(),
+        ),
+        control_vel_err_m_s: Stats::of(
+            &ws.iter()
+                .map(|s| hnorm(&s.ctl_vel_err_ned_m_s))
+                .collect::<Vec<_>>(),
+        ),
         max_err_m: MaxErr {
             vision: max_enu(&|s| s.vis_err_ned_m),
             control: max_enu(&|s| s.ctl_err_ned_m),
@@ -1253,6 +1336,95 @@ sigma_vel_m_s = 0.001
         );
         assert!(d[0].abs() < 0.05, "{d:?}");
         d[1]
+    }
+
+    /// The test scenario with a `[closed_loop]` section carrying `extra` lines.
+    fn closed_loop_scenario(extra: &str) -> Scenario {
+        let text = format!(
+            "{SCENARIO}[closed_loop]\nconfig = \"c.toml\"\ncamera_ortho = \"o.tif\"\ncamera_ground_height_amsl_m = 580.0\n{extra}"
+        );
+        Scenario::parse(&text, "rates.toml").unwrap()
+    }
+
+    #[test]
+    fn attitude_rates_carry_the_ahrs_rate_error_only_when_asked() {
+        let run = |extra: &str| {
+            let sc = closed_loop_scenario(extra);
+            let table = Arc::new(TruthTable::from_scenario(&sc).unwrap());
+            let sens = Arc::new(SimSensors::new(&sc, table));
+            let h = SensorsHandle(sens.clone());
+            let mut out = Vec::new();
+            for i in 0..1500 {
+                let t = 0.01 * f64::from(i);
+                let (gyro, _) = h.imu(t);
+                let rates = h.attitude_rates(t);
+                out.push((t, gyro, rates, sens.ahrs_rate_error_rad_s(t)));
+            }
+            out
+        };
+        // Default: ATTITUDE's rates are the simulated gyro itself.
+        for (_, gyro, rates, e) in run("") {
+            assert_eq!(gyro, rates);
+            assert_eq!(e, [0.0; 3]);
+        }
+        // With the error: gyro + the Gauss-Markov error, the same for the same seed.
+        let a = run("ahrs_rate_error_deg_h = 60.0\nahrs_rate_corr_time_s = 60.0\n");
+        let b = run("ahrs_rate_error_deg_h = 60.0\nahrs_rate_corr_time_s = 60.0\n");
+        let mut largest = 0.0f64;
+        for ((t, gyro, rates, e), (_, gyro_b, rates_b, _)) in a.iter().zip(&b) {
+            for k in 0..3 {
+                assert!((rates[k] - gyro[k] - e[k]).abs() < 1e-15, "t {t}");
+                largest = largest.max(e[k].abs());
+            }
+            assert_eq!((gyro, rates), (gyro_b, rates_b), "t {t}: not reproducible");
+        }
+        let deg_h = largest.to_degrees() * 3600.0;
+        assert!(deg_h > 5.0 && deg_h < 300.0, "{deg_h} deg/h");
+    }
+
+    #[test]
+    fn the_gauss_markov_series_has_its_sigma_and_correlation_time() {
+        let s = 1e-4;
+        let x = gauss_markov_1hz(7, [s; 3], 60.0, 400_000);
+        for k in 0..3 {
+            let rms = (x.iter().map(|v| v[k] * v[k]).sum::<f64>() / x.len() as f64).sqrt();
+            assert!((rms / s - 1.0).abs() < 0.05, "axis {k}: rms {rms}");
+            let lag = 60;
+            let c = x.windows(lag + 1).map(|w| w[0][k] * w[lag][k]).sum::<f64>()
+                / (x.len() - lag) as f64
+                / (rms * rms);
+            assert!(
+                (c - (-1.0f64).exp()).abs() < 0.05,
+                "axis {k}: correlation {c}"
+            );
+        }
+        assert_eq!(at_1hz(&x, 2.5)[0], 0.5 * (x[2][0] + x[3][0]));
+        assert_eq!(at_1hz(&[], 2.5), [0.0; 3]);
+    }
+
+    #[test]
+    fn the_receiver_reports_a_noisy_velocity_only_when_asked() {
+        let fix = |extra: &str| {
+            let sc = closed_loop_scenario(extra);
+            let table = Arc::new(TruthTable::from_scenario(&sc).unwrap());
+            let h = SensorsHandle(Arc::new(SimSensors::new(&sc, table.clone())));
+            let g = h.gps(10.0).unwrap();
+            (g, table.at(10.0 - 0.1).vel_ned_m_s)
+        };
+        let (off, truth) = fix("");
+        assert_eq!(off.vel_ned_m_s, truth);
+        let (on, truth_on) = fix("gps_velocity = true\n");
+        assert_eq!(truth, truth_on);
+        // The position draws come first and are the same; then sigma_vel_m_s (0.001) per axis.
+        assert_eq!(
+            (on.lat_deg, on.lon_deg, on.alt_amsl_m),
+            (off.lat_deg, off.lon_deg, off.alt_amsl_m)
+        );
+        let d: Vec<f64> = (0..3).map(|k| on.vel_ned_m_s[k] - truth[k]).collect();
+        assert!(
+            d.iter().any(|x| *x != 0.0) && d.iter().all(|x| x.abs() < 0.005),
+            "{d:?}"
+        );
     }
 
     #[test]

@@ -92,6 +92,37 @@ fn default_ramp() -> f64 {
     3.0
 }
 
+/// Vehicle kind (`[vehicle] kind`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum VehicleKind {
+    /// Fixed-wing kinematics: pitch = flight-path angle, coordinated turns.
+    #[default]
+    FixedWing,
+    /// Multirotor: tilted by its acceleration and its drag, the thrust along body -z
+    /// (`sitl::trajectory` module doc).
+    Multirotor,
+}
+
+/// `[vehicle]`: how the aircraft holds its attitude along the trajectory.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VehicleConfig {
+    /// `fixed_wing` (default) or `multirotor`.
+    #[serde(default)]
+    pub kind: VehicleKind,
+    /// Multirotor drag law `D(v) = a v + b v |v|` per body axis (specific force): `a`, 1/s
+    /// (negative; ArduCopter SITL: -0.215) ...
+    #[serde(default)]
+    pub drag_linear_per_s: Option<f64>,
+    /// ... and `b`, 1/m (negative; ArduCopter SITL: -0.028).
+    #[serde(default)]
+    pub drag_quadratic_per_m: Option<f64>,
+}
+
+/// The largest tilt a multirotor scenario may ask for, deg.
+pub const MULTIROTOR_MAX_TILT_DEG: f64 = 60.0;
+
 /// Simulated GPS (white noise, no latency).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -315,6 +346,23 @@ pub struct ClosedLoopConfig {
     /// ... and correlation time, s.
     #[serde(default = "default_ahrs_tau")]
     pub ahrs_corr_time_s: f64,
+    /// ATTITUDE's body rates (the daemon's gyro, `[daemon] gyro_from_attitude`) err from the
+    /// simulated gyro by a first-order Gauss-Markov process per axis, as ArduPilot's do: they are
+    /// its gyro minus EKF3's bias estimate, whose residual wanders by tens of deg/h (about
+    /// 60 deg/h in ArduCopter SITL, docs/real-sitl.md; here the whole flight, with or without
+    /// GPS). Sigma, deg/h; 0 (default): ATTITUDE carries the simulated gyro itself ...
+    #[serde(default)]
+    pub ahrs_rate_error_deg_h: f64,
+    /// ... and its correlation time, s.
+    #[serde(default = "default_ahrs_rate_tau")]
+    pub ahrs_rate_corr_time_s: f64,
+    /// The emulator's GPS_RAW_INT / GPS2_RAW carry the receiver's ground speed and course (`vel`,
+    /// `cog`, with `[gps] sigma_vel_m_s` of noise per axis), as ArduPilot sends them; the daemon
+    /// then fuses a GPS velocity (and learns a multirotor's drag law from it, `[nav.drag]`).
+    /// Default false: both fields unknown, as the emulator sent them before (the existing
+    /// scenarios keep their results).
+    #[serde(default)]
+    pub gps_velocity: bool,
     /// Light, blur and noise of the simulated camera (`sitl::render::RenderSpec`).
     #[serde(default)]
     pub render: super::render::RenderSpec,
@@ -329,6 +377,10 @@ fn default_ahrs_yaw() -> f64 {
 }
 
 fn default_ahrs_tau() -> f64 {
+    60.0
+}
+
+fn default_ahrs_rate_tau() -> f64 {
     60.0
 }
 
@@ -350,6 +402,9 @@ pub struct Scenario {
     pub seed: u64,
     /// Start point.
     pub start: StartConfig,
+    /// Vehicle kind and, for a multirotor, its drag law (default: fixed wing).
+    #[serde(default)]
+    pub vehicle: VehicleConfig,
     /// Trajectory segments.
     pub segments: Vec<SegmentConfig>,
     /// Simulated IMU.
@@ -425,19 +480,98 @@ impl Scenario {
                 }
             })
             .collect();
-        Trajectory::new(
+        let traj = Trajectory::new(
             self.start.lat_deg.to_radians(),
             self.start.lon_deg.to_radians(),
             self.start.height_m,
             self.start.speed_m_s,
             self.start.heading_deg.to_radians(),
             segs,
-        )
+        );
+        match (
+            self.vehicle.kind,
+            self.vehicle.drag_linear_per_s,
+            self.vehicle.drag_quadratic_per_m,
+        ) {
+            (VehicleKind::Multirotor, Some(a), Some(b)) => traj.with_multirotor_drag(a, b),
+            // A multirotor without its law does not pass validation.
+            _ => traj,
+        }
     }
 
     /// Total duration, s.
     pub fn duration_s(&self) -> f64 {
         self.segments.iter().map(|s| s.duration_s).sum()
+    }
+}
+
+impl Scenario {
+    /// `[vehicle]`: the keys of the kind, and a multirotor's tilt along the trajectory (checked
+    /// only when `trajectory_ok`: the start and segments are valid).
+    fn validate_vehicle(&self, p: &mut Problems, trajectory_ok: bool) {
+        let v = &self.vehicle;
+        let keys = [
+            ("drag_linear_per_s", v.drag_linear_per_s, -10.0, "-0.215"),
+            (
+                "drag_quadratic_per_m",
+                v.drag_quadratic_per_m,
+                -1.0,
+                "-0.028",
+            ),
+        ];
+        match v.kind {
+            VehicleKind::FixedWing => {
+                for (key, val, _, _) in keys {
+                    if val.is_some() {
+                        p.push(key, "only for kind = \"multirotor\"");
+                    }
+                }
+            }
+            VehicleKind::Multirotor => {
+                for (key, val, lo, sitl) in keys {
+                    match val {
+                        None => p.push(
+                            key,
+                            format!(
+                                "a multirotor needs its drag law (ArduCopter SITL: {key} = {sitl})"
+                            ),
+                        ),
+                        Some(x) => p.range(key, x, lo, 0.0),
+                    }
+                }
+                if v.drag_linear_per_s == Some(0.0) && v.drag_quadratic_per_m == Some(0.0) {
+                    p.push(
+                        "drag_linear_per_s",
+                        "drag_linear_per_s and drag_quadratic_per_m are both 0: a multirotor's drag opposes its motion",
+                    );
+                }
+                if !(trajectory_ok && p.list.is_empty()) {
+                    return;
+                }
+                // The attitude along the trajectory, every 0.1 s.
+                let traj = self.trajectory();
+                let n = (self.duration_s() / 0.1).ceil() as usize;
+                for i in 0..=n {
+                    let t = i as f64 * 0.1;
+                    let Some(tilt) = traj.multirotor_tilt_at(t) else {
+                        break;
+                    };
+                    let deg = (tilt.roll_rad.cos() * tilt.pitch_rad.cos())
+                        .clamp(-1.0, 1.0)
+                        .acos()
+                        .to_degrees();
+                    if !tilt.converged || deg.is_nan() || deg > MULTIROTOR_MAX_TILT_DEG {
+                        p.push(
+                            "kind",
+                            format!(
+                                "the multirotor would tilt {deg:.0} deg at t = {t:.1} s (at most {MULTIROTOR_MAX_TILT_DEG} deg): lower the speed, the accelerations or the turn rates"
+                            ),
+                        );
+                        return;
+                    }
+                }
+            }
+        }
     }
 }
 
@@ -497,6 +631,8 @@ impl Validate for Scenario {
                 }
             });
         }
+        let segments_ok = p.list.is_empty();
+        p.section("vehicle", |p| self.validate_vehicle(p, segments_ok));
         let dur = self.duration_s();
         p.section("imu", |p| self.imu.validate(p));
         if let Some(g) = &self.gps {
@@ -579,6 +715,13 @@ impl Validate for Scenario {
                 p.range("ahrs_tilt_sigma_deg", c.ahrs_tilt_sigma_deg, 0.0, 20.0);
                 p.range("ahrs_yaw_sigma_deg", c.ahrs_yaw_sigma_deg, 0.0, 90.0);
                 p.range("ahrs_corr_time_s", c.ahrs_corr_time_s, 0.1, 1e6);
+                p.range(
+                    "ahrs_rate_error_deg_h",
+                    c.ahrs_rate_error_deg_h,
+                    0.0,
+                    36_000.0,
+                );
+                p.range("ahrs_rate_corr_time_s", c.ahrs_rate_corr_time_s, 0.1, 1e6);
                 if c.workers == 0 || c.workers > 16 {
                     p.push("workers", "must be 1 to 16");
                 }
@@ -628,7 +771,96 @@ mod tests {
         ] {
             let sc = bundled(n);
             assert_eq!(sc.closed_loop.is_some(), n.contains("closed_loop"), "{n}");
+            assert_eq!(sc.vehicle, VehicleConfig::default(), "{n}: fixed wing");
+            assert!(sc.trajectory().drag_law().is_none());
         }
+        let sc = bundled("copter_ardupilot.toml");
+        assert!(sc.closed_loop.is_some());
+        assert_eq!(sc.vehicle.kind, VehicleKind::Multirotor);
+        let law = sc.trajectory().drag_law().expect("a multirotor trajectory");
+        assert_eq!((law.linear_per_s, law.quadratic_per_m), (-0.215, -0.028));
+    }
+
+    fn copter_text() -> String {
+        std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("sitl/scenarios/copter_ardupilot.toml"),
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn vehicle_section_is_validated() {
+        let text = copter_text();
+        let err = |t: &str| Scenario::parse(t, "x.toml").unwrap_err().to_string();
+        let e = err(&text.replace("drag_quadratic_per_m = -0.028", ""));
+        assert!(
+            e.contains("vehicle.drag_quadratic_per_m") && e.contains("needs its drag law"),
+            "{e}"
+        );
+        let e = err(&text.replace("drag_linear_per_s = -0.215", "drag_linear_per_s = 0.215"));
+        assert!(e.contains("vehicle.drag_linear_per_s"), "{e}");
+        let e = err(&text
+            .replace("drag_linear_per_s = -0.215", "drag_linear_per_s = 0.0")
+            .replace(
+                "drag_quadratic_per_m = -0.028",
+                "drag_quadratic_per_m = 0.0",
+            ));
+        assert!(e.contains("both 0"), "{e}");
+        let e = err(&text.replace("kind = \"multirotor\"", "kind = \"fixed_wing\""));
+        assert!(
+            e.contains("vehicle.drag_linear_per_s") && e.contains("only for kind"),
+            "{e}"
+        );
+        let e = err(&text.replace("kind = \"multirotor\"", "kind = \"blimp\""));
+        assert!(e.contains("blimp"), "{e}");
+        let e = err(&text.replace("[vehicle]\n", "[vehicle]\nmass_kg = 2.0\n"));
+        assert!(e.contains("mass_kg"), "{e}");
+        // A multirotor asked for 40 m/s with SITL's drag would have to lean past 60 deg.
+        let e = err(&text.replacen("speed_m_s = 12.0", "speed_m_s = 40.0", 1));
+        assert!(
+            e.contains("vehicle.kind") && e.contains("would tilt"),
+            "{e}"
+        );
+        // Without the section: a fixed wing.
+        let fw = Scenario::parse(
+            &text
+                .replace("[vehicle]\nkind = \"multirotor\"\n", "")
+                .replace("drag_linear_per_s = -0.215 ", "# ")
+                .replace("drag_quadratic_per_m = -0.028", ""),
+            "x.toml",
+        )
+        .unwrap();
+        assert_eq!(fw.vehicle.kind, VehicleKind::FixedWing);
+    }
+
+    #[test]
+    fn ahrs_rate_error_keys_are_validated() {
+        let text = copter_text();
+        let sc = Scenario::parse(&text, "x.toml").unwrap();
+        let cl = sc.closed_loop.unwrap();
+        assert_eq!(cl.ahrs_rate_error_deg_h, 60.0);
+        assert!(cl.gps_velocity);
+        for (from, to, key) in [
+            (
+                "ahrs_rate_error_deg_h = 60.0",
+                "ahrs_rate_error_deg_h = -1.0",
+                "closed_loop.ahrs_rate_error_deg_h",
+            ),
+            (
+                "ahrs_rate_corr_time_s = 60.0",
+                "ahrs_rate_corr_time_s = 0.0",
+                "closed_loop.ahrs_rate_corr_time_s",
+            ),
+        ] {
+            let e = Scenario::parse(&text.replace(from, to), "x.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(key), "{e}");
+        }
+        // The defaults (the demo has none of the keys): no rate error, no GPS velocity.
+        let demo = bundled("closed_loop_demo.toml").closed_loop.unwrap();
+        assert_eq!(demo.ahrs_rate_error_deg_h, 0.0);
+        assert!(!demo.gps_velocity);
     }
 
     #[test]

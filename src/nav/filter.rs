@@ -861,18 +861,7 @@ impl NavFilter {
         let (Some((f, is_vision)), Some(core)) = (m.position_fix(), self.core.as_ref()) else {
             return;
         };
-        let st = &core.ins.state;
-        let l = if is_vision {
-            self.par.l_cam
-        } else {
-            self.par.l_gps
-        };
-        let dt = dt_s(core.t_us, f.t_capture_us);
-        let d = earth::ned_offset_m(
-            (st.lat_rad, st.lon_rad, st.h_m),
-            (f.lat_rad, f.lon_rad, f.h_m),
-        ) + st.v_ned_m_s * dt
-            + st.q_nb * l;
+        let d = position_innovation(&self.par, core, f, is_vision);
         let c = f.cov_ned_m2.fixed_view::<2, 2>(0, 0).into_owned();
         let var_h = c.symmetric_eigenvalues().max();
         let cap = self.cfg.health.divergence_reject_count.max(3) as usize;
@@ -1412,6 +1401,23 @@ fn apply_drag(par: &Params, core: &mut Core, d: &DragFix) -> Outcome {
     out
 }
 
+/// Predicted minus measured position of a fix's point (camera or antenna, lever arm `l`): the
+/// state moved to the capture time by its velocity, plus `C_b^n l`, minus the fix (NED, m).
+fn position_innovation(
+    par: &Params,
+    core: &Core,
+    f: &PositionFix,
+    is_vision: bool,
+) -> Vector3<f64> {
+    let st = &core.ins.state;
+    let l = if is_vision { par.l_cam } else { par.l_gps };
+    earth::ned_offset_m(
+        (st.lat_rad, st.lon_rad, st.h_m),
+        (f.lat_rad, f.lon_rad, f.h_m),
+    ) + st.v_ned_m_s * dt_s(core.t_us, f.t_capture_us)
+        + st.q_nb * l
+}
+
 fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
     let t_c = m.t_capture_us();
     let dt = dt_s(core.t_us, t_c);
@@ -1424,13 +1430,8 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
             };
             // The fix is the position of the camera / antenna, `r + C_b^n l`; with
             // `C_est = (I + [psi x]) C_true`: `dz = dr + [psi x] C l = dr - [(C l) x] psi`.
-            let l = if is_vision { par.l_cam } else { par.l_gps };
-            let l_n = st.q_nb * l;
-            let mut dz = earth::ned_offset_m(
-                (st.lat_rad, st.lon_rad, st.h_m),
-                (f.lat_rad, f.lon_rad, f.h_m),
-            ) + v * dt
-                + l_n;
+            let l_n = st.q_nb * if is_vision { par.l_cam } else { par.l_gps };
+            let mut dz = position_innovation(par, core, f, is_vision);
             let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
             h.fixed_view_mut::<3, 3>(0, IP)
                 .copy_from(&Matrix3::identity());

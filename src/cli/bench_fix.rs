@@ -6,7 +6,7 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use visnav::fix::FixParams;
-use visnav::sitl::fixeval::NaipEval;
+use visnav::sitl::fixeval::{AttitudeMode, NaipEval};
 use visnav::vision::{DescriptorKind, SurfParams};
 
 #[derive(clap::Args, Debug)]
@@ -36,6 +36,24 @@ pub struct FixBenchArgs {
     /// 0.5 deg). The frames and the other draws stay the same for every value.
     #[arg(long, default_value_t = 0.3)]
     pub attitude_error_deg: f64,
+    /// A heading error of this size added to the prior's heading, degrees (sign alternating by
+    /// frame), on top of --attitude-error-deg: a compass heading or one drifted after GPS loss.
+    #[arg(long, default_value_t = 0.0)]
+    pub yaw_error_deg: f64,
+    /// The heading sigma the prior states, degrees (default 0.5, as the tilt's; with
+    /// --yaw-error-deg, 30).
+    #[arg(long)]
+    pub yaw_sigma_deg: Option<f64>,
+    /// The prior carries roll and pitch only (the heading unknown).
+    #[arg(long, conflicts_with = "no_attitude")]
+    pub tilt_only: bool,
+    /// The prior carries no attitude at all.
+    #[arg(long)]
+    pub no_attitude: bool,
+    /// DIAGNOSTIC, not an accuracy figure: render the frames from the map's own orthophoto (the
+    /// solver's error without the cross-date matching's).
+    #[arg(long)]
+    pub same_imagery: bool,
     /// Build the map from this orthophoto instead of the bundled 2009 one (repeat to stack
     /// several co-registered years of the NAIP area, e.g. ../shared/data/naip_nd/*2010*.tif). The
     /// camera year (2014) is refused.
@@ -91,6 +109,22 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
             a.attitude_error_deg
         );
     }
+    if !(a.yaw_error_deg.is_finite() && (0.0..=180.0).contains(&a.yaw_error_deg)) {
+        anyhow::bail!("--yaw-error-deg {}: expected 0 to 180", a.yaw_error_deg);
+    }
+    let yaw_sigma_deg = a
+        .yaw_sigma_deg
+        .unwrap_or(if a.yaw_error_deg > 0.0 { 30.0 } else { 0.5 });
+    if !(yaw_sigma_deg.is_finite() && yaw_sigma_deg > 0.0 && yaw_sigma_deg <= 180.0) {
+        anyhow::bail!("--yaw-sigma-deg {yaw_sigma_deg}: expected more than 0, at most 180");
+    }
+    let attitude_mode = if a.no_attitude {
+        AttitudeMode::None
+    } else if a.tilt_only {
+        AttitudeMode::TiltOnly
+    } else {
+        AttitudeMode::Full
+    };
     let agl_range_m = match &a.agl_m {
         None => (1200.0, 2500.0),
         Some(t) => parse_range(t).with_context(|| format!("--agl-m {t}"))?,
@@ -104,6 +138,10 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
     eval.attitude_prior_error_rad = a.attitude_error_deg.to_radians();
     eval.agl_range_m = agl_range_m;
     eval.max_tilt_deg = a.max_tilt_deg;
+    eval.yaw_error_deg = a.yaw_error_deg;
+    eval.yaw_sigma_deg = yaw_sigma_deg;
+    eval.attitude_mode = attitude_mode;
+    eval.same_imagery = a.same_imagery;
     let per_frame = a.per_frame;
     let s = eval
         .run_with(a.frames, a.seed, !a.no_prior, &mut |line| {
@@ -112,27 +150,75 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
             }
         })
         .map_err(anyhow::Error::msg)?;
+    let prior_text = format!(
+        "{}; {}",
+        if a.no_prior {
+            "no position prior"
+        } else {
+            "position prior 100 m off"
+        },
+        match attitude_mode {
+            AttitudeMode::None => "no attitude".to_string(),
+            AttitudeMode::TiltOnly => format!(
+                "tilt only ({:.1} deg off per axis, heading unknown)",
+                a.attitude_error_deg
+            ),
+            AttitudeMode::Full => format!(
+                "attitude {:.1} deg off per axis{}, heading sigma {yaw_sigma_deg} deg",
+                a.attitude_error_deg,
+                if a.yaw_error_deg > 0.0 {
+                    format!(" + heading {} deg off", a.yaw_error_deg)
+                } else {
+                    String::new()
+                }
+            ),
+        }
+    );
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&s)?);
+        let mut v = serde_json::to_value(&s)?;
+        if let Some(o) = v.as_object_mut() {
+            o.insert("prior".into(), prior_text.into());
+            o.insert("same_imagery_diagnostic".into(), a.same_imagery.into());
+        }
+        println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
+        if a.same_imagery {
+            println!(
+                "DIAGNOSTIC: frames rendered from the map's own orthophoto (the solver's error, not an accuracy figure)"
+            );
+        }
         println!(
-            "NAIP cross-date (map {} x{}, frames 2014, VGA 60 deg, {:.0}-{:.0} m AGL, tilt <= {} deg): {} frames",
+            "NAIP {} (map {} x{}, frames {}, VGA 60 deg, {:.0}-{:.0} m AGL, tilt <= {} deg, {prior_text}): {} frames",
+            if a.same_imagery {
+                "same-imagery"
+            } else {
+                "cross-date"
+            },
             map_orthos
                 .iter()
                 .map(|p| p.file_name().unwrap_or_default().to_string_lossy())
                 .collect::<Vec<_>>()
                 .join(" + "),
             a.map_upsample,
+            if a.same_imagery {
+                "from the map image"
+            } else {
+                "2014"
+            },
             agl_range_m.0,
             agl_range_m.1,
             a.max_tilt_deg,
             s.frames
         );
         println!(
-            "  accepted {} ({:.0} %), beyond 3 sigma {}",
+            "  accepted {} ({:.0} %), beyond 3 sigma {}, wrong (> {} m or > {} sigma) {}, image-only NEES(6) mean {:.1}",
             s.accepted,
             100.0 * s.fix_rate,
-            s.beyond_3_sigma
+            s.beyond_3_sigma,
+            visnav::sitl::fixeval::WRONG_FIX_M,
+            visnav::sitl::fixeval::WRONG_FIX_SIGMAS,
+            s.wrong_fixes,
+            s.nees6_mean
         );
         println!(
             "  horizontal error median {:.1} m ({:.2} map px) p90 {:.1} max {:.1}; vertical median {:.1} p90 {:.1} max {:.1}",

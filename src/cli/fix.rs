@@ -1,5 +1,5 @@
-//! `visnav fix --map MAP --image F --camera cam.toml [--attitude R,P,Y] [--prior LAT,LON,ALT,SIGMA_M]
-//! [--json]`: one vision fix from one frame. MAP is a reference map (`.vnm`, see `visnav map build`)
+//! `visnav fix --map MAP --image F --camera cam.toml [--attitude R,P,Y [--attitude-sigma-deg S]
+//! [--yaw-sigma-deg S]] [--prior LAT,LON,ALT,SIGMA_M] [--json]`: one vision fix from one frame. MAP is a reference map (`.vnm`, see `visnav map build`)
 //! or, for small areas, an orthophoto GeoTIFF used directly (a map is built from it into a
 //! temporary file; give `--dem` or `--ground-height`). Exit status: 0 accepted, 2 rejected (the JSON or the text
 //! says why), 1 on an error (bad file, bad argument).
@@ -32,9 +32,14 @@ pub struct FixArgs {
     /// Vehicle attitude from the autopilot, degrees: ROLL,PITCH,YAW (body FRD to NED).
     #[arg(long, value_name = "ROLL,PITCH,YAW", allow_hyphen_values = true)]
     pub attitude: Option<String>,
-    /// 1-sigma of --attitude, degrees.
+    /// 1-sigma of --attitude's roll and pitch (the tilt), degrees.
     #[arg(long, default_value_t = 1.0)]
     pub attitude_sigma_deg: f64,
+    /// 1-sigma of --attitude's heading, degrees (default: --attitude-sigma-deg). A compass or
+    /// drifted heading is often tens of degrees off: give it its own sigma and the headings
+    /// within 3 sigma are searched (180: unknown heading, tilt still used).
+    #[arg(long)]
+    pub yaw_sigma_deg: Option<f64>,
     /// Position prior: latitude and longitude (deg), altitude AMSL (m), 1-sigma horizontal (m).
     /// Without it the whole map is searched (global relocalisation).
     #[arg(long, value_name = "LAT,LON,ALT,SIGMA_M", allow_hyphen_values = true)]
@@ -160,10 +165,15 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
             if !(a.attitude_sigma_deg.is_finite() && a.attitude_sigma_deg > 0.0) {
                 bail!("--attitude-sigma-deg must be positive");
             }
-            Some(AttitudePriorNed::isotropic(
-                Attitude::from_deg(v[0], v[1], v[2]),
-                a.attitude_sigma_deg.to_radians(),
-            ))
+            let yaw_sigma_deg = a.yaw_sigma_deg.unwrap_or(a.attitude_sigma_deg);
+            if !(yaw_sigma_deg.is_finite() && yaw_sigma_deg > 0.0 && yaw_sigma_deg <= 180.0) {
+                bail!("--yaw-sigma-deg must be more than 0 and at most 180");
+            }
+            Some(AttitudePriorNed {
+                attitude: Attitude::from_deg(v[0], v[1], v[2]),
+                sigma_rad: a.attitude_sigma_deg.to_radians(),
+                sigma_yaw_rad: yaw_sigma_deg.to_radians(),
+            })
         }
         None => None,
     };

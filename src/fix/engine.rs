@@ -73,8 +73,11 @@ pub struct FixParams {
     /// The fine matches must number at least `min_matches + null_factor * chance`, where chance is
     /// the count obtained with the predictions displaced to unrelated places.
     pub null_factor: f64,
-    /// Time budget of a global relocalisation (no position prior), milliseconds.
-    pub reloc_budget_ms: f64,
+    /// Work budget of a global relocalisation (no position prior), millions of work units
+    /// ([`RELOC_COMPARISONS_PER_UNIT`]: one pixel through rectification and SURF, or 16 descriptor
+    /// comparisons of the brute-force matching, which cost about the same). Counted, not timed:
+    /// the same inputs give the same answer on any machine.
+    pub reloc_budget_mwork: f64,
     /// Attitude 1-sigma assumed when the prior gives none, degrees (nadir, any heading is searched).
     pub reloc_tilt_sigma_deg: f64,
     /// Resection, RANSAC and integrity settings.
@@ -96,7 +99,7 @@ impl Default for FixParams {
             map_registration_sigma_px: 0.0,
             min_matches: 12,
             null_factor: 1.5,
-            reloc_budget_ms: 5000.0,
+            reloc_budget_mwork: 60.0,
             reloc_tilt_sigma_deg: 5.0,
             pose: default_pose_config(),
         }
@@ -133,6 +136,14 @@ impl FixParams {
     /// `[fix.pose.ransac]` keeps every other default of the pipeline, which serde's own defaults
     /// would reset to the resection module's). Unknown keys are errors naming the key.
     pub fn from_toml(user: toml::Value) -> Result<Self, String> {
+        if user.get("reloc_budget_ms").is_some() {
+            return Err(
+                "reloc_budget_ms: replaced by reloc_budget_mwork (a work budget in \
+                 millions of units, default 60: one unit is a pixel through SURF or 16 descriptor \
+                 comparisons), so that results do not depend on the machine's speed or load"
+                    .into(),
+            );
+        }
         let mut base = toml::Value::try_from(Self::default()).map_err(|e| e.to_string())?;
         merge_toml(&mut base, user);
         base.try_into::<Self>().map_err(|e| e.to_string())
@@ -189,7 +200,7 @@ impl Validate for FixParams {
             p.push("min_matches", "must be at least 4");
         }
         p.range("null_factor", self.null_factor, 0.0, 100.0);
-        p.positive("reloc_budget_ms", self.reloc_budget_ms);
+        p.positive("reloc_budget_mwork", self.reloc_budget_mwork);
         p.range(
             "reloc_tilt_sigma_deg",
             self.reloc_tilt_sigma_deg,
@@ -236,11 +247,19 @@ pub struct Attempt {
     pub pairs: Vec<([f64; 2], [f64; 3])>,
 }
 
+impl Attempt {
+    /// Fine matches above the chance level measured for this attempt (the a-contrario count):
+    /// what a hypothesis has that an unrelated place would not.
+    pub fn evidence(&self) -> usize {
+        self.fine_matches.saturating_sub(self.null_matches)
+    }
+}
+
 /// The prior in the map grid and in the local ENU frame.
 struct PriorGeom {
     c_map: Vector3<f64>,
+    /// Camera attitude the frame is rectified with (a heading hypothesis during a sweep).
     r_map_cam: Rotation3<f64>,
-    r_enu_cam: Rotation3<f64>,
     sigma_h_m: f64,
     sigma_v_m: f64,
     /// Tilt (about north/east) and heading sigmas, rad.
@@ -248,6 +267,17 @@ struct PriorGeom {
     sigma_yaw_rad: f64,
     /// The attitude is the navigation filter's own (FixPrior::attitude_from_filter).
     att_from_filter: bool,
+    /// The attitude prior the resection fuses: the caller's (its heading sigma may be large),
+    /// not the heading hypothesis the frame was rectified with; None: no attitude prior.
+    solve: Option<SolvePrior>,
+}
+
+/// An attitude prior for the resection (world = local ENU).
+#[derive(Debug, Clone, Copy)]
+struct SolvePrior {
+    r_enu_cam: Rotation3<f64>,
+    sigma_tilt_rad: f64,
+    sigma_yaw_rad: f64,
 }
 
 impl FixEngine {
@@ -335,7 +365,7 @@ impl FixEngine {
                 (r, a)
             }
             None => {
-                let (mut r, a) = self.relocalise(frame, prior, t0);
+                let (mut r, a) = self.relocalise(frame, prior);
                 r.ms = ms(t0);
                 (r, a)
             }
@@ -369,49 +399,54 @@ impl FixEngine {
         Ok(PriorGeom {
             c_map: Vector3::new(x, y, pos.alt_amsl_m),
             r_map_cam: rot_z(gamma) * r_enu_cam,
-            r_enu_cam,
             sigma_h_m: pos.sigma_h_m,
             sigma_v_m: pos.sigma_v_m,
             sigma_tilt_rad: att.sigma_rad,
             sigma_yaw_rad: att.sigma_yaw_rad,
             att_from_filter: false,
+            solve: None,
         })
     }
 
     /// A position prior without attitude: near-nadir views at [`HEADINGS`] headings (upright
-    /// SURF degrades quickly beyond about +-10 deg); the accepted fix with the most inliers wins.
+    /// SURF degrades quickly beyond about +-10 deg), no attitude prior in the resection; the
+    /// unique best hypothesis wins ([`select_unique`]).
     fn fix_any_heading(
         &self,
         frame: &GrayImage,
         pos: &PositionPriorGeo,
         t_us: u64,
     ) -> (FixReport, Attempt) {
-        let mut best: Option<(FixReport, Attempt)> = None;
-        let mut last = None;
-        for i in 0..HEADINGS {
-            let att = AttitudePriorNed::isotropic(
-                Attitude::new(0.0, 0.0, f64::from(i) * HEADING_STEP_DEG.to_radians()),
-                self.params.reloc_tilt_sigma_deg.to_radians(),
-            );
-            let (r, a) = self.fix_prior(frame, pos, &att, t_us, false);
-            if r.accepted {
-                if best.as_ref().is_none_or(|(b, _)| r.inliers > b.inliers) {
-                    best = Some((r, a));
-                }
-            } else if last
-                .as_ref()
-                .is_none_or(|(l, _): &(FixReport, Attempt)| r.matches > l.matches)
-            {
-                // Report the heading that got furthest (most matches).
-                last = Some((r, a));
-            }
-        }
-        best.or(last).unwrap_or_else(|| {
-            (
-                FixReport::rejected("no heading tried", t_us, 0.0),
-                Attempt::default(),
-            )
-        })
+        let tries = heading_hypotheses(&self.nadir_any_heading())
+            .into_iter()
+            .map(|hyp| {
+                let (r, a) = self.fix_single(frame, pos, &hyp, None, t_us, false);
+                Hypothesis::new(hyp.attitude.yaw_rad, r, a)
+            })
+            .collect();
+        select_unique(tries, t_us)
+    }
+
+    /// A heading sigma too large for one rectification ([`YAW_SWEEP_ABOVE_DEG`]): the frame is
+    /// rectified at heading hypotheses [`HEADING_STEP_DEG`] apart over the prior's +-3 sigma
+    /// (tilt kept: roll and pitch come from gravity), each matched and solved with the caller's
+    /// prior (its loose heading), and the unique best hypothesis wins ([`select_unique`]).
+    fn fix_heading_sweep(
+        &self,
+        frame: &GrayImage,
+        pos: &PositionPriorGeo,
+        att: &AttitudePriorNed,
+        t_us: u64,
+        att_from_filter: bool,
+    ) -> (FixReport, Attempt) {
+        let tries = heading_hypotheses(att)
+            .into_iter()
+            .map(|hyp| {
+                let (r, a) = self.fix_single(frame, pos, &hyp, Some(att), t_us, att_from_filter);
+                Hypothesis::new(hyp.attitude.yaw_rad, r, a)
+            })
+            .collect();
+        select_unique(tries, t_us)
     }
 
     /// Ground height below the camera's principal ray (or straight below, or the DEM's middle).
@@ -437,6 +472,8 @@ impl FixEngine {
             .unwrap_or(self.levels_gsd_m.len() - 1)
     }
 
+    /// The prior-driven fix: one rectification at the prior attitude, or a heading sweep when
+    /// the prior's heading sigma is larger than one rectification tolerates.
     fn fix_prior(
         &self,
         frame: &GrayImage,
@@ -445,10 +482,34 @@ impl FixEngine {
         t_us: u64,
         att_from_filter: bool,
     ) -> (FixReport, Attempt) {
+        if att.sigma_yaw_rad > YAW_SWEEP_ABOVE_DEG.to_radians() {
+            self.fix_heading_sweep(frame, pos, att, t_us, att_from_filter)
+        } else {
+            self.fix_single(frame, pos, att, Some(att), t_us, att_from_filter)
+        }
+    }
+
+    /// One rectification at `rect` (the attitude the frame is resampled with and the coarse gate
+    /// assumes), the resection fusing `solve` (None: no attitude prior).
+    fn fix_single(
+        &self,
+        frame: &GrayImage,
+        pos: &PositionPriorGeo,
+        rect: &AttitudePriorNed,
+        solve: Option<&AttitudePriorNed>,
+        t_us: u64,
+        att_from_filter: bool,
+    ) -> (FixReport, Attempt) {
         let rej = |reason: String, a: Attempt| (FixReport::rejected(reason, t_us, 0.0), a);
-        let g = match self.prior_geom(pos, att) {
+        let solve = match solve.map(|s| self.solve_prior(s)) {
+            None => None,
+            Some(Ok(s)) => Some(s),
+            Some(Err(e)) => return rej(e, Attempt::default()),
+        };
+        let g = match self.prior_geom(pos, rect) {
             Ok(g) => PriorGeom {
                 att_from_filter,
+                solve,
                 ..g
             },
             Err(e) => return rej(e, Attempt::default()),
@@ -466,6 +527,19 @@ impl FixEngine {
         let cam_gsd_m = agl_m / self.camera.intrinsics.fx_px;
         let level = self.pick_level(cam_gsd_m);
         self.match_and_solve(frame, &g, level, agl_m, t_us)
+    }
+
+    /// The resection's attitude prior from an NED attitude prior.
+    fn solve_prior(&self, att: &AttitudePriorNed) -> Result<SolvePrior, String> {
+        let ok = |v: f64| v.is_finite() && v > 0.0;
+        if !(ok(att.sigma_rad) && ok(att.sigma_yaw_rad)) {
+            return Err("prior sigmas must be finite and positive".into());
+        }
+        Ok(SolvePrior {
+            r_enu_cam: r_enu_ned() * self.camera.mount.r_ned_cam(&att.attitude),
+            sigma_tilt_rad: att.sigma_rad,
+            sigma_yaw_rad: att.sigma_yaw_rad,
+        })
     }
 
     /// Rectify at `level`, detect, predict, gate, vote, match and resect.
@@ -713,15 +787,19 @@ impl FixEngine {
             Err(e) => return rej(format!("prior geodesy: {e}"), a),
         };
         let priors = Priors {
-            // World = local ENU: tilt about east/north, heading about up.
-            attitude: (g.sigma_tilt_rad.max(g.sigma_yaw_rad) < 0.5).then(|| AttitudePrior {
-                r_world_cam: g.r_enu_cam,
-                cov_rad2: nalgebra::Matrix3::from_diagonal(&Vector3::new(
-                    g.sigma_tilt_rad.powi(2),
-                    g.sigma_tilt_rad.powi(2),
-                    g.sigma_yaw_rad.powi(2),
-                )),
-            }),
+            // World = local ENU: tilt about east/north, heading about up. A loose heading (after
+            // a GPS loss, or unknown) keeps the tilt: gravity still fixes it.
+            attitude: g
+                .solve
+                .filter(|s| s.sigma_tilt_rad < MAX_PRIOR_TILT_SIGMA_RAD)
+                .map(|s| AttitudePrior {
+                    r_world_cam: s.r_enu_cam,
+                    cov_rad2: nalgebra::Matrix3::from_diagonal(&Vector3::new(
+                        s.sigma_tilt_rad.powi(2),
+                        s.sigma_tilt_rad.powi(2),
+                        s.sigma_yaw_rad.min(MAX_PRIOR_YAW_SIGMA_RAD).powi(2),
+                    )),
+                }),
             position: Some(PositionPrior {
                 c_world: c_enu,
                 cov_m2: nalgebra::Matrix3::from_diagonal(&Vector3::new(
@@ -908,62 +986,81 @@ impl FixEngine {
     /// chosen to make the virtual image about the frame's size; SURF's scale invariance absorbs the
     /// remaining scale error. Matches are voted in (log scale, translation) space like Lowe's
     /// Hough transform, the winning cluster's 3-D points seed a resection whose pose then serves
-    /// as the prior of the normal pipeline. Without an attitude prior, headings are searched in
-    /// 30 degree steps (upright SURF tolerates about +-15 degrees).
-    fn relocalise(&self, frame: &GrayImage, prior: &FixPrior, t0: Instant) -> (FixReport, Attempt) {
+    /// as the prior of the normal pipeline. With a loose heading (or none) the headings are
+    /// searched ([`heading_hypotheses`], tilt kept from the prior, or nadir without one); the
+    /// first level with an accepted fix decides, by [`select_unique`] over all its hypotheses.
+    /// The budget counts work (pixels through SURF, descriptor comparisons), so the same
+    /// frame gives the same answer on any machine; when it runs out before a level's hypotheses
+    /// are all tried, the fix is rejected (a winner without its competitors is not unique).
+    fn relocalise(&self, frame: &GrayImage, prior: &FixPrior) -> (FixReport, Attempt) {
         let t_us = prior.t_capture_us;
-        let budget_ms = self.params.reloc_budget_ms;
-        let headings: Vec<AttitudePriorNed> = match prior.attitude {
-            Some(a) => vec![a],
-            None => (0..HEADINGS)
-                .map(|i| {
-                    AttitudePriorNed::isotropic(
-                        Attitude::new(0.0, 0.0, f64::from(i) * HEADING_STEP_DEG.to_radians()),
-                        self.params.reloc_tilt_sigma_deg.to_radians(),
-                    )
-                })
-                .collect(),
+        let budget = (self.params.reloc_budget_mwork * 1e6) as u64;
+        let (hyps, solve) = match prior.attitude {
+            Some(a) if a.sigma_yaw_rad <= YAW_SWEEP_ABOVE_DEG.to_radians() => (vec![a], Some(a)),
+            Some(a) => (heading_hypotheses(&a), Some(a)),
+            None => (heading_hypotheses(&self.nadir_any_heading()), None),
         };
-        let mut best: Option<(FixReport, Attempt)> = None;
+        let mut work = 0u64;
         let mut last_reason = String::from("no level produced a fix");
-        'outer: for level in (0..self.levels_gsd_m.len()).rev() {
-            for att in &headings {
-                if t0.elapsed().as_secs_f64() * 1e3 > budget_ms {
-                    last_reason = format!("relocalisation budget of {budget_ms} ms exhausted");
-                    break 'outer;
+        for level in (0..self.levels_gsd_m.len()).rev() {
+            let mut tries = Vec::new();
+            for hyp in &hyps {
+                if work >= budget {
+                    let reason = format!(
+                        "relocalisation: work budget of {} million units spent before every \
+                         hypothesis at level {level} was tried (last: {last_reason})",
+                        self.params.reloc_budget_mwork
+                    );
+                    return (FixReport::rejected(reason, t_us, 0.0), Attempt::default());
                 }
-                match self.reloc_level(frame, att, level, t_us) {
-                    Ok(Some((r, a))) => {
-                        let better = best.as_ref().is_none_or(|(b, _)| r.inliers > b.inliers);
-                        if better {
-                            best = Some((r, a));
+                match self.reloc_level(frame, hyp, solve.as_ref(), level, t_us, &mut work) {
+                    Ok(h) => {
+                        if !h.report.accepted {
+                            last_reason = format!("level {level}: {}", h.report.reason);
                         }
+                        tries.push(h);
                     }
-                    Ok(None) => {}
                     Err(e) => last_reason = e,
                 }
             }
-            if best.is_some() {
-                break;
+            if tries.iter().any(|h| h.report.accepted) {
+                let (mut r, a) = select_unique(tries, t_us);
+                if !r.accepted {
+                    r.reason = format!("relocalisation: level {level}: {}", r.reason);
+                }
+                return (r, a);
             }
         }
-        best.unwrap_or_else(|| {
-            (
-                FixReport::rejected(format!("relocalisation: {last_reason}"), t_us, 0.0),
-                Attempt::default(),
-            )
-        })
+        (
+            FixReport::rejected(format!("relocalisation: {last_reason}"), t_us, 0.0),
+            Attempt::default(),
+        )
     }
 
-    /// One relocalisation try at `level` and attitude `att`: returns the refined fix (through the
-    /// prior pipeline) when the Hough cluster yields an accepted coarse fix.
+    /// Near nadir at an unknown heading: what relocalisation assumes without an attitude prior.
+    fn nadir_any_heading(&self) -> AttitudePriorNed {
+        AttitudePriorNed {
+            attitude: Attitude::new(0.0, 0.0, 0.0),
+            sigma_rad: self.params.reloc_tilt_sigma_deg.to_radians(),
+            sigma_yaw_rad: std::f64::consts::PI,
+        }
+    }
+
+    /// One relocalisation try at `level`, the frame rectified at `att` (one heading hypothesis),
+    /// the resection fusing the caller's `solve` prior: the Hough cluster's position through the
+    /// prior pipeline, refined once from its own fix. Err when no cluster was found; a rejected
+    /// hypothesis is Ok (its evidence counts as a competitor in [`select_unique`]). Adds its work
+    /// (pixels rectified and searched by SURF, descriptor comparisons / 16; each prior-pipeline
+    /// pass counted as one frame's pixels) to `work`.
     fn reloc_level(
         &self,
         frame: &GrayImage,
         att: &AttitudePriorNed,
+        solve: Option<&AttitudePriorNed>,
         level: usize,
         t_us: u64,
-    ) -> Result<Option<(FixReport, Attempt)>, String> {
+        work: &mut u64,
+    ) -> Result<Hypothesis, String> {
         let gsd = self.levels_gsd_m[level];
         let r_ned_cam = self.camera.mount.r_ned_cam(&att.attitude);
         let r_map_cam = r_enu_ned() * r_ned_cam; // grid convergence unknown yet: < 3 deg in a zone
@@ -977,6 +1074,7 @@ impl FixEngine {
         ) else {
             return Err("the frame does not see the ground".into());
         };
+        *work = work.saturating_add((rect.width() * rect.height()) as u64);
         let feats = self.surf.detect_and_describe(&rect.image);
         let idx: Vec<usize> = feats
             .keypoints
@@ -1000,6 +1098,9 @@ impl FixEngine {
         let (ox, oy) = (b[0], b[3]);
         let to_lp = |x: f64, y: f64| [((x - ox) / gsd) as f32, ((oy - y) / gsd) as f32];
         let train = train_features(&sel, gsd, to_lp)?;
+        *work = work.saturating_add(
+            (query.len() as u64).saturating_mul(train.len() as u64) / RELOC_COMPARISONS_PER_UNIT,
+        );
         let m = match_features(
             &query,
             &train,
@@ -1044,14 +1145,21 @@ impl FixEngine {
                 }
             }
         }
-        let Some((_, cluster)) = votes.into_iter().max_by_key(|(_, v)| v.len()) else {
-            return Ok(None);
+        // The largest bin (ties to the smallest key: HashMap order must not decide).
+        let Some((_, cluster)) = votes
+            .into_iter()
+            .max_by(|(ka, va), (kb, vb)| va.len().cmp(&vb.len()).then(kb.cmp(ka)))
+        else {
+            return Err(format!("level {level}: no Hough cluster"));
         };
         let mut cluster = cluster;
         cluster.sort_unstable();
         cluster.dedup();
-        if cluster.len() < 6 {
-            return Ok(None);
+        if cluster.len() < MIN_HOUGH_CLUSTER {
+            return Err(format!(
+                "level {level}: largest Hough cluster has {} matches (min {MIN_HOUGH_CLUSTER})",
+                cluster.len()
+            ));
         }
         // Scale and translation of the cluster: camera height and nadir point.
         let mut ss: Vec<f32> = cluster
@@ -1091,11 +1199,15 @@ impl FixEngine {
             sigma_h_m: (0.2 * agl).max(3.0 * gsd),
             sigma_v_m: (0.3 * agl).max(3.0 * gsd),
         };
-        let (r, a) = self.fix_prior(frame, &pos, att, t_us, false);
+        let frame_px = (frame.width() * frame.height()) as u64;
+        *work = work.saturating_add(frame_px);
+        let (r, a) = self.fix_single(frame, &pos, att, solve, t_us, false);
         if !r.accepted {
-            return Err(format!("level {level}: {}", r.reason));
+            return Ok(Hypothesis::new(att.attitude.yaw_rad, r, a));
         }
-        // Second pass from the first fix: tight prior, exact heading.
+        // Second pass from the first fix: tight position, rectified at the fix's attitude, the
+        // resection fusing the caller's prior again (not the first fix's attitude: the reported
+        // fix must not be checked against itself).
         let refined_pos = PositionPriorGeo {
             lat_deg: r.lat_deg,
             lon_deg: r.lon_deg,
@@ -1103,26 +1215,216 @@ impl FixEngine {
             sigma_h_m: 3.0 * r.cov_ned_m2[0][0].max(r.cov_ned_m2[1][1]).sqrt().max(gsd),
             sigma_v_m: 3.0 * r.cov_ned_m2[2][2].sqrt().max(gsd),
         };
-        let refined_att = AttitudePriorNed::isotropic(
+        let refined_rect = AttitudePriorNed::isotropic(
             Attitude::from_deg(r.roll_deg, r.pitch_deg, r.yaw_deg),
             1f64.to_radians(),
         );
-        let (r2, a2) = self.fix_prior(frame, &refined_pos, &refined_att, t_us, false);
-        // The refined pass used the first fix as a prior: the reported fix must not be checked
-        // against itself, so its chi-square prior test is loose by construction; it is only kept
-        // when it has more inliers.
+        *work = work.saturating_add(frame_px);
+        let (r2, a2) = self.fix_single(frame, &refined_pos, &refined_rect, solve, t_us, false);
+        // Kept only with more inliers: the refined pass's position prior came from the first fix.
         if r2.accepted && r2.inliers >= r.inliers {
-            Ok(Some((r2, a2)))
+            Ok(Hypothesis::new(att.attitude.yaw_rad, r2, a2))
         } else {
-            Ok(Some((r, a)))
+            Ok(Hypothesis::new(att.attitude.yaw_rad, r, a))
         }
     }
 }
 
-/// Number of heading hypotheses when the attitude is unknown.
+/// Above this heading sigma (degrees) one rectification is not enough: upright SURF matches a
+/// frame rotated by up to about 10 deg against the map (docs/surf.md) and the coarse similarity
+/// searches +-3 sigma, so 3 x 3.5 deg is about the most one rectification covers.
+const YAW_SWEEP_ABOVE_DEG: f64 = 3.5;
+/// Number of heading hypotheses over a full turn.
 const HEADINGS: u32 = 24;
-/// Their spacing, degrees.
-const HEADING_STEP_DEG: f64 = 15.0;
+/// Their spacing, degrees: every heading is within 7.5 deg of one, inside upright SURF's
+/// tolerance.
+const HEADING_STEP_DEG: f64 = 360.0 / HEADINGS as f64;
+/// Heading sigma of one hypothesis for its rectification and coarse gate, degrees: the true
+/// heading is within half a step of the nearest hypothesis, which 3 sigma covers.
+const HYPOTHESIS_YAW_SIGMA_DEG: f64 = HEADING_STEP_DEG / 6.0;
+/// A hypothesis search accepts its best fix only when its evidence (fine matches above its own
+/// chance level, [`Attempt::evidence`]) is at least this many times its best competitor's (an
+/// accepted fix at another place, or any hypothesis two or more heading steps away from the
+/// fix's heading). The same margin as the a-contrario test's default `null_factor`: a genuine
+/// view beats the alternatives clearly, a look-alike does not.
+const UNIQUENESS_RATIO: f64 = 1.5;
+/// Two accepted fixes are at the same place when their horizontal distance is within this many
+/// of their combined horizontal sigmas.
+const SAME_PLACE_SIGMAS: f64 = 3.0;
+/// The resection fuses an attitude prior only when its tilt sigma is below this (rad, ~29 deg):
+/// beyond, the prior carries nothing a linearised prior can use.
+const MAX_PRIOR_TILT_SIGMA_RAD: f64 = 0.5;
+/// A heading sigma beyond this (rad) is treated as this: no heading information, and the prior's
+/// information matrix stays finite.
+const MAX_PRIOR_YAW_SIGMA_RAD: f64 = std::f64::consts::PI;
+/// Descriptor comparisons per relocalisation work unit: 16 comparisons of 64-float descriptors
+/// took about as long as one pixel through rectification and SURF detection (release build,
+/// one core; docs/fix.md), so the budget bounds both kinds of work alike.
+pub const RELOC_COMPARISONS_PER_UNIT: u64 = 16;
+/// Fewest matches in the winning Hough bin of a relocalisation try (a similarity needs 2; 6
+/// keeps chance clusters out, as the resection's own minimum then decides).
+const MIN_HOUGH_CLUSTER: usize = 6;
+
+/// One hypothesis of a search: the heading the frame was rectified at and its outcome.
+struct Hypothesis {
+    rect_yaw_rad: f64,
+    report: FixReport,
+    attempt: Attempt,
+}
+
+impl Hypothesis {
+    fn new(rect_yaw_rad: f64, report: FixReport, attempt: Attempt) -> Self {
+        Self {
+            rect_yaw_rad,
+            report,
+            attempt,
+        }
+    }
+}
+
+/// The strongest alternative to a search's best hypothesis.
+struct Competitor {
+    /// Its [`Attempt::evidence`].
+    evidence: usize,
+    /// Distance of its accepted fix from the best one, metres (None: not accepted).
+    elsewhere_m: Option<f64>,
+    rect_yaw_rad: f64,
+}
+
+/// Heading hypotheses covering `att`'s heading +-3 sigma (all of them when that reaches round):
+/// the prior heading first, then alternating outwards, [`HEADING_STEP_DEG`] apart, each with
+/// the prior's roll, pitch and tilt sigma and [`HYPOTHESIS_YAW_SIGMA_DEG`].
+fn heading_hypotheses(att: &AttitudePriorNed) -> Vec<AttitudePriorNed> {
+    let step = HEADING_STEP_DEG.to_radians();
+    let half_range = 3.0 * att.sigma_yaw_rad + 0.5 * step;
+    let n_side = (half_range / step).floor() as i64;
+    let full = 2 * n_side + 1 >= i64::from(HEADINGS);
+    let mut ks = vec![0i64];
+    let last = if full {
+        i64::from(HEADINGS) / 2
+    } else {
+        n_side
+    };
+    for k in 1..=last {
+        ks.push(k);
+        if !(full && 2 * k == i64::from(HEADINGS)) {
+            ks.push(-k);
+        }
+    }
+    ks.into_iter()
+        .map(|k| AttitudePriorNed {
+            attitude: Attitude::new(
+                att.attitude.roll_rad,
+                att.attitude.pitch_rad,
+                wrap_pi(att.attitude.yaw_rad + k as f64 * step),
+            ),
+            sigma_rad: att.sigma_rad,
+            sigma_yaw_rad: HYPOTHESIS_YAW_SIGMA_DEG.to_radians(),
+        })
+        .collect()
+}
+
+/// Angle wrapped to (-pi, pi].
+fn wrap_pi(a: f64) -> f64 {
+    let t = std::f64::consts::TAU;
+    let w = a - t * (a / t).round();
+    if w <= -std::f64::consts::PI { w + t } else { w }
+}
+
+/// Horizontal 1-sigma of a report, metres (the larger of north and east).
+fn sigma_h_m(r: &FixReport) -> f64 {
+    r.cov_ned_m2[0][0].max(r.cov_ned_m2[1][1]).max(0.0).sqrt()
+}
+
+/// The search's answer: the accepted hypothesis with the most inliers, if it is unique (its
+/// evidence at least [`UNIQUENESS_RATIO`] times its best competitor's: an accepted fix at
+/// another place, or any hypothesis rectified two or more heading steps from the fix's heading);
+/// otherwise a rejection that says what competed. With none accepted, the hypothesis that got
+/// furthest (most evidence) explains the rejection.
+fn select_unique(tries: Vec<Hypothesis>, t_us: u64) -> (FixReport, Attempt) {
+    let n = tries.len();
+    let best = tries
+        .iter()
+        .enumerate()
+        .filter(|(_, h)| h.report.accepted)
+        .max_by(|(ia, a), (ib, b)| {
+            (
+                a.report.inliers,
+                a.attempt.fine_matches,
+                std::cmp::Reverse(*ia),
+            )
+                .cmp(&(
+                    b.report.inliers,
+                    b.attempt.fine_matches,
+                    std::cmp::Reverse(*ib),
+                ))
+        })
+        .map(|(i, _)| i);
+    let Some(bi) = best else {
+        let furthest = tries.into_iter().rev().max_by_key(|h| h.attempt.evidence());
+        return match furthest {
+            Some(h) => {
+                let mut r = h.report;
+                if n > 1 {
+                    r.reason = format!("{n} headings tried, best: {}", r.reason);
+                }
+                (r, h.attempt)
+            }
+            None => (
+                FixReport::rejected("no hypothesis tried", t_us, 0.0),
+                Attempt::default(),
+            ),
+        };
+    };
+    let b = &tries[bi];
+    let far_heading = 1.5 * HEADING_STEP_DEG.to_radians();
+    let best_yaw = b.report.yaw_deg.to_radians();
+    let competitor = tries
+        .iter()
+        .enumerate()
+        .filter(|(j, _)| *j != bi)
+        .filter(|(_, h)| {
+            if h.report.accepted {
+                let d = (h.report.x_m - b.report.x_m).hypot(h.report.y_m - b.report.y_m);
+                d > SAME_PLACE_SIGMAS * sigma_h_m(&h.report).hypot(sigma_h_m(&b.report))
+            } else {
+                wrap_pi(h.rect_yaw_rad - best_yaw).abs() > far_heading
+            }
+        })
+        .max_by_key(|(_, h)| h.attempt.evidence())
+        .map(|(_, h)| Competitor {
+            evidence: h.attempt.evidence(),
+            elsewhere_m: h
+                .report
+                .accepted
+                .then(|| (h.report.x_m - b.report.x_m).hypot(h.report.y_m - b.report.y_m)),
+            rect_yaw_rad: h.rect_yaw_rad,
+        });
+    let mut tries = tries;
+    let Hypothesis {
+        report, attempt, ..
+    } = tries.swap_remove(bi);
+    if let Some(c) = competitor
+        && (attempt.evidence() as f64) < UNIQUENESS_RATIO * c.evidence as f64
+    {
+        let reason = format!(
+            "ambiguous: {} matches above chance at heading {:.0} deg against {} at {} (need {:.1} times)",
+            attempt.evidence(),
+            report.yaw_deg,
+            c.evidence,
+            match c.elsewhere_m {
+                Some(d) => format!("another place {d:.0} m away"),
+                None => format!("heading {:.0} deg", c.rect_yaw_rad.to_degrees()),
+            },
+            UNIQUENESS_RATIO
+        );
+        let mut r = FixReport::rejected(reason, t_us, 0.0);
+        r.matches = report.matches;
+        r.level = report.level;
+        return (r, attempt);
+    }
+    (report, attempt)
+}
 
 /// Map grid point (height AMSL) to the local ENU frame.
 fn map_to_enu(
@@ -1460,6 +1762,155 @@ mod tests {
         let bad: toml::Value = toml::from_str("[pose.ransac]\nthreshhold_px = 2.0\n").unwrap();
         let e = FixParams::from_toml(bad).unwrap_err();
         assert!(e.contains("threshhold_px"), "{e}");
+        // The old wall-clock budget is refused with the key that replaced it.
+        let old: toml::Value = toml::from_str("reloc_budget_ms = 5000.0\n").unwrap();
+        let e = FixParams::from_toml(old).unwrap_err();
+        assert!(
+            e.contains("reloc_budget_ms") && e.contains("reloc_budget_mwork"),
+            "{e}"
+        );
+    }
+
+    fn prior_with_yaw_sigma(yaw_deg: f64, sigma_yaw_deg: f64) -> AttitudePriorNed {
+        AttitudePriorNed {
+            attitude: Attitude::from_deg(3.0, -4.0, yaw_deg),
+            sigma_rad: 1f64.to_radians(),
+            sigma_yaw_rad: sigma_yaw_deg.to_radians(),
+        }
+    }
+
+    #[test]
+    fn heading_hypotheses_cover_three_sigma_and_keep_the_tilt() {
+        let step = HEADING_STEP_DEG;
+        for (sigma, yaw0) in [
+            (4.0, 10.0),
+            (10.0, 170.0),
+            (30.0, -120.0),
+            (60.0, 0.0),
+            (180.0, 45.0),
+        ] {
+            let h = heading_hypotheses(&prior_with_yaw_sigma(yaw0, sigma));
+            // The prior heading first; roll, pitch and tilt sigma kept; unique headings.
+            assert!((h[0].attitude.yaw_rad.to_degrees() - yaw0).abs() < 1e-9);
+            let mut yaws: Vec<f64> = h.iter().map(|a| a.attitude.yaw_rad.to_degrees()).collect();
+            for a in &h {
+                assert_eq!(a.attitude.roll_rad, 3f64.to_radians());
+                assert_eq!(a.attitude.pitch_rad, (-4f64).to_radians());
+                assert_eq!(a.sigma_rad, 1f64.to_radians());
+                assert!(a.attitude.yaw_rad.abs() <= std::f64::consts::PI + 1e-12);
+            }
+            yaws.sort_by(f64::total_cmp);
+            yaws.dedup_by(|a, b| (*a - *b).abs() < 1e-6);
+            assert_eq!(yaws.len(), h.len(), "sigma {sigma}: duplicate headings");
+            assert!(h.len() <= HEADINGS as usize);
+            // Every heading within 3 sigma of the prior is within half a step of a hypothesis.
+            let mut d = -3.0 * sigma.min(60.0);
+            while d <= 3.0 * sigma.min(60.0) {
+                let t = (yaw0 + d).to_radians();
+                let near = h
+                    .iter()
+                    .map(|a| wrap_pi(a.attitude.yaw_rad - t).abs().to_degrees())
+                    .fold(f64::INFINITY, f64::min);
+                assert!(
+                    near <= 0.5 * step + 1e-9,
+                    "sigma {sigma}: {d} deg off is {near} from a hypothesis"
+                );
+                d += 0.5;
+            }
+        }
+        assert_eq!(
+            heading_hypotheses(&prior_with_yaw_sigma(0.0, 180.0)).len(),
+            HEADINGS as usize
+        );
+        assert_eq!(heading_hypotheses(&prior_with_yaw_sigma(0.0, 4.0)).len(), 3);
+        assert!((wrap_pi(3.5 * std::f64::consts::PI) + 0.5 * std::f64::consts::PI).abs() < 1e-12);
+    }
+
+    fn hypothesis(
+        rect_yaw_deg: f64,
+        accepted: bool,
+        at: (f64, f64),
+        fine: usize,
+        null: usize,
+    ) -> Hypothesis {
+        let mut r = FixReport::rejected("test", 7, 0.0);
+        if accepted {
+            r.accepted = true;
+            r.reason = "ok".into();
+            r.x_m = at.0;
+            r.y_m = at.1;
+            r.yaw_deg = rect_yaw_deg + 2.0;
+            r.cov_ned_m2 = [[100.0, 0.0, 0.0], [0.0, 100.0, 0.0], [0.0, 0.0, 100.0]];
+            r.inliers = fine / 2;
+        }
+        let a = Attempt {
+            fine_matches: fine,
+            null_matches: null,
+            ..Attempt::default()
+        };
+        Hypothesis::new(rect_yaw_deg.to_radians(), r, a)
+    }
+
+    #[test]
+    fn select_unique_accepts_a_clear_winner_only() {
+        // A clear winner: its neighbours in heading and a far heading at chance level.
+        let (r, _) = select_unique(
+            vec![
+                hypothesis(0.0, false, (0.0, 0.0), 14, 10),
+                hypothesis(15.0, true, (100.0, 50.0), 60, 10),
+                hypothesis(30.0, true, (104.0, 52.0), 40, 10),
+                hypothesis(90.0, false, (0.0, 0.0), 20, 10),
+            ],
+            7,
+        );
+        assert!(r.accepted, "{}", r.reason);
+        assert_eq!((r.x_m, r.y_m), (100.0, 50.0));
+        // A far heading with nearly as much evidence: ambiguous, rejected, saying so.
+        let (r, a) = select_unique(
+            vec![
+                hypothesis(15.0, true, (100.0, 50.0), 60, 10),
+                hypothesis(120.0, false, (0.0, 0.0), 45, 10),
+            ],
+            7,
+        );
+        assert!(!r.accepted);
+        assert!(
+            r.reason.contains("ambiguous") && r.reason.contains("heading 120"),
+            "{}",
+            r.reason
+        );
+        assert_eq!(a.fine_matches, 60);
+        // An accepted fix at another place with nearly as much evidence: rejected.
+        let (r, _) = select_unique(
+            vec![
+                hypothesis(15.0, true, (100.0, 50.0), 60, 10),
+                hypothesis(30.0, true, (900.0, 50.0), 44, 10),
+            ],
+            7,
+        );
+        assert!(
+            !r.accepted && r.reason.contains("another place 800 m away"),
+            "{}",
+            r.reason
+        );
+        // The same place twice is one answer, not a competitor.
+        let (r, _) = select_unique(
+            vec![
+                hypothesis(15.0, true, (100.0, 50.0), 60, 10),
+                hypothesis(90.0, true, (110.0, 45.0), 58, 10),
+            ],
+            7,
+        );
+        assert!(r.accepted, "{}", r.reason);
+        // Nothing accepted: the rejection of the hypothesis that got furthest, with the count.
+        let mut best = hypothesis(45.0, false, (0.0, 0.0), 30, 10);
+        best.report.reason = "only 30 matches where chance gives 10 (need 27)".into();
+        let (r, _) = select_unique(vec![hypothesis(0.0, false, (0.0, 0.0), 12, 10), best], 7);
+        assert!(!r.accepted);
+        assert_eq!(
+            r.reason,
+            "2 headings tried, best: only 30 matches where chance gives 10 (need 27)"
+        );
     }
 
     fn features(points: &[([f32; 2], i8, [f32; 8])]) -> Features {

@@ -48,7 +48,38 @@ pub struct NaipEval {
     pub agl_range_m: (f64, f64),
     /// Largest tilt of the body from level, degrees (uniform in `[0, max]`; default 20).
     pub max_tilt_deg: f64,
+    /// A heading error of this size (degrees) added to the prior's heading on top of the random
+    /// attitude error, positive on even frames and negative on odd ones (a compass-derived or
+    /// drifted heading after a GPS loss). Default 0.
+    pub yaw_error_deg: f64,
+    /// The heading sigma the prior states, degrees (default: the same 0.5 deg as the tilt).
+    pub yaw_sigma_deg: f64,
+    /// What attitude the prior carries.
+    pub attitude_mode: AttitudeMode,
+    /// Diagnostic only (never an accuracy claim): the frames are rendered from the map's own
+    /// orthophoto, so what remains is the solver's error, not the cross-date matching's.
+    pub same_imagery: bool,
+    /// The map's own orthophoto as a scene (for `same_imagery`).
+    map_scene: Scene,
 }
+
+/// The attitude the evaluation's prior carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AttitudeMode {
+    /// Roll, pitch and heading (with the errors and sigmas above).
+    Full,
+    /// Roll and pitch only: the heading is unknown (stated sigma 180 deg).
+    TiltOnly,
+    /// No attitude at all.
+    None,
+}
+
+/// An accepted fix further than this from the truth is a wrong fix, metres (or beyond
+/// [`WRONG_FIX_SIGMAS`] of its own sigma): issue 19's definition.
+pub const WRONG_FIX_M: f64 = 50.0;
+/// An accepted fix beyond this many of its own sigmas (largest NED axis) is a wrong fix.
+pub const WRONG_FIX_SIGMAS: f64 = 5.0;
 
 /// One random frame of the acceptance envelope.
 #[derive(Debug, Clone, Copy)]
@@ -116,6 +147,10 @@ pub struct Summary {
     /// Median horizontal error in map pixels.
     pub median_err_map_px: f64,
     pub beyond_3_sigma: usize,
+    /// Accepted fixes more than [`WRONG_FIX_M`] or [`WRONG_FIX_SIGMAS`] sigma off the truth.
+    pub wrong_fixes: usize,
+    /// Mean 6-dof NEES of the accepted fixes' image-only poses (= `vision_only_nees6_mean`).
+    pub nees6_mean: f64,
     /// Image-only pose of the accepted fixes: mean 6-dof NEES (6 when honest) and how many fall
     /// beyond the chi-square(6) 99 % quantile (16.8; about 1 % when honest).
     pub vision_only_nees6_mean: f64,
@@ -194,6 +229,8 @@ impl NaipEval {
             .map_err(|e| format!("engine: {e}"))?;
         let scene = Scene::new(&cam_raster, flat()?, ColourMode::Grey)
             .map_err(|e| format!("scene: {e}"))?;
+        let map_scene = Scene::new(&map_raster, flat()?, ColourMode::Grey)
+            .map_err(|e| format!("scene of the map image: {e}"))?;
         let renderer = Renderer::new(
             vga_camera(),
             RenderSpec {
@@ -212,6 +249,11 @@ impl NaipEval {
             attitude_prior_error_rad: 0.3f64.to_radians(),
             agl_range_m: (1200.0, 2500.0),
             max_tilt_deg: 20.0,
+            yaw_error_deg: 0.0,
+            yaw_sigma_deg: 0.5,
+            attitude_mode: AttitudeMode::Full,
+            same_imagery: false,
+            map_scene,
         })
     }
 
@@ -258,25 +300,43 @@ impl NaipEval {
         let c = case.pose.centre_map_m;
         let (px, py) = (c.x + 100.0 * rng.normal(), c.y + 100.0 * rng.normal());
         let (lat, lon) = self.crs.to_geodetic(px, py).map_err(|e| e.to_string())?;
+        // Draw order as before the attitude modes existed (the same frames and priors per seed).
+        let alt_amsl_m = c.z + 20.0 * rng.normal();
         let n = self.attitude_prior_error_rad;
         let a = &case.attitude;
+        let sign = if index.is_multiple_of(2) { 1.0 } else { -1.0 };
+        let yaw_err = sign * self.yaw_error_deg.to_radians();
+        let (roll_e, pitch_e, yaw_e) = (n * rng.normal(), n * rng.normal(), n * rng.normal());
+        let attitude = Attitude::new(
+            a.roll_rad + roll_e,
+            a.pitch_rad + pitch_e,
+            a.yaw_rad + yaw_e + yaw_err,
+        );
+        let stated = 0.5f64.to_radians();
+        let attitude = match self.attitude_mode {
+            AttitudeMode::Full => Some(AttitudePriorNed {
+                attitude,
+                sigma_rad: stated,
+                sigma_yaw_rad: self.yaw_sigma_deg.to_radians(),
+            }),
+            // The heading is unknown: a heading of 0 with a sigma of half a turn.
+            AttitudeMode::TiltOnly => Some(AttitudePriorNed {
+                attitude: Attitude::new(attitude.roll_rad, attitude.pitch_rad, 0.0),
+                sigma_rad: stated,
+                sigma_yaw_rad: std::f64::consts::PI,
+            }),
+            AttitudeMode::None => None,
+        };
         Ok(FixPrior {
             t_capture_us: index,
             position: Some(PositionPriorGeo {
                 lat_deg: lat,
                 lon_deg: lon,
-                alt_amsl_m: c.z + 20.0 * rng.normal(),
+                alt_amsl_m,
                 sigma_h_m: 150.0,
                 sigma_v_m: 30.0,
             }),
-            attitude: Some(AttitudePriorNed::isotropic(
-                Attitude::new(
-                    a.roll_rad + n * rng.normal(),
-                    a.pitch_rad + n * rng.normal(),
-                    a.yaw_rad + n * rng.normal(),
-                ),
-                0.5f64.to_radians(),
-            )),
+            attitude,
             attitude_from_filter: false,
         })
     }
@@ -376,14 +436,15 @@ impl NaipEval {
         let b = self.map_raster.bounds();
         let mut rng = Rng::new(seed);
         let (mut eh, mut ev, mut ms) = (Vec::new(), Vec::new(), Vec::new());
-        let (mut accepted, mut beyond) = (0, 0);
+        let (mut accepted, mut beyond, mut wrong) = (0, 0, 0);
         let mut nees6 = Vec::new();
         let mut reasons: std::collections::BTreeMap<String, usize> = Default::default();
         for i in 0..n {
             let x = uni(&mut rng, b.min_x_m + 600.0, b.max_x_m - 600.0);
             let y = uni(&mut rng, b.min_y_m + 600.0, b.max_y_m - 600.0);
             let case = self.random_case(&mut rng, x, y);
-            let img = self.frame(&case, i as u64, None)?;
+            let scene = self.same_imagery.then_some(&self.map_scene);
+            let img = self.frame(&case, i as u64, scene)?;
             let mut prior = self.prior(&mut rng, &case, i as u64)?;
             if !position_prior {
                 prior.position = None;
@@ -399,13 +460,18 @@ impl NaipEval {
                 if s.err_sigma > 3.0 {
                     beyond += 1;
                 }
+                let is_wrong = s.err_h_m > WRONG_FIX_M || s.err_sigma > WRONG_FIX_SIGMAS;
+                if is_wrong {
+                    wrong += 1;
+                }
                 nees6.extend(s.nees6);
                 let prior_dv_m = prior
                     .position
                     .as_ref()
                     .map_or(f64::NAN, |p| p.alt_amsl_m - case.pose.centre_map_m.z);
                 log(format!(
-                    "frame {i:3}: accepted, {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:+.1} m = {:.2} sigma (sigma h {:.1} v {:.1} m; {:.0} m above ground, prior altitude {:+.1} m), ground {:.1} m tilt {:.2} deg, image-only pose NEES {:.1}, reprojection RMS {:.2} px, sigma0 {:.2}, covariance factor {:.1}, {:.1} ms",
+                    "frame {i:3}: accepted{}, {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:+.1} m = {:.2} sigma (sigma h {:.1} v {:.1} m; {:.0} m above ground, prior altitude {:+.1} m), ground {:.1} m tilt {:.2} deg, image-only pose NEES {:.1}, reprojection RMS {:.2} px, sigma0 {:.2}, covariance factor {:.1}, {:.1} ms",
+                    if is_wrong { " WRONG" } else { "" },
                     r.inliers,
                     r.matches,
                     a.null_matches,
@@ -452,6 +518,8 @@ impl NaipEval {
             err_h_m,
             err_v_m: Stats::of(&ev),
             beyond_3_sigma: beyond,
+            wrong_fixes: wrong,
+            nees6_mean: nees6.iter().sum::<f64>() / nees6.len().max(1) as f64,
             vision_only_nees6_mean: nees6.iter().sum::<f64>() / nees6.len().max(1) as f64,
             vision_only_beyond_chi2_99: nees6.iter().filter(|&&x| x > 16.81).count(),
             ms_p50: percentile(&ms, 0.5),

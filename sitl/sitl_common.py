@@ -637,18 +637,25 @@ def instance_arg(value):
 
 # ---- processes ------------------------------------------------------------------------------
 
-def finish_run(procs, workdir, report, log):
-    """Stop the run's processes (visnav with SIGINT so it flushes its .tlog and fix log, the rest
-    with SIGTERM, SIGKILL after 15 s), add visnav's last metrics line (WORKDIR/visnav.json) to the
-    report, write WORKDIR/report.json and print it."""
+def stop_processes(procs, timeout_s=15.0):
+    """Stop the run's processes [(name, Popen started with start_new_session)]: visnav with SIGINT
+    so it flushes its .tlog and fix log, the rest with SIGTERM, each process group SIGKILLed
+    after `timeout_s`. Processes already ended are left alone, so a second call does nothing."""
     for name, p in procs:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGINT if name == "visnav" else signal.SIGTERM)
     for name, p in procs:
         try:
-            p.wait(timeout=15)
+            p.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+
+
+def finish_run(procs, workdir, report, log):
+    """Stop the run's processes (`stop_processes`, if still running), add visnav's last metrics
+    line (WORKDIR/visnav.json) to the report, write WORKDIR/report.json and print it."""
+    stop_processes(procs)
     vj = os.path.join(workdir, "visnav.json")
     if os.path.exists(vj):
         try:

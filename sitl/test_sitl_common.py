@@ -462,5 +462,24 @@ class Ports(unittest.TestCase):
             sc.instance_arg("-1")
 
 
+
+class Processes(unittest.TestCase):
+    def test_stop_processes_ends_every_group_and_a_second_call_does_nothing(self):
+        import subprocess
+        stubborn = ("import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
+                    "print('ready', flush=True); time.sleep(60)")
+        procs = [("visnav", subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"],
+                                             start_new_session=True)),
+                 ("px4", subprocess.Popen([sys.executable, "-c", stubborn], stdout=subprocess.PIPE,
+                                          start_new_session=True))]
+        self.assertEqual(procs[1][1].stdout.readline().strip(), b"ready")
+        procs[1][1].stdout.close()
+        sc.stop_processes(procs, timeout_s=1.0)
+        self.assertTrue(all(p.poll() is not None for _, p in procs))
+        self.assertNotEqual(procs[0][1].returncode, 0)  # SIGINT: KeyboardInterrupt
+        self.assertEqual(procs[1][1].returncode, -9)     # ignored SIGTERM, then SIGKILL
+        sc.stop_processes(procs, timeout_s=1.0)          # already ended: no signal, no error
+
+
 if __name__ == "__main__":
     unittest.main()

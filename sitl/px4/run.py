@@ -59,7 +59,8 @@ What runs (all on loopback):
   home item), arms and starts the mission, sets EKF2_GPS_CTRL = 0 (EKF2 stops fusing GPS; visnav
   never uses it: [daemon] gps = "none") when the first corner of the loop is reached
   (--gps-off-wp; or --gps-off-alt metres up), and stops at the last waypoint (or --timeout, or
-  --after-gps-off seconds, or when the copter lands / disarms).
+  --after-gps-off seconds, or --after-mode-change (60) seconds after PX4 first left MISSION, e.g.
+  a failsafe's LAND, or when the copter lands / disarms).
 
 Measured: every GLOBAL_POSITION_INT (EKF2's output) against HIL_STATE_QUATERNION (truth)
 propagated over the arrival gap with the true velocity: horizontal and vertical error, median /
@@ -72,11 +73,14 @@ activated", any "failsafe") and the flight modes after arming. Written to WORKDI
 (with visnav's last metrics line and "verdict") and printed; every sample (with its aiding flag)
 in WORKDIR/samples.json.
 
-Injected-position integrity is NOT measured here: PX4 does not send back the ODOMETRY it fuses
-(ArduPilot echoes GPS_INPUT as GPS_RAW_INT; PX4's ODOMETRY stream sends its own estimate unless
-the MAV_ODOM_LP loopback is set, which this recipe does not use). visnav's ODOMETRY is in its own
-WORKDIR/visnav.tlog; sitl/px4/replay_error.py and ulog_error.py score visnav and EKF2 offline.
-The report says so (a note in the verdict, not a failure).
+Injected-position integrity: PX4 does not send back the ODOMETRY it fuses (ArduPilot echoes
+GPS_INPUT as GPS_RAW_INT; PX4's ODOMETRY stream sends its own estimate unless the MAV_ODOM_LP
+loopback is set, which this recipe does not use), but it logs what it received
+(`vehicle_visual_odometry`). After the flight, with PX4 stopped, run.py scores that against the
+truth in the same log (ulog_error.injected_integrity: error over the claimed accuracy, as
+ArduPilot's GPS_INPUT echo is scored) and the verdict uses it (WORKDIR/injected.json, report
+"injected_integrity"). Needs pyulog; without it, with --attach or without a PX4 log the report says
+it was not measured (a note in the verdict, not a failure).
 
 Verdict (sitl_common.verdict, the same rules as sitl/ardupilot/run.py, mission mode MISSION;
 bounds --max-p90-m 25, --max-error-m 50, --max-not-aiding-s 0, --max-sample-gap-s 2) and exit
@@ -87,6 +91,7 @@ position, could not arm, an error in flight).
 """
 
 import argparse
+import glob
 import os
 import shutil
 import signal
@@ -115,7 +120,7 @@ from sitl_common import (HOME_ALT_M, HOME_LAT, HOME_LON, ErrorScore, ekf_aiding,
 GCS_PORT, LINK_PORT, TRUTH_PORT, JMAVSIM_PORT = 14550, 14540, 14562, 4560
 MAX_INSTANCE = 9  # px4-rc.mavlink sends every instance above 9 to the same onboard port
 INTEGRITY_NOTE = ("injected position integrity not measured: PX4 does not echo the ODOMETRY it "
-                  "receives (visnav's own is in visnav.tlog)")
+                  "receives, and its log (vehicle_visual_odometry) could not be read")
 # Declination of jMAVSim's fixed magnetic field (Simulator.DEFAULT_MAG_FIELD, N / E / D gauss
 # 0.21506 / 0.01021 / 0.42974), deg.
 JMAVSIM_MAG_DECL_DEG = 2.718
@@ -516,6 +521,10 @@ def main():
                     help="stop this many seconds after the GPS is off (default: last waypoint); "
                          "a run stopped so has not completed its mission: it fails")
     ap.add_argument("--timeout", type=float, default=1500.0, help="flight, s")
+    ap.add_argument("--after-mode-change", type=float, default=60.0,
+                    help="stop this many seconds after PX4 first leaves MISSION in flight (a "
+                         "failsafe's LAND; the verdict fails on it anyway), default %(default)s; "
+                         "a negative value: never")
     ap.add_argument("--workdir")
     sitl_common.add_bounds_args(ap)
     args = ap.parse_args()
@@ -568,6 +577,7 @@ def main():
     error = why = None
     t_fly = t_gps_off = None
     reached, last_seq = -1, None
+    t_left = None  # when PX4 first left MISSION in flight
     net = None
     try:
         net = choose_ports(args)
@@ -750,6 +760,12 @@ def main():
             if t_gps_off is not None and args.after_gps_off and now - t_gps_off > args.after_gps_off:
                 why = f"{args.after_gps_off:.0f} s after GPS off"
                 break
+            if (t_left is not None and args.after_mode_change >= 0
+                    and now - t_left > args.after_mode_change):
+                # PX4 left its mission (a failsafe's LAND from 1800 m takes about 20 min at
+                # 1.5 m/s): the verdict cannot change any more.
+                why = f"{args.after_mode_change:.0f} s after leaving MISSION ({modes[-1][1]})"
+                break
             if now - last_ask > 2:
                 ask()
                 last_ask = now
@@ -772,6 +788,8 @@ def main():
                 if not modes or modes[-1][1] != mode:
                     modes.append((round(now - t_fly, 1), mode))
                     log(f"mode {mode}")
+                if mode != "MISSION" and t_left is None:
+                    t_left = now
                 if not r.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED and now - t_fly > 10:
                     why = "disarmed (landed)"
                     break
@@ -793,8 +811,12 @@ def main():
         traceback.print_exc()
         error = f"{type(e).__name__}: {e}"
     finally:
+        # PX4 first (its log is complete once it stopped), then the log's injected positions.
+        sitl_common.stop_processes(procs)
+        integ, note = (None, None) if args.no_visnav or t_fly is None else \
+            injected_from_log(args, workdir, bounds)
         code, lines = conclude(args, report, score, modes, texts, error, why, t_fly, t_gps_off,
-                               reached, last_seq, bounds, workdir)
+                               reached, last_seq, bounds, workdir, integ, note)
         finish_run(procs, workdir, report, log)
         for line in lines:
             print(line, flush=True)
@@ -803,10 +825,39 @@ def main():
     return code
 
 
+def injected_from_log(args, workdir, bounds):
+    """(IntegrityScore of visnav's ODOMETRY as PX4 logged it, None) after a visnav run, or (None,
+    why not) (module docstring). Integrity counts as expected whenever PX4's log could be read: a
+    log without vehicle_visual_odometry gives an empty score, which fails the verdict."""
+    if args.attach:
+        return None, INTEGRITY_NOTE.split(",")[0] + " (--attach: PX4's log is not here)"
+    try:
+        import pyulog  # noqa: F401
+    except ImportError:
+        return None, INTEGRITY_NOTE.split(",")[0] + " (pyulog is not installed)"
+    logs = sorted(glob.glob(os.path.join(workdir, "px4", "log", "*", "*.ulg")), key=os.path.getmtime)
+    if not logs:
+        return None, INTEGRITY_NOTE.split(",")[0] + " (no PX4 log in WORKDIR/px4/log)"
+    if HERE not in sys.path:
+        sys.path.insert(0, HERE)
+    import ulog_error
+    try:
+        u, gt, _, t_off = ulog_error.load(logs[-1])
+        integ = ulog_error.injected_integrity(u, gt, t_off, bounds.ratio)
+    except (Exception, SystemExit) as e:  # a truncated log or a missing topic
+        return None, f"{INTEGRITY_NOTE} ({logs[-1]}: {e})"
+    if integ is None:
+        integ = sitl_common.IntegrityScore(bounds.ratio)
+        integ.skip("no vehicle_visual_odometry in PX4's log")
+    log(f"injected integrity from {logs[-1]}: {len(integ.samples)} ODOMETRY samples")
+    return integ, None
+
+
 def conclude(args, report, score, modes, texts, error, why, t_fly, t_gps_off, reached, last_seq,
-             bounds, workdir):
+             bounds, workdir, integ=None, integ_note=None):
     """Fill the report (statistics, verdict) and save the samples; returns the exit code and the
-    verdict's lines (module docstring)."""
+    verdict's lines (module docstring). integ: the injected positions' IntegrityScore
+    (injected_from_log) or None with integ_note saying why."""
     label = "control" if args.no_visnav else "visnav"
     if t_fly is None:
         v = {"pass": False, "reasons": [f"run_error: {error or 'did not fly'}"], "notes": [],
@@ -825,15 +876,18 @@ def conclude(args, report, score, modes, texts, error, why, t_fly, t_gps_off, re
         "modes": modes,
         "statustext": texts,
         "ekf2_error": ekf,
-        "injected_integrity": None if args.no_visnav else {"measured": False,
-                                                           "why": INTEGRITY_NOTE},
+        "injected_integrity": None if args.no_visnav else (
+            integ.summary() if integ is not None else {"measured": False, "why": integ_note}),
     })
     score.save(workdir)
+    if integ is not None:
+        integ.save(workdir)
     v = sitl_common.verdict(
         estimator="EKF2", mission_completed=completed,
         mission_detail=f"reached item {reached} of {last_seq} (ended: {report['ended']})",
-        modes=modes, allowed_modes={"MISSION"}, texts=texts, ekf=ekf, integrity=None,
-        integrity_expected=False, integrity_note=None if args.no_visnav else INTEGRITY_NOTE,
+        modes=modes, allowed_modes={"MISSION"}, texts=texts, ekf=ekf,
+        integrity=None if integ is None else integ.summary(), integrity_expected=integ is not None,
+        integrity_note=None if args.no_visnav else integ_note,
         error=error, bounds=bounds)
     report["verdict"] = v
     lines = sitl_common.verdict_lines(label, v)

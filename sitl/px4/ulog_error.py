@@ -20,6 +20,16 @@ writes in every SITL run instead:
 Horizontal and |vertical| error median / p90 / max: airborne (true height above the first
 truth sample > 5 m) with the GPS on, after the GPS is off (all samples, and only those EKF2 marks
 `xy_valid`), and the error at fixed times after the GPS went off.
+
+Injected-position integrity ("injected", `injected_integrity`; run.py's verdict uses it): PX4
+sends back nothing of the ODOMETRY it fuses, but logs it as received (`vehicle_visual_odometry`,
+10 Hz here: position NED about EKF2's origin, its variances, `timestamp_sample` = the estimate's
+validity time in PX4's clock). Each sample in MAV_FRAME_LOCAL_NED (pose_frame 1) against the truth
+at `timestamp_sample`, the position through EKF2's origin (`vehicle_local_position` ref_lat /
+ref_lon) to latitude / longitude; claimed accuracy = sqrt of the larger of the north / east
+variances (PX4 logs no covariance, so this can be below visnav's sqrt(lambda_max): the ratio is
+at most slightly stricter than ArduPilot's h_acc); phases gps_on / gps_off as above
+(sitl_common.IntegrityScore, times in PX4 boot seconds).
 """
 
 import argparse
@@ -30,7 +40,8 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from sitl_common import HOME_ALT_M, metres_per_deg, stats, ulog_topic as topic  # noqa: E402
+from sitl_common import (HOME_ALT_M, IntegrityScore, MAX_RATIO, metres_per_deg, stats,  # noqa: E402
+                         ulog_topic as topic)
 
 try:
     from pyulog import ULog
@@ -38,17 +49,12 @@ except ImportError:
     sys.exit("ulog_error.py needs pyulog: python3 -m pip install pyulog")
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("ulg")
-    ap.add_argument("--json", help="write the result here too")
-    ap.add_argument("--sim", choices=["auto", "sih", "jmavsim"], default="auto",
-                    help="the simulator (auto: jMAVSim when SYS_AUTOSTART is 10017)")
-    args = ap.parse_args()
-    u = ULog(args.ulg, ["vehicle_local_position", "vehicle_global_position_groundtruth"])
-    lp = topic(u, "vehicle_local_position")
+def load(path, sim="auto"):
+    """(ULog with the topics used here, the ground truth's data with the altitude AMSL, the
+    simulator "sih" / "jmavsim", GPS-off time in us or None) of a PX4 SITL log."""
+    u = ULog(path, ["vehicle_local_position", "vehicle_global_position_groundtruth",
+                    "vehicle_visual_odometry"])
     gt = topic(u, "vehicle_global_position_groundtruth")
-    sim = args.sim
     if sim == "auto":
         sim = "jmavsim" if int(u.initial_parameters.get("SYS_AUTOSTART", 0)) == 10017 else "sih"
     if sim == "jmavsim":
@@ -61,6 +67,57 @@ def main():
         if name == "EKF2_GPS_CTRL" and value == 0 and t > 0:
             t_gps_off = t
             break
+    return u, gt, sim, t_gps_off
+
+
+def injected_integrity(u, gt, t_gps_off, ratio_limit=MAX_RATIO):
+    """IntegrityScore of visnav's ODOMETRY as PX4 logged it (module docstring) against the truth
+    `gt` (vehicle_global_position_groundtruth data, altitude already fixed for jMAVSim); None when
+    the log has no vehicle_visual_odometry (a run without visnav). `u`: a ULog with
+    vehicle_visual_odometry and vehicle_local_position; t_gps_off: us, or None."""
+    names = {d.name for d in u.data_list}
+    if "vehicle_visual_odometry" not in names:
+        return None
+    ev = topic(u, "vehicle_visual_odometry")
+    lp = topic(u, "vehicle_local_position")
+    lp_t = list(lp["timestamp"])
+    gt_t = list(gt["timestamp"])
+    score = IntegrityScore(ratio_limit)
+    for i in range(len(ev["timestamp"])):
+        if int(ev["pose_frame"][i]) != 1:  # POSE_FRAME_NED; visnav sends LOCAL_NED to PX4
+            score.skip("not_ned")
+            continue
+        t = int(ev["timestamp_sample"][i])
+        k = bisect.bisect_left(gt_t, t)
+        if k == 0 or k >= len(gt_t) or gt_t[k] - gt_t[k - 1] > 500_000:
+            score.skip("no_truth")
+            continue
+        w = (t - gt_t[k - 1]) / (gt_t[k] - gt_t[k - 1])
+        lat_t = float(gt["lat"][k - 1]) * (1 - w) + float(gt["lat"][k]) * w
+        lon_t = float(gt["lon"][k - 1]) * (1 - w) + float(gt["lon"][k]) * w
+        j = min(bisect.bisect_left(lp_t, t), len(lp_t) - 1)
+        ref_lat, ref_lon = float(lp["ref_lat"][j]), float(lp["ref_lon"][j])
+        x, y = float(ev["position[0]"][i]), float(ev["position[1]"][i])
+        var = max(float(ev["position_variance[0]"][i]), float(ev["position_variance[1]"][i]))
+        if not all(math.isfinite(v) for v in (ref_lat, ref_lon, x, y, var)):
+            score.skip("not_finite")
+            continue
+        m_lat, m_lon = metres_per_deg(ref_lat)
+        phase = "gps_off" if t_gps_off is not None and t >= t_gps_off else "gps_on"
+        score.add(t * 1e-6, phase, ref_lat + x / m_lat, ref_lon + y / m_lon,
+                  math.sqrt(max(var, 0.0)), lat_t, lon_t)
+    return score
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("ulg")
+    ap.add_argument("--json", help="write the result here too")
+    ap.add_argument("--sim", choices=["auto", "sih", "jmavsim"], default="auto",
+                    help="the simulator (auto: jMAVSim when SYS_AUTOSTART is 10017)")
+    args = ap.parse_args()
+    u, gt, sim, t_gps_off = load(args.ulg, args.sim)
+    lp = topic(u, "vehicle_local_position")
     gt_t = list(gt["timestamp"])
     if not gt_t:
         sys.exit("no ground truth samples")
@@ -117,6 +174,9 @@ def main():
                        for ph, (h, v) in errs.items()},
         "after_gps_off_s": {str(k): v for k, v in sorted(after.items())},
     }
+    integ = injected_integrity(u, gt, t_gps_off)
+    if integ is not None:
+        out["injected"] = integ.summary()
     print(json.dumps(out, indent=1))
     if args.json:
         with open(args.json, "w") as f:

@@ -811,12 +811,14 @@ def main():
         traceback.print_exc()
         error = f"{type(e).__name__}: {e}"
     finally:
+        # The flight ends now (the scoring's end time), not once the processes have stopped.
+        t_end_abs = time.time()
         # PX4 first (its log is complete once it stopped), then the log's injected positions.
         sitl_common.stop_processes(procs)
         integ, note = (None, None) if args.no_visnav or t_fly is None else \
             injected_from_log(args, workdir, bounds)
         code, lines = conclude(args, report, score, modes, texts, error, why, t_fly, t_gps_off,
-                               reached, last_seq, bounds, workdir, integ, note)
+                               reached, last_seq, bounds, workdir, integ, note, t_end_abs)
         finish_run(procs, workdir, report, log)
         for line in lines:
             print(line, flush=True)
@@ -854,17 +856,19 @@ def injected_from_log(args, workdir, bounds):
 
 
 def conclude(args, report, score, modes, texts, error, why, t_fly, t_gps_off, reached, last_seq,
-             bounds, workdir, integ=None, integ_note=None):
+             bounds, workdir, integ=None, integ_note=None, t_end_abs=None):
     """Fill the report (statistics, verdict) and save the samples; returns the exit code and the
     verdict's lines (module docstring). integ: the injected positions' IntegrityScore
-    (injected_from_log) or None with integ_note saying why."""
+    (injected_from_log) or None with integ_note saying why. t_end_abs: when the flight ended
+    (time.time(); default now): the aiding and sample-gap scores end there, not after the
+    processes were stopped and the log read."""
     label = "control" if args.no_visnav else "visnav"
     if t_fly is None:
         v = {"pass": False, "reasons": [f"run_error: {error or 'did not fly'}"], "notes": [],
              "bounds": bounds.as_dict()}
         report["verdict"] = v
         return 2, sitl_common.verdict_lines(label, v)
-    t_end = time.time() - t_fly
+    t_end = (time.time() if t_end_abs is None else t_end_abs) - t_fly
     ekf = score.summary(t_end)
     completed = last_seq is not None and reached >= last_seq
     report.update({

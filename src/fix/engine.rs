@@ -1002,9 +1002,19 @@ impl FixEngine {
         };
         let mut work = 0u64;
         let mut last_reason = String::from("no level produced a fix");
+        // Each hypothesis' rectified view and features serve every level (rectified at the
+        // frame's own scale); computed on first use.
+        let mut views: Vec<Option<Result<RelocView, String>>> = hyps.iter().map(|_| None).collect();
         for level in (0..self.levels_gsd_m.len()).rev() {
+            let level_map = match self.reloc_level_map(level) {
+                Ok(l) => l,
+                Err(e) => {
+                    last_reason = e;
+                    continue;
+                }
+            };
             let mut tries = Vec::new();
-            for hyp in &hyps {
+            for (hyp, view) in hyps.iter().zip(views.iter_mut()) {
                 if work >= budget {
                     let reason = format!(
                         "relocalisation: work budget of {} million units spent before every \
@@ -1013,7 +1023,15 @@ impl FixEngine {
                     );
                     return (FixReport::rejected(reason, t_us, 0.0), Attempt::default());
                 }
-                match self.reloc_level(frame, hyp, solve.as_ref(), level, t_us, &mut work) {
+                let view = view.get_or_insert_with(|| self.reloc_view(frame, hyp, &mut work));
+                let view = match view {
+                    Ok(v) => v,
+                    Err(e) => {
+                        last_reason = e.clone();
+                        continue;
+                    }
+                };
+                match self.reloc_level(frame, view, &level_map, solve.as_ref(), t_us, &mut work) {
                     Ok(h) => {
                         if !h.report.accepted {
                             last_reason = format!("level {level}: {}", h.report.reason);
@@ -1046,22 +1064,14 @@ impl FixEngine {
         }
     }
 
-    /// One relocalisation try at `level`, the frame rectified at `att` (one heading hypothesis),
-    /// the resection fusing the caller's `solve` prior: the Hough cluster's position through the
-    /// prior pipeline, refined once from its own fix. Err when no cluster was found; a rejected
-    /// hypothesis is Ok (its evidence counts as a competitor in [`select_unique`]). Adds its work
-    /// (pixels rectified and searched by SURF, descriptor comparisons / 16; each prior-pipeline
-    /// pass counted as one frame's pixels) to `work`.
-    fn reloc_level(
+    /// The frame rectified at `att` at its own scale (level-independent) with its query features;
+    /// adds the pixels to `work`.
+    fn reloc_view(
         &self,
         frame: &GrayImage,
         att: &AttitudePriorNed,
-        solve: Option<&AttitudePriorNed>,
-        level: usize,
-        t_us: u64,
         work: &mut u64,
-    ) -> Result<Hypothesis, String> {
-        let gsd = self.levels_gsd_m[level];
+    ) -> Result<RelocView, String> {
         let r_ned_cam = self.camera.mount.r_ned_cam(&att.attitude);
         let r_map_cam = r_enu_ned() * r_ned_cam; // grid convergence unknown yet: < 3 deg in a zone
         let Some(rect) = Rectification::new(
@@ -1090,6 +1100,16 @@ impl FixEngine {
             return Err(format!("only {} features in the frame", idx.len()));
         }
         let query = subset(&feats, idx.iter().copied())?;
+        Ok(RelocView {
+            rect,
+            query,
+            att: *att,
+        })
+    }
+
+    /// All of `level`'s features in level pixels (origin at the map's top-left corner).
+    fn reloc_level_map(&self, level: usize) -> Result<RelocLevel, String> {
+        let gsd = self.levels_gsd_m[level];
         let sel = self.reference.select(level, self.reference.bounds_m());
         if sel.features.len() < self.params.min_matches {
             return Err(format!("level {level} has {} features", sel.features.len()));
@@ -1098,12 +1118,43 @@ impl FixEngine {
         let (ox, oy) = (b[0], b[3]);
         let to_lp = |x: f64, y: f64| [((x - ox) / gsd) as f32, ((oy - y) / gsd) as f32];
         let train = train_features(&sel, gsd, to_lp)?;
+        Ok(RelocLevel {
+            level,
+            gsd,
+            origin: (ox, oy),
+            train,
+        })
+    }
+
+    /// One relocalisation try at `level`, the frame rectified at `att` (one heading hypothesis),
+    /// the resection fusing the caller's `solve` prior: the Hough cluster's position through the
+    /// prior pipeline, refined once from its own fix. Err when no cluster was found; a rejected
+    /// hypothesis is Ok (its evidence counts as a competitor in [`select_unique`]). Adds its work
+    /// (pixels rectified and searched by SURF, descriptor comparisons / 16; each prior-pipeline
+    /// pass counted as one frame's pixels) to `work`.
+    fn reloc_level(
+        &self,
+        frame: &GrayImage,
+        view: &RelocView,
+        level_map: &RelocLevel,
+        solve: Option<&AttitudePriorNed>,
+        t_us: u64,
+        work: &mut u64,
+    ) -> Result<Hypothesis, String> {
+        let RelocView { rect, query, att } = view;
+        let RelocLevel {
+            level,
+            gsd,
+            origin: (ox, oy),
+            train,
+        } = level_map;
+        let (level, gsd, ox, oy) = (*level, *gsd, *ox, *oy);
         *work = work.saturating_add(
             (query.len() as u64).saturating_mul(train.len() as u64) / RELOC_COMPARISONS_PER_UNIT,
         );
         let m = match_features(
-            &query,
-            &train,
+            query,
+            train,
             &MatchParams {
                 ratio: self.params.ratio,
                 laplacian_gate: true,
@@ -1264,6 +1315,23 @@ pub const RELOC_COMPARISONS_PER_UNIT: u64 = 16;
 /// Fewest matches in the winning Hough bin of a relocalisation try (a similarity needs 2; 6
 /// keeps chance clusters out, as the resection's own minimum then decides).
 const MIN_HOUGH_CLUSTER: usize = 6;
+
+/// A relocalisation hypothesis' rectified view (frame scale) and its query features.
+struct RelocView {
+    rect: Rectification,
+    query: Features,
+    /// The hypothesis it was rectified at.
+    att: AttitudePriorNed,
+}
+
+/// One map level prepared for relocalisation: every feature, in level pixels from `origin`
+/// (the map's top-left corner, grid metres).
+struct RelocLevel {
+    level: usize,
+    gsd: f64,
+    origin: (f64, f64),
+    train: Features,
+}
 
 /// One hypothesis of a search: the heading the frame was rectified at and its outcome.
 struct Hypothesis {

@@ -577,7 +577,7 @@ def main():
     error = why = None
     t_fly = t_gps_off = None
     reached, last_seq = -1, None
-    t_left = None  # when PX4 first left MISSION in flight
+    t_left = None  # (time, mode) when PX4 first left MISSION in flight
     net = None
     try:
         net = choose_ports(args)
@@ -761,10 +761,10 @@ def main():
                 why = f"{args.after_gps_off:.0f} s after GPS off"
                 break
             if (t_left is not None and args.after_mode_change >= 0
-                    and now - t_left > args.after_mode_change):
+                    and now - t_left[0] > args.after_mode_change):
                 # PX4 left its mission (a failsafe's LAND from 1800 m takes about 20 min at
                 # 1.5 m/s): the verdict cannot change any more.
-                why = f"{args.after_mode_change:.0f} s after leaving MISSION ({modes[-1][1]})"
+                why = f"{args.after_mode_change:.0f} s after leaving MISSION (for {t_left[1]})"
                 break
             if now - last_ask > 2:
                 ask()
@@ -789,7 +789,7 @@ def main():
                     modes.append((round(now - t_fly, 1), mode))
                     log(f"mode {mode}")
                 if mode != "MISSION" and t_left is None:
-                    t_left = now
+                    t_left = (now, mode)
                 if not r.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED and now - t_fly > 10:
                     why = "disarmed (landed)"
                     break

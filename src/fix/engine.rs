@@ -1272,8 +1272,24 @@ impl FixEngine {
         );
         *work = work.saturating_add(frame_px);
         let (r2, a2) = self.fix_single(frame, &refined_pos, &refined_rect, solve, t_us, false);
-        // Kept only with more inliers: the refined pass's position prior came from the first fix.
-        if r2.accepted && r2.inliers >= r.inliers {
+        // Confirmation: a view found by a search is accepted only when the frame, matched
+        // again from that view's own pose, is accepted too. A true view is (its matches come
+        // back with predictions accurate to a few pixels); a chance alignment found among
+        // many hypotheses is not (its matches came from the loose coarse gate), which the
+        // a-contrario count of one attempt cannot see after a search of dozens.
+        if !r2.accepted {
+            let mut rejected = FixReport::rejected(
+                format!("not confirmed from its own pose: {}", r2.reason),
+                t_us,
+                0.0,
+            );
+            rejected.matches = r.matches;
+            rejected.level = r.level;
+            return Ok(Hypothesis::new(att.attitude.yaw_rad, rejected, a));
+        }
+        // The refined pass is kept only with more inliers (its position prior came from the
+        // first fix).
+        if r2.inliers >= r.inliers {
             Ok(Hypothesis::new(att.attitude.yaw_rad, r2, a2))
         } else {
             Ok(Hypothesis::new(att.attitude.yaw_rad, r, a))

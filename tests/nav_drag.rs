@@ -25,6 +25,22 @@ fn drag(v: f64) -> f64 {
     -0.215 * v - 0.028 * v * v.abs()
 }
 
+/// jMAVSim's drag, fitted from PX4 flights (docs/real-sitl.md, PX4 verdict): one vector law
+/// along the horizontal body velocity, `f = -b |v_h| v_h`, b = 0.0133 / m.
+fn drag_vector(v: Vector2<f64>) -> Vector2<f64> {
+    v * (-0.0133 * v.norm())
+}
+
+/// Which drag the copter flies with, and how its legs lie against its nose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Law {
+    /// ArduCopter SITL's per-axis law; legs N/E/S/W with the nose 17 deg off north throughout.
+    ArduCopter,
+    /// jMAVSim's vector law; with the GPS the legs run 45 deg off the nose (PX4's first leg
+    /// north-west, nose north), without it along the body axes (N/E/S/W, nose north).
+    Jmavsim,
+}
+
 /// Desired NED velocity at time t: hover 20 s, then 12 m/s legs north, east, south, west
 /// (30 s each), repeating.
 fn v_des(t: f64) -> Vector3<f64> {
@@ -36,22 +52,42 @@ fn v_des(t: f64) -> Vector3<f64> {
     Vector3::new(12.0 * d.0, 12.0 * d.1, 0.0)
 }
 
+/// [`v_des`] turned 45 deg before `until_s` (diagonal legs), faster (14 m/s).
+fn v_des_diagonal(t: f64, until_s: f64) -> Vector3<f64> {
+    let v = v_des(t) * (14.0 / 12.0);
+    if t >= until_s {
+        return v;
+    }
+    let (s, c) = std::f64::consts::FRAC_PI_4.sin_cos();
+    Vector3::new(c * v.x - s * v.y, s * v.x + c * v.y, 0.0)
+}
+
 struct Copter {
     ins: Strapdown,
     yaw: f64,
+    law: Law,
 }
 
 impl Copter {
     fn new() -> Self {
+        Self::with_law(Law::ArduCopter)
+    }
+
+    fn with_law(law: Law) -> Self {
+        let yaw = match law {
+            Law::ArduCopter => 0.3,
+            Law::Jmavsim => 0.0,
+        };
         Self {
             ins: Strapdown::new(InsState {
                 lat_rad: 47.02f64.to_radians(),
                 lon_rad: (-99.15f64).to_radians(),
                 h_m: 2400.0,
                 v_ned_m_s: Vector3::zeros(),
-                q_nb: UnitQuaternion::from_euler_angles(0.0, 0.0, 0.3),
+                q_nb: UnitQuaternion::from_euler_angles(0.0, 0.0, yaw),
             }),
-            yaw: 0.3,
+            yaw,
+            law,
         }
     }
 
@@ -59,8 +95,14 @@ impl Copter {
     fn step(&mut self, t: f64) -> (Vector3<f64>, Vector3<f64>) {
         let s = self.ins.state.clone();
         let v_b = s.q_nb.inverse() * s.v_ned_m_s;
-        let f_drag_b = Vector3::new(drag(v_b.x), drag(v_b.y), 0.0);
-        let a_des = ((v_des(t) - s.v_ned_m_s) * 0.8).map(|a| a.clamp(-2.5, 2.5));
+        let (f_drag_b, v_want) = match self.law {
+            Law::ArduCopter => (Vector3::new(drag(v_b.x), drag(v_b.y), 0.0), v_des(t)),
+            Law::Jmavsim => {
+                let f = drag_vector(v_b.xy());
+                (Vector3::new(f.x, f.y, 0.0), v_des_diagonal(t, GPS_UNTIL_S))
+            }
+        };
+        let a_des = ((v_want - s.v_ned_m_s) * 0.8).map(|a| a.clamp(-2.5, 2.5));
         let g_n = Vector3::new(0.0, 0.0, earth::normal_gravity_m_s2(s.lat_rad, s.h_m));
         // Thrust (along body -z) makes up what drag does not: f = a - g.
         let thrust_n = a_des - g_n - s.q_nb * f_drag_b;
@@ -98,7 +140,14 @@ struct Run {
     drag_accepted: u64,
 }
 
+/// The GPS aids until then, s.
+const GPS_UNTIL_S: f64 = 150.0;
+
 fn fly(mode: DragMode, multirotor: bool) -> Run {
+    fly_law(mode, multirotor, Law::ArduCopter)
+}
+
+fn fly_law(mode: DragMode, multirotor: bool, law: Law) -> Run {
     let mut cfg = NavConfig {
         use_autopilot_attitude: true,
         ..NavConfig::default()
@@ -112,7 +161,7 @@ fn fly(mode: DragMode, multirotor: bool) -> Run {
     cfg.drag.mode = mode;
     let mut f = NavFilter::new(cfg);
     f.set_multirotor(multirotor);
-    let mut c = Copter::new();
+    let mut c = Copter::with_law(law);
     // A consumer MEMS accelerometer's turn-on bias (the filter estimates it under GPS).
     let accel_bias = Vector3::new(0.004, -0.003, 0.002) * G;
     let mut run = Run {
@@ -121,7 +170,7 @@ fn fly(mode: DragMode, multirotor: bool) -> Run {
         end_pos_err: 0.0,
         drag_accepted: 0,
     };
-    let gps_until_s = 150.0;
+    let gps_until_s = GPS_UNTIL_S;
     let n = (300.0 / DT_S) as u64;
     f.imu(&ImuSample {
         t_us: 0,
@@ -179,7 +228,7 @@ fn fly(mode: DragMode, multirotor: bool) -> Run {
     run.drag_accepted = f.counters().drag.accepted;
     let [x, y] = f.drag_status();
     eprintln!(
-        "mode {mode:?} multirotor {multirotor}: max velocity error {:.2} m/s ({:.2} x 3 sigma), \
+        "{law:?} mode {mode:?} multirotor {multirotor}: max velocity error {:.2} m/s ({:.2} x 3 sigma), \
          position error after 150 s without GPS {:.0} m, drag measurements {}; law x {:?} y {:?}",
         run.max_vel_err, run.max_vel_err_over_3sigma, run.end_pos_err, run.drag_accepted, x, y
     );
@@ -202,6 +251,29 @@ fn drag_holds_a_multirotors_velocity_without_gps() {
         aided.max_vel_err,
         free.max_vel_err
     );
+    assert!(
+        aided.max_vel_err_over_3sigma < 1.0,
+        "{}",
+        aided.max_vel_err_over_3sigma
+    );
+    assert!(
+        aided.end_pos_err < 0.5 * free.end_pos_err,
+        "aided {} free {}",
+        aided.end_pos_err,
+        free.end_pos_err
+    );
+}
+
+/// PX4 + jMAVSim (issue 18's PX4 verdict): a vector drag law learned on diagonal legs, used on
+/// legs along the body axes. A per-axis law fitted to the diagonal legs over-states the drag
+/// along an axis by up to 40 % (visnav's velocity 1.2-2.7 m/s short, claimed as a confident
+/// measurement); the learner's vector form predicts any direction.
+#[test]
+fn a_vector_drag_law_learned_diagonally_holds_the_velocity_along_the_axes() {
+    let aided = fly_law(DragMode::Auto, true, Law::Jmavsim);
+    let free = fly_law(DragMode::Off, true, Law::Jmavsim);
+    assert!(aided.drag_accepted > 500, "{}", aided.drag_accepted);
+    assert!(aided.max_vel_err < 1.0, "{}", aided.max_vel_err);
     assert!(
         aided.max_vel_err_over_3sigma < 1.0,
         "{}",

@@ -678,6 +678,11 @@ impl NavTask {
                     linear_per_s = (m.a * 1e4).round() / 1e4,
                     quadratic_per_m = (m.b * 1e5).round() / 1e5,
                     residual_m_s2 = (m.resid_m_s2 * 1e3).round() / 1e3,
+                    quadratic_form = match m.form {
+                        crate::nav::drag::QuadForm::PerAxis => "per axis v|v|",
+                        crate::nav::drag::QuadForm::Vector => "vector v|v_h|",
+                    },
+                    forms_undecided = m.alternative.is_some(),
                     "multirotor drag law learned (fused when the GPS is gone, nav.drag)"
                 );
             }

@@ -2,8 +2,15 @@
 //!
 //! A multirotor's thrust acts along body -z, so in steady flight the accelerometer's body x / y
 //! readings are the aerodynamic drag (rotor momentum drag and body drag): a function of the
-//! air-relative velocity in body axes, `f_x = a_x v_x + b_x v_x |v_x|` (same for y), with
-//! `a < 0` (momentum drag, linear) and `b <= 0` (body drag, quadratic). ArduPilot EKF3
+//! air-relative velocity in body axes, `f_x = a_x v_x + b_x q_x(v)` (same for y), with `a < 0`
+//! (momentum drag, linear) and `b <= 0` (body drag, quadratic). The quadratic term has two forms
+//! in use ([`QuadForm`]): per axis, `q_x = v_x |v_x|` (ArduPilot SITL's `SIM_Frame`), or along
+//! the velocity vector, `q_x = v_x |v_h|` with `|v_h|` the horizontal body speed (jMAVSim; PX4
+//! EKF2's drag model). They agree when the aircraft flies along one body axis and differ by up
+//! to 30 % across it (a copter flying diagonally, or holding its nose north on a westward leg).
+//! Both are fitted; the one whose residual is clearly smaller is used, and while the flight has
+//! not told them apart their difference at the current velocity is added to the measurement
+//! noise ([`AMBIGUITY_RESIDUAL_RATIO`]). ArduPilot EKF3
 //! (`EK3_DRAG_BCOEF_*`, `EK3_DRAG_MCOEF`) and PX4 EKF2 (`EKF2_BCOEF_*`, `EKF2_MCOEF`) fuse the
 //! same physics to bound their velocity without GPS. Here the coefficients are not configured
 //! but learned while the GPS aids the filter: a least-squares fit of the averaged specific force
@@ -43,6 +50,11 @@ pub const FORGET_TIME_S: f64 = 600.0;
 /// another speed): the measurement noise is this many times the residual RMS.
 pub const RESIDUAL_INFLATION: f64 = 3.0;
 
+/// A fitted linear coefficient up to this (1/s) above zero is taken as a purely quadratic law's
+/// noise (a fit of jMAVSim's `-b |v| v` gave +1e-5); beyond, the law pushes the aircraft along
+/// its motion and is not a drag. 0.01 / s is 1 % of the slope of a copter's drag at cruise.
+pub const LINEAR_NOISE_PER_S: f64 = 0.01;
+
 /// Floor of the measurement noise in velocity terms, m/s: no drag model is better than this
 /// outside the flight it was fitted on.
 pub const MIN_VELOCITY_SIGMA_M_S: f64 = 0.3;
@@ -60,7 +72,52 @@ pub const ERROR_CORR_TIME_S: f64 = 5.0;
 /// side area, taken here as up to 30 %.
 pub const BORROWED_LAW_REL_ERR: f64 = 0.3;
 
-/// One axis's drag law `f = a v + b v |v|` (specific force, m/s^2, for body velocity v, m/s).
+/// The two forms' residuals must differ by this factor before one is taken as the law and the
+/// other dismissed; below it the forms' difference is part of the noise, in proportion (1.5: a
+/// form that fits the same flight 50 % worse is the wrong one; measured 1.0 on ArduCopter-like
+/// nose-first learning and far above 1.5 on jMAVSim's diagonal first leg, docs/nav.md).
+pub const AMBIGUITY_RESIDUAL_RATIO: f64 = 1.5;
+
+/// Form of the quadratic (body drag) term.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum QuadForm {
+    /// `v_k |v_k|`: each axis on its own.
+    PerAxis,
+    /// `v_k |v_h|`: along the horizontal velocity vector.
+    Vector,
+}
+
+impl QuadForm {
+    /// The quadratic regressor of axis `k` at body velocity `v`.
+    pub fn q(self, v: &Vector2<f64>, k: usize) -> f64 {
+        match self {
+            Self::PerAxis => v[k] * v[k].abs(),
+            Self::Vector => v[k] * v.norm(),
+        }
+    }
+
+    /// Its gradient with respect to `(v_x, v_y)`.
+    pub fn dq(self, v: &Vector2<f64>, k: usize) -> Vector2<f64> {
+        let mut g = Vector2::zeros();
+        match self {
+            Self::PerAxis => g[k] = 2.0 * v[k].abs(),
+            Self::Vector => {
+                let n = v.norm();
+                g[k] = n;
+                if n > 1e-9 {
+                    g += v * (v[k] / n);
+                }
+            }
+        }
+        g
+    }
+
+    /// Both forms.
+    pub const ALL: [QuadForm; 2] = [QuadForm::PerAxis, QuadForm::Vector];
+}
+
+/// One axis's drag law `f = a v + b q(v)` (specific force, m/s^2, for body velocity v, m/s; `q`
+/// per [`QuadForm`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AxisModel {
     /// Linear coefficient, 1/s (negative).
@@ -72,26 +129,64 @@ pub struct AxisModel {
     /// Relative error of the law when it is the other axis's ([`BORROWED_LAW_REL_ERR`]); 0 for
     /// the axis's own fit.
     pub borrowed_rel_err: f64,
+    /// The quadratic term's form.
+    pub form: QuadForm,
+    /// The other form's fit `(a, b)` and the weight (0 to 1) of the two forms' difference in the
+    /// noise: 1 while the flight has not told them apart ([`AMBIGUITY_RESIDUAL_RATIO`]).
+    pub alternative: Option<(f64, f64, f64)>,
 }
 
 impl AxisModel {
-    /// Specific force for body velocity `v`, m/s^2.
+    /// Specific force for body velocity `v` along this axis alone (the forms agree there),
+    /// m/s^2.
     pub fn force(&self, v: f64) -> f64 {
         self.a * v + self.b * v * v.abs()
     }
 
-    /// d force / d v, 1/s.
+    /// d force / d v along this axis alone, 1/s.
     pub fn slope(&self, v: f64) -> f64 {
         self.a + 2.0 * self.b * v.abs()
     }
 
-    /// Measurement variance of an averaged specific force at body velocity `v`, (m/s^2)^2.
-    pub fn variance(&self, v: f64, wind_sigma_m_s: f64) -> f64 {
-        let s = self.slope(v).abs();
+    /// Specific force of axis `k` at horizontal body velocity `v`, m/s^2.
+    pub fn force_at(&self, v: &Vector2<f64>, k: usize) -> f64 {
+        self.a * v[k] + self.b * self.form.q(v, k)
+    }
+
+    /// Gradient of [`Self::force_at`] with respect to `(v_x, v_y)`, 1/s.
+    pub fn gradient(&self, v: &Vector2<f64>, k: usize) -> Vector2<f64> {
+        let mut g = self.form.dq(v, k) * self.b;
+        g[k] += self.a;
+        g
+    }
+
+    /// Measurement variance of an averaged specific force on axis `k` at body velocity `v`,
+    /// (m/s^2)^2.
+    pub fn variance_at(&self, v: &Vector2<f64>, k: usize, wind_sigma_m_s: f64) -> f64 {
+        let s = self.gradient(v, k).norm();
         let model = (RESIDUAL_INFLATION * self.resid_m_s2).powi(2);
         let floor = (s * MIN_VELOCITY_SIGMA_M_S).powi(2);
-        let borrowed = (self.borrowed_rel_err * self.force(v)).powi(2);
-        model.max(floor) + (s * wind_sigma_m_s).powi(2) + borrowed
+        let f = self.force_at(v, k);
+        let borrowed = (self.borrowed_rel_err * f).powi(2);
+        let ambiguity = self.alternative.map_or(0.0, |(a, b, w)| {
+            let other = match self.form {
+                QuadForm::PerAxis => QuadForm::Vector,
+                QuadForm::Vector => QuadForm::PerAxis,
+            };
+            w * (f - (a * v[k] + b * other.q(v, k))).powi(2)
+        });
+        model.max(floor) + (s * wind_sigma_m_s).powi(2) + borrowed + ambiguity
+    }
+
+    /// [`Self::variance_at`] for a velocity along this axis alone.
+    pub fn variance(&self, v: f64, wind_sigma_m_s: f64) -> f64 {
+        let mut vv = Vector2::zeros();
+        vv[0] = v;
+        let m = AxisModel {
+            alternative: None,
+            ..*self
+        };
+        m.variance_at(&vv, 0, wind_sigma_m_s)
     }
 }
 
@@ -122,12 +217,12 @@ struct AxisFit {
 }
 
 impl AxisFit {
-    fn add(&mut self, v: f64, f: f64, keep: f64) {
+    fn add(&mut self, v: f64, q: f64, f: f64, keep: f64) {
         if self.n == 0.0 {
             self.v_min = v;
             self.v_max = v;
         }
-        let x = Vector2::new(v, v * v.abs());
+        let x = Vector2::new(v, q);
         self.s = self.s * keep + x * x.transpose();
         self.r = self.r * keep + x * f;
         self.sff = self.sff * keep + f * f;
@@ -137,7 +232,7 @@ impl AxisFit {
         self.v_max = self.v_max.max(v);
     }
 
-    fn model(&self) -> Result<AxisModel, String> {
+    fn model(&self, form: QuadForm) -> Result<AxisModel, String> {
         if self.n < MIN_SAMPLES {
             return Err(format!("{:.0} of {MIN_SAMPLES:.0} samples", self.n));
         }
@@ -168,10 +263,17 @@ impl AxisFit {
             b: th.y,
             resid_m_s2: (ssr / (self.n - 2.0).max(1.0)).sqrt(),
             borrowed_rel_err: 0.0,
+            form,
+            alternative: None,
         };
-        // Drag opposes the motion over the whole fitted range.
+        // Drag opposes the motion over the whole fitted range. A purely quadratic law (jMAVSim)
+        // fits a linear coefficient of zero give or take its noise: a slightly positive one is
+        // that noise, not thrust.
         let vmax = self.v_min.abs().max(self.v_max.abs());
-        if !(m.a.is_finite() && m.b.is_finite()) || m.slope(0.0) >= 0.0 || m.slope(vmax) >= 0.0 {
+        if !(m.a.is_finite() && m.b.is_finite())
+            || m.slope(0.0) > LINEAR_NOISE_PER_S
+            || m.slope(vmax) >= 0.0
+        {
             return Err(format!(
                 "fitted law is not a drag (a {:.3}, b {:.4})",
                 m.a, m.b
@@ -182,10 +284,11 @@ impl AxisFit {
 }
 
 /// Learns the drag law of both horizontal body axes from averaged specific forces and
-/// GPS-aided body velocities.
+/// GPS-aided body velocities, in both quadratic forms ([`QuadForm`]).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct DragLearner {
-    axes: [AxisFit; 2],
+    /// `[form][axis]`, forms in [`QuadForm::ALL`]'s order.
+    fits: [[AxisFit; 2]; 2],
 }
 
 impl DragLearner {
@@ -195,14 +298,46 @@ impl DragLearner {
             return;
         }
         let keep = (-WINDOW_S / FORGET_TIME_S).exp();
-        for k in 0..2 {
-            self.axes[k].add(v_body_xy[k], f_body_xy[k], keep);
+        for (fits, form) in self.fits.iter_mut().zip(QuadForm::ALL) {
+            for (k, fit) in fits.iter_mut().enumerate() {
+                fit.add(v_body_xy[k], form.q(&v_body_xy, k), f_body_xy[k], keep);
+            }
         }
     }
 
-    /// The law of axis `k` (0 = x, 1 = y), or why it is not usable yet.
+    /// The form whose axes fit better (summed squared residuals of the axes that are ready in
+    /// both), and the weight of the other form in the noise: 1 when their residuals are equal,
+    /// 0 from [`AMBIGUITY_RESIDUAL_RATIO`] apart.
+    fn chosen_form(&self) -> (usize, f64) {
+        let ss = |i: usize| -> Option<f64> {
+            let r: Vec<f64> = (0..2)
+                .filter_map(|k| self.fits[i][k].model(QuadForm::ALL[i]).ok())
+                .map(|m| m.resid_m_s2.powi(2))
+                .collect();
+            (!r.is_empty()).then(|| r.iter().sum())
+        };
+        match (ss(0), ss(1)) {
+            (Some(p), Some(v)) => {
+                let (best, worse, i) = if v < p { (v, p, 1) } else { (p, v, 0) };
+                let ratio = (worse / best.max(1e-18)).sqrt();
+                let w = (1.0 - (ratio - 1.0) / (AMBIGUITY_RESIDUAL_RATIO - 1.0)).clamp(0.0, 1.0);
+                (i, w)
+            }
+            _ => (0, 1.0),
+        }
+    }
+
+    /// The law of axis `k` (0 = x, 1 = y) in the chosen form, or why it is not usable yet.
     pub fn axis(&self, k: usize) -> Result<AxisModel, String> {
-        self.axes[k.min(1)].model()
+        let (i, w) = self.chosen_form();
+        let k = k.min(1);
+        let mut m = self.fits[i][k].model(QuadForm::ALL[i])?;
+        m.alternative = self.fits[1 - i][k]
+            .model(QuadForm::ALL[1 - i])
+            .ok()
+            .filter(|_| w > 0.0)
+            .map(|o| (o.a, o.b, w));
+        Ok(m)
     }
 
     /// Both axes' laws: each axis's own fit, else the other axis's with
@@ -297,6 +432,8 @@ mod tests {
             b: -0.03,
             resid_m_s2: 0.001,
             borrowed_rel_err: 0.0,
+            form: QuadForm::PerAxis,
+            alternative: None,
         };
         let s = m.slope(10.0).abs();
         let calm = m.variance(10.0, 0.0);
@@ -314,6 +451,84 @@ mod tests {
         };
         let extra = (BORROWED_LAW_REL_ERR * m.force(10.0)).powi(2);
         assert!((lent.variance(10.0, 0.0) - calm - extra).abs() < 1e-12);
+    }
+
+    /// Flies a vector drag law (jMAVSim: `f = -b |v_h| v`) with the nose held while the
+    /// velocity turns, like PX4's first leg north-west with the nose north.
+    fn fly_vector(learner: &mut DragLearner, n: usize, a: f64, b: f64) {
+        for i in 0..n {
+            let speed = 14.0 * ((i as f64) * 0.01).sin().abs();
+            let dir = 0.8 + 0.5 * (i as f64 * 0.003).sin(); // 17 to 75 deg off the nose
+            let v = Vector2::new(speed * dir.cos(), speed * dir.sin());
+            let f = v * a + v * (b * v.norm());
+            learner.add(v, f + Vector2::new(0.02 * wobble(i), 0.02 * wobble(i + 3)));
+        }
+    }
+
+    #[test]
+    fn a_vector_drag_law_is_recognised_and_predicts_any_direction() {
+        let (a, b) = (-0.02, -0.0133);
+        let mut l = DragLearner::default();
+        fly_vector(&mut l, 1500, a, b);
+        let [x, y] = l.models();
+        let (x, y) = (x.unwrap(), y.unwrap());
+        assert_eq!(x.form, QuadForm::Vector, "{x:?}");
+        assert!(x.alternative.is_none(), "the forms were told apart: {x:?}");
+        // Along one axis at 14.8 m/s (a later leg flown nose first) and diagonally.
+        for v in [
+            Vector2::new(14.8, 0.0),
+            Vector2::new(0.0, -14.8),
+            Vector2::new(9.0, 9.0),
+        ] {
+            let truth = v * a + v * (b * v.norm());
+            for (k, m) in [(0, x), (1, y)] {
+                let f = m.force_at(&v, k);
+                assert!(
+                    (f - truth[k]).abs() < 0.03 * truth.norm(),
+                    "{v:?} axis {k}: {f} vs {}",
+                    truth[k]
+                );
+                // Gradient against a finite difference.
+                let g = m.gradient(&v, k);
+                for j in 0..2 {
+                    let mut dv = v;
+                    dv[j] += 1e-6;
+                    let num = (m.force_at(&dv, k) - f) / 1e-6;
+                    assert!((num - g[j]).abs() < 1e-4, "{num} vs {}", g[j]);
+                }
+            }
+        }
+        // The per-axis form fits this flight several times worse: the choice is not a tie.
+        let per_axis = l.fits[0][0].model(QuadForm::PerAxis).unwrap();
+        assert!(
+            per_axis.resid_m_s2 > 3.0 * x.resid_m_s2,
+            "{per_axis:?} vs {x:?}"
+        );
+    }
+
+    #[test]
+    fn forms_not_told_apart_put_their_difference_into_the_noise() {
+        // Nose-first learning: v_y within +-0.5 m/s, so both forms fit the same.
+        let mut l = DragLearner::default();
+        for i in 0..800 {
+            let vx = 12.0 * ((i as f64) * 0.01).sin().abs();
+            let vy = 0.5 * wobble(i);
+            let f = |v: f64| -0.21 * v - 0.028 * v * v.abs();
+            let noise = Vector2::new(0.05 * wobble(i + 11), 0.05 * wobble(i + 5));
+            l.add(Vector2::new(vx, vy), Vector2::new(f(vx), f(vy)) + noise);
+        }
+        let m = l.axis(0).unwrap();
+        let (_, _, w) = m.alternative.expect("undecided forms carry the other one");
+        assert!(w > 0.5, "weight {w}");
+        // Along the axis the forms agree: no extra noise; diagonally they differ: extra noise.
+        let along = Vector2::new(12.0, 0.0);
+        let diag = Vector2::new(9.0, 9.0);
+        let plain = AxisModel {
+            alternative: None,
+            ..m
+        };
+        assert!((m.variance_at(&along, 0, 1.0) - plain.variance_at(&along, 0, 1.0)).abs() < 1e-3);
+        assert!(m.variance_at(&diag, 0, 1.0) > plain.variance_at(&diag, 0, 1.0) + 0.1);
     }
 
     #[test]

@@ -1347,19 +1347,21 @@ fn apply_drag(par: &Params, core: &mut Core, d: &DragFix) -> Outcome {
         .enumerate()
         .filter_map(|(k, m)| m.map(|m| (k, m)))
         .collect();
+    let v_xy = v_b.xy();
     let row = |k: usize, m: &super::drag::AxisModel| {
-        let slope = m.slope(v_b[k]);
+        // d f_k / d (v_x, v_y) of the body velocity, then through v_b = C_nb v_n.
+        let g = m.gradient(&v_xy, k);
         let mut h = SMatrix::<f64, 1, N_STATES>::zeros();
         for j in 0..3 {
-            h[(0, IV + j)] = slope * c_nb[(k, j)];
-            h[(0, IA + j)] = slope * d_vb_d_psi[(k, j)];
+            h[(0, IV + j)] = g[0] * c_nb[(0, j)] + g[1] * c_nb[(1, j)];
+            h[(0, IA + j)] = g[0] * d_vb_d_psi[(0, j)] + g[1] * d_vb_d_psi[(1, j)];
         }
         h[(0, IBA + k)] = 1.0;
         if par.drift {
             h[(0, IDA + k)] = 1.0;
         }
-        let dz = m.force(v_b[k]) - d.f_body_xy_m_s2[k];
-        (h, dz, m.variance(v_b[k], d.wind_sigma_m_s))
+        let dz = m.force_at(&v_xy, k) - d.f_body_xy_m_s2[k];
+        (h, dz, m.variance_at(&v_xy, k, d.wind_sigma_m_s))
     };
     // The law's error and the wind persist: one independent measurement per correlation time.
     let corr = correlation_factor(

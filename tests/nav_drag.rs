@@ -176,6 +176,8 @@ fn fly_law(mode: DragMode, multirotor: bool, law: Law) -> Run {
         t_us: 0,
         dtheta_rad_body_frd: Vector3::zeros(),
         dv_m_s_body_frd: Vector3::zeros(),
+        gap_sigma_dtheta_rad: 0.0,
+        gap_sigma_dv_m_s: 0.0,
     });
     for i in 1..=n {
         let t_us = i * 10_000;
@@ -192,6 +194,8 @@ fn fly_law(mode: DragMode, multirotor: bool, law: Law) -> Run {
             t_us,
             dtheta_rad_body_frd: dth + gyro_drift * DT_S,
             dv_m_s_body_frd: dv + accel_bias * DT_S,
+            gap_sigma_dtheta_rad: 0.0,
+            gap_sigma_dv_m_s: 0.0,
         });
         let s = c.ins.state.clone();
         if i % 10 == 0 {
@@ -306,6 +310,8 @@ fn the_learned_law_is_the_flown_one() {
         t_us: 0,
         dtheta_rad_body_frd: Vector3::zeros(),
         dv_m_s_body_frd: Vector3::zeros(),
+        gap_sigma_dtheta_rad: 0.0,
+        gap_sigma_dv_m_s: 0.0,
     });
     for i in 1..=15_000u64 {
         let t_us = i * 10_000;
@@ -314,6 +320,8 @@ fn the_learned_law_is_the_flown_one() {
             t_us,
             dtheta_rad_body_frd: dth,
             dv_m_s_body_frd: dv,
+            gap_sigma_dtheta_rad: 0.0,
+            gap_sigma_dv_m_s: 0.0,
         });
         let s = c.ins.state.clone();
         if i % 20 == 0 {

@@ -66,6 +66,8 @@ impl Harness {
             t_us: 0,
             dtheta_rad_body_frd: Vector3::zeros(),
             dv_m_s_body_frd: Vector3::zeros(),
+            gap_sigma_dtheta_rad: 0.0,
+            gap_sigma_dv_m_s: 0.0,
         });
         Self {
             traj,
@@ -97,6 +99,8 @@ impl Harness {
                 t_us: self.t_us,
                 dtheta_rad_body_frd: dth,
                 dv_m_s_body_frd: dv,
+                gap_sigma_dtheta_rad: 0.0,
+                gap_sigma_dv_m_s: 0.0,
             });
             if self.t_us.is_multiple_of(100_000) {
                 self.filter.measure(Measurement::Attitude(AttitudeFix {

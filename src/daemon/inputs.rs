@@ -147,6 +147,13 @@ impl InitSpacing {
     }
 }
 
+/// An IMU interval longer than this many usual intervals is a gap (samples not sent): its
+/// increment is integrated from the rates on both sides ([`Inputs`], `gap_bridged`). 2.5: the
+/// jitter of a 250 Hz stream over MAVLink (2-8 ms between samples) stays below it.
+pub const IMU_GAP_FACTOR: f64 = 2.5;
+/// Gain of the running mean of the usual IMU interval (about 50 samples).
+const IMU_USUAL_INTERVAL_GAIN: f64 = 0.02;
+
 /// Telemetry-to-filter conversion state.
 #[derive(Debug, Clone)]
 pub struct Inputs {
@@ -154,6 +161,9 @@ pub struct Inputs {
     gps: GpsSource,
     last_kind_ns: [Option<i64>; 3],
     last_imu_t_us: Option<u64>,
+    /// The last IMU sample's rates (gyro rad/s, specific force m/s^2) and the usual interval
+    /// between samples (s, a running mean over intervals without a gap).
+    last_imu_rates: Option<(Vector3<f64>, Vector3<f64>, f64)>,
     baro_isa_m: Option<(u64, f64)>,
     /// Barometric offset: ellipsoidal height minus ISA altitude, m, and the number of samples.
     baro_offset: Option<(f64, u32)>,
@@ -185,6 +195,7 @@ impl Inputs {
             gps,
             last_kind_ns: [None; 3],
             last_imu_t_us: None,
+            last_imu_rates: None,
             baro_isa_m: None,
             baro_offset: None,
             attitudes: VecDeque::new(),
@@ -202,6 +213,7 @@ impl Inputs {
     /// Forget times (after an autopilot reboot).
     pub fn reset_times(&mut self) {
         self.last_imu_t_us = None;
+        self.last_imu_rates = None;
         self.attitudes.clear();
         self.baro_isa_m = None;
         if let Some(r) = &mut self.restorer {
@@ -277,11 +289,49 @@ impl Inputs {
             Some(prev) if t_us > prev => {
                 let dt_s = (t_us - prev) as f64 * 1e-6;
                 self.last_imu_t_us = Some(t_us);
-                out.push(NavInput::Imu(ImuSample::from_rates(t_us, gyro, acc, dt_s)));
+                out.push(NavInput::Imu(self.gap_bridged(t_us, gyro, acc, dt_s)));
             }
             Some(_) => {} // duplicate or slightly out of order: dropped
             None => self.last_imu_t_us = Some(t_us),
         }
+    }
+
+    /// The IMU increment over `dt_s` ending with rate sample `(gyro, acc)`. A rate sample (an
+    /// average over its own short interval) held over a longer gap (samples the autopilot did
+    /// not send) would put its rate on the whole gap: in PX4 flight v6 a 37 ms gap ended at
+    /// 232 deg/s of pitch rate after 4 deg/s, and holding it gave 8.5 deg of pitch where the
+    /// copter turned about 1.5, which the GPS-aided filter then could not recover (docs/real-sitl.md,
+    /// PX4 verdict). Across a gap (more than [`IMU_GAP_FACTOR`] usual intervals) the rates are
+    /// interpolated linearly between the samples on either side (trapezoid), and what that
+    /// cannot know (the rates inside the gap) goes into the sample's gap sigmas, which the filter
+    /// adds to its attitude and velocity covariance; otherwise the sample is held as before.
+    fn gap_bridged(
+        &mut self,
+        t_us: u64,
+        gyro: Vector3<f64>,
+        acc: Vector3<f64>,
+        dt_s: f64,
+    ) -> ImuSample {
+        let sample = match self.last_imu_rates {
+            Some((g0, a0, usual_s)) if dt_s > IMU_GAP_FACTOR * usual_s => {
+                // The rates inside the gap are unknown: the trapezoid's error is up to half the
+                // change across it over the gap (a uniform error's sigma is that over sqrt 3).
+                let spread = 0.5 * dt_s / 3f64.sqrt();
+                ImuSample {
+                    gap_sigma_dtheta_rad: (gyro - g0).amax() * spread,
+                    gap_sigma_dv_m_s: (acc - a0).amax() * spread,
+                    ..ImuSample::from_rates(t_us, (g0 + gyro) * 0.5, (a0 + acc) * 0.5, dt_s)
+                }
+            }
+            _ => ImuSample::from_rates(t_us, gyro, acc, dt_s),
+        };
+        let usual_s = match self.last_imu_rates {
+            None => dt_s,
+            Some((_, _, u)) if dt_s > IMU_GAP_FACTOR * u => u,
+            Some((_, _, u)) => u + IMU_USUAL_INTERVAL_GAIN * (dt_s - u),
+        };
+        self.last_imu_rates = Some((gyro, acc, usual_s));
+        sample
     }
 
     /// Convert one telemetry message (may produce nothing).
@@ -779,6 +829,56 @@ mod tests {
             ..HIGHRES_IMU_DATA::DEFAULT
         });
         assert!(s.convert(&tel(1040, bad)).is_empty());
+    }
+
+    /// PX4 flight v6 (docs/status.md, issue 18): a 250 Hz HIGHRES_IMU stream that skips 37 ms
+    /// while the pitch rate climbs from 4 to 232 deg/s. Held, the last sample would turn the
+    /// filter 8.5 deg; bridged, the increment is the trapezoid and the unknown part is a sigma.
+    #[test]
+    fn an_imu_gap_is_bridged_by_the_trapezoid_with_its_uncertainty() {
+        let mut s = Inputs::new(DaemonConfig::default(), GpsSource::Gps1);
+        let hr = |t_us: u64, q_deg_s: f32| {
+            MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
+                time_usec: t_us,
+                ygyro: q_deg_s.to_radians(),
+                zacc: -9.8,
+                ..HIGHRES_IMU_DATA::DEFAULT
+            })
+        };
+        let mut t_us = 1_000_000u64;
+        let mut last = None;
+        for k in 0..100 {
+            // 4 ms apart with MAVLink jitter (2-8 ms): never a gap.
+            t_us += [4000, 2000, 6000, 4000, 8000][k % 5];
+            let out = s.convert(&tel((t_us / 1000) as i64, hr(t_us, 4.0)));
+            if let Some(NavInput::Imu(i)) = out.first() {
+                assert_eq!(i.gap_sigma_dtheta_rad, 0.0, "jitter taken for a gap");
+                let dt = i.dtheta_rad_body_frd.y / 4f64.to_radians();
+                assert!(dt > 0.0019 && dt < 0.0081, "{dt}");
+                last = Some(*i);
+            }
+        }
+        assert!(last.is_some());
+        t_us += 36_800;
+        let out = s.convert(&tel((t_us / 1000) as i64, hr(t_us, 232.0)));
+        let NavInput::Imu(i) = &out[0] else {
+            panic!("{out:?}")
+        };
+        let turned_deg = i.dtheta_rad_body_frd.y.to_degrees();
+        assert!(
+            (turned_deg - 0.5 * (4.0 + 232.0) * 0.0368).abs() < 0.01,
+            "{turned_deg}"
+        );
+        let sigma_deg = i.gap_sigma_dtheta_rad.to_degrees();
+        assert!((2.0..3.0).contains(&sigma_deg), "{sigma_deg}");
+        // The next ordinary sample is held again.
+        t_us += 4000;
+        let out = s.convert(&tel((t_us / 1000) as i64, hr(t_us, 230.0)));
+        let NavInput::Imu(i) = &out[0] else {
+            panic!("{out:?}")
+        };
+        assert_eq!(i.gap_sigma_dtheta_rad, 0.0);
+        assert!((i.dtheta_rad_body_frd.y.to_degrees() - 230.0 * 0.004).abs() < 1e-3);
     }
 
     #[test]

@@ -496,8 +496,11 @@ impl NavFilter {
 
     /// Process one IMU sample. Returns an output record when one is due at the configured rate.
     pub fn imu(&mut self, s: &ImuSample) -> Option<NavOutput> {
+        let gap_ok = |x: f64| x.is_finite() && x >= 0.0;
         if !(s.dtheta_rad_body_frd.iter().all(|x| x.is_finite())
-            && s.dv_m_s_body_frd.iter().all(|x| x.is_finite()))
+            && s.dv_m_s_body_frd.iter().all(|x| x.is_finite())
+            && gap_ok(s.gap_sigma_dtheta_rad)
+            && gap_ok(s.gap_sigma_dv_m_s))
         {
             self.counters.imu_invalid += 1;
             return None;
@@ -937,6 +940,8 @@ impl NavFilter {
                 t_us: now,
                 dtheta_rad_body_frd: Vector3::zeros(),
                 dv_m_s_body_frd: Vector3::zeros(),
+                gap_sigma_dtheta_rad: 0.0,
+                gap_sigma_dv_m_s: 0.0,
             },
             pre,
             meas: Vec::new(),
@@ -1105,6 +1110,8 @@ impl NavFilter {
                 t_us: t_now,
                 dtheta_rad_body_frd: Vector3::zeros(),
                 dv_m_s_body_frd: Vector3::zeros(),
+                gap_sigma_dtheta_rad: 0.0,
+                gap_sigma_dv_m_s: 0.0,
             },
             pre: core.clone(),
             meas: Vec::new(),
@@ -1230,9 +1237,12 @@ impl Core {
             }
         }
         let mut p = phi * self.p * phi.transpose();
+        // A bridged gap in the IMU stream (`ImuSample::gap_sigma_*`, isotropic, so the same in
+        // any frame).
+        let (gap_att, gap_vel) = (s.gap_sigma_dtheta_rad, s.gap_sigma_dv_m_s);
         for a in 0..3 {
-            p[(IV + a, IV + a)] += par.q_vrw * dt;
-            p[(IA + a, IA + a)] += par.q_arw * dt;
+            p[(IV + a, IV + a)] += par.q_vrw * dt + gap_vel * gap_vel;
+            p[(IA + a, IA + a)] += par.q_arw * dt + gap_att * gap_att;
             p[(IBG + a, IBG + a)] += par.q_bg * dt;
             p[(IBA + a, IBA + a)] += par.q_ba * dt;
             if par.drift {

@@ -17,6 +17,12 @@ pub struct ImuSample {
     pub dtheta_rad_body_frd: Vector3<f64>,
     /// Integrated specific force, m/s.
     pub dv_m_s_body_frd: Vector3<f64>,
+    /// 1-sigma (each axis) of the rotation and velocity change over the interval that the
+    /// increments above do not capture: a gap in the sample stream bridged by interpolation
+    /// (`daemon::inputs`), rad and m/s; 0 for an ordinary sample. Added to the filter's attitude
+    /// and velocity covariance by the propagation.
+    pub gap_sigma_dtheta_rad: f64,
+    pub gap_sigma_dv_m_s: f64,
 }
 
 impl ImuSample {
@@ -31,6 +37,8 @@ impl ImuSample {
             t_us,
             dtheta_rad_body_frd: gyro_rad_s_body_frd * dt_s,
             dv_m_s_body_frd: accel_m_s2_body_frd * dt_s,
+            gap_sigma_dtheta_rad: 0.0,
+            gap_sigma_dv_m_s: 0.0,
         }
     }
 }

@@ -315,6 +315,8 @@ pub fn run_with_source(
         t_us: 0,
         dtheta_rad_body_frd: Vector3::zeros(),
         dv_m_s_body_frd: Vector3::zeros(),
+        gap_sigma_dtheta_rad: 0.0,
+        gap_sigma_dv_m_s: 0.0,
     });
     for k in 1..=n_steps {
         let t_us = k * dt_us;
@@ -325,6 +327,8 @@ pub fn run_with_source(
             t_us,
             dtheta_rad_body_frd: mdth,
             dv_m_s_body_frd: mdv,
+            gap_sigma_dtheta_rad: 0.0,
+            gap_sigma_dv_m_s: 0.0,
         });
         if init_at.is_none() && filter.is_initialised() {
             init_at = Some(t_us as f64 * 1e-6);

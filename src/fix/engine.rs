@@ -417,32 +417,27 @@ impl FixEngine {
         pos: &PositionPriorGeo,
         t_us: u64,
     ) -> (FixReport, Attempt) {
-        let tries = heading_hypotheses(&self.nadir_any_heading())
-            .into_iter()
-            .map(|hyp| {
-                let (r, a) = self.fix_single(frame, pos, &hyp, None, t_us, false);
-                Hypothesis::new(hyp.attitude.yaw_rad, r, a)
-            })
-            .collect();
-        select_unique(tries, t_us)
+        self.fix_heading_sweep(frame, pos, &self.nadir_any_heading(), None, t_us, false)
     }
 
     /// A heading sigma too large for one rectification ([`YAW_SWEEP_ABOVE_DEG`]): the frame is
     /// rectified at heading hypotheses [`HEADING_STEP_DEG`] apart over the prior's +-3 sigma
     /// (tilt kept: roll and pitch come from gravity), each matched and solved with the caller's
-    /// prior (its loose heading), and the unique best hypothesis wins ([`select_unique`]).
+    /// prior (its loose heading; `solve`, None for no attitude prior), and the unique best
+    /// hypothesis wins ([`select_unique`]).
     fn fix_heading_sweep(
         &self,
         frame: &GrayImage,
         pos: &PositionPriorGeo,
         att: &AttitudePriorNed,
+        solve: Option<&AttitudePriorNed>,
         t_us: u64,
         att_from_filter: bool,
     ) -> (FixReport, Attempt) {
         let tries = heading_hypotheses(att)
             .into_iter()
             .map(|hyp| {
-                let (r, a) = self.fix_single(frame, pos, &hyp, Some(att), t_us, att_from_filter);
+                let (r, a) = self.fix_single(frame, pos, &hyp, solve, t_us, att_from_filter);
                 Hypothesis::new(hyp.attitude.yaw_rad, r, a)
             })
             .collect();
@@ -483,7 +478,7 @@ impl FixEngine {
         att_from_filter: bool,
     ) -> (FixReport, Attempt) {
         if att.sigma_yaw_rad > YAW_SWEEP_ABOVE_DEG.to_radians() {
-            self.fix_heading_sweep(frame, pos, att, t_us, att_from_filter)
+            self.fix_heading_sweep(frame, pos, att, Some(att), t_us, att_from_filter)
         } else {
             self.fix_single(frame, pos, att, Some(att), t_us, att_from_filter)
         }

@@ -39,6 +39,9 @@ enum Law {
     /// jMAVSim's vector law; with the GPS the legs run 45 deg off the nose (PX4's first leg
     /// north-west, nose north), without it along the body axes (N/E/S/W, nose north).
     Jmavsim,
+    /// ArduCopter SITL's per-axis law flown nose first (ArduCopter's default WP_YAW_BEHAVIOR):
+    /// the body y axis never sees speed, so the two quadratic forms cannot be told apart.
+    ArduCopterNoseFirst,
 }
 
 /// Desired NED velocity at time t: hover 20 s, then 12 m/s legs north, east, south, west
@@ -76,7 +79,7 @@ impl Copter {
     fn with_law(law: Law) -> Self {
         let yaw = match law {
             Law::ArduCopter => 0.3,
-            Law::Jmavsim => 0.0,
+            Law::Jmavsim | Law::ArduCopterNoseFirst => 0.0,
         };
         Self {
             ins: Strapdown::new(InsState {
@@ -97,6 +100,17 @@ impl Copter {
         let v_b = s.q_nb.inverse() * s.v_ned_m_s;
         let (f_drag_b, v_want) = match self.law {
             Law::ArduCopter => (Vector3::new(drag(v_b.x), drag(v_b.y), 0.0), v_des(t)),
+            Law::ArduCopterNoseFirst => {
+                // Turn toward the leg at 30 deg/s.
+                let v = v_des(t);
+                if v.xy().norm() > 1.0 {
+                    let err = (v.y.atan2(v.x) - self.yaw + std::f64::consts::PI)
+                        .rem_euclid(std::f64::consts::TAU)
+                        - std::f64::consts::PI;
+                    self.yaw += err.clamp(-0.3 * DT_S * 1.745, 0.3 * DT_S * 1.745);
+                }
+                (Vector3::new(drag(v_b.x), drag(v_b.y), 0.0), v)
+            }
             Law::Jmavsim => {
                 let f = drag_vector(v_b.xy());
                 (Vector3::new(f.x, f.y, 0.0), v_des_diagonal(t, GPS_UNTIL_S))
@@ -170,7 +184,13 @@ fn fly_law(mode: DragMode, multirotor: bool, law: Law) -> Run {
         end_pos_err: 0.0,
         drag_accepted: 0,
     };
-    let gps_until_s = GPS_UNTIL_S;
+    // Nose first, the GPS aids the hover and the first leg only (ArduCopter's climb and first
+    // leg before the recipe's GPS loss at the first corner).
+    let gps_until_s = if law == Law::ArduCopterNoseFirst {
+        50.0
+    } else {
+        GPS_UNTIL_S
+    };
     let n = (300.0 / DT_S) as u64;
     f.imu(&ImuSample {
         t_us: 0,
@@ -233,7 +253,7 @@ fn fly_law(mode: DragMode, multirotor: bool, law: Law) -> Run {
     let [x, y] = f.drag_status();
     eprintln!(
         "{law:?} mode {mode:?} multirotor {multirotor}: max velocity error {:.2} m/s ({:.2} x 3 sigma), \
-         position error after 150 s without GPS {:.0} m, drag measurements {}; law x {:?} y {:?}",
+         position error at the end (300 s) {:.0} m, drag measurements {}; law x {:?} y {:?}",
         run.max_vel_err, run.max_vel_err_over_3sigma, run.end_pos_err, run.drag_accepted, x, y
     );
     run
@@ -278,6 +298,30 @@ fn a_vector_drag_law_learned_diagonally_holds_the_velocity_along_the_axes() {
     let free = fly_law(DragMode::Off, true, Law::Jmavsim);
     assert!(aided.drag_accepted > 500, "{}", aided.drag_accepted);
     assert!(aided.max_vel_err < 1.0, "{}", aided.max_vel_err);
+    assert!(
+        aided.max_vel_err_over_3sigma < 1.0,
+        "{}",
+        aided.max_vel_err_over_3sigma
+    );
+    assert!(
+        aided.end_pos_err < 0.5 * free.end_pos_err,
+        "aided {} free {}",
+        aided.end_pos_err,
+        free.end_pos_err
+    );
+}
+
+/// ArduCopter flown nose first with the GPS on the first leg only (the recipe's flight): the
+/// learned law cannot say whether its quadratic term is per axis or along the velocity vector,
+/// the body y axis borrows the x law, and the two forms' slopes across the nose differ threefold
+/// at cruise. The velocity must still hold through the turns, within the filter's own sigma.
+/// Measured: 1.12 m/s at 0.45 x 3 sigma, 8 m after 250 s (without drag 20 m/s, 2.7 km).
+#[test]
+fn a_nose_first_law_holds_the_sideways_velocity_whatever_its_form() {
+    let aided = fly_law(DragMode::Auto, true, Law::ArduCopterNoseFirst);
+    let free = fly_law(DragMode::Off, true, Law::ArduCopterNoseFirst);
+    assert!(aided.drag_accepted > 500, "{}", aided.drag_accepted);
+    assert!(aided.max_vel_err < 1.5, "{}", aided.max_vel_err);
     assert!(
         aided.max_vel_err_over_3sigma < 1.0,
         "{}",

@@ -1371,7 +1371,11 @@ fn apply_drag(par: &Params, core: &mut Core, d: &DragFix) -> Outcome {
             h[(0, IDA + k)] = 1.0;
         }
         let dz = m.force_at(&v_xy, k) - d.f_body_xy_m_s2[k];
-        (h, dz, m.variance_at(&v_xy, k, d.wind_sigma_m_s))
+        (
+            h,
+            dz,
+            m.variance_at(&v_xy, k, d.wind_sigma_m_s, d.f_body_xy_m_s2[k]),
+        )
     };
     // The law's error and the wind persist: one independent measurement per correlation time.
     let corr = correlation_factor(

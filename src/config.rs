@@ -172,6 +172,11 @@ pub struct MapConfig {
     /// keeps the setting it was built with (`visnav map build --upsample`).
     #[serde(default)]
     pub upsample: Option<usize>,
+    /// With `ortho`: how far the surface the camera sees (roofs, trees, relief) may be from the
+    /// heights, 1 sigma, metres (default 10 with `ground_height_amsl_m`, 0 with `dem`). A `.vnm`
+    /// file keeps the figure it was built with (`visnav map build --height-sigma-m`).
+    #[serde(default)]
+    pub height_sigma_m: Option<f64>,
 }
 
 impl MapConfig {
@@ -211,6 +216,19 @@ impl MapConfig {
             ),
             Some(1 | 2 | 4) => {}
             Some(n) => p.push("upsample", format!("{n}: must be 1, 2 or 4")),
+        }
+        match self.height_sigma_m {
+            None => {}
+            Some(_) if self.file.is_some() => p.push(
+                "height_sigma_m",
+                "applies to building from ortho; a map file keeps the figure it was built with (visnav map build --height-sigma-m)",
+            ),
+            Some(s) => p.range(
+                "height_sigma_m",
+                s,
+                0.0,
+                crate::map::build::MAX_HEIGHT_SIGMA_M,
+            ),
         }
     }
 }

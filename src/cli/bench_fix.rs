@@ -6,7 +6,7 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use visnav::fix::FixParams;
-use visnav::sitl::fixeval::{AttitudeMode, NaipEval};
+use visnav::sitl::fixeval::{AttitudeMode, MapHeights, NaipEval};
 use visnav::vision::{DescriptorKind, SurfParams};
 
 #[derive(clap::Args, Debug)]
@@ -73,6 +73,18 @@ pub struct FixBenchArgs {
     /// Override `[fix]` settings with a TOML snippet, e.g. 'ratio = 0.9' (keys of the `[fix]` section).
     #[arg(long)]
     pub set: Option<String>,
+    /// The site: `naip` (cross-date, 1200-2500 m) or `autzen` (drone scale over the lidar surface
+    /// model, 80-300 m, ../shared/data/autzen; one date, so it measures heights and geometry).
+    #[arg(long, default_value = "naip", value_parser = ["naip", "autzen"])]
+    pub site: String,
+    /// Autzen: the heights the map is built on: `surface` (the lidar surface model the frames are
+    /// rendered on) or `constant` (its median, as a user without a DEM would).
+    #[arg(long, default_value = "surface", value_parser = ["surface", "constant"])]
+    pub map_heights: String,
+    /// The height sigma stated at the build of a constant-height map (NAIP, or Autzen with
+    /// `--map-heights constant`), metres (default: the build's default for a constant height).
+    #[arg(long)]
+    pub height_sigma_m: Option<f64>,
 }
 
 pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
@@ -125,19 +137,59 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
     } else {
         AttitudeMode::Full
     };
+    let autzen = a.site == "autzen";
     let agl_range_m = match &a.agl_m {
+        None if autzen => (80.0, 300.0),
         None => (1200.0, 2500.0),
         Some(t) => parse_range(t).with_context(|| format!("--agl-m {t}"))?,
     };
     if !(a.max_tilt_deg.is_finite() && (0.0..=60.0).contains(&a.max_tilt_deg)) {
         anyhow::bail!("--max-tilt-deg {}: expected 0 to 60", a.max_tilt_deg);
     }
-    let mut eval = NaipEval::with_map(&maps, &map_orthos, a.map_upsample, params, surf)
+    if a.height_sigma_m.is_some() && autzen && a.map_heights != "constant" {
+        anyhow::bail!(
+            "--height-sigma-m applies to a constant-height map (NAIP, or Autzen with --map-heights constant)"
+        );
+    }
+    let mut eval = if autzen {
+        if !a.map_ortho.is_empty() || a.map_upsample != 1 || a.same_imagery {
+            anyhow::bail!(
+                "--map-ortho, --map-upsample and --same-imagery apply to the NAIP site only"
+            );
+        }
+        let heights = if a.map_heights == "constant" {
+            MapHeights::Constant {
+                sigma_m: a.height_sigma_m,
+            }
+        } else {
+            MapHeights::SurfaceModel
+        };
+        let dir = super::bench::repo_file("../shared/data/autzen");
+        NaipEval::autzen(&dir, params, heights)
+            .map_err(anyhow::Error::msg)
+            .with_context(|| {
+                format!(
+                    "setting up the Autzen evaluation (data expected in {})",
+                    dir.display()
+                )
+            })?
+    } else {
+        NaipEval::with_map_height_sigma(
+            &maps,
+            &map_orthos,
+            a.map_upsample,
+            params,
+            surf,
+            a.height_sigma_m,
+        )
         .map_err(anyhow::Error::msg)
-        .context("setting up the NAIP cross-date evaluation")?;
+        .context("setting up the NAIP cross-date evaluation")?
+    };
     eval.attitude_prior_error_rad = a.attitude_error_deg.to_radians();
     eval.agl_range_m = agl_range_m;
-    eval.max_tilt_deg = a.max_tilt_deg;
+    if !(autzen && a.max_tilt_deg == 20.0) {
+        eval.max_tilt_deg = a.max_tilt_deg;
+    }
     eval.yaw_error_deg = a.yaw_error_deg;
     eval.yaw_sigma_deg = yaw_sigma_deg;
     eval.attitude_mode = attitude_mode;
@@ -155,7 +207,11 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
         if a.no_prior {
             "no position prior"
         } else {
-            "position prior 100 m off"
+            if autzen {
+                "position prior 20 m off per axis"
+            } else {
+                "position prior 100 m off"
+            }
         },
         match attitude_mode {
             AttitudeMode::None => "no attitude".to_string(),
@@ -179,6 +235,10 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
         if let Some(o) = v.as_object_mut() {
             o.insert("prior".into(), prior_text.into());
             o.insert("same_imagery_diagnostic".into(), a.same_imagery.into());
+            o.insert("site".into(), a.site.clone().into());
+            if autzen {
+                o.insert("map_heights".into(), a.map_heights.clone().into());
+            }
         }
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
@@ -187,29 +247,44 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
                 "DIAGNOSTIC: frames rendered from the map's own orthophoto (the solver's error, not an accuracy figure)"
             );
         }
-        println!(
-            "NAIP {} (map {} x{}, frames {}, VGA 60 deg, {:.0}-{:.0} m AGL, tilt <= {} deg, {prior_text}): {} frames",
-            if a.same_imagery {
-                "same-imagery"
-            } else {
-                "cross-date"
-            },
-            map_orthos
-                .iter()
-                .map(|p| p.file_name().unwrap_or_default().to_string_lossy())
-                .collect::<Vec<_>>()
-                .join(" + "),
-            a.map_upsample,
-            if a.same_imagery {
-                "from the map image"
-            } else {
-                "2014"
-            },
-            agl_range_m.0,
-            agl_range_m.1,
-            a.max_tilt_deg,
-            s.frames
-        );
+        if autzen {
+            println!(
+                "Autzen (map on the {}, frames ray-cast on the lidar surface model, VGA 60 deg, {:.0}-{:.0} m AGL, tilt <= {} deg, {prior_text}): {} frames",
+                if a.map_heights == "constant" {
+                    "surface model's median height (constant)"
+                } else {
+                    "lidar surface model"
+                },
+                agl_range_m.0,
+                agl_range_m.1,
+                eval.max_tilt_deg,
+                s.frames
+            );
+        } else {
+            println!(
+                "NAIP {} (map {} x{}, frames {}, VGA 60 deg, {:.0}-{:.0} m AGL, tilt <= {} deg, {prior_text}): {} frames",
+                if a.same_imagery {
+                    "same-imagery"
+                } else {
+                    "cross-date"
+                },
+                map_orthos
+                    .iter()
+                    .map(|p| p.file_name().unwrap_or_default().to_string_lossy())
+                    .collect::<Vec<_>>()
+                    .join(" + "),
+                a.map_upsample,
+                if a.same_imagery {
+                    "from the map image"
+                } else {
+                    "2014"
+                },
+                agl_range_m.0,
+                agl_range_m.1,
+                a.max_tilt_deg,
+                s.frames
+            );
+        }
         println!(
             "  accepted {} ({:.0} %), beyond 3 sigma {}, wrong (> {} m or > {} sigma) {}, image-only NEES(6) mean {:.1}",
             s.accepted,
@@ -241,7 +316,7 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// `LO:HI` or one value (LO = HI), metres above ground: finite, 100 m to 10 km, LO <= HI.
+/// `LO:HI` or one value (LO = HI), metres above ground: finite, 30 m to 10 km, LO <= HI.
 fn parse_range(t: &str) -> anyhow::Result<(f64, f64)> {
     let num = |s: &str| -> anyhow::Result<f64> {
         s.trim()
@@ -257,11 +332,11 @@ fn parse_range(t: &str) -> anyhow::Result<(f64, f64)> {
     };
     if !(lo.is_finite()
         && hi.is_finite()
-        && (100.0..=10_000.0).contains(&lo)
+        && (30.0..=10_000.0).contains(&lo)
         && lo <= hi
         && hi <= 10_000.0)
     {
-        anyhow::bail!("expected heights from 100 to 10000 m with LO <= HI");
+        anyhow::bail!("expected heights from 30 to 10000 m with LO <= HI");
     }
     Ok((lo, hi))
 }
@@ -274,7 +349,7 @@ mod tests {
     fn agl_range_parses_and_refuses() {
         assert_eq!(parse_range("1000").ok(), Some((1000.0, 1000.0)));
         assert_eq!(parse_range("900:1100").ok(), Some((900.0, 1100.0)));
-        for bad in ["", "abc", "1100:900", "50", "NaN", "1000:inf", "1:2:3"] {
+        for bad in ["", "abc", "1100:900", "20", "NaN", "1000:inf", "1:2:3"] {
             assert!(parse_range(bad).is_err(), "{bad}");
         }
     }

@@ -57,6 +57,10 @@ pub struct FixArgs {
     /// Constant ground height AMSL, metres (instead of --dem).
     #[arg(long)]
     pub ground_height: Option<f64>,
+    /// With a GeoTIFF --map: the heights' sigma against the surface the camera sees, metres (as
+    /// `visnav map build --height-sigma-m`; default 10 with --ground-height, 0 with --dem).
+    #[arg(long)]
+    pub height_sigma_m: Option<f64>,
     /// Print the result as one JSON document.
     #[arg(long)]
     pub json: bool,
@@ -120,7 +124,8 @@ fn load_reference(a: &FixArgs) -> anyhow::Result<Arc<dyn Reference>> {
             (None, Some(h)) => HeightSource::ConstantAmsl(h),
             (None, None) => bail!("a GeoTIFF --map needs --dem F.tif or --ground-height M"),
         };
-        let spec = BuildSpec::new(vec![a.map.clone()], height);
+        let mut spec = BuildSpec::new(vec![a.map.clone()], height);
+        spec.height_sigma_m = a.height_sigma_m;
         let r = MapReference::build_temporary(&spec, dem)
             .map_err(anyhow::Error::msg)
             .with_context(|| format!("building a map from {}", a.map.display()))?;

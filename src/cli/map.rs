@@ -61,6 +61,11 @@ pub struct BuildArgs {
     /// Constant ground height, metres AMSL, instead of a DEM.
     #[arg(long, allow_negative_numbers = true)]
     pub ground_height: Option<f64>,
+    /// How far the surface the camera sees (roofs, trees, relief) may be from the heights, 1
+    /// sigma, metres; stored in the map and used by every fix (default: 10 with --ground-height,
+    /// 0 with --dem, i.e. the DEM is the surface; give a bare-earth or 30 m DEM its own figure).
+    #[arg(long)]
+    pub height_sigma_m: Option<f64>,
     /// Output map file.
     #[arg(long)]
     pub out: PathBuf,
@@ -213,6 +218,7 @@ fn build(a: BuildArgs) -> anyhow::Result<ExitCode> {
     spec.surf.hessian_threshold = a.hessian_threshold;
     spec.surf.n_octaves = a.octaves;
     spec.upsample = a.upsample;
+    spec.height_sigma_m = a.height_sigma_m;
     spec.crs_override = a.crs_override_epsg.map(epsg_crs).transpose()?;
     let tty = std::io::stderr().is_terminal();
     let mut last_log = Instant::now();
@@ -292,6 +298,10 @@ fn info(a: InfoArgs) -> anyhow::Result<ExitCode> {
         }
         HeightInfo::Constant { amsl_m } => println!("  constant ground height {amsl_m} m AMSL"),
     }
+    println!(
+        "  height sigma {} m (the surface the camera sees against these heights)",
+        h.height_sigma_m
+    );
     println!("  vertical datum: {}", h.vertical_datum);
     println!(
         "  SURF {:?}, threshold {}, {} octaves x {} layers, upright {}; tile {} px, cap {} per tile",

@@ -743,6 +743,11 @@ impl FixEngine {
             return rej("map geodesy: bad local frame".into(), a);
         };
         let sigma_px = (self.params.sigma_rect_px / scale).max(0.5);
+        let c_enu = match map_to_enu(&crs, &local, g.c_map.x, g.c_map.y, g.c_map.z) {
+            Ok(c) => c,
+            Err(e) => return rej(format!("prior geodesy: {e}"), a),
+        };
+        let height_sigma_m = self.reference.height_sigma_m();
         let mut corrs = Vec::with_capacity(matches.len());
         for m in &matches {
             let q = &query.keypoints[m.query];
@@ -762,10 +767,13 @@ impl FixEngine {
             };
             // SURF localises a keypoint to a fraction of its scale s (rectified pixels).
             let s_rect = f64::from(q.scale.max(f.scale_m / gsd as f32));
+            let sigma_feature_px = sigma_px * (s_rect / 2.0).max(1.0);
+            let sigma_height_px =
+                height_error_px(&p_enu, &c_enu, height_sigma_m, self.camera.intrinsics.fx_px);
             corrs.push(Correspondence {
                 point_world: p_enu,
                 obs_norm: Vector2::new(r.x / r.z, r.y / r.z),
-                sigma_px: sigma_px * (s_rect / 2.0).max(1.0),
+                sigma_px: sigma_feature_px.hypot(sigma_height_px),
             });
         }
         let k = &self.camera.intrinsics;
@@ -776,10 +784,6 @@ impl FixEngine {
             cy_px: k.cy_px,
             width_px: k.width_px,
             height_px: k.height_px,
-        };
-        let c_enu = match map_to_enu(&crs, &local, g.c_map.x, g.c_map.y, g.c_map.z) {
-            Ok(c) => c,
-            Err(e) => return rej(format!("prior geodesy: {e}"), a),
         };
         let priors = Priors {
             // World = local ENU: tilt about east/north, heading about up. A loose heading (after
@@ -859,8 +863,10 @@ impl FixEngine {
         let att = self.camera.mount.attitude_from_r_ned_cam(&r_ned_cam);
         let mut cov = fix.covariance.position_ned_m2(&r_ned_enu);
         let reg_var = self.map_registration_var_m2();
+        let height_var = self.map_height_var_m2();
         cov[(0, 0)] += reg_var;
         cov[(1, 1)] += reg_var;
+        cov[(2, 2)] += height_var;
         let cov_att = fix.covariance.attitude_ned_rad2(&r_ned_enu);
         let to_arr = |m: &nalgebra::Matrix3<f64>| {
             [
@@ -903,6 +909,7 @@ impl FixEngine {
                     let mut image_cov = r * d.image_position_cov_m2 * r.transpose();
                     image_cov[(0, 0)] += reg_var;
                     image_cov[(1, 1)] += reg_var;
+                    image_cov[(2, 2)] += height_var;
                     crate::fix::PriorDependenceNed {
                         d_pos_d_att: to_arr(&(r * d.d_position_d_prior_att * r.transpose())),
                         image_cov_ned_m2: to_arr(&image_cov),
@@ -938,6 +945,15 @@ impl FixEngine {
         (self.params.map_registration_sigma_px * self.reference.ortho_pixel_m()).powi(2)
     }
 
+    /// Vertical variance a height error shared by the whole footprint adds, m^2: every map point
+    /// raised by `dh` raises the solved camera by exactly `dh` and moves nothing else, so the
+    /// map's height sigma ([`Reference::height_sigma_m`]) goes into the vertical in full (the
+    /// per-point weighting of [`height_error_px`] covers the part that varies across the
+    /// footprint, which the points' scatter would otherwise average away).
+    fn map_height_var_m2(&self) -> f64 {
+        self.reference.height_sigma_m().powi(2)
+    }
+
     /// The image-only pose of `fix` in geodetic / NED terms, its 6x6 covariance reordered to
     /// `[position NED, attitude NED]` (the pose module orders `[phi, C]` in the local ENU frame
     /// and uses the same error signs as the filter: `tests/pose_resection.rs` checks them). None
@@ -964,6 +980,7 @@ impl FixEngine {
         let reg_var = self.map_registration_var_m2();
         cov[(0, 0)] += reg_var;
         cov[(1, 1)] += reg_var;
+        cov[(2, 2)] += self.map_height_var_m2();
         let v = super::VisionOnlyPose {
             lat_deg: geo.lat_deg,
             lon_deg: geo.lon_deg,
@@ -1404,6 +1421,24 @@ fn heading_hypotheses(att: &AttitudePriorNed) -> Vec<AttitudePriorNed> {
 }
 
 /// Angle wrapped to (-pi, pi].
+/// Image displacement (pixels, focal length `fx_px`) of a map point at `p` seen from `c` (same
+/// local frame, z up) when its height is off by `height_sigma_m`: the component of a vertical
+/// shift across the line of sight is `dh sin(alpha)` (alpha the ray's angle from the vertical),
+/// seen at range `|p - c|`. 0 for a point straight below the camera, largest at the edge of a
+/// tilted view: the same roof height misleads a point at the edge more than one at nadir.
+fn height_error_px(p: &Vector3<f64>, c: &Vector3<f64>, height_sigma_m: f64, fx_px: f64) -> f64 {
+    if height_sigma_m <= 0.0 {
+        return 0.0;
+    }
+    let d = p - c;
+    let range_m = d.norm();
+    if !(range_m.is_finite() && range_m > 1e-6) {
+        return 0.0;
+    }
+    let sin_alpha = d.xy().norm() / range_m;
+    fx_px * height_sigma_m * sin_alpha / range_m
+}
+
 fn wrap_pi(a: f64) -> f64 {
     let t = std::f64::consts::TAU;
     let w = a - t * (a / t).round();

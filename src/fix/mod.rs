@@ -274,6 +274,7 @@ pub fn engine_from_config(cfg: &crate::config::Config) -> Result<FixEngine, Stri
             let mut spec = crate::map::BuildSpec::new(cfg.map.ortho.clone(), height);
             spec.crs_override = cfg.map.crs_override;
             spec.upsample = cfg.map.upsample.unwrap_or(1);
+            spec.height_sigma_m = cfg.map.height_sigma_m;
             std::sync::Arc::new(
                 MapReference::build_temporary(&spec, dem)
                     .map_err(|e| format!("[map] ortho: {e}"))?,

@@ -66,6 +66,11 @@ pub trait Reference: Send + Sync {
     fn dem(&self) -> &Dem;
     /// Features of `level` whose position lies in `[min_x, min_y, max_x, max_y]`.
     fn select(&self, level: usize, rect_m: [f64; 4]) -> RefSelection;
+    /// Standard deviation of the features' heights against the surface the camera sees, metres
+    /// (`crate::map::MapHeader::height_sigma_m`); 0: the heights are taken as exact.
+    fn height_sigma_m(&self) -> f64 {
+        0.0
+    }
 }
 
 /// Features of an orthophoto extracted in memory, level by level (level `L` is the orthophoto
@@ -356,6 +361,9 @@ impl Reference for MapReference {
     }
     fn dem(&self) -> &Dem {
         &self.dem
+    }
+    fn height_sigma_m(&self) -> f64 {
+        self.map.header().height_sigma_m
     }
     fn select(&self, level: usize, rect_m: [f64; 4]) -> RefSelection {
         let s = self

@@ -686,6 +686,7 @@ mod tests {
                 max_y_m: 2100.0,
             },
             height: HeightInfo::Constant { amsl_m: 580.0 },
+            height_sigma_m: 10.0,
             vertical_datum: "constant".into(),
             orthos: vec![],
             tile_px: 64,

@@ -214,6 +214,12 @@ pub struct MapHeader {
     pub bounds: Bounds,
     /// Height source.
     pub height: HeightInfo,
+    /// Standard deviation of the features' heights against the surface the camera sees, metres
+    /// (roofs, trees and relief a constant height or a bare-earth DEM leaves out, and the DEM's own
+    /// error). The fix weighs each point by it and adds it to its vertical covariance
+    /// (docs/map-format.md, "Height uncertainty"). Files written before it existed read 0.
+    #[serde(default)]
+    pub height_sigma_m: f64,
     /// Vertical datum of `z_amsl_m`, free text (e.g. "DEM datum (orthometric, AMSL)").
     pub vertical_datum: String,
     /// Source orthophotos.

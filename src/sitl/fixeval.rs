@@ -1,11 +1,19 @@
-//! Cross-date evaluation of the vision fix over the bundled NAIP maps (issue 4, acceptance 7b):
-//! frames rendered from the 2014 orthophoto (640x480, 60 deg HFOV, 1200-2500 m above ground, tilt up
-//! to 20 deg, any heading) matched to a reference built from the 2009 orthophoto. The errors come
-//! from the renderer's truth. Used by `tests/fix_naip.rs` and `visnav bench fix`.
+//! Evaluation of the vision fix against rendered frames with the renderer's truth. Two sites:
 //!
-//! Priors (what a navigation filter in GPS-denied cruise would give): position 100 m off (1 sigma,
-//! stated 150 m), altitude 20 m off (stated 30 m), attitude 0.3 deg off per axis (stated 0.5 deg;
-//! `NaipEval::attitude_prior_error_rad` changes the error, not the stated sigma).
+//! * **NAIP** (the default; issue 4, acceptance 7b): cross-date, frames rendered from the 2014
+//!   orthophoto (640x480, 60 deg HFOV, 1200-2500 m above ground, tilt up to 20 deg, any heading)
+//!   matched to a reference built from the 2009 orthophoto over flat ground. Priors (what a
+//!   navigation filter in GPS-denied cruise would give): position 100 m off (1 sigma, stated
+//!   150 m), altitude 20 m off (stated 30 m), attitude 0.3 deg off per axis (stated 0.5 deg;
+//!   `NaipEval::attitude_prior_error_rad` changes the error, not the stated sigma).
+//! * **Autzen** ([`NaipEval::autzen`]; issue 19): drone scale, 80-300 m above the lidar surface
+//!   model, the frames ray-cast on that surface (roofs, trees, stands), photometrically perturbed;
+//!   the map built from the same orthophoto (one date only: the optimistic case for matching, so
+//!   it measures heights and geometry, not cross-season matching) on the surface model or on a
+//!   constant height ([`MapHeights`]). Priors: position 20 m off per axis (stated 30 m), altitude
+//!   5 m off (stated 10 m), attitude as NAIP.
+//!
+//! Used by `tests/fix_naip.rs`, `tests/fix_autzen.rs` and `visnav bench fix`.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -31,6 +39,26 @@ use crate::vision::{GrayImage, SurfParams};
 
 /// Ground height of the bundled NAIP area, metres AMSL (flat prairie, see sitl/maps/README.md).
 pub const NAIP_GROUND_M: f64 = 580.0;
+
+/// The heights an Autzen evaluation's map is built on.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum MapHeights {
+    /// The lidar surface model the frames are ray-cast on (the map's heights are right).
+    SurfaceModel,
+    /// One constant height, the surface model's median (what a user without a DEM would take),
+    /// with this height sigma stated at the build (`None`: the build's default).
+    Constant { sigma_m: Option<f64> },
+}
+
+/// The position / altitude prior an evaluation draws: errors (1 sigma per horizontal axis, and
+/// vertical) and the sigmas the prior states.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PositionPriorSpec {
+    pub error_h_m: f64,
+    pub sigma_h_m: f64,
+    pub error_v_m: f64,
+    pub sigma_v_m: f64,
+}
 
 /// The evaluation set-up: the 2009 reference, the fix engine and the 2014 renderer.
 pub struct NaipEval {
@@ -61,6 +89,12 @@ pub struct NaipEval {
     pub same_imagery: bool,
     /// The map's own orthophoto as a scene (for `same_imagery`).
     map_scene: Scene,
+    /// The surface the frames are rendered on (the truth's ground height).
+    terrain: Dem,
+    /// Frames' nadir points stay this far inside the map's bounds, metres.
+    margin_m: f64,
+    /// The position prior's errors and stated sigmas.
+    pub position_prior: PositionPriorSpec,
 }
 
 /// The attitude the evaluation's prior carries.
@@ -162,6 +196,26 @@ pub struct Summary {
     pub rejections: Vec<(String, usize)>,
 }
 
+/// Median of `dem` over `bounds` on a 10 m grid (valid cells only), metres.
+fn median_height_m(dem: &Dem, bounds: &crate::geo::raster::Bounds) -> Result<f64, String> {
+    let mut h = Vec::new();
+    let mut y = bounds.min_y_m;
+    while y <= bounds.max_y_m {
+        let mut x = bounds.min_x_m;
+        while x <= bounds.max_x_m {
+            h.extend(dem.height_at(x, y).filter(|v| v.is_finite()));
+            x += 10.0;
+        }
+        y += 10.0;
+    }
+    let m = percentile(&h, 0.5);
+    if m.is_finite() {
+        Ok(m)
+    } else {
+        Err("the surface model has no valid height over the orthophoto".into())
+    }
+}
+
 fn uni(rng: &mut Rng, lo: f64, hi: f64) -> f64 {
     lo + (hi - lo) * rng.uniform()
 }
@@ -198,6 +252,19 @@ impl NaipEval {
         params: FixParams,
         surf: SurfParams,
     ) -> Result<Self, String> {
+        Self::with_map_height_sigma(maps_dir, map_orthos, upsample, params, surf, None)
+    }
+
+    /// [`Self::with_map`] with the map's height sigma stated at its build (`None`: the build's
+    /// default for a constant height).
+    pub fn with_map_height_sigma(
+        maps_dir: &Path,
+        map_orthos: &[PathBuf],
+        upsample: usize,
+        params: FixParams,
+        surf: SurfParams,
+        height_sigma_m: Option<f64>,
+    ) -> Result<Self, String> {
         let load =
             |path: &Path| load_geotiff(path, None).map_err(|e| format!("{}: {e}", path.display()));
         let first = map_orthos
@@ -224,6 +291,7 @@ impl NaipEval {
         );
         spec.surf = surf;
         spec.upsample = upsample;
+        spec.height_sigma_m = height_sigma_m;
         let reference = MapReference::build_temporary(&spec, None)?;
         let engine = FixEngine::new(Arc::new(reference), vga_camera(), params)
             .map_err(|e| format!("engine: {e}"))?;
@@ -254,7 +322,95 @@ impl NaipEval {
             attitude_mode: AttitudeMode::Full,
             same_imagery: false,
             map_scene,
+            terrain: flat()?,
+            margin_m: 600.0,
+            position_prior: PositionPriorSpec {
+                error_h_m: 100.0,
+                sigma_h_m: 150.0,
+                error_v_m: 20.0,
+                sigma_v_m: 30.0,
+            },
         })
+    }
+
+    /// The Autzen drone-scale case (module docs) from `data_dir` (`../shared/data/autzen`): the
+    /// 0.3 m orthophoto and the 1 m lidar surface model, the map on `heights`.
+    pub fn autzen(data_dir: &Path, params: FixParams, heights: MapHeights) -> Result<Self, String> {
+        let ortho = data_dir.join("autzen_ortho_0p3m_utm10n.tif");
+        let dsm = data_dir.join("autzen_dsm_1m_utm10n.tif");
+        let map_raster =
+            load_geotiff(&ortho, None).map_err(|e| format!("{}: {e}", ortho.display()))?;
+        let dsm_dem = || {
+            Dem::load_geotiff(&dsm, Some(map_raster.crs()))
+                .map_err(|e| format!("{}: {e}", dsm.display()))
+        };
+        let surface = dsm_dem()?;
+        let mut spec = match heights {
+            MapHeights::SurfaceModel => {
+                BuildSpec::new(vec![ortho.clone()], HeightSource::Dem(dsm.clone()))
+            }
+            MapHeights::Constant { sigma_m } => {
+                let mut spec = BuildSpec::new(
+                    vec![ortho.clone()],
+                    HeightSource::ConstantAmsl(median_height_m(&surface, &map_raster.bounds())?),
+                );
+                spec.height_sigma_m = sigma_m;
+                spec
+            }
+        };
+        spec.surf = SurfParams {
+            upright: true,
+            ..SurfParams::default()
+        };
+        let reference = MapReference::build_temporary(&spec, None)?;
+        let engine = FixEngine::new(Arc::new(reference), vga_camera(), params)
+            .map_err(|e| format!("engine: {e}"))?;
+        let scene = Scene::new(&map_raster, dsm_dem()?, ColourMode::Grey)
+            .map_err(|e| format!("scene: {e}"))?;
+        let map_scene = Scene::new(&map_raster, dsm_dem()?, ColourMode::Grey)
+            .map_err(|e| format!("scene: {e}"))?;
+        // One date only: the frames differ from the map by the camera's photometry.
+        let mut render = RenderSpec {
+            seed: 7,
+            ..RenderSpec::default()
+        };
+        render.exposure.gain = 1.15;
+        render.exposure.gamma = 0.8;
+        render.exposure.vignetting_corner = 0.15;
+        render.blur.sigma_px = 0.7;
+        render.noise.read_dn = 2.0;
+        let renderer = Renderer::new(vga_camera(), render).map_err(|e| format!("renderer: {e}"))?;
+        let crs = map_raster.crs();
+        Ok(Self {
+            map_raster,
+            engine,
+            scene,
+            renderer,
+            crs,
+            attitude_prior_error_rad: 0.3f64.to_radians(),
+            agl_range_m: (80.0, 300.0),
+            max_tilt_deg: 10.0,
+            yaw_error_deg: 0.0,
+            yaw_sigma_deg: 0.5,
+            attitude_mode: AttitudeMode::Full,
+            same_imagery: false,
+            map_scene,
+            terrain: surface,
+            margin_m: 250.0,
+            position_prior: PositionPriorSpec {
+                error_h_m: 20.0,
+                sigma_h_m: 30.0,
+                error_v_m: 5.0,
+                sigma_v_m: 10.0,
+            },
+        })
+    }
+
+    /// Height of the rendered surface at `(x, y)` (the truth's ground), metres AMSL.
+    pub fn ground_m(&self, x_m: f64, y_m: f64) -> f64 {
+        self.terrain
+            .height_at(x_m, y_m)
+            .unwrap_or_else(|| self.terrain.height_range_m().0)
     }
 
     /// Map pixel size, metres.
@@ -273,7 +429,7 @@ impl NaipEval {
             uni(rng, -180.0, 180.0),
         );
         let gamma = grid_convergence_rad(&self.crs, x_m, y_m).unwrap_or(0.0);
-        let body = Vector3::new(x_m, y_m, NAIP_GROUND_M + agl_m);
+        let body = Vector3::new(x_m, y_m, self.ground_m(x_m, y_m) + agl_m);
         Case {
             pose: RenderPose::from_body(body, &attitude, &Mount::nadir(), gamma),
             attitude,
@@ -298,10 +454,14 @@ impl NaipEval {
     /// The prior a filter would give (see the module doc).
     pub fn prior(&self, rng: &mut Rng, case: &Case, index: u64) -> Result<FixPrior, String> {
         let c = case.pose.centre_map_m;
-        let (px, py) = (c.x + 100.0 * rng.normal(), c.y + 100.0 * rng.normal());
+        let pp = self.position_prior;
+        let (px, py) = (
+            c.x + pp.error_h_m * rng.normal(),
+            c.y + pp.error_h_m * rng.normal(),
+        );
         let (lat, lon) = self.crs.to_geodetic(px, py).map_err(|e| e.to_string())?;
         // Draw order as before the attitude modes existed (the same frames and priors per seed).
-        let alt_amsl_m = c.z + 20.0 * rng.normal();
+        let alt_amsl_m = c.z + pp.error_v_m * rng.normal();
         let n = self.attitude_prior_error_rad;
         let a = &case.attitude;
         let sign = if index.is_multiple_of(2) { 1.0 } else { -1.0 };
@@ -333,8 +493,8 @@ impl NaipEval {
                 lat_deg: lat,
                 lon_deg: lon,
                 alt_amsl_m,
-                sigma_h_m: 150.0,
-                sigma_v_m: 30.0,
+                sigma_h_m: pp.sigma_h_m,
+                sigma_v_m: pp.sigma_v_m,
             }),
             attitude,
             attitude_from_filter: false,
@@ -363,8 +523,9 @@ impl NaipEval {
             (x + de * h / dd, y + dn * h / dd)
         };
         let a_est = Attitude::from_deg(r.roll_deg, r.pitch_deg, r.yaw_deg);
-        let h_true = t.z - NAIP_GROUND_M;
-        let g_est = ground(&a_est, r.x_m, r.y_m, r.z_m - NAIP_GROUND_M);
+        let ground_m = self.ground_m(t.x, t.y);
+        let h_true = t.z - ground_m;
+        let g_est = ground(&a_est, r.x_m, r.y_m, r.z_m - ground_m);
         let g_true = ground(&case.attitude, t.x, t.y, h_true);
         let z_est = a_est.r_ned_body() * Vector3::z();
         let z_true = case.attitude.r_ned_body() * Vector3::z();
@@ -440,8 +601,16 @@ impl NaipEval {
         let mut nees6 = Vec::new();
         let mut reasons: std::collections::BTreeMap<String, usize> = Default::default();
         for i in 0..n {
-            let x = uni(&mut rng, b.min_x_m + 600.0, b.max_x_m - 600.0);
-            let y = uni(&mut rng, b.min_y_m + 600.0, b.max_y_m - 600.0);
+            let x = uni(
+                &mut rng,
+                b.min_x_m + self.margin_m,
+                b.max_x_m - self.margin_m,
+            );
+            let y = uni(
+                &mut rng,
+                b.min_y_m + self.margin_m,
+                b.max_y_m - self.margin_m,
+            );
             let case = self.random_case(&mut rng, x, y);
             let scene = self.same_imagery.then_some(&self.map_scene);
             let img = self.frame(&case, i as u64, scene)?;
@@ -480,7 +649,7 @@ impl NaipEval {
                     s.err_sigma,
                     r.cov_ned_m2[0][0].max(r.cov_ned_m2[1][1]).sqrt(),
                     r.cov_ned_m2[2][2].sqrt(),
-                    case.pose.centre_map_m.z - NAIP_GROUND_M,
+                    case.pose.centre_map_m.z - self.ground_m(x, y),
                     prior_dv_m,
                     s.ground_err_m,
                     s.tilt_err_deg,

@@ -68,7 +68,7 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
         dir.path(),
         "[link]\nconnection = \"udpin:0.0.0.0:99999\"\n\
          [camera]\nwidth_px = 640\nheight_px = 480\nhfov_deg = 200.0\n\
-         [map]\northo = [\"nope.tif\"]\ndem = \"nope_dem.tif\"\nground_height_amsl_m = 3.0\nupsample = 3\n\
+         [map]\northo = [\"nope.tif\"]\ndem = \"nope_dem.tif\"\nground_height_amsl_m = 3.0\nupsample = 3\nheight_sigma_m = -2.0\n\
          [nav.imu]\ngyro_arw_deg_sqrt_h = -1.0\n\
          [output]\nrate_hz = 500.0\nmodes = [\"gps_input\", \"gps_input\"]\n",
     );
@@ -82,6 +82,7 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
         "map.dem",
         "map.upsample",
         "must be 1, 2 or 4",
+        "map.height_sigma_m",
         "output.rate_hz",
         "500",
         "output.modes",

@@ -1894,6 +1894,22 @@ mod tests {
     }
 
     #[test]
+    fn a_height_error_moves_a_point_in_the_image_by_its_viewing_angle() {
+        let c = Vector3::new(0.0, 0.0, 100.0);
+        let fx = 500.0;
+        // Straight below: a height error moves the point along the ray, not across it.
+        assert_eq!(height_error_px(&Vector3::zeros(), &c, 10.0, fx), 0.0);
+        // 45 deg off the vertical at range 100 sqrt(2): 500 * 10 * sin 45 / 141.4 = 25 px.
+        let p = Vector3::new(100.0, 0.0, 0.0);
+        let px = height_error_px(&p, &c, 10.0, fx);
+        assert!((px - 25.0).abs() < 1e-9, "{px}");
+        // Proportional to the sigma; none without one; a degenerate geometry gives 0, not NaN.
+        assert!((height_error_px(&p, &c, 5.0, fx) - 12.5).abs() < 1e-9);
+        assert_eq!(height_error_px(&p, &c, 0.0, fx), 0.0);
+        assert_eq!(height_error_px(&c, &c, 10.0, fx), 0.0);
+    }
+
+    #[test]
     fn heading_hypotheses_cover_three_sigma_and_keep_the_tilt() {
         let step = HEADING_STEP_DEG;
         for (sigma, yaw0) in [

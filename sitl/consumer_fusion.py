@@ -17,6 +17,13 @@ only"). Standard library only.
 
 import math
 
+from sitl_common import stats
+
+# The check scripts score every sample from this long after the GPS went off while the copter
+# flies faster than SCORE_MIN_SPEED_M_S (the turns' hover-like moments say nothing of fusion).
+SCORE_AFTER_GPS_OFF_S = 5.0
+SCORE_MIN_SPEED_M_S = 5.0
+
 # EKF3's default accelerometer process noise, m/s^2 (EK3_ACC_P_NSE).
 DEFAULT_Q_ACC_M_S2 = 0.35
 # EKF3 floors the claimed accuracies at its own noise parameters (EK3_POSNE_M_NSE 0.5 m,
@@ -81,3 +88,23 @@ def fused_errors(msgs_ne, truth_pos, truth_acc, fuse_velocity=True, q_acc=DEFAUL
             tn, te = truth_pos(t)
             errs.append(math.hypot(n - tn, e - te))
     return errs
+
+
+def print_comparison(autopilot, injected, msgs_ne, truth_pos, truth_acc, keep, as_flown=None):
+    """The check scripts' table: `autopilot` and `injected` are (label, errors); then the model of
+    the same injected stream (`fused_errors` arguments) as flown (`as_flown`: whether the flight
+    fused the velocity; None: not printed), with the velocity, and position only."""
+    def row(label, errs):
+        s = stats(errs)
+        if s is None:
+            print(f"{label:34s} no samples")
+        else:
+            print(f"{label:34s} {s['median_m']:6.1f} {s['p90_m']:6.1f} {s['max_m']:6.1f}   n {s['n']}")
+
+    print(f"{'horizontal error after GPS off, m':34s} {'median':>6s} {'p90':>6s} {'max':>6s}")
+    row(*autopilot)
+    row(*injected)
+    if as_flown is not None:
+        row("model, as flown", fused_errors(msgs_ne, truth_pos, truth_acc, as_flown, keep=keep))
+    row("model, position and velocity", fused_errors(msgs_ne, truth_pos, truth_acc, True, keep=keep))
+    row("model, position only", fused_errors(msgs_ne, truth_pos, truth_acc, False, keep=keep))

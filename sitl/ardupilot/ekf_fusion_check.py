@@ -20,16 +20,14 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from consumer_fusion import fused_errors  # noqa: E402
-from sitl_common import metres_per_deg, stats  # noqa: E402
+from consumer_fusion import (SCORE_AFTER_GPS_OFF_S, SCORE_MIN_SPEED_M_S,  # noqa: E402
+                             print_comparison)
+from sitl_common import metres_per_deg  # noqa: E402
 
 try:
     from pymavlink import DFReader
 except ImportError:
     sys.exit("ekf_fusion_check.py needs pymavlink: use the venv python of scripts/interop/setup_venv.sh")
-
-SETTLE_S = 5.0
-MIN_SPEED_M_S = 5.0
 
 
 def read_log(path):
@@ -96,7 +94,8 @@ def main():
         return ((b[0] - a[0]) / dt, (b[1] - a[1]) / dt)
 
     def scored(t):
-        return t >= off + SETTLE_S and math.hypot(*truth_vel(t)) > MIN_SPEED_M_S
+        return (t >= off + SCORE_AFTER_GPS_OFF_S
+                and math.hypot(*truth_vel(t)) > SCORE_MIN_SPEED_M_S)
 
     msgs = []
     for t, lat, lon, vn, ve in gps:
@@ -106,23 +105,14 @@ def main():
         n, e = ne(lat, lon)
         msgs.append((t, n, e, vn, ve, acc[1], acc[2]))
 
-    def row(label, errs):
-        s = stats(errs)
-        if s is None:
-            print(f"{label:34s} no samples")
-        else:
-            print(f"{label:34s} {s['median_m']:6.1f} {s['p90_m']:6.1f} {s['max_m']:6.1f}   n {s['n']}")
-
     print(f"GPS off at boot {off:.1f} s; EK3_SRC1_VELXY {params.get('EK3_SRC1_VELXY', '?'):.0f}")
-    print(f"{'horizontal error after GPS off, m':34s} {'median':>6s} {'p90':>6s} {'max':>6s}")
-    row("EKF3 (POS), as flown", [math.hypot(*(a - b for a, b in zip(ne(la, lo), truth_pos(t))))
-                                 for t, la, lo in pos if scored(t)])
-    row("injected (GPS1 echo)", [math.hypot(m[1] - truth_pos(m[0])[0], m[2] - truth_pos(m[0])[1])
-                                 for m in msgs if scored(m[0])])
-    vel_fused = params.get("EK3_SRC1_VELXY", 3) == 3
-    row("model, as flown", fused_errors(msgs, truth_pos, truth_acc, vel_fused, keep=scored))
-    row("model, position and velocity", fused_errors(msgs, truth_pos, truth_acc, True, keep=scored))
-    row("model, position only", fused_errors(msgs, truth_pos, truth_acc, False, keep=scored))
+    ekf = [math.hypot(*(a - b for a, b in zip(ne(la, lo), truth_pos(t))))
+           for t, la, lo in pos if scored(t)]
+    inj = [math.hypot(m[1] - truth_pos(m[0])[0], m[2] - truth_pos(m[0])[1])
+           for m in msgs if scored(m[0])]
+    print_comparison(("EKF3 (POS), as flown", ekf), ("injected (GPS1 echo)", inj), msgs,
+                     truth_pos, truth_acc, scored,
+                     as_flown=params.get("EK3_SRC1_VELXY", 3) == 3)
 
 
 if __name__ == "__main__":

@@ -21,16 +21,14 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from consumer_fusion import fused_errors  # noqa: E402
-from sitl_common import metres_per_deg, stats, ulog_topic as topic  # noqa: E402
+from consumer_fusion import (SCORE_AFTER_GPS_OFF_S, SCORE_MIN_SPEED_M_S,  # noqa: E402
+                             print_comparison)
+from sitl_common import metres_per_deg, ulog_topic as topic  # noqa: E402
 
 try:
     from pyulog import ULog
 except ImportError:
     sys.exit("ekf2_fusion_check.py needs pyulog: python3 -m pip install pyulog")
-
-SETTLE_S = 5.0
-MIN_SPEED_M_S = 5.0
 
 
 def rotate_body_to_ned(q, v):
@@ -91,7 +89,8 @@ def main():
                 (interp(gt_ve, t1) - interp(gt_ve, t0)) / dt)
 
     def scored(t):
-        return t >= off + SETTLE_S and math.hypot(interp(gt_vn, t), interp(gt_ve, t)) > MIN_SPEED_M_S
+        return (t >= off + SCORE_AFTER_GPS_OFF_S
+                and math.hypot(interp(gt_vn, t), interp(gt_ve, t)) > SCORE_MIN_SPEED_M_S)
 
     lp_t = [int(t) * 1e-6 for t in lp["timestamp"]]
     msgs = []
@@ -114,16 +113,8 @@ def main():
     if not msgs:
         sys.exit(f"{args.ulg}: no usable ODOMETRY samples after the GPS went off")
 
-    def row(label, errs):
-        s = stats(errs)
-        if s is None:
-            print(f"{label:34s} no samples")
-        else:
-            print(f"{label:34s} {s['median_m']:6.1f} {s['p90_m']:6.1f} {s['max_m']:6.1f}   n {s['n']}")
-
     ev_ctrl = int(u.initial_parameters.get("EKF2_EV_CTRL", -1))
     print(f"GPS off at boot {off:.1f} s; EKF2_EV_CTRL {ev_ctrl}")
-    print(f"{'horizontal error after GPS off, m':34s} {'median':>6s} {'p90':>6s} {'max':>6s}")
     ekf = []
     for i in range(len(lp_t)):
         if scored(lp_t[i]):
@@ -131,12 +122,10 @@ def main():
                              float(lp["y"][i]))
             tn, te = truth_pos(lp_t[i])
             ekf.append(math.hypot(n - tn, e - te))
-    row("EKF2 (vehicle_local_position)", ekf)
-    row("injected (ODOMETRY as received)",
-        [math.hypot(m[1] - truth_pos(m[0])[0], m[2] - truth_pos(m[0])[1]) for m in msgs
-         if scored(m[0])])
-    row("model, position and velocity", fused_errors(msgs, truth_pos, truth_acc, True, keep=scored))
-    row("model, position only", fused_errors(msgs, truth_pos, truth_acc, False, keep=scored))
+    inj = [math.hypot(m[1] - truth_pos(m[0])[0], m[2] - truth_pos(m[0])[1]) for m in msgs
+           if scored(m[0])]
+    print_comparison(("EKF2 (vehicle_local_position)", ekf),
+                     ("injected (ODOMETRY as received)", inj), msgs, truth_pos, truth_acc, scored)
 
 
 if __name__ == "__main__":

@@ -64,12 +64,13 @@ pub struct FixBenchArgs {
     #[arg(long, default_value_t = 1)]
     pub map_upsample: usize,
     /// Heights above ground of the frames, metres: `LO:HI` (uniform) or one value (default: the
-    /// acceptance envelope, 1200:2500).
+    /// site's envelope, 1200:2500 for NAIP, 80:300 for Autzen).
     #[arg(long, value_name = "LO[:HI]")]
     pub agl_m: Option<String>,
-    /// Largest tilt of the frames from level, degrees (default 20).
-    #[arg(long, default_value_t = 20.0)]
-    pub max_tilt_deg: f64,
+    /// Largest tilt of the frames from level, degrees (default: the site's, 20 for NAIP, 10 for
+    /// Autzen).
+    #[arg(long)]
+    pub max_tilt_deg: Option<f64>,
     /// Override `[fix]` settings with a TOML snippet, e.g. 'ratio = 0.9' (keys of the `[fix]` section).
     #[arg(long)]
     pub set: Option<String>,
@@ -139,12 +140,13 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
     };
     let autzen = a.site == "autzen";
     let agl_range_m = match &a.agl_m {
-        None if autzen => (80.0, 300.0),
-        None => (1200.0, 2500.0),
-        Some(t) => parse_range(t).with_context(|| format!("--agl-m {t}"))?,
+        None => None,
+        Some(t) => Some(parse_range(t).with_context(|| format!("--agl-m {t}"))?),
     };
-    if !(a.max_tilt_deg.is_finite() && (0.0..=60.0).contains(&a.max_tilt_deg)) {
-        anyhow::bail!("--max-tilt-deg {}: expected 0 to 60", a.max_tilt_deg);
+    if let Some(t) = a.max_tilt_deg
+        && !(t.is_finite() && (0.0..=60.0).contains(&t))
+    {
+        anyhow::bail!("--max-tilt-deg {t}: expected 0 to 60");
     }
     if a.height_sigma_m.is_some() && autzen && a.map_heights != "constant" {
         anyhow::bail!(
@@ -186,9 +188,11 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
         .context("setting up the NAIP cross-date evaluation")?
     };
     eval.attitude_prior_error_rad = a.attitude_error_deg.to_radians();
-    eval.agl_range_m = agl_range_m;
-    if !(autzen && a.max_tilt_deg == 20.0) {
-        eval.max_tilt_deg = a.max_tilt_deg;
+    if let Some(r) = agl_range_m {
+        eval.agl_range_m = r;
+    }
+    if let Some(t) = a.max_tilt_deg {
+        eval.max_tilt_deg = t;
     }
     eval.yaw_error_deg = a.yaw_error_deg;
     eval.yaw_sigma_deg = yaw_sigma_deg;
@@ -255,8 +259,8 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
                 } else {
                     "lidar surface model"
                 },
-                agl_range_m.0,
-                agl_range_m.1,
+                eval.agl_range_m.0,
+                eval.agl_range_m.1,
                 eval.max_tilt_deg,
                 s.frames
             );
@@ -279,9 +283,9 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
                 } else {
                     "2014"
                 },
-                agl_range_m.0,
-                agl_range_m.1,
-                a.max_tilt_deg,
+                eval.agl_range_m.0,
+                eval.agl_range_m.1,
+                eval.max_tilt_deg,
                 s.frames
             );
         }

@@ -60,6 +60,14 @@ pub struct PositionPriorSpec {
     pub sigma_v_m: f64,
 }
 
+/// What differs between the evaluation sites besides their data.
+struct Site {
+    agl_range_m: (f64, f64),
+    max_tilt_deg: f64,
+    margin_m: f64,
+    position_prior: PositionPriorSpec,
+}
+
 /// The evaluation set-up: the 2009 reference, the fix engine and the 2014 renderer.
 pub struct NaipEval {
     pub map_raster: Raster,
@@ -307,30 +315,55 @@ impl NaipEval {
             },
         )
         .map_err(|e| format!("renderer: {e}"))?;
+        Ok(Self::from_parts(
+            map_raster,
+            engine,
+            [scene, map_scene],
+            renderer,
+            flat()?,
+            Site {
+                agl_range_m: (1200.0, 2500.0),
+                max_tilt_deg: 20.0,
+                margin_m: 600.0,
+                position_prior: PositionPriorSpec {
+                    error_h_m: 100.0,
+                    sigma_h_m: 150.0,
+                    error_v_m: 20.0,
+                    sigma_v_m: 30.0,
+                },
+            },
+        ))
+    }
+
+    /// The set-up from its parts, with the defaults every site shares (0.3 deg attitude error,
+    /// full attitude prior with a 0.5 deg heading sigma, frames from the camera scene).
+    fn from_parts(
+        map_raster: Raster,
+        engine: FixEngine,
+        [scene, map_scene]: [Scene; 2],
+        renderer: Renderer,
+        terrain: Dem,
+        site: Site,
+    ) -> Self {
         let crs = map_raster.crs();
-        Ok(Self {
+        Self {
             map_raster,
             engine,
             scene,
             renderer,
             crs,
             attitude_prior_error_rad: 0.3f64.to_radians(),
-            agl_range_m: (1200.0, 2500.0),
-            max_tilt_deg: 20.0,
+            agl_range_m: site.agl_range_m,
+            max_tilt_deg: site.max_tilt_deg,
             yaw_error_deg: 0.0,
             yaw_sigma_deg: 0.5,
             attitude_mode: AttitudeMode::Full,
             same_imagery: false,
             map_scene,
-            terrain: flat()?,
-            margin_m: 600.0,
-            position_prior: PositionPriorSpec {
-                error_h_m: 100.0,
-                sigma_h_m: 150.0,
-                error_v_m: 20.0,
-                sigma_v_m: 30.0,
-            },
-        })
+            terrain,
+            margin_m: site.margin_m,
+            position_prior: site.position_prior,
+        }
     }
 
     /// The Autzen drone-scale case (module docs) from `data_dir` (`../shared/data/autzen`): the
@@ -340,11 +373,8 @@ impl NaipEval {
         let dsm = data_dir.join("autzen_dsm_1m_utm10n.tif");
         let map_raster =
             load_geotiff(&ortho, None).map_err(|e| format!("{}: {e}", ortho.display()))?;
-        let dsm_dem = || {
-            Dem::load_geotiff(&dsm, Some(map_raster.crs()))
-                .map_err(|e| format!("{}: {e}", dsm.display()))
-        };
-        let surface = dsm_dem()?;
+        let surface = Dem::load_geotiff(&dsm, Some(map_raster.crs()))
+            .map_err(|e| format!("{}: {e}", dsm.display()))?;
         let mut spec = match heights {
             MapHeights::SurfaceModel => {
                 BuildSpec::new(vec![ortho.clone()], HeightSource::Dem(dsm.clone()))
@@ -365,9 +395,8 @@ impl NaipEval {
         let reference = MapReference::build_temporary(&spec, None)?;
         let engine = FixEngine::new(Arc::new(reference), vga_camera(), params)
             .map_err(|e| format!("engine: {e}"))?;
-        let scene = Scene::new(&map_raster, dsm_dem()?, ColourMode::Grey)
-            .map_err(|e| format!("scene: {e}"))?;
-        let map_scene = Scene::new(&map_raster, dsm_dem()?, ColourMode::Grey)
+        // The camera scene is the map's own orthophoto (one date only).
+        let scene = Scene::new(&map_raster, surface.clone(), ColourMode::Grey)
             .map_err(|e| format!("scene: {e}"))?;
         // One date only: the frames differ from the map by the camera's photometry.
         let mut render = RenderSpec {
@@ -380,30 +409,24 @@ impl NaipEval {
         render.blur.sigma_px = 0.7;
         render.noise.read_dn = 2.0;
         let renderer = Renderer::new(vga_camera(), render).map_err(|e| format!("renderer: {e}"))?;
-        let crs = map_raster.crs();
-        Ok(Self {
+        Ok(Self::from_parts(
             map_raster,
             engine,
-            scene,
+            [scene.clone(), scene],
             renderer,
-            crs,
-            attitude_prior_error_rad: 0.3f64.to_radians(),
-            agl_range_m: (80.0, 300.0),
-            max_tilt_deg: 10.0,
-            yaw_error_deg: 0.0,
-            yaw_sigma_deg: 0.5,
-            attitude_mode: AttitudeMode::Full,
-            same_imagery: false,
-            map_scene,
-            terrain: surface,
-            margin_m: 250.0,
-            position_prior: PositionPriorSpec {
-                error_h_m: 20.0,
-                sigma_h_m: 30.0,
-                error_v_m: 5.0,
-                sigma_v_m: 10.0,
+            surface,
+            Site {
+                agl_range_m: (80.0, 300.0),
+                max_tilt_deg: 10.0,
+                margin_m: 250.0,
+                position_prior: PositionPriorSpec {
+                    error_h_m: 20.0,
+                    sigma_h_m: 30.0,
+                    error_v_m: 5.0,
+                    sigma_v_m: 10.0,
+                },
             },
-        })
+        ))
     }
 
     /// Height of the rendered surface at `(x, y)` (the truth's ground), metres AMSL.

@@ -105,6 +105,31 @@ fn naip_constant_height_map() {
         h.levels
     );
     assert_eq!(h.n_features(), summary.header.n_features());
+    // Each level's grey image is its level window, rounded into 1..=255 (0 = no data), on a
+    // grid whose origin is the bounds' north-west corner.
+    for (l, info) in h.levels.iter().enumerate() {
+        let (img, data) = m.level_image(l).expect("format 2 maps carry level images");
+        assert_eq!(
+            (img.origin_x_m, img.origin_y_m),
+            (h.bounds.min_x_m, h.bounds.max_y_m)
+        );
+        let (w, hh) = (r.width() >> l, r.height() >> l);
+        assert!(img.width_px as usize >= w && img.height_px as usize >= hh);
+        assert!((img.width_px as f64 - (r.width() as f64) / f64::from(1u32 << l)).abs() < 1.0);
+        let (grey, valid) = level_window(&r, l, 0, 0, w, hh);
+        let iw = img.width_px as usize;
+        for y in 0..hh {
+            for x in 0..w {
+                let want = if valid[y * w + x] {
+                    grey[y * w + x].round().clamp(1.0, 255.0) as u8
+                } else {
+                    0
+                };
+                assert_eq!(data[y * iw + x], want, "level {l} pixel ({x}, {y})");
+            }
+        }
+        assert!(info.image.is_some());
+    }
     let all = sorted_features(&m);
     assert!(all.iter().all(|f| f.z_amsl_m == 580.0
         && h.bounds.contains(f.x_m, f.y_m)

@@ -22,12 +22,12 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use nalgebra::{Rotation3, Vector2, Vector3};
+use nalgebra::{Point2, Rotation3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::rectify::Rectification;
 use super::reference::{RefSelection, Reference};
-use super::{AttitudePriorNed, FixPrior, FixReport, PositionPriorGeo};
+use super::{AttitudePriorNed, FixMethod, FixPrior, FixReport, PositionPriorGeo};
 use crate::camera::frames::{r_enu_ned, rot_z};
 use crate::camera::{Attitude, Camera};
 use crate::config::{Problems, Validate};
@@ -80,8 +80,25 @@ pub struct FixParams {
     pub reloc_budget_mwork: f64,
     /// Attitude 1-sigma assumed when the prior gives none, degrees (nadir, any heading is searched).
     pub reloc_tilt_sigma_deg: f64,
+    /// Area correlation of the rectified frame with the map's image (`fix::area`) beside the
+    /// features: `fallback` (features first, area when they fail), `first`, `only` or `off`.
+    pub area_matching: AreaMatching,
     /// Resection, RANSAC and integrity settings.
     pub pose: ResectionConfig,
+}
+
+/// When the area correlation runs (`[fix] area_matching`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AreaMatching {
+    /// Features only.
+    Off,
+    /// Features first; the area correlation when they give no accepted fix.
+    Fallback,
+    /// The area correlation first; features when it gives no accepted fix.
+    First,
+    /// The area correlation only.
+    Only,
 }
 
 impl Default for FixParams {
@@ -101,6 +118,7 @@ impl Default for FixParams {
             null_factor: 1.5,
             reloc_budget_mwork: 60.0,
             reloc_tilt_sigma_deg: 5.0,
+            area_matching: AreaMatching::Fallback,
             pose: default_pose_config(),
         }
     }
@@ -245,6 +263,11 @@ pub struct Attempt {
     pub null_matches: usize,
     /// The fine matches: frame pixel (distorted) and map point (grid x, y, height AMSL).
     pub pairs: Vec<([f64; 2], [f64; 3])>,
+    /// Area correlation: the placement's peak and the best other place (0 when not run).
+    pub area_ncc: f64,
+    pub area_runner_up: f64,
+    /// Area correlation: tie points found.
+    pub area_ties: usize,
 }
 
 impl Attempt {
@@ -271,6 +294,91 @@ struct PriorGeom {
     /// not the heading hypothesis the frame was rectified with; None: no attitude prior.
     solve: Option<SolvePrior>,
 }
+
+/// How one rectification is matched ([`FixEngine::fix_single`]).
+#[derive(Debug, Clone, Copy)]
+struct Single {
+    /// The attitude prior is the navigation filter's own.
+    att_from_filter: bool,
+    /// The area correlation may run.
+    area: bool,
+}
+
+impl Single {
+    /// Features only, an independent attitude prior (searches).
+    const FEATURES: Self = Self {
+        att_from_filter: false,
+        area: false,
+    };
+}
+
+/// One rectified view of a frame, as the correspondence stages see it.
+struct View<'a> {
+    rect: &'a Rectification,
+    g: &'a PriorGeom,
+    level: usize,
+    agl_m: f64,
+    /// Rectified pixels per frame pixel.
+    scale: f64,
+}
+
+/// A correspondence before the resection: frame pixel (distorted), map point (grid x, y,
+/// height AMSL) and the localisation sigma in frame pixels.
+struct Pair {
+    frame_px: Point2<f64>,
+    map: [f64; 3],
+    sigma_px: f64,
+}
+
+/// Placement hypotheses `(scale, rotation)` covering `+-max_log_scale` and `+-max_rot_rad` in
+/// steps of [`AREA_LOG_SCALE_STEP`] and [`AREA_ROT_STEP_RAD`] (the identity first).
+fn similarity_hypotheses(max_log_scale: f64, max_rot_rad: f64) -> Vec<(f64, f64)> {
+    let ns = (max_log_scale / AREA_LOG_SCALE_STEP).round() as i64;
+    let nr = (max_rot_rad / AREA_ROT_STEP_RAD).round() as i64;
+    let mut out = Vec::new();
+    for i in -ns..=ns {
+        for j in -nr..=nr {
+            out.push((
+                (i as f64 * AREA_LOG_SCALE_STEP).exp(),
+                j as f64 * AREA_ROT_STEP_RAD,
+            ));
+        }
+    }
+    out.sort_by(|a, b| (a.0.ln().abs() + a.1.abs()).total_cmp(&(b.0.ln().abs() + b.1.abs())));
+    out
+}
+
+/// Rays are cast at most this many times the height above ground (a ray that grazes the terrain
+/// further away is not a usable prediction).
+const MAX_RAY_RANGE_AGL: f64 = 20.0;
+/// The area placement runs on block means bringing the rectified frame's longer side to at most
+/// this many pixels: enough pattern for a unique peak, and FFTs of a few hundred pixels a side.
+const AREA_COARSE_TEMPLATE_PX: usize = 128;
+/// Tie-point patch side, level pixels (odd): large enough to correlate across dates, small
+/// enough that relief and the prior's rotation barely distort it.
+const AREA_PATCH_PX: usize = 31;
+/// Smallest Shi-Tomasi corner strength of a patch (grey levels^2 per pixel): below it the patch
+/// is too flat or one-directional to localise (sensor noise alone gives about 1).
+const AREA_MIN_CORNER_STRENGTH: f64 = 4.0;
+/// Patch grid step, level pixels.
+const AREA_PATCH_STEP_PX: usize = 16;
+/// At most this many patches per frame (the strongest corners).
+const AREA_MAX_PATCHES: usize = 400;
+/// Pass 1 searches a patch only when its search radius (placement uncertainty + the rotation
+/// and scale still possible at its distance) stays within this many pixels.
+const AREA_PASS1_MAX_RADIUS_PX: f64 = 12.0;
+/// Placement hypotheses: log-scale and rotation steps (about one coarse pixel at the edge of a
+/// template of [`AREA_COARSE_TEMPLATE_PX`]) and the largest errors searched.
+const AREA_LOG_SCALE_STEP: f64 = 0.03;
+const AREA_ROT_STEP_RAD: f64 = 0.035;
+const AREA_MAX_LOG_SCALE: f64 = 0.15;
+const AREA_MAX_ROT_RAD: f64 = 0.2;
+/// Pass 1 must give at least this many tie points consistent with one similarity.
+const AREA_PASS1_MIN_TIES: usize = 6;
+/// Consistency tolerance of the pass-1 similarity, pixels.
+const AREA_TIE_TOLERANCE_PX: f64 = 1.5;
+/// Pass 2 search radius around the similarity's prediction, pixels.
+const AREA_PASS2_RADIUS_PX: usize = 2;
 
 /// An attitude prior for the resection (world = local ENU).
 #[derive(Debug, Clone, Copy)]
@@ -437,7 +545,17 @@ impl FixEngine {
         let tries = heading_hypotheses(att)
             .into_iter()
             .map(|hyp| {
-                let (r, a) = self.fix_single(frame, pos, &hyp, solve, t_us, att_from_filter);
+                let (r, a) = self.fix_single(
+                    frame,
+                    pos,
+                    &hyp,
+                    solve,
+                    t_us,
+                    Single {
+                        att_from_filter,
+                        area: false,
+                    },
+                );
                 Hypothesis::new(hyp.attitude.yaw_rad, r, a)
             })
             .collect();
@@ -480,12 +598,25 @@ impl FixEngine {
         if att.sigma_yaw_rad > YAW_SWEEP_ABOVE_DEG.to_radians() {
             self.fix_heading_sweep(frame, pos, att, Some(att), t_us, att_from_filter)
         } else {
-            self.fix_single(frame, pos, att, Some(att), t_us, att_from_filter)
+            self.fix_single(
+                frame,
+                pos,
+                att,
+                Some(att),
+                t_us,
+                Single {
+                    att_from_filter,
+                    area: true,
+                },
+            )
         }
     }
 
     /// One rectification at `rect` (the attitude the frame is resampled with and the coarse gate
-    /// assumes), the resection fusing `solve` (None: no attitude prior).
+    /// assumes), the resection fusing `solve` (None: no attitude prior). `area`: the area
+    /// correlation may run (`[fix] area_matching`); heading sweeps and relocalisation search
+    /// their hypotheses with features only (the correlation's placement covers the rotation of
+    /// one prior, not a sweep's steps, and its cost would multiply by the hypotheses).
     fn fix_single(
         &self,
         frame: &GrayImage,
@@ -493,7 +624,7 @@ impl FixEngine {
         rect: &AttitudePriorNed,
         solve: Option<&AttitudePriorNed>,
         t_us: u64,
-        att_from_filter: bool,
+        how: Single,
     ) -> (FixReport, Attempt) {
         let rej = |reason: String, a: Attempt| (FixReport::rejected(reason, t_us, 0.0), a);
         let solve = match solve.map(|s| self.solve_prior(s)) {
@@ -503,7 +634,7 @@ impl FixEngine {
         };
         let g = match self.prior_geom(pos, rect) {
             Ok(g) => PriorGeom {
-                att_from_filter,
+                att_from_filter: how.att_from_filter,
                 solve,
                 ..g
             },
@@ -521,7 +652,7 @@ impl FixEngine {
         }
         let cam_gsd_m = agl_m / self.camera.intrinsics.fx_px;
         let level = self.pick_level(cam_gsd_m);
-        self.match_and_solve(frame, &g, level, agl_m, t_us)
+        self.match_and_solve(frame, &g, level, agl_m, t_us, how.area)
     }
 
     /// The resection's attitude prior from an NED attitude prior.
@@ -537,7 +668,8 @@ impl FixEngine {
         })
     }
 
-    /// Rectify at `level`, detect, predict, gate, vote, match and resect.
+    /// Rectify at `level`, find correspondences (features, or the map image's area correlation
+    /// as `[fix] area_matching` says) and resect.
     fn match_and_solve(
         &self,
         frame: &GrayImage,
@@ -545,6 +677,7 @@ impl FixEngine {
         level: usize,
         agl_m: f64,
         t_us: u64,
+        area: bool,
     ) -> (FixReport, Attempt) {
         let mut a = Attempt {
             level,
@@ -566,9 +699,67 @@ impl FixEngine {
                 a,
             );
         };
+        let view = View {
+            rect: &rect,
+            g,
+            level,
+            agl_m,
+            scale,
+        };
+        let by_features = |a: &mut Attempt| match self.feature_pairs(&view, a) {
+            Ok(p) => self.solve_pairs(&view, &p, FixMethod::Features, t_us),
+            Err(e) => FixReport::rejected(e, t_us, 0.0),
+        };
+        let by_area = |a: &mut Attempt| match self.area_pairs(&view, a) {
+            Ok(p) => self.solve_pairs(&view, &p, FixMethod::Area, t_us),
+            Err(e) => FixReport::rejected(e, t_us, 0.0),
+        };
+        let mode = if area {
+            self.params.area_matching
+        } else {
+            AreaMatching::Off
+        };
+        let report = match mode {
+            AreaMatching::Off => by_features(&mut a),
+            AreaMatching::Only => by_area(&mut a),
+            AreaMatching::Fallback => {
+                let r = by_features(&mut a);
+                if r.accepted {
+                    r
+                } else {
+                    let ra = by_area(&mut a);
+                    if ra.accepted {
+                        ra
+                    } else {
+                        FixReport::rejected(format!("{}; area: {}", r.reason, ra.reason), t_us, 0.0)
+                    }
+                }
+            }
+            AreaMatching::First => {
+                let ra = by_area(&mut a);
+                if ra.accepted {
+                    ra
+                } else {
+                    let r = by_features(&mut a);
+                    if r.accepted {
+                        r
+                    } else {
+                        FixReport::rejected(format!("area: {}; {}", ra.reason, r.reason), t_us, 0.0)
+                    }
+                }
+            }
+        };
+        (FixReport { level, ..report }, a)
+    }
+
+    /// Feature correspondences: detect in the rectified frame, predict each keypoint's map
+    /// position from the prior, gate, vote a similarity, match finely, and check the count
+    /// against chance (module doc).
+    fn feature_pairs(&self, v: &View, a: &mut Attempt) -> Result<Vec<Pair>, String> {
+        let (rect, level) = (v.rect, v.level);
+        let gsd = self.levels_gsd_m[level];
         // Query features on valid ground, strongest first, capped.
         let feats = self.surf.detect_and_describe(&rect.image);
-        let dem = self.reference.dem();
         let mut keep: Vec<(usize, [f64; 2])> = Vec::new();
         for (i, k) in feats.keypoints.iter().enumerate() {
             if keep.len() >= self.params.max_query_features {
@@ -577,22 +768,17 @@ impl FixEngine {
             if !rect.window_valid(f64::from(k.x), f64::from(k.y), 10.0 * f64::from(k.scale)) {
                 continue;
             }
-            let ray = rect.ray_map(f64::from(k.x), f64::from(k.y));
-            let o = [g.c_map.x, g.c_map.y, g.c_map.z];
-            let Some(p) = dem.intersect_ray(o, [ray.x, ray.y, ray.z], 20.0 * agl_m.max(100.0))
-            else {
+            let Some(p) = self.ground_of(v, f64::from(k.x), f64::from(k.y)) else {
                 continue;
             };
-            keep.push((i, [p[0], p[1]]));
+            keep.push((i, p));
         }
         a.query_features = keep.len();
         if keep.len() < self.params.min_matches {
-            return rej(format!("only {} features in the frame", keep.len()), a);
+            return Err(format!("only {} features in the frame", keep.len()));
         }
         // Selection: predicted footprint grown by the coarse gate.
-        let gate_m = (self.params.gate_sigmas
-            * (g.sigma_h_m.powi(2) + (agl_m * g.sigma_tilt_rad.min(0.5)).powi(2)).sqrt())
-        .max(self.params.min_gate_m);
+        let gate_m = self.gate_m(v);
         let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
         for (_, p) in &keep {
             lo = [lo[0].min(p[0]), lo[1].min(p[1])];
@@ -609,25 +795,16 @@ impl FixEngine {
         );
         a.map_features = sel.features.len();
         if sel.features.len() < self.params.min_matches {
-            return rej(
-                format!(
-                    "only {} map features under the footprint (outside the map?)",
-                    sel.features.len()
-                ),
-                a,
-            );
+            return Err(format!(
+                "only {} map features under the footprint (outside the map?)",
+                sel.features.len()
+            ));
         }
         // Level-pixel coordinates: origin at the selection's top-left, y down.
         let (ox, oy) = (lo[0] - gate_m, hi[1] + gate_m);
         let to_lp = |x: f64, y: f64| [((x - ox) / gsd) as f32, ((oy - y) / gsd) as f32];
-        let train = match train_features(&sel, gsd, to_lp) {
-            Ok(t) => t,
-            Err(e) => return rej(e, a),
-        };
-        let query = match subset(&feats, keep.iter().map(|(i, _)| *i)) {
-            Ok(q) => q,
-            Err(e) => return rej(e, a),
-        };
+        let train = train_features(&sel, gsd, to_lp)?;
+        let query = subset(&feats, keep.iter().map(|(i, _)| *i))?;
         let pred: Vec<[f32; 2]> = keep.iter().map(|(_, p)| to_lp(p[0], p[1])).collect();
 
         // Coarse: gated nearest neighbours (no ratio test: the gate holds many look-alikes) and a
@@ -643,38 +820,23 @@ impl FixEngine {
                 mutual: false,
                 spatial_radius_px: Some(gate_px),
             };
-            let m = match match_features(&query, &train, &coarse, Some(&pred)) {
-                Ok(m) => m,
-                Err(e) => return rej(format!("matching: {e}"), a),
-            };
+            let m = match_features(&query, &train, &coarse, Some(&pred))
+                .map_err(|e| format!("matching: {e}"))?;
             a.coarse_matches = m.len();
             let src: Vec<[f32; 2]> = m.iter().map(|mm| pred[mm.query]).collect();
             let dst: Vec<[f32; 2]> = m
                 .iter()
                 .map(|mm| [train.keypoints[mm.train].x, train.keypoints[mm.train].y])
                 .collect();
-            let max_rot =
-                (self.params.gate_sigmas * g.sigma_yaw_rad.max(g.sigma_tilt_rad)).min(0.5) + 0.02;
-            let max_log_scale = (self.params.gate_sigmas * g.sigma_v_m / agl_m).min(0.7) + 0.05;
-            match ransac_similarity(&src, &dst, fine_r, max_rot, max_log_scale, 0x5EED) {
-                Some((s, n)) => {
-                    sim = s;
-                    a.vote_peak = n;
-                }
-                None => {
-                    return rej(format!("no consistent coarse matches among {}", m.len()), a);
-                }
-            }
+            let (max_rot, max_log_scale) = self.similarity_bounds(v);
+            let (s, n) = ransac_similarity(&src, &dst, fine_r, max_rot, max_log_scale, 0x5EED)
+                .ok_or_else(|| format!("no consistent coarse matches among {}", m.len()))?;
+            sim = s;
+            a.vote_peak = n;
         }
         let pred_fine: Vec<[f32; 2]> = pred.iter().map(|p| sim.apply(*p)).collect();
-        let matches = gated_match(
-            &query,
-            &train,
-            &pred_fine,
-            fine_r,
-            self.params.fine_wide_factor as f32 * fine_r,
-            self.params.ratio,
-        );
+        let wide = self.params.fine_wide_factor as f32 * fine_r;
+        let matches = gated_match(&query, &train, &pred_fine, fine_r, wide, self.params.ratio);
         a.fine_matches = matches.len();
         for m in &matches {
             let (q, f) = (&query.keypoints[m.query], &sel.features[m.train]);
@@ -685,7 +847,7 @@ impl FixEngine {
         // A-contrario check (Moisan & Stival 2004 in spirit): the same gated matching with the
         // predictions displaced to unrelated map areas counts the matches chance alone produces
         // here (texture density, gate size, ratio test). A genuine view must beat that clearly.
-        let d = 3.0 * self.params.fine_wide_factor as f32 * fine_r;
+        let d = 3.0 * wide;
         let null = [[d, 0.0], [-d, 0.0], [0.0, d], [0.0, -d]]
             .iter()
             .map(|o| {
@@ -693,15 +855,7 @@ impl FixEngine {
                     .iter()
                     .map(|p| [p[0] + o[0], p[1] + o[1]])
                     .collect();
-                gated_match(
-                    &query,
-                    &train,
-                    &shifted,
-                    fine_r,
-                    self.params.fine_wide_factor as f32 * fine_r,
-                    self.params.ratio,
-                )
-                .len()
+                gated_match(&query, &train, &shifted, fine_r, wide, self.params.ratio).len()
             })
             .max()
             .unwrap_or(0);
@@ -709,73 +863,312 @@ impl FixEngine {
         let needed =
             self.params.min_matches + (self.params.null_factor * null as f64).ceil() as usize;
         if matches.len() < needed {
-            return rej(
-                format!(
-                    "only {} matches where chance gives {} (need {})",
-                    matches.len(),
-                    null,
-                    needed
-                ),
-                a,
-            );
+            return Err(format!(
+                "only {} matches where chance gives {} (need {})",
+                matches.len(),
+                null,
+                needed
+            ));
         }
-        if matches.len() < self.params.min_matches {
-            return rej(
-                format!(
-                    "only {} matches (min {})",
-                    matches.len(),
-                    self.params.min_matches
-                ),
-                a,
-            );
-        }
+        // SURF localises a keypoint to a fraction of its scale s (rectified pixels).
+        let sigma_px = self.base_sigma_px(v);
+        Ok(matches
+            .iter()
+            .filter_map(|m| {
+                let (q, f) = (&query.keypoints[m.query], &sel.features[m.train]);
+                let px = rect.to_frame_px(f64::from(q.x), f64::from(q.y))?;
+                let s_rect = f64::from(q.scale.max(f.scale_m / gsd as f32));
+                Some(Pair {
+                    frame_px: px,
+                    map: [f.x_m, f.y_m, f.z_amsl_m],
+                    sigma_px: sigma_px * (s_rect / 2.0).max(1.0),
+                })
+            })
+            .collect())
+    }
 
-        // Correspondences in a local ENU frame about the footprint.
-        let crs = self.reference.crs();
-        let mid = sel.features[sel.features.len() / 2];
-        let origin = match crs.to_geodetic(mid.x_m, mid.y_m).and_then(|(lat, lon)| {
-            Geodetic::new(lat, lon, mid.z_amsl_m + geoid_undulation_m(lat, lon)?)
-        }) {
-            Ok(o) => o,
-            Err(e) => return rej(format!("map geodesy: {e}"), a),
+    /// Area correspondences ([`super::area`]): the rectified frame placed in the map image by a
+    /// coarse masked correlation over the prior's gate, then tie points of small patches, first
+    /// near the frame's centre (a similarity fitted to them absorbs the prior's rotation and
+    /// scale errors), then everywhere.
+    fn area_pairs(&self, v: &View, a: &mut Attempt) -> Result<Vec<Pair>, String> {
+        use super::area::{Integral, Plane, match_patch, place_similar, select_patches};
+        let rect = v.rect;
+        let img = self.reference.level_image(v.level).ok_or_else(|| {
+            "the map has no level images (built by an older visnav: rebuild it)".to_string()
+        })?;
+        let frame = Plane::new(
+            rect.width(),
+            rect.height(),
+            rect.image.data().to_vec(),
+            rect.valid.clone(),
+        )
+        .ok_or_else(|| "empty rectification".to_string())?;
+        // The template's predicted place: the rectified grid is the map's (north-up, the
+        // level's pixel) up to the prior's errors; its centre's ground point anchors it.
+        let (uc, vc) = (rect.width() as f64 / 2.0, rect.height() as f64 / 2.0);
+        let centre = self
+            .ground_of(v, uc, vc)
+            .ok_or_else(|| "the frame's centre does not see the ground".to_string())?;
+        let c_px = img.to_px(centre[0], centre[1]);
+        let gate_px = (self.gate_m(v) / img.gsd_m).ceil();
+        let x0 = (c_px[0] - uc - gate_px).floor() as i64;
+        let y0 = (c_px[1] - vc - gate_px).floor() as i64;
+        let (ww, wh) = (
+            rect.width() + 2 * gate_px as usize + 2,
+            rect.height() + 2 * gate_px as usize + 2,
+        );
+        let window = img
+            .crop(x0, y0, ww, wh)
+            .ok_or_else(|| "empty map window".to_string())?;
+        // Placement on a coarse grid: block means of f x f pixels.
+        let mut f = 1usize;
+        while rect.width().max(rect.height()) / f > AREA_COARSE_TEMPLATE_PX {
+            f *= 2;
+        }
+        let (tc, wc) = match (frame.block_mean(f), window.block_mean(f)) {
+            (Some(t), Some(w)) => (t, w),
+            _ => return Err("area correlation: images too small".into()),
         };
-        let Ok(local) = LocalFrame::new(origin) else {
-            return rej("map geodesy: bad local frame".into(), a);
+        // Hypotheses of the prior's scale (height) and rotation (heading, tilt) errors, a step
+        // apart that moves the template's edge by about one coarse pixel.
+        let (max_rot, max_log_scale) = self.similarity_bounds(v);
+        let hyps = similarity_hypotheses(
+            max_log_scale.min(AREA_MAX_LOG_SCALE),
+            max_rot.min(AREA_MAX_ROT_RAD),
+        );
+        let placed = place_similar(&wc, &tc, &hyps, super::area::UNIQUE_RADIUS_COARSE_PX)
+            .map_err(|e| e.to_string())?;
+        a.area_ncc = placed.ncc;
+        a.area_runner_up = placed.runner_up;
+        // Window pixels of the frame's ground predicted from the prior alone...
+        let predict = |u: f64, vv: f64| -> Option<[f64; 2]> {
+            let p = self.ground_of(v, u, vv)?;
+            let m = img.to_px(p[0], p[1]);
+            Some([m[0] - x0 as f64, m[1] - y0 as f64])
         };
-        let sigma_px = (self.params.sigma_rect_px / scale).max(0.5);
-        let c_enu = match map_to_enu(&crs, &local, g.c_map.x, g.c_map.y, g.c_map.z) {
-            Ok(c) => c,
-            Err(e) => return rej(format!("prior geodesy: {e}"), a),
+        // ...and the similarity the placement found: the coarse template's centre (fine
+        // rectified pixel c f + (f - 1) / 2) lies at the placed centre.
+        let fine = |c: f64| c * f as f64 + (f as f64 - 1.0) / 2.0;
+        let (tcx, tcy) = (
+            fine((tc.width as f64 - 1.0) / 2.0),
+            fine((tc.height as f64 - 1.0) / 2.0),
+        );
+        let q_c = predict(tcx, tcy)
+            .ok_or_else(|| "the frame's centre does not see the ground".to_string())?;
+        let w_c = [fine(placed.centre[0]), fine(placed.centre[1])];
+        let mut sim = Sim2 {
+            scale: placed.scale as f32,
+            theta_rad: placed.theta_rad as f32,
+            t: [0.0, 0.0],
         };
-        let height_sigma_m = self.reference.height_sigma_m();
-        let mut corrs = Vec::with_capacity(matches.len());
-        for m in &matches {
-            let q = &query.keypoints[m.query];
-            let f = &sel.features[m.train];
-            let Some(px) = rect.to_frame_px(f64::from(q.x), f64::from(q.y)) else {
-                continue;
-            };
-            let Some(ray) = self.camera.unproject(&px) else {
-                continue;
-            };
-            let r = ray.into_inner();
-            if r.z <= 0.0 {
+        let r_qc = sim.apply([q_c[0] as f32, q_c[1] as f32]);
+        sim.t = [w_c[0] as f32 - r_qc[0], w_c[1] as f32 - r_qc[1]];
+        let sums = Integral::new(&window);
+        let patches = select_patches(
+            &frame,
+            AREA_PATCH_PX,
+            AREA_PATCH_STEP_PX,
+            AREA_MIN_CORNER_STRENGTH,
+            AREA_MAX_PATCHES,
+        );
+        // Pass 1, growing from the centre: each patch is searched around the current similarity's
+        // prediction, over the placement's uncertainty plus the rotation and scale still
+        // possible at its distance (half a hypothesis step); the similarity is refitted as tie
+        // points accumulate, which shrinks both (a fit over ties spanning D pixels leaves about
+        // tolerance / D).
+        let mut spread = 0.5 * (AREA_LOG_SCALE_STEP + AREA_ROT_STEP_RAD);
+        let mut base = 0.5 * f as f64 + 2.0;
+        let mut near: Vec<(f64, usize)> = patches
+            .iter()
+            .enumerate()
+            .map(|(i, p)| ((p.cx as f64 - tcx).hypot(p.cy as f64 - tcy), i))
+            .collect();
+        near.sort_by(|x, y| x.0.total_cmp(&y.0));
+        let (mut src, mut dst) = (Vec::new(), Vec::new());
+        let mut found = vec![None; patches.len()];
+        let mut refit_at = AREA_PASS1_MIN_TIES;
+        for &(dist, i) in &near {
+            let r = (base + dist * spread).ceil();
+            if r > AREA_PASS1_MAX_RADIUS_PX {
                 continue;
             }
-            let Ok(p_enu) = map_to_enu(&crs, &local, f.x_m, f.y_m, f.z_amsl_m) else {
+            let p = &patches[i];
+            let Some(q) = predict(p.cx as f64, p.cy as f64) else {
                 continue;
             };
-            // SURF localises a keypoint to a fraction of its scale s (rectified pixels).
-            let s_rect = f64::from(q.scale.max(f.scale_m / gsd as f32));
-            let sigma_feature_px = sigma_px * (s_rect / 2.0).max(1.0);
-            let sigma_height_px =
-                height_error_px(&p_enu, &c_enu, height_sigma_m, self.camera.intrinsics.fx_px);
-            corrs.push(Correspondence {
-                point_world: p_enu,
-                obs_norm: Vector2::new(r.x / r.z, r.y / r.z),
-                sigma_px: sigma_feature_px.hypot(sigma_height_px),
+            let qs = sim.apply([q[0] as f32, q[1] as f32]);
+            let (qx, qy) = (qs[0].round() as i64, qs[1].round() as i64);
+            let Some(m) = match_patch(&window, &sums, p, qx, qy, r as usize) else {
+                continue;
+            };
+            src.push([q[0] as f32, q[1] as f32]);
+            dst.push([m.x as f32, m.y as f32]);
+            found[i] = Some(m);
+            if src.len() >= refit_at {
+                refit_at = src.len() + src.len() / 2;
+                if let Some((s_fit, n)) = ransac_similarity(
+                    &src,
+                    &dst,
+                    AREA_TIE_TOLERANCE_PX as f32,
+                    max_rot,
+                    max_log_scale,
+                    0x5EED,
+                ) && n >= AREA_PASS1_MIN_TIES
+                {
+                    sim = s_fit;
+                    base = 2.0;
+                    spread = AREA_TIE_TOLERANCE_PX / dist.max(1.0);
+                }
+            }
+        }
+        let (sim, _) = ransac_similarity(
+            &src,
+            &dst,
+            AREA_TIE_TOLERANCE_PX as f32,
+            max_rot,
+            max_log_scale,
+            0x5EED,
+        )
+        .filter(|(_, n)| *n >= AREA_PASS1_MIN_TIES)
+        .ok_or_else(|| {
+            format!(
+                "area correlation {:.2} placed the frame but only {} patches agree",
+                placed.ncc,
+                src.len()
+            )
+        })?;
+        // Pass 2: every patch close to the final similarity's prediction (a pass-1 match that
+        // agrees with it is kept as found).
+        let sigma_px = self.base_sigma_px(v);
+        let mut pairs = Vec::new();
+        for (p, prev) in patches.iter().zip(&found) {
+            let Some(q) = predict(p.cx as f64, p.cy as f64) else {
+                continue;
+            };
+            let s = sim.apply([q[0] as f32, q[1] as f32]);
+            let agrees = |m: &&super::area::TieMatch| {
+                (m.x - f64::from(s[0])).hypot(m.y - f64::from(s[1])) <= AREA_TIE_TOLERANCE_PX
+            };
+            let m = match prev.as_ref().filter(agrees) {
+                Some(m) => *m,
+                None => {
+                    let (qx, qy) = (s[0].round() as i64, s[1].round() as i64);
+                    match match_patch(&window, &sums, p, qx, qy, AREA_PASS2_RADIUS_PX) {
+                        Some(m) => m,
+                        None => continue,
+                    }
+                }
+            };
+            let xy = img.to_map([m.x + x0 as f64, m.y + y0 as f64]);
+            let (Some(z), Some(px)) = (
+                self.reference.height_amsl_m(xy[0], xy[1]),
+                rect.to_frame_px(p.cx as f64, p.cy as f64),
+            ) else {
+                continue;
+            };
+            a.pairs.push(([px.x, px.y], [xy[0], xy[1], z]));
+            pairs.push(Pair {
+                frame_px: px,
+                map: [xy[0], xy[1], z],
+                sigma_px,
             });
         }
+        a.area_ties = pairs.len();
+        if pairs.len() < self.params.min_matches {
+            return Err(format!(
+                "area correlation {:.2}: only {} tie points (min {})",
+                placed.ncc,
+                pairs.len(),
+                self.params.min_matches
+            ));
+        }
+        Ok(pairs)
+    }
+
+    /// Map position (grid x, y) of the ground seen at rectified pixel `(u, v)` from the prior.
+    fn ground_of(&self, v: &View, u: f64, vv: f64) -> Option<[f64; 2]> {
+        let ray = v.rect.ray_map(u, vv);
+        let c = v.g.c_map;
+        self.reference
+            .dem()
+            .intersect_ray(
+                [c.x, c.y, c.z],
+                [ray.x, ray.y, ray.z],
+                MAX_RAY_RANGE_AGL * v.agl_m.max(100.0),
+            )
+            .map(|p| [p[0], p[1]])
+    }
+
+    /// The coarse gate: the prior's position and tilt uncertainty on the ground, metres.
+    fn gate_m(&self, v: &View) -> f64 {
+        let g = v.g;
+        (self.params.gate_sigmas
+            * (g.sigma_h_m.powi(2) + (v.agl_m * g.sigma_tilt_rad.min(0.5)).powi(2)).sqrt())
+        .max(self.params.min_gate_m)
+    }
+
+    /// Largest rotation (rad) and log scale between the predicted and the true map positions the
+    /// prior allows.
+    fn similarity_bounds(&self, v: &View) -> (f64, f64) {
+        let g = v.g;
+        let max_rot =
+            (self.params.gate_sigmas * g.sigma_yaw_rad.max(g.sigma_tilt_rad)).min(0.5) + 0.02;
+        let max_log_scale = (self.params.gate_sigmas * g.sigma_v_m / v.agl_m).min(0.7) + 0.05;
+        (max_rot, max_log_scale)
+    }
+
+    /// A correspondence's localisation sigma in frame pixels before its scale: the rectified
+    /// sigma, magnified when the frame is finer than the level.
+    fn base_sigma_px(&self, v: &View) -> f64 {
+        (self.params.sigma_rect_px / v.scale).max(0.5)
+    }
+
+    /// The resection of `pairs` in a local ENU frame about the footprint, with the prior fused.
+    fn solve_pairs(&self, v: &View, pairs: &[Pair], method: FixMethod, t_us: u64) -> FixReport {
+        let g = v.g;
+        let rej = |reason: String| FixReport::rejected(reason, t_us, 0.0);
+        if pairs.len() < self.params.min_matches {
+            return rej(format!(
+                "only {} matches (min {})",
+                pairs.len(),
+                self.params.min_matches
+            ));
+        }
+        let crs = self.reference.crs();
+        let mid = pairs[pairs.len() / 2].map;
+        let origin = match crs
+            .to_geodetic(mid[0], mid[1])
+            .and_then(|(lat, lon)| Geodetic::new(lat, lon, mid[2] + geoid_undulation_m(lat, lon)?))
+        {
+            Ok(o) => o,
+            Err(e) => return rej(format!("map geodesy: {e}")),
+        };
+        let Ok(local) = LocalFrame::new(origin) else {
+            return rej("map geodesy: bad local frame".into());
+        };
+        let c_enu = match map_to_enu(&crs, &local, g.c_map.x, g.c_map.y, g.c_map.z) {
+            Ok(c) => c,
+            Err(e) => return rej(format!("prior geodesy: {e}")),
+        };
+        let height_sigma_m = self.reference.height_sigma_m();
+        let corrs: Vec<Correspondence> = pairs
+            .iter()
+            .filter_map(|p| {
+                let r = self.camera.unproject(&p.frame_px)?.into_inner();
+                if r.z <= 0.0 {
+                    return None;
+                }
+                let p_enu = map_to_enu(&crs, &local, p.map[0], p.map[1], p.map[2]).ok()?;
+                let sigma_height_px =
+                    height_error_px(&p_enu, &c_enu, height_sigma_m, self.camera.intrinsics.fx_px);
+                Some(Correspondence {
+                    point_world: p_enu,
+                    obs_norm: Vector2::new(r.x / r.z, r.y / r.z),
+                    sigma_px: p.sigma_px.hypot(sigma_height_px),
+                })
+            })
+            .collect();
         let k = &self.camera.intrinsics;
         let image = ImageGeometry {
             fx_px: k.fx_px,
@@ -816,29 +1209,28 @@ impl FixEngine {
         if g.att_from_filter {
             cfg.refine.prior_against_conservative = false;
         }
-        let mag = (1.0 / scale).max(1.0);
+        let mag = (1.0 / v.scale).max(1.0);
         cfg.ransac.threshold_px *= mag;
         cfg.integrity.max_reprojection_rms_px *= mag;
         let outcome = resect(&corrs, &image, &priors, &cfg);
-        let quality_inliers = outcome.fix.as_ref().map_or(0, |f| f.quality.inliers);
         let Some(fix) = outcome.fix.as_ref() else {
-            let mut r = FixReport::rejected(outcome.verdict.to_string(), t_us, 0.0);
-            r.matches = matches.len();
-            r.level = level;
-            return (r, a);
+            let mut r = rej(outcome.verdict.to_string());
+            r.matches = pairs.len();
+            r.method = method;
+            return r;
         };
         let mut report =
             match self.report_from(&crs, &local, fix, t_us, outcome.verdict.is_accepted()) {
                 Ok(r) => r,
-                Err(e) => return rej(e, a),
+                Err(e) => return rej(e),
             };
         if !report.accepted {
             report.reason = outcome.verdict.to_string();
         }
-        report.matches = matches.len();
-        report.inliers = quality_inliers;
-        report.level = level;
-        (report, a)
+        report.matches = pairs.len();
+        report.inliers = fix.quality.inliers;
+        report.method = method;
+        report
     }
 
     fn report_from(
@@ -918,6 +1310,7 @@ impl FixEngine {
                 .filter(crate::fix::PriorDependenceNed::is_finite),
             prior_attitude_from_filter: false,
             level: 0,
+            method: FixMethod::Features,
             ms: 0.0,
         };
         let finite = [
@@ -1264,7 +1657,7 @@ impl FixEngine {
         };
         let frame_px = (frame.width() * frame.height()) as u64;
         *work = work.saturating_add(frame_px);
-        let (r, a) = self.fix_single(frame, &pos, att, solve, t_us, false);
+        let (r, a) = self.fix_single(frame, &pos, att, solve, t_us, Single::FEATURES);
         if !r.accepted {
             return Ok(Hypothesis::new(att.attitude.yaw_rad, r, a));
         }
@@ -1283,7 +1676,14 @@ impl FixEngine {
             1f64.to_radians(),
         );
         *work = work.saturating_add(frame_px);
-        let (r2, a2) = self.fix_single(frame, &refined_pos, &refined_rect, solve, t_us, false);
+        let (r2, a2) = self.fix_single(
+            frame,
+            &refined_pos,
+            &refined_rect,
+            solve,
+            t_us,
+            Single::FEATURES,
+        );
         // Confirmation: a view found by a search is accepted only when the frame, matched
         // again from that view's own pose, is accepted too. A true view is (its matches come
         // back with predictions accurate to a few pixels); a chance alignment found among

@@ -119,8 +119,30 @@ pub struct FixReport {
     pub prior_attitude_from_filter: bool,
     /// Map pyramid level used.
     pub level: usize,
+    /// How the frame was matched to the map.
+    pub method: FixMethod,
     /// Wall time from frame to fix, milliseconds.
     pub ms: f64,
+}
+
+/// How a fix's correspondences were found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FixMethod {
+    /// SURF features matched to the map's features (`fix::engine`).
+    #[default]
+    Features,
+    /// Area correlation of the rectified frame with the map's image (`fix::area`).
+    Area,
+}
+
+impl std::fmt::Display for FixMethod {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            FixMethod::Features => "features",
+            FixMethod::Area => "area",
+        })
+    }
 }
 
 /// The fused position's dependence on the attitude prior: to first order the reported position is
@@ -223,6 +245,7 @@ impl FixReport {
             prior_dependence: None,
             prior_attitude_from_filter: false,
             level: 0,
+            method: FixMethod::Features,
             ms,
         }
     }
@@ -233,11 +256,12 @@ impl FixReport {
     }
 }
 
+pub mod area;
 pub mod engine;
 pub mod rectify;
 pub mod reference;
 
-pub use engine::{FixEngine, FixError, FixParams};
+pub use engine::{AreaMatching, FixEngine, FixError, FixParams};
 pub use reference::{MapReference, MemoryReference, RefFeature, RefSelection, Reference};
 
 /// The engine a configuration describes: the `.vnm` map of `[map] file` (terrain overridden by

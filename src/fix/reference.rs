@@ -71,6 +71,79 @@ pub trait Reference: Send + Sync {
     fn height_sigma_m(&self) -> f64 {
         0.0
     }
+    /// The grey image of `level` (area matching, `fix::area`); `None` when the map has none
+    /// (a version-1 `.vnm`).
+    fn level_image(&self, _level: usize) -> Option<MapImage<'_>> {
+        None
+    }
+}
+
+/// A level's grey image: `width x height` bytes, row 0 north, pixel `(i, j)` centred on
+/// `(origin_x_m + (i + 0.5) gsd_m, origin_y_m - (j + 0.5) gsd_m)`; 0 = no data.
+#[derive(Debug, Clone, Copy)]
+pub struct MapImage<'a> {
+    pub data: &'a [u8],
+    pub width: usize,
+    pub height: usize,
+    pub origin_x_m: f64,
+    pub origin_y_m: f64,
+    pub gsd_m: f64,
+}
+
+impl MapImage<'_> {
+    /// Continuous pixel coordinates (centres at integers) of a map position.
+    pub fn to_px(&self, x_m: f64, y_m: f64) -> [f64; 2] {
+        [
+            (x_m - self.origin_x_m) / self.gsd_m - 0.5,
+            (self.origin_y_m - y_m) / self.gsd_m - 0.5,
+        ]
+    }
+
+    /// The map position of continuous pixel coordinates.
+    pub fn to_map(&self, px: [f64; 2]) -> [f64; 2] {
+        [
+            self.origin_x_m + (px[0] + 0.5) * self.gsd_m,
+            self.origin_y_m - (px[1] + 0.5) * self.gsd_m,
+        ]
+    }
+
+    /// The `w x h` window with top-left pixel `(x0, y0)` (may reach outside: invalid there).
+    pub fn crop(&self, x0: i64, y0: i64, w: usize, h: usize) -> Option<super::area::Plane> {
+        let mut data = vec![0f32; w * h];
+        let mut valid = vec![false; w * h];
+        for y in 0..h {
+            let sy = y0 + y as i64;
+            if sy < 0 || sy >= self.height as i64 {
+                continue;
+            }
+            for x in 0..w {
+                let sx = x0 + x as i64;
+                if sx < 0 || sx >= self.width as i64 {
+                    continue;
+                }
+                let v = self.data[sy as usize * self.width + sx as usize];
+                if v != 0 {
+                    data[y * w + x] = f32::from(v);
+                    valid[y * w + x] = true;
+                }
+            }
+        }
+        super::area::Plane::new(w, h, data, valid)
+    }
+}
+
+/// Grey bytes of a level image: values rounded into `1..=255`, 0 where missing (NaN).
+fn image_bytes(img: &GrayImage) -> Vec<u8> {
+    img.data()
+        .iter()
+        .map(|v| {
+            if v.is_finite() {
+                v.round().clamp(1.0, 255.0) as u8 // ok: clamped
+            } else {
+                0
+            }
+        })
+        .collect()
 }
 
 /// Features of an orthophoto extracted in memory, level by level (level `L` is the orthophoto
@@ -81,6 +154,10 @@ pub struct MemoryReference {
     params: SurfParams,
     bounds_m: [f64; 4],
     levels: Vec<(f64, RefSelection)>,
+    /// Each level's grey image (`image_bytes`), width and height.
+    images: Vec<(Vec<u8>, usize, usize)>,
+    /// North-west corner of the orthophoto.
+    origin_m: [f64; 2],
     dem: Dem,
 }
 
@@ -140,6 +217,7 @@ impl MemoryReference {
         let bounds_m = [b.min_x_m, b.min_y_m, b.max_x_m, b.max_y_m];
         let mut img = raster_grey(raster);
         let mut levels = Vec::new();
+        let mut images = Vec::new();
         for level in 0..n_levels.max(1) {
             if img.width() < 64 || img.height() < 64 {
                 break;
@@ -195,6 +273,7 @@ impl MemoryReference {
                     .extend_from_slice(&feats.descriptors_padded()[i * st..(i + 1) * st]);
             }
             levels.push((gsd_m, sel));
+            images.push((image_bytes(&img), img.width(), img.height()));
             img = half_size(&img);
         }
         Ok(Self {
@@ -202,6 +281,8 @@ impl MemoryReference {
             params,
             bounds_m,
             levels,
+            images,
+            origin_m: [c[0], c[3]],
             dem,
         })
     }
@@ -230,6 +311,17 @@ impl Reference for MemoryReference {
     }
     fn dem(&self) -> &Dem {
         &self.dem
+    }
+    fn level_image(&self, level: usize) -> Option<MapImage<'_>> {
+        let (data, width, height) = self.images.get(level)?;
+        Some(MapImage {
+            data,
+            width: *width,
+            height: *height,
+            origin_x_m: self.origin_m[0],
+            origin_y_m: self.origin_m[1],
+            gsd_m: self.levels.get(level)?.0,
+        })
     }
     fn select(&self, level: usize, rect_m: [f64; 4]) -> RefSelection {
         let Some((_, all)) = self.levels.get(level) else {
@@ -364,6 +456,17 @@ impl Reference for MapReference {
     }
     fn height_sigma_m(&self) -> f64 {
         self.map.header().height_sigma_m
+    }
+    fn level_image(&self, level: usize) -> Option<MapImage<'_>> {
+        let (info, data) = self.map.level_image(level)?;
+        Some(MapImage {
+            data,
+            width: info.width_px as usize, // ok: the image lies in the mapped file
+            height: info.height_px as usize, // ok: as above
+            origin_x_m: info.origin_x_m,
+            origin_y_m: info.origin_y_m,
+            gsd_m: self.map.header().levels.get(level)?.gsd_m,
+        })
     }
     fn select(&self, level: usize, rect_m: [f64; 4]) -> RefSelection {
         let s = self

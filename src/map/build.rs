@@ -39,7 +39,9 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::format::SpillWriter;
-use super::{HeightInfo, IndexGrid, LevelInfo, MapError, MapFeature, MapHeader, OrthoInfo};
+use super::{
+    HeightInfo, IndexGrid, LevelImageInfo, LevelInfo, MapError, MapFeature, MapHeader, OrthoInfo,
+};
 use crate::geo::Crs;
 use crate::geo::dem::Dem;
 use crate::geo::geotiff::{GeoTiffError, GeoTiffInfo, crs_equivalent, load_geotiff};
@@ -471,7 +473,21 @@ pub fn build_map(
     );
 
     let spill_path = out.with_extension("vnm.spill");
-    let mut writer = SpillWriter::new(&spill_path, surf_params.descriptor, grids.clone())?;
+    // Level images on one grid over the union bounds, row 0 north (docs/map-format.md).
+    let image_levels: Vec<LevelImageInfo> = (0..n_levels)
+        .map(|l| {
+            let gsd = gsd0 * f64::from(1u32 << l);
+            LevelImageInfo {
+                offset: 0,
+                width_px: (((bounds.max_x_m - bounds.min_x_m) / gsd).ceil().max(1.0)) as u64,
+                height_px: (((bounds.max_y_m - bounds.min_y_m) / gsd).ceil().max(1.0)) as u64,
+                origin_x_m: bounds.min_x_m,
+                origin_y_m: bounds.max_y_m,
+            }
+        })
+        .collect();
+    let mut writer = SpillWriter::new(&spill_path, surf_params.descriptor, grids.clone())?
+        .with_images(image_levels)?;
     let mut st = Stats::default();
     // Pass 2, last ortho first (the order of the features in the file depends on it).
     for oi in (0..geoms.len()).rev() {
@@ -529,6 +545,7 @@ pub fn build_map(
                         .saturating_sub(margin)
                         .clamp(win.x0, win.x0 + win.w);
                     prev = Some(LevelPatch::columns(&win, &grey, &valid, next_x0));
+                    push_core_image(&ctx, &win, &grey, &valid, &bounds, &mut writer)?;
                     process_tile(&ctx, &win, grey, &valid, &mut writer, &mut st)?;
                     st.tiles += 1;
                     progress(BuildProgress {
@@ -561,6 +578,7 @@ pub fn build_map(
                 cells_offset: 0,
                 records_offset: 0,
                 descriptors_offset: 0,
+                image: None,
             })
             .collect(),
         bounds,
@@ -890,6 +908,41 @@ impl<R: Read + Seek + Send> LevelSource for GeoTiffWindowReader<R> {
             self, level, x0, y0, w, h, BAND_BYTES,
         )?)
     }
+}
+
+/// Writes the core of the tile `win` into the level image: grey rounded into `1..=255`, 0 where
+/// invalid, at the ortho's place on the image grid (its level pixel offset from the union bounds'
+/// north-west corner, rounded: orthos of one map share the pixel size, and those whose grids are
+/// not aligned with the first one's are placed to the nearest level pixel).
+fn push_core_image(
+    ctx: &TileCtx,
+    win: &TileWindow,
+    grey: &[f32],
+    valid: &[bool],
+    bounds: &Bounds,
+    writer: &mut SpillWriter,
+) -> Result<(), MapError> {
+    let c = ctx.transform.coeffs();
+    let gsd = c[1] * f64::from(1u32 << ctx.level);
+    let ox = ((c[0] - bounds.min_x_m) / gsd).round() as i64;
+    let oy = ((bounds.max_y_m - c[3]) / gsd).round() as i64;
+    let mut px = vec![0u8; win.cw * win.ch];
+    for y in 0..win.ch {
+        for x in 0..win.cw {
+            let i = (win.cy0 - win.y0 + y) * win.w + win.cx0 - win.x0 + x;
+            if valid[i] {
+                px[y * win.cw + x] = grey[i].round().clamp(1.0, 255.0) as u8; // ok: clamped
+            }
+        }
+    }
+    writer.push_image_block(
+        ctx.level,
+        ox + win.cx0 as i64,
+        oy + win.cy0 as i64,
+        win.cw,
+        win.ch,
+        &px,
+    )
 }
 
 /// Extracts the features of the tile `win` from its level window `grey` / `valid`.

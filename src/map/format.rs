@@ -17,6 +17,7 @@
 //!   cells_offset:       (n_cells + 1) u64, cumulative feature counts (row-major cells, row 0 north)
 //!   records_offset:     n_features records of RECORD_BYTES (see `encode_record`)
 //!   descriptors_offset: n_features x kind.len() i8 (quantised descriptors)
+//!   image.offset:       width_px x height_px u8 (grey, 0 = no data; format 2, optional)
 //! ```
 //!
 //! Feature record (40 bytes): `x_m f64 @0, y_m f64 @8, z_amsl_m f64 @16, scale_m f32 @24,
@@ -35,13 +36,15 @@ use std::path::{Path, PathBuf};
 
 use memmap2::Mmap;
 
-use super::{IndexGrid, MapError, MapFeature, MapHeader, MapSelection};
+use super::{IndexGrid, LevelImageInfo, MapError, MapFeature, MapHeader, MapSelection};
 use crate::vision::DescriptorKind;
 
 /// File magic (PNG-style: a CR-LF and a ^Z catch text-mode transfers).
 pub const MAGIC: [u8; 8] = *b"VNMAP\r\n\x1a";
-/// The format version this code writes and reads.
-pub const FORMAT_VERSION: u32 = 1;
+/// The format version this code writes (2: level images added).
+pub const FORMAT_VERSION: u32 = 2;
+/// The oldest format version this code reads (version 1: no level images).
+pub const MIN_READ_VERSION: u32 = 1;
 /// Size of the fixed preamble.
 pub const PREAMBLE_BYTES: usize = 64;
 /// Size of one feature record.
@@ -142,8 +145,9 @@ fn crc_of(bytes: &[u8]) -> u32 {
 // Writing
 
 /// Streams features into a temporary spill file (in production order) while counting them per
-/// index cell; [`SpillWriter::finish`] then lays out the final file cell by cell. Memory: the
-/// per-cell counters only.
+/// index cell; [`SpillWriter::finish`] then lays out the final file cell by cell. Level images
+/// ([`SpillWriter::with_images`]) arrive as blocks in a second spill file and are placed the same
+/// way. Memory: the per-cell counters only.
 pub struct SpillWriter {
     spill_path: PathBuf,
     spill: BufWriter<File>,
@@ -151,7 +155,18 @@ pub struct SpillWriter {
     grids: Vec<IndexGrid>,
     counts: Vec<Vec<u64>>,
     qbuf: Vec<i8>,
+    images: Option<ImageSpill>,
 }
+
+/// The level images' spill: their geometry and the blocks written so far.
+struct ImageSpill {
+    path: PathBuf,
+    file: BufWriter<File>,
+    levels: Vec<LevelImageInfo>,
+}
+
+/// Bytes of an image block's spill header: level u32, x0 u64, y0 u64, w u32, h u32.
+const BLOCK_HEADER_BYTES: usize = 28;
 
 impl SpillWriter {
     /// Creates the spill file `spill_path` for levels with the given index grids.
@@ -173,6 +188,67 @@ impl SpillWriter {
             grids,
             counts,
             qbuf: vec![0; kind.len()],
+            images: None,
+        })
+    }
+
+    /// Adds a grey image to every level (`levels[l]`: size and origin; offsets are filled in by
+    /// [`Self::finish`]). Blocks come through [`Self::push_image_block`].
+    pub fn with_images(mut self, levels: Vec<LevelImageInfo>) -> Result<Self, MapError> {
+        let path = self.spill_path.with_extension("img.spill");
+        let f = File::create(&path).map_err(|source| MapError::Io {
+            path: path.clone(),
+            what: "cannot create the temporary image file",
+            source,
+        })?;
+        self.images = Some(ImageSpill {
+            path,
+            file: BufWriter::with_capacity(1 << 20, f),
+            levels,
+        });
+        Ok(self)
+    }
+
+    /// A `w x h` block of level `level`'s image with its top-left pixel at `(x0, y0)` (may lie
+    /// partly outside the image: clipped). Zero bytes are no data and never overwrite: where
+    /// blocks overlap, the last non-zero value written wins. Ignored without images.
+    pub fn push_image_block(
+        &mut self,
+        level: usize,
+        x0: i64,
+        y0: i64,
+        w: usize,
+        h: usize,
+        px: &[u8],
+    ) -> Result<(), MapError> {
+        let Some(img) = self.images.as_mut() else {
+            return Ok(());
+        };
+        let Some(info) = img.levels.get(level) else {
+            return Ok(());
+        };
+        let (iw, ih) = (info.width_px as i64, info.height_px as i64);
+        let (cx0, cy0) = (x0.max(0), y0.max(0));
+        let (cx1, cy1) = ((x0 + w as i64).min(iw), (y0 + h as i64).min(ih));
+        if cx1 <= cx0 || cy1 <= cy0 || px.len() != w * h {
+            return Ok(());
+        }
+        let (cw, ch) = ((cx1 - cx0) as usize, (cy1 - cy0) as usize);
+        let mut buf = Vec::with_capacity(BLOCK_HEADER_BYTES + cw * ch);
+        buf.extend_from_slice(&(level as u32).to_le_bytes());
+        buf.extend_from_slice(&(cx0 as u64).to_le_bytes());
+        buf.extend_from_slice(&(cy0 as u64).to_le_bytes());
+        buf.extend_from_slice(&(cw as u32).to_le_bytes());
+        buf.extend_from_slice(&(ch as u32).to_le_bytes());
+        for y in cy0..cy1 {
+            let row = (y - y0) as usize * w;
+            let a = row + (cx0 - x0) as usize;
+            buf.extend_from_slice(&px[a..a + cw]);
+        }
+        img.file.write_all(&buf).map_err(|source| MapError::Io {
+            path: img.path.clone(),
+            what: "cannot write the temporary image file",
+            source,
         })
     }
 
@@ -255,6 +331,14 @@ impl SpillWriter {
             info.cells_offset = cells_offset;
             info.records_offset = records_offset;
             info.descriptors_offset = descriptors_offset;
+            info.image = match self.images.as_ref().and_then(|i| i.levels.get(l)) {
+                Some(li) => {
+                    let at = off;
+                    off = align8(off + li.width_px * li.height_px);
+                    Some(LevelImageInfo { offset: at, ..*li })
+                }
+                None => None,
+            };
             starts.push(table);
         }
         header.version = FORMAT_VERSION;
@@ -325,6 +409,9 @@ impl SpillWriter {
         desc_run.flush(&file, &partial)?;
         drop(rd);
         let _ = std::fs::remove_file(&self.spill_path);
+        if let Some(img) = self.images.take() {
+            place_image_blocks(img, &header, data_offset, &file, &partial)?;
+        }
         // Checksum: stream the file once.
         let mut h = crc32fast::Hasher::new();
         let mut f2 = &file;
@@ -368,7 +455,78 @@ impl SpillWriter {
 impl Drop for SpillWriter {
     fn drop(&mut self) {
         let _ = std::fs::remove_file(&self.spill_path);
+        if let Some(img) = &self.images {
+            let _ = std::fs::remove_file(&img.path);
+        }
     }
+}
+
+/// Writes the spilled image blocks into their places (runs of non-zero bytes only, so no data
+/// never overwrites data) and removes the spill.
+fn place_image_blocks(
+    mut img: ImageSpill,
+    header: &MapHeader,
+    data_offset: u64,
+    file: &File,
+    partial: &Path,
+) -> Result<(), MapError> {
+    let io = |what, source| MapError::Io {
+        path: img.path.clone(),
+        what,
+        source,
+    };
+    img.file
+        .flush()
+        .map_err(|e| io("cannot write the temporary image file", e))?;
+    let spill =
+        File::open(&img.path).map_err(|e| io("cannot reopen the temporary image file", e))?;
+    let mut rd = BufReader::with_capacity(1 << 20, spill);
+    let mut head = [0u8; BLOCK_HEADER_BYTES];
+    let mut row = Vec::new();
+    loop {
+        match rd.read_exact(&mut head) {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => break,
+            Err(e) => return Err(io("cannot read the temporary image file", e)),
+        }
+        let level = u32::from_le_bytes(rd4(&head, 0)) as usize;
+        let x0 = u64::from_le_bytes(rd8(&head, 4));
+        let y0 = u64::from_le_bytes(rd8(&head, 12));
+        let w = u32::from_le_bytes(rd4(&head, 20)) as usize;
+        let h = u32::from_le_bytes(rd4(&head, 24)) as usize;
+        let Some(info) = header.levels.get(level).and_then(|l| l.image) else {
+            return Err(MapError::Param {
+                name: "levels",
+                reason: "an image block names a level without an image".into(),
+            });
+        };
+        row.resize(w, 0);
+        for y in 0..h as u64 {
+            rd.read_exact(&mut row)
+                .map_err(|e| io("cannot read the temporary image file", e))?;
+            let base = data_offset + info.offset + (y0 + y) * info.width_px + x0;
+            let mut x = 0;
+            while x < w {
+                if row[x] == 0 {
+                    x += 1;
+                    continue;
+                }
+                let start = x;
+                while x < w && row[x] != 0 {
+                    x += 1;
+                }
+                file.write_all_at(&row[start..x], base + start as u64)
+                    .map_err(|source| MapError::Io {
+                        path: partial.to_path_buf(),
+                        what: "cannot write the map file",
+                        source,
+                    })?;
+            }
+        }
+    }
+    drop(rd);
+    let _ = std::fs::remove_file(&img.path);
+    Ok(())
 }
 
 /// Coalesces writes to consecutive offsets into one `write_all_at` (features of a cell arrive in
@@ -513,6 +671,14 @@ impl ReferenceMap {
         sel
     }
 
+    /// The grey image of `level` (format 2) with its geometry; `None` for a version-1 map.
+    pub fn level_image(&self, level: usize) -> Option<(LevelImageInfo, &[u8])> {
+        let info = self.header.levels.get(level)?.image?;
+        let at = self.data_offset + info.offset as usize;
+        let len = (info.width_px * info.height_px) as usize; // ok: checked against the file
+        Some((info, &self.mmap[at..at + len]))
+    }
+
     /// Every feature of `level` (brute force, for tests and tools).
     pub fn all_features(&self, level: usize) -> Vec<MapFeature> {
         let Some(info) = self.header.levels.get(level) else {
@@ -543,9 +709,9 @@ fn validate(b: &[u8]) -> Result<(MapHeader, usize), String> {
         ));
     }
     let version = u32::from_le_bytes(rd4(b, 8));
-    if version != FORMAT_VERSION {
+    if !(MIN_READ_VERSION..=FORMAT_VERSION).contains(&version) {
         return Err(format!(
-            "format version {version}, this visnav reads version {FORMAT_VERSION} (rebuild the map with `visnav map build`)"
+            "format version {version}, this visnav reads versions {MIN_READ_VERSION} to {FORMAT_VERSION} (rebuild the map with `visnav map build`)"
         ));
     }
     let header_len = u64::from_le_bytes(rd8(b, 16));
@@ -616,6 +782,25 @@ fn validate(b: &[u8]) -> Result<(MapHeader, usize), String> {
             ),
             ("descriptors", info.descriptors_offset, n.checked_mul(len)),
         ];
+        let image = info.image.map(|im| {
+            (
+                im.offset,
+                im.width_px.checked_mul(im.height_px),
+                im.width_px > 0
+                    && im.height_px > 0
+                    && im.origin_x_m.is_finite()
+                    && im.origin_y_m.is_finite(),
+            )
+        });
+        if image.is_some_and(|(_, _, ok)| !ok) {
+            return Err(format!(
+                "level {l}: invalid image geometry {:?}",
+                info.image
+            ));
+        }
+        let sections = sections
+            .into_iter()
+            .chain(image.map(|(at, size, _)| ("image", at, size)));
         for (name, at, size) in sections {
             let end = size.and_then(|s| at.checked_add(s));
             if end.is_none_or(|e| e > data_len) {
@@ -677,6 +862,7 @@ mod tests {
                     cells_offset: 0,
                     records_offset: 0,
                     descriptors_offset: 0,
+                    image: None,
                 })
                 .collect(),
             bounds: Bounds {
@@ -797,6 +983,81 @@ mod tests {
         assert!(back.iter().all(|v| *v == 0.0));
     }
 
+    /// A version-1 file (no level images) still opens: its levels have no image.
+    #[test]
+    fn version_1_maps_are_read_without_images() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, _) = tiny_map(dir.path(), 40);
+        let mut b = std::fs::read(&path).unwrap();
+        assert_eq!(u32::from_le_bytes(rd4(&b, 8)), FORMAT_VERSION);
+        // Rewrite the version in the preamble and the JSON header (same length), re-checksum.
+        b[8..12].copy_from_slice(&1u32.to_le_bytes());
+        let hl = u64::from_le_bytes(rd8(&b, 16)) as usize;
+        let json = String::from_utf8(b[64..64 + hl].to_vec()).unwrap();
+        let v1 = json.replacen(&format!("\"version\":{FORMAT_VERSION}"), "\"version\":1", 1);
+        assert_eq!(v1.len(), json.len());
+        assert!(!v1.contains("\"image\""));
+        b[64..64 + hl].copy_from_slice(v1.as_bytes());
+        let crc = crc_of(&b);
+        b[CRC_AT..CRC_AT + 4].copy_from_slice(&crc.to_le_bytes());
+        let p1 = dir.path().join("v1.vnm");
+        std::fs::write(&p1, &b).unwrap();
+        let m = ReferenceMap::open(&p1).unwrap();
+        assert_eq!(m.header().version, 1);
+        assert!(m.level_image(0).is_none());
+        assert_eq!(m.all_features(0).len(), 20);
+    }
+
+    /// Image blocks land at their places, clipped, and no-data bytes never overwrite data.
+    #[test]
+    fn image_blocks_are_placed_and_clipped() {
+        let dir = tempfile::tempdir().unwrap();
+        let grid = IndexGrid {
+            origin_x_m: 1000.0,
+            origin_y_m: 2100.0,
+            cell_m: 50.0,
+            cols: 2,
+            rows: 2,
+        };
+        let img = |w, h| LevelImageInfo {
+            offset: 0,
+            width_px: w,
+            height_px: h,
+            origin_x_m: 1000.0,
+            origin_y_m: 2100.0,
+        };
+        let mut w = SpillWriter::new(
+            &dir.path().join("i.spill"),
+            DescriptorKind::Surf64,
+            vec![grid, grid],
+        )
+        .unwrap()
+        .with_images(vec![img(5, 4), img(3, 2)])
+        .unwrap();
+        // Level 0: a 3x2 block at (-1, 1): its first column is clipped away.
+        w.push_image_block(0, -1, 1, 3, 2, &[9, 1, 2, 9, 3, 4])
+            .unwrap();
+        // A later block with a hole (0) over (0, 1) keeps the earlier value there.
+        w.push_image_block(0, 0, 1, 2, 1, &[0, 7]).unwrap();
+        // Level 1: beyond the image entirely: ignored.
+        w.push_image_block(1, 5, 5, 1, 1, &[8]).unwrap();
+        let path = dir.path().join("i.vnm");
+        w.finish(tiny_header(2), &path).unwrap();
+        let m = ReferenceMap::open(&path).unwrap();
+        let (info, data) = m.level_image(0).unwrap();
+        assert_eq!((info.width_px, info.height_px), (5, 4));
+        #[rustfmt::skip]
+        let want = [
+            0, 0, 0, 0, 0,
+            1, 7, 0, 0, 0,
+            3, 4, 0, 0, 0,
+            0, 0, 0, 0, 0,
+        ];
+        assert_eq!(data, &want);
+        assert!(m.level_image(1).unwrap().1.iter().all(|v| *v == 0));
+        assert!(!dir.path().join("i.img.spill").exists());
+    }
+
     /// Truncations and byte flips anywhere give a `Format` error naming the file, never a panic
     /// and never a silently accepted file.
     #[test]
@@ -826,9 +1087,12 @@ mod tests {
             check(&b, &format!("flipped byte {at}"));
         }
         let mut b = good.clone();
-        b[8..12].copy_from_slice(&2u32.to_le_bytes());
+        b[8..12].copy_from_slice(&(FORMAT_VERSION + 1).to_le_bytes());
         let r = check(&b, "version");
-        assert!(r.contains("version 2"), "{r}");
+        assert!(
+            r.contains(&format!("version {}", FORMAT_VERSION + 1)),
+            "{r}"
+        );
         let mut b = good.clone();
         b[0] = b'X';
         assert!(check(&b, "magic").contains("magic"));

@@ -161,6 +161,23 @@ pub struct LevelInfo {
     pub cells_offset: u64,
     pub records_offset: u64,
     pub descriptors_offset: u64,
+    /// The level's grey image (format 2; `None` in version-1 files).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image: Option<LevelImageInfo>,
+}
+
+/// Where a level's grey image lies: `width_px x height_px` bytes, row-major, row 0 north, pixel
+/// `(i, j)` covering `[origin_x_m + i gsd, origin_x_m + (i+1) gsd) x (origin_y_m - (j+1) gsd,
+/// origin_y_m - j gsd]` (gsd = the level's `gsd_m`). Value = the level's grey rounded into
+/// `1..=255`; 0 = no data.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LevelImageInfo {
+    /// Offset from the data offset, a multiple of 8.
+    pub offset: u64,
+    pub width_px: u64,
+    pub height_px: u64,
+    pub origin_x_m: f64,
+    pub origin_y_m: f64,
 }
 
 /// Where the feature heights come from.

@@ -197,6 +197,11 @@ impl Surface {
     }
 }
 
+/// The FFTs' number type: single precision suffices for values normalised to zero mean and unit
+/// variance (sums over at most a few 10^5 pixels; the correlations agree with a direct f64
+/// computation to 1e-4, unit test) and halves the time of the placement.
+type Real = f32;
+
 /// Sizes FFTs are fast at: products of 2, 3 and 5, at least `n`.
 fn fast_size(n: usize) -> usize {
     let mut m = n.max(1);
@@ -219,13 +224,13 @@ fn fast_size(n: usize) -> usize {
 struct Fft2 {
     sw: usize,
     sh: usize,
-    fwd_w: Arc<dyn Fft<f64>>,
-    fwd_h: Arc<dyn Fft<f64>>,
-    inv_w: Arc<dyn Fft<f64>>,
-    inv_h: Arc<dyn Fft<f64>>,
+    fwd_w: Arc<dyn Fft<Real>>,
+    fwd_h: Arc<dyn Fft<Real>>,
+    inv_w: Arc<dyn Fft<Real>>,
+    inv_h: Arc<dyn Fft<Real>>,
 }
 
-fn transpose(src: &[Complex<f64>], w: usize, h: usize) -> Vec<Complex<f64>> {
+fn transpose(src: &[Complex<Real>], w: usize, h: usize) -> Vec<Complex<Real>> {
     let mut out = vec![Complex::new(0.0, 0.0); w * h];
     for y in 0..h {
         for x in 0..w {
@@ -249,7 +254,7 @@ impl Fft2 {
     }
 
     /// Row-major `sh x sw` in, transposed spectrum out.
-    fn forward(&self, mut buf: Vec<Complex<f64>>) -> Vec<Complex<f64>> {
+    fn forward(&self, mut buf: Vec<Complex<Real>>) -> Vec<Complex<Real>> {
         self.fwd_w.process(&mut buf);
         let mut t = transpose(&buf, self.sw, self.sh);
         self.fwd_h.process(&mut t);
@@ -257,18 +262,18 @@ impl Fft2 {
     }
 
     /// Transposed spectrum in, row-major `sh x sw` out (normalised).
-    fn inverse(&self, mut t: Vec<Complex<f64>>) -> Vec<Complex<f64>> {
+    fn inverse(&self, mut t: Vec<Complex<Real>>) -> Vec<Complex<Real>> {
         self.inv_h.process(&mut t);
         let mut buf = transpose(&t, self.sh, self.sw);
         self.inv_w.process(&mut buf);
-        let k = 1.0 / (self.sw * self.sh) as f64;
+        let k = 1.0 / (self.sw * self.sh) as Real;
         buf.iter_mut().for_each(|v| *v *= k);
         buf
     }
 
     /// Spectra of two real signals packed as `a + i b`: `(A, B)` from `Z = F(a + i b)` by the
     /// Hermitian symmetry of real signals' spectra.
-    fn forward_pair(&self, z: Vec<Complex<f64>>) -> (Vec<Complex<f64>>, Vec<Complex<f64>>) {
+    fn forward_pair(&self, z: Vec<Complex<Real>>) -> (Vec<Complex<Real>>, Vec<Complex<Real>>) {
         let zf = self.forward(z);
         let (sw, sh) = (self.sw, self.sh);
         let mut a = vec![Complex::new(0.0, 0.0); zf.len()];
@@ -288,7 +293,7 @@ impl Fft2 {
 
 /// A plane normalised over its valid pixels (zero mean, unit variance) and padded into an
 /// `sw x sh` grid, with its mask: `(values * mask, mask)`.
-fn normalised_padded(p: &Plane, sw: usize, sh: usize) -> (Vec<f64>, Vec<f64>) {
+fn normalised_padded(p: &Plane, sw: usize, sh: usize) -> (Vec<Real>, Vec<Real>) {
     let (mut s, mut s2, mut n) = (0f64, 0f64, 0usize);
     for (v, ok) in p.data.iter().zip(&p.valid) {
         if *ok {
@@ -304,13 +309,13 @@ fn normalised_padded(p: &Plane, sw: usize, sh: usize) -> (Vec<f64>, Vec<f64>) {
         0.0
     };
     let inv = if sd > 1e-9 { 1.0 / sd } else { 1.0 };
-    let mut vals = vec![0f64; sw * sh];
-    let mut mask = vec![0f64; sw * sh];
+    let mut vals = vec![0.0; sw * sh];
+    let mut mask = vec![0.0; sw * sh];
     for y in 0..p.height {
         for x in 0..p.width {
             let i = p.idx(x, y);
             if p.valid[i] {
-                vals[y * sw + x] = (f64::from(p.data[i]) - mean) * inv;
+                vals[y * sw + x] = ((f64::from(p.data[i]) - mean) * inv) as Real;
                 mask[y * sw + x] = 1.0;
             }
         }
@@ -318,7 +323,7 @@ fn normalised_padded(p: &Plane, sw: usize, sh: usize) -> (Vec<f64>, Vec<f64>) {
     (vals, mask)
 }
 
-fn pack(a: &[f64], b: &[f64]) -> Vec<Complex<f64>> {
+fn pack(a: &[Real], b: &[Real]) -> Vec<Complex<Real>> {
     a.iter().zip(b).map(|(x, y)| Complex::new(*x, *y)).collect()
 }
 
@@ -329,9 +334,9 @@ pub struct NccWindow {
     height: usize,
     /// Spectra of the mask and the normalised masked values (packed as one transform) and of
     /// their squares.
-    f_mi: Vec<Complex<f64>>,
-    f_i: Vec<Complex<f64>>,
-    f_i2: Vec<Complex<f64>>,
+    f_mi: Vec<Complex<Real>>,
+    f_i: Vec<Complex<Real>>,
+    f_i2: Vec<Complex<Real>>,
 }
 
 impl NccWindow {
@@ -340,7 +345,7 @@ impl NccWindow {
         let (sw, sh) = (fast_size(window.width), fast_size(window.height));
         let fft = Fft2::new(sw, sh);
         let (i, mi) = normalised_padded(window, sw, sh);
-        let i2: Vec<f64> = i.iter().map(|v| v * v).collect();
+        let i2: Vec<Real> = i.iter().map(|v| v * v).collect();
         let (f_mi, f_i) = fft.forward_pair(pack(&mi, &i));
         let (f_i2, _) = fft.forward_pair(pack(&i2, &vec![0.0; i2.len()]));
         Self {
@@ -368,17 +373,19 @@ impl NccWindow {
         }
         let (sw, sh) = (self.fft.sw, self.fft.sh);
         let (t, mt) = normalised_padded(template, sw, sh);
-        let t2: Vec<f64> = t.iter().map(|v| v * v).collect();
+        let t2: Vec<Real> = t.iter().map(|v| v * v).collect();
         let (f_mt, f_t) = self.fft.forward_pair(pack(&mt, &t));
         let (f_t2, _) = self.fft.forward_pair(pack(&t2, &vec![0.0; t2.len()]));
         // Correlation c(s) = sum_x a(x) b(x + s)  <->  conj(A) B; two real results per inverse.
-        let corr2 =
-            |a1: &[Complex<f64>], b1: &[Complex<f64>], a2: &[Complex<f64>], b2: &[Complex<f64>]| {
-                let z: Vec<Complex<f64>> = (0..a1.len())
-                    .map(|k| a1[k].conj() * b1[k] + Complex::new(0.0, 1.0) * (a2[k].conj() * b2[k]))
-                    .collect();
-                self.fft.inverse(z)
-            };
+        let corr2 = |a1: &[Complex<Real>],
+                     b1: &[Complex<Real>],
+                     a2: &[Complex<Real>],
+                     b2: &[Complex<Real>]| {
+            let z: Vec<Complex<Real>> = (0..a1.len())
+                .map(|k| a1[k].conj() * b1[k] + Complex::new(0.0, 1.0) * (a2[k].conj() * b2[k]))
+                .collect();
+            self.fft.inverse(z)
+        };
         let n_si = corr2(&f_mt, &self.f_mi, &f_mt, &self.f_i);
         let sii_st = corr2(&f_mt, &self.f_i2, &f_t, &self.f_mi);
         let stt_sit = corr2(&f_t2, &self.f_mi, &f_t, &self.f_i);
@@ -391,16 +398,16 @@ impl NccWindow {
         for dy in 0..h {
             for dx in 0..w {
                 let k = dy * sw + dx;
-                let n = n_si[k].re.round();
+                let n = f64::from(n_si[k].re).round();
                 if n < need {
                     continue;
                 }
                 let (si, sii, st, stt, sit) = (
-                    n_si[k].im,
-                    sii_st[k].re,
-                    sii_st[k].im,
-                    stt_sit[k].re,
-                    stt_sit[k].im,
+                    f64::from(n_si[k].im),
+                    f64::from(sii_st[k].re),
+                    f64::from(sii_st[k].im),
+                    f64::from(stt_sit[k].re),
+                    f64::from(stt_sit[k].im),
                 );
                 let vi = sii - si * si / n;
                 let vt = stt - st * st / n;
@@ -467,6 +474,33 @@ pub fn warp_similar(p: &Plane, scale: f64, theta_rad: f64) -> Option<Plane> {
         }
     }
     Plane::new(out_w, out_h, data, valid)
+}
+
+/// Each hypothesis's best correlation peak, best first: `(index into hypotheses, peak)`
+/// (hypotheses without a defined correlation are left out). A cheap first look on a coarser
+/// grid, to pick the hypotheses [`place_similar`] examines.
+pub fn rank_hypotheses(
+    window: &Plane,
+    template: &Plane,
+    hypotheses: &[(f64, f64)],
+) -> Vec<(usize, f64)> {
+    let ncc = NccWindow::new(window);
+    let mut out: Vec<(usize, f64)> = hypotheses
+        .iter()
+        .enumerate()
+        .filter_map(|(h, &(scale, theta))| {
+            let t = warp_similar(template, scale, theta)?;
+            let s = ncc.correlate(&t, MIN_OVERLAP)?;
+            s.data
+                .iter()
+                .copied()
+                .filter(|v| v.is_finite())
+                .max_by(f64::total_cmp)
+                .map(|v| (h, v))
+        })
+        .collect();
+    out.sort_by(|a, b| b.1.total_cmp(&a.1));
+    out
 }
 
 /// The best placement of a template over similarity hypotheses ([`place_similar`]).
@@ -690,6 +724,21 @@ pub fn corner_strength(p: &Plane, cx: usize, cy: usize, side: usize) -> f64 {
     0.5 * (a + b) - (0.25 * (a - b).powi(2) + c * c).sqrt()
 }
 
+/// Dot product of two equal-length slices with eight independent partial sums (a float sum in
+/// one accumulator may not be reordered, so it would not vectorise).
+fn dot_f32(a: &[f32], b: &[f32]) -> f32 {
+    let mut acc = [0f32; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for k in 0..8 {
+            acc[k] += x[k] * y[k];
+        }
+    }
+    let tail: f32 = ra.iter().zip(rb).map(|(x, y)| x * y).sum();
+    acc.iter().sum::<f32>() + tail
+}
+
 /// A patch's match in a plane.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TieMatch {
@@ -742,7 +791,7 @@ pub fn match_patch(
             for y in 0..side {
                 let row = &map.data[(y0 + y) * map.width + x0..(y0 + y) * map.width + x0 + side];
                 let pv = &patch.values[y * side..(y + 1) * side];
-                dot += f64::from(row.iter().zip(pv).map(|(a, b)| a * b).sum::<f32>());
+                dot += f64::from(dot_f32(row, pv));
             }
             s.data[j * w + i] = dot / var.sqrt();
         }
@@ -866,7 +915,7 @@ mod tests {
             let direct = cov / (va * vb).sqrt();
             let got = s.data[dy * s.width + dx];
             assert!(
-                (got - direct).abs() < 1e-9,
+                (got - direct).abs() < 1e-4,
                 "({dx},{dy}): {got} vs {direct}"
             );
         }

@@ -373,6 +373,14 @@ const AREA_LOG_SCALE_STEP: f64 = 0.03;
 const AREA_ROT_STEP_RAD: f64 = 0.035;
 const AREA_MAX_LOG_SCALE: f64 = 0.15;
 const AREA_MAX_ROT_RAD: f64 = 0.2;
+/// At most this many hypotheses are placed on the full coarse grid; more are first ranked by their
+/// correlation peak on a grid twice as coarse (a competitor that matters there ranks high too)...
+const AREA_PLACEMENT_HYPOTHESES: usize = 4;
+/// ...when the frame still has this many pixels along its longer side on that grid.
+const AREA_RANKING_TEMPLATE_MIN_PX: usize = 40;
+/// Pass 1 stops once this many tie points have fixed the similarity (a least-squares fit over
+/// 40 points spread over the frame's centre predicts the rest to a fraction of a pixel).
+const AREA_PASS1_ENOUGH_TIES: usize = 40;
 /// Pass 1 must give at least this many tie points consistent with one similarity.
 const AREA_PASS1_MIN_TIES: usize = 6;
 /// Consistency tolerance of the pass-1 similarity, pixels.
@@ -930,13 +938,29 @@ impl FixEngine {
             (Some(t), Some(w)) => (t, w),
             _ => return Err("area correlation: images too small".into()),
         };
-        // Hypotheses of the prior's scale (height) and rotation (heading, tilt) errors, a step
-        // apart that moves the template's edge by about one coarse pixel.
-        let (max_rot, max_log_scale) = self.similarity_bounds(v);
+        // Hypotheses of the prior's scale (height) and rotation (heading, tilt) errors over
+        // +-3 sigma, a step apart that moves the template's edge by about one coarse pixel; with
+        // many, a first look on a grid twice as coarse keeps the most promising few.
+        let g = v.g;
         let hyps = similarity_hypotheses(
-            max_log_scale.min(AREA_MAX_LOG_SCALE),
-            max_rot.min(AREA_MAX_ROT_RAD),
+            (3.0 * g.sigma_v_m / v.agl_m).min(AREA_MAX_LOG_SCALE),
+            (3.0 * g.sigma_yaw_rad.max(g.sigma_tilt_rad)).min(AREA_MAX_ROT_RAD),
         );
+        let hyps = if hyps.len() > AREA_PLACEMENT_HYPOTHESES
+            && rect.width().max(rect.height()) / (2 * f) >= AREA_RANKING_TEMPLATE_MIN_PX
+        {
+            match (frame.block_mean(2 * f), window.block_mean(2 * f)) {
+                (Some(t1), Some(w1)) => super::area::rank_hypotheses(&w1, &t1, &hyps)
+                    .into_iter()
+                    .take(AREA_PLACEMENT_HYPOTHESES)
+                    .map(|(i, _)| hyps[i])
+                    .collect(),
+                _ => hyps,
+            }
+        } else {
+            hyps
+        };
+        let (max_rot, max_log_scale) = self.similarity_bounds(v);
         let placed = place_similar(&wc, &tc, &hyps, super::area::UNIQUE_RADIUS_COARSE_PX)
             .map_err(|e| e.to_string())?;
         a.area_ncc = placed.ncc;
@@ -989,6 +1013,9 @@ impl FixEngine {
         let mut found = vec![None; patches.len()];
         let mut refit_at = AREA_PASS1_MIN_TIES;
         for &(dist, i) in &near {
+            if src.len() >= AREA_PASS1_ENOUGH_TIES && base <= 2.0 {
+                break; // the similarity is determined; pass 2 does the rest cheaply
+            }
             let r = (base + dist * spread).ceil();
             if r > AREA_PASS1_MAX_RADIUS_PX {
                 continue;

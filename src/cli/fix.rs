@@ -230,8 +230,13 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
             report.cov_ned_m2[2][2].sqrt()
         );
         println!(
-            "  {} inliers of {} matches, reprojection RMS {:.2} px, level {}, {:.1} ms",
-            report.inliers, report.matches, report.reproj_rms_px, report.level, report.ms
+            "  {} inliers of {} matches ({}), reprojection RMS {:.2} px, level {}, {:.1} ms",
+            report.inliers,
+            report.matches,
+            report.method,
+            report.reproj_rms_px,
+            report.level,
+            report.ms
         );
     } else {
         println!("rejected: {} ({:.1} ms)", report.reason, report.ms);

@@ -425,11 +425,6 @@ impl NccWindow {
     }
 }
 
-/// [`NccWindow::correlate`] for one template.
-pub fn masked_ncc(window: &Plane, template: &Plane, min_overlap: f64) -> Option<Surface> {
-    NccWindow::new(window).correlate(template, min_overlap)
-}
-
 /// `p` scaled by `scale` and rotated by `theta_rad` (image axes, x right, y down: positive
 /// turns x towards y) about its centre, bilinear; the output's centre is the input's. A pixel
 /// is valid when its four source pixels are.
@@ -528,9 +523,10 @@ pub fn place_similar(
     exclusion_px: f64,
 ) -> Result<SimilarPlacement, PlaceError> {
     let ncc = NccWindow::new(window);
-    // (centre x, centre y, ncc, hypothesis, surface position)
-    let mut maxima: Vec<([f64; 2], f64, usize, Surface, usize, usize)> = Vec::new();
+    // Every local maximum's template centre and value; the best one's hypothesis, surface and
+    // position.
     let mut all: Vec<([f64; 2], f64)> = Vec::new();
+    let mut best: Option<([f64; 2], f64, usize, Surface, usize, usize)> = None;
     for (h, &(scale, theta)) in hypotheses.iter().enumerate() {
         let Some(t) = warp_similar(template, scale, theta) else {
             continue;
@@ -540,18 +536,17 @@ pub fn place_similar(
         };
         let (cx, cy) = ((t.width as f64 - 1.0) / 2.0, (t.height as f64 - 1.0) / 2.0);
         let m = s.maxima();
-        for &(x, y, v) in &m {
-            all.push(([x as f64 + cx, y as f64 + cy], v));
-        }
-        if let Some(&(x, y, v)) = m.first() {
-            maxima.push(([x as f64 + cx, y as f64 + cy], v, h, s, x, y));
+        all.extend(
+            m.iter()
+                .map(|&(x, y, v)| ([x as f64 + cx, y as f64 + cy], v)),
+        );
+        if let Some(&(x, y, v)) = m.first()
+            && best.as_ref().is_none_or(|b| v > b.1)
+        {
+            best = Some(([x as f64 + cx, y as f64 + cy], v, h, s, x, y));
         }
     }
-    let best = maxima
-        .into_iter()
-        .max_by(|a, b| a.1.total_cmp(&b.1))
-        .ok_or(PlaceError::Undefined)?;
-    let (centre, value, h, surface, bx, by) = best;
+    let (centre, value, h, surface, bx, by) = best.ok_or(PlaceError::Undefined)?;
     let runner_up = all
         .iter()
         .filter(|(c, _)| (c[0] - centre[0]).hypot(c[1] - centre[1]) > exclusion_px)
@@ -894,7 +889,7 @@ mod tests {
         for k in (0..tpl.valid.len()).step_by(5) {
             tpl.valid[k] = false;
         }
-        let s = masked_ncc(&win, &tpl, 0.5).unwrap();
+        let s = NccWindow::new(&win).correlate(&tpl, 0.5).unwrap();
         assert_eq!((s.width, s.height), (27, 23));
         for (dx, dy) in [(0, 0), (3, 11), (26, 22), (13, 5)] {
             let (mut a, mut b) = (Vec::new(), Vec::new());

@@ -714,49 +714,35 @@ impl FixEngine {
             agl_m,
             scale,
         };
-        let by_features = |a: &mut Attempt| match self.feature_pairs(&view, a) {
-            Ok(p) => self.solve_pairs(&view, &p, FixMethod::Features, t_us),
-            Err(e) => FixReport::rejected(e, t_us, 0.0),
+        // The methods in the order `[fix] area_matching` tries them; the first accepted wins.
+        let order: &[FixMethod] = match (area, self.params.area_matching) {
+            (false, _) | (true, AreaMatching::Off) => &[FixMethod::Features],
+            (true, AreaMatching::Only) => &[FixMethod::Area],
+            (true, AreaMatching::Fallback) => &[FixMethod::Features, FixMethod::Area],
+            (true, AreaMatching::First) => &[FixMethod::Area, FixMethod::Features],
         };
-        let by_area = |a: &mut Attempt| match self.area_pairs(&view, a) {
-            Ok(p) => self.solve_pairs(&view, &p, FixMethod::Area, t_us),
-            Err(e) => FixReport::rejected(e, t_us, 0.0),
-        };
-        let mode = if area {
-            self.params.area_matching
-        } else {
-            AreaMatching::Off
-        };
-        let report = match mode {
-            AreaMatching::Off => by_features(&mut a),
-            AreaMatching::Only => by_area(&mut a),
-            AreaMatching::Fallback => {
-                let r = by_features(&mut a);
-                if r.accepted {
-                    r
-                } else {
-                    let ra = by_area(&mut a);
-                    if ra.accepted {
-                        ra
-                    } else {
-                        FixReport::rejected(format!("{}; area: {}", r.reason, ra.reason), t_us, 0.0)
-                    }
-                }
+        let mut reasons = Vec::new();
+        let mut report = None;
+        for &method in order {
+            let pairs = match method {
+                FixMethod::Features => self.feature_pairs(&view, &mut a),
+                FixMethod::Area => self.area_pairs(&view, &mut a),
+            };
+            let r = match pairs {
+                Ok(p) => self.solve_pairs(&view, &p, method, t_us),
+                Err(e) => FixReport::rejected(e, t_us, 0.0),
+            };
+            if r.accepted {
+                report = Some(r);
+                break;
             }
-            AreaMatching::First => {
-                let ra = by_area(&mut a);
-                if ra.accepted {
-                    ra
-                } else {
-                    let r = by_features(&mut a);
-                    if r.accepted {
-                        r
-                    } else {
-                        FixReport::rejected(format!("area: {}; {}", ra.reason, r.reason), t_us, 0.0)
-                    }
-                }
-            }
-        };
+            // With two methods, the area's reason is labelled as such.
+            reasons.push(match method {
+                FixMethod::Area if order.len() > 1 => format!("area: {}", r.reason),
+                _ => r.reason,
+            });
+        }
+        let report = report.unwrap_or_else(|| FixReport::rejected(reasons.join("; "), t_us, 0.0));
         (FixReport { level, ..report }, a)
     }
 

@@ -104,6 +104,7 @@ fn run(
         t_capture_us: 1,
         position,
         attitude: Some(AttitudePriorNed::isotropic(prior_att, 0.5f64.to_radians())),
+        altitude: None,
         attitude_from_filter: false,
     };
     let (report, attempt) = engine.fix_with_attempt(&img, &prior);

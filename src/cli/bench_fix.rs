@@ -32,6 +32,10 @@ pub struct FixBenchArgs {
     /// No position prior: global relocalisation (attitude prior only).
     #[arg(long)]
     pub no_prior: bool,
+    /// With --no-prior: no altitude either (by default relocalisation keeps the prior's
+    /// altitude, as a barometer would give it).
+    #[arg(long, requires = "no_prior")]
+    pub no_altitude: bool,
     /// Standard deviation of the prior attitude's error per axis, degrees (the prior states
     /// 0.5 deg). The frames and the other draws stay the same for every value.
     #[arg(long, default_value_t = 0.3)]
@@ -198,6 +202,7 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
     eval.yaw_sigma_deg = yaw_sigma_deg;
     eval.attitude_mode = attitude_mode;
     eval.same_imagery = a.same_imagery;
+    eval.altitude_without_position = !a.no_altitude;
     let per_frame = a.per_frame;
     let s = eval
         .run_with(a.frames, a.seed, !a.no_prior, &mut |line| {
@@ -208,8 +213,10 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
         .map_err(anyhow::Error::msg)?;
     let prior_text = format!(
         "{}; {}",
-        if a.no_prior {
-            "no position prior"
+        if a.no_prior && a.no_altitude {
+            "no position prior, no altitude"
+        } else if a.no_prior {
+            "no position prior (the altitude prior kept)"
         } else {
             if autzen {
                 "position prior 20 m off per axis"

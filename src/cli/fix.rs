@@ -12,7 +12,8 @@ use anyhow::{Context, bail};
 use visnav::camera::{Attitude, Camera, CameraConfig};
 use visnav::config::{Problems, Validate};
 use visnav::fix::{
-    AttitudePriorNed, FixEngine, FixParams, FixPrior, MapReference, PositionPriorGeo, Reference,
+    AltitudePrior, AttitudePriorNed, FixEngine, FixParams, FixPrior, MapReference,
+    PositionPriorGeo, Reference,
 };
 use visnav::geo::dem::Dem;
 use visnav::map::{BuildSpec, HeightSource};
@@ -44,6 +45,16 @@ pub struct FixArgs {
     /// Without it the whole map is searched (global relocalisation).
     #[arg(long, value_name = "LAT,LON,ALT,SIGMA_M", allow_hyphen_values = true)]
     pub prior: Option<String>,
+    /// Without --prior: the altitude alone, AMSL (m), and its 1-sigma (m), as a barometer gives
+    /// it after the position is lost. With a tilt (--attitude), the relocalisation then
+    /// searches the map image at every heading allowed (docs/fix.md, "Relocalisation").
+    #[arg(
+        long,
+        value_name = "ALT,SIGMA_M",
+        allow_hyphen_values = true,
+        conflicts_with = "prior"
+    )]
+    pub altitude: Option<String>,
     /// 1-sigma of the prior altitude, metres (default: the horizontal sigma).
     #[arg(long)]
     pub prior_sigma_v_m: Option<f64>,
@@ -202,6 +213,19 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
         }
         None => None,
     };
+    let altitude = match &a.altitude {
+        Some(t) => {
+            let v = numbers("altitude", t, 2)?;
+            if !(v[1].is_finite() && v[1] > 0.0) {
+                bail!("--altitude {t:?}: the sigma must be positive");
+            }
+            Some(AltitudePrior {
+                alt_amsl_m: v[0],
+                sigma_m: v[1],
+            })
+        }
+        None => None,
+    };
     let reference = load_reference(&a)?;
     let engine = FixEngine::new(reference, camera, params).context("fix engine")?;
     let report = engine.fix(
@@ -210,6 +234,7 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
             t_capture_us: 0,
             position,
             attitude,
+            altitude,
             attitude_from_filter: false,
         },
     );

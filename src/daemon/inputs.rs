@@ -42,7 +42,7 @@ use crate::camera::Attitude;
 use crate::daemon::config::{DaemonConfig, GpsSource, ImuBiasRestore};
 use crate::daemon::imu_bias::{ImuBiasRestorer, RestoreStatus};
 use crate::daemon::metrics::reason_wording;
-use crate::fix::{AttitudePriorNed, FixPrior, FixReport, PositionPriorGeo};
+use crate::fix::{AltitudePrior, AttitudePriorNed, FixPrior, FixReport, PositionPriorGeo};
 use crate::geo::geoid::geoid_undulation_m;
 use crate::link::inject::offset_geodetic;
 use crate::link::{Health as LinkHealth, NavEstimate, Telemetry};
@@ -649,7 +649,8 @@ impl OutputBook {
 /// The fix prior at `t_us`: position from the filter output nearest the capture time, moved by
 /// its velocity to `t_us` (None when there is none within 1 s or the solution is lost: global
 /// relocalisation); attitude from that output (sigma: the largest attitude sigma) or else the
-/// autopilot ATTITUDE within 0.2 s (sigma: the larger of the `[nav]` attitude sigmas).
+/// autopilot ATTITUDE within 0.2 s (sigma: the larger of the `[nav]` attitude sigmas). A lost
+/// solution still gives its altitude ([`FixPrior::altitude`]).
 pub fn prior_at(
     t_us: u64,
     out: Option<&NavOutput>,
@@ -660,6 +661,7 @@ pub fn prior_at(
         t_capture_us: t_us,
         position: None,
         attitude: None,
+        altitude: None,
         attitude_from_filter: false,
     };
     if let Some(o) = out.filter(|o| o.health != NavHealth::Lost) {
@@ -688,6 +690,21 @@ pub fn prior_at(
                 sigma_yaw_rad: sd.to_radians(),
             });
             prior.attitude_from_filter = true;
+        }
+    }
+    // Lost horizontally, the filter still knows its altitude (barometer-aided): the
+    // relocalisation's scale.
+    if let Some(o) = out.filter(|o| o.health == NavHealth::Lost)
+        && let Ok(n) = geoid_undulation_m(o.lat_deg, o.lon_deg)
+    {
+        let dt = (t_us as f64 - o.t_us as f64) * 1e-6;
+        let alt_amsl_m = o.h_m - n - o.v_ned_m_s[2] * dt;
+        let var = o.cov_pos_ned_m2[2][2] + o.cov_vel_ned_m2_s2[2][2] * dt * dt;
+        if alt_amsl_m.is_finite() && var.is_finite() && var > 0.0 {
+            prior.altitude = Some(AltitudePrior {
+                alt_amsl_m,
+                sigma_m: var.sqrt(),
+            });
         }
     }
     if prior.attitude.is_none()
@@ -1082,6 +1099,12 @@ mod tests {
             &nav,
         );
         assert!(p.position.is_none());
+        // ...but its altitude (AMSL, sigma 4 m) is the relocalisation's scale.
+        let alt = p.altitude.unwrap();
+        assert!((alt.alt_amsl_m + n - 500.0).abs() < 1e-9, "{alt:?}");
+        assert!((alt.sigma_m - 4.0).abs() < 1e-9);
+        assert!(prior_at(1_000_000, None, None, &nav).altitude.is_none());
+        assert!(prior_at(1_000_000, Some(&o), None, &nav).altitude.is_none());
         assert_eq!(p.attitude.unwrap().attitude.yaw_rad, 1.0);
         assert!(
             !p.attitude_from_filter,

@@ -886,7 +886,10 @@ impl FixEngine {
     /// near the frame's centre (a similarity fitted to them absorbs the prior's rotation and
     /// scale errors), then everywhere.
     fn area_pairs(&self, v: &View, a: &mut Attempt) -> Result<Vec<Pair>, String> {
-        use super::area::{Integral, Plane, match_patch, place_similar, select_patches};
+        use super::area::{
+            Integral, Plane, grey_and_gradient, match_patch, place_similar, rank_hypotheses,
+            select_patches,
+        };
         let rect = v.rect;
         let img = self.reference.level_image(v.level).ok_or_else(|| {
             "the map has no level images (built by an older visnav: rebuild it)".to_string()
@@ -915,15 +918,17 @@ impl FixEngine {
         let window = img
             .crop(x0, y0, ww, wh)
             .ok_or_else(|| "empty map window".to_string())?;
-        // Placement on a coarse grid: block means of f x f pixels.
+        // Placement on a coarse grid: block means of f x f pixels, grey values and gradients.
         let mut f = 1usize;
         while rect.width().max(rect.height()) / f > AREA_COARSE_TEMPLATE_PX {
             f *= 2;
         }
-        let (tc, wc) = match (frame.block_mean(f), window.block_mean(f)) {
-            (Some(t), Some(w)) => (t, w),
-            _ => return Err("area correlation: images too small".into()),
+        let (Some(tc), Some(wc)) = (grey_and_gradient(&frame, f), grey_and_gradient(&window, f))
+        else {
+            return Err("area correlation: images too small".into());
         };
+        let channels = [(&wc[0], &tc[0]), (&wc[1], &tc[1])];
+        let tc = &tc[0];
         // Hypotheses of the prior's scale (height) and rotation (heading, tilt) errors over
         // +-3 sigma, a step apart that moves the template's edge by about one coarse pixel; with
         // many, a first look on a grid twice as coarse keeps the most promising few.
@@ -935,19 +940,24 @@ impl FixEngine {
         let hyps = if hyps.len() > AREA_PLACEMENT_HYPOTHESES
             && rect.width().max(rect.height()) / (2 * f) >= AREA_RANKING_TEMPLATE_MIN_PX
         {
-            match (frame.block_mean(2 * f), window.block_mean(2 * f)) {
-                (Some(t1), Some(w1)) => super::area::rank_hypotheses(&w1, &t1, &hyps)
-                    .into_iter()
-                    .take(AREA_PLACEMENT_HYPOTHESES)
-                    .map(|(i, _)| hyps[i])
-                    .collect(),
+            match (
+                grey_and_gradient(&frame, 2 * f),
+                grey_and_gradient(&window, 2 * f),
+            ) {
+                (Some(t1), Some(w1)) => {
+                    rank_hypotheses(&[(&w1[0], &t1[0]), (&w1[1], &t1[1])], &hyps)
+                        .into_iter()
+                        .take(AREA_PLACEMENT_HYPOTHESES)
+                        .map(|(i, _)| hyps[i])
+                        .collect()
+                }
                 _ => hyps,
             }
         } else {
             hyps
         };
         let (max_rot, max_log_scale) = self.similarity_bounds(v);
-        let placed = place_similar(&wc, &tc, &hyps, super::area::UNIQUE_RADIUS_COARSE_PX)
+        let placed = place_similar(&channels, &hyps, super::area::UNIQUE_RADIUS_COARSE_PX)
             .map_err(|e| e.to_string())?;
         a.area_ncc = placed.ncc;
         a.area_runner_up = placed.runner_up;
@@ -1012,7 +1022,15 @@ impl FixEngine {
             };
             let qs = sim.apply([q[0] as f32, q[1] as f32]);
             let (qx, qy) = (qs[0].round() as i64, qs[1].round() as i64);
-            let Some(m) = match_patch(&window, &sums, p, qx, qy, r as usize) else {
+            let Some(m) = match_patch(
+                &window,
+                &sums,
+                p,
+                qx,
+                qy,
+                r as usize,
+                super::area::MIN_TIE_NCC,
+            ) else {
                 continue;
             };
             src.push([q[0] as f32, q[1] as f32]);
@@ -1067,7 +1085,15 @@ impl FixEngine {
                 Some(m) => *m,
                 None => {
                     let (qx, qy) = (s[0].round() as i64, s[1].round() as i64);
-                    match match_patch(&window, &sums, p, qx, qy, AREA_PASS2_RADIUS_PX) {
+                    match match_patch(
+                        &window,
+                        &sums,
+                        p,
+                        qx,
+                        qy,
+                        AREA_PASS2_RADIUS_PX,
+                        super::area::MIN_TIE_NCC_NEAR,
+                    ) {
                         Some(m) => m,
                         None => continue,
                     }
@@ -1413,6 +1439,27 @@ impl FixEngine {
     fn relocalise(&self, frame: &GrayImage, prior: &FixPrior) -> (FixReport, Attempt) {
         let t_us = prior.t_capture_us;
         let budget = (self.params.reloc_budget_mwork * 1e6) as u64;
+        if let (Some(alt), Some(att)) = (prior.altitude, prior.attitude)
+            && self.params.area_matching != AreaMatching::Off
+        {
+            let mut work = 0u64;
+            match self.relocalise_area(frame, &alt, &att, t_us, &mut work) {
+                Ok(found) => return found,
+                // The search ran and confirmed nothing: the frame does not match well enough
+                // (the feature search would spend seconds to find little more).
+                Err(AreaRelocError::NotFound(e)) => {
+                    return (
+                        FixReport::rejected(format!("relocalisation: {e}"), t_us, 0.0),
+                        Attempt::default(),
+                    );
+                }
+                // It could not run (an old map, a budget too small, no ground in view): the
+                // feature search below.
+                Err(AreaRelocError::CannotRun(e)) => {
+                    tracing::debug!("area relocalisation: {e}; the feature search instead");
+                }
+            }
+        }
         let (hyps, solve) = match prior.attitude {
             Some(a) if a.sigma_yaw_rad <= YAW_SWEEP_ABOVE_DEG.to_radians() => (vec![a], Some(a)),
             Some(a) => (heading_hypotheses(&a), Some(a)),
@@ -1471,6 +1518,299 @@ impl FixEngine {
             FixReport::rejected(format!("relocalisation: {last_reason}"), t_us, 0.0),
             Attempt::default(),
         )
+    }
+
+    /// Relocalisation by area when the altitude and the tilt are known (docs/fix.md,
+    /// "Relocalisation"): [`Self::area_search`] shortlists places and headings over the whole
+    /// map image; each candidate, best first, is verified by the prior pipeline (a position
+    /// prior of one coarse pixel at the candidate, rectified at its heading) and confirmed from
+    /// its own pose ([`Self::confirm_from_own_pose`]). After the first confirmed candidate only
+    /// its rivals (a correlation within [`RELOC_AREA_RIVAL_MARGIN`] of its own) are verified,
+    /// and one of them confirmed at another place makes the answer ambiguous. Err: no candidate
+    /// confirmed.
+    fn relocalise_area(
+        &self,
+        frame: &GrayImage,
+        alt: &super::AltitudePrior,
+        att: &AttitudePriorNed,
+        t_us: u64,
+        work: &mut u64,
+    ) -> Result<(FixReport, Attempt), AreaRelocError> {
+        let search = self
+            .area_search(frame, alt, att, work)
+            .map_err(AreaRelocError::CannotRun)?;
+        let how = Single {
+            att_from_filter: false,
+            area: true,
+        };
+        let mut confirmed: Option<(f64, Hypothesis)> = None;
+        let mut reasons = Vec::new();
+        for c in &search.candidates {
+            if let Some((ncc, _)) = &confirmed
+                && c.ncc < ncc - RELOC_AREA_RIVAL_MARGIN
+            {
+                break;
+            }
+            *work = work.saturating_add((frame.width() * frame.height()) as u64);
+            let (r, a) = self.fix_single(frame, &c.position, &c.rect_att, Some(att), t_us, how);
+            let h = if r.accepted {
+                self.confirm_from_own_pose(
+                    frame,
+                    r,
+                    a,
+                    &c.rect_att,
+                    Some(att),
+                    t_us,
+                    search.gsd_m,
+                    how,
+                    work,
+                )
+            } else {
+                Hypothesis::new(c.rect_att.attitude.yaw_rad, r, a)
+            };
+            if !h.report.accepted {
+                reasons.push(format!("{:.2}: {}", c.ncc, h.report.reason));
+                continue;
+            }
+            match &confirmed {
+                None => confirmed = Some((c.ncc, h)),
+                Some((_, first)) => {
+                    let d =
+                        (h.report.x_m - first.report.x_m).hypot(h.report.y_m - first.report.y_m);
+                    let same = SAME_PLACE_SIGMAS
+                        * sigma_h_m(&first.report)
+                            .hypot(sigma_h_m(&h.report))
+                            .max(search.coarse_px_m);
+                    if d > same {
+                        let reason = format!(
+                            "relocalisation: ambiguous: the area search confirmed two places \
+                             {d:.0} m apart (correlations {:.2} and {:.2})",
+                            confirmed.as_ref().map_or(0.0, |(n, _)| *n),
+                            c.ncc
+                        );
+                        return Ok((FixReport::rejected(reason, t_us, 0.0), Attempt::default()));
+                    }
+                }
+            }
+        }
+        match confirmed {
+            Some((_, h)) => Ok((h.report, h.attempt)),
+            None => Err(AreaRelocError::NotFound(format!(
+                "area search: none of {} candidates confirmed (best, correlation {})",
+                search.candidates.len(),
+                reasons.first().map(String::as_str).unwrap_or("none")
+            ))),
+        }
+    }
+
+    /// The area search over the whole map image: the frame rectified at the prior's tilt (its
+    /// heading as given, however wrong) and at the scale the altitude gives over the map's
+    /// middle height, in two channels ([`super::area::grey_and_gradient`]) block-averaged to
+    /// at most [`RELOC_AREA_TEMPLATE_PX`] per side, correlated with the map image at every
+    /// heading and over the scales the altitude's +-3 sigma and the map's height range allow,
+    /// steps moving the template's corner by [`RELOC_AREA_EDGE_STEP_PX`]; the
+    /// [`RELOC_AREA_CANDIDATES`] best distinct places with the camera position and heading each
+    /// implies.
+    fn area_search(
+        &self,
+        frame: &GrayImage,
+        alt: &super::AltitudePrior,
+        att: &AttitudePriorNed,
+        work: &mut u64,
+    ) -> Result<AreaSearch, String> {
+        use super::area::{Plane, candidates, grey_and_gradient};
+        if !(alt.alt_amsl_m.is_finite() && alt.sigma_m.is_finite() && alt.sigma_m > 0.0) {
+            return Err("the altitude prior must be finite with a positive sigma".into());
+        }
+        let (lo, hi) = self.reference.dem().height_range_m();
+        let agl_m = alt.alt_amsl_m - 0.5 * (lo + hi);
+        if agl_m.is_nan() || agl_m <= 1.0 {
+            return Err(format!(
+                "altitude {:.1} m AMSL is not above the map's terrain",
+                alt.alt_amsl_m
+            ));
+        }
+        let level = self.pick_level(agl_m / self.camera.intrinsics.fx_px);
+        let gsd = self.levels_gsd_m[level];
+        let img = self.reference.level_image(level).ok_or_else(|| {
+            "the map has no level images (built by an older visnav: rebuild it)".to_string()
+        })?;
+        let r_map_cam = r_enu_ned() * self.camera.mount.r_ned_cam(&att.attitude);
+        let rect = Rectification::new(
+            frame,
+            &self.camera,
+            &r_map_cam,
+            agl_m / gsd / self.camera.intrinsics.fx_px,
+            self.params.max_rect_side_px,
+            self.params.max_off_nadir_deg.to_radians(),
+        )
+        .ok_or_else(|| "the frame does not see the ground (rectification empty)".to_string())?;
+        *work = work.saturating_add((rect.width() * rect.height()) as u64);
+        let plane = Plane::new(
+            rect.width(),
+            rect.height(),
+            rect.image.data().to_vec(),
+            rect.valid.clone(),
+        )
+        .ok_or_else(|| "empty rectification".to_string())?;
+        let f = rect
+            .width()
+            .max(rect.height())
+            .div_ceil(RELOC_AREA_TEMPLATE_PX)
+            .max(1);
+        let tc = grey_and_gradient(&plane, f)
+            .ok_or_else(|| "the rectified frame is too small".to_string())?;
+        let map = img
+            .crop(0, 0, img.width, img.height)
+            .and_then(|m| grey_and_gradient(&m, f))
+            .ok_or_else(|| "the map image is too small".to_string())?;
+        // The frame may see beyond the map's edge: the map inside a border of no data as wide
+        // as the largest overhang the overlap rule allows.
+        let (tw, th) = (tc[0].width, tc[0].height);
+        let over = 1.0 - RELOC_AREA_MIN_OVERLAP;
+        let (mx, my) = (
+            (tw as f64 * over).ceil() as usize,
+            (th as f64 * over).ceil() as usize,
+        );
+        let map = [map[0].padded(mx, my), map[1].padded(mx, my)];
+        // The headings of the prior's +-3 sigma (every heading when that reaches round); the
+        // scales the altitude and the terrain allow.
+        let radius = 0.5 * (tw as f64).hypot(th as f64);
+        let step = RELOC_AREA_EDGE_STEP_PX / radius.max(1.0);
+        let n_full = (std::f64::consts::TAU / step).ceil() as usize;
+        let half_rot = 3.0 * att.sigma_yaw_rad + 0.5 * step;
+        let rotations: Vec<f64> = if 2.0 * half_rot >= std::f64::consts::TAU {
+            (0..n_full)
+                .map(|r| r as f64 * std::f64::consts::TAU / n_full as f64)
+                .collect()
+        } else {
+            let n = (half_rot / step).ceil() as i64;
+            (-n..=n).map(|r| r as f64 * step).collect()
+        };
+        let half_log = ((3.0 * alt.sigma_m + 0.5 * (hi - lo)) / agl_m).min(0.7);
+        let n_scale = (half_log / step - 0.5).ceil().max(0.0) as i64;
+        let mut hyps = Vec::new();
+        for k in -n_scale..=n_scale {
+            for &r in &rotations {
+                hyps.push(((k as f64 * step).exp(), r));
+            }
+        }
+        // The budget counts work: the search's transforms, estimated before it runs.
+        let points = (map[0].width * map[0].height) as u64;
+        let estimate =
+            (hyps.len() as u64 * 2 * 5 + 2 * 3).saturating_mul(points) / AREA_FFT_POINTS_PER_UNIT;
+        let budget = (self.params.reloc_budget_mwork * 1e6) as u64;
+        if work.saturating_add(estimate) > budget {
+            return Err(format!(
+                "the area search needs about {:.0} million work units, more than the budget \
+                 (reloc_budget_mwork = {})",
+                estimate as f64 / 1e6,
+                self.params.reloc_budget_mwork
+            ));
+        }
+        let mut fft_points = 0u64;
+        let shortlist = candidates(
+            &[(&map[0], &tc[0]), (&map[1], &tc[1])],
+            &hyps,
+            RELOC_AREA_MIN_OVERLAP,
+            super::area::UNIQUE_RADIUS_COARSE_PX,
+            RELOC_AREA_CANDIDATES,
+            &mut fft_points,
+        );
+        *work = work.saturating_add(fft_points / AREA_FFT_POINTS_PER_UNIT);
+        // A candidate's camera: the virtual principal point (straight below the camera)
+        // carried from the template's centre by the candidate's similarity.
+        let fine = |c: f64| c * f as f64 + (f as f64 - 1.0) / 2.0;
+        let (tcx, tcy) = (fine((tw as f64 - 1.0) / 2.0), fine((th as f64 - 1.0) / 2.0));
+        let (dx, dy) = (rect.cx_px - tcx, rect.cy_px - tcy);
+        let crs = self.reference.crs();
+        let mut out = Vec::new();
+        for c in &shortlist {
+            let (s, co) = c.theta_rad.sin_cos();
+            let px = [
+                fine(c.centre[0] - mx as f64) + c.scale * (co * dx - s * dy),
+                fine(c.centre[1] - my as f64) + c.scale * (s * dx + co * dy),
+            ];
+            let xy = img.to_map(px);
+            let Ok((lat, lon)) = crs.to_geodetic(xy[0], xy[1]) else {
+                continue;
+            };
+            out.push(AreaCandidate {
+                ncc: c.ncc,
+                position: PositionPriorGeo {
+                    lat_deg: lat,
+                    lon_deg: lon,
+                    alt_amsl_m: alt.alt_amsl_m,
+                    sigma_h_m: f as f64 * gsd,
+                    sigma_v_m: alt.sigma_m,
+                },
+                rect_att: AttitudePriorNed {
+                    attitude: Attitude::new(
+                        att.attitude.roll_rad,
+                        att.attitude.pitch_rad,
+                        wrap_pi(att.attitude.yaw_rad + c.theta_rad),
+                    ),
+                    sigma_rad: att.sigma_rad,
+                    sigma_yaw_rad: (0.5 * step).max(MIN_HYPOTHESIS_YAW_SIGMA_RAD),
+                },
+            });
+        }
+        Ok(AreaSearch {
+            candidates: out,
+            gsd_m: gsd,
+            coarse_px_m: f as f64 * gsd,
+        })
+    }
+
+    /// The confirmation of a search's accepted fix `r`: the frame matched again from that fix's
+    /// own pose (a tight position, rectified at the fix's attitude), the resection fusing the
+    /// caller's `solve` prior again (not the first fix's attitude: the reported fix must not be
+    /// checked against itself). A true view is confirmed (its matches come back with
+    /// predictions accurate to a few pixels); a chance alignment found among many hypotheses
+    /// is not (its matches came from the loose coarse gate), which the a-contrario count of one
+    /// attempt cannot see after a search of dozens. The refined pass is kept only with more
+    /// inliers.
+    #[allow(clippy::too_many_arguments)]
+    fn confirm_from_own_pose(
+        &self,
+        frame: &GrayImage,
+        r: FixReport,
+        a: Attempt,
+        att: &AttitudePriorNed,
+        solve: Option<&AttitudePriorNed>,
+        t_us: u64,
+        gsd: f64,
+        how: Single,
+        work: &mut u64,
+    ) -> Hypothesis {
+        let refined_pos = PositionPriorGeo {
+            lat_deg: r.lat_deg,
+            lon_deg: r.lon_deg,
+            alt_amsl_m: r.alt_amsl_m,
+            sigma_h_m: 3.0 * r.cov_ned_m2[0][0].max(r.cov_ned_m2[1][1]).sqrt().max(gsd),
+            sigma_v_m: 3.0 * r.cov_ned_m2[2][2].sqrt().max(gsd),
+        };
+        let refined_rect = AttitudePriorNed::isotropic(
+            Attitude::from_deg(r.roll_deg, r.pitch_deg, r.yaw_deg),
+            1f64.to_radians(),
+        );
+        *work = work.saturating_add((frame.width() * frame.height()) as u64);
+        let (r2, a2) = self.fix_single(frame, &refined_pos, &refined_rect, solve, t_us, how);
+        if !r2.accepted {
+            let mut rejected = FixReport::rejected(
+                format!("not confirmed from its own pose: {}", r2.reason),
+                t_us,
+                0.0,
+            );
+            rejected.matches = r.matches;
+            rejected.level = r.level;
+            return Hypothesis::new(att.attitude.yaw_rad, rejected, a);
+        }
+        if r2.inliers >= r.inliers {
+            Hypothesis::new(att.attitude.yaw_rad, r2, a2)
+        } else {
+            Hypothesis::new(att.attitude.yaw_rad, r, a)
+        }
     }
 
     /// Near nadir at an unknown heading: what relocalisation assumes without an attitude prior.
@@ -1674,51 +2014,7 @@ impl FixEngine {
         if !r.accepted {
             return Ok(Hypothesis::new(att.attitude.yaw_rad, r, a));
         }
-        // Second pass from the first fix: tight position, rectified at the fix's attitude, the
-        // resection fusing the caller's prior again (not the first fix's attitude: the reported
-        // fix must not be checked against itself).
-        let refined_pos = PositionPriorGeo {
-            lat_deg: r.lat_deg,
-            lon_deg: r.lon_deg,
-            alt_amsl_m: r.alt_amsl_m,
-            sigma_h_m: 3.0 * r.cov_ned_m2[0][0].max(r.cov_ned_m2[1][1]).sqrt().max(gsd),
-            sigma_v_m: 3.0 * r.cov_ned_m2[2][2].sqrt().max(gsd),
-        };
-        let refined_rect = AttitudePriorNed::isotropic(
-            Attitude::from_deg(r.roll_deg, r.pitch_deg, r.yaw_deg),
-            1f64.to_radians(),
-        );
-        *work = work.saturating_add(frame_px);
-        let (r2, a2) = self.fix_single(
-            frame,
-            &refined_pos,
-            &refined_rect,
-            solve,
-            t_us,
-            Single::FEATURES,
-        );
-        // Confirmation: a view found by a search is accepted only when the frame, matched
-        // again from that view's own pose, is accepted too. A true view is (its matches come
-        // back with predictions accurate to a few pixels); a chance alignment found among
-        // many hypotheses is not (its matches came from the loose coarse gate), which the
-        // a-contrario count of one attempt cannot see after a search of dozens.
-        if !r2.accepted {
-            let mut rejected = FixReport::rejected(
-                format!("not confirmed from its own pose: {}", r2.reason),
-                t_us,
-                0.0,
-            );
-            rejected.matches = r.matches;
-            rejected.level = r.level;
-            return Ok(Hypothesis::new(att.attitude.yaw_rad, rejected, a));
-        }
-        // The refined pass is kept only with more inliers (its position prior came from the
-        // first fix).
-        if r2.inliers >= r.inliers {
-            Ok(Hypothesis::new(att.attitude.yaw_rad, r2, a2))
-        } else {
-            Ok(Hypothesis::new(att.attitude.yaw_rad, r, a))
-        }
+        Ok(self.confirm_from_own_pose(frame, r, a, att, solve, t_us, gsd, Single::FEATURES, work))
     }
 }
 
@@ -1753,6 +2049,57 @@ const MAX_PRIOR_YAW_SIGMA_RAD: f64 = std::f64::consts::PI;
 /// took about as long as one pixel through rectification and SURF detection (release build,
 /// one core; docs/fix.md), so the budget bounds both kinds of work alike.
 pub const RELOC_COMPARISONS_PER_UNIT: u64 = 16;
+/// Largest side of the coarse template of the area search over the whole map (coarse pixels).
+/// The search's cost grows with its cube (pixels times headings); at 48 (about 1 700 valid
+/// template pixels) fields and roads still span several coarse pixels and a search of a map of
+/// a few km takes about 0.3 s on one core (docs/fix.md).
+const RELOC_AREA_TEMPLATE_PX: usize = 48;
+/// Heading and log-scale step of the area search: the template's corner moves by this many
+/// coarse pixels per step (half of it at worst between steps, inside the correlation peak of
+/// block-averaged images).
+const RELOC_AREA_EDGE_STEP_PX: f64 = 1.5;
+/// Share of the template's valid pixels that must lie on the map: a frame at 2 km above
+/// ground sees 2-3 km, and near the map's edge much of it lies outside; below this the overlap
+/// is too small for a correlation to mean anything.
+const RELOC_AREA_MIN_OVERLAP: f64 = 0.45;
+/// Distinct places of the area search shortlisted for verification (the true place is first
+/// for most frames, and among the first four for nearly all).
+const RELOC_AREA_CANDIDATES: usize = 4;
+/// After a candidate is confirmed, the others whose correlation is within this of its own are
+/// its rivals and verified too (lower ones are not alternatives to it).
+const RELOC_AREA_RIVAL_MARGIN: f64 = 0.1;
+/// FFT points per relocalisation work unit: a 2-D transform of 16 points took about as long as
+/// one pixel through rectification and SURF detection (release build, one core), so the budget
+/// bounds the area search and the feature search alike.
+pub const AREA_FFT_POINTS_PER_UNIT: u64 = 16;
+/// Smallest heading sigma of a verified candidate's rectification.
+const MIN_HYPOTHESIS_YAW_SIGMA_RAD: f64 = 0.5 * std::f64::consts::PI / 180.0;
+
+/// Why the area relocalisation gave no answer.
+enum AreaRelocError {
+    /// It could not run (no level images, budget, geometry).
+    CannotRun(String),
+    /// It ran and confirmed no candidate.
+    NotFound(String),
+}
+
+/// The area search's shortlist ([`FixEngine::area_search`]).
+struct AreaSearch {
+    candidates: Vec<AreaCandidate>,
+    /// Ground sample distance of the level searched and of its coarse grid, metres.
+    gsd_m: f64,
+    coarse_px_m: f64,
+}
+
+/// A place and heading of the area search, as the prior pipeline takes it.
+struct AreaCandidate {
+    /// The channels' mean correlation.
+    ncc: f64,
+    position: PositionPriorGeo,
+    /// The attitude to rectify at: the prior's tilt and the candidate's heading.
+    rect_att: AttitudePriorNed,
+}
+
 /// Fewest matches in the winning Hough bin of a relocalisation try (a similarity needs 2; 6
 /// keeps chance clusters out, as the resection's own minimum then decides).
 const MIN_HOUGH_CLUSTER: usize = 6;
@@ -2558,6 +2905,7 @@ mod tests {
                 t_capture_us: 7,
                 position: pos(1300.0, 50.0),
                 attitude: att,
+                altitude: None,
                 attitude_from_filter: false,
             },
         );
@@ -2576,6 +2924,7 @@ mod tests {
                     t_capture_us: 1,
                     position: p,
                     attitude: att,
+                    altitude: None,
                     attitude_from_filter: false,
                 },
             );
@@ -2591,6 +2940,7 @@ mod tests {
                 t_capture_us: 1,
                 position: pos(1300.0, 50.0),
                 attitude: att,
+                altitude: None,
                 attitude_from_filter: false,
             },
         );

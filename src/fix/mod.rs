@@ -56,6 +56,14 @@ impl AttitudePriorNed {
     }
 }
 
+/// The camera's altitude alone: what a barometer still knows after the horizontal position is
+/// lost (altitude above mean sea level, EGM96, and its 1-sigma).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AltitudePrior {
+    pub alt_amsl_m: f64,
+    pub sigma_m: f64,
+}
+
 /// What the fix knows before looking at the frame.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct FixPrior {
@@ -63,6 +71,9 @@ pub struct FixPrior {
     pub t_capture_us: u64,
     /// None: global relocalisation over the whole map.
     pub position: Option<PositionPriorGeo>,
+    /// Without `position` only: the altitude alone. With it and a tilt, relocalisation knows the
+    /// frame's scale and searches the map image by area correlation first (docs/fix.md).
+    pub altitude: Option<AltitudePrior>,
     /// None: the attitude is solved for without a prior (rectification assumes a nadir view).
     pub attitude: Option<AttitudePriorNed>,
     /// The attitude prior is the navigation filter's own attitude (its errors are the filter's

@@ -407,8 +407,11 @@ impl MapReference {
     /// the data alive): the in-memory path for small areas given as orthophotos. `dem` as in
     /// [`Self::open`].
     pub fn build_temporary(spec: &crate::map::BuildSpec, dem: Option<Dem>) -> Result<Self, String> {
+        // Process, call count and time: threads building at once never share a file.
+        static CALLS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let call = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let tmp = std::env::temp_dir().join(format!(
-            "visnav-{}-{}.vnm",
+            "visnav-{}-{call}-{}.vnm",
             std::process::id(),
             std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)

@@ -28,7 +28,8 @@ use super::rng::Rng;
 use crate::camera::{Attitude, Mount};
 use crate::fix::engine::Attempt;
 use crate::fix::{
-    AttitudePriorNed, FixEngine, FixParams, FixPrior, FixReport, MapReference, PositionPriorGeo,
+    AltitudePrior, AttitudePriorNed, FixEngine, FixParams, FixPrior, FixReport, MapReference,
+    PositionPriorGeo,
 };
 use crate::geo::Crs;
 use crate::geo::dem::Dem;
@@ -95,6 +96,9 @@ pub struct NaipEval {
     /// Diagnostic only (never an accuracy claim): the frames are rendered from the map's own
     /// orthophoto, so what remains is the solver's error, not the cross-date matching's.
     pub same_imagery: bool,
+    /// Without the position prior ([`Self::run_with`]), the prior's altitude is still given (a
+    /// barometer's); false: nothing of the position at all.
+    pub altitude_without_position: bool,
     /// The map's own orthophoto as a scene (for `same_imagery`).
     map_scene: Scene,
     /// The surface the frames are rendered on (the truth's ground height).
@@ -359,6 +363,7 @@ impl NaipEval {
             yaw_sigma_deg: 0.5,
             attitude_mode: AttitudeMode::Full,
             same_imagery: false,
+            altitude_without_position: true,
             map_scene,
             terrain,
             margin_m: site.margin_m,
@@ -520,6 +525,7 @@ impl NaipEval {
                 sigma_v_m: pp.sigma_v_m,
             }),
             attitude,
+            altitude: None,
             attitude_from_filter: false,
         })
     }
@@ -639,6 +645,13 @@ impl NaipEval {
             let img = self.frame(&case, i as u64, scene)?;
             let mut prior = self.prior(&mut rng, &case, i as u64)?;
             if !position_prior {
+                prior.altitude = prior
+                    .position
+                    .filter(|_| self.altitude_without_position)
+                    .map(|p| AltitudePrior {
+                        alt_amsl_m: p.alt_amsl_m,
+                        sigma_m: p.sigma_v_m,
+                    });
                 prior.position = None;
             }
             let (r, a) = self.engine.fix_with_attempt(&img, &prior);

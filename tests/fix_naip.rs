@@ -467,4 +467,19 @@ fn relocalisation_with_tilt_and_altitude_finds_the_place_at_any_heading() {
     let first = e.engine.fix(&img, &prior);
     eprintln!("one frame: {}", first.reason);
     assert_eq!(json(first), json(e.engine.fix(&img, &prior)));
+    // An altitude the search cannot use (not finite, or under the terrain): the feature search
+    // runs instead, and its answer is as honest as ever.
+    for alt in [f64::NAN, -5000.0] {
+        let mut p = prior;
+        p.altitude = Some(visnav::fix::AltitudePrior {
+            alt_amsl_m: alt,
+            sigma_m: 30.0,
+        });
+        let r = e.engine.fix(&img, &p);
+        eprintln!("altitude {alt}: {}", r.reason);
+        assert!(!r.reason.contains("area search"), "{}", r.reason);
+        if r.accepted {
+            assert!(e.score(&r, &case).err_h_m < 50.0);
+        }
+    }
 }

@@ -1635,6 +1635,18 @@ impl FixEngine {
         let img = self.reference.level_image(level).ok_or_else(|| {
             "the map has no level images (built by an older visnav: rebuild it)".to_string()
         })?;
+        // Each pixel of the level image read (and held in the working planes) counts one unit:
+        // a map too large for the budget is left to the feature search before any is read.
+        let budget = (self.params.reloc_budget_mwork * 1e6) as u64;
+        let map_px = (img.width * img.height) as u64;
+        if work.saturating_add(map_px) > budget {
+            return Err(format!(
+                "the map level's {:.0} million pixels exceed the budget (reloc_budget_mwork = {})",
+                map_px as f64 / 1e6,
+                self.params.reloc_budget_mwork
+            ));
+        }
+        *work = work.saturating_add(map_px);
         let r_map_cam = r_enu_ned() * self.camera.mount.r_ned_cam(&att.attitude);
         let rect = Rectification::new(
             frame,
@@ -1699,7 +1711,6 @@ impl FixEngine {
         let points = (map[0].width * map[0].height) as u64;
         let estimate =
             (hyps.len() as u64 * 2 * 5 + 2 * 3).saturating_mul(points) / AREA_FFT_POINTS_PER_UNIT;
-        let budget = (self.params.reloc_budget_mwork * 1e6) as u64;
         if work.saturating_add(estimate) > budget {
             return Err(format!(
                 "the area search needs about {:.0} million work units, more than the budget \

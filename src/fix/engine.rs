@@ -887,20 +887,16 @@ impl FixEngine {
     /// scale errors), then everywhere.
     fn area_pairs(&self, v: &View, a: &mut Attempt) -> Result<Vec<Pair>, String> {
         use super::area::{
-            Integral, Plane, grey_and_gradient, match_patch, place_similar, rank_hypotheses,
+            Integral, grey_and_gradient, match_patch, place_similar, rank_hypotheses,
             select_patches,
         };
         let rect = v.rect;
         let img = self.reference.level_image(v.level).ok_or_else(|| {
             "the map has no level images (built by an older visnav: rebuild it)".to_string()
         })?;
-        let frame = Plane::new(
-            rect.width(),
-            rect.height(),
-            rect.image.data().to_vec(),
-            rect.valid.clone(),
-        )
-        .ok_or_else(|| "empty rectification".to_string())?;
+        let frame = rect
+            .plane()
+            .ok_or_else(|| "empty rectification".to_string())?;
         // The template's predicted place: the rectified grid is the map's (north-up, the
         // level's pixel) up to the prior's errors; its centre's ground point anchors it.
         let (uc, vc) = (rect.width() as f64 / 2.0, rect.height() as f64 / 2.0);
@@ -1574,7 +1570,7 @@ impl FixEngine {
             }
             match &confirmed {
                 None => confirmed = Some((c.ncc, h)),
-                Some((_, first)) => {
+                Some((first_ncc, first)) => {
                     let d =
                         (h.report.x_m - first.report.x_m).hypot(h.report.y_m - first.report.y_m);
                     let same = SAME_PLACE_SIGMAS
@@ -1585,8 +1581,7 @@ impl FixEngine {
                         let reason = format!(
                             "relocalisation: ambiguous: the area search confirmed two places \
                              {d:.0} m apart (correlations {:.2} and {:.2})",
-                            confirmed.as_ref().map_or(0.0, |(n, _)| *n),
-                            c.ncc
+                            first_ncc, c.ncc
                         );
                         return Ok((FixReport::rejected(reason, t_us, 0.0), Attempt::default()));
                     }
@@ -1618,7 +1613,7 @@ impl FixEngine {
         att: &AttitudePriorNed,
         work: &mut u64,
     ) -> Result<AreaSearch, String> {
-        use super::area::{Plane, candidates, grey_and_gradient};
+        use super::area::{candidates, grey_and_gradient};
         if !(alt.alt_amsl_m.is_finite() && alt.sigma_m.is_finite() && alt.sigma_m > 0.0) {
             return Err("the altitude prior must be finite with a positive sigma".into());
         }
@@ -1658,13 +1653,9 @@ impl FixEngine {
         )
         .ok_or_else(|| "the frame does not see the ground (rectification empty)".to_string())?;
         *work = work.saturating_add((rect.width() * rect.height()) as u64);
-        let plane = Plane::new(
-            rect.width(),
-            rect.height(),
-            rect.image.data().to_vec(),
-            rect.valid.clone(),
-        )
-        .ok_or_else(|| "empty rectification".to_string())?;
+        let plane = rect
+            .plane()
+            .ok_or_else(|| "empty rectification".to_string())?;
         let f = rect
             .width()
             .max(rect.height())

@@ -193,6 +193,16 @@ impl Rectification {
         Some(rect)
     }
 
+    /// The virtual image with its validity mask, as the area stages take it (`None` when empty).
+    pub fn plane(&self) -> Option<super::area::Plane> {
+        super::area::Plane::new(
+            self.width(),
+            self.height(),
+            self.image.data().to_vec(),
+            self.valid.clone(),
+        )
+    }
+
     /// Width of the virtual image.
     pub fn width(&self) -> usize {
         self.image.width()

@@ -254,24 +254,32 @@ async fn autopilot_reboot_restarts_the_filter_and_injection_resumes() {
             .any(|r| r.boot == 1 && matches!(r.msg, MavMessage::GPS_INPUT(_)))
     })
     .await;
+    // Five injections from 0.5 s later on: the rate is not asserted here (a loaded 2-core CI
+    // machine starves the emulator and the daemon alike; the 5 Hz rate is asserted by the
+    // GPS-aided test), only that injection continues and follows the truth.
     let t0 = emu.time_boot_us() + 500_000;
-    tokio::time::sleep(Duration::from_millis(2500)).await;
-    let after: Vec<_> = emu
-        .received()
-        .into_iter()
-        .filter(|r| r.boot == 1 && r.t_boot_us >= t0)
-        .filter_map(|r| match r.msg {
-            MavMessage::GPS_INPUT(g) => Some((r.t_boot_us, g)),
-            _ => None,
-        })
-        .collect();
+    let after_reboot = || -> Vec<_> {
+        emu.received()
+            .into_iter()
+            .filter(|r| r.boot == 1 && r.t_boot_us >= t0)
+            .filter_map(|r| match r.msg {
+                MavMessage::GPS_INPUT(g) => Some((r.t_boot_us, g)),
+                _ => None,
+            })
+            .collect()
+    };
+    wait_until(15.0, "five GPS_INPUT after the reboot", || {
+        after_reboot().len() >= 5
+    })
+    .await;
+    let after = after_reboot();
     let err = max_error_m(&after);
     let m = d.shutdown().await;
     eprintln!(
-        "after reboot: {} GPS_INPUT in 2 s, max error {err:.2} m; {m:?}",
-        after.len()
+        "after reboot: {} GPS_INPUT over {:.1} s, max error {err:.2} m; {m:?}",
+        after.len(),
+        after.last().map_or(0, |(t, _)| *t).saturating_sub(t0) as f64 / 1e6
     );
-    assert!(after.len() >= 5, "{}", after.len());
     assert!(err < 5.0, "{err}");
     assert_eq!(m.autopilot_reboots, 1);
 }

@@ -217,6 +217,13 @@ fn naip_position_prior_without_attitude_stays_honest() {
                 s.err_h_m, s.err_sigma
             );
             assert!(s.err_sigma <= 3.0, "beyond 3 sigma");
+            // Never a wrong fix (issue 19: > 50 m off): a fix whose 1-sigma exceeds 50 m is
+            // not offered (MAX_FIX_HORIZONTAL_SIGMA_M).
+            assert!(
+                s.err_h_m <= 50.0,
+                "a no-attitude fix {:.0} m off",
+                s.err_h_m
+            );
             // The heading comes out of the image.
             let dyaw = (r.yaw_deg.to_radians() - heading)
                 .sin()

@@ -124,6 +124,14 @@ impl Default for FixParams {
     }
 }
 
+/// Largest horizontal 1-sigma of an accepted fix, metres. A fix more than 50 m off counts as
+/// wrong (issue 19's definition, `visnav bench fix`'s `wrong_fixes`), so a fix that cannot
+/// promise that at one sigma is not offered. Only a resection without any attitude prior gets
+/// near it (the position-tilt ambiguity of a narrow view over flat ground: NAIP cross-date at
+/// 2000 m, 58-75 m, 76-130 m off); with an attitude prior (tight, tilt only, or a heading 25 deg
+/// off) no accepted fix exceeded 28.5 m over 600 bench frames.
+pub const MAX_FIX_HORIZONTAL_SIGMA_M: f64 = 50.0;
+
 /// Resection settings of the fix pipeline: the autopilot's attitude is fused (it bounds the
 /// position-tilt ambiguity of a narrow field of view over flat ground), and the covariance is
 /// inflated by 4 on `max(1, sigma0)` (calibrated on 200 NAIP cross-date frames, see docs/fix.md:
@@ -133,7 +141,8 @@ impl Default for FixParams {
 /// assumed (same-source imagery: 0.69 -> 0.27 map px on a same-year control with 0.25), but it
 /// is not the default: a map's registration shift does not shrink with sigma0, and in the closed
 /// loop it made cross-date fixes over-confident (docs/fix.md, "The covariance factor").
-/// Fixes up to 80 m / 3 deg (1 sigma) are accepted: the navigation filter weighs them.
+/// Fixes up to [`MAX_FIX_HORIZONTAL_SIGMA_M`] horizontal, 80 m vertical and 3 deg (1 sigma) are
+/// accepted: the navigation filter weighs them.
 pub fn default_pose_config() -> ResectionConfig {
     let mut c = ResectionConfig::default();
     // Cross-date keypoints scatter by 2-3 px; a 3 px consensus admits near-miss wrong matches
@@ -143,7 +152,7 @@ pub fn default_pose_config() -> ResectionConfig {
     c.refine.sigma_inflation = 4.0;
     // Per-fix evidence of shared errors (a displaced or changed map area) on top of the floor.
     c.refine.split_variance = true;
-    c.integrity.max_horizontal_sigma_m = 80.0;
+    c.integrity.max_horizontal_sigma_m = MAX_FIX_HORIZONTAL_SIGMA_M;
     c.integrity.max_vertical_sigma_m = 80.0;
     c.integrity.max_attitude_sigma_deg = 3.0;
     c
@@ -567,7 +576,68 @@ impl FixEngine {
                 Hypothesis::new(hyp.attitude.yaw_rad, r, a)
             })
             .collect();
-        select_unique(tries, t_us)
+        let (r, a) = select_unique(tries, t_us);
+        if !r.accepted {
+            return (r, a);
+        }
+        self.refine_sweep_fix(frame, pos, att, solve, t_us, att_from_filter, r, a)
+    }
+
+    /// The sweep's fix `r` again, rectified at its own heading: a hypothesis is up to half a
+    /// [`HEADING_STEP_DEG`] from the true heading, which costs upright SURF matches and lets a
+    /// few chance matches into a weak consensus. The caller's attitude prior is kept for the
+    /// resection (the heading found is the image's, not a prior). The second fix replaces the
+    /// first when it is at the same place; at another place the answer is ambiguous; when it
+    /// is rejected the first stands (the sweep's uniqueness test passed). NAIP cross-date with
+    /// a 25 deg heading error: the one fix 54 m off (tilt 1.3 deg) becomes 48 m max, p90 30.7 ->
+    /// 27.8 m, same acceptance (docs/fix.md).
+    #[allow(clippy::too_many_arguments)]
+    fn refine_sweep_fix(
+        &self,
+        frame: &GrayImage,
+        pos: &PositionPriorGeo,
+        att: &AttitudePriorNed,
+        solve: Option<&AttitudePriorNed>,
+        t_us: u64,
+        att_from_filter: bool,
+        r: FixReport,
+        a: Attempt,
+    ) -> (FixReport, Attempt) {
+        let rect = AttitudePriorNed {
+            attitude: Attitude::new(
+                att.attitude.roll_rad,
+                att.attitude.pitch_rad,
+                r.yaw_deg.to_radians(),
+            ),
+            sigma_rad: att.sigma_rad,
+            sigma_yaw_rad: HYPOTHESIS_YAW_SIGMA_DEG.to_radians(),
+        };
+        let (r2, a2) = self.fix_single(
+            frame,
+            pos,
+            &rect,
+            solve,
+            t_us,
+            Single {
+                att_from_filter,
+                area: false,
+            },
+        );
+        if !r2.accepted {
+            return (r, a);
+        }
+        let d = (r2.x_m - r.x_m).hypot(r2.y_m - r.y_m);
+        if d > SAME_PLACE_SIGMAS * sigma_h_m(&r2).hypot(sigma_h_m(&r)) {
+            let mut rej = FixReport::rejected(
+                format!("ambiguous: rectified at its own heading the fix moves {d:.0} m"),
+                t_us,
+                0.0,
+            );
+            rej.matches = r.matches;
+            rej.level = r.level;
+            return (rej, a);
+        }
+        (r2, a2)
     }
 
     /// Ground height below the camera's principal ray (or straight below, or the DEM's middle).

@@ -595,6 +595,21 @@ impl NaipEval {
         Some((e.transpose() * inv * e)[0])
     }
 
+    /// Horizontal error (m) and tilt error (deg) of the report's image-only pose.
+    fn vision_only_errors(&self, r: &FixReport, case: &Case) -> Option<(f64, f64)> {
+        let v = r.vision_only?;
+        let t = case.pose.centre_map_m;
+        let (x, y) = self.crs.from_geodetic(v.lat_deg, v.lon_deg).ok()?;
+        let q_meas = UnitQuaternion::from_euler_angles(
+            v.roll_deg.to_radians(),
+            v.pitch_deg.to_radians(),
+            v.yaw_deg.to_radians(),
+        );
+        let z_true = case.attitude.r_ned_body() * Vector3::z();
+        let z_est = q_meas * Vector3::z();
+        Some(((x - t.x).hypot(y - t.y), z_est.angle(&z_true).to_degrees()))
+    }
+
     /// Number of fine matches whose map point projects within 3 px of the query keypoint
     /// through the true pose.
     pub fn correct_pairs(&self, a: &Attempt, case: &Case) -> usize {
@@ -670,12 +685,15 @@ impl NaipEval {
                     wrong += 1;
                 }
                 nees6.extend(s.nees6);
+                let vo = self
+                    .vision_only_errors(&r, &case)
+                    .unwrap_or((f64::NAN, f64::NAN));
                 let prior_dv_m = prior
                     .position
                     .as_ref()
                     .map_or(f64::NAN, |p| p.alt_amsl_m - case.pose.centre_map_m.z);
                 log(format!(
-                    "frame {i:3}: accepted{}, {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:+.1} m = {:.2} sigma (sigma h {:.1} v {:.1} m; {:.0} m above ground, prior altitude {:+.1} m), ground {:.1} m tilt {:.2} deg, image-only pose NEES {:.1}, reprojection RMS {:.2} px, sigma0 {:.2}, covariance factor {:.1}, {:.1} ms",
+                    "frame {i:3}: accepted{}, {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:+.1} m = {:.2} sigma (sigma h {:.1} v {:.1} m; {:.0} m above ground, prior altitude {:+.1} m), ground {:.1} m tilt {:.2} deg, image-only h {:.1} m tilt {:.2} deg NEES {:.1}, reprojection RMS {:.2} px, sigma0 {:.2}, covariance factor {:.1}, {:.1} ms",
                     if is_wrong { " WRONG" } else { "" },
                     r.inliers,
                     r.matches,
@@ -689,6 +707,8 @@ impl NaipEval {
                     prior_dv_m,
                     s.ground_err_m,
                     s.tilt_err_deg,
+                    vo.0,
+                    vo.1,
                     s.nees6.unwrap_or(f64::NAN),
                     r.reproj_rms_px,
                     r.sigma0,

@@ -281,9 +281,13 @@ pub struct Attempt {
 
 impl Attempt {
     /// Fine matches above the chance level measured for this attempt (the a-contrario count):
-    /// what a hypothesis has that an unrelated place would not.
+    /// what a hypothesis has that an unrelated place would not; for an area correlation, its
+    /// tie points (each agrees with the unique placement within 1.5 px at an NCC of 0.4 or more,
+    /// which an unrelated place does not give). The larger of the two when both ran.
     pub fn evidence(&self) -> usize {
-        self.fine_matches.saturating_sub(self.null_matches)
+        self.fine_matches
+            .saturating_sub(self.null_matches)
+            .max(self.area_ties)
     }
 }
 
@@ -309,7 +313,10 @@ struct PriorGeom {
 struct Single {
     /// The attitude prior is the navigation filter's own.
     att_from_filter: bool,
-    /// The area correlation may run.
+    /// The features run.
+    features: bool,
+    /// The area correlation may run (as `[fix] area_matching` says; alone when `features` is
+    /// false).
     area: bool,
 }
 
@@ -317,6 +324,7 @@ impl Single {
     /// Features only, an independent attitude prior (searches).
     const FEATURES: Self = Self {
         att_from_filter: false,
+        features: true,
         area: false,
     };
 }
@@ -549,7 +557,9 @@ impl FixEngine {
     /// rectified at heading hypotheses [`HEADING_STEP_DEG`] apart over the prior's +-3 sigma
     /// (tilt kept: roll and pitch come from gravity), each matched and solved with the caller's
     /// prior (its loose heading; `solve`, None for no attitude prior), and the unique best
-    /// hypothesis wins ([`select_unique`]).
+    /// hypothesis wins ([`select_unique`]). With none accepted, the same by area correlation
+    /// alone (unless `[fix] area_matching = "off"`). The winner is redone at its own heading
+    /// ([`Self::refine_sweep_fix`]).
     fn fix_heading_sweep(
         &self,
         frame: &GrayImage,
@@ -559,28 +569,42 @@ impl FixEngine {
         t_us: u64,
         att_from_filter: bool,
     ) -> (FixReport, Attempt) {
-        let tries = heading_hypotheses(att)
-            .into_iter()
-            .map(|hyp| {
-                let (r, a) = self.fix_single(
-                    frame,
-                    pos,
-                    &hyp,
-                    solve,
-                    t_us,
-                    Single {
-                        att_from_filter,
-                        area: false,
-                    },
-                );
-                Hypothesis::new(hyp.attitude.yaw_rad, r, a)
-            })
-            .collect();
-        let (r, a) = select_unique(tries, t_us);
-        if !r.accepted {
+        let hyps = heading_hypotheses(att);
+        let sweep = |how: Single| -> Vec<Hypothesis> {
+            hyps.iter()
+                .map(|hyp| {
+                    let (r, a) = self.fix_single(frame, pos, hyp, solve, t_us, how);
+                    Hypothesis::new(hyp.attitude.yaw_rad, r, a)
+                })
+                .collect()
+        };
+        let features = Single {
+            att_from_filter,
+            features: true,
+            area: false,
+        };
+        let (r, a) = select_unique(sweep(features), t_us);
+        if r.accepted {
+            return self.refine_sweep_fix(frame, pos, att, solve, t_us, features, r, a);
+        }
+        if self.params.area_matching == AreaMatching::Off {
             return (r, a);
         }
-        self.refine_sweep_fix(frame, pos, att, solve, t_us, att_from_filter, r, a)
+        // No heading matched by features: the area correlation at every heading (its placement
+        // covers +-3 hypothesis sigmas of rotation, more than half a step), with the same
+        // uniqueness rule.
+        let area = Single {
+            att_from_filter,
+            features: false,
+            area: true,
+        };
+        let (r2, a2) = select_unique(sweep(area), t_us);
+        if !r2.accepted {
+            let mut r = r;
+            r.reason = format!("{}; area: {}", r.reason, r2.reason);
+            return (r, a);
+        }
+        self.refine_sweep_fix(frame, pos, att, solve, t_us, area, r2, a2)
     }
 
     /// The sweep's fix `r` again, rectified at its own heading: a hypothesis is up to half a
@@ -599,7 +623,7 @@ impl FixEngine {
         att: &AttitudePriorNed,
         solve: Option<&AttitudePriorNed>,
         t_us: u64,
-        att_from_filter: bool,
+        how: Single,
         r: FixReport,
         a: Attempt,
     ) -> (FixReport, Attempt) {
@@ -612,17 +636,7 @@ impl FixEngine {
             sigma_rad: att.sigma_rad,
             sigma_yaw_rad: HYPOTHESIS_YAW_SIGMA_DEG.to_radians(),
         };
-        let (r2, a2) = self.fix_single(
-            frame,
-            pos,
-            &rect,
-            solve,
-            t_us,
-            Single {
-                att_from_filter,
-                area: false,
-            },
-        );
+        let (r2, a2) = self.fix_single(frame, pos, &rect, solve, t_us, how);
         if !r2.accepted {
             return (r, a);
         }
@@ -684,6 +698,7 @@ impl FixEngine {
                 t_us,
                 Single {
                     att_from_filter,
+                    features: true,
                     area: true,
                 },
             )
@@ -691,10 +706,9 @@ impl FixEngine {
     }
 
     /// One rectification at `rect` (the attitude the frame is resampled with and the coarse gate
-    /// assumes), the resection fusing `solve` (None: no attitude prior). `area`: the area
-    /// correlation may run (`[fix] area_matching`); heading sweeps and relocalisation search
-    /// their hypotheses with features only (the correlation's placement covers the rotation of
-    /// one prior, not a sweep's steps, and its cost would multiply by the hypotheses).
+    /// assumes), the resection fusing `solve` (None: no attitude prior), with the methods `how`
+    /// names: a heading sweep runs features at every hypothesis first and the area correlation
+    /// alone only when none matched; the feature relocalisation uses features only.
     fn fix_single(
         &self,
         frame: &GrayImage,
@@ -730,7 +744,7 @@ impl FixEngine {
         }
         let cam_gsd_m = agl_m / self.camera.intrinsics.fx_px;
         let level = self.pick_level(cam_gsd_m);
-        self.match_and_solve(frame, &g, level, agl_m, t_us, how.area)
+        self.match_and_solve(frame, &g, level, agl_m, t_us, how)
     }
 
     /// The resection's attitude prior from an NED attitude prior.
@@ -755,7 +769,7 @@ impl FixEngine {
         level: usize,
         agl_m: f64,
         t_us: u64,
-        area: bool,
+        how: Single,
     ) -> (FixReport, Attempt) {
         let mut a = Attempt {
             level,
@@ -785,11 +799,14 @@ impl FixEngine {
             scale,
         };
         // The methods in the order `[fix] area_matching` tries them; the first accepted wins.
-        let order: &[FixMethod] = match (area, self.params.area_matching) {
-            (false, _) | (true, AreaMatching::Off) => &[FixMethod::Features],
-            (true, AreaMatching::Only) => &[FixMethod::Area],
-            (true, AreaMatching::Fallback) => &[FixMethod::Features, FixMethod::Area],
-            (true, AreaMatching::First) => &[FixMethod::Area, FixMethod::Features],
+        let order: &[FixMethod] = match (how.features, how.area, self.params.area_matching) {
+            (false, false, _) | (false, true, AreaMatching::Off) => {
+                return rej("no matching method enabled".into(), a);
+            }
+            (_, true, AreaMatching::Only) | (false, true, _) => &[FixMethod::Area],
+            (_, false, _) | (_, true, AreaMatching::Off) => &[FixMethod::Features],
+            (true, true, AreaMatching::Fallback) => &[FixMethod::Features, FixMethod::Area],
+            (true, true, AreaMatching::First) => &[FixMethod::Area, FixMethod::Features],
         };
         let mut reasons = Vec::new();
         let mut report = None;
@@ -1607,6 +1624,7 @@ impl FixEngine {
             .map_err(AreaRelocError::CannotRun)?;
         let how = Single {
             att_from_filter: false,
+            features: true,
             area: true,
         };
         let mut confirmed: Option<(f64, Hypothesis)> = None;
@@ -2873,6 +2891,51 @@ mod tests {
             r.reason,
             "2 headings tried, best: only 30 matches where chance gives 10 (need 27)"
         );
+    }
+
+    /// An area-correlation hypothesis: no feature matches, `ties` tie points.
+    fn area_hypothesis(
+        rect_yaw_deg: f64,
+        accepted: bool,
+        at: (f64, f64),
+        ties: usize,
+    ) -> Hypothesis {
+        let mut h = hypothesis(rect_yaw_deg, accepted, at, 0, 0);
+        h.attempt.area_ties = ties;
+        h.report.inliers = ties;
+        h
+    }
+
+    #[test]
+    fn select_unique_weighs_area_hypotheses_by_their_tie_points() {
+        // Two area fixes at places 800 m apart with about the same tie points: ambiguous.
+        let (r, _) = select_unique(
+            vec![
+                area_hypothesis(15.0, true, (100.0, 50.0), 40),
+                area_hypothesis(60.0, true, (900.0, 50.0), 35),
+            ],
+            7,
+        );
+        assert!(
+            !r.accepted && r.reason.contains("another place 800 m away"),
+            "{}",
+            r.reason
+        );
+        // A clear winner against a far heading with a few ties.
+        let (r, _) = select_unique(
+            vec![
+                area_hypothesis(15.0, true, (100.0, 50.0), 40),
+                area_hypothesis(90.0, false, (0.0, 0.0), 12),
+            ],
+            7,
+        );
+        assert!(r.accepted, "{}", r.reason);
+        // Features and area in one attempt: the larger evidence counts.
+        let mut both = hypothesis(0.0, false, (0.0, 0.0), 30, 10).attempt;
+        both.area_ties = 25;
+        assert_eq!(both.evidence(), 25);
+        both.area_ties = 5;
+        assert_eq!(both.evidence(), 20);
     }
 
     fn features(points: &[([f32; 2], i8, [f32; 8])]) -> Features {

@@ -297,25 +297,33 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
             );
         }
         println!(
-            "  accepted {} ({:.0} %), beyond 3 sigma {}, wrong (> {} m or > {} sigma) {}, image-only NEES(6) mean {:.1}",
+            "  accepted {} ({:.0} %), beyond 3 sigma {}, wrong (> {} m or > {} sigma) {}, image-only NEES(6) mean {}",
             s.accepted,
             100.0 * s.fix_rate,
             s.beyond_3_sigma,
             visnav::sitl::fixeval::WRONG_FIX_M,
             visnav::sitl::fixeval::WRONG_FIX_SIGMAS,
             s.wrong_fixes,
-            s.nees6_mean
+            if s.accepted > 0 {
+                format!("{:.1}", s.nees6_mean)
+            } else {
+                "-".to_string()
+            }
         );
-        println!(
-            "  horizontal error median {:.1} m ({:.2} map px) p90 {:.1} max {:.1}; vertical median {:.1} p90 {:.1} max {:.1}",
-            s.err_h_m.median,
-            s.median_err_map_px,
-            s.err_h_m.p90,
-            s.err_h_m.max,
-            s.err_v_m.median,
-            s.err_v_m.p90,
-            s.err_v_m.max
-        );
+        if s.accepted > 0 {
+            println!(
+                "  horizontal error median {:.1} m ({:.2} map px) p90 {:.1} max {:.1}; vertical median {:.1} p90 {:.1} max {:.1}",
+                s.err_h_m.median,
+                s.median_err_map_px,
+                s.err_h_m.p90,
+                s.err_h_m.max,
+                s.err_v_m.median,
+                s.err_v_m.p90,
+                s.err_v_m.max
+            );
+        } else {
+            println!("  no fix accepted: no errors to report");
+        }
         println!(
             "  frame to fix: p50 {:.1} ms, p95 {:.1} ms",
             s.ms_p50, s.ms_p95

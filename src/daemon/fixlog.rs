@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::fix::{FixReport, PriorDependenceNed, VisionOnlyPose};
+use crate::fix::{FixMethod, FixReport, PriorDependenceNed, VisionOnlyPose};
 
 /// One fix result.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -52,6 +52,10 @@ pub struct FixLogRecord {
     pub prior_dependence: Option<PriorDependenceNed>,
     #[serde(default)]
     pub prior_attitude_from_filter: bool,
+    /// How the accepted fix's correspondences were found (`features` or `area`; None for a
+    /// rejection, and in logs written before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub method: Option<FixMethod>,
 }
 
 impl FixLogRecord {
@@ -85,6 +89,7 @@ impl FixLogRecord {
                 .prior_dependence
                 .filter(PriorDependenceNed::is_finite),
             prior_attitude_from_filter: report.prior_attitude_from_filter,
+            method: report.accepted.then_some(report.method),
         }
     }
 
@@ -107,6 +112,7 @@ impl FixLogRecord {
         r.vision_only = self.vision_only;
         r.prior_dependence = self.prior_dependence;
         r.prior_attitude_from_filter = self.prior_attitude_from_filter;
+        r.method = self.method.unwrap_or_default();
         r
     }
 }
@@ -166,6 +172,7 @@ mod tests {
         good.cov_ned_m2 = [[25.0, 1.0, 0.0], [1.0, 30.0, 0.0], [0.0, 0.0, 90.0]];
         good.inliers = 40;
         good.reproj_rms_px = 1.2;
+        good.method = FixMethod::Area;
         let mut cov6 = [[0.0; 6]; 6];
         for (i, row) in cov6.iter_mut().enumerate() {
             row[i] = if i < 3 { 400.0 } else { 1e-4 };
@@ -194,9 +201,13 @@ mod tests {
         let rep = back[0].report();
         assert!(rep.accepted && rep.lat_deg == 47.0 && rep.cov_ned_m2[1][1] == 30.0);
         assert_eq!(rep.vision_only, good.vision_only, "image-only pose kept");
+        assert_eq!(back[0].method, Some(FixMethod::Area), "method kept");
+        assert_eq!(rep.method, FixMethod::Area);
+        assert_eq!(back[1].method, None, "a rejection has no method");
         // A log written before the image-only pose existed still reads.
         let old = r#"{"arrival_unix_us":1,"t_capture_us":2,"seq":3,"latency_ms":4,"accepted":false,"reason":"x","outcome":"engine_rejected","lat_deg":null,"lon_deg":null,"h_ellip_m":null,"alt_amsl_m":null,"cov_ned_m2":null,"inliers":0,"reproj_rms_px":null}"#;
         assert_eq!(read_fix_log(old).unwrap()[0].vision_only, None);
+        assert_eq!(read_fix_log(old).unwrap()[0].method, None);
         assert!(back[1].report().lat_deg.is_nan());
         let e = read_fix_log("{\"arrival_unix_us\": 1}\nnot json\n").unwrap_err();
         assert!(e.starts_with("line 1"), "{e}");

@@ -587,7 +587,9 @@ impl FixEngine {
         if r.accepted {
             return self.refine_sweep_fix(frame, pos, att, solve, t_us, features, r, a);
         }
-        if self.params.area_matching == AreaMatching::Off {
+        // Without an attitude prior an area fix has the features' position-tilt ambiguity and
+        // fails the sigma limit as theirs do (NAIP: 0 of 3 frames, 1.7 s each): not tried.
+        if self.params.area_matching == AreaMatching::Off || solve.is_none() {
             return (r, a);
         }
         // No heading matched by features: the area correlation at every heading (its placement

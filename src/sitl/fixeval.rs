@@ -568,20 +568,27 @@ impl NaipEval {
         }
     }
 
-    /// 6-dof NEES of the report's image-only pose (None without one).
-    fn nees6(&self, r: &FixReport, case: &Case) -> Option<f64> {
+    /// The report's image-only pose: map grid x, y (m) and its attitude (NED from body).
+    fn vision_only_map(&self, r: &FixReport) -> Option<(f64, f64, UnitQuaternion<f64>)> {
         let v = r.vision_only?;
-        let t = case.pose.centre_map_m;
         let (x, y) = self.crs.from_geodetic(v.lat_deg, v.lon_deg).ok()?;
-        let n = crate::geo::geoid::geoid_undulation_m(v.lat_deg, v.lon_deg).ok()?;
-        let (ex, ey, ez) = (x - t.x, y - t.y, v.h_ellip_m - n - t.z);
-        let (sg, cg) = case.grid_convergence_rad.sin_cos();
-        let q_true = UnitQuaternion::from_rotation_matrix(&case.attitude.r_ned_body());
-        let q_meas = UnitQuaternion::from_euler_angles(
+        let q = UnitQuaternion::from_euler_angles(
             v.roll_deg.to_radians(),
             v.pitch_deg.to_radians(),
             v.yaw_deg.to_radians(),
         );
+        Some((x, y, q))
+    }
+
+    /// 6-dof NEES of the report's image-only pose (None without one).
+    fn nees6(&self, r: &FixReport, case: &Case) -> Option<f64> {
+        let v = r.vision_only?;
+        let t = case.pose.centre_map_m;
+        let (x, y, q_meas) = self.vision_only_map(r)?;
+        let n = crate::geo::geoid::geoid_undulation_m(v.lat_deg, v.lon_deg).ok()?;
+        let (ex, ey, ez) = (x - t.x, y - t.y, v.h_ellip_m - n - t.z);
+        let (sg, cg) = case.grid_convergence_rad.sin_cos();
+        let q_true = UnitQuaternion::from_rotation_matrix(&case.attitude.r_ned_body());
         let psi = (q_meas * q_true.inverse()).scaled_axis();
         let e = Vector6::new(
             ey * cg - ex * sg,
@@ -597,14 +604,8 @@ impl NaipEval {
 
     /// Horizontal error (m) and tilt error (deg) of the report's image-only pose.
     fn vision_only_errors(&self, r: &FixReport, case: &Case) -> Option<(f64, f64)> {
-        let v = r.vision_only?;
         let t = case.pose.centre_map_m;
-        let (x, y) = self.crs.from_geodetic(v.lat_deg, v.lon_deg).ok()?;
-        let q_meas = UnitQuaternion::from_euler_angles(
-            v.roll_deg.to_radians(),
-            v.pitch_deg.to_radians(),
-            v.yaw_deg.to_radians(),
-        );
+        let (x, y, q_meas) = self.vision_only_map(r)?;
         let z_true = case.attitude.r_ned_body() * Vector3::z();
         let z_est = q_meas * Vector3::z();
         Some(((x - t.x).hypot(y - t.y), z_est.angle(&z_true).to_degrees()))

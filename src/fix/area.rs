@@ -25,6 +25,7 @@
 
 use std::sync::Arc;
 
+use rayon::prelude::*;
 use rustfft::num_complex::Complex;
 use rustfft::{Fft, FftPlanner};
 
@@ -65,15 +66,30 @@ pub struct Plane {
 }
 
 impl Plane {
-    /// A plane from its parts; `None` when the sizes disagree or a side is zero.
-    pub fn new(width: usize, height: usize, data: Vec<f32>, valid: Vec<bool>) -> Option<Self> {
-        (width > 0 && height > 0 && data.len() == width * height && valid.len() == data.len())
-            .then_some(Self {
-                width,
-                height,
-                data,
-                valid,
-            })
+    /// A plane from its parts; `None` when the sizes disagree or a side is zero. A value that
+    /// is not finite is invalid, and every value is stored finite (0 there), so that sums over
+    /// windows may include invalid pixels with a zero weight.
+    pub fn new(
+        width: usize,
+        height: usize,
+        mut data: Vec<f32>,
+        mut valid: Vec<bool>,
+    ) -> Option<Self> {
+        if !(width > 0 && height > 0 && data.len() == width * height && valid.len() == data.len()) {
+            return None;
+        }
+        for (d, ok) in data.iter_mut().zip(valid.iter_mut()) {
+            if !d.is_finite() {
+                *d = 0.0;
+                *ok = false;
+            }
+        }
+        Some(Self {
+            width,
+            height,
+            data,
+            valid,
+        })
     }
 
     /// Index of pixel `(x, y)` in `data`.
@@ -90,24 +106,30 @@ impl Plane {
         let (w, h) = (self.width / f, self.height / f);
         let mut data = vec![0f32; w * h];
         let mut valid = vec![false; w * h];
-        for by in 0..h {
-            for bx in 0..w {
-                let (mut s, mut n) = (0f64, 0usize);
-                for y in by * f..(by + 1) * f {
-                    for x in bx * f..(bx + 1) * f {
-                        let i = self.idx(x, y);
-                        if self.valid[i] {
-                            s += f64::from(self.data[i]);
-                            n += 1;
+        if w == 0 {
+            return None;
+        }
+        data.par_chunks_mut(w)
+            .zip(valid.par_chunks_mut(w))
+            .enumerate()
+            .for_each(|(by, (drow, vrow))| {
+                for (bx, (d, ok)) in drow.iter_mut().zip(vrow.iter_mut()).enumerate() {
+                    let (mut s, mut n) = (0f64, 0usize);
+                    for y in by * f..(by + 1) * f {
+                        for x in bx * f..(bx + 1) * f {
+                            let i = self.idx(x, y);
+                            if self.valid[i] {
+                                s += f64::from(self.data[i]);
+                                n += 1;
+                            }
                         }
                     }
+                    if 4 * n >= 3 * f * f {
+                        *d = (s / n as f64) as f32;
+                        *ok = true;
+                    }
                 }
-                if 4 * n >= 3 * f * f {
-                    data[by * w + bx] = (s / n as f64) as f32;
-                    valid[by * w + bx] = true;
-                }
-            }
-        }
+            });
         Plane::new(w, h, data, valid)
     }
 
@@ -138,22 +160,25 @@ impl Plane {
         let (w, h) = (self.width, self.height);
         let mut data = vec![0f32; w * h];
         let mut valid = vec![false; w * h];
-        for y in 1..h.saturating_sub(1) {
-            for x in 1..w.saturating_sub(1) {
-                let (l, r, u, d) = (
-                    self.idx(x - 1, y),
-                    self.idx(x + 1, y),
-                    self.idx(x, y - 1),
-                    self.idx(x, y + 1),
-                );
-                if self.valid[l] && self.valid[r] && self.valid[u] && self.valid[d] {
-                    let i = self.idx(x, y);
-                    data[i] =
-                        (self.data[r] - self.data[l]).abs() + (self.data[d] - self.data[u]).abs();
-                    valid[i] = true;
+        data.par_chunks_mut(w.max(1))
+            .zip(valid.par_chunks_mut(w.max(1)))
+            .enumerate()
+            .filter(|(y, _)| *y >= 1 && *y + 1 < h)
+            .for_each(|(y, (drow, vrow))| {
+                for x in 1..w.saturating_sub(1) {
+                    let (l, r, u, d) = (
+                        self.idx(x - 1, y),
+                        self.idx(x + 1, y),
+                        self.idx(x, y - 1),
+                        self.idx(x, y + 1),
+                    );
+                    if self.valid[l] && self.valid[r] && self.valid[u] && self.valid[d] {
+                        drow[x] = (self.data[r] - self.data[l]).abs()
+                            + (self.data[d] - self.data[u]).abs();
+                        vrow[x] = true;
+                    }
                 }
-            }
-        }
+            });
         Plane {
             width: w,
             height: h,
@@ -555,7 +580,28 @@ pub type Channels<'a> = [(&'a Plane, &'a Plane)];
 /// its neighbour's, while its edges and the roads between fields stay where they are; and
 /// where edges are few, the grey pattern still correlates.
 pub fn grey_and_gradient(p: &Plane, f: usize) -> Option<[Plane; 2]> {
-    Some([p.block_mean(f)?, p.gradient_magnitude().block_mean(f)?])
+    TwoChannels::new(p).at(f)
+}
+
+/// A plane and its gradient magnitude at full resolution, for [`grey_and_gradient`] at
+/// several block sizes without computing the gradient again.
+pub struct TwoChannels<'a> {
+    grey: &'a Plane,
+    gradient: Plane,
+}
+
+impl<'a> TwoChannels<'a> {
+    pub fn new(p: &'a Plane) -> Self {
+        Self {
+            grey: p,
+            gradient: p.gradient_magnitude(),
+        }
+    }
+
+    /// Both channels block-averaged over `f x f` pixels.
+    pub fn at(&self, f: usize) -> Option<[Plane; 2]> {
+        Some([self.grey.block_mean(f)?, self.gradient.block_mean(f)?])
+    }
 }
 
 /// The masked NCC surface of one hypothesis, averaged over the channels (`None` when a
@@ -592,12 +638,39 @@ fn hypothesis_surface(
 
 /// The window sides' spectra, once for every hypothesis.
 fn prepare<'a>(channels: &Channels<'a>, work: &mut u64) -> Vec<(NccWindow, &'a Plane)> {
-    channels
-        .iter()
-        .map(|(w, t)| {
-            let n = NccWindow::new(w);
-            *work = work.saturating_add(n.transform_points() * 3);
-            (n, *t)
+    let nccs: Vec<(NccWindow, &'a Plane)> = channels
+        .par_iter()
+        .map(|(w, t)| (NccWindow::new(w), *t))
+        .collect();
+    for (n, _) in &nccs {
+        *work = work.saturating_add(n.transform_points() * 3);
+    }
+    nccs
+}
+
+/// `f` of every hypothesis, in parallel, in the hypotheses' order (`None` where the surface
+/// is undefined); `work` grows by every hypothesis's count, so the total does not depend on
+/// the thread count.
+fn per_hypothesis<T: Send>(
+    nccs: &[(NccWindow, &Plane)],
+    hypotheses: &[(f64, f64)],
+    min_overlap: f64,
+    work: &mut u64,
+    f: impl Fn(Surface, f64, f64) -> T + Sync,
+) -> Vec<Option<T>> {
+    let out: Vec<(u64, Option<T>)> = hypotheses
+        .par_iter()
+        .map(|&(scale, theta)| {
+            let mut w = 0u64;
+            let r = hypothesis_surface(nccs, scale, theta, min_overlap, &mut w)
+                .map(|(s, cx, cy)| f(s, cx, cy));
+            (w, r)
+        })
+        .collect();
+    out.into_iter()
+        .map(|(w, r)| {
+            *work = work.saturating_add(w);
+            r
         })
         .collect()
 }
@@ -611,19 +684,23 @@ fn scored_maxima(
     work: &mut u64,
 ) -> Vec<Candidate> {
     let nccs = prepare(channels, work);
+    let per = per_hypothesis(&nccs, hypotheses, min_overlap, work, |s, cx, cy| {
+        s.maxima()
+            .into_iter()
+            .take(cap)
+            .map(|(x, y, v)| {
+                let (ox, oy) = s.subpixel(x, y);
+                (x as f64 + cx + ox, y as f64 + cy + oy, v)
+            })
+            .collect::<Vec<_>>()
+    });
     let mut all: Vec<Candidate> = Vec::new();
-    for &(scale, theta) in hypotheses {
-        let Some((s, cx, cy)) = hypothesis_surface(&nccs, scale, theta, min_overlap, work) else {
-            continue;
-        };
-        all.extend(s.maxima().into_iter().take(cap).map(|(x, y, v)| {
-            let (ox, oy) = s.subpixel(x, y);
-            Candidate {
-                centre: [x as f64 + cx + ox, y as f64 + cy + oy],
-                scale,
-                theta_rad: theta,
-                ncc: v,
-            }
+    for (&(scale, theta), maxima) in hypotheses.iter().zip(per) {
+        all.extend(maxima.into_iter().flatten().map(|(x, y, ncc)| Candidate {
+            centre: [x, y],
+            scale,
+            theta_rad: theta,
+            ncc,
         }));
     }
     all.sort_by(|a, b| b.ncc.total_cmp(&a.ncc));
@@ -636,18 +713,17 @@ fn scored_maxima(
 pub fn rank_hypotheses(channels: &Channels, hypotheses: &[(f64, f64)]) -> Vec<(usize, f64)> {
     let mut work = 0;
     let nccs = prepare(channels, &mut work);
-    let mut out: Vec<(usize, f64)> = hypotheses
-        .iter()
+    let peaks = per_hypothesis(&nccs, hypotheses, MIN_OVERLAP, &mut work, |s, _, _| {
+        s.data
+            .iter()
+            .copied()
+            .filter(|v| v.is_finite())
+            .max_by(f64::total_cmp)
+    });
+    let mut out: Vec<(usize, f64)> = peaks
+        .into_iter()
         .enumerate()
-        .filter_map(|(h, &(scale, theta))| {
-            let (s, _, _) = hypothesis_surface(&nccs, scale, theta, MIN_OVERLAP, &mut work)?;
-            s.data
-                .iter()
-                .copied()
-                .filter(|v| v.is_finite())
-                .max_by(f64::total_cmp)
-                .map(|v| (h, v))
-        })
+        .filter_map(|(h, v)| Some((h, v.flatten()?)))
         .collect();
     out.sort_by(|a, b| b.1.total_cmp(&a.1));
     out
@@ -830,7 +906,10 @@ pub struct Patch {
     pub cx: usize,
     pub cy: usize,
     pub side: usize,
+    /// Row-major, each row padded with zeros to `stride` values (a multiple of the dot
+    /// product's 8 lanes, so the correlation's inner loop has no scalar tail).
     values: Vec<f32>,
+    stride: usize,
 }
 
 impl Patch {
@@ -857,11 +936,22 @@ impl Patch {
         if norm < 1e-6 {
             return None;
         }
+        let stride = side.next_multiple_of(8);
+        let mut padded = vec![0f32; side * stride];
+        for (row, src) in padded
+            .chunks_exact_mut(stride)
+            .zip(values.chunks_exact(side))
+        {
+            for (d, v) in row.iter_mut().zip(src) {
+                *d = (v / norm) as f32;
+            }
+        }
         Some(Self {
             cx,
             cy,
             side,
-            values: values.iter().map(|v| (v / norm) as f32).collect(),
+            values: padded,
+            stride,
         })
     }
 }
@@ -899,18 +989,22 @@ pub fn corner_strength(p: &Plane, cx: usize, cy: usize, side: usize) -> f64 {
     0.5 * (a + b) - (0.25 * (a - b).powi(2) + c * c).sqrt()
 }
 
-/// Dot product of two equal-length slices with eight independent partial sums (a float sum in
-/// one accumulator may not be reordered, so it would not vectorise).
-fn dot_f32(a: &[f32], b: &[f32]) -> f32 {
+/// Sum of the dot products of pairs of equal-length rows, with eight independent partial sums
+/// over all rows and one reduction at the end (a float sum in one accumulator may not be
+/// reordered, so it would not vectorise).
+fn dot_rows_f32<'a>(rows: impl Iterator<Item = (&'a [f32], &'a [f32])>) -> f32 {
     let mut acc = [0f32; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for k in 0..8 {
-            acc[k] += x[k] * y[k];
+    let mut tail = 0f32;
+    for (a, b) in rows {
+        let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+        let (ra, rb) = (ca.remainder(), cb.remainder());
+        for (x, y) in ca.zip(cb) {
+            for k in 0..8 {
+                acc[k] += x[k] * y[k];
+            }
         }
+        tail += ra.iter().zip(rb).map(|(x, y)| x * y).sum::<f32>();
     }
-    let tail: f32 = ra.iter().zip(rb).map(|(x, y)| x * y).sum();
     acc.iter().sum::<f32>() + tail
 }
 
@@ -963,12 +1057,21 @@ pub fn match_patch(
                 continue;
             }
             // The patch is zero-mean, so the map's mean drops out of the numerator.
-            let mut dot = 0f64;
-            for y in 0..side {
-                let row = &map.data[(y0 + y) * map.width + x0..(y0 + y) * map.width + x0 + side];
-                let pv = &patch.values[y * side..(y + 1) * side];
-                dot += f64::from(dot_f32(row, pv));
-            }
+            // The padded rows when the map row is long enough (the padding is zero), the
+            // patch's own width at the map's right edge.
+            let len = if x0 + patch.stride <= map.width {
+                patch.stride
+            } else {
+                side
+            };
+            let rows = (0..side).map(|y| {
+                let start = (y0 + y) * map.width + x0;
+                (
+                    &map.data[start..start + len],
+                    &patch.values[y * patch.stride..y * patch.stride + len],
+                )
+            });
+            let dot = f64::from(dot_rows_f32(rows));
             s.data[j * w + i] = dot / var.sqrt();
         }
     }

@@ -25,6 +25,8 @@ use std::time::Instant;
 use nalgebra::{Point2, Rotation3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
+mod area_stage;
+
 use super::rectify::Rectification;
 use super::reference::{RefSelection, Reference};
 use super::{AttitudePriorNed, FixMethod, FixPrior, FixReport, PositionPriorGeo};
@@ -277,17 +279,18 @@ pub struct Attempt {
     pub area_runner_up: f64,
     /// Area correlation: tie points found.
     pub area_ties: usize,
+    /// Area correlation: tie points found with the predictions displaced (chance level).
+    pub area_null_ties: usize,
 }
 
 impl Attempt {
     /// Fine matches above the chance level measured for this attempt (the a-contrario count):
     /// what a hypothesis has that an unrelated place would not; for an area correlation, its
-    /// tie points (each agrees with the unique placement within 1.5 px at an NCC of 0.4 or more,
-    /// which an unrelated place does not give). The larger of the two when both ran.
+    /// tie points above their own chance level. The larger of the two when both ran.
     pub fn evidence(&self) -> usize {
         self.fine_matches
             .saturating_sub(self.null_matches)
-            .max(self.area_ties)
+            .max(self.area_ties.saturating_sub(self.area_null_ties))
     }
 }
 
@@ -347,63 +350,9 @@ struct Pair {
     sigma_px: f64,
 }
 
-/// Placement hypotheses `(scale, rotation)` covering `+-max_log_scale` and `+-max_rot_rad` in
-/// steps of [`AREA_LOG_SCALE_STEP`] and [`AREA_ROT_STEP_RAD`] (the identity first).
-fn similarity_hypotheses(max_log_scale: f64, max_rot_rad: f64) -> Vec<(f64, f64)> {
-    let ns = (max_log_scale / AREA_LOG_SCALE_STEP).round() as i64;
-    let nr = (max_rot_rad / AREA_ROT_STEP_RAD).round() as i64;
-    let mut out = Vec::new();
-    for i in -ns..=ns {
-        for j in -nr..=nr {
-            out.push((
-                (i as f64 * AREA_LOG_SCALE_STEP).exp(),
-                j as f64 * AREA_ROT_STEP_RAD,
-            ));
-        }
-    }
-    out.sort_by(|a, b| (a.0.ln().abs() + a.1.abs()).total_cmp(&(b.0.ln().abs() + b.1.abs())));
-    out
-}
-
 /// Rays are cast at most this many times the height above ground (a ray that grazes the terrain
 /// further away is not a usable prediction).
 const MAX_RAY_RANGE_AGL: f64 = 20.0;
-/// The area placement runs on block means bringing the rectified frame's longer side to at most
-/// this many pixels: enough pattern for a unique peak, and FFTs of a few hundred pixels a side.
-const AREA_COARSE_TEMPLATE_PX: usize = 128;
-/// Tie-point patch side, level pixels (odd): large enough to correlate across dates, small
-/// enough that relief and the prior's rotation barely distort it.
-const AREA_PATCH_PX: usize = 31;
-/// Smallest Shi-Tomasi corner strength of a patch (grey levels^2 per pixel): below it the patch
-/// is too flat or one-directional to localise (sensor noise alone gives about 1).
-const AREA_MIN_CORNER_STRENGTH: f64 = 4.0;
-/// Patch grid step, level pixels.
-const AREA_PATCH_STEP_PX: usize = 16;
-/// At most this many patches per frame (the strongest corners).
-const AREA_MAX_PATCHES: usize = 400;
-/// Pass 1 searches a patch only when its search radius (placement uncertainty + the rotation
-/// and scale still possible at its distance) stays within this many pixels.
-const AREA_PASS1_MAX_RADIUS_PX: f64 = 12.0;
-/// Placement hypotheses: log-scale and rotation steps (about one coarse pixel at the edge of a
-/// template of [`AREA_COARSE_TEMPLATE_PX`]) and the largest errors searched.
-const AREA_LOG_SCALE_STEP: f64 = 0.03;
-const AREA_ROT_STEP_RAD: f64 = 0.035;
-const AREA_MAX_LOG_SCALE: f64 = 0.15;
-const AREA_MAX_ROT_RAD: f64 = 0.2;
-/// At most this many hypotheses are placed on the full coarse grid; more are first ranked by their
-/// correlation peak on a grid twice as coarse (a competitor that matters there ranks high too)...
-const AREA_PLACEMENT_HYPOTHESES: usize = 4;
-/// ...when the frame still has this many pixels along its longer side on that grid.
-const AREA_RANKING_TEMPLATE_MIN_PX: usize = 40;
-/// Pass 1 stops once this many tie points have fixed the similarity (a least-squares fit over
-/// 40 points spread over the frame's centre predicts the rest to a fraction of a pixel).
-const AREA_PASS1_ENOUGH_TIES: usize = 40;
-/// Pass 1 must give at least this many tie points consistent with one similarity.
-const AREA_PASS1_MIN_TIES: usize = 6;
-/// Consistency tolerance of the pass-1 similarity, pixels.
-const AREA_TIE_TOLERANCE_PX: f64 = 1.5;
-/// Pass 2 search radius around the similarity's prediction, pixels.
-const AREA_PASS2_RADIUS_PX: usize = 2;
 
 /// An attitude prior for the resection (world = local ENU).
 #[derive(Debug, Clone, Copy)]
@@ -968,246 +917,6 @@ impl FixEngine {
                 })
             })
             .collect())
-    }
-
-    /// Area correspondences ([`super::area`]): the rectified frame placed in the map image by a
-    /// coarse masked correlation over the prior's gate, then tie points of small patches, first
-    /// near the frame's centre (a similarity fitted to them absorbs the prior's rotation and
-    /// scale errors), then everywhere.
-    fn area_pairs(&self, v: &View, a: &mut Attempt) -> Result<Vec<Pair>, String> {
-        use super::area::{
-            Integral, grey_and_gradient, match_patch, place_similar, rank_hypotheses,
-            select_patches,
-        };
-        let rect = v.rect;
-        let img = self.reference.level_image(v.level).ok_or_else(|| {
-            "the map has no level images (built by an older visnav: rebuild it)".to_string()
-        })?;
-        let frame = rect
-            .plane()
-            .ok_or_else(|| "empty rectification".to_string())?;
-        // The template's predicted place: the rectified grid is the map's (north-up, the
-        // level's pixel) up to the prior's errors; its centre's ground point anchors it.
-        let (uc, vc) = (rect.width() as f64 / 2.0, rect.height() as f64 / 2.0);
-        let centre = self
-            .ground_of(v, uc, vc)
-            .ok_or_else(|| "the frame's centre does not see the ground".to_string())?;
-        let c_px = img.to_px(centre[0], centre[1]);
-        let gate_px = (self.gate_m(v) / img.gsd_m).ceil();
-        let x0 = (c_px[0] - uc - gate_px).floor() as i64;
-        let y0 = (c_px[1] - vc - gate_px).floor() as i64;
-        let (ww, wh) = (
-            rect.width() + 2 * gate_px as usize + 2,
-            rect.height() + 2 * gate_px as usize + 2,
-        );
-        let window = img
-            .crop(x0, y0, ww, wh)
-            .ok_or_else(|| "empty map window".to_string())?;
-        // Placement on a coarse grid: block means of f x f pixels, grey values and gradients.
-        let mut f = 1usize;
-        while rect.width().max(rect.height()) / f > AREA_COARSE_TEMPLATE_PX {
-            f *= 2;
-        }
-        let (Some(tc), Some(wc)) = (grey_and_gradient(&frame, f), grey_and_gradient(&window, f))
-        else {
-            return Err("area correlation: images too small".into());
-        };
-        let channels = [(&wc[0], &tc[0]), (&wc[1], &tc[1])];
-        let tc = &tc[0];
-        // Hypotheses of the prior's scale (height) and rotation (heading, tilt) errors over
-        // +-3 sigma, a step apart that moves the template's edge by about one coarse pixel; with
-        // many, a first look on a grid twice as coarse keeps the most promising few.
-        let g = v.g;
-        let hyps = similarity_hypotheses(
-            (3.0 * g.sigma_v_m / v.agl_m).min(AREA_MAX_LOG_SCALE),
-            (3.0 * g.sigma_yaw_rad.max(g.sigma_tilt_rad)).min(AREA_MAX_ROT_RAD),
-        );
-        let hyps = if hyps.len() > AREA_PLACEMENT_HYPOTHESES
-            && rect.width().max(rect.height()) / (2 * f) >= AREA_RANKING_TEMPLATE_MIN_PX
-        {
-            match (
-                grey_and_gradient(&frame, 2 * f),
-                grey_and_gradient(&window, 2 * f),
-            ) {
-                (Some(t1), Some(w1)) => {
-                    rank_hypotheses(&[(&w1[0], &t1[0]), (&w1[1], &t1[1])], &hyps)
-                        .into_iter()
-                        .take(AREA_PLACEMENT_HYPOTHESES)
-                        .map(|(i, _)| hyps[i])
-                        .collect()
-                }
-                _ => hyps,
-            }
-        } else {
-            hyps
-        };
-        let (max_rot, max_log_scale) = self.similarity_bounds(v);
-        let placed = place_similar(&channels, &hyps, super::area::UNIQUE_RADIUS_COARSE_PX)
-            .map_err(|e| e.to_string())?;
-        a.area_ncc = placed.ncc;
-        a.area_runner_up = placed.runner_up;
-        // Window pixels of the frame's ground predicted from the prior alone...
-        let predict = |u: f64, vv: f64| -> Option<[f64; 2]> {
-            let p = self.ground_of(v, u, vv)?;
-            let m = img.to_px(p[0], p[1]);
-            Some([m[0] - x0 as f64, m[1] - y0 as f64])
-        };
-        // ...and the similarity the placement found: the coarse template's centre (fine
-        // rectified pixel c f + (f - 1) / 2) lies at the placed centre.
-        let fine = |c: f64| c * f as f64 + (f as f64 - 1.0) / 2.0;
-        let (tcx, tcy) = (
-            fine((tc.width as f64 - 1.0) / 2.0),
-            fine((tc.height as f64 - 1.0) / 2.0),
-        );
-        let q_c = predict(tcx, tcy)
-            .ok_or_else(|| "the frame's centre does not see the ground".to_string())?;
-        let w_c = [fine(placed.centre[0]), fine(placed.centre[1])];
-        let mut sim = Sim2 {
-            scale: placed.scale as f32,
-            theta_rad: placed.theta_rad as f32,
-            t: [0.0, 0.0],
-        };
-        let r_qc = sim.apply([q_c[0] as f32, q_c[1] as f32]);
-        sim.t = [w_c[0] as f32 - r_qc[0], w_c[1] as f32 - r_qc[1]];
-        let sums = Integral::new(&window);
-        let patches = select_patches(
-            &frame,
-            AREA_PATCH_PX,
-            AREA_PATCH_STEP_PX,
-            AREA_MIN_CORNER_STRENGTH,
-            AREA_MAX_PATCHES,
-        );
-        // Pass 1, growing from the centre: each patch is searched around the current similarity's
-        // prediction, over the placement's uncertainty plus the rotation and scale still
-        // possible at its distance (half a hypothesis step); the similarity is refitted as tie
-        // points accumulate, which shrinks both (a fit over ties spanning D pixels leaves about
-        // tolerance / D).
-        let mut spread = 0.5 * (AREA_LOG_SCALE_STEP + AREA_ROT_STEP_RAD);
-        let mut base = 0.5 * f as f64 + 2.0;
-        let mut near: Vec<(f64, usize)> = patches
-            .iter()
-            .enumerate()
-            .map(|(i, p)| ((p.cx as f64 - tcx).hypot(p.cy as f64 - tcy), i))
-            .collect();
-        near.sort_by(|x, y| x.0.total_cmp(&y.0));
-        let (mut src, mut dst) = (Vec::new(), Vec::new());
-        let mut found = vec![None; patches.len()];
-        let mut refit_at = AREA_PASS1_MIN_TIES;
-        for &(dist, i) in &near {
-            if src.len() >= AREA_PASS1_ENOUGH_TIES && base <= 2.0 {
-                break; // the similarity is determined; pass 2 does the rest cheaply
-            }
-            let r = (base + dist * spread).ceil();
-            if r > AREA_PASS1_MAX_RADIUS_PX {
-                continue;
-            }
-            let p = &patches[i];
-            let Some(q) = predict(p.cx as f64, p.cy as f64) else {
-                continue;
-            };
-            let qs = sim.apply([q[0] as f32, q[1] as f32]);
-            let (qx, qy) = (qs[0].round() as i64, qs[1].round() as i64);
-            let Some(m) = match_patch(
-                &window,
-                &sums,
-                p,
-                qx,
-                qy,
-                r as usize,
-                super::area::MIN_TIE_NCC,
-            ) else {
-                continue;
-            };
-            src.push([q[0] as f32, q[1] as f32]);
-            dst.push([m.x as f32, m.y as f32]);
-            found[i] = Some(m);
-            if src.len() >= refit_at {
-                refit_at = src.len() + src.len() / 2;
-                if let Some((s_fit, n)) = ransac_similarity(
-                    &src,
-                    &dst,
-                    AREA_TIE_TOLERANCE_PX as f32,
-                    max_rot,
-                    max_log_scale,
-                    0x5EED,
-                ) && n >= AREA_PASS1_MIN_TIES
-                {
-                    sim = s_fit;
-                    base = 2.0;
-                    spread = AREA_TIE_TOLERANCE_PX / dist.max(1.0);
-                }
-            }
-        }
-        let (sim, _) = ransac_similarity(
-            &src,
-            &dst,
-            AREA_TIE_TOLERANCE_PX as f32,
-            max_rot,
-            max_log_scale,
-            0x5EED,
-        )
-        .filter(|(_, n)| *n >= AREA_PASS1_MIN_TIES)
-        .ok_or_else(|| {
-            format!(
-                "area correlation {:.2} placed the frame but only {} patches agree",
-                placed.ncc,
-                src.len()
-            )
-        })?;
-        // Pass 2: every patch close to the final similarity's prediction (a pass-1 match that
-        // agrees with it is kept as found).
-        let sigma_px = self.base_sigma_px(v);
-        let mut pairs = Vec::new();
-        for (p, prev) in patches.iter().zip(&found) {
-            let Some(q) = predict(p.cx as f64, p.cy as f64) else {
-                continue;
-            };
-            let s = sim.apply([q[0] as f32, q[1] as f32]);
-            let agrees = |m: &&super::area::TieMatch| {
-                (m.x - f64::from(s[0])).hypot(m.y - f64::from(s[1])) <= AREA_TIE_TOLERANCE_PX
-            };
-            let m = match prev.as_ref().filter(agrees) {
-                Some(m) => *m,
-                None => {
-                    let (qx, qy) = (s[0].round() as i64, s[1].round() as i64);
-                    match match_patch(
-                        &window,
-                        &sums,
-                        p,
-                        qx,
-                        qy,
-                        AREA_PASS2_RADIUS_PX,
-                        super::area::MIN_TIE_NCC_NEAR,
-                    ) {
-                        Some(m) => m,
-                        None => continue,
-                    }
-                }
-            };
-            let xy = img.to_map([m.x + x0 as f64, m.y + y0 as f64]);
-            let (Some(z), Some(px)) = (
-                self.reference.height_amsl_m(xy[0], xy[1]),
-                rect.to_frame_px(p.cx as f64, p.cy as f64),
-            ) else {
-                continue;
-            };
-            a.pairs.push(([px.x, px.y], [xy[0], xy[1], z]));
-            pairs.push(Pair {
-                frame_px: px,
-                map: [xy[0], xy[1], z],
-                sigma_px,
-            });
-        }
-        a.area_ties = pairs.len();
-        if pairs.len() < self.params.min_matches {
-            return Err(format!(
-                "area correlation {:.2}: only {} tie points (min {})",
-                placed.ncc,
-                pairs.len(),
-                self.params.min_matches
-            ));
-        }
-        Ok(pairs)
     }
 
     /// Map position (grid x, y) of the ground seen at rectified pixel `(u, v)` from the prior.
@@ -2938,6 +2647,10 @@ mod tests {
         assert_eq!(both.evidence(), 25);
         both.area_ties = 5;
         assert_eq!(both.evidence(), 20);
+        // Tie points count above their own chance level, as matches do.
+        both.area_ties = 40;
+        both.area_null_ties = 15;
+        assert_eq!(both.evidence(), 25);
     }
 
     fn features(points: &[([f32; 2], i8, [f32; 8])]) -> Features {

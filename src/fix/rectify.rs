@@ -16,6 +16,7 @@
 //! resampling factor lies in about [0.6, 1.25].
 
 use nalgebra::{Matrix3, Point2, Rotation3, Vector3};
+use rayon::prelude::*;
 
 use super::reference::half_size;
 use crate::camera::Camera;
@@ -45,6 +46,81 @@ pub struct Rectification {
     /// `R_cam_virt`: virtual-camera rays into the real camera frame.
     r_cam_virt: Rotation3<f64>,
     camera: Camera,
+}
+
+/// Virtual pixels between exact evaluations of the warp (it is smooth: the interpolation error is
+/// far below a pixel at this spacing).
+const STEP: usize = 4;
+
+/// The resampling of one rectification: the exactly evaluated warp grid and the source level.
+struct Warp<'a> {
+    /// Frame pixel (full resolution) of virtual pixel `(gx STEP, gy STEP)`; NaN where none.
+    grid: &'a [[f64; 2]],
+    gw: usize,
+    /// The frame, halved `log2 f` times for antialiasing.
+    src: &'a GrayImage,
+    f: f64,
+    frame_wh: [f64; 2],
+    centre: [f64; 2],
+    f_px: f64,
+    tan2_max: f64,
+}
+
+impl Warp<'_> {
+    /// Resample virtual row `v` into `row` (valid pixels flagged in `ok`); returns the sum and
+    /// the count of the valid values.
+    fn row(&self, v: usize, row: &mut [f32], ok: &mut [bool]) -> (f64, usize) {
+        let (gy, fy) = (v / STEP, (v % STEP) as f64 / STEP as f64);
+        let ny = (v as f64 - self.centre[1]) / self.f_px;
+        let (sw, sh) = (self.src.width(), self.src.height());
+        let data = self.src.data();
+        let [w, h] = self.frame_wh;
+        // The grid's columns interpolated to this row, then along it.
+        let col: Vec<[f64; 2]> = (0..self.gw)
+            .map(|gx| {
+                let (a, c) = (
+                    self.grid[gy * self.gw + gx],
+                    self.grid[(gy + 1) * self.gw + gx],
+                );
+                [(1.0 - fy) * a[0] + fy * c[0], (1.0 - fy) * a[1] + fy * c[1]]
+            })
+            .collect();
+        let inv_f = 1.0 / self.f;
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for (u, (out, flag)) in row.iter_mut().zip(ok.iter_mut()).enumerate() {
+            let (gx, fx) = (u / STEP, (u % STEP) as f64 / STEP as f64);
+            let (l, r) = (col[gx], col[gx + 1]);
+            let px = (1.0 - fx) * l[0] + fx * r[0];
+            let py = (1.0 - fx) * l[1] + fx * r[1];
+            if !(px.is_finite() && py.is_finite()) {
+                continue;
+            }
+            // Virtual pixels beyond the off-nadir limit stay invalid.
+            let nx = (u as f64 - self.centre[0]) / self.f_px;
+            if nx * nx + ny * ny > self.tan2_max {
+                continue;
+            }
+            if px < -0.5 || py < -0.5 || px > w - 0.5 || py > h - 0.5 {
+                continue;
+            }
+            let sx = ((px + 0.5) * inv_f - 0.5).clamp(0.0, (sw - 1) as f64);
+            let sy = ((py + 0.5) * inv_f - 0.5).clamp(0.0, (sh - 1) as f64);
+            // Bilinear (GrayImage::sample_bilinear without its checks: sx, sy are clamped).
+            let (x0, y0) = (sx as usize, sy as usize);
+            let (x1, y1) = ((x0 + 1).min(sw - 1), (y0 + 1).min(sh - 1));
+            let (tx, ty) = ((sx - x0 as f64) as f32, (sy - y0 as f64) as f32);
+            let top = data[y0 * sw + x0] * (1.0 - tx) + data[y0 * sw + x1] * tx;
+            let bottom = data[y1 * sw + x0] * (1.0 - tx) + data[y1 * sw + x1] * tx;
+            let val = top * (1.0 - ty) + bottom * ty;
+            if val.is_finite() {
+                *out = val;
+                *flag = true;
+                sum += f64::from(val);
+                n += 1;
+            }
+        }
+        (sum, n)
+    }
 }
 
 impl Rectification {
@@ -134,54 +210,39 @@ impl Rectification {
             r_cam_virt,
             camera: *camera,
         };
-        let mut data = vec![f32::NAN; width * height];
-        let (mut sum, mut n) = (0.0f64, 0usize);
         // The warp is smooth: evaluate it exactly on a grid every STEP pixels and interpolate.
-        const STEP: usize = 4;
         let gw = width.div_ceil(STEP) + 1;
         let gh = height.div_ceil(STEP) + 1;
         let mut grid = vec![[f64::NAN; 2]; gw * gh];
-        for gy in 0..gh {
-            for gx in 0..gw {
+        grid.par_chunks_mut(gw).enumerate().for_each(|(gy, row)| {
+            for (gx, cell) in row.iter_mut().enumerate() {
                 if let Some(p) = rect.to_frame_px((gx * STEP) as f64, (gy * STEP) as f64) {
-                    grid[gy * gw + gx] = [p.x, p.y];
+                    *cell = [p.x, p.y];
                 }
             }
-        }
-        for v in 0..height {
-            let (gy, fy) = (v / STEP, (v % STEP) as f64 / STEP as f64);
-            for u in 0..width {
-                let (gx, fx) = (u / STEP, (u % STEP) as f64 / STEP as f64);
-                let g = |i: usize, j: usize| grid[(gy + j) * gw + gx + i];
-                let (a, b, c, d) = (g(0, 0), g(1, 0), g(0, 1), g(1, 1));
-                let px = (1.0 - fy) * ((1.0 - fx) * a[0] + fx * b[0])
-                    + fy * ((1.0 - fx) * c[0] + fx * d[0]);
-                let py = (1.0 - fy) * ((1.0 - fx) * a[1] + fx * b[1])
-                    + fy * ((1.0 - fx) * c[1] + fx * d[1]);
-                if !(px.is_finite() && py.is_finite()) {
-                    continue;
-                }
-                // Virtual pixels beyond the off-nadir limit stay invalid.
-                let (nx, ny) = ((u as f64 - cx_px) / f_px, (v as f64 - cy_px) / f_px);
-                if nx * nx + ny * ny > tan_max * tan_max {
-                    continue;
-                }
-                if px < -0.5 || py < -0.5 || px > w - 0.5 || py > h - 0.5 {
-                    continue;
-                }
-                let (sx, sy) = ((px + 0.5) / f - 0.5, (py + 0.5) / f - 0.5);
-                let sx = sx.clamp(0.0, (src.width() - 1) as f64);
-                let sy = sy.clamp(0.0, (src.height() - 1) as f64);
-                if let Some(val) = src.sample_bilinear(sx, sy)
-                    && val.is_finite()
-                {
-                    data[v * width + u] = val;
-                    rect.valid[v * width + u] = true;
-                    sum += f64::from(val);
-                    n += 1;
-                }
-            }
-        }
+        });
+        let warp = Warp {
+            grid: &grid,
+            gw,
+            src: &src,
+            f,
+            frame_wh: [w, h],
+            centre: [cx_px, cy_px],
+            f_px,
+            tan2_max: tan_max * tan_max,
+        };
+        let mut data = vec![f32::NAN; width * height];
+        // Rows in parallel; each row's sum is kept, and the rows' sums are added in order, so
+        // the mean (and the image) does not depend on the thread count.
+        let row_sums: Vec<(f64, usize)> = data
+            .par_chunks_mut(width)
+            .zip(rect.valid.par_chunks_mut(width))
+            .enumerate()
+            .map(|(v, (row, ok))| warp.row(v, row, ok))
+            .collect();
+        let (sum, n) = row_sums
+            .iter()
+            .fold((0.0f64, 0usize), |(s, n), (rs, rn)| (s + rs, n + rn));
         if n == 0 {
             return None;
         }

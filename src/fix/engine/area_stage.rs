@@ -1,0 +1,421 @@
+//! The area stage of a fix with a position prior (docs/fix.md, "Area correlation"): the rectified
+//! frame is placed in the map level's image by the masked correlation of [`crate::fix::area`]
+//! over the prior's gate, then tie points of small patches are found in two passes (first near
+//! the frame's centre, where a similarity fitted to them absorbs the prior's rotation and scale
+//! errors, then everywhere around the final similarity's prediction) and counted against the
+//! ties chance gives with the predictions displaced (the features' a-contrario rule).
+//!
+//! Every stage that runs in parallel takes its results in a fixed order, so the tie points do not
+//! depend on the number of threads.
+
+use rayon::prelude::*;
+
+use super::{Attempt, FixEngine, Pair, Sim2, View, ransac_similarity};
+use crate::fix::area::{
+    Integral, MIN_TIE_NCC, MIN_TIE_NCC_NEAR, Patch, Plane, TieMatch, TwoChannels,
+    UNIQUE_RADIUS_COARSE_PX, match_patch, place_similar, rank_hypotheses, select_patches,
+};
+use crate::fix::reference::MapImage;
+
+/// The area placement runs on block means bringing the rectified frame's longer side to at most
+/// this many pixels: enough pattern for a unique peak, and FFTs of a few hundred pixels a side.
+const AREA_COARSE_TEMPLATE_PX: usize = 128;
+/// Tie-point patch side, level pixels (odd): large enough to correlate across dates, small
+/// enough that relief and the prior's rotation barely distort it.
+const AREA_PATCH_PX: usize = 31;
+/// Smallest Shi-Tomasi corner strength of a patch (grey levels^2 per pixel): below it the patch
+/// is too flat or one-directional to localise (sensor noise alone gives about 1).
+const AREA_MIN_CORNER_STRENGTH: f64 = 4.0;
+/// Patch grid step, level pixels.
+const AREA_PATCH_STEP_PX: usize = 16;
+/// At most this many patches per frame (the strongest corners).
+const AREA_MAX_PATCHES: usize = 400;
+/// Pass 1 searches a patch only when its search radius (placement uncertainty + the rotation
+/// and scale still possible at its distance) stays within this many pixels.
+const AREA_PASS1_MAX_RADIUS_PX: f64 = 12.0;
+/// Placement hypotheses: log-scale and rotation steps (about one coarse pixel at the edge of a
+/// template of [`AREA_COARSE_TEMPLATE_PX`]) and the largest errors searched.
+const AREA_LOG_SCALE_STEP: f64 = 0.03;
+const AREA_ROT_STEP_RAD: f64 = 0.035;
+const AREA_MAX_LOG_SCALE: f64 = 0.15;
+const AREA_MAX_ROT_RAD: f64 = 0.2;
+/// At most this many hypotheses are placed on the full coarse grid; more are first ranked by their
+/// correlation peak on a grid twice as coarse (a competitor that matters there ranks high too)...
+const AREA_PLACEMENT_HYPOTHESES: usize = 4;
+/// ...when the frame still has this many pixels along its longer side on that grid.
+const AREA_RANKING_TEMPLATE_MIN_PX: usize = 40;
+/// Pass 1 stops once this many tie points have fixed the similarity (a least-squares fit over
+/// 40 points spread over the frame's centre predicts the rest to a fraction of a pixel).
+const AREA_PASS1_ENOUGH_TIES: usize = 40;
+/// Pass 1 must give at least this many tie points consistent with one similarity.
+const AREA_PASS1_MIN_TIES: usize = 6;
+/// Pass-1 patches searched together (in parallel, speculatively) with one similarity: a refit
+/// discards the rest of its batch, so a batch is kept small against the refits' spacing.
+const AREA_PASS1_BATCH: usize = 8;
+/// Consistency tolerance of the pass-1 similarity, pixels.
+const AREA_TIE_TOLERANCE_PX: f64 = 1.5;
+/// Pass 2 search radius around the similarity's prediction, pixels.
+const AREA_PASS2_RADIUS_PX: usize = 2;
+/// Displacement of the tie points' predictions for their chance count (rectified pixels): three
+/// times the widest pass-1 search radius, so the displaced searches look at ground the placement
+/// did not choose (the features' check displaces by three times their widest gate likewise).
+const AREA_NULL_SHIFT_PX: f32 = 3.0 * AREA_PASS1_MAX_RADIUS_PX as f32;
+
+/// Placement hypotheses `(scale, rotation)` covering `+-max_log_scale` and `+-max_rot_rad` in
+/// steps of [`AREA_LOG_SCALE_STEP`] and [`AREA_ROT_STEP_RAD`] (the identity first).
+fn similarity_hypotheses(max_log_scale: f64, max_rot_rad: f64) -> Vec<(f64, f64)> {
+    let ns = (max_log_scale / AREA_LOG_SCALE_STEP).round() as i64;
+    let nr = (max_rot_rad / AREA_ROT_STEP_RAD).round() as i64;
+    let mut out = Vec::new();
+    for i in -ns..=ns {
+        for j in -nr..=nr {
+            out.push((
+                (i as f64 * AREA_LOG_SCALE_STEP).exp(),
+                j as f64 * AREA_ROT_STEP_RAD,
+            ));
+        }
+    }
+    out.sort_by(|a, b| (a.0.ln().abs() + a.1.abs()).total_cmp(&(b.0.ln().abs() + b.1.abs())));
+    out
+}
+
+/// What the stages share: the map window searched and the prior's prediction into it.
+struct AreaSearch<'a> {
+    engine: &'a FixEngine,
+    v: &'a View<'a>,
+    img: MapImage<'a>,
+    /// The level image inside the prior's gate around the frame's footprint, and its sums.
+    window: Plane,
+    sums: Integral,
+    /// The window's top-left pixel in the level image.
+    x0: i64,
+    y0: i64,
+}
+
+/// The placement as a similarity from predicted window pixels to found ones.
+struct Placed {
+    sim: Sim2,
+    /// Block size of the coarse grid the placement ran on, rectified pixels.
+    f: usize,
+    /// The template's centre, rectified pixels.
+    centre: [f64; 2],
+    ncc: f64,
+}
+
+impl FixEngine {
+    /// Area correspondences (module doc).
+    pub(super) fn area_pairs(&self, v: &View, a: &mut Attempt) -> Result<Vec<Pair>, String> {
+        let frame = v
+            .rect
+            .plane()
+            .ok_or_else(|| "empty rectification".to_string())?;
+        let s = AreaSearch::new(self, v)?;
+        let placed = s.place(&frame, a)?;
+        let patches = select_patches(
+            &frame,
+            AREA_PATCH_PX,
+            AREA_PATCH_STEP_PX,
+            AREA_MIN_CORNER_STRENGTH,
+            AREA_MAX_PATCHES,
+        );
+        let (sim, found) = s.pass1(&placed, &patches)?;
+        let pairs = s.pass2(&sim, &patches, &found);
+        a.area_ties = pairs.len();
+        a.pairs
+            .extend(pairs.iter().map(|p| ([p.frame_px.x, p.frame_px.y], p.map)));
+        let min = self.params.min_matches;
+        if pairs.len() < min {
+            return Err(format!(
+                "area correlation {:.2}: only {} tie points (min {min})",
+                placed.ncc,
+                pairs.len(),
+            ));
+        }
+        let null = s.chance(&sim, &patches);
+        a.area_null_ties = null;
+        let needed = min + (self.params.null_factor * null as f64).ceil() as usize;
+        if pairs.len() < needed {
+            return Err(format!(
+                "area correlation {:.2}: only {} tie points where chance gives {null} (need {needed})",
+                placed.ncc,
+                pairs.len(),
+            ));
+        }
+        Ok(pairs)
+    }
+}
+
+impl<'a> AreaSearch<'a> {
+    /// The window: the rectified grid is the map's (north-up, the level's pixel) up to the
+    /// prior's errors, so the frame's centre's ground point anchors it, grown by the gate.
+    fn new(engine: &'a FixEngine, v: &'a View<'a>) -> Result<Self, String> {
+        let rect = v.rect;
+        let img = engine.reference.level_image(v.level).ok_or_else(|| {
+            "the map has no level images (built by an older visnav: rebuild it)".to_string()
+        })?;
+        let (uc, vc) = (rect.width() as f64 / 2.0, rect.height() as f64 / 2.0);
+        let centre = engine
+            .ground_of(v, uc, vc)
+            .ok_or_else(|| "the frame's centre does not see the ground".to_string())?;
+        let c_px = img.to_px(centre[0], centre[1]);
+        let gate_px = (engine.gate_m(v) / img.gsd_m).ceil();
+        let x0 = (c_px[0] - uc - gate_px).floor() as i64;
+        let y0 = (c_px[1] - vc - gate_px).floor() as i64;
+        let (ww, wh) = (
+            rect.width() + 2 * gate_px as usize + 2,
+            rect.height() + 2 * gate_px as usize + 2,
+        );
+        let window = img
+            .crop(x0, y0, ww, wh)
+            .ok_or_else(|| "empty map window".to_string())?;
+        let sums = Integral::new(&window);
+        Ok(Self {
+            engine,
+            v,
+            img,
+            window,
+            sums,
+            x0,
+            y0,
+        })
+    }
+
+    /// Window pixel of the ground seen at rectified pixel `(u, vv)`, predicted from the prior.
+    fn predict(&self, u: f64, vv: f64) -> Option<[f64; 2]> {
+        let p = self.engine.ground_of(self.v, u, vv)?;
+        let m = self.img.to_px(p[0], p[1]);
+        Some([m[0] - self.x0 as f64, m[1] - self.y0 as f64])
+    }
+
+    /// Patch `p` searched within `radius` of `sim`'s prediction displaced by `offset`: the
+    /// prediction from the prior and the match (window pixels).
+    fn search(
+        &self,
+        p: &Patch,
+        sim: &Sim2,
+        offset: [f32; 2],
+        radius: usize,
+        min_ncc: f64,
+    ) -> Option<([f64; 2], TieMatch)> {
+        let q = self.predict(p.cx as f64, p.cy as f64)?;
+        let s = sim.apply([q[0] as f32, q[1] as f32]);
+        let m = match_patch(
+            &self.window,
+            &self.sums,
+            p,
+            (s[0] + offset[0]).round() as i64,
+            (s[1] + offset[1]).round() as i64,
+            radius,
+            min_ncc,
+        )?;
+        Some((q, m))
+    }
+
+    /// Placement on a coarse grid (block means of f x f pixels, grey values and gradients)
+    /// over the prior's scale (height) and rotation (heading, tilt) errors; with many
+    /// hypotheses, a first look on a grid twice as coarse keeps the most promising few.
+    fn place(&self, frame: &Plane, a: &mut Attempt) -> Result<Placed, String> {
+        let (rect, v) = (self.v.rect, self.v);
+        let mut f = 1usize;
+        while rect.width().max(rect.height()) / f > AREA_COARSE_TEMPLATE_PX {
+            f *= 2;
+        }
+        let (frame2, window2) = rayon::join(
+            || TwoChannels::new(frame),
+            || TwoChannels::new(&self.window),
+        );
+        let (Some(tc), Some(wc)) = (frame2.at(f), window2.at(f)) else {
+            return Err("area correlation: images too small".into());
+        };
+        let g = v.g;
+        let hyps = similarity_hypotheses(
+            (3.0 * g.sigma_v_m / v.agl_m).min(AREA_MAX_LOG_SCALE),
+            (3.0 * g.sigma_yaw_rad.max(g.sigma_tilt_rad)).min(AREA_MAX_ROT_RAD),
+        );
+        let hyps = match (frame2.at(2 * f), window2.at(2 * f)) {
+            (Some(t1), Some(w1))
+                if hyps.len() > AREA_PLACEMENT_HYPOTHESES
+                    && rect.width().max(rect.height()) / (2 * f)
+                        >= AREA_RANKING_TEMPLATE_MIN_PX =>
+            {
+                rank_hypotheses(&[(&w1[0], &t1[0]), (&w1[1], &t1[1])], &hyps)
+                    .into_iter()
+                    .take(AREA_PLACEMENT_HYPOTHESES)
+                    .map(|(i, _)| hyps[i])
+                    .collect()
+            }
+            _ => hyps,
+        };
+        let channels = [(&wc[0], &tc[0]), (&wc[1], &tc[1])];
+        let placed =
+            place_similar(&channels, &hyps, UNIQUE_RADIUS_COARSE_PX).map_err(|e| e.to_string())?;
+        a.area_ncc = placed.ncc;
+        a.area_runner_up = placed.runner_up;
+        // The coarse template's centre (fine rectified pixel c f + (f - 1) / 2) lies at the
+        // placed centre.
+        let fine = |c: f64| c * f as f64 + (f as f64 - 1.0) / 2.0;
+        let centre = [
+            fine((tc[0].width as f64 - 1.0) / 2.0),
+            fine((tc[0].height as f64 - 1.0) / 2.0),
+        ];
+        let q_c = self
+            .predict(centre[0], centre[1])
+            .ok_or_else(|| "the frame's centre does not see the ground".to_string())?;
+        let w_c = [fine(placed.centre[0]), fine(placed.centre[1])];
+        let mut sim = Sim2 {
+            scale: placed.scale as f32,
+            theta_rad: placed.theta_rad as f32,
+            t: [0.0, 0.0],
+        };
+        let r_qc = sim.apply([q_c[0] as f32, q_c[1] as f32]);
+        sim.t = [w_c[0] as f32 - r_qc[0], w_c[1] as f32 - r_qc[1]];
+        Ok(Placed {
+            sim,
+            f,
+            centre,
+            ncc: placed.ncc,
+        })
+    }
+
+    /// Pass 1, growing from the centre: each patch is searched around the current similarity's
+    /// prediction, over the placement's uncertainty plus the rotation and scale still possible
+    /// at its distance (half a hypothesis step); the similarity is refitted as tie points
+    /// accumulate, which shrinks both (a fit over ties spanning D pixels leaves about
+    /// tolerance / D). Returns the final similarity and each patch's match.
+    fn pass1(
+        &self,
+        placed: &Placed,
+        patches: &[Patch],
+    ) -> Result<(Sim2, Vec<Option<TieMatch>>), String> {
+        let (max_rot, max_log_scale) = self.engine.similarity_bounds(self.v);
+        let fit = |src: &[[f32; 2]], dst: &[[f32; 2]]| {
+            ransac_similarity(
+                src,
+                dst,
+                AREA_TIE_TOLERANCE_PX as f32,
+                max_rot,
+                max_log_scale,
+                0x5EED,
+            )
+            .filter(|(_, n)| *n >= AREA_PASS1_MIN_TIES)
+        };
+        let mut sim = placed.sim;
+        let mut spread = 0.5 * (AREA_LOG_SCALE_STEP + AREA_ROT_STEP_RAD);
+        let mut base = 0.5 * placed.f as f64 + 2.0;
+        let [tcx, tcy] = placed.centre;
+        let mut near: Vec<(f64, usize)> = patches
+            .iter()
+            .enumerate()
+            .map(|(i, p)| ((p.cx as f64 - tcx).hypot(p.cy as f64 - tcy), i))
+            .collect();
+        near.sort_by(|x, y| x.0.total_cmp(&y.0));
+        let (mut src, mut dst) = (Vec::new(), Vec::new());
+        let mut found = vec![None; patches.len()];
+        let mut refit_at = AREA_PASS1_MIN_TIES;
+        // Speculatively in parallel: the next batch of patches is searched with the current
+        // similarity and the results are taken in order; after a refit the rest of the batch is
+        // searched again with the new similarity, so the ties are those of the one-by-one
+        // search whatever the thread count.
+        let mut next = 0;
+        'search: while next < near.len() {
+            let batch = &near[next..(next + AREA_PASS1_BATCH).min(near.len())];
+            let searched: Vec<Option<([f64; 2], TieMatch)>> = batch
+                .par_iter()
+                .map(|&(dist, i)| {
+                    let r = (base + dist * spread).ceil();
+                    (r <= AREA_PASS1_MAX_RADIUS_PX).then_some(())?;
+                    self.search(&patches[i], &sim, [0.0; 2], r as usize, MIN_TIE_NCC)
+                })
+                .collect();
+            for (&(dist, i), hit) in batch.iter().zip(searched) {
+                if src.len() >= AREA_PASS1_ENOUGH_TIES && base <= 2.0 {
+                    break 'search; // the similarity is determined; pass 2 does the rest cheaply
+                }
+                next += 1;
+                let Some((q, m)) = hit else {
+                    continue;
+                };
+                src.push([q[0] as f32, q[1] as f32]);
+                dst.push([m.x as f32, m.y as f32]);
+                found[i] = Some(m);
+                if src.len() >= refit_at {
+                    refit_at = src.len() + src.len() / 2;
+                    if let Some((s_fit, _)) = fit(&src, &dst) {
+                        sim = s_fit;
+                        base = 2.0;
+                        spread = AREA_TIE_TOLERANCE_PX / dist.max(1.0);
+                        continue 'search; // the rest of the batch again, with the new fit
+                    }
+                }
+            }
+        }
+        let (sim, _) = fit(&src, &dst).ok_or_else(|| {
+            format!(
+                "area correlation {:.2} placed the frame but only {} patches agree",
+                placed.ncc,
+                src.len()
+            )
+        })?;
+        Ok((sim, found))
+    }
+
+    /// Pass 2: every patch close to the final similarity's prediction (a pass-1 match that
+    /// agrees with it is kept as found), as correspondences for the resection.
+    fn pass2(&self, sim: &Sim2, patches: &[Patch], found: &[Option<TieMatch>]) -> Vec<Pair> {
+        let sigma_px = self.engine.base_sigma_px(self.v);
+        let matched: Vec<Option<TieMatch>> = patches
+            .par_iter()
+            .zip(found)
+            .map(|(p, prev)| {
+                let q = self.predict(p.cx as f64, p.cy as f64)?;
+                let s = sim.apply([q[0] as f32, q[1] as f32]);
+                let agrees = |m: &&TieMatch| {
+                    (m.x - f64::from(s[0])).hypot(m.y - f64::from(s[1])) <= AREA_TIE_TOLERANCE_PX
+                };
+                match prev.as_ref().filter(agrees) {
+                    Some(m) => Some(*m),
+                    None => self
+                        .search(p, sim, [0.0; 2], AREA_PASS2_RADIUS_PX, MIN_TIE_NCC_NEAR)
+                        .map(|(_, m)| m),
+                }
+            })
+            .collect();
+        patches
+            .iter()
+            .zip(matched)
+            .filter_map(|(p, m)| {
+                let m = m?;
+                let xy = self
+                    .img
+                    .to_map([m.x + self.x0 as f64, m.y + self.y0 as f64]);
+                let z = self.engine.reference.height_amsl_m(xy[0], xy[1])?;
+                let px = self.v.rect.to_frame_px(p.cx as f64, p.cy as f64)?;
+                Some(Pair {
+                    frame_px: px,
+                    map: [xy[0], xy[1], z],
+                    sigma_px,
+                })
+            })
+            .collect()
+    }
+
+    /// The ties chance gives: the pass-2 search with the similarity's predictions displaced
+    /// beyond anything pass 1 searched, in four directions, the most found (a periodic
+    /// pattern, rows of a crop, gives many).
+    fn chance(&self, sim: &Sim2, patches: &[Patch]) -> usize {
+        let d = AREA_NULL_SHIFT_PX;
+        [[d, 0.0], [-d, 0.0], [0.0, d], [0.0, -d]]
+            .iter()
+            .map(|&o| {
+                patches
+                    .par_iter()
+                    .filter(|p| {
+                        self.search(p, sim, o, AREA_PASS2_RADIUS_PX, MIN_TIE_NCC_NEAR)
+                            .is_some()
+                    })
+                    .count()
+            })
+            .max()
+            .unwrap_or(0)
+    }
+}

@@ -868,21 +868,38 @@ impl Integral {
         let mut s = vec![0f64; w1 * (p.height + 1)];
         let mut s2 = s.clone();
         let mut n = vec![0u32; s.len()];
-        for y in 0..p.height {
-            let (mut rs, mut rs2, mut rn) = (0f64, 0f64, 0u32);
-            for x in 0..p.width {
-                let i = p.idx(x, y);
-                if p.valid[i] {
-                    let v = f64::from(p.data[i]);
-                    rs += v;
-                    rs2 += v * v;
-                    rn += 1;
+        // Each row's running sums (rows in parallel)...
+        s[w1..]
+            .par_chunks_mut(w1)
+            .zip(s2[w1..].par_chunks_mut(w1))
+            .zip(n[w1..].par_chunks_mut(w1))
+            .enumerate()
+            .for_each(|(y, ((rs_row, rs2_row), rn_row))| {
+                let (mut rs, mut rs2, mut rn) = (0f64, 0f64, 0u32);
+                for x in 0..p.width {
+                    let i = p.idx(x, y);
+                    if p.valid[i] {
+                        let v = f64::from(p.data[i]);
+                        rs += v;
+                        rs2 += v * v;
+                        rn += 1;
+                    }
+                    rs_row[x + 1] = rs;
+                    rs2_row[x + 1] = rs2;
+                    rn_row[x + 1] = rn;
                 }
-                let k = (y + 1) * w1 + x + 1;
-                s[k] = s[k - w1] + rs;
-                s2[k] = s2[k - w1] + rs2;
-                n[k] = n[k - w1] + rn;
-            }
+            });
+        // ...then accumulated down the columns, a row at a time (vectorised).
+        for y in 1..=p.height {
+            let (above, row) = s.split_at_mut(y * w1);
+            let above = &above[(y - 1) * w1..];
+            row[..w1].iter_mut().zip(above).for_each(|(r, a)| *r += a);
+            let (above, row) = s2.split_at_mut(y * w1);
+            let above = &above[(y - 1) * w1..];
+            row[..w1].iter_mut().zip(above).for_each(|(r, a)| *r += a);
+            let (above, row) = n.split_at_mut(y * w1);
+            let above = &above[(y - 1) * w1..];
+            row[..w1].iter_mut().zip(above).for_each(|(r, a)| *r += a);
         }
         Self { w1, s, s2, n }
     }
@@ -1106,25 +1123,33 @@ pub fn select_patches(
     max: usize,
 ) -> Vec<Patch> {
     let r = side / 2 + 1;
-    let mut cands: Vec<(f64, usize, usize)> = Vec::new();
-    let mut y = r;
-    while y + r < p.height {
-        let mut x = r;
-        while x + r < p.width {
-            let s = corner_strength(p, x, y, side);
-            if s >= min_strength {
-                cands.push((s, x, y));
-            }
-            x += step.max(1);
-        }
-        y += step.max(1);
-    }
+    let step = step.max(1);
+    let ys: Vec<usize> = (r..p.height.saturating_sub(r)).step_by(step).collect();
+    let xs: Vec<usize> = (r..p.width.saturating_sub(r)).step_by(step).collect();
+    let mut cands: Vec<(f64, usize, usize)> = ys
+        .par_iter()
+        .flat_map_iter(|&y| {
+            xs.iter().filter_map(move |&x| {
+                let s = corner_strength(p, x, y, side);
+                (s >= min_strength).then_some((s, x, y))
+            })
+        })
+        .collect();
     cands.sort_by(|a, b| b.0.total_cmp(&a.0));
-    cands
-        .into_iter()
-        .filter_map(|(_, x, y)| Patch::new(p, x, y, side))
-        .take(max)
-        .collect()
+    // The strongest first, in chunks built in parallel until there are enough.
+    let mut out = Vec::with_capacity(max);
+    for chunk in cands.chunks(64) {
+        if out.len() >= max {
+            break;
+        }
+        let built: Vec<Patch> = chunk
+            .par_iter()
+            .filter_map(|&(_, x, y)| Patch::new(p, x, y, side))
+            .collect();
+        out.extend(built);
+    }
+    out.truncate(max);
+    out
 }
 
 #[cfg(test)]

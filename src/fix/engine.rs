@@ -23,6 +23,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use nalgebra::{Point2, Rotation3, Vector2, Vector3};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 mod area_stage;
@@ -881,7 +882,7 @@ impl FixEngine {
         // here (texture density, gate size, ratio test). A genuine view must beat that clearly.
         let d = 3.0 * wide;
         let null = [[d, 0.0], [-d, 0.0], [0.0, d], [0.0, -d]]
-            .iter()
+            .par_iter()
             .map(|o| {
                 let shifted: Vec<[f32; 2]> = pred_fine
                     .iter()

@@ -104,11 +104,11 @@ impl Plane {
             return Some(self.clone());
         }
         let (w, h) = (self.width / f, self.height / f);
-        let mut data = vec![0f32; w * h];
-        let mut valid = vec![false; w * h];
-        if w == 0 {
+        if w == 0 || h == 0 {
             return None;
         }
+        let mut data = vec![0f32; w * h];
+        let mut valid = vec![false; w * h];
         data.par_chunks_mut(w)
             .zip(valid.par_chunks_mut(w))
             .enumerate()
@@ -890,17 +890,9 @@ impl Integral {
                 }
             });
         // ...then accumulated down the columns, a row at a time (vectorised).
-        for y in 1..=p.height {
-            let (above, row) = s.split_at_mut(y * w1);
-            let above = &above[(y - 1) * w1..];
-            row[..w1].iter_mut().zip(above).for_each(|(r, a)| *r += a);
-            let (above, row) = s2.split_at_mut(y * w1);
-            let above = &above[(y - 1) * w1..];
-            row[..w1].iter_mut().zip(above).for_each(|(r, a)| *r += a);
-            let (above, row) = n.split_at_mut(y * w1);
-            let above = &above[(y - 1) * w1..];
-            row[..w1].iter_mut().zip(above).for_each(|(r, a)| *r += a);
-        }
+        accumulate_down(&mut s, w1);
+        accumulate_down(&mut s2, w1);
+        accumulate_down(&mut n, w1);
         Self { w1, s, s2, n }
     }
 
@@ -913,6 +905,16 @@ impl Integral {
             self.s2[d] - self.s2[b] - self.s2[c] + self.s2[a],
             self.n[d] + self.n[a] - self.n[b] - self.n[c],
         )
+    }
+}
+
+/// Each row of `table` (rows of `w` values) plus the row above it, top to bottom: row sums
+/// become the sums of the whole rectangle above and left.
+fn accumulate_down<T: Copy + std::ops::AddAssign>(table: &mut [T], w: usize) {
+    for y in 1..table.len() / w {
+        let (above, row) = table.split_at_mut(y * w);
+        let above = &above[(y - 1) * w..];
+        row[..w].iter_mut().zip(above).for_each(|(r, a)| *r += *a);
     }
 }
 

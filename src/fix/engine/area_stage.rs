@@ -92,6 +92,19 @@ struct AreaSearch<'a> {
     y0: i64,
 }
 
+/// A tie-point patch and the window pixel the prior predicts for its centre (computed once:
+/// each pass and each chance count searches around it).
+struct TiePatch {
+    patch: Patch,
+    q: [f64; 2],
+}
+
+impl TiePatch {
+    fn q_f32(&self) -> [f32; 2] {
+        [self.q[0] as f32, self.q[1] as f32]
+    }
+}
+
 /// The placement as a similarity from predicted window pixels to found ones.
 struct Placed {
     sim: Sim2,
@@ -111,13 +124,19 @@ impl FixEngine {
             .ok_or_else(|| "empty rectification".to_string())?;
         let s = AreaSearch::new(self, v)?;
         let placed = s.place(&frame, a)?;
-        let patches = select_patches(
+        let patches: Vec<TiePatch> = select_patches(
             &frame,
             AREA_PATCH_PX,
             AREA_PATCH_STEP_PX,
             AREA_MIN_CORNER_STRENGTH,
             AREA_MAX_PATCHES,
-        );
+        )
+        .into_par_iter()
+        .filter_map(|patch| {
+            let q = s.predict(patch.cx as f64, patch.cy as f64)?;
+            Some(TiePatch { patch, q })
+        })
+        .collect();
         let (sim, found) = s.pass1(&placed, &patches)?;
         let pairs = s.pass2(&sim, &patches, &found);
         a.area_ties = pairs.len();
@@ -187,28 +206,26 @@ impl<'a> AreaSearch<'a> {
         Some([m[0] - self.x0 as f64, m[1] - self.y0 as f64])
     }
 
-    /// Patch `p` searched within `radius` of `sim`'s prediction displaced by `offset`: the
-    /// prediction from the prior and the match (window pixels).
+    /// Patch `t` searched within `radius` of `sim`'s prediction displaced by `offset` (window
+    /// pixels).
     fn search(
         &self,
-        p: &Patch,
+        t: &TiePatch,
         sim: &Sim2,
         offset: [f32; 2],
         radius: usize,
         min_ncc: f64,
-    ) -> Option<([f64; 2], TieMatch)> {
-        let q = self.predict(p.cx as f64, p.cy as f64)?;
-        let s = sim.apply([q[0] as f32, q[1] as f32]);
-        let m = match_patch(
+    ) -> Option<TieMatch> {
+        let s = sim.apply(t.q_f32());
+        match_patch(
             &self.window,
             &self.sums,
-            p,
+            &t.patch,
             (s[0] + offset[0]).round() as i64,
             (s[1] + offset[1]).round() as i64,
             radius,
             min_ncc,
-        )?;
-        Some((q, m))
+        )
     }
 
     /// Placement on a coarse grid (block means of f x f pixels, grey values and gradients)
@@ -285,7 +302,7 @@ impl<'a> AreaSearch<'a> {
     fn pass1(
         &self,
         placed: &Placed,
-        patches: &[Patch],
+        patches: &[TiePatch],
     ) -> Result<(Sim2, Vec<Option<TieMatch>>), String> {
         let (max_rot, max_log_scale) = self.engine.similarity_bounds(self.v);
         let fit = |src: &[[f32; 2]], dst: &[[f32; 2]]| {
@@ -306,7 +323,7 @@ impl<'a> AreaSearch<'a> {
         let mut near: Vec<(f64, usize)> = patches
             .iter()
             .enumerate()
-            .map(|(i, p)| ((p.cx as f64 - tcx).hypot(p.cy as f64 - tcy), i))
+            .map(|(i, t)| ((t.patch.cx as f64 - tcx).hypot(t.patch.cy as f64 - tcy), i))
             .collect();
         near.sort_by(|x, y| x.0.total_cmp(&y.0));
         let (mut src, mut dst) = (Vec::new(), Vec::new());
@@ -319,7 +336,7 @@ impl<'a> AreaSearch<'a> {
         let mut next = 0;
         'search: while next < near.len() {
             let batch = &near[next..(next + AREA_PASS1_BATCH).min(near.len())];
-            let searched: Vec<Option<([f64; 2], TieMatch)>> = batch
+            let searched: Vec<Option<TieMatch>> = batch
                 .par_iter()
                 .map(|&(dist, i)| {
                     let r = (base + dist * spread).ceil();
@@ -332,10 +349,10 @@ impl<'a> AreaSearch<'a> {
                     break 'search; // the similarity is determined; pass 2 does the rest cheaply
                 }
                 next += 1;
-                let Some((q, m)) = hit else {
+                let Some(m) = hit else {
                     continue;
                 };
-                src.push([q[0] as f32, q[1] as f32]);
+                src.push(patches[i].q_f32());
                 dst.push([m.x as f32, m.y as f32]);
                 found[i] = Some(m);
                 if src.len() >= refit_at {
@@ -361,30 +378,27 @@ impl<'a> AreaSearch<'a> {
 
     /// Pass 2: every patch close to the final similarity's prediction (a pass-1 match that
     /// agrees with it is kept as found), as correspondences for the resection.
-    fn pass2(&self, sim: &Sim2, patches: &[Patch], found: &[Option<TieMatch>]) -> Vec<Pair> {
+    fn pass2(&self, sim: &Sim2, patches: &[TiePatch], found: &[Option<TieMatch>]) -> Vec<Pair> {
         let sigma_px = self.engine.base_sigma_px(self.v);
         let matched: Vec<Option<TieMatch>> = patches
             .par_iter()
             .zip(found)
-            .map(|(p, prev)| {
-                let q = self.predict(p.cx as f64, p.cy as f64)?;
-                let s = sim.apply([q[0] as f32, q[1] as f32]);
+            .map(|(t, prev)| {
+                let s = sim.apply(t.q_f32());
                 let agrees = |m: &&TieMatch| {
                     (m.x - f64::from(s[0])).hypot(m.y - f64::from(s[1])) <= AREA_TIE_TOLERANCE_PX
                 };
                 match prev.as_ref().filter(agrees) {
                     Some(m) => Some(*m),
-                    None => self
-                        .search(p, sim, [0.0; 2], AREA_PASS2_RADIUS_PX, MIN_TIE_NCC_NEAR)
-                        .map(|(_, m)| m),
+                    None => self.search(t, sim, [0.0; 2], AREA_PASS2_RADIUS_PX, MIN_TIE_NCC_NEAR),
                 }
             })
             .collect();
         patches
             .iter()
             .zip(matched)
-            .filter_map(|(p, m)| {
-                let m = m?;
+            .filter_map(|(t, m)| {
+                let (p, m) = (&t.patch, m?);
                 let xy = self
                     .img
                     .to_map([m.x + self.x0 as f64, m.y + self.y0 as f64]);
@@ -402,15 +416,15 @@ impl<'a> AreaSearch<'a> {
     /// The ties chance gives: the pass-2 search with the similarity's predictions displaced
     /// beyond anything pass 1 searched, in four directions, the most found (a periodic
     /// pattern, rows of a crop, gives many).
-    fn chance(&self, sim: &Sim2, patches: &[Patch]) -> usize {
+    fn chance(&self, sim: &Sim2, patches: &[TiePatch]) -> usize {
         let d = AREA_NULL_SHIFT_PX;
         [[d, 0.0], [-d, 0.0], [0.0, d], [0.0, -d]]
             .iter()
             .map(|&o| {
                 patches
                     .par_iter()
-                    .filter(|p| {
-                        self.search(p, sim, o, AREA_PASS2_RADIUS_PX, MIN_TIE_NCC_NEAR)
+                    .filter(|t| {
+                        self.search(t, sim, o, AREA_PASS2_RADIUS_PX, MIN_TIE_NCC_NEAR)
                             .is_some()
                     })
                     .count()

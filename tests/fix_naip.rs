@@ -82,6 +82,28 @@ fn naip_cross_date_fixes_with_prior() {
     );
 }
 
+/// The placement fix (docs/fix.md): at 1200-1600 m above ground, where the fewest features and
+/// tie points are found, the area placement alone fixes the frames the tie points cannot, never
+/// wrongly. Measured (100 frames, seed 2024): 70 -> 91 % accepted, 0 wrong, 0 beyond 3 sigma,
+/// 21 placement fixes (horizontal error 1-24 m at sigma 13-20 m).
+#[test]
+fn naip_placement_fix_at_low_altitude_is_honest() {
+    let mut e = eval();
+    e.agl_range_m = (1200.0, 1600.0);
+    let s = e
+        .run(40, 2024, &mut |line| eprintln!("{line}"))
+        .expect("run");
+    eprintln!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
+    assert_eq!(s.wrong_fixes, 0, "wrong fixes");
+    assert_eq!(s.beyond_3_sigma, 0, "fixes beyond 3 sigma");
+    assert!(s.fix_rate >= 0.8, "fix rate {}", s.fix_rate);
+    assert!(
+        s.median_err_map_px <= 4.0,
+        "median error {} map px",
+        s.median_err_map_px
+    );
+}
+
 #[test]
 fn naip_frames_of_other_ground_are_rejected() {
     frames_of_other_ground_are_rejected(&eval());

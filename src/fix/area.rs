@@ -133,6 +133,29 @@ impl Plane {
         Plane::new(w, h, data, valid)
     }
 
+    /// The `w x h` pixels from `(x0, y0)` on; pixels outside the plane are invalid. `None` when
+    /// a side is zero.
+    pub fn crop(&self, x0: i64, y0: i64, w: usize, h: usize) -> Option<Plane> {
+        let mut data = vec![0f32; w * h];
+        let mut valid = vec![false; w * h];
+        for y in 0..h {
+            let sy = y0 + y as i64;
+            if sy < 0 || sy >= self.height as i64 {
+                continue;
+            }
+            // Columns of the output row that fall inside the plane.
+            let lo = (-x0).clamp(0, w as i64) as usize;
+            let hi = (self.width as i64 - x0).clamp(0, w as i64) as usize;
+            if lo >= hi {
+                continue;
+            }
+            let src = self.idx((x0 + lo as i64) as usize, sy as usize);
+            data[y * w + lo..y * w + hi].copy_from_slice(&self.data[src..src + hi - lo]);
+            valid[y * w + lo..y * w + hi].copy_from_slice(&self.valid[src..src + hi - lo]);
+        }
+        Plane::new(w, h, data, valid)
+    }
+
     /// The plane inside a border of `mx` invalid pixels left and right and `my` above and
     /// below (so a template may hang over the edge, its overlap counted by the masked NCC).
     pub fn padded(&self, mx: usize, my: usize) -> Plane {
@@ -781,6 +804,16 @@ pub fn place_similar(
     })
 }
 
+/// The best placement of the template in the window over the hypotheses, without the
+/// uniqueness rule: the refinement of a place already found unique on a coarser grid (`None`
+/// when no correlation is defined).
+pub fn best_similar(channels: &Channels, hypotheses: &[(f64, f64)]) -> Option<Candidate> {
+    let mut work = 0;
+    scored_maxima(channels, hypotheses, MIN_OVERLAP, 1, &mut work)
+        .into_iter()
+        .next()
+}
+
 /// One place a template correlates well at ([`candidates`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Candidate {
@@ -1173,11 +1206,7 @@ mod tests_support {
     }
 
     pub fn crop(p: &Plane, x0: usize, y0: usize, w: usize, h: usize) -> Plane {
-        let mut data = Vec::with_capacity(w * h);
-        for y in y0..y0 + h {
-            data.extend_from_slice(&p.data[y * p.width + x0..y * p.width + x0 + w]);
-        }
-        Plane::new(w, h, data, vec![true; w * h]).unwrap()
+        p.crop(x0 as i64, y0 as i64, w, h).unwrap()
     }
 }
 
@@ -1395,6 +1424,24 @@ mod tests {
         let p = Patch::new(&edge, 20, 20, 15).unwrap();
         let sums = Integral::new(&edge);
         assert!(match_patch(&edge, &sums, &p, 20, 20, 4, MIN_TIE_NCC).is_none());
+    }
+
+    #[test]
+    fn crop_marks_pixels_outside_the_plane_invalid() {
+        let p = texture(10, 8, 0.4);
+        let c = p.crop(-2, 5, 6, 5).unwrap();
+        for y in 0..5 {
+            for x in 0..6 {
+                let (sx, sy) = (x as i64 - 2, y as i64 + 5);
+                let inside = sx >= 0 && sy < 8;
+                assert_eq!(c.valid[c.idx(x, y)], inside, "({x}, {y})");
+                if inside {
+                    assert_eq!(c.data[c.idx(x, y)], p.data[p.idx(sx as usize, sy as usize)]);
+                }
+            }
+        }
+        assert!(p.crop(20, 0, 3, 3).unwrap().valid.iter().all(|v| !v));
+        assert!(p.crop(0, 0, 0, 3).is_none());
     }
 
     #[test]

@@ -27,6 +27,9 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 mod area_stage;
+mod placement;
+
+use area_stage::AreaOutcome;
 
 use super::rectify::Rectification;
 use super::reference::{RefSelection, Reference};
@@ -322,6 +325,10 @@ struct Single {
     /// The area correlation may run (as `[fix] area_matching` says; alone when `features` is
     /// false).
     area: bool,
+    /// A unique area placement without enough tie points may still give a fix (the placement
+    /// fix: the one position of a single prior, never among a search's hypotheses, whose
+    /// uniqueness rule weighs tie points).
+    placement: bool,
 }
 
 impl Single {
@@ -330,6 +337,7 @@ impl Single {
         att_from_filter: false,
         features: true,
         area: false,
+        placement: false,
     };
 }
 
@@ -532,6 +540,7 @@ impl FixEngine {
             att_from_filter,
             features: true,
             area: false,
+            placement: false,
         };
         let (r, a) = select_unique(sweep(features), t_us);
         if r.accepted {
@@ -549,6 +558,7 @@ impl FixEngine {
             att_from_filter,
             features: false,
             area: true,
+            placement: false,
         };
         let (r2, a2) = select_unique(sweep(area), t_us);
         if !r2.accepted {
@@ -652,6 +662,7 @@ impl FixEngine {
                     att_from_filter,
                     features: true,
                     area: true,
+                    placement: true,
                 },
             )
         }
@@ -763,13 +774,16 @@ impl FixEngine {
         let mut reasons = Vec::new();
         let mut report = None;
         for &method in order {
-            let pairs = match method {
-                FixMethod::Features => self.feature_pairs(&view, &mut a),
-                FixMethod::Area => self.area_pairs(&view, &mut a),
-            };
-            let r = match pairs {
-                Ok(p) => self.solve_pairs(&view, &p, method, t_us),
-                Err(e) => FixReport::rejected(e, t_us, 0.0),
+            let r = match method {
+                FixMethod::Features => match self.feature_pairs(&view, &mut a) {
+                    Ok(p) => self.solve_pairs(&view, &p, method, t_us),
+                    Err(e) => FixReport::rejected(e, t_us, 0.0),
+                },
+                _ => match self.area_pairs(&view, &mut a, how.placement) {
+                    Ok(AreaOutcome::Ties(p)) => self.solve_pairs(&view, &p, FixMethod::Area, t_us),
+                    Ok(AreaOutcome::Placement(p)) => self.placement_report(&view, &p, t_us),
+                    Err(e) => FixReport::rejected(e, t_us, 0.0),
+                },
             };
             if r.accepted {
                 report = Some(r);
@@ -1338,6 +1352,7 @@ impl FixEngine {
             att_from_filter: false,
             features: true,
             area: true,
+            placement: false,
         };
         let mut confirmed: Option<(f64, Hypothesis)> = None;
         let mut reasons = Vec::new();
@@ -2708,11 +2723,12 @@ mod tests {
         assert!(gated_match(&query, &train, &[[f32::NAN, 0.0]], 4.0, 12.0, 0.9).is_empty());
     }
 
-    #[test]
-    fn bad_frames_and_priors_are_rejected_with_a_reason() {
+    /// An engine over a 1.28 km checkerboard ortho (5 m pixels, UTM 14N, easting 500 000,
+    /// northing 5 200 000 at its top left) on flat ground at 300 m, with a 320 x 240 camera of
+    /// 60 deg field of view.
+    pub(super) fn checkerboard_engine() -> (FixEngine, Crs) {
         use crate::fix::reference::MemoryReference;
         use crate::geo::raster::{GeoTransform, Raster, RasterData};
-        // A small textured ortho in UTM 14N.
         let (w, h) = (256usize, 256usize);
         let data: Vec<u8> = (0..w * h)
             .map(|i| (((i % w) / 8 + (i / w) / 8) % 2 * 200 + 20) as u8)
@@ -2734,6 +2750,12 @@ mod tests {
         )
         .unwrap();
         let engine = FixEngine::new(Arc::new(reference), camera, FixParams::default()).unwrap();
+        (engine, crs)
+    }
+
+    #[test]
+    fn bad_frames_and_priors_are_rejected_with_a_reason() {
+        let (engine, crs) = checkerboard_engine();
         let (lat, lon) = crs.to_geodetic(500_640.0, 5_199_360.0).unwrap();
         let att = Some(AttitudePriorNed::isotropic(
             Attitude::new(0.0, 0.0, 0.0),

@@ -143,8 +143,12 @@ pub enum FixMethod {
     /// SURF features matched to the map's features (`fix::engine`).
     #[default]
     Features,
-    /// Area correlation of the rectified frame with the map's image (`fix::area`).
+    /// Area correlation of the rectified frame with the map's image (`fix::area`): tie
+    /// points and the resection.
     Area,
+    /// The area correlation's placement alone, with the attitude prior's tilt (the placement
+    /// fix, docs/fix.md): position and heading, no image-derived tilt.
+    Placement,
 }
 
 impl std::fmt::Display for FixMethod {
@@ -152,6 +156,7 @@ impl std::fmt::Display for FixMethod {
         f.write_str(match self {
             FixMethod::Features => "features",
             FixMethod::Area => "area",
+            FixMethod::Placement => "placement",
         })
     }
 }

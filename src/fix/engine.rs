@@ -1354,14 +1354,24 @@ impl FixEngine {
             area: true,
             placement: false,
         };
+        // The best candidate may be confirmed by its placement alone when it leads every other
+        // place of the whole map by the placement fix's margin (there no tie point confirms it).
+        let lead = match search.candidates.as_slice() {
+            [first, second, ..] => first.ncc - second.ncc,
+            _ => f64::INFINITY,
+        };
         let mut confirmed: Option<(f64, Hypothesis)> = None;
         let mut reasons = Vec::new();
-        for c in &search.candidates {
+        for (i, c) in search.candidates.iter().enumerate() {
             if let Some((ncc, _)) = &confirmed
                 && c.ncc < ncc - RELOC_AREA_RIVAL_MARGIN
             {
                 break;
             }
+            let how = Single {
+                placement: i == 0 && lead >= area_stage::PLACEMENT_FIX_MARGIN,
+                ..how
+            };
             *work = work.saturating_add((frame.width() * frame.height()) as u64);
             let (r, a) = self.fix_single(frame, &c.position, &c.rect_att, Some(att), t_us, how);
             let h = if r.accepted {

@@ -39,7 +39,7 @@ const AREA_PASS1_MAX_RADIUS_PX: f64 = 12.0;
 /// (twice the placement's [`crate::fix::area::UNIQUE_MARGIN`]): no tie point confirms it. The
 /// NAIP cross-date bench's true placements lead by 0.15-0.41, its tie-point searches' wrong
 /// ones are rejected at the placement already.
-const PLACEMENT_FIX_MARGIN: f64 = 0.1;
+pub(super) const PLACEMENT_FIX_MARGIN: f64 = 0.1;
 /// The placement fix refines the placement down to the grid on which the rectified frame's
 /// longer side has at most this many pixels: a few hundred pixels of pattern localise the
 /// peak to a fraction of a block, and the FFTs stay small.

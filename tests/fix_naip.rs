@@ -116,6 +116,16 @@ fn naip_frames_of_other_ground_are_rejected_by_the_area_correlation() {
     frames_of_other_ground_are_rejected(&eval_with(area_only()));
 }
 
+/// The same with the heading 25 deg off and a 30 deg sigma: a heading sweep, whose area pass
+/// may end in a placement fix that must lead every other heading's correlation.
+#[test]
+fn naip_frames_of_other_ground_are_rejected_by_a_heading_sweep() {
+    let mut e = eval();
+    e.yaw_error_deg = 25.0;
+    e.yaw_sigma_deg = 30.0;
+    frames_of_other_ground_are_rejected(&e);
+}
+
 fn frames_of_other_ground_are_rejected(e: &NaipEval) {
     let b = e.map_raster.bounds();
     let mut rng = Rng::new(99);

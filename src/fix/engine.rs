@@ -278,7 +278,8 @@ pub struct Attempt {
     pub null_matches: usize,
     /// The fine matches: frame pixel (distorted) and map point (grid x, y, height AMSL).
     pub pairs: Vec<([f64; 2], [f64; 3])>,
-    /// Area correlation: the placement's peak and the best other place (0 when not run).
+    /// Area correlation: the placement's peak, also when it was too weak or not unique, and
+    /// the best other place (0 when not run).
     pub area_ncc: f64,
     pub area_runner_up: f64,
     /// Area correlation: tie points found.
@@ -558,7 +559,7 @@ impl FixEngine {
             att_from_filter,
             features: false,
             area: true,
-            placement: false,
+            placement: true,
         };
         let (r2, a2) = select_unique(sweep(area), t_us);
         if !r2.accepted {
@@ -2049,16 +2050,10 @@ fn select_unique(tries: Vec<Hypothesis>, t_us: u64) -> (FixReport, Attempt) {
         .enumerate()
         .filter(|(_, h)| h.report.accepted)
         .max_by(|(ia, a), (ib, b)| {
-            (
-                a.report.inliers,
-                a.attempt.fine_matches,
-                std::cmp::Reverse(*ia),
-            )
-                .cmp(&(
-                    b.report.inliers,
-                    b.attempt.fine_matches,
-                    std::cmp::Reverse(*ib),
-                ))
+            (a.report.inliers, a.attempt.fine_matches)
+                .cmp(&(b.report.inliers, b.attempt.fine_matches))
+                .then(a.attempt.area_ncc.total_cmp(&b.attempt.area_ncc))
+                .then(ib.cmp(ia))
         })
         .map(|(i, _)| i);
     let Some(bi) = best else {
@@ -2080,6 +2075,9 @@ fn select_unique(tries: Vec<Hypothesis>, t_us: u64) -> (FixReport, Attempt) {
     let b = &tries[bi];
     let far_heading = 1.5 * HEADING_STEP_DEG.to_radians();
     let best_yaw = b.report.yaw_deg.to_radians();
+    if b.report.method == FixMethod::Placement {
+        return placement_unique(tries, bi, far_heading, t_us);
+    }
     let competitor = tries
         .iter()
         .enumerate()
@@ -2125,6 +2123,48 @@ fn select_unique(tries: Vec<Hypothesis>, t_us: u64) -> (FixReport, Attempt) {
         return (r, attempt);
     }
     (report, attempt)
+}
+
+/// [`select_unique`] for a placement fix (no tie points to weigh): every other hypothesis must
+/// either be accepted at the same place, or lie within one heading step and not be accepted
+/// elsewhere, or correlate less than the winner by the placement fix's margin
+/// ([`area_stage::PLACEMENT_FIX_MARGIN`]): the place and the heading are unique over the sweep as
+/// the placement is within its own gate.
+fn placement_unique(
+    mut tries: Vec<Hypothesis>,
+    bi: usize,
+    far_heading: f64,
+    t_us: u64,
+) -> (FixReport, Attempt) {
+    let b = &tries[bi];
+    let best_yaw = b.report.yaw_deg.to_radians();
+    let rival = tries.iter().enumerate().find(|&(j, h)| {
+        if j == bi {
+            return false;
+        }
+        if h.report.accepted {
+            let d = (h.report.x_m - b.report.x_m).hypot(h.report.y_m - b.report.y_m);
+            return d > SAME_PLACE_SIGMAS * sigma_h_m(&h.report).hypot(sigma_h_m(&b.report));
+        }
+        wrap_pi(h.rect_yaw_rad - best_yaw).abs() > far_heading
+            && h.attempt.area_ncc > b.attempt.area_ncc - area_stage::PLACEMENT_FIX_MARGIN
+    });
+    if let Some((_, h)) = rival {
+        let reason = format!(
+            "ambiguous: placement {:.2} at heading {:.0} deg against {:.2} at heading {:.0} deg \
+             (need a lead of {})",
+            b.attempt.area_ncc,
+            b.report.yaw_deg,
+            h.attempt.area_ncc,
+            h.rect_yaw_rad.to_degrees(),
+            area_stage::PLACEMENT_FIX_MARGIN
+        );
+        let mut r = FixReport::rejected(reason, t_us, 0.0);
+        r.level = b.report.level;
+        return (r, tries.swap_remove(bi).attempt);
+    }
+    let h = tries.swap_remove(bi);
+    (h.report, h.attempt)
 }
 
 /// Map grid point (height AMSL) to the local ENU frame.
@@ -2677,6 +2717,60 @@ mod tests {
         both.area_ties = 40;
         both.area_null_ties = 15;
         assert_eq!(both.evidence(), 25);
+    }
+
+    /// A hypothesis placed with correlation `ncc`; accepted as a placement fix at `at` or not.
+    fn placement_hypothesis(rect_yaw_deg: f64, fix_at: Option<(f64, f64)>, ncc: f64) -> Hypothesis {
+        let mut h = hypothesis(
+            rect_yaw_deg,
+            fix_at.is_some(),
+            fix_at.unwrap_or_default(),
+            0,
+            0,
+        );
+        h.report.inliers = 0;
+        if fix_at.is_some() {
+            h.report.method = FixMethod::Placement;
+        }
+        h.attempt.area_ncc = ncc;
+        h
+    }
+
+    #[test]
+    fn select_unique_takes_a_placement_fix_only_when_its_correlation_leads() {
+        // Headings within 1.5 steps (22.5 deg) of the fix's may correlate as well; farther ones
+        // correlate 0.1 less or accept at the same place.
+        let tries = || {
+            vec![
+                placement_hypothesis(0.0, None, 0.40),
+                placement_hypothesis(15.0, Some((0.0, 0.0)), 0.45),
+                placement_hypothesis(30.0, Some((5.0, 0.0)), 0.42),
+                placement_hypothesis(45.0, None, 0.33),
+                placement_hypothesis(180.0, None, 0.34),
+            ]
+        };
+        let (r, a) = select_unique(tries(), 7);
+        assert!(r.accepted, "{}", r.reason);
+        assert_eq!(a.area_ncc, 0.45, "the best correlation wins");
+        // A far heading within 0.1 of it: ambiguous.
+        let mut t = tries();
+        t[4].attempt.area_ncc = 0.36;
+        let (r, _) = select_unique(t, 7);
+        assert!(
+            !r.accepted && r.reason.contains("placement"),
+            "{}",
+            r.reason
+        );
+        // Another accepted placement fix at another place: ambiguous.
+        let mut t = tries();
+        t[4] = placement_hypothesis(180.0, Some((900.0, 0.0)), 0.30);
+        let (r, _) = select_unique(t, 7);
+        assert!(!r.accepted, "{}", r.reason);
+        // A tie-point fix outranks a placement fix.
+        let mut t = tries();
+        t.push(area_hypothesis(90.0, true, (0.0, 3.0), 30));
+        let (r, _) = select_unique(t, 7);
+        assert!(r.accepted && r.inliers == 30, "{}", r.reason);
     }
 
     fn features(points: &[([f32; 2], i8, [f32; 8])]) -> Features {

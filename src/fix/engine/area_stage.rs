@@ -13,7 +13,7 @@ use rayon::prelude::*;
 
 use super::{Attempt, FixEngine, Pair, Sim2, View, ransac_similarity};
 use crate::fix::area::{
-    Integral, MIN_TIE_NCC, MIN_TIE_NCC_NEAR, Patch, Plane, TieMatch, TwoChannels,
+    Integral, MIN_TIE_NCC, MIN_TIE_NCC_NEAR, Patch, PlaceError, Plane, TieMatch, TwoChannels,
     UNIQUE_RADIUS_COARSE_PX, best_similar, match_patch, place_similar, rank_hypotheses,
     select_patches,
 };
@@ -335,8 +335,14 @@ impl<'a> AreaSearch<'a> {
             _ => hyps,
         };
         let channels = [(&wc[0], &tc[0]), (&wc[1], &tc[1])];
-        let placed =
-            place_similar(&channels, &hyps, UNIQUE_RADIUS_COARSE_PX).map_err(|e| e.to_string())?;
+        let placed = place_similar(&channels, &hyps, UNIQUE_RADIUS_COARSE_PX).map_err(|e| {
+            // A failed placement still says how well the frame correlates here (a heading
+            // sweep weighs it against a placement fix at another heading).
+            if let PlaceError::Weak { ncc } | PlaceError::Ambiguous { ncc, .. } = e {
+                a.area_ncc = ncc;
+            }
+            e.to_string()
+        })?;
         a.area_ncc = placed.ncc;
         a.area_runner_up = placed.runner_up;
         self.placed_at(

@@ -327,8 +327,8 @@ struct Single {
     /// false).
     area: bool,
     /// A unique area placement without enough tie points may still give a fix (the placement
-    /// fix: the one position of a single prior, never among a search's hypotheses, whose
-    /// uniqueness rule weighs tie points).
+    /// fix; a search that allows it must weigh it by its correlation, [`placement_unique`], as
+    /// it has no tie points).
     placement: bool,
 }
 
@@ -2126,8 +2126,8 @@ fn select_unique(tries: Vec<Hypothesis>, t_us: u64) -> (FixReport, Attempt) {
 }
 
 /// [`select_unique`] for a placement fix (no tie points to weigh): every other hypothesis must
-/// either be accepted at the same place, or lie within one heading step and not be accepted
-/// elsewhere, or correlate less than the winner by the placement fix's margin
+/// either be accepted at the same place, or (not accepted) lie within `far_heading` of its
+/// heading, or correlate less than the winner by the placement fix's margin
 /// ([`area_stage::PLACEMENT_FIX_MARGIN`]): the place and the heading are unique over the sweep as
 /// the placement is within its own gate.
 fn placement_unique(

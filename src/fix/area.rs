@@ -136,22 +136,39 @@ impl Plane {
     /// The `w x h` pixels from `(x0, y0)` on; pixels outside the plane are invalid. `None` when
     /// a side is zero.
     pub fn crop(&self, x0: i64, y0: i64, w: usize, h: usize) -> Option<Plane> {
+        Plane::window([self.width, self.height], x0, y0, w, h, |x, y| {
+            let i = self.idx(x, y);
+            self.valid[i].then_some(self.data[i])
+        })
+    }
+
+    /// The `w x h` window from `(x0, y0)` on of a `size` grid whose pixel `(x, y)` is `at(x, y)`
+    /// (`None`: invalid); pixels outside the grid are invalid. `None` when a side is zero.
+    pub fn window(
+        size: [usize; 2],
+        x0: i64,
+        y0: i64,
+        w: usize,
+        h: usize,
+        at: impl Fn(usize, usize) -> Option<f32>,
+    ) -> Option<Plane> {
         let mut data = vec![0f32; w * h];
         let mut valid = vec![false; w * h];
         for y in 0..h {
             let sy = y0 + y as i64;
-            if sy < 0 || sy >= self.height as i64 {
+            if sy < 0 || sy >= size[1] as i64 {
                 continue;
             }
-            // Columns of the output row that fall inside the plane.
-            let lo = (-x0).clamp(0, w as i64) as usize;
-            let hi = (self.width as i64 - x0).clamp(0, w as i64) as usize;
-            if lo >= hi {
-                continue;
+            for x in 0..w {
+                let sx = x0 + x as i64;
+                if sx < 0 || sx >= size[0] as i64 {
+                    continue;
+                }
+                if let Some(v) = at(sx as usize, sy as usize) {
+                    data[y * w + x] = v;
+                    valid[y * w + x] = true;
+                }
             }
-            let src = self.idx((x0 + lo as i64) as usize, sy as usize);
-            data[y * w + lo..y * w + hi].copy_from_slice(&self.data[src..src + hi - lo]);
-            valid[y * w + lo..y * w + hi].copy_from_slice(&self.valid[src..src + hi - lo]);
         }
         Plane::new(w, h, data, valid)
     }

@@ -109,26 +109,10 @@ impl MapImage<'_> {
 
     /// The `w x h` window with top-left pixel `(x0, y0)` (may reach outside: invalid there).
     pub fn crop(&self, x0: i64, y0: i64, w: usize, h: usize) -> Option<super::area::Plane> {
-        let mut data = vec![0f32; w * h];
-        let mut valid = vec![false; w * h];
-        for y in 0..h {
-            let sy = y0 + y as i64;
-            if sy < 0 || sy >= self.height as i64 {
-                continue;
-            }
-            for x in 0..w {
-                let sx = x0 + x as i64;
-                if sx < 0 || sx >= self.width as i64 {
-                    continue;
-                }
-                let v = self.data[sy as usize * self.width + sx as usize];
-                if v != 0 {
-                    data[y * w + x] = f32::from(v);
-                    valid[y * w + x] = true;
-                }
-            }
-        }
-        super::area::Plane::new(w, h, data, valid)
+        super::area::Plane::window([self.width, self.height], x0, y0, w, h, |x, y| {
+            let v = self.data[y * self.width + x];
+            (v != 0).then_some(f32::from(v))
+        })
     }
 }
 

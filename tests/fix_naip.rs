@@ -104,6 +104,30 @@ fn naip_placement_fix_at_low_altitude_is_honest() {
     );
 }
 
+/// A frame that sees beyond the map's edge cannot be judged at its true place (too little of
+/// the map under it), so an area placement elsewhere is not shown unique: without tie points
+/// it must not become a placement fix. Same imagery and the area correlation alone, where
+/// every other frame's tie points are found (seed 2024, frame 27 half beyond the north edge
+/// was placed 96 m off before the rule; 40 frames: 38 accepted, 0 wrong with it).
+#[test]
+fn naip_frames_beyond_the_map_edge_get_no_placement_fix() {
+    let mut e = eval_with(area_only());
+    e.same_imagery = true;
+    let s = e
+        .run(40, 2024, &mut |line| eprintln!("{line}"))
+        .expect("run");
+    eprintln!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
+    assert_eq!(s.wrong_fixes, 0, "wrong fixes");
+    assert!(
+        s.rejections
+            .iter()
+            .any(|(why, _)| why.contains("could not be judged")),
+        "no frame refused for seeing beyond the map: {:?}",
+        s.rejections
+    );
+    assert!(s.fix_rate >= 0.85, "fix rate {}", s.fix_rate);
+}
+
 #[test]
 fn naip_frames_of_other_ground_are_rejected() {
     frames_of_other_ground_are_rejected(&eval());

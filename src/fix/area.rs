@@ -239,6 +239,17 @@ pub struct Surface {
     pub width: usize,
     pub height: usize,
     pub data: Vec<f64>,
+    /// Shifts left undefined because the template overlapped too few of the window's valid
+    /// pixels (the window's edge, a hole in the map): places that could not be judged, so a
+    /// peak elsewhere is not shown to be unique against them.
+    pub unjudged: usize,
+}
+
+impl Surface {
+    /// Fraction of the shifts that could not be judged ([`Self::unjudged`]).
+    pub fn unjudged_fraction(&self) -> f64 {
+        self.unjudged as f64 / (self.width * self.height).max(1) as f64
+    }
 }
 
 impl Surface {
@@ -533,12 +544,14 @@ impl NccWindow {
             self.height - template.height + 1,
         );
         let mut data = vec![f64::NAN; w * h];
+        let mut unjudged = 0;
         let need = (min_overlap * n_t as f64).max(2.0);
         for dy in 0..h {
             for dx in 0..w {
                 let k = dy * sw + dx;
                 let n = f64::from(n_si[k].re).round();
                 if n < need {
+                    unjudged += 1;
                     continue;
                 }
                 let (si, sii, st, stt, sit) = (
@@ -560,6 +573,7 @@ impl NccWindow {
             width: w,
             height: h,
             data,
+            unjudged,
         })
     }
 }
@@ -666,6 +680,7 @@ fn hypothesis_surface(
                     return None;
                 }
                 acc.data.iter_mut().zip(&s.data).for_each(|(a, b)| *a += b);
+                acc.unjudged = acc.unjudged.max(s.unjudged);
                 (acc, ax, ay)
             }
         });
@@ -725,22 +740,28 @@ fn scored_maxima(
 ) -> Vec<Candidate> {
     let nccs = prepare(channels, work);
     let per = per_hypothesis(&nccs, hypotheses, min_overlap, work, |s, cx, cy| {
-        s.maxima()
+        let maxima = s
+            .maxima()
             .into_iter()
             .take(cap)
             .map(|(x, y, v)| {
                 let (ox, oy) = s.subpixel(x, y);
                 (x as f64 + cx + ox, y as f64 + cy + oy, v)
             })
-            .collect::<Vec<_>>()
+            .collect::<Vec<_>>();
+        (maxima, s.unjudged_fraction())
     });
     let mut all: Vec<Candidate> = Vec::new();
-    for (&(scale, theta), maxima) in hypotheses.iter().zip(per) {
-        all.extend(maxima.into_iter().flatten().map(|(x, y, ncc)| Candidate {
+    for (&(scale, theta), found) in hypotheses.iter().zip(per) {
+        let Some((maxima, unjudged)) = found else {
+            continue;
+        };
+        all.extend(maxima.into_iter().map(|(x, y, ncc)| Candidate {
             centre: [x, y],
             scale,
             theta_rad: theta,
             ncc,
+            unjudged_fraction: unjudged,
         }));
     }
     all.sort_by(|a, b| b.ncc.total_cmp(&a.ncc));
@@ -781,6 +802,9 @@ pub struct SimilarPlacement {
     /// Best correlation of a local maximum (any hypothesis) whose centre lies beyond the
     /// exclusion radius (-1 when none).
     pub runner_up: f64,
+    /// Fraction of the winning hypothesis's shifts that could not be judged
+    /// ([`Surface::unjudged`]): the runner-up says nothing about those places.
+    pub unjudged_fraction: f64,
 }
 
 /// The unique best placement of the template in the window over the similarity hypotheses
@@ -818,6 +842,7 @@ pub fn place_similar(
         theta_rad: best.theta_rad,
         ncc: best.ncc,
         runner_up,
+        unjudged_fraction: best.unjudged_fraction,
     })
 }
 
@@ -841,6 +866,8 @@ pub struct Candidate {
     pub theta_rad: f64,
     /// The channels' mean correlation.
     pub ncc: f64,
+    /// Fraction of its hypothesis's shifts that could not be judged ([`Surface::unjudged`]).
+    pub unjudged_fraction: f64,
 }
 
 /// The `k` best distinct placements of the template in the window over the similarity
@@ -1105,6 +1132,7 @@ pub fn match_patch(
         width: w,
         height: w,
         data: vec![f64::NAN; w * w],
+        unjudged: 0,
     };
     for j in 0..w {
         for i in 0..w {
@@ -1114,11 +1142,13 @@ pub fn match_patch(
             );
             if x0 < 0 || y0 < 0 || x0 as usize + side > map.width || y0 as usize + side > map.height
             {
+                s.unjudged += 1;
                 continue;
             }
             let (x0, y0) = (x0 as usize, y0 as usize);
             let (sm, sm2, cnt) = sums.sums(x0, y0, side, side);
             if cnt as usize != side * side {
+                s.unjudged += 1;
                 continue;
             }
             let var = sm2 - sm * sm / n;
@@ -1319,6 +1349,45 @@ mod tests {
             place(&stripes, &t),
             Err(PlaceError::Ambiguous { .. })
         ));
+    }
+
+    /// A window that is map only in its lower part (the map's edge): shifts where the
+    /// template overlaps too little of the map are counted as unjudged, and a fully valid
+    /// window has none.
+    #[test]
+    fn places_over_the_maps_edge_are_counted_unjudged() {
+        let big = texture(160, 140, 0.7);
+        let tpl = crop(&big, 57, 33, 64, 48);
+        let id = [(1.0, 0.0)];
+        let full = place_similar(&[(&big, &tpl)], &id, UNIQUE_RADIUS_COARSE_PX).unwrap();
+        assert_eq!(full.unjudged_fraction, 0.0);
+        // Rows above 60 are beyond the map: the template's true place (rows 33..81) overlaps
+        // the map by 21 of its 48 rows, under the minimum overlap.
+        let mut edge = big.clone();
+        for y in 0..60 {
+            for x in 0..edge.width {
+                let i = edge.idx(x, y);
+                edge.valid[i] = false;
+            }
+        }
+        let s = NccWindow::new(&edge).correlate(&tpl, MIN_OVERLAP).unwrap();
+        assert_eq!((s.width, s.height), (97, 93));
+        // At shift row dy the template has dy - 12 of its 48 rows on the map; 0.6 x 48 = 28.8
+        // rows are needed, so rows dy = 0..=40 are unjudged, the true place (dy = 33) among them.
+        assert_eq!(s.unjudged, 41 * 97);
+        assert!(
+            s.data[33 * s.width + 57].is_nan(),
+            "the true place is unjudged"
+        );
+        assert!(s.data[41 * s.width + 57].is_finite());
+        let frac = s.unjudged_fraction();
+        assert!(
+            (frac - 41.0 / 93.0).abs() < 1e-12,
+            "unjudged fraction {frac}"
+        );
+        if let Ok(p) = place_similar(&[(&edge, &tpl)], &id, UNIQUE_RADIUS_COARSE_PX) {
+            assert!((p.unjudged_fraction - frac).abs() < 1e-12, "{p:?}");
+        }
     }
 
     /// The global search's shortlist: a crop turned by an unknown heading and hanging over the

@@ -40,6 +40,13 @@ const AREA_PASS1_MAX_RADIUS_PX: f64 = 12.0;
 /// the NAIP cross-date bench the placements of the frames the tie points miss lead by
 /// 0.15-0.41 (all at the true place).
 pub(super) const PLACEMENT_FIX_MARGIN: f64 = 0.1;
+/// The placement fix needs every place in the prior's gate judged: where the frame overlaps
+/// too little of the map (it sees beyond the map's edge) the correlation is undefined, so the
+/// true place may be one of those and the runner-up says nothing about it (NAIP same-imagery,
+/// a frame half beyond the map's north edge: 71 % of the gate unjudged, the peak 0.32 ahead of
+/// the judged places by 0.19 and 96 m from the truth). The tie points' count against chance
+/// still confirms a placement there; only the unconfirmed placement fix is refused.
+const PLACEMENT_MAX_UNJUDGED: f64 = 0.0;
 /// The placement fix refines the placement down to the grid on which the rectified frame's
 /// longer side has at most this many pixels: a few hundred pixels of pattern localise the
 /// peak to a fraction of a block, and the FFTs stay small.
@@ -139,6 +146,9 @@ struct Placed {
     ncc: f64,
     /// The best other place's correlation on the placement grid.
     runner_up: f64,
+    /// Fraction of the prior's gate where the placement could not judge the frame (it
+    /// overlapped too little of the map there, [`crate::fix::area::Surface::unjudged`]).
+    unjudged_fraction: f64,
 }
 
 /// What the area stage found: tie points for the resection, or, when too few tie points were
@@ -344,14 +354,18 @@ impl<'a> AreaSearch<'a> {
         })?;
         a.area_ncc = placed.ncc;
         a.area_runner_up = placed.runner_up;
-        self.placed_at(
+        let at = self.placed_at(
             f,
             [tc[0].width, tc[0].height],
             placed.centre,
             (placed.scale, placed.theta_rad),
             placed.ncc,
             placed.runner_up,
-        )
+        )?;
+        Ok(Placed {
+            unjudged_fraction: placed.unjudged_fraction,
+            ..at
+        })
     }
 
     /// The placement of a template of `size` pixels on the grid of `f x f` blocks whose centre
@@ -389,6 +403,7 @@ impl<'a> AreaSearch<'a> {
             centre: t_c,
             ncc,
             runner_up,
+            unjudged_fraction: 0.0,
         })
     }
 
@@ -409,6 +424,12 @@ impl<'a> AreaSearch<'a> {
                 "peak {:.2} ahead of another place by {:.2} < {PLACEMENT_FIX_MARGIN}",
                 placed.ncc,
                 placed.ncc - placed.runner_up
+            ));
+        }
+        if placed.unjudged_fraction > PLACEMENT_MAX_UNJUDGED {
+            return Err(format!(
+                "{:.0} % of the prior's gate could not be judged (the frame sees beyond the map there)",
+                100.0 * placed.unjudged_fraction
             ));
         }
         let longer = self.v.rect.width().max(self.v.rect.height());

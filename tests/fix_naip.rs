@@ -121,7 +121,7 @@ fn naip_frames_beyond_the_map_edge_get_no_placement_fix() {
     assert!(
         s.rejections
             .iter()
-            .any(|(why, _)| why.contains("could not be judged")),
+            .any(|(why, _)| why.contains("could not judge")),
         "no frame refused for seeing beyond the map: {:?}",
         s.rejections
     );

@@ -239,16 +239,16 @@ pub struct Surface {
     pub width: usize,
     pub height: usize,
     pub data: Vec<f64>,
-    /// Shifts left undefined because the template overlapped too few of the window's valid
-    /// pixels (the window's edge, a hole in the map): places that could not be judged, so a
-    /// peak elsewhere is not shown to be unique against them.
-    pub unjudged: usize,
+    /// Shifts (indices into `data`, ascending) left undefined because the template overlapped
+    /// too few of the window's valid pixels (the window's edge, a hole in the map): places that
+    /// could not be judged, so a peak elsewhere is not shown to be unique against them.
+    pub unjudged: Vec<usize>,
 }
 
 impl Surface {
     /// Fraction of the shifts that could not be judged ([`Self::unjudged`]).
     pub fn unjudged_fraction(&self) -> f64 {
-        self.unjudged as f64 / (self.width * self.height).max(1) as f64
+        self.unjudged.len() as f64 / (self.width * self.height).max(1) as f64
     }
 }
 
@@ -544,14 +544,14 @@ impl NccWindow {
             self.height - template.height + 1,
         );
         let mut data = vec![f64::NAN; w * h];
-        let mut unjudged = 0;
+        let mut unjudged = Vec::new();
         let need = (min_overlap * n_t as f64).max(2.0);
         for dy in 0..h {
             for dx in 0..w {
                 let k = dy * sw + dx;
                 let n = f64::from(n_si[k].re).round();
                 if n < need {
-                    unjudged += 1;
+                    unjudged.push(dy * w + dx);
                     continue;
                 }
                 let (si, sii, st, stt, sit) = (
@@ -680,7 +680,10 @@ fn hypothesis_surface(
                     return None;
                 }
                 acc.data.iter_mut().zip(&s.data).for_each(|(a, b)| *a += b);
-                acc.unjudged = acc.unjudged.max(s.unjudged);
+                // A place is judged only where every channel judged it.
+                acc.unjudged.extend(&s.unjudged);
+                acc.unjudged.sort_unstable();
+                acc.unjudged.dedup();
                 (acc, ax, ay)
             }
         });
@@ -854,6 +857,24 @@ pub fn best_similar(channels: &Channels, hypotheses: &[(f64, f64)]) -> Option<Ca
     scored_maxima(channels, hypotheses, MIN_OVERLAP, 1, &mut work)
         .into_iter()
         .next()
+}
+
+/// Where the template's centre lies (window pixels) at each place the hypothesis `(scale,
+/// theta_rad)` could not judge ([`Surface::unjudged`]); `None` when its correlation is
+/// undefined. For weighing those places against a prior after [`place_similar`].
+pub fn unjudged_places(
+    channels: &Channels,
+    (scale, theta_rad): (f64, f64),
+) -> Option<Vec<[f64; 2]>> {
+    let mut work = 0;
+    let nccs = prepare(channels, &mut work);
+    let (s, cx, cy) = hypothesis_surface(&nccs, scale, theta_rad, MIN_OVERLAP, &mut work)?;
+    Some(
+        s.unjudged
+            .iter()
+            .map(|&k| [(k % s.width) as f64 + cx, (k / s.width) as f64 + cy])
+            .collect(),
+    )
 }
 
 /// One place a template correlates well at ([`candidates`]).
@@ -1132,7 +1153,7 @@ pub fn match_patch(
         width: w,
         height: w,
         data: vec![f64::NAN; w * w],
-        unjudged: 0,
+        unjudged: Vec::new(),
     };
     for j in 0..w {
         for i in 0..w {
@@ -1142,13 +1163,13 @@ pub fn match_patch(
             );
             if x0 < 0 || y0 < 0 || x0 as usize + side > map.width || y0 as usize + side > map.height
             {
-                s.unjudged += 1;
+                s.unjudged.push(j * w + i);
                 continue;
             }
             let (x0, y0) = (x0 as usize, y0 as usize);
             let (sm, sm2, cnt) = sums.sums(x0, y0, side, side);
             if cnt as usize != side * side {
-                s.unjudged += 1;
+                s.unjudged.push(j * w + i);
                 continue;
             }
             let var = sm2 - sm * sm / n;
@@ -1374,7 +1395,8 @@ mod tests {
         assert_eq!((s.width, s.height), (97, 93));
         // At shift row dy the template has dy - 12 of its 48 rows on the map; 0.6 x 48 = 28.8
         // rows are needed, so rows dy = 0..=40 are unjudged, the true place (dy = 33) among them.
-        assert_eq!(s.unjudged, 41 * 97);
+        assert_eq!(s.unjudged.len(), 41 * 97);
+        assert_eq!(s.unjudged, (0..41 * 97).collect::<Vec<_>>());
         assert!(
             s.data[33 * s.width + 57].is_nan(),
             "the true place is unjudged"
@@ -1388,6 +1410,11 @@ mod tests {
         if let Ok(p) = place_similar(&[(&edge, &tpl)], &id, UNIQUE_RADIUS_COARSE_PX) {
             assert!((p.unjudged_fraction - frac).abs() < 1e-12, "{p:?}");
         }
+        // The places as template centres (31.5, 23.5) + shift, the true one among them.
+        let places = unjudged_places(&[(&edge, &tpl)], (1.0, 0.0)).unwrap();
+        assert_eq!(places.len(), 41 * 97);
+        assert!(places.contains(&[88.5, 56.5]));
+        assert!(places.iter().all(|p| p[1] <= 40.0 + 23.5));
     }
 
     /// The global search's shortlist: a crop turned by an unknown heading and hanging over the

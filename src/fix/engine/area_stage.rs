@@ -15,7 +15,7 @@ use super::{Attempt, FixEngine, Pair, Sim2, View, ransac_similarity};
 use crate::fix::area::{
     Integral, MIN_TIE_NCC, MIN_TIE_NCC_NEAR, Patch, PlaceError, Plane, TieMatch, TwoChannels,
     UNIQUE_RADIUS_COARSE_PX, best_similar, match_patch, place_similar, rank_hypotheses,
-    select_patches,
+    select_patches, unjudged_places,
 };
 use crate::fix::reference::MapImage;
 
@@ -40,13 +40,15 @@ const AREA_PASS1_MAX_RADIUS_PX: f64 = 12.0;
 /// the NAIP cross-date bench the placements of the frames the tie points miss lead by
 /// 0.15-0.41 (all at the true place).
 pub(super) const PLACEMENT_FIX_MARGIN: f64 = 0.1;
-/// The placement fix needs every place in the prior's gate judged: where the frame overlaps
-/// too little of the map (it sees beyond the map's edge) the correlation is undefined, so the
-/// true place may be one of those and the runner-up says nothing about it (NAIP same-imagery,
-/// a frame half beyond the map's north edge: 71 % of the gate unjudged, the peak 0.32 ahead of
-/// the judged places by 0.19 and 96 m from the truth). The tie points' count against chance
+/// The placement fix needs the places of the prior's gate judged: where the frame overlaps too
+/// little of the map (it sees beyond the map's edge) the correlation is undefined, so the true
+/// place may be one of those and the runner-up says nothing about it (NAIP same-imagery, a
+/// frame half beyond the map's north edge: 71 % of the gate unjudged, the peak 0.32 ahead of
+/// the judged places by 0.19 and 96 m from the truth). The unjudged places may hold at most
+/// this much of the position prior's probability: about what the gate itself leaves out (+-3
+/// sigma per axis holds 99.46 % of a 2-D Gaussian). The tie points' count against chance
 /// still confirms a placement there; only the unconfirmed placement fix is refused.
-const PLACEMENT_MAX_UNJUDGED: f64 = 0.0;
+const PLACEMENT_MAX_UNJUDGED_MASS: f64 = 0.005;
 /// The placement fix refines the placement down to the grid on which the rectified frame's
 /// longer side has at most this many pixels: a few hundred pixels of pattern localise the
 /// peak to a fraction of a block, and the FFTs stay small.
@@ -146,9 +148,9 @@ struct Placed {
     ncc: f64,
     /// The best other place's correlation on the placement grid.
     runner_up: f64,
-    /// Fraction of the prior's gate where the placement could not judge the frame (it
+    /// The prior's probability that the frame lies where the placement could not judge it (it
     /// overlapped too little of the map there, [`crate::fix::area::Surface::unjudged`]).
-    unjudged_fraction: f64,
+    unjudged_prior_mass: f64,
 }
 
 /// What the area stage found: tie points for the resection, or, when too few tie points were
@@ -362,10 +364,42 @@ impl<'a> AreaSearch<'a> {
             placed.ncc,
             placed.runner_up,
         )?;
+        let unjudged_prior_mass = if placed.unjudged_fraction > 0.0 {
+            let places = unjudged_places(&channels, (placed.scale, placed.theta_rad))
+                .ok_or_else(|| "area correlation: undefined at its own peak".to_string())?;
+            self.prior_mass(f, [tc[0].width, tc[0].height], &places)?
+        } else {
+            0.0
+        };
         Ok(Placed {
-            unjudged_fraction: placed.unjudged_fraction,
+            unjudged_prior_mass,
             ..at
         })
+    }
+
+    /// The position prior's probability of the template centres `places` (cells of the grid of
+    /// `f x f` blocks, the template `size` blocks): its Gaussian density at each cell's centre
+    /// times the cell's area, summed (at most 1).
+    fn prior_mass(&self, f: usize, size: [usize; 2], places: &[[f64; 2]]) -> Result<f64, String> {
+        let fine = |c: f64| c * f as f64 + (f as f64 - 1.0) / 2.0;
+        let q = self
+            .predict(
+                fine((size[0] as f64 - 1.0) / 2.0),
+                fine((size[1] as f64 - 1.0) / 2.0),
+            )
+            .ok_or_else(|| "the frame's centre does not see the ground".to_string())?;
+        let coarse = |u: f64| (u - (f as f64 - 1.0) / 2.0) / f as f64;
+        let (qx, qy) = (coarse(q[0]), coarse(q[1]));
+        let sigma = (self.v.g.sigma_h_m / (self.img.gsd_m * f as f64)).max(1e-6);
+        let norm = 1.0 / (std::f64::consts::TAU * sigma * sigma);
+        let mass: f64 = places
+            .iter()
+            .map(|p| {
+                let d2 = (p[0] - qx).powi(2) + (p[1] - qy).powi(2);
+                norm * (-0.5 * d2 / (sigma * sigma)).exp()
+            })
+            .sum();
+        Ok(mass.min(1.0))
     }
 
     /// The placement of a template of `size` pixels on the grid of `f x f` blocks whose centre
@@ -403,7 +437,7 @@ impl<'a> AreaSearch<'a> {
             centre: t_c,
             ncc,
             runner_up,
-            unjudged_fraction: 0.0,
+            unjudged_prior_mass: 0.0,
         })
     }
 
@@ -426,10 +460,11 @@ impl<'a> AreaSearch<'a> {
                 placed.ncc - placed.runner_up
             ));
         }
-        if placed.unjudged_fraction > PLACEMENT_MAX_UNJUDGED {
+        if placed.unjudged_prior_mass > PLACEMENT_MAX_UNJUDGED_MASS {
             return Err(format!(
-                "{:.0} % of the prior's gate could not be judged (the frame sees beyond the map there)",
-                100.0 * placed.unjudged_fraction
+                "the places the correlation could not judge (the frame sees beyond the map \
+                 there) hold {:.1} % of the prior's probability",
+                100.0 * placed.unjudged_prior_mass
             ));
         }
         let longer = self.v.rect.width().max(self.v.rect.height());

@@ -1056,7 +1056,7 @@ impl FixEngine {
         // The filter's own attitude is not an independent prior: weigh it as before this
         // weighting became the information-weighted one (docs/fix.md, "The attitude prior").
         if g.att_from_filter {
-            cfg.refine.prior_against_conservative = false;
+            cfg.refine = cfg.refine.for_unscaled_prior();
         }
         let mag = (1.0 / v.scale).max(1.0);
         cfg.ransac.threshold_px *= mag;

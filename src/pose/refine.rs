@@ -100,6 +100,21 @@ pub struct RefineConfig {
     pub prior_against_conservative: bool,
 }
 
+impl RefineConfig {
+    /// The settings for a fix whose attitude prior enters unscaled (a filter's own attitude,
+    /// `prior_against_conservative = false`): the covariance factor
+    /// `max(sigma0_floor^2, sigma0^2) max(1, split) sigma_inflation^2` must not fall below 1
+    /// there, or it would shrink the prior's share of the fused covariance, so the floor is
+    /// raised to `1 / sigma_inflation` where it is lower.
+    pub fn for_unscaled_prior(&self) -> Self {
+        Self {
+            prior_against_conservative: false,
+            sigma0_floor: self.sigma0_floor.max(1.0 / self.sigma_inflation),
+            ..self.clone()
+        }
+    }
+}
+
 impl Default for RefineConfig {
     fn default() -> Self {
         Self {
@@ -123,16 +138,12 @@ impl Validate for RefineConfig {
             );
         }
         p.range("sigma_inflation", self.sigma_inflation, 1.0, 10.0);
+        // `sigma0_floor x sigma_inflation` may be below 1 (a covariance below the a-priori one,
+        // for same-source maps): a prior weighed against the image's covariance
+        // (`prior_against_conservative`) keeps its share; a filter's own prior, entering
+        // unscaled, gets the floor raised to `1 / sigma_inflation` for its fix
+        // ([`RefineConfig::for_unscaled_prior`]).
         p.range("sigma0_floor", self.sigma0_floor, 0.05, 1.0);
-        if self.sigma0_floor * self.sigma_inflation < 1.0 - 1e-12 {
-            p.push(
-                "sigma0_floor",
-                format!(
-                    "sigma0_floor x sigma_inflation = {} is below 1: the covariance could fall below the a-priori one and shrink a fused prior's share",
-                    self.sigma0_floor * self.sigma_inflation
-                ),
-            );
-        }
         match self.loss {
             RobustLoss::None => {}
             RobustLoss::Huber { k_sigma } => p.range("loss.k_sigma", k_sigma, 0.5, 100.0),
@@ -425,23 +436,44 @@ mod tests {
     use crate::config::{Problems, Validate};
     use crate::pose::rng::Rng;
 
+    /// A floor below the inflation's inverse is accepted (same-source maps), and a fix whose
+    /// prior enters unscaled gets it raised so that its covariance factor stays at least 1.
     #[test]
-    fn a_sigma0_floor_below_the_inflations_inverse_is_refused() {
-        let check = |floor: f64, inflation: f64| {
+    fn a_low_sigma0_floor_is_raised_for_an_unscaled_prior() {
+        let cfg = |floor: f64, inflation: f64| RefineConfig {
+            sigma0_floor: floor,
+            sigma_inflation: inflation,
+            ..RefineConfig::default()
+        };
+        let check = |c: RefineConfig| {
             let mut p = Problems::default();
-            RefineConfig {
-                sigma0_floor: floor,
-                sigma_inflation: inflation,
-                ..RefineConfig::default()
-            }
-            .validate(&mut p);
+            c.validate(&mut p);
             p.list.iter().map(|i| i.to_string()).collect::<Vec<_>>()
         };
-        assert!(check(1.0, 1.0).is_empty());
-        assert!(check(0.25, 4.0).is_empty());
-        let e = check(0.25, 2.0);
+        assert!(check(cfg(1.0, 1.0)).is_empty());
+        assert!(check(cfg(0.1, 2.0)).is_empty());
+        let e = check(cfg(0.01, 4.0));
         assert!(e.iter().any(|m| m.contains("sigma0_floor")), "{e:?}");
-        assert!(!check(0.01, 4.0).is_empty(), "out of range");
+        for (floor, inflation) in [(0.1, 2.0), (0.25, 4.0), (1.0, 1.0), (0.05, 10.0)] {
+            let u = cfg(floor, inflation).for_unscaled_prior();
+            assert!(!u.prior_against_conservative);
+            assert!(
+                u.sigma0_floor * u.sigma_inflation >= 1.0 - 1e-12,
+                "{floor} {inflation}"
+            );
+            assert!(u.sigma0_floor >= floor);
+            // The factor's smallest value (sigma0 = 0, no split) is then at least 1.
+            let cov = crate::pose::PoseCovariance {
+                apriori: nalgebra::Matrix6::identity(),
+                sigma0_sq: 0.0,
+                dof: 10,
+                inflation: u.sigma_inflation,
+                split_factor: 1.0,
+                sigma0_floor: u.sigma0_floor,
+            };
+            assert!(cov.factor() >= 1.0 - 1e-12, "{}", cov.factor());
+        }
+        assert_eq!(cfg(1.0, 4.0).for_unscaled_prior().sigma0_floor, 1.0);
     }
 
     fn scene(rng: &mut Rng, n: usize) -> (Vec<Correspondence>, Pose) {

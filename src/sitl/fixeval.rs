@@ -694,8 +694,9 @@ impl NaipEval {
                     .as_ref()
                     .map_or(f64::NAN, |p| p.alt_amsl_m - case.pose.centre_map_m.z);
                 log(format!(
-                    "frame {i:3}: accepted{}, {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:+.1} m = {:.2} sigma (sigma h {:.1} v {:.1} m; {:.0} m above ground, prior altitude {:+.1} m), ground {:.1} m tilt {:.2} deg, image-only h {:.1} m tilt {:.2} deg NEES {:.1}, reprojection RMS {:.2} px, sigma0 {:.2}, covariance factor {:.1}, {:.1} ms",
+                    "frame {i:3}: accepted{} ({}), {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:+.1} m = {:.2} sigma (sigma h {:.1} v {:.1} m; {:.0} m above ground, prior altitude {:+.1} m), ground {:.1} m tilt {:.2} deg, image-only h {:.1} m tilt {:.2} deg NEES {:.1}, reprojection RMS {:.2} px, sigma0 {:.2}, covariance factor {:.1}, {:.1} ms",
                     if is_wrong { " WRONG" } else { "" },
+                    r.method,
                     r.inliers,
                     r.matches,
                     a.null_matches,

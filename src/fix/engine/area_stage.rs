@@ -364,10 +364,12 @@ impl<'a> AreaSearch<'a> {
             placed.ncc,
             placed.runner_up,
         )?;
+        // Undefined (not at a peak just found) counts as all of the prior: no placement fix,
+        // the tie points still tried.
         let unjudged_prior_mass = if placed.unjudged_fraction > 0.0 {
-            let places = unjudged_places(&channels, (placed.scale, placed.theta_rad))
-                .ok_or_else(|| "area correlation: undefined at its own peak".to_string())?;
-            self.prior_mass(f, [tc[0].width, tc[0].height], &places)?
+            unjudged_places(&channels, (placed.scale, placed.theta_rad))
+                .and_then(|p| self.prior_mass(f, [tc[0].width, tc[0].height], &p).ok())
+                .unwrap_or(1.0)
         } else {
             0.0
         };

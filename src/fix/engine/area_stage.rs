@@ -713,3 +713,75 @@ impl<'a> AreaSearch<'a> {
             .unwrap_or(0)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::super::tests::checkerboard_engine;
+    use super::*;
+    use crate::camera::Attitude;
+    use crate::fix::rectify::Rectification;
+    use crate::fix::{AttitudePriorNed, PositionPriorGeo};
+    use crate::vision::gray::GrayImage;
+
+    /// The prior's probability of unjudged places is its Gaussian around the place it
+    /// predicts for the template's centre: every cell around it holds all of it, the cells on
+    /// one side of it half, cells 5 sigma away none.
+    #[test]
+    fn the_unjudged_places_are_weighed_by_the_prior_around_its_prediction() {
+        let (engine, crs) = checkerboard_engine();
+        let (x, y) = (500_640.0, 5_199_360.0);
+        let (lat, lon) = crs.to_geodetic(x, y).unwrap();
+        let pos = PositionPriorGeo {
+            lat_deg: lat,
+            lon_deg: lon,
+            alt_amsl_m: 1300.0,
+            sigma_h_m: 50.0,
+            sigma_v_m: 10.0,
+        };
+        let att = AttitudePriorNed::isotropic(Attitude::new(0.0, 0.0, 0.0), 0.005);
+        let g = engine.prior_geom(&pos, &att).unwrap();
+        let frame = GrayImage::from_fn(320, 240, |_, _| 100.0);
+        let level = 0;
+        let scale = 1000.0 / engine.levels_gsd_m[level] / engine.camera.intrinsics.fx_px;
+        let rect =
+            Rectification::new(&frame, &engine.camera, &g.r_map_cam, scale, 512, 1.0).unwrap();
+        let v = View {
+            rect: &rect,
+            g: &g,
+            level,
+            agl_m: 1000.0,
+            scale,
+        };
+        let s = AreaSearch::new(&engine, &v).unwrap();
+        // Nadir: the template's centre sees the prior's own ground point.
+        let (f, size) = (2usize, [rect.width() / 2, rect.height() / 2]);
+        let c_px = s.img.to_px(x, y);
+        let coarse = |u: f64| (u - (f as f64 - 1.0) / 2.0) / f as f64;
+        let (qx, qy) = (coarse(c_px[0] - s.x0 as f64), coarse(c_px[1] - s.y0 as f64));
+        let sigma_cells = 50.0 / (s.img.gsd_m * f as f64);
+        let grid = |keep: &dyn Fn(f64, f64) -> bool| -> Vec<[f64; 2]> {
+            let r = (8.0 * sigma_cells).ceil() as i64;
+            let mut out = Vec::new();
+            for j in -r..=r {
+                for i in -r..=r {
+                    let p = [qx.round() + i as f64, qy.round() + j as f64];
+                    if keep(p[0], p[1]) {
+                        out.push(p);
+                    }
+                }
+            }
+            out
+        };
+        let mass = |places: &[[f64; 2]]| s.prior_mass(f, size, places).unwrap();
+        let all = mass(&grid(&|_, _| true));
+        assert!((all - 1.0).abs() < 0.01, "all cells: {all}");
+        let east = mass(&grid(&|px, _| px > qx));
+        let south = mass(&grid(&|_, py| py > qy));
+        for half in [east, south] {
+            assert!((half - 0.5).abs() < 0.1, "one side: {east} {south}");
+        }
+        let far = mass(&grid(&|px, _| px > qx + 5.0 * sigma_cells));
+        assert!(far < 1e-5, "beyond 5 sigma: {far}");
+        assert_eq!(mass(&[]), 0.0);
+    }
+}

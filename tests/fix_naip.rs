@@ -10,7 +10,7 @@ use visnav::fix::{AreaMatching, FixParams};
 use visnav::geo::dem::Dem;
 use visnav::geo::geotiff::load_geotiff;
 use visnav::geo::raster::{Raster, RasterData};
-use visnav::sitl::fixeval::{NAIP_GROUND_M, NaipEval};
+use visnav::sitl::fixeval::{NAIP_GROUND_M, NaipEval, Summary};
 use visnav::sitl::render::{ColourMode, Scene};
 use visnav::sitl::rng::Rng;
 
@@ -21,6 +21,15 @@ fn eval() -> NaipEval {
 fn eval_with(params: FixParams) -> NaipEval {
     let maps = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("sitl/maps");
     NaipEval::new(&maps, params).expect("NAIP evaluation set-up")
+}
+
+/// `frames` frames of `e` (seed 2024), each frame's line and the summary logged.
+fn run_logged(e: &NaipEval, frames: usize) -> Summary {
+    let s = e
+        .run(frames, 2024, &mut |line| eprintln!("{line}"))
+        .expect("run");
+    eprintln!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
+    s
 }
 
 fn area_only() -> FixParams {
@@ -36,10 +45,7 @@ fn area_only() -> FixParams {
 #[test]
 fn naip_area_correlation_alone_fixes_honestly() {
     let e = eval_with(area_only());
-    let s = e
-        .run(40, 2024, &mut |line| eprintln!("{line}"))
-        .expect("run");
-    eprintln!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
+    let s = run_logged(&e, 40);
     assert_eq!(s.wrong_fixes, 0, "wrong area fixes");
     assert!(s.beyond_3_sigma <= 2, "{} beyond 3 sigma", s.beyond_3_sigma);
     assert!(s.fix_rate >= 0.35, "area fix rate {}", s.fix_rate);
@@ -53,10 +59,7 @@ fn naip_area_correlation_alone_fixes_honestly() {
 #[test]
 fn naip_cross_date_fixes_with_prior() {
     let e = eval();
-    let s = e
-        .run(40, 2024, &mut |line| eprintln!("{line}"))
-        .expect("run");
-    eprintln!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
+    let s = run_logged(&e, 40);
     // Integrity first: no accepted fix outside its 3-sigma bounds on any axis.
     assert_eq!(s.beyond_3_sigma, 0, "accepted fixes beyond 3 sigma");
     // The image-only pose ([nav] vision_attitude fuses it) is honest jointly, all six degrees of
@@ -90,10 +93,7 @@ fn naip_cross_date_fixes_with_prior() {
 fn naip_placement_fix_at_low_altitude_is_honest() {
     let mut e = eval();
     e.agl_range_m = (1200.0, 1600.0);
-    let s = e
-        .run(40, 2024, &mut |line| eprintln!("{line}"))
-        .expect("run");
-    eprintln!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
+    let s = run_logged(&e, 40);
     assert_eq!(s.wrong_fixes, 0, "wrong fixes");
     assert_eq!(s.beyond_3_sigma, 0, "fixes beyond 3 sigma");
     assert!(s.fix_rate >= 0.8, "fix rate {}", s.fix_rate);
@@ -113,10 +113,7 @@ fn naip_placement_fix_at_low_altitude_is_honest() {
 fn naip_frames_beyond_the_map_edge_get_no_placement_fix() {
     let mut e = eval_with(area_only());
     e.same_imagery = true;
-    let s = e
-        .run(40, 2024, &mut |line| eprintln!("{line}"))
-        .expect("run");
-    eprintln!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
+    let s = run_logged(&e, 40);
     assert_eq!(s.wrong_fixes, 0, "wrong fixes");
     assert!(
         s.rejections
@@ -142,10 +139,7 @@ fn naip_same_source_weights_take_the_attitude_from_the_image() {
     params.pose.refine.sigma0_floor = 0.1;
     let mut e = eval_with(params);
     e.same_imagery = true;
-    let s = e
-        .run(30, 2024, &mut |line| eprintln!("{line}"))
-        .expect("run");
-    eprintln!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
+    let s = run_logged(&e, 30);
     assert_eq!(s.wrong_fixes, 0, "wrong fixes");
     assert_eq!(s.beyond_3_sigma, 0, "fixes beyond 3 sigma");
     assert!(s.fix_rate >= 0.9, "fix rate {}", s.fix_rate);

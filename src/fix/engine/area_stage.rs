@@ -111,6 +111,17 @@ fn similarity_hypotheses(max_log_scale: f64, max_rot_rad: f64) -> Vec<(f64, f64)
     out
 }
 
+/// The pixel at the centre of block coordinate `c` on the grid of `f x f` blocks (block `c`
+/// covers pixels `c f ..= c f + f - 1`).
+fn block_to_px(c: f64, f: usize) -> f64 {
+    c * f as f64 + (f as f64 - 1.0) / 2.0
+}
+
+/// The block coordinate of pixel `u` on the grid of `f x f` blocks ([`block_to_px`]'s inverse).
+fn px_to_block(u: f64, f: usize) -> f64 {
+    (u - (f as f64 - 1.0) / 2.0) / f as f64
+}
+
 /// What the stages share: the map window searched and the prior's prediction into it.
 struct AreaSearch<'a> {
     engine: &'a FixEngine,
@@ -383,15 +394,8 @@ impl<'a> AreaSearch<'a> {
     /// `f x f` blocks, the template `size` blocks): its Gaussian density at each cell's centre
     /// times the cell's area, summed (at most 1).
     fn prior_mass(&self, f: usize, size: [usize; 2], places: &[[f64; 2]]) -> Result<f64, String> {
-        let fine = |c: f64| c * f as f64 + (f as f64 - 1.0) / 2.0;
-        let q = self
-            .predict(
-                fine((size[0] as f64 - 1.0) / 2.0),
-                fine((size[1] as f64 - 1.0) / 2.0),
-            )
-            .ok_or_else(|| "the frame's centre does not see the ground".to_string())?;
-        let coarse = |u: f64| (u - (f as f64 - 1.0) / 2.0) / f as f64;
-        let (qx, qy) = (coarse(q[0]), coarse(q[1]));
+        let (_, q) = self.predicted_centre(f, size)?;
+        let (qx, qy) = (px_to_block(q[0], f), px_to_block(q[1], f));
         let sigma = (self.v.g.sigma_h_m / (self.img.gsd_m * f as f64)).max(1e-6);
         let norm = 1.0 / (std::f64::consts::TAU * sigma * sigma);
         let mass: f64 = places
@@ -402,6 +406,19 @@ impl<'a> AreaSearch<'a> {
             })
             .sum();
         Ok(mass.min(1.0))
+    }
+
+    /// The centre of a template of `size` blocks of `f x f` pixels, in rectified pixels, and the
+    /// window pixel the prior predicts for the ground it sees.
+    fn predicted_centre(&self, f: usize, size: [usize; 2]) -> Result<([f64; 2], [f64; 2]), String> {
+        let t_c = [
+            block_to_px((size[0] as f64 - 1.0) / 2.0, f),
+            block_to_px((size[1] as f64 - 1.0) / 2.0, f),
+        ];
+        let q = self
+            .predict(t_c[0], t_c[1])
+            .ok_or_else(|| "the frame's centre does not see the ground".to_string())?;
+        Ok((t_c, q))
     }
 
     /// The placement of a template of `size` pixels on the grid of `f x f` blocks whose centre
@@ -416,16 +433,8 @@ impl<'a> AreaSearch<'a> {
         ncc: f64,
         runner_up: f64,
     ) -> Result<Placed, String> {
-        // The template's centre (fine rectified pixel c f + (f - 1) / 2) lies at `centre`.
-        let fine = |c: f64| c * f as f64 + (f as f64 - 1.0) / 2.0;
-        let t_c = [
-            fine((size[0] as f64 - 1.0) / 2.0),
-            fine((size[1] as f64 - 1.0) / 2.0),
-        ];
-        let q_c = self
-            .predict(t_c[0], t_c[1])
-            .ok_or_else(|| "the frame's centre does not see the ground".to_string())?;
-        let w_c = [fine(centre[0]), fine(centre[1])];
+        let (t_c, q_c) = self.predicted_centre(f, size)?;
+        let w_c = [block_to_px(centre[0], f), block_to_px(centre[1], f)];
         let mut sim = Sim2 {
             scale: scale as f32,
             theta_rad: theta as f32,
@@ -521,17 +530,12 @@ impl<'a> AreaSearch<'a> {
         let (Some(t), Some(w)) = (tc.at(f), wc.at(f)) else {
             return Err("refinement: images too small".into());
         };
-        let fine = |c: f64| c * f as f64 + (f as f64 - 1.0) / 2.0;
-        let coarse = |c: f64| (c - (f as f64 - 1.0) / 2.0) / f as f64;
-        let t_c = [
-            fine((t[0].width as f64 - 1.0) / 2.0),
-            fine((t[0].height as f64 - 1.0) / 2.0),
-        ];
-        let q = self
-            .predict(t_c[0], t_c[1])
-            .ok_or_else(|| "the frame's centre does not see the ground".to_string())?;
+        let (_, q) = self.predicted_centre(f, [t[0].width, t[0].height])?;
         let e = cur.sim.apply([q[0] as f32, q[1] as f32]);
-        let expected = [coarse(f64::from(e[0])), coarse(f64::from(e[1]))];
+        let expected = [
+            px_to_block(f64::from(e[0]), f),
+            px_to_block(f64::from(e[1]), f),
+        ];
         // The crop holds the template turned and scaled as now, plus the margin.
         let (scale, theta) = (f64::from(cur.sim.scale), f64::from(cur.sim.theta_rad));
         let (sn, cs) = theta.sin_cos();
@@ -756,6 +760,7 @@ mod tests {
         // Nadir: the template's centre sees the prior's own ground point.
         let (f, size) = (2usize, [rect.width() / 2, rect.height() / 2]);
         let c_px = s.img.to_px(x, y);
+        // Block k covers pixels k f ..= k f + f - 1 (computed here, not with the stage's helper).
         let coarse = |u: f64| (u - (f as f64 - 1.0) / 2.0) / f as f64;
         let (qx, qy) = (coarse(c_px[0] - s.x0 as f64), coarse(c_px[1] - s.y0 as f64));
         let sigma_cells = 50.0 / (s.img.gsd_m * f as f64);

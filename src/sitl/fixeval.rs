@@ -172,6 +172,15 @@ impl Stats {
     }
 }
 
+/// The mean, NaN for an empty sample (as [`percentile`]: JSON prints null, not a number no fix
+/// had).
+fn mean(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.iter().sum::<f64>() / v.len() as f64
+}
+
 /// The `p` quantile (nearest rank), NaN for an empty sample.
 pub fn percentile(v: &[f64], p: f64) -> f64 {
     let mut v: Vec<f64> = v.iter().copied().filter(|x| !x.is_nan()).collect();
@@ -195,7 +204,8 @@ pub struct Summary {
     pub beyond_3_sigma: usize,
     /// Accepted fixes more than [`WRONG_FIX_M`] or [`WRONG_FIX_SIGMAS`] sigma off the truth.
     pub wrong_fixes: usize,
-    /// Mean 6-dof NEES of the accepted fixes' image-only poses (= `vision_only_nees6_mean`).
+    /// Mean 6-dof NEES of the accepted fixes' image-only poses (= `vision_only_nees6_mean`;
+    /// NaN, JSON null, without an accepted fix, as the error statistics).
     pub nees6_mean: f64,
     /// Image-only pose of the accepted fixes: mean 6-dof NEES (6 when honest) and how many fall
     /// beyond the chi-square(6) 99 % quantile (16.8; about 1 % when honest).
@@ -746,8 +756,8 @@ impl NaipEval {
             err_v_m: Stats::of(&ev),
             beyond_3_sigma: beyond,
             wrong_fixes: wrong,
-            nees6_mean: nees6.iter().sum::<f64>() / nees6.len().max(1) as f64,
-            vision_only_nees6_mean: nees6.iter().sum::<f64>() / nees6.len().max(1) as f64,
+            nees6_mean: mean(&nees6),
+            vision_only_nees6_mean: mean(&nees6),
             vision_only_beyond_chi2_99: nees6.iter().filter(|&&x| x > 16.81).count(),
             ms_p50: percentile(&ms, 0.5),
             ms_p95: percentile(&ms, 0.95),

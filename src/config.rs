@@ -5,7 +5,6 @@
 //! the dotted key path (`camera.fx_px`), the offending value and the reason, and all problems are
 //! reported at once, prefixed with the file name.
 
-use std::fmt;
 use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
@@ -17,82 +16,7 @@ pub use crate::link::config::{
 };
 use crate::nav::config::NavConfig;
 
-/// One invalid configuration value.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Invalid {
-    /// Dotted key path, e.g. `camera.distortion.k1`.
-    pub key: String,
-    /// Why the value is rejected (include the value and the accepted range).
-    pub reason: String,
-}
-
-impl fmt::Display for Invalid {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}: {}", self.key, self.reason)
-    }
-}
-
-/// Collects validation problems under a key prefix.
-#[derive(Debug, Default)]
-pub struct Problems {
-    prefix: Vec<String>,
-    /// Problems found so far.
-    pub list: Vec<Invalid>,
-}
-
-impl Problems {
-    /// Run `f` with `name` appended to the key prefix (for nested sections).
-    pub fn section(&mut self, name: &str, f: impl FnOnce(&mut Problems)) {
-        self.prefix.push(name.to_string());
-        f(self);
-        self.prefix.pop();
-    }
-
-    /// Record that `key` (relative to the current section) is invalid.
-    pub fn push(&mut self, key: &str, reason: impl Into<String>) {
-        let mut full = self.prefix.join(".");
-        if !key.is_empty() {
-            if !full.is_empty() {
-                full.push('.');
-            }
-            full.push_str(key);
-        }
-        self.list.push(Invalid {
-            key: full,
-            reason: reason.into(),
-        });
-    }
-
-    /// Require `lo <= v <= hi` and finite.
-    pub fn range(&mut self, key: &str, v: f64, lo: f64, hi: f64) {
-        if !v.is_finite() || v < lo || v > hi {
-            self.push(
-                key,
-                format!("{v} is outside the accepted range [{lo}, {hi}]"),
-            );
-        }
-    }
-
-    /// Require a finite value strictly greater than zero.
-    pub fn positive(&mut self, key: &str, v: f64) {
-        if !v.is_finite() || v <= 0.0 {
-            self.push(key, format!("{v} must be a finite number greater than 0"));
-        }
-    }
-
-    /// Require a finite value.
-    pub fn finite(&mut self, key: &str, v: f64) {
-        if !v.is_finite() {
-            self.push(key, format!("{v} must be a finite number"));
-        }
-    }
-}
-
-/// A configuration section that can check its own values.
-pub trait Validate {
-    /// Push every invalid value into `p` (keys relative to this section).
-    fn validate(&self, p: &mut Problems);
-}
+pub use visnav_core::validate::{Invalid, Problems, Validate};
 
 /// Why a configuration file could not be used. Every variant names the file.
 #[derive(Debug, thiserror::Error)]
@@ -206,7 +130,7 @@ impl MapConfig {
             (None, Some(h)) => p.range("ground_height_amsl_m", h, -500.0, 9000.0),
         }
         if let Some(crs) = &self.crs_override {
-            crs.validate_in("crs_override", p);
+            p.section("crs_override", |p| Validate::validate(crs, p));
         }
         match self.upsample {
             None => {}
@@ -229,45 +153,6 @@ impl MapConfig {
                 0.0,
                 crate::map::build::MAX_HEIGHT_SIGMA_M,
             ),
-        }
-    }
-}
-
-impl Crs {
-    fn validate_in(&self, key: &str, p: &mut Problems) {
-        match *self {
-            Crs::Geographic | Crs::WebMercator => {}
-            Crs::Utm { zone, .. } => {
-                if !(1..=60).contains(&zone) {
-                    p.push(
-                        &format!("{key}.zone"),
-                        format!("{zone} is not a UTM zone (1..=60)"),
-                    );
-                }
-            }
-            Crs::TransverseMercator {
-                lat0_deg,
-                lon0_deg,
-                k0,
-                false_easting_m,
-                false_northing_m,
-            } => {
-                p.range(&format!("{key}.lat0_deg"), lat0_deg, -90.0, 90.0);
-                p.range(&format!("{key}.lon0_deg"), lon0_deg, -180.0, 180.0);
-                p.range(&format!("{key}.k0"), k0, 0.9, 1.1);
-                p.range(
-                    &format!("{key}.false_easting_m"),
-                    false_easting_m,
-                    -1e8,
-                    1e8,
-                );
-                p.range(
-                    &format!("{key}.false_northing_m"),
-                    false_northing_m,
-                    -1e8,
-                    1e8,
-                );
-            }
         }
     }
 }

@@ -13,7 +13,7 @@ use visnav::fix::{AttitudePriorNed, FixEngine, FixParams, FixPrior, FixReport};
 use visnav::fix::{MapReference, PositionPriorGeo, Reference};
 use visnav::geo::Crs;
 use visnav::map::{BuildSpec, HeightSource, build_map};
-use visnav::vision::GrayImage;
+use visnav::vision::{GrayImage, GrayImageFile};
 
 fn data_dir() -> Option<PathBuf> {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/ngi_3324c");

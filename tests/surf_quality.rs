@@ -6,7 +6,9 @@
 use std::path::PathBuf;
 
 use visnav::vision::eval::{self, Change, ImagePair, PairScore};
-use visnav::vision::{DescriptorKind, GrayImage, MatchParams, Surf, SurfParams, match_features};
+use visnav::vision::{
+    DescriptorKind, GrayImage, GrayImageFile, MatchParams, Surf, SurfParams, match_features,
+};
 
 fn map(year: u32) -> GrayImage {
     let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(format!("sitl/maps/naip_nd_{year}.tif"));

@@ -54,7 +54,7 @@
 //!   only the differences are used, for pacing; frames are then stamped on arrival.
 //!
 //! Times must be strictly increasing. Images are any format the `image` crate reads (PNG, JPEG,
-//! TIFF), converted to gray with the BT.601 luma weights (`vision::GrayImage::load`).
+//! TIFF), converted to gray with the BT.601 luma weights (`vision::GrayImageFile::load`).
 //!
 //! # YUV4MPEG2
 //! Header `YUV4MPEG2 W<width> H<height> F<num>:<den> [I..] [A..] [C<colour space>] [X..]`, then
@@ -81,7 +81,7 @@ use serde::Deserialize;
 use tracing::{debug, info};
 
 use crate::config::{Problems, Validate};
-use crate::vision::GrayImage;
+use crate::vision::{GrayImage, GrayImageFile};
 
 /// Capture time of a frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -1631,7 +1631,7 @@ pub fn v4l2_luma(
         PixelFormat::Mjpg => {
             let img = image::load_from_memory_with_format(data, image::ImageFormat::Jpeg)
                 .map_err(|e| format!("MJPG frame of {} bytes: {e}", data.len()))?;
-            let g = GrayImage::from_dynamic(&img);
+            let g = GrayImage::from_dynamic(&img).map_err(|e| format!("MJPG frame: {e}"))?;
             if (g.width(), g.height()) != (width, height) {
                 return Err(format!(
                     "MJPG frame is {}x{}, the format is {width}x{height}",

@@ -10,7 +10,9 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use visnav::vision::eval::{self, PairScore};
-use visnav::vision::{DescriptorKind, Features, GrayImage, IntegralImage, Surf, SurfParams};
+use visnav::vision::{
+    DescriptorKind, Features, GrayImage, GrayImageFile, IntegralImage, Surf, SurfParams,
+};
 
 #[derive(clap::Args, Debug)]
 pub struct BenchArgs {

@@ -17,7 +17,7 @@ use visnav::fix::{
 };
 use visnav::geo::dem::Dem;
 use visnav::map::{BuildSpec, HeightSource};
-use visnav::vision::GrayImage;
+use visnav::vision::{GrayImage, GrayImageFile};
 
 #[derive(clap::Args, Debug)]
 pub struct FixArgs {

@@ -49,7 +49,7 @@ use crate::geo::raster::{Bounds, GeoTransform, Raster, RasterData};
 use crate::geo::window::{GeoTiffWindowReader, open_geotiff_window};
 use crate::vision::{GrayImage, IntegralImage, KeyPoint, Surf, SurfParams};
 
-/// Rec. 601 luma weights (as `vision::GrayImage::from_dynamic` and the renderer).
+/// Rec. 601 luma weights (as `vision::file::GrayImageFile::from_dynamic` and the renderer).
 const LUMA: [f32; 3] = [0.299, 0.587, 0.114];
 /// Auto level count: keep halving while the short side stays at or above this many pixels.
 const AUTO_MIN_SIDE_PX: f64 = 256.0;

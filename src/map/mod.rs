@@ -19,7 +19,7 @@
 //!   keep the orthophotos' own sizes and pixel.
 //! * Grey: Rec. 601 luma `0.299 R + 0.587 G + 0.114 B` of bands 1-3 (a 4th band such as NIR is
 //!   ignored), the single band of a 1-2-band image; on the 8-bit scale (16-bit samples are scaled
-//!   by 255/65535), as `vision::GrayImage::from_dynamic` and the renderer's `ColourMode::Grey`.
+//!   by 255/65535), as `vision::file::GrayImageFile::from_dynamic` and the renderer's `ColourMode::Grey`.
 //!   A pixel with a missing sample (nodata/NaN) in any used band is missing; a level pixel is
 //!   missing when under 3/4 of its block is valid.
 //! * Pixel coordinates: SURF keypoints have pixel centres at integer coordinates, rasters are

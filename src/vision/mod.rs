@@ -1,39 +1,13 @@
-//! Computer vision: SURF features (Bay et al. 2008) and their matching.
+//! Computer vision: SURF features and their matching ([`visnav_core::vision`], re-exported here),
+//! with the parts that are not pure algorithms:
 //!
-//! * `gray`: grayscale `f32` images on the 8-bit intensity scale, loading and sampling.
-//! * `integral`: the summed-area table all box filters read.
-//! * `surf`: fast-Hessian detector, orientation, SURF-36/64/128 descriptors, upright mode.
-//! * `matcher`: brute-force 2-NN matching with ratio test, Laplacian gate, mutual and spatial gates.
-//! * `eval`: Mikolajczyk & Schmid repeatability / matching-score protocol and synthetic warps.
-//!
-//! Image coordinates everywhere in this module: `x` right (column), `y` down (row), pixel centres
-//! at integer coordinates (OpenCV's convention). Keypoint orientation `orientation_rad` is the
-//! angle from the image `+x` axis towards `+y`, i.e. clockwise as seen on screen, in `(-pi, pi]`.
+//! * `file`: image files to and from `GrayImage` ([`GrayImageFile`]).
+//! * `eval`: Mikolajczyk & Schmid repeatability / matching-score protocol and synthetic warps
+//!   (tooling for `visnav bench surf` and the quality tests).
+
+pub use visnav_core::vision::*;
 
 pub mod eval;
-pub mod gray;
-pub mod integral;
-pub mod matcher;
-pub mod surf;
+pub mod file;
 
-use std::path::PathBuf;
-
-pub use gray::GrayImage;
-pub use integral::IntegralImage;
-pub use matcher::{Match, MatchParams, match_features};
-pub use surf::{DescriptorKind, Features, KeyPoint, Surf, SurfParams};
-
-/// Errors of the vision module.
-#[derive(Debug, thiserror::Error)]
-pub enum VisionError {
-    #[error("{path}: cannot read image: {reason}")]
-    ImageRead { path: PathBuf, reason: String },
-    #[error("{path}: cannot write image: {reason}")]
-    ImageWrite { path: PathBuf, reason: String },
-    #[error("invalid image: {0}")]
-    InvalidImage(String),
-    #[error("invalid SURF parameter `{name}`: {reason}")]
-    InvalidParam { name: &'static str, reason: String },
-    #[error("matcher: {0}")]
-    Matcher(String),
-}
+pub use file::GrayImageFile;

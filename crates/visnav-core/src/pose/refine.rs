@@ -29,7 +29,7 @@ use nalgebra::{Matrix3, Matrix6, Rotation3, SMatrix, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
 use super::{AttitudePrior, Correspondence, Pose};
-use crate::config::{Problems, Validate};
+use crate::validate::{Problems, Validate};
 
 /// Robust loss on the whitened residual norm `s = |e|` (in sigmas).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -433,8 +433,8 @@ pub fn rotate_cov3(cov_b: &Matrix3<f64>, r_a_b: &Rotation3<f64>) -> Matrix3<f64>
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::{Problems, Validate};
     use crate::pose::rng::Rng;
+    use crate::validate::{Problems, Validate};
 
     /// A floor below the inflation's inverse is accepted (same-source maps), and a fix whose
     /// prior enters unscaled gets it raised so that its covariance factor stays at least 1.

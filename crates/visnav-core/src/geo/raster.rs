@@ -491,7 +491,7 @@ impl Raster {
 
 /// Bilinear blend of four corner values with fractions `a` (along columns) and `b` (along rows).
 #[inline]
-pub(crate) fn bilerp(s00: f64, s10: f64, s01: f64, s11: f64, a: f64, b: f64) -> f64 {
+pub fn bilerp(s00: f64, s10: f64, s01: f64, s11: f64, a: f64, b: f64) -> f64 {
     let top = s00 + a * (s10 - s00);
     let bottom = s01 + a * (s11 - s01);
     top + b * (bottom - top)

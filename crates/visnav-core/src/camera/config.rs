@@ -31,7 +31,7 @@
 //! undistort to a point inside the radius where the radial polynomial is still increasing.
 
 use super::{Camera, CameraError, Distortion, Intrinsics, Mount};
-use crate::config::{Problems, Validate};
+use crate::validate::{Problems, Validate};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 

@@ -25,7 +25,7 @@ use super::p3p::p3p_lambda_twist;
 use super::refine::{RefineConfig, RobustLoss, refine_pose};
 use super::rng::Rng;
 use super::{Correspondence, Pose, nearest_rotation};
-use crate::config::{Problems, Validate};
+use crate::validate::{Problems, Validate};
 
 /// RANSAC settings (`[pose.ransac]`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

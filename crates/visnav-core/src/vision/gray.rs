@@ -2,11 +2,9 @@
 //!
 //! Intensities are on the 8-bit scale `0.0..=255.0` (not `0..1`): the SURF Hessian threshold keeps
 //! OpenCV's meaning only on that scale. Colour is converted with the ITU-R BT.601 luma weights
-//! (0.299 R + 0.587 G + 0.114 B), as OpenCV's `cvtColor(..., COLOR_RGB2GRAY)` does, so that timings
+//! (0.299 R + 0.587 G + 0.114 B; the application's `vision::file` decodes files), as OpenCV's `cvtColor(..., COLOR_RGB2GRAY)` does, so that timings
 //! and repeatability compare with OpenCV on the same input. Pixel `(x, y)` is column `x`, row `y`,
 //! with row 0 at the top; pixel centres are at integer coordinates (OpenCV's convention).
-
-use std::path::Path;
 
 use super::VisionError;
 
@@ -52,80 +50,6 @@ impl GrayImage {
             height,
             data,
         }
-    }
-
-    /// Convert any decoded image (gray, RGB, RGBA; for 4-band RGBN GeoTIFFs the 4th band is ignored).
-    pub fn from_dynamic(img: &image::DynamicImage) -> Self {
-        use image::DynamicImage as D;
-        match img {
-            D::ImageLuma8(g) => Self {
-                width: g.width() as usize,
-                height: g.height() as usize,
-                data: g.as_raw().iter().map(|&v| f32::from(v)).collect(),
-            },
-            D::ImageLuma16(g) => Self {
-                width: g.width() as usize,
-                height: g.height() as usize,
-                data: g.as_raw().iter().map(|&v| f32::from(v) / 257.0).collect(),
-            },
-            other => {
-                let rgb = other.to_rgb8();
-                let data = rgb
-                    .as_raw()
-                    .chunks_exact(3)
-                    .map(|p| {
-                        0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2])
-                    })
-                    .collect();
-                Self {
-                    width: rgb.width() as usize,
-                    height: rgb.height() as usize,
-                    data,
-                }
-            }
-        }
-    }
-
-    /// Read an image file (PNG, JPEG, TIFF incl. 4-band GeoTIFF pixels) and convert it to gray.
-    pub fn load(path: &Path) -> Result<Self, VisionError> {
-        let img = image::open(path).map_err(|e| VisionError::ImageRead {
-            path: path.to_path_buf(),
-            reason: e.to_string(),
-        })?;
-        let g = Self::from_dynamic(&img);
-        if g.width == 0 || g.height == 0 {
-            return Err(VisionError::ImageRead {
-                path: path.to_path_buf(),
-                reason: "image has no pixels".into(),
-            });
-        }
-        Ok(g)
-    }
-
-    /// Save as 8-bit PNG (values rounded and clamped to 0..=255).
-    pub fn save_png(&self, path: &Path) -> Result<(), VisionError> {
-        let buf: Vec<u8> = self
-            .data
-            .iter()
-            .map(|&v| {
-                if v.is_finite() {
-                    v.round().clamp(0.0, 255.0) as u8
-                } else {
-                    0
-                }
-            })
-            .collect();
-        image::save_buffer(
-            path,
-            &buf,
-            self.width as u32,
-            self.height as u32,
-            image::ExtendedColorType::L8,
-        )
-        .map_err(|e| VisionError::ImageWrite {
-            path: path.to_path_buf(),
-            reason: e.to_string(),
-        })
     }
 
     pub fn width(&self) -> usize {

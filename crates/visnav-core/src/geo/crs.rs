@@ -7,6 +7,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::validate::{Problems, Validate};
+
 /// A horizontal coordinate reference system.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
@@ -25,4 +27,31 @@ pub enum Crs {
     },
     /// EPSG:3857, spherical ("web") Mercator on the WGS84 semi-major axis.
     WebMercator,
+}
+
+/// A CRS given in a configuration (`[map] crs_override`): its parameters in range.
+impl Validate for Crs {
+    fn validate(&self, p: &mut Problems) {
+        match *self {
+            Crs::Geographic | Crs::WebMercator => {}
+            Crs::Utm { zone, .. } => {
+                if !(1..=60).contains(&zone) {
+                    p.push("zone", format!("{zone} is not a UTM zone (1..=60)"));
+                }
+            }
+            Crs::TransverseMercator {
+                lat0_deg,
+                lon0_deg,
+                k0,
+                false_easting_m,
+                false_northing_m,
+            } => {
+                p.range("lat0_deg", lat0_deg, -90.0, 90.0);
+                p.range("lon0_deg", lon0_deg, -180.0, 180.0);
+                p.range("k0", k0, 0.9, 1.1);
+                p.range("false_easting_m", false_easting_m, -1e8, 1e8);
+                p.range("false_northing_m", false_northing_m, -1e8, 1e8);
+            }
+        }
+    }
 }

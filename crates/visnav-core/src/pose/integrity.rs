@@ -25,7 +25,7 @@ use std::fmt;
 use nalgebra::{Matrix2, Vector2};
 use serde::{Deserialize, Serialize};
 
-use crate::config::{Problems, Validate};
+use crate::validate::{Problems, Validate};
 
 /// Quality figures of one fix (all computed over the inliers of the final solution).
 #[derive(Debug, Clone, PartialEq, Serialize)]

@@ -7,7 +7,7 @@
 //! `deg/h/sqrt(h)` -> `rad/s/sqrt(s)`: `x * pi/180 / 3600 / 60`; `ug/sqrt(h)` -> `m/s^2/sqrt(s)`:
 //! `x * 9.80665e-6 / 60`.
 
-use crate::config::{Problems, Validate};
+use crate::validate::{Problems, Validate};
 use serde::{Deserialize, Serialize};
 
 /// Standard gravity used for `g` and `ug` units, m/s^2.

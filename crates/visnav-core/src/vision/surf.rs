@@ -664,10 +664,15 @@ fn find_maxima(
             while c <= c_hi {
                 let k = (c_hi + 1 - c).min(8);
                 let mut mask = 0u32;
-                if k == 8 {
-                    let v: &[f32; 8] = row[c..c + 8].try_into().expect("ok: 8-slice"); // ok: length 8
-                    let lft: &[f32; 8] = row[c - 1..c + 7].try_into().expect("ok: 8-slice"); // ok: length 8
-                    let rgt: &[f32; 8] = row[c + 1..c + 9].try_into().expect("ok: 8-slice"); // ok: length 8
+                let eight = (k == 8).then(|| {
+                    (
+                        <&[f32; 8]>::try_from(&row[c..c + 8]),
+                        <&[f32; 8]>::try_from(&row[c - 1..c + 7]),
+                        <&[f32; 8]>::try_from(&row[c + 1..c + 9]),
+                    )
+                });
+                // Slices of length 8 always convert.
+                if let Some((Ok(v), Ok(lft), Ok(rgt))) = eight {
                     for q in 0..8 {
                         let hit = (v[q] > threshold) & (v[q] > lft[q]) & (v[q] > rgt[q]);
                         mask |= u32::from(hit) << q;

@@ -1,0 +1,678 @@
+//! Photogrammetric space resection: the camera pose from 2-D/3-D correspondences, its covariance
+//! and its integrity.
+//!
+//! Pipeline of [`resect`]:
+//! 1. drop invalid correspondences (non-finite or absurd values, sigma <= 0) and centre the 3-D
+//!    points on their coordinate-wise median (numbers stay well conditioned with map grid coordinates of 10^6 m);
+//! 2. LO-RANSAC + SPRT over Lambda Twist P3P ([`ransac`], [`p3p`]) with a pixel threshold;
+//! 3. Levenberg-Marquardt on the collinearity equations over the inliers ([`refine`]), inliers
+//!    re-selected with the refined pose and the adjustment repeated until the set is stable;
+//! 4. covariance `sigma0^2 (J^T W J)^-1` (and the a-priori `(J^T W J)^-1`);
+//! 5. quality figures and the integrity decision ([`integrity`]), including chi-square consistency
+//!    of the vision-only fix with the position and attitude priors;
+//! 6. optionally the attitude prior is fused into the final estimate (weighted by its covariance).
+//!
+//! # Conventions
+//! * World frame: any right-handed local Cartesian metric frame with z vertical (up), e.g. the map
+//!   grid (x grid east, y grid north, z up, metres). Absolute map coordinates are fine: the solver
+//!   centres them itself. "Horizontal" / "vertical" sigmas refer to world x/y and z.
+//! * Camera frame `_cam`: x right, y down, z forward (optical axis).
+//! * Observations: NORMALISED UNDISTORTED image coordinates `x = (u - cx) / fx`, `y = (v - cy) / fy`
+//!   (the caller removes lens distortion), each with a 1-sigma pixel noise `sigma_px` (isotropic). The
+//!   sigma should include the pixel-space effect of the 3-D point error (DEM, orthophoto
+//!   registration); the a-posteriori sigma0 inflates the covariance when it is too small.
+//! * Pose: `R_world_cam` (takes camera-frame vectors to the world frame) and the projection centre
+//!   `C_world`. Projection: `p_cam = R_world_cam^T (X_world - C_world)`, `x = p_x / p_z`,
+//!   `y = p_y / p_z` — the collinearity equations in computer-vision form (see [`refine`]).
+//! * Attitude errors and attitude covariances are rotation vectors in the WORLD frame applied on the
+//!   left: `R_true = Exp(phi_world) R_estimate`, radians. Priors use the same convention.
+//! * 6x6 covariances are ordered `[phi_world (rad, 3), C_world (m, 3)]`.
+//! * To express covariances in NED use [`rotate_cov3`] with `R_ned_world` (for the map grid frame
+//!   this includes the swap of axes and the meridian convergence, which the caller knows).
+
+pub mod integrity;
+pub mod p3p;
+pub mod ransac;
+pub mod refine;
+pub mod rng;
+
+use nalgebra::{Matrix3, Matrix6, Rotation3, Vector2, Vector3, Vector6};
+use serde::{Deserialize, Serialize};
+
+use crate::validate::{Problems, Validate};
+pub use integrity::{FixQuality, IntegrityConfig, Rejection, Verdict, check, chi2_quantile};
+pub use p3p::{P3pSolution, P3pSolutions, p3p_lambda_twist};
+pub use ransac::{RansacConfig, RansacResult, ransac_p3p};
+pub use refine::{RefineConfig, RefineError, Refined, RobustLoss, refine_pose, rotate_cov3};
+
+/// One 2-D/3-D correspondence.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Correspondence {
+    /// The 3-D point in the world frame, metres.
+    pub point_world: Vector3<f64>,
+    /// Its observation in normalised undistorted image coordinates.
+    pub obs_norm: Vector2<f64>,
+    /// 1-sigma noise of the observation, pixels (isotropic).
+    pub sigma_px: f64,
+}
+
+impl Correspondence {
+    /// Largest accepted world coordinate magnitude, metres (beyond any map grid on Earth).
+    pub const MAX_COORD_M: f64 = 1e8;
+    /// Largest accepted normalised image coordinate (89.9 deg off the optical axis).
+    pub const MAX_NORM: f64 = 500.0;
+
+    /// Finite values of plausible magnitude and a finite positive sigma.
+    pub fn is_valid(&self) -> bool {
+        self.point_world
+            .iter()
+            .all(|v| v.abs() <= Self::MAX_COORD_M)
+            && self.obs_norm.iter().all(|v| v.abs() <= Self::MAX_NORM)
+            && self.sigma_px.is_finite()
+            && self.sigma_px > 0.0
+    }
+}
+
+/// What the solver needs of the camera: focal lengths and principal point in pixels (to convert
+/// normalised residuals to pixels and to place the inliers in the image for the spread checks) and
+/// the image size.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ImageGeometry {
+    pub fx_px: f64,
+    pub fy_px: f64,
+    pub cx_px: f64,
+    pub cy_px: f64,
+    pub width_px: u32,
+    pub height_px: u32,
+}
+
+impl ImageGeometry {
+    /// Pixel position of a normalised point.
+    pub fn to_pixel(&self, n: &Vector2<f64>) -> Vector2<f64> {
+        Vector2::new(self.cx_px + self.fx_px * n.x, self.cy_px + self.fy_px * n.y)
+    }
+    fn check(&self) -> Result<(), String> {
+        let ok = |v: f64| v.is_finite() && v > 0.0;
+        if !(ok(self.fx_px) && ok(self.fy_px)) {
+            return Err(format!(
+                "focal lengths fx_px={} fy_px={} must be finite and > 0",
+                self.fx_px, self.fy_px
+            ));
+        }
+        if !(self.cx_px.is_finite() && self.cy_px.is_finite()) {
+            return Err(format!(
+                "principal point ({}, {}) must be finite",
+                self.cx_px, self.cy_px
+            ));
+        }
+        if self.width_px == 0 || self.height_px == 0 {
+            return Err(format!(
+                "image size {}x{} is empty",
+                self.width_px, self.height_px
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// A camera pose: `R_world_cam` and the projection centre `C_world`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pose {
+    pub r_world_cam: Rotation3<f64>,
+    pub c_world: Vector3<f64>,
+}
+
+impl Pose {
+    /// Camera-frame coordinates of a world point: `R_world_cam^T (X - C)`.
+    pub fn to_cam(&self, p_world: &Vector3<f64>) -> Vector3<f64> {
+        self.r_world_cam.inverse() * (p_world - self.c_world)
+    }
+    /// Normalised image coordinates of a world point, None when it is not in front of the camera.
+    pub fn project(&self, p_world: &Vector3<f64>) -> Option<Vector2<f64>> {
+        let p = self.to_cam(p_world);
+        (p.z > 0.0).then(|| Vector2::new(p.x / p.z, p.y / p.z))
+    }
+}
+
+/// Prior attitude: `R_world_cam` with a 3x3 covariance of the world-frame rotation-vector error, rad^2.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AttitudePrior {
+    pub r_world_cam: Rotation3<f64>,
+    pub cov_rad2: Matrix3<f64>,
+}
+
+/// Prior position of the projection centre with its covariance, world frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PositionPrior {
+    pub c_world: Vector3<f64>,
+    pub cov_m2: Matrix3<f64>,
+}
+
+/// Optional priors (from the navigation filter).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Priors {
+    pub attitude: Option<AttitudePrior>,
+    pub position: Option<PositionPrior>,
+}
+
+/// All resection settings (`[pose]`).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ResectionConfig {
+    pub ransac: RansacConfig,
+    pub refine: RefineConfig,
+    pub integrity: IntegrityConfig,
+}
+
+impl Validate for ResectionConfig {
+    fn validate(&self, p: &mut Problems) {
+        p.section("ransac", |p| self.ransac.validate(p));
+        p.section("refine", |p| self.refine.validate(p));
+        p.section("integrity", |p| self.integrity.validate(p));
+    }
+}
+
+/// Covariance of a fix, parameter order `[phi_world (rad), C_world (m)]`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PoseCovariance {
+    /// `(J^T W J)^-1`: the pixel sigmas taken at face value.
+    pub apriori: Matrix6<f64>,
+    /// A-posteriori variance factor `sigma0^2`.
+    pub sigma0_sq: f64,
+    /// Redundancy of the adjustment.
+    pub dof: usize,
+    /// Factor on the standard deviations of [`Self::conservative`] (`refine.sigma_inflation`).
+    pub inflation: f64,
+    /// Split-sample variance factor (1 when not estimated; see [`split_variance_factor`]).
+    pub split_factor: f64,
+    /// Lower bound on `sigma0` where it scales the covariance (`refine.sigma0_floor`).
+    pub sigma0_floor: f64,
+}
+
+impl PoseCovariance {
+    /// `sigma0^2 (J^T W J)^-1`.
+    pub fn aposteriori(&self) -> Matrix6<f64> {
+        self.apriori * self.sigma0_sq
+    }
+    /// The factor of [`Self::conservative`]:
+    /// `max(sigma0_floor^2, sigma0^2) max(1, split_factor) inflation^2`.
+    pub fn factor(&self) -> f64 {
+        self.sigma0_sq.max(self.sigma0_floor * self.sigma0_floor)
+            * self.split_factor.max(1.0)
+            * self.inflation
+            * self.inflation
+    }
+    /// `max(sigma0_floor^2, sigma0^2) max(1, split_factor) inflation^2 (J^T W J)^-1`: never
+    /// smaller than the a-priori covariance when `sigma0_floor * inflation >= 1`. This is the one used for the integrity checks and the one to hand to a
+    /// filter.
+    pub fn conservative(&self) -> Matrix6<f64> {
+        self.apriori * self.factor()
+    }
+    /// Conservative position covariance, world frame, m^2.
+    pub fn position_world_m2(&self) -> Matrix3<f64> {
+        self.conservative().fixed_view::<3, 3>(3, 3).into_owned()
+    }
+    /// Conservative attitude covariance (world-frame rotation vector), rad^2.
+    pub fn attitude_world_rad2(&self) -> Matrix3<f64> {
+        self.conservative().fixed_view::<3, 3>(0, 0).into_owned()
+    }
+    /// Position covariance in NED, given `R_ned_world`.
+    pub fn position_ned_m2(&self, r_ned_world: &Rotation3<f64>) -> Matrix3<f64> {
+        rotate_cov3(&self.position_world_m2(), r_ned_world)
+    }
+    /// Attitude covariance as an NED-frame rotation vector, given `R_ned_world`.
+    pub fn attitude_ned_rad2(&self, r_ned_world: &Rotation3<f64>) -> Matrix3<f64> {
+        rotate_cov3(&self.attitude_world_rad2(), r_ned_world)
+    }
+}
+
+/// A resection result.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Fix {
+    /// Final pose (world frame).
+    pub pose: Pose,
+    /// Its covariance.
+    pub covariance: PoseCovariance,
+    /// The vision-only pose (equal to `pose` unless the attitude prior was fused).
+    pub vision_pose: Pose,
+    /// The covariance of `vision_pose` (the image alone: no prior in it). A navigation filter
+    /// that holds the attitude the prior came from fuses this pose and covariance, all six
+    /// degrees of freedom with their correlation, rather than `pose`, whose position already
+    /// carries the filter's own attitude (fused twice, and its errors then look confirmed).
+    pub vision_covariance: PoseCovariance,
+    /// Quality figures.
+    pub quality: FixQuality,
+    /// Indices into the input slice of the inliers used by the final adjustment.
+    pub inliers: Vec<usize>,
+    /// Whether the attitude prior was fused into `pose`.
+    pub attitude_prior_fused: bool,
+    /// With the attitude prior fused: how the fused position depends on the prior's attitude,
+    /// `d C_world / d phi_prior` (m/rad, world frame; `phi_prior` the world-frame rotation vector of
+    /// the prior's error, `R_prior = Exp(phi_prior) R_true`), and the part of the position
+    /// covariance that comes from the image alone (m^2, world). The fused position is, to first
+    /// order, `C_true + G phi_prior + e_img` with `Cov(e_img)` this part; a filter that supplied
+    /// the prior models `G phi` as a dependence on its own attitude error instead of noise, so its
+    /// attitude is not fused a second time through the position (`Cov = e_img + G P G^T`).
+    pub prior_dependence: Option<PriorDependence>,
+}
+
+/// See [`Fix::prior_dependence`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PriorDependence {
+    /// `d C_world / d phi_prior`, m/rad, world frame.
+    pub d_position_d_prior_att: Matrix3<f64>,
+    /// Position covariance from the image alone, world frame, m^2.
+    pub image_position_cov_m2: Matrix3<f64>,
+}
+
+/// The fused estimate is `x_f = C (I_img x_img + I_P x_P)` with `C = (I_img + I_P)^-1`,
+/// `I_img = (k Q_img)^-1` and `I_P` the prior's information on the attitude block, so
+/// `d x_f / d x_P = C I_P` and the image's share of the covariance is `C I_img C`.
+fn prior_dependence(
+    fused: &PoseCovariance,
+    image: &PoseCovariance,
+    prior: &AttitudePrior,
+) -> Option<PriorDependence> {
+    let c = fused.conservative();
+    let i_img = image.conservative().try_inverse()?;
+    let p_inv = prior.cov_rad2.try_inverse()?;
+    let g = c.fixed_view::<3, 3>(3, 0) * p_inv;
+    let img = c * i_img * c;
+    let cov = img.fixed_view::<3, 3>(3, 3).into_owned();
+    let cov = 0.5 * (cov + cov.transpose());
+    (g.iter().chain(cov.iter()).all(|v| v.is_finite())).then_some(PriorDependence {
+        d_position_d_prior_att: g,
+        image_position_cov_m2: cov,
+    })
+}
+
+/// Outcome of [`resect`]: the fix when one could be computed, and the decision.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Outcome {
+    pub fix: Option<Fix>,
+    pub verdict: Verdict,
+}
+
+impl Outcome {
+    /// The fix, only if it passed every integrity check.
+    pub fn accepted(&self) -> Option<&Fix> {
+        if self.verdict.is_accepted() {
+            self.fix.as_ref()
+        } else {
+            None
+        }
+    }
+    /// The rejection reason, if rejected.
+    pub fn rejection(&self) -> Option<&Rejection> {
+        match &self.verdict {
+            Verdict::Rejected(r) => Some(r),
+            Verdict::Accepted => None,
+        }
+    }
+    fn rejected(r: Rejection) -> Self {
+        Outcome {
+            fix: None,
+            verdict: Verdict::Rejected(r),
+        }
+    }
+}
+
+/// Closest rotation (Frobenius norm) to a 3x3 matrix, by SVD.
+pub fn nearest_rotation(m: &Matrix3<f64>) -> Option<Rotation3<f64>> {
+    if !m.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let svd = m.svd(true, true);
+    let (u, v_t) = (svd.u?, svd.v_t?);
+    let d = (u * v_t).determinant().signum();
+    let r = u * Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, d)) * v_t;
+    r.iter()
+        .all(|v| v.is_finite())
+        .then(|| Rotation3::from_matrix_unchecked(r))
+}
+
+fn inv3(m: &Matrix3<f64>) -> Option<Matrix3<f64>> {
+    let c = nalgebra::Cholesky::new(*m)?;
+    let i = c.inverse();
+    i.iter().all(|v| v.is_finite()).then_some(i)
+}
+
+/// Largest square-root eigenvalue of a symmetric 2x2 / 3x3 block.
+fn max_sigma3(m: &Matrix3<f64>) -> f64 {
+    m.symmetric_eigenvalues().max().max(0.0).sqrt()
+}
+
+/// Solve the resection; see the module documentation for the pipeline and conventions.
+///
+/// Never panics and never returns non-finite numbers in an accepted fix: bad input is rejected
+/// with a reason ([`Rejection::InvalidInput`], [`Rejection::TooFewCorrespondences`], ...).
+pub fn resect(
+    corrs: &[Correspondence],
+    image: &ImageGeometry,
+    priors: &Priors,
+    cfg: &ResectionConfig,
+) -> Outcome {
+    if let Err(reason) = image.check() {
+        return Outcome::rejected(Rejection::InvalidInput { reason });
+    }
+    let mut problems = Problems::default();
+    cfg.validate(&mut problems);
+    if let Some(first) = problems.list.first() {
+        return Outcome::rejected(Rejection::InvalidInput {
+            reason: format!("configuration {first}"),
+        });
+    }
+    for (what, ok) in [
+        (
+            "attitude prior",
+            priors.attitude.is_none_or(|a| {
+                a.cov_rad2.iter().all(|v| v.is_finite()) && inv3(&a.cov_rad2).is_some()
+            }),
+        ),
+        (
+            "position prior",
+            priors.position.is_none_or(|p| {
+                p.c_world.iter().all(|v| v.is_finite()) && inv3(&p.cov_m2).is_some()
+            }),
+        ),
+    ] {
+        if !ok {
+            return Outcome::rejected(Rejection::InvalidInput {
+                reason: format!("{what}: non-finite value or covariance not positive definite"),
+            });
+        }
+    }
+
+    // 1. Valid correspondences, centred.
+    let valid_idx: Vec<usize> = (0..corrs.len()).filter(|&i| corrs[i].is_valid()).collect();
+    if valid_idx.len() < 4 {
+        return Outcome::rejected(Rejection::TooFewCorrespondences {
+            valid: valid_idx.len(),
+            required: 4,
+        });
+    }
+    let origin = valid_idx
+        .iter()
+        .fold(Vector3::zeros(), |a, &i| a + corrs[i].point_world)
+        / valid_idx.len() as f64;
+    let local: Vec<Correspondence> = valid_idx
+        .iter()
+        .map(|&i| Correspondence {
+            point_world: corrs[i].point_world - origin,
+            ..corrs[i]
+        })
+        .collect();
+    let n_valid = local.len();
+    let (fx, fy) = (image.fx_px, image.fy_px);
+
+    // 2. RANSAC.
+    let rs = match ransac_p3p(&local, fx, fy, &cfg.ransac) {
+        Ok(r) => r,
+        Err(iterations) => return Outcome::rejected(Rejection::NoConsensus { iterations }),
+    };
+
+    // 3. Vision-only LM, inliers re-selected until stable.
+    let th2 = cfg.ransac.threshold_px * cfg.ransac.threshold_px;
+    let mut inliers = rs.inliers.clone();
+    let mut lm_iterations = 0;
+    let mut pose = rs.pose;
+    let mut refined = None;
+    for _ in 0..4 {
+        let r = match refine_pose(&local, &inliers, &pose, fx, fy, None, &cfg.refine) {
+            Ok(r) => r,
+            Err(RefineError::Singular) => {
+                return Outcome::rejected(Rejection::IllConditioned {
+                    condition: f64::INFINITY,
+                    max: cfg.integrity.max_condition_number,
+                });
+            }
+            Err(e) => {
+                return Outcome::rejected(Rejection::NumericalFailure {
+                    stage: "refinement",
+                    detail: e.to_string(),
+                });
+            }
+        };
+        lm_iterations += r.iterations;
+        pose = r.pose;
+        let new_inl: Vec<usize> = (0..n_valid)
+            .filter(|&i| {
+                let c = &local[i];
+                pose.project(&c.point_world).is_some_and(|p| {
+                    let d = p - c.obs_norm;
+                    (fx * d.x).powi(2) + (fy * d.y).powi(2) < th2
+                })
+            })
+            .collect();
+        let stable = new_inl == inliers;
+        refined = Some(r);
+        if stable || new_inl.len() < 4 {
+            break;
+        }
+        inliers = new_inl;
+    }
+    let Some(vision) = refined else {
+        return Outcome::rejected(Rejection::NumericalFailure {
+            stage: "refinement",
+            detail: "no iteration".into(),
+        });
+    };
+    let split_factor = if cfg.refine.split_variance {
+        split_variance_factor(&local, &inliers, &vision, image, &cfg.refine)
+    } else {
+        1.0
+    };
+    let vision_cov = PoseCovariance {
+        apriori: vision.cov_apriori,
+        sigma0_sq: vision.sigma0_sq,
+        dof: vision.dof,
+        inflation: cfg.refine.sigma_inflation,
+        split_factor,
+        sigma0_floor: cfg.refine.sigma0_floor,
+    };
+
+    // 5a. Prior consistency on the vision-only solution (in the centred frame).
+    let cons = vision_cov.conservative();
+    let prior_position_d2 = priors.position.map(|p| {
+        let d = vision.pose.c_world - (p.c_world - origin);
+        let s = cons.fixed_view::<3, 3>(3, 3) + p.cov_m2;
+        inv3(&s).map_or(f64::INFINITY, |si| (d.transpose() * si * d)[0])
+    });
+    let prior_attitude_d2 = priors.attitude.map(|a| {
+        let phi = (vision.pose.r_world_cam * a.r_world_cam.inverse()).scaled_axis();
+        let s = cons.fixed_view::<3, 3>(0, 0) + a.cov_rad2;
+        inv3(&s).map_or(f64::INFINITY, |si| (phi.transpose() * si * phi)[0])
+    });
+
+    // 6. Optional fusion of the attitude prior. The image's real covariance is `k Q_img` with
+    //    `k = PoseCovariance::factor()` (the conservative covariance's factor), so the
+    //    prior enters the whitened least squares with `P / k`: the fused normal matrix is then
+    //    `Q_img^-1 + k P^-1` and `k (Q_img^-1 + k P^-1)^-1 = ((k Q_img)^-1 + P^-1)^-1`, the
+    //    information-weighted combination of the image and the prior. Without the scaling the prior
+    //    is under-weighted by `k` (16 with the fix pipeline's inflation of 4) and the image's
+    //    correlated errors leak into the tilt along the position/tilt ambiguity.
+    let k_image = if cfg.refine.prior_against_conservative {
+        vision_cov.factor()
+    } else {
+        1.0
+    };
+    let mut final_r = vision.clone();
+    let mut fused = false;
+    if cfg.refine.use_attitude_prior
+        && let Some(a) = priors.attitude.as_ref()
+    {
+        let scaled = AttitudePrior {
+            r_world_cam: a.r_world_cam,
+            cov_rad2: a.cov_rad2 / k_image,
+        };
+        match refine_pose(
+            &local,
+            &inliers,
+            &vision.pose,
+            fx,
+            fy,
+            Some(&scaled),
+            &cfg.refine,
+        ) {
+            Ok(r) => {
+                lm_iterations += r.iterations;
+                final_r = r;
+                fused = true;
+            }
+            Err(e) => {
+                return Outcome::rejected(Rejection::NumericalFailure {
+                    stage: "attitude prior fusion",
+                    detail: e.to_string(),
+                });
+            }
+        }
+    }
+    // The fused covariance scales with the image's variance factor (see step 6): the prior rows'
+    // residuals say nothing about the pixel sigmas.
+    let covariance = PoseCovariance {
+        apriori: final_r.cov_apriori,
+        sigma0_sq: vision.sigma0_sq,
+        dof: final_r.dof,
+        inflation: cfg.refine.sigma_inflation,
+        split_factor,
+        sigma0_floor: cfg.refine.sigma0_floor,
+    };
+
+    // 5b. Quality figures.
+    let px: Vec<Vector2<f64>> = inliers
+        .iter()
+        .map(|&i| image.to_pixel(&local[i].obs_norm))
+        .collect();
+    let (cells, hull, eig) = integrity::spread(&px, image.width_px as f64, image.height_px as f64);
+    let pos = covariance.position_world_m2();
+    let horiz = pos
+        .fixed_view::<2, 2>(0, 0)
+        .into_owned()
+        .symmetric_eigenvalues()
+        .max()
+        .max(0.0)
+        .sqrt();
+    let quality = FixQuality {
+        valid_correspondences: n_valid,
+        inliers: inliers.len(),
+        inlier_ratio: inliers.len() as f64 / n_valid as f64,
+        reprojection_rms_px: vision.rms_px,
+        sigma0: vision.sigma0_sq.sqrt(),
+        dof: vision.dof,
+        grid_cells_3x3: cells,
+        hull_area_fraction: hull,
+        spread_eig_ratio: eig,
+        condition_number: vision.condition_number,
+        horizontal_sigma_m: horiz,
+        vertical_sigma_m: pos[(2, 2)].max(0.0).sqrt(),
+        attitude_sigma_rad: max_sigma3(&covariance.attitude_world_rad2()),
+        prior_position_d2,
+        prior_attitude_d2,
+        ransac_iterations: rs.iterations,
+        lm_iterations,
+    };
+    let uncentre = |p: &Pose| Pose {
+        r_world_cam: p.r_world_cam,
+        c_world: p.c_world + origin,
+    };
+    let fix = Fix {
+        pose: uncentre(&final_r.pose),
+        covariance,
+        vision_pose: uncentre(&vision.pose),
+        vision_covariance: vision_cov,
+        quality,
+        inliers: inliers.iter().map(|&i| valid_idx[i]).collect(),
+        attitude_prior_fused: fused,
+        prior_dependence: if fused {
+            // The prior as the fusion weighed it: `P k / k_image` (see step 6).
+            priors.attitude.as_ref().and_then(|a| {
+                let effective = AttitudePrior {
+                    r_world_cam: a.r_world_cam,
+                    cov_rad2: a.cov_rad2 * (vision_cov.factor() / k_image),
+                };
+                prior_dependence(&covariance, &vision_cov, &effective)
+            })
+        } else {
+            None
+        },
+    };
+    let finite = fix.pose.c_world.iter().all(|v| v.is_finite())
+        && fix.pose.r_world_cam.matrix().iter().all(|v| v.is_finite())
+        && fix.covariance.apriori.iter().all(|v| v.is_finite())
+        && fix.covariance.sigma0_sq.is_finite();
+    let verdict = if finite {
+        check(&fix.quality, &cfg.integrity)
+    } else {
+        Verdict::Rejected(Rejection::NumericalFailure {
+            stage: "result",
+            detail: "non-finite pose or covariance".into(),
+        })
+    };
+    Outcome {
+        fix: Some(fix),
+        verdict,
+    }
+}
+/// Split-sample variance factor of a vision-only solution: the inliers are split into the four
+/// quadrants about their median pixel position, the pose is re-solved from each quadrant alone
+/// (LM from the full solution, no prior), and each quadrant's pose difference `d_g` to the full
+/// solution is compared with its covariance. For disjoint subsets of equally informative data the
+/// full solution is the information-weighted mean, so `Cov(d_g) = Cov_g - Cov_full ~ (1 - n_g/n)
+/// Cov_g` with `Cov_g = max(f^2, sigma0_g^2) Q_g` (`f` = `refine.sigma0_floor`). The factor is the mean of
+/// `d_g^T Cov_g^-1 d_g / (1 - n_g/n)` over the quadrants, divided by 6: about 1 when the pixel
+/// errors are independent, larger when neighbouring observations share an error (a displaced map
+/// area, changed ground), which the residual scatter `sigma0` cannot see because a shared error is
+/// absorbed by the pose. A quadrant with fewer than 8 inliers or a failed solve is skipped;
+/// with fewer than two quadrants the factor is 1 (no evidence). This is a delete-a-group
+/// jackknife in spirit (Efron 1982), on spatial blocks as for correlated data (Kunsch 1989).
+pub fn split_variance_factor(
+    corrs: &[Correspondence],
+    inliers: &[usize],
+    full: &Refined,
+    image: &ImageGeometry,
+    cfg: &RefineConfig,
+) -> f64 {
+    let n = inliers.len();
+    if n < 16 {
+        return 1.0;
+    }
+    let px: Vec<Vector2<f64>> = inliers
+        .iter()
+        .map(|&i| image.to_pixel(&corrs[i].obs_norm))
+        .collect();
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let mx = median(px.iter().map(|p| p.x).collect());
+    let my = median(px.iter().map(|p| p.y).collect());
+    let mut groups: [Vec<usize>; 4] = Default::default();
+    for (k, p) in px.iter().enumerate() {
+        let q = usize::from(p.x >= mx) + 2 * usize::from(p.y >= my);
+        groups[q].push(inliers[k]);
+    }
+    let mut sum = 0.0;
+    let mut used = 0usize;
+    for g in groups.iter().filter(|g| g.len() >= 8) {
+        let Ok(r) = refine_pose(corrs, g, &full.pose, image.fx_px, image.fy_px, None, cfg) else {
+            continue;
+        };
+        let cov_g = r.cov_apriori * r.sigma0_sq.max(cfg.sigma0_floor * cfg.sigma0_floor);
+        let Some(inv) = cov_g.try_inverse() else {
+            continue;
+        };
+        let phi = (r.pose.r_world_cam * full.pose.r_world_cam.inverse()).scaled_axis();
+        let dc = r.pose.c_world - full.pose.c_world;
+        let d = Vector6::new(phi.x, phi.y, phi.z, dc.x, dc.y, dc.z);
+        let shrink = 1.0 - g.len() as f64 / n as f64;
+        let d2 = (d.transpose() * inv * d)[0] / shrink.max(0.1);
+        if d2.is_finite() {
+            sum += d2;
+            used += 1;
+        }
+    }
+    if used < 2 {
+        return 1.0;
+    }
+    sum / (6.0 * used as f64)
+}

@@ -7,7 +7,6 @@
 //! Every frame and rotation convention is defined once in `docs/conventions.md`.
 
 pub mod camera;
-pub mod config;
 pub mod daemon;
 pub mod fix;
 pub mod geo;

@@ -12,10 +12,10 @@ use std::time::{Duration, Instant};
 
 use mavlink::dialects::ardupilotmega::MavMessage;
 use visnav::camera::source::{FramesConfig, SourceKind, write_y4m};
-use visnav::config::{LinkConfig, OutputConfig, OutputMode};
 use visnav::daemon::{Daemon, DaemonConfig, DaemonSetup, FrameFixer, FramePipeline};
 use visnav::fix::{FixPrior, FixReport};
 use visnav::link::GeoOrigin;
+use visnav::link::config::{LinkConfig, OutputConfig, OutputMode};
 use visnav::link::inject::local_ned_m;
 use visnav::nav::NavConfig;
 use visnav::sitl::autopilot::{AutopilotEmulator, EmulatorConfig, TruthSource};

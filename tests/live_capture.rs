@@ -9,8 +9,8 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use visnav::camera::source::{CaptureTime, FramesConfig, SourceKind, open, write_y4m};
-use visnav::config::{Problems, Validate};
 use visnav::vision::GrayImage;
+use visnav_core::validate::{Problems, Validate};
 
 fn img(w: usize, h: usize, k: usize) -> GrayImage {
     GrayImage::from_fn(w, h, |x, y| ((x * 3 + y * 5 + k * 17) % 256) as f32)
@@ -324,8 +324,8 @@ impl visnav::daemon::FrameFixer for CountingFixer {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn daemon_runs_a_live_capture_process_and_kills_it_on_shutdown() {
     use std::sync::Arc;
-    use visnav::config::{LinkConfig, OutputConfig, OutputMode};
     use visnav::daemon::{Daemon, DaemonConfig, DaemonSetup};
+    use visnav::link::config::{LinkConfig, OutputConfig, OutputMode};
     use visnav::sitl::autopilot::{AutopilotEmulator, ConstantVelocity, EmulatorConfig};
 
     let d = tempfile::tempdir().unwrap();

@@ -11,8 +11,8 @@ use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::time::{Duration, Instant};
 
-use visnav::config::{LinkConfig, OutputConfig, OutputMode};
 use visnav::daemon::{Daemon, DaemonConfig, DaemonError, DaemonSetup};
+use visnav::link::config::{LinkConfig, OutputConfig, OutputMode};
 use visnav::nav::NavConfig;
 use visnav::sitl::autopilot::{AutopilotEmulator, EmulatorConfig};
 

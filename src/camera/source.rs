@@ -80,8 +80,8 @@ use std::time::{Duration, Instant};
 use serde::Deserialize;
 use tracing::{debug, info};
 
-use crate::config::{Problems, Validate};
 use crate::vision::{GrayImage, GrayImageFile};
+use visnav_core::validate::{Problems, Validate};
 
 /// Capture time of a frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -299,7 +299,7 @@ impl FramesConfig {
     /// Validate, checking the path against `base` (the config file's folder).
     pub fn validate_in(&self, base: &Path, p: &mut Problems) {
         self.validate(p);
-        let full = crate::config::resolve(base, &self.path);
+        let full = visnav_core::validate::resolve(base, &self.path);
         let needs_path = matches!(self.source, SourceKind::Directory | SourceKind::Y4m);
         if needs_path && self.path.as_os_str().is_empty() {
             return; // reported by validate()
@@ -308,7 +308,7 @@ impl FramesConfig {
             SourceKind::Command | SourceKind::Gstreamer => {
                 if let Some(prog) = self.argv().first().filter(|s| !s.is_empty()) {
                     let found = if prog.contains('/') {
-                        crate::config::resolve(base, Path::new(prog)).is_file()
+                        visnav_core::validate::resolve(base, Path::new(prog)).is_file()
                     } else {
                         in_path(prog)
                     };
@@ -346,12 +346,12 @@ impl FramesConfig {
     /// Make `path` (and a relative program path in `command`) absolute against `base`.
     pub fn resolve_paths(&mut self, base: &Path) {
         if !self.path.as_os_str().is_empty() {
-            self.path = crate::config::resolve(base, &self.path);
+            self.path = visnav_core::validate::resolve(base, &self.path);
         }
         if let Some(prog) = self.command.first_mut()
             && prog.contains('/')
         {
-            *prog = crate::config::resolve(base, Path::new(prog.as_str()))
+            *prog = visnav_core::validate::resolve(base, Path::new(prog.as_str()))
                 .to_string_lossy()
                 .into_owned();
         }

@@ -9,6 +9,8 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
+
+use super::repo_file;
 use visnav::vision::eval::{self, PairScore};
 use visnav::vision::{
     DescriptorKind, Features, GrayImage, GrayImageFile, IntegralImage, Surf, SurfParams,
@@ -176,14 +178,6 @@ fn run_render(a: RenderBenchArgs) -> anyhow::Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
-}
-
-pub fn repo_file(rel: &str) -> PathBuf {
-    let cwd = PathBuf::from(rel);
-    if cwd.exists() {
-        return cwd;
-    }
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)
 }
 
 /// Median and minimum total ms, median detection ms (integral image + fast-Hessian), features.

@@ -93,7 +93,7 @@ pub struct FixBenchArgs {
 }
 
 pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
-    let maps = super::bench::repo_file("sitl/maps");
+    let maps = super::repo_file("sitl/maps");
     let params: FixParams = match &a.set {
         Some(t) => {
             let v: toml::Value = toml::from_str(t).context("--set: not valid TOML")?;
@@ -170,7 +170,7 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
         } else {
             MapHeights::SurfaceModel
         };
-        let dir = super::bench::repo_file("../shared/data/autzen");
+        let dir = super::repo_file("../shared/data/autzen");
         NaipEval::autzen(&dir, params, heights)
             .map_err(anyhow::Error::msg)
             .with_context(|| {

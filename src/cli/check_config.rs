@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use visnav::config::{Config, ConfigError};
+use visnav::daemon::app_config::{Config, ConfigError};
 
 #[derive(clap::Args, Debug)]
 pub struct CheckConfigArgs {

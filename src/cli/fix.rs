@@ -10,7 +10,6 @@ use std::sync::Arc;
 
 use anyhow::{Context, bail};
 use visnav::camera::{Attitude, Camera, CameraConfig};
-use visnav::config::{Problems, Validate};
 use visnav::fix::{
     AltitudePrior, AttitudePriorNed, FixEngine, FixParams, FixPrior, MapReference,
     PositionPriorGeo, Reference,
@@ -18,6 +17,7 @@ use visnav::fix::{
 use visnav::geo::dem::Dem;
 use visnav::map::{BuildSpec, HeightSource};
 use visnav::vision::{GrayImage, GrayImageFile};
+use visnav_core::validate::{Problems, Validate};
 
 #[derive(clap::Args, Debug)]
 pub struct FixArgs {

@@ -10,6 +10,16 @@ pub mod run;
 pub mod sim;
 pub mod sitl_run;
 
+/// A file of the repository (`sitl/maps/...`, `../shared/data/...`): relative to the working
+/// directory when it exists there, else to the source tree the binary was built from.
+pub fn repo_file(rel: &str) -> std::path::PathBuf {
+    let cwd = std::path::PathBuf::from(rel);
+    if cwd.exists() {
+        return cwd;
+    }
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)
+}
+
 /// Initialise `tracing` to stderr: `RUST_LOG` when set, otherwise info/debug/trace by `-v` count.
 pub fn init_logging(verbose: u8) {
     use tracing_subscriber::EnvFilter;

@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::Context;
-use visnav::config::Config;
+use visnav::daemon::app_config::Config;
 use visnav::daemon::replay::{ReplayOptions, meas_csv, replay, states_csv};
 
 #[derive(clap::Args, Debug)]

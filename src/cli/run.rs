@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::Context;
-use visnav::config::Config;
+use visnav::daemon::app_config::Config;
 
 #[derive(clap::Args, Debug)]
 pub struct RunArgs {
@@ -27,7 +27,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     };
     // With a frame source, the vision fix engine of [map], [camera] and [fix].
     let fixer: Option<std::sync::Arc<dyn visnav::daemon::FrameFixer>> = if cfg.frames.is_some() {
-        let engine = visnav::fix::engine_from_config(&cfg)
+        let engine = visnav::daemon::engine_from_config(&cfg)
             .map_err(anyhow::Error::msg)
             .with_context(|| format!("{}: vision fix engine", args.config.display()))?;
         Some(std::sync::Arc::new(engine))

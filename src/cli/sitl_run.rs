@@ -18,7 +18,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
-use visnav::config::Config;
+use visnav::daemon::app_config::Config;
 use visnav::daemon::{Daemon, DaemonSetup, FramePipeline};
 use visnav::geo::dem::Dem;
 use visnav::geo::geotiff::load_geotiff;
@@ -87,7 +87,7 @@ pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
             "give --ground-height (the configuration has no finite map.ground_height_amsl_m)"
         ),
     };
-    let engine = visnav::fix::engine_from_config(&cfg)
+    let engine = visnav::daemon::engine_from_config(&cfg)
         .map_err(anyhow::Error::msg)
         .with_context(|| format!("{}: vision fix engine", args.config.display()))?;
     let camera = cfg

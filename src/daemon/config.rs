@@ -37,7 +37,8 @@
 
 use serde::Deserialize;
 
-use crate::config::{OutputConfig, OutputMode, Problems, Validate};
+use crate::link::config::{OutputConfig, OutputMode};
+use visnav_core::validate::{Problems, Validate};
 
 /// Which autopilot GPS message aids the filter.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]

@@ -22,6 +22,7 @@
 //! navigation task, joins the threads (waiting up to 5 s for a running fix) and shuts the link
 //! down (flushing the .tlog).
 
+pub mod app_config;
 pub mod config;
 pub mod fixlog;
 pub mod frames;
@@ -30,6 +31,7 @@ pub mod inputs;
 pub mod metrics;
 pub mod prometheus;
 pub mod replay;
+pub mod wiring;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -42,15 +44,17 @@ use tracing::{info, warn};
 
 use crate::camera::Attitude;
 use crate::camera::source::{Frame, FrameError, FrameSource, FramesConfig};
-use crate::config::{Config, LinkConfig, OutputConfig};
 use crate::fix::{FixPrior, FixReport};
+use crate::link::config::{LinkConfig, OutputConfig};
 use crate::link::{Health as LinkHealth, Link, LinkError, NavEstimate, Telemetry};
 use crate::nav::{Health as NavHealth, Measurement, NavConfig, NavFilter, NavOutput, Outcome};
 use crate::vision::GrayImage;
+use app_config::Config;
 
 pub use config::{DaemonConfig, GpsSource, ImuBiasRestore};
 pub use frames::{FixResult, Slot};
 pub use metrics::{DaemonMetrics, MetricsSnapshot};
+pub use wiring::engine_from_config;
 
 use frames::PriorSource;
 use inputs::{Inputs, NavInput, OutputBook};

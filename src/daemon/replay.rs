@@ -27,7 +27,7 @@ use crate::daemon::fixlog::FixLogRecord;
 use crate::daemon::inputs::{InitSpacing, Inputs, NavInput, vision_measurement};
 use crate::link::Telemetry;
 use crate::nav::{Measurement, NavConfig, NavFilter, Outcome};
-use crate::sitl::fixeval::percentile;
+use visnav_core::stats::percentile;
 
 const R_EARTH_M: f64 = 6_378_137.0;
 

@@ -36,7 +36,6 @@ use super::reference::{RefSelection, Reference};
 use super::{AttitudePriorNed, FixMethod, FixPrior, FixReport, PositionPriorGeo};
 use crate::camera::frames::{r_enu_ned, rot_z};
 use crate::camera::{Attitude, Camera};
-use crate::config::{Problems, Validate};
 use crate::geo::geoid::geoid_undulation_m;
 use crate::geo::{Crs, Geodetic, LocalFrame};
 use crate::pose::{
@@ -44,6 +43,7 @@ use crate::pose::{
 };
 use crate::vision::matcher::dist2;
 use crate::vision::{Features, GrayImage, KeyPoint, MatchParams, Surf, match_features};
+use visnav_core::validate::{Problems, Validate};
 
 /// Settings of the fix pipeline (`[fix]`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

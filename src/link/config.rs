@@ -1,13 +1,13 @@
 //! `[link]` and `[output]` configuration sections: the MAVLink connection and the injection of the
-//! navigation solution. Re-exported from `crate::config`; validated with the same
-//! [`Validate`]/[`Problems`] machinery (dotted keys, every problem at once).
+//! navigation solution; validated with the [`Validate`]/[`Problems`] machinery of
+//! `visnav_core::validate` (dotted keys, every problem at once).
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
-use crate::config::{Problems, Validate};
+use visnav_core::validate::{Problems, Validate};
 
 /// `[link]`: the MAVLink connection.
 #[derive(Debug, Clone, Deserialize)]
@@ -288,13 +288,13 @@ impl LinkConfig {
     pub fn validate_in(&self, base: &Path, p: &mut Problems) {
         self.validate(p);
         if let Some(s) = &self.signing {
-            let f = crate::config::resolve(base, &s.key_file);
+            let f = visnav_core::validate::resolve(base, &s.key_file);
             if let Err(e) = crate::link::signing::load_key(&f) {
                 p.push("signing.key_file", e.to_string());
             }
         }
         if let Some(t) = &self.tlog {
-            let f = crate::config::resolve(base, t);
+            let f = visnav_core::validate::resolve(base, t);
             let dir = f.parent().filter(|d| !d.as_os_str().is_empty());
             if let Some(d) = dir
                 && !d.is_dir()
@@ -307,10 +307,10 @@ impl LinkConfig {
     /// Make the file names absolute against `base` (the config file's folder).
     pub fn resolve_paths(&mut self, base: &Path) {
         if let Some(s) = &mut self.signing {
-            s.key_file = crate::config::resolve(base, &s.key_file);
+            s.key_file = visnav_core::validate::resolve(base, &s.key_file);
         }
         if let Some(t) = &mut self.tlog {
-            *t = crate::config::resolve(base, t);
+            *t = visnav_core::validate::resolve(base, t);
         }
     }
 }

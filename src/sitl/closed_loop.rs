@@ -56,7 +56,7 @@ use super::imu::ImuErrors;
 use super::render::{ColourMode, Renderer, Scene};
 use super::rng::Rng;
 use super::scenario::GpsConfig;
-use crate::config::Config;
+use crate::daemon::app_config::Config;
 use crate::daemon::{Daemon, DaemonSetup, FrameFixer, FramePipeline};
 use crate::fix::{FixPrior, FixReport};
 use crate::geo::dem::Dem;
@@ -728,7 +728,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         .as_ref()
         .ok_or(ClosedLoopError::NotClosedLoop)?;
     let setup_err = ClosedLoopError::Setup;
-    let cfg_path = crate::config::resolve(base, &cl.config);
+    let cfg_path = visnav_core::validate::resolve(base, &cl.config);
     let mut cfg =
         Config::load(&cfg_path).map_err(|e| setup_err(format!("[closed_loop] config: {e}")))?;
     if !cl.map_ortho.is_empty() {
@@ -740,7 +740,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             )));
         }
         for p in &cl.map_ortho {
-            let p = crate::config::resolve(base, p);
+            let p = visnav_core::validate::resolve(base, p);
             if !p.is_file() {
                 return Err(setup_err(format!(
                     "[closed_loop] map_ortho {}: no such file",
@@ -751,7 +751,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         cfg.map.ortho = cl
             .map_ortho
             .iter()
-            .map(|p| crate::config::resolve(base, p))
+            .map(|p| visnav_core::validate::resolve(base, p))
             .collect();
     }
     if let Some(n) = cl.map_upsample {
@@ -765,7 +765,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         // The value (1, 2 or 4) is checked by `Scenario::parse`.
         cfg.map.upsample = Some(n);
     }
-    let cam_ortho = crate::config::resolve(base, &cl.camera_ortho);
+    let cam_ortho = visnav_core::validate::resolve(base, &cl.camera_ortho);
     if cfg.map.ortho.iter().any(|m| same_file(m, &cam_ortho)) {
         return Err(setup_err(format!(
             "[closed_loop] camera_ortho {} is also a map orthophoto of {}: render the camera from another year",
@@ -782,7 +782,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     })?;
     let dem = match (&cl.camera_dem, cl.camera_ground_height_amsl_m) {
         (Some(p), _) => {
-            let p = crate::config::resolve(base, p);
+            let p = visnav_core::validate::resolve(base, p);
             Dem::load_geotiff(&p, cfg.map.crs_override)
                 .map_err(|e| setup_err(format!("[closed_loop] camera_dem {}: {e}", p.display())))?
         }
@@ -813,7 +813,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         "building the vision fix engine (map) from {}",
         cfg_path.display()
     );
-    let engine = crate::fix::engine_from_config(&cfg)
+    let engine = crate::daemon::engine_from_config(&cfg)
         .map_err(|e| setup_err(format!("{}: vision fix engine: {e}", cfg_path.display())))?;
     let engine: Arc<dyn FrameFixer> = Arc::new(engine);
     let table =
@@ -984,8 +984,8 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     rejections.sort_by_key(|r| std::cmp::Reverse(r.1));
     // nav_err_m scores the first configured output message; every kind is in nav_err_by_message.
     let scored_kind = match cfg.output.modes.first() {
-        Some(crate::config::OutputMode::VisionPositionEstimate) => "vision_position_estimate",
-        Some(crate::config::OutputMode::Odometry) => "odometry",
+        Some(crate::link::config::OutputMode::VisionPositionEstimate) => "vision_position_estimate",
+        Some(crate::link::config::OutputMode::Odometry) => "odometry",
         _ => "gps_input",
     };
     let mut nav_err_by_message = std::collections::BTreeMap::new();

@@ -172,6 +172,8 @@ impl Stats {
     }
 }
 
+pub use visnav_core::stats::percentile;
+
 /// The mean, NaN for an empty sample (as [`percentile`]: JSON prints null, not a number no fix
 /// had).
 fn mean(v: &[f64]) -> f64 {
@@ -179,16 +181,6 @@ fn mean(v: &[f64]) -> f64 {
         return f64::NAN;
     }
     v.iter().sum::<f64>() / v.len() as f64
-}
-
-/// The `p` quantile (nearest rank), NaN for an empty sample.
-pub fn percentile(v: &[f64], p: f64) -> f64 {
-    let mut v: Vec<f64> = v.iter().copied().filter(|x| !x.is_nan()).collect();
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[((v.len() - 1) as f64 * p).round() as usize]
 }
 
 /// Summary of an evaluation run.

@@ -16,10 +16,10 @@
 //! (vertical gyro, horizontal accelerometers in level flight) and makes the NEES too small.
 
 use super::rng::Rng;
-use crate::config::{Problems, Validate};
 use crate::nav::config::{DEG_H_TO_RAD_S, UG_TO_M_S2};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
+use visnav_core::validate::{Problems, Validate};
 
 /// The simulated IMU (truth error parameters).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

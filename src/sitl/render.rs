@@ -52,7 +52,6 @@ pub use terrain::Terrain;
 
 use crate::camera::frames::{r_enu_ned, rot_z};
 use crate::camera::{Attitude, Camera, CameraPose, Intrinsics, Mount, Opk};
-use crate::config::Invalid;
 use crate::geo::dem::Dem;
 use crate::geo::geotiff::crs_equivalent;
 use crate::geo::raster::Raster;
@@ -60,6 +59,7 @@ use crate::geo::{Crs, GeoError};
 use nalgebra::{Point2, Rotation3, Vector3};
 use rayon::prelude::*;
 use std::time::Instant;
+use visnav_core::validate::Invalid;
 
 /// Errors of the renderer.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

@@ -4,10 +4,10 @@
 
 use super::imu::SimImuConfig;
 use super::trajectory::{Segment, Trajectory};
-use crate::config::{Problems, Validate};
 use crate::nav::NavConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+use visnav_core::validate::{Problems, Validate};
 
 /// Scenario loading errors.
 #[derive(Debug, thiserror::Error)]

@@ -1,9 +1,20 @@
-//! Statistics shared by the pose integrity checks and the navigation filter: the chi-square
-//! distribution's CDF and quantiles (innovation gates, prior-consistency gates, NEES bands).
+//! Statistics shared by the pose integrity checks, the navigation filter and the evaluations: the
+//! chi-square distribution's CDF and quantiles (innovation gates, prior-consistency gates, NEES
+//! bands) and sample quantiles ([`percentile`], nearest rank).
 //!
 //! CDF `P(k/2, x/2)` via the regularized lower incomplete gamma function (series for
 //! `x < a + 1`, Lentz continued fraction otherwise; Numerical Recipes 6.2), `ln Gamma` by the
 //! Lanczos approximation (g = 7, n = 9). Quantiles by bisection on the CDF (monotone).
+
+/// The `p` quantile (nearest rank), NaN for an empty sample.
+pub fn percentile(v: &[f64], p: f64) -> f64 {
+    let mut v: Vec<f64> = v.iter().copied().filter(|x| !x.is_nan()).collect();
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * p).round() as usize]
+}
 
 fn ln_gamma(x: f64) -> f64 {
     const C: [f64; 9] = [

@@ -4,6 +4,7 @@
 //! prefixed with the file name. A leaf module: every configurable module uses it, it uses none.
 
 use std::fmt;
+use std::path::{Path, PathBuf};
 
 /// One invalid configuration value.
 #[derive(Debug, Clone, PartialEq)]
@@ -80,4 +81,13 @@ impl Problems {
 pub trait Validate {
     /// Push every invalid value into `p` (keys relative to this section).
     fn validate(&self, p: &mut Problems);
+}
+
+/// Resolve `f` against `base` (the configuration file's folder: relative paths in a configuration are relative to it) unless it is absolute.
+pub fn resolve(base: &Path, f: &Path) -> PathBuf {
+    if f.is_absolute() {
+        f.to_path_buf()
+    } else {
+        base.join(f)
+    }
 }

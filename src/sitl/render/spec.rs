@@ -28,8 +28,8 @@
 
 use super::photometric::PhotometricSpec;
 use super::pyramid::ColourMode;
-use crate::config::{Problems, Validate};
 use serde::{Deserialize, Serialize};
+use visnav_core::validate::{Problems, Validate};
 
 /// Rendering parameters of the simulated camera (geometry options + photometric effects).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

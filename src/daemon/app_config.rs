@@ -1,4 +1,7 @@
-//! TOML configuration: schema, loading and validation.
+//! The application's TOML configuration (`visnav run --config F`, `visnav check-config F`): the
+//! one type that names every section, loading and validation. Each section's type lives with its
+//! module (`[camera]` in the camera model, `[nav]` in the filter, `[link]`/`[output]` in the
+//! link, ...) and checks itself through `visnav_core::validate`.
 //!
 //! Every section is a serde struct with `deny_unknown_fields`, so a misspelt key is an error that
 //! names the key. After parsing, every value is validated through [`Validate`]: each section reports
@@ -11,12 +14,10 @@ use serde::Deserialize;
 
 use crate::camera::CameraConfig;
 use crate::geo::Crs;
-pub use crate::link::config::{
-    LinkConfig, OnLost, OutputConfig, OutputMode, SigningSettings, StreamRates, check_connection,
-};
+use crate::link::config::{LinkConfig, OutputConfig};
 use crate::nav::config::NavConfig;
 
-pub use visnav_core::validate::{Invalid, Problems, Validate};
+use visnav_core::validate::{Invalid, Problems, Validate, resolve};
 
 /// Why a configuration file could not be used. Every variant names the file.
 #[derive(Debug, thiserror::Error)]
@@ -163,15 +164,6 @@ fn check_file(p: &mut Problems, key: &str, base: &Path, f: &Path) {
         Ok(m) if m.is_file() => {}
         Ok(_) => p.push(key, format!("{} is not a regular file", full.display())),
         Err(e) => p.push(key, format!("{}: {e}", full.display())),
-    }
-}
-
-/// Resolve `f` against `base` (the config file's folder) unless it is absolute.
-pub fn resolve(base: &Path, f: &Path) -> PathBuf {
-    if f.is_absolute() {
-        f.to_path_buf()
-    } else {
-        base.join(f)
     }
 }
 

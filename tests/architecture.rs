@@ -1,0 +1,214 @@
+//! The structure docs/architecture.md describes, kept by a test: the pure core depends on no I/O,
+//! async or wall-clock crate (its whole dependency tree, read from Cargo.lock) and uses none of
+//! std's; the top-level modules of the `visnav` package import each other without a circle.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// Cargo.lock's packages: name -> the names it depends on.
+fn lock_graph() -> BTreeMap<String, Vec<String>> {
+    let text = std::fs::read_to_string(repo().join("Cargo.lock")).expect("Cargo.lock");
+    let lock: toml::Value = toml::from_str(&text).expect("Cargo.lock is TOML");
+    let mut g = BTreeMap::new();
+    for p in lock["package"].as_array().expect("[[package]]") {
+        let name = p["name"].as_str().expect("name").to_string();
+        let deps: Vec<String> = p
+            .get("dependencies")
+            .and_then(|d| d.as_array())
+            .map(|d| {
+                d.iter()
+                    .filter_map(|v| v.as_str())
+                    // "name version" when several versions are locked.
+                    .map(|s| s.split(' ').next().unwrap_or(s).to_string())
+                    .collect()
+            })
+            .unwrap_or_default();
+        g.entry(name).or_insert_with(Vec::new).extend(deps);
+    }
+    g
+}
+
+fn closure(g: &BTreeMap<String, Vec<String>>, root: &str) -> BTreeSet<String> {
+    let mut seen = BTreeSet::new();
+    let mut todo = vec![root.to_string()];
+    while let Some(n) = todo.pop() {
+        for d in g.get(&n).into_iter().flatten() {
+            if seen.insert(d.clone()) {
+                todo.push(d.clone());
+            }
+        }
+    }
+    seen
+}
+
+/// Cargo.lock also holds dev-dependencies; the core's own `[dependencies]` are the roots here.
+fn core_normal_dependencies() -> Vec<String> {
+    let text = std::fs::read_to_string(repo().join("crates/visnav-core/Cargo.toml"))
+        .expect("core manifest");
+    let m: toml::Value = toml::from_str(&text).expect("TOML");
+    m["dependencies"]
+        .as_table()
+        .expect("[dependencies]")
+        .keys()
+        .cloned()
+        .collect()
+}
+
+#[test]
+fn the_core_depends_on_no_io_async_or_protocol_crate() {
+    let g = lock_graph();
+    let mut all = BTreeSet::new();
+    for d in core_normal_dependencies() {
+        all.insert(d.clone());
+        all.extend(closure(&g, &d));
+    }
+    for banned in [
+        "tokio",
+        "mavlink",
+        "tiff",
+        "image",
+        "memmap2",
+        "libc",
+        "tracing-subscriber",
+    ] {
+        assert!(
+            !all.contains(banned),
+            "visnav-core depends on {banned} (tree: {all:?})"
+        );
+    }
+    // The check sees the tree: nalgebra's own dependencies are in it.
+    assert!(
+        all.contains("nalgebra") && all.contains("num-traits"),
+        "{all:?}"
+    );
+}
+
+/// Rust sources under `dir`, recursively.
+fn sources(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).expect("read dir").flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            out.extend(sources(&p));
+        } else if p.extension().is_some_and(|x| x == "rs") {
+            out.push(p);
+        }
+    }
+    out
+}
+
+/// The code of a source file outside its test module and comments.
+fn code_outside_tests(p: &Path) -> String {
+    let s = std::fs::read_to_string(p).expect("read source");
+    let body = s.split("#[cfg(test)]").next().unwrap_or("");
+    body.lines()
+        .filter(|l| !l.trim_start().starts_with("//"))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+#[test]
+fn the_core_does_no_io_and_reads_no_clock() {
+    for p in sources(&repo().join("crates/visnav-core/src")) {
+        let code = code_outside_tests(&p);
+        for banned in [
+            "std::fs",
+            "std::net",
+            "File::",
+            "Instant::now",
+            "SystemTime",
+            "std::thread::sleep",
+        ] {
+            assert!(!code.contains(banned), "{} uses {banned}", p.display());
+        }
+    }
+}
+
+/// The modules of the package (`src/<name>` or `src/<name>.rs`) each one names outside its tests.
+fn module_graph() -> BTreeMap<String, BTreeSet<String>> {
+    let src = repo().join("src");
+    let mut g: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+    for p in sources(&src) {
+        let rel = p.strip_prefix(&src).expect("under src");
+        let top = rel
+            .components()
+            .next()
+            .and_then(|c| c.as_os_str().to_str())
+            .unwrap_or("")
+            .trim_end_matches(".rs")
+            .to_string();
+        if top == "lib" || top == "main" {
+            continue;
+        }
+        let code = code_outside_tests(&p);
+        let uses = g.entry(top.clone()).or_default();
+        for prefix in ["crate::", "visnav::"] {
+            for (i, _) in code.match_indices(prefix) {
+                let before = code[..i].chars().next_back();
+                if before.is_some_and(|c| c.is_alphanumeric() || c == '_') {
+                    continue;
+                }
+                let name: String = code[i + prefix.len()..]
+                    .chars()
+                    .take_while(|c| c.is_ascii_lowercase() || *c == '_')
+                    .collect();
+                if !name.is_empty() && name != top {
+                    uses.insert(name);
+                }
+            }
+        }
+    }
+    g
+}
+
+/// A circle through `start` in `g`, if any (depth-first).
+fn circle(g: &BTreeMap<String, BTreeSet<String>>) -> Option<Vec<String>> {
+    fn visit(
+        g: &BTreeMap<String, BTreeSet<String>>,
+        n: &str,
+        path: &mut Vec<String>,
+        done: &mut BTreeSet<String>,
+    ) -> Option<Vec<String>> {
+        if let Some(i) = path.iter().position(|p| p == n) {
+            let mut c = path[i..].to_vec();
+            c.push(n.to_string());
+            return Some(c);
+        }
+        if done.contains(n) {
+            return None;
+        }
+        path.push(n.to_string());
+        for m in g.get(n).into_iter().flatten() {
+            if let Some(c) = visit(g, m, path, done) {
+                return Some(c);
+            }
+        }
+        path.pop();
+        done.insert(n.to_string());
+        None
+    }
+    let mut done = BTreeSet::new();
+    for n in g.keys() {
+        if let Some(c) = visit(g, n, &mut Vec::new(), &mut done) {
+            return Some(c);
+        }
+    }
+    None
+}
+
+#[test]
+fn the_packages_modules_import_each_other_without_a_circle() {
+    let g = module_graph();
+    // The graph is read: the daemon wires the fix engine, the CLI the daemon.
+    assert!(g["daemon"].contains("fix"), "{g:?}");
+    assert!(g["cli"].contains("daemon"), "{g:?}");
+    assert_eq!(circle(&g), None, "import circle; the graph: {g:?}");
+    // The circle finder finds one.
+    let mut bad = g.clone();
+    bad.entry("geo".into()).or_default().insert("daemon".into());
+    assert!(circle(&bad).is_some());
+}

@@ -9,10 +9,10 @@
 pub mod camera;
 pub mod daemon;
 pub mod fix;
-pub mod geo;
+pub use visnav_io::geo;
 pub mod link;
-pub mod map;
 pub use visnav_core::nav;
+pub use visnav_io::map;
 pub mod pose;
 pub mod sitl;
 pub use visnav_core::stats;

@@ -45,10 +45,10 @@ fn closure(g: &BTreeMap<String, Vec<String>>, root: &str) -> BTreeSet<String> {
     seen
 }
 
-/// Cargo.lock also holds dev-dependencies; the core's own `[dependencies]` are the roots here.
-fn core_normal_dependencies() -> Vec<String> {
-    let text = std::fs::read_to_string(repo().join("crates/visnav-core/Cargo.toml"))
-        .expect("core manifest");
+/// Cargo.lock also holds dev-dependencies; the crate's own `[dependencies]` are the roots here.
+fn normal_dependencies(krate: &str) -> Vec<String> {
+    let text = std::fs::read_to_string(repo().join("crates").join(krate).join("Cargo.toml"))
+        .expect("crate manifest");
     let m: toml::Value = toml::from_str(&text).expect("TOML");
     m["dependencies"]
         .as_table()
@@ -58,14 +58,20 @@ fn core_normal_dependencies() -> Vec<String> {
         .collect()
 }
 
-#[test]
-fn the_core_depends_on_no_io_async_or_protocol_crate() {
+/// The crate's whole dependency tree, its optional dependencies included.
+fn tree(krate: &str) -> BTreeSet<String> {
     let g = lock_graph();
     let mut all = BTreeSet::new();
-    for d in core_normal_dependencies() {
+    for d in normal_dependencies(krate) {
         all.insert(d.clone());
         all.extend(closure(&g, &d));
     }
+    all
+}
+
+#[test]
+fn the_core_depends_on_no_io_async_or_protocol_crate() {
+    let all = tree("visnav-core");
     for banned in [
         "tokio",
         "mavlink",
@@ -83,6 +89,21 @@ fn the_core_depends_on_no_io_async_or_protocol_crate() {
     // The check sees the tree: nalgebra's own dependencies are in it.
     assert!(
         all.contains("nalgebra") && all.contains("num-traits"),
+        "{all:?}"
+    );
+}
+
+#[test]
+fn the_io_crate_is_neither_async_nor_a_protocol() {
+    let all = tree("visnav-io");
+    for banned in ["tokio", "mavlink", "tracing-subscriber"] {
+        assert!(
+            !all.contains(banned),
+            "visnav-io depends on {banned} (tree: {all:?})"
+        );
+    }
+    assert!(
+        all.contains("visnav-core") && all.contains("tiff"),
         "{all:?}"
     );
 }

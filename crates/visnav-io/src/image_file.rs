@@ -7,7 +7,7 @@
 
 use std::path::Path;
 
-use super::{GrayImage, VisionError};
+use crate::vision::{GrayImage, VisionError};
 
 /// [`GrayImage`] from and to files and decoded images. In scope, `GrayImage::load(path)` and
 /// `image.save_png(path)` read as methods of the image.

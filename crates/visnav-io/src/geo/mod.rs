@@ -1,5 +1,4 @@
-//! Geodesy and georeferenced rasters ([`visnav_core::geo`], re-exported here) and the files they
-//! come from:
+//! Geodesy and rasters ([`visnav_core::geo`], re-exported here) and the files they come from:
 //!
 //! * `geotiff`: GeoTIFF reader (tiff crate, no GDAL) producing a `Raster`.
 //! * `window`: windowed GeoTIFF reader (decodes only the strips/tiles under a pixel window).

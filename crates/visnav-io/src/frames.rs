@@ -80,7 +80,8 @@ use std::time::{Duration, Instant};
 use serde::Deserialize;
 use tracing::{debug, info};
 
-use crate::vision::{GrayImage, GrayImageFile};
+use crate::image_file::GrayImageFile;
+use crate::vision::GrayImage;
 use visnav_core::validate::{Problems, Validate};
 
 /// Capture time of a frame.

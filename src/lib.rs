@@ -9,10 +9,10 @@
 pub mod camera;
 pub mod daemon;
 pub mod fix;
-pub use visnav_io::geo;
-pub mod link;
 pub use visnav_core::nav;
+pub use visnav_io::geo;
 pub use visnav_io::map;
+pub use visnav_link as link;
 pub mod pose;
 pub mod sitl;
 pub use visnav_core::stats;

@@ -1,6 +1,7 @@
 //! The structure docs/architecture.md describes, kept by a test: the pure core depends on no I/O,
 //! async or wall-clock crate (its whole dependency tree, read from Cargo.lock) and uses none of
-//! std's; the top-level modules of the `visnav` package import each other without a circle.
+//! std's; visnav-io is not async, visnav-link reads no map or image; the top-level modules of the
+//! `visnav` package import each other without a circle.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -104,6 +105,21 @@ fn the_io_crate_is_neither_async_nor_a_protocol() {
     }
     assert!(
         all.contains("visnav-core") && all.contains("tiff"),
+        "{all:?}"
+    );
+}
+
+#[test]
+fn the_link_crate_knows_mavlink_not_maps_or_images() {
+    let all = tree("visnav-link");
+    for banned in ["visnav-io", "tiff", "image", "tracing-subscriber"] {
+        assert!(
+            !all.contains(banned),
+            "visnav-link depends on {banned} (tree: {all:?})"
+        );
+    }
+    assert!(
+        all.contains("mavlink") && all.contains("visnav-core"),
         "{all:?}"
     );
 }

@@ -352,13 +352,99 @@ pub fn resect(
     priors: &Priors,
     cfg: &ResectionConfig,
 ) -> Outcome {
-    if let Err(reason) = image.check() {
-        return Outcome::rejected(Rejection::InvalidInput { reason });
+    match resect_stages(corrs, image, priors, cfg) {
+        Ok(outcome) => outcome,
+        Err(r) => Outcome::rejected(r),
     }
+}
+
+/// The pipeline of [`resect`] as stages; a stage's rejection ends it.
+fn resect_stages(
+    corrs: &[Correspondence],
+    image: &ImageGeometry,
+    priors: &Priors,
+    cfg: &ResectionConfig,
+) -> Result<Outcome, Rejection> {
+    check_inputs(image, priors, cfg)?;
+    // 1. Valid correspondences, centred.
+    let c = Centred::new(corrs)?;
+    let (fx, fy) = (image.fx_px, image.fy_px);
+    // 2. RANSAC.
+    let rs = ransac_p3p(&c.local, fx, fy, &cfg.ransac)
+        .map_err(|iterations| Rejection::NoConsensus { iterations })?;
+    // 3. Vision-only LM, inliers re-selected until stable.
+    let (vision, inliers, lm_vision) = refine_reselecting(&c.local, &rs, fx, fy, cfg)?;
+    let split_factor = if cfg.refine.split_variance {
+        split_variance_factor(&c.local, &inliers, &vision, image, &cfg.refine)
+    } else {
+        1.0
+    };
+    let vision_cov = PoseCovariance {
+        apriori: vision.cov_apriori,
+        sigma0_sq: vision.sigma0_sq,
+        dof: vision.dof,
+        inflation: cfg.refine.sigma_inflation,
+        split_factor,
+        sigma0_floor: cfg.refine.sigma0_floor,
+    };
+    // 5a. Prior consistency on the vision-only solution (in the centred frame).
+    let prior_d2 = prior_consistency(&vision.pose, &vision_cov, priors, &c.origin);
+    // 6. Optional fusion of the attitude prior.
+    let fusion = fuse_attitude_prior(&c.local, &inliers, &vision, &vision_cov, priors, image, cfg)?;
+    let final_r = fusion.as_ref().map_or(&vision, |(r, _)| r);
+    // The fused covariance scales with the image's variance factor (see `fuse_attitude_prior`):
+    // the prior rows' residuals say nothing about the pixel sigmas.
+    let covariance = PoseCovariance {
+        apriori: final_r.cov_apriori,
+        dof: final_r.dof,
+        ..vision_cov
+    };
+    // 5b. Quality figures.
+    let quality = quality_figures(QualityInputs {
+        local: &c.local,
+        inliers: &inliers,
+        vision: &vision,
+        covariance: &covariance,
+        image,
+        prior_d2,
+        ransac_iterations: rs.iterations,
+        lm_iterations: lm_vision + fusion.as_ref().map_or(0, |(r, _)| r.iterations),
+    });
+    let uncentre = |p: &Pose| Pose {
+        r_world_cam: p.r_world_cam,
+        c_world: p.c_world + c.origin,
+    };
+    let fix = Fix {
+        pose: uncentre(&final_r.pose),
+        covariance,
+        vision_pose: uncentre(&vision.pose),
+        vision_covariance: vision_cov,
+        quality,
+        inliers: inliers.iter().map(|&i| c.valid_idx[i]).collect(),
+        attitude_prior_fused: fusion.is_some(),
+        prior_dependence: fusion
+            .as_ref()
+            .and_then(|(_, effective)| prior_dependence(&covariance, &vision_cov, effective)),
+    };
+    Ok(Outcome {
+        verdict: verdict_of(&fix, cfg),
+        fix: Some(fix),
+    })
+}
+
+/// The image geometry, the configuration and the priors are usable.
+fn check_inputs(
+    image: &ImageGeometry,
+    priors: &Priors,
+    cfg: &ResectionConfig,
+) -> Result<(), Rejection> {
+    image
+        .check()
+        .map_err(|reason| Rejection::InvalidInput { reason })?;
     let mut problems = Problems::default();
     cfg.validate(&mut problems);
     if let Some(first) = problems.list.first() {
-        return Outcome::rejected(Rejection::InvalidInput {
+        return Err(Rejection::InvalidInput {
             reason: format!("configuration {first}"),
         });
     }
@@ -377,65 +463,82 @@ pub fn resect(
         ),
     ] {
         if !ok {
-            return Outcome::rejected(Rejection::InvalidInput {
+            return Err(Rejection::InvalidInput {
                 reason: format!("{what}: non-finite value or covariance not positive definite"),
             });
         }
     }
+    Ok(())
+}
 
-    // 1. Valid correspondences, centred.
-    let valid_idx: Vec<usize> = (0..corrs.len()).filter(|&i| corrs[i].is_valid()).collect();
-    if valid_idx.len() < 4 {
-        return Outcome::rejected(Rejection::TooFewCorrespondences {
-            valid: valid_idx.len(),
-            required: 4,
-        });
-    }
-    let origin = valid_idx
-        .iter()
-        .fold(Vector3::zeros(), |a, &i| a + corrs[i].point_world)
-        / valid_idx.len() as f64;
-    let local: Vec<Correspondence> = valid_idx
-        .iter()
-        .map(|&i| Correspondence {
-            point_world: corrs[i].point_world - origin,
-            ..corrs[i]
+/// The valid correspondences with their world points centred on their mean (numbers stay well
+/// conditioned with map grid coordinates of 10^6 m).
+struct Centred {
+    /// Index of each into the caller's slice.
+    valid_idx: Vec<usize>,
+    origin: Vector3<f64>,
+    local: Vec<Correspondence>,
+}
+
+impl Centred {
+    fn new(corrs: &[Correspondence]) -> Result<Self, Rejection> {
+        let valid_idx: Vec<usize> = (0..corrs.len()).filter(|&i| corrs[i].is_valid()).collect();
+        if valid_idx.len() < 4 {
+            return Err(Rejection::TooFewCorrespondences {
+                valid: valid_idx.len(),
+                required: 4,
+            });
+        }
+        let origin = valid_idx
+            .iter()
+            .fold(Vector3::zeros(), |a, &i| a + corrs[i].point_world)
+            / valid_idx.len() as f64;
+        let local = valid_idx
+            .iter()
+            .map(|&i| Correspondence {
+                point_world: corrs[i].point_world - origin,
+                ..corrs[i]
+            })
+            .collect();
+        Ok(Self {
+            valid_idx,
+            origin,
+            local,
         })
-        .collect();
-    let n_valid = local.len();
-    let (fx, fy) = (image.fx_px, image.fy_px);
+    }
+}
 
-    // 2. RANSAC.
-    let rs = match ransac_p3p(&local, fx, fy, &cfg.ransac) {
-        Ok(r) => r,
-        Err(iterations) => return Outcome::rejected(Rejection::NoConsensus { iterations }),
-    };
-
-    // 3. Vision-only LM, inliers re-selected until stable.
+/// Vision-only LM from the RANSAC pose, the inliers re-selected with the refined pose and the
+/// adjustment repeated until the set is stable (at most 4 times): the solution, its inliers and
+/// the LM iterations spent.
+fn refine_reselecting(
+    local: &[Correspondence],
+    rs: &RansacResult,
+    fx: f64,
+    fy: f64,
+    cfg: &ResectionConfig,
+) -> Result<(Refined, Vec<usize>, usize), Rejection> {
     let th2 = cfg.ransac.threshold_px * cfg.ransac.threshold_px;
     let mut inliers = rs.inliers.clone();
     let mut lm_iterations = 0;
     let mut pose = rs.pose;
     let mut refined = None;
     for _ in 0..4 {
-        let r = match refine_pose(&local, &inliers, &pose, fx, fy, None, &cfg.refine) {
-            Ok(r) => r,
-            Err(RefineError::Singular) => {
-                return Outcome::rejected(Rejection::IllConditioned {
+        let r = refine_pose(local, &inliers, &pose, fx, fy, None, &cfg.refine).map_err(
+            |e| match e {
+                RefineError::Singular => Rejection::IllConditioned {
                     condition: f64::INFINITY,
                     max: cfg.integrity.max_condition_number,
-                });
-            }
-            Err(e) => {
-                return Outcome::rejected(Rejection::NumericalFailure {
+                },
+                e => Rejection::NumericalFailure {
                     stage: "refinement",
                     detail: e.to_string(),
-                });
-            }
-        };
+                },
+            },
+        )?;
         lm_iterations += r.iterations;
         pose = r.pose;
-        let new_inl: Vec<usize> = (0..n_valid)
+        let new_inl: Vec<usize> = (0..local.len())
             .filter(|&i| {
                 let c = &local[i];
                 pose.project(&c.point_world).is_some_and(|p| {
@@ -451,100 +554,115 @@ pub fn resect(
         }
         inliers = new_inl;
     }
-    let Some(vision) = refined else {
-        return Outcome::rejected(Rejection::NumericalFailure {
-            stage: "refinement",
-            detail: "no iteration".into(),
-        });
-    };
-    let split_factor = if cfg.refine.split_variance {
-        split_variance_factor(&local, &inliers, &vision, image, &cfg.refine)
-    } else {
-        1.0
-    };
-    let vision_cov = PoseCovariance {
-        apriori: vision.cov_apriori,
-        sigma0_sq: vision.sigma0_sq,
-        dof: vision.dof,
-        inflation: cfg.refine.sigma_inflation,
-        split_factor,
-        sigma0_floor: cfg.refine.sigma0_floor,
-    };
+    let vision = refined.ok_or_else(|| Rejection::NumericalFailure {
+        stage: "refinement",
+        detail: "no iteration".into(),
+    })?;
+    Ok((vision, inliers, lm_iterations))
+}
 
-    // 5a. Prior consistency on the vision-only solution (in the centred frame).
+/// Squared Mahalanobis distances of the vision-only pose from the position and attitude priors
+/// (`origin`: the centring of the solution's frame), each against the sum of the conservative
+/// covariance and the prior's.
+fn prior_consistency(
+    vision: &Pose,
+    vision_cov: &PoseCovariance,
+    priors: &Priors,
+    origin: &Vector3<f64>,
+) -> (Option<f64>, Option<f64>) {
     let cons = vision_cov.conservative();
-    let prior_position_d2 = priors.position.map(|p| {
-        let d = vision.pose.c_world - (p.c_world - origin);
+    let position = priors.position.map(|p| {
+        let d = vision.c_world - (p.c_world - origin);
         let s = cons.fixed_view::<3, 3>(3, 3) + p.cov_m2;
         inv3(&s).map_or(f64::INFINITY, |si| (d.transpose() * si * d)[0])
     });
-    let prior_attitude_d2 = priors.attitude.map(|a| {
-        let phi = (vision.pose.r_world_cam * a.r_world_cam.inverse()).scaled_axis();
+    let attitude = priors.attitude.map(|a| {
+        let phi = (vision.r_world_cam * a.r_world_cam.inverse()).scaled_axis();
         let s = cons.fixed_view::<3, 3>(0, 0) + a.cov_rad2;
         inv3(&s).map_or(f64::INFINITY, |si| (phi.transpose() * si * phi)[0])
     });
+    (position, attitude)
+}
 
-    // 6. Optional fusion of the attitude prior. The image's real covariance is `k Q_img` with
-    //    `k = PoseCovariance::factor()` (the conservative covariance's factor), so the
-    //    prior enters the whitened least squares with `P / k`: the fused normal matrix is then
-    //    `Q_img^-1 + k P^-1` and `k (Q_img^-1 + k P^-1)^-1 = ((k Q_img)^-1 + P^-1)^-1`, the
-    //    information-weighted combination of the image and the prior. Without the scaling the prior
-    //    is under-weighted by `k` (16 with the fix pipeline's inflation of 4) and the image's
-    //    correlated errors leak into the tilt along the position/tilt ambiguity.
+/// Step 6, when configured and an attitude prior is given: the solution with the prior fused, and
+/// the prior as the fusion weighed it (for [`prior_dependence`]).
+///
+/// The image's real covariance is `k Q_img` with `k = PoseCovariance::factor()` (the
+/// conservative covariance's factor), so the prior enters the whitened least squares with
+/// `P / k`: the fused normal matrix is then `Q_img^-1 + k P^-1` and
+/// `k (Q_img^-1 + k P^-1)^-1 = ((k Q_img)^-1 + P^-1)^-1`, the information-weighted combination of
+/// the image and the prior. Without the scaling the prior is under-weighted by `k` (16 with the
+/// fix pipeline's inflation of 4) and the image's correlated errors leak into the tilt along the
+/// position/tilt ambiguity. The prior as weighed is `P k / k_image`.
+fn fuse_attitude_prior(
+    local: &[Correspondence],
+    inliers: &[usize],
+    vision: &Refined,
+    vision_cov: &PoseCovariance,
+    priors: &Priors,
+    image: &ImageGeometry,
+    cfg: &ResectionConfig,
+) -> Result<Option<(Refined, AttitudePrior)>, Rejection> {
+    let Some(a) = priors
+        .attitude
+        .as_ref()
+        .filter(|_| cfg.refine.use_attitude_prior)
+    else {
+        return Ok(None);
+    };
     let k_image = if cfg.refine.prior_against_conservative {
         vision_cov.factor()
     } else {
         1.0
     };
-    let mut final_r = vision.clone();
-    let mut fused = false;
-    if cfg.refine.use_attitude_prior
-        && let Some(a) = priors.attitude.as_ref()
-    {
-        let scaled = AttitudePrior {
-            r_world_cam: a.r_world_cam,
-            cov_rad2: a.cov_rad2 / k_image,
-        };
-        match refine_pose(
-            &local,
-            &inliers,
-            &vision.pose,
-            fx,
-            fy,
-            Some(&scaled),
-            &cfg.refine,
-        ) {
-            Ok(r) => {
-                lm_iterations += r.iterations;
-                final_r = r;
-                fused = true;
-            }
-            Err(e) => {
-                return Outcome::rejected(Rejection::NumericalFailure {
-                    stage: "attitude prior fusion",
-                    detail: e.to_string(),
-                });
-            }
-        }
-    }
-    // The fused covariance scales with the image's variance factor (see step 6): the prior rows'
-    // residuals say nothing about the pixel sigmas.
-    let covariance = PoseCovariance {
-        apriori: final_r.cov_apriori,
-        sigma0_sq: vision.sigma0_sq,
-        dof: final_r.dof,
-        inflation: cfg.refine.sigma_inflation,
-        split_factor,
-        sigma0_floor: cfg.refine.sigma0_floor,
+    let scaled = AttitudePrior {
+        r_world_cam: a.r_world_cam,
+        cov_rad2: a.cov_rad2 / k_image,
     };
+    let (fx, fy) = (image.fx_px, image.fy_px);
+    let fused = refine_pose(
+        local,
+        inliers,
+        &vision.pose,
+        fx,
+        fy,
+        Some(&scaled),
+        &cfg.refine,
+    )
+    .map_err(|e| Rejection::NumericalFailure {
+        stage: "attitude prior fusion",
+        detail: e.to_string(),
+    })?;
+    let effective = AttitudePrior {
+        r_world_cam: a.r_world_cam,
+        cov_rad2: a.cov_rad2 * (vision_cov.factor() / k_image),
+    };
+    Ok(Some((fused, effective)))
+}
 
-    // 5b. Quality figures.
-    let px: Vec<Vector2<f64>> = inliers
+/// What the quality figures of a fix are computed from.
+struct QualityInputs<'a> {
+    local: &'a [Correspondence],
+    inliers: &'a [usize],
+    vision: &'a Refined,
+    covariance: &'a PoseCovariance,
+    image: &'a ImageGeometry,
+    /// Squared distances from the position and attitude priors ([`prior_consistency`]).
+    prior_d2: (Option<f64>, Option<f64>),
+    ransac_iterations: usize,
+    lm_iterations: usize,
+}
+
+/// Step 5b: the figures the integrity check judges.
+fn quality_figures(q: QualityInputs) -> FixQuality {
+    let px: Vec<Vector2<f64>> = q
+        .inliers
         .iter()
-        .map(|&i| image.to_pixel(&local[i].obs_norm))
+        .map(|&i| q.image.to_pixel(&q.local[i].obs_norm))
         .collect();
-    let (cells, hull, eig) = integrity::spread(&px, image.width_px as f64, image.height_px as f64);
-    let pos = covariance.position_world_m2();
+    let (cells, hull, eig) =
+        integrity::spread(&px, q.image.width_px as f64, q.image.height_px as f64);
+    let pos = q.covariance.position_world_m2();
     let horiz = pos
         .fixed_view::<2, 2>(0, 0)
         .into_owned()
@@ -552,67 +670,44 @@ pub fn resect(
         .max()
         .max(0.0)
         .sqrt();
-    let quality = FixQuality {
+    let n_valid = q.local.len();
+    FixQuality {
         valid_correspondences: n_valid,
-        inliers: inliers.len(),
-        inlier_ratio: inliers.len() as f64 / n_valid as f64,
-        reprojection_rms_px: vision.rms_px,
-        sigma0: vision.sigma0_sq.sqrt(),
-        dof: vision.dof,
+        inliers: q.inliers.len(),
+        inlier_ratio: q.inliers.len() as f64 / n_valid as f64,
+        reprojection_rms_px: q.vision.rms_px,
+        sigma0: q.vision.sigma0_sq.sqrt(),
+        dof: q.vision.dof,
         grid_cells_3x3: cells,
         hull_area_fraction: hull,
         spread_eig_ratio: eig,
-        condition_number: vision.condition_number,
+        condition_number: q.vision.condition_number,
         horizontal_sigma_m: horiz,
         vertical_sigma_m: pos[(2, 2)].max(0.0).sqrt(),
-        attitude_sigma_rad: max_sigma3(&covariance.attitude_world_rad2()),
-        prior_position_d2,
-        prior_attitude_d2,
-        ransac_iterations: rs.iterations,
-        lm_iterations,
-    };
-    let uncentre = |p: &Pose| Pose {
-        r_world_cam: p.r_world_cam,
-        c_world: p.c_world + origin,
-    };
-    let fix = Fix {
-        pose: uncentre(&final_r.pose),
-        covariance,
-        vision_pose: uncentre(&vision.pose),
-        vision_covariance: vision_cov,
-        quality,
-        inliers: inliers.iter().map(|&i| valid_idx[i]).collect(),
-        attitude_prior_fused: fused,
-        prior_dependence: if fused {
-            // The prior as the fusion weighed it: `P k / k_image` (see step 6).
-            priors.attitude.as_ref().and_then(|a| {
-                let effective = AttitudePrior {
-                    r_world_cam: a.r_world_cam,
-                    cov_rad2: a.cov_rad2 * (vision_cov.factor() / k_image),
-                };
-                prior_dependence(&covariance, &vision_cov, &effective)
-            })
-        } else {
-            None
-        },
-    };
+        attitude_sigma_rad: max_sigma3(&q.covariance.attitude_world_rad2()),
+        prior_position_d2: q.prior_d2.0,
+        prior_attitude_d2: q.prior_d2.1,
+        ransac_iterations: q.ransac_iterations,
+        lm_iterations: q.lm_iterations,
+    }
+}
+
+/// The integrity verdict; a non-finite pose or covariance is a numerical failure.
+fn verdict_of(fix: &Fix, cfg: &ResectionConfig) -> Verdict {
     let finite = fix.pose.c_world.iter().all(|v| v.is_finite())
         && fix.pose.r_world_cam.matrix().iter().all(|v| v.is_finite())
         && fix.covariance.apriori.iter().all(|v| v.is_finite())
         && fix.covariance.sigma0_sq.is_finite();
-    let verdict = if finite {
+    if finite {
         check(&fix.quality, &cfg.integrity)
     } else {
         Verdict::Rejected(Rejection::NumericalFailure {
             stage: "result",
             detail: "non-finite pose or covariance".into(),
         })
-    };
-    Outcome {
-        fix: Some(fix),
-        verdict,
     }
 }
+
 /// Split-sample variance factor of a vision-only solution: the inliers are split into the four
 /// quadrants about their median pixel position, the pose is re-solved from each quadrant alone
 /// (LM from the full solution, no prior), and each quadrant's pose difference `d_g` to the full

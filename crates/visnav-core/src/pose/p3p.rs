@@ -157,99 +157,125 @@ fn refine_lambda(l: &mut [f64; 3], a12: f64, a13: f64, a23: f64, b12: f64, b13: 
     }
 }
 
-/// Lambda Twist P3P. `y` are bearing vectors in the camera frame (need not be unit length; they are
-/// normalised here), `x` the corresponding world points. Returns up to four poses with all three
-/// depths positive.
-pub fn p3p_lambda_twist(y: &[Vector3<f64>; 3], x: &[Vector3<f64>; 3]) -> P3pSolutions {
-    let mut out = P3pSolutions::new();
-    let mut yn = [Vector3::zeros(); 3];
-    for i in 0..3 {
-        let n = y[i].norm();
-        if !(n.is_finite() && n > 0.0 && x[i].iter().all(|v| v.is_finite())) {
-            return out;
+/// The three correspondences as Lambda Twist sees them: unit bearings, the world triangle's
+/// sides `dx`, their squared lengths `a` and the bearings' cosines `b`.
+struct Triangle {
+    yn: [Vector3<f64>; 3],
+    dx12: Vector3<f64>,
+    dx13: Vector3<f64>,
+    /// `dx12 x dx13`: the triangle's normal.
+    cross: Vector3<f64>,
+    a12: f64,
+    a13: f64,
+    a23: f64,
+    b12: f64,
+    b13: f64,
+    b23: f64,
+}
+
+impl Triangle {
+    /// `None` for non-finite input, zero bearings, coincident or collinear world points and
+    /// parallel bearings.
+    fn new(y: &[Vector3<f64>; 3], x: &[Vector3<f64>; 3]) -> Option<Self> {
+        let mut yn = [Vector3::zeros(); 3];
+        for i in 0..3 {
+            let n = y[i].norm();
+            if !(n.is_finite() && n > 0.0 && x[i].iter().all(|v| v.is_finite())) {
+                return None;
+            }
+            yn[i] = y[i] / n;
         }
-        yn[i] = y[i] / n;
-    }
-    let dx12 = x[0] - x[1];
-    let dx13 = x[0] - x[2];
-    let dx23 = x[1] - x[2];
-    let (a12, a13, a23) = (
-        dx12.norm_squared(),
-        dx13.norm_squared(),
-        dx23.norm_squared(),
-    );
-    let (b12, b13, b23) = (yn[0].dot(&yn[1]), yn[0].dot(&yn[2]), yn[1].dot(&yn[2]));
-    let scale = a12.max(a13).max(a23);
-    if scale.is_nan() || scale <= 0.0 || a12.min(a13).min(a23) < 1e-12 * scale {
-        return out; // coincident points
-    }
-    // Collinear world points: the triangle has no area and the rotation is undetermined.
-    let cross = dx12.cross(&dx13);
-    if cross.norm_squared() < 1e-14 * a12 * a13 {
-        return out;
-    }
-    if b12.abs() > 1.0 - 1e-15 || b13.abs() > 1.0 - 1e-15 || b23.abs() > 1.0 - 1e-15 {
-        return out; // parallel bearings
+        let dx12 = x[0] - x[1];
+        let dx13 = x[0] - x[2];
+        let dx23 = x[1] - x[2];
+        let (a12, a13, a23) = (
+            dx12.norm_squared(),
+            dx13.norm_squared(),
+            dx23.norm_squared(),
+        );
+        let (b12, b13, b23) = (yn[0].dot(&yn[1]), yn[0].dot(&yn[2]), yn[1].dot(&yn[2]));
+        let scale = a12.max(a13).max(a23);
+        if scale.is_nan() || scale <= 0.0 || a12.min(a13).min(a23) < 1e-12 * scale {
+            return None; // coincident points
+        }
+        // Collinear world points: the triangle has no area and the rotation is undetermined.
+        let cross = dx12.cross(&dx13);
+        if cross.norm_squared() < 1e-14 * a12 * a13 {
+            return None;
+        }
+        if b12.abs() > 1.0 - 1e-15 || b13.abs() > 1.0 - 1e-15 || b23.abs() > 1.0 - 1e-15 {
+            return None; // parallel bearings
+        }
+        Some(Self {
+            yn,
+            dx12,
+            dx13,
+            cross,
+            a12,
+            a13,
+            a23,
+            b12,
+            b13,
+            b23,
+        })
     }
 
-    let a23b12 = a23 * b12;
-    let a12b23 = a12 * b23;
-    let a23b13 = a23 * b13;
-    let a13b23 = a13 * b23;
-    #[rustfmt::skip]
-    let d1 = Matrix3::new(
-        a23, -a23b12, 0.0,
-        -a23b12, a23 - a12, a12b23,
-        0.0, a12b23, -a12,
-    );
-    #[rustfmt::skip]
-    let d2 = Matrix3::new(
-        a23, 0.0, -a23b13,
-        0.0, -a13, a13b23,
-        -a23b13, a13b23, a23 - a13,
-    );
-    let cof = |d: &Matrix3<f64>| -> Matrix3<f64> {
-        Matrix3::from_columns(&[
-            d.column(1).cross(&d.column(2)),
-            d.column(2).cross(&d.column(0)),
-            d.column(0).cross(&d.column(1)),
-        ])
-    };
-    let (dx1, dx2) = (cof(&d1), cof(&d2));
-    let c3 = d2.column(0).dot(&dx2.column(0));
-    let c2 = d1.component_mul(&dx2).sum();
-    let c1 = d2.component_mul(&dx1).sum();
-    let c0 = d1.column(0).dot(&dx1.column(0));
-    let cscale = c3.abs().max(c2.abs()).max(c1.abs()).max(c0.abs());
-    if !(cscale.is_finite() && c3.abs() > 1e-14 * cscale) {
-        return out;
+    /// The paper's steps 1-3: the cubic's root `gamma` of `det(D1 + gamma D2) = 0` and the
+    /// eigen-decomposition of the degenerate `D0 = D1 + gamma D2` (eigenvectors `e0`, `e1` and
+    /// `s = sqrt(-sigma2 / sigma1)`): the two lines the lambdas lie on are `e0 -+ s e1`.
+    fn lines(&self) -> Option<(Vector3<f64>, Vector3<f64>, f64)> {
+        let (a12, a13, a23) = (self.a12, self.a13, self.a23);
+        let a23b12 = a23 * self.b12;
+        let a12b23 = a12 * self.b23;
+        let a23b13 = a23 * self.b13;
+        let a13b23 = a13 * self.b23;
+        #[rustfmt::skip]
+        let d1 = Matrix3::new(
+            a23, -a23b12, 0.0,
+            -a23b12, a23 - a12, a12b23,
+            0.0, a12b23, -a12,
+        );
+        #[rustfmt::skip]
+        let d2 = Matrix3::new(
+            a23, 0.0, -a23b13,
+            0.0, -a13, a13b23,
+            -a23b13, a13b23, a23 - a13,
+        );
+        let cof = |d: &Matrix3<f64>| -> Matrix3<f64> {
+            Matrix3::from_columns(&[
+                d.column(1).cross(&d.column(2)),
+                d.column(2).cross(&d.column(0)),
+                d.column(0).cross(&d.column(1)),
+            ])
+        };
+        let (dx1, dx2) = (cof(&d1), cof(&d2));
+        let c3 = d2.column(0).dot(&dx2.column(0));
+        let c2 = d1.component_mul(&dx2).sum();
+        let c1 = d2.component_mul(&dx1).sum();
+        let c0 = d1.column(0).dot(&dx1.column(0));
+        let cscale = c3.abs().max(c2.abs()).max(c1.abs()).max(c0.abs());
+        if !(cscale.is_finite() && c3.abs() > 1e-14 * cscale) {
+            return None;
+        }
+        let gamma = cubic_root(c2 / c3, c1 / c3, c0 / c3)?;
+        let d0 = d1 + d2 * gamma;
+        let (e0, e1, sig1, sig2) = eig3x3_known0(&d0)?;
+        let ratio = -sig2 / sig1;
+        if !(ratio.is_finite() && ratio >= 0.0) {
+            return None;
+        }
+        Some((e0, e1, ratio.sqrt()))
     }
-    let Some(gamma) = cubic_root(c2 / c3, c1 / c3, c0 / c3) else {
-        return out;
-    };
-    let d0 = d1 + d2 * gamma;
-    let Some((e0, e1, sig1, sig2)) = eig3x3_known0(&d0) else {
-        return out;
-    };
-    let ratio = -sig2 / sig1;
-    if !(ratio.is_finite() && ratio >= 0.0) {
-        return out;
-    }
-    let mut s = ratio.sqrt();
 
-    // Inverse of the world-side triangle frame [dx12, dx13, dx12 x dx13].
-    let xx = Matrix3::from_columns(&[dx12, dx13, cross]);
-    let Some(xx_inv) = xx.try_inverse() else {
-        return out;
-    };
-
-    const TOL_DOUBLE_ROOT: f64 = 1e-12;
-    for _ in 0..2 {
-        let u1 = e0[0] - s * e1[0];
-        let u2 = e0[1] - s * e1[1];
-        let u3 = e0[2] - s * e1[2];
-        s = -s;
-        // Solve the line for lambda1 (or lambda2 when u1 is small), then intersect with a quadratic.
+    /// Step 4 on the line `u`: the lambdas where it meets the quadratic of the side with the
+    /// larger coefficient (lambda1's, or lambda2's when `u1` is small), at most two, all
+    /// positive and finite.
+    fn lambdas_on(&self, u: [f64; 3]) -> Vec<[f64; 3]> {
+        const TOL_DOUBLE_ROOT: f64 = 1e-12;
+        let (a12, a13, a23) = (self.a12, self.a13, self.a23);
+        let (b12, b13, b23) = (self.b12, self.b13, self.b23);
+        let (a13b23, a23b13) = (a13 * b23, a23 * b13);
+        let [u1, u2, u3] = u;
         let switch12 = u1.abs() < u2.abs();
         let (a, b, c, w0, w1);
         if switch12 {
@@ -265,12 +291,13 @@ pub fn p3p_lambda_twist(y: &[Vector3<f64>; 3], x: &[Vector3<f64>; 3]) -> P3pSolu
             b = -2.0 * a13 * b12 * w1 + 2.0 * a12 * b13 * w0 - 2.0 * w0 * w1 * (a12 - a13);
             c = (a13 - a12) * w0 * w0 - 2.0 * a13 * b12 * w0 + a13;
         }
+        let mut out = Vec::new();
         if !(w0.is_finite() && w1.is_finite() && a.is_finite() && b.is_finite() && c.is_finite()) {
-            continue;
+            return out;
         }
         let b2m4ac = b * b - 4.0 * a * c;
         if b2m4ac < -TOL_DOUBLE_ROOT * (b * b).max(1e-300) {
-            continue;
+            return out;
         }
         let sq = b2m4ac.max(0.0).sqrt();
         let mut tau = if b > 0.0 {
@@ -288,7 +315,7 @@ pub fn p3p_lambda_twist(y: &[Vector3<f64>; 3], x: &[Vector3<f64>; 3]) -> P3pSolu
             if !(tau.is_finite() && tau > 0.0) {
                 continue;
             }
-            let mut l = if switch12 {
+            let l = if switch12 {
                 let l1 = (a13 / (tau * (tau - 2.0 * b13) + 1.0)).sqrt();
                 let l3 = tau * l1;
                 [l1, w0 * l1 + w1 * l3, l3]
@@ -297,23 +324,62 @@ pub fn p3p_lambda_twist(y: &[Vector3<f64>; 3], x: &[Vector3<f64>; 3]) -> P3pSolu
                 let l3 = tau * l2;
                 [w0 * l2 + w1 * l3, l2, l3]
             };
-            if !l.iter().all(|v| v.is_finite() && *v > 0.0) {
-                continue;
+            if l.iter().all(|v| v.is_finite() && *v > 0.0) {
+                out.push(l);
             }
-            refine_lambda(&mut l, a12, a13, a23, b12, b13, b23);
-            if !l.iter().all(|v| v.is_finite() && *v > 0.0) {
-                continue;
-            }
-            let v1 = yn[0] * l[0] - yn[1] * l[1];
-            let v2 = yn[0] * l[0] - yn[2] * l[2];
-            let yy = Matrix3::from_columns(&[v1, v2, v1.cross(&v2)]);
-            let r = yy * xx_inv;
-            let t = yn[0] * l[0] - r * x[0];
-            if r.iter().all(|v| v.is_finite()) && t.iter().all(|v| v.is_finite()) {
-                out.push(P3pSolution {
-                    r_cam_world: r,
-                    t_cam: t,
-                });
+        }
+        out
+    }
+
+    /// Step 5: the pose from the depths `l` (refined by Gauss-Newton first), through the
+    /// camera-side triangle frame and the inverse world-side one `xx_inv`.
+    fn pose(
+        &self,
+        mut l: [f64; 3],
+        xx_inv: &Matrix3<f64>,
+        x0: &Vector3<f64>,
+    ) -> Option<P3pSolution> {
+        refine_lambda(
+            &mut l, self.a12, self.a13, self.a23, self.b12, self.b13, self.b23,
+        );
+        if !l.iter().all(|v| v.is_finite() && *v > 0.0) {
+            return None;
+        }
+        let yn = &self.yn;
+        let v1 = yn[0] * l[0] - yn[1] * l[1];
+        let v2 = yn[0] * l[0] - yn[2] * l[2];
+        let yy = Matrix3::from_columns(&[v1, v2, v1.cross(&v2)]);
+        let r = yy * xx_inv;
+        let t = yn[0] * l[0] - r * x0;
+        (r.iter().all(|v| v.is_finite()) && t.iter().all(|v| v.is_finite())).then_some(
+            P3pSolution {
+                r_cam_world: r,
+                t_cam: t,
+            },
+        )
+    }
+}
+
+/// Lambda Twist P3P. `y` are bearing vectors in the camera frame (need not be unit length; they are
+/// normalised here), `x` the corresponding world points. Returns up to four poses with all three
+/// depths positive.
+pub fn p3p_lambda_twist(y: &[Vector3<f64>; 3], x: &[Vector3<f64>; 3]) -> P3pSolutions {
+    let mut out = P3pSolutions::new();
+    let Some(t) = Triangle::new(y, x) else {
+        return out;
+    };
+    let Some((e0, e1, s)) = t.lines() else {
+        return out;
+    };
+    // Inverse of the world-side triangle frame [dx12, dx13, dx12 x dx13].
+    let Some(xx_inv) = Matrix3::from_columns(&[t.dx12, t.dx13, t.cross]).try_inverse() else {
+        return out;
+    };
+    for s in [s, -s] {
+        let u = [e0[0] - s * e1[0], e0[1] - s * e1[1], e0[2] - s * e1[2]];
+        for l in t.lambdas_on(u) {
+            if let Some(sol) = t.pose(l, &xx_inv, &x[0]) {
+                out.push(sol);
             }
         }
     }

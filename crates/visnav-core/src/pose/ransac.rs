@@ -157,6 +157,179 @@ impl Sprt {
     }
 }
 
+/// Scores of a model over the valid correspondences: each costs its squared pixel error, capped
+/// at the threshold's square (MSAC).
+struct Scorer<'a> {
+    corrs: &'a [Correspondence],
+    valid: Vec<usize>,
+    fx_px: f64,
+    fy_px: f64,
+    th2: f64,
+}
+
+impl Scorer<'_> {
+    /// `(cost, inliers)` over every valid correspondence.
+    fn full(&self, m: &Model) -> (f64, usize) {
+        let (mut cost, mut inl) = (0.0, 0);
+        for &i in &self.valid {
+            let e2 = m.err2(&self.corrs[i], self.fx_px, self.fy_px);
+            if e2 < self.th2 {
+                cost += e2;
+                inl += 1;
+            } else {
+                cost += self.th2;
+            }
+        }
+        (cost, inl)
+    }
+
+    fn inliers_of(&self, m: &Model) -> Vec<usize> {
+        self.valid
+            .iter()
+            .copied()
+            .filter(|&i| m.err2(&self.corrs[i], self.fx_px, self.fy_px) < self.th2)
+            .collect()
+    }
+
+    /// Sequential verification (Wald's SPRT, Chum & Matas 2008) in `order` from `start`:
+    /// `None` when the likelihood ratio rejects the model (its inlier fraction so far updates
+    /// the test's `delta`), else `(cost, inliers)`.
+    fn sprt(
+        &self,
+        m: &Model,
+        order: &[usize],
+        start: usize,
+        t: &mut SprtState,
+    ) -> Option<(f64, usize)> {
+        let n = order.len();
+        let (mut lambda, mut cost, mut inl) = (1.0, 0.0, 0usize);
+        for k in 0..n {
+            let i = order[(start + k) % n];
+            let e2 = m.err2(&self.corrs[i], self.fx_px, self.fy_px);
+            if e2 < self.th2 {
+                cost += e2;
+                inl += 1;
+                lambda *= t.test.up_in;
+            } else {
+                cost += self.th2;
+                lambda *= t.test.up_out;
+            }
+            if lambda > t.test.a {
+                t.rejected(inl as f64 / (k + 1) as f64);
+                return None;
+            }
+        }
+        Some((cost, inl))
+    }
+}
+
+/// The SPRT and its running estimate of a bad model's inlier fraction `delta`.
+struct SprtState {
+    test: Sprt,
+    delta_sum: f64,
+    delta_cnt: usize,
+}
+
+impl SprtState {
+    fn rejected(&mut self, fraction: f64) {
+        self.delta_sum += fraction;
+        self.delta_cnt += 1;
+        if self.delta_cnt.is_multiple_of(16) {
+            self.test = Sprt::new(self.test.epsilon, self.delta());
+        }
+    }
+
+    fn delta(&self) -> f64 {
+        if self.delta_cnt > 0 {
+            self.delta_sum / self.delta_cnt as f64
+        } else {
+            0.01
+        }
+    }
+}
+
+/// The local optimisation's adjustment: a few robust LM steps, no prior.
+const LO_REFINE: RefineConfig = RefineConfig {
+    max_iterations: 8,
+    loss: RobustLoss::Huber { k_sigma: 2.0 },
+    use_attitude_prior: false,
+    sigma_inflation: 1.0,
+    sigma0_floor: 1.0,
+    split_variance: false,
+    prior_against_conservative: true,
+};
+
+/// Three distinct valid correspondences drawn at random.
+fn draw_sample(rng: &mut Rng, valid: &[usize]) -> [usize; 3] {
+    let n = valid.len();
+    let i0 = valid[rng.below(n)];
+    let mut i1 = valid[rng.below(n)];
+    while i1 == i0 {
+        i1 = valid[rng.below(n)];
+    }
+    let mut i2 = valid[rng.below(n)];
+    while i2 == i0 || i2 == i1 {
+        i2 = valid[rng.below(n)];
+    }
+    [i0, i1, i2]
+}
+
+/// LO-RANSAC (Chum, Matas & Kittler 2003): the new best model re-estimated by LM over its
+/// inliers while that lowers the cost (at most 4 times); `lo_runs` counts the adjustments.
+fn local_optimise(
+    s: &Scorer,
+    mut cur: (Model, f64, usize),
+    lo_runs: &mut usize,
+) -> (Model, f64, usize) {
+    for _ in 0..4 {
+        let inl_idx = s.inliers_of(&cur.0);
+        if inl_idx.len() < 6 {
+            break;
+        }
+        let Some(start_pose) = model_to_pose(&cur.0) else {
+            break;
+        };
+        *lo_runs += 1;
+        let Ok(r) = refine_pose(
+            s.corrs,
+            &inl_idx,
+            &start_pose,
+            s.fx_px,
+            s.fy_px,
+            None,
+            &LO_REFINE,
+        ) else {
+            break;
+        };
+        let m2 = Model::from_pose(&r.pose);
+        let (c2, n2) = s.full(&m2);
+        if c2 < cur.1 {
+            cur = (m2, c2, n2);
+        } else {
+            break;
+        }
+    }
+    cur
+}
+
+/// Samples needed for `confidence` when a sample is all-inlier with probability `eps^3`
+/// (times the SPRT's acceptance of a good model, `1 - alpha`).
+fn samples_needed(eps: f64, alpha: f64, cfg: &RansacConfig) -> usize {
+    let p_good = eps.powi(3) * if cfg.sprt { 1.0 - alpha } else { 1.0 };
+    if p_good >= 1.0 {
+        cfg.min_iterations
+    } else if p_good <= 1e-12 {
+        cfg.max_iterations
+    } else {
+        let k = (1.0 - cfg.confidence).ln() / (-p_good).ln_1p();
+        if k.is_finite() {
+            k.ceil().min(cfg.max_iterations as f64) as usize
+        } else {
+            cfg.max_iterations
+        }
+    }
+}
+
 /// Robust P3P pose. Correspondences with non-finite values or a non-positive sigma are never
 /// sampled nor counted. Returns `Err(iterations)` when no hypothesis had at least four inliers.
 pub fn ransac_p3p(
@@ -170,7 +343,6 @@ pub fn ransac_p3p(
     if n < 4 || !(fx_px > 0.0 && fy_px > 0.0) {
         return Err(0);
     }
-    let th2 = cfg.threshold_px * cfg.threshold_px;
     let mut rng = Rng::new(cfg.seed);
     // Random verification order (Fisher-Yates), entered at a random offset for each model.
     let mut order = valid.clone();
@@ -181,153 +353,57 @@ pub fn ransac_p3p(
         .iter()
         .map(|c| Vector3::new(c.obs_norm.x, c.obs_norm.y, 1.0).normalize())
         .collect();
-
-    let score_full = |m: &Model| -> (f64, usize) {
-        let (mut cost, mut inl) = (0.0, 0);
-        for &i in &valid {
-            let e2 = m.err2(&corrs[i], fx_px, fy_px);
-            if e2 < th2 {
-                cost += e2;
-                inl += 1;
-            } else {
-                cost += th2;
-            }
-        }
-        (cost, inl)
+    let s = Scorer {
+        corrs,
+        valid,
+        fx_px,
+        fy_px,
+        th2: cfg.threshold_px * cfg.threshold_px,
     };
-    let inliers_of = |m: &Model| -> Vec<usize> {
-        valid
-            .iter()
-            .copied()
-            .filter(|&i| m.err2(&corrs[i], fx_px, fy_px) < th2)
-            .collect()
-    };
-
     let mut best: Option<(Model, f64, usize)> = None;
-    let mut sprt = Sprt::new(0.05, 0.01);
-    let (mut delta_sum, mut delta_cnt) = (0.0, 0usize);
+    let mut sprt = SprtState {
+        test: Sprt::new(0.05, 0.01),
+        delta_sum: 0.0,
+        delta_cnt: 0,
+    };
     let mut needed = cfg.max_iterations;
     let (mut iterations, mut models, mut lo_runs) = (0, 0, 0);
-    let lo_cfg = RefineConfig {
-        max_iterations: 8,
-        loss: RobustLoss::Huber { k_sigma: 2.0 },
-        use_attitude_prior: false,
-        sigma_inflation: 1.0,
-        sigma0_floor: 1.0,
-        split_variance: false,
-        prior_against_conservative: true,
-    };
-
     while iterations < needed.max(cfg.min_iterations).min(cfg.max_iterations) {
         iterations += 1;
-        let i0 = valid[rng.below(n)];
-        let mut i1 = valid[rng.below(n)];
-        while i1 == i0 {
-            i1 = valid[rng.below(n)];
-        }
-        let mut i2 = valid[rng.below(n)];
-        while i2 == i0 || i2 == i1 {
-            i2 = valid[rng.below(n)];
-        }
+        let [i0, i1, i2] = draw_sample(&mut rng, &s.valid);
         let y = [bearings[i0], bearings[i1], bearings[i2]];
         let x = [
             corrs[i0].point_world,
             corrs[i1].point_world,
             corrs[i2].point_world,
         ];
-        let sols = p3p_lambda_twist(&y, &x);
-        for s in sols.as_slice() {
+        for sol in p3p_lambda_twist(&y, &x).as_slice() {
             models += 1;
             let m = Model {
-                r: s.r_cam_world,
-                t: s.t_cam,
+                r: sol.r_cam_world,
+                t: sol.t_cam,
             };
-            // Sequential verification.
-            let (cost, inl) = if cfg.sprt {
+            let scored = if cfg.sprt {
                 let start = rng.below(n);
-                let (mut lambda, mut cost, mut inl, mut tested) = (1.0, 0.0, 0usize, 0usize);
-                let mut rejected = false;
-                for k in 0..n {
-                    let i = order[(start + k) % n];
-                    let e2 = m.err2(&corrs[i], fx_px, fy_px);
-                    tested += 1;
-                    if e2 < th2 {
-                        cost += e2;
-                        inl += 1;
-                        lambda *= sprt.up_in;
-                    } else {
-                        cost += th2;
-                        lambda *= sprt.up_out;
-                    }
-                    if lambda > sprt.a {
-                        rejected = true;
-                        break;
-                    }
-                }
-                if rejected {
-                    delta_sum += inl as f64 / tested as f64;
-                    delta_cnt += 1;
-                    if delta_cnt % 16 == 0 {
-                        sprt = Sprt::new(sprt.epsilon, delta_sum / delta_cnt as f64);
-                    }
-                    continue;
-                }
-                (cost, inl)
+                s.sprt(&m, &order, start, &mut sprt)
             } else {
-                score_full(&m)
+                Some(s.full(&m))
+            };
+            let Some((cost, inl)) = scored else {
+                continue;
             };
             if inl < 4 || best.as_ref().is_some_and(|b| cost >= b.1) {
                 continue;
             }
-            // New best: local optimisation.
+            // New best: local optimisation, then the test and the sample count follow it.
             let mut cur = (m, cost, inl);
             if cfg.local_optimisation {
-                for _ in 0..4 {
-                    let inl_idx = inliers_of(&cur.0);
-                    if inl_idx.len() < 6 {
-                        break;
-                    }
-                    let Some(start_pose) = model_to_pose(&cur.0) else {
-                        break;
-                    };
-                    lo_runs += 1;
-                    let Ok(r) =
-                        refine_pose(corrs, &inl_idx, &start_pose, fx_px, fy_px, None, &lo_cfg)
-                    else {
-                        break;
-                    };
-                    let m2 = Model::from_pose(&r.pose);
-                    let (c2, n2) = score_full(&m2);
-                    if c2 < cur.1 {
-                        cur = (m2, c2, n2);
-                    } else {
-                        break;
-                    }
-                }
+                cur = local_optimise(&s, cur, &mut lo_runs);
             }
             let eps = cur.2 as f64 / n as f64;
-            let alpha = 1.0 / sprt.a;
-            sprt = Sprt::new(
-                eps,
-                if delta_cnt > 0 {
-                    delta_sum / delta_cnt as f64
-                } else {
-                    0.01
-                },
-            );
-            let p_good = eps.powi(3) * if cfg.sprt { 1.0 - alpha } else { 1.0 };
-            needed = if p_good >= 1.0 {
-                cfg.min_iterations
-            } else if p_good <= 1e-12 {
-                cfg.max_iterations
-            } else {
-                let k = (1.0 - cfg.confidence).ln() / (-p_good).ln_1p();
-                if k.is_finite() {
-                    k.ceil().min(cfg.max_iterations as f64) as usize
-                } else {
-                    cfg.max_iterations
-                }
-            };
+            let alpha = 1.0 / sprt.test.a;
+            sprt.test = Sprt::new(eps, sprt.delta());
+            needed = samples_needed(eps, alpha, cfg);
             best = Some(cur);
         }
     }
@@ -335,8 +411,7 @@ pub fn ransac_p3p(
         return Err(iterations);
     };
     let pose = model_to_pose(&m).ok_or(iterations)?;
-    let m = Model::from_pose(&pose);
-    let inliers = inliers_of(&m);
+    let inliers = s.inliers_of(&Model::from_pose(&pose));
     if inliers.len() < 4 {
         return Err(iterations);
     }

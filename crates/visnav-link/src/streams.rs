@@ -11,7 +11,7 @@ use std::collections::{HashMap, VecDeque};
 
 use mavlink::dialects::ardupilotmega::MavAutopilot;
 
-use crate::link::config::StreamRates;
+use crate::config::StreamRates;
 
 /// MAVLink message ids used here.
 pub mod ids {

@@ -43,9 +43,9 @@ use mavlink::dialects::ardupilotmega::{
 };
 use nalgebra::{Matrix3, SymmetricEigen, UnitQuaternion, Vector3};
 
-use crate::geo::wgs84;
-use crate::link::config::OutputConfig;
-use crate::link::time::gps_week_ms;
+use crate::config::OutputConfig;
+use crate::time::gps_week_ms;
+use visnav_core::geo::wgs84;
 
 /// Nominal user-equivalent range error used to express accuracies as DOPs (hdop = h_acc / UERE).
 pub const DOP_UERE_M: f64 = 4.0;

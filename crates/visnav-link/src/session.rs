@@ -32,12 +32,12 @@ use tokio::sync::{broadcast, watch};
 use tokio::task::JoinHandle;
 use tracing::{debug, info, warn};
 
-use crate::link::config::{LinkConfig, OnLost, OutputConfig, OutputMode};
-use crate::link::inject::{self, GeoOrigin, Health, InjectError, NavEstimate, SendTime};
-use crate::link::metrics::Metrics;
-use crate::link::streams::{self, RateMonitor, StreamSpec, StreamStatus, ids};
-use crate::link::time::{SyncUpdate, TimeSync, TimesyncSample, UtcMap};
-use crate::link::tlog::{Tlog, expand_name, unix_now_us};
+use crate::config::{LinkConfig, OnLost, OutputConfig, OutputMode};
+use crate::inject::{self, GeoOrigin, Health, InjectError, NavEstimate, SendTime};
+use crate::metrics::Metrics;
+use crate::streams::{self, RateMonitor, StreamSpec, StreamStatus, ids};
+use crate::time::{SyncUpdate, TimeSync, TimesyncSample, UtcMap};
+use crate::tlog::{Tlog, expand_name, unix_now_us};
 
 type Conn = mavlink::AsyncConnection<MavMessage>;
 
@@ -45,7 +45,7 @@ type Conn = mavlink::AsyncConnection<MavMessage>;
 #[derive(Debug, thiserror::Error)]
 pub enum LinkError {
     #[error("link.signing.key_file: {0}")]
-    Key(#[from] crate::link::signing::KeyError),
+    Key(#[from] crate::signing::KeyError),
     #[error("link.tlog: {path}: {source}")]
     Tlog {
         path: std::path::PathBuf,
@@ -163,7 +163,7 @@ impl Link {
     pub async fn start(cfg: LinkConfig, out: OutputConfig) -> Result<Link, LinkError> {
         let (signing_out, signing_in) = match &cfg.signing {
             Some(s) => {
-                let key = crate::link::signing::load_key(&s.key_file)?;
+                let key = crate::signing::load_key(&s.key_file)?;
                 let out_cfg = SigningConfig::new(key, s.link_id, true, !s.reject_unsigned);
                 (
                     s.sign_outgoing.then(|| SigningData::from_config(out_cfg)),
@@ -198,12 +198,13 @@ impl Link {
                 addr: addr.clone(),
                 source: std::io::Error::new(std::io::ErrorKind::InvalidInput, "not IP:PORT"),
             })?;
-            let (bound, task) = crate::link::metrics::serve(sa, metrics.clone())
-                .await
-                .map_err(|source| LinkError::Metrics {
-                    addr: addr.clone(),
-                    source,
-                })?;
+            let (bound, task) =
+                crate::metrics::serve(sa, metrics.clone())
+                    .await
+                    .map_err(|source| LinkError::Metrics {
+                        addr: addr.clone(),
+                        source,
+                    })?;
             info!(%bound, "Prometheus metrics at http://{bound}/metrics");
             metrics_addr = Some(bound);
             tasks.push(task);

@@ -289,7 +289,7 @@ impl LinkConfig {
         self.validate(p);
         if let Some(s) = &self.signing {
             let f = visnav_core::validate::resolve(base, &s.key_file);
-            if let Err(e) = crate::link::signing::load_key(&f) {
+            if let Err(e) = crate::signing::load_key(&f) {
                 p.push("signing.key_file", e.to_string());
             }
         }

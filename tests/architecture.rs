@@ -165,6 +165,55 @@ fn the_core_does_no_io_and_reads_no_clock() {
     }
 }
 
+/// Functions of rustfmt-formatted `code` longer than `max` lines: `(line, name, lines)`. A
+/// function starts at its `fn` line and ends at the first `}` line at the same indentation.
+fn long_functions(code: &str, max: usize) -> Vec<(usize, String, usize)> {
+    let lines: Vec<&str> = code.lines().collect();
+    let mut out = Vec::new();
+    for (i, l) in lines.iter().enumerate() {
+        let t = l.trim_start();
+        let decl = [
+            "fn ",
+            "pub fn ",
+            "pub(crate) fn ",
+            "pub(super) fn ",
+            "const fn ",
+            "pub const fn ",
+        ]
+        .iter()
+        .find_map(|p| t.strip_prefix(p));
+        let Some(rest) = decl else { continue };
+        if t.ends_with(';') {
+            continue; // a declaration without a body
+        }
+        let indent = l.len() - t.len();
+        let end = format!("{}}}", " ".repeat(indent));
+        if let Some(n) = lines[i + 1..].iter().position(|e| *e == end) {
+            let name: String = rest
+                .chars()
+                .take_while(|c| c.is_alphanumeric() || *c == '_')
+                .collect();
+            if n + 2 > max {
+                out.push((i + 1, name, n + 2));
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn no_core_function_is_over_120_lines() {
+    for p in sources(&repo().join("crates/visnav-core/src")) {
+        let text = std::fs::read_to_string(&p).expect("read source");
+        let code = text.split("#[cfg(test)]").next().unwrap_or("");
+        let long = long_functions(code, 120);
+        assert!(long.is_empty(), "{}: {long:?}", p.display());
+    }
+    // The measure sees a function's length.
+    let f = format!("fn f() {{\n{}}}\n", "    x();\n".repeat(130));
+    assert_eq!(long_functions(&f, 120).len(), 1);
+}
+
 /// The modules of the package (`src/<name>` or `src/<name>.rs`) each one names outside its tests.
 fn module_graph() -> BTreeMap<String, BTreeSet<String>> {
     let src = repo().join("src");

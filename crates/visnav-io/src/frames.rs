@@ -1479,6 +1479,17 @@ pub enum PixelFormat {
     Mjpg,
 }
 
+impl PixelFormat {
+    /// The format's V4L2 four-character code, as the configuration names it.
+    pub fn fourcc_name(self) -> &'static str {
+        match self {
+            PixelFormat::Grey => "GREY",
+            PixelFormat::Yuyv => "YUYV",
+            PixelFormat::Mjpg => "MJPG",
+        }
+    }
+}
+
 /// The V4L2 kernel ABI used by the `v4l2` feature (linux/videodev2.h, 64-bit Linux), written out
 /// by hand: the `v4l` crate generates it with bindgen, which needs libclang at build time. The
 /// sizes and ioctl numbers are checked against the kernel's values in the tests.
@@ -1617,6 +1628,40 @@ pub mod v4l2_abi {
     }
 }
 
+/// Why a V4L2 buffer is not a frame.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum BadFrame {
+    #[error("MJPG frame of {bytes} bytes: {reason}")]
+    Jpeg { bytes: usize, reason: String },
+    #[error("MJPG frame is {got_width}x{got_height}, the format is {width}x{height}")]
+    JpegSize {
+        got_width: usize,
+        got_height: usize,
+        width: usize,
+        height: usize,
+    },
+    #[error("bytes per line {stride} < {row_bytes} for {width} pixels")]
+    Stride {
+        stride: usize,
+        row_bytes: usize,
+        width: usize,
+    },
+    #[error("{len} bytes, {need} needed for {width}x{height} {format}")]
+    Short {
+        len: usize,
+        need: usize,
+        width: usize,
+        height: usize,
+        format: &'static str,
+    },
+    #[error("the driver flagged the buffer as corrupt")]
+    Corrupt,
+    #[error("buffer index {0} out of range")]
+    BufferIndex(usize),
+    #[error("{0}")]
+    Image(String),
+}
+
 /// The luma plane of a frame as delivered by a V4L2 device: `GREY` and `YUYV` with a row stride
 /// of `bytes_per_line` (`0`: packed), `MJPG` decoded. Errors say what does not fit.
 pub fn v4l2_luma(
@@ -1625,20 +1670,25 @@ pub fn v4l2_luma(
     width: usize,
     height: usize,
     bytes_per_line: usize,
-) -> Result<GrayImage, String> {
+) -> Result<GrayImage, BadFrame> {
     let row_bytes = match fmt {
         PixelFormat::Grey => width,
         PixelFormat::Yuyv => 2 * width,
         PixelFormat::Mjpg => {
+            let jpeg = |reason: String| BadFrame::Jpeg {
+                bytes: data.len(),
+                reason,
+            };
             let img = image::load_from_memory_with_format(data, image::ImageFormat::Jpeg)
-                .map_err(|e| format!("MJPG frame of {} bytes: {e}", data.len()))?;
-            let g = GrayImage::from_dynamic(&img).map_err(|e| format!("MJPG frame: {e}"))?;
+                .map_err(|e| jpeg(e.to_string()))?;
+            let g = GrayImage::from_dynamic(&img).map_err(|e| jpeg(e.to_string()))?;
             if (g.width(), g.height()) != (width, height) {
-                return Err(format!(
-                    "MJPG frame is {}x{}, the format is {width}x{height}",
-                    g.width(),
-                    g.height()
-                ));
+                return Err(BadFrame::JpegSize {
+                    got_width: g.width(),
+                    got_height: g.height(),
+                    width,
+                    height,
+                });
             }
             return Ok(g);
         }
@@ -1649,23 +1699,28 @@ pub fn v4l2_luma(
         bytes_per_line
     };
     if stride < row_bytes {
-        return Err(format!(
-            "bytes per line {stride} < {row_bytes} for {width} pixels"
-        ));
+        return Err(BadFrame::Stride {
+            stride,
+            row_bytes,
+            width,
+        });
     }
     let need = stride * height.saturating_sub(1) + row_bytes;
     if height == 0 || width == 0 || data.len() < need {
-        return Err(format!(
-            "{} bytes, {need} needed for {width}x{height} {fmt:?}",
-            data.len()
-        ));
+        return Err(BadFrame::Short {
+            len: data.len(),
+            need,
+            width,
+            height,
+            format: fmt.fourcc_name(),
+        });
     }
     let step = if fmt == PixelFormat::Yuyv { 2 } else { 1 };
     let mut out = Vec::with_capacity(width * height);
     for row in data.chunks(stride).take(height) {
         out.extend(row[..row_bytes].iter().step_by(step).map(|&v| f32::from(v)));
     }
-    GrayImage::new(width, height, out).map_err(|e| e.to_string())
+    GrayImage::new(width, height, out).map_err(|e| BadFrame::Image(e.to_string()))
 }
 
 #[cfg(feature = "v4l2")]
@@ -1793,9 +1848,10 @@ mod v4l2_capture {
             {
                 let got = f.pix.pixelformat.to_le_bytes();
                 return Err(FrameError::Config(format!(
-                    "{} ({card}) does not capture {width}x{height} {fmt:?}: it offers {}x{} {} \
+                    "{} ({card}) does not capture {width}x{height} {}: it offers {}x{} {} \
                      (the camera calibration must match the capture size)",
                     device.display(),
+                    fmt.fourcc_name(),
                     f.pix.width,
                     f.pix.height,
                     String::from_utf8_lossy(&got)
@@ -1922,8 +1978,8 @@ mod v4l2_capture {
                     let data = unsafe { std::slice::from_raw_parts(p as *const u8, used) };
                     v4l2_luma(self.fmt, data, self.width, self.height, self.bytes_per_line)
                 }
-                Some(_) => Err("the driver flagged the buffer as corrupt".to_string()),
-                None => Err(format!("buffer index {idx} out of range")),
+                Some(_) => Err(BadFrame::Corrupt),
+                None => Err(BadFrame::BufferIndex(idx)),
             };
             let stamp = if b.flags & BUF_FLAG_TIMESTAMP_MASK == BUF_FLAG_TIMESTAMP_MONOTONIC {
                 monotonic_instant(b.timestamp).unwrap_or(arrival)
@@ -1941,7 +1997,7 @@ mod v4l2_capture {
             let image = result.map_err(|r| FrameError::Image {
                 path: self.device.clone(),
                 frame: seq,
-                reason: r,
+                reason: r.to_string(),
             })?;
             Ok(Some(Frame {
                 image,
@@ -1953,11 +2009,11 @@ mod v4l2_capture {
 
         fn describe(&self) -> String {
             format!(
-                "V4L2 {} ({}x{} {:?})",
+                "V4L2 {} ({}x{} {})",
                 self.device.display(),
                 self.width,
                 self.height,
-                self.fmt
+                self.fmt.fourcc_name()
             )
         }
     }
@@ -2298,7 +2354,8 @@ mod tests {
         assert_eq!(g.data(), &[1.0, 2.0, 3.0, 4.0]);
         // Short buffer, stride too small, empty size: errors, no panic.
         let e = v4l2_luma(PixelFormat::Yuyv, &yuyv[..7], 2, 2, 0).unwrap_err();
-        assert!(e.contains("7 bytes"), "{e}");
+        assert!(e.to_string().contains("7 bytes"), "{e}");
+        assert_eq!(e.to_string(), "7 bytes, 8 needed for 2x2 YUYV");
         assert!(v4l2_luma(PixelFormat::Yuyv, &yuyv, 2, 2, 3).is_err());
         assert!(v4l2_luma(PixelFormat::Grey, &grey, 0, 2, 0).is_err());
         // MJPG: a JPEG of a smooth gradient decodes to about the same luma.
@@ -2316,9 +2373,9 @@ mod tests {
             .fold(0.0f32, f32::max);
         assert!(err < 8.0, "JPEG luma error {err}");
         let e = v4l2_luma(PixelFormat::Mjpg, &jpg, 32, 8, 0).unwrap_err();
-        assert!(e.contains("16x8"), "{e}");
+        assert!(e.to_string().contains("16x8"), "{e}");
         let e = v4l2_luma(PixelFormat::Mjpg, b"not a jpeg", 16, 8, 0).unwrap_err();
-        assert!(e.contains("MJPG"), "{e}");
+        assert!(e.to_string().contains("MJPG"), "{e}");
     }
 
     #[test]

@@ -382,51 +382,65 @@ impl Validate for StreamRates {
     }
 }
 
+/// The connection schemes `[link] connection` accepts.
+const SCHEMES: &str = "udpin, udpout, udpbcast, tcpin, tcpout, serial";
+
+/// What is wrong with a connection string ([`check_connection`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum BadConnection {
+    #[error("expected SCHEME:ADDRESS with SCHEME one of {SCHEMES}")]
+    NoScheme,
+    #[error("unknown scheme \"{0}\"; expected one of {SCHEMES}")]
+    UnknownScheme(String),
+    #[error("expected HOST:PORT after the scheme")]
+    NoPort,
+    #[error("the host is empty (use 0.0.0.0 to listen on every interface)")]
+    EmptyHost,
+    #[error("port \"{0}\" is not a number in 1..=65535")]
+    BadPort(String),
+    #[error("expected serial:DEVICE:BAUD")]
+    NoBaud,
+    #[error("the serial device is empty")]
+    EmptyDevice,
+    #[error("baud rate \"{0}\" is not a number in 1200..=12000000")]
+    BadBaud(String),
+    /// The mavlink crate's own parser refused it (its message).
+    #[error("{0}")]
+    Mavlink(String),
+}
+
 /// Check a mavlink connection string beyond what the mavlink crate parses: a known scheme, and for
 /// network schemes a host and a numeric port; for serial a device and a numeric baud rate.
-pub fn check_connection(s: &str) -> Result<(), String> {
-    const SCHEMES: &str = "udpin, udpout, udpbcast, tcpin, tcpout, serial";
+pub fn check_connection(s: &str) -> Result<(), BadConnection> {
     let Some((scheme, rest)) = s.split_once(':') else {
-        return Err(format!(
-            "expected SCHEME:ADDRESS with SCHEME one of {SCHEMES}"
-        ));
+        return Err(BadConnection::NoScheme);
     };
     match scheme {
         "udpin" | "udpout" | "udpbcast" | "tcpin" | "tcpout" => {
-            let Some((host, port)) = rest.rsplit_once(':') else {
-                return Err("expected HOST:PORT after the scheme".into());
-            };
+            let (host, port) = rest.rsplit_once(':').ok_or(BadConnection::NoPort)?;
             if host.is_empty() {
-                return Err("the host is empty (use 0.0.0.0 to listen on every interface)".into());
+                return Err(BadConnection::EmptyHost);
             }
             match port.parse::<u16>() {
-                Ok(0) | Err(_) => Err(format!("port \"{port}\" is not a number in 1..=65535")),
-                Ok(_) => Ok(()),
+                Ok(0) | Err(_) => return Err(BadConnection::BadPort(port.to_string())),
+                Ok(_) => {}
             }
         }
         "serial" => {
-            let Some((dev, baud)) = rest.rsplit_once(':') else {
-                return Err("expected serial:DEVICE:BAUD".into());
-            };
+            let (dev, baud) = rest.rsplit_once(':').ok_or(BadConnection::NoBaud)?;
             if dev.is_empty() {
-                return Err("the serial device is empty".into());
+                return Err(BadConnection::EmptyDevice);
             }
             match baud.parse::<u32>() {
-                Ok(b) if (1200..=12_000_000).contains(&b) => Ok(()),
-                _ => Err(format!(
-                    "baud rate \"{baud}\" is not a number in 1200..=12000000"
-                )),
+                Ok(b) if (1200..=12_000_000).contains(&b) => {}
+                _ => return Err(BadConnection::BadBaud(baud.to_string())),
             }
         }
-        other => Err(format!(
-            "unknown scheme \"{other}\"; expected one of {SCHEMES}"
-        )),
+        other => return Err(BadConnection::UnknownScheme(other.to_string())),
     }
-    .and_then(|()| {
-        mavlink::ConnectionAddress::parse_address(s)
-            .map(|_| ())
-            .map_err(|e| e.to_string())
-    })
+    mavlink::ConnectionAddress::parse_address(s)
+        .map(|_| ())
+        .map_err(|e| BadConnection::Mavlink(e.to_string()))
 }
 
 impl Validate for OutputConfig {

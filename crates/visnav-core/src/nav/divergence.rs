@@ -32,6 +32,17 @@ pub const CONSISTENCY_PROB: f64 = 0.999;
 /// m/s^2. Enters each fix's variance as `(0.5 a (t - t_mid)^2)^2`.
 pub const DRIFT_ACCEL_M_S2: f64 = 0.5;
 
+/// Why the held rejected fixes are not a position to reset onto.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum Inconsistent {
+    #[error("{n} rejected fixes cannot be checked against each other")]
+    TooFew { n: usize },
+    #[error("a rejected fix has a non-finite value")]
+    NonFinite,
+    #[error("the {n} rejected fixes disagree with each other (chi-square {chi2:.1} > {gate:.1})")]
+    Disagree { n: usize, chi2: f64, gate: f64 },
+}
+
 /// One rejected fix: capture time, horizontal innovation (north, east; fix minus prediction) and
 /// the fix's own horizontal variance (largest eigenvalue of its north/east block).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -76,17 +87,15 @@ impl RejectedWindow {
 
     /// Whether the held fixes agree with each other up to an offset and a drift of the filter
     /// (see the module doc): `Ok(chi2)` when they do, `Err(reason)` otherwise.
-    pub fn consistent(&self) -> Result<f64, String> {
+    pub fn consistent(&self) -> Result<f64, Inconsistent> {
         let n = self.fixes.len();
         if n < 3 {
-            return Err(format!(
-                "{n} rejected fixes cannot be checked against each other"
-            ));
+            return Err(Inconsistent::TooFew { n });
         }
         if self.fixes.iter().any(|f| {
             !(f.t_s.is_finite() && f.var_h_m2 > 0.0 && f.innov_ne_m.iter().all(|v| v.is_finite()))
         }) {
-            return Err("a rejected fix has a non-finite value".into());
+            return Err(Inconsistent::NonFinite);
         }
         let t_mid = self.fixes.iter().map(|f| f.t_s).sum::<f64>() / n as f64;
         let w: Vec<f64> = self
@@ -129,9 +138,7 @@ impl RejectedWindow {
         if chi2 <= gate {
             Ok(chi2)
         } else {
-            Err(format!(
-                "the {n} rejected fixes disagree with each other (chi-square {chi2:.1} > {gate:.1})"
-            ))
+            Err(Inconsistent::Disagree { n, chi2, gate })
         }
     }
 }
@@ -190,7 +197,11 @@ mod tests {
         ];
         let w = window(&f);
         let e = w.consistent().unwrap_err();
-        assert!(e.contains("disagree"), "{e}");
+        assert!(matches!(e, Inconsistent::Disagree { n: 5, .. }), "{e:?}");
+        assert!(
+            e.to_string().contains("the 5 rejected fixes disagree"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -279,31 +279,22 @@ impl AxisFit {
         self.v_max = self.v_max.max(v);
     }
 
-    fn model(&self, form: QuadForm) -> Result<AxisModel, String> {
+    fn model(&self, form: QuadForm) -> Result<AxisModel, NotLearned> {
         if self.n < MIN_SAMPLES {
-            return Err(format!("{:.0} of {MIN_SAMPLES:.0} samples", self.n));
+            return Err(NotLearned::FewSamples { n: self.n });
         }
         let span = self.v_max - self.v_min;
         if span < MIN_SPEED_SPAN_M_S {
-            return Err(format!(
-                "speed span {span:.1} m/s < {MIN_SPEED_SPAN_M_S} m/s"
-            ));
+            return Err(NotLearned::NarrowSpeedSpan { span_m_s: span });
         }
-        let inv = self
-            .s
-            .try_inverse()
-            .ok_or_else(|| "singular fit".to_string())?;
+        let inv = self.s.try_inverse().ok_or(NotLearned::SingularFit)?;
         let th = inv * self.r;
         let ssr =
             (self.sff - 2.0 * th.dot(&self.r) + (th.transpose() * self.s * th)[(0, 0)]).max(0.0);
         let sst = (self.sff - self.sf * self.sf / self.n).max(1e-12);
         let explained = 1.0 - ssr / sst;
         if explained < MIN_EXPLAINED {
-            return Err(format!(
-                "the fit explains {:.0} % of the specific force (< {:.0} %)",
-                explained * 100.0,
-                MIN_EXPLAINED * 100.0
-            ));
+            return Err(NotLearned::Unexplained { explained });
         }
         let m = AxisModel {
             a: th.x,
@@ -321,13 +312,29 @@ impl AxisFit {
             || m.slope(0.0) > LINEAR_NOISE_PER_S
             || m.slope(vmax) >= 0.0
         {
-            return Err(format!(
-                "fitted law is not a drag (a {:.3}, b {:.4})",
-                m.a, m.b
-            ));
+            return Err(NotLearned::NotADrag { a: m.a, b: m.b });
         }
         Ok(m)
     }
+}
+
+/// Why an axis's drag law is not usable (yet).
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum NotLearned {
+    #[error("{n:.0} of {MIN_SAMPLES:.0} samples")]
+    FewSamples { n: f64 },
+    #[error("speed span {span_m_s:.1} m/s < {MIN_SPEED_SPAN_M_S} m/s")]
+    NarrowSpeedSpan { span_m_s: f64 },
+    #[error("singular fit")]
+    SingularFit,
+    #[error(
+        "the fit explains {:.0} % of the specific force (< {:.0} %)",
+        explained * 100.0,
+        MIN_EXPLAINED * 100.0
+    )]
+    Unexplained { explained: f64 },
+    #[error("fitted law is not a drag (a {a:.3}, b {b:.4})")]
+    NotADrag { a: f64, b: f64 },
 }
 
 /// Learns the drag law of both horizontal body axes from averaged specific forces and
@@ -375,7 +382,7 @@ impl DragLearner {
     }
 
     /// The law of axis `k` (0 = x, 1 = y) in the chosen form, or why it is not usable yet.
-    pub fn axis(&self, k: usize) -> Result<AxisModel, String> {
+    pub fn axis(&self, k: usize) -> Result<AxisModel, NotLearned> {
         let (i, w) = self.chosen_form();
         let k = k.min(1);
         let mut m = self.fits[i][k].model(QuadForm::ALL[i])?;
@@ -444,7 +451,7 @@ mod tests {
         let mut l = DragLearner::default();
         fly(&mut l, 600, 0.0, 0.0, 0.3);
         assert!(
-            l.axis(0).unwrap_err().contains("explains"),
+            matches!(l.axis(0), Err(NotLearned::Unexplained { .. })),
             "{:?}",
             l.axis(0)
         );
@@ -454,11 +461,17 @@ mod tests {
             let v = 0.5 * wobble(i);
             h.add(Vector2::new(v, v), Vector2::new(-0.3 * v, -0.3 * v));
         }
-        assert!(h.axis(0).unwrap_err().contains("span"), "{:?}", h.axis(0));
+        assert!(
+            matches!(h.axis(0), Err(NotLearned::NarrowSpeedSpan { .. })),
+            "{:?}",
+            h.axis(0)
+        );
         // Too few samples.
         let mut s = DragLearner::default();
         fly(&mut s, 50, -0.2, -0.03, 0.0);
-        assert!(s.axis(1).unwrap_err().contains("samples"));
+        let e = s.axis(1).unwrap_err();
+        assert!(matches!(e, NotLearned::FewSamples { .. }), "{e:?}");
+        assert!(e.to_string().ends_with(" of 200 samples"), "{e}");
     }
 
     #[test]
@@ -466,7 +479,7 @@ mod tests {
         let mut l = DragLearner::default();
         fly(&mut l, 600, 0.3, 0.0, 0.01);
         assert!(
-            l.axis(0).unwrap_err().contains("not a drag"),
+            matches!(l.axis(0), Err(NotLearned::NotADrag { .. })),
             "{:?}",
             l.axis(0)
         );

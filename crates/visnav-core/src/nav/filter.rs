@@ -303,7 +303,7 @@ pub struct NavFilter {
     /// The latest consecutive rejected position fixes (`divergence`).
     rejected: RejectedWindow,
     /// Resets refused because the rejected fixes disagreed with each other.
-    last_refusal: Option<String>,
+    last_refusal: Option<super::divergence::Inconsistent>,
     /// Multirotor drag: the law learned while the GPS aids, the current averaging window, the
     /// vehicle type (set by the caller) and the capture time of the last accepted GPS velocity.
     drag_learner: DragLearner,
@@ -561,7 +561,7 @@ impl NavFilter {
     }
 
     /// The learned drag law per body axis (x, y), or why it is not usable yet.
-    pub fn drag_status(&self) -> [Result<super::drag::AxisModel, String>; 2] {
+    pub fn drag_status(&self) -> [Result<super::drag::AxisModel, super::drag::NotLearned>; 2] {
         [self.drag_learner.axis(0), self.drag_learner.axis(1)]
     }
 

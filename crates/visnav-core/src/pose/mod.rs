@@ -91,22 +91,24 @@ impl ImageGeometry {
     pub fn to_pixel(&self, n: &Vector2<f64>) -> Vector2<f64> {
         Vector2::new(self.cx_px + self.fx_px * n.x, self.cy_px + self.fy_px * n.y)
     }
-    fn check(&self) -> Result<(), String> {
+    /// The focal lengths, principal point and size are usable.
+    fn check(&self) -> Result<(), Rejection> {
+        let invalid = |reason: String| Err(Rejection::InvalidInput { reason });
         let ok = |v: f64| v.is_finite() && v > 0.0;
         if !(ok(self.fx_px) && ok(self.fy_px)) {
-            return Err(format!(
+            return invalid(format!(
                 "focal lengths fx_px={} fy_px={} must be finite and > 0",
                 self.fx_px, self.fy_px
             ));
         }
         if !(self.cx_px.is_finite() && self.cy_px.is_finite()) {
-            return Err(format!(
+            return invalid(format!(
                 "principal point ({}, {}) must be finite",
                 self.cx_px, self.cy_px
             ));
         }
         if self.width_px == 0 || self.height_px == 0 {
-            return Err(format!(
+            return invalid(format!(
                 "image size {}x{} is empty",
                 self.width_px, self.height_px
             ));
@@ -438,9 +440,7 @@ fn check_inputs(
     priors: &Priors,
     cfg: &ResectionConfig,
 ) -> Result<(), Rejection> {
-    image
-        .check()
-        .map_err(|reason| Rejection::InvalidInput { reason })?;
+    image.check()?;
     let mut problems = Problems::default();
     cfg.validate(&mut problems);
     if let Some(first) = problems.list.first() {

@@ -328,7 +328,7 @@ impl<R: Read + Seek + Send> GeoTiffWindowReader<R> {
             .chain(self.helpers.iter_mut())
             .take(n)
             .collect();
-        let groups: Vec<Vec<(u32, Result<Chunk, String>)>> = decs
+        let groups: Vec<Vec<(u32, Result<Chunk, ChunkError>)>> = decs
             .into_par_iter()
             .zip(ids.par_chunks(per))
             .map(|(dec, group)| group.iter().map(|&i| (i, decode_one(dec, i))).collect())
@@ -344,7 +344,7 @@ impl<R: Read + Seek + Send> GeoTiffWindowReader<R> {
     fn accept(
         &mut self,
         idx: u32,
-        decoded: Result<Chunk, String>,
+        decoded: Result<Chunk, ChunkError>,
     ) -> Result<Arc<Chunk>, GeoTiffError> {
         let decode_err = |reason: String| GeoTiffError::Decode {
             path: self.path.clone(),
@@ -368,9 +368,36 @@ impl<R: Read + Seek + Send> GeoTiffWindowReader<R> {
     }
 }
 
+/// Why one chunk could not be read or placed (the caller names the file and the chunk).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+enum ChunkError {
+    /// The tiff crate's decoder failed (its message).
+    #[error("{0}")]
+    Read(String),
+    #[error("64-bit integer samples are not supported")]
+    Int64Samples,
+    #[error("sample type differs from the first chunk of the window")]
+    MixedSampleTypes,
+    #[error("holds {len} samples, expected {expected}")]
+    Length { len: usize, expected: usize },
+    #[error("destination outside the window")]
+    DestinationOutside,
+    #[error("copy of {nx} x {ny} px at ({x}, {y}) exceeds the {dw} x {dh} px chunk")]
+    Outside {
+        nx: usize,
+        ny: usize,
+        x: usize,
+        y: usize,
+        dw: usize,
+        dh: usize,
+    },
+}
+
 /// Reads and converts chunk `idx`.
-fn decode_one<R: Read + Seek>(dec: &mut Decoder<R>, idx: u32) -> Result<Chunk, String> {
-    let raw = dec.read_chunk(idx).map_err(|e| e.to_string())?;
+fn decode_one<R: Read + Seek>(dec: &mut Decoder<R>, idx: u32) -> Result<Chunk, ChunkError> {
+    let raw = dec
+        .read_chunk(idx)
+        .map_err(|e| ChunkError::Read(e.to_string()))?;
     Chunk::from_decoded(raw)
 }
 
@@ -409,7 +436,7 @@ enum ChunkData {
 }
 
 impl Chunk {
-    fn from_decoded(d: DecodingResult) -> Result<Self, String> {
+    fn from_decoded(d: DecodingResult) -> Result<Self, ChunkError> {
         let f32s = |v: Vec<f32>, t| Chunk {
             data: ChunkData::F32(v),
             sample_type: t,
@@ -437,7 +464,7 @@ impl Chunk {
             DecodingResult::F32(v) => f32s(v, SampleType::F32),
             DecodingResult::F16(v) => f32s(v.into_iter().map(f32::from).collect(), SampleType::F32),
             DecodingResult::U64(_) | DecodingResult::I64(_) => {
-                return Err("64-bit integer samples are not supported".into());
+                return Err(ChunkError::Int64Samples);
             }
         })
     }
@@ -467,12 +494,12 @@ impl Acc {
         }
     }
 
-    fn place(&mut self, c: &Chunk, g: &ChunkGeom) -> Result<(), String> {
+    fn place(&mut self, c: &Chunk, g: &ChunkGeom) -> Result<(), ChunkError> {
         match (self, &c.data) {
             (Acc::U8(out), ChunkData::U8(v)) => place(out, v, g),
             (Acc::U16(out), ChunkData::U16(v)) => place(out, v, g),
             (Acc::F32(out, _), ChunkData::F32(v)) => place(out, v, g),
-            _ => Err("sample type differs from the first chunk of the window".into()),
+            _ => Err(ChunkError::MixedSampleTypes),
         }
     }
 }
@@ -506,23 +533,26 @@ struct ChunkGeom {
 /// Copies the `nx x ny` pixels at `(src_x, src_y)` of a chunk (`dw x dh` pixels of `spc` samples,
 /// rows packed) to `(dst_x, dst_y)` of the band-interleaved window. A chunk of any other length
 /// (e.g. packed sub-byte samples) is an error.
-fn place<T: Copy>(out: &mut [T], chunk: &[T], g: &ChunkGeom) -> Result<(), String> {
+fn place<T: Copy>(out: &mut [T], chunk: &[T], g: &ChunkGeom) -> Result<(), ChunkError> {
     let row_len = g.dw * g.spc;
     // tiff 0.11.3 reports full-height chunks for the bottom tiles of planes >= 1 of planar files
     // (its chunk_data_dimensions ignores the plane); rows are still packed at `dw`, so the first
     // `dh` rows are the data. Any other length is an error.
     if chunk.len() != row_len * g.dh && chunk.len() != row_len * g.ch {
-        return Err(format!(
-            "holds {} samples, expected {}",
-            chunk.len(),
-            row_len * g.dh
-        ));
+        return Err(ChunkError::Length {
+            len: chunk.len(),
+            expected: row_len * g.dh,
+        });
     }
     if g.src_x + g.nx > g.dw || g.src_y + g.ny > g.dh {
-        return Err(format!(
-            "copy of {} x {} px at ({}, {}) exceeds the {} x {} px chunk",
-            g.nx, g.ny, g.src_x, g.src_y, g.dw, g.dh
-        ));
+        return Err(ChunkError::Outside {
+            nx: g.nx,
+            ny: g.ny,
+            x: g.src_x,
+            y: g.src_y,
+            dw: g.dw,
+            dh: g.dh,
+        });
     }
     let n = g.nx * g.spc;
     for r in 0..g.ny {
@@ -531,7 +561,7 @@ fn place<T: Copy>(out: &mut [T], chunk: &[T], g: &ChunkGeom) -> Result<(), Strin
         let base = ((g.dst_y + r) * g.out_width + g.dst_x) * g.bands;
         let dst = out
             .get_mut(base..base + g.nx * g.bands)
-            .ok_or("destination outside the window")?;
+            .ok_or(ChunkError::DestinationOutside)?;
         if g.spc == g.bands {
             dst.copy_from_slice(src);
         } else {

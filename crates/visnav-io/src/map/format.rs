@@ -590,10 +590,7 @@ impl ReferenceMap {
             what: "cannot memory-map the map file",
             source,
         })?;
-        let (header, data_offset) = validate(&mmap).map_err(|reason| MapError::Format {
-            path: path.to_path_buf(),
-            reason,
-        })?;
+        let (header, data_offset) = validate(&mmap, path)?;
         Ok(Self {
             path: path.to_path_buf(),
             mmap,
@@ -693,62 +690,67 @@ impl ReferenceMap {
     }
 }
 
-/// Checks the whole file image; returns the parsed header and the data offset, or the reason.
-fn validate(b: &[u8]) -> Result<(MapHeader, usize), String> {
+/// Checks the whole file image of `path`; returns the parsed header and the data offset, or
+/// [`MapError::Format`] with the reason.
+fn validate(b: &[u8], path: &Path) -> Result<(MapHeader, usize), MapError> {
+    let bad = |reason: String| MapError::Format {
+        path: path.to_path_buf(),
+        reason,
+    };
     if b.len() < PREAMBLE_BYTES {
-        return Err(format!(
+        return Err(bad(format!(
             "truncated: {} bytes, the preamble alone has {PREAMBLE_BYTES}",
             b.len()
-        ));
+        )));
     }
     if b[0..8] != MAGIC {
-        return Err(format!(
+        return Err(bad(format!(
             "wrong magic {:?} (expected {:?}): not a .vnm map",
             String::from_utf8_lossy(&b[0..8]),
             String::from_utf8_lossy(&MAGIC)
-        ));
+        )));
     }
     let version = u32::from_le_bytes(rd4(b, 8));
     if !(MIN_READ_VERSION..=FORMAT_VERSION).contains(&version) {
-        return Err(format!(
+        return Err(bad(format!(
             "format version {version}, this visnav reads versions {MIN_READ_VERSION} to {FORMAT_VERSION} (rebuild the map with `visnav map build`)"
-        ));
+        )));
     }
     let header_len = u64::from_le_bytes(rd8(b, 16));
     let data_offset = u64::from_le_bytes(rd8(b, 24));
     let file_len = u64::from_le_bytes(rd8(b, 32));
     if file_len != b.len() as u64 {
-        return Err(format!(
+        return Err(bad(format!(
             "the preamble records {file_len} bytes but the file has {} (truncated or appended to)",
             b.len()
-        ));
+        )));
     }
     let expect_data = PREAMBLE_BYTES as u64 + header_len;
     if header_len > file_len || data_offset != align8(expect_data) || data_offset > file_len {
-        return Err(format!(
+        return Err(bad(format!(
             "inconsistent preamble: header_len {header_len}, data_offset {data_offset}, file_len {file_len}"
-        ));
+        )));
     }
     let stored = u32::from_le_bytes(rd4(b, CRC_AT));
     let actual = crc_of(b);
     if stored != actual {
-        return Err(format!(
+        return Err(bad(format!(
             "checksum mismatch (stored {stored:08x}, computed {actual:08x}): the file is corrupted"
-        ));
+        )));
     }
     let hdr_bytes = &b[PREAMBLE_BYTES..PREAMBLE_BYTES + header_len as usize];
     let header: MapHeader =
-        serde_json::from_slice(hdr_bytes).map_err(|e| format!("header JSON: {e}"))?;
+        serde_json::from_slice(hdr_bytes).map_err(|e| bad(format!("header JSON: {e}")))?;
     if header.version != version {
-        return Err(format!(
+        return Err(bad(format!(
             "header version {} differs from the preamble's {version}",
             header.version
-        ));
+        )));
     }
     header
         .surf
         .validate()
-        .map_err(|e| format!("header SURF parameters: {e}"))?;
+        .map_err(|e| bad(format!("header SURF parameters: {e}")))?;
     let data_len = file_len - data_offset;
     let data = &b[data_offset as usize..];
     let len = header.surf.descriptor.len() as u64;
@@ -762,10 +764,10 @@ fn validate(b: &[u8]) -> Result<(MapHeader, usize), String> {
             || g.rows == 0
             || g.cols as u64 * g.rows as u64 > MAX_CELLS
         {
-            return Err(format!("level {l}: invalid index grid {g:?}"));
+            return Err(bad(format!("level {l}: invalid index grid {g:?}")));
         }
         if !(info.gsd_m.is_finite() && info.gsd_m > 0.0) {
-            return Err(format!("level {l}: invalid gsd_m {}", info.gsd_m));
+            return Err(bad(format!("level {l}: invalid gsd_m {}", info.gsd_m)));
         }
         let n = info.n_features;
         let n_cells = g.n_cells() as u64;
@@ -793,10 +795,10 @@ fn validate(b: &[u8]) -> Result<(MapHeader, usize), String> {
             )
         });
         if image.is_some_and(|(_, _, ok)| !ok) {
-            return Err(format!(
+            return Err(bad(format!(
                 "level {l}: invalid image geometry {:?}",
                 info.image
-            ));
+            )));
         }
         let sections = sections
             .into_iter()
@@ -804,9 +806,9 @@ fn validate(b: &[u8]) -> Result<(MapHeader, usize), String> {
         for (name, at, size) in sections {
             let end = size.and_then(|s| at.checked_add(s));
             if end.is_none_or(|e| e > data_len) {
-                return Err(format!(
+                return Err(bad(format!(
                     "level {l}: {name} at {at} (+{size:?} bytes) exceed the {data_len} data bytes (truncated?)"
-                ));
+                )));
             }
         }
         let cells = &data[info.cells_offset as usize..];
@@ -814,16 +816,16 @@ fn validate(b: &[u8]) -> Result<(MapHeader, usize), String> {
         for k in 0..=n_cells as usize {
             let v = u64::from_le_bytes(rd8(cells, 8 * k));
             if (k == 0 && v != 0) || v < prev || v > n {
-                return Err(format!(
+                return Err(bad(format!(
                     "level {l}: cell table entry {k} = {v} is not a cumulative count (previous {prev}, {n} features)"
-                ));
+                )));
             }
             prev = v;
         }
         if prev != n {
-            return Err(format!(
+            return Err(bad(format!(
                 "level {l}: cell table ends at {prev}, header says {n} features"
-            ));
+            )));
         }
     }
     Ok((header, data_offset as usize))

@@ -14,6 +14,7 @@ pub use visnav_io::geo;
 pub use visnav_io::map;
 pub use visnav_link as link;
 pub mod pose;
+#[cfg(feature = "sim")]
 pub mod sitl;
 pub use visnav_core::stats;
 pub mod vision;

@@ -20,6 +20,7 @@ enum Command {
     /// Load and validate a configuration file, printing every problem found.
     CheckConfig(cli::check_config::CheckConfigArgs),
     /// Run a SITL scenario through the navigation filter and print errors against truth.
+    #[cfg(feature = "sim")]
     Sim(cli::sim::SimArgs),
     /// One vision fix from one camera frame against a reference map.
     Fix(cli::fix::FixArgs),
@@ -32,6 +33,7 @@ enum Command {
     /// Run a recorded .tlog through the navigation filter offline: NIS per measurement type, resets.
     Replay(cli::replay::ReplayArgs),
     /// The service against a real ArduPilot/PX4 SITL, the camera rendered from the simulator's truth.
+    #[cfg(feature = "sim")]
     SitlRun(cli::sitl_run::SitlRunArgs),
 }
 
@@ -40,11 +42,13 @@ fn main() -> std::process::ExitCode {
     cli::init_logging(args.verbose);
     let result = match args.command {
         Command::CheckConfig(a) => cli::check_config::run(a),
+        #[cfg(feature = "sim")]
         Command::Sim(a) => cli::sim::run_cmd(a),
         Command::Bench(a) => cli::bench::run(a),
         Command::Fix(a) => cli::fix::run(a),
         Command::Map(a) => cli::map::run(a),
         Command::Run(a) => cli::run::run(a),
+        #[cfg(feature = "sim")]
         Command::SitlRun(a) => cli::sitl_run::run(a),
         Command::Replay(a) => cli::replay::run(a),
     };

@@ -165,6 +165,25 @@ fn the_core_does_no_io_and_reads_no_clock() {
     }
 }
 
+#[test]
+fn the_library_crates_return_typed_errors() {
+    for krate in ["visnav-core", "visnav-io", "visnav-link"] {
+        for p in sources(&repo().join("crates").join(krate).join("src")) {
+            let code = code_outside_tests(&p);
+            for (n, line) in code.lines().enumerate() {
+                let t = line.trim();
+                let string_error = t.contains("Result<") && t.contains(", String>");
+                assert!(
+                    !string_error,
+                    "{}: `{t}` (line {} of the code)",
+                    p.display(),
+                    n + 1
+                );
+            }
+        }
+    }
+}
+
 /// Functions of rustfmt-formatted `code` longer than `max` lines: `(line, name, lines)`. A
 /// function starts at its `fn` line and ends at the first `}` line at the same indentation.
 fn long_functions(code: &str, max: usize) -> Vec<(usize, String, usize)> {

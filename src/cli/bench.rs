@@ -30,9 +30,11 @@ pub enum BenchWhat {
     Pose(PoseBenchArgs),
     /// Time the camera renderer (VGA, 60 deg FOV) over the bundled NAIP 2014 map (flat ground) and,
     /// when ../shared/data is present, the NGI ortho over its 24 m DEM.
+    #[cfg(feature = "sim")]
     Render(RenderBenchArgs),
     /// The vision fix on NAIP cross-date frames (map 2009, frames 2014): fix rate, error
     /// against truth, frame-to-fix time p50/p95.
+    #[cfg(feature = "sim")]
     Fix(super::bench_fix::FixBenchArgs),
 }
 
@@ -121,7 +123,9 @@ pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
     match args.what {
         BenchWhat::Surf(a) => run_surf(a),
         BenchWhat::Pose(a) => run_pose(a),
+        #[cfg(feature = "sim")]
         BenchWhat::Render(a) => run_render(a),
+        #[cfg(feature = "sim")]
         BenchWhat::Fix(a) => super::bench_fix::run(a),
     }
 }
@@ -136,6 +140,7 @@ fn run_pose(a: PoseBenchArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+#[cfg(feature = "sim")]
 fn run_render(a: RenderBenchArgs) -> anyhow::Result<ExitCode> {
     use visnav::geo::dem::Dem;
     use visnav::geo::geotiff::load_geotiff;

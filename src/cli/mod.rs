@@ -1,13 +1,16 @@
 //! Subcommand implementations of the `visnav` binary.
 
 pub mod bench;
+#[cfg(feature = "sim")]
 pub mod bench_fix;
 pub mod check_config;
 pub mod fix;
 pub mod map;
 pub mod replay;
 pub mod run;
+#[cfg(feature = "sim")]
 pub mod sim;
+#[cfg(feature = "sim")]
 pub mod sitl_run;
 
 /// A file of the repository (`sitl/maps/...`, `../shared/data/...`): relative to the working

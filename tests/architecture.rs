@@ -235,10 +235,15 @@ fn no_core_function_is_over_120_lines() {
 
 /// The modules of the package (`src/<name>` or `src/<name>.rs`) each one names outside its tests.
 fn module_graph() -> BTreeMap<String, BTreeSet<String>> {
-    let src = repo().join("src");
+    modules_under(&repo().join("src"), &["crate::", "visnav::"])
+}
+
+/// The modules under `src` (`<name>.rs` or `<name>/`) and which of them each names with one of
+/// `prefixes` outside its tests.
+fn modules_under(src: &Path, prefixes: &[&str]) -> BTreeMap<String, BTreeSet<String>> {
     let mut g: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
-    for p in sources(&src) {
-        let rel = p.strip_prefix(&src).expect("under src");
+    for p in sources(src) {
+        let rel = p.strip_prefix(src).expect("under src");
         let top = rel
             .components()
             .next()
@@ -246,12 +251,12 @@ fn module_graph() -> BTreeMap<String, BTreeSet<String>> {
             .unwrap_or("")
             .trim_end_matches(".rs")
             .to_string();
-        if top == "lib" || top == "main" {
+        if ["lib", "main", "mod"].contains(&top.as_str()) {
             continue;
         }
         let code = code_outside_tests(&p);
         let uses = g.entry(top.clone()).or_default();
-        for prefix in ["crate::", "visnav::"] {
+        for prefix in prefixes {
             for (i, _) in code.match_indices(prefix) {
                 let before = code[..i].chars().next_back();
                 if before.is_some_and(|c| c.is_alphanumeric() || c == '_') {
@@ -303,6 +308,19 @@ fn circle(g: &BTreeMap<String, BTreeSet<String>>) -> Option<Vec<String>> {
         }
     }
     None
+}
+
+#[test]
+fn the_crates_modules_import_each_other_without_a_circle() {
+    for krate in ["visnav-core", "visnav-io", "visnav-link"] {
+        let g = modules_under(&repo().join("crates").join(krate).join("src"), &["crate::"]);
+        assert_eq!(circle(&g), None, "{krate}: import circle; the graph: {g:?}");
+    }
+    // Inside io's geo: the GeoTIFF reader, its info and the window reader.
+    let geo = repo().join("crates/visnav-io/src/geo");
+    let g = modules_under(&geo, &["super::"]);
+    assert!(g["window"].contains("geotiff_info"), "{g:?}");
+    assert_eq!(circle(&g), None, "io geo: import circle; the graph: {g:?}");
 }
 
 #[test]

@@ -1,6 +1,8 @@
 //! Geodesy and rasters ([`visnav_core::geo`], re-exported here) and the files they come from:
 //!
-//! * `geotiff`: GeoTIFF reader (tiff crate, no GDAL) producing a `Raster`.
+//! * `geotiff_info`: the GeoTIFF structure, georeferencing keys, info and errors (tiff crate, no
+//!   GDAL).
+//! * `geotiff`: the whole first image as a `Raster`.
 //! * `window`: windowed GeoTIFF reader (decodes only the strips/tiles under a pixel window).
 //! * `dem`: terrain heights and ray/terrain intersection (gridded DEM or constant height).
 
@@ -8,4 +10,5 @@ pub use visnav_core::geo::*;
 
 pub mod dem;
 pub mod geotiff;
+pub mod geotiff_info;
 pub mod window;

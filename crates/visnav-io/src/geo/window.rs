@@ -1,7 +1,7 @@
 //! Windowed GeoTIFF reading: decode only the strips/tiles under a pixel window.
 //!
 //! [`GeoTiffWindowReader`] opens a GeoTIFF, parses its tags, GeoKeys, CRS, geotransform and nodata
-//! exactly as [`super::geotiff::load_geotiff`] does (the same code: `geotiff::read_info`), and then
+//! exactly as [`super::geotiff::load_geotiff`] does (the same code: `geotiff_info::read_info`), and then
 //! [`GeoTiffWindowReader::read_window`] returns the [`Raster`] of pixels
 //! `col0 .. col0 + width` x `row0 .. row0 + height`, decoding only the chunks (strips or tiles,
 //! every plane of a planar file) that intersect the window. `load_geotiff` is the special case of
@@ -41,7 +41,7 @@ use std::sync::Arc;
 use tiff::decoder::{Decoder, DecodingResult};
 
 use super::Crs;
-use super::geotiff::{
+use super::geotiff_info::{
     GeoTiffError, GeoTiffInfo, MAX_DECODED_BYTES, YCBCR_ONLY_RGB8, guarded, new_decoder, read_info,
     ycbcr_to_rgb_in_place,
 };

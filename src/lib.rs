@@ -3,8 +3,13 @@
 //! The modules read as the data flow (see `docs/architecture.md`):
 //! `geo` (geodesy, projections, rasters) -> `camera` (sensor model) -> `vision` (SURF) ->
 //! `map` (reference map) -> `pose` (resection) -> `nav` (INS + EKF) -> `link` (MAVLink) -> `daemon`.
-//! Algorithm modules are pure (no I/O besides explicit file loaders, no async); the daemon wires them.
+//! Most are the workspace's crates re-exported (visnav-core: pure algorithms; visnav-io: files and
+//! devices; visnav-link: MAVLink); `fix`, `daemon` and `sitl` (the `sim` feature) live here.
 //! Every frame and rotation convention is defined once in `docs/conventions.md`.
+
+// Nothing from outside may be unwrapped (clippy.toml allows it in tests; the end-to-end tests
+// in tests/ may unwrap too).
+#![deny(clippy::unwrap_used, clippy::expect_used)]
 
 pub mod camera;
 pub mod daemon;

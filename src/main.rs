@@ -1,6 +1,10 @@
 //! The `visnav` command-line interface (clap). Each subcommand lives in `src/cli/<name>.rs`;
 //! this file only parses arguments, sets up logging and reports errors with context.
 
+// Nothing from outside may be unwrapped (clippy.toml allows it in tests; the end-to-end tests
+// in tests/ may unwrap too).
+#![deny(clippy::unwrap_used, clippy::expect_used)]
+
 mod cli;
 
 use clap::{Parser, Subcommand};

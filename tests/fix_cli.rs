@@ -35,7 +35,7 @@ fn naip_frame(dir: &Path) -> (PathBuf, PathBuf, [f64; 3], Attitude) {
     let att = Attitude::from_deg(4.0, -6.0, 35.0);
     let body = Vector3::new(x, y, NAIP_GROUND_M + 2000.0);
     let pose = RenderPose::from_body(body, &att, &Mount::nadir(), gamma);
-    let frame = Renderer::new(vga_camera(), RenderSpec::default())
+    let frame = Renderer::new(vga_camera().unwrap(), RenderSpec::default())
         .unwrap()
         .render(&scene, &pose, 0)
         .unwrap();

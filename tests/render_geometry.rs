@@ -100,7 +100,7 @@ fn clean() -> RenderSpec {
 
 #[test]
 fn markers_land_where_the_camera_projects_them() {
-    let cam = vga_camera();
+    let cam = vga_camera().unwrap();
     let ren = Renderer::new(cam, clean()).unwrap();
     // 0.25 m/px ortho, 1000 m square. Markers around the centre.
     let c = (X0 + 500.0, Y0 - 500.0);
@@ -156,7 +156,7 @@ fn markers_land_where_the_camera_projects_them() {
 
 #[test]
 fn nadir_gsd_is_altitude_over_focal_length() {
-    let cam = vga_camera();
+    let cam = vga_camera().unwrap();
     let f = cam.intrinsics.fx_px;
     let ren = Renderer::new(
         cam,
@@ -199,7 +199,7 @@ fn nadir_gsd_is_altitude_over_focal_length() {
 
 #[test]
 fn tilted_footprint_matches_hand_cast_corner_rays() {
-    let cam = vga_camera();
+    let cam = vga_camera().unwrap();
     let k = cam.intrinsics;
     let ren = Renderer::new(
         cam,
@@ -309,7 +309,7 @@ fn anti_aliasing_averages_sub_pixel_texture() {
     let scene = Scene::new(&ortho, Dem::flat(0.0).unwrap(), ColourMode::Grey).unwrap();
     for (supersample, tilt) in [(1, 0.0), (2, 0.0), (2, 20.0)] {
         let ren = Renderer::new(
-            vga_camera(),
+            vga_camera().unwrap(),
             RenderSpec {
                 supersample,
                 ..clean()
@@ -361,7 +361,7 @@ fn off_map_pixels_are_masked_and_filled() {
         fill_dn: 7.0,
         ..clean()
     };
-    let cam = vga_camera();
+    let cam = vga_camera().unwrap();
     let k = cam.intrinsics;
     let ren = Renderer::new(cam, spec).unwrap();
     let agl = 400.0;
@@ -400,7 +400,7 @@ fn off_map_pixels_are_masked_and_filled() {
     let big = ortho_u8(100, 1000.0, |_, _| 100.0);
     let scene = Scene::new(&big, Dem::flat(0.0).unwrap(), ColourMode::Grey).unwrap();
     let ren = Renderer::new(
-        vga_camera(),
+        vga_camera().unwrap(),
         RenderSpec {
             max_range_m: 20_000.0,
             ..spec
@@ -446,7 +446,7 @@ fn photometric_effects_are_deterministic_per_seed_and_frame() {
         },
         ..RenderSpec::default()
     };
-    let ren = Renderer::new(vga_camera(), spec).unwrap();
+    let ren = Renderer::new(vga_camera().unwrap(), spec).unwrap();
     let p = pose(X0 + 500.0, Y0 - 500.0, 600.0, 10.0, 45.0);
     let a = ren.render(&scene, &p, 3).unwrap();
     let b = ren.render(&scene, &p, 3).unwrap();
@@ -459,14 +459,14 @@ fn photometric_effects_are_deterministic_per_seed_and_frame() {
     );
     let c = ren.render(&scene, &p, 4).unwrap();
     assert_ne!(a, c);
-    let other = Renderer::new(vga_camera(), RenderSpec { seed: 12, ..spec }).unwrap();
+    let other = Renderer::new(vga_camera().unwrap(), RenderSpec { seed: 12, ..spec }).unwrap();
     assert_ne!(a, other.render(&scene, &p, 3).unwrap());
     // Without noise the same render is independent of seed and frame index.
     let quiet = RenderSpec {
         noise: NoiseSpec::default(),
         ..spec
     };
-    let q = Renderer::new(vga_camera(), quiet).unwrap();
+    let q = Renderer::new(vga_camera().unwrap(), quiet).unwrap();
     assert_eq!(
         q.render(&scene, &p, 1).unwrap(),
         q.render(&scene, &p, 2).unwrap()

@@ -51,7 +51,7 @@ fn nadir_render_at_map_gsd_reproduces_the_bench_crop() {
     assert_eq!((crop.width(), crop.height()), (640, 480));
     let ortho = naip_2014();
     let (px_m, _) = ortho.transform().pixel_size();
-    let cam = vga_camera();
+    let cam = vga_camera().unwrap();
     let k = cam.intrinsics;
     let scene = Scene::new(&ortho, Dem::flat(GROUND_M).unwrap(), ColourMode::Grey).unwrap();
     // Camera pixel (u, v) sees ortho pixel (100 + u, 100 + v): its centre is at ortho corner
@@ -139,7 +139,7 @@ fn acceptance_frame_at_1500_m_for_visual_check() {
         },
         ..RenderSpec::default()
     };
-    let ren = Renderer::new(vga_camera(), spec).unwrap();
+    let ren = Renderer::new(vga_camera().unwrap(), spec).unwrap();
     let b = ortho.bounds();
     let (xc, yc) = (0.5 * (b.min_x_m + b.max_x_m), 0.5 * (b.min_y_m + b.max_y_m));
     // Heading 40 deg (image top towards grid bearing 40), axis tilted 15 deg towards the image top.

@@ -193,7 +193,7 @@ mod tests {
         let (cx, cy) = ((b.min_x_m + b.max_x_m) / 2.0, (b.min_y_m + b.max_y_m) / 2.0);
         let (lat, lon) = crs.to_geodetic(cx, cy).unwrap();
         let scene = Scene::new(&raster, Dem::flat(580.0).unwrap(), ColourMode::Grey).unwrap();
-        let renderer = Renderer::new(vga_camera(), RenderSpec::default()).unwrap();
+        let renderer = Renderer::new(vga_camera().unwrap(), RenderSpec::default()).unwrap();
         let truth = TruthState {
             lat_deg: lat,
             lon_deg: lon,

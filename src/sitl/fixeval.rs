@@ -307,14 +307,15 @@ impl NaipEval {
         spec.upsample = upsample;
         spec.height_sigma_m = height_sigma_m;
         let reference = MapReference::build_temporary(&spec, None)?;
-        let engine = FixEngine::new(Arc::new(reference), vga_camera(), params)
+        let camera = vga_camera().map_err(|e| format!("camera: {e}"))?;
+        let engine = FixEngine::new(Arc::new(reference), camera, params)
             .map_err(|e| format!("engine: {e}"))?;
         let scene = Scene::new(&cam_raster, flat()?, ColourMode::Grey)
             .map_err(|e| format!("scene: {e}"))?;
         let map_scene = Scene::new(&map_raster, flat()?, ColourMode::Grey)
             .map_err(|e| format!("scene of the map image: {e}"))?;
         let renderer = Renderer::new(
-            vga_camera(),
+            camera,
             RenderSpec {
                 seed: 7,
                 ..RenderSpec::default()
@@ -400,7 +401,8 @@ impl NaipEval {
             ..SurfParams::default()
         };
         let reference = MapReference::build_temporary(&spec, None)?;
-        let engine = FixEngine::new(Arc::new(reference), vga_camera(), params)
+        let camera = vga_camera().map_err(|e| format!("camera: {e}"))?;
+        let engine = FixEngine::new(Arc::new(reference), camera, params)
             .map_err(|e| format!("engine: {e}"))?;
         // The camera scene is the map's own orthophoto (one date only).
         let scene = Scene::new(&map_raster, surface.clone(), ColourMode::Grey)
@@ -415,7 +417,7 @@ impl NaipEval {
         render.exposure.vignetting_corner = 0.15;
         render.blur.sigma_px = 0.7;
         render.noise.read_dn = 2.0;
-        let renderer = Renderer::new(vga_camera(), render).map_err(|e| format!("renderer: {e}"))?;
+        let renderer = Renderer::new(camera, render).map_err(|e| format!("renderer: {e}"))?;
         Ok(Self::from_parts(
             map_raster,
             engine,

@@ -51,7 +51,7 @@ pub use spec::{BlurSpec, ExposureSpec, NoiseSpec, RenderSpec};
 pub use terrain::Terrain;
 
 use crate::camera::frames::{r_enu_ned, rot_z};
-use crate::camera::{Attitude, Camera, CameraPose, Intrinsics, Mount, Opk};
+use crate::camera::{Attitude, Camera, CameraError, CameraPose, Intrinsics, Mount, Opk};
 use crate::geo::dem::Dem;
 use crate::geo::geotiff::crs_equivalent;
 use crate::geo::raster::Raster;
@@ -76,6 +76,9 @@ pub enum RenderError {
     /// The scene's pyramid was built for another colour mode than the spec asks for.
     #[error("scene has {scene:?} channels but the render spec asks for {spec:?}")]
     ColourMismatch { scene: ColourMode, spec: ColourMode },
+    /// The camera model could not be built.
+    #[error("camera: {0}")]
+    Camera(#[from] CameraError),
     /// Non-finite pose.
     #[error("camera pose is not finite: centre {centre_map_m:?}")]
     BadPose { centre_map_m: [f64; 3] },
@@ -237,8 +240,7 @@ impl RenderedFrame {
     /// 8-bit grey image (rounded and clamped).
     pub fn to_gray_image(&self) -> image::GrayImage {
         let px: Vec<u8> = self.grey().iter().map(|v| to_u8(*v)).collect();
-        image::GrayImage::from_raw(self.width as u32, self.height as u32, px) // ok: length w*h by construction
-            .expect("grey buffer has width * height samples") // ok: internal invariant
+        gray_from(self.width, px)
     }
 
     /// 8-bit RGB image (grey replicated for one channel).
@@ -248,8 +250,11 @@ impl RenderedFrame {
         } else {
             self.data.iter().flat_map(|v| [to_u8(*v); 3]).collect()
         };
-        image::RgbImage::from_raw(self.width as u32, self.height as u32, px) // ok: length w*h*3
-            .expect("rgb buffer has width * height * 3 samples") // ok: internal invariant
+        let w = self.width.max(1);
+        image::RgbImage::from_fn(w as u32, (px.len() / (3 * w)) as u32, |x, y| {
+            let i = 3 * (y as usize * w + x as usize);
+            image::Rgb([px[i], px[i + 1], px[i + 2]])
+        })
     }
 
     /// Validity mask as an 8-bit image (255 valid, 0 off-map).
@@ -259,9 +264,16 @@ impl RenderedFrame {
             .iter()
             .map(|v| if *v { 255 } else { 0 })
             .collect();
-        image::GrayImage::from_raw(self.width as u32, self.height as u32, px) // ok: length w*h
-            .expect("mask buffer has width * height samples") // ok: internal invariant
+        gray_from(self.width, px)
     }
+}
+
+/// An 8-bit grey image of rows of `width` pixels (the rows `px` holds).
+fn gray_from(width: usize, px: Vec<u8>) -> image::GrayImage {
+    let w = width.max(1);
+    image::GrayImage::from_fn(w as u32, (px.len() / w) as u32, |x, y| {
+        image::Luma([px[y as usize * w + x as usize]])
+    })
 }
 
 #[inline]
@@ -602,10 +614,8 @@ pub fn time_render(
 
 /// The acceptance-test camera: 640 x 480 px, 60 deg horizontal field of view, no distortion,
 /// nadir mount.
-pub fn vga_camera() -> Camera {
-    let k = Intrinsics::from_hfov(60f64.to_radians(), 640, 480) // ok: constant valid arguments
-        .expect("VGA 60 deg intrinsics are valid"); // ok: constant valid arguments
-    Camera::pinhole(k).expect("VGA pinhole camera is valid") // ok: constant valid arguments
+pub fn vga_camera() -> Result<Camera, CameraError> {
+    Camera::pinhole(Intrinsics::from_hfov(60f64.to_radians(), 640, 480)?)
 }
 
 /// A pose over the centre of the scene's orthophoto: `agl_m` above the terrain there (or above
@@ -632,7 +642,7 @@ pub fn bench_vga(
     agl_m: f64,
     iterations: usize,
 ) -> Result<RenderTiming, RenderError> {
-    let renderer = Renderer::new(vga_camera(), spec)?;
+    let renderer = Renderer::new(vga_camera()?, spec)?;
     let pose = pose_over_centre(scene, agl_m, 10.0, 30.0);
     time_render(&renderer, scene, &pose, iterations)
 }

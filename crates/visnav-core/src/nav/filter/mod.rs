@@ -63,11 +63,19 @@ use super::divergence::{RejectedFix, RejectedWindow};
 use super::drag::{DragFix, DragLearner};
 use super::earth;
 use super::ins::{InsState, Strapdown, skew_matrix};
-use super::measurement::{ImuSample, Measurement, PositionFix, VelocityFix};
+use super::measurement::{
+    AltitudeFix, AttitudeFix, ImuSample, Measurement, PositionFix, VelocityFix,
+};
 use crate::stats::chi2_quantile;
 use nalgebra::{Matrix3, SMatrix, SVector, UnitQuaternion, Vector3};
 use serde::Serialize;
 use std::collections::VecDeque;
+
+mod fuse_altitude;
+mod fuse_attitude;
+mod fuse_drag;
+mod fuse_position;
+mod fuse_velocity;
 
 /// Size of the error state carried internally.
 pub const N_STATES: usize = 30;
@@ -864,7 +872,7 @@ impl NavFilter {
         let (Some((f, is_vision)), Some(core)) = (m.position_fix(), self.core.as_ref()) else {
             return;
         };
-        let d = position_innovation(&self.par, core, f, is_vision);
+        let d = fuse_position::position_innovation(&self.par, core, f, is_vision);
         let c = f.cov_ned_m2.fixed_view::<2, 2>(0, 0).into_owned();
         let var_h = c.symmetric_eigenvalues().max();
         let cap = self.cfg.health.divergence_reject_count.max(3) as usize;
@@ -1329,8 +1337,6 @@ fn shift_ned(p: (f64, f64, f64), d_ned: &Vector3<f64>) -> (f64, f64, f64) {
     )
 }
 
-/// Apply one measurement to `core`, whose epoch time is `core.t_us <= t_c`; the prediction is
-/// extrapolated over `t_c - core.t_us`.
 /// The factor on the covariance of a measurement whose errors persist for `tau_s` (0: independent
 /// samples): `max(1, tau / dt)`, `dt` the time since the last fused one of its kind (none yet:
 /// 1), capped at `cap`. Fused at that factor, N samples within `tau` carry the information of one.
@@ -1342,214 +1348,20 @@ fn correlation_factor(tau_s: f64, last_us: Option<u64>, t_c: u64, cap: f64) -> f
     (tau_s / dt.max(1e-3)).clamp(1.0, cap)
 }
 
-/// The drag law as a measurement of the body velocity (`nav::drag`): per fused axis `k`,
-/// `z = f_k` (bias-corrected specific force), `h(x) = law_k((C_n^b v)_k)`. With
-/// `C_est = (I + [psi x]) C_true`, `v_b,est = v_b + C_n^b [v x] psi`; the accelerometer bias error
-/// enters with +1 (the measured force is corrected by the estimate).
-fn apply_drag(par: &Params, core: &mut Core, d: &DragFix) -> Outcome {
-    let st = &core.ins.state;
-    let c_nb = st.q_nb.inverse().to_rotation_matrix().into_inner();
-    let v_b = c_nb * st.v_ned_m_s;
-    let d_vb_d_psi = c_nb * skew_matrix(&st.v_ned_m_s);
-    let rows: Vec<(usize, super::drag::AxisModel)> = d
-        .model
-        .iter()
-        .enumerate()
-        .filter_map(|(k, m)| m.map(|m| (k, m)))
-        .collect();
-    let v_xy = v_b.xy();
-    let row = |k: usize, m: &super::drag::AxisModel| {
-        // d f_k / d (v_x, v_y) of the body velocity, then through v_b = C_nb v_n.
-        let g = m.gradient(&v_xy, k);
-        let mut h = SMatrix::<f64, 1, N_STATES>::zeros();
-        for j in 0..3 {
-            h[(0, IV + j)] = g[0] * c_nb[(0, j)] + g[1] * c_nb[(1, j)];
-            h[(0, IA + j)] = g[0] * d_vb_d_psi[(0, j)] + g[1] * d_vb_d_psi[(1, j)];
-        }
-        h[(0, IBA + k)] = 1.0;
-        if par.drift {
-            h[(0, IDA + k)] = 1.0;
-        }
-        let dz = m.force_at(&v_xy, k) - d.f_body_xy_m_s2[k];
-        (
-            h,
-            dz,
-            m.variance_at(&v_xy, k, d.wind_sigma_m_s, d.f_body_xy_m_s2[k]),
-        )
-    };
-    // The law's error and the wind persist: one independent measurement per correlation time.
-    let corr = correlation_factor(
-        super::drag::ERROR_CORR_TIME_S,
-        core.last_drag_us,
-        d.t_capture_us,
-        1e4,
-    );
-    let out = match rows.as_slice() {
-        [(k, m)] => {
-            let (h, dz, var) = row(*k, m);
-            core.update(
-                par,
-                SVector::<f64, 1>::new(dz),
-                h,
-                SMatrix::<f64, 1, 1>::new(var * corr),
-                par.gate_drag1,
-            )
-        }
-        [(k0, m0), (k1, m1)] => {
-            let (h0, dz0, var0) = row(*k0, m0);
-            let (h1, dz1, var1) = row(*k1, m1);
-            let mut h = SMatrix::<f64, 2, N_STATES>::zeros();
-            h.set_row(0, &h0);
-            h.set_row(1, &h1);
-            core.update(
-                par,
-                SVector::<f64, 2>::new(dz0, dz1),
-                h,
-                SMatrix::<f64, 2, 2>::new(var0 * corr, 0.0, 0.0, var1 * corr),
-                par.gate_drag2,
-            )
-        }
-        _ => Outcome::Ignored,
-    };
-    if matches!(out, Outcome::Accepted { .. }) {
-        core.last_drag_us = Some(d.t_capture_us);
-    }
-    out
-}
-
-/// Predicted minus measured position of a fix's point (camera or antenna, lever arm `l`): the
-/// state moved to the capture time by its velocity, plus `C_b^n l`, minus the fix (NED, m).
-fn position_innovation(
-    par: &Params,
-    core: &Core,
-    f: &PositionFix,
-    is_vision: bool,
-) -> Vector3<f64> {
-    let st = &core.ins.state;
-    let l = if is_vision { par.l_cam } else { par.l_gps };
-    earth::ned_offset_m(
-        (st.lat_rad, st.lon_rad, st.h_m),
-        (f.lat_rad, f.lon_rad, f.h_m),
-    ) + st.v_ned_m_s * dt_s(core.t_us, f.t_capture_us)
-        + st.q_nb * l
-}
-
+/// Apply one measurement to `core`, whose epoch time is `core.t_us <= t_c`; the prediction is
+/// extrapolated over `t_c - core.t_us`. One file per measurement model (as ArduPilot's EKF3
+/// splits its fusion): `fuse_position`, `fuse_velocity`, `fuse_altitude`, `fuse_drag`,
+/// `fuse_attitude`.
 fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
-    let t_c = m.t_capture_us();
-    let dt = dt_s(core.t_us, t_c);
-    let st = &core.ins.state;
-    let v = st.v_ned_m_s;
+    let dt = dt_s(core.t_us, m.t_capture_us());
     match m {
         Measurement::Vision(_) | Measurement::GpsPosition(_) | Measurement::VisionPose(_) => {
-            let Some((f, is_vision)) = m.position_fix() else {
-                return Outcome::Ignored;
-            };
-            // The fix is the position of the camera / antenna, `r + C_b^n l`; with
-            // `C_est = (I + [psi x]) C_true`: `dz = dr + [psi x] C l = dr - [(C l) x] psi`.
-            let l_n = st.q_nb * if is_vision { par.l_cam } else { par.l_gps };
-            let mut dz = position_innovation(par, core, f, is_vision);
-            let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
-            h.fixed_view_mut::<3, 3>(0, IP)
-                .copy_from(&Matrix3::identity());
-            h.fixed_view_mut::<3, 3>(0, IA)
-                .copy_from(&lever_arm_jacobian(&l_n));
-            // A vision fix also measures the bias: `z = r_cam + b + e`.
-            if is_vision && par.vbias {
-                dz += core.vb;
-                h.fixed_view_mut::<3, 3>(0, IVB)
-                    .copy_from(&Matrix3::identity());
-            }
-            // A fix solved with this filter's attitude as its prior: `z = p + D psi + e`, so
-            // `dz = dp - D psi - e` (PositionFix::att_dependence_ned).
-            if let (Some(d), false) = (
-                f.att_dependence_ned,
-                matches!(m, Measurement::VisionPose(_)),
-            ) {
-                let mut ha = h.fixed_view_mut::<3, 3>(0, IA);
-                ha -= d;
-            }
-            // Correlated fix errors (NavConfig::vision_error_corr_time_s).
-            let corr = if is_vision {
-                correlation_factor(par.vision_corr_s, core.last_vision_us, t_c, 1e4)
-            } else {
-                1.0
-            };
-            let out = if let Measurement::VisionPose(p) = m {
-                // Position and attitude jointly: `[dz_pos; psi_est - psi_meas]` against the
-                // image-only pose's 6x6 covariance (position/tilt correlation included).
-                let dz_att = (st.q_nb * p.q_nb.inverse()).scaled_axis();
-                let dz6 = SVector::<f64, 6>::new(dz.x, dz.y, dz.z, dz_att.x, dz_att.y, dz_att.z);
-                let mut h6 = SMatrix::<f64, 6, N_STATES>::zeros();
-                h6.fixed_view_mut::<3, N_STATES>(0, 0).copy_from(&h);
-                h6.fixed_view_mut::<3, 3>(3, IA)
-                    .copy_from(&Matrix3::identity());
-                core.update(par, dz6, h6, p.cov6 * corr, par.gate_vision6)
-            } else {
-                let gate = if is_vision {
-                    par.gate_vision
-                } else {
-                    par.gate_gps3
-                };
-                core.update(par, dz, h, f.cov_ned_m2 * corr, gate)
-            };
-            if is_vision && matches!(out, Outcome::Accepted { .. }) {
-                core.last_vision_us = Some(t_c);
-            }
-            out
+            fuse_position::fuse(par, core, m)
         }
-        Measurement::GpsVelocity(f) => {
-            // Antenna velocity `v + C_b^n (w x l)` (the earth/transport rate part of `w` is
-            // below 1e-4 rad/s and neglected); Jacobian wrt psi as for the position.
-            let lv_n = st.q_nb * core.w_b.cross(&par.l_gps);
-            let dz = v + lv_n - f.v_ned_m_s;
-            let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
-            h.fixed_view_mut::<3, 3>(0, IV)
-                .copy_from(&Matrix3::identity());
-            h.fixed_view_mut::<3, 3>(0, IA)
-                .copy_from(&lever_arm_jacobian(&lv_n));
-            core.update(par, dz, h, f.cov_ned_m2_s2, par.gate_gps3)
-        }
-        Measurement::Altitude(f) => {
-            let dz = SVector::<f64, 1>::new(st.h_m - v.z * dt - f.h_m);
-            let mut h = SMatrix::<f64, 1, N_STATES>::zeros();
-            h[(0, IP + 2)] = -1.0;
-            core.update(
-                par,
-                dz,
-                h,
-                SMatrix::<f64, 1, 1>::new(f.var_m2),
-                par.gate_alt,
-            )
-        }
-        Measurement::Drag(d) => apply_drag(par, core, d),
-        Measurement::Attitude(f) => {
-            let t_c = f.t_capture_us;
-            // Correlated AHRS errors (NavConfig::attitude_error_corr_time_s).
-            let k = correlation_factor(par.att_corr_s, core.last_att_us, t_c, 1e5);
-            // Attitude error (estimate relative to the measurement), NED small-angle vector.
-            let dz = (st.q_nb * f.q_nb.inverse()).scaled_axis();
-            let out = if par.att_tilt {
-                let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
-                h.fixed_view_mut::<3, 3>(0, IA)
-                    .copy_from(&Matrix3::identity());
-                core.update(par, dz, h, par.r_att * k, par.gate_att)
-            } else {
-                // Heading only: the rotation about the down axis.
-                let mut h = SMatrix::<f64, 1, N_STATES>::zeros();
-                h[(0, IA + 2)] = 1.0;
-                core.update(
-                    par,
-                    SVector::<f64, 1>::new(dz.z),
-                    h,
-                    SMatrix::<f64, 1, 1>::new(par.r_att[(2, 2)] * k),
-                    par.gate_att1,
-                )
-            };
-            if matches!(out, Outcome::Accepted { .. }) {
-                core.last_att_us = Some(t_c);
-            }
-            out
-        }
+        Measurement::GpsVelocity(f) => fuse_velocity::fuse(par, core, f),
+        Measurement::Altitude(f) => fuse_altitude::fuse(par, core, f, dt),
+        Measurement::Drag(d) => fuse_drag::fuse(par, core, d),
+        Measurement::Attitude(f) => fuse_attitude::fuse(par, core, f),
     }
 }
 

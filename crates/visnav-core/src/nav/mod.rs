@@ -4,7 +4,8 @@
 //! * [`earth`]: WGS84 radii of curvature, Somigliana normal gravity, earth and transport rates.
 //! * [`ins`]: strapdown mechanization with coning and sculling corrections (Sheta 2012 ch. 2).
 //! * [`filter`]: 15/21-state closed-loop error-state EKF with delayed-measurement handling,
-//!   chi-square gates, divergence detection and health (Sheta 2012 ch. 5, Chan 2022).
+//!   chi-square gates, divergence detection and health (Sheta 2012 ch. 5, Chan 2022);
+//!   one file per measurement model (`filter/fuse_*.rs`).
 //! * [`divergence`]: whether a run of rejected position fixes agree with each other enough to
 //!   reset the filter onto them.
 //! * [`drag`]: a multirotor's horizontal body velocity from its accelerometer (drag law learned

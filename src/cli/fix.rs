@@ -228,7 +228,8 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
     };
     let reference = load_reference(&a)?;
     let engine = FixEngine::new(reference, camera, params).context("fix engine")?;
-    let report = engine.fix(
+    let start = std::time::Instant::now();
+    let mut report = engine.fix(
         &image,
         &FixPrior {
             t_capture_us: 0,
@@ -238,6 +239,7 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
             attitude_from_filter: false,
         },
     );
+    report.ms = start.elapsed().as_secs_f64() * 1e3;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else if report.accepted {

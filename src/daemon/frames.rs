@@ -227,12 +227,14 @@ fn process(ctx: &WorkerCtx, f: Frame) -> bool {
     let prior = ctx.priors.prior_at(t_c);
     m.fixes_attempted.fetch_add(1, Ordering::Relaxed);
     let start = Instant::now();
-    let report = std::panic::catch_unwind(AssertUnwindSafe(|| ctx.fixer.fix(&f.image, &prior)))
+    let mut report = std::panic::catch_unwind(AssertUnwindSafe(|| ctx.fixer.fix(&f.image, &prior)))
         .unwrap_or_else(|_| {
             error!("fix engine panicked on frame {}", f.seq);
             FixReport::rejected("engine panicked", t_c, 0.0)
         });
-    let latency_ms = start.elapsed().as_millis() as u64;
+    let elapsed = start.elapsed();
+    report.ms = elapsed.as_secs_f64() * 1e3;
+    let latency_ms = elapsed.as_millis() as u64;
     m.latency(latency_ms);
     let sent = ctx
         .results

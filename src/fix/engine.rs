@@ -20,7 +20,6 @@
 //!    keeps few correct ones, see docs/surf.md).
 
 use std::sync::Arc;
-use std::time::Instant;
 
 use nalgebra::{Point2, Rotation3, Vector2, Vector3};
 use rayon::prelude::*;
@@ -420,8 +419,6 @@ impl FixEngine {
 
     /// [`Self::fix`] with diagnostics.
     pub fn fix_with_attempt(&self, frame: &GrayImage, prior: &FixPrior) -> (FixReport, Attempt) {
-        let t0 = Instant::now();
-        let ms = |t0: Instant| t0.elapsed().as_secs_f64() * 1e3;
         if frame.width() != self.camera.width_px() as usize
             || frame.height() != self.camera.height_px() as usize
         {
@@ -433,13 +430,13 @@ impl FixEngine {
                 self.camera.height_px()
             );
             return (
-                FixReport::rejected(reason, prior.t_capture_us, ms(t0)),
+                FixReport::rejected(reason, prior.t_capture_us, 0.0),
                 Attempt::default(),
             );
         }
         match prior.position {
             Some(pos) => {
-                let (mut r, a) = match prior.attitude {
+                let (r, a) = match prior.attitude {
                     Some(att) => {
                         let (mut r, a) = self.fix_prior(
                             frame,
@@ -453,14 +450,9 @@ impl FixEngine {
                     }
                     None => self.fix_any_heading(frame, &pos, prior.t_capture_us),
                 };
-                r.ms = ms(t0);
                 (r, a)
             }
-            None => {
-                let (mut r, a) = self.relocalise(frame, prior);
-                r.ms = ms(t0);
-                (r, a)
-            }
+            None => self.relocalise(frame, prior),
         }
     }
 

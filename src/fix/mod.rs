@@ -132,7 +132,8 @@ pub struct FixReport {
     pub level: usize,
     /// How the frame was matched to the map.
     pub method: FixMethod,
-    /// Wall time from frame to fix, milliseconds.
+    /// Wall time from frame to fix, milliseconds: filled by the caller that timed the call (the
+    /// daemon's fix worker, the bench, `visnav fix`); the engine reads no clock and leaves 0.
     pub ms: f64,
 }
 

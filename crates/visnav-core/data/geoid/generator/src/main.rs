@@ -7,7 +7,7 @@
 //! steps. Usage: `cargo run --release -- OUT.bin` (takes a few minutes on one core).
 use std::io::Write;
 
-fn main() {
+fn main() -> std::process::ExitCode {
     let out = std::env::args().nth(1).unwrap_or_else(|| "egm96_15min_cm.i16le".to_string());
     let (rows, cols, step) = (721usize, 1440usize, 0.25f64);
     let mut bytes = Vec::with_capacity(rows * cols * 2);
@@ -28,6 +28,10 @@ fn main() {
             eprintln!("row {r}/{rows}");
         }
     }
-    std::fs::File::create(&out).unwrap().write_all(&bytes).unwrap();
+    if let Err(e) = std::fs::File::create(&out).and_then(|mut f| f.write_all(&bytes)) {
+        eprintln!("{out}: cannot write: {e}");
+        return std::process::ExitCode::FAILURE;
+    }
     eprintln!("wrote {out}: {} bytes, N in [{min:.3}, {max:.3}] m", bytes.len());
+    std::process::ExitCode::SUCCESS
 }

@@ -1,25 +1,53 @@
-//! visnav: vision-aided navigation for drones without GPS.
+//! visnav: vision-aided navigation for drones without GPS. This library is the workspace's crates
+//! under one name for the `visnav` binary and the end-to-end tests in tests/ (docs/architecture.md
+//! draws the crates and the data flow):
 //!
-//! The modules read as the data flow (see `docs/architecture.md`):
-//! `geo` (geodesy, projections, rasters) -> `camera` (sensor model) -> `vision` (SURF) ->
-//! `map` (reference map) -> `pose` (resection) -> `nav` (INS + EKF) -> `link` (MAVLink) -> `daemon`.
-//! Most are the workspace's crates re-exported (visnav-core: pure algorithms; visnav-io: files and
-//! devices; visnav-link: MAVLink); `fix`, `daemon` and `sitl` (the `sim` feature) live here.
+//! * visnav-core (pure algorithms): `geo` math, `camera`, `vision`, `pose`, `fix`, `nav`, `stats`;
+//! * visnav-io (files and devices): `geo::{geotiff, window, dem}` loading, `map` (the `.vnm` file,
+//!   its build, [`fix::MapReference`]), `camera::source` (frame sources), `vision::file`;
+//! * visnav-link: `link` (MAVLink);
+//! * visnav-daemon: `daemon` (the service of `visnav run`);
+//! * visnav-sim (the default-on `sim` feature): `sitl` (the built-in simulator), `pose::{synth,
+//!   bench}` and `vision::eval` (evaluation tooling).
+//!
 //! Every frame and rotation convention is defined once in `docs/conventions.md`.
 
 // Nothing from outside may be unwrapped (clippy.toml allows it in tests; the end-to-end tests
 // in tests/ may unwrap too).
 #![deny(clippy::unwrap_used, clippy::expect_used)]
 
-pub mod camera;
-pub mod daemon;
-pub mod fix;
-pub use visnav_core::nav;
-pub use visnav_io::geo;
-pub use visnav_io::map;
+pub use visnav_core::{nav, stats};
+pub use visnav_daemon as daemon;
+pub use visnav_io::{geo, map};
 pub use visnav_link as link;
-pub mod pose;
 #[cfg(feature = "sim")]
-pub mod sitl;
-pub use visnav_core::stats;
-pub mod vision;
+pub use visnav_sim as sitl;
+
+/// The camera model (visnav-core) with the frame sources (visnav-io) as `source`.
+pub mod camera {
+    pub use visnav_core::camera::*;
+    pub use visnav_io::frames as source;
+}
+
+/// The vision fix (visnav-core) with the `.vnm` map file as its reference (visnav-io).
+pub mod fix {
+    pub use visnav_core::fix::*;
+    pub use visnav_io::map::reference::{MapReference, MapReferenceError};
+}
+
+/// Space resection (visnav-core) with its synthetic scenes and benchmark (visnav-sim).
+pub mod pose {
+    pub use visnav_core::pose::*;
+    #[cfg(feature = "sim")]
+    pub use visnav_sim::{pose_bench as bench, synth};
+}
+
+/// SURF and matching (visnav-core) with image files (visnav-io) and the repeatability
+/// evaluation (visnav-sim).
+pub mod vision {
+    pub use visnav_core::vision::*;
+    pub use visnav_io::image_file as file;
+    pub use visnav_io::image_file::GrayImageFile;
+    #[cfg(feature = "sim")]
+    pub use visnav_sim::surf_eval as eval;
+}

@@ -28,7 +28,9 @@ enum Command {
     Sim(cli::sim::SimArgs),
     /// One vision fix from one camera frame against a reference map.
     Fix(cli::fix::FixArgs),
-    /// Benchmarks (`bench surf`: SURF speed, feature counts and quality table).
+    /// Benchmarks (`bench surf`: SURF speed, feature counts and quality table). They use the
+    /// simulator's scenes and evaluation tooling, so they come with the `sim` feature.
+    #[cfg(feature = "sim")]
     Bench(cli::bench::BenchArgs),
     /// Reference maps (`map build`: orthophoto + DEM -> .vnm; `map info`: print a map's header).
     Map(cli::map::MapArgs),
@@ -48,6 +50,7 @@ fn main() -> std::process::ExitCode {
         Command::CheckConfig(a) => cli::check_config::run(a),
         #[cfg(feature = "sim")]
         Command::Sim(a) => cli::sim::run_cmd(a),
+        #[cfg(feature = "sim")]
         Command::Bench(a) => cli::bench::run(a),
         Command::Fix(a) => cli::fix::run(a),
         Command::Map(a) => cli::map::run(a),

@@ -1,7 +1,9 @@
-//! The structure docs/architecture.md describes, kept by a test: the pure core depends on no I/O,
-//! async or wall-clock crate (its whole dependency tree, read from Cargo.lock) and uses none of
-//! std's; visnav-io is not async, visnav-link reads no map or image; the top-level modules of the
-//! `visnav` package import each other without a circle.
+//! The structure docs/architecture.md describes, kept by a test: the crates depend on each other
+//! along the data flow only (core <- io, link <- daemon <- sim <- the binary), a flight build
+//! leaves the simulator out; the pure core depends on no I/O, async or wall-clock crate (its whole
+//! dependency tree, read from Cargo.lock) and uses none of std's; visnav-io is not async,
+//! visnav-link reads no map or image; no crate's modules import each other in a circle; the
+//! library crates return typed errors; no core function is over 120 lines.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -165,9 +167,88 @@ fn the_core_does_no_io_and_reads_no_clock() {
     }
 }
 
+/// The library crates, in the order of the data flow.
+const CRATES: [&str; 5] = [
+    "visnav-core",
+    "visnav-io",
+    "visnav-link",
+    "visnav-daemon",
+    "visnav-sim",
+];
+
+/// The workspace crates a crate may depend on: only those before it in the data flow.
+fn allowed(krate: &str) -> &'static [&'static str] {
+    match krate {
+        "visnav-core" => &[],
+        "visnav-io" | "visnav-link" => &["visnav-core"],
+        "visnav-daemon" => &["visnav-core", "visnav-io", "visnav-link"],
+        "visnav-sim" => &["visnav-core", "visnav-io", "visnav-link", "visnav-daemon"],
+        _ => &[],
+    }
+}
+
+#[test]
+fn the_crates_depend_on_each_other_along_the_data_flow() {
+    for krate in CRATES {
+        for d in normal_dependencies(krate) {
+            if d.starts_with("visnav") {
+                assert!(
+                    allowed(krate).contains(&d.as_str()),
+                    "{krate} depends on {d}: against the data flow (docs/architecture.md)"
+                );
+            }
+        }
+    }
+    // The whole trees too: the daemon pulls no simulator in, by any path.
+    assert!(!tree("visnav-daemon").contains("visnav-sim"));
+    assert!(tree("visnav-sim").contains("visnav-daemon"));
+}
+
+#[test]
+fn a_flight_build_leaves_the_simulator_out() {
+    let text = std::fs::read_to_string(repo().join("Cargo.toml")).expect("Cargo.toml");
+    let m: toml::Value = toml::from_str(&text).expect("TOML");
+    let sim = &m["dependencies"]["visnav-sim"];
+    assert_eq!(sim.get("optional").and_then(|o| o.as_bool()), Some(true));
+    let features = m["features"].as_table().expect("[features]");
+    let default: Vec<&str> = features["default"]
+        .as_array()
+        .expect("default")
+        .iter()
+        .filter_map(|v| v.as_str())
+        .collect();
+    assert_eq!(default, ["sim"]);
+    // Only the `sim` feature turns the simulator on.
+    for (name, list) in features {
+        let on = list
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter_map(|v| v.as_str())
+            .any(|f| f == "dep:visnav-sim" || f.starts_with("visnav-sim/"));
+        assert_eq!(on, name == "sim", "feature {name}");
+    }
+    // The library re-exports the simulator only behind the feature (the cli modules that use it
+    // are gated in cli/mod.rs, which `cargo clippy --no-default-features` in CI compiles).
+    let lib = std::fs::read_to_string(repo().join("src/lib.rs")).expect("src/lib.rs");
+    let lines: Vec<&str> = lib.lines().collect();
+    let mut seen = 0;
+    for (i, l) in lines.iter().enumerate() {
+        if l.contains("visnav_sim") && !l.trim_start().starts_with("//") {
+            seen += 1;
+            assert!(
+                i > 0 && lines[i - 1].contains("#[cfg(feature = \"sim\")]"),
+                "src/lib.rs:{}: visnav-sim named without the `sim` gate",
+                i + 1
+            );
+        }
+    }
+    assert!(seen > 0, "src/lib.rs re-exports the simulator as `sitl`");
+}
+
 #[test]
 fn the_library_crates_return_typed_errors() {
-    for krate in ["visnav-core", "visnav-io", "visnav-link"] {
+    for krate in CRATES {
         for p in sources(&repo().join("crates").join(krate).join("src")) {
             let code = code_outside_tests(&p);
             for (n, line) in code.lines().enumerate() {
@@ -231,11 +312,6 @@ fn no_core_function_is_over_120_lines() {
     // The measure sees a function's length.
     let f = format!("fn f() {{\n{}}}\n", "    x();\n".repeat(130));
     assert_eq!(long_functions(&f, 120).len(), 1);
-}
-
-/// The modules of the package (`src/<name>` or `src/<name>.rs`) each one names outside its tests.
-fn module_graph() -> BTreeMap<String, BTreeSet<String>> {
-    modules_under(&repo().join("src"), &["crate::", "visnav::"])
 }
 
 /// The modules under `src` (`<name>.rs` or `<name>/`) and which of them each names with one of
@@ -312,7 +388,7 @@ fn circle(g: &BTreeMap<String, BTreeSet<String>>) -> Option<Vec<String>> {
 
 #[test]
 fn the_crates_modules_import_each_other_without_a_circle() {
-    for krate in ["visnav-core", "visnav-io", "visnav-link"] {
+    for krate in CRATES {
         let g = modules_under(&repo().join("crates").join(krate).join("src"), &["crate::"]);
         assert_eq!(circle(&g), None, "{krate}: import circle; the graph: {g:?}");
     }
@@ -324,14 +400,15 @@ fn the_crates_modules_import_each_other_without_a_circle() {
 }
 
 #[test]
-fn the_packages_modules_import_each_other_without_a_circle() {
-    let g = module_graph();
-    // The graph is read: the daemon wires the fix engine, the CLI the daemon.
-    assert!(g["daemon"].contains("fix"), "{g:?}");
-    assert!(g["cli"].contains("daemon"), "{g:?}");
-    assert_eq!(circle(&g), None, "import circle; the graph: {g:?}");
+fn the_binarys_commands_import_each_other_without_a_circle() {
+    let g = modules_under(&repo().join("src/cli"), &["super::"]);
+    // The graph is read: `bench fix` is a bench mode.
+    assert!(g["bench"].contains("bench_fix"), "{g:?}");
+    assert_eq!(circle(&g), None, "cli: import circle; the graph: {g:?}");
     // The circle finder finds one.
     let mut bad = g.clone();
-    bad.entry("geo".into()).or_default().insert("daemon".into());
+    bad.entry("bench_fix".into())
+        .or_default()
+        .insert("bench".into());
     assert!(circle(&bad).is_some());
 }

@@ -612,7 +612,7 @@ fn brute_first_crossing(dem: &Dem, o: [f64; 3], d: [f64; 3], max_t: f64) -> Opti
 #[test]
 fn ngi_dem_heights_and_rays() {
     let Some(shared) = shared_dir() else { return };
-    let dem = Dem::load_geotiff(&shared.join("ngi_3324c/dem.tif"), None).unwrap();
+    let dem = visnav::geo::dem::load_dem(&shared.join("ngi_3324c/dem.tif"), None).unwrap();
     assert_eq!(dem.crs(), Some(TM_LO25));
     // GDAL: band 1 min 148.55587768554688, max 781.2567749023438 (README: about 150-780 m).
     let (lo, hi) = dem.height_range_m();
@@ -749,7 +749,7 @@ fn bench_load_and_raycast() {
         ("ngi_3324c/dem.tif", 1500.0),
         ("autzen/autzen_dsm_1m_utm10n.tif", 400.0),
     ] {
-        let dem = Dem::load_geotiff(&shared.join(f), None).unwrap();
+        let dem = visnav::geo::dem::load_dem(&shared.join(f), None).unwrap();
         let (lo, hi) = dem.height_range_m();
         let Dem::Grid(g) = &dem else { unreachable!() };
         let (c, r) = (g.width() as f64 / 2.0, g.height() as f64 / 2.0);

@@ -6,7 +6,6 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
-use visnav::geo::dem::Dem;
 use visnav::geo::geotiff::load_geotiff;
 use visnav::map::build::level_window;
 use visnav::map::format::{dequantise, quantise};
@@ -311,7 +310,7 @@ fn ngi_ortho_with_dem_heights() {
         s.dropped_no_height
     );
     let m = ReferenceMap::open(&out).unwrap();
-    let dem = Dem::load_geotiff(&dem_path, None).unwrap();
+    let dem = visnav::geo::dem::load_dem(&dem_path, None).unwrap();
     let (lo, hi) = dem.height_range_m();
     assert!(matches!(
         m.header().crs,

@@ -12,7 +12,6 @@
 use nalgebra::{Point2, Vector3};
 use std::path::{Path, PathBuf};
 use visnav::camera::{Camera, CameraConfig, CameraPose, Opk};
-use visnav::geo::dem::Dem;
 use visnav::geo::geotiff::load_geotiff;
 use visnav::sitl::render::{ColourMode, LUMA_REC601, RenderPose, RenderSpec, Renderer, Scene};
 
@@ -115,7 +114,7 @@ fn check_frame(frame: &str, ortho_file: &str) {
     let Some(dir) = data_dir() else { return };
     let truth = read_truth(&dir, frame);
     let cam = ngi_camera();
-    let dem = Dem::load_geotiff(&dir.join("dem.tif"), None).expect("load dem.tif");
+    let dem = visnav::geo::dem::load_dem(&dir.join("dem.tif"), None).expect("load dem.tif");
     let ortho = load_geotiff(&dir.join(ortho_file), None).expect("load ortho");
     let img = image::open(dir.join(frame)).expect("open frame").to_rgb8();
     assert_eq!(

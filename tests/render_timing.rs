@@ -62,7 +62,7 @@ fn timing_flat_and_grid_dem() {
         eprintln!("SKIP grid DEM timing: {} absent", ngi.display());
         return;
     }
-    let dem = Dem::load_geotiff(&ngi.join("dem.tif"), None).expect("NGI DEM");
+    let dem = visnav::geo::dem::load_dem(&ngi.join("dem.tif"), None).expect("NGI DEM");
     let ortho = load_geotiff(&ngi.join("ngi_ortho_5m_tile1.tif"), None).expect("NGI ortho");
     let scene = Scene::new(&ortho, dem, ColourMode::Grey).unwrap();
     for agl in [1200.0, 2500.0] {

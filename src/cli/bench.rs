@@ -30,11 +30,9 @@ pub enum BenchWhat {
     Pose(PoseBenchArgs),
     /// Time the camera renderer (VGA, 60 deg FOV) over the bundled NAIP 2014 map (flat ground) and,
     /// when ../shared/data is present, the NGI ortho over its 24 m DEM.
-    #[cfg(feature = "sim")]
     Render(RenderBenchArgs),
     /// The vision fix on NAIP cross-date frames (map 2009, frames 2014): fix rate, error
     /// against truth, frame-to-fix time p50/p95.
-    #[cfg(feature = "sim")]
     Fix(super::bench_fix::FixBenchArgs),
 }
 
@@ -123,9 +121,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
     match args.what {
         BenchWhat::Surf(a) => run_surf(a),
         BenchWhat::Pose(a) => run_pose(a),
-        #[cfg(feature = "sim")]
         BenchWhat::Render(a) => run_render(a),
-        #[cfg(feature = "sim")]
         BenchWhat::Fix(a) => super::bench_fix::run(a),
     }
 }
@@ -140,7 +136,6 @@ fn run_pose(a: PoseBenchArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-#[cfg(feature = "sim")]
 fn run_render(a: RenderBenchArgs) -> anyhow::Result<ExitCode> {
     use visnav::geo::dem::Dem;
     use visnav::geo::geotiff::load_geotiff;
@@ -157,7 +152,8 @@ fn run_render(a: RenderBenchArgs) -> anyhow::Result<ExitCode> {
         let o = ngi.join("ngi_ortho_5m_tile1.tif");
         let d = ngi.join("dem.tif");
         let ortho = load_geotiff(&o, None).with_context(|| format!("{}", o.display()))?;
-        let dem = Dem::load_geotiff(&d, None).with_context(|| format!("{}", d.display()))?;
+        let dem =
+            visnav::geo::dem::load_dem(&d, None).with_context(|| format!("{}", d.display()))?;
         scenes.push(("NGI 5 m ortho, 24 m DEM", ortho, dem));
     } else {
         eprintln!("skipping the NGI scene: {} not found", ngi.display());

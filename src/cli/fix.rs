@@ -122,7 +122,7 @@ fn load_reference(a: &FixArgs) -> anyhow::Result<Arc<dyn Reference>> {
     // The terrain: required with a GeoTIFF map, an override of the map's own with a .vnm.
     let dem = match (&a.dem, a.ground_height) {
         (Some(p), _) => Some(
-            Dem::load_geotiff(p, None)
+            visnav::geo::dem::load_dem(p, None)
                 .with_context(|| format!("loading the DEM {}", p.display()))?,
         ),
         (None, Some(h)) => Some(Dem::flat(h).context("--ground-height")?),
@@ -155,8 +155,7 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
                 .with_context(|| format!("reading settings {}", p.display()))?;
             let v: toml::Value = toml::from_str(&text)
                 .with_context(|| format!("{}: not valid TOML", p.display()))?;
-            FixParams::from_toml(v)
-                .map_err(anyhow::Error::msg)
+            visnav::daemon::fix_config::fix_params_from_toml(v)
                 .with_context(|| format!("{}: [fix] settings", p.display()))?
         }
         None => FixParams::default(),

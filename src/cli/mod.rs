@@ -1,5 +1,6 @@
 //! Subcommand implementations of the `visnav` binary.
 
+#[cfg(feature = "sim")]
 pub mod bench;
 #[cfg(feature = "sim")]
 pub mod bench_fix;
@@ -15,6 +16,7 @@ pub mod sitl_run;
 
 /// A file of the repository (`sitl/maps/...`, `../shared/data/...`): relative to the working
 /// directory when it exists there, else to the source tree the binary was built from.
+#[cfg(feature = "sim")]
 pub fn repo_file(rel: &str) -> std::path::PathBuf {
     let cwd = std::path::PathBuf::from(rel);
     if cwd.exists() {

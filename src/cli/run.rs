@@ -28,7 +28,6 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     // With a frame source, the vision fix engine of [map], [camera] and [fix].
     let fixer: Option<std::sync::Arc<dyn visnav::daemon::FrameFixer>> = if cfg.frames.is_some() {
         let engine = visnav::daemon::engine_from_config(&cfg)
-            .map_err(anyhow::Error::msg)
             .with_context(|| format!("{}: vision fix engine", args.config.display()))?;
         Some(std::sync::Arc::new(engine))
     } else {

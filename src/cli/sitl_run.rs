@@ -88,7 +88,6 @@ pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
         ),
     };
     let engine = visnav::daemon::engine_from_config(&cfg)
-        .map_err(anyhow::Error::msg)
         .with_context(|| format!("{}: vision fix engine", args.config.display()))?;
     let camera = cfg
         .camera

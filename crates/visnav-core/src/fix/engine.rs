@@ -35,14 +35,15 @@ use super::reference::{RefSelection, Reference};
 use super::{AttitudePriorNed, FixMethod, FixPrior, FixReport, PositionPriorGeo};
 use crate::camera::frames::{r_enu_ned, rot_z};
 use crate::camera::{Attitude, Camera};
+use crate::fix::Rejected;
 use crate::geo::geoid::geoid_undulation_m;
 use crate::geo::{Crs, Geodetic, LocalFrame};
 use crate::pose::{
     AttitudePrior, Correspondence, ImageGeometry, PositionPrior, Priors, ResectionConfig, resect,
 };
+use crate::validate::{Problems, Validate};
 use crate::vision::matcher::dist2;
 use crate::vision::{Features, GrayImage, KeyPoint, MatchParams, Surf, match_features};
-use visnav_core::validate::{Problems, Validate};
 
 /// Settings of the fix pipeline (`[fix]`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -161,50 +162,6 @@ pub fn default_pose_config() -> ResectionConfig {
     c.integrity.max_vertical_sigma_m = 80.0;
     c.integrity.max_attitude_sigma_deg = 3.0;
     c
-}
-
-impl FixParams {
-    /// Settings from a `[fix]` TOML table whose keys override the defaults at any depth (a partial
-    /// `[fix.pose.ransac]` keeps every other default of the pipeline, which serde's own defaults
-    /// would reset to the resection module's). Unknown keys are errors naming the key.
-    pub fn from_toml(user: toml::Value) -> Result<Self, String> {
-        if user.get("reloc_budget_ms").is_some() {
-            return Err(
-                "reloc_budget_ms: replaced by reloc_budget_mwork (a work budget in \
-                 millions of units, default 60: one unit is a pixel through SURF or 16 descriptor \
-                 comparisons), so that results do not depend on the machine's speed or load"
-                    .into(),
-            );
-        }
-        let mut base = toml::Value::try_from(Self::default()).map_err(|e| e.to_string())?;
-        merge_toml(&mut base, user);
-        base.try_into::<Self>().map_err(|e| e.to_string())
-    }
-}
-
-/// Deep merge of `over` into `base` (tables merged key by key, other values replaced).
-fn merge_toml(base: &mut toml::Value, over: toml::Value) {
-    match (base, over) {
-        (toml::Value::Table(b), toml::Value::Table(o)) => {
-            for (k, v) in o {
-                match b.get_mut(&k) {
-                    Some(slot) => merge_toml(slot, v),
-                    None => {
-                        b.insert(k, v);
-                    }
-                }
-            }
-        }
-        (slot, v) => *slot = v,
-    }
-}
-
-/// `deserialize_with` helper for a `[fix]` section: [`FixParams::from_toml`].
-pub fn deserialize_fix_params<'de, D: serde::Deserializer<'de>>(
-    d: D,
-) -> Result<FixParams, D::Error> {
-    let user = toml::Value::deserialize(d)?;
-    FixParams::from_toml(user).map_err(serde::de::Error::custom)
 }
 
 impl Validate for FixParams {
@@ -460,7 +417,7 @@ impl FixEngine {
         &self,
         pos: &PositionPriorGeo,
         att: &AttitudePriorNed,
-    ) -> Result<PriorGeom, String> {
+    ) -> Result<PriorGeom, Rejected> {
         let crs: Crs = self.reference.crs();
         let (x, y) = crs
             .from_geodetic(pos.lat_deg, pos.lon_deg)
@@ -478,7 +435,7 @@ impl FixEngine {
             && ok(att.sigma_yaw_rad)
             && pos.alt_amsl_m.is_finite())
         {
-            return Err("prior sigmas must be finite and positive".into());
+            return Err(Rejected::from("prior sigmas must be finite and positive"));
         }
         Ok(PriorGeom {
             c_map: Vector3::new(x, y, pos.alt_amsl_m),
@@ -678,7 +635,7 @@ impl FixEngine {
         let solve = match solve.map(|s| self.solve_prior(s)) {
             None => None,
             Some(Ok(s)) => Some(s),
-            Some(Err(e)) => return rej(e, Attempt::default()),
+            Some(Err(e)) => return rej(e.into(), Attempt::default()),
         };
         let g = match self.prior_geom(pos, rect) {
             Ok(g) => PriorGeom {
@@ -686,7 +643,7 @@ impl FixEngine {
                 solve,
                 ..g
             },
-            Err(e) => return rej(e, Attempt::default()),
+            Err(e) => return rej(e.into(), Attempt::default()),
         };
         let agl_m = g.c_map.z - self.ground_below(&g);
         if agl_m.is_nan() || agl_m <= 1.0 {
@@ -704,10 +661,10 @@ impl FixEngine {
     }
 
     /// The resection's attitude prior from an NED attitude prior.
-    fn solve_prior(&self, att: &AttitudePriorNed) -> Result<SolvePrior, String> {
+    fn solve_prior(&self, att: &AttitudePriorNed) -> Result<SolvePrior, Rejected> {
         let ok = |v: f64| v.is_finite() && v > 0.0;
         if !(ok(att.sigma_rad) && ok(att.sigma_yaw_rad)) {
-            return Err("prior sigmas must be finite and positive".into());
+            return Err(Rejected::from("prior sigmas must be finite and positive"));
         }
         Ok(SolvePrior {
             r_enu_cam: r_enu_ned() * self.camera.mount.r_ned_cam(&att.attitude),
@@ -795,7 +752,7 @@ impl FixEngine {
     /// Feature correspondences: detect in the rectified frame, predict each keypoint's map
     /// position from the prior, gate, vote a similarity, match finely, and check the count
     /// against chance (module doc).
-    fn feature_pairs(&self, v: &View, a: &mut Attempt) -> Result<Vec<Pair>, String> {
+    fn feature_pairs(&self, v: &View, a: &mut Attempt) -> Result<Vec<Pair>, Rejected> {
         let (rect, level) = (v.rect, v.level);
         let gsd = self.levels_gsd_m[level];
         // Query features on valid ground, strongest first, capped.
@@ -815,7 +772,7 @@ impl FixEngine {
         }
         a.query_features = keep.len();
         if keep.len() < self.params.min_matches {
-            return Err(format!("only {} features in the frame", keep.len()));
+            return Err(rejected!("only {} features in the frame", keep.len()));
         }
         // Selection: predicted footprint grown by the coarse gate.
         let gate_m = self.gate_m(v);
@@ -835,7 +792,7 @@ impl FixEngine {
         );
         a.map_features = sel.features.len();
         if sel.features.len() < self.params.min_matches {
-            return Err(format!(
+            return Err(rejected!(
                 "only {} map features under the footprint (outside the map?)",
                 sel.features.len()
             ));
@@ -903,7 +860,7 @@ impl FixEngine {
         let needed =
             self.params.min_matches + (self.params.null_factor * null as f64).ceil() as usize;
         if matches.len() < needed {
-            return Err(format!(
+            return Err(rejected!(
                 "only {} matches where chance gives {} (need {})",
                 matches.len(),
                 null,
@@ -1063,7 +1020,7 @@ impl FixEngine {
         let mut report =
             match self.report_from(&crs, &local, fix, t_us, outcome.verdict.is_accepted()) {
                 Ok(r) => r,
-                Err(e) => return rej(e),
+                Err(e) => return rej(e.into()),
             };
         if !report.accepted {
             report.reason = outcome.verdict.to_string();
@@ -1081,7 +1038,7 @@ impl FixEngine {
         fix: &crate::pose::Fix,
         t_us: u64,
         accepted: bool,
-    ) -> Result<FixReport, String> {
+    ) -> Result<FixReport, Rejected> {
         let geo = local
             .enu_to_geodetic(&fix.pose.c_world)
             .map_err(|e| format!("fix geodesy: {e}"))?;
@@ -1168,7 +1125,7 @@ impl FixEngine {
         .chain(r.cov_ned_m2.iter().flatten())
         .all(|v| v.is_finite());
         if !finite {
-            return Err("fix has non-finite values".into());
+            return Err(Rejected::from("fix has non-finite values"));
         }
         Ok(r)
     }
@@ -1271,12 +1228,13 @@ impl FixEngine {
         let mut last_reason = String::from("no level produced a fix");
         // Each hypothesis' rectified view and features serve every level (rectified at the
         // frame's own scale); computed on first use.
-        let mut views: Vec<Option<Result<RelocView, String>>> = hyps.iter().map(|_| None).collect();
+        let mut views: Vec<Option<Result<RelocView, Rejected>>> =
+            hyps.iter().map(|_| None).collect();
         for level in (0..self.levels_gsd_m.len()).rev() {
             let level_map = match self.reloc_level_map(level) {
                 Ok(l) => l,
                 Err(e) => {
-                    last_reason = e;
+                    last_reason = e.into();
                     continue;
                 }
             };
@@ -1294,7 +1252,7 @@ impl FixEngine {
                 let view = match view {
                     Ok(v) => v,
                     Err(e) => {
-                        last_reason = e.clone();
+                        last_reason = e.to_string();
                         continue;
                     }
                 };
@@ -1305,7 +1263,7 @@ impl FixEngine {
                         }
                         tries.push(h);
                     }
-                    Err(e) => last_reason = e,
+                    Err(e) => last_reason = e.into(),
                 }
             }
             if tries.iter().any(|h| h.report.accepted) {
@@ -1430,15 +1388,17 @@ impl FixEngine {
         alt: &super::AltitudePrior,
         att: &AttitudePriorNed,
         work: &mut u64,
-    ) -> Result<AreaSearch, String> {
+    ) -> Result<AreaSearch, Rejected> {
         use super::area::{candidates, grey_and_gradient};
         if !(alt.alt_amsl_m.is_finite() && alt.sigma_m.is_finite() && alt.sigma_m > 0.0) {
-            return Err("the altitude prior must be finite with a positive sigma".into());
+            return Err(Rejected::from(
+                "the altitude prior must be finite with a positive sigma",
+            ));
         }
         let (lo, hi) = self.reference.dem().height_range_m();
         let agl_m = alt.alt_amsl_m - 0.5 * (lo + hi);
         if agl_m.is_nan() || agl_m <= 1.0 {
-            return Err(format!(
+            return Err(rejected!(
                 "altitude {:.1} m AMSL is not above the map's terrain",
                 alt.alt_amsl_m
             ));
@@ -1453,7 +1413,7 @@ impl FixEngine {
         let budget = (self.params.reloc_budget_mwork * 1e6) as u64;
         let map_px = (img.width * img.height) as u64;
         if work.saturating_add(map_px) > budget {
-            return Err(format!(
+            return Err(rejected!(
                 "the map level's {:.0} million pixels exceed the budget (reloc_budget_mwork = {})",
                 map_px as f64 / 1e6,
                 self.params.reloc_budget_mwork
@@ -1521,7 +1481,7 @@ impl FixEngine {
         let estimate =
             (hyps.len() as u64 * 2 * 5 + 2 * 3).saturating_mul(points) / AREA_FFT_POINTS_PER_UNIT;
         if work.saturating_add(estimate) > budget {
-            return Err(format!(
+            return Err(rejected!(
                 "the area search needs about {:.0} million work units, more than the budget \
                  (reloc_budget_mwork = {})",
                 estimate as f64 / 1e6,
@@ -1649,7 +1609,7 @@ impl FixEngine {
         frame: &GrayImage,
         att: &AttitudePriorNed,
         work: &mut u64,
-    ) -> Result<RelocView, String> {
+    ) -> Result<RelocView, Rejected> {
         let r_ned_cam = self.camera.mount.r_ned_cam(&att.attitude);
         let r_map_cam = r_enu_ned() * r_ned_cam; // grid convergence unknown yet: < 3 deg in a zone
         let Some(rect) = Rectification::new(
@@ -1660,7 +1620,7 @@ impl FixEngine {
             self.params.max_rect_side_px,
             self.params.max_off_nadir_deg.to_radians(),
         ) else {
-            return Err("the frame does not see the ground".into());
+            return Err(Rejected::from("the frame does not see the ground"));
         };
         *work = work.saturating_add((rect.width() * rect.height()) as u64);
         let feats = self.surf.detect_and_describe(&rect.image);
@@ -1675,7 +1635,7 @@ impl FixEngine {
             .take(self.params.max_query_features)
             .collect();
         if idx.len() < self.params.min_matches {
-            return Err(format!("only {} features in the frame", idx.len()));
+            return Err(rejected!("only {} features in the frame", idx.len()));
         }
         let query = subset(&feats, idx.iter().copied())?;
         Ok(RelocView {
@@ -1686,11 +1646,14 @@ impl FixEngine {
     }
 
     /// All of `level`'s features in level pixels (origin at the map's top-left corner).
-    fn reloc_level_map(&self, level: usize) -> Result<RelocLevel, String> {
+    fn reloc_level_map(&self, level: usize) -> Result<RelocLevel, Rejected> {
         let gsd = self.levels_gsd_m[level];
         let sel = self.reference.select(level, self.reference.bounds_m());
         if sel.features.len() < self.params.min_matches {
-            return Err(format!("level {level} has {} features", sel.features.len()));
+            return Err(rejected!(
+                "level {level} has {} features",
+                sel.features.len()
+            ));
         }
         let b = self.reference.bounds_m();
         let (ox, oy) = (b[0], b[3]);
@@ -1718,7 +1681,7 @@ impl FixEngine {
         solve: Option<&AttitudePriorNed>,
         t_us: u64,
         work: &mut u64,
-    ) -> Result<Hypothesis, String> {
+    ) -> Result<Hypothesis, Rejected> {
         let RelocView { rect, query, att } = view;
         let RelocLevel {
             level,
@@ -1743,7 +1706,7 @@ impl FixEngine {
         )
         .map_err(|e| format!("matching: {e}"))?;
         if m.len() < self.params.min_matches {
-            return Err(format!("level {level}: only {} matches", m.len()));
+            return Err(rejected!("level {level}: only {} matches", m.len()));
         }
         // Hough vote: scale s = train.scale / query.scale (log2 bins of 0.5), translation of the
         // virtual principal point in level pixels (bins of 8 % of the image size at that scale).
@@ -1779,13 +1742,13 @@ impl FixEngine {
             .into_iter()
             .max_by(|(ka, va), (kb, vb)| va.len().cmp(&vb.len()).then(kb.cmp(ka)))
         else {
-            return Err(format!("level {level}: no Hough cluster"));
+            return Err(rejected!("level {level}: no Hough cluster"));
         };
         let mut cluster = cluster;
         cluster.sort_unstable();
         cluster.dedup();
         if cluster.len() < MIN_HOUGH_CLUSTER {
-            return Err(format!(
+            return Err(rejected!(
                 "level {level}: largest Hough cluster has {} matches (min {MIN_HOUGH_CLUSTER})",
                 cluster.len()
             ));
@@ -1898,7 +1861,7 @@ const MIN_HYPOTHESIS_YAW_SIGMA_RAD: f64 = 0.5 * std::f64::consts::PI / 180.0;
 /// Why the area relocalisation gave no answer.
 enum AreaRelocError {
     /// It could not run (no level images, budget, geometry).
-    CannotRun(String),
+    CannotRun(Rejected),
     /// It ran and confirmed no candidate.
     NotFound(String),
 }
@@ -2177,7 +2140,7 @@ fn train_features(
     sel: &RefSelection,
     gsd_m: f64,
     to_lp: impl Fn(f64, f64) -> [f32; 2],
-) -> Result<Features, String> {
+) -> Result<Features, Rejected> {
     let kps = sel
         .features
         .iter()
@@ -2195,11 +2158,12 @@ fn train_features(
             }
         })
         .collect();
-    Features::new(kps, sel.descriptors.clone(), sel.kind).map_err(|e| format!("map features: {e}"))
+    Features::new(kps, sel.descriptors.clone(), sel.kind)
+        .map_err(|e| rejected!("map features: {e}"))
 }
 
 /// The features at `idx` (in that order).
-fn subset(f: &Features, idx: impl Iterator<Item = usize>) -> Result<Features, String> {
+fn subset(f: &Features, idx: impl Iterator<Item = usize>) -> Result<Features, Rejected> {
     let st = f.kind().stride();
     let mut kps = Vec::new();
     let mut desc = Vec::new();
@@ -2207,7 +2171,7 @@ fn subset(f: &Features, idx: impl Iterator<Item = usize>) -> Result<Features, St
         kps.push(f.keypoints[i]);
         desc.extend_from_slice(&f.descriptors_padded()[i * st..(i + 1) * st]);
     }
-    Features::new(kps, desc, f.kind()).map_err(|e| format!("query features: {e}"))
+    Features::new(kps, desc, f.kind()).map_err(|e| rejected!("query features: {e}"))
 }
 
 /// A match accepted by [`gated_match`]: query index, train index.
@@ -2477,31 +2441,6 @@ mod tests {
         let far = ransac_similarity(&src, &dst, 3.0, 0.001, 0.2, 1);
         assert!(far.is_none_or(|(_, n)| n < 20));
         assert!(ransac_similarity(&src[..2], &dst[..2], 3.0, 0.2, 0.2, 1).is_none());
-    }
-
-    #[test]
-    fn partial_toml_keeps_the_pipeline_defaults() {
-        let v: toml::Value =
-            toml::from_str("ratio = 0.9\n[pose.ransac]\nthreshold_px = 2.0\n").unwrap();
-        let p = FixParams::from_toml(v).unwrap();
-        assert_eq!(p.ratio, 0.9);
-        assert_eq!(p.pose.ransac.threshold_px, 2.0);
-        // Untouched nested defaults are the pipeline's, not the resection module's.
-        assert_eq!(
-            p.pose.refine.sigma_inflation,
-            default_pose_config().refine.sigma_inflation
-        );
-        assert!(p.pose.refine.use_attitude_prior);
-        let bad: toml::Value = toml::from_str("[pose.ransac]\nthreshhold_px = 2.0\n").unwrap();
-        let e = FixParams::from_toml(bad).unwrap_err();
-        assert!(e.contains("threshhold_px"), "{e}");
-        // The old wall-clock budget is refused with the key that replaced it.
-        let old: toml::Value = toml::from_str("reloc_budget_ms = 5000.0\n").unwrap();
-        let e = FixParams::from_toml(old).unwrap_err();
-        assert!(
-            e.contains("reloc_budget_ms") && e.contains("reloc_budget_mwork"),
-            "{e}"
-        );
     }
 
     fn prior_with_yaw_sigma(yaw_deg: f64, sigma_yaw_deg: f64) -> AttitudePriorNed {

@@ -273,10 +273,43 @@ impl FixReport {
     }
 }
 
+/// Why a stage of the fix produced no pose, in words a user reads: it becomes
+/// [`FixReport::reason`] and the log line of the rejection. Each stage (prior geometry, features,
+/// matching, area correlation, solve, relocalisation) returns it; the engine turns it into a
+/// rejected report, never into a panic or a guess.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct Rejected(pub String);
+
+impl From<&str> for Rejected {
+    fn from(reason: &str) -> Self {
+        Self(reason.to_owned())
+    }
+}
+
+impl From<String> for Rejected {
+    fn from(reason: String) -> Self {
+        Self(reason)
+    }
+}
+
+impl From<Rejected> for String {
+    fn from(r: Rejected) -> Self {
+        r.0
+    }
+}
+
+/// `rejected!("format", args)`: a [`Rejected`] with a formatted reason.
+macro_rules! rejected {
+    ($($arg:tt)*) => {
+        $crate::fix::Rejected(format!($($arg)*))
+    };
+}
+
 pub mod area;
 pub mod engine;
 pub mod rectify;
 pub mod reference;
 
 pub use engine::{AreaMatching, FixEngine, FixError, FixParams};
-pub use reference::{MapReference, MemoryReference, RefFeature, RefSelection, Reference};
+pub use reference::{MemoryReference, RefFeature, RefSelection, Reference};

@@ -1,4 +1,5 @@
-//! Terrain model: heights and ray/terrain intersection.
+//! Terrain model: heights and ray/terrain intersection (in memory; `visnav_io::geo::dem` loads
+//! one from a GeoTIFF).
 //!
 //! [`Dem`] is either a gridded model ([`GridDem`], a one-band raster of heights, metres,
 //! orthometric/AMSL unless the source says otherwise) or a constant height ([`Dem::Flat`], for maps
@@ -35,18 +36,12 @@
 //! band, it leaves the DEM, it crosses a hole or passes outside the DEM while at or below
 //! `max_h + 1`, or the hit is beyond `max_range_m`.
 
-use std::path::Path;
-
 use super::Crs;
-use super::geotiff::{GeoTiffError, load_geotiff};
 use super::raster::{GeoTransform, Raster, bilerp};
 
 /// Errors building a DEM.
 #[derive(Debug, thiserror::Error)]
 pub enum DemError {
-    /// Loading the GeoTIFF failed.
-    #[error(transparent)]
-    GeoTiff(#[from] GeoTiffError),
     /// A DEM has exactly one band.
     #[error("DEM raster has {bands} bands, expected 1 (heights)")]
     NotOneBand { bands: usize },
@@ -84,14 +79,6 @@ pub enum Dem {
 }
 
 impl Dem {
-    /// Loads a one-band GeoTIFF of heights (metres). See `geotiff::load_geotiff` for `crs_override`.
-    pub fn load_geotiff(path: &Path, crs_override: Option<Crs>) -> Result<Self, DemError> {
-        Ok(Dem::Grid(GridDem::from_raster(&load_geotiff(
-            path,
-            crs_override,
-        )?)?))
-    }
-
     /// Wraps a one-band raster of heights (metres).
     pub fn from_raster(raster: &Raster) -> Result<Self, DemError> {
         Ok(Dem::Grid(GridDem::from_raster(raster)?))

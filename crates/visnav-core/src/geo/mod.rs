@@ -8,11 +8,12 @@
 //! * `projection`: `Crs::{from_geodetic, to_geodetic}`, EPSG codes, UTM zones, grid convergence.
 //! * `geoid`: EGM96 geoid undulation and AMSL <-> ellipsoidal height.
 //! * `raster`: georeferenced rasters (geotransform, nodata-aware bilinear sampling).
+//! * `dem`: the terrain model (gridded or constant height) and exact ray/terrain intersection.
 //!
-//! Reading GeoTIFF files and the terrain model built on them is the application's (the `visnav`
-//! crate's `geo::{geotiff, window, dem}`).
+//! Reading GeoTIFF files (and DEMs from them) is `visnav_io::geo::{geotiff, window, dem}`.
 
 pub mod crs;
+pub mod dem;
 pub mod ecef;
 pub mod error;
 pub mod geoid;

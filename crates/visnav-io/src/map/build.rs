@@ -395,9 +395,11 @@ pub fn build_map(
             )
         }
         HeightSource::Dem(p) => {
-            let d = Dem::load_geotiff(p, spec.crs_override).map_err(|source| MapError::Dem {
-                path: p.clone(),
-                source: Box::new(source),
+            let d = crate::geo::dem::load_dem(p, spec.crs_override).map_err(|source| {
+                MapError::Dem {
+                    path: p.clone(),
+                    source: Box::new(source),
+                }
             })?;
             if let Some(dc) = d.crs()
                 && !crs_equivalent(&dc, &crs)

@@ -36,6 +36,7 @@
 pub mod build;
 pub mod coreg;
 pub mod format;
+pub mod reference;
 
 use std::path::PathBuf;
 
@@ -47,6 +48,7 @@ use crate::vision::{DescriptorKind, SurfParams};
 
 pub use build::{BuildProgress, BuildSpec, BuildSummary, HeightSource, build_map};
 pub use format::{FORMAT_VERSION, MAGIC, ReferenceMap};
+pub use reference::{MapReference, MapReferenceError};
 
 /// Errors building or opening a reference map. Every variant names the file involved.
 #[derive(Debug, thiserror::Error)]
@@ -65,7 +67,7 @@ pub enum MapError {
     #[error("{}: DEM: {source}", .path.display())]
     Dem {
         path: PathBuf,
-        source: Box<crate::geo::dem::DemError>,
+        source: Box<crate::geo::dem::DemFileError>,
     },
     /// An input raster cannot be used for a map (rotated, non-square pixels, CRS mismatch, ...).
     #[error("{}: {reason}", .path.display())]

@@ -12,6 +12,7 @@ use nalgebra::Point2;
 use rayon::prelude::*;
 
 use super::{Attempt, FixEngine, Pair, Sim2, View, ransac_similarity};
+use crate::fix::Rejected;
 use crate::fix::area::{
     Integral, MIN_TIE_NCC, MIN_TIE_NCC_NEAR, Patch, PlaceError, Plane, TieMatch, TwoChannels,
     UNIQUE_RADIUS_COARSE_PX, best_similar, match_patch, place_similar, rank_hypotheses,
@@ -195,7 +196,7 @@ impl FixEngine {
         v: &View,
         a: &mut Attempt,
         placement_fix: bool,
-    ) -> Result<AreaOutcome, String> {
+    ) -> Result<AreaOutcome, Rejected> {
         let frame = v
             .rect
             .plane()
@@ -206,9 +207,9 @@ impl FixEngine {
         match s.ties(&frame, &placed, a) {
             Ok(pairs) => Ok(AreaOutcome::Ties(pairs)),
             Err(e) if placement_fix => s
-                .placement(&frame, &tc, &wc, &placed, e.clone())
+                .placement(&frame, &tc, &wc, &placed, e.to_string())
                 .map(AreaOutcome::Placement)
-                .map_err(|p| format!("{e}; no placement fix: {p}")),
+                .map_err(|p| rejected!("{e}; no placement fix: {p}")),
             Err(e) => Err(e),
         }
     }
@@ -217,7 +218,7 @@ impl FixEngine {
 impl<'a> AreaSearch<'a> {
     /// The window: the rectified grid is the map's (north-up, the level's pixel) up to the
     /// prior's errors, so the frame's centre's ground point anchors it, grown by the gate.
-    fn new(engine: &'a FixEngine, v: &'a View<'a>) -> Result<Self, String> {
+    fn new(engine: &'a FixEngine, v: &'a View<'a>) -> Result<Self, Rejected> {
         let rect = v.rect;
         let img = engine.reference.level_image(v.level).ok_or_else(|| {
             "the map has no level images (built by an older visnav: rebuild it)".to_string()
@@ -250,7 +251,7 @@ impl<'a> AreaSearch<'a> {
     }
 
     /// The tie points of the placement (two passes) and their count against chance.
-    fn ties(&self, frame: &Plane, placed: &Placed, a: &mut Attempt) -> Result<Vec<Pair>, String> {
+    fn ties(&self, frame: &Plane, placed: &Placed, a: &mut Attempt) -> Result<Vec<Pair>, Rejected> {
         let engine = self.engine;
         let patches: Vec<TiePatch> = select_patches(
             frame,
@@ -272,7 +273,7 @@ impl<'a> AreaSearch<'a> {
             .extend(pairs.iter().map(|p| ([p.frame_px.x, p.frame_px.y], p.map)));
         let min = engine.params.min_matches;
         if pairs.len() < min {
-            return Err(format!(
+            return Err(rejected!(
                 "area correlation {:.2}: only {} tie points (min {min})",
                 placed.ncc,
                 pairs.len(),
@@ -282,7 +283,7 @@ impl<'a> AreaSearch<'a> {
         a.area_null_ties = null;
         let needed = min + (engine.params.null_factor * null as f64).ceil() as usize;
         if pairs.len() < needed {
-            return Err(format!(
+            return Err(rejected!(
                 "area correlation {:.2}: only {} tie points where chance gives {null} (need {needed})",
                 placed.ncc,
                 pairs.len(),
@@ -328,14 +329,14 @@ impl<'a> AreaSearch<'a> {
         frame2: &TwoChannels,
         window2: &TwoChannels,
         a: &mut Attempt,
-    ) -> Result<Placed, String> {
+    ) -> Result<Placed, Rejected> {
         let (rect, v) = (self.v.rect, self.v);
         let mut f = 1usize;
         while rect.width().max(rect.height()) / f > AREA_COARSE_TEMPLATE_PX {
             f *= 2;
         }
         let (Some(tc), Some(wc)) = (frame2.at(f), window2.at(f)) else {
-            return Err("area correlation: images too small".into());
+            return Err(Rejected::from("area correlation: images too small"));
         };
         let g = v.g;
         let hyps = similarity_hypotheses(
@@ -393,7 +394,7 @@ impl<'a> AreaSearch<'a> {
     /// The position prior's probability of the template centres `places` (cells of the grid of
     /// `f x f` blocks, the template `size` blocks): its Gaussian density at each cell's centre
     /// times the cell's area, summed (at most 1).
-    fn prior_mass(&self, f: usize, size: [usize; 2], places: &[[f64; 2]]) -> Result<f64, String> {
+    fn prior_mass(&self, f: usize, size: [usize; 2], places: &[[f64; 2]]) -> Result<f64, Rejected> {
         let (_, q) = self.predicted_centre(f, size)?;
         let (qx, qy) = (px_to_block(q[0], f), px_to_block(q[1], f));
         let sigma = (self.v.g.sigma_h_m / (self.img.gsd_m * f as f64)).max(1e-6);
@@ -410,7 +411,11 @@ impl<'a> AreaSearch<'a> {
 
     /// The centre of a template of `size` blocks of `f x f` pixels, in rectified pixels, and the
     /// window pixel the prior predicts for the ground it sees.
-    fn predicted_centre(&self, f: usize, size: [usize; 2]) -> Result<([f64; 2], [f64; 2]), String> {
+    fn predicted_centre(
+        &self,
+        f: usize,
+        size: [usize; 2],
+    ) -> Result<([f64; 2], [f64; 2]), Rejected> {
         let t_c = [
             block_to_px((size[0] as f64 - 1.0) / 2.0, f),
             block_to_px((size[1] as f64 - 1.0) / 2.0, f),
@@ -432,7 +437,7 @@ impl<'a> AreaSearch<'a> {
         (scale, theta): (f64, f64),
         ncc: f64,
         runner_up: f64,
-    ) -> Result<Placed, String> {
+    ) -> Result<Placed, Rejected> {
         let (t_c, q_c) = self.predicted_centre(f, size)?;
         let w_c = [block_to_px(centre[0], f), block_to_px(centre[1], f)];
         let mut sim = Sim2 {
@@ -463,16 +468,16 @@ impl<'a> AreaSearch<'a> {
         wc: &TwoChannels,
         placed: &Placed,
         ties_reason: String,
-    ) -> Result<PlacementObs, String> {
+    ) -> Result<PlacementObs, Rejected> {
         if placed.ncc - placed.runner_up < PLACEMENT_FIX_MARGIN {
-            return Err(format!(
+            return Err(rejected!(
                 "peak {:.2} ahead of another place by {:.2} < {PLACEMENT_FIX_MARGIN}",
                 placed.ncc,
                 placed.ncc - placed.runner_up
             ));
         }
         if placed.unjudged_prior_mass > PLACEMENT_MAX_UNJUDGED_MASS {
-            return Err(format!(
+            return Err(rejected!(
                 "the places the correlation could not judge (the frame sees beyond the map \
                  there) hold {:.1} % of the prior's probability",
                 100.0 * placed.unjudged_prior_mass
@@ -506,7 +511,7 @@ impl<'a> AreaSearch<'a> {
             }
         }
         if obs.len() < PLACEMENT_MIN_OBS {
-            return Err(format!("only {} grid points see the ground", obs.len()));
+            return Err(rejected!("only {} grid points see the ground", obs.len()));
         }
         Ok(PlacementObs {
             obs,
@@ -525,10 +530,10 @@ impl<'a> AreaSearch<'a> {
         wc: &TwoChannels,
         cur: &Placed,
         rot_step: f64,
-    ) -> Result<Placed, String> {
+    ) -> Result<Placed, Rejected> {
         let f = cur.f / 2;
         let (Some(t), Some(w)) = (tc.at(f), wc.at(f)) else {
-            return Err("refinement: images too small".into());
+            return Err(Rejected::from("refinement: images too small"));
         };
         let (_, q) = self.predicted_centre(f, [t[0].width, t[0].height])?;
         let e = cur.sim.apply([q[0] as f32, q[1] as f32]);
@@ -551,7 +556,7 @@ impl<'a> AreaSearch<'a> {
             (2.0 * half[1]).ceil() as usize + 1,
         );
         let (Some(c0), Some(c1)) = (w[0].crop(x0, y0, cw, ch), w[1].crop(x0, y0, cw, ch)) else {
-            return Err("refinement: empty window".into());
+            return Err(Rejected::from("refinement: empty window"));
         };
         // The rotation refined, the scale kept: the peak's place hardly depends on the scale
         // (it stretches the template about its centre), which the fix does not use (its
@@ -564,7 +569,7 @@ impl<'a> AreaSearch<'a> {
         let centre = [best.centre[0] + x0 as f64, best.centre[1] + y0 as f64];
         let moved = (centre[0] - expected[0]).hypot(centre[1] - expected[1]);
         if moved > PLACEMENT_REFINE_MARGIN_PX - 1.0 {
-            return Err(format!(
+            return Err(rejected!(
                 "refinement on {f} px blocks moved the place by {moved:.1} blocks"
             ));
         }
@@ -587,7 +592,7 @@ impl<'a> AreaSearch<'a> {
         &self,
         placed: &Placed,
         patches: &[TiePatch],
-    ) -> Result<(Sim2, Vec<Option<TieMatch>>), String> {
+    ) -> Result<(Sim2, Vec<Option<TieMatch>>), Rejected> {
         let (max_rot, max_log_scale) = self.engine.similarity_bounds(self.v);
         let fit = |src: &[[f32; 2]], dst: &[[f32; 2]]| {
             ransac_similarity(

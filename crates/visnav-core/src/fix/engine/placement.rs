@@ -20,6 +20,7 @@ use nalgebra::{Matrix3, Point2, Rotation3, Vector3};
 use super::area_stage::PlacementObs;
 use super::{FixEngine, MAX_RAY_RANGE_AGL, PriorGeom, Sim2, View};
 use crate::camera::frames::{r_enu_ned, rot_z};
+use crate::fix::Rejected;
 use crate::fix::{FixMethod, FixReport, PriorDependenceNed};
 use crate::geo::geoid::geoid_undulation_m;
 
@@ -63,7 +64,7 @@ impl FixEngine {
                 r.level = v.level;
                 r
             }
-            Err(e) => rej(&e),
+            Err(e) => rej(&e.0),
         }
     }
 
@@ -73,7 +74,7 @@ impl FixEngine {
         g: &PriorGeom,
         agl_m: f64,
         p: &PlacementObs,
-    ) -> Result<FixReport, String> {
+    ) -> Result<FixReport, Rejected> {
         let est = self
             .camera_from_ground(g.c_map, agl_m, &g.r_map_cam, &p.obs)
             .ok_or("the grid's rays miss the terrain")?;
@@ -181,7 +182,7 @@ impl FixEngine {
         .chain(r.cov_ned_m2.iter().flatten())
         .all(|x| x.is_finite());
         if !finite || r.prior_dependence.is_none() {
-            return Err("the pose has non-finite values".into());
+            return Err(Rejected::from("the pose has non-finite values"));
         }
         Ok(r)
     }

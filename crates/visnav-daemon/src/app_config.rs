@@ -1,0 +1,274 @@
+//! The application's TOML configuration (`visnav run --config F`, `visnav check-config F`): the
+//! one type that names every section, loading and validation. Each section's type lives with its
+//! module (`[camera]` in the camera model, `[nav]` in the filter, `[link]`/`[output]` in the
+//! link, ...) and checks itself through `visnav_core::validate`.
+//!
+//! Every section is a serde struct with `deny_unknown_fields`, so a misspelt key is an error that
+//! names the key. After parsing, every value is validated through [`Validate`]: each section reports
+//! the dotted key path (`camera.fx_px`), the offending value and the reason, and all problems are
+//! reported at once, prefixed with the file name.
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use visnav_core::camera::CameraConfig;
+use visnav_core::geo::Crs;
+use visnav_core::nav::config::NavConfig;
+use visnav_link::config::{LinkConfig, OutputConfig};
+
+use visnav_core::validate::{Invalid, Problems, Validate, resolve};
+
+/// Why a configuration file could not be used. Every variant names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("{path}: cannot read: {source}")]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// TOML syntax, a wrong type or an unknown key (the message names the key, line and column).
+    #[error("{path}: {message}")]
+    Parse { path: PathBuf, message: String },
+    /// Parsed, but values are out of range, inconsistent or name missing files.
+    #[error("{path}: {} invalid value(s):\n  {}", problems.len(), problems.iter().map(|p| p.to_string()).collect::<Vec<_>>().join("\n  "))]
+    Invalid {
+        path: PathBuf,
+        problems: Vec<Invalid>,
+    },
+}
+
+/// The whole daemon configuration (`visnav run --config F`, `visnav check-config F`).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    /// MAVLink connection to the autopilot.
+    pub link: LinkConfig,
+    /// The camera: intrinsics, distortion, mount.
+    pub camera: CameraConfig,
+    /// Reference map sources.
+    pub map: MapConfig,
+    /// What is injected into the autopilot, and how often.
+    #[serde(default)]
+    pub output: OutputConfig,
+    /// The navigation filter (INS + error-state EKF); every key has a default.
+    #[serde(default)]
+    pub nav: NavConfig,
+    /// The vision fix pipeline; every key has a default, a partial table merges over them.
+    #[serde(
+        default,
+        deserialize_with = "crate::fix_config::deserialize_fix_params"
+    )]
+    pub fix: visnav_core::fix::FixParams,
+    /// Camera frame source (absent: no vision fixes, IMU/GPS/attitude only).
+    #[serde(default)]
+    pub frames: Option<visnav_io::frames::FramesConfig>,
+    /// The daemon's pipeline settings; every key has a default.
+    #[serde(default)]
+    pub daemon: crate::DaemonConfig,
+}
+
+/// `[map]`: the georeferenced imagery and terrain the fixes are computed against.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MapConfig {
+    /// The reference map (`.vnm`, built by `visnav map build`), relative to the config file's
+    /// folder unless absolute. With it, `ortho` may be empty and `dem` / `ground_height_amsl_m`
+    /// are optional (they override the map's own terrain).
+    #[serde(default)]
+    pub file: Option<PathBuf>,
+    /// Orthophoto GeoTIFF file(s), relative to the config file's folder unless absolute. Without
+    /// `file`, the daemon extracts their features in memory at start (small areas).
+    #[serde(default)]
+    pub ortho: Vec<PathBuf>,
+    /// Elevation model GeoTIFF (heights AMSL). Exactly one of `dem` and `ground_height_amsl_m`.
+    #[serde(default)]
+    pub dem: Option<PathBuf>,
+    /// Constant ground height AMSL for flat areas without a DEM.
+    #[serde(default)]
+    pub ground_height_amsl_m: Option<f64>,
+    /// CRS to assume for rasters whose GeoKeys are missing or not understood.
+    #[serde(default)]
+    pub crs_override: Option<Crs>,
+    /// With `ortho`: extract the finest level's features at 1, 2 or 4 times the orthophotos'
+    /// resolution (cubic interpolation before SURF; default 1). It pays off when the camera's
+    /// ground pixel is finer than the map's (docs/map-format.md, "Upsampling"). A `.vnm` file
+    /// keeps the setting it was built with (`visnav map build --upsample`).
+    #[serde(default)]
+    pub upsample: Option<usize>,
+    /// With `ortho`: how far the surface the camera sees (roofs, trees, relief) may be from the
+    /// heights, 1 sigma, metres (default 10 with `ground_height_amsl_m`, 0 with `dem`). A `.vnm`
+    /// file keeps the figure it was built with (`visnav map build --height-sigma-m`).
+    #[serde(default)]
+    pub height_sigma_m: Option<f64>,
+}
+
+impl MapConfig {
+    fn validate_in(&self, base: &Path, p: &mut Problems) {
+        if let Some(f) = &self.file {
+            check_file(p, "file", base, f);
+        } else if self.ortho.is_empty() {
+            p.push(
+                "ortho",
+                "give a reference map (file) or at least one orthophoto GeoTIFF (ortho)",
+            );
+        }
+        for (i, f) in self.ortho.iter().enumerate() {
+            check_file(p, &format!("ortho[{i}]"), base, f);
+        }
+        match (&self.dem, self.ground_height_amsl_m) {
+            (Some(_), Some(_)) => p.push(
+                "dem",
+                "give either dem or ground_height_amsl_m, not both",
+            ),
+            (None, None) if self.file.is_some() => {}
+            (None, None) => p.push(
+                "dem",
+                "missing: give a DEM GeoTIFF (dem) or a constant ground height (ground_height_amsl_m)",
+            ),
+            (Some(f), None) => check_file(p, "dem", base, f),
+            (None, Some(h)) => p.range("ground_height_amsl_m", h, -500.0, 9000.0),
+        }
+        if let Some(crs) = &self.crs_override {
+            p.section("crs_override", |p| Validate::validate(crs, p));
+        }
+        match self.upsample {
+            None => {}
+            Some(_) if self.file.is_some() => p.push(
+                "upsample",
+                "applies to building from ortho; a map file keeps the setting it was built with (visnav map build --upsample)",
+            ),
+            Some(1 | 2 | 4) => {}
+            Some(n) => p.push("upsample", format!("{n}: must be 1, 2 or 4")),
+        }
+        match self.height_sigma_m {
+            None => {}
+            Some(_) if self.file.is_some() => p.push(
+                "height_sigma_m",
+                "applies to building from ortho; a map file keeps the figure it was built with (visnav map build --height-sigma-m)",
+            ),
+            Some(s) => p.range(
+                "height_sigma_m",
+                s,
+                0.0,
+                visnav_io::map::build::MAX_HEIGHT_SIGMA_M,
+            ),
+        }
+    }
+}
+
+fn check_file(p: &mut Problems, key: &str, base: &Path, f: &Path) {
+    let full = resolve(base, f);
+    match std::fs::metadata(&full) {
+        Ok(m) if m.is_file() => {}
+        Ok(_) => p.push(key, format!("{} is not a regular file", full.display())),
+        Err(e) => p.push(key, format!("{}: {e}", full.display())),
+    }
+}
+
+impl Config {
+    /// Parse TOML text. `path` is used in messages and `base` (its folder) to resolve relative paths.
+    pub fn from_toml_str(text: &str, path: &Path) -> Result<Config, ConfigError> {
+        let mut cfg: Config = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: path.to_path_buf(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        let base = path.parent().unwrap_or(Path::new("."));
+        let mut p = Problems::default();
+        p.section("link", |p| cfg.link.validate_in(base, p));
+        p.section("camera", |p| cfg.camera.validate(p));
+        p.section("map", |p| cfg.map.validate_in(base, p));
+        p.section("output", |p| cfg.output.validate(p));
+        p.section("nav", |p| cfg.nav.validate(p));
+        p.section("fix", |p| cfg.fix.validate(p));
+        if let Some(f) = &cfg.frames {
+            p.section("frames", |p| f.validate_in(base, p));
+        }
+        p.section("daemon", |p| cfg.daemon.validate_in(&cfg.output, p));
+        if cfg.daemon.imu_bias_restore == crate::config::ImuBiasRestore::ScaledImu {
+            match cfg.link.streams.scaled_imu_hz {
+                Some(hz) if hz <= 0.0 => p.push(
+                    "daemon.imu_bias_restore",
+                    "\"scaled_imu\" pairs HIGHRES_IMU with SCALED_IMU, which \
+                     link.streams.scaled_imu_hz = 0 does not request: remove that key (SCALED_IMU \
+                     at link.streams.imu_hz) or give a rate"
+                        .to_string(),
+                ),
+                // None: the daemon requests it at the IMU rate whatever the autopilot.
+                _ => {}
+            }
+        }
+        if !p.list.is_empty() {
+            return Err(ConfigError::Invalid {
+                path: path.to_path_buf(),
+                problems: p.list,
+            });
+        }
+        cfg.map.ortho = cfg.map.ortho.iter().map(|f| resolve(base, f)).collect();
+        cfg.map.file = cfg.map.file.as_deref().map(|f| resolve(base, f));
+        cfg.map.dem = cfg.map.dem.as_deref().map(|f| resolve(base, f));
+        cfg.link.resolve_paths(base);
+        cfg.daemon.fix_log = cfg.daemon.fix_log.as_deref().map(|f| resolve(base, f));
+        if let Some(f) = &mut cfg.frames {
+            f.resolve_paths(base);
+        }
+        Ok(cfg)
+    }
+
+    /// Open every data file the configuration names (orthophotos, DEM) and check that it is a
+    /// usable GeoTIFF with a known CRS, consistent with the others. Slower than [`Config::load`]
+    /// (it decodes the rasters), so `check-config` calls it and the daemon does it once at start.
+    pub fn check_data(&self, path: &Path) -> Result<(), ConfigError> {
+        use visnav_io::geo::geotiff::{crs_equivalent, load_geotiff};
+        let mut p = Problems::default();
+        let mut first_crs: Option<Crs> = None;
+        p.section("map", |p| {
+            if let Some(f) = &self.map.file
+                && let Err(e) = visnav_io::map::ReferenceMap::open(f)
+            {
+                p.push("file", e.to_string());
+            }
+            for (i, f) in self.map.ortho.iter().enumerate() {
+                match load_geotiff(f, self.map.crs_override) {
+                    Ok(r) => match first_crs {
+                        None => first_crs = Some(r.crs()),
+                        Some(c) if !crs_equivalent(&c, &r.crs()) => p.push(
+                            &format!("ortho[{i}]"),
+                            format!(
+                                "{}: CRS {:?} differs from the first orthophoto's {:?}",
+                                f.display(),
+                                r.crs(),
+                                c
+                            ),
+                        ),
+                        Some(_) => {}
+                    },
+                    Err(e) => p.push(&format!("ortho[{i}]"), e.to_string()),
+                }
+            }
+            if let Some(f) = &self.map.dem
+                && let Err(e) = visnav_io::geo::dem::load_dem(f, self.map.crs_override)
+            {
+                p.push("dem", e.to_string());
+            }
+        });
+        if p.list.is_empty() {
+            Ok(())
+        } else {
+            Err(ConfigError::Invalid {
+                path: path.to_path_buf(),
+                problems: p.list,
+            })
+        }
+    }
+
+    /// Read, parse and validate a configuration file.
+    pub fn load(path: &Path) -> Result<Config, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_toml_str(&text, path)
+    }
+}

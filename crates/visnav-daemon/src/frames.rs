@@ -1,0 +1,281 @@
+//! The frame path: a reader thread pulls frames from the [`FrameSource`] into a one-frame
+//! [`Slot`] (the newest frame wins; a replaced frame is dropped and counted), fix worker threads
+//! take from the slot, drop frames older than `frames.max_age_s`, build the prior at the capture
+//! time and call the [`FrameFixer`]; results go to the navigation task over a bounded channel.
+//! Nothing here runs on the async runtime, so a slow fix never delays telemetry or injection.
+//! Lossless replay (`realtime = false`): the reader waits until the slot is empty instead.
+
+use std::panic::AssertUnwindSafe;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+
+use tokio::sync::mpsc;
+use tracing::{error, info, warn};
+
+use crate::FrameFixer;
+use crate::metrics::DaemonMetrics;
+use visnav_core::fix::{FixPrior, FixReport};
+use visnav_io::frames::{CaptureTime, Frame, FrameError, FrameSource};
+use visnav_link::Clock;
+
+/// A one-element queue: `put_latest` replaces, `put_wait` waits for room; `take` blocks.
+#[derive(Debug)]
+pub struct Slot<T> {
+    state: Mutex<(Option<T>, bool)>,
+    cv: Condvar,
+}
+
+/// Result of [`Slot::take`].
+#[derive(Debug, PartialEq)]
+pub enum Take<T> {
+    Item(T),
+    Timeout,
+    Closed,
+}
+
+impl<T> Default for Slot<T> {
+    fn default() -> Self {
+        Self {
+            state: Mutex::new((None, false)),
+            cv: Condvar::new(),
+        }
+    }
+}
+
+impl<T> Slot<T> {
+    fn lock(&self) -> std::sync::MutexGuard<'_, (Option<T>, bool)> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Put `item`, returning the item it replaced (dropped) if any.
+    pub fn put_latest(&self, item: T) -> Option<T> {
+        let old = self.lock().0.replace(item);
+        self.cv.notify_all();
+        old
+    }
+
+    /// Put `item` once the slot is empty; false (item dropped) when closed.
+    pub fn put_wait(&self, item: T) -> bool {
+        let mut g = self.lock();
+        loop {
+            if g.1 {
+                return false;
+            }
+            if g.0.is_none() {
+                g.0 = Some(item);
+                self.cv.notify_all();
+                return true;
+            }
+            g = self
+                .cv
+                .wait_timeout(g, Duration::from_millis(100))
+                .map(|r| r.0)
+                .unwrap_or_else(|e| e.into_inner().0);
+        }
+    }
+
+    /// Take the item, waiting up to `timeout`.
+    pub fn take(&self, timeout: Duration) -> Take<T> {
+        let deadline = Instant::now() + timeout;
+        let mut g = self.lock();
+        loop {
+            if let Some(x) = g.0.take() {
+                self.cv.notify_all();
+                return Take::Item(x);
+            }
+            if g.1 {
+                return Take::Closed;
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Take::Timeout;
+            }
+            g = self
+                .cv
+                .wait_timeout(g, deadline - now)
+                .map(|r| r.0)
+                .unwrap_or_else(|e| e.into_inner().0);
+        }
+    }
+
+    /// Close: waiting and future `take`s return `Closed` once empty, puts are refused.
+    pub fn close(&self) {
+        let mut g = self.lock();
+        g.1 = true;
+        g.0 = None;
+        self.cv.notify_all();
+    }
+}
+
+/// A finished fix attempt, for the navigation task.
+#[derive(Debug, Clone)]
+pub struct FixResult {
+    /// Capture time of the frame, autopilot boot µs.
+    pub t_capture_us: u64,
+    /// Frame sequence number.
+    pub seq: u64,
+    /// The engine's report.
+    pub report: FixReport,
+    /// Time from taking the frame to the report, ms.
+    pub latency_ms: u64,
+}
+
+/// Builds the prior for a capture time (implemented by the navigation task's shared state).
+pub trait PriorSource: Send + Sync + 'static {
+    fn prior_at(&self, t_capture_us: u64) -> FixPrior;
+}
+
+/// The reader thread: source -> slot until the source ends, fails or `stop` is set. It starts
+/// reading once the link's clock mapping is available (frames before that could not be stamped
+/// on the autopilot clock).
+pub fn spawn_reader(
+    mut source: Box<dyn FrameSource>,
+    slot: Arc<Slot<Frame>>,
+    lossless: bool,
+    clock: Clock,
+    stop: Arc<AtomicBool>,
+    metrics: Arc<DaemonMetrics>,
+) -> std::io::Result<std::thread::JoinHandle<()>> {
+    std::thread::Builder::new()
+        .name("visnav-frames".into())
+        .spawn(move || {
+            while clock.autopilot_now_us().is_none() {
+                if stop.load(Ordering::Relaxed) {
+                    return;
+                }
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            info!("frames: {}", source.describe());
+            while !stop.load(Ordering::Relaxed) {
+                match source.next_frame() {
+                    Ok(Some(f)) => {
+                        metrics.frames_in.fetch_add(1, Ordering::Relaxed);
+                        metrics.queue_depth_max.fetch_max(1, Ordering::Relaxed);
+                        if lossless {
+                            if !slot.put_wait(f) {
+                                break;
+                            }
+                        } else if slot.put_latest(f).is_some() {
+                            metrics.frames_superseded.fetch_add(1, Ordering::Relaxed);
+                        }
+                    }
+                    Ok(None) => {
+                        info!("frames: end of the recording");
+                        break;
+                    }
+                    Err(e @ FrameError::Image { .. }) => {
+                        // One unreadable image in a directory: skip it.
+                        metrics.frame_errors.fetch_add(1, Ordering::Relaxed);
+                        warn!("frames: {e}; skipped");
+                    }
+                    Err(e) => {
+                        metrics.frame_errors.fetch_add(1, Ordering::Relaxed);
+                        error!("frames: {e}; the frame source is stopped");
+                        break;
+                    }
+                }
+            }
+        })
+}
+
+/// Context of a fix worker.
+pub struct WorkerCtx {
+    pub slot: Arc<Slot<Frame>>,
+    pub fixer: Arc<dyn FrameFixer>,
+    pub priors: Arc<dyn PriorSource>,
+    pub clock: Clock,
+    pub max_age_s: f64,
+    pub results: mpsc::Sender<FixResult>,
+    pub metrics: Arc<DaemonMetrics>,
+}
+
+/// One fix worker thread: slot -> engine -> results, until the slot is closed.
+pub fn spawn_worker(i: usize, ctx: WorkerCtx) -> std::io::Result<std::thread::JoinHandle<()>> {
+    std::thread::Builder::new()
+        .name(format!("visnav-fix-{i}"))
+        .spawn(move || {
+            loop {
+                let f = match ctx.slot.take(Duration::from_millis(200)) {
+                    Take::Item(f) => f,
+                    Take::Timeout => continue,
+                    Take::Closed => return,
+                };
+                if !process(&ctx, f) {
+                    return;
+                }
+            }
+        })
+}
+
+/// Returns false when the navigation task is gone.
+fn process(ctx: &WorkerCtx, f: Frame) -> bool {
+    let m = &ctx.metrics;
+    let t_capture_us = match f.t_capture {
+        CaptureTime::AutopilotBootUs(t) => Some(t),
+        CaptureTime::Companion(i) => ctx.clock.to_autopilot_us(i),
+    };
+    let (Some(t_c), Some(now)) = (t_capture_us, ctx.clock.autopilot_now_us()) else {
+        m.frames_no_time.fetch_add(1, Ordering::Relaxed);
+        return true;
+    };
+    let age_s = (now as f64 - t_c as f64) * 1e-6;
+    if age_s > ctx.max_age_s {
+        m.frames_stale.fetch_add(1, Ordering::Relaxed);
+        return true;
+    }
+    let prior = ctx.priors.prior_at(t_c);
+    m.fixes_attempted.fetch_add(1, Ordering::Relaxed);
+    let start = Instant::now();
+    let mut report = std::panic::catch_unwind(AssertUnwindSafe(|| ctx.fixer.fix(&f.image, &prior)))
+        .unwrap_or_else(|_| {
+            error!("fix engine panicked on frame {}", f.seq);
+            FixReport::rejected("engine panicked", t_c, 0.0)
+        });
+    let elapsed = start.elapsed();
+    report.ms = elapsed.as_secs_f64() * 1e3;
+    let latency_ms = elapsed.as_millis() as u64;
+    m.latency(latency_ms);
+    let sent = ctx
+        .results
+        .blocking_send(FixResult {
+            t_capture_us: t_c,
+            seq: f.seq,
+            report,
+            latency_ms,
+        })
+        .is_ok();
+    if !sent {
+        m.fixes_dropped_at_shutdown.fetch_add(1, Ordering::Relaxed);
+    }
+    sent
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn slot_newest_wins_and_closes() {
+        let s = Slot::default();
+        assert_eq!(s.put_latest(1), None);
+        assert_eq!(s.put_latest(2), Some(1));
+        assert_eq!(s.take(Duration::from_millis(1)), Take::Item(2));
+        assert_eq!(s.take(Duration::from_millis(1)), Take::Timeout);
+        s.close();
+        assert_eq!(s.take(Duration::from_secs(5)), Take::Closed);
+        assert!(!s.put_wait(3));
+    }
+
+    #[test]
+    fn slot_put_wait_waits_for_room() {
+        let s = Arc::new(Slot::default());
+        assert!(s.put_wait(1));
+        let s2 = s.clone();
+        let h = std::thread::spawn(move || s2.put_wait(2));
+        std::thread::sleep(Duration::from_millis(50));
+        assert_eq!(s.take(Duration::from_millis(1)), Take::Item(1));
+        assert!(h.join().unwrap());
+        assert_eq!(s.take(Duration::from_secs(1)), Take::Item(2));
+    }
+}

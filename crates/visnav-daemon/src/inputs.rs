@@ -1,0 +1,1281 @@
+//! Pure conversions between the autopilot's telemetry, the navigation filter, the vision fix and
+//! the injector (no I/O, no async; unit-tested here).
+//!
+//! * IMU: HIGHRES_IMU (SI units, `time_usec` boot time) is preferred; else SCALED_IMU
+//!   (mG, mrad/s, `time_boot_ms`); else RAW_IMU (ArduPilot fills it with the same scaled mG /
+//!   mrad/s values, `time_usec` boot time). A lower-priority message is used only when no
+//!   higher-priority one arrived within [`IMU_SOURCE_HOLD_S`], so samples are never double
+//!   counted. Each sample is the rate at `t` held over the interval since the previous sample:
+//!   `dtheta = w dt`, `dv = f dt` (body FRD, `ImuSample::from_rates`). The gyro of the 16-bit
+//!   messages (1 mrad/s steps, truncated by ArduPilot) is replaced by ATTITUDE's float body
+//!   rates when they are at most [`ATT_RATES_MAX_AGE_US`] from the sample
+//!   (`DaemonConfig::gyro_from_attitude`). With `imu_bias_restore = "scaled_imu"`, or `"auto"`
+//!   once a HEARTBEAT says MAV_AUTOPILOT_PX4 (PX4's HIGHRES_IMU is the IMU minus EKF2's bias
+//!   estimates), every SCALED_IMU goes to an [`ImuBiasRestorer`] and HIGHRES_IMU samples leave
+//!   with the estimates added back ([`crate::imu_bias`]); before the first estimate (or
+//!   without SCALED_IMU) they pass as sent.
+//! * Attitude: ATTITUDE roll/pitch/yaw (ZYX, `R_ned_body = Rz(yaw) Ry(pitch) Rx(roll)`) at
+//!   `time_boot_ms`.
+//! * GPS: GPS_RAW_INT or GPS2_RAW with a 3D fix or better: position (AMSL `alt` converted to
+//!   ellipsoidal height with EGM96), sigma from `h_acc`/`v_acc` (mm) when non-zero else the
+//!   configuration; horizontal velocity from `vel` (cm/s) and `cog` (cdeg) when both are known,
+//!   with a zero vertical velocity of large sigma. Capture time: `time_usec` when it is a
+//!   plausible boot time (within 2 s of the arrival), else the arrival time mapped through
+//!   TIMESYNC (ArduPilot sends Unix time there). The GPS latency (~0.1-0.2 s) is not modelled.
+//! * Barometer: SCALED_PRESSURE `press_abs` (hPa) to the ISA altitude
+//!   `h = (1 - (p / 1013.25)^(1/5.25588)) / 2.25577e-5`, plus an offset calibrated against the
+//!   GPS ellipsoidal height (running mean) or, without GPS, once against a healthy filter
+//!   height; not used before the offset is known.
+//! * Autopilot reboot: an IMU time more than [`REBOOT_BACKSTEP_US`] behind the previous one
+//!   (reordered UDP packets are a few ms apart; duplicates and small steps back are dropped).
+//! * Output: `NavOutput` to the injector's `NavEstimate` (AMSL = h - N, quaternion, covariances,
+//!   health with a reason whose wording is kept while only its numbers change, so the link's
+//!   health STATUSTEXT is sent on real changes only).
+//! * Fix prior at a capture time and an accepted `FixReport` to `Measurement::Vision`.
+
+use std::collections::VecDeque;
+
+use mavlink::dialects::ardupilotmega::{GpsFixType, MavAutopilot, MavMessage, MavType};
+use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
+
+use crate::config::{DaemonConfig, GpsSource, ImuBiasRestore};
+use crate::imu_bias::{ImuBiasRestorer, RestoreStatus};
+use crate::metrics::reason_wording;
+use visnav_core::camera::Attitude;
+use visnav_core::fix::{AltitudePrior, AttitudePriorNed, FixPrior, FixReport, PositionPriorGeo};
+use visnav_core::geo::geoid::geoid_undulation_m;
+use visnav_core::nav::{
+    AltitudeFix, AttitudeFix, Health as NavHealth, ImuSample, Measurement, NavConfig, NavOutput,
+    PoseFix, PositionFix, VelocityFix,
+};
+use visnav_link::inject::offset_geodetic;
+use visnav_link::{Health as LinkHealth, NavEstimate, Telemetry};
+
+/// A lower-priority IMU message is ignored while a higher-priority one arrived this recently, s.
+pub const IMU_SOURCE_HOLD_S: f64 = 0.5;
+const G0_M_S2: f64 = 9.806_65;
+/// ATTITUDE rates replace a 16-bit IMU message's gyro when within this of its time, µs.
+pub const ATT_RATES_MAX_AGE_US: u64 = 60_000;
+/// An IMU time this far behind the previous one is an autopilot reboot, µs.
+pub const REBOOT_BACKSTEP_US: u64 = 100_000;
+
+/// What one telemetry message means for the filter.
+// A pose fix (6x6 covariance) is about 400 bytes, the others under 110: measurements are few
+// per second and short-lived (the late-measurement history keeps a few seconds), so they stay
+// unboxed and `Copy`.
+#[allow(clippy::large_enum_variant)]
+#[derive(Debug, Clone, PartialEq)]
+pub enum NavInput {
+    /// An IMU sample.
+    Imu(ImuSample),
+    /// An aiding measurement.
+    Meas(Measurement),
+    /// The autopilot's clock went backwards: restart the filter.
+    Reboot,
+    /// The autopilot's HEARTBEAT says (again, or now differently) whether the vehicle is a
+    /// multirotor (`[nav.drag] mode = "auto"`).
+    Vehicle {
+        /// Quad/hexa/octo/tri/coaxial rotorcraft or helicopter.
+        multirotor: bool,
+    },
+}
+
+/// Whether a HEARTBEAT's vehicle type flies on rotors whose drag `nav::drag` models.
+pub fn is_multirotor(t: MavType) -> bool {
+    matches!(
+        t,
+        MavType::MAV_TYPE_QUADROTOR
+            | MavType::MAV_TYPE_HEXAROTOR
+            | MavType::MAV_TYPE_OCTOROTOR
+            | MavType::MAV_TYPE_TRICOPTER
+            | MavType::MAV_TYPE_COAXIAL
+            | MavType::MAV_TYPE_HELICOPTER
+            | MavType::MAV_TYPE_DODECAROTOR
+            | MavType::MAV_TYPE_DECAROTOR
+    )
+}
+
+/// Which message an IMU sample came from (lower = preferred).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+enum ImuKind {
+    Highres = 0,
+    Scaled = 1,
+    Raw = 2,
+}
+
+/// Before initialisation the filter derives the velocity from two position fixes of the same
+/// kind taken `init.vision_init_min_dt_s..=vision_init_max_dt_s` apart, using the previous fix it
+/// was given: fixes arriving faster would never initialise it. So until it is initialised,
+/// position fixes of each kind are passed at most every 1.5 x `vision_init_min_dt_s` (capped at
+/// 0.9 x `vision_init_max_dt_s`). The filter pairs a fix only with the previous fix of the same
+/// kind: interleaved GPS and vision fixes would never initialise it, so while GPS arrives it
+/// alone initialises the filter.
+#[derive(Debug, Clone, Default)]
+pub struct InitSpacing {
+    last_us: [Option<u64>; 2],
+}
+
+impl InitSpacing {
+    /// Whether `m` goes to the filter (`gps_recent`: a GPS fix arrived within 2 s).
+    pub fn ok(
+        &mut self,
+        initialised: bool,
+        m: &Measurement,
+        gps_recent: bool,
+        ic: &visnav_core::nav::config::InitConfig,
+    ) -> bool {
+        if initialised {
+            return true;
+        }
+        let (i, t) = match m {
+            Measurement::GpsPosition(f) => (0, f.t_capture_us),
+            Measurement::Vision(f) => (1, f.t_capture_us),
+            _ => return true,
+        };
+        if i == 1 && gps_recent {
+            return false;
+        }
+        let spacing_us =
+            ((ic.vision_init_min_dt_s * 1.5).min(ic.vision_init_max_dt_s * 0.9) * 1e6) as u64;
+        match self.last_us[i] {
+            Some(prev) if t >= prev && t - prev < spacing_us => false,
+            _ => {
+                self.last_us[i] = Some(t);
+                true
+            }
+        }
+    }
+}
+
+/// An IMU interval longer than this many usual intervals is a gap (samples not sent): its
+/// increment is integrated from the rates on both sides ([`Inputs`], `gap_bridged`). 2.5: the
+/// jitter of a 250 Hz stream over MAVLink (2-8 ms between samples) stays below it.
+pub const IMU_GAP_FACTOR: f64 = 2.5;
+/// Gain of the running mean of the usual IMU interval (about 50 samples).
+const IMU_USUAL_INTERVAL_GAIN: f64 = 0.02;
+
+/// Telemetry-to-filter conversion state.
+#[derive(Debug, Clone)]
+pub struct Inputs {
+    cfg: DaemonConfig,
+    gps: GpsSource,
+    last_kind_ns: [Option<i64>; 3],
+    last_imu_t_us: Option<u64>,
+    /// The last IMU sample's rates (gyro rad/s, specific force m/s^2) and the usual interval
+    /// between samples (s, a running mean over intervals without a gap).
+    last_imu_rates: Option<(Vector3<f64>, Vector3<f64>, f64)>,
+    baro_isa_m: Option<(u64, f64)>,
+    /// Barometric offset: ellipsoidal height minus ISA altitude, m, and the number of samples.
+    baro_offset: Option<(f64, u32)>,
+    /// Latest autopilot attitudes (for fix priors).
+    attitudes: VecDeque<(u64, Attitude)>,
+    /// A GPS fix was used recently (arrival, companion ns).
+    last_gps_ns: Option<i64>,
+    /// Latest ATTITUDE body rates (boot time µs, rad/s).
+    att_rates: Option<(u64, Vector3<f64>)>,
+    /// Adds the autopilot's bias estimates back to HIGHRES_IMU (`imu_bias_restore`).
+    restorer: Option<ImuBiasRestorer>,
+    /// Whether the autopilot's HEARTBEAT says multirotor (None before the first).
+    multirotor: Option<bool>,
+}
+
+/// ISA altitude of a static pressure (inverse of the emulator's / ICAO troposphere model), m.
+pub fn isa_altitude_m(p_hpa: f64) -> f64 {
+    (1.0 - (p_hpa / 1013.25).powf(1.0 / 5.255_88)) / 2.255_77e-5
+}
+
+impl Inputs {
+    /// New state; `gps` is the resolved source ([`DaemonConfig::gps_source`]).
+    pub fn new(cfg: DaemonConfig, gps: GpsSource) -> Self {
+        let restorer =
+            (cfg.imu_bias_restore == ImuBiasRestore::ScaledImu).then(ImuBiasRestorer::new);
+        Self {
+            restorer,
+            cfg,
+            gps,
+            last_kind_ns: [None; 3],
+            last_imu_t_us: None,
+            last_imu_rates: None,
+            baro_isa_m: None,
+            baro_offset: None,
+            attitudes: VecDeque::new(),
+            last_gps_ns: None,
+            att_rates: None,
+            multirotor: None,
+        }
+    }
+
+    /// Whether the autopilot's HEARTBEAT said multirotor (false before the first).
+    pub fn multirotor(&self) -> bool {
+        self.multirotor.unwrap_or(false)
+    }
+
+    /// Forget times (after an autopilot reboot).
+    pub fn reset_times(&mut self) {
+        self.last_imu_t_us = None;
+        self.last_imu_rates = None;
+        self.attitudes.clear();
+        self.baro_isa_m = None;
+        if let Some(r) = &mut self.restorer {
+            r.reset();
+        }
+    }
+
+    /// The bias restorer's counters and estimate (`None` when `imu_bias_restore` is off).
+    pub fn imu_bias_status(&self) -> Option<RestoreStatus> {
+        self.restorer.as_ref().map(ImuBiasRestorer::status)
+    }
+
+    /// The barometric offset is known.
+    pub fn baro_calibrated(&self) -> bool {
+        self.baro_offset.is_some()
+    }
+
+    /// A GPS fix was used within `s` seconds of `now_ns`.
+    pub fn gps_recent(&self, now_ns: i64, s: f64) -> bool {
+        self.last_gps_ns
+            .is_some_and(|t| (now_ns - t) as f64 * 1e-9 < s)
+    }
+
+    /// Calibrate the barometric offset once from a trusted filter height (no GPS available).
+    pub fn calibrate_baro_from_filter(&mut self, h_m: f64) {
+        if self.baro_offset.is_none()
+            && let Some((_, isa)) = self.baro_isa_m
+            && h_m.is_finite()
+        {
+            self.baro_offset = Some((h_m - isa, 1));
+        }
+    }
+
+    /// The autopilot attitude nearest `t_us` within `max_dt_us`.
+    pub fn attitude_at(&self, t_us: u64, max_dt_us: u64) -> Option<Attitude> {
+        self.attitudes
+            .iter()
+            .min_by_key(|(t, _)| t.abs_diff(t_us))
+            .filter(|(t, _)| t.abs_diff(t_us) <= max_dt_us)
+            .map(|(_, a)| *a)
+    }
+
+    fn imu_allowed(&mut self, kind: ImuKind, t_ns: i64) -> bool {
+        self.last_kind_ns[kind as usize] = Some(t_ns);
+        self.last_kind_ns[..kind as usize]
+            .iter()
+            .all(|t| t.is_none_or(|t| (t_ns - t) as f64 * 1e-9 > IMU_SOURCE_HOLD_S))
+    }
+
+    /// The gyro of a 16-bit IMU message, or ATTITUDE's float body rates when they are enabled
+    /// and recent (see `DaemonConfig::gyro_from_attitude`).
+    fn fine_gyro(&self, t_us: u64, coarse: Vector3<f64>) -> Vector3<f64> {
+        match self.att_rates {
+            Some((t, w))
+                if self.cfg.gyro_from_attitude && t.abs_diff(t_us) <= ATT_RATES_MAX_AGE_US =>
+            {
+                w
+            }
+            _ => coarse,
+        }
+    }
+
+    fn imu(&mut self, t_us: u64, gyro: Vector3<f64>, acc: Vector3<f64>, out: &mut Vec<NavInput>) {
+        if !(gyro.iter().all(|v| v.is_finite()) && acc.iter().all(|v| v.is_finite())) {
+            return;
+        }
+        match self.last_imu_t_us {
+            Some(prev) if t_us + REBOOT_BACKSTEP_US < prev => {
+                self.reset_times();
+                self.last_imu_t_us = Some(t_us);
+                out.push(NavInput::Reboot);
+            }
+            Some(prev) if t_us > prev => {
+                let dt_s = (t_us - prev) as f64 * 1e-6;
+                self.last_imu_t_us = Some(t_us);
+                out.push(NavInput::Imu(self.gap_bridged(t_us, gyro, acc, dt_s)));
+            }
+            Some(_) => {} // duplicate or slightly out of order: dropped
+            None => self.last_imu_t_us = Some(t_us),
+        }
+    }
+
+    /// The IMU increment over `dt_s` ending with rate sample `(gyro, acc)`. A rate sample (an
+    /// average over its own short interval) held over a longer gap (samples the autopilot did
+    /// not send) would put its rate on the whole gap: in PX4 flight v6 a 37 ms gap ended at
+    /// 232 deg/s of pitch rate after 4 deg/s, and holding it gave 8.5 deg of pitch where the
+    /// copter turned about 1.5, which the GPS-aided filter then could not recover (docs/real-sitl.md,
+    /// PX4 verdict). Across a gap (more than [`IMU_GAP_FACTOR`] usual intervals) the rates are
+    /// interpolated linearly between the samples on either side (trapezoid), and what that
+    /// cannot know (the rates inside the gap) goes into the sample's gap sigmas, which the filter
+    /// adds to its attitude and velocity covariance; otherwise the sample is held as before.
+    fn gap_bridged(
+        &mut self,
+        t_us: u64,
+        gyro: Vector3<f64>,
+        acc: Vector3<f64>,
+        dt_s: f64,
+    ) -> ImuSample {
+        let sample = match self.last_imu_rates {
+            Some((g0, a0, usual_s)) if dt_s > IMU_GAP_FACTOR * usual_s => {
+                // The rates inside the gap are unknown: the trapezoid's error is up to half the
+                // change across it over the gap (a uniform error's sigma is that over sqrt 3).
+                let spread = 0.5 * dt_s / 3f64.sqrt();
+                ImuSample {
+                    gap_sigma_dtheta_rad: (gyro - g0).amax() * spread,
+                    gap_sigma_dv_m_s: (acc - a0).amax() * spread,
+                    ..ImuSample::from_rates(t_us, (g0 + gyro) * 0.5, (a0 + acc) * 0.5, dt_s)
+                }
+            }
+            _ => ImuSample::from_rates(t_us, gyro, acc, dt_s),
+        };
+        let usual_s = match self.last_imu_rates {
+            None => dt_s,
+            Some((_, _, u)) if dt_s > IMU_GAP_FACTOR * u => u,
+            Some((_, _, u)) => u + IMU_USUAL_INTERVAL_GAIN * (dt_s - u),
+        };
+        self.last_imu_rates = Some((gyro, acc, usual_s));
+        sample
+    }
+
+    /// Convert one telemetry message (may produce nothing).
+    pub fn convert(&mut self, tel: &Telemetry) -> Vec<NavInput> {
+        let mut out = Vec::new();
+        let t_ns = tel.t_companion_ns;
+        if let MavMessage::HEARTBEAT(hb) = &tel.msg
+            && hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
+        {
+            let multirotor = is_multirotor(hb.mavtype);
+            if self.multirotor != Some(multirotor) {
+                self.multirotor = Some(multirotor);
+                out.push(NavInput::Vehicle { multirotor });
+            }
+        }
+        let mg = |v: i16| f64::from(v) * 1e-3 * G0_M_S2;
+        let mrad = |v: i16| f64::from(v) * 1e-3;
+        match &tel.msg {
+            MavMessage::HEARTBEAT(hb)
+                if self.cfg.imu_bias_restore == ImuBiasRestore::Auto
+                    && self.restorer.is_none()
+                    && hb.autopilot == MavAutopilot::MAV_AUTOPILOT_PX4 =>
+            {
+                tracing::info!(
+                    "PX4: its HIGHRES_IMU is the IMU minus EKF2's bias estimates; restoring the \
+                     raw IMU with SCALED_IMU (daemon.imu_bias_restore = \"auto\")"
+                );
+                self.restorer = Some(ImuBiasRestorer::new());
+            }
+            MavMessage::HIGHRES_IMU(m) if self.imu_allowed(ImuKind::Highres, t_ns) => {
+                let mut g = Vector3::new(m.xgyro, m.ygyro, m.zgyro).cast::<f64>();
+                let mut a = Vector3::new(m.xacc, m.yacc, m.zacc).cast::<f64>();
+                if let Some(r) = &mut self.restorer {
+                    let (rg, ra, _) = r.on_highres(m.time_usec, g.into(), a.into());
+                    g = rg.into();
+                    a = ra.into();
+                }
+                self.imu(m.time_usec, g, a, &mut out);
+            }
+            MavMessage::SCALED_IMU(m) => {
+                let t_us = u64::from(m.time_boot_ms) * 1000;
+                if let Some(r) = &mut self.restorer {
+                    r.on_scaled(t_us, [m.xgyro, m.ygyro, m.zgyro], [m.xacc, m.yacc, m.zacc]);
+                }
+                if !self.imu_allowed(ImuKind::Scaled, t_ns) {
+                    return out;
+                }
+                let g = self.fine_gyro(
+                    t_us,
+                    Vector3::new(mrad(m.xgyro), mrad(m.ygyro), mrad(m.zgyro)),
+                );
+                let a = Vector3::new(mg(m.xacc), mg(m.yacc), mg(m.zacc));
+                self.imu(t_us, g, a, &mut out);
+            }
+            MavMessage::RAW_IMU(m) if self.imu_allowed(ImuKind::Raw, t_ns) => {
+                let g = self.fine_gyro(
+                    m.time_usec,
+                    Vector3::new(mrad(m.xgyro), mrad(m.ygyro), mrad(m.zgyro)),
+                );
+                let a = Vector3::new(mg(m.xacc), mg(m.yacc), mg(m.zacc));
+                self.imu(m.time_usec, g, a, &mut out);
+            }
+            MavMessage::ATTITUDE(m) => {
+                let w = Vector3::new(m.rollspeed, m.pitchspeed, m.yawspeed).cast::<f64>();
+                if w.iter().all(|v| v.is_finite()) {
+                    self.att_rates = Some((u64::from(m.time_boot_ms) * 1000, w));
+                }
+                let (r, p, y) = (f64::from(m.roll), f64::from(m.pitch), f64::from(m.yaw));
+                if r.is_finite() && p.is_finite() && y.is_finite() {
+                    let t_us = u64::from(m.time_boot_ms) * 1000;
+                    self.attitudes.push_back((t_us, Attitude::new(r, p, y)));
+                    while self.attitudes.len() > 200 {
+                        self.attitudes.pop_front();
+                    }
+                    out.push(NavInput::Meas(Measurement::Attitude(AttitudeFix {
+                        t_capture_us: t_us,
+                        q_nb: UnitQuaternion::from_euler_angles(r, p, y),
+                    })));
+                }
+            }
+            MavMessage::GPS_RAW_INT(m) if self.gps == GpsSource::Gps1 => {
+                let g = GpsRaw {
+                    time_usec: m.time_usec,
+                    fix: m.fix_type,
+                    lat: m.lat,
+                    lon: m.lon,
+                    alt_mm: m.alt,
+                    vel: m.vel,
+                    cog: m.cog,
+                    h_acc: m.h_acc,
+                    v_acc: m.v_acc,
+                    vel_acc: m.vel_acc,
+                };
+                self.gps_fix(&g, tel, &mut out);
+            }
+            MavMessage::GPS2_RAW(m) if self.gps == GpsSource::Gps2 => {
+                let g = GpsRaw {
+                    time_usec: m.time_usec,
+                    fix: m.fix_type,
+                    lat: m.lat,
+                    lon: m.lon,
+                    alt_mm: m.alt,
+                    vel: m.vel,
+                    cog: m.cog,
+                    h_acc: m.h_acc,
+                    v_acc: m.v_acc,
+                    vel_acc: m.vel_acc,
+                };
+                self.gps_fix(&g, tel, &mut out);
+            }
+            MavMessage::SCALED_PRESSURE(m) if self.cfg.baro => {
+                let p = f64::from(m.press_abs);
+                if p.is_finite() && (10.0..=1200.0).contains(&p) {
+                    let t_us = u64::from(m.time_boot_ms) * 1000;
+                    let isa = isa_altitude_m(p);
+                    self.baro_isa_m = Some((t_us, isa));
+                    if let Some((off, _)) = self.baro_offset {
+                        out.push(NavInput::Meas(Measurement::Altitude(AltitudeFix {
+                            t_capture_us: t_us,
+                            h_m: isa + off,
+                            var_m2: self.cfg.baro_sigma_m.powi(2),
+                        })));
+                    }
+                }
+            }
+            _ => {}
+        }
+        out
+    }
+
+    fn gps_fix(&mut self, g: &GpsRaw, tel: &Telemetry, out: &mut Vec<NavInput>) {
+        if (g.fix as u32) < (GpsFixType::GPS_FIX_TYPE_3D_FIX as u32) {
+            return;
+        }
+        // Capture time: a plausible boot time in the message, else the mapped arrival time.
+        let t_stamp_us = match tel.t_boot_us {
+            Some(arr) if g.time_usec.abs_diff(arr) < 2_000_000 => g.time_usec,
+            Some(arr) => arr,
+            None => return,
+        };
+        // The receiver's latency (`gps_delay_s`): the fix describes an earlier time.
+        let t_us = t_stamp_us.saturating_sub((self.cfg.gps_delay_s * 1e6) as u64);
+        let lat = f64::from(g.lat) * 1e-7;
+        let lon = f64::from(g.lon) * 1e-7;
+        let Ok(n) = geoid_undulation_m(lat, lon) else {
+            return;
+        };
+        if !(-90.0..=90.0).contains(&lat) || !(-180.0..=180.0).contains(&lon) {
+            return;
+        }
+        let h = f64::from(g.alt_mm) * 1e-3 + n;
+        // The receiver's accuracy, floored (the message is time-stamped on arrival: config doc).
+        let sh = if g.h_acc > 0 {
+            f64::from(g.h_acc) * 1e-3
+        } else {
+            self.cfg.gps_sigma_h_m
+        }
+        .max(self.cfg.gps_min_sigma_h_m);
+        let sv = if g.v_acc > 0 {
+            f64::from(g.v_acc) * 1e-3
+        } else {
+            self.cfg.gps_sigma_v_m
+        }
+        .max(self.cfg.gps_min_sigma_v_m);
+        out.push(NavInput::Meas(Measurement::GpsPosition(PositionFix {
+            t_capture_us: t_us,
+            lat_rad: lat.to_radians(),
+            lon_rad: lon.to_radians(),
+            h_m: h,
+            cov_ned_m2: Matrix3::from_diagonal(&Vector3::new(sh * sh, sh * sh, sv * sv)),
+            att_dependence_ned: None,
+        })));
+        if g.vel != u16::MAX && g.cog != u16::MAX {
+            let v = f64::from(g.vel) * 0.01;
+            let c = (f64::from(g.cog) * 0.01).to_radians();
+            let s = if g.vel_acc > 0 {
+                f64::from(g.vel_acc) * 1e-3
+            } else {
+                self.cfg.gps_vel_sigma_m_s
+            }
+            .max(self.cfg.gps_min_sigma_vel_m_s);
+            let sz = self.cfg.gps_vz_sigma_m_s;
+            out.push(NavInput::Meas(Measurement::GpsVelocity(VelocityFix {
+                t_capture_us: t_us,
+                v_ned_m_s: Vector3::new(v * c.cos(), v * c.sin(), 0.0),
+                cov_ned_m2_s2: Matrix3::from_diagonal(&Vector3::new(s * s, s * s, sz * sz)),
+            })));
+        }
+        self.last_gps_ns = Some(tel.t_companion_ns);
+        // Barometric offset: running mean of GPS height minus ISA altitude (baro within 0.5 s).
+        if let Some((tb, isa)) = self.baro_isa_m
+            && tb.abs_diff(t_stamp_us) < 500_000
+        {
+            let d = h - isa;
+            self.baro_offset = Some(match self.baro_offset {
+                None => (d, 1),
+                Some((m, k)) => {
+                    let k = (k + 1).min(100);
+                    (m + (d - m) / f64::from(k), k)
+                }
+            });
+        }
+    }
+}
+
+struct GpsRaw {
+    time_usec: u64,
+    fix: GpsFixType,
+    lat: i32,
+    lon: i32,
+    alt_mm: i32,
+    vel: u16,
+    cog: u16,
+    h_acc: u32,
+    v_acc: u32,
+    vel_acc: u32,
+}
+
+/// Map the filter's health to the injector's, keeping `prev`'s reason while only its numbers
+/// changed (so the link's health STATUSTEXT is sent on a real change only).
+pub fn link_health(h: NavHealth, reason: &str, prev: Option<&LinkHealth>) -> LinkHealth {
+    let keep = |p: &str| {
+        if reason_wording(p) == reason_wording(reason) {
+            p.to_string()
+        } else {
+            reason.to_string()
+        }
+    };
+    match (h, prev) {
+        (NavHealth::Ok, _) => LinkHealth::Ok,
+        (NavHealth::Degraded, Some(LinkHealth::Degraded { reason: p })) => {
+            LinkHealth::Degraded { reason: keep(p) }
+        }
+        (NavHealth::Degraded, _) => LinkHealth::Degraded {
+            reason: reason.to_string(),
+        },
+        (NavHealth::Lost, Some(LinkHealth::Lost { reason: p })) => {
+            LinkHealth::Lost { reason: keep(p) }
+        }
+        (NavHealth::Lost, _) => LinkHealth::Lost {
+            reason: reason.to_string(),
+        },
+    }
+}
+
+fn mat3(m: &[[f64; 3]; 3]) -> Matrix3<f64> {
+    Matrix3::from_fn(|r, c| m[r][c])
+}
+
+/// Largest eigenvalue of the north-east block of a covariance.
+fn lambda_max_ne(p: &Matrix3<f64>) -> f64 {
+    let (a, b, d) = (p[(0, 0)], 0.5 * (p[(0, 1)] + p[(1, 0)]), p[(1, 1)]);
+    let m = 0.5 * (a + d);
+    (m + (0.25 * (a - d) * (a - d) + b * b).sqrt()).max(0.0)
+}
+
+/// The injector's estimate from a filter output (None when the geoid cannot be evaluated).
+pub fn estimate_from_output(
+    o: &NavOutput,
+    health: LinkHealth,
+    reset_counter: u8,
+) -> Option<NavEstimate> {
+    let n = geoid_undulation_m(o.lat_deg, o.lon_deg).ok()?;
+    let [w, x, y, z] = o.q_nb_wxyz;
+    Some(NavEstimate {
+        t_boot_us: o.t_us,
+        lat_deg: o.lat_deg,
+        lon_deg: o.lon_deg,
+        alt_amsl_m: o.h_m - n,
+        geoid_undulation_m: Some(n),
+        vel_ned_m_s: Vector3::from(o.v_ned_m_s),
+        q_ned_body: UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z)),
+        pos_cov_ned_m2: mat3(&o.cov_pos_ned_m2),
+        vel_cov_ned_m2_s2: mat3(&o.cov_vel_ned_m2_s2),
+        att_sigma_rad: Vector3::from(o.att_sigma_deg).map(f64::to_radians),
+        health,
+        reset_counter,
+    })
+}
+
+/// The filter's recent outputs, for priors at a frame's capture time.
+#[derive(Debug, Default)]
+pub struct OutputBook {
+    outs: VecDeque<NavOutput>,
+}
+
+impl OutputBook {
+    /// Keep `o` (and the last 3 s before it).
+    pub fn push(&mut self, o: NavOutput) {
+        let t = o.t_us;
+        self.outs.push_back(o);
+        while self
+            .outs
+            .front()
+            .is_some_and(|f| f.t_us + 3_000_000 < t || f.t_us > t)
+        {
+            self.outs.pop_front();
+        }
+    }
+
+    /// Forget everything (filter restarted).
+    pub fn clear(&mut self) {
+        self.outs.clear();
+    }
+
+    /// The output nearest `t_us` within 1 s.
+    pub fn nearest(&self, t_us: u64) -> Option<&NavOutput> {
+        self.outs
+            .iter()
+            .min_by_key(|o| o.t_us.abs_diff(t_us))
+            .filter(|o| o.t_us.abs_diff(t_us) <= 1_000_000)
+    }
+}
+
+/// The fix prior at `t_us`: position from the filter output nearest the capture time, moved by
+/// its velocity to `t_us` (None when there is none within 1 s or the solution is lost: global
+/// relocalisation); attitude from that output (sigma: the largest attitude sigma) or else the
+/// autopilot ATTITUDE within 0.2 s (sigma: the larger of the `[nav]` attitude sigmas). A lost
+/// solution still gives its altitude ([`FixPrior::altitude`]).
+pub fn prior_at(
+    t_us: u64,
+    out: Option<&NavOutput>,
+    ap_attitude: Option<Attitude>,
+    nav: &NavConfig,
+) -> FixPrior {
+    let mut prior = FixPrior {
+        t_capture_us: t_us,
+        position: None,
+        attitude: None,
+        altitude: None,
+        attitude_from_filter: false,
+    };
+    if let Some(o) = out.filter(|o| o.health != NavHealth::Lost) {
+        let dt = (t_us as f64 - o.t_us as f64) * 1e-6;
+        let v = Vector3::from(o.v_ned_m_s);
+        let (lat, lon, h) = offset_geodetic(o.lat_deg, o.lon_deg, o.h_m, &(v * dt));
+        let p = mat3(&o.cov_pos_ned_m2) + mat3(&o.cov_vel_ned_m2_s2) * (dt * dt);
+        if let Ok(n) = geoid_undulation_m(lat, lon) {
+            prior.position = Some(PositionPriorGeo {
+                lat_deg: lat,
+                lon_deg: lon,
+                alt_amsl_m: h - n,
+                sigma_h_m: lambda_max_ne(&p).sqrt(),
+                sigma_v_m: p[(2, 2)].max(0.0).sqrt(),
+            })
+            .filter(|q| q.lat_deg.is_finite() && q.lon_deg.is_finite() && q.alt_amsl_m.is_finite());
+        }
+        let [r, pi, y] = o.rpy_deg;
+        // att_sigma_deg is per NED axis: north and east are the tilt, down the heading.
+        let [sn, se, sd] = o.att_sigma_deg;
+        let tilt = sn.max(se);
+        if r.is_finite() && pi.is_finite() && y.is_finite() && tilt.is_finite() && sd.is_finite() {
+            prior.attitude = Some(AttitudePriorNed {
+                attitude: Attitude::from_deg(r, pi, y),
+                sigma_rad: tilt.to_radians(),
+                sigma_yaw_rad: sd.to_radians(),
+            });
+            prior.attitude_from_filter = true;
+        }
+    }
+    // Lost horizontally, the filter still knows its altitude (barometer-aided): the
+    // relocalisation's scale.
+    if let Some(o) = out.filter(|o| o.health == NavHealth::Lost)
+        && let Ok(n) = geoid_undulation_m(o.lat_deg, o.lon_deg)
+    {
+        let dt = (t_us as f64 - o.t_us as f64) * 1e-6;
+        let alt_amsl_m = o.h_m - n - o.v_ned_m_s[2] * dt;
+        let var = o.cov_pos_ned_m2[2][2] + o.cov_vel_ned_m2_s2[2][2] * dt * dt;
+        if alt_amsl_m.is_finite() && var.is_finite() && var > 0.0 {
+            prior.altitude = Some(AltitudePrior {
+                alt_amsl_m,
+                sigma_m: var.sqrt(),
+            });
+        }
+    }
+    if prior.attitude.is_none()
+        && let Some(a) = ap_attitude
+    {
+        prior.attitude = Some(AttitudePriorNed {
+            attitude: a,
+            sigma_rad: nav.attitude_sigma_tilt_deg.to_radians(),
+            sigma_yaw_rad: nav.attitude_sigma_yaw_deg.to_radians(),
+        });
+    }
+    prior
+}
+
+/// Why an engine report gives the filter no measurement.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum NoMeasurement {
+    /// The engine rejected the frame; its reason.
+    #[error("{0}")]
+    Rejected(String),
+    /// An accepted report whose position is not finite (never fused).
+    #[error("accepted report with a non-finite position")]
+    NonFinite,
+    /// The measurement built from an accepted report fails its own check.
+    #[error("accepted report unusable: {0}")]
+    Unusable(&'static str),
+    /// The geoid could not give the ellipsoidal height of the fix.
+    #[error("{0}")]
+    Geoid(visnav_core::geo::GeoError),
+}
+
+/// The measurement of an accepted engine report (or why it gives none): the position fix, or
+/// with `with_attitude` (`[nav] vision_attitude`) and an image-only pose in the report, that pose
+/// with its 6x6 covariance (`Measurement::VisionPose`).
+pub fn vision_measurement(
+    r: &FixReport,
+    t_capture_us: u64,
+    with_attitude: bool,
+    with_dependence: bool,
+) -> Result<Measurement, NoMeasurement> {
+    if !r.accepted {
+        return Err(NoMeasurement::Rejected(r.reason.clone()));
+    }
+    if !(r.lat_deg.is_finite() && r.lon_deg.is_finite()) {
+        return Err(NoMeasurement::NonFinite);
+    }
+    let h = if r.h_ellip_m.is_finite() {
+        r.h_ellip_m
+    } else {
+        let n = geoid_undulation_m(r.lat_deg, r.lon_deg).map_err(NoMeasurement::Geoid)?;
+        r.alt_amsl_m + n
+    };
+    let m = match r.vision_only.filter(|v| with_attitude && v.is_finite()) {
+        Some(v) => {
+            let c6 = v.cov6();
+            let c6 = (c6 + c6.transpose()) * 0.5;
+            Measurement::VisionPose(PoseFix {
+                position: PositionFix {
+                    t_capture_us,
+                    lat_rad: v.lat_deg.to_radians(),
+                    lon_rad: v.lon_deg.to_radians(),
+                    h_m: v.h_ellip_m,
+                    cov_ned_m2: c6.fixed_view::<3, 3>(0, 0).into_owned(),
+                    att_dependence_ned: None,
+                },
+                q_nb: UnitQuaternion::from_euler_angles(
+                    v.roll_deg.to_radians(),
+                    v.pitch_deg.to_radians(),
+                    v.yaw_deg.to_radians(),
+                ),
+                cov6: c6,
+            })
+        }
+        None => {
+            // Solved with the filter's own attitude as its prior: the position depends on the
+            // filter's attitude error; fuse it with that dependence and the image's covariance.
+            let dep = r
+                .prior_dependence
+                .filter(|d| with_dependence && r.prior_attitude_from_filter && d.is_finite());
+            let c = match dep {
+                Some(d) => Matrix3::from_fn(|i, j| d.image_cov_ned_m2[i][j]),
+                None => r.cov_ned(),
+            };
+            Measurement::Vision(PositionFix {
+                t_capture_us,
+                lat_rad: r.lat_deg.to_radians(),
+                lon_rad: r.lon_deg.to_radians(),
+                h_m: h,
+                cov_ned_m2: (c + c.transpose()) * 0.5,
+                att_dependence_ned: dep.map(|d| Matrix3::from_fn(|i, j| d.d_pos_d_att[i][j])),
+            })
+        }
+    };
+    m.check()
+        .map_err(NoMeasurement::Unusable)?;
+    Ok(m)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mavlink::MavHeader;
+    use mavlink::dialects::ardupilotmega::{
+        ATTITUDE_DATA, GPS_RAW_INT_DATA, HIGHRES_IMU_DATA, SCALED_IMU_DATA, SCALED_PRESSURE_DATA,
+    };
+
+    fn tel(t_ms: i64, msg: MavMessage) -> Telemetry {
+        Telemetry {
+            t_companion_ns: t_ms * 1_000_000,
+            t_boot_us: Some(t_ms as u64 * 1000),
+            header: MavHeader::default(),
+            msg,
+        }
+    }
+
+    fn scaled(t_ms: u32) -> MavMessage {
+        MavMessage::SCALED_IMU(SCALED_IMU_DATA {
+            time_boot_ms: t_ms,
+            xacc: 0,
+            yacc: 0,
+            zacc: -1000,
+            xgyro: 10,
+            ..SCALED_IMU_DATA::DEFAULT
+        })
+    }
+
+    #[test]
+    fn imu_units_priority_and_reboot() {
+        let mut s = Inputs::new(DaemonConfig::default(), GpsSource::Gps1);
+        assert!(s.convert(&tel(1000, scaled(1000))).is_empty()); // first: time only
+        let out = s.convert(&tel(1010, scaled(1010)));
+        let NavInput::Imu(i) = &out[0] else {
+            panic!("{out:?}")
+        };
+        assert_eq!(i.t_us, 1_010_000);
+        assert!((i.dv_m_s_body_frd.z + G0_M_S2 * 0.01).abs() < 1e-12);
+        assert!((i.dtheta_rad_body_frd.x - 0.01 * 0.01).abs() < 1e-15);
+        // HIGHRES_IMU takes over; SCALED_IMU is ignored while it is current.
+        let hr = |t_us: u64| {
+            MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
+                time_usec: t_us,
+                zacc: -9.8,
+                ..HIGHRES_IMU_DATA::DEFAULT
+            })
+        };
+        let out = s.convert(&tel(1020, hr(1_020_000)));
+        assert!(matches!(&out[0], NavInput::Imu(i) if (i.dv_m_s_body_frd.z + 0.098).abs() < 1e-6));
+        assert!(s.convert(&tel(1025, scaled(1025))).is_empty());
+        // Reboot: time goes back by more than 1 s.
+        let out = s.convert(&tel(1030, hr(5_000)));
+        assert_eq!(out, vec![NavInput::Reboot]);
+        // Non-finite samples are dropped.
+        let bad = MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
+            time_usec: 20_000,
+            zacc: f32::NAN,
+            ..HIGHRES_IMU_DATA::DEFAULT
+        });
+        assert!(s.convert(&tel(1040, bad)).is_empty());
+    }
+
+    /// PX4 flight v6 (docs/status.md, issue 18): a 250 Hz HIGHRES_IMU stream that skips 37 ms
+    /// while the pitch rate climbs from 4 to 232 deg/s. Held, the last sample would turn the
+    /// filter 8.5 deg; bridged, the increment is the trapezoid and the unknown part is a sigma.
+    #[test]
+    fn an_imu_gap_is_bridged_by_the_trapezoid_with_its_uncertainty() {
+        let mut s = Inputs::new(DaemonConfig::default(), GpsSource::Gps1);
+        let hr = |t_us: u64, q_deg_s: f32| {
+            MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
+                time_usec: t_us,
+                ygyro: q_deg_s.to_radians(),
+                zacc: -9.8,
+                ..HIGHRES_IMU_DATA::DEFAULT
+            })
+        };
+        let mut t_us = 1_000_000u64;
+        let mut last = None;
+        for k in 0..100 {
+            // 4 ms apart with MAVLink jitter (2-8 ms): never a gap.
+            t_us += [4000, 2000, 6000, 4000, 8000][k % 5];
+            let out = s.convert(&tel((t_us / 1000) as i64, hr(t_us, 4.0)));
+            if let Some(NavInput::Imu(i)) = out.first() {
+                assert_eq!(i.gap_sigma_dtheta_rad, 0.0, "jitter taken for a gap");
+                let dt = i.dtheta_rad_body_frd.y / 4f64.to_radians();
+                assert!(dt > 0.0019 && dt < 0.0081, "{dt}");
+                last = Some(*i);
+            }
+        }
+        assert!(last.is_some());
+        t_us += 36_800;
+        let out = s.convert(&tel((t_us / 1000) as i64, hr(t_us, 232.0)));
+        let NavInput::Imu(i) = &out[0] else {
+            panic!("{out:?}")
+        };
+        let turned_deg = i.dtheta_rad_body_frd.y.to_degrees();
+        assert!(
+            (turned_deg - 0.5 * (4.0 + 232.0) * 0.0368).abs() < 0.01,
+            "{turned_deg}"
+        );
+        let sigma_deg = i.gap_sigma_dtheta_rad.to_degrees();
+        assert!((2.0..3.0).contains(&sigma_deg), "{sigma_deg}");
+        // The next ordinary sample is held again.
+        t_us += 4000;
+        let out = s.convert(&tel((t_us / 1000) as i64, hr(t_us, 230.0)));
+        let NavInput::Imu(i) = &out[0] else {
+            panic!("{out:?}")
+        };
+        assert_eq!(i.gap_sigma_dtheta_rad, 0.0);
+        assert!((i.dtheta_rad_body_frd.y.to_degrees() - 230.0 * 0.004).abs() < 1e-3);
+    }
+
+    #[test]
+    fn gps_attitude_and_baro() {
+        let mut s = Inputs::new(DaemonConfig::default(), GpsSource::Gps1);
+        let att = MavMessage::ATTITUDE(ATTITUDE_DATA {
+            time_boot_ms: 2000,
+            roll: 0.1,
+            pitch: -0.05,
+            yaw: 1.0,
+            ..ATTITUDE_DATA::DEFAULT
+        });
+        let out = s.convert(&tel(2000, att));
+        let NavInput::Meas(Measurement::Attitude(a)) = &out[0] else {
+            panic!()
+        };
+        let (r, p, y) = a.q_nb.euler_angles();
+        assert!((r - 0.1).abs() < 1e-6 && (p + 0.05).abs() < 1e-6 && (y - 1.0).abs() < 1e-6);
+        assert!(s.attitude_at(2_100_000, 200_000).is_some());
+        assert!(s.attitude_at(2_300_000, 200_000).is_none());
+        let baro = MavMessage::SCALED_PRESSURE(SCALED_PRESSURE_DATA {
+            time_boot_ms: 2000,
+            press_abs: 898.75,
+            ..SCALED_PRESSURE_DATA::DEFAULT
+        });
+        assert!(
+            s.convert(&tel(2000, baro.clone())).is_empty(),
+            "no offset yet"
+        );
+        let gps = |fix| {
+            MavMessage::GPS_RAW_INT(GPS_RAW_INT_DATA {
+                time_usec: 2_050_000,
+                fix_type: fix,
+                lat: 470_000_000,
+                lon: -970_000_000,
+                alt: 1_000_000,
+                vel: 1000,
+                cog: 9000,
+                eph: u16::MAX,
+                epv: u16::MAX,
+                ..GPS_RAW_INT_DATA::DEFAULT
+            })
+        };
+        assert!(
+            s.convert(&tel(2060, gps(GpsFixType::GPS_FIX_TYPE_2D_FIX)))
+                .is_empty()
+        );
+        let out = s.convert(&tel(2060, gps(GpsFixType::GPS_FIX_TYPE_3D_FIX)));
+        let NavInput::Meas(Measurement::GpsPosition(p)) = &out[0] else {
+            panic!("{out:?}")
+        };
+        let n = geoid_undulation_m(47.0, -97.0).unwrap();
+        // The time stamp minus the receiver delay (gps_delay_s = 0.1).
+        assert_eq!(p.t_capture_us, 2_050_000 - 100_000);
+        assert!((p.h_m - (1000.0 + n)).abs() < 1e-9);
+        assert!((p.cov_ned_m2[(0, 0)] - 2.5f64.powi(2)).abs() < 1e-12);
+        let NavInput::Meas(Measurement::GpsVelocity(v)) = &out[1] else {
+            panic!()
+        };
+        assert!((v.v_ned_m_s - Vector3::new(0.0, 10.0, 0.0)).norm() < 1e-9);
+        // No vel_acc: the configured sigma; a receiver's 4 cm/s is floored.
+        assert!((v.cov_ned_m2_s2[(0, 0)] - 0.5f64.powi(2)).abs() < 1e-12);
+        let mut tight = Inputs::new(DaemonConfig::default(), GpsSource::Gps1);
+        tight.baro_isa_m = None;
+        let mut g = gps(GpsFixType::GPS_FIX_TYPE_3D_FIX);
+        if let MavMessage::GPS_RAW_INT(d) = &mut g {
+            d.vel_acc = 40;
+        }
+        let out2 = tight.convert(&tel(2060, g));
+        let NavInput::Meas(Measurement::GpsVelocity(v2)) = &out2[1] else {
+            panic!("{out2:?}")
+        };
+        assert!((v2.cov_ned_m2_s2[(1, 1)] - 0.3f64.powi(2)).abs() < 1e-12);
+        assert!(s.baro_calibrated());
+        // The same pressure now gives the GPS height.
+        let out = s.convert(&tel(2100, baro));
+        let NavInput::Meas(Measurement::Altitude(a)) = &out[0] else {
+            panic!()
+        };
+        assert!((a.h_m - (1000.0 + n)).abs() < 1e-6, "{}", a.h_m);
+        // GPS2_RAW is ignored when the source is GPS_RAW_INT, and vice versa.
+        let mut s2 = Inputs::new(DaemonConfig::default(), GpsSource::Gps2);
+        assert!(
+            s2.convert(&tel(2060, gps(GpsFixType::GPS_FIX_TYPE_3D_FIX)))
+                .is_empty()
+        );
+        // Unix time in time_usec: the arrival time is used.
+        let m = MavMessage::GPS_RAW_INT(GPS_RAW_INT_DATA {
+            time_usec: 1_700_000_000_000_000,
+            fix_type: GpsFixType::GPS_FIX_TYPE_3D_FIX,
+            lat: 470_000_000,
+            lon: -970_000_000,
+            vel: u16::MAX,
+            cog: u16::MAX,
+            ..GPS_RAW_INT_DATA::DEFAULT
+        });
+        let out = s.convert(&tel(3000, m));
+        assert_eq!(out.len(), 1, "no velocity when unknown");
+        assert!(matches!(&out[0], NavInput::Meas(m) if m.t_capture_us() == 3_000_000 - 100_000));
+        // A receiver's own (optimistic) accuracy is floored; a larger one is kept.
+        for (h_acc, v_acc, sh, sv) in [(300, 500, 1.5, 3.0), (4000, 7000, 4.0, 7.0)] {
+            let m = MavMessage::GPS_RAW_INT(GPS_RAW_INT_DATA {
+                time_usec: 3_100_000,
+                fix_type: GpsFixType::GPS_FIX_TYPE_3D_FIX,
+                lat: 470_000_000,
+                lon: -970_000_000,
+                h_acc,
+                v_acc,
+                vel: u16::MAX,
+                cog: u16::MAX,
+                ..GPS_RAW_INT_DATA::DEFAULT
+            });
+            let out = s.convert(&tel(3100, m));
+            let NavInput::Meas(Measurement::GpsPosition(p)) = &out[0] else {
+                panic!("{out:?}")
+            };
+            assert!((p.cov_ned_m2[(0, 0)] - sh * sh).abs() < 1e-9, "{h_acc}");
+            assert!((p.cov_ned_m2[(2, 2)] - sv * sv).abs() < 1e-9, "{v_acc}");
+        }
+    }
+
+    #[test]
+    fn isa_inverse() {
+        // 898.75 hPa is ~1000 m in the ISA troposphere.
+        assert!((isa_altitude_m(898.75) - 1000.0).abs() < 1.0);
+        assert!(isa_altitude_m(1013.25).abs() < 1e-9);
+    }
+
+    #[test]
+    fn health_wording_is_kept_while_only_numbers_change() {
+        let a = link_health(
+            NavHealth::Degraded,
+            "no accepted position fix for 10.3 s",
+            None,
+        );
+        let b = link_health(
+            NavHealth::Degraded,
+            "no accepted position fix for 11.7 s",
+            Some(&a),
+        );
+        assert_eq!(a, b);
+        let c = link_health(
+            NavHealth::Degraded,
+            "horizontal sigma 16.0 m > 15 m",
+            Some(&b),
+        );
+        assert_ne!(b, c);
+        assert_eq!(link_health(NavHealth::Ok, "", Some(&c)), LinkHealth::Ok);
+        assert!(matches!(
+            link_health(NavHealth::Lost, "x", Some(&c)),
+            LinkHealth::Lost { .. }
+        ));
+    }
+
+    fn output(t_us: u64, health: NavHealth) -> NavOutput {
+        NavOutput {
+            t_us,
+            lat_deg: 47.0,
+            lon_deg: -97.0,
+            h_m: 500.0,
+            v_ned_m_s: [10.0, 0.0, 0.0],
+            q_nb_wxyz: [1.0, 0.0, 0.0, 0.0],
+            rpy_deg: [0.0, 0.0, 30.0],
+            cov_pos_ned_m2: [[4.0, 0.0, 0.0], [0.0, 9.0, 0.0], [0.0, 0.0, 16.0]],
+            cov_vel_ned_m2_s2: [[0.01, 0.0, 0.0], [0.0, 0.01, 0.0], [0.0, 0.0, 0.01]],
+            att_sigma_deg: [0.5, 0.5, 2.0],
+            gyro_bias_deg_h: [0.0; 3],
+            accel_bias_ug: [0.0; 3],
+            health,
+            reason: String::new(),
+        }
+    }
+
+    #[test]
+    fn estimate_and_prior() {
+        let o = output(1_000_000, NavHealth::Ok);
+        let e = estimate_from_output(&o, LinkHealth::Ok, 3).unwrap();
+        let n = geoid_undulation_m(47.0, -97.0).unwrap();
+        assert!((e.alt_amsl_m + n - 500.0).abs() < 1e-9);
+        assert!(visnav_link::inject::check_estimate(&e).is_ok());
+        assert_eq!(e.reset_counter, 3);
+        let nav = NavConfig::default();
+        let p = prior_at(1_500_000, Some(&o), None, &nav);
+        let pos = p.position.unwrap();
+        // Moved 5 m north at 10 m/s over 0.5 s.
+        let dn = (pos.lat_deg - 47.0).to_radians() * 6_367_000.0;
+        assert!((dn - 5.0).abs() < 0.05, "{dn}");
+        assert!((pos.sigma_h_m - (9.0f64 + 0.0025).sqrt()).abs() < 1e-9);
+        assert!((pos.sigma_v_m - (16.0f64 + 0.0025).sqrt()).abs() < 1e-9);
+        // The filter's attitude sigmas [0.5, 0.5, 2] deg: tilt 0.5, heading 2.
+        assert!((p.attitude.unwrap().sigma_rad - 0.5f64.to_radians()).abs() < 1e-12);
+        assert!((p.attitude.unwrap().sigma_yaw_rad - 2f64.to_radians()).abs() < 1e-12);
+        // The filter's own attitude: the engine weighs it as a dependent prior.
+        assert!(p.attitude_from_filter);
+        // Lost / no output: no position; the autopilot attitude is used.
+        let lost = output(1_000_000, NavHealth::Lost);
+        let p = prior_at(
+            1_000_000,
+            Some(&lost),
+            Some(Attitude::new(0.0, 0.0, 1.0)),
+            &nav,
+        );
+        assert!(p.position.is_none());
+        // ...but its altitude (AMSL, sigma 4 m) is the relocalisation's scale.
+        let alt = p.altitude.unwrap();
+        assert!((alt.alt_amsl_m + n - 500.0).abs() < 1e-9, "{alt:?}");
+        assert!((alt.sigma_m - 4.0).abs() < 1e-9);
+        assert!(prior_at(1_000_000, None, None, &nav).altitude.is_none());
+        assert!(prior_at(1_000_000, Some(&o), None, &nav).altitude.is_none());
+        assert_eq!(p.attitude.unwrap().attitude.yaw_rad, 1.0);
+        assert!(
+            !p.attitude_from_filter,
+            "the autopilot's attitude is not the filter's"
+        );
+        // Tilt and heading sigmas from the nav config (1 and 3 deg by default).
+        assert!((p.attitude.unwrap().sigma_rad - 1f64.to_radians()).abs() < 1e-12);
+        assert!((p.attitude.unwrap().sigma_yaw_rad - 3f64.to_radians()).abs() < 1e-12);
+        let mut book = OutputBook::default();
+        book.push(output(1_000_000, NavHealth::Ok));
+        book.push(output(1_020_000, NavHealth::Ok));
+        assert_eq!(book.nearest(1_012_000).unwrap().t_us, 1_020_000);
+        assert!(book.nearest(2_100_000).is_none());
+    }
+
+    #[test]
+    fn report_to_measurement() {
+        let mut r = FixReport::rejected("too few inliers", 5, 1.0);
+        assert_eq!(
+            vision_measurement(&r, 5, false, false)
+                .unwrap_err()
+                .to_string(),
+            "too few inliers"
+        );
+        r.accepted = true;
+        assert!(
+            vision_measurement(&r, 5, false, false).is_err(),
+            "NaN position"
+        );
+        r.lat_deg = 47.0;
+        r.lon_deg = -97.0;
+        r.alt_amsl_m = 800.0;
+        r.cov_ned_m2 = [[4.0, 0.0, 0.0], [0.0, 4.0, 0.0], [0.0, 0.0, 9.0]];
+        let Measurement::Vision(f) = vision_measurement(&r, 7, false, false).unwrap() else {
+            panic!()
+        };
+        assert_eq!(f.t_capture_us, 7);
+        assert!((f.lat_rad - 47f64.to_radians()).abs() < 1e-15);
+        let n = geoid_undulation_m(47.0, -97.0).unwrap();
+        assert!(
+            (f.h_m - (800.0 + n)).abs() < 1e-9,
+            "h from AMSL + N when h_ellip is NaN"
+        );
+        r.h_ellip_m = 780.0;
+        let Measurement::Vision(f) = vision_measurement(&r, 7, false, false).unwrap() else {
+            panic!()
+        };
+        assert_eq!(f.h_m, 780.0);
+        r.cov_ned_m2[0][0] = -1.0;
+        assert!(
+            vision_measurement(&r, 7, false, false)
+                .unwrap_err()
+                .to_string()
+                .contains("covariance")
+        );
+        // With `[nav] vision_attitude` and an image-only pose: that pose, its 6x6 covariance.
+        r.cov_ned_m2[0][0] = 4.0;
+        let mut cov6 = [[0.0; 6]; 6];
+        for (i, row) in cov6.iter_mut().enumerate() {
+            row[i] = if i < 3 { 900.0 } else { 3e-4 };
+        }
+        cov6[1][3] = 0.5; // east position with the tilt about north
+        cov6[3][1] = 0.5;
+        r.vision_only = Some(visnav_core::fix::VisionOnlyPose {
+            lat_deg: 47.001,
+            lon_deg: -97.0,
+            h_ellip_m: 790.0,
+            roll_deg: 2.0,
+            pitch_deg: 0.0,
+            yaw_deg: 90.0,
+            cov6_ned: cov6,
+        });
+        let Measurement::VisionPose(p) = vision_measurement(&r, 7, true, false).unwrap() else {
+            panic!("a pose measurement")
+        };
+        assert!((p.position.lat_rad - 47.001f64.to_radians()).abs() < 1e-15);
+        assert_eq!(p.position.h_m, 790.0);
+        assert_eq!(p.position.cov_ned_m2[(1, 1)], 900.0);
+        assert_eq!(p.cov6[(1, 3)], 0.5);
+        assert!((p.q_nb.euler_angles().0 - 2f64.to_radians()).abs() < 1e-12);
+        // Without the option the prior-fused position as before.
+        assert!(matches!(
+            vision_measurement(&r, 7, false, false),
+            Ok(Measurement::Vision(f)) if f.h_m == 780.0
+        ));
+        // A covariance that is not positive definite is refused.
+        cov6[1][3] = 1e3;
+        cov6[3][1] = 1e3;
+        r.vision_only.as_mut().unwrap().cov6_ned = cov6;
+        assert!(vision_measurement(&r, 7, true, false).is_err());
+        // With `[nav] vision_prior_dependence` and a prior from the filter: the image's
+        // covariance and the dependence; otherwise the reported covariance, no dependence.
+        r.vision_only = None;
+        r.prior_dependence = Some(visnav_core::fix::PriorDependenceNed {
+            d_pos_d_att: [[0.0, -900.0, 0.0], [900.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
+            image_cov_ned_m2: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 2.0]],
+        });
+        let plain = |r: &FixReport, dep: bool| match vision_measurement(r, 7, false, dep) {
+            Ok(Measurement::Vision(f)) => f,
+            other => panic!("a position fix, got {other:?}"),
+        };
+        r.prior_attitude_from_filter = true;
+        let f = plain(&r, true);
+        assert_eq!(f.att_dependence_ned.unwrap()[(1, 0)], 900.0);
+        assert_eq!(f.cov_ned_m2[(2, 2)], 2.0);
+        let f = plain(&r, false);
+        assert!(f.att_dependence_ned.is_none());
+        assert_eq!(f.cov_ned_m2[(0, 0)], 4.0);
+        r.prior_attitude_from_filter = false;
+        assert!(plain(&r, true).att_dependence_ned.is_none());
+    }
+
+    #[test]
+    fn gyro_from_attitude_rates_replaces_the_16_bit_gyro() {
+        let att = |t_ms: u32, w: [f32; 3]| {
+            MavMessage::ATTITUDE(ATTITUDE_DATA {
+                time_boot_ms: t_ms,
+                rollspeed: w[0],
+                pitchspeed: w[1],
+                yawspeed: w[2],
+                ..ATTITUDE_DATA::DEFAULT
+            })
+        };
+        // The rate of the sample at t_ms (the previous one was at t_ms - 10).
+        let gyro = |s: &mut Inputs, t_ms: u32| {
+            let out = s.convert(&tel(i64::from(t_ms), scaled(t_ms)));
+            let NavInput::Imu(i) = &out[0] else {
+                panic!("{out:?}")
+            };
+            i.dtheta_rad_body_frd / 0.01
+        };
+        // A slow rotation (0.4 mrad/s: zero in SCALED_IMU) comes through from ATTITUDE.
+        let mut s = Inputs::new(DaemonConfig::default(), GpsSource::Gps1);
+        s.convert(&tel(1000, scaled(1000)));
+        s.convert(&tel(1005, att(1005, [4e-4, -2e-4, 1e-4])));
+        let w = gyro(&mut s, 1010);
+        assert!((w - Vector3::new(4e-4, -2e-4, 1e-4)).norm() < 1e-9, "{w}");
+        // Rates older than 60 ms: the message's own (10 mrad/s about x).
+        s.convert(&tel(1060, scaled(1060)));
+        let w = gyro(&mut s, 1070);
+        assert!((w - Vector3::new(0.01, 0.0, 0.0)).norm() < 1e-12, "{w}");
+        // Non-finite rates are not taken.
+        s.convert(&tel(1075, att(1075, [f32::NAN, 0.0, 0.0])));
+        let w = gyro(&mut s, 1080);
+        assert!((w - Vector3::new(0.01, 0.0, 0.0)).norm() < 1e-12, "{w}");
+        // Switched off: always the message's gyro.
+        let cfg = DaemonConfig {
+            gyro_from_attitude: false,
+            ..DaemonConfig::default()
+        };
+        let mut s = Inputs::new(cfg, GpsSource::Gps1);
+        s.convert(&tel(1000, scaled(1000)));
+        s.convert(&tel(1005, att(1005, [4e-4, -2e-4, 1e-4])));
+        let w = gyro(&mut s, 1010);
+        assert!((w - Vector3::new(0.01, 0.0, 0.0)).norm() < 1e-12, "{w}");
+    }
+}

@@ -1,0 +1,82 @@
+//! Wiring the configuration to the algorithms: the fix engine a configuration describes (its map
+//! opened or built, its DEM loaded) and the engine as the daemon's [`FrameFixer`]. The algorithm
+//! modules know nothing of the application's configuration; this is where the two meet.
+
+use std::sync::Arc;
+
+use super::FrameFixer;
+use super::app_config::Config;
+use visnav_core::camera::CameraError;
+use visnav_core::fix::{FixEngine, FixError, FixPrior, FixReport, Reference};
+use visnav_core::geo::dem::{Dem, DemError};
+use visnav_core::vision::GrayImage;
+use visnav_io::geo::dem::DemFileError;
+use visnav_io::map::MapReference;
+use visnav_io::map::MapReferenceError;
+use visnav_io::map::{BuildSpec, HeightSource};
+
+/// Why the configuration's fix engine could not be built; each names the section and key.
+#[derive(Debug, thiserror::Error)]
+pub enum WiringError {
+    #[error("[camera]: {0}")]
+    Camera(CameraError),
+    #[error("[map] dem {}: {error}", .path.display())]
+    Dem {
+        path: std::path::PathBuf,
+        error: DemFileError,
+    },
+    #[error("[map] ground_height_amsl_m: {0}")]
+    GroundHeight(DemError),
+    #[error("[map] file: {0}")]
+    MapFile(MapReferenceError),
+    #[error("[map]: give file, or ortho with dem or ground_height_amsl_m")]
+    NoTerrain,
+    #[error("[map] ortho: {0}")]
+    MapBuild(MapReferenceError),
+    #[error("[fix]: {0}")]
+    Fix(FixError),
+}
+
+/// The engine a configuration describes: the `.vnm` map of `[map] file` (terrain overridden by
+/// `dem` / `ground_height_amsl_m` when given), or, without one, a map built at start into a
+/// temporary file from `[map] ortho` (small areas); the camera of `[camera]`; `[fix]` settings.
+/// Paths must already be resolved (as `Config::load` does).
+pub fn engine_from_config(cfg: &Config) -> Result<FixEngine, WiringError> {
+    let camera = cfg.camera.build().map_err(WiringError::Camera)?;
+    let dem = match (&cfg.map.dem, cfg.map.ground_height_amsl_m) {
+        (Some(p), _) => Some(
+            visnav_io::geo::dem::load_dem(p, cfg.map.crs_override).map_err(|error| {
+                WiringError::Dem {
+                    path: p.clone(),
+                    error,
+                }
+            })?,
+        ),
+        (None, Some(h)) => Some(Dem::flat(h).map_err(WiringError::GroundHeight)?),
+        (None, None) => None,
+    };
+    let reference: Arc<dyn Reference> = match &cfg.map.file {
+        Some(f) => Arc::new(MapReference::open(f, dem).map_err(WiringError::MapFile)?),
+        None => {
+            let height = match (&cfg.map.dem, cfg.map.ground_height_amsl_m) {
+                (Some(p), _) => HeightSource::Dem(p.clone()),
+                (None, Some(h)) => HeightSource::ConstantAmsl(h),
+                (None, None) => {
+                    return Err(WiringError::NoTerrain);
+                }
+            };
+            let mut spec = BuildSpec::new(cfg.map.ortho.clone(), height);
+            spec.crs_override = cfg.map.crs_override;
+            spec.upsample = cfg.map.upsample.unwrap_or(1);
+            spec.height_sigma_m = cfg.map.height_sigma_m;
+            Arc::new(MapReference::build_temporary(&spec, dem).map_err(WiringError::MapBuild)?)
+        }
+    };
+    FixEngine::new(reference, camera, cfg.fix.clone()).map_err(WiringError::Fix)
+}
+
+impl FrameFixer for FixEngine {
+    fn fix(&self, image: &GrayImage, prior: &FixPrior) -> FixReport {
+        FixEngine::fix(self, image, prior)
+    }
+}

@@ -1,0 +1,245 @@
+//! The simulated camera as a frame source: renders the camera-year orthophoto (never the map's
+//! image; `sitl::render` module doc) at the vehicle's TRUE pose, at a fixed rate, and hands the
+//! frames to the daemon like a real camera would, stamped with the autopilot boot time of the
+//! truth sample used (the capture time a hardware trigger would log).
+//!
+//! Truth comes from a [`TruthFeed`]: the built-in simulator's trajectory (closed loop,
+//! `sitl::closed_loop`) or a real SITL's own state (ArduPilot SIMSTATE, PX4 SIM_STATE).
+//!
+//! Geometry: the truth's latitude/longitude are projected into the scene's CRS, its altitude AMSL
+//! is taken as the DEM's vertical datum (the bundled maps are AMSL), the attitude is relative to
+//! true north (`R_ned_body = Rz(yaw) Ry(pitch) Rx(roll)`), and [`RenderPose::from_body`] adds the
+//! camera mount and the grid convergence.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use nalgebra::Vector3;
+
+use super::autopilot::TruthState;
+use super::render::{RenderPose, Renderer, Scene};
+use visnav_core::camera::{Attitude, Mount};
+use visnav_core::vision::GrayImage;
+use visnav_io::frames::{CaptureTime, Frame, FrameError, FrameSource};
+use visnav_io::geo::Crs;
+
+/// The latest vehicle truth with its autopilot boot time, µs.
+pub trait TruthFeed: Send + Sync {
+    /// `None` until the first truth sample is known (the camera waits).
+    fn latest(&self) -> Option<(u64, TruthState)>;
+    /// True when no more truth will come (the camera ends its stream).
+    fn ended(&self) -> bool {
+        false
+    }
+}
+
+/// What the simulated camera renders and how often.
+pub struct SimCameraSpec {
+    /// The camera-year scene (orthophoto + DEM).
+    pub scene: Arc<Scene>,
+    /// Camera model and photometric effects.
+    pub renderer: Arc<Renderer>,
+    /// CRS of the scene's orthophoto and DEM.
+    pub crs: Crs,
+    /// Camera mount on the body.
+    pub mount: Mount,
+    /// Frame rate, Hz.
+    pub rate_hz: f64,
+    /// Stop after this many frames (`None`: run until the truth feed ends).
+    pub max_frames: Option<u64>,
+}
+
+/// A [`FrameSource`] rendering the scene at the truth pose (see the module doc).
+pub struct SimCamera {
+    spec: SimCameraSpec,
+    feed: Arc<dyn TruthFeed>,
+    seq: u64,
+    next_at: Option<Instant>,
+    t0_us: Option<u64>,
+    last_t_us: Option<u64>,
+}
+
+impl SimCamera {
+    pub fn new(spec: SimCameraSpec, feed: Arc<dyn TruthFeed>) -> Self {
+        Self {
+            spec,
+            feed,
+            seq: 0,
+            next_at: None,
+            t0_us: None,
+            last_t_us: None,
+        }
+    }
+
+    /// The render pose of a truth state (body position in the scene grid, camera via the mount).
+    pub fn pose_of(&self, s: &TruthState) -> Result<RenderPose, String> {
+        pose_of(&self.spec.crs, &self.spec.mount, s)
+    }
+}
+
+/// The render pose of a truth state in `crs` (see the module doc).
+pub fn pose_of(crs: &Crs, mount: &Mount, s: &TruthState) -> Result<RenderPose, String> {
+    let (x_m, y_m) = crs
+        .from_geodetic(s.lat_deg, s.lon_deg)
+        .map_err(|e| format!("truth position: {e}"))?;
+    let gamma_rad = crs
+        .grid_convergence_deg(s.lat_deg, s.lon_deg)
+        .map_err(|e| format!("grid convergence: {e}"))?
+        .to_radians();
+    let [r, p, y] = s.rpy_rad;
+    let att = Attitude::new(r, p, y);
+    Ok(RenderPose::from_body(
+        Vector3::new(x_m, y_m, s.alt_amsl_m),
+        &att,
+        mount,
+        gamma_rad,
+    ))
+}
+
+impl FrameSource for SimCamera {
+    fn next_frame(&mut self) -> Result<Option<Frame>, FrameError> {
+        if self.spec.max_frames.is_some_and(|n| self.seq >= n) {
+            return Ok(None);
+        }
+        let period = Duration::from_secs_f64(1.0 / self.spec.rate_hz.max(1e-3));
+        // Pace: one frame per period of the companion's clock (the truth feed is real time).
+        if let Some(at) = self.next_at {
+            let now = Instant::now();
+            if at > now {
+                std::thread::sleep(at - now);
+            }
+        }
+        // Wait for a truth sample newer than the last frame's: as long as it takes for the
+        // first one (the feed may start the camera late), at most 10 s once it has run (a
+        // stalled feed is an error).
+        let wait_from = Instant::now();
+        let (t_us, state) = loop {
+            let latest = self.feed.latest();
+            match latest {
+                Some((t, s)) if self.last_t_us.is_none_or(|l| t > l) => break (t, s),
+                _ => {}
+            }
+            if self.feed.ended() {
+                return Ok(None);
+            }
+            let started = self.last_t_us.is_some() || latest.is_some();
+            if started && wait_from.elapsed() > Duration::from_secs(10) {
+                return Err(FrameError::Config(
+                    "simulated camera: no new truth sample for 10 s".into(),
+                ));
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        };
+        self.next_at = Some(self.next_at.map_or(Instant::now(), |a| a) + period);
+        let pose = self.pose_of(&state).map_err(FrameError::Config)?;
+        let f = self
+            .spec
+            .renderer
+            .render(&self.spec.scene, &pose, self.seq)
+            .map_err(|e| FrameError::Config(format!("simulated camera: {e}")))?;
+        let image = GrayImage::new(f.width, f.height, f.grey())
+            .map_err(|e| FrameError::Config(format!("simulated camera: {e}")))?;
+        let t0 = *self.t0_us.get_or_insert(t_us);
+        self.last_t_us = Some(t_us);
+        let frame = Frame {
+            image,
+            t_capture: CaptureTime::AutopilotBootUs(t_us),
+            t_rel_s: (t_us - t0) as f64 * 1e-6,
+            seq: self.seq,
+        };
+        self.seq += 1;
+        Ok(Some(frame))
+    }
+
+    fn describe(&self) -> String {
+        let c = self.spec.renderer.camera();
+        format!(
+            "simulated camera: {}x{} px at {} Hz, rendered at the true pose",
+            c.width_px(),
+            c.height_px(),
+            self.spec.rate_hz
+        )
+    }
+
+    fn rate_hz(&self) -> Option<f64> {
+        Some(self.spec.rate_hz)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::{ColourMode, RenderSpec, vga_camera};
+    use std::path::Path;
+    use std::sync::Mutex;
+    use visnav_io::geo::dem::Dem;
+    use visnav_io::geo::geotiff::load_geotiff;
+
+    struct Fixed(Mutex<u64>, TruthState);
+    impl TruthFeed for Fixed {
+        fn latest(&self) -> Option<(u64, TruthState)> {
+            let mut t = self.0.lock().ok()?;
+            *t += 10_000;
+            Some((*t, self.1))
+        }
+    }
+
+    #[test]
+    fn renders_the_scene_below_the_truth_with_boot_time_stamps() {
+        let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("sitl/maps");
+        let raster = load_geotiff(&dir.join("naip_nd_2014.tif"), None).unwrap();
+        let crs = raster.crs();
+        let b = raster.bounds();
+        let (cx, cy) = ((b.min_x_m + b.max_x_m) / 2.0, (b.min_y_m + b.max_y_m) / 2.0);
+        let (lat, lon) = crs.to_geodetic(cx, cy).unwrap();
+        let scene = Scene::new(&raster, Dem::flat(580.0).unwrap(), ColourMode::Grey).unwrap();
+        let renderer = Renderer::new(vga_camera().unwrap(), RenderSpec::default()).unwrap();
+        let truth = TruthState {
+            lat_deg: lat,
+            lon_deg: lon,
+            alt_amsl_m: 1180.0,
+            vel_ned_m_s: [0.0; 3],
+            rpy_rad: [0.0, 0.0, 0.3],
+            gyro_body_rad_s: [0.0; 3],
+            accel_body_m_s2: [0.0; 3],
+        };
+        let mut cam = SimCamera::new(
+            SimCameraSpec {
+                scene: Arc::new(scene),
+                renderer: Arc::new(renderer),
+                crs,
+                mount: Mount::nadir(),
+                rate_hz: 50.0,
+                max_frames: Some(2),
+            },
+            Arc::new(Fixed(Mutex::new(0), truth)),
+        );
+        let pose = cam.pose_of(&truth).unwrap();
+        assert!((pose.centre_map_m.x - cx).abs() < 1e-3 && (pose.centre_map_m.y - cy).abs() < 1e-3);
+        let f0 = cam.next_frame().unwrap().unwrap();
+        let f1 = cam.next_frame().unwrap().unwrap();
+        assert!(cam.next_frame().unwrap().is_none());
+        let (CaptureTime::AutopilotBootUs(t0), CaptureTime::AutopilotBootUs(t1)) =
+            (f0.t_capture, f1.t_capture)
+        else {
+            panic!("frames must carry autopilot boot time");
+        };
+        assert!(t1 > t0);
+        assert_eq!((f0.seq, f1.seq), (0, 1));
+        assert_eq!((f0.image.width(), f0.image.height()), (640, 480));
+        // 600 m above flat ground over the map centre: the whole frame sees the orthophoto; it
+        // must have texture (not the fill value).
+        let px = f0.image.data();
+        let mean = px.iter().map(|&v| f64::from(v)).sum::<f64>() / px.len() as f64;
+        let var = px
+            .iter()
+            .map(|&v| (f64::from(v) - mean).powi(2))
+            .sum::<f64>()
+            / px.len() as f64;
+        assert!(
+            mean > 20.0 && var.sqrt() > 5.0,
+            "mean {mean} sd {}",
+            var.sqrt()
+        );
+    }
+}

@@ -1,0 +1,1442 @@
+//! The closed loop behind `visnav sim`: the built-in autopilot emulator and the real visnav daemon
+//! talk MAVLink 2 over real loopback UDP sockets, the simulated camera renders the camera-year
+//! orthophoto at the true pose, and the daemon's vision fixes, its filter and what it injects
+//! (GPS_INPUT / VISION_POSITION_ESTIMATE / ODOMETRY, as configured) are scored against the truth.
+//! A second emulator + daemon pair without a camera runs beside it as the no-vision control.
+//!
+//! Timeline: each emulator's boot clock is the scenario time (`t_s = 0` at its start); the
+//! trajectory, the IMU errors and the GPS outage follow it. Real time: a 90 s scenario takes 90 s.
+//!
+//! Truth and sensors ([`SimSensors`], the emulator's `TruthSource`):
+//! * the trajectory is integrated once at 200 Hz ([`TruthTable`]; WGS84 ellipsoidal heights,
+//!   AMSL = h - N with the EGM96 geoid); states between samples are interpolated linearly
+//!   (angles along the shorter arc);
+//! * IMU: the scenario's `[imu]` errors (`sitl::imu`) applied over each interval between two IMU
+//!   messages, sent as SCALED_IMU / RAW_IMU (mG, mrad/s: what ArduPilot streams);
+//! * GPS: truth + white noise (`[gps] sigma_h_m`, `sigma_v_m`) inside `[gps] from_s..until_s`,
+//!   NO_FIX outside (the outage), on GPS_RAW_INT and GPS2_RAW; with `[closed_loop]
+//!   gps_velocity` also the ground speed and course (+ `sigma_vel_m_s` per axis), else unknown;
+//! * ATTITUDE (and GLOBAL_POSITION_INT's heading): the truth plus the AHRS error, a first-order
+//!   Gauss-Markov process per axis (`[closed_loop] ahrs_*`; sampled at 1 Hz, interpolated);
+//!   ATTITUDE's body rates: the last simulated gyro sample plus, with
+//!   `[closed_loop] ahrs_rate_error_deg_h` > 0, another such process per axis (`ahrs_rate_*`:
+//!   ArduPilot's rates are its gyro minus EKF3's wandering bias estimate);
+//! * GLOBAL_POSITION_INT, SCALED_PRESSURE: the true position (not used by visnav's filter).
+//!
+//! Scoring (`[evaluation] from_s..until_s`, horizontal errors unless named otherwise):
+//! * `fix_err_m`: accepted vision fixes' camera position against the true camera position at the
+//!   capture time; `fix_beyond_3sigma`: accepted fixes outside their own 3-sigma horizontal
+//!   ellipse (chi-square, 2 dof, 99.73 %);
+//! * `nav_err_m`: every injected position (GPS_INPUT as the emulator received it) against the
+//!   truth at its arrival (visnav propagates GPS_INPUT to the send time);
+//! * `nav_output_err_m` / `control_err_m`: the vision and the control filters' outputs, sampled
+//!   at 10 Hz, against the truth at the output's own time;
+//! * `nav_err_over_sigma` / `control_err_over_sigma`: the same horizontal errors divided by the
+//!   filter's own horizontal 1-sigma (major semi-axis of its covariance, what GPS_INPUT's
+//!   `horiz_accuracy` reports): the integrity of the claimed accuracy. For an honest filter with
+//!   a round error ellipse the ratio is Rayleigh-distributed: median 1.18, above 3 for 1.1 % of
+//!   the time (e^{-4.5}); an elongated ellipse gives smaller ratios; `nav_sigma_h_m` /
+//!   `control_sigma_h_m`: that sigma itself (the accuracy each filter claims);
+//! * `latency_ms`: capture to fix result (autopilot clock).
+
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use mavlink::dialects::ardupilotmega::MavMessage;
+use nalgebra::Vector3;
+use serde::Serialize;
+use tracing::{info, warn};
+
+use super::Scenario;
+use super::autopilot::{AutopilotEmulator, EmulatorConfig, TruthSource, TruthState};
+use super::camera_sim::{SimCamera, SimCameraSpec, TruthFeed};
+use super::fixeval::{Stats, percentile};
+use super::imu::ImuErrors;
+use super::render::{ColourMode, Renderer, Scene};
+use super::rng::Rng;
+use super::scenario::GpsConfig;
+use visnav_core::fix::{FixPrior, FixReport};
+use visnav_core::nav::NavOutput;
+use visnav_core::vision::GrayImage;
+use visnav_daemon::app_config::Config;
+use visnav_daemon::{Daemon, DaemonSetup, FrameFixer, FramePipeline};
+use visnav_io::geo::dem::Dem;
+use visnav_io::geo::geoid::geoid_undulation_m;
+use visnav_io::geo::geotiff::load_geotiff;
+
+/// Truth sampling interval, s.
+const TRUTH_DT_S: f64 = 0.005;
+/// Extra truth beyond the scenario's end (the daemons stop a little later), s.
+const TRUTH_MARGIN_S: f64 = 30.0;
+/// Chi-square 2 dof at 99.73 % (the 3-sigma ellipse).
+const CHI2_2DOF_3SIGMA: f64 = 11.829;
+
+/// Why the closed loop could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum ClosedLoopError {
+    #[error("the scenario has no [closed_loop] section")]
+    NotClosedLoop,
+    #[error("{0}")]
+    Setup(String),
+    #[error(transparent)]
+    Daemon(#[from] visnav_daemon::DaemonError),
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+/// One truth sample.
+#[derive(Debug, Clone, Copy)]
+struct Sample {
+    lat_deg: f64,
+    lon_deg: f64,
+    h_ellip_m: f64,
+    alt_amsl_m: f64,
+    vel_ned_m_s: [f64; 3],
+    rpy_rad: [f64; 3],
+    gyro_body_rad_s: [f64; 3],
+    accel_body_m_s2: [f64; 3],
+}
+
+/// The scenario's trajectory sampled at 200 Hz (see the module doc).
+#[derive(Debug, Clone)]
+pub struct TruthTable {
+    samples: Vec<Sample>,
+}
+
+fn lerp(a: f64, b: f64, u: f64) -> f64 {
+    a + (b - a) * u
+}
+
+/// Angle in [-pi, pi).
+fn wrap_pi(a: f64) -> f64 {
+    (a + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI
+}
+
+fn lerp_angle(a: f64, b: f64, u: f64) -> f64 {
+    wrap_pi(a + wrap_pi(b - a) * u)
+}
+
+impl TruthTable {
+    /// Integrates the scenario's trajectory (its duration plus a margin).
+    pub fn from_scenario(sc: &Scenario) -> Result<Self, String> {
+        let traj = sc.trajectory();
+        let mut integ = traj.truth();
+        let n = ((sc.duration_s() + TRUTH_MARGIN_S) / TRUTH_DT_S).ceil() as usize + 1;
+        let mut samples = Vec::with_capacity(n);
+        let mut undulation = None;
+        let mut prev_rates = ([0.0; 3], [0.0; 3]);
+        for i in 0..n {
+            let st = integ.state();
+            let (lat_deg, lon_deg) = (st.lat_rad.to_degrees(), st.lon_rad.to_degrees());
+            // The geoid changes by millimetres over a scenario's area: refreshed every 10 s.
+            if i % 2000 == 0 || undulation.is_none() {
+                undulation = Some(geoid_undulation_m(lat_deg, lon_deg).map_err(|e| {
+                    format!("truth at t = {} s: geoid: {e}", i as f64 * TRUTH_DT_S)
+                })?);
+            }
+            let n_m = undulation.unwrap_or(0.0);
+            let (roll, pitch, yaw) = st.q_nb.euler_angles();
+            // Rates over the next interval (the last sample repeats the previous ones).
+            let rates = if i + 1 < n {
+                let (dth, dv) = integ.step(TRUTH_DT_S);
+                let r = ((dth / TRUTH_DT_S).into(), (dv / TRUTH_DT_S).into());
+                prev_rates = r;
+                r
+            } else {
+                prev_rates
+            };
+            let v: Vector3<f64> = st.v_ned_m_s;
+            samples.push(Sample {
+                lat_deg,
+                lon_deg,
+                h_ellip_m: st.h_m,
+                alt_amsl_m: st.h_m - n_m,
+                vel_ned_m_s: [v.x, v.y, v.z],
+                rpy_rad: [roll, pitch, yaw],
+                gyro_body_rad_s: rates.0,
+                accel_body_m_s2: rates.1,
+            });
+        }
+        if samples
+            .iter()
+            .any(|s| !(s.lat_deg.is_finite() && s.lon_deg.is_finite() && s.h_ellip_m.is_finite()))
+        {
+            return Err("the trajectory integration produced non-finite positions".into());
+        }
+        Ok(Self { samples })
+    }
+
+    fn sample_at(&self, t_s: f64) -> (Sample, Sample, f64) {
+        let x = (t_s / TRUTH_DT_S).max(0.0);
+        let last = self.samples.len().saturating_sub(1);
+        let i = (x.floor() as usize).min(last);
+        let j = (i + 1).min(last);
+        (
+            self.samples[i],
+            self.samples[j],
+            (x - i as f64).clamp(0.0, 1.0),
+        ) // ok: non-empty table
+    }
+
+    /// The true state at scenario time `t_s` (held at the ends).
+    pub fn at(&self, t_s: f64) -> TruthState {
+        let (a, b, u) = self.sample_at(t_s);
+        let l3 = |x: [f64; 3], y: [f64; 3]| {
+            [
+                lerp(x[0], y[0], u),
+                lerp(x[1], y[1], u),
+                lerp(x[2], y[2], u),
+            ]
+        };
+        TruthState {
+            lat_deg: lerp(a.lat_deg, b.lat_deg, u),
+            lon_deg: lerp(a.lon_deg, b.lon_deg, u),
+            alt_amsl_m: lerp(a.alt_amsl_m, b.alt_amsl_m, u),
+            vel_ned_m_s: l3(a.vel_ned_m_s, b.vel_ned_m_s),
+            rpy_rad: [
+                lerp_angle(a.rpy_rad[0], b.rpy_rad[0], u),
+                lerp_angle(a.rpy_rad[1], b.rpy_rad[1], u),
+                lerp_angle(a.rpy_rad[2], b.rpy_rad[2], u),
+            ],
+            gyro_body_rad_s: a.gyro_body_rad_s,
+            accel_body_m_s2: a.accel_body_m_s2,
+        }
+    }
+
+    /// Ellipsoidal height at `t_s`, m.
+    pub fn h_ellip_m(&self, t_s: f64) -> f64 {
+        let (a, b, u) = self.sample_at(t_s);
+        lerp(a.h_ellip_m, b.h_ellip_m, u)
+    }
+}
+
+struct ImuState {
+    last_t_s: Option<f64>,
+    /// The last gyro sample (rad/s), what ATTITUDE reports as the body rates.
+    last_gyro: Option<[f64; 3]>,
+    errors: ImuErrors,
+    rng: Rng,
+}
+
+/// Truth plus the scenario's sensor errors, as the emulator's `TruthSource` (module doc).
+pub struct SimSensors {
+    table: Arc<TruthTable>,
+    /// AHRS error (roll, pitch, yaw) at 1 Hz, rad.
+    ahrs_err_rad: Vec<[f64; 3]>,
+    /// Error of ATTITUDE's body rates (x, y, z) at 1 Hz, rad/s (empty: none).
+    ahrs_rate_err_rad_s: Vec<[f64; 3]>,
+    imu: Mutex<ImuState>,
+    gps: Option<GpsConfig>,
+    gps_rng: Mutex<Rng>,
+    /// Whether the GPS messages carry a (noisy) velocity (`[closed_loop] gps_velocity`).
+    gps_velocity: bool,
+}
+
+impl SimSensors {
+    pub fn new(sc: &Scenario, table: Arc<TruthTable>) -> Self {
+        let mut rng = Rng::new(sc.seed);
+        let errors = ImuErrors::for_run(sc.imu.clone(), &mut rng, false);
+        let n_s = (sc.duration_s() + TRUTH_MARGIN_S).ceil() as usize + 2;
+        let mut ahrs_err_rad = Vec::new();
+        let mut ahrs_rate_err_rad_s = Vec::new();
+        if let Some(cl) = &sc.closed_loop {
+            let s = [
+                cl.ahrs_tilt_sigma_deg.to_radians(),
+                cl.ahrs_tilt_sigma_deg.to_radians(),
+                cl.ahrs_yaw_sigma_deg.to_radians(),
+            ];
+            ahrs_err_rad =
+                gauss_markov_1hz(sc.seed.wrapping_add(0x51_7cc1), s, cl.ahrs_corr_time_s, n_s);
+            if cl.ahrs_rate_error_deg_h > 0.0 {
+                let s = (cl.ahrs_rate_error_deg_h / 3600.0).to_radians();
+                ahrs_rate_err_rad_s = gauss_markov_1hz(
+                    sc.seed.wrapping_add(0x7a7e_5eed),
+                    [s; 3],
+                    cl.ahrs_rate_corr_time_s,
+                    n_s,
+                );
+            }
+        }
+        Self {
+            table,
+            ahrs_err_rad,
+            ahrs_rate_err_rad_s,
+            imu: Mutex::new(ImuState {
+                last_t_s: None,
+                last_gyro: None,
+                errors,
+                rng,
+            }),
+            gps: sc.gps.clone(),
+            gps_rng: Mutex::new(Rng::new(sc.seed.wrapping_add(0x9e37_79b9))),
+            gps_velocity: sc.closed_loop.as_ref().is_some_and(|c| c.gps_velocity),
+        }
+    }
+
+    /// The AHRS attitude error (roll, pitch, yaw) at `t_s`, rad.
+    pub fn ahrs_error_rad(&self, t_s: f64) -> [f64; 3] {
+        at_1hz(&self.ahrs_err_rad, t_s)
+    }
+
+    /// The error of ATTITUDE's body rates (x, y, z) at `t_s`, rad/s (zero unless
+    /// `[closed_loop] ahrs_rate_error_deg_h` > 0).
+    pub fn ahrs_rate_error_rad_s(&self, t_s: f64) -> [f64; 3] {
+        at_1hz(&self.ahrs_rate_err_rad_s, t_s)
+    }
+
+    /// Whether the GPS has a fix at `t_s`.
+    pub fn gps_on(&self, t_s: f64) -> bool {
+        self.gps.as_ref().is_some_and(|g| g.available(t_s))
+    }
+}
+
+/// `n` samples at 1 Hz of a first-order Gauss-Markov process per axis (stationary: the first
+/// sample is drawn with the full sigma), seeded.
+fn gauss_markov_1hz(seed: u64, sigma: [f64; 3], corr_time_s: f64, n: usize) -> Vec<[f64; 3]> {
+    let mut rng = Rng::new(seed);
+    let a = (-1.0 / corr_time_s).exp();
+    let q = (1.0 - a * a).sqrt();
+    let mut e = [0.0; 3];
+    for k in 0..3 {
+        e[k] = sigma[k] * rng.normal();
+    }
+    let mut out = Vec::with_capacity(n);
+    for _ in 0..n {
+        out.push(e);
+        for k in 0..3 {
+            e[k] = a * e[k] + sigma[k] * q * rng.normal();
+        }
+    }
+    out
+}
+
+/// A 1 Hz series at `t_s`, interpolated linearly (held at the ends; zero when empty).
+fn at_1hz(series: &[[f64; 3]], t_s: f64) -> [f64; 3] {
+    let n = series.len();
+    if n == 0 {
+        return [0.0; 3];
+    }
+    let x = t_s.max(0.0);
+    let i = (x.floor() as usize).min(n - 1);
+    let j = (i + 1).min(n - 1);
+    let u = (x - i as f64).clamp(0.0, 1.0);
+    let (a, b) = (series[i], series[j]);
+    [
+        lerp(a[0], b[0], u),
+        lerp(a[1], b[1], u),
+        lerp(a[2], b[2], u),
+    ]
+}
+
+/// Shares one [`SimSensors`] with the emulator.
+struct SensorsHandle(Arc<SimSensors>);
+
+impl TruthSource for SensorsHandle {
+    fn state(&self, t_s: f64) -> TruthState {
+        let mut s = self.0.table.at(t_s);
+        let e = self.0.ahrs_error_rad(t_s);
+        for (a, d) in s.rpy_rad.iter_mut().zip(e) {
+            *a = wrap_pi(*a + d);
+        }
+        s
+    }
+
+    fn imu(&self, t_s: f64) -> ([f64; 3], [f64; 3]) {
+        let s = self.0.table.at(t_s);
+        let mut st = self.0.imu.lock().unwrap_or_else(|e| e.into_inner());
+        let dt_s = match st.last_t_s {
+            Some(l) if t_s > l => (t_s - l).min(1.0),
+            Some(_) => return (s.gyro_body_rad_s, s.accel_body_m_s2),
+            None => 0.01,
+        };
+        st.last_t_s = Some(t_s);
+        let ImuState { errors, rng, .. } = &mut *st;
+        let w = Vector3::from(s.gyro_body_rad_s) * dt_s;
+        let f = Vector3::from(s.accel_body_m_s2) * dt_s;
+        let (dth, dv) = errors.corrupt(rng, &w, &f, dt_s);
+        let g = dth / dt_s;
+        let a = dv / dt_s;
+        st.last_gyro = Some([g.x, g.y, g.z]);
+        ([g.x, g.y, g.z], [a.x, a.y, a.z])
+    }
+
+    fn attitude_rates(&self, t_s: f64) -> [f64; 3] {
+        let gyro = {
+            let st = self.0.imu.lock().unwrap_or_else(|e| e.into_inner());
+            st.last_gyro
+                .unwrap_or_else(|| self.0.table.at(t_s).gyro_body_rad_s)
+        };
+        let e = self.0.ahrs_rate_error_rad_s(t_s);
+        [gyro[0] + e[0], gyro[1] + e[1], gyro[2] + e[2]]
+    }
+
+    fn gps(&self, t_s: f64) -> Option<TruthState> {
+        let g = self.0.gps.as_ref()?;
+        if !self.0.gps_on(t_s) {
+            return None;
+        }
+        // The receiver's epoch: `latency_s` before the message's time stamp.
+        let mut s = self.0.table.at((t_s - g.latency_s).max(0.0));
+        let mut rng = self.0.gps_rng.lock().unwrap_or_else(|e| e.into_inner());
+        let (m_m, n_m) = radii_m(s.lat_deg);
+        s.lat_deg += (g.sigma_h_m * rng.normal() / (m_m + s.alt_amsl_m)).to_degrees();
+        s.lon_deg += (g.sigma_h_m * rng.normal()
+            / ((n_m + s.alt_amsl_m) * s.lat_deg.to_radians().cos()))
+        .to_degrees();
+        s.alt_amsl_m += g.sigma_v_m * rng.normal();
+        if self.0.gps_velocity {
+            for v in &mut s.vel_ned_m_s {
+                *v += g.sigma_vel_m_s * rng.normal();
+            }
+        }
+        Some(s)
+    }
+}
+
+/// Meridian and prime-vertical radii of curvature at `lat_deg`, m.
+fn radii_m(lat_deg: f64) -> (f64, f64) {
+    visnav_core::nav::earth::radii_m(lat_deg.to_radians())
+}
+
+/// NED difference `b - a`, m (small distances).
+fn ned_diff_m(a: (f64, f64, f64), b: (f64, f64, f64)) -> [f64; 3] {
+    let (m_m, n_m) = radii_m(a.0);
+    [
+        (b.0 - a.0).to_radians() * (m_m + a.2),
+        (b.1 - a.1).to_radians() * (n_m + a.2) * a.0.to_radians().cos(),
+        -(b.2 - a.2),
+    ]
+}
+
+/// The camera's truth: the emulator's boot clock and the truth table.
+struct EmuFeed {
+    emu: Arc<AutopilotEmulator>,
+    table: Arc<TruthTable>,
+    from_us: u64,
+    until_us: u64,
+}
+
+impl TruthFeed for EmuFeed {
+    fn latest(&self) -> Option<(u64, TruthState)> {
+        let t = self.emu.time_boot_us();
+        (t >= self.from_us && t <= self.until_us).then(|| (t, self.table.at(t as f64 * 1e-6)))
+    }
+    fn ended(&self) -> bool {
+        self.emu.time_boot_us() > self.until_us
+    }
+}
+
+/// One vision fix as the daemon's engine produced it.
+#[derive(Debug, Clone)]
+pub struct FixRecord {
+    /// Capture time (autopilot boot), µs.
+    pub t_capture_us: u64,
+    /// When the result was ready (autopilot boot), µs.
+    pub t_done_us: u64,
+    pub report: FixReport,
+}
+
+/// Wraps the daemon's fix engine and records every result with its timing.
+struct RecordingFixer {
+    inner: Arc<dyn FrameFixer>,
+    emu: Arc<AutopilotEmulator>,
+    log: Mutex<Vec<FixRecord>>,
+}
+
+impl FrameFixer for RecordingFixer {
+    fn fix(&self, image: &GrayImage, prior: &FixPrior) -> FixReport {
+        let report = self.inner.fix(image, prior);
+        let rec = FixRecord {
+            t_capture_us: prior.t_capture_us,
+            t_done_us: self.emu.time_boot_us(),
+            report: report.clone(),
+        };
+        self.log.lock().unwrap_or_else(|e| e.into_inner()).push(rec);
+        report
+    }
+}
+
+/// One 10 Hz sample of the run.
+#[derive(Debug, Clone, Serialize)]
+pub struct StepRow {
+    /// Scenario time (vision emulator's boot clock), s.
+    pub t_s: f64,
+    pub gps_on: bool,
+    pub truth_lat_deg: f64,
+    pub truth_lon_deg: f64,
+    pub truth_alt_amsl_m: f64,
+    /// Vision filter output (NaN before initialisation): position error NED, m, and its
+    /// horizontal 1-sigma (sqrt of the larger eigenvalue of the horizontal covariance), m.
+    pub vis_lat_deg: f64,
+    pub vis_lon_deg: f64,
+    pub vis_err_ned_m: [f64; 3],
+    pub vis_sigma_h_m: f64,
+    pub vis_health: String,
+    /// The control filter (no vision).
+    pub ctl_lat_deg: f64,
+    pub ctl_lon_deg: f64,
+    pub ctl_err_ned_m: [f64; 3],
+    pub ctl_sigma_h_m: f64,
+    pub ctl_health: String,
+    /// Velocity error NED of the vision and the control filters' outputs (NaN before
+    /// initialisation), m/s (not in steps.csv).
+    pub vis_vel_err_ned_m_s: [f64; 3],
+    pub ctl_vel_err_ned_m_s: [f64; 3],
+}
+
+/// An injected position as the emulator received it.
+#[derive(Debug, Clone, Serialize)]
+pub struct InjectionRow {
+    pub t_s: f64,
+    /// `gps_input`, `vision_position_estimate` or `odometry`.
+    pub kind: &'static str,
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+    pub alt_amsl_m: f64,
+    pub horiz_accuracy_m: f64,
+    pub err_ned_m: [f64; 3],
+    pub control: bool,
+}
+
+/// Scored fix.
+#[derive(Debug, Clone, Serialize)]
+pub struct FixRow {
+    pub t_capture_s: f64,
+    pub latency_ms: f64,
+    pub accepted: bool,
+    pub reason: String,
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+    pub err_ned_m: [f64; 3],
+    pub sigma_h_m: f64,
+    pub beyond_3sigma: bool,
+    pub inliers: usize,
+    pub ms: f64,
+}
+
+/// `{p50, p95}`.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Latency {
+    pub p50: f64,
+    pub p95: f64,
+}
+
+/// Max absolute error per axis (east, north, up), m.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Enu {
+    pub e: f64,
+    pub n: f64,
+    pub u: f64,
+}
+
+/// The closed-loop summary (`visnav sim --json`).
+#[derive(Debug, Clone, Serialize)]
+pub struct ClosedLoopSummary {
+    pub scenario: String,
+    pub description: String,
+    pub duration_s: f64,
+    pub evaluation_window_s: [f64; 2],
+    pub gps_outage_s: Option<[f64; 2]>,
+    pub camera: String,
+    /// Accepted fixes / fix attempts in the window.
+    pub fix_rate: f64,
+    pub frames_rendered: u64,
+    pub fix_attempts: usize,
+    pub fixes_accepted: usize,
+    pub frames_dropped: u64,
+    /// Accepted fixes the filter's innovation gate rejected.
+    pub fixes_filter_rejected: u64,
+    pub fix_err_m: Stats,
+    pub fix_beyond_3sigma: usize,
+    pub nav_err_m: Stats,
+    pub nav_vert_err_m: Stats,
+    pub nav_output_err_m: Stats,
+    pub control_err_m: Stats,
+    pub control_injected_err_m: Stats,
+    /// Horizontal error over the filter's horizontal sigma (module doc), vision and control.
+    pub nav_err_over_sigma: Stats,
+    pub control_err_over_sigma: Stats,
+    /// The filters' horizontal 1-sigma (major semi-axis), m.
+    pub nav_sigma_h_m: Stats,
+    pub control_sigma_h_m: Stats,
+    /// Horizontal velocity error of the vision and the control filters' outputs (10 Hz samples),
+    /// m/s: a filter whose velocity collapses while the vehicle flies on (issue 18) shows here.
+    pub nav_vel_err_m_s: Stats,
+    pub control_vel_err_m_s: Stats,
+    pub max_err_m: MaxErr,
+    pub latency_ms: Latency,
+    /// Position messages of the scored kind received in the window.
+    pub injections: usize,
+    /// The message `nav_err_m` scores (the first of `[output] modes`).
+    pub injected_message: String,
+    /// Every injected position message kind: (count, horizontal error stats) in the window.
+    pub nav_err_by_message: std::collections::BTreeMap<String, (usize, Stats)>,
+    pub control_injections: usize,
+    pub rejections: Vec<(String, usize)>,
+    pub vision_final_health: String,
+    pub control_final_health: String,
+    pub report_dir: Option<String>,
+}
+
+/// Max per-axis errors of the filter outputs in the window, vision and control side by side.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct MaxErr {
+    pub vision: Enu,
+    pub control: Enu,
+}
+
+/// Everything a run produced.
+#[derive(Debug, Clone)]
+pub struct ClosedLoopRun {
+    pub summary: ClosedLoopSummary,
+    pub steps: Vec<StepRow>,
+    pub fixes: Vec<FixRow>,
+    pub injections: Vec<InjectionRow>,
+    /// CRS of the camera-year orthophoto (the plots' map frame).
+    pub crs: visnav_io::geo::Crs,
+    /// The camera-year orthophoto as an RGB image (at most ~1600 px wide) and its extent
+    /// `[min_x, min_y, max_x, max_y]` in `crs`, the track plot's background.
+    pub background: Option<(image::RgbImage, [f64; 4])>,
+    /// GPS outage start, s (for the plots).
+    pub gps_until_s: Option<f64>,
+}
+
+/// An RGB picture of a raster (bands 1-3, or the first band as grey), decimated to at most
+/// `max_px` on its longer side, and its extent.
+fn background_of(
+    raster: &visnav_io::geo::raster::Raster,
+    max_px: usize,
+) -> Option<(image::RgbImage, [f64; 4])> {
+    let (w, h) = (raster.width(), raster.height());
+    if w == 0 || h == 0 {
+        return None;
+    }
+    let step = w.max(h).div_ceil(max_px).max(1);
+    let (ow, oh) = (w.div_ceil(step), h.div_ceil(step));
+    let bands = raster.bands();
+    // 16-bit and float rasters are stretched by their 98th percentile of band 1.
+    let mut vals: Vec<f64> = (0..oh)
+        .flat_map(|r| (0..ow).map(move |c| (c, r)))
+        .filter_map(|(c, r)| raster.value(c * step, r * step, 0))
+        .collect();
+    let scale = match raster.data() {
+        visnav_io::geo::raster::RasterData::U8(_) => 1.0,
+        _ => {
+            let p98 = percentile(&std::mem::take(&mut vals), 0.98);
+            if p98.is_finite() && p98 > 0.0 {
+                255.0 / p98
+            } else {
+                1.0
+            }
+        }
+    };
+    let mut img = image::RgbImage::new(ow as u32, oh as u32);
+    for r in 0..oh {
+        for c in 0..ow {
+            let get = |b: usize| {
+                raster
+                    .value(c * step, r * step, b.min(bands - 1))
+                    .map_or(0u8, |v| (v * scale).clamp(0.0, 255.0) as u8)
+            };
+            let px = if bands >= 3 {
+                [get(0), get(1), get(2)]
+            } else {
+                [get(0); 3]
+            };
+            img.put_pixel(c as u32, r as u32, image::Rgb(px));
+        }
+    }
+    let b = raster.bounds();
+    Some((img, [b.min_x_m, b.min_y_m, b.max_x_m, b.max_y_m]))
+}
+
+fn free_udp_port() -> Result<u16, ClosedLoopError> {
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .and_then(|s| s.local_addr())
+        .map(|a| a.port())
+        .map_err(|e| ClosedLoopError::Setup(format!("no free loopback UDP port: {e}")))
+}
+
+fn same_file(a: &Path, b: &Path) -> bool {
+    match (a.canonicalize(), b.canonicalize()) {
+        (Ok(x), Ok(y)) => x == y,
+        _ => a == b,
+    }
+}
+
+fn sigma_h_m(cov: &[[f64; 3]; 3]) -> f64 {
+    let (a, b, c) = (cov[0][0], cov[1][1], cov[0][1]);
+    let tr = 0.5 * (a + b);
+    let det = (0.25 * (a - b) * (a - b) + c * c).sqrt();
+    (tr + det).max(0.0).sqrt()
+}
+
+/// A filter output's velocity against the truth at the output's time, NED, m/s.
+fn output_vel_error(out: &NavOutput, table: &TruthTable) -> [f64; 3] {
+    let v = table.at(out.t_us as f64 * 1e-6).vel_ned_m_s;
+    [
+        out.v_ned_m_s[0] - v[0],
+        out.v_ned_m_s[1] - v[1],
+        out.v_ned_m_s[2] - v[2],
+    ]
+}
+
+/// The vision + control daemons' output sampled against the truth.
+fn output_error(out: &NavOutput, table: &TruthTable) -> [f64; 3] {
+    let t = out.t_us as f64 * 1e-6;
+    let s = table.at(t);
+    ned_diff_m(
+        (s.lat_deg, s.lon_deg, table.h_ellip_m(t)),
+        (out.lat_deg, out.lon_deg, out.h_m),
+    )
+}
+
+/// A filter output as a step row's columns: lat, lon, NED error, horizontal sigma, health (NaN
+/// and "uninitialised" before the first output).
+fn sample_output(o: Option<&NavOutput>, table: &TruthTable) -> (f64, f64, [f64; 3], f64, String) {
+    match o {
+        Some(o) => (
+            o.lat_deg,
+            o.lon_deg,
+            output_error(o, table),
+            sigma_h_m(&o.cov_pos_ned_m2),
+            format!("{:?}", o.health).to_lowercase(),
+        ),
+        None => (
+            f64::NAN,
+            f64::NAN,
+            [f64::NAN; 3],
+            f64::NAN,
+            "uninitialised".into(),
+        ),
+    }
+}
+
+fn hnorm(e: &[f64; 3]) -> f64 {
+    e[0].hypot(e[1])
+}
+
+/// Runs the scenario's closed loop. `base` is the scenario file's folder (for its paths).
+pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoopError> {
+    let cl = sc
+        .closed_loop
+        .as_ref()
+        .ok_or(ClosedLoopError::NotClosedLoop)?;
+    let setup_err = ClosedLoopError::Setup;
+    let cfg_path = visnav_core::validate::resolve(base, &cl.config);
+    let mut cfg =
+        Config::load(&cfg_path).map_err(|e| setup_err(format!("[closed_loop] config: {e}")))?;
+    if !cl.map_ortho.is_empty() {
+        if let Some(f) = &cfg.map.file {
+            return Err(setup_err(format!(
+                "[closed_loop] map_ortho replaces [map] ortho, but {} uses the map file {}: remove one",
+                cfg_path.display(),
+                f.display()
+            )));
+        }
+        for p in &cl.map_ortho {
+            let p = visnav_core::validate::resolve(base, p);
+            if !p.is_file() {
+                return Err(setup_err(format!(
+                    "[closed_loop] map_ortho {}: no such file",
+                    p.display()
+                )));
+            }
+        }
+        cfg.map.ortho = cl
+            .map_ortho
+            .iter()
+            .map(|p| visnav_core::validate::resolve(base, p))
+            .collect();
+    }
+    if let Some(n) = cl.map_upsample {
+        if let Some(f) = &cfg.map.file {
+            return Err(setup_err(format!(
+                "[closed_loop] map_upsample applies to a map built from ortho, but {} uses the map file {}: remove one",
+                cfg_path.display(),
+                f.display()
+            )));
+        }
+        // The value (1, 2 or 4) is checked by `Scenario::parse`.
+        cfg.map.upsample = Some(n);
+    }
+    let cam_ortho = visnav_core::validate::resolve(base, &cl.camera_ortho);
+    if cfg.map.ortho.iter().any(|m| same_file(m, &cam_ortho)) {
+        return Err(setup_err(format!(
+            "[closed_loop] camera_ortho {} is also a map orthophoto of {}: render the camera from another year",
+            cam_ortho.display(),
+            cfg_path.display()
+        )));
+    }
+    // Scene of the camera year.
+    let raster = load_geotiff(&cam_ortho, cfg.map.crs_override).map_err(|e| {
+        setup_err(format!(
+            "[closed_loop] camera_ortho {}: {e}",
+            cam_ortho.display()
+        ))
+    })?;
+    let dem = match (&cl.camera_dem, cl.camera_ground_height_amsl_m) {
+        (Some(p), _) => {
+            let p = visnav_core::validate::resolve(base, p);
+            visnav_io::geo::dem::load_dem(&p, cfg.map.crs_override)
+                .map_err(|e| setup_err(format!("[closed_loop] camera_dem {}: {e}", p.display())))?
+        }
+        (None, Some(h)) => Dem::flat(h)
+            .map_err(|e| setup_err(format!("[closed_loop] camera_ground_height_amsl_m: {e}")))?,
+        (None, None) => {
+            return Err(setup_err(
+                "[closed_loop]: give camera_dem or camera_ground_height_amsl_m".into(),
+            ));
+        }
+    };
+    let crs = raster.crs();
+    let background = background_of(&raster, 1600);
+    let scene = Arc::new(
+        Scene::new(&raster, dem, ColourMode::Grey)
+            .map_err(|e| setup_err(format!("camera scene: {e}")))?,
+    );
+    let camera = cfg
+        .camera
+        .build()
+        .map_err(|e| setup_err(format!("{} [camera]: {e}", cfg_path.display())))?;
+    let mount = camera.mount;
+    let renderer = Arc::new(
+        Renderer::new(camera, cl.render)
+            .map_err(|e| setup_err(format!("[closed_loop.render]: {e}")))?,
+    );
+    info!(
+        "building the vision fix engine (map) from {}",
+        cfg_path.display()
+    );
+    let engine = visnav_daemon::engine_from_config(&cfg)
+        .map_err(|e| setup_err(format!("{}: vision fix engine: {e}", cfg_path.display())))?;
+    let engine: Arc<dyn FrameFixer> = Arc::new(engine);
+    let table =
+        Arc::new(TruthTable::from_scenario(sc).map_err(|e| setup_err(format!("truth: {e}")))?);
+    let duration_s = sc.duration_s();
+    let unix_now_us = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_micros() as u64)
+        .ok();
+
+    // Emulators and daemons: vision, then the control.
+    let mk_setup = |port: u16| {
+        let mut s = DaemonSetup::from_config(&cfg);
+        s.link.connection = format!("udpin:127.0.0.1:{port}");
+        s.nav = sc
+            .nav
+            .clone()
+            .with_camera_lever_arm(mount.lever_arm_body_frd_m.into());
+        s.frames = None;
+        s
+    };
+    let start_emu = |port: u16| {
+        let sensors = Arc::new(SimSensors::new(sc, table.clone()));
+        let mut ecfg = EmulatorConfig::new(&format!("udpout:127.0.0.1:{port}"));
+        ecfg.gps_fix = true;
+        ecfg.gps_velocity = cl.gps_velocity;
+        ecfg.unix_at_boot_us = unix_now_us;
+        (ecfg, sensors)
+    };
+    let port_v = free_udp_port()?;
+    let (ecfg_v, sens_v) = start_emu(port_v);
+    let port_c = free_udp_port()?;
+    let (ecfg_c, sens_c) = start_emu(port_c);
+    let emu_v = Arc::new(
+        AutopilotEmulator::start(ecfg_v, SensorsHandle(sens_v.clone()))
+            .await
+            .map_err(|e| setup_err(format!("emulator: {e}")))?,
+    );
+    let emu_c = if cl.control {
+        Some(Arc::new(
+            AutopilotEmulator::start(ecfg_c, SensorsHandle(sens_c.clone()))
+                .await
+                .map_err(|e| setup_err(format!("control emulator: {e}")))?,
+        ))
+    } else {
+        None
+    };
+    let fixer = Arc::new(RecordingFixer {
+        inner: engine,
+        emu: emu_v.clone(),
+        log: Mutex::new(Vec::new()),
+    });
+    let end_us = (duration_s * 1e6) as u64;
+    let cam = SimCamera::new(
+        SimCameraSpec {
+            scene: scene.clone(),
+            renderer: renderer.clone(),
+            crs,
+            mount,
+            rate_hz: cl.camera_rate_hz,
+            max_frames: None,
+        },
+        Arc::new(EmuFeed {
+            emu: emu_v.clone(),
+            table: table.clone(),
+            from_us: (cl.camera_from_s * 1e6) as u64,
+            until_us: end_us,
+        }),
+    );
+    let camera_desc = {
+        use visnav_io::frames::FrameSource;
+        cam.describe()
+    };
+    let pipeline = FramePipeline {
+        source: Box::new(cam),
+        lossless: false,
+        max_age_s: cl.frame_max_age_s,
+        workers: cl.workers,
+    };
+    let d_v = Daemon::start_with(mk_setup(port_v), Some(fixer.clone()), Some(pipeline)).await?;
+    let d_c = match &emu_c {
+        Some(_) => Some(Daemon::start_with(mk_setup(port_c), None, None).await?),
+        None => None,
+    };
+    info!(
+        "closed loop running: {duration_s:.0} s of scenario time (real time), vision on udp {port_v}, control on udp {port_c}"
+    );
+
+    // Sample at 10 Hz until the scenario's end.
+    let mut steps = Vec::new();
+    let out_v = d_v.nav_outputs();
+    let out_c = d_c.as_ref().map(|d| d.nav_outputs());
+    let mut tick = tokio::time::interval(Duration::from_millis(100));
+    let mut last_log_s = 0.0;
+    loop {
+        tick.tick().await;
+        let t_s = emu_v.time_boot_us() as f64 * 1e-6;
+        if t_s > duration_s {
+            break;
+        }
+        let s = table.at(t_s);
+        let ov = out_v.borrow().clone();
+        let oc = out_c.as_ref().and_then(|o| o.borrow().clone());
+        let (vlat, vlon, verr, vsig, vh) = sample_output(ov.as_ref(), &table);
+        let (clat, clon, cerr, csig, ch) = sample_output(oc.as_ref(), &table);
+        let vel_err =
+            |o: Option<&NavOutput>| o.map_or([f64::NAN; 3], |o| output_vel_error(o, &table));
+        if t_s - last_log_s >= 10.0 {
+            last_log_s = t_s;
+            info!(
+                "t = {t_s:5.1} s  gps {}  vision: err {:.1} m ({vh})  control: err {:.1} m ({ch})  fixes {}",
+                if sens_v.gps_on(t_s) { "on " } else { "off" },
+                hnorm(&verr),
+                hnorm(&cerr),
+                fixer.log.lock().map(|l| l.len()).unwrap_or(0)
+            );
+        }
+        steps.push(StepRow {
+            t_s,
+            gps_on: sens_v.gps_on(t_s),
+            truth_lat_deg: s.lat_deg,
+            truth_lon_deg: s.lon_deg,
+            truth_alt_amsl_m: s.alt_amsl_m,
+            vis_lat_deg: vlat,
+            vis_lon_deg: vlon,
+            vis_err_ned_m: verr,
+            vis_sigma_h_m: vsig,
+            vis_health: vh,
+            ctl_lat_deg: clat,
+            ctl_lon_deg: clon,
+            ctl_err_ned_m: cerr,
+            ctl_sigma_h_m: csig,
+            ctl_health: ch,
+            vis_vel_err_ned_m_s: vel_err(ov.as_ref()),
+            ctl_vel_err_ned_m_s: vel_err(oc.as_ref()),
+        });
+    }
+    let metrics_v = d_v.shutdown().await;
+    if let Some(d) = d_c {
+        d.shutdown().await;
+    }
+
+    // Score.
+    let (w0, w1) = (sc.evaluation.from_s, sc.evaluation.until_s);
+    let in_window = |t: f64| t >= w0 && t <= w1;
+    let injections = collect_injections(&emu_v, &table, false)
+        .into_iter()
+        .chain(
+            emu_c
+                .iter()
+                .flat_map(|e| collect_injections(e, &table, true)),
+        )
+        .collect::<Vec<_>>();
+    let log = fixer.log.lock().map(|l| l.clone()).unwrap_or_default();
+    let fixes: Vec<FixRow> = log.iter().map(|r| score_fix(r, &table, &mount)).collect();
+    let wf: Vec<&FixRow> = fixes.iter().filter(|f| in_window(f.t_capture_s)).collect();
+    let accepted: Vec<&&FixRow> = wf.iter().filter(|f| f.accepted).collect();
+    let fix_errs: Vec<f64> = accepted.iter().map(|f| hnorm(&f.err_ned_m)).collect();
+    let lat: Vec<f64> = wf.iter().map(|f| f.latency_ms).collect();
+    let mut rejections: Vec<(String, usize)> = Vec::new();
+    for f in wf.iter().filter(|f| !f.accepted) {
+        let key: String = f.reason.split(':').next().unwrap_or("").trim().to_string();
+        match rejections.iter_mut().find(|(k, _)| *k == key) {
+            Some((_, n)) => *n += 1,
+            None => rejections.push((key, 1)),
+        }
+    }
+    rejections.sort_by_key(|r| std::cmp::Reverse(r.1));
+    // nav_err_m scores the first configured output message; every kind is in nav_err_by_message.
+    let scored_kind = match cfg.output.modes.first() {
+        Some(visnav_link::config::OutputMode::VisionPositionEstimate) => "vision_position_estimate",
+        Some(visnav_link::config::OutputMode::Odometry) => "odometry",
+        _ => "gps_input",
+    };
+    let mut nav_err_by_message = std::collections::BTreeMap::new();
+    for kind in ["gps_input", "vision_position_estimate", "odometry"] {
+        let e: Vec<f64> = injections
+            .iter()
+            .filter(|i| !i.control && i.kind == kind && in_window(i.t_s))
+            .map(|i| hnorm(&i.err_ned_m))
+            .collect();
+        if !e.is_empty() {
+            nav_err_by_message.insert(kind.to_string(), (e.len(), Stats::of(&e)));
+        }
+    }
+    let inj_v: Vec<&InjectionRow> = injections
+        .iter()
+        .filter(|i| !i.control && i.kind == scored_kind && in_window(i.t_s))
+        .collect();
+    let inj_c: Vec<&InjectionRow> = injections
+        .iter()
+        .filter(|i| i.control && i.kind == scored_kind && in_window(i.t_s))
+        .collect();
+    let ws: Vec<&StepRow> = steps.iter().filter(|s| in_window(s.t_s)).collect();
+    let max_enu = |f: &dyn Fn(&StepRow) -> [f64; 3]| {
+        let m = |k: usize| {
+            ws.iter()
+                .map(|s| f(s)[k].abs())
+                .filter(|v| v.is_finite())
+                .fold(f64::NAN, f64::max)
+        };
+        Enu {
+            e: m(1),
+            n: m(0),
+            u: m(2),
+        }
+    };
+    // Horizontal error over the claimed sigma; NaN (no output yet) is left out, an error over a
+    // zero sigma stays (infinite).
+    let over_sigma = |f: &dyn Fn(&StepRow) -> ([f64; 3], f64)| {
+        Stats::of(
+            &ws.iter()
+                .map(|s| {
+                    let (e, sigma) = f(s);
+                    hnorm(&e) / sigma
+                })
+                .filter(|r| !r.is_nan())
+                .collect::<Vec<_>>(),
+        )
+    };
+    let gps_outage_s = sc.gps.as_ref().map(|g| [g.until_s, duration_s]);
+    let summary = ClosedLoopSummary {
+        scenario: sc.name.clone(),
+        description: sc.description.clone(),
+        duration_s,
+        evaluation_window_s: [w0, w1],
+        gps_outage_s,
+        camera: camera_desc,
+        fix_rate: if wf.is_empty() {
+            0.0
+        } else {
+            accepted.len() as f64 / wf.len() as f64
+        },
+        frames_rendered: metrics_v.frames_in,
+        fix_attempts: wf.len(),
+        fixes_accepted: accepted.len(),
+        frames_dropped: metrics_v.frames_superseded + metrics_v.frames_stale,
+        fixes_filter_rejected: metrics_v.fixes_filter_rejected,
+        fix_err_m: Stats::of(&fix_errs),
+        fix_beyond_3sigma: accepted.iter().filter(|f| f.beyond_3sigma).count(),
+        nav_err_m: Stats::of(
+            &inj_v
+                .iter()
+                .map(|i| hnorm(&i.err_ned_m))
+                .collect::<Vec<_>>(),
+        ),
+        nav_vert_err_m: Stats::of(
+            &inj_v
+                .iter()
+                .map(|i| i.err_ned_m[2].abs())
+                .collect::<Vec<_>>(),
+        ),
+        nav_output_err_m: Stats::of(
+            &ws.iter()
+                .map(|s| hnorm(&s.vis_err_ned_m))
+                .collect::<Vec<_>>(),
+        ),
+        control_err_m: Stats::of(
+            &ws.iter()
+                .map(|s| hnorm(&s.ctl_err_ned_m))
+                .collect::<Vec<_>>(),
+        ),
+        control_injected_err_m: Stats::of(
+            &inj_c
+                .iter()
+                .map(|i| hnorm(&i.err_ned_m))
+                .collect::<Vec<_>>(),
+        ),
+        nav_err_over_sigma: over_sigma(&|s| (s.vis_err_ned_m, s.vis_sigma_h_m)),
+        control_err_over_sigma: over_sigma(&|s| (s.ctl_err_ned_m, s.ctl_sigma_h_m)),
+        nav_sigma_h_m: Stats::of(&ws.iter().map(|s| s.vis_sigma_h_m).collect::<Vec<_>>()),
+        control_sigma_h_m: Stats::of(&ws.iter().map(|s| s.ctl_sigma_h_m).collect::<Vec<_>>()),
+        nav_vel_err_m_s: Stats::of(
+            &ws.iter()
+                .map(|s| hnorm(&s.vis_vel_err_ned_m_s))
+                .collect::<Vec<_>>(),
+        ),
+        control_vel_err_m_s: Stats::of(
+            &ws.iter()
+                .map(|s| hnorm(&s.ctl_vel_err_ned_m_s))
+                .collect::<Vec<_>>(),
+        ),
+        max_err_m: MaxErr {
+            vision: max_enu(&|s| s.vis_err_ned_m),
+            control: max_enu(&|s| s.ctl_err_ned_m),
+        },
+        latency_ms: Latency {
+            p50: percentile(&lat, 0.5),
+            p95: percentile(&lat, 0.95),
+        },
+        injections: inj_v.len(),
+        injected_message: scored_kind.to_string(),
+        nav_err_by_message,
+        control_injections: inj_c.len(),
+        rejections,
+        vision_final_health: steps
+            .last()
+            .map(|s| s.vis_health.clone())
+            .unwrap_or_default(),
+        control_final_health: steps
+            .last()
+            .map(|s| s.ctl_health.clone())
+            .unwrap_or_default(),
+        report_dir: None,
+    };
+    if summary.injections == 0 {
+        warn!("the vision daemon injected nothing in the evaluation window");
+    }
+    Ok(ClosedLoopRun {
+        summary,
+        steps,
+        fixes,
+        injections,
+        crs,
+        background,
+        gps_until_s: sc.gps.as_ref().map(|g| g.until_s),
+    })
+}
+
+/// Every position injection the emulator received (GPS_INPUT with a 3D fix,
+/// VISION_POSITION_ESTIMATE, ODOMETRY), scored against the truth at its arrival. Local positions
+/// (VISION_POSITION_ESTIMATE, ODOMETRY: NED about the EKF origin) are compared in that frame with
+/// the origin in force when they arrived (SET_GPS_GLOBAL_ORIGIN as received).
+fn collect_injections(
+    emu: &AutopilotEmulator,
+    table: &TruthTable,
+    control: bool,
+) -> Vec<InjectionRow> {
+    use visnav_link::GeoOrigin;
+    use visnav_link::inject::{local_ned_m, offset_geodetic};
+    let mut origin: Option<GeoOrigin> = None;
+    let mut rows = Vec::new();
+    for r in emu.received() {
+        let t = r.t_boot_us as f64 * 1e-6;
+        let s = table.at(t);
+        #[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: what ArduPilot acts on
+        let local = match &r.msg {
+            MavMessage::SET_GPS_GLOBAL_ORIGIN(o) => {
+                origin = Some(GeoOrigin {
+                    lat_deg: f64::from(o.latitude) * 1e-7,
+                    lon_deg: f64::from(o.longitude) * 1e-7,
+                    alt_amsl_m: f64::from(o.altitude) * 1e-3,
+                });
+                None
+            }
+            MavMessage::GPS_INPUT(g) if g.fix_type as u8 >= 3 => {
+                let (lat, lon) = (f64::from(g.lat) * 1e-7, f64::from(g.lon) * 1e-7);
+                let alt = f64::from(g.alt);
+                rows.push(InjectionRow {
+                    t_s: t,
+                    kind: "gps_input",
+                    lat_deg: lat,
+                    lon_deg: lon,
+                    alt_amsl_m: alt,
+                    horiz_accuracy_m: f64::from(g.horiz_accuracy),
+                    err_ned_m: ned_diff_m((s.lat_deg, s.lon_deg, s.alt_amsl_m), (lat, lon, alt)),
+                    control,
+                });
+                None
+            }
+            MavMessage::VISION_POSITION_ESTIMATE(v) => Some((
+                "vision_position_estimate",
+                [v.x, v.y, v.z],
+                f64::from(v.covariance[0].max(v.covariance[6])),
+            )),
+            MavMessage::ODOMETRY(o) => Some((
+                "odometry",
+                [o.x, o.y, o.z],
+                f64::from(o.pose_covariance[0].max(o.pose_covariance[6])),
+            )),
+            _ => None,
+        };
+        if let (Some((kind, xyz, var_h)), Some(o)) = (local, origin.as_ref()) {
+            let p = Vector3::new(f64::from(xyz[0]), f64::from(xyz[1]), f64::from(xyz[2]));
+            let truth = local_ned_m(o, s.lat_deg, s.lon_deg, s.alt_amsl_m);
+            let (lat, lon, alt) = offset_geodetic(o.lat_deg, o.lon_deg, o.alt_amsl_m, &p);
+            let e = p - truth;
+            rows.push(InjectionRow {
+                t_s: t,
+                kind,
+                lat_deg: lat,
+                lon_deg: lon,
+                alt_amsl_m: alt,
+                horiz_accuracy_m: if var_h.is_finite() && var_h >= 0.0 {
+                    var_h.sqrt()
+                } else {
+                    f64::NAN
+                },
+                err_ned_m: [e.x, e.y, e.z],
+                control,
+            });
+        }
+    }
+    rows
+}
+
+fn score_fix(r: &FixRecord, table: &TruthTable, mount: &visnav_core::camera::Mount) -> FixRow {
+    let t = r.t_capture_us as f64 * 1e-6;
+    let s = table.at(t);
+    let rep = &r.report;
+    // True camera centre: body + R_ned_body lever arm.
+    let att = visnav_core::camera::Attitude::new(s.rpy_rad[0], s.rpy_rad[1], s.rpy_rad[2]);
+    let lever_ned = att.r_ned_body() * mount.lever_arm_body_frd_m;
+    let (m_m, n_m) = radii_m(s.lat_deg);
+    let cam = (
+        s.lat_deg + (lever_ned.x / (m_m + s.alt_amsl_m)).to_degrees(),
+        s.lon_deg
+            + (lever_ned.y / ((n_m + s.alt_amsl_m) * s.lat_deg.to_radians().cos())).to_degrees(),
+        s.alt_amsl_m - lever_ned.z,
+    );
+    let (err, sig, beyond) = if rep.accepted {
+        let e = ned_diff_m(cam, (rep.lat_deg, rep.lon_deg, rep.alt_amsl_m));
+        let c = &rep.cov_ned_m2;
+        let (a, b, cc) = (c[0][0], c[1][1], c[0][1]);
+        let det = a * b - cc * cc;
+        let d2 = if det > 0.0 {
+            (b * e[0] * e[0] - 2.0 * cc * e[0] * e[1] + a * e[1] * e[1]) / det
+        } else {
+            f64::INFINITY
+        };
+        (e, sigma_h_m(c), d2 > CHI2_2DOF_3SIGMA)
+    } else {
+        ([f64::NAN; 3], f64::NAN, false)
+    };
+    FixRow {
+        t_capture_s: t,
+        latency_ms: (r.t_done_us as f64 - r.t_capture_us as f64) * 1e-3,
+        accepted: rep.accepted,
+        reason: rep.reason.clone(),
+        lat_deg: rep.lat_deg,
+        lon_deg: rep.lon_deg,
+        err_ned_m: err,
+        sigma_h_m: sig,
+        beyond_3sigma: beyond,
+        inliers: rep.inliers,
+        ms: rep.ms,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scenario::Scenario;
+
+    #[test]
+    fn angle_interpolation_takes_the_short_arc() {
+        let a = 179f64.to_radians();
+        let b = -179f64.to_radians();
+        let m = lerp_angle(a, b, 0.5).to_degrees();
+        assert!((m.abs() - 180.0).abs() < 1e-9, "{m}");
+        assert!((lerp_angle(0.1, 0.3, 0.5) - 0.2).abs() < 1e-12);
+    }
+
+    #[test]
+    fn ned_difference_of_a_known_offset() {
+        let (m_m, n_m) = radii_m(47.0);
+        let a = (47.0, -97.0, 500.0);
+        let b = (
+            47.0 + (100.0 / (m_m + 500.0)).to_degrees(),
+            -97.0 + (50.0 / ((n_m + 500.0) * 47f64.to_radians().cos())).to_degrees(),
+            490.0,
+        );
+        let d = ned_diff_m(a, b);
+        assert!(
+            (d[0] - 100.0).abs() < 1e-6 && (d[1] - 50.0).abs() < 1e-6 && (d[2] - 10.0).abs() < 1e-9
+        );
+    }
+
+    #[test]
+    fn horizontal_sigma_is_the_major_semi_axis() {
+        let c = [[9.0, 0.0, 0.0], [0.0, 4.0, 0.0], [0.0, 0.0, 1.0]];
+        assert!((sigma_h_m(&c) - 3.0).abs() < 1e-12);
+        let c = [[5.0, 4.0, 0.0], [4.0, 5.0, 0.0], [0.0, 0.0, 1.0]];
+        assert!((sigma_h_m(&c) - 3.0).abs() < 1e-12);
+    }
+
+    const SCENARIO: &str = r#"
+name = "gps_latency"
+seed = 3
+[start]
+lat_deg = 47.0
+lon_deg = -99.3
+height_m = 2000.0
+speed_m_s = 50.0
+heading_deg = 90.0
+[[segments]]
+kind = "straight"
+duration_s = 20.0
+[imu]
+rate_hz = 100.0
+[attitude]
+rate_hz = 10.0
+sigma_tilt_deg = 0.5
+sigma_yaw_deg = 2.0
+[evaluation]
+from_s = 0.0
+until_s = 20.0
+[gps]
+rate_hz = 5.0
+until_s = 20.0
+sigma_h_m = 0.001
+sigma_v_m = 0.001
+sigma_vel_m_s = 0.001
+"#;
+
+    /// Along-track distance (east) of the reported fix from the truth at its time stamp, m.
+    fn lag_m(latency: Option<f64>) -> f64 {
+        let mut text = SCENARIO.to_string();
+        if let Some(l) = latency {
+            text.push_str(&format!("latency_s = {l}\n"));
+        }
+        let sc = Scenario::parse(&text, "gps_latency.toml").unwrap();
+        let table = Arc::new(TruthTable::from_scenario(&sc).unwrap());
+        let h = SensorsHandle(Arc::new(SimSensors::new(&sc, table.clone())));
+        let fix = h.gps(10.0).unwrap();
+        let truth = table.at(10.0);
+        let d = ned_diff_m(
+            (fix.lat_deg, fix.lon_deg, fix.alt_amsl_m),
+            (truth.lat_deg, truth.lon_deg, truth.alt_amsl_m),
+        );
+        assert!(d[0].abs() < 0.05, "{d:?}");
+        d[1]
+    }
+
+    /// The test scenario with a `[closed_loop]` section carrying `extra` lines.
+    fn closed_loop_scenario(extra: &str) -> Scenario {
+        let text = format!(
+            "{SCENARIO}[closed_loop]\nconfig = \"c.toml\"\ncamera_ortho = \"o.tif\"\ncamera_ground_height_amsl_m = 580.0\n{extra}"
+        );
+        Scenario::parse(&text, "rates.toml").unwrap()
+    }
+
+    #[test]
+    fn attitude_rates_carry_the_ahrs_rate_error_only_when_asked() {
+        let run = |extra: &str| {
+            let sc = closed_loop_scenario(extra);
+            let table = Arc::new(TruthTable::from_scenario(&sc).unwrap());
+            let sens = Arc::new(SimSensors::new(&sc, table));
+            let h = SensorsHandle(sens.clone());
+            let mut out = Vec::new();
+            for i in 0..1500 {
+                let t = 0.01 * f64::from(i);
+                let (gyro, _) = h.imu(t);
+                let rates = h.attitude_rates(t);
+                out.push((t, gyro, rates, sens.ahrs_rate_error_rad_s(t)));
+            }
+            out
+        };
+        // Default: ATTITUDE's rates are the simulated gyro itself.
+        for (_, gyro, rates, e) in run("") {
+            assert_eq!(gyro, rates);
+            assert_eq!(e, [0.0; 3]);
+        }
+        // With the error: gyro + the Gauss-Markov error, the same for the same seed.
+        let a = run("ahrs_rate_error_deg_h = 60.0\nahrs_rate_corr_time_s = 60.0\n");
+        let b = run("ahrs_rate_error_deg_h = 60.0\nahrs_rate_corr_time_s = 60.0\n");
+        let mut largest = 0.0f64;
+        for ((t, gyro, rates, e), (_, gyro_b, rates_b, _)) in a.iter().zip(&b) {
+            for k in 0..3 {
+                assert!((rates[k] - gyro[k] - e[k]).abs() < 1e-15, "t {t}");
+                largest = largest.max(e[k].abs());
+            }
+            assert_eq!((gyro, rates), (gyro_b, rates_b), "t {t}: not reproducible");
+        }
+        let deg_h = largest.to_degrees() * 3600.0;
+        assert!(deg_h > 5.0 && deg_h < 300.0, "{deg_h} deg/h");
+    }
+
+    #[test]
+    fn the_gauss_markov_series_has_its_sigma_and_correlation_time() {
+        let s = 1e-4;
+        let x = gauss_markov_1hz(7, [s; 3], 60.0, 400_000);
+        for k in 0..3 {
+            let rms = (x.iter().map(|v| v[k] * v[k]).sum::<f64>() / x.len() as f64).sqrt();
+            assert!((rms / s - 1.0).abs() < 0.05, "axis {k}: rms {rms}");
+            let lag = 60;
+            let c = x.windows(lag + 1).map(|w| w[0][k] * w[lag][k]).sum::<f64>()
+                / (x.len() - lag) as f64
+                / (rms * rms);
+            assert!(
+                (c - (-1.0f64).exp()).abs() < 0.05,
+                "axis {k}: correlation {c}"
+            );
+        }
+        assert_eq!(at_1hz(&x, 2.5)[0], 0.5 * (x[2][0] + x[3][0]));
+        assert_eq!(at_1hz(&[], 2.5), [0.0; 3]);
+    }
+
+    #[test]
+    fn the_receiver_reports_a_noisy_velocity_only_when_asked() {
+        let fix = |extra: &str| {
+            let sc = closed_loop_scenario(extra);
+            let table = Arc::new(TruthTable::from_scenario(&sc).unwrap());
+            let h = SensorsHandle(Arc::new(SimSensors::new(&sc, table.clone())));
+            let g = h.gps(10.0).unwrap();
+            (g, table.at(10.0 - 0.1).vel_ned_m_s)
+        };
+        let (off, truth) = fix("");
+        assert_eq!(off.vel_ned_m_s, truth);
+        let (on, truth_on) = fix("gps_velocity = true\n");
+        assert_eq!(truth, truth_on);
+        // The position draws come first and are the same; then sigma_vel_m_s (0.001) per axis.
+        assert_eq!(
+            (on.lat_deg, on.lon_deg, on.alt_amsl_m),
+            (off.lat_deg, off.lon_deg, off.alt_amsl_m)
+        );
+        let d: Vec<f64> = (0..3).map(|k| on.vel_ned_m_s[k] - truth[k]).collect();
+        assert!(
+            d.iter().any(|x| *x != 0.0) && d.iter().all(|x| x.abs() < 0.005),
+            "{d:?}"
+        );
+    }
+
+    #[test]
+    fn the_simulated_receiver_reports_the_state_its_latency_ago() {
+        // Default 0.1 s (the daemon's gps_delay_s): 5 m behind at 50 m/s.
+        assert!((lag_m(None) - 5.0).abs() < 0.05, "{}", lag_m(None));
+        assert!((lag_m(Some(0.2)) - 10.0).abs() < 0.05);
+        assert!(lag_m(Some(0.0)).abs() < 0.05);
+        let bad = format!("{SCENARIO}latency_s = -1.0\n");
+        let e = Scenario::parse(&bad, "gps_latency.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("latency_s"), "{e}");
+    }
+}

@@ -1,0 +1,763 @@
+//! Evaluation of the vision fix against rendered frames with the renderer's truth. Two sites:
+//!
+//! * **NAIP** (the default; issue 4, acceptance 7b): cross-date, frames rendered from the 2014
+//!   orthophoto (640x480, 60 deg HFOV, 1200-2500 m above ground, tilt up to 20 deg, any heading)
+//!   matched to a reference built from the 2009 orthophoto over flat ground. Priors (what a
+//!   navigation filter in GPS-denied cruise would give): position 100 m off (1 sigma, stated
+//!   150 m), altitude 20 m off (stated 30 m), attitude 0.3 deg off per axis (stated 0.5 deg;
+//!   `NaipEval::attitude_prior_error_rad` changes the error, not the stated sigma).
+//! * **Autzen** ([`NaipEval::autzen`]; issue 19): drone scale, 80-300 m above the lidar surface
+//!   model, the frames ray-cast on that surface (roofs, trees, stands), photometrically perturbed;
+//!   the map built from the same orthophoto (one date only: the optimistic case for matching, so
+//!   it measures heights and geometry, not cross-season matching) on the surface model or on a
+//!   constant height ([`MapHeights`]). Priors: position 20 m off per axis (stated 30 m), altitude
+//!   5 m off (stated 10 m), attitude as NAIP.
+//!
+//! Used by `tests/fix_naip.rs`, `tests/fix_autzen.rs` and `visnav bench fix`.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use nalgebra::{UnitQuaternion, Vector3, Vector6};
+use serde::Serialize;
+
+use super::render::{
+    ColourMode, RenderPose, RenderSpec, Renderer, Scene, grid_convergence_rad, vga_camera,
+};
+use super::rng::Rng;
+use visnav_core::camera::{Attitude, Mount};
+use visnav_core::fix::engine::Attempt;
+use visnav_core::fix::{
+    AltitudePrior, AttitudePriorNed, FixEngine, FixParams, FixPrior, FixReport, PositionPriorGeo,
+};
+use visnav_core::vision::{GrayImage, SurfParams};
+use visnav_io::geo::Crs;
+use visnav_io::geo::dem::Dem;
+use visnav_io::geo::geotiff::load_geotiff;
+use visnav_io::geo::raster::Raster;
+use visnav_io::map::MapReference;
+use visnav_io::map::{BuildSpec, HeightSource};
+
+/// Ground height of the bundled NAIP area, metres AMSL (flat prairie, see sitl/maps/README.md).
+pub const NAIP_GROUND_M: f64 = 580.0;
+
+/// The heights an Autzen evaluation's map is built on.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum MapHeights {
+    /// The lidar surface model the frames are ray-cast on (the map's heights are right).
+    SurfaceModel,
+    /// One constant height, the surface model's median (what a user without a DEM would take),
+    /// with this height sigma stated at the build (`None`: the build's default).
+    Constant { sigma_m: Option<f64> },
+}
+
+/// The position / altitude prior an evaluation draws: errors (1 sigma per horizontal axis, and
+/// vertical) and the sigmas the prior states.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PositionPriorSpec {
+    pub error_h_m: f64,
+    pub sigma_h_m: f64,
+    pub error_v_m: f64,
+    pub sigma_v_m: f64,
+}
+
+/// What differs between the evaluation sites besides their data.
+struct Site {
+    agl_range_m: (f64, f64),
+    max_tilt_deg: f64,
+    margin_m: f64,
+    position_prior: PositionPriorSpec,
+}
+
+/// The evaluation set-up: the 2009 reference, the fix engine and the 2014 renderer.
+pub struct NaipEval {
+    pub map_raster: Raster,
+    pub engine: FixEngine,
+    pub scene: Scene,
+    pub renderer: Renderer,
+    pub crs: Crs,
+    /// Standard deviation of the prior attitude's error per axis, radians (default 0.3 deg; the
+    /// prior states 0.5 deg whatever this is). The random draws do not depend on it, so runs
+    /// with different values see the same frames.
+    pub attitude_prior_error_rad: f64,
+    /// Heights above ground the frames are drawn from, uniform in `[lo, hi]` metres (default
+    /// 1200-2500 m, the acceptance envelope).
+    pub agl_range_m: (f64, f64),
+    /// Largest tilt of the body from level, degrees (uniform in `[0, max]`; default 20).
+    pub max_tilt_deg: f64,
+    /// A heading error of this size (degrees) added to the prior's heading on top of the random
+    /// attitude error, positive on even frames and negative on odd ones (a compass-derived or
+    /// drifted heading after a GPS loss). Default 0.
+    pub yaw_error_deg: f64,
+    /// The heading sigma the prior states, degrees (default: the same 0.5 deg as the tilt).
+    pub yaw_sigma_deg: f64,
+    /// What attitude the prior carries.
+    pub attitude_mode: AttitudeMode,
+    /// Diagnostic only (never an accuracy claim): the frames are rendered from the map's own
+    /// orthophoto, so what remains is the solver's error, not the cross-date matching's.
+    pub same_imagery: bool,
+    /// Without the position prior ([`Self::run_with`]), the prior's altitude is still given (a
+    /// barometer's); false: nothing of the position at all.
+    pub altitude_without_position: bool,
+    /// The map's own orthophoto as a scene (for `same_imagery`).
+    map_scene: Scene,
+    /// The surface the frames are rendered on (the truth's ground height).
+    terrain: Dem,
+    /// Frames' nadir points stay this far inside the map's bounds, metres.
+    margin_m: f64,
+    /// The position prior's errors and stated sigmas.
+    pub position_prior: PositionPriorSpec,
+}
+
+/// The attitude the evaluation's prior carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AttitudeMode {
+    /// Roll, pitch and heading (with the errors and sigmas above).
+    Full,
+    /// Roll and pitch only: the heading is unknown (stated sigma 180 deg).
+    TiltOnly,
+    /// No attitude at all.
+    None,
+}
+
+/// An accepted fix further than this from the truth is a wrong fix, metres (or beyond
+/// [`WRONG_FIX_SIGMAS`] of its own sigma): issue 19's definition.
+pub const WRONG_FIX_M: f64 = 50.0;
+/// An accepted fix beyond this many of its own sigmas (largest NED axis) is a wrong fix.
+pub const WRONG_FIX_SIGMAS: f64 = 5.0;
+
+/// One random frame of the acceptance envelope.
+#[derive(Debug, Clone, Copy)]
+pub struct Case {
+    pub pose: RenderPose,
+    pub attitude: Attitude,
+    pub grid_convergence_rad: f64,
+}
+
+/// Errors of one fix against the truth.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Score {
+    pub err_h_m: f64,
+    pub err_v_m: f64,
+    /// Largest per-axis (N, E, D) error in units of the fix's own sigma.
+    pub err_sigma: f64,
+    /// Normalised error squared of the image-only pose (position and attitude against the
+    /// truth, with its 6x6 covariance): chi-square with 6 dof when the covariance is honest.
+    pub nees6: Option<f64>,
+    /// Horizontal error of the ground point under the image centre (boresight cast onto the
+    /// ground plane at the truth's ground height): the map registration part of the error, free of
+    /// the position/tilt ambiguity.
+    pub ground_err_m: f64,
+    /// Tilt error of the fix's attitude (angle between the estimated and true body z axes), deg.
+    pub tilt_err_deg: f64,
+}
+
+/// Median, 90th percentile and maximum.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Stats {
+    pub median: f64,
+    pub p90: f64,
+    pub max: f64,
+}
+
+impl Stats {
+    /// Of a sample (NaN when empty).
+    pub fn of(v: &[f64]) -> Self {
+        Self {
+            median: percentile(v, 0.5),
+            p90: percentile(v, 0.9),
+            max: percentile(v, 1.0),
+        }
+    }
+}
+
+pub use visnav_core::stats::percentile;
+
+/// The mean, NaN for an empty sample (as [`percentile`]: JSON prints null, not a number no fix
+/// had).
+fn mean(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.iter().sum::<f64>() / v.len() as f64
+}
+
+/// Summary of an evaluation run.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Summary {
+    pub frames: usize,
+    pub accepted: usize,
+    pub fix_rate: f64,
+    pub err_h_m: Stats,
+    pub err_v_m: Stats,
+    /// Median horizontal error in map pixels.
+    pub median_err_map_px: f64,
+    pub beyond_3_sigma: usize,
+    /// Accepted fixes more than [`WRONG_FIX_M`] or [`WRONG_FIX_SIGMAS`] sigma off the truth.
+    pub wrong_fixes: usize,
+    /// Mean 6-dof NEES of the accepted fixes' image-only poses (= `vision_only_nees6_mean`;
+    /// NaN, JSON null, without an accepted fix, as the error statistics).
+    pub nees6_mean: f64,
+    /// Image-only pose of the accepted fixes: mean 6-dof NEES (6 when honest) and how many fall
+    /// beyond the chi-square(6) 99 % quantile (16.8; about 1 % when honest).
+    pub vision_only_nees6_mean: f64,
+    pub vision_only_beyond_chi2_99: usize,
+    /// Frame-to-fix wall time, milliseconds.
+    pub ms_p50: f64,
+    pub ms_p95: f64,
+    /// Rejection reasons with their counts.
+    pub rejections: Vec<(String, usize)>,
+}
+
+/// Median of `dem` over `bounds` on a 10 m grid (valid cells only), metres.
+fn median_height_m(dem: &Dem, bounds: &visnav_io::geo::raster::Bounds) -> Result<f64, String> {
+    let mut h = Vec::new();
+    let mut y = bounds.min_y_m;
+    while y <= bounds.max_y_m {
+        let mut x = bounds.min_x_m;
+        while x <= bounds.max_x_m {
+            h.extend(dem.height_at(x, y).filter(|v| v.is_finite()));
+            x += 10.0;
+        }
+        y += 10.0;
+    }
+    let m = percentile(&h, 0.5);
+    if m.is_finite() {
+        Ok(m)
+    } else {
+        Err("the surface model has no valid height over the orthophoto".into())
+    }
+}
+
+fn uni(rng: &mut Rng, lo: f64, hi: f64) -> f64 {
+    lo + (hi - lo) * rng.uniform()
+}
+
+impl NaipEval {
+    /// Loads `naip_nd_2009.tif` (map) and `naip_nd_2014.tif` (camera) from `maps_dir`.
+    pub fn new(maps_dir: &Path, params: FixParams) -> Result<Self, String> {
+        let surf = SurfParams {
+            upright: true,
+            ..SurfParams::default()
+        };
+        Self::with_surf(maps_dir, params, surf)
+    }
+
+    /// [`Self::new`] with the reference's SURF settings (the query uses the same).
+    pub fn with_surf(maps_dir: &Path, params: FixParams, surf: SurfParams) -> Result<Self, String> {
+        Self::with_map(
+            maps_dir,
+            &[maps_dir.join("naip_nd_2009.tif")],
+            1,
+            params,
+            surf,
+        )
+    }
+
+    /// [`Self::with_surf`] with the map built from `map_orthos` (co-registered orthophotos of the
+    /// NAIP area, e.g. several years stacked; never the 2014 camera year). The first one gives the
+    /// map's pixel size and the area the frames are drawn from. `upsample` as
+    /// [`BuildSpec::upsample`].
+    pub fn with_map(
+        maps_dir: &Path,
+        map_orthos: &[PathBuf],
+        upsample: usize,
+        params: FixParams,
+        surf: SurfParams,
+    ) -> Result<Self, String> {
+        Self::with_map_height_sigma(maps_dir, map_orthos, upsample, params, surf, None)
+    }
+
+    /// [`Self::with_map`] with the map's height sigma stated at its build (`None`: the build's
+    /// default for a constant height).
+    pub fn with_map_height_sigma(
+        maps_dir: &Path,
+        map_orthos: &[PathBuf],
+        upsample: usize,
+        params: FixParams,
+        surf: SurfParams,
+        height_sigma_m: Option<f64>,
+    ) -> Result<Self, String> {
+        let load =
+            |path: &Path| load_geotiff(path, None).map_err(|e| format!("{}: {e}", path.display()));
+        let first = map_orthos
+            .first()
+            .ok_or_else(|| "at least one map orthophoto is required".to_string())?;
+        let map_raster = load(first)?;
+        let cam_path = maps_dir.join("naip_nd_2014.tif");
+        let cam_raster = load(&cam_path)?;
+        for p in map_orthos {
+            let r = if p == first { None } else { Some(load(p)?) };
+            let r = r.as_ref().unwrap_or(&map_raster);
+            if r.data() == cam_raster.data() {
+                return Err(format!(
+                    "{}: the map must not be built from the camera's own image (naip_nd_2014.tif)",
+                    p.display()
+                ));
+            }
+        }
+        let flat = || Dem::flat(NAIP_GROUND_M).map_err(|e| e.to_string());
+        // The product path: a .vnm map built from the map orthophoto(s), memory-mapped.
+        let mut spec = BuildSpec::new(
+            map_orthos.to_vec(),
+            HeightSource::ConstantAmsl(NAIP_GROUND_M),
+        );
+        spec.surf = surf;
+        spec.upsample = upsample;
+        spec.height_sigma_m = height_sigma_m;
+        let reference = MapReference::build_temporary(&spec, None).map_err(|e| e.to_string())?;
+        let camera = vga_camera().map_err(|e| format!("camera: {e}"))?;
+        let engine = FixEngine::new(Arc::new(reference), camera, params)
+            .map_err(|e| format!("engine: {e}"))?;
+        let scene = Scene::new(&cam_raster, flat()?, ColourMode::Grey)
+            .map_err(|e| format!("scene: {e}"))?;
+        let map_scene = Scene::new(&map_raster, flat()?, ColourMode::Grey)
+            .map_err(|e| format!("scene of the map image: {e}"))?;
+        let renderer = Renderer::new(
+            camera,
+            RenderSpec {
+                seed: 7,
+                ..RenderSpec::default()
+            },
+        )
+        .map_err(|e| format!("renderer: {e}"))?;
+        Ok(Self::from_parts(
+            map_raster,
+            engine,
+            [scene, map_scene],
+            renderer,
+            flat()?,
+            Site {
+                agl_range_m: (1200.0, 2500.0),
+                max_tilt_deg: 20.0,
+                margin_m: 600.0,
+                position_prior: PositionPriorSpec {
+                    error_h_m: 100.0,
+                    sigma_h_m: 150.0,
+                    error_v_m: 20.0,
+                    sigma_v_m: 30.0,
+                },
+            },
+        ))
+    }
+
+    /// The set-up from its parts, with the defaults every site shares (0.3 deg attitude error,
+    /// full attitude prior with a 0.5 deg heading sigma, frames from the camera scene).
+    fn from_parts(
+        map_raster: Raster,
+        engine: FixEngine,
+        [scene, map_scene]: [Scene; 2],
+        renderer: Renderer,
+        terrain: Dem,
+        site: Site,
+    ) -> Self {
+        let crs = map_raster.crs();
+        Self {
+            map_raster,
+            engine,
+            scene,
+            renderer,
+            crs,
+            attitude_prior_error_rad: 0.3f64.to_radians(),
+            agl_range_m: site.agl_range_m,
+            max_tilt_deg: site.max_tilt_deg,
+            yaw_error_deg: 0.0,
+            yaw_sigma_deg: 0.5,
+            attitude_mode: AttitudeMode::Full,
+            same_imagery: false,
+            altitude_without_position: true,
+            map_scene,
+            terrain,
+            margin_m: site.margin_m,
+            position_prior: site.position_prior,
+        }
+    }
+
+    /// The Autzen drone-scale case (module docs) from `data_dir` (`../shared/data/autzen`): the
+    /// 0.3 m orthophoto and the 1 m lidar surface model, the map on `heights`.
+    pub fn autzen(data_dir: &Path, params: FixParams, heights: MapHeights) -> Result<Self, String> {
+        let ortho = data_dir.join("autzen_ortho_0p3m_utm10n.tif");
+        let dsm = data_dir.join("autzen_dsm_1m_utm10n.tif");
+        let map_raster =
+            load_geotiff(&ortho, None).map_err(|e| format!("{}: {e}", ortho.display()))?;
+        let surface = visnav_io::geo::dem::load_dem(&dsm, Some(map_raster.crs()))
+            .map_err(|e| format!("{}: {e}", dsm.display()))?;
+        let mut spec = match heights {
+            MapHeights::SurfaceModel => {
+                BuildSpec::new(vec![ortho.clone()], HeightSource::Dem(dsm.clone()))
+            }
+            MapHeights::Constant { sigma_m } => {
+                let mut spec = BuildSpec::new(
+                    vec![ortho.clone()],
+                    HeightSource::ConstantAmsl(median_height_m(&surface, &map_raster.bounds())?),
+                );
+                spec.height_sigma_m = sigma_m;
+                spec
+            }
+        };
+        spec.surf = SurfParams {
+            upright: true,
+            ..SurfParams::default()
+        };
+        let reference = MapReference::build_temporary(&spec, None).map_err(|e| e.to_string())?;
+        let camera = vga_camera().map_err(|e| format!("camera: {e}"))?;
+        let engine = FixEngine::new(Arc::new(reference), camera, params)
+            .map_err(|e| format!("engine: {e}"))?;
+        // The camera scene is the map's own orthophoto (one date only).
+        let scene = Scene::new(&map_raster, surface.clone(), ColourMode::Grey)
+            .map_err(|e| format!("scene: {e}"))?;
+        // One date only: the frames differ from the map by the camera's photometry.
+        let mut render = RenderSpec {
+            seed: 7,
+            ..RenderSpec::default()
+        };
+        render.exposure.gain = 1.15;
+        render.exposure.gamma = 0.8;
+        render.exposure.vignetting_corner = 0.15;
+        render.blur.sigma_px = 0.7;
+        render.noise.read_dn = 2.0;
+        let renderer = Renderer::new(camera, render).map_err(|e| format!("renderer: {e}"))?;
+        Ok(Self::from_parts(
+            map_raster,
+            engine,
+            [scene.clone(), scene],
+            renderer,
+            surface,
+            Site {
+                agl_range_m: (80.0, 300.0),
+                max_tilt_deg: 10.0,
+                margin_m: 250.0,
+                position_prior: PositionPriorSpec {
+                    error_h_m: 20.0,
+                    sigma_h_m: 30.0,
+                    error_v_m: 5.0,
+                    sigma_v_m: 10.0,
+                },
+            },
+        ))
+    }
+
+    /// Height of the rendered surface at `(x, y)` (the truth's ground), metres AMSL.
+    pub fn ground_m(&self, x_m: f64, y_m: f64) -> f64 {
+        self.terrain
+            .height_at(x_m, y_m)
+            .unwrap_or_else(|| self.terrain.height_range_m().0)
+    }
+
+    /// Map pixel size, metres.
+    pub fn map_gsd_m(&self) -> f64 {
+        self.map_raster.transform().pixel_size().0
+    }
+
+    /// A random pose of the envelope with its body (nadir point) over `(x, y)`.
+    pub fn random_case(&self, rng: &mut Rng, x_m: f64, y_m: f64) -> Case {
+        let agl_m = uni(rng, self.agl_range_m.0, self.agl_range_m.1);
+        let tilt_deg = uni(rng, 0.0, self.max_tilt_deg);
+        let dir = uni(rng, 0.0, std::f64::consts::TAU);
+        let attitude = Attitude::from_deg(
+            tilt_deg * dir.cos(),
+            tilt_deg * dir.sin(),
+            uni(rng, -180.0, 180.0),
+        );
+        let gamma = grid_convergence_rad(&self.crs, x_m, y_m).unwrap_or(0.0);
+        let body = Vector3::new(x_m, y_m, self.ground_m(x_m, y_m) + agl_m);
+        Case {
+            pose: RenderPose::from_body(body, &attitude, &Mount::nadir(), gamma),
+            attitude,
+            grid_convergence_rad: gamma,
+        }
+    }
+
+    /// The frame of `case` rendered from `scene` (the 2014 scene unless another is given).
+    pub fn frame(
+        &self,
+        case: &Case,
+        index: u64,
+        scene: Option<&Scene>,
+    ) -> Result<GrayImage, String> {
+        let f = self
+            .renderer
+            .render(scene.unwrap_or(&self.scene), &case.pose, index)
+            .map_err(|e| format!("render: {e}"))?;
+        GrayImage::new(f.width, f.height, f.grey()).map_err(|e| e.to_string())
+    }
+
+    /// The prior a filter would give (see the module doc).
+    pub fn prior(&self, rng: &mut Rng, case: &Case, index: u64) -> Result<FixPrior, String> {
+        let c = case.pose.centre_map_m;
+        let pp = self.position_prior;
+        let (px, py) = (
+            c.x + pp.error_h_m * rng.normal(),
+            c.y + pp.error_h_m * rng.normal(),
+        );
+        let (lat, lon) = self.crs.to_geodetic(px, py).map_err(|e| e.to_string())?;
+        // Draw order as before the attitude modes existed (the same frames and priors per seed).
+        let alt_amsl_m = c.z + pp.error_v_m * rng.normal();
+        let n = self.attitude_prior_error_rad;
+        let a = &case.attitude;
+        let sign = if index.is_multiple_of(2) { 1.0 } else { -1.0 };
+        let yaw_err = sign * self.yaw_error_deg.to_radians();
+        let (roll_e, pitch_e, yaw_e) = (n * rng.normal(), n * rng.normal(), n * rng.normal());
+        let attitude = Attitude::new(
+            a.roll_rad + roll_e,
+            a.pitch_rad + pitch_e,
+            a.yaw_rad + yaw_e + yaw_err,
+        );
+        let stated = 0.5f64.to_radians();
+        let attitude = match self.attitude_mode {
+            AttitudeMode::Full => Some(AttitudePriorNed {
+                attitude,
+                sigma_rad: stated,
+                sigma_yaw_rad: self.yaw_sigma_deg.to_radians(),
+            }),
+            // The heading is unknown: a heading of 0 with a sigma of half a turn.
+            AttitudeMode::TiltOnly => Some(AttitudePriorNed {
+                attitude: Attitude::new(attitude.roll_rad, attitude.pitch_rad, 0.0),
+                sigma_rad: stated,
+                sigma_yaw_rad: std::f64::consts::PI,
+            }),
+            AttitudeMode::None => None,
+        };
+        Ok(FixPrior {
+            t_capture_us: index,
+            position: Some(PositionPriorGeo {
+                lat_deg: lat,
+                lon_deg: lon,
+                alt_amsl_m,
+                sigma_h_m: pp.sigma_h_m,
+                sigma_v_m: pp.sigma_v_m,
+            }),
+            attitude,
+            altitude: None,
+            attitude_from_filter: false,
+        })
+    }
+
+    /// Errors of an accepted report against the case's truth.
+    pub fn score(&self, r: &FixReport, case: &Case) -> Score {
+        let t = case.pose.centre_map_m;
+        let (ex, ey, ez) = (r.x_m - t.x, r.y_m - t.y, r.z_m - t.z);
+        let (s, c) = case.grid_convergence_rad.sin_cos();
+        let e_n = ey * c - ex * s;
+        let e_e = ex * c + ey * s;
+        let err_sigma = (e_n / r.cov_ned_m2[0][0].sqrt())
+            .abs()
+            .max((e_e / r.cov_ned_m2[1][1].sqrt()).abs())
+            .max((ez / r.cov_ned_m2[2][2].sqrt()).abs());
+        // Boresight (body z of the nadir mount) cast onto the ground plane, in grid axes.
+        let down = |a: &Attitude| {
+            let d = a.r_ned_body() * Vector3::z();
+            // NED -> grid east/north (grid convergence gamma: grid north = true north rotated).
+            (d.y * c - d.x * s, d.x * c + d.y * s, d.z)
+        };
+        let ground = |a: &Attitude, x: f64, y: f64, h: f64| {
+            let (de, dn, dd) = down(a);
+            (x + de * h / dd, y + dn * h / dd)
+        };
+        let a_est = Attitude::from_deg(r.roll_deg, r.pitch_deg, r.yaw_deg);
+        let ground_m = self.ground_m(t.x, t.y);
+        let h_true = t.z - ground_m;
+        let g_est = ground(&a_est, r.x_m, r.y_m, r.z_m - ground_m);
+        let g_true = ground(&case.attitude, t.x, t.y, h_true);
+        let z_est = a_est.r_ned_body() * Vector3::z();
+        let z_true = case.attitude.r_ned_body() * Vector3::z();
+        Score {
+            err_h_m: ex.hypot(ey),
+            err_v_m: ez.abs(),
+            err_sigma,
+            nees6: self.nees6(r, case),
+            ground_err_m: (g_est.0 - g_true.0).hypot(g_est.1 - g_true.1),
+            tilt_err_deg: z_est.angle(&z_true).to_degrees(),
+        }
+    }
+
+    /// The report's image-only pose: map grid x, y (m) and its attitude (NED from body).
+    fn vision_only_map(&self, r: &FixReport) -> Option<(f64, f64, UnitQuaternion<f64>)> {
+        let v = r.vision_only?;
+        let (x, y) = self.crs.from_geodetic(v.lat_deg, v.lon_deg).ok()?;
+        let q = UnitQuaternion::from_euler_angles(
+            v.roll_deg.to_radians(),
+            v.pitch_deg.to_radians(),
+            v.yaw_deg.to_radians(),
+        );
+        Some((x, y, q))
+    }
+
+    /// 6-dof NEES of the report's image-only pose (None without one).
+    fn nees6(&self, r: &FixReport, case: &Case) -> Option<f64> {
+        let v = r.vision_only?;
+        let t = case.pose.centre_map_m;
+        let (x, y, q_meas) = self.vision_only_map(r)?;
+        let n = visnav_io::geo::geoid::geoid_undulation_m(v.lat_deg, v.lon_deg).ok()?;
+        let (ex, ey, ez) = (x - t.x, y - t.y, v.h_ellip_m - n - t.z);
+        let (sg, cg) = case.grid_convergence_rad.sin_cos();
+        let q_true = UnitQuaternion::from_rotation_matrix(&case.attitude.r_ned_body());
+        let psi = (q_meas * q_true.inverse()).scaled_axis();
+        let e = Vector6::new(
+            ey * cg - ex * sg,
+            ex * cg + ey * sg,
+            -ez,
+            psi.x,
+            psi.y,
+            psi.z,
+        );
+        let inv = v.cov6().try_inverse()?;
+        Some((e.transpose() * inv * e)[0])
+    }
+
+    /// Horizontal error (m) and tilt error (deg) of the report's image-only pose.
+    fn vision_only_errors(&self, r: &FixReport, case: &Case) -> Option<(f64, f64)> {
+        let t = case.pose.centre_map_m;
+        let (x, y, q_meas) = self.vision_only_map(r)?;
+        let z_true = case.attitude.r_ned_body() * Vector3::z();
+        let z_est = q_meas * Vector3::z();
+        Some(((x - t.x).hypot(y - t.y), z_est.angle(&z_true).to_degrees()))
+    }
+
+    /// Number of fine matches whose map point projects within 3 px of the query keypoint
+    /// through the true pose.
+    pub fn correct_pairs(&self, a: &Attempt, case: &Case) -> usize {
+        a.pairs
+            .iter()
+            .filter(|(px, p)| {
+                case.pose
+                    .project(self.renderer.camera(), &Vector3::new(p[0], p[1], p[2]))
+                    .is_some_and(|q| (q.x - px[0]).hypot(q.y - px[1]) < 3.0)
+            })
+            .count()
+    }
+
+    /// The acceptance run: `n` frames with their nadir points at least 600 m inside the map.
+    /// `log` receives one line per frame.
+    pub fn run(&self, n: usize, seed: u64, log: &mut dyn FnMut(String)) -> Result<Summary, String> {
+        self.run_with(n, seed, true, log)
+    }
+
+    /// [`Self::run`]; without the position prior when `position_prior` is false (global
+    /// relocalisation with the attitude prior only).
+    pub fn run_with(
+        &self,
+        n: usize,
+        seed: u64,
+        position_prior: bool,
+        log: &mut dyn FnMut(String),
+    ) -> Result<Summary, String> {
+        let b = self.map_raster.bounds();
+        let mut rng = Rng::new(seed);
+        let (mut eh, mut ev, mut ms) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut accepted, mut beyond, mut wrong) = (0, 0, 0);
+        let mut nees6 = Vec::new();
+        let mut reasons: std::collections::BTreeMap<String, usize> = Default::default();
+        for i in 0..n {
+            let x = uni(
+                &mut rng,
+                b.min_x_m + self.margin_m,
+                b.max_x_m - self.margin_m,
+            );
+            let y = uni(
+                &mut rng,
+                b.min_y_m + self.margin_m,
+                b.max_y_m - self.margin_m,
+            );
+            let case = self.random_case(&mut rng, x, y);
+            let scene = self.same_imagery.then_some(&self.map_scene);
+            let img = self.frame(&case, i as u64, scene)?;
+            let mut prior = self.prior(&mut rng, &case, i as u64)?;
+            if !position_prior {
+                prior.altitude = prior
+                    .position
+                    .filter(|_| self.altitude_without_position)
+                    .map(|p| AltitudePrior {
+                        alt_amsl_m: p.alt_amsl_m,
+                        sigma_m: p.sigma_v_m,
+                    });
+                prior.position = None;
+            }
+            let start = std::time::Instant::now();
+            let (mut r, a) = self.engine.fix_with_attempt(&img, &prior);
+            r.ms = start.elapsed().as_secs_f64() * 1e3;
+            ms.push(r.ms);
+            let good = self.correct_pairs(&a, &case);
+            if r.accepted {
+                let s = self.score(&r, &case);
+                accepted += 1;
+                eh.push(s.err_h_m);
+                ev.push(s.err_v_m);
+                if s.err_sigma > 3.0 {
+                    beyond += 1;
+                }
+                let is_wrong = s.err_h_m > WRONG_FIX_M || s.err_sigma > WRONG_FIX_SIGMAS;
+                if is_wrong {
+                    wrong += 1;
+                }
+                nees6.extend(s.nees6);
+                let vo = self
+                    .vision_only_errors(&r, &case)
+                    .unwrap_or((f64::NAN, f64::NAN));
+                let prior_dv_m = prior
+                    .position
+                    .as_ref()
+                    .map_or(f64::NAN, |p| p.alt_amsl_m - case.pose.centre_map_m.z);
+                log(format!(
+                    "frame {i:3}: accepted{} ({}), {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:+.1} m = {:.2} sigma (sigma h {:.1} v {:.1} m; {:.0} m above ground, prior altitude {:+.1} m), ground {:.1} m tilt {:.2} deg, image-only h {:.1} m tilt {:.2} deg NEES {:.1}, reprojection RMS {:.2} px, sigma0 {:.2}, covariance factor {:.1}, {:.1} ms",
+                    if is_wrong { " WRONG" } else { "" },
+                    r.method,
+                    r.inliers,
+                    r.matches,
+                    a.null_matches,
+                    s.err_h_m,
+                    r.z_m - case.pose.centre_map_m.z,
+                    s.err_sigma,
+                    r.cov_ned_m2[0][0].max(r.cov_ned_m2[1][1]).sqrt(),
+                    r.cov_ned_m2[2][2].sqrt(),
+                    case.pose.centre_map_m.z - self.ground_m(x, y),
+                    prior_dv_m,
+                    s.ground_err_m,
+                    s.tilt_err_deg,
+                    vo.0,
+                    vo.1,
+                    s.nees6.unwrap_or(f64::NAN),
+                    r.reproj_rms_px,
+                    r.sigma0,
+                    r.cov_factor,
+                    r.ms
+                ));
+            } else {
+                // Group reasons by their text with the numbers blanked out.
+                let mut key = String::new();
+                for c in r.reason.chars() {
+                    if c.is_ascii_digit() || c == '.' {
+                        if !key.ends_with('#') {
+                            key.push('#');
+                        }
+                    } else {
+                        key.push(c);
+                    }
+                }
+                *reasons.entry(key).or_default() += 1;
+                log(format!(
+                    "frame {i:3}: {} ({} matches, {good} correct, chance {}), {:.1} ms",
+                    r.reason, r.matches, a.null_matches, r.ms
+                ));
+            }
+        }
+        let err_h_m = Stats::of(&eh);
+        Ok(Summary {
+            frames: n,
+            accepted,
+            fix_rate: accepted as f64 / n.max(1) as f64,
+            median_err_map_px: err_h_m.median / self.map_gsd_m(),
+            err_h_m,
+            err_v_m: Stats::of(&ev),
+            beyond_3_sigma: beyond,
+            wrong_fixes: wrong,
+            nees6_mean: mean(&nees6),
+            vision_only_nees6_mean: mean(&nees6),
+            vision_only_beyond_chi2_99: nees6.iter().filter(|&&x| x > 16.81).count(),
+            ms_p50: percentile(&ms, 0.5),
+            ms_p95: percentile(&ms, 0.95),
+            rejections: reasons.into_iter().collect(),
+        })
+    }
+}

@@ -1,0 +1,43 @@
+//! visnav-sim: the built-in software-in-the-loop simulator and the evaluation tooling (see
+//! docs/architecture.md): truth trajectories, IMU and sensor synthesis, scenario files, the runner
+//! that scores the navigation filter, a MAVLink autopilot emulator, the camera renderer, the
+//! closed loop of `visnav sim`, its report and plots; synthetic resection scenes and the SURF
+//! repeatability evaluation behind `visnav bench`. A flight build (`--no-default-features` on the
+//! `visnav` package) leaves this crate out.
+//!
+//! * [`trajectory`]: lines, coordinated turns, climbs; exact ideal IMU increments.
+//! * [`imu`]: IMU error synthesis (white noise, turn-on bias, bias instability, random walk,
+//!   scale factor, sample rate).
+//! * [`scenario`]: `sitl/scenarios/*.toml` schema and validation.
+//! * [`run`]: scenario runner, INS-only control, Monte Carlo NEES consistency.
+//! * [`rng`]: deterministic random numbers.
+//! * [`autopilot`]: a MAVLink 2 autopilot emulator speaking like ArduPilot over real sockets.
+//! * [`real_sitl`]: truth (SIMSTATE/SIM_STATE, HIL_STATE_QUATERNION) from a real ArduPilot/PX4
+//!   SITL as a [`camera_sim::TruthFeed`].
+//! * [`camera_sim`]: the simulated camera as a frame source, rendering at the truth pose.
+//! * [`closed_loop`]: `visnav sim`'s closed loop (emulator + daemon + camera) and its scoring;
+//!   [`report`] writes its report folder.
+//! * [`plot`]: PNG charts and map track plots for the report folder (built-in bitmap font).
+//! * [`render`]: the simulated camera (perspective view of an orthophoto on a DEM, lens
+//!   distortion, exposure, blur, noise).
+//! * [`synth`]: synthetic aerial resection scenes; [`pose_bench`]: the resection timings.
+//! * [`surf_eval`]: SURF repeatability and matching scores on image pairs with known geometry.
+
+pub mod autopilot;
+pub mod camera_sim;
+pub mod closed_loop;
+pub mod fixeval;
+pub mod imu;
+pub mod plot;
+pub mod pose_bench;
+pub mod real_sitl;
+pub mod render;
+pub mod report;
+pub mod rng;
+pub mod run;
+pub mod scenario;
+pub mod surf_eval;
+pub mod synth;
+pub mod trajectory;
+
+pub use scenario::Scenario;

@@ -798,8 +798,7 @@ pub fn vision_measurement(
             })
         }
     };
-    m.check()
-        .map_err(NoMeasurement::Unusable)?;
+    m.check().map_err(NoMeasurement::Unusable)?;
     Ok(m)
 }
 

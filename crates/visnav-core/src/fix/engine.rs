@@ -757,19 +757,7 @@ impl FixEngine {
         let gsd = self.levels_gsd_m[level];
         // Query features on valid ground, strongest first, capped.
         let feats = self.surf.detect_and_describe(&rect.image);
-        let mut keep: Vec<(usize, [f64; 2])> = Vec::new();
-        for (i, k) in feats.keypoints.iter().enumerate() {
-            if keep.len() >= self.params.max_query_features {
-                break;
-            }
-            if !rect.window_valid(f64::from(k.x), f64::from(k.y), 10.0 * f64::from(k.scale)) {
-                continue;
-            }
-            let Some(p) = self.ground_of(v, f64::from(k.x), f64::from(k.y)) else {
-                continue;
-            };
-            keep.push((i, p));
-        }
+        let keep = self.query_on_ground(v, &feats);
         a.query_features = keep.len();
         if keep.len() < self.params.min_matches {
             return Err(rejected!("only {} features in the frame", keep.len()));
@@ -809,28 +797,11 @@ impl FixEngine {
         // is a shift, its yaw error a rotation and its height error a scale of this map.
         let gate_px = (gate_m / gsd) as f32;
         let fine_r = self.params.fine_radius_px as f32;
-        let mut sim = Sim2::identity();
-        if gate_px > fine_r {
-            let coarse = MatchParams {
-                ratio: 1.0,
-                laplacian_gate: true,
-                mutual: false,
-                spatial_radius_px: Some(gate_px),
-            };
-            let m = match_features(&query, &train, &coarse, Some(&pred))
-                .map_err(|e| format!("matching: {e}"))?;
-            a.coarse_matches = m.len();
-            let src: Vec<[f32; 2]> = m.iter().map(|mm| pred[mm.query]).collect();
-            let dst: Vec<[f32; 2]> = m
-                .iter()
-                .map(|mm| [train.keypoints[mm.train].x, train.keypoints[mm.train].y])
-                .collect();
-            let (max_rot, max_log_scale) = self.similarity_bounds(v);
-            let (s, n) = ransac_similarity(&src, &dst, fine_r, max_rot, max_log_scale, 0x5EED)
-                .ok_or_else(|| format!("no consistent coarse matches among {}", m.len()))?;
-            sim = s;
-            a.vote_peak = n;
-        }
+        let sim = if gate_px > fine_r {
+            self.coarse_similarity(v, [&query, &train], &pred, gate_px, a)?
+        } else {
+            Sim2::identity()
+        };
         let pred_fine: Vec<[f32; 2]> = pred.iter().map(|p| sim.apply(*p)).collect();
         let wide = self.params.fine_wide_factor as f32 * fine_r;
         let matches = gated_match(&query, &train, &pred_fine, fine_r, wide, self.params.ratio);
@@ -844,18 +815,7 @@ impl FixEngine {
         // A-contrario check (Moisan & Stival 2004 in spirit): the same gated matching with the
         // predictions displaced to unrelated map areas counts the matches chance alone produces
         // here (texture density, gate size, ratio test). A genuine view must beat that clearly.
-        let d = 3.0 * wide;
-        let null = [[d, 0.0], [-d, 0.0], [0.0, d], [0.0, -d]]
-            .par_iter()
-            .map(|o| {
-                let shifted: Vec<[f32; 2]> = pred_fine
-                    .iter()
-                    .map(|p| [p[0] + o[0], p[1] + o[1]])
-                    .collect();
-                gated_match(&query, &train, &shifted, fine_r, wide, self.params.ratio).len()
-            })
-            .max()
-            .unwrap_or(0);
+        let null = self.chance_matches([&query, &train], &pred_fine, wide);
         a.null_matches = null;
         let needed =
             self.params.min_matches + (self.params.null_factor * null as f64).ceil() as usize;
@@ -882,6 +842,82 @@ impl FixEngine {
                 })
             })
             .collect())
+    }
+
+    /// The frame's features (indices into `feats`, strongest first, at most `max_query_features`)
+    /// on valid rectified ground, with the map position the prior puts each at.
+    fn query_on_ground(&self, v: &View, feats: &Features) -> Vec<(usize, [f64; 2])> {
+        let mut keep: Vec<(usize, [f64; 2])> = Vec::new();
+        for (i, k) in feats.keypoints.iter().enumerate() {
+            if keep.len() >= self.params.max_query_features {
+                break;
+            }
+            if !v
+                .rect
+                .window_valid(f64::from(k.x), f64::from(k.y), 10.0 * f64::from(k.scale))
+            {
+                continue;
+            }
+            let Some(p) = self.ground_of(v, f64::from(k.x), f64::from(k.y)) else {
+                continue;
+            };
+            keep.push((i, p));
+        }
+        keep
+    }
+
+    /// The coarse stage: gated nearest neighbours (no ratio test: the gate holds many
+    /// look-alikes) and a RANSAC 2-D similarity from the predicted to the map positions (level
+    /// pixels). `qt` = [query, train].
+    fn coarse_similarity(
+        &self,
+        v: &View,
+        qt: [&Features; 2],
+        pred: &[[f32; 2]],
+        gate_px: f32,
+        a: &mut Attempt,
+    ) -> Result<Sim2, Rejected> {
+        let [query, train] = qt;
+        let coarse = MatchParams {
+            ratio: 1.0,
+            laplacian_gate: true,
+            mutual: false,
+            spatial_radius_px: Some(gate_px),
+        };
+        let m = match_features(query, train, &coarse, Some(pred))
+            .map_err(|e| rejected!("matching: {e}"))?;
+        a.coarse_matches = m.len();
+        let src: Vec<[f32; 2]> = m.iter().map(|mm| pred[mm.query]).collect();
+        let dst: Vec<[f32; 2]> = m
+            .iter()
+            .map(|mm| [train.keypoints[mm.train].x, train.keypoints[mm.train].y])
+            .collect();
+        let (max_rot, max_log_scale) = self.similarity_bounds(v);
+        let fine_r = self.params.fine_radius_px as f32;
+        let (sim, n) = ransac_similarity(&src, &dst, fine_r, max_rot, max_log_scale, 0x5EED)
+            .ok_or_else(|| rejected!("no consistent coarse matches among {}", m.len()))?;
+        a.vote_peak = n;
+        Ok(sim)
+    }
+
+    /// The a-contrario count: the most matches the fine gated matching finds with the
+    /// predictions displaced by three wide gates to unrelated map areas (what chance alone gives
+    /// here). `qt` = [query, train].
+    fn chance_matches(&self, qt: [&Features; 2], pred_fine: &[[f32; 2]], wide: f32) -> usize {
+        let [query, train] = qt;
+        let fine_r = self.params.fine_radius_px as f32;
+        let d = 3.0 * wide;
+        [[d, 0.0], [-d, 0.0], [0.0, d], [0.0, -d]]
+            .par_iter()
+            .map(|o| {
+                let shifted: Vec<[f32; 2]> = pred_fine
+                    .iter()
+                    .map(|p| [p[0] + o[0], p[1] + o[1]])
+                    .collect();
+                gated_match(query, train, &shifted, fine_r, wide, self.params.ratio).len()
+            })
+            .max()
+            .unwrap_or(0)
     }
 
     /// Map position (grid x, y) of the ground seen at rectified pixel `(u, v)` from the prior.
@@ -1390,36 +1426,9 @@ impl FixEngine {
         work: &mut u64,
     ) -> Result<AreaSearch, Rejected> {
         use super::area::{candidates, grey_and_gradient};
-        if !(alt.alt_amsl_m.is_finite() && alt.sigma_m.is_finite() && alt.sigma_m > 0.0) {
-            return Err(Rejected::from(
-                "the altitude prior must be finite with a positive sigma",
-            ));
-        }
-        let (lo, hi) = self.reference.dem().height_range_m();
-        let agl_m = alt.alt_amsl_m - 0.5 * (lo + hi);
-        if agl_m.is_nan() || agl_m <= 1.0 {
-            return Err(rejected!(
-                "altitude {:.1} m AMSL is not above the map's terrain",
-                alt.alt_amsl_m
-            ));
-        }
-        let level = self.pick_level(agl_m / self.camera.intrinsics.fx_px);
+        let (level, agl_m, img, budget) = self.area_level(alt, work)?;
         let gsd = self.levels_gsd_m[level];
-        let img = self.reference.level_image(level).ok_or_else(|| {
-            "the map has no level images (built by an older visnav: rebuild it)".to_string()
-        })?;
-        // Each pixel of the level image read (and held in the working planes) counts one unit:
-        // a map too large for the budget is left to the feature search before any is read.
-        let budget = (self.params.reloc_budget_mwork * 1e6) as u64;
-        let map_px = (img.width * img.height) as u64;
-        if work.saturating_add(map_px) > budget {
-            return Err(rejected!(
-                "the map level's {:.0} million pixels exceed the budget (reloc_budget_mwork = {})",
-                map_px as f64 / 1e6,
-                self.params.reloc_budget_mwork
-            ));
-        }
-        *work = work.saturating_add(map_px);
+        let (lo, hi) = self.reference.dem().height_range_m();
         let r_map_cam = r_enu_ned() * self.camera.mount.r_ned_cam(&att.attitude);
         let rect = Rectification::new(
             frame,
@@ -1458,24 +1467,8 @@ impl FixEngine {
         // scales the altitude and the terrain allow.
         let radius = 0.5 * (tw as f64).hypot(th as f64);
         let step = RELOC_AREA_EDGE_STEP_PX / radius.max(1.0);
-        let n_full = (std::f64::consts::TAU / step).ceil() as usize;
-        let half_rot = 3.0 * att.sigma_yaw_rad + 0.5 * step;
-        let rotations: Vec<f64> = if 2.0 * half_rot >= std::f64::consts::TAU {
-            (0..n_full)
-                .map(|r| r as f64 * std::f64::consts::TAU / n_full as f64)
-                .collect()
-        } else {
-            let n = (half_rot / step).ceil() as i64;
-            (-n..=n).map(|r| r as f64 * step).collect()
-        };
         let half_log = ((3.0 * alt.sigma_m + 0.5 * (hi - lo)) / agl_m).min(0.7);
-        let n_scale = (half_log / step - 0.5).ceil().max(0.0) as i64;
-        let mut hyps = Vec::new();
-        for k in -n_scale..=n_scale {
-            for &r in &rotations {
-                hyps.push(((k as f64 * step).exp(), r));
-            }
-        }
+        let hyps = similarity_hypotheses(att.sigma_yaw_rad, half_log, step);
         // The budget counts work: the search's transforms, estimated before it runs.
         let points = (map[0].width * map[0].height) as u64;
         let estimate =
@@ -1540,6 +1533,47 @@ impl FixEngine {
             gsd_m: gsd,
             coarse_px_m: f as f64 * gsd,
         })
+    }
+
+    /// The area search's map level (the one whose ground sample matches the frame's at the
+    /// altitude prior over the terrain's middle height), that height above ground, the level's
+    /// image and the work budget; the image's pixels are counted as work (a map too large for the
+    /// budget is left to the feature search before any is read).
+    fn area_level(
+        &self,
+        alt: &super::AltitudePrior,
+        work: &mut u64,
+    ) -> Result<(usize, f64, super::reference::MapImage<'_>, u64), Rejected> {
+        if !(alt.alt_amsl_m.is_finite() && alt.sigma_m.is_finite() && alt.sigma_m > 0.0) {
+            return Err(Rejected::from(
+                "the altitude prior must be finite with a positive sigma",
+            ));
+        }
+        let (lo, hi) = self.reference.dem().height_range_m();
+        let agl_m = alt.alt_amsl_m - 0.5 * (lo + hi);
+        if agl_m.is_nan() || agl_m <= 1.0 {
+            return Err(rejected!(
+                "altitude {:.1} m AMSL is not above the map's terrain",
+                alt.alt_amsl_m
+            ));
+        }
+        let level = self.pick_level(agl_m / self.camera.intrinsics.fx_px);
+        let img = self.reference.level_image(level).ok_or_else(|| {
+            "the map has no level images (built by an older visnav: rebuild it)".to_string()
+        })?;
+        // Each pixel of the level image read (and held in the working planes) counts one unit:
+        // a map too large for the budget is left to the feature search before any is read.
+        let budget = (self.params.reloc_budget_mwork * 1e6) as u64;
+        let map_px = (img.width * img.height) as u64;
+        if work.saturating_add(map_px) > budget {
+            return Err(rejected!(
+                "the map level's {:.0} million pixels exceed the budget (reloc_budget_mwork = {})",
+                map_px as f64 / 1e6,
+                self.params.reloc_budget_mwork
+            ));
+        }
+        *work = work.saturating_add(map_px);
+        Ok((level, agl_m, img, budget))
     }
 
     /// The confirmation of a search's accepted fix `r`: the frame matched again from that fix's
@@ -1708,45 +1742,9 @@ impl FixEngine {
         if m.len() < self.params.min_matches {
             return Err(rejected!("level {level}: only {} matches", m.len()));
         }
-        // Hough vote: scale s = train.scale / query.scale (log2 bins of 0.5), translation of the
-        // virtual principal point in level pixels (bins of 8 % of the image size at that scale).
-        let mut votes: std::collections::HashMap<(i32, i32, i32), Vec<usize>> =
-            std::collections::HashMap::new();
-        let size = rect.width().max(rect.height()) as f32;
-        for (j, mm) in m.iter().enumerate() {
-            let q = &query.keypoints[mm.query];
-            let t = &train.keypoints[mm.train];
-            let s = t.scale / q.scale;
-            if !(s.is_finite() && s > 0.0) {
-                continue;
-            }
-            let ls = s.log2() * 2.0;
-            let tx = t.x - s * (q.x - rect.cx_px as f32);
-            let ty = t.y - s * (q.y - rect.cy_px as f32);
-            let bin = 0.08 * size * s;
-            for ds in [0.0f32, 0.5] {
-                let key = (
-                    (ls + ds).floor() as i32,
-                    (tx / bin).floor() as i32,
-                    (ty / bin).floor() as i32,
-                );
-                votes.entry(key).or_default().push(j);
-                for (dx, dy) in [(1, 0), (0, 1), (1, 1)] {
-                    let key2 = (key.0, key.1 + dx, key.2 + dy);
-                    votes.entry(key2).or_default().push(j);
-                }
-            }
-        }
-        // The largest bin (ties to the smallest key: HashMap order must not decide).
-        let Some((_, cluster)) = votes
-            .into_iter()
-            .max_by(|(ka, va), (kb, vb)| va.len().cmp(&vb.len()).then(kb.cmp(ka)))
-        else {
+        let Some(cluster) = hough_cluster(&m, query, train, rect) else {
             return Err(rejected!("level {level}: no Hough cluster"));
         };
-        let mut cluster = cluster;
-        cluster.sort_unstable();
-        cluster.dedup();
         if cluster.len() < MIN_HOUGH_CLUSTER {
             return Err(rejected!(
                 "level {level}: largest Hough cluster has {} matches (min {MIN_HOUGH_CLUSTER})",
@@ -1928,6 +1926,76 @@ struct Competitor {
     /// Distance of its accepted fix from the best one, metres (None: not accepted).
     elsewhere_m: Option<f64>,
     rect_yaw_rad: f64,
+}
+
+/// The (scale, rotation) hypotheses of the area search, `step` apart (radians; a step moves the
+/// template's corner by the edge step): the headings of +-3 `sigma_yaw_rad` (every heading when
+/// that reaches round) at every log-scale step within +-`half_log`.
+fn similarity_hypotheses(sigma_yaw_rad: f64, half_log: f64, step: f64) -> Vec<(f64, f64)> {
+    let n_full = (std::f64::consts::TAU / step).ceil() as usize;
+    let half_rot = 3.0 * sigma_yaw_rad + 0.5 * step;
+    let rotations: Vec<f64> = if 2.0 * half_rot >= std::f64::consts::TAU {
+        (0..n_full)
+            .map(|r| r as f64 * std::f64::consts::TAU / n_full as f64)
+            .collect()
+    } else {
+        let n = (half_rot / step).ceil() as i64;
+        (-n..=n).map(|r| r as f64 * step).collect()
+    };
+    let n_scale = (half_log / step - 0.5).ceil().max(0.0) as i64;
+    let mut hyps = Vec::new();
+    for k in -n_scale..=n_scale {
+        for &r in &rotations {
+            hyps.push(((k as f64 * step).exp(), r));
+        }
+    }
+    hyps
+}
+
+/// The largest Hough cluster of `m` (indices into it, sorted, distinct): each match votes for
+/// the scale s = train.scale / query.scale (log2 bins of 0.5) and the translation of the virtual
+/// principal point in level pixels (bins of 8 % of the image size at that scale), each vote
+/// spread over the neighbouring bins. Ties go to the smallest key (HashMap order must not
+/// decide). None without a vote.
+fn hough_cluster(
+    m: &[crate::vision::Match],
+    query: &Features,
+    train: &Features,
+    rect: &Rectification,
+) -> Option<Vec<usize>> {
+    let mut votes: std::collections::HashMap<(i32, i32, i32), Vec<usize>> =
+        std::collections::HashMap::new();
+    let size = rect.width().max(rect.height()) as f32;
+    for (j, mm) in m.iter().enumerate() {
+        let q = &query.keypoints[mm.query];
+        let t = &train.keypoints[mm.train];
+        let s = t.scale / q.scale;
+        if !(s.is_finite() && s > 0.0) {
+            continue;
+        }
+        let ls = s.log2() * 2.0;
+        let tx = t.x - s * (q.x - rect.cx_px as f32);
+        let ty = t.y - s * (q.y - rect.cy_px as f32);
+        let bin = 0.08 * size * s;
+        for ds in [0.0f32, 0.5] {
+            let key = (
+                (ls + ds).floor() as i32,
+                (tx / bin).floor() as i32,
+                (ty / bin).floor() as i32,
+            );
+            votes.entry(key).or_default().push(j);
+            for (dx, dy) in [(1, 0), (0, 1), (1, 1)] {
+                let key2 = (key.0, key.1 + dx, key.2 + dy);
+                votes.entry(key2).or_default().push(j);
+            }
+        }
+    }
+    let (_, mut cluster) = votes
+        .into_iter()
+        .max_by(|(ka, va), (kb, vb)| va.len().cmp(&vb.len()).then(kb.cmp(ka)))?;
+    cluster.sort_unstable();
+    cluster.dedup();
+    Some(cluster)
 }
 
 /// Heading hypotheses covering `att`'s heading +-3 sigma (all of them when that reaches round):

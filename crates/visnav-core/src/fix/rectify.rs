@@ -123,6 +123,54 @@ impl Warp<'_> {
     }
 }
 
+/// The frame border's footprint in virtual normalised coordinates (16 steps along each edge),
+/// rays above `tan_max` from the vertical clipped to it (the image continues to the horizon):
+/// the bounding box (lo, hi), `None` when no border ray sees the ground.
+fn footprint(
+    camera: &Camera,
+    [w, h]: [f64; 2],
+    r_cam_virt: &Rotation3<f64>,
+    tan_max: f64,
+) -> Option<([f64; 2], [f64; 2])> {
+    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+    let n_edge = 16;
+    for i in 0..=n_edge {
+        let t = i as f64 / n_edge as f64;
+        for (px, py) in [
+            (t * (w - 1.0), 0.0),
+            (t * (w - 1.0), h - 1.0),
+            (0.0, t * (h - 1.0)),
+            (w - 1.0, t * (h - 1.0)),
+        ] {
+            let Some(ray_cam) = camera.unproject(&Point2::new(px, py)) else {
+                continue;
+            };
+            let rv = r_cam_virt.inverse() * ray_cam.into_inner();
+            // Rays above the limit are clipped to it (the image continues to the horizon).
+            let z = rv.z.max((rv.x * rv.x + rv.y * rv.y).sqrt() / tan_max);
+            if z <= 0.0 {
+                continue;
+            }
+            let (x, y) = (rv.x / z, rv.y / z);
+            lo = [lo[0].min(x), lo[1].min(y)];
+            hi = [hi[0].max(x), hi[1].max(y)];
+        }
+    }
+    (lo[0].is_finite() && hi[0] > lo[0] && hi[1] > lo[1]).then_some((lo, hi))
+}
+
+/// The antialiasing pyramid level for a resample by `scale`: the frame halved k times so that
+/// scale * 2^k lies in about [0.6, 1.25] (stopping at 64 px), with the factor 2^k.
+fn antialiased(frame: &GrayImage, scale: f64) -> (GrayImage, f64) {
+    let mut k = 0u32;
+    let mut src = frame.clone();
+    while scale * f64::from(1u32 << (k + 1)) <= 1.25 && src.width() >= 64 && src.height() >= 64 {
+        src = half_size(&src);
+        k += 1;
+    }
+    (src, f64::from(1u32 << k))
+}
+
 impl Rectification {
     /// Rectify `frame` (taken by `camera` with attitude `r_map_cam`) to a virtual nadir camera whose
     /// focal length is `scale` times the real `fx`. The virtual image covers the frame's footprint up
@@ -144,33 +192,7 @@ impl Rectification {
         // Footprint of the frame border in virtual normalised coordinates.
         let (w, h) = (frame.width() as f64, frame.height() as f64);
         let tan_max = max_off_nadir_rad.tan();
-        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
-        let n_edge = 16;
-        for i in 0..=n_edge {
-            let t = i as f64 / n_edge as f64;
-            for (px, py) in [
-                (t * (w - 1.0), 0.0),
-                (t * (w - 1.0), h - 1.0),
-                (0.0, t * (h - 1.0)),
-                (w - 1.0, t * (h - 1.0)),
-            ] {
-                let Some(ray_cam) = camera.unproject(&Point2::new(px, py)) else {
-                    continue;
-                };
-                let rv = r_cam_virt.inverse() * ray_cam.into_inner();
-                // Rays above the limit are clipped to it (the image continues to the horizon).
-                let z = rv.z.max((rv.x * rv.x + rv.y * rv.y).sqrt() / tan_max);
-                if z <= 0.0 {
-                    continue;
-                }
-                let (x, y) = (rv.x / z, rv.y / z);
-                lo = [lo[0].min(x), lo[1].min(y)];
-                hi = [hi[0].max(x), hi[1].max(y)];
-            }
-        }
-        if !(lo[0].is_finite() && hi[0] > lo[0] && hi[1] > lo[1]) {
-            return None;
-        }
+        let (lo, hi) = footprint(camera, [w, h], &r_cam_virt, tan_max)?;
         let max_side = max_side_px as f64;
         let span = |a: f64, b: f64| -> (f64, f64) {
             // Pixels from the nadir point (0 normalised) to the edges, cropped symmetrically.
@@ -191,15 +213,7 @@ impl Rectification {
         }
         let (cx_px, cy_px) = (-x0, -y0);
 
-        // Antialiasing pyramid level k: resample factor scale * 2^k in about [0.6, 1.25].
-        let mut k = 0u32;
-        let mut src = frame.clone();
-        while scale * f64::from(1u32 << (k + 1)) <= 1.25 && src.width() >= 64 && src.height() >= 64
-        {
-            src = half_size(&src);
-            k += 1;
-        }
-        let f = f64::from(1u32 << k);
+        let (src, f) = antialiased(frame, scale);
 
         let mut rect = Self {
             image: GrayImage::from_fn(1, 1, |_, _| 0.0),

@@ -1742,7 +1742,9 @@ impl FixEngine {
         if m.len() < self.params.min_matches {
             return Err(rejected!("level {level}: only {} matches", m.len()));
         }
-        let Some(cluster) = hough_cluster(&m, query, train, rect) else {
+        let size_px = rect.width().max(rect.height()) as f32;
+        let centre_px = [rect.cx_px as f32, rect.cy_px as f32];
+        let Some(cluster) = hough_cluster(&m, query, train, size_px, centre_px) else {
             return Err(rejected!("level {level}: no Hough cluster"));
         };
         if cluster.len() < MIN_HOUGH_CLUSTER {
@@ -1961,11 +1963,12 @@ fn hough_cluster(
     m: &[crate::vision::Match],
     query: &Features,
     train: &Features,
-    rect: &Rectification,
+    size_px: f32,
+    centre_px: [f32; 2],
 ) -> Option<Vec<usize>> {
     let mut votes: std::collections::HashMap<(i32, i32, i32), Vec<usize>> =
         std::collections::HashMap::new();
-    let size = rect.width().max(rect.height()) as f32;
+    let size = size_px;
     for (j, mm) in m.iter().enumerate() {
         let q = &query.keypoints[mm.query];
         let t = &train.keypoints[mm.train];
@@ -1974,8 +1977,8 @@ fn hough_cluster(
             continue;
         }
         let ls = s.log2() * 2.0;
-        let tx = t.x - s * (q.x - rect.cx_px as f32);
-        let ty = t.y - s * (q.y - rect.cy_px as f32);
+        let tx = t.x - s * (q.x - centre_px[0]);
+        let ty = t.y - s * (q.y - centre_px[1]);
         let bin = 0.08 * size * s;
         for ds in [0.0f32, 0.5] {
             let key = (
@@ -2795,6 +2798,79 @@ mod tests {
             })
             .collect();
         Features::new(kps, desc, kind).unwrap()
+    }
+
+    /// Key points at `pts` with scale `scale` (descriptors irrelevant here).
+    fn keypoints_at(pts: &[[f32; 2]], scale: f32) -> Features {
+        let kind = crate::vision::DescriptorKind::Surf64;
+        let kps = pts
+            .iter()
+            .map(|p| KeyPoint {
+                x: p[0],
+                y: p[1],
+                size: 9.0,
+                scale,
+                response: 1.0,
+                orientation_rad: 0.0,
+                laplacian: 1,
+                octave: 0,
+            })
+            .collect();
+        Features::new(kps, vec![0.0; pts.len() * kind.stride()], kind).unwrap()
+    }
+
+    #[test]
+    fn the_hough_cluster_collects_the_matches_of_one_scale_and_shift() {
+        // 12 matches agree on scale 2 and the virtual principal point at (400, 300); 6 others
+        // scatter.
+        let centre = [320.0f32, 240.0];
+        let mut q = Vec::new();
+        let mut t = Vec::new();
+        for i in 0..12 {
+            let p = [40.0 + 45.0 * i as f32, 30.0 + 33.0 * ((i * 7) % 12) as f32];
+            q.push(p);
+            t.push([
+                400.0 + 2.0 * (p[0] - centre[0]),
+                300.0 + 2.0 * (p[1] - centre[1]),
+            ]);
+        }
+        for i in 0..6 {
+            q.push([100.0 + 80.0 * i as f32, 200.0]);
+            t.push([1500.0 - 230.0 * i as f32, 90.0 + 170.0 * i as f32]);
+        }
+        let query = keypoints_at(&q, 1.5);
+        let train = keypoints_at(&t, 3.0);
+        let m: Vec<crate::vision::Match> = (0..q.len())
+            .map(|i| crate::vision::Match {
+                query: i,
+                train: i,
+                distance: 0.1,
+                second_distance: 0.5,
+            })
+            .collect();
+        let c = hough_cluster(&m, &query, &train, 640.0, centre).unwrap();
+        assert!((0..12).all(|i| c.contains(&i)), "{c:?}");
+        assert!(c.iter().filter(|&&i| i >= 12).count() <= 1, "{c:?}");
+        assert!(c.windows(2).all(|w| w[0] < w[1]), "sorted, distinct");
+        assert!(hough_cluster(&[], &query, &train, 640.0, centre).is_none());
+    }
+
+    #[test]
+    fn the_area_hypotheses_cover_the_heading_and_scale_bands() {
+        let step = 0.05;
+        // A tight heading: rotations within +-(3 sigma + a step), scales within the log band.
+        let h = similarity_hypotheses(0.02, 0.12, step);
+        let max_rot = h.iter().map(|(_, r)| r.abs()).fold(0.0, f64::max);
+        assert!((0.06..=0.06 + 1.5 * step).contains(&max_rot), "{max_rot}");
+        assert!(h.iter().any(|&(s, r)| s == 1.0 && r == 0.0));
+        let max_log = h.iter().map(|(s, _)| s.ln().abs()).fold(0.0, f64::max);
+        assert!((0.12 - step..=0.12 + step).contains(&max_log), "{max_log}");
+        // An unknown heading: every heading, evenly.
+        let h = similarity_hypotheses(2.0, 0.0, step);
+        let n = (std::f64::consts::TAU / step).ceil() as usize;
+        assert_eq!(h.len(), n);
+        assert!(h.iter().all(|&(s, _)| s == 1.0));
+        assert!((h[1].1 - h[0].1 - std::f64::consts::TAU / n as f64).abs() < 1e-12);
     }
 
     #[test]

@@ -336,6 +336,43 @@ mod tests {
     }
 
     #[test]
+    fn the_footprint_of_a_nadir_frame_is_its_field_of_view() {
+        let c = cam();
+        // Camera looking straight down: the virtual camera is the real one.
+        let r_cam_virt = Rotation3::identity();
+        let (lo, hi) = footprint(&c, [640.0, 480.0], &r_cam_virt, 80f64.to_radians()).unwrap();
+        let half_w = 319.5 / c.intrinsics.fx_px;
+        let half_h = 239.5 / c.intrinsics.fy_px;
+        assert!(
+            (hi[0] - half_w).abs() < 1e-6 && (lo[0] + half_w).abs() < 1e-6,
+            "{lo:?} {hi:?}"
+        );
+        assert!(
+            (hi[1] - half_h).abs() < 1e-6 && (lo[1] + half_h).abs() < 1e-6,
+            "{lo:?} {hi:?}"
+        );
+        // Looking at the horizon: the rays are clipped to the off-nadir limit.
+        let up = Rotation3::from_axis_angle(&Vector3::x_axis(), 90f64.to_radians());
+        if let Some((lo, hi)) = footprint(&c, [640.0, 480.0], &up, 60f64.to_radians()) {
+            let tan = 60f64.to_radians().tan() + 1e-9;
+            assert!(
+                lo.iter().chain(hi.iter()).all(|v| v.abs() <= tan),
+                "{lo:?} {hi:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn the_antialiasing_level_halves_until_the_resample_is_near_one() {
+        let frame = GrayImage::from_fn(640, 480, |x, y| ((x + y) % 7) as f32);
+        let (src, f) = antialiased(&frame, 1.0);
+        assert_eq!((src.width(), f), (640, 1.0));
+        let (src, f) = antialiased(&frame, 0.3);
+        // 0.3 * 2 = 0.6 <= 1.25, 0.3 * 4 = 1.2 <= 1.25: two halvings.
+        assert_eq!((src.width(), src.height(), f), (160, 120, 4.0));
+    }
+
+    #[test]
     fn nadir_north_up_frame_is_a_pure_scaling() {
         let c = cam();
         let att = Attitude::from_deg(0.0, 0.0, 0.0);

@@ -21,7 +21,7 @@ use super::render::{RenderPose, Renderer, Scene};
 use visnav_core::camera::{Attitude, Mount};
 use visnav_core::vision::GrayImage;
 use visnav_io::frames::{CaptureTime, Frame, FrameError, FrameSource};
-use visnav_io::geo::Crs;
+use visnav_io::geo::{Crs, GeoError};
 
 /// The latest vehicle truth with its autopilot boot time, µs.
 pub trait TruthFeed: Send + Sync {
@@ -72,19 +72,28 @@ impl SimCamera {
     }
 
     /// The render pose of a truth state (body position in the scene grid, camera via the mount).
-    pub fn pose_of(&self, s: &TruthState) -> Result<RenderPose, String> {
+    pub fn pose_of(&self, s: &TruthState) -> Result<RenderPose, TruthPoseError> {
         pose_of(&self.spec.crs, &self.spec.mount, s)
     }
 }
 
+/// Why a truth state has no render pose in the scene's CRS.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum TruthPoseError {
+    #[error("truth position: {0}")]
+    Position(GeoError),
+    #[error("grid convergence: {0}")]
+    Convergence(GeoError),
+}
+
 /// The render pose of a truth state in `crs` (see the module doc).
-pub fn pose_of(crs: &Crs, mount: &Mount, s: &TruthState) -> Result<RenderPose, String> {
+pub fn pose_of(crs: &Crs, mount: &Mount, s: &TruthState) -> Result<RenderPose, TruthPoseError> {
     let (x_m, y_m) = crs
         .from_geodetic(s.lat_deg, s.lon_deg)
-        .map_err(|e| format!("truth position: {e}"))?;
+        .map_err(TruthPoseError::Position)?;
     let gamma_rad = crs
         .grid_convergence_deg(s.lat_deg, s.lon_deg)
-        .map_err(|e| format!("grid convergence: {e}"))?
+        .map_err(TruthPoseError::Convergence)?
         .to_radians();
     let [r, p, y] = s.rpy_rad;
     let att = Attitude::new(r, p, y);
@@ -131,7 +140,9 @@ impl FrameSource for SimCamera {
             std::thread::sleep(Duration::from_millis(2));
         };
         self.next_at = Some(self.next_at.map_or(Instant::now(), |a| a) + period);
-        let pose = self.pose_of(&state).map_err(FrameError::Config)?;
+        let pose = self
+            .pose_of(&state)
+            .map_err(|e| FrameError::Config(e.to_string()))?;
         let f = self
             .spec
             .renderer

@@ -23,7 +23,7 @@ pub enum WiringError {
     #[error("[map] dem {}: {error}", .path.display())]
     Dem {
         path: std::path::PathBuf,
-        error: DemFileError,
+        error: Box<DemFileError>,
     },
     #[error("[map] ground_height_amsl_m: {0}")]
     GroundHeight(DemError),
@@ -48,7 +48,7 @@ pub fn engine_from_config(cfg: &Config) -> Result<FixEngine, WiringError> {
             visnav_io::geo::dem::load_dem(p, cfg.map.crs_override).map_err(|error| {
                 WiringError::Dem {
                     path: p.clone(),
-                    error,
+                    error: Box::new(error),
                 }
             })?,
         ),

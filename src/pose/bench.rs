@@ -7,9 +7,9 @@
 use std::fmt;
 use std::time::Instant;
 
-use super::rng::Rng;
 use super::synth::{SceneConfig, make_scene};
 use super::{Priors, ResectionConfig, resect};
+use visnav_core::rng::Rng;
 
 /// Timing of one benchmark case.
 #[derive(Debug, Clone, PartialEq)]

@@ -54,7 +54,6 @@ use super::camera_sim::{SimCamera, SimCameraSpec, TruthFeed};
 use super::fixeval::{Stats, percentile};
 use super::imu::ImuErrors;
 use super::render::{ColourMode, Renderer, Scene};
-use super::rng::Rng;
 use super::scenario::GpsConfig;
 use crate::daemon::app_config::Config;
 use crate::daemon::{Daemon, DaemonSetup, FrameFixer, FramePipeline};
@@ -64,6 +63,7 @@ use crate::geo::geoid::geoid_undulation_m;
 use crate::geo::geotiff::load_geotiff;
 use crate::nav::NavOutput;
 use crate::vision::GrayImage;
+use visnav_core::rng::Rng;
 
 /// Truth sampling interval, s.
 const TRUTH_DT_S: f64 = 0.005;

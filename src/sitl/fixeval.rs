@@ -24,7 +24,6 @@ use serde::Serialize;
 use super::render::{
     ColourMode, RenderPose, RenderSpec, Renderer, Scene, grid_convergence_rad, vga_camera,
 };
-use super::rng::Rng;
 use crate::camera::{Attitude, Mount};
 use crate::fix::engine::Attempt;
 use crate::fix::{
@@ -37,6 +36,7 @@ use crate::geo::geotiff::load_geotiff;
 use crate::geo::raster::Raster;
 use crate::map::{BuildSpec, HeightSource};
 use crate::vision::{GrayImage, SurfParams};
+use visnav_core::rng::Rng;
 
 /// Ground height of the bundled NAIP area, metres AMSL (flat prairie, see sitl/maps/README.md).
 pub const NAIP_GROUND_M: f64 = 580.0;

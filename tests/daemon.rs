@@ -19,8 +19,8 @@ use visnav::link::config::{LinkConfig, OutputConfig, OutputMode};
 use visnav::link::inject::local_ned_m;
 use visnav::nav::NavConfig;
 use visnav::sitl::autopilot::{AutopilotEmulator, EmulatorConfig, TruthSource};
-use visnav::sitl::rng::Rng;
 use visnav::vision::GrayImage;
+use visnav_core::rng::Rng;
 
 mod common;
 use common::{TRUTH, free_udp_port};

@@ -6,13 +6,15 @@
 
 use std::path::PathBuf;
 
+use nalgebra::Vector3;
+use visnav::camera::{Attitude, Mount};
 use visnav::fix::{AreaMatching, FixParams};
 use visnav::geo::dem::Dem;
 use visnav::geo::geotiff::load_geotiff;
 use visnav::geo::raster::{Raster, RasterData};
-use visnav::sitl::fixeval::{NAIP_GROUND_M, NaipEval, Summary};
-use visnav::sitl::render::{ColourMode, Scene};
-use visnav::sitl::rng::Rng;
+use visnav::sitl::fixeval::{Case, NAIP_GROUND_M, NaipEval, Summary};
+use visnav::sitl::render::{ColourMode, RenderPose, Scene, grid_convergence_rad};
+use visnav_core::rng::Rng;
 
 fn eval() -> NaipEval {
     eval_with(FixParams::default())
@@ -107,22 +109,59 @@ fn naip_placement_fix_at_low_altitude_is_honest() {
 /// A frame that sees beyond the map's edge cannot be judged at its true place (too little of
 /// the map under it), so an area placement elsewhere is not shown unique: without tie points
 /// it must not become a placement fix. Same imagery and the area correlation alone, where
-/// every other frame's tie points are found (seed 2024, frame 27 half beyond the north edge
-/// was placed 96 m off before the rule; 40 frames: 38 accepted, 0 wrong with it).
+/// every other frame's tie points are found: 40 frames of seed 2024 give no wrong fix. The frame
+/// the rule was made for is set here rather than left to the draws (about one frame in 100 of
+/// the run is such a frame): seed 2024's frame 27 under the simulator's former generator, half
+/// beyond the north edge, was placed 96 m off before the rule.
 #[test]
 fn naip_frames_beyond_the_map_edge_get_no_placement_fix() {
     let mut e = eval_with(area_only());
     e.same_imagery = true;
     let s = run_logged(&e, 40);
     assert_eq!(s.wrong_fixes, 0, "wrong fixes");
-    assert!(
-        s.rejections
-            .iter()
-            .any(|(why, _)| why.contains("could not judge")),
-        "no frame refused for seeing beyond the map: {:?}",
-        s.rejections
-    );
     assert!(s.fix_rate >= 0.85, "fix rate {}", s.fix_rate);
+    // That frame: 858 m inside the north edge, 2233 m above ground, roll 12.2, pitch -5.6,
+    // heading 83.2 deg; the prior 100 m x (-0.513, 0.997) off horizontally, 20 m x 1.207
+    // vertically, its attitude 0.3 deg x (-1.490, 1.990, 1.262) off (the former draws).
+    let map_scene = Scene::new(
+        &e.map_raster,
+        Dem::flat(NAIP_GROUND_M).expect("dem"),
+        ColourMode::Grey,
+    )
+    .expect("scene of the map image");
+    let (x, y) = (487_963.4, 5_208_388.8);
+    let att = Attitude::from_deg(12.157, -5.611, 83.218);
+    let gamma = grid_convergence_rad(&e.crs, x, y).expect("grid convergence");
+    let body = Vector3::new(x, y, e.ground_m(x, y) + 2233.4);
+    let case = Case {
+        pose: RenderPose::from_body(body, &att, &Mount::nadir(), gamma),
+        attitude: att,
+        grid_convergence_rad: gamma,
+    };
+    let img = e.frame(&case, 27, Some(&map_scene)).expect("frame");
+    let mut prior = e.prior(&mut Rng::new(27), &case, 27).expect("prior");
+    let c = case.pose.centre_map_m;
+    let (lat, lon) = e
+        .crs
+        .to_geodetic(c.x - 100.0 * 0.513, c.y + 100.0 * 0.997)
+        .expect("geodetic");
+    let p = prior.position.as_mut().expect("position prior");
+    (p.lat_deg, p.lon_deg, p.alt_amsl_m) = (lat, lon, c.z + 20.0 * 1.207);
+    let a = &mut prior.attitude.as_mut().expect("attitude prior").attitude;
+    let n = 0.3f64.to_radians();
+    *a = Attitude::new(
+        att.roll_rad - 1.490 * n,
+        att.pitch_rad + 1.990 * n,
+        att.yaw_rad + 1.262 * n,
+    );
+    let r = e.engine.fix(&img, &prior);
+    eprintln!("frame beyond the north edge: {}", r.reason);
+    assert!(
+        !r.accepted && r.reason.contains("could not judge"),
+        "the frame beyond the map edge: accepted {}, {}",
+        r.accepted,
+        r.reason
+    );
 }
 
 /// A map from the same source as the camera's world (docs/fix.md, "A map from the same source
@@ -367,7 +406,12 @@ fn map_registration_sigma_widens_only_the_horizontal_position_covariance() {
         }
         assert_eq!(r.cov_ned_m2[2][2], a.cov_ned_m2[2][2]);
         assert_eq!(r.cov_ned_m2[0][1], a.cov_ned_m2[0][1]);
-        let (va, vr) = (a.vision_only.expect("pose"), r.vision_only.expect("pose"));
+        // A placement fix (the area correlation's place, no resection) has no image-only pose.
+        let (va, vr) = match (a.vision_only, r.vision_only) {
+            (Some(va), Some(vr)) => (va, vr),
+            (None, None) => continue,
+            (va, vr) => panic!("frame {i}: image-only pose {va:?} against {vr:?}"),
+        };
         assert!((vr.cov6_ned[0][0] - va.cov6_ned[0][0] - reg_var).abs() < 1e-6 * reg_var);
         assert!((vr.cov6_ned[1][1] - va.cov6_ned[1][1] - reg_var).abs() < 1e-6 * reg_var);
         assert_eq!(vr.cov6_ned[2][2], va.cov6_ned[2][2]);
@@ -489,7 +533,16 @@ fn heading_sweep_falls_back_to_the_area_correlation() {
         s.accepted, s.wrong_fixes, s.beyond_3_sigma
     );
     assert_eq!(s.wrong_fixes, 0, "wrong fixes in the area sweep");
-    assert_eq!(s.beyond_3_sigma, 0, "area sweep fixes beyond 3 sigma");
+    // One fix beyond 3 sigma is allowed: in this mode about 2 % of the fixes are (release bench,
+    // `--yaw-error-deg 25 --yaw-sigma-deg 30 --set 'fine_radius_px = 0.01'`, 100 frames, seed
+    // 2024: 2 of 88 accepted with the simulator's former generator, 2 of 84 with this one), so
+    // among five or six fixes one is a fluctuation of the noise realisation (this seed's frame 5
+    // since the generator changed: 44 m, 3.46 sigma, not wrong), not a covariance regression.
+    assert!(
+        s.beyond_3_sigma <= 1,
+        "area sweep fixes beyond 3 sigma: {}",
+        s.beyond_3_sigma
+    );
     assert!(s.accepted >= 3, "area sweep accepted {} of 6", s.accepted);
 }
 

@@ -10,9 +10,9 @@ use visnav::nav::{
 };
 use visnav::sitl::Scenario;
 use visnav::sitl::imu::{ImuErrors, SimImuConfig};
-use visnav::sitl::rng::Rng;
 use visnav::sitl::run::{RunOptions, run};
 use visnav::sitl::trajectory::{Segment, Trajectory};
+use visnav_core::rng::Rng;
 
 /// Straight-and-level truth flown with an optional noisy IMU, feeding GPS at 5 Hz.
 struct Harness {

@@ -4,12 +4,12 @@
 
 use nalgebra::{Matrix3, Rotation3, Vector2, Vector3};
 use visnav::pose::integrity::chi2_quantile;
-use visnav::pose::rng::Rng;
 use visnav::pose::synth::{SceneConfig, make_scene};
 use visnav::pose::{
     AttitudePrior, Correspondence, Fix, ImageGeometry, Outcome, PositionPrior, Priors, Rejection,
     ResectionConfig, resect, rotate_cov3,
 };
+use visnav_core::rng::Rng;
 
 fn attitude_error_rad(fix: &Fix, truth: &Rotation3<f64>) -> f64 {
     (fix.pose.r_world_cam * truth.inverse()).angle()

@@ -14,8 +14,8 @@ use visnav::daemon::{DaemonConfig, GpsSource, ImuBiasRestore};
 use visnav::link::Telemetry;
 use visnav::nav::earth;
 use visnav::nav::{AttitudeFix, Measurement, NavConfig, NavFilter, PositionFix, VelocityFix};
-use visnav::sitl::rng::Rng;
 use visnav::sitl::trajectory::{Segment, Trajectory};
+use visnav_core::rng::Rng;
 
 const G0: f64 = 9.806_65;
 const DT_US: u64 = 4_000;

@@ -4,15 +4,17 @@
 //! The modules in the order of the data flow (docs/architecture.md): [`validate`] (the
 //! configuration values' checks, a leaf), [`geo`] (geodesy, projections, rasters in memory),
 //! [`camera`] (sensor model), [`vision`] (SURF and matching), [`pose`] (space resection and its
-//! integrity), [`fix`] (the absolute fix: frame against reference map, prior to pose), [`nav`] (strapdown INS and error-state EKF), with [`stats`] (chi-square
-//! quantiles) beside them. Every frame and rotation convention is defined once in
-//! docs/conventions.md.
+//! integrity), [`fix`] (the absolute fix: frame against reference map, prior to pose), [`nav`]
+//! (strapdown INS and error-state EKF), with [`stats`] (chi-square quantiles) and [`rng`] (the
+//! seeded generator of RANSAC and of the simulator) beside them. Every frame and rotation
+//! convention is defined once in docs/conventions.md.
 
 pub mod camera;
 pub mod fix;
 pub mod geo;
 pub mod nav;
 pub mod pose;
+pub mod rng;
 pub mod stats;
 pub mod validate;
 pub mod vision;

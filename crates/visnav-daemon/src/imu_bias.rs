@@ -500,7 +500,7 @@ impl ImuBiasRestorer {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use visnav_core::pose::rng::Rng;
+    use visnav_core::rng::Rng;
 
     const DEG_H: f64 = std::f64::consts::PI / 180.0 / 3600.0; // rad/s per deg/h
 
@@ -838,6 +838,12 @@ mod tests {
         let st = r.status();
         eprintln!("gyro scale mismatch 6.25 %: worst restored gyro error {worst:.0} deg/h; {st:?}");
         // The bias swing as sent reaches 200 deg/h; 6.25 % of the 0.3 rad/s turns is 3900 deg/h.
-        assert!(worst < 300.0, "worst restored gyro error {worst} deg/h");
+        // The little bias that remains is the scale mismatch of the slow samples a bootstrap
+        // averages (below 20 LSB: up to 1.25 LSB, 258 deg/h) and of the pairs that pass the
+        // consistency check while the estimate is held, so it depends on the noise realisation:
+        // over seeds 1-200 the worst error has median 143 deg/h, maximum 338 (this seed 300; the
+        // former generator: median 145, maximum 276). 450 deg/h (2.2 LSB) bounds that
+        // distribution and stays a ninth of the turn-rate error the test guards against.
+        assert!(worst < 450.0, "worst restored gyro error {worst} deg/h");
     }
 }

@@ -24,12 +24,12 @@ use serde::Serialize;
 use super::render::{
     ColourMode, RenderPose, RenderSpec, Renderer, Scene, grid_convergence_rad, vga_camera,
 };
-use super::rng::Rng;
 use visnav_core::camera::{Attitude, Mount};
 use visnav_core::fix::engine::Attempt;
 use visnav_core::fix::{
     AltitudePrior, AttitudePriorNed, FixEngine, FixParams, FixPrior, FixReport, PositionPriorGeo,
 };
+use visnav_core::rng::Rng;
 use visnav_core::vision::{GrayImage, SurfParams};
 use visnav_io::geo::Crs;
 use visnav_io::geo::dem::Dem;

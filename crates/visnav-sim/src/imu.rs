@@ -15,10 +15,10 @@
 //! filter's prior, and a fixed bias smaller than the prior sigma sits in the unobservable directions
 //! (vertical gyro, horizontal accelerometers in level flight) and makes the NEES too small.
 
-use super::rng::Rng;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use visnav_core::nav::config::{DEG_H_TO_RAD_S, UG_TO_M_S2};
+use visnav_core::rng::Rng;
 use visnav_core::validate::{Problems, Validate};
 
 /// The simulated IMU (truth error parameters).

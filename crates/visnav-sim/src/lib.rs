@@ -10,7 +10,6 @@
 //!   scale factor, sample rate).
 //! * [`scenario`]: `sitl/scenarios/*.toml` schema and validation.
 //! * [`run`]: scenario runner, INS-only control, Monte Carlo NEES consistency.
-//! * [`rng`]: deterministic random numbers.
 //! * [`autopilot`]: a MAVLink 2 autopilot emulator speaking like ArduPilot over real sockets.
 //! * [`real_sitl`]: truth (SIMSTATE/SIM_STATE, HIL_STATE_QUATERNION) from a real ArduPilot/PX4
 //!   SITL as a [`camera_sim::TruthFeed`].
@@ -33,7 +32,6 @@ pub mod pose_bench;
 pub mod real_sitl;
 pub mod render;
 pub mod report;
-pub mod rng;
 pub mod run;
 pub mod scenario;
 pub mod surf_eval;

@@ -8,8 +8,8 @@ use std::fmt;
 use std::time::Instant;
 
 use crate::synth::{SceneConfig, make_scene};
-use visnav_core::pose::rng::Rng;
 use visnav_core::pose::{Priors, ResectionConfig, resect};
+use visnav_core::rng::Rng;
 
 /// Timing of one benchmark case.
 #[derive(Debug, Clone, PartialEq)]

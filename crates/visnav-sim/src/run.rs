@@ -17,7 +17,6 @@
 //! chi2_{0.975}(N n) / N]`.
 
 use super::imu::ImuErrors;
-use super::rng::Rng;
 use super::scenario::{Scenario, VisionNoiseFrame};
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use serde::Serialize;
@@ -26,6 +25,7 @@ use visnav_core::nav::filter::Counters;
 use visnav_core::nav::{
     AltitudeFix, AttitudeFix, ImuSample, Measurement, NavFilter, PositionFix, VelocityFix,
 };
+use visnav_core::rng::Rng;
 
 /// East/north/up triple.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]

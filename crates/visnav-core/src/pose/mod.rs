@@ -34,7 +34,6 @@ pub mod integrity;
 pub mod p3p;
 pub mod ransac;
 pub mod refine;
-pub mod rng;
 
 use nalgebra::{Matrix3, Matrix6, Rotation3, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};

@@ -494,7 +494,7 @@ mod tests {
         let zero = [Vector3::zeros(), y[1], y[2]];
         assert!(p3p_lambda_twist(&zero, &ok).is_empty());
         // Nearly collinear bearings and points: whatever comes out is finite.
-        let mut rng = crate::pose::rng::Rng::new(3);
+        let mut rng = crate::rng::Rng::new(3);
         for _ in 0..10_000 {
             let pts =
                 [0, 1, 2].map(|_| Vector3::new(rng.range(-1.0, 1.0), rng.range(-1e-9, 1e-9), 10.0));

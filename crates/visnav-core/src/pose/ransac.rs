@@ -23,8 +23,8 @@ use serde::{Deserialize, Serialize};
 
 use super::p3p::p3p_lambda_twist;
 use super::refine::{RefineConfig, RobustLoss, refine_pose};
-use super::rng::Rng;
 use super::{Correspondence, Pose, nearest_rotation};
+use crate::rng::Rng;
 use crate::validate::{Problems, Validate};
 
 /// RANSAC settings (`[pose.ransac]`).

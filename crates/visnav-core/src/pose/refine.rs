@@ -433,7 +433,7 @@ pub fn rotate_cov3(cov_b: &Matrix3<f64>, r_a_b: &Rotation3<f64>) -> Matrix3<f64>
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pose::rng::Rng;
+    use crate::rng::Rng;
     use crate::validate::{Problems, Validate};
 
     /// A floor below the inflation's inverse is accepted (same-source maps), and a fix whose

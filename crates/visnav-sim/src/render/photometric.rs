@@ -21,12 +21,12 @@
 //!
 //! Off-map pixels are set to `fill_dn` at the end and skipped by every step.
 //!
-//! Noise is deterministic: each image row draws from its own [`crate::rng::Rng`] stream
-//! (xoshiro256**, Box-Muller normals) seeded from `(seed, frame_index, row)`, so results do not
+//! Noise is deterministic: each image row draws from its own [`visnav_core::rng::Rng`] stream
+//! (xoshiro256++, Ziggurat normals) seeded from `(seed, frame_index, row)`, so results do not
 //! depend on the number of threads.
 
-use crate::rng::Rng;
 use rayon::prelude::*;
+use visnav_core::rng::Rng;
 
 /// Photometric parameters (see the module doc for the model). `Default` is the identity apart
 /// from the clipping to [0, 255].

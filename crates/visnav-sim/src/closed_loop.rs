@@ -61,6 +61,7 @@ use visnav_core::rng::Rng;
 use visnav_core::vision::GrayImage;
 use visnav_daemon::app_config::Config;
 use visnav_daemon::{Daemon, DaemonSetup, FrameFixer, FramePipeline};
+use visnav_io::geo::GeoError;
 use visnav_io::geo::dem::Dem;
 use visnav_io::geo::geoid::geoid_undulation_m;
 use visnav_io::geo::geotiff::load_geotiff;
@@ -121,9 +122,18 @@ fn lerp_angle(a: f64, b: f64, u: f64) -> f64 {
     wrap_pi(a + wrap_pi(b - a) * u)
 }
 
+/// Why a scenario's truth could not be tabulated.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum TruthTableError {
+    #[error("truth at t = {t_s} s: geoid: {error}")]
+    Geoid { t_s: f64, error: GeoError },
+    #[error("the trajectory integration produced non-finite positions")]
+    NonFinite,
+}
+
 impl TruthTable {
     /// Integrates the scenario's trajectory (its duration plus a margin).
-    pub fn from_scenario(sc: &Scenario) -> Result<Self, String> {
+    pub fn from_scenario(sc: &Scenario) -> Result<Self, TruthTableError> {
         let traj = sc.trajectory();
         let mut integ = traj.truth();
         let n = ((sc.duration_s() + TRUTH_MARGIN_S) / TRUTH_DT_S).ceil() as usize + 1;
@@ -135,8 +145,11 @@ impl TruthTable {
             let (lat_deg, lon_deg) = (st.lat_rad.to_degrees(), st.lon_rad.to_degrees());
             // The geoid changes by millimetres over a scenario's area: refreshed every 10 s.
             if i % 2000 == 0 || undulation.is_none() {
-                undulation = Some(geoid_undulation_m(lat_deg, lon_deg).map_err(|e| {
-                    format!("truth at t = {} s: geoid: {e}", i as f64 * TRUTH_DT_S)
+                undulation = Some(geoid_undulation_m(lat_deg, lon_deg).map_err(|error| {
+                    TruthTableError::Geoid {
+                        t_s: i as f64 * TRUTH_DT_S,
+                        error,
+                    }
                 })?);
             }
             let n_m = undulation.unwrap_or(0.0);
@@ -166,7 +179,7 @@ impl TruthTable {
             .iter()
             .any(|s| !(s.lat_deg.is_finite() && s.lon_deg.is_finite() && s.h_ellip_m.is_finite()))
         {
-            return Err("the trajectory integration produced non-finite positions".into());
+            return Err(TruthTableError::NonFinite);
         }
         Ok(Self { samples })
     }

@@ -38,6 +38,24 @@ use visnav_io::geo::raster::Raster;
 use visnav_io::map::MapReference;
 use visnav_io::map::{BuildSpec, HeightSource};
 
+/// Why the fix bench could not set up or run a case (a missing map or data file, a frame that
+/// cannot be rendered, a prior that cannot be formed), in words naming the file or the frame.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct FixBenchError(pub String);
+
+impl From<String> for FixBenchError {
+    fn from(reason: String) -> Self {
+        Self(reason)
+    }
+}
+
+impl From<&str> for FixBenchError {
+    fn from(reason: &str) -> Self {
+        Self(reason.to_owned())
+    }
+}
+
 /// Ground height of the bundled NAIP area, metres AMSL (flat prairie, see sitl/maps/README.md).
 pub const NAIP_GROUND_M: f64 = 580.0;
 
@@ -211,7 +229,10 @@ pub struct Summary {
 }
 
 /// Median of `dem` over `bounds` on a 10 m grid (valid cells only), metres.
-fn median_height_m(dem: &Dem, bounds: &visnav_io::geo::raster::Bounds) -> Result<f64, String> {
+fn median_height_m(
+    dem: &Dem,
+    bounds: &visnav_io::geo::raster::Bounds,
+) -> Result<f64, FixBenchError> {
     let mut h = Vec::new();
     let mut y = bounds.min_y_m;
     while y <= bounds.max_y_m {
@@ -236,7 +257,7 @@ fn uni(rng: &mut Rng, lo: f64, hi: f64) -> f64 {
 
 impl NaipEval {
     /// Loads `naip_nd_2009.tif` (map) and `naip_nd_2014.tif` (camera) from `maps_dir`.
-    pub fn new(maps_dir: &Path, params: FixParams) -> Result<Self, String> {
+    pub fn new(maps_dir: &Path, params: FixParams) -> Result<Self, FixBenchError> {
         let surf = SurfParams {
             upright: true,
             ..SurfParams::default()
@@ -245,7 +266,11 @@ impl NaipEval {
     }
 
     /// [`Self::new`] with the reference's SURF settings (the query uses the same).
-    pub fn with_surf(maps_dir: &Path, params: FixParams, surf: SurfParams) -> Result<Self, String> {
+    pub fn with_surf(
+        maps_dir: &Path,
+        params: FixParams,
+        surf: SurfParams,
+    ) -> Result<Self, FixBenchError> {
         Self::with_map(
             maps_dir,
             &[maps_dir.join("naip_nd_2009.tif")],
@@ -265,7 +290,7 @@ impl NaipEval {
         upsample: usize,
         params: FixParams,
         surf: SurfParams,
-    ) -> Result<Self, String> {
+    ) -> Result<Self, FixBenchError> {
         Self::with_map_height_sigma(maps_dir, map_orthos, upsample, params, surf, None)
     }
 
@@ -278,7 +303,7 @@ impl NaipEval {
         params: FixParams,
         surf: SurfParams,
         height_sigma_m: Option<f64>,
-    ) -> Result<Self, String> {
+    ) -> Result<Self, FixBenchError> {
         let load =
             |path: &Path| load_geotiff(path, None).map_err(|e| format!("{}: {e}", path.display()));
         let first = map_orthos
@@ -294,7 +319,8 @@ impl NaipEval {
                 return Err(format!(
                     "{}: the map must not be built from the camera's own image (naip_nd_2014.tif)",
                     p.display()
-                ));
+                )
+                .into());
             }
         }
         let flat = || Dem::flat(NAIP_GROUND_M).map_err(|e| e.to_string());
@@ -376,7 +402,11 @@ impl NaipEval {
 
     /// The Autzen drone-scale case (module docs) from `data_dir` (`../shared/data/autzen`): the
     /// 0.3 m orthophoto and the 1 m lidar surface model, the map on `heights`.
-    pub fn autzen(data_dir: &Path, params: FixParams, heights: MapHeights) -> Result<Self, String> {
+    pub fn autzen(
+        data_dir: &Path,
+        params: FixParams,
+        heights: MapHeights,
+    ) -> Result<Self, FixBenchError> {
         let ortho = data_dir.join("autzen_ortho_0p3m_utm10n.tif");
         let dsm = data_dir.join("autzen_dsm_1m_utm10n.tif");
         let map_raster =
@@ -475,16 +505,16 @@ impl NaipEval {
         case: &Case,
         index: u64,
         scene: Option<&Scene>,
-    ) -> Result<GrayImage, String> {
+    ) -> Result<GrayImage, FixBenchError> {
         let f = self
             .renderer
             .render(scene.unwrap_or(&self.scene), &case.pose, index)
             .map_err(|e| format!("render: {e}"))?;
-        GrayImage::new(f.width, f.height, f.grey()).map_err(|e| e.to_string())
+        GrayImage::new(f.width, f.height, f.grey()).map_err(|e| FixBenchError(e.to_string()))
     }
 
     /// The prior a filter would give (see the module doc).
-    pub fn prior(&self, rng: &mut Rng, case: &Case, index: u64) -> Result<FixPrior, String> {
+    pub fn prior(&self, rng: &mut Rng, case: &Case, index: u64) -> Result<FixPrior, FixBenchError> {
         let c = case.pose.centre_map_m;
         let pp = self.position_prior;
         let (px, py) = (
@@ -630,7 +660,12 @@ impl NaipEval {
 
     /// The acceptance run: `n` frames with their nadir points at least 600 m inside the map.
     /// `log` receives one line per frame.
-    pub fn run(&self, n: usize, seed: u64, log: &mut dyn FnMut(String)) -> Result<Summary, String> {
+    pub fn run(
+        &self,
+        n: usize,
+        seed: u64,
+        log: &mut dyn FnMut(String),
+    ) -> Result<Summary, FixBenchError> {
         self.run_with(n, seed, true, log)
     }
 
@@ -642,7 +677,7 @@ impl NaipEval {
         seed: u64,
         position_prior: bool,
         log: &mut dyn FnMut(String),
-    ) -> Result<Summary, String> {
+    ) -> Result<Summary, FixBenchError> {
         let b = self.map_raster.bounds();
         let mut rng = Rng::new(seed);
         let (mut eh, mut ev, mut ms) = (Vec::new(), Vec::new(), Vec::new());

@@ -22,6 +22,10 @@ struct Harness {
     imu: ImuErrors,
     t_us: u64,
     states: Vec<(u64, InsState)>,
+    /// A faulty accelerometer: from `.0` to `.1` (µs) its x axis reads `.2` (m/s^2).
+    accel_fault: Option<(u64, u64, f64)>,
+    /// A jumping GPS receiver: from `.0` to `.1` (µs) its positions are off by `.2` (NED, m).
+    gps_jump: Option<(u64, u64, Vector3<f64>)>,
 }
 
 const DT_US: u64 = 10_000;
@@ -76,6 +80,8 @@ impl Harness {
             imu: ImuErrors::new(imu),
             t_us: 0,
             states: Vec::new(),
+            accel_fault: None,
+            gps_jump: None,
         }
     }
 
@@ -94,6 +100,12 @@ impl Harness {
             let (dth, dv) = self
                 .imu
                 .corrupt(&mut self.rng, &dth, &dv, DT_US as f64 * 1e-6);
+            let mut dv = dv;
+            if let Some((a, b, f)) = self.accel_fault
+                && (a..b).contains(&self.t_us)
+            {
+                dv.x = f * (DT_US as f64 * 1e-6);
+            }
             let ts = truth.state();
             self.filter.imu(&ImuSample {
                 t_us: self.t_us,
@@ -116,10 +128,14 @@ impl Harness {
                     cov_ned_m2_s2: Matrix3::identity() * 0.01,
                 }));
                 let n = Vector3::new(self.rng.normal(), self.rng.normal(), self.rng.normal());
+                let jump = match self.gps_jump {
+                    Some((a, b, j)) if (a..b).contains(&self.t_us) => j,
+                    _ => Vector3::zeros(),
+                };
                 self.filter.measure(Measurement::GpsPosition(fix_at(
                     &ts,
                     self.t_us,
-                    n * 1.5,
+                    n * 1.5 + jump,
                     1.5,
                 )));
             }
@@ -224,10 +240,14 @@ fn divergence_reset_after_consecutive_rejections() {
     let mut h = Harness::new(NavConfig::default(), SimImuConfig::perfect(100.0));
     h.fly(30.0, true, |_, _, _| {});
     // The aircraft is really 300 m north of where the filter thinks (e.g. after a wrong init):
-    // fixes keep being rejected until the divergence detector resets onto them.
-    let n_reset = NavConfig::default().health.divergence_reject_count;
+    // fixes keep being rejected until the divergence detector resets onto them. 300 m within a
+    // second of the last GPS fix is more than the filter can have drifted (a step: a jumping
+    // source looks the same), so the reset waits until they have been rejected `step_reset_s`.
+    let health = NavConfig::default().health;
+    let n_reset = (health.divergence_reject_count as usize).max(health.step_reset_s as usize + 1);
     let mut outcomes = Vec::new();
-    h.fly(10.0, false, |f, t, ts| {
+    let mut waiting_said = false;
+    h.fly(15.0, false, |f, t, ts| {
         if t.is_multiple_of(1_000_000) {
             outcomes.push(f.measure(Measurement::Vision(fix_at(
                 ts,
@@ -235,13 +255,15 @@ fn divergence_reset_after_consecutive_rejections() {
                 Vector3::new(300.0, 0.0, 0.0),
                 3.0,
             ))));
+            waiting_said |= f.health().1.contains("stepped 300 m");
         }
     });
+    assert!(waiting_said, "the health never said why it waits");
     let resets = outcomes.iter().filter(|o| **o == Outcome::Reset).count();
     assert_eq!(resets, 1, "{outcomes:?}");
     assert_eq!(
         outcomes.iter().position(|o| *o == Outcome::Reset),
-        Some(n_reset as usize - 1)
+        Some(n_reset - 1)
     );
     assert!(
         matches!(outcomes.last(), Some(Outcome::Accepted { .. })),
@@ -778,7 +800,9 @@ fn vision_bias_states_survive_init_and_reset_from_vision_with_a_zero_vertical_si
     let p = h.filter.covariance().expect("covariance");
     assert!(p[(0, 0)] > 2.0 * 2.0, "{}", p[(0, 0)]);
     let mut resets = 0;
-    h.fly(2.0 * n_reset as f64, false, |f, t, ts| {
+    // A 300 m step: reset onto after `step_reset_s` of rejections (see the test above).
+    let wait_s = (n_reset as f64).max(h.filter.config().health.step_reset_s + 1.0);
+    h.fly(wait_s + 5.0, false, |f, t, ts| {
         if t.is_multiple_of(1_000_000) {
             let o = f.measure(Measurement::Vision(fix_at(
                 ts,
@@ -884,4 +908,99 @@ fn barometer_in_a_steep_turn_corrects_the_tilt_the_right_way() {
         rms_baro < 0.8 * rms_free,
         "the barometer did not correct the tilt: {rms_baro} vs {rms_free} deg"
     );
+}
+
+/// Issue 21 item 1: 4 s of the accelerometer's x axis stuck at 16 g or 50 g (a vibration burst,
+/// a glitch) while the GPS aids, then normal data. The samples at or beyond the sensor's range
+/// are clipped, so what they say is not integrated; the filter must be navigating again within
+/// seconds, without a reset loop (before: no usable output for 40-90 s, a divergence reset about
+/// once a second).
+#[test]
+fn a_strong_accelerometer_fault_is_survived() {
+    for g in [16.0, 50.0] {
+        let mut imu = SimImuConfig::perfect(100.0);
+        imu.accel_vrw_m_s_sqrt_h = 0.03;
+        let mut h = Harness::new(NavConfig::default(), imu);
+        h.fly(60.0, true, |_, _, _| {});
+        let (a, b) = (h.t_us, h.t_us + 4_000_000);
+        h.accel_fault = Some((a, b, g * 9.80665));
+        let mut lost_after = Vec::new();
+        h.fly(20.0, true, |f, t, _| {
+            if t > b + 3_000_000 && f.health().0 == Health::Lost {
+                lost_after.push(t);
+            }
+        });
+        assert!(
+            lost_after.is_empty(),
+            "{g} g: navigation lost {} times more than 3 s after the fault ({:?})",
+            lost_after.len(),
+            h.filter.health()
+        );
+        let c = h.filter.counters();
+        assert_eq!(c.hard_resets, 0, "{g} g");
+        assert!(
+            c.divergence_resets <= 1,
+            "{g} g: {} resets",
+            c.divergence_resets
+        );
+        assert!(h.pos_err().norm() < 5.0, "{g} g: {:?}", h.pos_err());
+        assert!(c.imu_clipped >= 390, "{g} g: {} clipped", c.imu_clipped);
+    }
+}
+
+/// Issue 21 item 2: one finite but impossible sample (x = 1e30 m/s^2) every half second for
+/// 30 s: before, each hard-reset the filter (141 of 309 outputs, a sigma of 3.5e23 m logged).
+/// Now each is clipped and bridged; the solution stays healthy and its sigma small.
+#[test]
+fn impossible_imu_samples_change_nothing() {
+    let mut h = Harness::new(NavConfig::default(), SimImuConfig::perfect(100.0));
+    h.fly(60.0, true, |_, _, _| {});
+    let mut worst_sigma: f64 = 0.0;
+    for _ in 0..60 {
+        // The next sample (at t + DT_US) is the impossible one.
+        let t = h.t_us + 1;
+        h.accel_fault = Some((t, t + DT_US, 1e30));
+        h.fly(0.5, true, |f, _, _| {
+            if let Some(o) = f.output() {
+                let s = (o.cov_pos_ned_m2[0][0] + o.cov_pos_ned_m2[1][1]).sqrt();
+                worst_sigma = worst_sigma.max(s);
+                assert_ne!(o.health, Health::Lost, "{}", o.reason);
+            }
+        });
+    }
+    let c = h.filter.counters();
+    assert_eq!(c.hard_resets, 0);
+    assert_eq!(c.imu_clipped, 60);
+    assert!(worst_sigma < 5.0, "sigma {worst_sigma} m");
+    assert!(h.pos_err().norm() < 5.0, "{:?}", h.pos_err());
+}
+
+/// Issue 21 item 3: the aiding GPS jumps 10 km for 4 s. Before, the filter reset onto it after 5
+/// rejections (1.2 s) and claimed 0.4-0.9 m. A step that the filter's error cannot have built
+/// (here the GPS velocity keeps confirming the filter) is not reset onto while it is shorter than
+/// `step_reset_s`: the solution stays on the truth, says the fixes are rejected, and takes the
+/// GPS again when it comes back.
+#[test]
+fn a_jumping_gps_is_not_followed() {
+    let mut h = Harness::new(NavConfig::default(), SimImuConfig::perfect(100.0));
+    h.fly(60.0, true, |_, _, _| {});
+    let (a, b) = (h.t_us, h.t_us + 4_000_000);
+    h.gps_jump = Some((a, b, Vector3::new(10_000.0, 0.0, 0.0)));
+    let mut worst: f64 = 0.0;
+    let mut ok_during_jump = 0;
+    h.fly(15.0, true, |f, t, ts| {
+        worst = worst.max(horizontal_err2(f, ts).sqrt());
+        if (a + 1_500_000..b).contains(&t) && f.health().0 == Health::Ok {
+            ok_during_jump += 1;
+        }
+    });
+    let c = h.filter.counters();
+    assert_eq!(c.divergence_resets, 0);
+    assert!(worst < 5.0, "followed the jump: {worst} m off");
+    assert_eq!(
+        ok_during_jump, 0,
+        "health Ok while every GPS fix is rejected"
+    );
+    assert!(c.gps_position.rejected >= 19, "{:?}", c.gps_position);
+    assert_eq!(h.filter.health().0, Health::Ok, "{:?}", h.filter.health());
 }

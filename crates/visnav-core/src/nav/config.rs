@@ -46,6 +46,14 @@ pub struct ImuNoiseConfig {
     pub accel_bias_rw_ug_sqrt_h: f64,
     /// Accelerometer scale-factor uncertainty (1 sigma per axis), ppm (used with 21 states).
     pub accel_scale_ppm: f64,
+    /// Accelerometer full-scale range (per axis), g. A sample at or beyond it is clipped: the
+    /// true value is unknown, so the filter holds the last good sample and adds the range's
+    /// uncertainty (`nav::filter`, "Clipped IMU samples"). 16 g is the usual range of the MEMS
+    /// IMUs on autopilots (ICM-42688, ICM-20602, BMI088 at its 24 g setting reads more).
+    pub accel_range_g: f64,
+    /// Gyro full-scale range (per axis), deg/s; see `accel_range_g`. 2000 deg/s is the usual
+    /// autopilot setting.
+    pub gyro_range_deg_s: f64,
 }
 
 impl Default for ImuNoiseConfig {
@@ -64,6 +72,8 @@ impl Default for ImuNoiseConfig {
             accel_bias_corr_time_s: 300.0,
             accel_bias_rw_ug_sqrt_h: 0.0,
             accel_scale_ppm: 300.0,
+            accel_range_g: 16.0,
+            gyro_range_deg_s: 2000.0,
         }
     }
 }
@@ -154,6 +164,9 @@ impl Validate for ImuNoiseConfig {
             1e6,
         );
         p.range("accel_scale_ppm", self.accel_scale_ppm, 0.0, 1e5);
+        // Below 2 g a level hover's gravity alone would be near the clip.
+        p.range("accel_range_g", self.accel_range_g, 2.0, 1000.0);
+        p.range("gyro_range_deg_s", self.gyro_range_deg_s, 100.0, 1e5);
     }
 }
 
@@ -314,8 +327,14 @@ pub struct HealthConfig {
     /// Consecutive gate rejections of position fixes that declare divergence and reset the
     /// position/velocity onto the next fix.
     pub divergence_reject_count: u32,
-    /// Velocity sigma after a divergence reset, m/s.
+    /// Velocity sigma after a divergence reset, m/s (at least; the reset takes the velocity
+    /// error from the rejected fixes' drift, with that fit's uncertainty).
     pub reset_vel_sigma_m_s: f64,
+    /// Rejected position fixes that stepped away from the filter (further than its error could
+    /// have grown since the last accepted fix, and with no contradicted velocity: a jumping or
+    /// spoofed receiver, a wrong relocalisation) are reset onto only after they have been
+    /// rejected this long, s (`nav::divergence`, "Steps").
+    pub step_reset_s: f64,
     /// Health stays at least `degraded` this long after a reset, s.
     pub reset_degraded_s: f64,
 }
@@ -329,6 +348,7 @@ impl Default for HealthConfig {
             lost_no_fix_s: 120.0,
             divergence_reject_count: 5,
             reset_vel_sigma_m_s: 5.0,
+            step_reset_s: 10.0,
             reset_degraded_s: 10.0,
         }
     }
@@ -365,6 +385,7 @@ impl Validate for HealthConfig {
             );
         }
         p.positive("reset_vel_sigma_m_s", self.reset_vel_sigma_m_s);
+        p.range("step_reset_s", self.step_reset_s, 0.0, 3600.0);
         p.range("reset_degraded_s", self.reset_degraded_s, 0.0, 3600.0);
     }
 }

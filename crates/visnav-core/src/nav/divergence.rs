@@ -15,6 +15,22 @@
 //! fixes are consistent. The window is accepted for a reset when it is below the
 //! `CONSISTENCY_PROB` quantile. With fewer than 3 fixes nothing can be tested and no reset is
 //! allowed.
+//!
+//! # Steps
+//! Consistent fixes can still be wrong together: a receiver that jumps (10 km for 4 s) or is
+//! spoofed, a relocalisation repeated on the same wrong place. What tells a drifting filter from
+//! a stepping source is how fast the disagreement appeared. Since the last accepted position fix
+//! (`dt` seconds before the window's middle) the filter's error can have grown by at most
+//! [`plausible_drift_m`]`(dt)`: a velocity error of [`DRIFT_VEL_M_S`] plus the
+//! [`DRIFT_ACCEL_M_S2`] acceleration error, `v dt + a dt^2 / 2`. A fitted offset beyond that is a
+//! step, and the filter resets onto it at once only when its own velocity is contradicted as
+//! well (a velocity measurement was rejected since the last accepted position fix: the IMU or
+//! the filter went wrong, not the position source). Otherwise the fixes must keep being rejected
+//! for `nav.health.step_reset_s` before the filter follows them; a short jump never moves it.
+//!
+//! The reset also takes the fitted drift: `b` is the rate of the innovation, i.e. the filter's
+//! horizontal velocity error with the sign of a correction (`v <- v + b`), with its variance
+//! from the same weighted fit.
 
 use std::collections::VecDeque;
 
@@ -32,9 +48,89 @@ pub const CONSISTENCY_PROB: f64 = 0.999;
 /// m/s^2. Enters each fix's variance as `(0.5 a (t - t_mid)^2)^2`.
 pub const DRIFT_ACCEL_M_S2: f64 = 0.5;
 
+/// Velocity error a filter can carry beyond what it claims (after a minute unaided, or an IMU
+/// fault below the clip), m/s: the first term of [`plausible_drift_m`].
+pub const DRIFT_VEL_M_S: f64 = 10.0;
+
+/// How far the filter's position error can have grown in `dt_s` seconds without any fix being
+/// accepted: `DRIFT_VEL_M_S dt + DRIFT_ACCEL_M_S2 dt^2 / 2`, m (see "Steps").
+pub fn plausible_drift_m(dt_s: f64) -> f64 {
+    let dt = dt_s.max(0.0);
+    DRIFT_VEL_M_S * dt + 0.5 * DRIFT_ACCEL_M_S2 * dt * dt
+}
+
+/// The weighted line through the window's innovations (see the module doc).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WindowFit {
+    /// Residual chi-square of the fit.
+    pub chi2: f64,
+    /// Middle of the window (mean capture time), s.
+    pub t_mid_s: f64,
+    /// Fitted innovation at `t_mid_s` (north, east), m.
+    pub offset_ne_m: Vector2<f64>,
+    /// Fitted rate of the innovation (north, east), m/s: the filter's velocity error with the
+    /// sign of a correction.
+    pub rate_ne_m_s: Vector2<f64>,
+    /// Variance of each rate component, (m/s)^2 (infinite when the window has no time span).
+    pub rate_var_m2_s2: f64,
+    /// Mean horizontal variance of the fixes themselves, m^2.
+    pub fix_var_mean_m2: f64,
+}
+
+/// The run of rejected fixes a consistent window belongs to, for the step rule.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RejectRun {
+    /// Capture time of the last accepted position fix, s (`None`: none since the start).
+    pub last_accepted_s: Option<f64>,
+    /// Capture time of the first rejected fix of the run, s.
+    pub first_rejected_s: f64,
+    /// Capture time of the latest rejected fix, s.
+    pub latest_s: f64,
+    /// A velocity measurement was rejected since the last accepted position fix.
+    pub velocity_contradicted: bool,
+}
+
+/// Whether a consistent window may reset the filter now (module doc, "Steps"): at once when the
+/// filter could have drifted that far (its fitted offset within [`plausible_drift_m`] of the
+/// time since the last accepted fix, plus 3 sigma of the fixes' own noise) or its velocity is
+/// contradicted too; else once the run has lasted `step_reset_s`.
+pub fn reset_allowed(
+    fit: &WindowFit,
+    run: &RejectRun,
+    step_reset_s: f64,
+) -> Result<(), Inconsistent> {
+    let Some(last) = run.last_accepted_s else {
+        return Ok(());
+    };
+    if run.velocity_contradicted {
+        return Ok(());
+    }
+    let since_s = (fit.t_mid_s - last).max(0.0);
+    let offset_m = fit.offset_ne_m.norm();
+    let allowed_m = plausible_drift_m(since_s) + 3.0 * fit.fix_var_mean_m2.max(0.0).sqrt();
+    let lasted_s = run.latest_s - run.first_rejected_s;
+    if offset_m <= allowed_m || lasted_s >= step_reset_s {
+        return Ok(());
+    }
+    Err(Inconsistent::Step {
+        offset_m,
+        since_s,
+        wait_s: step_reset_s,
+    })
+}
+
 /// Why the held rejected fixes are not a position to reset onto.
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
 pub enum Inconsistent {
+    #[error(
+        "the rejected fixes stepped {offset_m:.0} m away in {since_s:.1} s (the filter's error \
+         cannot grow that fast): waiting for {wait_s:.0} s of them before a reset"
+    )]
+    Step {
+        offset_m: f64,
+        since_s: f64,
+        wait_s: f64,
+    },
     #[error("{n} rejected fixes cannot be checked against each other")]
     TooFew { n: usize },
     #[error("a rejected fix has a non-finite value")]
@@ -85,9 +181,14 @@ impl RejectedWindow {
         self.fixes.is_empty()
     }
 
+    /// Capture time of the oldest held fix, s.
+    pub fn first_t_s(&self) -> Option<f64> {
+        self.fixes.front().map(|f| f.t_s)
+    }
+
     /// Whether the held fixes agree with each other up to an offset and a drift of the filter
-    /// (see the module doc): `Ok(chi2)` when they do, `Err(reason)` otherwise.
-    pub fn consistent(&self) -> Result<f64, Inconsistent> {
+    /// (see the module doc): the fit when they do, the reason otherwise.
+    pub fn consistent(&self) -> Result<WindowFit, Inconsistent> {
         let n = self.fixes.len();
         if n < 3 {
             return Err(Inconsistent::TooFew { n });
@@ -115,7 +216,9 @@ impl RejectedWindow {
             stt += wi * t * t;
         }
         let det = sw * stt - st * st;
+        let spans = det.abs() > 1e-12 * sw * stt.max(1e-12);
         let mut chi2 = 0.0;
+        let (mut offset, mut rate) = (Vector2::zeros(), Vector2::zeros());
         for axis in 0..2 {
             let (mut sd, mut std) = (0.0, 0.0);
             for (f, wi) in self.fixes.iter().zip(&w) {
@@ -123,11 +226,13 @@ impl RejectedWindow {
                 sd += wi * f.innov_ne_m[axis];
                 std += wi * t * f.innov_ne_m[axis];
             }
-            let (a, b) = if det.abs() > 1e-12 * sw * stt.max(1e-12) {
+            let (a, b) = if spans {
                 ((stt * sd - st * std) / det, (sw * std - st * sd) / det)
             } else {
                 (sd / sw, 0.0) // all at one time: the mean
             };
+            offset[axis] = a;
+            rate[axis] = b;
             for (f, wi) in self.fixes.iter().zip(&w) {
                 let r = f.innov_ne_m[axis] - a - b * (f.t_s - t_mid);
                 chi2 += wi * r * r;
@@ -136,7 +241,14 @@ impl RejectedWindow {
         let dof = 2.0 * (n as f64 - 2.0);
         let gate = chi2_quantile(dof, CONSISTENCY_PROB);
         if chi2 <= gate {
-            Ok(chi2)
+            Ok(WindowFit {
+                chi2,
+                t_mid_s: t_mid,
+                offset_ne_m: offset,
+                rate_ne_m_s: rate,
+                rate_var_m2_s2: if spans { sw / det } else { f64::INFINITY },
+                fix_var_mean_m2: self.fixes.iter().map(|f| f.var_h_m2).sum::<f64>() / n as f64,
+            })
         } else {
             Err(Inconsistent::Disagree { n, chi2, gate })
         }
@@ -232,5 +344,95 @@ mod tests {
         assert_eq!(w.len(), 5);
         w.clear();
         assert!(w.is_empty());
+    }
+
+    fn fit_of(offset_n: f64, t_mid: f64, sigma: f64) -> WindowFit {
+        WindowFit {
+            chi2: 1.0,
+            t_mid_s: t_mid,
+            offset_ne_m: Vector2::new(offset_n, 0.0),
+            rate_ne_m_s: Vector2::zeros(),
+            rate_var_m2_s2: 1.0,
+            fix_var_mean_m2: sigma * sigma,
+        }
+    }
+
+    #[test]
+    fn a_step_the_filter_cannot_have_drifted_waits_for_step_reset_s() {
+        let run = |last: f64, first: f64, latest: f64, vel: bool| RejectRun {
+            last_accepted_s: Some(last),
+            first_rejected_s: first,
+            latest_s: latest,
+            velocity_contradicted: vel,
+        };
+        // A 10 km jump 0.6 s after the last accepted GPS fix: a step.
+        let f = fit_of(10_000.0, 100.6, 1.5);
+        let e = reset_allowed(&f, &run(100.0, 100.2, 101.0, false), 10.0);
+        assert!(matches!(e, Err(Inconsistent::Step { .. })), "{e:?}");
+        // ... unless the filter's velocity is contradicted too (an IMU fault), or it lasted.
+        assert_eq!(
+            reset_allowed(&f, &run(100.0, 100.2, 101.0, true), 10.0),
+            Ok(())
+        );
+        assert_eq!(
+            reset_allowed(&f, &run(100.0, 100.2, 110.2, false), 10.0),
+            Ok(())
+        );
+        assert!(reset_allowed(&f, &run(100.0, 100.2, 110.1, false), 10.0).is_err());
+        // 300 m after a minute unaided: a drift (10 m/s x 60 s + 0.25 x 3600 = 1500 m allowed).
+        let f = fit_of(300.0, 160.0, 3.0);
+        assert_eq!(
+            reset_allowed(&f, &run(100.0, 158.0, 162.0, false), 10.0),
+            Ok(())
+        );
+        // The fixes' own noise widens the allowance: 40 m after 1 s with 10 m fixes is a drift.
+        assert_eq!(
+            reset_allowed(
+                &fit_of(40.0, 101.0, 10.0),
+                &run(100.0, 100.5, 101.5, false),
+                10.0
+            ),
+            Ok(())
+        );
+        assert!(
+            reset_allowed(
+                &fit_of(40.0, 101.0, 1.0),
+                &run(100.0, 100.5, 101.5, false),
+                10.0
+            )
+            .is_err()
+        );
+        // Never an accepted fix: nothing to step from.
+        let none = RejectRun {
+            last_accepted_s: None,
+            ..run(0.0, 100.0, 101.0, false)
+        };
+        assert_eq!(reset_allowed(&fit_of(1e4, 100.5, 1.0), &none, 10.0), Ok(()));
+    }
+
+    #[test]
+    fn the_fit_returns_the_drift_of_a_diverging_filter() {
+        // Innovations 20 m + 3 m/s x t north, -2 m/s x t east.
+        let f: Vec<_> = (0..5)
+            .map(|k| {
+                let t = k as f64;
+                fix(t, 20.0 + 3.0 * t, -2.0 * t, 1.0)
+            })
+            .collect();
+        let fit = window(&f).consistent().expect("consistent");
+        assert!(
+            (fit.rate_ne_m_s - Vector2::new(3.0, -2.0)).norm() < 1e-9,
+            "{fit:?}"
+        );
+        assert!(
+            (fit.offset_ne_m - Vector2::new(26.0, -4.0)).norm() < 1e-9,
+            "{fit:?}"
+        );
+        assert!((fit.t_mid_s - 2.0).abs() < 1e-12);
+        assert!(
+            fit.rate_var_m2_s2 > 0.0 && fit.rate_var_m2_s2 < 1.0,
+            "{fit:?}"
+        );
+        assert!((fit.fix_var_mean_m2 - 1.0).abs() < 1e-12);
     }
 }

@@ -53,13 +53,24 @@
 //!
 //! Each measurement type has a chi-square innovation gate on the normalised innovation squared
 //! `NIS = dz^T S^-1 dz` and counters. Divergence: `divergence_reject_count` consecutive rejected
-//! position fixes reset position/velocity onto the fix; a covariance that loses positive
-//! definiteness is re-initialised; a non-finite state or an IMU gap resets the filter to
-//! "not initialised".
+//! position fixes reset position/velocity onto the fix when they agree with each other and
+//! either the filter could have drifted that far or it has been rejecting them for
+//! `step_reset_s` (`super::divergence`); the velocity takes the drift of their innovations. A
+//! covariance that loses positive definiteness is re-initialised; a non-finite state or an IMU
+//! gap resets the filter to "not initialised".
+//!
+//! Clipped IMU samples: a gyro or accelerometer sample with an axis at or beyond the sensor's
+//! range (`nav.imu.gyro_range_deg_s`, `accel_range_g`; also any finite impossible value such as
+//! 1e30) says only that the true value is somewhere at or beyond the range. Integrating it would
+//! put up to the range on the velocity every second (4 s at 16 g: 630 m/s), which no later fix
+//! can be gated against. Such a sample is replaced by the last good sample's rates held over its
+//! interval, and the replaced sensor gets a gap sigma of its full range times the interval
+//! (isotropic, added like a bridged gap), so the covariance says what the filter no longer knows
+//! and the next fixes pull it back.
 
 use super::config::DragMode;
 use super::config::NavConfig;
-use super::divergence::{RejectedFix, RejectedWindow};
+use super::divergence::{RejectRun, RejectedFix, RejectedWindow, WindowFit, reset_allowed};
 use super::drag::{DragFix, DragLearner};
 use super::earth;
 use super::ins::{InsState, Strapdown, skew_matrix};
@@ -76,6 +87,10 @@ mod fuse_attitude;
 mod fuse_drag;
 mod fuse_position;
 mod fuse_velocity;
+
+/// A sample within this fraction of the sensor's range counts as clipped: a saturated axis
+/// reads its full scale minus the last count or two, so equality alone would miss it.
+const CLIP_FRACTION: f64 = 0.995;
 
 /// Size of the error state carried internally.
 pub const N_STATES: usize = 30;
@@ -145,6 +160,9 @@ pub struct Counters {
     pub hard_resets: u64,
     /// IMU samples dropped (non-finite, time not increasing).
     pub imu_invalid: u64,
+    /// IMU samples at or beyond the sensor's range (clipped or impossible), replaced by the last
+    /// good sample with the range's uncertainty.
+    pub imu_clipped: u64,
     /// Delayed measurements applied by re-propagation.
     pub replays: u64,
 }
@@ -320,6 +338,14 @@ pub struct NavFilter {
     last_gps_vel_us: Option<u64>,
     last_reset: Option<(u64, String)>,
     next_output_t_us: Option<u64>,
+    /// Rates (gyro rad/s, specific force m/s^2, body FRD) of the last IMU sample inside the
+    /// sensor's range: what a clipped sample is replaced by.
+    last_good_rates: Option<(Vector3<f64>, Vector3<f64>)>,
+    /// Capture time of the first position fix of the current run of rejected ones.
+    reject_run_start_us: Option<u64>,
+    /// Velocity measurements rejected since the last accepted position fix: the filter's own
+    /// velocity is contradicted, so a step in the position fixes may be the filter's.
+    vel_rejects_since_pos: u32,
 }
 
 fn dt_s(a_us: u64, b_us: u64) -> f64 {
@@ -415,6 +441,9 @@ impl NavFilter {
             last_gps_vel_us: None,
             last_reset: None,
             next_output_t_us: None,
+            last_good_rates: None,
+            reject_run_start_us: None,
+            vel_rejects_since_pos: 0,
         }
     }
 
@@ -529,6 +558,7 @@ impl NavFilter {
             }
             return None;
         }
+        let s = &self.within_range(s, dt);
         let core = self.core.as_mut()?;
         core.propagate(&self.par, s);
         if !core.ins.state.is_finite() || !core.p.iter().all(|x| x.is_finite()) {
@@ -560,6 +590,53 @@ impl NavFilter {
             return self.output();
         }
         None
+    }
+
+    /// The sample, or (when any axis is at or beyond the sensor's range: clipped, or an
+    /// impossible value) the last good sample's rates held over `dt` with the range's
+    /// uncertainty in its gap sigmas (see the module doc, "Clipped IMU samples").
+    fn within_range(&mut self, s: &ImuSample, dt: f64) -> ImuSample {
+        if dt <= 0.0 {
+            return *s;
+        }
+        let (w, f) = (s.dtheta_rad_body_frd / dt, s.dv_m_s_body_frd / dt);
+        let imu = &self.cfg.imu;
+        let w_max = imu.gyro_range_deg_s.to_radians() * CLIP_FRACTION;
+        let f_max = imu.accel_range_g * super::config::G0_M_S2 * CLIP_FRACTION;
+        let gyro_clipped = w.amax() >= w_max;
+        let accel_clipped = f.amax() >= f_max;
+        if !gyro_clipped && !accel_clipped {
+            self.last_good_rates = Some((w, f));
+            return *s;
+        }
+        self.counters.imu_clipped += 1;
+        if self.counters.imu_clipped == 1 || self.counters.imu_clipped.is_power_of_two() {
+            tracing::warn!(
+                "IMU sample at or beyond the sensor's range (nav.imu.accel_range_g / \
+                 gyro_range_deg_s): held the last good sample ({} so far)",
+                self.counters.imu_clipped
+            );
+        }
+        // Without a good sample yet: no rotation and no specific force, with the same sigma.
+        let (w0, f0) = self.last_good_rates.unwrap_or_default();
+        let mut out = ImuSample::from_rates(s.t_us, w0, f0, dt);
+        let sigma = |max: f64, clipped: bool, good: f64| {
+            if clipped {
+                max / CLIP_FRACTION * dt
+            } else {
+                good
+            }
+        };
+        // The sensor (gyro or accelerometer) that is not clipped keeps its own measurement.
+        if !gyro_clipped {
+            out.dtheta_rad_body_frd = s.dtheta_rad_body_frd;
+        }
+        if !accel_clipped {
+            out.dv_m_s_body_frd = s.dv_m_s_body_frd;
+        }
+        out.gap_sigma_dtheta_rad = sigma(w_max, gyro_clipped, s.gap_sigma_dtheta_rad);
+        out.gap_sigma_dv_m_s = sigma(f_max, accel_clipped, s.gap_sigma_dv_m_s);
+        out
     }
 
     /// Tell the filter whether the vehicle is a multirotor (`[nav.drag] mode = "auto"` fuses
@@ -722,6 +799,8 @@ impl NavFilter {
         self.consecutive_rejects = 0;
         self.rejected.clear();
         self.last_refusal = None;
+        self.reject_run_start_us = None;
+        self.vel_rejects_since_pos = 0;
         self.last_pos_for_init = None;
         self.last_reset = Some((t_us, reason));
     }
@@ -790,18 +869,35 @@ impl NavFilter {
                     self.consecutive_rejects = 0;
                     self.rejected.clear();
                     self.last_refusal = None;
+                    self.reject_run_start_us = None;
+                    self.vel_rejects_since_pos = 0;
                     self.last_pos_fix_t_us = Some(self.last_pos_fix_t_us.unwrap_or(0).max(t_c));
                 }
             }
             Outcome::Rejected { .. } => {
                 self.type_counters(&m).rejected += 1;
+                if matches!(m, Measurement::GpsVelocity(_)) {
+                    self.vel_rejects_since_pos += 1;
+                }
                 if is_pos {
                     self.consecutive_rejects += 1;
+                    self.reject_run_start_us.get_or_insert(t_c);
                     self.note_rejected(&m);
                     if self.consecutive_rejects >= self.cfg.health.divergence_reject_count {
-                        match self.rejected.consistent() {
-                            Ok(_) => {
-                                self.divergence_reset(&m);
+                        let run = RejectRun {
+                            last_accepted_s: self.last_pos_fix_t_us.map(|t| t as f64 * 1e-6),
+                            first_rejected_s: self.reject_run_start_us.unwrap_or(t_c) as f64 * 1e-6,
+                            latest_s: t_c as f64 * 1e-6,
+                            velocity_contradicted: self.vel_rejects_since_pos > 0,
+                        };
+                        let step_s = self.cfg.health.step_reset_s;
+                        match self
+                            .rejected
+                            .consistent()
+                            .and_then(|fit| reset_allowed(&fit, &run, step_s).map(|()| fit))
+                        {
+                            Ok(fit) => {
+                                self.divergence_reset(&m, &fit);
                                 return Outcome::Reset;
                             }
                             Err(why) => {
@@ -886,7 +982,7 @@ impl NavFilter {
         );
     }
 
-    fn divergence_reset(&mut self, m: &Measurement) {
+    fn divergence_reset(&mut self, m: &Measurement, fit: &WindowFit) {
         let Some((f, is_vision)) = m.position_fix() else {
             return;
         };
@@ -912,6 +1008,15 @@ impl NavFilter {
         core.ins.state.lat_rad = lat;
         core.ins.state.lon_rad = lon;
         core.ins.state.h_m = h;
+        // The drift of the rejected innovations is the filter's horizontal velocity error.
+        let vel_var =
+            if fit.rate_var_m2_s2.is_finite() && fit.rate_ne_m_s.iter().all(|x| x.is_finite()) {
+                core.ins.state.v_ned_m_s.x += fit.rate_ne_m_s.x;
+                core.ins.state.v_ned_m_s.y += fit.rate_ne_m_s.y;
+                fit.rate_var_m2_s2
+            } else {
+                0.0
+            };
         // A vision reset also restarts the bias (the fixes were rejected: its estimate may be
         // the cause); the position then carries the bias's error as at initialisation.
         let vision_bias = is_vision && self.par.vbias;
@@ -926,7 +1031,7 @@ impl NavFilter {
                 core.p[(k, i)] = 0.0;
             }
         }
-        let vs = self.cfg.health.reset_vel_sigma_m_s.powi(2);
+        let vs = self.cfg.health.reset_vel_sigma_m_s.powi(2) + vel_var;
         for a in 0..3 {
             for b in 0..3 {
                 core.p[(IP + a, IP + b)] = f.cov_ned_m2[(a, b)];
@@ -958,6 +1063,8 @@ impl NavFilter {
         self.consecutive_rejects = 0;
         self.rejected.clear();
         self.last_refusal = None;
+        self.reject_run_start_us = None;
+        self.vel_rejects_since_pos = 0;
         self.last_pos_fix_t_us = Some(f.t_capture_us);
         self.last_reset = Some((now, reason));
     }
@@ -1130,6 +1237,8 @@ impl NavFilter {
         self.consecutive_rejects = 0;
         self.rejected.clear();
         self.last_refusal = None;
+        self.reject_run_start_us = None;
+        self.vel_rejects_since_pos = 0;
         tracing::info!(
             "nav filter initialised from {} fix",
             if is_gps { "GPS" } else { "vision" }

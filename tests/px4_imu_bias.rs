@@ -87,6 +87,7 @@ fn tel(t_us: u64, msg: MavMessage) -> Telemetry {
     Telemetry {
         t_companion_ns: t_us as i64 * 1000,
         t_boot_us: Some(t_us),
+        boot_epoch: 0,
         header: MavHeader::default(),
         msg,
     }

@@ -29,6 +29,7 @@ fn run(daemon: DaemonConfig, nav: NavConfig) -> ReplayReport {
             gps: GpsSource::Gps2,
             nav,
             autopilot_system_id: None,
+            autopilot_component_id: 1,
             state_interval_s: 0.1,
         },
     )

@@ -49,6 +49,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<ExitCode> {
         daemon: cfg.daemon.clone(),
         nav: cfg.nav.clone(),
         autopilot_system_id: cfg.link.autopilot_system_id,
+        autopilot_component_id: cfg.link.autopilot_component_id,
         state_interval_s: 0.1,
     };
     let fixes = match &args.fixes {

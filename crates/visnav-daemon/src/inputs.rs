@@ -26,8 +26,10 @@
 //!   `h = (1 - (p / 1013.25)^(1/5.25588)) / 2.25577e-5`, plus an offset calibrated against the
 //!   GPS ellipsoidal height (running mean) or, without GPS, once against a healthy filter
 //!   height; not used before the offset is known.
-//! * Autopilot reboot: an IMU time more than [`REBOOT_BACKSTEP_US`] behind the previous one
-//!   (reordered UDP packets are a few ms apart; duplicates and small steps back are dropped).
+//! * Autopilot reboot: the link's confirmed reboot (`Telemetry::boot_epoch` changes; the link
+//!   needs several streams on a new clock and the old one silent, `visnav_link::time::BootClock`).
+//!   An IMU sample whose time is not after the previous one is dropped (a duplicate, a reordered
+//!   or a stale packet): one message is never enough to restart the filter.
 //! * Output: `NavOutput` to the injector's `NavEstimate` (AMSL = h - N, quaternion, covariances,
 //!   health with a reason whose wording is kept while only its numbers change, so the link's
 //!   health STATUSTEXT is sent on real changes only).
@@ -56,8 +58,6 @@ pub const IMU_SOURCE_HOLD_S: f64 = 0.5;
 const G0_M_S2: f64 = 9.806_65;
 /// ATTITUDE rates replace a 16-bit IMU message's gyro when within this of its time, µs.
 pub const ATT_RATES_MAX_AGE_US: u64 = 60_000;
-/// An IMU time this far behind the previous one is an autopilot reboot, µs.
-pub const REBOOT_BACKSTEP_US: u64 = 100_000;
 
 /// What one telemetry message means for the filter.
 // A pose fix (6x6 covariance) is about 400 bytes, the others under 110: measurements are few
@@ -161,6 +161,8 @@ pub struct Inputs {
     gps: GpsSource,
     last_kind_ns: [Option<i64>; 3],
     last_imu_t_us: Option<u64>,
+    /// The link's reboot count of the latest message.
+    boot_epoch: Option<u32>,
     /// The last IMU sample's rates (gyro rad/s, specific force m/s^2) and the usual interval
     /// between samples (s, a running mean over intervals without a gap).
     last_imu_rates: Option<(Vector3<f64>, Vector3<f64>, f64)>,
@@ -195,6 +197,7 @@ impl Inputs {
             gps,
             last_kind_ns: [None; 3],
             last_imu_t_us: None,
+            boot_epoch: None,
             last_imu_rates: None,
             baro_isa_m: None,
             baro_offset: None,
@@ -281,17 +284,12 @@ impl Inputs {
             return;
         }
         match self.last_imu_t_us {
-            Some(prev) if t_us + REBOOT_BACKSTEP_US < prev => {
-                self.reset_times();
-                self.last_imu_t_us = Some(t_us);
-                out.push(NavInput::Reboot);
-            }
             Some(prev) if t_us > prev => {
                 let dt_s = (t_us - prev) as f64 * 1e-6;
                 self.last_imu_t_us = Some(t_us);
                 out.push(NavInput::Imu(self.gap_bridged(t_us, gyro, acc, dt_s)));
             }
-            Some(_) => {} // duplicate or slightly out of order: dropped
+            Some(_) => {} // duplicate, out of order or stale: dropped
             None => self.last_imu_t_us = Some(t_us),
         }
     }
@@ -337,6 +335,11 @@ impl Inputs {
     /// Convert one telemetry message (may produce nothing).
     pub fn convert(&mut self, tel: &Telemetry) -> Vec<NavInput> {
         let mut out = Vec::new();
+        if self.boot_epoch.is_some_and(|e| e != tel.boot_epoch) {
+            self.reset_times();
+            out.push(NavInput::Reboot);
+        }
+        self.boot_epoch = Some(tel.boot_epoch);
         let t_ns = tel.t_companion_ns;
         if let MavMessage::HEARTBEAT(hb) = &tel.msg
             && hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
@@ -814,6 +817,7 @@ mod tests {
         Telemetry {
             t_companion_ns: t_ms * 1_000_000,
             t_boot_us: Some(t_ms as u64 * 1000),
+            boot_epoch: 0,
             header: MavHeader::default(),
             msg,
         }
@@ -852,16 +856,21 @@ mod tests {
         let out = s.convert(&tel(1020, hr(1_020_000)));
         assert!(matches!(&out[0], NavInput::Imu(i) if (i.dv_m_s_body_frd.z + 0.098).abs() < 1e-6));
         assert!(s.convert(&tel(1025, scaled(1025))).is_empty());
-        // Reboot: time goes back by more than 1 s.
-        let out = s.convert(&tel(1030, hr(5_000)));
-        assert_eq!(out, vec![NavInput::Reboot]);
+        // A sample from the past (stale, replayed, or an unconfirmed reboot) is dropped...
+        assert!(s.convert(&tel(1030, hr(5_000))).is_empty());
+        // ... and a reboot is the link's: its epoch changes.
+        let mut after = tel(1035, hr(6_000));
+        after.boot_epoch = 1;
+        assert_eq!(s.convert(&after), vec![NavInput::Reboot]);
         // Non-finite samples are dropped.
         let bad = MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
             time_usec: 20_000,
             zacc: f32::NAN,
             ..HIGHRES_IMU_DATA::DEFAULT
         });
-        assert!(s.convert(&tel(1040, bad)).is_empty());
+        let mut bad = tel(1040, bad);
+        bad.boot_epoch = 1;
+        assert!(s.convert(&bad).is_empty());
     }
 
     /// PX4 flight v6 (docs/status.md, issue 18): a 250 Hz HIGHRES_IMU stream that skips 37 ms

@@ -354,6 +354,31 @@ pub fn render(d: &MetricsSnapshot, link: &LinkMetrics) -> String {
             "injections refused (invalid, stale or lost estimate)",
             &link.inject_refused,
         ),
+        (
+            "visnav_link_rx_stale_total",
+            "messages dropped as behind the autopilot clock (stale, replayed or spoofed)",
+            &link.rx_stale,
+        ),
+        (
+            "visnav_link_origins_refused_total",
+            "GPS_GLOBAL_ORIGIN messages refused as impossible",
+            &link.origins_refused,
+        ),
+        (
+            "visnav_link_utc_steps_total",
+            "steps of the autopilot UTC clock seen and not followed",
+            &link.utc_steps,
+        ),
+        (
+            "visnav_link_output_stamps_held_total",
+            "output time stamps moved forward to stay monotonic",
+            &link.output_stamps_held,
+        ),
+        (
+            "visnav_link_relocks_total",
+            "lock-on moved to another autopilot after the locked one fell silent",
+            &link.relocks,
+        ),
     ] {
         w.single(name, "counter", help, g(v));
     }

@@ -19,7 +19,8 @@
 
 use std::collections::BTreeMap;
 
-use mavlink::dialects::ardupilotmega::{MavAutopilot, MavMessage, MavType};
+use mavlink::Message;
+use mavlink::dialects::ardupilotmega::MavMessage;
 use serde::Serialize;
 
 use crate::config::{DaemonConfig, GpsSource};
@@ -28,6 +29,7 @@ use crate::inputs::{InitSpacing, Inputs, NavInput, vision_measurement};
 use visnav_core::nav::{Measurement, NavConfig, NavFilter, Outcome};
 use visnav_core::stats::percentile;
 use visnav_link::Telemetry;
+use visnav_link::time::{BootClock, BootVerdict};
 
 const R_EARTH_M: f64 = 6_378_137.0;
 
@@ -42,6 +44,8 @@ pub struct ReplayOptions {
     pub nav: NavConfig,
     /// The autopilot's system id; `None`: the first HEARTBEAT of an autopilot.
     pub autopilot_system_id: Option<u8>,
+    /// The autopilot's component id (`[link] autopilot_component_id`, normally 1).
+    pub autopilot_component_id: u8,
     /// Interval of the state rows, s.
     pub state_interval_s: f64,
 }
@@ -120,6 +124,8 @@ pub struct ReplayReport {
     pub undecodable: u64,
     /// Packets from the autopilot.
     pub from_autopilot: u64,
+    /// Autopilot packets dropped as behind its clock (stale; the link's rule).
+    pub stale: u64,
     /// The autopilot's system id.
     pub autopilot_system_id: Option<u8>,
     /// IMU samples given to the filter.
@@ -286,6 +292,8 @@ pub fn replay(
     let mut filter = NavFilter::new(opts.nav.clone());
     let mut spacing = InitSpacing::default();
     let mut autopilot: Option<(u32, u8)> = None;
+    let mut boot_clock = BootClock::default();
+    let mut boot_epoch = 0u32;
     // Smallest arrival-minus-boot-time offset, µs (the boot time at arrival is arrival - this).
     let mut min_offset_us: Option<i64> = None;
     let mut last_gps_arrival_ns: Option<i64> = None;
@@ -318,14 +326,17 @@ pub fn replay(
         };
         if autopilot.is_none()
             && let MavMessage::HEARTBEAT(hb) = &msg
-            && hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
-            && !matches!(
-                hb.mavtype,
-                MavType::MAV_TYPE_GCS | MavType::MAV_TYPE_ONBOARD_CONTROLLER
+            && let (Ok(sys), Ok(comp)) = (
+                u8::try_from(header.system_id),
+                u8::try_from(header.component_id),
             )
-            && opts
-                .autopilot_system_id
-                .is_none_or(|s| u32::from(s) == header.system_id)
+            && visnav_link::is_lock_candidate(
+                opts.autopilot_system_id,
+                opts.autopilot_component_id,
+                sys,
+                comp,
+                hb,
+            )
         {
             autopilot = Some((header.system_id, header.component_id));
             rep.autopilot_system_id = u8::try_from(header.system_id).ok();
@@ -335,6 +346,17 @@ pub fn replay(
         }
         rep.from_autopilot += 1;
         let arrival_us = *unix_us as i64;
+        // The link's own rule for stale messages and reboots (`visnav_link::time::BootClock`).
+        if let Some(b) = visnav_link::boot_time_us(&msg) {
+            match boot_clock.observe(msg.message_id(), b, arrival_us * 1000) {
+                BootVerdict::Current => {}
+                BootVerdict::Stale => {
+                    rep.stale += 1;
+                    continue;
+                }
+                BootVerdict::Reboot => boot_epoch += 1,
+            }
+        }
         let boot_us = match &msg {
             MavMessage::ATTITUDE(m) => Some(i64::from(m.time_boot_ms) * 1000),
             MavMessage::SCALED_IMU(m) => Some(i64::from(m.time_boot_ms) * 1000),
@@ -359,6 +381,7 @@ pub fn replay(
                 .map(|o| arrival_us - o)
                 .filter(|t| *t >= 0)
                 .map(|t| t as u64),
+            boot_epoch,
             header,
             msg,
         };

@@ -23,9 +23,15 @@ pub struct LinkConfig {
     /// Our MAVLink component id (default 197 = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY).
     #[serde(default = "default_component_id")]
     pub component_id: u8,
-    /// Only talk to this autopilot system id; absent = lock onto the first autopilot heard.
+    /// Only talk to this autopilot system id; absent = lock onto the first autopilot heard (a
+    /// vehicle's HEARTBEAT from `autopilot_component_id`; see `session`, "Lock-on"). Set it on an
+    /// aircraft: it is the only protection against a second vehicle on the same network.
     #[serde(default)]
     pub autopilot_system_id: Option<u8>,
+    /// The autopilot's component id (default 1 = MAV_COMP_ID_AUTOPILOT1, what ArduPilot and
+    /// PX4 use). Gimbals, cameras and other components of the same system are never locked onto.
+    #[serde(default = "default_autopilot_component_id")]
+    pub autopilot_component_id: u8,
     /// Our HEARTBEAT rate.
     #[serde(default = "default_heartbeat_hz")]
     pub heartbeat_hz: f64,
@@ -119,8 +125,10 @@ pub struct SigningSettings {
     /// Sign every outgoing message.
     #[serde(default = "default_true")]
     pub sign_outgoing: bool,
-    /// Drop incoming messages that are not signed with the key.
-    #[serde(default)]
+    /// Drop incoming messages that are not signed with the key (default true: configuring a key
+    /// and still accepting unsigned traffic would be signing in name only; set false only while
+    /// migrating an autopilot to signing).
+    #[serde(default = "default_true")]
     pub reject_unsigned: bool,
     /// Signature link id of this connection.
     #[serde(default)]
@@ -129,6 +137,9 @@ pub struct SigningSettings {
 
 fn default_component_id() -> u8 {
     197
+}
+fn default_autopilot_component_id() -> u8 {
+    1
 }
 fn default_heartbeat_hz() -> f64 {
     1.0
@@ -271,6 +282,7 @@ impl LinkConfig {
             system_id: None,
             component_id: default_component_id(),
             autopilot_system_id: None,
+            autopilot_component_id: default_autopilot_component_id(),
             heartbeat_hz: default_heartbeat_hz(),
             heartbeat_timeout_s: default_heartbeat_timeout_s(),
             reconnect_min_s: default_reconnect_min_s(),

@@ -129,6 +129,8 @@ pub struct SendTime {
 /// Why a message was not built.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum InjectError {
+    #[error("this estimate was already sent as a pose (no newer one yet)")]
+    Repeated,
     #[error("{field} is not finite")]
     NotFinite { field: &'static str },
     #[error("{field} = {value} is outside [{lo}, {hi}]")]

@@ -37,6 +37,10 @@ pub mod signing;
 pub mod streams;
 pub mod time;
 pub mod tlog;
+mod transport;
 
 pub use inject::{GeoOrigin, Health, InjectError, NavEstimate};
-pub use session::{AutopilotInfo, Clock, Link, LinkError, LinkStatus, Telemetry, shutdown_signal};
+pub use session::{
+    AutopilotInfo, Clock, Link, LinkError, LinkStatus, Telemetry, boot_time_us, is_lock_candidate,
+    shutdown_signal,
+};

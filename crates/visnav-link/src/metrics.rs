@@ -32,13 +32,24 @@ pub struct Metrics {
     pub timesync_rtt_us: AtomicU64,
     /// 1 while the autopilot's heartbeat is current.
     pub autopilot_alive: AtomicU64,
+    /// Messages dropped because their boot time was behind the autopilot's clock (stale,
+    /// replayed or spoofed; `time::BootClock`).
+    pub rx_stale: AtomicU64,
+    /// GPS_GLOBAL_ORIGIN messages refused (coordinates outside the Earth's).
+    pub origins_refused: AtomicU64,
+    /// Steps of the autopilot's UTC clock (SYSTEM_TIME) seen and not followed.
+    pub utc_steps: AtomicU64,
+    /// Output stamps moved forward so that output time never goes back.
+    pub output_stamps_held: AtomicU64,
+    /// Lock-on changes (the locked autopilot fell silent and another took its place).
+    pub relocks: AtomicU64,
 }
 
 impl Metrics {
     /// Render in the Prometheus text format.
     pub fn render(&self) -> String {
         let mut s = String::new();
-        let items: [(&str, &str, &str, &AtomicU64); 10] = [
+        let items: [(&str, &str, &str, &AtomicU64); 15] = [
             (
                 "visnav_link_rx_packets_total",
                 "counter",
@@ -98,6 +109,36 @@ impl Metrics {
                 "gauge",
                 "1 while the autopilot heartbeat is current",
                 &self.autopilot_alive,
+            ),
+            (
+                "visnav_link_rx_stale_total",
+                "counter",
+                "messages dropped as behind the autopilot clock",
+                &self.rx_stale,
+            ),
+            (
+                "visnav_link_origins_refused_total",
+                "counter",
+                "GPS_GLOBAL_ORIGIN messages refused as impossible",
+                &self.origins_refused,
+            ),
+            (
+                "visnav_link_utc_steps_total",
+                "counter",
+                "steps of the autopilot UTC clock not followed",
+                &self.utc_steps,
+            ),
+            (
+                "visnav_link_output_stamps_held_total",
+                "counter",
+                "output time stamps moved forward to stay monotonic",
+                &self.output_stamps_held,
+            ),
+            (
+                "visnav_link_relocks_total",
+                "counter",
+                "lock-on moved to another autopilot",
+                &self.relocks,
             ),
         ];
         for (name, kind, help, v) in items {

@@ -7,9 +7,18 @@
 //! * We send HEARTBEAT as MAV_TYPE_ONBOARD_CONTROLLER / MAV_AUTOPILOT_INVALID with our system id
 //!   (configured, else the autopilot's once locked, else the configured autopilot id, else 1) and
 //!   component id (default 197).
-//! * The first HEARTBEAT from an autopilot (autopilot != MAV_AUTOPILOT_INVALID, and matching
-//!   `autopilot_system_id` when configured) locks the link onto its (system, component); every
-//!   other system is ignored (still recorded in the .tlog).
+//! * Lock-on: the link locks onto the first HEARTBEAT of an autopilot: a vehicle type (not a
+//!   gimbal, camera, GCS, companion or other peripheral), a flight stack in the `autopilot` field,
+//!   the configured `autopilot_component_id` (default 1), and `autopilot_system_id` when set.
+//!   Everything else is ignored (still recorded in the .tlog). If the locked autopilot falls
+//!   silent for the heartbeat timeout, another that passes the same test takes its place.
+//! * `udpin`: replies go only to the address the locked autopilot's valid (and, with signing,
+//!   authenticated) messages come from (`transport`).
+//! * Every message's boot time goes through `time::BootClock`: stale ones (behind the autopilot's
+//!   clock without a confirmed reboot) are dropped; a reboot needs several streams and the old
+//!   clock's silence. GPS_GLOBAL_ORIGIN outside the Earth's coordinates is refused.
+//! * Output times never go back (`time::Monotonic`); the autopilot's UTC is latched and a step of
+//!   its clock is logged, counted and reported, not followed.
 //! * After the lock, after a reconnect and after an autopilot reboot, every wanted stream is
 //!   requested with MAV_CMD_SET_MESSAGE_INTERVAL; every 2 s the measured rates are checked and
 //!   missing streams are requested again (with their alternative ids).
@@ -25,8 +34,7 @@ use mavlink::dialects::ardupilotmega::{
 };
 use mavlink::error::MessageReadError;
 use mavlink::{
-    AsyncMavConnection, MAVLinkMessageRaw, MAVLinkV2MessageRaw, MavHeader, Message, SigningConfig,
-    SigningData,
+    MAVLinkMessageRaw, MAVLinkV2MessageRaw, MavHeader, Message, SigningConfig, SigningData,
 };
 use tokio::sync::{broadcast, watch};
 use tokio::task::JoinHandle;
@@ -36,10 +44,13 @@ use crate::config::{LinkConfig, OnLost, OutputConfig, OutputMode};
 use crate::inject::{self, GeoOrigin, Health, InjectError, NavEstimate, SendTime};
 use crate::metrics::Metrics;
 use crate::streams::{self, RateMonitor, StreamSpec, StreamStatus, ids};
-use crate::time::{SyncUpdate, TimeSync, TimesyncSample, UtcMap};
+use crate::time::{
+    BootClock, BootVerdict, Monotonic, SyncUpdate, TimeSync, TimesyncSample, UtcMap,
+};
 use crate::tlog::{Tlog, expand_name, unix_now_us};
+use crate::transport::Transport;
 
-type Conn = mavlink::AsyncConnection<MavMessage>;
+type Conn = Transport;
 
 /// Why the link could not start or a send failed.
 #[derive(Debug, thiserror::Error)]
@@ -105,6 +116,9 @@ pub struct Telemetry {
     pub t_companion_ns: i64,
     /// Autopilot boot time at reception, if the clock mapping is converged.
     pub t_boot_us: Option<u64>,
+    /// Confirmed autopilot reboots before this message (a change: the autopilot restarted, so
+    /// its boot times start again).
+    pub boot_epoch: u32,
     /// Packet header.
     pub header: MavHeader,
     /// The message.
@@ -127,6 +141,17 @@ struct State {
     origin_sent: u32,
     last_health: Option<String>,
     stream_checks: u32,
+    /// The autopilot's boot clock: stale messages and reboots.
+    boot: BootClock,
+    /// Confirmed autopilot reboots.
+    reboots: u32,
+    /// Output stamps: boot time and Unix time.
+    stamp_boot: Monotonic,
+    stamp_unix: Monotonic,
+    /// Validity stamps of VISION_POSITION_ESTIMATE / ODOMETRY (companion µs).
+    stamp_validity: Monotonic,
+    /// Boot time of the last estimate sent as a pose: one is never sent twice.
+    last_pose_est_us: Option<u64>,
 }
 
 struct Shared {
@@ -222,6 +247,12 @@ impl Link {
             origin_sent: 0,
             last_health: None,
             stream_checks: 0,
+            boot: BootClock::default(),
+            reboots: 0,
+            stamp_boot: Monotonic::default(),
+            stamp_unix: Monotonic::default(),
+            stamp_validity: Monotonic::default(),
+            last_pose_est_us: None,
         };
         let shared = Arc::new(Shared {
             cfg,
@@ -420,7 +451,7 @@ impl Shared {
             autopilot: st.autopilot,
             alive,
             time_synced: st.timesync.converged(),
-            reboots: st.timesync.reboots,
+            reboots: st.reboots,
             streams_ok: self.status.borrow().streams_ok,
             streams: self.status.borrow().streams.clone(),
             origin: st.origin,
@@ -470,7 +501,7 @@ impl Shared {
             }
             Err(e) => {
                 self.metrics.tx_errors.fetch_add(1, Ordering::Relaxed);
-                Err(LinkError::Send(e.to_string()))
+                Err(LinkError::Send(e))
             }
         }
     }
@@ -505,17 +536,26 @@ impl Shared {
 
     fn send_time(&self, est: &NavEstimate) -> Option<SendTime> {
         let now_ns = self.now_ns();
-        let st = lock(&self.state);
+        let mut st = lock(&self.state);
         let t_boot_us = st.timesync.to_autopilot_us(now_ns)?;
         // Fallback UTC: the companion's system clock (used when the autopilot has no clock).
         let companion_unix_minus_boot = Some(unix_now_us() as i128 - t_boot_us as i128);
+        let unix_us = st.utc.unix_us(t_boot_us, companion_unix_minus_boot);
+        let unix_us = unix_us.map(|u| st.stamp_unix.stamp(u));
+        let t_boot_us = st.stamp_boot.stamp(t_boot_us);
+        let validity_companion_us = st
+            .timesync
+            .to_companion_ns(est.t_boot_us)
+            .and_then(|ns| u64::try_from(ns / 1000).ok())
+            .map(|us| st.stamp_validity.stamp(us));
+        self.metrics.output_stamps_held.store(
+            st.stamp_boot.held + st.stamp_unix.held + st.stamp_validity.held,
+            Ordering::Relaxed,
+        );
         Some(SendTime {
             t_boot_us,
-            unix_us: st.utc.unix_us(t_boot_us, companion_unix_minus_boot),
-            validity_companion_us: st
-                .timesync
-                .to_companion_ns(est.t_boot_us)
-                .and_then(|ns| u64::try_from(ns / 1000).ok()),
+            unix_us,
+            validity_companion_us,
         })
     }
 
@@ -547,6 +587,16 @@ impl Shared {
         } else {
             None
         };
+        // A pose is a measurement for the autopilot's EKF: the same estimate twice would be
+        // fused twice. GPS_INPUT is the position now (extrapolated), so it goes at every tick.
+        let fresh_pose = {
+            let mut st = lock(&self.state);
+            let fresh = st.last_pose_est_us.is_none_or(|l| est.t_boot_us > l);
+            if fresh && needs_origin {
+                st.last_pose_est_us = Some(est.t_boot_us);
+            }
+            fresh
+        };
         for mode in self.out.modes.clone() {
             let built = match mode {
                 OutputMode::GpsInput => match (&est.health, self.out.on_lost) {
@@ -555,6 +605,10 @@ impl Shared {
                     }
                     _ => inject::gps_input(est, &now, &self.out),
                 },
+                OutputMode::VisionPositionEstimate | OutputMode::Odometry if !fresh_pose => {
+                    results.push((mode, Err(InjectError::Repeated)));
+                    continue;
+                }
                 OutputMode::VisionPositionEstimate => origin
                     .ok_or(InjectError::NoOrigin)
                     .and_then(|o| inject::vision_position_estimate(est, &now, &o, &self.out)),
@@ -670,63 +724,142 @@ impl Shared {
         }
     }
 
-    /// Handle one message. Returns texts to send as STATUSTEXT and replies to send.
-    async fn handle(&self, header: MavHeader, msg: MavMessage, t_ns: i64) {
+    /// Lock-on (module doc): lock onto a qualifying HEARTBEAT when unlocked, or when the locked
+    /// autopilot has been silent for the heartbeat timeout. Returns texts to send.
+    fn lock_on(
+        &self,
+        header: &MavHeader,
+        sys: u8,
+        hb: &HEARTBEAT_DATA,
+    ) -> Vec<(MavSeverity, String)> {
+        let comp = header.component_id;
+        let (want_sys, want_comp) = (
+            self.cfg.autopilot_system_id,
+            self.cfg.autopilot_component_id,
+        );
+        if !is_lock_candidate(want_sys, want_comp, sys, comp, hb) {
+            return Vec::new();
+        }
+        let mut st = lock(&self.state);
+        let silent = st
+            .last_heartbeat
+            .is_none_or(|t| t.elapsed().as_secs_f64() >= self.cfg.heartbeat_timeout_s);
+        let relock = match st.autopilot {
+            None => false,
+            Some(a) if (a.system_id, a.component_id) == (sys, comp) => return Vec::new(),
+            Some(_) if silent => true,
+            Some(_) => return Vec::new(),
+        };
+        let info = AutopilotInfo {
+            system_id: sys,
+            component_id: comp,
+            autopilot: hb.autopilot,
+            vehicle: hb.mavtype,
+        };
+        let name = autopilot_name(hb.autopilot);
+        if relock {
+            self.metrics.relocks.fetch_add(1, Ordering::Relaxed);
+            warn!("the locked autopilot fell silent; locking onto {name} sys {sys} comp {comp}");
+            // A different autopilot: its clock, streams and origin are its own.
+            st.boot.reset();
+            st.timesync.reset();
+            st.utc.reset();
+            st.rates.clear();
+            st.origin = None;
+            st.origin_from_autopilot = false;
+            st.origin_sent = 0;
+            st.stamp_boot.reset();
+        } else {
+            info!("locked onto {name} sys {sys} comp {comp}");
+        }
+        st.autopilot = Some(info);
+        st.last_heartbeat = None;
+        st.streams_dirty = true;
+        vec![(
+            MavSeverity::MAV_SEVERITY_INFO,
+            format!("visnav: linked to {name} sys {sys}"),
+        )]
+    }
+
+    /// Handle one message from `from` (udpin's source address).
+    async fn handle(
+        &self,
+        header: MavHeader,
+        msg: MavMessage,
+        t_ns: i64,
+        from: Option<std::net::SocketAddr>,
+    ) {
         let Ok(sys) = u8::try_from(header.system_id) else {
             return;
         };
-        // Lock-on.
-        let mut texts: Vec<(MavSeverity, String)> = Vec::new();
-        if let MavMessage::HEARTBEAT(hb) = &msg {
-            let is_autopilot = hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
-                && !matches!(
-                    hb.mavtype,
-                    MavType::MAV_TYPE_GCS | MavType::MAV_TYPE_ONBOARD_CONTROLLER
-                );
-            let mut st = lock(&self.state);
-            if st.autopilot.is_none()
-                && is_autopilot
-                && self.cfg.autopilot_system_id.is_none_or(|s| s == sys)
-            {
-                let info = AutopilotInfo {
-                    system_id: sys,
-                    component_id: header.component_id,
-                    autopilot: hb.autopilot,
-                    vehicle: hb.mavtype,
-                };
-                info!(?info, "locked onto autopilot");
-                st.autopilot = Some(info);
-                st.streams_dirty = true;
-                texts.push((
-                    MavSeverity::MAV_SEVERITY_INFO,
-                    format!("visnav: linked to {:?} sys {sys}", hb.autopilot)
-                        .replace("MAV_AUTOPILOT_", ""),
-                ));
-            }
-        }
+        let mut texts = match &msg {
+            MavMessage::HEARTBEAT(hb) => self.lock_on(&header, sys, hb),
+            _ => Vec::new(),
+        };
         let Some(ap) = self.target() else { return };
         if sys != ap.0 || header.component_id != ap.1 {
             return;
         }
         self.metrics.rx_autopilot.fetch_add(1, Ordering::Relaxed);
-        let mut reply = None;
+        let conn = lock(&self.conn).clone();
+        if let Some(c) = conn {
+            let silence = Duration::from_secs_f64(self.cfg.heartbeat_timeout_s);
+            if let Some(addr) = c.autopilot_heard(from, silence) {
+                info!(%addr, "replying to the autopilot at {addr}");
+            }
+        }
+        // The boot clock: drop stale messages, confirm reboots.
+        let boot_us = match &msg {
+            MavMessage::TIMESYNC(m) if m.tc1 > 0 => Some((m.tc1 / 1000) as u64),
+            MavMessage::TIMESYNC(_) => None,
+            m => boot_time_us(m),
+        };
         let mut rebooted = false;
+        if let Some(us) = boot_us {
+            let verdict = lock(&self.state).boot.observe(msg.message_id(), us, t_ns);
+            match verdict {
+                BootVerdict::Current => {}
+                BootVerdict::Stale => {
+                    self.metrics.rx_stale.fetch_add(1, Ordering::Relaxed);
+                    debug!("dropped a message behind the autopilot's clock");
+                    return;
+                }
+                BootVerdict::Reboot => rebooted = true,
+            }
+        }
+        let mut reply = None;
         {
             let mut st = lock(&self.state);
+            if rebooted {
+                st.reboots += 1;
+                st.timesync.reset();
+                st.utc.reset();
+                st.rates.clear();
+                st.streams_dirty = true;
+                st.stamp_boot.reset();
+                if !st.origin_from_autopilot || self.out.set_origin {
+                    st.origin_sent = 0;
+                }
+                st.origin_from_autopilot = false;
+            }
             st.rates.record(msg.message_id(), t_ns as f64 * 1e-9);
-            let boot_ms = match &msg {
-                MavMessage::HEARTBEAT(_) => {
-                    st.last_heartbeat = Some(Instant::now());
-                    None
-                }
+            match &msg {
+                MavMessage::HEARTBEAT(_) => st.last_heartbeat = Some(Instant::now()),
                 MavMessage::SYSTEM_TIME(m) => {
-                    st.utc.observe_system_time(m.time_unix_usec, m.time_boot_ms);
-                    Some(m.time_boot_ms)
+                    if let Some(step_us) =
+                        st.utc.observe_system_time(m.time_unix_usec, m.time_boot_ms)
+                    {
+                        self.metrics.utc_steps.fetch_add(1, Ordering::Relaxed);
+                        let text = format!(
+                            "visnav: autopilot clock stepped {:+.3} s, not followed",
+                            step_us as f64 * 1e-6
+                        );
+                        warn!("{text} (SYSTEM_TIME; the output keeps its own UTC)");
+                        if st.utc.steps.is_power_of_two() {
+                            texts.push((MavSeverity::MAV_SEVERITY_WARNING, text));
+                        }
+                    }
                 }
-                MavMessage::ATTITUDE(m) => Some(m.time_boot_ms),
-                MavMessage::GLOBAL_POSITION_INT(m) => Some(m.time_boot_ms),
-                MavMessage::SCALED_IMU(m) => Some(m.time_boot_ms),
-                MavMessage::SCALED_PRESSURE(m) => Some(m.time_boot_ms),
                 MavMessage::TIMESYNC(m) => {
                     if m.tc1 == 0 {
                         // The autopilot's own time sync request: answer with our clock.
@@ -743,54 +876,47 @@ impl Shared {
                             autopilot_ns: m.tc1,
                             received_companion_ns: t_ns,
                         });
-                        if u == SyncUpdate::Reboot {
-                            rebooted = true;
-                        } else if u == SyncUpdate::Accepted {
+                        if u == SyncUpdate::Accepted {
                             self.metrics.timesync_rtt_us.store(
                                 (st.timesync.last_rtt_ns / 1000.0) as u64,
                                 Ordering::Relaxed,
                             );
                         }
                     }
-                    None
                 }
-                MavMessage::GPS_GLOBAL_ORIGIN(m) => {
-                    let o = GeoOrigin {
-                        lat_deg: f64::from(m.latitude) * 1e-7,
-                        lon_deg: f64::from(m.longitude) * 1e-7,
-                        alt_amsl_m: f64::from(m.altitude) * 1e-3,
-                    };
-                    if st.origin != Some(o) {
-                        info!(?o, "autopilot EKF origin");
+                MavMessage::GPS_GLOBAL_ORIGIN(m) => match origin_of(m) {
+                    Ok(o) => {
+                        if st.origin != Some(o) {
+                            info!(
+                                "autopilot EKF origin {:.7} {:.7} {:.1} m",
+                                o.lat_deg, o.lon_deg, o.alt_amsl_m
+                            );
+                        }
+                        st.origin = Some(o);
+                        st.origin_from_autopilot = true;
                     }
-                    st.origin = Some(o);
-                    st.origin_from_autopilot = true;
-                    None
-                }
+                    Err(why) => {
+                        let n = self.metrics.origins_refused.fetch_add(1, Ordering::Relaxed) + 1;
+                        warn!("GPS_GLOBAL_ORIGIN refused: {why}");
+                        if n.is_power_of_two() {
+                            texts.push((
+                                MavSeverity::MAV_SEVERITY_WARNING,
+                                format!("visnav: EKF origin refused: {why}"),
+                            ));
+                        }
+                    }
+                },
                 MavMessage::COMMAND_ACK(m) => {
                     debug!(command = ?m.command, result = ?m.result, "COMMAND_ACK");
-                    None
                 }
-                _ => None,
-            };
-            if let Some(ms) = boot_ms
-                && st.timesync.observe_boot_time(u64::from(ms) * 1000)
-            {
-                rebooted = true;
-            }
-            if rebooted {
-                st.utc.reset();
-                st.rates.clear();
-                st.streams_dirty = true;
-                if !st.origin_from_autopilot || self.out.set_origin {
-                    st.origin_sent = 0;
-                }
-                st.origin_from_autopilot = false;
+                _ => {}
             }
         }
         if rebooted {
             self.metrics.reboots.fetch_add(1, Ordering::Relaxed);
-            warn!("autopilot rebooted (its clock went backwards); time sync and streams reset");
+            warn!(
+                "autopilot rebooted (several streams on a new clock); time sync and streams reset"
+            );
             texts.push((
                 MavSeverity::MAV_SEVERITY_WARNING,
                 "visnav: autopilot reboot detected, resyncing".into(),
@@ -800,10 +926,14 @@ impl Shared {
             let _ = self.send(&r).await;
         }
         self.publish_status();
-        let t_boot_us = lock(&self.state).timesync.to_autopilot_us(t_ns);
+        let (t_boot_us, boot_epoch) = {
+            let st = lock(&self.state);
+            (st.timesync.to_autopilot_us(t_ns), st.reboots)
+        };
         let _ = self.telemetry.send(Telemetry {
             t_companion_ns: t_ns,
             t_boot_us,
+            boot_epoch,
             header,
             msg,
         });
@@ -899,6 +1029,119 @@ impl Shared {
     }
 }
 
+/// A flight stack's name for messages (never Rust debug formatting).
+pub fn autopilot_name(a: MavAutopilot) -> &'static str {
+    match a {
+        MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA => "ArduPilot",
+        MavAutopilot::MAV_AUTOPILOT_PX4 => "PX4",
+        MavAutopilot::MAV_AUTOPILOT_GENERIC => "a generic autopilot",
+        _ => "an autopilot",
+    }
+}
+
+/// MAV_TYPE values that are vehicles (what an autopilot flies); peripherals (gimbal, camera,
+/// ADS-B, battery, GCS, companion, ...) are not.
+fn is_vehicle(t: MavType) -> bool {
+    use MavType::*;
+    matches!(
+        t,
+        MAV_TYPE_GENERIC
+            | MAV_TYPE_FIXED_WING
+            | MAV_TYPE_QUADROTOR
+            | MAV_TYPE_COAXIAL
+            | MAV_TYPE_HELICOPTER
+            | MAV_TYPE_AIRSHIP
+            | MAV_TYPE_FREE_BALLOON
+            | MAV_TYPE_ROCKET
+            | MAV_TYPE_GROUND_ROVER
+            | MAV_TYPE_SURFACE_BOAT
+            | MAV_TYPE_SUBMARINE
+            | MAV_TYPE_HEXAROTOR
+            | MAV_TYPE_OCTOROTOR
+            | MAV_TYPE_TRICOPTER
+            | MAV_TYPE_FLAPPING_WING
+            | MAV_TYPE_KITE
+            | MAV_TYPE_VTOL_TAILSITTER_DUOROTOR
+            | MAV_TYPE_VTOL_TAILSITTER_QUADROTOR
+            | MAV_TYPE_VTOL_TILTROTOR
+            | MAV_TYPE_VTOL_FIXEDROTOR
+            | MAV_TYPE_VTOL_TAILSITTER
+            | MAV_TYPE_VTOL_TILTWING
+            | MAV_TYPE_VTOL_RESERVED5
+            | MAV_TYPE_PARAFOIL
+            | MAV_TYPE_DODECAROTOR
+            | MAV_TYPE_DECAROTOR
+            | MAV_TYPE_GENERIC_MULTIROTOR
+            | MAV_TYPE_GROUND_QUADRUPED
+            | MAV_TYPE_VTOL_GYRODYNE
+    )
+}
+
+/// Whether a HEARTBEAT from (`sys`, `comp`) is an autopilot the link may lock onto (module doc),
+/// given the configured `autopilot_system_id` and `autopilot_component_id`.
+pub fn is_lock_candidate(
+    want_sys: Option<u8>,
+    want_comp: u8,
+    sys: u8,
+    comp: u8,
+    hb: &HEARTBEAT_DATA,
+) -> bool {
+    hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
+        && is_vehicle(hb.mavtype)
+        && comp == want_comp
+        && want_sys.is_none_or(|s| s == sys)
+}
+
+/// The autopilot boot time a message carries, µs (None for messages without one).
+pub fn boot_time_us(msg: &MavMessage) -> Option<u64> {
+    let ms = match msg {
+        MavMessage::SYSTEM_TIME(m) => m.time_boot_ms,
+        MavMessage::ATTITUDE(m) => m.time_boot_ms,
+        MavMessage::GLOBAL_POSITION_INT(m) => m.time_boot_ms,
+        MavMessage::SCALED_IMU(m) => m.time_boot_ms,
+        MavMessage::SCALED_PRESSURE(m) => m.time_boot_ms,
+        MavMessage::HIGHRES_IMU(m) => return Some(m.time_usec),
+        MavMessage::RAW_IMU(m) => return Some(m.time_usec),
+        _ => return None,
+    };
+    Some(u64::from(ms) * 1000)
+}
+
+/// A GPS_GLOBAL_ORIGIN's coordinates, or why they cannot be an origin.
+pub fn origin_of(
+    m: &mavlink::dialects::ardupilotmega::GPS_GLOBAL_ORIGIN_DATA,
+) -> Result<GeoOrigin, String> {
+    let o = GeoOrigin {
+        lat_deg: f64::from(m.latitude) * 1e-7,
+        lon_deg: f64::from(m.longitude) * 1e-7,
+        alt_amsl_m: f64::from(m.altitude) * 1e-3,
+    };
+    if !(-90.0..=90.0).contains(&o.lat_deg) {
+        return Err(format!(
+            "latitude {:.7} deg is outside [-90, 90]",
+            o.lat_deg
+        ));
+    }
+    if !(-180.0..=180.0).contains(&o.lon_deg) {
+        return Err(format!(
+            "longitude {:.7} deg is outside [-180, 180]",
+            o.lon_deg
+        ));
+    }
+    // Dead Sea shore to above Everest (ORIGIN_ALT_RANGE_M).
+    if !(ORIGIN_ALT_RANGE_M.0..=ORIGIN_ALT_RANGE_M.1).contains(&o.alt_amsl_m) {
+        return Err(format!(
+            "altitude {:.1} m is outside [{}, {}] m",
+            o.alt_amsl_m, ORIGIN_ALT_RANGE_M.0, ORIGIN_ALT_RANGE_M.1
+        ));
+    }
+    Ok(o)
+}
+
+/// Altitudes an EKF origin can have, m AMSL: below the lowest land (-430 m) and above the
+/// highest flight a small UAS makes (10 km), with margin.
+pub const ORIGIN_ALT_RANGE_M: (f64, f64) = (-1000.0, 12_000.0);
+
 /// Resolves on the first SIGINT or SIGTERM (Unix) / Ctrl-C (elsewhere): the daemon selects on it
 /// and then calls [`Link::shutdown`], which stops the tasks and flushes the .tlog.
 pub async fn shutdown_signal() -> std::io::Result<&'static str> {
@@ -928,15 +1171,11 @@ async fn supervise(shared: Arc<Shared>, mut stop: watch::Receiver<bool>) {
         }
         let addr = shared.cfg.connection.clone();
         let connected = tokio::select! {
-            c = mavlink::connect_async::<MavMessage>(&addr) => c,
+            c = Transport::connect(&addr, shared.signing_in.as_ref()) => c,
             _ = stop.changed() => return,
         };
         match connected {
-            Ok(mut conn) => {
-                conn.set_allow_recv_any_version(true);
-                if let Some(s) = &shared.signing_in {
-                    conn.setup_signing(Some(s.clone()));
-                }
+            Ok(conn) => {
                 shared.metrics.connects.fetch_add(1, Ordering::Relaxed);
                 info!(%addr, "connected");
                 let started = Instant::now();
@@ -986,8 +1225,8 @@ async fn run_connection(shared: &Arc<Shared>, conn: Arc<Conn>, stop: &mut watch:
     let mut periodic = AbortOnDrop(tokio::spawn(periodic_loop(shared.clone())));
     let rx = async {
         loop {
-            match conn.recv_raw().await {
-                Ok(raw) => {
+            match conn.recv().await {
+                Ok(crate::transport::Received { raw, from }) => {
                     let t_ns = shared.now_ns();
                     shared.record_rx(&raw);
                     let Ok(msg) = MavMessage::parse(raw.version(), raw.message_id(), raw.payload())
@@ -999,7 +1238,7 @@ async fn run_connection(shared: &Arc<Shared>, conn: Arc<Conn>, stop: &mut watch:
                         component_id: raw.component_id(),
                         sequence: raw.sequence(),
                     };
-                    shared.handle(header, msg, t_ns).await;
+                    shared.handle(header, msg, t_ns, from).await;
                 }
                 Err(MessageReadError::Io(e)) => {
                     warn!("connection lost: {e}");

@@ -16,9 +16,22 @@
 //! a row agree (then the filter restarts: a step of the autopilot clock).
 //!
 //! # Reboot
-//! An autopilot reboot shows as its time going backwards: a TIMESYNC `tc1`, a HEARTBEAT-paced
-//! `time_boot_ms` (SYSTEM_TIME, ATTITUDE, ...) more than [`REBOOT_BACKSTEP_US`] below the last
-//! one. [`TimeSync::observe_boot_time`] reports it; the filter is then reset.
+//! An autopilot reboot shows as its time going backwards: a TIMESYNC `tc1`, a `time_boot_ms`
+//! (SYSTEM_TIME, ATTITUDE, IMU, ...) more than [`REBOOT_BACKSTEP_US`] below the last one. One such
+//! message is not enough: a stale packet (a replay, a router's buffer, a spoofer) looks the same.
+//! [`BootClock`] declares a reboot only when the evidence agrees: at least
+//! [`REBOOT_MIN_MESSAGES`] messages of at least [`REBOOT_MIN_STREAMS`] different kinds report one
+//! new clock (consistent with each other within [`REBOOT_CLOCK_TOLERANCE_US`]), and the old clock
+//! has been silent for [`REBOOT_OLD_CLOCK_SILENT_NS`] (an autopilot says nothing while it boots;
+//! a stale burst arrives among live messages, and any live one drops the candidate). Until then
+//! the backwards messages are stale and not used.
+//!
+//! # Output times
+//! What we send must never go back in time: [`Monotonic`] stamps each output at least 1 µs after
+//! the previous one (the clock mapping's small corrections otherwise step back a few µs). The
+//! autopilot's UTC (SYSTEM_TIME) is latched ([`UtcMap`]): small differences are slewed in, a step
+//! beyond [`UTC_STEP_US`] (a clock set by hand, a jump of an hour, a year back, jitter of a
+//! second) is counted and reported but not followed.
 //!
 //! # GPS time
 //! GPS time = UTC + leap seconds (18 s since 2017-01-01, [`GPS_LEAP_S`]), counted from the GPS
@@ -37,6 +50,22 @@ pub const OUTLIER_NS: f64 = 10e6;
 pub const REBOOT_BACKSTEP_US: u64 = 1_000_000;
 /// Accepted samples before the mapping is considered usable.
 pub const CONVERGED_AFTER: u32 = 4;
+/// Messages reporting the new clock before a reboot is declared.
+pub const REBOOT_MIN_MESSAGES: usize = 3;
+/// Different message kinds among them (several streams going back together).
+pub const REBOOT_MIN_STREAMS: usize = 2;
+/// The new clock's messages agree on `boot time - arrival time` within this (µs): link jitter
+/// plus the autopilot's scheduling, far below the seconds a reboot steps back.
+pub const REBOOT_CLOCK_TOLERANCE_US: i64 = 500_000;
+/// The old clock must have been silent this long (ns) before a reboot is declared: an autopilot
+/// says nothing for seconds while it boots, while stale packets arrive among live ones.
+pub const REBOOT_OLD_CLOCK_SILENT_NS: i64 = 500_000_000;
+/// The autopilot's UTC minus boot time may move by this much (µs) between SYSTEM_TIME messages
+/// and still be followed (slewed): `time_boot_ms` has 1 ms resolution and the two fields are
+/// sampled a little apart. A larger difference is a step of the clock.
+pub const UTC_STEP_US: i128 = 20_000;
+/// Fraction of a small UTC difference applied per SYSTEM_TIME (slew, so output time stays smooth).
+pub const UTC_SLEW_GAIN: f64 = 0.1;
 
 /// GPS week number and time of week in milliseconds for a Unix time in microseconds.
 /// `None` before the GPS epoch.
@@ -68,8 +97,6 @@ pub enum SyncUpdate {
     Accepted,
     /// Round trip too long, negative, or an outlier.
     Rejected,
-    /// The autopilot's time went backwards: it rebooted; the filter was reset.
-    Reboot,
 }
 
 /// Filtered companion-monotonic -> autopilot-boot clock mapping (see module docs).
@@ -81,11 +108,8 @@ pub struct TimeSync {
     t_last_ns: i64,
     n: u32,
     outliers_in_row: u32,
-    last_autopilot_us: Option<u64>,
     /// Last accepted round-trip time, ns.
     pub last_rtt_ns: f64,
-    /// Number of reboots detected.
-    pub reboots: u32,
 }
 
 impl TimeSync {
@@ -98,17 +122,13 @@ impl TimeSync {
             t_last_ns: 0,
             n: 0,
             outliers_in_row: 0,
-            last_autopilot_us: None,
             last_rtt_ns: f64::NAN,
-            reboots: 0,
         }
     }
 
     /// Forget the mapping (after a reboot or a reconnect).
     pub fn reset(&mut self) {
-        let (max, reboots) = (self.max_rtt_ns, self.reboots);
-        *self = Self::new(max / 1e6);
-        self.reboots = reboots;
+        *self = Self::new(self.max_rtt_ns / 1e6);
     }
 
     /// True once enough samples agree.
@@ -150,28 +170,8 @@ impl TimeSync {
         c.is_finite().then(|| c.round() as i64)
     }
 
-    /// Note an autopilot boot time seen in any message (`time_boot_ms * 1000`, TIMESYNC tc1 / 1000).
-    /// Returns true (and resets the filter) when it went backwards: the autopilot rebooted.
-    pub fn observe_boot_time(&mut self, t_boot_us: u64) -> bool {
-        let reboot =
-            matches!(self.last_autopilot_us, Some(last) if t_boot_us + REBOOT_BACKSTEP_US < last);
-        if reboot {
-            let reboots = self.reboots + 1;
-            self.reset();
-            self.reboots = reboots;
-        }
-        self.last_autopilot_us = Some(match self.last_autopilot_us {
-            Some(last) if !reboot => last.max(t_boot_us),
-            _ => t_boot_us,
-        });
-        reboot
-    }
-
     /// Feed one TIMESYNC round trip.
     pub fn update(&mut self, s: TimesyncSample) -> SyncUpdate {
-        if s.autopilot_ns > 0 && self.observe_boot_time((s.autopilot_ns / 1000) as u64) {
-            return SyncUpdate::Reboot;
-        }
         let rtt = (s.received_companion_ns - s.sent_companion_ns) as f64;
         if !(0.0..=self.max_rtt_ns).contains(&rtt) || s.autopilot_ns <= 0 {
             return SyncUpdate::Rejected;
@@ -196,10 +196,7 @@ impl TimeSync {
             self.outliers_in_row += 1;
             if self.outliers_in_row >= 3 {
                 // The autopilot's clock stepped: start over from this sample.
-                let (reboots, last) = (self.reboots, self.last_autopilot_us);
                 self.reset();
-                self.reboots = reboots;
-                self.last_autopilot_us = last;
                 return self.update(s);
             }
             return SyncUpdate::Rejected;
@@ -217,21 +214,146 @@ impl TimeSync {
     }
 }
 
+/// What one message's boot time says (see the module doc, "Reboot").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BootVerdict {
+    /// On the current clock: use the message.
+    Current,
+    /// Behind the current clock and not (yet) a confirmed reboot: drop it.
+    Stale,
+    /// The evidence for a reboot is complete: restart everything on the new clock (the message
+    /// is on it).
+    Reboot,
+}
+
+#[derive(Debug, Clone)]
+struct RebootCandidate {
+    /// `boot time - arrival time` of the new clock, µs.
+    clock_us: i64,
+    /// Message kinds and count seen on the new clock.
+    kinds: Vec<u32>,
+    messages: usize,
+}
+
+/// The autopilot's boot clock as seen in its messages; tells stale messages from a reboot.
+#[derive(Debug, Clone, Default)]
+pub struct BootClock {
+    last_us: Option<u64>,
+    /// Arrival of the latest message on the current clock, ns.
+    last_current_ns: Option<i64>,
+    candidate: Option<RebootCandidate>,
+    /// Messages dropped as stale.
+    pub stale: u64,
+}
+
+impl BootClock {
+    /// Judge one message of kind `msg_id` stamped `boot_us` arriving at companion time `t_ns`.
+    pub fn observe(&mut self, msg_id: u32, boot_us: u64, t_ns: i64) -> BootVerdict {
+        let Some(last) = self.last_us else {
+            self.last_us = Some(boot_us);
+            return BootVerdict::Current;
+        };
+        if boot_us + REBOOT_BACKSTEP_US >= last {
+            self.candidate = None; // the old clock goes on: no reboot
+            self.last_us = Some(last.max(boot_us));
+            self.last_current_ns = Some(t_ns);
+            return BootVerdict::Current;
+        }
+        let clock_us = boot_us as i64 - t_ns / 1000;
+        let c = match &mut self.candidate {
+            Some(c) if (c.clock_us - clock_us).abs() <= REBOOT_CLOCK_TOLERANCE_US => c,
+            _ => self.candidate.insert(RebootCandidate {
+                clock_us,
+                kinds: Vec::new(),
+                messages: 0,
+            }),
+        };
+        c.messages += 1;
+        if !c.kinds.contains(&msg_id) {
+            c.kinds.push(msg_id);
+        }
+        let old_silent = self
+            .last_current_ns
+            .is_none_or(|l| t_ns - l >= REBOOT_OLD_CLOCK_SILENT_NS);
+        if old_silent && c.messages >= REBOOT_MIN_MESSAGES && c.kinds.len() >= REBOOT_MIN_STREAMS {
+            self.candidate = None;
+            self.last_us = Some(boot_us);
+            return BootVerdict::Reboot;
+        }
+        self.stale += 1;
+        BootVerdict::Stale
+    }
+
+    /// Forget everything (a new connection).
+    pub fn reset(&mut self) {
+        *self = Self {
+            stale: self.stale,
+            ..Self::default()
+        };
+    }
+}
+
+/// Stamps that never go back: each at least 1 µs after the previous one.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Monotonic {
+    last: Option<u64>,
+    /// Stamps moved forward (the raw value was not after the previous one).
+    pub held: u64,
+}
+
+impl Monotonic {
+    /// `t`, or 1 µs after the previous stamp when `t` is not after it.
+    pub fn stamp(&mut self, t: u64) -> u64 {
+        let out = match self.last {
+            Some(l) if t <= l => {
+                self.held += 1;
+                l.saturating_add(1)
+            }
+            _ => t,
+        };
+        self.last = Some(out);
+        out
+    }
+
+    /// Start over (after an autopilot reboot: its boot time starts again at 0).
+    pub fn reset(&mut self) {
+        self.last = None;
+    }
+}
+
 /// Maps autopilot boot time to Unix time: from SYSTEM_TIME (`time_unix_usec` at `time_boot_ms`)
 /// when the autopilot has a real clock, else from the companion's system clock through the
 /// TIMESYNC mapping.
 #[derive(Debug, Clone, Default)]
 pub struct UtcMap {
-    /// Unix µs minus boot µs, from the autopilot's SYSTEM_TIME.
+    /// Unix µs minus boot µs, from the autopilot's SYSTEM_TIME (latched, slewed).
     autopilot_offset_us: Option<i128>,
+    /// Steps of the autopilot's clock seen and not followed.
+    pub steps: u64,
 }
 
 impl UtcMap {
-    /// Feed a SYSTEM_TIME message. Ignored when the autopilot's clock is not set.
-    pub fn observe_system_time(&mut self, time_unix_usec: u64, time_boot_ms: u32) {
-        if time_unix_usec >= PLAUSIBLE_UNIX_US {
-            self.autopilot_offset_us =
-                Some(time_unix_usec as i128 - i128::from(time_boot_ms) * 1000);
+    /// Feed a SYSTEM_TIME message. Ignored when the autopilot's clock is not set. Returns the
+    /// step in µs when the clock jumped by more than [`UTC_STEP_US`] (not followed).
+    pub fn observe_system_time(&mut self, time_unix_usec: u64, time_boot_ms: u32) -> Option<i128> {
+        if time_unix_usec < PLAUSIBLE_UNIX_US {
+            return None;
+        }
+        let measured = time_unix_usec as i128 - i128::from(time_boot_ms) * 1000;
+        match self.autopilot_offset_us {
+            None => {
+                self.autopilot_offset_us = Some(measured);
+                None
+            }
+            Some(o) if (measured - o).abs() <= UTC_STEP_US => {
+                self.autopilot_offset_us =
+                    Some(o + ((measured - o) as f64 * UTC_SLEW_GAIN) as i128);
+                None
+            }
+            Some(o) => {
+                self.steps += 1;
+                Some(measured - o)
+            }
         }
     }
 
@@ -329,25 +451,24 @@ mod tests {
     }
 
     #[test]
-    fn reboot_is_detected_and_resets() {
+    fn a_backwards_sample_is_an_outlier_until_the_reset() {
         let mut ts = TimeSync::new(50.0);
         feed(&mut ts, 100e9, 0.0, 0, 10, 1_000_000);
         assert!(ts.converged());
-        // The autopilot rebooted: its time is now small.
-        let u = ts.update(TimesyncSample {
+        // A TIMESYNC answer from a rebooted (or spoofed) clock: an outlier for the mapping; the
+        // reboot itself is `BootClock`'s decision, after which the session resets the mapping.
+        let back = TimesyncSample {
             sent_companion_ns: 6_000_000_000,
             autopilot_ns: 2_000_000_000,
             received_companion_ns: 6_001_000_000,
-        });
-        assert_eq!(u, SyncUpdate::Reboot);
-        assert_eq!(ts.reboots, 1);
+        };
+        assert_eq!(ts.update(back), SyncUpdate::Rejected);
+        assert!(ts.converged());
+        ts.reset();
         assert!(!ts.converged());
-        // Re-converges on the new offset.
         feed(&mut ts, -4e9, 0.0, 13, 10, 1_000_000);
         let got = ts.to_autopilot_us(10_000_000_000).unwrap();
         assert!((got as i64 - 6_000_000).abs() < 10, "{got}");
-        // A small backwards step (jitter) is not a reboot.
-        assert!(!ts.observe_boot_time(6_500_000));
     }
 
     #[test]
@@ -375,5 +496,97 @@ mod tests {
                 + GPS_EPOCH_UNIX_S * 1_000_000 - GPS_LEAP_S * 1_000_000;
             prop_assert!(unix_us - back < 1000);
         }
+    }
+
+    const ATT: u32 = 30;
+    const SYS: u32 = 2;
+    const IMU: u32 = 105;
+
+    #[test]
+    fn one_stale_message_is_not_a_reboot() {
+        let mut c = BootClock::default();
+        // 200 Hz on the clock, boot time = arrival + 50 s.
+        let mut t_ns = 1_000_000_000i64;
+        let boot = |t_ns: i64| (t_ns / 1000 + 50_000_000) as u64;
+        for _ in 0..100 {
+            assert_eq!(c.observe(IMU, boot(t_ns), t_ns), BootVerdict::Current);
+            t_ns += 5_000_000;
+        }
+        // A spoofed ATTITUDE with time_boot_ms = 0, then a burst of stale messages of three kinds
+        // interleaved with the real stream: never a reboot, every stale one dropped.
+        assert_eq!(c.observe(ATT, 0, t_ns), BootVerdict::Stale);
+        for k in 0..600u64 {
+            t_ns += 5_000_000;
+            let kind = [ATT, SYS, IMU][(k % 3) as usize];
+            assert_eq!(
+                c.observe(kind, 1_000_000 + k * 5000, t_ns),
+                BootVerdict::Stale
+            );
+            if k % 2 == 0 {
+                assert_eq!(c.observe(IMU, boot(t_ns), t_ns), BootVerdict::Current);
+            }
+        }
+        assert_eq!(c.stale, 601);
+    }
+
+    #[test]
+    fn a_real_reboot_is_confirmed_by_several_streams() {
+        let mut c = BootClock::default();
+        let mut t_ns = 1_000_000_000i64;
+        for _ in 0..100 {
+            c.observe(IMU, (t_ns / 1000 + 50_000_000) as u64, t_ns);
+            t_ns += 5_000_000;
+        }
+        // 3 s of silence, then the autopilot is back with a clock starting near 0.
+        t_ns += 3_000_000_000;
+        let boot = |t_ns: i64, t0: i64| ((t_ns - t0) / 1000 + 100_000) as u64;
+        let t0 = t_ns;
+        assert_eq!(c.observe(IMU, boot(t_ns, t0), t_ns), BootVerdict::Stale);
+        t_ns += 5_000_000;
+        assert_eq!(c.observe(IMU, boot(t_ns, t0), t_ns), BootVerdict::Stale);
+        t_ns += 5_000_000;
+        // One stream alone is not enough; the second kind confirms.
+        assert_eq!(c.observe(ATT, boot(t_ns, t0), t_ns), BootVerdict::Reboot);
+        t_ns += 5_000_000;
+        assert_eq!(c.observe(IMU, boot(t_ns, t0), t_ns), BootVerdict::Current);
+    }
+
+    #[test]
+    fn output_stamps_never_go_back() {
+        let mut m = Monotonic::default();
+        assert_eq!(m.stamp(100), 100);
+        assert_eq!(m.stamp(100), 101);
+        assert_eq!(m.stamp(90), 102);
+        assert_eq!(m.stamp(200), 200);
+        assert_eq!(m.held, 2);
+        m.reset();
+        assert_eq!(m.stamp(5), 5);
+    }
+
+    #[test]
+    fn utc_steps_of_the_autopilot_clock_are_reported_not_followed() {
+        let mut m = UtcMap::default();
+        let t0 = 1_704_067_200_000_000u64;
+        assert_eq!(m.observe_system_time(t0, 1000), None);
+        let at = |m: &UtcMap, boot_us: u64| m.unix_us(boot_us, None).unwrap();
+        assert_eq!(at(&m, 2_000_000), t0 + 1_000_000);
+        // +1 h, a year back, a second of jitter: reported, the mapping stays.
+        assert_eq!(
+            m.observe_system_time(t0 + 3_600_000_000 + 1_000_000, 2000),
+            Some(3_600_000_000)
+        );
+        assert!(
+            m.observe_system_time(t0 - 365 * 86_400_000_000 + 2_000_000, 3000)
+                .is_some()
+        );
+        assert_eq!(
+            m.observe_system_time(t0 + 3_000_000 - 1_000_000, 4000),
+            Some(-1_000_000)
+        );
+        assert_eq!(m.steps, 3);
+        assert_eq!(at(&m, 5_000_000), t0 + 4_000_000);
+        // A few ms of difference is slewed in a tenth at a time.
+        assert_eq!(m.observe_system_time(t0 + 9_000_000 + 10_000, 10_000), None);
+        assert_eq!(at(&m, 10_000_000), t0 + 9_001_000);
     }
 }

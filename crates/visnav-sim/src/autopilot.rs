@@ -208,6 +208,8 @@ struct EmuState {
     all_ids: HashMap<u32, u64>,
     companion: Option<(u8, u8)>,
     muted: bool,
+    /// Booting after [`AutopilotEmulator::reboot`]: silent until then.
+    booting_until: Option<Instant>,
 }
 
 struct Inner {
@@ -255,6 +257,7 @@ impl AutopilotEmulator {
                 all_ids: HashMap::new(),
                 companion: None,
                 muted: false,
+                booting_until: None,
             }),
             seq: AtomicU8::new(0),
             truth: Box::new(truth),
@@ -272,9 +275,11 @@ impl AutopilotEmulator {
     }
 
     /// Restart the boot clock at 0; forget stream intervals and the EKF origin (like a reboot).
+    /// Like a real autopilot it is silent while it boots ([`BOOT_SILENCE`]).
     pub fn reboot(&self) {
         let mut st = lock(&self.inner.state);
         st.boot = Instant::now();
+        st.booting_until = Some(st.boot + BOOT_SILENCE);
         st.boots += 1;
         st.intervals.clear();
         st.origin = None;
@@ -323,9 +328,15 @@ impl Drop for AutopilotEmulator {
     }
 }
 
+/// How long a rebooting autopilot says nothing (ArduPilot and PX4 take 1-3 s to boot).
+pub const BOOT_SILENCE: Duration = Duration::from_millis(1000);
+
 async fn send(inner: &Inner, conn: &Conn, msg: &MavMessage) {
-    if lock(&inner.state).muted {
-        return;
+    {
+        let st = lock(&inner.state);
+        if st.muted || st.booting_until.is_some_and(|t| Instant::now() < t) {
+            return;
+        }
     }
     let header = MavHeader {
         system_id: u32::from(inner.cfg.system_id),

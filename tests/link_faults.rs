@@ -545,6 +545,9 @@ fn signing_is_fail_closed_by_default() {
     ] {
         let v: toml::Value = toml::from_str(&std::fs::read_to_string(f).unwrap()).unwrap();
         let conn = v["link"]["connection"].as_str().unwrap();
-        assert!(!conn.contains("0.0.0.0"), "{f} binds every interface: {conn}");
+        assert!(
+            !conn.contains("0.0.0.0"),
+            "{f} binds every interface: {conn}"
+        );
     }
 }

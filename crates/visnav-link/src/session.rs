@@ -116,8 +116,9 @@ pub struct Telemetry {
     pub t_companion_ns: i64,
     /// Autopilot boot time at reception, if the clock mapping is converged.
     pub t_boot_us: Option<u64>,
-    /// Confirmed autopilot reboots before this message (a change: the autopilot restarted, so
-    /// its boot times start again).
+    /// Confirmed autopilot reboots and lock changes before this message (a change: the
+    /// autopilot restarted or another one took its place, so its boot times start again and the
+    /// navigation must restart).
     pub boot_epoch: u32,
     /// Packet header.
     pub header: MavHeader,
@@ -145,6 +146,8 @@ struct State {
     boot: BootClock,
     /// Confirmed autopilot reboots.
     reboots: u32,
+    /// Reboots plus lock changes: what `Telemetry::boot_epoch` reports.
+    epoch: u32,
     /// Output stamps: boot time and Unix time.
     stamp_boot: Monotonic,
     stamp_unix: Monotonic,
@@ -249,6 +252,7 @@ impl Link {
             stream_checks: 0,
             boot: BootClock::default(),
             reboots: 0,
+            epoch: 0,
             stamp_boot: Monotonic::default(),
             stamp_unix: Monotonic::default(),
             stamp_validity: Monotonic::default(),
@@ -501,7 +505,7 @@ impl Shared {
             }
             Err(e) => {
                 self.metrics.tx_errors.fetch_add(1, Ordering::Relaxed);
-                Err(LinkError::Send(e))
+                Err(LinkError::Send(e.to_string()))
             }
         }
     }
@@ -540,7 +544,12 @@ impl Shared {
         let t_boot_us = st.timesync.to_autopilot_us(now_ns)?;
         // Fallback UTC: the companion's system clock (used when the autopilot has no clock).
         let companion_unix_minus_boot = Some(unix_now_us() as i128 - t_boot_us as i128);
+        let steps_before = st.utc.steps;
         let unix_us = st.utc.unix_us(t_boot_us, companion_unix_minus_boot);
+        if st.utc.steps > steps_before {
+            self.metrics.utc_steps.fetch_add(1, Ordering::Relaxed);
+            warn!("the companion's system clock stepped; GPS_INPUT keeps its UTC");
+        }
         let unix_us = unix_us.map(|u| st.stamp_unix.stamp(u));
         let t_boot_us = st.stamp_boot.stamp(t_boot_us);
         let validity_companion_us = st
@@ -769,6 +778,7 @@ impl Shared {
             st.origin_from_autopilot = false;
             st.origin_sent = 0;
             st.stamp_boot.reset();
+            st.epoch += 1;
         } else {
             info!("locked onto {name} sys {sys} comp {comp}");
         }
@@ -832,6 +842,7 @@ impl Shared {
             let mut st = lock(&self.state);
             if rebooted {
                 st.reboots += 1;
+                st.epoch += 1;
                 st.timesync.reset();
                 st.utc.reset();
                 st.rates.clear();
@@ -928,7 +939,7 @@ impl Shared {
         self.publish_status();
         let (t_boot_us, boot_epoch) = {
             let st = lock(&self.state);
-            (st.timesync.to_autopilot_us(t_ns), st.reboots)
+            (st.timesync.to_autopilot_us(t_ns), st.epoch)
         };
         let _ = self.telemetry.send(Telemetry {
             t_companion_ns: t_ns,
@@ -1107,33 +1118,34 @@ pub fn boot_time_us(msg: &MavMessage) -> Option<u64> {
     Some(u64::from(ms) * 1000)
 }
 
+/// Why a GPS_GLOBAL_ORIGIN cannot be an origin.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum OriginError {
+    #[error("latitude {0:.7} deg is outside [-90, 90]")]
+    Latitude(f64),
+    #[error("longitude {0:.7} deg is outside [-180, 180]")]
+    Longitude(f64),
+    #[error("altitude {0:.1} m is outside [{lo}, {hi}] m", lo = ORIGIN_ALT_RANGE_M.0, hi = ORIGIN_ALT_RANGE_M.1)]
+    Altitude(f64),
+}
+
 /// A GPS_GLOBAL_ORIGIN's coordinates, or why they cannot be an origin.
 pub fn origin_of(
     m: &mavlink::dialects::ardupilotmega::GPS_GLOBAL_ORIGIN_DATA,
-) -> Result<GeoOrigin, String> {
+) -> Result<GeoOrigin, OriginError> {
     let o = GeoOrigin {
         lat_deg: f64::from(m.latitude) * 1e-7,
         lon_deg: f64::from(m.longitude) * 1e-7,
         alt_amsl_m: f64::from(m.altitude) * 1e-3,
     };
     if !(-90.0..=90.0).contains(&o.lat_deg) {
-        return Err(format!(
-            "latitude {:.7} deg is outside [-90, 90]",
-            o.lat_deg
-        ));
+        return Err(OriginError::Latitude(o.lat_deg));
     }
     if !(-180.0..=180.0).contains(&o.lon_deg) {
-        return Err(format!(
-            "longitude {:.7} deg is outside [-180, 180]",
-            o.lon_deg
-        ));
+        return Err(OriginError::Longitude(o.lon_deg));
     }
-    // Dead Sea shore to above Everest (ORIGIN_ALT_RANGE_M).
     if !(ORIGIN_ALT_RANGE_M.0..=ORIGIN_ALT_RANGE_M.1).contains(&o.alt_amsl_m) {
-        return Err(format!(
-            "altitude {:.1} m is outside [{}, {}] m",
-            o.alt_amsl_m, ORIGIN_ALT_RANGE_M.0, ORIGIN_ALT_RANGE_M.1
-        ));
+        return Err(OriginError::Altitude(o.alt_amsl_m));
     }
     Ok(o)
 }

@@ -328,6 +328,10 @@ impl Monotonic {
 pub struct UtcMap {
     /// Unix µs minus boot µs, from the autopilot's SYSTEM_TIME (latched, slewed).
     autopilot_offset_us: Option<i128>,
+    /// The same from the companion's system clock (the fallback; latched, slewed).
+    companion_offset_us: Option<i128>,
+    /// The companion's clock is away from its latched offset (its step was counted).
+    companion_stepped: bool,
     /// Steps of the autopilot's clock seen and not followed.
     pub steps: u64,
 }
@@ -357,9 +361,12 @@ impl UtcMap {
         }
     }
 
-    /// Forget the autopilot's clock (reboot).
+    /// Forget both offsets (a reboot: the boot clock starts again; the step count stays).
     pub fn reset(&mut self) {
-        self.autopilot_offset_us = None;
+        *self = Self {
+            steps: self.steps,
+            ..Self::default()
+        };
     }
 
     /// True if the autopilot reported a real clock.
@@ -370,14 +377,46 @@ impl UtcMap {
     /// Unix µs of autopilot time `t_boot_us`. `companion_unix_minus_boot_us` is the fallback
     /// (companion system clock minus the mapped boot time), used when the autopilot has no clock.
     /// `None` when neither is plausible.
+    ///
+    /// The fallback is latched like the autopilot's clock: the companion's system clock can be
+    /// stepped too (NTP, a hand-set clock), and following a step back would either send time
+    /// going backwards or, held monotonic, freeze it. A step is counted once in `steps`.
     pub fn unix_us(
-        &self,
+        &mut self,
         t_boot_us: u64,
         companion_unix_minus_boot_us: Option<i128>,
     ) -> Option<u64> {
-        let off = self.autopilot_offset_us.or(companion_unix_minus_boot_us)?;
+        let off = match (self.autopilot_offset_us, companion_unix_minus_boot_us) {
+            (Some(o), _) => o,
+            (None, Some(f)) => self.companion_offset(f, t_boot_us),
+            (None, None) => return None,
+        };
         let u = off + t_boot_us as i128;
         u64::try_from(u).ok().filter(|u| *u >= PLAUSIBLE_UNIX_US)
+    }
+
+    fn companion_offset(&mut self, f: i128, t_boot_us: u64) -> i128 {
+        match self.companion_offset_us {
+            Some(c) if (f - c).abs() <= UTC_STEP_US => {
+                self.companion_stepped = false;
+                let c = c + ((f - c) as f64 * UTC_SLEW_GAIN) as i128;
+                self.companion_offset_us = Some(c);
+                c
+            }
+            Some(c) => {
+                if !self.companion_stepped {
+                    self.companion_stepped = true;
+                    self.steps += 1;
+                }
+                c
+            }
+            None => {
+                if f + t_boot_us as i128 >= PLAUSIBLE_UNIX_US as i128 {
+                    self.companion_offset_us = Some(f);
+                }
+                f
+            }
+        }
     }
 }
 
@@ -564,12 +603,30 @@ mod tests {
     }
 
     #[test]
+    fn a_step_of_the_companion_clock_is_not_followed_either() {
+        let mut m = UtcMap::default();
+        let off = 1_704_067_200_000_000i128;
+        assert_eq!(m.unix_us(1_000_000, Some(off)), Some(1_704_067_201_000_000));
+        // NTP steps the companion's clock back an hour: the output goes on from the latch.
+        let back = off - 3_600_000_000;
+        assert_eq!(
+            m.unix_us(2_000_000, Some(back)),
+            Some(1_704_067_202_000_000)
+        );
+        assert_eq!(
+            m.unix_us(3_000_000, Some(back)),
+            Some(1_704_067_203_000_000)
+        );
+        assert_eq!(m.steps, 1);
+    }
+
+    #[test]
     fn utc_steps_of_the_autopilot_clock_are_reported_not_followed() {
         let mut m = UtcMap::default();
         let t0 = 1_704_067_200_000_000u64;
         assert_eq!(m.observe_system_time(t0, 1000), None);
-        let at = |m: &UtcMap, boot_us: u64| m.unix_us(boot_us, None).unwrap();
-        assert_eq!(at(&m, 2_000_000), t0 + 1_000_000);
+        let at = |m: &mut UtcMap, boot_us: u64| m.unix_us(boot_us, None).unwrap();
+        assert_eq!(at(&mut m, 2_000_000), t0 + 1_000_000);
         // +1 h, a year back, a second of jitter: reported, the mapping stays.
         assert_eq!(
             m.observe_system_time(t0 + 3_600_000_000 + 1_000_000, 2000),
@@ -584,9 +641,9 @@ mod tests {
             Some(-1_000_000)
         );
         assert_eq!(m.steps, 3);
-        assert_eq!(at(&m, 5_000_000), t0 + 4_000_000);
+        assert_eq!(at(&mut m, 5_000_000), t0 + 4_000_000);
         // A few ms of difference is slewed in a tenth at a time.
         assert_eq!(m.observe_system_time(t0 + 9_000_000 + 10_000, 10_000), None);
-        assert_eq!(at(&m, 10_000_000), t0 + 9_001_000);
+        assert_eq!(at(&mut m, 10_000_000), t0 + 9_001_000);
     }
 }

@@ -83,9 +83,12 @@ impl Transport {
     }
 
     /// Send one frame; `Ok(0)` when there is nobody to send to yet (`udpin` before the lock).
-    pub async fn send_raw(&self, raw: &MAVLinkMessageRaw) -> Result<usize, String> {
+    pub async fn send_raw(&self, raw: &MAVLinkMessageRaw) -> std::io::Result<usize> {
         match self {
-            Transport::Mav(c) => c.send_raw(raw).await.map_err(|e| e.to_string()),
+            Transport::Mav(c) => c
+                .send_raw(raw)
+                .await
+                .map_err(|e| std::io::Error::other(e.to_string())),
             Transport::UdpIn(u) => {
                 let Some((peer, _)) = *lock(&u.peer) else {
                     return Ok(0);
@@ -94,10 +97,7 @@ impl Transport {
                     MAVLinkMessageRaw::V1(m) => m.raw_bytes(),
                     MAVLinkMessageRaw::V2(m) => m.raw_bytes(),
                 };
-                u.socket
-                    .send_to(bytes, peer)
-                    .await
-                    .map_err(|e| e.to_string())
+                u.socket.send_to(bytes, peer).await
             }
         }
     }

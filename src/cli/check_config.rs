@@ -4,6 +4,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use visnav::daemon::app_config::{Config, ConfigError};
+use visnav::link::config::OutputMode;
 
 #[derive(clap::Args, Debug)]
 pub struct CheckConfigArgs {
@@ -12,16 +13,28 @@ pub struct CheckConfigArgs {
 }
 
 pub fn run(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
-    match Config::load(&args.file).and_then(|cfg| cfg.check_data(&args.file).map(|()| cfg)) {
+    // The validation `visnav run` does before it starts: what passes here, run starts.
+    match Config::load_checked(&args.file) {
         Ok(cfg) => {
+            let modes: Vec<&str> = cfg
+                .output
+                .modes
+                .iter()
+                .map(|m| match m {
+                    OutputMode::GpsInput => "gps_input",
+                    OutputMode::VisionPositionEstimate => "vision_position_estimate",
+                    OutputMode::Odometry => "odometry",
+                    OutputMode::GlobalPositionSensor => "global_position_sensor",
+                })
+                .collect();
             println!(
-                "{}: OK (link {}, camera {}x{} px, {} orthophoto(s) loaded, output {:?} at {} Hz)",
+                "{}: OK (link {}, camera {}x{} px, {} orthophoto(s) loaded, output [{}] at {} Hz)",
                 args.file.display(),
                 cfg.link.connection,
                 cfg.camera.width_px,
                 cfg.camera.height_px,
                 cfg.map.ortho.len(),
-                cfg.output.modes,
+                modes.join(", "),
                 cfg.output.rate_hz
             );
             Ok(ExitCode::SUCCESS)

@@ -19,7 +19,8 @@ pub struct RunArgs {
 }
 
 pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
-    let cfg = Config::load(&args.config)?;
+    // The validation `visnav check-config` does: what it passes, run starts.
+    let cfg = Config::load_checked(&args.config)?;
     let duration = match args.duration {
         Some(s) if s.is_finite() && s > 0.0 && s < 1e9 => Some(Duration::from_secs_f64(s)),
         Some(s) => anyhow::bail!("--duration {s}: expected a positive number of seconds"),

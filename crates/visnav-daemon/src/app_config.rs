@@ -128,7 +128,12 @@ impl MapConfig {
                 "missing: give a DEM GeoTIFF (dem) or a constant ground height (ground_height_amsl_m)",
             ),
             (Some(f), None) => check_file(p, "dem", base, f),
-            (None, Some(h)) => p.range("ground_height_amsl_m", h, -500.0, 9000.0),
+            (None, Some(h)) => p.range(
+                "ground_height_amsl_m",
+                h,
+                visnav_io::geo::dem::MIN_TERRAIN_HEIGHT_M,
+                visnav_io::geo::dem::MAX_TERRAIN_HEIGHT_M,
+            ),
         }
         if let Some(crs) = &self.crs_override {
             p.section("crs_override", |p| Validate::validate(crs, p));
@@ -158,6 +163,53 @@ impl MapConfig {
     }
 }
 
+/// A file the daemon will create (`link.tlog`, `daemon.fix_log`): its name with `{t}` expanded
+/// as the daemon expands it must not be a directory, and its folder must exist.
+fn check_output_file(p: &mut Problems, key: &str, base: &Path, f: &Path) {
+    let now_s = visnav_link::tlog::unix_now_us() / 1_000_000;
+    let full = resolve(base, &visnav_link::tlog::expand_name(f, now_s));
+    if full.is_dir() {
+        p.push(
+            key,
+            format!("{} is a directory; give a file name in it", full.display()),
+        );
+        return;
+    }
+    if let Some(d) = full.parent().filter(|d| !d.as_os_str().is_empty())
+        && !d.is_dir()
+    {
+        p.push(key, format!("the folder {} does not exist", d.display()));
+    }
+}
+
+/// `link.connection = "serial:DEVICE:BAUD"`: the device must exist and be a character device
+/// (the serial port the link opens at start).
+fn check_serial_device(p: &mut Problems, connection: &str) {
+    let Some(dev) = connection
+        .strip_prefix("serial:")
+        .and_then(|rest| rest.rsplit_once(':'))
+        .map(|(dev, _)| dev)
+        .filter(|d| !d.is_empty())
+    else {
+        return; // not serial, or malformed (reported by the link's own check)
+    };
+    match std::fs::metadata(dev) {
+        Err(e) => p.push(
+            "connection",
+            format!("the serial device {dev} cannot be used: {e}"),
+        ),
+        Ok(m) => {
+            use std::os::unix::fs::FileTypeExt;
+            if !m.file_type().is_char_device() {
+                p.push(
+                    "connection",
+                    format!("{dev} is not a serial device (not a character device)"),
+                );
+            }
+        }
+    }
+}
+
 fn check_file(p: &mut Problems, key: &str, base: &Path, f: &Path) {
     let full = resolve(base, f);
     match std::fs::metadata(&full) {
@@ -176,7 +228,16 @@ impl Config {
         })?;
         let base = path.parent().unwrap_or(Path::new("."));
         let mut p = Problems::default();
-        p.section("link", |p| cfg.link.validate_in(base, p));
+        p.section("link", |p| {
+            cfg.link.validate_in(base, p);
+            check_serial_device(p, &cfg.link.connection);
+            // The link checks the folder; a directory by that name is refused here.
+            if let Some(t) = &cfg.link.tlog
+                && resolve(base, t).is_dir()
+            {
+                check_output_file(p, "tlog", base, t);
+            }
+        });
         p.section("camera", |p| cfg.camera.validate(p));
         p.section("map", |p| cfg.map.validate_in(base, p));
         p.section("output", |p| cfg.output.validate(p));
@@ -185,7 +246,12 @@ impl Config {
         if let Some(f) = &cfg.frames {
             p.section("frames", |p| f.validate_in(base, p));
         }
-        p.section("daemon", |p| cfg.daemon.validate_in(&cfg.output, p));
+        p.section("daemon", |p| {
+            cfg.daemon.validate_in(&cfg.output, p);
+            if let Some(f) = &cfg.daemon.fix_log {
+                check_output_file(p, "fix_log", base, f);
+            }
+        });
         if cfg.daemon.imu_bias_restore == crate::config::ImuBiasRestore::ScaledImu {
             match cfg.link.streams.scaled_imu_hz {
                 Some(hz) if hz <= 0.0 => p.push(
@@ -221,6 +287,7 @@ impl Config {
     /// (it decodes the rasters), so `check-config` calls it and the daemon does it once at start.
     pub fn check_data(&self, path: &Path) -> Result<(), ConfigError> {
         use visnav_io::geo::geotiff::{crs_equivalent, load_geotiff};
+        use visnav_io::geo::geotiff_info::describe_crs;
         let mut p = Problems::default();
         let mut first_crs: Option<Crs> = None;
         p.section("map", |p| {
@@ -236,10 +303,10 @@ impl Config {
                         Some(c) if !crs_equivalent(&c, &r.crs()) => p.push(
                             &format!("ortho[{i}]"),
                             format!(
-                                "{}: CRS {:?} differs from the first orthophoto's {:?}",
+                                "{}: CRS {} differs from the first orthophoto's {}",
                                 f.display(),
-                                r.crs(),
-                                c
+                                describe_crs(&r.crs()),
+                                describe_crs(&c)
                             ),
                         ),
                         Some(_) => {}
@@ -261,6 +328,16 @@ impl Config {
                 problems: p.list,
             })
         }
+    }
+
+    /// Everything `visnav run` needs before it starts, and what `visnav check-config` checks: the
+    /// file read, parsed and validated ([`Config::load`]), and its data files opened
+    /// ([`Config::check_data`]). The one validation both commands share, so `check-config`
+    /// passes exactly what `run` starts.
+    pub fn load_checked(path: &Path) -> Result<Config, ConfigError> {
+        let cfg = Self::load(path)?;
+        cfg.check_data(path)?;
+        Ok(cfg)
     }
 
     /// Read, parse and validate a configuration file.

@@ -397,6 +397,24 @@ impl Validate for FramesConfig {
                     "required with source = \"gstreamer\", e.g. \"v4l2src device=/dev/video0\"",
                 )
             }
+            // gst-launch refuses an empty element ("syntax error") only once it runs: "!", a
+            // leading or trailing "!" (visnav appends "! videoconvert ! ..."), or "! !".
+            SourceKind::Gstreamer
+                if self
+                    .pipeline
+                    .as_deref()
+                    .is_some_and(|s| s.split('!').any(|e| e.trim().is_empty())) =>
+            {
+                p.push(
+                    "pipeline",
+                    format!(
+                        "\"{}\" has an empty element (a leading or trailing \"!\", or \"! !\"): \
+                         give the elements up to the raw video, e.g. \"v4l2src device=/dev/video0\"; \
+                         visnav appends \"! videoconvert ! ... ! fdsink\"",
+                        self.pipeline.as_deref().unwrap_or_default()
+                    ),
+                )
+            }
             _ => {}
         }
         if self.stamp == StampMode::Source && self.source != SourceKind::Directory {
@@ -1679,9 +1697,8 @@ pub fn v4l2_luma(
                 bytes: data.len(),
                 reason,
             };
-            let img = image::load_from_memory_with_format(data, image::ImageFormat::Jpeg)
-                .map_err(|e| jpeg(e.to_string()))?;
-            let g = GrayImage::from_dynamic(&img).map_err(|e| jpeg(e.to_string()))?;
+            // Strict: a frame with corrupt entropy data is refused, not filled in.
+            let g = crate::image_file::decode_jpeg_strict(data).map_err(|e| jpeg(e.to_string()))?;
             if (g.width(), g.height()) != (width, height) {
                 return Err(BadFrame::JpegSize {
                     got_width: g.width(),

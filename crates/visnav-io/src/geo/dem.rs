@@ -8,6 +8,15 @@ pub use visnav_core::geo::dem::*;
 use super::Crs;
 use super::geotiff::{GeoTiffError, load_geotiff};
 
+/// The lowest terrain height accepted, metres AMSL: the shore of the Dead Sea, the lowest dry
+/// land, is at -430 m (orthometric; its ellipsoidal height is about the same). A DEM or a
+/// constant ground height below it is an undeclared nodata value, a wrong unit or a typo.
+pub const MIN_TERRAIN_HEIGHT_M: f64 = -500.0;
+/// The highest terrain height accepted, metres AMSL: Everest is 8 849 m (its ellipsoidal height
+/// is about 8 820 m). Anything above (e.g. a DEM of 3.4e38, float32's largest value, used as an
+/// undeclared nodata value) is not terrain.
+pub const MAX_TERRAIN_HEIGHT_M: f64 = 9000.0;
+
 /// Why a DEM file could not be loaded.
 #[derive(Debug, thiserror::Error)]
 pub enum DemFileError {
@@ -17,13 +26,33 @@ pub enum DemFileError {
     /// The raster is not a usable height model.
     #[error("{path}: {error}")]
     Dem { path: String, error: DemError },
+    /// Heights outside the terrain range: an undeclared nodata value or another unit.
+    #[error(
+        "{path}: heights {min_m} to {max_m} m are outside the terrain range \
+         {MIN_TERRAIN_HEIGHT_M} to {MAX_TERRAIN_HEIGHT_M} m: a nodata value the file does not \
+         declare (declare it: `gdal_edit.py -a_nodata VALUE {path}`), or heights not in metres"
+    )]
+    Heights {
+        path: String,
+        min_m: f64,
+        max_m: f64,
+    },
 }
 
 /// Loads a one-band GeoTIFF of heights (metres). See `geotiff::load_geotiff` for `crs_override`.
 pub fn load_dem(path: &Path, crs_override: Option<Crs>) -> Result<Dem, DemFileError> {
     let raster = load_geotiff(path, crs_override)?;
-    Dem::from_raster(&raster).map_err(|error| DemFileError::Dem {
+    let dem = Dem::from_raster(&raster).map_err(|error| DemFileError::Dem {
         path: path.display().to_string(),
         error,
-    })
+    })?;
+    let (min_m, max_m) = dem.height_range_m();
+    if !(min_m >= MIN_TERRAIN_HEIGHT_M && max_m <= MAX_TERRAIN_HEIGHT_M) {
+        return Err(DemFileError::Heights {
+            path: path.display().to_string(),
+            min_m,
+            max_m,
+        });
+    }
+    Ok(dem)
 }

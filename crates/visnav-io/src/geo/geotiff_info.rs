@@ -87,7 +87,7 @@ pub enum GeoTiffError {
     #[error("{}: {reason}", .path.display())]
     Window { path: PathBuf, reason: String },
     /// The file's CRS was understood but differs from the configured override.
-    #[error("{}: the CRS in the file's GeoKeys ({file:?}) contradicts the configured override ({configured:?})", .path.display())]
+    #[error("{}: the CRS in the file's GeoKeys ({}) contradicts the configured override ({})", .path.display(), describe_crs(.file), describe_crs(.configured))]
     CrsConflict {
         path: PathBuf,
         file: Crs,
@@ -745,6 +745,29 @@ pub fn geotransform_from_tags(
             e.to_string(),
         )
     })
+}
+
+/// A CRS for messages: `UTM zone 10N (EPSG:32610)`, `EPSG:4326 (geographic, degrees)`, ...
+pub fn describe_crs(c: &Crs) -> String {
+    match *c {
+        Crs::Geographic => "EPSG:4326 (WGS 84 geographic, degrees)".to_string(),
+        Crs::Utm { zone, north } => format!(
+            "UTM zone {zone}{} (EPSG:{})",
+            if north { 'N' } else { 'S' },
+            if north { 32600 } else { 32700 } + u32::from(zone)
+        ),
+        Crs::TransverseMercator {
+            lat0_deg,
+            lon0_deg,
+            k0,
+            false_easting_m,
+            false_northing_m,
+        } => format!(
+            "transverse Mercator (lat0 {lat0_deg} deg, lon0 {lon0_deg} deg, k0 {k0}, false \
+             easting {false_easting_m} m, false northing {false_northing_m} m)"
+        ),
+        Crs::WebMercator => "EPSG:3857 (web Mercator)".to_string(),
+    }
 }
 
 /// Two CRSs denote the same system (transverse Mercator parameters compared with tolerances of

@@ -76,6 +76,9 @@ pub struct GeoTiffWindowReader<R: Read + Seek + Send> {
     /// A decoder panic was caught: the decoder state is unknown, refuse further reads.
     poisoned: bool,
     chunks_decoded: u64,
+    /// Chunks stored with 0 bytes (TileByteCounts / StripByteCounts = 0): a sparse file's empty
+    /// tiles, which GDAL reads as the nodata value (0 without one). Read the same way here.
+    empty_chunks: std::collections::HashSet<u32>,
 }
 
 impl<R: Read + Seek + Send> std::fmt::Debug for GeoTiffWindowReader<R> {
@@ -103,6 +106,23 @@ impl<R: Read + Seek + Send> GeoTiffWindowReader<R> {
     ) -> Result<Self, GeoTiffError> {
         let mut dec = new_decoder(reader, path)?;
         let info = read_info(&mut dec, path, crs_override)?;
+        let (counts_tag, counts_name) = if info.tiled {
+            (tiff::tags::Tag::TileByteCounts, "TileByteCounts")
+        } else {
+            (tiff::tags::Tag::StripByteCounts, "StripByteCounts")
+        };
+        let empty_chunks = dec
+            .find_tag_unsigned_vec::<u64>(counts_tag)
+            .map_err(|e| GeoTiffError::Decode {
+                path: path.to_path_buf(),
+                reason: format!("{counts_name}: {e}"),
+            })?
+            .unwrap_or_default()
+            .iter()
+            .enumerate()
+            .filter(|&(_, &n)| n == 0)
+            .filter_map(|(i, _)| u32::try_from(i).ok())
+            .collect();
         Ok(Self {
             dec,
             helpers: Vec::new(),
@@ -112,6 +132,7 @@ impl<R: Read + Seek + Send> GeoTiffWindowReader<R> {
             sample_type: None,
             poisoned: false,
             chunks_decoded: 0,
+            empty_chunks,
         })
     }
 
@@ -314,7 +335,11 @@ impl<R: Read + Seek + Send> GeoTiffWindowReader<R> {
         if let Some(c) = self.cache.get(idx) {
             return Ok(c);
         }
-        let decoded = decode_one(&mut self.dec, idx);
+        let decoded = if self.empty_chunks.contains(&idx) {
+            empty_chunk(&mut self.dec, idx, self.info.nodata)
+        } else {
+            decode_one(&mut self.dec, idx)
+        };
         self.accept(idx, decoded)
     }
 
@@ -328,10 +353,23 @@ impl<R: Read + Seek + Send> GeoTiffWindowReader<R> {
             .chain(self.helpers.iter_mut())
             .take(n)
             .collect();
+        let (empty, nodata) = (&self.empty_chunks, self.info.nodata);
         let groups: Vec<Vec<(u32, Result<Chunk, ChunkError>)>> = decs
             .into_par_iter()
             .zip(ids.par_chunks(per))
-            .map(|(dec, group)| group.iter().map(|&i| (i, decode_one(dec, i))).collect())
+            .map(|(dec, group)| {
+                group
+                    .iter()
+                    .map(|&i| {
+                        let c = if empty.contains(&i) {
+                            empty_chunk(dec, i, nodata)
+                        } else {
+                            decode_one(dec, i)
+                        };
+                        (i, c)
+                    })
+                    .collect()
+            })
             .collect();
         let mut out = HashMap::with_capacity(ids.len());
         for (i, decoded) in groups.into_iter().flatten() {
@@ -399,6 +437,49 @@ fn decode_one<R: Read + Seek>(dec: &mut Decoder<R>, idx: u32) -> Result<Chunk, C
         .read_chunk(idx)
         .map_err(|e| ChunkError::Read(e.to_string()))?;
     Chunk::from_decoded(raw)
+}
+
+/// Chunk `idx` stored with 0 bytes (sparse file): as GDAL reads it, every sample the nodata
+/// value when the file declares one the sample type can hold, else 0.
+fn empty_chunk<R: Read + Seek>(
+    dec: &mut Decoder<R>,
+    idx: u32,
+    nodata: Option<f64>,
+) -> Result<Chunk, ChunkError> {
+    use tiff::decoder::DecodingSampleType as T;
+    let layout = dec
+        .image_chunk_buffer_layout(idx)
+        .map_err(|e| ChunkError::Read(e.to_string()))?;
+    let fill = nodata.filter(|v| v.is_finite()).unwrap_or(0.0);
+    // Integer samples: the nodata value if it is one of the type's values, else 0.
+    macro_rules! ints {
+        ($t:ty, $variant:ident) => {{
+            let n = layout.len / std::mem::size_of::<$t>();
+            let v = if fill.fract() == 0.0 && fill >= <$t>::MIN as f64 && fill <= <$t>::MAX as f64 {
+                fill as $t // ok: integral and in range
+            } else {
+                0
+            };
+            DecodingResult::$variant(vec![v; n])
+        }};
+    }
+    let d = match layout.sample_type {
+        Some(T::U8) => ints!(u8, U8),
+        Some(T::U16) => ints!(u16, U16),
+        Some(T::U32) => ints!(u32, U32),
+        Some(T::I8) => ints!(i8, I8),
+        Some(T::I16) => ints!(i16, I16),
+        Some(T::I32) => ints!(i32, I32),
+        Some(T::F32) => DecodingResult::F32(vec![fill as f32; layout.len / 4]),
+        Some(T::F64) => DecodingResult::F64(vec![fill; layout.len / 8]),
+        Some(T::U64 | T::I64) => return Err(ChunkError::Int64Samples),
+        _ => {
+            return Err(ChunkError::Read(
+                "an empty (0-byte) chunk of a sample type visnav does not read".into(),
+            ));
+        }
+    };
+    Chunk::from_decoded(d)
 }
 
 impl GeoTiffWindowReader<BufReader<File>> {

@@ -44,7 +44,7 @@ use super::{
 };
 use crate::geo::Crs;
 use crate::geo::dem::Dem;
-use crate::geo::geotiff::{GeoTiffError, GeoTiffInfo, crs_equivalent, load_geotiff};
+use crate::geo::geotiff::{GeoTiffError, GeoTiffInfo, crs_equivalent, describe_crs, load_geotiff};
 use crate::geo::raster::{Bounds, GeoTransform, Raster, RasterData};
 use crate::geo::window::{GeoTiffWindowReader, open_geotiff_window};
 use crate::vision::{GrayImage, IntegralImage, KeyPoint, Surf, SurfParams};
@@ -255,6 +255,9 @@ fn check_ortho(path: &Path, r: &GeoTiffInfo, crs: Option<Crs>) -> Result<OrthoGe
         path: path.to_path_buf(),
         reason,
     };
+    if matches!(r.crs, Crs::Geographic) {
+        return Err(bad(geographic_advice(&r.bounds())));
+    }
     let t = &r.transform;
     if !t.is_axis_aligned() {
         return Err(bad(
@@ -275,18 +278,13 @@ fn check_ortho(path: &Path, r: &GeoTiffInfo, crs: Option<Crs>) -> Result<OrthoGe
             "pixels are not square ({px} x {py} m); resample the orthophoto"
         )));
     }
-    if matches!(r.crs, Crs::Geographic) {
-        return Err(bad(
-            "the orthophoto is in geographic coordinates (degrees); a projected CRS in metres is required"
-                .into(),
-        ));
-    }
     if let Some(c0) = crs
         && !crs_equivalent(&c0, &r.crs)
     {
         return Err(bad(format!(
-            "CRS {:?} differs from the first orthophoto's {c0:?}; all orthophotos of a map must share one CRS",
-            r.crs
+            "CRS {} differs from the first orthophoto's {}; all orthophotos of a map must share one CRS",
+            describe_crs(&r.crs),
+            describe_crs(&c0)
         )));
     }
     Ok(OrthoGeom {
@@ -303,6 +301,31 @@ fn check_ortho(path: &Path, r: &GeoTiffInfo, crs: Option<Crs>) -> Result<OrthoGe
             _ => 4,
         },
     })
+}
+
+/// What to do with an orthophoto in geographic coordinates (EPSG:4326, pixel steps in degrees):
+/// the map, its index and its pixel sizes are in metres, so it must be reprojected first. Names
+/// the UTM zone of the image's centre (`bounds` in degrees: x longitude, y latitude).
+pub fn geographic_advice(bounds: &Bounds) -> String {
+    let lon = 0.5 * (bounds.min_x_m + bounds.max_x_m);
+    let lat = 0.5 * (bounds.min_y_m + bounds.max_y_m);
+    let target = if lon.is_finite() && lat.is_finite() && (-180.0..=180.0).contains(&lon) {
+        let zone = (((lon + 180.0) / 6.0).floor() as i64).clamp(0, 59) + 1; // ok: clamped
+        let epsg = if lat >= 0.0 {
+            32600 + zone
+        } else {
+            32700 + zone
+        };
+        format!("EPSG:{epsg}")
+    } else {
+        "EPSG:326zz".to_string()
+    };
+    format!(
+        "the orthophoto is in geographic coordinates (EPSG:4326, pixel steps in degrees); a map \
+         needs a projected CRS in metres: reproject it, e.g. to its UTM zone with \
+         `gdalwarp -t_srs {target} -r cubic IN.tif OUT.tif` (EPSG:326zz north, 327zz south of \
+         the equator), and the DEM to the same CRS"
+    )
 }
 
 /// Builds the map `out` from `spec`. `progress` is called after every tile.
@@ -387,6 +410,16 @@ pub fn build_map(
     // Heights.
     let (dem, height_info, datum) = match &spec.height {
         HeightSource::ConstantAmsl(h) => {
+            use crate::geo::dem::{MAX_TERRAIN_HEIGHT_M, MIN_TERRAIN_HEIGHT_M};
+            if !(MIN_TERRAIN_HEIGHT_M..=MAX_TERRAIN_HEIGHT_M).contains(h) {
+                return Err(param(
+                    "ground_height",
+                    &format!(
+                        "{h} m is not a terrain height (expected {MIN_TERRAIN_HEIGHT_M} to \
+                         {MAX_TERRAIN_HEIGHT_M} m above mean sea level)"
+                    ),
+                ));
+            }
             let d = Dem::flat(*h).map_err(|e| param("ground_height", &e.to_string()))?;
             (
                 d,
@@ -407,7 +440,9 @@ pub fn build_map(
                 return Err(MapError::Input {
                     path: p.clone(),
                     reason: format!(
-                        "DEM CRS {dc:?} differs from the orthophotos' {crs:?}; reproject the DEM to the orthophotos' CRS"
+                        "DEM CRS {} differs from the orthophotos' {}; reproject the DEM to the orthophotos' CRS",
+                        describe_crs(&dc),
+                        describe_crs(&crs)
                     ),
                 });
             }
@@ -604,6 +639,19 @@ pub fn build_map(
             .map_or(0, |d| d.as_secs()),
         built_by: format!("visnav {}", env!("CARGO_PKG_VERSION")),
     };
+    if st.features == 0 {
+        return Err(MapError::NoFeatures {
+            orthos: spec
+                .orthos
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", "),
+            threshold: header.surf.hessian_threshold,
+            dropped_nodata: st.dropped_nodata,
+            dropped_no_height: st.dropped_no_height,
+        });
+    }
     let (header, file_bytes) = writer.finish(header, out)?;
     Ok(BuildSummary {
         header,

@@ -764,7 +764,10 @@ fn validate(b: &[u8], path: &Path) -> Result<(MapHeader, usize), MapError> {
             || g.rows == 0
             || g.cols as u64 * g.rows as u64 > MAX_CELLS
         {
-            return Err(bad(format!("level {l}: invalid index grid {g:?}")));
+            return Err(bad(format!(
+                "level {l}: invalid index grid (origin {}, {} m, cell {} m, {} x {} cells)",
+                g.origin_x_m, g.origin_y_m, g.cell_m, g.cols, g.rows
+            )));
         }
         if !(info.gsd_m.is_finite() && info.gsd_m > 0.0) {
             return Err(bad(format!("level {l}: invalid gsd_m {}", info.gsd_m)));
@@ -796,8 +799,7 @@ fn validate(b: &[u8], path: &Path) -> Result<(MapHeader, usize), MapError> {
         });
         if image.is_some_and(|(_, _, ok)| !ok) {
             return Err(bad(format!(
-                "level {l}: invalid image geometry {:?}",
-                info.image
+                "level {l}: invalid image geometry (size, origin not positive and finite)"
             )));
         }
         let sections = sections
@@ -827,8 +829,149 @@ fn validate(b: &[u8], path: &Path) -> Result<(MapHeader, usize), MapError> {
                 "level {l}: cell table ends at {prev}, header says {n} features"
             )));
         }
+        check_features(&header, l, data).map_err(|e| bad(e.0))?;
     }
     Ok((header, data_offset as usize))
+}
+
+/// Slack on a feature's height against the header's height range, metres: the build stores the
+/// DEM's bilinear interpolation of samples inside that range (or the constant itself), so any
+/// height outside it by more than rounding is not what the build wrote.
+const HEIGHT_SLACK_M: f64 = 1e-6;
+/// How far outside the orthophotos' bounds a keypoint centre may lie, in level pixels: SURF keeps
+/// keypoints whose filters fit inside the image, so their centres lie inside it; one pixel covers
+/// the sub-pixel interpolation of the extremum.
+const BOUNDS_SLACK_PX: f64 = 1.0;
+/// Smallest SURF scale a keypoint can have, level pixels: the first filter (9 px) has scale
+/// 1.2 px, and the interpolation of the extremum moves it by less than half a filter step.
+const MIN_SCALE_PX: f64 = 0.5;
+/// Slack on a descriptor's length after dequantisation, beyond the quantisation bound: the
+/// descriptors are unit vectors stored with a rounding error of at most `desc_scale / 2` per
+/// value, so `| |q| desc_scale - 1 | <= sqrt(len) desc_scale / 2`; this covers the f32 sums.
+const DESCRIPTOR_NORM_SLACK: f64 = 1e-3;
+
+/// What is wrong with a feature (the caller names the file).
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+struct BadFeature(String);
+
+/// Checks what a feature of level `l` can be, record by record: the checksum only proves the
+/// file is the one that was written, not that what was written is a map (a file edited and its
+/// CRC recomputed passes it). Each feature must lie in its index cell and inside the
+/// orthophotos' bounds, have a height in the header's range, a SURF scale and response its level
+/// and parameters allow, a Laplacian sign of -1 or +1, its own level, a listed orthophoto, a zero
+/// reserved byte, and a descriptor that dequantises to unit length (quantised values in
+/// `-127..=127`, the largest magnitude 127). Sections are already bounds-checked.
+fn check_features(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), BadFeature> {
+    let info = &header.levels[l]; // ok: l enumerates header.levels
+    let g = &info.grid;
+    let len = header.surf.descriptor.len();
+    let (h_lo, h_hi) = match header.height {
+        super::HeightInfo::Dem { min_m, max_m, .. } => (min_m, max_m),
+        super::HeightInfo::Constant { amsl_m } => (amsl_m, amsl_m),
+    };
+    if !(h_lo.is_finite() && h_hi.is_finite() && h_lo <= h_hi) {
+        return Err(BadFeature(format!(
+            "invalid height range {h_lo} to {h_hi} m in the header"
+        )));
+    }
+    let b = &header.bounds;
+    let slack = BOUNDS_SLACK_PX * info.gsd_m;
+    // The largest SURF filter: 3 (2^octaves (layers + 2) + 1) px, scale 1.2 / 9 of it; twice that
+    // covers the interpolation of the extremum between filters.
+    let max_filter = 3.0
+        * ((1u64 << header.surf.n_octaves.min(30)) as f64
+            * (header.surf.n_octave_layers + 2) as f64
+            + 1.0);
+    let max_scale_px = 2.0 * 1.2 * max_filter / 9.0;
+    let threshold = f64::from(header.surf.hessian_threshold);
+    let cells = &data[info.cells_offset as usize..];
+    let recs = &data[info.records_offset as usize..];
+    let descs = &data[info.descriptors_offset as usize..];
+    for cell in 0..g.n_cells() {
+        let start = u64::from_le_bytes(rd8(cells, 8 * cell)) as usize; // ok: checked <= n
+        let end = u64::from_le_bytes(rd8(cells, 8 * cell + 8)) as usize;
+        for i in start..end {
+            let rb = &recs[i * RECORD_BYTES..(i + 1) * RECORD_BYTES];
+            let (f, desc_scale) = decode_record(rb);
+            let at = |what: String| BadFeature(format!("level {l} feature {i}: {what}"));
+            if !(f.x_m >= b.min_x_m - slack
+                && f.x_m <= b.max_x_m + slack
+                && f.y_m >= b.min_y_m - slack
+                && f.y_m <= b.max_y_m + slack)
+            {
+                return Err(at(format!(
+                    "position ({}, {}) m is outside the map's bounds",
+                    f.x_m, f.y_m
+                )));
+            }
+            if g.cell_of(f.x_m, f.y_m) != cell {
+                return Err(at(format!(
+                    "position ({}, {}) m is not in its index cell {cell}",
+                    f.x_m, f.y_m
+                )));
+            }
+            if !(f.z_amsl_m >= h_lo - HEIGHT_SLACK_M && f.z_amsl_m <= h_hi + HEIGHT_SLACK_M) {
+                return Err(at(format!(
+                    "height {} m is outside the map's heights {h_lo} to {h_hi} m",
+                    f.z_amsl_m
+                )));
+            }
+            let scale_px = f64::from(f.scale_m) / info.gsd_m;
+            if !(scale_px >= MIN_SCALE_PX && scale_px <= max_scale_px) {
+                return Err(at(format!(
+                    "SURF scale {} m ({scale_px:.3} level px) is outside {MIN_SCALE_PX} to {max_scale_px:.0} px",
+                    f.scale_m
+                )));
+            }
+            if !(f64::from(f.response) >= threshold && f.response.is_finite()) {
+                return Err(at(format!(
+                    "SURF response {} is below the Hessian threshold {threshold} or not finite",
+                    f.response
+                )));
+            }
+            if !matches!(f.laplacian, -1 | 1) {
+                return Err(at(format!(
+                    "Laplacian sign {} is not -1 or +1",
+                    f.laplacian
+                )));
+            }
+            if usize::from(f.level) != l {
+                return Err(at(format!("records level {}", f.level)));
+            }
+            if usize::from(rb[38]) >= header.orthos.len() {
+                return Err(at(format!(
+                    "orthophoto index {} of {} orthophotos",
+                    rb[38],
+                    header.orthos.len()
+                )));
+            }
+            if rb[39] != 0 {
+                return Err(at(format!("reserved byte is {}, not 0", rb[39])));
+            }
+            let q = &descs[i * len..(i + 1) * len];
+            let (mut max_q, mut n2) = (0u8, 0f64);
+            for &v in q {
+                let v = i8::from_le_bytes([v]);
+                if v == i8::MIN {
+                    return Err(at(
+                        "descriptor value -128 (quantised values are -127..=127)".into(),
+                    ));
+                }
+                max_q = max_q.max(v.unsigned_abs());
+                n2 += f64::from(v) * f64::from(v);
+            }
+            let s = f64::from(desc_scale);
+            let norm = n2.sqrt() * s;
+            let tol = (len as f64).sqrt() * s / 2.0 + DESCRIPTOR_NORM_SLACK;
+            if !(s.is_finite() && s > 0.0 && max_q == 127 && (norm - 1.0).abs() <= tol) {
+                return Err(at(format!(
+                    "descriptor is not a quantised unit vector (scale {desc_scale}, largest value {max_q}, length {norm:.4})"
+                )));
+            }
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -909,8 +1052,8 @@ mod tests {
                 x_m: 1000.0 + 100.0 * next(),
                 y_m: 2000.0 + 100.0 * next(),
                 z_amsl_m: 500.0 + next(),
-                scale_m: 3.0,
-                response: 1000.0 * next() as f32,
+                scale_m: 2.0 * 5.0 * f32::from(1u8 << level),
+                response: 100.0 + 900.0 * next() as f32,
                 laplacian: if i % 3 == 0 { -1 } else { 1 },
                 level,
             };
@@ -921,7 +1064,20 @@ mod tests {
             all.push((f, d));
         }
         let path = dir.join("t.vnm");
-        w.finish(tiny_header(2), &path).unwrap();
+        let mut header = tiny_header(2);
+        header.height = HeightInfo::Dem {
+            file: "dem.tif".into(),
+            min_m: 500.0,
+            max_m: 501.0,
+        };
+        header.orthos = vec![crate::map::OrthoInfo {
+            file: "o.tif".into(),
+            width_px: 20,
+            height_px: 20,
+            bands: 1,
+            pixel_size_m: 5.0,
+        }];
+        w.finish(header, &path).unwrap();
         (path, all)
     }
 

@@ -75,6 +75,20 @@ pub enum MapError {
     /// The build parameters are invalid.
     #[error("invalid map build parameter `{name}`: {reason}")]
     Param { name: &'static str, reason: String },
+    /// The orthophotos gave no feature at all (blank, uniform or all nodata; or the DEM covers
+    /// none of them): a map without features can fix nothing.
+    #[error(
+        "{orthos}: no features found ({dropped_nodata} keypoints dropped at nodata, \
+         {dropped_no_height} where the DEM has no height): the orthophoto has no texture SURF \
+         finds at Hessian threshold {threshold} (blank, uniform or all nodata?), or the DEM does \
+         not cover it; no map written"
+    )]
+    NoFeatures {
+        orthos: String,
+        threshold: f32,
+        dropped_nodata: u64,
+        dropped_no_height: u64,
+    },
     /// A `.vnm` file is malformed: wrong magic, unsupported version, truncated, bad checksum,
     /// inconsistent tables.
     #[error("{}: not a valid visnav map: {reason}", .path.display())]

@@ -30,11 +30,19 @@ pub struct SimArgs {
     /// NEES consistency.
     #[arg(long, default_value_t = 0)]
     pub monte_carlo: usize,
+    /// Run a closed loop in real time (the fix's own computing time as its latency) instead of
+    /// lock-step (the default: the emulators, the daemons and the camera on one simulated clock,
+    /// as fast as the CPU allows and the same for the same seed).
+    #[arg(long)]
+    pub realtime: bool,
 }
 
 pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
     let path = args.scenario.clone().unwrap_or_else(default_scenario);
-    let sc = Scenario::load(&path)?;
+    let mut sc = Scenario::load(&path)?;
+    if let Some(cl) = sc.closed_loop.as_mut() {
+        cl.lockstep &= !args.realtime;
+    }
     if sc.closed_loop.is_some() {
         return closed_loop(&sc, &path, &args);
     }
@@ -154,7 +162,7 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
     use anyhow::Context;
     if args.monte_carlo > 0 {
         anyhow::bail!(
-            "--monte-carlo runs offline scenarios only; {} is a closed-loop scenario (real time)",
+            "--monte-carlo runs offline scenarios only; {} is a closed-loop scenario",
             path.display()
         );
     }
@@ -163,10 +171,20 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from("sim-report").join(&sc.name));
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .context("cannot start the async runtime")?;
+    let lockstep = sc.closed_loop.as_ref().is_some_and(|c| c.lockstep);
+    // Lock-step: one thread, the clock paused and advanced by the runtime whenever every task
+    // waits (tokio's test-util clock), so simulated time costs only the CPU it needs.
+    let rt = if lockstep {
+        tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .start_paused(true)
+            .build()
+    } else {
+        tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+    }
+    .context("cannot start the async runtime")?;
     let t0 = Instant::now();
     let mut run = rt
         .block_on(visnav::sitl::closed_loop::run(sc, base))

@@ -132,6 +132,7 @@ pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
                 mount,
                 rate_hz: args.rate_hz,
                 max_frames: None,
+                lockstep: false,
             },
             feed,
         );
@@ -140,6 +141,7 @@ pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
             lossless: false,
             max_age_s: args.max_age_s,
             workers: args.workers.max(1),
+            lockstep_latency: None,
         };
         let daemon = Daemon::start_with(
             DaemonSetup::from_config(&cfg),

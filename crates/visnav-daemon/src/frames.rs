@@ -210,6 +210,20 @@ pub fn spawn_worker(i: usize, ctx: WorkerCtx) -> std::io::Result<std::thread::Jo
 
 /// Returns false when the navigation task is gone.
 fn process(ctx: &WorkerCtx, f: Frame) -> bool {
+    let Some(result) = fix_frame(ctx, f) else {
+        return true;
+    };
+    let sent = ctx.results.blocking_send(result).is_ok();
+    if !sent {
+        ctx.metrics
+            .fixes_dropped_at_shutdown
+            .fetch_add(1, Ordering::Relaxed);
+    }
+    sent
+}
+
+/// The fix of one frame (`None`: dropped, no time or too old; counted).
+fn fix_frame(ctx: &WorkerCtx, f: Frame) -> Option<FixResult> {
     let m = &ctx.metrics;
     let t_capture_us = match f.t_capture {
         CaptureTime::AutopilotBootUs(t) => Some(t),
@@ -217,16 +231,17 @@ fn process(ctx: &WorkerCtx, f: Frame) -> bool {
     };
     let (Some(t_c), Some(now)) = (t_capture_us, ctx.clock.autopilot_now_us()) else {
         m.frames_no_time.fetch_add(1, Ordering::Relaxed);
-        return true;
+        return None;
     };
     let age_s = (now as f64 - t_c as f64) * 1e-6;
     if age_s > ctx.max_age_s {
         m.frames_stale.fetch_add(1, Ordering::Relaxed);
-        return true;
+        return None;
     }
     let prior = ctx.priors.prior_at(t_c);
     m.fixes_attempted.fetch_add(1, Ordering::Relaxed);
-    let start = Instant::now();
+    // Wall time of the computation (reported, never used by an algorithm).
+    let start = std::time::Instant::now();
     let mut report = std::panic::catch_unwind(AssertUnwindSafe(|| ctx.fixer.fix(&f.image, &prior)))
         .unwrap_or_else(|_| {
             error!("fix engine panicked on frame {}", f.seq);
@@ -236,19 +251,74 @@ fn process(ctx: &WorkerCtx, f: Frame) -> bool {
     report.ms = elapsed.as_secs_f64() * 1e3;
     let latency_ms = elapsed.as_millis() as u64;
     m.latency(latency_ms);
-    let sent = ctx
-        .results
-        .blocking_send(FixResult {
-            t_capture_us: t_c,
-            seq: f.seq,
-            report,
-            latency_ms,
-        })
-        .is_ok();
-    if !sent {
-        m.fixes_dropped_at_shutdown.fetch_add(1, Ordering::Relaxed);
+    Some(FixResult {
+        t_capture_us: t_c,
+        seq: f.seq,
+        report,
+        latency_ms,
+    })
+}
+
+/// The lock-step frame path (the simulator's one clock, `FramePipeline::lockstep`): a task on
+/// the runtime takes a frame every `period` of the runtime's clock, renders and fixes it on the
+/// blocking pool (a paused runtime does not advance its clock while a blocking task runs, so the
+/// computation takes no simulated time) and delivers the result `latency` later, as a camera and
+/// engine with that latency would. Same inputs, same results, whatever the CPU's speed.
+pub async fn lockstep_frames(
+    source: Box<dyn FrameSource>,
+    ctx: WorkerCtx,
+    period: Duration,
+    latency: Duration,
+    mut stop: tokio::sync::watch::Receiver<bool>,
+) {
+    let ctx = Arc::new(ctx);
+    while ctx.clock.autopilot_now_us().is_none() {
+        tokio::select! {
+            _ = tokio::time::sleep(Duration::from_millis(50)) => {}
+            _ = stop.changed() => return,
+        }
     }
-    sent
+    info!("frames: {} (lock-step)", source.describe());
+    let mut source = Some(source);
+    let mut tick = tokio::time::interval(period);
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = stop.changed() => return,
+        }
+        let Some(mut src) = source.take() else { return };
+        let Ok((src, next)) = tokio::task::spawn_blocking(move || {
+            let r = src.next_frame();
+            (src, r)
+        })
+        .await
+        else {
+            return;
+        };
+        source = Some(src);
+        let f = match next {
+            Ok(Some(f)) => f,
+            Ok(None) => {
+                info!("frames: end of the source");
+                return;
+            }
+            Err(e) => {
+                ctx.metrics.frame_errors.fetch_add(1, Ordering::Relaxed);
+                warn!("frames: {e}; skipped");
+                continue;
+            }
+        };
+        ctx.metrics.frames_in.fetch_add(1, Ordering::Relaxed);
+        let c = ctx.clone();
+        let Ok(Some(result)) = tokio::task::spawn_blocking(move || fix_frame(&c, f)).await else {
+            continue;
+        };
+        let results = ctx.results.clone();
+        tokio::spawn(async move {
+            tokio::time::sleep(latency).await;
+            let _ = results.send(result).await;
+        });
+    }
 }
 
 #[cfg(test)]

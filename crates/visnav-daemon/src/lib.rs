@@ -36,7 +36,9 @@ pub mod wiring;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
+// tokio's clock: real time, or the lock-step simulator's when the runtime runs paused.
+use tokio::time::Instant;
 
 use mavlink::dialects::ardupilotmega::{COMMAND_LONG_DATA, MavCmd, MavMessage};
 use tokio::sync::{broadcast, mpsc, watch};
@@ -132,6 +134,10 @@ pub struct FramePipeline {
     pub max_age_s: f64,
     /// Number of fix worker threads.
     pub workers: usize,
+    /// Lock-step (the simulator's one clock): frames taken on the runtime's clock and fixed on
+    /// its blocking pool, results delivered this long after capture (`frames::lockstep_frames`)
+    /// instead of the reader and worker threads. `None`: the threads (real time).
+    pub lockstep_latency: Option<Duration>,
 }
 
 impl FramePipeline {
@@ -142,6 +148,7 @@ impl FramePipeline {
             lossless: !cfg.realtime,
             max_age_s: cfg.max_age_s,
             workers: cfg.workers,
+            lockstep_latency: None,
         })
     }
 }
@@ -179,6 +186,8 @@ pub struct Daemon {
     stop: watch::Sender<bool>,
     stop_threads: Arc<AtomicBool>,
     nav_task: Option<JoinHandle<()>>,
+    /// The lock-step frame task (`FramePipeline::lockstep_latency`).
+    lockstep_task: Option<JoinHandle<()>>,
     threads: Vec<std::thread::JoinHandle<()>>,
     slot: Option<Arc<Slot<Frame>>>,
     metrics: Arc<DaemonMetrics>,
@@ -286,8 +295,31 @@ impl Daemon {
         let stop_threads = Arc::new(AtomicBool::new(false));
         let mut threads = Vec::new();
         let mut slot_out = None;
+        let mut lockstep_task = None;
         let spawned: std::io::Result<()> = (|| {
             if let (Some(fp), Some(fixer)) = (frames, fixer) {
+                if let Some(latency) = fp.lockstep_latency {
+                    let period = Duration::from_secs_f64(
+                        1.0 / fp.source.rate_hz().filter(|r| *r > 0.0).unwrap_or(1.0),
+                    );
+                    let ctx = frames::WorkerCtx {
+                        slot: Arc::new(Slot::default()),
+                        fixer: fixer.clone(),
+                        priors: shared.clone(),
+                        clock: link.clock(),
+                        max_age_s: fp.max_age_s,
+                        results: fix_tx.clone(),
+                        metrics: metrics.clone(),
+                    };
+                    lockstep_task = Some(tokio::spawn(frames::lockstep_frames(
+                        fp.source,
+                        ctx,
+                        period,
+                        latency,
+                        stop.subscribe(),
+                    )));
+                    return Ok(());
+                }
                 let slot = Arc::new(Slot::default());
                 threads.push(frames::spawn_reader(
                     fp.source,
@@ -330,6 +362,7 @@ impl Daemon {
             stop,
             stop_threads,
             nav_task: Some(nav_task),
+            lockstep_task,
             threads,
             slot: slot_out,
             metrics,
@@ -374,6 +407,9 @@ impl Daemon {
             s.close();
         }
         let _ = self.stop.send(true);
+        if let Some(t) = self.lockstep_task.take() {
+            let _ = t.await;
+        }
         if let Some(t) = self.nav_task.take() {
             let _ = t.await;
         }
@@ -602,9 +638,7 @@ impl NavTask {
         if self.filter.is_initialised() {
             return true; // the common case: no clock read per measurement
         }
-        let gps_recent = self
-            .inputs
-            .gps_recent(self.link.companion_ns(Instant::now()), 2.0);
+        let gps_recent = self.inputs.gps_recent(self.link.companion_now_ns(), 2.0);
         self.init_spacing.ok(
             self.filter.is_initialised(),
             m,
@@ -715,7 +749,7 @@ impl NavTask {
                 .lock()
                 .unwrap_or_else(|e| e.into_inner()) = Some(st);
         }
-        let now_ns = self.link.companion_ns(Instant::now());
+        let now_ns = self.link.companion_now_ns();
         if self.dcfg.baro
             && !self.inputs.baro_calibrated()
             && !self.inputs.gps_recent(now_ns, 5.0)

@@ -26,7 +26,10 @@
 
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+// tokio's clock: the real one, or the simulator's when its runtime runs paused (lock-step).
+use tokio::time::Instant;
 
 use mavlink::dialects::ardupilotmega::{
     COMMAND_LONG_DATA, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavMessage, MavModeFlag, MavSeverity,
@@ -306,20 +309,26 @@ impl Link {
 
     /// Companion clock in ns of an instant (monotonic, arbitrary origin; the value this link
     /// answers TIMESYNC requests with).
-    pub fn companion_ns(&self, t: Instant) -> i64 {
-        self.shared.companion_ns(t)
+    pub fn companion_ns(&self, t: std::time::Instant) -> i64 {
+        self.shared.companion_ns(Instant::from_std(t))
+    }
+
+    /// Companion clock now in ns (the link's clock: real time, or the simulator's in lock-step).
+    pub fn companion_now_ns(&self) -> i64 {
+        self.shared.now_ns()
     }
 
     /// Autopilot boot time (µs) of a companion instant, e.g. a camera frame's capture time.
     /// `None` until TIMESYNC has converged.
-    pub fn to_autopilot_us(&self, t: Instant) -> Option<u64> {
-        let ns = self.shared.companion_ns(t);
+    pub fn to_autopilot_us(&self, t: std::time::Instant) -> Option<u64> {
+        let ns = self.shared.companion_ns(Instant::from_std(t));
         lock(&self.shared.state).timesync.to_autopilot_us(ns)
     }
 
     /// Autopilot boot time now.
     pub fn autopilot_now_us(&self) -> Option<u64> {
-        self.to_autopilot_us(Instant::now())
+        let ns = self.shared.now_ns();
+        lock(&self.shared.state).timesync.to_autopilot_us(ns)
     }
 
     /// A cloneable handle on the clock mapping (for camera and estimator tasks).
@@ -394,14 +403,15 @@ pub struct Clock {
 
 impl Clock {
     /// Autopilot boot time (µs) of a companion instant; `None` until TIMESYNC has converged.
-    pub fn to_autopilot_us(&self, t: Instant) -> Option<u64> {
-        let ns = self.shared.companion_ns(t);
+    pub fn to_autopilot_us(&self, t: std::time::Instant) -> Option<u64> {
+        let ns = self.shared.companion_ns(Instant::from_std(t));
         lock(&self.shared.state).timesync.to_autopilot_us(ns)
     }
 
     /// Autopilot boot time now.
     pub fn autopilot_now_us(&self) -> Option<u64> {
-        self.to_autopilot_us(Instant::now())
+        let ns = self.shared.now_ns();
+        lock(&self.shared.state).timesync.to_autopilot_us(ns)
     }
 }
 

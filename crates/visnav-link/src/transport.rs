@@ -14,7 +14,8 @@ use std::collections::VecDeque;
 use std::io::Cursor;
 use std::net::SocketAddr;
 use std::sync::Mutex;
-use std::time::{Duration, Instant};
+use std::time::Duration;
+use tokio::time::Instant;
 
 use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::error::MessageReadError;

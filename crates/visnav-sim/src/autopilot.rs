@@ -30,7 +30,9 @@
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
+// tokio's clock: real time, or the lock-step simulator's when the runtime runs paused.
+use tokio::time::Instant;
 
 #[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: still what ArduPilot acts on
 use mavlink::dialects::ardupilotmega::{
@@ -690,6 +692,10 @@ async fn tx_loop(inner: Arc<Inner>, conn: Arc<Conn>) {
                     }
                 }
             }
+            // In message-id order: a HashMap's order differs between runs, and the order in
+            // which the daemon receives one instant's messages must not (lock-step runs are
+            // reproducible).
+            due.sort_unstable();
             (due, t_us)
         };
         for id in due {

@@ -47,6 +47,9 @@ pub struct SimCameraSpec {
     pub rate_hz: f64,
     /// Stop after this many frames (`None`: run until the truth feed ends).
     pub max_frames: Option<u64>,
+    /// Lock-step (the caller paces on the simulated clock): no pacing and no waiting here; the
+    /// frame is the latest truth sample's.
+    pub lockstep: bool,
 }
 
 /// A [`FrameSource`] rendering the scene at the truth pose (see the module doc).
@@ -74,6 +77,44 @@ impl SimCamera {
     /// The render pose of a truth state (body position in the scene grid, camera via the mount).
     pub fn pose_of(&self, s: &TruthState) -> Result<RenderPose, TruthPoseError> {
         pose_of(&self.spec.crs, &self.spec.mount, s)
+    }
+
+    /// Lock-step: the latest truth sample, rendered (an error when it is not newer than the last
+    /// frame's: the caller skips that tick).
+    fn lockstep_frame(&mut self) -> Result<Option<Frame>, FrameError> {
+        if self.feed.ended() {
+            return Ok(None);
+        }
+        match self.feed.latest() {
+            Some((t, s)) if self.last_t_us.is_none_or(|l| t > l) => self.render_frame(t, &s),
+            _ => Err(FrameError::Config(
+                "simulated camera: no new truth sample".into(),
+            )),
+        }
+    }
+
+    /// Render the scene at truth state `state` (time `t_us`) into a frame.
+    fn render_frame(&mut self, t_us: u64, state: &TruthState) -> Result<Option<Frame>, FrameError> {
+        let pose = self
+            .pose_of(state)
+            .map_err(|e| FrameError::Config(e.to_string()))?;
+        let f = self
+            .spec
+            .renderer
+            .render(&self.spec.scene, &pose, self.seq)
+            .map_err(|e| FrameError::Config(format!("simulated camera: {e}")))?;
+        let image = GrayImage::new(f.width, f.height, f.grey())
+            .map_err(|e| FrameError::Config(format!("simulated camera: {e}")))?;
+        let t0 = *self.t0_us.get_or_insert(t_us);
+        self.last_t_us = Some(t_us);
+        let frame = Frame {
+            image,
+            t_capture: CaptureTime::AutopilotBootUs(t_us),
+            t_rel_s: (t_us - t0) as f64 * 1e-6,
+            seq: self.seq,
+        };
+        self.seq += 1;
+        Ok(Some(frame))
     }
 }
 
@@ -110,6 +151,9 @@ impl FrameSource for SimCamera {
         if self.spec.max_frames.is_some_and(|n| self.seq >= n) {
             return Ok(None);
         }
+        if self.spec.lockstep {
+            return self.lockstep_frame();
+        }
         let period = Duration::from_secs_f64(1.0 / self.spec.rate_hz.max(1e-3));
         // Pace: one frame per period of the companion's clock (the truth feed is real time).
         if let Some(at) = self.next_at {
@@ -140,26 +184,7 @@ impl FrameSource for SimCamera {
             std::thread::sleep(Duration::from_millis(2));
         };
         self.next_at = Some(self.next_at.map_or(Instant::now(), |a| a) + period);
-        let pose = self
-            .pose_of(&state)
-            .map_err(|e| FrameError::Config(e.to_string()))?;
-        let f = self
-            .spec
-            .renderer
-            .render(&self.spec.scene, &pose, self.seq)
-            .map_err(|e| FrameError::Config(format!("simulated camera: {e}")))?;
-        let image = GrayImage::new(f.width, f.height, f.grey())
-            .map_err(|e| FrameError::Config(format!("simulated camera: {e}")))?;
-        let t0 = *self.t0_us.get_or_insert(t_us);
-        self.last_t_us = Some(t_us);
-        let frame = Frame {
-            image,
-            t_capture: CaptureTime::AutopilotBootUs(t_us),
-            t_rel_s: (t_us - t0) as f64 * 1e-6,
-            seq: self.seq,
-        };
-        self.seq += 1;
-        Ok(Some(frame))
+        self.render_frame(t_us, &state)
     }
 
     fn describe(&self) -> String {
@@ -222,6 +247,7 @@ mod tests {
                 mount: Mount::nadir(),
                 rate_hz: 50.0,
                 max_frames: Some(2),
+                lockstep: false,
             },
             Arc::new(Fixed(Mutex::new(0), truth)),
         );

@@ -5,7 +5,20 @@
 //! A second emulator + daemon pair without a camera runs beside it as the no-vision control.
 //!
 //! Timeline: each emulator's boot clock is the scenario time (`t_s = 0` at its start); the
-//! trajectory, the IMU errors and the GPS outage follow it. Real time: a 90 s scenario takes 90 s.
+//! trajectory, the IMU errors and the GPS outage follow it.
+//!
+//! Clock (`[closed_loop] lockstep`, default true): in lock-step the caller runs [`run`] on a
+//! current-thread tokio runtime started paused (`visnav sim` does). Every timer of the emulators,
+//! the links and the daemons is on that runtime's clock, which jumps to the next timer whenever
+//! every task waits; frames are taken on the same clock and rendered and fixed on the blocking
+//! pool, during which the paused clock does not move (tokio inhibits auto-advance while a
+//! blocking task runs on a current-thread runtime); a fix result is delivered
+//! `lockstep_fix_latency_s` after its capture (`visnav_daemon::frames::lockstep_frames`). UDP
+//! still carries every message over loopback. The emulator sends one instant's messages in
+//! message-id order and a lock-step run starts its UTC at 2024-01-01, so a seed gives the same
+//! numbers on every run, at whatever speed the CPU allows (the 90 s demo in about 8 s). Without
+//! lock-step: real time on a multi-thread runtime, fixes on worker threads (a 90 s scenario takes
+//! 90 s; `visnav sim --realtime`).
 //!
 //! Truth and sensors ([`SimSensors`], the emulator's `TruthSource`):
 //! * the trajectory is integrated once at 200 Hz ([`TruthTable`]; WGS84 ellipsoidal heights,
@@ -70,6 +83,8 @@ use visnav_io::geo::geotiff::load_geotiff;
 const TRUTH_DT_S: f64 = 0.005;
 /// Extra truth beyond the scenario's end (the daemons stop a little later), s.
 const TRUTH_MARGIN_S: f64 = 30.0;
+/// UTC at the start of a lock-step run (2024-01-01T00:00:00Z), µs.
+const LOCKSTEP_UNIX_START_US: u64 = 1_704_067_200_000_000;
 /// Chi-square 2 dof at 99.73 % (the 3-sigma ellipse).
 const CHI2_2DOF_3SIGMA: f64 = 11.829;
 
@@ -459,6 +474,8 @@ struct RecordingFixer {
     inner: Arc<dyn FrameFixer>,
     emu: Arc<AutopilotEmulator>,
     log: Mutex<Vec<FixRecord>>,
+    /// In lock-step the fix takes no simulated time: its result is delivered this much later.
+    delivery_us: u64,
 }
 
 impl FrameFixer for RecordingFixer {
@@ -466,7 +483,7 @@ impl FrameFixer for RecordingFixer {
         let report = self.inner.fix(image, prior);
         let rec = FixRecord {
             t_capture_us: prior.t_capture_us,
-            t_done_us: self.emu.time_boot_us(),
+            t_done_us: self.emu.time_boot_us() + self.delivery_us,
             report: report.clone(),
         };
         self.log.lock().unwrap_or_else(|e| e.into_inner()).push(rec);
@@ -832,10 +849,15 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     let table =
         Arc::new(TruthTable::from_scenario(sc).map_err(|e| setup_err(format!("truth: {e}")))?);
     let duration_s = sc.duration_s();
-    let unix_now_us = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_micros() as u64)
-        .ok();
+    // Lock-step runs are reproducible to the bit: their UTC starts at a fixed instant.
+    let unix_now_us = if cl.lockstep {
+        Some(LOCKSTEP_UNIX_START_US)
+    } else {
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_micros() as u64)
+            .ok()
+    };
 
     // Emulators and daemons: vision, then the control.
     let mk_setup = |port: u16| {
@@ -878,6 +900,11 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         inner: engine,
         emu: emu_v.clone(),
         log: Mutex::new(Vec::new()),
+        delivery_us: if cl.lockstep {
+            (cl.lockstep_fix_latency_s.max(0.0) * 1e6) as u64
+        } else {
+            0
+        },
     });
     let end_us = (duration_s * 1e6) as u64;
     let cam = SimCamera::new(
@@ -888,6 +915,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             mount,
             rate_hz: cl.camera_rate_hz,
             max_frames: None,
+            lockstep: cl.lockstep,
         },
         Arc::new(EmuFeed {
             emu: emu_v.clone(),
@@ -905,6 +933,9 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         lossless: false,
         max_age_s: cl.frame_max_age_s,
         workers: cl.workers,
+        lockstep_latency: cl
+            .lockstep
+            .then(|| Duration::from_secs_f64(cl.lockstep_fix_latency_s.max(0.0))),
     };
     let d_v = Daemon::start_with(mk_setup(port_v), Some(fixer.clone()), Some(pipeline)).await?;
     let d_c = match &emu_c {
@@ -912,7 +943,12 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         None => None,
     };
     info!(
-        "closed loop running: {duration_s:.0} s of scenario time (real time), vision on udp {port_v}, control on udp {port_c}"
+        "closed loop running: {duration_s:.0} s of scenario time ({}), vision on udp {port_v}, control on udp {port_c}",
+        if cl.lockstep {
+            "lock-step"
+        } else {
+            "real time"
+        }
     );
 
     // Sample at 10 Hz until the scenario's end.

@@ -366,6 +366,21 @@ pub struct ClosedLoopConfig {
     /// Light, blur and noise of the simulated camera (`sitl::render::RenderSpec`).
     #[serde(default)]
     pub render: super::render::RenderSpec,
+    /// Lock-step (default): the emulators, the daemons and the camera share the runtime's clock,
+    /// paused and advanced by the runtime when every task waits. The scenario then runs as fast
+    /// as the CPU allows and the same for the same seed; a fix takes no simulated time to compute
+    /// and its result arrives `lockstep_fix_latency_s` after the capture. False (or
+    /// `visnav sim --realtime`): real time, the fix's own computing time as its latency.
+    #[serde(default = "default_true")]
+    pub lockstep: bool,
+    /// Capture-to-result latency of a fix in lock-step, s (what the real-time runs measure:
+    /// docs/closed-loop.md).
+    #[serde(default = "default_lockstep_latency")]
+    pub lockstep_fix_latency_s: f64,
+}
+
+fn default_lockstep_latency() -> f64 {
+    0.15
 }
 
 fn default_ahrs_tilt() -> f64 {

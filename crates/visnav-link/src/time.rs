@@ -24,7 +24,9 @@
 //! new clock (consistent with each other within [`REBOOT_CLOCK_TOLERANCE_US`]), and the old clock
 //! has been silent for [`REBOOT_OLD_CLOCK_SILENT_NS`] (an autopilot says nothing while it boots;
 //! a stale burst arrives among live messages, and any live one drops the candidate). Until then
-//! the backwards messages are stale and not used.
+//! the backwards messages are stale and not used. A message stamped more than
+//! [`REBOOT_BACKSTEP_US`] ahead of the clock (its last time plus the companion time elapsed since)
+//! is stale too: a forged or corrupt stamp must not become the clock.
 //!
 //! # Output times
 //! What we send must never go back in time: [`Monotonic`] stamps each output at least 1 µs after
@@ -251,9 +253,20 @@ impl BootClock {
     pub fn observe(&mut self, msg_id: u32, boot_us: u64, t_ns: i64) -> BootVerdict {
         let Some(last) = self.last_us else {
             self.last_us = Some(boot_us);
+            self.last_current_ns = Some(t_ns);
             return BootVerdict::Current;
         };
-        if boot_us + REBOOT_BACKSTEP_US >= last {
+        // Ahead of the clock by more than the companion time since its last message: a
+        // forged or corrupt stamp (one far-future IMU time would otherwise become the clock,
+        // and every real message after it would look stale).
+        if let Some(lc) = self.last_current_ns {
+            let elapsed_us = u64::try_from((t_ns - lc).max(0) / 1000).unwrap_or(0);
+            if boot_us > last.saturating_add(elapsed_us).saturating_add(REBOOT_BACKSTEP_US) {
+                self.stale += 1;
+                return BootVerdict::Stale;
+            }
+        }
+        if boot_us.saturating_add(REBOOT_BACKSTEP_US) >= last {
             self.candidate = None; // the old clock goes on: no reboot
             self.last_us = Some(last.max(boot_us));
             self.last_current_ns = Some(t_ns);
@@ -566,6 +579,24 @@ mod tests {
             }
         }
         assert_eq!(c.stale, 601);
+    }
+
+    #[test]
+    fn a_far_future_stamp_is_stale_not_the_new_clock() {
+        let mut c = BootClock::default();
+        let mut t_ns = 1_000_000_000i64;
+        let boot = |t_ns: i64| (t_ns / 1000 + 50_000_000) as u64;
+        for _ in 0..10 {
+            assert_eq!(c.observe(IMU, boot(t_ns), t_ns), BootVerdict::Current);
+            t_ns += 5_000_000;
+        }
+        assert_eq!(c.observe(IMU, u64::MAX - 5, t_ns), BootVerdict::Stale);
+        assert_eq!(c.observe(ATT, boot(t_ns) + 3_000_000, t_ns), BootVerdict::Stale);
+        t_ns += 5_000_000;
+        assert_eq!(c.observe(IMU, boot(t_ns), t_ns), BootVerdict::Current);
+        // After 10 s of silence the clock has moved on 10 s: that is not ahead.
+        t_ns += 10_000_000_000;
+        assert_eq!(c.observe(IMU, boot(t_ns), t_ns), BootVerdict::Current);
     }
 
     #[test]

@@ -610,7 +610,35 @@ pub struct ClosedLoopSummary {
     pub rejections: Vec<(String, usize)>,
     pub vision_final_health: String,
     pub control_final_health: String,
+    /// Soak figures (runs of at least twice [`SOAK_WINDOW_S`] in the window): accepted fixes
+    /// over attempts in its first and last `SOAK_WINDOW_S`.
+    pub fix_rate_first_window: Option<f64>,
+    pub fix_rate_last_window: Option<f64>,
+    /// Resident memory of the whole process (simulator, both daemons), MB: after the first
+    /// `SOAK_WINDOW_S` of the window (everything is built and warm) and at the end (Linux
+    /// `/proc/self/statm`; None elsewhere).
+    pub rss_mb_after_first_window: Option<f64>,
+    pub rss_mb_end: Option<f64>,
     pub report_dir: Option<String>,
+}
+
+/// The soak figures' window, s (10 minutes: issue 21's "first and last 10 minutes").
+pub const SOAK_WINDOW_S: f64 = 600.0;
+
+/// Resident set size of this process, MB (Linux; None where `/proc/self/statm` is absent).
+fn rss_mb() -> Option<f64> {
+    let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
+    let pages: f64 = statm.split_whitespace().nth(1)?.parse().ok()?;
+    Some(pages * 4096.0 / 1e6)
+}
+
+/// Accepted over attempted fixes captured in `[from_s, until_s)`.
+fn fix_rate_in(fixes: &[&FixRow], from_s: f64, until_s: f64) -> Option<f64> {
+    let w: Vec<_> = fixes
+        .iter()
+        .filter(|f| f.t_capture_s >= from_s && f.t_capture_s < until_s)
+        .collect();
+    (!w.is_empty()).then(|| w.iter().filter(|f| f.accepted).count() as f64 / w.len() as f64)
 }
 
 /// Max per-axis errors of the filter outputs in the window, vision and control side by side.
@@ -957,9 +985,13 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     let out_c = d_c.as_ref().map(|d| d.nav_outputs());
     let mut tick = tokio::time::interval(Duration::from_millis(100));
     let mut last_log_s = 0.0;
+    let mut rss_after_first_window = None;
     loop {
         tick.tick().await;
         let t_s = emu_v.time_boot_us() as f64 * 1e-6;
+        if rss_after_first_window.is_none() && t_s >= sc.evaluation.from_s + SOAK_WINDOW_S {
+            rss_after_first_window = rss_mb();
+        }
         if t_s > duration_s {
             break;
         }
@@ -1000,6 +1032,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             ctl_vel_err_ned_m_s: vel_err(oc.as_ref()),
         });
     }
+    let rss_after_first = rss_after_first_window;
     let metrics_v = d_v.shutdown().await;
     if let Some(d) = d_c {
         d.shutdown().await;
@@ -1008,6 +1041,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     // Score.
     let (w0, w1) = (sc.evaluation.from_s, sc.evaluation.until_s);
     let in_window = |t: f64| t >= w0 && t <= w1;
+    let soak = w1 - w0 >= 2.0 * SOAK_WINDOW_S;
     let injections = collect_injections(&emu_v, &table, false)
         .into_iter()
         .chain(
@@ -1158,6 +1192,10 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         nav_err_by_message,
         control_injections: inj_c.len(),
         rejections,
+        fix_rate_first_window: soak.then(|| fix_rate_in(&wf, w0, w0 + SOAK_WINDOW_S)).flatten(),
+        fix_rate_last_window: soak.then(|| fix_rate_in(&wf, w1 - SOAK_WINDOW_S, w1)).flatten(),
+        rss_mb_after_first_window: rss_after_first,
+        rss_mb_end: rss_mb(),
         vision_final_health: steps
             .last()
             .map(|s| s.vis_health.clone())

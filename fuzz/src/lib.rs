@@ -286,8 +286,11 @@ pub fn geotiff(data: &[u8]) {
                     let _ = e.to_string();
                 }
             }
-            let _ =
-                visnav_io::map::build::level_window(&r, 1, 0, 0, (w / 2).min(32), (h / 2).min(32));
+            // A level-1 window inside the level image (its precondition: not empty).
+            let (lw, lh) = ((w / 2).min(32), (h / 2).min(32));
+            if lw > 0 && lh > 0 {
+                let _ = visnav_io::map::build::level_window(&r, 1, 0, 0, lw, lh);
+            }
         }
         Err(e) => {
             let _ = e.to_string();

@@ -281,7 +281,8 @@ impl Inputs {
             return;
         }
         match self.last_imu_t_us {
-            Some(prev) if t_us + REBOOT_BACKSTEP_US < prev => {
+            // Saturating: a time_usec near u64::MAX overflowed here (found by fuzzing, issue 21).
+            Some(prev) if t_us.saturating_add(REBOOT_BACKSTEP_US) < prev => {
                 self.reset_times();
                 self.last_imu_t_us = Some(t_us);
                 out.push(NavInput::Reboot);

@@ -310,7 +310,6 @@ fn geotiff_bytes(
         d.write_tag(Tag::GdalNodata, n).unwrap();
     }
     d.finish().unwrap();
-    drop(enc);
     out.into_inner()
 }
 

@@ -31,9 +31,12 @@ use visnav_io::map::{HeightInfo, MapReference, ReferenceMap};
 use visnav_io::vision::GrayImage;
 use visnav_link::Telemetry;
 
+/// A target's body: one input.
+pub type Target = fn(&[u8]);
+
 /// Every target: its name (the directory under `fuzz/corpus/`, the binary in `fuzz_targets/`)
 /// and its body.
-pub const TARGETS: &[(&str, fn(&[u8]))] = &[
+pub const TARGETS: &[(&str, Target)] = &[
     ("config", config),
     ("map_file", map_file),
     ("geotiff", geotiff),
@@ -51,7 +54,7 @@ const MAX_ITEMS: usize = 64;
 /// keeps the message; a panic that escapes the target prints that message and aborts (libFuzzer
 /// then saves the input as a crash). `FUZZ_STRICT_PANICS=1` keeps libFuzzer's hook: every panic,
 /// caught or not, is a crash (to find the dependencies' panics behind our guards).
-pub fn run(target: fn(&[u8]), data: &[u8]) {
+pub fn run(target: Target, data: &[u8]) {
     use std::sync::{Mutex, Once};
     static HOOK: Once = Once::new();
     static LAST: Mutex<String> = Mutex::new(String::new());

@@ -120,7 +120,7 @@ pub struct KindStats {
 pub struct ReplayReport {
     /// Packets in the log.
     pub packets: u64,
-    /// Packets that did not decode (CRC, unknown message).
+    /// Packets that did not decode (CRC, unknown message, a time stamp past the year 2262).
     pub undecodable: u64,
     /// Packets from the autopilot.
     pub from_autopilot: u64,
@@ -344,11 +344,20 @@ pub fn replay(
         if autopilot != Some((header.system_id, header.component_id)) {
             continue;
         }
+        // The stamp as the companion clock's i64 ns: one past the year 2262 is a corrupt record
+        // (the arithmetic below overflowed on it: found by fuzzing, issue 21).
+        let Some(t_companion_ns) = i64::try_from(*unix_us)
+            .ok()
+            .and_then(|t| t.checked_mul(1000))
+        else {
+            rep.undecodable += 1;
+            continue;
+        };
+        let arrival_us = t_companion_ns / 1000;
         rep.from_autopilot += 1;
-        let arrival_us = *unix_us as i64;
         // The link's own rule for stale messages and reboots (`visnav_link::time::BootClock`).
         if let Some(b) = visnav_link::boot_time_us(&msg) {
-            match boot_clock.observe(msg.message_id(), b, arrival_us * 1000) {
+            match boot_clock.observe(msg.message_id(), b, t_companion_ns) {
                 BootVerdict::Current => {}
                 BootVerdict::Stale => {
                     rep.stale += 1;
@@ -367,18 +376,18 @@ pub fn replay(
         if let Some(b) = boot_us
             && b > 0
         {
-            let off = arrival_us - b;
+            let off = arrival_us.saturating_sub(b);
             // A reboot moves the offset up: follow it when it jumps by more than a second.
             min_offset_us = Some(match min_offset_us {
-                Some(o) if off > o + 1_000_000 => off,
+                Some(o) if off > o.saturating_add(1_000_000) => off,
                 Some(o) => o.min(off),
                 None => off,
             });
         }
         let tel = Telemetry {
-            t_companion_ns: arrival_us * 1000,
+            t_companion_ns,
             t_boot_us: min_offset_us
-                .map(|o| arrival_us - o)
+                .and_then(|o| arrival_us.checked_sub(o))
                 .filter(|t| *t >= 0)
                 .map(|t| t as u64),
             boot_epoch,

@@ -261,7 +261,11 @@ impl BootClock {
         // and every real message after it would look stale).
         if let Some(lc) = self.last_current_ns {
             let elapsed_us = u64::try_from((t_ns - lc).max(0) / 1000).unwrap_or(0);
-            if boot_us > last.saturating_add(elapsed_us).saturating_add(REBOOT_BACKSTEP_US) {
+            if boot_us
+                > last
+                    .saturating_add(elapsed_us)
+                    .saturating_add(REBOOT_BACKSTEP_US)
+            {
                 self.stale += 1;
                 return BootVerdict::Stale;
             }
@@ -591,7 +595,10 @@ mod tests {
             t_ns += 5_000_000;
         }
         assert_eq!(c.observe(IMU, u64::MAX - 5, t_ns), BootVerdict::Stale);
-        assert_eq!(c.observe(ATT, boot(t_ns) + 3_000_000, t_ns), BootVerdict::Stale);
+        assert_eq!(
+            c.observe(ATT, boot(t_ns) + 3_000_000, t_ns),
+            BootVerdict::Stale
+        );
         t_ns += 5_000_000;
         assert_eq!(c.observe(IMU, boot(t_ns), t_ns), BootVerdict::Current);
         // After 10 s of silence the clock has moved on 10 s: that is not ahead.

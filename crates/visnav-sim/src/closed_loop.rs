@@ -1192,8 +1192,12 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         nav_err_by_message,
         control_injections: inj_c.len(),
         rejections,
-        fix_rate_first_window: soak.then(|| fix_rate_in(&wf, w0, w0 + SOAK_WINDOW_S)).flatten(),
-        fix_rate_last_window: soak.then(|| fix_rate_in(&wf, w1 - SOAK_WINDOW_S, w1)).flatten(),
+        fix_rate_first_window: soak
+            .then(|| fix_rate_in(&wf, w0, w0 + SOAK_WINDOW_S))
+            .flatten(),
+        fix_rate_last_window: soak
+            .then(|| fix_rate_in(&wf, w1 - SOAK_WINDOW_S, w1))
+            .flatten(),
         rss_mb_after_first_window: rss_after_first,
         rss_mb_end: rss_mb(),
         vision_final_health: steps

@@ -725,7 +725,9 @@ fn validate(b: &[u8], path: &Path) -> Result<(MapHeader, usize), MapError> {
             b.len()
         )));
     }
-    let expect_data = PREAMBLE_BYTES as u64 + header_len;
+    // Saturating: a header_len near u64::MAX overflowed here (found by fuzzing, issue 21); it
+    // fails the header_len check below.
+    let expect_data = (PREAMBLE_BYTES as u64).saturating_add(header_len);
     if header_len > file_len || data_offset != align8(expect_data) || data_offset > file_len {
         return Err(bad(format!(
             "inconsistent preamble: header_len {header_len}, data_offset {data_offset}, file_len {file_len}"

@@ -1,0 +1,4 @@
+//! libFuzzer target `mavlink`: the body is `visnav_fuzz::mavlink` (fuzz/src/lib.rs).
+#![no_main]
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| visnav_fuzz::run(visnav_fuzz::mavlink, data));

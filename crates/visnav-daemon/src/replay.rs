@@ -326,15 +326,12 @@ pub fn replay(
         };
         if autopilot.is_none()
             && let MavMessage::HEARTBEAT(hb) = &msg
-            && let (Ok(sys), Ok(comp)) = (
-                u8::try_from(header.system_id),
-                u8::try_from(header.component_id),
-            )
+            && let Ok(sys) = u8::try_from(header.system_id)
             && visnav_link::is_lock_candidate(
                 opts.autopilot_system_id,
                 opts.autopilot_component_id,
                 sys,
-                comp,
+                header.component_id,
                 hb,
             )
         {

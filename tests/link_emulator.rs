@@ -10,11 +10,11 @@ use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use tokio::sync::watch;
 use visnav::link::config::{LinkConfig, OutputConfig, OutputMode, SigningSettings};
 use visnav::link::inject::local_ned_m;
-use visnav::link::{GeoOrigin, Health, Link, LinkStatus, NavEstimate};
+use visnav::link::{GeoOrigin, Health, Link, NavEstimate};
 use visnav::sitl::autopilot::{AutopilotEmulator, EmulatorConfig, TruthSource};
 
 mod common;
-use common::{TRUTH, free_udp_port};
+use common::{TRUTH, free_udp_port, wait_for};
 
 fn free_tcp_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
@@ -22,21 +22,6 @@ fn free_tcp_port() -> u16 {
         .local_addr()
         .unwrap()
         .port()
-}
-
-async fn wait_for(
-    rx: &mut watch::Receiver<LinkStatus>,
-    secs: f64,
-    what: &str,
-    f: impl Fn(&LinkStatus) -> bool,
-) -> LinkStatus {
-    let r = tokio::time::timeout(Duration::from_secs_f64(secs), rx.wait_for(|s| f(s)))
-        .await
-        .map(|r| r.map(|s| s.clone()));
-    match r {
-        Ok(Ok(s)) => s,
-        _ => panic!("timed out waiting for {what}; status {:#?}", *rx.borrow()),
-    }
 }
 
 fn estimate_at(t_boot_us: u64, health: Health) -> NavEstimate {

@@ -16,10 +16,10 @@ use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use tokio::net::UdpSocket;
 use tokio::sync::watch;
 use visnav::link::config::{LinkConfig, OutputConfig, OutputMode, SigningSettings};
-use visnav::link::{Health, Link, LinkStatus, NavEstimate};
+use visnav::link::{Health, Link, NavEstimate};
 
 mod common;
-use common::free_udp_port;
+use common::{free_udp_port, wait_for};
 
 /// A fake vehicle component on its own socket: sends what the test says, answers TIMESYNC with
 /// its boot clock, records what it receives.
@@ -171,21 +171,6 @@ fn live_stream(ap: Arc<Fake>, utc: fn(u64) -> i64) -> watch::Sender<bool> {
         }
     });
     stop
-}
-
-async fn wait_for(
-    rx: &mut watch::Receiver<LinkStatus>,
-    secs: f64,
-    what: &str,
-    f: impl Fn(&LinkStatus) -> bool,
-) -> LinkStatus {
-    let r = tokio::time::timeout(Duration::from_secs_f64(secs), rx.wait_for(|s| f(s)))
-        .await
-        .map(|r| r.map(|s| s.clone()));
-    match r {
-        Ok(Ok(s)) => s,
-        _ => panic!("timed out waiting for {what}; status {:#?}", *rx.borrow()),
-    }
 }
 
 fn estimate(t_boot_us: u64) -> NavEstimate {

@@ -19,3 +19,22 @@ pub fn free_udp_port() -> u16 {
         .map(|a| a.port())
         .expect("a free loopback UDP port")
 }
+
+/// Wait up to `secs` for the link status to satisfy `f`; panics naming `what` and the status.
+pub async fn wait_for(
+    rx: &mut tokio::sync::watch::Receiver<visnav::link::LinkStatus>,
+    secs: f64,
+    what: &str,
+    f: impl Fn(&visnav::link::LinkStatus) -> bool,
+) -> visnav::link::LinkStatus {
+    let r = tokio::time::timeout(
+        std::time::Duration::from_secs_f64(secs),
+        rx.wait_for(|s| f(s)),
+    )
+    .await
+    .map(|r| r.map(|s| s.clone()));
+    match r {
+        Ok(Ok(s)) => s,
+        _ => panic!("timed out waiting for {what}; status {:#?}", *rx.borrow()),
+    }
+}

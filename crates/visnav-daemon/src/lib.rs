@@ -298,19 +298,20 @@ impl Daemon {
         let mut lockstep_task = None;
         let spawned: std::io::Result<()> = (|| {
             if let (Some(fp), Some(fixer)) = (frames, fixer) {
+                let ctx = |slot: Arc<Slot<Frame>>| frames::WorkerCtx {
+                    slot,
+                    fixer: fixer.clone(),
+                    priors: shared.clone(),
+                    clock: link.clock(),
+                    max_age_s: fp.max_age_s,
+                    results: fix_tx.clone(),
+                    metrics: metrics.clone(),
+                };
                 if let Some(latency) = fp.lockstep_latency {
                     let period = Duration::from_secs_f64(
                         1.0 / fp.source.rate_hz().filter(|r| *r > 0.0).unwrap_or(1.0),
                     );
-                    let ctx = frames::WorkerCtx {
-                        slot: Arc::new(Slot::default()),
-                        fixer: fixer.clone(),
-                        priors: shared.clone(),
-                        clock: link.clock(),
-                        max_age_s: fp.max_age_s,
-                        results: fix_tx.clone(),
-                        metrics: metrics.clone(),
-                    };
+                    let ctx = ctx(Arc::new(Slot::default()));
                     lockstep_task = Some(tokio::spawn(frames::lockstep_frames(
                         fp.source,
                         ctx,
@@ -330,18 +331,7 @@ impl Daemon {
                     metrics.clone(),
                 )?);
                 for i in 0..fp.workers.max(1) {
-                    threads.push(frames::spawn_worker(
-                        i,
-                        frames::WorkerCtx {
-                            slot: slot.clone(),
-                            fixer: fixer.clone(),
-                            priors: shared.clone(),
-                            clock: link.clock(),
-                            max_age_s: fp.max_age_s,
-                            results: fix_tx.clone(),
-                            metrics: metrics.clone(),
-                        },
-                    )?);
+                    threads.push(frames::spawn_worker(i, ctx(slot.clone()))?);
                 }
                 slot_out = Some(slot);
             }

@@ -507,11 +507,9 @@ fn visnav_run_subprocess_injects_and_reports() {
     let port = free_udp_port();
     let emu = rt.block_on(emulator(port, true));
     let dir = tempfile::tempdir().unwrap();
-    std::fs::write(
-        dir.path().join("ortho.tif"),
-        b"placeholder: the map is not read by run yet",
-    )
-    .unwrap();
+    // `run` validates what `check-config` validates (issue 21, item 12): a placeholder
+    // orthophoto is refused before anything starts, [frames] or not.
+    std::fs::write(dir.path().join("ortho.tif"), b"placeholder: not a GeoTIFF").unwrap();
     let base = format!(
         "[link]\nconnection = \"udpin:127.0.0.1:{port}\"\n\
          [camera]\nwidth_px = 640\nheight_px = 480\nhfov_deg = 60.0\n\
@@ -521,6 +519,21 @@ fn visnav_run_subprocess_injects_and_reports() {
          [daemon]\nimu_timeout_s = 1.0\n"
     );
     let cfg = dir.path().join("run.toml");
+    std::fs::write(&cfg, &base).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_visnav"))
+        .args(["run", "--config"])
+        .arg(&cfg)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(e.contains("map.ortho") && e.contains("ortho.tif"), "{e}");
+    // With a real orthophoto (the bundled NAIP excerpt) it runs and injects.
+    let naip = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("sitl/maps/naip_nd_2009.tif");
+    let base = base.replace(
+        "\"ortho.tif\"",
+        &format!("{:?}", naip.display().to_string()),
+    );
     std::fs::write(&cfg, &base).unwrap();
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_visnav"))
         .args(["run", "--config"])
@@ -541,26 +554,8 @@ fn visnav_run_subprocess_injects_and_reports() {
     eprintln!("visnav run: {n_gps} GPS_INPUT; {m}");
     assert!(n_gps >= 5, "{n_gps} GPS_INPUT; {stderr}");
 
-    // [frames] makes run build the vision fix engine from [map]: the placeholder orthophoto is
-    // refused with a clear error naming it.
-    std::fs::write(dir.path().join("a.y4m"), b"YUV4MPEG2 W2 H2 F1:1\n").unwrap();
-    std::fs::write(
-        &cfg,
-        format!("{base}[frames]\nsource = \"y4m\"\npath = \"a.y4m\"\n"),
-    )
-    .unwrap();
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_visnav"))
-        .args(["run", "--config"])
-        .arg(&cfg)
-        .output()
-        .unwrap();
-    assert!(!out.status.success());
-    let e = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        e.contains("vision fix engine") && e.contains("ortho.tif"),
-        "{e}"
-    );
     // A misspelt key in [frames] names the key.
+    std::fs::write(dir.path().join("a.y4m"), b"YUV4MPEG2 W2 H2 F1:1\n").unwrap();
     std::fs::write(
         &cfg,
         format!("{base}[frames]\nsource = \"y4m\"\npath = \"a.y4m\"\nfps = 3\n"),

@@ -125,9 +125,12 @@ fn check_entropy_data(b: &[u8]) -> Result<(), JpegError> {
                         .iter()
                         .find(|x| x.0 == c[0])
                         .ok_or_else(|| bad(format!("scan names unknown component {}", c[0])))?;
-                    let (Some(d), Some(a)) =
-                        (&dc[usize::from(c[1] >> 4)], &ac[usize::from(c[1] & 3)])
-                    else {
+                    // Table selectors are 0-3 (T.81 B.2.3); a larger one is a corrupt header.
+                    let (Some(d), Some(a)) = (
+                        dc.get(usize::from(c[1] >> 4))
+                            .ok_or_else(|| bad(format!("DC table {} out of range", c[1] >> 4)))?,
+                        &ac[usize::from(c[1] & 3)],
+                    ) else {
                         return Ok(()); // no tables (MJPG's default tables): not walked
                     };
                     scan.push((h, v, d, a));
@@ -175,12 +178,14 @@ fn check_entropy_data(b: &[u8]) -> Result<(), JpegError> {
                 }
                 // The scan must end here: at most the padding bits of this byte remain.
                 if !(b.get(r.pos) == Some(&0xFF) && b.get(r.pos + 1).is_some_and(|&m| m != 0)) {
-                    let rest = b[r.pos..]
+                    let rest = b
+                        .get(r.pos..)
+                        .unwrap_or(&[])
                         .windows(2)
                         .position(|w| w[0] == 0xFF && w[1] != 0);
                     return Err(bad(format!(
                         "{} bytes of entropy-coded data after the last block",
-                        rest.unwrap_or(b.len() - r.pos)
+                        rest.unwrap_or(b.len().saturating_sub(r.pos))
                     )));
                 }
                 i = r.pos;

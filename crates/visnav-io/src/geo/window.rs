@@ -49,6 +49,9 @@ use super::raster::{GeoTransform, Raster, RasterData, SampleType};
 
 /// Default bound of the decoded-chunk cache, bytes.
 pub const DEFAULT_CACHE_BYTES: usize = 64 << 20;
+/// Largest empty (sparse, byte count 0) chunk filled with nodata, bytes: 256 MiB, the tiff
+/// crate's default decoding buffer limit (a real chunk's data is bounded by that too).
+pub const MAX_EMPTY_CHUNK_BYTES: usize = 256 << 20;
 
 /// Opens `path` for windowed reading. `crs_override` as for `load_geotiff`.
 pub fn open_geotiff_window(
@@ -450,6 +453,15 @@ fn empty_chunk<R: Read + Seek>(
     let layout = dec
         .image_chunk_buffer_layout(idx)
         .map_err(|e| ChunkError::Read(e.to_string()))?;
+    // A sparse chunk has no data to bound it: its size comes from the header alone, which a
+    // corrupt file can make tens of gigabytes (found by fuzzing). No real tile or strip is
+    // near this.
+    if layout.len > MAX_EMPTY_CHUNK_BYTES {
+        return Err(ChunkError::Read(format!(
+            "an empty chunk of {} bytes (more than {MAX_EMPTY_CHUNK_BYTES}): corrupt tile size",
+            layout.len
+        )));
+    }
     let fill = nodata.filter(|v| v.is_finite()).unwrap_or(0.0);
     // Integer samples: the nodata value if it is one of the type's values, else 0.
     macro_rules! ints {

@@ -343,9 +343,9 @@ pub struct NavFilter {
     last_good_rates: Option<(Vector3<f64>, Vector3<f64>)>,
     /// Capture time of the first position fix of the current run of rejected ones.
     reject_run_start_us: Option<u64>,
-    /// Velocity measurements rejected since the last accepted position fix: the filter's own
-    /// velocity is contradicted, so a step in the position fixes may be the filter's.
-    vel_rejects_since_pos: u32,
+    /// A velocity measurement was rejected since the last accepted position fix: the filter's
+    /// own velocity is contradicted, so a step in the position fixes may be the filter's.
+    velocity_contradicted: bool,
 }
 
 fn dt_s(a_us: u64, b_us: u64) -> f64 {
@@ -443,7 +443,7 @@ impl NavFilter {
             next_output_t_us: None,
             last_good_rates: None,
             reject_run_start_us: None,
-            vel_rejects_since_pos: 0,
+            velocity_contradicted: false,
         }
     }
 
@@ -601,10 +601,10 @@ impl NavFilter {
         }
         let (w, f) = (s.dtheta_rad_body_frd / dt, s.dv_m_s_body_frd / dt);
         let imu = &self.cfg.imu;
-        let w_max = imu.gyro_range_deg_s.to_radians() * CLIP_FRACTION;
-        let f_max = imu.accel_range_g * super::config::G0_M_S2 * CLIP_FRACTION;
-        let gyro_clipped = w.amax() >= w_max;
-        let accel_clipped = f.amax() >= f_max;
+        let w_range = imu.gyro_range_deg_s.to_radians();
+        let f_range = imu.accel_range_g * super::config::G0_M_S2;
+        let gyro_clipped = w.amax() >= w_range * CLIP_FRACTION;
+        let accel_clipped = f.amax() >= f_range * CLIP_FRACTION;
         if !gyro_clipped && !accel_clipped {
             self.last_good_rates = Some((w, f));
             return *s;
@@ -620,13 +620,7 @@ impl NavFilter {
         // Without a good sample yet: no rotation and no specific force, with the same sigma.
         let (w0, f0) = self.last_good_rates.unwrap_or_default();
         let mut out = ImuSample::from_rates(s.t_us, w0, f0, dt);
-        let sigma = |max: f64, clipped: bool, good: f64| {
-            if clipped {
-                max / CLIP_FRACTION * dt
-            } else {
-                good
-            }
-        };
+        let sigma = |range: f64, clipped: bool, good: f64| if clipped { range * dt } else { good };
         // The sensor (gyro or accelerometer) that is not clipped keeps its own measurement.
         if !gyro_clipped {
             out.dtheta_rad_body_frd = s.dtheta_rad_body_frd;
@@ -634,8 +628,8 @@ impl NavFilter {
         if !accel_clipped {
             out.dv_m_s_body_frd = s.dv_m_s_body_frd;
         }
-        out.gap_sigma_dtheta_rad = sigma(w_max, gyro_clipped, s.gap_sigma_dtheta_rad);
-        out.gap_sigma_dv_m_s = sigma(f_max, accel_clipped, s.gap_sigma_dv_m_s);
+        out.gap_sigma_dtheta_rad = sigma(w_range, gyro_clipped, s.gap_sigma_dtheta_rad);
+        out.gap_sigma_dv_m_s = sigma(f_range, accel_clipped, s.gap_sigma_dv_m_s);
         out
     }
 
@@ -791,16 +785,23 @@ impl NavFilter {
         }
     }
 
+    /// Forget the current run of rejected position fixes (a fix was accepted, or the filter was
+    /// reset or initialised): the divergence window, its refusal, its start and the velocity
+    /// contradiction seen during it.
+    fn end_reject_run(&mut self) {
+        self.consecutive_rejects = 0;
+        self.rejected.clear();
+        self.last_refusal = None;
+        self.reject_run_start_us = None;
+        self.velocity_contradicted = false;
+    }
+
     fn hard_reset(&mut self, t_us: u64, reason: String) {
         tracing::warn!("nav filter hard reset: {reason}");
         self.core = None;
         self.history.clear();
         self.counters.hard_resets += 1;
-        self.consecutive_rejects = 0;
-        self.rejected.clear();
-        self.last_refusal = None;
-        self.reject_run_start_us = None;
-        self.vel_rejects_since_pos = 0;
+        self.end_reject_run();
         self.last_pos_for_init = None;
         self.last_reset = Some((t_us, reason));
     }
@@ -866,18 +867,14 @@ impl NavFilter {
                         Some(self.last_gps_vel_us.unwrap_or(0).max(v.t_capture_us));
                 }
                 if is_pos {
-                    self.consecutive_rejects = 0;
-                    self.rejected.clear();
-                    self.last_refusal = None;
-                    self.reject_run_start_us = None;
-                    self.vel_rejects_since_pos = 0;
+                    self.end_reject_run();
                     self.last_pos_fix_t_us = Some(self.last_pos_fix_t_us.unwrap_or(0).max(t_c));
                 }
             }
             Outcome::Rejected { .. } => {
                 self.type_counters(&m).rejected += 1;
                 if matches!(m, Measurement::GpsVelocity(_)) {
-                    self.vel_rejects_since_pos += 1;
+                    self.velocity_contradicted = true;
                 }
                 if is_pos {
                     self.consecutive_rejects += 1;
@@ -888,7 +885,7 @@ impl NavFilter {
                             last_accepted_s: self.last_pos_fix_t_us.map(|t| t as f64 * 1e-6),
                             first_rejected_s: self.reject_run_start_us.unwrap_or(t_c) as f64 * 1e-6,
                             latest_s: t_c as f64 * 1e-6,
-                            velocity_contradicted: self.vel_rejects_since_pos > 0,
+                            velocity_contradicted: self.velocity_contradicted,
                         };
                         let step_s = self.cfg.health.step_reset_s;
                         match self
@@ -1060,11 +1057,7 @@ impl NavFilter {
             meas: Vec::new(),
         });
         self.counters.divergence_resets += 1;
-        self.consecutive_rejects = 0;
-        self.rejected.clear();
-        self.last_refusal = None;
-        self.reject_run_start_us = None;
-        self.vel_rejects_since_pos = 0;
+        self.end_reject_run();
         self.last_pos_fix_t_us = Some(f.t_capture_us);
         self.last_reset = Some((now, reason));
     }
@@ -1234,11 +1227,7 @@ impl NavFilter {
         self.core = Some(core);
         self.counters.initialisations += 1;
         self.last_pos_fix_t_us = Some(fix.t_capture_us);
-        self.consecutive_rejects = 0;
-        self.rejected.clear();
-        self.last_refusal = None;
-        self.reject_run_start_us = None;
-        self.vel_rejects_since_pos = 0;
+        self.end_reject_run();
         tracing::info!(
             "nav filter initialised from {} fix",
             if is_gps { "GPS" } else { "vision" }

@@ -440,14 +440,9 @@ pub fn mavlink(data: &[u8]) {
                         continue;
                     }
                 };
-                let Ok(msg) = MavMessage::parse(raw.version(), raw.message_id(), raw.payload())
-                else {
+                // The link's own decoding of a received frame.
+                let Some((header, msg)) = visnav_link::decode(&raw) else {
                     continue;
-                };
-                let header = MavHeader {
-                    system_id: raw.system_id(),
-                    component_id: raw.component_id(),
-                    sequence: raw.sequence(),
                 };
                 nav.telemetry(header, msg);
             }

@@ -41,6 +41,6 @@ mod transport;
 
 pub use inject::{GeoOrigin, Health, InjectError, NavEstimate};
 pub use session::{
-    AutopilotInfo, Clock, Link, LinkError, LinkStatus, Telemetry, boot_time_us, is_lock_candidate,
-    shutdown_signal,
+    AutopilotInfo, Clock, Link, LinkError, LinkStatus, Telemetry, boot_time_us, decode,
+    is_lock_candidate, shutdown_signal,
 };

@@ -1113,6 +1113,18 @@ pub fn is_lock_candidate(
         && want_sys.is_none_or(|s| s == sys)
 }
 
+/// A received frame's header and message (`None`: a message id or payload this dialect does not
+/// decode).
+pub fn decode(raw: &MAVLinkMessageRaw) -> Option<(MavHeader, MavMessage)> {
+    let msg = MavMessage::parse(raw.version(), raw.message_id(), raw.payload()).ok()?;
+    let header = MavHeader {
+        system_id: raw.system_id(),
+        component_id: raw.component_id(),
+        sequence: raw.sequence(),
+    };
+    Some((header, msg))
+}
+
 /// The autopilot boot time a message carries, µs (None for messages without one).
 pub fn boot_time_us(msg: &MavMessage) -> Option<u64> {
     let ms = match msg {
@@ -1251,14 +1263,8 @@ async fn run_connection(shared: &Arc<Shared>, conn: Arc<Conn>, stop: &mut watch:
                 Ok(crate::transport::Received { raw, from }) => {
                     let t_ns = shared.now_ns();
                     shared.record_rx(&raw);
-                    let Ok(msg) = MavMessage::parse(raw.version(), raw.message_id(), raw.payload())
-                    else {
+                    let Some((header, msg)) = decode(&raw) else {
                         continue;
-                    };
-                    let header = MavHeader {
-                        system_id: raw.system_id(),
-                        component_id: raw.component_id(),
-                        sequence: raw.sequence(),
                     };
                     shared.handle(header, msg, t_ns, from).await;
                 }

@@ -26,6 +26,9 @@ struct Harness {
     accel_fault: Option<(u64, u64, f64)>,
     /// A jumping GPS receiver: from `.0` to `.1` (µs) its positions are off by `.2` (NED, m).
     gps_jump: Option<(u64, u64, Vector3<f64>)>,
+    /// A silent link: from `.0` to `.1` (µs) the filter gets nothing; the first sample after it
+    /// carries its rates over the whole gap (what the daemon's inputs give).
+    silent: Option<(u64, u64)>,
 }
 
 const DT_US: u64 = 10_000;
@@ -82,6 +85,7 @@ impl Harness {
             states: Vec::new(),
             accel_fault: None,
             gps_jump: None,
+            silent: None,
         }
     }
 
@@ -107,10 +111,20 @@ impl Harness {
                 dv.x = f * (DT_US as f64 * 1e-6);
             }
             let ts = truth.state();
+            let mut held = 1.0;
+            if let Some((a, b)) = self.silent {
+                if (a..b).contains(&self.t_us) {
+                    self.states.push((self.t_us, ts));
+                    continue;
+                }
+                if self.t_us == b {
+                    held = (b - a + DT_US) as f64 / DT_US as f64;
+                }
+            }
             self.filter.imu(&ImuSample {
                 t_us: self.t_us,
-                dtheta_rad_body_frd: dth,
-                dv_m_s_body_frd: dv,
+                dtheta_rad_body_frd: dth * held,
+                dv_m_s_body_frd: dv * held,
                 gap_sigma_dtheta_rad: 0.0,
                 gap_sigma_dv_m_s: 0.0,
             });
@@ -946,6 +960,59 @@ fn a_strong_accelerometer_fault_is_survived() {
         assert!(h.pos_err().norm() < 5.0, "{g} g: {:?}", h.pos_err());
         assert!(c.imu_clipped >= 390, "{g} g: {} clipped", c.imu_clipped);
     }
+}
+
+/// Issue 21, scripted link silence: 5 s without any message from the autopilot (no IMU, no
+/// attitude, no GPS), then the stream again. Before, the filter hard-reset on the gap and, with
+/// vision alone, took 20 s or more to relocalise. Now the gap is bridged: no reset, an output on
+/// the first sample after it, whose covariance grew by what the vehicle could have done unseen
+/// and still contains the error; a gap beyond `max_imu_bridge_s` still restarts the filter.
+#[test]
+fn a_silent_link_is_bridged_not_reset() {
+    let cfg = NavConfig {
+        max_imu_gap_s: 0.5,
+        ..NavConfig::default()
+    };
+    let mut h = Harness::new(cfg.clone(), SimImuConfig::perfect(100.0));
+    h.fly(60.0, true, |_, _, _| {});
+    let sigma_h = |f: &NavFilter| {
+        let o = f.output().expect("output");
+        (o.cov_pos_ned_m2[0][0].max(o.cov_pos_ned_m2[1][1])).sqrt()
+    };
+    let before = sigma_h(&h.filter);
+    let (a, b) = (h.t_us + DT_US, h.t_us + DT_US + 5_000_000);
+    h.silent = Some((a, b));
+    let mut first_after = None;
+    h.fly(5.2, false, |f, t, ts| {
+        if t >= b && first_after.is_none() {
+            first_after = Some((sigma_h(f), horizontal_err2(f, ts).sqrt()));
+        }
+    });
+    let (after, err) = first_after.expect("an output after the gap");
+    let c = h.filter.counters();
+    assert_eq!((c.hard_resets, c.imu_bridged), (0, 1));
+    eprintln!("5 s gap: sigma_h {before:.2} -> {after:.1} m, error {err:.2} m");
+    // 3 m/s^2 unseen for 5 s: about 0.6 * 3 * 25 = 43 m.
+    assert!(
+        after > 20.0 && after < 100.0,
+        "sigma after the gap {after} m"
+    );
+    assert!(
+        err < 3.0 * after,
+        "error {err} m beyond 3 sigma ({after} m)"
+    );
+    // The GPS back: the solution converges again without a reset.
+    h.fly(20.0, true, |_, _, _| {});
+    assert!(h.pos_err().norm() < 5.0, "{:?}", h.pos_err());
+    assert_eq!(h.filter.counters().hard_resets, 0);
+
+    // Beyond max_imu_bridge_s (10 s): a restart, as before.
+    let mut h = Harness::new(cfg, SimImuConfig::perfect(100.0));
+    h.fly(60.0, true, |_, _, _| {});
+    h.silent = Some((h.t_us + DT_US, h.t_us + DT_US + 12_000_000));
+    h.fly(12.1, true, |_, _, _| {});
+    let c = h.filter.counters();
+    assert_eq!((c.hard_resets, c.imu_bridged), (1, 0));
 }
 
 /// Issue 21 item 2: one finite but impossible sample (x = 1e30 m/s^2) every half second for

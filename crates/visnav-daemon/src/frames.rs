@@ -4,6 +4,9 @@
 //! time and call the [`FrameFixer`]; results go to the navigation task over a bounded channel.
 //! Nothing here runs on the async runtime, so a slow fix never delays telemetry or injection.
 //! Lossless replay (`realtime = false`): the reader waits until the slot is empty instead.
+//! A frame bit-identical to the one before it is dropped and counted ([`FreezeDetector`]): a
+//! frozen camera repeats its last buffer with new time stamps, and a fix on it would put the
+//! aircraft where it was when the camera froze, stamped now.
 
 use std::panic::AssertUnwindSafe;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -16,6 +19,7 @@ use tracing::{error, info, warn};
 use crate::FrameFixer;
 use crate::metrics::DaemonMetrics;
 use visnav_core::fix::{FixPrior, FixReport};
+use visnav_core::vision::GrayImage;
 use visnav_io::frames::{CaptureTime, Frame, FrameError, FrameSource};
 use visnav_link::Clock;
 
@@ -108,6 +112,49 @@ impl<T> Slot<T> {
     }
 }
 
+/// Recognises a frozen camera: an image bit-identical to the previous one. A live sensor's
+/// noise makes two real frames differ in some pixel; a driver that stopped capturing hands out
+/// its last buffer again. (A blank frame repeated, a lens cap, is dropped too: it carries no
+/// fix either.) Images are compared by a 64-bit hash of their pixels.
+#[derive(Debug, Default)]
+pub struct FreezeDetector {
+    last: Option<u64>,
+    /// Frozen frames so far (for logging on the 1st, 2nd, 4th ...).
+    frozen: u64,
+}
+
+impl FreezeDetector {
+    /// True when `image` repeats the previous image exactly (then counted and, on the 1st, 2nd,
+    /// 4th ... time, logged).
+    pub fn repeats(&mut self, image: &GrayImage, seq: u64) -> bool {
+        let h = pixel_hash(image);
+        let repeat = self.last == Some(h);
+        self.last = Some(h);
+        if repeat {
+            self.frozen += 1;
+            if self.frozen.is_power_of_two() {
+                warn!(
+                    "frames: frame {seq} is identical to the one before (a frozen camera): dropped ({} so far)",
+                    self.frozen
+                );
+            }
+        }
+        repeat
+    }
+}
+
+/// A 64-bit hash of the image's size and pixels (multiply-xorshift per pixel; not
+/// cryptographic, a repeat is what it finds).
+fn pixel_hash(image: &GrayImage) -> u64 {
+    const K: u64 = 0x9e37_79b9_7f4a_7c15;
+    let mut h = (image.width() as u64) << 32 | image.height() as u64;
+    for v in image.data() {
+        h = (h ^ u64::from(v.to_bits())).wrapping_mul(K);
+        h ^= h >> 29;
+    }
+    h
+}
+
 /// A finished fix attempt, for the navigation task.
 #[derive(Debug, Clone)]
 pub struct FixResult {
@@ -147,10 +194,15 @@ pub fn spawn_reader(
                 std::thread::sleep(Duration::from_millis(50));
             }
             info!("frames: {}", source.describe());
+            let mut freeze = FreezeDetector::default();
             while !stop.load(Ordering::Relaxed) {
                 match source.next_frame() {
                     Ok(Some(f)) => {
                         metrics.frames_in.fetch_add(1, Ordering::Relaxed);
+                        if freeze.repeats(&f.image, f.seq) {
+                            metrics.frames_frozen.fetch_add(1, Ordering::Relaxed);
+                            continue;
+                        }
                         metrics.queue_depth_max.fetch_max(1, Ordering::Relaxed);
                         if lossless {
                             if !slot.put_wait(f) {
@@ -163,6 +215,9 @@ pub fn spawn_reader(
                     Ok(None) => {
                         info!("frames: end of the recording");
                         break;
+                    }
+                    Err(FrameError::NotReady) => {
+                        std::thread::sleep(Duration::from_millis(10));
                     }
                     Err(e @ FrameError::Image { .. }) => {
                         // One unreadable image in a directory: skip it.
@@ -280,6 +335,7 @@ pub async fn lockstep_frames(
     }
     info!("frames: {} (lock-step)", source.describe());
     let mut source = Some(source);
+    let mut freeze = FreezeDetector::default();
     let mut tick = tokio::time::interval(period);
     loop {
         tokio::select! {
@@ -302,6 +358,7 @@ pub async fn lockstep_frames(
                 info!("frames: end of the source");
                 return;
             }
+            Err(FrameError::NotReady) => continue,
             Err(e) => {
                 ctx.metrics.frame_errors.fetch_add(1, Ordering::Relaxed);
                 warn!("frames: {e}; skipped");
@@ -309,6 +366,10 @@ pub async fn lockstep_frames(
             }
         };
         ctx.metrics.frames_in.fetch_add(1, Ordering::Relaxed);
+        if freeze.repeats(&f.image, f.seq) {
+            ctx.metrics.frames_frozen.fetch_add(1, Ordering::Relaxed);
+            continue;
+        }
         let c = ctx.clone();
         let Ok(Some(result)) = tokio::task::spawn_blocking(move || fix_frame(&c, f)).await else {
             continue;
@@ -324,6 +385,23 @@ pub async fn lockstep_frames(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_repeated_image_is_a_frozen_camera_and_a_changed_pixel_is_not() {
+        let a = GrayImage::from_fn(64, 48, |x, y| ((x * 7 + y * 13) % 251) as f32);
+        let mut b = a.clone();
+        b.data_mut()[1000] += 1.0;
+        let mut d = FreezeDetector::default();
+        assert!(!d.repeats(&a, 0));
+        assert!(d.repeats(&a.clone(), 1));
+        assert!(d.repeats(&a, 2));
+        assert!(!d.repeats(&b, 3), "one pixel differs: a live camera");
+        assert!(!d.repeats(&a, 4));
+        // Same pixels, other shape: not the same image.
+        let c = GrayImage::new(48, 64, a.data().to_vec()).unwrap();
+        assert!(!d.repeats(&c, 5));
+        assert_eq!(d.frozen, 2);
+    }
 
     #[test]
     fn slot_newest_wins_and_closes() {

@@ -762,7 +762,7 @@ impl NavTask {
             info!(
                 imu = m.imu_samples,
                 frames_in = m.frames_in,
-                dropped = m.frames_superseded + m.frames_stale + m.frames_no_time,
+                dropped = m.frames_superseded + m.frames_stale + m.frames_no_time + m.frames_frozen,
                 fixes_accepted = m.fixes_accepted,
                 fixes_rejected = m.fixes_filter_rejected + m.engine_rejected.values().sum::<u64>(),
                 latency_ms = m.fix_latency_ms_last,

@@ -25,6 +25,7 @@ pub struct DaemonMetrics {
     pub frames_stale: AtomicU64,
     pub frames_no_time: AtomicU64,
     pub frame_errors: AtomicU64,
+    pub frames_frozen: AtomicU64,
     pub queue_depth_max: AtomicU64,
     pub fixes_attempted: AtomicU64,
     pub fixes_accepted: AtomicU64,
@@ -165,6 +166,8 @@ pub struct MetricsSnapshot {
     pub frames_no_time: u64,
     /// Frames that could not be read.
     pub frame_errors: u64,
+    /// Frames dropped as identical to the previous one (a frozen camera).
+    pub frames_frozen: u64,
     /// Largest number of frames waiting at once (the queue bound is 1).
     pub queue_depth_max: u64,
     /// Frames given to the fix engine.
@@ -271,6 +274,7 @@ impl DaemonMetrics {
             frames_stale: g(&self.frames_stale),
             frames_no_time: g(&self.frames_no_time),
             frame_errors: g(&self.frame_errors),
+            frames_frozen: g(&self.frames_frozen),
             queue_depth_max: g(&self.queue_depth_max),
             fixes_attempted: attempted,
             fixes_accepted: g(&self.fixes_accepted),

@@ -243,6 +243,12 @@ pub fn render(d: &MetricsSnapshot, link: &LinkMetrics) -> String {
         c(d.frame_errors),
     );
     w.single(
+        "visnav_frames_frozen_total",
+        "counter",
+        "frames dropped as identical to the one before (a frozen camera)",
+        c(d.frames_frozen),
+    );
+    w.single(
         "visnav_frame_queue_depth_max",
         "gauge",
         "largest number of frames waiting at once",

@@ -143,6 +143,10 @@ pub enum FrameError {
     Config(String),
     #[error("{command}: {reason}")]
     Command { command: String, reason: String },
+    /// A source paced by its caller (the lock-step simulator's camera) has no frame at this
+    /// instant: not a fault, the caller asks again at its next tick.
+    #[error("no frame ready")]
+    NotReady,
 }
 
 /// A source of camera frames (blocking I/O).

@@ -349,13 +349,17 @@ pub struct UtcMap {
     companion_offset_us: Option<i128>,
     /// The companion's clock is away from its latched offset (its step was counted).
     companion_stepped: bool,
+    /// Where the autopilot's clock stepped to (its unix minus boot µs), while it stays away
+    /// from the latched offset: a clock that stepped and stays there is one step, reported once.
+    stepped_to_us: Option<i128>,
     /// Steps of the autopilot's clock seen and not followed.
     pub steps: u64,
 }
 
 impl UtcMap {
     /// Feed a SYSTEM_TIME message. Ignored when the autopilot's clock is not set. Returns the
-    /// step in µs when the clock jumped by more than [`UTC_STEP_US`] (not followed).
+    /// step in µs when the clock jumped by more than [`UTC_STEP_US`] (not followed); a clock that
+    /// stays where it jumped to is reported once, a further jump again.
     pub fn observe_system_time(&mut self, time_unix_usec: u64, time_boot_ms: u32) -> Option<i128> {
         if time_unix_usec < PLAUSIBLE_UNIX_US {
             return None;
@@ -367,13 +371,20 @@ impl UtcMap {
                 None
             }
             Some(o) if (measured - o).abs() <= UTC_STEP_US => {
+                self.stepped_to_us = None;
                 self.autopilot_offset_us =
                     Some(o + ((measured - o) as f64 * UTC_SLEW_GAIN) as i128);
                 None
             }
             Some(o) => {
-                self.steps += 1;
-                Some(measured - o)
+                let new_step = self
+                    .stepped_to_us
+                    .is_none_or(|s| (measured - s).abs() > UTC_STEP_US);
+                self.stepped_to_us = Some(measured);
+                new_step.then(|| {
+                    self.steps += 1;
+                    measured - o
+                })
             }
         }
     }
@@ -670,6 +681,11 @@ mod tests {
             m.observe_system_time(t0 + 3_600_000_000 + 1_000_000, 2000),
             Some(3_600_000_000)
         );
+        // The clock stays an hour ahead: the same step, not reported again.
+        for k in 1..5u64 {
+            let t = t0 + 3_600_000_000 + 1_000_000 + k * 1_000_000;
+            assert_eq!(m.observe_system_time(t, 2000 + 1000 * k as u32), None);
+        }
         assert!(
             m.observe_system_time(t0 - 365 * 86_400_000_000 + 2_000_000, 3000)
                 .is_some()

@@ -20,9 +20,11 @@
 //! * Every GPS_INPUT, VISION_POSITION_ESTIMATE, ODOMETRY, GLOBAL_POSITION_SENSOR,
 //!   SET_GPS_GLOBAL_ORIGIN and STATUSTEXT received is recorded with its boot time of arrival.
 //!
-//! Telemetry comes from a caller-provided [`TruthSource`] evaluated at the boot time in seconds
-//! (its `imu` and `gps` methods give the IMU and GPS readings, by default the truth itself; the
-//! closed-loop simulator adds sensor errors and GPS outages there).
+//! Telemetry comes from a caller-provided [`TruthSource`] evaluated at the emulator's run time in
+//! seconds (time since it started: a reboot restarts the boot clock the messages carry, not the
+//! flight), its `imu` and `gps` methods give the IMU and GPS readings, by default the truth itself
+//! (the closed-loop simulator adds sensor errors, GPS outages and scripted faults there), and its
+//! `link_faults` scripts silence, reboots and UTC clock steps ([`LinkFaults`]).
 //! Units sent follow the MAVLink definitions (ATTITUDE rad, GLOBAL_POSITION_INT 1e7 deg / mm /
 //! cm/s, SCALED_IMU mG / mrad/s, SCALED_PRESSURE hPa from the ISA troposphere model
 //! `p = 1013.25 (1 - 2.25577e-5 h)^5.25588`).
@@ -66,9 +68,21 @@ pub struct TruthState {
     pub accel_body_m_s2: [f64; 3],
 }
 
-/// Source of truth: the vehicle state at autopilot boot time `t_s`.
+/// Scripted link faults at an instant (`sitl::faults`), asked by the emulator on every tick.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct LinkFaults {
+    /// Send nothing (still receive).
+    pub silent: bool,
+    /// Reboots scripted so far: the emulator reboots when this exceeds the ones it has done.
+    pub reboots: u32,
+    /// Added to SYSTEM_TIME's UTC, µs (a stepped autopilot clock).
+    pub utc_offset_us: i64,
+}
+
+/// Source of truth: the vehicle state at run time `t_s` (seconds since the emulator started; a
+/// reboot does not reset it).
 pub trait TruthSource: Send + Sync + 'static {
-    /// State at `t_s` seconds since (the last) boot.
+    /// State at `t_s`.
     fn state(&self, t_s: f64) -> TruthState;
     /// The IMU sample sent at `t_s` (SCALED_IMU / RAW_IMU): `(gyro_body_rad_s,
     /// accel_body_m_s2)`. Default: the truth without error. Called once per IMU message, with
@@ -93,6 +107,11 @@ pub trait TruthSource: Send + Sync + 'static {
     /// Default: the truth without error, always available.
     fn gps(&self, t_s: f64) -> Option<TruthState> {
         Some(self.state(t_s))
+    }
+    /// Scripted link faults at `t_s`. Default: none.
+    fn link_faults(&self, t_s: f64) -> LinkFaults {
+        let _ = t_s;
+        LinkFaults::default()
     }
 }
 
@@ -192,6 +211,8 @@ impl EmulatorConfig {
 pub struct Received {
     /// Emulator boot time at arrival, µs.
     pub t_boot_us: u64,
+    /// Emulator run time at arrival (not reset by a reboot), µs.
+    pub t_run_us: u64,
     /// Boot counter at arrival (0 before the first reboot).
     pub boot: u32,
     /// Sender header.
@@ -202,8 +223,16 @@ pub struct Received {
 
 #[derive(Debug)]
 struct EmuState {
+    /// When the emulator started (run time 0).
+    start: Instant,
     boot: Instant,
+    /// The boot before the current one.
+    previous_boot: Option<Instant>,
     boots: u32,
+    /// Reboots done for [`LinkFaults::reboots`].
+    fault_reboots: u32,
+    /// [`LinkFaults::silent`] now.
+    fault_silent: bool,
     intervals: HashMap<u32, (Duration, Instant)>,
     origin: Option<GPS_GLOBAL_ORIGIN_DATA>,
     received: Vec<Received>,
@@ -251,8 +280,12 @@ impl AutopilotEmulator {
         let inner = Arc::new(Inner {
             cfg,
             state: Mutex::new(EmuState {
+                start: Instant::now(),
                 boot: Instant::now(),
+                previous_boot: None,
                 boots: 0,
+                fault_reboots: 0,
+                fault_silent: false,
                 intervals: HashMap::new(),
                 origin: None,
                 received: Vec::new(),
@@ -276,15 +309,37 @@ impl AutopilotEmulator {
         lock(&self.inner.state).boot.elapsed().as_micros() as u64
     }
 
+    /// Run time now (since the emulator started; not reset by a reboot), µs.
+    pub fn time_run_us(&self) -> u64 {
+        lock(&self.inner.state).start.elapsed().as_micros() as u64
+    }
+
+    /// Boot time and run time now, µs (read together: a reboot cannot fall between them).
+    pub fn times_us(&self) -> (u64, u64) {
+        let st = lock(&self.inner.state);
+        (
+            st.boot.elapsed().as_micros() as u64,
+            st.start.elapsed().as_micros() as u64,
+        )
+    }
+
+    /// The run time of boot time `t_boot_us`, µs: of the current boot, or of the one before
+    /// when `t_boot_us` is later than the current boot's clock (a time stamped just before a
+    /// reboot).
+    pub fn run_us_of_boot_us(&self, t_boot_us: u64) -> u64 {
+        let st = lock(&self.inner.state);
+        let boot_start = if t_boot_us <= st.boot.elapsed().as_micros() as u64 {
+            st.boot
+        } else {
+            st.previous_boot.unwrap_or(st.boot)
+        };
+        (boot_start - st.start).as_micros() as u64 + t_boot_us
+    }
+
     /// Restart the boot clock at 0; forget stream intervals and the EKF origin (like a reboot).
     /// Like a real autopilot it is silent while it boots ([`BOOT_SILENCE`]).
     pub fn reboot(&self) {
-        let mut st = lock(&self.inner.state);
-        st.boot = Instant::now();
-        st.booting_until = Some(st.boot + BOOT_SILENCE);
-        st.boots += 1;
-        st.intervals.clear();
-        st.origin = None;
+        reboot(&mut lock(&self.inner.state));
     }
 
     /// Stop (true) or resume (false) sending anything, keeping the connection open (a hung
@@ -333,10 +388,19 @@ impl Drop for AutopilotEmulator {
 /// How long a rebooting autopilot says nothing (ArduPilot and PX4 take 1-3 s to boot).
 pub const BOOT_SILENCE: Duration = Duration::from_millis(1000);
 
+fn reboot(st: &mut EmuState) {
+    st.previous_boot = Some(st.boot);
+    st.boot = Instant::now();
+    st.booting_until = Some(st.boot + BOOT_SILENCE);
+    st.boots += 1;
+    st.intervals.clear();
+    st.origin = None;
+}
+
 async fn send(inner: &Inner, conn: &Conn, msg: &MavMessage) {
     {
         let st = lock(&inner.state);
-        if st.muted || st.booting_until.is_some_and(|t| Instant::now() < t) {
+        if st.muted || st.fault_silent || st.booting_until.is_some_and(|t| Instant::now() < t) {
             return;
         }
     }
@@ -382,13 +446,17 @@ async fn run(inner: Arc<Inner>) {
 
 #[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: still what ArduPilot acts on
 async fn handle(inner: &Inner, conn: &Conn, h: MavHeader, m: MavMessage) {
-    let (t_boot_us, boot) = {
+    let (t_boot_us, t_run_us, boot) = {
         let mut st = lock(&inner.state);
         *st.all_ids.entry(m.message_id()).or_default() += 1;
         if let MavMessage::HEARTBEAT(_) = &m {
             st.companion = u8::try_from(h.system_id).ok().map(|s| (s, h.component_id));
         }
-        (st.boot.elapsed().as_micros() as u64, st.boots)
+        (
+            st.boot.elapsed().as_micros() as u64,
+            st.start.elapsed().as_micros() as u64,
+            st.boots,
+        )
     };
     let record = matches!(
         m,
@@ -402,6 +470,7 @@ async fn handle(inner: &Inner, conn: &Conn, h: MavHeader, m: MavMessage) {
     if record {
         lock(&inner.state).received.push(Received {
             t_boot_us,
+            t_run_us,
             boot,
             header: h,
             msg: m.clone(),
@@ -497,9 +566,23 @@ fn isa_pressure_hpa(alt_m: f64) -> f64 {
     1013.25 * (1.0 - 2.255_77e-5 * alt_m).powf(5.255_88)
 }
 
-/// The telemetry message `id` at boot time `t_us`.
-fn telemetry(inner: &Inner, id: u32, t_us: u64) -> Option<MavMessage> {
-    let t_s = t_us as f64 * 1e-6;
+/// The emulator's clocks at one tick.
+#[derive(Debug, Clone, Copy)]
+struct Clocks {
+    /// Boot time, µs (what the messages carry).
+    boot_us: u64,
+    /// Run time minus boot time, µs (the truth's time is `boot_us + run_minus_boot_us`).
+    run_minus_boot_us: u64,
+    /// Added to the UTC of SYSTEM_TIME, µs.
+    utc_offset_us: i64,
+}
+
+/// The telemetry message `id` at the tick's clocks `c`.
+fn telemetry(inner: &Inner, id: u32, c: Clocks) -> Option<MavMessage> {
+    let t_us = c.boot_us;
+    // The truth's (run) time of a boot time.
+    let run_s = |boot_us: u64| (boot_us + c.run_minus_boot_us) as f64 * 1e-6;
+    let t_s = run_s(t_us);
     let s = inner.truth.state(t_s);
     let boot_ms = (t_us / 1000) as u32;
     // PX4: the newest sample of a 250 Hz IMU, shared by HIGHRES_IMU and SCALED_IMU.
@@ -510,7 +593,7 @@ fn telemetry(inner: &Inner, id: u32, t_us: u64) -> Option<MavMessage> {
             Some((k, g, a)) if k == slot => (slot * PX4_IMU_SLOT_US, g, a),
             _ => {
                 let t_slot_us = slot * PX4_IMU_SLOT_US;
-                let (g, a) = inner.truth.imu(t_slot_us as f64 * 1e-6);
+                let (g, a) = inner.truth.imu(run_s(t_slot_us));
                 *cache = Some((slot, g, a));
                 (t_slot_us, g, a)
             }
@@ -531,7 +614,10 @@ fn telemetry(inner: &Inner, id: u32, t_us: u64) -> Option<MavMessage> {
     };
     Some(match id {
         2 => MavMessage::SYSTEM_TIME(SYSTEM_TIME_DATA {
-            time_unix_usec: inner.cfg.unix_at_boot_us.map_or(0, |u| u + t_us),
+            time_unix_usec: inner
+                .cfg
+                .unix_at_boot_us
+                .map_or(0, |u| (u + t_us).saturating_add_signed(c.utc_offset_us)),
             time_boot_ms: boot_ms,
         }),
         24 | 124 => {
@@ -583,7 +669,7 @@ fn telemetry(inner: &Inner, id: u32, t_us: u64) -> Option<MavMessage> {
         }
         105 if inner.cfg.px4_imu => {
             let (t_sample_us, g, a) = px4_sample();
-            let (bg, ba) = inner.truth.autopilot_imu_bias(t_sample_us as f64 * 1e-6);
+            let (bg, ba) = inner.truth.autopilot_imu_bias(run_s(t_sample_us));
             MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
                 time_usec: t_sample_us,
                 xacc: (a[0] - ba[0]) as f32,
@@ -678,9 +764,22 @@ async fn tx_loop(inner: Arc<Inner>, conn: Arc<Conn>) {
             });
             send(&inner, &conn, &hb).await;
         }
-        let (due, t_us): (Vec<u32>, u64) = {
+        let (due, clocks): (Vec<u32>, Clocks) = {
             let mut st = lock(&inner.state);
+            let faults = inner
+                .truth
+                .link_faults(st.start.elapsed().as_micros() as f64 * 1e-6);
+            if faults.reboots > st.fault_reboots {
+                st.fault_reboots = faults.reboots;
+                reboot(&mut st);
+            }
+            st.fault_silent = faults.silent;
             let t_us = st.boot.elapsed().as_micros() as u64;
+            let clocks = Clocks {
+                boot_us: t_us,
+                run_minus_boot_us: (st.boot - st.start).as_micros() as u64,
+                utc_offset_us: faults.utc_offset_us,
+            };
             let mut due = Vec::new();
             for (id, (every, next)) in st.intervals.iter_mut() {
                 if now >= *next {
@@ -696,10 +795,10 @@ async fn tx_loop(inner: Arc<Inner>, conn: Arc<Conn>) {
             // which the daemon receives one instant's messages must not (lock-step runs are
             // reproducible).
             due.sort_unstable();
-            (due, t_us)
+            (due, clocks)
         };
         for id in due {
-            if let Some(m) = telemetry(&inner, id, t_us) {
+            if let Some(m) = telemetry(&inner, id, clocks) {
                 send(&inner, &conn, &m).await;
             }
         }

@@ -4,7 +4,9 @@
 //! truth sample used (the capture time a hardware trigger would log).
 //!
 //! Truth comes from a [`TruthFeed`]: the built-in simulator's trajectory (closed loop,
-//! `sitl::closed_loop`) or a real SITL's own state (ArduPilot SIMSTATE, PX4 SIM_STATE).
+//! `sitl::closed_loop`) or a real SITL's own state (ArduPilot SIMSTATE, PX4 SIM_STATE). The feed
+//! also scripts camera faults (`sitl::faults`): a stall delivers nothing, a freeze the last image
+//! again with a new stamp, a corrupt frame is torn ([`tear`]).
 //!
 //! Geometry: the truth's latitude/longitude are projected into the scene's CRS, its altitude AMSL
 //! is taken as the DEM's vertical datum (the bundled maps are AMSL), the attitude is relative to
@@ -17,6 +19,7 @@ use std::time::{Duration, Instant};
 use nalgebra::Vector3;
 
 use super::autopilot::TruthState;
+use super::faults::CameraFault;
 use super::render::{RenderPose, Renderer, Scene};
 use visnav_core::camera::{Attitude, Mount};
 use visnav_core::vision::GrayImage;
@@ -30,6 +33,10 @@ pub trait TruthFeed: Send + Sync {
     /// True when no more truth will come (the camera ends its stream).
     fn ended(&self) -> bool {
         false
+    }
+    /// A scripted camera fault now. Default: none.
+    fn camera_fault(&self) -> CameraFault {
+        CameraFault::None
     }
 }
 
@@ -60,6 +67,8 @@ pub struct SimCamera {
     next_at: Option<Instant>,
     t0_us: Option<u64>,
     last_t_us: Option<u64>,
+    /// The last image delivered (what a frozen camera repeats).
+    last_image: Option<GrayImage>,
 }
 
 impl SimCamera {
@@ -71,6 +80,7 @@ impl SimCamera {
             next_at: None,
             t0_us: None,
             last_t_us: None,
+            last_image: None,
         }
     }
 
@@ -86,15 +96,42 @@ impl SimCamera {
             return Ok(None);
         }
         match self.feed.latest() {
-            Some((t, s)) if self.last_t_us.is_none_or(|l| t > l) => self.render_frame(t, &s),
-            _ => Err(FrameError::Config(
-                "simulated camera: no new truth sample".into(),
-            )),
+            // A new sample (the stamp differs: an autopilot reboot restarts it from 0).
+            Some((t, s)) if self.last_t_us != Some(t) => self.render_frame(t, &s),
+            _ => Err(FrameError::NotReady),
         }
     }
 
-    /// Render the scene at truth state `state` (time `t_us`) into a frame.
+    /// The frame at truth state `state` (time `t_us`), with the feed's camera fault applied
+    /// (`NotReady` while the camera stalls).
     fn render_frame(&mut self, t_us: u64, state: &TruthState) -> Result<Option<Frame>, FrameError> {
+        let fault = self.feed.camera_fault();
+        let image = match (fault, &self.last_image) {
+            (CameraFault::Stall, _) => return Err(FrameError::NotReady),
+            (CameraFault::Freeze, Some(last)) => last.clone(),
+            _ => {
+                let mut image = self.render(state)?;
+                if fault == CameraFault::Corrupt {
+                    tear(&mut image, self.seq);
+                }
+                image
+            }
+        };
+        self.last_image = Some(image.clone());
+        let t0 = *self.t0_us.get_or_insert(t_us);
+        self.last_t_us = Some(t_us);
+        let frame = Frame {
+            image,
+            t_capture: CaptureTime::AutopilotBootUs(t_us),
+            t_rel_s: t_us.saturating_sub(t0) as f64 * 1e-6,
+            seq: self.seq,
+        };
+        self.seq += 1;
+        Ok(Some(frame))
+    }
+
+    /// Render the scene at truth state `state`.
+    fn render(&self, state: &TruthState) -> Result<GrayImage, FrameError> {
         let pose = self
             .pose_of(state)
             .map_err(|e| FrameError::Config(e.to_string()))?;
@@ -103,18 +140,30 @@ impl SimCamera {
             .renderer
             .render(&self.spec.scene, &pose, self.seq)
             .map_err(|e| FrameError::Config(format!("simulated camera: {e}")))?;
-        let image = GrayImage::new(f.width, f.height, f.grey())
-            .map_err(|e| FrameError::Config(format!("simulated camera: {e}")))?;
-        let t0 = *self.t0_us.get_or_insert(t_us);
-        self.last_t_us = Some(t_us);
-        let frame = Frame {
-            image,
-            t_capture: CaptureTime::AutopilotBootUs(t_us),
-            t_rel_s: (t_us - t0) as f64 * 1e-6,
-            seq: self.seq,
-        };
-        self.seq += 1;
-        Ok(Some(frame))
+        GrayImage::new(f.width, f.height, f.grey())
+            .map_err(|e| FrameError::Config(format!("simulated camera: {e}")))
+    }
+}
+
+/// Tear a frame as a corrupt transfer that still decodes does: from a row chosen by `seq`, a
+/// band of a fifth of the height is noise and every row below it is shifted sideways by a
+/// tenth of the width or more (wrapping). Seeded by `seq`: the same frame is torn the same way.
+pub fn tear(image: &mut GrayImage, seq: u64) {
+    let (w, h) = (image.width(), image.height());
+    let mut rng = visnav_core::rng::Rng::new(seq.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ 0x7ea2);
+    let band = (h / 5).max(1);
+    let start = rng.below(h.saturating_sub(band).max(1));
+    let shift = w / 10 + rng.below((w / 4).max(1));
+    let data = image.data_mut();
+    for y in start..h {
+        let row = &mut data[y * w..(y + 1) * w];
+        if y < start + band {
+            for v in row.iter_mut() {
+                *v = rng.range(0.0, 255.0) as f32;
+            }
+        } else {
+            row.rotate_right(shift % w);
+        }
     }
 }
 
@@ -154,6 +203,33 @@ impl FrameSource for SimCamera {
         if self.spec.lockstep {
             return self.lockstep_frame();
         }
+        loop {
+            match self.realtime_frame() {
+                // A stalled camera: nothing at this period; try at the next one.
+                Err(FrameError::NotReady) => continue,
+                r => return r,
+            }
+        }
+    }
+
+    fn describe(&self) -> String {
+        let c = self.spec.renderer.camera();
+        format!(
+            "simulated camera: {}x{} px at {} Hz, rendered at the true pose",
+            c.width_px(),
+            c.height_px(),
+            self.spec.rate_hz
+        )
+    }
+
+    fn rate_hz(&self) -> Option<f64> {
+        Some(self.spec.rate_hz)
+    }
+}
+
+impl SimCamera {
+    /// Real time: the next period's frame (`NotReady` while the camera stalls).
+    fn realtime_frame(&mut self) -> Result<Option<Frame>, FrameError> {
         let period = Duration::from_secs_f64(1.0 / self.spec.rate_hz.max(1e-3));
         // Pace: one frame per period of the companion's clock (the truth feed is real time).
         if let Some(at) = self.next_at {
@@ -169,7 +245,7 @@ impl FrameSource for SimCamera {
         let (t_us, state) = loop {
             let latest = self.feed.latest();
             match latest {
-                Some((t, s)) if self.last_t_us.is_none_or(|l| t > l) => break (t, s),
+                Some((t, s)) if self.last_t_us != Some(t) => break (t, s),
                 _ => {}
             }
             if self.feed.ended() {
@@ -184,21 +260,11 @@ impl FrameSource for SimCamera {
             std::thread::sleep(Duration::from_millis(2));
         };
         self.next_at = Some(self.next_at.map_or(Instant::now(), |a| a) + period);
-        self.render_frame(t_us, &state)
-    }
-
-    fn describe(&self) -> String {
-        let c = self.spec.renderer.camera();
-        format!(
-            "simulated camera: {}x{} px at {} Hz, rendered at the true pose",
-            c.width_px(),
-            c.height_px(),
-            self.spec.rate_hz
-        )
-    }
-
-    fn rate_hz(&self) -> Option<f64> {
-        Some(self.spec.rate_hz)
+        let r = self.render_frame(t_us, &state);
+        if matches!(r, Err(FrameError::NotReady)) {
+            self.last_t_us = Some(t_us);
+        }
+        r
     }
 }
 

@@ -4,8 +4,10 @@
 //! (GPS_INPUT / VISION_POSITION_ESTIMATE / ODOMETRY, as configured) are scored against the truth.
 //! A second emulator + daemon pair without a camera runs beside it as the no-vision control.
 //!
-//! Timeline: each emulator's boot clock is the scenario time (`t_s = 0` at its start); the
-//! trajectory, the IMU errors and the GPS outage follow it.
+//! Timeline: each emulator's run time is the scenario time (`t_s = 0` at its start; its boot
+//! clock, which the messages carry, equals it until a scripted reboot restarts it); the
+//! trajectory, the IMU errors, the GPS outage and the scripted faults (`[[faults]]`,
+//! `sitl::faults`) follow it. Fix capture times are mapped back from the boot clock.
 //!
 //! Clock (`[closed_loop] lockstep`, default true): in lock-step the caller runs [`run`] on a
 //! current-thread tokio runtime started paused (`visnav sim` does). Every timer of the emulators,
@@ -50,7 +52,11 @@
 //!   a round error ellipse the ratio is Rayleigh-distributed: median 1.18, above 3 for 1.1 % of
 //!   the time (e^{-4.5}); an elongated ellipse gives smaller ratios; `nav_sigma_h_m` /
 //!   `control_sigma_h_m`: that sigma itself (the accuracy each filter claims);
-//! * `latency_ms`: capture to fix result (autopilot clock).
+//! * `latency_ms`: capture to fix result (autopilot clock);
+//! * `faults` (with `[[faults]]`): per fault, the vision daemon's injections and fixes around it
+//!   (`sitl::faults::FaultOutcome`), and `fault_counters`: its reboot, relock, clock-step,
+//!   stale-message, IMU-timeout and frozen-frame counters, GPS_INPUT time steps back and
+//!   non-finite or foreign injections as the emulator received them.
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -62,8 +68,12 @@ use serde::Serialize;
 use tracing::{info, warn};
 
 use super::Scenario;
-use super::autopilot::{AutopilotEmulator, EmulatorConfig, TruthSource, TruthState};
+use super::autopilot::{AutopilotEmulator, EmulatorConfig, LinkFaults, TruthSource, TruthState};
 use super::camera_sim::{SimCamera, SimCameraSpec, TruthFeed};
+use super::faults::{
+    self, CameraFault, FaultCounters, FaultKind, FaultOutcome, FaultPlan, ScoredFix, ScoredOutput,
+    spoof_heartbeats,
+};
 use super::fixeval::{Stats, percentile};
 use super::imu::ImuErrors;
 use super::render::{ColourMode, Renderer, Scene};
@@ -263,6 +273,8 @@ pub struct SimSensors {
     gps_rng: Mutex<Rng>,
     /// Whether the GPS messages carry a (noisy) velocity (`[closed_loop] gps_velocity`).
     gps_velocity: bool,
+    /// The scenario's scripted faults.
+    faults: FaultPlan,
 }
 
 impl SimSensors {
@@ -303,6 +315,7 @@ impl SimSensors {
             gps: sc.gps.clone(),
             gps_rng: Mutex::new(Rng::new(sc.seed.wrapping_add(0x9e37_79b9))),
             gps_velocity: sc.closed_loop.as_ref().is_some_and(|c| c.gps_velocity),
+            faults: FaultPlan::new(sc.faults.clone()),
         }
     }
 
@@ -388,9 +401,18 @@ impl TruthSource for SensorsHandle {
         let f = Vector3::from(s.accel_body_m_s2) * dt_s;
         let (dth, dv) = errors.corrupt(rng, &w, &f, dt_s);
         let g = dth / dt_s;
-        let a = dv / dt_s;
+        let a = dv / dt_s + Vector3::from(self.0.faults.extra_accel_m_s2(t_s));
         st.last_gyro = Some([g.x, g.y, g.z]);
         ([g.x, g.y, g.z], [a.x, a.y, a.z])
+    }
+
+    fn link_faults(&self, t_s: f64) -> LinkFaults {
+        let f = &self.0.faults;
+        LinkFaults {
+            silent: f.link_silent(t_s),
+            reboots: f.reboots_by(t_s),
+            utc_offset_us: f.utc_offset_us(t_s),
+        }
     }
 
     fn attitude_rates(&self, t_s: f64) -> [f64; 3] {
@@ -422,6 +444,9 @@ impl TruthSource for SensorsHandle {
                 *v += g.sigma_vel_m_s * rng.normal();
             }
         }
+        let [dn, de] = self.0.faults.gps_offset_ne_m(t_s);
+        s.lat_deg += (dn / (m_m + s.alt_amsl_m)).to_degrees();
+        s.lon_deg += (de / ((n_m + s.alt_amsl_m) * s.lat_deg.to_radians().cos())).to_degrees();
         Some(s)
     }
 }
@@ -441,30 +466,37 @@ fn ned_diff_m(a: (f64, f64, f64), b: (f64, f64, f64)) -> [f64; 3] {
     ]
 }
 
-/// The camera's truth: the emulator's boot clock and the truth table.
+/// The camera's truth: the truth table at the emulator's run time, stamped with its boot
+/// time (what a trigger wired to the autopilot logs); the scenario's camera faults.
 struct EmuFeed {
     emu: Arc<AutopilotEmulator>,
     table: Arc<TruthTable>,
+    /// Run time window of the camera, µs.
     from_us: u64,
     until_us: u64,
+    faults: FaultPlan,
 }
 
 impl TruthFeed for EmuFeed {
     fn latest(&self) -> Option<(u64, TruthState)> {
-        let t = self.emu.time_boot_us();
-        (t >= self.from_us && t <= self.until_us).then(|| (t, self.table.at(t as f64 * 1e-6)))
+        let (boot, run) = self.emu.times_us();
+        (run >= self.from_us && run <= self.until_us)
+            .then(|| (boot, self.table.at(run as f64 * 1e-6)))
     }
     fn ended(&self) -> bool {
-        self.emu.time_boot_us() > self.until_us
+        self.emu.time_run_us() > self.until_us
+    }
+    fn camera_fault(&self) -> CameraFault {
+        self.faults.camera(self.emu.time_run_us() as f64 * 1e-6)
     }
 }
 
 /// One vision fix as the daemon's engine produced it.
 #[derive(Debug, Clone)]
 pub struct FixRecord {
-    /// Capture time (autopilot boot), µs.
+    /// Capture time (emulator run time: the truth's clock), µs.
     pub t_capture_us: u64,
-    /// When the result was ready (autopilot boot), µs.
+    /// When the result was ready (emulator run time), µs.
     pub t_done_us: u64,
     pub report: FixReport,
 }
@@ -481,9 +513,10 @@ struct RecordingFixer {
 impl FrameFixer for RecordingFixer {
     fn fix(&self, image: &GrayImage, prior: &FixPrior) -> FixReport {
         let report = self.inner.fix(image, prior);
+        // The prior's capture time is on the autopilot's boot clock.
         let rec = FixRecord {
-            t_capture_us: prior.t_capture_us,
-            t_done_us: self.emu.time_boot_us() + self.delivery_us,
+            t_capture_us: self.emu.run_us_of_boot_us(prior.t_capture_us),
+            t_done_us: self.emu.time_run_us() + self.delivery_us,
             report: report.clone(),
         };
         self.log.lock().unwrap_or_else(|e| e.into_inner()).push(rec);
@@ -608,6 +641,12 @@ pub struct ClosedLoopSummary {
     pub nav_err_by_message: std::collections::BTreeMap<String, (usize, Stats)>,
     pub control_injections: usize,
     pub rejections: Vec<(String, usize)>,
+    /// What the vision daemon did around each scripted fault (`[[faults]]`).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub faults: Vec<FaultOutcome>,
+    /// Its counters at the end of a run with scripted faults.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fault_counters: Option<FaultCounters>,
     pub vision_final_health: String,
     pub control_final_health: String,
     /// Soak figures (runs of at least twice [`SOAK_WINDOW_S`] in the window): accepted fixes
@@ -735,8 +774,8 @@ fn sigma_h_m(cov: &[[f64; 3]; 3]) -> f64 {
 }
 
 /// A filter output's velocity against the truth at the output's time, NED, m/s.
-fn output_vel_error(out: &NavOutput, table: &TruthTable) -> [f64; 3] {
-    let v = table.at(out.t_us as f64 * 1e-6).vel_ned_m_s;
+fn output_vel_error(out: &NavOutput, table: &TruthTable, emu: &AutopilotEmulator) -> [f64; 3] {
+    let v = table.at(run_s_of(out, emu)).vel_ned_m_s;
     [
         out.v_ned_m_s[0] - v[0],
         out.v_ned_m_s[1] - v[1],
@@ -744,9 +783,14 @@ fn output_vel_error(out: &NavOutput, table: &TruthTable) -> [f64; 3] {
     ]
 }
 
+/// The run time of an output (its time is on the autopilot's boot clock), s.
+fn run_s_of(out: &NavOutput, emu: &AutopilotEmulator) -> f64 {
+    emu.run_us_of_boot_us(out.t_us) as f64 * 1e-6
+}
+
 /// The vision + control daemons' output sampled against the truth.
-fn output_error(out: &NavOutput, table: &TruthTable) -> [f64; 3] {
-    let t = out.t_us as f64 * 1e-6;
+fn output_error(out: &NavOutput, table: &TruthTable, emu: &AutopilotEmulator) -> [f64; 3] {
+    let t = run_s_of(out, emu);
     let s = table.at(t);
     ned_diff_m(
         (s.lat_deg, s.lon_deg, table.h_ellip_m(t)),
@@ -756,12 +800,16 @@ fn output_error(out: &NavOutput, table: &TruthTable) -> [f64; 3] {
 
 /// A filter output as a step row's columns: lat, lon, NED error, horizontal sigma, health (NaN
 /// and "uninitialised" before the first output).
-fn sample_output(o: Option<&NavOutput>, table: &TruthTable) -> (f64, f64, [f64; 3], f64, String) {
+fn sample_output(
+    o: Option<&NavOutput>,
+    table: &TruthTable,
+    emu: &AutopilotEmulator,
+) -> (f64, f64, [f64; 3], f64, String) {
     match o {
         Some(o) => (
             o.lat_deg,
             o.lon_deg,
-            output_error(o, table),
+            output_error(o, table, emu),
             sigma_h_m(&o.cov_pos_ned_m2),
             format!("{:?}", o.health).to_lowercase(),
         ),
@@ -950,6 +998,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             table: table.clone(),
             from_us: (cl.camera_from_s * 1e6) as u64,
             until_us: end_us,
+            faults: FaultPlan::new(sc.faults.clone()),
         }),
     );
     let camera_desc = {
@@ -970,6 +1019,18 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         Some(_) => Some(Daemon::start_with(mk_setup(port_c), None, None).await?),
         None => None,
     };
+    let plan = FaultPlan::new(sc.faults.clone());
+    let _spoofer = plan.has(FaultKind::SpoofedHeartbeat).then(|| {
+        let emu = emu_v.clone();
+        let to = std::net::SocketAddr::from(([127, 0, 0, 1], port_v));
+        AbortOnDrop(tokio::spawn(async move {
+            if let Err(e) =
+                spoof_heartbeats(to, plan, move || emu.time_run_us() as f64 * 1e-6).await
+            {
+                warn!("scripted spoofer: {e}");
+            }
+        }))
+    });
     info!(
         "closed loop running: {duration_s:.0} s of scenario time ({}), vision on udp {port_v}, control on udp {port_c}",
         if cl.lockstep {
@@ -988,7 +1049,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     let mut rss_after_first_window = None;
     loop {
         tick.tick().await;
-        let t_s = emu_v.time_boot_us() as f64 * 1e-6;
+        let t_s = emu_v.time_run_us() as f64 * 1e-6;
         if rss_after_first_window.is_none() && t_s >= sc.evaluation.from_s + SOAK_WINDOW_S {
             rss_after_first_window = rss_mb();
         }
@@ -998,10 +1059,12 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         let s = table.at(t_s);
         let ov = out_v.borrow().clone();
         let oc = out_c.as_ref().and_then(|o| o.borrow().clone());
-        let (vlat, vlon, verr, vsig, vh) = sample_output(ov.as_ref(), &table);
-        let (clat, clon, cerr, csig, ch) = sample_output(oc.as_ref(), &table);
-        let vel_err =
-            |o: Option<&NavOutput>| o.map_or([f64::NAN; 3], |o| output_vel_error(o, &table));
+        let (vlat, vlon, verr, vsig, vh) = sample_output(ov.as_ref(), &table, &emu_v);
+        let emu_ctl = emu_c.as_deref().unwrap_or(&emu_v);
+        let (clat, clon, cerr, csig, ch) = sample_output(oc.as_ref(), &table, emu_ctl);
+        let vel_err = |o: Option<&NavOutput>, emu: &AutopilotEmulator| {
+            o.map_or([f64::NAN; 3], |o| output_vel_error(o, &table, emu))
+        };
         if t_s - last_log_s >= 10.0 {
             last_log_s = t_s;
             info!(
@@ -1028,11 +1091,12 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             ctl_err_ned_m: cerr,
             ctl_sigma_h_m: csig,
             ctl_health: ch,
-            vis_vel_err_ned_m_s: vel_err(ov.as_ref()),
-            ctl_vel_err_ned_m_s: vel_err(oc.as_ref()),
+            vis_vel_err_ned_m_s: vel_err(ov.as_ref(), &emu_v),
+            ctl_vel_err_ned_m_s: vel_err(oc.as_ref(), emu_ctl),
         });
     }
     let rss_after_first = rss_after_first_window;
+    let link_v = d_v.link().metrics();
     let metrics_v = d_v.shutdown().await;
     if let Some(d) = d_c {
         d.shutdown().await;
@@ -1200,6 +1264,9 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             .flatten(),
         rss_mb_after_first_window: rss_after_first,
         rss_mb_end: rss_mb(),
+        faults: fault_outcomes(sc, &injections, scored_kind, &fixes),
+        fault_counters: (!sc.faults.is_empty())
+            .then(|| fault_counters(&emu_v, &metrics_v, &link_v)),
         vision_final_health: steps
             .last()
             .map(|s| s.vis_health.clone())
@@ -1224,6 +1291,117 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     })
 }
 
+/// Score the scripted faults on the vision daemon's injections of the scored kind and its fixes.
+fn fault_outcomes(
+    sc: &Scenario,
+    injections: &[InjectionRow],
+    scored_kind: &str,
+    fixes: &[FixRow],
+) -> Vec<FaultOutcome> {
+    if sc.faults.is_empty() {
+        return Vec::new();
+    }
+    let outputs: Vec<ScoredOutput> = injections
+        .iter()
+        .filter(|i| !i.control && i.kind == scored_kind)
+        .map(|i| ScoredOutput {
+            t_s: i.t_s,
+            err_h_m: hnorm(&i.err_ned_m),
+            claimed_h_m: i.horiz_accuracy_m,
+        })
+        .collect();
+    let fixes: Vec<ScoredFix> = fixes
+        .iter()
+        .map(|f| ScoredFix {
+            t_capture_s: f.t_capture_s,
+            accepted: f.accepted,
+            beyond_3sigma: f.beyond_3sigma,
+        })
+        .collect();
+    faults::outcomes(
+        &FaultPlan::new(sc.faults.clone()),
+        &outputs,
+        &fixes,
+        sc.duration_s(),
+    )
+}
+
+/// The vision daemon's counters that the fault table names, and what the emulator received.
+fn fault_counters(
+    emu: &AutopilotEmulator,
+    m: &visnav_daemon::metrics::MetricsSnapshot,
+    link: &visnav_link::metrics::Metrics,
+) -> FaultCounters {
+    use std::sync::atomic::Ordering::Relaxed;
+    let received = emu.received();
+    let companion = emu.companion();
+    let mut last_gps_us = None;
+    let mut backsteps = 0;
+    let mut non_finite = 0;
+    for r in &received {
+        let finite = match &r.msg {
+            MavMessage::GPS_INPUT(g) => {
+                if last_gps_us.is_some_and(|l| g.time_usec < l) {
+                    backsteps += 1;
+                }
+                last_gps_us = Some(g.time_usec);
+                [
+                    g.hdop,
+                    g.vdop,
+                    g.vn,
+                    g.ve,
+                    g.vd,
+                    g.horiz_accuracy,
+                    g.vert_accuracy,
+                ]
+                .iter()
+                .all(|v| v.is_finite())
+            }
+            MavMessage::VISION_POSITION_ESTIMATE(v) => [v.x, v.y, v.z, v.roll, v.pitch, v.yaw]
+                .iter()
+                .chain(v.covariance.iter().take(1))
+                .all(|v| v.is_finite()),
+            MavMessage::ODOMETRY(o) => [o.x, o.y, o.z, o.vx, o.vy, o.vz]
+                .iter()
+                .all(|v| v.is_finite()),
+            _ => true,
+        };
+        if !finite {
+            non_finite += 1;
+        }
+    }
+    FaultCounters {
+        autopilot_reboots: m.autopilot_reboots,
+        relocks: link.relocks.load(Relaxed),
+        utc_steps: link.utc_steps.load(Relaxed),
+        rx_stale: link.rx_stale.load(Relaxed),
+        imu_timeouts: m.imu_timeouts,
+        frames_frozen: m.frames_frozen,
+        gps_input_time_backsteps: backsteps,
+        non_finite_injections: non_finite,
+        foreign_injections: received
+            .iter()
+            .filter(|r| {
+                matches!(
+                    r.msg,
+                    MavMessage::GPS_INPUT(_)
+                        | MavMessage::VISION_POSITION_ESTIMATE(_)
+                        | MavMessage::ODOMETRY(_)
+                ) && companion.is_some_and(|(sys, _)| u32::from(sys) != r.header.system_id)
+            })
+            .count(),
+    }
+}
+
+/// Aborts its task when dropped.
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
 /// Every position injection the emulator received (GPS_INPUT with a 3D fix,
 /// VISION_POSITION_ESTIMATE, ODOMETRY), scored against the truth at its arrival. Local positions
 /// (VISION_POSITION_ESTIMATE, ODOMETRY: NED about the EKF origin) are compared in that frame with
@@ -1238,7 +1416,7 @@ fn collect_injections(
     let mut origin: Option<GeoOrigin> = None;
     let mut rows = Vec::new();
     for r in emu.received() {
-        let t = r.t_boot_us as f64 * 1e-6;
+        let t = r.t_run_us as f64 * 1e-6;
         let s = table.at(t);
         #[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: what ArduPilot acts on
         let local = match &r.msg {

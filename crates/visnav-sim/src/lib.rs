@@ -14,6 +14,7 @@
 //! * [`real_sitl`]: truth (SIMSTATE/SIM_STATE, HIL_STATE_QUATERNION) from a real ArduPilot/PX4
 //!   SITL as a [`camera_sim::TruthFeed`].
 //! * [`camera_sim`]: the simulated camera as a frame source, rendering at the truth pose.
+//! * [`faults`]: scripted fault events of a closed-loop scenario and their scoring.
 //! * [`closed_loop`]: `visnav sim`'s closed loop (emulator + daemon + camera) and its scoring;
 //!   [`report`] writes its report folder.
 //! * [`plot`]: PNG charts and map track plots for the report folder (built-in bitmap font).
@@ -25,6 +26,7 @@
 pub mod autopilot;
 pub mod camera_sim;
 pub mod closed_loop;
+pub mod faults;
 pub mod fixeval;
 pub mod imu;
 pub mod plot;

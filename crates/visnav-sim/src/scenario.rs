@@ -446,6 +446,9 @@ pub struct Scenario {
     /// Closed-loop settings (`visnav sim` runs the closed loop when present).
     #[serde(default)]
     pub closed_loop: Option<ClosedLoopConfig>,
+    /// Scripted fault events of the closed loop (`sitl::faults`).
+    #[serde(default)]
+    pub faults: Vec<crate::faults::FaultConfig>,
 }
 
 impl Scenario {
@@ -722,6 +725,12 @@ impl Validate for Scenario {
             );
         }
         p.section("nav", |p| self.nav.validate(p));
+        if !self.faults.is_empty() && self.closed_loop.is_none() {
+            p.push("faults", "scripted faults need a [closed_loop] section");
+        }
+        for (i, f) in self.faults.iter().enumerate() {
+            p.section(&format!("faults[{i}]"), |p| f.validate(p, dur));
+        }
         if let Some(c) = &self.closed_loop {
             p.section("closed_loop", |p| {
                 p.range("camera_rate_hz", c.camera_rate_hz, 0.05, 30.0);

@@ -17,6 +17,15 @@ pub const DEG_H_TO_RAD_S: f64 = std::f64::consts::PI / 180.0 / 3600.0;
 /// micro-g -> m/s^2.
 pub const UG_TO_M_S2: f64 = 1e-6 * G0_M_S2;
 
+/// Default longest IMU gap bridged, s: a link glitch or a stalled stream of seconds; beyond
+/// 10 s of unseen manoeuvres the position sigma (about 0.6 sigma_a t^2: 170 m) is a restart's.
+pub const DEFAULT_MAX_IMU_BRIDGE_S: f64 = 10.0;
+/// Default change of specific force in a bridged gap, m/s^2 (1 sigma): 0.3 g covers a fixed
+/// wing's turn entry and a multirotor's braking at 3 sigma.
+pub const DEFAULT_BRIDGE_ACCEL_SIGMA_M_S2: f64 = 3.0;
+/// Default change of angular rate in a bridged gap, deg/s (1 sigma): a turn started or ended.
+pub const DEFAULT_BRIDGE_GYRO_SIGMA_DEG_S: f64 = 5.0;
+
 /// IMU error model in datasheet units (1-sigma values).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -425,8 +434,17 @@ pub struct NavConfig {
     pub attitude_sigma_tilt_deg: f64,
     /// Autopilot attitude measurement noise, yaw, deg (1 sigma).
     pub attitude_sigma_yaw_deg: f64,
-    /// Largest accepted gap between IMU samples; larger gaps reset the filter, s.
+    /// Largest gap between IMU samples propagated as one step, s. Longer gaps up to
+    /// `max_imu_bridge_s` are bridged (the filter's module doc, "IMU gaps"); longer ones reset
+    /// the filter.
     pub max_imu_gap_s: f64,
+    /// Longest IMU gap bridged (a silent link, a stalled stream), s; 0 = never bridge.
+    pub max_imu_bridge_s: f64,
+    /// What the vehicle's specific force can change by, unseen, during a bridged gap
+    /// (1 sigma, m/s^2): its manoeuvres, not the sensor's range.
+    pub imu_bridge_accel_sigma_m_s2: f64,
+    /// The same for its angular rate, deg/s (1 sigma).
+    pub imu_bridge_gyro_sigma_deg_s: f64,
     /// Correlation time of the vision fixes' errors, s (0 = independent fixes). Consecutive
     /// frames see the same ground against the same map, so their errors (changed ground between
     /// the map's and the camera's year, a weak geometry) persist for seconds; fused as if
@@ -496,6 +514,9 @@ impl Default for NavConfig {
             attitude_sigma_tilt_deg: 1.0,
             attitude_sigma_yaw_deg: 3.0,
             max_imu_gap_s: 0.1,
+            max_imu_bridge_s: DEFAULT_MAX_IMU_BRIDGE_S,
+            imu_bridge_accel_sigma_m_s2: DEFAULT_BRIDGE_ACCEL_SIGMA_M_S2,
+            imu_bridge_gyro_sigma_deg_s: DEFAULT_BRIDGE_GYRO_SIGMA_DEG_S,
             vision_error_corr_time_s: 0.0,
             vision_attitude: false,
             vision_prior_dependence: false,
@@ -561,6 +582,19 @@ impl Validate for NavConfig {
             180.0,
         );
         p.range("max_imu_gap_s", self.max_imu_gap_s, 0.001, 10.0);
+        p.range("max_imu_bridge_s", self.max_imu_bridge_s, 0.0, 60.0);
+        p.range(
+            "imu_bridge_accel_sigma_m_s2",
+            self.imu_bridge_accel_sigma_m_s2,
+            0.01,
+            100.0,
+        );
+        p.range(
+            "imu_bridge_gyro_sigma_deg_s",
+            self.imu_bridge_gyro_sigma_deg_s,
+            0.01,
+            500.0,
+        );
         p.range(
             "vision_bias_sigma_h_m",
             self.vision_bias_sigma_h_m,

@@ -67,6 +67,16 @@
 //! interval, and the replaced sensor gets a gap sigma of its full range times the interval
 //! (isotropic, added like a bridged gap), so the covariance says what the filter no longer knows
 //! and the next fixes pull it back.
+//!
+//! IMU gaps: a gap longer than `nav.max_imu_gap_s` (the link fell silent, the stream stalled)
+//! and at most `nav.max_imu_bridge_s` is bridged instead of restarting the filter: the gap's
+//! sample (the daemon's trapezoid of the rates on either side) is propagated in `N` sub-steps of
+//! at most `max_imu_gap_s`, each with gap sigmas of `sigma * dt_i * sqrt(N)` for the vehicle's
+//! unseen manoeuvres (`nav.imu_bridge_accel_sigma_m_s2`, `imu_bridge_gyro_sigma_deg_s`): a
+//! change of rate held through the gap is one error, not `N` independent ones, and these
+//! sigmas give the velocity `sigma_a t` and the position `sigma_a t^2 / sqrt 3` (the held
+//! error's `t^2 / 2`, slightly conservative). The filter keeps its solution, with the covariance
+//! of what it did not see; the next fixes find the aircraft inside it. Counted in `imu_bridged`.
 
 use super::config::DragMode;
 use super::config::NavConfig;
@@ -163,6 +173,8 @@ pub struct Counters {
     /// IMU samples at or beyond the sensor's range (clipped or impossible), replaced by the last
     /// good sample with the range's uncertainty.
     pub imu_clipped: u64,
+    /// IMU gaps bridged (module doc, "IMU gaps").
+    pub imu_bridged: u64,
     /// Delayed measurements applied by re-propagation.
     pub replays: u64,
 }
@@ -554,16 +566,44 @@ impl NavFilter {
         let dt = dt_s(last, s.t_us);
         if dt > self.cfg.max_imu_gap_s {
             if self.core.is_some() {
+                if dt <= self.cfg.max_imu_bridge_s {
+                    self.bridge(s, last, dt);
+                    return self.output_if_due(s.t_us);
+                }
                 self.hard_reset(s.t_us, format!("IMU gap of {dt:.3} s"));
             }
             return None;
         }
         let s = &self.within_range(s, dt);
-        let core = self.core.as_mut()?;
+        if !self.step(s) {
+            return None;
+        }
+        if let Some(d) = self.drag_sample(s, dt) {
+            self.measure(Measurement::Drag(d));
+        }
+        self.output_if_due(s.t_us)
+    }
+
+    /// An output record when one is due at `t_us` at the configured rate.
+    fn output_if_due(&mut self, t_us: u64) -> Option<NavOutput> {
+        let period_us = (1e6 / self.cfg.output_rate_hz).round().max(1.0) as u64;
+        let due = self.next_output_t_us.unwrap_or(t_us);
+        if t_us >= due {
+            self.next_output_t_us = Some(due.max(t_us.saturating_sub(period_us)) + period_us);
+            return self.output();
+        }
+        None
+    }
+
+    /// Propagate one (checked) sample and record its epoch; false after a hard reset.
+    fn step(&mut self, s: &ImuSample) -> bool {
+        let Some(core) = self.core.as_mut() else {
+            return false;
+        };
         core.propagate(&self.par, s);
         if !core.ins.state.is_finite() || !core.p.iter().all(|x| x.is_finite()) {
             self.hard_reset(s.t_us, "non-finite state after propagation".into());
-            return None;
+            return false;
         }
         let pre = core.clone();
         self.history.push_back(Epoch {
@@ -580,16 +620,40 @@ impl NavFilter {
         {
             self.history.pop_front();
         }
-        if let Some(d) = self.drag_sample(s, dt) {
-            self.measure(Measurement::Drag(d));
+        true
+    }
+
+    /// Bridge an IMU gap of `dt` s from `last_us` to the sample `s` (module doc, "IMU gaps").
+    fn bridge(&mut self, s: &ImuSample, last_us: u64, dt: f64) {
+        self.counters.imu_bridged += 1;
+        tracing::warn!(
+            "IMU gap of {dt:.3} s bridged (nav.max_imu_bridge_s = {}): the solution's covariance \
+             grows by what the vehicle may have done unseen",
+            self.cfg.max_imu_bridge_s
+        );
+        let avg = self.within_range(s, dt);
+        let (w, f) = (avg.dtheta_rad_body_frd / dt, avg.dv_m_s_body_frd / dt);
+        let n = (dt / self.cfg.max_imu_gap_s).ceil().max(1.0) as u64;
+        let sqrt_n = (n as f64).sqrt();
+        let sigma_a = self.cfg.imu_bridge_accel_sigma_m_s2;
+        let sigma_w = self.cfg.imu_bridge_gyro_sigma_deg_s.to_radians();
+        let span_us = s.t_us - last_us;
+        let mut t_prev = last_us;
+        for i in 1..=n {
+            let t_i = last_us + span_us * i / n;
+            let dt_i = dt_s(t_prev, t_i);
+            t_prev = t_i;
+            // The sample's own gap sigma (spread over the gap like the bridge's) and the
+            // unseen manoeuvres, independent.
+            let share = dt_i / dt * sqrt_n;
+            let mut sub = ImuSample::from_rates(t_i, w, f, dt_i);
+            sub.gap_sigma_dtheta_rad =
+                (avg.gap_sigma_dtheta_rad * share).hypot(sigma_w * dt_i * sqrt_n);
+            sub.gap_sigma_dv_m_s = (avg.gap_sigma_dv_m_s * share).hypot(sigma_a * dt_i * sqrt_n);
+            if !self.step(&sub) {
+                return;
+            }
         }
-        let period_us = (1e6 / self.cfg.output_rate_hz).round().max(1.0) as u64;
-        let due = self.next_output_t_us.unwrap_or(s.t_us);
-        if s.t_us >= due {
-            self.next_output_t_us = Some(due.max(s.t_us.saturating_sub(period_us)) + period_us);
-            return self.output();
-        }
-        None
     }
 
     /// The sample, or (when any axis is at or beyond the sensor's range: clipped, or an

@@ -43,6 +43,11 @@ enum Command {
     SitlRun(cli::sitl_run::SitlRunArgs),
 }
 
+/// Counts the heap in use (`visnav_daemon::heap`): the soak's memory figures and
+/// `visnav_heap_bytes`.
+#[global_allocator]
+static ALLOC: visnav_daemon::heap::CountingAlloc = visnav_daemon::heap::CountingAlloc;
+
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
     cli::init_logging(args.verbose);

@@ -50,7 +50,14 @@ fn the_lockstep_demo_gives_the_same_numbers_twice() {
     // The process's own measurements (the report folder, its memory) are not the simulation's.
     for v in [&mut a, &mut b] {
         let o = v.as_object_mut().expect("object");
-        for k in ["report_dir", "rss_mb_after_first_window", "rss_mb_end"] {
+        for k in [
+            "report_dir",
+            "rss_mb_after_first_window",
+            "rss_mb_end",
+            "heap_mb_after_first_window",
+            "heap_mb_end",
+            "heap_growth_mb_without_recordings",
+        ] {
             o.remove(k);
         }
     }

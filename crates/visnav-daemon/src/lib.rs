@@ -27,6 +27,7 @@ pub mod config;
 pub mod fix_config;
 pub mod fixlog;
 pub mod frames;
+pub mod heap;
 pub mod imu_bias;
 pub mod inputs;
 pub mod metrics;

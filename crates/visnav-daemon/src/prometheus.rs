@@ -113,6 +113,14 @@ pub fn render(d: &MetricsSnapshot, link: &LinkMetrics) -> String {
         1.0,
     );
 
+    if let Some(b) = crate::heap::heap_in_use_bytes() {
+        w.single(
+            "visnav_heap_bytes",
+            "gauge",
+            "bytes allocated on the heap and not freed (the process's own count)",
+            b as f64,
+        );
+    }
     // Navigation.
     w.family(
         "visnav_nav_health",

@@ -353,6 +353,11 @@ impl AutopilotEmulator {
         lock(&self.inner.state).received.clone()
     }
 
+    /// Bytes held by the recording of [`Self::received`] (its buffer).
+    pub fn recorded_bytes(&self) -> usize {
+        lock(&self.inner.state).received.capacity() * std::mem::size_of::<Received>()
+    }
+
     /// Count of messages received per message id (everything, not only recorded ones).
     pub fn received_counts(&self) -> HashMap<u32, u64> {
         lock(&self.inner.state).all_ids.clone()

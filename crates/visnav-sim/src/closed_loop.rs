@@ -83,6 +83,7 @@ use visnav_core::nav::NavOutput;
 use visnav_core::rng::Rng;
 use visnav_core::vision::GrayImage;
 use visnav_daemon::app_config::Config;
+use visnav_daemon::heap::heap_in_use_bytes;
 use visnav_daemon::{Daemon, DaemonSetup, FrameFixer, FramePipeline};
 use visnav_io::geo::GeoError;
 use visnav_io::geo::dem::Dem;
@@ -658,6 +659,14 @@ pub struct ClosedLoopSummary {
     /// `/proc/self/statm`; None elsewhere).
     pub rss_mb_after_first_window: Option<f64>,
     pub rss_mb_end: Option<f64>,
+    /// The heap in use at the same instants (`visnav_daemon::heap`: what was allocated and not
+    /// freed), total and the simulator's recordings in it (steps, fix reports, the emulators'
+    /// received messages: their buffers and strings), MB.
+    pub heap_mb_after_first_window: Option<HeapSample>,
+    pub heap_mb_end: Option<HeapSample>,
+    /// Growth of the heap without the recordings over the soak (both daemons, both emulators,
+    /// the camera; everything but what the simulator keeps to score the run), MB.
+    pub heap_growth_mb_without_recordings: Option<f64>,
     pub report_dir: Option<String>,
 }
 
@@ -669,6 +678,48 @@ fn rss_mb() -> Option<f64> {
     let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
     let pages: f64 = statm.split_whitespace().nth(1)?.parse().ok()?;
     Some(pages * 4096.0 / 1e6)
+}
+
+/// The heap in use and the simulator's recordings in it, MB.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct HeapSample {
+    pub total_mb: f64,
+    pub recordings_mb: f64,
+}
+
+impl HeapSample {
+    fn new(total_bytes: usize, recorded_bytes: usize) -> Self {
+        Self {
+            total_mb: total_bytes as f64 / 1e6,
+            recordings_mb: recorded_bytes as f64 / 1e6,
+        }
+    }
+}
+
+/// Bytes the simulator's recordings hold: the 10 Hz steps (buffer of `steps_cap` rows and their
+/// strings), the fix log (buffer and reasons), the emulators' received messages.
+fn recorded_bytes(
+    steps: &[StepRow],
+    steps_cap: usize,
+    fixes: &Mutex<Vec<FixRecord>>,
+    emus: [Option<&Arc<AutopilotEmulator>>; 2],
+) -> usize {
+    let strings: usize = steps
+        .iter()
+        .map(|s| s.vis_health.capacity() + s.ctl_health.capacity())
+        .sum();
+    let fix_bytes = fixes.lock().map_or(0, |l| {
+        l.capacity() * std::mem::size_of::<FixRecord>()
+            + l.iter().map(|f| f.report.reason.capacity()).sum::<usize>()
+    });
+    steps_cap * std::mem::size_of::<StepRow>()
+        + strings
+        + fix_bytes
+        + emus
+            .iter()
+            .flatten()
+            .map(|e| e.recorded_bytes())
+            .sum::<usize>()
 }
 
 /// Accepted over attempted fixes captured in `[from_s, until_s)`.
@@ -1047,11 +1098,17 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     let mut tick = tokio::time::interval(Duration::from_millis(100));
     let mut last_log_s = 0.0;
     let mut rss_after_first_window = None;
+    let mut heap_after_first_window = None;
+    let recorded = |steps: &[StepRow], steps_cap: usize| {
+        recorded_bytes(steps, steps_cap, &fixer.log, [Some(&emu_v), emu_c.as_ref()])
+    };
     loop {
         tick.tick().await;
         let t_s = emu_v.time_run_us() as f64 * 1e-6;
         if rss_after_first_window.is_none() && t_s >= sc.evaluation.from_s + SOAK_WINDOW_S {
             rss_after_first_window = rss_mb();
+            heap_after_first_window =
+                heap_in_use_bytes().map(|h| HeapSample::new(h, recorded(&steps, steps.capacity())));
         }
         if t_s > duration_s {
             break;
@@ -1096,6 +1153,8 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         });
     }
     let rss_after_first = rss_after_first_window;
+    let heap_end =
+        heap_in_use_bytes().map(|h| HeapSample::new(h, recorded(&steps, steps.capacity())));
     let link_v = d_v.link().metrics();
     let metrics_v = d_v.shutdown().await;
     if let Some(d) = d_c {
@@ -1264,6 +1323,11 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             .flatten(),
         rss_mb_after_first_window: rss_after_first,
         rss_mb_end: rss_mb(),
+        heap_mb_after_first_window: heap_after_first_window,
+        heap_mb_end: heap_end,
+        heap_growth_mb_without_recordings: heap_after_first_window
+            .zip(heap_end)
+            .map(|(a, b)| (b.total_mb - b.recordings_mb) - (a.total_mb - a.recordings_mb)),
         faults: fault_outcomes(sc, &injections, scored_kind, &fixes),
         fault_counters: (!sc.faults.is_empty())
             .then(|| fault_counters(&emu_v, &metrics_v, &link_v)),

@@ -245,9 +245,9 @@ async fn autopilot_reboot_restarts_the_filter_and_injection_resumes() {
         d.metrics().autopilot_reboots >= 1
     })
     .await;
-    // The emulator's truth restarts with its clock (the vehicle "jumps" back to the start), so
-    // only estimates made after the restart are compared with it: wait for injection on the
-    // new boot clock, then measure over 2 s.
+    // The emulator's truth runs on its run time (a reboot restarts only the boot clock the
+    // messages carry): wait for injection on the new boot clock, then compare five injections
+    // with the truth at their arrival.
     wait_until(15.0, "GPS_INPUT after the reboot", || {
         emu.received()
             .iter()
@@ -263,7 +263,7 @@ async fn autopilot_reboot_restarts_the_filter_and_injection_resumes() {
             .into_iter()
             .filter(|r| r.boot == 1 && r.t_boot_us >= t0)
             .filter_map(|r| match r.msg {
-                MavMessage::GPS_INPUT(g) => Some((r.t_boot_us, g)),
+                MavMessage::GPS_INPUT(g) => Some((r.t_run_us, g)),
                 _ => None,
             })
             .collect()
@@ -278,7 +278,7 @@ async fn autopilot_reboot_restarts_the_filter_and_injection_resumes() {
     eprintln!(
         "after reboot: {} GPS_INPUT over {:.1} s, max error {err:.2} m; {m:?}",
         after.len(),
-        after.last().map_or(0, |(t, _)| *t).saturating_sub(t0) as f64 / 1e6
+        after.last().map_or(0, |(t, _)| *t).saturating_sub(emu.run_us_of_boot_us(t0)) as f64 / 1e6
     );
     assert!(err < 5.0, "{err}");
     assert_eq!(m.autopilot_reboots, 1);

@@ -278,7 +278,11 @@ async fn autopilot_reboot_restarts_the_filter_and_injection_resumes() {
     eprintln!(
         "after reboot: {} GPS_INPUT over {:.1} s, max error {err:.2} m; {m:?}",
         after.len(),
-        after.last().map_or(0, |(t, _)| *t).saturating_sub(emu.run_us_of_boot_us(t0)) as f64 / 1e6
+        after
+            .last()
+            .map_or(0, |(t, _)| *t)
+            .saturating_sub(emu.run_us_of_boot_us(t0)) as f64
+            / 1e6
     );
     assert!(err < 5.0, "{err}");
     assert_eq!(m.autopilot_reboots, 1);

@@ -640,6 +640,11 @@ impl OutputBook {
         self.outs.clear();
     }
 
+    /// The newest output.
+    pub fn last(&self) -> Option<&NavOutput> {
+        self.outs.back()
+    }
+
     /// The output nearest `t_us` within 1 s.
     pub fn nearest(&self, t_us: u64) -> Option<&NavOutput> {
         self.outs
@@ -647,6 +652,37 @@ impl OutputBook {
             .min_by_key(|o| o.t_us.abs_diff(t_us))
             .filter(|o| o.t_us.abs_diff(t_us) <= 1_000_000)
     }
+}
+
+/// Longest a solution from before a restart serves as the fix prior, s: its sigma has grown
+/// past what a prior can help with by then (3 m/s^2 unseen: 0.6 x 3 x 60^2 = 6 km).
+pub const REACQUIRE_MAX_AGE_S: f64 = 60.0;
+
+/// The fix prior at `t_us` from the last solution before a restart (an autopilot reboot), `o`
+/// re-stamped on the new boot clock: its position moved by its velocity, the sigma grown by
+/// the velocity's and by the vehicle's unseen manoeuvres since (`[nav]
+/// imu_bridge_accel_sigma_m_s2`, as a bridged IMU gap: `sigma_a t^2 / sqrt 3`); the attitude
+/// from the autopilot (the old solution's is as old as its position). Without position
+/// beyond [`REACQUIRE_MAX_AGE_S`].
+pub fn reacquisition_prior(
+    t_us: u64,
+    o: &NavOutput,
+    ap_attitude: Option<Attitude>,
+    nav: &NavConfig,
+) -> FixPrior {
+    let dt = (t_us as f64 - o.t_us as f64) * 1e-6;
+    let mut prior = prior_at(t_us, None, ap_attitude, nav);
+    if !(0.0..=REACQUIRE_MAX_AGE_S).contains(&dt) {
+        return prior;
+    }
+    let moved = prior_at(t_us, Some(o), None, nav);
+    let unseen = nav.imu_bridge_accel_sigma_m_s2 * dt * dt / 3f64.sqrt();
+    prior.position = moved.position.map(|mut p| {
+        p.sigma_h_m = p.sigma_h_m.hypot(unseen);
+        p.sigma_v_m = p.sigma_v_m.hypot(unseen);
+        p
+    });
+    prior
 }
 
 /// The fix prior at `t_us`: position from the filter output nearest the capture time, moved by
@@ -1143,6 +1179,38 @@ mod tests {
         book.push(output(1_020_000, NavHealth::Ok));
         assert_eq!(book.nearest(1_012_000).unwrap().t_us, 1_020_000);
         assert!(book.nearest(2_100_000).is_none());
+    }
+
+    #[test]
+    fn the_solution_before_a_restart_is_the_reacquisition_prior() {
+        let nav = NavConfig::default();
+        let o = output(1_000_000, NavHealth::Ok);
+        let ap = Attitude::new(0.0, 0.0, 1.0);
+        // 4 s later: moved 40 m north, sigma grown by the unseen manoeuvres (3 x 16 / sqrt 3).
+        let p = reacquisition_prior(5_000_000, &o, Some(ap), &nav);
+        let pos = p.position.expect("a position");
+        let dn = (pos.lat_deg - 47.0).to_radians() * 6_367_000.0;
+        assert!((dn - 40.0).abs() < 0.2, "{dn}");
+        let unseen = 3.0 * 16.0 / 3f64.sqrt();
+        let moved = (9.0f64 + 0.01 * 16.0).sqrt();
+        assert!(
+            (pos.sigma_h_m - moved.hypot(unseen)).abs() < 1e-9,
+            "{pos:?}"
+        );
+        // The attitude is the autopilot's, not the old solution's.
+        assert_eq!(p.attitude.expect("attitude").attitude.yaw_rad, 1.0);
+        assert!(!p.attitude_from_filter);
+        // Too old, or from the future: no position (a relocalisation).
+        assert!(
+            reacquisition_prior(62_000_000, &o, Some(ap), &nav)
+                .position
+                .is_none()
+        );
+        assert!(
+            reacquisition_prior(900_000, &o, Some(ap), &nav)
+                .position
+                .is_none()
+        );
     }
 
     #[test]

@@ -159,6 +159,10 @@ struct SharedPriors {
     nav: NavConfig,
     book: Mutex<OutputBook>,
     attitudes: Mutex<std::collections::VecDeque<(u64, Attitude)>>,
+    /// After an autopilot reboot restarted the filter: its last solution, re-stamped on the new
+    /// boot clock, the fix prior's position until the new filter has an output
+    /// (`inputs::reacquisition_prior`).
+    reacquire: Mutex<Option<NavOutput>>,
 }
 
 impl PriorSource for SharedPriors {
@@ -169,6 +173,14 @@ impl PriorSource for SharedPriors {
             .unwrap_or_else(|e| e.into_inner())
             .nearest(t_us)
             .cloned();
+        let reacquire = match out {
+            Some(_) => None,
+            None => self
+                .reacquire
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .clone(),
+        };
         let att = self
             .attitudes
             .lock()
@@ -177,8 +189,18 @@ impl PriorSource for SharedPriors {
             .min_by_key(|(t, _)| t.abs_diff(t_us))
             .filter(|(t, _)| t.abs_diff(t_us) <= 200_000)
             .map(|(_, a)| *a);
-        inputs::prior_at(t_us, out.as_ref(), att, &self.nav)
+        match reacquire {
+            Some(r) => inputs::reacquisition_prior(t_us, &r, att, &self.nav),
+            None => inputs::prior_at(t_us, out.as_ref(), att, &self.nav),
+        }
     }
+}
+
+/// The last solution before a restart and the companion time (ns) it was made, waiting to be
+/// re-stamped on the new boot clock once the link maps it.
+struct PendingReacquire {
+    out: NavOutput,
+    made_ns: i64,
 }
 
 /// The running daemon.
@@ -264,6 +286,7 @@ impl Daemon {
             nav: setup.nav.clone(),
             book: Mutex::new(OutputBook::default()),
             attitudes: Mutex::new(Default::default()),
+            reacquire: Mutex::new(None),
         });
         let (stop, stop_rx) = watch::channel(false);
         let (fix_tx, fix_rx) = mpsc::channel(4);
@@ -284,6 +307,8 @@ impl Daemon {
             reset_sum: 0,
             reset_counter: 0,
             last_imu_at: None,
+            last_out_ns: None,
+            pending_reacquire: None,
             imu_lost: false,
             gps2_asked: None,
             last_log: Instant::now(),
@@ -481,6 +506,10 @@ struct NavTask {
     reset_sum: u64,
     reset_counter: u8,
     last_imu_at: Option<Instant>,
+    /// Companion time (ns) of the last published output that was not lost.
+    last_out_ns: Option<i64>,
+    /// The last solution before an autopilot reboot, until the new boot clock is mapped.
+    pending_reacquire: Option<PendingReacquire>,
     imu_lost: bool,
     gps2_asked: Option<Instant>,
     last_log: Instant,
@@ -527,6 +556,24 @@ impl NavTask {
     }
 
     fn telemetry(&mut self, t: &Telemetry) {
+        if let Some(tb) = t.t_boot_us
+            && let Some(p) = self.pending_reacquire.take()
+        {
+            // Re-stamp the old solution on the new boot clock: as old as it is on the
+            // companion's clock.
+            let age_us = ((t.t_companion_ns - p.made_ns).max(0) / 1000) as u64;
+            let mut o = p.out;
+            o.t_us = tb.saturating_sub(age_us);
+            info!(
+                "reacquiring from the solution of {:.1} s before the reboot",
+                age_us as f64 * 1e-6
+            );
+            *self
+                .shared
+                .reacquire
+                .lock()
+                .unwrap_or_else(|e| e.into_inner()) = Some(o);
+        }
         if let MavMessage::ATTITUDE(a) = &t.msg {
             let mut q = self
                 .shared
@@ -568,11 +615,21 @@ impl NavTask {
                     self.filter = NavFilter::new(self.nav_cfg.clone());
                     self.filter.set_multirotor(self.inputs.multirotor());
                     self.drag_logged = [false; 2];
-                    self.shared
-                        .book
+                    let last = {
+                        let mut book = self.shared.book.lock().unwrap_or_else(|e| e.into_inner());
+                        let last = book.last().cloned();
+                        book.clear();
+                        last
+                    };
+                    *self
+                        .shared
+                        .reacquire
                         .lock()
-                        .unwrap_or_else(|e| e.into_inner())
-                        .clear();
+                        .unwrap_or_else(|e| e.into_inner()) = None;
+                    self.pending_reacquire = last
+                        .filter(|o| o.health != NavHealth::Lost)
+                        .zip(self.last_out_ns)
+                        .map(|(out, made_ns)| PendingReacquire { out, made_ns });
                     self.publish_lost("autopilot rebooted; navigation restarting");
                 }
             }
@@ -662,6 +719,18 @@ impl NavTask {
             self.reset_counter = self.reset_counter.wrapping_add(1);
         }
         let health = self.health(o.health, &o.reason);
+        if o.health != NavHealth::Lost {
+            self.last_out_ns = Some(self.link.companion_now_ns());
+            // The new filter has its own solution: the reacquisition prior is done.
+            let mut r = self
+                .shared
+                .reacquire
+                .lock()
+                .unwrap_or_else(|e| e.into_inner());
+            if r.take().is_some() {
+                info!("reacquired: the filter has its own solution again");
+            }
+        }
         let est = inputs::estimate_from_output(&o, health, self.reset_counter);
         self.shared
             .book

@@ -577,7 +577,7 @@ mod tests {
                 beyond_3sigma: true,
             },
             ScoredFix {
-                t_capture_s: 15.0,
+                t_capture_s: 14.5,
                 accepted: false,
                 beyond_3sigma: false,
             },

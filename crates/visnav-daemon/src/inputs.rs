@@ -654,6 +654,21 @@ impl OutputBook {
     }
 }
 
+/// A lost solution (its sigma over `[nav.health] lost_pos_sigma_m`, or no fix for
+/// `lost_no_fix_s`: the filter's only two reasons) still has an honest covariance: up to this
+/// horizontal sigma its position is the fixes' prior (the engine gates at 3 sigma: 900 m), so
+/// the fixes find the aircraft again by the gated search rather than by a relocalisation
+/// without a prior (after an IMU burst or a bridged link silence on vision alone); beyond it,
+/// the gated window is most of a map and relocalisation's ambiguity checks are the better tool.
+pub const LOST_PRIOR_MAX_SIGMA_H_M: f64 = 300.0;
+
+/// Whether an output's position can be a fix prior: not lost, or lost with a horizontal sigma
+/// up to [`LOST_PRIOR_MAX_SIGMA_H_M`].
+pub fn usable_as_prior(o: &NavOutput) -> bool {
+    o.health != NavHealth::Lost
+        || lambda_max_ne(&mat3(&o.cov_pos_ned_m2)).sqrt() <= LOST_PRIOR_MAX_SIGMA_H_M
+}
+
 /// Longest a solution from before a restart serves as the fix prior, s: its sigma has grown
 /// past what a prior can help with by then (3 m/s^2 unseen: 0.6 x 3 x 60^2 = 6 km).
 pub const REACQUIRE_MAX_AGE_S: f64 = 60.0;
@@ -689,7 +704,8 @@ pub fn reacquisition_prior(
 /// its velocity to `t_us` (None when there is none within 1 s or the solution is lost: global
 /// relocalisation); attitude from that output (sigma: the largest attitude sigma) or else the
 /// autopilot ATTITUDE within 0.2 s (sigma: the larger of the `[nav]` attitude sigmas). A lost
-/// solution still gives its altitude ([`FixPrior::altitude`]).
+/// solution gives its position up to [`LOST_PRIOR_MAX_SIGMA_H_M`], beyond only its altitude
+/// ([`FixPrior::altitude`]).
 pub fn prior_at(
     t_us: u64,
     out: Option<&NavOutput>,
@@ -703,7 +719,7 @@ pub fn prior_at(
         altitude: None,
         attitude_from_filter: false,
     };
-    if let Some(o) = out.filter(|o| o.health != NavHealth::Lost) {
+    if let Some(o) = out.filter(|o| usable_as_prior(o)) {
         let dt = (t_us as f64 - o.t_us as f64) * 1e-6;
         let v = Vector3::from(o.v_ned_m_s);
         let (lat, lon, h) = offset_geodetic(o.lat_deg, o.lon_deg, o.h_m, &(v * dt));
@@ -734,6 +750,7 @@ pub fn prior_at(
     // Lost horizontally, the filter still knows its altitude (barometer-aided): the
     // relocalisation's scale.
     if let Some(o) = out.filter(|o| o.health == NavHealth::Lost)
+        && prior.position.is_none()
         && let Ok(n) = geoid_undulation_m(o.lat_deg, o.lon_deg)
     {
         let dt = (t_us as f64 - o.t_us as f64) * 1e-6;
@@ -1151,8 +1168,16 @@ mod tests {
         assert!((p.attitude.unwrap().sigma_yaw_rad - 2f64.to_radians()).abs() < 1e-12);
         // The filter's own attitude: the engine weighs it as a dependent prior.
         assert!(p.attitude_from_filter);
-        // Lost / no output: no position; the autopilot attitude is used.
+        // Lost with a small sigma (after no fix for a minute): still its position.
         let lost = output(1_000_000, NavHealth::Lost);
+        assert!(
+            prior_at(1_000_000, Some(&lost), None, &nav)
+                .position
+                .is_some()
+        );
+        // Lost with a sigma beyond 300 m / no output: no position; the autopilot attitude is used.
+        let mut lost = output(1_000_000, NavHealth::Lost);
+        lost.cov_pos_ned_m2[1][1] = 400.0 * 400.0;
         let p = prior_at(
             1_000_000,
             Some(&lost),

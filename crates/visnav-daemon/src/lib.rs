@@ -627,7 +627,7 @@ impl NavTask {
                         .lock()
                         .unwrap_or_else(|e| e.into_inner()) = None;
                     self.pending_reacquire = last
-                        .filter(|o| o.health != NavHealth::Lost)
+                        .filter(inputs::usable_as_prior)
                         .zip(self.last_out_ns)
                         .map(|(out, made_ns)| PendingReacquire { out, made_ns });
                     self.publish_lost("autopilot rebooted; navigation restarting");
@@ -719,7 +719,7 @@ impl NavTask {
             self.reset_counter = self.reset_counter.wrapping_add(1);
         }
         let health = self.health(o.health, &o.reason);
-        if o.health != NavHealth::Lost {
+        if inputs::usable_as_prior(&o) {
             self.last_out_ns = Some(self.link.companion_now_ns());
             // The new filter has its own solution: the reacquisition prior is done.
             let mut r = self

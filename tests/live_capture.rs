@@ -329,15 +329,18 @@ async fn daemon_runs_a_live_capture_process_and_kills_it_on_shutdown() {
     use visnav::sitl::autopilot::{AutopilotEmulator, ConstantVelocity, EmulatorConfig};
 
     let d = tempfile::tempdir().unwrap();
-    // One 32x24 frame, written again and again at about 20 Hz by a shell loop.
-    let clip = d.path().join("one.y4m");
-    write_y4m(&clip, &[img(32, 24, 1)], 20, 1).unwrap();
-    let bytes = std::fs::read(&clip).unwrap();
-    let split = bytes.iter().position(|&b| b == b'\n').unwrap() + 1;
-    std::fs::write(d.path().join("header"), &bytes[..split]).unwrap();
-    std::fs::write(d.path().join("frame"), &bytes[split..]).unwrap();
+    // Two 32x24 frames, written in turn again and again at about 20 Hz by a shell loop (the
+    // same frame twice in a row would be dropped as a frozen camera).
+    for (name, seed) in [("a", 1), ("b", 2)] {
+        let clip = d.path().join(format!("{name}.y4m"));
+        write_y4m(&clip, &[img(32, 24, seed)], 20, 1).unwrap();
+        let bytes = std::fs::read(&clip).unwrap();
+        let split = bytes.iter().position(|&b| b == b'\n').unwrap() + 1;
+        std::fs::write(d.path().join("header"), &bytes[..split]).unwrap();
+        std::fs::write(d.path().join(format!("frame_{name}")), &bytes[split..]).unwrap();
+    }
     let pid_file = d.path().join("pid");
-    let script = "echo $$ > pid; cat header; while cat frame; do sleep 0.05; done";
+    let script = "echo $$ > pid; cat header; while cat frame_a && sleep 0.05 && cat frame_b; do sleep 0.05; done";
     let mut frames = FramesConfig::command(&[
         "sh",
         "-c",

@@ -279,6 +279,13 @@ fn process(ctx: &WorkerCtx, f: Frame) -> bool {
 
 /// The fix of one frame (`None`: dropped, no time or too old; counted).
 fn fix_frame(ctx: &WorkerCtx, f: Frame) -> Option<FixResult> {
+    let (t_c, prior) = prepare(ctx, &f)?;
+    Some(fix_prepared(ctx, f, t_c, prior))
+}
+
+/// A frame's capture time on the autopilot clock and its prior (`None`: dropped, no time or
+/// too old; counted).
+fn prepare(ctx: &WorkerCtx, f: &Frame) -> Option<(u64, FixPrior)> {
     let m = &ctx.metrics;
     let t_capture_us = match f.t_capture {
         CaptureTime::AutopilotBootUs(t) => Some(t),
@@ -295,6 +302,12 @@ fn fix_frame(ctx: &WorkerCtx, f: Frame) -> Option<FixResult> {
     }
     let prior = ctx.priors.prior_at(t_c);
     m.fixes_attempted.fetch_add(1, Ordering::Relaxed);
+    Some((t_c, prior))
+}
+
+/// The engine's fix of a prepared frame.
+fn fix_prepared(ctx: &WorkerCtx, f: Frame, t_c: u64, prior: FixPrior) -> FixResult {
+    let m = &ctx.metrics;
     // Wall time of the computation (reported, never used by an algorithm).
     let start = std::time::Instant::now();
     let mut report = std::panic::catch_unwind(AssertUnwindSafe(|| ctx.fixer.fix(&f.image, &prior)))
@@ -306,19 +319,23 @@ fn fix_frame(ctx: &WorkerCtx, f: Frame) -> Option<FixResult> {
     report.ms = elapsed.as_secs_f64() * 1e3;
     let latency_ms = elapsed.as_millis() as u64;
     m.latency(latency_ms);
-    Some(FixResult {
+    FixResult {
         t_capture_us: t_c,
         seq: f.seq,
         report,
         latency_ms,
-    })
+    }
 }
 
 /// The lock-step frame path (the simulator's one clock, `FramePipeline::lockstep`): a task on
 /// the runtime takes a frame every `period` of the runtime's clock, renders and fixes it on the
 /// blocking pool (a paused runtime does not advance its clock while a blocking task runs, so the
 /// computation takes no simulated time) and delivers the result `latency` later, as a camera and
-/// engine with that latency would. Same inputs, same results, whatever the CPU's speed.
+/// engine with that latency would. Same inputs, same results, whatever the CPU's speed: the
+/// frame's capture time, age and prior are taken on the runtime's thread, at a fixed point of
+/// its schedule (read on the blocking thread they would race the runtime still handling the
+/// telemetry of the same instant, and two runs could differ), and the blocking pool only
+/// renders and fixes.
 pub async fn lockstep_frames(
     source: Box<dyn FrameSource>,
     ctx: WorkerCtx,
@@ -370,8 +387,12 @@ pub async fn lockstep_frames(
             ctx.metrics.frames_frozen.fetch_add(1, Ordering::Relaxed);
             continue;
         }
+        let Some((t_c, prior)) = prepare(&ctx, &f) else {
+            continue;
+        };
         let c = ctx.clone();
-        let Ok(Some(result)) = tokio::task::spawn_blocking(move || fix_frame(&c, f)).await else {
+        let Ok(result) = tokio::task::spawn_blocking(move || fix_prepared(&c, f, t_c, prior)).await
+        else {
             continue;
         };
         let results = ctx.results.clone();

@@ -353,6 +353,11 @@ impl AutopilotEmulator {
         lock(&self.inner.state).received.clone()
     }
 
+    /// Every recorded message so far, moved out (the recording starts again empty).
+    pub fn take_received(&self) -> Vec<Received> {
+        std::mem::take(&mut lock(&self.inner.state).received)
+    }
+
     /// Bytes held by the recording of [`Self::received`] (its buffer).
     pub fn recorded_bytes(&self) -> usize {
         lock(&self.inner.state).received.capacity() * std::mem::size_of::<Received>()

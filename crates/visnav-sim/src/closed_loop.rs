@@ -68,7 +68,9 @@ use serde::Serialize;
 use tracing::{info, warn};
 
 use super::Scenario;
-use super::autopilot::{AutopilotEmulator, EmulatorConfig, LinkFaults, TruthSource, TruthState};
+use super::autopilot::{
+    AutopilotEmulator, EmulatorConfig, LinkFaults, Received, TruthSource, TruthState,
+};
 use super::camera_sim::{SimCamera, SimCameraSpec, TruthFeed};
 use super::faults::{
     self, CameraFault, FaultCounters, FaultKind, FaultOutcome, FaultPlan, ScoredFix, ScoredOutput,
@@ -540,13 +542,13 @@ pub struct StepRow {
     pub vis_lon_deg: f64,
     pub vis_err_ned_m: [f64; 3],
     pub vis_sigma_h_m: f64,
-    pub vis_health: String,
+    pub vis_health: &'static str,
     /// The control filter (no vision).
     pub ctl_lat_deg: f64,
     pub ctl_lon_deg: f64,
     pub ctl_err_ned_m: [f64; 3],
     pub ctl_sigma_h_m: f64,
-    pub ctl_health: String,
+    pub ctl_health: &'static str,
     /// Velocity error NED of the vision and the control filters' outputs (NaN before
     /// initialisation), m/s (not in steps.csv).
     pub vis_vel_err_ned_m_s: [f64; 3],
@@ -696,24 +698,18 @@ impl HeapSample {
     }
 }
 
-/// Bytes the simulator's recordings hold: the 10 Hz steps (buffer of `steps_cap` rows and their
-/// strings), the fix log (buffer and reasons), the emulators' received messages.
+/// Bytes the simulator's recordings hold: the 10 Hz steps (buffer of `steps_cap` rows), the fix
+/// log (buffer and reasons), the emulators' received messages.
 fn recorded_bytes(
-    steps: &[StepRow],
     steps_cap: usize,
     fixes: &Mutex<Vec<FixRecord>>,
     emus: [Option<&Arc<AutopilotEmulator>>; 2],
 ) -> usize {
-    let strings: usize = steps
-        .iter()
-        .map(|s| s.vis_health.capacity() + s.ctl_health.capacity())
-        .sum();
     let fix_bytes = fixes.lock().map_or(0, |l| {
         l.capacity() * std::mem::size_of::<FixRecord>()
             + l.iter().map(|f| f.report.reason.capacity()).sum::<usize>()
     });
     steps_cap * std::mem::size_of::<StepRow>()
-        + strings
         + fix_bytes
         + emus
             .iter()
@@ -855,22 +851,21 @@ fn sample_output(
     o: Option<&NavOutput>,
     table: &TruthTable,
     emu: &AutopilotEmulator,
-) -> (f64, f64, [f64; 3], f64, String) {
+) -> (f64, f64, [f64; 3], f64, &'static str) {
+    use visnav_core::nav::Health;
     match o {
         Some(o) => (
             o.lat_deg,
             o.lon_deg,
             output_error(o, table, emu),
             sigma_h_m(&o.cov_pos_ned_m2),
-            format!("{:?}", o.health).to_lowercase(),
+            match o.health {
+                Health::Ok => "ok",
+                Health::Degraded => "degraded",
+                Health::Lost => "lost",
+            },
         ),
-        None => (
-            f64::NAN,
-            f64::NAN,
-            [f64::NAN; 3],
-            f64::NAN,
-            "uninitialised".into(),
-        ),
+        None => (f64::NAN, f64::NAN, [f64::NAN; 3], f64::NAN, "uninitialised"),
     }
 }
 
@@ -1099,16 +1094,15 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     let mut last_log_s = 0.0;
     let mut rss_after_first_window = None;
     let mut heap_after_first_window = None;
-    let recorded = |steps: &[StepRow], steps_cap: usize| {
-        recorded_bytes(steps, steps_cap, &fixer.log, [Some(&emu_v), emu_c.as_ref()])
-    };
+    let recorded =
+        |steps_cap: usize| recorded_bytes(steps_cap, &fixer.log, [Some(&emu_v), emu_c.as_ref()]);
     loop {
         tick.tick().await;
         let t_s = emu_v.time_run_us() as f64 * 1e-6;
         if rss_after_first_window.is_none() && t_s >= sc.evaluation.from_s + SOAK_WINDOW_S {
             rss_after_first_window = rss_mb();
             heap_after_first_window =
-                heap_in_use_bytes().map(|h| HeapSample::new(h, recorded(&steps, steps.capacity())));
+                heap_in_use_bytes().map(|h| HeapSample::new(h, recorded(steps.capacity())));
         }
         if t_s > duration_s {
             break;
@@ -1153,8 +1147,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         });
     }
     let rss_after_first = rss_after_first_window;
-    let heap_end =
-        heap_in_use_bytes().map(|h| HeapSample::new(h, recorded(&steps, steps.capacity())));
+    let heap_end = heap_in_use_bytes().map(|h| HeapSample::new(h, recorded(steps.capacity())));
     let link_v = d_v.link().metrics();
     let metrics_v = d_v.shutdown().await;
     if let Some(d) = d_c {
@@ -1165,15 +1158,22 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     let (w0, w1) = (sc.evaluation.from_s, sc.evaluation.until_s);
     let in_window = |t: f64| t >= w0 && t <= w1;
     let soak = w1 - w0 >= 2.0 * SOAK_WINDOW_S;
-    let injections = collect_injections(&emu_v, &table, false)
+    // The recordings are moved out, not copied: a copy of an hour's would add 10-14 MB at the
+    // end of a soak.
+    let received_v = emu_v.take_received();
+    let injections = collect_injections(&received_v, &table, false)
         .into_iter()
         .chain(
             emu_c
                 .iter()
-                .flat_map(|e| collect_injections(e, &table, true)),
+                .flat_map(|e| collect_injections(&e.take_received(), &table, true)),
         )
         .collect::<Vec<_>>();
-    let log = fixer.log.lock().map(|l| l.clone()).unwrap_or_default();
+    let log = fixer
+        .log
+        .lock()
+        .map(|mut l| std::mem::take(&mut *l))
+        .unwrap_or_default();
     let fixes: Vec<FixRow> = log.iter().map(|r| score_fix(r, &table, &mount)).collect();
     let wf: Vec<&FixRow> = fixes.iter().filter(|f| in_window(f.t_capture_s)).collect();
     let accepted: Vec<&&FixRow> = wf.iter().filter(|f| f.accepted).collect();
@@ -1330,14 +1330,14 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             .map(|(a, b)| (b.total_mb - b.recordings_mb) - (a.total_mb - a.recordings_mb)),
         faults: fault_outcomes(sc, &injections, scored_kind, &fixes),
         fault_counters: (!sc.faults.is_empty())
-            .then(|| fault_counters(&emu_v, &metrics_v, &link_v)),
+            .then(|| fault_counters(&received_v, emu_v.companion(), &metrics_v, &link_v)),
         vision_final_health: steps
             .last()
-            .map(|s| s.vis_health.clone())
+            .map(|s| s.vis_health.to_string())
             .unwrap_or_default(),
         control_final_health: steps
             .last()
-            .map(|s| s.ctl_health.clone())
+            .map(|s| s.ctl_health.to_string())
             .unwrap_or_default(),
         report_dir: None,
     };
@@ -1392,17 +1392,16 @@ fn fault_outcomes(
 
 /// The vision daemon's counters that the fault table names, and what the emulator received.
 fn fault_counters(
-    emu: &AutopilotEmulator,
+    received: &[Received],
+    companion: Option<(u8, u8)>,
     m: &visnav_daemon::metrics::MetricsSnapshot,
     link: &visnav_link::metrics::Metrics,
 ) -> FaultCounters {
     use std::sync::atomic::Ordering::Relaxed;
-    let received = emu.received();
-    let companion = emu.companion();
     let mut last_gps_us = None;
     let mut backsteps = 0;
     let mut non_finite = 0;
-    for r in &received {
+    for r in received {
         let finite = match &r.msg {
             MavMessage::GPS_INPUT(g) => {
                 if last_gps_us.is_some_and(|l| g.time_usec < l) {
@@ -1471,7 +1470,7 @@ impl Drop for AbortOnDrop {
 /// (VISION_POSITION_ESTIMATE, ODOMETRY: NED about the EKF origin) are compared in that frame with
 /// the origin in force when they arrived (SET_GPS_GLOBAL_ORIGIN as received).
 fn collect_injections(
-    emu: &AutopilotEmulator,
+    received: &[Received],
     table: &TruthTable,
     control: bool,
 ) -> Vec<InjectionRow> {
@@ -1479,7 +1478,7 @@ fn collect_injections(
     use visnav_link::inject::{local_ned_m, offset_geodetic};
     let mut origin: Option<GeoOrigin> = None;
     let mut rows = Vec::new();
-    for r in emu.received() {
+    for r in received {
         let t = r.t_run_us as f64 * 1e-6;
         let s = table.at(t);
         #[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: what ArduPilot acts on

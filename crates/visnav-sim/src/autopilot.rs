@@ -422,7 +422,8 @@ async fn send(inner: &Inner, conn: &Conn, msg: &MavMessage) {
     let _ = conn.send(&header, msg).await;
 }
 
-struct AbortOnDrop(JoinHandle<()>);
+/// Aborts its task when dropped.
+pub(crate) struct AbortOnDrop(pub(crate) JoinHandle<()>);
 
 impl Drop for AbortOnDrop {
     fn drop(&mut self) {

@@ -69,7 +69,7 @@ use tracing::{info, warn};
 
 use super::Scenario;
 use super::autopilot::{
-    AutopilotEmulator, EmulatorConfig, LinkFaults, Received, TruthSource, TruthState,
+    AbortOnDrop, AutopilotEmulator, EmulatorConfig, LinkFaults, Received, TruthSource, TruthState,
 };
 use super::camera_sim::{SimCamera, SimCameraSpec, TruthFeed};
 use super::faults::{
@@ -1453,15 +1453,6 @@ fn fault_counters(
                 ) && companion.is_some_and(|(sys, _)| u32::from(sys) != r.header.system_id)
             })
             .count(),
-    }
-}
-
-/// Aborts its task when dropped.
-struct AbortOnDrop(tokio::task::JoinHandle<()>);
-
-impl Drop for AbortOnDrop {
-    fn drop(&mut self) {
-        self.0.abort();
     }
 }
 

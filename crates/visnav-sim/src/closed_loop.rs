@@ -62,14 +62,17 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use mavlink::dialects::ardupilotmega::MavMessage;
 use nalgebra::Vector3;
 use serde::Serialize;
 use tracing::{info, warn};
 
+mod recording;
+
+use recording::{InjectionCollector, OutputSample, StepSample, health_code, resident_vec};
+
 use super::Scenario;
 use super::autopilot::{
-    AbortOnDrop, AutopilotEmulator, EmulatorConfig, LinkFaults, Received, TruthSource, TruthState,
+    AbortOnDrop, AutopilotEmulator, EmulatorConfig, LinkFaults, TruthSource, TruthState,
 };
 use super::camera_sim::{SimCamera, SimCameraSpec, TruthFeed};
 use super::faults::{
@@ -494,21 +497,14 @@ impl TruthFeed for EmuFeed {
     }
 }
 
-/// One vision fix as the daemon's engine produced it.
-#[derive(Debug, Clone)]
-pub struct FixRecord {
-    /// Capture time (emulator run time: the truth's clock), µs.
-    pub t_capture_us: u64,
-    /// When the result was ready (emulator run time), µs.
-    pub t_done_us: u64,
-    pub report: FixReport,
-}
-
-/// Wraps the daemon's fix engine and records every result with its timing.
+/// Wraps the daemon's fix engine and scores every result, with its timing, as it is made
+/// (the report itself is not kept: `recording`).
 struct RecordingFixer {
     inner: Arc<dyn FrameFixer>,
     emu: Arc<AutopilotEmulator>,
-    log: Mutex<Vec<FixRecord>>,
+    table: Arc<TruthTable>,
+    mount: visnav_core::camera::Mount,
+    log: Mutex<Vec<FixRow>>,
     /// In lock-step the fix takes no simulated time: its result is delivered this much later.
     delivery_us: u64,
 }
@@ -516,13 +512,12 @@ struct RecordingFixer {
 impl FrameFixer for RecordingFixer {
     fn fix(&self, image: &GrayImage, prior: &FixPrior) -> FixReport {
         let report = self.inner.fix(image, prior);
-        // The prior's capture time is on the autopilot's boot clock.
-        let rec = FixRecord {
-            t_capture_us: self.emu.run_us_of_boot_us(prior.t_capture_us),
-            t_done_us: self.emu.time_run_us() + self.delivery_us,
-            report: report.clone(),
-        };
-        self.log.lock().unwrap_or_else(|e| e.into_inner()).push(rec);
+        // The prior's capture time is on the autopilot's boot clock; the truth's clock is the
+        // emulator's run time.
+        let t_capture_us = self.emu.run_us_of_boot_us(prior.t_capture_us);
+        let t_done_us = self.emu.time_run_us() + self.delivery_us;
+        let row = score_fix(t_capture_us, t_done_us, &report, &self.table, &self.mount);
+        self.log.lock().unwrap_or_else(|e| e.into_inner()).push(row);
         report
     }
 }
@@ -549,10 +544,10 @@ pub struct StepRow {
     pub ctl_err_ned_m: [f64; 3],
     pub ctl_sigma_h_m: f64,
     pub ctl_health: &'static str,
-    /// Velocity error NED of the vision and the control filters' outputs (NaN before
+    /// Horizontal velocity error of the vision and the control filters' outputs (NaN before
     /// initialisation), m/s (not in steps.csv).
-    pub vis_vel_err_ned_m_s: [f64; 3],
-    pub ctl_vel_err_ned_m_s: [f64; 3],
+    pub vis_vel_err_h_m_s: f64,
+    pub ctl_vel_err_h_m_s: f64,
 }
 
 /// An injected position as the emulator received it.
@@ -583,6 +578,23 @@ pub struct FixRow {
     pub beyond_3sigma: bool,
     pub inliers: usize,
     pub ms: f64,
+}
+
+impl FixRow {
+    /// A filler for reserving the fix log ([`recording::resident_vec`]).
+    const FILL: Self = Self {
+        t_capture_s: f64::NAN,
+        latency_ms: f64::NAN,
+        accepted: false,
+        reason: String::new(),
+        lat_deg: f64::NAN,
+        lon_deg: f64::NAN,
+        err_ned_m: [f64::NAN; 3],
+        sigma_h_m: f64::NAN,
+        beyond_3sigma: false,
+        inliers: 0,
+        ms: f64::NAN,
+    };
 }
 
 /// `{p50, p95}`.
@@ -657,13 +669,16 @@ pub struct ClosedLoopSummary {
     pub fix_rate_first_window: Option<f64>,
     pub fix_rate_last_window: Option<f64>,
     /// Resident memory of the whole process (simulator, both daemons), MB: after the first
-    /// `SOAK_WINDOW_S` of the window (everything is built and warm) and at the end (Linux
-    /// `/proc/self/statm`; None elsewhere).
+    /// `SOAK_WINDOW_S` of the window (everything is built and warm) and at the end of the flight,
+    /// before the daemons stop and the scoring allocates (Linux `/proc/self/statm`; None
+    /// elsewhere). The simulator's recordings are resident from the start (reserved for the
+    /// whole run: `recording::resident_vec`), so the growth is the daemons', the emulators' and
+    /// the camera's.
     pub rss_mb_after_first_window: Option<f64>,
     pub rss_mb_end: Option<f64>,
     /// The heap in use at the same instants (`visnav_daemon::heap`: what was allocated and not
-    /// freed), total and the simulator's recordings in it (steps, fix reports, the emulators'
-    /// received messages: their buffers and strings), MB.
+    /// freed), total and the simulator's recordings in it (the reserved buffers of the compact
+    /// steps, fix rows and injections, and the fixes' reason strings), MB.
     pub heap_mb_after_first_window: Option<HeapSample>,
     pub heap_mb_end: Option<HeapSample>,
     /// Growth of the heap without the recordings over the soak (both daemons, both emulators,
@@ -698,24 +713,43 @@ impl HeapSample {
     }
 }
 
-/// Bytes the simulator's recordings hold: the 10 Hz steps (buffer of `steps_cap` rows), the fix
-/// log (buffer and reasons), the emulators' received messages.
-fn recorded_bytes(
-    steps_cap: usize,
-    fixes: &Mutex<Vec<FixRecord>>,
-    emus: [Option<&Arc<AutopilotEmulator>>; 2],
-) -> usize {
+/// How many samples a recording at `rate_hz` takes over `duration_s`, with 5 % to spare (a
+/// capacity, never a limit: a longer recording grows).
+fn expected_count(duration_s: f64, rate_hz: f64) -> usize {
+    let n = duration_s * rate_hz * 1.05 + 16.0;
+    if n.is_finite() && n > 0.0 {
+        // At most 10 million samples reserved (about 640 MB of steps: days of flight).
+        n.min(1e7) as usize
+    } else {
+        16
+    }
+}
+
+/// The process's memory at one instant of the flight.
+#[derive(Debug, Clone, Copy)]
+struct MemorySample {
+    rss_mb: Option<f64>,
+    heap: Option<HeapSample>,
+}
+
+/// RSS, heap in use, and the bytes the simulator's recordings hold: the compact steps, the fix
+/// rows (buffer and reasons), the injections.
+fn memory_sample(
+    steps: &Vec<StepSample>,
+    fixes: &Mutex<Vec<FixRow>>,
+    injections: [&InjectionCollector; 2],
+) -> MemorySample {
     let fix_bytes = fixes.lock().map_or(0, |l| {
-        l.capacity() * std::mem::size_of::<FixRecord>()
-            + l.iter().map(|f| f.report.reason.capacity()).sum::<usize>()
+        l.capacity() * std::mem::size_of::<FixRow>()
+            + l.iter().map(|f| f.reason.capacity()).sum::<usize>()
     });
-    steps_cap * std::mem::size_of::<StepRow>()
+    let recorded = steps.capacity() * std::mem::size_of::<StepSample>()
         + fix_bytes
-        + emus
-            .iter()
-            .flatten()
-            .map(|e| e.recorded_bytes())
-            .sum::<usize>()
+        + injections.iter().map(|c| c.recorded_bytes()).sum::<usize>();
+    MemorySample {
+        rss_mb: rss_mb(),
+        heap: heap_in_use_bytes().map(|h| HeapSample::new(h, recorded)),
+    }
 }
 
 /// Accepted over attempted fixes captured in `[from_s, until_s)`.
@@ -845,27 +879,34 @@ fn output_error(out: &NavOutput, table: &TruthTable, emu: &AutopilotEmulator) ->
     )
 }
 
-/// A filter output as a step row's columns: lat, lon, NED error, horizontal sigma, health (NaN
-/// and "uninitialised" before the first output).
+/// A filter output sampled at a step against the truth `s` at the step's time: position offset,
+/// error (at the output's own time), horizontal sigma, velocity error; its health name.
 fn sample_output(
     o: Option<&NavOutput>,
+    s: &TruthState,
     table: &TruthTable,
     emu: &AutopilotEmulator,
-) -> (f64, f64, [f64; 3], f64, &'static str) {
+) -> (OutputSample, &'static str) {
     use visnav_core::nav::Health;
     match o {
-        Some(o) => (
-            o.lat_deg,
-            o.lon_deg,
-            output_error(o, table, emu),
-            sigma_h_m(&o.cov_pos_ned_m2),
-            match o.health {
-                Health::Ok => "ok",
-                Health::Degraded => "degraded",
-                Health::Lost => "lost",
-            },
-        ),
-        None => (f64::NAN, f64::NAN, [f64::NAN; 3], f64::NAN, "uninitialised"),
+        Some(o) => {
+            let v = output_vel_error(o, table, emu);
+            (
+                OutputSample {
+                    dlat_deg: (o.lat_deg - s.lat_deg) as f32,
+                    dlon_deg: (o.lon_deg - s.lon_deg) as f32,
+                    err_ned_m: output_error(o, table, emu).map(|e| e as f32),
+                    sigma_h_m: sigma_h_m(&o.cov_pos_ned_m2) as f32,
+                    vel_err_h_m_s: v[0].hypot(v[1]) as f32,
+                },
+                match o.health {
+                    Health::Ok => "ok",
+                    Health::Degraded => "degraded",
+                    Health::Lost => "lost",
+                },
+            )
+        }
+        None => (OutputSample::NONE, "uninitialised"),
     }
 }
 
@@ -1021,7 +1062,12 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     let fixer = Arc::new(RecordingFixer {
         inner: engine,
         emu: emu_v.clone(),
-        log: Mutex::new(Vec::new()),
+        table: table.clone(),
+        mount,
+        log: Mutex::new(resident_vec(
+            expected_count(duration_s, cl.camera_rate_hz),
+            FixRow::FILL,
+        )),
         delivery_us: if cl.lockstep {
             (cl.lockstep_fix_latency_s.max(0.0) * 1e6) as u64
         } else {
@@ -1086,95 +1132,97 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         }
     );
 
-    // Sample at 10 Hz until the scenario's end.
-    let mut steps = Vec::new();
+    // Sample at 10 Hz until the scenario's end; the emulators' received messages are folded into
+    // compact injections as they come (`recording`).
+    // The recordings are reserved for the whole run up front and made resident
+    // (`recording::resident_vec`): the resident memory then grows with what is being tested,
+    // not with the simulator's notes (an hour's: 4 MB over the last 50 minutes), and no
+    // doubling leaves old buffers behind in the allocator.
+    let mut steps = resident_vec(expected_count(duration_s, 10.0), StepSample::FILL);
+    let injections_hz = cfg.output.rate_hz * cfg.output.modes.len() as f64;
+    let mut collect_v = InjectionCollector::new(false, expected_count(duration_s, injections_hz));
+    let mut collect_c = InjectionCollector::new(
+        true,
+        if emu_c.is_some() {
+            expected_count(duration_s, injections_hz)
+        } else {
+            0
+        },
+    );
     let out_v = d_v.nav_outputs();
     let out_c = d_c.as_ref().map(|d| d.nav_outputs());
     let mut tick = tokio::time::interval(Duration::from_millis(100));
     let mut last_log_s = 0.0;
-    let mut rss_after_first_window = None;
-    let mut heap_after_first_window = None;
-    let recorded =
-        |steps_cap: usize| recorded_bytes(steps_cap, &fixer.log, [Some(&emu_v), emu_c.as_ref()]);
+    let mut memory_after_first_window = None;
+    let emu_ctl = emu_c.as_deref().unwrap_or(&emu_v);
     loop {
         tick.tick().await;
-        let t_s = emu_v.time_run_us() as f64 * 1e-6;
-        if rss_after_first_window.is_none() && t_s >= sc.evaluation.from_s + SOAK_WINDOW_S {
-            rss_after_first_window = rss_mb();
-            heap_after_first_window =
-                heap_in_use_bytes().map(|h| HeapSample::new(h, recorded(steps.capacity())));
+        collect_v.take(emu_v.take_received(), &table);
+        if let Some(e) = &emu_c {
+            collect_c.take(e.take_received(), &table);
+        }
+        let t_run_us = emu_v.time_run_us();
+        let t_s = t_run_us as f64 * 1e-6;
+        if memory_after_first_window.is_none() && t_s >= sc.evaluation.from_s + SOAK_WINDOW_S {
+            memory_after_first_window =
+                Some(memory_sample(&steps, &fixer.log, [&collect_v, &collect_c]));
         }
         if t_s > duration_s {
             break;
         }
-        let s = table.at(t_s);
+        let t_ms = u32::try_from(t_run_us / 1000).unwrap_or(u32::MAX);
+        let s = table.at(f64::from(t_ms) * 1e-3);
         let ov = out_v.borrow().clone();
         let oc = out_c.as_ref().and_then(|o| o.borrow().clone());
-        let (vlat, vlon, verr, vsig, vh) = sample_output(ov.as_ref(), &table, &emu_v);
-        let emu_ctl = emu_c.as_deref().unwrap_or(&emu_v);
-        let (clat, clon, cerr, csig, ch) = sample_output(oc.as_ref(), &table, emu_ctl);
-        let vel_err = |o: Option<&NavOutput>, emu: &AutopilotEmulator| {
-            o.map_or([f64::NAN; 3], |o| output_vel_error(o, &table, emu))
-        };
+        let (vis, vh) = sample_output(ov.as_ref(), &s, &table, &emu_v);
+        let (ctl, ch) = sample_output(oc.as_ref(), &s, &table, emu_ctl);
         if t_s - last_log_s >= 10.0 {
             last_log_s = t_s;
             info!(
                 "t = {t_s:5.1} s  gps {}  vision: err {:.1} m ({vh})  control: err {:.1} m ({ch})  fixes {}",
                 if sens_v.gps_on(t_s) { "on " } else { "off" },
-                hnorm(&verr),
-                hnorm(&cerr),
+                f32::hypot(vis.err_ned_m[0], vis.err_ned_m[1]),
+                f32::hypot(ctl.err_ned_m[0], ctl.err_ned_m[1]),
                 fixer.log.lock().map(|l| l.len()).unwrap_or(0)
             );
         }
-        steps.push(StepRow {
-            t_s,
+        steps.push(StepSample {
+            t_ms,
             gps_on: sens_v.gps_on(t_s),
-            truth_lat_deg: s.lat_deg,
-            truth_lon_deg: s.lon_deg,
-            truth_alt_amsl_m: s.alt_amsl_m,
-            vis_lat_deg: vlat,
-            vis_lon_deg: vlon,
-            vis_err_ned_m: verr,
-            vis_sigma_h_m: vsig,
-            vis_health: vh,
-            ctl_lat_deg: clat,
-            ctl_lon_deg: clon,
-            ctl_err_ned_m: cerr,
-            ctl_sigma_h_m: csig,
-            ctl_health: ch,
-            vis_vel_err_ned_m_s: vel_err(ov.as_ref(), &emu_v),
-            ctl_vel_err_ned_m_s: vel_err(oc.as_ref(), emu_ctl),
+            vis_health: health_code(vh),
+            ctl_health: health_code(ch),
+            vis,
+            ctl,
         });
     }
-    let rss_after_first = rss_after_first_window;
-    let heap_end = heap_in_use_bytes().map(|h| HeapSample::new(h, recorded(steps.capacity())));
+    // The flight's end, before the daemons stop and the scoring allocates.
+    let memory_end = memory_sample(&steps, &fixer.log, [&collect_v, &collect_c]);
     let link_v = d_v.link().metrics();
     let metrics_v = d_v.shutdown().await;
     if let Some(d) = d_c {
         d.shutdown().await;
+    }
+    collect_v.take(emu_v.take_received(), &table);
+    if let Some(e) = &emu_c {
+        collect_c.take(e.take_received(), &table);
     }
 
     // Score.
     let (w0, w1) = (sc.evaluation.from_s, sc.evaluation.until_s);
     let in_window = |t: f64| t >= w0 && t <= w1;
     let soak = w1 - w0 >= 2.0 * SOAK_WINDOW_S;
-    // The recordings are moved out, not copied: a copy of an hour's would add 10-14 MB at the
-    // end of a soak.
-    let received_v = emu_v.take_received();
-    let injections = collect_injections(&received_v, &table, false)
-        .into_iter()
-        .chain(
-            emu_c
-                .iter()
-                .flat_map(|e| collect_injections(&e.take_received(), &table, true)),
-        )
-        .collect::<Vec<_>>();
-    let log = fixer
+    let steps: Vec<StepRow> = steps.iter().map(|s| s.expand(&table)).collect();
+    let injections: Vec<InjectionRow> = collect_v
+        .samples
+        .iter()
+        .chain(&collect_c.samples)
+        .map(|i| i.expand())
+        .collect();
+    let fixes: Vec<FixRow> = fixer
         .log
         .lock()
         .map(|mut l| std::mem::take(&mut *l))
         .unwrap_or_default();
-    let fixes: Vec<FixRow> = log.iter().map(|r| score_fix(r, &table, &mount)).collect();
     let wf: Vec<&FixRow> = fixes.iter().filter(|f| in_window(f.t_capture_s)).collect();
     let accepted: Vec<&&FixRow> = wf.iter().filter(|f| f.accepted).collect();
     let fix_errs: Vec<f64> = accepted.iter().map(|f| hnorm(&f.err_ned_m)).collect();
@@ -1292,16 +1340,8 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         control_err_over_sigma: over_sigma(&|s| (s.ctl_err_ned_m, s.ctl_sigma_h_m)),
         nav_sigma_h_m: Stats::of(&ws.iter().map(|s| s.vis_sigma_h_m).collect::<Vec<_>>()),
         control_sigma_h_m: Stats::of(&ws.iter().map(|s| s.ctl_sigma_h_m).collect::<Vec<_>>()),
-        nav_vel_err_m_s: Stats::of(
-            &ws.iter()
-                .map(|s| hnorm(&s.vis_vel_err_ned_m_s))
-                .collect::<Vec<_>>(),
-        ),
-        control_vel_err_m_s: Stats::of(
-            &ws.iter()
-                .map(|s| hnorm(&s.ctl_vel_err_ned_m_s))
-                .collect::<Vec<_>>(),
-        ),
+        nav_vel_err_m_s: Stats::of(&ws.iter().map(|s| s.vis_vel_err_h_m_s).collect::<Vec<_>>()),
+        control_vel_err_m_s: Stats::of(&ws.iter().map(|s| s.ctl_vel_err_h_m_s).collect::<Vec<_>>()),
         max_err_m: MaxErr {
             vision: max_enu(&|s| s.vis_err_ned_m),
             control: max_enu(&|s| s.ctl_err_ned_m),
@@ -1321,16 +1361,17 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         fix_rate_last_window: soak
             .then(|| fix_rate_in(&wf, w1 - SOAK_WINDOW_S, w1))
             .flatten(),
-        rss_mb_after_first_window: rss_after_first,
-        rss_mb_end: rss_mb(),
-        heap_mb_after_first_window: heap_after_first_window,
-        heap_mb_end: heap_end,
-        heap_growth_mb_without_recordings: heap_after_first_window
-            .zip(heap_end)
+        rss_mb_after_first_window: memory_after_first_window.and_then(|m| m.rss_mb),
+        rss_mb_end: memory_end.rss_mb,
+        heap_mb_after_first_window: memory_after_first_window.and_then(|m| m.heap),
+        heap_mb_end: memory_end.heap,
+        heap_growth_mb_without_recordings: memory_after_first_window
+            .and_then(|m| m.heap)
+            .zip(memory_end.heap)
             .map(|(a, b)| (b.total_mb - b.recordings_mb) - (a.total_mb - a.recordings_mb)),
         faults: fault_outcomes(sc, &injections, scored_kind, &fixes),
         fault_counters: (!sc.faults.is_empty())
-            .then(|| fault_counters(&received_v, emu_v.companion(), &metrics_v, &link_v)),
+            .then(|| fault_counters(&collect_v, emu_v.companion(), &metrics_v, &link_v)),
         vision_final_health: steps
             .last()
             .map(|s| s.vis_health.to_string())
@@ -1392,47 +1433,12 @@ fn fault_outcomes(
 
 /// The vision daemon's counters that the fault table names, and what the emulator received.
 fn fault_counters(
-    received: &[Received],
+    received: &InjectionCollector,
     companion: Option<(u8, u8)>,
     m: &visnav_daemon::metrics::MetricsSnapshot,
     link: &visnav_link::metrics::Metrics,
 ) -> FaultCounters {
     use std::sync::atomic::Ordering::Relaxed;
-    let mut last_gps_us = None;
-    let mut backsteps = 0;
-    let mut non_finite = 0;
-    for r in received {
-        let finite = match &r.msg {
-            MavMessage::GPS_INPUT(g) => {
-                if last_gps_us.is_some_and(|l| g.time_usec < l) {
-                    backsteps += 1;
-                }
-                last_gps_us = Some(g.time_usec);
-                [
-                    g.hdop,
-                    g.vdop,
-                    g.vn,
-                    g.ve,
-                    g.vd,
-                    g.horiz_accuracy,
-                    g.vert_accuracy,
-                ]
-                .iter()
-                .all(|v| v.is_finite())
-            }
-            MavMessage::VISION_POSITION_ESTIMATE(v) => [v.x, v.y, v.z, v.roll, v.pitch, v.yaw]
-                .iter()
-                .chain(v.covariance.iter().take(1))
-                .all(|v| v.is_finite()),
-            MavMessage::ODOMETRY(o) => [o.x, o.y, o.z, o.vx, o.vy, o.vz]
-                .iter()
-                .all(|v| v.is_finite()),
-            _ => true,
-        };
-        if !finite {
-            non_finite += 1;
-        }
-    }
     FaultCounters {
         autopilot_reboots: m.autopilot_reboots,
         relocks: link.relocks.load(Relaxed),
@@ -1440,103 +1446,22 @@ fn fault_counters(
         rx_stale: link.rx_stale.load(Relaxed),
         imu_timeouts: m.imu_timeouts,
         frames_frozen: m.frames_frozen,
-        gps_input_time_backsteps: backsteps,
-        non_finite_injections: non_finite,
-        foreign_injections: received
-            .iter()
-            .filter(|r| {
-                matches!(
-                    r.msg,
-                    MavMessage::GPS_INPUT(_)
-                        | MavMessage::VISION_POSITION_ESTIMATE(_)
-                        | MavMessage::ODOMETRY(_)
-                ) && companion.is_some_and(|(sys, _)| u32::from(sys) != r.header.system_id)
-            })
-            .count(),
+        gps_input_time_backsteps: received.gps_time_backsteps,
+        non_finite_injections: received.non_finite,
+        foreign_injections: received.foreign(companion),
     }
 }
 
-/// Every position injection the emulator received (GPS_INPUT with a 3D fix,
-/// VISION_POSITION_ESTIMATE, ODOMETRY), scored against the truth at its arrival. Local positions
-/// (VISION_POSITION_ESTIMATE, ODOMETRY: NED about the EKF origin) are compared in that frame with
-/// the origin in force when they arrived (SET_GPS_GLOBAL_ORIGIN as received).
-fn collect_injections(
-    received: &[Received],
+/// A fix against the true camera position at its capture time (run times, µs).
+fn score_fix(
+    t_capture_us: u64,
+    t_done_us: u64,
+    rep: &FixReport,
     table: &TruthTable,
-    control: bool,
-) -> Vec<InjectionRow> {
-    use visnav_link::GeoOrigin;
-    use visnav_link::inject::{local_ned_m, offset_geodetic};
-    let mut origin: Option<GeoOrigin> = None;
-    let mut rows = Vec::new();
-    for r in received {
-        let t = r.t_run_us as f64 * 1e-6;
-        let s = table.at(t);
-        #[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: what ArduPilot acts on
-        let local = match &r.msg {
-            MavMessage::SET_GPS_GLOBAL_ORIGIN(o) => {
-                origin = Some(GeoOrigin {
-                    lat_deg: f64::from(o.latitude) * 1e-7,
-                    lon_deg: f64::from(o.longitude) * 1e-7,
-                    alt_amsl_m: f64::from(o.altitude) * 1e-3,
-                });
-                None
-            }
-            MavMessage::GPS_INPUT(g) if g.fix_type as u8 >= 3 => {
-                let (lat, lon) = (f64::from(g.lat) * 1e-7, f64::from(g.lon) * 1e-7);
-                let alt = f64::from(g.alt);
-                rows.push(InjectionRow {
-                    t_s: t,
-                    kind: "gps_input",
-                    lat_deg: lat,
-                    lon_deg: lon,
-                    alt_amsl_m: alt,
-                    horiz_accuracy_m: f64::from(g.horiz_accuracy),
-                    err_ned_m: ned_diff_m((s.lat_deg, s.lon_deg, s.alt_amsl_m), (lat, lon, alt)),
-                    control,
-                });
-                None
-            }
-            MavMessage::VISION_POSITION_ESTIMATE(v) => Some((
-                "vision_position_estimate",
-                [v.x, v.y, v.z],
-                f64::from(v.covariance[0].max(v.covariance[6])),
-            )),
-            MavMessage::ODOMETRY(o) => Some((
-                "odometry",
-                [o.x, o.y, o.z],
-                f64::from(o.pose_covariance[0].max(o.pose_covariance[6])),
-            )),
-            _ => None,
-        };
-        if let (Some((kind, xyz, var_h)), Some(o)) = (local, origin.as_ref()) {
-            let p = Vector3::new(f64::from(xyz[0]), f64::from(xyz[1]), f64::from(xyz[2]));
-            let truth = local_ned_m(o, s.lat_deg, s.lon_deg, s.alt_amsl_m);
-            let (lat, lon, alt) = offset_geodetic(o.lat_deg, o.lon_deg, o.alt_amsl_m, &p);
-            let e = p - truth;
-            rows.push(InjectionRow {
-                t_s: t,
-                kind,
-                lat_deg: lat,
-                lon_deg: lon,
-                alt_amsl_m: alt,
-                horiz_accuracy_m: if var_h.is_finite() && var_h >= 0.0 {
-                    var_h.sqrt()
-                } else {
-                    f64::NAN
-                },
-                err_ned_m: [e.x, e.y, e.z],
-                control,
-            });
-        }
-    }
-    rows
-}
-
-fn score_fix(r: &FixRecord, table: &TruthTable, mount: &visnav_core::camera::Mount) -> FixRow {
-    let t = r.t_capture_us as f64 * 1e-6;
+    mount: &visnav_core::camera::Mount,
+) -> FixRow {
+    let t = t_capture_us as f64 * 1e-6;
     let s = table.at(t);
-    let rep = &r.report;
     // True camera centre: body + R_ned_body lever arm.
     let att = visnav_core::camera::Attitude::new(s.rpy_rad[0], s.rpy_rad[1], s.rpy_rad[2]);
     let lever_ned = att.r_ned_body() * mount.lever_arm_body_frd_m;
@@ -1563,7 +1488,7 @@ fn score_fix(r: &FixRecord, table: &TruthTable, mount: &visnav_core::camera::Mou
     };
     FixRow {
         t_capture_s: t,
-        latency_ms: (r.t_done_us as f64 - r.t_capture_us as f64) * 1e-3,
+        latency_ms: (t_done_us as f64 - t_capture_us as f64) * 1e-3,
         accepted: rep.accepted,
         reason: rep.reason.clone(),
         lat_deg: rep.lat_deg,

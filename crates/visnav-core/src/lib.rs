@@ -18,3 +18,4 @@ pub mod rng;
 pub mod stats;
 pub mod validate;
 pub mod vision;
+pub mod vo;

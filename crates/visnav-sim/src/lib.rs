@@ -39,5 +39,6 @@ pub mod scenario;
 pub mod surf_eval;
 pub mod synth;
 pub mod trajectory;
+pub mod vo_eval;
 
 pub use scenario::Scenario;

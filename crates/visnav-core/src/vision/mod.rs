@@ -1,9 +1,11 @@
-//! Computer vision: SURF features (Bay et al. 2008) and their matching.
+//! Computer vision: SURF features (Bay et al. 2008) and their matching; KLT feature tracking.
 //!
 //! * `gray`: grayscale `f32` images on the 8-bit intensity scale, loading and sampling.
 //! * `integral`: the summed-area table all box filters read.
 //! * `surf`: fast-Hessian detector, orientation, SURF-36/64/128 descriptors, upright mode.
 //! * `matcher`: brute-force 2-NN matching with ratio test, Laplacian gate, mutual and spatial gates.
+//! * `klt`: Shi-Tomasi corners, image pyramid, pyramidal Lucas-Kanade tracking (Bouguet 2000) with
+//!   a forward-backward check, for frame-to-frame visual odometry.
 //!
 //! Reading and writing image files is the application's (the `visnav` crate's `vision::file`).
 //!
@@ -13,6 +15,7 @@
 
 pub mod gray;
 pub mod integral;
+pub mod klt;
 pub mod matcher;
 pub mod surf;
 
@@ -36,4 +39,6 @@ pub enum VisionError {
     InvalidParam { name: &'static str, reason: String },
     #[error("matcher: {0}")]
     Matcher(String),
+    #[error("KLT tracker: {0}")]
+    Klt(String),
 }

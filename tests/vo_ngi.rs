@@ -50,3 +50,47 @@ fn ngi_baseline_from_two_frames_and_the_dem() {
         r.sigma_across_m
     );
 }
+
+/// The VGA sequence of `visnav bench vo` (a real NAIP photo on flat ground, rendered for a known
+/// nadir flight at 300 m AGL, 4 m per frame, turning and pitching): tracks carried from frame to
+/// frame, each motion within a few centimetres of the truth and consistent with its covariance.
+#[test]
+fn vga_sequence_motions_match_the_truth_within_their_sigma() {
+    let photo =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/bench/naip2014_1280x960.png");
+    if !photo.is_file() {
+        eprintln!(
+            "SKIP: {} not found (shared bench data absent)",
+            photo.display()
+        );
+        return;
+    }
+    let v = visnav::sitl::vo_eval::vga_vo(&photo, 12).expect("VGA visual odometry");
+    eprintln!(
+        "VGA: {} frames, {:.0} tracks, step error median {:.3} m max {:.3} m ({:.2} sigma), chained {:.2} m over {:.0} m",
+        v.frames,
+        v.tracks_mean,
+        v.step_err_m_p50,
+        v.step_err_m_max,
+        v.step_err_over_sigma_p50,
+        v.chained_err_m,
+        v.distance_m
+    );
+    assert_eq!(v.frames, 11);
+    assert!(v.tracks_mean > 150.0, "{} tracks per frame", v.tracks_mean);
+    assert!(
+        v.step_err_m_max < 0.2,
+        "step error up to {} m",
+        v.step_err_m_max
+    );
+    assert!(
+        v.step_err_over_sigma_p50 < 2.0,
+        "{} sigma",
+        v.step_err_over_sigma_p50
+    );
+    assert!(
+        v.chained_err_m < 0.02 * v.distance_m,
+        "chained {} m",
+        v.chained_err_m
+    );
+}

@@ -34,6 +34,9 @@ pub enum BenchWhat {
     /// The vision fix on NAIP cross-date frames (map 2009, frames 2014): fix rate, error
     /// against truth, frame-to-fix time p50/p95.
     Fix(super::bench_fix::FixBenchArgs),
+    /// Visual odometry: NGI frames 0182 -> 0184 against their measured poses (direction and
+    /// length of the baseline), and the per-frame time on a VGA pair.
+    Vo(super::bench_vo::VoBenchArgs),
 }
 
 #[derive(clap::Args, Debug)]
@@ -123,6 +126,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
         BenchWhat::Pose(a) => run_pose(a),
         BenchWhat::Render(a) => run_render(a),
         BenchWhat::Fix(a) => super::bench_fix::run(a),
+        BenchWhat::Vo(a) => super::bench_vo::run(a),
     }
 }
 

@@ -4,6 +4,8 @@
 pub mod bench;
 #[cfg(feature = "sim")]
 pub mod bench_fix;
+#[cfg(feature = "sim")]
+pub mod bench_vo;
 pub mod check_config;
 pub mod fix;
 pub mod map;

@@ -82,6 +82,10 @@ pub struct VoConfig {
     pub resection: ResectionConfig,
 }
 
+/// Largest deviation of a given rotation from orthonormality (`|R R^T - I|` elementwise): rounding
+/// of products of rotations is 1e-15 to 1e-8; more is not a rotation.
+const MAX_ROTATION_DRIFT: f64 = 1e-6;
+
 /// Default fewest tracks: three times the P3P sample, so RANSAC has a consensus to find and the
 /// adjustment a redundancy.
 const DEFAULT_MIN_TRACKS: usize = 12;
@@ -300,17 +304,21 @@ fn next_attitude_prior(
         .chain(r.cov_prev_rad2.iter())
         .all(|v| v.is_finite());
     let positive = r.cov_prev_rad2.symmetric_eigenvalues().min() > 0.0;
-    if !(finite && positive) {
+    let m = r.r_prev_next.matrix();
+    let orthonormal = (m * m.transpose() - Matrix3::identity()).amax() <= MAX_ROTATION_DRIFT;
+    if !(finite && positive && orthonormal) {
         return Err(VoRejection::InvalidInput(
-            "the gyros' rotation prior is not finite or its covariance not positive definite"
+            "the gyros' rotation prior is not finite or not a rotation, or its covariance is not positive definite"
                 .into(),
         ));
     }
     let mut resection = cfg.resection.clone();
     resection.refine.use_attitude_prior = true;
+    let mut r_world_next = prev.r_world_cam * r.r_prev_next;
+    r_world_next.renormalize();
     let priors = Priors {
         attitude: Some(AttitudePrior {
-            r_world_cam: prev.r_world_cam * r.r_prev_next,
+            r_world_cam: r_world_next,
             cov_rad2: rotate_cov3(&r.cov_prev_rad2, &prev.r_world_cam),
         }),
         position: None,
@@ -641,6 +649,19 @@ mod tests {
         assert!(matches!(
             solve(&t, &a, 0.0, Some(wrong), &dem),
             Err(VoRejection::Resection(_))
+        ));
+        let mut drifted = gyro(&a, &b);
+        drifted.r_prev_next =
+            Rotation3::from_matrix_unchecked(drifted.r_prev_next.matrix() * (1.0 + 1e-8));
+        assert!(
+            solve(&t, &a, 0.0, Some(drifted), &dem).is_ok(),
+            "rounding drift refused"
+        );
+        let mut scaled = gyro(&a, &b);
+        scaled.r_prev_next = Rotation3::from_matrix_unchecked(scaled.r_prev_next.matrix() * 1.01);
+        assert!(matches!(
+            solve(&t, &a, 0.0, Some(scaled), &dem),
+            Err(VoRejection::InvalidInput(_))
         ));
         let mut singular = gyro(&a, &b);
         singular.cov_prev_rad2 = Matrix3::zeros();

@@ -189,3 +189,290 @@ pub fn ngi_vo(dir: &Path) -> Result<NgiVo, VoEvalError> {
         ms_motion,
     })
 }
+
+/// The VGA sequence of the timing bench: a real NAIP photo (`../shared/data/bench`, 1280 x 960)
+/// laid on flat ground at `TEXTURE_GSD_M` per pixel, seen by a nadir VGA camera (60 deg wide) at
+/// `VGA_AGL_M` flying `VGA_STEP_M` per frame (20 m/s at 5 Hz, climbing) while it turns by
+/// `VGA_YAW_STEP_DEG` and pitches by up to `VGA_PITCH_DEG`. Each frame is rendered from the photo
+/// for its true pose (rays onto the ground, bilinear samples). Not a map: nothing is matched
+/// against the photo; it gives the tracker real texture under a known motion.
+const VGA_AGL_M: f64 = 300.0;
+const VGA_STEP_M: [f64; 3] = [3.2, 2.4, 0.3];
+const VGA_YAW_STEP_DEG: f64 = 0.5;
+const VGA_PITCH_DEG: f64 = 0.3;
+/// The photo's ground sampling: the VGA camera's at 300 m (0.54 m/px), so the photo covers twice
+/// the frame's footprint each way and the sequence never sees its edge.
+const TEXTURE_GSD_M: f64 = VGA_AGL_M / VGA_FOCAL_PX;
+/// VGA with a 60 deg horizontal field of view: fx = 320 / tan(30 deg).
+const VGA_FOCAL_PX: f64 = 554.256;
+/// Gyro noise over the 0.2 s between frames, deg (a consumer MEMS gyro: bias 20 deg/h and
+/// 0.3 deg/sqrt(h) of random walk give about 0.001 deg; 0.01 deg is taken).
+const VGA_GYRO_SIGMA_DEG: f64 = 0.01;
+/// Tracks kept alive from frame to frame; new corners are detected when fewer remain.
+const VGA_MAX_CORNERS: usize = 300;
+const VGA_REPLENISH_BELOW: usize = 200;
+/// New corners keep this distance from live tracks, px.
+const VGA_NEW_CORNER_DISTANCE_PX: f32 = 10.0;
+
+/// The VGA figures (`visnav bench vo --json`: the `vga` keys).
+#[derive(Debug, Clone, Serialize)]
+pub struct VgaVo {
+    /// Frame pairs solved.
+    pub frames: usize,
+    /// Per frame on one thread: the new frame's pyramid, tracking forward and backward, the
+    /// motion, and new corners when the tracks run low: median / 95th percentile / minimum, ms.
+    pub ms_p50: f64,
+    pub ms_p95: f64,
+    pub ms_min: f64,
+    /// Medians of the parts, ms.
+    pub ms_pyramid: f64,
+    pub ms_track: f64,
+    pub ms_motion: f64,
+    pub ms_replenish: f64,
+    /// Frames on which new corners were detected.
+    pub replenished: usize,
+    /// Mean tracks in and inliers out per frame.
+    pub tracks_mean: f64,
+    pub inliers_mean: f64,
+    /// Per step: displacement error against the truth, m (median, max), and its Mahalanobis
+    /// distance (median).
+    pub step_err_m_p50: f64,
+    pub step_err_m_max: f64,
+    pub step_err_over_sigma_p50: f64,
+    /// The true step, m.
+    pub step_m: f64,
+    /// Visual odometry alone (each motion chained onto the last estimate, no filter): distance
+    /// flown and the position error at the end, m.
+    pub distance_m: f64,
+    pub chained_err_m: f64,
+}
+
+/// Nadir camera at `c`, heading `yaw_rad` (camera x east at 0), pitched by `pitch_rad` about its
+/// x axis.
+fn nadir_pose(c: Vector3<f64>, yaw_rad: f64, pitch_rad: f64) -> Pose {
+    use nalgebra::{Matrix3, Rotation3};
+    let nadir = Rotation3::from_matrix_unchecked(Matrix3::new(
+        1.0, 0.0, 0.0, //
+        0.0, -1.0, 0.0, //
+        0.0, 0.0, -1.0,
+    ));
+    Pose {
+        r_world_cam: Rotation3::from_axis_angle(&Vector3::z_axis(), yaw_rad)
+            * nadir
+            * Rotation3::from_axis_angle(&Vector3::x_axis(), pitch_rad),
+        c_world: c,
+    }
+}
+
+/// The frame `pose` sees of the photo laid on the ground (z = 0, centred on the origin, north up,
+/// `TEXTURE_GSD_M` per pixel): each pixel's ray onto the ground, bilinear sample (0 off the photo).
+fn render_flat(texture: &GrayImage, image: &ImageGeometry, pose: &Pose) -> GrayImage {
+    let (cx, cy) = (
+        (texture.width() as f64 - 1.0) / 2.0,
+        (texture.height() as f64 - 1.0) / 2.0,
+    );
+    GrayImage::from_fn(image.width_px as usize, image.height_px as usize, |x, y| {
+        let d = pose.r_world_cam
+            * Vector3::new(
+                (x as f64 - image.cx_px) / image.fx_px,
+                (y as f64 - image.cy_px) / image.fy_px,
+                1.0,
+            );
+        if d.z >= 0.0 {
+            return 0.0;
+        }
+        let g = pose.c_world + d * (-pose.c_world.z / d.z);
+        texture
+            .sample_bilinear(cx + g.x / TEXTURE_GSD_M, cy - g.y / TEXTURE_GSD_M)
+            .unwrap_or(0.0)
+    })
+}
+
+/// The true poses of the VGA sequence (`VGA_*`), centred on the photo.
+fn vga_poses(frames: usize) -> Vec<Pose> {
+    let step = Vector3::from(VGA_STEP_M);
+    let start = Vector3::new(0.0, 0.0, VGA_AGL_M) - step * (frames as f64 / 2.0);
+    (0..frames)
+        .map(|k| {
+            let kf = k as f64;
+            nadir_pose(
+                start + step * kf,
+                0.3 + (VGA_YAW_STEP_DEG * kf).to_radians(),
+                (VGA_PITCH_DEG * (0.7 * kf).sin()).to_radians(),
+            )
+        })
+        .collect()
+}
+
+/// Corners of `pyr` at least `VGA_NEW_CORNER_DISTANCE_PX` from every live track, added to them up
+/// to `VGA_MAX_CORNERS`.
+fn replenish(
+    pyr: &visnav_core::vision::klt::Pyramid,
+    live: &mut Vec<[f32; 2]>,
+    fp: &visnav_core::vision::klt::FeatureParams,
+) -> Result<(), VoEvalError> {
+    let fresh = pyr
+        .good_features(fp)
+        .map_err(|e| VoEvalError::Vision(e.to_string()))?;
+    let d2 = VGA_NEW_CORNER_DISTANCE_PX * VGA_NEW_CORNER_DISTANCE_PX;
+    let existing = live.clone();
+    for c in fresh {
+        if live.len() >= VGA_MAX_CORNERS {
+            break;
+        }
+        let far = existing
+            .iter()
+            .all(|p| (p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) >= d2);
+        if far {
+            live.push(c);
+        }
+    }
+    Ok(())
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    quantile(v, 0.5)
+}
+
+fn quantile(v: &mut [f64], p: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * p).round() as usize]
+}
+
+/// Visual odometry over the VGA sequence (`VGA_*`), timed per frame on the calling thread:
+/// tracks carried from frame to frame, replenished when they run low, each motion solved from
+/// the previous estimate (chained, no filter) with the gyros' rotation (`VGA_GYRO_SIGMA_DEG` off).
+pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> {
+    use visnav_core::geo::dem::Dem;
+    use visnav_core::vision::klt::{self, FeatureParams, Pyramid, SpreadGrid, TrackParams};
+    use visnav_core::vo::RotationPrior;
+    let vision = |e: visnav_core::vision::VisionError| VoEvalError::Vision(e.to_string());
+    let texture = GrayImage::load(texture_path).map_err(|e| VoEvalError::Data {
+        path: texture_path.to_path_buf(),
+        reason: e.to_string(),
+    })?;
+    let image = ImageGeometry {
+        fx_px: VGA_FOCAL_PX,
+        fy_px: VGA_FOCAL_PX,
+        cx_px: 319.5,
+        cy_px: 239.5,
+        width_px: 640,
+        height_px: 480,
+    };
+    let poses = vga_poses(frames.max(2));
+    let imgs: Vec<GrayImage> = poses
+        .iter()
+        .map(|p| render_flat(&texture, &image, p))
+        .collect();
+    let dem = Dem::flat(0.0).map_err(|e| VoEvalError::Vision(e.to_string()))?;
+    let (tp, cfg) = (TrackParams::default(), VoConfig::default());
+    let fp = FeatureParams {
+        max_corners: VGA_MAX_CORNERS,
+        spread: Some(SpreadGrid {
+            cols: 8,
+            rows: 6,
+            max_per_cell: VGA_MAX_CORNERS.div_ceil(48),
+        }),
+        ..FeatureParams::default()
+    };
+    let gyro_err = nalgebra::Rotation3::from_axis_angle(
+        &nalgebra::Unit::new_normalize(Vector3::new(1.0, -1.0, 0.5)),
+        VGA_GYRO_SIGMA_DEG.to_radians(),
+    );
+    let mut pyr_prev = Pyramid::new(&imgs[0], tp.max_level, tp.win_size_px).map_err(vision)?;
+    let mut live = Vec::new();
+    replenish(&pyr_prev, &mut live, &fp)?;
+    let mut est = poses[0];
+    let (mut total, mut t_pyr, mut t_trk, mut t_mot, mut t_rep) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut errs, mut err_sig, mut tracks_n, mut inliers_n) =
+        (Vec::new(), Vec::new(), 0usize, 0usize);
+    let mut replenished = 0;
+    for k in 1..poses.len() {
+        let t0 = Instant::now();
+        let pyr = Pyramid::new(&imgs[k], tp.max_level, tp.win_size_px).map_err(vision)?;
+        let t1 = Instant::now();
+        let tracks = klt::track_checked(&pyr_prev, &pyr, &live, None, &tp).map_err(vision)?;
+        let (pairs, kept): (Vec<TrackPair>, Vec<[f32; 2]>) = live
+            .iter()
+            .zip(&tracks)
+            .filter(|(_, t)| t.is_tracked())
+            .map(|(a, t)| {
+                let pair = TrackPair {
+                    prev_px: Vector2::new(f64::from(a[0]), f64::from(a[1])),
+                    next_px: Vector2::new(f64::from(t.point[0]), f64::from(t.point[1])),
+                };
+                (pair, t.point)
+            })
+            .unzip();
+        let t2 = Instant::now();
+        let rotation_prior = Some(RotationPrior {
+            r_prev_next: poses[k - 1].r_world_cam.inverse() * poses[k].r_world_cam * gyro_err,
+            cov_prev_rad2: nalgebra::Matrix3::identity() * VGA_GYRO_SIGMA_DEG.to_radians().powi(2),
+        });
+        let input = VoInput {
+            tracks: &pairs,
+            image: &image,
+            prev: est,
+            prev_height_sigma_m: 0.0,
+            rotation_prior,
+        };
+        let m = frame_motion(&input, &dem, &cfg).map_err(|e| VoEvalError::Data {
+            path: texture_path.to_path_buf(),
+            reason: format!("frame {k}: no motion: {e}"),
+        })?;
+        let t3 = Instant::now();
+        live = kept;
+        if live.len() < VGA_REPLENISH_BELOW {
+            replenish(&pyr, &mut live, &fp)?;
+            replenished += 1;
+        }
+        let t4 = Instant::now();
+        let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
+        total.push(ms(t0, t4));
+        t_pyr.push(ms(t0, t1));
+        t_trk.push(ms(t1, t2));
+        t_mot.push(ms(t2, t3));
+        t_rep.push(ms(t3, t4));
+        let e = m.dp_world_m - (poses[k].c_world - poses[k - 1].c_world);
+        errs.push(e.norm());
+        err_sig.push(
+            m.cov_dp_world_m2
+                .try_inverse()
+                .map_or(f64::NAN, |i| e.dot(&(i * e)).sqrt()),
+        );
+        tracks_n += pairs.len();
+        inliers_n += m.inliers;
+        let mut r = est.r_world_cam * m.r_prev_next;
+        r.renormalize();
+        est = Pose {
+            r_world_cam: r,
+            c_world: est.c_world + m.dp_world_m,
+        };
+        pyr_prev = pyr;
+    }
+    let n = total.len();
+    let last = poses.len() - 1;
+    Ok(VgaVo {
+        frames: n,
+        ms_p50: median(&mut total),
+        ms_p95: quantile(&mut total, 0.95),
+        ms_min: quantile(&mut total, 0.0),
+        ms_pyramid: median(&mut t_pyr),
+        ms_track: median(&mut t_trk),
+        ms_motion: median(&mut t_mot),
+        ms_replenish: median(&mut t_rep),
+        replenished,
+        tracks_mean: tracks_n as f64 / n as f64,
+        inliers_mean: inliers_n as f64 / n as f64,
+        step_err_m_p50: median(&mut errs.clone()),
+        step_err_m_max: errs.iter().copied().fold(0.0, f64::max),
+        step_err_over_sigma_p50: median(&mut err_sig),
+        step_m: Vector3::from(VGA_STEP_M).norm(),
+        distance_m: (poses[last].c_world - poses[0].c_world).norm(),
+        chained_err_m: (est.c_world - poses[last].c_world).norm(),
+    })
+}

@@ -42,7 +42,9 @@ use crate::validate::{Problems, Validate};
 pub use integrity::{FixQuality, IntegrityConfig, Rejection, Verdict, check, chi2_quantile};
 pub use p3p::{P3pSolution, P3pSolutions, p3p_lambda_twist};
 pub use ransac::{RansacConfig, RansacResult, ransac_p3p};
-pub use refine::{RefineConfig, RefineError, Refined, RobustLoss, refine_pose, rotate_cov3};
+pub use refine::{
+    RefineConfig, RefineError, Refined, RobustLoss, log_so3, refine_pose, rotate_cov3,
+};
 
 /// One 2-D/3-D correspondence.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -576,7 +578,7 @@ fn prior_consistency(
         inv3(&s).map_or(f64::INFINITY, |si| (d.transpose() * si * d)[0])
     });
     let attitude = priors.attitude.map(|a| {
-        let phi = (vision.r_world_cam * a.r_world_cam.inverse()).scaled_axis();
+        let phi = log_so3(&(vision.r_world_cam * a.r_world_cam.inverse()));
         let s = cons.fixed_view::<3, 3>(0, 0) + a.cov_rad2;
         inv3(&s).map_or(f64::INFINITY, |si| (phi.transpose() * si * phi)[0])
     });
@@ -755,7 +757,7 @@ pub fn split_variance_factor(
         let Some(inv) = cov_g.try_inverse() else {
             continue;
         };
-        let phi = (r.pose.r_world_cam * full.pose.r_world_cam.inverse()).scaled_axis();
+        let phi = log_so3(&(r.pose.r_world_cam * full.pose.r_world_cam.inverse()));
         let dc = r.pose.c_world - full.pose.c_world;
         let d = Vector6::new(phi.x, phi.y, phi.z, dc.x, dc.y, dc.z);
         let shrink = 1.0 - g.len() as f64 / n as f64;

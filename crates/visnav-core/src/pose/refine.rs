@@ -183,6 +183,23 @@ pub struct Refined {
     pub condition_number: f64,
 }
 
+/// The rotation vector of `r` (its logarithm, angle in `[0, pi]`), through the unit quaternion
+/// (Shepperd's method) and `atan2`. nalgebra's `Rotation3::scaled_axis` takes the `acos` of
+/// `(trace - 1) / 2`, which is NaN when a product of rotations that drifted from orthonormality by
+/// rounding (1e-8 after a few dozen products) pushes it past 1 near the identity: found by the
+/// visual odometry's chained attitude.
+pub fn log_so3(r: &Rotation3<f64>) -> Vector3<f64> {
+    let q = nalgebra::UnitQuaternion::from_rotation_matrix(r);
+    let (w, v) = (q.w, q.imag());
+    // The shorter way round: q and -q are the same rotation.
+    let (w, v) = if w < 0.0 { (-w, -v) } else { (w, v) };
+    let s = v.norm();
+    if s.is_nan() || s <= 0.0 {
+        return Vector3::zeros();
+    }
+    v * (2.0 * s.atan2(w) / s)
+}
+
 /// 3x3 skew-symmetric matrix `[v]_x`.
 pub fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
     Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
@@ -258,7 +275,7 @@ impl PriorTerm {
         })
     }
     fn residual(&self, r_world_cam: &Rotation3<f64>) -> (Vector3<f64>, Matrix3<f64>) {
-        let phi = (r_world_cam * self.r_prior.inverse()).scaled_axis();
+        let phi = log_so3(&(r_world_cam * self.r_prior.inverse()));
         (self.l_inv * phi, self.l_inv * so3_left_jacobian_inv(&phi))
     }
 }
@@ -433,6 +450,32 @@ pub fn rotate_cov3(cov_b: &Matrix3<f64>, r_a_b: &Rotation3<f64>) -> Matrix3<f64>
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_log_of_a_drifted_rotation_is_finite_and_right() {
+        // A rotation 2e-4 rad from the identity whose matrix drifted from orthonormality by 1e-8
+        // (what chaining a few dozen relative rotations does): nalgebra's scaled_axis gives NaN.
+        let truth = Vector3::new(1e-4, -1.5e-4, 0.5e-4);
+        let exact = Rotation3::from_scaled_axis(truth);
+        let drifted: Rotation3<f64> =
+            Rotation3::from_matrix_unchecked(exact.matrix() * (1.0 + 1.2e-8));
+        assert!(
+            drifted.scaled_axis().iter().any(|v: &f64| v.is_nan()),
+            "the trap is still there"
+        );
+        let phi = log_so3(&drifted);
+        assert!((phi - truth).norm() < 1e-9, "{phi:?}");
+        // Large angles, both signs of the quaternion, the identity.
+        for v in [
+            Vector3::new(0.0, 0.0, 3.0),
+            Vector3::new(-2.0, 1.0, 0.5),
+            Vector3::new(0.3, -0.2, 0.1),
+        ] {
+            let p = log_so3(&Rotation3::from_scaled_axis(v));
+            assert!((p - v).norm() < 1e-12, "{v:?} -> {p:?}");
+        }
+        assert_eq!(log_so3(&Rotation3::identity()), Vector3::zeros());
+    }
     use crate::rng::Rng;
     use crate::validate::{Problems, Validate};
 

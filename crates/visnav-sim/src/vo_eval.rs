@@ -1,5 +1,6 @@
-//! Visual odometry against real frames with measured poses (`visnav bench vo`, issue 22): NGI 3324C
-//! strip 05, frames 0182 -> 0184 (`../shared/data/ngi_3324c`: Intergraph DMC frames at 640 x
+//! Visual odometry measured (`visnav bench vo`, issue 22): on a rendered VGA sequence with a known
+//! flight ([`vga_vo`], timed per frame), and against real frames with measured poses ([`ngi_vo`]):
+//! NGI 3324C strip 05, frames 0182 -> 0184 (`../shared/data/ngi_3324c`: Intergraph DMC frames at 640 x
 //! 1152 px, poses from aerial triangulation, a 24 m DEM). The camera moved 2.6 km west at about
 //! 4.8 km above a valley of 150-780 m, so the frames overlap in a strip of about a third of each.
 //!
@@ -66,8 +67,8 @@ pub struct NgiVo {
     pub sigma_across_m: f64,
     /// Reprojection RMS of the inliers, px.
     pub rms_px: f64,
-    /// Time of matching and motion (SURF excluded), ms.
-    pub ms_motion: f64,
+    /// Time of the brute-force matching and the motion (SURF excluded), ms.
+    pub ms_match_and_motion: f64,
 }
 
 /// A frame's measured pose from `frames_truth.csv`.
@@ -163,7 +164,7 @@ pub fn ngi_vo(dir: &Path) -> Result<NgiVo, VoEvalError> {
         path: dir.join(NEXT_FRAME),
         reason: format!("no motion: {e}"),
     })?;
-    let ms_motion = t0.elapsed().as_secs_f64() * 1e3;
+    let ms_match_and_motion = t0.elapsed().as_secs_f64() * 1e3;
     let truth = next.c_world - prev.c_world;
     let dp = m.dp_world_m;
     let dir_err_deg = (dp.dot(&truth) / (dp.norm() * truth.norm()))
@@ -186,7 +187,7 @@ pub fn ngi_vo(dir: &Path) -> Result<NgiVo, VoEvalError> {
         sigma_along_m: along.dot(&(h * along)).sqrt(),
         sigma_across_m: across.dot(&(h * across)).sqrt(),
         rms_px: m.rms_px,
-        ms_motion,
+        ms_match_and_motion,
     })
 }
 

@@ -456,20 +456,8 @@ mod tests {
     use crate::geo::raster::{GeoTransform, Raster, RasterData};
     use crate::rng::Rng;
 
-    /// A nadir-looking camera (x right = east, y down = south, z forward = down) at `c`, turned
-    /// by `yaw_rad` about the vertical and tilted by `tilt_rad` about its x axis.
     fn camera(c: Vector3<f64>, yaw_rad: f64, tilt_rad: f64) -> Pose {
-        let nadir = Rotation3::from_matrix_unchecked(Matrix3::new(
-            1.0, 0.0, 0.0, //
-            0.0, -1.0, 0.0, //
-            0.0, 0.0, -1.0,
-        ));
-        Pose {
-            r_world_cam: Rotation3::from_axis_angle(&Vector3::z_axis(), yaw_rad)
-                * nadir
-                * Rotation3::from_axis_angle(&Vector3::x_axis(), tilt_rad),
-            c_world: c,
-        }
+        Pose::nadir(c, yaw_rad, tilt_rad)
     }
 
     fn vga() -> ImageGeometry {

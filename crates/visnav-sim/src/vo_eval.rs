@@ -248,23 +248,6 @@ pub struct VgaVo {
     pub chained_err_m: f64,
 }
 
-/// Nadir camera at `c`, heading `yaw_rad` (camera x east at 0), pitched by `pitch_rad` about its
-/// x axis.
-fn nadir_pose(c: Vector3<f64>, yaw_rad: f64, pitch_rad: f64) -> Pose {
-    use nalgebra::{Matrix3, Rotation3};
-    let nadir = Rotation3::from_matrix_unchecked(Matrix3::new(
-        1.0, 0.0, 0.0, //
-        0.0, -1.0, 0.0, //
-        0.0, 0.0, -1.0,
-    ));
-    Pose {
-        r_world_cam: Rotation3::from_axis_angle(&Vector3::z_axis(), yaw_rad)
-            * nadir
-            * Rotation3::from_axis_angle(&Vector3::x_axis(), pitch_rad),
-        c_world: c,
-    }
-}
-
 /// The frame `pose` sees of the photo laid on the ground (z = 0, centred on the origin, north up,
 /// `TEXTURE_GSD_M` per pixel): each pixel's ray onto the ground, bilinear sample (0 off the photo).
 fn render_flat(texture: &GrayImage, image: &ImageGeometry, pose: &Pose) -> GrayImage {
@@ -296,7 +279,7 @@ fn vga_poses(frames: usize) -> Vec<Pose> {
     (0..frames)
         .map(|k| {
             let kf = k as f64;
-            nadir_pose(
+            Pose::nadir(
                 start + step * kf,
                 0.3 + (VGA_YAW_STEP_DEG * kf).to_radians(),
                 (VGA_PITCH_DEG * (0.7 * kf).sin()).to_radians(),

@@ -126,6 +126,25 @@ pub struct Pose {
 }
 
 impl Pose {
+    /// A camera looking straight down from `c_world` (world x east, y north, z up): camera x east,
+    /// y south, z down at `yaw_rad = 0`; turned by `yaw_rad` about the vertical (counter-clockwise
+    /// seen from above), then tilted by `tilt_rad` about its own x axis (a positive tilt turns the
+    /// optical axis towards the image's top edge: north at `yaw_rad = 0`). For synthetic scenes and
+    /// benchmarks.
+    pub fn nadir(c_world: Vector3<f64>, yaw_rad: f64, tilt_rad: f64) -> Self {
+        let down = Rotation3::from_matrix_unchecked(Matrix3::new(
+            1.0, 0.0, 0.0, //
+            0.0, -1.0, 0.0, //
+            0.0, 0.0, -1.0,
+        ));
+        Pose {
+            r_world_cam: Rotation3::from_axis_angle(&Vector3::z_axis(), yaw_rad)
+                * down
+                * Rotation3::from_axis_angle(&Vector3::x_axis(), tilt_rad),
+            c_world,
+        }
+    }
+
     /// Camera-frame coordinates of a world point: `R_world_cam^T (X - C)`.
     pub fn to_cam(&self, p_world: &Vector3<f64>) -> Vector3<f64> {
         self.r_world_cam.inverse() * (p_world - self.c_world)

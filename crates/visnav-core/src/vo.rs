@@ -6,10 +6,14 @@
 //!    ([`Dem::intersect_ray`]: a DEM / surface model, or flat ground at a known height): a 3-D point.
 //! 2. The next frame's pose is the space resection ([`crate::pose::resect`]: LO-RANSAC over P3P,
 //!    Levenberg-Marquardt, covariance) of those points against the features' positions in the next
-//!    frame, with no prior (the motion comes from the images alone).
+//!    frame. When the gyros' rotation between the frames is given ([`RotationPrior`]) it is fused
+//!    as the next frame's attitude prior: one frame cannot tell a small tilt from a sideways shift,
+//!    the gyros over a fraction of a second can.
 //! 3. The motion is the difference of the two poses: the displacement of the projection centre
-//!    `dp_world_m = C_next - C_prev` and the relative rotation `R_prev_next = R_world_prev^T
-//!    R_world_next` (takes next-camera vectors into the previous camera frame).
+//!    `dp_world_m = C_next - C_prev`, from the pose with the gyros' rotation fused, and the relative
+//!    rotation `R_prev_next = R_world_prev^T R_world_next` (takes next-camera vectors into the
+//!    previous camera frame), from the images alone (`vision_pose`: a filter that propagates with
+//!    the same gyros must not be handed their rotation back as a measurement).
 //!
 //! This is the similarity model of the nadir case (Chan 2022, NPS thesis: pixel shift, rotation
 //! and scale turned into metric motion with the height) and the homography of a tilted camera over
@@ -24,22 +28,29 @@
 //!   does not change. A filter that fuses `dp_world_m` expresses it in its own heading frame of
 //!   the previous instant (the heading this pose was given with), where the yaw error cancels;
 //! * a tilt error shifts the ground points sideways by about `AGL * dtilt` and the next centre with
-//!   them: the displacement changes by second-order terms only;
+//!   them; for a camera looking `theta` off the vertical it also changes the range to the ground,
+//!   so the displacement is scaled by about `1 + tan(theta) dtilt` (first order: zero for a nadir
+//!   camera, 1.5 % at 60 deg and 0.5 deg). In the covariance as
+//!   `(sigma_tilt tan(theta))^2 dp dp^T` with the caller's tilt sigma of the previous pose. Over
+//!   relief the yaw statement is approximate too (a turned ray bundle meets other heights);
 //! * a height error `dh` scales the scene: the displacement is wrong by the factor `1 + dh / AGL`.
 //!   This is in the covariance: `(sigma_h / AGL)^2 dp dp^T` with `sigma_h` the caller's height
 //!   uncertainty of the previous pose (filter plus terrain model).
 //!
 //! The covariance of the displacement is the resection's position covariance of the next frame
-//! (conservative: a-posteriori, floored at the a-priori) with the observations' sigma
-//! `sqrt(2) track_sigma_px` (both frames' feature noise, the previous frame's reaching the ground
-//! points) plus the scale term above. The rotation's covariance is the resection's attitude
-//! covariance expressed in the previous camera frame.
+//! (conservative: a-posteriori, floored at the a-priori; with the gyros' rotation fused when
+//! given) with the observations' sigma `sqrt(2) track_sigma_px` (both frames' feature noise, the
+//! previous frame's reaching the ground points) plus the two scale terms above. The rotation's
+//! covariance is the image-only resection's attitude covariance expressed in the previous camera
+//! frame. Not yet passed on: the part of the displacement that follows the gyros' error
+//! (`Fix::prior_dependence`, about AGL x the gyro error: 5 cm at 300 m for 0.01 deg).
 //!
 //! # What it refuses
 //! Too few tracks, too few of them on the terrain (sky, outside the DEM, holes), no consensus or a
 //! failed integrity check of the resection, a result with non-finite numbers, and a motion whose
-//! horizontal sigma exceeds [`VoConfig::max_sigma_agl_fraction`] of the height above ground (flat
-//! or repetitive texture, features clustered in a corner). Tracks that did not move at all are
+//! horizontal or vertical sigma exceeds [`VoConfig::max_sigma_agl_fraction`] of the height above
+//! ground or whose image-only attitude sigma exceeds the resection's `max_attitude_sigma_deg`
+//! (flat or repetitive texture, features clustered in a corner). Tracks that did not move at all are
 //! legitimate (a hovering aircraft), but the caller must not feed a frozen camera (an identical
 //! frame gives zero motion; the daemon drops such frames before tracking).
 //!
@@ -86,6 +97,12 @@ pub struct VoConfig {
 /// of products of rotations is 1e-15 to 1e-8; more is not a rotation.
 const MAX_ROTATION_DRIFT: f64 = 1e-6;
 
+/// Orthonormal within [`MAX_ROTATION_DRIFT`] and proper (determinant +1, not a reflection).
+fn is_rotation(r: &Rotation3<f64>) -> bool {
+    let m = r.matrix();
+    (m * m.transpose() - Matrix3::identity()).amax() <= MAX_ROTATION_DRIFT && m.determinant() > 0.0
+}
+
 /// Default fewest tracks: three times the P3P sample, so RANSAC has a consensus to find and the
 /// adjustment a redundancy.
 const DEFAULT_MIN_TRACKS: usize = 12;
@@ -119,8 +136,8 @@ impl Default for VoConfig {
 /// are [`VoConfig::max_sigma_agl_fraction`]'s (metres do not scale with height).
 fn vo_integrity() -> IntegrityConfig {
     IntegrityConfig {
-        // One column of the 3 x 3 grid: a 30 % overlap.
-        min_grid_cells: 2,
+        // One column (or row) of the 3 x 3 grid: a 30 % overlap.
+        min_grid_cells: 3,
         min_hull_area_fraction: 0.02,
         min_spread_eig_ratio: 0.05,
         max_horizontal_sigma_m: 1e6,
@@ -179,9 +196,10 @@ pub enum VoRejection {
     #[error("next frame's resection: {0}")]
     Resection(Rejection),
     #[error(
-        "horizontal sigma {sigma_h_m:.1} m is over {max_fraction} of the height above ground ({agl_m:.0} m)"
+        "sigma {sigma_h_m:.1} m is over {max_fraction} of the height above ground ({agl_m:.0} m)"
     )]
     TooUncertain {
+        /// The larger of the horizontal and vertical sigma, m.
         sigma_h_m: f64,
         agl_m: f64,
         max_fraction: f64,
@@ -195,12 +213,13 @@ pub struct FrameMotion {
     pub dp_world_m: Vector3<f64>,
     /// Its covariance, world frame, m^2.
     pub cov_dp_world_m2: Matrix3<f64>,
-    /// `R_world_prev^T R_world_next`: next-camera vectors into the previous camera frame.
+    /// `R_world_prev^T R_world_next` from the images alone (the gyros' rotation not fused):
+    /// next-camera vectors into the previous camera frame.
     pub r_prev_next: Rotation3<f64>,
-    /// Covariance of the relative rotation as a rotation vector in the previous camera frame,
-    /// rad^2.
+    /// Covariance of that relative rotation as a rotation vector in the previous camera frame,
+    /// applied on the left, rad^2.
     pub cov_rot_prev_rad2: Matrix3<f64>,
-    /// The next frame's pose as solved (world frame).
+    /// The next frame's pose as solved, with the gyros' rotation fused when given (world frame).
     pub next: Pose,
     /// Mean height of the previous centre above the tracked ground points, m.
     pub agl_m: f64,
@@ -214,8 +233,10 @@ pub struct FrameMotion {
 
 /// The camera's rotation between the two frames as the gyros measured it: `R_prev_next`
 /// (next-camera vectors into the previous camera frame) and the covariance of its error as a
-/// rotation vector in the previous camera frame, rad^2 (gyro noise and bias over the interval,
-/// not the filter's attitude uncertainty: a common attitude error cancels, see the module doc).
+/// rotation vector in the previous camera frame, applied on the left (`R_true = Exp(psi_prev)
+/// R_prev_next`), rad^2 (gyro noise and bias over the interval, not the filter's attitude
+/// uncertainty: a common attitude error cancels, see the module doc). A gyro integrator's error is
+/// naturally on the right, in the next frame: `Exp(R_prev_next psi_next) R_prev_next`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RotationPrior {
     pub r_prev_next: Rotation3<f64>,
@@ -232,6 +253,9 @@ pub struct VoInput<'a> {
     /// 1-sigma of its height above the terrain model: the filter's vertical sigma and the
     /// model's own error, m.
     pub prev_height_sigma_m: f64,
+    /// 1-sigma of its tilt (roll and pitch), rad: it scales the displacement of an oblique camera
+    /// (module doc).
+    pub prev_tilt_sigma_rad: f64,
     /// The gyros' rotation between the frames, when known. A single frame's resection cannot
     /// tell a small tilt from a sideways shift (at 500 m, 0.05 deg is 0.4 m); the gyros' relative
     /// rotation over a fraction of a second removes that ambiguity from the displacement.
@@ -249,10 +273,17 @@ pub fn frame_motion(
         image,
         prev,
         prev_height_sigma_m,
+        prev_tilt_sigma_rad,
         rotation_prior,
     } = *input;
     let prev = &prev;
-    check_inputs(tracks, image, prev, prev_height_sigma_m, cfg)?;
+    check_inputs(
+        tracks,
+        image,
+        prev,
+        [prev_height_sigma_m, prev_tilt_sigma_rad],
+        cfg,
+    )?;
     let (corrs, agl_m) = ground_points(tracks, image, prev, dem, cfg)?;
     let (priors, resection) = next_attitude_prior(prev, rotation_prior.as_ref(), cfg)?;
     let outcome = resect(&corrs, image, &priors, &resection);
@@ -265,17 +296,24 @@ pub fn frame_motion(
             ));
         }
     };
-    // With the gyros' rotation fused, the pose and covariance are the fused ones.
-    let (next, cov) = (fix.pose, fix.covariance);
+    // The displacement from the pose with the gyros' rotation fused; the rotation from the
+    // images alone (module doc).
+    let next = fix.pose;
     let dp = next.c_world - prev.c_world;
-    let scale_var = (prev_height_sigma_m / agl_m).powi(2);
-    let cov_dp = cov.position_world_m2() + dp * dp.transpose() * scale_var;
+    // The optical axis's angle off the vertical.
+    let axis_down = -(prev.r_world_cam * Vector3::z()).z;
+    let tan_off_nadir = (1.0 - axis_down * axis_down).max(0.0).sqrt() / axis_down.max(1e-3);
+    let scale_var =
+        (prev_height_sigma_m / agl_m).powi(2) + (prev_tilt_sigma_rad * tan_off_nadir).powi(2);
+    let cov_dp = fix.covariance.position_world_m2() + dp * dp.transpose() * scale_var;
     let r_prev_world = prev.r_world_cam.inverse();
+    let vision_att = fix.vision_covariance.attitude_world_rad2();
+    check_attitude_sigma(&vision_att, cfg)?;
     let motion = FrameMotion {
         dp_world_m: dp,
         cov_dp_world_m2: 0.5 * (cov_dp + cov_dp.transpose()),
-        r_prev_next: r_prev_world * next.r_world_cam,
-        cov_rot_prev_rad2: rotate_cov3(&cov.attitude_world_rad2(), &r_prev_world),
+        r_prev_next: r_prev_world * fix.vision_pose.r_world_cam,
+        cov_rot_prev_rad2: rotate_cov3(&vision_att, &r_prev_world),
         next,
         agl_m,
         tracks: tracks.len(),
@@ -303,12 +341,13 @@ fn next_attitude_prior(
         .iter()
         .chain(r.cov_prev_rad2.iter())
         .all(|v| v.is_finite());
-    let positive = r.cov_prev_rad2.symmetric_eigenvalues().min() > 0.0;
-    let m = r.r_prev_next.matrix();
-    let orthonormal = (m * m.transpose() - Matrix3::identity()).amax() <= MAX_ROTATION_DRIFT;
-    if !(finite && positive && orthonormal) {
+    let c = &r.cov_prev_rad2;
+    let symmetric = (c - c.transpose()).amax() <= 1e-9 * c.amax();
+    let positive = c.symmetric_eigenvalues().min() > 0.0;
+    let rotation = is_rotation(&r.r_prev_next);
+    if !(finite && symmetric && positive && rotation) {
         return Err(VoRejection::InvalidInput(
-            "the gyros' rotation prior is not finite or not a rotation, or its covariance is not positive definite"
+            "the gyros' rotation prior is not finite or not a rotation, or its covariance is not symmetric positive definite"
                 .into(),
         ));
     }
@@ -331,7 +370,7 @@ fn check_inputs(
     tracks: &[TrackPair],
     image: &ImageGeometry,
     prev: &Pose,
-    prev_height_sigma_m: f64,
+    [height_sigma_m, tilt_sigma_rad]: [f64; 2],
     cfg: &VoConfig,
 ) -> Result<(), VoRejection> {
     let mut problems = Problems::default();
@@ -339,26 +378,31 @@ fn check_inputs(
     if let Some(first) = problems.list.first() {
         return Err(VoRejection::InvalidInput(format!("[vo] {first}")));
     }
+    let invalid = |s: String| Err(VoRejection::InvalidInput(s));
     let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
     if !(finite(prev.c_world.as_slice()) && finite(prev.r_world_cam.matrix().as_slice())) {
-        return Err(VoRejection::InvalidInput(
-            "the previous pose is not finite".into(),
+        return invalid("the previous pose is not finite".into());
+    }
+    if !is_rotation(&prev.r_world_cam) {
+        return invalid("the previous attitude is not a rotation".into());
+    }
+    // A sigma of the previous pose beyond these is not a pose to cast rays from.
+    if !(height_sigma_m.is_finite() && (0.0..=1e5).contains(&height_sigma_m)) {
+        return invalid(format!(
+            "previous height sigma {height_sigma_m} m must be in 0..=1e5"
         ));
     }
-    if !(prev_height_sigma_m.is_finite() && prev_height_sigma_m >= 0.0) {
-        return Err(VoRejection::InvalidInput(format!(
-            "previous height sigma {prev_height_sigma_m} m must be finite and >= 0"
-        )));
+    if !(tilt_sigma_rad.is_finite() && (0.0..=1.0).contains(&tilt_sigma_rad)) {
+        return invalid(format!(
+            "previous tilt sigma {tilt_sigma_rad} rad must be in 0..=1"
+        ));
     }
-    if !(image.fx_px.is_finite()
-        && image.fx_px > 0.0
-        && image.fy_px.is_finite()
-        && image.fy_px > 0.0)
-    {
-        return Err(VoRejection::InvalidInput(format!(
-            "focal lengths {} / {} px must be finite and > 0",
-            image.fx_px, image.fy_px
-        )));
+    let ok = |v: f64| v.is_finite() && v > 0.0;
+    if !(ok(image.fx_px) && ok(image.fy_px) && image.cx_px.is_finite() && image.cy_px.is_finite()) {
+        return invalid(format!(
+            "focal lengths {} / {} px must be finite and > 0, the principal point ({}, {}) finite",
+            image.fx_px, image.fy_px, image.cx_px, image.cy_px
+        ));
     }
     if tracks.len() < cfg.min_tracks {
         return Err(VoRejection::TooFewTracks {
@@ -423,7 +467,26 @@ fn ground_points(
     Ok((corrs, agl_m))
 }
 
-/// Finite numbers and a horizontal sigma within the configured fraction of the height.
+/// The image-only attitude sigma within the resection's `max_attitude_sigma_deg` (its own check
+/// sees the covariance with the gyros' rotation fused, which always passes).
+fn check_attitude_sigma(cov_rad2: &Matrix3<f64>, cfg: &VoConfig) -> Result<(), VoRejection> {
+    let sigma_deg = cov_rad2
+        .symmetric_eigenvalues()
+        .max()
+        .max(0.0)
+        .sqrt()
+        .to_degrees();
+    let max_deg = cfg.resection.integrity.max_attitude_sigma_deg;
+    if sigma_deg.is_nan() || sigma_deg > max_deg {
+        return Err(VoRejection::InvalidInput(format!(
+            "the images alone fix the rotation to {sigma_deg:.2} deg (1 sigma), above {max_deg} deg"
+        )));
+    }
+    Ok(())
+}
+
+/// Finite numbers and horizontal and vertical sigmas within the configured fraction of the
+/// height.
 fn check_motion(m: &FrameMotion, cfg: &VoConfig) -> Result<(), VoRejection> {
     let finite = m
         .dp_world_m
@@ -439,7 +502,8 @@ fn check_motion(m: &FrameMotion, cfg: &VoConfig) -> Result<(), VoRejection> {
     }
     let h = m.cov_dp_world_m2.fixed_view::<2, 2>(0, 0);
     let sigma_h_m = h.symmetric_eigenvalues().max().max(0.0).sqrt();
-    if sigma_h_m > cfg.max_sigma_agl_fraction * m.agl_m {
+    let sigma_v_m = m.cov_dp_world_m2[(2, 2)].max(0.0).sqrt();
+    if sigma_h_m.max(sigma_v_m) > cfg.max_sigma_agl_fraction * m.agl_m {
         return Err(VoRejection::TooUncertain {
             sigma_h_m,
             agl_m: m.agl_m,
@@ -454,7 +518,13 @@ mod tests {
     use super::*;
     use crate::geo::Crs;
     use crate::geo::raster::{GeoTransform, Raster, RasterData};
+    use crate::pose::log_so3;
     use crate::rng::Rng;
+
+    /// The rotation's angle, rad (robust near the identity: `pose::log_so3`).
+    fn angle(r: &Rotation3<f64>) -> f64 {
+        log_so3(r).norm()
+    }
 
     fn camera(c: Vector3<f64>, yaw_rad: f64, tilt_rad: f64) -> Pose {
         Pose::nadir(c, yaw_rad, tilt_rad)
@@ -563,6 +633,7 @@ mod tests {
             image: &image,
             prev: *prev,
             prev_height_sigma_m: height_sigma_m,
+            prev_tilt_sigma_rad: 0.0,
             rotation_prior,
         };
         frame_motion(&input, dem, &VoConfig::default())
@@ -592,7 +663,7 @@ mod tests {
             d2(&m, &truth)
         );
         assert!((m.dp_world_m - truth).norm() < 1.5);
-        let dr = (m.r_prev_next.inverse() * (a.r_world_cam.inverse() * b.r_world_cam)).angle();
+        let dr = angle(&(m.r_prev_next.inverse() * (a.r_world_cam.inverse() * b.r_world_cam)));
         assert!(
             dr.to_degrees() < 0.1,
             "rotation error {} deg",
@@ -651,12 +722,81 @@ mod tests {
             solve(&t, &a, 0.0, Some(scaled), &dem),
             Err(VoRejection::InvalidInput(_))
         ));
+        let mut reflected = gyro(&a, &b);
+        reflected.r_prev_next = Rotation3::from_matrix_unchecked(
+            reflected.r_prev_next.matrix() * Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, -1.0)),
+        );
+        assert!(matches!(
+            solve(&t, &a, 0.0, Some(reflected), &dem),
+            Err(VoRejection::InvalidInput(_))
+        ));
         let mut singular = gyro(&a, &b);
         singular.cov_prev_rad2 = Matrix3::zeros();
         assert!(matches!(
             solve(&t, &a, 0.0, Some(singular), &dem),
             Err(VoRejection::InvalidInput(_))
         ));
+    }
+
+    #[test]
+    fn an_anisotropic_gyro_prior_is_applied_about_the_right_axes() {
+        // Tight about the previous camera's x and y axes, loose about its optical axis, given
+        // 0.3 deg wrong about that axis only (1.7 sigma): the images correct it. Had the prior's
+        // frame been converted the wrong way, the error would sit on a tight axis and stay (or
+        // fail the prior-consistency gate).
+        let dem = hills();
+        let a = camera(Vector3::new(-300.0, 200.0, 900.0), 1.0, 0.3);
+        let b = camera(Vector3::new(-296.0, 203.0, 900.5), 1.02, 0.31);
+        let t = tracks(&dem, &a, &b, 250, 0.3, 0.0, 11);
+        let wrong = Rotation3::from_axis_angle(&Vector3::z_axis(), 0.3f64.to_radians());
+        let prior = RotationPrior {
+            r_prev_next: wrong * (a.r_world_cam.inverse() * b.r_world_cam),
+            cov_prev_rad2: Matrix3::from_diagonal(&Vector3::new(1e-10, 1e-10, 1e-5)),
+        };
+        let m = solve(&t, &a, 0.0, Some(prior), &dem).expect("motion");
+        let err_deg = angle(&(m.next.r_world_cam.inverse() * b.r_world_cam)).to_degrees();
+        assert!(err_deg < 0.05, "fused attitude {err_deg} deg off");
+        assert!((m.dp_world_m - (b.c_world - a.c_world)).norm() < 0.2);
+        // The rotation handed out is the images' own: the same with and without the prior.
+        let alone = solve(&t, &a, 0.0, None, &dem).expect("motion");
+        assert!(angle(&(m.r_prev_next.inverse() * alone.r_prev_next)) < 1e-9);
+        assert!((m.cov_rot_prev_rad2 - alone.cov_rot_prev_rad2).amax() < 1e-15);
+        // In the previous camera frame the images fix the rotation about the optical axis best.
+        let c = m.cov_rot_prev_rad2;
+        assert!(c[(2, 2)] < 0.5 * c[(0, 0)].min(c[(1, 1)]), "{c:?}");
+    }
+
+    #[test]
+    fn a_tilt_sigma_scales_an_oblique_cameras_displacement_only() {
+        let dem = Dem::flat(0.0).expect("flat");
+        let g = |a: &Pose, b: &Pose| Some(gyro(a, b));
+        let run = |tilt: f64, sigma: f64| {
+            let a = camera(Vector3::new(0.0, 0.0, 500.0), 0.0, tilt);
+            let b = camera(Vector3::new(0.0, 10.0, 500.0), 0.0, tilt);
+            let t = tracks(&dem, &a, &b, 150, 0.2, 0.0, 12);
+            let image = vga();
+            let input = VoInput {
+                tracks: &t,
+                image: &image,
+                prev: a,
+                prev_height_sigma_m: 0.0,
+                prev_tilt_sigma_rad: sigma,
+                rotation_prior: g(&a, &b),
+            };
+            frame_motion(&input, &dem, &VoConfig::default()).expect("motion")
+        };
+        let sigma = 0.5f64.to_radians();
+        let added = |tilt: f64| {
+            (run(tilt, sigma).cov_dp_world_m2[(1, 1)] - run(tilt, 0.0).cov_dp_world_m2[(1, 1)])
+                .sqrt()
+        };
+        // Nadir: nothing; 45 deg: 10 m x tan(45 deg) x 0.5 deg = 8.7 cm.
+        assert!(added(0.0) < 1e-6, "{}", added(0.0));
+        assert!(
+            (added(45f64.to_radians()) - 0.0873).abs() < 0.003,
+            "{}",
+            added(45f64.to_radians())
+        );
     }
 
     #[test]
@@ -680,7 +820,7 @@ mod tests {
             "{:?}",
             m.dp_world_m
         );
-        assert!(m.r_prev_next.angle() < 1e-6);
+        assert!(angle(&m.r_prev_next) < 1e-6);
     }
 
     #[test]
@@ -770,6 +910,7 @@ mod tests {
             image: &image,
             prev: a,
             prev_height_sigma_m: 0.0,
+            prev_tilt_sigma_rad: 0.0,
             rotation_prior: None,
         };
         assert!(matches!(

@@ -713,17 +713,22 @@ impl HeapSample {
     }
 }
 
-/// How many samples a recording at `rate_hz` takes over `duration_s`, with 5 % to spare (a
-/// capacity, never a limit: a longer recording grows).
-fn expected_count(duration_s: f64, rate_hz: f64) -> usize {
+/// How many samples of `T` a recording at `rate_hz` takes over `duration_s`, with 5 % to spare
+/// (a capacity, never a limit: a longer recording grows), at most
+/// [`MAX_RESERVED_BYTES_PER_RECORDING`] of them.
+fn expected_count<T>(duration_s: f64, rate_hz: f64) -> usize {
     let n = duration_s * rate_hz * 1.05 + 16.0;
+    let max = (MAX_RESERVED_BYTES_PER_RECORDING / std::mem::size_of::<T>().max(1)) as f64;
     if n.is_finite() && n > 0.0 {
-        // At most 10 million samples reserved (about 640 MB of steps: days of flight).
-        n.min(1e7) as usize
+        n.min(max) as usize
     } else {
         16
     }
 }
+
+/// Largest reservation of one recording, bytes: 64 MB holds a million steps (28 hours) and keeps a
+/// mistyped duration from reserving gigabytes.
+const MAX_RESERVED_BYTES_PER_RECORDING: usize = 64 << 20;
 
 /// The process's memory at one instant of the flight.
 #[derive(Debug, Clone, Copy)]
@@ -1065,7 +1070,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         table: table.clone(),
         mount,
         log: Mutex::new(resident_vec(
-            expected_count(duration_s, cl.camera_rate_hz),
+            expected_count::<FixRow>(duration_s, cl.camera_rate_hz),
             FixRow::FILL,
         )),
         delivery_us: if cl.lockstep {
@@ -1138,13 +1143,19 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
     // (`recording::resident_vec`): the resident memory then grows with what is being tested,
     // not with the simulator's notes (an hour's: 4 MB over the last 50 minutes), and no
     // doubling leaves old buffers behind in the allocator.
-    let mut steps = resident_vec(expected_count(duration_s, 10.0), StepSample::FILL);
+    let mut steps = resident_vec(
+        expected_count::<StepSample>(duration_s, 10.0),
+        StepSample::FILL,
+    );
     let injections_hz = cfg.output.rate_hz * cfg.output.modes.len() as f64;
-    let mut collect_v = InjectionCollector::new(false, expected_count(duration_s, injections_hz));
+    let mut collect_v = InjectionCollector::new(
+        false,
+        expected_count::<recording::InjectionSample>(duration_s, injections_hz),
+    );
     let mut collect_c = InjectionCollector::new(
         true,
         if emu_c.is_some() {
-            expected_count(duration_s, injections_hz)
+            expected_count::<recording::InjectionSample>(duration_s, injections_hz)
         } else {
             0
         },

@@ -194,7 +194,10 @@ pub fn log_so3(r: &Rotation3<f64>) -> Vector3<f64> {
     // The shorter way round: q and -q are the same rotation.
     let (w, v) = if w < 0.0 { (-w, -v) } else { (w, v) };
     let s = v.norm();
-    if s.is_nan() || s <= 0.0 {
+    if !(s.is_finite() && w.is_finite()) {
+        return Vector3::repeat(f64::NAN);
+    }
+    if s <= 0.0 {
         return Vector3::zeros();
     }
     v * (2.0 * s.atan2(w) / s)
@@ -459,10 +462,7 @@ mod tests {
         let exact = Rotation3::from_scaled_axis(truth);
         let drifted: Rotation3<f64> =
             Rotation3::from_matrix_unchecked(exact.matrix() * (1.0 + 1.2e-8));
-        assert!(
-            drifted.scaled_axis().iter().any(|v: &f64| v.is_nan()),
-            "the trap is still there"
-        );
+        // (nalgebra's scaled_axis gives NaN here as of 0.35; not asserted, it may clamp one day.)
         let phi = log_so3(&drifted);
         assert!((phi - truth).norm() < 1e-9, "{phi:?}");
         // Large angles, both signs of the quaternion, the identity.
@@ -475,6 +475,8 @@ mod tests {
             assert!((p - v).norm() < 1e-12, "{v:?} -> {p:?}");
         }
         assert_eq!(log_so3(&Rotation3::identity()), Vector3::zeros());
+        let nan: Rotation3<f64> = Rotation3::from_matrix_unchecked(Matrix3::repeat(f64::NAN));
+        assert!(log_so3(&nan).iter().all(|v| v.is_nan()));
     }
     use crate::rng::Rng;
     use crate::validate::{Problems, Validate};

@@ -121,6 +121,29 @@ impl StepSample {
     }
 }
 
+/// A position that is not finite or beyond the range of 1e-7 degrees in an `i32`
+/// ([`InjectionSample`]).
+const NO_E7: i32 = i32::MIN;
+
+/// Degrees in 1e-7 units, [`NO_E7`] when not representable.
+fn to_e7(deg: f64) -> i32 {
+    let v = (deg * 1e7).round();
+    if v.is_finite() && v > f64::from(i32::MIN) && v <= f64::from(i32::MAX) {
+        v as i32
+    } else {
+        NO_E7
+    }
+}
+
+/// The inverse of [`to_e7`] (NaN for [`NO_E7`]).
+fn from_e7(v: i32) -> f64 {
+    if v == NO_E7 {
+        f64::NAN
+    } else {
+        f64::from(v) * 1e-7
+    }
+}
+
 /// Injection kinds by code ([`InjectionSample`]).
 const KINDS: [&str; 3] = ["gps_input", "vision_position_estimate", "odometry"];
 
@@ -146,8 +169,8 @@ impl InjectionSample {
         InjectionRow {
             t_s: self.t_run_us as f64 * 1e-6,
             kind: KINDS[usize::from(self.kind).min(KINDS.len() - 1)],
-            lat_deg: f64::from(self.lat_e7) * 1e-7,
-            lon_deg: f64::from(self.lon_e7) * 1e-7,
+            lat_deg: from_e7(self.lat_e7),
+            lon_deg: from_e7(self.lon_e7),
             alt_amsl_m: f(self.alt_amsl_m),
             horiz_accuracy_m: f(self.horiz_accuracy_m),
             err_ned_m: [
@@ -204,7 +227,8 @@ impl InjectionCollector {
         }
     }
 
-    /// Injections from a system other than `companion` (all of them when none was heard).
+    /// Injections from a system other than `companion` (none when no companion was heard: there
+    /// is nothing to call foreign).
     pub fn foreign(&self, companion: Option<(u8, u8)>) -> usize {
         match companion {
             Some((sys, _)) => self
@@ -239,20 +263,22 @@ impl InjectionCollector {
                 }
                 self.last_gps_time_usec = Some(g.time_usec);
                 [
+                    g.alt,
                     g.hdop,
                     g.vdop,
                     g.vn,
                     g.ve,
                     g.vd,
+                    g.speed_accuracy,
                     g.horiz_accuracy,
                     g.vert_accuracy,
                 ]
                 .iter()
                 .all(|v| v.is_finite())
             }
+            // A NaN first covariance element is MAVLink's "covariance unknown", not a bad value.
             MavMessage::VISION_POSITION_ESTIMATE(v) => [v.x, v.y, v.z, v.roll, v.pitch, v.yaw]
                 .iter()
-                .chain(v.covariance.iter().take(1))
                 .all(|v| v.is_finite()),
             MavMessage::ODOMETRY(o) => [o.x, o.y, o.z, o.vx, o.vy, o.vz]
                 .iter()
@@ -289,16 +315,12 @@ impl InjectionCollector {
                 self.push(r.t_run_us, 0, (g.lat, g.lon, g.alt), g.horiz_accuracy, err);
                 return;
             }
-            MavMessage::VISION_POSITION_ESTIMATE(v) => (
-                1,
-                [v.x, v.y, v.z],
-                f64::from(v.covariance[0].max(v.covariance[6])),
-            ),
-            MavMessage::ODOMETRY(o) => (
-                2,
-                [o.x, o.y, o.z],
-                f64::from(o.pose_covariance[0].max(o.pose_covariance[6])),
-            ),
+            MavMessage::VISION_POSITION_ESTIMATE(v) => {
+                (1, [v.x, v.y, v.z], horizontal_variance(&v.covariance))
+            }
+            MavMessage::ODOMETRY(o) => {
+                (2, [o.x, o.y, o.z], horizontal_variance(&o.pose_covariance))
+            }
             _ => return,
         };
         let Some(o) = self.origin else { return };
@@ -313,11 +335,10 @@ impl InjectionCollector {
         } else {
             f32::NAN
         };
-        let e7 = |deg: f64| (deg * 1e7).round() as i32;
         self.push(
             r.t_run_us,
             kind,
-            (e7(lat), e7(lon), alt as f32),
+            (to_e7(lat), to_e7(lon), alt as f32),
             sigma,
             [e.x, e.y, e.z],
         );
@@ -344,6 +365,16 @@ impl InjectionCollector {
     }
 }
 
+/// The larger horizontal variance of a MAVLink upper-triangle covariance (x-x first, y-y at 6);
+/// NaN when the first element is NaN (MAVLink's "unknown").
+fn horizontal_variance(cov: &[f32; 21]) -> f64 {
+    if cov[0].is_nan() {
+        f64::NAN
+    } else {
+        f64::from(cov[0].max(cov[6]))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -354,6 +385,18 @@ mod tests {
         // budget is 5 MB of RSS growth for everything).
         assert_eq!(std::mem::size_of::<StepSample>(), 64);
         assert_eq!(std::mem::size_of::<InjectionSample>(), 40);
+    }
+
+    #[test]
+    fn positions_out_of_range_are_nan_not_zero() {
+        assert_eq!(from_e7(to_e7(47.1234567)), 47.1234567);
+        assert!(from_e7(to_e7(f64::NAN)).is_nan());
+        assert!(from_e7(to_e7(1e3)).is_nan());
+        assert!(horizontal_variance(&[f32::NAN; 21]).is_nan());
+        let mut c = [0.0f32; 21];
+        c[0] = 4.0;
+        c[6] = 9.0;
+        assert_eq!(horizontal_variance(&c), 9.0);
     }
 
     #[test]

@@ -1,10 +1,10 @@
 //! The heap counter (`visnav_daemon::heap::CountingAlloc`, the `visnav` binary's global
-//! allocator) follows allocations and frees, including growth by `realloc`.
+//! allocator) follows allocations and frees, including growth by `realloc`, and keeps the peak.
 
 #[global_allocator]
 static ALLOC: visnav_daemon::heap::CountingAlloc = visnav_daemon::heap::CountingAlloc;
 
-use visnav_daemon::heap::heap_in_use_bytes;
+use visnav_daemon::heap::{heap_in_use_bytes, heap_peak_bytes, reset_heap_peak};
 
 #[test]
 fn the_heap_counter_follows_allocations_and_frees() {
@@ -25,4 +25,10 @@ fn the_heap_counter_follows_allocations_and_frees() {
         after < before + (4 << 20),
         "{before} -> {after} after the free"
     );
+    // The peak saw the 96 MB (and the 32 MB block beside it during the realloc), freed or not.
+    let peak = heap_peak_bytes().expect("installed");
+    assert!(peak >= before + MB64 + MB64 / 2, "peak {peak}, before {before}");
+    reset_heap_peak();
+    let reset = heap_peak_bytes().expect("installed");
+    assert!(reset < before + (4 << 20), "peak {reset} after the reset");
 }

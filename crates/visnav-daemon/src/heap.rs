@@ -10,6 +10,14 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 static IN_USE: AtomicUsize = AtomicUsize::new(0);
+/// The largest `IN_USE` since the start or the last [`reset_heap_peak`].
+static PEAK: AtomicUsize = AtomicUsize::new(0);
+
+/// Adds `size` to the count and raises the peak.
+fn add(size: usize) {
+    let now = IN_USE.fetch_add(size, Ordering::Relaxed).wrapping_add(size);
+    PEAK.fetch_max(now, Ordering::Relaxed);
+}
 static INSTALLED: AtomicBool = AtomicBool::new(false);
 
 /// The system allocator, counting the bytes in use (see the module doc).
@@ -23,7 +31,7 @@ unsafe impl GlobalAlloc for CountingAlloc {
         let p = unsafe { System.alloc(layout) };
         if !p.is_null() {
             INSTALLED.store(true, Ordering::Relaxed);
-            IN_USE.fetch_add(layout.size(), Ordering::Relaxed);
+            add(layout.size());
         }
         p
     }
@@ -33,7 +41,7 @@ unsafe impl GlobalAlloc for CountingAlloc {
         let p = unsafe { System.alloc_zeroed(layout) };
         if !p.is_null() {
             INSTALLED.store(true, Ordering::Relaxed);
-            IN_USE.fetch_add(layout.size(), Ordering::Relaxed);
+            add(layout.size());
         }
         p
     }
@@ -49,11 +57,25 @@ unsafe impl GlobalAlloc for CountingAlloc {
         let p = unsafe { System.realloc(ptr, layout, new_size) };
         if !p.is_null() {
             // The old block is freed and a new one of `new_size` held.
-            IN_USE.fetch_add(new_size, Ordering::Relaxed);
+            add(new_size);
             IN_USE.fetch_sub(layout.size(), Ordering::Relaxed);
         }
         p
     }
+}
+
+/// The most bytes held on the heap at once since the start or the last [`reset_heap_peak`]
+/// (a `realloc` counts both blocks for an instant), when [`CountingAlloc`] is installed: what the
+/// resident set must at least have held, freed or not.
+pub fn heap_peak_bytes() -> Option<usize> {
+    INSTALLED
+        .load(Ordering::Relaxed)
+        .then(|| PEAK.load(Ordering::Relaxed))
+}
+
+/// Starts a new peak at the bytes in use now.
+pub fn reset_heap_peak() {
+    PEAK.store(IN_USE.load(Ordering::Relaxed), Ordering::Relaxed);
 }
 
 /// Bytes on the heap now, when [`CountingAlloc`] is the global allocator.

@@ -88,7 +88,7 @@ use visnav_core::nav::NavOutput;
 use visnav_core::rng::Rng;
 use visnav_core::vision::GrayImage;
 use visnav_daemon::app_config::Config;
-use visnav_daemon::heap::heap_in_use_bytes;
+use visnav_daemon::heap::{heap_in_use_bytes, heap_peak_bytes, reset_heap_peak};
 use visnav_daemon::{Daemon, DaemonSetup, FrameFixer, FramePipeline};
 use visnav_io::geo::GeoError;
 use visnav_io::geo::dem::Dem;
@@ -697,18 +697,21 @@ fn rss_mb() -> Option<f64> {
     Some(pages * 4096.0 / 1e6)
 }
 
-/// The heap in use and the simulator's recordings in it, MB.
+/// The heap in use and the simulator's recordings in it, and the most the heap held at once
+/// since the previous sample (the start for the first), MB.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct HeapSample {
     pub total_mb: f64,
     pub recordings_mb: f64,
+    pub peak_mb: f64,
 }
 
 impl HeapSample {
-    fn new(total_bytes: usize, recorded_bytes: usize) -> Self {
+    fn new(total_bytes: usize, recorded_bytes: usize, peak_bytes: usize) -> Self {
         Self {
             total_mb: total_bytes as f64 / 1e6,
             recordings_mb: recorded_bytes as f64 / 1e6,
+            peak_mb: peak_bytes as f64 / 1e6,
         }
     }
 }
@@ -751,9 +754,11 @@ fn memory_sample(
     let recorded = steps.capacity() * std::mem::size_of::<StepSample>()
         + fix_bytes
         + injections.iter().map(|c| c.recorded_bytes()).sum::<usize>();
+    let peak = heap_peak_bytes().unwrap_or(0);
+    reset_heap_peak();
     MemorySample {
         rss_mb: rss_mb(),
-        heap: heap_in_use_bytes().map(|h| HeapSample::new(h, recorded)),
+        heap: heap_in_use_bytes().map(|h| HeapSample::new(h, recorded, peak)),
     }
 }
 

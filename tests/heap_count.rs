@@ -27,7 +27,10 @@ fn the_heap_counter_follows_allocations_and_frees() {
     );
     // The peak saw the 96 MB (and the 32 MB block beside it during the realloc), freed or not.
     let peak = heap_peak_bytes().expect("installed");
-    assert!(peak >= before + MB64 + MB64 / 2, "peak {peak}, before {before}");
+    assert!(
+        peak >= before + MB64 + MB64 / 2,
+        "peak {peak}, before {before}"
+    );
     reset_heap_peak();
     let reset = heap_peak_bytes().expect("installed");
     assert!(reset < before + (4 << 20), "peak {reset} after the reset");

@@ -65,9 +65,7 @@
 //! planes stay in cache. Window rows are padded to a multiple of 8 floats (zeros in the padding)
 //! and the sums accumulate into 8 lanes, which the compiler vectorises (a plain `sum()` is
 //! serial). The detector streams its response rows; no full-size response image is stored. One
-//! thread, no allocation per point. Measured by the `timing_vga` test (release build, one core of
-//! a shared 2-core VM, SSE2 baseline): VGA pyramid 0.55 ms, 300 corners 1.0 ms, tracking 300
-//! points 1.7 ms (3.6 ms with the forward-backward check).
+//! thread, no allocation per point. `visnav bench vo` times it per VGA frame (docs/status.md).
 //!
 //! Inputs from outside never panic: empty or non-finite images are errors, non-finite or outside
 //! points are lost tracks.
@@ -2273,50 +2271,5 @@ mod tests {
             let med = median(errs);
             prop_assert!(med < 0.05, "median error {} px", med);
         }
-    }
-
-    /// Detect 300 corners, build the next frame's pyramid and track, VGA to VGA: prints the
-    /// times (best of 20 runs), asserts nothing about them.
-    #[test]
-    #[ignore = "timing, run by hand in release"]
-    fn timing_vga() {
-        use std::time::Instant;
-        let (prev, next) = translated_pair(640, 480, [4.6, -2.3], 10);
-        let fp = FeatureParams {
-            spread: Some(SpreadGrid {
-                cols: 8,
-                rows: 6,
-                max_per_cell: 10,
-            }),
-            ..FeatureParams::default()
-        };
-        let params = TrackParams::default();
-        let pp = pyramid(&prev);
-        let mut best = [f64::INFINITY; 5];
-        let mut n = (0, 0);
-        for _ in 0..20 {
-            let frame = next.clone();
-            let t0 = Instant::now();
-            let pn = Pyramid::from_image(frame, DEFAULT_MAX_LEVEL, DEFAULT_WIN_SIZE_PX).unwrap();
-            let t1 = Instant::now();
-            let pts = pp.good_features(&fp).unwrap();
-            let t2 = Instant::now();
-            let tr = track(&pp, &pn, &pts, None, &params).unwrap();
-            let t3 = Instant::now();
-            let trc = track_checked(&pp, &pn, &pts, None, &params).unwrap();
-            let t4 = Instant::now();
-            let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
-            let times = [ms(t0, t1), ms(t1, t2), ms(t2, t3), ms(t0, t3), ms(t3, t4)];
-            for (b, t) in best.iter_mut().zip(times) {
-                *b = b.min(t);
-            }
-            n = (pts.len(), tr.iter().filter(|t| t.is_tracked()).count());
-            assert!(trc.len() == pts.len());
-        }
-        println!(
-            "VGA, {} corners, {} tracked: pyramid {:.3} ms, detect {:.3} ms, track {:.3} ms, \
-             pyramid + detect + track {:.3} ms; track_checked {:.3} ms (best of 20)",
-            n.0, n.1, best[0], best[1], best[2], best[3], best[4]
-        );
     }
 }

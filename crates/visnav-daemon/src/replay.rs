@@ -157,6 +157,7 @@ fn kind_of(m: &Measurement, att_tilt: bool) -> (&'static str, u32) {
         Measurement::Altitude(_) => ("altitude", 1),
         Measurement::Attitude(_) => ("attitude", if att_tilt { 3 } else { 1 }),
         Measurement::Drag(d) => ("drag", d.model.iter().flatten().count() as u32),
+        Measurement::Vo(_) => ("vo", 3),
     }
 }
 
@@ -237,6 +238,24 @@ fn innovation(filter: &NavFilter, m: &Measurement) -> ([f64; 3], [f64; 3], [f64;
         }
         // Generated inside the filter from its own IMU samples (nav::drag): not replayed here.
         Measurement::Drag(_) => (nan, nan, nan),
+        // As the mean velocity over the frame interval (m/s), like a GPS velocity.
+        Measurement::Vo(f) => {
+            let dt = f.span_s();
+            let c = &f.cov_ned_m2;
+            (
+                [
+                    f.dp_ned_m[0] / dt - o.v_ned_m_s[0],
+                    f.dp_ned_m[1] / dt - o.v_ned_m_s[1],
+                    f.dp_ned_m[2] / dt - o.v_ned_m_s[2],
+                ],
+                [
+                    c[(0, 0)].sqrt() / dt,
+                    c[(1, 1)].sqrt() / dt,
+                    c[(2, 2)].sqrt() / dt,
+                ],
+                sd(&o.cov_vel_ned_m2_s2),
+            )
+        }
     }
 }
 

@@ -192,6 +192,8 @@ pub struct GateConfig {
     pub altitude_prob: f64,
     /// Autopilot attitude (3 dof).
     pub attitude_prob: f64,
+    /// Visual odometry displacements between frames (3 dof).
+    pub vo_prob: f64,
 }
 
 impl Default for GateConfig {
@@ -201,6 +203,7 @@ impl Default for GateConfig {
             gps_prob: 0.9999,
             altitude_prob: 0.9999,
             attitude_prob: 0.9999,
+            vo_prob: 0.9999,
         }
     }
 }
@@ -212,6 +215,7 @@ impl Validate for GateConfig {
             ("gps_prob", self.gps_prob),
             ("altitude_prob", self.altitude_prob),
             ("attitude_prob", self.attitude_prob),
+            ("vo_prob", self.vo_prob),
         ] {
             p.range(k, v, 0.5, 0.999_999_9);
         }

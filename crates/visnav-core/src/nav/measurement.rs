@@ -111,6 +111,52 @@ pub struct PoseFix {
     pub cov6: Matrix6<f64>,
 }
 
+/// Visual odometry between two frames (`crate::vo`): the camera's displacement from the previous
+/// frame's capture time to the next one's, computed from this filter's own pose at the previous
+/// frame. How that pose's errors reach it (`crate::vo`, module doc): a horizontal position error
+/// not at all; a yaw error `psi_z` rotates it, `z = dp + psi_z e_D x dp`; a height error scales it,
+/// `z = dp (1 + dh / agl)` with `dh = h_est - h_true`. The filter puts both into the Jacobian
+/// (`nav::filter::fuse_vo`), so they are its own error states and not noise; `cov_ned_m2` is
+/// the images' part plus the tilt term. The terrain model's height error scales it too, and is
+/// the same for every frame over the same ground: the filter adds it as
+/// `k (terrain_sigma_m / agl_m)^2 dp dp^T` with `k = terrain_corr_dist_m / |dp|` (at least 1), so
+/// that over a correlation distance the displacements carry one terrain error, not `k`
+/// independent ones.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VoFix {
+    /// Capture time of the previous frame, microseconds.
+    pub t_prev_us: u64,
+    /// Capture time of the next frame, microseconds.
+    pub t_next_us: u64,
+    /// Camera displacement between the two capture times, NED, m.
+    pub dp_ned_m: Vector3<f64>,
+    /// Its covariance, NED, m^2.
+    pub cov_ned_m2: Matrix3<f64>,
+    /// Height of the previous camera above the terrain that gave the scale, m.
+    pub agl_m: f64,
+    /// 1-sigma error of the terrain model's height under the footprint, m.
+    pub terrain_sigma_m: f64,
+    /// Distance over which that error stays the same, m (a datum offset: the whole map).
+    pub terrain_corr_dist_m: f64,
+}
+
+/// Longest frame interval a VO displacement may span, s: the filter applies it as the mean
+/// velocity at the middle of the interval, exact for constant acceleration; over longer spans a
+/// manoeuvre's jerk makes that wrong (and the history does not reach back so far).
+pub const VO_MAX_SPAN_S: f64 = 2.0;
+
+impl VoFix {
+    /// The middle of the frame interval, where the filter applies it, microseconds.
+    pub fn t_mid_us(&self) -> u64 {
+        self.t_prev_us + (self.t_next_us.saturating_sub(self.t_prev_us)) / 2
+    }
+
+    /// The frame interval, s.
+    pub fn span_s(&self) -> f64 {
+        self.t_next_us.saturating_sub(self.t_prev_us) as f64 * 1e-6
+    }
+}
+
 /// Every entry finite, symmetric (to 1e-9 relative) and positive definite (Cholesky succeeds).
 fn symmetric_pd<const N: usize>(c: &SMatrix<f64, N, N>) -> bool {
     c.iter().all(|x| x.is_finite())
@@ -140,6 +186,8 @@ pub enum Measurement {
     /// Multirotor drag: the body-frame horizontal specific force as a measurement of the body
     /// velocity ([`super::drag`]).
     Drag(super::drag::DragFix),
+    /// Visual odometry: the camera's displacement between two frames.
+    Vo(VoFix),
 }
 
 impl Measurement {
@@ -152,6 +200,7 @@ impl Measurement {
             Measurement::Altitude(f) => f.t_capture_us,
             Measurement::Attitude(f) => f.t_capture_us,
             Measurement::Drag(f) => f.t_capture_us,
+            Measurement::Vo(f) => f.t_mid_us(),
         }
     }
 
@@ -243,6 +292,29 @@ impl Measurement {
                 }
                 if f.model.iter().all(|m| m.is_none()) {
                     return Err("drag measurement without a learned law");
+                }
+            }
+            Measurement::Vo(f) => {
+                if f.t_next_us <= f.t_prev_us || f.span_s() > VO_MAX_SPAN_S {
+                    return Err("VO frame interval not increasing or longer than 2 s");
+                }
+                if !f.dp_ned_m.iter().all(|x| x.is_finite())
+                    || f.dp_ned_m.norm() > 1000.0 * f.span_s()
+                {
+                    return Err("non-finite or implausible VO displacement");
+                }
+                if !(f.agl_m.is_finite() && f.agl_m > 0.0) {
+                    return Err("VO height above ground not positive");
+                }
+                if !(f.terrain_sigma_m.is_finite()
+                    && f.terrain_sigma_m >= 0.0
+                    && f.terrain_corr_dist_m.is_finite()
+                    && f.terrain_corr_dist_m >= 0.0)
+                {
+                    return Err("VO terrain sigma or correlation distance negative or non-finite");
+                }
+                if !symmetric_pd(&f.cov_ned_m2) {
+                    return Err("VO covariance not symmetric positive definite");
                 }
             }
         }

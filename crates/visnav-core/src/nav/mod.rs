@@ -28,5 +28,6 @@ pub use config::NavConfig;
 pub use filter::{Counters, Health, NavFilter, NavOutput, Outcome};
 pub use ins::{InsState, Strapdown};
 pub use measurement::{
-    AltitudeFix, AttitudeFix, ImuSample, Measurement, PoseFix, PositionFix, VelocityFix,
+    AltitudeFix, AttitudeFix, ImuSample, Measurement, PoseFix, PositionFix, VO_MAX_SPAN_S,
+    VelocityFix, VoFix,
 };

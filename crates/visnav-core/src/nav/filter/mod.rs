@@ -85,7 +85,7 @@ use super::drag::{DragFix, DragLearner};
 use super::earth;
 use super::ins::{InsState, Strapdown, skew_matrix};
 use super::measurement::{
-    AltitudeFix, AttitudeFix, ImuSample, Measurement, PositionFix, VelocityFix,
+    AltitudeFix, AttitudeFix, ImuSample, Measurement, PositionFix, VelocityFix, VoFix,
 };
 use crate::stats::chi2_quantile;
 use nalgebra::{Matrix3, SMatrix, SVector, UnitQuaternion, Vector3};
@@ -97,6 +97,7 @@ mod fuse_attitude;
 mod fuse_drag;
 mod fuse_position;
 mod fuse_velocity;
+mod fuse_vo;
 
 /// A sample within this fraction of the sensor's range counts as clipped: a saturated axis
 /// reads its full scale minus the last count or two, so equality alone would miss it.
@@ -157,6 +158,8 @@ pub struct Counters {
     pub attitude: TypeCounters,
     /// Multirotor drag velocity measurements (`nav::drag`).
     pub drag: TypeCounters,
+    /// Visual odometry displacements (`crate::vo`).
+    pub vo: TypeCounters,
     /// Initialisations (first and after hard resets).
     pub initialisations: u64,
     /// Position/velocity resets after consecutive rejections.
@@ -315,6 +318,7 @@ struct Params {
     gate_att1: f64,
     gate_drag1: f64,
     gate_drag2: f64,
+    gate_vo: f64,
     r_att: Matrix3<f64>,
     att_tilt: bool,
     att_corr_s: f64,
@@ -430,6 +434,7 @@ impl NavFilter {
             gate_att1: chi2_quantile(1.0, cfg.gates.attitude_prob),
             gate_drag1: chi2_quantile(1.0, cfg.gates.gps_prob),
             gate_drag2: chi2_quantile(2.0, cfg.gates.gps_prob),
+            gate_vo: chi2_quantile(3.0, cfg.gates.vo_prob),
             l_cam: Vector3::from(cfg.camera_lever_arm()),
             l_gps: Vector3::from(cfg.gps_lever_arm_body_frd_m),
         };
@@ -878,6 +883,7 @@ impl NavFilter {
             Measurement::Altitude(_) => &mut self.counters.altitude,
             Measurement::Attitude(_) => &mut self.counters.attitude,
             Measurement::Drag(_) => &mut self.counters.drag,
+            Measurement::Vo(_) => &mut self.counters.vo,
         }
     }
 
@@ -1513,7 +1519,7 @@ fn correlation_factor(tau_s: f64, last_us: Option<u64>, t_c: u64, cap: f64) -> f
 /// Apply one measurement to `core`, whose epoch time is `core.t_us <= t_c`; the prediction is
 /// extrapolated over `t_c - core.t_us`. One file per measurement model (as ArduPilot's EKF3
 /// splits its fusion): `fuse_position`, `fuse_velocity`, `fuse_altitude`, `fuse_drag`,
-/// `fuse_attitude`.
+/// `fuse_attitude`, `fuse_vo`.
 fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
     let dt = dt_s(core.t_us, m.t_capture_us());
     match m {
@@ -1524,6 +1530,7 @@ fn apply(par: &Params, core: &mut Core, m: &Measurement) -> Outcome {
         Measurement::Altitude(f) => fuse_altitude::fuse(par, core, f, dt),
         Measurement::Drag(d) => fuse_drag::fuse(par, core, d),
         Measurement::Attitude(f) => fuse_attitude::fuse(par, core, f),
+        Measurement::Vo(f) => fuse_vo::fuse(par, core, f),
     }
 }
 

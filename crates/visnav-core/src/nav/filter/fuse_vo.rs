@@ -1,0 +1,61 @@
+//! Visual odometry (`crate::vo`): the camera's displacement between two frames, fused as the mean
+//! camera velocity over the frame interval, applied at its middle (exact for constant
+//! acceleration; the history replays it there like a late fix).
+//!
+//! Measurement (`VoFix`): `z = dp_true + psi_z e_D x dp + dp dh / agl + e` (the displacement was
+//! computed from this filter's pose at the previous frame: its yaw error rotates it, its height
+//! error scales it, its horizontal position error does not reach it). Prediction
+//! `h(x) = (v + C_b^n (w x l_cam)) dt`. With `dz = h(x_est) - z`, `dh = -dD` and
+//! `C_est = (I + [psi x]) C_true`:
+//! ```text
+//! dz = dt dv - dt [(C (w x l)) x] psi + [dp x] e_D psi_z + (dp / agl) dD - e
+//! ```
+//! The yaw column is what makes the heading observable from VO whenever the velocity is known
+//! otherwise (a manoeuvre seen by the accelerometers, a fix): VO alone measures the motion in the
+//! heading frame the filter believes in. The height column makes the scale error a correlated
+//! error of the filter's own (the next height measurement corrects the VO it already fused),
+//! rather than white noise averaged away over hundreds of frames. No position column: VO never
+//! reduces the position uncertainty directly, so the accuracy the filter reports (and sends to the
+//! autopilot) grows as it really does without absolute fixes, and `lost_no_fix_s` (health) keeps
+//! counting, as it counts only position fixes.
+
+use super::*;
+
+/// Fuses a VO displacement.
+pub(super) fn fuse(par: &Params, core: &mut Core, f: &VoFix) -> Outcome {
+    let st = &core.ins.state;
+    let dt = f.span_s();
+    let dp = f.dp_ned_m;
+    // The camera's velocity: the body's plus the rotation of the lever arm.
+    let lv_n = st.q_nb * core.w_b.cross(&par.l_cam);
+    let dz = (st.v_ned_m_s + lv_n) * dt - dp;
+    let mut h = SMatrix::<f64, 3, N_STATES>::zeros();
+    h.fixed_view_mut::<3, 3>(0, IV)
+        .copy_from(&(Matrix3::identity() * dt));
+    h.fixed_view_mut::<3, 3>(0, IA)
+        .copy_from(&(lever_arm_jacobian(&lv_n) * dt));
+    // Yaw used by the VO: `z` contains `psi_z e_D x dp = psi_z (-dp_E, dp_N, 0)`; its negative
+    // goes into `dz`.
+    h[(0, IA + 2)] += dp.y;
+    h[(1, IA + 2)] -= dp.x;
+    // Height used by the VO: `z` contains `dp dh / agl = -dp dD / agl`.
+    for i in 0..3 {
+        h[(i, IP + 2)] += dp[i] / f.agl_m;
+    }
+    core.update(par, dz, h, covariance(f), par.gate_vo)
+}
+
+/// The measurement covariance: the VO's own plus the terrain model's height error, correlated
+/// over `terrain_corr_dist_m` (`VoFix`): `k (sigma_t / agl)^2 dp dp^T`, `k = L / |dp|` (at least
+/// 1, at most `MAX_TERRAIN_CORR_FACTOR`). Over a distance `D < L` flown, `D / |dp|` such steps
+/// sum to the variance `(sigma_t D / agl)^2` of one scale error over `D`.
+fn covariance(f: &VoFix) -> Matrix3<f64> {
+    let dp = f.dp_ned_m;
+    let eps = f.terrain_sigma_m / f.agl_m;
+    let k = (f.terrain_corr_dist_m / dp.norm().max(1e-3)).clamp(1.0, MAX_TERRAIN_CORR_FACTOR);
+    f.cov_ned_m2 + dp * dp.transpose() * (k * eps * eps)
+}
+
+/// Cap of the terrain error's correlation factor: a hovering aircraft (dp near zero) would
+/// otherwise divide by zero; at the cap the term is negligible against the images' noise.
+const MAX_TERRAIN_CORR_FACTOR: f64 = 1e6;

@@ -69,6 +69,12 @@ use crate::pose::{
 };
 use crate::validate::{Problems, Validate};
 
+pub mod odometer;
+pub mod tracker;
+
+pub use odometer::{Odometer, VoMotion, VoStep};
+pub use tracker::{RawTrack, Tracker, TrackingConfig};
+
 /// One feature seen in both frames: its undistorted pixel position in the previous and the next.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TrackPair {
@@ -80,6 +86,9 @@ pub struct TrackPair {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct VoConfig {
+    /// Run visual odometry on every frame (the daemon; the absolute fix runs on the frames its
+    /// workers are free for).
+    pub enabled: bool,
     /// Fewest tracks on the terrain to try a solution.
     pub min_tracks: usize,
     /// 1-sigma position noise of a tracked feature in one frame, px.
@@ -91,6 +100,12 @@ pub struct VoConfig {
     pub max_sigma_agl_fraction: f64,
     /// The next frame's resection (RANSAC, adjustment, integrity).
     pub resection: ResectionConfig,
+    /// Distance over which the terrain model's height error stays the same, m: the scale error it
+    /// gives the displacements is one error over this distance, not one per frame
+    /// (`nav::VoFix`).
+    pub terrain_error_corr_dist_m: f64,
+    /// Feature detection and tracking.
+    pub tracking: TrackingConfig,
 }
 
 /// Largest deviation of a given rotation from orthonormality (`|R R^T - I|` elementwise): rounding
@@ -115,9 +130,17 @@ const DEFAULT_MAX_RANGE_M: f64 = 20_000.0;
 /// already a motion the IMU knows better over a fifth of a second.
 const DEFAULT_MAX_SIGMA_AGL_FRACTION: f64 = 0.05;
 
+/// Default terrain error correlation distance: published semivariograms of SRTM-class and
+/// photogrammetric DEM errors reach their sill at about 0.5-2 km; a map whose heights are off by
+/// a datum (or a flat-ground assumption) is off everywhere: set it to the map's size then.
+const DEFAULT_TERRAIN_ERROR_CORR_DIST_M: f64 = 1000.0;
+
 impl Default for VoConfig {
     fn default() -> Self {
         Self {
+            enabled: false,
+            terrain_error_corr_dist_m: DEFAULT_TERRAIN_ERROR_CORR_DIST_M,
+            tracking: TrackingConfig::default(),
             min_tracks: DEFAULT_MIN_TRACKS,
             track_sigma_px: DEFAULT_TRACK_SIGMA_PX,
             max_range_m: DEFAULT_MAX_RANGE_M,
@@ -176,7 +199,16 @@ impl Validate for VoConfig {
                 format!("{} must be finite and > 0", self.max_sigma_agl_fraction),
             );
         }
+        if !(self.terrain_error_corr_dist_m.is_finite()
+            && (0.0..=1e7).contains(&self.terrain_error_corr_dist_m))
+        {
+            p.push(
+                "terrain_error_corr_dist_m",
+                format!("{} must be in 0..=1e7", self.terrain_error_corr_dist_m),
+            );
+        }
         p.section("resection", |p| self.resection.validate(p));
+        p.section("tracking", |p| self.tracking.validate(p));
     }
 }
 

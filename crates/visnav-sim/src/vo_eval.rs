@@ -292,32 +292,6 @@ fn vga_poses(frames: usize) -> Vec<Pose> {
         .collect()
 }
 
-/// Corners of `pyr` at least `VGA_NEW_CORNER_DISTANCE_PX` from every live track, added to them up
-/// to `VGA_MAX_CORNERS`.
-fn replenish(
-    pyr: &visnav_core::vision::klt::Pyramid,
-    live: &mut Vec<[f32; 2]>,
-    fp: &visnav_core::vision::klt::FeatureParams,
-) -> Result<(), VoEvalError> {
-    let fresh = pyr
-        .good_features(fp)
-        .map_err(|e| VoEvalError::Vision(e.to_string()))?;
-    let d2 = VGA_NEW_CORNER_DISTANCE_PX * VGA_NEW_CORNER_DISTANCE_PX;
-    let existing = live.clone();
-    for c in fresh {
-        if live.len() >= VGA_MAX_CORNERS {
-            break;
-        }
-        let far = existing
-            .iter()
-            .all(|p| (p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) >= d2);
-        if far {
-            live.push(c);
-        }
-    }
-    Ok(())
-}
-
 fn median(v: &mut [f64]) -> f64 {
     quantile(v, 0.5)
 }
@@ -335,8 +309,8 @@ fn quantile(v: &mut [f64], p: f64) -> f64 {
 /// the previous estimate (chained, no filter) with the gyros' rotation (`VGA_GYRO_SIGMA_DEG` off).
 pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> {
     use visnav_core::geo::dem::Dem;
-    use visnav_core::vision::klt::{self, FeatureParams, Pyramid, SpreadGrid, TrackParams};
     use visnav_core::vo::RotationPrior;
+    use visnav_core::vo::{Tracker, TrackingConfig};
     let vision = |e: visnav_core::vision::VisionError| VoEvalError::Vision(e.to_string());
     let texture = GrayImage::load(texture_path).map_err(|e| VoEvalError::Data {
         path: texture_path.to_path_buf(),
@@ -356,23 +330,19 @@ pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> 
         .map(|p| render_flat(&texture, &image, p))
         .collect();
     let dem = Dem::flat(0.0).map_err(|e| VoEvalError::Vision(e.to_string()))?;
-    let (tp, cfg) = (TrackParams::default(), VoConfig::default());
-    let fp = FeatureParams {
+    let cfg = VoConfig::default();
+    let mut tracker = Tracker::new(TrackingConfig {
         max_corners: VGA_MAX_CORNERS,
-        spread: Some(SpreadGrid {
-            cols: 8,
-            rows: 6,
-            max_per_cell: VGA_MAX_CORNERS.div_ceil(48),
-        }),
-        ..FeatureParams::default()
-    };
+        replenish_below: VGA_REPLENISH_BELOW,
+        new_corner_distance_px: VGA_NEW_CORNER_DISTANCE_PX,
+        ..TrackingConfig::default()
+    });
     let gyro_err = nalgebra::Rotation3::from_axis_angle(
         &nalgebra::Unit::new_normalize(Vector3::new(1.0, -1.0, 0.5)),
         VGA_GYRO_SIGMA_DEG.to_radians(),
     );
-    let mut pyr_prev = Pyramid::new(&imgs[0], tp.max_level, tp.win_size_px).map_err(vision)?;
-    let mut live = Vec::new();
-    replenish(&pyr_prev, &mut live, &fp)?;
+    let first = tracker.pyramid(imgs[0].clone()).map_err(vision)?;
+    tracker.advance(first, |p| p).map_err(vision)?;
     let mut est = poses[0];
     let (mut total, mut t_pyr, mut t_trk, mut t_mot, mut t_rep) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
@@ -381,21 +351,19 @@ pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> 
     let mut replenished = 0;
     for k in 1..poses.len() {
         let t0 = Instant::now();
-        let pyr = Pyramid::new(&imgs[k], tp.max_level, tp.win_size_px).map_err(vision)?;
+        let pyr = tracker.pyramid(imgs[k].clone()).map_err(vision)?;
         let t1 = Instant::now();
-        let tracks = klt::track_checked(&pyr_prev, &pyr, &live, None, &tp).map_err(vision)?;
-        let (pairs, kept): (Vec<TrackPair>, Vec<[f32; 2]>) = live
+        // No prediction: the bench measures the tracker's own reach (4 m at 300 m: 7 px).
+        let pairs: Vec<TrackPair> = tracker
+            .track(pyr, |p| p)
+            .map_err(vision)?
+            .unwrap_or_default()
             .iter()
-            .zip(&tracks)
-            .filter(|(_, t)| t.is_tracked())
-            .map(|(a, t)| {
-                let pair = TrackPair {
-                    prev_px: Vector2::new(f64::from(a[0]), f64::from(a[1])),
-                    next_px: Vector2::new(f64::from(t.point[0]), f64::from(t.point[1])),
-                };
-                (pair, t.point)
+            .map(|t| TrackPair {
+                prev_px: Vector2::new(f64::from(t.prev_px[0]), f64::from(t.prev_px[1])),
+                next_px: Vector2::new(f64::from(t.next_px[0]), f64::from(t.next_px[1])),
             })
-            .unzip();
+            .collect();
         let t2 = Instant::now();
         let rotation_prior = Some(RotationPrior {
             r_prev_next: poses[k - 1].r_world_cam.inverse() * poses[k].r_world_cam * gyro_err,
@@ -416,9 +384,7 @@ pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> 
             reason: format!("frame {k}: no motion: {e}"),
         })?;
         let t3 = Instant::now();
-        live = kept;
-        if live.len() < VGA_REPLENISH_BELOW {
-            replenish(&pyr, &mut live, &fp)?;
+        if tracker.top_up().map_err(vision)? {
             replenished += 1;
         }
         let t4 = Instant::now();
@@ -443,7 +409,6 @@ pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> 
             r_world_cam: r,
             c_world: est.c_world + m.dp_world_m,
         };
-        pyr_prev = pyr;
     }
     let n = total.len();
     let last = poses.len() - 1;

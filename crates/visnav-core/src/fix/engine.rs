@@ -2472,7 +2472,7 @@ pub fn ransac_similarity(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     #[test]
@@ -2905,7 +2905,7 @@ mod tests {
     /// An engine over a 1.28 km checkerboard ortho (5 m pixels, UTM 14N, easting 500 000,
     /// northing 5 200 000 at its top left) on flat ground at 300 m, with a 320 x 240 camera of
     /// 60 deg field of view.
-    pub(super) fn checkerboard_engine() -> (FixEngine, Crs) {
+    pub(crate) fn checkerboard_engine() -> (FixEngine, Crs) {
         use crate::fix::reference::MemoryReference;
         use crate::geo::raster::{GeoTransform, Raster, RasterData};
         let (w, h) = (256usize, 256usize);

@@ -1,0 +1,552 @@
+//! The odometer: visual odometry on a camera's frame sequence against a map's terrain, each
+//! frame's motion turned into the navigation filter's measurement ([`VoFix`], NED).
+//!
+//! Per frame, with the navigation filter's pose at its capture time (a [`FixPrior`] with
+//! position and attitude, as the absolute fix gets):
+//! 1. the pose in the map frame (grid x east, y north, height AMSL; `R_map_cam = Rz(gamma)
+//!    R_enu_ned R_ned_cam`, gamma the grid convergence, as the fix engine's rectification);
+//! 2. the live features followed from the previous frame ([`super::tracker`]), each one's guess
+//!    its previous ray cast onto the plane of the ground below and projected from this frame's
+//!    prior pose (the filter's rotation and motion between the frames: tens of pixels at camera
+//!    rate become a fraction of one);
+//! 3. the pairs undistorted and solved by [`super::frame_motion`] from the previous frame's pose,
+//!    the filter's rotation between the two priors as the gyros' [`RotationPrior`]
+//!    (`gyro_sigma_rad`: what the gyros add over the interval);
+//! 4. the displacement from the map grid to NED: grid convergence removed, horizontal grid metres
+//!    divided by the projection's point scale factor.
+//!
+//! The previous frame's height sigma is not passed to the motion's covariance: the filter carries
+//! its own height error as a state ([`VoFix`]); the terrain model's is [`VoFix::terrain_sigma_m`]
+//! (the map's [`Reference::height_sigma_m`]), correlated over
+//! [`VoConfig::terrain_error_corr_dist_m`].
+//!
+//! A frame without a usable prior, or more than [`VO_MAX_SPAN_S`] after the previous one,
+//! restarts the sequence; a frame whose motion is refused still becomes the previous frame (its
+//! tracks are followed on), so one bad frame costs two measurements, not the sequence.
+
+use std::sync::Arc;
+
+#[cfg(test)]
+use nalgebra::Rotation3;
+use nalgebra::{Matrix3, Point2, Vector2, Vector3};
+
+use super::tracker::{RawTrack, Tracker};
+use super::{RotationPrior, TrackPair, VoConfig, VoInput, frame_motion};
+use crate::camera::Camera;
+use crate::camera::frames::{r_enu_ned, rot_z};
+use crate::fix::{FixPrior, Reference};
+use crate::nav::{VO_MAX_SPAN_S, VoFix};
+use crate::pose::{ImageGeometry, Pose};
+use crate::vision::GrayImage;
+
+/// What one frame gave.
+#[derive(Debug, Clone, PartialEq)]
+pub enum VoStep {
+    /// The first frame of a sequence (features detected, no motion yet).
+    Started,
+    /// The motion since the previous frame.
+    Motion(VoMotion),
+    /// No motion from this frame, and why.
+    Refused(String),
+}
+
+/// A frame's motion as the filter's measurement, with the numbers behind it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct VoMotion {
+    pub fix: VoFix,
+    /// Tracks followed, tracks on the terrain, inliers of the resection.
+    pub tracks: usize,
+    pub on_ground: usize,
+    pub inliers: usize,
+    /// Reprojection RMS of the inliers, px.
+    pub rms_px: f64,
+}
+
+/// The previous frame as the odometer keeps it.
+#[derive(Debug, Clone, Copy)]
+struct PrevFrame {
+    t_us: u64,
+    pose: Pose,
+    tilt_sigma_rad: f64,
+    /// Height of the ground below, AMSL, m (the guesses' plane).
+    ground_amsl_m: f64,
+}
+
+/// A frame's pose from its prior.
+#[derive(Debug, Clone, Copy)]
+struct FramePose {
+    pose: Pose,
+    tilt_sigma_rad: f64,
+    /// Grid convergence (rad) and point scale factor at the camera.
+    gamma_rad: f64,
+    scale: f64,
+}
+
+/// Visual odometry over a frame sequence (module doc).
+pub struct Odometer {
+    camera: Camera,
+    reference: Arc<dyn Reference>,
+    cfg: VoConfig,
+    tracker: Tracker,
+    prev: Option<PrevFrame>,
+}
+
+impl Odometer {
+    /// An odometer for `camera` over `reference`'s terrain.
+    pub fn new(camera: Camera, reference: Arc<dyn Reference>, cfg: VoConfig) -> Self {
+        let tracker = Tracker::new(cfg.tracking.clone());
+        Self {
+            camera,
+            reference,
+            cfg,
+            tracker,
+            prev: None,
+        }
+    }
+
+    /// Forget the sequence (the next frame starts a new one).
+    pub fn reset(&mut self) {
+        self.tracker.reset();
+        self.prev = None;
+    }
+
+    /// One frame with the filter's pose at its capture time (`prior`) and the 1-sigma of the
+    /// gyros' rotation since the previous frame (`gyro_sigma_rad`, per axis).
+    pub fn frame(&mut self, image: GrayImage, prior: &FixPrior, gyro_sigma_rad: f64) -> VoStep {
+        let fp = match self.frame_pose(prior) {
+            Ok(p) => p,
+            Err(why) => {
+                self.reset();
+                return VoStep::Refused(why);
+            }
+        };
+        let t_us = prior.t_capture_us;
+        let restart = match self.prev {
+            None => Some(None),
+            Some(p) if t_us <= p.t_us => Some(Some(format!(
+                "frame at {t_us} us is not after the previous one ({} us)",
+                p.t_us
+            ))),
+            Some(p) if (t_us - p.t_us) as f64 * 1e-6 > VO_MAX_SPAN_S => Some(Some(format!(
+                "{:.2} s since the previous frame (at most {VO_MAX_SPAN_S} s)",
+                (t_us - p.t_us) as f64 * 1e-6
+            ))),
+            Some(_) => None,
+        };
+        if restart.is_some() {
+            self.tracker.reset();
+        }
+        let pyr = match self.tracker.pyramid(image) {
+            Ok(p) => p,
+            Err(e) => {
+                self.reset();
+                return VoStep::Refused(format!("frame: {e}"));
+            }
+        };
+        let prev = self.prev;
+        let camera = &self.camera;
+        let predict = |p: [f32; 2]| match prev {
+            Some(pv) => predict(camera, &pv, &fp.pose, p).unwrap_or(p),
+            None => p,
+        };
+        let pairs = match self.tracker.advance(pyr, predict) {
+            Ok(p) => p,
+            Err(e) => {
+                self.reset();
+                return VoStep::Refused(format!("tracking: {e}"));
+            }
+        };
+        let ground_amsl_m = self.ground_below(&fp.pose);
+        self.prev = Some(PrevFrame {
+            t_us,
+            pose: fp.pose,
+            tilt_sigma_rad: fp.tilt_sigma_rad,
+            ground_amsl_m,
+        });
+        match (restart, prev, pairs) {
+            (Some(Some(why)), _, _) => VoStep::Refused(why),
+            (None, Some(pv), Some(pairs)) => self.motion(&pv, &fp, t_us, &pairs, gyro_sigma_rad),
+            _ => VoStep::Started,
+        }
+    }
+
+    /// The frame's camera pose in the map frame from its prior.
+    fn frame_pose(&self, prior: &FixPrior) -> Result<FramePose, String> {
+        let (Some(pos), Some(att)) = (&prior.position, &prior.attitude) else {
+            return Err("no pose prior (the filter is not initialised, or lost)".into());
+        };
+        let crs = self.reference.crs();
+        let geo = |e: crate::geo::GeoError| format!("prior position: {e}");
+        let (x, y) = crs.from_geodetic(pos.lat_deg, pos.lon_deg).map_err(geo)?;
+        let gamma_rad = crs
+            .grid_convergence_deg(pos.lat_deg, pos.lon_deg)
+            .map_err(geo)?
+            .to_radians();
+        let scale = crs
+            .point_scale_factor(pos.lat_deg, pos.lon_deg)
+            .map_err(geo)?;
+        let r = rot_z(gamma_rad) * r_enu_ned() * self.camera.mount.r_ned_cam(&att.attitude);
+        let pose = Pose {
+            r_world_cam: r,
+            c_world: Vector3::new(x, y, pos.alt_amsl_m),
+        };
+        let finite = pose.c_world.iter().all(|v| v.is_finite())
+            && [gamma_rad, scale, att.sigma_rad]
+                .iter()
+                .all(|v| v.is_finite())
+            && scale > 0.0;
+        if !finite {
+            return Err("prior pose is not finite".into());
+        }
+        Ok(FramePose {
+            pose,
+            tilt_sigma_rad: att.sigma_rad.clamp(0.0, 1.0),
+            gamma_rad,
+            scale,
+        })
+    }
+
+    /// Height AMSL of the ground below the camera (the DEM along the optical axis, or straight
+    /// down, or the DEM's middle height).
+    fn ground_below(&self, pose: &Pose) -> f64 {
+        let dem = self.reference.dem();
+        let c = pose.c_world;
+        let axis = pose.r_world_cam * Vector3::z();
+        if let Some(p) = dem.intersect_ray([c.x, c.y, c.z], [axis.x, axis.y, axis.z], 1e6) {
+            return p[2];
+        }
+        if let Some(h) = dem.height_at(c.x, c.y) {
+            return h;
+        }
+        let (lo, hi) = dem.height_range_m();
+        0.5 * (lo + hi)
+    }
+
+    /// The motion from the previous frame to this one as the filter's measurement.
+    fn motion(
+        &self,
+        prev: &PrevFrame,
+        next: &FramePose,
+        t_us: u64,
+        pairs: &[RawTrack],
+        gyro_sigma_rad: f64,
+    ) -> VoStep {
+        let tracks: Vec<TrackPair> = pairs.iter().filter_map(|t| self.undistort(t)).collect();
+        let k = &self.camera.intrinsics;
+        let image = ImageGeometry {
+            fx_px: k.fx_px,
+            fy_px: k.fy_px,
+            cx_px: k.cx_px,
+            cy_px: k.cy_px,
+            width_px: k.width_px,
+            height_px: k.height_px,
+        };
+        let mut r_prev_next = prev.pose.r_world_cam.inverse() * next.pose.r_world_cam;
+        r_prev_next.renormalize();
+        let input = VoInput {
+            tracks: &tracks,
+            image: &image,
+            prev: prev.pose,
+            prev_height_sigma_m: 0.0,
+            prev_tilt_sigma_rad: prev.tilt_sigma_rad,
+            rotation_prior: Some(RotationPrior {
+                r_prev_next,
+                cov_prev_rad2: Matrix3::identity() * gyro_sigma_rad.powi(2),
+            }),
+        };
+        let m = match frame_motion(&input, self.reference.dem(), &self.cfg) {
+            Ok(m) => m,
+            Err(e) => return VoStep::Refused(e.to_string()),
+        };
+        // Map grid to NED: v_map = Rz(gamma) v_enu; horizontal grid metres are `scale` true ones.
+        let unscale =
+            Matrix3::from_diagonal(&Vector3::new(1.0 / next.scale, 1.0 / next.scale, 1.0));
+        let r: Matrix3<f64> =
+            r_enu_ned().inverse().matrix() * unscale * rot_z(-next.gamma_rad).matrix();
+        let fix = VoFix {
+            t_prev_us: prev.t_us,
+            t_next_us: t_us,
+            dp_ned_m: r * m.dp_world_m,
+            cov_ned_m2: r * m.cov_dp_world_m2 * r.transpose(),
+            agl_m: m.agl_m,
+            terrain_sigma_m: self.reference.height_sigma_m(),
+            terrain_corr_dist_m: self.cfg.terrain_error_corr_dist_m,
+        };
+        let fix = VoFix {
+            cov_ned_m2: 0.5 * (fix.cov_ned_m2 + fix.cov_ned_m2.transpose()),
+            ..fix
+        };
+        VoStep::Motion(VoMotion {
+            fix,
+            tracks: m.tracks,
+            on_ground: m.on_ground,
+            inliers: m.inliers,
+            rms_px: m.rms_px,
+        })
+    }
+
+    /// A raw track in undistorted pixels (`None` where the distortion cannot be inverted).
+    fn undistort(&self, t: &RawTrack) -> Option<TrackPair> {
+        let k = &self.camera.intrinsics;
+        let und = |px: [f32; 2]| -> Option<Vector2<f64>> {
+            let ray = self
+                .camera
+                .unproject(&Point2::new(f64::from(px[0]), f64::from(px[1])))?;
+            let n = ray.xy() / ray.z;
+            Some(Vector2::new(
+                k.cx_px + k.fx_px * n.x,
+                k.cy_px + k.fy_px * n.y,
+            ))
+        };
+        Some(TrackPair {
+            prev_px: und(t.prev_px)?,
+            next_px: und(t.next_px)?,
+        })
+    }
+}
+
+/// Where a feature of the previous frame should appear in this one: its ray cast onto the
+/// horizontal plane of the ground below the previous frame, projected from this frame's prior
+/// pose. `None` when the ray misses the plane or the point is behind the camera.
+fn predict(camera: &Camera, prev: &PrevFrame, next: &Pose, px: [f32; 2]) -> Option<[f32; 2]> {
+    let p = Point2::new(f64::from(px[0]), f64::from(px[1]));
+    let ray = prev.pose.r_world_cam * camera.unproject(&p)?.into_inner();
+    let c = prev.pose.c_world;
+    if ray.z >= -1e-6 {
+        return None;
+    }
+    let s = (prev.ground_amsl_m - c.z) / ray.z;
+    let ground = c + ray * s;
+    let q = camera.project(&next.to_cam(&ground))?;
+    let out = [q.x as f32, q.y as f32];
+    out.iter().all(|v| v.is_finite()).then_some(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::frames::Attitude;
+    use crate::fix::engine::tests::checkerboard_engine;
+    use crate::fix::{AttitudePriorNed, PositionPriorGeo};
+    use crate::geo::Crs;
+    use crate::nav::earth::ned_offset_m;
+
+    /// Flat ground of the checkerboard engine, m AMSL.
+    const GROUND_M: f64 = 300.0;
+
+    /// A texture KLT can follow: value noise on a 3 m lattice plus two sines (no repetition over a
+    /// footprint), grey levels 20-235.
+    fn texture(x: f64, y: f64) -> f32 {
+        let hash = |i: i64, j: i64| -> f64 {
+            let h = (i.wrapping_mul(73_856_093) ^ j.wrapping_mul(19_349_663)) as u64;
+            let h = h.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+            (h >> 40) as f64 / (1u64 << 24) as f64
+        };
+        let (gx, gy) = (x / 3.0, y / 3.0);
+        let (i, j) = (gx.floor() as i64, gy.floor() as i64);
+        let (fx, fy) = (gx - gx.floor(), gy - gy.floor());
+        let n = hash(i, j) * (1.0 - fx) * (1.0 - fy)
+            + hash(i + 1, j) * fx * (1.0 - fy)
+            + hash(i, j + 1) * (1.0 - fx) * fy
+            + hash(i + 1, j + 1) * fx * fy;
+        (20.0 + 150.0 * n + 30.0 * (1.0 + (x / 17.0).sin() * (y / 23.0).cos())) as f32
+    }
+
+    /// The frame a camera at map position `c` (height AMSL) with `att` sees of the textured flat
+    /// ground (rendered from the same convention the odometer uses, not from its code).
+    fn render(
+        camera: &Camera,
+        crs: &Crs,
+        c: Vector3<f64>,
+        att: &Attitude,
+        lat: f64,
+        lon: f64,
+    ) -> GrayImage {
+        let gamma = crs.grid_convergence_deg(lat, lon).unwrap().to_radians();
+        let r = rot_z(gamma) * r_enu_ned() * camera.mount.r_ned_cam(att);
+        let (w, h) = (camera.width_px() as usize, camera.height_px() as usize);
+        GrayImage::from_fn(w, h, |u, v| {
+            let ray = r * camera
+                .unproject(&Point2::new(u as f64, v as f64))
+                .unwrap()
+                .into_inner();
+            let s = (GROUND_M - c.z) / ray.z;
+            texture(c.x + s * ray.x, c.y + s * ray.y)
+        })
+    }
+
+    /// Map position of the flight at frame `k` (0.2 s apart): 20 m/s on grid bearing 30 deg,
+    /// 300 m above the ground, 200 km west of the zone's central meridian (grid convergence
+    /// about -1.9 deg, point scale factor 1.0001).
+    fn at(k: usize) -> Vector3<f64> {
+        let d = 4.0 * k as f64;
+        Vector3::new(
+            300_640.0 + d * 0.5,
+            5_199_360.0 + d * 0.866,
+            GROUND_M + 300.0,
+        )
+    }
+
+    fn prior(crs: &Crs, c: Vector3<f64>, att: Attitude, t_us: u64) -> FixPrior {
+        let (lat, lon) = crs.to_geodetic(c.x, c.y).unwrap();
+        FixPrior {
+            t_capture_us: t_us,
+            position: Some(PositionPriorGeo {
+                lat_deg: lat,
+                lon_deg: lon,
+                alt_amsl_m: c.z,
+                sigma_h_m: 5.0,
+                sigma_v_m: 2.0,
+            }),
+            altitude: None,
+            attitude: Some(AttitudePriorNed {
+                attitude: att,
+                sigma_rad: 1e-3,
+                sigma_yaw_rad: 1e-2,
+            }),
+            attitude_from_filter: true,
+        }
+    }
+
+    /// The true NED displacement between frames `a` and `b`.
+    fn truth_ned(crs: &Crs, a: Vector3<f64>, b: Vector3<f64>) -> Vector3<f64> {
+        let (la, oa) = crs.to_geodetic(a.x, a.y).unwrap();
+        let (lb, ob) = crs.to_geodetic(b.x, b.y).unwrap();
+        ned_offset_m(
+            (lb.to_radians(), ob.to_radians(), b.z),
+            (la.to_radians(), oa.to_radians(), a.z),
+        )
+    }
+
+    /// Flies the sequence with the prior's heading off by `yaw_err_deg` (the truth's heading is
+    /// the grid bearing plus the convergence); returns the steps and the true displacements.
+    fn fly(yaw_err_deg: f64, frames: usize) -> (Vec<VoStep>, Vec<Vector3<f64>>) {
+        let (engine, crs) = checkerboard_engine();
+        let camera = engine.camera().clone();
+        let cfg = VoConfig {
+            enabled: true,
+            ..VoConfig::default()
+        };
+        let mut odo = Odometer::new(camera.clone(), engine.reference().clone(), cfg);
+        let (mut steps, mut truth) = (Vec::new(), Vec::new());
+        for k in 0..frames {
+            let c = at(k);
+            let (lat, lon) = crs.to_geodetic(c.x, c.y).unwrap();
+            let gamma = crs.grid_convergence_deg(lat, lon).unwrap();
+            let att = Attitude::from_deg(0.5, -0.3, 30.0 - gamma + 0.4 * k as f64);
+            let img = render(&camera, &crs, c, &att, lat, lon);
+            let seen = Attitude {
+                yaw_rad: att.yaw_rad + yaw_err_deg.to_radians(),
+                ..att
+            };
+            steps.push(odo.frame(img, &prior(&crs, c, seen, 200_000 * k as u64), 1e-4));
+            if k > 0 {
+                truth.push(truth_ned(&crs, at(k - 1), c));
+            }
+        }
+        (steps, truth)
+    }
+
+    fn motions(steps: &[VoStep]) -> Vec<VoMotion> {
+        steps
+            .iter()
+            .filter_map(|s| match s {
+                VoStep::Motion(m) => Some(m.clone()),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Frame to frame on textured flat ground: the NED displacement of each pair within a few
+    /// centimetres and inside 3 sigma; the first frame starts the sequence.
+    #[test]
+    fn displacements_in_ned_match_the_flight() {
+        let (steps, truth) = fly(0.0, 6);
+        assert_eq!(steps[0], VoStep::Started);
+        let m = motions(&steps[1..]);
+        assert_eq!(m.len(), 5, "{steps:?}");
+        for (m, t) in m.iter().zip(&truth) {
+            let e = m.fix.dp_ned_m - t;
+            let sig = m.fix.cov_ned_m2.diagonal().map(f64::sqrt);
+            eprintln!(
+                "error {:.3?} m, sigma {:.3?} m",
+                e.as_slice(),
+                sig.as_slice()
+            );
+            assert!(e.norm() < 0.1, "error {e:?} of {t:?} (sigma {sig:?})");
+            assert!(m.inliers > 100, "{}", m.inliers);
+            assert!((m.fix.agl_m - 300.0).abs() < 1.0, "{}", m.fix.agl_m);
+            let nis = e.dot(&(m.fix.cov_ned_m2.try_inverse().unwrap() * e));
+            assert!(nis < 3.0 * 3.0 * 3.0, "nis {nis}");
+            assert_eq!(m.fix.t_next_us - m.fix.t_prev_us, 200_000);
+        }
+    }
+
+    /// The property the filter's model rests on (`nav::filter::fuse_vo`): a heading error of the
+    /// prior rotates the displacement by it, `dp = Rz(dyaw) dp_true` (NED, about down).
+    #[test]
+    fn a_heading_error_of_the_prior_rotates_the_displacement() {
+        let (steps, truth) = fly(3.0, 3);
+        for (m, t) in motions(&steps).iter().zip(&truth) {
+            let rotated = Rotation3::from_axis_angle(&Vector3::z_axis(), 3f64.to_radians()) * t;
+            let e = m.fix.dp_ned_m - rotated;
+            assert!(
+                e.norm() < 0.1,
+                "{:?} vs rotated truth {rotated:?}",
+                m.fix.dp_ned_m
+            );
+        }
+    }
+
+    /// Bad input gives no motion: a blank frame, a frame without a pose prior, a frame back in
+    /// time; the sequence goes on after them.
+    #[test]
+    fn blank_frames_missing_priors_and_time_steps_give_no_motion() {
+        let (engine, crs) = checkerboard_engine();
+        let camera = engine.camera().clone();
+        let mut odo = Odometer::new(
+            camera.clone(),
+            engine.reference().clone(),
+            VoConfig::default(),
+        );
+        let att = Attitude::from_deg(0.0, 0.0, 30.0);
+        let frame = |k: usize| {
+            let (lat, lon) = crs.to_geodetic(at(k).x, at(k).y).unwrap();
+            render(&camera, &crs, at(k), &att, lat, lon)
+        };
+        let blank = GrayImage::from_fn(320, 240, |_, _| 128.0);
+        assert_eq!(
+            odo.frame(frame(0), &prior(&crs, at(0), att, 0), 1e-4),
+            VoStep::Started
+        );
+        let s = odo.frame(blank.clone(), &prior(&crs, at(1), att, 200_000), 1e-4);
+        assert!(
+            matches!(&s, VoStep::Refused(why) if why.contains("tracks")),
+            "{s:?}"
+        );
+        let mut none = prior(&crs, at(2), att, 400_000);
+        none.position = None;
+        let s = odo.frame(frame(2), &none, 1e-4);
+        assert!(
+            matches!(&s, VoStep::Refused(why) if why.contains("no pose prior")),
+            "{s:?}"
+        );
+        assert_eq!(
+            odo.frame(frame(3), &prior(&crs, at(3), att, 600_000), 1e-4),
+            VoStep::Started
+        );
+        let s = odo.frame(frame(4), &prior(&crs, at(4), att, 500_000), 1e-4);
+        assert!(
+            matches!(&s, VoStep::Refused(why) if why.contains("not after")),
+            "{s:?}"
+        );
+        assert_eq!(
+            odo.frame(frame(5), &prior(&crs, at(5), att, 3_000_000), 1e-4),
+            VoStep::Refused("2.50 s since the previous frame (at most 2 s)".into())
+        );
+        assert!(matches!(
+            odo.frame(frame(6), &prior(&crs, at(6), att, 3_200_000), 1e-4),
+            VoStep::Motion(_)
+        ));
+    }
+}

@@ -52,6 +52,7 @@ fn setup(port: u16) -> DaemonSetup {
             ..DaemonConfig::default()
         },
         frames: None,
+        vo: Default::default(),
     }
 }
 

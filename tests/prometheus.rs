@@ -38,6 +38,7 @@ fn setup(port: u16, metrics_listen: &str) -> DaemonSetup {
             ..DaemonConfig::default()
         },
         frames: None,
+        vo: Default::default(),
     }
 }
 

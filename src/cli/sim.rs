@@ -157,6 +157,12 @@ fn fmt_stats(s: &visnav::sitl::fixeval::Stats) -> String {
     format!("{:.1} / {:.1} / {:.1}", s.median, s.p90, s.max)
 }
 
+/// A figure with one decimal, `-` when there is none.
+fn fmt_opt(v: Option<f64>) -> String {
+    v.filter(|x| x.is_finite())
+        .map_or_else(|| "-".to_string(), |x| format!("{x:.1}"))
+}
+
 /// The closed loop: run, write the report folder, print the summary.
 fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow::Result<ExitCode> {
     use anyhow::Context;
@@ -259,6 +265,14 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
             s.max_err_m.control.e,
             s.max_err_m.control.n,
             s.max_err_m.control.u
+        );
+        println!(
+            "end of flight: horizontal error [m] visnav {}, no-vision {}; {:.0} m flown since the GPS loss; max heading error since then [deg] visnav {}, no-vision {}",
+            fmt_opt(s.final_err_h_m),
+            fmt_opt(s.control_final_err_h_m),
+            s.distance_flown_m,
+            fmt_opt(s.yaw_err_deg_max),
+            fmt_opt(s.ctl_yaw_err_deg_max)
         );
         println!(
             "capture-to-fix latency p50 / p95 [ms]: {:.0} / {:.0}",

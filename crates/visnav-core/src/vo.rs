@@ -72,7 +72,7 @@ use crate::validate::{Problems, Validate};
 pub mod odometer;
 pub mod tracker;
 
-pub use odometer::{Odometer, VoMotion, VoStep};
+pub use odometer::{GyroDelta, Odometer, VoMotion, VoStep};
 pub use tracker::{RawTrack, Tracker, TrackingConfig};
 
 /// One feature seen in both frames: its undistorted pixel position in the previous and the next.

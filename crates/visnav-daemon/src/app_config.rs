@@ -64,6 +64,9 @@ pub struct Config {
     /// Camera frame source (absent: no vision fixes, IMU/GPS/attitude only).
     #[serde(default)]
     pub frames: Option<visnav_io::frames::FramesConfig>,
+    /// Visual odometry between fixes (off unless `enabled`); every key has a default.
+    #[serde(default)]
+    pub vo: visnav_core::vo::VoConfig,
     /// The daemon's pipeline settings; every key has a default.
     #[serde(default)]
     pub daemon: crate::DaemonConfig,
@@ -243,6 +246,7 @@ impl Config {
         p.section("output", |p| cfg.output.validate(p));
         p.section("nav", |p| cfg.nav.validate(p));
         p.section("fix", |p| cfg.fix.validate(p));
+        p.section("vo", |p| cfg.vo.validate(p));
         if let Some(f) = &cfg.frames {
             p.section("frames", |p| f.validate_in(base, p));
         }

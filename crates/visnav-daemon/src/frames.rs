@@ -9,108 +9,21 @@
 //! aircraft where it was when the camera froze, stamped now.
 
 use std::panic::AssertUnwindSafe;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Condvar, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use tokio::sync::mpsc;
 use tracing::{error, info, warn};
 
 use crate::FrameFixer;
+use crate::handoff::capture_time_us;
+pub use crate::handoff::{PriorSource, Slot, Take};
 use crate::metrics::DaemonMetrics;
 use visnav_core::fix::{FixPrior, FixReport};
 use visnav_core::vision::GrayImage;
-use visnav_io::frames::{CaptureTime, Frame, FrameError, FrameSource};
+use visnav_io::frames::{Frame, FrameError, FrameSource};
 use visnav_link::Clock;
-
-/// A one-element queue: `put_latest` replaces, `put_wait` waits for room; `take` blocks.
-#[derive(Debug)]
-pub struct Slot<T> {
-    state: Mutex<(Option<T>, bool)>,
-    cv: Condvar,
-}
-
-/// Result of [`Slot::take`].
-#[derive(Debug, PartialEq)]
-pub enum Take<T> {
-    Item(T),
-    Timeout,
-    Closed,
-}
-
-impl<T> Default for Slot<T> {
-    fn default() -> Self {
-        Self {
-            state: Mutex::new((None, false)),
-            cv: Condvar::new(),
-        }
-    }
-}
-
-impl<T> Slot<T> {
-    fn lock(&self) -> std::sync::MutexGuard<'_, (Option<T>, bool)> {
-        self.state.lock().unwrap_or_else(|e| e.into_inner())
-    }
-
-    /// Put `item`, returning the item it replaced (dropped) if any.
-    pub fn put_latest(&self, item: T) -> Option<T> {
-        let old = self.lock().0.replace(item);
-        self.cv.notify_all();
-        old
-    }
-
-    /// Put `item` once the slot is empty; false (item dropped) when closed.
-    pub fn put_wait(&self, item: T) -> bool {
-        let mut g = self.lock();
-        loop {
-            if g.1 {
-                return false;
-            }
-            if g.0.is_none() {
-                g.0 = Some(item);
-                self.cv.notify_all();
-                return true;
-            }
-            g = self
-                .cv
-                .wait_timeout(g, Duration::from_millis(100))
-                .map(|r| r.0)
-                .unwrap_or_else(|e| e.into_inner().0);
-        }
-    }
-
-    /// Take the item, waiting up to `timeout`.
-    pub fn take(&self, timeout: Duration) -> Take<T> {
-        let deadline = Instant::now() + timeout;
-        let mut g = self.lock();
-        loop {
-            if let Some(x) = g.0.take() {
-                self.cv.notify_all();
-                return Take::Item(x);
-            }
-            if g.1 {
-                return Take::Closed;
-            }
-            let now = Instant::now();
-            if now >= deadline {
-                return Take::Timeout;
-            }
-            g = self
-                .cv
-                .wait_timeout(g, deadline - now)
-                .map(|r| r.0)
-                .unwrap_or_else(|e| e.into_inner().0);
-        }
-    }
-
-    /// Close: waiting and future `take`s return `Closed` once empty, puts are refused.
-    pub fn close(&self) {
-        let mut g = self.lock();
-        g.1 = true;
-        g.0 = None;
-        self.cv.notify_all();
-    }
-}
 
 /// Recognises a frozen camera: an image bit-identical to the previous one. A live sensor's
 /// noise makes two real frames differ in some pixel; a driver that stopped capturing hands out
@@ -168,17 +81,13 @@ pub struct FixResult {
     pub latency_ms: u64,
 }
 
-/// Builds the prior for a capture time (implemented by the navigation task's shared state).
-pub trait PriorSource: Send + Sync + 'static {
-    fn prior_at(&self, t_capture_us: u64) -> FixPrior;
-}
-
 /// The reader thread: source -> slot until the source ends, fails or `stop` is set. It starts
 /// reading once the link's clock mapping is available (frames before that could not be stamped
 /// on the autopilot clock).
 pub fn spawn_reader(
     mut source: Box<dyn FrameSource>,
     slot: Arc<Slot<Frame>>,
+    vo_slot: Option<Arc<Slot<Frame>>>,
     lossless: bool,
     clock: Clock,
     stop: Arc<AtomicBool>,
@@ -204,6 +113,17 @@ pub fn spawn_reader(
                             continue;
                         }
                         metrics.queue_depth_max.fetch_max(1, Ordering::Relaxed);
+                        if let Some(v) = &vo_slot {
+                            // Every frame to visual odometry too (its own thread; the newest
+                            // wins there as well unless lossless).
+                            if lossless {
+                                if !v.put_wait(f.clone()) {
+                                    break;
+                                }
+                            } else {
+                                v.put_latest(f.clone());
+                            }
+                        }
                         if lossless {
                             if !slot.put_wait(f) {
                                 break;
@@ -287,11 +207,8 @@ fn fix_frame(ctx: &WorkerCtx, f: Frame) -> Option<FixResult> {
 /// too old; counted).
 fn prepare(ctx: &WorkerCtx, f: &Frame) -> Option<(u64, FixPrior)> {
     let m = &ctx.metrics;
-    let t_capture_us = match f.t_capture {
-        CaptureTime::AutopilotBootUs(t) => Some(t),
-        CaptureTime::Companion(i) => ctx.clock.to_autopilot_us(i),
-    };
-    let (Some(t_c), Some(now)) = (t_capture_us, ctx.clock.autopilot_now_us()) else {
+    let (Some(t_c), Some(now)) = (capture_time_us(&ctx.clock, f), ctx.clock.autopilot_now_us())
+    else {
         m.frames_no_time.fetch_add(1, Ordering::Relaxed);
         return None;
     };
@@ -339,6 +256,7 @@ fn fix_prepared(ctx: &WorkerCtx, f: Frame, t_c: u64, prior: FixPrior) -> FixResu
 pub async fn lockstep_frames(
     source: Box<dyn FrameSource>,
     ctx: WorkerCtx,
+    mut vo: Option<crate::vo_path::VoCtx>,
     period: Duration,
     latency: Duration,
     mut stop: tokio::sync::watch::Receiver<bool>,
@@ -390,6 +308,9 @@ pub async fn lockstep_frames(
         let Some((t_c, prior)) = prepare(&ctx, &f) else {
             continue;
         };
+        if let Some(v) = vo.take() {
+            vo = lockstep_vo(v, &f, t_c, latency).await;
+        }
         let c = ctx.clone();
         let Ok(result) = tokio::task::spawn_blocking(move || fix_prepared(&c, f, t_c, prior)).await
         else {
@@ -401,6 +322,31 @@ pub async fn lockstep_frames(
             let _ = results.send(result).await;
         });
     }
+}
+
+/// Lock-step odometry of one frame: inputs read here, on the runtime's thread; the odometer on
+/// the blocking pool; the result delivered `latency` later. `None` when the pool is gone.
+async fn lockstep_vo(
+    v: crate::vo_path::VoCtx,
+    f: &Frame,
+    t_c: u64,
+    latency: Duration,
+) -> Option<crate::vo_path::VoCtx> {
+    let inputs = v.inputs(t_c);
+    let (image, seq) = (f.image.clone(), f.seq);
+    let mut v = v;
+    let (v, r) = tokio::task::spawn_blocking(move || {
+        let r = v.step(image, seq, inputs);
+        (v, r)
+    })
+    .await
+    .ok()?;
+    let results = v.results.clone();
+    tokio::spawn(async move {
+        tokio::time::sleep(latency).await;
+        let _ = results.send(r).await;
+    });
+    Some(v)
 }
 
 #[cfg(test)]

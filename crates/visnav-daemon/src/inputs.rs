@@ -652,6 +652,118 @@ impl OutputBook {
             .min_by_key(|o| o.t_us.abs_diff(t_us))
             .filter(|o| o.t_us.abs_diff(t_us) <= 1_000_000)
     }
+
+    /// The filter's solution at `t_us` (visual odometry's pose of a frame): interpolated between
+    /// the two outputs around it when they are at most [`MAX_OUTPUT_GAP_US`] apart (position and
+    /// velocity linearly, attitude along the great arc), or moved on from the newest output by its
+    /// velocity and body rate when `t_us` is at most [`MAX_OUTPUT_GAP_US`] after it. The
+    /// covariance and health are the earlier output's. `None` otherwise.
+    pub fn at(&self, t_us: u64) -> Option<NavOutput> {
+        let after = self.outs.iter().position(|o| o.t_us >= t_us);
+        match after {
+            Some(0) => {
+                let o = self.outs.front()?;
+                (o.t_us == t_us).then(|| o.clone())
+            }
+            Some(i) => {
+                let (a, b) = (&self.outs[i - 1], &self.outs[i]);
+                if b.t_us - a.t_us > MAX_OUTPUT_GAP_US {
+                    return None;
+                }
+                let f = (t_us - a.t_us) as f64 / (b.t_us - a.t_us) as f64;
+                Some(interpolate(a, b, f, t_us))
+            }
+            None => {
+                let o = self.outs.back()?;
+                (t_us - o.t_us <= MAX_OUTPUT_GAP_US).then(|| extrapolate(o, t_us))
+            }
+        }
+    }
+
+    /// The body's rotation from `t0_us` to `t1_us` by the outputs' body rates (`R_b0_b1`: vectors
+    /// of the body at `t1` into the body at `t0`), trapezoidal between outputs, the newest rate
+    /// held beyond the newest output. `None` unless outputs cover the span without a gap over
+    /// [`MAX_OUTPUT_GAP_US`] (the first at most that long before or at `t0`).
+    pub fn body_rotation(&self, t0_us: u64, t1_us: u64) -> Option<nalgebra::Rotation3<f64>> {
+        if t1_us <= t0_us {
+            return None;
+        }
+        let start = self.outs.iter().rposition(|o| o.t_us <= t0_us)?;
+        let rate = |o: &NavOutput| Vector3::from(o.w_body_rad_s);
+        let mut r = nalgebra::Rotation3::identity();
+        let (mut t, mut w) = (t0_us, rate(&self.outs[start]));
+        if t0_us - self.outs[start].t_us > MAX_OUTPUT_GAP_US {
+            return None;
+        }
+        for o in self.outs.iter().skip(start + 1) {
+            if o.t_us - t > MAX_OUTPUT_GAP_US {
+                return None;
+            }
+            let end = o.t_us.min(t1_us);
+            let dt = (end - t) as f64 * 1e-6;
+            let w_end = rate(o);
+            r *= nalgebra::Rotation3::from_scaled_axis((w + w_end) * 0.5 * dt);
+            (t, w) = (end, w_end);
+            if o.t_us >= t1_us {
+                return Some(r);
+            }
+        }
+        if t1_us - t > MAX_OUTPUT_GAP_US {
+            return None;
+        }
+        r *= nalgebra::Rotation3::from_scaled_axis(w * ((t1_us - t) as f64 * 1e-6));
+        Some(r)
+    }
+}
+
+/// Longest gap between filter outputs (or after the newest) that [`OutputBook::at`] and
+/// [`OutputBook::body_rotation`] bridge: five periods of the default 50 Hz output.
+pub const MAX_OUTPUT_GAP_US: u64 = 100_000;
+
+/// `a` and `b` mixed at `f` (0: `a`, 1: `b`), stamped `t_us`.
+fn interpolate(a: &NavOutput, b: &NavOutput, f: f64, t_us: u64) -> NavOutput {
+    let lerp = |x: f64, y: f64| x + (y - x) * f;
+    let q = |o: &NavOutput| {
+        let [w, x, y, z] = o.q_nb_wxyz;
+        UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z))
+    };
+    let qi = q(a).slerp(&q(b), f);
+    let (r, p, y) = qi.euler_angles();
+    NavOutput {
+        t_us,
+        lat_deg: lerp(a.lat_deg, b.lat_deg),
+        lon_deg: lerp(a.lon_deg, b.lon_deg),
+        h_m: lerp(a.h_m, b.h_m),
+        v_ned_m_s: std::array::from_fn(|i| lerp(a.v_ned_m_s[i], b.v_ned_m_s[i])),
+        q_nb_wxyz: [qi.w, qi.i, qi.j, qi.k],
+        rpy_deg: [r.to_degrees(), p.to_degrees(), y.to_degrees()],
+        w_body_rad_s: std::array::from_fn(|i| lerp(a.w_body_rad_s[i], b.w_body_rad_s[i])),
+        ..a.clone()
+    }
+}
+
+/// `o` moved on to `t_us` by its velocity and body rate.
+fn extrapolate(o: &NavOutput, t_us: u64) -> NavOutput {
+    let dt = (t_us as f64 - o.t_us as f64) * 1e-6;
+    let (lat, lon, h) = offset_geodetic(
+        o.lat_deg,
+        o.lon_deg,
+        o.h_m,
+        &(Vector3::from(o.v_ned_m_s) * dt),
+    );
+    let [w, x, y, z] = o.q_nb_wxyz;
+    let q = UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z))
+        * UnitQuaternion::from_scaled_axis(Vector3::from(o.w_body_rad_s) * dt);
+    let (r, p, yaw) = q.euler_angles();
+    NavOutput {
+        t_us,
+        lat_deg: lat,
+        lon_deg: lon,
+        h_m: h,
+        q_nb_wxyz: [q.w, q.i, q.j, q.k],
+        rpy_deg: [r.to_degrees(), p.to_degrees(), yaw.to_degrees()],
+        ..o.clone()
+    }
 }
 
 /// A lost solution (its sigma over `[nav.health] lost_pos_sigma_m`, or no fix for
@@ -1141,10 +1253,55 @@ mod tests {
             cov_vel_ned_m2_s2: [[0.01, 0.0, 0.0], [0.0, 0.01, 0.0], [0.0, 0.0, 0.01]],
             att_sigma_deg: [0.5, 0.5, 2.0],
             gyro_bias_deg_h: [0.0; 3],
+            w_body_rad_s: [0.0; 3],
             accel_bias_ug: [0.0; 3],
             health,
             reason: String::new(),
         }
+    }
+
+    /// A book of 50 Hz outputs turning at 10 deg/s about down, flying 10 m/s north.
+    fn turning_book(from_us: u64, to_us: u64) -> OutputBook {
+        let mut book = OutputBook::default();
+        for t in (from_us..=to_us).step_by(20_000) {
+            let mut o = output(t, NavHealth::Ok);
+            let yaw = (10.0 * t as f64 * 1e-6).to_radians();
+            let q = UnitQuaternion::from_euler_angles(0.0, 0.0, yaw);
+            o.q_nb_wxyz = [q.w, q.i, q.j, q.k];
+            o.rpy_deg = [0.0, 0.0, yaw.to_degrees()];
+            o.lat_deg = 47.0 + 10.0 * t as f64 * 1e-6 / 111_200.0;
+            o.w_body_rad_s = [0.0, 0.0, 10f64.to_radians()];
+            book.push(o);
+        }
+        book
+    }
+
+    /// The solution between outputs is interpolated, after the newest one moved on by its rates,
+    /// and nothing across a gap; the body rotation over a frame interval is the rates' integral.
+    #[test]
+    fn output_book_interpolates_extrapolates_and_integrates_rates() {
+        let book = turning_book(1_000_000, 2_000_000);
+        let yaw_at = |t: u64| book.at(t).map(|o| o.rpy_deg[2]);
+        assert!((yaw_at(1_510_000).unwrap() - 15.1).abs() < 1e-9);
+        assert!((yaw_at(2_050_000).unwrap() - 20.5).abs() < 1e-9);
+        let lat = book.at(1_510_000).unwrap().lat_deg;
+        assert!(((lat - 47.0) * 111_200.0 - 15.1).abs() < 1e-6);
+        assert!(book.at(2_150_000).is_none(), "beyond the newest + 0.1 s");
+        assert!(book.at(900_000).is_none(), "before the oldest");
+        let r = book.body_rotation(1_510_000, 1_710_000).unwrap();
+        assert!((r.scaled_axis() - Vector3::new(0.0, 0.0, 2f64.to_radians())).norm() < 1e-12);
+        let r = book.body_rotation(1_950_000, 2_050_000).unwrap();
+        assert!((r.angle().to_degrees() - 1.0).abs() < 1e-9);
+        assert!(book.body_rotation(1_950_000, 2_200_000).is_none());
+        assert!(book.body_rotation(800_000, 1_100_000).is_none());
+        // A gap of 0.3 s in the outputs.
+        let mut gappy = turning_book(1_000_000, 1_400_000);
+        for o in turning_book(1_700_000, 2_000_000).outs {
+            gappy.push(o);
+        }
+        assert!(gappy.at(1_500_000).is_none());
+        assert!(gappy.body_rotation(1_300_000, 1_800_000).is_none());
+        assert!(gappy.body_rotation(1_700_000, 1_900_000).is_some());
     }
 
     #[test]

@@ -27,12 +27,14 @@ pub mod config;
 pub mod fix_config;
 pub mod fixlog;
 pub mod frames;
+pub mod handoff;
 pub mod heap;
 pub mod imu_bias;
 pub mod inputs;
 pub mod metrics;
 pub mod prometheus;
 pub mod replay;
+pub mod vo_path;
 pub mod wiring;
 
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -53,6 +55,7 @@ use visnav_core::nav::{
     Health as NavHealth, Measurement, NavConfig, NavFilter, NavOutput, Outcome,
 };
 use visnav_core::vision::GrayImage;
+use visnav_core::vo::VoStep;
 use visnav_io::frames::{Frame, FrameError, FrameSource, FramesConfig};
 use visnav_link::config::{LinkConfig, OutputConfig};
 use visnav_link::{Health as LinkHealth, Link, LinkError, NavEstimate, Telemetry};
@@ -70,6 +73,11 @@ use inputs::{Inputs, NavInput, OutputBook};
 /// rejection).
 pub trait FrameFixer: Send + Sync + 'static {
     fn fix(&self, image: &GrayImage, prior: &FixPrior) -> FixReport;
+
+    /// Visual odometry with this engine's camera and terrain (`[vo]`); `None`: not available.
+    fn odometer(&self, _cfg: &visnav_core::vo::VoConfig) -> Option<visnav_core::vo::Odometer> {
+        None
+    }
 }
 
 /// Why the daemon could not start.
@@ -105,6 +113,8 @@ pub struct DaemonSetup {
     pub nav: NavConfig,
     pub daemon: DaemonConfig,
     pub frames: Option<FramesConfig>,
+    /// Visual odometry (`[vo]`).
+    pub vo: visnav_core::vo::VoConfig,
 }
 
 impl DaemonSetup {
@@ -121,6 +131,7 @@ impl DaemonSetup {
                 .with_camera_lever_arm(cfg.camera.mount.to_mount().lever_arm_body_frd_m.into()),
             daemon: cfg.daemon.clone(),
             frames: cfg.frames.clone(),
+            vo: cfg.vo.clone(),
         }
     }
 }
@@ -194,6 +205,18 @@ impl PriorSource for SharedPriors {
             None => inputs::prior_at(t_us, out.as_ref(), att, &self.nav),
         }
     }
+
+    fn pose_at(&self, t_us: u64) -> FixPrior {
+        let out = self.book.lock().unwrap_or_else(|e| e.into_inner()).at(t_us);
+        inputs::prior_at(t_us, out.as_ref(), None, &self.nav)
+    }
+
+    fn body_rotation(&self, t0_us: u64, t1_us: u64) -> Option<nalgebra::Rotation3<f64>> {
+        self.book
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .body_rotation(t0_us, t1_us)
+    }
 }
 
 /// The last solution before a restart and the companion time (ns) it was made, waiting to be
@@ -212,7 +235,8 @@ pub struct Daemon {
     /// The lock-step frame task (`FramePipeline::lockstep_latency`).
     lockstep_task: Option<JoinHandle<()>>,
     threads: Vec<std::thread::JoinHandle<()>>,
-    slot: Option<Arc<Slot<Frame>>>,
+    /// The fix workers' and the odometry thread's frame slots (closed at shutdown).
+    slots: Vec<Arc<Slot<Frame>>>,
     metrics: Arc<DaemonMetrics>,
     est_rx: watch::Receiver<Option<NavEstimate>>,
     out_rx: watch::Receiver<Option<NavOutput>>,
@@ -290,6 +314,29 @@ impl Daemon {
         });
         let (stop, stop_rx) = watch::channel(false);
         let (fix_tx, fix_rx) = mpsc::channel(4);
+        let (vo_tx, vo_rx) = mpsc::channel(8);
+        let odometer = match (&frames, &fixer, setup.vo.enabled) {
+            (Some(_), Some(f), true) => {
+                let o = f.odometer(&setup.vo);
+                if o.is_none() {
+                    warn!("[vo] enabled, but the fix engine has no odometer: visual odometry off");
+                }
+                o
+            }
+            (None, _, true) => {
+                warn!("[vo] enabled, but there is no camera ([frames]): visual odometry off");
+                None
+            }
+            _ => None,
+        };
+        let vo_ctx = odometer.map(|odometer| vo_path::VoCtx {
+            odometer,
+            priors: shared.clone(),
+            results: vo_tx.clone(),
+            metrics: metrics.clone(),
+            gyro: vo_path::GyroNoise::from_nav(&setup.nav),
+            last_t_us: None,
+        });
         let nav = NavTask {
             filter: NavFilter::new(setup.nav.clone()),
             nav_cfg: setup.nav.clone(),
@@ -316,11 +363,12 @@ impl Daemon {
             drag_logged: [false; 2],
             init_spacing: inputs::InitSpacing::default(),
             fix_log,
+            vo_working: None,
         };
-        let nav_task = tokio::spawn(nav.run(tel, fix_rx, stop_rx));
+        let nav_task = tokio::spawn(nav.run(tel, fix_rx, vo_rx, stop_rx));
         let stop_threads = Arc::new(AtomicBool::new(false));
         let mut threads = Vec::new();
-        let mut slot_out = None;
+        let mut slots = Vec::new();
         let mut lockstep_task = None;
         let spawned: std::io::Result<()> = (|| {
             if let (Some(fp), Some(fixer)) = (frames, fixer) {
@@ -341,6 +389,7 @@ impl Daemon {
                     lockstep_task = Some(tokio::spawn(frames::lockstep_frames(
                         fp.source,
                         ctx,
+                        vo_ctx,
                         period,
                         latency,
                         stop.subscribe(),
@@ -348,9 +397,20 @@ impl Daemon {
                     return Ok(());
                 }
                 let slot = Arc::new(Slot::default());
+                slots.push(slot.clone());
+                let vo_slot = match vo_ctx {
+                    Some(v) => {
+                        let s = Arc::new(Slot::default());
+                        slots.push(s.clone());
+                        threads.push(vo_path::spawn_vo(s.clone(), v, link.clock(), fp.max_age_s)?);
+                        Some(s)
+                    }
+                    None => None,
+                };
                 threads.push(frames::spawn_reader(
                     fp.source,
                     slot.clone(),
+                    vo_slot,
                     fp.lossless,
                     link.clock(),
                     stop_threads.clone(),
@@ -359,20 +419,20 @@ impl Daemon {
                 for i in 0..fp.workers.max(1) {
                     threads.push(frames::spawn_worker(i, ctx(slot.clone()))?);
                 }
-                slot_out = Some(slot);
             }
             Ok(())
         })();
         if let Err(e) = spawned {
             // Stop what was started (the navigation task holds the link).
             stop_threads.store(true, Ordering::Relaxed);
-            if let Some(s) = &slot_out {
+            for s in &slots {
                 s.close();
             }
             let _ = stop.send(true);
             return Err(e.into());
         }
         drop(fix_tx);
+        drop(vo_tx);
         Ok(Daemon {
             link,
             stop,
@@ -380,7 +440,7 @@ impl Daemon {
             nav_task: Some(nav_task),
             lockstep_task,
             threads,
-            slot: slot_out,
+            slots,
             metrics,
             est_rx,
             out_rx,
@@ -419,7 +479,7 @@ impl Daemon {
             p.stop().await;
         }
         self.stop_threads.store(true, Ordering::Relaxed);
-        if let Some(s) = &self.slot {
+        for s in &self.slots {
             s.close();
         }
         let _ = self.stop.send(true);
@@ -519,6 +579,8 @@ struct NavTask {
     drag_logged: [bool; 2],
     init_spacing: inputs::InitSpacing,
     fix_log: Option<fixlog::FixLog>,
+    /// Visual odometry's last state (motions or refusals), for logging its changes.
+    vo_working: Option<bool>,
 }
 
 impl NavTask {
@@ -526,6 +588,7 @@ impl NavTask {
         mut self,
         mut tel: broadcast::Receiver<Telemetry>,
         mut fixes: mpsc::Receiver<FixResult>,
+        mut vo: mpsc::Receiver<vo_path::VoResult>,
         mut stop: watch::Receiver<bool>,
     ) {
         let mut tick = tokio::time::interval(Duration::from_millis(100));
@@ -550,6 +613,7 @@ impl NavTask {
                     Err(broadcast::error::RecvError::Closed) => return,
                 },
                 Some(f) = fixes.recv() => self.fix(f),
+                Some(r) = vo.recv() => self.vo(r),
                 _ = tick.tick() => self.watchdog().await,
             }
         }
@@ -678,6 +742,34 @@ impl NavTask {
                 warn!("fix log {}: {e}; logging stopped", log.path().display());
                 self.fix_log = None;
             }
+        }
+    }
+
+    /// A visual odometry result: a motion to the filter, everything counted; the first motion
+    /// after refusals (and the first refusal after motions) logged with its reason.
+    fn vo(&mut self, r: vo_path::VoResult) {
+        let m = &self.metrics.vo;
+        let VoStep::Motion(motion) = r.step else {
+            if let VoStep::Refused(why) = &r.step
+                && self.vo_working != Some(false)
+            {
+                info!("visual odometry: no motion from frame {}: {why}", r.seq);
+                self.vo_working = Some(false);
+            }
+            return;
+        };
+        let c = match self.filter.measure(Measurement::Vo(motion.fix)) {
+            Outcome::Accepted { .. } => &m.fused,
+            Outcome::Rejected { .. } => &m.filter_rejected,
+            _ => &m.unused,
+        };
+        c.fetch_add(1, Ordering::Relaxed);
+        if self.vo_working != Some(true) {
+            info!(
+                "visual odometry: measuring ({} tracks, {} inliers, {:.2} px)",
+                motion.tracks, motion.inliers, motion.rms_px
+            );
+            self.vo_working = Some(true);
         }
     }
 

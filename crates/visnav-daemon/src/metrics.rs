@@ -45,6 +45,96 @@ pub struct DaemonMetrics {
     pub engine_rejected: Mutex<BTreeMap<String, u64>>,
     /// The IMU bias restorer's state (`daemon.imu_bias_restore`; `None` when off).
     pub imu_bias: Mutex<Option<RestoreStatus>>,
+    /// Visual odometry (`[vo]`).
+    pub vo: VoMetrics,
+}
+
+/// Visual odometry's counters.
+#[derive(Debug, Default)]
+pub struct VoMetrics {
+    /// Frames given to the odometer.
+    pub frames: AtomicU64,
+    /// Frames that started a sequence (the first, or after a gap or a missing prior).
+    pub started: AtomicU64,
+    /// Motions measured.
+    pub motions: AtomicU64,
+    /// Motions the filter fused.
+    pub fused: AtomicU64,
+    /// Motions the filter's innovation gate rejected.
+    pub filter_rejected: AtomicU64,
+    /// Motions the filter did not use otherwise (not initialised, too old, malformed).
+    pub unused: AtomicU64,
+    /// Frames without a motion, by reason (numbers as `N`).
+    pub refused: Mutex<BTreeMap<String, u64>>,
+    /// Computation time of a frame, sum (µs) and largest (µs).
+    pub us_sum: AtomicU64,
+    pub us_max: AtomicU64,
+}
+
+/// Visual odometry in a snapshot.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct VoSnapshot {
+    pub frames: u64,
+    pub started: u64,
+    pub motions: u64,
+    pub fused: u64,
+    pub filter_rejected: u64,
+    pub unused: u64,
+    pub refused: BTreeMap<String, u64>,
+    /// Mean and largest computation time of a frame, ms.
+    pub ms_mean: f64,
+    pub ms_max: f64,
+}
+
+impl VoMetrics {
+    /// Count one frame without a motion.
+    pub fn refuse(&self, reason: &str) {
+        count_reason(&self.refused, reason);
+    }
+
+    /// Record one frame's computation time.
+    pub fn time(&self, us: u64) {
+        self.frames.fetch_add(1, Ordering::Relaxed);
+        self.us_sum.fetch_add(us, Ordering::Relaxed);
+        self.us_max.fetch_max(us, Ordering::Relaxed);
+    }
+
+    fn snapshot(&self) -> VoSnapshot {
+        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        let frames = g(&self.frames);
+        VoSnapshot {
+            frames,
+            started: g(&self.started),
+            motions: g(&self.motions),
+            fused: g(&self.fused),
+            filter_rejected: g(&self.filter_rejected),
+            unused: g(&self.unused),
+            refused: self
+                .refused
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .clone(),
+            ms_mean: if frames > 0 {
+                g(&self.us_sum) as f64 * 1e-3 / frames as f64
+            } else {
+                0.0
+            },
+            ms_max: g(&self.us_max) as f64 * 1e-3,
+        }
+    }
+}
+
+/// Count `reason` in `map`, keyed by its wording ([`reason_wording`]: every number becomes `N`,
+/// so the reasons group and the map stays small), at most 64 wordings (then "other").
+fn count_reason(map: &Mutex<BTreeMap<String, u64>>, reason: &str) {
+    let mut m = map.lock().unwrap_or_else(|e| e.into_inner());
+    let worded = reason_wording(reason);
+    let key = if m.len() < 64 || m.contains_key(&worded) {
+        worded
+    } else {
+        "other".to_string()
+    };
+    *m.entry(key).or_default() += 1;
 }
 
 /// The IMU bias restorer in a snapshot (`daemon.imu_bias_restore = "scaled_imu"`).
@@ -201,6 +291,8 @@ pub struct MetricsSnapshot {
     /// The IMU bias restorer (absent when `daemon.imu_bias_restore` is off).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub imu_bias: Option<ImuBiasSnapshot>,
+    /// Visual odometry.
+    pub vo: VoSnapshot,
 }
 
 /// `reason` with each number (digits with an optional sign and decimals) replaced by `N`.
@@ -227,19 +319,7 @@ pub fn reason_wording(reason: &str) -> String {
 impl DaemonMetrics {
     /// Count one engine rejection.
     pub fn engine_reject(&self, reason: &str) {
-        let mut m = self
-            .engine_rejected
-            .lock()
-            .unwrap_or_else(|e| e.into_inner());
-        // Key by wording: every number becomes `N` ("only N features in the frame"), so the
-        // reasons group and the map stays small; still bounded, for unexpected wordings.
-        let worded = reason_wording(reason);
-        let key = if m.len() < 64 || m.contains_key(&worded) {
-            worded
-        } else {
-            "other".to_string()
-        };
-        *m.entry(key).or_default() += 1;
+        count_reason(&self.engine_rejected, reason);
     }
 
     /// Record one fix latency.
@@ -298,6 +378,7 @@ impl DaemonMetrics {
             fix_latency_ms_sum: sum_latency,
             fix_latency_count: n_latency,
             health: HealthState::from_code(g(&self.health)),
+            vo: self.vo.snapshot(),
             imu_bias: self
                 .imu_bias
                 .lock()

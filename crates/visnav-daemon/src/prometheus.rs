@@ -77,6 +77,50 @@ impl Writer {
     }
 }
 
+/// Visual odometry's counters.
+fn vo(w: &mut Writer, v: &crate::metrics::VoSnapshot) {
+    let c = |v: u64| v as f64;
+    w.family(
+        "visnav_vo_frames_total",
+        "counter",
+        "frames given to visual odometry, by what came out",
+    );
+    let refused: u64 = v.refused.values().sum();
+    for (outcome, n) in [
+        ("motion", v.motions),
+        ("started", v.started),
+        ("refused", refused),
+    ] {
+        w.sample("visnav_vo_frames_total", &[("outcome", outcome)], c(n));
+    }
+    w.family(
+        "visnav_vo_motions_total",
+        "counter",
+        "visual odometry motions, by what the filter did with them",
+    );
+    for (outcome, n) in [
+        ("fused", v.fused),
+        ("filter_rejected", v.filter_rejected),
+        ("unused", v.unused),
+    ] {
+        w.sample("visnav_vo_motions_total", &[("outcome", outcome)], c(n));
+    }
+    w.family(
+        "visnav_vo_refusals_total",
+        "counter",
+        "frames without a visual odometry motion, by reason",
+    );
+    for (reason, n) in &v.refused {
+        w.sample("visnav_vo_refusals_total", &[("reason", reason)], c(*n));
+    }
+    w.single(
+        "visnav_vo_frame_seconds_max",
+        "gauge",
+        "longest visual odometry computation of a frame",
+        v.ms_max * 1e-3,
+    );
+}
+
 /// A label value with `\`, `"` and line feeds escaped.
 pub fn escape_label(v: &str) -> String {
     let mut s = String::with_capacity(v.len());
@@ -297,6 +341,7 @@ pub fn render(d: &MetricsSnapshot, link: &LinkMetrics) -> String {
             c(*v),
         );
     }
+    vo(&mut w, &d.vo);
     w.family(
         "visnav_fix_latency_seconds",
         "summary",

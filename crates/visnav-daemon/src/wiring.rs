@@ -79,4 +79,12 @@ impl FrameFixer for FixEngine {
     fn fix(&self, image: &GrayImage, prior: &FixPrior) -> FixReport {
         FixEngine::fix(self, image, prior)
     }
+
+    fn odometer(&self, cfg: &visnav_core::vo::VoConfig) -> Option<visnav_core::vo::Odometer> {
+        Some(visnav_core::vo::Odometer::new(
+            *self.camera(),
+            self.reference().clone(),
+            cfg.clone(),
+        ))
+    }
 }

@@ -53,10 +53,18 @@
 //!   the time (e^{-4.5}); an elongated ellipse gives smaller ratios; `nav_sigma_h_m` /
 //!   `control_sigma_h_m`: that sigma itself (the accuracy each filter claims);
 //! * `latency_ms`: capture to fix result (autopilot clock);
+//! * over the whole flight rather than the window ([`FlightFigures`]): `final_err_h_m` /
+//!   `control_final_err_h_m`, each filter's horizontal error at its last initialised step;
+//!   `distance_flown_m`, the true track's horizontal length from the GPS loss to the end;
+//!   `yaw_err_deg_max` / `ctl_yaw_err_deg_max`, each filter's largest heading error (its yaw
+//!   against the true yaw at the output's time, wrapped to +-180 deg) from the GPS loss on;
 //! * `faults` (with `[[faults]]`): per fault, the vision daemon's injections and fixes around it
 //!   (`sitl::faults::FaultOutcome`), and `fault_counters`: its reboot, relock, clock-step,
 //!   stale-message, IMU-timeout and frozen-frame counters, GPS_INPUT time steps back and
-//!   non-finite or foreign injections as the emulator received them.
+//!   non-finite or foreign injections as the emulator received them. A `map_withheld` fault
+//!   refuses the fixes of the frames captured in its window (capture time mapped to the run
+//!   time) in `RecordingFixer` with `faults::MAP_WITHHELD_REASON`, without running the engine;
+//!   they are scored and counted like any rejected fix.
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -498,7 +506,8 @@ impl TruthFeed for EmuFeed {
 }
 
 /// Wraps the daemon's fix engine and scores every result, with its timing, as it is made
-/// (the report itself is not kept: `recording`).
+/// (the report itself is not kept: `recording`); refuses the fixes of frames captured while
+/// the scenario withholds the map (`faults::FaultKind::MapWithheld`).
 struct RecordingFixer {
     inner: Arc<dyn FrameFixer>,
     emu: Arc<AutopilotEmulator>,
@@ -507,18 +516,29 @@ struct RecordingFixer {
     log: Mutex<Vec<FixRow>>,
     /// In lock-step the fix takes no simulated time: its result is delivered this much later.
     delivery_us: u64,
+    /// The scenario's faults (only `map_withheld` concerns the fixes).
+    faults: FaultPlan,
 }
 
 impl FrameFixer for RecordingFixer {
     fn fix(&self, image: &GrayImage, prior: &FixPrior) -> FixReport {
-        let report = self.inner.fix(image, prior);
-        // The prior's capture time is on the autopilot's boot clock; the truth's clock is the
-        // emulator's run time.
+        // The prior's capture time is on the autopilot's boot clock; the truth's clock and the
+        // faults' is the emulator's run time (the scenario time, as for the camera's faults).
         let t_capture_us = self.emu.run_us_of_boot_us(prior.t_capture_us);
+        let report = if self.faults.map_withheld(t_capture_us as f64 * 1e-6) {
+            FixReport::rejected(faults::MAP_WITHHELD_REASON, prior.t_capture_us, 0.0)
+        } else {
+            self.inner.fix(image, prior)
+        };
         let t_done_us = self.emu.time_run_us() + self.delivery_us;
         let row = score_fix(t_capture_us, t_done_us, &report, &self.table, &self.mount);
         self.log.lock().unwrap_or_else(|e| e.into_inner()).push(row);
         report
+    }
+
+    /// The engine's own odometer: visual odometry is not a fix and no fault withholds it.
+    fn odometer(&self, cfg: &visnav_core::vo::VoConfig) -> Option<visnav_core::vo::Odometer> {
+        self.inner.odometer(cfg)
     }
 }
 
@@ -548,6 +568,11 @@ pub struct StepRow {
     /// initialisation), m/s (not in steps.csv).
     pub vis_vel_err_h_m_s: f64,
     pub ctl_vel_err_h_m_s: f64,
+    /// Heading error of the vision and the control filters' outputs: the output's yaw (ZYX
+    /// Euler, `NavOutput::rpy_deg`) minus the true yaw at the output's own time, wrapped to
+    /// [-180, 180) deg (NaN before initialisation).
+    pub vis_yaw_err_deg: f64,
+    pub ctl_yaw_err_deg: f64,
 }
 
 /// An injected position as the emulator received it.
@@ -664,6 +689,17 @@ pub struct ClosedLoopSummary {
     pub fault_counters: Option<FaultCounters>,
     pub vision_final_health: String,
     pub control_final_health: String,
+    /// Horizontal error of the vision / the control filter's output at the last step with an
+    /// initialised output, m (whole flight, not the window; null: never initialised).
+    pub final_err_h_m: Option<f64>,
+    pub control_final_err_h_m: Option<f64>,
+    /// Horizontal distance along the true track from the GPS loss to the end, m ([`FlightFigures`];
+    /// 0 when the GPS never goes off).
+    pub distance_flown_m: f64,
+    /// Largest absolute heading error of the vision / the control filter's output over the steps
+    /// from the GPS loss on, deg (null: none).
+    pub yaw_err_deg_max: Option<f64>,
+    pub ctl_yaw_err_deg_max: Option<f64>,
     /// Soak figures (runs of at least twice [`SOAK_WINDOW_S`] in the window): accepted fixes
     /// over attempts in its first and last `SOAK_WINDOW_S`.
     pub fix_rate_first_window: Option<f64>,
@@ -685,6 +721,80 @@ pub struct ClosedLoopSummary {
     /// the camera; everything but what the simulator keeps to score the run), MB.
     pub heap_growth_mb_without_recordings: Option<f64>,
     pub report_dir: Option<String>,
+}
+
+/// The end-of-flight figures of a run, from its 10 Hz steps (the summary's keys of the same
+/// names). The GPS loss is the first step without GPS after one with it (the first step when
+/// the GPS never has a fix).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FlightFigures {
+    /// Horizontal error of the vision filter's output at the last step whose output is
+    /// initialised (any health but `uninitialised`), m; None when there is none.
+    pub final_err_h_m: Option<f64>,
+    /// The same for the control filter.
+    pub control_final_err_h_m: Option<f64>,
+    /// Horizontal length of the true track from the GPS loss's step to the last step (the sum
+    /// over consecutive 10 Hz steps), m; 0 when the GPS never goes off.
+    pub distance_flown_m: f64,
+    /// Largest absolute heading error of the vision filter's output (wrapped to +-180 deg) over
+    /// the steps from the GPS loss on, deg; None without a loss or an output.
+    pub yaw_err_deg_max: Option<f64>,
+    /// The same for the control filter.
+    pub ctl_yaw_err_deg_max: Option<f64>,
+}
+
+impl FlightFigures {
+    /// The figures of `steps` (in time order).
+    pub fn of(steps: &[StepRow]) -> Self {
+        let after = gps_loss_index(steps).map_or(&steps[..0], |i| &steps[i..]);
+        Self {
+            final_err_h_m: final_err_h_m(steps, |s| (s.vis_health, s.vis_err_ned_m)),
+            control_final_err_h_m: final_err_h_m(steps, |s| (s.ctl_health, s.ctl_err_ned_m)),
+            distance_flown_m: track_length_m(after),
+            yaw_err_deg_max: max_abs_yaw_err_deg(after.iter().map(|s| s.vis_yaw_err_deg)),
+            ctl_yaw_err_deg_max: max_abs_yaw_err_deg(after.iter().map(|s| s.ctl_yaw_err_deg)),
+        }
+    }
+}
+
+/// The index of the GPS loss (see [`FlightFigures`]); None when the GPS never goes off.
+fn gps_loss_index(steps: &[StepRow]) -> Option<usize> {
+    match steps.iter().position(|s| s.gps_on) {
+        Some(on) => steps[on..]
+            .iter()
+            .position(|s| !s.gps_on)
+            .map(|off| on + off),
+        None => (!steps.is_empty()).then_some(0),
+    }
+}
+
+/// The horizontal error of the last step whose output (`f`: health, NED error) is initialised.
+fn final_err_h_m(
+    steps: &[StepRow],
+    f: impl Fn(&StepRow) -> (&'static str, [f64; 3]),
+) -> Option<f64> {
+    steps
+        .iter()
+        .map(f)
+        .rfind(|(health, _)| *health != "uninitialised")
+        .map(|(_, e)| hnorm(&e))
+}
+
+/// Horizontal length of the true track through the steps, m.
+fn track_length_m(steps: &[StepRow]) -> f64 {
+    let pos = |s: &StepRow| (s.truth_lat_deg, s.truth_lon_deg, s.truth_alt_amsl_m);
+    steps
+        .windows(2)
+        .map(|w| hnorm(&ned_diff_m(pos(&w[0]), pos(&w[1]))))
+        .filter(|d| d.is_finite())
+        .sum()
+}
+
+/// The largest absolute heading error (each wrapped to +-180 deg) of the finite ones, deg.
+fn max_abs_yaw_err_deg(errs: impl Iterator<Item = f64>) -> Option<f64> {
+    errs.filter(|e| e.is_finite())
+        .map(|e| wrap_deg(e).abs())
+        .reduce(f64::max)
 }
 
 /// The soak figures' window, s (10 minutes: issue 21's "first and last 10 minutes").
@@ -889,8 +999,24 @@ fn output_error(out: &NavOutput, table: &TruthTable, emu: &AutopilotEmulator) ->
     )
 }
 
+/// An angle wrapped to [-180, 180) deg.
+fn wrap_deg(a_deg: f64) -> f64 {
+    wrap_pi(a_deg.to_radians()).to_degrees()
+}
+
+/// Heading error of an estimated yaw against the true yaw, wrapped to [-180, 180) deg.
+fn yaw_err_deg(est_deg: f64, truth_rad: f64) -> f64 {
+    wrap_pi(est_deg.to_radians() - truth_rad).to_degrees()
+}
+
+/// A filter output's heading error against the truth at the output's time, deg.
+fn output_yaw_error_deg(out: &NavOutput, table: &TruthTable, emu: &AutopilotEmulator) -> f64 {
+    yaw_err_deg(out.rpy_deg[2], table.at(run_s_of(out, emu)).rpy_rad[2])
+}
+
 /// A filter output sampled at a step against the truth `s` at the step's time: position offset,
-/// error (at the output's own time), horizontal sigma, velocity error; its health name.
+/// error, velocity error and heading error (at the output's own time), horizontal sigma; its
+/// health name.
 fn sample_output(
     o: Option<&NavOutput>,
     s: &TruthState,
@@ -908,6 +1034,7 @@ fn sample_output(
                     err_ned_m: output_error(o, table, emu).map(|e| e as f32),
                     sigma_h_m: sigma_h_m(&o.cov_pos_ned_m2) as f32,
                     vel_err_h_m_s: v[0].hypot(v[1]) as f32,
+                    yaw_err_deg: output_yaw_error_deg(o, table, emu) as f32,
                 },
                 match o.health {
                     Health::Ok => "ok",
@@ -1083,6 +1210,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         } else {
             0
         },
+        faults: FaultPlan::new(sc.faults.clone()),
     });
     let end_us = (duration_s * 1e6) as u64;
     let cam = SimCamera::new(
@@ -1116,7 +1244,16 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             .lockstep
             .then(|| Duration::from_secs_f64(cl.lockstep_fix_latency_s.max(0.0))),
     };
-    let d_v = Daemon::start_with(mk_setup(port_v), Some(fixer.clone()), Some(pipeline)).await?;
+    // Visual odometry: the scenario's `[closed_loop.vo]` for the vision run (the control has no
+    // camera).
+    let setup_v = {
+        let mut s = mk_setup(port_v);
+        if let Some(vo) = &cl.vo {
+            s.vo = vo.clone();
+        }
+        s
+    };
+    let d_v = Daemon::start_with(setup_v, Some(fixer.clone()), Some(pipeline)).await?;
     let d_c = match &emu_c {
         Some(_) => Some(Daemon::start_with(mk_setup(port_c), None, None).await?),
         None => None,
@@ -1305,6 +1442,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         )
     };
     let gps_outage_s = sc.gps.as_ref().map(|g| [g.until_s, duration_s]);
+    let flight = FlightFigures::of(&steps);
     let summary = ClosedLoopSummary {
         scenario: sc.name.clone(),
         description: sc.description.clone(),
@@ -1396,6 +1534,11 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             .last()
             .map(|s| s.ctl_health.to_string())
             .unwrap_or_default(),
+        final_err_h_m: flight.final_err_h_m,
+        control_final_err_h_m: flight.control_final_err_h_m,
+        distance_flown_m: flight.distance_flown_m,
+        yaw_err_deg_max: flight.yaw_err_deg_max,
+        ctl_yaw_err_deg_max: flight.ctl_yaw_err_deg_max,
         report_dir: None,
     };
     if summary.injections == 0 {
@@ -1544,6 +1687,109 @@ mod tests {
         assert!(
             (d[0] - 100.0).abs() < 1e-6 && (d[1] - 50.0).abs() < 1e-6 && (d[2] - 10.0).abs() < 1e-9
         );
+    }
+
+    /// A step at `t_s` flying east at 25 m/s from 47 N, 99 W; both filters uninitialised.
+    fn step(t_s: f64, gps_on: bool) -> StepRow {
+        let (_, n_m) = radii_m(47.0);
+        let de_deg = (25.0 * t_s / ((n_m + 600.0) * 47f64.to_radians().cos())).to_degrees();
+        StepRow {
+            t_s,
+            gps_on,
+            truth_lat_deg: 47.0,
+            truth_lon_deg: -99.0 + de_deg,
+            truth_alt_amsl_m: 600.0,
+            vis_lat_deg: f64::NAN,
+            vis_lon_deg: f64::NAN,
+            vis_err_ned_m: [f64::NAN; 3],
+            vis_sigma_h_m: f64::NAN,
+            vis_health: "uninitialised",
+            ctl_lat_deg: f64::NAN,
+            ctl_lon_deg: f64::NAN,
+            ctl_err_ned_m: [f64::NAN; 3],
+            ctl_sigma_h_m: f64::NAN,
+            ctl_health: "uninitialised",
+            vis_vel_err_h_m_s: f64::NAN,
+            ctl_vel_err_h_m_s: f64::NAN,
+            vis_yaw_err_deg: f64::NAN,
+            ctl_yaw_err_deg: f64::NAN,
+        }
+    }
+
+    #[test]
+    fn heading_errors_wrap_at_180_degrees() {
+        assert!((yaw_err_deg(-179.0, 179f64.to_radians()) - 2.0).abs() < 1e-9);
+        assert!((yaw_err_deg(179.0, (-179f64).to_radians()) + 2.0).abs() < 1e-9);
+        assert!((yaw_err_deg(10.0, 350f64.to_radians()) - 20.0).abs() < 1e-9);
+        assert!((wrap_deg(358.0) + 2.0).abs() < 1e-9);
+        assert!((wrap_deg(-180.0) + 180.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn flight_figures_from_synthetic_steps() {
+        // 0-10 s with GPS, 10-20 s without; the vision filter from 1 s, its output lost (but
+        // initialised) at the end; the control initialised from 2 s, uninitialised again (a
+        // restart) for the last second.
+        let mut steps: Vec<StepRow> = (0..=200)
+            .map(|i| step(f64::from(i) * 0.1, i < 100))
+            .collect();
+        for (i, s) in steps.iter_mut().enumerate() {
+            if i >= 10 {
+                s.vis_health = if i == 200 { "lost" } else { "ok" };
+                s.vis_err_ned_m = [3.0, 4.0, 100.0];
+                s.vis_yaw_err_deg = 1.0;
+            }
+            if (20..190).contains(&i) {
+                s.ctl_health = "degraded";
+                // 5 m at the last initialised step (189), more before it.
+                s.ctl_err_ned_m = [0.0, 23.9 - i as f64 * 0.1, 0.0];
+                s.ctl_yaw_err_deg = -3.0;
+            }
+        }
+        steps[200].vis_err_ned_m = [6.0, -8.0, 0.0];
+        // Across +-180 deg: 358 and -357 deg are 2 and 3 deg off; before the loss, never counted.
+        steps[150].vis_yaw_err_deg = 358.0;
+        steps[160].vis_yaw_err_deg = -357.0;
+        steps[50].vis_yaw_err_deg = 90.0;
+        steps[120].ctl_yaw_err_deg = 179.5;
+        let f = FlightFigures::of(&steps);
+        assert_eq!(f.final_err_h_m, Some(10.0));
+        assert!(
+            (f.control_final_err_h_m.unwrap_or(f64::NAN) - 5.0).abs() < 1e-9,
+            "{f:?}"
+        );
+        // From the loss at 10 s to 20 s at 25 m/s.
+        assert!((f.distance_flown_m - 250.0).abs() < 0.01, "{f:?}");
+        assert!(
+            (f.yaw_err_deg_max.unwrap_or(f64::NAN) - 3.0).abs() < 1e-9,
+            "{f:?}"
+        );
+        assert!(
+            (f.ctl_yaw_err_deg_max.unwrap_or(f64::NAN) - 179.5).abs() < 1e-9,
+            "{f:?}"
+        );
+
+        // A GPS that never goes off: no distance, no heading error after a loss.
+        let always: Vec<StepRow> = steps
+            .iter()
+            .map(|s| StepRow {
+                gps_on: true,
+                ..s.clone()
+            })
+            .collect();
+        let f = FlightFigures::of(&always);
+        assert_eq!((f.distance_flown_m, f.yaw_err_deg_max), (0.0, None));
+        assert_eq!(f.final_err_h_m, Some(10.0));
+        // A GPS that comes on late: the loss is its end, not the first step.
+        steps[..5].iter_mut().for_each(|s| s.gps_on = false);
+        assert!((FlightFigures::of(&steps).distance_flown_m - 250.0).abs() < 0.01);
+        // Never a fix: the whole flight counts. Nothing initialised: no errors.
+        let none: Vec<StepRow> = (0..=40).map(|i| step(f64::from(i) * 0.1, false)).collect();
+        let f = FlightFigures::of(&none);
+        assert!((f.distance_flown_m - 100.0).abs() < 0.01, "{f:?}");
+        assert_eq!((f.final_err_h_m, f.control_final_err_h_m), (None, None));
+        assert_eq!((f.yaw_err_deg_max, f.ctl_yaw_err_deg_max), (None, None));
+        assert_eq!(FlightFigures::of(&[]).distance_flown_m, 0.0);
     }
 
     #[test]

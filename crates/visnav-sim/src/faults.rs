@@ -1,9 +1,10 @@
 //! Scripted fault events of a closed-loop scenario (`[[faults]]`, issue 21) and the answers the
 //! simulator's parts ask of them: the autopilot emulator (silence, reboots, the UTC clock, the IMU
-//! and the aiding GPS), the simulated camera (stall, freeze, corruption) and a spoofer that sends
-//! foreign HEARTBEATs to the daemon's port. Every question is asked with the scenario time (the
-//! time since the emulator started, which a reboot does not reset), so a lock-step run with
-//! faults is as reproducible as one without.
+//! and the aiding GPS), the simulated camera (stall, freeze, corruption), the wrapper of the
+//! daemon's fix engine (a map that cannot be matched) and a spoofer that sends foreign HEARTBEATs
+//! to the daemon's port. Every question is asked with the scenario time (the time since the
+//! emulator started, which a reboot does not reset), so a lock-step run with faults is as
+//! reproducible as one without.
 //!
 //! What the daemon is expected to do under each fault is docs/operations.md's fault table; the
 //! scoring of a run ([`FaultOutcome`]) measures it and `tests/sim_faults.rs` checks it.
@@ -40,7 +41,15 @@ pub enum FaultKind {
     /// For `duration_s`, another component of the autopilot's system (a gimbal) and another
     /// vehicle (system 42) send HEARTBEATs to the daemon's port at 10 Hz, with junk between them.
     SpoofedHeartbeat,
+    /// For `duration_s` the map cannot be matched (water, snow, fresh crops, a map far older than
+    /// the season): every vision fix attempt on a frame captured in the window is refused with
+    /// [`MAP_WITHHELD_REASON`] without running the engine. The camera still delivers its frames
+    /// (visual odometry keeps working).
+    MapWithheld,
 }
+
+/// The reason of a fix refused by [`FaultKind::MapWithheld`].
+pub const MAP_WITHHELD_REASON: &str = "map withheld (scenario fault)";
 
 impl FaultKind {
     /// Instantaneous kinds (`duration_s` must be 0); the others last `duration_s` > 0.
@@ -60,6 +69,7 @@ impl FaultKind {
             FaultKind::CameraFreeze => "camera_freeze",
             FaultKind::CameraCorrupt => "camera_corrupt",
             FaultKind::SpoofedHeartbeat => "spoofed_heartbeat",
+            FaultKind::MapWithheld => "map_withheld",
         }
     }
 }
@@ -237,6 +247,12 @@ impl FaultPlan {
         } else {
             CameraFault::None
         }
+    }
+
+    /// The map cannot be matched: a fix on a frame captured at `t_s` is refused
+    /// ([`FaultKind::MapWithheld`]).
+    pub fn map_withheld(&self, t_s: f64) -> bool {
+        self.any(FaultKind::MapWithheld, t_s)
     }
 
     /// Foreign HEARTBEATs are being sent to the daemon.
@@ -531,6 +547,26 @@ mod tests {
     }
 
     #[test]
+    fn the_map_is_withheld_only_inside_its_window() {
+        let plan = FaultPlan::new(vec![
+            fault(FaultKind::MapWithheld, 20.0, 8.0),
+            fault(FaultKind::CameraStall, 0.0, 30.0),
+        ]);
+        assert!(!plan.map_withheld(19.999));
+        assert!(plan.map_withheld(20.0));
+        assert!(plan.map_withheld(27.999));
+        assert!(!plan.map_withheld(28.0));
+        // Not a camera fault: the camera's answer is its own faults'.
+        assert_eq!(plan.camera(25.0), CameraFault::Stall);
+        assert!(!FaultPlan::new(vec![fault(FaultKind::CameraStall, 0.0, 30.0)]).map_withheld(5.0));
+        assert_eq!(FaultKind::MapWithheld.name(), "map_withheld");
+        let parsed: FaultConfig =
+            toml::from_str("kind = \"map_withheld\"\nat_s = 20.0\nduration_s = 8.0\n")
+                .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(parsed, fault(FaultKind::MapWithheld, 20.0, 8.0));
+    }
+
+    #[test]
     fn validation_names_the_key_of_each_problem() {
         let check = |f: FaultConfig| {
             let mut p = Problems::default();
@@ -538,6 +574,10 @@ mod tests {
             p.list.iter().map(|i| i.to_string()).collect::<Vec<_>>()
         };
         assert!(check(fault(FaultKind::LinkSilence, 5.0, 2.0)).is_empty());
+        assert!(check(fault(FaultKind::MapWithheld, 5.0, 2.0)).is_empty());
+        // map_withheld lasts: a zero duration is refused.
+        let e = check(fault(FaultKind::MapWithheld, 5.0, 0.0));
+        assert!(e.len() == 1 && e[0].contains("duration_s"), "{e:?}");
         let e = check(fault(FaultKind::Reboot, 5.0, 2.0));
         assert!(
             e[0].contains("duration_s") && e[0].contains("instantaneous"),

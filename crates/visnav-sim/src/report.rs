@@ -3,7 +3,7 @@
 //! | file | content |
 //! | --- | --- |
 //! | `summary.json` | the summary `visnav sim --json` prints |
-//! | `steps.csv` | every 0.1 s: truth, the vision and the control filters' positions, NED errors, horizontal 1-sigma, health |
+//! | `steps.csv` | every 0.1 s: truth, the vision and the control filters' positions, NED errors, horizontal 1-sigma, health; last their heading errors (`vis_yaw_err_deg`, `ctl_yaw_err_deg`, wrapped to +-180 deg) |
 //! | `fixes.csv` | every vision fix: capture time, latency, accepted/reason, position, NED error, sigma, 3-sigma test |
 //! | `injections.csv` | every GPS_INPUT the emulators received (vision and control), with its NED error |
 //! | `track.geojson` | truth, visnav and no-vision tracks (LineString, WGS84 lon/lat) and the accepted fixes (Point), for QGIS |
@@ -51,12 +51,12 @@ fn deg(v: f64) -> String {
 /// `steps.csv`.
 pub fn steps_csv(run: &ClosedLoopRun) -> String {
     let mut s = String::from(
-        "t_s,gps_on,truth_lat_deg,truth_lon_deg,truth_alt_amsl_m,vis_lat_deg,vis_lon_deg,vis_err_n_m,vis_err_e_m,vis_err_d_m,vis_sigma_h_m,vis_health,ctl_lat_deg,ctl_lon_deg,ctl_err_n_m,ctl_err_e_m,ctl_err_d_m,ctl_sigma_h_m,ctl_health\n",
+        "t_s,gps_on,truth_lat_deg,truth_lon_deg,truth_alt_amsl_m,vis_lat_deg,vis_lon_deg,vis_err_n_m,vis_err_e_m,vis_err_d_m,vis_sigma_h_m,vis_health,ctl_lat_deg,ctl_lon_deg,ctl_err_n_m,ctl_err_e_m,ctl_err_d_m,ctl_sigma_h_m,ctl_health,vis_yaw_err_deg,ctl_yaw_err_deg\n",
     );
     for r in &run.steps {
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             f(r.t_s),
             u8::from(r.gps_on),
             deg(r.truth_lat_deg),
@@ -76,6 +76,8 @@ pub fn steps_csv(run: &ClosedLoopRun) -> String {
             f(r.ctl_err_ned_m[2]),
             f(r.ctl_sigma_h_m),
             r.ctl_health,
+            f(r.vis_yaw_err_deg),
+            f(r.ctl_yaw_err_deg),
         );
     }
     s

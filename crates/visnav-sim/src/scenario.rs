@@ -377,6 +377,9 @@ pub struct ClosedLoopConfig {
     /// docs/closed-loop.md).
     #[serde(default = "default_lockstep_latency")]
     pub lockstep_fix_latency_s: f64,
+    /// Replaces the configuration's `[vo]` (visual odometry between fixes) for the vision run.
+    #[serde(default)]
+    pub vo: Option<visnav_core::vo::VoConfig>,
 }
 
 fn default_lockstep_latency() -> f64 {
@@ -748,6 +751,9 @@ impl Validate for Scenario {
                 p.range("ahrs_rate_corr_time_s", c.ahrs_rate_corr_time_s, 0.1, 1e6);
                 if c.workers == 0 || c.workers > 16 {
                     p.push("workers", "must be 1 to 16");
+                }
+                if let Some(v) = &c.vo {
+                    p.section("vo", |p| v.validate(p));
                 }
                 if let Some(n) = c.map_upsample
                     && !matches!(n, 1 | 2 | 4)

@@ -10,8 +10,8 @@
 //!    prior pose (the filter's rotation and motion between the frames: tens of pixels at camera
 //!    rate become a fraction of one);
 //! 3. the pairs undistorted and solved by [`super::frame_motion`] from the previous frame's pose,
-//!    the filter's rotation between the two priors as the gyros' [`RotationPrior`]
-//!    (`gyro_sigma_rad`: what the gyros add over the interval);
+//!    with the caller's [`GyroDelta`] (the body's rotation between the frames as the gyros
+//!    measured it, without the filter's corrections in between) as the [`RotationPrior`];
 //! 4. the displacement from the map grid to NED: grid convergence removed, horizontal grid metres
 //!    divided by the projection's point scale factor.
 //!
@@ -26,18 +26,25 @@
 
 use std::sync::Arc;
 
-#[cfg(test)]
-use nalgebra::Rotation3;
-use nalgebra::{Matrix3, Point2, Vector2, Vector3};
+use nalgebra::{Matrix3, Point2, Rotation3, Vector2, Vector3};
 
 use super::tracker::{RawTrack, Tracker};
-use super::{RotationPrior, TrackPair, VoConfig, VoInput, frame_motion};
+use super::{RotationPrior, TrackPair, VoConfig, VoInput, VoRejection, frame_motion};
 use crate::camera::Camera;
 use crate::camera::frames::{r_enu_ned, rot_z};
 use crate::fix::{FixPrior, Reference};
 use crate::nav::{VO_MAX_SPAN_S, VoFix};
 use crate::pose::{ImageGeometry, Pose};
 use crate::vision::GrayImage;
+
+/// The body's rotation between the previous frame and this one as the gyros measured it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GyroDelta {
+    /// `R_b0_b1`: vectors of the body at this frame into the body at the previous one.
+    pub r_body_prev_next: Rotation3<f64>,
+    /// 1-sigma of its error per axis (the gyros' noise and residual bias over the interval), rad.
+    pub sigma_rad: f64,
+}
 
 /// What one frame gave.
 #[derive(Debug, Clone, PartialEq)]
@@ -110,14 +117,14 @@ impl Odometer {
         self.prev = None;
     }
 
-    /// One frame with the filter's pose at its capture time (`prior`) and the 1-sigma of the
-    /// gyros' rotation since the previous frame (`gyro_sigma_rad`, per axis).
-    pub fn frame(&mut self, image: GrayImage, prior: &FixPrior, gyro_sigma_rad: f64) -> VoStep {
+    /// One frame with the filter's pose at its capture time (`prior`) and the gyros' rotation
+    /// since the previous frame (`None`: the images alone give the rotation).
+    pub fn frame(&mut self, image: GrayImage, prior: &FixPrior, gyro: Option<GyroDelta>) -> VoStep {
         let fp = match self.frame_pose(prior) {
             Ok(p) => p,
             Err(why) => {
                 self.reset();
-                return VoStep::Refused(why);
+                return VoStep::Refused(why.to_string());
             }
         };
         let t_us = prior.t_capture_us;
@@ -165,18 +172,21 @@ impl Odometer {
         });
         match (restart, prev, pairs) {
             (Some(Some(why)), _, _) => VoStep::Refused(why),
-            (None, Some(pv), Some(pairs)) => self.motion(&pv, &fp, t_us, &pairs, gyro_sigma_rad),
+            (None, Some(pv), Some(pairs)) => self.motion(&pv, &fp, t_us, &pairs, gyro),
             _ => VoStep::Started,
         }
     }
 
     /// The frame's camera pose in the map frame from its prior.
-    fn frame_pose(&self, prior: &FixPrior) -> Result<FramePose, String> {
+    fn frame_pose(&self, prior: &FixPrior) -> Result<FramePose, VoRejection> {
+        let invalid = |s: String| VoRejection::InvalidInput(s);
         let (Some(pos), Some(att)) = (&prior.position, &prior.attitude) else {
-            return Err("no pose prior (the filter is not initialised, or lost)".into());
+            return Err(invalid(
+                "no pose prior (the filter is not initialised, or lost)".into(),
+            ));
         };
         let crs = self.reference.crs();
-        let geo = |e: crate::geo::GeoError| format!("prior position: {e}");
+        let geo = |e: crate::geo::GeoError| invalid(format!("prior position: {e}"));
         let (x, y) = crs.from_geodetic(pos.lat_deg, pos.lon_deg).map_err(geo)?;
         let gamma_rad = crs
             .grid_convergence_deg(pos.lat_deg, pos.lon_deg)
@@ -196,7 +206,7 @@ impl Odometer {
                 .all(|v| v.is_finite())
             && scale > 0.0;
         if !finite {
-            return Err("prior pose is not finite".into());
+            return Err(invalid("prior pose is not finite".into()));
         }
         Ok(FramePose {
             pose,
@@ -229,7 +239,7 @@ impl Odometer {
         next: &FramePose,
         t_us: u64,
         pairs: &[RawTrack],
-        gyro_sigma_rad: f64,
+        gyro: Option<GyroDelta>,
     ) -> VoStep {
         let tracks: Vec<TrackPair> = pairs.iter().filter_map(|t| self.undistort(t)).collect();
         let k = &self.camera.intrinsics;
@@ -241,18 +251,26 @@ impl Odometer {
             width_px: k.width_px,
             height_px: k.height_px,
         };
-        let mut r_prev_next = prev.pose.r_world_cam.inverse() * next.pose.r_world_cam;
-        r_prev_next.renormalize();
+        // The body's rotation in camera axes: `R_c0_c1 = R_bc^T R_b0_b1 R_bc`.
+        let r_body_cam = self
+            .camera
+            .mount
+            .r_ned_cam(&crate::camera::frames::Attitude::new(0.0, 0.0, 0.0));
+        let rotation_prior = gyro.map(|g| {
+            let mut r = r_body_cam.inverse() * g.r_body_prev_next * r_body_cam;
+            r.renormalize();
+            RotationPrior {
+                r_prev_next: r,
+                cov_prev_rad2: Matrix3::identity() * g.sigma_rad.powi(2),
+            }
+        });
         let input = VoInput {
             tracks: &tracks,
             image: &image,
             prev: prev.pose,
             prev_height_sigma_m: 0.0,
             prev_tilt_sigma_rad: prev.tilt_sigma_rad,
-            rotation_prior: Some(RotationPrior {
-                r_prev_next,
-                cov_prev_rad2: Matrix3::identity() * gyro_sigma_rad.powi(2),
-            }),
+            rotation_prior,
         };
         let m = match frame_motion(&input, self.reference.dem(), &self.cfg) {
             Ok(m) => m,
@@ -422,13 +440,14 @@ mod tests {
     /// the grid bearing plus the convergence); returns the steps and the true displacements.
     fn fly(yaw_err_deg: f64, frames: usize) -> (Vec<VoStep>, Vec<Vector3<f64>>) {
         let (engine, crs) = checkerboard_engine();
-        let camera = engine.camera().clone();
+        let camera = *engine.camera();
         let cfg = VoConfig {
             enabled: true,
             ..VoConfig::default()
         };
-        let mut odo = Odometer::new(camera.clone(), engine.reference().clone(), cfg);
+        let mut odo = Odometer::new(camera, engine.reference().clone(), cfg);
         let (mut steps, mut truth) = (Vec::new(), Vec::new());
+        let mut last: Option<Rotation3<f64>> = None;
         for k in 0..frames {
             let c = at(k);
             let (lat, lon) = crs.to_geodetic(c.x, c.y).unwrap();
@@ -439,7 +458,13 @@ mod tests {
                 yaw_rad: att.yaw_rad + yaw_err_deg.to_radians(),
                 ..att
             };
-            steps.push(odo.frame(img, &prior(&crs, c, seen, 200_000 * k as u64), 1e-4));
+            let r_nb = att.r_ned_body();
+            let gyro = last.map(|l| GyroDelta {
+                r_body_prev_next: l.inverse() * r_nb,
+                sigma_rad: 1e-4,
+            });
+            last = Some(r_nb);
+            steps.push(odo.frame(img, &prior(&crs, c, seen, 200_000 * k as u64), gyro));
             if k > 0 {
                 truth.push(truth_ned(&crs, at(k - 1), c));
             }
@@ -503,12 +528,8 @@ mod tests {
     #[test]
     fn blank_frames_missing_priors_and_time_steps_give_no_motion() {
         let (engine, crs) = checkerboard_engine();
-        let camera = engine.camera().clone();
-        let mut odo = Odometer::new(
-            camera.clone(),
-            engine.reference().clone(),
-            VoConfig::default(),
-        );
+        let camera = *engine.camera();
+        let mut odo = Odometer::new(camera, engine.reference().clone(), VoConfig::default());
         let att = Attitude::from_deg(0.0, 0.0, 30.0);
         let frame = |k: usize| {
             let (lat, lon) = crs.to_geodetic(at(k).x, at(k).y).unwrap();
@@ -516,36 +537,36 @@ mod tests {
         };
         let blank = GrayImage::from_fn(320, 240, |_, _| 128.0);
         assert_eq!(
-            odo.frame(frame(0), &prior(&crs, at(0), att, 0), 1e-4),
+            odo.frame(frame(0), &prior(&crs, at(0), att, 0), None),
             VoStep::Started
         );
-        let s = odo.frame(blank.clone(), &prior(&crs, at(1), att, 200_000), 1e-4);
+        let s = odo.frame(blank.clone(), &prior(&crs, at(1), att, 200_000), None);
         assert!(
             matches!(&s, VoStep::Refused(why) if why.contains("tracks")),
             "{s:?}"
         );
         let mut none = prior(&crs, at(2), att, 400_000);
         none.position = None;
-        let s = odo.frame(frame(2), &none, 1e-4);
+        let s = odo.frame(frame(2), &none, None);
         assert!(
             matches!(&s, VoStep::Refused(why) if why.contains("no pose prior")),
             "{s:?}"
         );
         assert_eq!(
-            odo.frame(frame(3), &prior(&crs, at(3), att, 600_000), 1e-4),
+            odo.frame(frame(3), &prior(&crs, at(3), att, 600_000), None),
             VoStep::Started
         );
-        let s = odo.frame(frame(4), &prior(&crs, at(4), att, 500_000), 1e-4);
+        let s = odo.frame(frame(4), &prior(&crs, at(4), att, 500_000), None);
         assert!(
             matches!(&s, VoStep::Refused(why) if why.contains("not after")),
             "{s:?}"
         );
         assert_eq!(
-            odo.frame(frame(5), &prior(&crs, at(5), att, 3_000_000), 1e-4),
+            odo.frame(frame(5), &prior(&crs, at(5), att, 3_000_000), None),
             VoStep::Refused("2.50 s since the previous frame (at most 2 s)".into())
         );
         assert!(matches!(
-            odo.frame(frame(6), &prior(&crs, at(6), att, 3_200_000), 1e-4),
+            odo.frame(frame(6), &prior(&crs, at(6), att, 3_200_000), None),
             VoStep::Motion(_)
         ));
     }

@@ -236,6 +236,9 @@ pub struct NavOutput {
     pub att_sigma_deg: [f64; 3],
     /// Estimated gyro bias, deg/h.
     pub gyro_bias_deg_h: [f64; 3],
+    /// Body rate w.r.t. inertial space of the last IMU sample, bias- and scale-compensated,
+    /// body FRD, rad/s (what moves the attitude on between outputs).
+    pub w_body_rad_s: [f64; 3],
     /// Estimated accelerometer bias, micro-g.
     pub accel_bias_ug: [f64; 3],
     /// Health state.
@@ -790,6 +793,7 @@ impl NavFilter {
                 c.p[(IA + 2, IA + 2)].sqrt().to_degrees(),
             ],
             gyro_bias_deg_h: ((c.bg + c.dg) / super::config::DEG_H_TO_RAD_S).into(),
+            w_body_rad_s: c.w_b.into(),
             accel_bias_ug: ((c.ba + c.da) / super::config::UG_TO_M_S2).into(),
             health,
             reason,

@@ -1,0 +1,172 @@
+//! Visual odometry in the daemon (`[vo] enabled`): every frame the reader takes also goes to one
+//! odometry thread (its own one-frame slot: the newest wins unless lossless; in lock-step, in
+//! order on the blocking pool), which runs the [`Odometer`] with the filter's pose at the frame's
+//! capture time ([`PriorSource::pose_at`]: its solution interpolated to the instant) and the
+//! gyros' rotation since the previous frame ([`PriorSource::body_rotation`]: the filter's
+//! bias-compensated rates integrated, without its corrections in between). Each result goes to
+//! the navigation task, which fuses a motion as a [`visnav_core::nav::VoFix`] and counts the
+//! rest (`metrics::VoMetrics`). A frozen camera's repeated frames never get here (the reader
+//! drops them); a blank or torn frame gives no motion (too few tracks, or no consensus).
+
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use tokio::sync::mpsc;
+use tracing::{error, info};
+
+use crate::handoff::{PriorSource, Slot, Take, capture_time_us};
+use crate::metrics::DaemonMetrics;
+use visnav_core::fix::FixPrior;
+use visnav_core::nav::NavConfig;
+use visnav_core::vision::GrayImage;
+use visnav_core::vo::{GyroDelta, Odometer, VoStep};
+use visnav_io::frames::Frame;
+use visnav_link::Clock;
+
+/// One frame's odometry for the navigation task.
+#[derive(Debug, Clone)]
+pub struct VoResult {
+    /// Capture time, autopilot boot µs.
+    pub t_capture_us: u64,
+    pub seq: u64,
+    pub step: VoStep,
+}
+
+/// Floor of the gyros' rotation sigma between two frames, rad (0.006 deg): the filter's rates are
+/// sampled at its output rate, not integrated over every IMU sample, and an autopilot's IMU
+/// stream is itself a sampled one; below this the prior would be trusted beyond what a sampled
+/// rate gives over a turn's onset.
+const GYRO_DELTA_SIGMA_FLOOR_RAD: f64 = 1e-4;
+
+/// The gyros' error over a frame interval, from the filter's IMU model (`[nav.imu]`).
+#[derive(Debug, Clone, Copy)]
+pub struct GyroNoise {
+    arw_rad_sqrt_s: f64,
+    bias_rad_s: f64,
+}
+
+impl GyroNoise {
+    /// From the filter's IMU model: angle random walk and the bias instability (the residual
+    /// bias once the filter has calibrated the turn-on part).
+    pub fn from_nav(nav: &NavConfig) -> Self {
+        Self {
+            arw_rad_sqrt_s: nav.imu.gyro_arw_deg_sqrt_h.to_radians() / 60.0,
+            bias_rad_s: nav.imu.gyro_bias_instability_deg_h.to_radians() / 3600.0,
+        }
+    }
+
+    /// 1-sigma per axis of the rotation over `dt_s`, rad.
+    pub fn sigma_rad(&self, dt_s: f64) -> f64 {
+        let s2 = self.arw_rad_sqrt_s.powi(2) * dt_s + (self.bias_rad_s * dt_s).powi(2);
+        s2.sqrt().max(GYRO_DELTA_SIGMA_FLOOR_RAD)
+    }
+}
+
+/// What the odometry path holds.
+pub struct VoCtx {
+    pub odometer: Odometer,
+    pub priors: Arc<dyn PriorSource>,
+    pub results: mpsc::Sender<VoResult>,
+    pub metrics: Arc<DaemonMetrics>,
+    pub gyro: GyroNoise,
+    /// Capture time of the previous frame given to the odometer.
+    pub last_t_us: Option<u64>,
+}
+
+/// A frame's odometry inputs, read from the navigation state (on the runtime's thread in
+/// lock-step, so two runs read it at the same point of their schedule).
+pub struct VoInputs {
+    prior: FixPrior,
+    gyro: Option<GyroDelta>,
+}
+
+impl VoCtx {
+    /// The filter's pose at `t_us` and the gyros' rotation since the previous frame.
+    pub fn inputs(&self, t_us: u64) -> VoInputs {
+        let gyro = self.last_t_us.and_then(|t0| {
+            let r = self.priors.body_rotation(t0, t_us)?;
+            Some(GyroDelta {
+                r_body_prev_next: r,
+                sigma_rad: self.gyro.sigma_rad(t_us.saturating_sub(t0) as f64 * 1e-6),
+            })
+        });
+        VoInputs {
+            prior: self.priors.pose_at(t_us),
+            gyro,
+        }
+    }
+
+    /// Odometry of one frame (counted, timed; a panic becomes a refusal and restarts the
+    /// sequence).
+    pub fn step(&mut self, image: GrayImage, seq: u64, inputs: VoInputs) -> VoResult {
+        let t_us = inputs.prior.t_capture_us;
+        // Wall time of the computation (reported, never used by the algorithm).
+        let start = std::time::Instant::now();
+        let odo = &mut self.odometer;
+        let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            odo.frame(image, &inputs.prior, inputs.gyro)
+        }));
+        let step = match caught {
+            Ok(s) => s,
+            Err(_) => {
+                error!("visual odometry panicked on frame {seq}");
+                self.odometer.reset();
+                VoStep::Refused("odometer panicked".into())
+            }
+        };
+        let m = &self.metrics.vo;
+        m.time(start.elapsed().as_micros() as u64);
+        match &step {
+            VoStep::Started => {
+                m.started.fetch_add(1, Ordering::Relaxed);
+            }
+            VoStep::Motion(_) => {
+                m.motions.fetch_add(1, Ordering::Relaxed);
+            }
+            VoStep::Refused(why) => m.refuse(why),
+        }
+        self.last_t_us = Some(t_us);
+        VoResult {
+            t_capture_us: t_us,
+            seq,
+            step,
+        }
+    }
+}
+
+/// The odometry thread (real time): slot -> odometer -> results until the slot is closed or the
+/// navigation task is gone. Frames without a capture time, or older than `max_age_s`, are
+/// skipped (the fix path counts them).
+pub fn spawn_vo(
+    slot: Arc<Slot<Frame>>,
+    mut ctx: VoCtx,
+    clock: Clock,
+    max_age_s: f64,
+) -> std::io::Result<std::thread::JoinHandle<()>> {
+    std::thread::Builder::new()
+        .name("visnav-vo".into())
+        .spawn(move || {
+            info!("visual odometry on every frame");
+            loop {
+                let f = match slot.take(Duration::from_millis(200)) {
+                    Take::Item(f) => f,
+                    Take::Timeout => continue,
+                    Take::Closed => return,
+                };
+                let (Some(t_c), Some(now)) =
+                    (capture_time_us(&clock, &f), clock.autopilot_now_us())
+                else {
+                    continue;
+                };
+                if (now as f64 - t_c as f64) * 1e-6 > max_age_s {
+                    continue;
+                }
+                let inputs = ctx.inputs(t_c);
+                let r = ctx.step(f.image, f.seq, inputs);
+                if ctx.results.blocking_send(r).is_err() {
+                    return;
+                }
+            }
+        })
+}

@@ -35,6 +35,10 @@ pub struct SimArgs {
     /// as fast as the CPU allows and the same for the same seed).
     #[arg(long)]
     pub realtime: bool,
+    /// Visual odometry in the closed loop's vision run, `on` or `off`, whatever the scenario's
+    /// `[closed_loop.vo] enabled` says (the same flight with and without it, for comparison).
+    #[arg(long, value_parser = ["on", "off"])]
+    pub vo: Option<String>,
 }
 
 pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
@@ -42,6 +46,11 @@ pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
     let mut sc = Scenario::load(&path)?;
     if let Some(cl) = sc.closed_loop.as_mut() {
         cl.lockstep &= !args.realtime;
+        if let Some(v) = &args.vo {
+            let mut vo = cl.vo.clone().unwrap_or_default();
+            vo.enabled = v == "on";
+            cl.vo = Some(vo);
+        }
     }
     if sc.closed_loop.is_some() {
         return closed_loop(&sc, &path, &args);

@@ -253,7 +253,7 @@ pub struct FrameMotion {
     pub cov_rot_prev_rad2: Matrix3<f64>,
     /// The next frame's pose as solved, with the gyros' rotation fused when given (world frame).
     pub next: Pose,
-    /// Mean height of the previous centre above the tracked ground points, m.
+    /// Mean height of the previous centre above the resection's inlier ground points, m.
     pub agl_m: f64,
     /// Tracks given, tracks on the terrain, inliers of the resection.
     pub tracks: usize,
@@ -328,6 +328,9 @@ pub fn frame_motion(
             ));
         }
     };
+    // The height above the ground the scale came from: the inliers' (an outlier's ray may have
+    // met other ground).
+    let agl_m = inlier_agl_m(&corrs, &fix.inliers, prev.c_world.z).unwrap_or(agl_m);
     // The displacement from the pose with the gyros' rotation fused; the rotation from the
     // images alone (module doc).
     let next = fix.pose;
@@ -355,6 +358,18 @@ pub fn frame_motion(
     };
     check_motion(&motion, cfg)?;
     Ok(motion)
+}
+
+/// Mean height of a camera at `z_m` above the inliers' ground points; `None` without inliers or
+/// when not positive.
+fn inlier_agl_m(corrs: &[Correspondence], inliers: &[usize], z_m: f64) -> Option<f64> {
+    let heights: Vec<f64> = inliers
+        .iter()
+        .filter_map(|&i| corrs.get(i))
+        .map(|c| z_m - c.point_world.z)
+        .collect();
+    let agl = heights.iter().sum::<f64>() / heights.len() as f64;
+    (!heights.is_empty() && agl.is_finite() && agl > 0.0).then_some(agl)
 }
 
 /// The next frame's attitude prior (the previous attitude turned by the gyros' rotation, with

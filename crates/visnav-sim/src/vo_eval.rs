@@ -297,11 +297,7 @@ fn median(v: &mut [f64]) -> f64 {
 }
 
 fn quantile(v: &mut [f64], p: f64) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[((v.len() - 1) as f64 * p).round() as usize]
+    visnav_core::stats::percentile(v, p)
 }
 
 /// Visual odometry over the VGA sequence (`VGA_*`), timed per frame on the calling thread:

@@ -15,6 +15,8 @@ use std::path::Path;
 use std::process::Command;
 use std::sync::Mutex;
 
+mod common;
+
 /// The closed loops run one after the other (in lock-step their results do not depend on the
 /// load, but two at once would double the test's wall time on two cores anyway).
 static REAL_TIME: Mutex<()> = Mutex::new(());
@@ -302,34 +304,7 @@ fn closed_loop_with_external_vision_output() {
         "config/demo.toml changed: update this test"
     );
     std::fs::write(dir.join("ev.toml"), cfg).unwrap();
-    let sc = std::fs::read_to_string(root.join("sitl/scenarios/closed_loop_demo.toml"))
-        .unwrap()
-        .replace(
-            "\"../../config/demo.toml\"",
-            &format!("{:?}", dir.join("ev.toml").display().to_string()),
-        )
-        .replace(
-            "\"../maps/naip_nd_2014.tif\"",
-            &abs("sitl/maps/naip_nd_2014.tif"),
-        )
-        // Start 700 m further east: the western fields changed between the years and give
-        // few fixes (docs/closed-loop.md); this test is about the messages.
-        .replace("lat_deg = 47.01279 ", "lat_deg = 47.01280 ")
-        .replace("lon_deg = -99.17367", "lon_deg = -99.16446")
-        .replace("duration_s = 50.0", "duration_s = 25.0")
-        .replace(
-            "duration_s = 20.0\nturn_rate_deg_s",
-            "duration_s = 10.0\nturn_rate_deg_s",
-        )
-        .replace(
-            "[[segments]]\nkind = \"straight\"\nduration_s = 20.0\n",
-            "[[segments]]\nkind = \"straight\"\nduration_s = 10.0\n",
-        )
-        .replace("until_s = 30.0\nsigma_h_m", "until_s = 20.0\nsigma_h_m")
-        .replace(
-            "from_s = 30.0\nuntil_s = 90.0",
-            "from_s = 20.0\nuntil_s = 45.0",
-        );
+    let sc = common::short_demo_scenario(root, &dir.join("ev.toml"));
     let f = dir.join("ev_scenario.toml");
     std::fs::write(&f, sc).unwrap();
     let res = Command::new(env!("CARGO_BIN_EXE_visnav"))

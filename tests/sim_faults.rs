@@ -14,6 +14,8 @@ use std::path::Path;
 use std::process::Command;
 use std::sync::Mutex;
 
+mod common;
+
 /// The closed loops run one after the other (two at once would only double the wall time on two
 /// cores).
 static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
@@ -137,31 +139,7 @@ fn the_fault_table_holds_in_the_lockstep_simulator() {
 /// The bundled demo shortened to 45 s (25 s east from 700 m further east, where the years match
 /// better, a 10 s turn, 10 s north; GPS until 20 s) with the map withheld from 26 to 34 s.
 fn map_withheld_scenario(root: &Path) -> String {
-    let abs = |rel: &str| format!("{:?}", root.join(rel).display().to_string());
-    let text = std::fs::read_to_string(root.join("sitl/scenarios/closed_loop_demo.toml"))
-        .expect("read the demo scenario");
-    let sc = text
-        .replace("\"../../config/demo.toml\"", &abs("config/demo.toml"))
-        .replace(
-            "\"../maps/naip_nd_2014.tif\"",
-            &abs("sitl/maps/naip_nd_2014.tif"),
-        )
-        .replace("lat_deg = 47.01279 ", "lat_deg = 47.01280 ")
-        .replace("lon_deg = -99.17367", "lon_deg = -99.16446")
-        .replace("duration_s = 50.0", "duration_s = 25.0")
-        .replace(
-            "duration_s = 20.0\nturn_rate_deg_s",
-            "duration_s = 10.0\nturn_rate_deg_s",
-        )
-        .replace(
-            "[[segments]]\nkind = \"straight\"\nduration_s = 20.0\n",
-            "[[segments]]\nkind = \"straight\"\nduration_s = 10.0\n",
-        )
-        .replace("until_s = 30.0\nsigma_h_m", "until_s = 20.0\nsigma_h_m")
-        .replace(
-            "from_s = 30.0\nuntil_s = 90.0",
-            "from_s = 20.0\nuntil_s = 45.0",
-        );
+    let sc = common::short_demo_scenario(root, &root.join("config/demo.toml"));
     assert!(
         sc.contains("lon_deg = -99.16446") && sc.contains("until_s = 45.0"),
         "sitl/scenarios/closed_loop_demo.toml changed: update this test"

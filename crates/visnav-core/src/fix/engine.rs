@@ -1003,15 +1003,7 @@ impl FixEngine {
                 })
             })
             .collect();
-        let k = &self.camera.intrinsics;
-        let image = ImageGeometry {
-            fx_px: k.fx_px,
-            fy_px: k.fy_px,
-            cx_px: k.cx_px,
-            cy_px: k.cy_px,
-            width_px: k.width_px,
-            height_px: k.height_px,
-        };
+        let image = ImageGeometry::from(&self.camera.intrinsics);
         let priors = Priors {
             // World = local ENU: tilt about east/north, heading about up. A loose heading (after
             // a GPS loss, or unknown) keeps the tilt: gravity still fixes it.

@@ -87,6 +87,19 @@ pub struct ImageGeometry {
     pub height_px: u32,
 }
 
+impl From<&crate::camera::Intrinsics> for ImageGeometry {
+    fn from(k: &crate::camera::Intrinsics) -> Self {
+        Self {
+            fx_px: k.fx_px,
+            fy_px: k.fy_px,
+            cx_px: k.cx_px,
+            cy_px: k.cy_px,
+            width_px: k.width_px,
+            height_px: k.height_px,
+        }
+    }
+}
+
 impl ImageGeometry {
     /// Pixel position of a normalised point.
     pub fn to_pixel(&self, n: &Vector2<f64>) -> Vector2<f64> {

@@ -242,15 +242,7 @@ impl Odometer {
         gyro: Option<GyroDelta>,
     ) -> VoStep {
         let tracks: Vec<TrackPair> = pairs.iter().filter_map(|t| self.undistort(t)).collect();
-        let k = &self.camera.intrinsics;
-        let image = ImageGeometry {
-            fx_px: k.fx_px,
-            fy_px: k.fy_px,
-            cx_px: k.cx_px,
-            cy_px: k.cy_px,
-            width_px: k.width_px,
-            height_px: k.height_px,
-        };
+        let image = ImageGeometry::from(&self.camera.intrinsics);
         // The body's rotation in camera axes: `R_c0_c1 = R_bc^T R_b0_b1 R_bc`.
         let r_body_cam = self
             .camera

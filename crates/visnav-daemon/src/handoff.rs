@@ -109,8 +109,8 @@ pub trait PriorSource: Send + Sync + 'static {
     }
 
     /// The body's rotation from `t0_us` to `t1_us` by the filter's compensated gyro rates
-    /// (`R_b0_b1`); `None` when not known.
-    fn body_rotation(&self, _t0_us: u64, _t1_us: u64) -> Option<nalgebra::Rotation3<f64>> {
+    /// (`R_b0_b1`) and what the rates' sampling leaves unknown of it, rad; `None` when not known.
+    fn body_rotation(&self, _t0_us: u64, _t1_us: u64) -> Option<(nalgebra::Rotation3<f64>, f64)> {
         None
     }
 }

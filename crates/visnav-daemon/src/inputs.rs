@@ -682,15 +682,20 @@ impl OutputBook {
 
     /// The body's rotation from `t0_us` to `t1_us` by the outputs' body rates (`R_b0_b1`: vectors
     /// of the body at `t1` into the body at `t0`), trapezoidal between outputs, the newest rate
-    /// held beyond the newest output. `None` unless outputs cover the span without a gap over
-    /// [`MAX_OUTPUT_GAP_US`] (the first at most that long before or at `t0`).
-    pub fn body_rotation(&self, t0_us: u64, t1_us: u64) -> Option<nalgebra::Rotation3<f64>> {
+    /// held beyond the newest output, and what sampling the rates leaves unknown, rad: the rate
+    /// between two outputs may have taken any path between their values (a multirotor's attitude
+    /// loop moves it by tens of deg/s within one output period), so each interval adds
+    /// `|w_b - w_a| dt / 2` (the trapezoid's largest error for a monotonic path), summed.
+    /// `None` unless outputs cover the span without a gap over [`MAX_OUTPUT_GAP_US`] (the first
+    /// at most that long before or at `t0`).
+    pub fn body_rotation(&self, t0_us: u64, t1_us: u64) -> Option<(nalgebra::Rotation3<f64>, f64)> {
         if t1_us <= t0_us {
             return None;
         }
         let start = self.outs.iter().rposition(|o| o.t_us <= t0_us)?;
         let rate = |o: &NavOutput| Vector3::from(o.w_body_rad_s);
         let mut r = nalgebra::Rotation3::identity();
+        let mut unknown_rad = 0.0;
         let (mut t, mut w) = (t0_us, rate(&self.outs[start]));
         if t0_us - self.outs[start].t_us > MAX_OUTPUT_GAP_US {
             return None;
@@ -703,16 +708,17 @@ impl OutputBook {
             let dt = (end - t) as f64 * 1e-6;
             let w_end = rate(o);
             r *= nalgebra::Rotation3::from_scaled_axis((w + w_end) * 0.5 * dt);
+            unknown_rad += (w_end - w).norm() * dt * 0.5;
             (t, w) = (end, w_end);
             if o.t_us >= t1_us {
-                return Some(r);
+                return Some((r, unknown_rad));
             }
         }
         if t1_us - t > MAX_OUTPUT_GAP_US {
             return None;
         }
         r *= nalgebra::Rotation3::from_scaled_axis(w * ((t1_us - t) as f64 * 1e-6));
-        Some(r)
+        Some((r, unknown_rad))
     }
 }
 
@@ -1288,10 +1294,22 @@ mod tests {
         assert!(((lat - 47.0) * 111_200.0 - 15.1).abs() < 1e-6);
         assert!(book.at(2_150_000).is_none(), "beyond the newest + 0.1 s");
         assert!(book.at(900_000).is_none(), "before the oldest");
-        let r = book.body_rotation(1_510_000, 1_710_000).unwrap();
+        let (r, unknown) = book.body_rotation(1_510_000, 1_710_000).unwrap();
         assert!((r.scaled_axis() - Vector3::new(0.0, 0.0, 2f64.to_radians())).norm() < 1e-12);
-        let r = book.body_rotation(1_950_000, 2_050_000).unwrap();
+        assert_eq!(unknown, 0.0, "a constant rate leaves nothing unknown");
+        let (r, _) = book.body_rotation(1_950_000, 2_050_000).unwrap();
         assert!((r.angle().to_degrees() - 1.0).abs() < 1e-9);
+        // A rate that jumps by 20 deg/s between two outputs 20 ms apart: 0.1 deg unknown.
+        let mut jumpy = turning_book(1_000_000, 1_100_000);
+        let mut o = output(1_120_000, NavHealth::Ok);
+        o.w_body_rad_s = [20f64.to_radians(), 0.0, 10f64.to_radians()];
+        jumpy.push(o);
+        let (_, unknown) = jumpy.body_rotation(1_050_000, 1_120_000).unwrap();
+        assert!(
+            (unknown.to_degrees() - 0.2).abs() < 1e-9,
+            "{}",
+            unknown.to_degrees()
+        );
         assert!(book.body_rotation(1_950_000, 2_200_000).is_none());
         assert!(book.body_rotation(800_000, 1_100_000).is_none());
         // A gap of 0.3 s in the outputs.

@@ -211,7 +211,7 @@ impl PriorSource for SharedPriors {
         inputs::prior_at(t_us, out.as_ref(), None, &self.nav)
     }
 
-    fn body_rotation(&self, t0_us: u64, t1_us: u64) -> Option<nalgebra::Rotation3<f64>> {
+    fn body_rotation(&self, t0_us: u64, t1_us: u64) -> Option<(nalgebra::Rotation3<f64>, f64)> {
         self.book
             .lock()
             .unwrap_or_else(|e| e.into_inner())

@@ -3,7 +3,9 @@
 //! order on the blocking pool), which runs the [`Odometer`] with the filter's pose at the frame's
 //! capture time ([`PriorSource::pose_at`]: its solution interpolated to the instant) and the
 //! gyros' rotation since the previous frame ([`PriorSource::body_rotation`]: the filter's
-//! bias-compensated rates integrated, without its corrections in between). Each result goes to
+//! bias-compensated rates integrated, without its corrections in between; its sigma the gyros'
+//! noise and residual bias over the interval and what sampling the rates at the filter's output
+//! rate leaves unknown). Each result goes to
 //! the navigation task, which fuses a motion as a [`visnav_core::nav::VoFix`] and counts the
 //! rest (`metrics::VoMetrics`). A frozen camera's repeated frames never get here (the reader
 //! drops them); a blank or torn frame gives no motion (too few tracks, or no consensus).
@@ -85,10 +87,11 @@ impl VoCtx {
     /// The filter's pose at `t_us` and the gyros' rotation since the previous frame.
     pub fn inputs(&self, t_us: u64) -> VoInputs {
         let gyro = self.last_t_us.and_then(|t0| {
-            let r = self.priors.body_rotation(t0, t_us)?;
+            let (r, unknown_rad) = self.priors.body_rotation(t0, t_us)?;
+            let dt_s = t_us.saturating_sub(t0) as f64 * 1e-6;
             Some(GyroDelta {
                 r_body_prev_next: r,
-                sigma_rad: self.gyro.sigma_rad(t_us.saturating_sub(t0) as f64 * 1e-6),
+                sigma_rad: self.gyro.sigma_rad(dt_s).hypot(unknown_rad),
             })
         });
         VoInputs {

@@ -19,6 +19,7 @@ use serde::Serialize;
 
 use visnav_core::camera::Opk;
 use visnav_core::pose::{ImageGeometry, Pose};
+use visnav_core::stats::percentile;
 use visnav_core::vision::{GrayImage, MatchParams, Surf, SurfParams, match_features};
 use visnav_core::vo::{TrackPair, VoConfig, VoInput, frame_motion};
 use visnav_io::image_file::GrayImageFile;
@@ -292,14 +293,6 @@ fn vga_poses(frames: usize) -> Vec<Pose> {
         .collect()
 }
 
-fn median(v: &mut [f64]) -> f64 {
-    quantile(v, 0.5)
-}
-
-fn quantile(v: &mut [f64], p: f64) -> f64 {
-    visnav_core::stats::percentile(v, p)
-}
-
 /// Visual odometry over the VGA sequence (`VGA_*`), timed per frame on the calling thread:
 /// tracks carried from frame to frame, replenished when they run low, each motion solved from
 /// the previous estimate (chained, no filter) with the gyros' rotation (`VGA_GYRO_SIGMA_DEG` off).
@@ -410,19 +403,19 @@ pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> 
     let last = poses.len() - 1;
     Ok(VgaVo {
         frames: n,
-        ms_p50: median(&mut total),
-        ms_p95: quantile(&mut total, 0.95),
-        ms_min: quantile(&mut total, 0.0),
-        ms_pyramid: median(&mut t_pyr),
-        ms_track: median(&mut t_trk),
-        ms_motion: median(&mut t_mot),
-        ms_replenish: median(&mut t_rep),
+        ms_p50: percentile(&total, 0.5),
+        ms_p95: percentile(&total, 0.95),
+        ms_min: percentile(&total, 0.0),
+        ms_pyramid: percentile(&t_pyr, 0.5),
+        ms_track: percentile(&t_trk, 0.5),
+        ms_motion: percentile(&t_mot, 0.5),
+        ms_replenish: percentile(&t_rep, 0.5),
         replenished,
         tracks_mean: tracks_n as f64 / n as f64,
         inliers_mean: inliers_n as f64 / n as f64,
-        step_err_m_p50: median(&mut errs.clone()),
+        step_err_m_p50: percentile(&errs, 0.5),
         step_err_m_max: errs.iter().copied().fold(0.0, f64::max),
-        step_err_over_sigma_p50: median(&mut err_sig),
+        step_err_over_sigma_p50: percentile(&err_sig, 0.5),
         step_m: Vector3::from(VGA_STEP_M).norm(),
         distance_m: (poses[last].c_world - poses[0].c_world).norm(),
         chained_err_m: (est.c_world - poses[last].c_world).norm(),

@@ -672,12 +672,49 @@ def finish_run(procs, workdir, report, log):
     log(f"report: {path}")
 
 
+def add_visnav_args(ap):
+    """The options both recipes give start_visnav: visual odometry on or off, and another map."""
+    ap.add_argument("--vo", choices=["on", "off"], default=None,
+                    help="visual odometry ([vo] enabled) on or off (default: the configuration's)")
+    ap.add_argument("--map-ortho", default=None, metavar="GEOTIFF",
+                    help="visnav's map orthophoto instead of the configuration's (e.g. one the "
+                         "camera's ground cannot be matched on: sitl/featureless_map.py)")
+
+
+def visnav_config_text(text, repo, link_port=None, vo=None, map_ortho=None):
+    """The configuration sitl-run gets (start_visnav): absolute map paths, the tlog, the fix log
+    (fixes.jsonl), the VO log (vo.jsonl), the link port, and the --vo / --map-ortho overrides."""
+    text = text.replace('"../maps/', '"' + os.path.join(repo, "sitl", "maps") + "/")
+    text = text.replace("[link]\n", '[link]\ntlog = "visnav.tlog"\n', 1)
+    logs = 'fix_log = "fixes.jsonl"\nvo_log = "vo.jsonl"\n'
+    if "\n[daemon]\n" in text:
+        text = text.replace("\n[daemon]\n", "\n[daemon]\n" + logs, 1)
+    else:
+        text += "\n[daemon]\n" + logs
+    if link_port is not None:
+        text = set_connection_port(text, link_port)
+    if map_ortho is not None:
+        path = os.path.abspath(map_ortho)
+        text, n = re.subn(r"(?m)^ortho = .*$", lambda _m: f"ortho = [{json.dumps(path)}]", text, 1)
+        if n != 1:
+            sys.exit("--map-ortho: the configuration has no `ortho = ...` line to replace")
+    if vo is not None:
+        line = f"enabled = {'true' if vo == 'on' else 'false'}\n"
+        if re.search(r"(?m)^\[vo\]\n", text):
+            text = re.sub(r"(?m)^\[vo\]\n", lambda _m: "[vo]\n" + line, text, 1)
+        else:
+            text += "\n[vo]\n" + line
+    return text
+
+
 def start_visnav(exe, config_src, workdir, kind, truth_port, camera_hz, repo, log,
-                 link_port=None):
+                 link_port=None, vo=None, map_ortho=None):
     """Start `visnav sitl-run` in WORKDIR (stdout: visnav.json, the metrics lines; stderr:
     visnav.log) on a copy of CONFIG_SRC with absolute map paths, a .tlog of all link traffic
-    (visnav.tlog) and the vision fix log (fixes.jsonl), and with `link_port` (when given) as the
-    UDP port of its autopilot connection:
+    (visnav.tlog), the vision fix log (fixes.jsonl), the visual odometry log (vo.jsonl) and the
+    camera's true pose per frame (frames_truth.jsonl: `sitl/vo_check.py WORKDIR` scores the VO),
+    with `link_port` (when given) as the UDP port of its autopilot connection and the --vo /
+    --map-ortho overrides (visnav_config_text):
     `visnav replay --config visnav.toml --tlog visnav.tlog --fixes fixes.jsonl` in the work
     folder then replays the flight through the filter offline. The camera renders the 2014 image
     (the map is the 2009 one)."""
@@ -691,21 +728,14 @@ def start_visnav(exe, config_src, workdir, kind, truth_port, camera_hz, repo, lo
     exe = os.path.abspath(exe)
     with open(config_src) as f:
         text = f.read()
-    text = text.replace('"../maps/', '"' + os.path.join(repo, "sitl", "maps") + "/")
-    text = text.replace("[link]\n", '[link]\ntlog = "visnav.tlog"\n', 1)
-    if "\n[daemon]\n" in text:
-        text = text.replace("\n[daemon]\n", '\n[daemon]\nfix_log = "fixes.jsonl"\n', 1)
-    else:
-        text += '\n[daemon]\nfix_log = "fixes.jsonl"\n'
-    if link_port is not None:
-        text = set_connection_port(text, link_port)
+    text = visnav_config_text(text, repo, link_port, vo, map_ortho)
     config = os.path.join(workdir, "visnav.toml")
     with open(config, "w") as f:
         f.write(text)
     cmd = [exe, "sitl-run", "--kind", kind, "--config", config,
            "--truth", f"udpin:127.0.0.1:{truth_port}",
            "--ortho", os.path.join(repo, "sitl", "maps", "naip_nd_2014.tif"),
-           "--rate-hz", str(camera_hz)]
+           "--rate-hz", str(camera_hz), "--truth-log", "frames_truth.jsonl"]
     log("visnav: " + " ".join(cmd))
     return subprocess.Popen(cmd, cwd=workdir,
                             stdout=open(os.path.join(workdir, "visnav.json"), "w"),

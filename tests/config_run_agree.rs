@@ -108,6 +108,18 @@ fn check_config_refuses_what_run_refuses() {
             "daemon.fix_log",
         ),
         (
+            "vo_log in a missing folder",
+            config(
+                "",
+                heights,
+                &format!(
+                    "[daemon]\nvo_log = \"{}\"\n",
+                    d.join("nope/vo.jsonl").display()
+                ),
+            ),
+            "daemon.vo_log",
+        ),
+        (
             "serial device that does not exist",
             config("", heights, "").replace(
                 "udpin:127.0.0.1:14999",

@@ -166,8 +166,9 @@ fn fly_law(mode: DragMode, multirotor: bool, law: Law) -> Run {
         use_autopilot_attitude: true,
         ..NavConfig::default()
     };
-    // The filter models its gyro as sitl/ardupilot/visnav.toml does (ATTITUDE rates: a MEMS
-    // gyro minus the autopilot's bias estimate, wandering 60 deg/h over a minute).
+    // The filter models its gyro as an autopilot's ATTITUDE rates (a MEMS gyro minus the
+    // autopilot's bias estimate, wandering 60 deg/h over a minute; ArduCopter SITL's wander up
+    // to 200 deg/h, which sitl/ardupilot/visnav.toml models).
     cfg.imu.gyro_bias_instability_deg_h = 60.0;
     cfg.imu.gyro_bias_corr_time_s = 60.0;
     cfg.imu.gyro_bias_deg_h = 20.0;

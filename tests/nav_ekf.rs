@@ -1188,6 +1188,8 @@ fn vo_flight(vo: bool, outage_s: f64) -> VoFlight {
                 agl_m: agl_used,
                 terrain_sigma_m: 1.0,
                 terrain_corr_dist_m: 2000.0,
+                // The test's VO has no gyro error: any line of sight (nadir here) is right.
+                look_ned_m: Vector3::new(0.0, 0.0, agl_used),
             }));
         }
         prev = Some((t, ts.clone(), psi.z, s.h_m - ts.h_m));

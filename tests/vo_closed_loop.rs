@@ -75,7 +75,67 @@ fn visual_odometry_alone_keeps_two_minutes_without_fixes_within_one_percent() {
     assert!(stderr.contains("visual odometry: measuring"), "{stderr}");
     // The claimed sigma covers the error at the end, and it grew during the outage.
     check_sigma_covers(&out);
+    check_motions_honest(&out);
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Every motion of the VO log (`vo.jsonl` in the report folder) against the camera's true
+/// displacement between its two frames (`frames_truth.jsonl`): all scored, and the error within
+/// the claimed covariance (horizontal NEES over the chi-square 95 % point, 5.99, for at most 5 %
+/// of them; what `sitl/vo_check.py` prints for a real SITL flight).
+fn check_motions_honest(out: &Path) {
+    let read = |name: &str| -> Vec<serde_json::Value> {
+        std::fs::read_to_string(out.join(name))
+            .unwrap_or_else(|e| panic!("{name}: {e}"))
+            .lines()
+            .map(|l| serde_json::from_str(l).expect(name))
+            .collect()
+    };
+    let (vo, truth) = (read("vo.jsonl"), read("frames_truth.jsonl"));
+    let by_t: std::collections::HashMap<u64, &serde_json::Value> = truth
+        .iter()
+        .map(|r| (r["t_capture_us"].as_u64().expect("t_capture_us"), r))
+        .collect();
+    let f = |v: &serde_json::Value| v.as_f64().expect("number");
+    let mut nees = Vec::new();
+    let mut err_h = Vec::new();
+    for r in vo.iter().filter(|r| r["step"] == "motion") {
+        let (a, b) = (
+            by_t[&r["t_prev_us"].as_u64().expect("t_prev_us")],
+            by_t[&r["t_capture_us"].as_u64().expect("t_capture_us")],
+        );
+        // Local metres at the aircraft's height (5e-4 relative is far below the errors here).
+        let lat = f(&a["lat_deg"]).to_radians();
+        let r_m = 6_371_000.0 + f(&a["alt_amsl_m"]);
+        let true_n = (f(&b["lat_deg"]) - f(&a["lat_deg"])).to_radians() * r_m;
+        let true_e = (f(&b["lon_deg"]) - f(&a["lon_deg"])).to_radians() * r_m * lat.cos();
+        let (en, ee) = (f(&r["dp_ned_m"][0]) - true_n, f(&r["dp_ned_m"][1]) - true_e);
+        let c = &r["cov_ned_m2"];
+        let (cnn, cne, cee) = (f(&c[0][0]), f(&c[0][1]), f(&c[1][1]));
+        let det = cnn * cee - cne * cne;
+        assert!(cnn > 0.0 && det > 0.0, "covariance {c}");
+        nees.push((cee * en * en - 2.0 * cne * en * ee + cnn * ee * ee) / det);
+        err_h.push(en.hypot(ee));
+    }
+    let motions = vo.iter().filter(|r| r["step"] == "motion").count();
+    let over = nees.iter().filter(|n| **n > 5.991).count() as f64 / nees.len().max(1) as f64;
+    err_h.sort_by(f64::total_cmp);
+    eprintln!(
+        "VO log: {motions} motions, per-motion error p50 {:.3} m, NEES over 5.99: {:.1} %",
+        err_h.get(err_h.len() / 2).copied().unwrap_or(f64::NAN),
+        100.0 * over
+    );
+    assert!(motions > 500, "{motions} motions in the VO log");
+    assert_eq!(
+        nees.len(),
+        motions,
+        "every motion has the truth of its two frames"
+    );
+    assert!(
+        over <= 0.05,
+        "{:.1} % of motions beyond their 95 % bound",
+        100.0 * over
+    );
 }
 
 /// The claimed sigma grew during the outage and covers the error at its end.

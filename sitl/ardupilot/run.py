@@ -169,7 +169,7 @@ def start_sitl(args, workdir, instance, visnav_port, truth_port):
 def start_visnav(args, workdir, visnav_port, truth_port):
     return sitl_common.start_visnav(args.visnav, os.path.join(HERE, "visnav.toml"), workdir,
                                     "ardupilot", truth_port, args.camera_hz, REPO, log,
-                                    link_port=visnav_port)
+                                    link_port=visnav_port, vo=args.vo, map_ortho=args.map_ortho)
 
 
 def is_autopilot(m, hb):
@@ -287,6 +287,7 @@ def parse_args(argv=None):
     ap.add_argument("--gps-off-alt", type=float, default=None,
                     help="instead, switch it off at this true height above home, m")
     ap.add_argument("--camera-hz", type=float, default=2.0)
+    sitl_common.add_visnav_args(ap)
     ap.add_argument("--after-gps-off", type=float, default=None,
                     help="stop this many seconds after the GPS is off (default: at the last "
                          "waypoint); a run stopped so has not completed its mission: it fails")

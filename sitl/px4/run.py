@@ -337,7 +337,8 @@ def start_px4(args, workdir, params, net):
 
 def start_visnav(args, workdir, net):
     return sitl_common.start_visnav(args.visnav, args.config, workdir, "px4", net.truth,
-                                    args.camera_hz, REPO, log, link_port=net.link)
+                                    args.camera_hz, REPO, log, link_port=net.link,
+                                    vo=args.vo, map_ortho=args.map_ortho)
 
 
 def is_autopilot(m, hb):
@@ -517,6 +518,7 @@ def main():
                     help="EKF2 fuses visnav from arming (EKF2_EV_CTRL 0 at boot, the file's value "
                          "once armed) or from boot")
     ap.add_argument("--camera-hz", type=float, default=2.0)
+    sitl_common.add_visnav_args(ap)
     ap.add_argument("--after-gps-off", type=float, default=None,
                     help="stop this many seconds after the GPS is off (default: last waypoint); "
                          "a run stopped so has not completed its mission: it fails")

@@ -201,8 +201,10 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
     }
     .context("cannot start the async runtime")?;
     let t0 = Instant::now();
+    std::fs::create_dir_all(&out)
+        .with_context(|| format!("report folder {}: cannot create it", out.display()))?;
     let mut run = rt
-        .block_on(visnav::sitl::closed_loop::run(sc, base))
+        .block_on(visnav::sitl::closed_loop::run(sc, base, Some(&out)))
         .with_context(|| format!("{}: closed loop", path.display()))?;
     run.summary.report_dir = Some(out.display().to_string());
     let files = visnav::sitl::report::write_report(&run, &out)

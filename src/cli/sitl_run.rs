@@ -63,6 +63,11 @@ pub struct SitlRunArgs {
     /// Frames older than this when a worker is free are dropped, s.
     #[arg(long, default_value_t = 1.0)]
     pub max_age_s: f64,
+    /// Write the true pose of every rendered frame here (JSON lines: seq, capture time in
+    /// autopilot boot µs, latitude, longitude, altitude AMSL, NED velocity, roll/pitch/yaw);
+    /// with `[daemon] vo_log`, `sitl/vo_check.py` scores each visual odometry motion against it.
+    #[arg(long)]
+    pub truth_log: Option<PathBuf>,
     /// Stop after this many seconds (default: run until SIGINT/SIGTERM).
     #[arg(long)]
     pub duration: Option<f64>,
@@ -110,6 +115,13 @@ pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
     if let Some(id) = cfg.link.autopilot_system_id {
         tcfg.autopilot_system_id = id;
     }
+    let truth_log = match &args.truth_log {
+        Some(p) => Some(
+            std::fs::File::create(p)
+                .with_context(|| format!("--truth-log {}: cannot create it", p.display()))?,
+        ),
+        None => None,
+    };
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -124,7 +136,7 @@ pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
             anyhow::bail!("no truth from the simulator on {} within 120 s", args.truth);
         }
         let feed: Arc<dyn TruthFeed> = truth.feed();
-        let source = SimCamera::new(
+        let mut source = SimCamera::new(
             SimCameraSpec {
                 scene: Arc::new(scene),
                 renderer: Arc::new(renderer),
@@ -136,6 +148,9 @@ pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
             },
             feed,
         );
+        if let Some(f) = truth_log {
+            source = source.with_truth_log(Box::new(std::io::BufWriter::new(f)));
+        }
         let pipeline = FramePipeline {
             source: Box::new(source),
             lossless: false,

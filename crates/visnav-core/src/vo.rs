@@ -255,6 +255,8 @@ pub struct FrameMotion {
     pub next: Pose,
     /// Mean height of the previous centre above the resection's inlier ground points, m.
     pub agl_m: f64,
+    /// Mean line of sight from the next centre to the inlier ground points, world frame, m.
+    pub look_world_m: Vector3<f64>,
     /// Tracks given, tracks on the terrain, inliers of the resection.
     pub tracks: usize,
     pub on_ground: usize,
@@ -334,6 +336,8 @@ pub fn frame_motion(
     // The displacement from the pose with the gyros' rotation fused; the rotation from the
     // images alone (module doc).
     let next = fix.pose;
+    let look_world_m = inlier_look_m(&corrs, &fix.inliers, &next.c_world)
+        .unwrap_or_else(|| Vector3::new(0.0, 0.0, -agl_m));
     let dp = next.c_world - prev.c_world;
     // The optical axis's angle off the vertical.
     let axis_down = -(prev.r_world_cam * Vector3::z()).z;
@@ -351,6 +355,7 @@ pub fn frame_motion(
         cov_rot_prev_rad2: rotate_cov3(&vision_att, &r_prev_world),
         next,
         agl_m,
+        look_world_m,
         tracks: tracks.len(),
         on_ground: corrs.len(),
         inliers: fix.inliers.len(),
@@ -370,6 +375,21 @@ fn inlier_agl_m(corrs: &[Correspondence], inliers: &[usize], z_m: f64) -> Option
         .collect();
     let agl = heights.iter().sum::<f64>() / heights.len() as f64;
     (!heights.is_empty() && agl.is_finite() && agl > 0.0).then_some(agl)
+}
+
+/// Mean vector from a camera at `c` to the inliers' ground points; `None` without inliers.
+fn inlier_look_m(
+    corrs: &[Correspondence],
+    inliers: &[usize],
+    c: &Vector3<f64>,
+) -> Option<Vector3<f64>> {
+    let pts: Vec<Vector3<f64>> = inliers
+        .iter()
+        .filter_map(|&i| corrs.get(i))
+        .map(|k| k.point_world - c)
+        .collect();
+    let mean = pts.iter().sum::<Vector3<f64>>() / pts.len().max(1) as f64;
+    (!pts.is_empty() && mean.iter().all(|v| v.is_finite())).then_some(mean)
 }
 
 /// The next frame's attitude prior (the previous attitude turned by the gyros' rotation, with

@@ -255,6 +255,9 @@ impl Config {
             if let Some(f) = &cfg.daemon.fix_log {
                 check_output_file(p, "fix_log", base, f);
             }
+            if let Some(f) = &cfg.daemon.vo_log {
+                check_output_file(p, "vo_log", base, f);
+            }
         });
         if cfg.daemon.imu_bias_restore == crate::config::ImuBiasRestore::ScaledImu {
             match cfg.link.streams.scaled_imu_hz {
@@ -280,6 +283,7 @@ impl Config {
         cfg.map.dem = cfg.map.dem.as_deref().map(|f| resolve(base, f));
         cfg.link.resolve_paths(base);
         cfg.daemon.fix_log = cfg.daemon.fix_log.as_deref().map(|f| resolve(base, f));
+        cfg.daemon.vo_log = cfg.daemon.vo_log.as_deref().map(|f| resolve(base, f));
         if let Some(f) = &mut cfg.frames {
             f.resolve_paths(base);
         }

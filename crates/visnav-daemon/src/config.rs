@@ -129,6 +129,10 @@ pub struct DaemonConfig {
     /// config file's folder unless absolute; `{t}` becomes the start time in Unix seconds.
     /// `None` = off.
     pub fix_log: Option<std::path::PathBuf>,
+    /// Visual odometry log (JSON lines, one per frame the odometer ran on: the motion, its
+    /// covariance, what the filter did; `sitl/vo_check.py` scores it against a SITL's truth),
+    /// relative to the config file's folder unless absolute; `{t}` as in `fix_log`. `None` = off.
+    pub vo_log: Option<std::path::PathBuf>,
 }
 
 impl Default for DaemonConfig {
@@ -151,6 +155,7 @@ impl Default for DaemonConfig {
             log_interval_s: 10.0,
             metrics_listen: None,
             fix_log: None,
+            vo_log: None,
         }
     }
 }

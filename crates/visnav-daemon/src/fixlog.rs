@@ -117,13 +117,17 @@ impl FixLogRecord {
     }
 }
 
-/// An open fix log.
-pub struct FixLog {
+/// An open JSON-lines log (the fix log, the VO log `volog`): one serialised record per line,
+/// flushed per record (a few to tens per second), so a killed run loses at most its last line.
+pub struct JsonLinesLog {
     path: PathBuf,
     out: BufWriter<File>,
 }
 
-impl FixLog {
+/// The fix log.
+pub type FixLog = JsonLinesLog;
+
+impl JsonLinesLog {
     /// Create (truncate) the file.
     pub fn create(path: &Path) -> std::io::Result<Self> {
         Ok(Self {
@@ -132,13 +136,20 @@ impl FixLog {
         })
     }
 
+    /// `[daemon]`'s log path with `{t}` expanded to the Unix time now, created; `None` when off.
+    pub fn open_configured(path: Option<&Path>) -> Result<Option<Self>, (PathBuf, std::io::Error)> {
+        let Some(p) = path else { return Ok(None) };
+        let p = visnav_link::tlog::expand_name(p, visnav_link::tlog::unix_now_us() / 1_000_000);
+        Self::create(&p).map(Some).map_err(|e| (p, e))
+    }
+
     /// The file's path.
     pub fn path(&self) -> &Path {
         &self.path
     }
 
-    /// Append one record and flush (a few per second).
-    pub fn write(&mut self, r: &FixLogRecord) -> std::io::Result<()> {
+    /// Append one record and flush.
+    pub fn write<T: Serialize>(&mut self, r: &T) -> std::io::Result<()> {
         let line = serde_json::to_string(r).map_err(std::io::Error::other)?;
         self.out.write_all(line.as_bytes())?;
         self.out.write_all(b"\n")?;

@@ -35,6 +35,7 @@ pub mod metrics;
 pub mod prometheus;
 pub mod replay;
 pub mod vo_path;
+pub mod volog;
 pub mod wiring;
 
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -55,7 +56,7 @@ use visnav_core::nav::{
     Health as NavHealth, Measurement, NavConfig, NavFilter, NavOutput, Outcome,
 };
 use visnav_core::vision::GrayImage;
-use visnav_core::vo::VoStep;
+use visnav_core::vo::{VoMotion, VoStep};
 use visnav_io::frames::{Frame, FrameError, FrameSource, FramesConfig};
 use visnav_link::config::{LinkConfig, OutputConfig};
 use visnav_link::{Health as LinkHealth, Link, LinkError, NavEstimate, Telemetry};
@@ -91,6 +92,11 @@ pub enum DaemonError {
     NoFixer,
     #[error("cannot start a thread: {0}")]
     Thread(#[from] std::io::Error),
+    #[error("daemon.vo_log: {path}: {source}")]
+    VoLog {
+        path: std::path::PathBuf,
+        source: std::io::Error,
+    },
     #[error("daemon.fix_log: {path}: {source}")]
     FixLog {
         path: std::path::PathBuf,
@@ -273,19 +279,16 @@ impl Daemon {
         };
         let gps = setup.daemon.gps_source(&setup.output);
         info!(?gps, "GPS aiding source");
-        let fix_log = match &setup.daemon.fix_log {
-            Some(p) => {
-                let p =
-                    visnav_link::tlog::expand_name(p, visnav_link::tlog::unix_now_us() / 1_000_000);
-                let log = fixlog::FixLog::create(&p).map_err(|source| DaemonError::FixLog {
-                    path: p.clone(),
-                    source,
-                })?;
-                info!(path = %p.display(), "vision fix log");
-                Some(log)
-            }
-            None => None,
-        };
+        let fix_log = fixlog::JsonLinesLog::open_configured(setup.daemon.fix_log.as_deref())
+            .map_err(|(path, source)| DaemonError::FixLog { path, source })?;
+        if let Some(l) = &fix_log {
+            info!(path = %l.path().display(), "vision fix log");
+        }
+        let vo_log = fixlog::JsonLinesLog::open_configured(setup.daemon.vo_log.as_deref())
+            .map_err(|(path, source)| DaemonError::VoLog { path, source })?;
+        if let Some(l) = &vo_log {
+            info!(path = %l.path().display(), "visual odometry log");
+        }
         let endpoint = match &setup.daemon.metrics_listen {
             Some(a) => Some(metrics_endpoint(a).await?),
             None => None,
@@ -363,6 +366,7 @@ impl Daemon {
             drag_logged: [false; 2],
             init_spacing: inputs::InitSpacing::default(),
             fix_log,
+            vo_log,
             vo_working: None,
         };
         let nav_task = tokio::spawn(nav.run(tel, fix_rx, vo_rx, stop_rx));
@@ -579,6 +583,7 @@ struct NavTask {
     drag_logged: [bool; 2],
     init_spacing: inputs::InitSpacing,
     fix_log: Option<fixlog::FixLog>,
+    vo_log: Option<volog::VoLog>,
     /// Visual odometry's last state (motions or refusals), for logging its changes.
     vo_working: Option<bool>,
 }
@@ -748,29 +753,51 @@ impl NavTask {
     /// A visual odometry result: a motion to the filter, everything counted; the first motion
     /// after refusals (and the first refusal after motions) logged with its reason.
     fn vo(&mut self, r: vo_path::VoResult) {
-        let m = &self.metrics.vo;
-        let VoStep::Motion(motion) = r.step else {
-            if let VoStep::Refused(why) = &r.step
-                && self.vo_working != Some(false)
-            {
-                info!("visual odometry: no motion from frame {}: {why}", r.seq);
-                self.vo_working = Some(false);
+        let (outcome, nis) = match &r.step {
+            VoStep::Motion(motion) => self.vo_motion(r.seq, motion),
+            VoStep::Refused(why) => {
+                if self.vo_working != Some(false) {
+                    info!("visual odometry: no motion from frame {}: {why}", r.seq);
+                    self.vo_working = Some(false);
+                }
+                ("", None)
             }
-            return;
+            VoStep::Started => ("", None),
         };
-        let c = match self.filter.measure(Measurement::Vo(motion.fix)) {
-            Outcome::Accepted { .. } => &m.fused,
-            Outcome::Rejected { .. } => &m.filter_rejected,
-            _ => &m.unused,
+        if let Some(log) = self.vo_log.as_mut() {
+            let rec = volog::VoLogRecord::new(
+                visnav_link::tlog::unix_now_us(),
+                r.seq,
+                r.t_capture_us,
+                &r.step,
+                outcome,
+                nis,
+            )
+            .with_prior_attitude(r.prior_attitude_deg);
+            if let Err(e) = log.write(&rec) {
+                warn!("VO log {}: {e}; logging stopped", log.path().display());
+                self.vo_log = None;
+            }
+        }
+    }
+
+    /// A motion to the filter; returns what the filter did (the VO log's `outcome`) and its NIS.
+    fn vo_motion(&mut self, seq: u64, motion: &VoMotion) -> (&'static str, Option<f64>) {
+        let m = &self.metrics.vo;
+        let (c, outcome, nis) = match self.filter.measure(Measurement::Vo(motion.fix)) {
+            Outcome::Accepted { nis } => (&m.fused, "fused", Some(nis)),
+            Outcome::Rejected { nis, .. } => (&m.filter_rejected, "filter_rejected", Some(nis)),
+            _ => (&m.unused, "unused", None),
         };
         c.fetch_add(1, Ordering::Relaxed);
         if self.vo_working != Some(true) {
             info!(
-                "visual odometry: measuring ({} tracks, {} inliers, {:.2} px)",
+                "visual odometry: measuring from frame {seq} ({} tracks, {} inliers, {:.2} px)",
                 motion.tracks, motion.inliers, motion.rms_px
             );
             self.vo_working = Some(true);
         }
+        (outcome, nis)
     }
 
     /// See [`inputs::InitSpacing`].

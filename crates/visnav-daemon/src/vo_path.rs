@@ -33,6 +33,9 @@ pub struct VoResult {
     pub t_capture_us: u64,
     pub seq: u64,
     pub step: VoStep,
+    /// The filter's attitude the frame was given (roll, pitch, yaw, deg) and its tilt and yaw
+    /// sigma (deg); for the VO log.
+    pub prior_attitude_deg: Option<([f64; 3], [f64; 2])>,
 }
 
 /// Floor of the gyros' rotation sigma between two frames, rad (0.006 deg): the filter's rates are
@@ -104,6 +107,13 @@ impl VoCtx {
     /// sequence).
     pub fn step(&mut self, image: GrayImage, seq: u64, inputs: VoInputs) -> VoResult {
         let t_us = inputs.prior.t_capture_us;
+        let prior_attitude_deg = inputs.prior.attitude.map(|a| {
+            let at = a.attitude;
+            (
+                [at.roll_rad, at.pitch_rad, at.yaw_rad].map(f64::to_degrees),
+                [a.sigma_rad, a.sigma_yaw_rad].map(f64::to_degrees),
+            )
+        });
         // Wall time of the computation (reported, never used by the algorithm).
         let start = std::time::Instant::now();
         let odo = &mut self.odometer;
@@ -134,6 +144,7 @@ impl VoCtx {
             t_capture_us: t_us,
             seq,
             step,
+            prior_attitude_deg,
         }
     }
 }

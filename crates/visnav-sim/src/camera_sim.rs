@@ -13,6 +13,7 @@
 //! true north (`R_ned_body = Rz(yaw) Ry(pitch) Rx(roll)`), and [`RenderPose::from_body`] adds the
 //! camera mount and the grid convergence.
 
+use std::io::Write;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -69,6 +70,8 @@ pub struct SimCamera {
     last_t_us: Option<u64>,
     /// The last image delivered (what a frozen camera repeats).
     last_image: Option<GrayImage>,
+    /// Where each delivered frame's truth goes ([`SimCamera::with_truth_log`]).
+    truth_log: Option<Box<dyn std::io::Write + Send>>,
 }
 
 impl SimCamera {
@@ -81,6 +84,35 @@ impl SimCamera {
             t0_us: None,
             last_t_us: None,
             last_image: None,
+            truth_log: None,
+        }
+    }
+
+    /// Also write the truth of every frame delivered, one JSON line each: `seq`, `t_capture_us`
+    /// (autopilot boot), `lat_deg`, `lon_deg`, `alt_amsl_m`, `vel_ned_m_s`, `rpy_rad` (the body's;
+    /// the camera is on its mount), flushed per frame. What `sitl/vo_check.py` scores the visual
+    /// odometry log against. A write error stops the log with a message, not the camera.
+    pub fn with_truth_log(mut self, out: Box<dyn std::io::Write + Send>) -> Self {
+        self.truth_log = Some(out);
+        self
+    }
+
+    fn log_truth(&mut self, seq: u64, t_us: u64, s: &TruthState) {
+        let Some(out) = self.truth_log.as_mut() else {
+            return;
+        };
+        let line = serde_json::json!({
+            "seq": seq,
+            "t_capture_us": t_us,
+            "lat_deg": s.lat_deg,
+            "lon_deg": s.lon_deg,
+            "alt_amsl_m": s.alt_amsl_m,
+            "vel_ned_m_s": s.vel_ned_m_s,
+            "rpy_rad": s.rpy_rad,
+        });
+        if let Err(e) = writeln!(out, "{line}").and_then(|()| out.flush()) {
+            tracing::warn!("simulated camera: truth log: {e}; logging stopped");
+            self.truth_log = None;
         }
     }
 
@@ -120,6 +152,7 @@ impl SimCamera {
         self.last_image = Some(image.clone());
         let t0 = *self.t0_us.get_or_insert(t_us);
         self.last_t_us = Some(t_us);
+        self.log_truth(self.seq, t_us, state);
         let frame = Frame {
             image,
             t_capture: CaptureTime::AutopilotBootUs(t_us),

@@ -65,6 +65,11 @@
 //!   refuses the fixes of the frames captured in its window (capture time mapped to the run
 //!   time) in `RecordingFixer` with `faults::MAP_WITHHELD_REASON`, without running the engine;
 //!   they are scored and counted like any rejected fix.
+//!
+//! Given a log folder (`visnav sim` passes its report folder) and with visual odometry on, the
+//! vision daemon writes its VO log there ([`VO_LOG_FILE`], `[daemon] vo_log`) and the camera its
+//! true pose per frame ([`FRAMES_TRUTH_FILE`]): `python3 sitl/vo_check.py FOLDER` scores every
+//! motion against the truth, as for a real SITL flight.
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -75,6 +80,11 @@ use serde::Serialize;
 use tracing::{info, warn};
 
 mod recording;
+
+/// The vision daemon's VO log in the log folder (`[daemon] vo_log`), with VO on.
+pub const VO_LOG_FILE: &str = "vo.jsonl";
+/// The simulated camera's true pose per frame in the log folder, with VO on.
+pub const FRAMES_TRUTH_FILE: &str = "frames_truth.jsonl";
 
 use recording::{InjectionCollector, OutputSample, StepSample, health_code, resident_vec};
 
@@ -1052,7 +1062,11 @@ fn hnorm(e: &[f64; 3]) -> f64 {
 }
 
 /// Runs the scenario's closed loop. `base` is the scenario file's folder (for its paths).
-pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoopError> {
+pub async fn run(
+    sc: &Scenario,
+    base: &Path,
+    logs: Option<&Path>,
+) -> Result<ClosedLoopRun, ClosedLoopError> {
     let cl = sc
         .closed_loop
         .as_ref()
@@ -1213,7 +1227,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         faults: FaultPlan::new(sc.faults.clone()),
     });
     let end_us = (duration_s * 1e6) as u64;
-    let cam = SimCamera::new(
+    let mut cam = SimCamera::new(
         SimCameraSpec {
             scene: scene.clone(),
             renderer: renderer.clone(),
@@ -1231,6 +1245,19 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
             faults: FaultPlan::new(sc.faults.clone()),
         }),
     );
+    // With VO on and a log folder: the vision daemon's VO log and the camera's true poses
+    // (`sitl/vo_check.py` scores them; the module doc).
+    let vo_on = cl.vo.as_ref().map_or(cfg.vo.enabled, |v| v.enabled);
+    let vo_log = match logs {
+        Some(dir) if vo_on => {
+            let truth = dir.join(FRAMES_TRUTH_FILE);
+            let f = std::fs::File::create(&truth)
+                .map_err(|e| setup_err(format!("{}: {e}", truth.display())))?;
+            cam = cam.with_truth_log(Box::new(std::io::BufWriter::new(f)));
+            Some(dir.join(VO_LOG_FILE))
+        }
+        _ => None,
+    };
     let camera_desc = {
         use visnav_io::frames::FrameSource;
         cam.describe()
@@ -1251,6 +1278,7 @@ pub async fn run(sc: &Scenario, base: &Path) -> Result<ClosedLoopRun, ClosedLoop
         if let Some(vo) = &cl.vo {
             s.vo = vo.clone();
         }
+        s.daemon.vo_log = vo_log;
         s
     };
     let d_v = Daemon::start_with(setup_v, Some(fixer.clone()), Some(pipeline)).await?;

@@ -121,7 +121,10 @@ pub struct PoseFix {
 /// the same for every frame over the same ground: the filter adds it as
 /// `k (terrain_sigma_m / agl_m)^2 dp dp^T` with `k = terrain_corr_dist_m / |dp|` (at least 1), so
 /// that over a correlation distance the displacements carry one terrain error, not `k`
-/// independent ones.
+/// independent ones. The next frame's tilt comes from the gyros' rotation since the previous
+/// frame (a frame cannot tell a small tilt from a sideways shift: `crate::vo`), integrated from
+/// this filter's bias-compensated rates: their bias error moves the displacement
+/// ([`VoFix::gyro_rotation_sensitivity`]), which the filter also puts into the Jacobian.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct VoFix {
     /// Capture time of the previous frame, microseconds.
@@ -138,6 +141,9 @@ pub struct VoFix {
     pub terrain_sigma_m: f64,
     /// Distance over which that error stays the same, m (a datum offset: the whole map).
     pub terrain_corr_dist_m: f64,
+    /// Mean line of sight from the next camera to the ground points that gave the motion, NED,
+    /// m (straight down, `agl_m` long, for a nadir camera over flat ground).
+    pub look_ned_m: Vector3<f64>,
 }
 
 /// Longest frame interval a VO displacement may span, s: the filter applies it as the mean
@@ -154,6 +160,18 @@ impl VoFix {
     /// The frame interval, s.
     pub fn span_s(&self) -> f64 {
         self.t_next_us.saturating_sub(self.t_prev_us) as f64 * 1e-6
+    }
+
+    /// How the measured displacement moves with an error `e` of the gyros' rotation between
+    /// the frames (a NED rotation vector, `R_used = Exp(e) R_true`, the filter's attitude
+    /// convention): `d(dp) = [look x] e`. The next camera turned by `e` about its centre sees
+    /// every ground point along a ray turned by `e`; the resection keeps the rays on the points
+    /// by moving the centre by `-e x s d` for a ray `d` of range `s`, on average
+    /// `-e x look = look x e`. First order; the part about the line of sight (a turn about the
+    /// optical axis) moves nothing. `crate::vo::odometer`'s tests check it against the odometer.
+    pub fn gyro_rotation_sensitivity(&self) -> Matrix3<f64> {
+        let l = self.look_ned_m;
+        Matrix3::new(0.0, -l.z, l.y, l.z, 0.0, -l.x, -l.y, l.x, 0.0)
     }
 }
 
@@ -305,6 +323,9 @@ impl Measurement {
                 }
                 if !(f.agl_m.is_finite() && f.agl_m > 0.0) {
                     return Err("VO height above ground not positive");
+                }
+                if !(f.look_ned_m.iter().all(|x| x.is_finite()) && f.look_ned_m.z > 0.0) {
+                    return Err("VO line of sight non-finite or not towards the ground");
                 }
                 if !(f.terrain_sigma_m.is_finite()
                     && f.terrain_sigma_m >= 0.0

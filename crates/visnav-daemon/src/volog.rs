@@ -1,0 +1,189 @@
+//! The visual odometry log (`[daemon] vo_log`): one JSON line per frame the odometer ran on, with
+//! the motion it measured (camera displacement NED and its covariance over the two capture times)
+//! and what the filter did with it, stamped with the companion's Unix time like the fix log
+//! (`fixlog`). With the camera's true poses (`visnav sitl-run --truth-log`) `sitl/vo_check.py`
+//! scores every motion against the truth: its error, and that error over the claimed covariance.
+
+use serde::{Deserialize, Serialize};
+
+use visnav_core::vo::VoStep;
+
+/// One odometry result.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VoLogRecord {
+    /// Companion Unix time when the result reached the navigation task, µs.
+    pub arrival_unix_us: u64,
+    /// Frame sequence number.
+    pub seq: u64,
+    /// Capture time of the frame, autopilot boot µs.
+    pub t_capture_us: u64,
+    /// `started` (first frame of a sequence), `motion` or `refused`.
+    pub step: String,
+    /// Why there is no motion (`refused`), else empty.
+    pub reason: String,
+    /// What the filter did with a motion: `fused`, `filter_rejected` or `unused`; else empty.
+    pub outcome: String,
+    /// The filter's normalised innovation squared (fused or gate-rejected motions).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nis: Option<f64>,
+    /// Capture time of the previous frame, autopilot boot µs (motions).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub t_prev_us: Option<u64>,
+    /// Camera displacement from the previous frame to this one, NED, m.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dp_ned_m: Option<[f64; 3]>,
+    /// Its covariance as measured (before the filter adds the terrain term), NED, m^2.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cov_ned_m2: Option<[[f64; 3]; 3]>,
+    /// Height of the previous camera above the terrain that gave the scale, m.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub agl_m: Option<f64>,
+    /// Mean line of sight from the next camera to the ground points, NED, m.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub look_ned_m: Option<[f64; 3]>,
+    /// Tracks followed, tracks on the terrain, inliers, reprojection RMS (px).
+    #[serde(default)]
+    pub tracks: usize,
+    #[serde(default)]
+    pub on_ground: usize,
+    #[serde(default)]
+    pub inliers: usize,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rms_px: Option<f64>,
+    /// The filter's attitude the frame was given: roll, pitch, yaw (deg) and the tilt and yaw
+    /// sigma (deg).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub prior_rpy_deg: Option<[f64; 3]>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub prior_sigma_tilt_yaw_deg: Option<[f64; 2]>,
+}
+
+impl VoLogRecord {
+    /// With the filter's attitude the frame was given (`vo_path::VoResult`).
+    pub fn with_prior_attitude(mut self, a: Option<([f64; 3], [f64; 2])>) -> Self {
+        if let Some((rpy, sig)) = a.filter(|(r, s)| r.iter().chain(s).all(|v| v.is_finite())) {
+            self.prior_rpy_deg = Some(rpy);
+            self.prior_sigma_tilt_yaw_deg = Some(sig);
+        }
+        self
+    }
+
+    /// The record of one odometry step; `outcome` and `nis` are the filter's (motions only).
+    /// Non-finite numbers become `None` (JSON has no NaN).
+    pub fn new(
+        arrival_unix_us: u64,
+        seq: u64,
+        t_capture_us: u64,
+        step: &VoStep,
+        outcome: &str,
+        nis: Option<f64>,
+    ) -> Self {
+        let mut r = Self {
+            arrival_unix_us,
+            seq,
+            t_capture_us,
+            step: String::new(),
+            reason: String::new(),
+            outcome: String::new(),
+            nis: nis.filter(|v| v.is_finite()),
+            t_prev_us: None,
+            dp_ned_m: None,
+            cov_ned_m2: None,
+            agl_m: None,
+            look_ned_m: None,
+            tracks: 0,
+            on_ground: 0,
+            inliers: 0,
+            rms_px: None,
+            prior_rpy_deg: None,
+            prior_sigma_tilt_yaw_deg: None,
+        };
+        match step {
+            VoStep::Started => r.step = "started".into(),
+            VoStep::Refused(why) => {
+                r.step = "refused".into();
+                r.reason = why.clone();
+            }
+            VoStep::Motion(m) => {
+                let fix = &m.fix;
+                let dp = [fix.dp_ned_m.x, fix.dp_ned_m.y, fix.dp_ned_m.z];
+                let cov: [[f64; 3]; 3] =
+                    std::array::from_fn(|i| std::array::from_fn(|j| fix.cov_ned_m2[(i, j)]));
+                r.step = "motion".into();
+                r.outcome = outcome.to_string();
+                r.t_prev_us = Some(fix.t_prev_us);
+                r.dp_ned_m = dp.iter().all(|v| v.is_finite()).then_some(dp);
+                r.cov_ned_m2 = cov.iter().flatten().all(|v| v.is_finite()).then_some(cov);
+                r.agl_m = fix.agl_m.is_finite().then_some(fix.agl_m);
+                let l = [fix.look_ned_m.x, fix.look_ned_m.y, fix.look_ned_m.z];
+                r.look_ned_m = l.iter().all(|v| v.is_finite()).then_some(l);
+                r.tracks = m.tracks;
+                r.on_ground = m.on_ground;
+                r.inliers = m.inliers;
+                r.rms_px = m.rms_px.is_finite().then_some(m.rms_px);
+            }
+        }
+        r
+    }
+}
+
+/// The VO log (one [`VoLogRecord`] per line).
+pub type VoLog = crate::fixlog::JsonLinesLog;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Matrix3, Vector3};
+    use visnav_core::nav::VoFix;
+    use visnav_core::vo::VoMotion;
+
+    #[test]
+    fn every_step_is_one_json_line_and_reads_back() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("vo.jsonl");
+        let motion = VoStep::Motion(VoMotion {
+            fix: VoFix {
+                t_prev_us: 1_000_000,
+                t_next_us: 1_200_000,
+                dp_ned_m: Vector3::new(3.0, -1.0, 0.2),
+                cov_ned_m2: Matrix3::from_diagonal(&Vector3::new(0.04, 0.05, 0.3)),
+                agl_m: 1500.0,
+                terrain_sigma_m: 5.0,
+                terrain_corr_dist_m: 1000.0,
+                look_ned_m: Vector3::new(10.0, 0.0, 1500.0),
+            },
+            tracks: 250,
+            on_ground: 240,
+            inliers: 230,
+            rms_px: f64::NAN,
+        });
+        let recs = [
+            VoLogRecord::new(1, 0, 800_000, &VoStep::Started, "", None),
+            VoLogRecord::new(2, 1, 1_200_000, &motion, "fused", Some(1.5))
+                .with_prior_attitude(Some(([1.0, -2.0, 90.0], [0.1, 0.5]))),
+            VoLogRecord::new(3, 2, 1_400_000, &VoStep::Refused("blank".into()), "", None),
+        ];
+        let mut log = VoLog::create(&p).unwrap();
+        for r in &recs {
+            log.write(r).unwrap();
+        }
+        drop(log);
+        let text = std::fs::read_to_string(&p).unwrap();
+        let back: Vec<VoLogRecord> = text
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect();
+        assert_eq!(back, recs.to_vec());
+        assert_eq!(back[1].dp_ned_m, Some([3.0, -1.0, 0.2]));
+        assert_eq!(back[1].cov_ned_m2.unwrap()[2][2], 0.3);
+        assert_eq!(back[1].t_prev_us, Some(1_000_000));
+        assert_eq!(back[1].rms_px, None, "NaN is not JSON: left out");
+        assert_eq!(back[1].prior_rpy_deg, Some([1.0, -2.0, 90.0]));
+        assert_eq!(back[0].prior_rpy_deg, None);
+        assert_eq!(
+            (back[2].step.as_str(), back[2].reason.as_str()),
+            ("refused", "blank")
+        );
+        assert!(!text.contains("dp_ned_m\":null"), "{text}");
+    }
+}

@@ -170,8 +170,7 @@ impl VoFix {
     /// `-e x look = look x e`. First order; the part about the line of sight (a turn about the
     /// optical axis) moves nothing. `crate::vo::odometer`'s tests check it against the odometer.
     pub fn gyro_rotation_sensitivity(&self) -> Matrix3<f64> {
-        let l = self.look_ned_m;
-        Matrix3::new(0.0, -l.z, l.y, l.z, 0.0, -l.x, -l.y, l.x, 0.0)
+        crate::nav::ins::skew_matrix(&self.look_ned_m)
     }
 }
 

@@ -932,7 +932,7 @@ impl MinDistanceGrid {
 }
 
 /// Corner counts per cell of a [`SpreadGrid`].
-struct SpreadCounter {
+pub(crate) struct SpreadCounter {
     grid: SpreadGrid,
     w: usize,
     h: usize,
@@ -940,7 +940,7 @@ struct SpreadCounter {
 }
 
 impl SpreadCounter {
-    fn new(grid: SpreadGrid, w: usize, h: usize) -> Self {
+    pub(crate) fn new(grid: SpreadGrid, w: usize, h: usize) -> Self {
         Self {
             grid,
             w,
@@ -953,12 +953,16 @@ impl SpreadCounter {
         let cy = (pt[1] as usize * self.grid.rows / self.h).min(self.grid.rows - 1);
         cy * self.grid.cols + cx
     }
-    fn is_full(&self, pt: [f32; 2]) -> bool {
+    pub(crate) fn is_full(&self, pt: [f32; 2]) -> bool {
         self.counts[self.index(pt)] >= self.grid.max_per_cell
     }
-    fn add(&mut self, pt: [f32; 2]) {
+    pub(crate) fn add(&mut self, pt: [f32; 2]) {
         let i = self.index(pt);
         self.counts[i] += 1;
+    }
+    /// Cells holding at least one point.
+    pub(crate) fn covered(&self) -> usize {
+        self.counts.iter().filter(|c| **c > 0).count()
     }
 }
 

@@ -552,6 +552,7 @@ mod tests {
         let db = Vector3::new(2e-3, -1.5e-3, 1e-3); // rad/s, body: 0.02-0.05 deg per frame
         let (clean, _) = fly_path(0.0, 4, at, 0.4, Vector3::zeros());
         let (biased, _) = fly_path(0.0, 4, at, 0.4, db);
+        let (_, crs) = checkerboard_engine();
         for (k, (a, b)) in motions(&clean)
             .iter()
             .zip(motions(&biased).iter())
@@ -559,7 +560,6 @@ mod tests {
         {
             let att = {
                 let c = at(k + 1);
-                let (_, crs) = checkerboard_engine();
                 let (lat, lon) = crs.to_geodetic(c.x, c.y).unwrap();
                 let gamma = crs.grid_convergence_deg(lat, lon).unwrap();
                 Attitude::from_deg(0.5, -0.3, 30.0 - gamma + 0.4 * (k + 1) as f64)

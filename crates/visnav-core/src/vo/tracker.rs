@@ -20,7 +20,7 @@ use serde::{Deserialize, Serialize};
 use crate::validate::{Problems, Validate};
 use crate::vision::GrayImage;
 use crate::vision::VisionError;
-use crate::vision::klt::{self, FeatureParams, Pyramid, SpreadGrid, TrackParams};
+use crate::vision::klt::{self, FeatureParams, Pyramid, SpreadCounter, SpreadGrid, TrackParams};
 
 /// How features are found and followed (`[vo.tracking]`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -238,21 +238,52 @@ impl Tracker {
         let Some((pyr, mut live)) = self.prev.take() else {
             return Ok(false);
         };
-        let grid = CellGrid::new(&self.cfg, &pyr);
         let low = live.len() < self.cfg.replenish_below;
-        let gathered = (grid.covered(&live) as f64)
+        let gathered = (self.covered(&pyr, &live) as f64)
             < REPLENISH_COVERAGE_FRACTION * self.covered_after_top_up as f64;
         let run = low || gathered;
         let out = if run {
-            grid.thin(&mut live);
+            self.thin(&pyr, &mut live);
             let r = self.replenish(&pyr, &mut live);
-            self.covered_after_top_up = grid.covered(&live);
+            self.covered_after_top_up = self.covered(&pyr, &live);
             r
         } else {
             Ok(())
         };
         self.prev = Some((pyr, live));
         out.map(|()| run)
+    }
+
+    /// The detector's spread grid over `pyr`'s frame, empty (`None`: no grid configured).
+    fn spread(&self, pyr: &Pyramid) -> Option<SpreadCounter> {
+        let grid = self.cfg.feature_params().spread?;
+        let l0 = pyr.levels().first()?;
+        Some(SpreadCounter::new(
+            grid,
+            l0.image().width().max(1),
+            l0.image().height().max(1),
+        ))
+    }
+
+    /// Spread-grid cells holding at least one of `pts`.
+    fn covered(&self, pyr: &Pyramid, pts: &[[f32; 2]]) -> usize {
+        self.spread(pyr).map_or(0, |mut s| {
+            pts.iter().for_each(|p| s.add(*p));
+            s.covered()
+        })
+    }
+
+    /// At most the detector's per-cell limit of tracks per cell, the oldest (first) kept.
+    fn thin(&self, pyr: &Pyramid, pts: &mut Vec<[f32; 2]>) {
+        if let Some(mut s) = self.spread(pyr) {
+            pts.retain(|p| {
+                let keep = !s.is_full(*p);
+                if keep {
+                    s.add(*p);
+                }
+                keep
+            });
+        }
     }
 
     /// Corners of `pyr` at least `new_corner_distance_px` from every live track, added to them
@@ -273,58 +304,5 @@ impl Tracker {
             }
         }
         Ok(())
-    }
-}
-
-/// The detector's spread grid over a frame: which cell a track is in.
-struct CellGrid {
-    cols: usize,
-    rows: usize,
-    cell_w: f32,
-    cell_h: f32,
-    max_per_cell: usize,
-}
-
-impl CellGrid {
-    fn new(cfg: &TrackingConfig, pyr: &Pyramid) -> Self {
-        let (w, h) = pyr
-            .levels()
-            .first()
-            .map_or((1, 1), |l| (l.image().width(), l.image().height()));
-        let cols = cfg.grid_cols.max(1);
-        let rows = cfg.grid_rows.max(1);
-        Self {
-            cols,
-            rows,
-            cell_w: w.max(1) as f32 / cols as f32,
-            cell_h: h.max(1) as f32 / rows as f32,
-            max_per_cell: cfg.max_corners.div_ceil(cols * rows).max(1),
-        }
-    }
-
-    fn index(&self, p: &[f32; 2]) -> usize {
-        // Tracks are inside the frame (the tracker drops the others); clamp all the same.
-        let cx = ((p[0].max(0.0) / self.cell_w) as usize).min(self.cols - 1);
-        let cy = ((p[1].max(0.0) / self.cell_h) as usize).min(self.rows - 1);
-        cy * self.cols + cx
-    }
-
-    /// Cells holding at least one of `pts`.
-    fn covered(&self, pts: &[[f32; 2]]) -> usize {
-        let mut seen = vec![false; self.cols * self.rows];
-        for p in pts {
-            seen[self.index(p)] = true;
-        }
-        seen.iter().filter(|s| **s).count()
-    }
-
-    /// At most `max_per_cell` tracks per cell, the oldest (first) kept.
-    fn thin(&self, pts: &mut Vec<[f32; 2]>) {
-        let mut count = vec![0usize; self.cols * self.rows];
-        pts.retain(|p| {
-            let c = &mut count[self.index(p)];
-            *c += 1;
-            *c <= self.max_per_cell
-        });
     }
 }

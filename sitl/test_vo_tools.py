@@ -148,6 +148,19 @@ class VoScoring(unittest.TestCase):
         self.assertAlmostEqual(s["mean_err_rate_ne_m_s"][1], 0.4, places=2)
         self.assertIn("1000-1500", s["by_agl_m"])
 
+    def test_the_rotation_beyond_the_gyros_is_a_rate(self):
+        vo, truth = self.flight(0.0, 0.1)
+        for i, r in enumerate(r for r in vo if r["step"] == "motion"):
+            # 0.5 s frames, 0.01 deg each: 72 deg/h, scattered +-0.001 deg.
+            r["rot_los_deg"] = 0.01 + (0.001 if i % 2 else -0.001)
+            r["rot_los_sigma_deg"] = 0.004
+        s = vc.summary(*vc.score(vo, truth))
+        self.assertEqual(s["rot_los"]["n"], 20)
+        self.assertAlmostEqual(s["rot_los"]["mean_deg_h"], 72.0, places=1)
+        self.assertAlmostEqual(s["rot_los"]["sd_deg"], 0.001, places=5)
+        self.assertAlmostEqual(s["rot_los"]["sigma_p50_deg"], 0.004)
+        self.assertNotIn("rot_los", vc.summary(*vc.score(*self.flight(0.0, 0.1))))
+
     def test_an_overconfident_claim_shows(self):
         vo, truth = self.flight(0.5, 0.1)
         s = vc.summary(*vc.score(vo, truth))

@@ -109,7 +109,8 @@ def score(vo, truth, from_s=None):
                "sigma_h": None if cov is None else math.sqrt(max(cov[0][0] + cov[1][1], 0.0)),
                "nees_h": None if cov is None else nees_h(err, cov),
                "agl_m": r.get("agl_m"), "alt_m": b["alt_amsl_m"], "outcome": r.get("outcome"),
-               "len_true_m": len_t}
+               "len_true_m": len_t, "rot_los_deg": r.get("rot_los_deg"),
+               "rot_los_sigma_deg": r.get("rot_los_sigma_deg")}
         if len_t > 1.0:
             ut = (true[0] / len_t, true[1] / len_t)
             along = meas[0] * ut[0] + meas[1] * ut[1]
@@ -167,6 +168,18 @@ def summary(steps, outcomes, reasons, rows):
     # Systematic part: the mean error per second (a velocity bias), N and E.
     t = sum(r["dt_s"] for r in rows)
     out["mean_err_rate_ne_m_s"] = [round(sum(r["err"][i] for r in rows) / t, 4) for i in (0, 1)]
+    rot = [r for r in rows if r["rot_los_deg"] is not None]
+    if rot:
+        # The rotation the images saw beyond the gyros' about the line of sight: its mean per
+        # second is the gyros' residual bias along it as the filter compensated it (no truth
+        # needed); its scatter against its claimed sigma.
+        a = [r["rot_los_deg"] for r in rot]
+        out["rot_los"] = {
+            "n": len(rot),
+            "mean_deg_h": round(3600 * sum(a) / sum(r["dt_s"] for r in rot), 2),
+            "sd_deg": round(statistics.pstdev(a), 5),
+            "sigma_p50_deg": round(pct([r["rot_los_sigma_deg"] for r in rot
+                                        if r["rot_los_sigma_deg"] is not None] or [0], 0.5), 5)}
     d = drift(rows)
     if d is not None:
         out["longest_run"] = {"from_s": round(d["t0_s"], 1), "to_s": round(d["t1_s"], 1),

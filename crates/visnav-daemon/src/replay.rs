@@ -157,7 +157,7 @@ fn kind_of(m: &Measurement, att_tilt: bool) -> (&'static str, u32) {
         Measurement::Altitude(_) => ("altitude", 1),
         Measurement::Attitude(_) => ("attitude", if att_tilt { 3 } else { 1 }),
         Measurement::Drag(d) => ("drag", d.model.iter().flatten().count() as u32),
-        Measurement::Vo(_) => ("vo", 3),
+        Measurement::Vo(f) => ("vo", 3 + u32::from(f.rotation.is_some())),
     }
 }
 

@@ -95,6 +95,7 @@ impl VoCtx {
             Some(GyroDelta {
                 r_body_prev_next: r,
                 sigma_rad: self.gyro.sigma_rad(dt_s).hypot(unknown_rad),
+                sampling_sigma_rad: unknown_rad,
             })
         });
         VoInputs {

@@ -41,6 +41,12 @@ pub struct VoLogRecord {
     /// Mean line of sight from the next camera to the ground points, NED, m.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub look_ned_m: Option<[f64; 3]>,
+    /// The rotation the images saw beyond the gyros' about that line of sight and its 1-sigma
+    /// (images alone), deg (`nav::VoRotation`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rot_los_deg: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rot_los_sigma_deg: Option<f64>,
     /// Tracks followed, tracks on the terrain, inliers, reprojection RMS (px).
     #[serde(default)]
     pub tracks: usize,
@@ -91,6 +97,8 @@ impl VoLogRecord {
             cov_ned_m2: None,
             agl_m: None,
             look_ned_m: None,
+            rot_los_deg: None,
+            rot_los_sigma_deg: None,
             tracks: 0,
             on_ground: 0,
             inliers: 0,
@@ -117,6 +125,11 @@ impl VoLogRecord {
                 r.agl_m = fix.agl_m.is_finite().then_some(fix.agl_m);
                 let l = [fix.look_ned_m.x, fix.look_ned_m.y, fix.look_ned_m.z];
                 r.look_ned_m = l.iter().all(|v| v.is_finite()).then_some(l);
+                if let Some(rot) = &fix.rotation {
+                    let (a, s) = (rot.about_los_rad.to_degrees(), rot.sigma_rad.to_degrees());
+                    r.rot_los_deg = a.is_finite().then_some(a);
+                    r.rot_los_sigma_deg = s.is_finite().then_some(s);
+                }
                 r.tracks = m.tracks;
                 r.on_ground = m.on_ground;
                 r.inliers = m.inliers;
@@ -151,6 +164,10 @@ mod tests {
                 terrain_sigma_m: 5.0,
                 terrain_corr_dist_m: 1000.0,
                 look_ned_m: Vector3::new(10.0, 0.0, 1500.0),
+                rotation: Some(visnav_core::nav::VoRotation {
+                    about_los_rad: 1e-4,
+                    sigma_rad: 2e-4,
+                }),
             },
             tracks: 250,
             on_ground: 240,
@@ -180,6 +197,8 @@ mod tests {
         assert_eq!(back[1].rms_px, None, "NaN is not JSON: left out");
         assert_eq!(back[1].prior_rpy_deg, Some([1.0, -2.0, 90.0]));
         assert_eq!(back[0].prior_rpy_deg, None);
+        let rot = back[1].rot_los_deg.unwrap();
+        assert!((rot - 1e-4f64.to_degrees()).abs() < 1e-12, "{rot}");
         assert_eq!(
             (back[2].step.as_str(), back[2].reason.as_str()),
             ("refused", "blank")

@@ -144,6 +144,29 @@ pub struct VoFix {
     /// Mean line of sight from the next camera to the ground points that gave the motion, NED,
     /// m (straight down, `agl_m` long, for a nadir camera over flat ground).
     pub look_ned_m: Vector3<f64>,
+    /// The rotation between the frames that the images saw beyond the gyros' (`None` when the
+    /// odometer was given no gyro rotation).
+    pub rotation: Option<VoRotation>,
+}
+
+/// The part of a frame pair's rotation the images measure on their own, against the gyros'.
+///
+/// A rotation about the line of sight turns the whole image about its centre: no shift of the
+/// camera looks like it, so the images fix it to hundredths of a degree at any height (the
+/// other two axes trade against a sideways shift; `crate::vo`). Measured against the rotation
+/// integrated from the filter's bias-compensated rates over the frame interval, it is the gyro
+/// bias error's component along the line of sight times the interval: with a nadir camera, the
+/// yaw-rate bias that otherwise turns the heading, and with it every displacement, unseen.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VoRotation {
+    /// Rotation about the unit mean line of sight `look_ned_m / |look_ned_m|` (right-handed)
+    /// taking the gyros' rotation between the frames to the images': `R_images = Exp(a u)
+    /// R_gyros` with `u` that axis, both as rotations of the next camera in NED, rad.
+    pub about_los_rad: f64,
+    /// Its 1-sigma: the images' and what integrating the gyros' sampled rates leaves unknown (a
+    /// turn's onset between two samples; the gyros' white noise over the interval is the
+    /// filter's to add, their bias is its state), rad.
+    pub sigma_rad: f64,
 }
 
 /// Longest frame interval a VO displacement may span, s: the filter applies it as the mean
@@ -335,6 +358,16 @@ impl Measurement {
                 }
                 if !symmetric_pd(&f.cov_ned_m2) {
                     return Err("VO covariance not symmetric positive definite");
+                }
+                if let Some(r) = &f.rotation {
+                    // A rotation beyond half a turn between two frames is not a gyro error.
+                    let ok = r.about_los_rad.is_finite()
+                        && r.about_los_rad.abs() < std::f64::consts::FRAC_PI_2
+                        && r.sigma_rad.is_finite()
+                        && r.sigma_rad > 0.0;
+                    if !ok {
+                        return Err("VO rotation non-finite, beyond 90 deg, or sigma not positive");
+                    }
                 }
             }
         }

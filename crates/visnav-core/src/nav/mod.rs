@@ -29,5 +29,5 @@ pub use filter::{Counters, Health, NavFilter, NavOutput, Outcome};
 pub use ins::{InsState, Strapdown};
 pub use measurement::{
     AltitudeFix, AttitudeFix, ImuSample, Measurement, PoseFix, PositionFix, VO_MAX_SPAN_S,
-    VelocityFix, VoFix,
+    VelocityFix, VoFix, VoRotation,
 };

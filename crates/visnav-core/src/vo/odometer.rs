@@ -13,7 +13,10 @@
 //!    with the caller's [`GyroDelta`] (the body's rotation between the frames as the gyros
 //!    measured it, without the filter's corrections in between) as the [`RotationPrior`];
 //! 4. the displacement from the map grid to NED: grid convergence removed, horizontal grid metres
-//!    divided by the projection's point scale factor.
+//!    divided by the projection's point scale factor;
+//! 5. with a [`GyroDelta`], the images' relative rotation against the gyros' about the mean line
+//!    of sight ([`VoRotation`]: the one axis the images fix on their own; the filter fuses it
+//!    as the gyro bias along that axis).
 //!
 //! The previous frame's height sigma is not passed to the motion's covariance: the filter carries
 //! its own height error as a state ([`VoFix`]); the terrain model's is [`VoFix::terrain_sigma_m`]
@@ -29,11 +32,11 @@ use std::sync::Arc;
 use nalgebra::{Matrix3, Point2, Rotation3, Vector2, Vector3};
 
 use super::tracker::{RawTrack, Tracker};
-use super::{RotationPrior, TrackPair, VoConfig, VoInput, VoRejection, frame_motion};
+use super::{FrameMotion, RotationPrior, TrackPair, VoConfig, VoInput, VoRejection, frame_motion};
 use crate::camera::Camera;
 use crate::camera::frames::{r_enu_ned, rot_z};
 use crate::fix::{FixPrior, Reference};
-use crate::nav::{VO_MAX_SPAN_S, VoFix};
+use crate::nav::{VO_MAX_SPAN_S, VoFix, VoRotation};
 use crate::pose::{ImageGeometry, Pose};
 use crate::vision::GrayImage;
 
@@ -44,6 +47,10 @@ pub struct GyroDelta {
     pub r_body_prev_next: Rotation3<f64>,
     /// 1-sigma of its error per axis (the gyros' noise and residual bias over the interval), rad.
     pub sigma_rad: f64,
+    /// The part of `sigma_rad` that is not the gyros' bias: what integrating sampled rates leaves
+    /// unknown (a turn's onset between two samples), rad. The rotation measurement
+    /// ([`VoRotation`]) carries it as noise; the bias is the filter's state.
+    pub sampling_sigma_rad: f64,
 }
 
 /// What one frame gave.
@@ -268,6 +275,9 @@ impl Odometer {
             Ok(m) => m,
             Err(e) => return VoStep::Refused(e.to_string()),
         };
+        let rotation = rotation_prior
+            .zip(gyro)
+            .and_then(|(r, g)| rotation_about_los(&m, &r, &prev.pose, g.sampling_sigma_rad));
         // Map grid to NED: v_map = Rz(gamma) v_enu; horizontal grid metres are `scale` true ones.
         let unscale =
             Matrix3::from_diagonal(&Vector3::new(1.0 / next.scale, 1.0 / next.scale, 1.0));
@@ -282,6 +292,7 @@ impl Odometer {
             terrain_sigma_m: self.reference.height_sigma_m(),
             terrain_corr_dist_m: self.cfg.terrain_error_corr_dist_m,
             look_ned_m: r * m.look_world_m,
+            rotation,
         };
         let fix = VoFix {
             cov_ned_m2: 0.5 * (fix.cov_ned_m2 + fix.cov_ned_m2.transpose()),
@@ -314,6 +325,31 @@ impl Odometer {
             next_px: und(t.next_px)?,
         })
     }
+}
+
+/// The images' rotation between the frames against the gyros', about the mean line of sight
+/// ([`VoRotation`]), from the image-only relative rotation and its covariance, its sigma with the
+/// gyros' sampling error (`sampling_sigma_rad`) added; `None` when not finite. Both relative rotations are in the previous camera frame with the images' error on
+/// the left (`R_images = Exp(psi) R_gyros`); the previous camera's attitude takes `psi` and its
+/// covariance to the world frame, where the line of sight is. The angle about an axis is the
+/// same in the map frame and in NED (a proper rotation between them; the projection's scale
+/// changes the axis by a part in 10^4).
+fn rotation_about_los(
+    m: &FrameMotion,
+    gyro: &RotationPrior,
+    prev: &Pose,
+    sampling_sigma_rad: f64,
+) -> Option<VoRotation> {
+    let psi_prev = (m.r_prev_next * gyro.r_prev_next.inverse()).scaled_axis();
+    let r_wp = prev.r_world_cam.matrix();
+    let u = m.look_world_m.try_normalize(1e-9)?;
+    let about_los_rad = u.dot(&(r_wp * psi_prev));
+    let var = (u.transpose() * r_wp * m.cov_rot_prev_rad2 * r_wp.transpose() * u)[(0, 0)];
+    let sigma_rad = var.max(0.0).sqrt().hypot(sampling_sigma_rad);
+    (about_los_rad.is_finite() && sigma_rad.is_finite() && sigma_rad > 0.0).then_some(VoRotation {
+        about_los_rad,
+        sigma_rad,
+    })
 }
 
 /// Where a feature of the previous frame should appear in this one: its ray cast onto the
@@ -475,6 +511,7 @@ mod tests {
             let gyro = last.map(|l| GyroDelta {
                 r_body_prev_next: l.inverse() * r_nb * bias_turn,
                 sigma_rad: 1e-4,
+                sampling_sigma_rad: 0.0,
             });
             last = Some(r_nb);
             steps.push(odo.frame(img, &prior(&crs, c, seen, 200_000 * k as u64), gyro));
@@ -583,6 +620,25 @@ mod tests {
                 "{:?}",
                 b.fix.look_ned_m
             );
+            // The rotation measurement (`VoRotation`) sees the same error about the line of
+            // sight, with the sign the filter's row uses: `R_images = Exp(a u) R_gyros`,
+            // `R_gyros = Exp(e_rot) R_true`, so `a = -u . e_rot`.
+            let u = b.fix.look_ned_m.normalize();
+            let rot_model = -u.dot(&e_rot);
+            let (ra, rb) = (a.fix.rotation.unwrap(), b.fix.rotation.unwrap());
+            let rot_seen = rb.about_los_rad - ra.about_los_rad;
+            eprintln!(
+                "about the line of sight: {:.5} deg, model {:.5} deg (sigma {:.5} deg)",
+                rot_seen.to_degrees(),
+                rot_model.to_degrees(),
+                rb.sigma_rad.to_degrees()
+            );
+            // The same images: the difference is the gyros' alone, to first order exact.
+            assert!(
+                (rot_seen - rot_model).abs() < 0.02 * rot_model.abs(),
+                "seen {rot_seen}, model {rot_model}"
+            );
+            assert!(ra.about_los_rad.abs() < 3.0 * ra.sigma_rad, "{ra:?}");
         }
     }
 

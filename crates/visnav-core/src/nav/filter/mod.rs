@@ -322,6 +322,7 @@ struct Params {
     gate_drag1: f64,
     gate_drag2: f64,
     gate_vo: f64,
+    gate_vo4: f64,
     r_att: Matrix3<f64>,
     att_tilt: bool,
     att_corr_s: f64,
@@ -438,6 +439,7 @@ impl NavFilter {
             gate_drag1: chi2_quantile(1.0, cfg.gates.gps_prob),
             gate_drag2: chi2_quantile(2.0, cfg.gates.gps_prob),
             gate_vo: chi2_quantile(3.0, cfg.gates.vo_prob),
+            gate_vo4: chi2_quantile(4.0, cfg.gates.vo_prob),
             l_cam: Vector3::from(cfg.camera_lever_arm()),
             l_gps: Vector3::from(cfg.gps_lever_arm_body_frd_m),
         };

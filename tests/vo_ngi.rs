@@ -66,6 +66,23 @@ fn vga_sequence_motions_match_the_truth_within_their_sigma() {
         return;
     }
     let v = visnav::sitl::vo_eval::vga_vo(&photo, 12).expect("VGA visual odometry");
+    // SURF matched between the same frames (the bench's comparison) measures them too.
+    let s = visnav::sitl::vo_eval::vga_surf_vo(&photo, 6).expect("VGA visual odometry (SURF)");
+    eprintln!(
+        "VGA, SURF matched: {:.0} matches, step error median {:.3} m max {:.3} m",
+        s.matches_mean, s.step_err_m_p50, s.step_err_m_max
+    );
+    assert_eq!(s.frames, 5);
+    assert!(
+        s.inliers_mean > 50.0,
+        "{} inliers per frame",
+        s.inliers_mean
+    );
+    assert!(
+        s.step_err_m_max < 0.3,
+        "SURF step error up to {} m",
+        s.step_err_m_max
+    );
     eprintln!(
         "VGA: {} frames, {:.0} tracks, step error median {:.3} m max {:.3} m ({:.2} sigma), chained {:.2} m over {:.0} m",
         v.frames,

@@ -2,12 +2,13 @@
 //! NGI 3324C frames 0182 -> 0184 with measured poses (`../shared/data/ngi_3324c`): the 2.6 km
 //! baseline's direction and length error (`visnav::sitl::vo_eval::ngi_vo`); and the per-frame time
 //! on one thread of corners, tracking and motion on a VGA pair made from a real NAIP frame by a
-//! known motion (`vga_vo`). Build with `--release`.
+//! known motion (`vga_vo`), beside SURF matched between the same frames instead of tracked
+//! (`vga_surf_vo`, the other candidate). Build with `--release`.
 
 use std::process::ExitCode;
 
 use anyhow::{Context, bail};
-use visnav::sitl::vo_eval::{NgiVo, VgaVo, ngi_vo, vga_vo};
+use visnav::sitl::vo_eval::{NgiVo, VgaSurfVo, VgaVo, ngi_vo, vga_surf_vo, vga_vo};
 
 use super::repo_file;
 
@@ -28,8 +29,11 @@ struct VoBench {
     ngi_len_err_pct: Option<f64>,
     /// VGA frame on one thread, ms.
     ms_p50_vga: f64,
+    /// The same with SURF matched between the frames instead of tracked, ms.
+    ms_p50_vga_surf: f64,
     ngi: Option<NgiVo>,
     vga: VgaVo,
+    vga_surf: VgaSurfVo,
 }
 
 pub fn run(a: VoBenchArgs) -> anyhow::Result<ExitCode> {
@@ -49,12 +53,17 @@ pub fn run(a: VoBenchArgs) -> anyhow::Result<ExitCode> {
     let vga = pool
         .install(|| vga_vo(&bench, a.frames))
         .with_context(|| format!("VGA sequence over {}", bench.display()))?;
+    let vga_surf = pool
+        .install(|| vga_surf_vo(&bench, a.frames))
+        .with_context(|| format!("VGA sequence over {} (SURF)", bench.display()))?;
     let out = VoBench {
         ngi_dir_err_deg: ngi.as_ref().map(|n| n.dir_err_deg),
         ngi_len_err_pct: ngi.as_ref().map(|n| n.len_err_pct),
         ms_p50_vga: vga.ms_p50,
+        ms_p50_vga_surf: vga_surf.ms_p50,
         ngi,
         vga,
+        vga_surf,
     };
     if a.json {
         println!("{}", serde_json::to_string_pretty(&out)?);
@@ -93,6 +102,19 @@ pub fn run(a: VoBenchArgs) -> anyhow::Result<ExitCode> {
         v.step_m,
         v.distance_m,
         v.chained_err_m
+    );
+    let w = &out.vga_surf;
+    println!(
+        "VGA with SURF matched between the frames instead, same thread: p50 {:.2} ms, p95 {:.2} ms (SURF {:.2}, matching {:.2}, motion {:.2}); {:.0} matches, {:.0} inliers per frame; step error median {:.3} m (max {:.3})",
+        w.ms_p50,
+        w.ms_p95,
+        w.ms_surf,
+        w.ms_match,
+        w.ms_motion,
+        w.matches_mean,
+        w.inliers_mean,
+        w.step_err_m_p50,
+        w.step_err_m_max
     );
     Ok(ExitCode::SUCCESS)
 }

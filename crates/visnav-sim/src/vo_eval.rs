@@ -20,7 +20,9 @@ use serde::Serialize;
 use visnav_core::camera::Opk;
 use visnav_core::pose::{ImageGeometry, Pose};
 use visnav_core::stats::percentile;
-use visnav_core::vision::{GrayImage, MatchParams, Surf, SurfParams, match_features};
+use visnav_core::vision::{
+    Features, GrayImage, Match, MatchParams, Surf, SurfParams, match_features,
+};
 use visnav_core::vo::{TrackPair, VoConfig, VoInput, frame_motion};
 use visnav_io::image_file::GrayImageFile;
 
@@ -135,16 +137,7 @@ pub fn ngi_vo(dir: &Path) -> Result<NgiVo, VoEvalError> {
     };
     let matches =
         match_features(&fa, &fb, &params, None).map_err(|e| VoEvalError::Vision(e.to_string()))?;
-    let tracks: Vec<TrackPair> = matches
-        .iter()
-        .map(|m| {
-            let (a, b) = (&fa.keypoints[m.query], &fb.keypoints[m.train]);
-            TrackPair {
-                prev_px: Vector2::new(f64::from(a.x), f64::from(a.y)),
-                next_px: Vector2::new(f64::from(b.x), f64::from(b.y)),
-            }
-        })
-        .collect();
+    let tracks = match_pairs(&fa, &fb, &matches);
     let image = ImageGeometry {
         fx_px: NGI_FOCAL_PX,
         fy_px: NGI_FOCAL_PX,
@@ -194,6 +187,20 @@ pub fn ngi_vo(dir: &Path) -> Result<NgiVo, VoEvalError> {
         rms_px: m.rms_px,
         ms_match_and_motion,
     })
+}
+
+/// Matched features as track pairs (query in the previous frame, train in the next).
+fn match_pairs(prev: &Features, next: &Features, matches: &[Match]) -> Vec<TrackPair> {
+    matches
+        .iter()
+        .map(|m| {
+            let (a, b) = (&prev.keypoints[m.query], &next.keypoints[m.train]);
+            TrackPair {
+                prev_px: Vector2::new(f64::from(a.x), f64::from(a.y)),
+                next_px: Vector2::new(f64::from(b.x), f64::from(b.y)),
+            }
+        })
+        .collect()
 }
 
 /// The VGA sequence of the timing bench: a real NAIP photo (`../shared/data/bench`, 1280 x 960)
@@ -293,14 +300,11 @@ fn vga_poses(frames: usize) -> Vec<Pose> {
         .collect()
 }
 
-/// Visual odometry over the VGA sequence (`VGA_*`), timed per frame on the calling thread:
-/// tracks carried from frame to frame, replenished when they run low, each motion solved from
-/// the previous estimate (chained, no filter) with the gyros' rotation (`VGA_GYRO_SIGMA_DEG` off).
-pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> {
-    use visnav_core::geo::dem::Dem;
-    use visnav_core::vo::RotationPrior;
-    use visnav_core::vo::{Tracker, TrackingConfig};
-    let vision = |e: visnav_core::vision::VisionError| VoEvalError::Vision(e.to_string());
+/// The VGA camera and the sequence it sees of the photo at `texture_path` (`VGA_*`).
+fn vga_sequence(
+    texture_path: &Path,
+    frames: usize,
+) -> Result<(ImageGeometry, Vec<Pose>, Vec<GrayImage>), VoEvalError> {
     let texture = GrayImage::load(texture_path).map_err(|e| VoEvalError::Data {
         path: texture_path.to_path_buf(),
         reason: e.to_string(),
@@ -314,10 +318,140 @@ pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> 
         height_px: 480,
     };
     let poses = vga_poses(frames.max(2));
-    let imgs: Vec<GrayImage> = poses
+    let imgs = poses
         .iter()
         .map(|p| render_flat(&texture, &image, p))
         .collect();
+    Ok((image, poses, imgs))
+}
+
+/// Frame `k`'s motion input: its pairs, the chained estimate of frame `k - 1`, and the gyros'
+/// rotation between the true poses off by `VGA_GYRO_SIGMA_DEG` (always the same way).
+fn vga_input<'a>(
+    pairs: &'a [TrackPair],
+    image: &'a ImageGeometry,
+    est: &Pose,
+    poses: &[Pose],
+    k: usize,
+) -> VoInput<'a> {
+    let gyro_err = nalgebra::Rotation3::from_axis_angle(
+        &nalgebra::Unit::new_normalize(Vector3::new(1.0, -1.0, 0.5)),
+        VGA_GYRO_SIGMA_DEG.to_radians(),
+    );
+    VoInput {
+        tracks: pairs,
+        image,
+        prev: *est,
+        // The chained estimate drifts: its height and tilt as far as the bench goes (about 1 % of
+        // the distance, the gyros' 0.01 deg per frame).
+        prev_height_sigma_m: 0.01 * (est.c_world - poses[0].c_world).norm(),
+        prev_tilt_sigma_rad: (VGA_GYRO_SIGMA_DEG * k as f64).to_radians(),
+        rotation_prior: Some(visnav_core::vo::RotationPrior {
+            r_prev_next: poses[k - 1].r_world_cam.inverse() * poses[k].r_world_cam * gyro_err,
+            cov_prev_rad2: nalgebra::Matrix3::identity() * VGA_GYRO_SIGMA_DEG.to_radians().powi(2),
+        }),
+    }
+}
+
+/// SURF matched between consecutive frames instead of tracked (the other candidate), on
+/// the same VGA sequence (`visnav bench vo --json`: the `vga_surf` keys).
+#[derive(Debug, Clone, Serialize)]
+pub struct VgaSurfVo {
+    pub frames: usize,
+    /// Per frame on one thread: SURF on the new frame (the previous frame's features kept),
+    /// matching with the spatial gate, the motion: median / 95th percentile, ms.
+    pub ms_p50: f64,
+    pub ms_p95: f64,
+    /// Medians of the parts, ms.
+    pub ms_surf: f64,
+    pub ms_match: f64,
+    pub ms_motion: f64,
+    /// Mean matches in and inliers out per frame.
+    pub matches_mean: f64,
+    pub inliers_mean: f64,
+    /// Per step: displacement error against the truth, m (median, max).
+    pub step_err_m_p50: f64,
+    pub step_err_m_max: f64,
+}
+
+/// Radius of the spatial gate for SURF between consecutive frames, px: the VGA sequence moves
+/// about 7 px per frame; a generous gate leaves the descriptors to decide.
+const VGA_SURF_GATE_PX: f32 = 40.0;
+
+/// Visual odometry over the VGA sequence with SURF matched between consecutive frames (mutual
+/// nearest neighbours, ratio test, the spatial gate around each feature's previous position),
+/// each motion solved as in [`vga_vo`]; timed per frame on the calling thread.
+pub fn vga_surf_vo(texture_path: &Path, frames: usize) -> Result<VgaSurfVo, VoEvalError> {
+    use visnav_core::geo::dem::Dem;
+    let vision = |e: String| VoEvalError::Vision(e);
+    let (image, poses, imgs) = vga_sequence(texture_path, frames)?;
+    let dem = Dem::flat(0.0).map_err(|e| VoEvalError::Vision(e.to_string()))?;
+    let cfg = VoConfig::default();
+    let surf = Surf::new(SurfParams::default()).map_err(|e| vision(e.to_string()))?;
+    let params = MatchParams {
+        mutual: true,
+        spatial_radius_px: Some(VGA_SURF_GATE_PX),
+        ..MatchParams::default()
+    };
+    let mut prev = surf.detect_and_describe(&imgs[0]);
+    let mut est = poses[0];
+    let (mut total, mut t_surf, mut t_match, mut t_mot, mut errs) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut matches_n, mut inliers_n) = (0usize, 0usize);
+    for k in 1..poses.len() {
+        let t0 = Instant::now();
+        let next = surf.detect_and_describe(&imgs[k]);
+        let t1 = Instant::now();
+        let at: Vec<[f32; 2]> = prev.keypoints.iter().map(|p| [p.x, p.y]).collect();
+        let matches =
+            match_features(&prev, &next, &params, Some(&at)).map_err(|e| vision(e.to_string()))?;
+        let pairs = match_pairs(&prev, &next, &matches);
+        let t2 = Instant::now();
+        let input = vga_input(&pairs, &image, &est, &poses, k);
+        let m = frame_motion(&input, &dem, &cfg).map_err(|e| VoEvalError::Data {
+            path: texture_path.to_path_buf(),
+            reason: format!("frame {k} (SURF): no motion: {e}"),
+        })?;
+        let t3 = Instant::now();
+        let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
+        total.push(ms(t0, t3));
+        t_surf.push(ms(t0, t1));
+        t_match.push(ms(t1, t2));
+        t_mot.push(ms(t2, t3));
+        errs.push((m.dp_world_m - (poses[k].c_world - poses[k - 1].c_world)).norm());
+        matches_n += pairs.len();
+        inliers_n += m.inliers;
+        let mut r = est.r_world_cam * m.r_prev_next;
+        r.renormalize();
+        est = Pose {
+            r_world_cam: r,
+            c_world: est.c_world + m.dp_world_m,
+        };
+        prev = next;
+    }
+    let n = total.len();
+    Ok(VgaSurfVo {
+        frames: n,
+        ms_p50: percentile(&total, 0.5),
+        ms_p95: percentile(&total, 0.95),
+        ms_surf: percentile(&t_surf, 0.5),
+        ms_match: percentile(&t_match, 0.5),
+        ms_motion: percentile(&t_mot, 0.5),
+        matches_mean: matches_n as f64 / n as f64,
+        inliers_mean: inliers_n as f64 / n as f64,
+        step_err_m_p50: percentile(&errs, 0.5),
+        step_err_m_max: errs.iter().copied().fold(0.0, f64::max),
+    })
+}
+
+/// Visual odometry over the VGA sequence (`VGA_*`), timed per frame on the calling thread:
+/// tracks carried from frame to frame, replenished when they run low, each motion solved from
+/// the previous estimate (chained, no filter) with the gyros' rotation (`VGA_GYRO_SIGMA_DEG` off).
+pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> {
+    use visnav_core::geo::dem::Dem;
+    use visnav_core::vo::{Tracker, TrackingConfig};
+    let vision = |e: visnav_core::vision::VisionError| VoEvalError::Vision(e.to_string());
+    let (image, poses, imgs) = vga_sequence(texture_path, frames)?;
     let dem = Dem::flat(0.0).map_err(|e| VoEvalError::Vision(e.to_string()))?;
     let cfg = VoConfig::default();
     let mut tracker = Tracker::new(TrackingConfig {
@@ -326,10 +460,6 @@ pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> 
         new_corner_distance_px: VGA_NEW_CORNER_DISTANCE_PX,
         ..TrackingConfig::default()
     });
-    let gyro_err = nalgebra::Rotation3::from_axis_angle(
-        &nalgebra::Unit::new_normalize(Vector3::new(1.0, -1.0, 0.5)),
-        VGA_GYRO_SIGMA_DEG.to_radians(),
-    );
     let first = tracker.pyramid(imgs[0].clone()).map_err(vision)?;
     tracker.advance(first, |p| p).map_err(vision)?;
     let mut est = poses[0];
@@ -354,20 +484,7 @@ pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> 
             })
             .collect();
         let t2 = Instant::now();
-        let rotation_prior = Some(RotationPrior {
-            r_prev_next: poses[k - 1].r_world_cam.inverse() * poses[k].r_world_cam * gyro_err,
-            cov_prev_rad2: nalgebra::Matrix3::identity() * VGA_GYRO_SIGMA_DEG.to_radians().powi(2),
-        });
-        let input = VoInput {
-            tracks: &pairs,
-            image: &image,
-            prev: est,
-            // The chained estimate drifts: its height and tilt as far as the bench goes (about
-            // 1 % of the distance, the gyros' 0.01 deg per frame).
-            prev_height_sigma_m: 0.01 * (est.c_world - poses[0].c_world).norm(),
-            prev_tilt_sigma_rad: (VGA_GYRO_SIGMA_DEG * k as f64).to_radians(),
-            rotation_prior,
-        };
+        let input = vga_input(&pairs, &image, &est, &poses, k);
         let m = frame_motion(&input, &dem, &cfg).map_err(|e| VoEvalError::Data {
             path: texture_path.to_path_buf(),
             reason: format!("frame {k}: no motion: {e}"),

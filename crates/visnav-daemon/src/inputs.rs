@@ -723,8 +723,9 @@ impl OutputBook {
     }
 }
 
-/// An output's body rate against the local level frame, the frame the ground stays still in
-/// (what a camera sees of the body's turn): the gyros' bias-compensated rate, which is against
+/// An output's body rate against the local level frame (NED at the aircraft; a camera sees the
+/// body's turn against the ground, which the odometer's map grid holds still, the grid's north
+/// turning against NED by the convergence): the gyros' bias-compensated rate, which is against
 /// inertial space, less the earth's rotation and the transport rate in body axes,
 /// `w_nb = w_ib - C_n^b (w_ie + w_en)` (as the filter's attitude propagation). Without it the
 /// odometer's rotation between frames is wrong by the earth's rate: at 47 deg latitude 11 deg/h

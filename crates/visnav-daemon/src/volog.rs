@@ -42,7 +42,7 @@ pub struct VoLogRecord {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub look_ned_m: Option<[f64; 3]>,
     /// The rotation the images saw beyond the gyros' about that line of sight and its 1-sigma
-    /// (images alone), deg (`nav::VoRotation`).
+    /// (the images' and the gyros' sampling), deg (`nav::VoRotation`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rot_los_deg: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -360,7 +360,7 @@ impl Measurement {
                     return Err("VO covariance not symmetric positive definite");
                 }
                 if let Some(r) = &f.rotation {
-                    // A rotation beyond half a turn between two frames is not a gyro error.
+                    // A rotation error beyond 90 deg between two frames is not a gyro error.
                     let ok = r.about_los_rad.is_finite()
                         && r.about_los_rad.abs() < std::f64::consts::FRAC_PI_2
                         && r.sigma_rad.is_finite()

@@ -82,6 +82,8 @@ struct PrevFrame {
     t_us: u64,
     pose: Pose,
     tilt_sigma_rad: f64,
+    /// Grid convergence at the camera, rad.
+    gamma_rad: f64,
     /// Height of the ground below, AMSL, m (the guesses' plane).
     ground_amsl_m: f64,
 }
@@ -175,6 +177,7 @@ impl Odometer {
             t_us,
             pose: fp.pose,
             tilt_sigma_rad: fp.tilt_sigma_rad,
+            gamma_rad: fp.gamma_rad,
             ground_amsl_m,
         });
         match (restart, prev, pairs) {
@@ -256,8 +259,12 @@ impl Odometer {
             .mount
             .r_ned_cam(&crate::camera::frames::Attitude::new(0.0, 0.0, 0.0));
         let rotation_prior = gyro.map(|g| {
-            let mut r = r_body_cam.inverse() * g.r_body_prev_next * r_body_cam;
-            r.renormalize();
+            let r = camera_rotation_in_grid(
+                &g.r_body_prev_next,
+                &r_body_cam,
+                &prev.pose.r_world_cam,
+                next.gamma_rad - prev.gamma_rad,
+            );
             RotationPrior {
                 r_prev_next: r,
                 cov_prev_rad2: Matrix3::identity() * g.sigma_rad.powi(2),
@@ -325,6 +332,25 @@ impl Odometer {
             next_px: und(t.next_px)?,
         })
     }
+}
+
+/// The camera's rotation between two frames in the map grid (`R_world_prev^T R_world_next`) from
+/// the body's over the local level frame (`r_body_prev_next`, the gyros'), the mount
+/// (`r_body_cam`) and the change of the grid convergence `dgamma_rad`: the grid's north turns
+/// against the local level frame as the aircraft moves (`R_world_k = Rz(gamma_k) R_enu_ned
+/// R_ned_cam`), so `R_world_prev^T Rz(dgamma) R_world_prev = Exp(dgamma R_world_prev^T e_z)`
+/// goes on the left: 0.9 deg/h at 25 m/s east at 47 deg, the transport rate's vertical part.
+fn camera_rotation_in_grid(
+    r_body_prev_next: &Rotation3<f64>,
+    r_body_cam: &Rotation3<f64>,
+    r_world_prev_cam: &Rotation3<f64>,
+    dgamma_rad: f64,
+) -> Rotation3<f64> {
+    let up_prev = r_world_prev_cam.inverse() * Vector3::z();
+    let grid_turn = Rotation3::from_scaled_axis(up_prev * dgamma_rad);
+    let mut r = grid_turn * r_body_cam.inverse() * r_body_prev_next * r_body_cam;
+    r.renormalize();
+    r
 }
 
 /// The images' rotation between the frames against the gyros', about the mean line of sight
@@ -640,6 +666,34 @@ mod tests {
             );
             assert!(ra.about_los_rad.abs() < 3.0 * ra.sigma_rad, "{ra:?}");
         }
+    }
+
+    /// The gyros' rotation over the local level frame, put into the map grid, is exactly the
+    /// grid's relative camera rotation of two frames whose grid convergence differs (the
+    /// odometer's frame poses: `Rz(gamma) R_enu_ned R_ned_cam`).
+    #[test]
+    fn the_gyros_rotation_goes_into_the_grid_with_the_convergence() {
+        let camera = *checkerboard_engine().0.camera();
+        let mount = camera.mount;
+        let r_body_cam = mount.r_ned_cam(&Attitude::new(0.0, 0.0, 0.0));
+        let (a0, a1) = (
+            Attitude::from_deg(3.0, -2.0, 40.0),
+            Attitude::from_deg(-1.0, 4.0, 47.0),
+        );
+        let (g0, g1) = (0.012, 0.0135); // rad: 1.5 mrad of convergence change
+        let world = |a: &Attitude, g: f64| rot_z(g) * r_enu_ned() * mount.r_ned_cam(a);
+        let (w0, w1) = (world(&a0, g0), world(&a1, g1));
+        let body = a0.r_ned_body().inverse() * a1.r_ned_body();
+        let got = camera_rotation_in_grid(&body, &r_body_cam, &w0, g1 - g0);
+        let want = w0.inverse() * w1;
+        assert!(
+            (got.inverse() * want).angle() < 1e-12,
+            "{}",
+            (got.inverse() * want).angle()
+        );
+        // Without the convergence the 1.5 mrad is missing.
+        let plain = camera_rotation_in_grid(&body, &r_body_cam, &w0, 0.0);
+        assert!(((plain.inverse() * want).angle() - 1.5e-3).abs() < 1e-9);
     }
 
     /// The property the filter's model rests on (`nav::filter::fuse_vo`): a heading error of the

@@ -1316,6 +1316,82 @@ fn the_images_rotation_holds_the_heading_against_a_yaw_rate_bias() {
     assert!(with.final_err_h_m < 3.0 * with.final_sigma_h_m);
 }
 
+/// A rotation about the line of sight that the gyros contradict (1 deg per frame at a claimed
+/// 0.01) fails the 4-dof gate; the displacement beside it, which agrees with the filter, is
+/// still fused on its own gate: the filter ends exactly as if no rotation had been measured (the
+/// rotation's 1 deg a frame, fused, would be a yaw-rate bias of 18000 deg/h). A displacement 5 m
+/// off (at a claimed 5 cm) is refused with or without its rotation.
+#[test]
+fn a_rotation_the_gyros_contradict_leaves_a_good_displacement_fused() {
+    let wild = VoRotation {
+        about_los_rad: 1f64.to_radians(),
+        sigma_rad: 0.01f64.to_radians(),
+    };
+    let (c, bias, sent) = vo_with_rotation(Some(wild));
+    let (c0, bias0, _) = vo_with_rotation(None);
+    eprintln!(
+        "{sent} VO motions with a contradicted rotation: {} accepted, {} rejected, z gyro bias \
+         {:.2} deg/h; without the rotation: {} accepted, {} rejected, {:.2} deg/h",
+        c.accepted, c.rejected, bias.z, c0.accepted, c0.rejected, bias0.z
+    );
+    // 49 good motions (10 s at 5 Hz; the first frame has no predecessor), 10 bad ones.
+    assert!(c.accepted >= 47, "{c:?}");
+    assert!(c.rejected >= 9, "{c:?}");
+    assert_eq!(c.accepted + c.rejected, sent, "{c:?}");
+    assert_eq!(c, c0);
+    assert!((bias - bias0).norm() < 1e-9, "{bias} vs {bias0}");
+}
+
+/// 60 s of GPS over the survey route, then 12 s of VO at 5 Hz without it: 10 s of displacements
+/// as measured (5 cm of noise), then 2 s of displacements 5 m off, each with `rotation`. The VO
+/// counters, the gyro bias estimate at the end (deg/h) and the number of motions sent.
+fn vo_with_rotation(
+    rotation: Option<VoRotation>,
+) -> (visnav::nav::filter::TypeCounters, Vector3<f64>, u64) {
+    let mut imu = SimImuConfig::perfect(100.0);
+    imu.gyro_bias_deg_h = [20.0, -15.0, 10.0];
+    imu.gyro_arw_deg_sqrt_h = 0.3;
+    imu.accel_vrw_m_s_sqrt_h = 0.06;
+    let mut cfg = NavConfig::default();
+    cfg.imu.gyro_arw_deg_sqrt_h = 0.4;
+    cfg.imu.gyro_bias_deg_h = 30.0;
+    cfg.use_autopilot_attitude = false;
+    let mut h = Harness::with_trajectory(cfg, imu, survey_route());
+    h.fly(60.0, true, |_, _, _| {});
+    assert!(h.filter.is_initialised());
+    let mut rng = Rng::new(31);
+    let mut prev: Option<(u64, InsState)> = None;
+    let mut sent = 0u64;
+    h.fly(12.0, false, |f, t, ts| {
+        if !t.is_multiple_of(200_000) {
+            return;
+        }
+        if let Some((tp, tsp)) = prev.take() {
+            let dp = earth::ned_offset_m(
+                (ts.lat_rad, ts.lon_rad, ts.h_m),
+                (tsp.lat_rad, tsp.lon_rad, tsp.h_m),
+            );
+            let bad = if t > 70_000_000 { 5.0 } else { 0.0 };
+            let noise = Vector3::new(rng.normal(), rng.normal(), rng.normal()) * 0.05;
+            f.measure(Measurement::Vo(VoFix {
+                t_prev_us: tp,
+                t_next_us: t,
+                dp_ned_m: dp + noise + Vector3::new(bad, 0.0, 0.0),
+                cov_ned_m2: Matrix3::identity() * 0.0025,
+                agl_m: 880.0,
+                terrain_sigma_m: 1.0,
+                terrain_corr_dist_m: 2000.0,
+                look_ned_m: Vector3::new(0.0, 0.0, 880.0),
+                rotation,
+            }));
+            sent += 1;
+        }
+        prev = Some((t, ts.clone()));
+    });
+    let bias = Vector3::from(h.filter.output().expect("output").gyro_bias_deg_h);
+    (h.filter.counters().vo, bias, sent)
+}
+
 /// Issue 22: VO between fixes. 120 s without a position fix over a survey route: with VO the
 /// horizontal error stays within 1 % of the distance flown and the heading within 1 deg, the
 /// INS-only control drifts by far more; the filter's claimed sigma covers its error; VO never

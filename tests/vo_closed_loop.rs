@@ -47,23 +47,46 @@ fn num(v: &serde_json::Value, path: &[&str]) -> f64 {
         .unwrap_or_else(|| panic!("{path:?} missing: {v}"))
 }
 
+/// The outage's figures of a summary (the issue's keys): error at the end, distance flown, the
+/// control's error at the end, the largest heading error; printed with the control's heading.
+struct Outage {
+    err: f64,
+    dist: f64,
+    ctl: f64,
+    yaw: f64,
+}
+
+fn outage_figures(name: &str, v: &serde_json::Value) -> Outage {
+    let f = |k: &str| num(v, &[k]);
+    let o = Outage {
+        err: f("final_err_h_m"),
+        dist: f("distance_flown_m"),
+        ctl: f("control_final_err_h_m"),
+        yaw: f("yaw_err_deg_max"),
+    };
+    eprintln!(
+        "{name}: {:.1} m after {:.0} m without fixes ({:.2} %), control {:.1} m; yaw error max \
+         {:.2} deg (control {:.2})",
+        o.err,
+        o.dist,
+        100.0 * o.err / o.dist,
+        o.ctl,
+        o.yaw,
+        f("ctl_yaw_err_deg_max")
+    );
+    o
+}
+
 #[test]
 fn visual_odometry_alone_keeps_two_minutes_without_fixes_within_one_percent() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let (v, stderr, out) = sim("vo_no_map", &[]);
-    let f = |k: &str| num(&v, &[k]);
-    let (err, dist, ctl, yaw) = (
-        f("final_err_h_m"),
-        f("distance_flown_m"),
-        f("control_final_err_h_m"),
-        f("yaw_err_deg_max"),
-    );
-    eprintln!(
-        "vo_no_map: {err:.1} m after {dist:.0} m without fixes ({:.2} %), control {ctl:.1} m; \
-         yaw error max {yaw:.2} deg (control {:.2})",
-        100.0 * err / dist,
-        f("ctl_yaw_err_deg_max")
-    );
+    let Outage {
+        err,
+        dist,
+        ctl,
+        yaw,
+    } = outage_figures("vo_no_map", &v);
     assert_eq!(
         v["fixes_accepted"].as_u64(),
         Some(0),
@@ -88,19 +111,12 @@ fn visual_odometry_alone_keeps_two_minutes_without_fixes_within_one_percent() {
 fn visual_odometry_holds_with_an_autopilots_biased_rates() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let (v, _, out) = sim("vo_no_map_ap_rates", &[]);
-    let f = |k: &str| num(&v, &[k]);
-    let (err, dist, ctl, yaw) = (
-        f("final_err_h_m"),
-        f("distance_flown_m"),
-        f("control_final_err_h_m"),
-        f("yaw_err_deg_max"),
-    );
-    eprintln!(
-        "vo_no_map_ap_rates: {err:.1} m after {dist:.0} m ({:.2} %), control {ctl:.1} m; yaw \
-         error max {yaw:.2} deg (control {:.2})",
-        100.0 * err / dist,
-        f("ctl_yaw_err_deg_max")
-    );
+    let Outage {
+        err,
+        dist,
+        ctl,
+        yaw,
+    } = outage_figures("vo_no_map_ap_rates", &v);
     assert!(err <= 0.01 * dist, "VO error {err} m over {dist} m");
     assert!(yaw <= 1.5, "yaw error {yaw} deg");
     assert!(ctl > 10.0 * err, "control {ctl} m vs VO {err} m");

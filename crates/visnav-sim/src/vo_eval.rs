@@ -23,7 +23,7 @@ use visnav_core::stats::percentile;
 use visnav_core::vision::{
     Features, GrayImage, Match, MatchParams, Surf, SurfParams, match_features,
 };
-use visnav_core::vo::{TrackPair, VoConfig, VoInput, frame_motion};
+use visnav_core::vo::{FrameMotion, TrackPair, VoConfig, VoInput, frame_motion};
 use visnav_io::image_file::GrayImageFile;
 
 /// The frames and their measured poses.
@@ -300,11 +300,12 @@ fn vga_poses(frames: usize) -> Vec<Pose> {
         .collect()
 }
 
-/// The VGA camera and the sequence it sees of the photo at `texture_path` (`VGA_*`).
+/// The VGA camera and the sequence it sees of the photo at `texture_path` (`VGA_*`), with the
+/// solver of its motions.
 fn vga_sequence(
     texture_path: &Path,
     frames: usize,
-) -> Result<(ImageGeometry, Vec<Pose>, Vec<GrayImage>), VoEvalError> {
+) -> Result<(VgaSolver<'_>, Vec<GrayImage>), VoEvalError> {
     let texture = GrayImage::load(texture_path).map_err(|e| VoEvalError::Data {
         path: texture_path.to_path_buf(),
         reason: e.to_string(),
@@ -322,7 +323,16 @@ fn vga_sequence(
         .iter()
         .map(|p| render_flat(&texture, &image, p))
         .collect();
-    Ok((image, poses, imgs))
+    let dem =
+        visnav_core::geo::dem::Dem::flat(0.0).map_err(|e| VoEvalError::Vision(e.to_string()))?;
+    let solver = VgaSolver {
+        image,
+        poses,
+        dem,
+        cfg: VoConfig::default(),
+        path: texture_path,
+    };
+    Ok((solver, imgs))
 }
 
 /// Frame `k`'s motion input: its pairs, the chained estimate of frame `k - 1`, and the gyros'
@@ -350,6 +360,41 @@ fn vga_input<'a>(
             r_prev_next: poses[k - 1].r_world_cam.inverse() * poses[k].r_world_cam * gyro_err,
             cov_prev_rad2: nalgebra::Matrix3::identity() * VGA_GYRO_SIGMA_DEG.to_radians().powi(2),
         }),
+    }
+}
+
+/// What both VGA benches solve each motion with: the camera, the true poses, flat ground and the
+/// VO settings; `path` (the photo) names the bench in errors.
+struct VgaSolver<'a> {
+    image: ImageGeometry,
+    poses: Vec<Pose>,
+    dem: visnav_core::geo::dem::Dem,
+    cfg: VoConfig,
+    path: &'a Path,
+}
+
+impl VgaSolver<'_> {
+    /// Frame `k`'s motion from `pairs` (set up by [`vga_input`]) and the chained estimate `est`
+    /// moved by it; `what` names the method in the error.
+    fn solve_and_chain(
+        &self,
+        pairs: &[TrackPair],
+        est: &Pose,
+        k: usize,
+        what: &str,
+    ) -> Result<(FrameMotion, Pose), VoEvalError> {
+        let input = vga_input(pairs, &self.image, est, &self.poses, k);
+        let m = frame_motion(&input, &self.dem, &self.cfg).map_err(|e| VoEvalError::Data {
+            path: self.path.to_path_buf(),
+            reason: format!("frame {k}{what}: no motion: {e}"),
+        })?;
+        let mut r = est.r_world_cam * m.r_prev_next;
+        r.renormalize();
+        let next = Pose {
+            r_world_cam: r,
+            c_world: est.c_world + m.dp_world_m,
+        };
+        Ok((m, next))
     }
 }
 
@@ -382,11 +427,9 @@ const VGA_SURF_GATE_PX: f32 = 40.0;
 /// nearest neighbours, ratio test, the spatial gate around each feature's previous position),
 /// each motion solved as in [`vga_vo`]; timed per frame on the calling thread.
 pub fn vga_surf_vo(texture_path: &Path, frames: usize) -> Result<VgaSurfVo, VoEvalError> {
-    use visnav_core::geo::dem::Dem;
     let vision = |e: String| VoEvalError::Vision(e);
-    let (image, poses, imgs) = vga_sequence(texture_path, frames)?;
-    let dem = Dem::flat(0.0).map_err(|e| VoEvalError::Vision(e.to_string()))?;
-    let cfg = VoConfig::default();
+    let (solver, imgs) = vga_sequence(texture_path, frames)?;
+    let poses = &solver.poses;
     let surf = Surf::new(SurfParams::default()).map_err(|e| vision(e.to_string()))?;
     let params = MatchParams {
         mutual: true,
@@ -407,11 +450,7 @@ pub fn vga_surf_vo(texture_path: &Path, frames: usize) -> Result<VgaSurfVo, VoEv
             match_features(&prev, &next, &params, Some(&at)).map_err(|e| vision(e.to_string()))?;
         let pairs = match_pairs(&prev, &next, &matches);
         let t2 = Instant::now();
-        let input = vga_input(&pairs, &image, &est, &poses, k);
-        let m = frame_motion(&input, &dem, &cfg).map_err(|e| VoEvalError::Data {
-            path: texture_path.to_path_buf(),
-            reason: format!("frame {k} (SURF): no motion: {e}"),
-        })?;
+        let (m, moved) = solver.solve_and_chain(&pairs, &est, k, " (SURF)")?;
         let t3 = Instant::now();
         let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
         total.push(ms(t0, t3));
@@ -421,12 +460,7 @@ pub fn vga_surf_vo(texture_path: &Path, frames: usize) -> Result<VgaSurfVo, VoEv
         errs.push((m.dp_world_m - (poses[k].c_world - poses[k - 1].c_world)).norm());
         matches_n += pairs.len();
         inliers_n += m.inliers;
-        let mut r = est.r_world_cam * m.r_prev_next;
-        r.renormalize();
-        est = Pose {
-            r_world_cam: r,
-            c_world: est.c_world + m.dp_world_m,
-        };
+        est = moved;
         prev = next;
     }
     let n = total.len();
@@ -448,12 +482,10 @@ pub fn vga_surf_vo(texture_path: &Path, frames: usize) -> Result<VgaSurfVo, VoEv
 /// tracks carried from frame to frame, replenished when they run low, each motion solved from
 /// the previous estimate (chained, no filter) with the gyros' rotation (`VGA_GYRO_SIGMA_DEG` off).
 pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> {
-    use visnav_core::geo::dem::Dem;
     use visnav_core::vo::{Tracker, TrackingConfig};
     let vision = |e: visnav_core::vision::VisionError| VoEvalError::Vision(e.to_string());
-    let (image, poses, imgs) = vga_sequence(texture_path, frames)?;
-    let dem = Dem::flat(0.0).map_err(|e| VoEvalError::Vision(e.to_string()))?;
-    let cfg = VoConfig::default();
+    let (solver, imgs) = vga_sequence(texture_path, frames)?;
+    let poses = &solver.poses;
     let mut tracker = Tracker::new(TrackingConfig {
         max_corners: VGA_MAX_CORNERS,
         replenish_below: VGA_REPLENISH_BELOW,
@@ -484,11 +516,7 @@ pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> 
             })
             .collect();
         let t2 = Instant::now();
-        let input = vga_input(&pairs, &image, &est, &poses, k);
-        let m = frame_motion(&input, &dem, &cfg).map_err(|e| VoEvalError::Data {
-            path: texture_path.to_path_buf(),
-            reason: format!("frame {k}: no motion: {e}"),
-        })?;
+        let (m, moved) = solver.solve_and_chain(&pairs, &est, k, "")?;
         let t3 = Instant::now();
         if tracker.top_up().map_err(vision)? {
             replenished += 1;
@@ -509,12 +537,7 @@ pub fn vga_vo(texture_path: &Path, frames: usize) -> Result<VgaVo, VoEvalError> 
         );
         tracks_n += pairs.len();
         inliers_n += m.inliers;
-        let mut r = est.r_world_cam * m.r_prev_next;
-        r.renormalize();
-        est = Pose {
-            r_world_cam: r,
-            c_world: est.c_world + m.dp_world_m,
-        };
+        est = moved;
     }
     let n = total.len();
     let last = poses.len() - 1;

@@ -29,7 +29,9 @@
 //! shift imitates): `z = u . C dbg dt + e_img + e_arw` (`R_images = Exp(z u) R_gyros`, and
 //! `R_gyros = Exp(-C dbg dt) R_true`), predicted 0, so `dz = -u^T C dbg dt - e`, fused with the
 //! displacement as one 4-dof measurement (noise: the images' sigma with the gyros' sampling
-//! error, and the gyros' white noise over the interval). For a nadir camera it is the yaw-rate bias: without it VO carries the
+//! error, and the gyros' white noise over the interval). When the 4-dof gate refuses it, the
+//! displacement alone is tried against its own 3-dof gate: a rotation the gyros contradict does
+//! not throw away a displacement that agrees with the filter. For a nadir camera it is the yaw-rate bias: without it VO carries the
 //! heading only as well as the gyros do, and every degree of heading error is 1.7 % of the
 //! distance flown as cross-track error (with an autopilot's rates, 170 deg/h of residual bias,
 //! 3 deg a minute).
@@ -90,7 +92,14 @@ pub(super) fn fuse(par: &Params, core: &mut Core, f: &VoFix) -> Outcome {
     r4.fixed_view_mut::<3, 3>(0, 0).copy_from(&r);
     r4[(3, 3)] = rot.sigma_rad.powi(2) + par.q_arw * dt;
     let dz4 = SVector::<f64, 4>::new(dz.x, dz.y, dz.z, -rot.about_los_rad);
-    core.update(par, dz4, h4, r4, par.gate_vo4)
+    match core.update(par, dz4, h4, r4, par.gate_vo4) {
+        // The rotation contradicts the gyros beyond the gate (a sampling error at a sharp
+        // manoeuvre, a rolling-shutter skew the tracks took for a turn): the displacement is
+        // still a measurement of its own, gated as it would be without the rotation. A gross
+        // displacement fails this gate too. An update refused leaves the filter unchanged.
+        Outcome::Rejected { .. } => core.update(par, dz, h, r, par.gate_vo),
+        outcome => outcome,
+    }
 }
 
 /// How each gyro error state moves the rotation rate in NED (`C_b^n d(w_b)/d(state)`): the

@@ -699,12 +699,24 @@ def visnav_config_text(text, repo, link_port=None, vo=None, map_ortho=None):
         if n != 1:
             sys.exit("--map-ortho: the configuration has no `ortho = ...` line to replace")
     if vo is not None:
-        line = f"enabled = {'true' if vo == 'on' else 'false'}\n"
-        if re.search(r"(?m)^\[vo\]\n", text):
-            text = re.sub(r"(?m)^\[vo\]\n", lambda _m: "[vo]\n" + line, text, 1)
-        else:
-            text += "\n[vo]\n" + line
+        text = set_vo_enabled(text, vo == "on")
     return text
+
+
+def set_vo_enabled(text, on):
+    """TEXT with `[vo] enabled` set to ON: the section's own `enabled` line replaced (a second one
+    would be a duplicate key), else one added at the top of the section, else the section added."""
+    line = f"enabled = {'true' if on else 'false'}"
+    m = re.search(r"(?m)^\[vo\][ \t]*\n", text)
+    if m is None:
+        return text + "\n[vo]\n" + line + "\n"
+    end = re.search(r"(?m)^\[", text[m.end():])
+    body_end = m.end() + end.start() if end else len(text)
+    body = text[m.end():body_end]
+    body, n = re.subn(r"(?m)^enabled[ \t]*=.*$", line, body, 1)
+    if n == 0:
+        body = line + "\n" + body
+    return text[:m.end()] + body + text[body_end:]
 
 
 def start_visnav(exe, config_src, workdir, kind, truth_port, camera_hz, repo, log,

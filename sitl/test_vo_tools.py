@@ -44,6 +44,12 @@ class ConfigText(unittest.TestCase):
         t = sc.visnav_config_text(self.BASE + "\n[vo]\nmin_tracks = 30\n", "/repo", vo="off")
         self.assertEqual(t.count("[vo]"), 1)
         self.assertIn("[vo]\nenabled = false\nmin_tracks = 30\n", t)
+        # A configuration that sets it already: its line replaced, never a duplicate key; a
+        # later section's `enabled` untouched.
+        base = self.BASE + "\n[vo]\nmin_tracks = 30\nenabled = true\n\n[x]\nenabled = true\n"
+        t = sc.visnav_config_text(base, "/repo", vo="off")
+        self.assertIn("[vo]\nmin_tracks = 30\nenabled = false\n\n[x]\nenabled = true\n", t)
+        self.assertEqual(t.count("enabled = "), 2)
 
     def test_map_override_and_port(self):
         t = sc.visnav_config_text(self.BASE, "/repo", link_port=40001, map_ortho="/x/noise.tif")

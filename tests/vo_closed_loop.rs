@@ -9,13 +9,12 @@
 //! sparse fixes (`vo_sparse_fixes.toml`, fix rate about 0.3), the nav error's p90 over the outage
 //! better with VO than without (`--vo off`). And with an autopilot's biased rates
 //! (`vo_no_map_ap_rates.toml`), still within 1 % of the distance.
+//!
+//! The simulations are lock-step (their figures do not depend on the machine's speed or load), so
+//! they run side by side: the tests in parallel, the sparse-fix test's two runs at once.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use std::sync::Mutex;
-
-/// The closed loops run one after the other (two at once would only double the wall time).
-static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
 
 /// `visnav sim --json --scenario sitl/scenarios/<name>.toml` with `extra` arguments: the summary,
 /// stderr and the report folder.
@@ -79,7 +78,6 @@ fn outage_figures(name: &str, v: &serde_json::Value) -> Outage {
 
 #[test]
 fn visual_odometry_alone_keeps_two_minutes_without_fixes_within_one_percent() {
-    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let (v, stderr, out) = sim("vo_no_map", &[]);
     let Outage {
         err,
@@ -109,7 +107,6 @@ fn visual_odometry_alone_keeps_two_minutes_without_fixes_within_one_percent() {
 /// Within 1 % of the distance, the heading within 1.5 deg, far better than the control.
 #[test]
 fn visual_odometry_holds_with_an_autopilots_biased_rates() {
-    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let (v, _, out) = sim("vo_no_map_ap_rates", &[]);
     let Outage {
         err,
@@ -227,9 +224,11 @@ fn check_sigma_covers(out: &Path) {
 /// the outage is better with visual odometry between the fixes than without.
 #[test]
 fn visual_odometry_between_sparse_fixes_beats_fixes_alone() {
-    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    let (on, _, out_on) = sim("vo_sparse_fixes", &["--vo", "on"]);
-    let (off, _, out_off) = sim("vo_sparse_fixes", &["--vo", "off"]);
+    let ((on, _, out_on), (off, _, out_off)) = std::thread::scope(|s| {
+        let off = s.spawn(|| sim("vo_sparse_fixes", &["--vo", "off"]));
+        let on = sim("vo_sparse_fixes", &["--vo", "on"]);
+        (on, off.join().expect("the --vo off run"))
+    });
     let p90 = |v: &serde_json::Value| num(v, &["nav_err_m", "p90"]);
     let rate = num(&on, &["fix_rate"]);
     eprintln!(

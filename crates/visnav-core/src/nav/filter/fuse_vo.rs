@@ -29,12 +29,12 @@
 //! shift imitates): `z = u . C dbg dt + e_img + e_arw` (`R_images = Exp(z u) R_gyros`, and
 //! `R_gyros = Exp(-C dbg dt) R_true`), predicted 0, so `dz = -u^T C dbg dt - e`, fused with the
 //! displacement as one 4-dof measurement (noise: the images' sigma with the gyros' sampling
-//! error, and the gyros' white noise over the interval). When the 4-dof gate refuses it, the
+//! error, and the gyros' white noise over the interval). For a nadir camera it is the yaw-rate
+//! bias: without it VO carries the heading only as well as the gyros do, and every degree of
+//! heading error is 1.7 % of the distance flown as cross-track error (with an autopilot's rates,
+//! 170 deg/h of residual bias, 3 deg a minute). When the 4-dof gate refuses the pair, the
 //! displacement alone is tried against its own 3-dof gate: a rotation the gyros contradict does
-//! not throw away a displacement that agrees with the filter. For a nadir camera it is the yaw-rate bias: without it VO carries the
-//! heading only as well as the gyros do, and every degree of heading error is 1.7 % of the
-//! distance flown as cross-track error (with an autopilot's rates, 170 deg/h of residual bias,
-//! 3 deg a minute).
+//! not throw away a displacement that agrees with the filter.
 //!
 //! The yaw column is what makes the heading observable from VO whenever the velocity is known
 //! otherwise (a manoeuvre seen by the accelerometers, a fix): VO alone measures the motion in the

@@ -10,6 +10,7 @@
 //! convention is defined once in docs/conventions.md.
 
 pub mod camera;
+pub mod dtm_nav;
 pub mod fix;
 pub mod geo;
 pub mod nav;

@@ -117,6 +117,16 @@ impl Dem {
         }
     }
 
+    /// Slope of the terrain at map coordinates, `[dh/dx, dh/dy]` (metres per metre): the derivative
+    /// of the bilinear surface inside its cell (on a cell edge, the cell `height_at` uses); `None`
+    /// where `height_at` is `None`. Zero for flat terrain.
+    pub fn gradient_at(&self, x_m: f64, y_m: f64) -> Option<[f64; 2]> {
+        match self {
+            Dem::Grid(g) => g.gradient_at(x_m, y_m),
+            Dem::Flat { .. } => (x_m.is_finite() && y_m.is_finite()).then_some([0.0, 0.0]),
+        }
+    }
+
     /// First intersection of the ray `origin + t dir` (`t >= 0`, map coordinates with z = height,
     /// `dir` need not be normalised) with the terrain, within `max_range_m` of the origin (pass
     /// `f64::INFINITY` for no limit). Returns the point on the ray (within 1e-6 m of range of the
@@ -226,6 +236,25 @@ impl GridDem {
 
     /// Bilinear height at map coordinates; `None` outside the pixel-centre grid or in holes.
     pub fn height_at(&self, x_m: f64, y_m: f64) -> Option<f64> {
+        let (corners, a, b) = self.locate(x_m, y_m)?;
+        Some(eval_cell(&corners, a, b))
+    }
+
+    /// See [`Dem::gradient_at`]: `dh/da` and `dh/db` of the cell's bilinear form, taken into map
+    /// coordinates through the geotransform's linear part (`a` follows columns, `b` rows).
+    pub fn gradient_at(&self, x_m: f64, y_m: f64) -> Option<[f64; 2]> {
+        let (c, a, b) = self.locate(x_m, y_m)?;
+        let cross = c[0] - c[1] - c[2] + c[3];
+        let dh_da = c[1] - c[0] + cross * b;
+        let dh_db = c[2] - c[0] + cross * a;
+        let (da_dx, db_dx) = self.transform.map_delta_to_pixel(1.0, 0.0);
+        let (da_dy, db_dy) = self.transform.map_delta_to_pixel(0.0, 1.0);
+        Some([dh_da * da_dx + dh_db * db_dx, dh_da * da_dy + dh_db * db_dy])
+    }
+
+    /// The dual cell holding map point `(x_m, y_m)` and the point's position `(a, b)` in it;
+    /// `None` outside the pixel-centre grid or in a hole.
+    fn locate(&self, x_m: f64, y_m: f64) -> Option<([f64; 4], f64, f64)> {
         let (col, row) = self.transform.map_to_pixel(x_m, y_m);
         let (fx, fy) = (col - 0.5, row - 0.5);
         if !(fx >= 0.0 && fy >= 0.0) {
@@ -239,8 +268,7 @@ impl GridDem {
         let i = (fx.floor() as usize).min(self.width - 2); // ok: fx in [0, w-1]
         let j = (fy.floor() as usize).min(self.height - 2); // ok: fy in [0, h-1]
         let (a, b) = (fx - i as f64, fy - j as f64);
-        let corners = self.cell(i, j)?;
-        Some(eval_cell(&corners, a, b))
+        Some((self.cell(i, j)?, a, b))
     }
 
     /// The four corner heights `[h00, h10, h01, h11]` of dual cell `(i, j)`, `None` for a hole.
@@ -460,6 +488,39 @@ mod tests {
         let gt = GeoTransform::north_up(500_000.0, 4_000_000.0, cell_m, cell_m).unwrap();
         let r = Raster::new(w, hgt, 1, RasterData::F32(v), gt, UTM, nodata).unwrap();
         Dem::from_raster(&r).unwrap()
+    }
+
+    #[test]
+    fn the_gradient_is_the_bilinear_surfaces_slope() {
+        // Heights 2 col + 3 row + 0.5 col row on 4 m cells (rows run south).
+        let dem = grid(6, 6, 4.0, None, |c, r| {
+            (2.0 * c as f64 + 3.0 * r as f64 + 0.5 * (c * r) as f64) as f32
+        });
+        for &(c, r) in &[(1.3, 2.6), (0.1, 0.2), (3.9, 4.5), (2.0, 2.0)] {
+            let (x, y) = centre(c, r, 4.0);
+            let g = dem.gradient_at(x, y).unwrap();
+            // The surface is linear along x and along y inside a cell: differences are exact up to
+            // the rounding of map coordinates near 4e6 m (5e-10 m), hence a centimetre step.
+            let step = 1e-2;
+            let h = |x: f64, y: f64| dem.height_at(x, y).unwrap();
+            let fd = [
+                (h(x + step, y) - h(x - step, y)) / (2.0 * step),
+                (h(x, y + step) - h(x, y - step)) / (2.0 * step),
+            ];
+            // The samples lie on one bilinear function, so every cell's surface is that function.
+            assert!((g[0] - fd[0]).abs() < 1e-6, "{c} {r}: {g:?} vs {fd:?}");
+            assert!((g[1] - fd[1]).abs() < 1e-6, "{c} {r}: {g:?} vs {fd:?}");
+            // Analytic: dh/dcol over 4 m east; rows run south, so dh/dy = -dh/drow / 4 m.
+            let expect_x = (2.0 + 0.5 * r) / 4.0;
+            let expect_y = -(3.0 + 0.5 * c) / 4.0;
+            assert!((g[0] - expect_x).abs() < 1e-9, "{c} {r}: {g:?}");
+            assert!((g[1] - expect_y).abs() < 1e-9, "{c} {r}: {g:?}");
+        }
+        assert_eq!(
+            Dem::flat(3.0).unwrap().gradient_at(1.0, 2.0),
+            Some([0.0, 0.0])
+        );
+        assert_eq!(dem.gradient_at(f64::NAN, 0.0), None);
     }
 
     /// Map coordinates of pixel centre (c, r) for the grids above.

@@ -3,8 +3,9 @@
 #[cfg(feature = "sim")]
 pub mod bench;
 #[cfg(feature = "sim")]
-pub mod bench_fix;
+pub mod bench_dtm;
 #[cfg(feature = "sim")]
+pub mod bench_fix;
 pub mod bench_vo;
 pub mod check_config;
 pub mod fix;

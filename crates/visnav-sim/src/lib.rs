@@ -26,6 +26,7 @@
 pub mod autopilot;
 pub mod camera_sim;
 pub mod closed_loop;
+pub mod dtm_eval;
 pub mod faults;
 pub mod fixeval;
 pub mod imu;

@@ -27,11 +27,11 @@ use visnav_core::vo::{FrameMotion, TrackPair, VoConfig, VoInput, frame_motion};
 use visnav_io::image_file::GrayImageFile;
 
 /// The frames and their measured poses.
-const PREV_FRAME: &str = "frame_05_0182.png";
-const NEXT_FRAME: &str = "frame_05_0184.png";
+pub(crate) const PREV_FRAME: &str = "frame_05_0182.png";
+pub(crate) const NEXT_FRAME: &str = "frame_05_0184.png";
 
 /// NGI camera (README): f = 120 mm on a 92.16 x 165.888 mm sensor at 640 x 1152 px, no distortion.
-const NGI_FOCAL_PX: f64 = 120.0 / 92.16 * 640.0;
+pub(crate) const NGI_FOCAL_PX: f64 = 120.0 / 92.16 * 640.0;
 
 /// Height uncertainty of the previous pose above the DEM, m: the aerial triangulation's height is
 /// decimetres, the 24 m DEM's error over a valley with 600 m of relief some metres; 10 m is taken.
@@ -78,7 +78,7 @@ pub struct NgiVo {
 }
 
 /// A frame's measured pose from `frames_truth.csv`.
-fn truth_pose(dir: &Path, frame: &str) -> Result<Pose, VoEvalError> {
+pub(crate) fn truth_pose(dir: &Path, frame: &str) -> Result<Pose, VoEvalError> {
     let path = dir.join("frames_truth.csv");
     let err = |reason: String| VoEvalError::Data {
         path: path.clone(),
@@ -107,7 +107,7 @@ fn truth_pose(dir: &Path, frame: &str) -> Result<Pose, VoEvalError> {
     })
 }
 
-fn load_frame(dir: &Path, frame: &str) -> Result<GrayImage, VoEvalError> {
+pub(crate) fn load_frame(dir: &Path, frame: &str) -> Result<GrayImage, VoEvalError> {
     let path = dir.join(frame);
     GrayImage::load(&path).map_err(|e| VoEvalError::Data {
         path,
@@ -217,7 +217,7 @@ const VGA_PITCH_DEG: f64 = 0.3;
 /// the frame's footprint each way and the sequence never sees its edge.
 const TEXTURE_GSD_M: f64 = VGA_AGL_M / VGA_FOCAL_PX;
 /// VGA with a 60 deg horizontal field of view: fx = 320 / tan(30 deg).
-const VGA_FOCAL_PX: f64 = 554.256;
+pub(crate) const VGA_FOCAL_PX: f64 = 554.256;
 /// Gyro noise over the 0.2 s between frames, deg (a consumer MEMS gyro: bias 20 deg/h and
 /// 0.3 deg/sqrt(h) of random walk give about 0.001 deg; 0.01 deg is taken).
 const VGA_GYRO_SIGMA_DEG: f64 = 0.01;
@@ -262,7 +262,7 @@ pub struct VgaVo {
 
 /// The frame `pose` sees of the photo laid on the ground (z = 0, centred on the origin, north up,
 /// `TEXTURE_GSD_M` per pixel): each pixel's ray onto the ground, bilinear sample (0 off the photo).
-fn render_flat(texture: &GrayImage, image: &ImageGeometry, pose: &Pose) -> GrayImage {
+pub(crate) fn render_flat(texture: &GrayImage, image: &ImageGeometry, pose: &Pose) -> GrayImage {
     let (cx, cy) = (
         (texture.width() as f64 - 1.0) / 2.0,
         (texture.height() as f64 - 1.0) / 2.0,
@@ -285,7 +285,7 @@ fn render_flat(texture: &GrayImage, image: &ImageGeometry, pose: &Pose) -> GrayI
 }
 
 /// The true poses of the VGA sequence (`VGA_*`), centred on the photo.
-fn vga_poses(frames: usize) -> Vec<Pose> {
+pub(crate) fn vga_poses(frames: usize) -> Vec<Pose> {
     let step = Vector3::from(VGA_STEP_M);
     let start = Vector3::new(0.0, 0.0, VGA_AGL_M) - step * (frames as f64 / 2.0);
     (0..frames)

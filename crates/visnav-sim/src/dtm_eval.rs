@@ -1,0 +1,375 @@
+//! DTM navigation measured (`visnav bench dtm`, issue 23): the first frame's pose from the optical
+//! flow between two frames and the terrain model alone ([`visnav_core::dtm_nav::solve`]).
+//!
+//! * Real frames ([`ngi_dtm`]): NGI 3324C strip 05, frames 0182 -> 0184 (`../shared/data/ngi_3324c`:
+//!   Intergraph DMC frames at 640 x 1152 px, poses from aerial triangulation, a 24 m DEM of a
+//!   valley of 150-780 m, the camera about 4.8 km above it, 2.6 km between the frames). Corners of
+//!   frame 0182 are tracked into frame 0184 by pyramidal Lucas-Kanade with the forward-backward
+//!   check, each started where the first guess predicts it (its ray onto the DEM from the guessed
+//!   first pose, projected with the guessed second pose: the INS's prediction). The first guess
+//!   is the measured poses moved by a navigation error ([`NGI_GUESS`]: a shift and a turn common
+//!   to both frames, as an INS's error is, and an error of the motion). No orthophoto is read. The solution's first pose against the
+//!   measured one, beside its own covariance.
+//! * Flat ground ([`flat_dtm`]): the VGA sequence of `visnav bench vo` (a real NAIP photo of the
+//!   North Dakota area, laid flat, rendered for a known flight at 300 m above it), frame pairs
+//!   [`FLAT_PAIR_GAP`] frames apart, the same flow and solver over flat terrain: every pair must be
+//!   refused, with the default relief screen and without it (then by the conditioning check).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use nalgebra::{Rotation3, Vector2, Vector3};
+use serde::Serialize;
+
+use visnav_core::dtm_nav::{DtmFix, DtmInput, DtmNavConfig, DtmRejection, solve};
+use visnav_core::geo::dem::Dem;
+use visnav_core::pose::{ImageGeometry, Pose};
+use visnav_core::stats::percentile;
+use visnav_core::vision::GrayImage;
+use visnav_core::vision::klt::{FeatureParams, Pyramid, SpreadGrid, TrackParams, track_checked};
+use visnav_core::vo::TrackPair;
+use visnav_io::image_file::GrayImageFile;
+
+use crate::vo_eval::{
+    NEXT_FRAME, NGI_FOCAL_PX, PREV_FRAME, VGA_FOCAL_PX, VoEvalError, load_frame, render_flat,
+    truth_pose, vga_poses,
+};
+
+/// A first guess's navigation error: common to both frames, map east, north, up, m, and a turn
+/// (roll, pitch, yaw about the world axes), deg; and the guessed motion's own error, m.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct GuessError {
+    pub offset_m: [f64; 3],
+    pub turn_deg: [f64; 3],
+    pub motion_err_m: [f64; 3],
+}
+
+/// The bench's NGI guess: an INS some minutes after losing GPS (the motion: 2.6 km flown in
+/// about 30 s with a velocity error of 0.5 m/s).
+pub const NGI_GUESS: GuessError = GuessError {
+    offset_m: [150.0, -100.0, 30.0],
+    turn_deg: [0.3, -0.2, 1.0],
+    motion_err_m: [12.0, -8.0, 3.0],
+};
+
+/// Corners detected in the first frame (strongest first, spread over a grid so the whole overlap
+/// is covered): many flow vectors, as the paper's dense flow.
+const MAX_CORNERS: usize = 1500;
+const CORNER_MIN_DISTANCE_PX: f32 = 6.0;
+const SPREAD: SpreadGrid = SpreadGrid {
+    cols: 8,
+    rows: 12,
+    max_per_cell: 40,
+};
+/// Pyramid levels for the flow: the guess leaves tens of pixels to find (2^4 x half a window).
+const FLOW_MAX_LEVEL: usize = 4;
+
+/// The flat pairs' guess: the NGI guess's kind of error at 300 m instead of 4.8 km.
+const FLAT_GUESS: GuessError = GuessError {
+    offset_m: [30.0, -20.0, 6.0],
+    turn_deg: [0.3, -0.2, 1.0],
+    motion_err_m: [0.5, -0.3, 0.1],
+};
+
+/// Flat pairs: frames this far apart in the VGA sequence (4 m per frame: 32 m at 300 m).
+pub const FLAT_PAIR_GAP: usize = 8;
+
+/// The NGI figures (`visnav bench dtm --json`: the `ngi_*` keys).
+#[derive(Debug, Clone, Serialize)]
+pub struct NgiDtm {
+    pub corners: usize,
+    /// Flow vectors kept by the forward-backward check, on the terrain, inliers of the solution.
+    pub tracks: usize,
+    pub on_ground: usize,
+    pub inliers: usize,
+    /// The first guess's position error, m (what the solution starts from).
+    pub guess_err_m: f64,
+    /// The solved first position minus the measured one (east, north, up), m, and its length.
+    pub err_m: [f64; 3],
+    pub err_norm_m: f64,
+    /// The claimed 1-sigma along the error's direction, m, and the error in those sigmas.
+    pub sigma_along_err_m: f64,
+    pub err_over_sigma: f64,
+    /// Claimed 1-sigma east, north, up, m; horizontal given the attitude.
+    pub sigma_m: [f64; 3],
+    pub sigma_h_given_attitude_m: f64,
+    /// The solved first attitude against the measured one, deg; its largest 1-sigma.
+    pub att_err_deg: f64,
+    pub att_sigma_deg: f64,
+    pub rms_px: f64,
+    pub sigma0: f64,
+    pub relief_std_m: f64,
+    pub agl_m: f64,
+    pub method: String,
+    pub iterations: usize,
+    /// Flow (pyramids, corners, tracking both ways) and solve times on the calling thread, ms.
+    pub ms_flow: f64,
+    pub ms_solve: f64,
+}
+
+/// The flat-ground figures.
+#[derive(Debug, Clone, Serialize)]
+pub struct FlatDtm {
+    pub pairs: usize,
+    /// Solutions accepted with the default settings and with the relief screen off.
+    pub accepted: usize,
+    pub accepted_unscreened: usize,
+    /// One line per distinct refusal reason (first example of each), both runs.
+    pub reasons: Vec<String>,
+    /// Mean flow vectors per pair.
+    pub tracks_mean: f64,
+    /// Solve time per pair with the screen off (the full iterations), median, ms.
+    pub ms_solve_p50: f64,
+}
+
+/// Lucas-Kanade flow from `a` to `b`: corners of `a`, each started at `predict(corner)` in `b`
+/// (`None`: not tracked), kept when the forward-backward check passes.
+fn flow(
+    a: &GrayImage,
+    b: &GrayImage,
+    predict: impl Fn([f32; 2]) -> Option<[f32; 2]>,
+) -> Result<(usize, Vec<TrackPair>), VoEvalError> {
+    let vision = |e: visnav_core::vision::VisionError| VoEvalError::Vision(e.to_string());
+    let params = TrackParams {
+        max_level: FLOW_MAX_LEVEL,
+        ..TrackParams::default()
+    };
+    let pa = Pyramid::new(a, params.max_level, params.win_size_px).map_err(vision)?;
+    let pb = Pyramid::new(b, params.max_level, params.win_size_px).map_err(vision)?;
+    let corners = pa
+        .good_features(&FeatureParams {
+            max_corners: MAX_CORNERS,
+            min_distance_px: CORNER_MIN_DISTANCE_PX,
+            spread: Some(SPREAD),
+            ..FeatureParams::default()
+        })
+        .map_err(vision)?;
+    let (pts, guesses): (Vec<[f32; 2]>, Vec<[f32; 2]>) = corners
+        .iter()
+        .filter_map(|&p| predict(p).map(|g| (p, g)))
+        .unzip();
+    let tracks = track_checked(&pa, &pb, &pts, Some(&guesses), &params).map_err(vision)?;
+    let pairs = pts
+        .iter()
+        .zip(&tracks)
+        .filter(|(_, t)| t.is_tracked())
+        .map(|(p, t)| TrackPair {
+            prev_px: Vector2::new(f64::from(p[0]), f64::from(p[1])),
+            next_px: Vector2::new(f64::from(t.point[0]), f64::from(t.point[1])),
+        })
+        .collect();
+    Ok((corners.len(), pairs))
+}
+
+/// Where `px` of a camera at `first` lands in a camera at `second` over `dem` (its ray onto the
+/// terrain, projected), inside the image; `None` otherwise.
+fn predict_px(
+    px: [f32; 2],
+    image: &ImageGeometry,
+    first: &Pose,
+    second: &Pose,
+    dem: &Dem,
+) -> Option<[f32; 2]> {
+    let ray = Vector3::new(
+        (f64::from(px[0]) - image.cx_px) / image.fx_px,
+        (f64::from(px[1]) - image.cy_px) / image.fy_px,
+        1.0,
+    );
+    let d = first.r_world_cam * ray;
+    let c = first.c_world;
+    let x = dem.intersect_ray([c.x, c.y, c.z], [d.x, d.y, d.z], 1e5)?;
+    let n = second.project(&Vector3::new(x[0], x[1], x[2]))?;
+    let q = [
+        image.fx_px * n.x + image.cx_px,
+        image.fy_px * n.y + image.cy_px,
+    ];
+    let inside = (0.0..f64::from(image.width_px)).contains(&q[0])
+        && (0.0..f64::from(image.height_px)).contains(&q[1]);
+    inside.then_some([q[0] as f32, q[1] as f32])
+}
+
+/// The true poses moved by a navigation error (module doc).
+fn guess(first: &Pose, second: &Pose, err: &GuessError) -> (Pose, Pose) {
+    let [r, p, y] = err.turn_deg.map(f64::to_radians);
+    let turn = Rotation3::from_euler_angles(r, p, y);
+    let off = Vector3::from(err.offset_m);
+    let moved = |pose: &Pose, extra: Vector3<f64>| Pose {
+        r_world_cam: turn * pose.r_world_cam,
+        c_world: pose.c_world + off + extra,
+    };
+    (
+        moved(first, Vector3::zeros()),
+        moved(second, Vector3::from(err.motion_err_m)),
+    )
+}
+
+fn data_err(path: PathBuf, reason: String) -> VoEvalError {
+    VoEvalError::Data { path, reason }
+}
+
+/// Frame 0182's pose from the flow to frame 0184 and the DEM, started from the measured poses
+/// moved by `err` (module doc; the bench uses [`NGI_GUESS`]).
+pub fn ngi_dtm(dir: &Path, err: &GuessError) -> Result<NgiDtm, VoEvalError> {
+    let truth1 = truth_pose(dir, PREV_FRAME)?;
+    let truth2 = truth_pose(dir, NEXT_FRAME)?;
+    let (img_a, img_b) = (load_frame(dir, PREV_FRAME)?, load_frame(dir, NEXT_FRAME)?);
+    let dem_path = dir.join("dem.tif");
+    let dem = visnav_io::geo::dem::load_dem(&dem_path, None)
+        .map_err(|e| data_err(dem_path.clone(), e.to_string()))?;
+    let image = ImageGeometry {
+        fx_px: NGI_FOCAL_PX,
+        fy_px: NGI_FOCAL_PX,
+        cx_px: (img_a.width() as f64 - 1.0) / 2.0,
+        cy_px: (img_a.height() as f64 - 1.0) / 2.0,
+        width_px: img_a.width() as u32,
+        height_px: img_a.height() as u32,
+    };
+    let (guess1, guess2) = guess(&truth1, &truth2, err);
+    let t0 = Instant::now();
+    let (corners, tracks) = flow(&img_a, &img_b, |p| {
+        predict_px(p, &image, &guess1, &guess2, &dem)
+    })?;
+    let t1 = Instant::now();
+    let cfg = DtmNavConfig::default();
+    let input = DtmInput {
+        tracks: &tracks,
+        image: &image,
+        guess_first: guess1,
+        guess_second: guess2,
+    };
+    let fix = solve(&input, &dem, &cfg).map_err(|e| {
+        data_err(
+            dir.join(PREV_FRAME),
+            format!("no pose from {} flow vectors: {e}", tracks.len()),
+        )
+    })?;
+    let t2 = Instant::now();
+    Ok(ngi_figures(
+        &fix,
+        &truth1,
+        &guess1,
+        corners,
+        tracks.len(),
+        [t0, t1, t2],
+    ))
+}
+
+/// The figures of an NGI solution against the measured first pose.
+fn ngi_figures(
+    fix: &DtmFix,
+    truth: &Pose,
+    guess: &Pose,
+    corners: usize,
+    tracks: usize,
+    [t0, t1, t2]: [Instant; 3],
+) -> NgiDtm {
+    let e = fix.first.c_world - truth.c_world;
+    let cov = fix.position_cov_first_m2();
+    let n = e.norm();
+    let sigma_along = if n > 0.0 {
+        ((e.transpose() * cov * e)[(0, 0)] / (n * n)).sqrt()
+    } else {
+        cov.trace().sqrt()
+    };
+    let att = fix.attitude_cov_first_rad2();
+    let att_err =
+        visnav_core::pose::refine::log_so3(&(fix.first.r_world_cam * truth.r_world_cam.inverse()));
+    let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
+    NgiDtm {
+        corners,
+        tracks,
+        on_ground: fix.on_ground,
+        inliers: fix.inliers,
+        guess_err_m: (guess.c_world - truth.c_world).norm(),
+        err_m: [e.x, e.y, e.z],
+        err_norm_m: n,
+        sigma_along_err_m: sigma_along,
+        err_over_sigma: n / sigma_along,
+        sigma_m: [cov[(0, 0)].sqrt(), cov[(1, 1)].sqrt(), cov[(2, 2)].sqrt()],
+        sigma_h_given_attitude_m: fix.sigma_h_given_attitude_m,
+        att_err_deg: att_err.norm().to_degrees(),
+        att_sigma_deg: att
+            .symmetric_eigenvalues()
+            .max()
+            .max(0.0)
+            .sqrt()
+            .to_degrees(),
+        rms_px: fix.rms_px,
+        sigma0: fix.sigma0,
+        relief_std_m: fix.relief_std_m,
+        agl_m: fix.agl_m,
+        method: format!("{:?}", fix.method),
+        iterations: fix.iterations,
+        ms_flow: ms(t0, t1),
+        ms_solve: ms(t1, t2),
+    }
+}
+
+/// The VGA camera of the flat sequence (as `visnav bench vo`'s).
+fn vga_image() -> ImageGeometry {
+    ImageGeometry {
+        fx_px: VGA_FOCAL_PX,
+        fy_px: VGA_FOCAL_PX,
+        cx_px: 319.5,
+        cy_px: 239.5,
+        width_px: 640,
+        height_px: 480,
+    }
+}
+
+/// Flat pairs of the VGA sequence over the photo at `texture_path` (module doc): `pairs` pairs,
+/// each solved with the default settings and with the relief screen off.
+pub fn flat_dtm(texture_path: &Path, pairs: usize) -> Result<FlatDtm, VoEvalError> {
+    let texture = GrayImage::load(texture_path)
+        .map_err(|e| data_err(texture_path.to_path_buf(), e.to_string()))?;
+    let image = vga_image();
+    let poses = vga_poses(pairs + FLAT_PAIR_GAP);
+    let dem = Dem::flat(0.0).map_err(|e| VoEvalError::Vision(e.to_string()))?;
+    let screened = DtmNavConfig::default();
+    let unscreened = DtmNavConfig {
+        min_relief_agl_fraction: 0.0,
+        ..DtmNavConfig::default()
+    };
+    let (mut accepted, mut accepted_unscreened, mut n_tracks) = (0, 0, 0);
+    let mut reasons: Vec<String> = Vec::new();
+    let mut times = Vec::new();
+    for k in 0..pairs {
+        let (t1, t2) = (&poses[k], &poses[k + FLAT_PAIR_GAP]);
+        let a = render_flat(&texture, &image, t1);
+        let b = render_flat(&texture, &image, t2);
+        let (g1, g2) = guess(t1, t2, &FLAT_GUESS);
+        let (_, tracks) = flow(&a, &b, |p| predict_px(p, &image, &g1, &g2, &dem))?;
+        n_tracks += tracks.len();
+        let input = DtmInput {
+            tracks: &tracks,
+            image: &image,
+            guess_first: g1,
+            guess_second: g2,
+        };
+        let mut note = |r: &DtmRejection, what: &str| {
+            let line = format!("{what}: {r}");
+            let kind = line.split(':').take(2).collect::<Vec<_>>().join(":");
+            if !reasons.iter().any(|l| l.starts_with(&kind)) {
+                reasons.push(line);
+            }
+        };
+        match solve(&input, &dem, &screened) {
+            Ok(_) => accepted += 1,
+            Err(r) => note(&r, "default"),
+        }
+        let t0 = Instant::now();
+        match solve(&input, &dem, &unscreened) {
+            Ok(_) => accepted_unscreened += 1,
+            Err(r) => note(&r, "screen off"),
+        }
+        times.push(t0.elapsed().as_secs_f64() * 1e3);
+    }
+    Ok(FlatDtm {
+        pairs,
+        accepted,
+        accepted_unscreened,
+        reasons,
+        tracks_mean: n_tracks as f64 / pairs.max(1) as f64,
+        ms_solve_p50: percentile(&times, 0.5),
+    })
+}

@@ -80,6 +80,10 @@
 //!   attitude known: infinite.
 //! * Too few tracks or tracks on the terrain, no convergence, too few inliers, a poor fit
 //!   (`sigma0` over `max_sigma0`), non-finite numbers.
+//! * When the caller says how good the guess's height and tilt are ([`DtmInput::guess_sigma`]):
+//!   a solution whose height and tilt disagree with them ([`DtmRejection::InconsistentWithGuess`]):
+//!   the flow can fit another minimum nearly as well, far from the truth in position, height and
+//!   tilt; an INS's height and tilt are what stays good in a GPS outage. A check, not a prior.
 //!
 //! # Conventions
 //! World frame: the terrain model's map frame (x grid east, y grid north, z up, metres), as in
@@ -191,11 +195,12 @@ const DEFAULT_MAX_ATTITUDE_SIGMA_DEG: f64 = 2.0;
 /// (a terrain model far off, a wrong camera, a moving scene).
 const DEFAULT_MAX_SIGMA0: f64 = 3.0;
 /// Default inlier fraction: flow that passed the tracker's forward-backward check is nearly all
-/// right (NGI 0182/0184: 353-366 of 356-370 vectors agree with the solution), while a wrong
-/// minimum leaves a quarter or more unexplained (NGI from a guess 394 m and 2 deg off: 272 of
-/// 356 for a solution 742 m wrong, sigma0 1.38 where the right one has 0.73). 80 % of the flow
-/// must agree.
-const DEFAULT_MIN_INLIER_FRACTION: f64 = 0.8;
+/// right (NGI 0182/0184: 99-100 % of the vectors agree with the solution from every guess it
+/// solved correctly), while wrong minima leave more unexplained (NGI from guesses 200-600 m and
+/// 2-10 deg off: 76-95 % for solutions 470-2300 m wrong; the guess check catches those above
+/// 90 %). 90 % of the flow must agree. Over trees or buildings a terrain model (not a surface
+/// model) leaves more flow unexplained: such pairs are refused, not guessed.
+const DEFAULT_MIN_INLIER_FRACTION: f64 = 0.9;
 /// Default iterations per stage: Gauss-Newton converges in 5-10 from an INS guess.
 const DEFAULT_MAX_ITERATIONS: usize = 50;
 /// Huber's 95 % efficiency constant and Tukey's (Huber 1981; Beaton and Tukey 1974).
@@ -288,6 +293,15 @@ impl Validate for DtmNavConfig {
 pub enum DtmRejection {
     #[error("invalid input: {0}")]
     InvalidInput(String),
+    #[error(
+        "inconsistent with the navigation: height {dh_m:+.0} m and tilt {dtilt_deg:.2} deg from the guess's (squared Mahalanobis distance {m2:.1} over {max}): a wrong minimum"
+    )]
+    InconsistentWithGuess {
+        dh_m: f64,
+        dtilt_deg: f64,
+        m2: f64,
+        max: f64,
+    },
     #[error("{tracks} tracks, need {min}")]
     TooFewTracks { tracks: usize, min: usize },
     #[error("{on_ground} of {tracks} tracks reach the terrain, need {min}")]
@@ -340,7 +354,23 @@ pub struct DtmInput<'a> {
     /// First guesses of the first and the second frame's camera poses (world frame).
     pub guess_first: Pose,
     pub guess_second: Pose,
+    /// How good the guess's height and tilt are: when given, a solution whose first height and
+    /// tilt disagree with the guess's beyond [`GUESS_GATE_CHI2`] is refused
+    /// ([`DtmRejection::InconsistentWithGuess`]). A check only: nothing of the guess is fused.
+    pub guess_sigma: Option<GuessSigma>,
 }
+
+/// 1-sigma of the guess's height and tilt (the navigation filter's: baro-aided height and
+/// gravity-aided roll and pitch stay good where position and heading drift).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GuessSigma {
+    pub height_m: f64,
+    pub tilt_rad: f64,
+}
+
+/// Chi-square 99.9 % point for 3 degrees of freedom: the gate on the solution's height and tilt
+/// (two angles) against the guess's.
+pub const GUESS_GATE_CHI2: f64 = 16.27;
 
 /// Which minimiser finished a stage.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -851,9 +881,40 @@ fn solve_with(
         (x, method) = (m.poses, m.method);
     }
     let mut fix = assess(&problem, &x, input.tracks.len())?;
+    if let Some(sigma) = input.guess_sigma {
+        check_against_guess(&fix, &input.guess_first, &sigma)?;
+    }
     fix.method = method;
     fix.iterations = iterations;
     Ok(fix)
+}
+
+/// The solution's first height and tilt against the guess's ([`DtmInput::guess_sigma`]): the
+/// flow over relief can have other minima that fit it nearly as well (NGI 0182/0184 from guesses
+/// 200-600 m and 10 deg off: solutions 470-2300 m wrong with 85-95 % of the flow agreeing,
+/// their height 300-2000 m and their tilt up to 34 deg from the truth), while an INS's height
+/// and tilt stay good.
+fn check_against_guess(fix: &DtmFix, guess: &Pose, sigma: &GuessSigma) -> Result<(), DtmRejection> {
+    let dh = fix.first.c_world.z - guess.c_world.z;
+    let rot = crate::pose::refine::log_so3(&(fix.first.r_world_cam * guess.r_world_cam.inverse()));
+    let z = Vector3::new(dh, rot.x, rot.y);
+    let idx = [C1 + 2, PHI1, PHI1 + 1];
+    let mut cov = Matrix3::from_fn(|i, j| fix.cov[(idx[i], idx[j])]);
+    cov[(0, 0)] += sigma.height_m.powi(2);
+    cov[(1, 1)] += sigma.tilt_rad.powi(2);
+    cov[(2, 2)] += sigma.tilt_rad.powi(2);
+    let m2 = cov
+        .try_inverse()
+        .map_or(f64::INFINITY, |inv| (z.transpose() * inv * z)[(0, 0)]);
+    if m2.is_nan() || m2 > GUESS_GATE_CHI2 {
+        return Err(DtmRejection::InconsistentWithGuess {
+            dh_m: dh,
+            dtilt_deg: rot.x.hypot(rot.y).to_degrees(),
+            m2,
+            max: GUESS_GATE_CHI2,
+        });
+    }
+    Ok(())
 }
 
 /// Mean height of a camera at `z_m` above `heights` and their standard deviation, m.
@@ -1048,6 +1109,14 @@ fn check_inputs(input: &DtmInput<'_>, cfg: &DtmNavConfig) -> Result<(), DtmRejec
         if (m * m.transpose() - Matrix3::identity()).amax() > 1e-6 || m.determinant() <= 0.0 {
             return invalid("a first-guess attitude is not a rotation");
         }
+    }
+    if let Some(g) = input.guess_sigma
+        && !(g.height_m.is_finite()
+            && g.height_m > 0.0
+            && g.tilt_rad.is_finite()
+            && g.tilt_rad > 0.0)
+    {
+        return invalid("the guess's height and tilt sigmas must be finite and > 0");
     }
     let im = input.image;
     let ok = |v: f64| v.is_finite() && v > 0.0;

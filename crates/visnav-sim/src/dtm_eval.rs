@@ -21,7 +21,7 @@ use std::time::Instant;
 use nalgebra::{Rotation3, Vector2, Vector3};
 use serde::Serialize;
 
-use visnav_core::dtm_nav::{DtmFix, DtmInput, DtmNavConfig, DtmRejection, solve};
+use visnav_core::dtm_nav::{DtmFix, DtmInput, DtmNavConfig, DtmRejection, GuessSigma, solve};
 use visnav_core::geo::dem::Dem;
 use visnav_core::pose::{ImageGeometry, Pose};
 use visnav_core::stats::percentile;
@@ -50,6 +50,13 @@ pub const NGI_GUESS: GuessError = GuessError {
     offset_m: [150.0, -100.0, 30.0],
     turn_deg: [0.3, -0.2, 1.0],
     motion_err_m: [12.0, -8.0, 3.0],
+};
+
+/// How good the NGI guesses' height and tilt are said to be: a baro-aided height (50 m at 5 km
+/// above sea level) and an INS's roll and pitch (0.5 deg).
+pub const NGI_GUESS_SIGMA: GuessSigma = GuessSigma {
+    height_m: 50.0,
+    tilt_rad: 0.5 * std::f64::consts::PI / 180.0,
 };
 
 /// Corners detected in the first frame (strongest first, spread over a grid so the whole overlap
@@ -236,6 +243,7 @@ pub fn ngi_dtm(dir: &Path, err: &GuessError) -> Result<NgiDtm, VoEvalError> {
         image: &image,
         guess_first: guess1,
         guess_second: guess2,
+        guess_sigma: Some(NGI_GUESS_SIGMA),
     };
     let fix = solve(&input, &dem, &cfg).map_err(|e| {
         data_err(
@@ -345,6 +353,7 @@ pub fn flat_dtm(texture_path: &Path, pairs: usize) -> Result<FlatDtm, VoEvalErro
             image: &image,
             guess_first: g1,
             guess_second: g2,
+            guess_sigma: None,
         };
         let mut note = |r: &DtmRejection, what: &str| {
             let line = format!("{what}: {r}");

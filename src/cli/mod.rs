@@ -6,6 +6,7 @@ pub mod bench;
 pub mod bench_dtm;
 #[cfg(feature = "sim")]
 pub mod bench_fix;
+#[cfg(feature = "sim")]
 pub mod bench_vo;
 pub mod check_config;
 pub mod fix;

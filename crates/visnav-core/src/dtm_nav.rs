@@ -807,79 +807,9 @@ fn solve_with(
         cfg,
         sigma_px: std::f64::consts::SQRT_2 * cfg.track_sigma_px,
     };
-    // Tracks on the terrain at the first guess: the ones solved with.
-    let first_hits: Vec<(Obs, Vector3<f64>)> = problem
-        .obs
-        .iter()
-        .filter_map(|o| {
-            eval_track(&start, o, input.image, dem, cfg.max_range_m).map(|e| (*o, e.ground))
-        })
-        .collect();
-    if first_hits.len() < cfg.min_tracks {
-        return Err(DtmRejection::TooFewOnGround {
-            on_ground: first_hits.len(),
-            tracks: input.tracks.len(),
-            min: cfg.min_tracks,
-        });
-    }
-    let heights: Vec<f64> = first_hits.iter().map(|(_, x)| x.z).collect();
-    let (agl0, relief0) = agl_and_relief(&heights, start.first.c_world.z);
-    if agl0.is_nan() || agl0 <= 0.0 {
-        return Err(DtmRejection::InvalidInput(format!(
-            "the first guess is {agl0:.0} m above the ground it sees"
-        )));
-    }
-    if relief0 < cfg.min_relief_agl_fraction * agl0 {
-        return Err(DtmRejection::FlatGround {
-            relief_std_m: relief0,
-            agl_m: agl0,
-            min_fraction: cfg.min_relief_agl_fraction,
-        });
-    }
-    let problem = Problem {
-        obs: first_hits.iter().map(|(o, _)| *o).collect(),
-        ..problem
-    };
-    // Conditioning at the first guess: singular normal equations (flat ground, tracks in a
-    // line) are refused before iterating on them.
-    let rcond0 = reciprocal_condition(&problem.linearise(&start, Loss::Huber(cfg.huber_k_sigma)).h);
-    if rcond0.is_nan() || rcond0 < MIN_RECIPROCAL_CONDITION {
-        return Err(DtmRejection::IllConditioned {
-            rcond: rcond0,
-            min: MIN_RECIPROCAL_CONDITION,
-        });
-    }
-    // The stages (module doc): the first pose held at the guess, then the tilt, then everything
-    // free (Huber, Tukey). The first two may stop unconverged (they only choose the basin); the
-    // free ones must converge.
-    let huber = Loss::Huber(cfg.huber_k_sigma);
-    let stages = [
-        Stage {
-            loss: huber,
-            held: &FIRST_POSE,
-        },
-        Stage {
-            loss: huber,
-            held: &TILT,
-        },
-        Stage {
-            loss: huber,
-            held: &[],
-        },
-        Stage {
-            loss: Loss::Tukey(cfg.tukey_c_sigma),
-            held: &[],
-        },
-    ];
-    let (mut x, mut iterations, mut method) = (start, 0, DtmMethod::GaussNewton);
-    for (i, stage) in stages.iter().enumerate() {
-        let m = problem.minimise(x, *stage, agl0, lm_only)?;
-        iterations += m.iterations;
-        if !m.converged && i >= 2 {
-            return Err(DtmRejection::NotConverged { iterations });
-        }
-        (x, method) = (m.poses, m.method);
-    }
+    let (obs, agl0) = screen_tracks(&problem, &start, input.tracks.len())?;
+    let problem = Problem { obs, ..problem };
+    let (x, iterations, method) = run_stages(&problem, start, agl0, lm_only)?;
     let mut fix = assess(&problem, &x, input.tracks.len())?;
     if let Some(sigma) = input.guess_sigma {
         check_against_guess(&fix, &input.guess_first, &sigma)?;
@@ -887,6 +817,85 @@ fn solve_with(
     fix.method = method;
     fix.iterations = iterations;
     Ok(fix)
+}
+
+/// The tracks on the terrain at the first guess (the ones solved with) and the guess's height
+/// above them, after the count and relief screens.
+fn screen_tracks(
+    problem: &Problem<'_>,
+    start: &PosePair,
+    tracks: usize,
+) -> Result<(Vec<Obs>, f64), DtmRejection> {
+    let cfg = problem.cfg;
+    let hits: Vec<(Obs, f64)> = problem
+        .obs
+        .iter()
+        .filter_map(|o| {
+            eval_track(start, o, problem.image, problem.dem, cfg.max_range_m)
+                .map(|e| (*o, e.ground.z))
+        })
+        .collect();
+    if hits.len() < cfg.min_tracks {
+        return Err(DtmRejection::TooFewOnGround {
+            on_ground: hits.len(),
+            tracks,
+            min: cfg.min_tracks,
+        });
+    }
+    let heights: Vec<f64> = hits.iter().map(|(_, z)| *z).collect();
+    let (agl_m, relief_std_m) = agl_and_relief(&heights, start.first.c_world.z);
+    if agl_m.is_nan() || agl_m <= 0.0 {
+        return Err(DtmRejection::InvalidInput(format!(
+            "the first guess is {agl_m:.0} m above the ground it sees"
+        )));
+    }
+    if relief_std_m < cfg.min_relief_agl_fraction * agl_m {
+        return Err(DtmRejection::FlatGround {
+            relief_std_m,
+            agl_m,
+            min_fraction: cfg.min_relief_agl_fraction,
+        });
+    }
+    Ok((hits.into_iter().map(|(o, _)| o).collect(), agl_m))
+}
+
+/// The conditioning check at the first guess, then the four stages (module doc): the first pose
+/// held, the tilt held (these two only choose the basin and may stop unconverged), everything
+/// free with Huber, then Tukey (these must converge). The solution, the iterations of all
+/// stages and the last stage's method.
+fn run_stages(
+    problem: &Problem<'_>,
+    start: PosePair,
+    agl_m: f64,
+    lm_only: bool,
+) -> Result<(PosePair, usize, DtmMethod), DtmRejection> {
+    let cfg = problem.cfg;
+    let huber = Loss::Huber(cfg.huber_k_sigma);
+    // Singular normal equations (flat ground, tracks in a line) are refused before iterating.
+    let rcond0 = reciprocal_condition(&problem.linearise(&start, huber).h);
+    if rcond0.is_nan() || rcond0 < MIN_RECIPROCAL_CONDITION {
+        return Err(DtmRejection::IllConditioned {
+            rcond: rcond0,
+            min: MIN_RECIPROCAL_CONDITION,
+        });
+    }
+    let stage = |loss, held| Stage { loss, held };
+    let stages = [
+        stage(huber, &FIRST_POSE[..]),
+        stage(huber, &TILT[..]),
+        stage(huber, &[]),
+        stage(Loss::Tukey(cfg.tukey_c_sigma), &[]),
+    ];
+    let (mut x, mut iterations, mut method) = (start, 0, DtmMethod::GaussNewton);
+    for (i, stage) in stages.iter().enumerate() {
+        let m = problem.minimise(x, *stage, agl_m, lm_only)?;
+        iterations += m.iterations;
+        if !m.converged && i >= 2 {
+            return Err(DtmRejection::NotConverged { iterations });
+        }
+        (x, method) = (m.poses, m.method);
+    }
+    Ok((x, iterations, method))
 }
 
 /// The solution's first height and tilt against the guess's ([`DtmInput::guess_sigma`]): the

@@ -30,10 +30,7 @@ use visnav_core::vision::klt::{FeatureParams, Pyramid, SpreadGrid, TrackParams, 
 use visnav_core::vo::TrackPair;
 use visnav_io::image_file::GrayImageFile;
 
-use crate::vo_eval::{
-    NEXT_FRAME, NGI_FOCAL_PX, PREV_FRAME, VGA_FOCAL_PX, VoEvalError, load_frame, render_flat,
-    truth_pose, vga_poses,
-};
+use crate::vo_eval::{NgiPair, PREV_FRAME, VGA_FOCAL_PX, VoEvalError, render_flat, vga_poses};
 
 /// A first guess's navigation error: common to both frames, map east, north, up, m, and a turn
 /// (roll, pitch, yaw about the world axes), deg; and the guessed motion's own error, m.
@@ -217,20 +214,14 @@ fn data_err(path: PathBuf, reason: String) -> VoEvalError {
 /// Frame 0182's pose from the flow to frame 0184 and the DEM, started from the measured poses
 /// moved by `err` (module doc; the bench uses [`NGI_GUESS`]).
 pub fn ngi_dtm(dir: &Path, err: &GuessError) -> Result<NgiDtm, VoEvalError> {
-    let truth1 = truth_pose(dir, PREV_FRAME)?;
-    let truth2 = truth_pose(dir, NEXT_FRAME)?;
-    let (img_a, img_b) = (load_frame(dir, PREV_FRAME)?, load_frame(dir, NEXT_FRAME)?);
-    let dem_path = dir.join("dem.tif");
-    let dem = visnav_io::geo::dem::load_dem(&dem_path, None)
-        .map_err(|e| data_err(dem_path.clone(), e.to_string()))?;
-    let image = ImageGeometry {
-        fx_px: NGI_FOCAL_PX,
-        fy_px: NGI_FOCAL_PX,
-        cx_px: (img_a.width() as f64 - 1.0) / 2.0,
-        cy_px: (img_a.height() as f64 - 1.0) / 2.0,
-        width_px: img_a.width() as u32,
-        height_px: img_a.height() as u32,
-    };
+    let NgiPair {
+        prev: truth1,
+        next: truth2,
+        img_a,
+        img_b,
+        dem,
+        image,
+    } = NgiPair::load(dir)?;
     let (guess1, guess2) = guess(&truth1, &truth2, err);
     let t0 = Instant::now();
     let (corners, tracks) = flow(&img_a, &img_b, |p| {

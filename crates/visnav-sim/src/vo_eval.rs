@@ -28,10 +28,10 @@ use visnav_io::image_file::GrayImageFile;
 
 /// The frames and their measured poses.
 pub(crate) const PREV_FRAME: &str = "frame_05_0182.png";
-pub(crate) const NEXT_FRAME: &str = "frame_05_0184.png";
+const NEXT_FRAME: &str = "frame_05_0184.png";
 
 /// NGI camera (README): f = 120 mm on a 92.16 x 165.888 mm sensor at 640 x 1152 px, no distortion.
-pub(crate) const NGI_FOCAL_PX: f64 = 120.0 / 92.16 * 640.0;
+const NGI_FOCAL_PX: f64 = 120.0 / 92.16 * 640.0;
 
 /// Height uncertainty of the previous pose above the DEM, m: the aerial triangulation's height is
 /// decimetres, the 24 m DEM's error over a valley with 600 m of relief some metres; 10 m is taken.
@@ -78,7 +78,7 @@ pub struct NgiVo {
 }
 
 /// A frame's measured pose from `frames_truth.csv`.
-pub(crate) fn truth_pose(dir: &Path, frame: &str) -> Result<Pose, VoEvalError> {
+fn truth_pose(dir: &Path, frame: &str) -> Result<Pose, VoEvalError> {
     let path = dir.join("frames_truth.csv");
     let err = |reason: String| VoEvalError::Data {
         path: path.clone(),
@@ -107,7 +107,7 @@ pub(crate) fn truth_pose(dir: &Path, frame: &str) -> Result<Pose, VoEvalError> {
     })
 }
 
-pub(crate) fn load_frame(dir: &Path, frame: &str) -> Result<GrayImage, VoEvalError> {
+fn load_frame(dir: &Path, frame: &str) -> Result<GrayImage, VoEvalError> {
     let path = dir.join(frame);
     GrayImage::load(&path).map_err(|e| VoEvalError::Data {
         path,
@@ -115,16 +115,54 @@ pub(crate) fn load_frame(dir: &Path, frame: &str) -> Result<GrayImage, VoEvalErr
     })
 }
 
+/// The NGI frames 0182 and 0184 with their measured poses, the DEM and the camera.
+pub(crate) struct NgiPair {
+    pub prev: Pose,
+    pub next: Pose,
+    pub img_a: GrayImage,
+    pub img_b: GrayImage,
+    pub dem: visnav_core::geo::dem::Dem,
+    pub image: ImageGeometry,
+}
+
+impl NgiPair {
+    pub(crate) fn load(dir: &Path) -> Result<Self, VoEvalError> {
+        let dem_path = dir.join("dem.tif");
+        let dem =
+            visnav_io::geo::dem::load_dem(&dem_path, None).map_err(|e| VoEvalError::Data {
+                path: dem_path.clone(),
+                reason: e.to_string(),
+            })?;
+        let img_a = load_frame(dir, PREV_FRAME)?;
+        let image = ImageGeometry {
+            fx_px: NGI_FOCAL_PX,
+            fy_px: NGI_FOCAL_PX,
+            cx_px: (img_a.width() as f64 - 1.0) / 2.0,
+            cy_px: (img_a.height() as f64 - 1.0) / 2.0,
+            width_px: img_a.width() as u32,
+            height_px: img_a.height() as u32,
+        };
+        Ok(Self {
+            prev: truth_pose(dir, PREV_FRAME)?,
+            next: truth_pose(dir, NEXT_FRAME)?,
+            img_b: load_frame(dir, NEXT_FRAME)?,
+            img_a,
+            dem,
+            image,
+        })
+    }
+}
+
 /// Frame 0182 -> 0184 from the images and the DEM (module doc).
 pub fn ngi_vo(dir: &Path) -> Result<NgiVo, VoEvalError> {
-    let prev = truth_pose(dir, PREV_FRAME)?;
-    let next = truth_pose(dir, NEXT_FRAME)?;
-    let (img_a, img_b) = (load_frame(dir, PREV_FRAME)?, load_frame(dir, NEXT_FRAME)?);
-    let dem_path = dir.join("dem.tif");
-    let dem = visnav_io::geo::dem::load_dem(&dem_path, None).map_err(|e| VoEvalError::Data {
-        path: dem_path.clone(),
-        reason: e.to_string(),
-    })?;
+    let NgiPair {
+        prev,
+        next,
+        img_a,
+        img_b,
+        dem,
+        image,
+    } = NgiPair::load(dir)?;
     let surf = Surf::new(SurfParams::default()).map_err(|e| VoEvalError::Vision(e.to_string()))?;
     let (fa, fb) = (
         surf.detect_and_describe(&img_a),
@@ -138,14 +176,6 @@ pub fn ngi_vo(dir: &Path) -> Result<NgiVo, VoEvalError> {
     let matches =
         match_features(&fa, &fb, &params, None).map_err(|e| VoEvalError::Vision(e.to_string()))?;
     let tracks = match_pairs(&fa, &fb, &matches);
-    let image = ImageGeometry {
-        fx_px: NGI_FOCAL_PX,
-        fy_px: NGI_FOCAL_PX,
-        cx_px: (img_a.width() as f64 - 1.0) / 2.0,
-        cy_px: (img_a.height() as f64 - 1.0) / 2.0,
-        width_px: img_a.width() as u32,
-        height_px: img_a.height() as u32,
-    };
     let cfg = VoConfig {
         track_sigma_px: SURF_TRACK_SIGMA_PX,
         ..VoConfig::default()

@@ -30,7 +30,7 @@ use visnav_core::vision::klt::{FeatureParams, Pyramid, SpreadGrid, TrackParams, 
 use visnav_core::vo::TrackPair;
 use visnav_io::image_file::GrayImageFile;
 
-use crate::vo_eval::{NgiPair, PREV_FRAME, VGA_FOCAL_PX, VoEvalError, render_flat, vga_poses};
+use crate::vo_eval::{NgiPair, PREV_FRAME, VoEvalError, render_flat, vga_image, vga_poses};
 
 /// A first guess's navigation error: common to both frames, map east, north, up, m, and a turn
 /// (roll, pitch, yaw about the world axes), deg; and the guessed motion's own error, m.
@@ -301,18 +301,6 @@ fn ngi_figures(
         iterations: fix.iterations,
         ms_flow: ms(t0, t1),
         ms_solve: ms(t1, t2),
-    }
-}
-
-/// The VGA camera of the flat sequence (as `visnav bench vo`'s).
-fn vga_image() -> ImageGeometry {
-    ImageGeometry {
-        fx_px: VGA_FOCAL_PX,
-        fy_px: VGA_FOCAL_PX,
-        cx_px: 319.5,
-        cy_px: 239.5,
-        width_px: 640,
-        height_px: 480,
     }
 }
 

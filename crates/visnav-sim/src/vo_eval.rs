@@ -247,7 +247,7 @@ const VGA_PITCH_DEG: f64 = 0.3;
 /// the frame's footprint each way and the sequence never sees its edge.
 const TEXTURE_GSD_M: f64 = VGA_AGL_M / VGA_FOCAL_PX;
 /// VGA with a 60 deg horizontal field of view: fx = 320 / tan(30 deg).
-pub(crate) const VGA_FOCAL_PX: f64 = 554.256;
+const VGA_FOCAL_PX: f64 = 554.256;
 /// Gyro noise over the 0.2 s between frames, deg (a consumer MEMS gyro: bias 20 deg/h and
 /// 0.3 deg/sqrt(h) of random walk give about 0.001 deg; 0.01 deg is taken).
 const VGA_GYRO_SIGMA_DEG: f64 = 0.01;
@@ -314,6 +314,18 @@ pub(crate) fn render_flat(texture: &GrayImage, image: &ImageGeometry, pose: &Pos
     })
 }
 
+/// The VGA camera of the sequence: 640 x 480, 60 deg wide, no distortion.
+pub(crate) fn vga_image() -> ImageGeometry {
+    ImageGeometry {
+        fx_px: VGA_FOCAL_PX,
+        fy_px: VGA_FOCAL_PX,
+        cx_px: 319.5,
+        cy_px: 239.5,
+        width_px: 640,
+        height_px: 480,
+    }
+}
+
 /// The true poses of the VGA sequence (`VGA_*`), centred on the photo.
 pub(crate) fn vga_poses(frames: usize) -> Vec<Pose> {
     let step = Vector3::from(VGA_STEP_M);
@@ -340,14 +352,7 @@ fn vga_sequence(
         path: texture_path.to_path_buf(),
         reason: e.to_string(),
     })?;
-    let image = ImageGeometry {
-        fx_px: VGA_FOCAL_PX,
-        fy_px: VGA_FOCAL_PX,
-        cx_px: 319.5,
-        cy_px: 239.5,
-        width_px: 640,
-        height_px: 480,
-    };
+    let image = vga_image();
     let poses = vga_poses(frames.max(2));
     let imgs = poses
         .iter()

@@ -53,6 +53,7 @@ fn setup(port: u16) -> DaemonSetup {
         },
         frames: None,
         vo: Default::default(),
+        dtm_nav: Default::default(),
     }
 }
 

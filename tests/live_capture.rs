@@ -383,6 +383,7 @@ async fn daemon_runs_a_live_capture_process_and_kills_it_on_shutdown() {
         },
         frames: Some(frames),
         vo: Default::default(),
+        dtm_nav: Default::default(),
     };
     let fixer = Arc::new(CountingFixer(Default::default()));
     let daemon = Daemon::start(setup, Some(fixer.clone())).await.unwrap();

@@ -39,6 +39,7 @@ fn setup(port: u16, metrics_listen: &str) -> DaemonSetup {
         },
         frames: None,
         vo: Default::default(),
+        dtm_nav: Default::default(),
     }
 }
 

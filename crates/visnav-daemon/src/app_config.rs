@@ -67,6 +67,10 @@ pub struct Config {
     /// Visual odometry between fixes (off unless `enabled`); every key has a default.
     #[serde(default)]
     pub vo: visnav_core::vo::VoConfig,
+    /// DTM navigation: the pose from the flow between two frames and the terrain model alone
+    /// (off unless `enabled`); every key has a default.
+    #[serde(default)]
+    pub dtm_nav: visnav_core::dtm_nav::DtmNavConfig,
     /// The daemon's pipeline settings; every key has a default.
     #[serde(default)]
     pub daemon: crate::DaemonConfig,
@@ -247,6 +251,7 @@ impl Config {
         p.section("nav", |p| cfg.nav.validate(p));
         p.section("fix", |p| cfg.fix.validate(p));
         p.section("vo", |p| cfg.vo.validate(p));
+        p.section("dtm_nav", |p| cfg.dtm_nav.validate(p));
         if let Some(f) = &cfg.frames {
             p.section("frames", |p| f.validate_in(base, p));
         }

@@ -51,6 +51,7 @@ use tracing::{info, warn};
 
 use app_config::Config;
 use visnav_core::camera::Attitude;
+use visnav_core::dtm_nav::{DtmNavConfig, DtmNavigator, DtmStep};
 use visnav_core::fix::{FixPrior, FixReport};
 use visnav_core::nav::{
     Health as NavHealth, Measurement, NavConfig, NavFilter, NavOutput, Outcome,
@@ -77,6 +78,12 @@ pub trait FrameFixer: Send + Sync + 'static {
 
     /// Visual odometry with this engine's camera and terrain (`[vo]`); `None`: not available.
     fn odometer(&self, _cfg: &visnav_core::vo::VoConfig) -> Option<visnav_core::vo::Odometer> {
+        None
+    }
+
+    /// The DTM navigator with this engine's camera and terrain model (`[dtm_nav]`); `None`: not
+    /// available.
+    fn dtm_navigator(&self, _cfg: &DtmNavConfig) -> Option<DtmNavigator> {
         None
     }
 }
@@ -121,6 +128,8 @@ pub struct DaemonSetup {
     pub frames: Option<FramesConfig>,
     /// Visual odometry (`[vo]`).
     pub vo: visnav_core::vo::VoConfig,
+    /// DTM navigation (`[dtm_nav]`).
+    pub dtm_nav: DtmNavConfig,
 }
 
 impl DaemonSetup {
@@ -138,6 +147,7 @@ impl DaemonSetup {
             daemon: cfg.daemon.clone(),
             frames: cfg.frames.clone(),
             vo: cfg.vo.clone(),
+            dtm_nav: cfg.dtm_nav.clone(),
         }
     }
 }
@@ -332,8 +342,25 @@ impl Daemon {
             }
             _ => None,
         };
-        let vo_ctx = odometer.map(|odometer| vo_path::VoCtx {
+        let dtm = match (&frames, &fixer, setup.dtm_nav.enabled) {
+            (Some(_), Some(f), true) => {
+                let d = f.dtm_navigator(&setup.dtm_nav);
+                if d.is_none() {
+                    warn!(
+                        "[dtm_nav] enabled, but the fix engine has no terrain model: DTM navigation off"
+                    );
+                }
+                d
+            }
+            (None, _, true) => {
+                warn!("[dtm_nav] enabled, but there is no camera ([frames]): DTM navigation off");
+                None
+            }
+            _ => None,
+        };
+        let vo_ctx = (odometer.is_some() || dtm.is_some()).then(|| vo_path::VoCtx {
             odometer,
+            dtm,
             priors: shared.clone(),
             results: vo_tx.clone(),
             metrics: metrics.clone(),
@@ -368,6 +395,7 @@ impl Daemon {
             fix_log,
             vo_log,
             vo_working: None,
+            dtm_working: None,
         };
         let nav_task = tokio::spawn(nav.run(tel, fix_rx, vo_rx, stop_rx));
         let stop_threads = Arc::new(AtomicBool::new(false));
@@ -586,6 +614,8 @@ struct NavTask {
     vo_log: Option<volog::VoLog>,
     /// Visual odometry's last state (motions or refusals), for logging its changes.
     vo_working: Option<bool>,
+    /// The DTM navigator's (poses or refusals).
+    dtm_working: Option<bool>,
 }
 
 impl NavTask {
@@ -753,7 +783,11 @@ impl NavTask {
     /// A visual odometry result: a motion to the filter, everything counted; the first motion
     /// after refusals (and the first refusal after motions) logged with its reason.
     fn vo(&mut self, r: vo_path::VoResult) {
-        let (outcome, nis) = match &r.step {
+        if let Some(d) = &r.dtm {
+            self.dtm(r.seq, d);
+        }
+        let Some(step) = &r.step else { return };
+        let (outcome, nis) = match step {
             VoStep::Motion(motion) => self.vo_motion(r.seq, motion),
             VoStep::Refused(why) => {
                 if self.vo_working != Some(false) {
@@ -769,7 +803,7 @@ impl NavTask {
                 visnav_link::tlog::unix_now_us(),
                 r.seq,
                 r.t_capture_us,
-                &r.step,
+                step,
                 outcome,
                 nis,
             )
@@ -778,6 +812,36 @@ impl NavTask {
                 warn!("VO log {}: {e}; logging stopped", log.path().display());
                 self.vo_log = None;
             }
+        }
+    }
+
+    /// A DTM navigation result: a pose to the filter (gated as a map fix's pose), everything
+    /// counted; the first pose after refusals (and the first refusal after poses) logged.
+    fn dtm(&mut self, seq: u64, step: &DtmStep) {
+        let m = &self.metrics.dtm;
+        match step {
+            DtmStep::Fix(f) => {
+                let c = match self.filter.measure(Measurement::VisionPose(f.fix)) {
+                    Outcome::Accepted { .. } => &m.fused,
+                    Outcome::Rejected { .. } => &m.filter_rejected,
+                    _ => &m.unused,
+                };
+                c.fetch_add(1, Ordering::Relaxed);
+                if self.dtm_working != Some(true) {
+                    info!(
+                        "DTM navigation: pose from frame {seq} ({:.0} m baseline, {} of {} flow vectors, {:.2} px, {:.1} m horizontal sigma given the attitude)",
+                        f.baseline_m, f.inliers, f.tracks, f.rms_px, f.sigma_h_given_attitude_m
+                    );
+                    self.dtm_working = Some(true);
+                }
+            }
+            DtmStep::Refused(why) => {
+                if self.dtm_working != Some(false) {
+                    info!("DTM navigation: no pose from frame {seq}: {why}");
+                    self.dtm_working = Some(false);
+                }
+            }
+            DtmStep::Waiting => {}
         }
     }
 

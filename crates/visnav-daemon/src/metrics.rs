@@ -47,6 +47,9 @@ pub struct DaemonMetrics {
     pub imu_bias: Mutex<Option<RestoreStatus>>,
     /// Visual odometry (`[vo]`).
     pub vo: VoMetrics,
+    /// DTM navigation (`[dtm_nav]`): `started` counts the frames kept without a partner yet,
+    /// `motions` the poses solved, `fused` / `filter_rejected` / `unused` what the filter did.
+    pub dtm: VoMetrics,
 }
 
 /// Visual odometry's counters.
@@ -293,6 +296,8 @@ pub struct MetricsSnapshot {
     pub imu_bias: Option<ImuBiasSnapshot>,
     /// Visual odometry.
     pub vo: VoSnapshot,
+    /// DTM navigation (`DaemonMetrics::dtm`).
+    pub dtm: VoSnapshot,
 }
 
 /// `reason` with each number (digits with an optional sign and decimals) replaced by `N`.
@@ -379,6 +384,7 @@ impl DaemonMetrics {
             fix_latency_count: n_latency,
             health: HealthState::from_code(g(&self.health)),
             vo: self.vo.snapshot(),
+            dtm: self.dtm.snapshot(),
             imu_bias: self
                 .imu_bias
                 .lock()

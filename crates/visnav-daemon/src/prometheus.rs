@@ -77,46 +77,51 @@ impl Writer {
     }
 }
 
-/// Visual odometry's counters.
-fn vo(w: &mut Writer, v: &crate::metrics::VoSnapshot) {
+/// The frame-sequence counters of visual odometry (`prefix` "vo", a frame gives a "motion")
+/// or the DTM navigator ("dtm", a "fix"; `started`: kept waiting for a partner).
+fn sequence(w: &mut Writer, v: &crate::metrics::VoSnapshot, prefix: &str, what: &str, out: &str) {
     let c = |v: u64| v as f64;
+    let name = |s: &str| format!("visnav_{prefix}_{s}");
+    let frames = name("frames_total");
     w.family(
-        "visnav_vo_frames_total",
+        &frames,
         "counter",
-        "frames given to visual odometry, by what came out",
+        &format!("frames given to {what}, by what came out"),
     );
     let refused: u64 = v.refused.values().sum();
     for (outcome, n) in [
-        ("motion", v.motions),
+        (out, v.motions),
         ("started", v.started),
         ("refused", refused),
     ] {
-        w.sample("visnav_vo_frames_total", &[("outcome", outcome)], c(n));
+        w.sample(&frames, &[("outcome", outcome)], c(n));
     }
+    let outs = name(&format!("{out}s_total"));
     w.family(
-        "visnav_vo_motions_total",
+        &outs,
         "counter",
-        "visual odometry motions, by what the filter did with them",
+        &format!("{what} {out}s, by what the filter did with them"),
     );
     for (outcome, n) in [
         ("fused", v.fused),
         ("filter_rejected", v.filter_rejected),
         ("unused", v.unused),
     ] {
-        w.sample("visnav_vo_motions_total", &[("outcome", outcome)], c(n));
+        w.sample(&outs, &[("outcome", outcome)], c(n));
     }
+    let refusals = name("refusals_total");
     w.family(
-        "visnav_vo_refusals_total",
+        &refusals,
         "counter",
-        "frames without a visual odometry motion, by reason",
+        &format!("frames without a {what} {out}, by reason"),
     );
     for (reason, n) in &v.refused {
-        w.sample("visnav_vo_refusals_total", &[("reason", reason)], c(*n));
+        w.sample(&refusals, &[("reason", reason)], c(*n));
     }
     w.single(
-        "visnav_vo_frame_seconds_max",
+        &name("frame_seconds_max"),
         "gauge",
-        "longest visual odometry computation of a frame",
+        &format!("longest {what} computation of a frame"),
         v.ms_max * 1e-3,
     );
 }
@@ -341,7 +346,8 @@ pub fn render(d: &MetricsSnapshot, link: &LinkMetrics) -> String {
             c(*v),
         );
     }
-    vo(&mut w, &d.vo);
+    sequence(&mut w, &d.vo, "vo", "visual odometry", "motion");
+    sequence(&mut w, &d.dtm, "dtm", "DTM navigation", "fix");
     w.family(
         "visnav_fix_latency_seconds",
         "summary",

@@ -9,6 +9,11 @@
 //! the navigation task, which fuses a motion as a [`visnav_core::nav::VoFix`] and counts the
 //! rest (`metrics::VoMetrics`). A frozen camera's repeated frames never get here (the reader
 //! drops them); a blank or torn frame gives no motion (too few tracks, or no consensus).
+//!
+//! The DTM navigator (`[dtm_nav] enabled`, [`DtmNavigator`]) runs on the same thread with the
+//! same frames and priors (either or both may be on): each frame paired with an earlier one far
+//! enough away, the pair's flow over the terrain model solved for the frame's absolute pose,
+//! which the navigation task fuses as a pose measurement (`metrics.dtm`).
 
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -19,6 +24,7 @@ use tracing::{error, info};
 
 use crate::handoff::{PriorSource, Slot, Take, capture_time_us};
 use crate::metrics::DaemonMetrics;
+use visnav_core::dtm_nav::{DtmNavigator, DtmStep};
 use visnav_core::fix::FixPrior;
 use visnav_core::nav::NavConfig;
 use visnav_core::vision::GrayImage;
@@ -32,7 +38,10 @@ pub struct VoResult {
     /// Capture time, autopilot boot µs.
     pub t_capture_us: u64,
     pub seq: u64,
-    pub step: VoStep,
+    /// The odometer's step (`None`: visual odometry off).
+    pub step: Option<VoStep>,
+    /// The DTM navigator's (`None`: off).
+    pub dtm: Option<DtmStep>,
     /// The filter's attitude the frame was given (roll, pitch, yaw, deg) and its tilt and yaw
     /// sigma (deg); for the VO log.
     pub prior_attitude_deg: Option<([f64; 3], [f64; 2])>,
@@ -70,7 +79,8 @@ impl GyroNoise {
 
 /// What the odometry path holds.
 pub struct VoCtx {
-    pub odometer: Odometer,
+    pub odometer: Option<Odometer>,
+    pub dtm: Option<DtmNavigator>,
     pub priors: Arc<dyn PriorSource>,
     pub results: mpsc::Sender<VoResult>,
     pub metrics: Arc<DaemonMetrics>,
@@ -104,8 +114,8 @@ impl VoCtx {
         }
     }
 
-    /// Odometry of one frame (counted, timed; a panic becomes a refusal and restarts the
-    /// sequence).
+    /// Odometry and DTM navigation of one frame (each counted and timed; a panic becomes a
+    /// refusal and restarts that sequence).
     pub fn step(&mut self, image: GrayImage, seq: u64, inputs: VoInputs) -> VoResult {
         let t_us = inputs.prior.t_capture_us;
         let prior_attitude_deg = inputs.prior.attitude.map(|a| {
@@ -115,39 +125,98 @@ impl VoCtx {
                 [a.sigma_rad, a.sigma_yaw_rad].map(f64::to_degrees),
             )
         });
-        // Wall time of the computation (reported, never used by the algorithm).
-        let start = std::time::Instant::now();
-        let odo = &mut self.odometer;
-        let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            odo.frame(image, &inputs.prior, inputs.gyro)
-        }));
-        let step = match caught {
-            Ok(s) => s,
-            Err(_) => {
-                error!("visual odometry panicked on frame {seq}");
-                self.odometer.reset();
-                VoStep::Refused("odometer panicked".into())
-            }
+        let dtm = match self.dtm.as_mut() {
+            Some(nav) => Some(dtm_step(
+                nav,
+                image.clone(),
+                seq,
+                &inputs.prior,
+                &self.metrics,
+            )),
+            None => None,
         };
-        let m = &self.metrics.vo;
-        m.time(start.elapsed().as_micros() as u64);
-        match &step {
-            VoStep::Started => {
-                m.started.fetch_add(1, Ordering::Relaxed);
-            }
-            VoStep::Motion(_) => {
-                m.motions.fetch_add(1, Ordering::Relaxed);
-            }
-            VoStep::Refused(why) => m.refuse(why),
-        }
+        let step = match self.odometer.as_mut() {
+            Some(odo) => Some(vo_step(odo, image, seq, inputs, &self.metrics)),
+            None => None,
+        };
         self.last_t_us = Some(t_us);
         VoResult {
             t_capture_us: t_us,
             seq,
             step,
+            dtm,
             prior_attitude_deg,
         }
     }
+}
+
+/// The odometer on one frame, counted and timed.
+fn vo_step(
+    odo: &mut Odometer,
+    image: GrayImage,
+    seq: u64,
+    inputs: VoInputs,
+    metrics: &DaemonMetrics,
+) -> VoStep {
+    // Wall time of the computation (reported, never used by the algorithm).
+    let start = std::time::Instant::now();
+    let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        odo.frame(image, &inputs.prior, inputs.gyro)
+    }));
+    let step = match caught {
+        Ok(s) => s,
+        Err(_) => {
+            error!("visual odometry panicked on frame {seq}");
+            odo.reset();
+            VoStep::Refused("odometer panicked".into())
+        }
+    };
+    let m = &metrics.vo;
+    m.time(start.elapsed().as_micros() as u64);
+    match &step {
+        VoStep::Started => {
+            m.started.fetch_add(1, Ordering::Relaxed);
+        }
+        VoStep::Motion(_) => {
+            m.motions.fetch_add(1, Ordering::Relaxed);
+        }
+        VoStep::Refused(why) => m.refuse(why),
+    }
+    step
+}
+
+/// The DTM navigator on one frame, counted and timed (`metrics.dtm`: `started` counts the frames
+/// kept without a partner yet, `motions` the poses solved).
+fn dtm_step(
+    nav: &mut DtmNavigator,
+    image: GrayImage,
+    seq: u64,
+    prior: &FixPrior,
+    metrics: &DaemonMetrics,
+) -> DtmStep {
+    // Wall time of the computation (reported, never used by the algorithm).
+    let start = std::time::Instant::now();
+    let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| nav.frame(image, prior)));
+    let step = match caught {
+        Ok(s) => s,
+        Err(_) => {
+            error!("DTM navigation panicked on frame {seq}");
+            nav.reset();
+            DtmStep::Refused("DTM navigator panicked".into())
+        }
+    };
+    let m = &metrics.dtm;
+    m.time(start.elapsed().as_micros() as u64);
+    match &step {
+        DtmStep::Waiting => {
+            m.started.fetch_add(1, Ordering::Relaxed);
+        }
+        DtmStep::Fix(_) => {
+            m.motions.fetch_add(1, Ordering::Relaxed);
+        }
+        DtmStep::Refused(why) => m.refuse(why),
+    }
+    step
 }
 
 /// The odometry thread (real time): slot -> odometer -> results until the slot is closed or the
@@ -162,7 +231,7 @@ pub fn spawn_vo(
     std::thread::Builder::new()
         .name("visnav-vo".into())
         .spawn(move || {
-            info!("visual odometry on every frame");
+            info!("frame sequence (visual odometry, DTM navigation) on every frame");
             loop {
                 let f = match slot.take(Duration::from_millis(200)) {
                     Take::Item(f) => f,

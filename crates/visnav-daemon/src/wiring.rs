@@ -87,4 +87,15 @@ impl FrameFixer for FixEngine {
             cfg.clone(),
         ))
     }
+
+    fn dtm_navigator(
+        &self,
+        cfg: &visnav_core::dtm_nav::DtmNavConfig,
+    ) -> Option<visnav_core::dtm_nav::DtmNavigator> {
+        Some(visnav_core::dtm_nav::DtmNavigator::new(
+            *self.camera(),
+            self.reference().clone(),
+            cfg.clone(),
+        ))
+    }
 }

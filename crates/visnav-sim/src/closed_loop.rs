@@ -550,6 +550,14 @@ impl FrameFixer for RecordingFixer {
     fn odometer(&self, cfg: &visnav_core::vo::VoConfig) -> Option<visnav_core::vo::Odometer> {
         self.inner.odometer(cfg)
     }
+
+    /// The engine's own DTM navigator: it reads no map image, so no fault withholds it.
+    fn dtm_navigator(
+        &self,
+        cfg: &visnav_core::dtm_nav::DtmNavConfig,
+    ) -> Option<visnav_core::dtm_nav::DtmNavigator> {
+        self.inner.dtm_navigator(cfg)
+    }
 }
 
 /// One 10 Hz sample of the run.
@@ -583,6 +591,10 @@ pub struct StepRow {
     /// [-180, 180) deg (NaN before initialisation).
     pub vis_yaw_err_deg: f64,
     pub ctl_yaw_err_deg: f64,
+    /// Largest absolute Euler angle error (roll, pitch, yaw, each wrapped) of the vision and the
+    /// control filters' outputs at the output's own time, deg (NaN before initialisation).
+    pub vis_euler_err_deg: f64,
+    pub ctl_euler_err_deg: f64,
 }
 
 /// An injected position as the emulator received it.
@@ -682,6 +694,13 @@ pub struct ClosedLoopSummary {
     pub nav_vel_err_m_s: Stats,
     pub control_vel_err_m_s: Stats,
     pub max_err_m: MaxErr,
+    pub max_euler_err_deg: MaxEuler,
+    /// The vision daemon's visual odometry and DTM navigation over the whole run (frames, what
+    /// came out, what the filter did, refusals by reason); null when off.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub vo: Option<visnav_daemon::metrics::VoSnapshot>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub dtm: Option<visnav_daemon::metrics::VoSnapshot>,
     pub latency_ms: Latency,
     /// Position messages of the scored kind received in the window.
     pub injections: usize,
@@ -807,6 +826,15 @@ fn max_abs_yaw_err_deg(errs: impl Iterator<Item = f64>) -> Option<f64> {
         .reduce(f64::max)
 }
 
+/// The largest of the finite values (NaN: none).
+fn max_finite(v: impl Iterator<Item = f64>) -> f64 {
+    v.filter(|e| e.is_finite()).fold(f64::NAN, f64::max)
+}
+
+fn norm3(e: &[f64; 3]) -> f64 {
+    (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]).sqrt()
+}
+
 /// The soak figures' window, s (10 minutes: issue 21's "first and last 10 minutes").
 pub const SOAK_WINDOW_S: f64 = 600.0;
 
@@ -896,6 +924,17 @@ fn fix_rate_in(fixes: &[&FixRow], from_s: f64, until_s: f64) -> Option<f64> {
 pub struct MaxErr {
     pub vision: Enu,
     pub control: Enu,
+    /// The largest 3-D error (not the axes' maxima together), m.
+    pub vision_3d: f64,
+    pub control_3d: f64,
+}
+
+/// The largest Euler angle error (any of roll, pitch, yaw, each wrapped) of the vision and the
+/// control filters' outputs in the window, deg (NaN: no output).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct MaxEuler {
+    pub vision: f64,
+    pub control: f64,
 }
 
 /// Everything a run produced.
@@ -1024,6 +1063,15 @@ fn output_yaw_error_deg(out: &NavOutput, table: &TruthTable, emu: &AutopilotEmul
     yaw_err_deg(out.rpy_deg[2], table.at(run_s_of(out, emu)).rpy_rad[2])
 }
 
+/// A filter output's largest Euler angle error (roll, pitch, yaw against the truth at the
+/// output's time, each wrapped), deg.
+fn output_euler_error_deg(out: &NavOutput, table: &TruthTable, emu: &AutopilotEmulator) -> f64 {
+    let truth = table.at(run_s_of(out, emu)).rpy_rad;
+    (0..3)
+        .map(|i| yaw_err_deg(out.rpy_deg[i], truth[i]).abs())
+        .fold(0.0, f64::max)
+}
+
 /// A filter output sampled at a step against the truth `s` at the step's time: position offset,
 /// error, velocity error and heading error (at the output's own time), horizontal sigma; its
 /// health name.
@@ -1045,6 +1093,7 @@ fn sample_output(
                     sigma_h_m: sigma_h_m(&o.cov_pos_ned_m2) as f32,
                     vel_err_h_m_s: v[0].hypot(v[1]) as f32,
                     yaw_err_deg: output_yaw_error_deg(o, table, emu) as f32,
+                    euler_err_deg: output_euler_error_deg(o, table, emu) as f32,
                 },
                 match o.health {
                     Health::Ok => "ok",
@@ -1488,6 +1537,8 @@ pub async fn run(
         fixes_accepted: accepted.len(),
         frames_dropped: metrics_v.frames_superseded + metrics_v.frames_stale,
         fixes_filter_rejected: metrics_v.fixes_filter_rejected,
+        vo: (metrics_v.vo.frames > 0).then(|| metrics_v.vo.clone()),
+        dtm: (metrics_v.dtm.frames > 0).then(|| metrics_v.dtm.clone()),
         fix_err_m: Stats::of(&fix_errs),
         fix_beyond_3sigma: accepted.iter().filter(|f| f.beyond_3sigma).count(),
         nav_err_m: Stats::of(
@@ -1527,6 +1578,12 @@ pub async fn run(
         max_err_m: MaxErr {
             vision: max_enu(&|s| s.vis_err_ned_m),
             control: max_enu(&|s| s.ctl_err_ned_m),
+            vision_3d: max_finite(ws.iter().map(|s| norm3(&s.vis_err_ned_m))),
+            control_3d: max_finite(ws.iter().map(|s| norm3(&s.ctl_err_ned_m))),
+        },
+        max_euler_err_deg: MaxEuler {
+            vision: max_finite(ws.iter().map(|s| s.vis_euler_err_deg)),
+            control: max_finite(ws.iter().map(|s| s.ctl_euler_err_deg)),
         },
         latency_ms: Latency {
             p50: percentile(&lat, 0.5),
@@ -1567,6 +1624,7 @@ pub async fn run(
         distance_flown_m: flight.distance_flown_m,
         yaw_err_deg_max: flight.yaw_err_deg_max,
         ctl_yaw_err_deg_max: flight.ctl_yaw_err_deg_max,
+
         report_dir: None,
     };
     if summary.injections == 0 {
@@ -1741,6 +1799,8 @@ mod tests {
             ctl_vel_err_h_m_s: f64::NAN,
             vis_yaw_err_deg: f64::NAN,
             ctl_yaw_err_deg: f64::NAN,
+            vis_euler_err_deg: f64::NAN,
+            ctl_euler_err_deg: f64::NAN,
         }
     }
 

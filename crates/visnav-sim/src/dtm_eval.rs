@@ -18,15 +18,16 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use nalgebra::{Rotation3, Vector2, Vector3};
+use nalgebra::{Rotation3, Vector3};
 use serde::Serialize;
 
+use visnav_core::camera::{Camera, Intrinsics};
+use visnav_core::dtm_nav::flow::{predict_px, terrain_flow};
 use visnav_core::dtm_nav::{DtmFix, DtmInput, DtmNavConfig, DtmRejection, GuessSigma, solve};
 use visnav_core::geo::dem::Dem;
 use visnav_core::pose::{ImageGeometry, Pose};
 use visnav_core::stats::percentile;
 use visnav_core::vision::GrayImage;
-use visnav_core::vision::klt::{FeatureParams, Pyramid, SpreadGrid, TrackParams, track_checked};
 use visnav_core::vo::TrackPair;
 use visnav_io::image_file::GrayImageFile;
 
@@ -55,18 +56,6 @@ pub const NGI_GUESS_SIGMA: GuessSigma = GuessSigma {
     height_m: 50.0,
     tilt_rad: 0.5 * std::f64::consts::PI / 180.0,
 };
-
-/// Corners detected in the first frame (strongest first, spread over a grid so the whole overlap
-/// is covered): many flow vectors, as the paper's dense flow.
-const MAX_CORNERS: usize = 1500;
-const CORNER_MIN_DISTANCE_PX: f32 = 6.0;
-const SPREAD: SpreadGrid = SpreadGrid {
-    cols: 8,
-    rows: 12,
-    max_per_cell: 40,
-};
-/// Pyramid levels for the flow: the guess leaves tens of pixels to find (2^4 x half a window).
-const FLOW_MAX_LEVEL: usize = 4;
 
 /// The flat pairs' guess: the NGI guess's kind of error at 300 m instead of 4.8 km.
 const FLAT_GUESS: GuessError = GuessError {
@@ -126,70 +115,34 @@ pub struct FlatDtm {
     pub ms_solve_p50: f64,
 }
 
-/// Lucas-Kanade flow from `a` to `b`: corners of `a`, each started at `predict(corner)` in `b`
-/// (`None`: not tracked), kept when the forward-backward check passes.
+/// The flow from `a` to `b` started at the guessed poses' predictions over `dem`
+/// ([`visnav_core::dtm_nav::flow`]).
 fn flow(
     a: &GrayImage,
     b: &GrayImage,
-    predict: impl Fn([f32; 2]) -> Option<[f32; 2]>,
+    camera: &Camera,
+    guess: (&Pose, &Pose),
+    dem: &Dem,
 ) -> Result<(usize, Vec<TrackPair>), VoEvalError> {
-    let vision = |e: visnav_core::vision::VisionError| VoEvalError::Vision(e.to_string());
-    let params = TrackParams {
-        max_level: FLOW_MAX_LEVEL,
-        ..TrackParams::default()
-    };
-    let pa = Pyramid::new(a, params.max_level, params.win_size_px).map_err(vision)?;
-    let pb = Pyramid::new(b, params.max_level, params.win_size_px).map_err(vision)?;
-    let corners = pa
-        .good_features(&FeatureParams {
-            max_corners: MAX_CORNERS,
-            min_distance_px: CORNER_MIN_DISTANCE_PX,
-            spread: Some(SPREAD),
-            ..FeatureParams::default()
-        })
-        .map_err(vision)?;
-    let (pts, guesses): (Vec<[f32; 2]>, Vec<[f32; 2]>) = corners
-        .iter()
-        .filter_map(|&p| predict(p).map(|g| (p, g)))
-        .unzip();
-    let tracks = track_checked(&pa, &pb, &pts, Some(&guesses), &params).map_err(vision)?;
-    let pairs = pts
-        .iter()
-        .zip(&tracks)
-        .filter(|(_, t)| t.is_tracked())
-        .map(|(p, t)| TrackPair {
-            prev_px: Vector2::new(f64::from(p[0]), f64::from(p[1])),
-            next_px: Vector2::new(f64::from(t.point[0]), f64::from(t.point[1])),
-        })
-        .collect();
-    Ok((corners.len(), pairs))
+    let range = DtmNavConfig::default().max_range_m;
+    terrain_flow(a, b, |p| {
+        predict_px(p, camera, guess.0, guess.1, dem, range)
+    })
+    .map_err(|e| VoEvalError::Vision(e.to_string()))
 }
 
-/// Where `px` of a camera at `first` lands in a camera at `second` over `dem` (its ray onto the
-/// terrain, projected), inside the image; `None` otherwise.
-fn predict_px(
-    px: [f32; 2],
-    image: &ImageGeometry,
-    first: &Pose,
-    second: &Pose,
-    dem: &Dem,
-) -> Option<[f32; 2]> {
-    let ray = Vector3::new(
-        (f64::from(px[0]) - image.cx_px) / image.fx_px,
-        (f64::from(px[1]) - image.cy_px) / image.fy_px,
-        1.0,
-    );
-    let d = first.r_world_cam * ray;
-    let c = first.c_world;
-    let x = dem.intersect_ray([c.x, c.y, c.z], [d.x, d.y, d.z], 1e5)?;
-    let n = second.project(&Vector3::new(x[0], x[1], x[2]))?;
-    let q = [
-        image.fx_px * n.x + image.cx_px,
-        image.fy_px * n.y + image.cy_px,
-    ];
-    let inside = (0.0..f64::from(image.width_px)).contains(&q[0])
-        && (0.0..f64::from(image.height_px)).contains(&q[1]);
-    inside.then_some([q[0] as f32, q[1] as f32])
+/// The pinhole camera of an image geometry (the evaluations' frames have no distortion).
+fn pinhole(image: &ImageGeometry) -> Result<Camera, VoEvalError> {
+    Intrinsics::new(
+        image.fx_px,
+        image.fy_px,
+        image.cx_px,
+        image.cy_px,
+        image.width_px,
+        image.height_px,
+    )
+    .and_then(Camera::pinhole)
+    .map_err(|e| VoEvalError::Vision(e.to_string()))
 }
 
 /// The true poses moved by a navigation error (module doc).
@@ -224,9 +177,8 @@ pub fn ngi_dtm(dir: &Path, err: &GuessError) -> Result<NgiDtm, VoEvalError> {
     } = NgiPair::load(dir)?;
     let (guess1, guess2) = guess(&truth1, &truth2, err);
     let t0 = Instant::now();
-    let (corners, tracks) = flow(&img_a, &img_b, |p| {
-        predict_px(p, &image, &guess1, &guess2, &dem)
-    })?;
+    let camera = pinhole(&image)?;
+    let (corners, tracks) = flow(&img_a, &img_b, &camera, (&guess1, &guess2), &dem)?;
     let t1 = Instant::now();
     let cfg = DtmNavConfig::default();
     let input = DtmInput {
@@ -312,6 +264,7 @@ pub fn flat_dtm(texture_path: &Path, pairs: usize) -> Result<FlatDtm, VoEvalErro
     let image = vga_image();
     let poses = vga_poses(pairs + FLAT_PAIR_GAP);
     let dem = Dem::flat(0.0).map_err(|e| VoEvalError::Vision(e.to_string()))?;
+    let camera = pinhole(&image)?;
     let screened = DtmNavConfig::default();
     let unscreened = DtmNavConfig {
         min_relief_agl_fraction: 0.0,
@@ -325,7 +278,7 @@ pub fn flat_dtm(texture_path: &Path, pairs: usize) -> Result<FlatDtm, VoEvalErro
         let a = render_flat(&texture, &image, t1);
         let b = render_flat(&texture, &image, t2);
         let (g1, g2) = guess(t1, t2, &FLAT_GUESS);
-        let (_, tracks) = flow(&a, &b, |p| predict_px(p, &image, &g1, &g2, &dem))?;
+        let (_, tracks) = flow(&a, &b, &camera, (&g1, &g2), &dem)?;
         n_tracks += tracks.len();
         let input = DtmInput {
             tracks: &tracks,

@@ -143,7 +143,7 @@ impl Validate for SimImuConfig {
             "accel_vrw_m_s_sqrt_h",
             self.accel_vrw_m_s_sqrt_h,
             0.0,
-            100.0,
+            1000.0,
         );
         p.range(
             "accel_bias_instability_ug",

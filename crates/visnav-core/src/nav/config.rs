@@ -151,7 +151,7 @@ impl Validate for ImuNoiseConfig {
             "accel_vrw_m_s_sqrt_h",
             self.accel_vrw_m_s_sqrt_h,
             0.0,
-            100.0,
+            1000.0,
         );
         p.range("accel_bias_ug", self.accel_bias_ug, 0.0, 1e6);
         p.range(

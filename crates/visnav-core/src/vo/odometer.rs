@@ -88,14 +88,14 @@ struct PrevFrame {
     ground_amsl_m: f64,
 }
 
-/// A frame's pose from its prior.
+/// A frame's pose from its prior (also the DTM navigator's, `crate::dtm_nav::navigator`).
 #[derive(Debug, Clone, Copy)]
-struct FramePose {
-    pose: Pose,
-    tilt_sigma_rad: f64,
+pub(crate) struct FramePose {
+    pub(crate) pose: Pose,
+    pub(crate) tilt_sigma_rad: f64,
     /// Grid convergence (rad) and point scale factor at the camera.
-    gamma_rad: f64,
-    scale: f64,
+    pub(crate) gamma_rad: f64,
+    pub(crate) scale: f64,
 }
 
 /// Visual odometry over a frame sequence (module doc).
@@ -187,59 +187,12 @@ impl Odometer {
         }
     }
 
-    /// The frame's camera pose in the map frame from its prior.
     fn frame_pose(&self, prior: &FixPrior) -> Result<FramePose, VoRejection> {
-        let invalid = |s: String| VoRejection::InvalidInput(s);
-        let (Some(pos), Some(att)) = (&prior.position, &prior.attitude) else {
-            return Err(invalid(
-                "no pose prior (the filter is not initialised, or lost)".into(),
-            ));
-        };
-        let crs = self.reference.crs();
-        let geo = |e: crate::geo::GeoError| invalid(format!("prior position: {e}"));
-        let (x, y) = crs.from_geodetic(pos.lat_deg, pos.lon_deg).map_err(geo)?;
-        let gamma_rad = crs
-            .grid_convergence_deg(pos.lat_deg, pos.lon_deg)
-            .map_err(geo)?
-            .to_radians();
-        let scale = crs
-            .point_scale_factor(pos.lat_deg, pos.lon_deg)
-            .map_err(geo)?;
-        let r = rot_z(gamma_rad) * r_enu_ned() * self.camera.mount.r_ned_cam(&att.attitude);
-        let pose = Pose {
-            r_world_cam: r,
-            c_world: Vector3::new(x, y, pos.alt_amsl_m),
-        };
-        let finite = pose.c_world.iter().all(|v| v.is_finite())
-            && [gamma_rad, scale, att.sigma_rad]
-                .iter()
-                .all(|v| v.is_finite())
-            && scale > 0.0;
-        if !finite {
-            return Err(invalid("prior pose is not finite".into()));
-        }
-        Ok(FramePose {
-            pose,
-            tilt_sigma_rad: att.sigma_rad.clamp(0.0, 1.0),
-            gamma_rad,
-            scale,
-        })
+        frame_pose(&self.camera, self.reference.as_ref(), prior)
     }
 
-    /// Height AMSL of the ground below the camera (the DEM along the optical axis, or straight
-    /// down, or the DEM's middle height).
     fn ground_below(&self, pose: &Pose) -> f64 {
-        let dem = self.reference.dem();
-        let c = pose.c_world;
-        let axis = pose.r_world_cam * Vector3::z();
-        if let Some(p) = dem.intersect_ray([c.x, c.y, c.z], [axis.x, axis.y, axis.z], 1e6) {
-            return p[2];
-        }
-        if let Some(h) = dem.height_at(c.x, c.y) {
-            return h;
-        }
-        let (lo, hi) = dem.height_range_m();
-        0.5 * (lo + hi)
+        ground_below(self.reference.dem(), pose)
     }
 
     /// The motion from the previous frame to this one as the filter's measurement.
@@ -316,22 +269,23 @@ impl Odometer {
 
     /// A raw track in undistorted pixels (`None` where the distortion cannot be inverted).
     fn undistort(&self, t: &RawTrack) -> Option<TrackPair> {
-        let k = &self.camera.intrinsics;
-        let und = |px: [f32; 2]| -> Option<Vector2<f64>> {
-            let ray = self
-                .camera
-                .unproject(&Point2::new(f64::from(px[0]), f64::from(px[1])))?;
-            let n = ray.xy() / ray.z;
-            Some(Vector2::new(
-                k.cx_px + k.fx_px * n.x,
-                k.cy_px + k.fy_px * n.y,
-            ))
-        };
         Some(TrackPair {
-            prev_px: und(t.prev_px)?,
-            next_px: und(t.next_px)?,
+            prev_px: undistorted_px(&self.camera, t.prev_px)?,
+            next_px: undistorted_px(&self.camera, t.next_px)?,
         })
     }
+}
+
+/// A pixel of `camera` where the distortion-free camera with the same intrinsics sees it
+/// (`None` where the distortion cannot be inverted).
+pub(crate) fn undistorted_px(camera: &Camera, px: [f32; 2]) -> Option<Vector2<f64>> {
+    let k = &camera.intrinsics;
+    let ray = camera.unproject(&Point2::new(f64::from(px[0]), f64::from(px[1])))?;
+    let n = ray.xy() / ray.z;
+    Some(Vector2::new(
+        k.cx_px + k.fx_px * n.x,
+        k.cy_px + k.fy_px * n.y,
+    ))
 }
 
 /// The camera's rotation between two frames in the map grid (`R_world_prev^T R_world_next`) from
@@ -378,6 +332,64 @@ fn rotation_about_los(
     })
 }
 
+/// The frame's camera pose in the map frame from its prior.
+pub(crate) fn frame_pose(
+    camera: &Camera,
+    reference: &dyn Reference,
+    prior: &FixPrior,
+) -> Result<FramePose, VoRejection> {
+    let invalid = |s: String| VoRejection::InvalidInput(s);
+    let (Some(pos), Some(att)) = (&prior.position, &prior.attitude) else {
+        return Err(invalid(
+            "no pose prior (the filter is not initialised, or lost)".into(),
+        ));
+    };
+    let crs = reference.crs();
+    let geo = |e: crate::geo::GeoError| invalid(format!("prior position: {e}"));
+    let (x, y) = crs.from_geodetic(pos.lat_deg, pos.lon_deg).map_err(geo)?;
+    let gamma_rad = crs
+        .grid_convergence_deg(pos.lat_deg, pos.lon_deg)
+        .map_err(geo)?
+        .to_radians();
+    let scale = crs
+        .point_scale_factor(pos.lat_deg, pos.lon_deg)
+        .map_err(geo)?;
+    let r = rot_z(gamma_rad) * r_enu_ned() * camera.mount.r_ned_cam(&att.attitude);
+    let pose = Pose {
+        r_world_cam: r,
+        c_world: Vector3::new(x, y, pos.alt_amsl_m),
+    };
+    let finite = pose.c_world.iter().all(|v| v.is_finite())
+        && [gamma_rad, scale, att.sigma_rad]
+            .iter()
+            .all(|v| v.is_finite())
+        && scale > 0.0;
+    if !finite {
+        return Err(invalid("prior pose is not finite".into()));
+    }
+    Ok(FramePose {
+        pose,
+        tilt_sigma_rad: att.sigma_rad.clamp(0.0, 1.0),
+        gamma_rad,
+        scale,
+    })
+}
+
+/// Height AMSL of the ground below the camera (the DEM along the optical axis, or straight
+/// down, or the DEM's middle height).
+pub(crate) fn ground_below(dem: &crate::geo::dem::Dem, pose: &Pose) -> f64 {
+    let c = pose.c_world;
+    let axis = pose.r_world_cam * Vector3::z();
+    if let Some(p) = dem.intersect_ray([c.x, c.y, c.z], [axis.x, axis.y, axis.z], 1e6) {
+        return p[2];
+    }
+    if let Some(h) = dem.height_at(c.x, c.y) {
+        return h;
+    }
+    let (lo, hi) = dem.height_range_m();
+    0.5 * (lo + hi)
+}
+
 /// Where a feature of the previous frame should appear in this one: its ray cast onto the
 /// horizontal plane of the ground below the previous frame, projected from this frame's prior
 /// pose. `None` when the ray misses the plane or the point is behind the camera.
@@ -396,7 +408,7 @@ fn predict(camera: &Camera, prev: &PrevFrame, next: &Pose, px: [f32; 2]) -> Opti
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::camera::frames::Attitude;
     use crate::fix::engine::tests::checkerboard_engine;
@@ -427,7 +439,7 @@ mod tests {
 
     /// The frame a camera at map position `c` (height AMSL) with `att` sees of the textured flat
     /// ground (rendered from the same convention the odometer uses, not from its code).
-    fn render(
+    pub(crate) fn render(
         camera: &Camera,
         crs: &Crs,
         c: Vector3<f64>,
@@ -460,7 +472,7 @@ mod tests {
         )
     }
 
-    fn prior(crs: &Crs, c: Vector3<f64>, att: Attitude, t_us: u64) -> FixPrior {
+    pub(crate) fn prior(crs: &Crs, c: Vector3<f64>, att: Attitude, t_us: u64) -> FixPrior {
         let (lat, lon) = crs.to_geodetic(c.x, c.y).unwrap();
         FixPrior {
             t_capture_us: t_us,

@@ -2,7 +2,7 @@
 //! measures the daemons' memory and not the simulator's notes (issue 21: RSS growth ≤ 5 MB per
 //! hour).
 //!
-//! * a 10 Hz step is 72 bytes ([`StepSample`]): the time in ms, each filter's position as an
+//! * a 10 Hz step is 80 bytes ([`StepSample`]): the time in ms, each filter's position as an
 //!   `f32` offset from the truth at that time (a metre is 1e-5 deg: the offset keeps 1e-7 of
 //!   itself, far below a millimetre), its NED error, horizontal sigma, horizontal velocity error
 //!   and heading error in `f32`, the health as a code (64 bytes until the heading errors, which
@@ -56,6 +56,9 @@ pub(super) struct OutputSample {
     pub vel_err_h_m_s: f32,
     /// Heading error at the output's own time, wrapped to [-180, 180), deg.
     pub yaw_err_deg: f32,
+    /// Largest absolute error of the three Euler angles (roll, pitch, yaw; each wrapped) at the
+    /// output's own time, deg.
+    pub euler_err_deg: f32,
 }
 
 impl OutputSample {
@@ -66,10 +69,11 @@ impl OutputSample {
         sigma_h_m: f32::NAN,
         vel_err_h_m_s: f32::NAN,
         yaw_err_deg: f32::NAN,
+        euler_err_deg: f32::NAN,
     };
 }
 
-/// One 10 Hz step, compact (72 bytes).
+/// One 10 Hz step, compact (80 bytes).
 #[derive(Debug, Clone, Copy)]
 pub(super) struct StepSample {
     /// Scenario (run) time, ms.
@@ -123,6 +127,8 @@ impl StepSample {
             ctl_vel_err_h_m_s: f(self.ctl.vel_err_h_m_s),
             vis_yaw_err_deg: f(self.vis.yaw_err_deg),
             ctl_yaw_err_deg: f(self.ctl.yaw_err_deg),
+            vis_euler_err_deg: f(self.vis.euler_err_deg),
+            ctl_euler_err_deg: f(self.ctl.euler_err_deg),
         }
     }
 }
@@ -391,7 +397,7 @@ mod tests {
         // resident from the start (the soak's budget is 5 MB of RSS growth for everything). The
         // step was 64 bytes until each output's heading error (issue 22) took 4 more bytes than
         // its one byte of padding.
-        assert_eq!(std::mem::size_of::<StepSample>(), 72);
+        assert_eq!(std::mem::size_of::<StepSample>(), 80);
         assert_eq!(std::mem::size_of::<InjectionSample>(), 40);
     }
 

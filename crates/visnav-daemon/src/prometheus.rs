@@ -78,7 +78,7 @@ impl Writer {
 }
 
 /// The frame-sequence counters of visual odometry (`prefix` "vo", a frame gives a "motion")
-/// or the DTM navigator ("dtm", a "fix"; `started`: kept waiting for a partner).
+/// or the DTM navigator ("dtm", a "pose"; `started`: kept waiting for a partner).
 fn sequence(w: &mut Writer, v: &crate::metrics::VoSnapshot, prefix: &str, what: &str, out: &str) {
     let c = |v: u64| v as f64;
     let name = |s: &str| format!("visnav_{prefix}_{s}");
@@ -347,7 +347,7 @@ pub fn render(d: &MetricsSnapshot, link: &LinkMetrics) -> String {
         );
     }
     sequence(&mut w, &d.vo, "vo", "visual odometry", "motion");
-    sequence(&mut w, &d.dtm, "dtm", "DTM navigation", "fix");
+    sequence(&mut w, &d.dtm, "dtm", "DTM navigation", "pose");
     w.family(
         "visnav_fix_latency_seconds",
         "summary",

@@ -9,8 +9,9 @@
 //! and Euler error <= 0.5 deg (0.83); with camera movement <= 15 m (30 m) and 1.1 deg (2.2).
 //! Measured (docs/status.md): the replica 7.1 m / 0.30 deg (seeds 101-103: 7.8-8.3 m,
 //! 0.25-0.34 deg); moving 15.6 m / 0.29 deg (10.6-18.6 m, 0.27-0.40 deg over seeds 101-103: the
-//! position target is not met on every seed). The moving test holds it to 20 m (a regression
-//! bound, not the target) and states the figure. Skipped with a SKIP line when ../shared/data is
+//! position target is not met on every seed: the bank reversals leave the pairs a third of
+//! their overlap). The moving test holds it to 20 m (a regression bound, not the target) and
+//! states the figure. Both check each DTM pose's claimed covariance against its error. Skipped with a SKIP line when ../shared/data is
 //! absent.
 
 use std::path::Path;
@@ -57,6 +58,15 @@ fn check(name: &str, max_m: f64, max_deg: f64) {
     let fused = num(&v, &["dtm", "fused"]);
     let poses = num(&v, &["dtm", "motions"]);
     let over = num(&v, &["nav_err_over_sigma", "p90"]);
+    let scored = num(&v, &["dtm_poses", "poses"]);
+    let beyond = num(&v, &["dtm_poses", "beyond_3sigma"]);
+    eprintln!(
+        "{name}: DTM poses in the window {scored}: horizontal error median {:.1} / p90 {:.1} / max {:.1} m (claimed sigma median {:.1}), {beyond} outside their 3-sigma ellipse",
+        num(&v, &["dtm_poses", "err_h_m", "median"]),
+        num(&v, &["dtm_poses", "err_h_m", "p90"]),
+        num(&v, &["dtm_poses", "err_h_m", "max"]),
+        num(&v, &["dtm_poses", "sigma_h_m", "median"]),
+    );
     eprintln!(
         "{name}: max error {err:.1} m, Euler {euler:.2} deg (control {ctl:.1} m, {ctl_euler:.2} deg); \
          {poses} DTM poses, {fused} fused; error/sigma p90 {over:.2}; refused {}",
@@ -76,6 +86,11 @@ fn check(name: &str, max_m: f64, max_deg: f64) {
     assert!(
         poses >= 45.0 && fused >= 0.9 * poses,
         "{name}: {poses} poses, {fused} fused"
+    );
+    // Each pose's claimed covariance covers its error (1.1 % outside 3 sigma for an honest one).
+    assert!(
+        beyond <= 0.1 * scored,
+        "{name}: {beyond} of {scored} poses beyond 3 sigma"
     );
     // The filter's claimed accuracy covers its error (Rayleigh p90 2.15 for an honest filter).
     assert!(over < 3.0, "{name}: error/sigma p90 {over:.2}");

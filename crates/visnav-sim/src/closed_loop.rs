@@ -524,6 +524,8 @@ struct RecordingFixer {
     table: Arc<TruthTable>,
     mount: visnav_core::camera::Mount,
     log: Mutex<Vec<FixRow>>,
+    /// The DTM navigator's poses scored against the truth (its observer's record).
+    dtm_log: Arc<Mutex<Vec<DtmRow>>>,
     /// In lock-step the fix takes no simulated time: its result is delivered this much later.
     delivery_us: u64,
     /// The scenario's faults (only `map_withheld` concerns the fixes).
@@ -551,12 +553,25 @@ impl FrameFixer for RecordingFixer {
         self.inner.odometer(cfg)
     }
 
-    /// The engine's own DTM navigator: it reads no map image, so no fault withholds it.
+    /// The engine's own DTM navigator (it reads no map image, so no fault withholds it), each
+    /// pose scored against the truth at its capture time.
     fn dtm_navigator(
         &self,
         cfg: &visnav_core::dtm_nav::DtmNavConfig,
     ) -> Option<visnav_core::dtm_nav::DtmNavigator> {
-        self.inner.dtm_navigator(cfg)
+        let (emu, table, mount) = (self.emu.clone(), self.table.clone(), self.mount);
+        let log = self.dtm_log.clone();
+        let record = move |t_boot_us: u64, step: &visnav_core::dtm_nav::DtmStep| {
+            if let visnav_core::dtm_nav::DtmStep::Fix(f) = step {
+                let t_run_us = emu.run_us_of_boot_us(t_boot_us);
+                if let Some(row) = score_dtm_pose(t_run_us, &f.fix, &table, &mount) {
+                    log.lock().unwrap_or_else(|e| e.into_inner()).push(row);
+                }
+            }
+        };
+        self.inner
+            .dtm_navigator(cfg)
+            .map(|n| n.with_observer(Box::new(record)))
     }
 }
 
@@ -659,6 +674,46 @@ pub struct Enu {
     pub u: f64,
 }
 
+/// A DTM navigator's pose against the truth at its capture time.
+#[derive(Debug, Clone, Copy)]
+pub struct DtmRow {
+    pub t_capture_s: f64,
+    /// Camera position error NED, m; claimed horizontal 1-sigma (major semi-axis), m; outside its
+    /// own 3-sigma horizontal ellipse.
+    pub err_ned_m: [f64; 3],
+    pub sigma_h_m: f64,
+    pub beyond_3sigma: bool,
+    /// Largest Euler angle error (roll, pitch, yaw of the vehicle, each wrapped), deg.
+    pub euler_err_deg: f64,
+}
+
+/// The DTM navigator's poses in the evaluation window (`visnav sim --json`: `dtm_poses`).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct DtmScore {
+    pub poses: usize,
+    /// Horizontal and vertical position error, largest Euler angle error.
+    pub err_h_m: Stats,
+    pub err_v_m: Stats,
+    pub euler_err_deg: Stats,
+    /// The claimed horizontal 1-sigma; poses outside their own 3-sigma horizontal ellipse.
+    pub sigma_h_m: Stats,
+    pub beyond_3sigma: usize,
+}
+
+impl DtmScore {
+    fn of(rows: &[&DtmRow]) -> Self {
+        let v = |f: &dyn Fn(&DtmRow) -> f64| rows.iter().map(|r| f(r)).collect::<Vec<f64>>();
+        Self {
+            poses: rows.len(),
+            err_h_m: Stats::of(&v(&|r| hnorm(&r.err_ned_m))),
+            err_v_m: Stats::of(&v(&|r| r.err_ned_m[2].abs())),
+            euler_err_deg: Stats::of(&v(&|r| r.euler_err_deg)),
+            sigma_h_m: Stats::of(&v(&|r| r.sigma_h_m)),
+            beyond_3sigma: rows.iter().filter(|r| r.beyond_3sigma).count(),
+        }
+    }
+}
+
 /// The closed-loop summary (`visnav sim --json`).
 #[derive(Debug, Clone, Serialize)]
 pub struct ClosedLoopSummary {
@@ -701,6 +756,9 @@ pub struct ClosedLoopSummary {
     pub vo: Option<visnav_daemon::metrics::VoSnapshot>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub dtm: Option<visnav_daemon::metrics::VoSnapshot>,
+    /// The DTM navigator's poses in the window against the truth; null when none.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub dtm_poses: Option<DtmScore>,
     pub latency_ms: Latency,
     /// Position messages of the scored kind received in the window.
     pub injections: usize,
@@ -1268,6 +1326,7 @@ pub async fn run(
             expected_count::<FixRow>(duration_s, cl.camera_rate_hz),
             FixRow::FILL,
         )),
+        dtm_log: Arc::new(Mutex::new(Vec::new())),
         delivery_us: if cl.lockstep {
             (cl.lockstep_fix_latency_s.max(0.0) * 1e6) as u64
         } else {
@@ -1454,6 +1513,11 @@ pub async fn run(
         .map(|mut l| std::mem::take(&mut *l))
         .unwrap_or_default();
     let wf: Vec<&FixRow> = fixes.iter().filter(|f| in_window(f.t_capture_s)).collect();
+    let dtm_all: Vec<DtmRow> = fixer.dtm_log.lock().map(|l| l.clone()).unwrap_or_default();
+    let dtm_rows: Vec<&DtmRow> = dtm_all
+        .iter()
+        .filter(|r| in_window(r.t_capture_s))
+        .collect();
     let accepted: Vec<&&FixRow> = wf.iter().filter(|f| f.accepted).collect();
     let fix_errs: Vec<f64> = accepted.iter().map(|f| hnorm(&f.err_ned_m)).collect();
     let lat: Vec<f64> = wf.iter().map(|f| f.latency_ms).collect();
@@ -1539,6 +1603,7 @@ pub async fn run(
         fixes_filter_rejected: metrics_v.fixes_filter_rejected,
         vo: (metrics_v.vo.frames > 0).then(|| metrics_v.vo.clone()),
         dtm: (metrics_v.dtm.frames > 0).then(|| metrics_v.dtm.clone()),
+        dtm_poses: (!dtm_rows.is_empty()).then(|| DtmScore::of(&dtm_rows)),
         fix_err_m: Stats::of(&fix_errs),
         fix_beyond_3sigma: accepted.iter().filter(|f| f.beyond_3sigma).count(),
         nav_err_m: Stats::of(
@@ -1698,6 +1763,62 @@ fn fault_counters(
 }
 
 /// A fix against the true camera position at its capture time (run times, µs).
+/// The true camera centre at run time `t` s: body + R_ned_body lever arm (lat, lon deg, AMSL m).
+fn truth_camera(table: &TruthTable, t: f64, mount: &visnav_core::camera::Mount) -> (f64, f64, f64) {
+    let s = table.at(t);
+    let att = visnav_core::camera::Attitude::new(s.rpy_rad[0], s.rpy_rad[1], s.rpy_rad[2]);
+    let lever_ned = att.r_ned_body() * mount.lever_arm_body_frd_m;
+    let (m_m, n_m) = radii_m(s.lat_deg);
+    (
+        s.lat_deg + (lever_ned.x / (m_m + s.alt_amsl_m)).to_degrees(),
+        s.lon_deg
+            + (lever_ned.y / ((n_m + s.alt_amsl_m) * s.lat_deg.to_radians().cos())).to_degrees(),
+        s.alt_amsl_m - lever_ned.z,
+    )
+}
+
+/// Whether a horizontal error `e` lies outside the 3-sigma ellipse of the covariance `c`.
+fn beyond_3sigma_h(e: &[f64; 3], c: &[[f64; 3]; 3]) -> bool {
+    let (a, b, cc) = (c[0][0], c[1][1], c[0][1]);
+    let det = a * b - cc * cc;
+    let d2 = if det > 0.0 {
+        (b * e[0] * e[0] - 2.0 * cc * e[0] * e[1] + a * e[1] * e[1]) / det
+    } else {
+        f64::INFINITY
+    };
+    d2 > CHI2_2DOF_3SIGMA
+}
+
+/// A DTM pose (ellipsoidal height) against the truth at run time `t_run_us`; None when the
+/// geoid cannot give its height above sea level.
+fn score_dtm_pose(
+    t_run_us: u64,
+    fix: &visnav_core::nav::PoseFix,
+    table: &TruthTable,
+    mount: &visnav_core::camera::Mount,
+) -> Option<DtmRow> {
+    let t = t_run_us as f64 * 1e-6;
+    let p = &fix.position;
+    let (lat, lon) = (p.lat_rad.to_degrees(), p.lon_rad.to_degrees());
+    let n = visnav_core::geo::geoid::geoid_undulation_m(lat, lon).ok()?;
+    let e = ned_diff_m(truth_camera(table, t, mount), (lat, lon, p.h_m - n));
+    let c: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| p.cov_ned_m2[(i, j)]));
+    let (r, pi, y) = fix.q_nb.euler_angles();
+    let truth = table.at(t).rpy_rad;
+    let euler = [r, pi, y]
+        .iter()
+        .zip(truth)
+        .map(|(est, tr)| wrap_pi(est - tr).to_degrees().abs())
+        .fold(0.0, f64::max);
+    Some(DtmRow {
+        t_capture_s: t,
+        err_ned_m: e,
+        sigma_h_m: sigma_h_m(&c),
+        beyond_3sigma: beyond_3sigma_h(&e, &c),
+        euler_err_deg: euler,
+    })
+}
+
 fn score_fix(
     t_capture_us: u64,
     t_done_us: u64,
@@ -1706,28 +1827,11 @@ fn score_fix(
     mount: &visnav_core::camera::Mount,
 ) -> FixRow {
     let t = t_capture_us as f64 * 1e-6;
-    let s = table.at(t);
-    // True camera centre: body + R_ned_body lever arm.
-    let att = visnav_core::camera::Attitude::new(s.rpy_rad[0], s.rpy_rad[1], s.rpy_rad[2]);
-    let lever_ned = att.r_ned_body() * mount.lever_arm_body_frd_m;
-    let (m_m, n_m) = radii_m(s.lat_deg);
-    let cam = (
-        s.lat_deg + (lever_ned.x / (m_m + s.alt_amsl_m)).to_degrees(),
-        s.lon_deg
-            + (lever_ned.y / ((n_m + s.alt_amsl_m) * s.lat_deg.to_radians().cos())).to_degrees(),
-        s.alt_amsl_m - lever_ned.z,
-    );
+    let cam = truth_camera(table, t, mount);
     let (err, sig, beyond) = if rep.accepted {
         let e = ned_diff_m(cam, (rep.lat_deg, rep.lon_deg, rep.alt_amsl_m));
         let c = &rep.cov_ned_m2;
-        let (a, b, cc) = (c[0][0], c[1][1], c[0][1]);
-        let det = a * b - cc * cc;
-        let d2 = if det > 0.0 {
-            (b * e[0] * e[0] - 2.0 * cc * e[0] * e[1] + a * e[1] * e[1]) / det
-        } else {
-            f64::INFINITY
-        };
-        (e, sigma_h_m(c), d2 > CHI2_2DOF_3SIGMA)
+        (e, sigma_h_m(c), beyond_3sigma_h(&e, c))
     } else {
         ([f64::NAN; 3], f64::NAN, false)
     };

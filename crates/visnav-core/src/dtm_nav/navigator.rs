@@ -94,12 +94,17 @@ struct KeptFrame {
     sigma_v_m: f64,
 }
 
+/// Called with each frame's capture time (µs) and step (an evaluation's recorder: the simulator
+/// scores the poses against its truth).
+pub type DtmObserver = Box<dyn FnMut(u64, &DtmStep) + Send>;
+
 /// The DTM navigator over a frame sequence (module doc).
 pub struct DtmNavigator {
     camera: Camera,
     reference: Arc<dyn Reference>,
     cfg: DtmNavConfig,
     kept: VecDeque<KeptFrame>,
+    observer: Option<DtmObserver>,
 }
 
 impl DtmNavigator {
@@ -110,7 +115,14 @@ impl DtmNavigator {
             reference,
             cfg,
             kept: VecDeque::new(),
+            observer: None,
         }
+    }
+
+    /// This navigator reporting every step to `observer` as well.
+    pub fn with_observer(mut self, observer: DtmObserver) -> Self {
+        self.observer = Some(observer);
+        self
     }
 
     /// Forget the kept frames.
@@ -120,6 +132,14 @@ impl DtmNavigator {
 
     /// One frame with the filter's pose at its capture time.
     pub fn frame(&mut self, image: GrayImage, prior: &FixPrior) -> DtmStep {
+        let step = self.step(image, prior);
+        if let Some(o) = self.observer.as_mut() {
+            o(prior.t_capture_us, &step);
+        }
+        step
+    }
+
+    fn step(&mut self, image: GrayImage, prior: &FixPrior) -> DtmStep {
         let fp = match frame_pose(&self.camera, self.reference.as_ref(), prior) {
             Ok(p) => p,
             Err(e) => return DtmStep::Refused(e.to_string()),

@@ -278,6 +278,27 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
             s.max_err_m.control.u
         );
         println!(
+            "max 3-D error [m]  visnav {:.1}   no-vision {:.1};  max Euler angle error [deg]  visnav {:.2}   no-vision {:.2}",
+            s.max_err_m.vision_3d,
+            s.max_err_m.control_3d,
+            s.max_euler_err_deg.vision,
+            s.max_euler_err_deg.control
+        );
+        if let (Some(d), Some(p)) = (&s.dtm, &s.dtm_poses) {
+            println!(
+                "DTM navigation: {} poses of {} frames ({} fused, {} refused); in the window {} poses, horizontal error median / p90 / max {:.1} / {:.1} / {:.1} m, {} outside their 3 sigma",
+                d.motions,
+                d.frames,
+                d.fused,
+                d.refused.values().sum::<u64>(),
+                p.poses,
+                p.err_h_m.median,
+                p.err_h_m.p90,
+                p.err_h_m.max,
+                p.beyond_3sigma
+            );
+        }
+        println!(
             "end of flight: horizontal error [m] visnav {}, no-vision {}; {:.0} m flown since the GPS loss; max heading error since then [deg] visnav {}, no-vision {}",
             fmt_opt(s.final_err_h_m),
             fmt_opt(s.control_final_err_h_m),

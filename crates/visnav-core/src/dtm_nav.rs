@@ -966,79 +966,11 @@ fn agl_and_relief(heights: &[f64], z_m: f64) -> (f64, f64) {
 /// Inliers, covariance and the conditioning and fit checks at the solution.
 fn assess(problem: &Problem<'_>, sol: &PosePair, tracks: usize) -> Result<DtmFix, DtmRejection> {
     let cfg = problem.cfg;
-    let mut h = Mat12::zeros();
-    let (mut sum_s2, mut sum_px2) = (0.0, 0.0);
-    let mut heights = Vec::new();
-    for o in &problem.obs {
-        let Some(e) = eval_track(sol, o, problem.image, problem.dem, cfg.max_range_m) else {
-            continue;
-        };
-        let s = e.r_px.norm() / problem.sigma_px;
-        if s <= cfg.tukey_c_sigma {
-            let j = e.jac / problem.sigma_px;
-            h += j.transpose() * j;
-            sum_s2 += s * s;
-            sum_px2 += e.r_px.norm_squared();
-            heights.push(e.ground.z);
-        }
-    }
-    let on_ground = problem.obs.len();
-    let inliers = heights.len();
-    let min_inliers = ((cfg.min_inlier_fraction * on_ground as f64).ceil() as usize).max(7);
-    if inliers < min_inliers {
-        return Err(DtmRejection::TooFewInliers {
-            inliers,
-            on_ground,
-            min: min_inliers,
-        });
-    }
-    let (agl_m, relief_std_m) = agl_and_relief(&heights, sol.first.c_world.z);
-    let rcond = reciprocal_condition(&h);
-    if rcond.is_nan() || rcond < MIN_RECIPROCAL_CONDITION {
-        return Err(DtmRejection::IllConditioned {
-            rcond,
-            min: MIN_RECIPROCAL_CONDITION,
-        });
-    }
-    let Some(h_inv) = h.try_inverse() else {
-        return Err(DtmRejection::IllConditioned {
-            rcond,
-            min: MIN_RECIPROCAL_CONDITION,
-        });
-    };
-    // Redundancy: two equations per inlier, twelve unknowns (inliers >= 7).
-    let dof = (2 * inliers - 12) as f64;
-    let sigma0 = (sum_s2 / dof).sqrt();
-    let factor = sigma0.max(1.0).powi(2) * cfg.sigma_inflation.powi(2);
-    let cov = h_inv * factor;
-    let cov = 0.5 * (cov + cov.transpose());
-    if sigma0.is_nan() || sigma0 > cfg.max_sigma0 {
-        return Err(DtmRejection::PoorFit {
-            sigma0,
-            max: cfg.max_sigma0,
-        });
-    }
-    let sigma_h = given_other_block_sigma(&h, [C1, C2], factor);
-    let limit_h = cfg.max_sigma_agl_fraction * agl_m;
-    if sigma_h.is_nan() || sigma_h > limit_h {
-        return Err(DtmRejection::Unobservable {
-            what: "horizontal position given the attitude (m)",
-            sigma: sigma_h,
-            limit: limit_h,
-            relief_std_m,
-            agl_m,
-        });
-    }
-    let sigma_att_deg = given_other_block_sigma(&h, [PHI1, PHI2], factor).to_degrees();
-    if sigma_att_deg.is_nan() || sigma_att_deg > cfg.max_attitude_sigma_deg {
-        return Err(DtmRejection::Unobservable {
-            what: "attitude given the position (deg)",
-            sigma: sigma_att_deg,
-            limit: cfg.max_attitude_sigma_deg,
-            relief_std_m,
-            agl_m,
-        });
-    }
+    let n = inlier_normals(problem, sol)?;
+    let (agl_m, relief_std_m) = agl_and_relief(&n.heights, sol.first.c_world.z);
+    let (cov, sigma0, factor, rcond) = covariance(&n, cfg)?;
+    let sigma_h = check_observable(&n.h, factor, agl_m, relief_std_m, cfg)?;
+    let inliers = n.heights.len();
     let fix = DtmFix {
         first: sol.first,
         second: sol.second,
@@ -1046,9 +978,9 @@ fn assess(problem: &Problem<'_>, sol: &PosePair, tracks: usize) -> Result<DtmFix
         method: DtmMethod::GaussNewton,
         iterations: 0,
         tracks,
-        on_ground,
+        on_ground: problem.obs.len(),
         inliers,
-        rms_px: (sum_px2 / inliers as f64).sqrt(),
+        rms_px: (n.sum_px2 / inliers as f64).sqrt(),
         sigma0,
         sigma_h_given_attitude_m: sigma_h,
         agl_m,
@@ -1064,6 +996,115 @@ fn assess(problem: &Problem<'_>, sol: &PosePair, tracks: usize) -> Result<DtmFix
         ));
     }
     Ok(fix)
+}
+
+/// The inliers' whitened normal matrix at the solution, their squared residuals (whitened and
+/// in pixels) and ground heights.
+struct InlierNormals {
+    h: Mat12,
+    sum_s2: f64,
+    sum_px2: f64,
+    heights: Vec<f64>,
+}
+
+/// The inliers (residual within `tukey_c_sigma`) at the solution; too few of the tracks on the
+/// terrain refuses.
+fn inlier_normals(problem: &Problem<'_>, sol: &PosePair) -> Result<InlierNormals, DtmRejection> {
+    let cfg = problem.cfg;
+    let mut n = InlierNormals {
+        h: Mat12::zeros(),
+        sum_s2: 0.0,
+        sum_px2: 0.0,
+        heights: Vec::new(),
+    };
+    for o in &problem.obs {
+        let Some(e) = eval_track(sol, o, problem.image, problem.dem, cfg.max_range_m) else {
+            continue;
+        };
+        let s = e.r_px.norm() / problem.sigma_px;
+        if s <= cfg.tukey_c_sigma {
+            let j = e.jac / problem.sigma_px;
+            n.h += j.transpose() * j;
+            n.sum_s2 += s * s;
+            n.sum_px2 += e.r_px.norm_squared();
+            n.heights.push(e.ground.z);
+        }
+    }
+    let on_ground = problem.obs.len();
+    let inliers = n.heights.len();
+    let min_inliers = ((cfg.min_inlier_fraction * on_ground as f64).ceil() as usize).max(7);
+    if inliers < min_inliers {
+        return Err(DtmRejection::TooFewInliers {
+            inliers,
+            on_ground,
+            min: min_inliers,
+        });
+    }
+    Ok(n)
+}
+
+/// The solution's covariance `max(1, sigma0^2) k^2 H^-1` (module doc) with sigma0, the factor
+/// on `H^-1` and the reciprocal condition number; ill-conditioned or poorly fitting refuses.
+fn covariance(
+    n: &InlierNormals,
+    cfg: &DtmNavConfig,
+) -> Result<(Mat12, f64, f64, f64), DtmRejection> {
+    let rcond = reciprocal_condition(&n.h);
+    let ill = DtmRejection::IllConditioned {
+        rcond,
+        min: MIN_RECIPROCAL_CONDITION,
+    };
+    if rcond.is_nan() || rcond < MIN_RECIPROCAL_CONDITION {
+        return Err(ill);
+    }
+    let Some(h_inv) = n.h.try_inverse() else {
+        return Err(ill);
+    };
+    // Redundancy: two equations per inlier, twelve unknowns (inliers >= 7).
+    let dof = (2 * n.heights.len() - 12) as f64;
+    let sigma0 = (n.sum_s2 / dof).sqrt();
+    if sigma0.is_nan() || sigma0 > cfg.max_sigma0 {
+        return Err(DtmRejection::PoorFit {
+            sigma0,
+            max: cfg.max_sigma0,
+        });
+    }
+    let factor = sigma0.max(1.0).powi(2) * cfg.sigma_inflation.powi(2);
+    let cov = h_inv * factor;
+    Ok((0.5 * (cov + cov.transpose()), sigma0, factor, rcond))
+}
+
+/// The observability checks (module doc): the horizontal sigma of the first position given the
+/// attitudes, and the attitude sigma given the positions; returns the former, m.
+fn check_observable(
+    h: &Mat12,
+    factor: f64,
+    agl_m: f64,
+    relief_std_m: f64,
+    cfg: &DtmNavConfig,
+) -> Result<f64, DtmRejection> {
+    let sigma_h = given_other_block_sigma(h, [C1, C2], factor);
+    let limit_h = cfg.max_sigma_agl_fraction * agl_m;
+    if sigma_h.is_nan() || sigma_h > limit_h {
+        return Err(DtmRejection::Unobservable {
+            what: "horizontal position given the attitude (m)",
+            sigma: sigma_h,
+            limit: limit_h,
+            relief_std_m,
+            agl_m,
+        });
+    }
+    let sigma_att_deg = given_other_block_sigma(h, [PHI1, PHI2], factor).to_degrees();
+    if sigma_att_deg.is_nan() || sigma_att_deg > cfg.max_attitude_sigma_deg {
+        return Err(DtmRejection::Unobservable {
+            what: "attitude given the position (deg)",
+            sigma: sigma_att_deg,
+            limit: cfg.max_attitude_sigma_deg,
+            relief_std_m,
+            agl_m,
+        });
+    }
+    Ok(sigma_h)
 }
 
 /// Largest 1-sigma of the first frame's 3-vector at `blocks[0]` when the other kind of

@@ -37,6 +37,11 @@ fn sim(name: &str) -> Option<serde_json::Value> {
         .expect("run visnav sim");
     let stderr = String::from_utf8_lossy(&res.stderr).to_string();
     assert!(res.status.success(), "visnav sim failed: {stderr}");
+    // A redirected log is plain text (issue 24): no terminal colour codes.
+    assert!(
+        stderr.contains("INFO") && !stderr.contains('\u{1b}'),
+        "{stderr}"
+    );
     let _ = std::fs::remove_dir_all(&out);
     Some(serde_json::from_slice(&res.stdout).expect("JSON summary"))
 }

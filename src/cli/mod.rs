@@ -30,7 +30,9 @@ pub fn repo_file(rel: &str) -> std::path::PathBuf {
 }
 
 /// Initialise `tracing` to stderr: `RUST_LOG` when set, otherwise info/debug/trace by `-v` count.
+/// Colours only when stderr is a terminal (a redirected log or journald gets plain text).
 pub fn init_logging(verbose: u8) {
+    use std::io::IsTerminal;
     use tracing_subscriber::EnvFilter;
     let default = match verbose {
         0 => "info",
@@ -41,5 +43,6 @@ pub fn init_logging(verbose: u8) {
     tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
         .init();
 }

@@ -182,10 +182,11 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
         );
     }
     let base = path.parent().unwrap_or(std::path::Path::new("."));
-    let out = args
-        .out
-        .clone()
-        .unwrap_or_else(|| PathBuf::from("sim-report").join(&sc.name));
+    let out = match args.out.clone() {
+        Some(o) => o,
+        None => fresh_report_dir(&PathBuf::from("sim-report").join(&sc.name))
+            .with_context(|| format!("report folder sim-report/{}", sc.name))?,
+    };
     let lockstep = sc.closed_loop.as_ref().is_some_and(|c| c.lockstep);
     // Lock-step: one thread, the clock paused and advanced by the runtime whenever every task
     // waits (tokio's test-util clock), so simulated time costs only the CPU it needs.
@@ -316,4 +317,50 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// A report folder no other run uses: `base` when it does not exist yet, else `base-2`, `base-3`,
+/// ... (each claimed by creating it, so two runs started together get two folders).
+fn fresh_report_dir(base: &std::path::Path) -> std::io::Result<PathBuf> {
+    if let Some(parent) = base.parent() {
+        std::fs::create_dir_all(parent)?;
+    }
+    let name = base
+        .file_name()
+        .map(|n| n.to_string_lossy().to_string())
+        .unwrap_or_else(|| "run".into());
+    for n in 1..10_000u32 {
+        let candidate = if n == 1 {
+            base.to_path_buf()
+        } else {
+            base.with_file_name(format!("{name}-{n}"))
+        };
+        match std::fs::create_dir(&candidate) {
+            Ok(()) => return Ok(candidate),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            Err(e) => return Err(e),
+        }
+    }
+    Err(std::io::Error::other(format!(
+        "{}: 10000 report folders exist already",
+        base.display()
+    )))
+}
+
+#[cfg(test)]
+mod report_dir_tests {
+    use super::fresh_report_dir;
+
+    #[test]
+    fn each_run_gets_its_own_report_folder() {
+        let tmp = tempfile::tempdir().unwrap();
+        let base = tmp.path().join("sim-report").join("demo");
+        let a = fresh_report_dir(&base).unwrap();
+        let b = fresh_report_dir(&base).unwrap();
+        let c = fresh_report_dir(&base).unwrap();
+        assert_eq!(a, base);
+        assert_eq!(b, tmp.path().join("sim-report").join("demo-2"));
+        assert_eq!(c, tmp.path().join("sim-report").join("demo-3"));
+        assert!(a.is_dir() && b.is_dir() && c.is_dir());
+    }
 }

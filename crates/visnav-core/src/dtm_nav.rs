@@ -102,7 +102,7 @@ use crate::vo::TrackPair;
 pub mod flow;
 pub mod navigator;
 
-pub use navigator::{DtmNavigator, DtmObserver, DtmPoseFix, DtmStep};
+pub use navigator::{DtmNavigator, DtmObserver, DtmPairError, DtmPoseFix, DtmStep};
 
 type Vec12 = SVector<f64, 12>;
 type Mat12 = SMatrix<f64, 12, 12>;

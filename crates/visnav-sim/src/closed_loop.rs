@@ -1467,12 +1467,16 @@ pub async fn run(
         let (ctl, ch) = sample_output(oc.as_ref(), &s, &table, emu_ctl);
         if t_s - last_log_s >= 10.0 {
             last_log_s = t_s;
+            let (attempts, accepted) = fixer
+                .log
+                .lock()
+                .map(|l| (l.len(), l.iter().filter(|f| f.accepted).count()))
+                .unwrap_or((0, 0));
             info!(
-                "t = {t_s:5.1} s  gps {}  vision: err {:.1} m ({vh})  control: err {:.1} m ({ch})  fixes {}",
+                "t = {t_s:5.1} s  gps {}  vision: err {:.1} m ({vh})  control: err {:.1} m ({ch})  fixes accepted {accepted} of {attempts} attempts",
                 if sens_v.gps_on(t_s) { "on " } else { "off" },
                 f32::hypot(vis.err_ned_m[0], vis.err_ned_m[1]),
                 f32::hypot(ctl.err_ned_m[0], ctl.err_ned_m[1]),
-                fixer.log.lock().map(|l| l.len()).unwrap_or(0)
             );
         }
         steps.push(StepSample {

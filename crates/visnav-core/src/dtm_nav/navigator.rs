@@ -86,6 +86,26 @@ pub struct DtmPoseFix {
     pub relief_std_m: f64,
 }
 
+/// Why a pair gave no pose (the step's refusal text is its message).
+#[derive(Debug, thiserror::Error)]
+pub enum DtmPairError {
+    /// Too few of the screen's rays reach the terrain model.
+    #[error("{hits} of {rays} rays of the frame reach the terrain model")]
+    OffTerrain { hits: usize, rays: usize },
+    /// The flow could not be computed (a blank or malformed frame).
+    #[error("flow: {0}")]
+    Flow(crate::vision::VisionError),
+    /// The solver refused (its screen, conditioning or integrity checks).
+    #[error(transparent)]
+    Solve(super::DtmRejection),
+    /// The solved position has no geodetic coordinates or geoid height.
+    #[error("solved position: {0}")]
+    Geodetic(crate::geo::GeoError),
+    /// The pose fails the filter measurement's own check.
+    #[error("solved pose unusable: {0}")]
+    Unusable(&'static str),
+}
+
 /// A frame kept for pairing.
 struct KeptFrame {
     t_us: u64,
@@ -159,7 +179,7 @@ impl DtmNavigator {
             None => DtmStep::Waiting,
             Some(first) => match self.pair(first, &image, &fp, t_us) {
                 Ok(f) => DtmStep::Fix(Box::new(f)),
-                Err(why) => DtmStep::Refused(why),
+                Err(why) => DtmStep::Refused(why.to_string()),
             },
         };
         self.kept.push_back(KeptFrame {
@@ -181,7 +201,7 @@ impl DtmNavigator {
         image: &GrayImage,
         fp: &FramePose,
         t_us: u64,
-    ) -> Result<DtmPoseFix, String> {
+    ) -> Result<DtmPoseFix, DtmPairError> {
         let dem = self.reference.dem();
         let (guess1, guess2) = (first.fp.pose, fp.pose);
         let range = self.cfg.max_range_m;
@@ -189,7 +209,7 @@ impl DtmNavigator {
         let (_, raw) = terrain_flow(&first.image, image, |p| {
             predict_px(p, &self.camera, &guess1, &guess2, dem, range)
         })
-        .map_err(|e| format!("flow: {e}"))?;
+        .map_err(DtmPairError::Flow)?;
         let f32px = |v: nalgebra::Vector2<f64>| [v.x as f32, v.y as f32];
         let tracks: Vec<TrackPair> = raw
             .iter()
@@ -212,7 +232,7 @@ impl DtmNavigator {
             guess_second: guess2,
             guess_sigma,
         };
-        let sol = solve(&input, dem, &self.cfg).map_err(|e| e.to_string())?;
+        let sol = solve(&input, dem, &self.cfg).map_err(DtmPairError::Solve)?;
         let fix = self.pose_fix(&sol.second, &sol.second_cov(), fp, t_us)?;
         Ok(DtmPoseFix {
             fix,
@@ -229,7 +249,7 @@ impl DtmNavigator {
     }
 
     /// The relief under the frame at `pose` from the terrain model alone (module doc, step 3).
-    fn screen_footprint(&self, pose: &crate::pose::Pose) -> Result<(), String> {
+    fn screen_footprint(&self, pose: &crate::pose::Pose) -> Result<(), DtmPairError> {
         let k = &self.camera.intrinsics;
         let c = pose.c_world;
         let n = FOOTPRINT_GRID;
@@ -248,21 +268,19 @@ impl DtmNavigator {
             })
             .collect();
         if heights.len() < n * n / 2 {
-            return Err(format!(
-                "{} of {} rays of the frame reach the terrain model",
-                heights.len(),
-                n * n
-            ));
+            return Err(DtmPairError::OffTerrain {
+                hits: heights.len(),
+                rays: n * n,
+            });
         }
         let (agl_m, relief_std_m) = super::agl_and_relief(&heights, c.z);
         let min = self.cfg.min_relief_agl_fraction;
         if agl_m.is_nan() || relief_std_m < min * agl_m {
-            return Err(super::DtmRejection::FlatGround {
+            return Err(DtmPairError::Solve(super::DtmRejection::FlatGround {
                 relief_std_m,
                 agl_m,
                 min_fraction: min,
-            }
-            .to_string());
+            }));
         }
         Ok(())
     }
@@ -275,14 +293,14 @@ impl DtmNavigator {
         cov_phi_c: &Matrix6<f64>,
         fp: &FramePose,
         t_us: u64,
-    ) -> Result<PoseFix, String> {
+    ) -> Result<PoseFix, DtmPairError> {
         let c = pose.c_world;
         let (lat_deg, lon_deg) = self
             .reference
             .crs()
             .to_geodetic(c.x, c.y)
-            .map_err(|e| format!("solved position: {e}"))?;
-        let n = geoid_undulation_m(lat_deg, lon_deg).map_err(|e| format!("geoid: {e}"))?;
+            .map_err(DtmPairError::Geodetic)?;
+        let n = geoid_undulation_m(lat_deg, lon_deg).map_err(DtmPairError::Geodetic)?;
         // Map grid -> NED: v_map = Rz(gamma) R_enu_ned v_ned; grid metres are `scale` true ones.
         let r_ned_map = (rot_z(fp.gamma_rad) * r_enu_ned()).inverse();
         let unscale = Matrix3::from_diagonal(&Vector3::new(1.0 / fp.scale, 1.0 / fp.scale, 1.0));
@@ -311,7 +329,7 @@ impl DtmNavigator {
         };
         Measurement::VisionPose(fix)
             .check()
-            .map_err(|e| format!("solved pose unusable: {e}"))?;
+            .map_err(DtmPairError::Unusable)?;
         Ok(fix)
     }
 }

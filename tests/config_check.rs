@@ -33,6 +33,20 @@ fn every_example_config_passes() {
             path.display(),
             String::from_utf8_lossy(&out.stderr)
         );
+        // It says what the vision does; without a camera, loudly that there is none (issue 24).
+        let text = String::from_utf8_lossy(&out.stdout);
+        if out.status.success() {
+            let has_frames = std::fs::read_to_string(&path)
+                .unwrap()
+                .lines()
+                .any(|l| l.trim() == "[frames]");
+            let want = if has_frames {
+                "vision: camera frames from [frames]"
+            } else {
+                "warning: no [frames] section: no camera, so no vision fixes"
+            };
+            assert!(text.contains(want), "{}: {text}", path.display());
+        }
         n += 1;
     }
     assert!(n >= 4, "expected the four example configs, found {n}");

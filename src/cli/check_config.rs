@@ -37,6 +37,7 @@ pub fn run(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
                 modes.join(", "),
                 cfg.output.rate_hz
             );
+            println!("{}", vision_line(&cfg));
             Ok(ExitCode::SUCCESS)
         }
         Err(e @ (ConfigError::Invalid { .. } | ConfigError::Parse { .. })) => {
@@ -45,4 +46,27 @@ pub fn run(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
         }
         Err(e) => Err(e.into()),
     }
+}
+
+/// What the configuration's vision does, in one line; without a camera (`[frames]`) it says
+/// loudly that `visnav run` navigates without vision (issue 24: a config without a camera used to
+/// pass silently and the daemon logged `frames_in=0` forever).
+pub fn vision_line(cfg: &Config) -> String {
+    match &cfg.frames {
+        None => NO_CAMERA_WARNING.to_string(),
+        Some(_) => format!(
+            "vision: camera frames from [frames]; map fixes on; visual odometry {}; DTM navigation {}",
+            on_off(cfg.vo.enabled),
+            on_off(cfg.dtm_nav.enabled)
+        ),
+    }
+}
+
+/// The warning for a configuration without a camera.
+pub const NO_CAMERA_WARNING: &str = "warning: no [frames] section: no camera, so no vision \
+fixes; visnav run navigates on the autopilot's IMU, attitude and GPS alone (add [frames], \
+docs/operations.md)";
+
+fn on_off(b: bool) -> &'static str {
+    if b { "on" } else { "off" }
 }

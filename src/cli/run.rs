@@ -32,6 +32,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
             .with_context(|| format!("{}: vision fix engine", args.config.display()))?;
         Some(std::sync::Arc::new(engine))
     } else {
+        tracing::warn!("{}", super::check_config::NO_CAMERA_WARNING);
         None
     };
     let rt = tokio::runtime::Builder::new_multi_thread()

@@ -125,19 +125,19 @@ impl VoCtx {
                 [a.sigma_rad, a.sigma_yaw_rad].map(f64::to_degrees),
             )
         });
-        let dtm = match self.dtm.as_mut() {
-            Some(nav) => Some(dtm_step(
-                nav,
-                image.clone(),
-                seq,
-                &inputs.prior,
-                &self.metrics,
-            )),
-            None => None,
+        // Each takes the frame: a copy only when both run.
+        let (img_dtm, img_vo) = match (self.dtm.is_some(), self.odometer.is_some()) {
+            (true, true) => (Some(image.clone()), Some(image)),
+            (true, false) => (Some(image), None),
+            (false, _) => (None, Some(image)),
         };
-        let step = match self.odometer.as_mut() {
-            Some(odo) => Some(vo_step(odo, image, seq, inputs, &self.metrics)),
-            None => None,
+        let dtm = match (self.dtm.as_mut(), img_dtm) {
+            (Some(nav), Some(img)) => Some(dtm_step(nav, img, seq, &inputs.prior, &self.metrics)),
+            _ => None,
+        };
+        let step = match (self.odometer.as_mut(), img_vo) {
+            (Some(odo), Some(img)) => Some(vo_step(odo, img, seq, inputs, &self.metrics)),
+            _ => None,
         };
         self.last_t_us = Some(t_us);
         VoResult {

@@ -1561,12 +1561,7 @@ pub async fn run(
         .collect();
     let ws: Vec<&StepRow> = steps.iter().filter(|s| in_window(s.t_s)).collect();
     let max_enu = |f: &dyn Fn(&StepRow) -> [f64; 3]| {
-        let m = |k: usize| {
-            ws.iter()
-                .map(|s| f(s)[k].abs())
-                .filter(|v| v.is_finite())
-                .fold(f64::NAN, f64::max)
-        };
+        let m = |k: usize| max_finite(ws.iter().map(|s| f(s)[k].abs()));
         Enu {
             e: m(1),
             n: m(0),

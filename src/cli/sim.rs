@@ -1,4 +1,4 @@
-//! `visnav sim [--scenario FILE] [--out DIR] [--json] [--monte-carlo N]`.
+//! `visnav sim [--scenario FILE] [--seed N] [--out DIR] [--json] [--monte-carlo N]`.
 //!
 //! A scenario with a `[closed_loop]` section (the default, `sitl/scenarios/closed_loop_demo.toml`)
 //! runs the closed loop (`visnav::sitl::closed_loop`): autopilot emulator + visnav daemon over
@@ -39,11 +39,18 @@ pub struct SimArgs {
     /// `[closed_loop.vo] enabled` says (the same flight with and without it, for comparison).
     #[arg(long, value_parser = ["on", "off"])]
     pub vo: Option<String>,
+    /// The scenario's `seed` replaced by this one: the same flight with other draws of the
+    /// sensors' noise and faults (a seed sweep); the camera's rendering keeps its own seed.
+    #[arg(long)]
+    pub seed: Option<u64>,
 }
 
 pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
     let path = args.scenario.clone().unwrap_or_else(default_scenario);
     let mut sc = Scenario::load(&path)?;
+    if let Some(seed) = args.seed {
+        sc.seed = seed;
+    }
     if let Some(cl) = sc.closed_loop.as_mut() {
         cl.lockstep &= !args.realtime;
         if let Some(v) = &args.vo {

@@ -564,7 +564,8 @@ impl FrameFixer for RecordingFixer {
         let record = move |t_boot_us: u64, step: &visnav_core::dtm_nav::DtmStep| {
             if let visnav_core::dtm_nav::DtmStep::Fix(f) = step {
                 let t_run_us = emu.run_us_of_boot_us(t_boot_us);
-                if let Some(row) = score_dtm_pose(t_run_us, &f.fix, &table, &mount) {
+                let t_first_s = emu.run_us_of_boot_us(f.t_first_us) as f64 * 1e-6;
+                if let Some(row) = score_dtm_pose(t_run_us, f, t_first_s, &table, &mount) {
                     log.lock().unwrap_or_else(|e| e.into_inner()).push(row);
                 }
             }
@@ -677,7 +678,12 @@ pub struct Enu {
 /// A DTM navigator's pose against the truth at its capture time.
 #[derive(Debug, Clone, Copy)]
 pub struct DtmRow {
+    /// Capture times of the frame and of its partner, s; the distance between them, m; flow
+    /// vectors kept as inliers.
     pub t_capture_s: f64,
+    pub t_first_s: f64,
+    pub baseline_m: f64,
+    pub inliers: usize,
     /// Camera position error NED, m; claimed horizontal 1-sigma (major semi-axis), m; outside its
     /// own 3-sigma horizontal ellipse.
     pub err_ned_m: [f64; 3],
@@ -1002,6 +1008,8 @@ pub struct ClosedLoopRun {
     pub steps: Vec<StepRow>,
     pub fixes: Vec<FixRow>,
     pub injections: Vec<InjectionRow>,
+    /// Every pose of the DTM navigator, scored (empty without `[dtm_nav]`).
+    pub dtm_poses: Vec<DtmRow>,
     /// CRS of the camera-year orthophoto (the plots' map frame).
     pub crs: visnav_io::geo::Crs,
     /// The camera-year orthophoto as an RGB image (at most ~1600 px wide) and its extent
@@ -1517,7 +1525,11 @@ pub async fn run(
         .map(|mut l| std::mem::take(&mut *l))
         .unwrap_or_default();
     let wf: Vec<&FixRow> = fixes.iter().filter(|f| in_window(f.t_capture_s)).collect();
-    let dtm_all: Vec<DtmRow> = fixer.dtm_log.lock().map(|l| l.clone()).unwrap_or_default();
+    let dtm_all: Vec<DtmRow> = fixer
+        .dtm_log
+        .lock()
+        .map(|mut l| std::mem::take(&mut *l))
+        .unwrap_or_default();
     let dtm_rows: Vec<&DtmRow> = dtm_all
         .iter()
         .filter(|r| in_window(r.t_capture_s))
@@ -1699,6 +1711,7 @@ pub async fn run(
         steps,
         fixes,
         injections,
+        dtm_poses: dtm_all,
         crs,
         background,
         gps_until_s: sc.gps.as_ref().map(|g| g.until_s),
@@ -1792,10 +1805,12 @@ fn beyond_3sigma_h(e: &[f64; 3], c: &[[f64; 3]; 3]) -> bool {
 /// geoid cannot give its height above sea level.
 fn score_dtm_pose(
     t_run_us: u64,
-    fix: &visnav_core::nav::PoseFix,
+    pose: &visnav_core::dtm_nav::DtmPoseFix,
+    t_first_s: f64,
     table: &TruthTable,
     mount: &visnav_core::camera::Mount,
 ) -> Option<DtmRow> {
+    let fix = &pose.fix;
     let t = t_run_us as f64 * 1e-6;
     let p = &fix.position;
     let (lat, lon) = (p.lat_rad.to_degrees(), p.lon_rad.to_degrees());
@@ -1811,6 +1826,9 @@ fn score_dtm_pose(
         .fold(0.0, f64::max);
     Some(DtmRow {
         t_capture_s: t,
+        t_first_s,
+        baseline_m: pose.baseline_m,
+        inliers: pose.inliers,
         err_ned_m: e,
         sigma_h_m: sigma_h_m(&c),
         beyond_3sigma: beyond_3sigma_h(&e, &c),

@@ -5,6 +5,7 @@
 //! | `summary.json` | the summary `visnav sim --json` prints |
 //! | `steps.csv` | every 0.1 s: truth, the vision and the control filters' positions, NED errors, horizontal 1-sigma, health; last their heading errors (`vis_yaw_err_deg`, `ctl_yaw_err_deg`, wrapped to +-180 deg) |
 //! | `fixes.csv` | every vision fix: capture time, latency, accepted/reason, position, NED error, sigma, 3-sigma test |
+//! | `dtm_poses.csv` | with `[dtm_nav]`: every pose of the DTM navigator: capture time, its partner's, baseline, inliers, NED error, sigma, 3-sigma test, Euler angle error |
 //! | `injections.csv` | every GPS_INPUT the emulators received (vision and control), with its NED error |
 //! | `track.geojson` | truth, visnav and no-vision tracks (LineString, WGS84 lon/lat) and the accepted fixes (Point), for QGIS |
 //! | `track.png` | the tracks over the map orthophoto |
@@ -111,6 +112,30 @@ pub fn fixes_csv(run: &ClosedLoopRun) -> String {
     s
 }
 
+/// `dtm_poses.csv`.
+pub fn dtm_poses_csv(run: &ClosedLoopRun) -> String {
+    let mut s = String::from(
+        "t_capture_s,t_first_s,baseline_m,inliers,err_n_m,err_e_m,err_d_m,sigma_h_m,beyond_3sigma,euler_err_deg\n",
+    );
+    for r in &run.dtm_poses {
+        let _ = writeln!(
+            s,
+            "{},{},{},{},{},{},{},{},{},{}",
+            f(r.t_capture_s),
+            f(r.t_first_s),
+            f(r.baseline_m),
+            r.inliers,
+            f(r.err_ned_m[0]),
+            f(r.err_ned_m[1]),
+            f(r.err_ned_m[2]),
+            f(r.sigma_h_m),
+            u8::from(r.beyond_3sigma),
+            f(r.euler_err_deg),
+        );
+    }
+    s
+}
+
 /// `injections.csv`.
 pub fn injections_csv(run: &ClosedLoopRun) -> String {
     let mut s = String::from(
@@ -191,13 +216,17 @@ pub fn write_text_files(run: &ClosedLoopRun, dir: &Path) -> Result<Vec<PathBuf>,
     std::fs::create_dir_all(dir).map_err(io_err(dir))?;
     let summary = serde_json::to_string_pretty(&run.summary).unwrap_or_default();
     let gj = serde_json::to_string(&geojson(run)).unwrap_or_default();
-    Ok(vec![
+    let mut files = vec![
         write(dir, "summary.json", &summary)?,
         write(dir, "steps.csv", &steps_csv(run))?,
         write(dir, "fixes.csv", &fixes_csv(run))?,
-        write(dir, "injections.csv", &injections_csv(run))?,
-        write(dir, "track.geojson", &gj)?,
-    ])
+    ];
+    if !run.dtm_poses.is_empty() {
+        files.push(write(dir, "dtm_poses.csv", &dtm_poses_csv(run))?);
+    }
+    files.push(write(dir, "injections.csv", &injections_csv(run))?);
+    files.push(write(dir, "track.geojson", &gj)?);
+    Ok(files)
 }
 
 const TRUTH_RGB: [u8; 3] = [20, 20, 20];

@@ -471,11 +471,27 @@ impl Pyramid {
 
     /// [`good_features`] on level 0, reusing its gradients.
     pub fn good_features(&self, params: &FeatureParams) -> Result<Vec<[f32; 2]>, VisionError> {
+        self.good_features_where(params, |_| true)
+    }
+
+    /// [`Self::good_features`] among the candidates at which `keep` holds (a region of
+    /// interest): the quality threshold still follows the strongest response of the whole image
+    /// (OpenCV's `mask` argument), the cap, spacing and spread are spent inside the region only.
+    pub fn good_features_where(
+        &self,
+        params: &FeatureParams,
+        keep: impl Fn([f32; 2]) -> bool,
+    ) -> Result<Vec<[f32; 2]>, VisionError> {
         params.validate()?;
         let Some(l0) = self.levels.first() else {
             return Ok(Vec::new());
         };
-        Ok(detect_corners(l0.grad_x.view(), l0.grad_y.view(), params))
+        Ok(detect_corners_where(
+            l0.grad_x.view(),
+            l0.grad_y.view(),
+            params,
+            keep,
+        ))
     }
 }
 
@@ -588,9 +604,22 @@ pub fn good_features(
 }
 
 fn detect_corners(gx: Plane<'_>, gy: Plane<'_>, p: &FeatureParams) -> Vec<[f32; 2]> {
+    detect_corners_where(gx, gy, p, |_| true)
+}
+
+fn detect_corners_where(
+    gx: Plane<'_>,
+    gy: Plane<'_>,
+    p: &FeatureParams,
+    keep: impl Fn([f32; 2]) -> bool,
+) -> Vec<[f32; 2]> {
     let (mut keys, max) = corner_candidates(gx, gy, p.block_size_px, p.border_px.max(1));
     let threshold = p.quality_level * max;
-    keys.retain(|&k| key_response(k) > threshold);
+    let w = gx.w;
+    keys.retain(|&k| {
+        let i = key_index(k);
+        key_response(k) > threshold && keep([(i % w) as f32, (i / w) as f32])
+    });
     keys.sort_unstable_by(|a, b| b.cmp(a));
     select_corners(&keys, gx.w, gx.h, p)
 }
@@ -1824,6 +1853,33 @@ mod tests {
         }
         assert!(counts.iter().all(|&c| (1..=8).contains(&c)), "{counts:?}");
         assert!(pts.iter().filter(|p| p[0] >= 160.0).count() >= 16);
+    }
+
+    /// A region of interest spends the whole budget inside it: all corners in the right half,
+    /// as many as without the region (the unrestricted search spends most on the left).
+    #[test]
+    fn a_region_of_interest_spends_the_budget_inside_it() {
+        let img = texture(320, 240, 9);
+        let params = FeatureParams {
+            max_corners: 80,
+            ..FeatureParams::default()
+        };
+        let right = |p: [f32; 2]| p[0] >= 160.0;
+        let pyr = pyramid(&img);
+        let inside = pyr.good_features_where(&params, right).unwrap();
+        assert_eq!(inside.len(), 80);
+        assert!(inside.iter().all(|&p| right(p)), "{inside:?}");
+        let all = pyr.good_features(&params).unwrap();
+        let all_right = all.iter().filter(|&&p| right(p)).count();
+        assert!(
+            all_right < 60,
+            "the unrestricted search spends {all_right} of 80 on the right"
+        );
+        // Restricted to where the unrestricted search found its right-half corners, the
+        // search finds those first (same order, same spacing).
+        let only_those = |p: [f32; 2]| all.iter().any(|q| *q == p && right(p));
+        let same = pyr.good_features_where(&params, only_those).unwrap();
+        assert_eq!(same.len(), all_right);
     }
 
     /// (a) A sub-pixel translation (bilinear resampling of a textured image): median error

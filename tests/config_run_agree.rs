@@ -176,3 +176,30 @@ fn run_refuses_the_bad_dem_check_config_refuses() {
         }
     }
 }
+
+/// No autopilot on the link (issue 24): `visnav run` says so within the heartbeat timeout,
+/// naming the connection and what to check, instead of waiting in silence.
+#[test]
+fn run_warns_when_no_autopilot_heartbeat_arrives() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let text = config("heartbeat_timeout_s = 1.0", "ground_height_amsl_m = 300.0", "")
+        .replace("14999", &port.to_string());
+    let file = dir.path().join("quiet.toml");
+    std::fs::write(&file, text).unwrap();
+    let out = visnav()
+        .args(["run", "--duration", "3", "--config"])
+        .arg(&file)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    let want = format!("no autopilot HEARTBEAT on udpin:127.0.0.1:{port}");
+    let lines: Vec<&str> = err.lines().filter(|l| l.contains(&want)).collect();
+    assert_eq!(lines.len(), 1, "said once: {err}");
+    assert!(lines[0].contains("WARN") && lines[0].contains("SERIALn_PROTOCOL"), "{err}");
+}

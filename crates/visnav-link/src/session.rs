@@ -1284,12 +1284,25 @@ async fn run_connection(shared: &Arc<Shared>, conn: Arc<Conn>, stop: &mut watch:
     let stream_transport = !shared.cfg.connection.starts_with("udp");
     let opened = Instant::now();
     let watchdog = async {
+        let mut heard = false;
         loop {
             tokio::time::sleep(Duration::from_millis(250)).await;
-            let silent_s = lock(&shared.state)
-                .last_heartbeat
+            let last = lock(&shared.state).last_heartbeat;
+            heard |= last.is_some();
+            let silent_s = last
                 .map_or_else(|| opened.elapsed(), |h| h.elapsed())
                 .as_secs_f64();
+            if !heard && silent_s > shared.cfg.heartbeat_timeout_s {
+                // Said once per connection: nothing is navigating until an autopilot speaks.
+                heard = true;
+                warn!(
+                    "no autopilot HEARTBEAT on {} after {:.0} s: nothing is navigating. Check the \
+                     connection string (udpin listens, udpout sends), the serial device and its \
+                     baud rate, and that the autopilot sends MAVLink there (ArduPilot: \
+                     SERIALn_PROTOCOL 2; PX4: MAV_n_CONFIG, mavlink-router's endpoints)",
+                    shared.cfg.connection, silent_s
+                );
+            }
             if stream_transport && silent_s > 3.0 * shared.cfg.heartbeat_timeout_s {
                 warn!("no autopilot heartbeat on the open connection; reconnecting");
                 return;

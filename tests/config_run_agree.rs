@@ -187,8 +187,12 @@ fn run_warns_when_no_autopilot_heartbeat_arrives() {
         .local_addr()
         .unwrap()
         .port();
-    let text = config("heartbeat_timeout_s = 1.0", "ground_height_amsl_m = 300.0", "")
-        .replace("14999", &port.to_string());
+    let text = config(
+        "heartbeat_timeout_s = 1.0",
+        "ground_height_amsl_m = 300.0",
+        "",
+    )
+    .replace("14999", &port.to_string());
     let file = dir.path().join("quiet.toml");
     std::fs::write(&file, text).unwrap();
     let out = visnav()
@@ -201,5 +205,8 @@ fn run_warns_when_no_autopilot_heartbeat_arrives() {
     let want = format!("no autopilot HEARTBEAT on udpin:127.0.0.1:{port}");
     let lines: Vec<&str> = err.lines().filter(|l| l.contains(&want)).collect();
     assert_eq!(lines.len(), 1, "said once: {err}");
-    assert!(lines[0].contains("WARN") && lines[0].contains("SERIALn_PROTOCOL"), "{err}");
+    assert!(
+        lines[0].contains("WARN") && lines[0].contains("SERIALn_PROTOCOL"),
+        "{err}"
+    );
 }

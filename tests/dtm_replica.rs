@@ -41,6 +41,19 @@ fn sim(name: &str) -> Option<serde_json::Value> {
         stderr.contains("INFO") && !stderr.contains('\u{1b}'),
         "{stderr}"
     );
+    // Each daemon's lines say which run they are from (issue 24): the DTM navigation is the
+    // vision run's; both runs report their health.
+    let labelled = |run: &str, what: &str| {
+        stderr
+            .lines()
+            .any(|l| l.contains(&format!(" {run}: ")) && l.contains(what))
+    };
+    assert!(
+        labelled("vision", "DTM navigation: pose from frame"),
+        "{stderr}"
+    );
+    assert!(labelled("control", "navigation health"), "{stderr}");
+    assert!(!labelled("control", "DTM navigation: pose"), "{stderr}");
     let _ = std::fs::remove_dir_all(&out);
     Some(serde_json::from_slice(&res.stdout).expect("JSON summary"))
 }

@@ -398,7 +398,15 @@ fn cli_build_and_info() {
         .unwrap();
     assert!(o.status.success());
     let text = String::from_utf8_lossy(&o.stdout);
-    assert!(text.contains("level 0") && text.contains("Utm"), "{text}");
+    assert!(
+        text.contains("level 0") && text.contains("UTM zone 14N"),
+        "{text}"
+    );
+    // User-facing text, not Rust debug formatting (issue 24).
+    assert!(
+        !text.contains("Utm {") && !text.contains("Surf64"),
+        "{text}"
+    );
     let o = Command::new(bin)
         .args(["map", "info", "--json"])
         .arg(&out)

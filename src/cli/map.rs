@@ -282,7 +282,7 @@ fn info(a: InfoArgs) -> anyhow::Result<ExitCode> {
         open_s * 1e3
     );
     println!("  built by {} at unix {}", h.built_by, h.built_unix_s);
-    println!("  CRS {:?}", h.crs);
+    println!("  CRS {}", h.crs);
     println!(
         "  bounds x {:.2} .. {:.2} m, y {:.2} .. {:.2} m ({:.0} x {:.0} m)",
         h.bounds.min_x_m,
@@ -304,7 +304,7 @@ fn info(a: InfoArgs) -> anyhow::Result<ExitCode> {
     );
     println!("  vertical datum: {}", h.vertical_datum);
     println!(
-        "  SURF {:?}, threshold {}, {} octaves x {} layers, upright {}; tile {} px, cap {} per tile",
+        "  {} descriptors, threshold {}, {} octaves x {} layers, upright {}; tile {} px, cap {} per tile",
         h.surf.descriptor,
         h.surf.hessian_threshold,
         h.surf.n_octaves,

@@ -87,12 +87,14 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     println!(
-        "{}: {} packets ({} undecodable, {} from autopilot {:?}), {} IMU samples, t {:.1}..{:.1} s",
+        "{}: {} packets ({} undecodable, {} from the autopilot{}), {} IMU samples, t {:.1}..{:.1} s",
         args.tlog.display(),
         rep.packets,
         rep.undecodable,
         rep.from_autopilot,
-        rep.autopilot_system_id,
+        rep.autopilot_system_id
+            .map(|s| format!(", system {s}"))
+            .unwrap_or_default(),
         rep.imu_samples,
         rep.t_span_s[0],
         rep.t_span_s[1]

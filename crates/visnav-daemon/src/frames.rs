@@ -14,7 +14,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use tokio::sync::mpsc;
-use tracing::{error, info, warn};
+use tracing::{Instrument, error, info, warn};
 
 use crate::FrameFixer;
 use crate::handoff::capture_time_us;
@@ -93,9 +93,11 @@ pub fn spawn_reader(
     stop: Arc<AtomicBool>,
     metrics: Arc<DaemonMetrics>,
 ) -> std::io::Result<std::thread::JoinHandle<()>> {
+    let span = tracing::Span::current();
     std::thread::Builder::new()
         .name("visnav-frames".into())
         .spawn(move || {
+            let _span = span.enter();
             while clock.autopilot_now_us().is_none() {
                 if stop.load(Ordering::Relaxed) {
                     return;
@@ -167,9 +169,11 @@ pub struct WorkerCtx {
 
 /// One fix worker thread: slot -> engine -> results, until the slot is closed.
 pub fn spawn_worker(i: usize, ctx: WorkerCtx) -> std::io::Result<std::thread::JoinHandle<()>> {
+    let span = tracing::Span::current();
     std::thread::Builder::new()
         .name(format!("visnav-fix-{i}"))
         .spawn(move || {
+            let _span = span.enter();
             loop {
                 let f = match ctx.slot.take(Duration::from_millis(200)) {
                     Take::Item(f) => f,
@@ -278,7 +282,9 @@ pub async fn lockstep_frames(
             _ = stop.changed() => return,
         }
         let Some(mut src) = source.take() else { return };
+        let span = tracing::Span::current();
         let Ok((src, next)) = tokio::task::spawn_blocking(move || {
+            let _span = span.enter();
             let r = src.next_frame();
             (src, r)
         })
@@ -312,15 +318,23 @@ pub async fn lockstep_frames(
             vo = lockstep_vo(v, &f, t_c, latency).await;
         }
         let c = ctx.clone();
-        let Ok(result) = tokio::task::spawn_blocking(move || fix_prepared(&c, f, t_c, prior)).await
+        let span = tracing::Span::current();
+        let Ok(result) = tokio::task::spawn_blocking(move || {
+            let _span = span.enter();
+            fix_prepared(&c, f, t_c, prior)
+        })
+        .await
         else {
             continue;
         };
         let results = ctx.results.clone();
-        tokio::spawn(async move {
-            tokio::time::sleep(latency).await;
-            let _ = results.send(result).await;
-        });
+        tokio::spawn(
+            async move {
+                tokio::time::sleep(latency).await;
+                let _ = results.send(result).await;
+            }
+            .in_current_span(),
+        );
     }
 }
 
@@ -335,17 +349,22 @@ async fn lockstep_vo(
     let inputs = v.inputs(t_c);
     let (image, seq) = (f.image.clone(), f.seq);
     let mut v = v;
+    let span = tracing::Span::current();
     let (v, r) = tokio::task::spawn_blocking(move || {
+        let _span = span.enter();
         let r = v.step(image, seq, inputs);
         (v, r)
     })
     .await
     .ok()?;
     let results = v.results.clone();
-    tokio::spawn(async move {
-        tokio::time::sleep(latency).await;
-        let _ = results.send(r).await;
-    });
+    tokio::spawn(
+        async move {
+            tokio::time::sleep(latency).await;
+            let _ = results.send(r).await;
+        }
+        .in_current_span(),
+    );
     Some(v)
 }
 

@@ -47,7 +47,7 @@ use tokio::time::Instant;
 use mavlink::dialects::ardupilotmega::{COMMAND_LONG_DATA, MavCmd, MavMessage};
 use tokio::sync::{broadcast, mpsc, watch};
 use tokio::task::JoinHandle;
-use tracing::{info, warn};
+use tracing::{Instrument, info, warn};
 
 use app_config::Config;
 use visnav_core::camera::Attitude;
@@ -397,7 +397,9 @@ impl Daemon {
             vo_working: None,
             dtm_working: None,
         };
-        let nav_task = tokio::spawn(nav.run(tel, fix_rx, vo_rx, stop_rx));
+        // Every task and thread of the daemon runs in the caller's span (the simulator labels
+        // its two daemons so).
+        let nav_task = tokio::spawn(nav.run(tel, fix_rx, vo_rx, stop_rx).in_current_span());
         let stop_threads = Arc::new(AtomicBool::new(false));
         let mut threads = Vec::new();
         let mut slots = Vec::new();
@@ -418,14 +420,17 @@ impl Daemon {
                         1.0 / fp.source.rate_hz().filter(|r| *r > 0.0).unwrap_or(1.0),
                     );
                     let ctx = ctx(Arc::new(Slot::default()));
-                    lockstep_task = Some(tokio::spawn(frames::lockstep_frames(
-                        fp.source,
-                        ctx,
-                        vo_ctx,
-                        period,
-                        latency,
-                        stop.subscribe(),
-                    )));
+                    lockstep_task = Some(tokio::spawn(
+                        frames::lockstep_frames(
+                            fp.source,
+                            ctx,
+                            vo_ctx,
+                            period,
+                            latency,
+                            stop.subscribe(),
+                        )
+                        .in_current_span(),
+                    ));
                     return Ok(());
                 }
                 let slot = Arc::new(Slot::default());
@@ -887,7 +892,7 @@ impl NavTask {
         self.metrics.set_health(&new);
         if changed {
             self.metrics.health_changes.fetch_add(1, Ordering::Relaxed);
-            info!(health = ?new, "navigation health");
+            info!("navigation health {new}");
         }
         self.last_health = Some(new.clone());
         new

@@ -228,9 +228,11 @@ pub fn spawn_vo(
     clock: Clock,
     max_age_s: f64,
 ) -> std::io::Result<std::thread::JoinHandle<()>> {
+    let span = tracing::Span::current();
     std::thread::Builder::new()
         .name("visnav-vo".into())
         .spawn(move || {
+            let _span = span.enter();
             info!("frame sequence (visual odometry, DTM navigation) on every frame");
             loop {
                 let f = match slot.take(Duration::from_millis(200)) {

@@ -74,6 +74,17 @@ pub enum Health {
     Lost { reason: String },
 }
 
+/// `ok`, `degraded: <reason>`, `lost: <reason>` (logs and status text).
+impl std::fmt::Display for Health {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Health::Ok => write!(f, "ok"),
+            Health::Degraded { reason } => write!(f, "degraded: {reason}"),
+            Health::Lost { reason } => write!(f, "lost: {reason}"),
+        }
+    }
+}
+
 /// The navigation solution handed to the injector.
 #[derive(Debug, Clone, PartialEq)]
 pub struct NavEstimate {
@@ -634,6 +645,22 @@ pub fn set_gps_global_origin(
 pub(crate) mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    #[test]
+    fn health_reads_as_words() {
+        assert_eq!(Health::Ok.to_string(), "ok");
+        let d = Health::Degraded {
+            reason: "no accepted position fix for 10.0 s".into(),
+        };
+        assert_eq!(
+            d.to_string(),
+            "degraded: no accepted position fix for 10.0 s"
+        );
+        let l = Health::Lost {
+            reason: "not initialised".into(),
+        };
+        assert_eq!(l.to_string(), "lost: not initialised");
+    }
 
     pub(crate) fn estimate() -> NavEstimate {
         NavEstimate {

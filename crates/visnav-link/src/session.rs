@@ -41,7 +41,7 @@ use mavlink::{
 };
 use tokio::sync::{broadcast, watch};
 use tokio::task::JoinHandle;
-use tracing::{debug, info, warn};
+use tracing::{Instrument, debug, info, warn};
 
 use crate::config::{LinkConfig, OnLost, OutputConfig, OutputMode};
 use crate::inject::{self, GeoOrigin, Health, InjectError, NavEstimate, SendTime};
@@ -275,10 +275,9 @@ impl Link {
             telemetry: broadcast::channel(4096).0,
             status: watch::channel(LinkStatus::default()).0,
         });
-        tasks.push(tokio::spawn(supervise(
-            shared.clone(),
-            shutdown.subscribe(),
-        )));
+        tasks.push(tokio::spawn(
+            supervise(shared.clone(), shutdown.subscribe()).in_current_span(),
+        ));
         Ok(Link {
             shared,
             shutdown,
@@ -362,20 +361,23 @@ impl Link {
         let shared = self.shared.clone();
         let mut stop = self.shutdown.subscribe();
         let period = Duration::from_secs_f64(1.0 / shared.out.rate_hz);
-        self.tasks.push(tokio::spawn(async move {
-            let mut tick = tokio::time::interval(period);
-            tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-            loop {
-                tokio::select! {
-                    _ = tick.tick() => {}
-                    _ = stop.changed() => return,
-                }
-                let est = rx.borrow_and_update().clone();
-                if let Some(e) = est {
-                    shared.inject(&e).await;
+        self.tasks.push(tokio::spawn(
+            async move {
+                let mut tick = tokio::time::interval(period);
+                tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+                loop {
+                    tokio::select! {
+                        _ = tick.tick() => {}
+                        _ = stop.changed() => return,
+                    }
+                    let est = rx.borrow_and_update().clone();
+                    if let Some(e) = est {
+                        shared.inject(&e).await;
+                    }
                 }
             }
-        }));
+            .in_current_span(),
+        ));
     }
 
     /// Stop every task, flush the .tlog.
@@ -1256,7 +1258,9 @@ async fn run_connection(shared: &Arc<Shared>, conn: Arc<Conn>, stop: &mut watch:
     // Aborted on drop too: `Link::shutdown` aborts the supervisor, which drops this future
     // before it reaches the abort below, and a detached heartbeat/TIMESYNC loop would keep
     // sending after shutdown.
-    let mut periodic = AbortOnDrop(tokio::spawn(periodic_loop(shared.clone())));
+    let mut periodic = AbortOnDrop(tokio::spawn(
+        periodic_loop(shared.clone()).in_current_span(),
+    ));
     let rx = async {
         loop {
             match conn.recv().await {

@@ -77,7 +77,7 @@ use std::time::Duration;
 
 use nalgebra::Vector3;
 use serde::Serialize;
-use tracing::{info, warn};
+use tracing::{Instrument, info, warn};
 
 mod recording;
 
@@ -1397,9 +1397,17 @@ pub async fn run(
         s.daemon.vo_log = vo_log;
         s
     };
-    let d_v = Daemon::start_with(setup_v, Some(fixer.clone()), Some(pipeline)).await?;
+    // Each daemon's log lines carry its run's name (`vision:` / `control:`): its tasks and
+    // threads run in the span it was started in.
+    let d_v = Daemon::start_with(setup_v, Some(fixer.clone()), Some(pipeline))
+        .instrument(tracing::info_span!("vision"))
+        .await?;
     let d_c = match &emu_c {
-        Some(_) => Some(Daemon::start_with(mk_setup(port_c), None, None).await?),
+        Some(_) => Some(
+            Daemon::start_with(mk_setup(port_c), None, None)
+                .instrument(tracing::info_span!("control"))
+                .await?,
+        ),
         None => None,
     };
     let plan = FaultPlan::new(sc.faults.clone());

@@ -30,6 +30,34 @@ pub enum Crs {
 }
 
 /// A CRS given in a configuration (`[map] crs_override`): its parameters in range.
+/// What a user reads: `UTM zone 10N (WGS84)`, `WGS84 longitude / latitude (EPSG:4326)`, ...
+impl std::fmt::Display for Crs {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match *self {
+            Crs::Geographic => write!(f, "WGS84 longitude / latitude (EPSG:4326)"),
+            Crs::Utm { zone, north } => {
+                write!(
+                    f,
+                    "UTM zone {zone}{} (WGS84)",
+                    if north { 'N' } else { 'S' }
+                )
+            }
+            Crs::TransverseMercator {
+                lat0_deg,
+                lon0_deg,
+                k0,
+                false_easting_m,
+                false_northing_m,
+            } => write!(
+                f,
+                "transverse Mercator on WGS84 (lat_0 {lat0_deg} deg, lon_0 {lon0_deg} deg, \
+                 k {k0}, x_0 {false_easting_m} m, y_0 {false_northing_m} m)"
+            ),
+            Crs::WebMercator => write!(f, "web Mercator (EPSG:3857)"),
+        }
+    }
+}
+
 impl Validate for Crs {
     fn validate(&self, p: &mut Problems) {
         match *self {
@@ -52,6 +80,37 @@ impl Validate for Crs {
                 p.range("false_easting_m", false_easting_m, -1e8, 1e8);
                 p.range("false_northing_m", false_northing_m, -1e8, 1e8);
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Crs;
+
+    /// What a user reads names the projection, never the Rust structure.
+    #[test]
+    fn a_crs_is_shown_in_words() {
+        let utm = Crs::Utm {
+            zone: 10,
+            north: true,
+        };
+        assert_eq!(utm.to_string(), "UTM zone 10N (WGS84)");
+        let south = Crs::Utm {
+            zone: 34,
+            north: false,
+        };
+        assert_eq!(south.to_string(), "UTM zone 34S (WGS84)");
+        let tm = Crs::TransverseMercator {
+            lat0_deg: 0.0,
+            lon0_deg: 25.0,
+            k0: 1.0,
+            false_easting_m: 0.0,
+            false_northing_m: 0.0,
+        };
+        assert!(tm.to_string().contains("lon_0 25 deg"), "{tm}");
+        for c in [utm, tm, Crs::Geographic, Crs::WebMercator] {
+            assert!(!c.to_string().contains('{'), "{c}");
         }
     }
 }

@@ -67,6 +67,13 @@ pub enum DescriptorKind {
     Surf128,
 }
 
+/// `SURF-64` and so on (the descriptor's length).
+impl std::fmt::Display for DescriptorKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "SURF-{}", self.len())
+    }
+}
+
 impl DescriptorKind {
     /// Number of descriptor values.
     #[allow(clippy::len_without_is_empty)] // a descriptor kind is never empty

@@ -122,6 +122,27 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
     );
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("threshhold_px"), "{err}");
+
+    // Several unknown keys in several sections: all named at once with their sections (issue 24),
+    // the first with its line.
+    let (code, err) = check(
+        dir.path(),
+        &format!(
+            "[link]\nconnection = \"udpin:0.0.0.0:14550\"\nbaud = 57600\n{good_map}\
+             [output]\nratee_hz = 4.0\n[fix.pose.ransac]\nthreshhold_px = 2.0\n[fram]\nsource = 1\n"
+        ),
+    );
+    assert_eq!(code, 2, "{err}");
+    for needle in [
+        "line",
+        "4 unknown keys in all",
+        "link.baud",
+        "output.ratee_hz",
+        "fix.pose.ransac.threshhold_px",
+        "fram: unknown field `fram`",
+    ] {
+        assert!(err.contains(needle), "missing {needle:?} in:\n{err}");
+    }
     let (code, err) = check(
         dir.path(),
         &format!("[link]\nconnection = \"udpin:0.0.0.0:14550\"\n{good_map}[fix]\nratio = 1.5\n"),

@@ -4,7 +4,7 @@
 //! link, ...) and checks itself through `visnav_core::validate`.
 //!
 //! Every section is a serde struct with `deny_unknown_fields`, so a misspelt key is an error that
-//! names the key. After parsing, every value is validated through [`Validate`]: each section reports
+//! names the key (and every other unknown key of the file, `unknown_keys`). After parsing, every value is validated through [`Validate`]: each section reports
 //! the dotted key path (`camera.fx_px`), the offending value and the reason, and all problems are
 //! reported at once, prefixed with the file name.
 
@@ -226,12 +226,30 @@ fn check_file(p: &mut Problems, key: &str, base: &Path, f: &Path) {
     }
 }
 
+/// A parse error's text: TOML's own (line, column, the key), and when the key is unknown, every
+/// other unknown key of the file too ([`crate::unknown_keys`]).
+fn parse_message(e: &toml::de::Error, text: &str) -> String {
+    let first = e.to_string().trim_end().to_string();
+    if !e.message().starts_with("unknown field") {
+        return first;
+    }
+    let all = crate::unknown_keys::unknown_keys::<Config>(text);
+    if all.len() < 2 {
+        return first;
+    }
+    format!(
+        "{first}\n{} unknown keys in all:\n  {}",
+        all.len(),
+        all.join("\n  ")
+    )
+}
+
 impl Config {
     /// Parse TOML text. `path` is used in messages and `base` (its folder) to resolve relative paths.
     pub fn from_toml_str(text: &str, path: &Path) -> Result<Config, ConfigError> {
         let mut cfg: Config = toml::from_str(text).map_err(|e| ConfigError::Parse {
             path: path.to_path_buf(),
-            message: e.to_string().trim_end().to_string(),
+            message: parse_message(&e, text),
         })?;
         let base = path.parent().unwrap_or(Path::new("."));
         let mut p = Problems::default();

@@ -34,6 +34,7 @@ pub mod inputs;
 pub mod metrics;
 pub mod prometheus;
 pub mod replay;
+pub mod unknown_keys;
 pub mod vo_path;
 pub mod volog;
 pub mod wiring;

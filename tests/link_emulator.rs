@@ -223,6 +223,48 @@ async fn udp_link_against_ardupilot_like_emulator() {
     assert!(emu.received().iter().any(|r| matches!(&r.msg,
         MavMessage::STATUSTEXT(t) if t.text.to_str().unwrap_or("").starts_with("visnav: navigation lost"))));
 
+    // 4b. A health flapping at a threshold does not flood the ground station: the better news
+    // is said once it has held for HEALTH_TEXT_HOLD_S (issue 24), worse news at once.
+    let health_texts = |e: &AutopilotEmulator| -> Vec<String> {
+        e.received()
+            .iter()
+            .filter_map(|r| match &r.msg {
+                MavMessage::STATUSTEXT(t) => Some(t.text.to_str().unwrap_or("").to_string()),
+                _ => None,
+            })
+            .filter(|t| t.starts_with("visnav: navigation"))
+            .collect()
+    };
+    let n0 = health_texts(&emu).len();
+    for _ in 0..10 {
+        health_tx.send(Health::Ok).unwrap();
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        health_tx
+            .send(Health::Lost {
+                reason: "no map match".into(),
+            })
+            .unwrap();
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let flapping = health_texts(&emu)[n0..].to_vec();
+    assert!(flapping.is_empty(), "sent while flapping: {flapping:?}");
+    health_tx.send(Health::Ok).unwrap();
+    tokio::time::sleep(Duration::from_secs_f64(
+        visnav::link::session::HEALTH_TEXT_HOLD_S + 1.0,
+    ))
+    .await;
+    assert_eq!(health_texts(&emu)[n0..], ["visnav: navigation OK"]);
+    health_tx
+        .send(Health::Lost {
+            reason: "no map match".into(),
+        })
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert_eq!(
+        health_texts(&emu)[n0..],
+        ["visnav: navigation OK", "visnav: navigation lost: no map match"]
+    );
+
     // 5. Metrics endpoint and .tlog.
     let addr = link.metrics_addr().unwrap();
     let body = http_get(addr).await;

@@ -143,7 +143,11 @@ struct State {
     origin: Option<GeoOrigin>,
     origin_from_autopilot: bool,
     origin_sent: u32,
+    /// The last health STATUSTEXT sent, its severity rank (ok 0, degraded 1, lost 2), and since
+    /// when a better or differently worded health has been waiting ([`HEALTH_TEXT_HOLD_S`]).
     last_health: Option<String>,
+    last_health_rank: u8,
+    health_pending_since: Option<Instant>,
     stream_checks: u32,
     /// The autopilot's boot clock: stale messages and reboots.
     boot: BootClock,
@@ -252,6 +256,8 @@ impl Link {
             origin_from_autopilot: false,
             origin_sent: 0,
             last_health: None,
+            last_health_rank: 0,
+            health_pending_since: None,
             stream_checks: 0,
             boot: BootClock::default(),
             reboots: 0,
@@ -710,19 +716,39 @@ impl Shared {
         origin
     }
 
+    /// The navigation health to the ground station (STATUSTEXT): worse news at once, a better
+    /// or differently worded health once it has held for [`HEALTH_TEXT_HOLD_S`].
     async fn health_text(&self, h: &Health) {
         let text = match h {
             Health::Ok => "visnav: navigation OK".to_string(),
             Health::Degraded { reason } => format!("visnav: navigation degraded: {reason}"),
             Health::Lost { reason } => format!("visnav: navigation lost: {reason}"),
         };
-        let changed = {
-            let mut st = lock(&self.state);
-            let c = st.last_health.as_deref() != Some(text.as_str());
-            st.last_health = Some(text.clone());
-            c
+        let rank = match h {
+            Health::Ok => 0,
+            Health::Degraded { .. } => 1,
+            Health::Lost { .. } => 2,
         };
-        if changed {
+        let send = {
+            let mut st = lock(&self.state);
+            let now = Instant::now();
+            let send = if st.last_health.as_deref() == Some(text.as_str()) {
+                st.health_pending_since = None;
+                false
+            } else if st.last_health.is_none() || rank > st.last_health_rank {
+                true
+            } else {
+                let since = *st.health_pending_since.get_or_insert(now);
+                now.duration_since(since).as_secs_f64() >= HEALTH_TEXT_HOLD_S
+            };
+            if send {
+                st.last_health = Some(text.clone());
+                st.last_health_rank = rank;
+                st.health_pending_since = None;
+            }
+            send
+        };
+        if send {
             let sev = match h {
                 Health::Ok => MavSeverity::MAV_SEVERITY_INFO,
                 Health::Degraded { .. } => MavSeverity::MAV_SEVERITY_WARNING,
@@ -1173,6 +1199,12 @@ pub fn origin_of(
     }
     Ok(o)
 }
+
+/// How long a better (or differently worded) navigation health must hold before the STATUSTEXT
+/// says so, s. A solution hovering at a threshold (horizontal sigma 15.0 m against 15 m,
+/// sporadic rejected fixes) would otherwise send OK / degraded to the ground station several
+/// times a second; worse news is sent at once.
+pub const HEALTH_TEXT_HOLD_S: f64 = 3.0;
 
 /// Altitudes an EKF origin can have, m AMSL: below the lowest land (-430 m) and above the
 /// highest flight a small UAS makes (10 km), with margin.

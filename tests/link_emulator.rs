@@ -262,7 +262,10 @@ async fn udp_link_against_ardupilot_like_emulator() {
     tokio::time::sleep(Duration::from_millis(500)).await;
     assert_eq!(
         health_texts(&emu)[n0..],
-        ["visnav: navigation OK", "visnav: navigation lost: no map match"]
+        [
+            "visnav: navigation OK",
+            "visnav: navigation lost: no map match"
+        ]
     );
 
     // 5. Metrics endpoint and .tlog.

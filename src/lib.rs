@@ -23,9 +23,11 @@ pub use visnav_link as link;
 #[cfg(feature = "sim")]
 pub use visnav_sim as sitl;
 
-/// The camera model (visnav-core) with the frame sources (visnav-io) as `source`.
+/// The camera model (visnav-core) with the frame sources (visnav-io) as `source` and the reader
+/// of other tools' calibration files as `calibration`.
 pub mod camera {
     pub use visnav_core::camera::*;
+    pub use visnav_io::calibration;
     pub use visnav_io::frames as source;
 }
 

@@ -28,6 +28,9 @@ enum Command {
     Sim(cli::sim::SimArgs),
     /// One vision fix from one camera frame against a reference map.
     Fix(cli::fix::FixArgs),
+    /// Camera calibration (`camera import`: an OpenCV / ROS / Kalibr calibration file as the
+    /// configuration's [camera] section).
+    Camera(cli::camera::CameraArgs),
     /// Benchmarks (`bench surf`: SURF speed, feature counts and quality table). They use the
     /// simulator's scenes and evaluation tooling, so they come with the `sim` feature.
     #[cfg(feature = "sim")]
@@ -78,6 +81,7 @@ fn main() -> std::process::ExitCode {
         #[cfg(feature = "sim")]
         Command::Bench(a) => cli::bench::run(a),
         Command::Fix(a) => cli::fix::run(a),
+        Command::Camera(a) => cli::camera::run(a),
         Command::Map(a) => cli::map::run(a),
         Command::Run(a) => cli::run::run(a),
         #[cfg(feature = "sim")]

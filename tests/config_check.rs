@@ -308,3 +308,62 @@ fn example_configs_build_a_fix_engine_and_a_vnm_map_config_loads() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("map.file") && err.contains("m.vnm"), "{err}");
 }
+
+/// `visnav camera import` (issue 24): a ROS camera_info calibration printed as `[camera]`, which
+/// check-config accepts in a configuration; an unsupported model is refused naming the file.
+#[test]
+fn camera_import_gives_a_section_check_config_accepts() {
+    let dir = tempfile::tempdir().unwrap();
+    let ros = dir.path().join("downward.yaml");
+    std::fs::write(
+        &ros,
+        "image_width: 640\nimage_height: 480\ncamera_name: downward\ncamera_matrix:\n  rows: 3\n  \
+         cols: 3\n  data: [520.1, 0, 321.4, 0, 519.8, 238.9, 0, 0, 1]\ndistortion_model: plumb_bob\n\
+         distortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [-0.21, 0.08, 0.0004, -0.0002, 0]\n",
+    )
+    .unwrap();
+    let out = visnav()
+        .args(["camera", "import"])
+        .arg(&ros)
+        .output()
+        .unwrap();
+    let section = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        section.contains("fx_px = 520.1") && section.contains("p2 = -0.0002"),
+        "{section}"
+    );
+    let ortho = repo().join("sitl/maps/naip_nd_2009.tif");
+    let cfg = dir.path().join("c.toml");
+    std::fs::write(
+        &cfg,
+        format!(
+            "[link]\nconnection = \"udpin:127.0.0.1:14550\"\n{section}\n\
+             [map]\northo = [\"{}\"]\nground_height_amsl_m = 580.0\n",
+            ortho.display()
+        ),
+    )
+    .unwrap();
+    let out = visnav().arg("check-config").arg(&cfg).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+
+    std::fs::write(&ros, "camera_model: omni\nimage_width: 640\n").unwrap();
+    let out = visnav()
+        .args(["camera", "import"])
+        .arg(&ros)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("downward.yaml"),
+        "{err}"
+    );
+}

@@ -8,6 +8,7 @@ pub mod bench_dtm;
 pub mod bench_fix;
 #[cfg(feature = "sim")]
 pub mod bench_vo;
+pub mod camera;
 pub mod check_config;
 pub mod fix;
 pub mod map;

@@ -1,8 +1,10 @@
 //! visnav-io: what visnav reads and writes besides the MAVLink link, on top of visnav-core's
 //! pure types: GeoTIFF files and the terrain model built on them ([`geo`]), the reference map's
 //! file format and build ([`map`]), image files ([`image_file`]) and camera frame sources
-//! ([`frames`]: files, a capture command, GStreamer, V4L2). Errors name the file, key or field.
+//! ([`frames`]: files, a capture command, GStreamer, V4L2), other tools' camera calibration files
+//! ([`calibration`]). Errors name the file, key or field.
 
+pub mod calibration;
 pub mod frames;
 pub mod geo;
 pub mod image_file;

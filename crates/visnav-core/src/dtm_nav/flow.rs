@@ -78,10 +78,7 @@ pub fn terrain_flow(
     };
     let b_in_a = h.resample(b, a.width(), a.height())?;
     let pw = Pyramid::new(&b_in_a, params.max_level, params.win_size_px)?;
-    let in_b = |q: [f32; 2]| {
-        (0.0..=(b.width() - 1) as f32).contains(&q[0])
-            && (0.0..=(b.height() - 1) as f32).contains(&q[1])
-    };
+    let in_b = |q: [f32; 2]| inside(q, b.width(), b.height());
     let corners = pa.good_features_where(&corner_params, |p| h.map(p).is_some_and(in_b))?;
     let (pts, guesses) = predicted(&corners, |p| h.unmap(predict(p)?));
     let tracks = track_checked(&pa, &pw, &pts, Some(&guesses), &params)?;
@@ -152,11 +149,8 @@ impl GroundHomography {
         height: usize,
         predict: &impl Fn([f32; 2]) -> Option<[f32; 2]>,
     ) -> Option<Self> {
-        let g = HOMOGRAPHY_GRID_PX;
-        let pairs: Vec<([f64; 2], [f64; 2])> = (0..height.div_ceil(g))
-            .flat_map(|j| (0..width.div_ceil(g)).map(move |i| (i, j)))
-            .filter_map(|(i, j)| {
-                let p = [(i * g + g / 2) as f32, (j * g + g / 2) as f32];
+        let pairs: Vec<([f64; 2], [f64; 2])> = grid_points(width, height)
+            .filter_map(|p| {
                 let q = predict(p)?;
                 let f = |v: [f32; 2]| [f64::from(v[0]), f64::from(v[1])];
                 Some((f(p), f(q)))
@@ -175,18 +169,12 @@ impl GroundHomography {
     /// the half window, the median over a grid of the first frame's points that land in a frame
     /// of the same size, px (0 when none does).
     pub fn distortion_px(&self, width: usize, height: usize, half_window_px: f64) -> f64 {
-        let g = HOMOGRAPHY_GRID_PX;
-        let inside = |q: [f32; 2]| {
-            (0.0..width as f32).contains(&q[0]) && (0.0..height as f32).contains(&q[1])
-        };
-        let mut d: Vec<f64> = (0..height.div_ceil(g))
-            .flat_map(|j| (0..width.div_ceil(g)).map(move |i| (i, j)))
-            .filter_map(|(i, j)| {
-                let p = [(i * g + g / 2) as f32, (j * g + g / 2) as f32];
-                let q = self.map(p).filter(|&q| inside(q))?;
-                let step = 1.0f32;
-                let qx = self.map([p[0] + step, p[1]])?;
-                let qy = self.map([p[0], p[1] + step])?;
+        let d: Vec<f64> = grid_points(width, height)
+            .filter_map(|p| {
+                let q = self.map(p).filter(|&q| inside(q, width, height))?;
+                // The Jacobian by 1 px differences (the map is smooth at that scale).
+                let qx = self.map([p[0] + 1.0, p[1]])?;
+                let qy = self.map([p[0], p[1] + 1.0])?;
                 let jac = [
                     f64::from(qx[0] - q[0]) - 1.0,
                     f64::from(qx[1] - q[1]),
@@ -196,11 +184,8 @@ impl GroundHomography {
                 Some(jac.iter().map(|v| v * v).sum::<f64>().sqrt() * half_window_px)
             })
             .collect();
-        if d.is_empty() {
-            return 0.0;
-        }
-        let mid = d.len() / 2;
-        *d.select_nth_unstable_by(mid, f64::total_cmp).1
+        // NaN (no point) -> 0.
+        crate::stats::percentile(&d, 0.5).max(0.0)
     }
 
     fn apply(m: &Matrix3<f64>, p: [f32; 2]) -> Option<[f32; 2]> {
@@ -238,6 +223,20 @@ impl GroundHomography {
             .collect();
         GrayImage::new(width, height, data)
     }
+}
+
+/// The centres of the [`HOMOGRAPHY_GRID_PX`] cells over a `width` x `height` frame.
+fn grid_points(width: usize, height: usize) -> impl Iterator<Item = [f32; 2]> {
+    let g = HOMOGRAPHY_GRID_PX;
+    (0..height.div_ceil(g)).flat_map(move |j| {
+        (0..width.div_ceil(g)).map(move |i| [(i * g + g / 2) as f32, (j * g + g / 2) as f32])
+    })
+}
+
+/// Whether pixel `q` lies in a `width` x `height` frame (its pixel centres, 0 to side - 1).
+fn inside(q: [f32; 2], width: usize, height: usize) -> bool {
+    (0.0..=width.saturating_sub(1) as f32).contains(&q[0])
+        && (0.0..=height.saturating_sub(1) as f32).contains(&q[1])
 }
 
 /// Hartley's normalisation: the similarity taking `pts` to centroid 0, mean distance sqrt 2.

@@ -354,6 +354,67 @@ fn health_degrades_without_fixes() {
     assert!(out.cov_pos_ned_m2[0][0] > 0.0);
 }
 
+/// Horizontal position sigma of the filter's output, m.
+fn sigma_h(f: &NavFilter) -> f64 {
+    let c = f.output().expect("output").cov_pos_ned_m2;
+    (c[0][0] + c[1][1]).sqrt()
+}
+
+/// A sigma hovering at the `degraded` threshold does not flip the health at every fix: once
+/// over it, health is `ok` again only below `SIGMA_HEALTH_RECOVER_FRACTION` of it.
+#[test]
+fn health_recovers_from_sigma_only_past_the_hysteresis() {
+    use visnav::nav::filter::SIGMA_HEALTH_RECOVER_FRACTION as RECOVER;
+    let mut cfg = NavConfig::default();
+    cfg.health.degraded_no_fix_s = 1e4; // only the sigma speaks here
+    cfg.health.lost_no_fix_s = 2e4;
+    let thr = cfg.health.degraded_pos_sigma_m;
+    let mut h = Harness::new(cfg, SimImuConfig::perfect(100.0));
+    h.fly(20.0, true, |_, _, _| {});
+    assert_eq!(h.filter.health().0, Health::Ok);
+    // Dead reckoning until the sigma passes the threshold.
+    for _ in 0..600 {
+        if sigma_h(&h.filter) > thr {
+            break;
+        }
+        h.fly(1.0, false, |_, _, _| {});
+    }
+    assert!(sigma_h(&h.filter) > thr, "sigma never reached {thr} m");
+    assert_eq!(h.filter.health().0, Health::Degraded);
+    // A fix that takes the sigma just under the threshold (inside the hysteresis band).
+    let target = 0.5 * (1.0 + RECOVER) * thr;
+    let fix_sigma = |f: &NavFilter, target: f64| {
+        let p = sigma_h(f).powi(2) / 2.0; // per axis
+        let q = target * target / 2.0;
+        (p * q / (p - q)).sqrt()
+    };
+    let mut band = None;
+    h.fly(0.02, false, |f, t, ts| {
+        if band.is_none() {
+            let r = fix_sigma(f, target);
+            f.measure(Measurement::GpsPosition(fix_at(ts, t, Vector3::zeros(), r)));
+            band = Some((sigma_h(f), f.health()));
+        }
+    });
+    let (sig, (health, why)) = band.expect("fix");
+    assert!(
+        sig > RECOVER * thr && sig < thr,
+        "test set-up: sigma {sig} m not in the band ({}, {thr}) m",
+        RECOVER * thr
+    );
+    assert_eq!(health, Health::Degraded, "left degraded inside the band");
+    assert!(why.contains("horizontal sigma"), "{why}");
+    // Below the band: ok again.
+    h.fly(0.02, false, |f, t, ts| {
+        if sigma_h(f) > RECOVER * thr {
+            let r = fix_sigma(f, 0.7 * thr);
+            f.measure(Measurement::GpsPosition(fix_at(ts, t, Vector3::zeros(), r)));
+        }
+    });
+    assert!(sigma_h(&h.filter) < RECOVER * thr);
+    assert_eq!(h.filter.health().0, Health::Ok, "{}", h.filter.health().1);
+}
+
 #[test]
 fn initialises_from_vision_and_attitude_without_gps() {
     let mut imu = SimImuConfig::perfect(100.0);

@@ -246,6 +246,7 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
             s.fix_beyond_3sigma,
             s.fixes_filter_rejected
         );
+        print_rejections(&s.rejections);
         println!("horizontal error median / p90 / max [m]");
         println!("  vision fixes             {}", fmt_stats(&s.fix_err_m));
         println!(
@@ -324,6 +325,29 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// How many reasons the console lists before summing the rest as "other".
+const REJECTION_REASONS_LISTED: usize = 5;
+
+/// The window's rejected attempts by reason (most frequent first), one line each.
+fn print_rejections(rejections: &[(String, usize)]) {
+    if rejections.is_empty() {
+        return;
+    }
+    let total: usize = rejections.iter().map(|r| r.1).sum();
+    println!("rejected attempts by reason ({total}):");
+    for (reason, n) in rejections.iter().take(REJECTION_REASONS_LISTED) {
+        println!("  {n:>5}  {reason}");
+    }
+    let rest: usize = rejections
+        .iter()
+        .skip(REJECTION_REASONS_LISTED)
+        .map(|r| r.1)
+        .sum();
+    if rest > 0 {
+        println!("  {rest:>5}  other reasons (summary.json lists them all)");
+    }
 }
 
 /// A report folder no other run uses: `base` when it does not exist yet, else `base-2`, `base-3`,

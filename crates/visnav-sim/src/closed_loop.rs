@@ -117,6 +117,33 @@ use visnav_io::geo::geotiff::load_geotiff;
 const TRUTH_DT_S: f64 = 0.005;
 /// Extra truth beyond the scenario's end (the daemons stop a little later), s.
 const TRUTH_MARGIN_S: f64 = 30.0;
+/// The class of a rejected fix attempt's reason, for counting rejections by reason: the first
+/// check that refused it (the feature path's; the area correlation's, after `; area:`, is its
+/// fallback and not counted apart), without its numbers. "rejected: inlier count check failed: 9
+/// inliers < minimum 12" becomes "inlier count check failed"; "only 24 matches where chance gives
+/// 10 (need 27); area: ..." becomes "only N matches where chance gives N (need N)".
+pub fn rejection_class(reason: &str) -> String {
+    let first = reason.split("; area:").next().unwrap_or(reason).trim();
+    let first = first.strip_prefix("rejected:").unwrap_or(first).trim();
+    let first = first.split(": ").next().unwrap_or(first).trim();
+    let mut out = String::with_capacity(first.len());
+    let mut in_number = false;
+    for c in first.chars() {
+        let digit = c.is_ascii_digit() || (in_number && c == '.');
+        if digit && !in_number {
+            out.push('N');
+        } else if !digit {
+            out.push(c);
+        }
+        in_number = digit;
+    }
+    if out.is_empty() {
+        "unknown".into()
+    } else {
+        out
+    }
+}
+
 /// UTC at the start of a lock-step run (2024-01-01T00:00:00Z), µs.
 const LOCKSTEP_UNIX_START_US: u64 = 1_704_067_200_000_000;
 /// Chi-square 2 dof at 99.73 % (the 3-sigma ellipse).
@@ -773,6 +800,7 @@ pub struct ClosedLoopSummary {
     /// Every injected position message kind: (count, horizontal error stats) in the window.
     pub nav_err_by_message: std::collections::BTreeMap<String, (usize, Stats)>,
     pub control_injections: usize,
+    /// The window's rejected attempts by reason ([`rejection_class`]), most frequent first.
     pub rejections: Vec<(String, usize)>,
     /// What the vision daemon did around each scripted fault (`[[faults]]`).
     #[serde(skip_serializing_if = "Vec::is_empty")]
@@ -1547,7 +1575,7 @@ pub async fn run(
     let lat: Vec<f64> = wf.iter().map(|f| f.latency_ms).collect();
     let mut rejections: Vec<(String, usize)> = Vec::new();
     for f in wf.iter().filter(|f| !f.accepted) {
-        let key: String = f.reason.split(':').next().unwrap_or("").trim().to_string();
+        let key = rejection_class(&f.reason);
         match rejections.iter_mut().find(|(k, _)| *k == key) {
             Some((_, n)) => *n += 1,
             None => rejections.push((key, 1)),
@@ -1879,6 +1907,35 @@ fn score_fix(
 mod tests {
     use super::*;
     use crate::scenario::Scenario;
+
+    #[test]
+    fn rejections_are_classed_by_their_first_check_without_numbers() {
+        let c = |r: &str| rejection_class(r);
+        assert_eq!(
+            c(
+                "only 24 matches where chance gives 10 (need 27); area: area correlation peak 0.29 < 0.3"
+            ),
+            "only N matches where chance gives N (need N)"
+        );
+        assert_eq!(
+            c("rejected: inlier count check failed: 9 inliers < minimum 12; area: x"),
+            "inlier count check failed"
+        );
+        assert_eq!(
+            c("rejected: position sigma check failed: horizontal 1-sigma 73.3 m > maximum 50.0 m"),
+            "position sigma check failed"
+        );
+        assert_eq!(
+            c("only 3 features in the frame"),
+            "only N features in the frame"
+        );
+        // Two attempts that differ only in their numbers count as one reason.
+        assert_eq!(
+            c("only 9 matches where chance gives 5 (need 20)"),
+            c("only 31 matches where chance gives 16 (need 36)")
+        );
+        assert_eq!(c(""), "unknown");
+    }
 
     #[test]
     fn angle_interpolation_takes_the_short_arc() {

@@ -366,6 +366,27 @@ pub struct NavFilter {
     /// A velocity measurement was rejected since the last accepted position fix: the filter's
     /// own velocity is contradicted, so a step in the position fixes may be the filter's.
     velocity_contradicted: bool,
+    /// The horizontal sigma was above the `degraded` / `lost` threshold at the last IMU step:
+    /// health improves again only below [`SIGMA_HEALTH_RECOVER_FRACTION`] of it (hysteresis).
+    sigma_over_degraded: bool,
+    sigma_over_lost: bool,
+}
+
+/// Health hysteresis on the horizontal sigma: a state reached because sigma exceeded a threshold
+/// is left only once sigma is below this fraction of it. Between fixes the IMU grows sigma and
+/// each fix shrinks it, so a sigma hovering at the threshold would otherwise flip the health
+/// (and the autopilot's and the ground station's view of it) at every fix; 10 % is about what one
+/// fix at the usual rate takes off a sigma at that level.
+pub const SIGMA_HEALTH_RECOVER_FRACTION: f64 = 0.9;
+
+/// Whether `sigma` counts as above `threshold`, given whether it was at the last step.
+fn sigma_over(sigma: f64, threshold: f64, was_over: bool) -> bool {
+    sigma > threshold || (was_over && sigma > threshold * SIGMA_HEALTH_RECOVER_FRACTION)
+}
+
+/// Horizontal position sigma, m.
+fn sigma_h_m(c: &Core) -> f64 {
+    (c.p[(0, 0)] + c.p[(1, 1)]).max(0.0).sqrt()
 }
 
 fn dt_s(a_us: u64, b_us: u64) -> f64 {
@@ -466,6 +487,8 @@ impl NavFilter {
             last_good_rates: None,
             reject_run_start_us: None,
             velocity_contradicted: false,
+            sigma_over_degraded: false,
+            sigma_over_lost: false,
         }
     }
 
@@ -588,6 +611,7 @@ impl NavFilter {
         if !self.step(s) {
             return None;
         }
+        self.latch_sigma_health();
         if let Some(d) = self.drag_sample(s, dt) {
             self.measure(Measurement::Drag(d));
         }
@@ -802,7 +826,20 @@ impl NavFilter {
         })
     }
 
-    /// Health state and its reason.
+    /// Remember which health thresholds the horizontal sigma is over (with the hysteresis of
+    /// [`sigma_over`]), for [`Self::health`].
+    fn latch_sigma_health(&mut self) {
+        let Some(c) = self.core.as_ref() else {
+            return;
+        };
+        let (sig_h, h) = (sigma_h_m(c), &self.cfg.health);
+        self.sigma_over_degraded =
+            sigma_over(sig_h, h.degraded_pos_sigma_m, self.sigma_over_degraded);
+        self.sigma_over_lost = sigma_over(sig_h, h.lost_pos_sigma_m, self.sigma_over_lost);
+    }
+
+    /// Health state and its reason. A state reached by the horizontal sigma is left only once
+    /// the sigma is below [`SIGMA_HEALTH_RECOVER_FRACTION`] of its threshold.
     pub fn health(&self) -> (Health, String) {
         let Some(c) = self.core.as_ref() else {
             let why = match &self.last_reset {
@@ -812,12 +849,12 @@ impl NavFilter {
             return (Health::Lost, why);
         };
         let h = &self.cfg.health;
-        let sig_h = (c.p[(0, 0)] + c.p[(1, 1)]).max(0.0).sqrt();
+        let sig_h = sigma_h_m(c);
         let since_fix = self
             .last_pos_fix_t_us
             .map(|t| dt_s(t, c.t_us).max(0.0))
             .unwrap_or(f64::INFINITY);
-        if sig_h > h.lost_pos_sigma_m {
+        if sigma_over(sig_h, h.lost_pos_sigma_m, self.sigma_over_lost) {
             return (
                 Health::Lost,
                 format!("horizontal sigma {sig_h:.1} m > {} m", h.lost_pos_sigma_m),
@@ -830,7 +867,7 @@ impl NavFilter {
             );
         }
         let mut reasons = Vec::new();
-        if sig_h > h.degraded_pos_sigma_m {
+        if sigma_over(sig_h, h.degraded_pos_sigma_m, self.sigma_over_degraded) {
             reasons.push(format!(
                 "horizontal sigma {sig_h:.1} m > {} m",
                 h.degraded_pos_sigma_m

@@ -136,13 +136,13 @@ fn the_fault_table_holds_in_the_lockstep_simulator() {
     assert!(f64_of(silence, "first_output_after_s") < 15.0, "{silence}");
 }
 
-/// The bundled demo shortened to 45 s (25 s east from 700 m further east, where the years match
+/// The short closed loop shortened to 45 s (25 s east from 700 m further east, where the years match
 /// better, a 10 s turn, 10 s north; GPS until 20 s) with the map withheld from 26 to 34 s.
 fn map_withheld_scenario(root: &Path) -> String {
     let sc = common::short_demo_scenario(root, &root.join("config/demo.toml"));
     assert!(
         sc.contains("lon_deg = -99.16446") && sc.contains("until_s = 45.0"),
-        "sitl/scenarios/closed_loop_demo.toml changed: update this test"
+        "sitl/scenarios/closed_loop_short.toml changed: update this test"
     );
     format!("{sc}\n[[faults]]\nkind = \"map_withheld\"\nat_s = 26.0\nduration_s = 8.0\n")
 }

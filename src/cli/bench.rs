@@ -37,6 +37,9 @@ pub enum BenchWhat {
     /// Visual odometry: NGI frames 0182 -> 0184 against their measured poses (direction and
     /// length of the baseline), and the per-frame time on a VGA pair.
     Vo(super::bench_vo::VoBenchArgs),
+    /// The demo's seed sweep: the bundled closed-loop demo once per seed, its fix rate and
+    /// injected error beside the no-vision control's, against the demo's target.
+    Demo(super::bench_demo::DemoBenchArgs),
     /// DTM navigation: NGI frame 0182's pose from the flow to frame 0184 and the DEM alone
     /// against its measured pose; refusals over flat ground; the solve time per frame pair.
     Dtm(super::bench_dtm::DtmBenchArgs),
@@ -131,6 +134,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<ExitCode> {
         BenchWhat::Fix(a) => super::bench_fix::run(a),
         BenchWhat::Vo(a) => super::bench_vo::run(a),
         BenchWhat::Dtm(a) => super::bench_dtm::run(a),
+        BenchWhat::Demo(a) => super::bench_demo::run(a),
     }
 }
 

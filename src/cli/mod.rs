@@ -3,6 +3,8 @@
 #[cfg(feature = "sim")]
 pub mod bench;
 #[cfg(feature = "sim")]
+pub mod bench_demo;
+#[cfg(feature = "sim")]
 pub mod bench_dtm;
 #[cfg(feature = "sim")]
 pub mod bench_fix;

@@ -160,7 +160,7 @@ pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
 
 /// The bundled default scenario: relative to the current folder (a checkout), else to the source
 /// tree this binary was built from.
-fn default_scenario() -> PathBuf {
+pub(crate) fn default_scenario() -> PathBuf {
     let rel = PathBuf::from("sitl/scenarios/closed_loop_demo.toml");
     if rel.is_file() {
         rel
@@ -211,8 +211,24 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
     let t0 = Instant::now();
     std::fs::create_dir_all(&out)
         .with_context(|| format!("report folder {}: cannot create it", out.display()))?;
+    // Ctrl-C ends the flight early and still writes the report of what was flown; a second
+    // Ctrl-C exits at once.
+    let (stop_tx, stop) = tokio::sync::watch::channel(false);
     let mut run = rt
-        .block_on(visnav::sitl::closed_loop::run(sc, base, Some(&out)))
+        .block_on(async {
+            tokio::spawn(async move {
+                if tokio::signal::ctrl_c().await.is_ok() {
+                    tracing::warn!(
+                        "interrupted: writing the report of the flight so far (Ctrl-C again to quit at once)"
+                    );
+                    let _ = stop_tx.send(true);
+                    if tokio::signal::ctrl_c().await.is_ok() {
+                        std::process::exit(INTERRUPTED_EXIT_CODE.into());
+                    }
+                }
+            });
+            visnav::sitl::closed_loop::run_until_stopped(sc, base, Some(&out), stop).await
+        })
         .with_context(|| format!("{}: closed loop", path.display()))?;
     run.summary.report_dir = Some(out.display().to_string());
     let files = visnav::sitl::report::write_report(&run, &out)
@@ -228,6 +244,9 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
             t0.elapsed().as_secs_f64()
         );
         println!("{}", s.description);
+        if let Some(t) = s.interrupted_at_s {
+            println!("interrupted at {t:.0} s: the figures cover the flight up to there");
+        }
         println!(
             "evaluation window {:.0}-{:.0} s{}",
             s.evaluation_window_s[0],
@@ -324,8 +343,14 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
             println!("  {}", f.display());
         }
     }
+    if s.interrupted_at_s.is_some() {
+        return Ok(ExitCode::from(INTERRUPTED_EXIT_CODE));
+    }
     Ok(ExitCode::SUCCESS)
 }
+
+/// Exit status of a run stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
+const INTERRUPTED_EXIT_CODE: u8 = 130;
 
 /// How many reasons the console lists before summing the rest as "other".
 const REJECTION_REASONS_LISTED: usize = 5;
@@ -352,7 +377,7 @@ fn print_rejections(rejections: &[(String, usize)]) {
 
 /// A report folder no other run uses: `base` when it does not exist yet, else `base-2`, `base-3`,
 /// ... (each claimed by creating it, so two runs started together get two folders).
-fn fresh_report_dir(base: &std::path::Path) -> std::io::Result<PathBuf> {
+pub(crate) fn fresh_report_dir(base: &std::path::Path) -> std::io::Result<PathBuf> {
     if let Some(parent) = base.parent() {
         std::fs::create_dir_all(parent)?;
     }

@@ -39,14 +39,14 @@ pub async fn wait_for(
     }
 }
 
-/// The bundled demo scenario (sitl/scenarios/closed_loop_demo.toml) shortened to 45 s for tests
+/// The short closed-loop scenario (sitl/scenarios/closed_loop_short.toml) shortened to 45 s for tests
 /// about messages and faults: 700 m further east (the western fields changed between the years
 /// and give few fixes, docs/closed-loop.md), legs of 25, 10 and 10 s, the GPS until 20 s, the
 /// evaluation 20-45 s; its configuration `config` (a path), its camera image by absolute path.
 pub fn short_demo_scenario(root: &std::path::Path, config: &std::path::Path) -> String {
     let abs = |p: &std::path::Path| format!("{:?}", p.display().to_string());
-    std::fs::read_to_string(root.join("sitl/scenarios/closed_loop_demo.toml"))
-        .expect("read the demo scenario")
+    std::fs::read_to_string(root.join("sitl/scenarios/closed_loop_short.toml"))
+        .expect("read the short scenario")
         .replace("\"../../config/demo.toml\"", &abs(config))
         .replace(
             "\"../maps/naip_nd_2014.tif\"",

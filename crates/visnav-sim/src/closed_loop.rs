@@ -753,6 +753,10 @@ pub struct ClosedLoopSummary {
     pub scenario: String,
     pub description: String,
     pub duration_s: f64,
+    /// Scenario time at which the run was stopped early (Ctrl-C): the figures cover the flight
+    /// up to there only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub interrupted_at_s: Option<f64>,
     pub evaluation_window_s: [f64; 2],
     pub gps_outage_s: Option<[f64; 2]>,
     pub camera: String,
@@ -1210,6 +1214,19 @@ pub async fn run(
     base: &Path,
     logs: Option<&Path>,
 ) -> Result<ClosedLoopRun, ClosedLoopError> {
+    // Never stopped early: the sender lives until the run ends.
+    let (_keep, stop) = tokio::sync::watch::channel(false);
+    run_until_stopped(sc, base, logs, stop).await
+}
+
+/// [`run`], ended early when `stop` turns true (a Ctrl-C): the flight so far is scored and
+/// reported as usual, with `interrupted_at_s` in the summary.
+pub async fn run_until_stopped(
+    sc: &Scenario,
+    base: &Path,
+    logs: Option<&Path>,
+    stop: tokio::sync::watch::Receiver<bool>,
+) -> Result<ClosedLoopRun, ClosedLoopError> {
     let cl = sc
         .closed_loop
         .as_ref()
@@ -1488,6 +1505,7 @@ pub async fn run(
     let mut last_log_s = 0.0;
     let mut memory_after_first_window = None;
     let emu_ctl = emu_c.as_deref().unwrap_or(&emu_v);
+    let mut interrupted_at_s = None;
     loop {
         tick.tick().await;
         collect_v.take(emu_v.take_received(), &table);
@@ -1501,6 +1519,11 @@ pub async fn run(
                 Some(memory_sample(&steps, &fixer.log, [&collect_v, &collect_c]));
         }
         if t_s > duration_s {
+            break;
+        }
+        if *stop.borrow() {
+            info!("interrupted at t = {t_s:.1} s: scoring and reporting the flight so far");
+            interrupted_at_s = Some(t_s);
             break;
         }
         let t_ms = u32::try_from(t_run_us / 1000).unwrap_or(u32::MAX);
@@ -1635,6 +1658,7 @@ pub async fn run(
         scenario: sc.name.clone(),
         description: sc.description.clone(),
         duration_s,
+        interrupted_at_s,
         evaluation_window_s: [w0, w1],
         gps_outage_s,
         camera: camera_desc,

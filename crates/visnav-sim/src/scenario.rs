@@ -796,6 +796,7 @@ mod tests {
             "gps_calibration.toml",
             "turns_vision_only.toml",
             "closed_loop_demo.toml",
+            "closed_loop_short.toml",
             "closed_loop_long.toml",
             "seed_outage_closed_loop.toml",
         ] {

@@ -243,12 +243,8 @@ fn clip_segment(a: (f64, f64), b: (f64, f64), r: [f64; 4]) -> Option<((f64, f64)
             }
         }
     }
-    (t0 <= t1).then(|| {
-        (
-            (a.0 + t0 * dx, a.1 + t0 * dy),
-            (a.0 + t1 * dx, a.1 + t1 * dy),
-        )
-    })
+    let at = |t: f64| (a.0 + t * dx, a.1 + t * dy);
+    (t0 <= t1).then_some((at(t0), at(t1)))
 }
 
 /// A poly-line cut into the runs that lie inside `r = [x0, y0, x1, y1]`; it also breaks at
@@ -420,7 +416,8 @@ where
     Ok(())
 }
 
-/// Draws filled dots at the points inside `r` with a legend entry.
+/// Draws filled dots with a white rim (visible over the map) at the points inside `r`, with a
+/// legend entry.
 fn draw_dots<Y>(
     file: &'static str,
     chart: &mut Chart<'_, '_, Y>,
@@ -432,6 +429,10 @@ where
     Y: Ranged<ValueType = f64>,
 {
     let pts: Vec<(f64, f64)> = points.iter().copied().filter(|p| inside(p, r)).collect();
+    let rims = pts
+        .iter()
+        .map(|&p| Circle::new(p, size + 1, WHITE.filled()));
+    chart.draw_series(rims).map_err(draw_err(file))?;
     let ann = chart
         .draw_series(
             pts.into_iter()

@@ -159,6 +159,7 @@ fn visnav_sim_default_closed_loop() {
         "track.geojson",
         "track.png",
         "errors.png",
+        "residuals.png",
     ] {
         let p = out.join(f);
         let len = std::fs::metadata(&p).map(|m| m.len()).unwrap_or(0);
@@ -190,7 +191,10 @@ fn visnav_sim_default_closed_loop() {
     assert_eq!(lines, 3, "truth, visnav and control tracks");
     let img = image::open(out.join("track.png")).expect("track.png decodes");
     assert!(img.width() >= 800 && img.height() >= 600);
-    assert!(Path::new(&out).join("errors.png").is_file());
+    for (f, size) in [("errors.png", (1400, 1000)), ("residuals.png", (1600, 820))] {
+        let img = image::open(out.join(f)).unwrap_or_else(|e| panic!("{f} decodes: {e}"));
+        assert_eq!((img.width(), img.height()), size, "{f}");
+    }
     let _ = std::fs::remove_dir_all(&out);
 }
 

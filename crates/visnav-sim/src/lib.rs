@@ -17,7 +17,8 @@
 //! * [`faults`]: scripted fault events of a closed-loop scenario and their scoring.
 //! * [`closed_loop`]: `visnav sim`'s closed loop (emulator + daemon + camera) and its scoring;
 //!   [`report`] writes its report folder.
-//! * [`plot`]: PNG charts and map track plots for the report folder (built-in bitmap font).
+//! * [`plot`]: the report folder's PNG plots (errors, track over the map, fix residuals), drawn
+//!   with plotters and a compiled-in font.
 //! * [`render`]: the simulated camera (perspective view of an orthophoto on a DEM, lens
 //!   distortion, exposure, blur, noise).
 //! * [`synth`]: synthetic aerial resection scenes; [`pose_bench`]: the resection timings.

@@ -8,8 +8,11 @@
 //! | `dtm_poses.csv` | with `[dtm_nav]`: every pose of the DTM navigator: capture time, its partner's, baseline, inliers, NED error, sigma, 3-sigma test, Euler angle error |
 //! | `injections.csv` | every GPS_INPUT the emulators received (vision and control), with its NED error |
 //! | `track.geojson` | truth, visnav and no-vision tracks (LineString, WGS84 lon/lat) and the accepted fixes (Point), for QGIS |
-//! | `track.png` | the tracks over the map orthophoto |
-//! | `errors.png` | horizontal error against time: visnav, no-vision, accepted fixes, visnav's 3-sigma bound, the GPS outage |
+//! | `track.png` | truth, visnav, no-vision and the accepted fixes over the camera-year orthophoto (axes in the map's CRS), beside a zoom on the GPS outage where visnav is farthest from the truth |
+//! | `errors.png` | horizontal error against time: visnav with its claimed 1- and 3-sigma and the accepted fixes (linear), visnav against no-vision (log); GPS-on periods shaded |
+//! | `residuals.png` | the accepted fixes' north / east errors against time within their claimed 3-sigma, the rejected attempts' times; east against north with the median claimed 3-sigma circle |
+//!
+//! The plots are drawn by [`plot`](super::plot).
 //!
 //! CSV: comma separated, a header line, `NaN` for missing values (before the filter is
 //! initialised, rejected fixes), times in scenario seconds.
@@ -18,7 +21,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use super::closed_loop::{ClosedLoopError, ClosedLoopRun};
-use super::plot::{self, Band, PlotSpec, Series, Style};
+use super::plot::{self, ErrorsData, Residual, ResidualsData, TrackData};
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ClosedLoopError + '_ {
     move |source| ClosedLoopError::Io {
@@ -229,13 +232,46 @@ pub fn write_text_files(run: &ClosedLoopRun, dir: &Path) -> Result<Vec<PathBuf>,
     Ok(files)
 }
 
-const TRUTH_RGB: [u8; 3] = [20, 20, 20];
-const VISNAV_RGB: [u8; 3] = [0, 90, 220];
-const CONTROL_RGB: [u8; 3] = [220, 40, 30];
-const FIX_RGB: [u8; 3] = [0, 170, 60];
+/// The run's time span, s.
+fn time_span(run: &ClosedLoopRun) -> (f64, f64) {
+    let t = || run.steps.iter().map(|r| r.t_s).filter(|t| t.is_finite());
+    (
+        t().fold(f64::INFINITY, f64::min),
+        t().fold(f64::NEG_INFINITY, f64::max),
+    )
+}
 
-/// `track.png`: truth, visnav and the control over the camera-year orthophoto, map CRS metres.
-pub fn track_png(run: &ClosedLoopRun) -> image::RgbImage {
+fn h(e: &[f64; 3]) -> f64 {
+    e[0].hypot(e[1])
+}
+
+/// The GPS-on periods from the steps' flags.
+fn gps_on(run: &ClosedLoopRun) -> Vec<(f64, f64)> {
+    let t: Vec<f64> = run.steps.iter().map(|r| r.t_s).collect();
+    let on: Vec<bool> = run.steps.iter().map(|r| r.gps_on).collect();
+    plot::periods(&t, &on)
+}
+
+/// `errors.png`'s data: horizontal errors, visnav's sigma, the GPS-on periods, accepted fixes.
+pub fn errors_data(run: &ClosedLoopRun) -> ErrorsData {
+    ErrorsData {
+        title: format!("{}: horizontal position error", run.summary.scenario),
+        t_s: run.steps.iter().map(|r| r.t_s).collect(),
+        visnav_m: run.steps.iter().map(|r| h(&r.vis_err_ned_m)).collect(),
+        sigma_m: run.steps.iter().map(|r| r.vis_sigma_h_m).collect(),
+        control_m: run.steps.iter().map(|r| h(&r.ctl_err_ned_m)).collect(),
+        gps_on: gps_on(run),
+        fixes: run
+            .fixes
+            .iter()
+            .filter(|f| f.accepted)
+            .map(|f| (f.t_capture_s, h(&f.err_ned_m)))
+            .collect(),
+    }
+}
+
+/// `track.png`'s data: the tracks in the orthophoto's CRS.
+pub fn track_data(run: &ClosedLoopRun) -> TrackData<'_> {
     let xy = |lat: f64, lon: f64| -> (f64, f64) {
         if !(lat.is_finite() && lon.is_finite()) {
             return (f64::NAN, f64::NAN);
@@ -244,118 +280,72 @@ pub fn track_png(run: &ClosedLoopRun) -> image::RgbImage {
             .from_geodetic(lat, lon)
             .unwrap_or((f64::NAN, f64::NAN))
     };
-    let truth = run
-        .steps
-        .iter()
-        .map(|r| xy(r.truth_lat_deg, r.truth_lon_deg))
-        .collect();
-    let vis = run
-        .steps
-        .iter()
-        .map(|r| xy(r.vis_lat_deg, r.vis_lon_deg))
-        .collect();
-    let ctl = run
-        .steps
-        .iter()
-        .map(|r| xy(r.ctl_lat_deg, r.ctl_lon_deg))
-        .collect();
-    let fixes = run
-        .fixes
-        .iter()
-        .filter(|f| f.accepted)
-        .map(|f| xy(f.lat_deg, f.lon_deg))
-        .collect();
-    let series = vec![
-        Series::new("accepted vision fixes", FIX_RGB, Style::Dots, fixes),
-        Series::new("no-vision control", CONTROL_RGB, Style::Line, ctl),
-        Series::new("truth", TRUTH_RGB, Style::Line, truth),
-        Series::new("visnav", VISNAV_RGB, Style::Line, vis),
-    ];
-    let spec = PlotSpec::new(
-        1200,
-        900,
-        format!(
-            "{}: track over the camera-year orthophoto",
-            run.summary.scenario
-        ),
-        "easting [m]",
-        "northing [m]",
-    );
-    plot::track(
-        &spec,
-        run.background.as_ref().map(|(i, e)| (i, *e)),
-        &series,
-    )
+    let st = &run.steps;
+    TrackData {
+        title: format!("{}: track", run.summary.scenario),
+        crs: run.crs.to_string(),
+        background: run.background.as_ref().map(|(i, e)| (i, *e)),
+        t_s: st.iter().map(|r| r.t_s).collect(),
+        truth: st
+            .iter()
+            .map(|r| xy(r.truth_lat_deg, r.truth_lon_deg))
+            .collect(),
+        visnav: st
+            .iter()
+            .map(|r| xy(r.vis_lat_deg, r.vis_lon_deg))
+            .collect(),
+        control: st
+            .iter()
+            .map(|r| xy(r.ctl_lat_deg, r.ctl_lon_deg))
+            .collect(),
+        outage: st.iter().map(|r| !r.gps_on).collect(),
+        fixes: run
+            .fixes
+            .iter()
+            .filter(|f| f.accepted)
+            .map(|f| xy(f.lat_deg, f.lon_deg))
+            .collect(),
+    }
 }
 
-/// `errors.png`: horizontal error against time with visnav's 3-sigma bound and the outage start.
-pub fn errors_png(run: &ClosedLoopRun) -> image::RgbImage {
-    let h = |e: &[f64; 3]| e[0].hypot(e[1]);
-    let vis: Vec<(f64, f64)> = run
-        .steps
-        .iter()
-        .map(|r| (r.t_s, h(&r.vis_err_ned_m)))
-        .collect();
-    let ctl: Vec<(f64, f64)> = run
-        .steps
-        .iter()
-        .map(|r| (r.t_s, h(&r.ctl_err_ned_m)))
-        .collect();
-    let fixes: Vec<(f64, f64)> = run
-        .fixes
-        .iter()
-        .filter(|f| f.accepted)
-        .map(|f| (f.t_capture_s, h(&f.err_ned_m)))
-        .collect();
-    let band = Band {
-        name: "visnav 3-sigma (horizontal)".into(),
-        rgb: VISNAV_RGB,
-        points: run
-            .steps
+/// `residuals.png`'s data: the accepted fixes' errors, the rejected attempts' times.
+pub fn residuals_data(run: &ClosedLoopRun) -> ResidualsData {
+    ResidualsData {
+        title: format!("{}: vision fix residuals", run.summary.scenario),
+        accepted: run
+            .fixes
             .iter()
-            .map(|r| (r.t_s, 0.0, 3.0 * r.vis_sigma_h_m))
+            .filter(|f| f.accepted)
+            .map(|f| Residual {
+                t_s: f.t_capture_s,
+                north_m: f.err_ned_m[0],
+                east_m: f.err_ned_m[1],
+                sigma_m: f.sigma_h_m,
+                beyond_3sigma: f.beyond_3sigma,
+            })
             .collect(),
-    };
-    let top = vis
-        .iter()
-        .chain(&ctl)
-        .chain(&fixes)
-        .map(|p| p.1)
-        .filter(|v| v.is_finite())
-        .fold(1.0f64, f64::max);
-    let mut series = vec![
-        Series::new("accepted vision fixes", FIX_RGB, Style::Dots, fixes),
-        Series::new("no-vision control", CONTROL_RGB, Style::Line, ctl),
-        Series::new("visnav", VISNAV_RGB, Style::Line, vis),
-    ];
-    if let Some(t) = run.gps_until_s {
-        series.push(Series::new(
-            "GPS lost",
-            [120, 120, 120],
-            Style::Line,
-            vec![(t, 0.0), (t, top * 1.05)],
-        ));
+        rejected_t_s: run
+            .fixes
+            .iter()
+            .filter(|f| !f.accepted)
+            .map(|f| f.t_capture_s)
+            .collect(),
+        gps_on: gps_on(run),
+        t_range: time_span(run),
     }
-    let mut spec = PlotSpec::new(
-        1200,
-        600,
-        format!("{}: horizontal position error", run.summary.scenario),
-        "time [s]",
-        "horizontal error [m]",
-    );
-    spec.y_range = Some((0.0, top * 1.1));
-    plot::chart(&spec, &[band], &series)
 }
 
 /// Writes the whole report folder (text files and plots); returns the files written.
 pub fn write_report(run: &ClosedLoopRun, dir: &Path) -> Result<Vec<PathBuf>, ClosedLoopError> {
     let mut files = write_text_files(run, dir)?;
+    let plot_err = |e: plot::PlotError| ClosedLoopError::Setup(e.to_string());
     for (name, img) in [
-        ("track.png", track_png(run)),
-        ("errors.png", errors_png(run)),
+        ("track.png", plot::track(&track_data(run))),
+        ("errors.png", plot::errors(&errors_data(run))),
+        ("residuals.png", plot::residuals(&residuals_data(run))),
     ] {
         let p = dir.join(name);
-        plot::save_png(&img, &p).map_err(|e| ClosedLoopError::Setup(e.to_string()))?;
+        plot::save_png(&img.map_err(plot_err)?, &p).map_err(plot_err)?;
         files.push(p);
     }
     Ok(files)

@@ -41,11 +41,10 @@ pub const MAX_SIDE_PX: u32 = 16384;
 #[derive(Debug, thiserror::Error)]
 pub enum PlotError {
     /// The PNG could not be encoded or written.
-    #[error("cannot write PNG {path}: {source}")]
+    #[error("cannot write PNG {path}: {cause}")]
     Save {
         path: PathBuf,
-        #[source]
-        source: image::ImageError,
+        cause: image::ImageError,
     },
 }
 
@@ -157,7 +156,7 @@ pub fn save_png(img: &RgbImage, path: &Path) -> Result<(), PlotError> {
     img.save_with_format(path, image::ImageFormat::Png)
         .map_err(|source| PlotError::Save {
             path: path.to_path_buf(),
-            source,
+            cause: source,
         })
 }
 

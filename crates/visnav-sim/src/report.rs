@@ -23,7 +23,7 @@ use super::plot::{self, Band, PlotSpec, Series, Style};
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ClosedLoopError + '_ {
     move |source| ClosedLoopError::Io {
         path: path.to_path_buf(),
-        source,
+        cause: source,
     }
 }
 

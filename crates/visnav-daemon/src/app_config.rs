@@ -32,10 +32,10 @@ pub enum ConfigError {
     /// TOML syntax, a wrong type or an unknown key (the message names the key, line and column).
     #[error("{path}: {message}")]
     Parse { path: PathBuf, message: String },
-    /// Parsed, but values are out of range, inconsistent or name missing files.
     /// A command-line or environment override that cannot be applied.
     #[error("{path}: {error}")]
     Override { path: PathBuf, error: OverrideError },
+    /// Parsed, but values are out of range, inconsistent or name missing files.
     #[error("{path}: {} invalid value(s):\n  {}", problems.len(), problems.iter().map(|p| p.to_string()).collect::<Vec<_>>().join("\n  "))]
     Invalid {
         path: PathBuf,

@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use visnav::camera::source::{CaptureTime, FramesConfig, SourceKind, open, write_y4m};
 use visnav::vision::GrayImage;
-use visnav_core::validate::{Problems, Validate};
+use visnav_core::validate::{Base, Problems, Validate};
 
 fn img(w: usize, h: usize, k: usize) -> GrayImage {
     GrayImage::from_fn(w, h, |x, y| ((x * 3 + y * 5 + k * 17) % 256) as f32)
@@ -51,7 +51,7 @@ fn shell_command_streams_y4m_in_chunks() {
         &[f.to_str().unwrap(), cut],
     );
     let mut p = Problems::default();
-    cfg.validate_in(d.path(), &mut p);
+    cfg.validate_in(&Base::config_folder(d.path()), &mut p);
     assert!(p.list.is_empty(), "{:?}", p.list);
 
     let t0 = Instant::now();
@@ -131,7 +131,7 @@ fn process_that_exits_early_is_a_clear_error() {
         "{e}"
     );
     let mut p = Problems::default();
-    cfg.validate_in(Path::new("/"), &mut p);
+    cfg.validate_in(&Base::config_folder(Path::new("/")), &mut p);
     assert!(
         p.list
             .iter()
@@ -237,7 +237,7 @@ fn config_keys_of_live_sources() {
     bad.path = "x.y4m".into();
     bad.command.clear();
     bad.timeout_s = 0.0;
-    bad.validate_in(Path::new("/"), &mut p);
+    bad.validate_in(&Base::config_folder(Path::new("/")), &mut p);
     let keys: Vec<&str> = p.list.iter().map(|i| i.key.as_str()).collect();
     for k in ["command", "rate_hz", "path", "timeout_s"] {
         assert!(keys.contains(&k), "{k} not in {:?}", p.list);
@@ -261,7 +261,7 @@ fn config_keys_of_live_sources() {
     assert!(p.list.iter().any(|i| i.key == "path"), "{:?}", p.list);
     // A relative program path is relative to the config folder.
     let mut r = FramesConfig::command(&["./capture.sh", "a/b"]);
-    r.resolve_paths(Path::new("/etc/visnav"));
+    r.resolve_paths(&Base::config_folder(Path::new("/etc/visnav")));
     assert_eq!(r.command, ["/etc/visnav/./capture.sh", "a/b"]);
 }
 
@@ -283,7 +283,7 @@ fn gstreamer_videotestsrc_pipeline() {
     cfg.realtime = false;
     cfg.timeout_s = 30.0;
     let mut p = Problems::default();
-    cfg.validate_in(Path::new("/"), &mut p);
+    cfg.validate_in(&Base::config_folder(Path::new("/")), &mut p);
     assert!(p.list.is_empty(), "{:?}", p.list);
     let mut s = open(&cfg).unwrap();
     let mut n = 0;

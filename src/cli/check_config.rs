@@ -6,15 +6,22 @@ use std::process::ExitCode;
 use visnav::daemon::app_config::{Config, ConfigError};
 use visnav::link::config::OutputMode;
 
+use super::overrides::OverrideArgs;
+
 #[derive(clap::Args, Debug)]
 pub struct CheckConfigArgs {
-    /// The TOML configuration file to check.
-    pub file: PathBuf,
+    /// The TOML configuration file to check (default: the environment's VISNAV_CONFIG),
+    /// relative to the current directory.
+    pub file: Option<PathBuf>,
+    #[command(flatten)]
+    pub overrides: OverrideArgs,
 }
 
 pub fn run(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
+    let file = super::overrides::config_path(args.file, "FILE")?;
+    let overrides = args.overrides.overrides();
     // The validation `visnav run` does before it starts: what passes here, run starts.
-    match Config::load_checked(&args.file) {
+    match super::overrides::load(&file, &overrides) {
         Ok(cfg) => {
             let modes: Vec<&str> = cfg
                 .output
@@ -28,19 +35,26 @@ pub fn run(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
                 })
                 .collect();
             println!(
-                "{}: OK (link {}, camera {}x{} px, {} orthophoto(s) loaded, output [{}] at {} Hz)",
-                args.file.display(),
+                "{}: OK (link {}, camera {}x{} px, {}, output [{}] at {} Hz)",
+                file.display(),
                 cfg.link.connection,
                 cfg.camera.width_px,
                 cfg.camera.height_px,
-                cfg.map.ortho.len(),
+                map_words(&cfg),
                 modes.join(", "),
                 cfg.output.rate_hz
             );
             println!("{}", vision_line(&cfg));
+            for line in overrides.describe() {
+                println!("override: {line}");
+            }
             Ok(ExitCode::SUCCESS)
         }
-        Err(e @ (ConfigError::Invalid { .. } | ConfigError::Parse { .. })) => {
+        Err(
+            e @ (ConfigError::Invalid { .. }
+            | ConfigError::Parse { .. }
+            | ConfigError::Override { .. }),
+        ) => {
             eprintln!("{e}");
             Ok(ExitCode::from(2))
         }
@@ -54,11 +68,21 @@ pub fn run(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
 pub fn vision_line(cfg: &Config) -> String {
     match &cfg.frames {
         None => NO_CAMERA_WARNING.to_string(),
-        Some(_) => format!(
-            "vision: camera frames from [frames]; map fixes on; visual odometry {}; DTM navigation {}",
+        Some(f) => format!(
+            "vision: camera frames from [frames] ({}); map fixes on; visual odometry {}; DTM \
+             navigation {}",
+            f.describe_source(),
             on_off(cfg.vo.enabled),
             on_off(cfg.dtm_nav.enabled)
         ),
+    }
+}
+
+/// The map in a few words: `map /abs/area.vnm` or `2 orthophoto(s) loaded`.
+fn map_words(cfg: &Config) -> String {
+    match &cfg.map.file {
+        Some(f) => format!("map {}", f.display()),
+        None => format!("{} orthophoto(s) loaded", cfg.map.ortho.len()),
     }
 }
 

@@ -14,6 +14,7 @@ pub mod camera;
 pub mod check_config;
 pub mod fix;
 pub mod map;
+pub mod overrides;
 pub mod replay;
 pub mod run;
 #[cfg(feature = "sim")]

@@ -6,34 +6,48 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::Context;
-use visnav::daemon::app_config::Config;
+
+use super::overrides::OverrideArgs;
 
 #[derive(clap::Args, Debug)]
 pub struct RunArgs {
-    /// The TOML configuration file.
+    /// The TOML configuration file (default: the environment's VISNAV_CONFIG), relative to the
+    /// current directory.
     #[arg(long)]
-    pub config: PathBuf,
+    pub config: Option<PathBuf>,
+    #[command(flatten)]
+    pub overrides: OverrideArgs,
     /// Stop after this many seconds (default: run until SIGINT/SIGTERM).
     #[arg(long)]
     pub duration: Option<f64>,
 }
 
 pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
+    let path = super::overrides::config_path(args.config, "--config")?;
+    let overrides = args.overrides.overrides();
     // The validation `visnav check-config` does: what it passes, run starts.
-    let cfg = Config::load_checked(&args.config)?;
+    let cfg = super::overrides::load(&path, &overrides)?;
+    tracing::info!("configuration {}", path.display());
+    for line in overrides.describe() {
+        tracing::info!("override: {line}");
+    }
     let duration = match args.duration {
         Some(s) if s.is_finite() && s > 0.0 && s < 1e9 => Some(Duration::from_secs_f64(s)),
         Some(s) => anyhow::bail!("--duration {s}: expected a positive number of seconds"),
         None => None,
     };
     // With a frame source, the vision fix engine of [map], [camera] and [fix].
-    let fixer: Option<std::sync::Arc<dyn visnav::daemon::FrameFixer>> = if cfg.frames.is_some() {
-        let engine = visnav::daemon::engine_from_config(&cfg)
-            .with_context(|| format!("{}: vision fix engine", args.config.display()))?;
-        Some(std::sync::Arc::new(engine))
-    } else {
-        tracing::warn!("{}", super::check_config::NO_CAMERA_WARNING);
-        None
+    let fixer: Option<std::sync::Arc<dyn visnav::daemon::FrameFixer>> = match &cfg.frames {
+        Some(frames) => {
+            tracing::info!("camera frames: {}", frames.describe_source());
+            let engine = visnav::daemon::engine_from_config(&cfg)
+                .with_context(|| format!("{}: vision fix engine", path.display()))?;
+            Some(std::sync::Arc::new(engine))
+        }
+        None => {
+            tracing::warn!("{}", super::check_config::NO_CAMERA_WARNING);
+            None
+        }
     };
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()

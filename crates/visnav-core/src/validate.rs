@@ -91,3 +91,137 @@ pub fn resolve(base: &Path, f: &Path) -> PathBuf {
         base.join(f)
     }
 }
+
+/// The rule for paths written in a configuration file, as messages state it.
+pub const FILE_PATH_RULE: &str = "paths in the config are relative to the config file's folder";
+
+/// The rule for paths given by a command-line option or an environment variable.
+pub const OVERRIDE_PATH_RULE: &str =
+    "paths on the command line and in the environment are relative to the current directory";
+
+/// The folder a configuration's relative paths are resolved against, and the rule that chose it
+/// (named in messages): the configuration file's folder for what the file says, the current
+/// directory for a command-line or environment override.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Base {
+    dir: PathBuf,
+    rule: &'static str,
+}
+
+impl Base {
+    /// Paths written in the configuration file `config`: relative to its folder.
+    pub fn config_file(config: &Path) -> Base {
+        Self::config_folder(config.parent().unwrap_or(Path::new("")))
+    }
+
+    /// Paths written in a configuration file in the folder `dir`.
+    pub fn config_folder(dir: &Path) -> Base {
+        Base {
+            dir: absolute(dir),
+            rule: FILE_PATH_RULE,
+        }
+    }
+
+    /// Paths from the command line or the environment: relative to the current directory.
+    pub fn current_dir() -> Base {
+        Base {
+            dir: absolute(Path::new("")),
+            rule: OVERRIDE_PATH_RULE,
+        }
+    }
+
+    /// The folder (absolute when the current directory is known).
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// The rule, as messages state it.
+    pub fn rule(&self) -> &'static str {
+        self.rule
+    }
+
+    /// `f` resolved against the folder unless it is absolute.
+    pub fn resolve(&self, f: &Path) -> PathBuf {
+        resolve(&self.dir, f)
+    }
+
+    /// A problem with the path `f` as written: `"maps/x.vnm": /home/pi/config/maps/x.vnm does not
+    /// exist (paths in the config are relative to the config file's folder)`, where `what` is
+    /// what is wrong with the resolved path (`does not exist`, `is not a directory`).
+    pub fn problem(&self, f: &Path, what: &str) -> String {
+        format!(
+            "\"{}\": {} {what} ({})",
+            f.display(),
+            self.resolve(f).display(),
+            self.rule
+        )
+    }
+
+    /// What is wrong with the file `f` (relative to this base), if anything: it does not exist,
+    /// is not a regular file or cannot be examined.
+    pub fn file_problem(&self, f: &Path) -> Option<String> {
+        match std::fs::metadata(self.resolve(f)) {
+            Ok(m) if m.is_file() => None,
+            Ok(_) => Some(self.problem(f, "is not a regular file")),
+            Err(e) => Some(self.io_problem(f, &e)),
+        }
+    }
+
+    /// A problem from examining `f`: "does not exist" for a missing file, else the OS error.
+    pub fn io_problem(&self, f: &Path, e: &std::io::Error) -> String {
+        if e.kind() == std::io::ErrorKind::NotFound {
+            self.problem(f, "does not exist")
+        } else {
+            self.problem(f, &format!("cannot be examined: {e}"))
+        }
+    }
+}
+
+/// `f` made absolute against the current directory (without resolving links or `..`); `f`
+/// itself when the current directory is unknown.
+fn absolute(f: &Path) -> PathBuf {
+    let f = if f.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        f
+    };
+    std::path::absolute(f).unwrap_or_else(|_| f.to_path_buf())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_path_problem_names_the_value_the_resolved_path_and_the_rule() {
+        let base = Base::config_file(Path::new("/home/pi/visnav/config/visnav.toml"));
+        assert_eq!(base.dir(), Path::new("/home/pi/visnav/config"));
+        assert_eq!(
+            base.file_problem(Path::new("maps/x.vnm")).as_deref(),
+            Some(
+                "\"maps/x.vnm\": /home/pi/visnav/config/maps/x.vnm does not exist (paths in the \
+                 config are relative to the config file's folder)"
+            )
+        );
+        assert_eq!(base.resolve(Path::new("/abs.vnm")), Path::new("/abs.vnm"));
+        let dir = base.file_problem(Path::new("/")).unwrap_or_default();
+        assert!(dir.ends_with("/ is not a regular file (paths in the config are relative to the config file's folder)"), "{dir}");
+    }
+
+    #[test]
+    fn relative_bases_become_absolute() {
+        let cwd = std::env::current_dir().unwrap();
+        for base in [
+            Base::config_file(Path::new("visnav.toml")),
+            Base::config_file(Path::new("./visnav.toml")),
+            Base::current_dir(),
+        ] {
+            assert_eq!(base.dir(), cwd, "{base:?}");
+        }
+        assert_eq!(
+            Base::config_file(Path::new("config/v.toml")).dir(),
+            cwd.join("config")
+        );
+        assert_eq!(Base::current_dir().rule(), OVERRIDE_PATH_RULE);
+    }
+}

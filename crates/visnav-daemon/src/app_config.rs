@@ -17,20 +17,24 @@ use visnav_core::geo::Crs;
 use visnav_core::nav::config::NavConfig;
 use visnav_link::config::{LinkConfig, OutputConfig};
 
-use visnav_core::validate::{Invalid, Problems, Validate, resolve};
+use visnav_core::validate::{Base, Invalid, Problems, Validate};
+
+pub use crate::app_config_overrides::{Given, Origin, OverrideError, Overrides};
 
 /// Why a configuration file could not be used. Every variant names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
-    #[error("{path}: cannot read: {source}")]
+    #[error("{path}: cannot read: {cause}")]
     Read {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// TOML syntax, a wrong type or an unknown key (the message names the key, line and column).
     #[error("{path}: {message}")]
     Parse { path: PathBuf, message: String },
+    /// A command-line or environment override that cannot be applied.
+    #[error("{path}: {error}")]
+    Override { path: PathBuf, error: OverrideError },
     /// Parsed, but values are out of range, inconsistent or name missing files.
     #[error("{path}: {} invalid value(s):\n  {}", problems.len(), problems.iter().map(|p| p.to_string()).collect::<Vec<_>>().join("\n  "))]
     Invalid {
@@ -112,9 +116,11 @@ pub struct MapConfig {
 }
 
 impl MapConfig {
-    fn validate_in(&self, base: &Path, p: &mut Problems) {
+    /// Validate; `file` is relative to `file_base` (the current directory when `--map` gave it),
+    /// the other paths to `base` (the config file's folder).
+    fn validate_in(&self, base: &Base, file_base: &Base, p: &mut Problems) {
         if let Some(f) = &self.file {
-            check_file(p, "file", base, f);
+            check_file(p, "file", file_base, f);
         } else if self.ortho.is_empty() {
             p.push(
                 "ortho",
@@ -172,20 +178,20 @@ impl MapConfig {
 
 /// A file the daemon will create (`link.tlog`, `daemon.fix_log`): its name with `{t}` expanded
 /// as the daemon expands it must not be a directory, and its folder must exist.
-fn check_output_file(p: &mut Problems, key: &str, base: &Path, f: &Path) {
+fn check_output_file(p: &mut Problems, key: &str, base: &Base, f: &Path) {
     let now_s = visnav_link::tlog::unix_now_us() / 1_000_000;
-    let full = resolve(base, &visnav_link::tlog::expand_name(f, now_s));
+    let full = base.resolve(&visnav_link::tlog::expand_name(f, now_s));
     if full.is_dir() {
         p.push(
             key,
-            format!("{} is a directory; give a file name in it", full.display()),
+            base.problem(f, "is a directory; give a file name in it"),
         );
         return;
     }
     if let Some(d) = full.parent().filter(|d| !d.as_os_str().is_empty())
         && !d.is_dir()
     {
-        p.push(key, format!("the folder {} does not exist", d.display()));
+        p.push(key, base.problem(f, "is in a folder that does not exist"));
     }
 }
 
@@ -217,12 +223,9 @@ fn check_serial_device(p: &mut Problems, connection: &str) {
     }
 }
 
-fn check_file(p: &mut Problems, key: &str, base: &Path, f: &Path) {
-    let full = resolve(base, f);
-    match std::fs::metadata(&full) {
-        Ok(m) if m.is_file() => {}
-        Ok(_) => p.push(key, format!("{} is not a regular file", full.display())),
-        Err(e) => p.push(key, format!("{}: {e}", full.display())),
+fn check_file(p: &mut Problems, key: &str, base: &Base, f: &Path) {
+    if let Some(why) = base.file_problem(f) {
+        p.push(key, why);
     }
 }
 
@@ -245,45 +248,94 @@ fn parse_message(e: &toml::de::Error, text: &str) -> String {
 }
 
 impl Config {
-    /// Parse TOML text. `path` is used in messages and `base` (its folder) to resolve relative paths.
+    /// Parse TOML text. `path` is used in messages and its folder to resolve relative paths.
     pub fn from_toml_str(text: &str, path: &Path) -> Result<Config, ConfigError> {
-        let mut cfg: Config = toml::from_str(text).map_err(|e| ConfigError::Parse {
-            path: path.to_path_buf(),
-            message: parse_message(&e, text),
-        })?;
-        let base = path.parent().unwrap_or(Path::new("."));
+        Self::from_toml_str_with(text, path, &Overrides::default())
+    }
+
+    /// Parse TOML text, apply the command-line / environment overrides, validate the result and
+    /// make its paths absolute (the file's against its folder, the overrides' against the
+    /// current directory).
+    pub fn from_toml_str_with(
+        text: &str,
+        path: &Path,
+        overrides: &Overrides,
+    ) -> Result<Config, ConfigError> {
+        let mut cfg = Self::parse(text, path, overrides)?;
+        overrides
+            .apply(&mut cfg)
+            .map_err(|error| ConfigError::Override {
+                path: path.to_path_buf(),
+                error,
+            })?;
+        let base = Base::config_file(path);
+        let mut problems = cfg.problems(&base, overrides);
+        if !problems.is_empty() {
+            problems.iter_mut().for_each(|p| overrides.tag(p));
+            return Err(ConfigError::Invalid {
+                path: path.to_path_buf(),
+                problems,
+            });
+        }
+        cfg.resolve_paths(&base, overrides);
+        Ok(cfg)
+    }
+
+    /// The TOML text as a configuration; a `--camera` for a file without `[camera]` is named as
+    /// such rather than as TOML's missing field.
+    fn parse(text: &str, path: &Path, overrides: &Overrides) -> Result<Config, ConfigError> {
+        toml::from_str(text).map_err(|e| {
+            let no_camera =
+                || toml::from_str::<toml::Table>(text).is_ok_and(|t| !t.contains_key("camera"));
+            match overrides.camera_without_intrinsics() {
+                Some(error) if no_camera() => ConfigError::Override {
+                    path: path.to_path_buf(),
+                    error,
+                },
+                _ => ConfigError::Parse {
+                    path: path.to_path_buf(),
+                    message: parse_message(&e, text),
+                },
+            }
+        })
+    }
+
+    /// Every invalid value, with its dotted key.
+    fn problems(&self, base: &Base, overrides: &Overrides) -> Vec<Invalid> {
         let mut p = Problems::default();
         p.section("link", |p| {
-            cfg.link.validate_in(base, p);
-            check_serial_device(p, &cfg.link.connection);
+            self.link.validate_in(base, p);
+            check_serial_device(p, &self.link.connection);
             // The link checks the folder; a directory by that name is refused here.
-            if let Some(t) = &cfg.link.tlog
-                && resolve(base, t).is_dir()
+            if let Some(t) = &self.link.tlog
+                && base.resolve(t).is_dir()
             {
                 check_output_file(p, "tlog", base, t);
             }
         });
-        p.section("camera", |p| cfg.camera.validate(p));
-        p.section("map", |p| cfg.map.validate_in(base, p));
-        p.section("output", |p| cfg.output.validate(p));
-        p.section("nav", |p| cfg.nav.validate(p));
-        p.section("fix", |p| cfg.fix.validate(p));
-        p.section("vo", |p| cfg.vo.validate(p));
-        p.section("dtm_nav", |p| cfg.dtm_nav.validate(p));
-        if let Some(f) = &cfg.frames {
-            p.section("frames", |p| f.validate_in(base, p));
+        p.section("camera", |p| self.camera.validate(p));
+        let map_base = overrides.map_base(base);
+        p.section("map", |p| self.map.validate_in(base, &map_base, p));
+        p.section("output", |p| self.output.validate(p));
+        p.section("nav", |p| self.nav.validate(p));
+        p.section("fix", |p| self.fix.validate(p));
+        p.section("vo", |p| self.vo.validate(p));
+        p.section("dtm_nav", |p| self.dtm_nav.validate(p));
+        if let Some(f) = &self.frames {
+            let frames_base = overrides.frames_base(base);
+            p.section("frames", |p| f.validate_in(&frames_base, p));
         }
         p.section("daemon", |p| {
-            cfg.daemon.validate_in(&cfg.output, p);
-            if let Some(f) = &cfg.daemon.fix_log {
+            self.daemon.validate_in(&self.output, p);
+            if let Some(f) = &self.daemon.fix_log {
                 check_output_file(p, "fix_log", base, f);
             }
-            if let Some(f) = &cfg.daemon.vo_log {
+            if let Some(f) = &self.daemon.vo_log {
                 check_output_file(p, "vo_log", base, f);
             }
         });
-        if cfg.daemon.imu_bias_restore == crate::config::ImuBiasRestore::ScaledImu {
-            match cfg.link.streams.scaled_imu_hz {
+        if self.daemon.imu_bias_restore == crate::config::ImuBiasRestore::ScaledImu {
+            match self.link.streams.scaled_imu_hz {
                 Some(hz) if hz <= 0.0 => p.push(
                     "daemon.imu_bias_restore",
                     "\"scaled_imu\" pairs HIGHRES_IMU with SCALED_IMU, which \
@@ -295,22 +347,22 @@ impl Config {
                 _ => {}
             }
         }
-        if !p.list.is_empty() {
-            return Err(ConfigError::Invalid {
-                path: path.to_path_buf(),
-                problems: p.list,
-            });
+        p.list
+    }
+
+    /// Make every path absolute: the file's against its folder (`base`), the overrides' against
+    /// the current directory.
+    fn resolve_paths(&mut self, base: &Base, overrides: &Overrides) {
+        let map_base = overrides.map_base(base);
+        self.map.ortho = self.map.ortho.iter().map(|f| base.resolve(f)).collect();
+        self.map.file = self.map.file.as_deref().map(|f| map_base.resolve(f));
+        self.map.dem = self.map.dem.as_deref().map(|f| base.resolve(f));
+        self.link.resolve_paths(base);
+        self.daemon.fix_log = self.daemon.fix_log.as_deref().map(|f| base.resolve(f));
+        self.daemon.vo_log = self.daemon.vo_log.as_deref().map(|f| base.resolve(f));
+        if let Some(f) = &mut self.frames {
+            f.resolve_paths(&overrides.frames_base(base));
         }
-        cfg.map.ortho = cfg.map.ortho.iter().map(|f| resolve(base, f)).collect();
-        cfg.map.file = cfg.map.file.as_deref().map(|f| resolve(base, f));
-        cfg.map.dem = cfg.map.dem.as_deref().map(|f| resolve(base, f));
-        cfg.link.resolve_paths(base);
-        cfg.daemon.fix_log = cfg.daemon.fix_log.as_deref().map(|f| resolve(base, f));
-        cfg.daemon.vo_log = cfg.daemon.vo_log.as_deref().map(|f| resolve(base, f));
-        if let Some(f) = &mut cfg.frames {
-            f.resolve_paths(base);
-        }
-        Ok(cfg)
     }
 
     /// Open every data file the configuration names (orthophotos, DEM) and check that it is a
@@ -366,17 +418,28 @@ impl Config {
     /// ([`Config::check_data`]). The one validation both commands share, so `check-config`
     /// passes exactly what `run` starts.
     pub fn load_checked(path: &Path) -> Result<Config, ConfigError> {
-        let cfg = Self::load(path)?;
+        Self::load_checked_with(path, &Overrides::default())
+    }
+
+    /// [`Config::load_checked`] with command-line / environment overrides applied before the
+    /// validation (`visnav run` and `visnav check-config`).
+    pub fn load_checked_with(path: &Path, overrides: &Overrides) -> Result<Config, ConfigError> {
+        let cfg = Self::load_with(path, overrides)?;
         cfg.check_data(path)?;
         Ok(cfg)
     }
 
     /// Read, parse and validate a configuration file.
     pub fn load(path: &Path) -> Result<Config, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        Self::load_with(path, &Overrides::default())
+    }
+
+    /// Read a configuration file, apply the overrides, validate.
+    pub fn load_with(path: &Path, overrides: &Overrides) -> Result<Config, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|cause| ConfigError::Read {
             path: path.to_path_buf(),
-            source,
+            cause,
         })?;
-        Self::from_toml_str(&text, path)
+        Self::from_toml_str_with(&text, path, overrides)
     }
 }

@@ -23,6 +23,7 @@
 //! down (flushing the .tlog).
 
 pub mod app_config;
+pub mod app_config_overrides;
 pub mod config;
 pub mod fix_config;
 pub mod fixlog;
@@ -99,24 +100,27 @@ pub enum DaemonError {
     #[error("frames are configured but no vision fix engine was given")]
     NoFixer,
     #[error("cannot start a thread: {0}")]
-    Thread(#[from] std::io::Error),
-    #[error("daemon.vo_log: {path}: {source}")]
+    Thread(std::io::Error),
+    #[error("daemon.vo_log: {path}: {cause}")]
     VoLog {
         path: std::path::PathBuf,
-        source: std::io::Error,
+        cause: std::io::Error,
     },
-    #[error("daemon.fix_log: {path}: {source}")]
+    #[error("daemon.fix_log: {path}: {cause}")]
     FixLog {
         path: std::path::PathBuf,
-        #[source]
-        source: std::io::Error,
+        cause: std::io::Error,
     },
-    #[error("daemon.metrics_listen: {addr}: {source}")]
-    Metrics {
-        addr: String,
-        #[source]
-        source: std::io::Error,
-    },
+    #[error("daemon.metrics_listen: {addr}: {cause}")]
+    Metrics { addr: String, cause: std::io::Error },
+}
+
+// Not `#[from]`: that would also make the error its `source()`, and the message already has its
+// text (an error chain printed with `{:#}` would say it twice).
+impl From<std::io::Error> for DaemonError {
+    fn from(e: std::io::Error) -> Self {
+        Self::Thread(e)
+    }
 }
 
 /// Everything the daemon needs from the configuration.
@@ -291,12 +295,18 @@ impl Daemon {
         let gps = setup.daemon.gps_source(&setup.output);
         info!(?gps, "GPS aiding source");
         let fix_log = fixlog::JsonLinesLog::open_configured(setup.daemon.fix_log.as_deref())
-            .map_err(|(path, source)| DaemonError::FixLog { path, source })?;
+            .map_err(|(path, source)| DaemonError::FixLog {
+                path,
+                cause: source,
+            })?;
         if let Some(l) = &fix_log {
             info!(path = %l.path().display(), "vision fix log");
         }
         let vo_log = fixlog::JsonLinesLog::open_configured(setup.daemon.vo_log.as_deref())
-            .map_err(|(path, source)| DaemonError::VoLog { path, source })?;
+            .map_err(|(path, source)| DaemonError::VoLog {
+                path,
+                cause: source,
+            })?;
         if let Some(l) = &vo_log {
             info!(path = %l.path().display(), "visual odometry log");
         }
@@ -550,7 +560,7 @@ impl Daemon {
 async fn metrics_endpoint(addr: &str) -> Result<prometheus::Endpoint, DaemonError> {
     let err = |source| DaemonError::Metrics {
         addr: addr.to_string(),
-        source,
+        cause: source,
     };
     let sa = addr.trim().parse().map_err(|_| {
         err(std::io::Error::new(

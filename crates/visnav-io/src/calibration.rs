@@ -21,11 +21,10 @@ use visnav_core::camera::{CameraConfig, DistortionConfig};
 /// Why a calibration file could not be read. Every variant names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum CalibrationError {
-    #[error("{path}: cannot read: {source}")]
+    #[error("{path}: cannot read: {cause}")]
     Read {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     #[error("{path}: no `{key}`: not an OpenCV, ROS camera_info or Kalibr camchain calibration")]
     Missing { path: PathBuf, key: String },
@@ -78,7 +77,7 @@ pub fn read_calibration(
 ) -> Result<Calibration, CalibrationError> {
     let text = std::fs::read_to_string(path).map_err(|source| CalibrationError::Read {
         path: path.to_path_buf(),
-        source,
+        cause: source,
     })?;
     parse_calibration(&text, path, camera)
 }

@@ -82,7 +82,7 @@ use tracing::{debug, info};
 
 use crate::image_file::GrayImageFile;
 use crate::vision::GrayImage;
-use visnav_core::validate::{Problems, Validate};
+use visnav_core::validate::{Base, Problems, Validate};
 
 /// Capture time of a frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -109,11 +109,10 @@ pub struct Frame {
 /// Why a frame could not be read. Every message names the file (and frame where relevant).
 #[derive(Debug, thiserror::Error)]
 pub enum FrameError {
-    #[error("{path}: {source}")]
+    #[error("{path}: {cause}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     #[error("{path}: not a usable YUV4MPEG2 file: {reason}")]
     Y4mHeader { path: PathBuf, reason: String },
@@ -301,67 +300,169 @@ impl FramesConfig {
         }
     }
 
-    /// Validate, checking the path against `base` (the config file's folder).
-    pub fn validate_in(&self, base: &Path, p: &mut Problems) {
+    /// Validate, checking the paths against `base` (the config file's folder, or the current
+    /// directory for a `--camera` override).
+    pub fn validate_in(&self, base: &Base, p: &mut Problems) {
         self.validate(p);
-        let full = visnav_core::validate::resolve(base, &self.path);
         let needs_path = matches!(self.source, SourceKind::Directory | SourceKind::Y4m);
         if needs_path && self.path.as_os_str().is_empty() {
             return; // reported by validate()
         }
         match self.source {
-            SourceKind::Command | SourceKind::Gstreamer => {
-                if let Some(prog) = self.argv().first().filter(|s| !s.is_empty()) {
-                    let found = if prog.contains('/') {
-                        visnav_core::validate::resolve(base, Path::new(prog)).is_file()
-                    } else {
-                        in_path(prog)
-                    };
-                    if !found {
-                        let key = if self.source == SourceKind::Command {
-                            "command"
-                        } else {
-                            "pipeline"
-                        };
-                        p.push(
-                            key,
-                            format!(
-                                "the program \"{prog}\" is not found (not a file / not in PATH)"
-                            ),
-                        );
-                    }
-                }
-            }
+            SourceKind::Command | SourceKind::Gstreamer => self.check_program(base, p),
             SourceKind::Directory => {
-                if !full.is_dir() {
-                    p.push("path", format!("{} is not a directory", full.display()));
-                } else if !full.join(FRAMES_CSV).is_file() {
-                    p.push("path", format!("{} has no {FRAMES_CSV}", full.display()));
+                let full = base.resolve(&self.path);
+                match std::fs::metadata(&full) {
+                    Err(e) => p.push("path", base.io_problem(&self.path, &e)),
+                    Ok(m) if !m.is_dir() => {
+                        p.push("path", base.problem(&self.path, "is not a directory"))
+                    }
+                    Ok(_) if !full.join(FRAMES_CSV).is_file() => p.push(
+                        "path",
+                        base.problem(&self.path, &format!("has no {FRAMES_CSV}")),
+                    ),
+                    Ok(_) => {}
                 }
             }
             SourceKind::Y4m => {
-                if !full.is_file() {
-                    p.push("path", format!("{} is not a file", full.display()));
+                if let Some(why) = base.file_problem(&self.path) {
+                    p.push("path", why);
                 }
             }
             SourceKind::V4l2 => {}
         }
     }
 
+    /// `command` / `gstreamer`: the program must be a file (a path with a `/`, relative to
+    /// `base`) or a name in `PATH`.
+    fn check_program(&self, base: &Base, p: &mut Problems) {
+        let Some(prog) = self.argv().into_iter().next().filter(|s| !s.is_empty()) else {
+            return;
+        };
+        let key = if self.source == SourceKind::Command {
+            "command"
+        } else {
+            "pipeline"
+        };
+        if prog.contains('/') {
+            if let Some(why) = base.file_problem(Path::new(&prog)) {
+                p.push(key, format!("the program {why}"));
+            }
+        } else if !in_path(&prog) {
+            p.push(
+                key,
+                format!("the program \"{prog}\" is not found (not a file / not in PATH)"),
+            );
+        }
+    }
+
     /// Make `path` (and a relative program path in `command`) absolute against `base`.
-    pub fn resolve_paths(&mut self, base: &Path) {
+    pub fn resolve_paths(&mut self, base: &Base) {
         if !self.path.as_os_str().is_empty() {
-            self.path = visnav_core::validate::resolve(base, &self.path);
+            self.path = base.resolve(&self.path);
         }
         if let Some(prog) = self.command.first_mut()
             && prog.contains('/')
         {
-            *prog = visnav_core::validate::resolve(base, Path::new(prog.as_str()))
+            *prog = base
+                .resolve(Path::new(prog.as_str()))
                 .to_string_lossy()
                 .into_owned();
         }
     }
+
+    /// The source in a few words: `y4m /data/flight.y4m`, `v4l2 /dev/video0 640x480 YUYV`,
+    /// `command ffmpeg -f v4l2 ...`, `gstreamer "v4l2src ..."`.
+    pub fn describe_source(&self) -> String {
+        match self.source {
+            SourceKind::Directory => format!("directory {}", self.path.display()),
+            SourceKind::Y4m => format!("y4m {}", self.path.display()),
+            SourceKind::Command => format!("command {}", self.command.join(" ")),
+            SourceKind::Gstreamer => format!(
+                "gstreamer \"{}\"",
+                self.pipeline.as_deref().unwrap_or_default()
+            ),
+            SourceKind::V4l2 => format!(
+                "v4l2 {} {}x{} {}",
+                self.path.display(),
+                self.width_px.unwrap_or(0),
+                self.height_px.unwrap_or(0),
+                self.pixel_format.fourcc_name()
+            ),
+        }
+    }
+
+    /// A frame source from a compact spec (`visnav run --camera SPEC`), sized `size` (the
+    /// camera's `[camera] width_px, height_px`, what a `v4l2` capture asks for):
+    ///
+    /// | spec | source |
+    /// | --- | --- |
+    /// | `dir:PATH`, or a PATH that is a folder | `directory` (with `frames.csv`) |
+    /// | `y4m:PATH`, or a PATH ending in `.y4m` | `y4m` |
+    /// | `v4l2:DEVICE` | `v4l2` at the camera's size, `YUYV` |
+    /// | `gst:PIPELINE` (or `gstreamer:`) | `gstreamer` |
+    /// | `cmd:PROGRAM ARG...` (or `command:`) | `command`, split at whitespace (no shell) |
+    ///
+    /// A bare PATH is relative to `base`. Every other key has its default.
+    pub fn from_spec(spec: &str, base: &Base, size: (usize, usize)) -> Result<Self, String> {
+        let spec = spec.trim();
+        let (kind, rest) = match spec.split_once(':') {
+            Some((k, rest)) if SPEC_KINDS.contains(&k) => (k, rest.trim()),
+            _ => return Self::from_path_spec(spec, base),
+        };
+        if rest.is_empty() {
+            return Err(format!("nothing after \"{kind}:\"; {SPEC_FORMS}"));
+        }
+        Ok(match kind {
+            "dir" => Self::new(SourceKind::Directory, rest),
+            "y4m" => Self::new(SourceKind::Y4m, rest),
+            "v4l2" => {
+                let mut c = Self::new(SourceKind::V4l2, rest);
+                c.width_px = Some(size.0);
+                c.height_px = Some(size.1);
+                c
+            }
+            "gst" | "gstreamer" => {
+                let mut c = Self::new(SourceKind::Gstreamer, "");
+                c.pipeline = Some(rest.to_string());
+                c
+            }
+            _ => {
+                let argv: Vec<&str> = rest.split_whitespace().collect();
+                Self::command(&argv)
+            }
+        })
+    }
+
+    /// A spec without a kind: a folder of frames or a `.y4m` file.
+    fn from_path_spec(spec: &str, base: &Base) -> Result<Self, String> {
+        if spec.is_empty() {
+            return Err(format!("empty; {SPEC_FORMS}"));
+        }
+        let path = Path::new(spec);
+        let is_y4m = path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("y4m"));
+        if is_y4m {
+            Ok(Self::new(SourceKind::Y4m, path))
+        } else if base.resolve(path).is_dir() {
+            Ok(Self::new(SourceKind::Directory, path))
+        } else {
+            Err(format!(
+                "{} is neither a folder of frames nor a .y4m file ({}); {SPEC_FORMS}",
+                base.resolve(path).display(),
+                base.rule()
+            ))
+        }
+    }
 }
+
+/// The kinds a `--camera` spec may start with (`KIND:...`).
+const SPEC_KINDS: [&str; 7] = ["dir", "y4m", "v4l2", "gst", "gstreamer", "cmd", "command"];
+
+/// The forms of a `--camera` spec, for messages.
+pub const SPEC_FORMS: &str = "give a folder with frames.csv or a .y4m file (or dir:PATH, \
+y4m:PATH), v4l2:DEVICE, gst:PIPELINE or cmd:PROGRAM ARGS";
 
 impl Validate for FramesConfig {
     fn validate(&self, p: &mut Problems) {
@@ -643,7 +744,7 @@ impl DirectorySource {
         let csv = dir.join(FRAMES_CSV);
         let text = std::fs::read_to_string(&csv).map_err(|source| FrameError::Io {
             path: csv.clone(),
-            source,
+            cause: source,
         })?;
         let entries = parse_frames_csv(&text, &csv)?;
         Ok(Self {
@@ -877,7 +978,7 @@ impl Y4mSource {
     pub fn open(path: &Path) -> Result<Self, FrameError> {
         let f = File::open(path).map_err(|source| FrameError::Io {
             path: path.to_path_buf(),
-            source,
+            cause: source,
         })?;
         Self::from_reader(Box::new(BufReader::new(f)), path)
     }
@@ -892,7 +993,7 @@ impl Y4mSource {
         let line = read_line_limited(&mut r, 1024)
             .map_err(|source| FrameError::Io {
                 path: path.to_path_buf(),
-                source,
+                cause: source,
             })?
             .ok_or_else(|| herr("the file is empty".into()))?;
         if line.last() != Some(&b'\n') {
@@ -1328,7 +1429,7 @@ impl PumpCtx {
         let reader = Box::new(BufReader::with_capacity(1 << 20, stdout));
         let mut y4m = match Y4mSource::from_reader(reader, &name) {
             Ok(y) => y,
-            Err(FrameError::Io { source, .. }) => {
+            Err(FrameError::Io { cause: source, .. }) => {
                 return self.fail(format!("reading its output: {source}"), false);
             }
             Err(FrameError::Y4mHeader { reason, .. }) if reason.contains("empty") => {
@@ -2309,6 +2410,65 @@ mod tests {
     }
 
     #[test]
+    fn camera_specs() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::create_dir(d.path().join("frames")).unwrap();
+        let base = Base::config_folder(d.path());
+        let spec = |s: &str| FramesConfig::from_spec(s, &base, (640, 480));
+        let c = spec("frames").unwrap();
+        assert_eq!(
+            (c.source, c.path.as_path()),
+            (SourceKind::Directory, Path::new("frames"))
+        );
+        let c = spec("flight.Y4M").unwrap();
+        assert_eq!(c.source, SourceKind::Y4m);
+        let c = spec("y4m:clip").unwrap();
+        assert_eq!(
+            (c.source, c.path.as_path()),
+            (SourceKind::Y4m, Path::new("clip"))
+        );
+        let c = spec("dir:elsewhere").unwrap();
+        assert_eq!(c.source, SourceKind::Directory);
+        let c = spec("v4l2:/dev/video2").unwrap();
+        assert_eq!(c.source, SourceKind::V4l2);
+        assert_eq!((c.width_px, c.height_px), (Some(640), Some(480)));
+        assert_eq!(c.describe_source(), "v4l2 /dev/video2 640x480 YUYV");
+        let c = spec("gst:v4l2src device=/dev/video0").unwrap();
+        assert_eq!(c.pipeline.as_deref(), Some("v4l2src device=/dev/video0"));
+        let c = spec("cmd:ffmpeg -i /dev/video0  -f yuv4mpegpipe -").unwrap();
+        assert_eq!(
+            c.command,
+            ["ffmpeg", "-i", "/dev/video0", "-f", "yuv4mpegpipe", "-"]
+        );
+        for bad in ["", "nothing-here", "/dev/video0", "v4l2:", "cmd:  "] {
+            let e = spec(bad).unwrap_err();
+            assert!(e.contains("v4l2:DEVICE"), "{bad}: {e}");
+        }
+        let e = spec("nothing-here").unwrap_err();
+        assert!(
+            e.contains(&d.path().join("nothing-here").display().to_string())
+                && e.contains("relative to the config file's folder"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_missing_path_names_the_value_and_the_rule() {
+        let d = tempfile::tempdir().unwrap();
+        let base = Base::config_folder(d.path());
+        for kind in [SourceKind::Directory, SourceKind::Y4m] {
+            let mut p = Problems::default();
+            FramesConfig::new(kind, "rec/x").validate_in(&base, &mut p);
+            let s = p.list[0].to_string();
+            let want = format!(
+                "path: \"rec/x\": {} does not exist (paths in the config",
+                d.path().join("rec/x").display()
+            );
+            assert!(s.starts_with(&want), "{s}");
+        }
+    }
+
+    #[test]
     fn config_validation_names_keys() {
         let d = tempfile::tempdir().unwrap();
         let mut c = FramesConfig::new(SourceKind::Y4m, "nofile.y4m");
@@ -2317,7 +2477,7 @@ mod tests {
         c.workers = 0;
         c.rate_hz = Some(-1.0);
         let mut p = Problems::default();
-        c.validate_in(d.path(), &mut p);
+        c.validate_in(&Base::config_folder(d.path()), &mut p);
         let s: Vec<String> = p.list.iter().map(|i| i.to_string()).collect();
         for k in ["stamp", "max_age_s", "workers", "rate_hz", "path"] {
             assert!(s.iter().any(|m| m.starts_with(k)), "{k} missing in {s:?}");

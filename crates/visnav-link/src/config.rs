@@ -3,11 +3,11 @@
 //! `visnav_core::validate` (dotted keys, every problem at once).
 
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use serde::Deserialize;
 
-use visnav_core::validate::{Problems, Validate};
+use visnav_core::validate::{Base, Problems, Validate};
 
 /// `[link]`: the MAVLink connection.
 #[derive(Debug, Clone, Deserialize)]
@@ -297,32 +297,39 @@ impl LinkConfig {
     }
 
     /// Validate, resolving relative file names against `base` (the config file's folder).
-    pub fn validate_in(&self, base: &Path, p: &mut Problems) {
+    pub fn validate_in(&self, base: &Base, p: &mut Problems) {
         self.validate(p);
         if let Some(s) = &self.signing {
-            let f = visnav_core::validate::resolve(base, &s.key_file);
-            if let Err(e) = crate::signing::load_key(&f) {
-                p.push("signing.key_file", e.to_string());
+            let why = base.file_problem(&s.key_file).or_else(|| {
+                crate::signing::load_key(&base.resolve(&s.key_file))
+                    .err()
+                    .map(|e| e.to_string())
+            });
+            if let Some(why) = why {
+                p.push("signing.key_file", why);
             }
         }
         if let Some(t) = &self.tlog {
-            let f = visnav_core::validate::resolve(base, t);
+            let f = base.resolve(t);
             let dir = f.parent().filter(|d| !d.as_os_str().is_empty());
             if let Some(d) = dir
                 && !d.is_dir()
             {
-                p.push("tlog", format!("the folder {} does not exist", d.display()));
+                p.push(
+                    "tlog",
+                    base.problem(t, "is in a folder that does not exist"),
+                );
             }
         }
     }
 
     /// Make the file names absolute against `base` (the config file's folder).
-    pub fn resolve_paths(&mut self, base: &Path) {
+    pub fn resolve_paths(&mut self, base: &Base) {
         if let Some(s) = &mut self.signing {
-            s.key_file = visnav_core::validate::resolve(base, &s.key_file);
+            s.key_file = base.resolve(&s.key_file);
         }
         if let Some(t) = &mut self.tlog {
-            *t = visnav_core::validate::resolve(base, t);
+            *t = base.resolve(t);
         }
     }
 }
@@ -552,7 +559,7 @@ mod tests {
                     [signing]\nkey_file = \"key.hex\"\nreject_unsigned = true\n";
         let mut c: LinkConfig = toml::from_str(text).unwrap();
         let mut p = Problems::default();
-        c.validate_in(d.path(), &mut p);
+        c.validate_in(&Base::config_folder(d.path()), &mut p);
         let s: Vec<String> = p.list.iter().map(|i| i.to_string()).collect();
         assert!(
             s.iter()
@@ -568,9 +575,9 @@ mod tests {
         std::fs::write(d.path().join("key.hex"), "ab".repeat(32)).unwrap();
         std::fs::create_dir(d.path().join("nofolder")).unwrap();
         let mut p = Problems::default();
-        c.validate_in(d.path(), &mut p);
+        c.validate_in(&Base::config_folder(d.path()), &mut p);
         assert!(p.list.is_empty(), "{:?}", p.list);
-        c.resolve_paths(d.path());
+        c.resolve_paths(&Base::config_folder(d.path()));
         assert!(c.tlog.unwrap().is_absolute());
         assert!(c.signing.unwrap().key_file.is_absolute());
         // Unknown keys in the new sections are rejected.

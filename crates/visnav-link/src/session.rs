@@ -59,23 +59,26 @@ type Conn = Transport;
 #[derive(Debug, thiserror::Error)]
 pub enum LinkError {
     #[error("link.signing.key_file: {0}")]
-    Key(#[from] crate::signing::KeyError),
-    #[error("link.tlog: {path}: {source}")]
+    Key(crate::signing::KeyError),
+    #[error("link.tlog: {path}: {cause}")]
     Tlog {
         path: std::path::PathBuf,
-        #[source]
-        source: std::io::Error,
+        cause: std::io::Error,
     },
-    #[error("link.metrics_listen: {addr}: {source}")]
-    Metrics {
-        addr: String,
-        #[source]
-        source: std::io::Error,
-    },
+    #[error("link.metrics_listen: {addr}: {cause}")]
+    Metrics { addr: String, cause: std::io::Error },
     #[error("not connected")]
     NotConnected,
     #[error("send failed: {0}")]
     Send(String),
+}
+
+// Not `#[from]`: that would also make the error its `source()`, and the message already has its
+// text (an error chain printed with `{:#}` would say it twice).
+impl From<crate::signing::KeyError> for LinkError {
+    fn from(e: crate::signing::KeyError) -> Self {
+        Self::Key(e)
+    }
 }
 
 /// The autopilot the link is locked onto.
@@ -217,7 +220,7 @@ impl Link {
                 let path = expand_name(p, unix_now_us() / 1_000_000);
                 let t = Tlog::create(&path).map_err(|source| LinkError::Tlog {
                     path: path.clone(),
-                    source,
+                    cause: source,
                 })?;
                 info!(path = %path.display(), "recording telemetry log");
                 Some(t)
@@ -231,14 +234,14 @@ impl Link {
         if let Some(addr) = &cfg.metrics_listen {
             let sa = addr.parse().map_err(|_| LinkError::Metrics {
                 addr: addr.clone(),
-                source: std::io::Error::new(std::io::ErrorKind::InvalidInput, "not IP:PORT"),
+                cause: std::io::Error::new(std::io::ErrorKind::InvalidInput, "not IP:PORT"),
             })?;
             let (bound, task) =
                 crate::metrics::serve(sa, metrics.clone())
                     .await
                     .map_err(|source| LinkError::Metrics {
                         addr: addr.clone(),
-                        source,
+                        cause: source,
                     })?;
             info!(%bound, "Prometheus metrics at http://{bound}/metrics");
             metrics_addr = Some(bound);

@@ -9,11 +9,10 @@ use std::path::{Path, PathBuf};
 /// Why a key file cannot be used.
 #[derive(Debug, thiserror::Error)]
 pub enum KeyError {
-    #[error("{path}: cannot read: {source}")]
+    #[error("{path}: cannot read: {cause}")]
     Read {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     #[error("{path}: expected 32 raw bytes or 64 hexadecimal characters, found {len} bytes")]
     Format { path: PathBuf, len: usize },
@@ -43,7 +42,7 @@ pub fn parse_key(bytes: &[u8]) -> Option<[u8; 32]> {
 pub fn load_key(path: &Path) -> Result<[u8; 32], KeyError> {
     let bytes = std::fs::read(path).map_err(|source| KeyError::Read {
         path: path.to_path_buf(),
-        source,
+        cause: source,
     })?;
     let key = parse_key(&bytes).ok_or_else(|| KeyError::Format {
         path: path.to_path_buf(),

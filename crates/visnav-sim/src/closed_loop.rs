@@ -158,11 +158,10 @@ pub enum ClosedLoopError {
     Setup(String),
     #[error(transparent)]
     Daemon(#[from] visnav_daemon::DaemonError),
-    #[error("{path}: {source}")]
+    #[error("{path}: {cause}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        cause: std::io::Error,
     },
 }
 

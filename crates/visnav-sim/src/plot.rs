@@ -54,11 +54,10 @@ pub enum PlotError {
     #[error("cannot draw {file}: {message}")]
     Draw { file: &'static str, message: String },
     /// The PNG could not be encoded or written.
-    #[error("cannot write PNG {path}: {source}")]
+    #[error("cannot write PNG {path}: {cause}")]
     Save {
         path: PathBuf,
-        #[source]
-        source: image::ImageError,
+        cause: image::ImageError,
     },
 }
 
@@ -175,7 +174,7 @@ pub fn save_png(img: &RgbImage, path: &Path) -> Result<(), PlotError> {
     img.save_with_format(path, image::ImageFormat::Png)
         .map_err(|source| PlotError::Save {
             path: path.to_path_buf(),
-            source,
+            cause: source,
         })
 }
 

@@ -299,10 +299,10 @@ impl TruthLinkConfig {
 /// Why the truth connection could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum TruthLinkError {
-    #[error("truth connection {connection}: {source}")]
+    #[error("truth connection {connection}: {cause}")]
     Connect {
         connection: String,
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     #[error("truth connection: rate_hz {0} must be within 1..=400")]
     Rate(f64),
@@ -364,7 +364,7 @@ impl TruthLink {
             .await
             .map_err(|source| TruthLinkError::Connect {
                 connection: cfg.connection.clone(),
-                source,
+                cause: source,
             })?;
         conn.set_allow_recv_any_version(true);
         info!(connection = %cfg.connection, kind = ?cfg.kind, "truth connection open");

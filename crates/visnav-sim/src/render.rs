@@ -78,10 +78,18 @@ pub enum RenderError {
     ColourMismatch { scene: ColourMode, spec: ColourMode },
     /// The camera model could not be built.
     #[error("camera: {0}")]
-    Camera(#[from] CameraError),
+    Camera(CameraError),
     /// Non-finite pose.
     #[error("camera pose is not finite: centre {centre_map_m:?}")]
     BadPose { centre_map_m: [f64; 3] },
+}
+
+// Not `#[from]`: that would also make the error its `source()`, and the message already has its
+// text (an error chain printed with `{:#}` would say it twice).
+impl From<CameraError> for RenderError {
+    fn from(e: CameraError) -> Self {
+        Self::Camera(e)
+    }
 }
 
 /// What the camera looks at: an orthophoto pyramid and the terrain, in one projected CRS.

@@ -26,7 +26,7 @@ use super::plot::{self, ErrorsData, Residual, ResidualsData, TrackData};
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ClosedLoopError + '_ {
     move |source| ClosedLoopError::Io {
         path: path.to_path_buf(),
-        source,
+        cause: source,
     }
 }
 

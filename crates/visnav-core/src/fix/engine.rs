@@ -208,7 +208,15 @@ pub enum FixError {
     #[error("the reference map has no levels")]
     EmptyMap,
     #[error("SURF settings of the map: {0}")]
-    Surf(#[from] crate::vision::VisionError),
+    Surf(crate::vision::VisionError),
+}
+
+// Not `#[from]`: that would also make the error its `source()`, and the message already has its
+// text (an error chain printed with `{:#}` would say it twice).
+impl From<crate::vision::VisionError> for FixError {
+    fn from(e: crate::vision::VisionError) -> Self {
+        Self::Surf(e)
+    }
 }
 
 /// The vision fix engine: a reference map, a camera and settings. `fix` takes `&self` and may be

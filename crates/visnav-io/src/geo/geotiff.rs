@@ -17,7 +17,7 @@ use super::window::GeoTiffWindowReader;
 pub fn load_geotiff(path: &Path, crs_override: Option<Crs>) -> Result<Raster, GeoTiffError> {
     let file = File::open(path).map_err(|source| GeoTiffError::Io {
         path: path.to_path_buf(),
-        source,
+        cause: source,
     })?;
     read_geotiff(BufReader::new(file), path, crs_override)
 }

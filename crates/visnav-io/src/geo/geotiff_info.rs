@@ -60,10 +60,10 @@ pub const MAX_DECODED_BYTES: usize = 2 << 30;
 #[derive(Debug, thiserror::Error)]
 pub enum GeoTiffError {
     /// The file cannot be opened or read.
-    #[error("{}: cannot read file: {source}", .path.display())]
+    #[error("{}: cannot read file: {cause}", .path.display())]
     Io {
         path: PathBuf,
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// The TIFF structure or image data cannot be decoded (not a TIFF, truncated, unsupported
     /// compression, ...).

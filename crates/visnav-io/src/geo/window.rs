@@ -60,7 +60,7 @@ pub fn open_geotiff_window(
 ) -> Result<GeoTiffWindowReader<BufReader<File>>, GeoTiffError> {
     let file = File::open(path).map_err(|source| GeoTiffError::Io {
         path: path.to_path_buf(),
-        source,
+        cause: source,
     })?;
     GeoTiffWindowReader::new(BufReader::new(file), path, crs_override)
 }
@@ -505,7 +505,7 @@ impl GeoTiffWindowReader<BufReader<File>> {
             let path = self.path.clone();
             let file = File::open(&path).map_err(|source| GeoTiffError::Io {
                 path: path.clone(),
-                source,
+                cause: source,
             })?;
             let dec = guarded(&path, || new_decoder(BufReader::new(file), &path))?;
             self.helpers.push(dec);

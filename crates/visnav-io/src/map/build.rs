@@ -431,7 +431,7 @@ pub fn build_map(
             let d = crate::geo::dem::load_dem(p, spec.crs_override).map_err(|source| {
                 MapError::Dem {
                     path: p.clone(),
-                    source: Box::new(source),
+                    cause: Box::new(source),
                 }
             })?;
             if let Some(dc) = d.crs()

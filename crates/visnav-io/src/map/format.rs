@@ -178,7 +178,7 @@ impl SpillWriter {
         let f = File::create(spill_path).map_err(|source| MapError::Io {
             path: spill_path.to_path_buf(),
             what: "cannot create the temporary feature file",
-            source,
+            cause: source,
         })?;
         let counts = grids.iter().map(|g| vec![0u64; g.n_cells()]).collect();
         Ok(Self {
@@ -199,7 +199,7 @@ impl SpillWriter {
         let f = File::create(&path).map_err(|source| MapError::Io {
             path: path.clone(),
             what: "cannot create the temporary image file",
-            source,
+            cause: source,
         })?;
         self.images = Some(ImageSpill {
             path,
@@ -248,7 +248,7 @@ impl SpillWriter {
         img.file.write_all(&buf).map_err(|source| MapError::Io {
             path: img.path.clone(),
             what: "cannot write the temporary image file",
-            source,
+            cause: source,
         })
     }
 
@@ -273,7 +273,7 @@ impl SpillWriter {
         let io = |source| MapError::Io {
             path: self.spill_path.clone(),
             what: "cannot write the temporary feature file",
-            source,
+            cause: source,
         };
         self.spill
             .write_all(&(level as u32).to_le_bytes())
@@ -298,7 +298,7 @@ impl SpillWriter {
         let spill_io = |what, source| MapError::Io {
             path: self.spill_path.clone(),
             what,
-            source,
+            cause: source,
         };
         self.spill
             .flush()
@@ -353,7 +353,7 @@ impl SpillWriter {
         let out_io = |what, source| MapError::Io {
             path: partial.clone(),
             what,
-            source,
+            cause: source,
         };
         let file = File::options()
             .read(true)
@@ -446,7 +446,7 @@ impl SpillWriter {
         std::fs::rename(&partial, out).map_err(|source| MapError::Io {
             path: out.to_path_buf(),
             what: "cannot move the finished map into place",
-            source,
+            cause: source,
         })?;
         Ok((header, file_len))
     }
@@ -473,7 +473,7 @@ fn place_image_blocks(
     let io = |what, source| MapError::Io {
         path: img.path.clone(),
         what,
-        source,
+        cause: source,
     };
     img.file
         .flush()
@@ -519,7 +519,7 @@ fn place_image_blocks(
                     .map_err(|source| MapError::Io {
                         path: partial.to_path_buf(),
                         what: "cannot write the map file",
-                        source,
+                        cause: source,
                     })?;
             }
         }
@@ -553,7 +553,7 @@ impl Run {
                 .map_err(|source| MapError::Io {
                     path: path.to_path_buf(),
                     what: "cannot write the map file",
-                    source,
+                    cause: source,
                 })?;
             self.buf.clear();
         }
@@ -580,7 +580,7 @@ impl ReferenceMap {
         let file = File::open(path).map_err(|source| MapError::Io {
             path: path.to_path_buf(),
             what: "cannot open the map file",
-            source,
+            cause: source,
         })?;
         // SAFETY: the map is read-only for us; the file must not be truncated or rewritten by
         // another process while it is mapped (maps are written to a temporary name and renamed
@@ -588,7 +588,7 @@ impl ReferenceMap {
         let mmap = unsafe { Mmap::map(&file) }.map_err(|source| MapError::Io {
             path: path.to_path_buf(),
             what: "cannot memory-map the map file",
-            source,
+            cause: source,
         })?;
         let (header, data_offset) = validate(&mmap, path)?;
         Ok(Self {

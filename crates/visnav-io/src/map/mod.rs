@@ -54,20 +54,20 @@ pub use reference::{MapReference, MapReferenceError};
 #[derive(Debug, thiserror::Error)]
 pub enum MapError {
     /// Reading or writing a file failed.
-    #[error("{}: {what}: {source}", .path.display())]
+    #[error("{}: {what}: {cause}", .path.display())]
     Io {
         path: PathBuf,
         what: &'static str,
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// An orthophoto or DEM GeoTIFF could not be loaded.
     #[error(transparent)]
     GeoTiff(Box<crate::geo::geotiff::GeoTiffError>),
     /// The DEM is unusable.
-    #[error("{}: DEM: {source}", .path.display())]
+    #[error("DEM: {cause}")]
     Dem {
         path: PathBuf,
-        source: Box<crate::geo::dem::DemFileError>,
+        cause: Box<crate::geo::dem::DemFileError>,
     },
     /// An input raster cannot be used for a map (rotated, non-square pixels, CRS mismatch, ...).
     #[error("{}: {reason}", .path.display())]

@@ -777,6 +777,20 @@ impl FixEngine {
             lo = [lo[0].min(p[0]), lo[1].min(p[1])];
             hi = [hi[0].max(p[0]), hi[1].max(p[1])];
         }
+        let bounds = self.reference.bounds_m();
+        if footprint_outside_map(lo, hi, gate_m, bounds) {
+            return Err(rejected!(
+                "the frame's footprint (x {:.0}..{:.0}, y {:.0}..{:.0} m, where the prior puts it) lies outside the map (x {:.0}..{:.0}, y {:.0}..{:.0} m)",
+                lo[0],
+                hi[0],
+                lo[1],
+                hi[1],
+                bounds[0],
+                bounds[2],
+                bounds[1],
+                bounds[3]
+            ));
+        }
         let sel = self.reference.select(
             level,
             [
@@ -2471,8 +2485,66 @@ pub fn ransac_similarity(
     model.map(|m| (m, best.len()))
 }
 
+/// Whether a footprint `[lo, hi]` (map metres), grown by the search gate, misses the map's
+/// `bounds` `[min_x, min_y, max_x, max_y]` entirely: nothing there can match.
+fn footprint_outside_map(lo: [f64; 2], hi: [f64; 2], gate_m: f64, bounds: [f64; 4]) -> bool {
+    hi[0] + gate_m < bounds[0]
+        || lo[0] - gate_m > bounds[2]
+        || hi[1] + gate_m < bounds[1]
+        || lo[1] - gate_m > bounds[3]
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
+    #[test]
+    fn a_footprint_beyond_the_map_is_outside_it() {
+        let b = [1000.0, 2000.0, 3000.0, 4000.0];
+        // Inside, overlapping an edge, and within the gate of it: not outside.
+        assert!(!footprint_outside_map(
+            [1500.0, 2500.0],
+            [1800.0, 2800.0],
+            50.0,
+            b
+        ));
+        assert!(!footprint_outside_map(
+            [2900.0, 3900.0],
+            [3200.0, 4200.0],
+            50.0,
+            b
+        ));
+        assert!(!footprint_outside_map(
+            [3020.0, 2500.0],
+            [3300.0, 2800.0],
+            50.0,
+            b
+        ));
+        // Beyond each side.
+        assert!(footprint_outside_map(
+            [3100.0, 2500.0],
+            [3300.0, 2800.0],
+            50.0,
+            b
+        ));
+        assert!(footprint_outside_map(
+            [500.0, 2500.0],
+            [900.0, 2800.0],
+            50.0,
+            b
+        ));
+        assert!(footprint_outside_map(
+            [1500.0, 4100.0],
+            [1800.0, 4300.0],
+            50.0,
+            b
+        ));
+        assert!(footprint_outside_map(
+            [1500.0, 1000.0],
+            [1800.0, 1900.0],
+            50.0,
+            b
+        ));
+    }
+
     use super::*;
 
     #[test]

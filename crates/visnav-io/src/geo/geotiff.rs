@@ -406,6 +406,12 @@ mod tests {
         // Errors name the tag.
         let e = geotransform_from_tags(None, None, None, RasterType::PixelIsArea).unwrap_err();
         assert!(e.tag.contains("33550"));
+        // A plain TIFF: the error says what to do.
+        assert!(
+            e.reason.contains("not georeferenced") && e.reason.contains("gdal_translate"),
+            "{}",
+            e.reason
+        );
         let e = geotransform_from_tags(Some(&[0.0, 1.0]), Some(&tp), None, RasterType::PixelIsArea)
             .unwrap_err();
         assert!(e.tag.contains("ModelPixelScaleTag"));
@@ -570,6 +576,10 @@ mod tests {
         let msg = e.to_string();
         assert!(
             msg.contains("nokeys.tif") && msg.contains("GeoKeyDirectoryTag (34735)"),
+            "{msg}"
+        );
+        assert!(
+            msg.contains("not georeferenced") && msg.contains("-a_srs"),
             "{msg}"
         );
         assert_eq!(load_geotiff(&p, Some(utm10)).unwrap().crs(), utm10);

@@ -131,6 +131,13 @@ impl TagError {
 
 const TAG_PIXEL_SCALE: &str = "ModelPixelScaleTag (33550)";
 const TAG_TIEPOINT: &str = "ModelTiepointTag (33922)";
+
+/// What to do with a raster that has no place or no CRS (a plain TIFF, a scanned or exported
+/// image): the tools are GDAL's, which every GIS installs (docs/first-flight.md, section 5).
+pub const NOT_GEOREFERENCED_HINT: &str = "the file is not georeferenced: give it its place and CRS first, e.g. \
+`gdal_translate -a_srs EPSG:32614 -a_ullr ULX ULY LRX LRY in.tif out.tif` with the corner \
+coordinates its provider states, or `gdalwarp -t_srs EPSG:32614 in.tif out.tif` for a file with \
+ground control points (docs/first-flight.md, \"A map of your area\")";
 const TAG_TRANSFORMATION: &str = "ModelTransformationTag (34264)";
 const TAG_KEY_DIRECTORY: &str = "GeoKeyDirectoryTag (34735)";
 const TAG_DOUBLE_PARAMS: &str = "GeoDoubleParamsTag (34736)";
@@ -720,7 +727,9 @@ pub fn geotransform_from_tags(
         (None, _, None) => {
             return Err(TagError::new(
                 TAG_PIXEL_SCALE,
-                "missing: no georeferencing (neither ModelPixelScaleTag + ModelTiepointTag nor ModelTransformationTag)",
+                format!(
+                    "missing: no georeferencing (neither ModelPixelScaleTag + ModelTiepointTag nor ModelTransformationTag); {NOT_GEOREFERENCED_HINT}"
+                ),
             ));
         }
         (Some(_), None, None) => {
@@ -919,7 +928,7 @@ pub(crate) fn read_info<R: Read + Seek>(
         }),
         None => Err(KeyError {
             key: TAG_KEY_DIRECTORY.to_string(),
-            reason: "missing: the file has no GeoKeys".into(),
+            reason: format!("missing: the file has no GeoKeys (no CRS); {NOT_GEOREFERENCED_HINT}"),
         }),
     };
     let raster_type = match &keys {

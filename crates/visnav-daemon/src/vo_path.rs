@@ -16,7 +16,6 @@
 //! which the navigation task fuses as a pose measurement (`metrics.dtm`).
 
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use tokio::sync::mpsc;
@@ -175,10 +174,10 @@ fn vo_step(
     m.time(start.elapsed().as_micros() as u64);
     match &step {
         VoStep::Started => {
-            m.started.fetch_add(1, Ordering::Relaxed);
+            m.started.inc();
         }
         VoStep::Motion(_) => {
-            m.motions.fetch_add(1, Ordering::Relaxed);
+            m.motions.inc();
         }
         VoStep::Refused(why) => m.refuse(why),
     }
@@ -209,10 +208,10 @@ fn dtm_step(
     m.time(start.elapsed().as_micros() as u64);
     match &step {
         DtmStep::Waiting => {
-            m.started.fetch_add(1, Ordering::Relaxed);
+            m.started.inc();
         }
         DtmStep::Fix(_) => {
-            m.motions.fetch_add(1, Ordering::Relaxed);
+            m.motions.inc();
         }
         DtmStep::Refused(why) => m.refuse(why),
     }

@@ -99,13 +99,13 @@ visnav_link::metric_set! {
         dtm: Sequence "visnav_dtm" "DTM navigation" ["pose" = "poses"],
         /// The fix engine's computing time per frame, ms.
         fix_latency_ms: Histogram "visnav_fix_latency_seconds"
-            "the fix engine's computing time per frame" * 1e-3,
+            "the fix engine's computing time per frame" / 1e3,
         /// The last frame's, ms.
         fix_latency_ms_last: Gauge "visnav_fix_latency_last_seconds"
-            "the fix engine's computing time of the last frame" * 1e-3,
+            "the fix engine's computing time of the last frame" / 1e3,
         /// The largest, ms.
         fix_latency_ms_max: Gauge "visnav_fix_latency_max_seconds"
-            "the fix engine's largest computing time of a frame" * 1e-3,
+            "the fix engine's largest computing time of a frame" / 1e3,
     }
 }
 
@@ -190,7 +190,7 @@ impl EncodeMetric for Health {
 impl Declare for Health {
     type Value = HealthState;
 
-    fn new(_scale: f64) -> Self {
+    fn new(_divisor: f64) -> Self {
         Self::default()
     }
 
@@ -218,7 +218,7 @@ impl ImuBias {
 impl Declare for ImuBias {
     type Value = Option<ImuBiasSnapshot>;
 
-    fn new(_scale: f64) -> Self {
+    fn new(_divisor: f64) -> Self {
         Self::default()
     }
 
@@ -376,7 +376,7 @@ impl Sequence {
 impl Declare for Sequence {
     type Value = VoSnapshot;
 
-    fn new(_scale: f64) -> Self {
+    fn new(_divisor: f64) -> Self {
         let c = Counter::default;
         Self {
             started: c(),
@@ -386,8 +386,8 @@ impl Declare for Sequence {
             filter_rejected: c(),
             unused: c(),
             refusals: Reasons::default(),
-            time_us: Histogram::new(1e-6),
-            time_us_max: Gauge::new(1e-6),
+            time_us: Histogram::new(1e6),
+            time_us_max: Gauge::new(1e6),
         }
     }
 
@@ -438,8 +438,8 @@ impl Declare for Sequence {
             filter_rejected: self.filter_rejected.get(),
             unused: self.unused.get(),
             refused: self.refusals.value(),
-            ms_mean: t.mean * 1e-3,
-            ms_max: self.time_us_max.get() as f64 * 1e-3,
+            ms_mean: t.mean / 1e3,
+            ms_max: self.time_us_max.get() as f64 / 1e3,
         }
     }
 }

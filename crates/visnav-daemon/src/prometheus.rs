@@ -292,6 +292,7 @@ mod tests {
         d.engine_reject("quote \" back\\slash\nnewline");
         d.vo.time(20_000);
         d.vo.refuse("only 3 tracks");
+        d.dtm.refuse("no relief");
         d.health.set(&LinkHealth::Degraded {
             reason: "coasting".into(),
         });

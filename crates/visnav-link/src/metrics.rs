@@ -9,7 +9,8 @@
 //! snapshot, serialisable). Adding a metric is one line there and its use sites.
 //!
 //! Kinds ([`Declare`]): [`Counter`] (names without `_total`: the encoder appends it),
-//! [`Gauge`] (an integer in the program's unit, exposed times a scale: µs as seconds),
+//! [`Gauge`] (an integer in the program's unit, exposed divided by a divisor: µs / 1e6 as
+//! seconds),
 //! [`Histogram`] (durations in the program's unit, Prometheus' default buckets in seconds),
 //! [`Reasons`] (a counter family by `reason`, at most [`MAX_REASONS`] wordings).
 //! Counters of one name with different labels form one family.
@@ -53,12 +54,12 @@ pub fn render(registry: &Registry) -> String {
     out
 }
 
-/// One kind of metric: created with its scale, registered under a name, read as a value.
+/// One kind of metric: created with its unit divisor, registered under a name, read as a value.
 pub trait Declare {
     /// The value in a snapshot.
     type Value;
-    /// A new metric; `scale` turns the program's unit into the exposed one (1 for counts).
-    fn new(scale: f64) -> Self;
+    /// A new metric; the program's unit divided by `divisor` is the exposed one (1 for counts).
+    fn new(divisor: f64) -> Self;
     /// Register in `r` as `name` (`label`: a counter family's `(label, value)`).
     fn declare(&self, r: &mut Registrar, name: &'static str, help: &'static str, label: Label);
     /// The current value.
@@ -164,7 +165,7 @@ pub fn encode_count(
 impl Declare for Counter {
     type Value = u64;
 
-    fn new(_scale: f64) -> Self {
+    fn new(_divisor: f64) -> Self {
         Counter::default()
     }
 
@@ -180,11 +181,12 @@ impl Declare for Counter {
     }
 }
 
-/// A gauge: an integer in the program's unit, exposed times its scale (µs -> seconds: 1e-6).
+/// A gauge: an integer in the program's unit, exposed divided by its divisor (µs -> seconds:
+/// 1e6).
 #[derive(Debug, Clone)]
 pub struct Gauge {
     value: Arc<AtomicU64>,
-    scale: f64,
+    divisor: f64,
 }
 
 impl Gauge {
@@ -206,10 +208,10 @@ impl Gauge {
 
 impl EncodeMetric for Gauge {
     fn encode(&self, mut encoder: MetricEncoder) -> Result<(), std::fmt::Error> {
-        if self.scale == 1.0 {
+        if self.divisor == 1.0 {
             encoder.encode_gauge(&self.get())
         } else {
-            encoder.encode_gauge(&(self.get() as f64 * self.scale))
+            encoder.encode_gauge(&(self.get() as f64 / self.divisor))
         }
     }
 
@@ -221,10 +223,10 @@ impl EncodeMetric for Gauge {
 impl Declare for Gauge {
     type Value = u64;
 
-    fn new(scale: f64) -> Self {
+    fn new(divisor: f64) -> Self {
         Self {
             value: Arc::default(),
-            scale,
+            divisor,
         }
     }
 
@@ -241,7 +243,7 @@ impl Declare for Gauge {
 #[derive(Debug, Clone)]
 pub struct Histogram {
     inner: Arc<HistogramCells>,
-    scale: f64,
+    divisor: f64,
 }
 
 #[derive(Debug, Default)]
@@ -266,7 +268,7 @@ pub struct HistogramValues {
 impl Histogram {
     /// Record one observation.
     pub fn observe(&self, v: u64) {
-        let s = v as f64 * self.scale;
+        let s = v as f64 / self.divisor;
         let i = BUCKETS_S
             .iter()
             .position(|b| s <= *b)
@@ -289,7 +291,7 @@ impl EncodeMetric for Histogram {
             .copied()
             .zip(counts)
             .collect();
-        let sum = self.inner.sum.load(Ordering::Relaxed) as f64 * self.scale;
+        let sum = self.inner.sum.load(Ordering::Relaxed) as f64 / self.divisor;
         encoder.encode_histogram::<NoLabelSet>(sum, counts.iter().sum(), &buckets, None)
     }
 
@@ -301,10 +303,10 @@ impl EncodeMetric for Histogram {
 impl Declare for Histogram {
     type Value = HistogramValues;
 
-    fn new(scale: f64) -> Self {
+    fn new(divisor: f64) -> Self {
         Self {
             inner: Arc::default(),
-            scale,
+            divisor,
         }
     }
 
@@ -369,7 +371,7 @@ impl EncodeMetric for Reasons {
 impl Declare for Reasons {
     type Value = BTreeMap<String, u64>;
 
-    fn new(_scale: f64) -> Self {
+    fn new(_divisor: f64) -> Self {
         Self::default()
     }
 
@@ -407,8 +409,8 @@ pub fn reason_wording(reason: &str) -> String {
 /// `register(&self, &mut Registry)`, `snapshot(&self) -> Snapshot` and `Default`.
 ///
 /// Each entry: `field: Kind "name" "help"`, then optionally `["label" = "value"]` (a member of
-/// the counter family `name`) and `* scale` (the program's unit to the exposed one). `Kind`
-/// implements [`Declare`].
+/// the counter family `name`) and `/ divisor` (the program's unit divided by it is the exposed
+/// one: `/ 1e3` for ms as seconds). `Kind` implements [`Declare`].
 #[macro_export]
 macro_rules! metric_set {
     (
@@ -417,7 +419,7 @@ macro_rules! metric_set {
             $(
                 $(#[$fmeta:meta])*
                 $field:ident: $kind:ident $name:literal $help:literal
-                    $([$label:literal = $value:literal])? $(* $scale:literal)?
+                    $([$label:literal = $value:literal])? $(/ $divisor:literal)?
             ),* $(,)?
         }
     ) => {
@@ -441,7 +443,7 @@ macro_rules! metric_set {
                 Self {
                     $(
                         $field: <$kind as $crate::metrics::Declare>::new(
-                            $crate::metric_set!(@scale $($scale)?),
+                            $crate::metric_set!(@divisor $($divisor)?),
                         ),
                     )*
                 }
@@ -474,8 +476,8 @@ macro_rules! metric_set {
             }
         }
     };
-    (@scale) => { 1.0 };
-    (@scale $s:literal) => { $s };
+    (@divisor) => { 1.0 };
+    (@divisor $d:literal) => { $d };
     (@label) => { None };
     (@label [$l:literal = $v:literal]) => { Some(($l, $v)) };
 }
@@ -519,7 +521,7 @@ crate::metric_set! {
             "lock-on moved to another autopilot after the locked one fell silent",
         /// Last TIMESYNC round trip, µs.
         timesync_rtt_us: Gauge "visnav_link_timesync_rtt_seconds" "last TIMESYNC round trip"
-            * 1e-6,
+            / 1e6,
         /// 1 while the autopilot's heartbeat is current.
         autopilot_alive: Gauge "visnav_link_autopilot_alive"
             "1 while the autopilot heartbeat is current",
@@ -618,7 +620,7 @@ mod tests {
                 /// b
                 b: Counter "x_events" "events by kind" ["kind" = "b"],
                 /// t, ms
-                t: Histogram "x_seconds" "time" * 1e-3,
+                t: Histogram "x_seconds" "time" / 1e3,
                 /// r
                 r: Reasons "x_refusals" "refusals by reason",
             }
@@ -663,7 +665,7 @@ mod tests {
         assert_eq!(s.r.len(), 1);
         let many = Reasons::default();
         for i in 0..MAX_REASONS + 5 {
-            many.count(&format!("{}", "x".repeat(i + 1)));
+            many.count(&"x".repeat(i + 1));
         }
         assert_eq!(many.value().len(), MAX_REASONS + 1);
         assert_eq!(many.value()["other"], 5);

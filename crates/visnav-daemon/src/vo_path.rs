@@ -7,7 +7,7 @@
 //! noise and residual bias over the interval and what sampling the rates at the filter's output
 //! rate leaves unknown). Each result goes to
 //! the navigation task, which fuses a motion as a [`visnav_core::nav::VoFix`] and counts the
-//! rest (`metrics::VoMetrics`). A frozen camera's repeated frames never get here (the reader
+//! rest (`metrics::Sequence`). A frozen camera's repeated frames never get here (the reader
 //! drops them); a blank or torn frame gives no motion (too few tracks, or no consensus).
 //!
 //! The DTM navigator (`[dtm_nav] enabled`, [`DtmNavigator`]) runs on the same thread with the

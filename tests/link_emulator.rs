@@ -289,8 +289,8 @@ async fn udp_link_against_ardupilot_like_emulator() {
             c => panic!("component {c}"),
         }
     }
-    let rx = m.rx_packets.load(std::sync::atomic::Ordering::Relaxed);
-    let tx = m.tx_packets.load(std::sync::atomic::Ordering::Relaxed);
+    let rx = m.rx_packets.get();
+    let tx = m.tx_packets.get();
     eprintln!(
         "tlog: {} records ({from_ap} received, {from_us} sent); counters rx {rx} tx {tx}",
         recs.len()
@@ -355,12 +355,7 @@ async fn tcp_reconnects_with_backoff() {
     })
     .await
     .expect("streams requested on the new connection");
-    assert!(
-        link.metrics()
-            .connects
-            .load(std::sync::atomic::Ordering::Relaxed)
-            >= 2
-    );
+    assert!(link.metrics().connects.get() >= 2);
     // A silent autopilot on an open TCP connection: reconnect after 3 heartbeat timeouts.
     emu2.set_muted(true);
     // 3 s of watchdog and < 1 s of backoff normally; 30 s leaves room for a loaded CI machine.
@@ -368,12 +363,7 @@ async fn tcp_reconnects_with_backoff() {
     // connection, and the watchdog then only counted silence from a heartbeat (fixed; see
     // `tcp_peer_that_never_speaks_is_reopened`).
     let waited = tokio::time::timeout(Duration::from_secs(30), async {
-        while link
-            .metrics()
-            .connects
-            .load(std::sync::atomic::Ordering::Relaxed)
-            < 3
-        {
+        while link.metrics().connects.get() < 3 {
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
     })
@@ -381,9 +371,7 @@ async fn tcp_reconnects_with_backoff() {
     if waited.is_err() {
         panic!(
             "no reconnect 30 s after the heartbeat watchdog: connects {}, status {:?}, emulator companion {:?}",
-            link.metrics()
-                .connects
-                .load(std::sync::atomic::Ordering::Relaxed),
+            link.metrics().connects.get(),
             *status.borrow(),
             emu2.companion()
         );
@@ -463,12 +451,7 @@ async fn signing_is_required_and_honoured() {
     let link = Link::start(cfg, OutputConfig::default()).await.unwrap();
     tokio::time::sleep(Duration::from_secs(2)).await;
     assert!(link.status().borrow().autopilot.is_none());
-    assert!(
-        link.metrics()
-            .rx_packets
-            .load(std::sync::atomic::Ordering::Relaxed)
-            == 0
-    );
+    assert!(link.metrics().rx_packets.get() == 0);
     link.shutdown().await;
 }
 
@@ -502,10 +485,7 @@ async fn tcp_peer_that_never_speaks_is_reopened() {
         }
     })
     .await;
-    let connects = link
-        .metrics()
-        .connects
-        .load(std::sync::atomic::Ordering::Relaxed);
+    let connects = link.metrics().connects.get();
     link.shutdown().await;
     server.abort();
     assert!(

@@ -2,7 +2,8 @@
 //! against the built-in autopilot emulator over loopback UDP, the endpoint listens on a free
 //! loopback port, and it is scraped over a real TCP socket. The exposition text is parsed line by
 //! line (every line a valid comment or sample, every sample in a declared family, counters named
-//! `_total`), the expected metric names must be present, the counters must grow between two
+//! `_total`), every metric declared in the registry must be served with its HELP and TYPE, the
+//! expected metric names must be present, the counters must grow between two
 //! scrapes, the health is one-hot; bad requests get their error status, and the endpoint is gone
 //! after shutdown.
 
@@ -11,8 +12,9 @@ use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::time::{Duration, Instant};
 
-use visnav::daemon::{Daemon, DaemonConfig, DaemonError, DaemonSetup};
+use visnav::daemon::{Daemon, DaemonConfig, DaemonError, DaemonMetrics, DaemonSetup};
 use visnav::link::config::{LinkConfig, OutputConfig, OutputMode};
+use visnav::link::metrics::Metrics as LinkMetrics;
 use visnav::nav::NavConfig;
 use visnav::sitl::autopilot::{AutopilotEmulator, EmulatorConfig};
 
@@ -119,6 +121,25 @@ fn parse_labels(s: &str) -> Result<(Labels, &str), String> {
 
 /// Parse exposition text 0.0.4; panics naming the line on anything invalid.
 fn parse_exposition(text: &str) -> (Samples, HashMap<String, String>) {
+    let helps: Vec<&str> = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("# HELP ")?.split(' ').next())
+        .collect();
+    // Every metric declared in the registry (the daemon's and the link's) is served with its
+    // HELP and TYPE: a counter as `name_total`, a set of families (VO, DTM) by its prefix. The
+    // IMU bias restorer's families exist only while it runs (off here).
+    let declared = DaemonMetrics::NAMES.iter().chain(LinkMetrics::NAMES);
+    for name in declared.filter(|n| **n != "visnav_imu_bias") {
+        let family = helps.iter().find(|h| {
+            h.strip_prefix(name)
+                .is_some_and(|rest| rest.is_empty() || rest.starts_with('_'))
+        });
+        let family = family.unwrap_or_else(|| panic!("{name}: no # HELP"));
+        assert!(
+            text.contains(&format!("\n# TYPE {family} ")),
+            "{family}: no # TYPE"
+        );
+    }
     let mut samples = Samples::new();
     let mut types: HashMap<String, String> = HashMap::new();
     let mut helps = std::collections::HashSet::new();
@@ -175,12 +196,20 @@ fn parse_exposition(text: &str) -> (Samples, HashMap<String, String>) {
                 name,
                 name.trim_end_matches("_sum"),
                 name.trim_end_matches("_count"),
+                name.trim_end_matches("_bucket"),
             ]
             .into_iter()
             .find(|f| types.contains_key(*f))
             .unwrap_or_else(|| panic!("{}: sample before its # TYPE", ctx()));
             if family != name {
-                assert_eq!(types[family], "summary", "{}", ctx());
+                assert!(
+                    ["summary", "histogram"].contains(&types[family].as_str()),
+                    "{}",
+                    ctx()
+                );
+            }
+            if name.ends_with("_bucket") {
+                assert!(labels.iter().any(|(k, _)| k == "le"), "{}: no le", ctx());
             }
             labels.sort();
             assert!(
@@ -266,7 +295,7 @@ async fn daemon_serves_prometheus_metrics_over_tcp() {
     }
     assert_eq!(types["visnav_imu_samples_total"], "counter");
     assert_eq!(types["visnav_nav_health"], "gauge");
-    assert_eq!(types["visnav_fix_latency_seconds"], "summary");
+    assert_eq!(types["visnav_fix_latency_seconds"], "histogram");
     let health: Vec<(&str, f64)> = ["none", "ok", "degraded", "lost"]
         .into_iter()
         .map(|s| (s, get(&a, "visnav_nav_health", &[("state", s)])))

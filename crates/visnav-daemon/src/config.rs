@@ -19,8 +19,8 @@
 //! # metrics_listen = "127.0.0.1:9187"  # Prometheus endpoint GET /metrics (absent: off)
 //! ```
 //!
-//! `metrics_listen` serves every counter of the daemon and the link plus the navigation health
-//! ([`crate::prometheus`], docs/operations.md). It is an `IP:PORT` socket address; port 0
+//! `metrics_listen` serves the one metrics registry: every metric of the daemon and the link plus
+//! the navigation health ([`crate::metrics::registry`], [`crate::prometheus`], docs/operations.md). It is an `IP:PORT` socket address; port 0
 //! picks a free port ([`crate::Daemon::metrics_addr`] tells which).
 //!
 //! Sigma floors: a receiver's h_acc / v_acc describe its position at the fix time, but the daemon

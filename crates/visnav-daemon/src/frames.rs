@@ -109,12 +109,12 @@ pub fn spawn_reader(
             while !stop.load(Ordering::Relaxed) {
                 match source.next_frame() {
                     Ok(Some(f)) => {
-                        metrics.frames_in.fetch_add(1, Ordering::Relaxed);
+                        metrics.frames_in.inc();
                         if freeze.repeats(&f.image, f.seq) {
-                            metrics.frames_frozen.fetch_add(1, Ordering::Relaxed);
+                            metrics.frames_frozen.inc();
                             continue;
                         }
-                        metrics.queue_depth_max.fetch_max(1, Ordering::Relaxed);
+                        metrics.queue_depth_max.max(1);
                         if let Some(v) = &vo_slot {
                             // Every frame to visual odometry too (its own thread; the newest
                             // wins there as well unless lossless).
@@ -131,7 +131,7 @@ pub fn spawn_reader(
                                 break;
                             }
                         } else if slot.put_latest(f).is_some() {
-                            metrics.frames_superseded.fetch_add(1, Ordering::Relaxed);
+                            metrics.frames_superseded.inc();
                         }
                     }
                     Ok(None) => {
@@ -143,11 +143,11 @@ pub fn spawn_reader(
                     }
                     Err(e @ FrameError::Image { .. }) => {
                         // One unreadable image in a directory: skip it.
-                        metrics.frame_errors.fetch_add(1, Ordering::Relaxed);
+                        metrics.frame_errors.inc();
                         warn!("frames: {e}; skipped");
                     }
                     Err(e) => {
-                        metrics.frame_errors.fetch_add(1, Ordering::Relaxed);
+                        metrics.frame_errors.inc();
                         error!("frames: {e}; the frame source is stopped");
                         break;
                     }
@@ -194,9 +194,7 @@ fn process(ctx: &WorkerCtx, f: Frame) -> bool {
     };
     let sent = ctx.results.blocking_send(result).is_ok();
     if !sent {
-        ctx.metrics
-            .fixes_dropped_at_shutdown
-            .fetch_add(1, Ordering::Relaxed);
+        ctx.metrics.fixes_dropped_at_shutdown.inc();
     }
     sent
 }
@@ -213,16 +211,16 @@ fn prepare(ctx: &WorkerCtx, f: &Frame) -> Option<(u64, FixPrior)> {
     let m = &ctx.metrics;
     let (Some(t_c), Some(now)) = (capture_time_us(&ctx.clock, f), ctx.clock.autopilot_now_us())
     else {
-        m.frames_no_time.fetch_add(1, Ordering::Relaxed);
+        m.frames_no_time.inc();
         return None;
     };
     let age_s = (now as f64 - t_c as f64) * 1e-6;
     if age_s > ctx.max_age_s {
-        m.frames_stale.fetch_add(1, Ordering::Relaxed);
+        m.frames_stale.inc();
         return None;
     }
     let prior = ctx.priors.prior_at(t_c);
-    m.fixes_attempted.fetch_add(1, Ordering::Relaxed);
+    m.fixes_attempted.inc();
     Some((t_c, prior))
 }
 
@@ -301,14 +299,14 @@ pub async fn lockstep_frames(
             }
             Err(FrameError::NotReady) => continue,
             Err(e) => {
-                ctx.metrics.frame_errors.fetch_add(1, Ordering::Relaxed);
+                ctx.metrics.frame_errors.inc();
                 warn!("frames: {e}; skipped");
                 continue;
             }
         };
-        ctx.metrics.frames_in.fetch_add(1, Ordering::Relaxed);
+        ctx.metrics.frames_in.inc();
         if freeze.repeats(&f.image, f.seq) {
-            ctx.metrics.frames_frozen.fetch_add(1, Ordering::Relaxed);
+            ctx.metrics.frames_frozen.inc();
             continue;
         }
         let Some((t_c, prior)) = prepare(&ctx, &f) else {

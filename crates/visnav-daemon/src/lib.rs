@@ -328,8 +328,10 @@ impl Daemon {
         let tel = link.telemetry();
         let link = Arc::new(link);
         let metrics = Arc::new(DaemonMetrics::default());
-        let prometheus =
-            endpoint.map(|e| e.serve(prometheus::renderer(metrics.clone(), link.metrics())));
+        let prometheus = endpoint.map(|e| {
+            let reg = metrics::registry(&metrics, &link.metrics());
+            e.serve(prometheus::renderer(reg))
+        });
         let shared = Arc::new(SharedPriors {
             nav: setup.nav.clone(),
             book: Mutex::new(OutputBook::default()),
@@ -651,14 +653,14 @@ impl NavTask {
                     // fails on the closed channel), are counted, not silently lost.
                     fixes.close();
                     while fixes.try_recv().is_ok() {
-                        self.metrics.fixes_dropped_at_shutdown.fetch_add(1, Ordering::Relaxed);
+                        self.metrics.fixes_dropped_at_shutdown.inc();
                     }
                     return;
                 }
                 r = tel.recv() => match r {
                     Ok(t) => self.telemetry(&t),
                     Err(broadcast::error::RecvError::Lagged(n)) => {
-                        self.metrics.telemetry_lagged.fetch_add(n, Ordering::Relaxed);
+                        self.metrics.telemetry_lagged.inc_by(n);
                         warn!("navigation task fell behind: {n} telemetry messages lost");
                     }
                     Err(broadcast::error::RecvError::Closed) => return,
@@ -706,7 +708,7 @@ impl NavTask {
         for input in self.inputs.convert(t) {
             match input {
                 NavInput::Imu(s) => {
-                    self.metrics.imu_samples.fetch_add(1, Ordering::Relaxed);
+                    self.metrics.imu_samples.inc();
                     self.last_imu_at = Some(Instant::now());
                     if self.imu_lost {
                         self.imu_lost = false;
@@ -724,9 +726,7 @@ impl NavTask {
                 NavInput::Vehicle { multirotor } => self.filter.set_multirotor(multirotor),
                 NavInput::Reboot => {
                     warn!("autopilot reboot: navigation filter restarted");
-                    self.metrics
-                        .autopilot_reboots
-                        .fetch_add(1, Ordering::Relaxed);
+                    self.metrics.autopilot_reboots.inc();
                     self.filter = NavFilter::new(self.nav_cfg.clone());
                     self.filter.set_multirotor(self.inputs.multirotor());
                     self.drag_logged = [false; 2];
@@ -764,7 +764,7 @@ impl NavTask {
                 "engine_rejected"
             }
             Ok(meas) if !self.init_spacing_ok(&meas) => {
-                m.fixes_unused_before_init.fetch_add(1, Ordering::Relaxed);
+                m.fixes_unused_before_init.inc();
                 "unused_before_init"
             }
             Ok(meas) => {
@@ -777,7 +777,7 @@ impl NavTask {
                     Outcome::TooOld => (&m.fixes_too_old, "too_old"),
                     Outcome::Invalid(_) | Outcome::Ignored => (&m.fixes_invalid, "invalid"),
                 };
-                c.fetch_add(1, Ordering::Relaxed);
+                c.inc();
                 name
             }
         };
@@ -842,7 +842,7 @@ impl NavTask {
                     Outcome::Rejected { .. } => &m.filter_rejected,
                     _ => &m.unused,
                 };
-                c.fetch_add(1, Ordering::Relaxed);
+                c.inc();
                 if self.dtm_working != Some(true) {
                     info!(
                         "DTM navigation: pose from frame {seq} ({:.0} m baseline, {} of {} flow vectors, {:.2} px, {:.1} m horizontal sigma given the attitude)",
@@ -869,7 +869,7 @@ impl NavTask {
             Outcome::Rejected { nis, .. } => (&m.filter_rejected, "filter_rejected", Some(nis)),
             _ => (&m.unused, "unused", None),
         };
-        c.fetch_add(1, Ordering::Relaxed);
+        c.inc();
         if self.vo_working != Some(true) {
             info!(
                 "visual odometry: measuring from frame {seq} ({} tracks, {} inliers, {:.2} px)",
@@ -900,9 +900,9 @@ impl NavTask {
             .last_health
             .as_ref()
             .is_none_or(|p| std::mem::discriminant(p) != std::mem::discriminant(&new));
-        self.metrics.set_health(&new);
+        self.metrics.health.set(&new);
         if changed {
-            self.metrics.health_changes.fetch_add(1, Ordering::Relaxed);
+            self.metrics.health_changes.inc();
             info!("navigation health {new}");
         }
         self.last_health = Some(new.clone());
@@ -910,7 +910,7 @@ impl NavTask {
     }
 
     fn publish(&mut self, o: NavOutput) {
-        self.metrics.nav_outputs.fetch_add(1, Ordering::Relaxed);
+        self.metrics.nav_outputs.inc();
         let c = self.filter.counters();
         let sum = c.initialisations + c.divergence_resets + c.covariance_resets + c.hard_resets;
         if sum != self.reset_sum {
@@ -959,7 +959,7 @@ impl NavTask {
         if imu_silent {
             if !self.imu_lost {
                 self.imu_lost = true;
-                self.metrics.imu_timeouts.fetch_add(1, Ordering::Relaxed);
+                self.metrics.imu_timeouts.inc();
                 warn!(
                     "no IMU data for {} s: solution lost",
                     self.dcfg.imu_timeout_s
@@ -1002,11 +1002,7 @@ impl NavTask {
                     );
                 }
             }
-            *self
-                .metrics
-                .imu_bias
-                .lock()
-                .unwrap_or_else(|e| e.into_inner()) = Some(st);
+            self.metrics.imu_bias.set(st);
         }
         let now_ns = self.link.companion_now_ns();
         if self.dcfg.baro

@@ -1,80 +1,350 @@
-//! The daemon's counters (atomics, updated from any task or thread) and their snapshot. The
-//! optional Prometheus endpoint (`daemon.metrics_listen`, [`crate::prometheus`]) renders
-//! them together with the link's counters.
+//! The daemon's metrics, each declared once in [`DaemonMetrics`] (name, help, kind, labels:
+//! [`visnav_link::metric_set!`]): atomics updated from any task or thread, registered in the one
+//! registry of `visnav run`'s Prometheus endpoint ([`registry`]: build info, heap, the daemon's
+//! and the link's metrics; `daemon.metrics_listen`, [`crate::prometheus`]) and copied into a
+//! typed [`MetricsSnapshot`] (the end-of-run JSON, `visnav sim`, the tests).
+//!
+//! The daemon's own kinds beside the link's ([`visnav_link::metrics`]): [`Health`] (one-hot by
+//! state), [`ImuBias`] (the restorer's families, present while it runs) and [`Sequence`] (a
+//! frame-sequence navigator's families: visual odometry, DTM navigation).
 
 use std::collections::BTreeMap;
-use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 
+use prometheus_client::collector::Collector;
+use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric, MetricEncoder, NoLabelSet};
+use prometheus_client::metrics::MetricType;
+use prometheus_client::metrics::info::Info;
 use serde::Serialize;
 
 use crate::imu_bias::{G0_M_S2, RestoreStatus};
 use visnav_link::Health as LinkHealth;
+pub use visnav_link::metrics::reason_wording;
+use visnav_link::metrics::{
+    Counter, Declare, Gauge, Histogram, Label, Metrics as LinkMetrics, Reasons, Registrar, Registry,
+};
 
-/// Live counters.
-#[derive(Debug, Default)]
-pub struct DaemonMetrics {
-    pub telemetry_lagged: AtomicU64,
-    pub imu_samples: AtomicU64,
-    pub nav_outputs: AtomicU64,
-    pub autopilot_reboots: AtomicU64,
-    pub imu_timeouts: AtomicU64,
-    pub health_changes: AtomicU64,
-    pub frames_in: AtomicU64,
-    pub frames_superseded: AtomicU64,
-    pub frames_stale: AtomicU64,
-    pub frames_no_time: AtomicU64,
-    pub frame_errors: AtomicU64,
-    pub frames_frozen: AtomicU64,
-    pub queue_depth_max: AtomicU64,
-    pub fixes_attempted: AtomicU64,
-    pub fixes_accepted: AtomicU64,
-    pub fixes_filter_rejected: AtomicU64,
-    pub fixes_too_old: AtomicU64,
-    pub fixes_invalid: AtomicU64,
-    pub fixes_unused_before_init: AtomicU64,
-    pub fixes_dropped_at_shutdown: AtomicU64,
-    pub fix_latency_ms_last: AtomicU64,
-    pub fix_latency_ms_max: AtomicU64,
-    pub fix_latency_ms_sum: AtomicU64,
-    /// Number of latencies recorded (the count behind `fix_latency_ms_sum`).
-    pub fix_latency_count: AtomicU64,
-    /// Navigation health as a [`HealthState`] code (0 = no solution yet).
-    pub health: AtomicU64,
-    /// Engine rejections by reason.
-    pub engine_rejected: Mutex<BTreeMap<String, u64>>,
-    /// The IMU bias restorer's state (`daemon.imu_bias_restore`; `None` when off).
-    pub imu_bias: Mutex<Option<RestoreStatus>>,
-    /// Visual odometry (`[vo]`).
-    pub vo: VoMetrics,
-    /// DTM navigation (`[dtm_nav]`): `started` counts the frames kept without a partner yet,
-    /// `motions` the poses solved, `fused` / `filter_rejected` / `unused` what the filter did.
-    pub dtm: VoMetrics,
+visnav_link::metric_set! {
+    /// The daemon's metrics (atomics; `Clone` shares them).
+    pub struct DaemonMetrics => MetricsSnapshot {
+        /// Navigation health as the daemon last published it (the injector's view).
+        health: Health "visnav_nav_health"
+            "navigation health, one-hot over state (none = no solution yet)",
+        /// Health state changes.
+        health_changes: Counter "visnav_nav_health_changes" "navigation health state changes",
+        /// Filter outputs published.
+        nav_outputs: Counter "visnav_nav_outputs" "filter outputs published",
+        /// Autopilot reboots seen (filter restarted).
+        autopilot_reboots: Counter "visnav_nav_filter_restarts"
+            "filter restarts after an autopilot reboot",
+        /// IMU samples given to the filter.
+        imu_samples: Counter "visnav_imu_samples" "IMU samples given to the filter",
+        /// IMU stream timeouts (solution declared lost).
+        imu_timeouts: Counter "visnav_imu_timeouts" "IMU stream timeouts (solution declared lost)",
+        /// Telemetry messages lost because the navigation task fell behind.
+        telemetry_lagged: Counter "visnav_telemetry_lagged_messages"
+            "telemetry messages lost because the navigation task fell behind",
+        /// The IMU bias restorer (`daemon.imu_bias_restore`; `None` when off).
+        imu_bias: ImuBias "visnav_imu_bias" "the IMU bias restorer",
+        /// Frames read from the source.
+        frames_in: Counter "visnav_frames_read" "frames read from the source",
+        /// Frames replaced in the queue by a newer one before a worker took them.
+        frames_superseded: Counter "visnav_frames_dropped" "frames dropped before a fix, by reason"
+            ["reason" = "superseded"],
+        /// Frames older than `frames.max_age_s` when a worker was free.
+        frames_stale: Counter "visnav_frames_dropped" "frames dropped before a fix, by reason"
+            ["reason" = "stale"],
+        /// Frames dropped because their capture time could not be mapped (no time sync yet).
+        frames_no_time: Counter "visnav_frames_dropped" "frames dropped before a fix, by reason"
+            ["reason" = "no_time"],
+        /// Frames that could not be read.
+        frame_errors: Counter "visnav_frame_errors" "frames that could not be read",
+        /// Frames dropped as identical to the previous one (a frozen camera).
+        frames_frozen: Counter "visnav_frames_frozen"
+            "frames dropped as identical to the one before (a frozen camera)",
+        /// Largest number of frames waiting at once (the queue bound is 1).
+        queue_depth_max: Gauge "visnav_frame_queue_depth_max"
+            "largest number of frames waiting at once",
+        /// Frames given to the fix engine.
+        fixes_attempted: Counter "visnav_fixes_attempted" "frames given to the fix engine",
+        /// Fixes accepted by the filter.
+        fixes_accepted: Counter "visnav_fixes"
+            "fixes the engine returned, by what the filter did with them" ["outcome" = "accepted"],
+        /// Fixes rejected by the filter's innovation gate.
+        fixes_filter_rejected: Counter "visnav_fixes"
+            "fixes the engine returned, by what the filter did with them"
+            ["outcome" = "filter_rejected"],
+        /// Fixes older than the filter's history.
+        fixes_too_old: Counter "visnav_fixes"
+            "fixes the engine returned, by what the filter did with them" ["outcome" = "too_old"],
+        /// Fixes the filter found malformed.
+        fixes_invalid: Counter "visnav_fixes"
+            "fixes the engine returned, by what the filter did with them" ["outcome" = "invalid"],
+        /// Fixes not given to the filter while it waits for two fixes spaced for initialisation.
+        fixes_unused_before_init: Counter "visnav_fixes"
+            "fixes the engine returned, by what the filter did with them"
+            ["outcome" = "unused_before_init"],
+        /// Fixes finished by a worker after the navigation task had stopped (shutdown).
+        fixes_dropped_at_shutdown: Counter "visnav_fixes"
+            "fixes the engine returned, by what the filter did with them"
+            ["outcome" = "dropped_at_shutdown"],
+        /// Engine rejections by reason.
+        engine_rejected: Reasons "visnav_fix_engine_rejections"
+            "fixes the engine rejected, by reason",
+        /// Visual odometry (`[vo]`).
+        vo: Sequence "visnav_vo" "visual odometry" ["motion" = "motions"],
+        /// DTM navigation (`[dtm_nav]`): `started` counts the frames kept without a partner yet,
+        /// `motions` the poses solved, `fused` / `filter_rejected` / `unused` what the filter did.
+        dtm: Sequence "visnav_dtm" "DTM navigation" ["pose" = "poses"],
+        /// The fix engine's computing time per frame, ms.
+        fix_latency_ms: Histogram "visnav_fix_latency_seconds"
+            "the fix engine's computing time per frame" / 1e3,
+        /// The last frame's, ms.
+        fix_latency_ms_last: Gauge "visnav_fix_latency_last_seconds"
+            "the fix engine's computing time of the last frame" / 1e3,
+        /// The largest, ms.
+        fix_latency_ms_max: Gauge "visnav_fix_latency_max_seconds"
+            "the fix engine's largest computing time of a frame" / 1e3,
+    }
 }
 
-/// Visual odometry's counters.
-#[derive(Debug, Default)]
-pub struct VoMetrics {
-    /// Frames given to the odometer.
-    pub frames: AtomicU64,
+impl DaemonMetrics {
+    /// Count one engine rejection.
+    pub fn engine_reject(&self, reason: &str) {
+        self.engine_rejected.count(reason);
+    }
+
+    /// Record one fix latency.
+    pub fn latency(&self, ms: u64) {
+        self.fix_latency_ms.observe(ms);
+        self.fix_latency_ms_last.set(ms);
+        self.fix_latency_ms_max.max(ms);
+    }
+}
+
+/// The registry of `visnav run`'s endpoint: build info, heap, the daemon's and the link's
+/// metrics.
+pub fn registry(daemon: &DaemonMetrics, link: &LinkMetrics) -> Registry {
+    let mut reg = Registry::default();
+    reg.register(
+        "visnav_build",
+        "visnav version (always 1)",
+        Info::new([("version", env!("CARGO_PKG_VERSION"))]),
+    );
+    reg.register(
+        "visnav_heap_bytes",
+        "bytes allocated on the heap and not freed (the process's own count)",
+        HeapBytes,
+    );
+    daemon.register(&mut reg);
+    link.register(&mut reg);
+    reg
+}
+
+/// The heap in use (absent when the binary does not count it).
+#[derive(Debug)]
+struct HeapBytes;
+
+impl EncodeMetric for HeapBytes {
+    fn encode(&self, mut encoder: MetricEncoder) -> Result<(), std::fmt::Error> {
+        encoder.encode_gauge(&crate::heap::heap_in_use_bytes().unwrap_or(0))
+    }
+
+    fn metric_type(&self) -> MetricType {
+        MetricType::Gauge
+    }
+
+    fn is_empty(&self) -> bool {
+        crate::heap::heap_in_use_bytes().is_none()
+    }
+}
+
+/// Navigation health as a [`HealthState`] code; exposed one-hot by `state`.
+#[derive(Debug, Clone, Default)]
+pub struct Health(Arc<AtomicU64>);
+
+impl Health {
+    /// Record the navigation health just published.
+    pub fn set(&self, h: &LinkHealth) {
+        self.0.store(HealthState::from(h).code(), Ordering::Relaxed);
+    }
+}
+
+impl EncodeMetric for Health {
+    fn encode(&self, mut encoder: MetricEncoder) -> Result<(), std::fmt::Error> {
+        let now = self.value();
+        for s in HealthState::ALL {
+            encoder
+                .encode_family(&[("state", s.name())])?
+                .encode_gauge(&u64::from(s == now))?;
+        }
+        Ok(())
+    }
+
+    fn metric_type(&self) -> MetricType {
+        MetricType::Gauge
+    }
+}
+
+impl Declare for Health {
+    type Value = HealthState;
+
+    fn new(_divisor: f64) -> Self {
+        Self::default()
+    }
+
+    fn declare(&self, r: &mut Registrar, name: &'static str, help: &'static str, _: Label) {
+        r.metric(name, help, self.clone());
+    }
+
+    fn value(&self) -> HealthState {
+        HealthState::from_code(self.0.load(Ordering::Relaxed))
+    }
+}
+
+/// The IMU bias restorer's state (`None` until it reports; it runs with
+/// `daemon.imu_bias_restore`). Its families are exposed while it reports.
+#[derive(Debug, Clone, Default)]
+pub struct ImuBias(Arc<Mutex<Option<RestoreStatus>>>);
+
+impl ImuBias {
+    /// Record the restorer's state.
+    pub fn set(&self, s: RestoreStatus) {
+        *self.0.lock().unwrap_or_else(|e| e.into_inner()) = Some(s);
+    }
+}
+
+impl Declare for ImuBias {
+    type Value = Option<ImuBiasSnapshot>;
+
+    fn new(_divisor: f64) -> Self {
+        Self::default()
+    }
+
+    fn declare(&self, r: &mut Registrar, name: &'static str, _: &'static str, _: Label) {
+        r.collector(ImuBiasFamilies {
+            prefix: name,
+            state: self.clone(),
+        });
+    }
+
+    fn value(&self) -> Option<ImuBiasSnapshot> {
+        self.0
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .map(ImuBiasSnapshot::from)
+    }
+}
+
+/// The restorer's families, found at each scrape.
+#[derive(Debug)]
+struct ImuBiasFamilies {
+    prefix: &'static str,
+    state: ImuBias,
+}
+
+impl Collector for ImuBiasFamilies {
+    fn encode(&self, mut encoder: DescriptorEncoder) -> Result<(), std::fmt::Error> {
+        let Some(b) = self.state.value() else {
+            return Ok(());
+        };
+        let p = self.prefix;
+        for (name, help, v) in [
+            (
+                format!("{p}_pairs"),
+                "SCALED_IMU paired with a HIGHRES_IMU (daemon.imu_bias_restore)",
+                b.paired,
+            ),
+            (
+                format!("{p}_unpaired"),
+                "SCALED_IMU that no HIGHRES_IMU matched",
+                b.unpaired,
+            ),
+            (
+                format!("{p}_bootstraps"),
+                "autopilot bias estimates bootstrapped (more than 1: the autopilot's estimate jumped)",
+                b.bootstraps,
+            ),
+            (
+                "visnav_imu_samples_not_restored".to_string(),
+                "HIGHRES_IMU samples passed on without the autopilot's bias added back",
+                b.not_restored,
+            ),
+        ] {
+            encoder
+                .encode_descriptor(&name, help, None, MetricType::Counter)?
+                .encode_counter::<NoLabelSet, u64, u64>(&v, None)?;
+        }
+        let mut gauge = |name: String, help: &str, v: f64| {
+            encoder
+                .encode_descriptor(&name, help, None, MetricType::Gauge)?
+                .encode_gauge(&v)
+        };
+        if let Some(a) = b.age_s {
+            gauge(
+                format!("{p}_age_seconds"),
+                "time since the last SCALED_IMU / HIGHRES_IMU pair (the estimate is dropped after 5 s)",
+                a,
+            )?;
+        }
+        gauge(
+            format!("{p}_restoring"),
+            "1 while HIGHRES_IMU samples get the autopilot's bias estimate added back",
+            if b.restoring { 1.0 } else { 0.0 },
+        )?;
+        for (name, help, v) in [
+            (
+                format!("{p}_gyro_deg_per_hour"),
+                "the autopilot's gyro bias estimate added back to HIGHRES_IMU, body FRD",
+                b.gyro_bias_deg_h,
+            ),
+            (
+                format!("{p}_accel_mg"),
+                "the autopilot's accelerometer bias estimate added back to HIGHRES_IMU, body FRD",
+                b.accel_bias_mg,
+            ),
+        ] {
+            if let Some(v) = v {
+                let mut m = encoder.encode_descriptor(&name, help, None, MetricType::Gauge)?;
+                for (axis, x) in ["x", "y", "z"].into_iter().zip(v) {
+                    m.encode_family(&[("axis", axis)])?.encode_gauge(&x)?;
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A frame-sequence navigator's metrics (visual odometry, DTM navigation). Declared with a
+/// prefix as name, what it is as help and `[out = outs]` as label (what a frame gives:
+/// "motion" / "motions"), it exposes `{prefix}_frames_total{outcome=out|started|refused}`,
+/// `{prefix}_{outs}_total{outcome=fused|filter_rejected|unused}`,
+/// `{prefix}_refusals_total{reason}`, `{prefix}_frame_seconds` (histogram) and
+/// `{prefix}_frame_seconds_max`.
+#[derive(Debug, Clone)]
+pub struct Sequence {
     /// Frames that started a sequence (the first, or after a gap or a missing prior).
-    pub started: AtomicU64,
+    pub started: Counter,
     /// Motions measured.
-    pub motions: AtomicU64,
+    pub motions: Counter,
+    /// Frames without a motion.
+    refused: Counter,
     /// Motions the filter fused.
-    pub fused: AtomicU64,
+    pub fused: Counter,
     /// Motions the filter's innovation gate rejected.
-    pub filter_rejected: AtomicU64,
+    pub filter_rejected: Counter,
     /// Motions the filter did not use otherwise (not initialised, too old, malformed).
-    pub unused: AtomicU64,
-    /// Frames without a motion, by reason (numbers as `N`).
-    pub refused: Mutex<BTreeMap<String, u64>>,
-    /// Computation time of a frame, sum (µs) and largest (µs).
-    pub us_sum: AtomicU64,
-    pub us_max: AtomicU64,
+    pub unused: Counter,
+    /// Frames without a motion, by reason.
+    refusals: Reasons,
+    /// Computation time of a frame, µs.
+    time_us: Histogram,
+    /// The longest, µs.
+    time_us_max: Gauge,
 }
 
-/// Visual odometry in a snapshot.
+/// A frame-sequence navigator in a snapshot.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct VoSnapshot {
     pub frames: u64,
@@ -89,55 +359,89 @@ pub struct VoSnapshot {
     pub ms_max: f64,
 }
 
-impl VoMetrics {
+impl Sequence {
     /// Count one frame without a motion.
     pub fn refuse(&self, reason: &str) {
-        count_reason(&self.refused, reason);
+        self.refused.inc();
+        self.refusals.count(reason);
     }
 
     /// Record one frame's computation time.
     pub fn time(&self, us: u64) {
-        self.frames.fetch_add(1, Ordering::Relaxed);
-        self.us_sum.fetch_add(us, Ordering::Relaxed);
-        self.us_max.fetch_max(us, Ordering::Relaxed);
-    }
-
-    fn snapshot(&self) -> VoSnapshot {
-        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
-        let frames = g(&self.frames);
-        VoSnapshot {
-            frames,
-            started: g(&self.started),
-            motions: g(&self.motions),
-            fused: g(&self.fused),
-            filter_rejected: g(&self.filter_rejected),
-            unused: g(&self.unused),
-            refused: self
-                .refused
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .clone(),
-            ms_mean: if frames > 0 {
-                g(&self.us_sum) as f64 * 1e-3 / frames as f64
-            } else {
-                0.0
-            },
-            ms_max: g(&self.us_max) as f64 * 1e-3,
-        }
+        self.time_us.observe(us);
+        self.time_us_max.max(us);
     }
 }
 
-/// Count `reason` in `map`, keyed by its wording ([`reason_wording`]: every number becomes `N`,
-/// so the reasons group and the map stays small), at most 64 wordings (then "other").
-fn count_reason(map: &Mutex<BTreeMap<String, u64>>, reason: &str) {
-    let mut m = map.lock().unwrap_or_else(|e| e.into_inner());
-    let worded = reason_wording(reason);
-    let key = if m.len() < 64 || m.contains_key(&worded) {
-        worded
-    } else {
-        "other".to_string()
-    };
-    *m.entry(key).or_default() += 1;
+impl Declare for Sequence {
+    type Value = VoSnapshot;
+
+    fn new(_divisor: f64) -> Self {
+        let c = Counter::default;
+        Self {
+            started: c(),
+            motions: c(),
+            refused: c(),
+            fused: c(),
+            filter_rejected: c(),
+            unused: c(),
+            refusals: Reasons::default(),
+            time_us: Histogram::new(1e6),
+            time_us_max: Gauge::new(1e6),
+        }
+    }
+
+    fn declare(&self, r: &mut Registrar, prefix: &'static str, what: &'static str, l: Label) {
+        let (out, outs) = l.unwrap_or(("motion", "motions"));
+        let frames = format!("{prefix}_frames");
+        let frames_help = format!("frames given to {what}, by what came out");
+        for (outcome, c) in [
+            (out, &self.motions),
+            ("started", &self.started),
+            ("refused", &self.refused),
+        ] {
+            r.member(&frames, &frames_help, ("outcome", outcome), c);
+        }
+        let used = format!("{prefix}_{outs}");
+        let used_help = format!("{what} {outs}, by what the filter did with them");
+        for (outcome, c) in [
+            ("fused", &self.fused),
+            ("filter_rejected", &self.filter_rejected),
+            ("unused", &self.unused),
+        ] {
+            r.member(&used, &used_help, ("outcome", outcome), c);
+        }
+        r.metric(
+            format!("{prefix}_refusals"),
+            format!("frames without a {what} {out}, by reason"),
+            self.refusals.clone(),
+        );
+        r.metric(
+            format!("{prefix}_frame_seconds"),
+            format!("{what} computation time of a frame"),
+            self.time_us.clone(),
+        );
+        r.metric(
+            format!("{prefix}_frame_seconds_max"),
+            format!("longest {what} computation of a frame"),
+            self.time_us_max.clone(),
+        );
+    }
+
+    fn value(&self) -> VoSnapshot {
+        let t = self.time_us.value();
+        VoSnapshot {
+            frames: t.count,
+            started: self.started.get(),
+            motions: self.motions.get(),
+            fused: self.fused.get(),
+            filter_rejected: self.filter_rejected.get(),
+            unused: self.unused.get(),
+            refused: self.refusals.value(),
+            ms_mean: t.mean / 1e3,
+            ms_max: self.time_us_max.get() as f64 / 1e3,
+        }
+    }
 }
 
 /// The IMU bias restorer in a snapshot (`daemon.imu_bias_restore = "scaled_imu"`).
@@ -234,166 +538,6 @@ impl From<&LinkHealth> for HealthState {
     }
 }
 
-/// A copy of the counters.
-#[derive(Debug, Clone, Default, PartialEq, Serialize)]
-pub struct MetricsSnapshot {
-    /// Telemetry messages lost because the navigation task fell behind.
-    pub telemetry_lagged: u64,
-    /// IMU samples given to the filter.
-    pub imu_samples: u64,
-    /// Filter outputs published.
-    pub nav_outputs: u64,
-    /// Autopilot reboots seen (filter restarted).
-    pub autopilot_reboots: u64,
-    /// IMU stream timeouts (solution declared lost).
-    pub imu_timeouts: u64,
-    /// Health state changes.
-    pub health_changes: u64,
-    /// Frames read from the source.
-    pub frames_in: u64,
-    /// Frames replaced in the queue by a newer one before a worker took them.
-    pub frames_superseded: u64,
-    /// Frames older than `frames.max_age_s` when a worker was free.
-    pub frames_stale: u64,
-    /// Frames dropped because their capture time could not be mapped (no time sync yet).
-    pub frames_no_time: u64,
-    /// Frames that could not be read.
-    pub frame_errors: u64,
-    /// Frames dropped as identical to the previous one (a frozen camera).
-    pub frames_frozen: u64,
-    /// Largest number of frames waiting at once (the queue bound is 1).
-    pub queue_depth_max: u64,
-    /// Frames given to the fix engine.
-    pub fixes_attempted: u64,
-    /// Fixes accepted by the filter.
-    pub fixes_accepted: u64,
-    /// Fixes rejected by the filter's innovation gate.
-    pub fixes_filter_rejected: u64,
-    /// Fixes older than the filter's history.
-    pub fixes_too_old: u64,
-    /// Fixes the filter found malformed.
-    pub fixes_invalid: u64,
-    /// Fixes not given to the filter while it waits for two fixes spaced for initialisation.
-    pub fixes_unused_before_init: u64,
-    /// Fixes finished by a worker after the navigation task had stopped (shutdown).
-    pub fixes_dropped_at_shutdown: u64,
-    /// Engine rejections by reason.
-    pub engine_rejected: BTreeMap<String, u64>,
-    /// Frame-to-fix latency of the last fix, ms.
-    pub fix_latency_ms_last: u64,
-    /// Largest frame-to-fix latency, ms.
-    pub fix_latency_ms_max: u64,
-    /// Mean frame-to-fix latency, ms.
-    pub fix_latency_ms_mean: f64,
-    /// Sum of all frame-to-fix latencies, ms.
-    pub fix_latency_ms_sum: u64,
-    /// Number of latencies recorded.
-    pub fix_latency_count: u64,
-    /// Navigation health last published.
-    pub health: HealthState,
-    /// The IMU bias restorer (absent when `daemon.imu_bias_restore` is off).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub imu_bias: Option<ImuBiasSnapshot>,
-    /// Visual odometry.
-    pub vo: VoSnapshot,
-    /// DTM navigation (`DaemonMetrics::dtm`).
-    pub dtm: VoSnapshot,
-}
-
-/// `reason` with each number (digits with an optional sign and decimals) replaced by `N`.
-pub fn reason_wording(reason: &str) -> String {
-    let mut out = String::with_capacity(reason.len());
-    let mut chars = reason.chars().peekable();
-    while let Some(c) = chars.next() {
-        let sign_digit = (c == '-' || c == '+') && chars.peek().is_some_and(|d| d.is_ascii_digit());
-        if c.is_ascii_digit() || sign_digit {
-            while chars
-                .peek()
-                .is_some_and(|d| d.is_ascii_digit() || *d == '.')
-            {
-                chars.next();
-            }
-            out.push('N');
-        } else {
-            out.push(c);
-        }
-    }
-    out
-}
-
-impl DaemonMetrics {
-    /// Count one engine rejection.
-    pub fn engine_reject(&self, reason: &str) {
-        count_reason(&self.engine_rejected, reason);
-    }
-
-    /// Record one fix latency.
-    pub fn latency(&self, ms: u64) {
-        self.fix_latency_ms_last.store(ms, Ordering::Relaxed);
-        self.fix_latency_ms_max.fetch_max(ms, Ordering::Relaxed);
-        self.fix_latency_ms_sum.fetch_add(ms, Ordering::Relaxed);
-        self.fix_latency_count.fetch_add(1, Ordering::Relaxed);
-    }
-
-    /// Record the navigation health just published.
-    pub fn set_health(&self, h: &LinkHealth) {
-        self.health
-            .store(HealthState::from(h).code(), Ordering::Relaxed);
-    }
-
-    /// Copy the counters.
-    pub fn snapshot(&self) -> MetricsSnapshot {
-        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
-        let attempted = g(&self.fixes_attempted);
-        let n_latency = g(&self.fix_latency_count);
-        let sum_latency = g(&self.fix_latency_ms_sum);
-        MetricsSnapshot {
-            telemetry_lagged: g(&self.telemetry_lagged),
-            imu_samples: g(&self.imu_samples),
-            nav_outputs: g(&self.nav_outputs),
-            autopilot_reboots: g(&self.autopilot_reboots),
-            imu_timeouts: g(&self.imu_timeouts),
-            health_changes: g(&self.health_changes),
-            frames_in: g(&self.frames_in),
-            frames_superseded: g(&self.frames_superseded),
-            frames_stale: g(&self.frames_stale),
-            frames_no_time: g(&self.frames_no_time),
-            frame_errors: g(&self.frame_errors),
-            frames_frozen: g(&self.frames_frozen),
-            queue_depth_max: g(&self.queue_depth_max),
-            fixes_attempted: attempted,
-            fixes_accepted: g(&self.fixes_accepted),
-            fixes_filter_rejected: g(&self.fixes_filter_rejected),
-            fixes_too_old: g(&self.fixes_too_old),
-            fixes_invalid: g(&self.fixes_invalid),
-            fixes_unused_before_init: g(&self.fixes_unused_before_init),
-            fixes_dropped_at_shutdown: g(&self.fixes_dropped_at_shutdown),
-            engine_rejected: self
-                .engine_rejected
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .clone(),
-            fix_latency_ms_last: g(&self.fix_latency_ms_last),
-            fix_latency_ms_max: g(&self.fix_latency_ms_max),
-            fix_latency_ms_mean: if n_latency > 0 {
-                sum_latency as f64 / n_latency as f64
-            } else {
-                0.0
-            },
-            fix_latency_ms_sum: sum_latency,
-            fix_latency_count: n_latency,
-            health: HealthState::from_code(g(&self.health)),
-            vo: self.vo.snapshot(),
-            dtm: self.dtm.snapshot(),
-            imu_bias: self
-                .imu_bias
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .map(ImuBiasSnapshot::from),
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     #[test]
@@ -424,12 +568,12 @@ mod tests {
     fn latency_mean_and_health_round_trip() {
         let m = DaemonMetrics::default();
         assert_eq!(m.snapshot().health, HealthState::None);
-        assert_eq!(m.snapshot().fix_latency_ms_mean, 0.0);
+        assert_eq!(m.snapshot().fix_latency_ms.mean, 0.0);
         m.latency(100);
         m.latency(300);
         let s = m.snapshot();
-        assert_eq!((s.fix_latency_count, s.fix_latency_ms_sum), (2, 400));
-        assert_eq!(s.fix_latency_ms_mean, 200.0);
+        assert_eq!((s.fix_latency_ms.count, s.fix_latency_ms.sum), (2, 400));
+        assert_eq!(s.fix_latency_ms.mean, 200.0);
         assert_eq!((s.fix_latency_ms_last, s.fix_latency_ms_max), (300, 300));
         for (h, want) in [
             (LinkHealth::Ok, HealthState::Ok),
@@ -439,7 +583,7 @@ mod tests {
             ),
             (LinkHealth::Lost { reason: "y".into() }, HealthState::Lost),
         ] {
-            m.set_health(&h);
+            m.health.set(&h);
             assert_eq!(m.snapshot().health, want);
             assert_eq!(HealthState::from_code(want.code()), want);
         }

@@ -1,14 +1,14 @@
 //! The daemon's optional Prometheus endpoint (`[daemon] metrics_listen`, off by default): a
 //! minimal HTTP/1.1 server on tokio that answers `GET /metrics` (and `HEAD`) with the text
 //! exposition format 0.0.4
-//! (<https://prometheus.io/docs/instrumenting/exposition_formats/#text-based-format>) of the
-//! daemon's counters ([`DaemonMetrics`]), the link's counters ([`LinkMetrics`]) and the
-//! navigation health.
+//! (<https://prometheus.io/docs/instrumenting/exposition_formats/#text-based-format>) of one
+//! registry ([`crate::metrics::registry`]: the daemon's metrics, the link's and the navigation
+//! health), written by `prometheus-client`.
 //!
-//! Format: per metric family one `# HELP name text` and one `# TYPE name counter|gauge|summary`
-//! line, then its samples `name{label="value",...} number`. Counters end in `_total`; units are in
-//! the names in base units (`_seconds`); the frame-to-fix latency is a summary without quantiles
-//! (`visnav_fix_latency_seconds_sum` / `_count`). Label values are escaped (`\\`, `\"`, `\n`).
+//! Format: per metric family one `# HELP name text` and one `# TYPE name
+//! counter|gauge|histogram` line, then its samples `name{label="value",...} number`. Counters end
+//! in `_total`; units are in the names in base units (`_seconds`); computing times are
+//! histograms (`_bucket{le}`, `_sum`, `_count`). Label values are escaped (`\\`, `\"`, `\n`).
 //! The health is one-hot: `visnav_nav_health{state="none|ok|degraded|lost"}`, exactly one is 1.
 //!
 //! HTTP: one request per connection (`Connection: close`), the request head must arrive within
@@ -17,10 +17,8 @@
 //! [`MAX_CONNECTIONS`] connections are served at once; more are closed at once. No input can
 //! panic the server (the parser only slices what it has checked).
 
-use std::fmt::Write as _;
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -29,8 +27,8 @@ use tokio::sync::{Semaphore, watch};
 use tokio::task::{JoinHandle, JoinSet};
 use tracing::{debug, info};
 
-use crate::metrics::{DaemonMetrics, HealthState, MetricsSnapshot};
-use visnav_link::metrics::Metrics as LinkMetrics;
+use crate::metrics::DaemonMetrics;
+use visnav_link::metrics::{CONTENT_TYPE, Metrics as LinkMetrics, Registry};
 
 /// Largest accepted request head (request line + headers), bytes.
 pub const MAX_REQUEST_BYTES: usize = 8192;
@@ -39,427 +37,9 @@ pub const IO_TIMEOUT: Duration = Duration::from_secs(5);
 /// Connections served at once.
 pub const MAX_CONNECTIONS: usize = 16;
 
-// ---------------------------------------------------------------------------------------------
-// Exposition text
-
-/// Writes metric families in the text format.
-struct Writer {
-    out: String,
-}
-
-impl Writer {
-    fn family(&mut self, name: &str, kind: &str, help: &str) {
-        // HELP text escaping: backslash and line feed.
-        let help = help.replace('\\', "\\\\").replace('\n', "\\n");
-        let _ = writeln!(self.out, "# HELP {name} {help}\n# TYPE {name} {kind}");
-    }
-
-    fn sample(&mut self, name: &str, labels: &[(&str, &str)], v: f64) {
-        self.out.push_str(name);
-        if !labels.is_empty() {
-            self.out.push('{');
-            for (i, (k, val)) in labels.iter().enumerate() {
-                if i > 0 {
-                    self.out.push(',');
-                }
-                let _ = write!(self.out, "{k}=\"{}\"", escape_label(val));
-            }
-            self.out.push('}');
-        }
-        self.out.push(' ');
-        self.out.push_str(&number(v));
-        self.out.push('\n');
-    }
-
-    fn single(&mut self, name: &str, kind: &str, help: &str, v: f64) {
-        self.family(name, kind, help);
-        self.sample(name, &[], v);
-    }
-}
-
-/// The frame-sequence counters of visual odometry (`prefix` "vo", a frame gives a "motion")
-/// or the DTM navigator ("dtm", a "pose"; `started`: kept waiting for a partner).
-fn sequence(w: &mut Writer, v: &crate::metrics::VoSnapshot, prefix: &str, what: &str, out: &str) {
-    let c = |v: u64| v as f64;
-    let name = |s: &str| format!("visnav_{prefix}_{s}");
-    let frames = name("frames_total");
-    w.family(
-        &frames,
-        "counter",
-        &format!("frames given to {what}, by what came out"),
-    );
-    let refused: u64 = v.refused.values().sum();
-    for (outcome, n) in [
-        (out, v.motions),
-        ("started", v.started),
-        ("refused", refused),
-    ] {
-        w.sample(&frames, &[("outcome", outcome)], c(n));
-    }
-    let outs = name(&format!("{out}s_total"));
-    w.family(
-        &outs,
-        "counter",
-        &format!("{what} {out}s, by what the filter did with them"),
-    );
-    for (outcome, n) in [
-        ("fused", v.fused),
-        ("filter_rejected", v.filter_rejected),
-        ("unused", v.unused),
-    ] {
-        w.sample(&outs, &[("outcome", outcome)], c(n));
-    }
-    let refusals = name("refusals_total");
-    w.family(
-        &refusals,
-        "counter",
-        &format!("frames without a {what} {out}, by reason"),
-    );
-    for (reason, n) in &v.refused {
-        w.sample(&refusals, &[("reason", reason)], c(*n));
-    }
-    w.single(
-        &name("frame_seconds_max"),
-        "gauge",
-        &format!("longest {what} computation of a frame"),
-        v.ms_max * 1e-3,
-    );
-}
-
-/// A label value with `\`, `"` and line feeds escaped.
-pub fn escape_label(v: &str) -> String {
-    let mut s = String::with_capacity(v.len());
-    for c in v.chars() {
-        match c {
-            '\\' => s.push_str("\\\\"),
-            '"' => s.push_str("\\\""),
-            '\n' => s.push_str("\\n"),
-            c => s.push(c),
-        }
-    }
-    s
-}
-
-/// A sample value as Prometheus writes it (`NaN`, `+Inf`, `-Inf` for the non-finite).
-fn number(v: f64) -> String {
-    if v.is_nan() {
-        "NaN".into()
-    } else if v.is_infinite() {
-        if v > 0.0 { "+Inf" } else { "-Inf" }.into()
-    } else {
-        format!("{v}")
-    }
-}
-
-/// Render the daemon snapshot and the link counters as exposition text.
-pub fn render(d: &MetricsSnapshot, link: &LinkMetrics) -> String {
-    let mut w = Writer { out: String::new() };
-    let c = |v: u64| v as f64;
-    w.family("visnav_build_info", "gauge", "visnav version (always 1)");
-    w.sample(
-        "visnav_build_info",
-        &[("version", env!("CARGO_PKG_VERSION"))],
-        1.0,
-    );
-
-    if let Some(b) = crate::heap::heap_in_use_bytes() {
-        w.single(
-            "visnav_heap_bytes",
-            "gauge",
-            "bytes allocated on the heap and not freed (the process's own count)",
-            b as f64,
-        );
-    }
-    // Navigation.
-    w.family(
-        "visnav_nav_health",
-        "gauge",
-        "navigation health, one-hot over state (none = no solution yet)",
-    );
-    for s in HealthState::ALL {
-        let v = if s == d.health { 1.0 } else { 0.0 };
-        w.sample("visnav_nav_health", &[("state", s.name())], v);
-    }
-    for (name, help, v) in [
-        (
-            "visnav_nav_health_changes_total",
-            "navigation health state changes",
-            d.health_changes,
-        ),
-        (
-            "visnav_nav_outputs_total",
-            "filter outputs published",
-            d.nav_outputs,
-        ),
-        (
-            "visnav_nav_filter_restarts_total",
-            "filter restarts after an autopilot reboot",
-            d.autopilot_reboots,
-        ),
-        (
-            "visnav_imu_samples_total",
-            "IMU samples given to the filter",
-            d.imu_samples,
-        ),
-        (
-            "visnav_imu_timeouts_total",
-            "IMU stream timeouts (solution declared lost)",
-            d.imu_timeouts,
-        ),
-        (
-            "visnav_telemetry_lagged_messages_total",
-            "telemetry messages lost because the navigation task fell behind",
-            d.telemetry_lagged,
-        ),
-    ] {
-        w.single(name, "counter", help, c(v));
-    }
-    if let Some(b) = &d.imu_bias {
-        for (name, help, v) in [
-            (
-                "visnav_imu_bias_pairs_total",
-                "SCALED_IMU paired with a HIGHRES_IMU (daemon.imu_bias_restore)",
-                b.paired,
-            ),
-            (
-                "visnav_imu_bias_unpaired_total",
-                "SCALED_IMU that no HIGHRES_IMU matched",
-                b.unpaired,
-            ),
-            (
-                "visnav_imu_bias_bootstraps_total",
-                "autopilot bias estimates bootstrapped (more than 1: the autopilot's estimate jumped)",
-                b.bootstraps,
-            ),
-            (
-                "visnav_imu_samples_not_restored_total",
-                "HIGHRES_IMU samples passed on without the autopilot's bias added back",
-                b.not_restored,
-            ),
-        ] {
-            w.single(name, "counter", help, c(v));
-        }
-        if let Some(a) = b.age_s {
-            w.single(
-                "visnav_imu_bias_age_seconds",
-                "gauge",
-                "time since the last SCALED_IMU / HIGHRES_IMU pair (the estimate is dropped after 5 s)",
-                a,
-            );
-        }
-        w.single(
-            "visnav_imu_bias_restoring",
-            "gauge",
-            "1 while HIGHRES_IMU samples get the autopilot's bias estimate added back",
-            if b.restoring { 1.0 } else { 0.0 },
-        );
-        for (name, help, v) in [
-            (
-                "visnav_imu_bias_gyro_deg_per_hour",
-                "the autopilot's gyro bias estimate added back to HIGHRES_IMU, body FRD",
-                b.gyro_bias_deg_h,
-            ),
-            (
-                "visnav_imu_bias_accel_mg",
-                "the autopilot's accelerometer bias estimate added back to HIGHRES_IMU, body FRD",
-                b.accel_bias_mg,
-            ),
-        ] {
-            if let Some(v) = v {
-                w.family(name, "gauge", help);
-                for (axis, x) in ["x", "y", "z"].iter().zip(v) {
-                    w.sample(name, &[("axis", axis)], x);
-                }
-            }
-        }
-    }
-
-    // Frames.
-    w.single(
-        "visnav_frames_read_total",
-        "counter",
-        "frames read from the source",
-        c(d.frames_in),
-    );
-    w.family(
-        "visnav_frames_dropped_total",
-        "counter",
-        "frames dropped before a fix, by reason",
-    );
-    for (reason, v) in [
-        ("superseded", d.frames_superseded),
-        ("stale", d.frames_stale),
-        ("no_time", d.frames_no_time),
-    ] {
-        w.sample("visnav_frames_dropped_total", &[("reason", reason)], c(v));
-    }
-    w.single(
-        "visnav_frame_errors_total",
-        "counter",
-        "frames that could not be read",
-        c(d.frame_errors),
-    );
-    w.single(
-        "visnav_frames_frozen_total",
-        "counter",
-        "frames dropped as identical to the one before (a frozen camera)",
-        c(d.frames_frozen),
-    );
-    w.single(
-        "visnav_frame_queue_depth_max",
-        "gauge",
-        "largest number of frames waiting at once",
-        c(d.queue_depth_max),
-    );
-
-    // Fixes.
-    w.single(
-        "visnav_fixes_attempted_total",
-        "counter",
-        "frames given to the fix engine",
-        c(d.fixes_attempted),
-    );
-    w.family(
-        "visnav_fixes_total",
-        "counter",
-        "fixes the engine returned, by what the filter did with them",
-    );
-    for (outcome, v) in [
-        ("accepted", d.fixes_accepted),
-        ("filter_rejected", d.fixes_filter_rejected),
-        ("too_old", d.fixes_too_old),
-        ("invalid", d.fixes_invalid),
-        ("unused_before_init", d.fixes_unused_before_init),
-        ("dropped_at_shutdown", d.fixes_dropped_at_shutdown),
-    ] {
-        w.sample("visnav_fixes_total", &[("outcome", outcome)], c(v));
-    }
-    w.family(
-        "visnav_fix_engine_rejections_total",
-        "counter",
-        "fixes the engine rejected, by reason",
-    );
-    for (reason, v) in &d.engine_rejected {
-        w.sample(
-            "visnav_fix_engine_rejections_total",
-            &[("reason", reason)],
-            c(*v),
-        );
-    }
-    sequence(&mut w, &d.vo, "vo", "visual odometry", "motion");
-    sequence(&mut w, &d.dtm, "dtm", "DTM navigation", "pose");
-    w.family(
-        "visnav_fix_latency_seconds",
-        "summary",
-        "time from taking a frame to the fix report",
-    );
-    w.sample(
-        "visnav_fix_latency_seconds_sum",
-        &[],
-        d.fix_latency_ms_sum as f64 * 1e-3,
-    );
-    w.sample(
-        "visnav_fix_latency_seconds_count",
-        &[],
-        c(d.fix_latency_count),
-    );
-    w.single(
-        "visnav_fix_latency_last_seconds",
-        "gauge",
-        "frame-to-fix latency of the last fix",
-        d.fix_latency_ms_last as f64 * 1e-3,
-    );
-    w.single(
-        "visnav_fix_latency_max_seconds",
-        "gauge",
-        "largest frame-to-fix latency",
-        d.fix_latency_ms_max as f64 * 1e-3,
-    );
-
-    // Link.
-    let g = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed) as f64;
-    for (name, help, v) in [
-        (
-            "visnav_link_rx_packets_total",
-            "MAVLink packets received (any system)",
-            &link.rx_packets,
-        ),
-        (
-            "visnav_link_rx_autopilot_packets_total",
-            "MAVLink packets received from the locked autopilot",
-            &link.rx_autopilot,
-        ),
-        (
-            "visnav_link_tx_packets_total",
-            "MAVLink packets sent",
-            &link.tx_packets,
-        ),
-        (
-            "visnav_link_tx_errors_total",
-            "MAVLink send failures",
-            &link.tx_errors,
-        ),
-        (
-            "visnav_link_connects_total",
-            "connections established",
-            &link.connects,
-        ),
-        (
-            "visnav_link_autopilot_reboots_total",
-            "autopilot reboots detected",
-            &link.reboots,
-        ),
-        (
-            "visnav_inject_sent_total",
-            "injection messages sent (all output modes)",
-            &link.injected,
-        ),
-        (
-            "visnav_inject_refused_total",
-            "injections refused (invalid, stale or lost estimate)",
-            &link.inject_refused,
-        ),
-        (
-            "visnav_link_rx_stale_total",
-            "messages dropped as behind the autopilot clock (stale, replayed or spoofed)",
-            &link.rx_stale,
-        ),
-        (
-            "visnav_link_origins_refused_total",
-            "GPS_GLOBAL_ORIGIN messages refused as impossible",
-            &link.origins_refused,
-        ),
-        (
-            "visnav_link_utc_steps_total",
-            "steps of the autopilot UTC clock seen and not followed",
-            &link.utc_steps,
-        ),
-        (
-            "visnav_link_output_stamps_held_total",
-            "output time stamps moved forward to stay monotonic",
-            &link.output_stamps_held,
-        ),
-        (
-            "visnav_link_relocks_total",
-            "lock-on moved to another autopilot after the locked one fell silent",
-            &link.relocks,
-        ),
-    ] {
-        w.single(name, "counter", help, g(v));
-    }
-    w.single(
-        "visnav_link_timesync_rtt_seconds",
-        "gauge",
-        "last TIMESYNC round trip",
-        g(&link.timesync_rtt_us) * 1e-6,
-    );
-    w.single(
-        "visnav_link_autopilot_alive",
-        "gauge",
-        "1 while the autopilot heartbeat is current",
-        g(&link.autopilot_alive),
-    );
-    w.out
+/// The registry as exposition text (format 0.0.4).
+pub fn render(registry: &Registry) -> String {
+    visnav_link::metrics::render(registry)
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -521,12 +101,7 @@ fn reason(status: u16) -> &'static str {
 /// The full response to send.
 pub fn response(route: Route, render: impl FnOnce() -> String) -> Vec<u8> {
     let (status, ctype, body, head_only) = match route {
-        Route::Metrics { head_only } => (
-            200,
-            "text/plain; version=0.0.4; charset=utf-8",
-            render(),
-            head_only,
-        ),
+        Route::Metrics { head_only } => (200, CONTENT_TYPE, render(), head_only),
         Route::Status(s) => (
             s,
             "text/plain; charset=utf-8",
@@ -669,7 +244,8 @@ impl MetricsServer {
         daemon: Arc<DaemonMetrics>,
         link: Arc<LinkMetrics>,
     ) -> std::io::Result<Self> {
-        Ok(Endpoint::bind(addr).await?.serve(renderer(daemon, link)))
+        let reg = crate::metrics::registry(&daemon, &link);
+        Ok(Endpoint::bind(addr).await?.serve(renderer(reg)))
     }
 
     /// The address it listens on.
@@ -694,12 +270,9 @@ impl Drop for MetricsServer {
     }
 }
 
-/// The render function of the daemon's endpoint.
-pub fn renderer(
-    daemon: Arc<DaemonMetrics>,
-    link: Arc<LinkMetrics>,
-) -> Arc<dyn Fn() -> String + Send + Sync> {
-    Arc::new(move || render(&daemon.snapshot(), &link))
+/// The render function of an endpoint serving `registry`.
+pub fn renderer(registry: Registry) -> Arc<dyn Fn() -> String + Send + Sync> {
+    Arc::new(move || render(&registry))
 }
 
 #[cfg(test)]
@@ -707,19 +280,23 @@ mod tests {
     use super::*;
     use visnav_link::Health as LinkHealth;
 
-    fn sample_text() -> String {
+    /// Metrics with values, their registry and its text.
+    fn sample() -> (DaemonMetrics, LinkMetrics, String) {
         let d = DaemonMetrics::default();
-        d.imu_samples.store(1234, Ordering::Relaxed);
-        d.frames_stale.store(3, Ordering::Relaxed);
-        d.fixes_accepted.store(7, Ordering::Relaxed);
+        d.imu_samples.inc_by(1234);
+        d.frames_stale.inc_by(3);
+        d.fixes_accepted.inc_by(7);
         d.latency(250);
         d.latency(750);
         d.engine_reject("too few matches: 3 < 12");
         d.engine_reject("quote \" back\\slash\nnewline");
-        d.set_health(&LinkHealth::Degraded {
+        d.vo.time(20_000);
+        d.vo.refuse("only 3 tracks");
+        d.dtm.refuse("no relief");
+        d.health.set(&LinkHealth::Degraded {
             reason: "coasting".into(),
         });
-        *d.imu_bias.lock().unwrap() = Some(crate::imu_bias::RestoreStatus {
+        d.imu_bias.set(crate::imu_bias::RestoreStatus {
             paired: 10,
             unpaired: 2,
             bootstraps: 1,
@@ -730,40 +307,51 @@ mod tests {
             restoring: true,
         });
         let l = LinkMetrics::default();
-        l.rx_packets.store(99, Ordering::Relaxed);
-        l.timesync_rtt_us.store(1500, Ordering::Relaxed);
-        render(&d.snapshot(), &l)
+        l.rx_packets.inc_by(99);
+        l.timesync_rtt_us.set(1500);
+        let text = render(&crate::metrics::registry(&d, &l));
+        (d, l, text)
     }
 
     #[test]
     fn formatter_writes_valid_families_and_values() {
-        let t = sample_text();
+        let (_, _, t) = sample();
         let lines: Vec<&str> = t.lines().collect();
         assert!(t.ends_with('\n'));
         for want in [
+            "visnav_build_info{version=\"0.1.0\"} 1",
             "visnav_imu_samples_total 1234",
             "visnav_imu_bias_pairs_total 10",
             "visnav_imu_bias_unpaired_total 2",
             "visnav_imu_samples_not_restored_total 3",
-            "visnav_imu_bias_gyro_deg_per_hour{axis=\"x\"} 0",
-            "visnav_imu_bias_accel_mg{axis=\"z\"} 0",
+            "visnav_imu_bias_gyro_deg_per_hour{axis=\"x\"} 0.0",
+            "visnav_imu_bias_accel_mg{axis=\"z\"} 0.0",
             "visnav_imu_bias_age_seconds 2.5",
-            "visnav_imu_bias_restoring 1",
+            "visnav_imu_bias_restoring 1.0",
             "visnav_frames_dropped_total{reason=\"stale\"} 3",
+            "visnav_frames_dropped_total{reason=\"no_time\"} 0",
             "visnav_fixes_total{outcome=\"accepted\"} 7",
-            "visnav_fix_latency_seconds_sum 1",
+            "visnav_fix_latency_seconds_sum 1.0",
             "visnav_fix_latency_seconds_count 2",
+            "visnav_fix_latency_seconds_bucket{le=\"0.25\"} 1",
+            "visnav_fix_latency_seconds_bucket{le=\"1\"} 2",
             "visnav_fix_latency_last_seconds 0.75",
             "visnav_fix_latency_max_seconds 0.75",
             "visnav_nav_health{state=\"degraded\"} 1",
             "visnav_nav_health{state=\"ok\"} 0",
             "visnav_nav_health{state=\"none\"} 0",
+            "visnav_vo_frames_total{outcome=\"refused\"} 1",
+            "visnav_vo_refusals_total{reason=\"only N tracks\"} 1",
+            "visnav_vo_frame_seconds_count 1",
+            "visnav_vo_frame_seconds_max 0.02",
+            "visnav_dtm_poses_total{outcome=\"fused\"} 0",
             "visnav_link_rx_packets_total 99",
             "visnav_link_timesync_rtt_seconds 0.0015",
             "visnav_fix_engine_rejections_total{reason=\"too few matches: N < N\"} 1",
             "visnav_fix_engine_rejections_total{reason=\"quote \\\" back\\\\slash\\nnewline\"} 1",
-            "# TYPE visnav_fix_latency_seconds summary",
+            "# TYPE visnav_fix_latency_seconds histogram",
             "# TYPE visnav_nav_health gauge",
+            "# TYPE visnav_imu_samples_total counter",
         ] {
             assert!(lines.contains(&want), "missing {want:?} in\n{t}");
         }
@@ -787,8 +375,10 @@ mod tests {
             } else {
                 let name = l.split(['{', ' ']).next().unwrap();
                 let ok = name == family
-                    || (kind == "summary"
-                        && (name == format!("{family}_sum") || name == format!("{family}_count")));
+                    || (kind == "histogram"
+                        && ["_sum", "_count", "_bucket"]
+                            .iter()
+                            .any(|s| name == format!("{family}{s}")));
                 assert!(ok, "sample {l} outside its family {family}");
                 let v = l.rsplit(' ').next().unwrap();
                 assert!(v.parse::<f64>().is_ok_and(f64::is_finite), "{l}");
@@ -802,14 +392,30 @@ mod tests {
         assert_eq!(hot.len(), 1, "{hot:?}");
     }
 
+    /// Every metric declared in the registry is served with its HELP and TYPE (a counter as
+    /// `name_total`, a set of families by its prefix), and every served family has a sample.
     #[test]
-    fn numbers_and_escapes() {
-        assert_eq!(number(f64::NAN), "NaN");
-        assert_eq!(number(f64::INFINITY), "+Inf");
-        assert_eq!(number(f64::NEG_INFINITY), "-Inf");
-        assert_eq!(number(0.5), "0.5");
-        assert_eq!(number(3.0), "3");
-        assert_eq!(escape_label("a\"b\\c\nd"), "a\\\"b\\\\c\\nd");
+    fn every_registered_metric_is_served_with_help_and_type() {
+        let (_, _, t) = sample();
+        let helps: Vec<&str> = t
+            .lines()
+            .filter_map(|l| l.strip_prefix("# HELP ")?.split(' ').next())
+            .collect();
+        for f in &helps {
+            assert!(t.contains(&format!("\n# TYPE {f} ")), "{f}: no TYPE");
+            let sampled = t.lines().any(|l| !l.starts_with('#') && l.starts_with(f));
+            assert!(sampled, "{f}: no sample");
+        }
+        let declared = DaemonMetrics::NAMES.iter().chain(LinkMetrics::NAMES);
+        for name in declared.chain(&["visnav_build_info", "visnav_heap_bytes"]) {
+            let served = helps.iter().any(|h| {
+                h.strip_prefix(name)
+                    .is_some_and(|rest| rest.is_empty() || rest.starts_with('_'))
+            });
+            // The heap is counted only by the binary's allocator (not in unit tests).
+            assert!(served || *name == "visnav_heap_bytes", "{name} not served");
+        }
+        assert!(DaemonMetrics::NAMES.len() >= 25 && LinkMetrics::NAMES.len() == 15);
     }
 
     #[test]
@@ -880,7 +486,7 @@ mod tests {
             .await
             .unwrap();
         let addr = srv.local_addr();
-        d.imu_samples.store(5, Ordering::Relaxed);
+        d.imu_samples.inc_by(5);
         let r = ask(addr, b"GET /metrics HTTP/1.1\r\nHost: a\r\n\r\n").await;
         assert!(r.starts_with("HTTP/1.1 200 OK\r\n"), "{r}");
         assert!(r.contains("\nvisnav_imu_samples_total 5\n"), "{r}");

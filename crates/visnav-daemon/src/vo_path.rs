@@ -7,7 +7,7 @@
 //! noise and residual bias over the interval and what sampling the rates at the filter's output
 //! rate leaves unknown). Each result goes to
 //! the navigation task, which fuses a motion as a [`visnav_core::nav::VoFix`] and counts the
-//! rest (`metrics::VoMetrics`). A frozen camera's repeated frames never get here (the reader
+//! rest (`metrics::Sequence`). A frozen camera's repeated frames never get here (the reader
 //! drops them); a blank or torn frame gives no motion (too few tracks, or no consensus).
 //!
 //! The DTM navigator (`[dtm_nav] enabled`, [`DtmNavigator`]) runs on the same thread with the
@@ -16,7 +16,6 @@
 //! which the navigation task fuses as a pose measurement (`metrics.dtm`).
 
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use tokio::sync::mpsc;
@@ -175,10 +174,10 @@ fn vo_step(
     m.time(start.elapsed().as_micros() as u64);
     match &step {
         VoStep::Started => {
-            m.started.fetch_add(1, Ordering::Relaxed);
+            m.started.inc();
         }
         VoStep::Motion(_) => {
-            m.motions.fetch_add(1, Ordering::Relaxed);
+            m.motions.inc();
         }
         VoStep::Refused(why) => m.refuse(why),
     }
@@ -209,10 +208,10 @@ fn dtm_step(
     m.time(start.elapsed().as_micros() as u64);
     match &step {
         DtmStep::Waiting => {
-            m.started.fetch_add(1, Ordering::Relaxed);
+            m.started.inc();
         }
         DtmStep::Fix(_) => {
-            m.motions.fetch_add(1, Ordering::Relaxed);
+            m.motions.inc();
         }
         DtmStep::Refused(why) => m.refuse(why),
     }

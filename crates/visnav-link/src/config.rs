@@ -61,7 +61,8 @@ pub struct LinkConfig {
     /// replaced by the start time (Unix seconds).
     #[serde(default)]
     pub tlog: Option<PathBuf>,
-    /// Serve Prometheus metrics on this address (e.g. `127.0.0.1:9108`); absent = off.
+    /// Serve the link's Prometheus metrics alone on this address (e.g. `127.0.0.1:9108`); absent =
+    /// off. (`daemon.metrics_listen` serves them with the daemon's.)
     #[serde(default)]
     pub metrics_listen: Option<String>,
 }

@@ -1,154 +1,542 @@
-//! Link counters and an optional Prometheus text-format endpoint (`GET /metrics`, off by default).
-//! The exposition format: <https://prometheus.io/docs/instrumenting/exposition_formats/>.
+//! visnav's metrics: the building blocks of its one registry (`prometheus-client`'s
+//! [`Registry`], rendered in the Prometheus text format 0.0.4 by [`render`]) and the link's
+//! metrics ([`Metrics`]).
+//!
+//! A set of metrics is declared once with [`metric_set!`](crate::metric_set): per metric its
+//! field, kind, Prometheus name, help and (for a member of a labelled counter family) its label.
+//! The macro makes the live structure (the handles: atomics, updated from any task or thread
+//! without a lock), its registration into a [`Registry`] and a typed copy of the values (the
+//! snapshot, serialisable). Adding a metric is one line there and its use sites.
+//!
+//! Kinds ([`Declare`]): [`Counter`] (names without `_total`: the encoder appends it),
+//! [`Gauge`] (an integer in the program's unit, exposed divided by a divisor: µs / 1e6 as
+//! seconds),
+//! [`Histogram`] (durations in the program's unit, Prometheus' default buckets in seconds),
+//! [`Reasons`] (a counter family by `reason`, at most [`MAX_REASONS`] wordings).
+//! Counters of one name with different labels form one family.
+//!
+//! The link's own endpoint (`link.metrics_listen`, [`serve`]) renders a registry with the link's
+//! metrics alone; `visnav run`'s endpoint (`daemon.metrics_listen`) registers them beside the
+//! daemon's in one registry.
 
-use std::fmt::Write as _;
+use std::collections::BTreeMap;
 use std::net::SocketAddr;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 
+use prometheus_client::encoding::{EncodeMetric, MetricEncoder, NoLabelSet};
+use prometheus_client::metrics::MetricType;
+use prometheus_client::registry::Metric;
+use serde::Serialize;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpListener;
 
-/// Counters and gauges of the link (all atomics; cheap to update from any task).
+pub use prometheus_client::collector::Collector;
+pub use prometheus_client::metrics::counter::Counter;
+pub use prometheus_client::registry::Registry;
+
+/// The `Content-Type` of [`render`]'s text.
+pub const CONTENT_TYPE: &str = prometheus_client::encoding::prometheus_text::CONTENT_TYPE;
+
+/// Distinct reasons a [`Reasons`] family keeps; later wordings count as `other`.
+pub const MAX_REASONS: usize = 64;
+
+/// Histogram bucket bounds, seconds (Prometheus' default buckets).
+pub const BUCKETS_S: [f64; 11] = [
+    0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
+];
+
+/// The registry as Prometheus text (format 0.0.4).
+pub fn render(registry: &Registry) -> String {
+    let mut out = String::new();
+    // Writing into a String cannot fail; a metric's own encode error leaves what was written.
+    let _ = prometheus_client::encoding::prometheus_text::encode(&mut out, registry);
+    out
+}
+
+/// One kind of metric: created with its unit divisor, registered under a name, read as a value.
+pub trait Declare {
+    /// The value in a snapshot.
+    type Value;
+    /// A new metric; the program's unit divided by `divisor` is the exposed one (1 for counts).
+    fn new(divisor: f64) -> Self;
+    /// Register in `r` as `name` (`label`: a counter family's `(label, value)`).
+    fn declare(&self, r: &mut Registrar, name: &'static str, help: &'static str, label: Label);
+    /// The current value.
+    fn value(&self) -> Self::Value;
+}
+
+/// A family member's label and value.
+pub type Label = Option<(&'static str, &'static str)>;
+
+/// The members (label value, counter) of one labelled counter family, shared with its collector.
+type FamilyMembers = Arc<Mutex<Vec<(&'static str, Counter)>>>;
+
+/// Registers metrics in a [`Registry`]; counters of one name with labels form one family.
+pub struct Registrar<'a> {
+    reg: &'a mut Registry,
+    families: Vec<(String, FamilyMembers)>,
+}
+
+impl<'a> Registrar<'a> {
+    /// Register into `reg`.
+    pub fn new(reg: &'a mut Registry) -> Self {
+        Self {
+            reg,
+            families: Vec::new(),
+        }
+    }
+
+    /// Register one metric.
+    pub fn metric(&mut self, name: impl Into<String>, help: impl Into<String>, m: impl Metric) {
+        self.reg.register(name, help, m);
+    }
+
+    /// Register a collector (metrics found at each scrape).
+    pub fn collector(&mut self, c: impl Collector) {
+        self.reg.register_collector(Box::new(c));
+    }
+
+    /// Add `counter` to the family `name` with `label = value` (the family is registered with its
+    /// first member).
+    pub fn member(
+        &mut self,
+        name: &str,
+        help: &str,
+        (label, value): (&'static str, &'static str),
+        counter: &Counter,
+    ) {
+        let members = match self.families.iter().find(|(n, _)| *n == name) {
+            Some((_, m)) => m.clone(),
+            None => {
+                let m = Arc::new(Mutex::new(Vec::new()));
+                self.families.push((name.to_string(), m.clone()));
+                self.reg.register(
+                    name,
+                    help,
+                    CounterFamily {
+                        label,
+                        members: m.clone(),
+                    },
+                );
+                m
+            }
+        };
+        lock(&members).push((value, counter.clone()));
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Counters with fixed label values under one name (filled at registration; read at a scrape).
+#[derive(Debug)]
+struct CounterFamily {
+    label: &'static str,
+    members: FamilyMembers,
+}
+
+impl EncodeMetric for CounterFamily {
+    fn encode(&self, mut encoder: MetricEncoder) -> Result<(), std::fmt::Error> {
+        let members: Vec<(&str, u64)> = lock(&self.members)
+            .iter()
+            .map(|(v, c)| (*v, c.get()))
+            .collect();
+        for (value, n) in members {
+            encode_count(&mut encoder, [(self.label, value)], n)?;
+        }
+        Ok(())
+    }
+
+    fn metric_type(&self) -> MetricType {
+        MetricType::Counter
+    }
+}
+
+/// One sample of a counter family.
+pub fn encode_count(
+    encoder: &mut MetricEncoder,
+    labels: [(&str, &str); 1],
+    n: u64,
+) -> Result<(), std::fmt::Error> {
+    encoder
+        .encode_family(&labels)?
+        .encode_counter::<NoLabelSet, u64, u64>(&n, None)
+}
+
+impl Declare for Counter {
+    type Value = u64;
+
+    fn new(_divisor: f64) -> Self {
+        Counter::default()
+    }
+
+    fn declare(&self, r: &mut Registrar, name: &'static str, help: &'static str, label: Label) {
+        match label {
+            Some(l) => r.member(name, help, l, self),
+            None => r.metric(name, help, self.clone()),
+        }
+    }
+
+    fn value(&self) -> u64 {
+        self.get()
+    }
+}
+
+/// A gauge: an integer in the program's unit, exposed divided by its divisor (µs -> seconds:
+/// 1e6).
+#[derive(Debug, Clone)]
+pub struct Gauge {
+    value: Arc<AtomicU64>,
+    divisor: f64,
+}
+
+impl Gauge {
+    /// Set the value.
+    pub fn set(&self, v: u64) {
+        self.value.store(v, Ordering::Relaxed);
+    }
+
+    /// Raise the value to `v` if it is lower.
+    pub fn max(&self, v: u64) {
+        self.value.fetch_max(v, Ordering::Relaxed);
+    }
+
+    /// The value (program's unit).
+    pub fn get(&self) -> u64 {
+        self.value.load(Ordering::Relaxed)
+    }
+}
+
+impl EncodeMetric for Gauge {
+    fn encode(&self, mut encoder: MetricEncoder) -> Result<(), std::fmt::Error> {
+        if self.divisor == 1.0 {
+            encoder.encode_gauge(&self.get())
+        } else {
+            encoder.encode_gauge(&(self.get() as f64 / self.divisor))
+        }
+    }
+
+    fn metric_type(&self) -> MetricType {
+        MetricType::Gauge
+    }
+}
+
+impl Declare for Gauge {
+    type Value = u64;
+
+    fn new(divisor: f64) -> Self {
+        Self {
+            value: Arc::default(),
+            divisor,
+        }
+    }
+
+    fn declare(&self, r: &mut Registrar, name: &'static str, help: &'static str, _: Label) {
+        r.metric(name, help, self.clone());
+    }
+
+    fn value(&self) -> u64 {
+        self.get()
+    }
+}
+
+/// A histogram of durations in the program's unit (ms, µs), bucketed in seconds ([`BUCKETS_S`]).
+#[derive(Debug, Clone)]
+pub struct Histogram {
+    inner: Arc<HistogramCells>,
+    divisor: f64,
+}
+
 #[derive(Debug, Default)]
-pub struct Metrics {
-    /// Packets received (any system).
-    pub rx_packets: AtomicU64,
-    /// Packets received from the locked autopilot.
-    pub rx_autopilot: AtomicU64,
-    /// Packets sent.
-    pub tx_packets: AtomicU64,
-    /// Send failures.
-    pub tx_errors: AtomicU64,
-    /// Connections (re)established.
-    pub connects: AtomicU64,
-    /// Autopilot reboots detected.
-    pub reboots: AtomicU64,
-    /// Injection messages sent (all modes).
-    pub injected: AtomicU64,
-    /// Injections refused (invalid, stale or lost estimate).
-    pub inject_refused: AtomicU64,
-    /// Last TIMESYNC round trip, µs.
-    pub timesync_rtt_us: AtomicU64,
-    /// 1 while the autopilot's heartbeat is current.
-    pub autopilot_alive: AtomicU64,
-    /// Messages dropped because their boot time was behind the autopilot's clock (stale,
-    /// replayed or spoofed; `time::BootClock`).
-    pub rx_stale: AtomicU64,
-    /// GPS_GLOBAL_ORIGIN messages refused (coordinates outside the Earth's).
-    pub origins_refused: AtomicU64,
-    /// Steps of the autopilot's UTC clock (SYSTEM_TIME) seen and not followed.
-    pub utc_steps: AtomicU64,
-    /// Output stamps moved forward so that output time never goes back.
-    pub output_stamps_held: AtomicU64,
-    /// Lock-on changes (the locked autopilot fell silent and another took its place).
-    pub relocks: AtomicU64,
+struct HistogramCells {
+    /// Per bucket (not cumulative); the last is above the largest bound.
+    buckets: [AtomicU64; BUCKETS_S.len() + 1],
+    /// Sum of the observations, program's unit.
+    sum: AtomicU64,
+}
+
+/// A histogram in a snapshot (program's unit).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct HistogramValues {
+    /// Observations.
+    pub count: u64,
+    /// Their sum.
+    pub sum: u64,
+    /// Their mean (0 without any).
+    pub mean: f64,
+}
+
+impl Histogram {
+    /// Record one observation.
+    pub fn observe(&self, v: u64) {
+        let s = v as f64 / self.divisor;
+        let i = BUCKETS_S
+            .iter()
+            .position(|b| s <= *b)
+            .unwrap_or(BUCKETS_S.len());
+        self.inner.buckets[i].fetch_add(1, Ordering::Relaxed);
+        self.inner.sum.fetch_add(v, Ordering::Relaxed);
+    }
+
+    fn counts(&self) -> [u64; BUCKETS_S.len() + 1] {
+        std::array::from_fn(|i| self.inner.buckets[i].load(Ordering::Relaxed))
+    }
+}
+
+impl EncodeMetric for Histogram {
+    fn encode(&self, mut encoder: MetricEncoder) -> Result<(), std::fmt::Error> {
+        let counts = self.counts();
+        let buckets: Vec<(f64, u64)> = BUCKETS_S
+            .iter()
+            .chain([f64::INFINITY].iter())
+            .copied()
+            .zip(counts)
+            .collect();
+        let sum = self.inner.sum.load(Ordering::Relaxed) as f64 / self.divisor;
+        encoder.encode_histogram::<NoLabelSet>(sum, counts.iter().sum(), &buckets, None)
+    }
+
+    fn metric_type(&self) -> MetricType {
+        MetricType::Histogram
+    }
+}
+
+impl Declare for Histogram {
+    type Value = HistogramValues;
+
+    fn new(divisor: f64) -> Self {
+        Self {
+            inner: Arc::default(),
+            divisor,
+        }
+    }
+
+    fn declare(&self, r: &mut Registrar, name: &'static str, help: &'static str, _: Label) {
+        r.metric(name, help, self.clone());
+    }
+
+    fn value(&self) -> HistogramValues {
+        let count: u64 = self.counts().iter().sum();
+        let sum = self.inner.sum.load(Ordering::Relaxed);
+        HistogramValues {
+            count,
+            sum,
+            mean: if count > 0 {
+                sum as f64 / count as f64
+            } else {
+                0.0
+            },
+        }
+    }
+}
+
+/// A counter family by `reason`: each reason counted by its wording ([`reason_wording`]: every
+/// number becomes `N`, so reasons group), at most [`MAX_REASONS`] wordings (then `other`).
+#[derive(Debug, Clone, Default)]
+pub struct Reasons {
+    counts: Arc<Mutex<BTreeMap<String, u64>>>,
+}
+
+impl Reasons {
+    /// Count one `reason`.
+    pub fn count(&self, reason: &str) {
+        let worded = reason_wording(reason);
+        let mut m = lock(&self.counts);
+        let key = if m.len() < MAX_REASONS || m.contains_key(&worded) {
+            worded
+        } else {
+            "other".to_string()
+        };
+        *m.entry(key).or_default() += 1;
+    }
+
+    /// All reasons counted.
+    pub fn total(&self) -> u64 {
+        lock(&self.counts).values().sum()
+    }
+}
+
+impl EncodeMetric for Reasons {
+    fn encode(&self, mut encoder: MetricEncoder) -> Result<(), std::fmt::Error> {
+        for (reason, n) in self.value() {
+            encode_count(&mut encoder, [("reason", reason.as_str())], n)?;
+        }
+        Ok(())
+    }
+
+    fn metric_type(&self) -> MetricType {
+        MetricType::Counter
+    }
+}
+
+impl Declare for Reasons {
+    type Value = BTreeMap<String, u64>;
+
+    fn new(_divisor: f64) -> Self {
+        Self::default()
+    }
+
+    fn declare(&self, r: &mut Registrar, name: &'static str, help: &'static str, _: Label) {
+        r.metric(name, help, self.clone());
+    }
+
+    fn value(&self) -> BTreeMap<String, u64> {
+        lock(&self.counts).clone()
+    }
+}
+
+/// `reason` with each number (digits with an optional sign and decimals) replaced by `N`.
+pub fn reason_wording(reason: &str) -> String {
+    let mut out = String::with_capacity(reason.len());
+    let mut chars = reason.chars().peekable();
+    while let Some(c) = chars.next() {
+        let sign_digit = (c == '-' || c == '+') && chars.peek().is_some_and(|d| d.is_ascii_digit());
+        if c.is_ascii_digit() || sign_digit {
+            while chars
+                .peek()
+                .is_some_and(|d| d.is_ascii_digit() || *d == '.')
+            {
+                chars.next();
+            }
+            out.push('N');
+        } else {
+            out.push(c);
+        }
+    }
+    out
+}
+
+/// Declare a set of metrics once: the live structure (`pub struct Live => Snapshot`), its
+/// `register(&self, &mut Registry)`, `snapshot(&self) -> Snapshot` and `Default`.
+///
+/// Each entry: `field: Kind "name" "help"`, then optionally `["label" = "value"]` (a member of
+/// the counter family `name`) and `/ divisor` (the program's unit divided by it is the exposed
+/// one: `/ 1e3` for ms as seconds). `Kind` implements [`Declare`].
+#[macro_export]
+macro_rules! metric_set {
+    (
+        $(#[$meta:meta])*
+        pub struct $live:ident => $snap:ident {
+            $(
+                $(#[$fmeta:meta])*
+                $field:ident: $kind:ident $name:literal $help:literal
+                    $([$label:literal = $value:literal])? $(/ $divisor:literal)?
+            ),* $(,)?
+        }
+    ) => {
+        $(#[$meta])*
+        #[derive(Debug, Clone)]
+        pub struct $live {
+            $( $(#[$fmeta])* pub $field: $kind, )*
+        }
+
+        /// A copy of the values (`snapshot()`), in the program's units.
+        #[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+        pub struct $snap {
+            $(
+                $(#[$fmeta])*
+                pub $field: <$kind as $crate::metrics::Declare>::Value,
+            )*
+        }
+
+        impl Default for $live {
+            fn default() -> Self {
+                Self {
+                    $(
+                        $field: <$kind as $crate::metrics::Declare>::new(
+                            $crate::metric_set!(@divisor $($divisor)?),
+                        ),
+                    )*
+                }
+            }
+        }
+
+        impl $live {
+            /// The declared names (a family's once per member).
+            pub const NAMES: &[&str] = &[$($name),*];
+
+            /// Register every metric in `reg` (the handles are shared: updates show there).
+            pub fn register(&self, reg: &mut $crate::metrics::Registry) {
+                let mut r = $crate::metrics::Registrar::new(reg);
+                $(
+                    $crate::metrics::Declare::declare(
+                        &self.$field,
+                        &mut r,
+                        $name,
+                        $help,
+                        $crate::metric_set!(@label $([$label = $value])?),
+                    );
+                )*
+            }
+
+            /// Copy the values.
+            pub fn snapshot(&self) -> $snap {
+                $snap {
+                    $( $field: $crate::metrics::Declare::value(&self.$field), )*
+                }
+            }
+        }
+    };
+    (@divisor) => { 1.0 };
+    (@divisor $d:literal) => { $d };
+    (@label) => { None };
+    (@label [$l:literal = $v:literal]) => { Some(($l, $v)) };
+}
+
+crate::metric_set! {
+    /// The link's counters and gauges (atomics; cheap to update from any task).
+    pub struct Metrics => MetricsSnapshot {
+        /// Packets received (any system).
+        rx_packets: Counter "visnav_link_rx_packets" "MAVLink packets received (any system)",
+        /// Packets received from the locked autopilot.
+        rx_autopilot: Counter "visnav_link_rx_autopilot_packets"
+            "MAVLink packets received from the locked autopilot",
+        /// Packets sent.
+        tx_packets: Counter "visnav_link_tx_packets" "MAVLink packets sent",
+        /// Send failures.
+        tx_errors: Counter "visnav_link_tx_errors" "MAVLink send failures",
+        /// Connections (re)established.
+        connects: Counter "visnav_link_connects" "connections established",
+        /// Autopilot reboots detected.
+        reboots: Counter "visnav_link_autopilot_reboots" "autopilot reboots detected",
+        /// Injection messages sent (all modes).
+        injected: Counter "visnav_inject_sent" "injection messages sent (all output modes)",
+        /// Injections refused (invalid, stale or lost estimate).
+        inject_refused: Counter "visnav_inject_refused"
+            "injections refused (invalid, stale or lost estimate)",
+        /// Messages dropped because their boot time was behind the autopilot's clock (stale,
+        /// replayed or spoofed; `time::BootClock`).
+        rx_stale: Counter "visnav_link_rx_stale"
+            "messages dropped as behind the autopilot clock (stale, replayed or spoofed)",
+        /// GPS_GLOBAL_ORIGIN messages refused (coordinates outside the Earth's).
+        origins_refused: Counter "visnav_link_origins_refused"
+            "GPS_GLOBAL_ORIGIN messages refused as impossible",
+        /// Steps of the autopilot's UTC clock (SYSTEM_TIME) seen and not followed.
+        utc_steps: Counter "visnav_link_utc_steps"
+            "steps of the autopilot UTC clock seen and not followed",
+        /// Output stamps moved forward so that output time never goes back.
+        output_stamps_held: Counter "visnav_link_output_stamps_held"
+            "output time stamps moved forward to stay monotonic",
+        /// Lock-on changes (the locked autopilot fell silent and another took its place).
+        relocks: Counter "visnav_link_relocks"
+            "lock-on moved to another autopilot after the locked one fell silent",
+        /// Last TIMESYNC round trip, µs.
+        timesync_rtt_us: Gauge "visnav_link_timesync_rtt_seconds" "last TIMESYNC round trip"
+            / 1e6,
+        /// 1 while the autopilot's heartbeat is current.
+        autopilot_alive: Gauge "visnav_link_autopilot_alive"
+            "1 while the autopilot heartbeat is current",
+    }
 }
 
 impl Metrics {
-    /// Render in the Prometheus text format.
+    /// The link's metrics alone as Prometheus text.
     pub fn render(&self) -> String {
-        let mut s = String::new();
-        let items: [(&str, &str, &str, &AtomicU64); 15] = [
-            (
-                "visnav_link_rx_packets_total",
-                "counter",
-                "MAVLink packets received",
-                &self.rx_packets,
-            ),
-            (
-                "visnav_link_rx_autopilot_packets_total",
-                "counter",
-                "packets from the locked autopilot",
-                &self.rx_autopilot,
-            ),
-            (
-                "visnav_link_tx_packets_total",
-                "counter",
-                "MAVLink packets sent",
-                &self.tx_packets,
-            ),
-            (
-                "visnav_link_tx_errors_total",
-                "counter",
-                "send failures",
-                &self.tx_errors,
-            ),
-            (
-                "visnav_link_connects_total",
-                "counter",
-                "connections established",
-                &self.connects,
-            ),
-            (
-                "visnav_link_autopilot_reboots_total",
-                "counter",
-                "autopilot reboots detected",
-                &self.reboots,
-            ),
-            (
-                "visnav_inject_sent_total",
-                "counter",
-                "injection messages sent",
-                &self.injected,
-            ),
-            (
-                "visnav_inject_refused_total",
-                "counter",
-                "injections refused",
-                &self.inject_refused,
-            ),
-            (
-                "visnav_link_timesync_rtt_us",
-                "gauge",
-                "last TIMESYNC round trip in microseconds",
-                &self.timesync_rtt_us,
-            ),
-            (
-                "visnav_link_autopilot_alive",
-                "gauge",
-                "1 while the autopilot heartbeat is current",
-                &self.autopilot_alive,
-            ),
-            (
-                "visnav_link_rx_stale_total",
-                "counter",
-                "messages dropped as behind the autopilot clock",
-                &self.rx_stale,
-            ),
-            (
-                "visnav_link_origins_refused_total",
-                "counter",
-                "GPS_GLOBAL_ORIGIN messages refused as impossible",
-                &self.origins_refused,
-            ),
-            (
-                "visnav_link_utc_steps_total",
-                "counter",
-                "steps of the autopilot UTC clock not followed",
-                &self.utc_steps,
-            ),
-            (
-                "visnav_link_output_stamps_held_total",
-                "counter",
-                "output time stamps moved forward to stay monotonic",
-                &self.output_stamps_held,
-            ),
-            (
-                "visnav_link_relocks_total",
-                "counter",
-                "lock-on moved to another autopilot",
-                &self.relocks,
-            ),
-        ];
-        for (name, kind, help, v) in items {
-            let _ = writeln!(
-                s,
-                "# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {}",
-                v.load(Ordering::Relaxed)
-            );
-        }
-        s
+        let mut reg = Registry::default();
+        self.register(&mut reg);
+        render(&reg)
     }
 }
 
@@ -160,12 +548,15 @@ pub async fn serve(
 ) -> std::io::Result<(SocketAddr, tokio::task::JoinHandle<()>)> {
     let listener = TcpListener::bind(addr).await?;
     let local = listener.local_addr()?;
+    let mut reg = Registry::default();
+    metrics.register(&mut reg);
+    let reg = Arc::new(reg);
     let task = tokio::spawn(async move {
         loop {
             let Ok((mut sock, _)) = listener.accept().await else {
                 continue;
             };
-            let m = metrics.clone();
+            let reg = reg.clone();
             tokio::spawn(async move {
                 let mut buf = [0u8; 1024];
                 let n = match tokio::time::timeout(
@@ -179,12 +570,12 @@ pub async fn serve(
                 };
                 let req = String::from_utf8_lossy(&buf[..n]);
                 let (status, body) = if req.starts_with("GET /metrics") {
-                    ("200 OK", m.render())
+                    ("200 OK", render(&reg))
                 } else {
                     ("404 Not Found", "see /metrics\n".to_string())
                 };
                 let resp = format!(
-                    "HTTP/1.1 {status}\r\nContent-Type: text/plain; version=0.0.4\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+                    "HTTP/1.1 {status}\r\nContent-Type: {CONTENT_TYPE}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
                     body.len()
                 );
                 let _ = sock.write_all(resp.as_bytes()).await;
@@ -202,7 +593,8 @@ mod tests {
     #[tokio::test]
     async fn serves_prometheus_text() {
         let m = Arc::new(Metrics::default());
-        m.tx_packets.store(7, Ordering::Relaxed);
+        m.tx_packets.inc_by(7);
+        m.timesync_rtt_us.set(1500);
         let (addr, task) = serve("127.0.0.1:0".parse().unwrap(), m).await.unwrap();
         let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
         s.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")
@@ -211,10 +603,74 @@ mod tests {
         let mut body = String::new();
         s.read_to_string(&mut body).await.unwrap();
         assert!(body.starts_with("HTTP/1.1 200"), "{body}");
-        assert!(
-            body.contains("\nvisnav_link_tx_packets_total 7\n"),
-            "{body}"
-        );
+        for want in [
+            "\n# TYPE visnav_link_tx_packets_total counter\n",
+            "\nvisnav_link_tx_packets_total 7\n",
+            "\nvisnav_link_timesync_rtt_seconds 0.0015\n",
+        ] {
+            assert!(body.contains(want), "{want:?} missing in {body}");
+        }
         task.abort();
+    }
+
+    #[test]
+    fn families_histograms_and_reasons() {
+        crate::metric_set! {
+            /// Test set.
+            pub struct T => TSnap {
+                /// a
+                a: Counter "x_events" "events by kind" ["kind" = "a"],
+                /// b
+                b: Counter "x_events" "events by kind" ["kind" = "b"],
+                /// t, ms
+                t: Histogram "x_seconds" "time" / 1e3,
+                /// r
+                r: Reasons "x_refusals" "refusals by reason",
+            }
+        }
+        let m = T::default();
+        m.a.inc();
+        m.b.inc_by(2);
+        m.t.observe(20);
+        m.t.observe(3000);
+        for i in 0..100 {
+            m.r.count(&format!("only {i} left"));
+        }
+        let mut reg = Registry::default();
+        m.register(&mut reg);
+        let text = render(&reg);
+        for want in [
+            "# TYPE x_events_total counter",
+            "x_events_total{kind=\"a\"} 1",
+            "x_events_total{kind=\"b\"} 2",
+            "# TYPE x_seconds histogram",
+            "x_seconds_bucket{le=\"0.025\"} 1",
+            "x_seconds_bucket{le=\"2.5\"} 1",
+            "x_seconds_bucket{le=\"5\"} 2",
+            "x_seconds_bucket{le=\"+Inf\"} 2",
+            "x_seconds_sum 3.02",
+            "x_seconds_count 2",
+            "x_refusals_total{reason=\"only N left\"} 100",
+        ] {
+            assert!(
+                text.lines().any(|l| l == want),
+                "{want:?} missing in\n{text}"
+            );
+        }
+        assert_eq!(text.matches("# TYPE x_events_total").count(), 1, "{text}");
+        assert_eq!(
+            T::NAMES,
+            ["x_events", "x_events", "x_seconds", "x_refusals"]
+        );
+        let s = m.snapshot();
+        assert_eq!((s.a, s.b), (1, 2));
+        assert_eq!((s.t.count, s.t.sum, s.t.mean), (2, 3020, 1510.0));
+        assert_eq!(s.r.len(), 1);
+        let many = Reasons::default();
+        for i in 0..MAX_REASONS + 5 {
+            many.count(&"x".repeat(i + 1));
+        }
+        assert_eq!(many.value().len(), MAX_REASONS + 1);
+        assert_eq!(many.value()["other"], 5);
     }
 }

@@ -468,9 +468,7 @@ impl Shared {
         let alive = st
             .last_heartbeat
             .is_some_and(|t| t.elapsed().as_secs_f64() < self.cfg.heartbeat_timeout_s);
-        self.metrics
-            .autopilot_alive
-            .store(u64::from(alive), Ordering::Relaxed);
+        self.metrics.autopilot_alive.set(u64::from(alive));
         let new = LinkStatus {
             connected,
             autopilot: st.autopilot,
@@ -515,7 +513,7 @@ impl Shared {
         match conn.send_raw(&MAVLinkMessageRaw::V2(raw)).await {
             Ok(n) => {
                 if n > 0 {
-                    self.metrics.tx_packets.fetch_add(1, Ordering::Relaxed);
+                    self.metrics.tx_packets.inc();
                     if let Some(t) = lock(&self.tlog).as_mut()
                         && let Err(e) = t.write(unix_now_us(), &bytes)
                     {
@@ -525,7 +523,7 @@ impl Shared {
                 Ok(())
             }
             Err(e) => {
-                self.metrics.tx_errors.fetch_add(1, Ordering::Relaxed);
+                self.metrics.tx_errors.inc();
                 Err(LinkError::Send(e.to_string()))
             }
         }
@@ -568,7 +566,7 @@ impl Shared {
         let steps_before = st.utc.steps;
         let unix_us = st.utc.unix_us(t_boot_us, companion_unix_minus_boot);
         if st.utc.steps > steps_before {
-            self.metrics.utc_steps.fetch_add(1, Ordering::Relaxed);
+            self.metrics.utc_steps.inc();
             warn!("the companion's system clock stepped; GPS_INPUT keeps its UTC");
         }
         let unix_us = unix_us.map(|u| st.stamp_unix.stamp(u));
@@ -578,7 +576,8 @@ impl Shared {
             .to_companion_ns(est.t_boot_us)
             .and_then(|ns| u64::try_from(ns / 1000).ok())
             .map(|us| st.stamp_validity.stamp(us));
-        self.metrics.output_stamps_held.store(
+        // A counter kept as the stamps' own running total (monotonic).
+        self.metrics.output_stamps_held.inner().store(
             st.stamp_boot.held + st.stamp_unix.held + st.stamp_validity.held,
             Ordering::Relaxed,
         );
@@ -598,7 +597,7 @@ impl Shared {
         let Some(now) = self.send_time(est) else {
             self.metrics
                 .inject_refused
-                .fetch_add(self.out.modes.len() as u64, Ordering::Relaxed);
+                .inc_by(self.out.modes.len() as u64);
             return self
                 .out
                 .modes
@@ -656,7 +655,7 @@ impl Shared {
                     let name = m.message_name();
                     match self.send(&m).await {
                         Ok(()) => {
-                            self.metrics.injected.fetch_add(1, Ordering::Relaxed);
+                            self.metrics.injected.inc();
                             Ok(name)
                         }
                         Err(e) => {
@@ -668,7 +667,7 @@ impl Shared {
                     }
                 }
                 Err(e) => {
-                    self.metrics.inject_refused.fetch_add(1, Ordering::Relaxed);
+                    self.metrics.inject_refused.inc();
                     debug!("inject {mode:?} refused: {e}");
                     Err(e)
                 }
@@ -762,7 +761,7 @@ impl Shared {
     }
 
     fn record_rx(&self, raw: &MAVLinkMessageRaw) {
-        self.metrics.rx_packets.fetch_add(1, Ordering::Relaxed);
+        self.metrics.rx_packets.inc();
         let bytes = match raw {
             MAVLinkMessageRaw::V1(m) => m.raw_bytes(),
             MAVLinkMessageRaw::V2(m) => m.raw_bytes(),
@@ -808,7 +807,7 @@ impl Shared {
         };
         let name = autopilot_name(hb.autopilot);
         if relock {
-            self.metrics.relocks.fetch_add(1, Ordering::Relaxed);
+            self.metrics.relocks.inc();
             warn!("the locked autopilot fell silent; locking onto {name} sys {sys} comp {comp}");
             // A different autopilot: its clock, streams and origin are its own.
             st.boot.reset();
@@ -851,7 +850,7 @@ impl Shared {
         if sys != ap.0 || header.component_id != ap.1 {
             return;
         }
-        self.metrics.rx_autopilot.fetch_add(1, Ordering::Relaxed);
+        self.metrics.rx_autopilot.inc();
         let conn = lock(&self.conn).clone();
         if let Some(c) = conn {
             let silence = Duration::from_secs_f64(self.cfg.heartbeat_timeout_s);
@@ -871,7 +870,7 @@ impl Shared {
             match verdict {
                 BootVerdict::Current => {}
                 BootVerdict::Stale => {
-                    self.metrics.rx_stale.fetch_add(1, Ordering::Relaxed);
+                    self.metrics.rx_stale.inc();
                     debug!("dropped a message behind the autopilot's clock");
                     return;
                 }
@@ -901,7 +900,7 @@ impl Shared {
                     if let Some(step_us) =
                         st.utc.observe_system_time(m.time_unix_usec, m.time_boot_ms)
                     {
-                        self.metrics.utc_steps.fetch_add(1, Ordering::Relaxed);
+                        self.metrics.utc_steps.inc();
                         let text = format!(
                             "visnav: autopilot clock stepped {:+.3} s, not followed",
                             step_us as f64 * 1e-6
@@ -929,10 +928,9 @@ impl Shared {
                             received_companion_ns: t_ns,
                         });
                         if u == SyncUpdate::Accepted {
-                            self.metrics.timesync_rtt_us.store(
-                                (st.timesync.last_rtt_ns / 1000.0) as u64,
-                                Ordering::Relaxed,
-                            );
+                            self.metrics
+                                .timesync_rtt_us
+                                .set((st.timesync.last_rtt_ns / 1000.0) as u64);
                         }
                     }
                 }
@@ -948,7 +946,7 @@ impl Shared {
                         st.origin_from_autopilot = true;
                     }
                     Err(why) => {
-                        let n = self.metrics.origins_refused.fetch_add(1, Ordering::Relaxed) + 1;
+                        let n = self.metrics.origins_refused.inc() + 1;
                         warn!("GPS_GLOBAL_ORIGIN refused: {why}");
                         if n.is_power_of_two() {
                             texts.push((
@@ -965,7 +963,7 @@ impl Shared {
             }
         }
         if rebooted {
-            self.metrics.reboots.fetch_add(1, Ordering::Relaxed);
+            self.metrics.reboots.inc();
             warn!(
                 "autopilot rebooted (several streams on a new clock); time sync and streams reset"
             );
@@ -1247,7 +1245,7 @@ async fn supervise(shared: Arc<Shared>, mut stop: watch::Receiver<bool>) {
         };
         match connected {
             Ok(conn) => {
-                shared.metrics.connects.fetch_add(1, Ordering::Relaxed);
+                shared.metrics.connects.inc();
                 info!(%addr, "connected");
                 let started = Instant::now();
                 run_connection(&shared, Arc::new(conn), &mut stop).await;

@@ -1819,12 +1819,11 @@ fn fault_counters(
     m: &visnav_daemon::metrics::MetricsSnapshot,
     link: &visnav_link::metrics::Metrics,
 ) -> FaultCounters {
-    use std::sync::atomic::Ordering::Relaxed;
     FaultCounters {
         autopilot_reboots: m.autopilot_reboots,
-        relocks: link.relocks.load(Relaxed),
-        utc_steps: link.utc_steps.load(Relaxed),
-        rx_stale: link.rx_stale.load(Relaxed),
+        relocks: link.relocks.get(),
+        utc_steps: link.utc_steps.get(),
+        rx_stale: link.rx_stale.get(),
         imu_timeouts: m.imu_timeouts,
         frames_frozen: m.frames_frozen,
         gps_input_time_backsteps: received.gps_time_backsteps,

@@ -157,12 +157,14 @@ impl Base {
         )
     }
 
-    /// What is wrong with the file `f` (relative to this base), if anything: it does not exist,
-    /// is not a regular file or cannot be examined.
-    pub fn file_problem(&self, f: &Path) -> Option<String> {
-        match std::fs::metadata(self.resolve(f)) {
-            Ok(m) if m.is_file() => None,
-            Ok(_) => Some(self.problem(f, "is not a regular file")),
+    /// What is wrong with the file `f` (relative to this base), if anything, given what
+    /// examining its resolved path found (`is_file`: whether it is a regular file; the caller
+    /// does the I/O, e.g. `std::fs::metadata(base.resolve(f)).map(|m| m.is_file())`): it does
+    /// not exist, is not a regular file or cannot be examined.
+    pub fn file_problem(&self, f: &Path, is_file: std::io::Result<bool>) -> Option<String> {
+        match is_file {
+            Ok(true) => None,
+            Ok(false) => Some(self.problem(f, "is not a regular file")),
             Err(e) => Some(self.io_problem(f, &e)),
         }
     }
@@ -192,19 +194,26 @@ fn absolute(f: &Path) -> PathBuf {
 mod tests {
     use super::*;
 
+    fn examine(base: &Base, f: &str) -> std::io::Result<bool> {
+        std::fs::metadata(base.resolve(Path::new(f))).map(|m| m.is_file())
+    }
+
     #[test]
     fn a_path_problem_names_the_value_the_resolved_path_and_the_rule() {
         let base = Base::config_file(Path::new("/home/pi/visnav/config/visnav.toml"));
         assert_eq!(base.dir(), Path::new("/home/pi/visnav/config"));
         assert_eq!(
-            base.file_problem(Path::new("maps/x.vnm")).as_deref(),
+            base.file_problem(Path::new("maps/x.vnm"), examine(&base, "maps/x.vnm"))
+                .as_deref(),
             Some(
                 "\"maps/x.vnm\": /home/pi/visnav/config/maps/x.vnm does not exist (paths in the \
                  config are relative to the config file's folder)"
             )
         );
         assert_eq!(base.resolve(Path::new("/abs.vnm")), Path::new("/abs.vnm"));
-        let dir = base.file_problem(Path::new("/")).unwrap_or_default();
+        let dir = base
+            .file_problem(Path::new("/"), examine(&base, "/"))
+            .unwrap_or_default();
         assert!(dir.ends_with("/ is not a regular file (paths in the config are relative to the config file's folder)"), "{dir}");
     }
 

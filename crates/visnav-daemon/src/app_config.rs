@@ -224,7 +224,8 @@ fn check_serial_device(p: &mut Problems, connection: &str) {
 }
 
 fn check_file(p: &mut Problems, key: &str, base: &Base, f: &Path) {
-    if let Some(why) = base.file_problem(f) {
+    if let Some(why) = base.file_problem(f, std::fs::metadata(base.resolve(f)).map(|m| m.is_file()))
+    {
         p.push(key, why);
     }
 }
@@ -253,6 +254,26 @@ impl Config {
         Self::from_toml_str_with(text, path, &Overrides::default())
     }
 
+    /// Put the overridden values in (parsed, not yet validated): `--map` replaces `[map] file`
+    /// and drops what only building a map from orthophotos uses.
+    fn apply_overrides(&mut self, o: &Overrides) -> Result<(), OverrideError> {
+        if let Some(g) = &o.connection {
+            self.link.connection = g.value.clone();
+        }
+        if let Some(g) = &o.map {
+            self.map.file = Some(g.value.clone());
+            self.map.ortho.clear();
+            self.map.upsample = None;
+            self.map.height_sigma_m = None;
+        }
+        let size = (
+            self.camera.width_px as usize,
+            self.camera.height_px as usize,
+        );
+        self.frames = o.frames(self.frames.take(), size)?;
+        Ok(())
+    }
+
     /// Parse TOML text, apply the command-line / environment overrides, validate the result and
     /// make its paths absolute (the file's against its folder, the overrides' against the
     /// current directory).
@@ -262,8 +283,7 @@ impl Config {
         overrides: &Overrides,
     ) -> Result<Config, ConfigError> {
         let mut cfg = Self::parse(text, path, overrides)?;
-        overrides
-            .apply(&mut cfg)
+        cfg.apply_overrides(overrides)
             .map_err(|error| ConfigError::Override {
                 path: path.to_path_buf(),
                 error,

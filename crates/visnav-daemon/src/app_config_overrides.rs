@@ -4,7 +4,7 @@
 //! `VISNAV_MAP`, `VISNAV_CAMERA`. The command line beats the environment, which beats the file.
 //!
 //! They are applied to the parsed configuration before its validation
-//! ([`crate::app_config::Config::load_checked_with`]), so the validation sees the final values
+//! (`Config::load_checked_with` in `app_config`), so the validation sees the final values
 //! and its messages name the override (`link.connection (from --connection): ...`). A relative
 //! path in an override is relative to the current directory, not to the config file's folder.
 //!
@@ -25,8 +25,6 @@ use std::path::PathBuf;
 
 use visnav_core::validate::{Base, Invalid};
 use visnav_io::frames::{FramesConfig, SourceKind, StampMode};
-
-use crate::app_config::Config;
 
 /// Where an override's value came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -172,32 +170,27 @@ impl Overrides {
         }
     }
 
-    /// Put the overridden values into `cfg` (parsed, not yet validated).
-    pub(crate) fn apply(&self, cfg: &mut Config) -> Result<(), OverrideError> {
-        if let Some(g) = &self.connection {
-            cfg.link.connection = g.value.clone();
-        }
-        if let Some(g) = &self.map {
-            cfg.map.file = Some(g.value.clone());
-            cfg.map.ortho.clear();
-            cfg.map.upsample = None;
-            cfg.map.height_sigma_m = None;
-        }
-        if let Some(g) = &self.camera {
-            let size = (cfg.camera.width_px as usize, cfg.camera.height_px as usize);
-            let new = FramesConfig::from_spec(&g.value, &Base::current_dir(), size).map_err(
-                |reason| OverrideError {
-                    origin: g.origin,
-                    value: g.value.clone(),
-                    reason,
-                },
-            )?;
-            cfg.frames = Some(match cfg.frames.take() {
-                Some(old) => with_source_of(old, new),
-                None => new,
-            });
-        }
-        Ok(())
+    /// The frame source after the `--camera` override (the file's `frames` when there is none;
+    /// `size`: the camera's image size, px). `Config::apply_overrides` puts every override in.
+    pub(crate) fn frames(
+        &self,
+        file: Option<FramesConfig>,
+        size: (usize, usize),
+    ) -> Result<Option<FramesConfig>, OverrideError> {
+        let Some(g) = &self.camera else {
+            return Ok(file);
+        };
+        let new = FramesConfig::from_spec(&g.value, &Base::current_dir(), size).map_err(|e| {
+            OverrideError {
+                origin: g.origin,
+                value: g.value.clone(),
+                reason: e.to_string(),
+            }
+        })?;
+        Ok(Some(match file {
+            Some(old) => with_source_of(old, new),
+            None => new,
+        }))
     }
 
     /// Name the override in a problem with a value it set: `link.connection (from

@@ -257,6 +257,11 @@ fn default_timeout_s() -> f64 {
     5.0
 }
 
+/// Whether `p` is a regular file (the OS error when it cannot be examined).
+fn is_file(p: &Path) -> std::io::Result<bool> {
+    std::fs::metadata(p).map(|m| m.is_file())
+}
+
 /// Is `prog` an executable name found in `PATH`?
 fn in_path(prog: &str) -> bool {
     std::env::var_os("PATH")
@@ -325,7 +330,8 @@ impl FramesConfig {
                 }
             }
             SourceKind::Y4m => {
-                if let Some(why) = base.file_problem(&self.path) {
+                if let Some(why) = base.file_problem(&self.path, is_file(&base.resolve(&self.path)))
+                {
                     p.push("path", why);
                 }
             }
@@ -345,7 +351,9 @@ impl FramesConfig {
             "pipeline"
         };
         if prog.contains('/') {
-            if let Some(why) = base.file_problem(Path::new(&prog)) {
+            if let Some(why) =
+                base.file_problem(Path::new(&prog), is_file(&base.resolve(Path::new(&prog))))
+            {
                 p.push(key, format!("the program {why}"));
             }
         } else if !in_path(&prog) {
@@ -404,14 +412,16 @@ impl FramesConfig {
     /// | `cmd:PROGRAM ARG...` (or `command:`) | `command`, split at whitespace (no shell) |
     ///
     /// A bare PATH is relative to `base`. Every other key has its default.
-    pub fn from_spec(spec: &str, base: &Base, size: (usize, usize)) -> Result<Self, String> {
+    pub fn from_spec(spec: &str, base: &Base, size: (usize, usize)) -> Result<Self, SpecError> {
         let spec = spec.trim();
         let (kind, rest) = match spec.split_once(':') {
             Some((k, rest)) if SPEC_KINDS.contains(&k) => (k, rest.trim()),
             _ => return Self::from_path_spec(spec, base),
         };
         if rest.is_empty() {
-            return Err(format!("nothing after \"{kind}:\"; {SPEC_FORMS}"));
+            return Err(SpecError(format!(
+                "nothing after \"{kind}:\"; {SPEC_FORMS}"
+            )));
         }
         Ok(match kind {
             "dir" => Self::new(SourceKind::Directory, rest),
@@ -435,9 +445,9 @@ impl FramesConfig {
     }
 
     /// A spec without a kind: a folder of frames or a `.y4m` file.
-    fn from_path_spec(spec: &str, base: &Base) -> Result<Self, String> {
+    fn from_path_spec(spec: &str, base: &Base) -> Result<Self, SpecError> {
         if spec.is_empty() {
-            return Err(format!("empty; {SPEC_FORMS}"));
+            return Err(SpecError(format!("empty; {SPEC_FORMS}")));
         }
         let path = Path::new(spec);
         let is_y4m = path
@@ -448,14 +458,19 @@ impl FramesConfig {
         } else if base.resolve(path).is_dir() {
             Ok(Self::new(SourceKind::Directory, path))
         } else {
-            Err(format!(
+            Err(SpecError(format!(
                 "{} is neither a folder of frames nor a .y4m file ({}); {SPEC_FORMS}",
                 base.resolve(path).display(),
                 base.rule()
-            ))
+            )))
         }
     }
 }
+
+/// A `--camera` spec that names no frame source; the message says which forms there are.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub struct SpecError(pub String);
 
 /// The kinds a `--camera` spec may start with (`KIND:...`).
 const SPEC_KINDS: [&str; 7] = ["dir", "y4m", "v4l2", "gst", "gstreamer", "cmd", "command"];
@@ -2441,10 +2456,10 @@ mod tests {
             ["ffmpeg", "-i", "/dev/video0", "-f", "yuv4mpegpipe", "-"]
         );
         for bad in ["", "nothing-here", "/dev/video0", "v4l2:", "cmd:  "] {
-            let e = spec(bad).unwrap_err();
+            let e = spec(bad).unwrap_err().to_string();
             assert!(e.contains("v4l2:DEVICE"), "{bad}: {e}");
         }
-        let e = spec("nothing-here").unwrap_err();
+        let e = spec("nothing-here").unwrap_err().to_string();
         assert!(
             e.contains(&d.path().join("nothing-here").display().to_string())
                 && e.contains("relative to the config file's folder"),

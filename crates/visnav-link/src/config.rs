@@ -301,11 +301,16 @@ impl LinkConfig {
     pub fn validate_in(&self, base: &Base, p: &mut Problems) {
         self.validate(p);
         if let Some(s) = &self.signing {
-            let why = base.file_problem(&s.key_file).or_else(|| {
-                crate::signing::load_key(&base.resolve(&s.key_file))
-                    .err()
-                    .map(|e| e.to_string())
-            });
+            let why = base
+                .file_problem(
+                    &s.key_file,
+                    std::fs::metadata(base.resolve(&s.key_file)).map(|m| m.is_file()),
+                )
+                .or_else(|| {
+                    crate::signing::load_key(&base.resolve(&s.key_file))
+                        .err()
+                        .map(|e| e.to_string())
+                });
             if let Some(why) = why {
                 p.push("signing.key_file", why);
             }

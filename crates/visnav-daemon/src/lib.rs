@@ -595,7 +595,10 @@ pub async fn run(
     };
     info!("shutting down: {why}");
     let m = d.shutdown().await;
-    info!(?m, "final counters");
+    match serde_json::to_string(&m) {
+        Ok(json) => info!("final counters: {json}"),
+        Err(e) => info!("final counters: cannot be written as JSON: {e}"),
+    }
     Ok(m)
 }
 

@@ -20,6 +20,8 @@ pub mod run;
 #[cfg(feature = "sim")]
 pub mod sim;
 #[cfg(feature = "sim")]
+pub mod sim_standalone;
+#[cfg(feature = "sim")]
 pub mod sitl_run;
 
 /// A file of the repository (`sitl/maps/...`, `../shared/data/...`): relative to the working

@@ -43,6 +43,18 @@ pub struct SimArgs {
     /// sensors' noise and faults (a seed sweep); the camera's rendering keeps its own seed.
     #[arg(long)]
     pub seed: Option<u64>,
+    /// Render the closed-loop scenario's camera frames at the true pose into DIR (PNG files,
+    /// frames.csv with t_boot_us on the autopilot emulator's boot clock, frames_truth.jsonl) and
+    /// exit: the camera of `--autopilot-only` for a `visnav run` of your own (docs/first-flight.md,
+    /// "A first run against the simulated autopilot").
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["autopilot_only", "json", "out", "monte_carlo", "realtime", "vo"])]
+    pub write_frames: Option<PathBuf>,
+    /// Run only the closed-loop scenario's autopilot emulator, in real time, on CONNECTION (e.g.
+    /// udpout:127.0.0.1:14550, where config/sim-autopilot.toml listens): a simulated autopilot for
+    /// a `visnav run` of your own. At the scenario's end (or Ctrl-C) it scores the positions it
+    /// received against the truth.
+    #[arg(long, value_name = "CONNECTION", conflicts_with_all = ["out", "monte_carlo", "realtime", "vo"])]
+    pub autopilot_only: Option<String>,
 }
 
 pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
@@ -58,6 +70,18 @@ pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
             vo.enabled = v == "on";
             cl.vo = Some(vo);
         }
+    }
+    if sc.closed_loop.is_none() && (args.write_frames.is_some() || args.autopilot_only.is_some()) {
+        anyhow::bail!(
+            "--write-frames and --autopilot-only need a closed-loop scenario ([closed_loop] section); {} has none",
+            path.display()
+        );
+    }
+    if let Some(dir) = &args.write_frames {
+        return crate::cli::sim_standalone::write_frames(&sc, &path, dir);
+    }
+    if let Some(connection) = &args.autopilot_only {
+        return crate::cli::sim_standalone::autopilot_only(&sc, &path, connection, args.json);
     }
     if sc.closed_loop.is_some() {
         return closed_loop(&sc, &path, &args);

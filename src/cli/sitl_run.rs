@@ -157,6 +157,7 @@ pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
             max_age_s: args.max_age_s,
             workers: args.workers.max(1),
             lockstep_latency: None,
+            release: visnav_daemon::frames::Release::AsRead,
         };
         let daemon = Daemon::start_with(
             DaemonSetup::from_config(&cfg),

@@ -55,6 +55,18 @@ pub enum GpsSource {
     None,
 }
 
+impl std::fmt::Display for GpsSource {
+    /// The configuration's spelling, with the message it reads.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            GpsSource::Auto => "auto",
+            GpsSource::Gps1 => "gps1 (GPS_RAW_INT)",
+            GpsSource::Gps2 => "gps2 (GPS2_RAW)",
+            GpsSource::None => "none (no GPS aiding)",
+        })
+    }
+}
+
 /// Whether the autopilot's bias estimates are added back to HIGHRES_IMU.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]

@@ -22,7 +22,7 @@ pub use crate::handoff::{PriorSource, Slot, Take};
 use crate::metrics::DaemonMetrics;
 use visnav_core::fix::{FixPrior, FixReport};
 use visnav_core::vision::GrayImage;
-use visnav_io::frames::{Frame, FrameError, FrameSource};
+use visnav_io::frames::{CaptureTime, Frame, FrameError, FrameSource};
 use visnav_link::Clock;
 
 /// Recognises a frozen camera: an image bit-identical to the previous one. A live sensor's
@@ -81,14 +81,66 @@ pub struct FixResult {
     pub latency_ms: u64,
 }
 
+/// When the reader hands on a frame stamped on the autopilot's boot clock.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Release {
+    /// As the source delivers it (the source paces itself).
+    AsRead,
+    /// When the autopilot's clock reaches the frame's capture time; frames taken longer than
+    /// `max_age_s` before the clock's present are skipped (`visnav_io::frames::
+    /// releases_on_autopilot_clock`).
+    OnAutopilotClock { max_age_s: f64 },
+}
+
+/// What [`wait_for_capture_time`] decided.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Due {
+    Now,
+    /// Older than the largest age: skip it.
+    Stale,
+    Stopped,
+}
+
+/// The longest single sleep while waiting for the autopilot's clock, so `stop` is seen.
+const RELEASE_POLL: Duration = Duration::from_millis(20);
+
+/// Waits until the autopilot's clock reaches `t_capture_us` (module doc of `Release`).
+fn wait_for_capture_time(
+    clock: &Clock,
+    t_capture_us: u64,
+    max_age_s: f64,
+    stop: &AtomicBool,
+) -> Due {
+    loop {
+        if stop.load(Ordering::Relaxed) {
+            return Due::Stopped;
+        }
+        let Some(now) = clock.autopilot_now_us() else {
+            std::thread::sleep(RELEASE_POLL);
+            continue;
+        };
+        if now >= t_capture_us {
+            let age_s = (now - t_capture_us) as f64 * 1e-6;
+            return if age_s > max_age_s {
+                Due::Stale
+            } else {
+                Due::Now
+            };
+        }
+        std::thread::sleep(Duration::from_micros(t_capture_us - now).min(RELEASE_POLL));
+    }
+}
+
 /// The reader thread: source -> slot until the source ends, fails or `stop` is set. It starts
 /// reading once the link's clock mapping is available (frames before that could not be stamped
 /// on the autopilot clock).
+#[allow(clippy::too_many_arguments)]
 pub fn spawn_reader(
     mut source: Box<dyn FrameSource>,
     slot: Arc<Slot<Frame>>,
     vo_slot: Option<Arc<Slot<Frame>>>,
     lossless: bool,
+    release: Release,
     clock: Clock,
     stop: Arc<AtomicBool>,
     metrics: Arc<DaemonMetrics>,
@@ -106,9 +158,30 @@ pub fn spawn_reader(
             }
             info!("frames: {}", source.describe());
             let mut freeze = FreezeDetector::default();
+            let mut skipped_before_now = 0u64;
             while !stop.load(Ordering::Relaxed) {
                 match source.next_frame() {
                     Ok(Some(f)) => {
+                        if let (Release::OnAutopilotClock { max_age_s }, CaptureTime::AutopilotBootUs(t)) =
+                            (release, f.t_capture)
+                        {
+                            match wait_for_capture_time(&clock, t, max_age_s, &stop) {
+                                Due::Now => {}
+                                Due::Stale => {
+                                    skipped_before_now += 1;
+                                    metrics.frames_stale.inc();
+                                    continue;
+                                }
+                                Due::Stopped => break,
+                            }
+                            if skipped_before_now > 0 {
+                                info!(
+                                    "frames: skipped the {skipped_before_now} frames taken before the autopilot's clock reached {:.1} s",
+                                    t as f64 * 1e-6
+                                );
+                                skipped_before_now = 0;
+                            }
+                        }
                         metrics.frames_in.inc();
                         if freeze.repeats(&f.image, f.seq) {
                             metrics.frames_frozen.inc();

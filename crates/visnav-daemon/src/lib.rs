@@ -171,6 +171,8 @@ pub struct FramePipeline {
     /// its blocking pool, results delivered this long after capture (`frames::lockstep_frames`)
     /// instead of the reader and worker threads. `None`: the threads (real time).
     pub lockstep_latency: Option<Duration>,
+    /// When the reader hands on frames stamped on the autopilot's boot clock.
+    pub release: frames::Release,
 }
 
 impl FramePipeline {
@@ -182,6 +184,13 @@ impl FramePipeline {
             max_age_s: cfg.max_age_s,
             workers: cfg.workers,
             lockstep_latency: None,
+            release: if visnav_io::frames::releases_on_autopilot_clock(cfg) {
+                frames::Release::OnAutopilotClock {
+                    max_age_s: cfg.max_age_s,
+                }
+            } else {
+                frames::Release::AsRead
+            },
         })
     }
 }
@@ -293,7 +302,7 @@ impl Daemon {
             (_, f) => f,
         };
         let gps = setup.daemon.gps_source(&setup.output);
-        info!(?gps, "GPS aiding source");
+        info!("GPS aiding source: {gps}");
         let fix_log = fixlog::JsonLinesLog::open_configured(setup.daemon.fix_log.as_deref())
             .map_err(|(path, source)| DaemonError::FixLog {
                 path,
@@ -462,6 +471,7 @@ impl Daemon {
                     slot.clone(),
                     vo_slot,
                     fp.lossless,
+                    fp.release,
                     link.clock(),
                     stop_threads.clone(),
                     metrics.clone(),

@@ -654,12 +654,29 @@ pub fn open(cfg: &FramesConfig) -> Result<Box<dyn FrameSource>, FrameError> {
             "stamp = \"source\" needs a directory source with t_boot_us times".into(),
         ));
     }
+    if !stamp_arrival && cfg.realtime {
+        // Frames on the autopilot's boot clock: the daemon releases each when that clock
+        // reaches it ([`releases_on_autopilot_clock`]), not this pacer.
+        let mut p = Paced::new(inner, false, None, false);
+        p.on_autopilot_clock = true;
+        return Ok(Box::new(p));
+    }
     Ok(Box::new(Paced::new(
         inner,
         cfg.realtime,
         cfg.rate_hz,
         stamp_arrival,
     )))
+}
+
+/// Whether the daemon releases this configuration's frames on the autopilot's clock: a directory
+/// with `t_boot_us` times read with `stamp = "source"` in real time. Each frame is then handed on
+/// when the autopilot's boot clock (through TIMESYNC) reaches its capture time, and frames taken
+/// longer than `max_age_s` before the clock's present are skipped: a recording made on this
+/// autopilot's boot clock (a SITL flight replayed with its camera) lines up with the flight
+/// whenever the daemon starts. `rate_hz` is not used.
+pub fn releases_on_autopilot_clock(cfg: &FramesConfig) -> bool {
+    cfg.stamp == StampMode::Source && cfg.realtime && cfg.source == SourceKind::Directory
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -674,6 +691,8 @@ pub struct Paced {
     stamp_arrival: bool,
     start: Option<(Instant, f64)>,
     n: u64,
+    /// Not paced here: the daemon releases the frames on the autopilot's clock (describe only).
+    on_autopilot_clock: bool,
 }
 
 impl Paced {
@@ -691,6 +710,7 @@ impl Paced {
             stamp_arrival,
             start: None,
             n: 0,
+            on_autopilot_clock: false,
         }
     }
 }
@@ -721,6 +741,9 @@ impl FrameSource for Paced {
 
     fn describe(&self) -> String {
         let pace = match (self.realtime, self.rate_hz) {
+            _ if self.on_autopilot_clock => {
+                "each released when the autopilot's clock reaches its t_boot_us".to_string()
+            }
             (false, _) => "as fast as processed".to_string(),
             (true, Some(r)) => format!("at {r} Hz"),
             (true, None) => "at the recorded rate".to_string(),

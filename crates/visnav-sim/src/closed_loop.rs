@@ -80,6 +80,9 @@ use serde::Serialize;
 use tracing::{Instrument, info, warn};
 
 mod recording;
+mod standalone;
+
+pub use standalone::{AutopilotOnlyReport, FramesWritten, autopilot_only, write_frames};
 
 /// The vision daemon's VO log in the log folder (`[daemon] vo_log`), with VO on.
 pub const VO_LOG_FILE: &str = "vo.jsonl";
@@ -100,7 +103,7 @@ use super::faults::{
 use super::fixeval::{Stats, percentile};
 use super::imu::ImuErrors;
 use super::render::{ColourMode, Renderer, Scene};
-use super::scenario::GpsConfig;
+use super::scenario::{ClosedLoopConfig, GpsConfig};
 use visnav_core::fix::{FixPrior, FixReport};
 use visnav_core::nav::NavOutput;
 use visnav_core::rng::Rng;
@@ -1207,29 +1210,12 @@ fn hnorm(e: &[f64; 3]) -> f64 {
     e[0].hypot(e[1])
 }
 
-/// Runs the scenario's closed loop. `base` is the scenario file's folder (for its paths).
-pub async fn run(
-    sc: &Scenario,
+/// The scenario's daemon configuration (`[closed_loop] config`) with `map_ortho` and
+/// `map_upsample` applied, and the configuration file's path.
+pub(crate) fn scenario_config(
+    cl: &ClosedLoopConfig,
     base: &Path,
-    logs: Option<&Path>,
-) -> Result<ClosedLoopRun, ClosedLoopError> {
-    // Never stopped early: the sender lives until the run ends.
-    let (_keep, stop) = tokio::sync::watch::channel(false);
-    run_until_stopped(sc, base, logs, stop).await
-}
-
-/// [`run`], ended early when `stop` turns true (a Ctrl-C): the flight so far is scored and
-/// reported as usual, with `interrupted_at_s` in the summary.
-pub async fn run_until_stopped(
-    sc: &Scenario,
-    base: &Path,
-    logs: Option<&Path>,
-    stop: tokio::sync::watch::Receiver<bool>,
-) -> Result<ClosedLoopRun, ClosedLoopError> {
-    let cl = sc
-        .closed_loop
-        .as_ref()
-        .ok_or(ClosedLoopError::NotClosedLoop)?;
+) -> Result<(Config, PathBuf), ClosedLoopError> {
     let setup_err = ClosedLoopError::Setup;
     let cfg_path = visnav_core::validate::resolve(base, &cl.config);
     let mut cfg =
@@ -1268,6 +1254,28 @@ pub async fn run_until_stopped(
         // The value (1, 2 or 4) is checked by `Scenario::parse`.
         cfg.map.upsample = Some(n);
     }
+    Ok((cfg, cfg_path))
+}
+
+/// The simulated camera of a scenario: the camera-year scene, the renderer of the configured
+/// camera, the scene's CRS, the mount, and the track plot's background.
+pub(crate) struct CameraRig {
+    pub scene: Arc<Scene>,
+    pub renderer: Arc<Renderer>,
+    pub crs: visnav_io::geo::Crs,
+    pub mount: visnav_core::camera::Mount,
+    pub background: Option<(image::RgbImage, [f64; 4])>,
+}
+
+/// The scenario's [`CameraRig`] (`[closed_loop] camera_ortho`, `camera_dem` or
+/// `camera_ground_height_amsl_m`, `[closed_loop.render]`, the configuration's `[camera]`).
+pub(crate) fn camera_rig(
+    cl: &ClosedLoopConfig,
+    base: &Path,
+    cfg: &Config,
+    cfg_path: &Path,
+) -> Result<CameraRig, ClosedLoopError> {
+    let setup_err = ClosedLoopError::Setup;
     let cam_ortho = visnav_core::validate::resolve(base, &cl.camera_ortho);
     if cfg.map.ortho.iter().any(|m| same_file(m, &cam_ortho)) {
         return Err(setup_err(format!(
@@ -1312,6 +1320,47 @@ pub async fn run_until_stopped(
         Renderer::new(camera, cl.render)
             .map_err(|e| setup_err(format!("[closed_loop.render]: {e}")))?,
     );
+    Ok(CameraRig {
+        scene,
+        renderer,
+        crs,
+        mount,
+        background,
+    })
+}
+
+/// Runs the scenario's closed loop. `base` is the scenario file's folder (for its paths).
+pub async fn run(
+    sc: &Scenario,
+    base: &Path,
+    logs: Option<&Path>,
+) -> Result<ClosedLoopRun, ClosedLoopError> {
+    // Never stopped early: the sender lives until the run ends.
+    let (_keep, stop) = tokio::sync::watch::channel(false);
+    run_until_stopped(sc, base, logs, stop).await
+}
+
+/// [`run`], ended early when `stop` turns true (a Ctrl-C): the flight so far is scored and
+/// reported as usual, with `interrupted_at_s` in the summary.
+pub async fn run_until_stopped(
+    sc: &Scenario,
+    base: &Path,
+    logs: Option<&Path>,
+    stop: tokio::sync::watch::Receiver<bool>,
+) -> Result<ClosedLoopRun, ClosedLoopError> {
+    let cl = sc
+        .closed_loop
+        .as_ref()
+        .ok_or(ClosedLoopError::NotClosedLoop)?;
+    let (cfg, cfg_path) = scenario_config(cl, base)?;
+    let CameraRig {
+        scene,
+        renderer,
+        crs,
+        mount,
+        background,
+    } = camera_rig(cl, base, &cfg, &cfg_path)?;
+    let setup_err = ClosedLoopError::Setup;
     info!(
         "building the vision fix engine (map) from {}",
         cfg_path.display()
@@ -1430,6 +1479,7 @@ pub async fn run_until_stopped(
         lockstep_latency: cl
             .lockstep
             .then(|| Duration::from_secs_f64(cl.lockstep_fix_latency_s.max(0.0))),
+        release: visnav_daemon::frames::Release::AsRead,
     };
     // Visual odometry: the scenario's `[closed_loop.vo]` for the vision run (the control has no
     // camera).

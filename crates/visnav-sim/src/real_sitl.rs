@@ -91,6 +91,15 @@ pub enum SitlKind {
     Px4,
 }
 
+impl std::fmt::Display for SitlKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            SitlKind::ArduPilot => "ardupilot",
+            SitlKind::Px4 => "px4",
+        })
+    }
+}
+
 impl SitlKind {
     /// The message ids to request on the truth connection.
     pub fn requested_ids(self) -> &'static [u32] {
@@ -367,7 +376,7 @@ impl TruthLink {
                 cause: source,
             })?;
         conn.set_allow_recv_any_version(true);
-        info!(connection = %cfg.connection, kind = ?cfg.kind, "truth connection open");
+        info!(connection = %cfg.connection, kind = %cfg.kind, "truth connection open");
         let shared = Arc::new(SharedTruth::default());
         let (stop, stop_rx) = watch::channel(false);
         let task = tokio::spawn(run(Arc::new(conn), cfg, shared.clone(), stop_rx));

@@ -32,7 +32,7 @@ fn every_example_config_passes() {
                 && l.contains("does not exist")
                 && !repo().join("sim-frames").is_dir())
                 || (l.starts_with("link.connection: the serial device")
-                && l.contains("No such file or directory"))
+                    && l.contains("No such file or directory"))
                 || (l.starts_with("link.tlog:")
                     && l.contains("/var/log/visnav/")
                     && l.contains("in a folder that does not exist")

@@ -49,7 +49,9 @@
 //! 000002.png,81334567
 //! ```
 //! * `t_boot_us`: capture time on the autopilot's boot clock, integer microseconds (what the
-//!   autopilot's CAMERA_FEEDBACK / a hardware trigger logs). Usable with `stamp = "source"`.
+//!   autopilot's CAMERA_FEEDBACK / a hardware trigger logs). Usable with `stamp = "source"`: in
+//!   real time the daemon then releases each frame when the connected autopilot's clock reaches
+//!   it and skips those taken more than `max_age_s` before ([`releases_on_autopilot_clock`]).
 //! * `t_s`: capture time in seconds from any origin (e.g. the companion's clock when recorded);
 //!   only the differences are used, for pacing; frames are then stamped on arrival.
 //!

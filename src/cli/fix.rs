@@ -161,7 +161,7 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
         None => FixParams::default(),
     };
     let image = GrayImage::load(&a.image)
-        .with_context(|| format!("loading the frame {}", a.image.display()))?;
+        .context("loading the frame")?;
     if image.width() != camera.width_px() as usize || image.height() != camera.height_px() as usize
     {
         bail!(

@@ -489,7 +489,8 @@ impl Validate for FramesConfig {
             SourceKind::V4l2 if !cfg!(feature = "v4l2") => p.push(
                 "source",
                 "v4l2: direct V4L2 capture is not built into this binary (cargo feature \"v4l2\"); \
-                 use source = \"gstreamer\" (pipeline = \"v4l2src device=/dev/video0\") or \"command\"",
+                 use source = \"gstreamer\" (pipeline = \"v4l2src device=/dev/video0\"; on the \
+                 command line --camera \"gst:v4l2src device=/dev/video0\") or \"command\"",
             ),
             SourceKind::V4l2 => {
                 if self.path.as_os_str().is_empty() {
@@ -610,7 +611,8 @@ pub fn open(cfg: &FramesConfig) -> Result<Box<dyn FrameSource>, FrameError> {
             return Err(FrameError::NotBuilt {
                 kind: "v4l2",
                 reason: "no direct V4L2 backend is compiled in (cargo feature \"v4l2\"); use \
-                         source = \"gstreamer\" or \"command\""
+                         source = \"gstreamer\" (--camera \"gst:v4l2src device=/dev/video0\") \
+                         or \"command\""
                     .into(),
             });
         }

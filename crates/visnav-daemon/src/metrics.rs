@@ -110,9 +110,11 @@ visnav_link::metric_set! {
 }
 
 impl DaemonMetrics {
-    /// Count one engine rejection.
+    /// Count one engine rejection, by its class (`visnav_core::fix::rejection_class`: the
+    /// first check that refused, without its numbers; the same classes as `visnav sim`'s).
     pub fn engine_reject(&self, reason: &str) {
-        self.engine_rejected.count(reason);
+        self.engine_rejected
+            .count(&visnav_core::fix::rejection_class(reason));
     }
 
     /// Record one fix latency.
@@ -560,6 +562,14 @@ mod tests {
         let s = m.snapshot();
         assert_eq!(s.engine_rejected.len(), 1);
         assert_eq!(s.engine_rejected["only N features in the frame"], 200);
+        // The area correlation's fallback reason and the details after the check's name are not
+        // counted apart.
+        m.engine_reject(
+            "rejected: position sigma check failed: horizontal 3-sigma 61 m > maximum 50 m; \
+             area: rejected: position sigma check failed: horizontal 3-sigma 70 m > maximum 50 m",
+        );
+        let s = m.snapshot();
+        assert_eq!(s.engine_rejected["position sigma check failed"], 1);
     }
 
     use super::*;

@@ -120,32 +120,7 @@ use visnav_io::geo::geotiff::load_geotiff;
 const TRUTH_DT_S: f64 = 0.005;
 /// Extra truth beyond the scenario's end (the daemons stop a little later), s.
 const TRUTH_MARGIN_S: f64 = 30.0;
-/// The class of a rejected fix attempt's reason, for counting rejections by reason: the first
-/// check that refused it (the feature path's; the area correlation's, after `; area:`, is its
-/// fallback and not counted apart), without its numbers. "rejected: inlier count check failed: 9
-/// inliers < minimum 12" becomes "inlier count check failed"; "only 24 matches where chance gives
-/// 10 (need 27); area: ..." becomes "only N matches where chance gives N (need N)".
-pub fn rejection_class(reason: &str) -> String {
-    let first = reason.split("; area:").next().unwrap_or(reason).trim();
-    let first = first.strip_prefix("rejected:").unwrap_or(first).trim();
-    let first = first.split(": ").next().unwrap_or(first).trim();
-    let mut out = String::with_capacity(first.len());
-    let mut in_number = false;
-    for c in first.chars() {
-        let digit = c.is_ascii_digit() || (in_number && c == '.');
-        if digit && !in_number {
-            out.push('N');
-        } else if !digit {
-            out.push(c);
-        }
-        in_number = digit;
-    }
-    if out.is_empty() {
-        "unknown".into()
-    } else {
-        out
-    }
-}
+pub use visnav_core::fix::rejection_class;
 
 /// UTC at the start of a lock-step run (2024-01-01T00:00:00Z), µs.
 const LOCKSTEP_UNIX_START_US: u64 = 1_704_067_200_000_000;

@@ -103,7 +103,7 @@ pub fn write_frames(
         cfg.camera.width_px,
         cfg.camera.height_px,
         cl.camera_rate_hz,
-        cl.camera_ortho.display()
+        visnav_core::validate::resolve(base, &cl.camera_ortho).display()
     )
     .map_err(|e| io_err(&csv_path, e))?;
     let mut size = (cfg.camera.width_px as usize, cfg.camera.height_px as usize);
@@ -185,7 +185,7 @@ pub struct AutopilotOnlyReport {
     pub companion: Option<(u8, u8)>,
     /// `[gps] from_s..until_s`.
     pub gps_on_s: Option<[f64; 2]>,
-    /// `[evaluation] from_s..until_s`.
+    /// `[evaluation] from_s..until_s`, ending where the flight did when interrupted.
     pub evaluation_window_s: [f64; 2],
     /// Position messages received over the whole flight, by kind.
     pub injections: std::collections::BTreeMap<String, usize>,
@@ -307,7 +307,8 @@ fn score(
     for r in &rows {
         *injections.entry(r.kind.to_string()).or_insert(0) += 1;
     }
-    let window = [sc.evaluation.from_s, sc.evaluation.until_s];
+    // Stopped early: the window ends where the flight did.
+    let window = [sc.evaluation.from_s, sc.evaluation.until_s.min(flown_s)];
     let scored: Vec<_> = rows
         .iter()
         .filter(|r| r.t_s >= window[0] && r.t_s <= window[1])

@@ -160,8 +160,7 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
         }
         None => FixParams::default(),
     };
-    let image = GrayImage::load(&a.image)
-        .context("loading the frame")?;
+    let image = GrayImage::load(&a.image).context("loading the frame")?;
     if image.width() != camera.width_px() as usize || image.height() != camera.height_px() as usize
     {
         bail!(

@@ -204,8 +204,9 @@ fn the_core_does_no_io_and_reads_no_clock() {
 }
 
 /// The library crates, in the order of the data flow.
-const CRATES: [&str; 5] = [
+const CRATES: [&str; 6] = [
     "visnav-core",
+    "visnav-gpu",
     "visnav-io",
     "visnav-link",
     "visnav-daemon",
@@ -216,7 +217,7 @@ const CRATES: [&str; 5] = [
 fn allowed(krate: &str) -> &'static [&'static str] {
     match krate {
         "visnav-core" => &[],
-        "visnav-io" | "visnav-link" => &["visnav-core"],
+        "visnav-gpu" | "visnav-io" | "visnav-link" => &["visnav-core"],
         "visnav-daemon" => &["visnav-core", "visnav-io", "visnav-link"],
         "visnav-sim" => &["visnav-core", "visnav-io", "visnav-link", "visnav-daemon"],
         _ => &[],

@@ -319,6 +319,38 @@ struct Layer {
     det: Vec<f32>,
 }
 
+impl Layer {
+    fn new(s: &LayerSpec, det: Vec<f32>) -> Self {
+        Self {
+            size: s.size,
+            step: s.step,
+            rows: s.rows,
+            cols: s.cols,
+            det,
+        }
+    }
+}
+
+/// Where a response layer is sampled ([`Surf::layer_plan`]): `det(H)` of the box filter of
+/// `size` at the pixels `(c * step, r * step)`, `r < rows`, `c < cols`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LayerSpec {
+    pub size: usize,
+    pub step: usize,
+    pub rows: usize,
+    pub cols: usize,
+}
+
+/// The response layer `spec` of an image, computed on the CPU (the reference the GPU path is
+/// tested against): row-major, 0 where the filter does not fit.
+pub fn response_layer(ii: &IntegralImage, spec: &LayerSpec) -> Vec<f32> {
+    compute_layer(ii, spec.size, spec.step, spec.rows, spec.cols, Vec::new())
+}
+
+/// The Hessian weight of `Dxy` squared (`0.9^2`, Bay et al. 2008 eq. 4): part of the GPU path's
+/// contract.
+pub const HESSIAN_DXY_WEIGHT_SQ: f32 = DXY_WEIGHT_SQ;
+
 impl Surf {
     /// Validate the parameters and build the extractor.
     pub fn new(params: SurfParams) -> Result<Self, VisionError> {
@@ -341,12 +373,40 @@ impl Surf {
         self.describe(&ii, kps)
     }
 
+    /// The response layers of a `width` x `height` image, octave by octave (`n_octave_layers + 2`
+    /// per octave): filter size, sampling step and grid. An octave whose largest filter plus one
+    /// neighbour sample on each side does not fit is left out, and so are all after it.
+    pub fn layer_plan(&self, width: usize, height: usize) -> Vec<Vec<LayerSpec>> {
+        let p = &self.params;
+        let n_layers = p.n_octave_layers + 2;
+        let mut plan = Vec::new();
+        for o in 0..p.n_octaves {
+            let step = p.init_sample_step << o;
+            let top = filter_size(o, n_layers - 1);
+            // The largest filter of the octave plus one neighbour sample on each side must fit.
+            if top + 2 * step > width || top + 2 * step > height {
+                break;
+            }
+            let rows = (height - 1) / step + 1;
+            let cols = (width - 1) / step + 1;
+            plan.push(
+                (0..n_layers)
+                    .map(|k| LayerSpec {
+                        size: filter_size(o, k),
+                        step,
+                        rows,
+                        cols,
+                    })
+                    .collect(),
+            );
+        }
+        plan
+    }
+
     /// Fast-Hessian detection; keypoints strongest first (orientation not yet assigned), capped to
     /// `max_features` with an even spread.
     pub fn detect(&self, ii: &IntegralImage) -> Vec<KeyPoint> {
-        let p = &self.params;
-        let (w, h) = (ii.width(), ii.height());
-        let n_layers = p.n_octave_layers + 2;
+        let plan = self.layer_plan(ii.width(), ii.height());
         let mut layers: Vec<Layer> = Vec::new();
         // A poisoned lock only means another thread panicked mid-call: start with no buffers.
         let mut spare: Vec<Vec<f32>> = self
@@ -356,37 +416,73 @@ impl Surf {
             .unwrap_or_default();
         let take = |spare: &mut Vec<Vec<f32>>| spare.pop().unwrap_or_default();
         let mut octaves: Vec<Vec<usize>> = Vec::new();
-        for o in 0..p.n_octaves {
-            let step = p.init_sample_step << o;
-            let top = filter_size(o, n_layers - 1);
-            // The largest filter of the octave plus one neighbour sample on each side must fit.
-            if top + 2 * step > w || top + 2 * step > h {
-                break;
-            }
-            let rows = (h - 1) / step + 1;
-            let cols = (w - 1) / step + 1;
-            let mut idx = Vec::with_capacity(n_layers);
-            for k in 0..n_layers {
-                let size = filter_size(o, k);
+        for specs in &plan {
+            let mut idx = Vec::with_capacity(specs.len());
+            for s in specs {
                 // Reuse a finer layer of the same size by subsampling (octaves overlap).
                 let det = match layers
                     .iter()
-                    .find(|l| l.size == size && step.is_multiple_of(l.step))
+                    .find(|l| l.size == s.size && s.step.is_multiple_of(l.step))
                 {
-                    Some(src) => subsample(src, step / src.step, rows, cols, take(&mut spare)),
-                    None => compute_layer(ii, size, step, rows, cols, take(&mut spare)),
+                    Some(src) => {
+                        subsample(src, s.step / src.step, s.rows, s.cols, take(&mut spare))
+                    }
+                    None => compute_layer(ii, s.size, s.step, s.rows, s.cols, take(&mut spare)),
                 };
-                layers.push(Layer {
-                    size,
-                    step,
-                    rows,
-                    cols,
-                    det,
-                });
+                layers.push(Layer::new(s, det));
                 idx.push(layers.len() - 1);
             }
             octaves.push(idx);
         }
+        let kps = self.maxima(ii, &layers, &octaves);
+        if let Ok(mut g) = self.scratch.lock() {
+            g.clear();
+            g.extend(layers.into_iter().map(|l| l.det));
+        }
+        kps
+    }
+
+    /// [`Self::detect`] from response layers computed elsewhere (the GPU path, `visnav-gpu`):
+    /// `dets[o][k]` is `det(H)` of [`Self::layer_plan`]`(w, h)[o][k]`, row-major on its grid, 0
+    /// where the filter does not fit (what [`response_layer`] computes). The extrema, their
+    /// interpolation and the selection are this CPU reference's.
+    pub fn detect_with_layers(
+        &self,
+        ii: &IntegralImage,
+        dets: Vec<Vec<Vec<f32>>>,
+    ) -> Result<Vec<KeyPoint>, VisionError> {
+        let plan = self.layer_plan(ii.width(), ii.height());
+        let shape_ok = dets.len() == plan.len()
+            && dets.iter().zip(&plan).all(|(d, p)| {
+                d.len() == p.len() && d.iter().zip(p).all(|(v, s)| v.len() == s.rows * s.cols)
+            });
+        if !shape_ok {
+            return Err(VisionError::InvalidParam {
+                name: "response layers",
+                reason: "do not match the layer plan of this image".into(),
+            });
+        }
+        let mut layers = Vec::new();
+        let mut octaves = Vec::new();
+        for (specs, ds) in plan.iter().zip(dets) {
+            let mut idx = Vec::with_capacity(specs.len());
+            for (s, det) in specs.iter().zip(ds) {
+                layers.push(Layer::new(s, det));
+                idx.push(layers.len() - 1);
+            }
+            octaves.push(idx);
+        }
+        Ok(self.maxima(ii, &layers, &octaves))
+    }
+
+    /// Extrema of every octave's middle layers, strongest first, capped with an even spread.
+    fn maxima(
+        &self,
+        ii: &IntegralImage,
+        layers: &[Layer],
+        octaves: &[Vec<usize>],
+    ) -> Vec<KeyPoint> {
+        let p = &self.params;
         let mut kps: Vec<KeyPoint> = Vec::new();
         for (o, idx) in octaves.iter().enumerate() {
             for k in 1..idx.len() - 1 {
@@ -395,12 +491,8 @@ impl Surf {
             }
         }
         kps.sort_by(|a, b| b.response.total_cmp(&a.response));
-        if let Ok(mut g) = self.scratch.lock() {
-            g.clear();
-            g.extend(layers.into_iter().map(|l| l.det));
-        }
         if let Some(n) = p.max_features {
-            kps = select_spread(kps, n, w, h);
+            kps = select_spread(kps, n, ii.width(), ii.height());
         }
         kps
     }

@@ -18,6 +18,9 @@
 
 pub use visnav_core::{nav, stats};
 pub use visnav_daemon as daemon;
+/// SURF on the GPU (the `gpu` feature, off by default).
+#[cfg(feature = "gpu")]
+pub use visnav_gpu as gpu;
 pub use visnav_io::{geo, map};
 pub use visnav_link as link;
 #[cfg(feature = "sim")]

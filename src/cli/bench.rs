@@ -98,6 +98,11 @@ pub struct SurfBenchArgs {
     /// `<image stem>_<mode>.json` (for scripts/compare_opencv_surf.py).
     #[arg(long)]
     pub export_features: Option<PathBuf>,
+    /// `cpu`, or `gpu`: also time the GPU path (crates/visnav-gpu; a binary built with
+    /// `--features gpu`) beside the CPU in the same run, at 640x480, 1280x960 and 1920x1080 (the
+    /// 1280x960 frame resampled), naming the adapter (a software one is labelled so).
+    #[arg(long, default_value = "cpu", value_parser = ["cpu", "gpu"])]
+    pub backend: String,
 }
 
 #[derive(serde::Serialize)]
@@ -106,6 +111,8 @@ struct Timing {
     width: usize,
     height: usize,
     mode: &'static str,
+    /// `cpu`, or `gpu: <adapter>`.
+    backend: String,
     threads: usize,
     median_ms: f64,
     min_ms: f64,
@@ -258,9 +265,23 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
                 .map(|p| (n, p))
         })
         .collect::<Result<Vec<_>, _>>()?;
-    let mut timings = Vec::new();
+    let gpu = open_gpu(&a.backend)?;
+    let mut inputs = Vec::new();
     for path in &images {
-        let img = GrayImage::load(path)?;
+        inputs.push((path.display().to_string(), GrayImage::load(path)?));
+    }
+    if gpu.is_some()
+        && let Some((name, hd)) = inputs
+            .iter()
+            .find(|(_, i)| i.width() == 1280 && i.height() == 960)
+            .map(|(n, i)| (format!("{n} resampled"), hd_from_1280x960(i)))
+    {
+        inputs.push((name, hd?));
+    }
+    let mut timings = Vec::new();
+    for (path, img) in &inputs {
+        let path = Path::new(path);
+        let img = img.clone();
         for (mode, upright) in [("upright", true), ("oriented", false)] {
             if a.mode != "both" && a.mode != mode {
                 continue;
@@ -282,7 +303,23 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
                     width: img.width(),
                     height: img.height(),
                     mode,
+                    backend: "cpu".into(),
                     threads: *n,
+                    median_ms: median,
+                    min_ms: min,
+                    detect_ms: detect,
+                    features: feats,
+                });
+            }
+            if let Some(g) = &gpu {
+                let (median, min, detect, feats, backend) = g.time(&surf, &img, a.runs)?;
+                timings.push(Timing {
+                    image: path.display().to_string(),
+                    width: img.width(),
+                    height: img.height(),
+                    mode,
+                    backend,
+                    threads: all,
                     median_ms: median,
                     min_ms: min,
                     detect_ms: detect,
@@ -304,19 +341,26 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
             "SURF-64 detect+describe, hessian_threshold {}, median of {} runs",
             a.threshold, a.runs
         );
+        if let Some(g) = &gpu {
+            println!("GPU adapter: {}", g.describe());
+            println!(
+                "  gpu rows: integral image and response layers on the GPU, extrema, orientation and descriptors on the CPU (all threads)"
+            );
+        }
         println!(
-            "{:<28} {:>9} {:>8} {:>7} {:>10} {:>10} {:>8}",
-            "image", "size", "mode", "threads", "median ms", "detect ms", "features"
+            "{:<38} {:>9} {:>8} {:>7} {:>7} {:>10} {:>10} {:>8}",
+            "image", "size", "mode", "backend", "threads", "median ms", "detect ms", "features"
         );
         for t in &timings {
             let name = Path::new(&t.image)
                 .file_name()
                 .map_or(t.image.clone(), |s| s.to_string_lossy().into_owned());
             println!(
-                "{:<28} {:>9} {:>8} {:>7} {:>10.2} {:>10.2} {:>8}",
+                "{:<38} {:>9} {:>8} {:>7} {:>7} {:>10.2} {:>10.2} {:>8}",
                 name,
                 format!("{}x{}", t.width, t.height),
                 t.mode,
+                if t.backend == "cpu" { "cpu" } else { "gpu" },
                 t.threads,
                 t.median_ms,
                 t.detect_ms,
@@ -516,4 +560,102 @@ fn quality_table(a: &SurfBenchArgs, export: Option<&Path>) -> anyhow::Result<Vec
             .with_context(|| format!("{}: cannot write", path.display()))?;
     }
     Ok(rows)
+}
+
+/// A 1920 x 1080 frame from a 1280 x 960 one: its middle 1280 x 720 rows, resampled by 1.5
+/// (bilinear). The HD size of issue 25's timing.
+fn hd_from_1280x960(img: &GrayImage) -> anyhow::Result<GrayImage> {
+    let (w, h) = (1920usize, 1080usize);
+    let top = 120.0f32;
+    let mut data = Vec::with_capacity(w * h);
+    for y in 0..h {
+        let sy = (top + (y as f32 + 0.5) / 1.5 - 0.5).clamp(0.0, (img.height() - 1) as f32);
+        let (y0, fy) = (sy.floor() as usize, sy.fract());
+        let y1 = (y0 + 1).min(img.height() - 1);
+        for x in 0..w {
+            let sx = ((x as f32 + 0.5) / 1.5 - 0.5).clamp(0.0, (img.width() - 1) as f32);
+            let (x0, fx) = (sx.floor() as usize, sx.fract());
+            let x1 = (x0 + 1).min(img.width() - 1);
+            let a = img.get(x0, y0) * (1.0 - fx) + img.get(x1, y0) * fx;
+            let b = img.get(x0, y1) * (1.0 - fx) + img.get(x1, y1) * fx;
+            data.push(a * (1.0 - fy) + b * fy);
+        }
+    }
+    Ok(GrayImage::new(w, h, data)?)
+}
+
+/// The GPU of `--backend gpu` (None for `cpu`).
+#[cfg(feature = "gpu")]
+fn open_gpu(backend: &str) -> anyhow::Result<Option<GpuBench>> {
+    if backend != "gpu" {
+        return Ok(None);
+    }
+    let g = visnav::gpu::GpuSurf::new(visnav::gpu::AdapterPolicy::AllowSoftware)
+        .context("--backend gpu")?;
+    Ok(Some(GpuBench(g)))
+}
+
+#[cfg(not(feature = "gpu"))]
+fn open_gpu(backend: &str) -> anyhow::Result<Option<GpuBench>> {
+    if backend == "gpu" {
+        bail!(
+            "--backend gpu: this visnav is built without the GPU path; build it with `cargo build --release --features gpu`"
+        );
+    }
+    Ok(None)
+}
+
+/// The GPU path under timing.
+#[cfg(feature = "gpu")]
+struct GpuBench(visnav::gpu::GpuSurf);
+
+#[cfg(not(feature = "gpu"))]
+enum GpuBench {}
+
+/// Median and minimum total ms, median detection ms, features, and the backend's label.
+type GpuTiming = (f64, f64, f64, usize, String);
+
+impl GpuBench {
+    #[cfg(feature = "gpu")]
+    fn describe(&self) -> String {
+        self.0.adapter().to_string()
+    }
+
+    #[cfg(feature = "gpu")]
+    fn time(&self, surf: &Surf, img: &GrayImage, runs: usize) -> anyhow::Result<GpuTiming> {
+        let g = &self.0;
+        let _ = g.detect_and_describe(surf, img)?; // warm-up (pipelines, buffers)
+        let mut times = Vec::with_capacity(runs);
+        let mut det_times = Vec::with_capacity(runs);
+        let mut n = 0;
+        for _ in 0..runs.max(1) {
+            let t = Instant::now();
+            let ii = IntegralImage::new(img);
+            let kps = g.detect(surf, img, &ii)?;
+            let t_det = t.elapsed();
+            let f = surf.describe(&ii, kps);
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+            det_times.push(t_det.as_secs_f64() * 1e3);
+            n = f.len();
+        }
+        times.sort_by(f64::total_cmp);
+        det_times.sort_by(f64::total_cmp);
+        Ok((
+            times[times.len() / 2],
+            times[0],
+            det_times[det_times.len() / 2],
+            n,
+            format!("gpu: {}", g.adapter()),
+        ))
+    }
+
+    #[cfg(not(feature = "gpu"))]
+    fn describe(&self) -> String {
+        match *self {}
+    }
+
+    #[cfg(not(feature = "gpu"))]
+    fn time(&self, _: &Surf, _: &GrayImage, _: usize) -> anyhow::Result<GpuTiming> {
+        match *self {}
+    }
 }

@@ -211,20 +211,23 @@ impl GpuSurf {
         &self.info
     }
 
-    /// Detect on the GPU path (module doc); the same keypoints as `surf.detect` on the CPU.
-    pub fn detect(&self, surf: &Surf, img: &GrayImage) -> Result<Vec<KeyPoint>, GpuError> {
-        let ii = IntegralImage::new(img);
+    /// Detect on the GPU path (module doc); the same keypoints as `surf.detect` on the CPU. `ii`
+    /// is the CPU's integral image of `img` (the extrema's interpolation reads it).
+    pub fn detect(
+        &self,
+        surf: &Surf,
+        img: &GrayImage,
+        ii: &IntegralImage,
+    ) -> Result<Vec<KeyPoint>, GpuError> {
         let plan = surf.layer_plan(img.width(), img.height());
         let out = self.run(img, &plan)?;
-        Ok(surf.detect_with_layers(&ii, out.layers)?)
+        Ok(surf.detect_with_layers(ii, out.layers)?)
     }
 
     /// Detect and describe: [`Self::detect`], then the CPU's orientation and descriptors.
     pub fn detect_and_describe(&self, surf: &Surf, img: &GrayImage) -> Result<Features, GpuError> {
         let ii = IntegralImage::new(img);
-        let plan = surf.layer_plan(img.width(), img.height());
-        let out = self.run(img, &plan)?;
-        let kps = surf.detect_with_layers(&ii, out.layers)?;
+        let kps = self.detect(surf, img, &ii)?;
         Ok(surf.describe(&ii, kps))
     }
 

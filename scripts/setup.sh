@@ -10,31 +10,28 @@ rustup component add rustfmt clippy >/dev/null 2>&1 || true
 # Installed with apt when missing and we may (root or passwordless sudo); otherwise the test that
 # needs it skips with a printed reason.
 if [ "$(id -u)" = 0 ]; then sudo_cmd=""; elif sudo -n true 2>/dev/null; then sudo_cmd="sudo -n"; else sudo_cmd="none"; fi
-if ! command -v gst-launch-1.0 >/dev/null 2>&1; then
-    pkgs="gstreamer1.0-tools gstreamer1.0-plugins-base gstreamer1.0-plugins-good"
+# apt_install PACKAGES WITHOUT: install Debian packages when we may, else say what is missed.
+apt_install() {
     if [ "$sudo_cmd" != none ] && command -v apt-get >/dev/null 2>&1; then
-        echo "setup: installing $pkgs" >&2
+        echo "setup: installing $1" >&2
         $sudo_cmd env DEBIAN_FRONTEND=noninteractive apt-get update -qq >/dev/null 2>&1 || true
-        $sudo_cmd env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $pkgs >/dev/null 2>&1 \
-            || echo "setup: could not install $pkgs (the GStreamer capture test will skip)" >&2
+        # shellcheck disable=SC2086 # the package list splits at spaces
+        $sudo_cmd env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $1 >/dev/null 2>&1 \
+            || echo "setup: could not install $1 ($2)" >&2
     else
-        echo "setup: gst-launch-1.0 missing and no root/sudo: the GStreamer capture test will skip" >&2
+        echo "setup: $1 missing and no root/sudo ($2)" >&2
     fi
+}
+if ! command -v gst-launch-1.0 >/dev/null 2>&1; then
+    apt_install "gstreamer1.0-tools gstreamer1.0-plugins-base gstreamer1.0-plugins-good" \
+        "the GStreamer capture test will skip"
 fi
 
 # A Vulkan driver for the GPU SURF tests (crates/visnav-gpu): Mesa's lavapipe is a software Vulkan
 # device, so the GPU path's equivalence with the CPU runs on any machine (issue 25). A real GPU's
 # driver serves as well. Under CI the GPU tests fail without an adapter; elsewhere they skip.
-if ! ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1 || ! ldconfig -p 2>/dev/null | grep -q 'libvulkan.so.1'; then
-    pkgs="mesa-vulkan-drivers libvulkan1"
-    if [ "$sudo_cmd" != none ] && command -v apt-get >/dev/null 2>&1; then
-        echo "setup: installing $pkgs" >&2
-        $sudo_cmd env DEBIAN_FRONTEND=noninteractive apt-get update -qq >/dev/null 2>&1 || true
-        $sudo_cmd env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $pkgs >/dev/null 2>&1 \
-            || echo "setup: could not install $pkgs (the GPU tests will skip, or fail under CI)" >&2
-    else
-        echo "setup: no Vulkan driver and no root/sudo: the GPU tests will skip (fail under CI)" >&2
-    fi
+if ! ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1 || ! ldconfig -p 2>/dev/null | grep 'libvulkan.so.1' >/dev/null; then
+    apt_install "mesa-vulkan-drivers libvulkan1" "the GPU tests will skip, or fail under CI"
 fi
 
 echo "setup: ready (rustfmt, clippy$(command -v gst-launch-1.0 >/dev/null 2>&1 && echo ', GStreamer tools')$(ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1 && echo ', a Vulkan driver'))" >&2

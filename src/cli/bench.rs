@@ -207,30 +207,47 @@ fn time_one(
     img: &GrayImage,
     runs: usize,
 ) -> (f64, f64, f64, usize) {
+    pool.install(|| {
+        let _ = surf.detect_and_describe(img); // warm-up
+        let r: anyhow::Result<_> = time_runs(
+            runs,
+            || {
+                let ii = IntegralImage::new(img);
+                let kps = surf.detect(&ii);
+                Ok((ii, kps))
+            },
+            |(ii, kps)| surf.describe(&ii, kps).len(),
+        );
+        r.unwrap_or((f64::NAN, f64::NAN, f64::NAN, 0))
+    })
+}
+
+/// `runs` timed runs of `detect` then `describe`: median and minimum total ms, median detection
+/// ms, and the last run's feature count.
+fn time_runs<T>(
+    runs: usize,
+    mut detect: impl FnMut() -> anyhow::Result<T>,
+    mut describe: impl FnMut(T) -> usize,
+) -> anyhow::Result<(f64, f64, f64, usize)> {
     let mut times = Vec::with_capacity(runs);
     let mut det_times = Vec::with_capacity(runs);
     let mut n = 0;
-    pool.install(|| {
-        let _ = surf.detect_and_describe(img); // warm-up
-        for _ in 0..runs.max(1) {
-            let t = Instant::now();
-            let ii = IntegralImage::new(img);
-            let kps = surf.detect(&ii);
-            let t_det = t.elapsed();
-            let f = surf.describe(&ii, kps);
-            times.push(t.elapsed().as_secs_f64() * 1e3);
-            det_times.push(t_det.as_secs_f64() * 1e3);
-            n = f.len();
-        }
-    });
+    for _ in 0..runs.max(1) {
+        let t = Instant::now();
+        let d = detect()?;
+        let t_det = t.elapsed();
+        n = describe(d);
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+        det_times.push(t_det.as_secs_f64() * 1e3);
+    }
     times.sort_by(f64::total_cmp);
     det_times.sort_by(f64::total_cmp);
-    (
+    Ok((
         times[times.len() / 2],
         times[0],
         det_times[det_times.len() / 2],
         n,
-    )
+    ))
 }
 
 fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
@@ -625,28 +642,16 @@ impl GpuBench {
     fn time(&self, surf: &Surf, img: &GrayImage, runs: usize) -> anyhow::Result<GpuTiming> {
         let g = &self.0;
         let _ = g.detect_and_describe(surf, img)?; // warm-up (pipelines, buffers)
-        let mut times = Vec::with_capacity(runs);
-        let mut det_times = Vec::with_capacity(runs);
-        let mut n = 0;
-        for _ in 0..runs.max(1) {
-            let t = Instant::now();
-            let ii = IntegralImage::new(img);
-            let kps = g.detect(surf, img, &ii)?;
-            let t_det = t.elapsed();
-            let f = surf.describe(&ii, kps);
-            times.push(t.elapsed().as_secs_f64() * 1e3);
-            det_times.push(t_det.as_secs_f64() * 1e3);
-            n = f.len();
-        }
-        times.sort_by(f64::total_cmp);
-        det_times.sort_by(f64::total_cmp);
-        Ok((
-            times[times.len() / 2],
-            times[0],
-            det_times[det_times.len() / 2],
-            n,
-            format!("gpu: {}", g.adapter()),
-        ))
+        let (median, min, detect, n) = time_runs(
+            runs,
+            || {
+                let ii = IntegralImage::new(img);
+                let kps = g.detect(surf, img, &ii)?;
+                Ok((ii, kps))
+            },
+            |(ii, kps)| surf.describe(&ii, kps).len(),
+        )?;
+        Ok((median, min, detect, n, format!("gpu: {}", g.adapter())))
     }
 
     #[cfg(not(feature = "gpu"))]

@@ -101,15 +101,7 @@ impl SimCamera {
         let Some(out) = self.truth_log.as_mut() else {
             return;
         };
-        let line = serde_json::json!({
-            "seq": seq,
-            "t_capture_us": t_us,
-            "lat_deg": s.lat_deg,
-            "lon_deg": s.lon_deg,
-            "alt_amsl_m": s.alt_amsl_m,
-            "vel_ned_m_s": s.vel_ned_m_s,
-            "rpy_rad": s.rpy_rad,
-        });
+        let line = truth_line(seq, t_us, s);
         if let Err(e) = writeln!(out, "{line}").and_then(|()| out.flush()) {
             tracing::warn!("simulated camera: truth log: {e}; logging stopped");
             self.truth_log = None;
@@ -176,6 +168,20 @@ impl SimCamera {
         GrayImage::new(f.width, f.height, f.grey())
             .map_err(|e| FrameError::Config(format!("simulated camera: {e}")))
     }
+}
+
+/// One line of the truth log ([`SimCamera::with_truth_log`], `frames_truth.jsonl`): the frame's
+/// sequence number, capture time (autopilot boot, µs) and the body's true state.
+pub fn truth_line(seq: u64, t_us: u64, s: &TruthState) -> serde_json::Value {
+    serde_json::json!({
+        "seq": seq,
+        "t_capture_us": t_us,
+        "lat_deg": s.lat_deg,
+        "lon_deg": s.lon_deg,
+        "alt_amsl_m": s.alt_amsl_m,
+        "vel_ned_m_s": s.vel_ned_m_s,
+        "rpy_rad": s.rpy_rad,
+    })
 }
 
 /// Tear a frame as a corrupt transfer that still decodes does: from a row chosen by `seq`, a

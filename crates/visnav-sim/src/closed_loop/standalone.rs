@@ -34,7 +34,7 @@ use super::{
 };
 use crate::Scenario;
 use crate::autopilot::{AutopilotEmulator, EmulatorConfig};
-use crate::camera_sim::pose_of;
+use crate::camera_sim::{pose_of, truth_line};
 use crate::fixeval::Stats;
 
 /// Frames rendered per batch (each batch in parallel, then written in order).
@@ -134,16 +134,7 @@ pub fn write_frames(
                 ClosedLoopError::Setup(format!("{}: cannot write the PNG: {e}", path.display()))
             })?;
             writeln!(csv, "{name},{t_us}").map_err(|e| io_err(&csv_path, e))?;
-            let s = table.at(t_us as f64 * 1e-6);
-            let line = serde_json::json!({
-                "seq": seq,
-                "t_capture_us": t_us,
-                "lat_deg": s.lat_deg,
-                "lon_deg": s.lon_deg,
-                "alt_amsl_m": s.alt_amsl_m,
-                "vel_ned_m_s": s.vel_ned_m_s,
-                "rpy_rad": s.rpy_rad,
-            });
+            let line = truth_line(seq as u64, t_us, &table.at(t_us as f64 * 1e-6));
             writeln!(truth, "{line}").map_err(|e| io_err(&truth_path, e))?;
         }
     }

@@ -70,11 +70,27 @@ pub fn vision_line(cfg: &Config) -> String {
         None => NO_CAMERA_WARNING.to_string(),
         Some(f) => format!(
             "vision: camera frames from [frames] ({}); map fixes on; visual odometry {}; DTM \
-             navigation {}",
+             navigation {}; {}",
             f.describe_source(),
             on_off(cfg.vo.enabled),
-            on_off(cfg.dtm_nav.enabled)
+            on_off(cfg.dtm_nav.enabled),
+            surf_words(cfg.vision.backend)
         ),
+    }
+}
+
+/// Where `[vision] backend` puts SURF, for this binary.
+fn surf_words(b: visnav::daemon::wiring::VisionBackend) -> &'static str {
+    use visnav::daemon::wiring::VisionBackend as B;
+    match (b, cfg!(feature = "gpu")) {
+        (B::Cpu, _) => "SURF on the CPU",
+        (B::Gpu, true) => "SURF on the GPU (any adapter; the CPU when none opens)",
+        (B::Auto, true) => "SURF on a hardware GPU when there is one, else the CPU",
+        (B::Gpu, false) => {
+            "SURF on the CPU: [vision] backend = \"gpu\", but this visnav is built without the \
+             GPU path (cargo build --release --features gpu)"
+        }
+        (B::Auto, false) => "SURF on the CPU (built without the GPU path)",
     }
 }
 

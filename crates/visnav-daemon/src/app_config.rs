@@ -78,6 +78,9 @@ pub struct Config {
     /// The daemon's pipeline settings; every key has a default.
     #[serde(default)]
     pub daemon: crate::DaemonConfig,
+    /// Where the vision's SURF features are computed (`[vision] backend`).
+    #[serde(default)]
+    pub vision: crate::wiring::VisionConfig,
 }
 
 /// `[map]`: the georeferenced imagery and terrain the fixes are computed against.

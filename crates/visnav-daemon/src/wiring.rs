@@ -72,7 +72,78 @@ pub fn engine_from_config(cfg: &Config) -> Result<FixEngine, WiringError> {
             Arc::new(MapReference::build_temporary(&spec, dem).map_err(WiringError::MapBuild)?)
         }
     };
-    FixEngine::new(reference, camera, cfg.fix.clone()).map_err(WiringError::Fix)
+    let mut engine =
+        FixEngine::new(reference, camera, cfg.fix.clone()).map_err(WiringError::Fix)?;
+    if let Some(backend) = feature_backend(cfg.vision.backend) {
+        engine.set_feature_backend(backend);
+    }
+    Ok(engine)
+}
+
+/// `[vision]`: where the fix engine computes the frames' SURF features.
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct VisionConfig {
+    /// `cpu` (default), `gpu` or `auto`.
+    pub backend: VisionBackend,
+}
+
+/// `[vision] backend`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum VisionBackend {
+    /// The CPU reference.
+    #[default]
+    Cpu,
+    /// The GPU path (crates/visnav-gpu; a binary built with the `gpu` feature): any adapter,
+    /// a software one with a warning; none, or a binary without the path: the CPU, with a
+    /// warning.
+    Gpu,
+    /// A hardware GPU when there is one (and the binary has the path), else the CPU.
+    Auto,
+}
+
+/// The feature backend for `[vision] backend` (None: the CPU), saying what was chosen and why.
+#[cfg(feature = "gpu")]
+fn feature_backend(b: VisionBackend) -> Option<Arc<dyn visnav_core::vision::FeatureBackend>> {
+    use visnav_gpu::{AdapterPolicy, GpuSurf};
+    let policy = match b {
+        VisionBackend::Cpu => return None,
+        VisionBackend::Gpu => AdapterPolicy::AllowSoftware,
+        VisionBackend::Auto => AdapterPolicy::HardwareOnly,
+    };
+    match GpuSurf::new(policy) {
+        Ok(g) => {
+            if g.adapter().software {
+                tracing::warn!(
+                    "vision: SURF on {} as [vision] backend = \"gpu\" asks; a software adapter is slower than the CPU",
+                    g.adapter()
+                );
+            } else {
+                tracing::info!("vision: SURF on the GPU, {}", g.adapter());
+            }
+            Some(Arc::new(g))
+        }
+        Err(e) if b == VisionBackend::Gpu => {
+            tracing::warn!("vision: [vision] backend = \"gpu\": {e}; SURF runs on the CPU");
+            None
+        }
+        Err(e) => {
+            tracing::info!("vision: [vision] backend = \"auto\": {e}; SURF runs on the CPU");
+            None
+        }
+    }
+}
+
+/// Without the GPU path compiled in: the CPU, with a warning when the GPU was asked for.
+#[cfg(not(feature = "gpu"))]
+fn feature_backend(b: VisionBackend) -> Option<Arc<dyn visnav_core::vision::FeatureBackend>> {
+    if b == VisionBackend::Gpu {
+        tracing::warn!(
+            "vision: [vision] backend = \"gpu\": this visnav is built without the GPU path (cargo build --release --features gpu); SURF runs on the CPU"
+        );
+    }
+    None
 }
 
 impl FrameFixer for FixEngine {

@@ -23,7 +23,9 @@ use std::sync::mpsc;
 
 use thiserror::Error;
 use visnav_core::vision::surf::HESSIAN_DXY_WEIGHT_SQ;
-use visnav_core::vision::{Features, GrayImage, IntegralImage, KeyPoint, LayerSpec, Surf};
+use visnav_core::vision::{
+    FeatureBackend, Features, GrayImage, IntegralImage, KeyPoint, LayerSpec, Surf,
+};
 use wgpu::util::DeviceExt;
 
 /// Threads per workgroup of the integral passes (`shaders/integral.wgsl`).
@@ -111,6 +113,8 @@ pub struct GpuLayers {
 
 /// SURF's GPU stages on one device (module doc).
 pub struct GpuSurf {
+    /// Frames computed on the CPU because the GPU failed ([`FeatureBackend`]).
+    fallbacks: std::sync::atomic::AtomicU64,
     device: wgpu::Device,
     queue: wgpu::Queue,
     info: AdapterInfo,
@@ -197,6 +201,7 @@ impl GpuSurf {
             })
         };
         Ok(Self {
+            fallbacks: std::sync::atomic::AtomicU64::new(0),
             integral_rows: pipeline(&integral, "rows"),
             integral_cols: pipeline(&integral, "cols"),
             hessian: pipeline(&hessian, "main"),
@@ -209,6 +214,11 @@ impl GpuSurf {
     /// The adapter in use.
     pub fn adapter(&self) -> &AdapterInfo {
         &self.info
+    }
+
+    /// Frames the [`FeatureBackend`] computed on the CPU because the GPU failed.
+    pub fn fallbacks(&self) -> u64 {
+        self.fallbacks.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// Detect on the GPU path (module doc); the same keypoints as `surf.detect` on the CPU. `ii`
@@ -461,4 +471,23 @@ fn split_layers(det_all: &[f32], plan: &[Vec<LayerSpec>]) -> Vec<Vec<Vec<f32>>> 
                 .collect()
         })
         .collect()
+}
+
+/// The GPU path as the fix engine's feature backend: a frame the GPU fails on is computed on the
+/// CPU (counted in [`GpuSurf::fallbacks`]).
+impl FeatureBackend for GpuSurf {
+    fn detect_and_describe(&self, surf: &Surf, img: &GrayImage) -> Features {
+        match GpuSurf::detect_and_describe(self, surf, img) {
+            Ok(f) => f,
+            Err(_) => {
+                self.fallbacks
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                surf.detect_and_describe(img)
+            }
+        }
+    }
+
+    fn name(&self) -> String {
+        format!("gpu: {}", self.info)
+    }
 }

@@ -658,6 +658,22 @@ impl NaipEval {
             .count()
     }
 
+    /// The fix engine under test.
+    pub fn engine(&self) -> &FixEngine {
+        &self.engine
+    }
+
+    /// The fix engine under test, to change its feature backend (the GPU path).
+    pub fn engine_mut(&mut self) -> &mut FixEngine {
+        &mut self.engine
+    }
+
+    /// The map's bounds and the margin the frames keep from them, m (the acceptance run's area).
+    pub fn frame_area_m(&self) -> ([f64; 4], f64) {
+        let b = self.map_raster.bounds();
+        ([b.min_x_m, b.min_y_m, b.max_x_m, b.max_y_m], self.margin_m)
+    }
+
     /// The acceptance run: `n` frames with their nadir points at least 600 m inside the map.
     /// `log` receives one line per frame.
     pub fn run(

@@ -43,7 +43,9 @@ use crate::pose::{
 };
 use crate::validate::{Problems, Validate};
 use crate::vision::matcher::dist2;
-use crate::vision::{Features, GrayImage, KeyPoint, MatchParams, Surf, match_features};
+use crate::vision::{
+    CpuFeatures, FeatureBackend, Features, GrayImage, KeyPoint, MatchParams, Surf, match_features,
+};
 
 /// Settings of the fix pipeline (`[fix]`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -226,6 +228,8 @@ pub struct FixEngine {
     camera: Camera,
     params: FixParams,
     surf: Surf,
+    /// Where the query frame's features are computed (default: the CPU).
+    features: Arc<dyn FeatureBackend>,
     levels_gsd_m: Vec<f64>,
 }
 
@@ -360,8 +364,20 @@ impl FixEngine {
             camera,
             params,
             surf,
+            features: Arc::new(CpuFeatures),
             levels_gsd_m,
         })
+    }
+
+    /// Compute the query frames' features with `backend` (the GPU path) instead of the CPU; the
+    /// SURF parameters stay the map's.
+    pub fn set_feature_backend(&mut self, backend: Arc<dyn FeatureBackend>) {
+        self.features = backend;
+    }
+
+    /// Where the query frames' features are computed.
+    pub fn feature_backend(&self) -> &Arc<dyn FeatureBackend> {
+        &self.features
     }
 
     /// The settings.
@@ -764,7 +780,7 @@ impl FixEngine {
         let (rect, level) = (v.rect, v.level);
         let gsd = self.levels_gsd_m[level];
         // Query features on valid ground, strongest first, capped.
-        let feats = self.surf.detect_and_describe(&rect.image);
+        let feats = self.features.detect_and_describe(&self.surf, &rect.image);
         let keep = self.query_on_ground(v, &feats);
         a.query_features = keep.len();
         if keep.len() < self.params.min_matches {
@@ -1671,7 +1687,7 @@ impl FixEngine {
             return Err(Rejected::from("the frame does not see the ground"));
         };
         *work = work.saturating_add((rect.width() * rect.height()) as u64);
-        let feats = self.surf.detect_and_describe(&rect.image);
+        let feats = self.features.detect_and_describe(&self.surf, &rect.image);
         let idx: Vec<usize> = feats
             .keypoints
             .iter()

@@ -24,7 +24,9 @@ use std::path::PathBuf;
 pub use gray::GrayImage;
 pub use integral::IntegralImage;
 pub use matcher::{Match, MatchParams, match_features};
-pub use surf::{DescriptorKind, Features, KeyPoint, LayerSpec, Surf, SurfParams};
+pub use surf::{
+    CpuFeatures, DescriptorKind, FeatureBackend, Features, KeyPoint, LayerSpec, Surf, SurfParams,
+};
 
 /// Errors of the vision module.
 #[derive(Debug, thiserror::Error)]

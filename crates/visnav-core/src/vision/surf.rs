@@ -518,6 +518,31 @@ impl Surf {
     }
 }
 
+/// Where SURF features are computed: the CPU ([`CpuFeatures`], the reference) or an accelerator
+/// that gives the same features (visnav-gpu's GPU path). The fix engine takes one
+/// (`FixEngine::set_feature_backend`); the parameters are always the caller's `Surf`.
+pub trait FeatureBackend: Send + Sync {
+    /// Detect and describe `img` with `surf`'s parameters. An accelerator that fails computes
+    /// the frame on the CPU instead (and counts it), so a frame is never lost to the backend.
+    fn detect_and_describe(&self, surf: &Surf, img: &GrayImage) -> Features;
+    /// For logs and benches: `cpu`, or `gpu: <adapter>`.
+    fn name(&self) -> String;
+}
+
+/// The CPU reference as a [`FeatureBackend`].
+#[derive(Debug, Clone, Copy, Default)]
+pub struct CpuFeatures;
+
+impl FeatureBackend for CpuFeatures {
+    fn detect_and_describe(&self, surf: &Surf, img: &GrayImage) -> Features {
+        surf.detect_and_describe(img)
+    }
+
+    fn name(&self) -> String {
+        "cpu".into()
+    }
+}
+
 /// Filter size of layer `k` in octave `o`: `3 (2^(o+1) (k+1) + 1)`.
 pub fn filter_size(o: usize, k: usize) -> usize {
     3 * ((2usize << o) * (k + 1) + 1)

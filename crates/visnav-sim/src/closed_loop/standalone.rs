@@ -336,8 +336,11 @@ mod tests {
         assert_eq!(t.len(), 21);
         assert_eq!(t[0], 0);
         assert_eq!(t[20], 10_000_000);
+        // 1 s + k / 3 Hz up to the hour: the last at 3600 s exactly, k = 10797, no drift.
         let t = capture_times_us(1.0, 3600.0, 3.0);
-        assert_eq!(*t.last().unwrap(), 3_599_666_667);
+        assert_eq!(t.len(), 10_798);
+        assert_eq!(t[1], 1_333_333);
+        assert_eq!(*t.last().unwrap(), 3_600_000_000);
         assert!(capture_times_us(5.0, 4.0, 2.0).is_empty());
         assert!(capture_times_us(0.0, 10.0, 0.0).is_empty());
     }

@@ -2,36 +2,60 @@
 //! software Vulkan adapter where there is no GPU), producing the same features as visnav-core's
 //! CPU SURF, which stays the reference (`visnav_core::vision::surf`; Bay et al. 2008).
 //!
-//! What runs where (this is the first stage of the GPU path):
-//! * GPU: the integral image (`shaders/integral.wgsl`: a row pass and a column pass, wrapping
-//!   32-bit cells as the CPU's `IntegralImage`, so every box sum is the same integer) and every
-//!   fast-Hessian response layer of [`Surf::layer_plan`] (`shaders/hessian.wgsl`: the box sums of
-//!   `hessian_at`, the CPU's normalisation factors passed in, `det = Dxx Dyy - 0.81 Dxy^2`), in one
-//!   submission per image;
-//! * CPU (visnav-core): the 3x3x3 extrema and their interpolation ([`Surf::detect_with_layers`]),
-//!   the orientation and the descriptors. The parameters are the one `SurfParams` of the CPU path,
-//!   so the two cannot disagree on what to compute.
+//! Every stage runs on the GPU, each shader a port of the CPU function it names:
+//! * `shaders/integral.wgsl`: the integral image (a row pass, a workgroup scan per row, then a
+//!   column pass; wrapping 32-bit cells as the CPU's `IntegralImage`, so every box sum is the same
+//!   integer);
+//! * `shaders/hessian.wgsl`: every fast-Hessian response layer of [`Surf::layer_plan`] (the box
+//!   sums of `hessian_at`, the CPU's normalisation factors passed in);
+//! * `shaders/extrema.wgsl`: the 3x3x3 maxima over the CPU's search window (`extrema_window`)
+//!   and their quadratic interpolation (`find_maxima`, `interpolate`; f32 here, f64 there);
+//! * `shaders/orientation.wgsl`: the dominant orientation (`orientation`, `best_window`; the
+//!   CPU's sample table, weights and polynomial atan2);
+//! * `shaders/descriptor.wgsl`: the descriptors by the CPU's three sampling paths
+//!   (`describe_one`, `describe_rotated`), one workgroup per keypoint.
 //!
-//! The responses equal the CPU's up to the last bit of a float (a GPU may fuse a multiply-add);
-//! `tests/gpu_surf.rs` holds the layers and the keypoints to the CPU's on real images.
+//! The host sorts the maxima into the CPU's order, turns them into keypoints with the CPU's
+//! formula (`keypoint_at`), applies `max_features` with the CPU's `select_spread`, and takes the
+//! final `atan2` of each orientation (the GPU's trigonometry is not exact). A frame is three short
+//! round trips: the layers and maxima (reading back their count), the maxima, then the
+//! orientations and descriptors. Buffers are kept between frames of one size ([`frame`]).
+//!
+//! The parameters are the one `SurfParams` of the CPU path, so the two cannot disagree on what to
+//! compute. They differ only where a GPU rounds differently (a fused multiply-add, a division
+//! within 2.5 ulp, f32 interpolation): `tests/gpu_surf.rs` bounds that on real images.
 //!
 //! Adapter choice: a hardware adapter first; a software one (lavapipe, `DeviceType::Cpu`) only
 //! when allowed ([`AdapterPolicy`]), and always reported as software so its times are never taken
 //! for a GPU's.
 
-use std::sync::mpsc;
+mod frame;
+mod pipelines;
+
+use std::sync::{Mutex, mpsc};
 
 use thiserror::Error;
-use visnav_core::vision::surf::HESSIAN_DXY_WEIGHT_SQ;
-use visnav_core::vision::{
-    FeatureBackend, Features, GrayImage, IntegralImage, KeyPoint, LayerSpec, Surf,
+use visnav_core::vision::surf::{
+    ORIENTATION_BINS, ORIENTATION_WINDOW_BINS, descriptor_weights, keypoint_at,
+    orientation_of_window, orientation_samples, select_spread,
 };
+use visnav_core::vision::{FeatureBackend, Features, GrayImage, KeyPoint, LayerSpec, Surf};
 use wgpu::util::DeviceExt;
 
-/// Threads per workgroup of the integral passes (`shaders/integral.wgsl`).
+use frame::{DescribeBuffers, EXTREMUM_BYTES, Frame, FrameKey, MAX_EXTREMA};
+use pipelines::Pipelines;
+
+/// Threads per workgroup of the integral's column pass (`shaders/integral.wgsl`).
 const INTEGRAL_WORKGROUP: u32 = 64;
-/// Workgroup side of the response pass (`shaders/hessian.wgsl`: 8 x 8).
-const HESSIAN_WORKGROUP: u32 = 8;
+/// Workgroup side of the response and extrema passes (8 x 8).
+const TILE: u32 = 8;
+/// Threads per workgroup of the orientation pass.
+const ORIENTATION_WORKGROUP: u32 = 64;
+/// Most workgroups along one dispatch dimension (WebGPU's limit); larger counts use rows.
+const MAX_GROUPS_X: u32 = 65_535;
+
+// The orientation shader's bin arrays are sized for the CPU's 72 bins of 5 degrees.
+const _: () = assert!(ORIENTATION_BINS == 72 && ORIENTATION_WINDOW_BINS <= ORIENTATION_BINS);
 
 /// Why the GPU path is not available or failed.
 #[derive(Debug, Error)]
@@ -102,7 +126,7 @@ fn adapter_info(a: &wgpu::Adapter) -> AdapterInfo {
     }
 }
 
-/// What one GPU submission computed for an image.
+/// What one GPU submission computed for an image (for tests and diagnostics, [`GpuSurf::run`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct GpuLayers {
     /// The integral table, `(h + 1) x (w + 1)` (as `IntegralImage::data`).
@@ -111,74 +135,88 @@ pub struct GpuLayers {
     pub layers: Vec<Vec<Vec<f32>>>,
 }
 
-/// SURF's GPU stages on one device (module doc).
+/// One maximum as `shaders/extrema.wgsl` writes it.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+struct Extremum {
+    c: u32,
+    r: u32,
+    /// `octave << 8 | layer`, bit 16 for a negative Laplacian.
+    tag: u32,
+    response: f32,
+    ox: f32,
+    oy: f32,
+    os: f32,
+    pad: u32,
+}
+
+/// The uniform of `shaders/orientation.wgsl` (12 x 4 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct OriParams {
+    w: u32,
+    h: u32,
+    stride: u32,
+    n: u32,
+    n_samples: u32,
+    bins: u32,
+    window: u32,
+    per_row: u32,
+    bin_scale: f32,
+    pad: [u32; 3],
+}
+
+/// The uniform of `shaders/descriptor.wgsl` (16 x 4 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct DescParams {
+    w: u32,
+    h: u32,
+    stride: u32,
+    n_kp: u32,
+    samples: u32,
+    nsub: u32,
+    vals: u32,
+    len: u32,
+    out_stride: u32,
+    upright: u32,
+    extended: u32,
+    per_row: u32,
+    sp_unit: f32,
+    pad: [u32; 3],
+}
+
+/// SURF on one GPU device (module doc).
 pub struct GpuSurf {
     /// Frames computed on the CPU because the GPU failed ([`FeatureBackend`]).
     fallbacks: std::sync::atomic::AtomicU64,
     device: wgpu::Device,
     queue: wgpu::Queue,
     info: AdapterInfo,
-    integral_rows: wgpu::ComputePipeline,
-    integral_cols: wgpu::ComputePipeline,
-    hessian: wgpu::ComputePipeline,
-}
-
-/// The layer uniform of `shaders/hessian.wgsl` (12 x 4 bytes, std140-compatible).
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct LayerUniform {
-    w: u32,
-    h: u32,
-    stride: u32,
-    size: u32,
-    step: u32,
-    rows: u32,
-    cols: u32,
-    out_offset: u32,
-    inv_a: f32,
-    inv_d: f32,
-    dxy_weight_sq: f32,
-    pad: u32,
+    pipelines: Pipelines,
+    /// The orientation samples `(i + 6, j + 6, weight, 0)` of the CPU's table.
+    ori_samples: wgpu::Buffer,
+    /// The descriptor weights of the 20 x 20 and 18 x 18 grids.
+    weights20: wgpu::Buffer,
+    weights18: wgpu::Buffer,
+    /// The buffers of the last frame's size (one frame at a time on the device).
+    frame: Mutex<Option<Frame>>,
 }
 
 impl GpuSurf {
     /// Open an adapter by `policy` (hardware first) and build the pipelines.
     pub fn new(policy: AdapterPolicy) -> Result<Self, GpuError> {
-        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
-        desc.backends = wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12;
-        let instance = wgpu::Instance::new(desc);
-        let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
-        let hardware = adapters
-            .iter()
-            .filter(|a| a.get_info().device_type != wgpu::DeviceType::Cpu)
-            .max_by_key(|a| match a.get_info().device_type {
-                wgpu::DeviceType::DiscreteGpu => 3,
-                wgpu::DeviceType::IntegratedGpu => 2,
-                wgpu::DeviceType::VirtualGpu => 1,
-                _ => 0,
-            });
-        let software = adapters
-            .iter()
-            .find(|a| a.get_info().device_type == wgpu::DeviceType::Cpu);
-        let adapter = match (hardware, software, policy) {
-            (Some(a), _, _) => a,
-            (None, Some(a), AdapterPolicy::AllowSoftware) => a,
-            (None, Some(a), AdapterPolicy::HardwareOnly) => {
-                return Err(GpuError::SoftwareOnly(adapter_info(a).name));
-            }
-            (None, None, _) => {
-                return Err(GpuError::NoAdapter(
-                    "no Vulkan, Metal or DX12 adapter (on Linux: a Vulkan driver and libvulkan1; \
-                     Mesa's mesa-vulkan-drivers has the lavapipe software adapter)"
-                        .into(),
-                ));
-            }
-        };
-        let info = adapter_info(adapter);
+        let (adapter, info) = choose_adapter(policy)?;
         let limits = wgpu::Limits {
             // HD frames: a 1921 x 1081 table and the layers of four octaves.
             max_storage_buffer_binding_size: adapter.limits().max_storage_buffer_binding_size,
             max_buffer_size: adapter.limits().max_buffer_size,
+            // The extrema and descriptor passes bind 5 storage buffers (WebGPU's default is 8;
+            // an adapter with fewer fails at pipeline creation, reported as a device error).
+            max_storage_buffers_per_shader_stage: adapter
+                .limits()
+                .max_storage_buffers_per_shader_stage
+                .min(8),
             ..wgpu::Limits::downlevel_defaults()
         };
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
@@ -188,26 +226,46 @@ impl GpuSurf {
             ..wgpu::DeviceDescriptor::default()
         }))
         .map_err(|e| GpuError::Device(format!("{}: {e}", info.name)))?;
-        let integral = device.create_shader_module(wgpu::include_wgsl!("shaders/integral.wgsl"));
-        let hessian = device.create_shader_module(wgpu::include_wgsl!("shaders/hessian.wgsl"));
-        let pipeline = |module: &wgpu::ShaderModule, entry: &str| {
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(entry),
-                layout: None,
-                module,
-                entry_point: Some(entry),
-                compilation_options: wgpu::PipelineCompilationOptions::default(),
-                cache: None,
+        // A driver that rejects a shader is an adapter we cannot use, not a crash.
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let pipelines = Pipelines::new(&device);
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Device(format!("{}: {e}", info.name)));
+        }
+        let init = |label: &str, contents: &[u8]| {
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents,
+                usage: wgpu::BufferUsages::STORAGE,
             })
         };
+        let samples: Vec<[f32; 4]> = orientation_samples()
+            .iter()
+            .map(|&(i, j, w)| [f32::from(i), f32::from(j), w, 0.0])
+            .collect();
+        let ori_samples = init("orientation samples", bytemuck::cast_slice(&samples));
+        let weights20 = init(
+            "weights 20",
+            bytemuck::cast_slice(descriptor_weights(
+                visnav_core::vision::DescriptorKind::Surf64,
+            )),
+        );
+        let weights18 = init(
+            "weights 18",
+            bytemuck::cast_slice(descriptor_weights(
+                visnav_core::vision::DescriptorKind::Surf36,
+            )),
+        );
         Ok(Self {
             fallbacks: std::sync::atomic::AtomicU64::new(0),
-            integral_rows: pipeline(&integral, "rows"),
-            integral_cols: pipeline(&integral, "cols"),
-            hessian: pipeline(&hessian, "main"),
             device,
             queue,
             info,
+            pipelines,
+            ori_samples,
+            weights20,
+            weights18,
+            frame: Mutex::new(None),
         })
     }
 
@@ -221,191 +279,303 @@ impl GpuSurf {
         self.fallbacks.load(std::sync::atomic::Ordering::Relaxed)
     }
 
-    /// Detect on the GPU path (module doc); the same keypoints as `surf.detect` on the CPU. `ii`
-    /// is the CPU's integral image of `img` (the extrema's interpolation reads it).
-    pub fn detect(
-        &self,
-        surf: &Surf,
-        img: &GrayImage,
-        ii: &IntegralImage,
-    ) -> Result<Vec<KeyPoint>, GpuError> {
-        let plan = surf.layer_plan(img.width(), img.height());
-        let out = self.run(img, &plan)?;
-        Ok(surf.detect_with_layers(ii, out.layers)?)
+    /// Fast-Hessian detection on the GPU: the keypoints of `surf.detect` (strongest first,
+    /// orientation not yet assigned, capped to `max_features` with the CPU's spread).
+    pub fn detect(&self, surf: &Surf, img: &GrayImage) -> Result<Vec<KeyPoint>, GpuError> {
+        self.with_frame(surf, img, |frame| self.detect_on(frame, surf, img))
     }
 
-    /// Detect and describe: [`Self::detect`], then the CPU's orientation and descriptors.
+    /// Detect, assign orientations (unless upright) and describe, all on the GPU: the features of
+    /// `surf.detect_and_describe`.
     pub fn detect_and_describe(&self, surf: &Surf, img: &GrayImage) -> Result<Features, GpuError> {
-        let ii = IntegralImage::new(img);
-        let kps = self.detect(surf, img, &ii)?;
-        Ok(surf.describe(&ii, kps))
+        self.with_frame(surf, img, |frame| {
+            let kps = self.detect_on(frame, surf, img)?;
+            self.describe_on(frame, surf, kps)
+        })
     }
 
     /// The GPU's integral table of `img` (`(h + 1) x (w + 1)`, as `IntegralImage::data`) and the
-    /// response layers of `plan` (`[octave][layer]`, row-major), in one submission.
+    /// response layers of `plan` (`[octave][layer]`, row-major): the first stages' output, read
+    /// back for tests and diagnostics.
     pub fn run(&self, img: &GrayImage, plan: &[Vec<LayerSpec>]) -> Result<GpuLayers, GpuError> {
-        let (w, h) = (img.width(), img.height());
-        let bad = |reason: &str| GpuError::Image {
-            width: w,
-            height: h,
-            reason: reason.to_string(),
+        let key = FrameKey {
+            width: img.width(),
+            height: img.height(),
+            plan: plan.to_vec(),
         };
-        if w == 0 || h == 0 {
-            return Err(bad("empty"));
+        self.with_key(key, |frame| {
+            self.upload(frame, img);
+            let mut enc = self.encoder();
+            frame.encode_layers(&self.pipelines, &mut enc);
+            let table_rb = frame::readback(&self.device, frame.table_bytes);
+            let det_rb = frame::readback(&self.device, frame.det_bytes);
+            enc.copy_buffer_to_buffer(&frame.table, 0, &table_rb, 0, frame.table_bytes);
+            enc.copy_buffer_to_buffer(&frame.det, 0, &det_rb, 0, frame.det_bytes);
+            self.queue.submit([enc.finish()]);
+            let integral: Vec<i32> = self.read(&table_rb, frame.table_bytes)?;
+            let det_all: Vec<f32> = self.read(&det_rb, frame.det_bytes)?;
+            Ok(GpuLayers {
+                integral,
+                layers: split_layers(&det_all, plan),
+            })
+        })
+    }
+
+    /// Run `f` on the buffers of `img`'s size and `surf`'s plan.
+    fn with_frame<T>(
+        &self,
+        surf: &Surf,
+        img: &GrayImage,
+        f: impl FnOnce(&mut Frame) -> Result<T, GpuError>,
+    ) -> Result<T, GpuError> {
+        let key = FrameKey {
+            width: img.width(),
+            height: img.height(),
+            plan: surf.layer_plan(img.width(), img.height()),
+        };
+        self.with_key(key, f)
+    }
+
+    /// Run `f` on the frame buffers of `key`, built when the last frame's differ.
+    fn with_key<T>(
+        &self,
+        key: FrameKey,
+        f: impl FnOnce(&mut Frame) -> Result<T, GpuError>,
+    ) -> Result<T, GpuError> {
+        let mut guard = self
+            .frame
+            .lock()
+            .map_err(|_| GpuError::Run("an earlier frame panicked on this device".into()))?;
+        if guard.as_ref().is_none_or(|fr| fr.key != key) {
+            *guard = None;
+            let (width, height) = (key.width, key.height);
+            let built = Frame::new(&self.device, &self.pipelines, key).map_err(|reason| {
+                GpuError::Image {
+                    width,
+                    height,
+                    reason,
+                }
+            })?;
+            *guard = Some(built);
         }
-        let stride = w + 1;
-        let cells = stride * (h + 1);
-        let table_bytes = (cells * 4) as u64;
-        if table_bytes > self.device.limits().max_storage_buffer_binding_size {
-            return Err(bad(
-                "its integral table exceeds the adapter's storage buffer size",
-            ));
+        match guard.as_mut() {
+            Some(frame) => f(frame),
+            None => Err(GpuError::Run("no frame buffers".into())),
         }
-        let u32_of = |v: usize| u32::try_from(v).map_err(|_| bad("too large"));
-        // Quantised as IntegralImage::new does: rounded, clamped to 0..=255, NaN as 0.
+    }
+
+    /// The image's pixels into the frame, quantised as `IntegralImage::new` does: rounded,
+    /// clamped to 0..=255, NaN as 0.
+    fn upload(&self, frame: &Frame, img: &GrayImage) {
         let px: Vec<u32> = img
             .data()
             .iter()
             .map(|v| (v + 0.5).clamp(0.0, 255.0) as u32)
             .collect();
-        let dev = &self.device;
-        let px_buf = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("pixels"),
-            contents: bytemuck::cast_slice(&px),
-            usage: wgpu::BufferUsages::STORAGE,
+        self.queue
+            .write_buffer(&frame.px, 0, bytemuck::cast_slice(&px));
+    }
+
+    fn encoder(&self) -> wgpu::CommandEncoder {
+        self.device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("surf"),
+            })
+    }
+
+    /// Layers and maxima on the GPU; the keypoints in the CPU's order and selection.
+    fn detect_on(
+        &self,
+        frame: &mut Frame,
+        surf: &Surf,
+        img: &GrayImage,
+    ) -> Result<Vec<KeyPoint>, GpuError> {
+        if frame.triples.is_empty() {
+            return Ok(Vec::new());
+        }
+        let p = surf.params();
+        for t in &mut frame.triples {
+            t.data.threshold = p.hessian_threshold;
+            self.queue
+                .write_buffer(&t.uniform, 0, bytemuck::bytes_of(&t.data));
+        }
+        self.upload(frame, img);
+        let mut enc = self.encoder();
+        frame.encode_layers(&self.pipelines, &mut enc);
+        frame.encode_extrema(&self.pipelines, &mut enc);
+        self.queue.submit([enc.finish()]);
+        let n = self
+            .read::<u32>(&frame.count_rb, 4)?
+            .first()
+            .copied()
+            .unwrap_or(0) as usize;
+        if n > MAX_EXTREMA {
+            return Err(GpuError::Run(format!(
+                "{n} maxima, more than the GPU path holds ({MAX_EXTREMA})"
+            )));
+        }
+        if n == 0 {
+            return Ok(Vec::new());
+        }
+        let bytes = n as u64 * EXTREMUM_BYTES;
+        let mut enc = self.encoder();
+        enc.copy_buffer_to_buffer(&frame.found, 0, &frame.found_rb, 0, bytes);
+        self.queue.submit([enc.finish()]);
+        let mut found: Vec<Extremum> = self.read(&frame.found_rb, bytes)?;
+        // The CPU's order: strongest first, ties by octave, layer, row, column.
+        found.sort_by(|a, b| {
+            b.response
+                .total_cmp(&a.response)
+                .then((a.tag & 0xffff).cmp(&(b.tag & 0xffff)))
+                .then(a.r.cmp(&b.r))
+                .then(a.c.cmp(&b.c))
         });
-        let table = dev.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("integral"),
-            size: table_bytes,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        let dims: [u32; 4] = [u32_of(w)?, u32_of(h)?, u32_of(stride)?, 0];
-        let dims_buf = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("dims"),
-            contents: bytemuck::cast_slice(&dims),
-            usage: wgpu::BufferUsages::UNIFORM,
-        });
-        let (uniforms, offset) = layer_uniforms(plan, dims).ok_or_else(|| bad("too large"))?;
-        let det_bytes = (offset.max(1) * 4) as u64;
-        if det_bytes > dev.limits().max_storage_buffer_binding_size {
-            return Err(bad(
-                "its response layers exceed the adapter's storage buffer size",
+        let mut kps = Vec::with_capacity(found.len());
+        for e in &found {
+            let tag = e.tag & 0xffff;
+            let Some(t) = frame.triples.iter().find(|t| t.data.tag == tag) else {
+                return Err(GpuError::Run(format!("a maximum of unknown layer {tag}")));
+            };
+            let offset = [f64::from(e.ox), f64::from(e.oy), f64::from(e.os)];
+            let laplacian = if e.tag & 0x10000 != 0 { -1 } else { 1 };
+            kps.push(keypoint_at(
+                e.c as usize,
+                e.r as usize,
+                offset,
+                &t.mid,
+                t.lo_size,
+                e.response,
+                laplacian,
+                t.octave,
             ));
         }
-        let det = dev.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("responses"),
-            size: det_bytes,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        // Each pass's layout is derived from what its entry point uses: the column pass does
-        // not read the pixels.
-        let integral_bg = |pipeline: &wgpu::ComputePipeline, with_pixels: bool| {
-            let mut entries = vec![wgpu::BindGroupEntry {
-                binding: 0,
-                resource: dims_buf.as_entire_binding(),
-            }];
-            if with_pixels {
-                entries.push(wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: px_buf.as_entire_binding(),
-                });
-            }
-            entries.push(wgpu::BindGroupEntry {
-                binding: 2,
-                resource: table.as_entire_binding(),
-            });
-            dev.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("integral"),
-                layout: &pipeline.get_bind_group_layout(0),
-                entries: &entries,
-            })
+        if let Some(cap) = p.max_features {
+            kps = select_spread(kps, cap, img.width(), img.height());
+        }
+        Ok(kps)
+    }
+
+    /// Orientations and descriptors of `kps` on the frame's integral table.
+    fn describe_on(
+        &self,
+        frame: &mut Frame,
+        surf: &Surf,
+        mut kps: Vec<KeyPoint>,
+    ) -> Result<Features, GpuError> {
+        let p = surf.params();
+        let kind = p.descriptor;
+        if kps.is_empty() {
+            return Ok(Features::new(kps, Vec::new(), kind)?);
+        }
+        let n = kps.len();
+        self.ensure_describe_buffers(frame, n, kind);
+        let Some(b) = frame.describe.as_ref() else {
+            return Err(GpuError::Run("no descriptor buffers".into()));
         };
-        let rows_bg = integral_bg(&self.integral_rows, true);
-        let cols_bg = integral_bg(&self.integral_cols, false);
-        let layer_bgs: Vec<(wgpu::BindGroup, &LayerUniform)> = uniforms
-            .iter()
-            .map(|u| {
-                let ub = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some("layer"),
-                    contents: bytemuck::bytes_of(u),
-                    usage: wgpu::BufferUsages::UNIFORM,
-                });
-                let bg = dev.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("layer"),
-                    layout: &self.hessian.get_bind_group_layout(0),
-                    entries: &[
-                        wgpu::BindGroupEntry {
-                            binding: 0,
-                            resource: table.as_entire_binding(),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 1,
-                            resource: det.as_entire_binding(),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 2,
-                            resource: ub.as_entire_binding(),
-                        },
-                    ],
-                });
-                (bg, u)
-            })
-            .collect();
-        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("surf"),
-        });
-        {
-            // Separate passes order the writes of one before the reads of the next.
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
-            pass.set_pipeline(&self.integral_rows);
-            pass.set_bind_group(0, &rows_bg, &[]);
-            pass.dispatch_workgroups((dims[1] + 1).div_ceil(INTEGRAL_WORKGROUP), 1, 1);
-        }
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
-            pass.set_pipeline(&self.integral_cols);
-            pass.set_bind_group(0, &cols_bg, &[]);
-            pass.dispatch_workgroups((dims[0] + 1).div_ceil(INTEGRAL_WORKGROUP), 1, 1);
-        }
+        let n32 = u32::try_from(n).map_err(|_| GpuError::Run(format!("{n} keypoints")))?;
+        let kp_data: Vec<[f32; 4]> = kps.iter().map(|k| [k.x, k.y, k.scale, 0.0]).collect();
+        self.queue
+            .write_buffer(&b.kps, 0, bytemuck::cast_slice(&kp_data));
+        let [w, h, stride, _] = frame.dims;
+        let ori_groups = n32.div_ceil(ORIENTATION_WORKGROUP);
+        let ori_grid = grid(ori_groups);
+        let ori_params = OriParams {
+            w,
+            h,
+            stride,
+            n: n32,
+            n_samples: orientation_samples().len() as u32,
+            bins: ORIENTATION_BINS as u32,
+            window: ORIENTATION_WINDOW_BINS as u32,
+            per_row: ori_grid.0 * ORIENTATION_WORKGROUP,
+            // The CPU's bin scale, bit for bit.
+            bin_scale: ORIENTATION_BINS as f32 / std::f32::consts::TAU,
+            pad: [0; 3],
+        };
+        let desc_grid = grid(n32);
+        let desc_params = DescParams {
+            w,
+            h,
+            stride,
+            n_kp: n32,
+            samples: kind.samples() as u32,
+            nsub: kind.subregions() as u32,
+            vals: (kind.len() / (kind.subregions() * kind.subregions())) as u32,
+            len: kind.len() as u32,
+            out_stride: kind.stride() as u32,
+            upright: u32::from(p.upright),
+            extended: u32::from(kind == visnav_core::vision::DescriptorKind::Surf128),
+            per_row: desc_grid.0,
+            // The CPU's `20 / n` (its sample spacing is this times the scale).
+            sp_unit: 20.0 / kind.samples() as f32,
+            pad: [0; 3],
+        };
+        self.queue
+            .write_buffer(&b.ori_params, 0, bytemuck::bytes_of(&ori_params));
+        self.queue
+            .write_buffer(&b.desc_params, 0, bytemuck::bytes_of(&desc_params));
+        let mut enc = self.encoder();
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
-            pass.set_pipeline(&self.hessian);
-            for (bg, u) in &layer_bgs {
-                pass.set_bind_group(0, bg, &[]);
-                pass.dispatch_workgroups(
-                    u.cols.div_ceil(HESSIAN_WORKGROUP),
-                    u.rows.div_ceil(HESSIAN_WORKGROUP),
-                    1,
-                );
+            if !p.upright {
+                pass.set_pipeline(&self.pipelines.orientation);
+                pass.set_bind_group(0, &b.ori_bg, &[]);
+                pass.dispatch_workgroups(ori_grid.0, ori_grid.1, 1);
             }
         }
-        let table_rb = self.readback_buffer(table_bytes);
-        let det_rb = self.readback_buffer(det_bytes);
-        enc.copy_buffer_to_buffer(&table, 0, &table_rb, 0, table_bytes);
-        enc.copy_buffer_to_buffer(&det, 0, &det_rb, 0, det_bytes);
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
+            pass.set_pipeline(&self.pipelines.descriptor);
+            pass.set_bind_group(0, &b.desc_bg, &[]);
+            pass.dispatch_workgroups(desc_grid.0, desc_grid.1, 1);
+        }
+        let ori_bytes = n as u64 * 16;
+        let desc_bytes = (n * kind.stride() * 4) as u64;
+        if !p.upright {
+            enc.copy_buffer_to_buffer(&b.ori, 0, &b.ori_rb, 0, ori_bytes);
+        }
+        enc.copy_buffer_to_buffer(&b.desc, 0, &b.desc_rb, 0, desc_bytes);
         self.queue.submit([enc.finish()]);
-        let integral: Vec<i32> = self.read(&table_rb)?;
-        let det_all: Vec<f32> = self.read(&det_rb)?;
-        Ok(GpuLayers {
-            integral,
-            layers: split_layers(&det_all, plan),
-        })
+        if !p.upright {
+            let ori: Vec<[f32; 4]> = self.read(&b.ori_rb, ori_bytes)?;
+            for (k, o) in kps.iter_mut().zip(&ori) {
+                k.orientation_rad = orientation_of_window(o[0], o[1]);
+            }
+        }
+        let desc: Vec<f32> = self.read(&b.desc_rb, desc_bytes)?;
+        Ok(Features::new(kps, desc, kind)?)
     }
 
-    fn readback_buffer(&self, size: u64) -> wgpu::Buffer {
-        self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("readback"),
-            size,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        })
+    /// The frame's keypoint and descriptor buffers for at least `n` keypoints of `kind`.
+    fn ensure_describe_buffers(
+        &self,
+        frame: &mut Frame,
+        n: usize,
+        kind: visnav_core::vision::DescriptorKind,
+    ) {
+        let fits = frame.describe.as_ref().is_some_and(|b| {
+            b.capacity >= n && b.stride == kind.stride() && b.samples == kind.samples()
+        });
+        if fits {
+            return;
+        }
+        let weights = if kind.samples() == 18 {
+            &self.weights18
+        } else {
+            &self.weights20
+        };
+        frame.describe = Some(DescribeBuffers::new(
+            &self.device,
+            &self.pipelines,
+            [&frame.table, &self.ori_samples, weights],
+            n.next_power_of_two().max(256),
+            kind,
+        ));
     }
 
-    /// Map a readback buffer, wait for the GPU, copy it out.
-    fn read<T: bytemuck::Pod>(&self, buf: &wgpu::Buffer) -> Result<Vec<T>, GpuError> {
-        let slice = buf.slice(..);
+    /// Map the first `bytes` of a readback buffer, wait for the GPU, copy them out.
+    fn read<T: bytemuck::Pod>(&self, buf: &wgpu::Buffer, bytes: u64) -> Result<Vec<T>, GpuError> {
+        let slice = buf.slice(..bytes);
         let (tx, rx) = mpsc::channel();
         slice.map_async(wgpu::MapMode::Read, move |r| {
             let _ = tx.send(r);
@@ -419,38 +589,54 @@ impl GpuSurf {
         let view = slice
             .get_mapped_range()
             .map_err(|e| GpuError::Run(format!("reading back: {e}")))?;
-        let out = bytemuck::cast_slice::<u8, T>(&view).to_vec();
+        let out = bytemuck::pod_collect_to_vec::<u8, T>(&view);
         drop(view);
         buf.unmap();
         Ok(out)
     }
 }
 
-/// The uniforms of the plan's layers, packed one after the other in the response buffer, and the
-/// number of responses (`None`: a figure beyond 32 bits).
-fn layer_uniforms(plan: &[Vec<LayerSpec>], dims: [u32; 4]) -> Option<(Vec<LayerUniform>, usize)> {
-    let mut uniforms = Vec::new();
-    let mut offset = 0usize;
-    for s in plan.iter().flatten() {
-        let l = s.size / 3;
-        uniforms.push(LayerUniform {
-            w: dims[0],
-            h: dims[1],
-            stride: dims[2],
-            size: u32::try_from(s.size).ok()?,
-            step: u32::try_from(s.step).ok()?,
-            rows: u32::try_from(s.rows).ok()?,
-            cols: u32::try_from(s.cols).ok()?,
-            out_offset: u32::try_from(offset).ok()?,
-            // The CPU's factors, bit for bit (a GPU's division need not be correctly rounded).
-            inv_a: 1.0 / (l * (2 * l - 1)) as f32,
-            inv_d: 1.0 / (l * l) as f32,
-            dxy_weight_sq: HESSIAN_DXY_WEIGHT_SQ,
-            pad: 0,
-        });
-        offset += s.rows * s.cols;
-    }
-    Some((uniforms, offset))
+/// Open the adapter `policy` allows: hardware first (discrete, integrated, virtual), software
+/// only when allowed.
+fn choose_adapter(policy: AdapterPolicy) -> Result<(wgpu::Adapter, AdapterInfo), GpuError> {
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12;
+    let instance = wgpu::Instance::new(desc);
+    let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+    let rank = |a: &wgpu::Adapter| match a.get_info().device_type {
+        wgpu::DeviceType::DiscreteGpu => 3,
+        wgpu::DeviceType::IntegratedGpu => 2,
+        wgpu::DeviceType::VirtualGpu => 1,
+        _ => 0,
+    };
+    let hardware = adapters
+        .iter()
+        .filter(|a| a.get_info().device_type != wgpu::DeviceType::Cpu)
+        .max_by_key(|a| rank(a));
+    let software = adapters
+        .iter()
+        .find(|a| a.get_info().device_type == wgpu::DeviceType::Cpu);
+    let adapter = match (hardware, software, policy) {
+        (Some(a), _, _) => a,
+        (None, Some(a), AdapterPolicy::AllowSoftware) => a,
+        (None, Some(a), AdapterPolicy::HardwareOnly) => {
+            return Err(GpuError::SoftwareOnly(adapter_info(a).name));
+        }
+        (None, None, _) => {
+            return Err(GpuError::NoAdapter(
+                "no Vulkan, Metal or DX12 adapter (on Linux: a Vulkan driver and libvulkan1; \
+                 Mesa's mesa-vulkan-drivers has the lavapipe software adapter)"
+                    .into(),
+            ));
+        }
+    };
+    Ok((adapter.clone(), adapter_info(adapter)))
+}
+
+/// A dispatch of `groups` workgroups as `(x, y)` within the per-dimension limit.
+fn grid(groups: u32) -> (u32, u32) {
+    let x = groups.clamp(1, MAX_GROUPS_X);
+    (x, groups.div_ceil(x).max(1))
 }
 
 /// The response buffer cut into the plan's layers.

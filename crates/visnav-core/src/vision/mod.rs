@@ -25,7 +25,8 @@ pub use gray::GrayImage;
 pub use integral::IntegralImage;
 pub use matcher::{Match, MatchParams, match_features};
 pub use surf::{
-    CpuFeatures, DescriptorKind, FeatureBackend, Features, KeyPoint, LayerSpec, Surf, SurfParams,
+    CpuFeatures, DescriptorKind, ExtremaWindow, FeatureBackend, Features, KeyPoint, LayerSpec,
+    Surf, SurfParams,
 };
 
 /// Errors of the vision module.

@@ -89,14 +89,14 @@ impl DescriptorKind {
         self.len().div_ceil(8) * 8
     }
     /// Subregions per side.
-    fn subregions(self) -> usize {
+    pub fn subregions(self) -> usize {
         match self {
             Self::Surf36 => 3,
             _ => 4,
         }
     }
     /// Samples per side of the 20s window.
-    fn samples(self) -> usize {
+    pub fn samples(self) -> usize {
         match self {
             Self::Surf36 => 18,
             _ => 20,
@@ -320,6 +320,15 @@ struct Layer {
 }
 
 impl Layer {
+    fn spec(&self) -> LayerSpec {
+        LayerSpec {
+            size: self.size,
+            step: self.step,
+            rows: self.rows,
+            cols: self.cols,
+        }
+    }
+
     fn new(s: &LayerSpec, det: Vec<f32>) -> Self {
         Self {
             size: s.size,
@@ -350,6 +359,111 @@ pub fn response_layer(ii: &IntegralImage, spec: &LayerSpec) -> Vec<f32> {
 /// The Hessian weight of `Dxy` squared (`0.9^2`, Bay et al. 2008 eq. 4): part of the GPU path's
 /// contract.
 pub const HESSIAN_DXY_WEIGHT_SQ: f32 = DXY_WEIGHT_SQ;
+
+/// Orientation histogram bins over `2 pi` and the sliding window's width in bins (`pi / 3`): part
+/// of the GPU path's contract.
+pub const ORIENTATION_BINS: usize = ORI_BINS;
+/// See [`ORIENTATION_BINS`].
+pub const ORIENTATION_WINDOW_BINS: usize = ORI_WIN_BINS;
+
+/// The orientation samples of Bay sec. 4.1 as `(i + 6, j + 6, weight)`: the grid points `(i s,
+/// j s)` with `i^2 + j^2 <= 36`, in the CPU's summation order, with their Gaussian weight
+/// (sigma 2 s). The GPU path reads these so its weights are the CPU's bit for bit.
+pub fn orientation_samples() -> &'static [(u8, u8, f32)] {
+    &tables().ori_idx
+}
+
+/// The Gaussian weights (sigma 3.3 s) of the descriptor's `samples x samples` grid, row-major
+/// (for the GPU path, as [`orientation_samples`]).
+pub fn descriptor_weights(kind: DescriptorKind) -> &'static [f32] {
+    let t = tables();
+    if kind.samples() == 18 {
+        &t.desc18
+    } else {
+        &t.desc20
+    }
+}
+
+/// Where the extrema of a middle layer are searched ([`find_maxima`]'s margin): the grid cells
+/// `c_lo..=c_hi`, `r_lo..=r_hi` at which the largest filter of the triple (`hi`) fits at every
+/// neighbour sample. `None`: nowhere.
+pub fn extrema_window(
+    width: usize,
+    height: usize,
+    mid: &LayerSpec,
+    hi: &LayerSpec,
+) -> Option<ExtremaWindow> {
+    let step = mid.step;
+    let hs_top = (hi.size - 1) / 2;
+    let c_lo = hs_top.div_ceil(step) + 1;
+    let r_lo = c_lo;
+    if width < 1 + hs_top || height < 1 + hs_top {
+        return None;
+    }
+    let c_hi = ((width - 1 - hs_top) / step).saturating_sub(1);
+    let r_hi = ((height - 1 - hs_top) / step).saturating_sub(1);
+    // The last two hold for every layer of a plan; they guard the neighbour reads of other callers.
+    if c_hi < c_lo || r_hi < r_lo || c_hi + 1 >= mid.cols || r_hi + 1 >= mid.rows {
+        return None;
+    }
+    Some(ExtremaWindow {
+        c_lo,
+        c_hi,
+        r_lo,
+        r_hi,
+    })
+}
+
+/// Grid cells searched for extrema (inclusive bounds), see [`extrema_window`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ExtremaWindow {
+    pub c_lo: usize,
+    pub c_hi: usize,
+    pub r_lo: usize,
+    pub r_hi: usize,
+}
+
+/// A keypoint from a 3x3x3 maximum at grid cell `(c, r)` of layer `mid` (octave `octave`) and its
+/// interpolated offset `[dx, dy, ds]` in samples (`ds` in units of the filter-size step
+/// `mid.size - lo_size`): position in pixels, filter size, scale `1.2 L / 9`. The one formula of
+/// the CPU and GPU paths.
+#[allow(clippy::too_many_arguments)] // the fields of one maximum, each a different quantity
+pub fn keypoint_at(
+    c: usize,
+    r: usize,
+    offset: [f64; 3],
+    mid: &LayerSpec,
+    lo_size: usize,
+    response: f32,
+    laplacian: i8,
+    octave: usize,
+) -> KeyPoint {
+    let [ox, oy, os] = offset;
+    let step = mid.step as f64;
+    let ds = (mid.size - lo_size) as f64;
+    let size = mid.size as f64 + os * ds;
+    KeyPoint {
+        x: ((c as f64 + ox) * step) as f32,
+        y: ((r as f64 + oy) * step) as f32,
+        size: size as f32,
+        scale: (1.2 * size / 9.0) as f32,
+        response,
+        orientation_rad: 0.0,
+        laplacian,
+        octave: octave as u8,
+    }
+}
+
+/// The orientation of the best window's sum vector `(bx, by)` (what the sliding window of
+/// Bay sec. 4.1 gives): `atan2(by, bx)`, 0 for a zero vector. Shared with the GPU path, which
+/// returns the vector.
+pub fn orientation_of_window(bx: f32, by: f32) -> f32 {
+    if bx * bx + by * by > 0.0 {
+        by.atan2(bx)
+    } else {
+        0.0
+    }
+}
 
 impl Surf {
     /// Validate the parameters and build the extractor.
@@ -440,39 +554,6 @@ impl Surf {
             g.extend(layers.into_iter().map(|l| l.det));
         }
         kps
-    }
-
-    /// [`Self::detect`] from response layers computed elsewhere (the GPU path, `visnav-gpu`):
-    /// `dets[o][k]` is `det(H)` of [`Self::layer_plan`]`(w, h)[o][k]`, row-major on its grid, 0
-    /// where the filter does not fit (what [`response_layer`] computes). The extrema, their
-    /// interpolation and the selection are this CPU reference's.
-    pub fn detect_with_layers(
-        &self,
-        ii: &IntegralImage,
-        dets: Vec<Vec<Vec<f32>>>,
-    ) -> Result<Vec<KeyPoint>, VisionError> {
-        let plan = self.layer_plan(ii.width(), ii.height());
-        let shape_ok = dets.len() == plan.len()
-            && dets.iter().zip(&plan).all(|(d, p)| {
-                d.len() == p.len() && d.iter().zip(p).all(|(v, s)| v.len() == s.rows * s.cols)
-            });
-        if !shape_ok {
-            return Err(VisionError::InvalidParam {
-                name: "response layers",
-                reason: "do not match the layer plan of this image".into(),
-            });
-        }
-        let mut layers = Vec::new();
-        let mut octaves = Vec::new();
-        for (specs, ds) in plan.iter().zip(dets) {
-            let mut idx = Vec::with_capacity(specs.len());
-            for (s, det) in specs.iter().zip(ds) {
-                layers.push(Layer::new(s, det));
-                idx.push(layers.len() - 1);
-            }
-            octaves.push(idx);
-        }
-        Ok(self.maxima(ii, &layers, &octaves))
     }
 
     /// Extrema of every octave's middle layers, strongest first, capped with an even spread.
@@ -759,22 +840,18 @@ fn find_maxima(
     threshold: f32,
     octave: usize,
 ) -> Vec<KeyPoint> {
-    let (w, h) = (ii.width(), ii.height());
     let step = mid.step;
-    let (rows, cols) = (mid.rows, mid.cols);
+    let cols = mid.cols;
     // Margin: the largest filter must fit at the neighbour samples too.
-    let hs_top = (hi.size - 1) / 2;
-    let c_lo = hs_top.div_ceil(step) + 1;
-    let r_lo = c_lo;
-    if w < 1 + hs_top || h < 1 + hs_top {
+    let Some(ExtremaWindow {
+        c_lo,
+        c_hi,
+        r_lo,
+        r_hi,
+    }) = extrema_window(ii.width(), ii.height(), &mid.spec(), &hi.spec())
+    else {
         return Vec::new();
-    }
-    let c_hi = ((w - 1 - hs_top) / step).saturating_sub(1);
-    let r_hi = ((h - 1 - hs_top) / step).saturating_sub(1);
-    if c_hi < c_lo || r_hi < r_lo {
-        return Vec::new();
-    }
-    let ds = (mid.size - lo.size) as f32;
+    };
     (r_lo..r_hi + 1)
         .into_par_iter()
         .with_min_len(4)
@@ -844,25 +921,22 @@ fn find_maxima(
                     };
                     f64::from(at(l, dr, dc))
                 };
-                let Some([ox, oy, os]) = interpolate(&v) else {
+                let Some(offset) = interpolate(&v) else {
                     continue;
                 };
-                let x = (c as f64 + ox) * step as f64;
-                let y = (r as f64 + oy) * step as f64;
-                let size = mid.size as f64 + os * f64::from(ds);
                 let (dxx, dyy, _) = hessian_at(ii, c * step, r * step, mid.size);
-                found.push(KeyPoint {
-                    x: x as f32,
-                    y: y as f32,
-                    size: size as f32,
-                    scale: (1.2 * size / 9.0) as f32,
-                    response: v0,
-                    orientation_rad: 0.0,
-                    laplacian: if dxx + dyy < 0.0 { -1 } else { 1 },
-                    octave: octave as u8,
-                });
+                let laplacian = if dxx + dyy < 0.0 { -1 } else { 1 };
+                found.push(keypoint_at(
+                    c,
+                    r,
+                    offset,
+                    &mid.spec(),
+                    lo.size,
+                    v0,
+                    laplacian,
+                    octave,
+                ));
             }
-            let _ = rows;
             found.into_iter()
         })
         .collect()
@@ -1111,7 +1185,7 @@ fn best_window(bins: &[[f32; 2]; ORI_BINS]) -> f32 {
             (best, bx, by) = (m, sx, sy);
         }
     }
-    if best > 0.0 { by.atan2(bx) } else { 0.0 }
+    orientation_of_window(bx, by)
 }
 
 /// Compute one descriptor into `out` (`kind.stride()` floats; padding left at zero).

@@ -13,7 +13,8 @@ use anyhow::{Context, bail};
 use super::repo_file;
 use visnav::vision::eval::{self, PairScore};
 use visnav::vision::{
-    DescriptorKind, Features, GrayImage, GrayImageFile, IntegralImage, Surf, SurfParams,
+    DescriptorKind, Features, GrayImage, GrayImageFile, IntegralImage, MatchParams, Surf,
+    SurfParams, match_features,
 };
 
 #[derive(clap::Args, Debug)]
@@ -121,6 +122,20 @@ struct Timing {
     features: usize,
 }
 
+/// Brute-force matching of one image's upright features against its oriented ones (ratio 0.8,
+/// Laplacian gate): the matcher's cost on a frame's worth of features, CPU beside GPU.
+#[derive(serde::Serialize)]
+struct MatchTiming {
+    image: String,
+    query: usize,
+    train: usize,
+    /// `cpu`, or `gpu: <adapter>`.
+    backend: String,
+    threads: usize,
+    median_ms: f64,
+    matches: usize,
+}
+
 #[derive(serde::Serialize)]
 struct QualityRow {
     change: String,
@@ -220,6 +235,49 @@ fn time_one(
         );
         r.unwrap_or((f64::NAN, f64::NAN, f64::NAN, 0))
     })
+}
+
+/// The matching rows of `--backend gpu`: per image, the CPU on each pool and the GPU.
+fn match_timings(
+    inputs: &[(String, GrayImage)],
+    pools: &[(usize, rayon::ThreadPool)],
+    gpu: &GpuBench,
+    runs: usize,
+    threshold: f32,
+) -> anyhow::Result<Vec<MatchTiming>> {
+    let mut out = Vec::new();
+    for (name, img) in inputs {
+        let features = |upright: bool| -> anyhow::Result<Features> {
+            let surf = Surf::new(SurfParams {
+                hessian_threshold: threshold,
+                upright,
+                ..SurfParams::default()
+            })?;
+            Ok(surf.detect_and_describe(img))
+        };
+        let (q, t) = (features(true)?, features(false)?);
+        let p = MatchParams::default();
+        let row =
+            |backend: String, threads: usize, (median_ms, matches): (f64, usize)| MatchTiming {
+                image: name.clone(),
+                query: q.len(),
+                train: t.len(),
+                backend,
+                threads,
+                median_ms,
+                matches,
+            };
+        for (n, pool) in pools {
+            let r = pool.install(|| {
+                time_runs(runs, || Ok(match_features(&q, &t, &p, None)?), |m| m.len())
+            })?;
+            out.push(row("cpu".into(), *n, (r.0, r.3)));
+        }
+        let (label, timing) = gpu.time_match(&q, &t, &p, runs)?;
+        let threads = pools.last().map_or(1, |(n, _)| *n);
+        out.push(row(label, threads, timing));
+    }
+    Ok(out)
 }
 
 /// `runs` timed runs of `detect` then `describe`: median and minimum total ms, median detection
@@ -345,13 +403,17 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
             }
         }
     }
+    let matching = match &gpu {
+        Some(g) => match_timings(&inputs, &pools, g, a.runs.min(5), a.threshold)?,
+        None => Vec::new(),
+    };
     let quality = if a.quality || a.export_pairs.is_some() {
         Some(quality_table(&a, a.export_pairs.as_deref())?)
     } else {
         None
     };
     if a.json {
-        let doc = serde_json::json!({ "surf": timings, "quality": quality });
+        let doc = serde_json::json!({ "surf": timings, "match": matching, "quality": quality });
         println!("{}", serde_json::to_string_pretty(&doc)?);
     } else {
         println!(
@@ -383,6 +445,31 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
                 t.detect_ms,
                 t.features
             );
+        }
+        if !matching.is_empty() {
+            println!();
+            println!(
+                "matching, brute force (upright against oriented SURF-64 of one image, ratio 0.8, Laplacian gate), median of {} runs",
+                a.runs.min(5)
+            );
+            println!(
+                "{:<38} {:>13} {:>7} {:>7} {:>10} {:>8}",
+                "image", "features", "backend", "threads", "median ms", "matches"
+            );
+            for m in &matching {
+                let name = Path::new(&m.image)
+                    .file_name()
+                    .map_or(m.image.clone(), |s| s.to_string_lossy().into_owned());
+                println!(
+                    "{:<38} {:>13} {:>7} {:>7} {:>10.2} {:>8}",
+                    name,
+                    format!("{}x{}", m.query, m.train),
+                    if m.backend == "cpu" { "cpu" } else { "gpu" },
+                    m.threads,
+                    m.median_ms,
+                    m.matches
+                );
+            }
         }
         if let Some(q) = &quality {
             println!();
@@ -650,8 +737,34 @@ impl GpuBench {
         Ok((median, min, detect, n, format!("gpu: {}", g.adapter())))
     }
 
+    /// Median ms and match count of the GPU's matching.
+    #[cfg(feature = "gpu")]
+    fn time_match(
+        &self,
+        q: &Features,
+        t: &Features,
+        p: &MatchParams,
+        runs: usize,
+    ) -> anyhow::Result<(String, (f64, usize))> {
+        let g = &self.0;
+        let _ = g.match_features(q, t, p, None)?; // warm-up
+        let r = time_runs(runs, || Ok(g.match_features(q, t, p, None)?), |m| m.len())?;
+        Ok((format!("gpu: {}", g.adapter()), (r.0, r.3)))
+    }
+
     #[cfg(not(feature = "gpu"))]
     fn describe(&self) -> String {
+        match *self {}
+    }
+
+    #[cfg(not(feature = "gpu"))]
+    fn time_match(
+        &self,
+        _: &Features,
+        _: &Features,
+        _: &MatchParams,
+        _: usize,
+    ) -> anyhow::Result<(String, (f64, usize))> {
         match *self {}
     }
 

@@ -13,7 +13,9 @@
 //! * `shaders/orientation.wgsl`: the dominant orientation (`orientation`, `best_window`; the
 //!   CPU's sample table, weights and polynomial atan2);
 //! * `shaders/descriptor.wgsl`: the descriptors by the CPU's three sampling paths
-//!   (`describe_one`, `describe_rotated`), one workgroup per keypoint.
+//!   (`describe_one`, `describe_rotated`), one workgroup per keypoint;
+//! * `shaders/match.wgsl`: brute-force two-nearest-neighbour matching with the CPU matcher's
+//!   gates and distance ([`matching`]; `visnav_core::vision::match_features`).
 //!
 //! The host sorts the maxima into the CPU's order, turns them into keypoints with the CPU's
 //! formula (`keypoint_at`), applies `max_features` with the CPU's `select_spread`, and takes the
@@ -30,6 +32,7 @@
 //! for a GPU's.
 
 mod frame;
+mod matching;
 mod pipelines;
 
 use std::sync::{Mutex, mpsc};
@@ -39,7 +42,10 @@ use visnav_core::vision::surf::{
     ORIENTATION_BINS, ORIENTATION_WINDOW_BINS, descriptor_weights, keypoint_at,
     orientation_of_window, orientation_samples, select_spread,
 };
-use visnav_core::vision::{FeatureBackend, Features, GrayImage, KeyPoint, LayerSpec, Surf};
+use visnav_core::vision::{
+    FeatureBackend, Features, GrayImage, KeyPoint, LayerSpec, Match, MatchParams, Surf,
+    match_features,
+};
 use wgpu::util::DeviceExt;
 
 use frame::{DescribeBuffers, EXTREMUM_BYTES, Frame, FrameKey, MAX_EXTREMA};
@@ -274,7 +280,7 @@ impl GpuSurf {
         &self.info
     }
 
-    /// Frames the [`FeatureBackend`] computed on the CPU because the GPU failed.
+    /// Frames (and matchings) the [`FeatureBackend`] computed on the CPU because the GPU failed.
     pub fn fallbacks(&self) -> u64 {
         self.fallbacks.load(std::sync::atomic::Ordering::Relaxed)
     }
@@ -659,8 +665,8 @@ fn split_layers(det_all: &[f32], plan: &[Vec<LayerSpec>]) -> Vec<Vec<Vec<f32>>> 
         .collect()
 }
 
-/// The GPU path as the fix engine's feature backend: a frame the GPU fails on is computed on the
-/// CPU (counted in [`GpuSurf::fallbacks`]).
+/// The GPU path as the fix engine's feature backend: a frame (or a matching) the GPU fails on is
+/// computed on the CPU (counted in [`GpuSurf::fallbacks`]).
 impl FeatureBackend for GpuSurf {
     fn detect_and_describe(&self, surf: &Surf, img: &GrayImage) -> Features {
         match GpuSurf::detect_and_describe(self, surf, img) {
@@ -669,6 +675,28 @@ impl FeatureBackend for GpuSurf {
                 self.fallbacks
                     .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 surf.detect_and_describe(img)
+            }
+        }
+    }
+
+    fn match_features(
+        &self,
+        query: &Features,
+        train: &Features,
+        params: &MatchParams,
+        predicted_in_train: Option<&[[f32; 2]]>,
+    ) -> Result<Vec<Match>, visnav_core::vision::VisionError> {
+        // Small sets, and inputs the CPU refuses (its error is the answer), stay on the CPU.
+        let worth = query.len().saturating_mul(train.len()) >= matching::GPU_MATCH_MIN_PAIRS;
+        if !worth || !matching::gpu_can_match(query, train, params, predicted_in_train) {
+            return match_features(query, train, params, predicted_in_train);
+        }
+        match GpuSurf::match_features(self, query, train, params, predicted_in_train) {
+            Ok(m) => Ok(m),
+            Err(_) => {
+                self.fallbacks
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                match_features(query, train, params, predicted_in_train)
             }
         }
     }

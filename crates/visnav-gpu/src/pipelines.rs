@@ -9,6 +9,7 @@ pub(crate) struct Pipelines {
     pub extrema: wgpu::ComputePipeline,
     pub orientation: wgpu::ComputePipeline,
     pub descriptor: wgpu::ComputePipeline,
+    pub matcher: wgpu::ComputePipeline,
 }
 
 /// `shaders/common.wgsl` (the integral table and the Haar sums) prepended to a shader.
@@ -35,6 +36,7 @@ impl Pipelines {
             "descriptor",
             with_common(include_str!("shaders/descriptor.wgsl")),
         );
+        let matcher = module("match", include_str!("shaders/match.wgsl").into());
         let pipeline = |module: &wgpu::ShaderModule, entry: &str| {
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some(entry),
@@ -52,6 +54,7 @@ impl Pipelines {
             extrema: pipeline(&extrema, "main"),
             orientation: pipeline(&orientation, "main"),
             descriptor: pipeline(&descriptor, "main"),
+            matcher: pipeline(&matcher, "main"),
         }
     }
 }

@@ -44,7 +44,7 @@ use crate::pose::{
 use crate::validate::{Problems, Validate};
 use crate::vision::matcher::dist2;
 use crate::vision::{
-    CpuFeatures, FeatureBackend, Features, GrayImage, KeyPoint, MatchParams, Surf, match_features,
+    CpuFeatures, FeatureBackend, Features, GrayImage, KeyPoint, MatchParams, Surf,
 };
 
 /// Settings of the fix pipeline (`[fix]`).
@@ -922,7 +922,9 @@ impl FixEngine {
             mutual: false,
             spatial_radius_px: Some(gate_px),
         };
-        let m = match_features(query, train, &coarse, Some(pred))
+        let m = self
+            .features
+            .match_features(query, train, &coarse, Some(pred))
             .map_err(|e| rejected!("matching: {e}"))?;
         a.coarse_matches = m.len();
         let src: Vec<[f32; 2]> = m.iter().map(|mm| pred[mm.query]).collect();
@@ -1757,18 +1759,20 @@ impl FixEngine {
         *work = work.saturating_add(
             (query.len() as u64).saturating_mul(train.len() as u64) / RELOC_COMPARISONS_PER_UNIT,
         );
-        let m = match_features(
-            query,
-            train,
-            &MatchParams {
-                ratio: self.params.ratio,
-                laplacian_gate: true,
-                mutual: false,
-                spatial_radius_px: None,
-            },
-            None,
-        )
-        .map_err(|e| format!("matching: {e}"))?;
+        let m = self
+            .features
+            .match_features(
+                query,
+                train,
+                &MatchParams {
+                    ratio: self.params.ratio,
+                    laplacian_gate: true,
+                    mutual: false,
+                    spatial_radius_px: None,
+                },
+                None,
+            )
+            .map_err(|e| format!("matching: {e}"))?;
         if m.len() < self.params.min_matches {
             return Err(rejected!("level {level}: only {} matches", m.len()));
         }

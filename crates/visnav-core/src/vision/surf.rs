@@ -599,13 +599,24 @@ impl Surf {
     }
 }
 
-/// Where SURF features are computed: the CPU ([`CpuFeatures`], the reference) or an accelerator
-/// that gives the same features (visnav-gpu's GPU path). The fix engine takes one
-/// (`FixEngine::set_feature_backend`); the parameters are always the caller's `Surf`.
+/// Where SURF features are computed and matched: the CPU ([`CpuFeatures`], the reference) or an
+/// accelerator that gives the same features and matches (visnav-gpu's GPU path). The fix engine
+/// takes one (`FixEngine::set_feature_backend`); the parameters are always the caller's.
 pub trait FeatureBackend: Send + Sync {
     /// Detect and describe `img` with `surf`'s parameters. An accelerator that fails computes
     /// the frame on the CPU instead (and counts it), so a frame is never lost to the backend.
     fn detect_and_describe(&self, surf: &Surf, img: &GrayImage) -> Features;
+    /// [`super::match_features`]: the same matches (an accelerator that fails matches on the
+    /// CPU). The CPU's by default.
+    fn match_features(
+        &self,
+        query: &Features,
+        train: &Features,
+        params: &super::MatchParams,
+        predicted_in_train: Option<&[[f32; 2]]>,
+    ) -> Result<Vec<super::Match>, VisionError> {
+        super::match_features(query, train, params, predicted_in_train)
+    }
     /// For logs and benches: `cpu`, or `gpu: <adapter>`.
     fn name(&self) -> String;
 }

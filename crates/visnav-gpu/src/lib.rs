@@ -27,6 +27,10 @@
 //! compute. They differ only where a GPU rounds differently (a fused multiply-add, a division
 //! within 2.5 ulp, f32 interpolation): `tests/gpu_surf.rs` bounds that on real images.
 //!
+//! Errors: every operation runs inside wgpu error scopes (validation, out of memory, internal),
+//! so a device error becomes a [`GpuError`], and the [`FeatureBackend`] computes that frame or
+//! matching on the CPU instead (counted in [`GpuSurf::fallbacks`]).
+//!
 //! Adapter choice: a hardware adapter first; a software one (lavapipe, `DeviceType::Cpu`) only
 //! when allowed ([`AdapterPolicy`]), and always reported as software so its times are never taken
 //! for a GPU's.
@@ -238,6 +242,10 @@ impl GpuSurf {
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Device(format!("{}: {e}", info.name)));
         }
+        // Every operation after this runs inside error scopes (`scoped`), so its errors become a
+        // `GpuError` and the CPU takes the frame; this handler replaces wgpu's default, which
+        // panics, for anything a driver reports outside them.
+        device.on_uncaptured_error(std::sync::Arc::new(|_| {}));
         let init = |label: &str, contents: &[u8]| {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
@@ -342,8 +350,34 @@ impl GpuSurf {
         self.with_key(key, f)
     }
 
+    /// Run `f` with the device's validation, out-of-memory and internal errors caught: any of
+    /// them makes the result an error (wgpu reports them apart from the calls that caused them).
+    fn scoped<T>(&self, f: impl FnOnce() -> Result<T, GpuError>) -> Result<T, GpuError> {
+        let internal = self.device.push_error_scope(wgpu::ErrorFilter::Internal);
+        let memory = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let out = f();
+        // Popped innermost first.
+        let caught = [validation.pop(), memory.pop(), internal.pop()]
+            .into_iter()
+            .find_map(pollster::block_on);
+        match (out, caught) {
+            (Err(e), _) => Err(e),
+            (Ok(_), Some(e)) => Err(GpuError::Run(e.to_string())),
+            (Ok(v), None) => Ok(v),
+        }
+    }
+
     /// Run `f` on the frame buffers of `key`, built when the last frame's differ.
     fn with_key<T>(
+        &self,
+        key: FrameKey,
+        f: impl FnOnce(&mut Frame) -> Result<T, GpuError>,
+    ) -> Result<T, GpuError> {
+        self.scoped(|| self.with_key_unscoped(key, f))
+    }
+
+    fn with_key_unscoped<T>(
         &self,
         key: FrameKey,
         f: impl FnOnce(&mut Frame) -> Result<T, GpuError>,

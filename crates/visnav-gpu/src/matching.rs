@@ -64,6 +64,20 @@ fn info(f: &Features, pred: Option<&[[f32; 2]]>) -> Vec<[f32; 4]> {
         .collect()
 }
 
+impl GpuSurf {
+    /// A buffer of `bytes` within the adapter's storage binding size, else an error (the CPU
+    /// takes the work).
+    fn fits(&self, bytes: u64, what: &str) -> Result<(), GpuError> {
+        let max = self.device.limits().max_storage_buffer_binding_size;
+        if bytes > max {
+            return Err(GpuError::Run(format!(
+                "{what}: {bytes} bytes exceed the adapter's storage buffer size ({max})"
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// The chunks' two nearest neighbours (`[chunk][row]`) merged in chunk order with the CPU's
 /// update rule (strict comparisons, so the first of equal distances wins): the two nearest over
 /// all rows, as one scan in index order gives.
@@ -115,6 +129,16 @@ impl GpuSurf {
                 "matching inputs the CPU matcher refuses".into(),
             ));
         }
+        self.scoped(|| self.match_unscoped(query, train, params, predicted_in_train))
+    }
+
+    fn match_unscoped(
+        &self,
+        query: &Features,
+        train: &Features,
+        params: &MatchParams,
+        predicted_in_train: Option<&[[f32; 2]]>,
+    ) -> Result<Vec<Match>, GpuError> {
         let gate = params.spatial_radius_px.map(|r| r * r);
         let pred = gate.and(predicted_in_train);
         let q = self.side(query, pred)?;
@@ -155,6 +179,10 @@ impl GpuSurf {
 
     fn side(&self, f: &Features, pred: Option<&[[f32; 2]]>) -> Result<Side, GpuError> {
         let n = u32::try_from(f.len()).map_err(|_| GpuError::Run("too many features".into()))?;
+        self.fits(
+            std::mem::size_of_val(f.descriptors_padded()) as u64,
+            "descriptors",
+        )?;
         let init = |label: &str, contents: &[u8]| {
             self.device
                 .create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -196,6 +224,7 @@ impl GpuSurf {
         let dev = &self.device;
         let ub = frame::uniform(dev, "match", bytemuck::bytes_of(&u));
         let bytes = u64::from(a.n) * u64::from(chunks) * 16;
+        self.fits(bytes, "nearest neighbours")?;
         let out = frame::storage(dev, "nearest", bytes, wgpu::BufferUsages::COPY_SRC);
         let rb = frame::readback(dev, bytes);
         let bg = frame::bind_group(

@@ -184,3 +184,26 @@ fn keypoints_and_descriptors_match_the_cpu() {
         }
     }
 }
+
+#[test]
+fn frames_the_gpu_refuses_are_computed_on_the_cpu_and_counted() {
+    let Some(g) = gpu() else { return };
+    let surf = Surf::new(SurfParams::default()).expect("params");
+    // Wider than the GPU path's 16384 px.
+    let wide = GrayImage::from_fn(16_385, 40, |x, y| ((x * 7 + y * 13) % 256) as f32);
+    let err = g
+        .detect_and_describe(&surf, &wide)
+        .expect_err("a side beyond 16384 px");
+    assert!(err.to_string().contains("16385 x 40"), "{err}");
+    let backend: &dyn visnav_core::vision::FeatureBackend = &g;
+    let f = backend.detect_and_describe(&surf, &wide);
+    assert_eq!(f.len(), surf.detect_and_describe(&wide).len());
+    assert_eq!(g.fallbacks(), 1);
+    // A flat frame: no features on either path, and nothing counted.
+    let flat = GrayImage::from_fn(320, 240, |_, _| 128.0);
+    let f = g
+        .detect_and_describe(&surf, &flat)
+        .expect("GPU on a flat frame");
+    assert!(f.is_empty());
+    assert_eq!(g.fallbacks(), 1);
+}

@@ -101,7 +101,8 @@ pub struct SurfBenchArgs {
     pub export_features: Option<PathBuf>,
     /// `cpu`, or `gpu`: also time the GPU path (crates/visnav-gpu; a binary built with
     /// `--features gpu`) beside the CPU in the same run, at 640x480, 1280x960 and 1920x1080 (the
-    /// 1280x960 frame resampled), naming the adapter (a software one is labelled so).
+    /// 1280x960 frame resampled), SURF and then brute-force matching, naming the adapter (a
+    /// software one is labelled so).
     #[arg(long, default_value = "cpu", value_parser = ["cpu", "gpu"])]
     pub backend: String,
 }

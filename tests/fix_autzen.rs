@@ -13,7 +13,7 @@
 use std::path::PathBuf;
 
 use visnav::fix::FixParams;
-use visnav::sitl::fixeval::{MapHeights, NaipEval, Summary};
+use visnav::sitl::fixeval::{HeightSigmas, MapHeights, NaipEval, Summary};
 
 fn autzen() -> Option<PathBuf> {
     let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/autzen");
@@ -41,7 +41,7 @@ fn run(dir: &std::path::Path, heights: MapHeights, frames: usize) -> Summary {
 fn a_constant_height_map_states_its_height_sigma_and_stays_honest() {
     let Some(dir) = autzen() else { return };
     let frames = 30;
-    let honest = run(&dir, MapHeights::Constant { sigma_m: None }, frames);
+    let honest = run(&dir, MapHeights::Constant(HeightSigmas::default()), frames);
     assert!(
         honest.accepted * 10 >= frames * 9,
         "{} of {frames} accepted",
@@ -51,7 +51,15 @@ fn a_constant_height_map_states_its_height_sigma_and_stays_honest() {
     assert_eq!(honest.wrong_fixes, 0);
     // The same map stated as exact: the fixes snap to roofs and trees and claim otherwise. This
     // is what the height sigma is for (and shows that this test can fail).
-    let exact = run(&dir, MapHeights::Constant { sigma_m: Some(0.0) }, frames);
+    let exact = run(
+        &dir,
+        MapHeights::Constant(HeightSigmas {
+            offset_m: Some(0.0),
+            slope: Some(0.0),
+            point_m: Some(0.0),
+        }),
+        frames,
+    );
     assert!(
         exact.beyond_3_sigma >= 3,
         "stated as exact, only {} of {} beyond 3 sigma",

@@ -106,6 +106,7 @@ fn run(
         attitude: Some(AttitudePriorNed::isotropic(prior_att, 0.5f64.to_radians())),
         altitude: None,
         attitude_from_filter: false,
+        widen_heading: true,
     };
     let (report, attempt) = engine.fix_with_attempt(&img, &prior);
     // Residuals of the fine matches at the truth pose (map grid taken as Cartesian).

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use visnav::fix::FixParams;
-use visnav::sitl::fixeval::{AttitudeMode, MapHeights, NaipEval};
+use visnav::sitl::fixeval::{AttitudeMode, HeightSigmas, MapHeights, NaipEval};
 use visnav::vision::{DescriptorKind, SurfParams};
 
 #[derive(clap::Args, Debug)]
@@ -86,10 +86,22 @@ pub struct FixBenchArgs {
     /// rendered on) or `constant` (its median, as a user without a DEM would).
     #[arg(long, default_value = "surface", value_parser = ["surface", "constant"])]
     pub map_heights: String,
+    /// The camera: `vga` (640 x 480, 60 deg) or `drone` (1280 x 960, 80 deg, a multirotor's);
+    /// default: the site's (VGA for NAIP, the drone camera for Autzen).
+    #[arg(long, value_parser = ["vga", "drone"])]
+    pub camera: Option<String>,
     /// The height sigma stated at the build of a constant-height map (NAIP, or Autzen with
     /// `--map-heights constant`), metres (default: the build's default for a constant height).
     #[arg(long)]
     pub height_sigma_m: Option<f64>,
+    /// The height slope sigma stated at the build of a constant-height map, metres per metre
+    /// (default: the build's default for a constant height).
+    #[arg(long)]
+    pub height_slope_sigma: Option<f64>,
+    /// The per-point height sigma stated at the build of a constant-height map, metres (default:
+    /// the build's default for a constant height).
+    #[arg(long)]
+    pub height_point_sigma_m: Option<f64>,
 }
 
 pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
@@ -151,9 +163,14 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
     {
         anyhow::bail!("--max-tilt-deg {t}: expected 0 to 60");
     }
-    if a.height_sigma_m.is_some() && autzen && a.map_heights != "constant" {
+    let sigmas = HeightSigmas {
+        offset_m: a.height_sigma_m,
+        slope: a.height_slope_sigma,
+        point_m: a.height_point_sigma_m,
+    };
+    if sigmas != HeightSigmas::default() && autzen && a.map_heights != "constant" {
         anyhow::bail!(
-            "--height-sigma-m applies to a constant-height map (NAIP, or Autzen with --map-heights constant)"
+            "--height-sigma-m, --height-slope-sigma and --height-point-sigma-m apply to a constant-height map (NAIP, or Autzen with --map-heights constant)"
         );
     }
     let mut eval = if autzen {
@@ -163,9 +180,7 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
             );
         }
         let heights = if a.map_heights == "constant" {
-            MapHeights::Constant {
-                sigma_m: a.height_sigma_m,
-            }
+            MapHeights::Constant(sigmas)
         } else {
             MapHeights::SurfaceModel
         };
@@ -179,16 +194,22 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
                 )
             })?
     } else {
-        NaipEval::with_map_height_sigma(
-            &maps,
-            &map_orthos,
-            a.map_upsample,
-            params,
-            surf,
-            a.height_sigma_m,
-        )
-        .map_err(anyhow::Error::msg)
-        .context("setting up the NAIP cross-date evaluation")?
+        NaipEval::with_map_heights(&maps, &map_orthos, a.map_upsample, params, surf, sigmas)
+            .map_err(anyhow::Error::msg)
+            .context("setting up the NAIP cross-date evaluation")?
+    };
+    let camera_name = a
+        .camera
+        .clone()
+        .unwrap_or_else(|| if autzen { "drone" } else { "vga" }.to_string());
+    if camera_name == "drone" {
+        let camera = visnav::sitl::render::drone_camera().context("the drone camera")?;
+        eval = eval.with_camera(camera).map_err(anyhow::Error::msg)?;
+    }
+    let camera_text = if camera_name == "drone" {
+        "1280 x 960 80 deg"
+    } else {
+        "VGA 60 deg"
     };
     eval.attitude_prior_error_rad = a.attitude_error_deg.to_radians();
     if let Some(r) = agl_range_m {
@@ -246,6 +267,7 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
             o.insert("prior".into(), prior_text.into());
             o.insert("same_imagery_diagnostic".into(), a.same_imagery.into());
             o.insert("site".into(), a.site.clone().into());
+            o.insert("camera".into(), camera_name.clone().into());
             if autzen {
                 o.insert("map_heights".into(), a.map_heights.clone().into());
             }
@@ -259,7 +281,7 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
         }
         if autzen {
             println!(
-                "Autzen (map on the {}, frames ray-cast on the lidar surface model, VGA 60 deg, {:.0}-{:.0} m AGL, tilt <= {} deg, {prior_text}): {} frames",
+                "Autzen (map on the {}, frames ray-cast on the lidar surface model, {camera_text}, {:.0}-{:.0} m AGL, tilt <= {} deg, {prior_text}): {} frames",
                 if a.map_heights == "constant" {
                     "surface model's median height (constant)"
                 } else {
@@ -272,7 +294,7 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
             );
         } else {
             println!(
-                "NAIP {} (map {} x{}, frames {}, VGA 60 deg, {:.0}-{:.0} m AGL, tilt <= {} deg, {prior_text}): {} frames",
+                "NAIP {} (map {} x{}, frames {}, {camera_text}, {:.0}-{:.0} m AGL, tilt <= {} deg, {prior_text}): {} frames",
                 if a.same_imagery {
                     "same-imagery"
                 } else {

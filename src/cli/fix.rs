@@ -72,6 +72,14 @@ pub struct FixArgs {
     /// `visnav map build --height-sigma-m`; default 10 with --ground-height, 0 with --dem).
     #[arg(long)]
     pub height_sigma_m: Option<f64>,
+    /// With a GeoTIFF --map: how fast that height error changes across a footprint, metres per
+    /// metre (as `visnav map build --height-slope-sigma`).
+    #[arg(long)]
+    pub height_slope_sigma: Option<f64>,
+    /// With a GeoTIFF --map: the height error per point, metres (as `visnav map build
+    /// --height-point-sigma-m`).
+    #[arg(long)]
+    pub height_point_sigma_m: Option<f64>,
     /// Print the result as one JSON document.
     #[arg(long)]
     pub json: bool,
@@ -137,6 +145,8 @@ fn load_reference(a: &FixArgs) -> anyhow::Result<Arc<dyn Reference>> {
         };
         let mut spec = BuildSpec::new(vec![a.map.clone()], height);
         spec.height_sigma_m = a.height_sigma_m;
+        spec.height_slope_sigma = a.height_slope_sigma;
+        spec.height_point_sigma_m = a.height_point_sigma_m;
         let r = MapReference::build_temporary(&spec, dem)
             .map_err(anyhow::Error::msg)
             .with_context(|| format!("building a map from {}", a.map.display()))?;
@@ -235,6 +245,7 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
             attitude,
             altitude,
             attitude_from_filter: false,
+            widen_heading: true,
         },
     );
     report.ms = start.elapsed().as_secs_f64() * 1e3;

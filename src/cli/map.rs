@@ -66,6 +66,14 @@ pub struct BuildArgs {
     /// 0 with --dem, i.e. the DEM is the surface; give a bare-earth or 30 m DEM its own figure).
     #[arg(long)]
     pub height_sigma_m: Option<f64>,
+    /// How fast that height error changes across a footprint, metres per metre (1 sigma;
+    /// default 0.01 with --ground-height, 0 with --dem).
+    #[arg(long)]
+    pub height_slope_sigma: Option<f64>,
+    /// The height error left per point once a footprint's offset and slope are taken out,
+    /// metres (1 sigma; default 2 with --ground-height, --height-sigma-m with --dem).
+    #[arg(long)]
+    pub height_point_sigma_m: Option<f64>,
     /// Output map file.
     #[arg(long)]
     pub out: PathBuf,
@@ -219,6 +227,8 @@ fn build(a: BuildArgs) -> anyhow::Result<ExitCode> {
     spec.surf.n_octaves = a.octaves;
     spec.upsample = a.upsample;
     spec.height_sigma_m = a.height_sigma_m;
+    spec.height_slope_sigma = a.height_slope_sigma;
+    spec.height_point_sigma_m = a.height_point_sigma_m;
     spec.crs_override = a.crs_override_epsg.map(epsg_crs).transpose()?;
     let tty = std::io::stderr().is_terminal();
     let mut last_log = Instant::now();
@@ -298,9 +308,10 @@ fn info(a: InfoArgs) -> anyhow::Result<ExitCode> {
         }
         HeightInfo::Constant { amsl_m } => println!("  constant ground height {amsl_m} m AMSL"),
     }
+    let e = h.height_errors();
     println!(
-        "  height sigma {} m (the surface the camera sees against these heights)",
-        h.height_sigma_m
+        "  height sigma (the surface the camera sees against these heights): {} m shared by a footprint, {} m per m across it, {} m per point",
+        e.offset_sigma_m, e.slope_sigma, e.point_sigma_m
     );
     println!("  vertical datum: {}", h.vertical_datum);
     println!(

@@ -428,6 +428,7 @@ fn next_attitude_prior(
             cov_rad2: rotate_cov3(&r.cov_prev_rad2, &prev.r_world_cam),
         }),
         position: None,
+        map_tilt_sigma_rad: 0.0,
     };
     Ok((priors, resection))
 }

@@ -116,6 +116,16 @@ pub struct MapConfig {
     /// file keeps the figure it was built with (`visnav map build --height-sigma-m`).
     #[serde(default)]
     pub height_sigma_m: Option<f64>,
+    /// With `ortho`: how fast that height error changes across a footprint, metres per metre
+    /// (default 0.01 with `ground_height_amsl_m`, 0 with `dem`; docs/map-format.md, "Height
+    /// uncertainty"). A `.vnm` file keeps the figure it was built with.
+    #[serde(default)]
+    pub height_slope_sigma: Option<f64>,
+    /// With `ortho`: the height error left per point, metres (default 2 with
+    /// `ground_height_amsl_m`, `height_sigma_m` with `dem`). A `.vnm` file keeps the figure it
+    /// was built with.
+    #[serde(default)]
+    pub height_point_sigma_m: Option<f64>,
 }
 
 impl MapConfig {
@@ -175,6 +185,27 @@ impl MapConfig {
                 0.0,
                 visnav_io::map::build::MAX_HEIGHT_SIGMA_M,
             ),
+        }
+        for (key, value, max) in [
+            (
+                "height_slope_sigma",
+                self.height_slope_sigma,
+                visnav_io::map::build::MAX_HEIGHT_SLOPE_SIGMA,
+            ),
+            (
+                "height_point_sigma_m",
+                self.height_point_sigma_m,
+                visnav_io::map::build::MAX_HEIGHT_SIGMA_M,
+            ),
+        ] {
+            match value {
+                None => {}
+                Some(_) if self.file.is_some() => p.push(
+                    key,
+                    "applies to building from ortho; a map file keeps the figure it was built with",
+                ),
+                Some(s) => p.range(key, s, 0.0, max),
+            }
         }
     }
 }
@@ -268,6 +299,8 @@ impl Config {
             self.map.ortho.clear();
             self.map.upsample = None;
             self.map.height_sigma_m = None;
+            self.map.height_slope_sigma = None;
+            self.map.height_point_sigma_m = None;
         }
         let size = (
             self.camera.width_px as usize,

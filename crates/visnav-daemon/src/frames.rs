@@ -238,6 +238,58 @@ pub struct WorkerCtx {
     pub max_age_s: f64,
     pub results: mpsc::Sender<FixResult>,
     pub metrics: Arc<DaemonMetrics>,
+    /// Shared by the workers: when a frame's heading search is widened.
+    pub widening: Arc<HeadingWidening>,
+}
+
+/// Rejections in a row before a frame's heading search is widened
+/// ([`visnav_core::fix::FixPrior::widen_heading`]): a heading that is wrong fails every frame,
+/// while ground that does not match (water, a changed field) fails one here and there; three in a
+/// row at 2-30 Hz is a fraction of a second to a second and a half of evidence.
+const WIDEN_AFTER_REJECTIONS: u32 = 3;
+
+/// After a widened search that failed, seconds (capture time) before the next: a widened search
+/// costs a heading sweep (about ten times a fix), and over ground that matches at no heading
+/// every frame would pay it; at most one in this time keeps the worker for the frames that can
+/// fix while still finding a wrong heading within seconds.
+const WIDEN_RETRY_S: f64 = 5.0;
+
+/// When the daemon asks the fix engine to widen the heading search of a frame that finds no fix
+/// at the filter's heading: after [`WIDEN_AFTER_REJECTIONS`] rejections in a row, and not again
+/// within [`WIDEN_RETRY_S`] of a widened search that failed. A fix accepted starts the count
+/// again. Times are capture times on the autopilot clock (the same decisions in lock-step).
+#[derive(Debug, Default)]
+pub struct HeadingWidening {
+    state: std::sync::Mutex<WidenState>,
+}
+
+#[derive(Debug, Default)]
+struct WidenState {
+    rejected_in_a_row: u32,
+    last_failed_widening_us: Option<u64>,
+}
+
+impl HeadingWidening {
+    /// Whether the frame captured at `t_us` gets the widened search.
+    pub fn wanted(&self, t_us: u64) -> bool {
+        let s = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        s.rejected_in_a_row >= WIDEN_AFTER_REJECTIONS
+            && s.last_failed_widening_us
+                .is_none_or(|t0| t_us < t0 || (t_us - t0) as f64 * 1e-6 >= WIDEN_RETRY_S)
+    }
+
+    /// The outcome of the frame captured at `t_us` (`widened`: it had the widened search).
+    pub fn record(&self, t_us: u64, widened: bool, accepted: bool) {
+        let mut s = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        if accepted {
+            s.rejected_in_a_row = 0;
+            return;
+        }
+        s.rejected_in_a_row = s.rejected_in_a_row.saturating_add(1);
+        if widened {
+            s.last_failed_widening_us = Some(t_us);
+        }
+    }
 }
 
 /// One fix worker thread: slot -> engine -> results, until the slot is closed.
@@ -292,8 +344,12 @@ fn prepare(ctx: &WorkerCtx, f: &Frame) -> Option<(u64, FixPrior)> {
         m.frames_stale.inc();
         return None;
     }
-    let prior = ctx.priors.prior_at(t_c);
+    let mut prior = ctx.priors.prior_at(t_c);
+    prior.widen_heading = prior.position.is_some() && ctx.widening.wanted(t_c);
     m.fixes_attempted.inc();
+    if prior.widen_heading {
+        m.fixes_heading_widened.inc();
+    }
     Some((t_c, prior))
 }
 
@@ -308,6 +364,8 @@ fn fix_prepared(ctx: &WorkerCtx, f: Frame, t_c: u64, prior: FixPrior) -> FixResu
             FixReport::rejected("engine panicked", t_c, 0.0)
         });
     let elapsed = start.elapsed();
+    ctx.widening
+        .record(t_c, prior.widen_heading, report.accepted);
     report.ms = elapsed.as_secs_f64() * 1e3;
     let latency_ms = elapsed.as_millis() as u64;
     m.latency(latency_ms);
@@ -482,5 +540,24 @@ mod tests {
         assert_eq!(s.take(Duration::from_millis(1)), Take::Item(1));
         assert!(h.join().unwrap());
         assert_eq!(s.take(Duration::from_secs(1)), Take::Item(2));
+    }
+
+    #[test]
+    fn the_heading_search_widens_after_rejections_and_not_again_soon_after_a_failure() {
+        let w = HeadingWidening::default();
+        let s = |t: f64| (t * 1e6) as u64;
+        assert!(!w.wanted(s(1.0)), "nothing rejected yet");
+        for k in 0..WIDEN_AFTER_REJECTIONS {
+            assert!(!w.wanted(s(1.0 + 0.1 * f64::from(k))));
+            w.record(s(1.0 + 0.1 * f64::from(k)), false, false);
+        }
+        assert!(w.wanted(s(1.5)), "rejections in a row");
+        w.record(s(1.5), true, false);
+        assert!(!w.wanted(s(1.6)), "a widened search failed just now");
+        w.record(s(1.6), false, false);
+        assert!(!w.wanted(s(1.5 + WIDEN_RETRY_S - 0.1)));
+        assert!(w.wanted(s(1.5 + WIDEN_RETRY_S)), "again after the pause");
+        w.record(s(6.6), true, true);
+        assert!(!w.wanted(s(6.7)), "an accepted fix starts the count again");
     }
 }

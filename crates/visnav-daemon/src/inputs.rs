@@ -854,6 +854,7 @@ pub fn prior_at(
         attitude: None,
         altitude: None,
         attitude_from_filter: false,
+        widen_heading: false,
     };
     if let Some(o) = out.filter(|o| usable_as_prior(o)) {
         let dt = (t_us as f64 - o.t_us as f64) * 1e-6;

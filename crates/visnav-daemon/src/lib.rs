@@ -428,6 +428,7 @@ impl Daemon {
         let mut lockstep_task = None;
         let spawned: std::io::Result<()> = (|| {
             if let (Some(fp), Some(fixer)) = (frames, fixer) {
+                let widening = Arc::new(frames::HeadingWidening::default());
                 let ctx = |slot: Arc<Slot<Frame>>| frames::WorkerCtx {
                     slot,
                     fixer: fixer.clone(),
@@ -436,6 +437,7 @@ impl Daemon {
                     max_age_s: fp.max_age_s,
                     results: fix_tx.clone(),
                     metrics: metrics.clone(),
+                    widening: widening.clone(),
                 };
                 if let Some(latency) = fp.lockstep_latency {
                     let period = Duration::from_secs_f64(

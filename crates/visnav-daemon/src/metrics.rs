@@ -68,6 +68,10 @@ visnav_link::metric_set! {
             "largest number of frames waiting at once",
         /// Frames given to the fix engine.
         fixes_attempted: Counter "visnav_fixes_attempted" "frames given to the fix engine",
+        /// Frames given to the fix engine with the heading search widened when nothing is found
+        /// at the prior's heading (after repeated rejections).
+        fixes_heading_widened: Counter "visnav_fixes_heading_widened"
+            "frames whose heading search the engine widens when none is found at the prior's heading",
         /// Fixes accepted by the filter.
         fixes_accepted: Counter "visnav_fixes"
             "fixes the engine returned, by what the filter did with them" ["outcome" = "accepted"],

@@ -69,6 +69,8 @@ pub fn engine_from_config(cfg: &Config) -> Result<FixEngine, WiringError> {
             spec.crs_override = cfg.map.crs_override;
             spec.upsample = cfg.map.upsample.unwrap_or(1);
             spec.height_sigma_m = cfg.map.height_sigma_m;
+            spec.height_slope_sigma = cfg.map.height_slope_sigma;
+            spec.height_point_sigma_m = cfg.map.height_point_sigma_m;
             Arc::new(MapReference::build_temporary(&spec, dem).map_err(WiringError::MapBuild)?)
         }
     };

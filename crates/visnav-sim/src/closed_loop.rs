@@ -102,6 +102,7 @@ use super::faults::{
 };
 use super::fixeval::{Stats, percentile};
 use super::imu::ImuErrors;
+use super::render::degrade::degrade;
 use super::render::{ColourMode, Renderer, Scene};
 use super::scenario::{ClosedLoopConfig, GpsConfig};
 use visnav_core::fix::{FixPrior, FixReport};
@@ -115,6 +116,7 @@ use visnav_io::geo::GeoError;
 use visnav_io::geo::dem::Dem;
 use visnav_io::geo::geoid::geoid_undulation_m;
 use visnav_io::geo::geotiff::load_geotiff;
+use visnav_io::geo::geotiff_write::write_geotiff;
 
 /// Truth sampling interval, s.
 const TRUTH_DT_S: f64 = 0.005;
@@ -1252,7 +1254,10 @@ pub(crate) fn camera_rig(
 ) -> Result<CameraRig, ClosedLoopError> {
     let setup_err = ClosedLoopError::Setup;
     let cam_ortho = visnav_core::validate::resolve(base, &cl.camera_ortho);
-    if cfg.map.ortho.iter().any(|m| same_file(m, &cam_ortho)) {
+    // Two differently degraded copies of one image are two images (the scenario checks that
+    // the two specs differ).
+    let own_copies = cl.map_degrade.is_some() && cl.camera_degrade.is_some();
+    if !own_copies && cfg.map.ortho.iter().any(|m| same_file(m, &cam_ortho)) {
         return Err(setup_err(format!(
             "[closed_loop] camera_ortho {} is also a map orthophoto of {}: render the camera from another year",
             cam_ortho.display(),
@@ -1280,6 +1285,15 @@ pub(crate) fn camera_rig(
             ));
         }
     };
+    let raster = match &cl.camera_degrade {
+        None => raster,
+        Some(spec) => degrade(&raster, Some(&dem), spec).map_err(|e| {
+            setup_err(format!(
+                "[closed_loop] camera_degrade of {}: {e}",
+                cam_ortho.display()
+            ))
+        })?,
+    };
     let crs = raster.crs();
     let background = background_of(&raster, 1600);
     let scene = Arc::new(
@@ -1302,6 +1316,42 @@ pub(crate) fn camera_rig(
         mount,
         background,
     })
+}
+
+/// The map's degraded copies (`[closed_loop] map_degrade`): each map orthophoto of `cfg` degraded
+/// (with the map's DEM as the surface its shadows fall on) and written to a temporary folder,
+/// `cfg.map.ortho` then naming the copies. The folder lives as long as the returned guard: the
+/// map build reads the copies.
+fn degraded_map_copies(
+    cl: &ClosedLoopConfig,
+    cfg: &mut Config,
+) -> Result<Option<tempfile::TempDir>, ClosedLoopError> {
+    let setup_err = ClosedLoopError::Setup;
+    let Some(spec) = &cl.map_degrade else {
+        return Ok(None);
+    };
+    let surface = match &cfg.map.dem {
+        Some(p) => Some(
+            visnav_io::geo::dem::load_dem(p, cfg.map.crs_override)
+                .map_err(|e| setup_err(format!("[map] dem {}: {e}", p.display())))?,
+        ),
+        None => None,
+    };
+    let dir = tempfile::tempdir()
+        .map_err(|e| setup_err(format!("a temporary folder for the map's copies: {e}")))?;
+    let mut copies = Vec::new();
+    for (i, p) in cfg.map.ortho.iter().enumerate() {
+        let what = |e: &dyn std::fmt::Display| {
+            setup_err(format!("[closed_loop] map_degrade of {}: {e}", p.display()))
+        };
+        let raster = load_geotiff(p, cfg.map.crs_override).map_err(|e| what(&e))?;
+        let copy = degrade(&raster, surface.as_ref(), spec).map_err(|e| what(&e))?;
+        let out = dir.path().join(format!("map_copy_{i}.tif"));
+        write_geotiff(&copy, &out).map_err(|e| what(&e))?;
+        copies.push(out);
+    }
+    cfg.map.ortho = copies;
+    Ok(Some(dir))
 }
 
 /// Runs the scenario's closed loop. `base` is the scenario file's folder (for its paths).
@@ -1327,7 +1377,7 @@ pub async fn run_until_stopped(
         .closed_loop
         .as_ref()
         .ok_or(ClosedLoopError::NotClosedLoop)?;
-    let (cfg, cfg_path) = scenario_config(cl, base)?;
+    let (mut cfg, cfg_path) = scenario_config(cl, base)?;
     let CameraRig {
         scene,
         renderer,
@@ -1336,12 +1386,14 @@ pub async fn run_until_stopped(
         background,
     } = camera_rig(cl, base, &cfg, &cfg_path)?;
     let setup_err = ClosedLoopError::Setup;
+    let copies = degraded_map_copies(cl, &mut cfg)?;
     info!(
         "building the vision fix engine (map) from {}",
         cfg_path.display()
     );
     let engine = visnav_daemon::engine_from_config(&cfg)
         .map_err(|e| setup_err(format!("{}: vision fix engine: {e}", cfg_path.display())))?;
+    drop(copies);
     let engine: Arc<dyn FrameFixer> = Arc::new(engine);
     let table =
         Arc::new(TruthTable::from_scenario(sc).map_err(|e| setup_err(format!("truth: {e}")))?);

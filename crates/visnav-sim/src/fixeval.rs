@@ -21,10 +21,11 @@ use std::sync::Arc;
 use nalgebra::{UnitQuaternion, Vector3, Vector6};
 use serde::Serialize;
 
+use super::render::degrade::{DegradeSpec, SunShadow, degrade};
 use super::render::{
     ColourMode, RenderPose, RenderSpec, Renderer, Scene, grid_convergence_rad, vga_camera,
 };
-use visnav_core::camera::{Attitude, Mount};
+use visnav_core::camera::{Attitude, Camera, Mount};
 use visnav_core::fix::engine::Attempt;
 use visnav_core::fix::{
     AltitudePrior, AttitudePriorNed, FixEngine, FixParams, FixPrior, FixReport, PositionPriorGeo,
@@ -34,6 +35,7 @@ use visnav_core::vision::{GrayImage, SurfParams};
 use visnav_io::geo::Crs;
 use visnav_io::geo::dem::Dem;
 use visnav_io::geo::geotiff::load_geotiff;
+use visnav_io::geo::geotiff_write::write_geotiff;
 use visnav_io::geo::raster::Raster;
 use visnav_io::map::MapReference;
 use visnav_io::map::{BuildSpec, HeightSource};
@@ -59,14 +61,75 @@ impl From<&str> for FixBenchError {
 /// Ground height of the bundled NAIP area, metres AMSL (flat prairie, see sitl/maps/README.md).
 pub const NAIP_GROUND_M: f64 = 580.0;
 
+/// The Autzen map's copy of the orthophoto: another survey's light (cooler white balance,
+/// brighter, the sun low in the south-east casting the surface model's shadows, a slow haze
+/// field), resampled and JPEG-compressed as a map tile server delivers it.
+pub const AUTZEN_MAP_COPY: DegradeSpec = DegradeSpec {
+    seed: 101,
+    gain_rgb: [0.92, 0.97, 1.08],
+    offset_dn: 6.0,
+    gamma: 1.1,
+    field_amplitude: 0.12,
+    field_wavelength_m: 120.0,
+    blur_sigma_px: 0.6,
+    noise_dn: 2.0,
+    jpeg_quality: 75,
+    shadow: Some(SunShadow {
+        azimuth_deg: 115.0,
+        elevation_deg: 30.0,
+        darkening: 0.45,
+    }),
+};
+
+/// The Autzen camera's copy (the world the camera sees today): warmer light, the sun high in the
+/// south-west with its own shadows, another haze field. The renderer adds the camera's own
+/// exposure, blur and noise.
+pub const AUTZEN_CAMERA_COPY: DegradeSpec = DegradeSpec {
+    seed: 202,
+    gain_rgb: [1.06, 1.0, 0.9],
+    offset_dn: -4.0,
+    gamma: 0.92,
+    field_amplitude: 0.1,
+    field_wavelength_m: 80.0,
+    blur_sigma_px: 0.0,
+    noise_dn: 0.0,
+    jpeg_quality: 0,
+    shadow: Some(SunShadow {
+        azimuth_deg: 235.0,
+        elevation_deg: 48.0,
+        darkening: 0.5,
+    }),
+};
+
 /// The heights an Autzen evaluation's map is built on.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum MapHeights {
     /// The lidar surface model the frames are ray-cast on (the map's heights are right).
     SurfaceModel,
     /// One constant height, the surface model's median (what a user without a DEM would take),
-    /// with this height sigma stated at the build (`None`: the build's default).
-    Constant { sigma_m: Option<f64> },
+    /// with these height sigmas stated at the build.
+    Constant(HeightSigmas),
+}
+
+/// The height sigmas a map's build states (`None`: the build's default for its height source;
+/// `visnav map build --height-sigma-m`, `--height-slope-sigma`, `--height-point-sigma-m`).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct HeightSigmas {
+    /// The offset shared by a footprint, m.
+    pub offset_m: Option<f64>,
+    /// The slope across a footprint, m/m.
+    pub slope: Option<f64>,
+    /// What is left per point, m.
+    pub point_m: Option<f64>,
+}
+
+impl HeightSigmas {
+    /// Stated on `spec`.
+    fn apply(&self, spec: &mut BuildSpec) {
+        spec.height_sigma_m = self.offset_m;
+        spec.height_slope_sigma = self.slope;
+        spec.height_point_sigma_m = self.point_m;
+    }
 }
 
 /// The position / altitude prior an evaluation draws: errors (1 sigma per horizontal axis, and
@@ -291,18 +354,24 @@ impl NaipEval {
         params: FixParams,
         surf: SurfParams,
     ) -> Result<Self, FixBenchError> {
-        Self::with_map_height_sigma(maps_dir, map_orthos, upsample, params, surf, None)
+        Self::with_map_heights(
+            maps_dir,
+            map_orthos,
+            upsample,
+            params,
+            surf,
+            HeightSigmas::default(),
+        )
     }
 
-    /// [`Self::with_map`] with the map's height sigma stated at its build (`None`: the build's
-    /// default for a constant height).
-    pub fn with_map_height_sigma(
+    /// [`Self::with_map`] with the map's height sigmas stated at its build.
+    pub fn with_map_heights(
         maps_dir: &Path,
         map_orthos: &[PathBuf],
         upsample: usize,
         params: FixParams,
         surf: SurfParams,
-        height_sigma_m: Option<f64>,
+        heights: HeightSigmas,
     ) -> Result<Self, FixBenchError> {
         let load =
             |path: &Path| load_geotiff(path, None).map_err(|e| format!("{}: {e}", path.display()));
@@ -331,7 +400,7 @@ impl NaipEval {
         );
         spec.surf = surf;
         spec.upsample = upsample;
-        spec.height_sigma_m = height_sigma_m;
+        heights.apply(&mut spec);
         let reference = MapReference::build_temporary(&spec, None).map_err(|e| e.to_string())?;
         let camera = vga_camera().map_err(|e| format!("camera: {e}"))?;
         let engine = FixEngine::new(Arc::new(reference), camera, params)
@@ -401,7 +470,9 @@ impl NaipEval {
     }
 
     /// The Autzen drone-scale case (module docs) from `data_dir` (`../shared/data/autzen`): the
-    /// 0.3 m orthophoto and the 1 m lidar surface model, the map on `heights`.
+    /// 0.3 m orthophoto and the 1 m lidar surface model, the map on `heights`. The map is built
+    /// from one degraded copy of the orthophoto ([`AUTZEN_MAP_COPY`]) and the frames are rendered
+    /// from another ([`AUTZEN_CAMERA_COPY`]): one date only, so neither sees the other's image.
     pub fn autzen(
         data_dir: &Path,
         params: FixParams,
@@ -409,20 +480,29 @@ impl NaipEval {
     ) -> Result<Self, FixBenchError> {
         let ortho = data_dir.join("autzen_ortho_0p3m_utm10n.tif");
         let dsm = data_dir.join("autzen_dsm_1m_utm10n.tif");
-        let map_raster =
+        let original =
             load_geotiff(&ortho, None).map_err(|e| format!("{}: {e}", ortho.display()))?;
-        let surface = visnav_io::geo::dem::load_dem(&dsm, Some(map_raster.crs()))
+        let surface = visnav_io::geo::dem::load_dem(&dsm, Some(original.crs()))
             .map_err(|e| format!("{}: {e}", dsm.display()))?;
+        let map_raster = degrade(&original, Some(&surface), &AUTZEN_MAP_COPY)
+            .map_err(|e| format!("the map's copy of {}: {e}", ortho.display()))?;
+        let cam_raster = degrade(&original, Some(&surface), &AUTZEN_CAMERA_COPY)
+            .map_err(|e| format!("the camera's copy of {}: {e}", ortho.display()))?;
+        drop(original);
+        // The map build reads files: the map's copy goes through a temporary GeoTIFF.
+        let dir = tempfile::tempdir().map_err(|e| format!("temporary folder: {e}"))?;
+        let map_copy = dir.path().join("autzen_map_copy.tif");
+        write_geotiff(&map_raster, &map_copy).map_err(|e| e.to_string())?;
         let mut spec = match heights {
             MapHeights::SurfaceModel => {
-                BuildSpec::new(vec![ortho.clone()], HeightSource::Dem(dsm.clone()))
+                BuildSpec::new(vec![map_copy.clone()], HeightSource::Dem(dsm.clone()))
             }
-            MapHeights::Constant { sigma_m } => {
+            MapHeights::Constant(sigmas) => {
                 let mut spec = BuildSpec::new(
-                    vec![ortho.clone()],
+                    vec![map_copy.clone()],
                     HeightSource::ConstantAmsl(median_height_m(&surface, &map_raster.bounds())?),
                 );
-                spec.height_sigma_m = sigma_m;
+                sigmas.apply(&mut spec);
                 spec
             }
         };
@@ -431,13 +511,15 @@ impl NaipEval {
             ..SurfParams::default()
         };
         let reference = MapReference::build_temporary(&spec, None).map_err(|e| e.to_string())?;
+        drop(dir);
         let camera = vga_camera().map_err(|e| format!("camera: {e}"))?;
         let engine = FixEngine::new(Arc::new(reference), camera, params)
             .map_err(|e| format!("engine: {e}"))?;
-        // The camera scene is the map's own orthophoto (one date only).
-        let scene = Scene::new(&map_raster, surface.clone(), ColourMode::Grey)
+        let scene = Scene::new(&cam_raster, surface.clone(), ColourMode::Grey)
             .map_err(|e| format!("scene: {e}"))?;
-        // One date only: the frames differ from the map by the camera's photometry.
+        let map_scene = Scene::new(&map_raster, surface.clone(), ColourMode::Grey)
+            .map_err(|e| format!("scene of the map image: {e}"))?;
+        // The camera's own photometry on top of its copy.
         let mut render = RenderSpec {
             seed: 7,
             ..RenderSpec::default()
@@ -451,7 +533,7 @@ impl NaipEval {
         Ok(Self::from_parts(
             map_raster,
             engine,
-            [scene.clone(), scene],
+            [scene, map_scene],
             renderer,
             surface,
             Site {
@@ -466,6 +548,20 @@ impl NaipEval {
                 },
             },
         ))
+    }
+
+    /// The same evaluation seen through `camera` (the fix engine and the renderer rebuilt with
+    /// it; the map, the scenes and every draw stay the same).
+    pub fn with_camera(mut self, camera: Camera) -> Result<Self, FixBenchError> {
+        self.engine = FixEngine::new(
+            self.engine.reference().clone(),
+            camera,
+            self.engine.params().clone(),
+        )
+        .map_err(|e| format!("engine: {e}"))?;
+        self.renderer =
+            Renderer::new(camera, *self.renderer.spec()).map_err(|e| format!("renderer: {e}"))?;
+        Ok(self)
     }
 
     /// Height of the rendered surface at `(x, y)` (the truth's ground), metres AMSL.
@@ -561,6 +657,7 @@ impl NaipEval {
             attitude,
             altitude: None,
             attitude_from_filter: false,
+            widen_heading: true,
         })
     }
 

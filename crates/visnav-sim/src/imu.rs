@@ -71,6 +71,16 @@ pub struct SimImuConfig {
     /// Accelerometer bias random walk, micro-g/sqrt(h).
     #[serde(default)]
     pub accel_bias_rw_ug_sqrt_h: f64,
+    /// A multirotor's vibration left in the accelerometer after the autopilot's IMU filter, m/s^2
+    /// RMS per axis and sample (independent from sample to sample: the rotors' 100-200 Hz
+    /// folded down by the sampling). Per sample of `dt` it adds `N(0, (v dt)^2)` to the velocity
+    /// increment: the same as a velocity random walk of `v sqrt(dt)`, which the filter's model
+    /// must cover.
+    #[serde(default)]
+    pub vibration_accel_m_s2: f64,
+    /// The same for the gyro, deg/s RMS per axis and sample.
+    #[serde(default)]
+    pub vibration_gyro_deg_s: f64,
 }
 
 fn default_tau() -> f64 {
@@ -96,6 +106,8 @@ impl SimImuConfig {
             accel_bias_instability_ug: 0.0,
             accel_bias_corr_time_s: 300.0,
             accel_bias_rw_ug_sqrt_h: 0.0,
+            vibration_accel_m_s2: 0.0,
+            vibration_gyro_deg_s: 0.0,
         }
     }
 }
@@ -162,6 +174,18 @@ impl Validate for SimImuConfig {
             self.accel_bias_rw_ug_sqrt_h,
             0.0,
             1e6,
+        );
+        p.range(
+            "vibration_accel_m_s2",
+            self.vibration_accel_m_s2,
+            0.0,
+            100.0,
+        );
+        p.range(
+            "vibration_gyro_deg_s",
+            self.vibration_gyro_deg_s,
+            0.0,
+            100.0,
         );
     }
 }
@@ -269,6 +293,12 @@ impl ImuErrors {
         if n_a > 0.0 {
             dv += rng.normal3() * n_a;
         }
+        if c.vibration_gyro_deg_s > 0.0 {
+            dth += rng.normal3() * (c.vibration_gyro_deg_s.to_radians() * dt_s);
+        }
+        if c.vibration_accel_m_s2 > 0.0 {
+            dv += rng.normal3() * (c.vibration_accel_m_s2 * dt_s);
+        }
         (dth, dv)
     }
 }
@@ -300,5 +330,38 @@ mod tests {
         );
         let mean_acc = sum_dv.z / (n as f64 * dt);
         assert!((mean_acc - 1000.0 * UG_TO_M_S2).abs() < 1e-9);
+    }
+
+    #[test]
+    fn vibration_is_sample_noise_on_the_rates() {
+        let mut cfg = SimImuConfig::perfect(100.0);
+        cfg.vibration_accel_m_s2 = 0.3;
+        cfg.vibration_gyro_deg_s = 0.1;
+        let mut e = ImuErrors::new(cfg);
+        let mut rng = Rng::new(5);
+        let (dt, n) = (0.01, 50_000);
+        let (mut sa, mut sg) = (0.0, 0.0);
+        for _ in 0..n {
+            let (dth, dv) = e.corrupt(&mut rng, &Vector3::zeros(), &Vector3::zeros(), dt);
+            sa += dv.y * dv.y;
+            sg += dth.z * dth.z;
+        }
+        // Per sample: the rate's RMS is the stated one.
+        let acc_rms = (sa / n as f64).sqrt() / dt;
+        let gyro_rms = (sg / n as f64).sqrt() / dt;
+        assert!((acc_rms / 0.3 - 1.0).abs() < 0.02, "{acc_rms}");
+        assert!(
+            (gyro_rms / 0.1f64.to_radians() - 1.0).abs() < 0.02,
+            "{gyro_rms}"
+        );
+        let mut bad = SimImuConfig::perfect(100.0);
+        bad.vibration_accel_m_s2 = -1.0;
+        let mut p = Problems::default();
+        bad.validate(&mut p);
+        assert!(
+            p.list
+                .iter()
+                .any(|i| i.to_string().contains("vibration_accel_m_s2"))
+        );
     }
 }

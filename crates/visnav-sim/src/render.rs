@@ -40,6 +40,7 @@
 //! vectors into the grid frame (true north appears at grid bearing `-gamma`). Attitudes are
 //! relative to true north (`R_ned_body = Rz(yaw) Ry(pitch) Rx(roll)`).
 
+pub mod degrade;
 pub mod photometric;
 pub mod pyramid;
 pub mod spec;
@@ -624,6 +625,12 @@ pub fn time_render(
 /// nadir mount.
 pub fn vga_camera() -> Result<Camera, CameraError> {
     Camera::pinhole(Intrinsics::from_hfov(60f64.to_radians(), 640, 480)?)
+}
+
+/// A drone's camera: 1280 x 960 px, 80 deg horizontal field of view (a multirotor's mapping or
+/// FPV camera at 4:3), no distortion, nadir mount.
+pub fn drone_camera() -> Result<Camera, CameraError> {
+    Camera::pinhole(Intrinsics::from_hfov(80f64.to_radians(), 1280, 960)?)
 }
 
 /// A pose over the centre of the scene's orthophoto: `agl_m` above the terrain there (or above

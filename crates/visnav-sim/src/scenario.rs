@@ -366,6 +366,16 @@ pub struct ClosedLoopConfig {
     /// Light, blur and noise of the simulated camera (`sitl::render::RenderSpec`).
     #[serde(default)]
     pub render: super::render::RenderSpec,
+    /// The map's copy of its orthophoto(s) (`sitl::render::degrade`): for an area imaged on one
+    /// date only, the map is built from a copy degraded so (written to a temporary GeoTIFF) and
+    /// the camera renders another (`camera_degrade`), so no frame is matched against the image it
+    /// was rendered from. With both, `camera_ortho` may be a map orthophoto.
+    #[serde(default)]
+    pub map_degrade: Option<super::render::degrade::DegradeSpec>,
+    /// The camera's copy of `camera_ortho`, degraded so before rendering (the camera's own
+    /// exposure, blur and noise come on top, `render`).
+    #[serde(default)]
+    pub camera_degrade: Option<super::render::degrade::DegradeSpec>,
     /// Lock-step (default): the emulators, the daemons and the camera share the runtime's clock,
     /// paused and advanced by the runtime when every task waits. The scenario then runs as fast
     /// as the CPU allows and the same for the same seed; a fix takes no simulated time to compute
@@ -496,7 +506,12 @@ impl Scenario {
                     duration_s: s.duration_s,
                     speed_m_s: speed,
                     turn_rate_rad_s: s.turn_rate_deg_s.to_radians(),
-                    path_angle_rad: (s.climb_rate_m_s / speed).clamp(-1.0, 1.0).asin(),
+                    // A hovering multirotor (speed 0) cannot climb (validated): level.
+                    path_angle_rad: if speed > 0.0 {
+                        (s.climb_rate_m_s / speed).clamp(-1.0, 1.0).asin()
+                    } else {
+                        0.0
+                    },
                     ramp_s: s.ramp_s,
                 }
             })
@@ -601,11 +616,17 @@ impl Validate for Scenario {
         if self.name.trim().is_empty() {
             p.push("name", "must not be empty");
         }
+        // A multirotor may hover (speed 0, no climb then: the path has no direction to climb
+        // along); an aeroplane keeps flying.
+        let min_speed = match self.vehicle.kind {
+            VehicleKind::Multirotor => 0.0,
+            VehicleKind::FixedWing => 1.0,
+        };
         p.section("start", |p| {
             p.range("lat_deg", self.start.lat_deg, -80.0, 80.0);
             p.range("lon_deg", self.start.lon_deg, -180.0, 180.0);
             p.range("height_m", self.start.height_m, -500.0, 20_000.0);
-            p.range("speed_m_s", self.start.speed_m_s, 1.0, 400.0);
+            p.range("speed_m_s", self.start.speed_m_s, min_speed, 400.0);
             p.range("heading_deg", self.start.heading_deg, -360.0, 360.0);
         });
         if self.segments.is_empty() {
@@ -618,7 +639,7 @@ impl Validate for Scenario {
                 p.range("ramp_s", s.ramp_s, 0.1, 600.0);
                 p.range("turn_rate_deg_s", s.turn_rate_deg_s, -30.0, 30.0);
                 if let Some(v) = s.speed_m_s {
-                    p.range("speed_m_s", v, 1.0, 400.0);
+                    p.range("speed_m_s", v, min_speed, 400.0);
                     speed = v;
                 }
                 p.range(
@@ -773,6 +794,18 @@ impl Validate for Scenario {
                     _ => {}
                 }
                 p.section("render", |p| c.render.validate(p));
+                if let Some(d) = &c.map_degrade {
+                    p.section("map_degrade", |p| d.validate(p));
+                }
+                if let Some(d) = &c.camera_degrade {
+                    p.section("camera_degrade", |p| d.validate(p));
+                }
+                if c.map_degrade.is_some() && c.map_degrade == c.camera_degrade {
+                    p.push(
+                        "camera_degrade",
+                        "must differ from map_degrade (the camera would see the map's own image)",
+                    );
+                }
             });
         }
     }
@@ -913,6 +946,72 @@ mod tests {
         );
         let e = Scenario::parse(&text, "x.toml").unwrap_err().to_string();
         assert!(e.contains("gps.outages_s"), "{e}");
+    }
+
+    #[test]
+    fn a_multirotor_hovers_and_an_aeroplane_does_not() {
+        let text = std::fs::read_to_string(
+            Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../.."))
+                .join("sitl/scenarios/drone_autzen.toml"),
+        )
+        .unwrap();
+        let sc = Scenario::parse(&text, "x.toml").unwrap_or_else(|e| panic!("{e}"));
+        let traj = sc.trajectory();
+        // Hovering (speed 0) from the start, with no direction to climb along: level and still.
+        let k = traj.kinematics(4.0);
+        assert!(k.v_ned_m_s.norm() < 1e-9, "{:?}", k.v_ned_m_s);
+        assert!(k.rpy_rad.iter().all(|v| v.is_finite()));
+        assert!(k.rpy_rad.x.abs() < 1e-9 && k.rpy_rad.y.abs() < 1e-9);
+        // The climb takes it from 60 to about 150 m above the start.
+        let mut t = traj.truth();
+        let h0 = t.state().h_m;
+        let mut h_max = h0;
+        for _ in 0..(sc.duration_s() / 0.01) as usize {
+            t.step(0.01);
+            h_max = h_max.max(t.state().h_m);
+        }
+        assert!(
+            (85.0..100.0).contains(&(h_max - h0)),
+            "climbed {}",
+            h_max - h0
+        );
+        // An aeroplane cannot hover; a hovering multirotor cannot climb.
+        let fw = text.replace("kind = \"multirotor\"", "kind = \"fixed_wing\"");
+        let e = Scenario::parse(&fw, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("start.speed_m_s"), "{e}");
+        let climb = text.replacen(
+            "kind = \"straight\"\nduration_s = 8.0",
+            "kind = \"climb\"\nduration_s = 8.0\nclimb_rate_m_s = 1.0",
+            1,
+        );
+        let e = Scenario::parse(&climb, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("segments[0].climb_rate_m_s"), "{e}");
+    }
+
+    #[test]
+    fn the_map_and_camera_copies_are_validated_and_must_differ() {
+        let text = std::fs::read_to_string(
+            Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../.."))
+                .join("sitl/scenarios/drone_autzen.toml"),
+        )
+        .unwrap();
+        let bad = text.replace("jpeg_quality = 75", "jpeg_quality = 101");
+        let e = Scenario::parse(&bad, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("closed_loop.map_degrade.jpeg_quality"), "{e}");
+        // The camera's copy made the map's: the body of one section in the other.
+        let body = |header: &str, next: &str| {
+            let h = text.find(header).unwrap();
+            let start = h + text[h..].find('\n').unwrap() + 1;
+            text[start..text.find(next).unwrap()].to_string()
+        };
+        let map_body = body("[closed_loop.map_degrade]", "[closed_loop.camera_degrade]");
+        let cam_body = body("[closed_loop.camera_degrade]", "[closed_loop.render]");
+        let same = text.replace(&cam_body, &map_body);
+        let e = Scenario::parse(&same, "x.toml").unwrap_err().to_string();
+        assert!(
+            e.contains("closed_loop.camera_degrade") && e.contains("differ"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -381,6 +381,7 @@ mod tests {
             altitude: None,
             attitude: None,
             attitude_from_filter: false,
+            widen_heading: false,
         };
         let (lat, lon) = crs.to_geodetic(at(6).x, at(6).y).unwrap();
         let img = render(&camera, &crs, at(6), &att, lat, lon);

@@ -91,6 +91,11 @@ pub struct FixParams {
     /// Area correlation of the rectified frame with the map's image (`fix::area`) beside the
     /// features: `fallback` (features first, area when they fail), `first`, `only` or `off`.
     pub area_matching: AreaMatching,
+    /// When a frame finds no fix at the prior's heading, the heading is searched again with this
+    /// sigma (degrees; the sweep covers +-3 sigma) before the frame is given up: after a GPS loss a
+    /// compass or a drifted filter can be tens of degrees off while claiming a few
+    /// (docs/fix.md, "A heading that is wrong"). 0: never widened.
+    pub widen_heading_sigma_deg: f64,
     /// Resection, RANSAC and integrity settings.
     pub pose: ResectionConfig,
 }
@@ -127,10 +132,17 @@ impl Default for FixParams {
             reloc_budget_mwork: 60.0,
             reloc_tilt_sigma_deg: 5.0,
             area_matching: AreaMatching::Fallback,
+            widen_heading_sigma_deg: WIDEN_HEADING_SIGMA_DEG,
             pose: default_pose_config(),
         }
     }
 }
+
+/// The heading sigma a failed frame is searched again with, degrees (`widen_heading_sigma_deg`):
+/// +-90 deg, the 13 headings of [`HEADING_STEP_DEG`] around the prior's. A compass near motors
+/// and power leads, or a filter's heading drifting without the GPS, errs by tens of degrees;
+/// errors beyond 90 deg (a camera mounted backwards) are a configuration fault, not a drift.
+pub const WIDEN_HEADING_SIGMA_DEG: f64 = 30.0;
 
 /// Largest horizontal 1-sigma of an accepted fix, metres. A fix more than 50 m off counts as
 /// wrong (issue 19's definition, `visnav bench fix`'s `wrong_fixes`), so a fix that cannot
@@ -197,6 +209,12 @@ impl Validate for FixParams {
             self.reloc_tilt_sigma_deg,
             0.01,
             45.0,
+        );
+        p.range(
+            "widen_heading_sigma_deg",
+            self.widen_heading_sigma_deg,
+            0.0,
+            180.0,
         );
         p.section("pose", |p| self.pose.validate(p));
     }
@@ -425,6 +443,7 @@ impl FixEngine {
                             &att,
                             prior.t_capture_us,
                             prior.attitude_from_filter,
+                            prior.widen_heading,
                         );
                         r.prior_attitude_from_filter = prior.attitude_from_filter;
                         (r, a)
@@ -614,8 +633,119 @@ impl FixEngine {
     }
 
     /// The prior-driven fix: one rectification at the prior attitude, or a heading sweep when
-    /// the prior's heading sigma is larger than one rectification tolerates.
+    /// the prior's heading sigma is larger than one rectification tolerates. When that finds no
+    /// fix and the caller asks for it (`widen`, [`FixPrior::widen_heading`]), the heading is
+    /// searched wider ([`Self::widened_heading`]) and then the area search runs over the prior's
+    /// window ([`Self::area_search_near`]) before the frame is given up.
     fn fix_prior(
+        &self,
+        frame: &GrayImage,
+        pos: &PositionPriorGeo,
+        att: &AttitudePriorNed,
+        t_us: u64,
+        att_from_filter: bool,
+        widen: bool,
+    ) -> (FixReport, Attempt) {
+        let (r, a) = self.fix_prior_as_stated(frame, pos, att, t_us, att_from_filter);
+        if r.accepted || !widen {
+            return (r, a);
+        }
+        let mut reasons = vec![r.reason];
+        let wide = self.widened_heading(att);
+        if let Some(wide) = &wide {
+            let (r2, a2) =
+                self.fix_heading_sweep(frame, pos, wide, Some(wide), t_us, att_from_filter);
+            if r2.accepted {
+                return (r2, a2);
+            }
+            reasons.push(format!(
+                "heading widened to +-{:.0} deg: {}",
+                3.0 * wide.sigma_yaw_rad.to_degrees(),
+                r2.reason
+            ));
+        }
+        let near = self.area_search_near(frame, pos, wide.as_ref().unwrap_or(att), t_us);
+        match near {
+            Ok(found) if found.0.accepted => return found,
+            Ok((r3, _)) => {
+                reasons.push(format!("area search of the prior's window: {}", r3.reason))
+            }
+            Err(AreaRelocError::NotFound(e)) => {
+                reasons.push(format!("area search of the prior's window: {e}"));
+            }
+            // It could not run (an old map, no level images, the budget): nothing to add.
+            Err(AreaRelocError::CannotRun(e)) => {
+                tracing::debug!("area search of the prior's window: {e}");
+            }
+        }
+        let mut r = FixReport::rejected(reasons.join("; "), t_us, 0.0);
+        r.prior_attitude_from_filter = att_from_filter;
+        (r, a)
+    }
+
+    /// The area search (as relocalisation runs it without a position prior) restricted to the
+    /// window the position prior allows: its +-3 sigma gate grown by the footprint's reach, the
+    /// candidates' camera positions within the gate. So a position prior never makes a frame fail
+    /// that the search without one would fix there; the search is also far cheaper than over the
+    /// whole map. The altitude is the prior's.
+    fn area_search_near(
+        &self,
+        frame: &GrayImage,
+        pos: &PositionPriorGeo,
+        att: &AttitudePriorNed,
+        t_us: u64,
+    ) -> Result<(FixReport, Attempt), AreaRelocError> {
+        let cannot = |e: String| AreaRelocError::CannotRun(Rejected::from(e));
+        if self.params.area_matching == AreaMatching::Off {
+            return Err(cannot("area matching is off".into()));
+        }
+        let g = self
+            .prior_geom(pos, att)
+            .map_err(AreaRelocError::CannotRun)?;
+        let agl_m = g.c_map.z - self.ground_below(&g);
+        if !(agl_m.is_finite() && agl_m > 1.0) {
+            return Err(cannot("the prior is not above the terrain".into()));
+        }
+        let k = &self.camera.intrinsics;
+        let half_diag_rad = (0.5 * f64::from(k.width_px))
+            .hypot(0.5 * f64::from(k.height_px))
+            .atan2(k.fx_px.min(k.fy_px));
+        let off_nadir = (half_diag_rad + 3.0 * att.sigma_rad + tilt_of(&att.attitude))
+            .min(self.params.max_off_nadir_deg.to_radians());
+        let gate_m = self.params.gate_sigmas * pos.sigma_h_m;
+        let reach_m = gate_m + agl_m * off_nadir.tan();
+        let window = SearchWindow {
+            rect_m: [
+                g.c_map.x - reach_m,
+                g.c_map.y - reach_m,
+                g.c_map.x + reach_m,
+                g.c_map.y + reach_m,
+            ],
+            centre_m: [g.c_map.x, g.c_map.y],
+            max_distance_m: gate_m,
+        };
+        let alt = super::AltitudePrior {
+            alt_amsl_m: pos.alt_amsl_m,
+            sigma_m: pos.sigma_v_m,
+        };
+        let mut work = 0u64;
+        let (r, a) = self.relocalise_area(frame, &alt, att, t_us, &mut work, Some(&window))?;
+        if !r.accepted {
+            return Ok((r, a));
+        }
+        // The window bounds the candidates; the verified fix must still agree with the prior.
+        let d = (r.x_m - g.c_map.x).hypot(r.y_m - g.c_map.y);
+        let limit = self.params.gate_sigmas * pos.sigma_h_m.hypot(sigma_h_m(&r));
+        if d > limit {
+            return Err(AreaRelocError::NotFound(format!(
+                "its fix lies {d:.0} m from the prior, beyond {limit:.0} m (3 sigma)"
+            )));
+        }
+        Ok((r, a))
+    }
+
+    /// [`Self::fix_prior`] at the prior's heading sigma as stated.
+    fn fix_prior_as_stated(
         &self,
         frame: &GrayImage,
         pos: &PositionPriorGeo,
@@ -640,6 +770,18 @@ impl FixEngine {
                 },
             )
         }
+    }
+
+    /// The prior with its heading sigma widened to `[fix] widen_heading_sigma_deg` (tilt kept:
+    /// gravity fixes it), or None when that is not wider than the prior's own. The widened
+    /// heading also enters the resection: the heading a fix reports then comes from the image,
+    /// not from the prior that failed.
+    fn widened_heading(&self, att: &AttitudePriorNed) -> Option<AttitudePriorNed> {
+        let wide = self.params.widen_heading_sigma_deg.to_radians();
+        (wide > att.sigma_yaw_rad).then_some(AttitudePriorNed {
+            sigma_yaw_rad: wide,
+            ..*att
+        })
     }
 
     /// One rectification at `rect` (the attitude the frame is resampled with and the coarse gate
@@ -1025,7 +1167,15 @@ impl FixEngine {
             Ok(c) => c,
             Err(e) => return rej(format!("prior geodesy: {e}")),
         };
-        let height_sigma_m = self.reference.height_sigma_m();
+        let heights = self.reference.height_errors();
+        // Pixel thresholds are in frame pixels; a frame finer than the map level sees its
+        // localisation errors magnified by 1/scale.
+        let mag = (1.0 / v.scale).max(1.0);
+        // An inlier's residual stays within the consensus threshold, so the part of its height
+        // error the image shows cannot exceed it (the points whose heights are further off, the
+        // roofs and trees a constant height leaves out, fail the consensus): at most a uniform
+        // spread over +-threshold.
+        let height_cap_px = self.params.pose.ransac.threshold_px * mag / 3f64.sqrt();
         let corrs: Vec<Correspondence> = pairs
             .iter()
             .filter_map(|p| {
@@ -1034,8 +1184,13 @@ impl FixEngine {
                     return None;
                 }
                 let p_enu = map_to_enu(&crs, &local, p.map[0], p.map[1], p.map[2]).ok()?;
-                let sigma_height_px =
-                    height_error_px(&p_enu, &c_enu, height_sigma_m, self.camera.intrinsics.fx_px);
+                let sigma_height_px = height_error_px(
+                    &p_enu,
+                    &c_enu,
+                    heights.point_sigma_m,
+                    self.camera.intrinsics.fx_px,
+                )
+                .min(height_cap_px);
                 Some(Correspondence {
                     point_world: p_enu,
                     obs_norm: Vector2::new(r.x / r.z, r.y / r.z),
@@ -1066,16 +1221,14 @@ impl FixEngine {
                     g.sigma_v_m.powi(2),
                 )),
             }),
+            map_tilt_sigma_rad: heights.slope_sigma.atan(),
         };
-        // Pixel thresholds are in frame pixels; a frame finer than the map level sees its
-        // localisation errors magnified by 1/scale.
         let mut cfg = self.params.pose.clone();
         // The filter's own attitude is not an independent prior: weigh it as before this
         // weighting became the information-weighted one (docs/fix.md, "The attitude prior").
         if g.att_from_filter {
             cfg.refine = cfg.refine.for_unscaled_prior();
         }
-        let mag = (1.0 / v.scale).max(1.0);
         cfg.ransac.threshold_px *= mag;
         cfg.integrity.max_reprojection_rms_px *= mag;
         let outcome = resect(&corrs, &image, &priors, &cfg);
@@ -1210,7 +1363,7 @@ impl FixEngine {
     /// per-point weighting of [`height_error_px`] covers the part that varies across the
     /// footprint, which the points' scatter would otherwise average away).
     fn map_height_var_m2(&self) -> f64 {
-        self.reference.height_sigma_m().powi(2)
+        self.reference.height_errors().offset_sigma_m.powi(2)
     }
 
     /// The image-only pose of `fix` in geodetic / NED terms, its 6x6 covariance reordered to
@@ -1270,7 +1423,7 @@ impl FixEngine {
             && self.params.area_matching != AreaMatching::Off
         {
             let mut work = 0u64;
-            match self.relocalise_area(frame, &alt, &att, t_us, &mut work) {
+            match self.relocalise_area(frame, &alt, &att, t_us, &mut work, None) {
                 Ok(found) => return found,
                 // The search ran and confirmed nothing: the frame does not match well enough
                 // (the feature search would spend seconds to find little more).
@@ -1363,9 +1516,10 @@ impl FixEngine {
         att: &AttitudePriorNed,
         t_us: u64,
         work: &mut u64,
+        window: Option<&SearchWindow>,
     ) -> Result<(FixReport, Attempt), AreaRelocError> {
         let search = self
-            .area_search(frame, alt, att, work)
+            .area_search(frame, alt, att, window, work)
             .map_err(AreaRelocError::CannotRun)?;
         let how = Single {
             att_from_filter: false,
@@ -1374,10 +1528,11 @@ impl FixEngine {
             placement: false,
         };
         // The best candidate may be confirmed by its placement alone when it leads every other
-        // place of the whole map by the placement fix's margin (there no tie point confirms it).
-        let lead = match search.candidates.as_slice() {
-            [first, second, ..] => first.ncc - second.ncc,
-            _ => f64::INFINITY,
+        // place searched by the placement fix's margin (there no tie point confirms it), also
+        // the places a window's distance rule left out.
+        let lead = match search.candidates.first() {
+            Some(first) => first.ncc - search.runner_up_ncc,
+            None => f64::INFINITY,
         };
         let mut confirmed: Option<(f64, Hypothesis)> = None;
         let mut reasons = Vec::new();
@@ -1455,10 +1610,11 @@ impl FixEngine {
         frame: &GrayImage,
         alt: &super::AltitudePrior,
         att: &AttitudePriorNed,
+        window: Option<&SearchWindow>,
         work: &mut u64,
     ) -> Result<AreaSearch, Rejected> {
         use super::area::{candidates, grey_and_gradient};
-        let (level, agl_m, img, budget) = self.area_level(alt, work)?;
+        let (level, agl_m, img, budget) = self.area_level(alt, window, work)?;
         let gsd = self.levels_gsd_m[level];
         let (lo, hi) = self.reference.dem().height_range_m();
         let r_map_cam = r_enu_ned() * self.camera.mount.r_ned_cam(&att.attitude);
@@ -1482,8 +1638,9 @@ impl FixEngine {
             .max(1);
         let tc = grey_and_gradient(&plane, f)
             .ok_or_else(|| "the rectified frame is too small".to_string())?;
+        let crop = window.map_or([0, 0, img.width, img.height], |w| w.pixels(&img));
         let map = img
-            .crop(0, 0, img.width, img.height)
+            .crop(crop[0] as i64, crop[1] as i64, crop[2], crop[3])
             .and_then(|m| grey_and_gradient(&m, f))
             .ok_or_else(|| "the map image is too small".to_string())?;
         // The frame may see beyond the map's edge: the map inside a border of no data as wide
@@ -1529,14 +1686,22 @@ impl FixEngine {
         let (tcx, tcy) = (fine((tw as f64 - 1.0) / 2.0), fine((th as f64 - 1.0) / 2.0));
         let (dx, dy) = (rect.cx_px - tcx, rect.cy_px - tcy);
         let crs = self.reference.crs();
-        let mut out = Vec::new();
+        let mut out: Vec<AreaCandidate> = Vec::new();
+        let mut runner_up_ncc = f64::NEG_INFINITY;
         for c in &shortlist {
             let (s, co) = c.theta_rad.sin_cos();
             let px = [
-                fine(c.centre[0] - mx as f64) + c.scale * (co * dx - s * dy),
-                fine(c.centre[1] - my as f64) + c.scale * (s * dx + co * dy),
+                crop[0] as f64 + fine(c.centre[0] - mx as f64) + c.scale * (co * dx - s * dy),
+                crop[1] as f64 + fine(c.centre[1] - my as f64) + c.scale * (s * dx + co * dy),
             ];
             let xy = img.to_map(px);
+            // The shortlist is best first: every place after the first kept one is a rival.
+            if window.is_some_and(|w| !w.admits(xy)) || !out.is_empty() {
+                runner_up_ncc = runner_up_ncc.max(c.ncc);
+            }
+            if window.is_some_and(|w| !w.admits(xy)) {
+                continue;
+            }
             let Ok((lat, lon)) = crs.to_geodetic(xy[0], xy[1]) else {
                 continue;
             };
@@ -1562,6 +1727,7 @@ impl FixEngine {
         }
         Ok(AreaSearch {
             candidates: out,
+            runner_up_ncc,
             gsd_m: gsd,
             coarse_px_m: f as f64 * gsd,
         })
@@ -1574,6 +1740,7 @@ impl FixEngine {
     fn area_level(
         &self,
         alt: &super::AltitudePrior,
+        window: Option<&SearchWindow>,
         work: &mut u64,
     ) -> Result<(usize, f64, super::reference::MapImage<'_>, u64), Rejected> {
         if !(alt.alt_amsl_m.is_finite() && alt.sigma_m.is_finite() && alt.sigma_m > 0.0) {
@@ -1596,7 +1763,8 @@ impl FixEngine {
         // Each pixel of the level image read (and held in the working planes) counts one unit:
         // a map too large for the budget is left to the feature search before any is read.
         let budget = (self.params.reloc_budget_mwork * 1e6) as u64;
-        let map_px = (img.width * img.height) as u64;
+        let [_, _, w, h] = window.map_or([0, 0, img.width, img.height], |w| w.pixels(&img));
+        let map_px = (w * h) as u64;
         if work.saturating_add(map_px) > budget {
             return Err(rejected!(
                 "the map level's {:.0} million pixels exceed the budget (reloc_budget_mwork = {})",
@@ -1900,9 +2068,42 @@ enum AreaRelocError {
     NotFound(String),
 }
 
+/// Where the area search looks when a position prior bounds it ([`FixEngine::area_search_near`]):
+/// the map rectangle searched (metres) and the largest distance of a candidate's camera from the
+/// prior's centre.
+struct SearchWindow {
+    rect_m: [f64; 4],
+    centre_m: [f64; 2],
+    max_distance_m: f64,
+}
+
+impl SearchWindow {
+    /// The rectangle in `img`'s pixels, clipped to the image: `[x0, y0, width, height]` (at
+    /// least one pixel a side).
+    fn pixels(&self, img: &super::reference::MapImage<'_>) -> [usize; 4] {
+        let a = img.to_px(self.rect_m[0], self.rect_m[3]);
+        let b = img.to_px(self.rect_m[2], self.rect_m[1]);
+        let clip = |v: f64, n: usize| (v.max(0.0) as usize).min(n.saturating_sub(1));
+        let (x0, y0) = (
+            clip(a[0].floor(), img.width),
+            clip(a[1].floor(), img.height),
+        );
+        let (x1, y1) = (clip(b[0].ceil(), img.width), clip(b[1].ceil(), img.height));
+        [x0, y0, x1 - x0 + 1, y1 - y0 + 1]
+    }
+
+    /// A candidate camera at map `xy` is within the distance allowed.
+    fn admits(&self, xy: [f64; 2]) -> bool {
+        (xy[0] - self.centre_m[0]).hypot(xy[1] - self.centre_m[1]) <= self.max_distance_m
+    }
+}
+
 /// The area search's shortlist ([`FixEngine::area_search`]).
 struct AreaSearch {
     candidates: Vec<AreaCandidate>,
+    /// The best correlation of any other place searched (a candidate or one the window's
+    /// distance rule left out; -inf when there is none).
+    runner_up_ncc: f64,
     /// Ground sample distance of the level searched and of its coarse grid, metres.
     gsd_m: f64,
     coarse_px_m: f64,
@@ -2085,6 +2286,11 @@ fn height_error_px(p: &Vector3<f64>, c: &Vector3<f64>, height_sigma_m: f64, fx_p
     }
     let sin_alpha = d.xy().norm() / range_m;
     fx_px * height_sigma_m * sin_alpha / range_m
+}
+
+/// Angle of the body's z axis from the vertical, radians.
+fn tilt_of(a: &Attitude) -> f64 {
+    (a.r_ned_body() * Vector3::z()).z.clamp(-1.0, 1.0).acos()
 }
 
 fn wrap_pi(a: f64) -> f64 {
@@ -3051,6 +3257,7 @@ pub(crate) mod tests {
                 attitude: att,
                 altitude: None,
                 attitude_from_filter: false,
+                widen_heading: true,
             },
         );
         assert!(!r.accepted && r.reason.contains("100x100"), "{}", r.reason);
@@ -3070,6 +3277,7 @@ pub(crate) mod tests {
                     attitude: att,
                     altitude: None,
                     attitude_from_filter: false,
+                    widen_heading: true,
                 },
             );
             assert!(!r.accepted, "{what}");
@@ -3086,6 +3294,7 @@ pub(crate) mod tests {
                 attitude: att,
                 altitude: None,
                 attitude_from_filter: false,
+                widen_heading: true,
             },
         );
         assert!(!r.accepted && r.reason.contains("features"), "{}", r.reason);

@@ -79,6 +79,12 @@ pub struct FixPrior {
     /// The attitude prior is the navigation filter's own attitude (its errors are the filter's
     /// attitude error state): copied into [`FixReport::prior_attitude_from_filter`].
     pub attitude_from_filter: bool,
+    /// When no fix is found at the prior's heading, search the heading again wider (`[fix]
+    /// widen_heading_sigma_deg`) and then the area search over the prior's window before giving
+    /// the frame up (docs/fix.md, "A heading that is wrong"). Each costs a heading sweep, so a
+    /// stream of frames asks for it after repeated rejections (the daemon's policy), a single
+    /// frame always (`visnav fix`).
+    pub widen_heading: bool,
 }
 
 /// The result of one fix attempt. Angles and positions are finite whenever `accepted` is true.

@@ -44,6 +44,27 @@ impl RefSelection {
     }
 }
 
+/// How a map's heights err against the surface the camera sees, split by what each part does to
+/// a fix (docs/map-format.md, "Height uncertainty"). A map's height error is mostly shared by a
+/// footprint (a constant height's offset from the ground, a DEM's datum) and changes slowly
+/// across it (relief under a constant height, a DEM's tilt), plus what varies from point to
+/// point (roofs, trees and cars a DEM does not hold). Treating all of it as independent per
+/// point lets the points' scatter average it away and drowns the image's own tilt evidence.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct HeightErrors {
+    /// A height error shared by the whole footprint, m (1 sigma): it raises the solved camera
+    /// by as much and moves nothing else, so it goes whole into the vertical.
+    pub offset_sigma_m: f64,
+    /// A height error changing linearly across the footprint, metres per metre (1 sigma per
+    /// horizontal axis): it tilts the points against the world, which turns the solved attitude
+    /// by as much and moves the camera by it times its height above the ground
+    /// (`pose::Priors::map_tilt_sigma_rad`).
+    pub slope_sigma: f64,
+    /// What is left per point, m (1 sigma): each correspondence's pixel sigma grows by its
+    /// image displacement.
+    pub point_sigma_m: f64,
+}
+
 /// A map the fix can match against.
 pub trait Reference: Send + Sync {
     /// The map grid's CRS (x east, y north, metres).
@@ -67,9 +88,21 @@ pub trait Reference: Send + Sync {
     /// Features of `level` whose position lies in `[min_x, min_y, max_x, max_y]`.
     fn select(&self, level: usize, rect_m: [f64; 4]) -> RefSelection;
     /// Standard deviation of the features' heights against the surface the camera sees, metres
-    /// (`crate::map::MapHeader::height_sigma_m`); 0: the heights are taken as exact.
+    /// (`crate::map::MapHeader::height_sigma_m`); 0: the heights are taken as exact. The part a
+    /// whole footprint shares ([`HeightErrors::offset_sigma_m`]).
     fn height_sigma_m(&self) -> f64 {
         0.0
+    }
+    /// How the heights err, split by what the error does to a fix ([`HeightErrors`]). By default
+    /// (a map that states only [`Self::height_sigma_m`]) as a shared offset and again per point,
+    /// with no slope.
+    fn height_errors(&self) -> HeightErrors {
+        let s = self.height_sigma_m();
+        HeightErrors {
+            offset_sigma_m: s,
+            slope_sigma: 0.0,
+            point_sigma_m: s,
+        }
     }
     /// The grey image of `level` (area matching, `fix::area`); `None` when the map has none
     /// (a version-1 `.vnm`).

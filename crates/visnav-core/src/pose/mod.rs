@@ -35,6 +35,8 @@ pub mod p3p;
 pub mod ransac;
 pub mod refine;
 
+use std::ops::AddAssign;
+
 use nalgebra::{Matrix3, Matrix6, Rotation3, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
@@ -183,11 +185,20 @@ pub struct PositionPrior {
     pub cov_m2: Matrix3<f64>,
 }
 
-/// Optional priors (from the navigation filter).
+/// Optional priors (from the navigation filter), and what the world points may be off by as a
+/// whole.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Priors {
     pub attitude: Option<AttitudePrior>,
     pub position: Option<PositionPrior>,
+    /// How far the world points as a whole may be tilted against the true world, radians per
+    /// horizontal axis (1 sigma; 0: not at all). A map's height error that changes linearly across
+    /// the footprint (a constant height over sloping ground, a DEM's tilt) tilts the points about
+    /// their centre: the image pins the pose against the points, which then stands turned by that
+    /// tilt against the world (attitude) and displaced by it times the camera's height above them
+    /// (position). See [`MapTilt`]; with an attitude prior the tilt is estimated between the
+    /// image and the prior ([`fuse_attitude_prior`]).
+    pub map_tilt_sigma_rad: f64,
 }
 
 /// All resection settings (`[pose]`).
@@ -212,6 +223,10 @@ impl Validate for ResectionConfig {
 pub struct PoseCovariance {
     /// `(J^T W J)^-1`: the pixel sigmas taken at face value.
     pub apriori: Matrix6<f64>,
+    /// Added to the scaled covariance whatever the image's scatter: the world points' tilt as a
+    /// whole ([`Priors::map_tilt_sigma_rad`], `MapTilt`), which no factor on the pixel
+    /// residuals can see (zero without one).
+    pub added: Matrix6<f64>,
     /// A-posteriori variance factor `sigma0^2`.
     pub sigma0_sq: f64,
     /// Redundancy of the adjustment.
@@ -237,11 +252,11 @@ impl PoseCovariance {
             * self.inflation
             * self.inflation
     }
-    /// `max(sigma0_floor^2, sigma0^2) max(1, split_factor) inflation^2 (J^T W J)^-1`: never
-    /// smaller than the a-priori covariance when `sigma0_floor * inflation >= 1`. This is the one used for the integrity checks and the one to hand to a
-    /// filter.
+    /// `max(sigma0_floor^2, sigma0^2) max(1, split_factor) inflation^2 (J^T W J)^-1 + added`:
+    /// never smaller than the a-priori covariance when `sigma0_floor * inflation >= 1`. This is
+    /// the one used for the integrity checks and the one to hand to a filter.
     pub fn conservative(&self) -> Matrix6<f64> {
-        self.apriori * self.factor()
+        self.apriori * self.factor() + self.added
     }
     /// Conservative position covariance, world frame, m^2.
     pub fn position_world_m2(&self) -> Matrix3<f64> {
@@ -414,8 +429,17 @@ fn resect_stages(
     } else {
         1.0
     };
+    let tilt = map_tilt_response(
+        &c.local,
+        &inliers,
+        &vision,
+        fx,
+        fy,
+        priors.map_tilt_sigma_rad,
+    );
     let vision_cov = PoseCovariance {
         apriori: vision.cov_apriori,
+        added: tilt.as_ref().map_or_else(Matrix6::zeros, MapTilt::cov),
         sigma0_sq: vision.sigma0_sq,
         dof: vision.dof,
         inflation: cfg.refine.sigma_inflation,
@@ -425,13 +449,28 @@ fn resect_stages(
     // 5a. Prior consistency on the vision-only solution (in the centred frame).
     let prior_d2 = prior_consistency(&vision.pose, &vision_cov, priors, &c.origin);
     // 6. Optional fusion of the attitude prior.
-    let fusion = fuse_attitude_prior(&c.local, &inliers, &vision, &vision_cov, priors, image, cfg)?;
+    let fusion = fuse_attitude_prior(
+        &c.local,
+        &inliers,
+        &vision,
+        &vision_cov,
+        priors,
+        tilt.as_ref(),
+        image,
+        cfg,
+    )?;
     let final_r = fusion.as_ref().map_or(&vision, |(r, _)| r);
     // The fused covariance scales with the image's variance factor (see `fuse_attitude_prior`):
-    // the prior rows' residuals say nothing about the pixel sigmas.
+    // the prior rows' residuals say nothing about the pixel sigmas. The map's tilt is already in
+    // a fused covariance.
     let covariance = PoseCovariance {
         apriori: final_r.cov_apriori,
         dof: final_r.dof,
+        added: if fusion.is_some() {
+            Matrix6::zeros()
+        } else {
+            vision_cov.added
+        },
         ..vision_cov
     };
     // 5b. Quality figures.
@@ -627,12 +666,14 @@ fn prior_consistency(
 /// the image and the prior. Without the scaling the prior is under-weighted by `k` (16 with the
 /// fix pipeline's inflation of 4) and the image's correlated errors leak into the tilt along the
 /// position/tilt ambiguity. The prior as weighed is `P k / k_image`.
+#[allow(clippy::too_many_arguments)]
 fn fuse_attitude_prior(
     local: &[Correspondence],
     inliers: &[usize],
     vision: &Refined,
     vision_cov: &PoseCovariance,
     priors: &Priors,
+    tilt: Option<&MapTilt>,
     image: &ImageGeometry,
     cfg: &ResectionConfig,
 ) -> Result<Option<(Refined, AttitudePrior)>, Rejection> {
@@ -648,12 +689,18 @@ fn fuse_attitude_prior(
     } else {
         1.0
     };
+    let factor = vision_cov.factor();
+    // The image pins the pose against the points; a tilt of the points against the world widens
+    // the prior as the image sees it (the map frame) by the tilt's attitude covariance.
+    let tilt_att = tilt.map_or_else(Matrix3::zeros, |t| {
+        t.cov().fixed_view::<3, 3>(0, 0).into_owned()
+    });
     let scaled = AttitudePrior {
         r_world_cam: a.r_world_cam,
-        cov_rad2: a.cov_rad2 / k_image,
+        cov_rad2: a.cov_rad2 / k_image + tilt_att / factor,
     };
     let (fx, fy) = (image.fx_px, image.fy_px);
-    let fused = refine_pose(
+    let mut fused = refine_pose(
         local,
         inliers,
         &vision.pose,
@@ -668,9 +715,116 @@ fn fuse_attitude_prior(
     })?;
     let effective = AttitudePrior {
         r_world_cam: a.r_world_cam,
-        cov_rad2: a.cov_rad2 * (vision_cov.factor() / k_image),
+        cov_rad2: a.cov_rad2 * (factor / k_image),
     };
+    if let Some(t) = tilt {
+        world_from_map_frame(&mut fused, vision, vision_cov, &effective, t, factor)?;
+    }
     Ok(Some((fused, effective)))
+}
+
+/// The fused pose of [`fuse_attitude_prior`], solved against the points (the map frame), moved
+/// into the world by the points' most likely tilt, with the world covariance.
+///
+/// Linear model (conservative units): the image gives the map-frame pose `y ~ N(y_img, Y)`
+/// (`Y` the image's conservative covariance without the tilt); the tilt `g ~ N(0, T)` (slope per
+/// horizontal axis) makes it differ from the world pose by `y = x + D g` ([`MapTilt`]); the prior
+/// observes the world attitude, `a = H x + e`, `e ~ N(0, P)`. With `S = H (Y + D T D^T) H^T + P`
+/// and the innovation `v = Log(R_prior R_img^T)`, the tilt's posterior mean is
+/// `g = -T D^T H^T S^-1 v`; the map-frame part of the posterior is what the refinement found with
+/// the prior widened to `P + H D T D^T H^T`, and `x = y - D g`. The world covariance is the
+/// image-only world pose `N(y_img, Y + D T D^T)` fused with the prior:
+/// `((Y + D T D^T)^-1 + H^T P^-1 H)^-1`.
+fn world_from_map_frame(
+    fused: &mut Refined,
+    vision: &Refined,
+    vision_cov: &PoseCovariance,
+    prior: &AttitudePrior,
+    tilt: &MapTilt,
+    factor: f64,
+) -> Result<(), Rejection> {
+    let fail = |detail: &str| Rejection::NumericalFailure {
+        stage: "map tilt",
+        detail: detail.to_string(),
+    };
+    let y = vision_cov.apriori * factor;
+    let image_world = y + tilt.cov();
+    let s = image_world.fixed_view::<3, 3>(0, 0) + prior.cov_rad2;
+    let s_inv = inv3(&s).ok_or_else(|| fail("singular innovation covariance"))?;
+    let v = log_so3(&(prior.r_world_cam * vision.pose.r_world_cam.inverse()));
+    let dh = tilt.d.fixed_view::<3, 2>(0, 0).into_owned();
+    let g = -(tilt.sigma * tilt.sigma) * dh.transpose() * s_inv * v;
+    let dx = -(tilt.d * g);
+    let phi = Vector3::new(dx[0], dx[1], dx[2]);
+    fused.pose = Pose {
+        r_world_cam: Rotation3::new(phi) * fused.pose.r_world_cam,
+        c_world: fused.pose.c_world + Vector3::new(dx[3], dx[4], dx[5]),
+    };
+    let mut info = image_world
+        .try_inverse()
+        .ok_or_else(|| fail("singular image covariance"))?;
+    let p_inv = inv3(&prior.cov_rad2).ok_or_else(|| fail("singular prior covariance"))?;
+    info.fixed_view_mut::<3, 3>(0, 0).add_assign(&p_inv);
+    let cov = info
+        .try_inverse()
+        .ok_or_else(|| fail("singular fused information"))?;
+    let cov = (cov + cov.transpose()) * 0.5;
+    if !cov.iter().chain(phi.iter()).all(|v| v.is_finite()) {
+        return Err(fail("non-finite result"));
+    }
+    fused.cov_apriori = cov / factor;
+    Ok(())
+}
+
+/// How a tilt of the world points moves the solved pose ([`Priors::map_tilt_sigma_rad`]): the
+/// points' heights off by `g . (X - X_mid)` (slope `g` per horizontal axis, `X_mid` the points'
+/// centre) move the least-squares pose by `D g`, `D = -(A^T A)^-1 A^T B` with `A` the whitened
+/// Jacobian of the inliers' residuals in the pose and `B` in the slope (each point's height
+/// Jacobian times its horizontal offset). Over flat ground this is the rigid turn of the frame
+/// about the centre (the attitude turns by the slope, the camera moves by it times its height);
+/// over relief it is not quite, which the least-squares response includes.
+struct MapTilt {
+    /// `D`, rows `[phi, C]`, columns the slope along world x and y.
+    d: nalgebra::SMatrix<f64, 6, 2>,
+    /// The slope's sigma per axis.
+    sigma: f64,
+}
+
+impl MapTilt {
+    /// The pose covariance the tilt adds: `D T D^T`.
+    fn cov(&self) -> Matrix6<f64> {
+        self.d * self.d.transpose() * (self.sigma * self.sigma)
+    }
+}
+
+/// [`MapTilt`] of the inliers at the vision-only solution; None without a tilt (or when a value
+/// is not finite).
+fn map_tilt_response(
+    local: &[Correspondence],
+    inliers: &[usize],
+    vision: &Refined,
+    fx: f64,
+    fy: f64,
+    sigma: f64,
+) -> Option<MapTilt> {
+    if !(sigma.is_finite() && sigma > 0.0) {
+        return None;
+    }
+    let r_cw = vision.pose.r_world_cam.inverse();
+    let r_cw = r_cw.matrix();
+    let mut atb = nalgebra::SMatrix::<f64, 6, 2>::zeros();
+    for &i in inliers {
+        let c = &local[i];
+        let (_, a) = refine::residual_and_jacobian(r_cw, &vision.pose.c_world, c, fx, fy)?;
+        // d e / d X = -(d e / d C): the point moves against the camera.
+        let de_dz = -(a.fixed_view::<2, 3>(0, 3) * Vector3::z());
+        let b = de_dz * nalgebra::RowVector2::new(c.point_world.x, c.point_world.y);
+        atb += a.transpose() * b;
+    }
+    let d = -(vision.cov_apriori * atb);
+    d.iter()
+        .all(|v| v.is_finite())
+        .then_some(MapTilt { d, sigma })
 }
 
 /// What the quality figures of a fix are computed from.

@@ -510,6 +510,7 @@ mod tests {
             // The factor's smallest value (sigma0 = 0, no split) is then at least 1.
             let cov = crate::pose::PoseCovariance {
                 apriori: nalgebra::Matrix6::identity(),
+                added: nalgebra::Matrix6::zeros(),
                 sigma0_sq: 0.0,
                 dof: 10,
                 inflation: u.sigma_inflation,

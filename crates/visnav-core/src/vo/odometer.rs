@@ -490,6 +490,7 @@ pub(crate) mod tests {
                 sigma_yaw_rad: 1e-2,
             }),
             attitude_from_filter: true,
+            widen_heading: false,
         }
     }
 

@@ -11,4 +11,5 @@ pub use visnav_core::geo::*;
 pub mod dem;
 pub mod geotiff;
 pub mod geotiff_info;
+pub mod geotiff_write;
 pub mod window;

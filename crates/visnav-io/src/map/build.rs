@@ -105,7 +105,24 @@ pub struct BuildSpec {
     /// ([`MapHeader::height_sigma_m`]); `None`: [`DEFAULT_CONSTANT_HEIGHT_SIGMA_M`] for a constant
     /// height, [`DEFAULT_DEM_HEIGHT_SIGMA_M`] for a DEM.
     pub height_sigma_m: Option<f64>,
+    /// How fast the height error changes across a footprint, metres per metre
+    /// ([`MapHeader::height_slope_sigma`]); `None`: [`DEFAULT_CONSTANT_HEIGHT_SLOPE_SIGMA`] for a
+    /// constant height, 0 for a DEM.
+    pub height_slope_sigma: Option<f64>,
+    /// The height error per point, metres ([`MapHeader::height_point_sigma_m`]); `None`: the
+    /// height sigma (what a constant height or a DEM does not hold varies per point too: roofs,
+    /// trees, relief).
+    pub height_point_sigma_m: Option<f64>,
 }
+
+/// Height slope sigma of a map built on a constant ground height when the build does not state
+/// one, metres per metre: a constant is chosen for ground its user takes as flat, where the
+/// ground still falls or rises by about a metre per 100 m (river terraces, fields, prairie
+/// swells; steeper ground needs a DEM). Over a footprint this tilts the points by about 0.6 deg.
+pub const DEFAULT_CONSTANT_HEIGHT_SLOPE_SIGMA: f64 = 0.01;
+
+/// Largest accepted height slope sigma (45 deg).
+pub const MAX_HEIGHT_SLOPE_SIGMA: f64 = 1.0;
 
 /// Height sigma of a map built on a constant ground height when the build does not state one, m:
 /// a constant stands for ground the build knows nothing about; buildings and trees are 4-12 m
@@ -139,6 +156,8 @@ impl BuildSpec {
             whole_decode_max_bytes: WHOLE_DECODE_MAX_BYTES,
             upsample: 1,
             height_sigma_m: None,
+            height_slope_sigma: None,
+            height_point_sigma_m: None,
         }
     }
 
@@ -148,6 +167,22 @@ impl BuildSpec {
             HeightSource::ConstantAmsl(_) => DEFAULT_CONSTANT_HEIGHT_SIGMA_M,
             HeightSource::Dem(_) => DEFAULT_DEM_HEIGHT_SIGMA_M,
         })
+    }
+
+    /// The height slope sigma the map will carry ([`Self::height_slope_sigma`] or the source's
+    /// default).
+    pub fn resolved_height_slope_sigma(&self) -> f64 {
+        self.height_slope_sigma.unwrap_or(match self.height {
+            HeightSource::ConstantAmsl(_) => DEFAULT_CONSTANT_HEIGHT_SLOPE_SIGMA,
+            HeightSource::Dem(_) => 0.0,
+        })
+    }
+
+    /// The per-point height sigma the map will carry ([`Self::height_point_sigma_m`] or the
+    /// source's default).
+    pub fn resolved_height_point_sigma_m(&self) -> f64 {
+        self.height_point_sigma_m
+            .unwrap_or_else(|| self.resolved_height_sigma_m())
     }
 }
 
@@ -367,6 +402,24 @@ pub fn build_map(
         return Err(param(
             "height_sigma_m",
             &format!("{height_sigma_m} must be 0 to {MAX_HEIGHT_SIGMA_M} m"),
+        ));
+    }
+    let height_slope_sigma = spec.resolved_height_slope_sigma();
+    if !(height_slope_sigma.is_finite()
+        && (0.0..=MAX_HEIGHT_SLOPE_SIGMA).contains(&height_slope_sigma))
+    {
+        return Err(param(
+            "height_slope_sigma",
+            &format!("{height_slope_sigma} must be 0 to {MAX_HEIGHT_SLOPE_SIGMA}"),
+        ));
+    }
+    let height_point_sigma_m = spec.resolved_height_point_sigma_m();
+    if !(height_point_sigma_m.is_finite()
+        && (0.0..=MAX_HEIGHT_SIGMA_M).contains(&height_point_sigma_m))
+    {
+        return Err(param(
+            "height_point_sigma_m",
+            &format!("{height_point_sigma_m} must be 0 to {MAX_HEIGHT_SIGMA_M} m"),
         ));
     }
     let mut surf_params = spec.surf.clone();
@@ -621,6 +674,8 @@ pub fn build_map(
         bounds,
         height: height_info,
         height_sigma_m,
+        height_slope_sigma: Some(height_slope_sigma),
+        height_point_sigma_m: Some(height_point_sigma_m),
         vertical_datum: datum,
         orthos: geoms
             .iter()
@@ -1226,6 +1281,41 @@ fn luma_row(r: &Raster, row: usize, c0: usize, out: &mut [f32]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn height_sigmas_default_by_source() {
+        let constant = BuildSpec::new(vec![], HeightSource::ConstantAmsl(100.0));
+        assert_eq!(
+            constant.resolved_height_sigma_m(),
+            DEFAULT_CONSTANT_HEIGHT_SIGMA_M
+        );
+        assert_eq!(
+            constant.resolved_height_slope_sigma(),
+            DEFAULT_CONSTANT_HEIGHT_SLOPE_SIGMA
+        );
+        assert_eq!(
+            constant.resolved_height_point_sigma_m(),
+            DEFAULT_CONSTANT_HEIGHT_SIGMA_M
+        );
+        let mut dem = BuildSpec::new(vec![], HeightSource::Dem(PathBuf::from("d.tif")));
+        assert_eq!(
+            (
+                dem.resolved_height_sigma_m(),
+                dem.resolved_height_slope_sigma()
+            ),
+            (0.0, 0.0)
+        );
+        dem.height_sigma_m = Some(5.0);
+        assert_eq!(
+            dem.resolved_height_point_sigma_m(),
+            5.0,
+            "the point sigma follows"
+        );
+        dem.height_point_sigma_m = Some(1.0);
+        dem.height_slope_sigma = Some(0.002);
+        assert_eq!(dem.resolved_height_point_sigma_m(), 1.0);
+        assert_eq!(dem.resolved_height_slope_sigma(), 0.002);
+    }
     use crate::geo::raster::GeoTransform;
     use crate::map::ReferenceMap;
 

@@ -977,7 +977,7 @@ fn check_features(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), BadFe
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::geo::Crs;
     use crate::geo::raster::Bounds;
@@ -1020,6 +1020,8 @@ mod tests {
             },
             height: HeightInfo::Constant { amsl_m: 580.0 },
             height_sigma_m: 10.0,
+            height_slope_sigma: Some(0.01),
+            height_point_sigma_m: Some(10.0),
             vertical_datum: "constant".into(),
             orthos: vec![],
             tile_px: 64,

@@ -253,6 +253,15 @@ pub struct MapHeader {
     /// (docs/map-format.md, "Height uncertainty"). Files written before it existed read 0.
     #[serde(default)]
     pub height_sigma_m: f64,
+    /// How fast the height error changes across a footprint, metres per metre (1 sigma per
+    /// horizontal axis; docs/map-format.md, "Height uncertainty"). Absent in files written before
+    /// it: no slope (and `height_sigma_m` again per point).
+    #[serde(default)]
+    pub height_slope_sigma: Option<f64>,
+    /// The height error left per point once the footprint's offset and slope are taken out,
+    /// metres (1 sigma). Absent in files written before it: `height_sigma_m`.
+    #[serde(default)]
+    pub height_point_sigma_m: Option<f64>,
     /// Vertical datum of `z_amsl_m`, free text (e.g. "DEM datum (orthometric, AMSL)").
     pub vertical_datum: String,
     /// Source orthophotos.
@@ -267,6 +276,16 @@ pub struct MapHeader {
 }
 
 impl MapHeader {
+    /// The height errors the fix models ([`visnav_core::fix::reference::HeightErrors`]): the
+    /// stated offset, slope and per-point sigmas, with the defaults of files written before the
+    /// last two existed.
+    pub fn height_errors(&self) -> visnav_core::fix::reference::HeightErrors {
+        visnav_core::fix::reference::HeightErrors {
+            offset_sigma_m: self.height_sigma_m,
+            slope_sigma: self.height_slope_sigma.unwrap_or(0.0),
+            point_sigma_m: self.height_point_sigma_m.unwrap_or(self.height_sigma_m),
+        }
+    }
     /// Descriptor variant of every feature.
     pub fn descriptor_kind(&self) -> DescriptorKind {
         self.surf.descriptor
@@ -306,6 +325,28 @@ impl MapSelection {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_header_without_the_height_split_reads_as_it_was_built() {
+        let h = super::format::tests::tiny_header(1);
+        let e = h.height_errors();
+        assert_eq!(
+            (e.offset_sigma_m, e.slope_sigma, e.point_sigma_m),
+            (10.0, 0.01, 10.0)
+        );
+        // A file written before the slope and per-point sigmas existed: the offset per point
+        // too, no slope (what every fix did with such a map).
+        let mut v = serde_json::to_value(&h).unwrap();
+        let o = v.as_object_mut().unwrap();
+        o.remove("height_slope_sigma");
+        o.remove("height_point_sigma_m");
+        let old: MapHeader = serde_json::from_value(v).unwrap();
+        let e = old.height_errors();
+        assert_eq!(
+            (e.offset_sigma_m, e.slope_sigma, e.point_sigma_m),
+            (10.0, 0.0, 10.0)
+        );
+    }
 
     #[test]
     fn index_grid_clamps_and_orders_rows_north_first() {

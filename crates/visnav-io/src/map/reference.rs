@@ -134,6 +134,9 @@ impl Reference for MapReference {
     fn height_sigma_m(&self) -> f64 {
         self.map.header().height_sigma_m
     }
+    fn height_errors(&self) -> visnav_core::fix::reference::HeightErrors {
+        self.map.header().height_errors()
+    }
     fn level_image(&self, level: usize) -> Option<MapImage<'_>> {
         let (info, data) = self.map.level_image(level)?;
         Some(MapImage {

@@ -191,9 +191,10 @@ class ErrorScore:
 
     PHASES = ("gps_on", "gps_off", "gps_off_aiding", "gps_off_not_aiding")
 
-    def __init__(self, estimator, log, flags_max_age_s=FLAGS_MAX_AGE_S):
+    def __init__(self, estimator, log, flags_max_age_s=FLAGS_MAX_AGE_S, home_alt_m=HOME_ALT_M):
         self.estimator = estimator  # "EKF3", "EKF2": for the log line and the verdict
         self.log = log
+        self.home_alt_m = home_alt_m  # the take-off ground, m AMSL: heights above it are agl
         self.errs = {ph: ([], []) for ph in self.PHASES}
         self.samples = []
         self.aiding = AidingTracker(flags_max_age_s)
@@ -213,7 +214,7 @@ class ErrorScore:
         dn, de = north_east(lat_deg, lon_deg, lat_t, lon_t)
         eh = math.hypot(dn, de)
         ev = alt_m - alt_t
-        agl = alt_t - HOME_ALT_M
+        agl = alt_t - self.home_alt_m
         aiding = self.aiding.aiding_at(t_s)
         if gps_off:
             self.gps_switched_off(t_s)  # no-op once told
@@ -685,6 +686,7 @@ def visnav_config_text(text, repo, link_port=None, vo=None, map_ortho=None):
     """The configuration sitl-run gets (start_visnav): absolute map paths, the tlog, the fix log
     (fixes.jsonl), the VO log (vo.jsonl), the link port, and the --vo / --map-ortho overrides."""
     text = text.replace('"../maps/', '"' + os.path.join(repo, "sitl", "maps") + "/")
+    text = text.replace('"../../../../shared/', '"' + os.path.join(os.path.dirname(repo), "shared") + "/")
     text = text.replace("[link]\n", '[link]\ntlog = "visnav.tlog"\n', 1)
     logs = 'fix_log = "fixes.jsonl"\nvo_log = "vo.jsonl"\n'
     if "\n[daemon]\n" in text:
@@ -720,7 +722,7 @@ def set_vo_enabled(text, on):
 
 
 def start_visnav(exe, config_src, workdir, kind, truth_port, camera_hz, repo, log,
-                 link_port=None, vo=None, map_ortho=None):
+                 link_port=None, vo=None, map_ortho=None, camera_world=None):
     """Start `visnav sitl-run` in WORKDIR (stdout: visnav.json, the metrics lines; stderr:
     visnav.log) on a copy of CONFIG_SRC with absolute map paths, a .tlog of all link traffic
     (visnav.tlog), the vision fix log (fixes.jsonl), the visual odometry log (vo.jsonl) and the
@@ -729,7 +731,9 @@ def start_visnav(exe, config_src, workdir, kind, truth_port, camera_hz, repo, lo
     --map-ortho overrides (visnav_config_text):
     `visnav replay --config visnav.toml --tlog visnav.tlog --fixes fixes.jsonl` in the work
     folder then replays the flight through the filter offline. The camera renders the 2014 image
-    (the map is the 2009 one)."""
+    (the map is the 2009 one), or with `camera_world` (a scenario file) that scenario's camera
+    world (`sitl-run --scenario`: its orthophoto on its surface model, the map from another
+    degraded copy)."""
     if exe is None:
         for c in ("target/release/visnav", "target/debug/visnav"):
             if os.path.exists(os.path.join(repo, c)):
@@ -744,9 +748,10 @@ def start_visnav(exe, config_src, workdir, kind, truth_port, camera_hz, repo, lo
     config = os.path.join(workdir, "visnav.toml")
     with open(config, "w") as f:
         f.write(text)
+    world = (["--scenario", os.path.abspath(camera_world)] if camera_world else
+             ["--ortho", os.path.join(repo, "sitl", "maps", "naip_nd_2014.tif")])
     cmd = [exe, "sitl-run", "--kind", kind, "--config", config,
-           "--truth", f"udpin:127.0.0.1:{truth_port}",
-           "--ortho", os.path.join(repo, "sitl", "maps", "naip_nd_2014.tif"),
+           "--truth", f"udpin:127.0.0.1:{truth_port}"] + world + [
            "--rate-hz", str(camera_hz), "--truth-log", "frames_truth.jsonl"]
     log("visnav: " + " ".join(cmd))
     return subprocess.Popen(cmd, cwd=workdir,

@@ -428,7 +428,7 @@ class Ports(unittest.TestCase):
     def test_repo_configs_have_a_replaceable_connection(self):
         here = os.path.dirname(os.path.abspath(__file__))
         for rel, port in (("ardupilot/visnav.toml", 14551), ("px4/visnav.toml", 14540),
-                          ("px4/visnav-jmavsim.toml", 14540)):
+                          ("px4/visnav-jmavsim.toml", 14540), ("ardupilot/drone/visnav.toml", 14551)):
             with open(os.path.join(here, rel)) as f:
                 self.assertEqual(sc.connection_port(f.read()), port, rel)
 
@@ -454,6 +454,22 @@ class Ports(unittest.TestCase):
             sc.px4_rc_mavlink_with_ports("mavlink start -u 14556\n", 1, 2)
         with self.assertRaises(ValueError):  # already has a remote port
             sc.px4_rc_mavlink_with_ports("\n".join(out), 1, 2)
+
+    def test_the_drone_config_reads_the_shared_data_beside_the_repository(self):
+        here = os.path.dirname(os.path.abspath(__file__))
+        with open(os.path.join(here, "ardupilot", "drone", "visnav.toml")) as f:
+            t = sc.visnav_config_text(f.read(), "/w/repo")
+        self.assertIn('ortho = ["/w/shared/data/autzen/autzen_ortho_0p3m_utm10n.tif"]', t)
+        self.assertIn('dem = "/w/shared/data/autzen/autzen_dsm_1m_utm10n.tif"', t)
+        self.assertNotIn("../", t.split("[map]")[1].split("[nav]")[0])
+
+    def test_heights_above_ground_count_from_the_given_home(self):
+        score = sc.ErrorScore("EKF3", lambda _m: None, home_alt_m=132.0)
+        home = (44.05, -123.07)
+        score.add(0.0, False, *home, 134.0, *home, 134.0)  # 2 m up: on the ground
+        score.add(1.0, False, *home, 232.0, *home, 232.0)  # 100 m up: airborne
+        self.assertEqual([s[2] for s in score.samples], [2.0, 100.0])
+        self.assertEqual(len(score.errs["gps_on"][0]), 1)
 
     def test_instance_arg(self):
         self.assertIsNone(sc.instance_arg("auto"))

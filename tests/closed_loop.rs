@@ -69,11 +69,7 @@ fn the_lockstep_closed_loop_gives_the_same_numbers_twice() {
     let _ = std::fs::remove_dir_all(&base);
 }
 
-fn stat(v: &serde_json::Value, key: &str, field: &str) -> f64 {
-    v[key][field]
-        .as_f64()
-        .unwrap_or_else(|| panic!("{key}.{field} missing or not a number in {v}"))
-}
+use common::json_stat as stat;
 
 #[test]
 fn visnav_sim_default_closed_loop() {

@@ -54,11 +54,8 @@ fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
 }
 
-fn stat(v: &serde_json::Value, key: &str, field: &str) -> f64 {
-    v[key][field]
-        .as_f64()
-        .unwrap_or_else(|| panic!("{key}.{field} missing or not a number in {v}"))
-}
+mod common;
+use common::json_stat as stat;
 
 /// `visnav sim --scenario F --json --out DIR`: the summary.
 fn sim(scenario: &Path, out: &Path) -> serde_json::Value {

@@ -380,3 +380,35 @@ fn an_os_error_is_said_once() {
     assert_ne!(code, 0, "{err}");
     assert_eq!(err.matches(os).count(), 1, "{err}");
 }
+
+/// `visnav sitl-run` needs a camera world (`--ortho` or `--scenario`), and a scenario that is
+/// not there is named before anything waits for the simulator.
+#[test]
+fn sitl_run_needs_a_camera_world_and_names_a_missing_scenario() {
+    let d = tempfile::tempdir().expect("tempdir");
+    let cfg = repo().join("sitl/ardupilot/visnav.toml");
+    let cfg = cfg.display().to_string();
+    let (code, _, err) = text(
+        &visnav(d.path())
+            .args(["sitl-run", "--config", &cfg])
+            .output()
+            .expect("run"),
+    );
+    assert_ne!(code, 0);
+    assert!(err.contains("--ortho"), "{err}");
+    let (code, _, err) = text(
+        &visnav(d.path())
+            .args([
+                "sitl-run",
+                "--config",
+                &cfg,
+                "--scenario",
+                "no_such_scenario.toml",
+            ])
+            .output()
+            .expect("run"),
+    );
+    assert_ne!(code, 0);
+    assert!(err.contains("no_such_scenario.toml"), "{err}");
+    assert!(!err.contains("waiting for the simulator"), "{err}");
+}

@@ -6,6 +6,13 @@ truth and give a verdict.
     python3 sitl/ardupilot/run.py --arducopter /path/to/ardupilot/build/sitl/bin/arducopter
     python3 sitl/ardupilot/run.py --sim-vehicle /path/to/ardupilot/Tools/autotest/sim_vehicle.py
     python3 sitl/ardupilot/run.py --arducopter ... --no-visnav      # the GPS-off control run
+    python3 sitl/ardupilot/run.py --arducopter ... --scenario drone # 100 m over Autzen
+
+`--scenario drone` is the drone recipe (docs/real-sitl.md, "The drone recipe"): home at Autzen
+(../shared/data/autzen), sitl/ardupilot/drone/ (mission, parameters after
+visnav-gps-input.parm, configuration), the camera of `visnav sitl-run --scenario
+sitl/scenarios/drone_autzen.toml`, bounds p90 1.5 m and max 4 m. What follows describes the
+default (`naip`) recipe; the drone one differs in those.
 
 It does not build ArduPilot (see docs/real-sitl.md). Needs pymavlink (`bash
 scripts/interop/setup_venv.sh` prints a venv python that has it) and a built visnav
@@ -87,6 +94,36 @@ import sitl_common  # noqa: E402
 from sitl_common import (HOME_ALT_M, HOME_LAT, HOME_LON, BootClock, ErrorScore,  # noqa: E402
                          IntegrityScore, TruthHistory, ekf_aiding, finish_run, metres_per_deg)
 HOME_HDG = 0  # SITL start heading, deg
+# The recipes (--scenario): home (lat, lon, m AMSL), mission, parameters loaded after
+# visnav-gps-input.parm, visnav's configuration, the camera world (None: the 2014 NAIP image on a
+# flat ground; else a scenario file whose [closed_loop] sitl-run renders), the mission item whose
+# arrival switches the GPS off, the camera rate and the verdict's error bounds (p90, max; m).
+SCENARIOS = {
+    "naip": {
+        "home": (HOME_LAT, HOME_LON, HOME_ALT_M),
+        "mission": os.path.join(HERE, "mission.waypoints"),
+        "parm": None,
+        "config": os.path.join(HERE, "visnav.toml"),
+        "world": None,
+        "gps_off_wp": 2,
+        "camera_hz": 2.0,
+        "bounds": (sitl_common.MAX_P90_M, sitl_common.MAX_ERROR_M),
+    },
+    # A multirotor 100 m above Autzen Stadium (../shared/data/autzen: the 0.3 m orthophoto on the
+    # 1 m lidar surface model; not shipped): home on the surface model at x 494250, y 4877900
+    # (EPSG:32610), the camera of sitl/scenarios/drone_autzen.toml (the map from one degraded copy,
+    # the camera rendering another), issue 50's drone bounds.
+    "drone": {
+        "home": (44.0542428, -123.0717843, 132.0),
+        "mission": os.path.join(HERE, "drone", "mission.waypoints"),
+        "parm": os.path.join(HERE, "drone", "drone.parm"),
+        "config": os.path.join(HERE, "drone", "visnav.toml"),
+        "world": os.path.join(REPO, "sitl", "scenarios", "drone_autzen.toml"),
+        "gps_off_wp": 2,
+        "camera_hz": 2.0,
+        "bounds": (1.5, 4.0),
+    },
+}
 # Instance 0's visnav link and truth ports (other instances: free ports picked by the OS).
 VISNAV_PORT, TRUTH_PORT = 14551, 14552
 MAX_INSTANCE = 31
@@ -142,20 +179,24 @@ def choose_ports(args):
 
 
 def start_sitl(args, workdir, instance, visnav_port, truth_port):
+    sc = SCENARIOS[args.scenario]
     parms = [os.path.join(HERE, "control-no-visnav.parm" if args.no_visnav else "visnav-gps-input.parm")]
     serials = [f"--serial1=udpclient:127.0.0.1:{visnav_port}",
                f"--serial2=udpclient:127.0.0.1:{truth_port}"]
-    home = f"{HOME_LAT},{HOME_LON},{HOME_ALT_M},{HOME_HDG}"
+    lat, lon, alt = sc["home"]
+    home = f"{lat},{lon},{alt},{HOME_HDG}"
+    own = [sc["parm"]] if sc["parm"] else []
     if args.arducopter:
         base = args.defaults or find_copter_parm(args.arducopter)
         if base is None:
             sys.exit("cannot find Tools/autotest/default_params/copter.parm beside the binary: give --defaults")
-        # The control parameters go after visnav-gps-input.parm (same flight, GPS types changed).
-        files = [base, os.path.join(HERE, "visnav-gps-input.parm")] + (parms if args.no_visnav else [])
+        # The scenario's parameters after visnav-gps-input.parm, the control's last (same flight,
+        # GPS types changed).
+        files = [base, os.path.join(HERE, "visnav-gps-input.parm")] + own + (parms if args.no_visnav else [])
         cmd = [args.arducopter, "-S", "--model", "+", "--speedup", "1", "--home", home,
                f"-I{instance}", "--wipe", "--defaults", ",".join(files)] + serials
     else:
-        files = [os.path.join(HERE, "visnav-gps-input.parm")] + (parms if args.no_visnav else [])
+        files = [os.path.join(HERE, "visnav-gps-input.parm")] + own + (parms if args.no_visnav else [])
         cmd = [sys.executable, args.sim_vehicle, "-v", "ArduCopter", "-f", "quad", "--no-rebuild",
                "--no-mavproxy", "-I", str(instance), "-w", "-l", home, "-A", " ".join(serials)]
         for f in files:
@@ -167,9 +208,11 @@ def start_sitl(args, workdir, instance, visnav_port, truth_port):
 
 
 def start_visnav(args, workdir, visnav_port, truth_port):
-    return sitl_common.start_visnav(args.visnav, os.path.join(HERE, "visnav.toml"), workdir,
+    sc = SCENARIOS[args.scenario]
+    return sitl_common.start_visnav(args.visnav, sc["config"], workdir,
                                     "ardupilot", truth_port, args.camera_hz, REPO, log,
-                                    link_port=visnav_port, vo=args.vo, map_ortho=args.map_ortho)
+                                    link_port=visnav_port, vo=args.vo, map_ortho=args.map_ortho,
+                                    camera_world=sc["world"])
 
 
 def is_autopilot(m, hb):
@@ -273,20 +316,27 @@ class Truth:
 
 
 def parse_args(argv=None):
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--scenario", choices=sorted(SCENARIOS), default="naip")
+    scenario = pre.parse_known_args(argv)[0].scenario
+    sc = SCENARIOS[scenario]
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenario", choices=sorted(SCENARIOS), default="naip",
+                    help="naip: the high-altitude recipe over the bundled NAIP map (default); "
+                         "drone: a multirotor 100 m above Autzen (../shared/data/autzen)")
     g = ap.add_mutually_exclusive_group(required=True)
     g.add_argument("--arducopter", help="path of the arducopter SITL binary (build/sitl/bin/arducopter)")
     g.add_argument("--sim-vehicle", help="path of Tools/autotest/sim_vehicle.py (copter already built)")
     ap.add_argument("--defaults", help="copter.parm (default: found beside --arducopter)")
     ap.add_argument("--visnav", help="visnav binary (default: target/release/visnav, else target/debug)")
     ap.add_argument("--no-visnav", action="store_true", help="the GPS-off control run (no visnav)")
-    ap.add_argument("--mission", default=os.path.join(HERE, "mission.waypoints"))
-    ap.add_argument("--gps-off-wp", type=int, default=2,
+    ap.add_argument("--mission", default=sc["mission"])
+    ap.add_argument("--gps-off-wp", type=int, default=sc["gps_off_wp"],
                     help="switch the simulated GPS off when this mission item is reached (2: the "
                          "first corner, after the climb; visnav's filter lags fast climbs)")
     ap.add_argument("--gps-off-alt", type=float, default=None,
                     help="instead, switch it off at this true height above home, m")
-    ap.add_argument("--camera-hz", type=float, default=2.0)
+    ap.add_argument("--camera-hz", type=float, default=sc["camera_hz"])
     sitl_common.add_visnav_args(ap)
     ap.add_argument("--after-gps-off", type=float, default=None,
                     help="stop this many seconds after the GPS is off (default: at the last "
@@ -303,6 +353,7 @@ def parse_args(argv=None):
                     help="UDP port of visnav's truth connection (SITL SERIAL2); default 14552 on "
                          "instance 0 if free, else a free port")
     sitl_common.add_bounds_args(ap)
+    ap.set_defaults(max_p90_m=sc["bounds"][0], max_error_m=sc["bounds"][1])
     return ap.parse_args(argv)
 
 
@@ -328,10 +379,11 @@ def main():
     os.makedirs(workdir, exist_ok=True)
     log(f"workdir {workdir}")
     procs = []
+    home = SCENARIOS[args.scenario]["home"]
     report = {"run": "control (no visnav)" if args.no_visnav else "visnav GPS_INPUT",
-              "home": [HOME_LAT, HOME_LON, HOME_ALT_M]}
+              "scenario": args.scenario, "home": list(home)}
     # What the verdict needs, filled in as the run goes.
-    score = ErrorScore("EKF3", log)
+    score = ErrorScore("EKF3", log, home_alt_m=home[2])
     integ = None if args.no_visnav else IntegrityScore(bounds.ratio)
     modes, texts = [], []
     error = None
@@ -402,6 +454,7 @@ def main():
                      and now - t0 > 30)
         log(f"ready: EKF flags {ekf_flags:#x}, GPS fix types {gps}")
         n_items = upload_mission(m, args.mission)
+        report["waypoints"] = n_items
         last_seq = n_items - 1
         # 2. AUTO + arm (AUTO_OPTIONS = 3: arming in AUTO and take-off without throttle).
         m.set_mode("AUTO")
@@ -524,7 +577,7 @@ def main():
                 tr = truth.at(now)
                 if tr is None:
                     continue
-                agl = tr[2] - HOME_ALT_M
+                agl = tr[2] - home[2]
                 if t_gps_off is None and args.gps_off_alt is not None and agl > args.gps_off_alt:
                     t_gps_off = switch_gps_off()
                     continue

@@ -79,7 +79,8 @@ pub struct FixBenchArgs {
     #[arg(long)]
     pub set: Option<String>,
     /// The site: `naip` (cross-date, 1200-2500 m) or `autzen` (drone scale over the lidar surface
-    /// model, 80-300 m, ../shared/data/autzen; one date, so it measures heights and geometry).
+    /// model, 80-300 m, ../shared/data/autzen; one date: the map and the frames come from two
+    /// differently degraded copies of its photo).
     #[arg(long, default_value = "naip", value_parser = ["naip", "autzen"])]
     pub site: String,
     /// Autzen: the heights the map is built on: `surface` (the lidar surface model the frames are
@@ -90,16 +91,16 @@ pub struct FixBenchArgs {
     /// default: the site's (VGA for NAIP, the drone camera for Autzen).
     #[arg(long, value_parser = ["vga", "drone"])]
     pub camera: Option<String>,
-    /// The height sigma stated at the build of a constant-height map (NAIP, or Autzen with
-    /// `--map-heights constant`), metres (default: the build's default for a constant height).
+    /// The height sigma stated at the map's build, metres (default: the build's default for its
+    /// height source; Autzen's surface model: 1 m, for its 1 m cells under the 0.3 m photo).
     #[arg(long)]
     pub height_sigma_m: Option<f64>,
-    /// The height slope sigma stated at the build of a constant-height map, metres per metre
-    /// (default: the build's default for a constant height).
+    /// The height slope sigma stated at the map's build, metres per metre (default: the build's
+    /// default for its height source).
     #[arg(long)]
     pub height_slope_sigma: Option<f64>,
-    /// The per-point height sigma stated at the build of a constant-height map, metres (default:
-    /// the build's default for a constant height).
+    /// The per-point height sigma stated at the map's build, metres (default: the build's default
+    /// for its height source).
     #[arg(long)]
     pub height_point_sigma_m: Option<f64>,
 }
@@ -168,11 +169,7 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
         slope: a.height_slope_sigma,
         point_m: a.height_point_sigma_m,
     };
-    if sigmas != HeightSigmas::default() && autzen && a.map_heights != "constant" {
-        anyhow::bail!(
-            "--height-sigma-m, --height-slope-sigma and --height-point-sigma-m apply to a constant-height map (NAIP, or Autzen with --map-heights constant)"
-        );
-    }
+
     let mut eval = if autzen {
         if !a.map_ortho.is_empty() || a.map_upsample != 1 || a.same_imagery {
             anyhow::bail!(
@@ -181,8 +178,10 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
         }
         let heights = if a.map_heights == "constant" {
             MapHeights::Constant(sigmas)
+        } else if sigmas == HeightSigmas::default() {
+            MapHeights::SurfaceModel(visnav::sitl::fixeval::AUTZEN_SURFACE_HEIGHTS)
         } else {
-            MapHeights::SurfaceModel
+            MapHeights::SurfaceModel(sigmas)
         };
         let dir = super::repo_file("../shared/data/autzen");
         NaipEval::autzen(&dir, params, heights)
@@ -202,9 +201,17 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
         .camera
         .clone()
         .unwrap_or_else(|| if autzen { "drone" } else { "vga" }.to_string());
-    if camera_name == "drone" {
-        let camera = visnav::sitl::render::drone_camera().context("the drone camera")?;
-        eval = eval.with_camera(camera).map_err(anyhow::Error::msg)?;
+    // Each site comes with its own camera (NaipEval); another is swapped in.
+    match (camera_name.as_str(), autzen) {
+        ("drone", false) => {
+            let camera = visnav::sitl::render::drone_camera().context("the drone camera")?;
+            eval = eval.with_camera(camera).map_err(anyhow::Error::msg)?;
+        }
+        ("vga", true) => {
+            let camera = visnav::sitl::render::vga_camera().context("the VGA camera")?;
+            eval = eval.with_camera(camera).map_err(anyhow::Error::msg)?;
+        }
+        _ => {}
     }
     let camera_text = if camera_name == "drone" {
         "1280 x 960 80 deg"

@@ -272,12 +272,15 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
             println!("interrupted at {t:.0} s: the figures cover the flight up to there");
         }
         println!(
-            "evaluation window {:.0}-{:.0} s{}",
+            "evaluation window {:.0}-{:.0} s{}; {:.0} m above the terrain ({:.0}-{:.0} m)",
             s.evaluation_window_s[0],
             s.evaluation_window_s[1],
             s.gps_outage_s
                 .map(|o| format!(", GPS outage from {:.0} s", o[0]))
-                .unwrap_or_default()
+                .unwrap_or_default(),
+            s.agl_m,
+            s.agl_range_m[0],
+            s.agl_range_m[1]
         );
         println!(
             "vision fixes: {} accepted of {} attempts (fix rate {:.0} %), {} frames rendered, {} dropped, {} beyond 3 sigma, {} rejected by the filter gate",

@@ -5,8 +5,9 @@
 //! The daemon is the one `visnav run` starts (`[link]`, `[output]`, `[nav]`, `[daemon]` and the
 //! vision fix engine of `[map]`/`[camera]`/`[fix]` from the configuration); only the frame source
 //! differs: a [`SimCamera`] rendering `--ortho` (the camera year, never the map's image) on a flat
-//! ground at `--ground-height` (default `map.ground_height_amsl_m`) at the pose the simulator
-//! reports on a second MAVLink connection (`--truth`, [`visnav::sitl::real_sitl`]). `[frames]` in
+//! ground at `--ground-height` (default `map.ground_height_amsl_m`), or the camera world of a
+//! scenario's `[closed_loop]` (`--scenario`: the orthophoto on its surface model, one degraded
+//! copy for the camera and another for the map), at the pose the simulator reports on a second MAVLink connection (`--truth`, [`visnav::sitl::real_sitl`]). `[frames]` in
 //! the configuration is ignored. Recipes: sitl/ardupilot/run.py, sitl/px4/run.py, docs/real-sitl.md.
 //!
 //! At the end (SIGINT/SIGTERM or `--duration`) one JSON line goes to stdout: the daemon's
@@ -45,12 +46,18 @@ pub struct SitlRunArgs {
     /// Which simulator speaks on `--truth`.
     #[arg(long, value_enum, default_value = "ardupilot")]
     pub kind: Kind,
-    /// The orthophoto the camera sees (the camera year, e.g. sitl/maps/naip_nd_2014.tif).
-    #[arg(long)]
-    pub ortho: PathBuf,
+    /// The orthophoto the camera sees (the camera year, e.g. sitl/maps/naip_nd_2014.tif), on a
+    /// flat ground at --ground-height.
+    #[arg(long, required_unless_present = "scenario")]
+    pub ortho: Option<PathBuf>,
     /// Ground height AMSL of the rendered scene, m (default: map.ground_height_amsl_m).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "scenario")]
     pub ground_height: Option<f64>,
+    /// Instead of --ortho: the camera world of this scenario's [closed_loop] (camera_ortho on
+    /// camera_dem, camera_degrade, [closed_loop.render]), the map built from the configuration's
+    /// orthophotos degraded by its map_degrade (e.g. sitl/scenarios/drone_autzen.toml).
+    #[arg(long, conflicts_with = "ortho")]
+    pub scenario: Option<PathBuf>,
     /// Camera frame rate, Hz.
     #[arg(long, default_value_t = 2.0)]
     pub rate_hz: f64,
@@ -86,26 +93,7 @@ pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
         Some(s) => anyhow::bail!("--duration {s}: expected a positive number of seconds"),
         None => None,
     };
-    let ground_m = match (args.ground_height, cfg.map.ground_height_amsl_m) {
-        (Some(h), _) | (None, Some(h)) if h.is_finite() => h,
-        _ => anyhow::bail!(
-            "give --ground-height (the configuration has no finite map.ground_height_amsl_m)"
-        ),
-    };
-    let engine = visnav::daemon::engine_from_config(&cfg)
-        .with_context(|| format!("{}: vision fix engine", args.config.display()))?;
-    let camera = cfg
-        .camera
-        .build()
-        .with_context(|| format!("{}: [camera]", args.config.display()))?;
-    let mount = camera.mount;
-    let raster = load_geotiff(&args.ortho, cfg.map.crs_override)
-        .with_context(|| format!("--ortho {}", args.ortho.display()))?;
-    let crs = raster.crs();
-    let dem = Dem::flat(ground_m).with_context(|| format!("--ground-height {ground_m}"))?;
-    let scene = Scene::new(&raster, dem, ColourMode::Grey)
-        .with_context(|| format!("--ortho {}: scene", args.ortho.display()))?;
-    let renderer = Renderer::new(camera, RenderSpec::default()).context("camera renderer")?;
+    let (world, engine) = camera_world(&args, cfg.clone())?;
     let kind = match args.kind {
         Kind::Ardupilot => SitlKind::ArduPilot,
         Kind::Px4 => SitlKind::Px4,
@@ -138,10 +126,10 @@ pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
         let feed: Arc<dyn TruthFeed> = truth.feed();
         let mut source = SimCamera::new(
             SimCameraSpec {
-                scene: Arc::new(scene),
-                renderer: Arc::new(renderer),
-                crs,
-                mount,
+                scene: world.scene,
+                renderer: world.renderer,
+                crs: world.crs,
+                mount: world.mount,
                 rate_hz: args.rate_hz,
                 max_frames: None,
                 lockstep: false,
@@ -192,4 +180,66 @@ pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
         println!("{out}");
         Ok(ExitCode::SUCCESS)
     })
+}
+
+/// What the simulated camera renders and the fix engine it feeds.
+struct CameraWorld {
+    scene: Arc<Scene>,
+    renderer: Arc<Renderer>,
+    crs: visnav::geo::Crs,
+    mount: visnav::camera::Mount,
+}
+
+/// The camera world of `--scenario` (its `[closed_loop]`, the map from degraded copies) or of
+/// `--ortho` on a flat ground, and the fix engine built from `cfg`'s map.
+fn camera_world(
+    args: &SitlRunArgs,
+    mut cfg: Config,
+) -> anyhow::Result<(CameraWorld, visnav::fix::FixEngine)> {
+    if let Some(path) = &args.scenario {
+        let sc = visnav::sitl::Scenario::load(path)?;
+        let base = path.parent().unwrap_or(std::path::Path::new("."));
+        let cam = visnav::sitl::closed_loop::scenario_camera(&sc, base, &mut cfg, &args.config)
+            .with_context(|| format!("--scenario {}", path.display()))?;
+        let engine = visnav::daemon::engine_from_config(&cfg)
+            .with_context(|| format!("{}: vision fix engine", args.config.display()))?;
+        drop(cam.map_copies);
+        let world = CameraWorld {
+            scene: cam.scene,
+            renderer: cam.renderer,
+            crs: cam.crs,
+            mount: cam.mount,
+        };
+        return Ok((world, engine));
+    }
+    let Some(ortho) = &args.ortho else {
+        anyhow::bail!("give --ortho or --scenario");
+    };
+    let ground_m = match (args.ground_height, cfg.map.ground_height_amsl_m) {
+        (Some(h), _) | (None, Some(h)) if h.is_finite() => h,
+        _ => anyhow::bail!(
+            "give --ground-height (the configuration has no finite map.ground_height_amsl_m)"
+        ),
+    };
+    let engine = visnav::daemon::engine_from_config(&cfg)
+        .with_context(|| format!("{}: vision fix engine", args.config.display()))?;
+    let camera = cfg
+        .camera
+        .build()
+        .with_context(|| format!("{}: [camera]", args.config.display()))?;
+    let mount = camera.mount;
+    let raster = load_geotiff(ortho, cfg.map.crs_override)
+        .with_context(|| format!("--ortho {}", ortho.display()))?;
+    let crs = raster.crs();
+    let dem = Dem::flat(ground_m).with_context(|| format!("--ground-height {ground_m}"))?;
+    let scene = Scene::new(&raster, dem, ColourMode::Grey)
+        .with_context(|| format!("--ortho {}: scene", ortho.display()))?;
+    let renderer = Renderer::new(camera, RenderSpec::default()).context("camera renderer")?;
+    let world = CameraWorld {
+        scene: Arc::new(scene),
+        renderer: Arc::new(renderer),
+        crs,
+        mount,
+    };
+    Ok((world, engine))
 }

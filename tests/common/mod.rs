@@ -69,3 +69,10 @@ pub fn short_demo_scenario(root: &std::path::Path, config: &std::path::Path) -> 
             "from_s = 20.0\nuntil_s = 45.0",
         )
 }
+
+/// The number `v[key][field]` of a `visnav sim --json` summary; panics naming it when missing.
+pub fn json_stat(v: &serde_json::Value, key: &str, field: &str) -> f64 {
+    v[key][field]
+        .as_f64()
+        .unwrap_or_else(|| panic!("{key}.{field} missing or not a number in {v}"))
+}

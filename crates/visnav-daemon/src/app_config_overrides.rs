@@ -11,8 +11,9 @@
 //! What each replaces:
 //! * `--connection`: `[link] connection` (the same syntax: `udpin:0.0.0.0:14550`,
 //!   `tcpout:127.0.0.1:5760`, `serial:/dev/ttyAMA0:921600`, ...).
-//! * `--map`: `[map] file` (a `.vnm` map); the file's `ortho`, `upsample` and `height_sigma_m`,
-//!   which describe building a map from orthophotos, are then not used; `dem` /
+//! * `--map`: `[map] file` (a `.vnm` map); the file's `ortho`, `upsample` and height sigmas
+//!   (`height_sigma_m`, `height_slope_sigma`, `height_point_sigma_m`), which describe building a
+//!   map from orthophotos, are then not used; `dem` /
 //!   `ground_height_amsl_m` still override the map's terrain.
 //! * `--camera`: the source of `[frames]` (`FramesConfig::from_spec`: a folder with
 //!   `frames.csv`, a `.y4m` file, `v4l2:DEVICE`, `gst:PIPELINE`, `cmd:PROGRAM ARGS`); the file's

@@ -292,6 +292,28 @@ impl HeadingWidening {
     }
 }
 
+/// The factor a widened frame's position prior sigma is multiplied by. Rejections in a row are
+/// also what a filter that drifted from its stated sigma produces: each fix then fails the
+/// engine's prior consistency check (the filter's position as the resection's prior, a
+/// chi-square(3) gate), so none comes to correct the filter. In ArduCopter SITL over Autzen a run
+/// of fixes 1-2 m off over trees (each within 1.7 of its sigma) left the filter 4-8 of its sigmas
+/// from the next ones (d^2 20-60 against 16.3) and 20-40 s without a fix followed, the filter
+/// running 20-40 m along the track. Three times the sigma takes a drift of up to 12 prior sigmas
+/// back inside the gate; the engine's chance test and gate grow with it (docs/real-sitl.md).
+const WIDEN_POSITION_FACTOR: f64 = 3.0;
+
+/// `prior` for a widened search: the heading searched wider by the engine
+/// ([`visnav_core::fix::FixPrior::widen_heading`]) and the position sigmas times
+/// [`WIDEN_POSITION_FACTOR`].
+fn widened(mut prior: FixPrior) -> FixPrior {
+    prior.widen_heading = true;
+    if let Some(p) = prior.position.as_mut() {
+        p.sigma_h_m *= WIDEN_POSITION_FACTOR;
+        p.sigma_v_m *= WIDEN_POSITION_FACTOR;
+    }
+    prior
+}
+
 /// One fix worker thread: slot -> engine -> results, until the slot is closed.
 pub fn spawn_worker(i: usize, ctx: WorkerCtx) -> std::io::Result<std::thread::JoinHandle<()>> {
     let span = tracing::Span::current();
@@ -345,7 +367,9 @@ fn prepare(ctx: &WorkerCtx, f: &Frame) -> Option<(u64, FixPrior)> {
         return None;
     }
     let mut prior = ctx.priors.prior_at(t_c);
-    prior.widen_heading = prior.position.is_some() && ctx.widening.wanted(t_c);
+    if prior.position.is_some() && ctx.widening.wanted(t_c) {
+        prior = widened(prior);
+    }
     m.fixes_attempted.inc();
     if prior.widen_heading {
         m.fixes_heading_widened.inc();
@@ -559,5 +583,34 @@ mod tests {
         assert!(w.wanted(s(1.5 + WIDEN_RETRY_S)), "again after the pause");
         w.record(s(6.6), true, true);
         assert!(!w.wanted(s(6.7)), "an accepted fix starts the count again");
+    }
+
+    #[test]
+    fn a_widened_prior_widens_the_heading_search_and_the_position_sigmas() {
+        let prior = FixPrior {
+            t_capture_us: 7,
+            position: Some(visnav_core::fix::PositionPriorGeo {
+                lat_deg: 44.05,
+                lon_deg: -123.07,
+                alt_amsl_m: 232.0,
+                sigma_h_m: 0.8,
+                sigma_v_m: 1.5,
+            }),
+            attitude: None,
+            altitude: None,
+            attitude_from_filter: true,
+            widen_heading: false,
+        };
+        let w = widened(prior);
+        assert!(w.widen_heading);
+        let (p, q) = (w.position.unwrap(), prior.position.unwrap());
+        assert_eq!(p.sigma_h_m, q.sigma_h_m * WIDEN_POSITION_FACTOR);
+        assert_eq!(p.sigma_v_m, q.sigma_v_m * WIDEN_POSITION_FACTOR);
+        assert_eq!(
+            (p.lat_deg, p.lon_deg, p.alt_amsl_m),
+            (q.lat_deg, q.lon_deg, q.alt_amsl_m)
+        );
+        assert_eq!(w.t_capture_us, 7);
+        assert!(w.attitude_from_filter);
     }
 }

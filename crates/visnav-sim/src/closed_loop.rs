@@ -739,6 +739,10 @@ pub struct ClosedLoopSummary {
     pub evaluation_window_s: [f64; 2],
     pub gps_outage_s: Option<[f64; 2]>,
     pub camera: String,
+    /// Height of the aircraft above the camera's terrain (the surface it renders on) over the
+    /// window, m: the median, and the lowest and highest.
+    pub agl_m: f64,
+    pub agl_range_m: [f64; 2],
     /// Accepted fixes / fix attempts in the window.
     pub fix_rate: f64,
     pub frames_rendered: u64,
@@ -1354,6 +1358,42 @@ fn degraded_map_copies(
     Ok(Some(dir))
 }
 
+/// The camera world of a scenario's `[closed_loop]` for a real autopilot's SITL (`visnav
+/// sitl-run --scenario`): the scene, renderer, CRS and mount [`camera_rig`] builds (the camera
+/// orthophoto on `camera_dem`, `camera_degrade` applied, `[closed_loop.render]`'s light, blur and
+/// noise), and `cfg`'s map orthophotos replaced by their `map_degrade` copies. The returned
+/// folder holds the copies: keep it until the map is built.
+pub struct ScenarioCamera {
+    pub scene: Arc<Scene>,
+    pub renderer: Arc<Renderer>,
+    pub crs: visnav_io::geo::Crs,
+    pub mount: visnav_core::camera::Mount,
+    pub map_copies: Option<tempfile::TempDir>,
+}
+
+/// [`ScenarioCamera`] of `sc` (its file's folder `base`) for the configuration `cfg` read from
+/// `cfg_path` (the run's own, not necessarily the scenario's `config`).
+pub fn scenario_camera(
+    sc: &Scenario,
+    base: &Path,
+    cfg: &mut Config,
+    cfg_path: &Path,
+) -> Result<ScenarioCamera, ClosedLoopError> {
+    let cl = sc
+        .closed_loop
+        .as_ref()
+        .ok_or(ClosedLoopError::NotClosedLoop)?;
+    let rig = camera_rig(cl, base, cfg, cfg_path)?;
+    let map_copies = degraded_map_copies(cl, cfg)?;
+    Ok(ScenarioCamera {
+        scene: rig.scene,
+        renderer: rig.renderer,
+        crs: rig.crs,
+        mount: rig.mount,
+        map_copies,
+    })
+}
+
 /// Runs the scenario's closed loop. `base` is the scenario file's folder (for its paths).
 pub async fn run(
     sc: &Scenario,
@@ -1730,6 +1770,14 @@ pub async fn run_until_stopped(
     };
     let gps_outage_s = sc.gps.as_ref().map(|g| [g.until_s, duration_s]);
     let flight = FlightFigures::of(&steps);
+    let agl: Vec<f64> = ws
+        .iter()
+        .filter_map(|s| {
+            let (x, y) = crs.from_geodetic(s.truth_lat_deg, s.truth_lon_deg).ok()?;
+            Some(s.truth_alt_amsl_m - scene.dem().height_at(x, y)?)
+        })
+        .collect();
+    let agl_stats = Stats::of(&agl);
     let summary = ClosedLoopSummary {
         scenario: sc.name.clone(),
         description: sc.description.clone(),
@@ -1738,6 +1786,11 @@ pub async fn run_until_stopped(
         evaluation_window_s: [w0, w1],
         gps_outage_s,
         camera: camera_desc,
+        agl_m: agl_stats.median,
+        agl_range_m: [
+            agl.iter().copied().fold(f64::INFINITY, f64::min),
+            agl_stats.max,
+        ],
         fix_rate: if wf.is_empty() {
             0.0
         } else {

@@ -6,10 +6,12 @@
 //!   navigation filter in GPS-denied cruise would give): position 100 m off (1 sigma, stated
 //!   150 m), altitude 20 m off (stated 30 m), attitude 0.3 deg off per axis (stated 0.5 deg;
 //!   `NaipEval::attitude_prior_error_rad` changes the error, not the stated sigma).
-//! * **Autzen** ([`NaipEval::autzen`]; issue 19): drone scale, 80-300 m above the lidar surface
-//!   model, the frames ray-cast on that surface (roofs, trees, stands), photometrically perturbed;
-//!   the map built from the same orthophoto (one date only: the optimistic case for matching, so
-//!   it measures heights and geometry, not cross-season matching) on the surface model or on a
+//! * **Autzen** ([`NaipEval::autzen`]): drone scale, 80-300 m above the lidar surface model
+//!   (`agl_range_m`), a multirotor's camera (1280 x 960, 80 deg), the frames ray-cast on that
+//!   surface (roofs, trees, stands) from one degraded copy of the orthophoto
+//!   ([`AUTZEN_CAMERA_COPY`]) and photometrically perturbed, the map built from another
+//!   ([`AUTZEN_MAP_COPY`]: one date only, so each has its own light, shadows and compression and
+//!   no frame is matched against the image it was rendered from) on the surface model or on a
 //!   constant height ([`MapHeights`]). Priors: position 20 m off per axis (stated 30 m), altitude
 //!   5 m off (stated 10 m), attitude as NAIP.
 //!
@@ -23,7 +25,8 @@ use serde::Serialize;
 
 use super::render::degrade::{DegradeSpec, SunShadow, degrade};
 use super::render::{
-    ColourMode, RenderPose, RenderSpec, Renderer, Scene, grid_convergence_rad, vga_camera,
+    ColourMode, RenderPose, RenderSpec, Renderer, Scene, drone_camera, grid_convergence_rad,
+    vga_camera,
 };
 use visnav_core::camera::{Attitude, Camera, Mount};
 use visnav_core::fix::engine::Attempt;
@@ -101,11 +104,23 @@ pub const AUTZEN_CAMERA_COPY: DegradeSpec = DegradeSpec {
     }),
 };
 
+/// The height sigmas of the Autzen surface model as a map states them: its 1 m cells under the
+/// 0.3 m orthophoto put the textured edges of roofs, stands and crowns (where the features are)
+/// above the gridded, smoothed surface, about a cell's height of error shared by what a footprint
+/// sees (config/drone-autzen.toml states the same; docs/map-format.md, "Height uncertainty").
+pub const AUTZEN_SURFACE_HEIGHTS: HeightSigmas = HeightSigmas {
+    offset_m: Some(1.0),
+    slope: None,
+    point_m: None,
+};
+
 /// The heights an Autzen evaluation's map is built on.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum MapHeights {
-    /// The lidar surface model the frames are ray-cast on (the map's heights are right).
-    SurfaceModel,
+    /// The lidar surface model the frames are ray-cast on, with these height sigmas stated at the
+    /// build ([`AUTZEN_SURFACE_HEIGHTS`] is what its 1 m cells under the 0.3 m orthophoto call
+    /// for).
+    SurfaceModel(HeightSigmas),
     /// One constant height, the surface model's median (what a user without a DEM would take),
     /// with these height sigmas stated at the build.
     Constant(HeightSigmas),
@@ -494,8 +509,11 @@ impl NaipEval {
         let map_copy = dir.path().join("autzen_map_copy.tif");
         write_geotiff(&map_raster, &map_copy).map_err(|e| e.to_string())?;
         let mut spec = match heights {
-            MapHeights::SurfaceModel => {
-                BuildSpec::new(vec![map_copy.clone()], HeightSource::Dem(dsm.clone()))
+            MapHeights::SurfaceModel(sigmas) => {
+                let mut spec =
+                    BuildSpec::new(vec![map_copy.clone()], HeightSource::Dem(dsm.clone()));
+                sigmas.apply(&mut spec);
+                spec
             }
             MapHeights::Constant(sigmas) => {
                 let mut spec = BuildSpec::new(
@@ -512,7 +530,7 @@ impl NaipEval {
         };
         let reference = MapReference::build_temporary(&spec, None).map_err(|e| e.to_string())?;
         drop(dir);
-        let camera = vga_camera().map_err(|e| format!("camera: {e}"))?;
+        let camera = drone_camera().map_err(|e| format!("camera: {e}"))?;
         let engine = FixEngine::new(Arc::new(reference), camera, params)
             .map_err(|e| format!("engine: {e}"))?;
         let scene = Scene::new(&cam_raster, surface.clone(), ColourMode::Grey)

@@ -582,15 +582,7 @@ impl FixEngine {
         r: FixReport,
         a: Attempt,
     ) -> (FixReport, Attempt) {
-        let rect = AttitudePriorNed {
-            attitude: Attitude::new(
-                att.attitude.roll_rad,
-                att.attitude.pitch_rad,
-                r.yaw_deg.to_radians(),
-            ),
-            sigma_rad: att.sigma_rad,
-            sigma_yaw_rad: HYPOTHESIS_YAW_SIGMA_DEG.to_radians(),
-        };
+        let rect = at_own_heading(att, &r);
         let (r2, a2) = self.fix_single(frame, pos, &rect, solve, t_us, how);
         if !r2.accepted {
             return (r, a);
@@ -655,18 +647,34 @@ impl FixEngine {
         if let Some(wide) = &wide {
             let (r2, a2) =
                 self.fix_heading_sweep(frame, pos, wide, Some(wide), t_us, att_from_filter);
-            if r2.accepted {
-                return (r2, a2);
+            let verdict = if r2.accepted {
+                self.confirm_widened(frame, pos, wide, t_us, att_from_filter, (&r2, &a2))
+            } else {
+                Err(Rejected(r2.reason.clone()))
+            };
+            match verdict {
+                Ok(()) => return (r2, a2),
+                Err(why) => reasons.push(format!(
+                    "heading widened to +-{:.0} deg: {why}",
+                    3.0 * wide.sigma_yaw_rad.to_degrees(),
+                )),
             }
-            reasons.push(format!(
-                "heading widened to +-{:.0} deg: {}",
-                3.0 * wide.sigma_yaw_rad.to_degrees(),
-                r2.reason
-            ));
         }
-        let near = self.area_search_near(frame, pos, wide.as_ref().unwrap_or(att), t_us);
+        let searched = wide.as_ref().unwrap_or(att);
+        let near = self.area_search_near(frame, pos, searched, t_us);
         match near {
-            Ok(found) if found.0.accepted => return found,
+            // Its candidates are confirmed by features over many places and headings: the
+            // widened chance bar applies to them too.
+            Ok((r3, a3)) if r3.accepted => {
+                match (r3.method == FixMethod::Features)
+                    .then(|| self.widened_chance_bar(searched, &a3))
+                {
+                    None | Some(Ok(())) => return (r3, a3),
+                    Some(Err(why)) => {
+                        reasons.push(format!("area search of the prior's window: {why}"))
+                    }
+                }
+            }
             Ok((r3, _)) => {
                 reasons.push(format!("area search of the prior's window: {}", r3.reason))
             }
@@ -681,6 +689,87 @@ impl FixEngine {
         let mut r = FixReport::rejected(reasons.join("; "), t_us, 0.0);
         r.prior_attitude_from_filter = att_from_filter;
         (r, a)
+    }
+
+    /// A fix the widened heading search found by features, checked by the area correlation at
+    /// its own heading and place. The widened search asks the chance test at a dozen headings
+    /// after the stated one failed, so a chance consensus over ground the map does not show gets
+    /// that many tries (NAIP, the 2014 image mirrored under a prior of the mapped area: 1 of 12
+    /// such frames accepted by features with 14 inliers); the area correlation is independent
+    /// evidence whose peak over such ground stays below its threshold (0.1-0.2 against 0.3).
+    /// Area and placement fixes carry their own uniqueness rule and pass as they are.
+    ///
+    /// The features' chance bar is also raised for the number of headings asked: the most
+    /// matches chance gives at any of H headings, each about Poisson with the mean `null` the
+    /// a-contrario count measured, lies near `null + sqrt(2 null ln H)` (the maximum of H
+    /// such draws), so that margin is added to the bar a single rectification uses (NAIP at
+    /// 1200-1600 m: a fix 52 m off with 34 matches where chance gives 14 and the bar is 33).
+    fn confirm_widened(
+        &self,
+        frame: &GrayImage,
+        pos: &PositionPriorGeo,
+        wide: &AttitudePriorNed,
+        t_us: u64,
+        att_from_filter: bool,
+        (r, a): (&FixReport, &Attempt),
+    ) -> Result<(), Rejected> {
+        if r.method != FixMethod::Features {
+            return Ok(());
+        }
+        self.widened_chance_bar(wide, a)?;
+        if self.params.area_matching == AreaMatching::Off {
+            return Err(rejected!(
+                "its feature fix ({} inliers) is not confirmed: area matching is off",
+                r.inliers
+            ));
+        }
+        let rect = at_own_heading(wide, r);
+        let (lat, lon) = (r.lat_deg, r.lon_deg);
+        let at_fix = PositionPriorGeo {
+            lat_deg: lat,
+            lon_deg: lon,
+            ..*pos
+        };
+        let area = Single {
+            att_from_filter,
+            features: false,
+            area: true,
+            placement: false,
+        };
+        let (c, _) = self.fix_single(frame, &at_fix, &rect, Some(wide), t_us, area);
+        if !c.accepted {
+            return Err(rejected!(
+                "its feature fix ({} inliers) is not confirmed by the area correlation: {}",
+                r.inliers,
+                c.reason
+            ));
+        }
+        let d = (c.x_m - r.x_m).hypot(c.y_m - r.y_m);
+        if d > SAME_PLACE_SIGMAS * sigma_h_m(&c).hypot(sigma_h_m(r)) {
+            return Err(rejected!(
+                "its feature fix and the area correlation are {d:.0} m apart"
+            ));
+        }
+        Ok(())
+    }
+
+    /// The features' chance bar raised for a search over the widened heading's hypotheses
+    /// ([`Self::confirm_widened`]): `Err` names the count when `a`'s matches fall short of it.
+    fn widened_chance_bar(&self, wide: &AttitudePriorNed, a: &Attempt) -> Result<(), Rejected> {
+        let headings = heading_hypotheses(wide).len().max(1) as f64;
+        let null = a.null_matches as f64;
+        let needed = self.params.min_matches as f64
+            + (self.params.null_factor * null).ceil()
+            + (2.0 * null * headings.ln()).sqrt().ceil();
+        if (a.fine_matches as f64) < needed {
+            return Err(rejected!(
+                "its feature fix has {} matches where chance gives {} at one of {headings:.0} \
+                 headings (need {needed:.0})",
+                a.fine_matches,
+                a.null_matches
+            ));
+        }
+        Ok(())
     }
 
     /// The area search (as relocalisation runs it without a position prior) restricted to the
@@ -1617,27 +1706,7 @@ impl FixEngine {
         let (level, agl_m, img, budget) = self.area_level(alt, window, work)?;
         let gsd = self.levels_gsd_m[level];
         let (lo, hi) = self.reference.dem().height_range_m();
-        let r_map_cam = r_enu_ned() * self.camera.mount.r_ned_cam(&att.attitude);
-        let rect = Rectification::new(
-            frame,
-            &self.camera,
-            &r_map_cam,
-            agl_m / gsd / self.camera.intrinsics.fx_px,
-            self.params.max_rect_side_px,
-            self.params.max_off_nadir_deg.to_radians(),
-        )
-        .ok_or_else(|| "the frame does not see the ground (rectification empty)".to_string())?;
-        *work = work.saturating_add((rect.width() * rect.height()) as u64);
-        let plane = rect
-            .plane()
-            .ok_or_else(|| "empty rectification".to_string())?;
-        let f = rect
-            .width()
-            .max(rect.height())
-            .div_ceil(RELOC_AREA_TEMPLATE_PX)
-            .max(1);
-        let tc = grey_and_gradient(&plane, f)
-            .ok_or_else(|| "the rectified frame is too small".to_string())?;
+        let (rect, tc, f) = self.area_template(frame, att, agl_m / gsd, work)?;
         let crop = window.map_or([0, 0, img.width, img.height], |w| w.pixels(&img));
         let map = img
             .crop(crop[0] as i64, crop[1] as i64, crop[2], crop[3])
@@ -1695,11 +1764,13 @@ impl FixEngine {
                 crop[1] as f64 + fine(c.centre[1] - my as f64) + c.scale * (s * dx + co * dy),
             ];
             let xy = img.to_map(px);
-            // The shortlist is best first: every place after the first kept one is a rival.
-            if window.is_some_and(|w| !w.admits(xy)) || !out.is_empty() {
+            // The shortlist is best first: every place after the first kept one is a rival, and
+            // so is every place the window's distance rule leaves out.
+            let admitted = window.is_none_or(|w| w.admits(xy));
+            if !admitted || !out.is_empty() {
                 runner_up_ncc = runner_up_ncc.max(c.ncc);
             }
-            if window.is_some_and(|w| !w.admits(xy)) {
+            if !admitted {
                 continue;
             }
             let Ok((lat, lon)) = crs.to_geodetic(xy[0], xy[1]) else {
@@ -1731,6 +1802,41 @@ impl FixEngine {
             gsd_m: gsd,
             coarse_px_m: f as f64 * gsd,
         })
+    }
+
+    /// The area search's template: the frame rectified at `att` with `agl_px` (height above
+    /// ground in map-level pixels) as its scale, in the two channels block-averaged by the factor
+    /// `f` that brings its longer side to at most [`RELOC_AREA_TEMPLATE_PX`]; the rectification's
+    /// pixels are counted as work.
+    fn area_template(
+        &self,
+        frame: &GrayImage,
+        att: &AttitudePriorNed,
+        agl_px: f64,
+        work: &mut u64,
+    ) -> Result<(Rectification, [super::area::Plane; 2], usize), Rejected> {
+        let r_map_cam = r_enu_ned() * self.camera.mount.r_ned_cam(&att.attitude);
+        let rect = Rectification::new(
+            frame,
+            &self.camera,
+            &r_map_cam,
+            agl_px / self.camera.intrinsics.fx_px,
+            self.params.max_rect_side_px,
+            self.params.max_off_nadir_deg.to_radians(),
+        )
+        .ok_or_else(|| "the frame does not see the ground (rectification empty)".to_string())?;
+        *work = work.saturating_add((rect.width() * rect.height()) as u64);
+        let plane = rect
+            .plane()
+            .ok_or_else(|| "empty rectification".to_string())?;
+        let f = rect
+            .width()
+            .max(rect.height())
+            .div_ceil(RELOC_AREA_TEMPLATE_PX)
+            .max(1);
+        let tc = super::area::grey_and_gradient(&plane, f)
+            .ok_or_else(|| "the rectified frame is too small".to_string())?;
+        Ok((rect, tc, f))
     }
 
     /// The area search's map level (the one whose ground sample matches the frame's at the
@@ -2297,6 +2403,20 @@ fn wrap_pi(a: f64) -> f64 {
     let t = std::f64::consts::TAU;
     let w = a - t * (a / t).round();
     if w <= -std::f64::consts::PI { w + t } else { w }
+}
+
+/// `att` turned to the heading a sweep's fix `r` found (tilt kept), at a hypothesis's heading
+/// sigma: the rectification that fix is checked or redone at.
+fn at_own_heading(att: &AttitudePriorNed, r: &FixReport) -> AttitudePriorNed {
+    AttitudePriorNed {
+        attitude: Attitude::new(
+            att.attitude.roll_rad,
+            att.attitude.pitch_rad,
+            r.yaw_deg.to_radians(),
+        ),
+        sigma_rad: att.sigma_rad,
+        sigma_yaw_rad: HYPOTHESIS_YAW_SIGMA_DEG.to_radians(),
+    }
 }
 
 /// Horizontal 1-sigma of a report, metres (the larger of north and east).

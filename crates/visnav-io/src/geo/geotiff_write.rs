@@ -157,7 +157,7 @@ mod tests {
             north: true,
         };
         let rgb: Vec<u8> = (0..5 * 4 * 3).map(|i| (i * 7 % 251) as u8).collect();
-        let r = Raster::new(5, 4, 3, RasterData::U8(rgb), t.clone(), utm, Some(0.0)).unwrap();
+        let r = Raster::new(5, 4, 3, RasterData::U8(rgb), t, utm, Some(0.0)).unwrap();
         let back = round_trip(&r);
         assert_eq!(back.data(), r.data());
         assert_eq!(back.transform().coeffs(), r.transform().coeffs());
@@ -165,16 +165,7 @@ mod tests {
         assert_eq!(back.nodata(), Some(0.0));
 
         let grey: Vec<u8> = (0..6 * 3).map(|i| i as u8).collect();
-        let r = Raster::new(
-            6,
-            3,
-            1,
-            RasterData::U8(grey),
-            t.clone(),
-            Crs::WebMercator,
-            None,
-        )
-        .unwrap();
+        let r = Raster::new(6, 3, 1, RasterData::U8(grey), t, Crs::WebMercator, None).unwrap();
         let back = round_trip(&r);
         assert_eq!(back.data(), r.data());
         assert_eq!(back.crs(), Crs::WebMercator);
@@ -224,7 +215,7 @@ mod tests {
             false_easting_m: 0.0,
             false_northing_m: 0.0,
         };
-        let r = Raster::new(2, 2, 1, RasterData::U8(vec![0; 4]), t.clone(), tm, None).unwrap();
+        let r = Raster::new(2, 2, 1, RasterData::U8(vec![0; 4]), t, tm, None).unwrap();
         let e = write_geotiff(&r, &p).unwrap_err().to_string();
         assert!(e.contains("tm.tif") && e.contains("EPSG"), "{e}");
         let r = Raster::new(

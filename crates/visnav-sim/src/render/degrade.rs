@@ -219,7 +219,7 @@ pub fn degrade(
         h,
         ch,
         RasterData::U8(out),
-        raster.transform().clone(),
+        *raster.transform(),
         raster.crs(),
         raster.nodata(),
     )

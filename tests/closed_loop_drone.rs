@@ -7,7 +7,7 @@
 //! CI runs the scenario's first 110 s with the camera at 5 Hz (about 3 minutes); the whole
 //! 330 s at 10 Hz is `visnav sim --scenario sitl/scenarios/drone_autzen.toml [--seed N]` (about
 //! 16 minutes on two cores; docs/closed-loop.md has its figures over seeds 1-5). Asserted over
-//! the 80 s without GPS, the drone targets: fix rate at least 0.9, injected error p90 at
+//! the 80 s without GPS, the drone regime's targets: fix rate at least 0.9, injected error p90 at
 //! most 1.5 m and max at most 4 m, at most 0.05 of the no-vision control's p90, error over the
 //! claimed sigma at a median of at most 1.5, no accepted fix beyond 3 sigma. Needs
 //! ../shared/data/autzen; skips with a printed reason without it.

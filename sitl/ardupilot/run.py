@@ -112,7 +112,7 @@ SCENARIOS = {
     # A multirotor 100 m above Autzen Stadium (../shared/data/autzen: the 0.3 m orthophoto on the
     # 1 m lidar surface model; not shipped): home on the surface model at x 494250, y 4877900
     # (EPSG:32610), the camera of sitl/scenarios/drone_autzen.toml (the map from one degraded copy,
-    # the camera rendering another), issue 50's drone bounds.
+    # the camera rendering another), the drone bounds: EKF3 GPS-off p90 1.5 m, max 4 m.
     "drone": {
         "home": (44.0542428, -123.0717843, 132.0),
         "mission": os.path.join(HERE, "drone", "mission.waypoints"),

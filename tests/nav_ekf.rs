@@ -1307,6 +1307,7 @@ fn vo_flight_with(vo: bool, outage_s: f64, yaw_rate: YawRate) -> VoFlight {
                 // The test's VO has no gyro error: any line of sight (nadir here) is right.
                 look_ned_m: Vector3::new(0.0, 0.0, agl_used),
                 rotation: rot,
+                rotation_sensitivity_ned: None,
             }));
         }
         prev = Some((t, ts.clone(), psi.z, s.h_m - ts.h_m));
@@ -1444,6 +1445,7 @@ fn vo_with_rotation(
                 terrain_corr_dist_m: 2000.0,
                 look_ned_m: Vector3::new(0.0, 0.0, 880.0),
                 rotation,
+                rotation_sensitivity_ned: None,
             }));
             sent += 1;
         }

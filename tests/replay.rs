@@ -23,6 +23,7 @@ fn run(daemon: DaemonConfig, nav: NavConfig) -> ReplayReport {
     replay(
         &records,
         &[],
+        &[],
         &ReplayOptions {
             daemon,
             // GPS_INPUT feeds instance 0: the SITL's receiver is GPS2_RAW.
@@ -226,4 +227,96 @@ fn cli_prints_the_table_and_writes_the_csvs() {
         err.contains("junk.tlog") && err.contains("no MAVLink packet"),
         "{err}"
     );
+}
+
+/// Boot time offset of the log: the smallest `arrival - time_boot` over its ATTITUDE packets
+/// (MAVLink 1 or 2, read by hand: the payload's first field), µs.
+fn boot_offset_us(records: &[(u64, Vec<u8>)]) -> i64 {
+    records
+        .iter()
+        .filter_map(|(unix_us, p)| {
+            let (id, payload) = match p.first()? {
+                0xFD => (
+                    u32::from_le_bytes([*p.get(7)?, *p.get(8)?, *p.get(9)?, 0]),
+                    10,
+                ),
+                0xFE => (u32::from(*p.get(5)?), 6),
+                _ => return None,
+            };
+            let b = p.get(payload..payload + 4)?;
+            (id == 30).then(|| {
+                *unix_us as i64 - i64::from(u32::from_le_bytes([b[0], b[1], b[2], b[3]])) * 1000
+            })
+        })
+        .min()
+        .expect("ATTITUDE packets in the log")
+}
+
+/// `replay` gives the VO log's motions to the filter when they arrived: motions that agree with
+/// the flight (the filter's own velocity over half a second) are fused, the same motions 5 m off
+/// are refused, and each is counted.
+#[test]
+fn vo_motions_are_replayed_when_they_arrived() {
+    let bytes = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join(LOG)).unwrap();
+    let records = visnav::link::tlog::read_tlog(&bytes);
+    let offset_us = boot_offset_us(&records);
+    let opts = ReplayOptions {
+        daemon: DaemonConfig::default(),
+        gps: GpsSource::Gps2,
+        nav: NavConfig::default(),
+        autopilot_system_id: None,
+        autopilot_component_id: 1,
+        state_interval_s: 0.1,
+    };
+    let plain = replay(&records, &[], &[], &opts);
+    let [t0, t1] = plain.t_span_s;
+    let v_at = |t: f64| {
+        let s = plain
+            .states
+            .iter()
+            .min_by(|a, b| (a.t_s - t).abs().total_cmp(&(b.t_s - t).abs()))
+            .expect("states");
+        nalgebra::Vector3::from(s.v_ned_m_s)
+    };
+    let motions = |off_m: f64| -> Vec<(u64, visnav::nav::VoFix)> {
+        let mut out = Vec::new();
+        let mut t = t0 + 0.4 * (t1 - t0);
+        while t < t0 + 0.6 * (t1 - t0) {
+            let (tp, tn) = ((t * 1e6) as u64, ((t + 0.5) * 1e6) as u64);
+            let dp = 0.25 * (v_at(t) + v_at(t + 0.5)) + nalgebra::Vector3::new(off_m, 0.0, 0.0);
+            let fix = visnav::nav::VoFix {
+                t_prev_us: tp,
+                t_next_us: tn,
+                dp_ned_m: dp,
+                cov_ned_m2: nalgebra::Matrix3::identity() * 0.01,
+                agl_m: 100.0,
+                terrain_sigma_m: 1.0,
+                terrain_corr_dist_m: 1000.0,
+                look_ned_m: nalgebra::Vector3::new(0.0, 0.0, 100.0),
+                rotation: None,
+                rotation_sensitivity_ned: None,
+            };
+            out.push(((tn as i64 + offset_us + 50_000) as u64, fix));
+            t += 0.5;
+        }
+        out
+    };
+    for (off_m, fused) in [(0.0, true), (5.0, false)] {
+        let vo = motions(off_m);
+        let rep = replay(&records, &[], &vo, &opts);
+        let k = &rep.kinds["vo"];
+        eprintln!(
+            "{off_m} m off: {} motions, {} fused, {} refused",
+            k.n, k.accepted, k.rejected
+        );
+        assert_eq!(rep.vo_motions as usize, vo.len());
+        assert_eq!(k.n as usize, vo.len());
+        let (good, bad) = if fused {
+            (k.accepted, k.rejected)
+        } else {
+            (k.rejected, k.accepted)
+        };
+        assert!(good as f64 >= 0.9 * vo.len() as f64, "{off_m} m: {k:?}");
+        assert!(bad as f64 <= 0.1 * vo.len() as f64, "{off_m} m: {k:?}");
+    }
 }

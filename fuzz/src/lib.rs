@@ -478,7 +478,7 @@ pub fn mavlink(data: &[u8]) {
                 autopilot_component_id: 1,
                 state_interval_s: 0.1,
             };
-            let rep = visnav_daemon::replay::replay(records, &[], &opts);
+            let rep = visnav_daemon::replay::replay(records, &[], &[], &opts);
             let _ = visnav_daemon::replay::meas_csv(&rep);
             let _ = visnav_daemon::replay::states_csv(&rep);
         }

@@ -25,6 +25,14 @@ pub struct ReplayArgs {
     /// filter when they arrived.
     #[arg(long)]
     pub fixes: Option<PathBuf>,
+    /// The visual odometry log of the same flight (`[daemon] vo_log`): its motions are given to
+    /// the filter when they arrived.
+    #[arg(long)]
+    pub vo_log: Option<PathBuf>,
+    /// The terrain model's height sigma the motions were measured with, m (the VO log does not
+    /// carry it). Default: the configuration's `[map] height_sigma_m`.
+    #[arg(long)]
+    pub vo_terrain_sigma_m: Option<f64>,
     /// Folder for measurements.csv and states.csv.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -61,7 +69,11 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<ExitCode> {
         }
         None => Vec::new(),
     };
-    let rep = replay(&records, &fixes, &opts);
+    let vo = match &args.vo_log {
+        Some(f) => read_vo_motions(f, &args, &cfg)?,
+        None => Vec::new(),
+    };
+    let rep = replay(&records, &fixes, &vo, &opts);
     if rep.from_autopilot == 0 {
         anyhow::bail!(
             "{}: no packet from an autopilot (no autopilot HEARTBEAT{})",
@@ -112,6 +124,9 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<ExitCode> {
     if args.fixes.is_some() {
         println!("vision fix results replayed: {}", rep.vision_results);
     }
+    if args.vo_log.is_some() {
+        println!("visual odometry motions replayed: {}", rep.vo_motions);
+    }
     println!("resets: {}", rep.resets.len());
     for (t, r) in rep.resets.iter().take(20) {
         println!("  t {t:.2} s: {r}");
@@ -120,4 +135,31 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<ExitCode> {
         println!("  ... {} more", rep.resets.len() - 20);
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The motions of a VO log as `(arrival Unix µs, motion)`, in arrival order.
+fn read_vo_motions(
+    path: &std::path::Path,
+    args: &ReplayArgs,
+    cfg: &Config,
+) -> anyhow::Result<Vec<(u64, visnav::nav::VoFix)>> {
+    let terrain_sigma_m = match args.vo_terrain_sigma_m.or(cfg.map.height_sigma_m) {
+        Some(s) if s.is_finite() && s >= 0.0 => s,
+        Some(s) => anyhow::bail!("--vo-terrain-sigma-m {s} must be a finite number >= 0"),
+        None => anyhow::bail!(
+            "--vo-log needs the terrain model's height sigma: the configuration has no [map] \
+             height_sigma_m, so give --vo-terrain-sigma-m"
+        ),
+    };
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let records = visnav::daemon::volog::read_vo_log(&text)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    let corr_m = cfg.vo.terrain_error_corr_dist_m;
+    let mut out: Vec<(u64, visnav::nav::VoFix)> = records
+        .iter()
+        .filter_map(|r| Some((r.arrival_unix_us, r.vo_fix(terrain_sigma_m, corr_m)?)))
+        .collect();
+    out.sort_by_key(|(t, _)| *t);
+    Ok(out)
 }

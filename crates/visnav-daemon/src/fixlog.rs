@@ -168,6 +168,11 @@ pub struct FixLogError {
 
 /// Parse a fix log; an error names the line.
 pub fn read_fix_log(text: &str) -> Result<Vec<FixLogRecord>, FixLogError> {
+    read_json_lines(text)
+}
+
+/// Parse a JSON-lines log (one record per line, blank lines skipped); an error names the line.
+pub fn read_json_lines<T: serde::de::DeserializeOwned>(text: &str) -> Result<Vec<T>, FixLogError> {
     text.lines()
         .enumerate()
         .filter(|(_, l)| !l.trim().is_empty())

@@ -8,7 +8,9 @@
 //! What differs from the live daemon: vision fixes are not in a tlog (they are computed inside
 //! the daemon); they come from the daemon's fix log (`[daemon] fix_log`), each given to the
 //! filter when it arrived in the recorded flight (by the companion's Unix time, the tlog's
-//! clock), once the filter is initialised;
+//! clock), once the filter is initialised; visual odometry motions likewise come from the VO log
+//! (`[daemon] vo_log`), with the terrain model's height sigma given again (the log does not
+//! carry it);
 //! the autopilot boot time at each packet's arrival (used for GPS messages stamped in Unix time)
 //! is the recorded arrival time minus the smallest arrival-minus-boot-time offset seen in IMU
 //! and ATTITUDE messages so far (the link's TIMESYNC mapping is not recorded).
@@ -26,7 +28,7 @@ use serde::Serialize;
 use crate::config::{DaemonConfig, GpsSource};
 use crate::fixlog::FixLogRecord;
 use crate::inputs::{InitSpacing, Inputs, NavInput, vision_measurement};
-use visnav_core::nav::{Measurement, NavConfig, NavFilter, Outcome};
+use visnav_core::nav::{Measurement, NavConfig, NavFilter, Outcome, VoFix};
 use visnav_core::stats::percentile;
 use visnav_link::Telemetry;
 use visnav_link::time::{BootClock, BootVerdict};
@@ -140,6 +142,8 @@ pub struct ReplayReport {
     pub reboots: u64,
     /// Vision fix results read from the fix log and reached in the replay.
     pub vision_results: u64,
+    /// Visual odometry motions read from the VO log and reached in the replay.
+    pub vo_motions: u64,
     /// Every aiding measurement.
     #[serde(skip)]
     pub meas: Vec<MeasRow>,
@@ -296,10 +300,13 @@ fn apply_meas(
 }
 
 /// Replay `records` (from [`visnav_link::tlog::read_tlog`]), with the vision fixes of a fix log
-/// (`[daemon] fix_log`) given to the filter when they arrived in the recorded flight.
+/// (`[daemon] fix_log`) and the visual odometry motions of a VO log (`[daemon] vo_log`, as
+/// `(arrival Unix µs, motion)`: [`crate::volog::VoLogRecord::vo_fix`]) given to the filter when
+/// they arrived in the recorded flight.
 pub fn replay(
     records: &[(u64, Vec<u8>)],
     fixes: &[FixLogRecord],
+    vo: &[(u64, VoFix)],
     opts: &ReplayOptions,
 ) -> ReplayReport {
     let mut rep = ReplayReport {
@@ -320,8 +327,16 @@ pub fn replay(
     let mut nis: BTreeMap<&'static str, Vec<f64>> = BTreeMap::new();
     let mut resets_seen = (0u64, 0u64, 0u64);
     let mut fixes = fixes.iter().peekable();
+    let mut vo = vo.iter().peekable();
     for (unix_us, packet) in records {
         rep.packets += 1;
+        // Motions that arrived before this packet, as the navigation task got them.
+        while let Some((_, f)) = vo.next_if(|(arrival, _)| *arrival <= *unix_us) {
+            rep.vo_motions += 1;
+            if filter.is_initialised() {
+                apply_meas(&mut filter, Measurement::Vo(*f), &mut rep, &mut nis, opts);
+            }
+        }
         // Vision fixes that arrived before this packet.
         while let Some(fx) = fixes.next_if(|f| f.arrival_unix_us <= *unix_us) {
             rep.vision_results += 1;

@@ -4,8 +4,10 @@
 //! (`fixlog`). With the camera's true poses (`visnav sitl-run --truth-log`) `sitl/vo_check.py`
 //! scores every motion against the truth: its error, and that error over the claimed covariance.
 
+use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
+use visnav_core::nav::{VoFix, VoRotation};
 use visnav_core::vo::VoStep;
 
 /// One odometry result.
@@ -47,6 +49,10 @@ pub struct VoLogRecord {
     pub rot_los_deg: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rot_los_sigma_deg: Option<f64>,
+    /// How the displacement moved with an error of the gyros' rotation, NED, m/rad, rows
+    /// (`nav::VoFix::rotation_sensitivity_ned`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rot_sensitivity_ned: Option<[[f64; 3]; 3]>,
     /// Tracks followed, tracks on the terrain, inliers, reprojection RMS (px).
     #[serde(default)]
     pub tracks: usize,
@@ -99,6 +105,7 @@ impl VoLogRecord {
             look_ned_m: None,
             rot_los_deg: None,
             rot_los_sigma_deg: None,
+            rot_sensitivity_ned: None,
             tracks: 0,
             on_ground: 0,
             inliers: 0,
@@ -130,6 +137,10 @@ impl VoLogRecord {
                     r.rot_los_deg = a.is_finite().then_some(a);
                     r.rot_los_sigma_deg = s.is_finite().then_some(s);
                 }
+                r.rot_sensitivity_ned = fix
+                    .rotation_sensitivity_ned
+                    .map(|g| std::array::from_fn(|i| std::array::from_fn(|j| g[(i, j)])))
+                    .filter(|g: &[[f64; 3]; 3]| g.iter().flatten().all(|v| v.is_finite()));
                 r.tracks = m.tracks;
                 r.on_ground = m.on_ground;
                 r.inliers = m.inliers;
@@ -140,21 +151,58 @@ impl VoLogRecord {
     }
 }
 
+impl VoLogRecord {
+    /// A `motion` record as the filter's measurement again (`visnav replay --vo-log`), with the
+    /// terrain model's height sigma and the distance over which it stays the same, which the log
+    /// does not carry (the map's and `[vo] terrain_error_corr_dist_m`). `None` for the other
+    /// steps and for a motion missing a number (the log leaves non-finite numbers out).
+    pub fn vo_fix(&self, terrain_sigma_m: f64, terrain_corr_dist_m: f64) -> Option<VoFix> {
+        if self.step != "motion" {
+            return None;
+        }
+        let (dp, cov, look) = (self.dp_ned_m?, self.cov_ned_m2?, self.look_ned_m?);
+        let rotation = match (self.rot_los_deg, self.rot_los_sigma_deg) {
+            (Some(a), Some(s)) => Some(VoRotation {
+                about_los_rad: a.to_radians(),
+                sigma_rad: s.to_radians(),
+            }),
+            _ => None,
+        };
+        Some(VoFix {
+            t_prev_us: self.t_prev_us?,
+            t_next_us: self.t_capture_us,
+            dp_ned_m: Vector3::from(dp),
+            cov_ned_m2: Matrix3::from_fn(|i, j| cov[i][j]),
+            agl_m: self.agl_m?,
+            terrain_sigma_m,
+            terrain_corr_dist_m,
+            look_ned_m: Vector3::from(look),
+            rotation,
+            rotation_sensitivity_ned: self
+                .rot_sensitivity_ned
+                .map(|g| Matrix3::from_fn(|i, j| g[i][j])),
+        })
+    }
+}
+
+/// Parse a VO log; an error names the line.
+pub fn read_vo_log(text: &str) -> Result<Vec<VoLogRecord>, crate::fixlog::FixLogError> {
+    crate::fixlog::read_json_lines(text)
+}
+
 /// The VO log (one [`VoLogRecord`] per line).
 pub type VoLog = crate::fixlog::JsonLinesLog;
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{Matrix3, Vector3};
-    use visnav_core::nav::VoFix;
     use visnav_core::vo::VoMotion;
 
     #[test]
     fn every_step_is_one_json_line_and_reads_back() {
         let d = tempfile::tempdir().unwrap();
         let p = d.path().join("vo.jsonl");
-        let motion = VoStep::Motion(VoMotion {
+        let motion = VoStep::Motion(Box::new(VoMotion {
             fix: VoFix {
                 t_prev_us: 1_000_000,
                 t_next_us: 1_200_000,
@@ -168,12 +216,15 @@ mod tests {
                     about_los_rad: 1e-4,
                     sigma_rad: 2e-4,
                 }),
+                rotation_sensitivity_ned: Some(Matrix3::new(
+                    0.0, -1500.0, 0.5, 1500.0, 0.0, -10.0, -0.5, 10.0, 0.0,
+                )),
             },
             tracks: 250,
             on_ground: 240,
             inliers: 230,
             rms_px: f64::NAN,
-        });
+        }));
         let recs = [
             VoLogRecord::new(1, 0, 800_000, &VoStep::Started, "", None),
             VoLogRecord::new(2, 1, 1_200_000, &motion, "fused", Some(1.5))
@@ -196,6 +247,28 @@ mod tests {
         assert_eq!(back[1].t_prev_us, Some(1_000_000));
         assert_eq!(back[1].rms_px, None, "NaN is not JSON: left out");
         assert_eq!(back[1].prior_rpy_deg, Some([1.0, -2.0, 90.0]));
+        // The motion reads back as the filter's measurement (the terrain figures given again).
+        let VoStep::Motion(m) = &motion else {
+            unreachable!()
+        };
+        let again = back[1].vo_fix(5.0, 1000.0).expect("a motion");
+        assert_eq!(again.dp_ned_m, m.fix.dp_ned_m);
+        assert_eq!(again.cov_ned_m2, m.fix.cov_ned_m2);
+        assert_eq!((again.t_prev_us, again.t_next_us), (1_000_000, 1_200_000));
+        assert_eq!(again.look_ned_m, m.fix.look_ned_m);
+        assert_eq!(
+            again.rotation_sensitivity_ned,
+            m.fix.rotation_sensitivity_ned
+        );
+        let (r0, r1) = (again.rotation.unwrap(), m.fix.rotation.unwrap());
+        assert!((r0.about_los_rad - r1.about_los_rad).abs() < 1e-15);
+        assert!((r0.sigma_rad - r1.sigma_rad).abs() < 1e-15);
+        assert!(back[0].vo_fix(5.0, 1000.0).is_none());
+        assert!(back[2].vo_fix(5.0, 1000.0).is_none());
+        let text_back = read_vo_log(&text).unwrap();
+        assert_eq!(text_back, back);
+        let err = read_vo_log("{}\nnot json\n").unwrap_err();
+        assert_eq!(err.line, 1);
         assert_eq!(back[0].prior_rpy_deg, None);
         let rot = back[1].rot_los_deg.unwrap();
         assert!((rot - 1e-4f64.to_degrees()).abs() < 1e-12, "{rot}");

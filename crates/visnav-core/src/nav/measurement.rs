@@ -147,6 +147,10 @@ pub struct VoFix {
     /// The rotation between the frames that the images saw beyond the gyros' (`None` when the
     /// odometer was given no gyro rotation).
     pub rotation: Option<VoRotation>,
+    /// How the displacement moved with the gyros' rotation as the resection weighed it against
+    /// the images, `d(dp_ned) / d e` (m/rad; [`Self::gyro_rotation_sensitivity`]); `None`: not
+    /// known (no gyro rotation given, or an older log), and the rays' lever arm is taken.
+    pub rotation_sensitivity_ned: Option<Matrix3<f64>>,
 }
 
 /// The part of a frame pair's rotation the images measure on their own, against the gyros'.
@@ -187,13 +191,22 @@ impl VoFix {
 
     /// How the measured displacement moves with an error `e` of the gyros' rotation between
     /// the frames (a NED rotation vector, `R_used = Exp(e) R_true`, the filter's attitude
-    /// convention): `d(dp) = [look x] e`. The next camera turned by `e` about its centre sees
-    /// every ground point along a ray turned by `e`; the resection keeps the rays on the points
-    /// by moving the centre by `-e x s d` for a ray `d` of range `s`, on average
-    /// `-e x look = look x e`. First order; the part about the line of sight (a turn about the
-    /// optical axis) moves nothing. `crate::vo::odometer`'s tests check it against the odometer.
+    /// convention): `d(dp) = G e`.
+    ///
+    /// Where the images cannot tell a tilt from a sideways shift (a narrow view of flat ground
+    /// from high up) the resection follows the gyros: the next camera turned by `e` about its
+    /// centre sees every ground point along a ray turned by `e`, and the centre moves by
+    /// `-e x s d` for a ray `d` of range `s`, on average `G = [look x]`. Where they can (a wide
+    /// view, relief: a drone at 100 m over roofs and trees) the resection follows the images and
+    /// `G` is a fraction of that: the odometer then gives the resection's own `d C / d phi_prior`
+    /// ([`Self::rotation_sensitivity_ned`]). Taking `[look x]` there made the filter read every
+    /// motion's error as a gyro bias, hundreds of deg/h, and turn its tilt a degree off in a
+    /// minute (ArduCopter SITL at 100 m, 2 Hz; docs/vo.md). First order; the part about the
+    /// line of sight moves nothing. `crate::vo::odometer`'s tests check both against the
+    /// odometer.
     pub fn gyro_rotation_sensitivity(&self) -> Matrix3<f64> {
-        crate::nav::ins::skew_matrix(&self.look_ned_m)
+        self.rotation_sensitivity_ned
+            .unwrap_or_else(|| crate::nav::ins::skew_matrix(&self.look_ned_m))
     }
 }
 

@@ -59,7 +59,7 @@ pub enum VoStep {
     /// The first frame of a sequence (features detected, no motion yet).
     Started,
     /// The motion since the previous frame.
-    Motion(VoMotion),
+    Motion(Box<VoMotion>),
     /// No motion from this frame, and why.
     Refused(String),
 }
@@ -243,6 +243,9 @@ impl Odometer {
             Matrix3::from_diagonal(&Vector3::new(1.0 / next.scale, 1.0 / next.scale, 1.0));
         let r: Matrix3<f64> =
             r_enu_ned().inverse().matrix() * unscale * rot_z(-next.gamma_rad).matrix();
+        // A NED rotation vector `e` on the next camera is `M e` in the grid (`R_world_cam =
+        // M R_ned_cam`, `M = Rz(gamma) R_enu_ned`), and moves the grid displacement by `G M e`.
+        let m_world_ned: Matrix3<f64> = (rot_z(next.gamma_rad) * r_enu_ned()).into_inner();
         let fix = VoFix {
             t_prev_us: prev.t_us,
             t_next_us: t_us,
@@ -253,18 +256,22 @@ impl Odometer {
             terrain_corr_dist_m: self.cfg.terrain_error_corr_dist_m,
             look_ned_m: r * m.look_world_m,
             rotation,
+            rotation_sensitivity_ned: m
+                .rotation_sensitivity_world
+                .map(|g| r * g * m_world_ned)
+                .filter(|g| g.iter().all(|v| v.is_finite())),
         };
         let fix = VoFix {
             cov_ned_m2: 0.5 * (fix.cov_ned_m2 + fix.cov_ned_m2.transpose()),
             ..fix
         };
-        VoStep::Motion(VoMotion {
+        VoStep::Motion(Box::new(VoMotion {
             fix,
             tracks: m.tracks,
             on_ground: m.on_ground,
             inliers: m.inliers,
             rms_px: m.rms_px,
-        })
+        }))
     }
 
     /// A raw track in undistorted pixels (`None` where the distortion cannot be inverted).
@@ -565,7 +572,7 @@ pub(crate) mod tests {
         steps
             .iter()
             .filter_map(|s| match s {
-                VoStep::Motion(m) => Some(m.clone()),
+                VoStep::Motion(m) => Some((**m).clone()),
                 _ => None,
             })
             .collect()

@@ -75,7 +75,12 @@ pub(super) fn fuse(par: &Params, core: &mut Core, f: &VoFix) -> Outcome {
         h.fixed_view_mut::<3, 3>(0, *i)
             .copy_from(&(f.gyro_rotation_sensitivity() * col * dt));
     }
-    let r = covariance(f);
+    // The motion's covariance as claimed, scaled by what the recent innovations showed
+    // (`vo_noise`); this innovation joins the window after, so it does not set its own scale.
+    let r_claimed = covariance(f);
+    let r = r_claimed * core.vo_noise.scale();
+    let hph = h * core.p * h.transpose();
+    core.vo_noise.push(dz, hph, r_claimed);
     let Some(rot) = f.rotation else {
         return core.update(par, dz, h, r, par.gate_vo);
     };

@@ -98,6 +98,7 @@ mod fuse_drag;
 mod fuse_position;
 mod fuse_velocity;
 mod fuse_vo;
+mod vo_noise;
 
 /// A sample within this fraction of the sensor's range counts as clipped: a saturated axis
 /// reads its full scale minus the last count or two, so equality alone would miss it.
@@ -271,6 +272,9 @@ struct Core {
     last_att_us: Option<u64>,
     /// Capture time of the last applied drag measurement, µs (`drag::ERROR_CORR_TIME_S`).
     last_drag_us: Option<u64>,
+    /// The visual odometry's recent innovations: how much noisier its motions are than they
+    /// claim (`vo_noise`).
+    vo_noise: vo_noise::VoNoise,
 }
 
 #[derive(Debug, Clone)]
@@ -1324,6 +1328,7 @@ impl NavFilter {
             last_vision_us: None,
             last_att_us: None,
             last_drag_us: None,
+            vo_noise: vo_noise::VoNoise::default(),
         };
         self.history.clear();
         self.history.push_back(Epoch {

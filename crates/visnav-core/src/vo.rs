@@ -623,12 +623,19 @@ mod tests {
                 130.0 + 20.0 * (x / 300.0).sin() + 10.0 * (y / 170.0).cos()
             })
             .collect();
+        grid_dem(w, data, -2000.0, 2000.0, 20.0)
+    }
+
+    /// A square-cell DEM of `w` columns (rows from `heights.len()`), top-left corner at
+    /// (`x0`, `y0`), UTM 33N.
+    fn grid_dem(w: usize, heights: Vec<f32>, x0: f64, y0: f64, cell_m: f64) -> Dem {
+        let h = heights.len() / w;
         let raster = Raster::new(
             w,
             h,
             1,
-            RasterData::F32(data),
-            GeoTransform::north_up(-2000.0, 2000.0, 20.0, 20.0).expect("transform"),
+            RasterData::F32(heights),
+            GeoTransform::north_up(x0, y0, cell_m, cell_m).expect("transform"),
             Crs::Utm {
                 zone: 33,
                 north: true,
@@ -1013,20 +1020,7 @@ mod tests {
                 }
             }
         }
-        let raster = Raster::new(
-            n,
-            n,
-            1,
-            RasterData::F32(h),
-            GeoTransform::north_up(-300.0, 300.0, 1.0, 1.0).expect("transform"),
-            Crs::Utm {
-                zone: 33,
-                north: true,
-            },
-            None,
-        )
-        .expect("raster");
-        Dem::from_raster(&raster).expect("dem")
+        grid_dem(n, h, -300.0, 300.0, 1.0)
     }
 
     /// The displacement's dependence on the gyros' rotation (what the filter's gyro-bias column

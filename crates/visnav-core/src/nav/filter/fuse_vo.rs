@@ -12,10 +12,12 @@
 //! ```
 //! and, for the gyro bias error `dbg = bg_est - bg_true`: the odometer turned the next frame by
 //! the rotation integrated from the rates this filter compensated with its bias estimate, wrong
-//! by `Exp(-C dbg dt)` (NED, `C = C_b^n`), which moves the displacement by
-//! `[look x] (-C dbg dt)` (`VoFix::gyro_rotation_sensitivity`); in `dz` with the other sign:
+//! by `Exp(-C dbg dt)` (NED, `C = C_b^n`), which moves the displacement by `G (-C dbg dt)`, `G`
+//! the resection's own dependence on that rotation (`VoFix::gyro_rotation_sensitivity`: at most
+//! the rays' lever arm `[look x]`, a tenth of it at 100 m with a wide view); in `dz` with the
+//! other sign:
 //! ```text
-//! dz += dt [look x] C dbg
+//! dz += dt G C dbg
 //! ```
 //! where `dbg` is every gyro error the filter carries: the turn-on bias, its Gauss-Markov drift
 //! (`bias_drift_states`: with an autopilot's rates most of the bias variance is there) and, with
@@ -35,6 +37,9 @@
 //! 170 deg/h of residual bias, 3 deg a minute). When the 4-dof gate refuses the pair, the
 //! displacement alone is tried against its own 3-dof gate: a rotation the gyros contradict does
 //! not throw away a displacement that agrees with the filter.
+//!
+//! The motion's covariance is fused scaled by what the recent VO innovations showed
+//! (`vo_noise`: at least the claim, more when the motions prove noisier).
 //!
 //! The yaw column is what makes the heading observable from VO whenever the velocity is known
 //! otherwise (a manoeuvre seen by the accelerometers, a fix): VO alone measures the motion in the

@@ -15,7 +15,7 @@ use std::path::Path;
 use std::process::Command;
 use std::sync::Mutex;
 
-mod common;
+use crate::common;
 
 /// The closed loops run one after the other (in lock-step their results do not depend on the
 /// load, but two at once would double the test's wall time on two cores anyway).

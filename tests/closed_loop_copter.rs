@@ -54,7 +54,7 @@ fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
 }
 
-mod common;
+use crate::common;
 use common::json_stat as stat;
 
 /// `visnav sim --scenario F --json --out DIR`: the summary.
@@ -195,7 +195,7 @@ fn copter_at_ardupilot_lean_keeps_an_honest_injected_position() {
 
 /// The same flight without the drag law (`[nav.drag] mode = "off"`): the guard of the test above
 /// fails. A second 3-minute run, so not in CI:
-/// `cargo test --release --test closed_loop_copter -- --include-ignored`.
+/// `cargo test --release --test integration closed_loop_copter:: -- --include-ignored`.
 #[test]
 #[ignore = "a second 3-minute real-time run (see the doc)"]
 fn without_the_drag_law_the_control_drifts() {

@@ -19,7 +19,7 @@ fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
 }
 
-mod common;
+use crate::common;
 use common::json_stat as stat;
 
 /// The scenario cut at `until_s` (segments beyond dropped, the last one shortened, the window

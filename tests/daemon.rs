@@ -22,7 +22,7 @@ use visnav::sitl::autopilot::{AutopilotEmulator, EmulatorConfig, TruthSource};
 use visnav::vision::GrayImage;
 use visnav_core::rng::Rng;
 
-mod common;
+use crate::common;
 use common::{TRUTH, free_udp_port};
 
 async fn emulator(port: u16, gps: bool) -> AutopilotEmulator {

@@ -14,7 +14,7 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
-mod common;
+use crate::common;
 
 fn visnav() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_visnav"));

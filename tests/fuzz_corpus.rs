@@ -5,7 +5,7 @@
 //!
 //! `write_seed_corpus` (ignored) regenerates the seeds (`seed-*` files) from the repository's own
 //! example configurations, test tlog and bundled public-domain NAIP orthophoto, and from small
-//! generated files: `cargo test --test fuzz_corpus -- --ignored write_seed_corpus`.
+//! generated files: `cargo test --test integration -- --ignored fuzz_corpus::write_seed_corpus`.
 
 use std::path::{Path, PathBuf};
 

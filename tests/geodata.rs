@@ -729,7 +729,7 @@ fn naip_flat_dem() {
     assert_eq!(map.data().as_u8().map(<[u8]>::len), Some(934 * 724 * 4));
 }
 
-/// Timing printout (not an assertion): `cargo test --test geodata -- --ignored --nocapture`.
+/// Timing printout (not an assertion): `cargo test --test integration geodata:: -- --ignored --nocapture`.
 /// Numbers depend on the profile (dev = opt-level 1) and on the machine's load.
 #[test]
 #[ignore]

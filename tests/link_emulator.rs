@@ -13,7 +13,7 @@ use visnav::link::inject::local_ned_m;
 use visnav::link::{GeoOrigin, Health, Link, NavEstimate};
 use visnav::sitl::autopilot::{AutopilotEmulator, EmulatorConfig, TruthSource};
 
-mod common;
+use crate::common;
 use common::{TRUTH, free_udp_port, wait_for};
 
 fn free_tcp_port() -> u16 {

@@ -18,7 +18,7 @@ use tokio::sync::watch;
 use visnav::link::config::{LinkConfig, OutputConfig, OutputMode, SigningSettings};
 use visnav::link::{Health, Link, NavEstimate};
 
-mod common;
+use crate::common;
 use common::{free_udp_port, wait_for};
 
 /// A fake vehicle component on its own socket: sends what the test says, answers TIMESYNC with

@@ -1,6 +1,6 @@
 //! Prints the resection timings of `visnav::pose::bench` (the lead's `visnav bench` calls the same
 //! functions). Timing is printed, never asserted. Run in release:
-//! `cargo test --release --test pose_bench -- --ignored --nocapture`.
+//! `cargo test --release --test integration pose_bench:: -- --ignored --nocapture`.
 //!
 //! On a loaded machine wall-clock percentiles include preemption; the on-CPU time of the thread
 //! (Linux `/proc/thread-self/schedstat`, includes scene generation) is printed beside them.

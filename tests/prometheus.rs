@@ -18,7 +18,7 @@ use visnav::link::metrics::Metrics as LinkMetrics;
 use visnav::nav::NavConfig;
 use visnav::sitl::autopilot::{AutopilotEmulator, EmulatorConfig};
 
-mod common;
+use crate::common;
 use common::{TRUTH, free_udp_port};
 
 fn setup(port: u16, metrics_listen: &str) -> DaemonSetup {

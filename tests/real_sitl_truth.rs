@@ -19,7 +19,7 @@ use tokio::sync::Mutex;
 use visnav::sitl::camera_sim::TruthFeed;
 use visnav::sitl::real_sitl::{SitlKind, TruthLink, TruthLinkConfig};
 
-mod common;
+use crate::common;
 use common::free_udp_port;
 
 type Conn = mavlink::AsyncConnection<MavMessage>;

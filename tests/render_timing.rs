@@ -1,7 +1,7 @@
 //! Prints render timings (no assertion on them): the acceptance camera (VGA, 60 deg HFOV) over the
 //! bundled NAIP 2014 map with a flat DEM, and over the NGI orthophoto with its gridded DEM (skipped
 //! without the shared data). Meaningful numbers need a release build:
-//! `cargo test --release --test render_timing -- --nocapture`.
+//! `cargo test --release --test integration render_timing:: -- --nocapture`.
 
 use std::path::Path;
 use visnav::geo::dem::Dem;

@@ -14,7 +14,7 @@ use std::path::Path;
 use std::process::Command;
 use std::sync::Mutex;
 
-mod common;
+use crate::common;
 
 /// The closed loops run one after the other (two at once would only double the wall time on two
 /// cores).

@@ -305,6 +305,54 @@ impl Surface {
         )
     }
 
+    /// How far the correlation stays within `delta` of its value at `(x, y)`: the shifts
+    /// connected to `(x, y)` (8-neighbours, defined values only) whose value is at least
+    /// `value(x, y) - delta`, as their second moment about `(x, y)` in cells squared
+    /// (`[[xx, xy], [xy, yy]]`), with whether that region reaches the surface's edge or an
+    /// undefined cell (then its true extent is unknown and the moment a lower bound).
+    /// A textured place gives one cell or a few; an edge a ridge along it; a uniform area the
+    /// whole surface.
+    pub fn spread(&self, x: usize, y: usize, delta: f64) -> Spread {
+        let c = self.at(x as i64, y as i64);
+        let mut out = Spread {
+            moment: [[0.0; 2]; 2],
+            cells: 0,
+            open: !c.is_finite(),
+        };
+        if !c.is_finite() {
+            return out;
+        }
+        let floor = c - delta;
+        let mut seen = vec![false; self.width * self.height];
+        let mut stack = vec![(x, y)];
+        seen[y * self.width + x] = true;
+        let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
+        while let Some((px, py)) = stack.pop() {
+            out.cells += 1;
+            let (dx, dy) = (px as f64 - x as f64, py as f64 - y as f64);
+            sxx += dx * dx;
+            sxy += dx * dy;
+            syy += dy * dy;
+            for (ox, oy) in NEIGHBOURS_8 {
+                let (nx, ny) = (px as i64 + ox, py as i64 + oy);
+                let v = self.at(nx, ny);
+                if !v.is_finite() {
+                    // Beyond the edge or unjudged: the region may go on there.
+                    out.open = true;
+                    continue;
+                }
+                let k = ny as usize * self.width + nx as usize;
+                if v >= floor && !seen[k] {
+                    seen[k] = true;
+                    stack.push((nx as usize, ny as usize));
+                }
+            }
+        }
+        let n = out.cells as f64;
+        out.moment = [[sxx / n, sxy / n], [sxy / n, syy / n]];
+        out
+    }
+
     /// Smaller over larger principal curvature of the surface at `(x, y)` (0 when undefined or
     /// not a maximum in every direction).
     pub fn curvature_ratio(&self, x: usize, y: usize) -> f64 {
@@ -656,6 +704,42 @@ impl<'a> TwoChannels<'a> {
     pub fn at(&self, f: usize) -> Option<[Plane; 2]> {
         Some([self.grey.block_mean(f)?, self.gradient.block_mean(f)?])
     }
+}
+
+/// The 8-neighbourhood of a cell.
+const NEIGHBOURS_8: [(i64, i64); 8] = [
+    (-1, -1),
+    (0, -1),
+    (1, -1),
+    (-1, 0),
+    (1, 0),
+    (-1, 1),
+    (0, 1),
+    (1, 1),
+];
+
+/// The region of a correlation surface near its peak ([`Surface::spread`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Spread {
+    /// Second moment of the region's cells about the peak, cells squared, `[[xx, xy], [xy, yy]]`.
+    pub moment: [[f64; 2]; 2],
+    /// Cells in the region (the peak included).
+    pub cells: usize,
+    /// The region reaches the surface's edge or an undefined cell.
+    pub open: bool,
+}
+
+/// The masked NCC surface of the template warped by `(scale, theta_rad)` over the window,
+/// averaged over the channels, and the template centre's offset `(cx, cy)` from a shift (the
+/// centre of the template at shift `(x, y)` lies at window pixel `(x + cx, y + cy)`); `None`
+/// when undefined.
+pub fn similar_surface(
+    channels: &Channels,
+    (scale, theta_rad): (f64, f64),
+) -> Option<(Surface, f64, f64)> {
+    let mut work = 0;
+    let nccs = prepare(channels, &mut work);
+    hypothesis_surface(&nccs, scale, theta_rad, MIN_OVERLAP, &mut work)
 }
 
 /// The masked NCC surface of one hypothesis, averaged over the channels (`None` when a
@@ -1322,6 +1406,49 @@ mod tests {
                 "({dx},{dy}): {got} vs {direct}"
             );
         }
+    }
+
+    /// The plateau around a correlation peak: a textured crop correlates within the margin
+    /// over a cell or a few (a small moment, closed); a crop of one straight edge along the
+    /// whole of it (a ridge: the moment along the edge large, or open); a flat-ish gradient
+    /// plane everywhere (open). The moment is about the peak, in cells squared.
+    #[test]
+    fn the_plateau_of_a_peak_is_small_on_texture_and_runs_along_an_edge() {
+        let surface = |win: &Plane, tpl: &Plane| {
+            let (s, _, _) = similar_surface(&[(win, tpl)], (1.0, 0.0)).unwrap();
+            let (x, y, _) = s.maxima()[0];
+            (s.spread(x, y, UNIQUE_MARGIN), x, y)
+        };
+        let big = texture(80, 80, 0.4);
+        let (sp, x, y) = surface(&big, &crop(&big, 20, 24, 40, 32));
+        assert_eq!((x, y), (20, 24));
+        assert!(!sp.open, "{sp:?}");
+        assert!(sp.moment[0][0] < 1.0 && sp.moment[1][1] < 1.0, "{sp:?}");
+        // A vertical edge (a field boundary running north-south) with a little texture on each
+        // side: along it (y) the correlation hardly changes, across it (x) it falls at once.
+        let edge = {
+            let t = texture(80, 80, 1.3);
+            let data = (0..80 * 80)
+                .map(|k| {
+                    let side = if k % 80 < 40 { 60.0 } else { 160.0 };
+                    side + 0.02 * (t.data[k] - 100.0)
+                })
+                .collect();
+            Plane::new(80, 80, data, vec![true; 80 * 80]).unwrap()
+        };
+        let (sp, _, _) = surface(&edge, &crop(&edge, 20, 24, 40, 32));
+        assert!(sp.moment[0][0] < 1.0, "{sp:?}");
+        assert!(sp.open || sp.moment[1][1] > 25.0, "{sp:?}");
+        assert!(sp.moment[1][1] > 25.0 * sp.moment[0][0].max(0.04), "{sp:?}");
+        // A smooth ramp: every shift along the ramp's contours correlates alike.
+        let ramp = {
+            let data = (0..80 * 80)
+                .map(|k| (k % 80) as f32 + 0.5 * (k / 80) as f32)
+                .collect();
+            Plane::new(80, 80, data, vec![true; 80 * 80]).unwrap()
+        };
+        let (sp, _, _) = surface(&ramp, &crop(&ramp, 20, 24, 40, 32));
+        assert!(sp.open, "{sp:?}");
     }
 
     #[test]

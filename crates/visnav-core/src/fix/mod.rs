@@ -88,6 +88,11 @@ pub struct FixPrior {
 }
 
 /// The result of one fix attempt. Angles and positions are finite whenever `accepted` is true.
+///
+/// Serialised (`visnav fix --json`, the bench's per-frame records), a number that is not
+/// finite is left out rather than written as `null`: a rejected report has no position, angles
+/// or covariance fields; a placement fix (no resection) no `reproj_rms_px` or `sigma0`. Every
+/// number present is a number.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FixReport {
     pub accepted: bool,
@@ -96,31 +101,46 @@ pub struct FixReport {
     /// Capture time copied from the prior, microseconds.
     pub t_capture_us: u64,
     /// Camera projection centre, geodetic, altitude AMSL (EGM96), metres.
+    #[serde(skip_serializing_if = "not_finite")]
     pub lat_deg: f64,
+    #[serde(skip_serializing_if = "not_finite")]
     pub lon_deg: f64,
+    #[serde(skip_serializing_if = "not_finite")]
     pub alt_amsl_m: f64,
     /// Height above the WGS84 ellipsoid, metres.
+    #[serde(skip_serializing_if = "not_finite")]
     pub h_ellip_m: f64,
     /// Camera projection centre in the map's CRS (grid easting, northing) and height AMSL.
+    #[serde(skip_serializing_if = "not_finite")]
     pub x_m: f64,
+    #[serde(skip_serializing_if = "not_finite")]
     pub y_m: f64,
+    #[serde(skip_serializing_if = "not_finite")]
     pub z_m: f64,
     /// Vehicle attitude (body FRD to NED, aerospace ZYX), degrees.
+    #[serde(skip_serializing_if = "not_finite")]
     pub roll_deg: f64,
+    #[serde(skip_serializing_if = "not_finite")]
     pub pitch_deg: f64,
+    #[serde(skip_serializing_if = "not_finite")]
     pub yaw_deg: f64,
     /// Position covariance in NED, m^2 (row-major 3x3).
+    #[serde(skip_serializing_if = "not_all_finite")]
     pub cov_ned_m2: [[f64; 3]; 3],
     /// Attitude covariance as an NED rotation vector, rad^2.
+    #[serde(skip_serializing_if = "not_all_finite")]
     pub cov_att_ned_rad2: [[f64; 3]; 3],
     pub inliers: usize,
     pub matches: usize,
+    #[serde(skip_serializing_if = "not_finite")]
     pub reproj_rms_px: f64,
     /// A-posteriori standard deviation of unit weight of the image-only adjustment (the RMS of
     /// the whitened residuals: 1 when the keypoint sigmas the engine assumes are right).
+    #[serde(skip_serializing_if = "not_finite")]
     pub sigma0: f64,
     /// The factor on the a-priori covariance behind the reported one (see
     /// `pose::PoseCovariance::factor`).
+    #[serde(skip_serializing_if = "not_finite")]
     pub cov_factor: f64,
     /// The image-only pose and its full covariance (no attitude prior in it); `None` when no
     /// pose was computed. The pose above fuses the attitude prior when `[fix.pose.refine]
@@ -141,6 +161,16 @@ pub struct FixReport {
     /// Wall time from frame to fix, milliseconds: filled by the caller that timed the call (the
     /// daemon's fix worker, the bench, `visnav fix`); the engine reads no clock and leaves 0.
     pub ms: f64,
+}
+
+/// `serde` helper: a number that is not finite is left out of a serialised report.
+fn not_finite(v: &f64) -> bool {
+    !v.is_finite()
+}
+
+/// `serde` helper: a matrix with a number that is not finite is left out of a serialised report.
+fn not_all_finite(m: &[[f64; 3]; 3]) -> bool {
+    !m.iter().flatten().all(|v| v.is_finite())
 }
 
 /// How a fix's correspondences were found.
@@ -344,5 +374,68 @@ pub fn rejection_class(reason: &str) -> String {
         "unknown".into()
     } else {
         out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn nulls(v: &serde_json::Value) -> usize {
+        match v {
+            serde_json::Value::Null => 1,
+            serde_json::Value::Array(a) => a.iter().map(nulls).sum(),
+            serde_json::Value::Object(o) => o.values().map(nulls).sum(),
+            _ => 0,
+        }
+    }
+
+    /// A serialised report holds numbers only: a rejected one leaves its position, angles and
+    /// covariances out, a placement fix its resection's residual figures; what is finite stays.
+    #[test]
+    fn a_serialised_report_has_no_null_numbers() {
+        let rejected = FixReport::rejected("only 3 features in the frame", 7, 0.0);
+        let v = serde_json::to_value(&rejected).unwrap();
+        assert_eq!(nulls(&v), 0, "{v}");
+        for gone in [
+            "lat_deg",
+            "x_m",
+            "yaw_deg",
+            "cov_ned_m2",
+            "reproj_rms_px",
+            "sigma0",
+        ] {
+            assert!(v.get(gone).is_none(), "{gone}: {v}");
+        }
+        assert_eq!(v["accepted"], false);
+        assert_eq!(v["t_capture_us"], 7);
+        let placement = FixReport {
+            accepted: true,
+            reason: "ok".into(),
+            lat_deg: 47.0,
+            lon_deg: -99.0,
+            alt_amsl_m: 900.0,
+            h_ellip_m: 878.0,
+            x_m: 1.0,
+            y_m: 2.0,
+            z_m: 900.0,
+            roll_deg: 0.0,
+            pitch_deg: 0.0,
+            yaw_deg: 90.0,
+            cov_ned_m2: [[100.0, 0.0, 0.0], [0.0, 100.0, 0.0], [0.0, 0.0, 9e4]],
+            cov_att_ned_rad2: [[1e-5, 0.0, 0.0], [0.0, 1e-5, 0.0], [0.0, 0.0, 1e-4]],
+            method: FixMethod::Placement,
+            ..rejected
+        };
+        let v = serde_json::to_value(&placement).unwrap();
+        assert_eq!(nulls(&v), 0, "{v}");
+        assert!(
+            v.get("reproj_rms_px").is_none() && v.get("sigma0").is_none(),
+            "{v}"
+        );
+        assert_eq!(v["lat_deg"], 47.0);
+        assert_eq!(v["cov_ned_m2"][2][2], 9e4);
+        assert_eq!(v["method"], "placement");
+        assert_eq!(v["inliers"], 0);
     }
 }

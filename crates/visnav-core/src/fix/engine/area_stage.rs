@@ -15,8 +15,8 @@ use super::{Attempt, FixEngine, Pair, Sim2, View, ransac_similarity};
 use crate::fix::Rejected;
 use crate::fix::area::{
     Integral, MIN_TIE_NCC, MIN_TIE_NCC_NEAR, Patch, PlaceError, Plane, TieMatch, TwoChannels,
-    UNIQUE_RADIUS_COARSE_PX, best_similar, match_patch, place_similar, rank_hypotheses,
-    select_patches, unjudged_places,
+    UNIQUE_MARGIN, UNIQUE_RADIUS_COARSE_PX, best_similar, match_patch, place_similar,
+    rank_hypotheses, select_patches, similar_surface, unjudged_places,
 };
 use crate::fix::reference::MapImage;
 
@@ -57,10 +57,19 @@ const PLACEMENT_REFINE_MAX_TEMPLATE_PX: usize = 256;
 /// A refinement step searches this far (finer blocks) around the coarser place: the coarser
 /// peak is within one coarse block (two finer ones) of the true place.
 const PLACEMENT_REFINE_MARGIN_PX: f64 = 3.0;
-/// Localisation sigma of the refined placement, in blocks of its finest grid (a sub-pixel
-/// parabola peak on a correlation surface a block or two wide; the ground's changes between
-/// the map's date and the frame's move it by a fraction of a block).
+/// Localisation sigma of the refined placement's peak, in blocks of its finest grid (a
+/// sub-pixel parabola peak on a correlation surface a block or two wide), to which the spread
+/// of the places it cannot tell from the peak is added ([`PLACEMENT_SPREAD_DELTA`]).
 const PLACEMENT_SIGMA_PX: f64 = 0.5;
+/// Places whose correlation lies within this of the refined peak's are places the correlation
+/// cannot tell apart from it: the same margin by which a placement must beat every distinct
+/// place ([`UNIQUE_MARGIN`]). Where the ground changed between the map's date and the frame's,
+/// or the frame sees one straight field edge, the peak is a plateau or a ridge, and the
+/// placement is uncertain over all of it, not over the peak's parabola.
+const PLACEMENT_SPREAD_DELTA: f64 = UNIQUE_MARGIN;
+/// The plateau is traced this many finest blocks around the peak; one that reaches further
+/// (an edge, a uniform area) leaves the place unsettled and the placement fix is refused.
+const PLACEMENT_SPREAD_RADIUS_PX: f64 = 8.0;
 /// The observations: a grid of this many points per side over the rectified frame.
 const PLACEMENT_GRID: usize = 5;
 /// At least this many grid points must see valid ground.
@@ -123,6 +132,19 @@ fn px_to_block(u: f64, f: usize) -> f64 {
     (u - (f as f64 - 1.0) / 2.0) / f as f64
 }
 
+/// A template and the window's crop around its current place ([`AreaSearch::crop_about`]).
+struct Crop {
+    /// The template's two channels on the block grid.
+    t: [Plane; 2],
+    /// The window's two channels, cropped.
+    c: [Plane; 2],
+    /// Where the current place puts the template's centre, window blocks.
+    expected: [f64; 2],
+    /// The crop's top-left, window blocks.
+    x0: i64,
+    y0: i64,
+}
+
 /// What the stages share: the map window searched and the prior's prediction into it.
 struct AreaSearch<'a> {
     engine: &'a FixEngine,
@@ -177,8 +199,8 @@ pub(super) enum AreaOutcome {
 pub(super) struct PlacementObs {
     /// (distorted frame pixel, map grid x and y of the ground it sees).
     pub obs: Vec<(Point2<f64>, [f64; 2])>,
-    /// Localisation sigma of the placement on the ground, metres per axis.
-    pub sigma_h_m: f64,
+    /// Localisation covariance of the placement on the ground, map grid (x, y), m^2.
+    pub cov_h_m2: [[f64; 2]; 2],
     /// Sigmas of its rotation (rad, the finest hypothesis step: the peak is not interpolated
     /// between hypotheses) and log scale (the placement's step, 0.03: the scale is not refined;
     /// NAIP 1200-1600 m, 21 placement fixes: 0.017 RMS off).
@@ -513,12 +535,116 @@ impl<'a> AreaSearch<'a> {
         if obs.len() < PLACEMENT_MIN_OBS {
             return Err(rejected!("only {} grid points see the ground", obs.len()));
         }
+        let cov_h_m2 = self.placement_spread(tc, wc, &cur)?;
         Ok(PlacementObs {
             obs,
-            sigma_h_m: PLACEMENT_SIGMA_PX * cur.f as f64 * self.img.gsd_m,
+            cov_h_m2,
             sigma_rot_rad: rot_step,
             sigma_log_scale: AREA_LOG_SCALE_STEP,
             ties_reason,
+        })
+    }
+
+    /// The refined placement's horizontal covariance, map grid (x, y), m^2: the peak's own
+    /// localisation plus the second moment of the places around it whose correlation is
+    /// within [`PLACEMENT_SPREAD_DELTA`] of it (the plateau, [`Surface::spread`]); refused when
+    /// that plateau reaches [`PLACEMENT_SPREAD_RADIUS_PX`] blocks or the window's edge.
+    fn placement_spread(
+        &self,
+        tc: &TwoChannels,
+        wc: &TwoChannels,
+        cur: &Placed,
+    ) -> Result<[[f64; 2]; 2], Rejected> {
+        let f = cur.f;
+        let Crop {
+            t,
+            c: [c0, c1],
+            expected: at,
+            x0,
+            y0,
+        } = self
+            .crop_about(tc, wc, cur, f, PLACEMENT_SPREAD_RADIUS_PX)
+            .map_err(|e| format!("placement spread: {e}"))?;
+        let (scale, theta) = (f64::from(cur.sim.scale), f64::from(cur.sim.theta_rad));
+        let (surface, cx, cy) = similar_surface(&[(&c0, &t[0]), (&c1, &t[1])], (scale, theta))
+            .ok_or_else(|| Rejected::from("placement spread: correlation undefined"))?;
+        // The shift that puts the template's centre at the refined place, and the best cell
+        // next to it (the refined centre is sub-pixel).
+        let sx = (at[0] - x0 as f64 - cx).round() as i64;
+        let sy = (at[1] - y0 as f64 - cy).round() as i64;
+        let mut peak: Option<(usize, usize, f64)> = None;
+        for (ox, oy) in (-1..=1).flat_map(|oy| (-1..=1).map(move |ox| (ox, oy))) {
+            let (x, y) = (sx + ox, sy + oy);
+            if x < 0 || y < 0 || x >= surface.width as i64 || y >= surface.height as i64 {
+                continue;
+            }
+            let v = surface.data[y as usize * surface.width + x as usize];
+            if v.is_finite() && peak.is_none_or(|p| v > p.2) {
+                peak = Some((x as usize, y as usize, v));
+            }
+        }
+        let (px, py, _) =
+            peak.ok_or_else(|| Rejected::from("placement spread: no correlation at the place"))?;
+        let spread = surface.spread(px, py, PLACEMENT_SPREAD_DELTA);
+        let moment = spread.moment;
+        if spread.open {
+            return Err(rejected!(
+                "the correlation does not settle the place: it stays within \
+                 {PLACEMENT_SPREAD_DELTA} of its peak {PLACEMENT_SPREAD_RADIUS_PX} blocks \
+                 away (an edge or uniform ground)"
+            ));
+        }
+        // Blocks -> metres; window rows run south, the grid's y north.
+        let m = f as f64 * self.img.gsd_m;
+        let base = (PLACEMENT_SIGMA_PX * m).powi(2);
+        Ok([
+            [moment[0][0] * m * m + base, -moment[0][1] * m * m],
+            [-moment[0][1] * m * m, moment[1][1] * m * m + base],
+        ])
+    }
+
+    /// The template's channels on the grid of `f x f` blocks and the window's crop around the
+    /// place `cur` puts it (block coordinates): the template turned and scaled as `cur` says,
+    /// plus `margin` blocks each side.
+    fn crop_about(
+        &self,
+        tc: &TwoChannels,
+        wc: &TwoChannels,
+        cur: &Placed,
+        f: usize,
+        margin: f64,
+    ) -> Result<Crop, Rejected> {
+        let (Some(t), Some(w)) = (tc.at(f), wc.at(f)) else {
+            return Err(Rejected::from("images too small"));
+        };
+        let (_, q) = self.predicted_centre(f, [t[0].width, t[0].height])?;
+        let e = cur.sim.apply([q[0] as f32, q[1] as f32]);
+        let expected = [
+            px_to_block(f64::from(e[0]), f),
+            px_to_block(f64::from(e[1]), f),
+        ];
+        let (scale, theta) = (f64::from(cur.sim.scale), f64::from(cur.sim.theta_rad));
+        let (sn, cs) = theta.sin_cos();
+        let (tw, th) = (t[0].width as f64 * scale, t[0].height as f64 * scale);
+        let half = [
+            0.5 * (tw * cs.abs() + th * sn.abs()) + margin + 1.0,
+            0.5 * (tw * sn.abs() + th * cs.abs()) + margin + 1.0,
+        ];
+        let x0 = (expected[0] - half[0]).floor() as i64;
+        let y0 = (expected[1] - half[1]).floor() as i64;
+        let (cw, ch) = (
+            (2.0 * half[0]).ceil() as usize + 1,
+            (2.0 * half[1]).ceil() as usize + 1,
+        );
+        let (Some(c0), Some(c1)) = (w[0].crop(x0, y0, cw, ch), w[1].crop(x0, y0, cw, ch)) else {
+            return Err(Rejected::from("empty window"));
+        };
+        Ok(Crop {
+            t,
+            c: [c0, c1],
+            expected,
+            x0,
+            y0,
         })
     }
 
@@ -532,32 +658,16 @@ impl<'a> AreaSearch<'a> {
         rot_step: f64,
     ) -> Result<Placed, Rejected> {
         let f = cur.f / 2;
-        let (Some(t), Some(w)) = (tc.at(f), wc.at(f)) else {
-            return Err(Rejected::from("refinement: images too small"));
-        };
-        let (_, q) = self.predicted_centre(f, [t[0].width, t[0].height])?;
-        let e = cur.sim.apply([q[0] as f32, q[1] as f32]);
-        let expected = [
-            px_to_block(f64::from(e[0]), f),
-            px_to_block(f64::from(e[1]), f),
-        ];
-        // The crop holds the template turned and scaled as now, plus the margin.
+        let Crop {
+            t,
+            c: [c0, c1],
+            expected,
+            x0,
+            y0,
+        } = self
+            .crop_about(tc, wc, cur, f, PLACEMENT_REFINE_MARGIN_PX)
+            .map_err(|e| format!("refinement: {e}"))?;
         let (scale, theta) = (f64::from(cur.sim.scale), f64::from(cur.sim.theta_rad));
-        let (sn, cs) = theta.sin_cos();
-        let (tw, th) = (t[0].width as f64 * scale, t[0].height as f64 * scale);
-        let half = [
-            0.5 * (tw * cs.abs() + th * sn.abs()) + PLACEMENT_REFINE_MARGIN_PX + 1.0,
-            0.5 * (tw * sn.abs() + th * cs.abs()) + PLACEMENT_REFINE_MARGIN_PX + 1.0,
-        ];
-        let x0 = (expected[0] - half[0]).floor() as i64;
-        let y0 = (expected[1] - half[1]).floor() as i64;
-        let (cw, ch) = (
-            (2.0 * half[0]).ceil() as usize + 1,
-            (2.0 * half[1]).ceil() as usize + 1,
-        );
-        let (Some(c0), Some(c1)) = (w[0].crop(x0, y0, cw, ch), w[1].crop(x0, y0, cw, ch)) else {
-            return Err(Rejected::from("refinement: empty window"));
-        };
         // The rotation refined, the scale kept: the peak's place hardly depends on the scale
         // (it stretches the template about its centre), which the fix does not use (its
         // height is the prior's) beyond the lever term.

@@ -47,6 +47,28 @@ struct Placed3 {
     relief_var_m2: f64,
 }
 
+/// The image's share of the placement fix's covariance, map grid, m^2: the placement's own
+/// localisation, the relief displacement it averages, its rotation and scale acting over the
+/// lever from the ground points to the nadir; the height the prior's (`sigma_v_m`) times
+/// [`HEIGHT_SIGMA_FACTOR`].
+fn image_cov_map(p: &PlacementObs, est: &Placed3, sigma_v_m: f64) -> Matrix3<f64> {
+    let var_h = est.relief_var_m2
+        + (est.lever_m * p.sigma_rot_rad).powi(2)
+        + (est.lever_m * p.sigma_log_scale).powi(2);
+    let c = &p.cov_h_m2;
+    Matrix3::new(
+        c[0][0] + var_h,
+        c[0][1],
+        0.0,
+        c[1][0],
+        c[1][1] + var_h,
+        0.0,
+        0.0,
+        0.0,
+        (HEIGHT_SIGMA_FACTOR * sigma_v_m).powi(2),
+    )
+}
+
 impl FixEngine {
     /// The placement fix's report (module doc); rejected when the grid's rays miss the terrain
     /// or a number is not finite.
@@ -102,17 +124,7 @@ impl FixEngine {
         }
         // The height is the prior's, with a variance that leaves a filter's height alone.
         let z = g.c_map.z;
-        // The image's share: the placement's localisation, the relief displacement it averages,
-        // its rotation and scale acting over the lever from the ground points to the nadir.
-        let var_h = p.sigma_h_m.powi(2)
-            + est.relief_var_m2
-            + (est.lever_m * p.sigma_rot_rad).powi(2)
-            + (est.lever_m * p.sigma_log_scale).powi(2);
-        let image_map = Matrix3::from_diagonal(&Vector3::new(
-            var_h,
-            var_h,
-            (HEIGHT_SIGMA_FACTOR * g.sigma_v_m).powi(2),
-        ));
+        let image_map = image_cov_map(p, &est, g.sigma_v_m);
         let ned_from_map = m.inverse();
         let rm = ned_from_map.matrix();
         let mut image_ned = rm * image_map * rm.transpose();
@@ -303,7 +315,7 @@ mod tests {
     fn obs(o: Vec<(Point2<f64>, [f64; 2])>) -> PlacementObs {
         PlacementObs {
             obs: o,
-            sigma_h_m: 1.0,
+            cov_h_m2: [[1.0, 0.0], [0.0, 1.0]],
             sigma_rot_rad: 0.01,
             sigma_log_scale: 0.01,
             ties_reason: String::new(),
@@ -371,5 +383,32 @@ mod tests {
             r2.cov_ned_m2[2][2] >= (10.0 * 10.0f64).powi(2),
             "height not measured"
         );
+    }
+
+    /// The placement's own covariance (map grid x east, y north) reaches the report's image
+    /// covariance in NED as it is: a plateau along grid north (an east-west edge seen) is
+    /// uncertain in north, not in east, beside the fixed terms.
+    #[test]
+    fn the_placement_covariance_enters_the_fix_along_its_axes() {
+        let (engine, crs) = checkerboard_engine();
+        let truth = Attitude::new(0.0, 0.0, 0.0);
+        let (x, y, z) = (500_640.0, 5_199_360.0, 1300.0);
+        let seen = ground_seen(&engine, &crs, x, y, z, truth);
+        let g = prior(&engine, &crs, x, y, z, truth);
+        let image = |cov_h_m2: [[f64; 2]; 2]| {
+            let o = PlacementObs {
+                cov_h_m2,
+                ..obs(seen.clone())
+            };
+            let r = engine.placement_pose(&g, 1000.0, &o).unwrap();
+            r.prior_dependence.unwrap().image_cov_ned_m2
+        };
+        let round = image([[1.0, 0.0], [0.0, 1.0]]);
+        let north = image([[1.0, 0.0], [0.0, 401.0]]);
+        // NED: index 0 north, 1 east; the grid convergence here turns by well under a degree.
+        assert!((north[0][0] - round[0][0] - 400.0).abs() < 1.0, "{north:?}");
+        assert!((north[1][1] - round[1][1]).abs() < 1.0, "{north:?}");
+        let skew = image([[101.0, 100.0], [100.0, 101.0]]);
+        assert!(skew[0][1] > 90.0 && skew[1][0] > 90.0, "{skew:?}");
     }
 }

@@ -332,10 +332,11 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
             visnav::sitl::fixeval::WRONG_FIX_M,
             visnav::sitl::fixeval::WRONG_FIX_SIGMAS,
             s.wrong_fixes,
-            if s.accepted > 0 {
+            // Placement fixes carry no image-only pose: with only those there is no mean.
+            if s.nees6_mean.is_finite() {
                 format!("{:.1}", s.nees6_mean)
             } else {
-                "-".to_string()
+                "- (no image-only pose)".to_string()
             }
         );
         if s.accepted > 0 {

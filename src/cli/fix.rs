@@ -265,15 +265,24 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
             report.cov_ned_m2[1][1].sqrt(),
             report.cov_ned_m2[2][2].sqrt()
         );
-        println!(
-            "  {} inliers of {} matches ({}), reprojection RMS {:.2} px, level {}, {:.1} ms",
-            report.inliers,
-            report.matches,
-            report.method,
-            report.reproj_rms_px,
-            report.level,
-            report.ms
-        );
+        if report.reproj_rms_px.is_finite() {
+            println!(
+                "  {} inliers of {} matches ({}), reprojection RMS {:.2} px, level {}, {:.1} ms",
+                report.inliers,
+                report.matches,
+                report.method,
+                report.reproj_rms_px,
+                report.level,
+                report.ms
+            );
+        } else {
+            // A placement fix: no tie points, so no residuals to show.
+            println!(
+                "  {}: position and heading from the area correlation, the tilt the prior's, \
+                 level {}, {:.1} ms",
+                report.method, report.level, report.ms
+            );
+        }
     } else {
         println!("rejected: {} ({:.1} ms)", report.reason, report.ms);
     }

@@ -865,8 +865,21 @@ impl NaipEval {
                     .position
                     .as_ref()
                     .map_or(f64::NAN, |p| p.alt_amsl_m - case.pose.centre_map_m.z);
+                // A placement fix has no resection: no image-only pose, residuals or sigma0.
+                let resection = if r.reproj_rms_px.is_finite() {
+                    format!(
+                        "image-only h {:.1} m tilt {:.2} deg NEES {:.1}, reprojection RMS {:.2} px, sigma0 {:.2}",
+                        vo.0,
+                        vo.1,
+                        s.nees6.unwrap_or(f64::NAN),
+                        r.reproj_rms_px,
+                        r.sigma0
+                    )
+                } else {
+                    "no resection".to_string()
+                };
                 log(format!(
-                    "frame {i:3}: accepted{} ({}), {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:+.1} m = {:.2} sigma (sigma h {:.1} v {:.1} m; {:.0} m above ground, prior altitude {:+.1} m), ground {:.1} m tilt {:.2} deg, image-only h {:.1} m tilt {:.2} deg NEES {:.1}, reprojection RMS {:.2} px, sigma0 {:.2}, covariance factor {:.1}, {:.1} ms",
+                    "frame {i:3}: accepted{} ({}), {} inliers of {} matches ({good} correct, chance {}), error h {:.1} m v {:+.1} m = {:.2} sigma (sigma h {:.1} v {:.1} m; {:.0} m above ground, prior altitude {:+.1} m), ground {:.1} m tilt {:.2} deg, {resection}, covariance factor {:.1}, {:.1} ms",
                     if is_wrong { " WRONG" } else { "" },
                     r.method,
                     r.inliers,
@@ -881,11 +894,6 @@ impl NaipEval {
                     prior_dv_m,
                     s.ground_err_m,
                     s.tilt_err_deg,
-                    vo.0,
-                    vo.1,
-                    s.nees6.unwrap_or(f64::NAN),
-                    r.reproj_rms_px,
-                    r.sigma0,
                     r.cov_factor,
                     r.ms
                 ));

@@ -9,8 +9,18 @@ mod cli;
 
 use clap::{Parser, Subcommand};
 
+/// `visnav --version`: the package version and the git commit it was built from (build.rs:
+/// short hash, `-dirty` with uncommitted changes, `unknown` outside a git checkout), so a log or
+/// a bug report names the exact source.
+const VERSION: &str = concat!(
+    env!("CARGO_PKG_VERSION"),
+    " (commit ",
+    env!("VISNAV_GIT_COMMIT"),
+    ")"
+);
+
 #[derive(Parser, Debug)]
-#[command(name = "visnav", version, about = "Vision-aided navigation for drones without GPS", long_about = None)]
+#[command(name = "visnav", version = VERSION, about = "Vision-aided navigation for drones without GPS", long_about = None)]
 struct Args {
     /// More log output (-v: debug, -vv: trace). RUST_LOG overrides this when set.
     #[arg(short, long, action = clap::ArgAction::Count, global = true)]

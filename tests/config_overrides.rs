@@ -80,7 +80,7 @@ fn each_override_changes_what_check_config_reports() {
     // Relative paths on the command line are relative to the current directory.
     build_map(&d.path().join("area.vnm"));
     std::fs::create_dir(d.path().join("rec")).unwrap();
-    std::fs::write(d.path().join("rec/frames.csv"), "file,t_s\n").unwrap();
+    std::fs::write(d.path().join("rec/frames.csv"), "file,t_s\n0.png,0\n").unwrap();
     let (code, out, err) = text(
         &visnav(d.path())
             .args([

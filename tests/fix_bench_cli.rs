@@ -142,7 +142,7 @@ fn bench_fix_autzen_case_names_its_map_heights() {
 #[test]
 fn bench_fix_refuses_bad_arguments_clearly() {
     let cases: [(&[&str], &str); 5] = [
-        (&["--agl-m", "5"], "--agl-m 5"),
+        (&["--agl-m", "5"], "--agl-m \"5\""),
         (&["--yaw-error-deg", "200"], "--yaw-error-deg 200"),
         (&["--descriptor", "32"], "--descriptor 32"),
         (&["--set", "ratio = ["], "--set"),

@@ -12,14 +12,13 @@ use mavlink::dialects::ardupilotmega::{
     MavState, MavType, SYSTEM_TIME_DATA, TIMESYNC_DATA,
 };
 use mavlink::{MAVLinkV2MessageRaw, MavHeader, MavlinkReader, SigningConfig, SigningData};
-use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use tokio::net::UdpSocket;
 use tokio::sync::watch;
+use visnav::link::Link;
 use visnav::link::config::{LinkConfig, OutputConfig, OutputMode, SigningSettings};
-use visnav::link::{Health, Link, NavEstimate};
 
 use crate::common;
-use common::{free_udp_port, wait_for};
+use common::{free_udp_port, nav_estimate as estimate, wait_for};
 
 /// A fake vehicle component on its own socket: sends what the test says, answers TIMESYNC with
 /// its boot clock, records what it receives.
@@ -171,23 +170,6 @@ fn live_stream(ap: Arc<Fake>, utc: fn(u64) -> i64) -> watch::Sender<bool> {
         }
     });
     stop
-}
-
-fn estimate(t_boot_us: u64) -> NavEstimate {
-    NavEstimate {
-        t_boot_us,
-        lat_deg: 46.9,
-        lon_deg: -96.8,
-        alt_amsl_m: 400.0,
-        geoid_undulation_m: Some(-27.0),
-        vel_ned_m_s: Vector3::new(8.0, -3.0, 0.0),
-        q_ned_body: UnitQuaternion::from_euler_angles(0.0, 0.0, 0.7),
-        pos_cov_ned_m2: Matrix3::from_diagonal(&Vector3::new(4.0, 4.0, 9.0)),
-        vel_cov_ned_m2_s2: Matrix3::from_diagonal_element(0.01),
-        att_sigma_rad: Vector3::new(0.02, 0.02, 0.05),
-        health: Health::Ok,
-        reset_counter: 0,
-    }
 }
 
 async fn udpin_link(cfg: impl FnOnce(&mut LinkConfig)) -> (Link, SocketAddr) {

@@ -329,7 +329,10 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
         a.image.clone()
     };
     if !["both", "upright", "oriented"].contains(&a.mode.as_str()) {
-        bail!("--mode {}: expected both, upright or oriented", a.mode);
+        bail!(
+            "--mode {}: expected both, upright or oriented",
+            visnav_core::text::quote(&a.mode)
+        );
     }
     let all = std::thread::available_parallelism().map_or(1, |n| n.get());
     let pools = [1, all]

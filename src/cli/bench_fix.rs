@@ -8,6 +8,7 @@ use anyhow::Context;
 use visnav::fix::FixParams;
 use visnav::sitl::fixeval::{AttitudeMode, HeightSigmas, MapHeights, NaipEval};
 use visnav::vision::{DescriptorKind, SurfParams};
+use visnav_core::text::{num, quote};
 
 #[derive(clap::Args, Debug)]
 pub struct FixBenchArgs {
@@ -135,17 +136,23 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
     if !(a.attitude_error_deg.is_finite() && a.attitude_error_deg >= 0.0) {
         anyhow::bail!(
             "--attitude-error-deg {}: expected a finite value >= 0",
-            a.attitude_error_deg
+            num(a.attitude_error_deg)
         );
     }
     if !(a.yaw_error_deg.is_finite() && (0.0..=180.0).contains(&a.yaw_error_deg)) {
-        anyhow::bail!("--yaw-error-deg {}: expected 0 to 180", a.yaw_error_deg);
+        anyhow::bail!(
+            "--yaw-error-deg {}: expected 0 to 180",
+            num(a.yaw_error_deg)
+        );
     }
     let yaw_sigma_deg = a
         .yaw_sigma_deg
         .unwrap_or(if a.yaw_error_deg > 0.0 { 30.0 } else { 0.5 });
     if !(yaw_sigma_deg.is_finite() && yaw_sigma_deg > 0.0 && yaw_sigma_deg <= 180.0) {
-        anyhow::bail!("--yaw-sigma-deg {yaw_sigma_deg}: expected more than 0, at most 180");
+        anyhow::bail!(
+            "--yaw-sigma-deg {}: expected more than 0, at most 180",
+            num(yaw_sigma_deg)
+        );
     }
     let attitude_mode = if a.no_attitude {
         AttitudeMode::None
@@ -157,12 +164,12 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
     let autzen = a.site == "autzen";
     let agl_range_m = match &a.agl_m {
         None => None,
-        Some(t) => Some(parse_range(t).with_context(|| format!("--agl-m {t}"))?),
+        Some(t) => Some(parse_range(t).with_context(|| format!("--agl-m {}", quote(t)))?),
     };
     if let Some(t) = a.max_tilt_deg
         && !(t.is_finite() && (0.0..=60.0).contains(&t))
     {
-        anyhow::bail!("--max-tilt-deg {t}: expected 0 to 60");
+        anyhow::bail!("--max-tilt-deg {}: expected 0 to 60", num(t));
     }
     let sigmas = HeightSigmas {
         offset_m: a.height_sigma_m,
@@ -325,13 +332,15 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
             );
         }
         println!(
-            "  accepted {} ({:.0} %), beyond 3 sigma {}, wrong (> {} m or > {} sigma) {}, image-only NEES(6) mean {}",
+            "  accepted {} ({:.0} %), beyond 3 sigma on an axis {}, wrong {} ({} more than {} m off in 3-D, {} outside {} sigma on an axis or jointly horizontally), image-only NEES(6) mean {}",
             s.accepted,
             100.0 * s.fix_rate,
             s.beyond_3_sigma,
-            visnav::sitl::fixeval::WRONG_FIX_M,
-            visnav::sitl::fixeval::WRONG_FIX_SIGMAS,
             s.wrong_fixes,
+            s.wrong_far,
+            visnav::sitl::fixeval::WRONG_FIX_M,
+            s.wrong_beyond_sigma,
+            visnav::sitl::fixeval::WRONG_FIX_SIGMAS,
             // Placement fixes carry no image-only pose: with only those there is no mean.
             if s.nees6_mean.is_finite() {
                 format!("{:.1}", s.nees6_mean)
@@ -369,7 +378,7 @@ fn parse_range(t: &str) -> anyhow::Result<(f64, f64)> {
     let num = |s: &str| -> anyhow::Result<f64> {
         s.trim()
             .parse::<f64>()
-            .with_context(|| format!("{s:?} is not a number"))
+            .with_context(|| format!("{} is not a number", quote(s)))
     };
     let (lo, hi) = match t.split_once(':') {
         Some((l, h)) => (num(l)?, num(h)?),

@@ -43,6 +43,10 @@ pub fn run(args: CameraArgs) -> anyhow::Result<ExitCode> {
             list.join("\n  ")
         );
     }
+    // Said on stderr too: the printed section is usually pasted without reading its comments.
+    for n in &cal.notes {
+        eprintln!("warning: {}: {n}", a.file.display());
+    }
     print!("{}", camera_toml(&cal, &a.file));
     Ok(ExitCode::SUCCESS)
 }

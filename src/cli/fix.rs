@@ -17,6 +17,7 @@ use visnav::fix::{
 use visnav::geo::dem::Dem;
 use visnav::map::{BuildSpec, HeightSource};
 use visnav::vision::{GrayImage, GrayImageFile};
+use visnav_core::text::quote;
 use visnav_core::validate::{Problems, Validate};
 
 #[derive(clap::Args, Debug)]
@@ -91,16 +92,19 @@ fn numbers(name: &str, text: &str, n: usize) -> anyhow::Result<Vec<f64>> {
         .split(',')
         .map(|s| s.trim().parse::<f64>())
         .collect::<Result<_, _>>()
-        .with_context(|| format!("--{name} {text:?}: not {n} comma-separated numbers"))?;
+        .with_context(|| format!("--{name} {}: not {n} comma-separated numbers", quote(text)))?;
     if v.len() != n || v.iter().any(|x| !x.is_finite()) {
-        bail!("--{name} {text:?}: expected {n} finite comma-separated numbers");
+        bail!(
+            "--{name} {}: expected {n} finite comma-separated numbers",
+            quote(text)
+        );
     }
     Ok(v)
 }
 
 /// The camera from a TOML file holding `[camera]` or the camera keys themselves.
 pub fn load_camera(path: &Path) -> anyhow::Result<Camera> {
-    let text = std::fs::read_to_string(path)
+    let text = visnav_io::files::read_text(path, visnav_io::files::CONFIG)
         .with_context(|| format!("reading camera file {}", path.display()))?;
     let value: toml::Table =
         toml::from_str(&text).with_context(|| format!("{}: not valid TOML", path.display()))?;
@@ -161,7 +165,7 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
     let camera = load_camera(&a.camera)?;
     let params = match &a.settings {
         Some(p) => {
-            let text = std::fs::read_to_string(p)
+            let text = visnav_io::files::read_text(p, visnav_io::files::CONFIG)
                 .with_context(|| format!("reading settings {}", p.display()))?;
             let v: toml::Value = toml::from_str(&text)
                 .with_context(|| format!("{}: not valid TOML", p.display()))?;
@@ -205,7 +209,10 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
         Some(t) => {
             let v = numbers("prior", t, 4)?;
             if !(-90.0..=90.0).contains(&v[0]) || !(-180.0..=180.0).contains(&v[1]) || v[3] <= 0.0 {
-                bail!("--prior {t:?}: latitude in [-90, 90], longitude in [-180, 180], sigma > 0");
+                bail!(
+                    "--prior {}: latitude in [-90, 90], longitude in [-180, 180], sigma > 0",
+                    quote(t)
+                );
             }
             let sv = a.prior_sigma_v_m.unwrap_or(v[3]);
             if !(sv.is_finite() && sv > 0.0) {
@@ -225,7 +232,7 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
         Some(t) => {
             let v = numbers("altitude", t, 2)?;
             if !(v[1].is_finite() && v[1] > 0.0) {
-                bail!("--altitude {t:?}: the sigma must be positive");
+                bail!("--altitude {}: the sigma must be positive", quote(t));
             }
             Some(AltitudePrior {
                 alt_amsl_m: v[0],

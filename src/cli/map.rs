@@ -291,7 +291,12 @@ fn info(a: InfoArgs) -> anyhow::Result<ExitCode> {
         h.version,
         open_s * 1e3
     );
-    println!("  built by {} at unix {}", h.built_by, h.built_unix_s);
+    println!(
+        "  built by {} at {} (unix {})",
+        h.built_by,
+        iso8601_utc(h.built_unix_s),
+        h.built_unix_s
+    );
     println!("  CRS {}", h.crs);
     println!(
         "  bounds x {:.2} .. {:.2} m, y {:.2} .. {:.2} m ({:.0} x {:.0} m)",
@@ -337,4 +342,72 @@ fn info(a: InfoArgs) -> anyhow::Result<ExitCode> {
         );
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Seconds in a day (UTC has no leap seconds in Unix time: every day is this long).
+const SECONDS_PER_DAY: u64 = 86_400;
+
+/// Days from 0000-03-01 to 1970-01-01 in the proleptic Gregorian calendar: counting from a March
+/// first puts the leap day at the end of the year (Hinnant's `civil_from_days`).
+const DAYS_0000_03_01_TO_EPOCH: u64 = 719_468;
+
+/// Days in a 400-year Gregorian cycle (97 leap years).
+const DAYS_PER_400_YEARS: u64 = 146_097;
+
+/// The largest year ISO 8601's basic four-digit form writes.
+const MAX_ISO_YEAR: u64 = 9999;
+
+/// Unix seconds as an ISO 8601 UTC date and time, `2026-11-28T21:49:29Z` (what `map info` says
+/// a map was built at); a time after the year 9999 stays in Unix seconds.
+fn iso8601_utc(unix_s: u64) -> String {
+    let days = unix_s / SECONDS_PER_DAY;
+    let secs = unix_s % SECONDS_PER_DAY;
+    // Hinnant's civil_from_days on unsigned numbers (times before 1970 do not occur here).
+    let z = days + DAYS_0000_03_01_TO_EPOCH;
+    let era = z / DAYS_PER_400_YEARS;
+    let doe = z % DAYS_PER_400_YEARS; // day of the 400-year era, 0..=146096
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365; // 0..=399
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100); // day of the March-based year, 0..=365
+    let mp = (5 * doy + 2) / 153; // month from March, 0..=11
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + u64::from(month <= 2);
+    if year > MAX_ISO_YEAR {
+        return format!("unix {unix_s}");
+    }
+    format!(
+        "{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}Z",
+        secs / 3600,
+        secs % 3600 / 60,
+        secs % 60
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::iso8601_utc;
+
+    /// Known instants (checked against `date -u -d @N`), leap days of leap years including a
+    /// century divisible by 400, and the days around the ones that are not leap days.
+    #[test]
+    fn unix_seconds_as_iso8601_utc() {
+        for (unix_s, want) in [
+            (0, "1970-01-01T00:00:00Z"),
+            (86_399, "1970-01-01T23:59:59Z"),
+            (951_782_400, "2000-02-29T00:00:00Z"),
+            (951_868_800, "2000-03-01T00:00:00Z"),
+            (1_078_099_199, "2004-02-29T23:59:59Z"),
+            (1_709_164_800, "2024-02-29T00:00:00Z"),
+            (1_677_628_800, "2023-03-01T00:00:00Z"),
+            (1_795_902_569, "2026-11-28T21:49:29Z"),
+            (1_677_585_600, "2023-02-28T12:00:00Z"),
+            (4_107_456_000, "2100-02-28T00:00:00Z"),
+            (4_107_542_400, "2100-03-01T00:00:00Z"),
+            (253_402_300_799, "9999-12-31T23:59:59Z"),
+        ] {
+            assert_eq!(iso8601_utc(unix_s), want, "{unix_s}");
+        }
+        assert_eq!(iso8601_utc(253_402_300_800), "unix 253402300800");
+        assert_eq!(iso8601_utc(u64::MAX), format!("unix {}", u64::MAX));
+    }
 }

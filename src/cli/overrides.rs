@@ -10,8 +10,10 @@ use visnav::daemon::app_config::{Config, ConfigError, Overrides};
 #[derive(clap::Args, Debug)]
 pub struct OverrideArgs {
     /// The MAVLink connection, replacing [link] connection: udpin:ADDR:PORT, udpout:HOST:PORT,
-    /// udpbcast:ADDR:PORT, tcpin:ADDR:PORT, tcpout:HOST:PORT or serial:DEVICE:BAUD (e.g.
-    /// udpin:0.0.0.0:14550, serial:/dev/ttyAMA0:921600). Environment: VISNAV_CONNECTION.
+    /// udpbcast:ADDR:PORT, tcpin:ADDR:PORT, tcpout:HOST:PORT, serial:DEVICE[:BAUD], or as
+    /// MAVProxy writes them: udp:ADDR:PORT (listen), tcp:HOST:PORT (connect), DEVICE[,BAUD]
+    /// (e.g. udpin:0.0.0.0:14550, /dev/ttyACM0,57600; serial at 115200 baud when none is
+    /// given). Environment: VISNAV_CONNECTION.
     #[arg(long, value_name = "STRING")]
     pub connection: Option<String>,
     /// The reference map (.vnm), replacing [map] file (the file's ortho, upsample and

@@ -10,7 +10,9 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use visnav::daemon::app_config::Config;
-use visnav::daemon::replay::{ReplayOptions, meas_csv, replay, states_csv};
+use visnav::daemon::replay::{ReplayOptions, meas_csv, replay_tlog, states_csv};
+use visnav::link::tlog::TlogContents;
+use visnav_io::files::{self, read_bytes, read_text};
 
 #[derive(clap::Args, Debug)]
 pub struct ReplayArgs {
@@ -43,14 +45,18 @@ pub struct ReplayArgs {
 
 pub fn run(args: ReplayArgs) -> anyhow::Result<ExitCode> {
     let cfg = Config::load(&args.config)?;
-    let bytes =
-        std::fs::read(&args.tlog).with_context(|| format!("reading {}", args.tlog.display()))?;
-    let records = visnav::link::tlog::read_tlog(&bytes);
-    if records.is_empty() {
+    let bytes = read_bytes(&args.tlog, files::TLOG)
+        .with_context(|| format!("reading {}", args.tlog.display()))?;
+    let log = visnav::link::tlog::scan_tlog(&bytes);
+    drop(bytes);
+    if log.records.is_empty() {
         anyhow::bail!(
             "{}: no MAVLink packet in the file (not a .tlog?)",
             args.tlog.display()
         );
+    }
+    if log.skipped_bytes > 0 {
+        eprintln!("warning: {}", skipped_words(&args.tlog, &log));
     }
     let opts = ReplayOptions {
         gps: cfg.daemon.gps_source(&cfg.output),
@@ -62,8 +68,8 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<ExitCode> {
     };
     let fixes = match &args.fixes {
         Some(f) => {
-            let text =
-                std::fs::read_to_string(f).with_context(|| format!("reading {}", f.display()))?;
+            let text = read_text(f, files::JSON_LOG)
+                .with_context(|| format!("reading {}", f.display()))?;
             visnav::daemon::fixlog::read_fix_log(&text)
                 .map_err(|e| anyhow::anyhow!("{}: {e}", f.display()))?
         }
@@ -73,7 +79,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<ExitCode> {
         Some(f) => read_vo_motions(f, &args, &cfg)?,
         None => Vec::new(),
     };
-    let rep = replay(&records, &fixes, &vo, &opts);
+    let rep = replay_tlog(&log, &fixes, &vo, &opts);
     if rep.from_autopilot == 0 {
         anyhow::bail!(
             "{}: no packet from an autopilot (no autopilot HEARTBEAT{})",
@@ -111,6 +117,9 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<ExitCode> {
         rep.t_span_s[0],
         rep.t_span_s[1]
     );
+    if log.skipped_bytes > 0 {
+        println!("{}", skipped_words(&args.tlog, &log));
+    }
     println!(
         "{:<14} {:>7} {:>8} {:>8} {:>4} {:>9} {:>9} {:>9}",
         "measurement", "n", "accepted", "rejected", "dof", "NIS mean", "NIS p50", "NIS p95"
@@ -145,14 +154,17 @@ fn read_vo_motions(
 ) -> anyhow::Result<Vec<(u64, visnav::nav::VoFix)>> {
     let terrain_sigma_m = match args.vo_terrain_sigma_m.or(cfg.map.height_sigma_m) {
         Some(s) if s.is_finite() && s >= 0.0 => s,
-        Some(s) => anyhow::bail!("--vo-terrain-sigma-m {s} must be a finite number >= 0"),
+        Some(s) => anyhow::bail!(
+            "--vo-terrain-sigma-m {} must be a finite number >= 0",
+            visnav_core::text::num(s)
+        ),
         None => anyhow::bail!(
             "--vo-log needs the terrain model's height sigma: the configuration has no [map] \
              height_sigma_m, so give --vo-terrain-sigma-m"
         ),
     };
     let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        read_text(path, files::JSON_LOG).with_context(|| format!("reading {}", path.display()))?;
     let records = visnav::daemon::volog::read_vo_log(&text)
         .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
     let corr_m = cfg.vo.terrain_error_corr_dist_m;
@@ -162,4 +174,16 @@ fn read_vo_motions(
         .collect();
     out.sort_by_key(|(t, _)| *t);
     Ok(out)
+}
+
+/// What the reading of a damaged log skipped, in one line.
+fn skipped_words(path: &std::path::Path, log: &TlogContents) -> String {
+    format!(
+        "{}: skipped {} bytes in {} place(s) that held no valid record (damage or junk); \
+         replayed the {} records around them",
+        path.display(),
+        log.skipped_bytes,
+        log.skipped_runs,
+        log.records.len()
+    )
 }

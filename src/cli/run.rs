@@ -33,7 +33,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     }
     let duration = match args.duration {
         Some(s) if s.is_finite() && s > 0.0 && s < 1e9 => Some(Duration::from_secs_f64(s)),
-        Some(s) => anyhow::bail!("--duration {s}: expected a positive number of seconds"),
+        Some(s) => anyhow::bail!(
+            "--duration {}: expected a positive number of seconds",
+            visnav_core::text::num(s)
+        ),
         None => None,
     };
     // With a frame source, the vision fix engine of [map], [camera] and [fix].

@@ -26,6 +26,7 @@ use visnav::geo::geotiff::load_geotiff;
 use visnav::sitl::camera_sim::{SimCamera, SimCameraSpec, TruthFeed};
 use visnav::sitl::real_sitl::{SitlKind, TruthLink, TruthLinkConfig};
 use visnav::sitl::render::{ColourMode, RenderSpec, Renderer, Scene};
+use visnav_core::text::num;
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 pub enum Kind {
@@ -83,14 +84,20 @@ pub struct SitlRunArgs {
 pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
     let cfg = Config::load(&args.config)?;
     if !(args.rate_hz.is_finite() && args.rate_hz > 0.0 && args.rate_hz <= 50.0) {
-        anyhow::bail!("--rate-hz {}: expected 0 < rate <= 50", args.rate_hz);
+        anyhow::bail!("--rate-hz {}: expected 0 < rate <= 50", num(args.rate_hz));
     }
     if !(args.max_age_s.is_finite() && args.max_age_s > 0.0) {
-        anyhow::bail!("--max-age-s {}: expected a positive number", args.max_age_s);
+        anyhow::bail!(
+            "--max-age-s {}: expected a positive number",
+            num(args.max_age_s)
+        );
     }
     let duration = match args.duration {
         Some(s) if s.is_finite() && s > 0.0 && s < 1e9 => Some(Duration::from_secs_f64(s)),
-        Some(s) => anyhow::bail!("--duration {s}: expected a positive number of seconds"),
+        Some(s) => anyhow::bail!(
+            "--duration {}: expected a positive number of seconds",
+            num(s)
+        ),
         None => None,
     };
     let (world, engine) = camera_world(&args, cfg.clone())?;

@@ -76,3 +76,23 @@ pub fn json_stat(v: &serde_json::Value, key: &str, field: &str) -> f64 {
         .as_f64()
         .unwrap_or_else(|| panic!("{key}.{field} missing or not a number in {v}"))
 }
+
+/// A navigation solution over Casselton, North Dakota (healthy, moving at 8.5 m/s), stamped
+/// `t_boot_us`: what the link tests inject.
+pub fn nav_estimate(t_boot_us: u64) -> visnav::link::NavEstimate {
+    use nalgebra::{Matrix3, UnitQuaternion, Vector3};
+    visnav::link::NavEstimate {
+        t_boot_us,
+        lat_deg: 46.9,
+        lon_deg: -96.8,
+        alt_amsl_m: 400.0,
+        geoid_undulation_m: Some(-27.0),
+        vel_ned_m_s: Vector3::new(8.0, -3.0, 0.0),
+        q_ned_body: UnitQuaternion::from_euler_angles(0.0, 0.0, 0.7),
+        pos_cov_ned_m2: Matrix3::from_diagonal(&Vector3::new(4.0, 4.0, 9.0)),
+        vel_cov_ned_m2_s2: Matrix3::from_diagonal_element(0.01),
+        att_sigma_rad: Vector3::new(0.02, 0.02, 0.05),
+        health: visnav::link::Health::Ok,
+        reset_counter: 0,
+    }
+}

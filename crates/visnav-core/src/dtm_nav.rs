@@ -64,6 +64,15 @@
 //! `sigma_inflation`: the linearisation does not see the terrain model's kinks at its cell
 //! edges, along which the minimum of the weakly determined direction wanders).
 //!
+//! # The terrain model's own error
+//! The flow sees the cameras relative to the terrain model only: a model displaced by `b`
+//! (misregistered horizontally, or its heights off by a common amount) gives the same flow as
+//! both cameras displaced by `-b`. So the model's registration error (`dem_shift_sigma_cells` of
+//! its cells, horizontally) and common height error (`dem_offset_sigma_m`) enter the covariance
+//! exactly, as a common term of both positions: `Sigma_b` added to the `C1`, `C2` blocks and
+//! their cross blocks. Its per-point errors (noise, trees on a terrain model) show in the fit's
+//! residuals and `sigma0`.
+//!
 //! # Conditioning (what it refuses)
 //! * Before solving, relief under the tracks: the standard deviation of the first guess's ground
 //!   points' heights below `min_relief_agl_fraction` of the height above them
@@ -84,6 +93,8 @@
 //!   a solution whose height and tilt disagree with them ([`DtmRejection::InconsistentWithGuess`]):
 //!   the flow can fit another minimum nearly as well, far from the truth in position, height and
 //!   tilt; an INS's height and tilt are what stays good in a GPS outage. A check, not a prior.
+//!   With the guess's horizontal sigma given, also a first position further from the guess's
+//!   than the two sigmas together allow ([`DtmRejection::FarFromGuess`], [`GUESS_GATE_H_CHI2`]).
 //!
 //! # Conventions
 //! World frame: the terrain model's map frame (x grid east, y grid north, z up, metres), as in
@@ -184,6 +195,11 @@ pub struct DtmNavConfig {
     pub min_baseline_agl_fraction: f64,
     /// ... and at most this much older, s.
     pub max_pair_span_s: f64,
+    /// The terrain model's horizontal registration error, 1-sigma, in its cells (module doc,
+    /// "The terrain model's own error").
+    pub dem_shift_sigma_cells: f64,
+    /// The terrain model's common height error, 1-sigma, m.
+    pub dem_offset_sigma_m: f64,
 }
 
 /// Default fewest tracks: the twelve unknowns need six flow vectors; five times that leaves the
@@ -234,6 +250,15 @@ const DEFAULT_MIN_BASELINE_AGL_FRACTION: f64 = 0.15;
 /// Default longest pair span, s: a pose guess older than this has drifted (an INS's tilt and
 /// position errors grow with time) and a slow aircraft has other ways to measure.
 const DEFAULT_MAX_PAIR_SPAN_S: f64 = 10.0;
+/// Default horizontal registration sigma of the terrain model: a quarter of a cell. The global
+/// elevation models' absolute geolocation is a fraction of their cell (SRTM: 12.6 m at 90 % for
+/// 30 m cells (Rodriguez et al. 2006), about 6 m at one sigma per axis: a fifth of a cell), and a
+/// model resampled to its grid adds up to half a cell of placement, uniform (0.29 cell at one
+/// sigma) only where it was resampled coarser than its source.
+const DEFAULT_DEM_SHIFT_SIGMA_CELLS: f64 = 0.25;
+/// Default common height sigma of the terrain model, m: the global models' absolute vertical
+/// error (SRTM: 5-9 m at 90 % over most terrain) at one sigma.
+const DEFAULT_DEM_OFFSET_SIGMA_M: f64 = 5.0;
 
 impl Default for DtmNavConfig {
     fn default() -> Self {
@@ -253,6 +278,8 @@ impl Default for DtmNavConfig {
             sigma_inflation: DEFAULT_SIGMA_INFLATION,
             min_baseline_agl_fraction: DEFAULT_MIN_BASELINE_AGL_FRACTION,
             max_pair_span_s: DEFAULT_MAX_PAIR_SPAN_S,
+            dem_shift_sigma_cells: DEFAULT_DEM_SHIFT_SIGMA_CELLS,
+            dem_offset_sigma_m: DEFAULT_DEM_OFFSET_SIGMA_M,
         }
     }
 }
@@ -290,6 +317,14 @@ impl Validate for DtmNavConfig {
                 p.push(key, format!("{v} must be finite and > 0"));
             }
         }
+        for (key, v) in [
+            ("dem_shift_sigma_cells", self.dem_shift_sigma_cells),
+            ("dem_offset_sigma_m", self.dem_offset_sigma_m),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                p.push(key, format!("{v} must be finite and >= 0"));
+            }
+        }
         if !(self.min_relief_agl_fraction.is_finite() && self.min_relief_agl_fraction >= 0.0) {
             p.push(
                 "min_relief_agl_fraction",
@@ -324,6 +359,15 @@ pub enum DtmRejection {
     InconsistentWithGuess {
         dh_m: f64,
         dtilt_deg: f64,
+        m2: f64,
+        max: f64,
+    },
+    #[error(
+        "{d_m:.0} m from the navigation's position (its 1-sigma {sigma_m:.0} m; squared Mahalanobis distance {m2:.1} over {max}): another minimum of the flow, or a navigation far more wrong than it says"
+    )]
+    FarFromGuess {
+        d_m: f64,
+        sigma_m: f64,
         m2: f64,
         max: f64,
     },
@@ -391,11 +435,17 @@ pub struct DtmInput<'a> {
 pub struct GuessSigma {
     pub height_m: f64,
     pub tilt_rad: f64,
+    /// The guess's horizontal position 1-sigma per axis, m (infinite: unknown, no gate).
+    pub horizontal_m: f64,
 }
 
 /// Chi-square 99.9 % point for 3 degrees of freedom: the gate on the solution's height and tilt
 /// (two angles) against the guess's.
 pub const GUESS_GATE_CHI2: f64 = 16.27;
+
+/// Chi-square 99.9 % point for 2 degrees of freedom: the gate on the solution's horizontal
+/// position against the guess's.
+pub const GUESS_GATE_H_CHI2: f64 = 13.82;
 
 /// Which minimiser finished a stage.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -840,6 +890,7 @@ fn solve_with(
     let problem = Problem { obs, ..problem };
     let (x, iterations, method) = run_stages(&problem, start, agl0, lm_only)?;
     let mut fix = assess(&problem, &x, input.tracks.len())?;
+    add_dem_error(&mut fix, dem, cfg);
     if let Some(sigma) = input.guess_sigma {
         check_against_guess(&fix, &input.guess_first, &sigma)?;
     }
@@ -933,6 +984,7 @@ fn run_stages(
 /// their height 300-2000 m and their tilt up to 34 deg from the truth), while an INS's height
 /// and tilt stay good.
 fn check_against_guess(fix: &DtmFix, guess: &Pose, sigma: &GuessSigma) -> Result<(), DtmRejection> {
+    check_horizontal_against_guess(fix, guess, sigma)?;
     let dh = fix.first.c_world.z - guess.c_world.z;
     let rot = crate::pose::refine::log_so3(&(fix.first.r_world_cam * guess.r_world_cam.inverse()));
     let z = Vector3::new(dh, rot.x, rot.y);
@@ -953,6 +1005,54 @@ fn check_against_guess(fix: &DtmFix, guess: &Pose, sigma: &GuessSigma) -> Result
         });
     }
     Ok(())
+}
+
+/// The solution's first horizontal position against the guess's ([`GuessSigma::horizontal_m`]):
+/// a pose far beyond what the navigation says of itself is more often another minimum of the
+/// flow than a navigation that wrong (a guess 200 m off gave a pose 250 m wrong on an unseen
+/// strip), and a navigation that wrong is the filter's integrity problem to raise, not this
+/// measurement's to paper over.
+fn check_horizontal_against_guess(
+    fix: &DtmFix,
+    guess: &Pose,
+    sigma: &GuessSigma,
+) -> Result<(), DtmRejection> {
+    if sigma.horizontal_m.is_infinite() {
+        return Ok(());
+    }
+    let d = (fix.first.c_world - guess.c_world).xy();
+    let mut cov = fix.cov.fixed_view::<2, 2>(C1, C1).into_owned();
+    cov[(0, 0)] += sigma.horizontal_m.powi(2);
+    cov[(1, 1)] += sigma.horizontal_m.powi(2);
+    let m2 = cov
+        .try_inverse()
+        .map_or(f64::INFINITY, |inv| (d.transpose() * inv * d)[(0, 0)]);
+    if m2.is_nan() || m2 > GUESS_GATE_H_CHI2 {
+        return Err(DtmRejection::FarFromGuess {
+            d_m: d.norm(),
+            sigma_m: sigma.horizontal_m,
+            m2,
+            max: GUESS_GATE_H_CHI2,
+        });
+    }
+    Ok(())
+}
+
+/// The terrain model's own error in the covariance (module doc): a model displaced by `b` is
+/// seen by the flow exactly as both cameras displaced by `-b`, so its registration and common
+/// height errors add `diag(s_h^2, s_h^2, s_v^2)` to both positions' blocks and to their cross
+/// blocks (the same `b` for both frames). The attitudes are untouched.
+fn add_dem_error(fix: &mut DtmFix, dem: &Dem, cfg: &DtmNavConfig) {
+    let s_h = cfg.dem_shift_sigma_cells * dem.cell_m().unwrap_or(0.0);
+    let b = Matrix3::from_diagonal(&Vector3::new(
+        s_h * s_h,
+        s_h * s_h,
+        cfg.dem_offset_sigma_m.powi(2),
+    ));
+    for (r, c) in [(C1, C1), (C1, C2), (C2, C1), (C2, C2)] {
+        let mut blk = fix.cov.fixed_view_mut::<3, 3>(r, c);
+        blk += b;
+    }
 }
 
 /// Mean height of a camera at `z_m` above `heights` and their standard deviation, m.
@@ -1196,6 +1296,11 @@ fn check_inputs(input: &DtmInput<'_>, cfg: &DtmNavConfig) -> Result<(), DtmRejec
             && g.tilt_rad > 0.0)
     {
         return invalid("the guess's height and tilt sigmas must be finite and > 0");
+    }
+    if let Some(g) = input.guess_sigma
+        && (g.horizontal_m.is_nan() || g.horizontal_m <= 0.0)
+    {
+        return invalid("the guess's horizontal sigma must be > 0 (infinite: unknown)");
     }
     let im = input.image;
     let ok = |v: f64| v.is_finite() && v > 0.0;

@@ -17,6 +17,7 @@ pub mod nav;
 pub mod pose;
 pub mod rng;
 pub mod stats;
+pub mod text;
 pub mod validate;
 pub mod vision;
 pub mod vo;

@@ -57,7 +57,10 @@ impl Problems {
         if !v.is_finite() || v < lo || v > hi {
             self.push(
                 key,
-                format!("{v} is outside the accepted range [{lo}, {hi}]"),
+                format!(
+                    "{} is outside the accepted range [{lo}, {hi}]",
+                    crate::text::num(v)
+                ),
             );
         }
     }
@@ -65,14 +68,23 @@ impl Problems {
     /// Require a finite value strictly greater than zero.
     pub fn positive(&mut self, key: &str, v: f64) {
         if !v.is_finite() || v <= 0.0 {
-            self.push(key, format!("{v} must be a finite number greater than 0"));
+            self.push(
+                key,
+                format!(
+                    "{} must be a finite number greater than 0",
+                    crate::text::num(v)
+                ),
+            );
         }
     }
 
     /// Require a finite value.
     pub fn finite(&mut self, key: &str, v: f64) {
         if !v.is_finite() {
-            self.push(key, format!("{v} must be a finite number"));
+            self.push(
+                key,
+                format!("{} must be a finite number", crate::text::num(v)),
+            );
         }
     }
 }

@@ -229,18 +229,15 @@ fn check_output_file(p: &mut Problems, key: &str, base: &Base, f: &Path) {
     }
 }
 
-/// `link.connection = "serial:DEVICE:BAUD"`: the device must exist and be a character device
-/// (the serial port the link opens at start).
+/// A serial `link.connection` (`serial:DEVICE[:BAUD]`, `DEVICE[,BAUD]`): the device must exist
+/// and be a character device (the serial port the link opens at start).
 fn check_serial_device(p: &mut Problems, connection: &str) {
-    let Some(dev) = connection
-        .strip_prefix("serial:")
-        .and_then(|rest| rest.rsplit_once(':'))
-        .map(|(dev, _)| dev)
-        .filter(|d| !d.is_empty())
+    let Ok(visnav_link::config::Endpoint::Serial { device: dev, .. }) =
+        visnav_link::config::parse_connection(connection)
     else {
         return; // not serial, or malformed (reported by the link's own check)
     };
-    match std::fs::metadata(dev) {
+    match std::fs::metadata(&dev) {
         Err(e) => p.push(
             "connection",
             format!("the serial device {dev} cannot be used: {e}"),
@@ -422,8 +419,10 @@ impl Config {
     }
 
     /// Open every data file the configuration names (orthophotos, DEM) and check that it is a
-    /// usable GeoTIFF with a known CRS, consistent with the others. Slower than [`Config::load`]
-    /// (it decodes the rasters), so `check-config` calls it and the daemon does it once at start.
+    /// usable GeoTIFF with a known CRS, consistent with the others, and read what the camera
+    /// source reads before its first frame (a directory's `frames.csv`, a y4m header) as the
+    /// source reads it. Slower than [`Config::load`] (it decodes the rasters), so `check-config`
+    /// calls it and the daemon does it once at start.
     pub fn check_data(&self, path: &Path) -> Result<(), ConfigError> {
         use visnav_io::geo::geotiff::{crs_equivalent, load_geotiff};
         use visnav_io::geo::geotiff_info::describe_crs;
@@ -459,6 +458,13 @@ impl Config {
                 p.push("dem", e.to_string());
             }
         });
+        // The same reading the source does at start, so a frames.csv check-config passes is one
+        // run opens (an empty one, a bad header, NaN or repeated times are refused by both).
+        if let Some(f) = &self.frames
+            && let Err(e) = visnav_io::frames::check_files(f)
+        {
+            p.section("frames", |p| p.push("path", e.to_string()));
+        }
         if p.list.is_empty() {
             Ok(())
         } else {
@@ -482,7 +488,45 @@ impl Config {
     pub fn load_checked_with(path: &Path, overrides: &Overrides) -> Result<Config, ConfigError> {
         let cfg = Self::load_with(path, overrides)?;
         cfg.check_data(path)?;
+        cfg.check_ports(path, overrides)?;
         Ok(cfg)
+    }
+
+    /// Bind and release at once every port `run` will listen on: the connection's (`udpin:`,
+    /// `udp:`, `tcpin:`) and the metrics endpoints (`daemon.metrics_listen`,
+    /// `link.metrics_listen`). A port another program holds (a MAVProxy, mavlink-router, a
+    /// ground station, a visnav already running) is a problem naming the key and the port; the
+    /// link would otherwise wait on it for ever. Other bind errors are not reported here: an
+    /// address the network assigns later (a radio's interface at boot) may bind at run time.
+    pub fn check_ports(&self, path: &Path, overrides: &Overrides) -> Result<(), ConfigError> {
+        use visnav_link::config::{ListenError, parse_connection, probe_listen};
+        let mut p = Problems::default();
+        let busy = |p: &mut Problems, key: &str, r: Result<(), ListenError>| {
+            if let Err(e) = r
+                && e.in_use()
+            {
+                p.push(key, e.to_string());
+            }
+        };
+        if let Ok(endpoint) = parse_connection(&self.link.connection) {
+            busy(&mut p, "link.connection", endpoint.probe_listen());
+        }
+        for (key, addr) in [
+            ("daemon.metrics_listen", &self.daemon.metrics_listen),
+            ("link.metrics_listen", &self.link.metrics_listen),
+        ] {
+            if let Some(a) = addr {
+                busy(&mut p, key, probe_listen("TCP", a.trim()));
+            }
+        }
+        if p.list.is_empty() {
+            return Ok(());
+        }
+        p.list.iter_mut().for_each(|i| overrides.tag(i));
+        Err(ConfigError::Invalid {
+            path: path.to_path_buf(),
+            problems: p.list,
+        })
     }
 
     /// Read, parse and validate a configuration file.
@@ -492,10 +536,159 @@ impl Config {
 
     /// Read a configuration file, apply the overrides, validate.
     pub fn load_with(path: &Path, overrides: &Overrides) -> Result<Config, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|cause| ConfigError::Read {
-            path: path.to_path_buf(),
-            cause,
-        })?;
+        let text =
+            visnav_io::files::read_text(path, visnav_io::files::CONFIG).map_err(|cause| {
+                ConfigError::Read {
+                    path: path.to_path_buf(),
+                    cause,
+                }
+            })?;
         Self::from_toml_str_with(&text, path, overrides)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn naip() -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../sitl/maps/naip_nd_2009.tif")
+    }
+
+    /// A valid configuration with a directory camera source `frames`.
+    fn config_with_frames(frames: &Path) -> String {
+        format!(
+            "[link]\nconnection = \"udpin:127.0.0.1:14999\"\n[camera]\nwidth_px = 640\n\
+             height_px = 480\nhfov_deg = 60.0\n[map]\northo = [\"{}\"]\n\
+             ground_height_amsl_m = 580.0\n[frames]\nsource = \"directory\"\npath = \"{}\"\n",
+            naip().display(),
+            frames.display()
+        )
+    }
+
+    #[test]
+    fn a_configuration_naming_a_device_or_too_large_is_refused_not_read() {
+        let e = Config::load(Path::new("/dev/zero"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("/dev/zero: cannot read: a character device")
+                && e.contains("a TOML configuration must be a file"),
+            "{e}"
+        );
+        let d = tempfile::tempdir().unwrap();
+        let f = d.path().join("big.toml");
+        std::fs::write(&f, "#".repeat(5 << 20)).unwrap();
+        let e = Config::load(&f).unwrap_err().to_string();
+        assert!(e.contains("big.toml") && e.contains("4 MiB"), "{e}");
+    }
+
+    /// A listen port another socket holds is a problem naming the key and the port, for the
+    /// connection (every listening form) and the metrics endpoints; free, the check passes.
+    #[test]
+    fn a_busy_listen_port_is_reported_naming_the_key() {
+        let d = tempfile::tempdir().unwrap();
+        let udp = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+        let uport = udp.local_addr().unwrap().port();
+        let tcp = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let tport = tcp.local_addr().unwrap().port();
+        let cfg = d.path().join("c.toml");
+        let write = |connection: &str, metrics: &str| {
+            let text = format!(
+                "[link]\nconnection = \"{connection}\"\n[camera]\nwidth_px = 640\n\
+                 height_px = 480\nhfov_deg = 60.0\n[map]\northo = [\"{}\"]\n\
+                 ground_height_amsl_m = 580.0\n",
+                naip().display()
+            );
+            let text = if metrics.is_empty() {
+                text
+            } else {
+                format!("{text}[daemon]\nmetrics_listen = \"{metrics}\"\n")
+            };
+            std::fs::write(&cfg, text).unwrap();
+        };
+        for connection in [
+            format!("udpin:127.0.0.1:{uport}"),
+            format!("udp:127.0.0.1:{uport}"),
+        ] {
+            write(&connection, "");
+            let e = Config::load_checked(&cfg).unwrap_err().to_string();
+            assert!(
+                e.contains(&format!(
+                    "link.connection: UDP port {uport} (127.0.0.1:{uport}) is in use"
+                )),
+                "{e}"
+            );
+        }
+        write(
+            &format!("tcpin:127.0.0.1:{tport}"),
+            &format!("127.0.0.1:{tport}"),
+        );
+        let e = Config::load_checked(&cfg).unwrap_err().to_string();
+        assert!(
+            e.contains(&format!("link.connection: TCP port {tport}")),
+            "{e}"
+        );
+        assert!(
+            e.contains(&format!("daemon.metrics_listen: TCP port {tport}")),
+            "{e}"
+        );
+        // Overridden on the command line, the problem says so.
+        let o = Overrides::new(Some(format!("udp:127.0.0.1:{uport}")), None, None, &|_| {
+            None
+        });
+        let e = Config::load_checked_with(&cfg, &o).unwrap_err().to_string();
+        assert!(
+            e.contains("link.connection (from --connection): UDP port"),
+            "{e}"
+        );
+        // A sender has nothing to probe; freed ports pass.
+        write(&format!("udpout:127.0.0.1:{uport}"), "");
+        Config::load_checked(&cfg).unwrap();
+        drop((udp, tcp));
+        write(
+            &format!("udp:127.0.0.1:{uport}"),
+            &format!("127.0.0.1:{tport}"),
+        );
+        Config::load_checked(&cfg).unwrap();
+    }
+
+    /// check-config and run share `load_checked`: the frames.csv is read there as the source
+    /// reads it, so a file the source refuses fails the check, naming `frames.path` and the line.
+    #[test]
+    fn the_check_reads_frames_csv_as_the_source_does() {
+        let d = tempfile::tempdir().unwrap();
+        let frames = d.path().join("frames");
+        std::fs::create_dir(&frames).unwrap();
+        let cfg = d.path().join("c.toml");
+        std::fs::write(&cfg, config_with_frames(&frames)).unwrap();
+        let csv = frames.join("frames.csv");
+        for (text, want) in [
+            ("", ":1: empty"),
+            ("name,t_s\na.png,0\n", "header \"name,t_s\""),
+            ("file,t_s\na.png,NaN\n", ":2: t_s \"NaN\""),
+            ("file,t_s\na.png,inf\n", ":2: t_s \"inf\""),
+            (
+                "file,t_s\na.png,2\nb.png,1\n",
+                ":3: time \"1\" is not after",
+            ),
+            (
+                "file,t_boot_us\na.png,7\nb.png,7\n",
+                ":3: time \"7\" is not after",
+            ),
+            ("file,t_boot_us\na.png,-1\n", ":2: t_boot_us \"-1\""),
+            ("file,t_boot_us\na.png,2.5\n", ":2: t_boot_us \"2.5\""),
+        ] {
+            std::fs::write(&csv, text).unwrap();
+            // Parsed and validated alone it passes: the file is only read by the data check.
+            assert!(Config::load(&cfg).is_ok(), "{text:?}");
+            let e = Config::load_checked(&cfg).unwrap_err().to_string();
+            assert!(
+                e.contains("frames.path: ") && e.contains("frames.csv") && e.contains(want),
+                "{text:?}: {e}"
+            );
+        }
+        std::fs::write(&csv, "\u{feff}file,t_boot_us\na.png,7\nb.png,8\n").unwrap();
+        Config::load_checked(&cfg).unwrap();
     }
 }

@@ -81,7 +81,7 @@ const CAMERA_KEYS: [&str; 7] = [
 /// An override that cannot be applied (a `--camera` spec that names no source, or one given
 /// for a configuration without `[camera]`).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("{origin} {value}: {reason}")]
+#[error("{origin} {}: {reason}", visnav_core::text::excerpt(.value))]
 pub struct OverrideError {
     pub origin: Origin,
     pub value: String,

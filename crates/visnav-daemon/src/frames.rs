@@ -7,6 +7,9 @@
 //! A frame bit-identical to the one before it is dropped and counted ([`FreezeDetector`]): a
 //! frozen camera repeats its last buffer with new time stamps, and a fix on it would put the
 //! aircraft where it was when the camera froze, stamped now.
+//! Unreadable frames are skipped, counted (`visnav_frame_errors_total`) and warned about through
+//! a [`LogLimiter`]: a folder whose images are all missing says so in a few lines, not one per
+//! frame.
 
 use std::panic::AssertUnwindSafe;
 use std::sync::Arc;
@@ -23,7 +26,7 @@ use crate::metrics::DaemonMetrics;
 use visnav_core::fix::{FixPrior, FixReport};
 use visnav_core::vision::GrayImage;
 use visnav_io::frames::{CaptureTime, Frame, FrameError, FrameSource};
-use visnav_link::Clock;
+use visnav_link::{Clock, LogLimiter};
 
 /// Recognises a frozen camera: an image bit-identical to the previous one. A live sensor's
 /// noise makes two real frames differ in some pixel; a driver that stopped capturing hands out
@@ -158,6 +161,7 @@ pub fn spawn_reader(
             }
             info!("frames: {}", source.describe());
             let mut freeze = FreezeDetector::default();
+            let mut unreadable = LogLimiter::default();
             let mut skipped_before_now = 0u64;
             while !stop.load(Ordering::Relaxed) {
                 match source.next_frame() {
@@ -217,7 +221,10 @@ pub fn spawn_reader(
                     Err(e @ FrameError::Image { .. }) => {
                         // One unreadable image in a directory: skip it.
                         metrics.frame_errors.inc();
-                        warn!("frames: {e}; skipped");
+                        let t_s = clock.companion_now_ns() as f64 * 1e-9;
+                        if let Some(line) = unreadable.hit(t_s) {
+                            warn!("frames: {e}; skipped{}", line.suffix());
+                        }
                     }
                     Err(e) => {
                         metrics.frame_errors.inc();
@@ -225,6 +232,12 @@ pub fn spawn_reader(
                         break;
                     }
                 }
+            }
+            if let Some(line) = unreadable.flush() {
+                warn!(
+                    "frames: {} more unreadable frames skipped since the last such line ({} in all)",
+                    line.suppressed, line.total
+                );
             }
         })
 }
@@ -428,6 +441,7 @@ pub async fn lockstep_frames(
     info!("frames: {} (lock-step)", source.describe());
     let mut source = Some(source);
     let mut freeze = FreezeDetector::default();
+    let mut unreadable = LogLimiter::default();
     let mut tick = tokio::time::interval(period);
     loop {
         tokio::select! {
@@ -455,7 +469,10 @@ pub async fn lockstep_frames(
             Err(FrameError::NotReady) => continue,
             Err(e) => {
                 ctx.metrics.frame_errors.inc();
-                warn!("frames: {e}; skipped");
+                let t_s = ctx.clock.companion_now_ns() as f64 * 1e-9;
+                if let Some(line) = unreadable.hit(t_s) {
+                    warn!("frames: {e}; skipped{}", line.suffix());
+                }
                 continue;
             }
         };

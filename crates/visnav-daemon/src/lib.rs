@@ -19,8 +19,10 @@
 //! * the optional Prometheus endpoint (`[daemon] metrics_listen`, [`prometheus`]).
 //!
 //! Shutdown: [`Daemon::shutdown`] (or SIGINT/SIGTERM in [`run`]) closes the slot, stops the
-//! navigation task, joins the threads (waiting up to 5 s for a running fix) and shuts the link
-//! down (flushing the .tlog).
+//! navigation task, joins the threads (waiting at most [`THREAD_STOP_DEADLINE`] for them all: a
+//! thread still busy then is left behind and ends with the process, never holds it) and shuts
+//! the link down (flushing the .tlog). A second SIGINT/SIGTERM during the shutdown ends it at
+//! once.
 
 pub mod app_config;
 pub mod app_config_overrides;
@@ -62,7 +64,7 @@ use visnav_core::vision::GrayImage;
 use visnav_core::vo::{VoMotion, VoStep};
 use visnav_io::frames::{Frame, FrameError, FrameSource, FramesConfig};
 use visnav_link::config::{LinkConfig, OutputConfig};
-use visnav_link::{Health as LinkHealth, Link, LinkError, NavEstimate, Telemetry};
+use visnav_link::{Health as LinkHealth, Link, LinkError, LogLimiter, NavEstimate, Telemetry};
 
 pub use config::{DaemonConfig, GpsSource, ImuBiasRestore};
 pub use frames::{FixResult, Slot};
@@ -194,6 +196,15 @@ impl FramePipeline {
         })
     }
 }
+
+/// How long [`Daemon::shutdown`] waits for the frame threads, all together. A fix in progress
+/// ends well within it (a fix takes well under a second, a widened heading search a few); a
+/// thread still busy after it is stuck (a frame source blocked in a read or a long wait) and is
+/// left behind: waiting longer would only keep the process from ending.
+pub const THREAD_STOP_DEADLINE: Duration = Duration::from_secs(5);
+
+/// How often shutdown looks whether the threads have ended.
+const THREAD_STOP_POLL: Duration = Duration::from_millis(20);
 
 /// Output history and autopilot attitudes shared with the fix workers.
 struct SharedPriors {
@@ -418,6 +429,7 @@ impl Daemon {
             vo_log,
             vo_working: None,
             dtm_working: None,
+            lag_log: LogLimiter::default(),
         };
         // Every task and thread of the daemon runs in the caller's span (the simulator labels
         // its two daemons so).
@@ -551,14 +563,24 @@ impl Daemon {
         if let Some(t) = self.nav_task.take() {
             let _ = t.await;
         }
+        // Not joined on the blocking pool: the runtime waits for its blocking tasks when it is
+        // dropped, so a thread that never ends would hold the process (deaf to SIGTERM, as the
+        // signal handler is installed) until SIGKILL. The deadline is real time: it bounds how
+        // long the process takes to end.
+        let deadline = std::time::Instant::now() + THREAD_STOP_DEADLINE;
         for t in self.threads.drain(..) {
-            let name = t.thread().name().unwrap_or("thread").to_string();
-            let j = tokio::task::spawn_blocking(move || t.join());
-            if tokio::time::timeout(Duration::from_secs(5), j)
-                .await
-                .is_err()
-            {
-                warn!("{name} did not stop within 5 s (a fix still running); left behind");
+            while !t.is_finished() && std::time::Instant::now() < deadline {
+                tokio::time::sleep(THREAD_STOP_POLL).await;
+            }
+            if t.is_finished() {
+                let _ = t.join();
+            } else {
+                let name = t.thread().name().unwrap_or("thread").to_string();
+                warn!(
+                    "{name} did not stop within {} s of the shutdown; left behind (it ends with \
+                     the process)",
+                    THREAD_STOP_DEADLINE.as_secs()
+                );
             }
         }
         let snap = self.metrics.snapshot();
@@ -606,7 +628,14 @@ pub async fn run(
         _ = limit => "run duration elapsed".to_string(),
     };
     info!("shutting down: {why}");
-    let m = d.shutdown().await;
+    let before = d.metrics();
+    let m = tokio::select! {
+        m = d.shutdown() => m,
+        Ok(s) = visnav_link::shutdown_signal() => {
+            warn!("{s} during the shutdown: ending without waiting for the tasks");
+            before
+        }
+    };
     match serde_json::to_string(&m) {
         Ok(json) => info!("final counters: {json}"),
         Err(e) => info!("final counters: cannot be written as JSON: {e}"),
@@ -649,6 +678,8 @@ struct NavTask {
     vo_working: Option<bool>,
     /// The DTM navigator's (poses or refusals).
     dtm_working: Option<bool>,
+    /// Rate limit of the "fell behind" warning (a starved task lags again and again).
+    lag_log: LogLimiter,
 }
 
 impl NavTask {
@@ -676,7 +707,13 @@ impl NavTask {
                     Ok(t) => self.telemetry(&t),
                     Err(broadcast::error::RecvError::Lagged(n)) => {
                         self.metrics.telemetry_lagged.inc_by(n);
-                        warn!("navigation task fell behind: {n} telemetry messages lost");
+                        let t_s = self.link.companion_now_ns() as f64 * 1e-9;
+                        if let Some(line) = self.lag_log.hit(t_s) {
+                            warn!(
+                                "navigation task fell behind: {n} telemetry messages lost{}",
+                                line.suffix()
+                            );
+                        }
                     }
                     Err(broadcast::error::RecvError::Closed) => return,
                 },

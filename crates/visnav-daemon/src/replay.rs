@@ -122,6 +122,11 @@ pub struct KindStats {
 pub struct ReplayReport {
     /// Packets in the log.
     pub packets: u64,
+    /// Bytes of the log that were no record (damage, junk, a truncated end), skipped to
+    /// resynchronise on the next record ([`visnav_link::tlog::scan_tlog`]).
+    pub skipped_bytes: u64,
+    /// Places where bytes were skipped.
+    pub skipped_runs: u64,
     /// Packets that did not decode (CRC, unknown message, a time stamp past the year 2262).
     pub undecodable: u64,
     /// Packets from the autopilot.
@@ -297,6 +302,20 @@ fn apply_meas(
         sigma,
         filter_sigma,
     });
+}
+
+/// Replay the records of a .tlog read with [`visnav_link::tlog::scan_tlog`] ([`replay`]), the
+/// report counting what the reading skipped.
+pub fn replay_tlog(
+    log: &visnav_link::tlog::TlogContents,
+    fixes: &[FixLogRecord],
+    vo: &[(u64, VoFix)],
+    opts: &ReplayOptions,
+) -> ReplayReport {
+    let mut rep = replay(&log.records, fixes, vo, opts);
+    rep.skipped_bytes = log.skipped_bytes;
+    rep.skipped_runs = log.skipped_runs;
+    rep
 }
 
 /// Replay `records` (from [`visnav_link::tlog::read_tlog`]), with the vision fixes of a fix log

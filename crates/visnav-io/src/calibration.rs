@@ -12,11 +12,17 @@
 //! its pixel convention OpenCV's (the top-left pixel's centre at 0, 0), so the numbers are copied
 //! unchanged. Other models (fisheye / equidistant, omnidirectional, k4-k6 in use, skew) are
 //! refused with what to do. Not a general YAML reader: the `key: value` and `key: [list]`
-//! lines these tools write, nested by indentation.
+//! lines these tools write, nested by indentation. A key given twice is refused (which one the
+//! tool meant is unknowable), a matrix's `rows` x `cols` must match its `data`, a leading UTF-8
+//! byte order mark is ignored, and OpenCV's XML form of `FileStorage` is refused by name (save
+//! the calibration as YAML). A file without distortion coefficients is read as distortion-free
+//! with a note ([`Calibration::notes`]) that says so.
 
 use std::path::{Path, PathBuf};
 
 use visnav_core::camera::{CameraConfig, DistortionConfig};
+
+use visnav_core::text::{num, quote};
 
 /// Why a calibration file could not be read. Every variant names the file.
 #[derive(Debug, thiserror::Error)]
@@ -38,6 +44,11 @@ pub enum CalibrationError {
         "{path}: {what}; visnav's model is the pinhole camera with OpenCV's k1, k2, p1, p2, k3: calibrate with that model"
     )]
     Unsupported { path: PathBuf, what: String },
+    #[error(
+        "{path}: an OpenCV FileStorage XML file, which visnav does not read: save the calibration \
+         as YAML (cv::FileStorage writes YAML when the file name ends in .yaml or .yml) and import that"
+    )]
+    Xml { path: PathBuf },
 }
 
 /// Which tool wrote the file.
@@ -65,19 +76,29 @@ pub struct Calibration {
     pub camera: CameraConfig,
     pub format: CalibrationFormat,
     pub camera_name: Option<String>,
+    /// What the import assumed that the file did not say (no distortion coefficients): for the
+    /// user to read before flying with it.
+    pub notes: Vec<String>,
 }
 
 /// Largest skew accepted, as a fraction of fx (visnav's pinhole has none).
 const MAX_SKEW_FRACTION: f64 = 1e-6;
+
+/// The note for a calibration without distortion coefficients.
+const NO_DISTORTION_NOTE: &str = "the file gives no distortion coefficients: written as a \
+distortion-free lens (k1 = k2 = p1 = p2 = k3 = 0); unless the lens really has none, calibrate \
+with distortion, or the fixes will be off towards the image edges";
 
 /// Read `path`; for a Kalibr camchain with several cameras, `camera` names the one (`cam0`, ...).
 pub fn read_calibration(
     path: &Path,
     camera: Option<&str>,
 ) -> Result<Calibration, CalibrationError> {
-    let text = std::fs::read_to_string(path).map_err(|source| CalibrationError::Read {
-        path: path.to_path_buf(),
-        cause: source,
+    let text = crate::files::read_text(path, crate::files::CALIBRATION).map_err(|source| {
+        CalibrationError::Read {
+            path: path.to_path_buf(),
+            cause: source,
+        }
     })?;
     parse_calibration(&text, path, camera)
 }
@@ -88,7 +109,20 @@ pub fn parse_calibration(
     path: &Path,
     camera: Option<&str>,
 ) -> Result<Calibration, CalibrationError> {
-    let doc = Doc::parse(text);
+    let text = text.strip_prefix(crate::files::BOM).unwrap_or(text);
+    let head = text.trim_start();
+    if head.starts_with("<?xml") || head.starts_with("<opencv_storage") {
+        return Err(CalibrationError::Xml {
+            path: path.to_path_buf(),
+        });
+    }
+    let doc = Doc::parse(text).map_err(|(key, first, second)| CalibrationError::Bad {
+        path: path.to_path_buf(),
+        key,
+        reason: format!(
+            "given twice (lines {first} and {second}): which one is meant is unknowable; keep one"
+        ),
+    })?;
     let r = Reader { doc: &doc, path };
     let kalibr: Vec<String> = doc
         .entries
@@ -102,8 +136,12 @@ pub fn parse_calibration(
         Some(c) if kalibr.iter().any(|k| k == c) => c.to_string(),
         Some(c) => {
             return Err(r.bad(
-                c,
-                format!("no such camera; the file has {}", kalibr.join(", ")),
+                "--camera",
+                format!(
+                    "no such camera {}; the file has {}",
+                    quote(c),
+                    kalibr.join(", ")
+                ),
             ));
         }
         None if kalibr.len() == 1 => kalibr[0].clone(),
@@ -127,11 +165,14 @@ struct Doc {
 }
 
 impl Doc {
-    fn parse(text: &str) -> Self {
+    /// The entries; a dotted key given twice is `Err((key, first line, second line))`.
+    fn parse(text: &str) -> Result<Self, (String, usize, usize)> {
         let mut entries = Vec::new();
+        // The line each key was given on (1-based), for a key given twice.
+        let mut seen: std::collections::HashMap<String, usize> = std::collections::HashMap::new();
         let mut stack: Vec<(usize, String)> = Vec::new();
-        let mut lines = text.lines();
-        while let Some(raw) = lines.next() {
+        let mut lines = text.lines().enumerate();
+        while let Some((index, raw)) = lines.next() {
             let line = raw.split(" #").next().unwrap_or_default();
             let content = line.trim();
             if content.is_empty()
@@ -169,14 +210,18 @@ impl Doc {
             }
             if value.starts_with('[') {
                 while !value.contains(']') {
-                    let Some(more) = lines.next() else { break };
+                    let Some((_, more)) = lines.next() else { break };
                     value.push(' ');
                     value.push_str(more.split(" #").next().unwrap_or_default().trim());
                 }
             }
+            if let Some(&first) = seen.get(&path) {
+                return Err((path, first, index + 1));
+            }
+            seen.insert(path.clone(), index + 1);
             entries.push((path, value));
         }
-        Self { entries }
+        Ok(Self { entries })
     }
 
     fn get(&self, key: &str) -> Option<&str> {
@@ -219,7 +264,7 @@ impl Reader<'_> {
         v.parse::<u32>()
             .ok()
             .filter(|&n| n > 0)
-            .ok_or_else(|| self.bad(key, format!("{v} is not an image size in pixels")))
+            .ok_or_else(|| self.bad(key, format!("{} is not an image size in pixels", quote(v))))
     }
 
     fn list(&self, key: &str) -> Result<Vec<f64>, CalibrationError> {
@@ -228,7 +273,7 @@ impl Reader<'_> {
             .trim()
             .strip_prefix('[')
             .and_then(|s| s.strip_suffix(']'))
-            .ok_or_else(|| self.bad(key, format!("{v} is not a [list]")))?;
+            .ok_or_else(|| self.bad(key, format!("{} is not a [list]", quote(v))))?;
         inner
             .split(',')
             .map(str::trim)
@@ -237,7 +282,7 @@ impl Reader<'_> {
                 s.parse::<f64>()
                     .ok()
                     .filter(|x| x.is_finite())
-                    .ok_or_else(|| self.bad(key, format!("{s} is not a number")))
+                    .ok_or_else(|| self.bad(key, format!("{} is not a number", quote(s))))
             })
             .collect()
     }
@@ -249,34 +294,63 @@ impl Reader<'_> {
         }
     }
 
+    /// A matrix's `data` (`name.data`), checked against its `rows` and `cols` when given.
+    fn matrix(&self, name: &str) -> Result<Vec<f64>, CalibrationError> {
+        let data = self.list(&format!("{name}.data"))?;
+        let dim = |k: &str| -> Result<Option<u64>, CalibrationError> {
+            let key = format!("{name}.{k}");
+            match self.doc.get(&key) {
+                None => Ok(None),
+                Some(v) => v
+                    .parse::<u64>()
+                    .map(Some)
+                    .map_err(|_| self.bad(&key, format!("{} is not a count", quote(v)))),
+            }
+        };
+        if let (Some(rows), Some(cols)) = (dim("rows")?, dim("cols")?)
+            && rows.checked_mul(cols) != Some(data.len() as u64)
+        {
+            return Err(self.bad(
+                name,
+                format!(
+                    "rows {rows} x cols {cols} does not match the {} values of its data",
+                    data.len()
+                ),
+            ));
+        }
+        Ok(data)
+    }
+
     fn opencv_or_ros(&self) -> Result<Calibration, CalibrationError> {
         let (w, h) = (self.size("image_width")?, self.size("image_height")?);
-        let k = self.list("camera_matrix.data")?;
+        let k = self.matrix("camera_matrix")?;
         if k.len() != 9 {
             return Err(self.bad("camera_matrix.data", format!("{} values, not 9", k.len())));
         }
         if k[1].abs() > MAX_SKEW_FRACTION * k[0].abs() || k[3] != 0.0 || k[6..] != [0.0, 0.0, 1.0] {
             return Err(self.unsupported(format!(
                 "camera_matrix [{}] is not a zero-skew pinhole matrix",
-                k.iter()
-                    .map(|v| v.to_string())
-                    .collect::<Vec<_>>()
-                    .join(", ")
+                k.iter().map(|&v| num(v)).collect::<Vec<_>>().join(", ")
             )));
         }
         let model = self.text("distortion_model");
         let d = match self.doc.get("distortion_coefficients.data") {
-            Some(_) => self.list("distortion_coefficients.data")?,
+            Some(_) => self.matrix("distortion_coefficients")?,
             None => Vec::new(),
         };
         let distortion = match model.as_deref() {
             None | Some("plumb_bob") | Some("rational_polynomial") => self.opencv_coeffs(&d)?,
-            Some(m) => return Err(self.unsupported(format!("distortion_model {m}"))),
+            Some(m) => return Err(self.unsupported(format!("distortion_model {}", quote(m)))),
         };
         Ok(Calibration {
             camera: camera(w, h, [k[0], k[4], k[2], k[5]], distortion),
             format: CalibrationFormat::OpenCvOrRos,
             camera_name: self.text("camera_name"),
+            notes: if d.is_empty() {
+                vec![NO_DISTORTION_NOTE.to_string()]
+            } else {
+                Vec::new()
+            },
         })
     }
 
@@ -310,7 +384,7 @@ impl Reader<'_> {
         if model.as_deref() != Some("pinhole") {
             return Err(self.unsupported(format!(
                 "{cam}: camera_model {}",
-                model.as_deref().unwrap_or("(none)")
+                model.as_deref().map_or("(none)".to_string(), quote)
             )));
         }
         let f = self.list(&key("intrinsics"))?;
@@ -324,9 +398,10 @@ impl Reader<'_> {
         let size = |v: f64| {
             (v >= 1.0 && v.fract() == 0.0 && v <= f64::from(u32::MAX))
                 .then_some(v as u32)
-                .ok_or_else(|| self.bad(&key("resolution"), format!("{v} is not a size")))
+                .ok_or_else(|| self.bad(&key("resolution"), format!("{} is not a size", num(v))))
         };
         let (w, h) = (size(res[0])?, size(res[1])?);
+        let mut notes = Vec::new();
         let distortion = match self.text(&key("distortion_model")).as_deref() {
             Some("radtan") => {
                 let d = self.list(&key("distortion_coeffs"))?;
@@ -338,13 +413,21 @@ impl Reader<'_> {
                 }
                 self.opencv_coeffs(&d)?
             }
-            Some("none") | None => DistortionConfig::default(),
-            Some(m) => return Err(self.unsupported(format!("{cam}: distortion_model {m}"))),
+            // Said so by the file: a lens without distortion, nothing assumed.
+            Some("none") => DistortionConfig::default(),
+            None => {
+                notes.push(NO_DISTORTION_NOTE.to_string());
+                DistortionConfig::default()
+            }
+            Some(m) => {
+                return Err(self.unsupported(format!("{cam}: distortion_model {}", quote(m))));
+            }
         };
         Ok(Calibration {
             camera: camera(w, h, [f[0], f[1], f[2], f[3]], distortion),
             format: CalibrationFormat::Kalibr,
             camera_name: Some(cam.to_string()),
+            notes,
         })
     }
 }
@@ -372,14 +455,15 @@ pub fn camera_toml(cal: &Calibration, source: &Path) -> String {
     let c = &cal.camera;
     let d = &c.distortion;
     let num = |v: Option<f64>| v.map_or("0".to_string(), |x| format!("{x}"));
+    let notes: String = cal.notes.iter().map(|n| format!("# note: {n}\n")).collect();
     format!(
-        "# from {} ({}{})\n[camera]\nwidth_px = {}\nheight_px = {}\nfx_px = {}\nfy_px = {}\n\
+        "# from {} ({}{})\n{notes}[camera]\nwidth_px = {}\nheight_px = {}\nfx_px = {}\nfy_px = {}\n\
          cx_px = {}\ncy_px = {}\n\n[camera.distortion]\nk1 = {}\nk2 = {}\np1 = {}\np2 = {}\nk3 = {}\n",
         source.display(),
         cal.format,
         cal.camera_name
-            .as_ref()
-            .map(|n| format!(", camera {n}"))
+            .as_deref()
+            .map(|n| format!(", camera {}", quote(n)))
             .unwrap_or_default(),
         c.width_px,
         c.height_px,
@@ -482,7 +566,7 @@ mod tests {
         assert!(e.contains("cam0, cam1") && e.contains("choose"), "{e}");
         let e = parse(KALIBR, Some("cam1")).unwrap_err().to_string();
         assert!(
-            e.contains("camera_model omni") && e.contains("pinhole"),
+            e.contains("camera_model \"omni\"") && e.contains("pinhole"),
             "{e}"
         );
         let e = parse(KALIBR, Some("cam7")).unwrap_err().to_string();
@@ -493,11 +577,13 @@ mod tests {
     fn other_models_and_broken_files_are_refused_by_name() {
         let fisheye = ROS.replace("plumb_bob", "equidistant");
         let e = parse(&fisheye, None).unwrap_err().to_string();
-        assert!(e.contains("distortion_model equidistant"), "{e}");
-        let rational = ROS.replace(
-            "[-0.12, 0.05, 0.001, -0.0005, 0]",
-            "[-0.12, 0.05, 0.001, -0.0005, 0, 0.3, 0, 0]",
-        );
+        assert!(e.contains("distortion_model \"equidistant\""), "{e}");
+        let rational = ROS
+            .replace(
+                "[-0.12, 0.05, 0.001, -0.0005, 0]",
+                "[-0.12, 0.05, 0.001, -0.0005, 0, 0.3, 0, 0]",
+            )
+            .replace("  cols: 5\n", "  cols: 8\n");
         let e = parse(&rational, None).unwrap_err().to_string();
         assert!(e.contains("beyond k3"), "{e}");
         let zeros = rational.replace("0, 0.3, 0, 0]", "0, 0, 0, 0]");
@@ -513,5 +599,115 @@ mod tests {
         assert!(e.contains("camera_matrix.data"), "{e}");
         assert!(parse("", None).is_err());
         assert!(parse("::: [[[", None).is_err());
+    }
+
+    #[test]
+    fn a_key_given_twice_is_refused_naming_both_lines() {
+        let twice = ROS.replace(
+            "image_height: 720\n",
+            "image_height: 720\nimage_width: 1920\n",
+        );
+        let e = parse(&twice, None).unwrap_err().to_string();
+        assert!(
+            e.contains("`image_width`") && e.contains("lines 1 and 3"),
+            "{e}"
+        );
+        let two_matrices = format!("{ROS}camera_matrix:\n  data: [1, 0, 0, 0, 1, 0, 0, 0, 1]\n");
+        let e = parse(&two_matrices, None).unwrap_err().to_string();
+        assert!(
+            e.contains("camera_matrix.data") && e.contains("twice"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_matrix_size_that_disagrees_with_its_data_is_refused() {
+        let e = parse(&ROS.replace("  rows: 1\n", "  rows: 999999999999\n"), None)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("distortion_coefficients") && e.contains("rows 999999999999 x cols 5"),
+            "{e}"
+        );
+        let e = parse(
+            &ROS.replace("  rows: 3\n  cols: 3\n", "  rows: 3\n  cols: x\n"),
+            None,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("camera_matrix.cols") && e.contains("\"x\""),
+            "{e}"
+        );
+        // The OpenCV and ROS examples' sizes agree with their data.
+        assert!(parse(OPENCV, None).is_ok());
+    }
+
+    #[test]
+    fn no_distortion_coefficients_is_said_not_assumed_silently() {
+        let empty = ROS.replace("[-0.12, 0.05, 0.001, -0.0005, 0]", "[]");
+        let empty = empty.replace("  rows: 1\n  cols: 5\n", "  rows: 1\n  cols: 0\n");
+        let cal = parse(&empty, None).unwrap();
+        assert_eq!(cal.camera.distortion, DistortionConfig::default());
+        assert_eq!(cal.notes.len(), 1);
+        assert!(cal.notes[0].contains("no distortion coefficients"));
+        let text = camera_toml(&cal, Path::new("cal.yaml"));
+        assert!(
+            text.contains("# note: the file gives no distortion"),
+            "{text}"
+        );
+        round_trip(&cal);
+        assert!(parse(ROS, None).unwrap().notes.is_empty());
+        // Kalibr's explicit "none" says it; a missing model is noted.
+        let none = KALIBR.replace("distortion_model: radtan", "distortion_model: none");
+        assert!(parse(&none, Some("cam0")).unwrap().notes.is_empty());
+        let missing = KALIBR.replace("  distortion_model: radtan\n", "");
+        assert_eq!(parse(&missing, Some("cam0")).unwrap().notes.len(), 1);
+    }
+
+    #[test]
+    fn byte_order_mark_and_xml() {
+        let cal = parse(&format!("\u{feff}{ROS}"), None).unwrap();
+        assert_eq!(cal.camera.width_px, 1280);
+        let xml = "<?xml version=\"1.0\"?>\n<opencv_storage>\n<image_width>640</image_width>\n\
+                   </opencv_storage>\n";
+        let e = parse(xml, None).unwrap_err().to_string();
+        assert!(
+            e.contains("cal.yaml") && e.contains("XML") && e.contains(".yaml"),
+            "{e}"
+        );
+        assert!(!e.contains("image_width"), "{e}");
+    }
+
+    #[test]
+    fn a_huge_value_is_quoted_by_a_short_prefix() {
+        let long = "7".repeat(10_000_000);
+        let e = parse(
+            &ROS.replace("image_width: 1280", &format!("image_width: {long}")),
+            None,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.len() < 300 && e.contains("(10000000 bytes)"), "{e}");
+        let e = parse(&ROS.replace("910.5, 0, 640.2", "910.5, 1e300, 640.2"), None)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("1e300") && e.len() < 400, "{e}");
+    }
+
+    #[test]
+    fn reading_refuses_a_device_and_an_oversized_file() {
+        let e = read_calibration(Path::new("/dev/zero"), None)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("/dev/zero") && e.contains("not a regular file"),
+            "{e}"
+        );
+        let d = tempfile::tempdir().unwrap();
+        let f = d.path().join("big.yaml");
+        std::fs::write(&f, vec![b'#'; 2 << 20]).unwrap();
+        let e = read_calibration(&f, None).unwrap_err().to_string();
+        assert!(e.contains("big.yaml") && e.contains("1 MiB"), "{e}");
     }
 }

@@ -55,8 +55,16 @@
 //! * `t_s`: capture time in seconds from any origin (e.g. the companion's clock when recorded);
 //!   only the differences are used, for pacing; frames are then stamped on arrival.
 //!
-//! Times must be strictly increasing. Images are any format the `image` crate reads (PNG, JPEG,
-//! TIFF), converted to gray with the BT.601 luma weights (`vision::GrayImageFile::load`).
+//! Times no recording has are refused when the file is read, naming the line: `t_boot_us` above
+//! [`MAX_T_BOOT_US`] (31.7 years after boot), `t_s` beyond ±[`MAX_T_S`] (the year 2286 as seconds
+//! since 1970). Legal times may still lie far apart: [`Paced`] never sleeps longer than
+//! [`PACE_POLL`] in one call, whatever the gap to the next frame.
+//!
+//! Times must be strictly increasing. A leading UTF-8 byte order mark is ignored; the file is at
+//! most [`crate::files::FRAMES_CSV`]'s size and each image at most [`crate::files::IMAGE`]'s.
+//! [`check_files`] reads it as [`open`] does, for `visnav check-config`. Images are any format
+//! the `image` crate reads (PNG, JPEG, TIFF), converted to gray with the BT.601 luma weights
+//! (`vision::GrayImageFile::load`).
 //!
 //! # YUV4MPEG2
 //! Header `YUV4MPEG2 W<width> H<height> F<num>:<den> [I..] [A..] [C<colour space>] [X..]`, then
@@ -361,7 +369,10 @@ impl FramesConfig {
         } else if !in_path(&prog) {
             p.push(
                 key,
-                format!("the program \"{prog}\" is not found (not a file / not in PATH)"),
+                format!(
+                    "the program {} is not found (not a file / not in PATH)",
+                    visnav_core::text::quote(&prog)
+                ),
             );
         }
     }
@@ -462,7 +473,7 @@ impl FramesConfig {
         } else {
             Err(SpecError(format!(
                 "{} is neither a folder of frames nor a .y4m file ({}); {SPEC_FORMS}",
-                base.resolve(path).display(),
+                visnav_core::text::excerpt(&base.resolve(path).display().to_string()),
                 base.rule()
             )))
         }
@@ -531,10 +542,10 @@ impl Validate for FramesConfig {
                 p.push(
                     "pipeline",
                     format!(
-                        "\"{}\" has an empty element (a leading or trailing \"!\", or \"! !\"): \
+                        "{} has an empty element (a leading or trailing \"!\", or \"! !\"): \
                          give the elements up to the raw video, e.g. \"v4l2src device=/dev/video0\"; \
                          visnav appends \"! videoconvert ! ... ! fdsink\"",
-                        self.pipeline.as_deref().unwrap_or_default()
+                        visnav_core::text::quote(self.pipeline.as_deref().unwrap_or_default())
                     ),
                 )
             }
@@ -686,15 +697,36 @@ pub fn releases_on_autopilot_clock(cfg: &FramesConfig) -> bool {
 // ---------------------------------------------------------------------------------------------
 // Pacing
 
+/// Longest one [`Paced::next_frame`] call sleeps for a frame not yet due. A recording's next
+/// frame may be due hours or years later (a gap in `frames.csv`); a call that slept until then
+/// would hold its thread past any shutdown deadline, so the pacer sleeps at most this long and
+/// answers [`FrameError::NotReady`]. 20 ms keeps the caller's stop checks within a frame period
+/// at 50 Hz while costing about 50 wake-ups a second only while waiting. A caller that waits
+/// between calls on `NotReady` must wait less than this to keep frames released on time (the
+/// pacer returns with at least this much still to wait).
+pub const PACE_POLL: Duration = Duration::from_millis(20);
+
+/// Most seconds a frame is paced after the first: `Duration::from_secs_f64` panics on what it
+/// cannot hold and `Instant + Duration` on overflow. Twice [`MAX_T_S`] covers every span
+/// `frames.csv` may hold (the times lie in `[-MAX_T_S, MAX_T_S]`); a fixed `rate_hz` reaches it
+/// only after more frames than any recording has.
+const MAX_PACE_S: f64 = 2.0 * MAX_T_S;
+
 /// Releases the frames of a recording at its rate (or a fixed `rate_hz`), restamping them with
-/// the release instant when `stamp_arrival`.
+/// the release instant when `stamp_arrival`. A frame not yet due is held and
+/// [`FrameError::NotReady`] answered after at most [`PACE_POLL`], so that the caller keeps
+/// control (checks its stop flag) however far apart the recorded frames are.
 pub struct Paced {
     inner: Box<dyn FrameSource>,
     realtime: bool,
     rate_hz: Option<f64>,
     stamp_arrival: bool,
     start: Option<(Instant, f64)>,
+    /// Frames released (the next one's index at a fixed `rate_hz`).
     n: u64,
+    /// A frame read from `inner` but not yet due, with its due instant (`None`: never, its time
+    /// is beyond what an `Instant` holds).
+    pending: Option<(Frame, Option<Instant>)>,
     /// Not paced here: the daemon releases the frames on the autopilot's clock (describe only).
     on_autopilot_clock: bool,
 }
@@ -714,26 +746,58 @@ impl Paced {
             stamp_arrival,
             start: None,
             n: 0,
+            pending: None,
             on_autopilot_clock: false,
         }
+    }
+
+    /// When `f` is due: its time after the first frame's (or its index at a fixed `rate_hz`)
+    /// after the first frame's release; `None` when that instant is beyond what an `Instant`
+    /// holds (never due).
+    fn due(&mut self, f: &Frame) -> Option<Instant> {
+        let t_rel = match self.rate_hz {
+            Some(r) => self.n as f64 / r,
+            None => f.t_rel_s,
+        };
+        let (t0, rel0) = *self.start.get_or_insert((Instant::now(), t_rel));
+        // A NaN (no valid rate) counts as due now (`clamp` would keep it), and the bounds keep
+        // the conversion below from panicking.
+        let after = t_rel - rel0;
+        let after = if after > 0.0 {
+            after.min(MAX_PACE_S)
+        } else {
+            0.0
+        };
+        t0.checked_add(Duration::from_secs_f64(after))
     }
 }
 
 impl FrameSource for Paced {
     fn next_frame(&mut self) -> Result<Option<Frame>, FrameError> {
-        let Some(mut f) = self.inner.next_frame()? else {
-            return Ok(None);
+        let (mut f, due) = match self.pending.take() {
+            Some(held) => held,
+            None => {
+                let Some(f) = self.inner.next_frame()? else {
+                    return Ok(None);
+                };
+                let due = self.realtime.then(|| self.due(&f)).flatten();
+                (f, due)
+            }
         };
         if self.realtime {
-            let t_rel = match self.rate_hz {
-                Some(r) => self.n as f64 / r,
-                None => f.t_rel_s,
-            };
-            let (t0, rel0) = *self.start.get_or_insert((Instant::now(), t_rel));
-            let due = t0 + Duration::from_secs_f64((t_rel - rel0).clamp(0.0, 1e7));
             let now = Instant::now();
-            if due > now {
-                std::thread::sleep(due - now);
+            let left = due.map(|d| d.saturating_duration_since(now));
+            match left {
+                Some(left) if left <= PACE_POLL => std::thread::sleep(left),
+                _ => {
+                    // Not due within one poll: sleep part of it, leaving at least one poll to
+                    // go, so that a caller's own short wait on `NotReady` does not make the
+                    // release late.
+                    let nap = left.map_or(PACE_POLL, |l| (l - PACE_POLL).min(PACE_POLL));
+                    std::thread::sleep(nap);
+                    self.pending = Some((f, due));
+                    return Err(FrameError::NotReady);
+                }
             }
         }
         self.n += 1;
@@ -766,6 +830,18 @@ impl FrameSource for Paced {
 /// Name of the timestamps file in an image directory.
 pub const FRAMES_CSV: &str = "frames.csv";
 
+/// Largest magnitude of a `frames.csv` `t_s`, s. The column is "seconds from any origin", and
+/// the likeliest far origin is 1970 (a companion's wall clock, a ROS stamp: 1.8e9 s today), so
+/// 1e10 s (the year 2286) passes every real clock; beyond it the value is a typo or hostile,
+/// and pacing to it would mean waiting centuries. At this magnitude an `f64` still resolves
+/// 2 µs, so the differences used for pacing stay exact enough.
+pub const MAX_T_S: f64 = 1e10;
+
+/// Largest `frames.csv` `t_boot_us`, µs: 1e15 µs is 31.7 years since the autopilot booted, past
+/// any flight; a larger value is a typo, a Unix-epoch time in the wrong column (1.8e15 µs today),
+/// or hostile, and the daemon would wait for the autopilot's clock to reach it.
+pub const MAX_T_BOOT_US: u64 = 1_000_000_000_000_000;
+
 #[derive(Debug, Clone, PartialEq)]
 struct Entry {
     file: PathBuf,
@@ -784,9 +860,11 @@ impl DirectorySource {
     /// Read `dir/frames.csv` (the images are read one by one by [`FrameSource::next_frame`]).
     pub fn open(dir: &Path) -> Result<Self, FrameError> {
         let csv = dir.join(FRAMES_CSV);
-        let text = std::fs::read_to_string(&csv).map_err(|source| FrameError::Io {
-            path: csv.clone(),
-            cause: source,
+        let text = crate::files::read_text(&csv, crate::files::FRAMES_CSV).map_err(|source| {
+            FrameError::Io {
+                path: csv.clone(),
+                cause: source,
+            }
         })?;
         let entries = parse_frames_csv(&text, &csv)?;
         Ok(Self {
@@ -807,12 +885,16 @@ impl DirectorySource {
     }
 }
 
+/// The entries of a `frames.csv` (see the module docs); a leading UTF-8 byte order mark is not
+/// part of the header.
 fn parse_frames_csv(text: &str, path: &Path) -> Result<Vec<Entry>, FrameError> {
+    use visnav_core::text::{num, quote};
     let err = |line: usize, reason: String| FrameError::Csv {
         path: path.to_path_buf(),
         line,
         reason,
     };
+    let text = text.strip_prefix(crate::files::BOM).unwrap_or(text);
     let mut lines = text
         .lines()
         .enumerate()
@@ -831,12 +913,18 @@ fn parse_frames_csv(text: &str, path: &Path) -> Result<Vec<Entry>, FrameError> {
         _ => {
             return Err(err(
                 hl,
-                format!("header \"{header}\": expected \"file,t_boot_us\" or \"file,t_s\""),
+                format!(
+                    "header {}: expected \"file,t_boot_us\" or \"file,t_s\"",
+                    quote(header)
+                ),
             ));
         }
     };
     let mut out: Vec<Entry> = Vec::new();
     let mut t0: Option<f64> = None;
+    // The previous row's time as read: comparing against `t_rel_s + t0` would round and could
+    // let two equal times far from zero pass as increasing.
+    let mut prev: Option<(f64, Option<u64>)> = None;
     for (ln, l) in lines {
         let parts: Vec<&str> = l.split(',').map(str::trim).collect();
         let [file, t] = parts.as_slice() else {
@@ -849,30 +937,63 @@ fn parse_frames_csv(text: &str, path: &Path) -> Result<Vec<Entry>, FrameError> {
             return Err(err(ln, "empty file name".into()));
         }
         let (t_s, t_boot_us) = if boot {
-            let us: u64 = t.parse().map_err(|_| {
+            let too_large = || {
                 err(
                     ln,
-                    format!("t_boot_us \"{t}\" is not a non-negative integer"),
+                    format!(
+                        "t_boot_us {} is beyond {MAX_T_BOOT_US} (31.7 years after the \
+                         autopilot's boot): no recording has it",
+                        quote(t)
+                    ),
                 )
+            };
+            let us: u64 = t.parse().map_err(|_| {
+                // All digits but no u64: a number too large, not a malformed one.
+                if !t.is_empty() && t.bytes().all(|b| b.is_ascii_digit()) {
+                    too_large()
+                } else {
+                    err(
+                        ln,
+                        format!("t_boot_us {} is not a non-negative integer", quote(t)),
+                    )
+                }
             })?;
+            if us > MAX_T_BOOT_US {
+                return Err(too_large());
+            }
             (us as f64 * 1e-6, Some(us))
         } else {
             let s: f64 = t
                 .parse()
                 .ok()
                 .filter(|v: &f64| v.is_finite())
-                .ok_or_else(|| err(ln, format!("t_s \"{t}\" is not a finite number")))?;
-            (s, None)
-        };
-        if let Some(prev) = out.last() {
-            let prev_t = prev.t_rel_s + t0.unwrap_or(0.0);
-            if t_s <= prev_t {
+                .ok_or_else(|| err(ln, format!("t_s {} is not a finite number", quote(t))))?;
+            if s.abs() > MAX_T_S {
                 return Err(err(
                     ln,
-                    format!("time {t} is not after the previous frame's"),
+                    format!(
+                        "t_s {} is outside [-{max}, {max}] s (seconds since 1970 are about \
+                         1.8e9): no recording has it",
+                        num(s),
+                        max = format!("{MAX_T_S:e}")
+                    ),
+                ));
+            }
+            (s, None)
+        };
+        if let Some((prev_s, prev_us)) = prev {
+            let after = match (t_boot_us, prev_us) {
+                (Some(us), Some(p)) => us > p,
+                _ => t_s > prev_s,
+            };
+            if !after {
+                return Err(err(
+                    ln,
+                    format!("time {} is not after the previous frame's", quote(t)),
                 ));
             }
         }
+        prev = Some((t_s, t_boot_us));
         let base = *t0.get_or_insert(t_s);
         out.push(Entry {
             file: PathBuf::from(file),
@@ -884,6 +1005,18 @@ fn parse_frames_csv(text: &str, path: &Path) -> Result<Vec<Entry>, FrameError> {
         return Err(err(hl, "no frames listed".into()));
     }
     Ok(out)
+}
+
+/// Read what `open` reads before the first frame, without starting anything: a directory's
+/// `frames.csv` (parsed and checked as the source parses it) or a y4m file's header. `visnav
+/// check-config` calls it so that what it passes, `visnav run` opens. Live sources (`command`,
+/// `gstreamer`, `v4l2`) are not started here.
+pub fn check_files(cfg: &FramesConfig) -> Result<(), FrameError> {
+    match cfg.source {
+        SourceKind::Directory => DirectorySource::open(&cfg.path).map(|_| ()),
+        SourceKind::Y4m => Y4mSource::open(&cfg.path).map(|_| ()),
+        SourceKind::Command | SourceKind::Gstreamer | SourceKind::V4l2 => Ok(()),
+    }
 }
 
 impl FrameSource for DirectorySource {
@@ -2429,6 +2562,251 @@ mod tests {
         assert!(e.contains("nodir"), "{e}");
     }
 
+    /// What `check_files` (so `visnav check-config`) and the source itself (so `visnav run`)
+    /// say about each kind of broken `frames.csv` is one answer: both refuse, naming the line.
+    #[test]
+    fn frames_csv_cases_are_refused_or_accepted_the_same_by_check_and_open() {
+        let d = tempfile::tempdir().unwrap();
+        let csv = d.path().join(FRAMES_CSV);
+        let cfg = FramesConfig::new(SourceKind::Directory, d.path());
+        for (text, want) in [
+            ("", "empty"),
+            ("# only a comment\n", "empty"),
+            ("name,t_boot_us\na.png,1\n", "header"),
+            (
+                "file,t_s\na.png,NaN\n",
+                "t_s \"NaN\" is not a finite number",
+            ),
+            ("file,t_s\na.png,inf\n", "finite"),
+            ("file,t_s\na.png,-inf\n", "finite"),
+            (
+                "file,t_s\na.png,2\nb.png,1\n",
+                ":3: time \"1\" is not after",
+            ),
+            (
+                "file,t_boot_us\na.png,5\nb.png,5\n",
+                ":3: time \"5\" is not after",
+            ),
+            ("file,t_s\na.png,9e9\nb.png,9e9\n", ":3:"),
+            (
+                "file,t_s\na.png,0\nb.png,1e300\n",
+                ":3: t_s 1e300 is outside",
+            ),
+            (
+                "file,t_boot_us\na.png,0\nb.png,86400000000000000\n",
+                ":3: t_boot_us \"86400000000000000\" is beyond",
+            ),
+            ("file,t_boot_us\na.png,-5\n", "non-negative integer"),
+            ("file,t_boot_us\na.png,1.5\n", "non-negative integer"),
+            ("file,t_boot_us\na.png,1e6\n", "non-negative integer"),
+        ] {
+            std::fs::write(&csv, text).unwrap();
+            let open = DirectorySource::open(d.path()).err().unwrap().to_string();
+            let check = check_files(&cfg).unwrap_err().to_string();
+            assert_eq!(open, check, "{text:?}");
+            assert!(
+                check.contains("frames.csv") && check.contains(want),
+                "{text:?}: {check}"
+            );
+        }
+        // A byte order mark (a Windows editor's) is accepted by both.
+        std::fs::write(&csv, "\u{feff}file,t_boot_us\na.png,5\nb.png,6\n").unwrap();
+        assert!(check_files(&cfg).is_ok());
+        assert_eq!(DirectorySource::open(d.path()).unwrap().len(), 2);
+    }
+
+    /// Times no recording has (a day-long gap written as seconds, 1e300, a Unix time in the
+    /// boot-clock column) are refused when the file is read, naming the file and line and quoting
+    /// a short form of the value; the largest legal times and a Unix time in `t_s` pass.
+    #[test]
+    fn frames_csv_times_beyond_any_recording_are_refused_with_a_short_quote() {
+        let d = tempfile::tempdir().unwrap();
+        let csv = d.path().join(FRAMES_CSV);
+        let cfg = FramesConfig::new(SourceKind::Directory, d.path());
+        let digits = "7".repeat(400);
+        for (text, want) in [
+            (
+                "file,t_s\na.png,1e300\n",
+                ":2: t_s 1e300 is outside [-1e10, 1e10] s",
+            ),
+            ("file,t_s\na.png,-1e300\n", ":2: t_s -1e300 is outside"),
+            (
+                "file,t_s\na.png,0\nb.png,86400000000\n",
+                ":3: t_s 86400000000 is outside",
+            ),
+            (
+                "file,t_s\na.png,10000000000.5\n",
+                ":2: t_s 10000000000.5 is outside",
+            ),
+            (
+                "file,t_boot_us\na.png,1000000000000001\n",
+                ":2: t_boot_us \"1000000000000001\" is beyond 1000000000000000",
+            ),
+            (
+                "file,t_boot_us\na.png,18446744073709551615\n",
+                ":2: t_boot_us \"18446744073709551615\" is beyond",
+            ),
+            (
+                "file,t_boot_us\na.png,99999999999999999999999\n",
+                ":2: t_boot_us \"99999999999999999999999\" is beyond",
+            ),
+            (
+                &format!("file,t_boot_us\na.png,{digits}\n"),
+                "(400 bytes) is beyond",
+            ),
+            // Beyond `f64`: infinite when parsed.
+            (
+                &format!("file,t_s\na.png,{digits}\n"),
+                "(400 bytes) is not a finite number",
+            ),
+            (
+                &format!("file,t_s\na.png,{}\n", &digits[..300]),
+                ":2: t_s 7.77",
+            ),
+        ] {
+            std::fs::write(&csv, text).unwrap();
+            let open = DirectorySource::open(d.path()).err().unwrap().to_string();
+            let check = check_files(&cfg).unwrap_err().to_string();
+            assert_eq!(open, check, "{text:?}");
+            assert!(
+                check.contains("frames.csv") && check.contains(want) && check.len() < 300,
+                "{text:?}: {check}"
+            );
+        }
+        for text in [
+            "file,t_s\na.png,-1e10\nb.png,1760000000.25\nc.png,1e10\n",
+            "file,t_s\na.png,0\nb.png,86400000\n",
+            "file,t_boot_us\na.png,0\nb.png,1000000000000000\n",
+        ] {
+            std::fs::write(&csv, text).unwrap();
+            assert!(check_files(&cfg).is_ok(), "{text:?}");
+            assert!(DirectorySource::open(d.path()).is_ok(), "{text:?}");
+        }
+    }
+
+    /// Frames at given recording times, for the pacer.
+    struct Scripted(std::collections::VecDeque<f64>, u64);
+
+    impl FrameSource for Scripted {
+        fn next_frame(&mut self) -> Result<Option<Frame>, FrameError> {
+            let Some(t_rel_s) = self.0.pop_front() else {
+                return Ok(None);
+            };
+            self.1 += 1;
+            Ok(Some(Frame {
+                image: img(2, 2, 0.0),
+                t_capture: CaptureTime::Companion(Instant::now()),
+                t_rel_s,
+                seq: self.1 - 1,
+            }))
+        }
+
+        fn describe(&self) -> String {
+            "scripted".into()
+        }
+    }
+
+    /// The pacer's next frame until one is released (or the end), counting the `NotReady`s.
+    fn released(p: &mut Paced) -> (Option<Frame>, usize) {
+        let mut waits = 0;
+        loop {
+            match p.next_frame() {
+                Err(FrameError::NotReady) => waits += 1,
+                r => return (r.unwrap(), waits),
+            }
+        }
+    }
+
+    /// A frame due an hour (or 1e9 s) later does not hold the caller: each call returns within
+    /// about the poll, the frame is kept, and nothing behind it is read. Frames a little apart
+    /// are released in order, none before it is due.
+    #[test]
+    fn paced_source_never_sleeps_past_the_poll_and_releases_held_frames_in_order() {
+        for late in [3600.0, 1e9] {
+            let src = Scripted([0.0, late, late + 1.0].into(), 0);
+            let mut p = Paced::new(Box::new(src), true, None, true);
+            assert_eq!(p.next_frame().unwrap().unwrap().seq, 0);
+            for _ in 0..3 {
+                let t = Instant::now();
+                assert!(matches!(p.next_frame(), Err(FrameError::NotReady)));
+                // Bounded by the poll; loosely, for a loaded machine.
+                assert!(t.elapsed() < Duration::from_secs(1), "{:?}", t.elapsed());
+            }
+            assert_eq!(p.n, 1, "a held frame is not counted");
+            assert_eq!(p.pending.as_ref().map(|(f, _)| f.seq), Some(1));
+        }
+
+        let gap = Duration::from_millis(50);
+        let g = gap.as_secs_f64();
+        let src = Scripted([0.0, g, 2.0 * g, 2.0 * g + 1e-3].into(), 0);
+        let mut p = Paced::new(Box::new(src), true, None, true);
+        let t0 = Instant::now();
+        let mut waited = 0;
+        for want in 0..4u64 {
+            let (f, waits) = released(&mut p);
+            let f = f.unwrap();
+            waited += waits;
+            assert_eq!(f.seq, want);
+            assert_eq!(p.n, want + 1);
+            // Never before it is due (a lower bound only; an upper one would be timing).
+            let due = Duration::from_secs_f64(f.t_rel_s);
+            assert!(
+                t0.elapsed() + Duration::from_millis(1) >= due,
+                "frame {want} early"
+            );
+            match f.t_capture {
+                CaptureTime::Companion(t) => assert!(t >= t0 + due - Duration::from_millis(1)),
+                CaptureTime::AutopilotBootUs(_) => panic!("arrival stamp expected"),
+            }
+        }
+        assert!(waited >= 2, "50 ms gaps are waited for in polls: {waited}");
+        assert!(released(&mut p).0.is_none());
+
+        // A fixed rate paces by the count of released frames, held ones not included.
+        let src = Scripted([0.0, 0.0, 0.0].into(), 0);
+        let mut p = Paced::new(Box::new(src), true, Some(1.0 / g), false);
+        let t0 = Instant::now();
+        for want in 0..3u64 {
+            assert_eq!(released(&mut p).0.unwrap().seq, want);
+        }
+        assert!(t0.elapsed() + Duration::from_millis(1) >= 2 * gap);
+    }
+
+    #[test]
+    fn a_frame_or_frames_csv_naming_a_device_is_refused_not_read() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::write(d.path().join(FRAMES_CSV), "file,t_s\n/dev/zero,0\n").unwrap();
+        let e = DirectorySource::open(d.path())
+            .unwrap()
+            .next_frame()
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("/dev/zero") && e.contains("not a regular file"),
+            "{e}"
+        );
+        let link = tempfile::tempdir().unwrap();
+        std::os::unix::fs::symlink("/dev/zero", link.path().join(FRAMES_CSV)).unwrap();
+        let e = DirectorySource::open(link.path())
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("character device"), "{e}");
+    }
+
+    #[test]
+    fn a_huge_value_is_quoted_by_a_short_prefix() {
+        let d = tempfile::tempdir().unwrap();
+        let long = "9".repeat(1_000_000);
+        std::fs::write(
+            d.path().join(FRAMES_CSV),
+            format!("file,t_boot_us\na.png,{long}x\n"),
+        )
+        .unwrap();
+        let e = DirectorySource::open(d.path()).err().unwrap().to_string();
+        assert!(e.len() < 300 && e.contains("(1000001 bytes)"), "{e}");
+    }
+
     #[test]
     fn pacing_and_arrival_stamps() {
         let d = tempfile::tempdir().unwrap();
@@ -2439,7 +2817,14 @@ mod tests {
         let mut s = open(&cfg).unwrap();
         let t0 = Instant::now();
         let mut stamps = Vec::new();
-        while let Some(f) = s.next_frame().unwrap() {
+        loop {
+            let f = match s.next_frame() {
+                Err(FrameError::NotReady) => continue,
+                r => match r.unwrap() {
+                    Some(f) => f,
+                    None => break,
+                },
+            };
             match f.t_capture {
                 CaptureTime::Companion(t) => stamps.push(t),
                 CaptureTime::AutopilotBootUs(_) => panic!("arrival stamp expected"),

@@ -413,7 +413,8 @@ impl GrayImageFile for GrayImage {
             path: path.to_path_buf(),
             reason,
         };
-        let bytes = std::fs::read(path).map_err(|e| read_error(e.to_string()))?;
+        let bytes = crate::files::read_bytes(path, crate::files::IMAGE)
+            .map_err(|e| read_error(e.to_string()))?;
         if is_jpeg(&bytes) {
             return decode_jpeg_strict(&bytes).map_err(|e| read_error(e.to_string()));
         }
@@ -482,5 +483,16 @@ mod tests {
         let missing = dir.path().join("none.png");
         let e = GrayImage::load(&missing).unwrap_err().to_string();
         assert!(e.contains("none.png"), "{e}");
+    }
+
+    #[test]
+    fn an_endless_device_is_refused_not_read() {
+        let e = GrayImage::load(Path::new("/dev/zero"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("/dev/zero") && e.contains("not a regular file"),
+            "{e}"
+        );
     }
 }

@@ -7,6 +7,7 @@ use std::path::PathBuf;
 
 use serde::Deserialize;
 
+use visnav_core::text::quote;
 use visnav_core::validate::{Base, Problems, Validate};
 
 /// `[link]`: the MAVLink connection.
@@ -343,7 +344,10 @@ impl LinkConfig {
 impl Validate for LinkConfig {
     fn validate(&self, p: &mut Problems) {
         if let Err(reason) = check_connection(&self.connection) {
-            p.push("connection", format!("\"{}\": {reason}", self.connection));
+            p.push(
+                "connection",
+                format!("{}: {reason}", quote(&self.connection)),
+            );
         }
         if self.system_id == Some(0) {
             p.push(
@@ -384,7 +388,10 @@ impl Validate for LinkConfig {
         {
             p.push(
                 "metrics_listen",
-                format!("\"{m}\" is not an IP:PORT socket address (e.g. 127.0.0.1:9108)"),
+                format!(
+                    "{} is not an IP:PORT socket address (e.g. 127.0.0.1:9108)",
+                    quote(m)
+                ),
             );
         }
     }
@@ -407,65 +414,266 @@ impl Validate for StreamRates {
     }
 }
 
-/// The connection schemes `[link] connection` accepts.
-const SCHEMES: &str = "udpin, udpout, udpbcast, tcpin, tcpout, serial";
+/// The connection schemes `[link] connection` accepts (besides a bare serial device).
+const SCHEMES: &str = "udpin, udpout, udpbcast, udp, tcpin, tcpout, tcp, serial";
+
+/// The baud rate of a serial connection written without one (`/dev/ttyACM0`,
+/// `serial:/dev/ttyACM0`): pymavlink's (`mavlink_connection(device, baud=115200)`), and the
+/// lowest standard rate that carries visnav's default telemetry requests (about 8 kB/s,
+/// docs/autopilot-setup.md). MAVProxy's `--baudrate` default, 57600, would not carry them. A USB
+/// CDC-ACM port (a flight controller's USB, `/dev/ttyACM*`) ignores the rate.
+pub const DEFAULT_SERIAL_BAUD: u32 = 115_200;
+
+/// The baud rates accepted: 1200 is the slowest any telemetry radio or UART offers; 12 Mbaud is
+/// beyond every flight controller UART (the fastest run 2-3 Mbaud), so a larger number is a typo.
+const BAUD_RANGE: std::ops::RangeInclusive<u32> = 1200..=12_000_000;
+
+/// The longest connection string accepted: a host name is at most 253 characters (DNS) and a
+/// serial device path a few dozen; anything longer is not a connection, and its parts are never
+/// repeated whole in a message.
+pub const MAX_CONNECTION_BYTES: usize = 512;
 
 /// What is wrong with a connection string ([`check_connection`]).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum BadConnection {
-    #[error("expected SCHEME:ADDRESS with SCHEME one of {SCHEMES}")]
+    #[error(
+        "expected SCHEME:ADDRESS with SCHEME one of {SCHEMES}, or a serial device \
+         (/dev/ttyACM0, /dev/ttyACM0,57600)"
+    )]
     NoScheme,
-    #[error("unknown scheme \"{0}\"; expected one of {SCHEMES}")]
+    #[error("{0} bytes, longer than any connection ({MAX_CONNECTION_BYTES} at most)")]
+    TooLong(usize),
+    #[error(
+        "unknown scheme {}; expected one of {SCHEMES}, or a serial device path",
+        quote(.0)
+    )]
     UnknownScheme(String),
     #[error("expected HOST:PORT after the scheme")]
     NoPort,
     #[error("the host is empty (use 0.0.0.0 to listen on every interface)")]
     EmptyHost,
-    #[error("port \"{0}\" is not a number in 1..=65535")]
+    #[error("port {} is not a number in 1..=65535", quote(.0))]
     BadPort(String),
-    #[error("expected serial:DEVICE:BAUD")]
-    NoBaud,
+    #[error(
+        "{} is not an IPv4 address (four numbers 0-255 separated by dots, without leading \
+         zeros); the link could never open it",
+        quote(.0)
+    )]
+    BadIpv4(String),
     #[error("the serial device is empty")]
     EmptyDevice,
-    #[error("baud rate \"{0}\" is not a number in 1200..=12000000")]
+    #[error("baud rate {} is not a number in 1200..=12000000", quote(.0))]
     BadBaud(String),
-    /// The mavlink crate's own parser refused it (its message).
-    #[error("{0}")]
-    Mavlink(String),
 }
 
-/// Check a mavlink connection string beyond what the mavlink crate parses: a known scheme, and for
-/// network schemes a host and a numeric port; for serial a device and a numeric baud rate.
-pub fn check_connection(s: &str) -> Result<(), BadConnection> {
-    let Some((scheme, rest)) = s.split_once(':') else {
-        return Err(BadConnection::NoScheme);
-    };
-    match scheme {
-        "udpin" | "udpout" | "udpbcast" | "tcpin" | "tcpout" => {
-            let (host, port) = rest.rsplit_once(':').ok_or(BadConnection::NoPort)?;
-            if host.is_empty() {
-                return Err(BadConnection::EmptyHost);
-            }
-            match port.parse::<u16>() {
-                Ok(0) | Err(_) => return Err(BadConnection::BadPort(port.to_string())),
-                Ok(_) => {}
-            }
+/// Where a connection string connects ([`parse_connection`]): the forms of MAVProxy and
+/// pymavlink written in one canonical way.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Endpoint {
+    /// Listen for UDP datagrams on `HOST:PORT` and reply to the locked autopilot (`udpin:`, and
+    /// `udp:`, which pymavlink's `mavlink_connection` opens as a listener).
+    UdpIn(String),
+    /// Send UDP datagrams to `HOST:PORT` (`udpout:`).
+    UdpOut(String),
+    /// Broadcast UDP datagrams to `ADDR:PORT` (`udpbcast:`).
+    UdpBcast(String),
+    /// Accept one TCP client on `HOST:PORT` (`tcpin:`).
+    TcpIn(String),
+    /// Connect to a TCP server at `HOST:PORT` (`tcpout:`, and `tcp:`, pymavlink's client).
+    TcpOut(String),
+    /// A serial device at a baud rate (`serial:DEVICE[:BAUD]`, `DEVICE[,BAUD]`).
+    Serial { device: String, baud: u32 },
+}
+
+impl Endpoint {
+    /// The `HOST:PORT` this endpoint listens on, with its protocol (`"UDP"` or `"TCP"`); `None`
+    /// for endpoints that send or connect.
+    pub fn listen_address(&self) -> Option<(&'static str, &str)> {
+        match self {
+            Endpoint::UdpIn(a) => Some(("UDP", a)),
+            Endpoint::TcpIn(a) => Some(("TCP", a)),
+            _ => None,
         }
-        "serial" => {
-            let (dev, baud) = rest.rsplit_once(':').ok_or(BadConnection::NoBaud)?;
-            if dev.is_empty() {
-                return Err(BadConnection::EmptyDevice);
-            }
-            match baud.parse::<u32>() {
-                Ok(b) if (1200..=12_000_000).contains(&b) => {}
-                _ => return Err(BadConnection::BadBaud(baud.to_string())),
-            }
-        }
-        other => return Err(BadConnection::UnknownScheme(other.to_string())),
     }
-    mavlink::ConnectionAddress::parse_address(s)
-        .map(|_| ())
-        .map_err(|e| BadConnection::Mavlink(e.to_string()))
+
+    /// The string the mavlink crate's `connect_async` parses; `None` for serial, whose device
+    /// may contain `:` (`/dev/serial/by-path/...-usb-0:1.3:1.0-port0`) that its parser would
+    /// split at.
+    pub fn mavlink_address(&self) -> Option<String> {
+        match self {
+            Endpoint::UdpIn(a) => Some(format!("udpin:{a}")),
+            Endpoint::UdpOut(a) => Some(format!("udpout:{a}")),
+            Endpoint::UdpBcast(a) => Some(format!("udpbcast:{a}")),
+            Endpoint::TcpIn(a) => Some(format!("tcpin:{a}")),
+            Endpoint::TcpOut(a) => Some(format!("tcpout:{a}")),
+            Endpoint::Serial { .. } => None,
+        }
+    }
+
+    /// Bind this endpoint's listen address and release it at once: `Err` when it cannot be
+    /// listened on now (another program has the port: a MAVProxy, mavlink-router, a ground
+    /// station or a visnav already running). `Ok` for endpoints that do not listen.
+    pub fn probe_listen(&self) -> Result<(), ListenError> {
+        let Some((proto, addr)) = self.listen_address() else {
+            return Ok(());
+        };
+        probe_listen(proto, addr)
+    }
+}
+
+/// A listen address that cannot be bound ([`Endpoint::probe_listen`], [`probe_listen`]).
+#[derive(Debug, thiserror::Error)]
+#[error("{}", listen_message(.proto, .addr, .cause))]
+pub struct ListenError {
+    /// `"UDP"` or `"TCP"`.
+    pub proto: &'static str,
+    /// The `HOST:PORT` given.
+    pub addr: String,
+    /// What binding it said.
+    pub cause: std::io::Error,
+}
+
+impl ListenError {
+    /// Another socket has the port (as opposed to an address not on this machine yet, which
+    /// a network coming up later may fix).
+    pub fn in_use(&self) -> bool {
+        self.cause.kind() == std::io::ErrorKind::AddrInUse
+    }
+}
+
+fn listen_message(proto: &str, addr: &str, cause: &std::io::Error) -> String {
+    let port = addr.rsplit_once(':').map_or(addr, |(_, p)| p);
+    if cause.kind() == std::io::ErrorKind::AddrInUse {
+        format!(
+            "{proto} port {port} ({addr}) is in use by another program (a MAVProxy, \
+             mavlink-router, a ground station or a visnav already running?): {cause}"
+        )
+    } else {
+        format!("cannot listen on {proto} {addr}: {cause}")
+    }
+}
+
+/// Bind `addr` (`HOST:PORT`) for `proto` (`"UDP"` or `"TCP"`) and release it at once. The
+/// sockets are bound as the link and the metrics endpoint bind theirs (the standard library's
+/// defaults), so what this refuses, they would refuse.
+pub fn probe_listen(proto: &'static str, addr: &str) -> Result<(), ListenError> {
+    let r = if proto == "UDP" {
+        std::net::UdpSocket::bind(addr).map(drop)
+    } else {
+        std::net::TcpListener::bind(addr).map(drop)
+    };
+    r.map_err(|cause| ListenError {
+        proto,
+        addr: addr.to_string(),
+        cause,
+    })
+}
+
+/// Check a connection string ([`parse_connection`]).
+pub fn check_connection(s: &str) -> Result<(), BadConnection> {
+    parse_connection(s).map(drop)
+}
+
+/// Parse a connection string as MAVProxy's `--master` and pymavlink's `mavlink_connection` write
+/// them: `udpin:`, `udpout:`, `udpbcast:`, `tcpin:`, `tcpout:` and `udp:` (listen) / `tcp:`
+/// (connect) with `HOST:PORT`; `serial:DEVICE[:BAUD]`; a bare device path `DEVICE[,BAUD]`
+/// (`/dev/ttyACM0,57600`, `COM3`). Network forms need a host and a numeric port; a host
+/// written as dotted numbers must be a valid IPv4 address: the name lookup would refuse
+/// `300.1.1.1` only when the link opens, and the link would retry it for ever; host names stay
+/// allowed (they are resolved when the link opens, and may be down at check time).
+pub fn parse_connection(s: &str) -> Result<Endpoint, BadConnection> {
+    if s.len() > MAX_CONNECTION_BYTES {
+        return Err(BadConnection::TooLong(s.len()));
+    }
+    if let Some((scheme, rest)) = s.split_once(':') {
+        let net = |make: fn(String) -> Endpoint| {
+            check_host_port(rest)?;
+            Ok(make(rest.to_string()))
+        };
+        match scheme {
+            "udpin" | "udp" => return net(Endpoint::UdpIn),
+            "udpout" => return net(Endpoint::UdpOut),
+            "udpbcast" => return net(Endpoint::UdpBcast),
+            "tcpin" => return net(Endpoint::TcpIn),
+            "tcpout" | "tcp" => return net(Endpoint::TcpOut),
+            "serial" => return parse_serial_scheme(rest),
+            // A device path may hold a colon (`/dev/serial/by-path/...-usb-0:1.3:1.0-port0`).
+            _ if is_device_path(s) => {}
+            other => return Err(BadConnection::UnknownScheme(other.to_string())),
+        }
+    }
+    if is_device_path(s) {
+        return parse_device_comma_baud(s);
+    }
+    Err(BadConnection::NoScheme)
+}
+
+/// A serial device as MAVProxy takes it bare: an absolute path, or a Windows port (`COM3`,
+/// `\\.\COM12`).
+fn is_device_path(s: &str) -> bool {
+    let com = s.strip_prefix(r"\\.\").unwrap_or(s);
+    let com_digits = com
+        .get(..3)
+        .filter(|p| p.eq_ignore_ascii_case("com"))
+        .and_then(|_| com.get(3..))
+        .map(|n| n.split(',').next().unwrap_or(n));
+    s.starts_with('/')
+        || com_digits.is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
+}
+
+/// `DEVICE` or `DEVICE,BAUD` (MAVProxy's `--master` form).
+fn parse_device_comma_baud(s: &str) -> Result<Endpoint, BadConnection> {
+    let (device, baud) = match s.rsplit_once(',') {
+        Some((d, b)) => (d, parse_baud(b)?),
+        None => (s, DEFAULT_SERIAL_BAUD),
+    };
+    serial(device, baud)
+}
+
+/// After `serial:`: `DEVICE:BAUD`, or `DEVICE` alone. A last `:` part of digits is the baud
+/// rate; a path's other colons belong to the device.
+fn parse_serial_scheme(rest: &str) -> Result<Endpoint, BadConnection> {
+    match rest.rsplit_once(':') {
+        Some((d, b)) if !b.is_empty() && b.bytes().all(|c| c.is_ascii_digit()) => {
+            serial(d, parse_baud(b)?)
+        }
+        // A colon in a path (by-path names) is the device's; elsewhere it was meant as a baud.
+        Some((_, b)) if !rest.starts_with('/') => Err(BadConnection::BadBaud(b.to_string())),
+        _ => serial(rest, DEFAULT_SERIAL_BAUD),
+    }
+}
+
+fn serial(device: &str, baud: u32) -> Result<Endpoint, BadConnection> {
+    if device.is_empty() {
+        return Err(BadConnection::EmptyDevice);
+    }
+    Ok(Endpoint::Serial {
+        device: device.to_string(),
+        baud,
+    })
+}
+
+fn parse_baud(b: &str) -> Result<u32, BadConnection> {
+    match b.parse::<u32>() {
+        Ok(v) if BAUD_RANGE.contains(&v) => Ok(v),
+        _ => Err(BadConnection::BadBaud(b.to_string())),
+    }
+}
+
+/// `HOST:PORT` of a network form.
+fn check_host_port(rest: &str) -> Result<(), BadConnection> {
+    let (host, port) = rest.rsplit_once(':').ok_or(BadConnection::NoPort)?;
+    if host.is_empty() {
+        return Err(BadConnection::EmptyHost);
+    }
+    let dotted_numbers = host.contains('.') && host.chars().all(|c| c.is_ascii_digit() || c == '.');
+    if dotted_numbers && host.parse::<std::net::Ipv4Addr>().is_err() {
+        return Err(BadConnection::BadIpv4(host.to_string()));
+    }
+    match port.parse::<u16>() {
+        Ok(0) | Err(_) => Err(BadConnection::BadPort(port.to_string())),
+        Ok(_) => Ok(()),
+    }
 }
 
 impl Validate for OutputConfig {
@@ -605,7 +813,7 @@ mod tests {
             assert!(check_connection(ok).is_ok(), "{ok}");
         }
         for bad in [
-            "udp:1.2.3.4:5",
+            "udq:1.2.3.4:5",
             "udpin:0.0.0.0",
             "udpin::14550",
             "serial:/dev/x:12",
@@ -613,5 +821,225 @@ mod tests {
         ] {
             assert!(check_connection(bad).is_err(), "{bad}");
         }
+    }
+
+    fn parsed(s: &str) -> Endpoint {
+        match parse_connection(s) {
+            Ok(e) => e,
+            Err(e) => panic!("{s}: {e}"),
+        }
+    }
+
+    fn serial_at(device: &str, baud: u32) -> Endpoint {
+        Endpoint::Serial {
+            device: device.into(),
+            baud,
+        }
+    }
+
+    /// pymavlink's `mavlink_connection` opens `udp:` as a listener (its `input=True` default;
+    /// MAVProxy's `--master` too), so `udp:` is `udpin:`.
+    #[test]
+    fn udp_listens_as_pymavlink_does() {
+        assert_eq!(
+            parsed("udp:127.0.0.1:14550"),
+            Endpoint::UdpIn("127.0.0.1:14550".into())
+        );
+        assert_eq!(
+            parsed("udp:127.0.0.1:14550"),
+            parsed("udpin:127.0.0.1:14550")
+        );
+        assert_eq!(
+            parsed("udp:127.0.0.1:14550").listen_address(),
+            Some(("UDP", "127.0.0.1:14550"))
+        );
+        assert!(matches!(
+            parse_connection("udp:127.0.0.1"),
+            Err(BadConnection::NoPort)
+        ));
+    }
+
+    /// pymavlink's `tcp:` is a client (`mavtcp`), so `tcp:` is `tcpout:`.
+    #[test]
+    fn tcp_connects_as_pymavlink_does() {
+        assert_eq!(
+            parsed("tcp:127.0.0.1:5760"),
+            Endpoint::TcpOut("127.0.0.1:5760".into())
+        );
+        assert_eq!(parsed("tcp:127.0.0.1:5760").listen_address(), None);
+        assert_eq!(
+            parsed("tcp:127.0.0.1:5760").mavlink_address().as_deref(),
+            Some("tcpout:127.0.0.1:5760")
+        );
+        assert!(matches!(
+            parse_connection("tcp:127.0.0.1:0"),
+            Err(BadConnection::BadPort(_))
+        ));
+    }
+
+    /// A bare device path, as `mavproxy.py --master=/dev/ttyACM0`, at the default baud rate.
+    #[test]
+    fn a_bare_device_is_serial_at_the_default_baud() {
+        assert_eq!(
+            parsed("/dev/ttyACM0"),
+            serial_at("/dev/ttyACM0", DEFAULT_SERIAL_BAUD)
+        );
+        assert_eq!(parsed("COM3"), serial_at("COM3", DEFAULT_SERIAL_BAUD));
+        // A by-path name holds colons; they are the device's.
+        let by_path = "/dev/serial/by-path/platform-3f980000.usb-usb-0:1.3:1.0-port0";
+        assert_eq!(parsed(by_path), serial_at(by_path, DEFAULT_SERIAL_BAUD));
+        assert_eq!(parsed(by_path).mavlink_address(), None);
+    }
+
+    /// `DEVICE,BAUD`, MAVProxy's `--master=/dev/ttyACM0,57600`.
+    #[test]
+    fn a_device_comma_baud_is_serial_at_that_baud() {
+        assert_eq!(
+            parsed("/dev/ttyACM0,57600"),
+            serial_at("/dev/ttyACM0", 57_600)
+        );
+        assert_eq!(parsed("COM3,115200"), serial_at("COM3", 115_200));
+        for bad in ["/dev/ttyACM0,fast", "/dev/ttyACM0,12", "/dev/ttyACM0,"] {
+            let e = parse_connection(bad).unwrap_err();
+            assert!(matches!(e, BadConnection::BadBaud(_)), "{bad}: {e}");
+        }
+        assert!(matches!(
+            parse_connection(",57600"),
+            Err(BadConnection::NoScheme)
+        ));
+    }
+
+    /// `serial:DEVICE` without a baud takes the default; `serial:DEVICE:BAUD` as before.
+    #[test]
+    fn serial_without_a_baud_takes_the_default() {
+        assert_eq!(
+            parsed("serial:/dev/ttyACM0"),
+            serial_at("/dev/ttyACM0", DEFAULT_SERIAL_BAUD)
+        );
+        assert_eq!(
+            parsed("serial:/dev/ttyAMA0:921600"),
+            serial_at("/dev/ttyAMA0", 921_600)
+        );
+        assert_eq!(parsed("serial:COM3:57600"), serial_at("COM3", 57_600));
+        let e = parse_connection("serial:COM3:fast").unwrap_err();
+        assert_eq!(e, BadConnection::BadBaud("fast".into()));
+        assert_eq!(
+            parse_connection("serial:").unwrap_err(),
+            BadConnection::EmptyDevice
+        );
+    }
+
+    /// Every earlier form parses to what it meant, and unknown ones name the forms.
+    #[test]
+    fn the_explicit_forms_keep_their_meaning() {
+        for (s, e) in [
+            (
+                "udpin:0.0.0.0:14550",
+                Endpoint::UdpIn("0.0.0.0:14550".into()),
+            ),
+            (
+                "udpout:10.0.0.2:14550",
+                Endpoint::UdpOut("10.0.0.2:14550".into()),
+            ),
+            (
+                "udpbcast:10.0.0.255:14550",
+                Endpoint::UdpBcast("10.0.0.255:14550".into()),
+            ),
+            ("tcpin:0.0.0.0:5760", Endpoint::TcpIn("0.0.0.0:5760".into())),
+            (
+                "tcpout:localhost:5760",
+                Endpoint::TcpOut("localhost:5760".into()),
+            ),
+        ] {
+            assert_eq!(parsed(s), e, "{s}");
+            assert_eq!(e.mavlink_address().as_deref(), Some(s));
+        }
+        let e = parse_connection("mcast:239.255.145.50:14550").unwrap_err();
+        assert!(
+            e.to_string()
+                .starts_with("unknown scheme \"mcast\"; expected one of udpin,"),
+            "{e}"
+        );
+        let e = parse_connection("ttyACM0").unwrap_err();
+        assert!(e.to_string().contains("/dev/ttyACM0,57600"), "{e}");
+    }
+
+    /// A port another socket holds is reported as in use, naming the protocol and the port;
+    /// released, it probes free.
+    #[test]
+    fn a_busy_listen_port_is_found() {
+        let held = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+        let port = held.local_addr().unwrap().port();
+        let e = parsed(&format!("udp:127.0.0.1:{port}"))
+            .probe_listen()
+            .unwrap_err();
+        assert!(e.in_use(), "{e}");
+        let m = e.to_string();
+        assert!(
+            m.starts_with(&format!("UDP port {port} (127.0.0.1:{port}) is in use")),
+            "{m}"
+        );
+        let tcp = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let tport = tcp.local_addr().unwrap().port();
+        let e = parsed(&format!("tcpin:127.0.0.1:{tport}"))
+            .probe_listen()
+            .unwrap_err();
+        assert!(e.in_use() && e.to_string().starts_with("TCP port"), "{e}");
+        // Senders and connectors have nothing to probe.
+        assert!(
+            parsed(&format!("udpout:127.0.0.1:{port}"))
+                .probe_listen()
+                .is_ok()
+        );
+        drop(held);
+        assert!(
+            parsed(&format!("udp:127.0.0.1:{port}"))
+                .probe_listen()
+                .is_ok()
+        );
+    }
+
+    /// A dotted-number host that is no IPv4 address passed, and the link then retried "failed
+    /// to lookup address" for ever: it is refused naming the host; host names stay allowed.
+    #[test]
+    fn an_invalid_ipv4_literal_is_refused() {
+        for bad in [
+            "udpin:300.1.1.1:14871",
+            "udpout:1.2.3:14550",
+            "tcpout:10.0.0.256:5760",
+            "tcpin:010.0.0.1:5760",
+            "udpbcast:1..2.3:14550",
+        ] {
+            let e = check_connection(bad).unwrap_err();
+            assert!(matches!(e, BadConnection::BadIpv4(_)), "{bad}: {e}");
+            assert!(e.to_string().contains("is not an IPv4 address"), "{e}");
+        }
+        for ok in [
+            "udpout:localhost:14550",
+            "tcpout:autopilot.local:5760",
+            "udpout:10.0.0.255:14550",
+            "udpin:0.0.0.0:14871",
+        ] {
+            assert!(check_connection(ok).is_ok(), "{ok}");
+        }
+        let mut c = LinkConfig::new("udpin:300.1.1.1:14871");
+        c.heartbeat_hz = 1.0;
+        let p = problems(&c).join("\n");
+        assert!(
+            p.starts_with("connection: \"udpin:300.1.1.1:14871\": \"300.1.1.1\" is not an IPv4"),
+            "{p}"
+        );
+    }
+
+    #[test]
+    fn a_huge_connection_string_is_not_repeated_whole() {
+        let long = format!("udpin:{}:14550", "x".repeat(10_000_000));
+        let p = problems(&LinkConfig::new(&long)).join("\n");
+        assert!(
+            p.len() < 300 && p.contains("longer than any connection"),
+            "{p}"
+        );
+        let p = problems(&LinkConfig::new(&format!("udpin:h:{}", "9".repeat(400)))).join("\n");
+        assert!(p.len() < 300 && p.contains("port"), "{p}");
     }
 }

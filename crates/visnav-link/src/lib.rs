@@ -9,7 +9,8 @@
 //!   GLOBAL_POSITION_SENSOR / SET_GPS_GLOBAL_ORIGIN (pure, validated).
 //! * [`streams`]: wanted telemetry and rate monitoring (pure).
 //! * [`session`]: the running link ([`Link`]).
-//! * [`signing`], [`tlog`], [`metrics`]: operations.
+//! * [`signing`], [`tlog`], [`metrics`]: operations; [`LogLimiter`]: repeated warnings
+//!   rate-limited with counts (the link's and the daemon's).
 //!
 //! Clocks: the companion clock is `std::time::Instant` (CLOCK_MONOTONIC on Linux) expressed in ns
 //! since the link started plus 1 s ([`Link::companion_ns`]); the autopilot clock is its boot time
@@ -40,6 +41,7 @@ pub mod tlog;
 mod transport;
 
 pub use inject::{GeoOrigin, Health, InjectError, NavEstimate};
+pub use metrics::{LogLimiter, LogLine};
 pub use session::{
     AutopilotInfo, Clock, Link, LinkError, LinkStatus, Telemetry, boot_time_us, decode,
     is_lock_candidate, shutdown_signal,

@@ -16,7 +16,14 @@
 //!   authenticated) messages come from (`transport`).
 //! * Every message's boot time goes through `time::BootClock`: stale ones (behind the autopilot's
 //!   clock without a confirmed reboot) are dropped; a reboot needs several streams and the old
-//!   clock's silence. GPS_GLOBAL_ORIGIN outside the Earth's coordinates is refused.
+//!   clock's silence. GPS_GLOBAL_ORIGIN outside the Earth's coordinates is refused, and so is one
+//!   farther than [`MAX_ORIGIN_DISTANCE_M`] from the navigation solution (before there is one:
+//!   from the origin it would replace; the first origin is then checked against the first
+//!   solution): the previous origin stays in use, and while none is usable the pose outputs are
+//!   held with a warning, a STATUSTEXT, a degraded health and `visnav_link_pose_output_held`.
+//! * Warnings that can repeat at the rate of messages (refused origins, clock steps, .tlog
+//!   failures, pose outputs held) go through a [`LogLimiter`]: the first, then at most one line
+//!   per [`crate::metrics::LOG_REPEAT_INTERVAL_S`] with the count of those not logged.
 //! * Output times never go back (`time::Monotonic`); the autopilot's UTC is latched and a step of
 //!   its clock is logged, counted and reported, not followed.
 //! * After the lock, after a reconnect and after an autopilot reboot, every wanted stream is
@@ -45,7 +52,7 @@ use tracing::{Instrument, debug, info, warn};
 
 use crate::config::{LinkConfig, OnLost, OutputConfig, OutputMode};
 use crate::inject::{self, GeoOrigin, Health, InjectError, NavEstimate, SendTime};
-use crate::metrics::Metrics;
+use crate::metrics::{LogLimiter, Metrics};
 use crate::streams::{self, RateMonitor, StreamSpec, StreamStatus, ids};
 use crate::time::{
     BootClock, BootVerdict, Monotonic, SyncUpdate, TimeSync, TimesyncSample, UtcMap,
@@ -67,6 +74,12 @@ pub enum LinkError {
     },
     #[error("link.metrics_listen: {addr}: {cause}")]
     Metrics { addr: String, cause: std::io::Error },
+    /// The connection's listen port is taken by another program.
+    #[error("link.connection: {connection}: {cause}")]
+    Listen {
+        connection: String,
+        cause: crate::config::ListenError,
+    },
     #[error("not connected")]
     NotConnected,
     #[error("send failed: {0}")]
@@ -113,6 +126,9 @@ pub struct LinkStatus {
     pub streams: Vec<StreamStatus>,
     /// The EKF origin used for local positions.
     pub origin: Option<GeoOrigin>,
+    /// While no origin is usable because the autopilot's was refused: why (the pose outputs,
+    /// VISION_POSITION_ESTIMATE / ODOMETRY, are held).
+    pub origin_refused: Option<String>,
 }
 
 /// One telemetry message from the locked autopilot.
@@ -146,6 +162,18 @@ struct State {
     origin: Option<GeoOrigin>,
     origin_from_autopilot: bool,
     origin_sent: u32,
+    /// The origin was taken before there was a navigation solution to judge its distance by:
+    /// checked against the first one ([`Shared::ensure_origin`]).
+    origin_unverified: bool,
+    /// Why no origin is usable, while the autopilot's stands refused ([`LinkStatus`]).
+    origin_refused: Option<String>,
+    /// The last usable navigation solution handed to the injector (lat, lon, degrees).
+    solution: Option<(f64, f64)>,
+    /// Rate limits of the warnings that can come with every message.
+    origin_log: LogLimiter,
+    utc_log: LogLimiter,
+    companion_clock_log: LogLimiter,
+    pose_log: LogLimiter,
     /// The last health STATUSTEXT sent, its severity rank (ok 0, degraded 1, lost 2), and since
     /// when a better or differently worded health has been waiting ([`HEALTH_TEXT_HOLD_S`]).
     last_health: Option<String>,
@@ -177,6 +205,8 @@ struct Shared {
     signing_in: Option<SigningConfig>,
     seq: AtomicU8,
     tlog: Mutex<Option<Tlog>>,
+    /// Rate limit of the .tlog's write failures (a full disk fails every packet).
+    tlog_log: Mutex<LogLimiter>,
     metrics: Arc<Metrics>,
     telemetry: broadcast::Sender<Telemetry>,
     status: watch::Sender<LinkStatus>,
@@ -199,6 +229,18 @@ impl Link {
     /// Open the .tlog and metrics endpoint, load the signing key, and start connecting.
     /// Relative paths in `cfg` must already be resolved (`Config::load` does it).
     pub async fn start(cfg: LinkConfig, out: OutputConfig) -> Result<Link, LinkError> {
+        // A listen port another program holds stays taken: retrying "address in use" for ever
+        // would look like a link waiting for its autopilot. Other bind errors (an address not
+        // assigned yet while the network comes up) are left to the reconnect loop.
+        if let Ok(endpoint) = crate::config::parse_connection(&cfg.connection)
+            && let Err(cause) = endpoint.probe_listen()
+            && cause.in_use()
+        {
+            return Err(LinkError::Listen {
+                connection: visnav_core::text::quote(&cfg.connection),
+                cause,
+            });
+        }
         let (signing_out, signing_in) = match &cfg.signing {
             Some(s) => {
                 let key = crate::signing::load_key(&s.key_file)?;
@@ -258,6 +300,13 @@ impl Link {
             origin: None,
             origin_from_autopilot: false,
             origin_sent: 0,
+            origin_unverified: false,
+            origin_refused: None,
+            solution: None,
+            origin_log: LogLimiter::default(),
+            utc_log: LogLimiter::default(),
+            companion_clock_log: LogLimiter::default(),
+            pose_log: LogLimiter::default(),
             last_health: None,
             last_health_rank: 0,
             health_pending_since: None,
@@ -280,6 +329,7 @@ impl Link {
             signing_in,
             seq: AtomicU8::new(0),
             tlog: Mutex::new(tlog),
+            tlog_log: Mutex::new(LogLimiter::default()),
             metrics,
             telemetry: broadcast::channel(4096).0,
             status: watch::channel(LinkStatus::default()).0,
@@ -424,6 +474,12 @@ impl Clock {
         let ns = self.shared.now_ns();
         lock(&self.shared.state).timesync.to_autopilot_us(ns)
     }
+
+    /// Companion clock now in ns ([`Link::companion_now_ns`]): what threads away from the
+    /// runtime time their log rate limits by.
+    pub fn companion_now_ns(&self) -> i64 {
+        self.shared.now_ns()
+    }
 }
 
 impl Drop for Link {
@@ -478,6 +534,7 @@ impl Shared {
             streams_ok: self.status.borrow().streams_ok,
             streams: self.status.borrow().streams.clone(),
             origin: st.origin,
+            origin_refused: st.origin_refused.clone(),
         };
         drop(st);
         self.status.send_if_modified(|s| {
@@ -486,7 +543,8 @@ impl Shared {
                 || s.alive != new.alive
                 || s.time_synced != new.time_synced
                 || s.reboots != new.reboots
-                || s.origin != new.origin;
+                || s.origin != new.origin
+                || s.origin_refused != new.origin_refused;
             if changed {
                 *s = new;
             }
@@ -514,10 +572,11 @@ impl Shared {
             Ok(n) => {
                 if n > 0 {
                     self.metrics.tx_packets.inc();
-                    if let Some(t) = lock(&self.tlog).as_mut()
-                        && let Err(e) = t.write(unix_now_us(), &bytes)
-                    {
-                        warn!("tlog write failed: {e}");
+                    let failed = lock(&self.tlog)
+                        .as_mut()
+                        .and_then(|t| t.write(unix_now_us(), &bytes).err());
+                    if let Some(e) = failed {
+                        self.tlog_failed(&e);
                     }
                 }
                 Ok(())
@@ -567,7 +626,12 @@ impl Shared {
         let unix_us = st.utc.unix_us(t_boot_us, companion_unix_minus_boot);
         if st.utc.steps > steps_before {
             self.metrics.utc_steps.inc();
-            warn!("the companion's system clock stepped; GPS_INPUT keeps its UTC");
+            if let Some(line) = st.companion_clock_log.hit(now_ns as f64 * 1e-9) {
+                warn!(
+                    "the companion's system clock stepped; GPS_INPUT keeps its UTC{}",
+                    line.suffix()
+                );
+            }
         }
         let unix_us = unix_us.map(|u| st.stamp_unix.stamp(u));
         let t_boot_us = st.stamp_boot.stamp(t_boot_us);
@@ -592,9 +656,12 @@ impl Shared {
         &self,
         est: &NavEstimate,
     ) -> Vec<(OutputMode, Result<&'static str, InjectError>)> {
-        self.health_text(&est.health).await;
         let mut results = Vec::new();
+        if let Some(p) = solution_of(est) {
+            lock(&self.state).solution = Some(p);
+        }
         let Some(now) = self.send_time(est) else {
+            self.health_text(&est.health).await;
             self.metrics
                 .inject_refused
                 .inc_by(self.out.modes.len() as u64);
@@ -616,6 +683,28 @@ impl Shared {
         } else {
             None
         };
+        // Pose outputs held for want of an origin are news for the ground station: a refused
+        // origin makes the health degraded (outputs must never stop with the health OK).
+        let held = if needs_origin {
+            self.metrics
+                .pose_output_held
+                .set(u64::from(origin.is_none()));
+            origin
+                .is_none()
+                .then(|| lock(&self.state).origin_refused.clone())
+                .flatten()
+        } else {
+            None
+        };
+        match (&est.health, held) {
+            (Health::Lost { .. }, _) | (_, None) => self.health_text(&est.health).await,
+            (_, Some(why)) => {
+                let h = Health::Degraded {
+                    reason: format!("no pose output: {why}"),
+                };
+                self.health_text(&h).await;
+            }
+        }
         // A pose is a measurement for the autopilot's EKF: the same estimate twice would be
         // fused twice. GPS_INPUT is the position now (extrapolated), so it goes at every tick.
         let fresh_pose = {
@@ -669,6 +758,7 @@ impl Shared {
                 Err(e) => {
                     self.metrics.inject_refused.inc();
                     debug!("inject {mode:?} refused: {e}");
+                    self.pose_held(mode, &e);
                     Err(e)
                 }
             };
@@ -677,16 +767,60 @@ impl Shared {
         results
     }
 
+    /// A pose output refused for want of a usable origin (none, or one too far for a local
+    /// position): a warning, rate-limited, so that the outputs never stop without a word.
+    fn pose_held(&self, mode: OutputMode, e: &InjectError) {
+        let name = match mode {
+            OutputMode::VisionPositionEstimate => "VISION_POSITION_ESTIMATE",
+            OutputMode::Odometry => "ODOMETRY",
+            _ => return,
+        };
+        let why = match e {
+            InjectError::NoOrigin => {
+                let refused = lock(&self.state).origin_refused.clone();
+                match refused {
+                    Some(r) => r,
+                    None => "no EKF origin known (the autopilot has reported none; \
+                             output.set_origin = true sets one from the solution)"
+                        .to_string(),
+                }
+            }
+            InjectError::OutOfRange {
+                field: "local position",
+                ..
+            } => format!("the position is too far from the EKF origin for a local one: {e}"),
+            _ => return,
+        };
+        let t = self.now_ns() as f64 * 1e-9;
+        let line = lock(&self.state).pose_log.hit(t);
+        if let Some(line) = line {
+            warn!("{name} not sent: {why}{}", line.suffix());
+        }
+    }
+
     /// The EKF origin for local positions: the autopilot's, or (with `output.set_origin`) one we
     /// set from a healthy estimate with SET_GPS_GLOBAL_ORIGIN (sent up to 3 times until echoed).
+    /// An autopilot origin taken before there was a solution is checked against the first one
+    /// here, and refused when too far from it.
     async fn ensure_origin(
         &self,
         est: &NavEstimate,
         now: &SendTime,
         target_sys: u8,
     ) -> Option<GeoOrigin> {
-        let (origin, resend) = {
+        let (origin, resend, refused_text) = {
             let mut st = lock(&self.state);
+            let mut refused_text = None;
+            if st.origin_unverified
+                && let (Some(o), Some(p)) = (st.origin, solution_of(est))
+            {
+                st.origin_unverified = false;
+                if let Err(why) = check_origin_distance(&o, Some(p), None) {
+                    st.origin = None;
+                    st.origin_from_autopilot = false;
+                    refused_text = self.refuse_origin(&mut st, why, self.now_ns());
+                }
+            }
             if st.origin.is_none()
                 && self.out.set_origin
                 && est.health == Health::Ok
@@ -697,13 +831,17 @@ impl Shared {
                     lon_deg: est.lon_deg,
                     alt_amsl_m: est.alt_amsl_m,
                 });
+                st.origin_refused = None;
             }
             let resend = !st.origin_from_autopilot && st.origin.is_some() && st.origin_sent < 3;
             if resend {
                 st.origin_sent += 1;
             }
-            (st.origin, resend)
+            (st.origin, resend, refused_text)
         };
+        if let Some((sev, text)) = refused_text {
+            let _ = self.status_text(sev, &text).await;
+        }
         if resend && let Some(o) = origin {
             match inject::set_gps_global_origin(&o, target_sys, now.unix_us) {
                 Ok(m) => {
@@ -766,11 +904,50 @@ impl Shared {
             MAVLinkMessageRaw::V1(m) => m.raw_bytes(),
             MAVLinkMessageRaw::V2(m) => m.raw_bytes(),
         };
-        if let Some(t) = lock(&self.tlog).as_mut()
-            && let Err(e) = t.write(unix_now_us(), bytes)
-        {
-            warn!("tlog write failed: {e}");
+        let failed = lock(&self.tlog)
+            .as_mut()
+            .and_then(|t| t.write(unix_now_us(), bytes).err());
+        if let Some(e) = failed {
+            self.tlog_failed(&e);
         }
+    }
+
+    fn tlog_failed(&self, e: &std::io::Error) {
+        let line = lock(&self.tlog_log).hit(self.now_ns() as f64 * 1e-9);
+        if let Some(line) = line {
+            warn!("tlog write failed: {e}{}", line.suffix());
+        }
+    }
+
+    /// Refuse an EKF origin: counted, warned (rate-limited), and while no origin is usable the
+    /// reason stands in the status and the health. Returns the STATUSTEXT to send (the 1st,
+    /// 2nd, 4th ... refusal).
+    fn refuse_origin(
+        &self,
+        st: &mut State,
+        why: OriginError,
+        t_ns: i64,
+    ) -> Option<(MavSeverity, String)> {
+        let n = self.metrics.origins_refused.inc() + 1;
+        let kept = match st.origin {
+            Some(o) => format!(
+                "; VISION_POSITION_ESTIMATE / ODOMETRY keep the origin {:.7} {:.7}",
+                o.lat_deg, o.lon_deg
+            ),
+            None => {
+                st.origin_refused = Some(format!("EKF origin refused: {why}"));
+                "; no origin for VISION_POSITION_ESTIMATE / ODOMETRY".to_string()
+            }
+        };
+        if let Some(line) = st.origin_log.hit(t_ns as f64 * 1e-9) {
+            warn!("GPS_GLOBAL_ORIGIN refused: {why}{kept}{}", line.suffix());
+        }
+        n.is_power_of_two().then(|| {
+            (
+                MavSeverity::MAV_SEVERITY_WARNING,
+                format!("visnav: EKF origin refused: {why}"),
+            )
+        })
     }
 
     /// Lock-on (module doc): lock onto a qualifying HEARTBEAT when unlocked, or when the locked
@@ -817,6 +994,8 @@ impl Shared {
             st.origin = None;
             st.origin_from_autopilot = false;
             st.origin_sent = 0;
+            st.origin_unverified = false;
+            st.origin_refused = None;
             st.stamp_boot.reset();
             st.epoch += 1;
         } else {
@@ -905,7 +1084,12 @@ impl Shared {
                             "visnav: autopilot clock stepped {:+.3} s, not followed",
                             step_us as f64 * 1e-6
                         );
-                        warn!("{text} (SYSTEM_TIME; the output keeps its own UTC)");
+                        if let Some(line) = st.utc_log.hit(t_ns as f64 * 1e-9) {
+                            warn!(
+                                "{text} (SYSTEM_TIME; the output keeps its own UTC){}",
+                                line.suffix()
+                            );
+                        }
                         if st.utc.steps.is_power_of_two() {
                             texts.push((MavSeverity::MAV_SEVERITY_WARNING, text));
                         }
@@ -934,28 +1118,31 @@ impl Shared {
                         }
                     }
                 }
-                MavMessage::GPS_GLOBAL_ORIGIN(m) => match origin_of(m) {
-                    Ok(o) => {
-                        if st.origin != Some(o) {
-                            info!(
-                                "autopilot EKF origin {:.7} {:.7} {:.1} m",
-                                o.lat_deg, o.lon_deg, o.alt_amsl_m
-                            );
+                MavMessage::GPS_GLOBAL_ORIGIN(m) => {
+                    // The origin in use, sent again, is taken as it is (the vehicle may have
+                    // flown far from it); a new one must be near where the vehicle is.
+                    let judged = origin_of(m).and_then(|o| {
+                        if st.origin == Some(o) {
+                            return Ok(o);
                         }
-                        st.origin = Some(o);
-                        st.origin_from_autopilot = true;
-                    }
-                    Err(why) => {
-                        let n = self.metrics.origins_refused.inc() + 1;
-                        warn!("GPS_GLOBAL_ORIGIN refused: {why}");
-                        if n.is_power_of_two() {
-                            texts.push((
-                                MavSeverity::MAV_SEVERITY_WARNING,
-                                format!("visnav: EKF origin refused: {why}"),
-                            ));
+                        check_origin_distance(&o, st.solution, st.origin.as_ref()).map(|()| o)
+                    });
+                    match judged {
+                        Ok(o) => {
+                            if st.origin != Some(o) {
+                                info!(
+                                    "autopilot EKF origin {:.7} {:.7} {:.1} m",
+                                    o.lat_deg, o.lon_deg, o.alt_amsl_m
+                                );
+                                st.origin_unverified = st.solution.is_none();
+                            }
+                            st.origin = Some(o);
+                            st.origin_from_autopilot = true;
+                            st.origin_refused = None;
                         }
+                        Err(why) => texts.extend(self.refuse_origin(&mut st, why, t_ns)),
                     }
-                },
+                }
                 MavMessage::COMMAND_ACK(m) => {
                     debug!(command = ?m.command, result = ?m.result, "COMMAND_ACK");
                 }
@@ -1178,6 +1365,59 @@ pub enum OriginError {
     Longitude(f64),
     #[error("altitude {0:.1} m is outside [{lo}, {hi}] m", lo = ORIGIN_ALT_RANGE_M.0, hi = ORIGIN_ALT_RANGE_M.1)]
     Altitude(f64),
+    #[error("{distance_km:.0} km from {from} (limit {limit_km:.0} km)", limit_km = MAX_ORIGIN_DISTANCE_M / 1000.0)]
+    Far {
+        distance_km: f64,
+        /// What it was measured from: the navigation solution or the previous origin.
+        from: &'static str,
+    },
+}
+
+/// Farthest an EKF origin may lie from the navigation solution (or, before there is one, from
+/// the origin it would replace), m. The autopilot sets its origin where its first position
+/// came from, near the take-off, and a small UAS flies within tens of kilometres of it; an
+/// origin that is wrong rather than distant (a spoofed or corrupted message, a sign or a
+/// hemisphere flipped, latitude and longitude swapped) lies hundreds to thousands of
+/// kilometres away, and local positions about it are refused anyway beyond 1000 km
+/// (`inject::local_pose`). A wrong origin closer than this is not found by distance: signing
+/// (`[link.signing]`) keeps others' messages out.
+pub const MAX_ORIGIN_DISTANCE_M: f64 = 100_000.0;
+
+/// Straight-line distance between two positions at sea level (lat, lon in degrees), m: the
+/// chord, within 1e-5 of the distance along the ground up to [`MAX_ORIGIN_DISTANCE_M`].
+fn sea_level_distance_m(a: (f64, f64), b: (f64, f64)) -> f64 {
+    (inject::geodetic_to_ecef(a.0, a.1, 0.0) - inject::geodetic_to_ecef(b.0, b.1, 0.0)).norm()
+}
+
+/// Whether an origin on the Earth can be this vehicle's: within [`MAX_ORIGIN_DISTANCE_M`] of the
+/// navigation solution (`solution`: lat, lon degrees) when there is one, else of the origin it
+/// would replace; with neither there is nothing to judge it by.
+pub fn check_origin_distance(
+    o: &GeoOrigin,
+    solution: Option<(f64, f64)>,
+    previous: Option<&GeoOrigin>,
+) -> Result<(), OriginError> {
+    let (reference, from) = match (solution, previous) {
+        (Some(s), _) => (s, "the navigation solution"),
+        (None, Some(p)) => ((p.lat_deg, p.lon_deg), "the previous origin"),
+        (None, None) => return Ok(()),
+    };
+    let d = sea_level_distance_m((o.lat_deg, o.lon_deg), reference);
+    // Written so that a NaN distance is refused.
+    if d <= MAX_ORIGIN_DISTANCE_M {
+        Ok(())
+    } else {
+        Err(OriginError::Far {
+            distance_km: d / 1000.0,
+            from,
+        })
+    }
+}
+
+/// The position of an estimate the origin may be judged by: checked and not lost.
+fn solution_of(est: &NavEstimate) -> Option<(f64, f64)> {
+    (!matches!(est.health, Health::Lost { .. }) && inject::check_estimate(est).is_ok())
+        .then_some((est.lat_deg, est.lon_deg))
 }
 
 /// A GPS_GLOBAL_ORIGIN's coordinates, or why they cannot be an origin.
@@ -1416,5 +1656,57 @@ async fn periodic_loop(shared: Arc<Shared>) {
             let specs = streams::wanted_streams(&shared.cfg.streams, autopilot);
             shared.manage_streams(&specs).await;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn at(lat_deg: f64, lon_deg: f64) -> GeoOrigin {
+        GeoOrigin {
+            lat_deg,
+            lon_deg,
+            alt_amsl_m: 400.0,
+        }
+    }
+
+    #[test]
+    fn an_origin_is_judged_by_the_solution_then_the_previous_origin() {
+        let here = (46.9, -96.8);
+        // 50 km north: a long flight from where the origin was set.
+        assert_eq!(
+            check_origin_distance(&at(47.35, -96.8), Some(here), None),
+            Ok(())
+        );
+        // The other side of the world (latitude 0, longitude 42).
+        let far = check_origin_distance(&at(0.0, 42.0), Some(here), Some(&at(46.9, -96.8)));
+        let Err(OriginError::Far { distance_km, from }) = far else {
+            panic!("{far:?}")
+        };
+        assert!(distance_km > 10_000.0, "{distance_km}");
+        assert_eq!(from, "the navigation solution");
+        let text = far.unwrap_err().to_string();
+        assert!(
+            text.contains("km from the navigation solution (limit 100 km)"),
+            "{text}"
+        );
+        // No solution yet: the origin it would replace; with neither, nothing to judge by.
+        let moved = check_origin_distance(&at(46.9, -94.0), None, Some(&at(46.9, -96.8)));
+        assert!(
+            matches!(
+                moved,
+                Err(OriginError::Far {
+                    from: "the previous origin",
+                    ..
+                })
+            ),
+            "{moved:?}"
+        );
+        assert_eq!(check_origin_distance(&at(0.0, 42.0), None, None), Ok(()));
+        // A sign flipped: the same latitude in the other hemisphere.
+        assert!(check_origin_distance(&at(-46.9, -96.8), Some(here), None).is_err());
+        // Not a number is never near.
+        assert!(check_origin_distance(&at(f64::NAN, 0.0), Some(here), None).is_err());
     }
 }

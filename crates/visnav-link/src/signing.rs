@@ -38,12 +38,24 @@ pub fn parse_key(bytes: &[u8]) -> Option<[u8; 32]> {
     Some(k)
 }
 
+/// The most bytes of a key file read: more than any key form (64 hex digits, a line end, some
+/// spaces), so a longer file fails the format check by its length.
+const MAX_KEY_FILE_BYTES: u64 = 4096;
+
 /// Read and parse a key file.
 pub fn load_key(path: &Path) -> Result<[u8; 32], KeyError> {
-    let bytes = std::fs::read(path).map_err(|source| KeyError::Read {
-        path: path.to_path_buf(),
-        cause: source,
-    })?;
+    // A key file is 32 bytes (64 hex digits and a newline at most as text): read a little more
+    // than the longest form so an oversized file is refused by its length, never read whole.
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| {
+            use std::io::Read;
+            f.take(MAX_KEY_FILE_BYTES).read_to_end(&mut bytes)
+        })
+        .map_err(|source| KeyError::Read {
+            path: path.to_path_buf(),
+            cause: source,
+        })?;
     let key = parse_key(&bytes).ok_or_else(|| KeyError::Format {
         path: path.to_path_buf(),
         len: bytes.len(),

@@ -1,5 +1,5 @@
 //! The byte transports under the session: the mavlink crate's connections (TCP, serial, `udpout`,
-//! `udpbcast`) and our own `udpin` listener.
+//! `udpbcast`) and our own `udpin` listener (also `udp:`, which pymavlink opens as a listener).
 //!
 //! Why our own `udpin`: a UDP listener has no fixed peer, and the mavlink crate replies to the
 //! source of the *last datagram received*, whatever it contained. One byte of junk from any local
@@ -53,13 +53,19 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 }
 
 impl Transport {
-    /// Open `address` (a mavlink connection string); `signing_in` verifies incoming frames.
+    /// Open `address` (a connection string, `config::parse_connection`); `signing_in` verifies
+    /// incoming frames.
     pub async fn connect(
         address: &str,
         signing_in: Option<&SigningConfig>,
     ) -> std::io::Result<Transport> {
-        if let Some(bind) = address.strip_prefix("udpin:") {
-            let socket = UdpSocket::bind(bind).await?;
+        use mavlink::AsyncConnectable;
+        // The configuration was checked at load; a string refused here is a caller's bug, and
+        // an error (not a panic) keeps the link retrying and saying why.
+        let endpoint = crate::config::parse_connection(address)
+            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e.to_string()))?;
+        if let crate::config::Endpoint::UdpIn(bind) = &endpoint {
+            let socket = UdpSocket::bind(bind.as_str()).await?;
             return Ok(Transport::UdpIn(UdpIn {
                 socket,
                 signing: signing_in.cloned().map(SigningData::from_config),
@@ -67,7 +73,24 @@ impl Transport {
                 peer: Mutex::new(None),
             }));
         }
-        let mut conn = mavlink::connect_async::<MavMessage>(address).await?;
+        let mut conn = match (&endpoint, endpoint.mavlink_address()) {
+            // Built directly: a device path may hold colons the crate's parser would split at.
+            (crate::config::Endpoint::Serial { device, baud }, _) => {
+                mavlink::ConnectionAddress::Serial(mavlink::SerialConfig::new(
+                    device.clone(),
+                    *baud,
+                ))
+                .connect_async::<MavMessage>()
+                .await?
+            }
+            (_, Some(a)) => mavlink::connect_async::<MavMessage>(&a).await?,
+            (_, None) => {
+                return Err(std::io::Error::new(
+                    std::io::ErrorKind::InvalidInput,
+                    "no transport for this connection",
+                ));
+            }
+        };
         conn.set_allow_recv_any_version(true);
         if let Some(s) = signing_in {
             conn.setup_signing(Some(s.clone()));

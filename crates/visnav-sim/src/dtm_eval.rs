@@ -31,7 +31,9 @@ use visnav_core::vision::GrayImage;
 use visnav_core::vo::TrackPair;
 use visnav_io::image_file::GrayImageFile;
 
-use crate::vo_eval::{NgiPair, PREV_FRAME, VoEvalError, render_flat, vga_image, vga_poses};
+use crate::vo_eval::{
+    NEXT_FRAME, NgiPair, PREV_FRAME, VoEvalError, render_flat, vga_image, vga_poses,
+};
 
 /// A first guess's navigation error: common to both frames, map east, north, up, m, and a turn
 /// (roll, pitch, yaw about the world axes), deg; and the guessed motion's own error, m.
@@ -55,7 +57,12 @@ pub const NGI_GUESS: GuessError = GuessError {
 pub const NGI_GUESS_SIGMA: GuessSigma = GuessSigma {
     height_m: 50.0,
     tilt_rad: 0.5 * std::f64::consts::PI / 180.0,
+    horizontal_m: NGI_GUESS_SIGMA_H_M,
 };
+
+/// The NGI guesses' horizontal sigma, m: an INS some minutes into a GPS outage (the bench's
+/// guess is 183 m off, its sweep goes to 600 m: 2 sigma).
+pub const NGI_GUESS_SIGMA_H_M: f64 = 300.0;
 
 /// The flat pairs' guess: the NGI guess's kind of error at 300 m instead of 4.8 km.
 const FLAT_GUESS: GuessError = GuessError {
@@ -83,6 +90,10 @@ pub struct NgiDtm {
     /// The claimed 1-sigma along the error's direction, m, and the error in those sigmas.
     pub sigma_along_err_m: f64,
     pub err_over_sigma: f64,
+    /// The position error's squared Mahalanobis distance with the claimed 3x3 covariance
+    /// (chi-square, 3 dof, when honest) and the largest per-axis error in its own sigmas.
+    pub err_mahalanobis2: f64,
+    pub err_axis_sigmas: f64,
     /// Claimed 1-sigma east, north, up, m; horizontal given the attitude.
     pub sigma_m: [f64; 3],
     pub sigma_h_given_attitude_m: f64,
@@ -164,17 +175,34 @@ fn data_err(path: PathBuf, reason: String) -> VoEvalError {
     VoEvalError::Data { path, reason }
 }
 
-/// Frame 0182's pose from the flow to frame 0184 and the DEM, started from the measured poses
-/// moved by `err` (module doc; the bench uses [`NGI_GUESS`]).
-pub fn ngi_dtm(dir: &Path, err: &GuessError) -> Result<NgiDtm, VoEvalError> {
-    let NgiPair {
-        prev: truth1,
-        next: truth2,
-        img_a,
-        img_b,
-        dem,
-        image,
-    } = NgiPair::load(dir)?;
+/// Which NGI frame is the first of the pair: 0182 (flown order, flow to 0184) or 0184 (flow
+/// back to 0182: the same geometry seen the other way, another sample of the flow's errors).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NgiOrder {
+    Forward,
+    Reverse,
+}
+
+impl NgiOrder {
+    /// "0182 -> 0184" or "0184 -> 0182".
+    pub fn label(self) -> &'static str {
+        match self {
+            NgiOrder::Forward => "0182 -> 0184",
+            NgiOrder::Reverse => "0184 -> 0182",
+        }
+    }
+}
+
+/// The first frame's pose from the flow to the other frame and the DEM, started from the
+/// measured poses moved by `err` (module doc; the bench uses [`NGI_GUESS`]).
+pub fn ngi_dtm(dir: &Path, err: &GuessError, order: NgiOrder) -> Result<NgiDtm, VoEvalError> {
+    let pair = NgiPair::load(dir)?;
+    let (truth1, truth2, img_a, img_b, first_frame) = match order {
+        NgiOrder::Forward => (pair.prev, pair.next, pair.img_a, pair.img_b, PREV_FRAME),
+        NgiOrder::Reverse => (pair.next, pair.prev, pair.img_b, pair.img_a, NEXT_FRAME),
+    };
+    let (dem, image) = (pair.dem, pair.image);
     let (guess1, guess2) = guess(&truth1, &truth2, err);
     let t0 = Instant::now();
     let camera = pinhole(&image)?;
@@ -188,11 +216,9 @@ pub fn ngi_dtm(dir: &Path, err: &GuessError) -> Result<NgiDtm, VoEvalError> {
         guess_second: guess2,
         guess_sigma: Some(NGI_GUESS_SIGMA),
     };
-    let fix = solve(&input, &dem, &cfg).map_err(|e| {
-        data_err(
-            dir.join(PREV_FRAME),
-            format!("no pose from {} flow vectors: {e}", tracks.len()),
-        )
+    let fix = solve(&input, &dem, &cfg).map_err(|e| VoEvalError::Refused {
+        path: dir.join(first_frame),
+        reason: format!("no pose from {} flow vectors: {e}", tracks.len()),
     })?;
     let t2 = Instant::now();
     Ok(ngi_figures(
@@ -203,6 +229,73 @@ pub fn ngi_dtm(dir: &Path, err: &GuessError) -> Result<NgiDtm, VoEvalError> {
         tracks.len(),
         [t0, t1, t2],
     ))
+}
+
+/// One guess of a sweep ([`ngi_sweep`]): where it was and what came of it.
+#[derive(Debug, Clone, Serialize)]
+pub struct SweepCase {
+    pub order: NgiOrder,
+    /// The guess's horizontal offset from the truth, m, and its direction (deg from grid east,
+    /// counter-clockwise).
+    pub offset_m: f64,
+    pub direction_deg: f64,
+    /// The solution's figures when one was accepted; the refusal otherwise.
+    pub solved: Option<NgiDtm>,
+    pub refused: Option<String>,
+}
+
+impl SweepCase {
+    /// An accepted pose outside its claimed 3 sigma: on any axis, or jointly (the 3-D
+    /// chi-square at the 3-sigma probability, [`WRONG_POSE_CHI2_3D`]).
+    pub fn wrong(&self) -> bool {
+        self.solved.as_ref().is_some_and(|r| {
+            !(r.err_axis_sigmas <= 3.0 && r.err_mahalanobis2 <= WRONG_POSE_CHI2_3D)
+        })
+    }
+}
+
+/// Chi-square (3 dof) at the 3-sigma probability 0.9973: an accepted pose further than this in
+/// squared Mahalanobis distance is outside what it claims.
+pub const WRONG_POSE_CHI2_3D: f64 = 14.16;
+
+/// First guesses `offsets_m` from the truth in `directions` directions (evenly spread, the first
+/// 22.5 deg from grid east so none runs along a grid axis), each with [`NGI_GUESS`]'s turn and
+/// motion error and a height error of 8 % of the offset (alternating in sign): the pose of the
+/// first frame of `order` from each.
+pub fn ngi_sweep(
+    dir: &Path,
+    order: NgiOrder,
+    offsets_m: &[f64],
+    directions: usize,
+) -> Result<Vec<SweepCase>, VoEvalError> {
+    let mut out = Vec::new();
+    for &offset_m in offsets_m {
+        for k in 0..directions {
+            let a = (22.5 + 360.0 * k as f64 / directions.max(1) as f64).to_radians();
+            let sign = if k % 2 == 0 { 1.0 } else { -1.0 };
+            let g = GuessError {
+                offset_m: [
+                    offset_m * a.cos(),
+                    offset_m * a.sin(),
+                    0.08 * offset_m * sign,
+                ],
+                ..NGI_GUESS
+            };
+            let (solved, refused) = match ngi_dtm(dir, &g, order) {
+                Ok(r) => (Some(r), None),
+                Err(VoEvalError::Refused { reason, .. }) => (None, Some(reason)),
+                Err(e) => return Err(e),
+            };
+            out.push(SweepCase {
+                order,
+                offset_m,
+                direction_deg: a.to_degrees(),
+                solved,
+                refused,
+            });
+        }
+    }
+    Ok(out)
 }
 
 /// The figures of an NGI solution against the measured first pose.
@@ -236,6 +329,12 @@ fn ngi_figures(
         err_norm_m: n,
         sigma_along_err_m: sigma_along,
         err_over_sigma: n / sigma_along,
+        err_mahalanobis2: cov
+            .try_inverse()
+            .map_or(f64::INFINITY, |ci| (e.transpose() * ci * e)[(0, 0)]),
+        err_axis_sigmas: (0..3)
+            .map(|i| (e[i] / cov[(i, i)].sqrt()).abs())
+            .fold(0.0, f64::max),
         sigma_m: [cov[(0, 0)].sqrt(), cov[(1, 1)].sqrt(), cov[(2, 2)].sqrt()],
         sigma_h_given_attitude_m: fix.sigma_h_given_attitude_m,
         att_err_deg: att_err.norm().to_degrees(),

@@ -217,11 +217,17 @@ pub enum AttitudeMode {
     None,
 }
 
-/// An accepted fix further than this from the truth is a wrong fix, metres (or beyond
-/// [`WRONG_FIX_SIGMAS`] of its own sigma): issue 19's definition.
+/// An accepted fix further than this from the truth (3-D) is a wrong fix, metres, whatever
+/// sigma it claims: a user steering by it would be lost.
 pub const WRONG_FIX_M: f64 = 50.0;
-/// An accepted fix beyond this many of its own sigmas (largest NED axis) is a wrong fix.
-pub const WRONG_FIX_SIGMAS: f64 = 5.0;
+/// An accepted fix beyond this many of its own sigmas on any NED axis is a wrong fix: the
+/// autopilot's filter gates and weighs by the sigma it is told, so a fix outside its 3-sigma
+/// bound is as harmful as one far away.
+pub const WRONG_FIX_SIGMAS: f64 = 3.0;
+/// The horizontal error's squared Mahalanobis distance (its own 2x2 covariance) beyond which a
+/// fix is wrong: the chi-square (2 dof) quantile of the 3-sigma probability 0.9973, so an
+/// error along a narrow axis of a tilted ellipse counts as the per-axis test would on its axes.
+pub const WRONG_FIX_CHI2_H: f64 = 11.829;
 
 /// One random frame of the acceptance envelope.
 #[derive(Debug, Clone, Copy)]
@@ -238,6 +244,11 @@ pub struct Score {
     pub err_v_m: f64,
     /// Largest per-axis (N, E, D) error in units of the fix's own sigma.
     pub err_sigma: f64,
+    /// Horizontal error's squared Mahalanobis distance with the fix's N-E covariance (chi-square
+    /// 2 dof when honest).
+    pub chi2_h: f64,
+    /// Distance from the truth, 3-D, metres.
+    pub err_3d_m: f64,
     /// Normalised error squared of the image-only pose (position and attitude against the
     /// truth, with its 6x6 covariance): chi-square with 6 dof when the covariance is honest.
     pub nees6: Option<f64>,
@@ -247,6 +258,28 @@ pub struct Score {
     pub ground_err_m: f64,
     /// Tilt error of the fix's attitude (angle between the estimated and true body z axes), deg.
     pub tilt_err_deg: f64,
+}
+
+impl Score {
+    /// A wrong fix: more than [`WRONG_FIX_M`] from the truth in 3-D, or beyond 3 sigma on any
+    /// NED axis ([`WRONG_FIX_SIGMAS`]) or horizontally jointly ([`WRONG_FIX_CHI2_H`]). NaN
+    /// errors (a report without a finite position or covariance) are wrong too.
+    pub fn is_wrong(&self) -> bool {
+        self.is_far() || self.is_beyond_sigma()
+    }
+
+    /// More than [`WRONG_FIX_M`] off in 3-D (or not finite).
+    pub fn is_far(&self) -> bool {
+        self.err_3d_m.is_nan() || self.err_3d_m > WRONG_FIX_M
+    }
+
+    /// Outside its 3 sigma on an axis or jointly horizontally (or not finite).
+    pub fn is_beyond_sigma(&self) -> bool {
+        self.err_sigma.is_nan()
+            || self.chi2_h.is_nan()
+            || self.err_sigma > WRONG_FIX_SIGMAS
+            || self.chi2_h > WRONG_FIX_CHI2_H
+    }
 }
 
 /// Median, 90th percentile and maximum.
@@ -289,9 +322,15 @@ pub struct Summary {
     pub err_v_m: Stats,
     /// Median horizontal error in map pixels.
     pub median_err_map_px: f64,
+    /// Accepted fixes beyond 3 sigma on a NED axis.
     pub beyond_3_sigma: usize,
-    /// Accepted fixes more than [`WRONG_FIX_M`] or [`WRONG_FIX_SIGMAS`] sigma off the truth.
+    /// Wrong fixes ([`Score::is_wrong`]): more than [`WRONG_FIX_M`] off the truth in 3-D, or
+    /// beyond 3 sigma on an axis or jointly horizontally.
     pub wrong_fixes: usize,
+    /// Of the wrong fixes: those more than [`WRONG_FIX_M`] off (3-D), and those outside their 3
+    /// sigma (on an axis or jointly horizontally); a fix can be both.
+    pub wrong_far: usize,
+    pub wrong_beyond_sigma: usize,
     /// Mean 6-dof NEES of the accepted fixes' image-only poses (= `vision_only_nees6_mean`;
     /// NaN, JSON null, without an accepted fix, as the error statistics).
     pub nees6_mean: f64,
@@ -690,6 +729,17 @@ impl NaipEval {
             .abs()
             .max((e_e / r.cov_ned_m2[1][1].sqrt()).abs())
             .max((ez / r.cov_ned_m2[2][2].sqrt()).abs());
+        let c_h = nalgebra::Matrix2::new(
+            r.cov_ned_m2[0][0],
+            r.cov_ned_m2[0][1],
+            r.cov_ned_m2[1][0],
+            r.cov_ned_m2[1][1],
+        );
+        let e_h = nalgebra::Vector2::new(e_n, e_e);
+        // A singular or non-finite covariance claims certainty: infinitely far in its own units.
+        let chi2_h = c_h
+            .try_inverse()
+            .map_or(f64::INFINITY, |ci| (e_h.transpose() * ci * e_h)[(0, 0)]);
         // Boresight (body z of the nadir mount) cast onto the ground plane, in grid axes.
         let down = |a: &Attitude| {
             let d = a.r_ned_body() * Vector3::z();
@@ -711,6 +761,12 @@ impl NaipEval {
             err_h_m: ex.hypot(ey),
             err_v_m: ez.abs(),
             err_sigma,
+            chi2_h: if chi2_h.is_finite() {
+                chi2_h
+            } else {
+                f64::INFINITY
+            },
+            err_3d_m: (ex * ex + ey * ey + ez * ez).sqrt(),
             nees6: self.nees6(r, case),
             ground_err_m: (g_est.0 - g_true.0).hypot(g_est.1 - g_true.1),
             tilt_err_deg: z_est.angle(&z_true).to_degrees(),
@@ -813,6 +869,7 @@ impl NaipEval {
         let mut rng = Rng::new(seed);
         let (mut eh, mut ev, mut ms) = (Vec::new(), Vec::new(), Vec::new());
         let (mut accepted, mut beyond, mut wrong) = (0, 0, 0);
+        let (mut wrong_far, mut wrong_beyond_sigma) = (0, 0);
         let mut nees6 = Vec::new();
         let mut reasons: std::collections::BTreeMap<String, usize> = Default::default();
         for i in 0..n {
@@ -853,9 +910,11 @@ impl NaipEval {
                 if s.err_sigma > 3.0 {
                     beyond += 1;
                 }
-                let is_wrong = s.err_h_m > WRONG_FIX_M || s.err_sigma > WRONG_FIX_SIGMAS;
+                let is_wrong = s.is_wrong();
                 if is_wrong {
                     wrong += 1;
+                    wrong_far += usize::from(s.is_far());
+                    wrong_beyond_sigma += usize::from(s.is_beyond_sigma());
                 }
                 nees6.extend(s.nees6);
                 let vo = self
@@ -926,6 +985,8 @@ impl NaipEval {
             err_v_m: Stats::of(&ev),
             beyond_3_sigma: beyond,
             wrong_fixes: wrong,
+            wrong_far,
+            wrong_beyond_sigma,
             nees6_mean: mean(&nees6),
             vision_only_nees6_mean: mean(&nees6),
             vision_only_beyond_chi2_99: nees6.iter().filter(|&&x| x > 16.81).count(),
@@ -933,5 +994,40 @@ impl NaipEval {
             ms_p95: percentile(&ms, 0.95),
             rejections: reasons.into_iter().collect(),
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn score(err_3d_m: f64, err_sigma: f64, chi2_h: f64) -> Score {
+        Score {
+            err_h_m: err_3d_m,
+            err_v_m: 0.0,
+            err_sigma,
+            chi2_h,
+            err_3d_m,
+            nees6: None,
+            ground_err_m: 0.0,
+            tilt_err_deg: 0.0,
+        }
+    }
+
+    /// Wrong: far in 3-D whatever the sigma, or outside 3 sigma on an axis, or jointly
+    /// horizontally though inside 3 sigma on each axis; and anything not finite.
+    #[test]
+    fn a_wrong_fix_is_far_or_outside_its_3_sigma_on_an_axis_or_jointly() {
+        assert!(!score(20.0, 2.9, 11.0).is_wrong());
+        let far = score(50.1, 1.0, 1.0);
+        assert!(far.is_wrong() && far.is_far() && !far.is_beyond_sigma());
+        let axis = score(10.0, 3.1, 9.6);
+        assert!(axis.is_wrong() && !axis.is_far() && axis.is_beyond_sigma());
+        // 2.5 sigma on both axes of a round ellipse: chi-square 12.5, beyond the 3-sigma mass.
+        let joint = score(10.0, 2.5, 12.5);
+        assert!(joint.is_wrong() && joint.is_beyond_sigma());
+        assert!(score(f64::NAN, 1.0, 1.0).is_wrong());
+        assert!(score(1.0, f64::NAN, 1.0).is_wrong());
+        assert!(score(1.0, 1.0, f64::INFINITY).is_wrong());
     }
 }

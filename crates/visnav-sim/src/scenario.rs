@@ -468,9 +468,11 @@ impl Scenario {
     /// Read, parse and validate a scenario file.
     pub fn load(path: &Path) -> Result<Self, ScenarioError> {
         let file = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|err| ScenarioError::Read {
-            file: file.clone(),
-            err,
+        let text = visnav_io::files::read_text(path, visnav_io::files::CONFIG).map_err(|err| {
+            ScenarioError::Read {
+                file: file.clone(),
+                err,
+            }
         })?;
         Self::parse(&text, &file)
     }

@@ -28,7 +28,7 @@ use visnav_io::image_file::GrayImageFile;
 
 /// The frames and their measured poses.
 pub(crate) const PREV_FRAME: &str = "frame_05_0182.png";
-const NEXT_FRAME: &str = "frame_05_0184.png";
+pub(crate) const NEXT_FRAME: &str = "frame_05_0184.png";
 
 /// NGI camera (README): f = 120 mm on a 92.16 x 165.888 mm sensor at 640 x 1152 px, no distortion.
 const NGI_FOCAL_PX: f64 = 120.0 / 92.16 * 640.0;
@@ -51,6 +51,9 @@ pub enum VoEvalError {
     Data { path: PathBuf, reason: String },
     #[error("SURF: {0}")]
     Vision(String),
+    /// The data were read but the solver refused them (a measured outcome, not a fault).
+    #[error("{path}: {reason}")]
+    Refused { path: PathBuf, reason: String },
 }
 
 /// The NGI figures (`visnav bench vo --json`: the `ngi_*` keys).

@@ -416,6 +416,7 @@ fn a_solution_is_checked_against_the_guess_height_and_tilt() {
     let sigma = GuessSigma {
         height_m: 30.0,
         tilt_rad: 1f64.to_radians(),
+        horizontal_m: f64::INFINITY,
     };
     let with = |g: &PosePair, s: GuessSigma| DtmInput {
         guess_sigma: Some(s),
@@ -439,5 +440,91 @@ fn a_solution_is_checked_against_the_guess_height_and_tilt() {
         ..sigma
     };
     let r = solve(&with(&guess, bad), &dem, &cfg).unwrap_err();
+    assert!(matches!(r, DtmRejection::InvalidInput(_)), "{r}");
+}
+
+/// The terrain model's registration error: flow seen over the true relief, solved over a model
+/// displaced by `b`, gives both cameras displaced by `b`; the covariance's DEM term is exactly
+/// `Sigma_b` on both positions and their cross blocks (the attitudes' untouched).
+#[test]
+fn a_displaced_terrain_model_moves_the_poses_and_its_sigma_covers_it() {
+    // World axes (x east, y north, z up); `grid_dem`'s closure takes y southward.
+    let b = Vector3::new(40.0, -30.0, 10.0);
+    let true_dem = grid_dem(relief);
+    let model = grid_dem(|x, y| relief(x - b.x, y + b.y) + b.z);
+    let im = vga();
+    let t = truth(100.0);
+    let tracks = flow(&t, &true_dem, 0.3, 5);
+    let guess = drifted(&t);
+    let exact = DtmNavConfig {
+        dem_shift_sigma_cells: 0.0,
+        dem_offset_sigma_m: 0.0,
+        ..DtmNavConfig::default()
+    };
+    let stated = DtmNavConfig {
+        dem_shift_sigma_cells: 2.0,
+        dem_offset_sigma_m: 10.0,
+        ..DtmNavConfig::default()
+    };
+    let on_truth = solve(&input(&tracks, &im, &guess), &true_dem, &exact).unwrap();
+    let fix0 = solve(&input(&tracks, &im, &guess), &model, &exact).unwrap();
+    let fix1 = solve(&input(&tracks, &im, &guess), &model, &stated).unwrap();
+    for (a, b_) in [
+        (fix0.first.c_world, on_truth.first.c_world),
+        (fix0.second.c_world, on_truth.second.c_world),
+    ] {
+        // Within a few metres: the displaced function sampled on the same grid is not exactly
+        // the displaced bilinear surface.
+        assert!(
+            ((a - b_) - b).norm() < 3.0,
+            "moved {:?}, displacement {b:?}",
+            a - b_
+        );
+    }
+    let s_h = 2.0 * CELL_M;
+    let want = Matrix3::from_diagonal(&Vector3::new(s_h * s_h, s_h * s_h, 100.0));
+    for (r, c) in [(C1, C1), (C1, C2), (C2, C1), (C2, C2)] {
+        let d = fix1.cov.fixed_view::<3, 3>(r, c) - fix0.cov.fixed_view::<3, 3>(r, c);
+        assert!((d - want).amax() < 1e-6, "block ({r}, {c}): {d}");
+    }
+    assert_eq!(
+        fix1.cov.fixed_view::<3, 3>(PHI1, PHI1),
+        fix0.cov.fixed_view::<3, 3>(PHI1, PHI1)
+    );
+}
+
+/// A solution further from the guess than the guess's horizontal sigma and its own allow is
+/// refused (another minimum, or a navigation more wrong than it says); the same solution from a
+/// guess that says it may be that far off is accepted.
+#[test]
+fn a_solution_far_from_a_confident_guess_is_refused() {
+    let dem = grid_dem(relief);
+    let im = vga();
+    let t = truth(100.0);
+    let tracks = flow(&t, &dem, 0.3, 13);
+    let cfg = DtmNavConfig::default();
+    // The guess 250 m off horizontally: the solution's own horizontal sigma here is about 30 m.
+    let mut guess = drifted(&t);
+    let far = Vector3::new(150.0, 150.0, 0.0);
+    guess.first.c_world += far;
+    guess.second.c_world += far;
+    let with = |h: f64| DtmInput {
+        guess_sigma: Some(GuessSigma {
+            height_m: 30.0,
+            tilt_rad: 1f64.to_radians(),
+            horizontal_m: h,
+        }),
+        ..input(&tracks, &im, &guess)
+    };
+    let fix = solve(&with(150.0), &dem, &cfg).unwrap();
+    assert!((fix.first.c_world - t.first.c_world).norm() < 30.0);
+    solve(&with(f64::INFINITY), &dem, &cfg).unwrap();
+    let r = solve(&with(20.0), &dem, &cfg).unwrap_err();
+    let d = (guess.first.c_world - t.first.c_world).xy().norm();
+    assert!(
+        matches!(r, DtmRejection::FarFromGuess { d_m, .. } if (d_m - d).abs() < 30.0),
+        "{r}"
+    );
+    let r = solve(&with(0.0), &dem, &cfg).unwrap_err();
     assert!(matches!(r, DtmRejection::InvalidInput(_)), "{r}");
 }

@@ -145,7 +145,7 @@ impl Default for FixParams {
 pub const WIDEN_HEADING_SIGMA_DEG: f64 = 30.0;
 
 /// Largest horizontal 1-sigma of an accepted fix, metres. A fix more than 50 m off counts as
-/// wrong (issue 19's definition, `visnav bench fix`'s `wrong_fixes`), so a fix that cannot
+/// wrong whatever its sigma (`visnav bench fix`'s `wrong_fixes`), so a fix that cannot
 /// promise that at one sigma is not offered. Only a resection without any attitude prior gets
 /// near it (the position-tilt ambiguity of a narrow view over flat ground: NAIP cross-date at
 /// 2000 m, 58-75 m, 76-130 m off); with an attitude prior (tight, tilt only, or a heading 25 deg

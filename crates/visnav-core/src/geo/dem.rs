@@ -101,6 +101,17 @@ impl Dem {
         }
     }
 
+    /// The grid's cell size (the larger of its two spacings), metres; `None` for flat terrain.
+    pub fn cell_m(&self) -> Option<f64> {
+        match self {
+            Dem::Grid(g) => {
+                let (dx, dy) = g.transform.pixel_size();
+                Some(dx.max(dy))
+            }
+            Dem::Flat { .. } => None,
+        }
+    }
+
     /// `(min, max)` height over all valid samples, metres.
     pub fn height_range_m(&self) -> (f64, f64) {
         match self {

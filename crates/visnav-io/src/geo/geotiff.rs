@@ -15,11 +15,17 @@ use super::window::GeoTiffWindowReader;
 /// are missing or not understood; see the module doc. For large files read windows instead
 /// ([`super::window::open_geotiff_window`]).
 pub fn load_geotiff(path: &Path, crs_override: Option<Crs>) -> Result<Raster, GeoTiffError> {
-    let file = File::open(path).map_err(|source| GeoTiffError::Io {
-        path: path.to_path_buf(),
-        cause: source,
-    })?;
-    read_geotiff(BufReader::new(file), path, crs_override)
+    read_geotiff(BufReader::new(open_regular(path)?), path, crs_override)
+}
+
+/// Opens a GeoTIFF that must be a regular file (not a device or a pipe, which would never end).
+pub(crate) fn open_regular(path: &Path) -> Result<File, GeoTiffError> {
+    crate::files::require_regular(path, "a GeoTIFF")
+        .and_then(|()| File::open(path))
+        .map_err(|source| GeoTiffError::Io {
+            path: path.to_path_buf(),
+            cause: source,
+        })
 }
 
 /// Like [`load_geotiff`] but from any seekable reader; `path` is only used in error messages.

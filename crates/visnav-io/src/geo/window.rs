@@ -58,10 +58,7 @@ pub fn open_geotiff_window(
     path: &Path,
     crs_override: Option<Crs>,
 ) -> Result<GeoTiffWindowReader<BufReader<File>>, GeoTiffError> {
-    let file = File::open(path).map_err(|source| GeoTiffError::Io {
-        path: path.to_path_buf(),
-        cause: source,
-    })?;
+    let file = super::geotiff::open_regular(path)?;
     GeoTiffWindowReader::new(BufReader::new(file), path, crs_override)
 }
 

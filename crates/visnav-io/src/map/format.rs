@@ -577,11 +577,13 @@ impl ReferenceMap {
     /// Opens and validates a map file: magic, version, sizes, checksum, header, tables. Errors
     /// name the file and what is wrong; a malformed file never panics.
     pub fn open(path: &Path) -> Result<Self, MapError> {
-        let file = File::open(path).map_err(|source| MapError::Io {
-            path: path.to_path_buf(),
-            what: "cannot open the map file",
-            cause: source,
-        })?;
+        let file = crate::files::require_regular(path, "a reference map")
+            .and_then(|()| File::open(path))
+            .map_err(|source| MapError::Io {
+                path: path.to_path_buf(),
+                what: "cannot open the map file",
+                cause: source,
+            })?;
         // SAFETY: the map is read-only for us; the file must not be truncated or rewritten by
         // another process while it is mapped (maps are written to a temporary name and renamed
         // into place, so a rebuild replaces the directory entry, not these pages).

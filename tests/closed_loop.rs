@@ -41,6 +41,56 @@ fn sim_json(out: &Path, extra: &[&str]) -> serde_json::Value {
     })
 }
 
+/// The rejected attempts of `visnav sim --json` (and summary.json) carry their reasons as the
+/// engine wrote them, numbers included, beside their count and class; no text holds a number
+/// replaced by a placeholder. The shortened demo flight (about 10 s, lock-step) rejects a few.
+#[test]
+fn sim_rejections_keep_their_numbers() {
+    let _serial = REAL_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = std::env::temp_dir().join(format!("visnav-sim-reasons-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("temp folder");
+    let f = dir.join("short.toml");
+    std::fs::write(
+        &f,
+        common::short_demo_scenario(root, &root.join("config/demo.toml")),
+    )
+    .expect("write the scenario");
+    let v = sim_json(&dir.join("out"), &["--scenario", &f.display().to_string()]);
+    let summary = std::fs::read_to_string(dir.join("out/summary.json")).expect("summary.json");
+    let _ = std::fs::remove_dir_all(&dir);
+    let rejections = v["rejections"].as_array().expect("rejections");
+    let digits = |s: &str| s.chars().any(|c| c.is_ascii_digit());
+    assert!(
+        rejections
+            .iter()
+            .any(|r| r["reason"].as_str().is_some_and(digits)),
+        "no rejection with its numbers (the flight rejects a few attempts, each reason with \
+         figures): {rejections:?}"
+    );
+    for r in rejections {
+        let (Some(reason), Some(count), Some(class)) = (
+            r["reason"].as_str(),
+            r["count"].as_u64(),
+            r["class"].as_str(),
+        ) else {
+            panic!("a rejection is reason, count and class: {r}");
+        };
+        assert!(count >= 1 && !class.is_empty() && !reason.is_empty(), "{r}");
+        assert!(
+            !digits(class),
+            "the class groups reasons without numbers: {r}"
+        );
+    }
+    for (what, text) in [("stdout", v.to_string()), ("summary.json", summary)] {
+        assert!(
+            !text.contains(" N "),
+            "{what} has a number placeholder: {text}"
+        );
+    }
+}
+
 /// Issue 21: a lock-step closed loop gives the same numbers twice for the same seed (every
 /// figure of the summary, to the last bit).
 #[test]

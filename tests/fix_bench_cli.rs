@@ -55,7 +55,7 @@ fn check_fields(doc: &serde_json::Value, frames: u64) {
         .as_array()
         .expect("rejections")
         .iter()
-        .map(|r| r[1].as_u64().expect("a count per reason"))
+        .map(|r| r["count"].as_u64().expect("a count per reason"))
         .sum();
     assert_eq!(
         rejected + accepted,

@@ -316,8 +316,10 @@ struct CountingFixer(std::sync::atomic::AtomicU64);
 impl visnav::daemon::FrameFixer for CountingFixer {
     fn fix(&self, image: &GrayImage, prior: &visnav::fix::FixPrior) -> visnav::fix::FixReport {
         assert_eq!((image.width(), image.height()), (32, 24));
-        self.0.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        visnav::fix::FixReport::rejected("test engine: no map", prior.t_capture_us, 0.0)
+        let n = self.0.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        // A reason with numbers, as the engine's are: the counters must keep them.
+        let reason = format!("test engine: no map under frame {n} (32 x 24 px)");
+        visnav::fix::FixReport::rejected(reason, prior.t_capture_us, 0.0)
     }
 }
 
@@ -405,16 +407,29 @@ async fn daemon_runs_a_live_capture_process_and_kills_it_on_shutdown() {
     assert!(m.frames_in >= 10 && m.frame_errors == 0, "{m:?}");
     // Every engine call is accounted for: its rejection reached the navigation task, or it
     // finished after shutdown began and is counted as dropped.
+    // Counted by class (`fix::rejection_class`): the check's name without its details.
+    let rejected = m.engine_rejected.iter().find(|r| r.class == "test engine");
     assert_eq!(
-        m.engine_rejected
-            // Counted by class (`fix::rejection_class`): the check's name without its details.
-            .get("test engine")
-            .copied()
-            .unwrap_or(0)
-            + m.fixes_dropped_at_shutdown,
+        rejected.map_or(0, |r| r.count) + m.fixes_dropped_at_shutdown,
         fixer.0.load(std::sync::atomic::Ordering::Relaxed),
         "{m:?}"
     );
+    // What `visnav run` logs at its end shows the reason with its numbers, beside its count and
+    // class; no number stands in as a placeholder.
+    let line = visnav::daemon::final_counters(&m);
+    if let Some(r) = rejected {
+        assert!(
+            r.reason.starts_with("test engine: no map under frame ")
+                && r.reason.ends_with(" (32 x 24 px)"),
+            "{r:?}"
+        );
+        let json = serde_json::to_string(&r.reason).unwrap();
+        assert!(
+            line.contains(&format!(r#""reason":{json},"count":{}"#, r.count)),
+            "{line}"
+        );
+    }
+    assert!(!line.contains(" N "), "{line}");
     let pid: u32 = std::fs::read_to_string(&pid_file)
         .unwrap()
         .trim()

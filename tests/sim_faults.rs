@@ -210,7 +210,7 @@ fn a_withheld_map_refuses_the_fixes_of_its_window_only() {
     assert!(
         rejections
             .iter()
-            .any(|r| r[0] == REASON && r[1].as_u64() == Some(refused as u64)),
+            .any(|r| r["reason"] == REASON && r["count"].as_u64() == Some(refused as u64)),
         "{rejections:?}"
     );
 

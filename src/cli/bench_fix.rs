@@ -366,8 +366,9 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
             "  frame to fix: p50 {:.1} ms, p95 {:.1} ms",
             s.ms_p50, s.ms_p95
         );
-        for (reason, n) in &s.rejections {
-            println!("  rejected {n:3}: {reason}");
+        // One line per kind of reason, with the latest of its kind as the engine wrote it.
+        for r in &s.rejections {
+            println!("  rejected {:3}, latest: {}", r.count, r.reason);
         }
     }
     Ok(ExitCode::SUCCESS)

@@ -345,7 +345,7 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
                 d.motions,
                 d.frames,
                 d.fused,
-                d.refused.values().sum::<u64>(),
+                d.refused.iter().map(|r| r.count).sum::<u64>(),
                 p.poses,
                 p.err_h_m.median,
                 p.err_h_m.p90,
@@ -382,20 +382,21 @@ const INTERRUPTED_EXIT_CODE: u8 = 130;
 /// How many reasons the console lists before summing the rest as "other".
 const REJECTION_REASONS_LISTED: usize = 5;
 
-/// The window's rejected attempts by reason (most frequent first), one line each.
-fn print_rejections(rejections: &[(String, usize)]) {
+/// The window's rejected attempts by kind (most frequent first), one line each: the count and
+/// the latest reason of its kind, numbers included.
+fn print_rejections(rejections: &[visnav_core::reasons::ReasonCount]) {
     if rejections.is_empty() {
         return;
     }
-    let total: usize = rejections.iter().map(|r| r.1).sum();
-    println!("rejected attempts by reason ({total}):");
-    for (reason, n) in rejections.iter().take(REJECTION_REASONS_LISTED) {
-        println!("  {n:>5}  {reason}");
+    let total: u64 = rejections.iter().map(|r| r.count).sum();
+    println!("rejected attempts by reason ({total}; each line the latest of its kind):");
+    for r in rejections.iter().take(REJECTION_REASONS_LISTED) {
+        println!("  {:>5}  {}", r.count, r.reason);
     }
-    let rest: usize = rejections
+    let rest: u64 = rejections
         .iter()
         .skip(REJECTION_REASONS_LISTED)
-        .map(|r| r.1)
+        .map(|r| r.count)
         .sum();
     if rest > 0 {
         println!("  {rest:>5}  other reasons (summary.json lists them all)");

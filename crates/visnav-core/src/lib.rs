@@ -5,8 +5,9 @@
 //! configuration values' checks, a leaf), [`geo`] (geodesy, projections, rasters in memory),
 //! [`camera`] (sensor model), [`vision`] (SURF and matching), [`pose`] (space resection and its
 //! integrity), [`fix`] (the absolute fix: frame against reference map, prior to pose), [`nav`]
-//! (strapdown INS and error-state EKF), with [`stats`] (chi-square quantiles) and [`rng`] (the
-//! seeded generator of RANSAC and of the simulator) beside them. Every frame and rotation
+//! (strapdown INS and error-state EKF), with [`stats`] (chi-square quantiles), [`rng`] (the
+//! seeded generator of RANSAC and of the simulator) and [`reasons`] (refusals counted by class)
+//! beside them. Every frame and rotation
 //! convention is defined once in docs/conventions.md.
 
 pub mod camera;
@@ -15,6 +16,7 @@ pub mod fix;
 pub mod geo;
 pub mod nav;
 pub mod pose;
+pub mod reasons;
 pub mod rng;
 pub mod stats;
 pub mod text;

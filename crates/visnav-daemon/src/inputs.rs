@@ -42,7 +42,7 @@ use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
 
 use crate::config::{DaemonConfig, GpsSource, ImuBiasRestore};
 use crate::imu_bias::{ImuBiasRestorer, RestoreStatus};
-use crate::metrics::reason_wording;
+use crate::metrics::same_but_numbers;
 use visnav_core::camera::Attitude;
 use visnav_core::fix::{AltitudePrior, AttitudePriorNed, FixPrior, FixReport, PositionPriorGeo};
 use visnav_core::geo::geoid::geoid_undulation_m;
@@ -557,7 +557,7 @@ struct GpsRaw {
 /// changed (so the link's health STATUSTEXT is sent on a real change only).
 pub fn link_health(h: NavHealth, reason: &str, prev: Option<&LinkHealth>) -> LinkHealth {
     let keep = |p: &str| {
-        if reason_wording(p) == reason_wording(reason) {
+        if same_but_numbers(p, reason) {
             p.to_string()
         } else {
             reason.to_string()

@@ -636,11 +636,17 @@ pub async fn run(
             before
         }
     };
-    match serde_json::to_string(&m) {
-        Ok(json) => info!("final counters: {json}"),
-        Err(e) => info!("final counters: cannot be written as JSON: {e}"),
-    }
+    info!("{}", final_counters(&m));
     Ok(m)
+}
+
+/// The line `visnav run` logs at its end: its counters as one JSON object (the rejections by
+/// reason each with the latest reason as written, its count and its class).
+pub fn final_counters(m: &MetricsSnapshot) -> String {
+    match serde_json::to_string(m) {
+        Ok(json) => format!("final counters: {json}"),
+        Err(e) => format!("final counters: cannot be written as JSON: {e}"),
+    }
 }
 
 struct NavTask {
@@ -1081,7 +1087,8 @@ impl NavTask {
                 frames_in = m.frames_in,
                 dropped = m.frames_superseded + m.frames_stale + m.frames_no_time + m.frames_frozen,
                 fixes_accepted = m.fixes_accepted,
-                fixes_rejected = m.fixes_filter_rejected + m.engine_rejected.values().sum::<u64>(),
+                fixes_rejected = m.fixes_filter_rejected
+                    + m.engine_rejected.iter().map(|r| r.count).sum::<u64>(),
                 latency_ms = m.fix_latency_ms_last,
                 "daemon"
             );

@@ -8,7 +8,6 @@
 //! state), [`ImuBias`] (the restorer's families, present while it runs) and [`Sequence`] (a
 //! frame-sequence navigator's families: visual odometry, DTM navigation).
 
-use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
@@ -20,10 +19,10 @@ use serde::Serialize;
 
 use crate::imu_bias::{G0_M_S2, RestoreStatus};
 use visnav_link::Health as LinkHealth;
-pub use visnav_link::metrics::reason_wording;
 use visnav_link::metrics::{
     Counter, Declare, Gauge, Histogram, Label, Metrics as LinkMetrics, Reasons, Registrar, Registry,
 };
+pub use visnav_link::metrics::{ReasonCount, same_but_numbers};
 
 visnav_link::metric_set! {
     /// The daemon's metrics (atomics; `Clone` shares them).
@@ -93,7 +92,8 @@ visnav_link::metric_set! {
         fixes_dropped_at_shutdown: Counter "visnav_fixes"
             "fixes the engine returned, by what the filter did with them"
             ["outcome" = "dropped_at_shutdown"],
-        /// Engine rejections by reason.
+        /// Engine rejections by class (the first check that refused, without numbers), each
+        /// with its latest reason, most frequent first.
         engine_rejected: Reasons "visnav_fix_engine_rejections"
             "fixes the engine rejected, by reason",
         /// Visual odometry (`[vo]`).
@@ -115,10 +115,11 @@ visnav_link::metric_set! {
 
 impl DaemonMetrics {
     /// Count one engine rejection, by its class (`visnav_core::fix::rejection_class`: the
-    /// first check that refused, without its numbers; the same classes as `visnav sim`'s).
+    /// first check that refused, in words without its numbers; the same classes as
+    /// `visnav sim`'s), keeping the reason itself for the snapshot.
     pub fn engine_reject(&self, reason: &str) {
         self.engine_rejected
-            .count(&visnav_core::fix::rejection_class(reason));
+            .count_as(&visnav_core::fix::rejection_class(reason), reason);
     }
 
     /// Record one fix latency.
@@ -359,7 +360,8 @@ pub struct VoSnapshot {
     pub fused: u64,
     pub filter_rejected: u64,
     pub unused: u64,
-    pub refused: BTreeMap<String, u64>,
+    /// Frames without a motion by class, each with its latest reason, most frequent first.
+    pub refused: Vec<ReasonCount>,
     /// Mean and largest computation time of a frame, ms.
     pub ms_mean: f64,
     pub ms_max: f64,
@@ -547,33 +549,48 @@ impl From<&LinkHealth> for HealthState {
 #[cfg(test)]
 mod tests {
     #[test]
-    fn reasons_group_by_wording() {
-        use super::reason_wording as w;
-        assert_eq!(
-            w("only 2 matches where chance gives 3 (need 17)"),
-            "only N matches where chance gives N (need N)"
-        );
-        assert_eq!(
-            w("prior altitude 580.1 m AMSL is not above the terrain"),
-            "prior altitude N m AMSL is not above the terrain"
-        );
-        assert_eq!(w("offset -12.5 m, x-ray"), "offset N m, x-ray");
-        assert_eq!(w("no map"), "no map");
+    fn reasons_group_by_class_and_keep_their_numbers() {
+        use super::same_but_numbers as same;
+        assert!(same(
+            "only 2 matches where chance gives 3 (need 17)",
+            "only 45 matches where chance gives 70 (need 117)"
+        ));
+        assert!(same("offset -12.5 m, x-ray", "offset 3 m, x-ray"));
+        assert!(!same("offset 3 m, x-ray", "offset 3 m"));
         let m = super::DaemonMetrics::default();
         for i in 0..200 {
             m.engine_reject(&format!("only {i} features in the frame"));
         }
         let s = m.snapshot();
         assert_eq!(s.engine_rejected.len(), 1);
-        assert_eq!(s.engine_rejected["only N features in the frame"], 200);
-        // The area correlation's fallback reason and the details after the check's name are not
-        // counted apart.
-        m.engine_reject(
-            "rejected: position sigma check failed: horizontal 3-sigma 61 m > maximum 50 m; \
-             area: rejected: position sigma check failed: horizontal 3-sigma 70 m > maximum 50 m",
+        let r = &s.engine_rejected[0];
+        assert_eq!(
+            (r.reason.as_str(), r.count, r.class.as_str()),
+            (
+                "only 199 features in the frame",
+                200,
+                "only features in the frame"
+            )
         );
+        // The area correlation's fallback reason and the details after the check's name are not
+        // counted apart, and stay in the reason shown.
+        let reason = "rejected: position sigma check failed: horizontal 3-sigma 61 m > maximum \
+                      50 m; area: rejected: position sigma check failed: horizontal 3-sigma 70 m \
+                      > maximum 50 m";
+        m.engine_reject(reason);
         let s = m.snapshot();
-        assert_eq!(s.engine_rejected["position sigma check failed"], 1);
+        let r = &s.engine_rejected[1];
+        assert_eq!(
+            (r.reason.as_str(), r.count, r.class.as_str()),
+            (reason, 1, "position sigma check failed")
+        );
+        // The final counters (`visnav run` logs them as JSON) carry the numbers; no placeholder.
+        let json = serde_json::to_string(&s).unwrap();
+        assert!(
+            json.contains(r#""reason":"only 199 features in the frame","count":200"#),
+            "{json}"
+        );
+        assert!(!json.contains(" N "), "{json}");
     }
 
     use super::*;

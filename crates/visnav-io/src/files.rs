@@ -132,6 +132,13 @@ pub fn require_regular(path: &Path, what: &str) -> std::io::Result<()> {
     ))
 }
 
+/// Opens `path` for reading in parts, refusing anything but a regular file (a device or a pipe
+/// would never end); `what` names its kind in the error.
+pub fn open_regular(path: &Path, what: &str) -> std::io::Result<std::fs::File> {
+    require_regular(path, what)?;
+    std::fs::File::open(path)
+}
+
 /// The whole of the regular file `path`, at most `kind.max_bytes` of it (see the module docs).
 pub fn read_bytes(path: &Path, kind: FileKind) -> std::io::Result<Vec<u8>> {
     require_regular(path, kind.what)?;

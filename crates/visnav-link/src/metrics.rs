@@ -12,14 +12,14 @@
 //! [`Gauge`] (an integer in the program's unit, exposed divided by a divisor: µs / 1e6 as
 //! seconds),
 //! [`Histogram`] (durations in the program's unit, Prometheus' default buckets in seconds),
-//! [`Reasons`] (a counter family by `reason`, at most [`MAX_REASONS`] wordings).
+//! [`Reasons`] (a counter family by `reason`: a class without numbers, at most [`MAX_REASONS`];
+//! the snapshot shows each class's latest reason with its numbers).
 //! Counters of one name with different labels form one family.
 //!
 //! The link's own endpoint (`link.metrics_listen`, [`serve`]) renders a registry with the link's
 //! metrics alone; `visnav run`'s endpoint (`daemon.metrics_listen`) registers them beside the
 //! daemon's in one registry.
 
-use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -30,6 +30,8 @@ use prometheus_client::registry::Metric;
 use serde::Serialize;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpListener;
+pub use visnav_core::reasons::ReasonCount;
+use visnav_core::reasons::ReasonTally;
 
 pub use prometheus_client::collector::Collector;
 pub use prometheus_client::metrics::counter::Counter;
@@ -38,7 +40,7 @@ pub use prometheus_client::registry::Registry;
 /// The `Content-Type` of [`render`]'s text.
 pub const CONTENT_TYPE: &str = prometheus_client::encoding::prometheus_text::CONTENT_TYPE;
 
-/// Distinct reasons a [`Reasons`] family keeps; later wordings count as `other`.
+/// Distinct classes a [`Reasons`] family keeps; later ones count as `other`.
 pub const MAX_REASONS: usize = 64;
 
 /// Histogram bucket bounds, seconds (Prometheus' default buckets).
@@ -332,36 +334,45 @@ impl Declare for Histogram {
     }
 }
 
-/// A counter family by `reason`: each reason counted by its wording ([`reason_wording`]: every
-/// number becomes `N`, so reasons group), at most [`MAX_REASONS`] wordings (then `other`).
+/// A counter family by `reason`: each reason counted by its class (a label without numbers,
+/// [`reason_class`](visnav_core::reasons::reason_class) unless the caller gives its own), at most
+/// [`MAX_REASONS`] classes (then `other`), so the label's values stay few. The snapshot keeps
+/// each class's most recent reason with its numbers: what a user reads.
 #[derive(Debug, Clone, Default)]
 pub struct Reasons {
-    counts: Arc<Mutex<BTreeMap<String, u64>>>,
+    counts: Arc<Mutex<ReasonTally>>,
 }
 
 impl Reasons {
-    /// Count one `reason`.
+    /// Count one `reason` under its class.
     pub fn count(&self, reason: &str) {
-        let worded = reason_wording(reason);
+        self.count_as(&visnav_core::reasons::reason_class(reason), reason);
+    }
+
+    /// Count one `reason` under `class`.
+    pub fn count_as(&self, class: &str, reason: &str) {
         let mut m = lock(&self.counts);
-        let key = if m.len() < MAX_REASONS || m.contains_key(&worded) {
-            worded
+        let class = if m.len() < MAX_REASONS || m.contains(class) {
+            class
         } else {
-            "other".to_string()
+            "other"
         };
-        *m.entry(key).or_default() += 1;
+        m.add(class, reason);
     }
 
     /// All reasons counted.
     pub fn total(&self) -> u64 {
-        lock(&self.counts).values().sum()
+        lock(&self.counts).total()
     }
 }
 
 impl EncodeMetric for Reasons {
     fn encode(&self, mut encoder: MetricEncoder) -> Result<(), std::fmt::Error> {
-        for (reason, n) in self.value() {
-            encode_count(&mut encoder, [("reason", reason.as_str())], n)?;
+        // By class, in a fixed order: the label is the class, never the reason with its numbers.
+        let mut counts = self.value();
+        counts.sort_by(|a, b| a.class.cmp(&b.class));
+        for r in counts {
+            encode_count(&mut encoder, [("reason", r.class.as_str())], r.count)?;
         }
         Ok(())
     }
@@ -372,7 +383,7 @@ impl EncodeMetric for Reasons {
 }
 
 impl Declare for Reasons {
-    type Value = BTreeMap<String, u64>;
+    type Value = Vec<ReasonCount>;
 
     fn new(_divisor: f64) -> Self {
         Self::default()
@@ -382,30 +393,36 @@ impl Declare for Reasons {
         r.metric(name, help, self.clone());
     }
 
-    fn value(&self) -> BTreeMap<String, u64> {
-        lock(&self.counts).clone()
+    /// Most frequent first, each class with its most recent reason.
+    fn value(&self) -> Vec<ReasonCount> {
+        lock(&self.counts).counts()
     }
 }
 
-/// `reason` with each number (digits with an optional sign and decimals) replaced by `N`.
-pub fn reason_wording(reason: &str) -> String {
-    let mut out = String::with_capacity(reason.len());
-    let mut chars = reason.chars().peekable();
-    while let Some(c) = chars.next() {
-        let sign_digit = (c == '-' || c == '+') && chars.peek().is_some_and(|d| d.is_ascii_digit());
-        if c.is_ascii_digit() || sign_digit {
-            while chars
-                .peek()
-                .is_some_and(|d| d.is_ascii_digit() || *d == '.')
-            {
-                chars.next();
+/// Whether `a` and `b` say the same but for their numbers (digits with an optional sign and
+/// decimals): a reason whose numbers change each time is still the same news.
+pub fn same_but_numbers(a: &str, b: &str) -> bool {
+    fn wording(reason: &str) -> impl Iterator<Item = Option<char>> + '_ {
+        let mut chars = reason.chars().peekable();
+        std::iter::from_fn(move || {
+            let c = chars.next()?;
+            let sign_digit =
+                (c == '-' || c == '+') && chars.peek().is_some_and(|d| d.is_ascii_digit());
+            if c.is_ascii_digit() || sign_digit {
+                while chars
+                    .peek()
+                    .is_some_and(|d| d.is_ascii_digit() || *d == '.')
+                {
+                    chars.next();
+                }
+                // A number, whichever.
+                Some(None)
+            } else {
+                Some(Some(c))
             }
-            out.push('N');
-        } else {
-            out.push(c);
-        }
+        })
     }
-    out
+    wording(a).eq(wording(b))
 }
 
 /// Declare a set of metrics once: the live structure (`pub struct Live => Snapshot`), its
@@ -798,7 +815,8 @@ mod tests {
             "x_seconds_bucket{le=\"+Inf\"} 2",
             "x_seconds_sum 3.02",
             "x_seconds_count 2",
-            "x_refusals_total{reason=\"only N left\"} 100",
+            // The class is the label: bounded, without the reasons' numbers.
+            "x_refusals_total{reason=\"only left\"} 100",
         ] {
             assert!(
                 text.lines().any(|l| l == want),
@@ -814,11 +832,20 @@ mod tests {
         assert_eq!((s.a, s.b), (1, 2));
         assert_eq!((s.t.count, s.t.sum, s.t.mean), (2, 3020, 1510.0));
         assert_eq!(s.r.len(), 1);
+        // The snapshot shows the latest reason with its number.
+        assert_eq!(
+            (s.r[0].reason.as_str(), s.r[0].count, s.r[0].class.as_str()),
+            ("only 99 left", 100, "only left")
+        );
         let many = Reasons::default();
         for i in 0..MAX_REASONS + 5 {
             many.count(&"x".repeat(i + 1));
         }
         assert_eq!(many.value().len(), MAX_REASONS + 1);
-        assert_eq!(many.value()["other"], 5);
+        let other = many.value().into_iter().find(|r| r.class == "other");
+        assert_eq!(
+            other.map(|r| (r.count, r.reason)),
+            Some((5, "x".repeat(MAX_REASONS + 5)))
+        );
     }
 }

@@ -787,8 +787,9 @@ pub struct ClosedLoopSummary {
     /// Every injected position message kind: (count, horizontal error stats) in the window.
     pub nav_err_by_message: std::collections::BTreeMap<String, (usize, Stats)>,
     pub control_injections: usize,
-    /// The window's rejected attempts by reason ([`rejection_class`]), most frequent first.
-    pub rejections: Vec<(String, usize)>,
+    /// The window's rejected attempts by class ([`rejection_class`]), most frequent first, each
+    /// with its latest reason as the engine wrote it.
+    pub rejections: Vec<visnav_core::reasons::ReasonCount>,
     /// What the vision daemon did around each scripted fault (`[[faults]]`).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub faults: Vec<FaultOutcome>,
@@ -1712,15 +1713,11 @@ pub async fn run_until_stopped(
     let accepted: Vec<&&FixRow> = wf.iter().filter(|f| f.accepted).collect();
     let fix_errs: Vec<f64> = accepted.iter().map(|f| hnorm(&f.err_ned_m)).collect();
     let lat: Vec<f64> = wf.iter().map(|f| f.latency_ms).collect();
-    let mut rejections: Vec<(String, usize)> = Vec::new();
+    let mut tally = visnav_core::reasons::ReasonTally::default();
     for f in wf.iter().filter(|f| !f.accepted) {
-        let key = rejection_class(&f.reason);
-        match rejections.iter_mut().find(|(k, _)| *k == key) {
-            Some((_, n)) => *n += 1,
-            None => rejections.push((key, 1)),
-        }
+        tally.add(&rejection_class(&f.reason), &f.reason);
     }
-    rejections.sort_by_key(|r| std::cmp::Reverse(r.1));
+    let rejections = tally.counts();
     // nav_err_m scores the first configured output message; every kind is in nav_err_by_message.
     let scored_kind = match cfg.output.modes.first() {
         Some(visnav_link::config::OutputMode::VisionPositionEstimate) => "vision_position_estimate",
@@ -2067,7 +2064,7 @@ mod tests {
             c(
                 "only 24 matches where chance gives 10 (need 27); area: area correlation peak 0.29 < 0.3"
             ),
-            "only N matches where chance gives N (need N)"
+            "only matches where chance gives"
         );
         assert_eq!(
             c("rejected: inlier count check failed: 9 inliers < minimum 12; area: x"),
@@ -2079,7 +2076,11 @@ mod tests {
         );
         assert_eq!(
             c("only 3 features in the frame"),
-            "only N features in the frame"
+            "only features in the frame"
+        );
+        assert_eq!(
+            c("its feature fix (12 inliers) is not confirmed by the area correlation: peak 0.2"),
+            "its feature fix is not confirmed by the area correlation"
         );
         // Two attempts that differ only in their numbers count as one reason.
         assert_eq!(

@@ -341,8 +341,9 @@ pub struct Summary {
     /// Frame-to-fix wall time, milliseconds.
     pub ms_p50: f64,
     pub ms_p95: f64,
-    /// Rejection reasons with their counts.
-    pub rejections: Vec<(String, usize)>,
+    /// Rejections by class (the whole reason in words without its numbers), most frequent
+    /// first, each with its latest reason.
+    pub rejections: Vec<visnav_core::reasons::ReasonCount>,
 }
 
 /// Median of `dem` over `bounds` on a 10 m grid (valid cells only), metres.
@@ -871,7 +872,7 @@ impl NaipEval {
         let (mut accepted, mut beyond, mut wrong) = (0, 0, 0);
         let (mut wrong_far, mut wrong_beyond_sigma) = (0, 0);
         let mut nees6 = Vec::new();
-        let mut reasons: std::collections::BTreeMap<String, usize> = Default::default();
+        let mut reasons = visnav_core::reasons::ReasonTally::default();
         for i in 0..n {
             let x = uni(
                 &mut rng,
@@ -957,18 +958,8 @@ impl NaipEval {
                     r.ms
                 ));
             } else {
-                // Group reasons by their text with the numbers blanked out.
-                let mut key = String::new();
-                for c in r.reason.chars() {
-                    if c.is_ascii_digit() || c == '.' {
-                        if !key.ends_with('#') {
-                            key.push('#');
-                        }
-                    } else {
-                        key.push(c);
-                    }
-                }
-                *reasons.entry(key).or_default() += 1;
+                // Reasons that differ only in their numbers count as one.
+                reasons.add_reason(&r.reason);
                 log(format!(
                     "frame {i:3}: {} ({} matches, {good} correct, chance {}), {:.1} ms",
                     r.reason, r.matches, a.null_matches, r.ms
@@ -992,7 +983,7 @@ impl NaipEval {
             vision_only_beyond_chi2_99: nees6.iter().filter(|&&x| x > 16.81).count(),
             ms_p50: percentile(&ms, 0.5),
             ms_p95: percentile(&ms, 0.95),
-            rejections: reasons.into_iter().collect(),
+            rejections: reasons.counts(),
         })
     }
 }

@@ -352,29 +352,16 @@ pub use reference::{MemoryReference, RefFeature, RefSelection, Reference};
 
 /// The class of a rejected fix attempt's reason, for counting rejections by reason: the first
 /// check that refused it (the feature path's; the area correlation's, after `; area:`, is its
-/// fallback and not counted apart), without its numbers. "rejected: inlier count check failed: 9
-/// inliers < minimum 12" becomes "inlier count check failed"; "only 24 matches where chance gives
-/// 10 (need 27); area: ..." becomes "only N matches where chance gives N (need N)".
+/// fallback and not counted apart), in words without its numbers
+/// ([`reason_class`](crate::reasons::reason_class)). "rejected: inlier count check failed: 9
+/// inliers < minimum 12" is "inlier count check failed"; "only 24 matches where chance gives
+/// 10 (need 27); area: ..." is "only matches where chance gives". What a user reads beside it is
+/// the reason itself ([`ReasonTally`](crate::reasons::ReasonTally)).
 pub fn rejection_class(reason: &str) -> String {
     let first = reason.split("; area:").next().unwrap_or(reason).trim();
     let first = first.strip_prefix("rejected:").unwrap_or(first).trim();
     let first = first.split(": ").next().unwrap_or(first).trim();
-    let mut out = String::with_capacity(first.len());
-    let mut in_number = false;
-    for c in first.chars() {
-        let digit = c.is_ascii_digit() || (in_number && c == '.');
-        if digit && !in_number {
-            out.push('N');
-        } else if !digit {
-            out.push(c);
-        }
-        in_number = digit;
-    }
-    if out.is_empty() {
-        "unknown".into()
-    } else {
-        out
-    }
+    crate::reasons::reason_class(first)
 }
 
 #[cfg(test)]

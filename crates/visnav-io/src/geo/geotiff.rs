@@ -2,7 +2,6 @@
 //! chunk decoding, `super::window`). The format, the georeferencing keys and the errors are
 //! `super::geotiff_info`'s, re-exported here.
 
-use std::fs::File;
 use std::io::{BufReader, Read, Seek};
 use std::path::Path;
 
@@ -15,17 +14,12 @@ use super::window::GeoTiffWindowReader;
 /// are missing or not understood; see the module doc. For large files read windows instead
 /// ([`super::window::open_geotiff_window`]).
 pub fn load_geotiff(path: &Path, crs_override: Option<Crs>) -> Result<Raster, GeoTiffError> {
-    read_geotiff(BufReader::new(open_regular(path)?), path, crs_override)
-}
-
-/// Opens a GeoTIFF that must be a regular file (not a device or a pipe, which would never end).
-pub(crate) fn open_regular(path: &Path) -> Result<File, GeoTiffError> {
-    crate::files::require_regular(path, "a GeoTIFF")
-        .and_then(|()| File::open(path))
-        .map_err(|source| GeoTiffError::Io {
+    let file =
+        crate::files::open_regular(path, "a GeoTIFF").map_err(|source| GeoTiffError::Io {
             path: path.to_path_buf(),
             cause: source,
-        })
+        })?;
+    read_geotiff(BufReader::new(file), path, crs_override)
 }
 
 /// Like [`load_geotiff`] but from any seekable reader; `path` is only used in error messages.
@@ -91,7 +85,7 @@ mod tests {
     ) where
         [C::Inner]: TiffValue,
     {
-        let file = File::create(path).unwrap();
+        let file = std::fs::File::create(path).unwrap();
         let mut enc = TiffEncoder::new(file)
             .unwrap()
             .with_compression(compression);

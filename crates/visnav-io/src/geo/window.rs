@@ -58,7 +58,11 @@ pub fn open_geotiff_window(
     path: &Path,
     crs_override: Option<Crs>,
 ) -> Result<GeoTiffWindowReader<BufReader<File>>, GeoTiffError> {
-    let file = super::geotiff::open_regular(path)?;
+    let file =
+        crate::files::open_regular(path, "a GeoTIFF").map_err(|source| GeoTiffError::Io {
+            path: path.to_path_buf(),
+            cause: source,
+        })?;
     GeoTiffWindowReader::new(BufReader::new(file), path, crs_override)
 }
 

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Builds the fuzz targets (fuzz/) and runs each for a bounded time from its committed corpus
 # (fuzz/corpus/<target>/). Fails when any target crashes (a panic escaping the target, a timeout,
-# running out of memory); prints one line per target. CI runs it from .ci/run (issue 21).
+# running out of memory); prints one line per target. CI runs it from .ci/run.
 #
 #   scripts/fuzz.sh [SECONDS] [TARGET...]     SECONDS per target (default 20), all targets by default
 #

@@ -28,7 +28,7 @@ if ! command -v gst-launch-1.0 >/dev/null 2>&1; then
 fi
 
 # A Vulkan driver for the GPU SURF tests (crates/visnav-gpu): Mesa's lavapipe is a software Vulkan
-# device, so the GPU path's equivalence with the CPU runs on any machine (issue 25). A real GPU's
+# device, so the GPU path's equivalence with the CPU runs on any machine. A real GPU's
 # driver serves as well. Under CI the GPU tests fail without an adapter; elsewhere they skip.
 if ! ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1 || ! ldconfig -p 2>/dev/null | grep 'libvulkan.so.1' >/dev/null; then
     apt_install "mesa-vulkan-drivers libvulkan1" "the GPU tests will skip, or fail under CI"

@@ -33,6 +33,8 @@ struct Args {
 enum Command {
     /// Load and validate a configuration file, printing every problem found.
     CheckConfig(cli::check_config::CheckConfigArgs),
+    /// The configuration's defaults and key reference (`config default`, `config reference`).
+    Config(cli::config::ConfigArgs),
     /// Run a SITL scenario through the navigation filter and print errors against truth.
     #[cfg(feature = "sim")]
     Sim(cli::sim::SimArgs),
@@ -86,6 +88,7 @@ fn main() -> std::process::ExitCode {
     cli::init_logging(args.verbose);
     let result = match args.command {
         Command::CheckConfig(a) => cli::check_config::run(a),
+        Command::Config(a) => cli::config::run(a),
         #[cfg(feature = "sim")]
         Command::Sim(a) => cli::sim::run_cmd(a),
         #[cfg(feature = "sim")]

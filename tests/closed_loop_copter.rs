@@ -1,5 +1,6 @@
-//! Issue 18 in the built-in simulator (`sitl/scenarios/copter_ardupilot.toml`): a quadcopter
-//! flown like ArduCopter SITL's mission, 1825 m above the bundled NAIP map, leaning 31 deg at
+//! The real ArduCopter SITL flight in the built-in simulator
+//! (`sitl/scenarios/copter_ardupilot.toml`): a quadcopter flown like ArduCopter SITL's mission,
+//! 1825 m above the bundled NAIP map, leaning 31 deg at
 //! 12 m/s (SITL's fitted drag law), the gyro from ATTITUDE's rates with EKF3's wandering bias
 //! residual (60 deg/h), GPS (with velocity, as ArduPilot sends it) for 55 s, lost at the first
 //! corner, then 120 s of the rectangle's legs and corners. `visnav sim --scenario ... --json`,

@@ -50,7 +50,7 @@ fn every_example_config_passes() {
             path.display(),
             String::from_utf8_lossy(&out.stderr)
         );
-        // It says what the vision does; without a camera, loudly that there is none (issue 24).
+        // It says what the vision does; without a camera, loudly that there is none.
         let text = String::from_utf8_lossy(&out.stdout);
         if out.status.success() {
             let has_frames = std::fs::read_to_string(&path)
@@ -140,7 +140,7 @@ fn bad_configs_are_rejected_with_file_key_and_reason() {
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("threshhold_px"), "{err}");
 
-    // Several unknown keys in several sections: all named at once with their sections (issue 24),
+    // Several unknown keys in several sections: all named at once with their sections,
     // the first with its line.
     let (code, err) = check(
         dir.path(),
@@ -326,7 +326,7 @@ fn example_configs_build_a_fix_engine_and_a_vnm_map_config_loads() {
     assert!(err.contains("map.file") && err.contains("m.vnm"), "{err}");
 }
 
-/// `visnav camera import` (issue 24): a ROS camera_info calibration printed as `[camera]`, which
+/// `visnav camera import`: a ROS camera_info calibration printed as `[camera]`, which
 /// check-config accepts in a configuration; an unsupported model is refused naming the file.
 #[test]
 fn camera_import_gives_a_section_check_config_accepts() {

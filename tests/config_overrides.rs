@@ -1,4 +1,4 @@
-//! Command-line and environment overrides of the configuration (issue 24): `--connection`,
+//! Command-line and environment overrides of the configuration: `--connection`,
 //! `--map`, `--camera` and `VISNAV_CONNECTION`, `VISNAV_MAP`, `VISNAV_CAMERA`, `VISNAV_CONFIG`
 //! on `visnav check-config` and `visnav run`; the command line beats the environment, which
 //! beats the file. Also the path errors (the key, the value as written, the resolved path, the

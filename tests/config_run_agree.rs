@@ -1,9 +1,11 @@
-//! `visnav check-config` and `visnav run` share one validation (issue 21, item 12): what
+//! `visnav check-config` and `visnav run` share one validation: what
 //! check-config passes, run starts; what run refuses, check-config refuses first, naming the key.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+use crate::common;
 
 fn visnav() -> Command {
     Command::new(env!("CARGO_BIN_EXE_visnav"))
@@ -46,26 +48,16 @@ fn run(dir: &Path, text: &str, secs: f64) -> Option<(i32, String)> {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let t0 = Instant::now();
-    loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            let mut err = String::new();
-            use std::io::Read;
-            child
-                .stderr
-                .take()
-                .unwrap()
-                .read_to_string(&mut err)
-                .unwrap();
-            return Some((status.code().unwrap_or(-1), err));
-        }
-        if t0.elapsed().as_secs_f64() > secs {
-            child.kill().unwrap();
-            child.wait().unwrap();
-            return None;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    let status = common::wait_with_deadline(&mut child, Duration::from_secs_f64(secs))?;
+    let mut err = String::new();
+    use std::io::Read;
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    Some((status.code().unwrap_or(-1), err))
 }
 
 /// Each of these passed check-config and was refused by run (or, for the serial device, failed
@@ -177,7 +169,7 @@ fn run_refuses_the_bad_dem_check_config_refuses() {
     }
 }
 
-/// No autopilot on the link (issue 24): `visnav run` says so within the heartbeat timeout,
+/// No autopilot on the link: `visnav run` says so within the heartbeat timeout,
 /// naming the connection and what to check, instead of waiting in silence.
 #[test]
 fn run_warns_when_no_autopilot_heartbeat_arrives() {

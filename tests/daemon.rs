@@ -513,7 +513,7 @@ fn visnav_run_subprocess_injects_and_reports() {
     let port = free_udp_port();
     let emu = rt.block_on(emulator(port, true));
     let dir = tempfile::tempdir().unwrap();
-    // `run` validates what `check-config` validates (issue 21, item 12): a placeholder
+    // `run` validates what `check-config` validates: a placeholder
     // orthophoto is refused before anything starts, [frames] or not.
     std::fs::write(dir.path().join("ortho.tif"), b"placeholder: not a GeoTIFF").unwrap();
     let base = format!(

@@ -1,4 +1,4 @@
-//! DTM navigation on real frames with measured poses (issue 23): NGI 3324C frame 0182's pose from
+//! DTM navigation on real frames with measured poses: NGI 3324C frame 0182's pose from
 //! its Lucas-Kanade flow to frame 0184 and the 24 m DEM alone, no orthophoto
 //! (`visnav::sitl::dtm_eval::ngi_dtm`), from first guesses some hundreds of metres and degrees
 //! off: from the bench's guess (183 m, 1 deg) the error inside 3 sigma of the solution's own

@@ -1,11 +1,11 @@
-//! Issue 23 end to end: the DTM navigator in the seed paper's flight through the real daemon
+//! End to end: the DTM navigator in the seed paper's flight through the real daemon
 //! (`visnav sim --scenario sitl/scenarios/dtm_replica.toml --json`, and `dtm_replica_moving.toml`
 //! with S-turns): 1000 m above sea level over the NGI 3324C valley's 24 m DEM, 50 m/s, 19.6 s
 //! and 50 frames 0.4 s apart without GPS, the map fix withheld all flight, the INS with the
 //! paper's noise; the frames rendered from the NGI orthophoto, the DTM navigator reading the DEM
 //! alone; the INS-only control beside it. Lock-step: the same numbers on every machine.
 //!
-//! Targets (the issue; the paper's in brackets): replica maximum position error <= 10 m (20 m)
+//! Targets (docs/status.md; the paper's in brackets): replica maximum position error <= 10 m (20 m)
 //! and Euler error <= 0.5 deg (0.83); with camera movement <= 15 m (30 m) and 1.1 deg (2.2).
 //! Measured (docs/status.md): the replica 7.1 m / 0.30 deg (seeds 101-105: 5.4-8.8 m,
 //! 0.19-0.35 deg); moving 10.8 m / 0.29 deg (seeds 101-105: 8.8-13.2 m, 0.27-0.31 deg; the
@@ -36,12 +36,12 @@ fn sim(name: &str) -> Option<serde_json::Value> {
         .expect("run visnav sim");
     let stderr = String::from_utf8_lossy(&res.stderr).to_string();
     assert!(res.status.success(), "visnav sim failed: {stderr}");
-    // A redirected log is plain text (issue 24): no terminal colour codes.
+    // A redirected log is plain text: no terminal colour codes.
     assert!(
         stderr.contains("INFO") && !stderr.contains('\u{1b}'),
         "{stderr}"
     );
-    // Each daemon's lines say which run they are from (issue 24): the DTM navigation is the
+    // Each daemon's lines say which run they are from: the DTM navigation is the
     // vision run's; both runs report their health.
     let labelled = |run: &str, what: &str| {
         stderr

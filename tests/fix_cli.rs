@@ -1,5 +1,5 @@
 //! `visnav fix` end to end: a frame rendered from the 2014 NAIP image against the bundled 2009
-//! orthophoto (GeoTIFF map), the JSON keys of the issue, exit codes, and clear errors on bad input.
+//! orthophoto (GeoTIFF map), its JSON keys, exit codes, and clear errors on bad input.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

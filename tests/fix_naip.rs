@@ -1,4 +1,4 @@
-//! Acceptance 7b of the vision fix: NAIP cross-date (see `visnav::sitl::fixeval`). Frames
+//! The vision fix, NAIP cross-date (see `visnav::sitl::fixeval`). Frames
 //! rendered from the 2014 orthophoto are matched to a reference built from the 2009 orthophoto of
 //! the same area (bundled in sitl/maps; the lake levels changed a lot between the two years).
 //! Frames of other ground, of empty ground beyond the map, or with a prior far off must be
@@ -86,7 +86,7 @@ fn naip_cross_date_fixes_with_prior() {
         s.accepted
     );
     // Regression guards below today's measurement (22/40 accepted, median 4.7 map px); the
-    // issue's targets (90 %, 0.5 map px) are not met on this scene, see docs/fix.md.
+    // targets (90 %, 0.5 map px) are not met on this scene, see docs/fix.md.
     assert!(s.fix_rate >= 0.4, "fix rate {}", s.fix_rate);
     assert!(
         s.median_err_map_px <= 8.0,
@@ -382,7 +382,7 @@ fn naip_position_prior_without_attitude_stays_honest() {
                 s.err_h_m, s.err_sigma
             );
             assert!(s.err_sigma <= 3.0, "beyond 3 sigma");
-            // Never a wrong fix (issue 19: > 50 m off): a fix whose 1-sigma exceeds 50 m is
+            // Never a wrong fix (> 50 m off): a fix whose 1-sigma exceeds 50 m is
             // not offered (MAX_FIX_HORIZONTAL_SIGMA_M).
             assert!(
                 s.err_h_m <= 50.0,
@@ -652,7 +652,7 @@ fn relocalisation_is_reproducible_and_its_budget_counts_work() {
     assert!(r.reason.contains("work budget"), "{}", r.reason);
 }
 
-/// Issue 19, relocalisation with the tilt and the altitude known and the heading unknown (the
+/// Relocalisation with the tilt and the altitude known and the heading unknown (the
 /// restart after a GPS loss: gravity and the barometer still work): the area search over the
 /// whole map image at every heading shortlists places, the prior pipeline verifies them, and
 /// one confirmed place is the answer. Measured (release, seed 2024): 7 of 10 found, none

@@ -1,4 +1,4 @@
-//! Acceptance 7a of the vision fix: real NGI aerial frames 0182 and 0184 (../shared/data/ngi_3324c)
+//! The vision fix on real NGI aerial frames 0182 and 0184 (../shared/data/ngi_3324c)
 //! against the Sentinel-2 10 m map + 24 m DEM (other sensor, other date) and against the
 //! same-source NGI 5 m orthophoto, with a 500 m position prior and with no position prior (global
 //! relocalisation). Truth: the aerial-triangulation camera poses. Skips when the data are absent.

@@ -1,4 +1,4 @@
-//! The fuzz corpus on stable (issue 21): every committed input under `fuzz/corpus/<target>/` goes
+//! The fuzz corpus on stable: every committed input under `fuzz/corpus/<target>/` goes
 //! through the same target bodies libFuzzer runs (`fuzz/src/lib.rs`), so an input that once
 //! crashed a target, added to the corpus with its fix, stays tested by `cargo test` without
 //! nightly or libFuzzer. `scripts/fuzz.sh` runs the fuzzers themselves.

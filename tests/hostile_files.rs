@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use crate::common;
 
@@ -58,18 +58,8 @@ fn run_for(args: &[&str], env: &[(&str, &str)], secs: f64) -> Option<Output> {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let t0 = Instant::now();
-    loop {
-        if child.try_wait().unwrap().is_some() {
-            return Some(child.wait_with_output().unwrap());
-        }
-        if t0.elapsed().as_secs_f64() > secs {
-            child.kill().unwrap();
-            child.wait().unwrap();
-            return None;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    common::wait_with_deadline(&mut child, Duration::from_secs_f64(secs))?;
+    Some(child.wait_with_output().unwrap())
 }
 
 /// Each broken frames.csv passed check-config and stopped run: both refuse it now with the same

@@ -26,19 +26,7 @@ fn install(root: &Path, extra: &[&str]) -> Output {
         .unwrap()
 }
 
-fn text(b: &[u8]) -> String {
-    String::from_utf8_lossy(b).into_owned()
-}
-
-fn assert_ok(out: &Output, what: &str) {
-    assert!(
-        out.status.success(),
-        "{what}: exit {:?}\nstdout:\n{}\nstderr:\n{}",
-        out.status.code(),
-        text(&out.stdout),
-        text(&out.stderr)
-    );
-}
+use crate::common::{assert_ok, text};
 
 fn check_config(bin: &Path, conf: &Path) -> Output {
     Command::new(bin)

@@ -182,16 +182,11 @@ fn run_with_a_busy_listen_port_exits_at_start() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        if t0.elapsed() > RUN_EXIT_LIMIT {
-            child.kill().unwrap();
-            child.wait().unwrap();
-            panic!("visnav run still running after {RUN_EXIT_LIMIT:?} on a busy port");
-        }
-        std::thread::sleep(Duration::from_millis(50));
+    let Some(status) = common::wait_with_deadline(&mut child, RUN_EXIT_LIMIT) else {
+        panic!(
+            "visnav run still running after {} s on a busy port",
+            RUN_EXIT_LIMIT.as_secs_f64()
+        );
     };
     let mut err = String::new();
     child

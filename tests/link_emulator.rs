@@ -224,7 +224,7 @@ async fn udp_link_against_ardupilot_like_emulator() {
         MavMessage::STATUSTEXT(t) if t.text.to_str().unwrap_or("").starts_with("visnav: navigation lost"))));
 
     // 4b. A health flapping at a threshold does not flood the ground station: the better news
-    // is said once it has held for HEALTH_TEXT_HOLD_S (issue 24), worse news at once.
+    // is said once it has held for HEALTH_TEXT_HOLD_S, worse news at once.
     let health_texts = |e: &AutopilotEmulator| -> Vec<String> {
         e.received()
             .iter()

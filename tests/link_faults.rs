@@ -1,7 +1,7 @@
-//! Hostile and faulty MAVLink traffic against the real link over loopback UDP (issue 21, items
-//! 4, 5, 6, 8, 9, 10): a hand-driven fake autopilot (raw MAVLink 2 frames on a socket, so it can
-//! send anything: stale clocks, impossible origins, clock jumps), a gimbal that speaks first, a
-//! local process spraying junk at the daemon's `udpin` port.
+//! Hostile and faulty MAVLink traffic against the real link over loopback UDP: a hand-driven fake
+//! autopilot (raw MAVLink 2 frames on a socket, so it can send anything: stale clocks, impossible
+//! origins, clock jumps), a gimbal that speaks first, a local process spraying junk at the
+//! daemon's `udpin` port.
 
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};

@@ -402,7 +402,7 @@ fn cli_build_and_info() {
         text.contains("level 0") && text.contains("UTM zone 14N"),
         "{text}"
     );
-    // User-facing text, not Rust debug formatting (issue 24).
+    // User-facing text, not Rust debug formatting.
     assert!(
         !text.contains("Utm {") && !text.contains("Surf64"),
         "{text}"
@@ -458,7 +458,7 @@ fn without_build_time(path: &Path) -> Vec<u8> {
     b
 }
 
-/// Issue 4.1: reading tile windows (bounded memory, the default for orthophotos over
+/// Reading tile windows (bounded memory, the default for orthophotos over
 /// `WHOLE_DECODE_MAX_BYTES`) builds the same map, byte for byte, as decoding the orthophoto
 /// whole, for several tilings and level counts (windows straddling
 /// strips/tiles, level windows averaged from several level-0 bands).

@@ -1,5 +1,5 @@
 //! Multirotor drag aiding (`nav::drag`) in the navigation filter, on a simulated quadrotor whose
-//! accelerometer obeys a drag law (issue 18: without GPS and between vision fixes, visnav's
+//! accelerometer obeys a drag law (without GPS and between vision fixes, visnav's
 //! velocity collapsed from 12.5 to 2 m/s in ArduCopter SITL while the copter flew on at 12 m/s).
 //!
 //! Truth: a quadrotor integrated with the filter's own strapdown mechanization (so the IMU and
@@ -300,7 +300,7 @@ fn drag_holds_a_multirotors_velocity_without_gps() {
     );
 }
 
-/// PX4 + jMAVSim (issue 18's PX4 verdict): a vector drag law learned on diagonal legs, used on
+/// PX4 + jMAVSim: a vector drag law learned on diagonal legs, used on
 /// legs along the body axes. A per-axis law fitted to the diagonal legs over-states the drag
 /// along an axis by up to 40 % (visnav's velocity 1.2-2.7 m/s short, claimed as a confident
 /// measurement); the learner's vector form predicts any direction.

@@ -301,7 +301,7 @@ fn divergence_reset_after_consecutive_rejections() {
     assert!(why.contains("reset"), "{why}");
 }
 
-/// Wrong relocalisations (issue 18/19: fixes without a prior land hundreds of metres off, each
+/// Wrong relocalisations (fixes without a prior land hundreds of metres off, each
 /// claiming tens of metres) disagree with each other: the filter must not reset onto any of them,
 /// however many it rejects, and says why in its health.
 #[test]
@@ -913,7 +913,7 @@ fn vision_bias_states_survive_init_and_reset_from_vision_with_a_zero_vertical_si
 }
 
 /// In a steep turn the specific force has a horizontal part, so a tilt error drives a vertical
-/// velocity error and the barometer observes the tilt (PX4 SIH replays, session 8: barometer
+/// velocity error and the barometer observes the tilt (PX4 SIH replays: barometer
 /// updates at 15-34 deg of bank moved the roll by about 2 deg). Those corrections must go the
 /// right way: with a gyro that lets the tilt wander, a 30 deg turn on the barometer alone keeps
 /// the tilt within the filter's own bounds and no worse than flying the turn without it. A
@@ -995,7 +995,7 @@ fn barometer_in_a_steep_turn_corrects_the_tilt_the_right_way() {
     );
 }
 
-/// Issue 21 item 1: 4 s of the accelerometer's x axis stuck at 16 g or 50 g (a vibration burst,
+/// 4 s of the accelerometer's x axis stuck at 16 g or 50 g (a vibration burst,
 /// a glitch) while the GPS aids, then normal data. The samples at or beyond the sensor's range
 /// are clipped, so what they say is not integrated; the filter must be navigating again within
 /// seconds, without a reset loop (before: no usable output for 40-90 s, a divergence reset about
@@ -1033,7 +1033,7 @@ fn a_strong_accelerometer_fault_is_survived() {
     }
 }
 
-/// Issue 21, scripted link silence: 5 s without any message from the autopilot (no IMU, no
+/// Scripted link silence: 5 s without any message from the autopilot (no IMU, no
 /// attitude, no GPS), then the stream again. Before, the filter hard-reset on the gap and, with
 /// vision alone, took 20 s or more to relocalise. Now the gap is bridged: no reset, an output on
 /// the first sample after it, whose covariance grew by what the vehicle could have done unseen
@@ -1086,7 +1086,7 @@ fn a_silent_link_is_bridged_not_reset() {
     assert_eq!((c.hard_resets, c.imu_bridged), (1, 0));
 }
 
-/// Issue 21 item 2: one finite but impossible sample (x = 1e30 m/s^2) every half second for
+/// One finite but impossible sample (x = 1e30 m/s^2) every half second for
 /// 30 s: before, each hard-reset the filter (141 of 309 outputs, a sigma of 3.5e23 m logged).
 /// Now each is clipped and bridged; the solution stays healthy and its sigma small.
 #[test]
@@ -1113,7 +1113,7 @@ fn impossible_imu_samples_change_nothing() {
     assert!(h.pos_err().norm() < 5.0, "{:?}", h.pos_err());
 }
 
-/// Issue 21 item 3: the aiding GPS jumps 10 km for 4 s. Before, the filter reset onto it after 5
+/// The aiding GPS jumps 10 km for 4 s. Before, the filter reset onto it after 5
 /// rejections (1.2 s) and claimed 0.4-0.9 m. A step that the filter's error cannot have built
 /// (here the GPS velocity keeps confirming the filter) is not reset onto while it is shorter than
 /// `step_reset_s`: the solution stays on the truth, says the fixes are rejected, and takes the
@@ -1327,7 +1327,7 @@ fn vo_flight_with(vo: bool, outage_s: f64, yaw_rate: YawRate) -> VoFlight {
 /// deg/h in rad/s.
 const DEG_H_TO_RAD_S: f64 = std::f64::consts::PI / 180.0 / 3600.0;
 
-/// Issue 22: an autopilot's rates with 150 deg/h of yaw-rate bias left (ArduCopter SITL's
+/// An autopilot's rates with 150 deg/h of yaw-rate bias left (ArduCopter SITL's
 /// ATTITUDE rates carried up to 170): VO measures the motion in the heading the filter believes,
 /// so a drifting heading is cross-track drift. With the images' rotation about the line of sight
 /// against the gyros' fused, the filter learns the bias and keeps the heading; without it the
@@ -1455,7 +1455,7 @@ fn vo_with_rotation(
     (h.filter.counters().vo, bias, sent)
 }
 
-/// Issue 22: VO between fixes. 120 s without a position fix over a survey route: with VO the
+/// VO between fixes. 120 s without a position fix over a survey route: with VO the
 /// horizontal error stays within 1 % of the distance flown and the heading within 1 deg, the
 /// INS-only control drifts by far more; the filter's claimed sigma covers its error; VO never
 /// hides the missing fixes (health goes Lost after `lost_no_fix_s` with that reason, and the

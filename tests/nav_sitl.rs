@@ -89,7 +89,7 @@ fn seed_experiment_vision_vs_ins_only() {
         ins.max_err_m.u,
         ins.max_horiz_err_m
     );
-    // Target of the issue: with vision, max horizontal error over the outage at most 5 m.
+    // The target: with vision, max horizontal error over the outage at most 5 m.
     assert!(vis.max_horiz_err_m <= 5.0, "{:?}", vis.max_err_m);
     // Every fix arrives late and is applied at its capture time through the history.
     assert!(

@@ -1,4 +1,4 @@
-//! Issue 21: the fault table of docs/operations.md holds in the lock-step simulator.
+//! The fault table of docs/operations.md holds in the lock-step simulator.
 //! `sitl/scenarios/faults.toml` flies the demo's aircraft on a racetrack over the bundled NAIP
 //! map and scripts one fault after another (a 10 km GPS jump, two UTC clock steps, foreign
 //! heartbeats, an autopilot reboot while the GPS works; then on vision alone a camera stall, a
@@ -7,7 +7,7 @@
 //! (`faults`) and its counters (`fault_counters`); each assertion below is a row of the table.
 //! About 90 s (lock-step, one run).
 //!
-//! Issue 22: a `map_withheld` fault refuses the vision fixes of its window, and only those, on a
+//! A `map_withheld` fault refuses the vision fixes of its window, and only those, on a
 //! shortened demo flight (about 10 s).
 
 use std::path::Path;

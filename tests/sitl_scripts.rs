@@ -87,3 +87,75 @@ fn sitl_run_scripts_compile() {
     let Some(out) = python3(&args) else { return };
     assert!(out.status.success(), "py_compile failed:\n{}", text(&out));
 }
+
+/// run.py's command line without pymavlink or SITL: a stub `pymavlink.mavutil` lets the module
+/// load, then `--denial` / `--restore-wp` are parsed and checked, the ExternalNav configuration
+/// is derived from the recipe's, and the parameter files of the source-set recipe and of
+/// config/ are `NAME VALUE` lines.
+#[test]
+fn ardupilot_run_denial_arguments() {
+    let script = r##"
+import importlib.util, os, re, sys, types
+pm = types.ModuleType("pymavlink"); mu = types.ModuleType("pymavlink.mavutil"); pm.mavutil = mu
+sys.modules["pymavlink"] = pm; sys.modules["pymavlink.mavutil"] = mu
+spec = importlib.util.spec_from_file_location("ap_run", "sitl/ardupilot/run.py")
+run = importlib.util.module_from_spec(spec); spec.loader.exec_module(run)
+base = ["--arducopter", "arducopter"]
+a = run.parse_args(base)
+assert a.denial == "gps-disable" and a.restore_wp is None, vars(a)
+assert run.source_set_parm(a) == []
+for d in ("source-set", "source-set-gps-on"):
+    a = run.parse_args(base + ["--denial", d])
+    assert a.denial == d and a.restore_wp is None, vars(a)
+    assert [os.path.basename(p) for p in run.source_set_parm(a)] == ["visnav-source-set.parm"]
+a = run.parse_args(base + ["--denial", "source-set", "--gps-off-wp", "3", "--restore-wp", "5"])
+assert (a.gps_off_wp, a.restore_wp) == (3, 5), vars(a)
+bad = [["--denial", "nope"], ["--denial", "source-set", "--no-visnav"],
+       ["--denial", "source-set", "--restore-wp", "2"],
+       ["--denial", "source-set", "--gps-off-alt", "100"], ["--restore-wp", "5"]]
+stderr, sys.stderr = sys.stderr, open(os.devnull, "w")
+for b in bad:
+    try:
+        run.parse_args(base + b)
+    except SystemExit as e:
+        assert e.code == 2, (b, e.code)
+    else:
+        raise AssertionError(f"accepted: {b}")
+sys.stderr = stderr
+for cfg in ("sitl/ardupilot/visnav.toml", "sitl/ardupilot/drone/visnav.toml"):
+    t = run.external_nav_config(open(cfg).read())
+    out = re.search(r"(?ms)^\[output\]\n(.*?)(?=^\[|\Z)", t).group(1)
+    assert re.findall(r"(?m)^modes = .*$", out) == ['modes = ["vision_position_estimate"]'], out
+    assert re.findall(r"(?m)^set_origin = .*$", out) == ["set_origin = false"], out
+    assert "gps_input" not in out, out
+parms = {}
+for f in ("sitl/ardupilot/visnav-source-set.parm", "config/ardupilot-copter-source-sets.parm",
+          "config/ardupilot-plane-source-sets.parm", "config/px4-visnav.params"):
+    p = {}
+    for line in open(f):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        name, value = line.split()
+        assert re.fullmatch(r"[A-Z][A-Z0-9_]*", name), (f, line)
+        float(value)
+        p[name] = float(value)
+    parms[f] = p
+for f in ("sitl/ardupilot/visnav-source-set.parm", "config/ardupilot-copter-source-sets.parm",
+          "config/ardupilot-plane-source-sets.parm"):
+    p = parms[f]
+    assert (p["EK3_SRC1_POSXY"], p["EK3_SRC2_POSXY"], p["VISO_TYPE"]) == (3, 6, 1), f
+    assert (p["EK3_SRC2_VELXY"], p["EK3_SRC_OPTIONS"]) == (0, 0), f
+for f in ("config/ardupilot-copter-source-sets.parm", "config/ardupilot-plane-source-sets.parm"):
+    assert sorted(v for k, v in parms[f].items() if re.fullmatch(r"RC\d+_OPTION", k)) == [65, 90], f
+print("denial arguments ok")
+"##;
+    let Some(out) = python3(&["-c", script]) else {
+        return;
+    };
+    assert!(
+        out.status.success(),
+        "run.py argument check failed:\n{}",
+        text(&out)
+    );
+}

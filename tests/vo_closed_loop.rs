@@ -1,9 +1,10 @@
-//! Issue 22 end to end: `visnav sim --scenario sitl/scenarios/vo_no_map.toml --json`. The demo's
-//! aircraft and IMU, the GPS lost at 30 s and the map withheld from then on (every fix refused)
-//! for 120 s; visual odometry on the 5 Hz camera through the real daemon, its motions fused by the
-//! filter; the INS-only control beside it. Lock-step: the same numbers on every machine.
+//! Visual odometry end to end: `visnav sim --scenario sitl/scenarios/vo_no_map.toml --json`. The
+//! demo's aircraft and IMU, the GPS lost at 30 s and the map withheld from then on (every fix
+//! refused) for 120 s; visual odometry on the 5 Hz camera through the real daemon, its motions
+//! fused by the filter; the INS-only control beside it. Lock-step: the same numbers on every
+//! machine.
 //!
-//! Targets (the issue): the horizontal error at the end within 1 % of the distance flown, the
+//! Targets (docs/status.md): the horizontal error at the end within 1 % of the distance flown, the
 //! heading error within 1 deg throughout; the control far worse; the accuracy the filter claims
 //! covers its error (it grows without fixes: VO never shrinks the position covariance). And with
 //! sparse fixes (`vo_sparse_fixes.toml`, fix rate about 0.3), the nav error's p90 over the outage
@@ -46,7 +47,7 @@ fn num(v: &serde_json::Value, path: &[&str]) -> f64 {
         .unwrap_or_else(|| panic!("{path:?} missing: {v}"))
 }
 
-/// The outage's figures of a summary (the issue's keys): error at the end, distance flown, the
+/// The outage's figures of a summary: error at the end, distance flown, the
 /// control's error at the end, the largest heading error; printed with the control's heading.
 struct Outage {
     err: f64,

@@ -7,6 +7,23 @@ truth and give a verdict.
     python3 sitl/ardupilot/run.py --sim-vehicle /path/to/ardupilot/Tools/autotest/sim_vehicle.py
     python3 sitl/ardupilot/run.py --arducopter ... --no-visnav      # the GPS-off control run
     python3 sitl/ardupilot/run.py --arducopter ... --scenario drone # 100 m over Autzen
+    python3 sitl/ardupilot/run.py --arducopter ... --denial source-set # EKF source sets
+
+`--denial source-set` takes the GPS away as on a real vehicle (docs/real-sitl.md, "EKF source
+sets"; config/ardupilot-copter-source-sets.parm): visnav sends VISION_POSITION_ESTIMATE
+(ExternalNav, the work folder's visnav.toml gets `modes = ["vision_position_estimate"]`,
+`set_origin = false`), visnav-source-set.parm is loaded last (the simulated receiver GPS1 and
+EKF source set 1, visnav source set 2). At --gps-off-wp the script sends
+MAV_CMD_SET_EKF_SOURCE_SET 2 and MAV_CMD_DO_AUX_FUNCTION 65 (GPS Disable) high: the simulated
+receiver stays on, but every GPS instance reports no fix, so neither EKF3 nor visnav uses it. At
+--restore-wp (default: the item before the last) it sends GPS Disable low, waits for the 3D fix
+and sends MAV_CMD_SET_EKF_SOURCE_SET 1; the last leg flies on the GPS again. The denied leg is
+scored as "gps_off" (the not-aiding time and the sample gap over it only), the leg after as
+"gps_back"; report.json has "denial", "switches" (each command with its COMMAND_ACK result) and
+"gps_back_after_s", and the verdict fails when a switch was not accepted or set 1 was never
+restored. visnav's injected position is scored from its own visnav.tlog (ArduPilot echoes no
+VISION_POSITION_ESTIMATE). `--denial source-set-gps-on` switches the source set only: visnav
+keeps aiding itself with the GPS (the switch's mechanics, not GPS-denied navigation).
 
 `--scenario drone` is the drone recipe (docs/real-sitl.md, "The drone recipe"): home at Autzen
 (../shared/data/autzen), sitl/ardupilot/drone/ (mission, parameters after
@@ -70,7 +87,9 @@ could not be made (SITL or visnav did not start, not ready, could not arm, an er
 
 
 import argparse
+import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -128,6 +147,14 @@ SCENARIOS = {
 VISNAV_PORT, TRUTH_PORT = 14551, 14552
 MAX_INSTANCE = 31
 STOP = None  # set by SIGTERM/SIGINT/SIGHUP during the flight
+# How the GPS is taken away (--denial): the simulated receiver switched off, or the EKF source set
+# switched to visnav (ExternalNav) by MAV_CMD_SET_EKF_SOURCE_SET with the receiver left on, the
+# GPS withheld from autopilot and visnav by the "GPS Disable" auxiliary function (source-set) or
+# not (source-set-gps-on: visnav keeps aiding itself with the GPS).
+DENIALS = ("gps-disable", "source-set", "source-set-gps-on")
+MAV_CMD_SET_EKF_SOURCE_SET = 42007
+MAV_CMD_DO_AUX_FUNCTION = 218
+AUX_GPS_DISABLE = 65  # RCx_OPTION 65: GPS Disable (high: every GPS instance reports no fix)
 
 
 def log(msg):
@@ -193,10 +220,12 @@ def start_sitl(args, workdir, instance, visnav_port, truth_port):
         # The scenario's parameters after visnav-gps-input.parm, the control's last (same flight,
         # GPS types changed).
         files = [base, os.path.join(HERE, "visnav-gps-input.parm")] + own + (parms if args.no_visnav else [])
+        files += source_set_parm(args)
         cmd = [args.arducopter, "-S", "--model", "+", "--speedup", "1", "--home", home,
                f"-I{instance}", "--wipe", "--defaults", ",".join(files)] + serials
     else:
         files = [os.path.join(HERE, "visnav-gps-input.parm")] + own + (parms if args.no_visnav else [])
+        files += source_set_parm(args)
         cmd = [sys.executable, args.sim_vehicle, "-v", "ArduCopter", "-f", "quad", "--no-rebuild",
                "--no-mavproxy", "-I", str(instance), "-w", "-l", home, "-A", " ".join(serials)]
         for f in files:
@@ -207,9 +236,37 @@ def start_sitl(args, workdir, instance, visnav_port, truth_port):
                             start_new_session=True)
 
 
+def source_set_parm(args):
+    """The parameters of the source-set denials (loaded last), none for gps-disable."""
+    return [] if args.denial == "gps-disable" else [os.path.join(HERE, "visnav-source-set.parm")]
+
+
+def external_nav_config(text):
+    """A visnav configuration with `[output] modes` replaced by VISION_POSITION_ESTIMATE and the
+    EKF origin taken from the autopilot (the GPS sets it; visnav must not set its own)."""
+    m = re.search(r"(?m)^\[output\][ \t]*\n", text)
+    if m is None:
+        sys.exit("the configuration has no [output] section")
+    end = re.search(r"(?m)^\[", text[m.end():])
+    body_end = m.end() + end.start() if end else len(text)
+    body = text[m.end():body_end]
+    body = re.sub(r"(?m)^(modes|set_origin)[ \t]*=.*\n", "", body)
+    body = 'modes = ["vision_position_estimate"]\nset_origin = false\n' + body
+    return text[:m.end()] + body + text[body_end:]
+
+
 def start_visnav(args, workdir, visnav_port, truth_port):
     sc = SCENARIOS[args.scenario]
-    return sitl_common.start_visnav(args.visnav, sc["config"], workdir,
+    config = sc["config"]
+    if args.denial != "gps-disable":
+        # Relative map paths are resolved by text (sitl_common.visnav_config_text), so the
+        # derived file may live in the work folder.
+        with open(config) as f:
+            text = external_nav_config(f.read())
+        config = os.path.join(workdir, "visnav-external-nav.toml")
+        with open(config, "w") as f:
+            f.write(text)
+    return sitl_common.start_visnav(args.visnav, config, workdir,
                                     "ardupilot", truth_port, args.camera_hz, REPO, log,
                                     link_port=visnav_port, vo=args.vo, map_ortho=args.map_ortho,
                                     camera_world=sc["world"])
@@ -290,6 +347,127 @@ def gps_off(m, on=None):
     return time.time()
 
 
+def command(m, cmd, params, on=None, tries=3, wait_s=1.5):
+    """COMMAND_LONG `cmd` with up to 7 params; the COMMAND_ACK result (MAV_RESULT) of that command,
+    or None when none came after `tries` sends. Every other message meanwhile goes to `on(msg)`."""
+    p = list(params) + [0] * (7 - len(params))
+    for attempt in range(tries):
+        m.mav.command_long_send(m.target_system, m.target_component, cmd, attempt, *p)
+        end = time.time() + wait_s
+        while time.time() < end:
+            r = m.recv_match(blocking=True, timeout=max(0.01, end - time.time()))
+            if r is None:
+                continue
+            if r.get_type() == "COMMAND_ACK" and r.command == cmd:
+                return int(r.result)
+            if on is not None:
+                on(r)
+    return None
+
+
+def result_name(result):
+    if result is None:
+        return "no COMMAND_ACK"
+    e = mavutil.mavlink.enums["MAV_RESULT"].get(result)
+    return e.name if e is not None else str(result)
+
+
+class Switches:
+    """The source-set denial's commands and their COMMAND_ACK results, for the report."""
+
+    def __init__(self):
+        self.done = []  # {"t_s", "command", "param", "result"}
+
+    def send(self, m, t_fly, what, cmd, params, on):
+        result = command(m, cmd, params, on=on)
+        self.done.append({"t_s": round(time.time() - t_fly, 1), "command": what,
+                          "params": list(params), "result": result_name(result)})
+        log(f"{what} {list(params)}: {result_name(result)}")
+        return result == mavutil.mavlink.MAV_RESULT_ACCEPTED
+
+    def summary(self):
+        return {"commands": self.done,
+                "acked": sum(1 for d in self.done if d["result"] == "MAV_RESULT_ACCEPTED"),
+                "sent": len(self.done)}
+
+
+class SourceSetScore(ErrorScore):
+    """ErrorScore whose GPS-off period ends when the GPS is given back (`gps_back`): the samples
+    after it form the phase "gps_back", and the not-aiding time and the sample gap are measured
+    over the denied leg only."""
+
+    PHASES = ErrorScore.PHASES + ("gps_back",)
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.t_back = None
+
+    def gps_back(self, t_s):
+        self.t_back = t_s
+
+    def add(self, t_s, gps_off, lat_deg, lon_deg, alt_m, lat_t, lon_t, alt_t):
+        if self.t_back is None or t_s < self.t_back:
+            return super().add(t_s, gps_off, lat_deg, lon_deg, alt_m, lat_t, lon_t, alt_t)
+        dn, de = sitl_common.north_east(lat_deg, lon_deg, lat_t, lon_t)
+        eh, ev = math.hypot(dn, de), alt_m - alt_t
+        agl = alt_t - self.home_alt_m
+        if agl > sitl_common.AIRBORNE_M:
+            self.errs["gps_back"][0].append(eh)
+            self.errs["gps_back"][1].append(abs(ev))
+        self.samples.append([round(t_s, 2), "gps_back", round(agl, 1), round(dn, 2),
+                             round(de, 2), round(ev, 2), self.aiding.aiding_at(t_s)])
+
+    def summary(self, t_end=None):
+        back = self.errs["gps_back"]
+        if t_end is not None and self.t_back is not None:
+            t_end = min(t_end, self.t_back)
+        out = super().summary(t_end)
+        out["gps_back"] = {"horizontal": sitl_common.stats(back[0]),
+                           "vertical": sitl_common.stats(back[1])}
+        return out
+
+
+def external_nav_integrity(workdir, history, t_fly, t_off, t_back, integ):
+    """Score every VISION_POSITION_ESTIMATE visnav sent (its visnav.tlog; ArduPilot echoes none)
+    against the truth at the estimate's validity time: x/y about the autopilot's EKF origin
+    (GPS_GLOBAL_ORIGIN in the same tlog), h_acc = sqrt of the larger eigenvalue of the horizontal
+    covariance (as GPS_INPUT's horiz_accuracy). The validity time is in visnav's monotonic clock:
+    mapped onto this computer's clock by the smallest (tlog send time - validity time), i.e. the
+    freshest estimate's age is taken as zero."""
+    path = os.path.join(workdir, "visnav.tlog")
+    if not os.path.exists(path):
+        integ.skip("no_tlog")
+        return
+    tl = mavutil.mavlink_connection(path, dialect="ardupilotmega")
+    origin, sent = None, []
+    while True:
+        r = tl.recv_match(type=["VISION_POSITION_ESTIMATE", "GPS_GLOBAL_ORIGIN"])
+        if r is None:
+            break
+        if r.get_type() == "GPS_GLOBAL_ORIGIN":
+            origin = (r.latitude * 1e-7, r.longitude * 1e-7)
+        elif r.get_srcComponent() != 1 and origin is not None:
+            c = r.covariance
+            a, b, d = c[0], c[1], c[6]
+            lam = 0.5 * (a + d) + math.sqrt(max(0.0, 0.25 * (a - d) ** 2 + b * b))
+            sent.append((r._timestamp, r.usec * 1e-6, r.x, r.y, math.sqrt(max(lam, 0.0)), origin))
+    if not sent:
+        integ.skip("no_vision_position_estimate")
+        return
+    offset = min(ts - tv for ts, tv, *_ in sent)
+    for _ts, tv, x, y, h_acc, (lat0, lon0) in sent:
+        t = tv + offset
+        tr = history.at(t)
+        if tr is None:
+            integ.skip("no_truth")
+            continue
+        m_lat, m_lon = metres_per_deg(lat0)
+        lat, lon = lat0 + x / m_lat, lon0 + y / m_lon
+        phase = ("gps_on" if t_off is None or t < t_off else
+                 "gps_off" if t_back is None or t < t_back else "gps_back")
+        integ.add(t - t_fly, phase, lat, lon, h_acc, tr[0], tr[1])
+
+
 class Truth:
     """Latest SIMSTATE (lat/lng degE7) and SIM_STATE (alt, NED velocity) with arrival times."""
 
@@ -336,6 +514,19 @@ def parse_args(argv=None):
                          "first corner, after the climb; visnav's filter lags fast climbs)")
     ap.add_argument("--gps-off-alt", type=float, default=None,
                     help="instead, switch it off at this true height above home, m")
+    ap.add_argument("--denial", choices=DENIALS, default="gps-disable",
+                    help="how the GPS is taken away at --gps-off-wp: gps-disable (default) "
+                         "switches the simulated receiver off (SIM_GPS_DISABLE); source-set "
+                         "leaves it on, switches EKF3 to source set 2 (visnav as ExternalNav, "
+                         "visnav-source-set.parm) with MAV_CMD_SET_EKF_SOURCE_SET and withholds "
+                         "the GPS from autopilot and visnav with the GPS Disable auxiliary "
+                         "function (MAV_CMD_DO_AUX_FUNCTION 65), and gives both back at "
+                         "--restore-wp; source-set-gps-on switches the source set only (visnav "
+                         "keeps aiding itself with the GPS)")
+    ap.add_argument("--restore-wp", type=int, default=None,
+                    help="source-set denials: give the GPS back (GPS Disable low, then source "
+                         "set 1) when this mission item is reached (default: the one before the "
+                         "last, so the last leg flies on the GPS again)")
     ap.add_argument("--camera-hz", type=float, default=sc["camera_hz"])
     sitl_common.add_visnav_args(ap)
     ap.add_argument("--after-gps-off", type=float, default=None,
@@ -354,7 +545,17 @@ def parse_args(argv=None):
                          "instance 0 if free, else a free port")
     sitl_common.add_bounds_args(ap)
     ap.set_defaults(max_p90_m=sc["bounds"][0], max_error_m=sc["bounds"][1])
-    return ap.parse_args(argv)
+    args = ap.parse_args(argv)
+    if args.denial != "gps-disable":
+        if args.no_visnav:
+            ap.error(f"--denial {args.denial} needs visnav (source set 2 is visnav)")
+        if args.gps_off_alt is not None:
+            ap.error(f"--denial {args.denial} switches at a waypoint: --gps-off-wp, not --gps-off-alt")
+        if args.restore_wp is not None and args.restore_wp <= args.gps_off_wp:
+            ap.error("--restore-wp must come after --gps-off-wp")
+    elif args.restore_wp is not None:
+        ap.error("--restore-wp belongs to the source-set denials")
+    return args
 
 
 def main():
@@ -380,11 +581,16 @@ def main():
     log(f"workdir {workdir}")
     procs = []
     home = SCENARIOS[args.scenario]["home"]
-    report = {"run": "control (no visnav)" if args.no_visnav else "visnav GPS_INPUT",
-              "scenario": args.scenario, "home": list(home)}
+    source_set = args.denial != "gps-disable"
+    report = {"run": ("control (no visnav)" if args.no_visnav else
+                      "visnav VISION_POSITION_ESTIMATE (ExternalNav, EKF source set 2)"
+                      if source_set else "visnav GPS_INPUT"),
+              "scenario": args.scenario, "home": list(home), "denial": args.denial}
     # What the verdict needs, filled in as the run goes.
-    score = ErrorScore("EKF3", log, home_alt_m=home[2])
+    score = (SourceSetScore if source_set else ErrorScore)("EKF3", log, home_alt_m=home[2])
     integ = None if args.no_visnav else IntegrityScore(bounds.ratio)
+    switches = Switches()
+    t_back = None
     modes, texts = [], []
     error = None
     why = None
@@ -420,7 +626,9 @@ def main():
         rates = {33: 10, 164: 50, 108: 50, 24: 5, 124: 2, 193: 5, 42: 2}
         request_rates(m, rates)
         truth = Truth()
-        history = TruthHistory()
+        # The source-set runs score visnav's VISION_POSITION_ESTIMATE after the flight: the
+        # whole flight's truth.
+        history = TruthHistory(keep_s=4 * args.timeout) if source_set else TruthHistory()
         clock = BootClock()
         t0 = time.time()
         last_ask = t0
@@ -449,20 +657,22 @@ def main():
             elif typ == "STATUSTEXT":
                 log(f"STATUSTEXT {r.text}")
             # EKF_POS_HORIZ_ABS (16) and EKF_PRED_POS_HORIZ_ABS (512); 30 s for the EKF to settle.
-            need_gps = [0] if args.no_visnav else [0, 1]
+            need_gps = [0] if args.no_visnav or source_set else [0, 1]
             ready = (ekf_flags & 16 and ekf_flags & 512 and all(gps[i] >= 3 for i in need_gps)
                      and now - t0 > 30)
         log(f"ready: EKF flags {ekf_flags:#x}, GPS fix types {gps}")
         n_items = upload_mission(m, args.mission)
         report["waypoints"] = n_items
         last_seq = n_items - 1
+        restore_wp = args.restore_wp if args.restore_wp is not None else last_seq - 1
         # 2. AUTO + arm (AUTO_OPTIONS = 3: arming in AUTO and take-off without throttle).
         m.set_mode("AUTO")
         armed = False
         t_arm = time.time()
         while not armed:
-            if time.time() - t_arm > 60:
-                sys.exit("could not arm within 60 s (pre-arm messages above)")
+            # Source sets: visnav's VISION_POSITION_ESTIMATE must flow (VisOdom pre-arm check).
+            if time.time() - t_arm > (180 if source_set else 60):
+                sys.exit("could not arm in time (pre-arm messages above)")
             m.mav.command_long_send(m.target_system, m.target_component,
                                     mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
             end = time.time() + 2
@@ -507,7 +717,7 @@ def main():
                     aiding = ekf_aiding(r.flags)
                     when = "" if t_gps_off is None else f" ({now - t_gps_off:+.1f} s after GPS off)"
                     log(f"EKF3 {'aiding' if aiding else 'NOT aiding'}: flags {r.flags:#x}{when}")
-            elif typ == "GPS_RAW_INT" and own and integ is not None:
+            elif typ == "GPS_RAW_INT" and own and integ is not None and not source_set:
                 injected(r)
 
         def injected(r):
@@ -534,8 +744,41 @@ def main():
                         f"{h_acc:.2f} m ({n_over} over {bounds.ratio:g} x h_acc so far)")
 
         def switch_gps_off():
-            t = gps_off(m, on=lambda r: observe(r, time.time()))
+            on = (lambda r: observe(r, time.time()))
+            if source_set:
+                # Source set 2 first, so that EKF3 never runs on set 1 without the GPS.
+                ok = switches.send(m, t_fly, "MAV_CMD_SET_EKF_SOURCE_SET",
+                                   MAV_CMD_SET_EKF_SOURCE_SET, [2], on)
+                if args.denial == "source-set":
+                    ok &= switches.send(m, t_fly, "MAV_CMD_DO_AUX_FUNCTION GPS Disable high",
+                                        MAV_CMD_DO_AUX_FUNCTION, [AUX_GPS_DISABLE, 2], on)
+                log(f"GPS denied ({args.denial}){'' if ok else ': NOT every command accepted'}")
+                t = time.time()
+            else:
+                t = gps_off(m, on=on)
             score.gps_switched_off(t - t_fly)
+            return t
+
+        def give_gps_back():
+            # GPS Disable low, wait for a 3D fix on GPS1, then source set 1: EKF3 resets its
+            # position to the GPS.
+            on = (lambda r: observe(r, time.time()))
+            if args.denial == "source-set":
+                switches.send(m, t_fly, "MAV_CMD_DO_AUX_FUNCTION GPS Disable low",
+                              MAV_CMD_DO_AUX_FUNCTION, [AUX_GPS_DISABLE, 0], on)
+                end = time.time() + 10
+                while time.time() < end:
+                    r = m.recv_match(blocking=True, timeout=0.5)
+                    if r is None:
+                        continue
+                    observe(r, time.time())
+                    if r.get_type() == "GPS_RAW_INT" and r.fix_type >= 3:
+                        break
+            switches.send(m, t_fly, "MAV_CMD_SET_EKF_SOURCE_SET",
+                          MAV_CMD_SET_EKF_SOURCE_SET, [1], on)
+            t = time.time()
+            score.gps_back(t - t_fly)
+            log("GPS given back: source set 1")
             return t
 
         while True:
@@ -562,6 +805,9 @@ def main():
                 log(f"waypoint {r.seq} reached")
                 if t_gps_off is None and args.gps_off_alt is None and r.seq >= args.gps_off_wp:
                     t_gps_off = switch_gps_off()
+                if (source_set and t_gps_off is not None and t_back is None
+                        and r.seq >= restore_wp and r.seq < last_seq):
+                    t_back = give_gps_back()
                 if r.seq >= last_seq:
                     why = "last waypoint reached"
                     break
@@ -591,6 +837,17 @@ def main():
         traceback.print_exc()
         error = f"{type(e).__name__}: {e}"
     finally:
+        if source_set:
+            # visnav flushes its .tlog when stopped; conclude scores what it sent.
+            sitl_common.stop_processes(procs)
+            report["switches"] = switches.summary()
+            report["gps_back_after_s"] = None if t_back is None else round(t_back - t_fly, 1)
+            if integ is not None and t_fly is not None:
+                try:
+                    external_nav_integrity(workdir, history, t_fly, t_gps_off, t_back, integ)
+                except Exception as e:  # a damaged tlog: report, do not lose the run
+                    log(f"cannot score visnav.tlog: {type(e).__name__}: {e}")
+                    integ.skip("tlog_error")
         code, lines = conclude(args, report, score, integ, modes, texts, error, why, t_fly,
                                t_gps_off, reached, last_seq, bounds, workdir)
         finish_run(procs, workdir, report, log)
@@ -635,6 +892,17 @@ def conclude(args, report, score, integ, modes, texts, error, why, t_fly, t_gps_
         modes=modes, allowed_modes={"AUTO"}, texts=texts, ekf=ekf,
         integrity=report.get("injected_integrity"), integrity_expected=not args.no_visnav,
         error=error, bounds=bounds)
+    sw = report.get("switches")
+    if sw is not None:
+        # The source-set denials: every switch accepted, and the GPS given back in flight.
+        bad = [f"{d['command']} {d['params']}: {d['result']}" for d in sw["commands"]
+               if d["result"] != "MAV_RESULT_ACCEPTED"]
+        if bad:
+            v["reasons"].append("switch_refused: " + "; ".join(bad))
+        if t_gps_off is not None and report.get("gps_back_after_s") is None:
+            v["reasons"].append("gps_not_given_back: the run ended before source set 1 was "
+                                "restored")
+        v["pass"] = not v["reasons"]
     report["verdict"] = v
     if error is not None:
         return 2, sitl_common.verdict_lines(label, v)

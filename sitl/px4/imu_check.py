@@ -6,7 +6,7 @@ visnav's [nav.imu] noise model and [daemon] gps_delay_s should say for that simu
 
 WORKDIR is a sitl/px4/run.py work folder (its px4/log/*/*.ulg). Needs pyulog and numpy.
 It reads the raw IMU (sensor_combined); PX4's HIGHRES_IMU, which visnav receives, is that minus
-EKF2's bias estimates (estimator_sensor_bias; docs/real-sitl.md, PX4 section, session 9).
+EKF2's bias estimates (estimator_sensor_bias; docs/real-sitl.md, PX4 section).
 
 * On the ground before take-off (truth speed < 0.05 m/s, the first 20 s of data after 5 s):
   gyro and accelerometer (sensor_combined, about 250 Hz) mean and standard deviation per axis

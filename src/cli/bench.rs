@@ -671,7 +671,7 @@ fn quality_table(a: &SurfBenchArgs, export: Option<&Path>) -> anyhow::Result<Vec
 }
 
 /// A 1920 x 1080 frame from a 1280 x 960 one: its middle 1280 x 720 rows, resampled by 1.5
-/// (bilinear). The HD size of issue 25's timing.
+/// (bilinear). The HD size the GPU SURF targets are timed at (docs/status.md).
 fn hd_from_1280x960(img: &GrayImage) -> anyhow::Result<GrayImage> {
     let (w, h) = (1920usize, 1080usize);
     let top = 120.0f32;

@@ -1,5 +1,5 @@
 //! `visnav bench demo [--scenario F] [--seeds N] [--first-seed S] [--jobs J] [--out DIR] [--json]`:
-//! the demo's seed sweep (issue 24). Runs the closed-loop scenario (default: the bundled demo,
+//! the demo's seed sweep. Runs the closed-loop scenario (default: the bundled demo,
 //! sitl/scenarios/closed_loop_demo.toml) once per seed (`visnav sim --seed N --json`, each in its
 //! own process, `--jobs` at a time; lock-step, so a seed's figures do not depend on the load),
 //! and prints per seed the fix rate, the injected position error (median / p90 / max) beside the
@@ -12,7 +12,7 @@ use std::process::{Command, ExitCode};
 
 use anyhow::{Context, bail};
 
-/// The issue's target for the demo: at least 9 frames in 10 give an accepted fix...
+/// The demo's target (docs/status.md): at least 9 frames in 10 give an accepted fix...
 pub const TARGET_FIX_RATE: f64 = 0.9;
 /// ... and the injected error's p90 is at most a tenth of what the IMU alone drifts.
 pub const TARGET_P90_RATIO: f64 = 0.1;

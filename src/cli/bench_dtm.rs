@@ -1,4 +1,4 @@
-//! `visnav bench dtm [--runs N] [--pairs N] [--json]`: DTM navigation (issue 23), the pose from
+//! `visnav bench dtm [--runs N] [--pairs N] [--json]`: DTM navigation (docs/dtm.md), the pose from
 //! optical flow and the terrain model alone (`visnav::sitl::dtm_eval`). NGI 3324C frame 0182's
 //! pose from its flow to frame 0184 and the 24 m DEM against the measured pose, with the claimed
 //! sigma (`ngi_err_m`, `ngi_sigma_m`: the 1-sigma along the error's direction); flat ground (a

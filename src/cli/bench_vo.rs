@@ -1,9 +1,9 @@
-//! `visnav bench vo [--runs N] [--json]`: visual odometry (issue 22) on real frames and its cost.
+//! `visnav bench vo [--runs N] [--json]`: visual odometry (docs/vo.md) on real frames and its cost.
 //! NGI 3324C frames 0182 -> 0184 with measured poses (`../shared/data/ngi_3324c`): the 2.6 km
 //! baseline's direction and length error (`visnav::sitl::vo_eval::ngi_vo`); and the per-frame time
 //! on one thread of corners, tracking and motion on a VGA pair made from a real NAIP frame by a
 //! known motion (`vga_vo`), beside SURF matched between the same frames instead of tracked
-//! (`vga_surf_vo`, the issue's other candidate). Build with `--release`.
+//! (`vga_surf_vo`, the other candidate method). Build with `--release`.
 
 use std::process::ExitCode;
 

@@ -1,5 +1,7 @@
-//! `visnav check-config FILE`: parse and validate a configuration file, printing every problem.
+//! `visnav check-config FILE`: parse and validate a configuration file (`-`: standard input),
+//! printing every problem, and a warning for every value the file marks as a placeholder.
 
+use std::io::Read;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -11,7 +13,8 @@ use super::overrides::OverrideArgs;
 #[derive(clap::Args, Debug)]
 pub struct CheckConfigArgs {
     /// The TOML configuration file to check (default: the environment's VISNAV_CONFIG),
-    /// relative to the current directory.
+    /// relative to the current directory; `-` reads it from standard input (its relative paths
+    /// are then relative to the current directory).
     pub file: Option<PathBuf>,
     #[command(flatten)]
     pub overrides: OverrideArgs,
@@ -20,8 +23,22 @@ pub struct CheckConfigArgs {
 pub fn run(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
     let file = super::overrides::config_path(args.file, "FILE")?;
     let overrides = args.overrides.overrides();
+    let from_stdin = file.as_os_str() == "-";
+    let (text, file) = match from_stdin {
+        true => (read_stdin()?, PathBuf::from(STDIN_NAME)),
+        // Read again by the load below, which names the file in its errors.
+        false => (
+            visnav_io::files::read_text(&file, visnav_io::files::CONFIG).unwrap_or_default(),
+            file,
+        ),
+    };
+    let warnings = placeholder_warnings(&text);
     // The validation `visnav run` does before it starts: what passes here, run starts.
-    match super::overrides::load(&file, &overrides) {
+    let loaded = match from_stdin {
+        true => Config::from_toml_str_checked(&text, &file, &overrides),
+        false => super::overrides::load(&file, &overrides),
+    };
+    match loaded {
         Ok(cfg) => {
             let modes: Vec<&str> = cfg
                 .output
@@ -48,6 +65,9 @@ pub fn run(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
             for line in overrides.describe() {
                 println!("override: {line}");
             }
+            for w in &warnings {
+                println!("{w}");
+            }
             Ok(ExitCode::SUCCESS)
         }
         Err(
@@ -56,15 +76,70 @@ pub fn run(args: CheckConfigArgs) -> anyhow::Result<ExitCode> {
             | ConfigError::Override { .. }),
         ) => {
             eprintln!("{e}");
+            for w in &warnings {
+                eprintln!("{w}");
+            }
             Ok(ExitCode::from(2))
         }
         Err(e) => Err(e.into()),
     }
 }
 
+/// How a configuration read from standard input is named in messages (its relative paths are
+/// relative to the current directory, the folder of this relative name).
+const STDIN_NAME: &str = "(standard input)";
+
+/// The configuration from standard input, at most the size a configuration file may have.
+fn read_stdin() -> anyhow::Result<String> {
+    let kind = visnav_io::files::CONFIG;
+    let mut bytes = Vec::new();
+    std::io::stdin()
+        .lock()
+        .take(kind.max_bytes + 1)
+        .read_to_end(&mut bytes)
+        .map_err(|e| anyhow::anyhow!("{STDIN_NAME}: cannot read: {e}"))?;
+    if bytes.len() as u64 > kind.max_bytes {
+        anyhow::bail!(
+            "{STDIN_NAME}: more than the {} {} may have",
+            visnav_io::files::size_words(kind.max_bytes),
+            kind.what
+        );
+    }
+    let text = String::from_utf8(bytes).map_err(|e| {
+        anyhow::anyhow!(
+            "{STDIN_NAME}: not UTF-8 text (byte {}); {} is text",
+            e.utf8_error().valid_up_to(),
+            kind.what
+        )
+    })?;
+    Ok(match text.strip_prefix(visnav_io::files::BOM) {
+        Some(rest) => rest.to_string(),
+        None => text,
+    })
+}
+
+/// One warning per value the file marks as a placeholder (`# placeholder` after it): a value
+/// that parses and may even pass, but is the example's, not this installation's.
+pub fn placeholder_warnings(text: &str) -> Vec<String> {
+    visnav::daemon::app_config::placeholders(text)
+        .into_iter()
+        .map(|p| {
+            let note = match p.note.is_empty() {
+                true => String::new(),
+                false => format!(" ({})", p.note),
+            };
+            format!(
+                "warning: {} (line {}) is a placeholder{note}: replace it with this \
+                 installation's value and remove the \"# placeholder\" mark",
+                p.key, p.line
+            )
+        })
+        .collect()
+}
+
 /// What the configuration's vision does, in one line; without a camera (`[frames]`) it says
-/// loudly that `visnav run` navigates without vision (issue 24: a config without a camera used to
-/// pass silently and the daemon logged `frames_in=0` forever).
+/// loudly that `visnav run` navigates without vision (otherwise a config without a camera passes
+/// silently and the daemon logs `frames_in=0` forever).
 pub fn vision_line(cfg: &Config) -> String {
     match &cfg.frames {
         None => NO_CAMERA_WARNING.to_string(),

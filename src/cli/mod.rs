@@ -12,6 +12,7 @@ pub mod bench_fix;
 pub mod bench_vo;
 pub mod camera;
 pub mod check_config;
+pub mod config;
 pub mod fix;
 pub mod map;
 pub mod overrides;

@@ -282,11 +282,14 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
             s.agl_range_m[0],
             s.agl_range_m[1]
         );
+        let counts = visnav::sitl::report::FixCounts::of(&run);
         println!(
-            "vision fixes: {} accepted of {} attempts (fix rate {:.0} %), {} frames rendered, {} dropped, {} beyond 3 sigma, {} rejected by the filter gate",
-            s.fixes_accepted,
-            s.fix_attempts,
+            "vision fixes {}: {} accepted of {} attempts (fix rate {:.0} %; {} accepted in the whole flight), {} frames rendered, {} dropped, {} beyond 3 sigma, {} rejected by the filter gate",
+            counts.scope,
+            counts.accepted,
+            counts.attempts,
             100.0 * s.fix_rate,
+            counts.flight_accepted,
             s.frames_rendered,
             s.frames_dropped,
             s.fix_beyond_3sigma,
@@ -361,9 +364,14 @@ fn closed_loop(sc: &Scenario, path: &std::path::Path, args: &SimArgs) -> anyhow:
             fmt_opt(s.yaw_err_deg_max),
             fmt_opt(s.ctl_yaw_err_deg_max)
         );
+        let lockstep_latency_s = sc
+            .closed_loop
+            .as_ref()
+            .filter(|c| c.lockstep)
+            .map(|c| c.lockstep_fix_latency_s.max(0.0));
         println!(
-            "capture-to-fix latency p50 / p95 [ms]: {:.0} / {:.0}",
-            s.latency_ms.p50, s.latency_ms.p95
+            "{}",
+            visnav::sitl::report::latency_text(lockstep_latency_s, &s.latency_ms, &counts.scope)
         );
         println!("report: {}", out.display());
         for f in files {

@@ -159,8 +159,13 @@ impl Base {
 
     /// A problem with the path `f` as written: `"maps/x.vnm": /home/pi/config/maps/x.vnm does not
     /// exist (paths in the config are relative to the config file's folder)`, where `what` is
-    /// what is wrong with the resolved path (`does not exist`, `is not a directory`).
+    /// what is wrong with the resolved path (`does not exist`, `is not a directory`). An
+    /// absolute path is its own resolution: neither repeated nor followed by the rule, which
+    /// would wrongly suggest it was taken as relative.
     pub fn problem(&self, f: &Path, what: &str) -> String {
+        if f.is_absolute() {
+            return format!("\"{}\" {what}", f.display());
+        }
         format!(
             "\"{}\": {} {what} ({})",
             f.display(),
@@ -226,7 +231,16 @@ mod tests {
         let dir = base
             .file_problem(Path::new("/"), examine(&base, "/"))
             .unwrap_or_default();
-        assert!(dir.ends_with("/ is not a regular file (paths in the config are relative to the config file's folder)"), "{dir}");
+        assert_eq!(dir, "\"/\" is not a regular file");
+        // An absolute path is not said to be relative to anything.
+        assert_eq!(
+            base.file_problem(
+                Path::new("/var/log/visnav-none/a.tlog"),
+                examine(&base, "/var/log/visnav-none/a.tlog")
+            )
+            .as_deref(),
+            Some("\"/var/log/visnav-none/a.tlog\" does not exist")
+        );
     }
 
     #[test]

@@ -10,7 +10,7 @@
 
 use std::path::{Path, PathBuf};
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 use visnav_core::camera::CameraConfig;
 use visnav_core::geo::Crs;
@@ -83,8 +83,9 @@ pub struct Config {
     pub vision: crate::wiring::VisionConfig,
 }
 
-/// `[map]`: the georeferenced imagery and terrain the fixes are computed against.
-#[derive(Debug, Clone, Deserialize)]
+/// `[map]`: the georeferenced imagery and terrain the fixes are computed against. The default
+/// (no map) is what an absent key means; a configuration must still name a map.
+#[derive(Debug, Clone, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct MapConfig {
     /// The reference map (`.vnm`, built by `visnav map build`), relative to the config file's
@@ -279,6 +280,79 @@ fn parse_message(e: &toml::de::Error, text: &str) -> String {
     )
 }
 
+/// The marker of a value to replace: a trailing comment starting with it (`ortho = [...]  #
+/// placeholder: your area's orthophoto`) makes `check-config` warn, naming the key.
+pub const PLACEHOLDER_MARK: &str = "placeholder";
+
+/// A value the file marks as one to replace: a key whose line carries a trailing
+/// `# placeholder` comment (`config/companion.toml`, `visnav config default`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Placeholder {
+    /// Dotted key (`map.ortho`).
+    pub key: String,
+    /// 1-based line of the file.
+    pub line: usize,
+    /// What the comment says after the mark (`your area's orthophoto`), may be empty.
+    pub note: String,
+}
+
+/// The keys the TOML `text` marks as placeholders. Lines are read as TOML writes them by hand:
+/// `[table]` headers set the section, `key = value  # placeholder: note` marks the key; a `#`
+/// inside a quoted string is not a comment.
+pub fn placeholders(text: &str) -> Vec<Placeholder> {
+    let mark = PLACEHOLDER_MARK;
+    let mut section = String::new();
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let (code, comment) = split_comment(line);
+        let code = code.trim();
+        if let Some(h) = code.strip_prefix('[').and_then(|h| h.strip_suffix(']')) {
+            section = h.trim_matches(|c| c == '[' || c == ']').trim().to_string();
+            continue;
+        }
+        let Some(comment) = comment else { continue };
+        let comment = comment.trim_start_matches('#').trim();
+        let Some(note) = comment
+            .get(..mark.len())
+            .filter(|m| m.eq_ignore_ascii_case(mark))
+            .map(|_| comment[mark.len()..].trim_start_matches(':').trim())
+        else {
+            continue;
+        };
+        let Some((key, _)) = code.split_once('=') else {
+            continue;
+        };
+        let key = key.trim().trim_matches('"');
+        out.push(Placeholder {
+            key: match section.is_empty() {
+                true => key.to_string(),
+                false => format!("{section}.{key}"),
+            },
+            line: i + 1,
+            note: note.to_string(),
+        });
+    }
+    out
+}
+
+/// A line's code and its comment (from the first `#` outside a string).
+fn split_comment(line: &str) -> (&str, Option<&str>) {
+    let mut quote: Option<char> = None;
+    let mut escaped = false;
+    for (i, c) in line.char_indices() {
+        match quote {
+            Some('"') if escaped => escaped = false,
+            Some('"') if c == '\\' => escaped = true,
+            Some(q) if c == q => quote = None,
+            Some(_) => {}
+            None if c == '"' || c == '\'' => quote = Some(c),
+            None if c == '#' => return (&line[..i], Some(&line[i..])),
+            None => {}
+        }
+    }
+    (line, None)
+}
+
 impl Config {
     /// Parse TOML text. `path` is used in messages and its folder to resolve relative paths.
     pub fn from_toml_str(text: &str, path: &Path) -> Result<Config, ConfigError> {
@@ -354,7 +428,7 @@ impl Config {
     }
 
     /// Every invalid value, with its dotted key.
-    fn problems(&self, base: &Base, overrides: &Overrides) -> Vec<Invalid> {
+    pub(crate) fn problems(&self, base: &Base, overrides: &Overrides) -> Vec<Invalid> {
         let mut p = Problems::default();
         p.section("link", |p| {
             self.link.validate_in(base, p);
@@ -487,6 +561,20 @@ impl Config {
     /// validation (`visnav run` and `visnav check-config`).
     pub fn load_checked_with(path: &Path, overrides: &Overrides) -> Result<Config, ConfigError> {
         let cfg = Self::load_with(path, overrides)?;
+        cfg.check_data(path)?;
+        cfg.check_ports(path, overrides)?;
+        Ok(cfg)
+    }
+
+    /// [`Config::load_checked_with`] for a configuration already read (`visnav check-config -`
+    /// reads it from standard input): `path` names it in messages, and its folder is the one its
+    /// relative paths are relative to.
+    pub fn from_toml_str_checked(
+        text: &str,
+        path: &Path,
+        overrides: &Overrides,
+    ) -> Result<Config, ConfigError> {
+        let cfg = Self::from_toml_str_with(text, path, overrides)?;
         cfg.check_data(path)?;
         cfg.check_ports(path, overrides)?;
         Ok(cfg)

@@ -35,13 +35,13 @@
 //! instance 1). Fusing it would feed the solution back into itself, so `auto` picks the other
 //! instance and an explicit choice of the injected instance is rejected by validation.
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 use visnav_core::validate::{Problems, Validate};
 use visnav_link::config::{OutputConfig, OutputMode};
 
 /// Which autopilot GPS message aids the filter.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum GpsSource {
     /// `gps2` when we inject GPS_INPUT into instance 0, else `gps1`.
@@ -68,7 +68,7 @@ impl std::fmt::Display for GpsSource {
 }
 
 /// Whether the autopilot's bias estimates are added back to HIGHRES_IMU.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum ImuBiasRestore {
     /// `scaled_imu` when the locked autopilot's HEARTBEAT says MAV_AUTOPILOT_PX4, else `off`
@@ -83,7 +83,7 @@ pub enum ImuBiasRestore {
 }
 
 /// `[daemon]` section.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct DaemonConfig {
     /// GPS aiding source.
@@ -122,7 +122,7 @@ pub struct DaemonConfig {
     /// Add the autopilot's bias estimates back to HIGHRES_IMU. PX4 (v1.14) sends HIGHRES_IMU
     /// minus EKF2's gyro and accelerometer bias estimates, which swing by 100-220 deg/h once
     /// EKF2 loses the GPS: integrated as the raw IMU that tilted visnav by 0.5-0.7 deg in 20 s
-    /// (docs/real-sitl.md, PX4 session 9). `"scaled_imu"` restores the raw samples from the
+    /// (docs/real-sitl.md, PX4 section). `"scaled_imu"` restores the raw samples from the
     /// SCALED_IMU of the same samples (int16, without the bias; the link requests it at
     /// `link.streams.imu_hz` unless `link.streams.scaled_imu_hz` says otherwise); `"auto"`
     /// (default) does so when the autopilot is PX4.

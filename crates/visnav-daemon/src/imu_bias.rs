@@ -5,7 +5,7 @@
 //! accelerometer bias estimates (`src/modules/mavlink/streams/HIGHRES_IMU.hpp`), and SCALED_IMU
 //! as the same `vehicle_imu` sample without them, cast (truncated toward zero) to int16 mrad/s
 //! and mG (`SCALED_IMU.hpp`). EKF2's estimates swing by 100-220 deg/h once it loses the GPS
-//! (docs/real-sitl.md, PX4 session 9): an input error visnav's filter does not model. Neither
+//! (docs/real-sitl.md, PX4 section): an input error visnav's filter does not model. Neither
 //! message alone is the raw IMU; together they give it.
 //!
 //! Model, per channel `c` (three gyro axes in mrad/s, three accelerometer axes in mG, the SCALED

@@ -1063,7 +1063,7 @@ mod tests {
         assert!(s.convert(&bad).is_empty());
     }
 
-    /// PX4 flight v6 (docs/status.md, issue 18): a 250 Hz HIGHRES_IMU stream that skips 37 ms
+    /// PX4 flight v6 (docs/status.md): a 250 Hz HIGHRES_IMU stream that skips 37 ms
     /// while the pitch rate climbs from 4 to 232 deg/s. Held, the last sample would turn the
     /// filter 8.5 deg; bridged, the increment is the trapezoid and the unknown part is a sigma.
     #[test]

@@ -27,6 +27,7 @@
 pub mod app_config;
 pub mod app_config_overrides;
 pub mod config;
+pub mod config_reference;
 pub mod fix_config;
 pub mod fixlog;
 pub mod frames;

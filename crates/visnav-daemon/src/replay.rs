@@ -395,7 +395,7 @@ pub fn replay(
             continue;
         }
         // The stamp as the companion clock's i64 ns: one past the year 2262 is a corrupt record
-        // (the arithmetic below overflowed on it: found by fuzzing, issue 21).
+        // (the arithmetic below overflowed on it: found by fuzzing).
         let Some(t_companion_ns) = i64::try_from(*unix_us)
             .ok()
             .and_then(|t| t.checked_mul(1000))

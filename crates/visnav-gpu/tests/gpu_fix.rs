@@ -1,4 +1,4 @@
-//! The fix through the GPU path against the fix through the CPU (issue 25: fix results identical
+//! The fix through the GPU path against the fix through the CPU (the target: fix results identical
 //! within 0.1 map px on the fix bench): the NAIP cross-date fix bench (`visnav_sim::fixeval`:
 //! frames rendered from the 2014 photo, the map built from 2009, priors with errors), each frame
 //! fixed twice by the same engine, once with the CPU's features and once with the GPU's

@@ -1,4 +1,4 @@
-//! The GPU path against the CPU reference on real images (issue 25's equivalence): the bundled
+//! The GPU path against the CPU reference on real images: the bundled
 //! NAIP 2014 quarter-quad (sitl/maps) and the bench frames (../shared/data/bench, skipped with a
 //! printed SKIP when absent).
 //!

@@ -1,4 +1,4 @@
-//! Bad input refused with a clear error, never accepted (issue 21, items 11 and 13): corrupt JPEG
+//! Bad input refused with a clear error, never accepted: corrupt JPEG
 //! frames, map files edited with their CRC recomputed, implausible terrain heights, blank
 //! orthophotos, geographic (degree) orthophotos; and sparse GeoTIFFs read as GDAL reads them.
 

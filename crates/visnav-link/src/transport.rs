@@ -3,8 +3,8 @@
 //!
 //! Why our own `udpin`: a UDP listener has no fixed peer, and the mavlink crate replies to the
 //! source of the *last datagram received*, whatever it contained. One byte of junk from any local
-//! process (with signing on or not) then steals the navigation stream from the autopilot (issue
-//! 21, item 9). [`UdpIn`] parses each datagram itself (CRC, and the signature when signing is
+//! process (with signing on or not) then steals the navigation stream from the autopilot.
+//! [`UdpIn`] parses each datagram itself (CRC, and the signature when signing is
 //! configured) and replies only to the address the *locked autopilot's* valid messages come from
 //! ([`Transport::autopilot_heard`]). That address moves to a new one only after the current one
 //! has been silent for the heartbeat timeout (an autopilot whose port changed after a restart),

@@ -765,7 +765,7 @@ pub struct ClosedLoopSummary {
     pub nav_sigma_h_m: Stats,
     pub control_sigma_h_m: Stats,
     /// Horizontal velocity error of the vision and the control filters' outputs (10 Hz samples),
-    /// m/s: a filter whose velocity collapses while the vehicle flies on (issue 18) shows here.
+    /// m/s: a filter whose velocity collapses while the vehicle flies on shows here.
     pub nav_vel_err_m_s: Stats,
     pub control_vel_err_m_s: Stats,
     pub max_err_m: MaxErr,
@@ -915,7 +915,7 @@ fn norm3(e: &[f64; 3]) -> f64 {
     (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]).sqrt()
 }
 
-/// The soak figures' window, s (10 minutes: issue 21's "first and last 10 minutes").
+/// The soak figures' window, s (10 minutes: the soak compares the first and last 10 minutes).
 pub const SOAK_WINDOW_S: f64 = 600.0;
 
 /// Resident set size of this process, MB (Linux; None where `/proc/self/statm` is absent).

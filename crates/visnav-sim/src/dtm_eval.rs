@@ -1,4 +1,4 @@
-//! DTM navigation measured (`visnav bench dtm`, issue 23): the first frame's pose from the optical
+//! DTM navigation measured (`visnav bench dtm`): the first frame's pose from the optical
 //! flow between two frames and the terrain model alone ([`visnav_core::dtm_nav::solve`]).
 //!
 //! * Real frames ([`ngi_dtm`]): NGI 3324C strip 05, frames 0182 -> 0184 (`../shared/data/ngi_3324c`:

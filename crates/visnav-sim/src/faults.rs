@@ -1,4 +1,4 @@
-//! Scripted fault events of a closed-loop scenario (`[[faults]]`, issue 21) and the answers the
+//! Scripted fault events of a closed-loop scenario (`[[faults]]`) and the answers the
 //! simulator's parts ask of them: the autopilot emulator (silence, reboots, the UTC clock, the IMU
 //! and the aiding GPS), the simulated camera (stall, freeze, corruption), the wrapper of the
 //! daemon's fix engine (a map that cannot be matched) and a spoofer that sends foreign HEARTBEATs

@@ -1,6 +1,6 @@
 //! Evaluation of the vision fix against rendered frames with the renderer's truth. Two sites:
 //!
-//! * **NAIP** (the default; issue 4, acceptance 7b): cross-date, frames rendered from the 2014
+//! * **NAIP** (the default): cross-date, frames rendered from the 2014
 //!   orthophoto (640x480, 60 deg HFOV, 1200-2500 m above ground, tilt up to 20 deg, any heading)
 //!   matched to a reference built from the 2009 orthophoto over flat ground. Priors (what a
 //!   navigation filter in GPS-denied cruise would give): position 100 m off (1 sigma, stated

@@ -75,6 +75,9 @@ pub struct ErrorsData {
     pub gps_on: Vec<(f64, f64)>,
     /// Accepted fixes: capture time, s, and horizontal error, m.
     pub fixes: Vec<(f64, f64)>,
+    /// How many fixes were accepted, in words with their scope (the console's wording, e.g.
+    /// "586 in the GPS outage (30-330 s), 636 in the whole flight"); empty: the number drawn.
+    pub fixes_count: String,
 }
 
 /// `track.png`'s data: map CRS metres (x east, y north).
@@ -622,13 +625,17 @@ fn errors_linear(d: &ErrorsData, area: &Area) -> Result<(), PlotError> {
         VISNAV.stroke_width(2),
         "visnav",
     )?;
-    let n = d.fixes.len();
+    let count = if d.fixes_count.is_empty() {
+        d.fixes.len().to_string()
+    } else {
+        d.fixes_count.clone()
+    };
     draw_dots(
         f,
         &mut chart,
         &d.fixes,
         (r, 4, FIX),
-        &format!("accepted fixes ({n}), their error"),
+        &format!("accepted fixes, their error: {count}"),
     )?;
     if vis.iter().all(|p| !finite(p)) {
         draw_note(f, &mut chart, "no data")?;
@@ -844,7 +851,11 @@ fn track_panel(
         .y_desc(format!("northing [m], {}", d.crs))
         .draw()
         .map_err(draw_err(f))?;
-    draw_tracks(d, &mut chart, r)?;
+    let marks = match mark {
+        Some(Mark::Gap(_)) => FixMarks::Distinct,
+        _ => FixMarks::Faint,
+    };
+    draw_tracks(d, &mut chart, r, marks)?;
     match mark {
         Some(Mark::Window(z)) => {
             let outline = vec![
@@ -890,8 +901,43 @@ fn draw_gap(d: &TrackData, chart: &mut XyChart, i: usize, r: [f64; 4]) -> Result
     Ok(())
 }
 
-fn draw_tracks(d: &TrackData, chart: &mut XyChart, r: [f64; 4]) -> Result<(), PlotError> {
+/// How a map panel draws the accepted fixes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum FixMarks {
+    /// Small translucent dots without rim: at the whole flight's scale hundreds of fixes lie
+    /// within a few pixels of the track and opaque dots would cover the lines.
+    Faint,
+    /// Dots with a white rim, for a zoomed panel where only a few fixes fall.
+    Distinct,
+}
+
+/// Radius of the faint fix dots, px, and their opacity.
+const FAINT_FIX: (i32, f64) = (3, 0.5);
+
+/// The tracks of a map panel. The fixes go first, under the lines: the lines are what the panel
+/// is read for, the fixes a cloud around them.
+fn draw_tracks(
+    d: &TrackData,
+    chart: &mut XyChart,
+    r: [f64; 4],
+    marks: FixMarks,
+) -> Result<(), PlotError> {
     let f = TRACK_FILE;
+    let n = d.fixes.iter().filter(|p| finite(p)).count();
+    let label = format!("accepted vision fixes ({n})");
+    match marks {
+        FixMarks::Distinct => draw_dots(f, chart, &d.fixes, (r, 4, FIX), &label)?,
+        FixMarks::Faint => {
+            let (size, alpha) = FAINT_FIX;
+            let style = FIX.mix(alpha).filled();
+            let pts = d.fixes.iter().copied().filter(|p| inside(p, r));
+            chart
+                .draw_series(pts.map(|p| Circle::new(p, size, style)))
+                .map_err(draw_err(f))?
+                .label(label)
+                .legend(move |(x, y)| Circle::new((x + 12, y), size + 2, style));
+        }
+    }
     draw_line(
         f,
         chart,
@@ -912,8 +958,7 @@ fn draw_tracks(d: &TrackData, chart: &mut XyChart, r: [f64; 4]) -> Result<(), Pl
         clip_polyline(&d.visnav, r),
         VISNAV.stroke_width(2),
         "visnav",
-    )?;
-    draw_dots(f, chart, &d.fixes, (r, 4, FIX), "accepted vision fixes")
+    )
 }
 
 /// Resamples the orthophoto (bilinear) into the plot rectangle showing `r`.
@@ -997,19 +1042,147 @@ pub fn residuals(d: &ResidualsData) -> Result<RgbImage, PlotError> {
     })
 }
 
-/// The largest residual component or claimed 3-sigma, m (the residual panels' half range).
-fn residual_extent(d: &ResidualsData) -> f64 {
-    let comps = d
+/// The quantile of the residual components (|north|, |east|) the residual panels' range holds.
+const RESIDUAL_QUANTILE: f64 = 0.99;
+/// Headroom of the residual panels over what they must hold.
+const RESIDUAL_MARGIN: f64 = 1.15;
+
+/// The residual panels' half range, m: 99 % of the residual components and the median claimed
+/// 3-sigma, with some headroom. Not the largest value: a few fixes claim a 3-sigma ten times
+/// the typical one (a frame with few inliers), and a range set by them would flatten the body
+/// of the residuals onto the zero line. What lies beyond is drawn at the edge and counted
+/// ([`residual_clipping`]).
+pub fn residual_extent(d: &ResidualsData) -> f64 {
+    let comps: Vec<f64> = d
         .accepted
         .iter()
-        .flat_map(|r| [r.north_m.abs(), r.east_m.abs(), 3.0 * r.sigma_m]);
-    span(comps).map_or(1.0, |s| s.1).max(1.0) * 1.15
+        .flat_map(|r| [r.north_m.abs(), r.east_m.abs()])
+        .collect();
+    let three: Vec<f64> = d.accepted.iter().map(|r| 3.0 * r.sigma_m).collect();
+    let body = quantile(&comps, RESIDUAL_QUANTILE).unwrap_or(0.0);
+    let band = quantile(&three, 0.5).unwrap_or(0.0);
+    body.max(band).max(1.0) * RESIDUAL_MARGIN
+}
+
+/// What the residuals-against-time panel of half range `m` cannot hold: residual components
+/// (north and east counted apart) and claimed 3-sigma bounds beyond `m`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct ResidualClipping {
+    pub components: usize,
+    pub sigma_bounds: usize,
+}
+
+/// The residuals and 3-sigma bounds beyond the half range `m` ([`ResidualClipping`]).
+pub fn residual_clipping(d: &ResidualsData, m: f64) -> ResidualClipping {
+    let beyond = |v: f64| v.is_finite() && v.abs() > m;
+    ResidualClipping {
+        components: d
+            .accepted
+            .iter()
+            .map(|r| usize::from(beyond(r.north_m)) + usize::from(beyond(r.east_m)))
+            .sum(),
+        sigma_bounds: d
+            .accepted
+            .iter()
+            .filter(|r| beyond(3.0 * r.sigma_m))
+            .count(),
+    }
+}
+
+/// Which edge of a panel a clipped point is drawn on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Edge {
+    Top,
+    Bottom,
+    Left,
+    Right,
+}
+
+/// A point beyond the panel `r`, moved onto its edge, and the edge it crossed (the farther one,
+/// in units of the panel's size, when it is beyond two); `None` for a point inside or not finite.
+fn onto_edge(p: (f64, f64), r: [f64; 4]) -> Option<((f64, f64), Edge)> {
+    if !finite(&p) || inside(&p, r) {
+        return None;
+    }
+    let (w, h) = (
+        (r[2] - r[0]).max(f64::MIN_POSITIVE),
+        (r[3] - r[1]).max(f64::MIN_POSITIVE),
+    );
+    let dx = ((r[0] - p.0).max(p.0 - r[2])).max(0.0) / w;
+    let dy = ((r[1] - p.1).max(p.1 - r[3])).max(0.0) / h;
+    let q = (p.0.clamp(r[0], r[2]), p.1.clamp(r[1], r[3]));
+    let edge = if dy >= dx {
+        if p.1 > r[3] { Edge::Top } else { Edge::Bottom }
+    } else if p.0 > r[2] {
+        Edge::Right
+    } else {
+        Edge::Left
+    };
+    Some((q, edge))
+}
+
+/// A triangle pointing out of the panel across `edge`, its tip on the edge, px.
+fn edge_triangle(edge: Edge) -> Vec<(i32, i32)> {
+    const L: i32 = 11;
+    const W: i32 = 6;
+    match edge {
+        Edge::Top => vec![(0, 0), (-W, L), (W, L)],
+        Edge::Bottom => vec![(0, 0), (-W, -L), (W, -L)],
+        Edge::Left => vec![(0, 0), (L, -W), (L, W)],
+        Edge::Right => vec![(0, 0), (-L, -W), (-L, W)],
+    }
+}
+
+/// Draws the `points` (each with its colour) that lie beyond `r` as triangles on the edge they
+/// cross, pointing out, with a legend entry when there are any; returns how many.
+fn draw_clipped<'a, 'b: 'a>(
+    chart: &mut XyChart<'a, 'b>,
+    points: &[((f64, f64), RGBColor)],
+    r: [f64; 4],
+    label: impl Fn(usize) -> String,
+) -> Result<usize, PlotError> {
+    let marks: Vec<((f64, f64), Edge, RGBColor)> = points
+        .iter()
+        .filter_map(|&(p, c)| onto_edge(p, r).map(|(q, e)| (q, e, c)))
+        .collect();
+    let n = marks.len();
+    let ann = chart
+        .draw_series(marks.into_iter().map(|(q, e, c)| {
+            EmptyElement::at(q)
+                + Polygon::new(edge_triangle(e), c.filled())
+                + PathElement::new(
+                    {
+                        let mut t = edge_triangle(e);
+                        t.push((0, 0));
+                        t
+                    },
+                    BLACK.stroke_width(1),
+                )
+        }))
+        .map_err(draw_err(RESIDUALS_FILE))?;
+    if n > 0 {
+        ann.label(label(n)).legend(|(x, y)| {
+            EmptyElement::at((x + 12, y - 5))
+                + Polygon::new(edge_triangle(Edge::Top), BLACK.mix(0.6).filled())
+        });
+    }
+    Ok(n)
+}
+
+/// A half range for labels: `34.5` -> "34", `3.2` -> "3.2".
+fn fmt_extent(m: f64) -> String {
+    if m >= 10.0 {
+        format!("{m:.0}")
+    } else {
+        format!("{m:.1}")
+    }
 }
 
 fn residuals_time(d: &ResidualsData, area: &Area) -> Result<(), PlotError> {
     let f = RESIDUALS_FILE;
     let x = padded(Some(d.t_range), 0.0);
     let m = residual_extent(d);
+    let clip = residual_clipping(d, m);
     let y = -m..m;
     let r = [x.start, -m, x.end, m];
     let caption = "accepted fixes' error against time";
@@ -1025,12 +1198,21 @@ fn residuals_time(d: &ResidualsData, area: &Area) -> Result<(), PlotError> {
         .accepted
         .iter()
         .map(|a| (a.t_s, -3.0 * a.sigma_m, 3.0 * a.sigma_m));
+    let band_label = if clip.sigma_bounds > 0 {
+        format!(
+            "claimed 3-sigma (cut at the edge for {} of {} fixes)",
+            clip.sigma_bounds,
+            d.accepted.len()
+        )
+    } else {
+        "claimed 3-sigma".to_string()
+    };
     draw_band(
         f,
         &mut chart,
         band,
         (-m, m),
-        (VISNAV.mix(0.15), "claimed 3-sigma"),
+        (VISNAV.mix(0.15), &band_label),
     )?;
     let zero = vec![(x.start, 0.0), (x.end, 0.0)];
     draw_line(
@@ -1044,6 +1226,15 @@ fn residuals_time(d: &ResidualsData, area: &Area) -> Result<(), PlotError> {
     let east: Vec<(f64, f64)> = d.accepted.iter().map(|a| (a.t_s, a.east_m)).collect();
     draw_dots(f, &mut chart, &north, (r, 4, VISNAV), "north error")?;
     draw_dots(f, &mut chart, &east, (r, 4, EAST), "east error")?;
+    let beyond: Vec<((f64, f64), RGBColor)> = north
+        .iter()
+        .map(|&p| (p, VISNAV))
+        .chain(east.iter().map(|&p| (p, EAST)))
+        .collect();
+    let ext = fmt_extent(m);
+    draw_clipped(&mut chart, &beyond, r, |n| {
+        format!("{n} off the scale (over {ext} m), drawn at the edge")
+    })?;
     draw_rejected(&mut chart, &d.rejected_t_s, (x, m))?;
     if d.accepted.is_empty() {
         draw_note(f, &mut chart, "no accepted fix")?;
@@ -1106,13 +1297,12 @@ fn residuals_scatter(d: &ResidualsData, area: &Area) -> Result<(), PlotError> {
     }
     let (out, ok): (Vec<&Residual>, Vec<&Residual>) =
         d.accepted.iter().partition(|a| a.beyond_3sigma);
-    let en = |v: Vec<&Residual>| -> Vec<(f64, f64)> {
-        v.iter().map(|a| (a.east_m, a.north_m)).collect()
-    };
+    let en =
+        |v: &[&Residual]| -> Vec<(f64, f64)> { v.iter().map(|a| (a.east_m, a.north_m)).collect() };
     draw_dots(
         f,
         &mut chart,
-        &en(ok),
+        &en(&ok),
         (r, 4, FIX),
         "within its own 3-sigma",
     )?;
@@ -1120,10 +1310,18 @@ fn residuals_scatter(d: &ResidualsData, area: &Area) -> Result<(), PlotError> {
     draw_dots(
         f,
         &mut chart,
-        &en(out),
+        &en(&out),
         (r, 5, CONTROL),
         &format!("beyond its own 3-sigma ({n})"),
     )?;
+    let beyond: Vec<((f64, f64), RGBColor)> = en(&ok)
+        .into_iter()
+        .map(|p| (p, FIX))
+        .chain(en(&out).into_iter().map(|p| (p, CONTROL)))
+        .collect();
+    draw_clipped(&mut chart, &beyond, r, |n| {
+        format!("{n} off the scale, drawn at the edge")
+    })?;
     draw_legend(f, &mut chart, SeriesLabelPosition::UpperLeft)
 }
 
@@ -1170,6 +1368,7 @@ mod tests {
                 .collect(),
             gps_on: periods(&t, &on),
             fixes: (4..12).map(|k| (f64::from(k) * 10.0, 2.5)).collect(),
+            fixes_count: String::new(),
             t_s: t,
         }
     }
@@ -1239,7 +1438,7 @@ mod tests {
         assert!((z[2] - z[0] - 63.92).abs() < 1e-6, "{z:?}");
         let img = track(&d).unwrap();
         let back = check_png(&img, "track.png", TRACK_SIZE);
-        for c in [VISNAV, CONTROL, TRUTH, FIX, ZOOM] {
+        for c in [VISNAV, CONTROL, TRUTH, ZOOM] {
             assert!(count(&back, c) > 50, "colour {c:?} missing");
         }
         assert!(
@@ -1249,6 +1448,99 @@ mod tests {
         // The zoomed panel (right half) shows visnav and the truth apart.
         let right = image::imageops::crop_imm(&back, 900, 0, 900, 960).to_image();
         assert!(count(&right, VISNAV) > 200 && count(&right, TRUTH) > 200);
+    }
+
+    #[test]
+    fn track_lines_are_drawn_over_the_fixes() {
+        // A fix on every step, right on visnav's line: the line must stay as visible as without
+        // them (the fixes lie under the lines), and the fixes must still show.
+        let mut d = synthetic_track(None);
+        d.fixes.clear();
+        let bare = track(&d).unwrap();
+        d.fixes = d.visnav.clone();
+        let with = track(&d).unwrap();
+        let left = |img: &RgbImage| image::imageops::crop_imm(img, 0, 0, 900, 960).to_image();
+        let (a, b) = (count(&left(&bare), VISNAV), count(&left(&with), VISNAV));
+        assert!(a > 500, "visnav line missing: {a} px");
+        assert!(
+            b * 100 >= a * 97,
+            "fixes cover the visnav line: {b} of {a} px left"
+        );
+        let differ = left(&bare)
+            .pixels()
+            .zip(left(&with).pixels())
+            .filter(|(p, q)| p != q)
+            .count();
+        assert!(differ > 500, "the fixes are not drawn: {differ} px differ");
+    }
+
+    fn residuals_with_spikes() -> ResidualsData {
+        // 200 fixes within +-10 m claiming 3-sigma 12 m, four of them claiming 150 m, one of
+        // those 150 m off to the north.
+        let accepted: Vec<Residual> = (0..200)
+            .map(|k| {
+                let a = f64::from(k);
+                let spike = k % 60 == 5;
+                Residual {
+                    t_s: 30.0 + a,
+                    north_m: if k == 65 {
+                        150.0
+                    } else {
+                        9.0 * (a * 0.7).sin()
+                    },
+                    east_m: 9.0 * (a * 1.3).cos(),
+                    sigma_m: if spike { 50.0 } else { 4.0 },
+                    beyond_3sigma: false,
+                }
+            })
+            .collect();
+        ResidualsData {
+            title: "synthetic: fix residuals with spikes".into(),
+            accepted,
+            rejected_t_s: vec![41.0],
+            gps_on: vec![(0.0, 30.0)],
+            t_range: (0.0, 240.0),
+        }
+    }
+
+    #[test]
+    fn residual_range_comes_from_the_body_not_the_spikes() {
+        let d = residuals_with_spikes();
+        let m = residual_extent(&d);
+        // The median claimed 3-sigma (12 m) and 99 % of the residuals (9 m), with headroom:
+        // not the 150 m of the spikes.
+        assert!((m - 12.0 * RESIDUAL_MARGIN).abs() < 1e-9, "half range {m}");
+        assert_eq!(
+            residual_clipping(&d, m),
+            ResidualClipping {
+                components: 1,
+                sigma_bounds: 4
+            }
+        );
+        let img = residuals(&d).unwrap();
+        check_png(&img, "residuals_spikes.png", RESIDUALS_SIZE);
+        // Without fixes: a unit range, nothing clipped.
+        let empty = ResidualsData::default();
+        assert_eq!(residual_extent(&empty), RESIDUAL_MARGIN);
+        assert_eq!(residual_clipping(&empty, 1.0), ResidualClipping::default());
+    }
+
+    #[test]
+    fn clipped_points_go_onto_the_edge_they_cross() {
+        let r = [0.0, -10.0, 100.0, 10.0];
+        assert_eq!(onto_edge((50.0, 5.0), r), None);
+        assert_eq!(onto_edge((f64::NAN, 50.0), r), None);
+        assert_eq!(onto_edge((50.0, 150.0), r), Some(((50.0, 10.0), Edge::Top)));
+        assert_eq!(
+            onto_edge((50.0, -11.0), r),
+            Some(((50.0, -10.0), Edge::Bottom))
+        );
+        assert_eq!(
+            onto_edge((130.0, 0.0), r),
+            Some(((100.0, 0.0), Edge::Right))
+        );
+        // Beyond two edges: the farther in units of the panel (x: 0.1 widths, y: 2 heights).
+        assert_eq!(onto_edge((-10.0, 50.0), r), Some(((0.0, 10.0), Edge::Top)));
     }
 
     #[test]

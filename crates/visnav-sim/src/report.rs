@@ -20,7 +20,7 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use super::closed_loop::{ClosedLoopError, ClosedLoopRun};
+use super::closed_loop::{ClosedLoopError, ClosedLoopRun, Latency};
 use super::plot::{self, ErrorsData, Residual, ResidualsData, TrackData};
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ClosedLoopError + '_ {
@@ -252,6 +252,74 @@ fn gps_on(run: &ClosedLoopRun) -> Vec<(f64, f64)> {
     plot::periods(&t, &on)
 }
 
+/// What the summary's figures cover, in words: "in the GPS outage (30-330 s)" when the
+/// evaluation window is the outage (to the second), else "in the evaluation window (60-120 s)".
+pub fn window_scope(window_s: [f64; 2], gps_outage_s: Option<[f64; 2]>) -> String {
+    let same = |a: f64, b: f64| (a - b).abs() < 0.5;
+    let span = format!("{:.0}-{:.0} s", window_s[0], window_s[1]);
+    match gps_outage_s {
+        Some(o) if same(o[0], window_s[0]) && same(o[1], window_s[1]) => {
+            format!("in the GPS outage ({span})")
+        }
+        _ => format!("in the evaluation window ({span})"),
+    }
+}
+
+/// The accepted vision fixes, counted in the evaluation window (the summary's figures) and
+/// over the whole flight (what the plots draw): the console and `errors.png` both state them
+/// from here, each number with its scope.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FixCounts {
+    /// Accepted fixes and attempts in the window (the summary's `fixes_accepted`,
+    /// `fix_attempts`).
+    pub accepted: usize,
+    pub attempts: usize,
+    /// The window in words ([`window_scope`]).
+    pub scope: String,
+    /// Accepted fixes over the whole flight.
+    pub flight_accepted: usize,
+}
+
+impl FixCounts {
+    /// The run's counts.
+    pub fn of(run: &ClosedLoopRun) -> Self {
+        let s = &run.summary;
+        Self {
+            accepted: s.fixes_accepted,
+            attempts: s.fix_attempts,
+            scope: window_scope(s.evaluation_window_s, s.gps_outage_s),
+            flight_accepted: run.fixes.iter().filter(|f| f.accepted).count(),
+        }
+    }
+
+    /// "586 in the GPS outage (30-330 s), 636 in the whole flight".
+    pub fn accepted_text(&self) -> String {
+        format!(
+            "{} {}, {} in the whole flight",
+            self.accepted, self.scope, self.flight_accepted
+        )
+    }
+}
+
+/// The capture-to-fix latency in words, for the console. In real time it is measured (the
+/// summary's p50 / p95 over the window, `scope`). In lock-step every fix result arrives a
+/// configured time after its capture (`lockstep_latency_s`, `[closed_loop]
+/// lockstep_fix_latency_s`) and the simulated clock stands still while a fix is computed: there
+/// is nothing measured to show, and the constant is named as what it is.
+pub fn latency_text(lockstep_latency_s: Option<f64>, latency_ms: &Latency, scope: &str) -> String {
+    match lockstep_latency_s {
+        Some(l) => format!(
+            "capture-to-fix latency: {:.0} ms, simulated (lock-step: the configured [closed_loop] lockstep_fix_latency_s, not a measurement; --realtime measures it)",
+            l * 1e3
+        ),
+        None if latency_ms.p50.is_finite() && latency_ms.p95.is_finite() => format!(
+            "capture-to-fix latency p50 / p95 {scope}: {:.0} / {:.0} ms (measured, real time)",
+            latency_ms.p50, latency_ms.p95
+        ),
+        None => format!("capture-to-fix latency: no fix result {scope}"),
+    }
+}
+
 /// `errors.png`'s data: horizontal errors, visnav's sigma, the GPS-on periods, accepted fixes.
 pub fn errors_data(run: &ClosedLoopRun) -> ErrorsData {
     ErrorsData {
@@ -267,6 +335,7 @@ pub fn errors_data(run: &ClosedLoopRun) -> ErrorsData {
             .filter(|f| f.accepted)
             .map(|f| (f.t_capture_s, h(&f.err_ned_m)))
             .collect(),
+        fixes_count: FixCounts::of(run).accepted_text(),
     }
 }
 
@@ -349,4 +418,69 @@ pub fn write_report(run: &ClosedLoopRun, dir: &Path) -> Result<Vec<PathBuf>, Clo
         files.push(p);
     }
     Ok(files)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_window_is_named_by_what_it_covers() {
+        // The outage's end is the flight's duration, a sum of steps: not exactly the window's.
+        assert_eq!(
+            window_scope([30.0, 330.0], Some([30.0, 330.000_000_000_06])),
+            "in the GPS outage (30-330 s)"
+        );
+        assert_eq!(
+            window_scope([60.0, 120.0], Some([30.0, 330.0])),
+            "in the evaluation window (60-120 s)"
+        );
+        assert_eq!(
+            window_scope([0.0, 90.0], None),
+            "in the evaluation window (0-90 s)"
+        );
+    }
+
+    #[test]
+    fn lockstep_latency_is_named_a_constant() {
+        let lat = Latency {
+            p50: 150.0,
+            p95: 150.0,
+        };
+        let scope = "in the GPS outage (30-330 s)";
+        let l = latency_text(Some(0.15), &lat, scope);
+        assert!(
+            l.starts_with("capture-to-fix latency: 150 ms, simulated"),
+            "{l}"
+        );
+        assert!(
+            l.contains("configured") && l.contains("not a measurement"),
+            "{l}"
+        );
+        assert!(!l.contains("p50"), "{l}");
+        let r = latency_text(None, &lat, scope);
+        assert_eq!(
+            r,
+            "capture-to-fix latency p50 / p95 in the GPS outage (30-330 s): 150 / 150 ms (measured, real time)"
+        );
+        let none = Latency {
+            p50: f64::NAN,
+            p95: f64::NAN,
+        };
+        assert!(!latency_text(None, &none, scope).contains("NaN"));
+    }
+
+    #[test]
+    fn fix_counts_say_their_scope() {
+        let c = FixCounts {
+            accepted: 586,
+            attempts: 600,
+            scope: window_scope([30.0, 330.0], Some([30.0, 330.0])),
+            flight_accepted: 636,
+        };
+        assert_eq!(
+            c.accepted_text(),
+            "586 in the GPS outage (30-330 s), 636 in the whole flight"
+        );
+    }
 }

@@ -1,4 +1,4 @@
-//! Visual odometry measured (`visnav bench vo`, issue 22): on a rendered VGA sequence with a known
+//! Visual odometry measured (`visnav bench vo`): on a rendered VGA sequence with a known
 //! flight ([`vga_vo`], timed per frame), and against real frames with measured poses ([`ngi_vo`]):
 //! NGI 3324C strip 05, frames 0182 -> 0184 (`../shared/data/ngi_3324c`: Intergraph DMC frames at 640 x
 //! 1152 px, poses from aerial triangulation, a 24 m DEM). The camera moved 2.6 km west at about
@@ -436,7 +436,7 @@ impl VgaSolver<'_> {
     }
 }
 
-/// SURF matched between consecutive frames instead of tracked (the issue's other candidate), on
+/// SURF matched between consecutive frames instead of tracked (the other candidate method), on
 /// the same VGA sequence (`visnav bench vo --json`: the `vga_surf` keys).
 #[derive(Debug, Clone, Serialize)]
 pub struct VgaSurfVo {

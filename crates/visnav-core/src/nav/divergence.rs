@@ -7,7 +7,7 @@
 //! `d_i = z_i - h(x_i)` (fix minus the filter's prediction at the fix's capture time) follow the
 //! filter's own error, which changes smoothly, `d(t) = a + b t` (an offset plus the drift of a
 //! velocity error). Wrong fixes scatter instead (relocalisations without a prior land hundreds of
-//! metres apart, issue 19).
+//! metres apart).
 //!
 //! Test: a weighted least-squares line per horizontal axis through the window's innovations
 //! (weights: each fix's own horizontal variance plus `DRIFT_ACCEL_M_S2`-driven curvature over the

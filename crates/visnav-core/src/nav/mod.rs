@@ -1,5 +1,5 @@
 //! Navigation: strapdown INS in a local-level NED frame and an error-state EKF fusing vision
-//! fixes, GPS, altitude and autopilot attitude (issue 5).
+//! fixes, GPS, altitude and autopilot attitude (docs/nav.md).
 //!
 //! * [`earth`]: WGS84 radii of curvature, Somigliana normal gravity, earth and transport rates.
 //! * [`ins`]: strapdown mechanization with coning and sculling corrections (Sheta 2012 ch. 2).

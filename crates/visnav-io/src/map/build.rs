@@ -126,7 +126,7 @@ pub const MAX_HEIGHT_SLOPE_SIGMA: f64 = 1.0;
 
 /// Height sigma of a map built on a constant ground height when the build does not state one, m:
 /// a constant stands for ground the build knows nothing about; buildings and trees are 4-12 m
-/// (the case issue 19 measured over Autzen: 12 m vertical error at a claimed 0.09 m), and the
+/// (as measured over Autzen: 12 m vertical error at a claimed 0.09 m), and the
 /// relief under a footprint a few metres more.
 pub const DEFAULT_CONSTANT_HEIGHT_SIGMA_M: f64 = 10.0;
 

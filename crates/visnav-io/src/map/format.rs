@@ -727,7 +727,7 @@ fn validate(b: &[u8], path: &Path) -> Result<(MapHeader, usize), MapError> {
             b.len()
         )));
     }
-    // Saturating: a header_len near u64::MAX overflowed here (found by fuzzing, issue 21); it
+    // Saturating: a header_len near u64::MAX overflowed here (found by fuzzing); it
     // fails the header_len check below.
     let expect_data = (PREAMBLE_BYTES as u64).saturating_add(header_len);
     if header_len > file_len || data_offset != align8(expect_data) || data_offset > file_len {

@@ -1,6 +1,6 @@
 //! What the closed loop records while the flight runs, kept compact so that an hour's soak
-//! measures the daemons' memory and not the simulator's notes (issue 21: RSS growth ≤ 5 MB per
-//! hour).
+//! measures the daemons' memory and not the simulator's notes (the soak's budget: RSS growth
+//! ≤ 5 MB per hour).
 //!
 //! * a 10 Hz step is 80 bytes ([`StepSample`]): the time in ms, each filter's position as an
 //!   `f32` offset from the truth at that time (a metre is 1e-5 deg: the offset keeps 1e-7 of
@@ -395,7 +395,7 @@ mod tests {
     fn the_compact_rows_are_as_small_as_the_soak_needs() {
         // An hour at 10 Hz steps and two 5 Hz injection streams: 2.6 + 1.4 MB, reserved and
         // resident from the start (the soak's budget is 5 MB of RSS growth for everything). The
-        // step was 64 bytes until each output's heading error (issue 22) took 4 more bytes than
+        // step was 64 bytes until each output's heading error took 4 more bytes than
         // its one byte of padding.
         assert_eq!(std::mem::size_of::<StepSample>(), 80);
         assert_eq!(std::mem::size_of::<InjectionSample>(), 40);

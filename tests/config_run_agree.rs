@@ -2,7 +2,7 @@
 //! check-config passes, run starts; what run refuses, check-config refuses first, naming the key.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::Duration;
 
 use crate::common;
@@ -41,22 +41,10 @@ fn check(dir: &Path, text: &str) -> (i32, String) {
 fn run(dir: &Path, text: &str, secs: f64) -> Option<(i32, String)> {
     let file = dir.join("r.toml");
     std::fs::write(&file, text).unwrap();
-    let mut child = visnav()
-        .args(["run", "--config"])
-        .arg(&file)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let status = common::wait_with_deadline(&mut child, Duration::from_secs_f64(secs))?;
-    let mut err = String::new();
-    use std::io::Read;
-    child
-        .stderr
-        .take()
-        .unwrap()
-        .read_to_string(&mut err)
-        .unwrap();
+    let (status, err) = common::stderr_within(
+        visnav().args(["run", "--config"]).arg(&file),
+        Duration::from_secs_f64(secs),
+    )?;
     Some((status.code().unwrap_or(-1), err))
 }
 

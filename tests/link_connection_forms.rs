@@ -3,9 +3,8 @@
 //! another program holds is reported by `check-config` and ends `visnav run` at start, naming
 //! the key and the port. And `visnav --version` names the commit.
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use mavlink::dialects::ardupilotmega::{
@@ -175,26 +174,14 @@ fn run_with_a_busy_listen_port_exits_at_start() {
     let port = held.local_addr().unwrap().port();
     let file = config(d.path(), &format!("tcpin:127.0.0.1:{port}"));
     let t0 = Instant::now();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_visnav"))
-        .args(["run", "--config"])
-        .arg(&file)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let Some(status) = common::wait_with_deadline(&mut child, RUN_EXIT_LIMIT) else {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_visnav"));
+    cmd.args(["run", "--config"]).arg(&file);
+    let Some((status, err)) = common::stderr_within(&mut cmd, RUN_EXIT_LIMIT) else {
         panic!(
             "visnav run still running after {} s on a busy port",
             RUN_EXIT_LIMIT.as_secs_f64()
         );
     };
-    let mut err = String::new();
-    child
-        .stderr
-        .take()
-        .unwrap()
-        .read_to_string(&mut err)
-        .unwrap();
     eprintln!("exited in {:.2} s", t0.elapsed().as_secs_f64());
     assert!(!status.success(), "{err}");
     assert!(

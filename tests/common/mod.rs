@@ -135,3 +135,23 @@ pub fn assert_ok(out: &std::process::Output, what: &str) {
         text(&out.stderr)
     );
 }
+
+/// Runs `cmd` (stdout discarded, stderr captured) for at most `limit`: its exit status and
+/// stderr, or `None` when it was still running (then killed, as [`wait_with_deadline`]).
+pub fn stderr_within(
+    cmd: &mut std::process::Command,
+    limit: std::time::Duration,
+) -> Option<(std::process::ExitStatus, String)> {
+    use std::io::Read;
+    let mut child = cmd
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("spawn the command");
+    let status = wait_with_deadline(&mut child, limit)?;
+    let mut err = String::new();
+    if let Some(mut e) = child.stderr.take() {
+        e.read_to_string(&mut err).expect("read its stderr");
+    }
+    Some((status, err))
+}

@@ -85,6 +85,34 @@ def metres_per_deg(lat_deg):
             111412.84 * math.cos(p) - 93.5 * math.cos(3 * p))
 
 
+# The autopilots' own local projections (visnav_core::geo::autopilot_frame): a local position
+# an autopilot fuses or logs is read back to latitude/longitude as the autopilot reads it.
+ARDUPILOT_EARTH_RADIUS_M = 6378100.0  # AP_Math/definitions.h RADIUS_OF_EARTH
+PX4_EARTH_RADIUS_M = 6371000.0  # PX4 lib/geo CONSTANTS_RADIUS_OF_EARTH
+
+
+def ardupilot_from_ned(lat0, lon0, north, east):
+    """(lat, lon) of a local north/east position about ArduPilot's origin
+    (Location::offset_latlng: an equirectangular sphere, longitude scaled at the mean latitude)."""
+    lat = lat0 + math.degrees(north / ARDUPILOT_EARTH_RADIUS_M)
+    scale = max(math.cos(math.radians(0.5 * (lat + lat0))), 0.01)
+    return lat, lon0 + math.degrees(east / (ARDUPILOT_EARTH_RADIUS_M * scale))
+
+
+def px4_from_ned(lat0, lon0, north, east):
+    """(lat, lon) of a local north/east position about PX4's origin (MapProjection::reproject:
+    azimuthal equidistant on a sphere)."""
+    x, y = north / PX4_EARTH_RADIUS_M, east / PX4_EARTH_RADIUS_M
+    c = math.hypot(x, y)
+    if c == 0.0:
+        return lat0, lon0
+    s0, c0 = math.sin(math.radians(lat0)), math.cos(math.radians(lat0))
+    sc, cc = math.sin(c), math.cos(c)
+    lat = math.asin(cc * s0 + x * sc * c0 / c)
+    dlon = math.atan2(y * sc, c * c0 * cc - x * s0 * sc)
+    return math.degrees(lat), lon0 + math.degrees(dlon)
+
+
 def north_east(lat_deg, lon_deg, lat_t, lon_t):
     """(north, east) metres of a position from the truth (flat earth at the truth)."""
     m_lat, m_lon = metres_per_deg(lat_t)

@@ -108,6 +108,38 @@ class Basics(unittest.TestCase):
         self.assertFalse(sc.ekf_aiding(0x80))
 
 
+class AutopilotProjections(unittest.TestCase):
+    """The autopilots' local frames, against numbers their own formulas give by hand."""
+
+    def test_ardupilot(self):
+        # 0.01 deg on ArduPilot's 6378.1 km sphere is 1113.188 m (LOCATION_SCALING_FACTOR 1e5);
+        # east at 60 deg scales by the cosine of the mean latitude (0.5 here).
+        lat, lon = sc.ardupilot_from_ned(60.0, 10.0, 1113.1884502145034, 0.0)
+        self.assertAlmostEqual(lat, 60.01, places=10)
+        self.assertEqual(lon, 10.0)
+        lat, lon = sc.ardupilot_from_ned(60.0, 10.0, 0.0, 556.5942251072517)
+        self.assertEqual(lat, 60.0)
+        self.assertAlmostEqual(lon, 10.01, places=10)
+
+    def test_px4(self):
+        # PX4's 6371 km sphere: 1111.949 m along a meridian is 0.01 deg; the origin maps to itself.
+        lat, lon = sc.px4_from_ned(-35.0, 149.0, 1111.9492664455872, 0.0)
+        self.assertAlmostEqual(lat, -34.99, places=10)
+        self.assertAlmostEqual(lon, 149.0, places=12)
+        self.assertEqual(sc.px4_from_ned(-35.0, 149.0, 0.0, 0.0), (-35.0, 149.0))
+        # 1 km east at the equator: a great circle along it, 1000 / R radians.
+        lat, lon = sc.px4_from_ned(0.0, 0.0, 0.0, 1000.0)
+        self.assertAlmostEqual(lat, 0.0, places=12)
+        self.assertAlmostEqual(lon, math.degrees(1000.0 / sc.PX4_EARTH_RADIUS_M), places=12)
+
+    def test_they_differ_from_the_ellipsoid(self):
+        # At 47 deg 1 km north is 0.13 % shorter on ArduPilot's sphere than on WGS84, as the
+        # projection's scale: read back, it lands 1.3 m short of the ellipsoid's kilometre.
+        m_lat, _ = sc.metres_per_deg(47.0)
+        lat, _ = sc.ardupilot_from_ned(47.0, 0.0, 1000.0, 0.0)
+        self.assertAlmostEqual((lat - 47.0) * m_lat, 998.7, delta=0.1)
+
+
 class Aiding(unittest.TestCase):
     def test_tracker_periods(self):
         a = sc.AidingTracker(max_age_s=2.0)

@@ -14,9 +14,9 @@ use mavlink::dialects::ardupilotmega::MavMessage;
 use visnav::camera::source::{FramesConfig, SourceKind, write_y4m};
 use visnav::daemon::{Daemon, DaemonConfig, DaemonSetup, FrameFixer, FramePipeline};
 use visnav::fix::{FixPrior, FixReport};
+use visnav::geo::AutopilotFrame;
 use visnav::link::GeoOrigin;
 use visnav::link::config::{LinkConfig, OutputConfig, OutputMode};
-use visnav::link::inject::local_ned_m;
 use visnav::nav::NavConfig;
 use visnav::sitl::autopilot::{AutopilotEmulator, EmulatorConfig, TruthSource};
 use visnav::vision::GrayImage;
@@ -108,7 +108,12 @@ fn max_error_m(gps: &[(u64, mavlink::dialects::ardupilotmega::GPS_INPUT_DATA)]) 
             lon_deg: s.lon_deg,
             alt_amsl_m: s.alt_amsl_m,
         };
-        let d = local_ned_m(&o, g.lat as f64 * 1e-7, g.lon as f64 * 1e-7, g.alt as f64);
+        let d = AutopilotFrame::Tangent.to_ned(
+            &o,
+            g.lat as f64 * 1e-7,
+            g.lon as f64 * 1e-7,
+            g.alt as f64,
+        );
         max = max.max(d.norm());
     }
     max
@@ -327,7 +332,7 @@ impl FrameFixer for TruthPlusNoise {
         };
         if let Some(p) = prior.position {
             self.with_position.fetch_add(1, Ordering::Relaxed);
-            let d = local_ned_m(&o, p.lat_deg, p.lon_deg, p.alt_amsl_m);
+            let d = AutopilotFrame::Tangent.to_ned(&o, p.lat_deg, p.lon_deg, p.alt_amsl_m);
             self.prior_err_m.lock().unwrap().push(d.norm());
         }
         let (dn, de, dd) = {
@@ -338,7 +343,7 @@ impl FrameFixer for TruthPlusNoise {
                 r.normal() * self.sigma_m,
             )
         };
-        let (lat, lon, alt) = visnav::link::inject::offset_geodetic(
+        let (lat, lon, alt) = visnav::geo::local::offset_geodetic(
             s.lat_deg,
             s.lon_deg,
             s.alt_amsl_m,

@@ -8,8 +8,8 @@ use std::time::Duration;
 use mavlink::dialects::ardupilotmega::{MavAutopilot, MavMessage};
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use tokio::sync::watch;
+use visnav::geo::AutopilotFrame;
 use visnav::link::config::{LinkConfig, OutputConfig, OutputMode, SigningSettings};
-use visnav::link::inject::local_ned_m;
 use visnav::link::{GeoOrigin, Health, Link, NavEstimate};
 use visnav::sitl::autopilot::{AutopilotEmulator, EmulatorConfig, TruthSource};
 
@@ -141,7 +141,12 @@ async fn udp_link_against_ardupilot_like_emulator() {
             lon_deg: s.lon_deg,
             alt_amsl_m: s.alt_amsl_m,
         };
-        let d = local_ned_m(&o, g.lat as f64 * 1e-7, g.lon as f64 * 1e-7, g.alt as f64);
+        let d = AutopilotFrame::Tangent.to_ned(
+            &o,
+            g.lat as f64 * 1e-7,
+            g.lon as f64 * 1e-7,
+            g.alt as f64,
+        );
         max_err = max_err.max(d.norm());
         assert_eq!(g.gps_id, 0);
         assert!(g.time_week > 2000);
@@ -159,7 +164,8 @@ async fn udp_link_against_ardupilot_like_emulator() {
     let mut n_odo = 0;
     for r in &got {
         let s = TRUTH.state(r.t_boot_us as f64 * 1e-6);
-        let truth_ned = local_ned_m(&o, s.lat_deg, s.lon_deg, s.alt_amsl_m);
+        // The emulator announces ArduPilot: positions come in its projection.
+        let truth_ned = AutopilotFrame::ArduPilot.to_ned(&o, s.lat_deg, s.lon_deg, s.alt_amsl_m);
         match &r.msg {
             MavMessage::VISION_POSITION_ESTIMATE(v) => {
                 n_vpe += 1;

@@ -10,7 +10,8 @@ requires valid signatures when expected["signing_key_hex"] is set, and checks:
   framing (MAVLink 2 magic 0xFD, signed flag), CRC (pymavlink rejects bad CRCs -> BAD_DATA),
   HEARTBEAT type/autopilot/ids, SET_MESSAGE_INTERVAL requests, TIMESYNC requests, and every field of
   GPS_INPUT, VISION_POSITION_ESTIMATE, ODOMETRY, GLOBAL_POSITION_SENSOR and STATUSTEXT with
-  units and scaling computed here independently (flat-earth NED, own quaternion maths).
+  units and scaling computed here independently (flat-earth NED, ArduPilot's own local projection
+  for the local positions, own quaternion maths).
 It prints one line per failed check and a closing 'interop: N passed, M failed' line, writes the
 report JSON, and exits 0 only when nothing failed.
 """
@@ -80,6 +81,21 @@ def flat_ned(origin, lat, lon, alt):
     rm = a * (1 - e2) / w**3
     dn = math.radians(lat - origin["lat_deg"]) * (rm + origin["alt_amsl_m"])
     de = math.radians(lon - origin["lon_deg"]) * (rn + origin["alt_amsl_m"]) * math.cos(phi)
+    return dn, de, -(alt - origin["alt_amsl_m"])
+
+
+def ardupilot_ned(origin, lat, lon, alt):
+    """NED about the origin as ArduPilot computes it (this fake announces ArduPilot):
+    Location::get_distance_NE on integer 1e-7 degrees, LOCATION_SCALING_FACTOR metres per unit
+    (a 6378.1 km sphere), the longitude scaled by the cosine of the mean latitude; down is the
+    altitude difference."""
+    lsf = 0.011131884502145034
+    lat0, lon0 = round(origin["lat_deg"] * 1e7), round(origin["lon_deg"] * 1e7)
+    lat1, lon1 = round(lat * 1e7), round(lon * 1e7)
+    mid = int((lat0 + lat1) / 2)  # C integer division truncates toward zero
+    scale = max(math.cos(math.radians(mid * 1e-7)), 0.01)
+    dn = (lat1 - lat0) * lsf
+    de = (lon1 - lon0) * lsf * scale
     return dn, de, -(alt - origin["alt_amsl_m"])
 
 
@@ -246,9 +262,10 @@ def cov_checks(c, name, cov, p3, att_sigma):
 
 
 def check_vpe(c, m, est, origin):
-    n, e, d = flat_ned(origin, est["lat_deg"], est["lon_deg"], est["alt_amsl_m"])
-    c.close(m.x, n, 0.05 + 1e-3 * abs(n), "VISION_POSITION_ESTIMATE.x (north m)")
-    c.close(m.y, e, 0.05 + 1e-3 * abs(e), "VISION_POSITION_ESTIMATE.y (east m)")
+    n, e, d = ardupilot_ned(origin, est["lat_deg"], est["lon_deg"], est["alt_amsl_m"])
+    # 1e-7 degrees is 1.1 cm; the message's f32 keeps 1e-5 m at these distances.
+    c.close(m.x, n, 0.03, "VISION_POSITION_ESTIMATE.x (north m)")
+    c.close(m.y, e, 0.03, "VISION_POSITION_ESTIMATE.y (east m)")
     c.close(m.z, d, 0.05, "VISION_POSITION_ESTIMATE.z (down m)")
     for f, v in zip(["roll", "pitch", "yaw"], est["rpy_rad"]):
         c.close(getattr(m, f), v, 1e-5, f"VISION_POSITION_ESTIMATE.{f}")
@@ -263,9 +280,9 @@ def check_odometry(c, m, est, origin):
     c.ok(m.estimator_type == mavutil.mavlink.MAV_ESTIMATOR_TYPE_VIO, f"ODOMETRY.estimator_type {m.estimator_type}")
     c.ok(m.quality == 100, f"ODOMETRY.quality {m.quality}")
     c.ok(m.reset_counter == est["reset_counter"], f"ODOMETRY.reset_counter {m.reset_counter}")
-    n, e, d = flat_ned(origin, est["lat_deg"], est["lon_deg"], est["alt_amsl_m"])
-    c.close(m.x, n, 0.05 + 1e-3 * abs(n), "ODOMETRY.x")
-    c.close(m.y, e, 0.05 + 1e-3 * abs(e), "ODOMETRY.y")
+    n, e, d = ardupilot_ned(origin, est["lat_deg"], est["lon_deg"], est["alt_amsl_m"])
+    c.close(m.x, n, 0.03, "ODOMETRY.x")
+    c.close(m.y, e, 0.03, "ODOMETRY.y")
     c.close(m.z, d, 0.05, "ODOMETRY.z")
     q = quat_from_euler(*est["rpy_rad"])
     sign = 1 if sum(a * b for a, b in zip(q, m.q)) >= 0 else -1

@@ -430,7 +430,7 @@ class SourceSetScore(ErrorScore):
 def external_nav_integrity(workdir, history, t_fly, t_off, t_back, integ):
     """Score every VISION_POSITION_ESTIMATE visnav sent (its visnav.tlog; ArduPilot echoes none)
     against the truth at the estimate's validity time: x/y about the autopilot's EKF origin
-    (GPS_GLOBAL_ORIGIN in the same tlog), h_acc = sqrt of the larger eigenvalue of the horizontal
+    (GPS_GLOBAL_ORIGIN in the same tlog), read back with ArduPilot's own projection, h_acc = sqrt of the larger eigenvalue of the horizontal
     covariance (as GPS_INPUT's horiz_accuracy). The validity time is in visnav's monotonic clock:
     mapped onto this computer's clock by the smallest (tlog send time - validity time), i.e. the
     freshest estimate's age is taken as zero."""
@@ -461,8 +461,7 @@ def external_nav_integrity(workdir, history, t_fly, t_off, t_back, integ):
         if tr is None:
             integ.skip("no_truth")
             continue
-        m_lat, m_lon = metres_per_deg(lat0)
-        lat, lon = lat0 + x / m_lat, lon0 + y / m_lon
+        lat, lon = sitl_common.ardupilot_from_ned(lat0, lon0, x, y)
         phase = ("gps_on" if t_off is None or t < t_off else
                  "gps_off" if t_back is None or t < t_back else "gps_back")
         integ.add(t - t_fly, phase, lat, lon, h_acc, tr[0], tr[1])

@@ -23,7 +23,7 @@ import sys
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from consumer_fusion import (SCORE_AFTER_GPS_OFF_S, SCORE_MIN_SPEED_M_S,  # noqa: E402
                              print_comparison)
-from sitl_common import metres_per_deg, ulog_topic as topic  # noqa: E402
+from sitl_common import metres_per_deg, px4_from_ned, ulog_topic as topic  # noqa: E402
 
 try:
     from pyulog import ULog
@@ -61,9 +61,10 @@ def main():
     mn, me = metres_per_deg(lat0)
 
     def to_common(ref_lat, ref_lon, x, y):
-        """NE metres about the truth's origin of a local NED position about (ref_lat, ref_lon)."""
-        m_lat, m_lon = metres_per_deg(ref_lat)
-        return ((ref_lat + x / m_lat - lat0) * mn, (ref_lon + y / m_lon - lon0) * me)
+        """NE metres about the truth's origin of a local NED position about (ref_lat, ref_lon),
+        read back with PX4's own projection."""
+        lat, lon = px4_from_ned(ref_lat, ref_lon, x, y)
+        return ((lat - lat0) * mn, (lon - lon0) * me)
 
     gt_t = [int(t) * 1e-6 for t in gt["timestamp"]]
     gt_n, gt_e, gt_vn, gt_ve = [], [], [], []

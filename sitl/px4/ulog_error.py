@@ -11,7 +11,8 @@ writes in every SITL run instead:
 
 * EKF2: `vehicle_local_position` (x, y, z NED metres about its origin `ref_lat`, `ref_lon`,
   `ref_alt`; published whether or not the position is valid, with `xy_valid`), turned into
-  latitude / longitude / altitude with the local flat-earth metres per degree at the origin.
+  latitude / longitude / altitude with PX4's own projection (MapProjection::reproject, as EKF2
+  turns it into its global position).
 * Truth: `vehicle_global_position_groundtruth` (SIH, jMAVSim), linearly interpolated to each EKF2
   sample. jMAVSim's altitude there is its local z (down) from the home ground: turned into
   HOME_ALT_M - z (`--sim`, detected from SYS_AUTOSTART 10017).
@@ -26,7 +27,7 @@ sends back nothing of the ODOMETRY it fuses, but logs it as received (`vehicle_v
 10 Hz here: position NED about EKF2's origin, its variances, `timestamp_sample` = the estimate's
 validity time in PX4's clock). Each sample in MAV_FRAME_LOCAL_NED (pose_frame 1) against the truth
 at `timestamp_sample`, the position through EKF2's origin (`vehicle_local_position` ref_lat /
-ref_lon) to latitude / longitude; claimed accuracy = sqrt of the larger of the north / east
+ref_lon) to latitude / longitude with PX4's projection; claimed accuracy = sqrt of the larger of the north / east
 variances (PX4 logs no covariance, so this can be below visnav's sqrt(lambda_max): the ratio is
 at most slightly stricter than ArduPilot's h_acc); phases gps_on / gps_off as above
 (sitl_common.IntegrityScore, times in PX4 boot seconds).
@@ -40,8 +41,8 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from sitl_common import (HOME_ALT_M, IntegrityScore, MAX_RATIO, metres_per_deg, stats,  # noqa: E402
-                         ulog_topic as topic)
+from sitl_common import (HOME_ALT_M, IntegrityScore, MAX_RATIO, metres_per_deg,  # noqa: E402
+                         px4_from_ned, stats, ulog_topic as topic)
 
 try:
     from pyulog import ULog
@@ -102,10 +103,9 @@ def injected_integrity(u, gt, t_gps_off, ratio_limit=MAX_RATIO):
         if not all(math.isfinite(v) for v in (ref_lat, ref_lon, x, y, var)):
             score.skip("not_finite")
             continue
-        m_lat, m_lon = metres_per_deg(ref_lat)
+        lat, lon = px4_from_ned(ref_lat, ref_lon, x, y)
         phase = "gps_off" if t_gps_off is not None and t >= t_gps_off else "gps_on"
-        score.add(t * 1e-6, phase, ref_lat + x / m_lat, ref_lon + y / m_lon,
-                  math.sqrt(max(var, 0.0)), lat_t, lon_t)
+        score.add(t * 1e-6, phase, lat, lon, math.sqrt(max(var, 0.0)), lat_t, lon_t)
     return score
 
 
@@ -142,9 +142,7 @@ def main():
         ref_lat, ref_lon = float(lp["ref_lat"][i]), float(lp["ref_lon"][i])
         if not (math.isfinite(ref_lat) and math.isfinite(ref_lon)) or lp["xy_global"][i] == 0:
             continue
-        m_lat, m_lon = metres_per_deg(ref_lat)
-        lat_e = ref_lat + float(lp["x"][i]) / m_lat
-        lon_e = ref_lon + float(lp["y"][i]) / m_lon
+        lat_e, lon_e = px4_from_ned(ref_lat, ref_lon, float(lp["x"][i]), float(lp["y"][i]))
         alt_e = float(lp["ref_alt"][i]) - float(lp["z"][i])
         m_lat, m_lon = metres_per_deg(lat_t)
         eh = math.hypot((lat_e - lat_t) * m_lat, (lon_e - lon_t) * m_lon)

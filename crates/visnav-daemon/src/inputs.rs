@@ -46,11 +46,11 @@ use crate::metrics::same_but_numbers;
 use visnav_core::camera::Attitude;
 use visnav_core::fix::{AltitudePrior, AttitudePriorNed, FixPrior, FixReport, PositionPriorGeo};
 use visnav_core::geo::geoid::geoid_undulation_m;
+use visnav_core::geo::local::offset_geodetic;
 use visnav_core::nav::{
     AltitudeFix, AttitudeFix, Health as NavHealth, ImuSample, Measurement, NavConfig, NavOutput,
     PoseFix, PositionFix, VelocityFix, earth,
 };
-use visnav_link::inject::offset_geodetic;
 use visnav_link::{Health as LinkHealth, NavEstimate, Telemetry};
 
 /// A lower-priority IMU message is ignored while a higher-priority one arrived this recently, s.

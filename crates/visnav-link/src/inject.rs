@@ -5,9 +5,11 @@
 //! # Conventions
 //! * Input attitude `q_ned_body` (Hamilton, scalar first): `v_ned = R(q_ned_body) v_body_frd`,
 //!   i.e. `R_ned_body = Rz(yaw) Ry(pitch) Rx(roll)` (docs/conventions.md).
-//! * Local positions are NED metres about the autopilot's EKF origin ([`GeoOrigin`]), computed
-//!   exactly through ECEF: `p_ned = R_ned_ecef(origin) (p_ecef - origin_ecef)` with heights AMSL
-//!   on both sides (the geoid slope over a flight area is negligible).
+//! * Local positions are NED metres about the autopilot's EKF origin ([`GeoOrigin`]) in the
+//!   autopilot's own projection ([`AutopilotLocal`]: ArduPilot's equirectangular sphere, PX4's
+//!   azimuthal equidistant one, the exact tangent plane for any other autopilot; see
+//!   `visnav_core::geo::autopilot_frame`), with down as the altitude difference to the origin:
+//!   the position the autopilot fuses then maps back to the latitude and longitude sent.
 //! * 6x6 covariances are sent as the row-major upper triangle (21 values):
 //!   indices 0..=5 row 0, 6..=10 row 1, 11..=14 row 2, 15..=17 row 3, 18..=19 row 4, 20 row 5.
 //!
@@ -45,7 +47,8 @@ use nalgebra::{Matrix3, SymmetricEigen, UnitQuaternion, Vector3};
 
 use crate::config::OutputConfig;
 use crate::time::gps_week_ms;
-use visnav_core::geo::wgs84;
+use visnav_core::geo::local::offset_geodetic;
+pub use visnav_core::geo::{AutopilotFrame, GeoOrigin};
 
 /// Nominal user-equivalent range error used to express accuracies as DOPs (hdop = h_acc / UERE).
 pub const DOP_UERE_M: f64 = 4.0;
@@ -113,17 +116,6 @@ pub struct NavEstimate {
     pub health: Health,
     /// Incremented by the filter on every discontinuity (reset) of the solution.
     pub reset_counter: u8,
-}
-
-/// The autopilot's EKF origin (local NED frame origin).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct GeoOrigin {
-    /// Latitude, degrees.
-    pub lat_deg: f64,
-    /// Longitude, degrees.
-    pub lon_deg: f64,
-    /// Altitude AMSL, metres.
-    pub alt_amsl_m: f64,
 }
 
 /// Send-time context supplied by the link.
@@ -289,70 +281,6 @@ fn usable(e: &NavEstimate) -> Result<(), InjectError> {
     check_estimate(e)
 }
 
-/// Geodetic (degrees, metres) -> ECEF metres (WGS84).
-pub fn geodetic_to_ecef(lat_deg: f64, lon_deg: f64, h_m: f64) -> Vector3<f64> {
-    let (sl, cl) = lat_deg.to_radians().sin_cos();
-    let (so, co) = lon_deg.to_radians().sin_cos();
-    let n = wgs84::A_M / (1.0 - wgs84::E2 * sl * sl).sqrt();
-    Vector3::new(
-        (n + h_m) * cl * co,
-        (n + h_m) * cl * so,
-        (n * (1.0 - wgs84::E2) + h_m) * sl,
-    )
-}
-
-/// `R_ned_ecef` at a geodetic position: rows are the north, east and down unit vectors in ECEF.
-pub fn r_ned_ecef(lat_deg: f64, lon_deg: f64) -> Matrix3<f64> {
-    let (sl, cl) = lat_deg.to_radians().sin_cos();
-    let (so, co) = lon_deg.to_radians().sin_cos();
-    Matrix3::new(
-        -sl * co,
-        -sl * so,
-        cl,
-        -so,
-        co,
-        0.0,
-        -cl * co,
-        -cl * so,
-        -sl,
-    )
-}
-
-/// Position of (lat, lon, alt AMSL) in the local NED frame about `origin`, metres.
-pub fn local_ned_m(
-    origin: &GeoOrigin,
-    lat_deg: f64,
-    lon_deg: f64,
-    alt_amsl_m: f64,
-) -> Vector3<f64> {
-    let p = geodetic_to_ecef(lat_deg, lon_deg, alt_amsl_m);
-    let o = geodetic_to_ecef(origin.lat_deg, origin.lon_deg, origin.alt_amsl_m);
-    r_ned_ecef(origin.lat_deg, origin.lon_deg) * (p - o)
-}
-
-/// Move a geodetic position by a small NED displacement (metres), using the meridian and
-/// prime-vertical radii of curvature at the start point.
-pub fn offset_geodetic(
-    lat_deg: f64,
-    lon_deg: f64,
-    alt_m: f64,
-    d_ned_m: &Vector3<f64>,
-) -> (f64, f64, f64) {
-    let sl = lat_deg.to_radians().sin();
-    let w = (1.0 - wgs84::E2 * sl * sl).sqrt();
-    let rn = wgs84::A_M / w; // prime vertical
-    let rm = wgs84::A_M * (1.0 - wgs84::E2) / (w * w * w); // meridian
-    let dlat = d_ned_m.x / (rm + alt_m);
-    let dlon = d_ned_m.y / ((rn + alt_m) * lat_deg.to_radians().cos());
-    let mut lon = lon_deg + dlon.to_degrees();
-    if lon > 180.0 {
-        lon -= 360.0;
-    } else if lon < -180.0 {
-        lon += 360.0;
-    }
-    (lat_deg + dlat.to_degrees(), lon, alt_m - d_ned_m.z)
-}
-
 /// GPS_INPUT for ArduPilot (see module docs for every field's meaning).
 pub fn gps_input(
     e: &NavEstimate,
@@ -460,7 +388,7 @@ struct LocalPose {
 fn local_pose(
     e: &NavEstimate,
     now: &SendTime,
-    origin: &GeoOrigin,
+    local: &AutopilotLocal,
     out: &OutputConfig,
 ) -> Result<LocalPose, InjectError> {
     usable(e)?;
@@ -468,7 +396,7 @@ fn local_pose(
     let t_companion_us = now
         .validity_companion_us
         .ok_or(InjectError::NoCompanionTime)?;
-    let p_ned_m = local_ned_m(origin, e.lat_deg, e.lon_deg, e.alt_amsl_m);
+    let p_ned_m = local.to_ned(e.lat_deg, e.lon_deg, e.alt_amsl_m);
     in_range("local position", p_ned_m.amax(), 0.0, 1e6)?;
     let att_var_rad2 = Matrix3::from_diagonal(&e.att_sigma_rad.component_mul(&e.att_sigma_rad));
     Ok(LocalPose {
@@ -483,14 +411,14 @@ fn local_pose(
 pub fn vision_position_estimate(
     e: &NavEstimate,
     now: &SendTime,
-    origin: &GeoOrigin,
+    local: &AutopilotLocal,
     out: &OutputConfig,
 ) -> Result<MavMessage, InjectError> {
     let LocalPose {
         t_companion_us: usec,
         p_ned_m: p,
         att_var_rad2: att_var,
-    } = local_pose(e, now, origin, out)?;
+    } = local_pose(e, now, local, out)?;
     let (roll, pitch, yaw) = e.q_ned_body.euler_angles();
     Ok(MavMessage::VISION_POSITION_ESTIMATE(
         VISION_POSITION_ESTIMATE_DATA {
@@ -533,19 +461,57 @@ impl PoseFrame {
     }
 }
 
-/// ODOMETRY: pose (north-aligned NED about `origin`) in `frame`, velocity in MAV_FRAME_BODY_FRD.
+/// The projection an autopilot of this flight stack keeps its local frame in: ArduPilot's and
+/// PX4's own; the exact tangent plane for any other (or not yet known) autopilot, whose
+/// projection is not known.
+pub fn projection_of(autopilot: Option<MavAutopilot>) -> AutopilotFrame {
+    match autopilot {
+        Some(MavAutopilot::MAV_AUTOPILOT_PX4) => AutopilotFrame::Px4,
+        Some(MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA) => AutopilotFrame::ArduPilot,
+        _ => AutopilotFrame::Tangent,
+    }
+}
+
+/// The local frame a pose is sent in: the autopilot's EKF origin, the projection the autopilot
+/// maps latitude and longitude with (`visnav_core::geo::autopilot_frame`) and ODOMETRY's
+/// `frame_id`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AutopilotLocal {
+    pub origin: GeoOrigin,
+    pub projection: AutopilotFrame,
+    pub pose_frame: PoseFrame,
+}
+
+impl AutopilotLocal {
+    /// The frame of an autopilot of this flight stack ([`projection_of`], [`PoseFrame::for_autopilot`]).
+    pub fn for_autopilot(origin: GeoOrigin, autopilot: Option<MavAutopilot>) -> Self {
+        Self {
+            origin,
+            projection: projection_of(autopilot),
+            pose_frame: PoseFrame::for_autopilot(autopilot),
+        }
+    }
+
+    /// Local NED position, metres, of (latitude, longitude in degrees, altitude AMSL in metres).
+    pub fn to_ned(&self, lat_deg: f64, lon_deg: f64, alt_amsl_m: f64) -> Vector3<f64> {
+        self.projection
+            .to_ned(&self.origin, lat_deg, lon_deg, alt_amsl_m)
+    }
+}
+
+/// ODOMETRY: pose (north-aligned NED in the autopilot's local frame) in its [`PoseFrame`],
+/// velocity in MAV_FRAME_BODY_FRD.
 pub fn odometry(
     e: &NavEstimate,
     now: &SendTime,
-    origin: &GeoOrigin,
+    local: &AutopilotLocal,
     out: &OutputConfig,
-    frame: PoseFrame,
 ) -> Result<MavMessage, InjectError> {
     let LocalPose {
         t_companion_us: time_usec,
         p_ned_m: p,
         att_var_rad2: att_var,
-    } = local_pose(e, now, origin, out)?;
+    } = local_pose(e, now, local, out)?;
     let r = e.q_ned_body.to_rotation_matrix();
     let v_body = r.inverse() * e.vel_ned_m_s;
     let pv_body = r.matrix().transpose() * e.vel_cov_ned_m2_s2 * r.matrix();
@@ -570,7 +536,7 @@ pub fn odometry(
         yawspeed: 0.0,
         pose_covariance: upper_triangle_6((&e.pos_cov_ned_m2, &att_var))?,
         velocity_covariance: upper_triangle_6((&pv_body, &rate_var))?,
-        frame_id: frame.mav_frame(),
+        frame_id: local.pose_frame.mav_frame(),
         child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
         reset_counter: e.reset_counter,
         estimator_type: MavEstimatorType::MAV_ESTIMATOR_TYPE_VIO,
@@ -813,20 +779,44 @@ pub(crate) mod tests {
         assert_eq!(g.satellites_visible, 0);
     }
 
+    fn local(o: GeoOrigin, ap: MavAutopilot) -> AutopilotLocal {
+        AutopilotLocal::for_autopilot(o, Some(ap))
+    }
+
     #[test]
-    fn local_ned_of_known_offsets() {
+    fn each_autopilot_gets_its_own_projection() {
         let o = GeoOrigin {
             lat_deg: 46.9,
             lon_deg: -96.8,
             alt_amsl_m: 300.0,
         };
-        let p = local_ned_m(&o, 46.9, -96.8, 310.0);
-        assert!((p - Vector3::new(0.0, 0.0, -10.0)).norm() < 1e-6, "{p}");
-        // Round trip through offset_geodetic at 1 km scale: below 1 cm.
-        let d = Vector3::new(800.0, -600.0, 25.0);
-        let (lat, lon, alt) = offset_geodetic(o.lat_deg, o.lon_deg, o.alt_amsl_m, &d);
-        let back = local_ned_m(&o, lat, lon, alt);
-        assert!((back - d).norm() < 0.15, "{back} vs {d}");
+        let px4 = local(o, MavAutopilot::MAV_AUTOPILOT_PX4);
+        let ap = local(o, MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA);
+        let other = AutopilotLocal::for_autopilot(o, None);
+        assert_eq!(px4.projection, AutopilotFrame::Px4);
+        assert_eq!(ap.projection, AutopilotFrame::ArduPilot);
+        assert_eq!(other.projection, AutopilotFrame::Tangent);
+        assert_eq!(
+            local(o, MavAutopilot::MAV_AUTOPILOT_GENERIC).projection,
+            AutopilotFrame::Tangent
+        );
+        // The same point 1.2 km out, in each frame: ArduPilot's sphere is 0.13 % longer north
+        // and 0.18 % shorter east than the ellipsoid here, PX4's 0.02 % longer north and 0.29 %
+        // shorter east; both take the height above the origin as down.
+        let (lat, lon) = (46.9 + 0.0072, -96.8 + 0.0131);
+        let t = other.to_ned(lat, lon, 310.0);
+        let a = ap.to_ned(lat, lon, 310.0);
+        let p = px4.to_ned(lat, lon, 310.0);
+        let near = |v: f64, want: f64| (v - want).abs() < 2e-4;
+        assert!(
+            near(a.x / t.x, 1.00131) && near(a.y / t.y, 0.99816),
+            "{a} against {t}"
+        );
+        assert!(
+            near(p.x / t.x, 1.00019) && near(p.y / t.y, 0.99705),
+            "{p} against {t}"
+        );
+        assert_eq!((a.z, p.z), (-10.0, -10.0));
     }
 
     #[test]
@@ -837,9 +827,13 @@ pub(crate) mod tests {
             lon_deg: -96.8,
             alt_amsl_m: 390.0,
         };
-        let MavMessage::VISION_POSITION_ESTIMATE(v) =
-            vision_position_estimate(&e, &now(), &o, &OutputConfig::default()).unwrap()
-        else {
+        let MavMessage::VISION_POSITION_ESTIMATE(v) = vision_position_estimate(
+            &e,
+            &now(),
+            &local(o, MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA),
+            &OutputConfig::default(),
+        )
+        .unwrap() else {
             panic!()
         };
         assert_eq!(v.usec, 55_000_000);
@@ -868,9 +862,8 @@ pub(crate) mod tests {
         let MavMessage::ODOMETRY(m) = odometry(
             &e,
             &now(),
-            &o,
+            &local(o, MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA),
             &OutputConfig::default(),
-            PoseFrame::for_autopilot(Some(MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA)),
         )
         .unwrap() else {
             panic!()
@@ -896,7 +889,7 @@ pub(crate) mod tests {
     }
 
     #[test]
-    fn odometry_frame_for_px4_is_local_ned_with_the_same_position() {
+    fn odometry_frame_for_px4_is_local_ned_in_its_projection() {
         let e = estimate();
         let o = GeoOrigin {
             lat_deg: 46.9,
@@ -904,21 +897,21 @@ pub(crate) mod tests {
             alt_amsl_m: 400.0,
         };
         assert_eq!(PoseFrame::for_autopilot(None), PoseFrame::LocalFrd);
-        let build = |ap| {
-            let f = PoseFrame::for_autopilot(Some(ap));
-            match odometry(&e, &now(), &o, &OutputConfig::default(), f).unwrap() {
+        let build =
+            |ap| match odometry(&e, &now(), &local(o, ap), &OutputConfig::default()).unwrap() {
                 MavMessage::ODOMETRY(m) => m,
                 _ => panic!("not ODOMETRY"),
-            }
-        };
+            };
         let px4 = build(MavAutopilot::MAV_AUTOPILOT_PX4);
         let ap = build(MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA);
         assert_eq!(px4.frame_id, MavFrame::MAV_FRAME_LOCAL_NED);
         assert_eq!(ap.frame_id, MavFrame::MAV_FRAME_LOCAL_FRD);
         assert_eq!(px4.child_frame_id, MavFrame::MAV_FRAME_BODY_FRD);
-        // Only the frame id differs: the north-aligned NED position, the body velocity and the
-        // covariances are the same numbers.
+        // The frame id and the projection differ: the north-aligned NED position is each
+        // autopilot's own (the estimate sits at the origin's latitude and longitude, so only the
+        // height remains), the body velocity and the covariances are the same numbers.
         assert_eq!((px4.x, px4.y, px4.z), (ap.x, ap.y, ap.z));
+        assert!(px4.x.abs() < 1e-3 && px4.y.abs() < 1e-3 && px4.z.abs() < 1e-3);
         assert_eq!((px4.vx, px4.vy, px4.vz), (ap.vx, ap.vy, ap.vz));
         assert_eq!(px4.pose_covariance, ap.pose_covariance);
         assert_eq!(px4.q, ap.q);
@@ -983,7 +976,7 @@ pub(crate) mod tests {
             prop_assert!(g.yaw >= 1 && g.yaw <= 36000);
             prop_assert!(g.lat.abs() <= 900_000_000 && g.lon.abs() <= 1_800_000_000);
             let o = GeoOrigin { lat_deg: lat, lon_deg: lon, alt_amsl_m: alt };
-            let MavMessage::ODOMETRY(m) = odometry(&e, &t, &o, &out, PoseFrame::LocalNed).unwrap() else { panic!() };
+            let MavMessage::ODOMETRY(m) = odometry(&e, &t, &local(o, MavAutopilot::MAV_AUTOPILOT_PX4), &out).unwrap() else { panic!() };
             prop_assert!(m.frame_id == MavFrame::MAV_FRAME_LOCAL_NED);
             prop_assert!(m.q.iter().chain(m.pose_covariance.iter()).chain(m.velocity_covariance.iter()).all(|v| v.is_finite()));
         }

@@ -696,6 +696,11 @@ impl Shared {
         } else {
             None
         };
+        // Local positions go in the autopilot's own projection about its origin.
+        let local = origin.map(|o| {
+            let ap = lock(&self.state).autopilot.map(|a| a.autopilot);
+            inject::AutopilotLocal::for_autopilot(o, ap)
+        });
         match (&est.health, held) {
             (Health::Lost { .. }, _) | (_, None) => self.health_text(&est.health).await,
             (_, Some(why)) => {
@@ -727,14 +732,12 @@ impl Shared {
                     results.push((mode, Err(InjectError::Repeated)));
                     continue;
                 }
-                OutputMode::VisionPositionEstimate => origin
+                OutputMode::VisionPositionEstimate => local
                     .ok_or(InjectError::NoOrigin)
-                    .and_then(|o| inject::vision_position_estimate(est, &now, &o, &self.out)),
-                OutputMode::Odometry => origin.ok_or(InjectError::NoOrigin).and_then(|o| {
-                    let ap = lock(&self.state).autopilot.map(|a| a.autopilot);
-                    let frame = inject::PoseFrame::for_autopilot(ap);
-                    inject::odometry(est, &now, &o, &self.out, frame)
-                }),
+                    .and_then(|l| inject::vision_position_estimate(est, &now, &l, &self.out)),
+                OutputMode::Odometry => local
+                    .ok_or(InjectError::NoOrigin)
+                    .and_then(|l| inject::odometry(est, &now, &l, &self.out)),
                 OutputMode::GlobalPositionSensor => {
                     inject::global_position_sensor(est, &now, target, &self.out)
                 }
@@ -1386,7 +1389,11 @@ pub const MAX_ORIGIN_DISTANCE_M: f64 = 100_000.0;
 /// Straight-line distance between two positions at sea level (lat, lon in degrees), m: the
 /// chord, within 1e-5 of the distance along the ground up to [`MAX_ORIGIN_DISTANCE_M`].
 fn sea_level_distance_m(a: (f64, f64), b: (f64, f64)) -> f64 {
-    (inject::geodetic_to_ecef(a.0, a.1, 0.0) - inject::geodetic_to_ecef(b.0, b.1, 0.0)).norm()
+    let ecef = |(lat_deg, lon_deg): (f64, f64)| {
+        visnav_core::geo::ecef::geodetic_to_ecef(lat_deg, lon_deg, 0.0)
+            .unwrap_or_else(|_| nalgebra::Vector3::repeat(f64::NAN))
+    };
+    (ecef(a) - ecef(b)).norm()
 }
 
 /// Whether an origin on the Earth can be this vehicle's: within [`MAX_ORIGIN_DISTANCE_M`] of the

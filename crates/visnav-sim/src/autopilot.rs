@@ -191,6 +191,21 @@ pub struct EmulatorConfig {
 }
 
 impl EmulatorConfig {
+    /// The flight stack the emulator announces: PX4 with [`Self::px4_imu`], else ArduPilot.
+    pub fn autopilot(&self) -> MavAutopilot {
+        if self.px4_imu {
+            MavAutopilot::MAV_AUTOPILOT_PX4
+        } else {
+            MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA
+        }
+    }
+
+    /// The local frame the announced flight stack keeps (its projection about its origin): how
+    /// the local positions it receives are read back.
+    pub fn local_frame(&self) -> visnav_core::geo::AutopilotFrame {
+        visnav_link::inject::projection_of(Some(self.autopilot()))
+    }
+
     /// ArduPilot-like defaults on `connection`: system 1, component 1, no clock, no GPS fix.
     pub fn new(connection: &str) -> Self {
         Self {
@@ -764,11 +779,7 @@ async fn tx_loop(inner: Arc<Inner>, conn: Arc<Conn>) {
             let hb = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
                 custom_mode: 0,
                 mavtype: MavType::MAV_TYPE_QUADROTOR,
-                autopilot: if inner.cfg.px4_imu {
-                    MavAutopilot::MAV_AUTOPILOT_PX4
-                } else {
-                    MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA
-                },
+                autopilot: inner.cfg.autopilot(),
                 base_mode: MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
                 system_status: MavState::MAV_STATE_STANDBY,
                 mavlink_version: 3,

@@ -1470,6 +1470,7 @@ pub async fn run_until_stopped(
     };
     let port_v = free_udp_port()?;
     let (ecfg_v, sens_v) = start_emu(port_v);
+    let local_frame = ecfg_v.local_frame();
     let port_c = free_udp_port()?;
     let (ecfg_c, sens_c) = start_emu(port_c);
     let emu_v = Arc::new(
@@ -1607,6 +1608,7 @@ pub async fn run_until_stopped(
     let mut collect_v = InjectionCollector::new(
         false,
         expected_count::<recording::InjectionSample>(duration_s, injections_hz),
+        local_frame,
     );
     let mut collect_c = InjectionCollector::new(
         true,
@@ -1615,6 +1617,7 @@ pub async fn run_until_stopped(
         } else {
             0
         },
+        local_frame,
     );
     let out_v = d_v.nav_outputs();
     let out_c = d_c.as_ref().map(|d| d.nav_outputs());

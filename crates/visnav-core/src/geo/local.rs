@@ -21,8 +21,11 @@
 
 use nalgebra::{Matrix3, Rotation3, Vector3};
 
-use super::ecef::{Geodetic, ecef_to_geodetic, sin_cos_deg};
+use super::ecef::{
+    Geodetic, ecef_to_geodetic, meridian_radius_m, prime_vertical_radius_m, sin_cos_deg,
+};
 use super::error::GeoError;
+use super::error::wrap_lon_deg;
 
 /// Rotation taking NED components to ENU components (and, being its own inverse, back):
 /// `v_enu = R_ENU_NED * v_ned`.
@@ -151,6 +154,24 @@ impl LocalFrame {
     pub fn enu_to_geodetic(&self, p_enu_m: &Vector3<f64>) -> Result<Geodetic, GeoError> {
         ecef_to_geodetic(&self.enu_to_ecef(p_enu_m))
     }
+}
+
+/// A geodetic position moved by a small NED displacement with the meridian and prime-vertical
+/// radii of curvature at the start point.
+pub fn offset_geodetic(
+    lat_deg: f64,
+    lon_deg: f64,
+    alt_m: f64,
+    d_ned_m: &Vector3<f64>,
+) -> (f64, f64, f64) {
+    let dlat = d_ned_m.x / (meridian_radius_m(lat_deg) + alt_m);
+    let dlon =
+        d_ned_m.y / ((prime_vertical_radius_m(lat_deg) + alt_m) * lat_deg.to_radians().cos());
+    (
+        lat_deg + dlat.to_degrees(),
+        wrap_lon_deg(lon_deg + dlon.to_degrees()),
+        alt_m - d_ned_m.z,
+    )
 }
 
 #[cfg(test)]

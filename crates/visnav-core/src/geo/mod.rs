@@ -5,6 +5,8 @@
 //! * `error`: `GeoError`, returned by every geodesy function on invalid input.
 //! * `ecef`: WGS84 geodetic (`Geodetic`) <-> ECEF.
 //! * `local`: local tangent frames (NED / ENU) about an origin (`LocalFrame`).
+//! * `autopilot_frame`: the local frame an autopilot keeps about its EKF origin, as ArduPilot or PX4
+//!   computes it (`AutopilotFrame`, `GeoOrigin`).
 //! * `projection`: `Crs::{from_geodetic, to_geodetic}`, EPSG codes, UTM zones, grid convergence.
 //! * `geoid`: EGM96 geoid undulation and AMSL <-> ellipsoidal height.
 //! * `raster`: georeferenced rasters (geotransform, nodata-aware bilinear sampling).
@@ -12,6 +14,7 @@
 //!
 //! Reading GeoTIFF files (and DEMs from them) is `visnav_io::geo::{geotiff, window, dem}`.
 
+pub mod autopilot_frame;
 pub mod crs;
 pub mod dem;
 pub mod ecef;
@@ -21,6 +24,7 @@ pub mod local;
 pub mod projection;
 pub mod raster;
 pub mod wgs84;
+pub use autopilot_frame::{AutopilotFrame, GeoOrigin};
 pub use crs::Crs;
 pub use ecef::Geodetic;
 pub use error::GeoError;

@@ -25,6 +25,7 @@ use nalgebra::Vector3;
 
 use super::{InjectionRow, StepRow, TruthTable, ned_diff_m};
 use crate::autopilot::Received;
+use visnav_core::geo::AutopilotFrame;
 
 /// An empty vector with room for `n` elements whose memory is already resident: filled once with
 /// `fill` (not zero: a zeroed allocation is mapped lazily) and cleared. The closed loop's
@@ -201,8 +202,11 @@ impl InjectionSample {
 pub(super) struct InjectionCollector {
     control: bool,
     /// The EKF origin in force (SET_GPS_GLOBAL_ORIGIN as received): local positions
-    /// (VISION_POSITION_ESTIMATE, ODOMETRY) are NED about it.
+    /// (VISION_POSITION_ESTIMATE, ODOMETRY) are NED about it ...
     origin: Option<visnav_link::GeoOrigin>,
+    /// ... in the projection of the flight stack the emulator announces: read back as that
+    /// autopilot would read them.
+    frame: AutopilotFrame,
     pub samples: Vec<InjectionSample>,
     last_gps_time_usec: Option<u64>,
     /// GPS_INPUT messages whose `time_usec` went back.
@@ -215,10 +219,11 @@ pub(super) struct InjectionCollector {
 
 impl InjectionCollector {
     /// A collector with room for `capacity` injections (resident: [`resident_vec`]).
-    pub fn new(control: bool, capacity: usize) -> Self {
+    pub fn new(control: bool, capacity: usize, frame: AutopilotFrame) -> Self {
         Self {
             control,
             origin: None,
+            frame,
             samples: resident_vec(
                 capacity,
                 InjectionSample {
@@ -307,7 +312,6 @@ impl InjectionCollector {
     /// 3D fix; local positions with the origin in force).
     fn collect(&mut self, r: &Received, table: &TruthTable) {
         use visnav_link::GeoOrigin;
-        use visnav_link::inject::{local_ned_m, offset_geodetic};
         let t = r.t_run_us as f64 * 1e-6;
         #[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: what ArduPilot acts on
         let local = match &r.msg {
@@ -339,9 +343,11 @@ impl InjectionCollector {
         let (kind, xyz, var_h) = local;
         let s = table.at(t);
         let p = Vector3::new(f64::from(xyz[0]), f64::from(xyz[1]), f64::from(xyz[2]));
-        let truth = local_ned_m(&o, s.lat_deg, s.lon_deg, s.alt_amsl_m);
-        let (lat, lon, alt) = offset_geodetic(o.lat_deg, o.lon_deg, o.alt_amsl_m, &p);
-        let e = p - truth;
+        // Where the autopilot puts the position sent, against the truth there (north and east
+        // metres at the truth: a local error in any frame would carry the projection's scale).
+        let (lat, lon, alt) = self.frame.from_ned(&o, &p);
+        let err = ned_diff_m((s.lat_deg, s.lon_deg, s.alt_amsl_m), (lat, lon, alt));
+        let e = Vector3::from(err);
         let sigma = if var_h.is_finite() && var_h >= 0.0 {
             var_h.sqrt() as f32
         } else {

@@ -216,6 +216,7 @@ pub async fn autopilot_only(
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_micros() as u64)
         .ok();
+    let local_frame = ecfg.local_frame();
     let emu = AutopilotEmulator::start(ecfg, SensorsHandle(sensors.clone()))
         .await
         .map_err(|e| ClosedLoopError::Setup(format!("autopilot emulator on {connection}: {e}")))?;
@@ -228,7 +229,8 @@ pub async fn autopilot_only(
             .map(|g| format!(", GPS on from {:.0} s until {:.0} s", g.from_s, g.until_s))
             .unwrap_or_default()
     );
-    let mut collect = InjectionCollector::new(false, expected_count::<u64>(duration_s, 50.0));
+    let mut collect =
+        InjectionCollector::new(false, expected_count::<u64>(duration_s, 50.0), local_frame);
     let mut tick = tokio::time::interval(Duration::from_millis(100));
     let mut last_status_s = f64::NEG_INFINITY;
     let mut interrupted_at_s = None;

@@ -650,6 +650,37 @@ fn relocalisation_is_reproducible_and_its_budget_counts_work() {
     let r = small.engine.fix(&img, &prior);
     assert!(!r.accepted);
     assert!(r.reason.contains("work budget"), "{}", r.reason);
+    // The heading hypotheses are tried in parallel and replayed in order against the budget:
+    // the report is the one trying them one after another gives, on any number of threads,
+    // with the budget cut in the middle of a level (5 million units: a few of the 24
+    // hypotheses) and with the whole search (the fix found above, the heading now unknown).
+    let on_threads = |engine: &visnav::fix::FixEngine, n: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .expect("thread pool");
+        json(pool.install(|| engine.fix(&img, &prior)))
+    };
+    let mid = NaipEval::new(
+        &maps,
+        FixParams {
+            reloc_budget_mwork: 5.0,
+            ..FixParams::default()
+        },
+    )
+    .expect("set-up");
+    let cut = on_threads(&mid.engine, 1);
+    assert!(cut.contains("work budget"), "{cut}");
+    assert_eq!(
+        cut,
+        on_threads(&mid.engine, 2),
+        "budget cut differs by threads"
+    );
+    assert_eq!(
+        on_threads(&e.engine, 1),
+        on_threads(&e.engine, 2),
+        "heading search differs by threads"
+    );
 }
 
 /// Relocalisation with the tilt and the altitude known and the heading unknown (the

@@ -1514,8 +1514,38 @@ impl FixEngine {
                     continue;
                 }
             };
+            // The hypotheses are independent: each is tried on its own thread with its own
+            // work count, then replayed in order against the budget. The replay stops where the
+            // sequential search would have stopped, so the report is the same as trying them one
+            // after another (what was computed past that point is discarded).
+            let outcomes: Vec<HypothesisOutcome> = hyps
+                .par_iter()
+                .zip(views.par_iter_mut())
+                .map(|(hyp, view)| {
+                    let mut view_work = 0u64;
+                    let view =
+                        view.get_or_insert_with(|| self.reloc_view(frame, hyp, &mut view_work));
+                    let mut level_work = 0u64;
+                    let tried = match view {
+                        Ok(v) => Some(self.reloc_level(
+                            frame,
+                            v,
+                            &level_map,
+                            solve.as_ref(),
+                            t_us,
+                            &mut level_work,
+                        )),
+                        Err(_) => None,
+                    };
+                    HypothesisOutcome {
+                        view_work,
+                        level_work,
+                        tried,
+                    }
+                })
+                .collect();
             let mut tries = Vec::new();
-            for (hyp, view) in hyps.iter().zip(views.iter_mut()) {
+            for (outcome, view) in outcomes.into_iter().zip(&views) {
                 if work >= budget {
                     let reason = format!(
                         "relocalisation: work budget of {} million units spent before every \
@@ -1524,15 +1554,15 @@ impl FixEngine {
                     );
                     return (FixReport::rejected(reason, t_us, 0.0), Attempt::default());
                 }
-                let view = view.get_or_insert_with(|| self.reloc_view(frame, hyp, &mut work));
-                let view = match view {
-                    Ok(v) => v,
-                    Err(e) => {
+                work = work.saturating_add(outcome.view_work);
+                let Some(tried) = outcome.tried else {
+                    if let Some(Err(e)) = view {
                         last_reason = e.to_string();
-                        continue;
                     }
+                    continue;
                 };
-                match self.reloc_level(frame, view, &level_map, solve.as_ref(), t_us, &mut work) {
+                work = work.saturating_add(outcome.level_work);
+                match tried {
                     Ok(h) => {
                         if !h.report.accepted {
                             last_reason = format!("level {level}: {}", h.report.reason);
@@ -2195,6 +2225,15 @@ struct AreaCandidate {
 const MIN_HOUGH_CLUSTER: usize = 6;
 
 /// A relocalisation hypothesis' rectified view (frame scale) and its query features.
+/// One relocalisation hypothesis tried at one level, with the work it took (the view's only the
+/// first time the view was made).
+struct HypothesisOutcome {
+    view_work: u64,
+    level_work: u64,
+    /// None when the hypothesis' view could not be made.
+    tried: Option<Result<Hypothesis, Rejected>>,
+}
+
 struct RelocView {
     rect: Rectification,
     query: Features,

@@ -95,24 +95,7 @@ fn two_nn_avx(
     t: &Features,
     accept: &impl Fn(usize) -> bool,
 ) -> Option<(usize, f32, f32)> {
-    let st = q.kind().stride();
-    let qd = &q.descriptors_padded()[qi * st..(qi + 1) * st];
-    let td = t.descriptors_padded();
-    let (mut best, mut b1, mut b2) = (usize::MAX, f32::INFINITY, f32::INFINITY);
-    for (ti, row) in td.chunks_exact(st).enumerate() {
-        if !accept(ti) {
-            continue;
-        }
-        let d = dist2_avx(qd, row);
-        if d < b1 {
-            b2 = b1;
-            b1 = d;
-            best = ti;
-        } else if d < b2 {
-            b2 = d;
-        }
-    }
-    (best != usize::MAX).then_some((best, b1, b2))
+    two_nn_with(q, qi, t, accept, |a, b| dist2_avx(a, b))
 }
 
 /// [`dist2`] with the 8 lanes in one AVX register: the same products summed in the same order,
@@ -143,6 +126,18 @@ fn two_nn_body(
     t: &Features,
     accept: &impl Fn(usize) -> bool,
 ) -> Option<(usize, f32, f32)> {
+    two_nn_with(q, qi, t, accept, dist2)
+}
+
+/// The search itself, with the squared distance `dist`.
+#[inline(always)]
+fn two_nn_with(
+    q: &Features,
+    qi: usize,
+    t: &Features,
+    accept: &impl Fn(usize) -> bool,
+    dist: impl Fn(&[f32], &[f32]) -> f32,
+) -> Option<(usize, f32, f32)> {
     let st = q.kind().stride();
     let qd = &q.descriptors_padded()[qi * st..(qi + 1) * st];
     let td = t.descriptors_padded();
@@ -151,7 +146,7 @@ fn two_nn_body(
         if !accept(ti) {
             continue;
         }
-        let d = dist2(qd, row);
+        let d = dist(qd, row);
         if d < b1 {
             b2 = b1;
             b1 = d;

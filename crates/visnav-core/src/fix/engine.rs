@@ -2224,7 +2224,6 @@ struct AreaCandidate {
 /// keeps chance clusters out, as the resection's own minimum then decides).
 const MIN_HOUGH_CLUSTER: usize = 6;
 
-/// A relocalisation hypothesis' rectified view (frame scale) and its query features.
 /// One relocalisation hypothesis tried at one level, with the work it took (the view's only the
 /// first time the view was made).
 struct HypothesisOutcome {
@@ -2234,6 +2233,7 @@ struct HypothesisOutcome {
     tried: Option<Result<Hypothesis, Rejected>>,
 }
 
+/// A relocalisation hypothesis' rectified view (frame scale) and its query features.
 struct RelocView {
     rect: Rectification,
     query: Features,

@@ -83,10 +83,10 @@ fn two_nn(
         // SAFETY: the CPU was just found to support AVX, the only feature `two_nn_avx` enables.
         return unsafe { two_nn_avx(q, qi, t, accept) };
     }
-    two_nn_body(q, qi, t, accept)
+    two_nn_with(q, qi, t, accept, dist2)
 }
 
-/// [`two_nn_body`] with the distance in AVX registers.
+/// [`two_nn_with`] with the distance in AVX registers.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx")]
 fn two_nn_avx(
@@ -117,16 +117,6 @@ fn dist2_avx(a: &[f32], b: &[f32]) -> f32 {
     let s = _mm_add_ps(_mm256_castps256_ps128(acc), _mm256_extractf128_ps(acc, 1));
     let pairs = _mm_hadd_ps(s, s);
     _mm_cvtss_f32(_mm_hadd_ps(pairs, pairs))
-}
-
-#[inline(always)]
-fn two_nn_body(
-    q: &Features,
-    qi: usize,
-    t: &Features,
-    accept: &impl Fn(usize) -> bool,
-) -> Option<(usize, f32, f32)> {
-    two_nn_with(q, qi, t, accept, dist2)
 }
 
 /// The search itself, with the squared distance `dist`.

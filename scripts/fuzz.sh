@@ -1,17 +1,19 @@
 #!/usr/bin/env bash
 # Builds the fuzz targets (fuzz/) and runs each for a bounded time from its committed corpus
 # (fuzz/corpus/<target>/). Fails when any target crashes (a panic escaping the target, a timeout,
-# running out of memory); prints one line per target. CI runs it from .ci/run.
+# running out of memory); prints one line per target. Run it before changing a parser and merge
+# what it finds into the committed corpus (docs/operations.md, "Fuzzing"); CI replays that corpus
+# through tests/fuzz_corpus.rs rather than building the fuzzers.
 #
 #   scripts/fuzz.sh [SECONDS] [TARGET...]     SECONDS per target (default 20), all targets by default
 #
 # The build is cargo-fuzz's without a sanitizer, on the stable toolchain: the same sancov
 # instrumentation flags (stable -C options), libFuzzer from the libfuzzer-sys crate, debug
-# assertions and overflow checks on. So CI needs neither nightly nor `cargo install cargo-fuzz`.
+# assertions and overflow checks on. So it needs neither nightly nor `cargo install cargo-fuzz`.
 # (With nightly and cargo-fuzz, `cargo +nightly fuzz run <target>` runs the same targets with
 # AddressSanitizer; the code under test has no unsafe code besides the map's mmap.)
 #
-# The mutation seed is fixed (FUZZ_SEED, default 1), so CI explores the same inputs in the same
+# The mutation seed is fixed (FUZZ_SEED, default 1), so a run explores the same inputs in the same
 # order on every run and its verdict does not change from run to run; fuzz longer or with other
 # seeds locally to find more (FUZZ_SEED=0: libFuzzer picks one).
 # Environment: FUZZ_JOBS targets at a time (default: the number of CPUs), CARGO_BUILD_JOBS as

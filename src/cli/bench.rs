@@ -30,7 +30,8 @@ pub enum BenchWhat {
     /// Time the space resection (P3P RANSAC + LM + integrity) on synthetic aerial scenes.
     Pose(PoseBenchArgs),
     /// Time the camera renderer (VGA, 60 deg FOV) over the bundled NAIP 2014 map (flat ground) and,
-    /// when ../shared/data is present, the NGI ortho over its 24 m DEM.
+    /// when ../shared/data is present, the NGI ortho over its 24 m DEM and the drone scenario's
+    /// camera (1280 x 960, 80 deg, 60 m) over Autzen's lidar surface model.
     Render(RenderBenchArgs),
     /// The vision fix on NAIP cross-date frames (map 2009, frames 2014): fix rate, error
     /// against truth, frame-to-fix time p50/p95.
@@ -174,7 +175,7 @@ fn run_pose(a: PoseBenchArgs) -> anyhow::Result<ExitCode> {
 fn run_render(a: RenderBenchArgs) -> anyhow::Result<ExitCode> {
     use visnav::geo::dem::Dem;
     use visnav::geo::geotiff::load_geotiff;
-    use visnav::sitl::render::{ColourMode, RenderSpec, Scene, bench_vga};
+    use visnav::sitl::render::{ColourMode, RenderSpec, Scene, bench_drone, bench_vga};
     if a.iterations == 0 || !(a.agl_m.is_finite() && a.agl_m > 10.0) {
         bail!("--iterations must be at least 1 and --agl-m a height above 10 m");
     }
@@ -193,6 +194,19 @@ fn run_render(a: RenderBenchArgs) -> anyhow::Result<ExitCode> {
     } else {
         eprintln!("skipping the NGI scene: {} not found", ngi.display());
     }
+    let print = |name: &str, label: &str, agl_m: f64, t: &visnav::sitl::render::RenderTiming| {
+        println!(
+            "render {name}, {label}: {}x{} at {} m AGL  geometry min {:.1} / median {:.1} ms  effects min {:.1} / median {:.1} ms  valid {:.1} %",
+            t.width,
+            t.height,
+            agl_m,
+            t.radiance_min_ms,
+            t.radiance_median_ms,
+            t.photometric_min_ms,
+            t.photometric_median_ms,
+            100.0 * t.valid_fraction
+        );
+    };
     for (name, ortho, dem) in scenes {
         let scene = Scene::new(&ortho, dem, ColourMode::Grey)?;
         for (label, spec) in [
@@ -200,18 +214,31 @@ fn run_render(a: RenderBenchArgs) -> anyhow::Result<ExitCode> {
             ("default spec", RenderSpec::default()),
         ] {
             let t = bench_vga(&scene, spec, a.agl_m, a.iterations)?;
-            println!(
-                "render {name}, {label}: {}x{} at {} m AGL  geometry min {:.1} / median {:.1} ms  effects min {:.1} / median {:.1} ms  valid {:.1} %",
-                t.width,
-                t.height,
-                a.agl_m,
-                t.radiance_min_ms,
-                t.radiance_median_ms,
-                t.photometric_min_ms,
-                t.photometric_median_ms,
-                100.0 * t.valid_fraction
-            );
+            print(name, label, a.agl_m, &t);
         }
+    }
+    // The drone scenario's camera over the 0.3 m orthophoto on the 1 m lidar surface model.
+    let autzen = repo_file("../shared/data/autzen");
+    if autzen.is_dir() {
+        let o = autzen.join("autzen_ortho_0p3m_utm10n.tif");
+        let d = autzen.join("autzen_dsm_1m_utm10n.tif");
+        let ortho = load_geotiff(&o, None).with_context(|| format!("{}", o.display()))?;
+        let dem =
+            visnav::geo::dem::load_dem(&d, None).with_context(|| format!("{}", d.display()))?;
+        let scene = Scene::new(&ortho, dem, ColourMode::Grey)?;
+        let name = format!(
+            "Autzen 0.3 m ortho, 1 m surface model, {} deg tilt",
+            visnav::sitl::render::DRONE_BENCH_TILT_DEG
+        );
+        let t = bench_drone(&scene, RenderSpec::default(), a.iterations)?;
+        print(
+            &name,
+            "default spec",
+            visnav::sitl::render::DRONE_BENCH_AGL_M,
+            &t,
+        );
+    } else {
+        eprintln!("skipping the Autzen scene: {} not found", autzen.display());
     }
     Ok(ExitCode::SUCCESS)
 }

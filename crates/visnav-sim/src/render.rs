@@ -423,13 +423,11 @@ impl Renderer {
                         (None, Some(b)) => ((b.1, -b.0), b),
                         (None, None) => ((fallback, 0.0), (0.0, fallback)),
                     };
-                    let size = du.0.hypot(du.1).max(dv.0.hypot(dv.1));
+                    let size = norm2(du).max(norm2(dv)).sqrt();
+                    let lod = scene.ortho.lod(size / s as f64);
                     let out = &mut line[col * ch..(col + 1) * ch];
                     // Centre sample decides validity.
-                    if !scene
-                        .ortho
-                        .sample(hit.col, hit.row, size / s as f64, &mut smp)
-                    {
+                    if !scene.ortho.sample_lod(lod, hit.col, hit.row, &mut smp) {
                         continue;
                     }
                     vline[col] = true;
@@ -443,7 +441,7 @@ impl Renderer {
                         for &ou in &offsets {
                             let c = hit.col + du.0 * ou + dv.0 * ov;
                             let r = hit.row + du.1 * ou + dv.1 * ov;
-                            if scene.ortho.sample(c, r, size / s as f64, &mut smp) {
+                            if scene.ortho.sample_lod(lod, c, r, &mut smp) {
                                 for (a, v) in acc.iter_mut().zip(&smp).take(ch) {
                                     *a += v;
                                 }
@@ -452,9 +450,7 @@ impl Renderer {
                         }
                     }
                     if n == 0 {
-                        scene
-                            .ortho
-                            .sample(hit.col, hit.row, size / s as f64, &mut acc);
+                        scene.ortho.sample_lod(lod, hit.col, hit.row, &mut acc);
                         n = 1;
                     }
                     for (o, a) in out.iter_mut().zip(&acc) {
@@ -556,13 +552,16 @@ fn derivative(
     let back = prev.map(|p| (here.0 - p.0, here.1 - p.1));
     let fwd = next.map(|n| (n.0 - here.0, n.1 - here.1));
     match (back, fwd) {
-        (Some(b), Some(f)) => Some(if b.0.hypot(b.1) <= f.0.hypot(f.1) {
-            b
-        } else {
-            f
-        }),
+        (Some(b), Some(f)) => Some(if norm2(b) <= norm2(f) { b } else { f }),
         (b, f) => b.or(f),
     }
+}
+
+/// Squared length of a pixel-space vector (compared and rooted instead of `hypot`, a libm call
+/// per use: a pixel's hits are a few pixels apart, far from overflow or underflow).
+#[inline]
+fn norm2(v: (f64, f64)) -> f64 {
+    v.0 * v.0 + v.1 * v.1
 }
 
 /// Timing of one render configuration (milliseconds, wall clock, best and median of the runs).
@@ -659,6 +658,25 @@ pub fn bench_vga(
 ) -> Result<RenderTiming, RenderError> {
     let renderer = Renderer::new(vga_camera()?, spec)?;
     let pose = pose_over_centre(scene, agl_m, 10.0, 30.0);
+    time_render(&renderer, scene, &pose, iterations)
+}
+
+/// Height above the ground of the drone benchmark, metres: the drone scenario's cruise height.
+pub const DRONE_BENCH_AGL_M: f64 = 60.0;
+/// Tilt of the drone benchmark's body-fixed camera, degrees: a multirotor's lean at 10 m/s under
+/// the drone scenario's drag law.
+pub const DRONE_BENCH_TILT_DEG: f64 = 26.0;
+
+/// Benchmark of the drone scenario's camera ([`drone_camera`], 1280 x 960, 80 deg) leaning
+/// [`DRONE_BENCH_TILT_DEG`] [`DRONE_BENCH_AGL_M`] above the centre of `scene`, with `spec`'s
+/// effects: the ray cast over a surface model at drone scale.
+pub fn bench_drone(
+    scene: &Scene,
+    spec: RenderSpec,
+    iterations: usize,
+) -> Result<RenderTiming, RenderError> {
+    let renderer = Renderer::new(drone_camera()?, spec)?;
+    let pose = pose_over_centre(scene, DRONE_BENCH_AGL_M, DRONE_BENCH_TILT_DEG, 30.0);
     time_render(&renderer, scene, &pose, iterations)
 }
 

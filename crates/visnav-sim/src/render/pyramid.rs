@@ -57,6 +57,20 @@ struct Level {
     width: usize,
     height: usize,
     data: Vec<f32>,
+    /// No sample is missing: sampling needs no NaN test (the common case of a whole orthophoto).
+    complete: bool,
+}
+
+impl Level {
+    fn new(width: usize, height: usize, data: Vec<f32>) -> Self {
+        let complete = !data.iter().any(|v| v.is_nan());
+        Self {
+            width,
+            height,
+            data,
+            complete,
+        }
+    }
 }
 
 /// Box-filtered pyramid of an orthophoto (see the module doc).
@@ -104,11 +118,7 @@ impl OrthoPyramid {
                 }
             }
         }
-        let mut levels = vec![Level {
-            width: w,
-            height: h,
-            data,
-        }];
+        let mut levels = vec![Level::new(w, h, data)];
         while let Some(last) = levels.last() {
             if last.width <= 2 && last.height <= 2 {
                 break;
@@ -178,6 +188,16 @@ impl OrthoPyramid {
         let p01 = (j1 * l.width + i0) * c;
         let p11 = (j1 * l.width + i1) * c;
         let (w00, w10, w01, w11) = ((1.0 - a) * (1.0 - b), a * (1.0 - b), (1.0 - a) * b, a * b);
+        if l.complete {
+            // The sum below in the same order; a zero weight adds +0 to a finite sum, so it is
+            // the same number the loop with its tests gives.
+            for (k, o) in out.iter_mut().enumerate().take(c) {
+                let d = &l.data;
+                *o =
+                    0.0 + w00 * d[p00 + k] + w10 * d[p10 + k] + w01 * d[p01 + k] + w11 * d[p11 + k];
+            }
+            return true;
+        }
         for (k, o) in out.iter_mut().enumerate().take(c) {
             let mut v = 0.0f32;
             for (p, wt) in [(p00, w00), (p10, w10), (p01, w01), (p11, w11)] {
@@ -200,6 +220,13 @@ impl OrthoPyramid {
     /// `lod = log2(footprint_px)`, clamped to the coarsest level.
     #[inline]
     pub fn sample(&self, col0: f64, row0: f64, footprint_px: f64, out: &mut [f32]) -> bool {
+        self.sample_lod(self.lod(footprint_px), col0, row0, out)
+    }
+
+    /// The levels and blend weight [`Self::sample`] uses for a footprint of `footprint_px`
+    /// level-0 pixels (one logarithm: shared by the samples of one pixel).
+    #[inline]
+    pub fn lod(&self, footprint_px: f64) -> Lod {
         let lod = if footprint_px > 1.0 {
             footprint_px.log2()
         } else {
@@ -208,8 +235,16 @@ impl OrthoPyramid {
         let max_level = (self.levels.len() - 1) as f64;
         let lod = lod.min(max_level);
         let l0 = lod.floor();
-        let t = (lod - l0) as f32;
-        let l0 = l0 as usize; // ok: 0 <= lod <= max_level
+        Lod {
+            level: l0 as usize, // ok: 0 <= lod <= max_level
+            blend: (lod - l0) as f32,
+        }
+    }
+
+    /// [`Self::sample`] with the levels chosen beforehand by [`Self::lod`].
+    #[inline]
+    pub fn sample_lod(&self, lod: Lod, col0: f64, row0: f64, out: &mut [f32]) -> bool {
+        let (l0, t) = (lod.level, lod.blend);
         if t <= 1e-4 || l0 + 1 >= self.levels.len() {
             return self.sample_level(l0, col0, row0, out);
         }
@@ -224,6 +259,13 @@ impl OrthoPyramid {
         }
         true
     }
+}
+
+/// Pyramid levels of one footprint: `level` and `level + 1` blended by `blend` (0-1).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Lod {
+    pub level: usize,
+    pub blend: f32,
 }
 
 /// 2 x 2 box average over valid samples (NaN when none of the up to four is valid).
@@ -250,11 +292,7 @@ fn downsample(src: &Level, channels: usize) -> Level {
             }
         }
     }
-    Level {
-        width: w,
-        height: h,
-        data,
-    }
+    Level::new(w, h, data)
 }
 
 #[cfg(test)]

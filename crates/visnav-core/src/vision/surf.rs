@@ -757,8 +757,48 @@ struct RowGeom {
 }
 
 /// Responses of one layer row at image row `y` (kept out of line for profiling).
+///
+/// On x86-64 with AVX2 the same loops run in 256-bit registers ([`layer_row_avx2`]; baseline
+/// x86-64 has SSE2, 4 lanes of `i32`): wrapping integer sums are exact in any width and the
+/// single-precision products are the same operations in the same order (no FMA), so the
+/// responses are bit for bit the baseline's.
 #[inline(never)]
 fn layer_row(
+    ii: &IntegralImage,
+    g: &RowGeom,
+    y: usize,
+    e: &mut [i32],
+    sx: &mut [i32],
+    d: &mut [i32],
+    out: &mut [f32],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU was just found to support AVX2, the only feature the function enables.
+        return unsafe { layer_row_avx2(ii, g, y, e, sx, d, out) };
+    }
+    layer_row_body(ii, g, y, e, sx, d, out);
+}
+
+/// [`layer_row_body`] compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn layer_row_avx2(
+    ii: &IntegralImage,
+    g: &RowGeom,
+    y: usize,
+    e: &mut [i32],
+    sx: &mut [i32],
+    d: &mut [i32],
+    out: &mut [f32],
+) {
+    layer_row_body(ii, g, y, e, sx, d, out);
+}
+
+/// The responses of one layer row: three strips of column sums of the integral image, then the
+/// box filters from them (see the module doc). Inlined into each instruction-set variant.
+#[inline(always)]
+fn layer_row_body(
     ii: &IntegralImage,
     g: &RowGeom,
     y: usize,
@@ -1526,6 +1566,50 @@ mod tests {
                         "{size} {step} {r} {c}: {got} vs {want}"
                     );
                 }
+            }
+        }
+    }
+
+    /// The AVX2 response rows are the baseline's to the bit, for every filter size and step of
+    /// the octaves and rows of every kind (from the top margin to the bottom one).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_rows_have_the_baselines_bits() {
+        if !std::arch::is_x86_feature_detected!("avx2") {
+            eprintln!("SKIP avx2_rows_have_the_baselines_bits: this CPU has no AVX2");
+            return;
+        }
+        let mut s = 777u64;
+        let img = GrayImage::from_fn(203, 97, |_, _| {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 33) % 256) as f32
+        });
+        let ii = IntegralImage::new(&img);
+        let sw = ii.stride();
+        for (size, step) in [(9, 1), (15, 1), (21, 1), (27, 2), (39, 2), (51, 4), (75, 4)] {
+            let (hs, l) = ((size - 1) / 2, size / 3);
+            let g = RowGeom {
+                step,
+                hs,
+                l,
+                m: (l - 1) / 2,
+                c0: hs.div_ceil(step),
+                c1: (203 - 1 - hs) / step,
+                inv_a: 1.0 / (l * (2 * l - 1)) as f32,
+                inv_d: 1.0 / (l * l) as f32,
+            };
+            let cols = (203 - 1) / step + 1;
+            for y in (hs..97 - hs).step_by(step) {
+                let mut bufs = || (vec![0i32; sw], vec![0i32; sw], vec![0i32; sw]);
+                let ((mut e, mut sx, mut d), mut want) = (bufs(), vec![0f32; cols]);
+                layer_row_body(&ii, &g, y, &mut e, &mut sx, &mut d, &mut want);
+                let ((mut e, mut sx, mut d), mut got) = (bufs(), vec![0f32; cols]);
+                // SAFETY: AVX2 was found above.
+                unsafe { layer_row_avx2(&ii, &g, y, &mut e, &mut sx, &mut d, &mut got) };
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&got), bits(&want), "size {size} step {step} row {y}");
             }
         }
     }

@@ -1602,7 +1602,7 @@ mod tests {
             };
             let cols = (203 - 1) / step + 1;
             for y in (hs..97 - hs).step_by(step) {
-                let mut bufs = || (vec![0i32; sw], vec![0i32; sw], vec![0i32; sw]);
+                let bufs = || (vec![0i32; sw], vec![0i32; sw], vec![0i32; sw]);
                 let ((mut e, mut sx, mut d), mut want) = (bufs(), vec![0f32; cols]);
                 layer_row_body(&ii, &g, y, &mut e, &mut sx, &mut d, &mut want);
                 let ((mut e, mut sx, mut d), mut got) = (bufs(), vec![0f32; cols]);

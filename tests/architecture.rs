@@ -289,6 +289,42 @@ fn a_flight_build_leaves_the_simulator_out() {
     assert!(seen > 0, "src/lib.rs re-exports the simulator as `sitl`");
 }
 
+/// User text never shows Rust's debug formatting (`Some(3)`, `[1.0, 2.0]`, `Utm { zone: 10 }`):
+/// no `{:?}` / `{name:?}` outside the tests of the crates and the binary, except where a line
+/// says why (`// debug form: ...`, e.g. a float's shortest round-trip text as a TOML literal).
+#[test]
+fn user_text_has_no_debug_formatting() {
+    let mut dirs: Vec<PathBuf> = CRATES
+        .iter()
+        .map(|k| repo().join("crates").join(k).join("src"))
+        .collect();
+    dirs.push(repo().join("src"));
+    let mut found = Vec::new();
+    for dir in dirs {
+        for p in sources(&dir) {
+            if p.components().any(|c| c.as_os_str() == "tests") || p.ends_with("tests.rs") {
+                continue;
+            }
+            for (n, line) in code_outside_tests(&p).lines().enumerate() {
+                let debug = line.contains(":?}");
+                if debug && !line.contains("// debug form:") {
+                    found.push(format!(
+                        "{}: {} (line {} of the code)",
+                        p.display(),
+                        line.trim(),
+                        n + 1
+                    ));
+                }
+            }
+        }
+    }
+    assert!(
+        found.is_empty(),
+        "debug formatting in user text:\n{}",
+        found.join("\n")
+    );
+}
+
 #[test]
 fn the_library_crates_return_typed_errors() {
     for krate in CRATES {

@@ -107,9 +107,9 @@ fn seed_experiment_vision_vs_ins_only() {
         end_h(&ins),
         end_h(&vis)
     );
-    assert!(vis.final_health.starts_with("Ok"), "{}", vis.final_health);
+    assert!(vis.final_health.starts_with("ok"), "{}", vis.final_health);
     assert!(
-        ins.final_health.starts_with("Degraded"),
+        ins.final_health.starts_with("degraded"),
         "{}",
         ins.final_health
     );

@@ -158,7 +158,8 @@ pub fn run(a: DtmBenchArgs) -> anyhow::Result<ExitCode> {
     }
     if a.sweep && have_ngi {
         println!(
-            "Sweep (guesses {SWEEP_OFFSETS_M:?} m off in {SWEEP_DIRECTIONS} directions, both orders): {} solved, {} refused, {} accepted outside 3 sigma (due 0)",
+            "Sweep (guesses {} m off in {SWEEP_DIRECTIONS} directions, both orders): {} solved, {} refused, {} accepted outside 3 sigma (due 0)",
+            visnav_core::text::numbers(&SWEEP_OFFSETS_M),
             out.sweep_solved.unwrap_or(0),
             out.sweep_refused.unwrap_or(0),
             out.sweep_wrong.unwrap_or(0)

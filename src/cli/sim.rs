@@ -99,13 +99,13 @@ pub fn run_cmd(args: SimArgs) -> anyhow::Result<ExitCode> {
     let mc_s = t1.elapsed().as_secs_f64();
     let vision_source = sc.vision.as_ref().map(|v| {
         format!(
-            "{}; {} Hz, delivered {}-{} ms after capture and applied at capture time; true camera lever arm {:?} m body FRD, filter's {:?} m",
+            "{}; {} Hz, delivered {}-{} ms after capture and applied at capture time; true camera lever arm {} m body FRD, filter's {} m",
             TruthPlusNoise::from_config(v).describe(),
             v.rate_hz,
             v.latency_min_ms,
             v.latency_max_ms,
-            v.lever_arm_body_frd_m,
-            sc.nav.camera_lever_arm()
+            visnav_core::text::numbers(&v.lever_arm_body_frd_m),
+            visnav_core::text::numbers(sc.nav.camera_lever_arm().as_slice())
         )
     });
     let target = sc.evaluation.target_max_horiz_err_m;

@@ -455,6 +455,16 @@ pub enum DtmMethod {
     LevenbergMarquardt,
 }
 
+/// `gauss_newton`, `levenberg_marquardt` (as serialised).
+impl std::fmt::Display for DtmMethod {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            DtmMethod::GaussNewton => "gauss_newton",
+            DtmMethod::LevenbergMarquardt => "levenberg_marquardt",
+        })
+    }
+}
+
 /// The twelve parameters solved.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DtmFix {

@@ -54,9 +54,22 @@ pub fn num(v: f64) -> String {
     }
 }
 
+/// Numbers as a user reads them: `(a, b, c)`, each by [`num`] (never Rust's `[a, b, c]` debug
+/// form).
+pub fn numbers(values: &[f64]) -> String {
+    let parts: Vec<String> = values.iter().map(|&v| num(v)).collect();
+    format!("({})", parts.join(", "))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn numbers_are_listed_in_parentheses() {
+        assert_eq!(numbers(&[1.0, -2.5, 1e300]), "(1, -2.5, 1e300)");
+        assert_eq!(numbers(&[]), "()");
+    }
 
     #[test]
     fn long_values_are_cut_and_counted() {

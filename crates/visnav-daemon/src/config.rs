@@ -209,7 +209,7 @@ impl DaemonConfig {
             p.push(
                 "gps",
                 format!(
-                    "{inj:?} is the GPS instance our GPS_INPUT feeds (output.gps_id = {}): fusing it \
+                    "{inj} is the GPS instance our GPS_INPUT feeds (output.gps_id = {}): fusing it \
                      would feed the solution back into itself; use \"auto\" or the other instance",
                     out.gps_id
                 )

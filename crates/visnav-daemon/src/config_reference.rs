@@ -500,10 +500,11 @@ pub fn value_text(v: &toml::Value) -> String {
 
 fn float_text(f: f64) -> String {
     let single = f as f32;
+    // A float's debug form is its shortest round-trip text with a ".0" when whole: a TOML float.
     if f64::from(single) == f && single.is_finite() {
-        format!("{single:?}")
+        format!("{single:?}") // debug form: a TOML float literal
     } else {
-        format!("{f:?}")
+        format!("{f:?}") // debug form: a TOML float literal
     }
 }
 

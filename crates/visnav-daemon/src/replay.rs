@@ -474,7 +474,7 @@ pub fn replay(
                             accel_bias_ug: o.accel_bias_ug,
                             gyro_bias_deg_h: o.gyro_bias_deg_h,
                             pos_sigma_m: sd(&o.cov_pos_ned_m2),
-                            health: format!("{:?}", o.health).to_lowercase(),
+                            health: o.health.to_string(),
                         });
                     }
                 }

@@ -190,6 +190,19 @@ pub enum SourceKind {
     V4l2,
 }
 
+/// `directory`, `y4m`, `command`, `gstreamer`, `v4l2` (as written in `[frames] source`).
+impl std::fmt::Display for SourceKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            SourceKind::Directory => "directory",
+            SourceKind::Y4m => "y4m",
+            SourceKind::Command => "command",
+            SourceKind::Gstreamer => "gstreamer",
+            SourceKind::V4l2 => "v4l2",
+        })
+    }
+}
+
 /// Which clock the frames are stamped with.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
@@ -494,7 +507,7 @@ y4m:PATH), v4l2:DEVICE, gst:PIPELINE or cmd:PROGRAM ARGS";
 
 impl Validate for FramesConfig {
     fn validate(&self, p: &mut Problems) {
-        let kind = format!("{:?}", self.source).to_lowercase();
+        let kind = self.source.to_string();
         let live = matches!(self.source, SourceKind::Command | SourceKind::Gstreamer);
         match self.source {
             SourceKind::V4l2 if !cfg!(feature = "v4l2") => p.push(

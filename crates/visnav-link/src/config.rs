@@ -200,6 +200,19 @@ pub enum OutputMode {
     GlobalPositionSensor,
 }
 
+/// `gps_input`, `vision_position_estimate`, `odometry`, `global_position_sensor` (as written in
+/// `[output] modes`).
+impl std::fmt::Display for OutputMode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            OutputMode::GpsInput => "gps_input",
+            OutputMode::VisionPositionEstimate => "vision_position_estimate",
+            OutputMode::Odometry => "odometry",
+            OutputMode::GlobalPositionSensor => "global_position_sensor",
+        })
+    }
+}
+
 /// What to send while the filter reports `Lost`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
@@ -684,7 +697,7 @@ impl Validate for OutputConfig {
         let mut seen = Vec::new();
         for m in &self.modes {
             if seen.contains(m) {
-                p.push("modes", format!("{m:?} is listed twice"));
+                p.push("modes", format!("{m} is listed twice"));
             }
             seen.push(*m);
         }

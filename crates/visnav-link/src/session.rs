@@ -760,7 +760,7 @@ impl Shared {
                 }
                 Err(e) => {
                     self.metrics.inject_refused.inc();
-                    debug!("inject {mode:?} refused: {e}");
+                    debug!("inject {mode} refused: {e}");
                     self.pose_held(mode, &e);
                     Err(e)
                 }

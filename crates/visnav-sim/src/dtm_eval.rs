@@ -348,7 +348,7 @@ fn ngi_figures(
         sigma0: fix.sigma0,
         relief_std_m: fix.relief_std_m,
         agl_m: fix.agl_m,
-        method: format!("{:?}", fix.method),
+        method: fix.method.to_string(),
         iterations: fix.iterations,
         ms_flow: ms(t0, t1),
         ms_solve: ms(t1, t2),

@@ -66,22 +66,25 @@ use visnav_io::geo::{Crs, GeoError};
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum RenderError {
     /// The DEM and the orthophoto are in different CRSs.
-    #[error("DEM CRS {dem:?} differs from the orthophoto CRS {ortho:?}")]
+    #[error("DEM CRS {dem} differs from the orthophoto CRS {ortho}")]
     CrsMismatch { dem: Crs, ortho: Crs },
     /// Rays need metres in x, y and z.
-    #[error("orthophoto CRS {0:?} is not projected (x, y must be metres)")]
+    #[error("orthophoto CRS {0} is not projected (x, y must be metres)")]
     NotProjected(Crs),
     /// The render specification failed validation (keys relative to the spec).
     #[error("invalid render spec: {}", list.iter().map(|i| i.to_string()).collect::<Vec<_>>().join("; "))]
     Spec { list: Vec<Invalid> },
     /// The scene's pyramid was built for another colour mode than the spec asks for.
-    #[error("scene has {scene:?} channels but the render spec asks for {spec:?}")]
+    #[error("scene has {scene} channels but the render spec asks for {spec}")]
     ColourMismatch { scene: ColourMode, spec: ColourMode },
     /// The camera model could not be built.
     #[error("camera: {0}")]
     Camera(CameraError),
     /// Non-finite pose.
-    #[error("camera pose is not finite: centre {centre_map_m:?}")]
+    #[error(
+        "camera pose is not finite: centre {}",
+        visnav_core::text::numbers(centre_map_m)
+    )]
     BadPose { centre_map_m: [f64; 3] },
 }
 

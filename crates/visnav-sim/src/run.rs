@@ -358,7 +358,7 @@ pub fn run_with_source(
             sum_err_body += ts.q_nb.inverse() * d;
             n_eval += 1;
             final_err = e;
-            final_health = format!("{:?}: {}", o.health, o.reason);
+            final_health = format!("{}: {}", o.health, o.reason);
         }
         if t_us >= next_nees
             && t_us <= ev1

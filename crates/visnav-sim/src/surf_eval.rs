@@ -392,7 +392,9 @@ pub fn make_pair(
 ) -> Result<ImagePair, VisionError> {
     let (x0, y0, w, h) = window;
     let img1 = src.crop(x0, y0, w, h).ok_or_else(|| {
-        VisionError::InvalidImage(format!("window {window:?} outside the source"))
+        VisionError::InvalidImage(format!(
+            "window x {x0}, y {y0}, {w} x {h} px outside the source"
+        ))
     })?;
     let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
     let t_src_to_1 = Matrix3::new(

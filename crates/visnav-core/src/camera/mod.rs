@@ -72,7 +72,16 @@ impl Camera {
         if !distortion.is_finite() {
             return Err(CameraError::InvalidParameter {
                 name: "distortion",
-                reason: format!("coefficients must be finite, got {distortion:?}"),
+                reason: format!(
+                    "coefficients must be finite, got k1, k2, k3, p1, p2 = {}",
+                    crate::text::numbers(&[
+                        distortion.k1,
+                        distortion.k2,
+                        distortion.k3,
+                        distortion.p1,
+                        distortion.p2
+                    ])
+                ),
             });
         }
         if !mount.lever_arm_body_frd_m.iter().all(|c| c.is_finite())
@@ -80,7 +89,12 @@ impl Camera {
         {
             return Err(CameraError::InvalidParameter {
                 name: "mount",
-                reason: format!("rotation and lever arm must be finite, got {mount:?}"),
+                reason: format!(
+                    "rotation and lever arm must be finite, got the rotation {} (row by row) \
+                     and the lever arm {} m",
+                    crate::text::numbers(mount.r_body_cam.matrix().transpose().as_slice()),
+                    crate::text::numbers(mount.lever_arm_body_frd_m.as_slice())
+                ),
             });
         }
         Ok(Self {

@@ -363,7 +363,7 @@ impl Crs {
         self.tm_params()?.ok_or_else(|| {
             outside(
                 "transverse Mercator",
-                format!("{self:?} is not a transverse Mercator"),
+                format!("{self} is not a transverse Mercator"),
             )
         })
     }

@@ -47,7 +47,7 @@ use super::Crs;
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum RasterError {
     /// The geotransform has a non-finite coefficient or is singular.
-    #[error("geotransform {coeffs:?} is invalid: {reason}")]
+    #[error("geotransform {} is invalid: {reason}", crate::text::numbers(coeffs))]
     BadGeoTransform {
         coeffs: [f64; 6],
         reason: &'static str,
@@ -228,6 +228,21 @@ pub enum SampleType {
     I32,
     F32,
     F64,
+}
+
+/// `8-bit unsigned`, `32-bit float`, ... (messages).
+impl std::fmt::Display for SampleType {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            SampleType::U8 => "8-bit unsigned",
+            SampleType::U16 => "16-bit unsigned",
+            SampleType::I16 => "16-bit signed",
+            SampleType::U32 => "32-bit unsigned",
+            SampleType::I32 => "32-bit signed",
+            SampleType::F32 => "32-bit float",
+            SampleType::F64 => "64-bit float",
+        })
+    }
 }
 
 /// Sample storage, band-interleaved by pixel (see the module doc).

@@ -162,7 +162,7 @@ pub fn match_features(
 ) -> Result<Vec<Match>, VisionError> {
     if query.kind() != train.kind() {
         return Err(VisionError::Matcher(format!(
-            "descriptor kinds differ: query {:?}, train {:?}",
+            "descriptor kinds differ: query {}, train {}",
             query.kind(),
             train.kind()
         )));

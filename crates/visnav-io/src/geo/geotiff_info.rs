@@ -230,6 +230,37 @@ pub enum GeoKeyValue {
     Ascii(String),
 }
 
+/// `3 SHORTs (1, 2, 3)`, `1 DOUBLE (0.5)`, `ASCII "WGS 84"` (messages; bounded by
+/// `visnav_core::text`).
+impl std::fmt::Display for GeoKeyValue {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        /// At most this many values are listed.
+        const SHOWN: usize = 8;
+        let list = |n: usize, kind: &str, v: Vec<f64>| {
+            let more = if n > SHOWN { ", ..." } else { "" };
+            let s = visnav_core::text::numbers(&v);
+            format!(
+                "{n} {kind}{} {}{more})",
+                if n == 1 { "" } else { "s" },
+                &s[..s.len() - 1]
+            )
+        };
+        match self {
+            GeoKeyValue::Shorts(v) => f.write_str(&list(
+                v.len(),
+                "SHORT",
+                v.iter().take(SHOWN).map(|&x| f64::from(x)).collect(),
+            )),
+            GeoKeyValue::Doubles(v) => f.write_str(&list(
+                v.len(),
+                "DOUBLE",
+                v.iter().take(SHOWN).copied().collect(),
+            )),
+            GeoKeyValue::Ascii(t) => write!(f, "ASCII {}", visnav_core::text::quote(t)),
+        }
+    }
+}
+
 /// Parsed GeoKeyDirectory.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct GeoKeys {
@@ -359,7 +390,7 @@ impl GeoKeys {
             Some(GeoKeyValue::Shorts(v)) if v.len() == 1 => Ok(Some(v[0])),
             Some(other) => Err(KeyError::new(
                 id,
-                format!("expected one SHORT, found {other:?}"),
+                format!("expected one SHORT, found {other}"),
             )),
         }
     }
@@ -372,7 +403,7 @@ impl GeoKeys {
             Some(GeoKeyValue::Doubles(v)) if v.len() == 1 && v[0].is_finite() => Ok(Some(v[0])),
             Some(other) => Err(KeyError::new(
                 id,
-                format!("expected one finite DOUBLE, found {other:?}"),
+                format!("expected one finite DOUBLE, found {other}"),
             )),
         }
     }

@@ -108,7 +108,7 @@ pub fn write_geotiff(raster: &Raster, path: &Path) -> Result<(), GeoTiffWriteErr
         }),
         (_, bands) => {
             return Err(unsupported(format!(
-                "{bands} band(s) of {:?} samples: only 8-bit grey or RGB and 32-bit float grey are written",
+                "{bands} band(s) of {} samples: only 8-bit grey or RGB and 32-bit float grey are written",
                 raster.source_type()
             )));
         }

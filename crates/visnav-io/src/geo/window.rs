@@ -399,7 +399,7 @@ impl<R: Read + Seek + Send> GeoTiffWindowReader<R> {
             Some(t) if t == chunk.sample_type => {}
             Some(t) => {
                 return Err(decode_err(format!(
-                    "chunk {idx} holds {:?} samples, the chunks read before {t:?}",
+                    "chunk {idx} holds {} samples, the chunks read before {t}",
                     chunk.sample_type
                 )));
             }

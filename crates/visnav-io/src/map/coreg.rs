@@ -359,8 +359,8 @@ pub fn coregister(a: &Raster, b: &Raster, params: &CoregParams) -> Result<CoregR
     check(params)?;
     if !crs_equivalent(&a.crs(), &b.crs()) {
         return Err(CoregError::CrsMismatch {
-            a: format!("{:?}", a.crs()),
-            b: format!("{:?}", b.crs()),
+            a: a.crs().to_string(),
+            b: b.crs().to_string(),
         });
     }
     let (ab, bb) = (a.bounds(), b.bounds());

@@ -707,9 +707,9 @@ fn validate(b: &[u8], path: &Path) -> Result<(MapHeader, usize), MapError> {
     }
     if b[0..8] != MAGIC {
         return Err(bad(format!(
-            "wrong magic {:?} (expected {:?}): not a .vnm map",
-            String::from_utf8_lossy(&b[0..8]),
-            String::from_utf8_lossy(&MAGIC)
+            "wrong magic {} (expected {}): not a .vnm map",
+            visnav_core::text::quote(&String::from_utf8_lossy(&b[0..8])),
+            visnav_core::text::quote(&String::from_utf8_lossy(&MAGIC))
         )));
     }
     let version = u32::from_le_bytes(rd4(b, 8));
@@ -812,8 +812,10 @@ fn validate(b: &[u8], path: &Path) -> Result<(MapHeader, usize), MapError> {
         for (name, at, size) in sections {
             let end = size.and_then(|s| at.checked_add(s));
             if end.is_none_or(|e| e > data_len) {
+                let size =
+                    size.map_or_else(|| "an overflowing size".to_string(), |s| s.to_string());
                 return Err(bad(format!(
-                    "level {l}: {name} at {at} (+{size:?} bytes) exceed the {data_len} data bytes (truncated?)"
+                    "level {l}: {name} at {at} (+{size} bytes) exceed the {data_len} data bytes (truncated?)"
                 )));
             }
         }

@@ -31,6 +31,16 @@ pub enum ColourMode {
     Rgb,
 }
 
+/// `grey`, `rgb` (as written in a render spec).
+impl std::fmt::Display for ColourMode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            ColourMode::Grey => "grey",
+            ColourMode::Rgb => "rgb",
+        })
+    }
+}
+
 impl ColourMode {
     /// Channels per output pixel.
     pub fn channels(self) -> usize {

@@ -131,6 +131,17 @@ pub enum Health {
     Lost,
 }
 
+/// `ok`, `degraded`, `lost` (as serialised).
+impl std::fmt::Display for Health {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Health::Ok => "ok",
+            Health::Degraded => "degraded",
+            Health::Lost => "lost",
+        })
+    }
+}
+
 /// Counters of one measurement type.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
 pub struct TypeCounters {

@@ -183,13 +183,17 @@ fn run_render(a: RenderBenchArgs) -> anyhow::Result<ExitCode> {
     let naip = repo_file("sitl/maps/naip_nd_2014.tif");
     let ortho = load_geotiff(&naip, None).with_context(|| format!("{}", naip.display()))?;
     scenes.push(("NAIP 2014, flat ground 580 m", ortho, Dem::flat(580.0)?));
-    let ngi = repo_file("../shared/data/ngi_3324c");
-    if ngi.is_dir() {
-        let o = ngi.join("ngi_ortho_5m_tile1.tif");
-        let d = ngi.join("dem.tif");
+    // An orthophoto and its DEM from the shared data folder.
+    let load = |dir: &std::path::Path, ortho: &str, dem: &str| -> anyhow::Result<_> {
+        let (o, d) = (dir.join(ortho), dir.join(dem));
         let ortho = load_geotiff(&o, None).with_context(|| format!("{}", o.display()))?;
         let dem =
             visnav::geo::dem::load_dem(&d, None).with_context(|| format!("{}", d.display()))?;
+        Ok((ortho, dem))
+    };
+    let ngi = repo_file("../shared/data/ngi_3324c");
+    if ngi.is_dir() {
+        let (ortho, dem) = load(&ngi, "ngi_ortho_5m_tile1.tif", "dem.tif")?;
         scenes.push(("NGI 5 m ortho, 24 m DEM", ortho, dem));
     } else {
         eprintln!("skipping the NGI scene: {} not found", ngi.display());
@@ -220,11 +224,11 @@ fn run_render(a: RenderBenchArgs) -> anyhow::Result<ExitCode> {
     // The drone scenario's camera over the 0.3 m orthophoto on the 1 m lidar surface model.
     let autzen = repo_file("../shared/data/autzen");
     if autzen.is_dir() {
-        let o = autzen.join("autzen_ortho_0p3m_utm10n.tif");
-        let d = autzen.join("autzen_dsm_1m_utm10n.tif");
-        let ortho = load_geotiff(&o, None).with_context(|| format!("{}", o.display()))?;
-        let dem =
-            visnav::geo::dem::load_dem(&d, None).with_context(|| format!("{}", d.display()))?;
+        let (ortho, dem) = load(
+            &autzen,
+            "autzen_ortho_0p3m_utm10n.tif",
+            "autzen_dsm_1m_utm10n.tif",
+        )?;
         let scene = Scene::new(&ortho, dem, ColourMode::Grey)?;
         let name = format!(
             "Autzen 0.3 m ortho, 1 m surface model, {} deg tilt",

@@ -297,7 +297,7 @@ impl Validate for CameraConfig {
                                 format!(
                                     "the model k1, k2, k3, p1, p2 = {} is not invertible at image corner ({}, {}) px: \
                                      the radial polynomial folds over at normalised radius {r_max:.3}",
-                                    crate::text::numbers(&[d.k1, d.k2, d.k3, d.p1, d.p2]),
+                                    crate::text::numbers(&d.coefficients()),
                                     c.x, c.y
                                 ),
                             );

@@ -45,11 +45,14 @@ impl Distortion {
         self.k1 == 0.0 && self.k2 == 0.0 && self.k3 == 0.0 && self.p1 == 0.0 && self.p2 == 0.0
     }
 
+    /// The coefficients in the order `k1, k2, k3, p1, p2`.
+    pub fn coefficients(&self) -> [f64; 5] {
+        [self.k1, self.k2, self.k3, self.p1, self.p2]
+    }
+
     /// All coefficients are finite.
     pub fn is_finite(&self) -> bool {
-        [self.k1, self.k2, self.k3, self.p1, self.p2]
-            .iter()
-            .all(|c| c.is_finite())
+        self.coefficients().iter().all(|c| c.is_finite())
     }
 
     /// Apply the distortion to an ideal normalised point.

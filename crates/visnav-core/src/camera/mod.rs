@@ -74,13 +74,7 @@ impl Camera {
                 name: "distortion",
                 reason: format!(
                     "coefficients must be finite, got k1, k2, k3, p1, p2 = {}",
-                    crate::text::numbers(&[
-                        distortion.k1,
-                        distortion.k2,
-                        distortion.k3,
-                        distortion.p1,
-                        distortion.p2
-                    ])
+                    crate::text::numbers(&distortion.coefficients())
                 ),
             });
         }

@@ -236,28 +236,22 @@ impl std::fmt::Display for GeoKeyValue {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         /// At most this many values are listed.
         const SHOWN: usize = 8;
-        let list = |n: usize, kind: &str, v: Vec<f64>| {
-            let more = if n > SHOWN { ", ..." } else { "" };
-            let s = visnav_core::text::numbers(&v);
-            format!(
-                "{n} {kind}{} {}{more})",
-                if n == 1 { "" } else { "s" },
-                &s[..s.len() - 1]
-            )
+        let (kind, values): (&str, Vec<f64>) = match self {
+            GeoKeyValue::Shorts(v) => ("SHORT", v.iter().map(|&x| f64::from(x)).collect()),
+            GeoKeyValue::Doubles(v) => ("DOUBLE", v.clone()),
+            GeoKeyValue::Ascii(t) => return write!(f, "ASCII {}", visnav_core::text::quote(t)),
         };
-        match self {
-            GeoKeyValue::Shorts(v) => f.write_str(&list(
-                v.len(),
-                "SHORT",
-                v.iter().take(SHOWN).map(|&x| f64::from(x)).collect(),
-            )),
-            GeoKeyValue::Doubles(v) => f.write_str(&list(
-                v.len(),
-                "DOUBLE",
-                v.iter().take(SHOWN).copied().collect(),
-            )),
-            GeoKeyValue::Ascii(t) => write!(f, "ASCII {}", visnav_core::text::quote(t)),
+        let n = values.len();
+        let mut shown: Vec<String> = values
+            .iter()
+            .take(SHOWN)
+            .map(|&v| visnav_core::text::num(v))
+            .collect();
+        if n > SHOWN {
+            shown.push("...".into());
         }
+        let plural = if n == 1 { "" } else { "s" };
+        write!(f, "{n} {kind}{plural} ({})", shown.join(", "))
     }
 }
 
@@ -1115,5 +1109,26 @@ pub(crate) fn ycbcr_to_rgb_in_place(v: &mut [u8]) {
         px[0] = to_u8(y + 1.402 * cr);
         px[1] = to_u8(y - 0.344_136 * cb - 0.714_136 * cr);
         px[2] = to_u8(y + 1.772 * cb);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A key value reads as a count, a type and at most eight values, never Rust's debug form.
+    #[test]
+    fn key_values_read_as_counts_types_and_values() {
+        assert_eq!(GeoKeyValue::Shorts(vec![7]).to_string(), "1 SHORT (7)");
+        assert_eq!(
+            GeoKeyValue::Doubles(vec![0.5, -2.0]).to_string(),
+            "2 DOUBLEs (0.5, -2)"
+        );
+        let many = GeoKeyValue::Shorts((1..=10).collect());
+        assert_eq!(many.to_string(), "10 SHORTs (1, 2, 3, 4, 5, 6, 7, 8, ...)");
+        assert_eq!(
+            GeoKeyValue::Ascii("WGS 84".into()).to_string(),
+            "ASCII \"WGS 84\""
+        );
     }
 }

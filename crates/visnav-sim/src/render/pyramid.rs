@@ -201,8 +201,8 @@ impl OrthoPyramid {
         if l.complete {
             // The sum below in the same order; a zero weight adds +0 to a finite sum, so it is
             // the same number the loop with its tests gives.
+            let d = &l.data;
             for (k, o) in out.iter_mut().enumerate().take(c) {
-                let d = &l.data;
                 *o =
                     0.0 + w00 * d[p00 + k] + w10 * d[p10 + k] + w01 * d[p01 + k] + w11 * d[p11 + k];
             }

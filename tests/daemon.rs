@@ -351,9 +351,13 @@ impl FrameFixer for TruthPlusNoise {
         );
         let n = visnav::geo::geoid::geoid_undulation_m(lat, lon).unwrap();
         let v = self.sigma_m * self.sigma_m;
-        let mut r = FixReport::rejected("", prior.t_capture_us, 0.0);
+        let mut r = FixReport::rejected(
+            visnav::fix::Rejection::NoHypothesis,
+            prior.t_capture_us,
+            0.0,
+        );
         r.accepted = true;
-        r.reason = "ok".into();
+        r.rejection = None;
         r.lat_deg = lat;
         r.lon_deg = lon;
         r.alt_amsl_m = alt;

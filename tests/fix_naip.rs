@@ -169,13 +169,19 @@ fn naip_frames_beyond_the_map_edge_get_no_placement_fix() {
     let r = e.engine.fix(&img, &prior);
     eprintln!(
         "frame beyond the north edge: {} method {:?} inliers {} matches {} x {:.0} y {:.0} yaw {:.1}",
-        r.reason, r.method, r.inliers, r.matches, r.x_m, r.y_m, r.yaw_deg
+        r.reason(),
+        r.method,
+        r.inliers,
+        r.matches,
+        r.x_m,
+        r.y_m,
+        r.yaw_deg
     );
     assert!(
-        !r.accepted && r.reason.contains("could not judge"),
+        !r.accepted && r.reason().contains("could not judge"),
         "the frame beyond the map edge: accepted {}, {}",
         r.accepted,
-        r.reason
+        r.reason()
     );
 }
 
@@ -291,7 +297,7 @@ fn frames_of_other_ground_are_rejected(e: &NaipEval) {
         let r = e.engine.fix(&img, &prior);
         eprintln!(
             "other ground {i}: {} method {:?} inliers {} matches {} x {:.0} y {:.0} yaw {:.1} truth x {:.0} y {:.0}",
-            r.reason,
+            r.reason(),
             r.method,
             r.inliers,
             r.matches,
@@ -315,7 +321,7 @@ fn frames_of_other_ground_are_rejected(e: &NaipEval) {
         let img = e.frame(&case, i as u64, None).expect("frame");
         let prior = e.prior(&mut rng, &case, i as u64).expect("prior");
         let r = e.engine.fix(&img, &prior);
-        eprintln!("beyond the map {i}: {}", r.reason);
+        eprintln!("beyond the map {i}: {}", r.reason());
         assert!(!r.accepted, "frame beyond the map accepted");
     }
     // A frame over the map whose prior is 1.5 km off (a lost filter claiming 150 m) is rejected,
@@ -337,7 +343,7 @@ fn frames_of_other_ground_are_rejected(e: &NaipEval) {
             p.lon_deg = lon;
         }
         let r = e.engine.fix(&img, &prior);
-        eprintln!("prior 1.5 km off {i}: {}", r.reason);
+        eprintln!("prior 1.5 km off {i}: {}", r.reason());
         assert!(!r.accepted, "fix accepted with a prior 1.5 km off");
     }
 }
@@ -397,8 +403,8 @@ fn naip_position_prior_without_attitude_stays_honest() {
                 .to_degrees();
             assert!(dyaw < 3.0, "yaw error {dyaw} deg");
         } else {
-            eprintln!("no-attitude frame {i}: {}", r.reason);
-            assert!(!r.reason.is_empty());
+            eprintln!("no-attitude frame {i}: {}", r.reason());
+            assert!(!r.reason().is_empty());
         }
     }
     // Without an attitude prior nothing bounds the position/tilt ambiguity of a 60 deg view over
@@ -435,9 +441,11 @@ fn map_registration_sigma_widens_only_the_horizontal_position_covariance() {
         let a = plain.engine.fix(&img, &prior);
         let r = with_reg.engine.fix(&img, &prior);
         assert_eq!(
-            a.accepted, r.accepted,
+            a.accepted,
+            r.accepted,
             "frame {i}: {} / {}",
-            a.reason, r.reason
+            a.reason(),
+            r.reason()
         );
         if !a.accepted {
             continue;
@@ -629,8 +637,8 @@ fn relocalisation_is_reproducible_and_its_budget_counts_work() {
         serde_json::to_string(&r).expect("json")
     };
     let first = e.engine.fix(&img, &prior);
-    eprintln!("relocalisation: {}", first.reason);
-    assert!(first.accepted, "{}", first.reason);
+    eprintln!("relocalisation: {}", first.reason());
+    assert!(first.accepted, "{}", first.reason());
     assert!(e.score(&first, &case).err_h_m < 50.0);
     assert_eq!(
         json(first),
@@ -649,7 +657,7 @@ fn relocalisation_is_reproducible_and_its_budget_counts_work() {
     }
     let r = small.engine.fix(&img, &prior);
     assert!(!r.accepted);
-    assert!(r.reason.contains("work budget"), "{}", r.reason);
+    assert!(r.reason().contains("work budget"), "{}", r.reason());
     // The heading hypotheses are tried in parallel and replayed in order against the budget:
     // the report is the one trying them one after another gives, on any number of threads,
     // with the budget cut in the middle of a level (5 million units: a few of the 24
@@ -730,7 +738,7 @@ fn relocalisation_with_tilt_and_altitude_finds_the_place_at_any_heading() {
         serde_json::to_string(&r).expect("json")
     };
     let first = e.engine.fix(&img, &prior);
-    eprintln!("one frame: {}", first.reason);
+    eprintln!("one frame: {}", first.reason());
     assert_eq!(json(first), json(e.engine.fix(&img, &prior)));
     // An altitude the search cannot use (not finite, or under the terrain): the feature search
     // runs instead, and its answer is as honest as ever.
@@ -741,8 +749,8 @@ fn relocalisation_with_tilt_and_altitude_finds_the_place_at_any_heading() {
             sigma_m: 30.0,
         });
         let r = e.engine.fix(&img, &p);
-        eprintln!("altitude {alt}: {}", r.reason);
-        assert!(!r.reason.contains("area search"), "{}", r.reason);
+        eprintln!("altitude {alt}: {}", r.reason());
+        assert!(!r.reason().contains("area search"), "{}", r.reason());
         if r.accepted {
             assert!(e.score(&r, &case).err_h_m < 50.0);
         }

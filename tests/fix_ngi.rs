@@ -149,7 +149,7 @@ fn run(
         "{frame} prior {:?}: accepted {} ({}), rms {:.2} px, inliers {} of {} matches, error h {eh:.1} m (dx {:.1} dy {:.1} dz {:.1}) v {ev:.1} m attitude {ea:.3} deg, sigma h {:.1} m (sigma0 {:.2}, covariance factor {:.1}), {:.0} ms",
         prior_m,
         report.accepted,
-        report.reason,
+        report.reason(),
         report.reproj_rms_px,
         report.inliers,
         report.matches,
@@ -218,7 +218,7 @@ fn check_frame(
         assert!(
             o.report.accepted,
             "{frame} prior {prior:?}: {}",
-            o.report.reason
+            o.report.reason()
         );
         let (dx, dy, dz) = (
             o.report.x_m - truth.centre_m.x,

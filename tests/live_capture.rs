@@ -318,7 +318,10 @@ impl visnav::daemon::FrameFixer for CountingFixer {
         assert_eq!((image.width(), image.height()), (32, 24));
         let n = self.0.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         // A reason with numbers, as the engine's are: the counters must keep them.
-        let reason = format!("test engine: no map under frame {n} (32 x 24 px)");
+        let reason = visnav::fix::Rejection::Internal {
+            stage: "test engine",
+            detail: format!("no map under frame {n} (32 x 24 px)"),
+        };
         visnav::fix::FixReport::rejected(reason, prior.t_capture_us, 0.0)
     }
 }
@@ -407,8 +410,8 @@ async fn daemon_runs_a_live_capture_process_and_kills_it_on_shutdown() {
     assert!(m.frames_in >= 10 && m.frame_errors == 0, "{m:?}");
     // Every engine call is accounted for: its rejection reached the navigation task, or it
     // finished after shutdown began and is counted as dropped.
-    // Counted by class (`fix::rejection_class`): the check's name without its details.
-    let rejected = m.engine_rejected.iter().find(|r| r.class == "test engine");
+    // Counted by class (`fix::Rejection::class`): the check's name without its details.
+    let rejected = m.engine_rejected.iter().find(|r| r.class == "internal");
     assert_eq!(
         rejected.map_or(0, |r| r.count) + m.fixes_dropped_at_shutdown,
         fixer.0.load(std::sync::atomic::Ordering::Relaxed),

@@ -291,7 +291,7 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
             );
         }
     } else {
-        println!("rejected: {} ({:.1} ms)", report.reason, report.ms);
+        println!("rejected: {} ({:.1} ms)", report.reason(), report.ms);
     }
     Ok(if report.accepted {
         ExitCode::SUCCESS

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use visnav_core::fix::{FixMethod, FixReport, PriorDependenceNed, VisionOnlyPose};
+use visnav_core::fix::{FixMethod, FixReport, PriorDependenceNed, Rejection, VisionOnlyPose};
 
 /// One fix result.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -24,8 +24,12 @@ pub struct FixLogRecord {
     pub latency_ms: u64,
     /// The engine accepted the fix.
     pub accepted: bool,
-    /// The engine's reason (rejections).
+    /// The engine's reason: "ok", or the rejection in words.
     pub reason: String,
+    /// The rejection's class (`visnav_core::fix::rejection::CLASSES`; "ok" when accepted; logs
+    /// written before it existed lack it and read back as "recorded").
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub reason_class: String,
     /// What the daemon did with it: `accepted`, `rejected` (filter gate), `too_old`, `invalid`,
     /// `unused_before_init`, `engine_rejected`, `initialised`, `held`, `reset`.
     pub outcome: String,
@@ -75,7 +79,8 @@ impl FixLogRecord {
             seq,
             latency_ms,
             accepted: report.accepted,
-            reason: report.reason.clone(),
+            reason: report.reason(),
+            reason_class: report.class().to_string(),
             outcome: outcome.to_string(),
             lat_deg: f(report.lat_deg),
             lon_deg: f(report.lon_deg),
@@ -96,11 +101,14 @@ impl FixLogRecord {
     /// Back to a report (for `vision_measurement`); missing numbers are NaN.
     pub fn report(&self) -> FixReport {
         let mut r = FixReport::rejected(
-            self.reason.clone(),
+            Rejection::recorded(&self.reason_class, &self.reason),
             self.t_capture_us,
             self.latency_ms as f64,
         );
         r.accepted = self.accepted;
+        if self.accepted {
+            r.rejection = None;
+        }
         let n = |v: Option<f64>| v.unwrap_or(f64::NAN);
         r.lat_deg = n(self.lat_deg);
         r.lon_deg = n(self.lon_deg);
@@ -188,8 +196,9 @@ mod tests {
     fn round_trip_and_errors() {
         let d = tempfile::tempdir().unwrap();
         let p = d.path().join("fixes.jsonl");
-        let mut good = FixReport::rejected("", 5_000_000, 30.0);
+        let mut good = FixReport::rejected(Rejection::NoHypothesis, 5_000_000, 30.0);
         good.accepted = true;
+        good.rejection = None;
         good.lat_deg = 47.0;
         good.lon_deg = -99.0;
         good.h_ellip_m = 2400.0;
@@ -213,7 +222,7 @@ mod tests {
             yaw_deg: 91.0,
             cov6_ned: cov6,
         });
-        let bad = FixReport::rejected("only 3 features in the frame", 5_500_000, 12.0);
+        let bad = FixReport::rejected(Rejection::FewFeatures { n: 3 }, 5_500_000, 12.0);
         let mut log = FixLog::create(&p).unwrap();
         let r1 = FixLogRecord::new(1_700_000_000_000_000, 7, 30, &good, "accepted");
         let r2 = FixLogRecord::new(1_700_000_000_500_000, 8, 12, &bad, "engine_rejected");
@@ -229,6 +238,13 @@ mod tests {
         assert_eq!(back[0].method, Some(FixMethod::Area), "method kept");
         assert_eq!(rep.method, FixMethod::Area);
         assert_eq!(back[1].method, None, "a rejection has no method");
+        // A rejection reads back with its words and its class; an acceptance as "ok".
+        let rep1 = back[1].report();
+        assert_eq!(
+            (rep1.reason().as_str(), rep1.class()),
+            ("only 3 features in the frame", "few_features")
+        );
+        assert_eq!((rep.reason().as_str(), rep.class()), ("ok", "ok"));
         // A log written before the image-only pose existed still reads.
         let old = r#"{"arrival_unix_us":1,"t_capture_us":2,"seq":3,"latency_ms":4,"accepted":false,"reason":"x","outcome":"engine_rejected","lat_deg":null,"lon_deg":null,"h_ellip_m":null,"alt_amsl_m":null,"cov_ned_m2":null,"inliers":0,"reproj_rms_px":null}"#;
         assert_eq!(read_fix_log(old).unwrap()[0].vision_only, None);

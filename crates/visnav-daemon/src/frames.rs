@@ -398,7 +398,14 @@ fn fix_prepared(ctx: &WorkerCtx, f: Frame, t_c: u64, prior: FixPrior) -> FixResu
     let mut report = std::panic::catch_unwind(AssertUnwindSafe(|| ctx.fixer.fix(&f.image, &prior)))
         .unwrap_or_else(|_| {
             error!("fix engine panicked on frame {}", f.seq);
-            FixReport::rejected("engine panicked", t_c, 0.0)
+            FixReport::rejected(
+                visnav_core::fix::Rejection::Internal {
+                    stage: "fix engine",
+                    detail: "panicked".into(),
+                },
+                t_c,
+                0.0,
+            )
         });
     let elapsed = start.elapsed();
     ctx.widening

@@ -917,7 +917,7 @@ pub fn prior_at(
 pub enum NoMeasurement {
     /// The engine rejected the frame; its reason.
     #[error("{0}")]
-    Rejected(String),
+    Rejected(visnav_core::fix::Rejection),
     /// An accepted report whose position is not finite (never fused).
     #[error("accepted report with a non-finite position")]
     NonFinite,
@@ -927,6 +927,19 @@ pub enum NoMeasurement {
     /// The geoid could not give the ellipsoidal height of the fix.
     #[error("{0}")]
     Geoid(visnav_core::geo::GeoError),
+}
+
+impl NoMeasurement {
+    /// The class for counting (a metric label without numbers): the engine's rejection's
+    /// ([`visnav_core::fix::Rejection::class`]) or the daemon's own reason.
+    pub fn class(&self) -> &'static str {
+        match self {
+            NoMeasurement::Rejected(r) => r.class(),
+            NoMeasurement::NonFinite => "non_finite",
+            NoMeasurement::Unusable(_) => "unusable_report",
+            NoMeasurement::Geoid(_) => "geodesy",
+        }
+    }
 }
 
 /// The measurement of an accepted engine report (or why it gives none): the position fix, or
@@ -939,7 +952,12 @@ pub fn vision_measurement(
     with_dependence: bool,
 ) -> Result<Measurement, NoMeasurement> {
     if !r.accepted {
-        return Err(NoMeasurement::Rejected(r.reason.clone()));
+        return Err(NoMeasurement::Rejected(r.rejection.clone().unwrap_or(
+            visnav_core::fix::Rejection::Internal {
+                stage: "fix report",
+                detail: "rejected without a reason".into(),
+            },
+        )));
     }
     if !(r.lat_deg.is_finite() && r.lon_deg.is_finite()) {
         return Err(NoMeasurement::NonFinite);
@@ -1463,13 +1481,15 @@ mod tests {
 
     #[test]
     fn report_to_measurement() {
-        let mut r = FixReport::rejected("too few inliers", 5, 1.0);
+        let few = visnav_core::fix::Rejection::FewMatches { n: 3, min: 12 };
+        let mut r = FixReport::rejected(few.clone(), 5, 1.0);
+        let e = vision_measurement(&r, 5, false, false).unwrap_err();
+        assert_eq!(e, NoMeasurement::Rejected(few));
         assert_eq!(
-            vision_measurement(&r, 5, false, false)
-                .unwrap_err()
-                .to_string(),
-            "too few inliers"
+            (e.to_string().as_str(), e.class()),
+            ("only 3 matches (min 12)", "few_matches")
         );
+        r.rejection = None;
         r.accepted = true;
         assert!(
             vision_measurement(&r, 5, false, false).is_err(),

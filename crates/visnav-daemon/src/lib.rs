@@ -819,7 +819,7 @@ impl NavTask {
             self.filter.config().vision_prior_dependence,
         ) {
             Err(reason) => {
-                m.engine_reject(&reason.to_string());
+                m.engine_reject(reason.class(), &reason.to_string());
                 "engine_rejected"
             }
             Ok(meas) if !self.init_spacing_ok(&meas) => {

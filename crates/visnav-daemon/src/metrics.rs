@@ -114,12 +114,11 @@ visnav_link::metric_set! {
 }
 
 impl DaemonMetrics {
-    /// Count one engine rejection, by its class (`visnav_core::fix::rejection_class`: the
-    /// first check that refused, in words without its numbers; the same classes as
-    /// `visnav sim`'s), keeping the reason itself for the snapshot.
-    pub fn engine_reject(&self, reason: &str) {
-        self.engine_rejected
-            .count_as(&visnav_core::fix::rejection_class(reason), reason);
+    /// Count one engine rejection by its `class` (`visnav_core::fix::Rejection::class`: the
+    /// first check that refused, a name without numbers; the same classes as `visnav sim`'s),
+    /// keeping the `reason` itself for the snapshot.
+    pub fn engine_reject(&self, class: &'static str, reason: &str) {
+        self.engine_rejected.count_as(class, reason);
     }
 
     /// Record one fix latency.
@@ -559,30 +558,39 @@ mod tests {
         assert!(!same("offset 3 m, x-ray", "offset 3 m"));
         let m = super::DaemonMetrics::default();
         for i in 0..200 {
-            m.engine_reject(&format!("only {i} features in the frame"));
+            let r = visnav_core::fix::Rejection::FewFeatures { n: i };
+            m.engine_reject(r.class(), &r.to_string());
         }
         let s = m.snapshot();
         assert_eq!(s.engine_rejected.len(), 1);
         let r = &s.engine_rejected[0];
         assert_eq!(
             (r.reason.as_str(), r.count, r.class.as_str()),
-            (
-                "only 199 features in the frame",
-                200,
-                "only features in the frame"
-            )
+            ("only 199 features in the frame", 200, "few_features")
         );
-        // The area correlation's fallback reason and the details after the check's name are not
-        // counted apart, and stay in the reason shown.
-        let reason = "rejected: position sigma check failed: horizontal 3-sigma 61 m > maximum \
-                      50 m; area: rejected: position sigma check failed: horizontal 3-sigma 70 m \
-                      > maximum 50 m";
-        m.engine_reject(reason);
+        // The area correlation's fallback reason is not counted apart, and stays in the reason
+        // shown.
+        let sigma = |sigma_m| {
+            visnav_core::fix::Rejection::Pose(visnav_core::pose::Rejection::HorizontalSigma {
+                sigma_m,
+                max_m: 50.0,
+            })
+        };
+        let both = visnav_core::fix::Rejection::Methods(vec![
+            (visnav_core::fix::FixMethod::Features, sigma(61.0)),
+            (visnav_core::fix::FixMethod::Area, sigma(70.0)),
+        ]);
+        m.engine_reject(both.class(), &both.to_string());
         let s = m.snapshot();
         let r = &s.engine_rejected[1];
         assert_eq!(
             (r.reason.as_str(), r.count, r.class.as_str()),
-            (reason, 1, "position sigma check failed")
+            (both.to_string().as_str(), 1, "pose_horizontal_sigma")
+        );
+        assert!(
+            r.reason.contains("61.0 m") && r.reason.contains("area: "),
+            "{}",
+            r.reason
         );
         // The final counters (`visnav run` logs them as JSON) carry the numbers; no placeholder.
         let json = serde_json::to_string(&s).unwrap();

@@ -288,10 +288,10 @@ mod tests {
         d.fixes_accepted.inc_by(7);
         d.latency(250);
         d.latency(750);
-        d.engine_reject("too few matches: 3 < 12");
-        d.engine_reject("quote \"back\" back\\slash\nnewline");
+        d.engine_reject("few_matches", "only 3 matches (min 12)");
         d.vo.time(20_000);
         d.vo.refuse("only 3 tracks");
+        d.vo.refuse("quote \"back\" back\\slash\nnewline");
         d.dtm.refuse("no relief");
         d.health.set(&LinkHealth::Degraded {
             reason: "coasting".into(),
@@ -340,16 +340,16 @@ mod tests {
             "visnav_nav_health{state=\"degraded\"} 1",
             "visnav_nav_health{state=\"ok\"} 0",
             "visnav_nav_health{state=\"none\"} 0",
-            "visnav_vo_frames_total{outcome=\"refused\"} 1",
+            "visnav_vo_frames_total{outcome=\"refused\"} 2",
             "visnav_vo_refusals_total{reason=\"only tracks\"} 1",
+            // The label is the class: the reason's words, a line break between them a space.
+            "visnav_vo_refusals_total{reason=\"quote \\\"back\\\" back\\\\slash newline\"} 1",
             "visnav_vo_frame_seconds_count 1",
             "visnav_vo_frame_seconds_max 0.02",
             "visnav_dtm_poses_total{outcome=\"fused\"} 0",
             "visnav_link_rx_packets_total 99",
             "visnav_link_timesync_rtt_seconds 0.0015",
-            "visnav_fix_engine_rejections_total{reason=\"too few matches\"} 1",
-            // The label is the class: the reason's words, a line break between them a space.
-            "visnav_fix_engine_rejections_total{reason=\"quote \\\"back\\\" back\\\\slash newline\"} 1",
+            "visnav_fix_engine_rejections_total{reason=\"few_matches\"} 1",
             "# TYPE visnav_fix_latency_seconds histogram",
             "# TYPE visnav_nav_health gauge",
             "# TYPE visnav_imu_samples_total counter",

@@ -51,7 +51,10 @@ fn fixes_through_the_gpu_path_equal_the_cpus() {
             differ += 1;
             println!(
                 "frame {i}: CPU {} ({}), GPU {} ({})",
-                cpu.accepted, cpu.reason, g.accepted, g.reason
+                cpu.accepted,
+                cpu.reason(),
+                g.accepted,
+                g.reason()
             );
             continue;
         }

@@ -122,7 +122,6 @@ use visnav_io::geo::geotiff_write::write_geotiff;
 const TRUTH_DT_S: f64 = 0.005;
 /// Extra truth beyond the scenario's end (the daemons stop a little later), s.
 const TRUTH_MARGIN_S: f64 = 30.0;
-pub use visnav_core::fix::rejection_class;
 
 /// UTC at the start of a lock-step run (2024-01-01T00:00:00Z), µs.
 const LOCKSTEP_UNIX_START_US: u64 = 1_704_067_200_000_000;
@@ -544,7 +543,13 @@ impl FrameFixer for RecordingFixer {
         // faults' is the emulator's run time (the scenario time, as for the camera's faults).
         let t_capture_us = self.emu.run_us_of_boot_us(prior.t_capture_us);
         let report = if self.faults.map_withheld(t_capture_us as f64 * 1e-6) {
-            FixReport::rejected(faults::MAP_WITHHELD_REASON, prior.t_capture_us, 0.0)
+            FixReport::rejected(
+                visnav_core::fix::Rejection::Withheld {
+                    reason: faults::MAP_WITHHELD_REASON,
+                },
+                prior.t_capture_us,
+                0.0,
+            )
         } else {
             self.inner.fix(image, prior)
         };
@@ -639,7 +644,10 @@ pub struct FixRow {
     pub t_capture_s: f64,
     pub latency_ms: f64,
     pub accepted: bool,
+    /// "ok", or the rejection in words.
     pub reason: String,
+    /// "ok", or the rejection's class (`visnav_core::fix::Rejection::class`).
+    pub class: &'static str,
     pub lat_deg: f64,
     pub lon_deg: f64,
     pub err_ned_m: [f64; 3],
@@ -656,6 +664,7 @@ impl FixRow {
         latency_ms: f64::NAN,
         accepted: false,
         reason: String::new(),
+        class: "ok",
         lat_deg: f64::NAN,
         lon_deg: f64::NAN,
         err_ned_m: [f64::NAN; 3],
@@ -787,7 +796,7 @@ pub struct ClosedLoopSummary {
     /// Every injected position message kind: (count, horizontal error stats) in the window.
     pub nav_err_by_message: std::collections::BTreeMap<String, (usize, Stats)>,
     pub control_injections: usize,
-    /// The window's rejected attempts by class ([`rejection_class`]), most frequent first, each
+    /// The window's rejected attempts by class ([`visnav_core::fix::Rejection::class`]), most frequent first, each
     /// with its latest reason as the engine wrote it.
     pub rejections: Vec<visnav_core::reasons::ReasonCount>,
     /// What the vision daemon did around each scripted fault (`[[faults]]`).
@@ -1718,7 +1727,7 @@ pub async fn run_until_stopped(
     let lat: Vec<f64> = wf.iter().map(|f| f.latency_ms).collect();
     let mut tally = visnav_core::reasons::ReasonTally::default();
     for f in wf.iter().filter(|f| !f.accepted) {
-        tally.add(&rejection_class(&f.reason), &f.reason);
+        tally.add(f.class, &f.reason);
     }
     let rejections = tally.counts();
     // nav_err_m scores the first configured output message; every kind is in nav_err_by_message.
@@ -2044,7 +2053,8 @@ fn score_fix(
         t_capture_s: t,
         latency_ms: (t_done_us as f64 - t_capture_us as f64) * 1e-3,
         accepted: rep.accepted,
-        reason: rep.reason.clone(),
+        reason: rep.reason(),
+        class: rep.class(),
         lat_deg: rep.lat_deg,
         lon_deg: rep.lon_deg,
         err_ned_m: err,
@@ -2059,39 +2069,6 @@ fn score_fix(
 mod tests {
     use super::*;
     use crate::scenario::Scenario;
-
-    #[test]
-    fn rejections_are_classed_by_their_first_check_without_numbers() {
-        let c = |r: &str| rejection_class(r);
-        assert_eq!(
-            c(
-                "only 24 matches where chance gives 10 (need 27); area: area correlation peak 0.29 < 0.3"
-            ),
-            "only matches where chance gives"
-        );
-        assert_eq!(
-            c("rejected: inlier count check failed: 9 inliers < minimum 12; area: x"),
-            "inlier count check failed"
-        );
-        assert_eq!(
-            c("rejected: position sigma check failed: horizontal 1-sigma 73.3 m > maximum 50.0 m"),
-            "position sigma check failed"
-        );
-        assert_eq!(
-            c("only 3 features in the frame"),
-            "only features in the frame"
-        );
-        assert_eq!(
-            c("its feature fix (12 inliers) is not confirmed by the area correlation: peak 0.2"),
-            "its feature fix is not confirmed by the area correlation"
-        );
-        // Two attempts that differ only in their numbers count as one reason.
-        assert_eq!(
-            c("only 9 matches where chance gives 5 (need 20)"),
-            c("only 31 matches where chance gives 16 (need 36)")
-        );
-        assert_eq!(c(""), "unknown");
-    }
 
     #[test]
     fn angle_interpolation_takes_the_short_arc() {

@@ -959,10 +959,11 @@ impl NaipEval {
                 ));
             } else {
                 // Reasons that differ only in their numbers count as one.
-                reasons.add_reason(&r.reason);
+                let reason = r.reason();
+                reasons.add(r.class(), &reason);
                 log(format!(
-                    "frame {i:3}: {} ({} matches, {good} correct, chance {}), {:.1} ms",
-                    r.reason, r.matches, a.null_matches, r.ms
+                    "frame {i:3}: {reason} ({} matches, {good} correct, chance {}), {:.1} ms",
+                    r.matches, a.null_matches, r.ms
                 ));
             }
         }

@@ -35,11 +35,12 @@ use super::reference::{RefSelection, Reference};
 use super::{AttitudePriorNed, FixMethod, FixPrior, FixReport, PositionPriorGeo};
 use crate::camera::frames::{r_enu_ned, rot_z};
 use crate::camera::{Attitude, Camera};
-use crate::fix::Rejected;
+use crate::fix::{Rejection, Rival};
 use crate::geo::geoid::geoid_undulation_m;
 use crate::geo::{Crs, Geodetic, LocalFrame};
 use crate::pose::{
-    AttitudePrior, Correspondence, ImageGeometry, PositionPrior, Priors, ResectionConfig, resect,
+    AttitudePrior, Correspondence, ImageGeometry, PositionPrior, Priors, ResectionConfig, Verdict,
+    resect,
 };
 use crate::validate::{Problems, Validate};
 use crate::vision::matcher::dist2;
@@ -421,13 +422,10 @@ impl FixEngine {
         if frame.width() != self.camera.width_px() as usize
             || frame.height() != self.camera.height_px() as usize
         {
-            let reason = format!(
-                "frame is {}x{} but the camera is {}x{}",
-                frame.width(),
-                frame.height(),
-                self.camera.width_px(),
-                self.camera.height_px()
-            );
+            let reason = Rejection::FrameSize {
+                frame: [frame.width(), frame.height()],
+                camera: [self.camera.width_px(), self.camera.height_px()],
+            };
             return (
                 FixReport::rejected(reason, prior.t_capture_us, 0.0),
                 Attempt::default(),
@@ -460,14 +458,14 @@ impl FixEngine {
         &self,
         pos: &PositionPriorGeo,
         att: &AttitudePriorNed,
-    ) -> Result<PriorGeom, Rejected> {
+    ) -> Result<PriorGeom, Rejection> {
         let crs: Crs = self.reference.crs();
         let (x, y) = crs
             .from_geodetic(pos.lat_deg, pos.lon_deg)
-            .map_err(|e| format!("prior position: {e}"))?;
+            .map_err(geodesy("prior position"))?;
         let gamma = crs
             .grid_convergence_deg(pos.lat_deg, pos.lon_deg)
-            .map_err(|e| format!("prior position: {e}"))?
+            .map_err(geodesy("prior position"))?
             .to_radians();
         let r_ned_cam = self.camera.mount.r_ned_cam(&att.attitude);
         let r_enu_cam = r_enu_ned() * r_ned_cam;
@@ -478,7 +476,7 @@ impl FixEngine {
             && ok(att.sigma_yaw_rad)
             && pos.alt_amsl_m.is_finite())
         {
-            return Err(Rejected::from("prior sigmas must be finite and positive"));
+            return Err(Rejection::PriorSigmas);
         }
         Ok(PriorGeom {
             c_map: Vector3::new(x, y, pos.alt_amsl_m),
@@ -556,7 +554,10 @@ impl FixEngine {
         let (r2, a2) = select_unique(sweep(area), t_us);
         if !r2.accepted {
             let mut r = r;
-            r.reason = format!("{}; area: {}", r.reason, r2.reason);
+            r.rejection = Some(Rejection::Methods(vec![
+                (FixMethod::Features, rejection_of(r.rejection.take())),
+                (FixMethod::Area, rejection_of(r2.rejection)),
+            ]));
             return (r, a);
         }
         self.refine_sweep_fix(frame, pos, att, solve, t_us, area, r2, a2)
@@ -589,11 +590,8 @@ impl FixEngine {
         }
         let d = (r2.x_m - r.x_m).hypot(r2.y_m - r.y_m);
         if d > SAME_PLACE_SIGMAS * sigma_h_m(&r2).hypot(sigma_h_m(&r)) {
-            let mut rej = FixReport::rejected(
-                format!("ambiguous: rectified at its own heading the fix moves {d:.0} m"),
-                t_us,
-                0.0,
-            );
+            let mut rej =
+                FixReport::rejected(Rejection::MovesAtOwnHeading { moved_m: d }, t_us, 0.0);
             rej.matches = r.matches;
             rej.level = r.level;
             return (rej, a);
@@ -642,7 +640,11 @@ impl FixEngine {
         if r.accepted || !widen {
             return (r, a);
         }
-        let mut reasons = vec![r.reason];
+        let mut why = WidenedWhy {
+            stated: rejection_of(r.rejection),
+            heading: None,
+            near: None,
+        };
         let wide = self.widened_heading(att);
         if let Some(wide) = &wide {
             let (r2, a2) =
@@ -650,14 +652,11 @@ impl FixEngine {
             let verdict = if r2.accepted {
                 self.confirm_widened(wide, (&r2, &a2))
             } else {
-                Err(Rejected(r2.reason.clone()))
+                Err(rejection_of(r2.rejection.clone()))
             };
             match verdict {
                 Ok(()) => return (r2, a2),
-                Err(why) => reasons.push(format!(
-                    "heading widened to +-{:.0} deg: {why}",
-                    3.0 * wide.sigma_yaw_rad.to_degrees(),
-                )),
+                Err(e) => why.heading = Some((3.0 * wide.sigma_yaw_rad.to_degrees(), e)),
             }
         }
         let searched = wide.as_ref().unwrap_or(att);
@@ -670,23 +669,17 @@ impl FixEngine {
                     .then(|| self.widened_chance_bar(searched, &a3))
                 {
                     None | Some(Ok(())) => return (r3, a3),
-                    Some(Err(why)) => {
-                        reasons.push(format!("area search of the prior's window: {why}"))
-                    }
+                    Some(Err(e)) => why.near = Some(e),
                 }
             }
-            Ok((r3, _)) => {
-                reasons.push(format!("area search of the prior's window: {}", r3.reason))
-            }
-            Err(AreaRelocError::NotFound(e)) => {
-                reasons.push(format!("area search of the prior's window: {e}"));
-            }
+            Ok((r3, _)) => why.near = Some(rejection_of(r3.rejection)),
+            Err(AreaRelocError::NotFound(e)) => why.near = Some(e),
             // It could not run (an old map, no level images, the budget): nothing to add.
             Err(AreaRelocError::CannotRun(e)) => {
                 tracing::debug!("area search of the prior's window: {e}");
             }
         }
-        let mut r = FixReport::rejected(reasons.join("; "), t_us, 0.0);
+        let mut r = FixReport::rejected(why.into_rejection(), t_us, 0.0);
         r.prior_attitude_from_filter = att_from_filter;
         (r, a)
     }
@@ -708,7 +701,7 @@ impl FixEngine {
         &self,
         wide: &AttitudePriorNed,
         (r, a): (&FixReport, &Attempt),
-    ) -> Result<(), Rejected> {
+    ) -> Result<(), Rejection> {
         if r.method != FixMethod::Features {
             return Ok(());
         }
@@ -717,19 +710,19 @@ impl FixEngine {
 
     /// The features' chance bar raised for a search over the widened heading's hypotheses
     /// ([`Self::confirm_widened`]): `Err` names the count when `a`'s matches fall short of it.
-    fn widened_chance_bar(&self, wide: &AttitudePriorNed, a: &Attempt) -> Result<(), Rejected> {
-        let headings = heading_hypotheses(wide).len().max(1) as f64;
+    fn widened_chance_bar(&self, wide: &AttitudePriorNed, a: &Attempt) -> Result<(), Rejection> {
+        let headings = heading_hypotheses(wide).len().max(1);
         let null = a.null_matches as f64;
-        let needed = self.params.min_matches as f64
-            + (self.params.null_factor * null).ceil()
-            + (2.0 * null * headings.ln()).sqrt().ceil();
-        if (a.fine_matches as f64) < needed {
-            return Err(rejected!(
-                "its feature fix has {} matches where chance gives {} at one of {headings:.0} \
-                 headings (need {needed:.0})",
-                a.fine_matches,
-                a.null_matches
-            ));
+        let needed = self.params.min_matches
+            + (self.params.null_factor * null).ceil() as usize
+            + (2.0 * null * (headings as f64).ln()).sqrt().ceil() as usize;
+        if a.fine_matches < needed {
+            return Err(Rejection::BelowWidenedChance {
+                matches: a.fine_matches,
+                chance: a.null_matches,
+                headings,
+                needed,
+            });
         }
         Ok(())
     }
@@ -746,16 +739,17 @@ impl FixEngine {
         att: &AttitudePriorNed,
         t_us: u64,
     ) -> Result<(FixReport, Attempt), AreaRelocError> {
-        let cannot = |e: String| AreaRelocError::CannotRun(Rejected::from(e));
         if self.params.area_matching == AreaMatching::Off {
-            return Err(cannot("area matching is off".into()));
+            return Err(AreaRelocError::CannotRun(Rejection::AreaOff));
         }
         let g = self
             .prior_geom(pos, att)
             .map_err(AreaRelocError::CannotRun)?;
         let agl_m = g.c_map.z - self.ground_below(&g);
         if !(agl_m.is_finite() && agl_m > 1.0) {
-            return Err(cannot("the prior is not above the terrain".into()));
+            return Err(AreaRelocError::CannotRun(Rejection::PriorBelowTerrain {
+                alt_amsl_m: g.c_map.z,
+            }));
         }
         let k = &self.camera.intrinsics;
         let half_diag_rad = (0.5 * f64::from(k.width_px))
@@ -788,9 +782,10 @@ impl FixEngine {
         let d = (r.x_m - g.c_map.x).hypot(r.y_m - g.c_map.y);
         let limit = self.params.gate_sigmas * pos.sigma_h_m.hypot(sigma_h_m(&r));
         if d > limit {
-            return Err(AreaRelocError::NotFound(format!(
-                "its fix lies {d:.0} m from the prior, beyond {limit:.0} m (3 sigma)"
-            )));
+            return Err(AreaRelocError::NotFound(Rejection::FarFromPrior {
+                distance_m: d,
+                limit_m: limit,
+            }));
         }
         Ok((r, a))
     }
@@ -848,11 +843,11 @@ impl FixEngine {
         t_us: u64,
         how: Single,
     ) -> (FixReport, Attempt) {
-        let rej = |reason: String, a: Attempt| (FixReport::rejected(reason, t_us, 0.0), a);
+        let rej = |reason: Rejection, a: Attempt| (FixReport::rejected(reason, t_us, 0.0), a);
         let solve = match solve.map(|s| self.solve_prior(s)) {
             None => None,
             Some(Ok(s)) => Some(s),
-            Some(Err(e)) => return rej(e.into(), Attempt::default()),
+            Some(Err(e)) => return rej(e, Attempt::default()),
         };
         let g = match self.prior_geom(pos, rect) {
             Ok(g) => PriorGeom {
@@ -860,15 +855,14 @@ impl FixEngine {
                 solve,
                 ..g
             },
-            Err(e) => return rej(e.into(), Attempt::default()),
+            Err(e) => return rej(e, Attempt::default()),
         };
         let agl_m = g.c_map.z - self.ground_below(&g);
         if agl_m.is_nan() || agl_m <= 1.0 {
             return rej(
-                format!(
-                    "prior altitude {:.1} m AMSL is not above the terrain",
-                    g.c_map.z
-                ),
+                Rejection::PriorBelowTerrain {
+                    alt_amsl_m: g.c_map.z,
+                },
                 Attempt::default(),
             );
         }
@@ -878,10 +872,10 @@ impl FixEngine {
     }
 
     /// The resection's attitude prior from an NED attitude prior.
-    fn solve_prior(&self, att: &AttitudePriorNed) -> Result<SolvePrior, Rejected> {
+    fn solve_prior(&self, att: &AttitudePriorNed) -> Result<SolvePrior, Rejection> {
         let ok = |v: f64| v.is_finite() && v > 0.0;
         if !(ok(att.sigma_rad) && ok(att.sigma_yaw_rad)) {
-            return Err(Rejected::from("prior sigmas must be finite and positive"));
+            return Err(Rejection::PriorSigmas);
         }
         Ok(SolvePrior {
             r_enu_cam: r_enu_ned() * self.camera.mount.r_ned_cam(&att.attitude),
@@ -905,7 +899,7 @@ impl FixEngine {
             level,
             ..Attempt::default()
         };
-        let rej = |reason: String, a: Attempt| (FixReport::rejected(reason, t_us, 0.0), a);
+        let rej = |reason: Rejection, a: Attempt| (FixReport::rejected(reason, t_us, 0.0), a);
         let gsd = self.levels_gsd_m[level];
         let scale = agl_m / gsd / self.camera.intrinsics.fx_px;
         let Some(rect) = Rectification::new(
@@ -916,10 +910,7 @@ impl FixEngine {
             self.params.max_rect_side_px,
             self.params.max_off_nadir_deg.to_radians(),
         ) else {
-            return rej(
-                "the frame does not see the ground (rectification empty)".into(),
-                a,
-            );
+            return rej(Rejection::NoGround, a);
         };
         let view = View {
             rect: &rect,
@@ -935,14 +926,14 @@ impl FixEngine {
             (false, false, _)
             | (false, true, AreaMatching::Off)
             | (_, false, AreaMatching::Only) => {
-                return rej("no matching method enabled".into(), a);
+                return rej(Rejection::NoMethod, a);
             }
             (_, true, AreaMatching::Only) | (false, true, _) => &[FixMethod::Area],
             (_, false, _) | (_, true, AreaMatching::Off) => &[FixMethod::Features],
             (true, true, AreaMatching::Fallback) => &[FixMethod::Features, FixMethod::Area],
             (true, true, AreaMatching::First) => &[FixMethod::Area, FixMethod::Features],
         };
-        let mut reasons = Vec::new();
+        let mut tried = Vec::new();
         let mut report = None;
         for &method in order {
             let r = match method {
@@ -960,20 +951,23 @@ impl FixEngine {
                 report = Some(r);
                 break;
             }
-            // With two methods, the area's reason is labelled as such.
-            reasons.push(match method {
-                FixMethod::Area if order.len() > 1 => format!("area: {}", r.reason),
-                _ => r.reason,
-            });
+            tried.push((method, rejection_of(r.rejection)));
         }
-        let report = report.unwrap_or_else(|| FixReport::rejected(reasons.join("; "), t_us, 0.0));
+        let report = report.unwrap_or_else(|| {
+            let why = if tried.len() == 1 {
+                tried.remove(0).1
+            } else {
+                Rejection::Methods(tried)
+            };
+            FixReport::rejected(why, t_us, 0.0)
+        });
         (FixReport { level, ..report }, a)
     }
 
     /// Feature correspondences: detect in the rectified frame, predict each keypoint's map
     /// position from the prior, gate, vote a similarity, match finely, and check the count
     /// against chance (module doc).
-    fn feature_pairs(&self, v: &View, a: &mut Attempt) -> Result<Vec<Pair>, Rejected> {
+    fn feature_pairs(&self, v: &View, a: &mut Attempt) -> Result<Vec<Pair>, Rejection> {
         let (rect, level) = (v.rect, v.level);
         let gsd = self.levels_gsd_m[level];
         // Query features on valid ground, strongest first, capped.
@@ -981,7 +975,7 @@ impl FixEngine {
         let keep = self.query_on_ground(v, &feats);
         a.query_features = keep.len();
         if keep.len() < self.params.min_matches {
-            return Err(rejected!("only {} features in the frame", keep.len()));
+            return Err(Rejection::FewFeatures { n: keep.len() });
         }
         // Selection: predicted footprint grown by the coarse gate.
         let gate_m = self.gate_m(v);
@@ -992,17 +986,10 @@ impl FixEngine {
         }
         let bounds = self.reference.bounds_m();
         if footprint_outside_map(lo, hi, gate_m, bounds) {
-            return Err(rejected!(
-                "the frame's footprint (x {:.0}..{:.0}, y {:.0}..{:.0} m, where the prior puts it) lies outside the map (x {:.0}..{:.0}, y {:.0}..{:.0} m)",
-                lo[0],
-                hi[0],
-                lo[1],
-                hi[1],
-                bounds[0],
-                bounds[2],
-                bounds[1],
-                bounds[3]
-            ));
+            return Err(Rejection::FootprintOutsideMap {
+                footprint_m: [lo[0], hi[0], lo[1], hi[1]],
+                map_m: [bounds[0], bounds[2], bounds[1], bounds[3]],
+            });
         }
         let sel = self.reference.select(
             level,
@@ -1015,10 +1002,9 @@ impl FixEngine {
         );
         a.map_features = sel.features.len();
         if sel.features.len() < self.params.min_matches {
-            return Err(rejected!(
-                "only {} map features under the footprint (outside the map?)",
-                sel.features.len()
-            ));
+            return Err(Rejection::FewMapFeatures {
+                n: sel.features.len(),
+            });
         }
         // Level-pixel coordinates: origin at the selection's top-left, y down.
         let (ox, oy) = (lo[0] - gate_m, hi[1] + gate_m);
@@ -1055,12 +1041,11 @@ impl FixEngine {
         let needed =
             self.params.min_matches + (self.params.null_factor * null as f64).ceil() as usize;
         if matches.len() < needed {
-            return Err(rejected!(
-                "only {} matches where chance gives {} (need {})",
-                matches.len(),
-                null,
-                needed
-            ));
+            return Err(Rejection::BelowChance {
+                matches: matches.len(),
+                chance: null,
+                needed,
+            });
         }
         // SURF localises a keypoint to a fraction of its scale s (rectified pixels).
         let sigma_px = self.base_sigma_px(v);
@@ -1111,7 +1096,7 @@ impl FixEngine {
         pred: &[[f32; 2]],
         gate_px: f32,
         a: &mut Attempt,
-    ) -> Result<Sim2, Rejected> {
+    ) -> Result<Sim2, Rejection> {
         let [query, train] = qt;
         let coarse = MatchParams {
             ratio: 1.0,
@@ -1122,7 +1107,7 @@ impl FixEngine {
         let m = self
             .features
             .match_features(query, train, &coarse, Some(pred))
-            .map_err(|e| rejected!("matching: {e}"))?;
+            .map_err(internal("matching"))?;
         a.coarse_matches = m.len();
         let src: Vec<[f32; 2]> = m.iter().map(|mm| pred[mm.query]).collect();
         let dst: Vec<[f32; 2]> = m
@@ -1132,7 +1117,7 @@ impl FixEngine {
         let (max_rot, max_log_scale) = self.similarity_bounds(v);
         let fine_r = self.params.fine_radius_px as f32;
         let (sim, n) = ransac_similarity(&src, &dst, fine_r, max_rot, max_log_scale, 0x5EED)
-            .ok_or_else(|| rejected!("no consistent coarse matches among {}", m.len()))?;
+            .ok_or(Rejection::NoCoarseConsensus { matches: m.len() })?;
         a.vote_peak = n;
         Ok(sim)
     }
@@ -1198,13 +1183,12 @@ impl FixEngine {
     /// The resection of `pairs` in a local ENU frame about the footprint, with the prior fused.
     fn solve_pairs(&self, v: &View, pairs: &[Pair], method: FixMethod, t_us: u64) -> FixReport {
         let g = v.g;
-        let rej = |reason: String| FixReport::rejected(reason, t_us, 0.0);
+        let rej = |reason: Rejection| FixReport::rejected(reason, t_us, 0.0);
         if pairs.len() < self.params.min_matches {
-            return rej(format!(
-                "only {} matches (min {})",
-                pairs.len(),
-                self.params.min_matches
-            ));
+            return rej(Rejection::FewMatches {
+                n: pairs.len(),
+                min: self.params.min_matches,
+            });
         }
         let crs = self.reference.crs();
         let mid = pairs[pairs.len() / 2].map;
@@ -1213,14 +1197,15 @@ impl FixEngine {
             .and_then(|(lat, lon)| Geodetic::new(lat, lon, mid[2] + geoid_undulation_m(lat, lon)?))
         {
             Ok(o) => o,
-            Err(e) => return rej(format!("map geodesy: {e}")),
+            Err(e) => return rej(geodesy("map geodesy")(e)),
         };
-        let Ok(local) = LocalFrame::new(origin) else {
-            return rej("map geodesy: bad local frame".into());
+        let local = match LocalFrame::new(origin) {
+            Ok(l) => l,
+            Err(e) => return rej(geodesy("map geodesy")(e)),
         };
         let c_enu = match map_to_enu(&crs, &local, g.c_map.x, g.c_map.y, g.c_map.z) {
             Ok(c) => c,
-            Err(e) => return rej(format!("prior geodesy: {e}")),
+            Err(e) => return rej(geodesy("prior geodesy")(e)),
         };
         let heights = self.reference.height_errors();
         // Pixel thresholds are in frame pixels; a frame finer than the map level sees its
@@ -1287,20 +1272,20 @@ impl FixEngine {
         cfg.ransac.threshold_px *= mag;
         cfg.integrity.max_reprojection_rms_px *= mag;
         let outcome = resect(&corrs, &image, &priors, &cfg);
+        let verdict = match &outcome.verdict {
+            Verdict::Accepted => None,
+            Verdict::Rejected(r) => Some(Rejection::Pose(r.clone())),
+        };
         let Some(fix) = outcome.fix.as_ref() else {
-            let mut r = rej(outcome.verdict.to_string());
+            let mut r = rej(rejection_of(verdict));
             r.matches = pairs.len();
             r.method = method;
             return r;
         };
-        let mut report =
-            match self.report_from(&crs, &local, fix, t_us, outcome.verdict.is_accepted()) {
-                Ok(r) => r,
-                Err(e) => return rej(e.into()),
-            };
-        if !report.accepted {
-            report.reason = outcome.verdict.to_string();
-        }
+        let mut report = match self.report_from(&crs, &local, fix, t_us, verdict) {
+            Ok(r) => r,
+            Err(e) => return rej(e),
+        };
         report.matches = pairs.len();
         report.inliers = fix.quality.inliers;
         report.method = method;
@@ -1313,15 +1298,15 @@ impl FixEngine {
         local: &LocalFrame,
         fix: &crate::pose::Fix,
         t_us: u64,
-        accepted: bool,
-    ) -> Result<FixReport, Rejected> {
+        rejection: Option<Rejection>,
+    ) -> Result<FixReport, Rejection> {
         let geo = local
             .enu_to_geodetic(&fix.pose.c_world)
-            .map_err(|e| format!("fix geodesy: {e}"))?;
-        let n = geoid_undulation_m(geo.lat_deg, geo.lon_deg).map_err(|e| format!("geoid: {e}"))?;
+            .map_err(geodesy("fix geodesy"))?;
+        let n = geoid_undulation_m(geo.lat_deg, geo.lon_deg).map_err(geodesy("geoid"))?;
         let (x, y) = crs
             .from_geodetic(geo.lat_deg, geo.lon_deg)
-            .map_err(|e| format!("fix to map grid: {e}"))?;
+            .map_err(geodesy("fix to map grid"))?;
         // Local ENU axes differ from the NED axes at the fix by the angle between the two
         // verticals (distance / Earth radius, < 0.01 deg over a footprint): ignored.
         let r_ned_enu = r_enu_ned().inverse();
@@ -1342,8 +1327,8 @@ impl FixEngine {
             ]
         };
         let r = FixReport {
-            accepted,
-            reason: if accepted { "ok".into() } else { String::new() },
+            accepted: rejection.is_none(),
+            rejection,
             t_capture_us: t_us,
             lat_deg: geo.lat_deg,
             lon_deg: geo.lon_deg,
@@ -1401,7 +1386,7 @@ impl FixEngine {
         .chain(r.cov_ned_m2.iter().flatten())
         .all(|v| v.is_finite());
         if !finite {
-            return Err(Rejected::from("fix has non-finite values"));
+            return Err(Rejection::NonFinite { what: "the fix" });
         }
         Ok(r)
     }
@@ -1484,7 +1469,7 @@ impl FixEngine {
                 // (the feature search would spend seconds to find little more).
                 Err(AreaRelocError::NotFound(e)) => {
                     return (
-                        FixReport::rejected(format!("relocalisation: {e}"), t_us, 0.0),
+                        FixReport::rejected(e.in_relocalisation(), t_us, 0.0),
                         Attempt::default(),
                     );
                 }
@@ -1501,16 +1486,16 @@ impl FixEngine {
             None => (heading_hypotheses(&self.nadir_any_heading()), None),
         };
         let mut work = 0u64;
-        let mut last_reason = String::from("no level produced a fix");
+        let mut last_reason = Rejection::NoLevelFix;
         // Each hypothesis' rectified view and features serve every level (rectified at the
         // frame's own scale); computed on first use.
-        let mut views: Vec<Option<Result<RelocView, Rejected>>> =
+        let mut views: Vec<Option<Result<RelocView, Rejection>>> =
             hyps.iter().map(|_| None).collect();
         for level in (0..self.levels_gsd_m.len()).rev() {
             let level_map = match self.reloc_level_map(level) {
                 Ok(l) => l,
                 Err(e) => {
-                    last_reason = e.into();
+                    last_reason = e;
                     continue;
                 }
             };
@@ -1547,43 +1532,43 @@ impl FixEngine {
             let mut tries = Vec::new();
             for (outcome, view) in outcomes.into_iter().zip(&views) {
                 if work >= budget {
-                    let reason = format!(
-                        "relocalisation: work budget of {} million units spent before every \
-                         hypothesis at level {level} was tried (last: {last_reason})",
-                        self.params.reloc_budget_mwork
-                    );
-                    return (FixReport::rejected(reason, t_us, 0.0), Attempt::default());
+                    let reason = Rejection::WorkBudget {
+                        budget_mwork: self.params.reloc_budget_mwork,
+                        level,
+                        last: Box::new(last_reason),
+                    };
+                    let r = FixReport::rejected(reason.in_relocalisation(), t_us, 0.0);
+                    return (r, Attempt::default());
                 }
                 work = work.saturating_add(outcome.view_work);
                 let Some(tried) = outcome.tried else {
                     if let Some(Err(e)) = view {
-                        last_reason = e.to_string();
+                        last_reason = e.clone();
                     }
                     continue;
                 };
                 work = work.saturating_add(outcome.level_work);
                 match tried {
                     Ok(h) => {
-                        if !h.report.accepted {
-                            last_reason = format!("level {level}: {}", h.report.reason);
+                        if let Some(r) = &h.report.rejection {
+                            last_reason = r.clone().at_level(level);
                         }
                         tries.push(h);
                     }
-                    Err(e) => last_reason = e.into(),
+                    Err(e) => last_reason = e,
                 }
             }
             if tries.iter().any(|h| h.report.accepted) {
                 let (mut r, a) = select_unique(tries, t_us);
-                if !r.accepted {
-                    r.reason = format!("relocalisation: level {level}: {}", r.reason);
-                }
+                r.rejection = r
+                    .rejection
+                    .take()
+                    .map(|why| why.at_level(level).in_relocalisation());
                 return (r, a);
             }
         }
-        (
-            FixReport::rejected(format!("relocalisation: {last_reason}"), t_us, 0.0),
-            Attempt::default(),
-        )
+        let r = FixReport::rejected(last_reason.in_relocalisation(), t_us, 0.0);
+        (r, Attempt::default())
     }
 
     /// Relocalisation by area when the altitude and the tilt are known (docs/fix.md,
@@ -1620,7 +1605,7 @@ impl FixEngine {
             None => f64::INFINITY,
         };
         let mut confirmed: Option<(f64, Hypothesis)> = None;
-        let mut reasons = Vec::new();
+        let mut best_refused: Option<(f64, Box<Rejection>)> = None;
         for (i, c) in search.candidates.iter().enumerate() {
             if let Some((ncc, _)) = &confirmed
                 && c.ncc < ncc - RELOC_AREA_RIVAL_MARGIN
@@ -1649,7 +1634,9 @@ impl FixEngine {
                 Hypothesis::new(c.rect_att.attitude.yaw_rad, r, a)
             };
             if !h.report.accepted {
-                reasons.push(format!("{:.2}: {}", c.ncc, h.report.reason));
+                if best_refused.is_none() {
+                    best_refused = Some((c.ncc, Box::new(rejection_of(h.report.rejection))));
+                }
                 continue;
             }
             match &confirmed {
@@ -1662,11 +1649,11 @@ impl FixEngine {
                             .hypot(sigma_h_m(&h.report))
                             .max(search.coarse_px_m);
                     if d > same {
-                        let reason = format!(
-                            "relocalisation: ambiguous: the area search confirmed two places \
-                             {d:.0} m apart (correlations {:.2} and {:.2})",
-                            first_ncc, c.ncc
-                        );
+                        let reason = Rejection::TwoPlaces {
+                            distance_m: d,
+                            ncc: [*first_ncc, c.ncc],
+                        }
+                        .in_relocalisation();
                         return Ok((FixReport::rejected(reason, t_us, 0.0), Attempt::default()));
                     }
                 }
@@ -1674,11 +1661,10 @@ impl FixEngine {
         }
         match confirmed {
             Some((_, h)) => Ok((h.report, h.attempt)),
-            None => Err(AreaRelocError::NotFound(format!(
-                "area search: none of {} candidates confirmed (best, correlation {})",
-                search.candidates.len(),
-                reasons.first().map(String::as_str).unwrap_or("none")
-            ))),
+            None => Err(AreaRelocError::NotFound(Rejection::NoCandidateConfirmed {
+                candidates: search.candidates.len(),
+                best: best_refused,
+            })),
         }
     }
 
@@ -1697,7 +1683,7 @@ impl FixEngine {
         att: &AttitudePriorNed,
         window: Option<&SearchWindow>,
         work: &mut u64,
-    ) -> Result<AreaSearch, Rejected> {
+    ) -> Result<AreaSearch, Rejection> {
         use super::area::{candidates, grey_and_gradient};
         let (level, agl_m, img, budget) = self.area_level(alt, window, work)?;
         let gsd = self.levels_gsd_m[level];
@@ -1707,7 +1693,7 @@ impl FixEngine {
         let map = img
             .crop(crop[0] as i64, crop[1] as i64, crop[2], crop[3])
             .and_then(|m| grey_and_gradient(&m, f))
-            .ok_or_else(|| "the map image is too small".to_string())?;
+            .ok_or(Rejection::MapImageTooSmall)?;
         // The frame may see beyond the map's edge: the map inside a border of no data as wide
         // as the largest overhang the overlap rule allows.
         let (tw, th) = (tc[0].width, tc[0].height);
@@ -1728,12 +1714,10 @@ impl FixEngine {
         let estimate =
             (hyps.len() as u64 * 2 * 5 + 2 * 3).saturating_mul(points) / AREA_FFT_POINTS_PER_UNIT;
         if work.saturating_add(estimate) > budget {
-            return Err(rejected!(
-                "the area search needs about {:.0} million work units, more than the budget \
-                 (reloc_budget_mwork = {})",
-                estimate as f64 / 1e6,
-                self.params.reloc_budget_mwork
-            ));
+            return Err(Rejection::AreaSearchBudget {
+                needed_mwork: estimate as f64 / 1e6,
+                budget_mwork: self.params.reloc_budget_mwork,
+            });
         }
         let mut fft_points = 0u64;
         let shortlist = candidates(
@@ -1810,7 +1794,7 @@ impl FixEngine {
         att: &AttitudePriorNed,
         agl_px: f64,
         work: &mut u64,
-    ) -> Result<(Rectification, [super::area::Plane; 2], usize), Rejected> {
+    ) -> Result<(Rectification, [super::area::Plane; 2], usize), Rejection> {
         let r_map_cam = r_enu_ned() * self.camera.mount.r_ned_cam(&att.attitude);
         let rect = Rectification::new(
             frame,
@@ -1820,18 +1804,15 @@ impl FixEngine {
             self.params.max_rect_side_px,
             self.params.max_off_nadir_deg.to_radians(),
         )
-        .ok_or_else(|| "the frame does not see the ground (rectification empty)".to_string())?;
+        .ok_or(Rejection::NoGround)?;
         *work = work.saturating_add((rect.width() * rect.height()) as u64);
-        let plane = rect
-            .plane()
-            .ok_or_else(|| "empty rectification".to_string())?;
+        let plane = rect.plane().ok_or(Rejection::NoGround)?;
         let f = rect
             .width()
             .max(rect.height())
             .div_ceil(RELOC_AREA_TEMPLATE_PX)
             .max(1);
-        let tc = super::area::grey_and_gradient(&plane, f)
-            .ok_or_else(|| "the rectified frame is too small".to_string())?;
+        let tc = super::area::grey_and_gradient(&plane, f).ok_or(Rejection::ImagesTooSmall)?;
         Ok((rect, tc, f))
     }
 
@@ -1844,35 +1825,32 @@ impl FixEngine {
         alt: &super::AltitudePrior,
         window: Option<&SearchWindow>,
         work: &mut u64,
-    ) -> Result<(usize, f64, super::reference::MapImage<'_>, u64), Rejected> {
+    ) -> Result<(usize, f64, super::reference::MapImage<'_>, u64), Rejection> {
         if !(alt.alt_amsl_m.is_finite() && alt.sigma_m.is_finite() && alt.sigma_m > 0.0) {
-            return Err(Rejected::from(
-                "the altitude prior must be finite with a positive sigma",
-            ));
+            return Err(Rejection::AltitudePrior);
         }
         let (lo, hi) = self.reference.dem().height_range_m();
         let agl_m = alt.alt_amsl_m - 0.5 * (lo + hi);
         if agl_m.is_nan() || agl_m <= 1.0 {
-            return Err(rejected!(
-                "altitude {:.1} m AMSL is not above the map's terrain",
-                alt.alt_amsl_m
-            ));
+            return Err(Rejection::AltitudeBelowMap {
+                alt_amsl_m: alt.alt_amsl_m,
+            });
         }
         let level = self.pick_level(agl_m / self.camera.intrinsics.fx_px);
-        let img = self.reference.level_image(level).ok_or_else(|| {
-            "the map has no level images (built by an older visnav: rebuild it)".to_string()
-        })?;
+        let img = self
+            .reference
+            .level_image(level)
+            .ok_or(Rejection::NoLevelImages)?;
         // Each pixel of the level image read (and held in the working planes) counts one unit:
         // a map too large for the budget is left to the feature search before any is read.
         let budget = (self.params.reloc_budget_mwork * 1e6) as u64;
         let [_, _, w, h] = window.map_or([0, 0, img.width, img.height], |w| w.pixels(&img));
         let map_px = (w * h) as u64;
         if work.saturating_add(map_px) > budget {
-            return Err(rejected!(
-                "the map level's {:.0} million pixels exceed the budget (reloc_budget_mwork = {})",
-                map_px as f64 / 1e6,
-                self.params.reloc_budget_mwork
-            ));
+            return Err(Rejection::MapLevelBudget {
+                mpixels: map_px as f64 / 1e6,
+                budget_mwork: self.params.reloc_budget_mwork,
+            });
         }
         *work = work.saturating_add(map_px);
         Ok((level, agl_m, img, budget))
@@ -1914,7 +1892,7 @@ impl FixEngine {
         let (r2, a2) = self.fix_single(frame, &refined_pos, &refined_rect, solve, t_us, how);
         if !r2.accepted {
             let mut rejected = FixReport::rejected(
-                format!("not confirmed from its own pose: {}", r2.reason),
+                Rejection::NotConfirmed(Box::new(rejection_of(r2.rejection))),
                 t_us,
                 0.0,
             );
@@ -1945,7 +1923,7 @@ impl FixEngine {
         frame: &GrayImage,
         att: &AttitudePriorNed,
         work: &mut u64,
-    ) -> Result<RelocView, Rejected> {
+    ) -> Result<RelocView, Rejection> {
         let r_ned_cam = self.camera.mount.r_ned_cam(&att.attitude);
         let r_map_cam = r_enu_ned() * r_ned_cam; // grid convergence unknown yet: < 3 deg in a zone
         let Some(rect) = Rectification::new(
@@ -1956,7 +1934,7 @@ impl FixEngine {
             self.params.max_rect_side_px,
             self.params.max_off_nadir_deg.to_radians(),
         ) else {
-            return Err(Rejected::from("the frame does not see the ground"));
+            return Err(Rejection::NoGround);
         };
         *work = work.saturating_add((rect.width() * rect.height()) as u64);
         let feats = self.features.detect_and_describe(&self.surf, &rect.image);
@@ -1971,7 +1949,7 @@ impl FixEngine {
             .take(self.params.max_query_features)
             .collect();
         if idx.len() < self.params.min_matches {
-            return Err(rejected!("only {} features in the frame", idx.len()));
+            return Err(Rejection::FewFeatures { n: idx.len() });
         }
         let query = subset(&feats, idx.iter().copied())?;
         Ok(RelocView {
@@ -1982,14 +1960,14 @@ impl FixEngine {
     }
 
     /// All of `level`'s features in level pixels (origin at the map's top-left corner).
-    fn reloc_level_map(&self, level: usize) -> Result<RelocLevel, Rejected> {
+    fn reloc_level_map(&self, level: usize) -> Result<RelocLevel, Rejection> {
         let gsd = self.levels_gsd_m[level];
         let sel = self.reference.select(level, self.reference.bounds_m());
         if sel.features.len() < self.params.min_matches {
-            return Err(rejected!(
-                "level {level} has {} features",
-                sel.features.len()
-            ));
+            return Err(Rejection::FewLevelFeatures {
+                level,
+                n: sel.features.len(),
+            });
         }
         let b = self.reference.bounds_m();
         let (ox, oy) = (b[0], b[3]);
@@ -2017,7 +1995,7 @@ impl FixEngine {
         solve: Option<&AttitudePriorNed>,
         t_us: u64,
         work: &mut u64,
-    ) -> Result<Hypothesis, Rejected> {
+    ) -> Result<Hypothesis, Rejection> {
         let RelocView { rect, query, att } = view;
         let RelocLevel {
             level,
@@ -2042,20 +2020,24 @@ impl FixEngine {
                 },
                 None,
             )
-            .map_err(|e| format!("matching: {e}"))?;
+            .map_err(internal("matching"))?;
+        let at_level = |r: Rejection| r.at_level(level);
         if m.len() < self.params.min_matches {
-            return Err(rejected!("level {level}: only {} matches", m.len()));
+            return Err(at_level(Rejection::FewMatches {
+                n: m.len(),
+                min: self.params.min_matches,
+            }));
         }
         let size_px = rect.width().max(rect.height()) as f32;
         let centre_px = [rect.cx_px as f32, rect.cy_px as f32];
         let Some(cluster) = hough_cluster(&m, query, train, size_px, centre_px) else {
-            return Err(rejected!("level {level}: no Hough cluster"));
+            return Err(at_level(Rejection::NoHoughCluster));
         };
         if cluster.len() < MIN_HOUGH_CLUSTER {
-            return Err(rejected!(
-                "level {level}: largest Hough cluster has {} matches (min {MIN_HOUGH_CLUSTER})",
-                cluster.len()
-            ));
+            return Err(at_level(Rejection::SmallHoughCluster {
+                n: cluster.len(),
+                min: MIN_HOUGH_CLUSTER,
+            }));
         }
         // Scale and translation of the cluster: camera height and nadir point.
         let mut ss: Vec<f32> = cluster
@@ -2084,9 +2066,7 @@ impl FixEngine {
             0.5 * (lo + hi)
         });
         let crs = self.reference.crs();
-        let (lat, lon) = crs
-            .to_geodetic(x, y)
-            .map_err(|e| format!("map geodesy: {e}"))?;
+        let (lat, lon) = crs.to_geodetic(x, y).map_err(geodesy("map geodesy"))?;
         let pos = PositionPriorGeo {
             lat_deg: lat,
             lon_deg: lon,
@@ -2165,9 +2145,9 @@ const MIN_HYPOTHESIS_YAW_SIGMA_RAD: f64 = 0.5 * std::f64::consts::PI / 180.0;
 /// Why the area relocalisation gave no answer.
 enum AreaRelocError {
     /// It could not run (no level images, budget, geometry).
-    CannotRun(Rejected),
+    CannotRun(Rejection),
     /// It ran and confirmed no candidate.
-    NotFound(String),
+    NotFound(Rejection),
 }
 
 /// Where the area search looks when a position prior bounds it ([`FixEngine::area_search_near`]):
@@ -2230,7 +2210,7 @@ struct HypothesisOutcome {
     view_work: u64,
     level_work: u64,
     /// None when the hypothesis' view could not be made.
-    tried: Option<Result<Hypothesis, Rejected>>,
+    tried: Option<Result<Hypothesis, Rejection>>,
 }
 
 /// A relocalisation hypothesis' rectified view (frame scale) and its query features.
@@ -2453,12 +2433,15 @@ fn select_unique(tries: Vec<Hypothesis>, t_us: u64) -> (FixReport, Attempt) {
             Some(h) => {
                 let mut r = h.report;
                 if n > 1 {
-                    r.reason = format!("{n} headings tried, best: {}", r.reason);
+                    r.rejection = Some(Rejection::Headings {
+                        tried: n,
+                        best: Box::new(rejection_of(r.rejection.take())),
+                    });
                 }
                 (r, h.attempt)
             }
             None => (
-                FixReport::rejected("no hypothesis tried", t_us, 0.0),
+                FixReport::rejected(Rejection::NoHypothesis, t_us, 0.0),
                 Attempt::default(),
             ),
         };
@@ -2497,17 +2480,18 @@ fn select_unique(tries: Vec<Hypothesis>, t_us: u64) -> (FixReport, Attempt) {
     if let Some(c) = competitor
         && (attempt.evidence() as f64) < UNIQUENESS_RATIO * c.evidence as f64
     {
-        let reason = format!(
-            "ambiguous: {} matches above chance at heading {:.0} deg against {} at {} (need {:.1} times)",
-            attempt.evidence(),
-            report.yaw_deg,
-            c.evidence,
-            match c.elsewhere_m {
-                Some(d) => format!("another place {d:.0} m away"),
-                None => format!("heading {:.0} deg", c.rect_yaw_rad.to_degrees()),
+        let reason = Rejection::Ambiguous {
+            evidence: attempt.evidence(),
+            heading_deg: report.yaw_deg,
+            rival_evidence: c.evidence,
+            rival: match c.elsewhere_m {
+                Some(distance_m) => Rival::Elsewhere { distance_m },
+                None => Rival::Heading {
+                    heading_deg: c.rect_yaw_rad.to_degrees(),
+                },
             },
-            UNIQUENESS_RATIO
-        );
+            ratio: UNIQUENESS_RATIO,
+        };
         let mut r = FixReport::rejected(reason, t_us, 0.0);
         r.matches = report.matches;
         r.level = report.level;
@@ -2541,15 +2525,13 @@ fn placement_unique(
             && h.attempt.area_ncc > b.attempt.area_ncc - area_stage::PLACEMENT_FIX_MARGIN
     });
     if let Some((_, h)) = rival {
-        let reason = format!(
-            "ambiguous: placement {:.2} at heading {:.0} deg against {:.2} at heading {:.0} deg \
-             (need a lead of {})",
-            b.attempt.area_ncc,
-            b.report.yaw_deg,
-            h.attempt.area_ncc,
-            h.rect_yaw_rad.to_degrees(),
-            area_stage::PLACEMENT_FIX_MARGIN
-        );
+        let reason = Rejection::AmbiguousPlacement {
+            ncc: b.attempt.area_ncc,
+            heading_deg: b.report.yaw_deg,
+            rival_ncc: h.attempt.area_ncc,
+            rival_heading_deg: h.rect_yaw_rad.to_degrees(),
+            margin: area_stage::PLACEMENT_FIX_MARGIN,
+        };
         let mut r = FixReport::rejected(reason, t_us, 0.0);
         r.level = b.report.level;
         return (r, tries.swap_remove(bi).attempt);
@@ -2576,7 +2558,7 @@ fn train_features(
     sel: &RefSelection,
     gsd_m: f64,
     to_lp: impl Fn(f64, f64) -> [f32; 2],
-) -> Result<Features, Rejected> {
+) -> Result<Features, Rejection> {
     let kps = sel
         .features
         .iter()
@@ -2594,12 +2576,11 @@ fn train_features(
             }
         })
         .collect();
-    Features::new(kps, sel.descriptors.clone(), sel.kind)
-        .map_err(|e| rejected!("map features: {e}"))
+    Features::new(kps, sel.descriptors.clone(), sel.kind).map_err(internal("map features"))
 }
 
 /// The features at `idx` (in that order).
-fn subset(f: &Features, idx: impl Iterator<Item = usize>) -> Result<Features, Rejected> {
+fn subset(f: &Features, idx: impl Iterator<Item = usize>) -> Result<Features, Rejection> {
     let st = f.kind().stride();
     let mut kps = Vec::new();
     let mut desc = Vec::new();
@@ -2607,7 +2588,53 @@ fn subset(f: &Features, idx: impl Iterator<Item = usize>) -> Result<Features, Re
         kps.push(f.keypoints[i]);
         desc.extend_from_slice(&f.descriptors_padded()[i * st..(i + 1) * st]);
     }
-    Features::new(kps, desc, f.kind()).map_err(|e| rejected!("query features: {e}"))
+    Features::new(kps, desc, f.kind()).map_err(internal("query features"))
+}
+
+/// The rejection a report carries; a report rejected without one (which the engine never
+/// makes) reads as the resection's numerical failure rather than being passed on as a fix.
+fn rejection_of(r: Option<Rejection>) -> Rejection {
+    r.unwrap_or(Rejection::Internal {
+        stage: "fix",
+        detail: "rejected without a reason".into(),
+    })
+}
+
+/// `map_err` helper: a geodesy error at `stage`.
+fn geodesy(stage: &'static str) -> impl Fn(crate::geo::GeoError) -> Rejection {
+    move |e| Rejection::Geodesy {
+        stage,
+        detail: e.to_string(),
+    }
+}
+
+/// `map_err` helper: an internal step's error at `stage`.
+fn internal<E: std::fmt::Display>(stage: &'static str) -> impl Fn(E) -> Rejection {
+    move |e| Rejection::Internal {
+        stage,
+        detail: e.to_string(),
+    }
+}
+
+/// The rejections of [`FixEngine::fix_prior`]'s searches, gathered as they fail.
+struct WidenedWhy {
+    stated: Rejection,
+    /// The widened heading's +-3 sigma (degrees) and why it found nothing.
+    heading: Option<(f64, Rejection)>,
+    near: Option<Rejection>,
+}
+
+impl WidenedWhy {
+    fn into_rejection(self) -> Rejection {
+        if self.heading.is_none() && self.near.is_none() {
+            return self.stated;
+        }
+        Rejection::Widened {
+            stated: Box::new(self.stated),
+            heading: self.heading.map(|(deg, r)| (deg, Box::new(r))),
+            near: self.near.map(Box::new),
+        }
+    }
 }
 
 /// A match accepted by [`gated_match`]: query index, train index.
@@ -3015,10 +3042,10 @@ pub(crate) mod tests {
         fine: usize,
         null: usize,
     ) -> Hypothesis {
-        let mut r = FixReport::rejected("test", 7, 0.0);
+        let mut r = FixReport::rejected(Rejection::FewFeatures { n: 0 }, 7, 0.0);
         if accepted {
             r.accepted = true;
-            r.reason = "ok".into();
+            r.rejection = None;
             r.x_m = at.0;
             r.y_m = at.1;
             r.yaw_deg = rect_yaw_deg + 2.0;
@@ -3045,7 +3072,7 @@ pub(crate) mod tests {
             ],
             7,
         );
-        assert!(r.accepted, "{}", r.reason);
+        assert!(r.accepted, "{}", r.reason());
         assert_eq!((r.x_m, r.y_m), (100.0, 50.0));
         // A far heading with nearly as much evidence: ambiguous, rejected, saying so.
         let (r, a) = select_unique(
@@ -3057,10 +3084,19 @@ pub(crate) mod tests {
         );
         assert!(!r.accepted);
         assert!(
-            r.reason.contains("ambiguous") && r.reason.contains("heading 120"),
+            matches!(
+                r.rejection,
+                Some(Rejection::Ambiguous {
+                    evidence: 50,
+                    rival_evidence: 35,
+                    rival: Rival::Heading { heading_deg },
+                    ..
+                }) if (heading_deg - 120.0).abs() < 1e-9
+            ),
             "{}",
-            r.reason
+            r.reason()
         );
+        assert_eq!(r.class(), "ambiguous");
         assert_eq!(a.fine_matches, 60);
         // An accepted fix at another place with nearly as much evidence: rejected.
         let (r, _) = select_unique(
@@ -3071,10 +3107,17 @@ pub(crate) mod tests {
             7,
         );
         assert!(
-            !r.accepted && r.reason.contains("another place 800 m away"),
+            matches!(
+                r.rejection,
+                Some(Rejection::Ambiguous {
+                    rival: Rival::Elsewhere { distance_m: 800.0 },
+                    ..
+                })
+            ),
             "{}",
-            r.reason
+            r.reason()
         );
+        assert!(!r.accepted && r.reason().contains("another place 800 m away"));
         // The same place twice is one answer, not a competitor.
         let (r, _) = select_unique(
             vec![
@@ -3083,16 +3126,21 @@ pub(crate) mod tests {
             ],
             7,
         );
-        assert!(r.accepted, "{}", r.reason);
+        assert!(r.accepted, "{}", r.reason());
         // Nothing accepted: the rejection of the hypothesis that got furthest, with the count.
         let mut best = hypothesis(45.0, false, (0.0, 0.0), 30, 10);
-        best.report.reason = "only 30 matches where chance gives 10 (need 27)".into();
+        best.report.rejection = Some(Rejection::BelowChance {
+            matches: 30,
+            chance: 10,
+            needed: 27,
+        });
         let (r, _) = select_unique(vec![hypothesis(0.0, false, (0.0, 0.0), 12, 10), best], 7);
         assert!(!r.accepted);
         assert_eq!(
-            r.reason,
+            r.reason(),
             "2 headings tried, best: only 30 matches where chance gives 10 (need 27)"
         );
+        assert_eq!(r.class(), "below_chance");
     }
 
     /// An area-correlation hypothesis: no feature matches, `ties` tie points.
@@ -3119,9 +3167,9 @@ pub(crate) mod tests {
             7,
         );
         assert!(
-            !r.accepted && r.reason.contains("another place 800 m away"),
+            !r.accepted && r.reason().contains("another place 800 m away"),
             "{}",
-            r.reason
+            r.reason()
         );
         // A clear winner against a far heading with a few ties.
         let (r, _) = select_unique(
@@ -3131,7 +3179,7 @@ pub(crate) mod tests {
             ],
             7,
         );
-        assert!(r.accepted, "{}", r.reason);
+        assert!(r.accepted, "{}", r.reason());
         // Features and area in one attempt: the larger evidence counts.
         let mut both = hypothesis(0.0, false, (0.0, 0.0), 30, 10).attempt;
         both.area_ties = 25;
@@ -3175,27 +3223,27 @@ pub(crate) mod tests {
             ]
         };
         let (r, a) = select_unique(tries(), 7);
-        assert!(r.accepted, "{}", r.reason);
+        assert!(r.accepted, "{}", r.reason());
         assert_eq!(a.area_ncc, 0.45, "the best correlation wins");
         // A far heading within 0.1 of it: ambiguous.
         let mut t = tries();
         t[4].attempt.area_ncc = 0.36;
         let (r, _) = select_unique(t, 7);
         assert!(
-            !r.accepted && r.reason.contains("placement"),
+            matches!(r.rejection, Some(Rejection::AmbiguousPlacement { .. })),
             "{}",
-            r.reason
+            r.reason()
         );
         // Another accepted placement fix at another place: ambiguous.
         let mut t = tries();
         t[4] = placement_hypothesis(180.0, Some((900.0, 0.0)), 0.30);
         let (r, _) = select_unique(t, 7);
-        assert!(!r.accepted, "{}", r.reason);
+        assert!(!r.accepted, "{}", r.reason());
         // A tie-point fix outranks a placement fix.
         let mut t = tries();
         t.push(area_hypothesis(90.0, true, (0.0, 3.0), 30));
         let (r, _) = select_unique(t, 7);
-        assert!(r.accepted && r.inliers == 30, "{}", r.reason);
+        assert!(r.accepted && r.inliers == 30, "{}", r.reason());
     }
 
     fn features(points: &[([f32; 2], i8, [f32; 8])]) -> Features {
@@ -3385,7 +3433,17 @@ pub(crate) mod tests {
                 widen_heading: true,
             },
         );
-        assert!(!r.accepted && r.reason.contains("100x100"), "{}", r.reason);
+        assert!(
+            matches!(
+                r.rejection,
+                Some(Rejection::FrameSize {
+                    frame: [100, 100],
+                    ..
+                })
+            ),
+            "{}",
+            r.reason()
+        );
         assert_eq!(r.t_capture_us, 7);
         let frame = GrayImage::from_fn(320, 240, |x, y| ((x / 8 + y / 8) % 2 * 200) as f32);
         // Prior below the terrain, non-finite prior, zero sigma: rejected, never a panic.
@@ -3406,7 +3464,7 @@ pub(crate) mod tests {
                 },
             );
             assert!(!r.accepted, "{what}");
-            assert!(r.reason.contains(what), "{what}: {}", r.reason);
+            assert!(r.reason().contains(what), "{what}: {}", r.reason());
             assert!(r.lat_deg.is_nan());
         }
         // A blank frame: no features.
@@ -3422,7 +3480,7 @@ pub(crate) mod tests {
                 widen_heading: true,
             },
         );
-        assert!(!r.accepted && r.reason.contains("features"), "{}", r.reason);
+        assert_eq!(r.class(), "few_features", "{}", r.reason());
     }
 
     #[test]

@@ -96,8 +96,10 @@ pub struct FixPrior {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FixReport {
     pub accepted: bool,
-    /// "ok" when accepted, otherwise why the fix was rejected (or could not be computed).
-    pub reason: String,
+    /// Why the fix was rejected (or could not be computed); None when accepted. Serialised as
+    /// `reason`: "ok" when accepted, otherwise the rejection in words.
+    #[serde(rename = "reason", serialize_with = "reason_text")]
+    pub rejection: Option<Rejection>,
     /// Capture time copied from the prior, microseconds.
     pub t_capture_us: u64,
     /// Camera projection centre, geodetic, altitude AMSL (EGM96), metres.
@@ -161,6 +163,14 @@ pub struct FixReport {
     /// Wall time from frame to fix, milliseconds: filled by the caller that timed the call (the
     /// daemon's fix worker, the bench, `visnav fix`); the engine reads no clock and leaves 0.
     pub ms: f64,
+}
+
+/// `serde` helper: a report's outcome in words ([`FixReport::reason`]).
+fn reason_text<S: serde::Serializer>(r: &Option<Rejection>, s: S) -> Result<S::Ok, S::Error> {
+    match r {
+        None => s.serialize_str("ok"),
+        Some(r) => s.collect_str(r),
+    }
 }
 
 /// `serde` helper: a number that is not finite is left out of a serialised report.
@@ -270,12 +280,12 @@ impl VisionOnlyPose {
 }
 
 impl FixReport {
-    /// A rejected report with the given reason and no pose (NaN fields are never serialised as
-    /// numbers: JSON writers emit null for them).
-    pub fn rejected(reason: impl Into<String>, t_capture_us: u64, ms: f64) -> Self {
+    /// A rejected report with the given reason and no pose (its numbers that are not finite
+    /// are left out when serialised).
+    pub fn rejected(rejection: Rejection, t_capture_us: u64, ms: f64) -> Self {
         Self {
             accepted: false,
-            reason: reason.into(),
+            rejection: Some(rejection),
             t_capture_us,
             lat_deg: f64::NAN,
             lon_deg: f64::NAN,
@@ -303,66 +313,35 @@ impl FixReport {
         }
     }
 
+    /// The outcome in words: "ok" when accepted, otherwise the rejection (what people read).
+    pub fn reason(&self) -> String {
+        match &self.rejection {
+            None => "ok".into(),
+            Some(r) => r.to_string(),
+        }
+    }
+
+    /// The outcome's class for counting: "ok" when accepted, otherwise
+    /// [`Rejection::class`].
+    pub fn class(&self) -> &'static str {
+        self.rejection.as_ref().map_or("ok", Rejection::class)
+    }
+
     /// The position covariance as a matrix.
     pub fn cov_ned(&self) -> Matrix3<f64> {
         Matrix3::from_fn(|r, c| self.cov_ned_m2[r][c])
     }
 }
 
-/// Why a stage of the fix produced no pose, in words a user reads: it becomes
-/// [`FixReport::reason`] and the log line of the rejection. Each stage (prior geometry, features,
-/// matching, area correlation, solve, relocalisation) returns it; the engine turns it into a
-/// rejected report, never into a panic or a guess.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("{0}")]
-pub struct Rejected(pub String);
-
-impl From<&str> for Rejected {
-    fn from(reason: &str) -> Self {
-        Self(reason.to_owned())
-    }
-}
-
-impl From<String> for Rejected {
-    fn from(reason: String) -> Self {
-        Self(reason)
-    }
-}
-
-impl From<Rejected> for String {
-    fn from(r: Rejected) -> Self {
-        r.0
-    }
-}
-
-/// `rejected!("format", args)`: a [`Rejected`] with a formatted reason.
-macro_rules! rejected {
-    ($($arg:tt)*) => {
-        $crate::fix::Rejected(format!($($arg)*))
-    };
-}
-
 pub mod area;
 pub mod engine;
 pub mod rectify;
 pub mod reference;
+pub mod rejection;
 
 pub use engine::{AreaMatching, FixEngine, FixError, FixParams};
 pub use reference::{MemoryReference, RefFeature, RefSelection, Reference};
-
-/// The class of a rejected fix attempt's reason, for counting rejections by reason: the first
-/// check that refused it (the feature path's; the area correlation's, after `; area:`, is its
-/// fallback and not counted apart), in words without its numbers
-/// ([`reason_class`](crate::reasons::reason_class)). "rejected: inlier count check failed: 9
-/// inliers < minimum 12" is "inlier count check failed"; "only 24 matches where chance gives
-/// 10 (need 27); area: ..." is "only matches where chance gives". What a user reads beside it is
-/// the reason itself ([`ReasonTally`](crate::reasons::ReasonTally)).
-pub fn rejection_class(reason: &str) -> String {
-    let first = reason.split("; area:").next().unwrap_or(reason).trim();
-    let first = first.strip_prefix("rejected:").unwrap_or(first).trim();
-    let first = first.split(": ").next().unwrap_or(first).trim();
-    crate::reasons::reason_class(first)
-}
+pub use rejection::{Rejection, Rival};
 
 #[cfg(test)]
 mod tests {
@@ -381,7 +360,7 @@ mod tests {
     /// covariances out, a placement fix its resection's residual figures; what is finite stays.
     #[test]
     fn a_serialised_report_has_no_null_numbers() {
-        let rejected = FixReport::rejected("only 3 features in the frame", 7, 0.0);
+        let rejected = FixReport::rejected(Rejection::FewFeatures { n: 3 }, 7, 0.0);
         let v = serde_json::to_value(&rejected).unwrap();
         assert_eq!(nulls(&v), 0, "{v}");
         for gone in [
@@ -395,10 +374,11 @@ mod tests {
             assert!(v.get(gone).is_none(), "{gone}: {v}");
         }
         assert_eq!(v["accepted"], false);
+        assert_eq!(v["reason"], "only 3 features in the frame");
         assert_eq!(v["t_capture_us"], 7);
         let placement = FixReport {
             accepted: true,
-            reason: "ok".into(),
+            rejection: None,
             lat_deg: 47.0,
             lon_deg: -99.0,
             alt_amsl_m: 900.0,
@@ -423,6 +403,7 @@ mod tests {
         assert_eq!(v["lat_deg"], 47.0);
         assert_eq!(v["cov_ned_m2"][2][2], 9e4);
         assert_eq!(v["method"], "placement");
+        assert_eq!(v["reason"], "ok");
         assert_eq!(v["inliers"], 0);
     }
 }

@@ -219,6 +219,31 @@ pub enum Rejection {
     },
 }
 
+impl Rejection {
+    /// The check's class for counting and metric labels (`fix::rejection::CLASSES` lists them):
+    /// its name without its numbers.
+    pub fn class(&self) -> &'static str {
+        use Rejection::*;
+        match self {
+            InvalidInput { .. } => "pose_invalid_input",
+            TooFewCorrespondences { .. } => "pose_few_correspondences",
+            NoConsensus { .. } => "pose_no_consensus",
+            NumericalFailure { .. } => "pose_numerical",
+            TooFewInliers { .. } => "pose_few_inliers",
+            LowInlierRatio { .. } => "pose_inlier_ratio",
+            ReprojectionRms { .. } => "pose_reprojection",
+            Sigma0 { .. } => "pose_variance_factor",
+            GridCoverage { .. } | HullArea { .. } | Collinear { .. } => "pose_spread",
+            IllConditioned { .. } => "pose_conditioning",
+            HorizontalSigma { .. } => "pose_horizontal_sigma",
+            VerticalSigma { .. } => "pose_vertical_sigma",
+            AttitudeSigma { .. } => "pose_attitude_sigma",
+            PriorPositionInconsistent { .. } => "pose_prior_position",
+            PriorAttitudeInconsistent { .. } => "pose_prior_attitude",
+        }
+    }
+}
+
 /// The decision on a fix.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Verdict {

@@ -12,7 +12,7 @@ use nalgebra::Point2;
 use rayon::prelude::*;
 
 use super::{Attempt, FixEngine, Pair, Sim2, View, ransac_similarity};
-use crate::fix::Rejected;
+use crate::fix::Rejection;
 use crate::fix::area::{
     Integral, MIN_TIE_NCC, MIN_TIE_NCC_NEAR, Patch, PlaceError, Plane, TieMatch, TwoChannels,
     UNIQUE_MARGIN, UNIQUE_RADIUS_COARSE_PX, best_similar, match_patch, place_similar,
@@ -206,8 +206,8 @@ pub(super) struct PlacementObs {
     /// NAIP 1200-1600 m, 21 placement fixes: 0.017 RMS off).
     pub sigma_rot_rad: f64,
     pub sigma_log_scale: f64,
-    /// Why the tie points failed (kept for the log).
-    pub ties_reason: String,
+    /// Why the tie points failed (kept for the report when the placement fix fails too).
+    pub ties_rejection: Rejection,
 }
 
 impl FixEngine {
@@ -218,20 +218,20 @@ impl FixEngine {
         v: &View,
         a: &mut Attempt,
         placement_fix: bool,
-    ) -> Result<AreaOutcome, Rejected> {
-        let frame = v
-            .rect
-            .plane()
-            .ok_or_else(|| "empty rectification".to_string())?;
+    ) -> Result<AreaOutcome, Rejection> {
+        let frame = v.rect.plane().ok_or(Rejection::NoGround)?;
         let s = AreaSearch::new(self, v)?;
         let (tc, wc) = rayon::join(|| TwoChannels::new(&frame), || TwoChannels::new(&s.window));
         let placed = s.place(&tc, &wc, a)?;
         match s.ties(&frame, &placed, a) {
             Ok(pairs) => Ok(AreaOutcome::Ties(pairs)),
-            Err(e) if placement_fix => s
-                .placement(&frame, &tc, &wc, &placed, e.to_string())
-                .map(AreaOutcome::Placement)
-                .map_err(|p| rejected!("{e}; no placement fix: {p}")),
+            Err(e) if placement_fix => match s.placement(&frame, &tc, &wc, &placed, e.clone()) {
+                Ok(obs) => Ok(AreaOutcome::Placement(obs)),
+                Err(p) => Err(Rejection::NoPlacementFix {
+                    ties: Box::new(e),
+                    placement: Box::new(p),
+                }),
+            },
             Err(e) => Err(e),
         }
     }
@@ -240,15 +240,16 @@ impl FixEngine {
 impl<'a> AreaSearch<'a> {
     /// The window: the rectified grid is the map's (north-up, the level's pixel) up to the
     /// prior's errors, so the frame's centre's ground point anchors it, grown by the gate.
-    fn new(engine: &'a FixEngine, v: &'a View<'a>) -> Result<Self, Rejected> {
+    fn new(engine: &'a FixEngine, v: &'a View<'a>) -> Result<Self, Rejection> {
         let rect = v.rect;
-        let img = engine.reference.level_image(v.level).ok_or_else(|| {
-            "the map has no level images (built by an older visnav: rebuild it)".to_string()
-        })?;
+        let img = engine
+            .reference
+            .level_image(v.level)
+            .ok_or(Rejection::NoLevelImages)?;
         let (uc, vc) = (rect.width() as f64 / 2.0, rect.height() as f64 / 2.0);
         let centre = engine
             .ground_of(v, uc, vc)
-            .ok_or_else(|| "the frame's centre does not see the ground".to_string())?;
+            .ok_or(Rejection::CentreOffGround)?;
         let c_px = img.to_px(centre[0], centre[1]);
         let gate_px = (engine.gate_m(v) / img.gsd_m).ceil();
         let x0 = (c_px[0] - uc - gate_px).floor() as i64;
@@ -257,9 +258,7 @@ impl<'a> AreaSearch<'a> {
             rect.width() + 2 * gate_px as usize + 2,
             rect.height() + 2 * gate_px as usize + 2,
         );
-        let window = img
-            .crop(x0, y0, ww, wh)
-            .ok_or_else(|| "empty map window".to_string())?;
+        let window = img.crop(x0, y0, ww, wh).ok_or(Rejection::EmptyWindow)?;
         let sums = Integral::new(&window);
         Ok(Self {
             engine,
@@ -273,7 +272,12 @@ impl<'a> AreaSearch<'a> {
     }
 
     /// The tie points of the placement (two passes) and their count against chance.
-    fn ties(&self, frame: &Plane, placed: &Placed, a: &mut Attempt) -> Result<Vec<Pair>, Rejected> {
+    fn ties(
+        &self,
+        frame: &Plane,
+        placed: &Placed,
+        a: &mut Attempt,
+    ) -> Result<Vec<Pair>, Rejection> {
         let engine = self.engine;
         let patches: Vec<TiePatch> = select_patches(
             frame,
@@ -295,21 +299,22 @@ impl<'a> AreaSearch<'a> {
             .extend(pairs.iter().map(|p| ([p.frame_px.x, p.frame_px.y], p.map)));
         let min = engine.params.min_matches;
         if pairs.len() < min {
-            return Err(rejected!(
-                "area correlation {:.2}: only {} tie points (min {min})",
-                placed.ncc,
-                pairs.len(),
-            ));
+            return Err(Rejection::FewTies {
+                ncc: placed.ncc,
+                ties: pairs.len(),
+                min,
+            });
         }
         let null = self.chance(&sim, &patches);
         a.area_null_ties = null;
         let needed = min + (engine.params.null_factor * null as f64).ceil() as usize;
         if pairs.len() < needed {
-            return Err(rejected!(
-                "area correlation {:.2}: only {} tie points where chance gives {null} (need {needed})",
-                placed.ncc,
-                pairs.len(),
-            ));
+            return Err(Rejection::TiesBelowChance {
+                ncc: placed.ncc,
+                ties: pairs.len(),
+                chance: null,
+                needed,
+            });
         }
         Ok(pairs)
     }
@@ -351,14 +356,14 @@ impl<'a> AreaSearch<'a> {
         frame2: &TwoChannels,
         window2: &TwoChannels,
         a: &mut Attempt,
-    ) -> Result<Placed, Rejected> {
+    ) -> Result<Placed, Rejection> {
         let (rect, v) = (self.v.rect, self.v);
         let mut f = 1usize;
         while rect.width().max(rect.height()) / f > AREA_COARSE_TEMPLATE_PX {
             f *= 2;
         }
         let (Some(tc), Some(wc)) = (frame2.at(f), window2.at(f)) else {
-            return Err(Rejected::from("area correlation: images too small"));
+            return Err(Rejection::ImagesTooSmall);
         };
         let g = v.g;
         let hyps = similarity_hypotheses(
@@ -386,7 +391,7 @@ impl<'a> AreaSearch<'a> {
             if let PlaceError::Weak { ncc } | PlaceError::Ambiguous { ncc, .. } = e {
                 a.area_ncc = ncc;
             }
-            e.to_string()
+            Rejection::Place(e)
         })?;
         a.area_ncc = placed.ncc;
         a.area_runner_up = placed.runner_up;
@@ -416,7 +421,12 @@ impl<'a> AreaSearch<'a> {
     /// The position prior's probability of the template centres `places` (cells of the grid of
     /// `f x f` blocks, the template `size` blocks): its Gaussian density at each cell's centre
     /// times the cell's area, summed (at most 1).
-    fn prior_mass(&self, f: usize, size: [usize; 2], places: &[[f64; 2]]) -> Result<f64, Rejected> {
+    fn prior_mass(
+        &self,
+        f: usize,
+        size: [usize; 2],
+        places: &[[f64; 2]],
+    ) -> Result<f64, Rejection> {
         let (_, q) = self.predicted_centre(f, size)?;
         let (qx, qy) = (px_to_block(q[0], f), px_to_block(q[1], f));
         let sigma = (self.v.g.sigma_h_m / (self.img.gsd_m * f as f64)).max(1e-6);
@@ -437,14 +447,14 @@ impl<'a> AreaSearch<'a> {
         &self,
         f: usize,
         size: [usize; 2],
-    ) -> Result<([f64; 2], [f64; 2]), Rejected> {
+    ) -> Result<([f64; 2], [f64; 2]), Rejection> {
         let t_c = [
             block_to_px((size[0] as f64 - 1.0) / 2.0, f),
             block_to_px((size[1] as f64 - 1.0) / 2.0, f),
         ];
         let q = self
             .predict(t_c[0], t_c[1])
-            .ok_or_else(|| "the frame's centre does not see the ground".to_string())?;
+            .ok_or(Rejection::CentreOffGround)?;
         Ok((t_c, q))
     }
 
@@ -459,7 +469,7 @@ impl<'a> AreaSearch<'a> {
         (scale, theta): (f64, f64),
         ncc: f64,
         runner_up: f64,
-    ) -> Result<Placed, Rejected> {
+    ) -> Result<Placed, Rejection> {
         let (t_c, q_c) = self.predicted_centre(f, size)?;
         let w_c = [block_to_px(centre[0], f), block_to_px(centre[1], f)];
         let mut sim = Sim2 {
@@ -489,21 +499,19 @@ impl<'a> AreaSearch<'a> {
         tc: &TwoChannels,
         wc: &TwoChannels,
         placed: &Placed,
-        ties_reason: String,
-    ) -> Result<PlacementObs, Rejected> {
+        ties_rejection: Rejection,
+    ) -> Result<PlacementObs, Rejection> {
         if placed.ncc - placed.runner_up < PLACEMENT_FIX_MARGIN {
-            return Err(rejected!(
-                "peak {:.2} ahead of another place by {:.2} < {PLACEMENT_FIX_MARGIN}",
-                placed.ncc,
-                placed.ncc - placed.runner_up
-            ));
+            return Err(Rejection::PlacementMargin {
+                ncc: placed.ncc,
+                lead: placed.ncc - placed.runner_up,
+                margin: PLACEMENT_FIX_MARGIN,
+            });
         }
         if placed.unjudged_prior_mass > PLACEMENT_MAX_UNJUDGED_MASS {
-            return Err(rejected!(
-                "the places the correlation could not judge (the frame sees beyond the map \
-                 there) hold {:.1} % of the prior's probability",
-                100.0 * placed.unjudged_prior_mass
-            ));
+            return Err(Rejection::PlacementUnjudged {
+                percent: 100.0 * placed.unjudged_prior_mass,
+            });
         }
         let longer = self.v.rect.width().max(self.v.rect.height());
         let (mut cur, mut rot_step) = (*placed, AREA_ROT_STEP_RAD);
@@ -533,7 +541,7 @@ impl<'a> AreaSearch<'a> {
             }
         }
         if obs.len() < PLACEMENT_MIN_OBS {
-            return Err(rejected!("only {} grid points see the ground", obs.len()));
+            return Err(Rejection::FewGridPoints { n: obs.len() });
         }
         let cov_h_m2 = self.placement_spread(tc, wc, &cur)?;
         Ok(PlacementObs {
@@ -541,7 +549,7 @@ impl<'a> AreaSearch<'a> {
             cov_h_m2,
             sigma_rot_rad: rot_step,
             sigma_log_scale: AREA_LOG_SCALE_STEP,
-            ties_reason,
+            ties_rejection,
         })
     }
 
@@ -554,7 +562,7 @@ impl<'a> AreaSearch<'a> {
         tc: &TwoChannels,
         wc: &TwoChannels,
         cur: &Placed,
-    ) -> Result<[[f64; 2]; 2], Rejected> {
+    ) -> Result<[[f64; 2]; 2], Rejection> {
         let f = cur.f;
         let Crop {
             t,
@@ -564,10 +572,10 @@ impl<'a> AreaSearch<'a> {
             y0,
         } = self
             .crop_about(tc, wc, cur, f, PLACEMENT_SPREAD_RADIUS_PX)
-            .map_err(|e| format!("placement spread: {e}"))?;
+            .map_err(|e| e.in_step("placement spread"))?;
         let (scale, theta) = (f64::from(cur.sim.scale), f64::from(cur.sim.theta_rad));
         let (surface, cx, cy) = similar_surface(&[(&c0, &t[0]), (&c1, &t[1])], (scale, theta))
-            .ok_or_else(|| Rejected::from("placement spread: correlation undefined"))?;
+            .ok_or_else(|| Rejection::CorrelationUndefined.in_step("placement spread"))?;
         // The shift that puts the template's centre at the refined place, and the best cell
         // next to it (the refined centre is sub-pixel).
         let sx = (at[0] - x0 as f64 - cx).round() as i64;
@@ -584,15 +592,14 @@ impl<'a> AreaSearch<'a> {
             }
         }
         let (px, py, _) =
-            peak.ok_or_else(|| Rejected::from("placement spread: no correlation at the place"))?;
+            peak.ok_or_else(|| Rejection::CorrelationUndefined.in_step("placement spread"))?;
         let spread = surface.spread(px, py, PLACEMENT_SPREAD_DELTA);
         let moment = spread.moment;
         if spread.open {
-            return Err(rejected!(
-                "the correlation does not settle the place: it stays within \
-                 {PLACEMENT_SPREAD_DELTA} of its peak {PLACEMENT_SPREAD_RADIUS_PX} blocks \
-                 away (an edge or uniform ground)"
-            ));
+            return Err(Rejection::PlacementOpen {
+                delta: PLACEMENT_SPREAD_DELTA,
+                radius_blocks: PLACEMENT_SPREAD_RADIUS_PX,
+            });
         }
         // Blocks -> metres; window rows run south, the grid's y north.
         let m = f as f64 * self.img.gsd_m;
@@ -613,9 +620,9 @@ impl<'a> AreaSearch<'a> {
         cur: &Placed,
         f: usize,
         margin: f64,
-    ) -> Result<Crop, Rejected> {
+    ) -> Result<Crop, Rejection> {
         let (Some(t), Some(w)) = (tc.at(f), wc.at(f)) else {
-            return Err(Rejected::from("images too small"));
+            return Err(Rejection::ImagesTooSmall);
         };
         let (_, q) = self.predicted_centre(f, [t[0].width, t[0].height])?;
         let e = cur.sim.apply([q[0] as f32, q[1] as f32]);
@@ -637,7 +644,7 @@ impl<'a> AreaSearch<'a> {
             (2.0 * half[1]).ceil() as usize + 1,
         );
         let (Some(c0), Some(c1)) = (w[0].crop(x0, y0, cw, ch), w[1].crop(x0, y0, cw, ch)) else {
-            return Err(Rejected::from("empty window"));
+            return Err(Rejection::EmptyWindow);
         };
         Ok(Crop {
             t,
@@ -656,7 +663,7 @@ impl<'a> AreaSearch<'a> {
         wc: &TwoChannels,
         cur: &Placed,
         rot_step: f64,
-    ) -> Result<Placed, Rejected> {
+    ) -> Result<Placed, Rejection> {
         let f = cur.f / 2;
         let Crop {
             t,
@@ -666,7 +673,7 @@ impl<'a> AreaSearch<'a> {
             y0,
         } = self
             .crop_about(tc, wc, cur, f, PLACEMENT_REFINE_MARGIN_PX)
-            .map_err(|e| format!("refinement: {e}"))?;
+            .map_err(|e| e.in_step("refinement"))?;
         let (scale, theta) = (f64::from(cur.sim.scale), f64::from(cur.sim.theta_rad));
         // The rotation refined, the scale kept: the peak's place hardly depends on the scale
         // (it stretches the template about its centre), which the fix does not use (its
@@ -675,13 +682,14 @@ impl<'a> AreaSearch<'a> {
             .map(|j| (scale, theta + f64::from(j) * rot_step))
             .collect();
         let best = best_similar(&[(&c0, &t[0]), (&c1, &t[1])], &hyps)
-            .ok_or_else(|| "refinement: correlation undefined".to_string())?;
+            .ok_or_else(|| Rejection::CorrelationUndefined.in_step("refinement"))?;
         let centre = [best.centre[0] + x0 as f64, best.centre[1] + y0 as f64];
         let moved = (centre[0] - expected[0]).hypot(centre[1] - expected[1]);
         if moved > PLACEMENT_REFINE_MARGIN_PX - 1.0 {
-            return Err(rejected!(
-                "refinement on {f} px blocks moved the place by {moved:.1} blocks"
-            ));
+            return Err(Rejection::RefinementMoved {
+                block_px: f,
+                moved_blocks: moved,
+            });
         }
         self.placed_at(
             f,
@@ -702,7 +710,7 @@ impl<'a> AreaSearch<'a> {
         &self,
         placed: &Placed,
         patches: &[TiePatch],
-    ) -> Result<(Sim2, Vec<Option<TieMatch>>), Rejected> {
+    ) -> Result<(Sim2, Vec<Option<TieMatch>>), Rejection> {
         let (max_rot, max_log_scale) = self.engine.similarity_bounds(self.v);
         let fit = |src: &[[f32; 2]], dst: &[[f32; 2]]| {
             ransac_similarity(
@@ -765,12 +773,9 @@ impl<'a> AreaSearch<'a> {
                 }
             }
         }
-        let (sim, _) = fit(&src, &dst).ok_or_else(|| {
-            format!(
-                "area correlation {:.2} placed the frame but only {} patches agree",
-                placed.ncc,
-                src.len()
-            )
+        let (sim, _) = fit(&src, &dst).ok_or(Rejection::PatchesDisagree {
+            ncc: placed.ncc,
+            agree: src.len(),
         })?;
         Ok((sim, found))
     }

@@ -20,7 +20,7 @@ use nalgebra::{Matrix3, Point2, Rotation3, Vector3};
 use super::area_stage::PlacementObs;
 use super::{FixEngine, MAX_RAY_RANGE_AGL, PriorGeom, Sim2, View};
 use crate::camera::frames::{r_enu_ned, rot_z};
-use crate::fix::Rejected;
+use crate::fix::Rejection;
 use crate::fix::{FixMethod, FixReport, PriorDependenceNed};
 use crate::geo::geoid::geoid_undulation_m;
 
@@ -73,9 +73,12 @@ impl FixEngine {
     /// The placement fix's report (module doc); rejected when the grid's rays miss the terrain
     /// or a number is not finite.
     pub(super) fn placement_report(&self, v: &View, p: &PlacementObs, t_us: u64) -> FixReport {
-        let rej = |why: &str| {
+        let rej = |why: Rejection| {
             FixReport::rejected(
-                format!("{}; no placement fix: {why}", p.ties_reason),
+                Rejection::NoPlacementFix {
+                    ties: Box::new(p.ties_rejection.clone()),
+                    placement: Box::new(why),
+                },
                 t_us,
                 0.0,
             )
@@ -86,7 +89,7 @@ impl FixEngine {
                 r.level = v.level;
                 r
             }
-            Err(e) => rej(&e.0),
+            Err(e) => rej(e),
         }
     }
 
@@ -96,17 +99,17 @@ impl FixEngine {
         g: &PriorGeom,
         agl_m: f64,
         p: &PlacementObs,
-    ) -> Result<FixReport, Rejected> {
+    ) -> Result<FixReport, Rejection> {
         let est = self
             .camera_from_ground(g.c_map, agl_m, &g.r_map_cam, &p.obs)
-            .ok_or("the grid's rays miss the terrain")?;
+            .ok_or(Rejection::RaysMissTerrain)?;
         let crs = self.reference.crs();
         let (lat0, lon0) = crs
             .to_geodetic(g.c_map.x, g.c_map.y)
-            .map_err(|e| format!("prior geodesy: {e}"))?;
+            .map_err(super::geodesy("prior geodesy"))?;
         let gamma = crs
             .grid_convergence_deg(lat0, lon0)
-            .map_err(|e| format!("prior geodesy: {e}"))?
+            .map_err(super::geodesy("prior geodesy"))?
             .to_radians();
         // v_map = m v_ned (grid east-north-up, turned by the grid convergence).
         let m = rot_z(gamma) * r_enu_ned();
@@ -117,7 +120,7 @@ impl FixEngine {
                 let r = Rotation3::from_scaled_axis(psi) * g.r_map_cam;
                 self.camera_from_ground(g.c_map, agl_m, &r, &p.obs)
                     .map(|e| e.c_map)
-                    .ok_or("the grid's rays miss the terrain")
+                    .ok_or(Rejection::RaysMissTerrain)
             };
             let (plus, minus) = (step(1.0)?, step(-1.0)?);
             d_map.set_column(k, &((plus - minus) / (2.0 * DIFF_RAD)));
@@ -145,8 +148,8 @@ impl FixEngine {
         let att = self.camera.mount.attitude_from_r_ned_cam(&r_ned_cam);
         let (lat, lon) = crs
             .to_geodetic(est.c_map.x, est.c_map.y)
-            .map_err(|e| format!("fix geodesy: {e}"))?;
-        let n = geoid_undulation_m(lat, lon).map_err(|e| format!("geoid: {e}"))?;
+            .map_err(super::geodesy("fix geodesy"))?;
+        let n = geoid_undulation_m(lat, lon).map_err(super::geodesy("geoid"))?;
         let arr = |a: &Matrix3<f64>| std::array::from_fn(|i| std::array::from_fn(|j| a[(i, j)]));
         let att_cov = Matrix3::from_diagonal(&Vector3::new(
             g.sigma_tilt_rad.powi(2),
@@ -155,7 +158,7 @@ impl FixEngine {
         ));
         let r = FixReport {
             accepted: true,
-            reason: "ok".into(),
+            rejection: None,
             lat_deg: lat,
             lon_deg: lon,
             alt_amsl_m: z,
@@ -180,7 +183,7 @@ impl FixEngine {
             })
             .filter(PriorDependenceNed::is_finite),
             method: FixMethod::Placement,
-            ..FixReport::rejected("", 0, 0.0)
+            ..FixReport::rejected(Rejection::NoHypothesis, 0, 0.0)
         };
         let finite = [
             r.lat_deg,
@@ -194,7 +197,7 @@ impl FixEngine {
         .chain(r.cov_ned_m2.iter().flatten())
         .all(|x| x.is_finite());
         if !finite || r.prior_dependence.is_none() {
-            return Err(Rejected::from("the pose has non-finite values"));
+            return Err(Rejection::NonFinite { what: "the pose" });
         }
         Ok(r)
     }
@@ -318,7 +321,7 @@ mod tests {
             cov_h_m2: [[1.0, 0.0], [0.0, 1.0]],
             sigma_rot_rad: 0.01,
             sigma_log_scale: 0.01,
-            ties_reason: String::new(),
+            ties_rejection: Rejection::NoHypothesis,
         }
     }
 

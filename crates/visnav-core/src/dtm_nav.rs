@@ -113,7 +113,7 @@ use crate::vo::TrackPair;
 pub mod flow;
 pub mod navigator;
 
-pub use navigator::{DtmNavigator, DtmObserver, DtmPairError, DtmPoseFix, DtmStep};
+pub use navigator::{DTM_CLASSES, DtmNavigator, DtmObserver, DtmPoseFix, DtmRefusal, DtmStep};
 
 type Vec12 = SVector<f64, 12>;
 type Mat12 = SMatrix<f64, 12, 12>;
@@ -412,6 +412,25 @@ pub enum DtmRejection {
     },
     #[error("poor fit: sigma0 {sigma0:.2} over {max} (residuals over their claimed noise)")]
     PoorFit { sigma0: f64, max: f64 },
+}
+
+impl DtmRejection {
+    /// The check's class for counting and metric labels (a name without numbers).
+    pub fn class(&self) -> &'static str {
+        match self {
+            DtmRejection::InvalidInput(_) => "invalid_input",
+            DtmRejection::InconsistentWithGuess { .. } => "inconsistent_with_guess",
+            DtmRejection::FarFromGuess { .. } => "far_from_guess",
+            DtmRejection::TooFewTracks { .. } => "few_tracks",
+            DtmRejection::TooFewOnGround { .. } => "few_on_ground",
+            DtmRejection::FlatGround { .. } => "flat_ground",
+            DtmRejection::IllConditioned { .. } => "ill_conditioned",
+            DtmRejection::Unobservable { .. } => "unobservable",
+            DtmRejection::NotConverged { .. } => "not_converged",
+            DtmRejection::TooFewInliers { .. } => "few_inliers",
+            DtmRejection::PoorFit { .. } => "poor_fit",
+        }
+    }
 }
 
 /// The two frames' poses the navigation filter predicts: where the iterations start.

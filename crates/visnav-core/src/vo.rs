@@ -72,7 +72,7 @@ use crate::validate::{Problems, Validate};
 pub mod odometer;
 pub mod tracker;
 
-pub use odometer::{GyroDelta, Odometer, VoMotion, VoStep};
+pub use odometer::{GyroDelta, Odometer, VO_CLASSES, VoMotion, VoRefusal, VoStep};
 pub use tracker::{RawTrack, Tracker, TrackingConfig};
 
 /// One feature seen in both frames: its undistorted pixel position in the previous and the next.
@@ -236,6 +236,20 @@ pub enum VoRejection {
         agl_m: f64,
         max_fraction: f64,
     },
+}
+
+impl VoRejection {
+    /// The check's class for counting and metric labels (a name without numbers; the
+    /// resection's are [`Rejection::class`]'s).
+    pub fn class(&self) -> &'static str {
+        match self {
+            VoRejection::InvalidInput(_) => "invalid_input",
+            VoRejection::TooFewTracks { .. } => "few_tracks",
+            VoRejection::TooFewOnGround { .. } => "few_on_ground",
+            VoRejection::Resection(r) => r.class(),
+            VoRejection::TooUncertain { .. } => "too_uncertain",
+        }
+    }
 }
 
 /// The camera's motion between two frames.

@@ -118,7 +118,7 @@ impl DaemonMetrics {
     /// first check that refused, a name without numbers; the same classes as `visnav sim`'s),
     /// keeping the `reason` itself for the snapshot.
     pub fn engine_reject(&self, class: &'static str, reason: &str) {
-        self.engine_rejected.count_as(class, reason);
+        self.engine_rejected.count(class, reason);
     }
 
     /// Record one fix latency.
@@ -367,10 +367,11 @@ pub struct VoSnapshot {
 }
 
 impl Sequence {
-    /// Count one frame without a motion.
-    pub fn refuse(&self, reason: &str) {
+    /// Count one frame without a motion, by its `class` (the refusal's `class()`: a name
+    /// without numbers), keeping the `reason` in words for the snapshot.
+    pub fn refuse(&self, class: &'static str, reason: &str) {
         self.refused.inc();
-        self.refusals.count(reason);
+        self.refusals.count(class, reason);
     }
 
     /// Record one frame's computation time.

@@ -290,9 +290,10 @@ mod tests {
         d.latency(750);
         d.engine_reject("few_matches", "only 3 matches (min 12)");
         d.vo.time(20_000);
-        d.vo.refuse("only 3 tracks");
-        d.vo.refuse("quote \"back\" back\\slash\nnewline");
-        d.dtm.refuse("no relief");
+        d.vo.refuse("few_tracks", "3 tracks, need 8");
+        // A label value with the characters the text format escapes.
+        d.vo.refuse("quote \"back\" back\\slash\nnewline", "x");
+        d.dtm.refuse("flat_ground", "flat ground");
         d.health.set(&LinkHealth::Degraded {
             reason: "coasting".into(),
         });
@@ -341,9 +342,8 @@ mod tests {
             "visnav_nav_health{state=\"ok\"} 0",
             "visnav_nav_health{state=\"none\"} 0",
             "visnav_vo_frames_total{outcome=\"refused\"} 2",
-            "visnav_vo_refusals_total{reason=\"only tracks\"} 1",
-            // The label is the class: the reason's words, a line break between them a space.
-            "visnav_vo_refusals_total{reason=\"quote \\\"back\\\" back\\\\slash newline\"} 1",
+            "visnav_vo_refusals_total{reason=\"few_tracks\"} 1",
+            "visnav_vo_refusals_total{reason=\"quote \\\"back\\\" back\\\\slash\\nnewline\"} 1",
             "visnav_vo_frame_seconds_count 1",
             "visnav_vo_frame_seconds_max 0.02",
             "visnav_dtm_poses_total{outcome=\"fused\"} 0",

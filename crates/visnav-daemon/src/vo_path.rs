@@ -167,7 +167,7 @@ fn vo_step(
         Err(_) => {
             error!("visual odometry panicked on frame {seq}");
             odo.reset();
-            VoStep::Refused("odometer panicked".into())
+            VoStep::Refused(visnav_core::vo::VoRefusal::Panicked)
         }
     };
     let m = &metrics.vo;
@@ -179,7 +179,7 @@ fn vo_step(
         VoStep::Motion(_) => {
             m.motions.inc();
         }
-        VoStep::Refused(why) => m.refuse(why),
+        VoStep::Refused(why) => m.refuse(why.class(), &why.to_string()),
     }
     step
 }
@@ -201,7 +201,7 @@ fn dtm_step(
         Err(_) => {
             error!("DTM navigation panicked on frame {seq}");
             nav.reset();
-            DtmStep::Refused("DTM navigator panicked".into())
+            DtmStep::Refused(visnav_core::dtm_nav::DtmRefusal::Panicked)
         }
     };
     let m = &metrics.dtm;
@@ -213,7 +213,7 @@ fn dtm_step(
         DtmStep::Fix(_) => {
             m.motions.inc();
         }
-        DtmStep::Refused(why) => m.refuse(why),
+        DtmStep::Refused(why) => m.refuse(why.class(), &why.to_string()),
     }
     step
 }

@@ -23,6 +23,10 @@ pub struct VoLogRecord {
     pub step: String,
     /// Why there is no motion (`refused`), else empty.
     pub reason: String,
+    /// The refusal's class (`visnav_core::vo::VoRefusal::class`; logs written before it existed
+    /// lack it), else empty.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub reason_class: String,
     /// What the filter did with a motion: `fused`, `filter_rejected` or `unused`; else empty.
     pub outcome: String,
     /// The filter's normalised innovation squared (fused or gate-rejected motions).
@@ -96,6 +100,7 @@ impl VoLogRecord {
             t_capture_us,
             step: String::new(),
             reason: String::new(),
+            reason_class: String::new(),
             outcome: String::new(),
             nis: nis.filter(|v| v.is_finite()),
             t_prev_us: None,
@@ -117,7 +122,8 @@ impl VoLogRecord {
             VoStep::Started => r.step = "started".into(),
             VoStep::Refused(why) => {
                 r.step = "refused".into();
-                r.reason = why.clone();
+                r.reason = why.to_string();
+                r.reason_class = why.class().to_string();
             }
             VoStep::Motion(m) => {
                 let fix = &m.fix;
@@ -229,7 +235,14 @@ mod tests {
             VoLogRecord::new(1, 0, 800_000, &VoStep::Started, "", None),
             VoLogRecord::new(2, 1, 1_200_000, &motion, "fused", Some(1.5))
                 .with_prior_attitude(Some(([1.0, -2.0, 90.0], [0.1, 0.5]))),
-            VoLogRecord::new(3, 2, 1_400_000, &VoStep::Refused("blank".into()), "", None),
+            VoLogRecord::new(
+                3,
+                2,
+                1_400_000,
+                &VoStep::Refused(visnav_core::vo::VoRefusal::Frame("blank".into())),
+                "",
+                None,
+            ),
         ];
         let mut log = VoLog::create(&p).unwrap();
         for r in &recs {
@@ -273,8 +286,12 @@ mod tests {
         let rot = back[1].rot_los_deg.unwrap();
         assert!((rot - 1e-4f64.to_degrees()).abs() < 1e-12, "{rot}");
         assert_eq!(
-            (back[2].step.as_str(), back[2].reason.as_str()),
-            ("refused", "blank")
+            (
+                back[2].step.as_str(),
+                back[2].reason.as_str(),
+                back[2].reason_class.as_str()
+            ),
+            ("refused", "frame: blank", "bad_frame")
         );
         assert!(!text.contains("dp_ned_m\":null"), "{text}");
     }

@@ -334,9 +334,9 @@ impl Declare for Histogram {
     }
 }
 
-/// A counter family by `reason`: each reason counted by its class (a label without numbers,
-/// [`reason_class`](visnav_core::reasons::reason_class) unless the caller gives its own), at most
-/// [`MAX_REASONS`] classes (then `other`), so the label's values stay few. The snapshot keeps
+/// A counter family by `reason`: each reason counted by the class its caller gives (a typed
+/// refusal's `class()`: a name from a closed set, without numbers), at most [`MAX_REASONS`]
+/// classes (then `other`), so the label's values stay few. The snapshot keeps
 /// each class's most recent reason with its numbers: what a user reads.
 #[derive(Debug, Clone, Default)]
 pub struct Reasons {
@@ -344,13 +344,8 @@ pub struct Reasons {
 }
 
 impl Reasons {
-    /// Count one `reason` under its class.
-    pub fn count(&self, reason: &str) {
-        self.count_as(&visnav_core::reasons::reason_class(reason), reason);
-    }
-
     /// Count one `reason` under `class`.
-    pub fn count_as(&self, class: &str, reason: &str) {
+    pub fn count(&self, class: &str, reason: &str) {
         let mut m = lock(&self.counts);
         let class = if m.len() < MAX_REASONS || m.contains(class) {
             class
@@ -799,7 +794,7 @@ mod tests {
         m.t.observe(20);
         m.t.observe(3000);
         for i in 0..100 {
-            m.r.count(&format!("only {i} left"));
+            m.r.count("few_left", &format!("only {i} left"));
         }
         let mut reg = Registry::default();
         m.register(&mut reg);
@@ -816,7 +811,7 @@ mod tests {
             "x_seconds_sum 3.02",
             "x_seconds_count 2",
             // The class is the label: bounded, without the reasons' numbers.
-            "x_refusals_total{reason=\"only left\"} 100",
+            "x_refusals_total{reason=\"few_left\"} 100",
         ] {
             assert!(
                 text.lines().any(|l| l == want),
@@ -835,11 +830,11 @@ mod tests {
         // The snapshot shows the latest reason with its number.
         assert_eq!(
             (s.r[0].reason.as_str(), s.r[0].count, s.r[0].class.as_str()),
-            ("only 99 left", 100, "only left")
+            ("only 99 left", 100, "few_left")
         );
         let many = Reasons::default();
         for i in 0..MAX_REASONS + 5 {
-            many.count(&"x".repeat(i + 1));
+            many.count(&"x".repeat(i + 1), &"x".repeat(i + 1));
         }
         assert_eq!(many.value().len(), MAX_REASONS + 1);
         let other = many.value().into_iter().find(|r| r.class == "other");

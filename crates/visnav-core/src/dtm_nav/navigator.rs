@@ -63,7 +63,7 @@ pub enum DtmStep {
     /// The frame's pose from its pair.
     Fix(Box<DtmPoseFix>),
     /// No pose from this frame, and why.
-    Refused(String),
+    Refused(DtmRefusal),
 }
 
 /// A frame's solved pose as the filter's measurement, with the numbers behind it.
@@ -86,24 +86,68 @@ pub struct DtmPoseFix {
     pub relief_std_m: f64,
 }
 
-/// Why a pair gave no pose (the step's refusal text is its message).
-#[derive(Debug, thiserror::Error)]
-pub enum DtmPairError {
+/// Why a frame gave no pose: a typed outcome with its numbers as fields; people read its
+/// `Display`, counters count its [`DtmRefusal::class`].
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DtmRefusal {
+    /// The frame's pose prior is unusable.
+    #[error("{0}")]
+    Prior(crate::vo::VoRejection),
     /// Too few of the screen's rays reach the terrain model.
     #[error("{hits} of {rays} rays of the frame reach the terrain model")]
     OffTerrain { hits: usize, rays: usize },
-    /// The flow could not be computed (a blank or malformed frame).
+    /// The flow could not be computed (a blank or malformed frame; its message).
     #[error("flow: {0}")]
-    Flow(crate::vision::VisionError),
+    Flow(String),
     /// The solver refused (its screen, conditioning or integrity checks).
     #[error(transparent)]
     Solve(super::DtmRejection),
-    /// The solved position has no geodetic coordinates or geoid height.
+    /// The solved position has no geodetic coordinates or geoid height (its message).
     #[error("solved position: {0}")]
-    Geodetic(crate::geo::GeoError),
+    Geodetic(String),
     /// The pose fails the filter measurement's own check.
     #[error("solved pose unusable: {0}")]
     Unusable(&'static str),
+    /// The navigator panicked (the daemon's worker caught it).
+    #[error("DTM navigator panicked")]
+    Panicked,
+}
+
+/// Every value [`DtmRefusal::class`] returns besides the resection's
+/// ([`crate::fix::rejection::CLASSES`]' `pose_*`, through a prior the odometer's checks refuse).
+pub const DTM_CLASSES: &[&str] = &[
+    "invalid_input",
+    "inconsistent_with_guess",
+    "far_from_guess",
+    "few_tracks",
+    "few_on_ground",
+    "flat_ground",
+    "ill_conditioned",
+    "unobservable",
+    "not_converged",
+    "few_inliers",
+    "poor_fit",
+    "too_uncertain",
+    "off_terrain",
+    "flow",
+    "geodesy",
+    "unusable_pose",
+    "internal",
+];
+
+impl DtmRefusal {
+    /// The class for counting and metric labels: a name without numbers.
+    pub fn class(&self) -> &'static str {
+        match self {
+            DtmRefusal::Prior(r) => r.class(),
+            DtmRefusal::OffTerrain { .. } => "off_terrain",
+            DtmRefusal::Flow(_) => "flow",
+            DtmRefusal::Solve(r) => r.class(),
+            DtmRefusal::Geodetic(_) => "geodesy",
+            DtmRefusal::Unusable(_) => "unusable_pose",
+            DtmRefusal::Panicked => "internal",
+        }
+    }
 }
 
 /// A frame kept for pairing.
@@ -163,7 +207,7 @@ impl DtmNavigator {
     fn step(&mut self, image: GrayImage, prior: &FixPrior) -> DtmStep {
         let fp = match frame_pose(&self.camera, self.reference.as_ref(), prior) {
             Ok(p) => p,
-            Err(e) => return DtmStep::Refused(e.to_string()),
+            Err(e) => return DtmStep::Refused(DtmRefusal::Prior(e)),
         };
         let t_us = prior.t_capture_us;
         let span_us = (self.cfg.max_pair_span_s * 1e6) as u64;
@@ -180,7 +224,7 @@ impl DtmNavigator {
             None => DtmStep::Waiting,
             Some(first) => match self.pair(first, &image, &fp, t_us) {
                 Ok(f) => DtmStep::Fix(Box::new(f)),
-                Err(why) => DtmStep::Refused(why.to_string()),
+                Err(why) => DtmStep::Refused(why),
             },
         };
         self.kept.push_back(KeptFrame {
@@ -206,7 +250,7 @@ impl DtmNavigator {
         image: &GrayImage,
         fp: &FramePose,
         t_us: u64,
-    ) -> Result<DtmPoseFix, DtmPairError> {
+    ) -> Result<DtmPoseFix, DtmRefusal> {
         let dem = self.reference.dem();
         let (guess1, guess2) = (first.fp.pose, fp.pose);
         let range = self.cfg.max_range_m;
@@ -214,7 +258,7 @@ impl DtmNavigator {
         let (_, raw) = terrain_flow(&first.image, image, |p| {
             predict_px(p, &self.camera, &guess1, &guess2, dem, range)
         })
-        .map_err(DtmPairError::Flow)?;
+        .map_err(|e| DtmRefusal::Flow(e.to_string()))?;
         let f32px = |v: nalgebra::Vector2<f64>| [v.x as f32, v.y as f32];
         let tracks: Vec<TrackPair> = raw
             .iter()
@@ -250,7 +294,7 @@ impl DtmNavigator {
             dem_shift_sigma_cells: 0.0,
             ..self.cfg.clone()
         };
-        let sol = solve(&input, dem, &cfg).map_err(DtmPairError::Solve)?;
+        let sol = solve(&input, dem, &cfg).map_err(DtmRefusal::Solve)?;
         let fix = self.pose_fix(&sol.second, &sol.second_cov(), fp, t_us)?;
         Ok(DtmPoseFix {
             fix,
@@ -267,7 +311,7 @@ impl DtmNavigator {
     }
 
     /// The relief under the frame at `pose` from the terrain model alone (module doc, step 3).
-    fn screen_footprint(&self, pose: &crate::pose::Pose) -> Result<(), DtmPairError> {
+    fn screen_footprint(&self, pose: &crate::pose::Pose) -> Result<(), DtmRefusal> {
         let k = &self.camera.intrinsics;
         let c = pose.c_world;
         let n = FOOTPRINT_GRID;
@@ -286,7 +330,7 @@ impl DtmNavigator {
             })
             .collect();
         if heights.len() < n * n / 2 {
-            return Err(DtmPairError::OffTerrain {
+            return Err(DtmRefusal::OffTerrain {
                 hits: heights.len(),
                 rays: n * n,
             });
@@ -294,7 +338,7 @@ impl DtmNavigator {
         let (agl_m, relief_std_m) = super::agl_and_relief(&heights, c.z);
         let min = self.cfg.min_relief_agl_fraction;
         if agl_m.is_nan() || relief_std_m < min * agl_m {
-            return Err(DtmPairError::Solve(super::DtmRejection::FlatGround {
+            return Err(DtmRefusal::Solve(super::DtmRejection::FlatGround {
                 relief_std_m,
                 agl_m,
                 min_fraction: min,
@@ -311,14 +355,15 @@ impl DtmNavigator {
         cov_phi_c: &Matrix6<f64>,
         fp: &FramePose,
         t_us: u64,
-    ) -> Result<PoseFix, DtmPairError> {
+    ) -> Result<PoseFix, DtmRefusal> {
         let c = pose.c_world;
         let (lat_deg, lon_deg) = self
             .reference
             .crs()
             .to_geodetic(c.x, c.y)
-            .map_err(DtmPairError::Geodetic)?;
-        let n = geoid_undulation_m(lat_deg, lon_deg).map_err(DtmPairError::Geodetic)?;
+            .map_err(|e| DtmRefusal::Geodetic(e.to_string()))?;
+        let n = geoid_undulation_m(lat_deg, lon_deg)
+            .map_err(|e| DtmRefusal::Geodetic(e.to_string()))?;
         // Map grid -> NED: v_map = Rz(gamma) R_enu_ned v_ned; grid metres are `scale` true ones.
         let r_ned_map = (rot_z(fp.gamma_rad) * r_enu_ned()).inverse();
         let unscale = Matrix3::from_diagonal(&Vector3::new(1.0 / fp.scale, 1.0 / fp.scale, 1.0));
@@ -347,7 +392,7 @@ impl DtmNavigator {
         };
         Measurement::VisionPose(fix)
             .check()
-            .map_err(DtmPairError::Unusable)?;
+            .map_err(DtmRefusal::Unusable)?;
         Ok(fix)
     }
 }
@@ -358,6 +403,45 @@ mod tests {
     use crate::camera::frames::Attitude;
     use crate::fix::engine::tests::checkerboard_engine;
     use crate::vo::odometer::tests::{prior, render};
+
+    /// Every refusal's class is a name of the closed set, without a number.
+    #[test]
+    fn refusal_classes_are_a_closed_set() {
+        use crate::dtm_nav::DtmRejection as R;
+        let all = [
+            DtmRefusal::Prior(crate::vo::VoRejection::InvalidInput("no pose prior".into())),
+            DtmRefusal::OffTerrain { hits: 3, rays: 49 },
+            DtmRefusal::Flow("blank".into()),
+            DtmRefusal::Solve(R::FlatGround {
+                relief_std_m: 1.0,
+                agl_m: 500.0,
+                min_fraction: 0.02,
+            }),
+            DtmRefusal::Solve(R::FarFromGuess {
+                d_m: 250.0,
+                sigma_m: 30.0,
+                m2: 70.0,
+                max: 13.8,
+            }),
+            DtmRefusal::Solve(R::IllConditioned {
+                rcond: 1e-12,
+                min: 1e-9,
+            }),
+            DtmRefusal::Solve(R::NotConverged { iterations: 30 }),
+            DtmRefusal::Solve(R::PoorFit {
+                sigma0: 4.0,
+                max: 3.0,
+            }),
+            DtmRefusal::Geodetic("x".into()),
+            DtmRefusal::Unusable("non-finite"),
+            DtmRefusal::Panicked,
+        ];
+        for r in all {
+            let c = r.class();
+            assert!(DTM_CLASSES.contains(&c), "{c}: {r}");
+            assert!(!c.chars().any(|ch| ch.is_ascii_digit()), "{c}");
+        }
+    }
 
     /// Over the checkerboard engine's flat ground: the first frame waits for a partner, frames
     /// closer than the baseline wait too, and the first far enough is refused as flat ground by
@@ -391,7 +475,8 @@ mod tests {
             let DtmStep::Refused(why) = s else {
                 panic!("{s:?}")
             };
-            assert!(why.starts_with("flat ground"), "{why}");
+            assert!(why.to_string().starts_with("flat ground"), "{why}");
+            assert_eq!(why.class(), "flat_ground");
         }
         let no_prior = FixPrior {
             t_capture_us: 2_000_000,
@@ -406,7 +491,8 @@ mod tests {
         let DtmStep::Refused(why) = nav.frame(img, &no_prior) else {
             panic!("a frame without a prior")
         };
-        assert!(why.contains("no pose prior"), "{why}");
+        assert!(why.to_string().contains("no pose prior"), "{why}");
+        assert_eq!(why.class(), "invalid_input");
         assert_eq!(nav.kept.len(), 5);
     }
 }

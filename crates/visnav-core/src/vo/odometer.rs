@@ -61,7 +61,62 @@ pub enum VoStep {
     /// The motion since the previous frame.
     Motion(Box<VoMotion>),
     /// No motion from this frame, and why.
-    Refused(String),
+    Refused(VoRefusal),
+}
+
+/// Why a frame gave no motion: a typed outcome with its numbers as fields; people read its
+/// `Display`, counters count its [`VoRefusal::class`].
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum VoRefusal {
+    /// The frame's pose prior is unusable.
+    #[error("{0}")]
+    Prior(VoRejection),
+    /// The frame is not after the previous one (the sequence restarts).
+    #[error("frame at {t_us} us is not after the previous one ({prev_us} us)")]
+    NotAfter { t_us: u64, prev_us: u64 },
+    /// Too long since the previous frame (the sequence restarts).
+    #[error("{span_s:.2} s since the previous frame (at most {max_s} s)")]
+    Gap { span_s: f64, max_s: f64 },
+    /// The frame could not be prepared for tracking (its message).
+    #[error("frame: {0}")]
+    Frame(String),
+    /// The tracker failed (its message).
+    #[error("tracking: {0}")]
+    Tracking(String),
+    /// The motion's solve refused.
+    #[error("{0}")]
+    Motion(VoRejection),
+    /// The odometer panicked (the daemon's worker caught it).
+    #[error("odometer panicked")]
+    Panicked,
+}
+
+/// Every value [`VoRefusal::class`] returns besides the resection's
+/// ([`crate::fix::rejection::CLASSES`]' `pose_*`).
+pub const VO_CLASSES: &[&str] = &[
+    "invalid_input",
+    "few_tracks",
+    "few_on_ground",
+    "too_uncertain",
+    "time_not_after",
+    "time_gap",
+    "bad_frame",
+    "tracking",
+    "internal",
+];
+
+impl VoRefusal {
+    /// The class for counting and metric labels: a name without numbers.
+    pub fn class(&self) -> &'static str {
+        match self {
+            VoRefusal::Prior(r) | VoRefusal::Motion(r) => r.class(),
+            VoRefusal::NotAfter { .. } => "time_not_after",
+            VoRefusal::Gap { .. } => "time_gap",
+            VoRefusal::Frame(_) => "bad_frame",
+            VoRefusal::Tracking(_) => "tracking",
+            VoRefusal::Panicked => "internal",
+        }
+    }
 }
 
 /// A frame's motion as the filter's measurement, with the numbers behind it.
@@ -133,20 +188,22 @@ impl Odometer {
             Ok(p) => p,
             Err(why) => {
                 self.reset();
-                return VoStep::Refused(why.to_string());
+                return VoStep::Refused(VoRefusal::Prior(why));
             }
         };
         let t_us = prior.t_capture_us;
         let restart = match self.prev {
             None => Some(None),
-            Some(p) if t_us <= p.t_us => Some(Some(format!(
-                "frame at {t_us} us is not after the previous one ({} us)",
-                p.t_us
-            ))),
-            Some(p) if (t_us - p.t_us) as f64 * 1e-6 > VO_MAX_SPAN_S => Some(Some(format!(
-                "{:.2} s since the previous frame (at most {VO_MAX_SPAN_S} s)",
-                (t_us - p.t_us) as f64 * 1e-6
-            ))),
+            Some(p) if t_us <= p.t_us => Some(Some(VoRefusal::NotAfter {
+                t_us,
+                prev_us: p.t_us,
+            })),
+            Some(p) if (t_us - p.t_us) as f64 * 1e-6 > VO_MAX_SPAN_S => {
+                Some(Some(VoRefusal::Gap {
+                    span_s: (t_us - p.t_us) as f64 * 1e-6,
+                    max_s: VO_MAX_SPAN_S,
+                }))
+            }
             Some(_) => None,
         };
         if restart.is_some() {
@@ -156,7 +213,7 @@ impl Odometer {
             Ok(p) => p,
             Err(e) => {
                 self.reset();
-                return VoStep::Refused(format!("frame: {e}"));
+                return VoStep::Refused(VoRefusal::Frame(e.to_string()));
             }
         };
         let prev = self.prev;
@@ -169,7 +226,7 @@ impl Odometer {
             Ok(p) => p,
             Err(e) => {
                 self.reset();
-                return VoStep::Refused(format!("tracking: {e}"));
+                return VoStep::Refused(VoRefusal::Tracking(e.to_string()));
             }
         };
         let ground_amsl_m = self.ground_below(&fp.pose);
@@ -233,7 +290,7 @@ impl Odometer {
         };
         let m = match frame_motion(&input, self.reference.dem(), &self.cfg) {
             Ok(m) => m,
-            Err(e) => return VoStep::Refused(e.to_string()),
+            Err(e) => return VoStep::Refused(VoRefusal::Motion(e)),
         };
         let rotation = rotation_prior
             .zip(gyro)
@@ -422,6 +479,47 @@ pub(crate) mod tests {
     use crate::fix::{AttitudePriorNed, PositionPriorGeo};
     use crate::geo::Crs;
     use crate::nav::earth::ned_offset_m;
+
+    /// Every refusal's class is a name of the closed set (the resection's `pose_*` from the
+    /// fix's), without a number.
+    #[test]
+    fn refusal_classes_are_a_closed_set() {
+        let all = [
+            VoRefusal::Prior(VoRejection::InvalidInput("no pose prior".into())),
+            VoRefusal::NotAfter {
+                t_us: 1,
+                prev_us: 2,
+            },
+            VoRefusal::Gap {
+                span_s: 2.5,
+                max_s: 2.0,
+            },
+            VoRefusal::Frame("blank".into()),
+            VoRefusal::Tracking("x".into()),
+            VoRefusal::Motion(VoRejection::TooFewTracks { tracks: 3, min: 8 }),
+            VoRefusal::Motion(VoRejection::TooFewOnGround {
+                on_ground: 3,
+                tracks: 9,
+                min: 8,
+            }),
+            VoRefusal::Motion(VoRejection::Resection(crate::pose::Rejection::Sigma0 {
+                sigma0: 3.0,
+                max: 2.0,
+            })),
+            VoRefusal::Motion(VoRejection::TooUncertain {
+                sigma_h_m: 9.0,
+                agl_m: 50.0,
+                max_fraction: 0.1,
+            }),
+            VoRefusal::Panicked,
+        ];
+        for r in all {
+            let c = r.class();
+            let pose = c.starts_with("pose_") && crate::fix::rejection::CLASSES.contains(&c);
+            assert!(VO_CLASSES.contains(&c) || pose, "{c}: {r}");
+            assert!(!c.chars().any(|ch| ch.is_ascii_digit()), "{c}");
+        }
+    }
 
     /// Flat ground of the checkerboard engine, m AMSL.
     const GROUND_M: f64 = 300.0;
@@ -751,14 +849,16 @@ pub(crate) mod tests {
         );
         let s = odo.frame(blank.clone(), &prior(&crs, at(1), att, 200_000), None);
         assert!(
-            matches!(&s, VoStep::Refused(why) if why.contains("tracks")),
+            matches!(&s, VoStep::Refused(why) if why.class() == "few_tracks"
+                && why.to_string().contains("tracks")),
             "{s:?}"
         );
         let mut none = prior(&crs, at(2), att, 400_000);
         none.position = None;
         let s = odo.frame(frame(2), &none, None);
         assert!(
-            matches!(&s, VoStep::Refused(why) if why.contains("no pose prior")),
+            matches!(&s, VoStep::Refused(why) if why.class() == "invalid_input"
+                && why.to_string().contains("no pose prior")),
             "{s:?}"
         );
         assert_eq!(
@@ -767,12 +867,22 @@ pub(crate) mod tests {
         );
         let s = odo.frame(frame(4), &prior(&crs, at(4), att, 500_000), None);
         assert!(
-            matches!(&s, VoStep::Refused(why) if why.contains("not after")),
+            matches!(
+                &s,
+                VoStep::Refused(VoRefusal::NotAfter {
+                    t_us: 500_000,
+                    prev_us: 600_000
+                })
+            ),
             "{s:?}"
         );
+        let s = odo.frame(frame(5), &prior(&crs, at(5), att, 3_000_000), None);
+        let VoStep::Refused(why) = &s else {
+            panic!("{s:?}")
+        };
         assert_eq!(
-            odo.frame(frame(5), &prior(&crs, at(5), att, 3_000_000), None),
-            VoStep::Refused("2.50 s since the previous frame (at most 2 s)".into())
+            (why.to_string().as_str(), why.class()),
+            ("2.50 s since the previous frame (at most 2 s)", "time_gap")
         );
         assert!(matches!(
             odo.frame(frame(6), &prior(&crs, at(6), att, 3_200_000), None),

@@ -394,40 +394,99 @@ fn no_core_function_is_over_120_lines() {
 }
 
 /// The modules under `src` (`<name>.rs` or `<name>/`) and which of them each names with one of
-/// `prefixes` outside its tests.
+/// `prefixes` outside its tests. A top-level module's `super::` is the crate root as `crate::`
+/// is; a name the crate root re-exports (`pub use module::{Name}` in lib.rs) counts as its
+/// module, so an import through the root is seen.
 fn modules_under(src: &Path, prefixes: &[&str]) -> BTreeMap<String, BTreeSet<String>> {
-    let mut g: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
-    for p in sources(src) {
-        let rel = p.strip_prefix(src).expect("under src");
-        let top = rel
+    let top_of = |p: &Path| {
+        p.strip_prefix(src)
+            .expect("under src")
             .components()
             .next()
             .and_then(|c| c.as_os_str().to_str())
             .unwrap_or("")
             .trim_end_matches(".rs")
-            .to_string();
+            .to_string()
+    };
+    let files = sources(src);
+    let modules: BTreeSet<String> = files.iter().map(|p| top_of(p)).collect();
+    let exports = root_exports(&src.join("lib.rs"));
+    let mut g: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+    for p in files {
+        let top = top_of(&p);
         if ["lib", "main", "mod"].contains(&top.as_str()) {
             continue;
         }
+        let top_level = p.parent() == Some(src);
         let code = code_outside_tests(&p);
         let uses = g.entry(top.clone()).or_default();
-        for prefix in prefixes {
+        let root_prefixes: &[&str] = if top_level && prefixes.contains(&"crate::") {
+            &["super::"]
+        } else {
+            &[]
+        };
+        for prefix in prefixes.iter().chain(root_prefixes) {
             for (i, _) in code.match_indices(prefix) {
                 let before = code[..i].chars().next_back();
                 if before.is_some_and(|c| c.is_alphanumeric() || c == '_') {
                     continue;
                 }
-                let name: String = code[i + prefix.len()..]
-                    .chars()
-                    .take_while(|c| c.is_ascii_lowercase() || *c == '_')
-                    .collect();
-                if !name.is_empty() && name != top {
-                    uses.insert(name);
+                let rest = &code[i + prefix.len()..];
+                // `crate::{a, b::C}`: each name in the braces.
+                let names: Vec<String> = match rest.strip_prefix('{') {
+                    Some(list) => list
+                        .split('}')
+                        .next()
+                        .unwrap_or("")
+                        .split(',')
+                        .map(|n| ident(n.trim()))
+                        .collect(),
+                    None => vec![ident(rest)],
+                };
+                for name in names {
+                    let module = if modules.contains(&name) {
+                        Some(name)
+                    } else {
+                        exports.get(&name).cloned()
+                    };
+                    if let Some(m) = module.filter(|m| *m != top && !m.is_empty()) {
+                        uses.insert(m);
+                    }
                 }
             }
         }
     }
     g
+}
+
+/// The identifier at the start of `s`.
+fn ident(s: &str) -> String {
+    s.chars()
+        .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+        .collect()
+}
+
+/// The names a crate root re-exports, each with the module it comes from (`pub use m::{A, b}`
+/// and `pub use m::A`); empty without a lib.rs.
+fn root_exports(lib: &Path) -> BTreeMap<String, String> {
+    let mut out = BTreeMap::new();
+    let Ok(text) = std::fs::read_to_string(lib) else {
+        return out;
+    };
+    for stmt in text.split("pub use ").skip(1) {
+        let stmt = stmt.split(';').next().unwrap_or("");
+        let Some((module, rest)) = stmt.split_once("::") else {
+            continue;
+        };
+        let rest = rest.trim().trim_start_matches('{').trim_end_matches('}');
+        for name in rest.split(',') {
+            let name = ident(name.trim().rsplit("::").next().unwrap_or(""));
+            if !name.is_empty() {
+                out.insert(name, ident(module.trim()));
+            }
+        }
+    }
+    out
 }
 
 /// A circle through `start` in `g`, if any (depth-first).
@@ -471,11 +530,35 @@ fn the_crates_modules_import_each_other_without_a_circle() {
         let g = modules_under(&repo().join("crates").join(krate).join("src"), &["crate::"]);
         assert_eq!(circle(&g), None, "{krate}: import circle; the graph: {g:?}");
     }
+    // The graph sees `super::` in a top-level module and names re-exported at the root.
+    let daemon = modules_under(&repo().join("crates/visnav-daemon/src"), &["crate::"]);
+    assert!(daemon["wiring"].contains("fixer"), "{daemon:?}");
+    assert!(daemon["app_config"].contains("vision_config"), "{daemon:?}");
     // Inside io's geo: the GeoTIFF reader, its info and the window reader.
     let geo = repo().join("crates/visnav-io/src/geo");
     let g = modules_under(&geo, &["super::"]);
     assert!(g["window"].contains("geotiff_info"), "{g:?}");
     assert_eq!(circle(&g), None, "io geo: import circle; the graph: {g:?}");
+}
+
+/// The daemon's crate root is only modules and re-exports: the service lives in `daemon`, the
+/// navigation task in `nav_task`, the frame path's view of the engine in `fixer`.
+#[test]
+fn the_daemons_crate_root_is_only_modules_and_re_exports() {
+    let lib = code_outside_tests(&repo().join("crates/visnav-daemon/src/lib.rs"));
+    let code: String = lib
+        .lines()
+        .filter(|l| !l.trim_start().starts_with("//"))
+        .collect::<Vec<_>>()
+        .join(" ");
+    for stmt in code.split(';').map(str::trim).filter(|s| !s.is_empty()) {
+        assert!(
+            ["pub mod ", "mod ", "pub use "]
+                .iter()
+                .any(|k| stmt.starts_with(k)),
+            "visnav-daemon/src/lib.rs: {stmt}"
+        );
+    }
 }
 
 #[test]

@@ -155,8 +155,8 @@ pub fn vision_line(cfg: &Config) -> String {
 }
 
 /// Where `[vision] backend` puts SURF, for this binary.
-fn surf_words(b: visnav::daemon::wiring::VisionBackend) -> &'static str {
-    use visnav::daemon::wiring::VisionBackend as B;
+fn surf_words(b: visnav::daemon::vision_config::VisionBackend) -> &'static str {
+    use visnav::daemon::vision_config::VisionBackend as B;
     match (b, cfg!(feature = "gpu")) {
         (B::Cpu, _) => "SURF on the CPU",
         (B::Gpu, true) => "SURF on the GPU (any adapter; the CPU when none opens)",

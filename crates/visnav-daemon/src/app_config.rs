@@ -77,10 +77,10 @@ pub struct Config {
     pub dtm_nav: visnav_core::dtm_nav::DtmNavConfig,
     /// The daemon's pipeline settings; every key has a default.
     #[serde(default)]
-    pub daemon: crate::DaemonConfig,
+    pub daemon: crate::config::DaemonConfig,
     /// Where the vision's SURF features are computed (`[vision] backend`).
     #[serde(default)]
-    pub vision: crate::wiring::VisionConfig,
+    pub vision: crate::vision_config::VisionConfig,
 }
 
 /// `[map]`: the georeferenced imagery and terrain the fixes are computed against. The default

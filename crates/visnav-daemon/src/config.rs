@@ -21,7 +21,7 @@
 //!
 //! `metrics_listen` serves the one metrics registry: every metric of the daemon and the link plus
 //! the navigation health ([`crate::metrics::registry`], [`crate::prometheus`], docs/operations.md). It is an `IP:PORT` socket address; port 0
-//! picks a free port ([`crate::Daemon::metrics_addr`] tells which).
+//! picks a free port ([`crate::daemon::Daemon::metrics_addr`] tells which).
 //!
 //! Sigma floors: a receiver's h_acc / v_acc describe its position at the fix time, but the daemon
 //! time-stamps GPS_RAW_INT / GPS2_RAW on arrival (ArduPilot's `time_usec` is the Unix time now,

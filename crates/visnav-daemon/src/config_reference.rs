@@ -218,10 +218,13 @@ pub fn defaults() -> toml::Table {
         "dtm_nav".into(),
         value_of(&visnav_core::dtm_nav::DtmNavConfig::default()),
     );
-    t.insert("daemon".into(), value_of(&crate::DaemonConfig::default()));
+    t.insert(
+        "daemon".into(),
+        value_of(&crate::config::DaemonConfig::default()),
+    );
     t.insert(
         "vision".into(),
-        values::vision(&crate::wiring::VisionConfig::default()),
+        values::vision(&crate::vision_config::VisionConfig::default()),
     );
     // The empty strings of an absent [frames] source and connection are not defaults.
     for required in [
@@ -657,8 +660,8 @@ mod tests {
             "frames",
         );
         assert_eq!(cfg.frames, Some(frames));
-        assert_eq!(cfg.vision, crate::wiring::VisionConfig::default());
-        assert_eq!(cfg.daemon, crate::DaemonConfig::default());
+        assert_eq!(cfg.vision, crate::vision_config::VisionConfig::default());
+        assert_eq!(cfg.daemon, crate::config::DaemonConfig::default());
         assert_eq!(cfg.nav, visnav_core::nav::config::NavConfig::default());
         assert_eq!(cfg.fix, visnav_core::fix::FixParams::default());
         assert_eq!(cfg.vo, visnav_core::vo::VoConfig::default());

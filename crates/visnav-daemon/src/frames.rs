@@ -19,7 +19,7 @@ use std::time::Duration;
 use tokio::sync::mpsc;
 use tracing::{Instrument, error, info, warn};
 
-use crate::FrameFixer;
+use crate::fixer::FrameFixer;
 use crate::handoff::capture_time_us;
 pub use crate::handoff::{PriorSource, Slot, Take};
 use crate::metrics::DaemonMetrics;

@@ -4,8 +4,9 @@
 
 use std::sync::Arc;
 
-use super::FrameFixer;
-use super::app_config::Config;
+use crate::app_config::Config;
+use crate::fixer::FrameFixer;
+use crate::vision_config::VisionBackend;
 use visnav_core::camera::CameraError;
 use visnav_core::fix::{FixEngine, FixError, FixPrior, FixReport, Reference};
 use visnav_core::geo::dem::{Dem, DemError};
@@ -80,29 +81,6 @@ pub fn engine_from_config(cfg: &Config) -> Result<FixEngine, WiringError> {
         engine.set_feature_backend(backend);
     }
     Ok(engine)
-}
-
-/// `[vision]`: where the fix engine computes the frames' SURF features.
-#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct VisionConfig {
-    /// `cpu` (default), `gpu` or `auto`.
-    pub backend: VisionBackend,
-}
-
-/// `[vision] backend`.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum VisionBackend {
-    /// The CPU reference.
-    #[default]
-    Cpu,
-    /// The GPU path (crates/visnav-gpu; a binary built with the `gpu` feature): any adapter,
-    /// a software one with a warning; none, or a binary without the path: the CPU, with a
-    /// warning.
-    Gpu,
-    /// A hardware GPU when there is one (and the binary has the path), else the CPU.
-    Auto,
 }
 
 /// The feature backend for `[vision] backend` (None: the CPU), saying what was chosen and why.

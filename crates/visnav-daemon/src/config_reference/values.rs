@@ -8,7 +8,7 @@ use toml::{Table, Value};
 use visnav_io::frames::{FramesConfig, PixelFormat, SourceKind, StampMode};
 use visnav_link::config::{LinkConfig, OnLost, OutputConfig, OutputMode, StreamRates};
 
-use crate::wiring::{VisionBackend, VisionConfig};
+use crate::vision_config::{VisionBackend, VisionConfig};
 
 fn put(t: &mut Table, key: &str, v: impl Into<Value>) {
     t.insert(key.into(), v.into());

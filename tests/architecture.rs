@@ -210,8 +210,9 @@ fn the_core_does_no_io_and_reads_no_clock() {
 }
 
 /// The library crates, in the order of the data flow.
-const CRATES: [&str; 6] = [
+const CRATES: [&str; 7] = [
     "visnav-core",
+    "visnav-metrics",
     "visnav-gpu",
     "visnav-io",
     "visnav-link",
@@ -223,9 +224,22 @@ const CRATES: [&str; 6] = [
 fn allowed(krate: &str) -> &'static [&'static str] {
     match krate {
         "visnav-core" => &[],
-        "visnav-gpu" | "visnav-io" | "visnav-link" => &["visnav-core"],
-        "visnav-daemon" => &["visnav-core", "visnav-gpu", "visnav-io", "visnav-link"],
-        "visnav-sim" => &["visnav-core", "visnav-io", "visnav-link", "visnav-daemon"],
+        "visnav-metrics" | "visnav-gpu" | "visnav-io" => &["visnav-core"],
+        "visnav-link" => &["visnav-core", "visnav-metrics"],
+        "visnav-daemon" => &[
+            "visnav-core",
+            "visnav-metrics",
+            "visnav-gpu",
+            "visnav-io",
+            "visnav-link",
+        ],
+        "visnav-sim" => &[
+            "visnav-core",
+            "visnav-metrics",
+            "visnav-io",
+            "visnav-link",
+            "visnav-daemon",
+        ],
         _ => &[],
     }
 }

@@ -42,7 +42,6 @@ use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
 
 use crate::config::{DaemonConfig, GpsSource, ImuBiasRestore};
 use crate::imu_bias::{ImuBiasRestorer, RestoreStatus};
-use crate::metrics::same_but_numbers;
 use visnav_core::camera::Attitude;
 use visnav_core::fix::{AltitudePrior, AttitudePriorNed, FixPrior, FixReport, PositionPriorGeo};
 use visnav_core::geo::geoid::geoid_undulation_m;
@@ -51,6 +50,7 @@ use visnav_core::nav::{
     AltitudeFix, AttitudeFix, Health as NavHealth, ImuSample, Measurement, NavConfig, NavOutput,
     PoseFix, PositionFix, VelocityFix, earth,
 };
+use visnav_core::reasons::same_but_numbers;
 use visnav_link::{Health as LinkHealth, NavEstimate, Telemetry};
 
 /// A lower-priority IMU message is ignored while a higher-priority one arrived this recently, s.

@@ -1,5 +1,5 @@
 //! The daemon's metrics, each declared once in [`DaemonMetrics`] (name, help, kind, labels:
-//! [`visnav_link::metric_set!`]): atomics updated from any task or thread, registered in the one
+//! [`visnav_metrics::metric_set!`]): atomics updated from any task or thread, registered in the one
 //! registry of `visnav run`'s Prometheus endpoint ([`registry`]: build info, heap, the daemon's
 //! and the link's metrics; `daemon.metrics_listen`, [`crate::prometheus`]) and copied into a
 //! typed [`MetricsSnapshot`] (the end-of-run JSON, `visnav sim`, the tests).
@@ -19,12 +19,11 @@ use serde::Serialize;
 
 use crate::imu_bias::{G0_M_S2, RestoreStatus};
 use visnav_link::Health as LinkHealth;
-use visnav_link::metrics::{
-    Counter, Declare, Gauge, Histogram, Label, Metrics as LinkMetrics, Reasons, Registrar, Registry,
-};
-pub use visnav_link::metrics::{ReasonCount, same_but_numbers};
+use visnav_link::metrics::Metrics as LinkMetrics;
+pub use visnav_metrics::ReasonCount;
+use visnav_metrics::{Counter, Declare, Gauge, Histogram, Label, Reasons, Registrar, Registry};
 
-visnav_link::metric_set! {
+visnav_metrics::metric_set! {
     /// The daemon's metrics (atomics; `Clone` shares them).
     pub struct DaemonMetrics => MetricsSnapshot {
         /// Navigation health as the daemon last published it (the injector's view).
@@ -550,7 +549,7 @@ impl From<&LinkHealth> for HealthState {
 mod tests {
     #[test]
     fn reasons_group_by_class_and_keep_their_numbers() {
-        use super::same_but_numbers as same;
+        use visnav_core::reasons::same_but_numbers as same;
         assert!(same(
             "only 2 matches where chance gives 3 (need 17)",
             "only 45 matches where chance gives 70 (need 117)"

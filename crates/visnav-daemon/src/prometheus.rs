@@ -28,7 +28,8 @@ use tokio::task::{JoinHandle, JoinSet};
 use tracing::{debug, info};
 
 use crate::metrics::DaemonMetrics;
-use visnav_link::metrics::{CONTENT_TYPE, Metrics as LinkMetrics, Registry};
+use visnav_link::metrics::Metrics as LinkMetrics;
+use visnav_metrics::{CONTENT_TYPE, Registry};
 
 /// Largest accepted request head (request line + headers), bytes.
 pub const MAX_REQUEST_BYTES: usize = 8192;
@@ -39,7 +40,7 @@ pub const MAX_CONNECTIONS: usize = 16;
 
 /// The registry as exposition text (format 0.0.4).
 pub fn render(registry: &Registry) -> String {
-    visnav_link::metrics::render(registry)
+    visnav_metrics::render(registry)
 }
 
 // ---------------------------------------------------------------------------------------------

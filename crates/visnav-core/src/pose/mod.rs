@@ -34,6 +34,7 @@ pub mod integrity;
 pub mod p3p;
 pub mod ransac;
 pub mod refine;
+pub mod similarity;
 
 use std::ops::AddAssign;
 

@@ -13,6 +13,7 @@
 //! at integer coordinates (OpenCV's convention). Keypoint orientation `orientation_rad` is the
 //! angle from the image `+x` axis towards `+y`, i.e. clockwise as seen on screen, in `(-pi, pi]`.
 
+pub mod gated;
 pub mod gray;
 pub mod integral;
 pub mod klt;
@@ -21,6 +22,7 @@ pub mod surf;
 
 use std::path::PathBuf;
 
+pub use gated::{GatedMatch, gated_match, hough_cluster};
 pub use gray::GrayImage;
 pub use integral::IntegralImage;
 pub use matcher::{Match, MatchParams, match_features};

@@ -11,7 +11,7 @@
 use nalgebra::Point2;
 use rayon::prelude::*;
 
-use super::{Attempt, FixEngine, Pair, Sim2, View, ransac_similarity};
+use super::{Attempt, FixEngine, Pair, View};
 use crate::fix::Rejection;
 use crate::fix::area::{
     Integral, MIN_TIE_NCC, MIN_TIE_NCC_NEAR, Patch, PlaceError, Plane, TieMatch, TwoChannels,
@@ -19,6 +19,7 @@ use crate::fix::area::{
     rank_hypotheses, select_patches, similar_surface, unjudged_places,
 };
 use crate::fix::reference::MapImage;
+use crate::pose::similarity::{Sim2, ransac_similarity};
 
 /// The area placement runs on block means bringing the rectified frame's longer side to at most
 /// this many pixels: enough pattern for a unique peak, and FFTs of a few hundred pixels a side.

@@ -18,11 +18,12 @@
 use nalgebra::{Matrix3, Point2, Rotation3, Vector3};
 
 use super::area_stage::PlacementObs;
-use super::{FixEngine, MAX_RAY_RANGE_AGL, PriorGeom, Sim2, View};
+use super::{FixEngine, MAX_RAY_RANGE_AGL, PriorGeom, View};
 use crate::camera::frames::{r_enu_ned, rot_z};
 use crate::fix::Rejection;
 use crate::fix::{FixMethod, FixReport, PriorDependenceNed};
 use crate::geo::geoid::geoid_undulation_m;
+use crate::pose::similarity::Sim2;
 
 /// Rotation of the prior for the numerical derivative of the position with respect to its
 /// attitude, rad (0.1 deg: the position moves by metres, far above the solve's rounding, while

@@ -21,10 +21,23 @@ pub use visnav_daemon as daemon;
 /// SURF on the GPU (the `gpu` feature, off by default).
 #[cfg(feature = "gpu")]
 pub use visnav_gpu as gpu;
-pub use visnav_io::{geo, map};
+pub use visnav_io::map;
 pub use visnav_link as link;
 #[cfg(feature = "sim")]
 pub use visnav_sim as sitl;
+
+/// Geodesy, rasters and the terrain model (visnav-core) with the GeoTIFF files they come from
+/// (visnav-io).
+pub mod geo {
+    pub use visnav_core::geo::*;
+    pub use visnav_io::geo::{geotiff, geotiff_info, geotiff_write, window};
+
+    /// The terrain model (visnav-core) and its loading from a file (visnav-io).
+    pub mod dem {
+        pub use visnav_core::geo::dem::*;
+        pub use visnav_io::geo::dem::*;
+    }
+}
 
 /// The camera model (visnav-core) with the frame sources (visnav-io) as `source` and the reader
 /// of other tools' calibration files as `calibration`.

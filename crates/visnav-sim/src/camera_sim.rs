@@ -23,9 +23,9 @@ use super::autopilot::TruthState;
 use super::faults::CameraFault;
 use super::render::{RenderPose, Renderer, Scene};
 use visnav_core::camera::{Attitude, Mount};
+use visnav_core::geo::{Crs, GeoError};
 use visnav_core::vision::GrayImage;
 use visnav_io::frames::{CaptureTime, Frame, FrameError, FrameSource};
-use visnav_io::geo::{Crs, GeoError};
 
 /// The latest vehicle truth with its autopilot boot time, µs.
 pub trait TruthFeed: Send + Sync {
@@ -313,7 +313,7 @@ mod tests {
     use crate::render::{ColourMode, RenderSpec, vga_camera};
     use std::path::Path;
     use std::sync::Mutex;
-    use visnav_io::geo::dem::Dem;
+    use visnav_core::geo::dem::Dem;
     use visnav_io::geo::geotiff::load_geotiff;
 
     struct Fixed(Mutex<u64>, TruthState);

@@ -106,15 +106,15 @@ use super::render::degrade::degrade;
 use super::render::{ColourMode, Renderer, Scene};
 use super::scenario::{ClosedLoopConfig, GpsConfig};
 use visnav_core::fix::{FixPrior, FixReport};
+use visnav_core::geo::GeoError;
+use visnav_core::geo::dem::Dem;
+use visnav_core::geo::geoid::geoid_undulation_m;
 use visnav_core::nav::NavOutput;
 use visnav_core::rng::Rng;
 use visnav_core::vision::GrayImage;
 use visnav_daemon::app_config::Config;
 use visnav_daemon::heap::{heap_in_use_bytes, heap_peak_bytes, reset_heap_peak};
 use visnav_daemon::{Daemon, DaemonSetup, FrameFixer, FramePipeline};
-use visnav_io::geo::GeoError;
-use visnav_io::geo::dem::Dem;
-use visnav_io::geo::geoid::geoid_undulation_m;
 use visnav_io::geo::geotiff::load_geotiff;
 use visnav_io::geo::geotiff_write::write_geotiff;
 
@@ -1036,7 +1036,7 @@ pub struct ClosedLoopRun {
     /// Every pose of the DTM navigator, scored (empty without `[dtm_nav]`).
     pub dtm_poses: Vec<DtmRow>,
     /// CRS of the camera-year orthophoto (the plots' map frame).
-    pub crs: visnav_io::geo::Crs,
+    pub crs: visnav_core::geo::Crs,
     /// The camera-year orthophoto as an RGB image (at most ~1600 px wide) and its extent
     /// `[min_x, min_y, max_x, max_y]` in `crs`, the track plot's background.
     pub background: Option<(image::RgbImage, [f64; 4])>,
@@ -1047,7 +1047,7 @@ pub struct ClosedLoopRun {
 /// An RGB picture of a raster (bands 1-3, or the first band as grey), decimated to at most
 /// `max_px` on its longer side, and its extent.
 fn background_of(
-    raster: &visnav_io::geo::raster::Raster,
+    raster: &visnav_core::geo::raster::Raster,
     max_px: usize,
 ) -> Option<(image::RgbImage, [f64; 4])> {
     let (w, h) = (raster.width(), raster.height());
@@ -1063,7 +1063,7 @@ fn background_of(
         .filter_map(|(c, r)| raster.value(c * step, r * step, 0))
         .collect();
     let scale = match raster.data() {
-        visnav_io::geo::raster::RasterData::U8(_) => 1.0,
+        visnav_core::geo::raster::RasterData::U8(_) => 1.0,
         _ => {
             let p98 = percentile(&std::mem::take(&mut vals), 0.98);
             if p98.is_finite() && p98 > 0.0 {
@@ -1253,7 +1253,7 @@ pub(crate) fn scenario_config(
 pub(crate) struct CameraRig {
     pub scene: Arc<Scene>,
     pub renderer: Arc<Renderer>,
-    pub crs: visnav_io::geo::Crs,
+    pub crs: visnav_core::geo::Crs,
     pub mount: visnav_core::camera::Mount,
     pub background: Option<(image::RgbImage, [f64; 4])>,
 }
@@ -1376,7 +1376,7 @@ fn degraded_map_copies(
 pub struct ScenarioCamera {
     pub scene: Arc<Scene>,
     pub renderer: Arc<Renderer>,
-    pub crs: visnav_io::geo::Crs,
+    pub crs: visnav_core::geo::Crs,
     pub mount: visnav_core::camera::Mount,
     pub map_copies: Option<tempfile::TempDir>,
 }

@@ -33,13 +33,13 @@ use visnav_core::fix::engine::Attempt;
 use visnav_core::fix::{
     AltitudePrior, AttitudePriorNed, FixEngine, FixParams, FixPrior, FixReport, PositionPriorGeo,
 };
+use visnav_core::geo::Crs;
+use visnav_core::geo::dem::Dem;
+use visnav_core::geo::raster::Raster;
 use visnav_core::rng::Rng;
 use visnav_core::vision::{GrayImage, SurfParams};
-use visnav_io::geo::Crs;
-use visnav_io::geo::dem::Dem;
 use visnav_io::geo::geotiff::load_geotiff;
 use visnav_io::geo::geotiff_write::write_geotiff;
-use visnav_io::geo::raster::Raster;
 use visnav_io::map::MapReference;
 use visnav_io::map::{BuildSpec, HeightSource};
 
@@ -349,7 +349,7 @@ pub struct Summary {
 /// Median of `dem` over `bounds` on a 10 m grid (valid cells only), metres.
 fn median_height_m(
     dem: &Dem,
-    bounds: &visnav_io::geo::raster::Bounds,
+    bounds: &visnav_core::geo::raster::Bounds,
 ) -> Result<f64, FixBenchError> {
     let mut h = Vec::new();
     let mut y = bounds.min_y_m;
@@ -791,7 +791,7 @@ impl NaipEval {
         let v = r.vision_only?;
         let t = case.pose.centre_map_m;
         let (x, y, q_meas) = self.vision_only_map(r)?;
-        let n = visnav_io::geo::geoid::geoid_undulation_m(v.lat_deg, v.lon_deg).ok()?;
+        let n = visnav_core::geo::geoid::geoid_undulation_m(v.lat_deg, v.lon_deg).ok()?;
         let (ex, ey, ez) = (x - t.x, y - t.y, v.h_ellip_m - n - t.z);
         let (sg, cg) = case.grid_convergence_rad.sin_cos();
         let q_true = UnitQuaternion::from_rotation_matrix(&case.attitude.r_ned_body());

@@ -56,11 +56,11 @@ use rayon::prelude::*;
 use std::time::Instant;
 use visnav_core::camera::frames::{r_enu_ned, rot_z};
 use visnav_core::camera::{Attitude, Camera, CameraError, CameraPose, Intrinsics, Mount, Opk};
+use visnav_core::geo::dem::Dem;
+use visnav_core::geo::raster::Raster;
+use visnav_core::geo::{Crs, GeoError};
 use visnav_core::validate::Invalid;
-use visnav_io::geo::dem::Dem;
 use visnav_io::geo::geotiff::crs_equivalent;
-use visnav_io::geo::raster::Raster;
-use visnav_io::geo::{Crs, GeoError};
 
 /// Errors of the renderer.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -686,7 +686,7 @@ pub fn bench_drone(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use visnav_io::geo::raster::{GeoTransform, RasterData};
+    use visnav_core::geo::raster::{GeoTransform, RasterData};
 
     fn utm() -> Crs {
         Crs::Utm {

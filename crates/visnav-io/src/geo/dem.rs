@@ -3,10 +3,9 @@
 
 use std::path::Path;
 
-pub use visnav_core::geo::dem::*;
-
-use super::Crs;
 use super::geotiff::{GeoTiffError, load_geotiff};
+use visnav_core::geo::Crs;
+use visnav_core::geo::dem::{Dem, DemError};
 
 /// The lowest terrain height accepted, metres AMSL: the shore of the Dead Sea, the lowest dry
 /// land, is at -430 m (orthometric; its ellipsoidal height is about the same). A DEM or a

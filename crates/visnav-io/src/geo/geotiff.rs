@@ -5,10 +5,10 @@
 use std::io::{BufReader, Read, Seek};
 use std::path::Path;
 
-use super::Crs;
 pub use super::geotiff_info::*;
-use super::raster::Raster;
 use super::window::GeoTiffWindowReader;
+use visnav_core::geo::Crs;
+use visnav_core::geo::raster::Raster;
 
 /// Loads a GeoTIFF (first image) as a [`Raster`]. `crs_override` is used when the file's CRS keys
 /// are missing or not understood; see the module doc. For large files read windows instead
@@ -62,11 +62,11 @@ pub fn read_geotiff<R: Read + Seek + Send>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geo::raster::{RasterData, SampleType};
     use tiff::encoder::colortype::{self, ColorType};
     use tiff::encoder::compression::DeflateLevel;
     use tiff::encoder::{Compression, TiffEncoder, TiffValue};
     use tiff::tags::Tag;
+    use visnav_core::geo::raster::{RasterData, SampleType};
 
     /// A tag to write into a synthetic file.
     enum TagVal {

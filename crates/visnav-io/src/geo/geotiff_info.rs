@@ -50,8 +50,8 @@ use std::path::{Path, PathBuf};
 use tiff::decoder::{ChunkType, Decoder, Limits};
 use tiff::tags::Tag;
 
-use super::Crs;
-use super::raster::{Bounds, GeoTransform};
+use visnav_core::geo::Crs;
+use visnav_core::geo::raster::{Bounds, GeoTransform};
 
 /// Largest decoded image accepted, bytes (all bands, in the file's sample type).
 pub const MAX_DECODED_BYTES: usize = 2 << 30;
@@ -629,35 +629,35 @@ impl GeoKeys {
         }
         // Explicit ellipsoid parameters must agree with WGS84 whatever the codes say.
         if let Some(a) = self.double(key::GEOG_SEMI_MAJOR_AXIS)?
-            && (a - super::wgs84::A_M).abs() > 1e-3
+            && (a - visnav_core::geo::wgs84::A_M).abs() > 1e-3
         {
             return Err(KeyError::new(
                 key::GEOG_SEMI_MAJOR_AXIS,
                 format!(
                     "{a} m is not the WGS84 semi-major axis {}",
-                    super::wgs84::A_M
+                    visnav_core::geo::wgs84::A_M
                 ),
             ));
         }
         if let Some(inv_f) = self.double(key::GEOG_INV_FLATTENING)?
-            && (inv_f - 1.0 / super::wgs84::F).abs() > 1e-6
+            && (inv_f - 1.0 / visnav_core::geo::wgs84::F).abs() > 1e-6
         {
             return Err(KeyError::new(
                 key::GEOG_INV_FLATTENING,
                 format!(
                     "{inv_f} is not the WGS84 inverse flattening {}",
-                    1.0 / super::wgs84::F
+                    1.0 / visnav_core::geo::wgs84::F
                 ),
             ));
         }
         if let Some(b) = self.double(key::GEOG_SEMI_MINOR_AXIS)?
-            && (b - super::wgs84::B_M).abs() > 1e-3
+            && (b - visnav_core::geo::wgs84::B_M).abs() > 1e-3
         {
             return Err(KeyError::new(
                 key::GEOG_SEMI_MINOR_AXIS,
                 format!(
                     "{b} m is not the WGS84 semi-minor axis {}",
-                    super::wgs84::B_M
+                    visnav_core::geo::wgs84::B_M
                 ),
             ));
         }

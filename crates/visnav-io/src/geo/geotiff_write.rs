@@ -22,8 +22,8 @@ use tiff::encoder::compression::DeflateLevel;
 use tiff::encoder::{Compression, TiffEncoder};
 use tiff::tags::Tag;
 
-use super::Crs;
-use super::raster::{Raster, RasterData};
+use visnav_core::geo::Crs;
+use visnav_core::geo::raster::{Raster, RasterData};
 
 /// Why a raster could not be written.
 #[derive(Debug, thiserror::Error)]
@@ -140,7 +140,7 @@ fn geo_keys(crs: Crs) -> Option<Vec<u16>> {
 mod tests {
     use super::*;
     use crate::geo::geotiff::load_geotiff;
-    use crate::geo::raster::GeoTransform;
+    use visnav_core::geo::raster::GeoTransform;
 
     fn round_trip(raster: &Raster) -> Raster {
         let dir = tempfile::tempdir().unwrap();

@@ -1,12 +1,10 @@
-//! Geodesy and rasters ([`visnav_core::geo`], re-exported here) and the files they come from:
+//! The files geodesy and rasters ([`visnav_core::geo`]) come from:
 //!
 //! * `geotiff_info`: the GeoTIFF structure, georeferencing keys, info and errors (tiff crate, no
 //!   GDAL).
 //! * `geotiff`: the whole first image as a `Raster`.
 //! * `window`: windowed GeoTIFF reader (decodes only the strips/tiles under a pixel window).
 //! * `dem`: terrain heights and ray/terrain intersection (gridded DEM or constant height).
-
-pub use visnav_core::geo::*;
 
 pub mod dem;
 pub mod geotiff;

@@ -40,12 +40,12 @@ use std::sync::Arc;
 
 use tiff::decoder::{Decoder, DecodingResult};
 
-use super::Crs;
 use super::geotiff_info::{
     GeoTiffError, GeoTiffInfo, MAX_DECODED_BYTES, YCBCR_ONLY_RGB8, guarded, new_decoder, read_info,
     ycbcr_to_rgb_in_place,
 };
-use super::raster::{GeoTransform, Raster, RasterData, SampleType};
+use visnav_core::geo::Crs;
+use visnav_core::geo::raster::{GeoTransform, Raster, RasterData, SampleType};
 
 /// Default bound of the decoded-chunk cache, bytes.
 pub const DEFAULT_CACHE_BYTES: usize = 64 << 20;

@@ -42,12 +42,12 @@ use super::format::SpillWriter;
 use super::{
     HeightInfo, IndexGrid, LevelImageInfo, LevelInfo, MapError, MapFeature, MapHeader, OrthoInfo,
 };
-use crate::geo::Crs;
-use crate::geo::dem::Dem;
 use crate::geo::geotiff::{GeoTiffError, GeoTiffInfo, crs_equivalent, describe_crs, load_geotiff};
-use crate::geo::raster::{Bounds, GeoTransform, Raster, RasterData};
 use crate::geo::window::{GeoTiffWindowReader, open_geotiff_window};
 use crate::vision::{GrayImage, IntegralImage, KeyPoint, Surf, SurfParams};
+use visnav_core::geo::Crs;
+use visnav_core::geo::dem::Dem;
+use visnav_core::geo::raster::{Bounds, GeoTransform, Raster, RasterData};
 
 /// Rec. 601 luma weights (as `vision::file::GrayImageFile::from_dynamic` and the renderer).
 const LUMA: [f32; 3] = [0.299, 0.587, 0.114];
@@ -1316,8 +1316,8 @@ mod tests {
         assert_eq!(dem.resolved_height_point_sigma_m(), 1.0);
         assert_eq!(dem.resolved_height_slope_sigma(), 0.002);
     }
-    use crate::geo::raster::GeoTransform;
     use crate::map::ReferenceMap;
+    use visnav_core::geo::raster::GeoTransform;
 
     const UTM: Crs = Crs::Utm {
         zone: 14,

@@ -33,7 +33,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::geo::geotiff::crs_equivalent;
-use crate::geo::raster::Raster;
+use visnav_core::geo::raster::Raster;
 
 /// Settings of [`coregister`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -536,8 +536,8 @@ const MAX_WINDOWS_PER_AXIS: f64 = 1000.0;
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geo::Crs;
-    use crate::geo::raster::{GeoTransform, RasterData};
+    use visnav_core::geo::Crs;
+    use visnav_core::geo::raster::{GeoTransform, RasterData};
 
     /// A smooth random texture (sum of blobs), 8-bit, north-up at `px_m` per pixel.
     fn texture(w: usize, h: usize, seed: u64) -> Vec<u8> {

@@ -983,10 +983,10 @@ fn check_features(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), BadFe
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use crate::geo::Crs;
-    use crate::geo::raster::Bounds;
     use crate::map::{HeightInfo, LevelInfo};
     use crate::vision::SurfParams;
+    use visnav_core::geo::Crs;
+    use visnav_core::geo::raster::Bounds;
 
     pub(crate) fn tiny_header(levels: usize) -> MapHeader {
         MapHeader {

@@ -27,10 +27,10 @@
 use image::ImageEncoder;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use visnav_core::geo::dem::Dem;
+use visnav_core::geo::raster::{Raster, RasterData};
 use visnav_core::rng::Rng;
 use visnav_core::validate::{Problems, Validate};
-use visnav_io::geo::dem::Dem;
-use visnav_io::geo::raster::{Raster, RasterData};
 
 use super::photometric::{self, PhotometricSpec, Planes};
 
@@ -452,8 +452,8 @@ fn jpeg_round_trip(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use visnav_io::geo::Crs;
-    use visnav_io::geo::raster::GeoTransform;
+    use visnav_core::geo::Crs;
+    use visnav_core::geo::raster::GeoTransform;
 
     fn raster(w: usize, h: usize, f: impl Fn(usize, usize) -> [u8; 3]) -> Raster {
         let mut d = Vec::with_capacity(w * h * 3);

@@ -14,8 +14,8 @@
 //! point lies outside the raster area.
 
 use serde::{Deserialize, Serialize};
-use visnav_io::geo::Crs;
-use visnav_io::geo::raster::{GeoTransform, Raster, RasterData};
+use visnav_core::geo::Crs;
+use visnav_core::geo::raster::{GeoTransform, Raster, RasterData};
 
 /// Rec. 601 luma weights for R, G, B (`Y = 0.299 R + 0.587 G + 0.114 B`).
 pub const LUMA_REC601: [f32; 3] = [0.299, 0.587, 0.114];

@@ -19,8 +19,8 @@
 //! changes the result: skipped segments contain no terrain crossing (property test against the
 //! plain search).
 
-use visnav_io::geo::dem::Dem;
-use visnav_io::geo::raster::GeoTransform;
+use visnav_core::geo::dem::Dem;
+use visnav_core::geo::raster::GeoTransform;
 
 /// Dual cells per tile side of the coarse level.
 const TILE: usize = 8;
@@ -412,8 +412,8 @@ fn first_root(a: f64, b: f64, c: f64, s_max: f64) -> Option<f64> {
 mod tests {
     use super::*;
     use proptest::prelude::*;
-    use visnav_io::geo::Crs;
-    use visnav_io::geo::raster::{Raster, RasterData};
+    use visnav_core::geo::Crs;
+    use visnav_core::geo::raster::{Raster, RasterData};
 
     /// Rough synthetic terrain: hills and a ridge, 20 m cells, heights 100-700 m, one hole.
     fn hilly(hole: bool) -> Dem {

@@ -15,6 +15,8 @@
 //! [`MAX_REASONS`]; the snapshot shows each class's latest reason with its numbers). Counters of
 //! one name with different labels form one family.
 
+#![warn(missing_docs)]
+
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 

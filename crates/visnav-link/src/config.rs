@@ -449,32 +449,41 @@ pub const MAX_CONNECTION_BYTES: usize = 512;
 /// What is wrong with a connection string ([`check_connection`]).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum BadConnection {
+    /// Neither `SCHEME:ADDRESS` nor a serial device path.
     #[error(
         "expected SCHEME:ADDRESS with SCHEME one of {SCHEMES}, or a serial device \
          (/dev/ttyACM0, /dev/ttyACM0,57600)"
     )]
     NoScheme,
+    /// Longer than any connection string (its length in bytes).
     #[error("{0} bytes, longer than any connection ({MAX_CONNECTION_BYTES} at most)")]
     TooLong(usize),
+    /// A scheme no connection form has.
     #[error(
         "unknown scheme {}; expected one of {SCHEMES}, or a serial device path",
         quote(.0)
     )]
     UnknownScheme(String),
+    /// No `HOST:PORT` after the scheme.
     #[error("expected HOST:PORT after the scheme")]
     NoPort,
+    /// `:PORT` without a host.
     #[error("the host is empty (use 0.0.0.0 to listen on every interface)")]
     EmptyHost,
+    /// A port that is not a number in 1..=65535.
     #[error("port {} is not a number in 1..=65535", quote(.0))]
     BadPort(String),
+    /// A host of digits and dots that is not a valid IPv4 address.
     #[error(
         "{} is not an IPv4 address (four numbers 0-255 separated by dots, without leading \
          zeros); the link could never open it",
         quote(.0)
     )]
     BadIpv4(String),
+    /// A serial connection without a device.
     #[error("the serial device is empty")]
     EmptyDevice,
+    /// A baud rate that is not a number in 1200..=12000000.
     #[error("baud rate {} is not a number in 1200..=12000000", quote(.0))]
     BadBaud(String),
 }
@@ -495,7 +504,12 @@ pub enum Endpoint {
     /// Connect to a TCP server at `HOST:PORT` (`tcpout:`, and `tcp:`, pymavlink's client).
     TcpOut(String),
     /// A serial device at a baud rate (`serial:DEVICE[:BAUD]`, `DEVICE[,BAUD]`).
-    Serial { device: String, baud: u32 },
+    Serial {
+        /// The device path (`/dev/ttyACM0`).
+        device: String,
+        /// Its baud rate.
+        baud: u32,
+    },
 }
 
 impl Endpoint {

@@ -72,9 +72,15 @@ pub enum Health {
     /// Fixes are arriving and consistent.
     Ok,
     /// Usable, with the covariance honestly inflated (e.g. coasting on the IMU).
-    Degraded { reason: String },
+    Degraded {
+        /// Why, in words (logs and status text).
+        reason: String,
+    },
     /// Not usable: nothing is injected (or a NO_FIX GPS_INPUT, see `output.on_lost`).
-    Lost { reason: String },
+    Lost {
+        /// Why, in words (logs and status text).
+        reason: String,
+    },
 }
 
 /// `ok`, `degraded: <reason>`, `lost: <reason>` (logs and status text).
@@ -132,34 +138,65 @@ pub struct SendTime {
 /// Why a message was not built.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum InjectError {
+    /// The estimate was already sent as a pose; a pose is sent once.
     #[error("this estimate was already sent as a pose (no newer one yet)")]
     Repeated,
+    /// A field of the message would not be finite.
     #[error("{field} is not finite")]
-    NotFinite { field: &'static str },
+    NotFinite {
+        /// The message field.
+        field: &'static str,
+    },
+    /// A field of the message would lie outside what its type or meaning allows.
     #[error("{field} = {value} is outside [{lo}, {hi}]")]
     OutOfRange {
+        /// The message field.
         field: &'static str,
+        /// Its value.
         value: f64,
+        /// The lowest allowed.
         lo: f64,
+        /// The highest allowed.
         hi: f64,
     },
+    /// The estimate is older than `output.max_age_s` at send time.
     #[error("estimate is {age_s:.3} s old at send time (limit {max_s} s)")]
-    Stale { age_s: f64, max_s: f64 },
+    Stale {
+        /// Its age at send time, s.
+        age_s: f64,
+        /// The limit, s.
+        max_s: f64,
+    },
+    /// The estimate is stamped after the send time (a clock went back).
     #[error("estimate is stamped {ahead_s:.3} s after the send time")]
-    FromFuture { ahead_s: f64 },
+    FromFuture {
+        /// By how much, s.
+        ahead_s: f64,
+    },
+    /// The solution is lost: nothing to inject.
     #[error("solution lost: {reason}")]
-    Lost { reason: String },
+    Lost {
+        /// Why, in words.
+        reason: String,
+    },
+    /// GPS_INPUT needs the GPS week and time of week, and no UTC time is known.
     #[error("no UTC time available for the GPS week/time of week")]
     NoUtc,
+    /// A local position needs the autopilot's EKF origin, and none is known.
     #[error("no EKF origin known for local positions")]
     NoOrigin,
+    /// The time of validity cannot be put on the autopilot's clock yet.
     #[error("the companion-clock time of validity is unknown (time sync not converged)")]
     NoCompanionTime,
+    /// The ellipsoidal altitude needs the geoid undulation, and it is unknown.
     #[error("geoid undulation unknown (needed for GLOBAL_POSITION_SENSOR.alt_ellipsoid)")]
     NoGeoid,
     /// Built, but the link could not send it (not connected, socket error).
     #[error("not sent: {reason}")]
-    NotSent { reason: String },
+    NotSent {
+        /// Why, in words.
+        reason: String,
+    },
 }
 
 fn finite(field: &'static str, v: f64) -> Result<f64, InjectError> {
@@ -477,8 +514,11 @@ pub fn projection_of(autopilot: Option<MavAutopilot>) -> AutopilotFrame {
 /// `frame_id`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AutopilotLocal {
+    /// The autopilot's EKF origin.
     pub origin: GeoOrigin,
+    /// How the autopilot maps latitude and longitude to its local north and east.
     pub projection: AutopilotFrame,
+    /// ODOMETRY's `frame_id`.
     pub pose_frame: PoseFrame,
 }
 

@@ -30,6 +30,8 @@
 //! Never hold a `watch::Ref` from [`Link::status`] across an `.await`: it blocks the link's
 //! status updates (clone the value out instead).
 
+#![warn(missing_docs)]
+
 pub mod config;
 pub mod inject;
 pub mod metrics;

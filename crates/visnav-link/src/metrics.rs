@@ -93,7 +93,9 @@ pub struct LogLimiter {
 /// occurrences in all (this one included).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LogLine {
+    /// Occurrences not logged since the line before.
     pub suppressed: u64,
+    /// Occurrences in all, this one included.
     pub total: u64,
 }
 

@@ -65,23 +65,37 @@ type Conn = Transport;
 /// Why the link could not start or a send failed.
 #[derive(Debug, thiserror::Error)]
 pub enum LinkError {
+    /// The signing key file cannot be used.
     #[error("link.signing.key_file: {0}")]
     Key(crate::signing::KeyError),
+    /// The telemetry log cannot be written.
     #[error("link.tlog: {path}: {cause}")]
     Tlog {
+        /// The log's path.
         path: std::path::PathBuf,
+        /// The operating system's error.
         cause: std::io::Error,
     },
+    /// The metrics endpoint cannot listen.
     #[error("link.metrics_listen: {addr}: {cause}")]
-    Metrics { addr: String, cause: std::io::Error },
+    Metrics {
+        /// The address configured.
+        addr: String,
+        /// The operating system's error.
+        cause: std::io::Error,
+    },
     /// The connection's listen port is taken by another program.
     #[error("link.connection: {connection}: {cause}")]
     Listen {
+        /// The connection configured.
         connection: String,
+        /// Why it cannot listen.
         cause: crate::config::ListenError,
     },
+    /// A send before the link is connected.
     #[error("not connected")]
     NotConnected,
+    /// A send the connection refused (its message).
     #[error("send failed: {0}")]
     Send(String),
 }
@@ -1362,14 +1376,20 @@ pub fn boot_time_us(msg: &MavMessage) -> Option<u64> {
 /// Why a GPS_GLOBAL_ORIGIN cannot be an origin.
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
 pub enum OriginError {
+    /// A latitude outside the Earth's, degrees.
     #[error("latitude {0:.7} deg is outside [-90, 90]")]
     Latitude(f64),
+    /// A longitude outside the Earth's, degrees.
     #[error("longitude {0:.7} deg is outside [-180, 180]")]
     Longitude(f64),
+    /// An altitude no origin can have, metres.
     #[error("altitude {0:.1} m is outside [{lo}, {hi}] m", lo = ORIGIN_ALT_RANGE_M.0, hi = ORIGIN_ALT_RANGE_M.1)]
     Altitude(f64),
+    /// Farther than [`MAX_ORIGIN_DISTANCE_M`] from the navigation solution (or the origin it
+    /// would replace).
     #[error("{distance_km:.0} km from {from} (limit {limit_km:.0} km)", limit_km = MAX_ORIGIN_DISTANCE_M / 1000.0)]
     Far {
+        /// The distance, km.
         distance_km: f64,
         /// What it was measured from: the navigation solution or the previous origin.
         from: &'static str,

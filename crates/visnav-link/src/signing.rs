@@ -9,15 +9,28 @@ use std::path::{Path, PathBuf};
 /// Why a key file cannot be used.
 #[derive(Debug, thiserror::Error)]
 pub enum KeyError {
+    /// The file cannot be read.
     #[error("{path}: cannot read: {cause}")]
     Read {
+        /// The key file.
         path: PathBuf,
+        /// The operating system's error.
         cause: std::io::Error,
     },
+    /// Neither 32 raw bytes nor 64 hexadecimal characters.
     #[error("{path}: expected 32 raw bytes or 64 hexadecimal characters, found {len} bytes")]
-    Format { path: PathBuf, len: usize },
+    Format {
+        /// The key file.
+        path: PathBuf,
+        /// Its length, bytes.
+        len: usize,
+    },
+    /// An all-zero key (no key at all).
     #[error("{path}: the key is all zeros")]
-    Zero { path: PathBuf },
+    Zero {
+        /// The key file.
+        path: PathBuf,
+    },
 }
 
 /// Parse key bytes (see module docs).

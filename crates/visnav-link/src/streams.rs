@@ -15,15 +15,25 @@ use crate::config::StreamRates;
 
 /// MAVLink message ids used here.
 pub mod ids {
+    /// SYSTEM_TIME: the autopilot's UTC and boot time.
     pub const SYSTEM_TIME: u32 = 2;
+    /// GPS_RAW_INT: the first GPS receiver.
     pub const GPS_RAW_INT: u32 = 24;
+    /// SCALED_IMU: the first IMU, integer units.
     pub const SCALED_IMU: u32 = 26;
+    /// RAW_IMU: the first IMU, raw counts.
     pub const RAW_IMU: u32 = 27;
+    /// SCALED_PRESSURE: the barometer.
     pub const SCALED_PRESSURE: u32 = 29;
+    /// ATTITUDE: the autopilot's attitude.
     pub const ATTITUDE: u32 = 30;
+    /// GLOBAL_POSITION_INT: the autopilot's fused position.
     pub const GLOBAL_POSITION_INT: u32 = 33;
+    /// GPS_GLOBAL_ORIGIN: the EKF origin.
     pub const GPS_GLOBAL_ORIGIN: u32 = 49;
+    /// HIGHRES_IMU: the IMU in floats (PX4).
     pub const HIGHRES_IMU: u32 = 105;
+    /// ALTITUDE: the autopilot's altitudes.
     pub const ALTITUDE: u32 = 141;
 }
 

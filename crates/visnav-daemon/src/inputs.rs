@@ -952,12 +952,9 @@ pub fn vision_measurement(
     with_dependence: bool,
 ) -> Result<Measurement, NoMeasurement> {
     if !r.accepted {
-        return Err(NoMeasurement::Rejected(r.rejection.clone().unwrap_or(
-            visnav_core::fix::Rejection::Internal {
-                stage: "fix report",
-                detail: "rejected without a reason".into(),
-            },
-        )));
+        return Err(NoMeasurement::Rejected(
+            visnav_core::fix::Rejection::or_unexplained(r.rejection.clone()),
+        ));
     }
     if !(r.lat_deg.is_finite() && r.lon_deg.is_finite()) {
         return Err(NoMeasurement::NonFinite);

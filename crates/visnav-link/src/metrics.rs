@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpListener;
-pub use visnav_metrics::{CONTENT_TYPE, Counter, Gauge, Registry, render};
+use visnav_metrics::{CONTENT_TYPE, Counter, Gauge, Registry, render};
 
 visnav_metrics::metric_set! {
     /// The link's counters and gauges (atomics; cheap to update from any task).

@@ -639,7 +639,7 @@ impl FixEngine {
                 report = Some(r);
                 break;
             }
-            tried.push((method, rejection_of(r.rejection)));
+            tried.push((method, Rejection::or_unexplained(r.rejection)));
         }
         let report = report.unwrap_or_else(|| {
             let why = if tried.len() == 1 {
@@ -682,15 +682,6 @@ fn wrap_pi(a: f64) -> f64 {
     let t = std::f64::consts::TAU;
     let w = a - t * (a / t).round();
     if w <= -std::f64::consts::PI { w + t } else { w }
-}
-
-/// The rejection a report carries; a report rejected without one (which the engine never
-/// makes) reads as the resection's numerical failure rather than being passed on as a fix.
-fn rejection_of(r: Option<Rejection>) -> Rejection {
-    r.unwrap_or(Rejection::Internal {
-        stage: "fix",
-        detail: "rejected without a reason".into(),
-    })
 }
 
 /// `map_err` helper: a geodesy error at `stage`.

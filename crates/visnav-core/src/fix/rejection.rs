@@ -86,7 +86,7 @@ pub enum Rejection {
     Pose(crate::pose::Rejection),
 
     // --- Area correlation and the placement fix ---
-    /// The rectified frame is too small to correlate (`step`: where).
+    /// The rectified frame is too small to correlate.
     ImagesTooSmall,
     /// The map window around the prediction is empty.
     EmptyWindow,
@@ -330,6 +330,15 @@ impl Rejection {
                 .unwrap_or("recorded"),
             reason: reason.to_string(),
         }
+    }
+
+    /// The rejection `r` a rejected report carries; a report rejected without one (which the
+    /// engine never makes) reads as an internal failure, never as a fix.
+    pub fn or_unexplained(r: Option<Rejection>) -> Rejection {
+        r.unwrap_or(Rejection::Internal {
+            stage: "fix report",
+            detail: "rejected without a reason".into(),
+        })
     }
 
     /// `self` at relocalisation level `level` ("level 2: ...").

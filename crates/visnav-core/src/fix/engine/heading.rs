@@ -72,8 +72,11 @@ impl FixEngine {
         if !r2.accepted {
             let mut r = r;
             r.rejection = Some(Rejection::Methods(vec![
-                (FixMethod::Features, rejection_of(r.rejection.take())),
-                (FixMethod::Area, rejection_of(r2.rejection)),
+                (
+                    FixMethod::Features,
+                    Rejection::or_unexplained(r.rejection.take()),
+                ),
+                (FixMethod::Area, Rejection::or_unexplained(r2.rejection)),
             ]));
             return (r, a);
         }
@@ -135,7 +138,7 @@ impl FixEngine {
             return (r, a);
         }
         let mut why = WidenedWhy {
-            stated: rejection_of(r.rejection),
+            stated: Rejection::or_unexplained(r.rejection),
             heading: None,
             near: None,
         };
@@ -146,7 +149,7 @@ impl FixEngine {
             let verdict = if r2.accepted {
                 self.confirm_widened(wide, (&r2, &a2))
             } else {
-                Err(rejection_of(r2.rejection.clone()))
+                Err(Rejection::or_unexplained(r2.rejection.clone()))
             };
             match verdict {
                 Ok(()) => return (r2, a2),
@@ -166,7 +169,7 @@ impl FixEngine {
                     Some(Err(e)) => why.near = Some(e),
                 }
             }
-            Ok((r3, _)) => why.near = Some(rejection_of(r3.rejection)),
+            Ok((r3, _)) => why.near = Some(Rejection::or_unexplained(r3.rejection)),
             Err(AreaRelocError::NotFound(e)) => why.near = Some(e),
             // It could not run (an old map, no level images, the budget): nothing to add.
             Err(AreaRelocError::CannotRun(e)) => {

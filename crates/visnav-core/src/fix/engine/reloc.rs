@@ -198,7 +198,10 @@ impl FixEngine {
             };
             if !h.report.accepted {
                 if best_refused.is_none() {
-                    best_refused = Some((c.ncc, Box::new(rejection_of(h.report.rejection))));
+                    best_refused = Some((
+                        c.ncc,
+                        Box::new(Rejection::or_unexplained(h.report.rejection)),
+                    ));
                 }
                 continue;
             }
@@ -455,7 +458,7 @@ impl FixEngine {
         let (r2, a2) = self.fix_single(frame, &refined_pos, &refined_rect, solve, t_us, how);
         if !r2.accepted {
             let mut rejected = FixReport::rejected(
-                Rejection::NotConfirmed(Box::new(rejection_of(r2.rejection))),
+                Rejection::NotConfirmed(Box::new(Rejection::or_unexplained(r2.rejection))),
                 t_us,
                 0.0,
             );

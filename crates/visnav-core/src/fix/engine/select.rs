@@ -74,7 +74,7 @@ pub(super) fn select_unique(tries: Vec<Hypothesis>, t_us: u64) -> (FixReport, At
                 if n > 1 {
                     r.rejection = Some(Rejection::Headings {
                         tried: n,
-                        best: Box::new(rejection_of(r.rejection.take())),
+                        best: Box::new(Rejection::or_unexplained(r.rejection.take())),
                     });
                 }
                 (r, h.attempt)

@@ -123,7 +123,7 @@ impl FixEngine {
             Verdict::Rejected(r) => Some(Rejection::Pose(r.clone())),
         };
         let Some(fix) = outcome.fix.as_ref() else {
-            let mut r = rej(rejection_of(verdict));
+            let mut r = rej(Rejection::or_unexplained(verdict));
             r.matches = pairs.len();
             r.method = method;
             return r;

@@ -137,7 +137,7 @@ fn the_recipe_camera_world_builds_the_map_from_another_copy() {
     let sc_path = root().join("sitl/scenarios/drone_autzen.toml");
     let sc = visnav::sitl::Scenario::load(&sc_path).expect("the drone scenario");
     let cfg_path = root().join("sitl/ardupilot/drone/visnav.toml");
-    let mut cfg = visnav::daemon::app_config::Config::load(&cfg_path).expect("the recipe config");
+    let mut cfg = visnav::daemon::config::Config::load(&cfg_path).expect("the recipe config");
     let original = cfg.map.ortho.clone();
     let cam = visnav::sitl::closed_loop::scenario_camera(
         &sc,

@@ -292,7 +292,7 @@ fn every_subcommand_has_help() {
 
 #[test]
 fn example_configs_build_a_fix_engine_and_a_vnm_map_config_loads() {
-    let cfg = visnav::daemon::app_config::Config::load(&repo().join("config/demo.toml")).unwrap();
+    let cfg = visnav::daemon::config::Config::load(&repo().join("config/demo.toml")).unwrap();
     let engine = visnav::daemon::engine_from_config(&cfg).expect("demo engine");
     assert!(!engine.reference().level_gsd_m().is_empty());
     // A config naming a .vnm map (no ortho), built here.
@@ -314,7 +314,7 @@ fn example_configs_build_a_fix_engine_and_a_vnm_map_config_loads() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let cfg = visnav::daemon::app_config::Config::load(&path).unwrap();
+    let cfg = visnav::daemon::config::Config::load(&path).unwrap();
     assert_eq!(cfg.fix.ratio, 0.85);
     let engine = visnav::daemon::engine_from_config(&cfg).expect("vnm engine");
     assert_eq!(engine.reference().level_gsd_m()[0], 5.0);

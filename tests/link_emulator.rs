@@ -8,9 +8,9 @@ use std::time::Duration;
 use mavlink::dialects::ardupilotmega::{MavAutopilot, MavMessage};
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use tokio::sync::watch;
-use visnav::geo::AutopilotFrame;
+use visnav::geo::{AutopilotFrame, GeoOrigin};
 use visnav::link::config::{LinkConfig, OutputConfig, OutputMode, SigningSettings};
-use visnav::link::{GeoOrigin, Health, Link, NavEstimate};
+use visnav::link::{Health, Link, NavEstimate};
 use visnav::sitl::autopilot::{AutopilotEmulator, EmulatorConfig, TruthSource};
 
 use crate::common;

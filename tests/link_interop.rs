@@ -12,9 +12,10 @@ use std::time::{Duration, Instant};
 
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use serde_json::json;
+use visnav::geo::GeoOrigin;
 use visnav::link::config::{LinkConfig, OutputConfig, OutputMode, SigningSettings};
 use visnav::link::inject::DOP_UERE_M;
-use visnav::link::{GeoOrigin, Health, Link, NavEstimate};
+use visnav::link::{Health, Link, NavEstimate};
 
 fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))

@@ -13,8 +13,8 @@ use visnav::daemon::inputs::{Inputs, NavInput};
 use visnav::daemon::{DaemonConfig, GpsSource, ImuBiasRestore};
 use visnav::link::Telemetry;
 use visnav::nav::earth;
+use visnav::nav::synth::trajectory::{Segment, Trajectory};
 use visnav::nav::{AttitudeFix, Measurement, NavConfig, NavFilter, PositionFix, VelocityFix};
-use visnav::sitl::trajectory::{Segment, Trajectory};
 use visnav_core::rng::Rng;
 
 const G0: f64 = 9.806_65;

@@ -96,7 +96,7 @@ fn arducopter_climb_replays_without_resets() {
 fn shipped_ardupilot_config_keeps_the_filter_on_the_autopilots_attitude() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let cfg =
-        visnav::daemon::app_config::Config::load(&root.join("config/ardupilot-sitl.toml")).unwrap();
+        visnav::daemon::config::Config::load(&root.join("config/ardupilot-sitl.toml")).unwrap();
     assert!(cfg.daemon.gyro_from_attitude && cfg.nav.use_autopilot_attitude);
     let rep = run(cfg.daemon.clone(), cfg.nav.clone());
     let gp = &rep.kinds["gps_position"];

@@ -20,7 +20,8 @@ use mavlink::{MavHeader, MavlinkVersion, Message};
 use visnav_core::fix::reference::Reference;
 use visnav_core::geo::dem::Dem;
 use visnav_core::nav::{NavConfig, NavFilter};
-use visnav_daemon::app_config::Config;
+use visnav_core::vision::GrayImage;
+use visnav_daemon::config::Config;
 use visnav_daemon::inputs::{Inputs, NavInput, estimate_from_output};
 use visnav_daemon::{DaemonConfig, GpsSource, ImuBiasRestore};
 use visnav_io::frames::{DirectorySource, FrameSource, PixelFormat, Y4mSource, v4l2_luma};
@@ -28,7 +29,6 @@ use visnav_io::geo::geotiff::read_geotiff;
 use visnav_io::geo::window::GeoTiffWindowReader;
 use visnav_io::image_file::GrayImageFile;
 use visnav_io::map::{HeightInfo, MapReference, ReferenceMap};
-use visnav_io::vision::GrayImage;
 use visnav_link::Telemetry;
 
 /// A target's body: one input.
@@ -248,7 +248,12 @@ fn query_map(map: &ReferenceMap) {
 }
 
 fn query_reference(r: &MapReference) {
-    let _ = (r.crs(), r.level_gsd_m(), r.ortho_pixel_m(), r.surf_params());
+    let _ = (
+        r.crs(),
+        r.level_gsd_m(),
+        r.ortho_pixel_m(),
+        r.feature_spec(),
+    );
     let [x0, y0, x1, y1] = r.bounds_m();
     let (cx, cy) = (0.5 * (x0 + x1), 0.5 * (y0 + y1));
     let _ = r.height_amsl_m(cx, cy);

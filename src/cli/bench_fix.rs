@@ -111,7 +111,7 @@ pub fn run(a: FixBenchArgs) -> anyhow::Result<ExitCode> {
     let params: FixParams = match &a.set {
         Some(t) => {
             let v: toml::Value = toml::from_str(t).context("--set: not valid TOML")?;
-            visnav::daemon::fix_config::fix_params_from_toml(v)
+            visnav::daemon::config::fix::fix_params_from_toml(v)
                 .context("--set: not valid [fix] settings")?
         }
         None => FixParams::default(),

@@ -5,7 +5,7 @@ use std::io::Read;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use visnav::daemon::app_config::{Config, ConfigError};
+use visnav::daemon::config::{Config, ConfigError};
 use visnav::link::config::OutputMode;
 
 use super::overrides::OverrideArgs;
@@ -121,7 +121,7 @@ fn read_stdin() -> anyhow::Result<String> {
 /// One warning per value the file marks as a placeholder (`# placeholder` after it): a value
 /// that parses and may even pass, but is the example's, not this installation's.
 pub fn placeholder_warnings(text: &str) -> Vec<String> {
-    visnav::daemon::app_config::placeholders(text)
+    visnav::daemon::config::placeholders(text)
         .into_iter()
         .map(|p| {
             let note = match p.note.is_empty() {
@@ -155,8 +155,8 @@ pub fn vision_line(cfg: &Config) -> String {
 }
 
 /// Where `[vision] backend` puts SURF, for this binary.
-fn surf_words(b: visnav::daemon::vision_config::VisionBackend) -> &'static str {
-    use visnav::daemon::vision_config::VisionBackend as B;
+fn surf_words(b: visnav::daemon::config::vision::VisionBackend) -> &'static str {
+    use visnav::daemon::config::vision::VisionBackend as B;
     match (b, cfg!(feature = "gpu")) {
         (B::Cpu, _) => "SURF on the CPU",
         (B::Gpu, true) => "SURF on the GPU (any adapter; the CPU when none opens)",

@@ -1,10 +1,10 @@
 //! `visnav config default` and `visnav config reference`: a complete commented configuration
 //! and the key reference, both generated from the configuration types
-//! (`visnav_daemon::config_reference`), so that neither can drift from what `run` accepts.
+//! (`visnav_daemon::config::reference`), so that neither can drift from what `run` accepts.
 
 use std::process::ExitCode;
 
-use visnav::daemon::config_reference;
+use visnav::daemon::config::reference;
 
 #[derive(clap::Args, Debug)]
 pub struct ConfigArgs {
@@ -25,8 +25,8 @@ pub enum ConfigCommand {
 
 pub fn run(args: ConfigArgs) -> anyhow::Result<ExitCode> {
     let text = match args.command {
-        ConfigCommand::Default => config_reference::default_config(),
-        ConfigCommand::Reference => config_reference::reference_markdown(),
+        ConfigCommand::Default => reference::default_config(),
+        ConfigCommand::Reference => reference::reference_markdown(),
     };
     print!("{text}");
     Ok(ExitCode::SUCCESS)

@@ -169,7 +169,7 @@ pub fn run(a: FixArgs) -> anyhow::Result<ExitCode> {
                 .with_context(|| format!("reading settings {}", p.display()))?;
             let v: toml::Value = toml::from_str(&text)
                 .with_context(|| format!("{}: not valid TOML", p.display()))?;
-            visnav::daemon::fix_config::fix_params_from_toml(v)
+            visnav::daemon::config::fix::fix_params_from_toml(v)
                 .with_context(|| format!("{}: [fix] settings", p.display()))?
         }
         None => FixParams::default(),

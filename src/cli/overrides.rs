@@ -1,9 +1,9 @@
 //! The options `visnav run` and `visnav check-config` share: the configuration file and the
-//! overrides of its connection, map and camera (`visnav_daemon::app_config_overrides`).
+//! overrides of its connection, map and camera (`visnav_daemon::config::overrides`).
 
 use std::path::PathBuf;
 
-use visnav::daemon::app_config::{Config, ConfigError, Overrides};
+use visnav::daemon::config::{Config, ConfigError, Overrides};
 
 /// The configuration file and its overrides. The command line beats the environment, which
 /// beats the file.

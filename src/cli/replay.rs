@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::Context;
-use visnav::daemon::app_config::Config;
+use visnav::daemon::config::Config;
 use visnav::daemon::replay::{ReplayOptions, meas_csv, replay_tlog, states_csv};
 use visnav::link::tlog::TlogContents;
 use visnav_io::files::{self, read_bytes, read_text};

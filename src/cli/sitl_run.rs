@@ -19,7 +19,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
-use visnav::daemon::app_config::Config;
+use visnav::daemon::config::Config;
 use visnav::daemon::{Daemon, DaemonSetup, FramePipeline};
 use visnav::geo::dem::Dem;
 use visnav::geo::geotiff::load_geotiff;

@@ -34,7 +34,7 @@ use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
 use tracing::{Instrument, info, warn};
 
-use crate::app_config::Config;
+use crate::config::Config;
 use crate::config::{DaemonConfig, ImuBiasRestore};
 use crate::fixer::FrameFixer;
 use crate::frames::{self, Slot};

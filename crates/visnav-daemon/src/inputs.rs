@@ -37,7 +37,6 @@
 
 use std::collections::VecDeque;
 
-use mavlink::dialects::ardupilotmega::{GpsFixType, MavAutopilot, MavMessage, MavType};
 use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
 
 use crate::config::{DaemonConfig, GpsSource, ImuBiasRestore};
@@ -51,11 +50,11 @@ use visnav_core::nav::{
     PoseFix, PositionFix, VelocityFix, earth,
 };
 use visnav_core::reasons::same_but_numbers;
+use visnav_link::sensors::{AttitudeReading, Autopilot, GpsReading, ImuReading, ImuSource, Sensor};
 use visnav_link::{Health as LinkHealth, NavEstimate, Telemetry};
 
 /// A lower-priority IMU message is ignored while a higher-priority one arrived this recently, s.
 pub const IMU_SOURCE_HOLD_S: f64 = 0.5;
-const G0_M_S2: f64 = 9.806_65;
 /// ATTITUDE rates replace a 16-bit IMU message's gyro when within this of its time, µs.
 pub const ATT_RATES_MAX_AGE_US: u64 = 60_000;
 
@@ -78,29 +77,6 @@ pub enum NavInput {
         /// Quad/hexa/octo/tri/coaxial rotorcraft or helicopter.
         multirotor: bool,
     },
-}
-
-/// Whether a HEARTBEAT's vehicle type flies on rotors whose drag `nav::drag` models.
-pub fn is_multirotor(t: MavType) -> bool {
-    matches!(
-        t,
-        MavType::MAV_TYPE_QUADROTOR
-            | MavType::MAV_TYPE_HEXAROTOR
-            | MavType::MAV_TYPE_OCTOROTOR
-            | MavType::MAV_TYPE_TRICOPTER
-            | MavType::MAV_TYPE_COAXIAL
-            | MavType::MAV_TYPE_HELICOPTER
-            | MavType::MAV_TYPE_DODECAROTOR
-            | MavType::MAV_TYPE_DECAROTOR
-    )
-}
-
-/// Which message an IMU sample came from (lower = preferred).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-enum ImuKind {
-    Highres = 0,
-    Scaled = 1,
-    Raw = 2,
 }
 
 /// Before initialisation the filter derives the velocity from two position fixes of the same
@@ -259,7 +235,7 @@ impl Inputs {
             .map(|(_, a)| *a)
     }
 
-    fn imu_allowed(&mut self, kind: ImuKind, t_ns: i64) -> bool {
+    fn imu_allowed(&mut self, kind: ImuSource, t_ns: i64) -> bool {
         self.last_kind_ns[kind as usize] = Some(t_ns);
         self.last_kind_ns[..kind as usize]
             .iter()
@@ -341,132 +317,128 @@ impl Inputs {
         }
         self.boot_epoch = Some(tel.boot_epoch);
         let t_ns = tel.t_companion_ns;
-        if let MavMessage::HEARTBEAT(hb) = &tel.msg
-            && hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
-        {
-            let multirotor = is_multirotor(hb.mavtype);
-            if self.multirotor != Some(multirotor) {
-                self.multirotor = Some(multirotor);
-                out.push(NavInput::Vehicle { multirotor });
+        match tel.sensor() {
+            Some(Sensor::Heartbeat {
+                autopilot,
+                multirotor,
+            }) if autopilot != Autopilot::Invalid => {
+                self.heartbeat(autopilot, multirotor, &mut out)
             }
-        }
-        let mg = |v: i16| f64::from(v) * 1e-3 * G0_M_S2;
-        let mrad = |v: i16| f64::from(v) * 1e-3;
-        match &tel.msg {
-            MavMessage::HEARTBEAT(hb)
-                if self.cfg.imu_bias_restore == ImuBiasRestore::Auto
-                    && self.restorer.is_none()
-                    && hb.autopilot == MavAutopilot::MAV_AUTOPILOT_PX4 =>
-            {
-                tracing::info!(
-                    "PX4: its HIGHRES_IMU is the IMU minus EKF2's bias estimates; restoring the \
-                     raw IMU with SCALED_IMU (daemon.imu_bias_restore = \"auto\")"
-                );
-                self.restorer = Some(ImuBiasRestorer::new());
-            }
-            MavMessage::HIGHRES_IMU(m) if self.imu_allowed(ImuKind::Highres, t_ns) => {
-                let mut g = Vector3::new(m.xgyro, m.ygyro, m.zgyro).cast::<f64>();
-                let mut a = Vector3::new(m.xacc, m.yacc, m.zacc).cast::<f64>();
-                if let Some(r) = &mut self.restorer {
-                    let (rg, ra, _) = r.on_highres(m.time_usec, g.into(), a.into());
-                    g = rg.into();
-                    a = ra.into();
-                }
-                self.imu(m.time_usec, g, a, &mut out);
-            }
-            MavMessage::SCALED_IMU(m) => {
-                let t_us = u64::from(m.time_boot_ms) * 1000;
-                if let Some(r) = &mut self.restorer {
-                    r.on_scaled(t_us, [m.xgyro, m.ygyro, m.zgyro], [m.xacc, m.yacc, m.zacc]);
-                }
-                if !self.imu_allowed(ImuKind::Scaled, t_ns) {
-                    return out;
-                }
-                let g = self.fine_gyro(
-                    t_us,
-                    Vector3::new(mrad(m.xgyro), mrad(m.ygyro), mrad(m.zgyro)),
-                );
-                let a = Vector3::new(mg(m.xacc), mg(m.yacc), mg(m.zacc));
-                self.imu(t_us, g, a, &mut out);
-            }
-            MavMessage::RAW_IMU(m) if self.imu_allowed(ImuKind::Raw, t_ns) => {
-                let g = self.fine_gyro(
-                    m.time_usec,
-                    Vector3::new(mrad(m.xgyro), mrad(m.ygyro), mrad(m.zgyro)),
-                );
-                let a = Vector3::new(mg(m.xacc), mg(m.yacc), mg(m.zacc));
-                self.imu(m.time_usec, g, a, &mut out);
-            }
-            MavMessage::ATTITUDE(m) => {
-                let w = Vector3::new(m.rollspeed, m.pitchspeed, m.yawspeed).cast::<f64>();
-                if w.iter().all(|v| v.is_finite()) {
-                    self.att_rates = Some((u64::from(m.time_boot_ms) * 1000, w));
-                }
-                let (r, p, y) = (f64::from(m.roll), f64::from(m.pitch), f64::from(m.yaw));
-                if r.is_finite() && p.is_finite() && y.is_finite() {
-                    let t_us = u64::from(m.time_boot_ms) * 1000;
-                    self.attitudes.push_back((t_us, Attitude::new(r, p, y)));
-                    while self.attitudes.len() > 200 {
-                        self.attitudes.pop_front();
-                    }
-                    out.push(NavInput::Meas(Measurement::Attitude(AttitudeFix {
-                        t_capture_us: t_us,
-                        q_nb: UnitQuaternion::from_euler_angles(r, p, y),
-                    })));
-                }
-            }
-            MavMessage::GPS_RAW_INT(m) if self.gps == GpsSource::Gps1 => {
-                let g = GpsRaw {
-                    time_usec: m.time_usec,
-                    fix: m.fix_type,
-                    lat: m.lat,
-                    lon: m.lon,
-                    alt_mm: m.alt,
-                    vel: m.vel,
-                    cog: m.cog,
-                    h_acc: m.h_acc,
-                    v_acc: m.v_acc,
-                    vel_acc: m.vel_acc,
-                };
+            Some(Sensor::Imu(r)) => self.imu_reading(&r, t_ns, &mut out),
+            Some(Sensor::Attitude(a)) => self.attitude(&a, &mut out),
+            Some(Sensor::Gps(g)) if g.receiver == self.gps_receiver() => {
                 self.gps_fix(&g, tel, &mut out);
             }
-            MavMessage::GPS2_RAW(m) if self.gps == GpsSource::Gps2 => {
-                let g = GpsRaw {
-                    time_usec: m.time_usec,
-                    fix: m.fix_type,
-                    lat: m.lat,
-                    lon: m.lon,
-                    alt_mm: m.alt,
-                    vel: m.vel,
-                    cog: m.cog,
-                    h_acc: m.h_acc,
-                    v_acc: m.v_acc,
-                    vel_acc: m.vel_acc,
-                };
-                self.gps_fix(&g, tel, &mut out);
-            }
-            MavMessage::SCALED_PRESSURE(m) if self.cfg.baro => {
-                let p = f64::from(m.press_abs);
-                if p.is_finite() && (10.0..=1200.0).contains(&p) {
-                    let t_us = u64::from(m.time_boot_ms) * 1000;
-                    let isa = isa_altitude_m(p);
-                    self.baro_isa_m = Some((t_us, isa));
-                    if let Some((off, _)) = self.baro_offset {
-                        out.push(NavInput::Meas(Measurement::Altitude(AltitudeFix {
-                            t_capture_us: t_us,
-                            h_m: isa + off,
-                            var_m2: self.cfg.baro_sigma_m.powi(2),
-                        })));
-                    }
-                }
-            }
+            Some(Sensor::Baro {
+                t_boot_us,
+                press_abs_hpa,
+            }) if self.cfg.baro => self.baro(t_boot_us, press_abs_hpa, &mut out),
             _ => {}
         }
         out
     }
 
-    fn gps_fix(&mut self, g: &GpsRaw, tel: &Telemetry, out: &mut Vec<NavInput>) {
-        if (g.fix as u32) < (GpsFixType::GPS_FIX_TYPE_3D_FIX as u32) {
+    /// The receiver `[daemon] gps` reads (0: none).
+    fn gps_receiver(&self) -> u8 {
+        match self.gps {
+            GpsSource::Gps1 => 1,
+            GpsSource::Gps2 => 2,
+            _ => 0,
+        }
+    }
+
+    /// A flight controller's HEARTBEAT: the vehicle type (for the drag model) and, on PX4, the
+    /// IMU bias restoration `imu_bias_restore = "auto"` asks for.
+    fn heartbeat(&mut self, autopilot: Autopilot, multirotor: bool, out: &mut Vec<NavInput>) {
+        if self.multirotor != Some(multirotor) {
+            self.multirotor = Some(multirotor);
+            out.push(NavInput::Vehicle { multirotor });
+        }
+        if self.cfg.imu_bias_restore == ImuBiasRestore::Auto
+            && self.restorer.is_none()
+            && autopilot == Autopilot::Px4
+        {
+            tracing::info!(
+                "PX4: its HIGHRES_IMU is the IMU minus EKF2's bias estimates; restoring the \
+                 raw IMU with SCALED_IMU (daemon.imu_bias_restore = \"auto\")"
+            );
+            self.restorer = Some(ImuBiasRestorer::new());
+        }
+    }
+
+    /// An IMU reading: the preferred source only, the bias restored on PX4, the 16-bit
+    /// messages' gyro refined by ATTITUDE's rates.
+    fn imu_reading(&mut self, r: &ImuReading, t_ns: i64, out: &mut Vec<NavInput>) {
+        let (t_us, gyro, acc) = (
+            r.t_boot_us,
+            Vector3::from(r.gyro_rad_s),
+            Vector3::from(r.accel_m_s2),
+        );
+        match r.source {
+            ImuSource::Highres if self.imu_allowed(ImuSource::Highres, t_ns) => {
+                let (mut g, mut a) = (gyro, acc);
+                if let Some(rs) = &mut self.restorer {
+                    let (rg, ra, _) = rs.on_highres(t_us, g.into(), a.into());
+                    g = rg.into();
+                    a = ra.into();
+                }
+                self.imu(t_us, g, a, out);
+            }
+            ImuSource::Scaled => {
+                if let (Some(rs), Some((g16, a16))) = (&mut self.restorer, r.counts) {
+                    rs.on_scaled(t_us, g16, a16);
+                }
+                if self.imu_allowed(ImuSource::Scaled, t_ns) {
+                    let g = self.fine_gyro(t_us, gyro);
+                    self.imu(t_us, g, acc, out);
+                }
+            }
+            ImuSource::Raw if self.imu_allowed(ImuSource::Raw, t_ns) => {
+                let g = self.fine_gyro(t_us, gyro);
+                self.imu(t_us, g, acc, out);
+            }
+            _ => {}
+        }
+    }
+
+    /// ATTITUDE: its body rates (for the 16-bit IMU messages), the attitude for fix priors and
+    /// as the filter's attitude measurement.
+    fn attitude(&mut self, m: &AttitudeReading, out: &mut Vec<NavInput>) {
+        let w = Vector3::from(m.rates_rad_s);
+        if w.iter().all(|v| v.is_finite()) {
+            self.att_rates = Some((m.t_boot_us, w));
+        }
+        let (r, p, y) = (m.roll_rad, m.pitch_rad, m.yaw_rad);
+        if r.is_finite() && p.is_finite() && y.is_finite() {
+            let t_us = m.t_boot_us;
+            self.attitudes.push_back((t_us, Attitude::new(r, p, y)));
+            while self.attitudes.len() > 200 {
+                self.attitudes.pop_front();
+            }
+            out.push(NavInput::Meas(Measurement::Attitude(AttitudeFix {
+                t_capture_us: t_us,
+                q_nb: UnitQuaternion::from_euler_angles(r, p, y),
+            })));
+        }
+    }
+
+    /// SCALED_PRESSURE: the ISA altitude, and with the offset known an altitude measurement.
+    fn baro(&mut self, t_us: u64, p_hpa: f64, out: &mut Vec<NavInput>) {
+        if p_hpa.is_finite() && (10.0..=1200.0).contains(&p_hpa) {
+            let isa = isa_altitude_m(p_hpa);
+            self.baro_isa_m = Some((t_us, isa));
+            if let Some((off, _)) = self.baro_offset {
+                out.push(NavInput::Meas(Measurement::Altitude(AltitudeFix {
+                    t_capture_us: t_us,
+                    h_m: isa + off,
+                    var_m2: self.cfg.baro_sigma_m.powi(2),
+                })));
+            }
+        }
+    }
+
+    fn gps_fix(&mut self, g: &GpsReading, tel: &Telemetry, out: &mut Vec<NavInput>) {
+        if !g.fix_3d {
             return;
         }
         // Capture time: a plausible boot time in the message, else the mapped arrival time.
@@ -477,28 +449,23 @@ impl Inputs {
         };
         // The receiver's latency (`gps_delay_s`): the fix describes an earlier time.
         let t_us = t_stamp_us.saturating_sub((self.cfg.gps_delay_s * 1e6) as u64);
-        let lat = f64::from(g.lat) * 1e-7;
-        let lon = f64::from(g.lon) * 1e-7;
+        let (lat, lon) = (g.lat_deg, g.lon_deg);
         let Ok(n) = geoid_undulation_m(lat, lon) else {
             return;
         };
         if !(-90.0..=90.0).contains(&lat) || !(-180.0..=180.0).contains(&lon) {
             return;
         }
-        let h = f64::from(g.alt_mm) * 1e-3 + n;
+        let h = g.alt_amsl_m + n;
         // The receiver's accuracy, floored (the message is time-stamped on arrival: config doc).
-        let sh = if g.h_acc > 0 {
-            f64::from(g.h_acc) * 1e-3
-        } else {
-            self.cfg.gps_sigma_h_m
-        }
-        .max(self.cfg.gps_min_sigma_h_m);
-        let sv = if g.v_acc > 0 {
-            f64::from(g.v_acc) * 1e-3
-        } else {
-            self.cfg.gps_sigma_v_m
-        }
-        .max(self.cfg.gps_min_sigma_v_m);
+        let sh = g
+            .h_acc_m
+            .unwrap_or(self.cfg.gps_sigma_h_m)
+            .max(self.cfg.gps_min_sigma_h_m);
+        let sv = g
+            .v_acc_m
+            .unwrap_or(self.cfg.gps_sigma_v_m)
+            .max(self.cfg.gps_min_sigma_v_m);
         out.push(NavInput::Meas(Measurement::GpsPosition(PositionFix {
             t_capture_us: t_us,
             lat_rad: lat.to_radians(),
@@ -507,15 +474,12 @@ impl Inputs {
             cov_ned_m2: Matrix3::from_diagonal(&Vector3::new(sh * sh, sh * sh, sv * sv)),
             att_dependence_ned: None,
         })));
-        if g.vel != u16::MAX && g.cog != u16::MAX {
-            let v = f64::from(g.vel) * 0.01;
-            let c = (f64::from(g.cog) * 0.01).to_radians();
-            let s = if g.vel_acc > 0 {
-                f64::from(g.vel_acc) * 1e-3
-            } else {
-                self.cfg.gps_vel_sigma_m_s
-            }
-            .max(self.cfg.gps_min_sigma_vel_m_s);
+        if let (Some(v), Some(course_deg)) = (g.ground_speed_m_s, g.course_deg) {
+            let c = course_deg.to_radians();
+            let s = g
+                .vel_acc_m_s
+                .unwrap_or(self.cfg.gps_vel_sigma_m_s)
+                .max(self.cfg.gps_min_sigma_vel_m_s);
             let sz = self.cfg.gps_vz_sigma_m_s;
             out.push(NavInput::Meas(Measurement::GpsVelocity(VelocityFix {
                 t_capture_us: t_us,
@@ -538,19 +502,6 @@ impl Inputs {
             });
         }
     }
-}
-
-struct GpsRaw {
-    time_usec: u64,
-    fix: GpsFixType,
-    lat: i32,
-    lon: i32,
-    alt_mm: i32,
-    vel: u16,
-    cog: u16,
-    h_acc: u32,
-    v_acc: u32,
-    vel_acc: u32,
 }
 
 /// Map the filter's health to the injector's, keeping `prev`'s reason while only its numbers
@@ -1015,8 +966,11 @@ mod tests {
     use super::*;
     use mavlink::MavHeader;
     use mavlink::dialects::ardupilotmega::{
-        ATTITUDE_DATA, GPS_RAW_INT_DATA, HIGHRES_IMU_DATA, SCALED_IMU_DATA, SCALED_PRESSURE_DATA,
+        ATTITUDE_DATA, GPS_RAW_INT_DATA, GpsFixType, HIGHRES_IMU_DATA, MavMessage, SCALED_IMU_DATA,
+        SCALED_PRESSURE_DATA,
     };
+
+    use visnav_link::sensors::G0_M_S2;
 
     fn tel(t_ms: i64, msg: MavMessage) -> Telemetry {
         Telemetry {

@@ -4,12 +4,8 @@
 //! navigation task owns the filter; the other modules are the configuration, the inputs, the
 //! frame path, the logs, the metrics and replay.
 
-pub mod app_config;
-pub mod app_config_overrides;
 pub mod config;
-pub mod config_reference;
 pub mod daemon;
-pub mod fix_config;
 pub mod fixer;
 pub mod fixlog;
 pub mod frames;
@@ -22,8 +18,6 @@ mod nav_task;
 mod priors;
 pub mod prometheus;
 pub mod replay;
-pub mod unknown_keys;
-pub mod vision_config;
 pub mod vo_path;
 pub mod volog;
 pub mod wiring;

@@ -18,9 +18,9 @@ use prometheus_client::metrics::info::Info;
 use serde::Serialize;
 
 use crate::imu_bias::{G0_M_S2, RestoreStatus};
+use visnav_core::reasons::ReasonCount;
 use visnav_link::Health as LinkHealth;
 use visnav_link::metrics::Metrics as LinkMetrics;
-pub use visnav_metrics::ReasonCount;
 use visnav_metrics::{Counter, Declare, Gauge, Histogram, Label, Reasons, Registrar, Registry};
 
 visnav_metrics::metric_set! {

@@ -10,7 +10,6 @@ use std::time::Duration;
 // tokio's clock: real time, or the lock-step simulator's when the runtime runs paused.
 use tokio::time::Instant;
 
-use mavlink::dialects::ardupilotmega::{COMMAND_LONG_DATA, MavCmd, MavMessage};
 use tokio::sync::{broadcast, mpsc, watch};
 use tracing::{info, warn};
 
@@ -26,6 +25,7 @@ use visnav_core::nav::{
     Health as NavHealth, Measurement, NavConfig, NavFilter, NavOutput, Outcome,
 };
 use visnav_core::vo::{VoMotion, VoStep};
+use visnav_link::sensors::Sensor;
 use visnav_link::{Health as LinkHealth, Link, LogLimiter, NavEstimate, Telemetry};
 
 /// The last solution before a restart and the companion time (ns) it was made, waiting to be
@@ -137,15 +137,15 @@ impl NavTask {
                 .lock()
                 .unwrap_or_else(|e| e.into_inner()) = Some(o);
         }
-        if let MavMessage::ATTITUDE(a) = &t.msg {
+        if let Some(Sensor::Attitude(a)) = t.sensor() {
             let mut q = self
                 .shared
                 .attitudes
                 .lock()
                 .unwrap_or_else(|e| e.into_inner());
             q.push_back((
-                u64::from(a.time_boot_ms) * 1000,
-                Attitude::new(f64::from(a.roll), f64::from(a.pitch), f64::from(a.yaw)),
+                a.t_boot_us,
+                Attitude::new(a.roll_rad, a.pitch_rad, a.yaw_rad),
             ));
             while q.len() > 200 {
                 q.pop_front();
@@ -509,19 +509,12 @@ impl NavTask {
         {
             return;
         }
-        let Some(ap) = self.link.status().borrow().autopilot else {
+        if self.link.status().borrow().autopilot.is_none() {
             return;
-        };
+        }
         self.gps2_asked = Some(Instant::now());
-        let m = MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
-            param1: 124.0,
-            param2: (1e6 / self.gps_hz) as f32,
-            target_system: ap.system_id,
-            target_component: ap.component_id,
-            command: MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
-            ..COMMAND_LONG_DATA::DEFAULT
-        });
-        if let Err(e) = self.link.send(&m).await {
+        // 124: GPS2_RAW.
+        if let Err(e) = self.link.request_message_rate(124, self.gps_hz).await {
             tracing::debug!("GPS2_RAW request: {e}");
         }
     }

@@ -4,9 +4,9 @@
 
 use std::sync::Arc;
 
-use crate::app_config::Config;
+use crate::config::Config;
+use crate::config::vision::VisionBackend;
 use crate::fixer::FrameFixer;
-use crate::vision_config::VisionBackend;
 use visnav_core::camera::CameraError;
 use visnav_core::fix::{FixEngine, FixError, FixPrior, FixReport, Reference};
 use visnav_core::geo::dem::{Dem, DemError};

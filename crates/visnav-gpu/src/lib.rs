@@ -43,12 +43,12 @@ use std::sync::{Mutex, mpsc};
 
 use thiserror::Error;
 use visnav_core::vision::surf::{
-    ORIENTATION_BINS, ORIENTATION_WINDOW_BINS, descriptor_weights, keypoint_at,
-    orientation_of_window, orientation_samples, select_spread,
+    Extremum as Maximum, ORIENTATION_BINS, ORIENTATION_WINDOW_BINS, descriptor_weights,
+    keypoint_at, orientation_of_window, orientation_samples, select_spread,
 };
 use visnav_core::vision::{
-    FeatureBackend, Features, GrayImage, KeyPoint, LayerSpec, Match, MatchParams, Surf,
-    match_features,
+    Detector, Family, FeatureBackend, Features, GrayImage, KeyPoint, LayerSpec, Match, MatchParams,
+    Surf, match_features,
 };
 use wgpu::util::DeviceExt;
 
@@ -478,16 +478,13 @@ impl GpuSurf {
             };
             let offset = [f64::from(e.ox), f64::from(e.oy), f64::from(e.os)];
             let laplacian = if e.tag & 0x10000 != 0 { -1 } else { 1 };
-            kps.push(keypoint_at(
-                e.c as usize,
-                e.r as usize,
+            let found = Maximum {
+                cell: [e.c as usize, e.r as usize],
                 offset,
-                &t.mid,
-                t.lo_size,
-                e.response,
+                response: e.response,
                 laplacian,
-                t.octave,
-            ));
+            };
+            kps.push(keypoint_at(&found, &t.mid, t.lo_size, t.octave));
         }
         if let Some(cap) = p.max_features {
             kps = select_spread(kps, cap, img.width(), img.height());
@@ -702,7 +699,10 @@ fn split_layers(det_all: &[f32], plan: &[Vec<LayerSpec>]) -> Vec<Vec<Vec<f32>>> 
 /// The GPU path as the fix engine's feature backend: a frame (or a matching) the GPU fails on is
 /// computed on the CPU (counted in [`GpuSurf::fallbacks`]).
 impl FeatureBackend for GpuSurf {
-    fn detect_and_describe(&self, surf: &Surf, img: &GrayImage) -> Features {
+    fn detect_and_describe(&self, detector: &dyn Detector, img: &GrayImage) -> Features {
+        let Some(surf) = detector.as_surf() else {
+            return detector.detect_and_describe(img);
+        };
         match GpuSurf::detect_and_describe(self, surf, img) {
             Ok(f) => f,
             Err(_) => {
@@ -722,7 +722,9 @@ impl FeatureBackend for GpuSurf {
     ) -> Result<Vec<Match>, visnav_core::vision::VisionError> {
         // Small sets, and inputs the CPU refuses (its error is the answer), stay on the CPU.
         let worth = query.len().saturating_mul(train.len()) >= matching::GPU_MATCH_MIN_PAIRS;
-        if !worth || !matching::gpu_can_match(query, train, params, predicted_in_train) {
+        // The GPU kernel computes L2 distances: binary descriptors are matched on the CPU.
+        let float = query.kind().family() == Family::Float;
+        if !worth || !float || !matching::gpu_can_match(query, train, params, predicted_in_train) {
             return match_features(query, train, params, predicted_in_train);
         }
         match GpuSurf::match_features(self, query, train, params, predicted_in_train) {

@@ -7,7 +7,7 @@
 
 use std::path::Path;
 
-use crate::vision::{GrayImage, VisionError};
+use visnav_core::vision::{GrayImage, VisionError};
 
 /// Why a JPEG was refused. The `image` crate decodes JPEG leniently (zune-jpeg with its strict
 /// mode off): corrupt entropy-coded data is logged and the rest of the image filled in, so a frame

@@ -11,5 +11,3 @@ pub mod frames;
 pub mod geo;
 pub mod image_file;
 pub mod map;
-
-pub use visnav_core::vision;

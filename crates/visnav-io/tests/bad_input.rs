@@ -13,11 +13,11 @@ use tiff::encoder::TiffEncoder;
 use tiff::encoder::compression::{CompressionAlgorithm, Deflate, DeflateLevel};
 use tiff::tags::Tag;
 use visnav_core::geo::raster::RasterData;
+use visnav_core::vision::GrayImage;
 use visnav_io::geo::dem::load_dem;
 use visnav_io::geo::geotiff::load_geotiff;
 use visnav_io::image_file::GrayImageFile;
 use visnav_io::map::{BuildSpec, HeightSource, MapError, ReferenceMap, build_map};
-use visnav_io::vision::GrayImage;
 
 /// The georeferencing of a test file.
 #[derive(Clone, Copy)]

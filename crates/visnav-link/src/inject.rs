@@ -48,7 +48,7 @@ use nalgebra::{Matrix3, SymmetricEigen, UnitQuaternion, Vector3};
 use crate::config::OutputConfig;
 use crate::time::gps_week_ms;
 use visnav_core::geo::local::offset_geodetic;
-pub use visnav_core::geo::{AutopilotFrame, GeoOrigin};
+use visnav_core::geo::{AutopilotFrame, GeoOrigin};
 
 /// Nominal user-equivalent range error used to express accuracies as DOPs (hdop = h_acc / UERE).
 pub const DOP_UERE_M: f64 = 4.0;

@@ -35,6 +35,7 @@
 pub mod config;
 pub mod inject;
 pub mod metrics;
+pub mod sensors;
 pub mod session;
 pub mod signing;
 pub mod streams;
@@ -42,7 +43,7 @@ pub mod time;
 pub mod tlog;
 mod transport;
 
-pub use inject::{GeoOrigin, Health, InjectError, NavEstimate};
+pub use inject::{Health, InjectError, NavEstimate};
 pub use metrics::{LogLimiter, LogLine};
 pub use session::{
     AutopilotInfo, Clock, Link, LinkError, LinkStatus, Telemetry, boot_time_us, decode,

@@ -51,7 +51,7 @@ use tokio::task::JoinHandle;
 use tracing::{Instrument, debug, info, warn};
 
 use crate::config::{LinkConfig, OnLost, OutputConfig, OutputMode};
-use crate::inject::{self, GeoOrigin, Health, InjectError, NavEstimate, SendTime};
+use crate::inject::{self, Health, InjectError, NavEstimate, SendTime};
 use crate::metrics::{LogLimiter, Metrics};
 use crate::streams::{self, RateMonitor, StreamSpec, StreamStatus, ids};
 use crate::time::{
@@ -59,6 +59,7 @@ use crate::time::{
 };
 use crate::tlog::{Tlog, expand_name, unix_now_us};
 use crate::transport::Transport;
+use visnav_core::geo::GeoOrigin;
 
 type Conn = Transport;
 
@@ -160,6 +161,14 @@ pub struct Telemetry {
     pub header: MavHeader,
     /// The message.
     pub msg: MavMessage,
+}
+
+impl Telemetry {
+    /// The sensor reading the message carries, typed and in SI units ([`crate::sensors`]); None
+    /// for a message that is not sensor telemetry.
+    pub fn sensor(&self) -> Option<crate::sensors::Sensor> {
+        crate::sensors::Sensor::from_message(&self.msg)
+    }
 }
 
 #[derive(Debug)]
@@ -413,6 +422,27 @@ impl Link {
     /// Send one message to the autopilot (MAVLink 2, signed if configured, recorded).
     pub async fn send(&self, msg: &MavMessage) -> Result<(), LinkError> {
         self.shared.send(msg).await
+    }
+
+    /// Ask the locked autopilot to send message `message_id` at `rate_hz`
+    /// (MAV_CMD_SET_MESSAGE_INTERVAL). Nothing is sent before an autopilot is locked on.
+    pub async fn request_message_rate(
+        &self,
+        message_id: u32,
+        rate_hz: f64,
+    ) -> Result<(), LinkError> {
+        let Some(ap) = self.status().borrow().autopilot else {
+            return Ok(());
+        };
+        let m = MavMessage::COMMAND_LONG(mavlink::dialects::ardupilotmega::COMMAND_LONG_DATA {
+            param1: message_id as f32,
+            param2: (1e6 / rate_hz) as f32,
+            target_system: ap.system_id,
+            target_component: ap.component_id,
+            command: mavlink::dialects::ardupilotmega::MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+            ..mavlink::dialects::ardupilotmega::COMMAND_LONG_DATA::DEFAULT
+        });
+        self.send(&m).await
     }
 
     /// Send a STATUSTEXT (split into 50-character chunks when longer).

@@ -24,7 +24,7 @@ use prometheus_client::encoding::{EncodeMetric, MetricEncoder, NoLabelSet};
 use prometheus_client::metrics::MetricType;
 use prometheus_client::registry::Metric;
 use serde::Serialize;
-pub use visnav_core::reasons::ReasonCount;
+use visnav_core::reasons::ReasonCount;
 use visnav_core::reasons::ReasonTally;
 
 pub use prometheus_client::collector::Collector;

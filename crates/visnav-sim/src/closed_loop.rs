@@ -26,7 +26,7 @@
 //! * the trajectory is integrated once at 200 Hz ([`TruthTable`]; WGS84 ellipsoidal heights,
 //!   AMSL = h - N with the EGM96 geoid); states between samples are interpolated linearly
 //!   (angles along the shorter arc);
-//! * IMU: the scenario's `[imu]` errors (`sitl::imu`) applied over each interval between two IMU
+//! * IMU: the scenario's `[imu]` errors (`visnav_core::nav::synth::imu`) applied over each interval between two IMU
 //!   messages, sent as SCALED_IMU / RAW_IMU (mG, mrad/s: what ArduPilot streams);
 //! * GPS: truth + white noise (`[gps] sigma_h_m`, `sigma_v_m`) inside `[gps] from_s..until_s`,
 //!   NO_FIX outside (the outage), on GPS_RAW_INT and GPS2_RAW; with `[closed_loop]
@@ -100,8 +100,7 @@ use super::faults::{
     self, CameraFault, FaultCounters, FaultKind, FaultOutcome, FaultPlan, ScoredFix, ScoredOutput,
     spoof_heartbeats,
 };
-use super::fixeval::{Stats, percentile};
-use super::imu::ImuErrors;
+use super::fixeval::Stats;
 use super::render::degrade::degrade;
 use super::render::{ColourMode, Renderer, Scene};
 use super::scenario::{ClosedLoopConfig, GpsConfig};
@@ -110,9 +109,11 @@ use visnav_core::geo::GeoError;
 use visnav_core::geo::dem::Dem;
 use visnav_core::geo::geoid::geoid_undulation_m;
 use visnav_core::nav::NavOutput;
+use visnav_core::nav::synth::imu::ImuErrors;
 use visnav_core::rng::Rng;
+use visnav_core::stats::percentile;
 use visnav_core::vision::GrayImage;
-use visnav_daemon::app_config::Config;
+use visnav_daemon::config::Config;
 use visnav_daemon::heap::{heap_in_use_bytes, heap_peak_bytes, reset_heap_peak};
 use visnav_daemon::{Daemon, DaemonSetup, FrameFixer, FramePipeline};
 use visnav_io::geo::geotiff::load_geotiff;

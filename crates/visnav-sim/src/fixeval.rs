@@ -301,7 +301,7 @@ impl Stats {
     }
 }
 
-pub use visnav_core::stats::percentile;
+use visnav_core::stats::percentile;
 
 /// The mean, NaN for an empty sample (as [`percentile`]: JSON prints null, not a number no fix
 /// had).

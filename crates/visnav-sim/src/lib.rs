@@ -5,9 +5,8 @@
 //! repeatability evaluation behind `visnav bench`. A flight build (`--no-default-features` on the
 //! `visnav` package) leaves this crate out.
 //!
-//! * [`trajectory`]: lines, coordinated turns, climbs; exact ideal IMU increments.
-//! * [`imu`]: IMU error synthesis (white noise, turn-on bias, bias instability, random walk,
-//!   scale factor, sample rate).
+//! * Truth trajectories and IMU error synthesis live in the core
+//!   (`visnav_core::nav::synth`), where the filter's own tests fly them too.
 //! * [`scenario`]: `sitl/scenarios/*.toml` schema and validation.
 //! * [`run`]: scenario runner, INS-only control, Monte Carlo NEES consistency.
 //! * [`autopilot`]: a MAVLink 2 autopilot emulator speaking like ArduPilot over real sockets.
@@ -30,7 +29,6 @@ pub mod closed_loop;
 pub mod dtm_eval;
 pub mod faults;
 pub mod fixeval;
-pub mod imu;
 pub mod plot;
 pub mod pose_bench;
 pub mod real_sitl;
@@ -40,7 +38,6 @@ pub mod run;
 pub mod scenario;
 pub mod surf_eval;
 pub mod synth;
-pub mod trajectory;
 pub mod vo_eval;
 
 pub use scenario::Scenario;

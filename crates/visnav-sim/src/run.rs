@@ -16,12 +16,12 @@
 //! `eps_bar(t)` is compared with the two-sided 95 % band `[chi2_{0.025}(N n) / N,
 //! chi2_{0.975}(N n) / N]`.
 
-use super::imu::ImuErrors;
 use super::scenario::{Scenario, VisionNoiseFrame};
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use serde::Serialize;
 use visnav_core::nav::earth;
 use visnav_core::nav::filter::Counters;
+use visnav_core::nav::synth::imu::ImuErrors;
 use visnav_core::nav::{
     AltitudeFix, AttitudeFix, ImuSample, Measurement, NavFilter, PositionFix, VelocityFix,
 };

@@ -2,11 +2,11 @@
 //! the `[nav]` filter configuration. Parsed with `deny_unknown_fields` and validated; every error
 //! names the file and the dotted key.
 
-use super::imu::SimImuConfig;
-use super::trajectory::{Segment, Trajectory};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use visnav_core::nav::NavConfig;
+use visnav_core::nav::synth::imu::SimImuConfig;
+use visnav_core::nav::synth::trajectory::{Segment, Trajectory};
 use visnav_core::validate::{Problems, Validate};
 
 /// Scenario loading errors.
@@ -100,7 +100,7 @@ pub enum VehicleKind {
     #[default]
     FixedWing,
     /// Multirotor: tilted by its acceleration and its drag, the thrust along body -z
-    /// (`sitl::trajectory` module doc).
+    /// (`visnav_core::nav::synth::trajectory` module doc).
     Multirotor,
 }
 

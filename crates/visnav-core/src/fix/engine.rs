@@ -62,7 +62,7 @@ use crate::pose::{
 };
 use crate::validate::{Problems, Validate};
 use crate::vision::{
-    CpuFeatures, FeatureBackend, Features, GrayImage, KeyPoint, MatchParams, Surf,
+    CpuFeatures, Detector, FeatureBackend, Features, GrayImage, KeyPoint, MatchParams,
 };
 use crate::vision::{gated_match, hough_cluster};
 
@@ -264,7 +264,7 @@ pub struct FixEngine {
     reference: Arc<dyn Reference>,
     camera: Camera,
     params: FixParams,
-    surf: Surf,
+    detector: Arc<dyn Detector>,
     /// Where the query frame's features are computed (default: the CPU).
     features: Arc<dyn FeatureBackend>,
     levels_gsd_m: Vec<f64>,
@@ -347,6 +347,27 @@ impl Single {
     };
 }
 
+/// One attempt's plan, what every stage that re-enters [`FixEngine::fix_single`] passes on:
+/// the attitude the frame is rectified at (and the coarse gate assumes), the attitude prior the
+/// resection fuses (None: none) and the methods that may run.
+#[derive(Debug, Clone, Copy)]
+struct Plan<'a> {
+    rect: &'a AttitudePriorNed,
+    solve: Option<&'a AttitudePriorNed>,
+    how: Single,
+}
+
+impl<'a> Plan<'a> {
+    /// Rectified at `rect`, `solve` fused, the methods of `how`.
+    fn new(rect: &'a AttitudePriorNed, solve: Option<&'a AttitudePriorNed>, how: Single) -> Self {
+        Self { rect, solve, how }
+    }
+    /// The same plan rectified at `rect` instead.
+    fn at(self, rect: &'a AttitudePriorNed) -> Self {
+        Self { rect, ..self }
+    }
+}
+
 /// One rectified view of a frame, as the correspondence stages see it.
 struct View<'a> {
     rect: &'a Rectification,
@@ -393,14 +414,15 @@ impl FixEngine {
         if levels_gsd_m.is_empty() {
             return Err(FixError::EmptyMap);
         }
-        let mut sp = reference.surf_params();
-        sp.max_features = None;
-        let surf = Surf::new(sp)?;
+        let detector = reference
+            .feature_spec()
+            .with_max_features(None)
+            .detector()?;
         Ok(Self {
             reference,
             camera,
             params,
-            surf,
+            detector,
             features: Arc::new(CpuFeatures),
             levels_gsd_m,
         })
@@ -531,19 +553,19 @@ impl FixEngine {
             .unwrap_or(self.levels_gsd_m.len() - 1)
     }
 
-    /// One rectification at `rect` (the attitude the frame is resampled with and the coarse gate
-    /// assumes), the resection fusing `solve` (None: no attitude prior), with the methods `how`
-    /// names: a heading sweep runs features at every hypothesis first and the area correlation
-    /// alone only when none matched; the feature relocalisation uses features only.
+    /// One rectification at `plan.rect` (the attitude the frame is resampled with and the
+    /// coarse gate assumes), the resection fusing `plan.solve` (None: no attitude prior), with
+    /// the methods `plan.how` names: a heading sweep runs features at every hypothesis first and
+    /// the area correlation alone only when none matched; the feature relocalisation uses
+    /// features only.
     fn fix_single(
         &self,
         frame: &GrayImage,
         pos: &PositionPriorGeo,
-        rect: &AttitudePriorNed,
-        solve: Option<&AttitudePriorNed>,
+        plan: Plan,
         t_us: u64,
-        how: Single,
     ) -> (FixReport, Attempt) {
+        let Plan { rect, solve, how } = plan;
         let rej = |reason: Rejection, a: Attempt| (FixReport::rejected(reason, t_us, 0.0), a);
         let solve = match solve.map(|s| self.solve_prior(s)) {
             None => None,

@@ -10,7 +10,7 @@
 use crate::geo::Crs;
 use crate::geo::dem::Dem;
 use crate::geo::raster::Raster;
-use crate::vision::{DescriptorKind, GrayImage, Surf, SurfParams, VisionError};
+use crate::vision::{DescriptorKind, FeatureSpec, GrayImage, VisionError};
 
 /// One reference feature: its map-grid position, height above mean sea level (the DEM's datum),
 /// scale on the ground and Laplacian sign.
@@ -77,8 +77,8 @@ pub trait Reference: Send + Sync {
     fn ortho_pixel_m(&self) -> f64 {
         self.level_gsd_m().first().copied().unwrap_or(0.0)
     }
-    /// The SURF settings the features were extracted with (the query uses the same).
-    fn surf_params(&self) -> SurfParams;
+    /// The detector and settings the features were extracted with (the query uses the same).
+    fn feature_spec(&self) -> FeatureSpec;
     /// Bounds of the mapped area `[min_x, min_y, max_x, max_y]`, metres.
     fn bounds_m(&self) -> [f64; 4];
     /// Ground height at a map position (AMSL, the DEM's datum), when known.
@@ -168,7 +168,7 @@ fn image_bytes(img: &GrayImage) -> Vec<u8> {
 #[derive(Debug)]
 pub struct MemoryReference {
     crs: Crs,
-    params: SurfParams,
+    spec: FeatureSpec,
     bounds_m: [f64; 4],
     levels: Vec<(f64, RefSelection)>,
     /// Each level's grey image (`image_bytes`), width and height.
@@ -217,10 +217,11 @@ impl MemoryReference {
     pub fn from_raster(
         raster: &Raster,
         dem: Dem,
-        params: SurfParams,
+        spec: impl Into<FeatureSpec>,
         n_levels: usize,
     ) -> Result<Self, VisionError> {
-        params.validate()?;
+        let spec = spec.into();
+        spec.validate()?;
         let tf = *raster.transform();
         let c = tf.coeffs();
         if !(tf.is_axis_aligned() && c[1] > 0.0 && c[5] < 0.0) {
@@ -229,7 +230,7 @@ impl MemoryReference {
                 reason: "the orthophoto must be north-up and axis-aligned".into(),
             });
         }
-        let surf = Surf::new(params.clone())?;
+        let detector = spec.detector()?;
         let b = raster.bounds();
         let bounds_m = [b.min_x_m, b.min_y_m, b.max_x_m, b.max_y_m];
         let mut img = raster_grey(raster);
@@ -252,7 +253,7 @@ impl MemoryReference {
                 let v = img.get(x, y);
                 if v.is_finite() { v } else { mean }
             });
-            let feats = surf.detect_and_describe(&filled);
+            let feats = detector.detect_and_describe(&filled);
             let st = feats.kind().stride();
             let mut sel = RefSelection::empty(feats.kind());
             for (i, k) in feats.keypoints.iter().enumerate() {
@@ -295,7 +296,7 @@ impl MemoryReference {
         }
         Ok(Self {
             crs: raster.crs(),
-            params,
+            spec,
             bounds_m,
             levels,
             images,
@@ -317,8 +318,8 @@ impl Reference for MemoryReference {
     fn level_gsd_m(&self) -> Vec<f64> {
         self.levels.iter().map(|(g, _)| *g).collect()
     }
-    fn surf_params(&self) -> SurfParams {
-        self.params.clone()
+    fn feature_spec(&self) -> FeatureSpec {
+        self.spec.clone()
     }
     fn bounds_m(&self) -> [f64; 4] {
         self.bounds_m
@@ -342,7 +343,7 @@ impl Reference for MemoryReference {
     }
     fn select(&self, level: usize, rect_m: [f64; 4]) -> RefSelection {
         let Some((_, all)) = self.levels.get(level) else {
-            return RefSelection::empty(self.params.descriptor);
+            return RefSelection::empty(self.spec.kind());
         };
         let st = all.kind.stride();
         let mut out = RefSelection::empty(all.kind);

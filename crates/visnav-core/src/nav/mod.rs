@@ -23,6 +23,7 @@ pub mod earth;
 pub mod filter;
 pub mod ins;
 pub mod measurement;
+pub mod synth;
 
 pub use config::NavConfig;
 pub use filter::{Counters, Health, NavFilter, NavOutput, Outcome};

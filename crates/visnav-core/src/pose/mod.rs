@@ -451,10 +451,8 @@ fn resect_stages(
     let prior_d2 = prior_consistency(&vision.pose, &vision_cov, priors, &c.origin);
     // 6. Optional fusion of the attitude prior.
     let fusion = fuse_attitude_prior(
-        &c.local,
-        &inliers,
-        &vision,
-        &vision_cov,
+        (&c.local, &inliers),
+        (&vision, &vision_cov),
         priors,
         tilt.as_ref(),
         image,
@@ -597,18 +595,19 @@ fn refine_reselecting(
     let mut pose = rs.pose;
     let mut refined = None;
     for _ in 0..4 {
-        let r = refine_pose(local, &inliers, &pose, fx, fy, None, &cfg.refine).map_err(
-            |e| match e {
-                RefineError::Singular => Rejection::IllConditioned {
-                    condition: f64::INFINITY,
-                    max: cfg.integrity.max_condition_number,
+        let r =
+            refine_pose(local, &inliers, &pose, [fx, fy], None, &cfg.refine).map_err(
+                |e| match e {
+                    RefineError::Singular => Rejection::IllConditioned {
+                        condition: f64::INFINITY,
+                        max: cfg.integrity.max_condition_number,
+                    },
+                    e => Rejection::NumericalFailure {
+                        stage: "refinement",
+                        detail: e.to_string(),
+                    },
                 },
-                e => Rejection::NumericalFailure {
-                    stage: "refinement",
-                    detail: e.to_string(),
-                },
-            },
-        )?;
+            )?;
         lm_iterations += r.iterations;
         pose = r.pose;
         let new_inl: Vec<usize> = (0..local.len())
@@ -667,12 +666,9 @@ fn prior_consistency(
 /// the image and the prior. Without the scaling the prior is under-weighted by `k` (16 with the
 /// fix pipeline's inflation of 4) and the image's correlated errors leak into the tilt along the
 /// position/tilt ambiguity. The prior as weighed is `P k / k_image`.
-#[allow(clippy::too_many_arguments)]
 fn fuse_attitude_prior(
-    local: &[Correspondence],
-    inliers: &[usize],
-    vision: &Refined,
-    vision_cov: &PoseCovariance,
+    (local, inliers): (&[Correspondence], &[usize]),
+    (vision, vision_cov): (&Refined, &PoseCovariance),
     priors: &Priors,
     tilt: Option<&MapTilt>,
     image: &ImageGeometry,
@@ -705,8 +701,7 @@ fn fuse_attitude_prior(
         local,
         inliers,
         &vision.pose,
-        fx,
-        fy,
+        [fx, fy],
         Some(&scaled),
         &cfg.refine,
     )
@@ -937,7 +932,7 @@ pub fn split_variance_factor(
     let mut sum = 0.0;
     let mut used = 0usize;
     for g in groups.iter().filter(|g| g.len() >= 8) {
-        let Ok(r) = refine_pose(corrs, g, &full.pose, image.fx_px, image.fy_px, None, cfg) else {
+        let Ok(r) = refine_pose(corrs, g, &full.pose, [image.fx_px, image.fy_px], None, cfg) else {
             continue;
         };
         let cov_g = r.cov_apriori * r.sigma0_sq.max(cfg.sigma0_floor * cfg.sigma0_floor);

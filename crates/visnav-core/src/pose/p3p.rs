@@ -126,8 +126,8 @@ fn cubic_root(c2: f64, c1: f64, c0: f64) -> Option<f64> {
 
 /// Gauss-Newton on the three distance equations
 /// `l_i^2 - 2 l_i l_j b_ij + l_j^2 = a_ij`.
-#[allow(clippy::too_many_arguments)]
-fn refine_lambda(l: &mut [f64; 3], a12: f64, a13: f64, a23: f64, b12: f64, b13: f64, b23: f64) {
+/// `a = [a12, a13, a23]`, `b = [b12, b13, b23]`.
+fn refine_lambda(l: &mut [f64; 3], [a12, a13, a23]: [f64; 3], [b12, b13, b23]: [f64; 3]) {
     for _ in 0..5 {
         let [l1, l2, l3] = *l;
         let r1 = l1 * l1 - 2.0 * l1 * l2 * b12 + l2 * l2 - a12;
@@ -340,7 +340,9 @@ impl Triangle {
         x0: &Vector3<f64>,
     ) -> Option<P3pSolution> {
         refine_lambda(
-            &mut l, self.a12, self.a13, self.a23, self.b12, self.b13, self.b23,
+            &mut l,
+            [self.a12, self.a13, self.a23],
+            [self.b12, self.b13, self.b23],
         );
         if !l.iter().all(|v| v.is_finite() && *v > 0.0) {
             return None;

@@ -294,8 +294,7 @@ fn local_optimise(
             s.corrs,
             &inl_idx,
             &start_pose,
-            s.fx_px,
-            s.fy_px,
+            [s.fx_px, s.fy_px],
             None,
             &LO_REFINE,
         ) else {

@@ -291,16 +291,15 @@ struct Normal {
     px_sq: f64,
 }
 
-#[allow(clippy::too_many_arguments)]
+/// The normal equations of `pose` over the correspondences `idx` (pixels from normalised
+/// residuals by `focal_px`), each weighed by `loss`, with the attitude prior's rows.
 fn accumulate(
     corrs: &[Correspondence],
     idx: &[usize],
     pose: &Pose,
-    fx: f64,
-    fy: f64,
+    [fx, fy]: [f64; 2],
     loss: &RobustLoss,
     prior: Option<&PriorTerm>,
-    with_jacobian: bool,
 ) -> Option<Normal> {
     let r_cw = pose.r_world_cam.inverse();
     let r_cw = r_cw.matrix();
@@ -319,24 +318,20 @@ fn accumulate(
         n.cost += rho;
         n.sum_sq += s2; // unweighted: a robust loss must not hide a wrong pixel sigma
         n.px_sq += s2 * c.sigma_px * c.sigma_px;
-        if with_jacobian {
-            let jt = j.transpose();
-            n.h += jt * j * w;
-            n.g += jt * e * w;
-        }
+        let jt = j.transpose();
+        n.h += jt * j * w;
+        n.g += jt * e * w;
     }
     if let Some(p) = prior {
         let (r, j) = p.residual(&pose.r_world_cam);
         let s2 = r.norm_squared();
         n.cost += s2;
         n.sum_sq += s2;
-        if with_jacobian {
-            let jt = j.transpose();
-            let mut hv = n.h.fixed_view_mut::<3, 3>(0, 0);
-            hv += jt * j;
-            let mut gv = n.g.fixed_view_mut::<3, 1>(0, 0);
-            gv += jt * r;
-        }
+        let jt = j.transpose();
+        let mut hv = n.h.fixed_view_mut::<3, 3>(0, 0);
+        hv += jt * j;
+        let mut gv = n.g.fixed_view_mut::<3, 1>(0, 0);
+        gv += jt * r;
     }
     (n.cost.is_finite() && n.h.iter().all(|v| v.is_finite())).then_some(n)
 }
@@ -364,14 +359,13 @@ fn scaled_condition(h: &Matrix6<f64>) -> f64 {
 }
 
 /// Refine `initial` over the correspondences `idx` by Levenberg-Marquardt (see the module doc), and
-/// compute the covariance at the solution. `fx_px`, `fy_px` convert normalised residuals to pixels.
-#[allow(clippy::too_many_arguments)]
+/// compute the covariance at the solution. `focal_px` (`[fx, fy]`) converts normalised residuals
+/// to pixels.
 pub fn refine_pose(
     corrs: &[Correspondence],
     idx: &[usize],
     initial: &Pose,
-    fx_px: f64,
-    fy_px: f64,
+    focal_px: [f64; 2],
     attitude_prior: Option<&AttitudePrior>,
     cfg: &RefineConfig,
 ) -> Result<Refined, RefineError> {
@@ -382,7 +376,7 @@ pub fn refine_pose(
     }
     let loss = cfg.loss;
     let mut pose = *initial;
-    let mut cur = accumulate(corrs, idx, &pose, fx_px, fy_px, &loss, prior.as_ref(), true)
+    let mut cur = accumulate(corrs, idx, &pose, focal_px, &loss, prior.as_ref())
         .ok_or(RefineError::NonFinite)?;
     let mut mu = 1e-4;
     let mut iterations = 0;
@@ -404,7 +398,7 @@ pub fn refine_pose(
                 return Err(RefineError::NonFinite);
             }
             let cand = apply_update(&pose, &delta);
-            match accumulate(corrs, idx, &cand, fx_px, fy_px, &loss, prior.as_ref(), true) {
+            match accumulate(corrs, idx, &cand, focal_px, &loss, prior.as_ref()) {
                 Some(n) if n.cost <= cur.cost => {
                     let rot_step = delta.fixed_rows::<3>(0).norm();
                     let pos_step = delta.fixed_rows::<3>(3).norm();
@@ -628,8 +622,7 @@ mod tests {
             &corrs,
             &idx,
             &start,
-            554.0,
-            554.0,
+            [554.0, 554.0],
             None,
             &RefineConfig::default(),
         )
@@ -654,8 +647,7 @@ mod tests {
                 &corrs,
                 &idx,
                 &truth,
-                554.0,
-                554.0,
+                [554.0, 554.0],
                 None,
                 &RefineConfig::default()
             ),
@@ -670,8 +662,7 @@ mod tests {
                 &corrs,
                 &idx,
                 &truth,
-                554.0,
-                554.0,
+                [554.0, 554.0],
                 None,
                 &RefineConfig::default()
             )

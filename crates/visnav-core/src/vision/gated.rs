@@ -4,7 +4,6 @@
 //! the vote relocalisation runs without a position prior.
 
 use super::Features;
-use super::matcher::dist2;
 
 /// A match accepted by [`gated_match`]: query index, train index.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -35,6 +34,7 @@ pub fn gated_match(
         }
     }
     let st = query.kind().stride();
+    let dist = super::matcher::row_distance2(query.kind());
     let qd = query.descriptors_padded();
     let td = train.descriptors_padded();
     let mut out = Vec::new();
@@ -61,7 +61,7 @@ pub fn gated_match(
                     if ex * ex + ey * ey > r_wide * r_wide {
                         continue;
                     }
-                    let d = dist2(&qd[i * st..(i + 1) * st], &td[j * st..(j + 1) * st]);
+                    let d = dist(&qd[i * st..(i + 1) * st], &td[j * st..(j + 1) * st]);
                     if d < d1 {
                         d2 = d1;
                         d1 = d;

@@ -1,4 +1,5 @@
-//! Brute-force descriptor matching: 2-nearest-neighbour search in L2 distance, Lowe's ratio test
+//! Brute-force descriptor matching: 2-nearest-neighbour search in the descriptor family's distance
+//! (L2 for SURF's float vectors, Hamming for binary strings: [`row_distance2`]), Lowe's ratio test
 //! (Lowe 2004, sec. 7.1), the Laplacian-sign gate of SURF (Bay et al. 2008, sec. 4.3: only
 //! keypoints with the same sign of the trace are compared), an optional mutual (cross) check and an
 //! optional spatial gate (only train keypoints within a radius of a predicted location).
@@ -11,7 +12,8 @@
 
 use rayon::prelude::*;
 
-use super::{Features, VisionError};
+use super::surf::Family;
+use super::{DescriptorKind, Features, VisionError};
 
 /// Matching options.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -64,6 +66,26 @@ pub fn dist2(a: &[f32], b: &[f32]) -> f32 {
     ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]))
 }
 
+/// Squared Hamming distance of two binary rows (32-bit words kept as float bits,
+/// [`Features::binary_descriptor`]): squared so that the matcher's square roots give bits.
+pub fn hamming2(a: &[f32], b: &[f32]) -> f32 {
+    let bits: u32 = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| (x.to_bits() ^ y.to_bits()).count_ones())
+        .sum();
+    (bits * bits) as f32
+}
+
+/// The squared distance of two descriptor rows of `kind`: Euclidean ([`dist2`]) for float
+/// descriptors, Hamming ([`hamming2`]) for binary ones.
+pub fn row_distance2(kind: DescriptorKind) -> fn(&[f32], &[f32]) -> f32 {
+    match kind.family() {
+        Family::Float => dist2,
+        Family::Binary => hamming2,
+    }
+}
+
 /// Nearest and second nearest `(index, d1^2, d2^2)` of row `qi` of `q` among rows of `t` that pass
 /// `accept`.
 ///
@@ -78,6 +100,9 @@ fn two_nn(
     t: &Features,
     accept: &impl Fn(usize) -> bool,
 ) -> Option<(usize, f32, f32)> {
+    if q.kind().family() == Family::Binary {
+        return two_nn_with(q, qi, t, accept, hamming2);
+    }
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx") {
         // SAFETY: the CPU was just found to support AVX, the only feature `two_nn_avx` enables.

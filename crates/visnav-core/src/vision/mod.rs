@@ -3,7 +3,10 @@
 //! * `gray`: grayscale `f32` images on the 8-bit intensity scale, loading and sampling.
 //! * `integral`: the summed-area table all box filters read.
 //! * `surf`: fast-Hessian detector, orientation, SURF-36/64/128 descriptors, upright mode.
-//! * `matcher`: brute-force 2-NN matching with ratio test, Laplacian gate, mutual and spatial gates.
+//! * `matcher`: brute-force 2-NN matching (L2 or Hamming by the descriptor's family) with ratio
+//!   test, Laplacian gate, mutual and spatial gates.
+//! * `detector`: the seam ([`Detector`], [`FeatureSpec`]) the map and the fix use; `orb`: the
+//!   ORB-like binary features behind it beside SURF.
 //! * `klt`: Shi-Tomasi corners, image pyramid, pyramidal Lucas-Kanade tracking (Bouguet 2000) with
 //!   a forward-backward check, for frame-to-frame visual odometry.
 //!
@@ -13,22 +16,26 @@
 //! at integer coordinates (OpenCV's convention). Keypoint orientation `orientation_rad` is the
 //! angle from the image `+x` axis towards `+y`, i.e. clockwise as seen on screen, in `(-pi, pi]`.
 
+pub mod detector;
 pub mod gated;
 pub mod gray;
 pub mod integral;
 pub mod klt;
 pub mod matcher;
+pub mod orb;
 pub mod surf;
 
 use std::path::PathBuf;
 
+pub use detector::{Detector, FeatureSpec};
 pub use gated::{GatedMatch, gated_match, hough_cluster};
 pub use gray::GrayImage;
 pub use integral::IntegralImage;
 pub use matcher::{Match, MatchParams, match_features};
+pub use orb::{Orb, OrbParams};
 pub use surf::{
-    CpuFeatures, DescriptorKind, ExtremaWindow, FeatureBackend, Features, KeyPoint, LayerSpec,
-    Surf, SurfParams,
+    CpuFeatures, DescriptorKind, ExtremaWindow, Family, FeatureBackend, Features, KeyPoint,
+    LayerSpec, Surf, SurfParams,
 };
 
 /// Errors of the vision module.

@@ -65,23 +65,45 @@ pub enum DescriptorKind {
     Surf64,
     /// 4 x 4 subregions x 8 values (OpenCV `extended = true`).
     Surf128,
+    /// 256 binary tests (ORB's steered BRIEF, [`super::orb`]), stored as 8 words of 32 bits.
+    Binary256,
 }
 
-/// `SURF-64` and so on (the descriptor's length).
+/// How two descriptors of a kind are compared.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Family {
+    /// Unit vectors of floats: Euclidean distance.
+    Float,
+    /// Bit strings: Hamming distance.
+    Binary,
+}
+
+/// `SURF-64` and so on (the descriptor's length), `binary-256`.
 impl std::fmt::Display for DescriptorKind {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "SURF-{}", self.len())
+        match self {
+            Self::Binary256 => write!(f, "binary-256"),
+            _ => write!(f, "SURF-{}", self.len()),
+        }
     }
 }
 
 impl DescriptorKind {
-    /// Number of descriptor values.
+    /// Number of stored descriptor values: floats, or the 32-bit words of a binary kind.
     #[allow(clippy::len_without_is_empty)] // a descriptor kind is never empty
     pub fn len(self) -> usize {
         match self {
             Self::Surf36 => 36,
             Self::Surf64 => 64,
             Self::Surf128 => 128,
+            Self::Binary256 => 8,
+        }
+    }
+    /// How descriptors of this kind are compared.
+    pub fn family(self) -> Family {
+        match self {
+            Self::Binary256 => Family::Binary,
+            _ => Family::Float,
         }
     }
     /// Storage stride in floats (length rounded up to a multiple of 8).
@@ -164,6 +186,9 @@ impl SurfParams {
         if self.max_features == Some(0) {
             return bad("max_features", "must be positive when set");
         }
+        if self.descriptor.family() != Family::Float {
+            return bad("descriptor", "SURF computes SURF-36, SURF-64 or SURF-128");
+        }
         Ok(())
     }
 }
@@ -233,6 +258,32 @@ impl Features {
     /// The descriptor variant.
     pub fn kind(&self) -> DescriptorKind {
         self.kind
+    }
+    /// Features whose rows the caller built to `kind`'s stride (the detectors of this module).
+    pub(crate) fn from_rows(
+        keypoints: Vec<KeyPoint>,
+        descriptors: Vec<f32>,
+        kind: DescriptorKind,
+    ) -> Self {
+        debug_assert_eq!(descriptors.len(), keypoints.len() * kind.stride());
+        Self {
+            keypoints,
+            descriptors,
+            kind,
+        }
+    }
+    /// Binary descriptor `i` as its 8 words of 32 bits (test `k` is bit `k % 32` of word
+    /// `k / 32`). A binary kind's words are kept in the float rows bit for bit: rows are only
+    /// copied, never computed with, and a copy keeps a float's bits. Zero for a float kind.
+    pub fn binary_descriptor(&self, i: usize) -> [u32; 8] {
+        let mut words = [0u32; 8];
+        if self.kind.family() == Family::Binary {
+            let st = self.kind.stride();
+            for (w, v) in words.iter_mut().zip(&self.descriptors[i * st..i * st + 8]) {
+                *w = v.to_bits();
+            }
+        }
+        words
     }
     /// Descriptor `i` (`kind().len()` values).
     pub fn descriptor(&self, i: usize) -> &[f32] {
@@ -423,22 +474,29 @@ pub struct ExtremaWindow {
     pub r_hi: usize,
 }
 
-/// A keypoint from a 3x3x3 maximum at grid cell `(c, r)` of layer `mid` (octave `octave`) and its
-/// interpolated offset `[dx, dy, ds]` in samples (`ds` in units of the filter-size step
-/// `mid.size - lo_size`): position in pixels, filter size, scale `1.2 L / 9`. The one formula of
-/// the CPU and GPU paths.
-#[allow(clippy::too_many_arguments)] // the fields of one maximum, each a different quantity
-pub fn keypoint_at(
-    c: usize,
-    r: usize,
-    offset: [f64; 3],
-    mid: &LayerSpec,
-    lo_size: usize,
-    response: f32,
-    laplacian: i8,
-    octave: usize,
-) -> KeyPoint {
-    let [ox, oy, os] = offset;
+/// One 3x3x3 maximum of the response layers, as found ([`keypoint_at`] places it).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Extremum {
+    /// Grid cell `[c, r]` of the middle layer.
+    pub cell: [usize; 2],
+    /// Interpolated offset `[dx, dy, ds]` in samples (`ds` in units of the filter-size step).
+    pub offset: [f64; 3],
+    /// `det(H)` at the cell.
+    pub response: f32,
+    /// Sign of the trace of H: -1 bright blob, +1 dark blob.
+    pub laplacian: i8,
+}
+
+/// The keypoint of maximum `e` of layer `mid` (octave `octave`), `ds` in units of the
+/// filter-size step `mid.size - lo_size`: position in pixels, filter size, scale `1.2 L / 9`.
+/// The one formula of the CPU and GPU paths.
+pub fn keypoint_at(e: &Extremum, mid: &LayerSpec, lo_size: usize, octave: usize) -> KeyPoint {
+    let Extremum {
+        cell: [c, r],
+        offset: [ox, oy, os],
+        response,
+        laplacian,
+    } = *e;
     let step = mid.step as f64;
     let ds = (mid.size - lo_size) as f64;
     let size = mid.size as f64 + os * ds;
@@ -603,9 +661,10 @@ impl Surf {
 /// accelerator that gives the same features and matches (visnav-gpu's GPU path). The fix engine
 /// takes one (`FixEngine::set_feature_backend`); the parameters are always the caller's.
 pub trait FeatureBackend: Send + Sync {
-    /// Detect and describe `img` with `surf`'s parameters. An accelerator that fails computes
-    /// the frame on the CPU instead (and counts it), so a frame is never lost to the backend.
-    fn detect_and_describe(&self, surf: &Surf, img: &GrayImage) -> Features;
+    /// Detect and describe `img` with `detector`. An accelerator computes the detectors it has
+    /// (SURF: [`super::Detector::as_surf`]) and leaves the others to the CPU; one that fails
+    /// computes the frame on the CPU instead (and counts it), so a frame is never lost to it.
+    fn detect_and_describe(&self, detector: &dyn super::Detector, img: &GrayImage) -> Features;
     /// [`super::match_features`]: the same matches (an accelerator that fails matches on the
     /// CPU). The CPU's by default.
     fn match_features(
@@ -626,8 +685,8 @@ pub trait FeatureBackend: Send + Sync {
 pub struct CpuFeatures;
 
 impl FeatureBackend for CpuFeatures {
-    fn detect_and_describe(&self, surf: &Surf, img: &GrayImage) -> Features {
-        surf.detect_and_describe(img)
+    fn detect_and_describe(&self, detector: &dyn super::Detector, img: &GrayImage) -> Features {
+        detector.detect_and_describe(img)
     }
 
     fn name(&self) -> String {
@@ -977,16 +1036,13 @@ fn find_maxima(
                 };
                 let (dxx, dyy, _) = hessian_at(ii, c * step, r * step, mid.size);
                 let laplacian = if dxx + dyy < 0.0 { -1 } else { 1 };
-                found.push(keypoint_at(
-                    c,
-                    r,
+                let e = Extremum {
+                    cell: [c, r],
                     offset,
-                    &mid.spec(),
-                    lo.size,
-                    v0,
+                    response: v0,
                     laplacian,
-                    octave,
-                ));
+                };
+                found.push(keypoint_at(&e, &mid.spec(), lo.size, octave));
             }
             found.into_iter()
         })

@@ -44,10 +44,10 @@ use super::{
 };
 use crate::geo::geotiff::{GeoTiffError, GeoTiffInfo, crs_equivalent, describe_crs, load_geotiff};
 use crate::geo::window::{GeoTiffWindowReader, open_geotiff_window};
-use crate::vision::{GrayImage, IntegralImage, KeyPoint, Surf, SurfParams};
 use visnav_core::geo::Crs;
 use visnav_core::geo::dem::Dem;
 use visnav_core::geo::raster::{Bounds, GeoTransform, Raster, RasterData};
+use visnav_core::vision::{GrayImage, IntegralImage, KeyPoint, Surf, SurfParams};
 
 /// Rec. 601 luma weights (as `vision::file::GrayImageFile::from_dynamic` and the renderer).
 const LUMA: [f32; 3] = [0.299, 0.587, 0.114];
@@ -1119,7 +1119,7 @@ fn process_tile(
         k.y -= (cy0 - wy0) as f32;
         kept.push(k);
     }
-    let mut kept = crate::vision::surf::select_spread(kept, ctx.cap, cw, ch);
+    let mut kept = visnav_core::vision::surf::select_spread(kept, ctx.cap, cw, ch);
     for k in &mut kept {
         k.x += (cx0 - wx0) as f32;
         k.y += (cy0 - wy0) as f32;

@@ -37,7 +37,7 @@ use std::path::{Path, PathBuf};
 use memmap2::Mmap;
 
 use super::{IndexGrid, LevelImageInfo, MapError, MapFeature, MapHeader, MapSelection};
-use crate::vision::DescriptorKind;
+use visnav_core::vision::DescriptorKind;
 
 /// File magic (PNG-style: a CR-LF and a ^Z catch text-mode transfers).
 pub const MAGIC: [u8; 8] = *b"VNMAP\r\n\x1a";
@@ -984,9 +984,9 @@ fn check_features(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), BadFe
 pub(crate) mod tests {
     use super::*;
     use crate::map::{HeightInfo, LevelInfo};
-    use crate::vision::SurfParams;
     use visnav_core::geo::Crs;
     use visnav_core::geo::raster::Bounds;
+    use visnav_core::vision::SurfParams;
 
     pub(crate) fn tiny_header(levels: usize) -> MapHeader {
         MapHeader {

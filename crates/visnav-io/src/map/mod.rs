@@ -42,9 +42,9 @@ use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
 
-use crate::vision::{DescriptorKind, SurfParams};
 use visnav_core::geo::Crs;
 use visnav_core::geo::raster::Bounds;
+use visnav_core::vision::{DescriptorKind, SurfParams};
 
 pub use build::{BuildProgress, BuildSpec, BuildSummary, HeightSource, build_map};
 pub use format::{FORMAT_VERSION, MAGIC, ReferenceMap};

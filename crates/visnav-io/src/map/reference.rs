@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use visnav_core::fix::reference::{MapImage, RefFeature, RefSelection, Reference};
 use visnav_core::geo::Crs;
 use visnav_core::geo::dem::Dem;
-use visnav_core::vision::SurfParams;
+use visnav_core::vision::FeatureSpec;
 
 use super::{BuildSpec, HeightInfo, MapError, ReferenceMap, build_map};
 use crate::geo::dem::load_dem;
@@ -118,8 +118,9 @@ impl Reference for MapReference {
             .or_else(|| h.levels.first().map(|l| l.gsd_m))
             .unwrap_or(0.0)
     }
-    fn surf_params(&self) -> SurfParams {
-        self.map.header().surf.clone()
+    fn feature_spec(&self) -> FeatureSpec {
+        // A .vnm file holds SURF features (its header's `surf`).
+        FeatureSpec::Surf(self.map.header().surf.clone())
     }
     fn bounds_m(&self) -> [f64; 4] {
         let b = &self.map.header().bounds;

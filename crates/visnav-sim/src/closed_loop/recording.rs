@@ -203,7 +203,7 @@ pub(super) struct InjectionCollector {
     control: bool,
     /// The EKF origin in force (SET_GPS_GLOBAL_ORIGIN as received): local positions
     /// (VISION_POSITION_ESTIMATE, ODOMETRY) are NED about it ...
-    origin: Option<visnav_link::GeoOrigin>,
+    origin: Option<visnav_core::geo::GeoOrigin>,
     /// ... in the projection of the flight stack the emulator announces: read back as that
     /// autopilot would read them.
     frame: AutopilotFrame,
@@ -311,7 +311,7 @@ impl InjectionCollector {
     /// The injection a message makes, scored against the truth at its arrival (GPS_INPUT with a
     /// 3D fix; local positions with the origin in force).
     fn collect(&mut self, r: &Received, table: &TruthTable) {
-        use visnav_link::GeoOrigin;
+        use visnav_core::geo::GeoOrigin;
         let t = r.t_run_us as f64 * 1e-6;
         #[allow(deprecated)] // SET_GPS_GLOBAL_ORIGIN: what ArduPilot acts on
         let local = match &r.msg {

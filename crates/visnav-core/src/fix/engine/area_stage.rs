@@ -14,8 +14,8 @@ use rayon::prelude::*;
 use super::{Attempt, FixEngine, Pair, View};
 use crate::fix::Rejection;
 use crate::fix::area::{
-    Integral, MIN_TIE_NCC, MIN_TIE_NCC_NEAR, Patch, PlaceError, Plane, TieMatch, TwoChannels,
-    UNIQUE_MARGIN, UNIQUE_RADIUS_COARSE_PX, best_similar, match_patch, place_similar,
+    Integral, MIN_TIE_NCC, MIN_TIE_NCC_NEAR, Patch, PlaceError, Plane, TieMatch, TieSearch,
+    TwoChannels, UNIQUE_MARGIN, UNIQUE_RADIUS_COARSE_PX, best_similar, match_patch, place_similar,
     rank_hypotheses, select_patches, similar_surface, unjudged_places,
 };
 use crate::fix::reference::MapImage;
@@ -338,15 +338,15 @@ impl<'a> AreaSearch<'a> {
         min_ncc: f64,
     ) -> Option<TieMatch> {
         let s = sim.apply(t.q_f32());
-        match_patch(
-            &self.window,
-            &self.sums,
-            &t.patch,
-            (s[0] + offset[0]).round() as i64,
-            (s[1] + offset[1]).round() as i64,
-            radius,
+        let search = TieSearch {
+            centre_px: [
+                (s[0] + offset[0]).round() as i64,
+                (s[1] + offset[1]).round() as i64,
+            ],
+            radius_px: radius,
             min_ncc,
-        )
+        };
+        match_patch(&self.window, &self.sums, &t.patch, search)
     }
 
     /// Placement on a coarse grid (block means of f x f pixels, grey values and gradients)

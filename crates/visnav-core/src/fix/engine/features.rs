@@ -14,7 +14,9 @@ impl FixEngine {
         let (rect, level) = (v.rect, v.level);
         let gsd = self.levels_gsd_m[level];
         // Query features on valid ground, strongest first, capped.
-        let feats = self.features.detect_and_describe(&self.surf, &rect.image);
+        let feats = self
+            .features
+            .detect_and_describe(self.detector.as_ref(), &rect.image);
         let keep = self.query_on_ground(v, &feats);
         a.query_features = keep.len();
         if keep.len() < self.params.min_matches {

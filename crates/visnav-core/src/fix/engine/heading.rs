@@ -39,7 +39,7 @@ impl FixEngine {
         let sweep = |how: Single| -> Vec<Hypothesis> {
             hyps.iter()
                 .map(|hyp| {
-                    let (r, a) = self.fix_single(frame, pos, hyp, solve, t_us, how);
+                    let (r, a) = self.fix_single(frame, pos, Plan::new(hyp, solve, how), t_us);
                     Hypothesis::new(hyp.attitude.yaw_rad, r, a)
                 })
                 .collect()
@@ -52,7 +52,13 @@ impl FixEngine {
         };
         let (r, a) = select_unique(sweep(features), t_us);
         if r.accepted {
-            return self.refine_sweep_fix(frame, pos, att, solve, t_us, features, r, a);
+            return self.refine_sweep_fix(
+                frame,
+                pos,
+                Plan::new(att, solve, features),
+                t_us,
+                (r, a),
+            );
         }
         // Without an attitude prior an area fix has the features' position-tilt ambiguity and
         // fails the sigma limit as theirs do (NAIP: 0 of 3 frames, 1.7 s each): not tried.
@@ -80,7 +86,7 @@ impl FixEngine {
             ]));
             return (r, a);
         }
-        self.refine_sweep_fix(frame, pos, att, solve, t_us, area, r2, a2)
+        self.refine_sweep_fix(frame, pos, Plan::new(att, solve, area), t_us, (r2, a2))
     }
 
     /// The sweep's fix `r` again, rectified at its own heading: a hypothesis is up to half a
@@ -91,20 +97,16 @@ impl FixEngine {
     /// is rejected the first stands (the sweep's uniqueness test passed). NAIP cross-date with
     /// a 25 deg heading error: the one fix 54 m off (tilt 1.3 deg) becomes 48 m max, p90 30.7 ->
     /// 27.8 m, same acceptance (docs/fix.md).
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn refine_sweep_fix(
         &self,
         frame: &GrayImage,
         pos: &PositionPriorGeo,
-        att: &AttitudePriorNed,
-        solve: Option<&AttitudePriorNed>,
+        plan: Plan,
         t_us: u64,
-        how: Single,
-        r: FixReport,
-        a: Attempt,
+        (r, a): (FixReport, Attempt),
     ) -> (FixReport, Attempt) {
-        let rect = at_own_heading(att, &r);
-        let (r2, a2) = self.fix_single(frame, pos, &rect, solve, t_us, how);
+        let rect = at_own_heading(plan.rect, &r);
+        let (r2, a2) = self.fix_single(frame, pos, plan.at(&rect), t_us);
         if !r2.accepted {
             return (r, a);
         }
@@ -303,19 +305,13 @@ impl FixEngine {
         if att.sigma_yaw_rad > YAW_SWEEP_ABOVE_DEG.to_radians() {
             self.fix_heading_sweep(frame, pos, att, Some(att), t_us, att_from_filter)
         } else {
-            self.fix_single(
-                frame,
-                pos,
-                att,
-                Some(att),
-                t_us,
-                Single {
-                    att_from_filter,
-                    features: true,
-                    area: true,
-                    placement: true,
-                },
-            )
+            let how = Single {
+                att_from_filter,
+                features: true,
+                area: true,
+                placement: true,
+            };
+            self.fix_single(frame, pos, Plan::new(att, Some(att), how), t_us)
         }
     }
 

@@ -180,19 +180,10 @@ impl FixEngine {
                 ..how
             };
             *work = work.saturating_add((frame.width() * frame.height()) as u64);
-            let (r, a) = self.fix_single(frame, &c.position, &c.rect_att, Some(att), t_us, how);
+            let plan = Plan::new(&c.rect_att, Some(att), how);
+            let (r, a) = self.fix_single(frame, &c.position, plan, t_us);
             let h = if r.accepted {
-                self.confirm_from_own_pose(
-                    frame,
-                    r,
-                    a,
-                    &c.rect_att,
-                    Some(att),
-                    t_us,
-                    search.gsd_m,
-                    how,
-                    work,
-                )
+                self.confirm_from_own_pose(frame, (r, a), plan, t_us, search.gsd_m, work)
             } else {
                 Hypothesis::new(c.rect_att.attitude.yaw_rad, r, a)
             };
@@ -430,19 +421,16 @@ impl FixEngine {
     /// is not (its matches came from the loose coarse gate), which the a-contrario count of one
     /// attempt cannot see after a search of dozens. The refined pass is kept only with more
     /// inliers.
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn confirm_from_own_pose(
         &self,
         frame: &GrayImage,
-        r: FixReport,
-        a: Attempt,
-        att: &AttitudePriorNed,
-        solve: Option<&AttitudePriorNed>,
+        (r, a): (FixReport, Attempt),
+        plan: Plan,
         t_us: u64,
         gsd: f64,
-        how: Single,
         work: &mut u64,
     ) -> Hypothesis {
+        let att = plan.rect;
         let refined_pos = PositionPriorGeo {
             lat_deg: r.lat_deg,
             lon_deg: r.lon_deg,
@@ -455,7 +443,7 @@ impl FixEngine {
             1f64.to_radians(),
         );
         *work = work.saturating_add((frame.width() * frame.height()) as u64);
-        let (r2, a2) = self.fix_single(frame, &refined_pos, &refined_rect, solve, t_us, how);
+        let (r2, a2) = self.fix_single(frame, &refined_pos, plan.at(&refined_rect), t_us);
         if !r2.accepted {
             let mut rejected = FixReport::rejected(
                 Rejection::NotConfirmed(Box::new(Rejection::or_unexplained(r2.rejection))),
@@ -503,7 +491,9 @@ impl FixEngine {
             return Err(Rejection::NoGround);
         };
         *work = work.saturating_add((rect.width() * rect.height()) as u64);
-        let feats = self.features.detect_and_describe(&self.surf, &rect.image);
+        let feats = self
+            .features
+            .detect_and_describe(self.detector.as_ref(), &rect.image);
         let idx: Vec<usize> = feats
             .keypoints
             .iter()
@@ -643,11 +633,12 @@ impl FixEngine {
         };
         let frame_px = (frame.width() * frame.height()) as u64;
         *work = work.saturating_add(frame_px);
-        let (r, a) = self.fix_single(frame, &pos, att, solve, t_us, Single::FEATURES);
+        let plan = Plan::new(att, solve, Single::FEATURES);
+        let (r, a) = self.fix_single(frame, &pos, plan, t_us);
         if !r.accepted {
             return Ok(Hypothesis::new(att.attitude.yaw_rad, r, a));
         }
-        Ok(self.confirm_from_own_pose(frame, r, a, att, solve, t_us, gsd, Single::FEATURES, work))
+        Ok(self.confirm_from_own_pose(frame, (r, a), plan, t_us, gsd, work))
     }
 }
 

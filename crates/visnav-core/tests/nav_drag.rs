@@ -9,12 +9,13 @@
 //! square of 12 m/s legs); then no aiding at all but the autopilot heading, while the gyro's bias
 //! wanders 60 deg/h off its estimate (as ArduPilot's ATTITUDE rates do when EKF3 loses the GPS);
 //! the accelerometer has a consumer-grade turn-on bias the filter must carry through.
+#![allow(clippy::unwrap_used, clippy::expect_used)] // a test: a failed expect is a failed test
 
 use nalgebra::{Matrix3, UnitQuaternion, Vector2, Vector3};
-use visnav::nav::config::DragMode;
-use visnav::nav::earth;
-use visnav::nav::ins::{InsState, Strapdown};
-use visnav::nav::{
+use visnav_core::nav::config::DragMode;
+use visnav_core::nav::earth;
+use visnav_core::nav::ins::{InsState, Strapdown};
+use visnav_core::nav::{
     AttitudeFix, ImuSample, Measurement, NavConfig, NavFilter, PositionFix, VelocityFix,
 };
 

@@ -4,9 +4,14 @@
 //! link, ...) and checks itself through `visnav_core::validate`.
 //!
 //! Every section is a serde struct with `deny_unknown_fields`, so a misspelt key is an error that
-//! names the key (and every other unknown key of the file, `unknown_keys`). After parsing, every value is validated through [`Validate`]: each section reports
-//! the dotted key path (`camera.fx_px`), the offending value and the reason, and all problems are
-//! reported at once, prefixed with the file name.
+//! names the key (and every other unknown key of the file, [`unknown_keys`]). After parsing,
+//! every value is validated through [`Validate`]: each section reports the dotted key path
+//! (`camera.fx_px`), the offending value and the reason, and all problems are reported at once,
+//! prefixed with the file name.
+//!
+//! The daemon's own sections sit beside this file: [`daemon`] (`[daemon]`), [`map`] (`[map]`),
+//! [`vision`] (`[vision]`), [`fix`] (`[fix]` as the engine's parameters), with the command-line
+//! and environment [`overrides`] and the generated key [`reference`].
 
 use std::path::{Path, PathBuf};
 
@@ -19,7 +24,17 @@ use visnav_link::config::{LinkConfig, OutputConfig};
 
 use visnav_core::validate::{Base, Invalid, Problems, Validate};
 
-pub use crate::app_config_overrides::{Given, Origin, OverrideError, Overrides};
+pub mod daemon;
+pub mod fix;
+pub mod map;
+pub mod overrides;
+pub mod reference;
+pub mod unknown_keys;
+pub mod vision;
+
+pub use daemon::{DaemonConfig, GpsSource, ImuBiasRestore};
+pub use map::MapConfig;
+pub use overrides::{Given, Origin, OverrideError, Overrides};
 
 /// Why a configuration file could not be used. Every variant names the file.
 #[derive(Debug, thiserror::Error)]
@@ -62,7 +77,7 @@ pub struct Config {
     /// The vision fix pipeline; every key has a default, a partial table merges over them.
     #[serde(
         default,
-        deserialize_with = "crate::fix_config::deserialize_fix_params"
+        deserialize_with = "crate::config::fix::deserialize_fix_params"
     )]
     pub fix: visnav_core::fix::FixParams,
     /// Camera frame source (absent: no vision fixes, IMU/GPS/attitude only).
@@ -80,135 +95,7 @@ pub struct Config {
     pub daemon: crate::config::DaemonConfig,
     /// Where the vision's SURF features are computed (`[vision] backend`).
     #[serde(default)]
-    pub vision: crate::vision_config::VisionConfig,
-}
-
-/// `[map]`: the georeferenced imagery and terrain the fixes are computed against. The default
-/// (no map) is what an absent key means; a configuration must still name a map.
-#[derive(Debug, Clone, Default, Deserialize, Serialize)]
-#[serde(deny_unknown_fields)]
-pub struct MapConfig {
-    /// The reference map (`.vnm`, built by `visnav map build`), relative to the config file's
-    /// folder unless absolute. With it, `ortho` may be empty and `dem` / `ground_height_amsl_m`
-    /// are optional (they override the map's own terrain).
-    #[serde(default)]
-    pub file: Option<PathBuf>,
-    /// Orthophoto GeoTIFF file(s), relative to the config file's folder unless absolute. Without
-    /// `file`, the daemon extracts their features in memory at start (small areas).
-    #[serde(default)]
-    pub ortho: Vec<PathBuf>,
-    /// Elevation model GeoTIFF (heights AMSL). Exactly one of `dem` and `ground_height_amsl_m`.
-    #[serde(default)]
-    pub dem: Option<PathBuf>,
-    /// Constant ground height AMSL for flat areas without a DEM.
-    #[serde(default)]
-    pub ground_height_amsl_m: Option<f64>,
-    /// CRS to assume for rasters whose GeoKeys are missing or not understood.
-    #[serde(default)]
-    pub crs_override: Option<Crs>,
-    /// With `ortho`: extract the finest level's features at 1, 2 or 4 times the orthophotos'
-    /// resolution (cubic interpolation before SURF; default 1). It pays off when the camera's
-    /// ground pixel is finer than the map's (docs/map-format.md, "Upsampling"). A `.vnm` file
-    /// keeps the setting it was built with (`visnav map build --upsample`).
-    #[serde(default)]
-    pub upsample: Option<usize>,
-    /// With `ortho`: how far the surface the camera sees (roofs, trees, relief) may be from the
-    /// heights, 1 sigma, metres (default 10 with `ground_height_amsl_m`, 0 with `dem`). A `.vnm`
-    /// file keeps the figure it was built with (`visnav map build --height-sigma-m`).
-    #[serde(default)]
-    pub height_sigma_m: Option<f64>,
-    /// With `ortho`: how fast that height error changes across a footprint, metres per metre
-    /// (default 0.01 with `ground_height_amsl_m`, 0 with `dem`; docs/map-format.md, "Height
-    /// uncertainty"). A `.vnm` file keeps the figure it was built with.
-    #[serde(default)]
-    pub height_slope_sigma: Option<f64>,
-    /// With `ortho`: the height error left per point, metres (default 2 with
-    /// `ground_height_amsl_m`, `height_sigma_m` with `dem`). A `.vnm` file keeps the figure it
-    /// was built with.
-    #[serde(default)]
-    pub height_point_sigma_m: Option<f64>,
-}
-
-impl MapConfig {
-    /// Validate; `file` is relative to `file_base` (the current directory when `--map` gave it),
-    /// the other paths to `base` (the config file's folder).
-    fn validate_in(&self, base: &Base, file_base: &Base, p: &mut Problems) {
-        if let Some(f) = &self.file {
-            check_file(p, "file", file_base, f);
-        } else if self.ortho.is_empty() {
-            p.push(
-                "ortho",
-                "give a reference map (file) or at least one orthophoto GeoTIFF (ortho)",
-            );
-        }
-        for (i, f) in self.ortho.iter().enumerate() {
-            check_file(p, &format!("ortho[{i}]"), base, f);
-        }
-        match (&self.dem, self.ground_height_amsl_m) {
-            (Some(_), Some(_)) => p.push(
-                "dem",
-                "give either dem or ground_height_amsl_m, not both",
-            ),
-            (None, None) if self.file.is_some() => {}
-            (None, None) => p.push(
-                "dem",
-                "missing: give a DEM GeoTIFF (dem) or a constant ground height (ground_height_amsl_m)",
-            ),
-            (Some(f), None) => check_file(p, "dem", base, f),
-            (None, Some(h)) => p.range(
-                "ground_height_amsl_m",
-                h,
-                visnav_io::geo::dem::MIN_TERRAIN_HEIGHT_M,
-                visnav_io::geo::dem::MAX_TERRAIN_HEIGHT_M,
-            ),
-        }
-        if let Some(crs) = &self.crs_override {
-            p.section("crs_override", |p| Validate::validate(crs, p));
-        }
-        match self.upsample {
-            None => {}
-            Some(_) if self.file.is_some() => p.push(
-                "upsample",
-                "applies to building from ortho; a map file keeps the setting it was built with (visnav map build --upsample)",
-            ),
-            Some(1 | 2 | 4) => {}
-            Some(n) => p.push("upsample", format!("{n}: must be 1, 2 or 4")),
-        }
-        match self.height_sigma_m {
-            None => {}
-            Some(_) if self.file.is_some() => p.push(
-                "height_sigma_m",
-                "applies to building from ortho; a map file keeps the figure it was built with (visnav map build --height-sigma-m)",
-            ),
-            Some(s) => p.range(
-                "height_sigma_m",
-                s,
-                0.0,
-                visnav_io::map::build::MAX_HEIGHT_SIGMA_M,
-            ),
-        }
-        for (key, value, max) in [
-            (
-                "height_slope_sigma",
-                self.height_slope_sigma,
-                visnav_io::map::build::MAX_HEIGHT_SLOPE_SIGMA,
-            ),
-            (
-                "height_point_sigma_m",
-                self.height_point_sigma_m,
-                visnav_io::map::build::MAX_HEIGHT_SIGMA_M,
-            ),
-        ] {
-            match value {
-                None => {}
-                Some(_) if self.file.is_some() => p.push(
-                    key,
-                    "applies to building from ortho; a map file keeps the figure it was built with",
-                ),
-                Some(s) => p.range(key, s, 0.0, max),
-            }
-        }
-    }
+    pub vision: crate::config::vision::VisionConfig,
 }
 
 /// A file the daemon will create (`link.tlog`, `daemon.fix_log`): its name with `{t}` expanded
@@ -263,13 +150,13 @@ fn check_file(p: &mut Problems, key: &str, base: &Base, f: &Path) {
 }
 
 /// A parse error's text: TOML's own (line, column, the key), and when the key is unknown, every
-/// other unknown key of the file too ([`crate::unknown_keys`]).
+/// other unknown key of the file too ([`crate::config::unknown_keys`]).
 fn parse_message(e: &toml::de::Error, text: &str) -> String {
     let first = e.to_string().trim_end().to_string();
     if !e.message().starts_with("unknown field") {
         return first;
     }
-    let all = crate::unknown_keys::unknown_keys::<Config>(text);
+    let all = crate::config::unknown_keys::unknown_keys::<Config>(text);
     if all.len() < 2 {
         return first;
     }

@@ -1,10 +1,11 @@
 //! Strapdown INS against analytic truth: a stationary IMU on the rotating earth and a
 //! turning/climbing trajectory flown with a perfect IMU.
+#![allow(clippy::unwrap_used, clippy::expect_used)] // a test: a failed expect is a failed test
 
 use nalgebra::{UnitQuaternion, Vector3};
-use visnav::nav::earth;
-use visnav::nav::{InsState, Strapdown};
-use visnav::sitl::trajectory::{Segment, Trajectory};
+use visnav_core::nav::earth;
+use visnav_core::nav::synth::trajectory::{Segment, Trajectory};
+use visnav_core::nav::{InsState, Strapdown};
 
 fn ned_err(a: &InsState, b: &InsState) -> Vector3<f64> {
     earth::ned_offset_m((a.lat_rad, a.lon_rad, a.h_m), (b.lat_rad, b.lon_rad, b.h_m))

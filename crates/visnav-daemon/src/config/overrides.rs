@@ -4,7 +4,7 @@
 //! `VISNAV_MAP`, `VISNAV_CAMERA`. The command line beats the environment, which beats the file.
 //!
 //! They are applied to the parsed configuration before its validation
-//! (`Config::load_checked_with` in `app_config`), so the validation sees the final values
+//! (`Config::load_checked_with` in [`super`]), so the validation sees the final values
 //! and its messages name the override (`link.connection (from --connection): ...`). A relative
 //! path in an override is relative to the current directory, not to the config file's folder.
 //!

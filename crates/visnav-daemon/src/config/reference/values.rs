@@ -8,7 +8,7 @@ use toml::{Table, Value};
 use visnav_io::frames::{FramesConfig, PixelFormat, SourceKind, StampMode};
 use visnav_link::config::{LinkConfig, OnLost, OutputConfig, OutputMode, StreamRates};
 
-use crate::vision_config::{VisionBackend, VisionConfig};
+use crate::config::vision::{VisionBackend, VisionConfig};
 
 fn put(t: &mut Table, key: &str, v: impl Into<Value>) {
     t.insert(key.into(), v.into());

@@ -5,7 +5,7 @@
 //! `b_gm(k+1) = e^{-dt/tau} b_gm(k) + sigma sqrt(1 - e^{-2 dt/tau}) N(0,1)`, a bias random walk
 //! `b_rw(k+1) = b_rw(k) + q sqrt(dt) N(0,1)` and white noise whose increment has sigma
 //! `N sqrt(dt)` (`N` the angle/velocity random walk density). Datasheet units as in
-//! [`visnav_core::nav::config`].
+//! [`crate::nav::config`].
 //!
 //! Per run ([`ImuErrors::for_run`]) the Gauss-Markov bias starts from its stationary distribution
 //! `N(0, sigma^2)` (a bias instability is already wandering at switch-on), and with
@@ -15,11 +15,11 @@
 //! filter's prior, and a fixed bias smaller than the prior sigma sits in the unobservable directions
 //! (vertical gyro, horizontal accelerometers in level flight) and makes the NEES too small.
 
+use crate::nav::config::{DEG_H_TO_RAD_S, UG_TO_M_S2};
+use crate::rng::Rng;
+use crate::validate::{Problems, Validate};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
-use visnav_core::nav::config::{DEG_H_TO_RAD_S, UG_TO_M_S2};
-use visnav_core::rng::Rng;
-use visnav_core::validate::{Problems, Validate};
 
 /// The simulated IMU (truth error parameters).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

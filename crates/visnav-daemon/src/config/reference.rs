@@ -20,7 +20,7 @@
 use std::collections::BTreeSet;
 use std::path::Path;
 
-use crate::app_config::{Config, Overrides, PLACEHOLDER_MARK};
+use crate::config::{Config, Overrides, PLACEHOLDER_MARK};
 use visnav_core::validate::Base;
 
 mod keys;
@@ -190,10 +190,7 @@ pub fn defaults() -> toml::Table {
     camera.insert("distortion".into(), value_of(&DistortionConfig::default()));
     camera.insert("mount".into(), value_of(&MountConfig::default()));
     t.insert("camera".into(), toml::Value::Table(camera));
-    t.insert(
-        "map".into(),
-        value_of(&crate::app_config::MapConfig::default()),
-    );
+    t.insert("map".into(), value_of(&crate::config::MapConfig::default()));
     t.insert(
         "output".into(),
         values::output(&visnav_link::config::OutputConfig::default()),
@@ -224,7 +221,7 @@ pub fn defaults() -> toml::Table {
     );
     t.insert(
         "vision".into(),
-        values::vision(&crate::vision_config::VisionConfig::default()),
+        values::vision(&crate::config::vision::VisionConfig::default()),
     );
     // The empty strings of an absent [frames] source and connection are not defaults.
     for required in [
@@ -626,7 +623,7 @@ mod tests {
         let unknown: Vec<&String> = listed.difference(&accepted).collect();
         assert!(
             missing.is_empty() && unknown.is_empty(),
-            "keys the configuration accepts but config_reference::KEYS lacks: {missing:?}; \
+            "keys the configuration accepts but config::reference::KEYS lacks: {missing:?}; \
              keys KEYS lists that the configuration refuses: {unknown:?}"
         );
         // Every key of a document with every key is known to unknown_keys too.
@@ -635,7 +632,7 @@ mod tests {
             set(&mut doc, &path_of(k.path), parse_value(k.example).unwrap());
         }
         let text = toml::to_string(&doc).unwrap();
-        assert!(crate::unknown_keys::unknown_keys::<Config>(&text).is_empty());
+        assert!(crate::config::unknown_keys::unknown_keys::<Config>(&text).is_empty());
         toml::from_str::<Config>(&text).unwrap();
     }
 
@@ -660,7 +657,7 @@ mod tests {
             "frames",
         );
         assert_eq!(cfg.frames, Some(frames));
-        assert_eq!(cfg.vision, crate::vision_config::VisionConfig::default());
+        assert_eq!(cfg.vision, crate::config::vision::VisionConfig::default());
         assert_eq!(cfg.daemon, crate::config::DaemonConfig::default());
         assert_eq!(cfg.nav, visnav_core::nav::config::NavConfig::default());
         assert_eq!(cfg.fix, visnav_core::fix::FixParams::default());
@@ -721,7 +718,7 @@ mod tests {
                 k.path
             );
         }
-        let marked: Vec<String> = crate::app_config::placeholders(&text)
+        let marked: Vec<String> = crate::config::placeholders(&text)
             .into_iter()
             .map(|p| p.key)
             .collect();

@@ -29,9 +29,9 @@
 //! 1e-12 m/s^2 so the difference is not rounding noise). In level flight the pitch solves
 //! `sin(pitch) = D(V cos(pitch)) / g`: -25.5 deg at 10 m/s, -31.5 deg at 12 m/s with SITL's law.
 
+use crate::nav::earth;
+use crate::nav::ins::InsState;
 use nalgebra::{UnitQuaternion, Vector3};
-use visnav_core::nav::earth;
-use visnav_core::nav::ins::InsState;
 
 /// Standard gravity used for the bank angle of a coordinated turn, m/s^2.
 const G0: f64 = 9.806_65;

@@ -1,5 +1,7 @@
 //! Pure conversions between the autopilot's telemetry, the navigation filter, the vision fix and
-//! the injector (no I/O, no async; unit-tested here).
+//! the injector (no I/O, no async; unit-tested here). The telemetry arrives as the link's typed
+//! readings (`Telemetry::sensor`, `visnav_link::sensors`: SI units, each with its own time), so
+//! nothing here decodes MAVLink.
 //!
 //! * IMU: HIGHRES_IMU (SI units, `time_usec` boot time) is preferred; else SCALED_IMU
 //!   (mG, mrad/s, `time_boot_ms`); else RAW_IMU (ArduPilot fills it with the same scaled mG /

@@ -237,6 +237,15 @@ pub struct Case {
     pub grid_convergence_rad: f64,
 }
 
+/// One frame of a bench run ([`NaipEval::draw`]).
+struct Drawn {
+    x_m: f64,
+    y_m: f64,
+    case: Case,
+    img: GrayImage,
+    prior: FixPrior,
+}
+
 /// Errors of one fix against the truth.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Score {
@@ -857,6 +866,36 @@ impl NaipEval {
         self.run_with(n, seed, true, log)
     }
 
+    /// Frame `i` of a run: a place drawn inside the margin, a pose there, its rendered frame and
+    /// the prior (without the position when `position_prior` is false: the altitude alone when
+    /// the bench keeps it).
+    fn draw(&self, rng: &mut Rng, i: usize, position_prior: bool) -> Result<Drawn, FixBenchError> {
+        let b = self.map_raster.bounds();
+        let x_m = uni(rng, b.min_x_m + self.margin_m, b.max_x_m - self.margin_m);
+        let y_m = uni(rng, b.min_y_m + self.margin_m, b.max_y_m - self.margin_m);
+        let case = self.random_case(rng, x_m, y_m);
+        let scene = self.same_imagery.then_some(&self.map_scene);
+        let img = self.frame(&case, i as u64, scene)?;
+        let mut prior = self.prior(rng, &case, i as u64)?;
+        if !position_prior {
+            prior.altitude = prior
+                .position
+                .filter(|_| self.altitude_without_position)
+                .map(|p| AltitudePrior {
+                    alt_amsl_m: p.alt_amsl_m,
+                    sigma_m: p.sigma_v_m,
+                });
+            prior.position = None;
+        }
+        Ok(Drawn {
+            x_m,
+            y_m,
+            case,
+            img,
+            prior,
+        })
+    }
+
     /// [`Self::run`]; without the position prior when `position_prior` is false (global
     /// relocalisation with the attitude prior only).
     pub fn run_with(
@@ -866,7 +905,6 @@ impl NaipEval {
         position_prior: bool,
         log: &mut dyn FnMut(String),
     ) -> Result<Summary, FixBenchError> {
-        let b = self.map_raster.bounds();
         let mut rng = Rng::new(seed);
         let (mut eh, mut ev, mut ms) = (Vec::new(), Vec::new(), Vec::new());
         let (mut accepted, mut beyond, mut wrong) = (0, 0, 0);
@@ -874,30 +912,13 @@ impl NaipEval {
         let mut nees6 = Vec::new();
         let mut reasons = visnav_core::reasons::ReasonTally::default();
         for i in 0..n {
-            let x = uni(
-                &mut rng,
-                b.min_x_m + self.margin_m,
-                b.max_x_m - self.margin_m,
-            );
-            let y = uni(
-                &mut rng,
-                b.min_y_m + self.margin_m,
-                b.max_y_m - self.margin_m,
-            );
-            let case = self.random_case(&mut rng, x, y);
-            let scene = self.same_imagery.then_some(&self.map_scene);
-            let img = self.frame(&case, i as u64, scene)?;
-            let mut prior = self.prior(&mut rng, &case, i as u64)?;
-            if !position_prior {
-                prior.altitude = prior
-                    .position
-                    .filter(|_| self.altitude_without_position)
-                    .map(|p| AltitudePrior {
-                        alt_amsl_m: p.alt_amsl_m,
-                        sigma_m: p.sigma_v_m,
-                    });
-                prior.position = None;
-            }
+            let Drawn {
+                x_m: x,
+                y_m: y,
+                case,
+                img,
+                prior,
+            } = self.draw(&mut rng, i, position_prior)?;
             let start = std::time::Instant::now();
             let (mut r, a) = self.engine.fix_with_attempt(&img, &prior);
             r.ms = start.elapsed().as_secs_f64() * 1e3;

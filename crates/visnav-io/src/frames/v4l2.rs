@@ -396,6 +396,20 @@ mod v4l2_capture {
                 )));
             }
             me.bytes_per_line = f.pix.bytesperline as usize;
+            me.start_streaming()?;
+            info!("{}: V4L2 capture from {card}", me.describe());
+            Ok(me)
+        }
+
+        /// Asks the driver for memory-mapped capture buffers, maps and queues them, and starts
+        /// streaming.
+        fn start_streaming(&mut self) -> Result<(), FrameError> {
+            let device = self.device.clone();
+            let err = |what: &str, e: std::io::Error| FrameError::Io {
+                path: device.clone(),
+                cause: std::io::Error::new(e.kind(), format!("{what}: {e}")),
+            };
+            let fd = self.fd.as_raw_fd();
             let mut req = RequestBuffers {
                 count: 4,
                 type_: BUF_TYPE_VIDEO_CAPTURE,
@@ -406,7 +420,7 @@ mod v4l2_capture {
             if req.count < 2 {
                 return Err(FrameError::Config(format!(
                     "{}: only {} capture buffers",
-                    device.display(),
+                    self.device.display(),
                     req.count
                 )));
             }
@@ -435,14 +449,13 @@ mod v4l2_capture {
                 if p == libc::MAP_FAILED {
                     return Err(err("mmap", std::io::Error::last_os_error()));
                 }
-                me.buffers.push((p, len));
+                self.buffers.push((p, len));
                 ioctl(fd, VIDIOC_QBUF, &mut b).map_err(|e| err("VIDIOC_QBUF", e))?;
             }
             let mut t = BUF_TYPE_VIDEO_CAPTURE as i32;
             ioctl(fd, VIDIOC_STREAMON, &mut t).map_err(|e| err("VIDIOC_STREAMON", e))?;
-            me.streaming = true;
-            info!("{}: V4L2 capture from {card}", me.describe());
-            Ok(me)
+            self.streaming = true;
+            Ok(())
         }
 
         fn ferr(&self, reason: String) -> FrameError {

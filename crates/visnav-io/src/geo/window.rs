@@ -301,7 +301,25 @@ impl<R: Read + Seek + Send> GeoTiffWindowReader<R> {
                 }
             }
         }
-        let (data, source_type) = match out {
+        let (data, source_type) = self.samples_of(out)?;
+        let transform: GeoTransform = self.info.transform.window(col0, row0);
+        Ok(Raster::new(
+            width,
+            height,
+            self.info.bands,
+            data,
+            transform,
+            self.info.crs,
+            self.info.nodata,
+        )
+        .map_err(|e| decode_err(e.to_string()))?
+        .with_source_type(source_type))
+    }
+
+    /// The window's samples as a raster's data and the type they were stored as (YCbCr
+    /// converted to RGB).
+    fn samples_of(&self, out: Option<Acc>) -> Result<(RasterData, SampleType), GeoTiffError> {
+        Ok(match out {
             Some(Acc::U8(mut v)) => {
                 if self.info.ycbcr {
                     // The tiff crate hands out YCbCr samples unconverted (JPEG included).
@@ -318,20 +336,13 @@ impl<R: Read + Seek + Send> GeoTiffWindowReader<R> {
             }
             Some(Acc::U16(v)) => (RasterData::U16(v), SampleType::U16),
             Some(Acc::F32(v, t)) => (RasterData::F32(v), t),
-            None => return Err(decode_err("the image has no data chunks".into())),
-        };
-        let transform: GeoTransform = self.info.transform.window(col0, row0);
-        Ok(Raster::new(
-            width,
-            height,
-            self.info.bands,
-            data,
-            transform,
-            self.info.crs,
-            self.info.nodata,
-        )
-        .map_err(|e| decode_err(e.to_string()))?
-        .with_source_type(source_type))
+            None => {
+                return Err(GeoTiffError::Decode {
+                    path: self.path.clone(),
+                    reason: "the image has no data chunks".into(),
+                });
+            }
+        })
     }
 
     /// Chunk `idx`, from the cache or decoded (and cached).

@@ -246,3 +246,75 @@ fn fix_reports_bad_input_clearly() {
     let (code, _) = run(&["--ground-height", "580", "--attitude", "0,0,0"], &frame);
     assert_eq!(code, Some(2));
 }
+
+/// `visnav map build --detector orb` writes a map of binary features whose header says so,
+/// `visnav map info` names the family, and `visnav fix` runs against it (the query's detector
+/// comes from the map).
+#[test]
+fn an_orb_map_is_built_described_and_fixed_against() {
+    let dir = tempfile::tempdir().unwrap();
+    let (png, camera, truth, att) = naip_frame(dir.path());
+    let map = dir.path().join("naip2009_orb.vnm");
+    let out = visnav()
+        .args([
+            "map",
+            "build",
+            "--ground-height",
+            "580",
+            "--detector",
+            "orb",
+        ])
+        .arg("--ortho")
+        .arg(maps().join("naip_nd_2009.tif"))
+        .arg("--out")
+        .arg(&map)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let out = visnav().args(["map", "info"]).arg(&map).output().unwrap();
+    let info = String::from_utf8_lossy(&out.stdout);
+    assert!(info.contains("binary-256 (ORB) descriptors"), "{info}");
+    let out = visnav()
+        .args(["fix", "--json"])
+        .arg("--map")
+        .arg(&map)
+        .arg("--image")
+        .arg(&png)
+        .arg("--camera")
+        .arg(&camera)
+        .arg("--attitude")
+        .arg(format!(
+            "{},{},{}",
+            att.roll_rad.to_degrees(),
+            att.pitch_rad.to_degrees(),
+            att.yaw_rad.to_degrees()
+        ))
+        .args(["--attitude-sigma-deg", "0.5"])
+        .arg("--prior")
+        .arg(format!("{},{},{},150", truth[0], truth[1], truth[2]))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let v: serde_json::Value = serde_json::from_str(&stdout).expect("JSON");
+    // Accepted or refused, the report is whole (the query was described as the map's features
+    // are); accepted, it is near the truth.
+    assert_eq!(
+        v["accepted"].as_bool(),
+        Some(out.status.code() == Some(0)),
+        "{stdout}"
+    );
+    assert!(!stdout.contains("kinds differ"), "{stdout}");
+    if v["accepted"].as_bool() == Some(true) {
+        let (lat, lon) = (
+            v["lat_deg"].as_f64().unwrap(),
+            v["lon_deg"].as_f64().unwrap(),
+        );
+        let dn = (lat - truth[0]) * 111_320.0;
+        let de = (lon - truth[1]) * 111_320.0 * truth[0].to_radians().cos();
+        assert!(dn.hypot(de) < 60.0, "{stdout}");
+    }
+}

@@ -8,6 +8,7 @@ use std::time::Instant;
 use anyhow::Context;
 use visnav::geo::Crs;
 use visnav::map::{BuildProgress, BuildSpec, HeightInfo, HeightSource, ReferenceMap, build_map};
+use visnav::vision::OrbParams;
 
 #[derive(clap::Args, Debug)]
 pub struct MapArgs {
@@ -86,6 +87,10 @@ pub struct BuildArgs {
     /// Feature cap per tile and level (even spatial spread).
     #[arg(long, default_value_t = 4000)]
     pub max_features_per_tile: usize,
+    /// The features: `surf` (the default and the fix's tuned family) or `orb` (ORB-like binary
+    /// features, FAST-9 + steered BRIEF-256; the detector seam's second family, docs/surf.md).
+    #[arg(long, value_enum, default_value_t = Detector::Surf)]
+    pub detector: Detector,
     /// SURF Hessian threshold (OpenCV meaning).
     #[arg(long, default_value_t = 100.0)]
     pub hessian_threshold: f32,
@@ -101,6 +106,15 @@ pub struct BuildArgs {
     /// WGS84/NAD83 UTM zone).
     #[arg(long)]
     pub crs_override_epsg: Option<u32>,
+}
+
+/// The feature family a map is built with.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Detector {
+    /// SURF (upright SURF-64).
+    Surf,
+    /// ORB-like binary features.
+    Orb,
 }
 
 #[derive(clap::Args, Debug)]
@@ -225,6 +239,9 @@ fn build(a: BuildArgs) -> anyhow::Result<ExitCode> {
     spec.max_features_per_tile = a.max_features_per_tile;
     spec.surf.hessian_threshold = a.hessian_threshold;
     spec.surf.n_octaves = a.octaves;
+    if a.detector == Detector::Orb {
+        spec.orb = Some(OrbParams::default());
+    }
     spec.upsample = a.upsample;
     spec.height_sigma_m = a.height_sigma_m;
     spec.height_slope_sigma = a.height_slope_sigma;
@@ -319,16 +336,28 @@ fn info(a: InfoArgs) -> anyhow::Result<ExitCode> {
         e.offset_sigma_m, e.slope_sigma, e.point_sigma_m
     );
     println!("  vertical datum: {}", h.vertical_datum);
-    println!(
-        "  {} descriptors, threshold {}, {} octaves x {} layers, upright {}; tile {} px, cap {} per tile",
-        h.surf.descriptor,
-        h.surf.hessian_threshold,
-        h.surf.n_octaves,
-        h.surf.n_octave_layers,
-        h.surf.upright,
-        h.tile_px,
-        h.max_features_per_tile
-    );
+    match &h.orb {
+        Some(o) => println!(
+            "  {} descriptors, FAST threshold {}, {} levels x {}, upright {}; tile {} px, cap {} per tile",
+            h.feature_spec(),
+            o.fast_threshold,
+            o.n_levels,
+            o.scale_factor,
+            o.upright,
+            h.tile_px,
+            h.max_features_per_tile
+        ),
+        None => println!(
+            "  {} descriptors, threshold {}, {} octaves x {} layers, upright {}; tile {} px, cap {} per tile",
+            h.surf.descriptor,
+            h.surf.hessian_threshold,
+            h.surf.n_octaves,
+            h.surf.n_octave_layers,
+            h.surf.upright,
+            h.tile_px,
+            h.max_features_per_tile
+        ),
+    }
     for (i, l) in h.levels.iter().enumerate() {
         println!(
             "  level {i}: {:.3} m/px, {} features, index {} x {} cells of {:.0} m",

@@ -98,6 +98,19 @@ impl Default for OrbParams {
 }
 
 impl OrbParams {
+    /// The largest keypoint scale these settings give, level-0 pixels (`1.2 size / 9` at the
+    /// coarsest pyramid level).
+    pub fn largest_scale_px(&self) -> f64 {
+        let size = (2 * PATCH_RADIUS + 1) as f64
+            * f64::from(self.scale_factor).powi(self.n_levels.saturating_sub(1) as i32);
+        1.2 * size / 9.0
+    }
+    /// How far from a keypoint the detector reads pixels, level-0 pixels: the patch and the
+    /// corner tests' border at the coarsest level (a map tile's margin).
+    pub fn reach_px(&self) -> usize {
+        let s = f64::from(self.scale_factor).powi(self.n_levels.saturating_sub(1) as i32);
+        ((PATCH_RADIUS + 4) as f64 * s).ceil() as usize + 1
+    }
     /// Check ranges; names the offending field.
     pub fn validate(&self) -> Result<(), VisionError> {
         let bad = |name, reason: &str| {

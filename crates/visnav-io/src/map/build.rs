@@ -47,7 +47,10 @@ use crate::geo::window::{GeoTiffWindowReader, open_geotiff_window};
 use visnav_core::geo::Crs;
 use visnav_core::geo::dem::Dem;
 use visnav_core::geo::raster::{Bounds, GeoTransform, Raster, RasterData};
-use visnav_core::vision::{GrayImage, IntegralImage, KeyPoint, Surf, SurfParams};
+use visnav_core::vision::{
+    DescriptorKind, Features, GrayImage, IntegralImage, KeyPoint, Orb, OrbParams, Surf, SurfParams,
+    VisionError,
+};
 
 /// Rec. 601 luma weights (as `vision::file::GrayImageFile::from_dynamic` and the renderer).
 const LUMA: [f32; 3] = [0.299, 0.587, 0.114];
@@ -84,6 +87,9 @@ pub struct BuildSpec {
     pub levels: Option<usize>,
     /// SURF parameters (`max_features` is ignored: the cap is per tile).
     pub surf: SurfParams,
+    /// Build ORB-like binary features of these settings instead of SURF (the detector seam's
+    /// second family, docs/surf.md; `max_features` is ignored). None: SURF.
+    pub orb: Option<OrbParams>,
     /// Tile core side in level pixels (rounded up to a multiple of the coarsest SURF step).
     pub tile_px: usize,
     /// Keep at most this many features per tile core (even spread), per level.
@@ -151,6 +157,7 @@ impl BuildSpec {
                 upright: true,
                 ..SurfParams::default()
             },
+            orb: None,
             tile_px: 1024,
             max_features_per_tile: 4000,
             whole_decode_max_bytes: WHOLE_DECODE_MAX_BYTES,
@@ -236,6 +243,51 @@ fn descriptor_radius_px(scale: f32, upright: bool) -> f32 {
         10.5 * scale + 2.0
     } else {
         14.5 * scale + 2.0
+    }
+}
+
+/// The build's extractors: SURF (its settings also fix the tiles' alignment) and, for a map of
+/// binary features, ORB; the descriptors they write and the tiles' margin.
+struct Detectors {
+    surf_params: SurfParams,
+    surf: Surf,
+    orb: Option<Orb>,
+    kind: DescriptorKind,
+    margin: usize,
+}
+
+impl Detectors {
+    fn of(spec: &BuildSpec) -> Result<Self, MapError> {
+        let param = |name, e: VisionError| MapError::Param {
+            name,
+            reason: e.to_string(),
+        };
+        let surf_params = SurfParams {
+            max_features: None,
+            ..spec.surf.clone()
+        };
+        let surf = Surf::new(surf_params.clone()).map_err(|e| param("surf", e))?;
+        let orb = match &spec.orb {
+            Some(p) => Some(
+                Orb::new(OrbParams {
+                    max_features: None,
+                    ..p.clone()
+                })
+                .map_err(|e| param("orb", e))?,
+            ),
+            None => None,
+        };
+        let (kind, margin) = match &orb {
+            Some(o) => (DescriptorKind::Binary256, o.params().reach_px()),
+            None => (surf_params.descriptor, tile_margin_px(&surf_params)),
+        };
+        Ok(Self {
+            surf_params,
+            surf,
+            orb,
+            kind,
+            margin,
+        })
     }
 }
 
@@ -422,9 +474,7 @@ pub fn build_map(
             &format!("{height_point_sigma_m} must be 0 to {MAX_HEIGHT_SIGMA_M} m"),
         ));
     }
-    let mut surf_params = spec.surf.clone();
-    surf_params.max_features = None;
-    let surf = Surf::new(surf_params.clone()).map_err(|e| param("surf", &e.to_string()))?;
+    let d = Detectors::of(spec)?;
 
     // Pass 1: geometry of every ortho (headers only).
     let mut geoms: Vec<OrthoGeom> = Vec::new();
@@ -523,9 +573,9 @@ pub fn build_map(
             .count()
             + 1
     });
-    let step = max_step(&surf_params);
+    let step = max_step(&d.surf_params);
     let core = spec.tile_px.div_ceil(step) * step;
-    let margin = tile_margin_px(&surf_params);
+
     let grids: Vec<IndexGrid> = (0..n_levels)
         .map(|l| {
             let cell_m = core as f64 * gsd0 * f64::from(1u32 << l);
@@ -557,7 +607,7 @@ pub fn build_map(
         gsd_m = gsd0,
         upsample = spec.upsample,
         core_px = core,
-        margin_px = margin,
+        margin_px = d.margin,
         tiles = tiles_total,
         "building reference map"
     );
@@ -576,8 +626,8 @@ pub fn build_map(
             }
         })
         .collect();
-    let mut writer = SpillWriter::new(&spill_path, surf_params.descriptor, grids.clone())?
-        .with_images(image_levels)?;
+    let mut writer =
+        SpillWriter::new(&spill_path, d.kind, grids.clone())?.with_images(image_levels)?;
     let mut st = Stats::default();
     // Pass 2, last ortho first (the order of the features in the file depends on it).
     for oi in (0..geoms.len()).rev() {
@@ -618,8 +668,9 @@ pub fn build_map(
                 transform: g.transform,
                 level,
                 core,
-                margin,
-                surf: &surf,
+                margin: d.margin,
+                surf: &d.surf,
+                orb: d.orb.as_ref(),
                 cap: spec.max_features_per_tile,
                 dem: &dem,
                 source: oi as u8, // ok: <= 255 orthos checked
@@ -632,7 +683,7 @@ pub fn build_map(
                     let (grey, valid) = read_reusing(source.as_mut(), level, &win, prev.take())?;
                     // Keep the columns the next tile's window starts with.
                     let next_x0 = (win.cx0 + core)
-                        .saturating_sub(margin)
+                        .saturating_sub(d.margin)
                         .clamp(win.x0, win.x0 + win.w);
                     prev = Some(LevelPatch::columns(&win, &grey, &valid, next_x0));
                     push_core_image(&ctx, &win, &grey, &valid, &bounds, &mut writer)?;
@@ -659,7 +710,8 @@ pub fn build_map(
     let header = MapHeader {
         version: super::FORMAT_VERSION,
         crs,
-        surf: surf_params,
+        surf: d.surf_params,
+        orb: d.orb.as_ref().map(|o| o.params().clone()),
         levels: (0..n_levels)
             .map(|l| LevelInfo {
                 gsd_m: gsd0 * f64::from(1u32 << l),
@@ -735,6 +787,8 @@ struct TileCtx<'a> {
     core: usize,
     margin: usize,
     surf: &'a Surf,
+    /// ORB-like binary features instead of SURF ([`BuildSpec::orb`]).
+    orb: Option<&'a Orb>,
     cap: usize,
     dem: &'a Dem,
     source: u8,
@@ -1050,7 +1104,9 @@ fn push_core_image(
     )
 }
 
-/// Extracts the features of the tile `win` from its level window `grey` / `valid`.
+/// Extracts the features of the tile `win` from its level window `grey` / `valid`: the
+/// detector's keypoints whose centre lies in the tile's core and whose descriptor window holds no
+/// missing pixel, the strongest `cap` of them with an even spread, with their descriptors.
 fn process_tile(
     ctx: &TileCtx,
     win: &TileWindow,
@@ -1059,36 +1115,92 @@ fn process_tile(
     writer: &mut SpillWriter,
     st: &mut Stats,
 ) -> Result<(), MapError> {
-    let TileWindow {
-        cx0,
-        cy0,
-        cw,
-        ch,
-        x0: wx0,
-        y0: wy0,
-        w: ww,
-        h: wh,
-    } = *win;
     if !valid.iter().any(|&v| v) {
         return Ok(());
     }
-    // Integral of missing pixels, (ww+1) x (wh+1).
-    let mut holes = vec![0u32; (ww + 1) * (wh + 1)];
-    for y in 0..wh {
-        let mut run = 0u32;
-        for x in 0..ww {
-            run += u32::from(!valid[y * ww + x]);
-            holes[(y + 1) * (ww + 1) + x + 1] = holes[y * (ww + 1) + x + 1] + run;
-        }
-    }
-    let any_hole = holes[(ww + 1) * (wh + 1) - 1] > 0;
-    let img = GrayImage::new(ww, wh, grey).map_err(|e| MapError::Param {
+    let holes = Holes::of(valid, win.w, win.h);
+    let img = GrayImage::new(win.w, win.h, grey).map_err(|e| MapError::Param {
         name: "tile",
         reason: e.to_string(),
     })?;
-    let ii = IntegralImage::new(&img);
-    let kps = ctx.surf.detect(&ii);
-    let upright = ctx.surf.params().upright;
+    let feats = match ctx.orb {
+        // Binary features are described with the detection (one pass over the pyramid); the
+        // keypoints kept pick their rows.
+        Some(orb) => {
+            let all = orb.detect_and_describe(&img);
+            // The patch grows with the pyramid level: half the keypoint's size.
+            let kept = keep_in_core(
+                ctx,
+                win,
+                &holes,
+                all.keypoints.clone(),
+                |kp| 0.5 * f64::from(kp.size) + 1.0,
+                st,
+            );
+            rows_of(&all, &kept)?
+        }
+        None => {
+            let ii = IntegralImage::new(&img);
+            let upright = ctx.surf.params().upright;
+            let kept = keep_in_core(
+                ctx,
+                win,
+                &holes,
+                ctx.surf.detect(&ii),
+                |kp| f64::from(descriptor_radius_px(kp.scale, upright)),
+                st,
+            );
+            ctx.surf.describe(&ii, kept)
+        }
+    };
+    push_features(ctx, win, &feats, writer, st)
+}
+
+/// Summed-area table of a window's missing pixels, `(w+1) x (h+1)`.
+struct Holes {
+    w: usize,
+    h: usize,
+    sums: Vec<u32>,
+}
+
+impl Holes {
+    fn of(valid: &[bool], w: usize, h: usize) -> Self {
+        let mut sums = vec![0u32; (w + 1) * (h + 1)];
+        for y in 0..h {
+            let mut run = 0u32;
+            for x in 0..w {
+                run += u32::from(!valid[y * w + x]);
+                sums[(y + 1) * (w + 1) + x + 1] = sums[y * (w + 1) + x + 1] + run;
+            }
+        }
+        Self { w, h, sums }
+    }
+    fn any(&self) -> bool {
+        self.sums[(self.w + 1) * (self.h + 1) - 1] > 0
+    }
+    /// Whether the square of radius `r` around `(x, y)` (clipped to the window) has a hole.
+    fn near(&self, x: i64, y: i64, r: i64) -> bool {
+        let cl = |v: i64, n: usize| v.clamp(0, n as i64) as usize;
+        let (x0, x1) = (cl(x - r, self.w), cl(x + r + 1, self.w));
+        let (y0, y1) = (cl(y - r, self.h), cl(y + r + 1, self.h));
+        let s = |xx: usize, yy: usize| i64::from(self.sums[yy * (self.w + 1) + xx]);
+        s(x1, y1) - s(x0, y1) - s(x1, y0) + s(x0, y0) > 0
+    }
+}
+
+/// The keypoints of the window whose centre lies in the tile's core and whose descriptor window
+/// (radius `radius_px(kp)`) holds no missing pixel, the strongest `ctx.cap` with an even spread,
+/// in window coordinates.
+fn keep_in_core(
+    ctx: &TileCtx,
+    win: &TileWindow,
+    holes: &Holes,
+    kps: Vec<KeyPoint>,
+    radius_px: impl Fn(&KeyPoint) -> f64,
+    st: &mut Stats,
+) -> Vec<KeyPoint> {
+    let (cx0, cy0, cw, ch, wx0, wy0) = (win.cx0, win.cy0, win.cw, win.ch, win.x0, win.y0);
+    let any_hole = holes.any();
     let mut kept: Vec<KeyPoint> = Vec::new();
     for kp in kps {
         // Continuous level coordinates (GDAL corner convention) of the keypoint centre.
@@ -1102,13 +1214,8 @@ fn process_tile(
             continue;
         }
         if any_hole {
-            let r = descriptor_radius_px(kp.scale, upright).ceil() as i64;
-            let (x, y) = (kp.x.round() as i64, kp.y.round() as i64);
-            let cl = |v: i64, n: usize| v.clamp(0, n as i64) as usize;
-            let (x0, x1) = (cl(x - r, ww), cl(x + r + 1, ww));
-            let (y0, y1) = (cl(y - r, wh), cl(y + r + 1, wh));
-            let s = |xx: usize, yy: usize| i64::from(holes[yy * (ww + 1) + xx]);
-            if s(x1, y1) - s(x0, y1) - s(x1, y0) + s(x0, y0) > 0 {
+            let r = radius_px(&kp).ceil() as i64;
+            if holes.near(kp.x.round() as i64, kp.y.round() as i64, r) {
                 st.dropped_nodata += 1;
                 continue;
             }
@@ -1124,7 +1231,41 @@ fn process_tile(
         k.x += (cx0 - wx0) as f32;
         k.y += (cy0 - wy0) as f32;
     }
-    let feats = ctx.surf.describe(&ii, kept);
+    kept
+}
+
+/// The rows of `all` whose keypoints are `kept` (same position, level and response).
+fn rows_of(all: &Features, kept: &[KeyPoint]) -> Result<Features, MapError> {
+    let key = |k: &KeyPoint| (k.octave, k.x.to_bits(), k.y.to_bits(), k.response.to_bits());
+    let index: std::collections::HashMap<_, usize> = all
+        .keypoints
+        .iter()
+        .enumerate()
+        .map(|(i, k)| (key(k), i))
+        .collect();
+    let st = all.kind().stride();
+    let (mut kps, mut rows) = (Vec::new(), Vec::new());
+    for k in kept {
+        if let Some(&i) = index.get(&key(k)) {
+            kps.push(*k);
+            rows.extend_from_slice(&all.descriptors_padded()[i * st..(i + 1) * st]);
+        }
+    }
+    Features::new(kps, rows, all.kind()).map_err(|e| MapError::Param {
+        name: "tile",
+        reason: e.to_string(),
+    })
+}
+
+/// Writes the tile's features with their map position and height.
+fn push_features(
+    ctx: &TileCtx,
+    win: &TileWindow,
+    feats: &Features,
+    writer: &mut SpillWriter,
+    st: &mut Stats,
+) -> Result<(), MapError> {
+    let (wx0, wy0) = (win.x0, win.y0);
     let f = f64::from(1u32 << ctx.level);
     let t = &ctx.transform;
     for (i, kp) in feats.keypoints.iter().enumerate() {

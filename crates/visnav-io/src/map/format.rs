@@ -16,7 +16,8 @@
 //! data_offset + LevelInfo offsets, per level:
 //!   cells_offset:       (n_cells + 1) u64, cumulative feature counts (row-major cells, row 0 north)
 //!   records_offset:     n_features records of RECORD_BYTES (see `encode_record`)
-//!   descriptors_offset: n_features x kind.len() i8 (quantised descriptors)
+//!   descriptors_offset: n_features x descriptor_bytes(kind) (SURF: kind.len() i8, quantised;
+//!   binary: the 32-bit words, little endian, desc_scale 1)
 //!   image.offset:       width_px x height_px u8 (grey, 0 = no data; format 2, optional)
 //! ```
 //!
@@ -37,7 +38,7 @@ use std::path::{Path, PathBuf};
 use memmap2::Mmap;
 
 use super::{IndexGrid, LevelImageInfo, MapError, MapFeature, MapHeader, MapSelection};
-use visnav_core::vision::DescriptorKind;
+use visnav_core::vision::{DescriptorKind, Family, FeatureSpec};
 
 /// File magic (PNG-style: a CR-LF and a ^Z catch text-mode transfers).
 pub const MAGIC: [u8; 8] = *b"VNMAP\r\n\x1a";
@@ -56,6 +57,26 @@ const MAX_CELLS: u64 = 1 << 32;
 
 fn align8(n: u64) -> u64 {
     n.div_ceil(8) * 8
+}
+
+/// Bytes one descriptor of `kind` takes in the file: one quantised `i8` per float, four per
+/// binary word.
+pub fn descriptor_bytes(kind: DescriptorKind) -> usize {
+    match kind.family() {
+        Family::Float => kind.len(),
+        Family::Binary => 4 * kind.len(),
+    }
+}
+
+/// A binary descriptor's words (kept as float bits in the rows) as little-endian bytes; its
+/// `desc_scale` is 1.
+fn binary_bytes(words: &[f32], out: &mut [i8]) -> f32 {
+    for (w, b) in words.iter().zip(out.chunks_exact_mut(4)) {
+        for (q, v) in b.iter_mut().zip(w.to_bits().to_le_bytes()) {
+            *q = i8::from_le_bytes([v]);
+        }
+    }
+    1.0
 }
 
 /// Quantises a descriptor to `i8` with one scale: `scale = max|d| / 127`, `q = round(d / scale)`.
@@ -187,7 +208,7 @@ impl SpillWriter {
             kind,
             grids,
             counts,
-            qbuf: vec![0; kind.len()],
+            qbuf: vec![0; descriptor_bytes(kind)],
             images: None,
         })
     }
@@ -268,7 +289,10 @@ impl SpillWriter {
         let grid = self.grids[level]; // ok: levels are created by the builder
         let cell = grid.cell_of(f.x_m, f.y_m);
         self.counts[level][cell] += 1;
-        let scale = quantise(&desc[..self.kind.len()], &mut self.qbuf);
+        let scale = match self.kind.family() {
+            Family::Float => quantise(&desc[..self.kind.len()], &mut self.qbuf),
+            Family::Binary => binary_bytes(&desc[..self.kind.len()], &mut self.qbuf),
+        };
         let rec = encode_record(f, scale, source);
         let io = |source| MapError::Io {
             path: self.spill_path.clone(),
@@ -303,7 +327,7 @@ impl SpillWriter {
         self.spill
             .flush()
             .map_err(|e| spill_io("cannot write the temporary feature file", e))?;
-        let len = self.kind.len() as u64;
+        let len = descriptor_bytes(self.kind) as u64;
         // Layout.
         let mut off = 0u64;
         let mut starts: Vec<Vec<u64>> = Vec::new();
@@ -623,7 +647,7 @@ impl ReferenceMap {
         max_x_m: f64,
         max_y_m: f64,
     ) -> MapSelection {
-        let kind = self.header.surf.descriptor;
+        let kind = self.header.descriptor_kind();
         let mut sel = MapSelection {
             features: Vec::new(),
             descriptors: Vec::new(),
@@ -642,7 +666,8 @@ impl ReferenceMap {
         let cells = &self.mmap[base + info.cells_offset as usize..];
         let recs = &self.mmap[base + info.records_offset as usize..];
         let descs = &self.mmap[base + info.descriptors_offset as usize..];
-        let (len, stride) = (kind.len(), kind.stride());
+        let (len, stride) = (descriptor_bytes(kind), kind.stride());
+        let binary = kind.family() == Family::Binary;
         let mut q = vec![0i8; len];
         for r in r0..=r1 {
             for c in c0..=c1 {
@@ -663,7 +688,17 @@ impl ReferenceMap {
                     }
                     let at = sel.descriptors.len();
                     sel.descriptors.resize(at + stride, 0.0);
-                    dequantise(&q, scale, &mut sel.descriptors[at..at + len]);
+                    let row = &mut sel.descriptors[at..at + kind.len()];
+                    if binary {
+                        for (w, b) in row
+                            .iter_mut()
+                            .zip(descs[i * len..(i + 1) * len].chunks_exact(4))
+                        {
+                            *w = f32::from_bits(u32::from_le_bytes(rd4(b, 0)));
+                        }
+                    } else {
+                        dequantise(&q, scale, row);
+                    }
                 }
             }
         }
@@ -752,12 +787,12 @@ fn validate(b: &[u8], path: &Path) -> Result<(MapHeader, usize), MapError> {
         )));
     }
     header
-        .surf
+        .feature_spec()
         .validate()
-        .map_err(|e| bad(format!("header SURF parameters: {e}")))?;
+        .map_err(|e| bad(format!("header feature parameters: {e}")))?;
     let data_len = file_len - data_offset;
     let data = &b[data_offset as usize..];
-    let len = header.surf.descriptor.len() as u64;
+    let len = descriptor_bytes(header.descriptor_kind()) as u64;
     for (l, info) in header.levels.iter().enumerate() {
         let g = &info.grid;
         if !(g.cell_m.is_finite()
@@ -871,7 +906,8 @@ struct BadFeature(String);
 fn check_features(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), BadFeature> {
     let info = &header.levels[l]; // ok: l enumerates header.levels
     let g = &info.grid;
-    let len = header.surf.descriptor.len();
+    let len = descriptor_bytes(header.descriptor_kind());
+    let expect = expected_features(header);
     let (h_lo, h_hi) = match header.height {
         super::HeightInfo::Dem { min_m, max_m, .. } => (min_m, max_m),
         super::HeightInfo::Constant { amsl_m } => (amsl_m, amsl_m),
@@ -883,14 +919,7 @@ fn check_features(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), BadFe
     }
     let b = &header.bounds;
     let slack = BOUNDS_SLACK_PX * info.gsd_m;
-    // The largest SURF filter: 3 (2^octaves (layers + 2) + 1) px, scale 1.2 / 9 of it; twice that
-    // covers the interpolation of the extremum between filters.
-    let max_filter = 3.0
-        * ((1u64 << header.surf.n_octaves.min(30)) as f64
-            * (header.surf.n_octave_layers + 2) as f64
-            + 1.0);
-    let max_scale_px = 2.0 * 1.2 * max_filter / 9.0;
-    let threshold = f64::from(header.surf.hessian_threshold);
+    let (max_scale_px, threshold) = (expect.max_scale_px, expect.min_response);
     let cells = &data[info.cells_offset as usize..];
     let recs = &data[info.records_offset as usize..];
     let descs = &data[info.descriptors_offset as usize..];
@@ -926,20 +955,21 @@ fn check_features(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), BadFe
             let scale_px = f64::from(f.scale_m) / info.gsd_m;
             if !(scale_px >= MIN_SCALE_PX && scale_px <= max_scale_px) {
                 return Err(at(format!(
-                    "SURF scale {} m ({scale_px:.3} level px) is outside {MIN_SCALE_PX} to {max_scale_px:.0} px",
+                    "feature scale {} m ({scale_px:.3} level px) is outside {MIN_SCALE_PX} to {max_scale_px:.0} px",
                     f.scale_m
                 )));
             }
             if !(f64::from(f.response) >= threshold && f.response.is_finite()) {
                 return Err(at(format!(
-                    "SURF response {} is below the Hessian threshold {threshold} or not finite",
+                    "feature response {} is below the detector's threshold {threshold} or not finite",
                     f.response
                 )));
             }
-            if !matches!(f.laplacian, -1 | 1) {
+            if !expect.laplacians.contains(&f.laplacian) {
                 return Err(at(format!(
-                    "Laplacian sign {} is not -1 or +1",
-                    f.laplacian
+                    "Laplacian sign {} does not belong to {} features",
+                    f.laplacian,
+                    header.feature_spec()
                 )));
             }
             if usize::from(f.level) != l {
@@ -954,6 +984,15 @@ fn check_features(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), BadFe
             }
             if rb[39] != 0 {
                 return Err(at(format!("reserved byte is {}, not 0", rb[39])));
+            }
+            if expect.binary {
+                // Any bit pattern is a binary descriptor; its scale is fixed.
+                if desc_scale != 1.0 {
+                    return Err(at(format!(
+                        "binary descriptor with scale {desc_scale} (binary descriptors have 1)"
+                    )));
+                }
+                continue;
             }
             let q = &descs[i * len..(i + 1) * len];
             let (mut max_q, mut n2) = (0u8, 0f64);
@@ -980,6 +1019,41 @@ fn check_features(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), BadFe
     Ok(())
 }
 
+/// What a feature of a map's detector may hold ([`check_features`]).
+struct ExpectedFeatures {
+    /// Largest keypoint scale, level pixels (twice the detector's largest: the interpolation).
+    max_scale_px: f64,
+    /// Smallest response.
+    min_response: f64,
+    /// The Laplacian signs a keypoint may carry.
+    laplacians: &'static [i8],
+    /// Binary descriptors (any bits, scale 1) rather than quantised unit vectors.
+    binary: bool,
+}
+
+fn expected_features(header: &MapHeader) -> ExpectedFeatures {
+    match header.feature_spec() {
+        FeatureSpec::Surf(s) => {
+            // The largest SURF filter: 3 (2^octaves (layers + 2) + 1) px, scale 1.2 / 9 of it;
+            // twice that covers the interpolation of the extremum between filters.
+            let max_filter =
+                3.0 * ((1u64 << s.n_octaves.min(30)) as f64 * (s.n_octave_layers + 2) as f64 + 1.0);
+            ExpectedFeatures {
+                max_scale_px: 2.0 * 1.2 * max_filter / 9.0,
+                min_response: f64::from(s.hessian_threshold),
+                laplacians: &[-1, 1],
+                binary: false,
+            }
+        }
+        FeatureSpec::Orb(o) => ExpectedFeatures {
+            max_scale_px: 2.0 * o.largest_scale_px(),
+            min_response: 0.0,
+            laplacians: &[0],
+            binary: true,
+        },
+    }
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
@@ -999,6 +1073,7 @@ pub(crate) mod tests {
                 upright: true,
                 ..SurfParams::default()
             },
+            orb: None,
             levels: (0..levels)
                 .map(|l| LevelInfo {
                     gsd_m: 5.0 * f64::from(1u32 << l),

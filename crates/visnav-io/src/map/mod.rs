@@ -44,7 +44,7 @@ use serde::{Deserialize, Serialize};
 
 use visnav_core::geo::Crs;
 use visnav_core::geo::raster::Bounds;
-use visnav_core::vision::{DescriptorKind, SurfParams};
+use visnav_core::vision::{DescriptorKind, FeatureSpec, OrbParams, SurfParams};
 
 pub use build::{BuildProgress, BuildSpec, BuildSummary, HeightSource, build_map};
 pub use format::{FORMAT_VERSION, MAGIC, ReferenceMap};
@@ -240,6 +240,11 @@ pub struct MapHeader {
     pub crs: Crs,
     /// SURF parameters the features were extracted with (apply the same to camera frames).
     pub surf: SurfParams,
+    /// With it, the features are ORB-like binary features of these settings
+    /// (`visnav_core::vision::orb`) and `surf` is not used; absent (every file written before it):
+    /// SURF ([`Self::feature_spec`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub orb: Option<OrbParams>,
     /// Pyramid levels, finest first.
     pub levels: Vec<LevelInfo>,
     /// Union of the orthophotos' outer pixel edges, metres.
@@ -286,9 +291,16 @@ impl MapHeader {
             point_sigma_m: self.height_point_sigma_m.unwrap_or(self.height_sigma_m),
         }
     }
+    /// The detector and settings of the features (the query frames use the same).
+    pub fn feature_spec(&self) -> FeatureSpec {
+        match &self.orb {
+            Some(o) => FeatureSpec::Orb(o.clone()),
+            None => FeatureSpec::Surf(self.surf.clone()),
+        }
+    }
     /// Descriptor variant of every feature.
     pub fn descriptor_kind(&self) -> DescriptorKind {
-        self.surf.descriptor
+        self.feature_spec().kind()
     }
     /// Total number of features over all levels.
     pub fn n_features(&self) -> u64 {

@@ -119,8 +119,7 @@ impl Reference for MapReference {
             .unwrap_or(0.0)
     }
     fn feature_spec(&self) -> FeatureSpec {
-        // A .vnm file holds SURF features (its header's `surf`).
-        FeatureSpec::Surf(self.map.header().surf.clone())
+        self.map.header().feature_spec()
     }
     fn bounds_m(&self) -> [f64; 4] {
         let b = &self.map.header().bounds;

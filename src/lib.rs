@@ -7,8 +7,8 @@
 //!   its build, [`fix::MapReference`]), `camera::source` (frame sources), `vision::file`;
 //! * visnav-link: `link` (MAVLink);
 //! * visnav-daemon: `daemon` (the service of `visnav run`);
-//! * visnav-sim (the default-on `sim` feature): `sitl` (the built-in simulator), `pose::{synth,
-//!   bench}` and `vision::eval` (evaluation tooling).
+//! * visnav-sim (the default-on `sim` feature): `sitl` (the built-in simulator), `pose::bench`
+//!   and `vision::eval` (evaluation tooling).
 //!
 //! Every frame and rotation convention is defined once in `docs/conventions.md`.
 
@@ -53,11 +53,11 @@ pub mod fix {
     pub use visnav_io::map::reference::{MapReference, MapReferenceError};
 }
 
-/// Space resection (visnav-core) with its synthetic scenes and benchmark (visnav-sim).
+/// Space resection with its synthetic scenes (visnav-core) and benchmark (visnav-sim).
 pub mod pose {
     pub use visnav_core::pose::*;
     #[cfg(feature = "sim")]
-    pub use visnav_sim::{pose_bench as bench, synth};
+    pub use visnav_sim::pose_bench as bench;
 }
 
 /// SURF and matching (visnav-core) with image files (visnav-io) and the repeatability

@@ -44,7 +44,6 @@ mod map_compare;
 mod nav_sitl;
 mod ngi_camera;
 mod pose_bench;
-mod pose_resection;
 mod prometheus;
 mod px4_imu_bias;
 mod real_sitl_truth;

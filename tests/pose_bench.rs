@@ -30,3 +30,16 @@ fn print_resection_timings() {
         eprintln!("{res}  | per trial incl. scene generation: wall {wall_ms:.3} ms, on-CPU {cpu}");
     }
 }
+
+/// The resection bench runs and scores its trials.
+#[test]
+fn bench_helper_runs() {
+    let r = visnav::pose::bench::bench_resection(100, 0.5, 4, 77);
+    assert_eq!(r.trials, 4);
+    assert_eq!(r.accepted, 4, "{r}");
+    assert_eq!(r.accepted_beyond_3_sigma, 0, "{r}");
+    assert!(
+        r.median_ms.is_finite() && r.p95_ms >= r.median_ms && r.max_ms >= r.p95_ms,
+        "{r}"
+    );
+}

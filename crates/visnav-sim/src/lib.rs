@@ -1,7 +1,7 @@
 //! visnav-sim: the built-in software-in-the-loop simulator and the evaluation tooling (see
-//! docs/architecture.md): truth trajectories, IMU and sensor synthesis, scenario files, the runner
+//! docs/architecture.md): flights of the core's truth trajectories, sensor synthesis, scenario files, the runner
 //! that scores the navigation filter, a MAVLink autopilot emulator, the camera renderer, the
-//! closed loop of `visnav sim`, its report and plots; synthetic resection scenes and the SURF
+//! closed loop of `visnav sim`, its report and plots; the resection bench and the SURF
 //! repeatability evaluation behind `visnav bench`. A flight build (`--no-default-features` on the
 //! `visnav` package) leaves this crate out.
 //!
@@ -20,7 +20,7 @@
 //!   with plotters and a compiled-in font.
 //! * [`render`]: the simulated camera (perspective view of an orthophoto on a DEM, lens
 //!   distortion, exposure, blur, noise).
-//! * [`synth`]: synthetic aerial resection scenes; [`pose_bench`]: the resection timings.
+//! * [`pose_bench`]: the resection timings (on the core's synthetic scenes, `pose::synth`).
 //! * [`surf_eval`]: SURF repeatability and matching scores on image pairs with known geometry.
 
 pub mod autopilot;
@@ -37,7 +37,6 @@ pub mod report;
 pub mod run;
 pub mod scenario;
 pub mod surf_eval;
-pub mod synth;
 pub mod vo_eval;
 
 pub use scenario::Scenario;

@@ -7,7 +7,7 @@
 use std::fmt;
 use std::time::Instant;
 
-use crate::synth::{SceneConfig, make_scene};
+use visnav_core::pose::synth::{SceneConfig, make_scene};
 use visnav_core::pose::{Priors, ResectionConfig, resect};
 use visnav_core::rng::Rng;
 

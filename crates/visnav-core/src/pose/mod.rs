@@ -35,6 +35,7 @@ pub mod p3p;
 pub mod ransac;
 pub mod refine;
 pub mod similarity;
+pub mod synth;
 
 use std::ops::AddAssign;
 

@@ -254,7 +254,7 @@ impl FixEngine {
 
     /// The image-only pose of `fix` in geodetic / NED terms, its 6x6 covariance reordered to
     /// `[position NED, attitude NED]` (the pose module orders `[phi, C]` in the local ENU frame
-    /// and uses the same error signs as the filter: `tests/pose_resection.rs` checks them). None
+    /// and uses the same error signs as the filter: `crates/visnav-core/tests/integration/pose_resection.rs` checks them). None
     /// when a number is not finite.
     pub(super) fn vision_only_pose(
         &self,

@@ -8,8 +8,8 @@
 
 use nalgebra::{Rotation3, Vector2, Vector3};
 
-use visnav_core::pose::{Correspondence, ImageGeometry, Pose};
-use visnav_core::rng::Rng;
+use crate::pose::{Correspondence, ImageGeometry, Pose};
+use crate::rng::Rng;
 
 /// Terrain height (metres, world z up) at local horizontal position (x, y) relative to the scene
 /// origin.

@@ -27,28 +27,51 @@ use visnav_core::text::{num, quote};
 /// Why a calibration file could not be read. Every variant names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum CalibrationError {
+    /// The file could not be read.
     #[error("{path}: cannot read: {cause}")]
     Read {
+        /// The file.
         path: PathBuf,
+        /// The operating system's error.
         cause: std::io::Error,
     },
+    /// A key every supported format has is missing: not a calibration file.
     #[error("{path}: no `{key}`: not an OpenCV, ROS camera_info or Kalibr camchain calibration")]
-    Missing { path: PathBuf, key: String },
+    Missing {
+        /// The file.
+        path: PathBuf,
+        /// The key.
+        key: String,
+    },
+    /// A key holds a value that cannot be used.
     #[error("{path}: `{key}`: {reason}")]
     Bad {
+        /// The file.
         path: PathBuf,
+        /// The key.
         key: String,
+        /// What is wrong, in words.
         reason: String,
     },
+    /// The file holds a model or form the import does not take.
     #[error(
         "{path}: {what}; visnav's model is the pinhole camera with OpenCV's k1, k2, p1, p2, k3: calibrate with that model"
     )]
-    Unsupported { path: PathBuf, what: String },
+    Unsupported {
+        /// The file.
+        path: PathBuf,
+        /// What the file holds.
+        what: String,
+    },
+    /// An OpenCV XML file (only the YAML form is read).
     #[error(
         "{path}: an OpenCV FileStorage XML file, which visnav does not read: save the calibration \
          as YAML (cv::FileStorage writes YAML when the file name ends in .yaml or .yml) and import that"
     )]
-    Xml { path: PathBuf },
+    Xml {
+        /// The file.
+        path: PathBuf,
+    },
 }
 
 /// Which tool wrote the file.
@@ -73,8 +96,11 @@ impl std::fmt::Display for CalibrationFormat {
 /// the format, and for Kalibr the camera taken.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Calibration {
+    /// The `[camera]` intrinsics and distortion (the mount at its defaults).
     pub camera: CameraConfig,
+    /// The format the file was read as.
     pub format: CalibrationFormat,
+    /// For a Kalibr camchain: the camera taken (`cam0`, ...).
     pub camera_name: Option<String>,
     /// What the import assumed that the file did not say (no distortion coefficients): for the
     /// user to read before flying with it.

@@ -15,15 +15,22 @@ use visnav_core::vision::{GrayImage, VisionError};
 /// mode instead, and every such error refuses the frame.
 #[derive(Debug, thiserror::Error)]
 pub enum JpegError {
+    /// The JPEG stream is corrupt.
     #[error("corrupt JPEG: {0}")]
     Corrupt(String),
+    /// The JPEG has no pixels.
     #[error("JPEG has no pixels")]
     Empty,
+    /// The JPEG decoded to another size than its header states.
     #[error("JPEG of {width} x {height} px decoded to {got} bytes, expected {want}")]
     Size {
+        /// Width the header states, pixels.
         width: usize,
+        /// Height the header states, pixels.
         height: usize,
+        /// Bytes decoded.
         got: usize,
+        /// Bytes the size needs.
         want: usize,
     },
 }

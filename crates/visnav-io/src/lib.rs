@@ -1,3 +1,4 @@
+#![warn(missing_docs)]
 //! visnav-io: what visnav reads and writes besides the MAVLink link, on top of visnav-core's
 //! pure types: GeoTIFF files and the terrain model built on them ([`geo`]), the reference map's
 //! file format and build ([`map`]), image files ([`image_file`]) and camera frame sources

@@ -119,39 +119,73 @@ pub struct Frame {
 /// Why a frame could not be read. Every message names the file (and frame where relevant).
 #[derive(Debug, thiserror::Error)]
 pub enum FrameError {
+    /// A file or device could not be read.
     #[error("{path}: {cause}")]
     Io {
+        /// The file.
         path: PathBuf,
+        /// The operating system's error.
         cause: std::io::Error,
     },
+    /// The YUV4MPEG2 header is missing or not usable.
     #[error("{path}: not a usable YUV4MPEG2 file: {reason}")]
-    Y4mHeader { path: PathBuf, reason: String },
+    Y4mHeader {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong, in words.
+        reason: String,
+    },
+    /// One YUV4MPEG2 frame is truncated or malformed.
     #[error("{path}: frame {frame}: {reason}")]
     Y4mFrame {
+        /// The file.
         path: PathBuf,
+        /// The frame's sequence number (0-based).
         frame: u64,
+        /// What is wrong, in words.
         reason: String,
     },
+    /// A `frames.csv` line is malformed.
     #[error("{path}:{line}: {reason}")]
     Csv {
+        /// The file.
         path: PathBuf,
+        /// Line number in the file (1-based).
         line: usize,
+        /// What is wrong, in words.
         reason: String,
     },
+    /// A frame's image could not be read or decoded.
     #[error("{path} (frame {frame}): {reason}")]
     Image {
+        /// The file.
         path: PathBuf,
+        /// The frame's sequence number (0-based).
         frame: u64,
+        /// What is wrong, in words.
         reason: String,
     },
+    /// A source of a cargo feature this build does not have.
     #[error(
         "frame source \"{kind}\" is not available: visnav was built without live capture ({reason})"
     )]
-    NotBuilt { kind: &'static str, reason: String },
+    NotBuilt {
+        /// The source kind (`source` in `[frames]`).
+        kind: &'static str,
+        /// What is wrong, in words.
+        reason: String,
+    },
+    /// The `[frames]` settings are not usable.
     #[error("frames: {0}")]
     Config(String),
+    /// The capture process failed: could not start, wrote no y4m, exited or stalled.
     #[error("{command}: {reason}")]
-    Command { command: String, reason: String },
+    Command {
+        /// The capture command, as run.
+        command: String,
+        /// What is wrong, in words.
+        reason: String,
+    },
     /// A source paced by its caller (the lock-step simulator's camera) has no frame at this
     /// instant: not a fault, the caller asks again at its next tick.
     #[error("no frame ready")]

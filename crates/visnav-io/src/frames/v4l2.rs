@@ -33,7 +33,11 @@ impl PixelFormat {
 /// by hand: the `v4l` crate generates it with bindgen, which needs libclang at build time. The
 /// sizes and ioctl numbers are checked against the kernel's values in the tests.
 pub mod v4l2_abi {
-    #![allow(dead_code)] // used by the `v4l2` feature only
+    #![allow(dead_code)]
+    // used by the `v4l2` feature only
+    // Each item is the kernel's (linux/videodev2.h) under its own name without the `V4L2_`
+    // prefix, field for field: the header documents them.
+    #![allow(missing_docs)]
 
     /// `v4l2_fourcc(a, b, c, d)`.
     pub const fn fourcc(c: &[u8; 4]) -> u32 {
@@ -170,33 +174,57 @@ pub mod v4l2_abi {
 /// Why a V4L2 buffer is not a frame.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum BadFrame {
+    /// An MJPG frame that does not decode.
     #[error("MJPG frame of {bytes} bytes: {reason}")]
-    Jpeg { bytes: usize, reason: String },
+    Jpeg {
+        /// The frame's size, bytes.
+        bytes: usize,
+        /// The decoder's reason.
+        reason: String,
+    },
+    /// An MJPG frame of another size than the format set.
     #[error("MJPG frame is {got_width}x{got_height}, the format is {width}x{height}")]
     JpegSize {
+        /// The frame's width, pixels.
         got_width: usize,
+        /// The frame's height, pixels.
         got_height: usize,
+        /// The format's width, pixels.
         width: usize,
+        /// The format's height, pixels.
         height: usize,
     },
+    /// A row stride shorter than a row.
     #[error("bytes per line {stride} < {row_bytes} for {width} pixels")]
     Stride {
+        /// Bytes per line the driver states.
         stride: usize,
+        /// Bytes one row needs.
         row_bytes: usize,
+        /// Width, pixels.
         width: usize,
     },
+    /// A buffer shorter than the frame.
     #[error("{len} bytes, {need} needed for {width}x{height} {format}")]
     Short {
+        /// Bytes in the buffer.
         len: usize,
+        /// Bytes the frame needs.
         need: usize,
+        /// Width, pixels.
         width: usize,
+        /// Height, pixels.
         height: usize,
+        /// The pixel format.
         format: &'static str,
     },
+    /// The driver flagged the buffer as corrupt.
     #[error("the driver flagged the buffer as corrupt")]
     Corrupt,
+    /// The driver returned a buffer index it was not given.
     #[error("buffer index {0} out of range")]
     BufferIndex(usize),
+    /// The frame could not be made into an image.
     #[error("{0}")]
     Image(String),
 }

@@ -24,7 +24,12 @@ pub enum DemFileError {
     GeoTiff(#[from] GeoTiffError),
     /// The raster is not a usable height model.
     #[error("{path}: {error}")]
-    Dem { path: String, error: DemError },
+    Dem {
+        /// The file.
+        path: String,
+        /// Why the raster is not a usable height model.
+        error: DemError,
+    },
     /// Heights outside the terrain range: an undeclared nodata value or another unit.
     #[error(
         "{path}: heights {min_m} to {max_m} m are outside the terrain range \
@@ -32,8 +37,11 @@ pub enum DemFileError {
          declare (declare it: `gdal_edit.py -a_nodata VALUE {path}`), or heights not in metres"
     )]
     Heights {
+        /// The file.
         path: String,
+        /// Lowest height, metres.
         min_m: f64,
+        /// Highest height, metres.
         max_m: f64,
     },
 }

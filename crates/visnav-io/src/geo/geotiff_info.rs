@@ -62,35 +62,56 @@ pub enum GeoTiffError {
     /// The file cannot be opened or read.
     #[error("{}: cannot read file: {cause}", .path.display())]
     Io {
+        /// The file.
         path: PathBuf,
+        /// The operating system's error.
         cause: std::io::Error,
     },
     /// The TIFF structure or image data cannot be decoded (not a TIFF, truncated, unsupported
     /// compression, ...).
     #[error("{}: TIFF decoding failed: {reason}", .path.display())]
-    Decode { path: PathBuf, reason: String },
+    Decode {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong, in words.
+        reason: String,
+    },
     /// A TIFF tag is missing, malformed or has an unsupported value.
     #[error("{}: tag {tag}: {reason}", .path.display())]
     Tag {
+        /// The file.
         path: PathBuf,
+        /// The TIFF tag, name and number.
         tag: String,
+        /// What is wrong, in words.
         reason: String,
     },
     /// A GeoKey is missing, malformed or not understood, and no CRS override was given.
     #[error("{}: GeoKey {key}: {reason} (set a CRS override in the config if the file is right)", .path.display())]
     GeoKey {
+        /// The file.
         path: PathBuf,
+        /// The GeoKey, name and number.
         key: String,
+        /// What is wrong, in words.
         reason: String,
     },
     /// A pixel window that is empty or not inside the image (`super::window`).
     #[error("{}: {reason}", .path.display())]
-    Window { path: PathBuf, reason: String },
+    Window {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong, in words.
+        reason: String,
+    },
     /// The file's CRS was understood but differs from the configured override.
     #[error("{}: the CRS in the file's GeoKeys ({}) contradicts the configured override ({})", .path.display(), describe_crs(.file), describe_crs(.configured))]
     CrsConflict {
+        /// The file.
         path: PathBuf,
+        /// The CRS the file states.
         file: Crs,
+        /// The CRS the configuration gives.
         configured: Crs,
     },
 }
@@ -100,6 +121,7 @@ pub enum GeoTiffError {
 pub struct KeyError {
     /// Key name and number, e.g. "ProjLinearUnitsGeoKey (3076)".
     pub key: String,
+    /// What is wrong, in words.
     pub reason: String,
 }
 
@@ -117,6 +139,7 @@ impl KeyError {
 pub struct TagError {
     /// Tag name and number, e.g. "ModelPixelScaleTag (33550)".
     pub tag: String,
+    /// What is wrong, in words.
     pub reason: String,
 }
 
@@ -146,6 +169,9 @@ const TAG_NODATA: &str = "GDAL_NODATA (42113)";
 
 /// GeoKey ids (GeoTIFF 1.1, section 7).
 pub mod key {
+    // Each is the key of the same name (in CamelCase, `GeoKey` appended) of the specification's
+    // section 7, which documents it.
+    #![allow(missing_docs)]
     pub const GT_MODEL_TYPE: u16 = 1024;
     pub const GT_RASTER_TYPE: u16 = 1025;
     pub const GT_CITATION: u16 = 1026;
@@ -260,6 +286,7 @@ impl std::fmt::Display for GeoKeyValue {
 pub struct GeoKeys {
     /// (KeyDirectoryVersion, KeyRevision, MinorRevision).
     pub version: (u16, u16, u16),
+    /// The keys by number.
     pub entries: BTreeMap<u16, GeoKeyValue>,
 }
 
@@ -863,6 +890,7 @@ pub struct GeoTiffInfo {
     pub bits_per_sample: u16,
     /// Pixel (corner convention) -> map transform of the whole image.
     pub transform: GeoTransform,
+    /// The horizontal CRS the GeoKeys (or the override) give.
     pub crs: Crs,
     /// GDAL_NODATA value (may be NaN; `Raster` stores a NaN nodata as `None`).
     pub nodata: Option<f64>,
@@ -874,6 +902,7 @@ pub struct GeoTiffInfo {
     pub tiled: bool,
     /// Nominal chunk size, pixels: the tile size, or (width, rows per strip).
     pub chunk_width: usize,
+    /// Nominal chunk height, pixels: the tile height or the rows per strip.
     pub chunk_height: usize,
 }
 

@@ -28,10 +28,22 @@ use visnav_core::geo::raster::{Raster, RasterData};
 /// Why a raster could not be written.
 #[derive(Debug, thiserror::Error)]
 pub enum GeoTiffWriteError {
+    /// The raster cannot be written in the supported form.
     #[error("{path}: {reason}")]
-    Unsupported { path: String, reason: String },
+    Unsupported {
+        /// The file.
+        path: String,
+        /// What is wrong, in words.
+        reason: String,
+    },
+    /// Writing the file failed.
     #[error("{path}: {reason}")]
-    Io { path: String, reason: String },
+    Io {
+        /// The file.
+        path: String,
+        /// What is wrong, in words.
+        reason: String,
+    },
 }
 
 /// GeoKey ids written.

@@ -80,6 +80,7 @@ pub enum HeightSource {
 pub struct BuildSpec {
     /// Orthophotos (GeoTIFF, north-up, square pixels, one CRS, one pixel size).
     pub orthos: Vec<PathBuf>,
+    /// Where the features' heights come from.
     pub height: HeightSource,
     /// CRS for files whose GeoKeys are missing or not understood.
     pub crs_override: Option<Crs>,
@@ -196,10 +197,15 @@ impl BuildSpec {
 /// Progress report, after every tile.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct BuildProgress {
+    /// Index of the orthophoto being processed.
     pub ortho: usize,
+    /// The pyramid level being processed.
     pub level: usize,
+    /// Tiles done so far, over all orthophotos and levels.
     pub tiles_done: u64,
+    /// Tiles in all.
     pub tiles_total: u64,
+    /// Features written so far.
     pub features: u64,
 }
 
@@ -208,12 +214,15 @@ pub struct BuildProgress {
 pub struct BuildSummary {
     /// The header as written.
     pub header: MapHeader,
+    /// Size of the file written, bytes.
     pub file_bytes: u64,
     /// Keypoints dropped because their descriptor window touched nodata.
     pub dropped_nodata: u64,
     /// Keypoints dropped because the DEM has no height there.
     pub dropped_no_height: u64,
+    /// Tiles processed.
     pub tiles: u64,
+    /// Wall time of the build, seconds.
     pub elapsed_s: f64,
 }
 

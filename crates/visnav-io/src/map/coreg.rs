@@ -75,25 +75,45 @@ impl Default for CoregParams {
 /// Errors of [`coregister`].
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum CoregError {
+    /// The two images are in different CRSs.
     #[error("the two images are in different CRSs ({a} and {b}): reproject one first")]
-    CrsMismatch { a: String, b: String },
+    CrsMismatch {
+        /// Image `a`'s CRS.
+        a: String,
+        /// Image `b`'s CRS.
+        b: String,
+    },
+    /// The two images do not overlap.
     #[error("the two images do not overlap")]
     NoOverlap,
+    /// A setting is out of its range.
     #[error("invalid setting {key} = {value}: {reason}")]
     BadParam {
+        /// The setting.
         key: &'static str,
+        /// The value given.
         value: f64,
+        /// What is wrong, in words.
         reason: &'static str,
     },
+    /// Image `a` has no grey variation to correlate.
     #[error("image a has no grey variation to correlate (standard deviation {std})")]
-    Flat { std: f64 },
+    Flat {
+        /// The grey values' standard deviation.
+        std: f64,
+    },
+    /// The overlap is too small for one patch and its search.
     #[error(
         "image a ({width} x {height} px) is too small for {side} px patches searched +-{search} px"
     )]
     TooSmall {
+        /// The overlap's width, pixels of image `a`.
         width: usize,
+        /// The overlap's height, pixels of image `a`.
         height: usize,
+        /// The patch side, pixels.
         side: usize,
+        /// The search radius, pixels.
         search: usize,
     },
 }
@@ -103,9 +123,11 @@ pub enum CoregError {
 pub struct PatchShift {
     /// Patch centre, map coordinates of image `a`'s CRS.
     pub x_m: f64,
+    /// Patch centre, map northing (see `x_m`).
     pub y_m: f64,
     /// Where that ground lies in image `b`, relative to image `a`, map metres (CRS axes).
     pub dx_m: f64,
+    /// The shift along the CRS's y axis, map metres (see `dx_m`).
     pub dy_m: f64,
     /// Peak normalised cross-correlation.
     pub ncc: f64,
@@ -114,8 +136,11 @@ pub struct PatchShift {
 /// Median / 90th percentile / maximum of a set of values.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Spread {
+    /// Median.
     pub median: f64,
+    /// 90th percentile.
     pub p90: f64,
+    /// Maximum.
     pub max: f64,
 }
 
@@ -140,9 +165,13 @@ impl Spread {
 pub struct WindowShift {
     /// Window centre, map coordinates.
     pub x_m: f64,
+    /// Window centre, map northing.
     pub y_m: f64,
+    /// Matched patches in the window.
     pub patches: usize,
+    /// Mean shift along the CRS's x axis, map metres.
     pub dx_m: f64,
+    /// Mean shift along the CRS's y axis, map metres.
     pub dy_m: f64,
 }
 
@@ -161,6 +190,7 @@ pub struct CoregReport {
     pub shift_px: Option<Spread>,
     /// Median shift per axis over all matched patches, metres (a robust global offset).
     pub median_dx_m: Option<f64>,
+    /// Median shift along the CRS's y axis, metres.
     pub median_dy_m: Option<f64>,
     /// Window side used for `window_shift_m`, metres.
     pub window_m: f64,
@@ -169,7 +199,9 @@ pub struct CoregReport {
     pub window_shift_m: Option<Spread>,
     /// The same in pixels of image `a`.
     pub window_shift_px: Option<Spread>,
+    /// Each window with enough patches.
     pub windows: Vec<WindowShift>,
+    /// Each matched patch.
     pub patches: Vec<PatchShift>,
 }
 

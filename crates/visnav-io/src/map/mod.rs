@@ -56,8 +56,11 @@ pub enum MapError {
     /// Reading or writing a file failed.
     #[error("{}: {what}: {cause}", .path.display())]
     Io {
+        /// The file.
         path: PathBuf,
+        /// What was being done.
         what: &'static str,
+        /// The operating system's error.
         cause: std::io::Error,
     },
     /// An orthophoto or DEM GeoTIFF could not be loaded.
@@ -66,15 +69,27 @@ pub enum MapError {
     /// The DEM is unusable.
     #[error("DEM: {cause}")]
     Dem {
+        /// The file.
         path: PathBuf,
+        /// Why the DEM could not be used.
         cause: Box<crate::geo::dem::DemFileError>,
     },
     /// An input raster cannot be used for a map (rotated, non-square pixels, CRS mismatch, ...).
     #[error("{}: {reason}", .path.display())]
-    Input { path: PathBuf, reason: String },
+    Input {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong, in words.
+        reason: String,
+    },
     /// The build parameters are invalid.
     #[error("invalid map build parameter `{name}`: {reason}")]
-    Param { name: &'static str, reason: String },
+    Param {
+        /// The build setting.
+        name: &'static str,
+        /// What is wrong, in words.
+        reason: String,
+    },
     /// The orthophotos gave no feature at all (blank, uniform or all nodata; or the DEM covers
     /// none of them): a map without features can fix nothing.
     #[error(
@@ -84,15 +99,24 @@ pub enum MapError {
          not cover it; no map written"
     )]
     NoFeatures {
+        /// The orthophotos, as given.
         orthos: String,
+        /// The SURF Hessian threshold used.
         threshold: f32,
+        /// Keypoints dropped because their descriptor window touched nodata.
         dropped_nodata: u64,
+        /// Keypoints dropped because the DEM has no height there.
         dropped_no_height: u64,
     },
     /// A `.vnm` file is malformed: wrong magic, unsupported version, truncated, bad checksum,
     /// inconsistent tables.
     #[error("{}: not a valid visnav map: {reason}", .path.display())]
-    Format { path: PathBuf, reason: String },
+    Format {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong, in words.
+        reason: String,
+    },
 }
 
 impl From<crate::geo::geotiff::GeoTiffError> for MapError {
@@ -132,7 +156,9 @@ pub struct IndexGrid {
     pub origin_y_m: f64,
     /// Cell side, metres.
     pub cell_m: f64,
+    /// Number of columns.
     pub cols: u32,
+    /// Number of rows.
     pub rows: u32,
 }
 
@@ -175,7 +201,9 @@ pub struct LevelInfo {
     pub grid: IndexGrid,
     /// File layout: byte offsets from the data start (see `docs/map-format.md`).
     pub cells_offset: u64,
+    /// Byte offset of the feature records.
     pub records_offset: u64,
+    /// Byte offset of the descriptors.
     pub descriptors_offset: u64,
     /// The level's grey image (format 2; `None` in version-1 files).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -190,9 +218,13 @@ pub struct LevelInfo {
 pub struct LevelImageInfo {
     /// Offset from the data offset, a multiple of 8.
     pub offset: u64,
+    /// Image width, pixels.
     pub width_px: u64,
+    /// Image height, pixels.
     pub height_px: u64,
+    /// West edge of column 0, metres.
     pub origin_x_m: f64,
+    /// North edge of row 0, metres.
     pub origin_y_m: f64,
 }
 
@@ -202,12 +234,18 @@ pub struct LevelImageInfo {
 pub enum HeightInfo {
     /// A gridded DEM (file name as given, height range over its valid samples, metres).
     Dem {
+        /// The DEM file, as given to the build.
         file: String,
+        /// Lowest height over the DEM's valid samples, metres.
         min_m: f64,
+        /// Highest height over the DEM's valid samples, metres.
         max_m: f64,
     },
     /// A constant ground height, metres AMSL.
-    Constant { amsl_m: f64 },
+    Constant {
+        /// The height, metres above mean sea level.
+        amsl_m: f64,
+    },
 }
 
 /// One source orthophoto.
@@ -215,8 +253,11 @@ pub enum HeightInfo {
 pub struct OrthoInfo {
     /// File name as given to the build.
     pub file: String,
+    /// Width, pixels.
     pub width_px: u64,
+    /// Height, pixels.
     pub height_px: u64,
+    /// Number of bands.
     pub bands: u32,
     /// Ground pixel size, metres.
     pub pixel_size_m: f64,
@@ -273,6 +314,7 @@ pub struct MapHeader {
     pub orthos: Vec<OrthoInfo>,
     /// Tile core size in level pixels and per-tile feature cap used by the build.
     pub tile_px: u32,
+    /// Per-tile, per-level feature cap.
     pub max_features_per_tile: u32,
     /// Build time, seconds since the Unix epoch (UTC).
     pub built_unix_s: u64,
@@ -311,10 +353,12 @@ impl MapHeader {
 /// Features selected from one level, with dequantised descriptors.
 #[derive(Clone, Debug)]
 pub struct MapSelection {
+    /// The selected features.
     pub features: Vec<MapFeature>,
     /// Row-major, `kind.stride()` floats per row, zero padded beyond `kind.len()` (the layout of
     /// `vision::Features::descriptors_padded`), unit length.
     pub descriptors: Vec<f32>,
+    /// The descriptors' kind.
     pub kind: DescriptorKind,
 }
 

@@ -23,16 +23,27 @@ pub struct MapReference {
 /// Why a map reference could not be opened.
 #[derive(Debug, thiserror::Error)]
 pub enum MapReferenceError {
+    /// The map file could not be opened or built.
     #[error(transparent)]
     Map(#[from] MapError),
+    /// The DEM the map names is not where the map says.
     #[error(
         "{map}: the DEM it was built from ({dem}) was not found next to the map or at that path; give the DEM explicitly"
     )]
-    DemNotFound { map: String, dem: String },
+    DemNotFound {
+        /// The map file.
+        map: String,
+        /// The DEM file the map names.
+        dem: String,
+    },
+    /// The DEM the map names could not be used.
     #[error("{map}: DEM {dem}: {reason}")]
     Dem {
+        /// The map file.
         map: String,
+        /// The DEM file the map names.
         dem: String,
+        /// What is wrong, in words.
         reason: String,
     },
     /// Building the temporary map failed (`build_temporary`).

@@ -52,26 +52,42 @@ use visnav_link::{Link, LinkError, LogLimiter, NavEstimate};
 /// Why the daemon could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum DaemonError {
+    /// The MAVLink link could not start.
     #[error(transparent)]
     Link(#[from] LinkError),
+    /// The frame source could not open.
     #[error(transparent)]
     Frames(#[from] FrameError),
+    /// Frames are configured but no fix engine was given.
     #[error("frames are configured but no vision fix engine was given")]
     NoFixer,
+    /// A thread could not be started.
     #[error("cannot start a thread: {0}")]
     Thread(std::io::Error),
+    /// The visual odometry log could not be opened.
     #[error("daemon.vo_log: {path}: {cause}")]
     VoLog {
+        /// The file.
         path: std::path::PathBuf,
+        /// The operating system's error.
         cause: std::io::Error,
     },
+    /// The fix log could not be opened.
     #[error("daemon.fix_log: {path}: {cause}")]
     FixLog {
+        /// The file.
         path: std::path::PathBuf,
+        /// The operating system's error.
         cause: std::io::Error,
     },
+    /// The metrics endpoint could not listen.
     #[error("daemon.metrics_listen: {addr}: {cause}")]
-    Metrics { addr: String, cause: std::io::Error },
+    Metrics {
+        /// The address, as configured.
+        addr: String,
+        /// The operating system's error.
+        cause: std::io::Error,
+    },
 }
 
 // Not `#[from]`: that would also make the error its `source()`, and the message already has its
@@ -85,10 +101,15 @@ impl From<std::io::Error> for DaemonError {
 /// Everything the daemon needs from the configuration.
 #[derive(Debug, Clone)]
 pub struct DaemonSetup {
+    /// `[link]`.
     pub link: LinkConfig,
+    /// `[output]`.
     pub output: OutputConfig,
+    /// `[nav]`.
     pub nav: NavConfig,
+    /// `[daemon]`.
     pub daemon: DaemonConfig,
+    /// `[frames]` (None: no camera, no vision).
     pub frames: Option<FramesConfig>,
     /// Visual odometry (`[vo]`).
     pub vo: visnav_core::vo::VoConfig,

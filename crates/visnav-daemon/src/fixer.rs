@@ -9,6 +9,7 @@ use visnav_core::vision::GrayImage;
 /// worker thread (blocking is fine); must not panic (a panic is caught and counted as a
 /// rejection).
 pub trait FrameFixer: Send + Sync + 'static {
+    /// The fix of `image` with `prior` (accepted or refused with its reason).
     fn fix(&self, image: &GrayImage, prior: &FixPrior) -> FixReport;
 
     /// Visual odometry with this engine's camera and terrain (`[vo]`); `None`: not available.

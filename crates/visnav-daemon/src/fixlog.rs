@@ -55,6 +55,7 @@ pub struct FixLogRecord {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub prior_dependence: Option<PriorDependenceNed>,
     #[serde(default)]
+    /// The prior's attitude was the navigation filter's own (not the autopilot's).
     pub prior_attitude_from_filter: bool,
     /// How the accepted fix's correspondences were found (`features` or `area`; None for a
     /// rejection, and in logs written before it existed).
@@ -171,6 +172,7 @@ impl JsonLinesLog {
 pub struct FixLogError {
     /// 1-based line number.
     pub line: usize,
+    /// The parser's error.
     pub error: serde_json::Error,
 }
 

@@ -92,7 +92,11 @@ pub enum Release {
     /// When the autopilot's clock reaches the frame's capture time; frames taken longer than
     /// `max_age_s` before the clock's present are skipped (`visnav_io::frames::
     /// releases_on_autopilot_clock`).
-    OnAutopilotClock { max_age_s: f64 },
+    /// When the autopilot's clock reaches the capture time; older than `max_age_s` skipped.
+    OnAutopilotClock {
+        /// Frames older than this when released are skipped, s.
+        max_age_s: f64,
+    },
 }
 
 /// What [`wait_for_capture_time`] decided.
@@ -244,12 +248,19 @@ pub fn spawn_reader(
 
 /// Context of a fix worker.
 pub struct WorkerCtx {
+    /// Where the newest frame waits for a worker.
     pub slot: Arc<Slot<Frame>>,
+    /// The fix engine.
     pub fixer: Arc<dyn FrameFixer>,
+    /// The priors at a capture time.
     pub priors: Arc<dyn PriorSource>,
+    /// The autopilot's clock mapping.
     pub clock: Clock,
+    /// Frames older than this are not fixed, s.
     pub max_age_s: f64,
+    /// Where the results go (the navigation task).
     pub results: mpsc::Sender<FixResult>,
+    /// The counters.
     pub metrics: Arc<DaemonMetrics>,
     /// Shared by the workers: when a frame's heading search is widened.
     pub widening: Arc<HeadingWidening>,

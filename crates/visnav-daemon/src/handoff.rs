@@ -19,8 +19,11 @@ pub struct Slot<T> {
 /// Result of [`Slot::take`].
 #[derive(Debug, PartialEq)]
 pub enum Take<T> {
+    /// The newest item.
     Item(T),
+    /// Nothing arrived within the wait.
     Timeout,
+    /// The producer is gone.
     Closed,
 }
 
@@ -100,6 +103,7 @@ impl<T> Slot<T> {
 
 /// Builds the prior for a capture time (implemented by the navigation task's shared state).
 pub trait PriorSource: Send + Sync + 'static {
+    /// The fix prior at capture time `t_capture_us` (autopilot boot µs).
     fn prior_at(&self, t_capture_us: u64) -> FixPrior;
 
     /// The filter's own pose at `t_us` for visual odometry: its solution interpolated to the

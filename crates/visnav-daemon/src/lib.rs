@@ -1,3 +1,4 @@
+#![warn(missing_docs)]
 //! The service behind `visnav run`: talks to the autopilot, runs the navigation pipeline and
 //! injects the solution. An async shell around the pure modules: [`daemon`] starts and stops the
 //! tasks (its module doc draws them), [`fixer`] is the frame path's view of the fix engine, the

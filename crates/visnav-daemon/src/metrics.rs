@@ -352,16 +352,23 @@ pub struct Sequence {
 /// A frame-sequence navigator in a snapshot.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct VoSnapshot {
+    /// Frames given to the navigator.
     pub frames: u64,
+    /// Frames that started a sequence (the first, or after a gap or a missing prior).
     pub started: u64,
+    /// Motions computed.
     pub motions: u64,
+    /// Motions the filter fused.
     pub fused: u64,
+    /// Motions the filter's innovation gate rejected.
     pub filter_rejected: u64,
+    /// Motions the filter did not use otherwise (not initialised, too old, malformed).
     pub unused: u64,
     /// Frames without a motion by class, each with its latest reason, most frequent first.
     pub refused: Vec<ReasonCount>,
     /// Mean and largest computation time of a frame, ms.
     pub ms_mean: f64,
+    /// Largest computation time of a frame, ms.
     pub ms_max: f64,
 }
 

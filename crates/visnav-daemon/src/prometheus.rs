@@ -50,7 +50,11 @@ pub fn render(registry: &Registry) -> String {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Route {
     /// `GET /metrics` (body) or `HEAD /metrics` (headers only).
-    Metrics { head_only: bool },
+    /// `GET /metrics` (body) or `HEAD /metrics` (headers only).
+    Metrics {
+        /// `HEAD`: the headers without the body.
+        head_only: bool,
+    },
     /// An error status.
     Status(u16),
 }

@@ -36,6 +36,7 @@ use visnav_link::Clock;
 pub struct VoResult {
     /// Capture time, autopilot boot µs.
     pub t_capture_us: u64,
+    /// The frame's sequence number.
     pub seq: u64,
     /// The odometer's step (`None`: visual odometry off).
     pub step: Option<VoStep>,
@@ -78,11 +79,17 @@ impl GyroNoise {
 
 /// What the odometry path holds.
 pub struct VoCtx {
+    /// The visual odometer (None: off).
     pub odometer: Option<Odometer>,
+    /// The DTM navigator (None: off).
     pub dtm: Option<DtmNavigator>,
+    /// The priors at a capture time.
     pub priors: Arc<dyn PriorSource>,
+    /// Where the results go (the navigation task).
     pub results: mpsc::Sender<VoResult>,
+    /// The counters.
     pub metrics: Arc<DaemonMetrics>,
+    /// The gyros' noise, for the rotation's sigma between frames.
     pub gyro: GyroNoise,
     /// Capture time of the previous frame given to the odometer.
     pub last_t_us: Option<u64>,

@@ -52,6 +52,7 @@ pub struct VoLogRecord {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rot_los_deg: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// Its 1-sigma, deg.
     pub rot_los_sigma_deg: Option<f64>,
     /// How the displacement moved with an error of the gyros' rotation, NED, m/rad, rows
     /// (`nav::VoFix::rotation_sensitivity_ned`).
@@ -61,16 +62,20 @@ pub struct VoLogRecord {
     #[serde(default)]
     pub tracks: usize,
     #[serde(default)]
+    /// Tracks on the terrain.
     pub on_ground: usize,
     #[serde(default)]
+    /// Inliers of the motion.
     pub inliers: usize,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// Reprojection RMS, px.
     pub rms_px: Option<f64>,
     /// The filter's attitude the frame was given: roll, pitch, yaw (deg) and the tilt and yaw
     /// sigma (deg).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub prior_rpy_deg: Option<[f64; 3]>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// Sigma of the tilt and of the yaw, deg.
     pub prior_sigma_tilt_yaw_deg: Option<[f64; 2]>,
 }
 

@@ -19,21 +19,30 @@ use visnav_io::map::{BuildSpec, HeightSource};
 /// Why the configuration's fix engine could not be built; each names the section and key.
 #[derive(Debug, thiserror::Error)]
 pub enum WiringError {
+    /// `[camera]` is not usable.
     #[error("[camera]: {0}")]
     Camera(CameraError),
+    /// The `[map] dem` file is not usable.
     #[error("[map] dem {}: {error}", .path.display())]
     Dem {
+        /// The file.
         path: std::path::PathBuf,
+        /// Why.
         error: Box<DemFileError>,
     },
+    /// `[map] ground_height_amsl_m` is not usable.
     #[error("[map] ground_height_amsl_m: {0}")]
     GroundHeight(DemError),
+    /// The `[map] file` could not be opened.
     #[error("[map] file: {0}")]
     MapFile(MapReferenceError),
+    /// `[map]` names no terrain.
     #[error("[map]: give file, or ortho with dem or ground_height_amsl_m")]
     NoTerrain,
+    /// The map could not be built from `[map] ortho`.
     #[error("[map] ortho: {0}")]
     MapBuild(MapReferenceError),
+    /// `[fix]` is not usable.
     #[error("[fix]: {0}")]
     Fix(FixError),
 }

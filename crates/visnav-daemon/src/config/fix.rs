@@ -13,7 +13,9 @@ pub enum FixConfigError {
     /// A key that no longer exists, with what replaced it.
     #[error("{key}: {replacement}")]
     Retired {
+        /// The key.
         key: &'static str,
+        /// What replaced it.
         replacement: &'static str,
     },
     /// A key or value serde refused (the message names the key).

@@ -39,21 +39,38 @@ pub use overrides::{Given, Origin, OverrideError, Overrides};
 /// Why a configuration file could not be used. Every variant names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
+    /// The file could not be read.
     #[error("{path}: cannot read: {cause}")]
     Read {
+        /// The file.
         path: PathBuf,
+        /// The operating system's error.
         cause: std::io::Error,
     },
     /// TOML syntax, a wrong type or an unknown key (the message names the key, line and column).
+    /// The file is not valid TOML or a key or value is refused.
     #[error("{path}: {message}")]
-    Parse { path: PathBuf, message: String },
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// The parser's message (key, line and column).
+        message: String,
+    },
     /// A command-line or environment override that cannot be applied.
+    /// A command-line or environment override is not usable.
     #[error("{path}: {error}")]
-    Override { path: PathBuf, error: OverrideError },
+    Override {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong with the override.
+        error: OverrideError,
+    },
     /// Parsed, but values are out of range, inconsistent or name missing files.
     #[error("{path}: {} invalid value(s):\n  {}", problems.len(), problems.iter().map(|p| p.to_string()).collect::<Vec<_>>().join("\n  "))]
     Invalid {
+        /// The file.
         path: PathBuf,
+        /// Every problem found (key, value, reason).
         problems: Vec<Invalid>,
     },
 }

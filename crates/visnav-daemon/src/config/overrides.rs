@@ -47,7 +47,9 @@ impl fmt::Display for Origin {
 /// One overridden value and where it came from.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Given<T> {
+    /// The value.
     pub value: T,
+    /// Where it came from.
     pub origin: Origin,
 }
 
@@ -83,8 +85,11 @@ const CAMERA_KEYS: [&str; 7] = [
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("{origin} {}: {reason}", visnav_core::text::excerpt(.value))]
 pub struct OverrideError {
+    /// Where the value came from.
     pub origin: Origin,
+    /// The value, as given.
     pub value: String,
+    /// What is wrong, in words.
     pub reason: String,
 }
 

@@ -82,48 +82,9 @@ impl ReasonTally {
     }
 }
 
-/// Whether `a` and `b` say the same but for their numbers (digits with an optional sign and
-/// decimals): a health reason whose numbers change each time is still the same news.
-pub fn same_but_numbers(a: &str, b: &str) -> bool {
-    fn wording(reason: &str) -> impl Iterator<Item = Option<char>> + '_ {
-        let mut chars = reason.chars().peekable();
-        std::iter::from_fn(move || {
-            let c = chars.next()?;
-            let sign_digit =
-                (c == '-' || c == '+') && chars.peek().is_some_and(|d| d.is_ascii_digit());
-            if c.is_ascii_digit() || sign_digit {
-                while chars
-                    .peek()
-                    .is_some_and(|d| d.is_ascii_digit() || *d == '.')
-                {
-                    chars.next();
-                }
-                // A number, whichever.
-                Some(None)
-            } else {
-                Some(Some(c))
-            }
-        })
-    }
-    wording(a).eq(wording(b))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn reasons_that_differ_only_in_their_numbers_are_the_same_news() {
-        assert!(same_but_numbers(
-            "only 2 matches where chance gives 3 (need 17)",
-            "only 45 matches where chance gives 70 (need 117)"
-        ));
-        assert!(same_but_numbers(
-            "offset -12.5 m, x-ray",
-            "offset 3 m, x-ray"
-        ));
-        assert!(!same_but_numbers("offset 3 m, x-ray", "offset 3 m"));
-    }
 
     #[test]
     fn a_tally_keeps_the_latest_reason_of_each_class_most_frequent_first() {

@@ -330,6 +330,7 @@ impl Daemon {
             est_tx,
             out_tx,
             last_health: None,
+            last_reason: Default::default(),
             last_est: None,
             reset_sum: 0,
             reset_counter: 0,

@@ -47,11 +47,11 @@ use visnav_core::camera::Attitude;
 use visnav_core::fix::{AltitudePrior, AttitudePriorNed, FixPrior, FixReport, PositionPriorGeo};
 use visnav_core::geo::geoid::geoid_undulation_m;
 use visnav_core::geo::local::offset_geodetic;
+use visnav_core::nav::filter::HealthReason;
 use visnav_core::nav::{
     AltitudeFix, AttitudeFix, Health as NavHealth, ImuSample, Measurement, NavConfig, NavOutput,
     PoseFix, PositionFix, VelocityFix, earth,
 };
-use visnav_core::reasons::same_but_numbers;
 use visnav_link::sensors::{AttitudeReading, Autopilot, GpsReading, ImuReading, ImuSource, Sensor};
 use visnav_link::{Health as LinkHealth, NavEstimate, Telemetry};
 
@@ -506,11 +506,16 @@ impl Inputs {
     }
 }
 
-/// Map the filter's health to the injector's, keeping `prev`'s reason while only its numbers
-/// changed (so the link's health STATUSTEXT is sent on a real change only).
-pub fn link_health(h: NavHealth, reason: &str, prev: Option<&LinkHealth>) -> LinkHealth {
-    let keep = |p: &str| {
-        if same_but_numbers(p, reason) {
+/// Map the filter's health to the injector's. `prev` is the health sent last with the reason it
+/// was built from: while the causes are of the same kinds (only their numbers changed) its words
+/// are kept, so the link's health STATUSTEXT is sent on a real change only.
+pub fn link_health(
+    h: NavHealth,
+    reason: &HealthReason,
+    prev: Option<(&LinkHealth, &HealthReason)>,
+) -> LinkHealth {
+    let words = |p: &str, was: &HealthReason| {
+        if reason.same_kind(was) {
             p.to_string()
         } else {
             reason.to_string()
@@ -518,15 +523,17 @@ pub fn link_health(h: NavHealth, reason: &str, prev: Option<&LinkHealth>) -> Lin
     };
     match (h, prev) {
         (NavHealth::Ok, _) => LinkHealth::Ok,
-        (NavHealth::Degraded, Some(LinkHealth::Degraded { reason: p })) => {
-            LinkHealth::Degraded { reason: keep(p) }
+        (NavHealth::Degraded, Some((LinkHealth::Degraded { reason: p }, was))) => {
+            LinkHealth::Degraded {
+                reason: words(p, was),
+            }
         }
         (NavHealth::Degraded, _) => LinkHealth::Degraded {
             reason: reason.to_string(),
         },
-        (NavHealth::Lost, Some(LinkHealth::Lost { reason: p })) => {
-            LinkHealth::Lost { reason: keep(p) }
-        }
+        (NavHealth::Lost, Some((LinkHealth::Lost { reason: p }, was))) => LinkHealth::Lost {
+            reason: words(p, was),
+        },
         (NavHealth::Lost, _) => LinkHealth::Lost {
             reason: reason.to_string(),
         },
@@ -972,6 +979,7 @@ mod tests {
         SCALED_PRESSURE_DATA,
     };
 
+    use visnav_core::nav::filter::HealthCause;
     use visnav_link::sensors::G0_M_S2;
 
     fn tel(t_ms: i64, msg: MavMessage) -> Telemetry {
@@ -1212,26 +1220,31 @@ mod tests {
 
     #[test]
     fn health_wording_is_kept_while_only_numbers_change() {
-        let a = link_health(
-            NavHealth::Degraded,
-            "no accepted position fix for 10.3 s",
-            None,
-        );
-        let b = link_health(
-            NavHealth::Degraded,
-            "no accepted position fix for 11.7 s",
-            Some(&a),
-        );
+        let no_fix = |s| HealthReason::of(HealthCause::NoFixFor { s });
+        let (ra, rb) = (no_fix(10.3), no_fix(11.7));
+        let a = link_health(NavHealth::Degraded, &ra, None);
+        let b = link_health(NavHealth::Degraded, &rb, Some((&a, &ra)));
         assert_eq!(a, b);
-        let c = link_health(
-            NavHealth::Degraded,
-            "horizontal sigma 16.0 m > 15 m",
-            Some(&b),
+        assert_eq!(
+            b,
+            LinkHealth::Degraded {
+                reason: "no accepted position fix for 10.3 s".into()
+            }
         );
+        let rc = HealthReason::of(HealthCause::SigmaOver {
+            sigma_m: 16.0,
+            limit_m: 15.0,
+        });
+        let c = link_health(NavHealth::Degraded, &rc, Some((&b, &rb)));
         assert_ne!(b, c);
-        assert_eq!(link_health(NavHealth::Ok, "", Some(&c)), LinkHealth::Ok);
+        let ok = HealthReason::default();
+        assert_eq!(
+            link_health(NavHealth::Ok, &ok, Some((&c, &rc))),
+            LinkHealth::Ok
+        );
+        let imu = HealthReason::of(HealthCause::ImuSilent);
         assert!(matches!(
-            link_health(NavHealth::Lost, "x", Some(&c)),
+            link_health(NavHealth::Lost, &imu, Some((&c, &rc))),
             LinkHealth::Lost { .. }
         ));
     }
@@ -1252,7 +1265,7 @@ mod tests {
             w_body_rad_s: [0.0; 3],
             accel_bias_ug: [0.0; 3],
             health,
-            reason: String::new(),
+            reason: HealthReason::default(),
         }
     }
 

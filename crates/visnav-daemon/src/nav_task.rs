@@ -21,6 +21,7 @@ use crate::priors::SharedPriors;
 use crate::{fixlog, inputs, vo_path, volog};
 use visnav_core::camera::Attitude;
 use visnav_core::dtm_nav::DtmStep;
+use visnav_core::nav::filter::{HealthCause, HealthReason};
 use visnav_core::nav::{
     Health as NavHealth, Measurement, NavConfig, NavFilter, NavOutput, Outcome,
 };
@@ -50,6 +51,9 @@ pub(crate) struct NavTask {
     pub(crate) est_tx: watch::Sender<Option<NavEstimate>>,
     pub(crate) out_tx: watch::Sender<Option<NavOutput>>,
     pub(crate) last_health: Option<LinkHealth>,
+    /// The reason `last_health` was built from (its causes' kinds decide whether the next is
+    /// news).
+    pub(crate) last_reason: HealthReason,
     pub(crate) last_est: Option<NavEstimate>,
     pub(crate) reset_sum: u64,
     pub(crate) reset_counter: u8,
@@ -191,7 +195,7 @@ impl NavTask {
                         .filter(inputs::usable_as_prior)
                         .zip(self.last_out_ns)
                         .map(|(out, made_ns)| PendingReacquire { out, made_ns });
-                    self.publish_lost("autopilot rebooted; navigation restarting");
+                    self.publish_lost(&HealthReason::of(HealthCause::AutopilotRebooted));
                 }
             }
         }
@@ -340,8 +344,9 @@ impl NavTask {
         )
     }
 
-    fn health(&mut self, h: NavHealth, reason: &str) -> LinkHealth {
-        let new = inputs::link_health(h, reason, self.last_health.as_ref());
+    fn health(&mut self, h: NavHealth, reason: &HealthReason) -> LinkHealth {
+        let prev = self.last_health.as_ref().map(|p| (p, &self.last_reason));
+        let new = inputs::link_health(h, reason, prev);
         let changed = self
             .last_health
             .as_ref()
@@ -352,6 +357,7 @@ impl NavTask {
             info!("navigation health {new}");
         }
         self.last_health = Some(new.clone());
+        self.last_reason = reason.clone();
         new
     }
 
@@ -390,7 +396,7 @@ impl NavTask {
     }
 
     /// Republish the last estimate as lost (the injector then stops, and the link reports it).
-    fn publish_lost(&mut self, reason: &str) {
+    fn publish_lost(&mut self, reason: &HealthReason) {
         let h = self.health(NavHealth::Lost, reason);
         if let Some(mut e) = self.last_est.clone() {
             e.health = h;
@@ -411,7 +417,7 @@ impl NavTask {
                     self.dcfg.imu_timeout_s
                 );
             }
-            self.publish_lost("no IMU data from the autopilot");
+            self.publish_lost(&HealthReason::of(HealthCause::ImuSilent));
         } else if !self.filter.is_initialised() && self.last_est.is_some() {
             let (_, why) = self.filter.health();
             self.publish_lost(&why);

@@ -88,6 +88,7 @@ use super::measurement::{
     AltitudeFix, AttitudeFix, ImuSample, Measurement, PositionFix, VelocityFix, VoFix,
 };
 use crate::stats::chi2_quantile;
+pub use health::{HealthCause, HealthReason, ResetCause};
 use nalgebra::{Matrix3, SMatrix, SVector, UnitQuaternion, Vector3};
 use serde::Serialize;
 use std::collections::VecDeque;
@@ -98,6 +99,7 @@ mod fuse_drag;
 mod fuse_position;
 mod fuse_velocity;
 mod fuse_vo;
+pub mod health;
 mod vo_noise;
 
 /// A sample within this fraction of the sensor's range counts as clipped: a saturated axis
@@ -255,8 +257,8 @@ pub struct NavOutput {
     pub accel_bias_ug: [f64; 3],
     /// Health state.
     pub health: Health,
-    /// Why the health is not `ok` (empty when ok).
-    pub reason: String,
+    /// Why the health is not `ok` (empty when ok), cause by cause with their numbers.
+    pub reason: HealthReason,
 }
 
 #[derive(Debug, Clone)]
@@ -371,7 +373,7 @@ pub struct NavFilter {
     drag_window: DragWindow,
     multirotor: bool,
     last_gps_vel_us: Option<u64>,
-    last_reset: Option<(u64, String)>,
+    last_reset: Option<(u64, ResetCause)>,
     next_output_t_us: Option<u64>,
     /// Rates (gyro rad/s, specific force m/s^2, body FRD) of the last IMU sample inside the
     /// sensor's range: what a clipped sample is replaced by.
@@ -618,7 +620,7 @@ impl NavFilter {
                     self.bridge(s, last, dt);
                     return self.output_if_due(s.t_us);
                 }
-                self.hard_reset(s.t_us, format!("IMU gap of {dt:.3} s"));
+                self.hard_reset(s.t_us, ResetCause::ImuGap { dt_s: dt });
             }
             return None;
         }
@@ -651,7 +653,7 @@ impl NavFilter {
         };
         core.propagate(&self.par, s);
         if !core.ins.state.is_finite() || !core.p.iter().all(|x| x.is_finite()) {
-            self.hard_reset(s.t_us, "non-finite state after propagation".into());
+            self.hard_reset(s.t_us, ResetCause::NonFinite);
             return false;
         }
         let pre = core.clone();
@@ -855,13 +857,12 @@ impl NavFilter {
 
     /// Health state and its reason. A state reached by the horizontal sigma is left only once
     /// the sigma is below [`SIGMA_HEALTH_RECOVER_FRACTION`] of its threshold.
-    pub fn health(&self) -> (Health, String) {
+    pub fn health(&self) -> (Health, HealthReason) {
         let Some(c) = self.core.as_ref() else {
-            let why = match &self.last_reset {
-                Some((_, r)) => format!("not initialised (after reset: {r})"),
-                None => "not initialised: waiting for a position fix and autopilot attitude".into(),
+            let why = HealthCause::NotInitialised {
+                after_reset: self.last_reset.map(|(_, r)| r),
             };
-            return (Health::Lost, why);
+            return (Health::Lost, HealthReason::of(why));
         };
         let h = &self.cfg.health;
         let sig_h = sigma_h_m(c);
@@ -872,43 +873,45 @@ impl NavFilter {
         if sigma_over(sig_h, h.lost_pos_sigma_m, self.sigma_over_lost) {
             return (
                 Health::Lost,
-                format!("horizontal sigma {sig_h:.1} m > {} m", h.lost_pos_sigma_m),
+                HealthReason::of(HealthCause::SigmaOver {
+                    sigma_m: sig_h,
+                    limit_m: h.lost_pos_sigma_m,
+                }),
             );
         }
         if since_fix > h.lost_no_fix_s {
             return (
                 Health::Lost,
-                format!("no accepted position fix for {since_fix:.1} s"),
+                HealthReason::of(HealthCause::NoFixFor { s: since_fix }),
             );
         }
         let mut reasons = Vec::new();
         if sigma_over(sig_h, h.degraded_pos_sigma_m, self.sigma_over_degraded) {
-            reasons.push(format!(
-                "horizontal sigma {sig_h:.1} m > {} m",
-                h.degraded_pos_sigma_m
-            ));
+            reasons.push(HealthCause::SigmaOver {
+                sigma_m: sig_h,
+                limit_m: h.degraded_pos_sigma_m,
+            });
         }
         if since_fix > h.degraded_no_fix_s {
-            reasons.push(format!("no accepted position fix for {since_fix:.1} s"));
+            reasons.push(HealthCause::NoFixFor { s: since_fix });
         }
         if let Some((t, r)) = &self.last_reset
             && dt_s(*t, c.t_us) < h.reset_degraded_s
         {
-            reasons.push(format!("recent reset: {r}"));
+            reasons.push(HealthCause::RecentReset(*r));
         }
         if self.consecutive_rejects > 0 {
-            reasons.push(format!(
-                "{} consecutive position fixes rejected",
-                self.consecutive_rejects
-            ));
+            reasons.push(HealthCause::FixesRejected {
+                n: self.consecutive_rejects,
+            });
         }
         if let Some(why) = &self.last_refusal {
-            reasons.push(format!("no reset onto them: {why}"));
+            reasons.push(HealthCause::NoResetOnto(*why));
         }
         if reasons.is_empty() {
-            (Health::Ok, String::new())
+            (Health::Ok, HealthReason::default())
         } else {
-            (Health::Degraded, reasons.join("; "))
+            (Health::Degraded, HealthReason(reasons))
         }
     }
 
@@ -923,7 +926,7 @@ impl NavFilter {
         self.velocity_contradicted = false;
     }
 
-    fn hard_reset(&mut self, t_us: u64, reason: String) {
+    fn hard_reset(&mut self, t_us: u64, reason: ResetCause) {
         tracing::warn!("nav filter hard reset: {reason}");
         self.core = None;
         self.history.clear();
@@ -1114,10 +1117,9 @@ impl NavFilter {
         let Some(core) = self.core.as_mut() else {
             return;
         };
-        let reason = format!(
-            "{} consecutive position fixes rejected: position reset onto the fix",
-            self.consecutive_rejects
-        );
+        let reason = ResetCause::Divergence {
+            rejected: self.consecutive_rejects,
+        };
         tracing::warn!("nav filter divergence: {reason}");
         let dt = dt_s(f.t_capture_us, core.t_us);
         let v = core.ins.state.v_ned_m_s;
@@ -1202,7 +1204,7 @@ impl NavFilter {
             let now = c.t_us;
             self.history.clear();
             self.counters.covariance_resets += 1;
-            self.last_reset = Some((now, "covariance not positive definite".into()));
+            self.last_reset = Some((now, ResetCause::CovarianceNotPositiveDefinite));
         }
     }
 

@@ -444,7 +444,6 @@ const LONG_FUNCTIONS: &[(&str, &str)] = &[
     ("visnav-sim/src/autopilot.rs", "telemetry"),
     ("visnav-io/src/map/format.rs", "finish"),
     ("visnav-io/src/image_file.rs", "check_entropy_data"),
-    ("visnav-io/src/map/format.rs", "validate"),
 ];
 
 #[test]

@@ -790,89 +790,95 @@ fn validate(b: &[u8], path: &Path) -> Result<(MapHeader, usize), MapError> {
         .feature_spec()
         .validate()
         .map_err(|e| bad(format!("header feature parameters: {e}")))?;
-    let data_len = file_len - data_offset;
     let data = &b[data_offset as usize..];
-    let len = descriptor_bytes(header.descriptor_kind()) as u64;
-    for (l, info) in header.levels.iter().enumerate() {
-        let g = &info.grid;
-        if !(g.cell_m.is_finite()
-            && g.cell_m > 0.0
-            && g.origin_x_m.is_finite()
-            && g.origin_y_m.is_finite())
-            || g.cols == 0
-            || g.rows == 0
-            || g.cols as u64 * g.rows as u64 > MAX_CELLS
-        {
-            return Err(bad(format!(
-                "level {l}: invalid index grid (origin {}, {} m, cell {} m, {} x {} cells)",
-                g.origin_x_m, g.origin_y_m, g.cell_m, g.cols, g.rows
-            )));
-        }
-        if !(info.gsd_m.is_finite() && info.gsd_m > 0.0) {
-            return Err(bad(format!("level {l}: invalid gsd_m {}", info.gsd_m)));
-        }
-        let n = info.n_features;
-        let n_cells = g.n_cells() as u64;
-        let sections = [
-            (
-                "cell table",
-                info.cells_offset,
-                (n_cells + 1).checked_mul(8),
-            ),
-            (
-                "records",
-                info.records_offset,
-                n.checked_mul(RECORD_BYTES as u64),
-            ),
-            ("descriptors", info.descriptors_offset, n.checked_mul(len)),
-        ];
-        let image = info.image.map(|im| {
-            (
-                im.offset,
-                im.width_px.checked_mul(im.height_px),
-                im.width_px > 0
-                    && im.height_px > 0
-                    && im.origin_x_m.is_finite()
-                    && im.origin_y_m.is_finite(),
-            )
-        });
-        if image.is_some_and(|(_, _, ok)| !ok) {
-            return Err(bad(format!(
-                "level {l}: invalid image geometry (size, origin not positive and finite)"
-            )));
-        }
-        let sections = sections
-            .into_iter()
-            .chain(image.map(|(at, size, _)| ("image", at, size)));
-        for (name, at, size) in sections {
-            let end = size.and_then(|s| at.checked_add(s));
-            if end.is_none_or(|e| e > data_len) {
-                let size =
-                    size.map_or_else(|| "an overflowing size".to_string(), |s| s.to_string());
-                return Err(bad(format!(
-                    "level {l}: {name} at {at} (+{size} bytes) exceed the {data_len} data bytes (truncated?)"
-                )));
-            }
-        }
-        let cells = &data[info.cells_offset as usize..];
-        let mut prev = 0u64;
-        for k in 0..=n_cells as usize {
-            let v = u64::from_le_bytes(rd8(cells, 8 * k));
-            if (k == 0 && v != 0) || v < prev || v > n {
-                return Err(bad(format!(
-                    "level {l}: cell table entry {k} = {v} is not a cumulative count (previous {prev}, {n} features)"
-                )));
-            }
-            prev = v;
-        }
-        if prev != n {
-            return Err(bad(format!(
-                "level {l}: cell table ends at {prev}, header says {n} features"
-            )));
-        }
-        check_features(&header, l, data).map_err(|e| bad(e.0))?;
+    for l in 0..header.levels.len() {
+        check_level(&header, l, data).map_err(bad)?;
     }
     Ok((header, data_offset as usize))
+}
+
+/// Level `l`'s index grid, section bounds (within the `data` bytes), cell table and features
+/// (header bounds-checked by the caller): what is wrong, in words.
+fn check_level(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), String> {
+    let info = &header.levels[l]; // ok: l < header.levels.len()
+    let data_len = data.len() as u64;
+    let len = descriptor_bytes(header.descriptor_kind()) as u64;
+    let g = &info.grid;
+    if !(g.cell_m.is_finite()
+        && g.cell_m > 0.0
+        && g.origin_x_m.is_finite()
+        && g.origin_y_m.is_finite())
+        || g.cols == 0
+        || g.rows == 0
+        || g.cols as u64 * g.rows as u64 > MAX_CELLS
+    {
+        return Err(format!(
+            "level {l}: invalid index grid (origin {}, {} m, cell {} m, {} x {} cells)",
+            g.origin_x_m, g.origin_y_m, g.cell_m, g.cols, g.rows
+        ));
+    }
+    if !(info.gsd_m.is_finite() && info.gsd_m > 0.0) {
+        return Err(format!("level {l}: invalid gsd_m {}", info.gsd_m));
+    }
+    let n = info.n_features;
+    let n_cells = g.n_cells() as u64;
+    let sections = [
+        (
+            "cell table",
+            info.cells_offset,
+            (n_cells + 1).checked_mul(8),
+        ),
+        (
+            "records",
+            info.records_offset,
+            n.checked_mul(RECORD_BYTES as u64),
+        ),
+        ("descriptors", info.descriptors_offset, n.checked_mul(len)),
+    ];
+    let image = info.image.map(|im| {
+        (
+            im.offset,
+            im.width_px.checked_mul(im.height_px),
+            im.width_px > 0
+                && im.height_px > 0
+                && im.origin_x_m.is_finite()
+                && im.origin_y_m.is_finite(),
+        )
+    });
+    if image.is_some_and(|(_, _, ok)| !ok) {
+        return Err(format!(
+            "level {l}: invalid image geometry (size, origin not positive and finite)"
+        ));
+    }
+    let sections = sections
+        .into_iter()
+        .chain(image.map(|(at, size, _)| ("image", at, size)));
+    for (name, at, size) in sections {
+        let end = size.and_then(|s| at.checked_add(s));
+        if end.is_none_or(|e| e > data_len) {
+            let size = size.map_or_else(|| "an overflowing size".to_string(), |s| s.to_string());
+            return Err(format!(
+                "level {l}: {name} at {at} (+{size} bytes) exceed the {data_len} data bytes (truncated?)"
+            ));
+        }
+    }
+    let cells = &data[info.cells_offset as usize..];
+    let mut prev = 0u64;
+    for k in 0..=n_cells as usize {
+        let v = u64::from_le_bytes(rd8(cells, 8 * k));
+        if (k == 0 && v != 0) || v < prev || v > n {
+            return Err(format!(
+                "level {l}: cell table entry {k} = {v} is not a cumulative count (previous {prev}, {n} features)"
+            ));
+        }
+        prev = v;
+    }
+    if prev != n {
+        return Err(format!(
+            "level {l}: cell table ends at {prev}, header says {n} features"
+        ));
+    }
+    check_features(header, l, data).map_err(|e| e.0)
 }
 
 /// Slack on a feature's height against the header's height range, metres: the build stores the

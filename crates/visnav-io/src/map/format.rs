@@ -792,14 +792,14 @@ fn validate(b: &[u8], path: &Path) -> Result<(MapHeader, usize), MapError> {
         .map_err(|e| bad(format!("header feature parameters: {e}")))?;
     let data = &b[data_offset as usize..];
     for l in 0..header.levels.len() {
-        check_level(&header, l, data).map_err(bad)?;
+        check_level(&header, l, data).map_err(|e| bad(e.0))?;
     }
     Ok((header, data_offset as usize))
 }
 
 /// Level `l`'s index grid, section bounds (within the `data` bytes), cell table and features
-/// (header bounds-checked by the caller): what is wrong, in words.
-fn check_level(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), String> {
+/// (header bounds-checked by the caller).
+fn check_level(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), BadFeature> {
     let info = &header.levels[l]; // ok: l < header.levels.len()
     let data_len = data.len() as u64;
     let len = descriptor_bytes(header.descriptor_kind()) as u64;
@@ -812,13 +812,16 @@ fn check_level(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), String> 
         || g.rows == 0
         || g.cols as u64 * g.rows as u64 > MAX_CELLS
     {
-        return Err(format!(
+        return Err(BadFeature(format!(
             "level {l}: invalid index grid (origin {}, {} m, cell {} m, {} x {} cells)",
             g.origin_x_m, g.origin_y_m, g.cell_m, g.cols, g.rows
-        ));
+        )));
     }
     if !(info.gsd_m.is_finite() && info.gsd_m > 0.0) {
-        return Err(format!("level {l}: invalid gsd_m {}", info.gsd_m));
+        return Err(BadFeature(format!(
+            "level {l}: invalid gsd_m {}",
+            info.gsd_m
+        )));
     }
     let n = info.n_features;
     let n_cells = g.n_cells() as u64;
@@ -846,9 +849,9 @@ fn check_level(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), String> 
         )
     });
     if image.is_some_and(|(_, _, ok)| !ok) {
-        return Err(format!(
+        return Err(BadFeature(format!(
             "level {l}: invalid image geometry (size, origin not positive and finite)"
-        ));
+        )));
     }
     let sections = sections
         .into_iter()
@@ -857,9 +860,9 @@ fn check_level(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), String> 
         let end = size.and_then(|s| at.checked_add(s));
         if end.is_none_or(|e| e > data_len) {
             let size = size.map_or_else(|| "an overflowing size".to_string(), |s| s.to_string());
-            return Err(format!(
+            return Err(BadFeature(format!(
                 "level {l}: {name} at {at} (+{size} bytes) exceed the {data_len} data bytes (truncated?)"
-            ));
+            )));
         }
     }
     let cells = &data[info.cells_offset as usize..];
@@ -867,18 +870,18 @@ fn check_level(header: &MapHeader, l: usize, data: &[u8]) -> Result<(), String> 
     for k in 0..=n_cells as usize {
         let v = u64::from_le_bytes(rd8(cells, 8 * k));
         if (k == 0 && v != 0) || v < prev || v > n {
-            return Err(format!(
+            return Err(BadFeature(format!(
                 "level {l}: cell table entry {k} = {v} is not a cumulative count (previous {prev}, {n} features)"
-            ));
+            )));
         }
         prev = v;
     }
     if prev != n {
-        return Err(format!(
+        return Err(BadFeature(format!(
             "level {l}: cell table ends at {prev}, header says {n} features"
-        ));
+        )));
     }
-    check_features(header, l, data).map_err(|e| e.0)
+    check_features(header, l, data)
 }
 
 /// Slack on a feature's height against the header's height range, metres: the build stores the

@@ -26,8 +26,6 @@ mod fix_cli;
 mod fix_naip;
 mod fix_ngi;
 mod fuzz_corpus;
-mod geodata;
-mod geotiff_window;
 mod heap_count;
 mod hostile_files;
 mod install;

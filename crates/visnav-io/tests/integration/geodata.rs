@@ -7,14 +7,15 @@
 //! `read(b, masked=True)` (nodata excluded). The test does not depend on Python.
 //! Files under ../shared/data are skipped with a printed reason when that folder is absent; the
 //! copies in sitl/maps are always checked.
+#![allow(clippy::unwrap_used, clippy::expect_used)] // a test: a failed expect is a failed test
 
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
 
-use visnav::geo::Crs;
-use visnav::geo::dem::Dem;
-use visnav::geo::geotiff::{GeoTiffError, load_geotiff, read_geotiff};
-use visnav::geo::raster::{Raster, SampleType};
+use visnav_core::geo::Crs;
+use visnav_core::geo::dem::Dem;
+use visnav_core::geo::raster::{Raster, SampleType};
+use visnav_io::geo::geotiff::{GeoTiffError, load_geotiff, read_geotiff};
 
 /// `+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84` (NGI 3324C, user-defined).
 const TM_LO25: Crs = Crs::TransverseMercator {
@@ -50,7 +51,7 @@ struct Ref {
 }
 
 fn repo_dir() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
 
 fn shared_dir() -> Option<PathBuf> {
@@ -612,7 +613,7 @@ fn brute_first_crossing(dem: &Dem, o: [f64; 3], d: [f64; 3], max_t: f64) -> Opti
 #[test]
 fn ngi_dem_heights_and_rays() {
     let Some(shared) = shared_dir() else { return };
-    let dem = visnav::geo::dem::load_dem(&shared.join("ngi_3324c/dem.tif"), None).unwrap();
+    let dem = visnav_io::geo::dem::load_dem(&shared.join("ngi_3324c/dem.tif"), None).unwrap();
     assert_eq!(dem.crs(), Some(TM_LO25));
     // GDAL: band 1 min 148.55587768554688, max 781.2567749023438 (README: about 150-780 m).
     let (lo, hi) = dem.height_range_m();
@@ -749,7 +750,7 @@ fn bench_load_and_raycast() {
         ("ngi_3324c/dem.tif", 1500.0),
         ("autzen/autzen_dsm_1m_utm10n.tif", 400.0),
     ] {
-        let dem = visnav::geo::dem::load_dem(&shared.join(f), None).unwrap();
+        let dem = visnav_io::geo::dem::load_dem(&shared.join(f), None).unwrap();
         let (lo, hi) = dem.height_range_m();
         let Dem::Grid(g) = &dem else { unreachable!() };
         let (c, r) = (g.width() as f64 / 2.0, g.height() as f64 / 2.0);

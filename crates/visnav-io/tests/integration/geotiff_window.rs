@@ -6,6 +6,7 @@
 //!
 //! `write_large_tiled_geotiff` (ignored) writes the large tiled GeoTIFF used for the memory
 //! measurement in docs/map-format.md.
+#![allow(clippy::unwrap_used, clippy::expect_used)] // a test: a failed expect is a failed test
 
 use std::fs::File;
 use std::io::BufWriter;
@@ -14,10 +15,10 @@ use std::path::{Path, PathBuf};
 use tiff::encoder::TiffEncoder;
 use tiff::encoder::compression::{CompressionAlgorithm, Deflate, DeflateLevel, Lzw};
 use tiff::tags::Tag;
-use visnav::geo::geotiff::{GeoTiffError, load_geotiff};
-use visnav::geo::raster::{Raster, RasterData};
-use visnav::geo::window::{GeoTiffWindowReader, open_geotiff_window};
-use visnav::map::build::{level_window, level_window_from_reader};
+use visnav_core::geo::raster::{Raster, RasterData};
+use visnav_io::geo::geotiff::{GeoTiffError, load_geotiff};
+use visnav_io::geo::window::{GeoTiffWindowReader, open_geotiff_window};
+use visnav_io::map::build::{level_window, level_window_from_reader};
 
 /// A sample type the test writer can store.
 trait Sample: Copy {
@@ -570,6 +571,7 @@ fn truncated_and_corrupted_files_are_errors_never_panics() {
 
 fn shared(rel: &str) -> Option<PathBuf> {
     let p = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
         .join("../shared/data")
         .join(rel);
     if p.exists() {
@@ -584,7 +586,7 @@ fn shared(rel: &str) -> Option<PathBuf> {
 /// random windows equal the whole-image decode.
 #[test]
 fn real_files_windows_match_the_whole_image() {
-    let repo = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let repo = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
     let mut files: Vec<PathBuf> = vec![
         repo.join("sitl/maps/naip_nd_2009.tif"),
         repo.join("sitl/maps/naip_nd_2014.tif"),
@@ -616,7 +618,7 @@ fn real_files_windows_match_the_whole_image() {
 /// whole decoded image, at every level, for band budgets from one block row to everything.
 #[test]
 fn banded_level_windows_equal_the_whole_image_ones() {
-    let repo = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let repo = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
     let mut files = vec![repo.join("sitl/maps/naip_nd_2009.tif")];
     files.extend(shared("autzen/autzen_ortho_0p3m_utm10n.tif"));
     files.extend(shared("ngi_3324c/ngi_ortho_5m_tile1.tif"));
@@ -664,7 +666,9 @@ fn write_large_tiled_geotiff() {
         .and_then(|v| v.parse().ok())
         .unwrap_or(20_000);
     let src = load_geotiff(
-        &PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("sitl/maps/naip_nd_2009.tif"),
+        &PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("../..")
+            .join("sitl/maps/naip_nd_2009.tif"),
         None,
     )
     .unwrap();

@@ -123,6 +123,37 @@ fn fix_json_has_the_issue_keys() {
     }
 }
 
+/// `visnav fix --json` of the frame `png` against `map` with the frame's attitude (0.5 deg) and a
+/// 150 m position prior at `truth`.
+fn fix_json(
+    map: &Path,
+    png: &Path,
+    camera: &Path,
+    truth: [f64; 3],
+    att: &Attitude,
+) -> std::process::Output {
+    visnav()
+        .args(["fix", "--json"])
+        .arg("--map")
+        .arg(map)
+        .arg("--image")
+        .arg(png)
+        .arg("--camera")
+        .arg(camera)
+        .arg("--attitude")
+        .arg(format!(
+            "{},{},{}",
+            att.roll_rad.to_degrees(),
+            att.pitch_rad.to_degrees(),
+            att.yaw_rad.to_degrees()
+        ))
+        .args(["--attitude-sigma-deg", "0.5"])
+        .arg("--prior")
+        .arg(format!("{},{},{},150", truth[0], truth[1], truth[2]))
+        .output()
+        .unwrap()
+}
+
 #[test]
 fn map_build_then_fix_against_the_vnm() {
     let dir = tempfile::tempdir().unwrap();
@@ -141,26 +172,7 @@ fn map_build_then_fix_against_the_vnm() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let out = visnav()
-        .args(["fix", "--json"])
-        .arg("--map")
-        .arg(&map)
-        .arg("--image")
-        .arg(&png)
-        .arg("--camera")
-        .arg(&camera)
-        .arg("--attitude")
-        .arg(format!(
-            "{},{},{}",
-            att.roll_rad.to_degrees(),
-            att.pitch_rad.to_degrees(),
-            att.yaw_rad.to_degrees()
-        ))
-        .args(["--attitude-sigma-deg", "0.5"])
-        .arg("--prior")
-        .arg(format!("{},{},{},150", truth[0], truth[1], truth[2]))
-        .output()
-        .unwrap();
+    let out = fix_json(&map, &png, &camera, truth, &att);
     let stdout = String::from_utf8_lossy(&out.stdout);
     eprintln!("{stdout}");
     let v: serde_json::Value = serde_json::from_str(&stdout).expect("JSON");
@@ -278,26 +290,7 @@ fn an_orb_map_is_built_described_and_fixed_against() {
     let out = visnav().args(["map", "info"]).arg(&map).output().unwrap();
     let info = String::from_utf8_lossy(&out.stdout);
     assert!(info.contains("binary-256 (ORB) descriptors"), "{info}");
-    let out = visnav()
-        .args(["fix", "--json"])
-        .arg("--map")
-        .arg(&map)
-        .arg("--image")
-        .arg(&png)
-        .arg("--camera")
-        .arg(&camera)
-        .arg("--attitude")
-        .arg(format!(
-            "{},{},{}",
-            att.roll_rad.to_degrees(),
-            att.pitch_rad.to_degrees(),
-            att.yaw_rad.to_degrees()
-        ))
-        .args(["--attitude-sigma-deg", "0.5"])
-        .arg("--prior")
-        .arg(format!("{},{},{},150", truth[0], truth[1], truth[2]))
-        .output()
-        .unwrap();
+    let out = fix_json(&map, &png, &camera, truth, &att);
     let stdout = String::from_utf8_lossy(&out.stdout);
     let v: serde_json::Value = serde_json::from_str(&stdout).expect("JSON");
     // Accepted or refused, the report is whole (the query was described as the map's features

@@ -199,22 +199,18 @@ impl Orb {
             .par_iter()
             .flat_map_iter(|(level, s, im)| detect_level(im, *level, *s, p).into_iter())
             .collect();
-        let mut kps: Vec<KeyPoint> = found.iter().map(|(k, _)| *k).collect();
-        if let Some(cap) = p.max_features {
-            kps = select_spread(kps, cap, img.width(), img.height());
-        } else {
-            kps.sort_by(|a, b| b.response.total_cmp(&a.response));
-        }
-        // Descriptors follow the kept keypoints; (level, x, y) identifies each.
-        let key = |k: &KeyPoint| (k.octave, k.x.to_bits(), k.y.to_bits());
-        let by_key: std::collections::HashMap<_, [u32; 8]> =
-            found.iter().map(|(k, d)| (key(k), *d)).collect();
-        let mut desc = Vec::with_capacity(kps.len() * 8);
-        for k in &kps {
-            let words = by_key.get(&key(k)).copied().unwrap_or([0; 8]);
-            desc.extend(words.iter().map(|w| f32::from_bits(*w)));
-        }
-        Features::from_rows(kps, desc, DescriptorKind::Binary256)
+        let (kps, words): (Vec<KeyPoint>, Vec<[u32; 8]>) = found.into_iter().unzip();
+        let rows = words.iter().flatten().map(|w| f32::from_bits(*w)).collect();
+        let all = Features::from_rows(kps, rows, DescriptorKind::Binary256);
+        let kept = match p.max_features {
+            Some(cap) => select_spread(all.keypoints.clone(), cap, img.width(), img.height()),
+            None => {
+                let mut k = all.keypoints.clone();
+                k.sort_by(|a, b| b.response.total_cmp(&a.response));
+                k
+            }
+        };
+        all.subset(&kept)
     }
 }
 

@@ -272,6 +272,26 @@ impl Features {
             kind,
         }
     }
+    /// The features of `kept` (keypoints of these features, in `kept`'s order) with their rows;
+    /// a keypoint that is not one of them (same level, position and response) is left out.
+    pub fn subset(&self, kept: &[KeyPoint]) -> Self {
+        let key = |k: &KeyPoint| (k.octave, k.x.to_bits(), k.y.to_bits(), k.response.to_bits());
+        let index: std::collections::HashMap<_, usize> = self
+            .keypoints
+            .iter()
+            .enumerate()
+            .map(|(i, k)| (key(k), i))
+            .collect();
+        let st = self.kind.stride();
+        let (mut kps, mut rows) = (Vec::with_capacity(kept.len()), Vec::new());
+        for k in kept {
+            if let Some(&i) = index.get(&key(k)) {
+                kps.push(*k);
+                rows.extend_from_slice(&self.descriptors[i * st..(i + 1) * st]);
+            }
+        }
+        Self::from_rows(kps, rows, self.kind)
+    }
     /// Binary descriptor `i` as its 8 words of 32 bits (test `k` is bit `k % 32` of word
     /// `k / 32`). A binary kind's words are kept in the float rows bit for bit: rows are only
     /// copied, never computed with, and a copy keeps a float's bits. Zero for a float kind.

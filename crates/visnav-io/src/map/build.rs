@@ -1146,7 +1146,7 @@ fn process_tile(
                 |kp| 0.5 * f64::from(kp.size) + 1.0,
                 st,
             );
-            rows_of(&all, &kept)?
+            all.subset(&kept)
         }
         None => {
             let ii = IntegralImage::new(&img);
@@ -1241,29 +1241,6 @@ fn keep_in_core(
         k.y += (cy0 - wy0) as f32;
     }
     kept
-}
-
-/// The rows of `all` whose keypoints are `kept` (same position, level and response).
-fn rows_of(all: &Features, kept: &[KeyPoint]) -> Result<Features, MapError> {
-    let key = |k: &KeyPoint| (k.octave, k.x.to_bits(), k.y.to_bits(), k.response.to_bits());
-    let index: std::collections::HashMap<_, usize> = all
-        .keypoints
-        .iter()
-        .enumerate()
-        .map(|(i, k)| (key(k), i))
-        .collect();
-    let st = all.kind().stride();
-    let (mut kps, mut rows) = (Vec::new(), Vec::new());
-    for k in kept {
-        if let Some(&i) = index.get(&key(k)) {
-            kps.push(*k);
-            rows.extend_from_slice(&all.descriptors_padded()[i * st..(i + 1) * st]);
-        }
-    }
-    Features::new(kps, rows, all.kind()).map_err(|e| MapError::Param {
-        name: "tile",
-        reason: e.to_string(),
-    })
 }
 
 /// Writes the tile's features with their map position and height.

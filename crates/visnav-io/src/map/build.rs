@@ -320,6 +320,17 @@ struct OrthoGeom {
 }
 
 impl OrthoGeom {
+    /// What the header records of the ortho.
+    fn info(&self) -> OrthoInfo {
+        OrthoInfo {
+            file: self.path.display().to_string(),
+            width_px: self.width as u64,
+            height_px: self.height as u64,
+            bands: self.bands as u32,
+            pixel_size_m: self.gsd_m,
+        }
+    }
+
     /// The same ortho on a grid `2^shift` times finer (same outer edges).
     fn upsampled(&self, shift: usize) -> Result<Self, MapError> {
         if shift == 0 {
@@ -431,330 +442,70 @@ pub fn build_map(
     progress: &mut dyn FnMut(BuildProgress),
 ) -> Result<BuildSummary, MapError> {
     let t0 = Instant::now();
-    let param = |name, reason: &str| MapError::Param {
-        name,
-        reason: reason.to_string(),
-    };
-    if spec.orthos.is_empty() {
-        return Err(param("orthos", "at least one orthophoto is required"));
-    }
-    if spec.orthos.len() > 255 {
-        return Err(param("orthos", "at most 255 orthophotos per map"));
-    }
-    if !(64..=16384).contains(&spec.tile_px) {
-        return Err(param("tile_px", "must be in 64..=16384"));
-    }
-    if spec.max_features_per_tile == 0 {
-        return Err(param("max_features_per_tile", "must be positive"));
-    }
-    if let Some(n) = spec.levels
-        && !(1..=12).contains(&n)
-    {
-        return Err(param("levels", "must be in 1..=12"));
-    }
-    let up_shift = match spec.upsample {
-        1 => 0,
-        2 => 1,
-        4 => 2,
-        _ => return Err(param("upsample", "must be 1, 2 or 4")),
-    };
-    let height_sigma_m = spec.resolved_height_sigma_m();
-    if !(height_sigma_m.is_finite() && (0.0..=MAX_HEIGHT_SIGMA_M).contains(&height_sigma_m)) {
-        return Err(param(
-            "height_sigma_m",
-            &format!("{height_sigma_m} must be 0 to {MAX_HEIGHT_SIGMA_M} m"),
-        ));
-    }
-    let height_slope_sigma = spec.resolved_height_slope_sigma();
-    if !(height_slope_sigma.is_finite()
-        && (0.0..=MAX_HEIGHT_SLOPE_SIGMA).contains(&height_slope_sigma))
-    {
-        return Err(param(
-            "height_slope_sigma",
-            &format!("{height_slope_sigma} must be 0 to {MAX_HEIGHT_SLOPE_SIGMA}"),
-        ));
-    }
-    let height_point_sigma_m = spec.resolved_height_point_sigma_m();
-    if !(height_point_sigma_m.is_finite()
-        && (0.0..=MAX_HEIGHT_SIGMA_M).contains(&height_point_sigma_m))
-    {
-        return Err(param(
-            "height_point_sigma_m",
-            &format!("{height_point_sigma_m} must be 0 to {MAX_HEIGHT_SIGMA_M} m"),
-        ));
-    }
+    let sigmas = HeightSigmas::checked(spec)?;
     let d = Detectors::of(spec)?;
-
-    // Pass 1: geometry of every ortho (headers only).
-    let mut geoms: Vec<OrthoGeom> = Vec::new();
-    let mut crs: Option<Crs> = None;
-    for path in &spec.orthos {
-        let r = open_geotiff_window(path, spec.crs_override)?;
-        let g = check_ortho(path, r.info(), crs)?;
-        if let Some(g0) = geoms.first()
-            && (g.gsd_m - g0.gsd_m).abs() > 1e-3 * g0.gsd_m
-        {
-            return Err(MapError::Input {
-                path: path.clone(),
-                reason: format!(
-                    "pixel size {} m differs from the first orthophoto's {} m; resample to one pixel size",
-                    g.gsd_m, g0.gsd_m
-                ),
-            });
-        }
-        crs.get_or_insert(r.info().crs);
-        geoms.push(g);
-    }
-    let crs = crs.ok_or_else(|| param("orthos", "no orthophoto loaded"))?; // non-empty checked
+    let (geoms, crs) = read_geometry(spec)?;
+    let up_shift = upsample_shift(spec.upsample)?;
     // The level-0 grid of every ortho: its own pixels, or `upsample` times finer.
     let vgeoms = geoms
         .iter()
         .map(|g| g.upsampled(up_shift))
         .collect::<Result<Vec<_>, _>>()?;
-    let gsd0 = vgeoms[0].gsd_m;
-    let bounds = geoms.iter().skip(1).fold(geoms[0].bounds, |b, g| Bounds {
-        min_x_m: b.min_x_m.min(g.bounds.min_x_m),
-        min_y_m: b.min_y_m.min(g.bounds.min_y_m),
-        max_x_m: b.max_x_m.max(g.bounds.max_x_m),
-        max_y_m: b.max_y_m.max(g.bounds.max_y_m),
-    });
-
-    // Heights.
-    let (dem, height_info, datum) = match &spec.height {
-        HeightSource::ConstantAmsl(h) => {
-            use crate::geo::dem::{MAX_TERRAIN_HEIGHT_M, MIN_TERRAIN_HEIGHT_M};
-            if !(MIN_TERRAIN_HEIGHT_M..=MAX_TERRAIN_HEIGHT_M).contains(h) {
-                return Err(param(
-                    "ground_height",
-                    &format!(
-                        "{h} m is not a terrain height (expected {MIN_TERRAIN_HEIGHT_M} to \
-                         {MAX_TERRAIN_HEIGHT_M} m above mean sea level)"
-                    ),
-                ));
-            }
-            let d = Dem::flat(*h).map_err(|e| param("ground_height", &e.to_string()))?;
-            (
-                d,
-                HeightInfo::Constant { amsl_m: *h },
-                "constant ground height, metres AMSL".to_string(),
-            )
-        }
-        HeightSource::Dem(p) => {
-            let d = crate::geo::dem::load_dem(p, spec.crs_override).map_err(|source| {
-                MapError::Dem {
-                    path: p.clone(),
-                    cause: Box::new(source),
-                }
-            })?;
-            if let Some(dc) = d.crs()
-                && !crs_equivalent(&dc, &crs)
-            {
-                return Err(MapError::Input {
-                    path: p.clone(),
-                    reason: format!(
-                        "DEM CRS {} differs from the orthophotos' {}; reproject the DEM to the orthophotos' CRS",
-                        describe_crs(&dc),
-                        describe_crs(&crs)
-                    ),
-                });
-            }
-            let (lo, hi) = d.height_range_m();
-            (
-                d,
-                HeightInfo::Dem {
-                    file: p.display().to_string(),
-                    min_m: lo,
-                    max_m: hi,
-                },
-                "the DEM's vertical datum (orthometric heights, ~AMSL, unless the DEM says otherwise)"
-                    .to_string(),
-            )
-        }
-    };
-
-    // Levels and index grids.
-    let short_px = ((bounds.max_x_m - bounds.min_x_m).min(bounds.max_y_m - bounds.min_y_m)) / gsd0;
-    // The automatic count keeps the coarsest level of a plain build: the interpolated levels come
-    // on top of the cap.
-    let n_levels = spec.levels.unwrap_or_else(|| {
-        (1..AUTO_MAX_LEVELS + up_shift)
-            .take_while(|&l| short_px / f64::from(1u32 << l) >= AUTO_MIN_SIDE_PX)
-            .count()
-            + 1
-    });
-    let step = max_step(&d.surf_params);
-    let core = spec.tile_px.div_ceil(step) * step;
-
-    let grids: Vec<IndexGrid> = (0..n_levels)
-        .map(|l| {
-            let cell_m = core as f64 * gsd0 * f64::from(1u32 << l);
-            let cols = ((bounds.max_x_m - bounds.min_x_m) / cell_m).ceil().max(1.0);
-            let rows = ((bounds.max_y_m - bounds.min_y_m) / cell_m).ceil().max(1.0);
-            IndexGrid {
-                origin_x_m: bounds.min_x_m,
-                origin_y_m: bounds.max_y_m,
-                cell_m,
-                cols: cols.min(f64::from(u32::MAX)) as u32, // ok: clamped
-                rows: rows.min(f64::from(u32::MAX)) as u32, // ok: clamped
-            }
-        })
-        .collect();
-    let tiles_total: u64 = vgeoms
-        .iter()
-        .map(|g| {
-            (0..n_levels)
-                .map(|l| {
-                    let (w, h) = (g.width >> l, g.height >> l);
-                    (w.div_ceil(core) * h.div_ceil(core)) as u64
-                })
-                .sum::<u64>()
-        })
-        .sum();
+    let bounds = union_bounds(&geoms);
+    let heights = Heights::load(spec, &crs)?;
+    let plan = LevelPlan::new(spec, &d, &bounds, &vgeoms, up_shift);
     tracing::info!(
         orthos = geoms.len(),
-        levels = n_levels,
-        gsd_m = gsd0,
+        levels = plan.n_levels,
+        gsd_m = plan.gsd0_m,
         upsample = spec.upsample,
-        core_px = core,
+        core_px = plan.core,
         margin_px = d.margin,
-        tiles = tiles_total,
+        tiles = plan.tiles_total,
         "building reference map"
     );
 
     let spill_path = out.with_extension("vnm.spill");
-    // Level images on one grid over the union bounds, row 0 north (docs/map-format.md).
-    let image_levels: Vec<LevelImageInfo> = (0..n_levels)
-        .map(|l| {
-            let gsd = gsd0 * f64::from(1u32 << l);
-            LevelImageInfo {
-                offset: 0,
-                width_px: (((bounds.max_x_m - bounds.min_x_m) / gsd).ceil().max(1.0)) as u64,
-                height_px: (((bounds.max_y_m - bounds.min_y_m) / gsd).ceil().max(1.0)) as u64,
-                origin_x_m: bounds.min_x_m,
-                origin_y_m: bounds.max_y_m,
-            }
-        })
-        .collect();
-    let mut writer =
-        SpillWriter::new(&spill_path, d.kind, grids.clone())?.with_images(image_levels)?;
-    let mut st = Stats::default();
+    let writer = SpillWriter::new(&spill_path, d.kind, plan.grids.clone())?
+        .with_images(plan.image_levels(&bounds))?;
+    let mut sink = Sink {
+        writer,
+        st: Stats::default(),
+    };
+    let pass = OrthoPass {
+        spec,
+        plan: &plan,
+        d: &d,
+        dem: &heights.dem,
+        bounds: &bounds,
+        up_shift,
+    };
     // Pass 2, last ortho first (the order of the features in the file depends on it).
     for oi in (0..geoms.len()).rev() {
-        let g0 = &geoms[oi];
-        let decoded_bytes = g0
-            .width
-            .saturating_mul(g0.height)
-            .saturating_mul(g0.bands)
-            .saturating_mul(g0.sample_bytes);
-        let whole = decoded_bytes <= spec.whole_decode_max_bytes;
-        tracing::debug!(ortho = oi, decoded_bytes, whole, "reading the orthophoto");
-        let mut source: Box<dyn LevelSource> = if whole {
-            Box::new(load_geotiff(&g0.path, spec.crs_override)?)
-        } else {
-            let mut r = open_geotiff_window(&g0.path, spec.crs_override)?;
-            r.set_cache_bytes(ORTHO_CACHE_BYTES);
-            r.set_decode_threads(rayon::current_num_threads())?;
-            Box::new(r)
-        };
-        if source.dims() != (g0.width, g0.height) {
-            return Err(MapError::Input {
-                path: g0.path.clone(),
-                reason: "the file changed during the build".into(),
-            });
-        }
-        if up_shift > 0 {
-            source = Box::new(Upsampled {
-                inner: source,
-                shift: up_shift,
-            });
-        }
-        let g = &vgeoms[oi];
-        for level in 0..n_levels {
-            let decoded_before = source.chunks_decoded();
-            let ctx = TileCtx {
-                width: g.width,
-                height: g.height,
-                transform: g.transform,
-                level,
-                core,
-                margin: d.margin,
-                surf: &d.surf,
-                orb: d.orb.as_ref(),
-                cap: spec.max_features_per_tile,
-                dem: &dem,
-                source: oi as u8, // ok: <= 255 orthos checked
-            };
-            let (lw, lh) = (g.width >> level, g.height >> level);
-            for ty in 0..lh.div_ceil(core) {
-                let mut prev: Option<LevelPatch> = None;
-                for tx in 0..lw.div_ceil(core) {
-                    let win = TileWindow::new(&ctx, tx * core, ty * core);
-                    let (grey, valid) = read_reusing(source.as_mut(), level, &win, prev.take())?;
-                    // Keep the columns the next tile's window starts with.
-                    let next_x0 = (win.cx0 + core)
-                        .saturating_sub(d.margin)
-                        .clamp(win.x0, win.x0 + win.w);
-                    prev = Some(LevelPatch::columns(&win, &grey, &valid, next_x0));
-                    push_core_image(&ctx, &win, &grey, &valid, &bounds, &mut writer)?;
-                    process_tile(&ctx, &win, grey, &valid, &mut writer, &mut st)?;
-                    st.tiles += 1;
-                    progress(BuildProgress {
-                        ortho: oi,
-                        level,
-                        tiles_done: st.tiles,
-                        tiles_total,
-                        features: st.features,
-                    });
-                }
-            }
-            tracing::debug!(
-                ortho = oi,
-                level,
-                chunks_decoded = source.chunks_decoded() - decoded_before,
-                "level done"
-            );
-        }
+        pass.run(oi, &geoms[oi], &vgeoms[oi], &mut sink, progress)?;
     }
 
     let header = MapHeader {
         version: super::FORMAT_VERSION,
         crs,
-        surf: d.surf_params,
+        surf: d.surf_params.clone(),
         orb: d.orb.as_ref().map(|o| o.params().clone()),
-        levels: (0..n_levels)
-            .map(|l| LevelInfo {
-                gsd_m: gsd0 * f64::from(1u32 << l),
-                n_features: 0,
-                grid: grids[l],
-                cells_offset: 0,
-                records_offset: 0,
-                descriptors_offset: 0,
-                image: None,
-            })
-            .collect(),
+        levels: plan.level_infos(),
         bounds,
-        height: height_info,
-        height_sigma_m,
-        height_slope_sigma: Some(height_slope_sigma),
-        height_point_sigma_m: Some(height_point_sigma_m),
-        vertical_datum: datum,
-        orthos: geoms
-            .iter()
-            .map(|g| OrthoInfo {
-                file: g.path.display().to_string(),
-                width_px: g.width as u64,
-                height_px: g.height as u64,
-                bands: g.bands as u32,
-                pixel_size_m: g.gsd_m,
-            })
-            .collect(),
-        tile_px: core as u32,
+        height: heights.info,
+        height_sigma_m: sigmas.sigma_m,
+        height_slope_sigma: Some(sigmas.slope),
+        height_point_sigma_m: Some(sigmas.point_sigma_m),
+        vertical_datum: heights.datum,
+        orthos: geoms.iter().map(OrthoGeom::info).collect(),
+        tile_px: plan.core as u32,
         max_features_per_tile: spec.max_features_per_tile.min(u32::MAX as usize) as u32,
         built_unix_s: std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_secs()),
         built_by: format!("visnav {}", env!("CARGO_PKG_VERSION")),
     };
+    let Sink { writer, st } = sink;
     if st.features == 0 {
         return Err(MapError::NoFeatures {
             orthos: spec
@@ -777,6 +528,408 @@ pub fn build_map(
         tiles: st.tiles,
         elapsed_s: t0.elapsed().as_secs_f64(),
     })
+}
+
+fn param_error(name: &'static str, reason: &str) -> MapError {
+    MapError::Param {
+        name,
+        reason: reason.to_string(),
+    }
+}
+
+/// The map's height error model, each part checked against its bounds.
+struct HeightSigmas {
+    sigma_m: f64,
+    slope: f64,
+    point_sigma_m: f64,
+}
+
+impl HeightSigmas {
+    /// Checks the spec's counts and sizes and resolves its height sigmas.
+    fn checked(spec: &BuildSpec) -> Result<Self, MapError> {
+        if spec.orthos.is_empty() {
+            return Err(param_error("orthos", "at least one orthophoto is required"));
+        }
+        if spec.orthos.len() > 255 {
+            return Err(param_error("orthos", "at most 255 orthophotos per map"));
+        }
+        if !(64..=16384).contains(&spec.tile_px) {
+            return Err(param_error("tile_px", "must be in 64..=16384"));
+        }
+        if spec.max_features_per_tile == 0 {
+            return Err(param_error("max_features_per_tile", "must be positive"));
+        }
+        if let Some(n) = spec.levels
+            && !(1..=12).contains(&n)
+        {
+            return Err(param_error("levels", "must be in 1..=12"));
+        }
+        upsample_shift(spec.upsample)?;
+        let bounded = |name, v: f64, max: f64, unit: &str| {
+            if v.is_finite() && (0.0..=max).contains(&v) {
+                Ok(v)
+            } else {
+                Err(param_error(name, &format!("{v} must be 0 to {max}{unit}")))
+            }
+        };
+        Ok(Self {
+            sigma_m: bounded(
+                "height_sigma_m",
+                spec.resolved_height_sigma_m(),
+                MAX_HEIGHT_SIGMA_M,
+                " m",
+            )?,
+            slope: bounded(
+                "height_slope_sigma",
+                spec.resolved_height_slope_sigma(),
+                MAX_HEIGHT_SLOPE_SIGMA,
+                "",
+            )?,
+            point_sigma_m: bounded(
+                "height_point_sigma_m",
+                spec.resolved_height_point_sigma_m(),
+                MAX_HEIGHT_SIGMA_M,
+                " m",
+            )?,
+        })
+    }
+}
+
+/// log2 of the build's upsampling factor.
+fn upsample_shift(upsample: usize) -> Result<usize, MapError> {
+    match upsample {
+        1 => Ok(0),
+        2 => Ok(1),
+        4 => Ok(2),
+        _ => Err(param_error("upsample", "must be 1, 2 or 4")),
+    }
+}
+
+/// Pass 1: the geometry of every ortho (headers only), checked to share one CRS and pixel size.
+fn read_geometry(spec: &BuildSpec) -> Result<(Vec<OrthoGeom>, Crs), MapError> {
+    let mut geoms: Vec<OrthoGeom> = Vec::new();
+    let mut crs: Option<Crs> = None;
+    for path in &spec.orthos {
+        let r = open_geotiff_window(path, spec.crs_override)?;
+        let g = check_ortho(path, r.info(), crs)?;
+        if let Some(g0) = geoms.first()
+            && (g.gsd_m - g0.gsd_m).abs() > 1e-3 * g0.gsd_m
+        {
+            return Err(MapError::Input {
+                path: path.clone(),
+                reason: format!(
+                    "pixel size {} m differs from the first orthophoto's {} m; resample to one pixel size",
+                    g.gsd_m, g0.gsd_m
+                ),
+            });
+        }
+        crs.get_or_insert(r.info().crs);
+        geoms.push(g);
+    }
+    let crs = crs.ok_or_else(|| param_error("orthos", "no orthophoto loaded"))?;
+    Ok((geoms, crs))
+}
+
+/// The bounds that hold every ortho (`geoms` is not empty: checked before).
+fn union_bounds(geoms: &[OrthoGeom]) -> Bounds {
+    geoms.iter().skip(1).fold(geoms[0].bounds, |b, g| Bounds {
+        min_x_m: b.min_x_m.min(g.bounds.min_x_m),
+        min_y_m: b.min_y_m.min(g.bounds.min_y_m),
+        max_x_m: b.max_x_m.max(g.bounds.max_x_m),
+        max_y_m: b.max_y_m.max(g.bounds.max_y_m),
+    })
+}
+
+/// The features' heights: the terrain model, what the header says of it and its datum.
+struct Heights {
+    dem: Dem,
+    info: HeightInfo,
+    datum: String,
+}
+
+impl Heights {
+    fn load(spec: &BuildSpec, crs: &Crs) -> Result<Self, MapError> {
+        match &spec.height {
+            HeightSource::ConstantAmsl(h) => Self::constant(*h),
+            HeightSource::Dem(p) => Self::dem(p, spec.crs_override, crs),
+        }
+    }
+
+    fn constant(h: f64) -> Result<Self, MapError> {
+        use crate::geo::dem::{MAX_TERRAIN_HEIGHT_M, MIN_TERRAIN_HEIGHT_M};
+        if !(MIN_TERRAIN_HEIGHT_M..=MAX_TERRAIN_HEIGHT_M).contains(&h) {
+            return Err(param_error(
+                "ground_height",
+                &format!(
+                    "{h} m is not a terrain height (expected {MIN_TERRAIN_HEIGHT_M} to \
+                     {MAX_TERRAIN_HEIGHT_M} m above mean sea level)"
+                ),
+            ));
+        }
+        Ok(Self {
+            dem: Dem::flat(h).map_err(|e| param_error("ground_height", &e.to_string()))?,
+            info: HeightInfo::Constant { amsl_m: h },
+            datum: "constant ground height, metres AMSL".to_string(),
+        })
+    }
+
+    fn dem(p: &Path, crs_override: Option<Crs>, crs: &Crs) -> Result<Self, MapError> {
+        let d = crate::geo::dem::load_dem(p, crs_override).map_err(|source| MapError::Dem {
+            path: p.to_path_buf(),
+            cause: Box::new(source),
+        })?;
+        if let Some(dc) = d.crs()
+            && !crs_equivalent(&dc, crs)
+        {
+            return Err(MapError::Input {
+                path: p.to_path_buf(),
+                reason: format!(
+                    "DEM CRS {} differs from the orthophotos' {}; reproject the DEM to the orthophotos' CRS",
+                    describe_crs(&dc),
+                    describe_crs(crs)
+                ),
+            });
+        }
+        let (lo, hi) = d.height_range_m();
+        Ok(Self {
+            dem: d,
+            info: HeightInfo::Dem {
+                file: p.display().to_string(),
+                min_m: lo,
+                max_m: hi,
+            },
+            datum: "the DEM's vertical datum (orthometric heights, ~AMSL, unless the DEM says \
+                    otherwise)"
+                .to_string(),
+        })
+    }
+}
+
+/// The pyramid: how many levels, the tile core and the index grid of each level.
+struct LevelPlan {
+    n_levels: usize,
+    /// Ground pixel of level 0, m.
+    gsd0_m: f64,
+    /// Tile core side, level pixels.
+    core: usize,
+    grids: Vec<IndexGrid>,
+    tiles_total: u64,
+}
+
+impl LevelPlan {
+    fn new(
+        spec: &BuildSpec,
+        d: &Detectors,
+        bounds: &Bounds,
+        vgeoms: &[OrthoGeom],
+        up_shift: usize,
+    ) -> Self {
+        let gsd0_m = vgeoms[0].gsd_m;
+        let short_px =
+            ((bounds.max_x_m - bounds.min_x_m).min(bounds.max_y_m - bounds.min_y_m)) / gsd0_m;
+        // The automatic count keeps the coarsest level of a plain build: the interpolated levels
+        // come on top of the cap.
+        let n_levels = spec.levels.unwrap_or_else(|| {
+            (1..AUTO_MAX_LEVELS + up_shift)
+                .take_while(|&l| short_px / f64::from(1u32 << l) >= AUTO_MIN_SIDE_PX)
+                .count()
+                + 1
+        });
+        let step = max_step(&d.surf_params);
+        let core = spec.tile_px.div_ceil(step) * step;
+        let grids = (0..n_levels)
+            .map(|l| {
+                let cell_m = core as f64 * gsd0_m * f64::from(1u32 << l);
+                let cols = ((bounds.max_x_m - bounds.min_x_m) / cell_m).ceil().max(1.0);
+                let rows = ((bounds.max_y_m - bounds.min_y_m) / cell_m).ceil().max(1.0);
+                IndexGrid {
+                    origin_x_m: bounds.min_x_m,
+                    origin_y_m: bounds.max_y_m,
+                    cell_m,
+                    cols: cols.min(f64::from(u32::MAX)) as u32, // ok: clamped
+                    rows: rows.min(f64::from(u32::MAX)) as u32, // ok: clamped
+                }
+            })
+            .collect();
+        let tiles_total = vgeoms
+            .iter()
+            .map(|g| {
+                (0..n_levels)
+                    .map(|l| {
+                        let (w, h) = (g.width >> l, g.height >> l);
+                        (w.div_ceil(core) * h.div_ceil(core)) as u64
+                    })
+                    .sum::<u64>()
+            })
+            .sum();
+        Self {
+            n_levels,
+            gsd0_m,
+            core,
+            grids,
+            tiles_total,
+        }
+    }
+
+    fn gsd_m(&self, level: usize) -> f64 {
+        self.gsd0_m * f64::from(1u32 << level)
+    }
+
+    /// Level images on one grid over the union bounds, row 0 north (docs/map-format.md).
+    fn image_levels(&self, bounds: &Bounds) -> Vec<LevelImageInfo> {
+        (0..self.n_levels)
+            .map(|l| {
+                let gsd = self.gsd_m(l);
+                LevelImageInfo {
+                    offset: 0,
+                    width_px: (((bounds.max_x_m - bounds.min_x_m) / gsd).ceil().max(1.0)) as u64,
+                    height_px: (((bounds.max_y_m - bounds.min_y_m) / gsd).ceil().max(1.0)) as u64,
+                    origin_x_m: bounds.min_x_m,
+                    origin_y_m: bounds.max_y_m,
+                }
+            })
+            .collect()
+    }
+
+    /// The header's levels, their offsets and counts left for the writer to fill in.
+    fn level_infos(&self) -> Vec<LevelInfo> {
+        (0..self.n_levels)
+            .map(|l| LevelInfo {
+                gsd_m: self.gsd_m(l),
+                n_features: 0,
+                grid: self.grids[l],
+                cells_offset: 0,
+                records_offset: 0,
+                descriptors_offset: 0,
+                image: None,
+            })
+            .collect()
+    }
+}
+
+/// Where the tiles' features and images go, and their counts.
+struct Sink {
+    writer: SpillWriter,
+    st: Stats,
+}
+
+/// Pass 2 over one ortho: every level, tile by tile.
+struct OrthoPass<'a> {
+    spec: &'a BuildSpec,
+    plan: &'a LevelPlan,
+    d: &'a Detectors,
+    dem: &'a Dem,
+    bounds: &'a Bounds,
+    up_shift: usize,
+}
+
+impl OrthoPass<'_> {
+    /// Ortho `oi` (its file's geometry `g0`, its level-0 grid `g`) into `sink`.
+    fn run(
+        &self,
+        oi: usize,
+        g0: &OrthoGeom,
+        g: &OrthoGeom,
+        sink: &mut Sink,
+        progress: &mut dyn FnMut(BuildProgress),
+    ) -> Result<(), MapError> {
+        let mut source = self.open(g0)?;
+        for level in 0..self.plan.n_levels {
+            let decoded_before = source.chunks_decoded();
+            let ctx = TileCtx {
+                width: g.width,
+                height: g.height,
+                transform: g.transform,
+                level,
+                core: self.plan.core,
+                margin: self.d.margin,
+                surf: &self.d.surf,
+                orb: self.d.orb.as_ref(),
+                cap: self.spec.max_features_per_tile,
+                dem: self.dem,
+                source: oi as u8, // ok: <= 255 orthos checked
+            };
+            self.level(&ctx, source.as_mut(), sink, &mut |st: &Stats| {
+                progress(BuildProgress {
+                    ortho: oi,
+                    level,
+                    tiles_done: st.tiles,
+                    tiles_total: self.plan.tiles_total,
+                    features: st.features,
+                })
+            })?;
+            tracing::debug!(
+                ortho = oi,
+                level,
+                chunks_decoded = source.chunks_decoded() - decoded_before,
+                "level done"
+            );
+        }
+        Ok(())
+    }
+
+    /// The ortho's pixels: decoded whole when small enough, else window by window; upsampled
+    /// when the build asks for it.
+    fn open(&self, g0: &OrthoGeom) -> Result<Box<dyn LevelSource>, MapError> {
+        let decoded_bytes = g0
+            .width
+            .saturating_mul(g0.height)
+            .saturating_mul(g0.bands)
+            .saturating_mul(g0.sample_bytes);
+        let whole = decoded_bytes <= self.spec.whole_decode_max_bytes;
+        tracing::debug!(path = %g0.path.display(), decoded_bytes, whole, "reading the orthophoto");
+        let crs_override = self.spec.crs_override;
+        let mut source: Box<dyn LevelSource> = if whole {
+            Box::new(load_geotiff(&g0.path, crs_override)?)
+        } else {
+            let mut r = open_geotiff_window(&g0.path, crs_override)?;
+            r.set_cache_bytes(ORTHO_CACHE_BYTES);
+            r.set_decode_threads(rayon::current_num_threads())?;
+            Box::new(r)
+        };
+        if source.dims() != (g0.width, g0.height) {
+            return Err(MapError::Input {
+                path: g0.path.clone(),
+                reason: "the file changed during the build".into(),
+            });
+        }
+        if self.up_shift > 0 {
+            source = Box::new(Upsampled {
+                inner: source,
+                shift: self.up_shift,
+            });
+        }
+        Ok(source)
+    }
+
+    /// One level of one ortho, row of tiles by row of tiles.
+    fn level(
+        &self,
+        ctx: &TileCtx,
+        source: &mut dyn LevelSource,
+        sink: &mut Sink,
+        progress: &mut dyn FnMut(&Stats),
+    ) -> Result<(), MapError> {
+        let core = ctx.core;
+        let (lw, lh) = (ctx.width >> ctx.level, ctx.height >> ctx.level);
+        for ty in 0..lh.div_ceil(core) {
+            let mut prev: Option<LevelPatch> = None;
+            for tx in 0..lw.div_ceil(core) {
+                let win = TileWindow::new(ctx, tx * core, ty * core);
+                let (grey, valid) = read_reusing(source, ctx.level, &win, prev.take())?;
+                // Keep the columns the next tile's window starts with.
+                let next_x0 = (win.cx0 + core)
+                    .saturating_sub(ctx.margin)
+                    .clamp(win.x0, win.x0 + win.w);
+                prev = Some(LevelPatch::columns(&win, &grey, &valid, next_x0));
+                push_core_image(ctx, &win, &grey, &valid, self.bounds, &mut sink.writer)?;
+                process_tile(ctx, &win, grey, &valid, &mut sink.writer, &mut sink.st)?;
+                sink.st.tiles += 1;
+                progress(&sink.st);
+            }
+        }
+        Ok(())
+    }
 }
 
 #[derive(Default)]

@@ -437,7 +437,6 @@ const LONG_FUNCTIONS: &[(&str, &str)] = &[
     ("visnav-daemon/src/replay.rs", "replay"),
     ("visnav-daemon/src/daemon.rs", "start_with"),
     ("visnav-sim/src/scenario.rs", "validate"),
-    ("visnav-io/src/geo/geotiff_info.rs", "read_info"),
     ("visnav-io/src/map/coreg.rs", "coregister"),
     ("visnav-link/src/session.rs", "handle"),
     ("visnav-sim/src/autopilot.rs", "telemetry"),

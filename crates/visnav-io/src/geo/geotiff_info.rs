@@ -920,191 +920,306 @@ pub(crate) fn read_info<R: Read + Seek>(
     path: &Path,
     crs_override: Option<Crs>,
 ) -> Result<GeoTiffInfo, GeoTiffError> {
-    let decode_err = |reason: String| GeoTiffError::Decode {
-        path: path.to_path_buf(),
-        reason,
-    };
-    let tag_err = |e: TagError| GeoTiffError::Tag {
-        path: path.to_path_buf(),
-        tag: e.tag,
-        reason: e.reason,
-    };
-    let key_err = |e: KeyError| GeoTiffError::GeoKey {
-        path: path.to_path_buf(),
-        key: e.key,
-        reason: e.reason,
-    };
+    let errs = InfoErrors { path };
+    // The georeferencing first, so that a file that is no map fails before its layout is read.
+    let tags = GeoTags::read(dec, &errs)?;
+    let (transform, crs) = tags.georeferencing(&errs, crs_override)?;
+    let nodata = tags.nodata(&errs)?;
+    let layout = Layout::read(dec, &errs)?;
+    Ok(GeoTiffInfo {
+        width: layout.width,
+        height: layout.height,
+        bands: layout.bands,
+        bits_per_sample: layout.bits_per_sample,
+        transform,
+        crs,
+        nodata,
+        planar: layout.planar == 2 && layout.bands > 1,
+        ycbcr: layout.ycbcr,
+        tiled: layout.tiled,
+        chunk_width: layout.chunk_width,
+        chunk_height: layout.chunk_height,
+    })
+}
 
-    // --- georeferencing tags (read before the pixels so a bad file fails fast) ---
-    let f64_tag =
-        |dec: &mut Decoder<R>, tag: Tag, name: &str| -> Result<Option<Vec<f64>>, GeoTiffError> {
-            match dec.find_tag(tag) {
-                Ok(None) => Ok(None),
-                Ok(Some(v)) => v.into_f64_vec().map(Some).map_err(|e| {
-                    tag_err(TagError::new(name, format!("not a list of DOUBLEs: {e}")))
-                }),
-                Err(e) => Err(tag_err(TagError::new(name, e.to_string()))),
-            }
-        };
-    let pixel_scale = f64_tag(dec, Tag::ModelPixelScaleTag, TAG_PIXEL_SCALE)?;
-    let tiepoints = f64_tag(dec, Tag::ModelTiepointTag, TAG_TIEPOINT)?;
-    let transformation = f64_tag(dec, Tag::ModelTransformationTag, TAG_TRANSFORMATION)?;
-    let doubles = f64_tag(dec, Tag::GeoDoubleParamsTag, TAG_DOUBLE_PARAMS)?;
-    let ascii_tag =
-        |dec: &mut Decoder<R>, tag: Tag, name: &str| -> Result<Option<String>, GeoTiffError> {
-            match dec.find_tag(tag) {
-                Ok(None) => Ok(None),
-                Ok(Some(v)) => v
-                    .into_string()
-                    .map(Some)
-                    .map_err(|e| tag_err(TagError::new(name, format!("not ASCII: {e}")))),
-                Err(e) => Err(tag_err(TagError::new(name, e.to_string()))),
-            }
-        };
-    let ascii = ascii_tag(dec, Tag::GeoAsciiParamsTag, TAG_ASCII_PARAMS)?;
-    let nodata_text = ascii_tag(dec, Tag::GdalNodata, TAG_NODATA)?;
-    let directory = match dec.find_tag(Tag::GeoKeyDirectoryTag) {
-        Ok(None) => None,
-        Ok(Some(v)) => Some(v.into_u16_vec().map_err(|e| {
-            tag_err(TagError::new(
-                TAG_KEY_DIRECTORY,
-                format!("not a list of SHORTs: {e}"),
-            ))
-        })?),
-        Err(e) => return Err(tag_err(TagError::new(TAG_KEY_DIRECTORY, e.to_string()))),
-    };
+/// The errors of [`read_info`], each naming the file.
+struct InfoErrors<'a> {
+    path: &'a Path,
+}
 
-    // A malformed directory counts as "keys not understood": the CRS override may stand in.
-    let keys: Result<GeoKeys, KeyError> = match &directory {
-        Some(d) => GeoKeys::parse(d, doubles.as_deref(), ascii.as_deref()).map_err(|e| KeyError {
-            key: e.tag,
-            reason: e.reason,
-        }),
-        None => Err(KeyError {
-            key: TAG_KEY_DIRECTORY.to_string(),
-            reason: format!("missing: the file has no GeoKeys (no CRS); {NOT_GEOREFERENCED_HINT}"),
-        }),
-    };
-    let raster_type = match &keys {
-        Ok(k) => k.raster_type().map_err(key_err)?,
-        Err(_) => RasterType::PixelIsArea,
-    };
-    let transform = geotransform_from_tags(
-        pixel_scale.as_deref(),
-        tiepoints.as_deref(),
-        transformation.as_deref(),
-        raster_type,
-    )
-    .map_err(tag_err)?;
-
-    let file_crs = keys.and_then(|k| k.crs());
-    let crs = match (file_crs, crs_override) {
-        (Ok(c), None) => c,
-        (Ok(c), Some(o)) if crs_equivalent(&c, &o) => c,
-        (Ok(c), Some(o)) => {
-            return Err(GeoTiffError::CrsConflict {
-                path: path.to_path_buf(),
-                file: c,
-                configured: o,
-            });
+impl InfoErrors<'_> {
+    fn decode(&self, reason: String) -> GeoTiffError {
+        GeoTiffError::Decode {
+            path: self.path.to_path_buf(),
+            reason,
         }
+    }
+
+    fn tag(&self, e: TagError) -> GeoTiffError {
+        GeoTiffError::Tag {
+            path: self.path.to_path_buf(),
+            tag: e.tag,
+            reason: e.reason,
+        }
+    }
+
+    fn key(&self, e: KeyError) -> GeoTiffError {
+        GeoTiffError::GeoKey {
+            path: self.path.to_path_buf(),
+            key: e.key,
+            reason: e.reason,
+        }
+    }
+}
+
+/// A TIFF tag of DOUBLEs, if present.
+fn f64_tag<R: Read + Seek>(
+    dec: &mut Decoder<R>,
+    tag: Tag,
+    name: &str,
+    errs: &InfoErrors,
+) -> Result<Option<Vec<f64>>, GeoTiffError> {
+    match dec.find_tag(tag) {
+        Ok(None) => Ok(None),
+        Ok(Some(v)) => v
+            .into_f64_vec()
+            .map(Some)
+            .map_err(|e| errs.tag(TagError::new(name, format!("not a list of DOUBLEs: {e}")))),
+        Err(e) => Err(errs.tag(TagError::new(name, e.to_string()))),
+    }
+}
+
+/// A TIFF tag of ASCII text, if present.
+fn ascii_tag<R: Read + Seek>(
+    dec: &mut Decoder<R>,
+    tag: Tag,
+    name: &str,
+    errs: &InfoErrors,
+) -> Result<Option<String>, GeoTiffError> {
+    match dec.find_tag(tag) {
+        Ok(None) => Ok(None),
+        Ok(Some(v)) => v
+            .into_string()
+            .map(Some)
+            .map_err(|e| errs.tag(TagError::new(name, format!("not ASCII: {e}")))),
+        Err(e) => Err(errs.tag(TagError::new(name, e.to_string()))),
+    }
+}
+
+/// The georeferencing tags of an image, as stored.
+struct GeoTags {
+    pixel_scale: Option<Vec<f64>>,
+    tiepoints: Option<Vec<f64>>,
+    transformation: Option<Vec<f64>>,
+    doubles: Option<Vec<f64>>,
+    ascii: Option<String>,
+    nodata_text: Option<String>,
+    directory: Option<Vec<u16>>,
+}
+
+impl GeoTags {
+    fn read<R: Read + Seek>(dec: &mut Decoder<R>, errs: &InfoErrors) -> Result<Self, GeoTiffError> {
+        let pixel_scale = f64_tag(dec, Tag::ModelPixelScaleTag, TAG_PIXEL_SCALE, errs)?;
+        let tiepoints = f64_tag(dec, Tag::ModelTiepointTag, TAG_TIEPOINT, errs)?;
+        let transformation = f64_tag(dec, Tag::ModelTransformationTag, TAG_TRANSFORMATION, errs)?;
+        let doubles = f64_tag(dec, Tag::GeoDoubleParamsTag, TAG_DOUBLE_PARAMS, errs)?;
+        let ascii = ascii_tag(dec, Tag::GeoAsciiParamsTag, TAG_ASCII_PARAMS, errs)?;
+        let nodata_text = ascii_tag(dec, Tag::GdalNodata, TAG_NODATA, errs)?;
+        let directory = match dec.find_tag(Tag::GeoKeyDirectoryTag) {
+            Ok(None) => None,
+            Ok(Some(v)) => Some(v.into_u16_vec().map_err(|e| {
+                errs.tag(TagError::new(
+                    TAG_KEY_DIRECTORY,
+                    format!("not a list of SHORTs: {e}"),
+                ))
+            })?),
+            Err(e) => return Err(errs.tag(TagError::new(TAG_KEY_DIRECTORY, e.to_string()))),
+        };
+        Ok(Self {
+            pixel_scale,
+            tiepoints,
+            transformation,
+            doubles,
+            ascii,
+            nodata_text,
+            directory,
+        })
+    }
+
+    /// The pixel-to-map transform and the CRS (the file's, or the override where the file's keys
+    /// are missing or not understood).
+    fn georeferencing(
+        &self,
+        errs: &InfoErrors,
+        crs_override: Option<Crs>,
+    ) -> Result<(GeoTransform, Crs), GeoTiffError> {
+        // A malformed directory counts as "keys not understood": the CRS override may stand in.
+        let keys: Result<GeoKeys, KeyError> =
+            match &self.directory {
+                Some(d) => GeoKeys::parse(d, self.doubles.as_deref(), self.ascii.as_deref())
+                    .map_err(|e| KeyError {
+                        key: e.tag,
+                        reason: e.reason,
+                    }),
+                None => Err(KeyError {
+                    key: TAG_KEY_DIRECTORY.to_string(),
+                    reason: format!(
+                        "missing: the file has no GeoKeys (no CRS); {NOT_GEOREFERENCED_HINT}"
+                    ),
+                }),
+            };
+        let raster_type = match &keys {
+            Ok(k) => k.raster_type().map_err(|e| errs.key(e))?,
+            Err(_) => RasterType::PixelIsArea,
+        };
+        let transform = geotransform_from_tags(
+            self.pixel_scale.as_deref(),
+            self.tiepoints.as_deref(),
+            self.transformation.as_deref(),
+            raster_type,
+        )
+        .map_err(|e| errs.tag(e))?;
+        let crs = resolve_crs(keys.and_then(|k| k.crs()), crs_override, errs)?;
+        Ok((transform, crs))
+    }
+
+    /// GDAL_NODATA as a number.
+    fn nodata(&self, errs: &InfoErrors) -> Result<Option<f64>, GeoTiffError> {
+        let Some(t) = &self.nodata_text else {
+            return Ok(None);
+        };
+        let t = t.trim_matches(|c: char| c == '\0' || c.is_whitespace());
+        let v: f64 = t
+            .parse()
+            .map_err(|_| errs.tag(TagError::new(TAG_NODATA, format!("'{t}' is not a number"))))?;
+        Ok(Some(v))
+    }
+}
+
+/// The file's CRS against the configured override: the file's when they agree or none is
+/// configured, the override where the file's keys fail, an error when both are given and differ.
+fn resolve_crs(
+    file_crs: Result<Crs, KeyError>,
+    crs_override: Option<Crs>,
+    errs: &InfoErrors,
+) -> Result<Crs, GeoTiffError> {
+    match (file_crs, crs_override) {
+        (Ok(c), None) => Ok(c),
+        (Ok(c), Some(o)) if crs_equivalent(&c, &o) => Ok(c),
+        (Ok(c), Some(o)) => Err(GeoTiffError::CrsConflict {
+            path: errs.path.to_path_buf(),
+            file: c,
+            configured: o,
+        }),
         (Err(e), Some(o)) => {
             tracing::warn!(
-                file = %path.display(),
+                file = %errs.path.display(),
                 key = %e.key,
                 reason = %e.reason,
                 crs = ?o,
                 "GeoKeys not usable; using the configured CRS override"
             );
-            o
+            Ok(o)
         }
-        (Err(e), None) => return Err(key_err(e)),
-    };
+        (Err(e), None) => Err(errs.key(e)),
+    }
+}
 
-    let nodata = match nodata_text {
-        None => None,
-        Some(t) => {
-            let t = t.trim_matches(|c: char| c == '\0' || c.is_whitespace());
-            let v: f64 = t.parse().map_err(|_| {
-                tag_err(TagError::new(TAG_NODATA, format!("'{t}' is not a number")))
+/// The image's size, samples and chunking.
+struct Layout {
+    width: usize,
+    height: usize,
+    bands: usize,
+    planar: u16,
+    bits_per_sample: u16,
+    ycbcr: bool,
+    tiled: bool,
+    chunk_width: usize,
+    chunk_height: usize,
+}
+
+impl Layout {
+    fn read<R: Read + Seek>(dec: &mut Decoder<R>, errs: &InfoErrors) -> Result<Self, GeoTiffError> {
+        let (w, h) = dec.dimensions().map_err(|e| errs.decode(e.to_string()))?;
+        let (width, height) = (w as usize, h as usize);
+        let bands = dec
+            .find_tag_unsigned::<u16>(Tag::SamplesPerPixel)
+            .map_err(|e| errs.tag(TagError::new("SamplesPerPixel (277)", e.to_string())))?
+            .unwrap_or(1) as usize;
+        let planar = dec
+            .find_tag_unsigned::<u16>(Tag::PlanarConfiguration)
+            .map_err(|e| errs.tag(TagError::new("PlanarConfiguration (284)", e.to_string())))?
+            .unwrap_or(1);
+        if width == 0 || height == 0 || bands == 0 {
+            return Err(errs.decode(format!("invalid dimensions {width} x {height} x {bands}")));
+        }
+        let bits_per_sample = dec
+            .find_tag_unsigned_vec::<u16>(Tag::BitsPerSample)
+            .map_err(|e| errs.tag(TagError::new("BitsPerSample (258)", e.to_string())))?
+            .and_then(|v| v.first().copied())
+            .unwrap_or(1);
+        let photometric = dec
+            .find_tag_unsigned::<u16>(Tag::PhotometricInterpretation)
+            .map_err(|e| {
+                errs.tag(TagError::new(
+                    "PhotometricInterpretation (262)",
+                    e.to_string(),
+                ))
             })?;
-            Some(v)
-        }
-    };
-
-    // --- image layout ---
-    let (w, h) = dec.dimensions().map_err(|e| decode_err(e.to_string()))?;
-    let (width, height) = (w as usize, h as usize);
-    let bands = dec
-        .find_tag_unsigned::<u16>(Tag::SamplesPerPixel)
-        .map_err(|e| tag_err(TagError::new("SamplesPerPixel (277)", e.to_string())))?
-        .unwrap_or(1) as usize;
-    let planar = dec
-        .find_tag_unsigned::<u16>(Tag::PlanarConfiguration)
-        .map_err(|e| tag_err(TagError::new("PlanarConfiguration (284)", e.to_string())))?
-        .unwrap_or(1);
-    if width == 0 || height == 0 || bands == 0 {
-        return Err(decode_err(format!(
-            "invalid dimensions {width} x {height} x {bands}"
-        )));
-    }
-    let bits_per_sample = dec
-        .find_tag_unsigned_vec::<u16>(Tag::BitsPerSample)
-        .map_err(|e| tag_err(TagError::new("BitsPerSample (258)", e.to_string())))?
-        .and_then(|v| v.first().copied())
-        .unwrap_or(1);
-    let photometric = dec
-        .find_tag_unsigned::<u16>(Tag::PhotometricInterpretation)
-        .map_err(|e| {
-            tag_err(TagError::new(
+        let ycbcr = photometric == Some(6);
+        if ycbcr && !(bands == 3 && bits_per_sample == 8) {
+            return Err(errs.tag(TagError::new(
                 "PhotometricInterpretation (262)",
-                e.to_string(),
-            ))
-        })?;
-    let ycbcr = photometric == Some(6);
-    if ycbcr && !(bands == 3 && bits_per_sample == 8) {
-        return Err(tag_err(TagError::new(
-            "PhotometricInterpretation (262)",
-            YCBCR_ONLY_RGB8,
-        )));
+                YCBCR_ONLY_RGB8,
+            )));
+        }
+        let tiled = matches!(dec.get_chunk_type(), ChunkType::Tile);
+        let (chunk_width, chunk_height) = chunk_size(dec, errs, tiled, width, height)?;
+        Ok(Self {
+            width,
+            height,
+            bands,
+            planar,
+            bits_per_sample,
+            ycbcr,
+            tiled,
+            chunk_width,
+            chunk_height,
+        })
     }
-    let tiled = matches!(dec.get_chunk_type(), ChunkType::Tile);
+}
+
+/// The nominal chunk size, pixels: the tile size, or (width, rows per strip).
+fn chunk_size<R: Read + Seek>(
+    dec: &mut Decoder<R>,
+    errs: &InfoErrors,
+    tiled: bool,
+    width: usize,
+    height: usize,
+) -> Result<(usize, usize), GeoTiffError> {
     let (chunk_width, chunk_height) = if tiled {
         let tw = dec
             .find_tag_unsigned::<u32>(Tag::TileWidth)
-            .map_err(|e| decode_err(format!("TileWidth (322): {e}")))?
-            .ok_or_else(|| decode_err("TileWidth (322) missing".into()))?;
+            .map_err(|e| errs.decode(format!("TileWidth (322): {e}")))?
+            .ok_or_else(|| errs.decode("TileWidth (322) missing".into()))?;
         let th = dec
             .find_tag_unsigned::<u32>(Tag::TileLength)
-            .map_err(|e| decode_err(format!("TileLength (323): {e}")))?
-            .ok_or_else(|| decode_err("TileLength (323) missing".into()))?;
+            .map_err(|e| errs.decode(format!("TileLength (323): {e}")))?
+            .ok_or_else(|| errs.decode("TileLength (323) missing".into()))?;
         (tw as usize, th as usize)
     } else {
         let rps = dec
             .find_tag_unsigned::<u32>(Tag::RowsPerStrip)
-            .map_err(|e| decode_err(format!("RowsPerStrip (278): {e}")))?
+            .map_err(|e| errs.decode(format!("RowsPerStrip (278): {e}")))?
             .map_or(height, |r| (r as usize).min(height));
         (width, rps)
     };
     if chunk_width == 0 || chunk_height == 0 {
-        return Err(decode_err(format!(
+        return Err(errs.decode(format!(
             "chunk size {chunk_width} x {chunk_height} is invalid"
         )));
     }
-    Ok(GeoTiffInfo {
-        width,
-        height,
-        bands,
-        bits_per_sample,
-        transform,
-        crs,
-        nodata,
-        planar: planar == 2 && bands > 1,
-        ycbcr,
-        tiled,
-        chunk_width,
-        chunk_height,
-    })
+    Ok((chunk_width, chunk_height))
 }
 
 /// Error text for a YCbCr image that is not 3-band 8-bit.

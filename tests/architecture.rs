@@ -437,10 +437,8 @@ const LONG_FUNCTIONS: &[(&str, &str)] = &[
     ("visnav-daemon/src/replay.rs", "replay"),
     ("visnav-daemon/src/daemon.rs", "start_with"),
     ("visnav-sim/src/scenario.rs", "validate"),
-    ("visnav-io/src/map/coreg.rs", "coregister"),
     ("visnav-link/src/session.rs", "handle"),
     ("visnav-sim/src/autopilot.rs", "telemetry"),
-    ("visnav-io/src/map/format.rs", "finish"),
     ("visnav-io/src/image_file.rs", "check_entropy_data"),
 ];
 

@@ -33,7 +33,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::geo::geotiff::crs_equivalent;
-use visnav_core::geo::raster::Raster;
+use visnav_core::geo::raster::{Bounds, Raster};
 
 /// Settings of [`coregister`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -389,6 +389,50 @@ fn peak(ncc: &[f64], dim: usize, min_ncc: f64, min_curvature: f64) -> Option<(f6
 /// must be in the same CRS; `b` may have another pixel size and grid.
 pub fn coregister(a: &Raster, b: &Raster, params: &CoregParams) -> Result<CoregReport, CoregError> {
     check(params)?;
+    check_pair(a, b)?;
+    let (ga, gb) = grids(a, b);
+    let min_std = min_texture_std(&ga, params)?;
+    let centres = patch_centres(a.width(), a.height(), params)?;
+    let (patches_tried, patches) = match_patches(a, (&ga, &gb), &centres, min_std, params);
+    let (pw, ph) = a.transform().pixel_size();
+    let pixel_m = (pw.abs() * ph.abs()).sqrt();
+    let lens: Vec<f64> = patches.iter().map(|p| p.dx_m.hypot(p.dy_m)).collect();
+    let med = |mut v: Vec<f64>| {
+        if v.is_empty() {
+            return None;
+        }
+        v.sort_by(f64::total_cmp);
+        Some(v[v.len() / 2])
+    };
+    let median_dx_m = med(patches.iter().map(|p| p.dx_m).collect());
+    let median_dy_m = med(patches.iter().map(|p| p.dy_m).collect());
+    let windows = window_shifts(&patches, &a.bounds(), params)?;
+    let wl: Vec<f64> = windows.iter().map(|w| w.dx_m.hypot(w.dy_m)).collect();
+    let px = |s: Spread| Spread {
+        median: s.median / pixel_m,
+        p90: s.p90 / pixel_m,
+        max: s.max / pixel_m,
+    };
+    let shift_m = Spread::of(&lens);
+    let window_shift_m = Spread::of(&wl);
+    Ok(CoregReport {
+        pixel_m,
+        patches_tried,
+        patches_matched: patches.len(),
+        shift_m,
+        shift_px: shift_m.map(px),
+        median_dx_m,
+        median_dy_m,
+        window_m: params.window_m,
+        window_shift_m,
+        window_shift_px: window_shift_m.map(px),
+        windows,
+        patches,
+    })
+}
+
+/// The two images share a CRS and overlap.
+fn check_pair(a: &Raster, b: &Raster) -> Result<(), CoregError> {
     if !crs_equivalent(&a.crs(), &b.crs()) {
         return Err(CoregError::CrsMismatch {
             a: a.crs().to_string(),
@@ -403,11 +447,13 @@ pub fn coregister(a: &Raster, b: &Raster, params: &CoregParams) -> Result<CoregR
     {
         return Err(CoregError::NoOverlap);
     }
-    let (w, h) = (a.width(), a.height());
-    let (ga, gb) = grids(a, b);
-    // Texture threshold relative to the whole image's grey spread.
+    Ok(())
+}
+
+/// The grey spread a patch needs to be matched: relative to the whole image's spread.
+fn min_texture_std(ga: &[f32], params: &CoregParams) -> Result<f64, CoregError> {
     let (mut s, mut s2, mut n) = (0.0f64, 0.0f64, 0usize);
-    for &v in &ga {
+    for &v in ga {
         if !v.is_nan() {
             s += f64::from(v);
             s2 += f64::from(v) * f64::from(v);
@@ -423,7 +469,16 @@ pub fn coregister(a: &Raster, b: &Raster, params: &CoregParams) -> Result<CoregR
     if global_std.is_nan() || global_std <= 0.0 {
         return Err(CoregError::Flat { std: global_std });
     }
-    let min_std = (params.min_rel_std * global_std).max(1e-9);
+    Ok((params.min_rel_std * global_std).max(1e-9))
+}
+
+/// The patch centres, pixels of `a`: every `step_px`, far enough from the edges for the patch
+/// and its search.
+fn patch_centres(
+    w: usize,
+    h: usize,
+    params: &CoregParams,
+) -> Result<Vec<(usize, usize)>, CoregError> {
     let margin = params.patch_half_px + params.search_px + 1;
     if w <= 2 * margin || h <= 2 * margin {
         return Err(CoregError::TooSmall {
@@ -433,14 +488,27 @@ pub fn coregister(a: &Raster, b: &Raster, params: &CoregParams) -> Result<CoregR
             search: params.search_px,
         });
     }
-    let centres: Vec<(usize, usize)> = (margin..h - margin)
+    Ok((margin..h - margin)
         .step_by(params.step_px)
         .flat_map(|cy| {
             (margin..w - margin)
                 .step_by(params.step_px)
                 .map(move |cx| (cx, cy))
         })
-        .collect();
+        .collect())
+}
+
+/// Matches the textured patches of `a` in `b` (the grey grids `g`): how many were tried, and the
+/// shifts found.
+fn match_patches(
+    a: &Raster,
+    g: (&[f32], &[f32]),
+    centres: &[(usize, usize)],
+    min_std: f64,
+    params: &CoregParams,
+) -> (usize, Vec<PatchShift>) {
+    let (ga, gb) = g;
+    let w = a.width();
     let tf = a.transform();
     let c = tf.coeffs();
     let results: Vec<(bool, Option<PatchShift>)> = centres
@@ -448,13 +516,13 @@ pub fn coregister(a: &Raster, b: &Raster, params: &CoregParams) -> Result<CoregR
         .map(|&(cx, cy)| {
             let half = params.patch_half_px;
             // Textured in a and sampleable in b at zero shift.
-            let template = block_stats(&ga, w, cx - half, cy - half, 2 * half)
+            let template = block_stats(ga, w, cx - half, cy - half, 2 * half)
                 .filter(|&(_, sd)| sd >= min_std)
-                .filter(|_| block_stats(&gb, w, cx - half, cy - half, 2 * half).is_some());
+                .filter(|_| block_stats(gb, w, cx - half, cy - half, 2 * half).is_some());
             let Some(template) = template else {
                 return (false, None);
             };
-            let shift = match_patch(&ga, &gb, w, cx, cy, template, params).map(|(ox, oy, ncc)| {
+            let shift = match_patch(ga, gb, w, cx, cy, template, params).map(|(ox, oy, ncc)| {
                 // Patch centre: the corner between pixels cx-1 and cx (the template spans
                 // [cx - half, cx + half)).
                 let (x_m, y_m) = tf.pixel_to_map(cx as f64, cy as f64);
@@ -469,51 +537,49 @@ pub fn coregister(a: &Raster, b: &Raster, params: &CoregParams) -> Result<CoregR
             (true, shift)
         })
         .collect();
-    let patches_tried = results.iter().filter(|r| r.0).count();
-    let patches: Vec<PatchShift> = results.into_iter().filter_map(|r| r.1).collect();
-    let (pw, ph) = tf.pixel_size();
-    let pixel_m = (pw.abs() * ph.abs()).sqrt();
-    let lens: Vec<f64> = patches.iter().map(|p| p.dx_m.hypot(p.dy_m)).collect();
-    let med = |mut v: Vec<f64>| {
-        if v.is_empty() {
-            return None;
-        }
-        v.sort_by(f64::total_cmp);
-        Some(v[v.len() / 2])
-    };
-    let median_dx_m = med(patches.iter().map(|p| p.dx_m).collect());
-    let median_dy_m = med(patches.iter().map(|p| p.dy_m).collect());
-    // Windows: a square grid of side window_m with half overlap over a's bounds, plus a last
-    // window flush with the far edge; each patch is added to the windows that contain it.
+    let tried = results.iter().filter(|r| r.0).count();
+    (tried, results.into_iter().filter_map(|r| r.1).collect())
+}
+
+/// The starts of the windows along one axis from `lo` to `hi`: a grid of side `window_m` with
+/// half overlap, plus a last window flush with the far edge.
+fn window_starts(lo: f64, hi: f64, params: &CoregParams) -> Result<Vec<f64>, CoregError> {
     let step = 0.5 * params.window_m;
-    let starts = |lo: f64, hi: f64| -> Result<Vec<f64>, CoregError> {
-        let extent = hi - lo;
-        if extent < params.window_m {
-            return Ok(Vec::new());
-        }
-        let n = ((extent - params.window_m) / step).floor() + 1.0;
-        if n.is_nan() || n > MAX_WINDOWS_PER_AXIS {
-            return Err(CoregError::BadParam {
-                key: "window_m",
-                value: params.window_m,
-                reason: "too small for the image (more than 1000 windows per axis)",
-            });
-        }
-        let mut v: Vec<f64> = (0..n as usize).map(|i| lo + i as f64 * step).collect();
-        let last = hi - params.window_m;
-        if v.last().is_some_and(|&x| last - x > 1e-6 * params.window_m) {
-            v.push(last);
-        }
-        Ok(v)
-    };
-    let xs = starts(ab.min_x_m, ab.max_x_m)?;
-    let ys = starts(ab.min_y_m, ab.max_y_m)?;
+    let extent = hi - lo;
+    if extent < params.window_m {
+        return Ok(Vec::new());
+    }
+    let n = ((extent - params.window_m) / step).floor() + 1.0;
+    if n.is_nan() || n > MAX_WINDOWS_PER_AXIS {
+        return Err(CoregError::BadParam {
+            key: "window_m",
+            value: params.window_m,
+            reason: "too small for the image (more than 1000 windows per axis)",
+        });
+    }
+    let mut v: Vec<f64> = (0..n as usize).map(|i| lo + i as f64 * step).collect();
+    let last = hi - params.window_m;
+    if v.last().is_some_and(|&x| last - x > 1e-6 * params.window_m) {
+        v.push(last);
+    }
+    Ok(v)
+}
+
+/// The mean shift in each window over `ab` (a's bounds) that holds enough patches; each patch
+/// counts in every window that contains it.
+fn window_shifts(
+    patches: &[PatchShift],
+    ab: &Bounds,
+    params: &CoregParams,
+) -> Result<Vec<WindowShift>, CoregError> {
+    let xs = window_starts(ab.min_x_m, ab.max_x_m, params)?;
+    let ys = window_starts(ab.min_y_m, ab.max_y_m, params)?;
     // Indices of the sorted window starts whose window [s, s + window_m) contains v.
     let containing = |st: &[f64], v: f64| {
         st.partition_point(|&s| s + params.window_m <= v)..st.partition_point(|&s| s <= v)
     };
     let mut acc = vec![(0usize, 0.0f64, 0.0f64); xs.len() * ys.len()];
-    for p in &patches {
+    for p in patches {
         for j in containing(&ys, p.y_m) {
             for i in containing(&xs, p.x_m) {
                 let a = &mut acc[j * xs.len() + i];
@@ -538,28 +604,7 @@ pub fn coregister(a: &Raster, b: &Raster, params: &CoregParams) -> Result<CoregR
             }
         }
     }
-    let wl: Vec<f64> = windows.iter().map(|w| w.dx_m.hypot(w.dy_m)).collect();
-    let px = |s: Spread| Spread {
-        median: s.median / pixel_m,
-        p90: s.p90 / pixel_m,
-        max: s.max / pixel_m,
-    };
-    let shift_m = Spread::of(&lens);
-    let window_shift_m = Spread::of(&wl);
-    Ok(CoregReport {
-        pixel_m,
-        patches_tried,
-        patches_matched: patches.len(),
-        shift_m,
-        shift_px: shift_m.map(px),
-        median_dx_m,
-        median_dy_m,
-        window_m: params.window_m,
-        window_shift_m,
-        window_shift_px: window_shift_m.map(px),
-        windows,
-        patches,
-    })
+    Ok(windows)
 }
 
 /// Upper bound on the number of windows along one axis.

@@ -319,16 +319,86 @@ impl SpillWriter {
         mut header: MapHeader,
         out: &Path,
     ) -> Result<(MapHeader, u64), MapError> {
-        let spill_io = |what, source| MapError::Io {
-            path: self.spill_path.clone(),
+        self.spill
+            .flush()
+            .map_err(|e| self.spill_io("cannot write the temporary feature file", e))?;
+        let (starts, data_bytes) = self.lay_out(&mut header)?;
+        header.version = FORMAT_VERSION;
+        let json = serde_json::to_vec(&header).map_err(|e| MapError::Format {
+            path: out.to_path_buf(),
+            reason: format!("cannot encode the header: {e}"),
+        })?;
+        let data_offset = align8(PREAMBLE_BYTES as u64 + json.len() as u64);
+        let file_len = data_offset + data_bytes;
+
+        let partial = out.with_extension("vnm.partial");
+        let out_io = |what, source| MapError::Io {
+            path: partial.clone(),
             what,
             cause: source,
         };
-        self.spill
-            .flush()
-            .map_err(|e| spill_io("cannot write the temporary feature file", e))?;
+        let file = File::options()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .open(&partial)
+            .map_err(|e| out_io("cannot create the map file", e))?;
+        file.set_len(file_len)
+            .map_err(|e| out_io("cannot size the map file", e))?;
+        let mut pre = [0u8; PREAMBLE_BYTES];
+        pre[0..8].copy_from_slice(&MAGIC);
+        pre[8..12].copy_from_slice(&FORMAT_VERSION.to_le_bytes());
+        pre[16..24].copy_from_slice(&(json.len() as u64).to_le_bytes());
+        pre[24..32].copy_from_slice(&data_offset.to_le_bytes());
+        pre[32..40].copy_from_slice(&file_len.to_le_bytes());
+        let wr = |buf: &[u8], at: u64| {
+            file.write_all_at(buf, at)
+                .map_err(|e| out_io("cannot write the map file", e))
+        };
+        wr(&pre, 0)?;
+        wr(&json, PREAMBLE_BYTES as u64)?;
+        for (l, table) in starts.iter().enumerate() {
+            let bytes: Vec<u8> = table.iter().flat_map(|v| v.to_le_bytes()).collect();
+            wr(&bytes, data_offset + header.levels[l].cells_offset)?;
+        }
+        let placed = Placed {
+            file: &file,
+            path: &partial,
+            header: &header,
+            data_offset,
+        };
+        self.place_features(&placed, starts)?;
+        let _ = std::fs::remove_file(&self.spill_path);
+        if let Some(img) = self.images.take() {
+            place_image_blocks(img, &header, data_offset, &file, &partial)?;
+        }
+        let crc = file_crc(&file).map_err(|e| out_io("cannot read back the map file", e))?;
+        wr(&crc.to_le_bytes(), CRC_AT as u64)?;
+        file.sync_all()
+            .map_err(|e| out_io("cannot flush the map file", e))?;
+        drop(file);
+        std::fs::rename(&partial, out).map_err(|source| MapError::Io {
+            path: out.to_path_buf(),
+            what: "cannot move the finished map into place",
+            cause: source,
+        })?;
+        Ok((header, file_len))
+    }
+
+    fn spill_io(&self, what: &'static str, cause: std::io::Error) -> MapError {
+        MapError::Io {
+            path: self.spill_path.clone(),
+            what,
+            cause,
+        }
+    }
+
+    /// Lays the levels out after the header: per level its cell table, records, descriptors and
+    /// image, each 8-byte aligned. Fills `header`'s offsets and counts; returns each level's cell
+    /// table (the first feature of every cell, and the end) and the data's length in bytes.
+    fn lay_out(&self, header: &mut MapHeader) -> Result<(Vec<Vec<u64>>, u64), MapError> {
         let len = descriptor_bytes(self.kind) as u64;
-        // Layout.
         let mut off = 0u64;
         let mut starts: Vec<Vec<u64>> = Vec::new();
         for (l, grid) in self.grids.iter().enumerate() {
@@ -365,49 +435,14 @@ impl SpillWriter {
             };
             starts.push(table);
         }
-        header.version = FORMAT_VERSION;
-        let json = serde_json::to_vec(&header).map_err(|e| MapError::Format {
-            path: out.to_path_buf(),
-            reason: format!("cannot encode the header: {e}"),
-        })?;
-        let data_offset = align8(PREAMBLE_BYTES as u64 + json.len() as u64);
-        let file_len = data_offset + off;
+        Ok((starts, off))
+    }
 
-        let partial = out.with_extension("vnm.partial");
-        let out_io = |what, source| MapError::Io {
-            path: partial.clone(),
-            what,
-            cause: source,
-        };
-        let file = File::options()
-            .read(true)
-            .write(true)
-            .create(true)
-            .truncate(true)
-            .open(&partial)
-            .map_err(|e| out_io("cannot create the map file", e))?;
-        file.set_len(file_len)
-            .map_err(|e| out_io("cannot size the map file", e))?;
-        let mut pre = [0u8; PREAMBLE_BYTES];
-        pre[0..8].copy_from_slice(&MAGIC);
-        pre[8..12].copy_from_slice(&FORMAT_VERSION.to_le_bytes());
-        pre[16..24].copy_from_slice(&(json.len() as u64).to_le_bytes());
-        pre[24..32].copy_from_slice(&data_offset.to_le_bytes());
-        pre[32..40].copy_from_slice(&file_len.to_le_bytes());
-        let wr = |buf: &[u8], at: u64| {
-            file.write_all_at(buf, at)
-                .map_err(|e| out_io("cannot write the map file", e))
-        };
-        wr(&pre, 0)?;
-        wr(&json, PREAMBLE_BYTES as u64)?;
-        for (l, table) in starts.iter().enumerate() {
-            let bytes: Vec<u8> = table.iter().flat_map(|v| v.to_le_bytes()).collect();
-            wr(&bytes, data_offset + header.levels[l].cells_offset)?;
-        }
-        // Place the spilled features cell by cell.
-        let mut cursor: Vec<Vec<u64>> = starts.clone();
+    /// Places the spilled features cell by cell, in the order they were spilled within a cell.
+    fn place_features(&self, to: &Placed, mut cursor: Vec<Vec<u64>>) -> Result<(), MapError> {
+        let len = descriptor_bytes(self.kind) as u64;
         let spill = File::open(&self.spill_path)
-            .map_err(|e| spill_io("cannot reopen the temporary feature file", e))?;
+            .map_err(|e| self.spill_io("cannot reopen the temporary feature file", e))?;
         let mut rd = BufReader::with_capacity(1 << 20, spill);
         let item = 4 + 8 + RECORD_BYTES + len as usize;
         let mut buf = vec![0u8; item];
@@ -417,63 +452,57 @@ impl SpillWriter {
             match rd.read_exact(&mut buf) {
                 Ok(()) => {}
                 Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => break,
-                Err(e) => return Err(spill_io("cannot read the temporary feature file", e)),
+                Err(e) => return Err(self.spill_io("cannot read the temporary feature file", e)),
             }
             let level = u32::from_le_bytes(rd4(&buf, 0)) as usize;
             let cell = u64::from_le_bytes(rd8(&buf, 4)) as usize;
-            let info = &header.levels[level];
+            let info = &to.header.levels[level];
             let idx = cursor[level][cell];
             cursor[level][cell] += 1;
-            let rec_at = data_offset + info.records_offset + idx * RECORD_BYTES as u64;
-            let desc_at = data_offset + info.descriptors_offset + idx * len;
-            rec_run.put(&file, rec_at, &buf[12..12 + RECORD_BYTES], &partial)?;
-            desc_run.put(&file, desc_at, &buf[12 + RECORD_BYTES..], &partial)?;
+            let rec_at = to.data_offset + info.records_offset + idx * RECORD_BYTES as u64;
+            let desc_at = to.data_offset + info.descriptors_offset + idx * len;
+            rec_run.put(to.file, rec_at, &buf[12..12 + RECORD_BYTES], to.path)?;
+            desc_run.put(to.file, desc_at, &buf[12 + RECORD_BYTES..], to.path)?;
         }
-        rec_run.flush(&file, &partial)?;
-        desc_run.flush(&file, &partial)?;
-        drop(rd);
-        let _ = std::fs::remove_file(&self.spill_path);
-        if let Some(img) = self.images.take() {
-            place_image_blocks(img, &header, data_offset, &file, &partial)?;
-        }
-        // Checksum: stream the file once.
-        let mut h = crc32fast::Hasher::new();
-        let mut f2 = &file;
-        f2.seek(SeekFrom::Start(0))
-            .map_err(|e| out_io("cannot read back the map file", e))?;
-        let mut chunk = vec![0u8; 1 << 20];
-        let mut pos = 0u64;
-        loop {
-            let n = f2
-                .read(&mut chunk)
-                .map_err(|e| out_io("cannot read back the map file", e))?;
-            if n == 0 {
-                break;
-            }
-            // Hash the slice, skipping the CRC field when it falls inside this chunk.
-            let (a, b) = (pos, pos + n as u64);
-            let (c0, c1) = (CRC_AT as u64, CRC_AT as u64 + 4);
-            if b <= c0 || a >= c1 {
-                h.update(&chunk[..n]);
-            } else {
-                let s0 = (c0.saturating_sub(a)) as usize;
-                let s1 = ((c1 - a) as usize).min(n);
-                h.update(&chunk[..s0]);
-                h.update(&chunk[s1..n]);
-            }
-            pos = b;
-        }
-        wr(&h.finalize().to_le_bytes(), CRC_AT as u64)?;
-        file.sync_all()
-            .map_err(|e| out_io("cannot flush the map file", e))?;
-        drop(file);
-        std::fs::rename(&partial, out).map_err(|source| MapError::Io {
-            path: out.to_path_buf(),
-            what: "cannot move the finished map into place",
-            cause: source,
-        })?;
-        Ok((header, file_len))
+        rec_run.flush(to.file, to.path)?;
+        desc_run.flush(to.file, to.path)
     }
+}
+
+/// The map file being written and where its data start.
+struct Placed<'a> {
+    file: &'a File,
+    path: &'a Path,
+    header: &'a MapHeader,
+    data_offset: u64,
+}
+
+/// The CRC-32 of the whole file with its CRC field skipped, streamed once.
+fn file_crc(file: &File) -> std::io::Result<u32> {
+    let mut h = crc32fast::Hasher::new();
+    let mut f2 = file;
+    f2.seek(SeekFrom::Start(0))?;
+    let mut chunk = vec![0u8; 1 << 20];
+    let mut pos = 0u64;
+    loop {
+        let n = f2.read(&mut chunk)?;
+        if n == 0 {
+            break;
+        }
+        // Hash the slice, skipping the CRC field when it falls inside this chunk.
+        let (a, b) = (pos, pos + n as u64);
+        let (c0, c1) = (CRC_AT as u64, CRC_AT as u64 + 4);
+        if b <= c0 || a >= c1 {
+            h.update(&chunk[..n]);
+        } else {
+            let s0 = (c0.saturating_sub(a)) as usize;
+            let s1 = ((c1 - a) as usize).min(n);
+            h.update(&chunk[..s0]);
+            h.update(&chunk[s1..n]);
+        }
+        pos = b;
+    }
+    Ok(h.finalize())
 }
 
 impl Drop for SpillWriter {

@@ -351,67 +351,123 @@ impl Validate for DtmNavConfig {
 /// Why no pose came out of a frame pair.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum DtmRejection {
+    /// Non-finite or non-rotation guesses, a bad camera or bad settings; says which.
     #[error("invalid input: {0}")]
     InvalidInput(String),
+    /// The solution's first height and tilt disagree with the guess's beyond [`GUESS_GATE_CHI2`]
+    /// (only with [`DtmInput::guess_sigma`]): a wrong minimum of the flow.
     #[error(
         "inconsistent with the navigation: height {dh_m:+.0} m and tilt {dtilt_deg:.2} deg from the guess's (squared Mahalanobis distance {m2:.1} over {max}): a wrong minimum"
     )]
     InconsistentWithGuess {
+        /// Solution's first height minus the guess's, m.
         dh_m: f64,
+        /// Tilt between the solution's first attitude and the guess's, deg.
         dtilt_deg: f64,
+        /// Squared Mahalanobis distance (3 dof) with the summed covariances.
         m2: f64,
+        /// The gate, [`GUESS_GATE_CHI2`].
         max: f64,
     },
+    /// The solution's first horizontal position is beyond [`GUESS_GATE_H_CHI2`] from the guess's
+    /// (only with a finite [`GuessSigma::horizontal_m`]).
     #[error(
         "{d_m:.0} m from the navigation's position (its 1-sigma {sigma_m:.0} m; squared Mahalanobis distance {m2:.1} over {max}): another minimum of the flow, or a navigation far more wrong than it says"
     )]
     FarFromGuess {
+        /// Horizontal distance from the guess's first position, m.
         d_m: f64,
+        /// The guess's horizontal 1-sigma per axis, m.
         sigma_m: f64,
+        /// Squared Mahalanobis distance (2 dof) with the summed covariances.
         m2: f64,
+        /// The gate, [`GUESS_GATE_H_CHI2`].
         max: f64,
     },
+    /// Fewer flow vectors than [`DtmNavConfig::min_tracks`].
     #[error("{tracks} tracks, need {min}")]
-    TooFewTracks { tracks: usize, min: usize },
-    #[error("{on_ground} of {tracks} tracks reach the terrain, need {min}")]
-    TooFewOnGround {
-        on_ground: usize,
+    TooFewTracks {
+        /// Flow vectors given.
         tracks: usize,
+        /// [`DtmNavConfig::min_tracks`].
         min: usize,
     },
+    /// Fewer flow vectors whose first-guess ray meets the terrain than
+    /// [`DtmNavConfig::min_tracks`].
+    #[error("{on_ground} of {tracks} tracks reach the terrain, need {min}")]
+    TooFewOnGround {
+        /// Vectors whose ray meets the terrain within [`DtmNavConfig::max_range_m`].
+        on_ground: usize,
+        /// Flow vectors given.
+        tracks: usize,
+        /// [`DtmNavConfig::min_tracks`].
+        min: usize,
+    },
+    /// Relief screen before solving: the ground points' height spread is under
+    /// [`DtmNavConfig::min_relief_agl_fraction`] of the height above them.
     #[error(
         "flat ground: the tracks' ground heights spread {relief_std_m:.1} m (1-sigma), under {min_fraction} of the {agl_m:.0} m above them; the terrain cannot fix the position"
     )]
     FlatGround {
+        /// Standard deviation of the ground points' heights at the first guess, m.
         relief_std_m: f64,
+        /// Height of the first guess above their mean, m.
         agl_m: f64,
+        /// [`DtmNavConfig::min_relief_agl_fraction`].
         min_fraction: f64,
     },
+    /// The Jacobi-scaled normal matrix (at the guess or at the solution) is near singular.
     #[error(
         "ill-conditioned: reciprocal condition number {rcond:.1e} of the normal equations (under {min:.0e}): flow and terrain do not determine the pose (flat ground, or tracks in a line)"
     )]
-    IllConditioned { rcond: f64, min: f64 },
+    IllConditioned {
+        /// Its reciprocal condition number.
+        rcond: f64,
+        /// [`MIN_RECIPROCAL_CONDITION`].
+        min: f64,
+    },
+    /// The first position's horizontal sigma given the attitudes, or the attitude sigma given
+    /// the positions, is over its limit.
     #[error(
         "unobservable: {what} 1-sigma {sigma:.2} over the limit {limit:.2} (relief under the tracks {relief_std_m:.1} m 1-sigma, {agl_m:.0} m above ground)"
     )]
     Unobservable {
         /// "horizontal position given the attitude (m)" or "attitude given the position (deg)".
         what: &'static str,
+        /// That 1-sigma, in the unit `what` names.
         sigma: f64,
+        /// Its limit: [`DtmNavConfig::max_sigma_agl_fraction`] times `agl_m`, or
+        /// [`DtmNavConfig::max_attitude_sigma_deg`].
         limit: f64,
+        /// Standard deviation of the inliers' ground heights, m.
         relief_std_m: f64,
+        /// Height of the first centre above their mean, m.
         agl_m: f64,
     },
+    /// A free stage (Huber or Tukey) did not converge in [`DtmNavConfig::max_iterations`].
     #[error("no convergence in {iterations} iterations")]
-    NotConverged { iterations: usize },
+    NotConverged {
+        /// Iterations of all stages so far.
+        iterations: usize,
+    },
+    /// Too little of the flow agrees with the solution.
     #[error("{inliers} of {on_ground} tracks agree with the solution, need {min}")]
     TooFewInliers {
+        /// Vectors within the Tukey cut-off at the solution.
         inliers: usize,
+        /// Vectors on the terrain at the first guess.
         on_ground: usize,
+        /// [`DtmNavConfig::min_inlier_fraction`] of `on_ground`, at least 7.
         min: usize,
     },
+    /// The residuals are too large for their claimed noise.
     #[error("poor fit: sigma0 {sigma0:.2} over {max} (residuals over their claimed noise)")]
-    PoorFit { sigma0: f64, max: f64 },
+    PoorFit {
+        /// A-posteriori standard deviation of unit weight over the inliers.
+        sigma0: f64,
+        /// [`DtmNavConfig::max_sigma0`].
+        max: f64,
+    },
 }
 
 impl DtmRejection {
@@ -438,9 +494,11 @@ impl DtmRejection {
 pub struct DtmInput<'a> {
     /// Flow vectors: a pixel of the first frame and where it is in the second (undistorted).
     pub tracks: &'a [TrackPair],
+    /// The camera's focal lengths, principal point and image size.
     pub image: &'a ImageGeometry,
-    /// First guesses of the first and the second frame's camera poses (world frame).
+    /// First guess of the first frame's camera pose (world frame).
     pub guess_first: Pose,
+    /// First guess of the second frame's camera pose (world frame).
     pub guess_second: Pose,
     /// How good the guess's height and tilt are: when given, a solution whose first height and
     /// tilt disagree with the guess's beyond [`GUESS_GATE_CHI2`] is refused
@@ -452,7 +510,9 @@ pub struct DtmInput<'a> {
 /// gravity-aided roll and pitch stay good where position and heading drift).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GuessSigma {
+    /// The guess's height 1-sigma, m.
     pub height_m: f64,
+    /// The guess's tilt 1-sigma per horizontal axis, rad.
     pub tilt_rad: f64,
     /// The guess's horizontal position 1-sigma per axis, m (infinite: unknown, no gate).
     pub horizontal_m: f64,
@@ -470,7 +530,10 @@ pub const GUESS_GATE_H_CHI2: f64 = 13.82;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum DtmMethod {
+    /// Gauss-Newton: every step of the stage lowered the robust cost.
     GaussNewton,
+    /// Levenberg-Marquardt: a Gauss-Newton step did not lower the cost (or could not be solved),
+    /// so the stage switched to damped steps.
     LevenbergMarquardt,
 }
 
@@ -487,29 +550,34 @@ impl std::fmt::Display for DtmMethod {
 /// The twelve parameters solved.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DtmFix {
-    /// The first and the second frame's camera poses (world frame).
+    /// The first frame's camera pose (world frame).
     pub first: Pose,
+    /// The second frame's camera pose (world frame).
     pub second: Pose,
     /// Covariance of `[phi1, C1, phi2, C2]` (rotation vectors in the world frame applied on the
     /// left, rad; positions, m): conservative (module doc).
     pub cov: Mat12,
-    /// The minimiser of the final stage; iterations of both stages.
+    /// The minimiser that finished the final stage.
     pub method: DtmMethod,
+    /// Iterations of all four stages together.
     pub iterations: usize,
-    /// Tracks given, on the terrain at the first guess, inliers at the solution.
+    /// Flow vectors given.
     pub tracks: usize,
+    /// Vectors on the terrain at the first guess.
     pub on_ground: usize,
+    /// Inliers at the solution.
     pub inliers: usize,
-    /// Reprojection RMS over the inliers, px; a-posteriori sigma0.
+    /// Reprojection RMS over the inliers, px.
     pub rms_px: f64,
+    /// A-posteriori standard deviation of unit weight.
     pub sigma0: f64,
     /// Largest horizontal 1-sigma of the first position were both attitudes known, m: what the
     /// relief alone determines (the conditioning check's figure; the covariance itself is the
     /// joint one, where position and tilt are correlated).
     pub sigma_h_given_attitude_m: f64,
-    /// Mean height of the first centre above the inliers' ground points, m; their heights'
-    /// standard deviation, m.
+    /// Mean height of the first centre above the inliers' ground points, m.
     pub agl_m: f64,
+    /// Standard deviation of those ground points' heights, m.
     pub relief_std_m: f64,
     /// Reciprocal condition number of the Jacobi-scaled normal matrix.
     pub rcond: f64,
@@ -518,12 +586,14 @@ pub struct DtmFix {
 /// The paper's last six parameters: the motion between the frames.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DtmMotion {
-    /// `T = C2 - C1`, world frame, m, and its covariance.
+    /// `T = C2 - C1`, world frame, m.
     pub t_world_m: Vector3<f64>,
+    /// Covariance of `T`, world frame, m^2.
     pub cov_t_world_m2: Matrix3<f64>,
-    /// `dR = R1^T R2` (second-camera vectors into the first camera frame) and the covariance of
-    /// its error as a rotation vector in the first camera frame, on the left, rad^2.
+    /// `dR = R1^T R2`: second-camera vectors into the first camera frame.
     pub r_first_second: Rotation3<f64>,
+    /// Covariance of the error of `dR` as a rotation vector in the first camera frame, on the
+    /// left, rad^2.
     pub cov_rot_first_rad2: Matrix3<f64>,
 }
 

@@ -1,3 +1,4 @@
+#![warn(missing_docs)]
 //! visnav-core: the pure algorithms of visnav, with no file or device I/O, no async and no wall
 //! clock (budgets count work), so the same inputs give the same outputs on any machine.
 //!

@@ -78,7 +78,9 @@ pub use tracker::{RawTrack, Tracker, TrackingConfig};
 /// One feature seen in both frames: its undistorted pixel position in the previous and the next.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TrackPair {
+    /// Undistorted pixel position in the previous frame.
     pub prev_px: Vector2<f64>,
+    /// Undistorted pixel position in the next frame.
     pub next_px: Vector2<f64>,
 }
 
@@ -215,25 +217,41 @@ impl Validate for VoConfig {
 /// Why no motion came out of a frame pair.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum VoRejection {
+    /// Unusable input, settings or result (non-finite, not a rotation, bad camera); says which.
     #[error("invalid input: {0}")]
     InvalidInput(String),
+    /// Fewer tracks than [`VoConfig::min_tracks`].
     #[error("{tracks} tracks, need {min}")]
-    TooFewTracks { tracks: usize, min: usize },
-    #[error("{on_ground} of {tracks} tracks reach the terrain, need {min}")]
-    TooFewOnGround {
-        on_ground: usize,
+    TooFewTracks {
+        /// Tracks given.
         tracks: usize,
+        /// [`VoConfig::min_tracks`].
         min: usize,
     },
+    /// Fewer tracks whose previous-frame ray meets the terrain than [`VoConfig::min_tracks`].
+    #[error("{on_ground} of {tracks} tracks reach the terrain, need {min}")]
+    TooFewOnGround {
+        /// Tracks whose ray meets the terrain within [`VoConfig::max_range_m`].
+        on_ground: usize,
+        /// Tracks given.
+        tracks: usize,
+        /// [`VoConfig::min_tracks`].
+        min: usize,
+    },
+    /// The next frame's resection failed or was rejected by its integrity checks.
     #[error("next frame's resection: {0}")]
     Resection(Rejection),
+    /// The displacement's horizontal or vertical 1-sigma exceeds
+    /// [`VoConfig::max_sigma_agl_fraction`] of the height above ground.
     #[error(
         "sigma {sigma_h_m:.1} m is over {max_fraction} of the height above ground ({agl_m:.0} m)"
     )]
     TooUncertain {
         /// The larger of the horizontal and vertical sigma, m.
         sigma_h_m: f64,
+        /// Height of the previous centre above the inlier ground points, m.
         agl_m: f64,
+        /// [`VoConfig::max_sigma_agl_fraction`].
         max_fraction: f64,
     },
 }
@@ -271,9 +289,11 @@ pub struct FrameMotion {
     pub agl_m: f64,
     /// Mean line of sight from the next centre to the inlier ground points, world frame, m.
     pub look_world_m: Vector3<f64>,
-    /// Tracks given, tracks on the terrain, inliers of the resection.
+    /// Tracks given.
     pub tracks: usize,
+    /// Tracks whose previous-frame ray met the terrain.
     pub on_ground: usize,
+    /// Inliers of the next frame's resection.
     pub inliers: usize,
     /// Reprojection RMS over the inliers, px.
     pub rms_px: f64,
@@ -291,14 +311,18 @@ pub struct FrameMotion {
 /// naturally on the right, in the next frame: `Exp(R_prev_next psi_next) R_prev_next`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RotationPrior {
+    /// The gyros' `R_prev_next`: next-camera vectors into the previous camera frame.
     pub r_prev_next: Rotation3<f64>,
+    /// Covariance of its error, rotation vector in the previous camera frame (left), rad^2.
     pub cov_prev_rad2: Matrix3<f64>,
 }
 
 /// What a frame pair's motion is solved from besides the terrain.
 #[derive(Debug, Clone, Copy)]
 pub struct VoInput<'a> {
+    /// Features seen in both frames, undistorted pixels.
     pub tracks: &'a [TrackPair],
+    /// The camera's focal lengths, principal point and image size.
     pub image: &'a ImageGeometry,
     /// The previous frame's camera pose (the filter's, world frame).
     pub prev: Pose,

@@ -13,7 +13,7 @@
 //!   priors); a 100 ms watchdog declares the solution lost when the IMU stream stops.
 //! * the frame path (OS threads, never on the runtime, [`frames`]): a reader thread paces the
 //!   [`FrameSource`] into a one-frame slot (newest wins, replaced frames counted), `frames.workers`
-//!   fix threads drop frames older than `frames.max_age_s`, build the [`FixPrior`] at the
+//!   fix threads drop frames older than `frames.max_age_s`, build the [`FixPrior`](visnav_core::fix::FixPrior) at the
 //!   capture time and call the [`FrameFixer`].
 //!
 //! * the optional Prometheus endpoint (`[daemon] metrics_listen`, [`prometheus`]).

@@ -279,8 +279,8 @@ const WIDEN_AFTER_REJECTIONS: u32 = 3;
 const WIDEN_RETRY_S: f64 = 5.0;
 
 /// When the daemon asks the fix engine to widen the heading search of a frame that finds no fix
-/// at the filter's heading: after [`WIDEN_AFTER_REJECTIONS`] rejections in a row, and not again
-/// within [`WIDEN_RETRY_S`] of a widened search that failed. A fix accepted starts the count
+/// at the filter's heading: after `WIDEN_AFTER_REJECTIONS` rejections in a row, and not again
+/// within `WIDEN_RETRY_S` of a widened search that failed. A fix accepted starts the count
 /// again. Times are capture times on the autopilot clock (the same decisions in lock-step).
 #[derive(Debug, Default)]
 pub struct HeadingWidening {

@@ -641,7 +641,7 @@ impl OutputBook {
     }
 
     /// The body's rotation over the ground from `t0_us` to `t1_us` by the outputs' body rates less
-    /// the local level frame's own turn ([`rate_over_ground`]; `R_b0_b1`: vectors of the body at
+    /// the local level frame's own turn (`rate_over_ground`; `R_b0_b1`: vectors of the body at
     /// `t1` into the body at `t0`), trapezoidal between outputs, the newest rate
     /// held beyond the newest output, and what sampling the rates leaves unknown, rad: the rate
     /// between two outputs may have taken any path between their values (a multirotor's attitude

@@ -1,3 +1,4 @@
+#![warn(missing_docs)]
 //! SURF on the GPU through wgpu compute shaders (Vulkan, Metal, DX12; Mesa's lavapipe gives a
 //! software Vulkan adapter where there is no GPU), producing the same features as visnav-core's
 //! CPU SURF, which stays the reference (`visnav_core::vision::surf`; Bay et al. 2008).
@@ -15,13 +16,13 @@
 //! * `shaders/descriptor.wgsl`: the descriptors by the CPU's three sampling paths
 //!   (`describe_one`, `describe_rotated`), one workgroup per keypoint;
 //! * `shaders/match.wgsl`: brute-force two-nearest-neighbour matching with the CPU matcher's
-//!   gates and distance ([`matching`]; `visnav_core::vision::match_features`).
+//!   gates and distance (`matching`; `visnav_core::vision::match_features`).
 //!
 //! The host sorts the maxima into the CPU's order, turns them into keypoints with the CPU's
 //! formula (`keypoint_at`), applies `max_features` with the CPU's `select_spread`, and takes the
 //! final `atan2` of each orientation (the GPU's trigonometry is not exact). A frame is three short
 //! round trips: the layers and maxima (reading back their count), the maxima, then the
-//! orientations and descriptors. Buffers are kept between frames of one size ([`frame`]).
+//! orientations and descriptors. Buffers are kept between frames of one size (`frame`).
 //!
 //! The parameters are the one `SurfParams` of the CPU path, so the two cannot disagree on what to
 //! compute. They differ only where a GPU rounds differently (a fused multiply-add, a division
@@ -70,20 +71,30 @@ const _: () = assert!(ORIENTATION_BINS == 72 && ORIENTATION_WINDOW_BINS <= ORIEN
 /// Why the GPU path is not available or failed.
 #[derive(Debug, Error)]
 pub enum GpuError {
+    /// No adapter at all (the message says what to install).
     #[error("no GPU adapter: {0}")]
     NoAdapter(String),
+    /// Only a software adapter (named) where [`AdapterPolicy::HardwareOnly`] was asked for.
     #[error("only a software adapter ({0}) was found and software adapters are not allowed")]
     SoftwareOnly(String),
+    /// The adapter refused the device or its shaders.
     #[error("GPU device: {0}")]
     Device(String),
+    /// An operation on the device failed (an error scope, a read-back, a size the buffers cannot
+    /// hold).
     #[error("GPU: {0}")]
     Run(String),
+    /// The buffers for an image of this size could not be built.
     #[error("image of {width} x {height} px: {reason}")]
     Image {
+        /// Image width, px.
         width: usize,
+        /// Image height, px.
         height: usize,
+        /// Why, in words.
         reason: String,
     },
+    /// The CPU types refused the result (descriptors that do not fit the keypoints).
     #[error(transparent)]
     Vision(#[from] visnav_core::vision::VisionError),
 }
@@ -100,6 +111,7 @@ pub enum AdapterPolicy {
 /// The adapter in use.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct AdapterInfo {
+    /// The adapter's name as the driver reports it.
     pub name: String,
     /// `vulkan`, `metal`, `dx12`.
     pub backend: String,

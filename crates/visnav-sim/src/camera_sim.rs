@@ -75,6 +75,7 @@ pub struct SimCamera {
 }
 
 impl SimCamera {
+    /// A camera rendering `spec` at the poses `feed` gives; no frame taken yet.
     pub fn new(spec: SimCameraSpec, feed: Arc<dyn TruthFeed>) -> Self {
         Self {
             spec,
@@ -209,8 +210,10 @@ pub fn tear(image: &mut GrayImage, seq: u64) {
 /// Why a truth state has no render pose in the scene's CRS.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum TruthPoseError {
+    /// The latitude and longitude could not be projected into the CRS.
     #[error("truth position: {0}")]
     Position(GeoError),
+    /// The CRS's grid convergence could not be had at the position.
     #[error("grid convergence: {0}")]
     Convergence(GeoError),
 }

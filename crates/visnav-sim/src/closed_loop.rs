@@ -132,15 +132,22 @@ const CHI2_2DOF_3SIGMA: f64 = 11.829;
 /// Why the closed loop could not run.
 #[derive(Debug, thiserror::Error)]
 pub enum ClosedLoopError {
+    /// The scenario is not a closed-loop one.
     #[error("the scenario has no [closed_loop] section")]
     NotClosedLoop,
+    /// The scenario's configuration, maps, camera, sockets or emulators could not be set up (the
+    /// message names what).
     #[error("{0}")]
     Setup(String),
+    /// A daemon failed to start or run.
     #[error(transparent)]
     Daemon(#[from] visnav_daemon::DaemonError),
+    /// A file of the run could not be read or written.
     #[error("{path}: {cause}")]
     Io {
+        /// The file.
         path: PathBuf,
+        /// The I/O error.
         cause: std::io::Error,
     },
 }
@@ -180,8 +187,15 @@ fn lerp_angle(a: f64, b: f64, u: f64) -> f64 {
 /// Why a scenario's truth could not be tabulated.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum TruthTableError {
+    /// The geoid undulation could not be had at a point of the trajectory.
     #[error("truth at t = {t_s} s: geoid: {error}")]
-    Geoid { t_s: f64, error: GeoError },
+    Geoid {
+        /// Scenario time of the sample, s.
+        t_s: f64,
+        /// Why the geoid model failed there.
+        error: GeoError,
+    },
+    /// The integrated trajectory left the finite numbers.
     #[error("the trajectory integration produced non-finite positions")]
     NonFinite,
 }
@@ -308,6 +322,8 @@ pub struct SimSensors {
 }
 
 impl SimSensors {
+    /// The sensors of `sc` over its truth table: the IMU errors, the AHRS error processes and
+    /// the GPS noise drawn from the scenario's seed, and its scripted faults.
     pub fn new(sc: &Scenario, table: Arc<TruthTable>) -> Self {
         let mut rng = Rng::new(sc.seed);
         let errors = ImuErrors::for_run(sc.imu.clone(), &mut rng, false);
@@ -593,68 +609,105 @@ impl FrameFixer for RecordingFixer {
 pub struct StepRow {
     /// Scenario time (vision emulator's boot clock), s.
     pub t_s: f64,
+    /// Whether the simulated GPS had a fix at `t_s`.
     pub gps_on: bool,
+    /// True vehicle latitude at `t_s`, deg.
     pub truth_lat_deg: f64,
+    /// True vehicle longitude at `t_s`, deg.
     pub truth_lon_deg: f64,
+    /// True vehicle altitude above mean sea level (EGM96) at `t_s`, m.
     pub truth_alt_amsl_m: f64,
-    /// Vision filter output (NaN before initialisation): position error NED, m, and its
-    /// horizontal 1-sigma (sqrt of the larger eigenvalue of the horizontal covariance), m.
+    /// Vision filter output's latitude, deg (NaN before initialisation).
     pub vis_lat_deg: f64,
+    /// Vision filter output's longitude, deg (NaN before initialisation).
     pub vis_lon_deg: f64,
+    /// Vision filter output's position error against the truth, NED, m (NaN before
+    /// initialisation).
     pub vis_err_ned_m: [f64; 3],
+    /// Vision filter's claimed horizontal 1-sigma (sqrt of the larger eigenvalue of its
+    /// horizontal covariance), m (NaN before initialisation).
     pub vis_sigma_h_m: f64,
+    /// Vision filter's health: `ok`, `degraded`, `lost` or `uninitialised`.
     pub vis_health: &'static str,
-    /// The control filter (no vision).
+    /// Control filter (no vision) output's latitude, deg (NaN before initialisation).
     pub ctl_lat_deg: f64,
+    /// Control filter output's longitude, deg (NaN before initialisation).
     pub ctl_lon_deg: f64,
+    /// Control filter output's position error against the truth, NED, m.
     pub ctl_err_ned_m: [f64; 3],
+    /// Control filter's claimed horizontal 1-sigma, m.
     pub ctl_sigma_h_m: f64,
+    /// Control filter's health, as `vis_health`.
     pub ctl_health: &'static str,
-    /// Horizontal velocity error of the vision and the control filters' outputs (NaN before
-    /// initialisation), m/s (not in steps.csv).
+    /// Horizontal velocity error of the vision filter's output (NaN before initialisation),
+    /// m/s (not in steps.csv).
     pub vis_vel_err_h_m_s: f64,
+    /// The same for the control filter.
     pub ctl_vel_err_h_m_s: f64,
-    /// Heading error of the vision and the control filters' outputs: the output's yaw (ZYX
-    /// Euler, `NavOutput::rpy_deg`) minus the true yaw at the output's own time, wrapped to
+    /// Heading error of the vision filter's output: the output's yaw (ZYX Euler,
+    /// `NavOutput::rpy_deg`) minus the true yaw at the output's own time, wrapped to
     /// [-180, 180) deg (NaN before initialisation).
     pub vis_yaw_err_deg: f64,
+    /// The same for the control filter.
     pub ctl_yaw_err_deg: f64,
-    /// Largest absolute Euler angle error (roll, pitch, yaw, each wrapped) of the vision and the
-    /// control filters' outputs at the output's own time, deg (NaN before initialisation).
+    /// Largest absolute Euler angle error (roll, pitch, yaw, each wrapped) of the vision filter's
+    /// output at the output's own time, deg (NaN before initialisation).
     pub vis_euler_err_deg: f64,
+    /// The same for the control filter.
     pub ctl_euler_err_deg: f64,
 }
 
 /// An injected position as the emulator received it.
 #[derive(Debug, Clone, Serialize)]
 pub struct InjectionRow {
+    /// Emulator run time (scenario time) at arrival, s.
     pub t_s: f64,
     /// `gps_input`, `vision_position_estimate` or `odometry`.
     pub kind: &'static str,
+    /// Injected latitude, deg.
     pub lat_deg: f64,
+    /// Injected longitude, deg.
     pub lon_deg: f64,
+    /// Injected altitude above mean sea level, m.
     pub alt_amsl_m: f64,
+    /// The horizontal accuracy the message claims, m.
     pub horiz_accuracy_m: f64,
+    /// Injected position minus the truth at arrival, NED, m.
     pub err_ned_m: [f64; 3],
+    /// Whether the control daemon (no vision) sent it.
     pub control: bool,
 }
 
 /// Scored fix.
 #[derive(Debug, Clone, Serialize)]
 pub struct FixRow {
+    /// Capture time of the frame (emulator run time), s.
     pub t_capture_s: f64,
+    /// Capture to fix result (delivery in lock-step), ms.
     pub latency_ms: f64,
+    /// Whether the fix engine accepted the fix.
     pub accepted: bool,
     /// "ok", or the rejection in words.
     pub reason: String,
     /// "ok", or the rejection's class (`visnav_core::fix::Rejection::class`).
     pub class: &'static str,
+    /// The fix's camera latitude, deg.
     pub lat_deg: f64,
+    /// The fix's camera longitude, deg.
     pub lon_deg: f64,
+    /// The fix's camera position minus the true camera position at capture, NED, m (NaN when
+    /// rejected).
     pub err_ned_m: [f64; 3],
+    /// The fix's claimed horizontal 1-sigma (major semi-axis of its covariance), m (NaN when
+    /// rejected).
     pub sigma_h_m: f64,
+    /// Whether the horizontal error lies outside the fix's own 3-sigma ellipse (chi-square,
+    /// 2 dof).
     pub beyond_3sigma: bool,
+    /// The fix's pose inliers (`FixReport::inliers`).
     pub inliers: usize,
+    /// `FixReport::ms` as the engine returned it, ms: the engine reads no clock and the daemon's
+    /// fix worker times the call only after this row is taken, so it is 0 here.
     pub ms: f64,
 }
 
@@ -679,31 +732,39 @@ impl FixRow {
 /// `{p50, p95}`.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct Latency {
+    /// Median.
     pub p50: f64,
+    /// 95th percentile.
     pub p95: f64,
 }
 
 /// Max absolute error per axis (east, north, up), m.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct Enu {
+    /// East.
     pub e: f64,
+    /// North.
     pub n: f64,
+    /// Up.
     pub u: f64,
 }
 
 /// A DTM navigator's pose against the truth at its capture time.
 #[derive(Debug, Clone, Copy)]
 pub struct DtmRow {
-    /// Capture times of the frame and of its partner, s; the distance between them, m; flow
-    /// vectors kept as inliers.
+    /// Capture time of the frame (emulator run time), s.
     pub t_capture_s: f64,
+    /// Capture time of its partner frame, s.
     pub t_first_s: f64,
+    /// The distance flown between the two frames, m.
     pub baseline_m: f64,
+    /// Flow vectors kept as inliers.
     pub inliers: usize,
-    /// Camera position error NED, m; claimed horizontal 1-sigma (major semi-axis), m; outside its
-    /// own 3-sigma horizontal ellipse.
+    /// Camera position error against the true camera position, NED, m.
     pub err_ned_m: [f64; 3],
+    /// Claimed horizontal 1-sigma (major semi-axis), m.
     pub sigma_h_m: f64,
+    /// Whether the error lies outside its own 3-sigma horizontal ellipse.
     pub beyond_3sigma: bool,
     /// Largest Euler angle error (roll, pitch, yaw of the vehicle, each wrapped), deg.
     pub euler_err_deg: f64,
@@ -712,13 +773,17 @@ pub struct DtmRow {
 /// The DTM navigator's poses in the evaluation window (`visnav sim --json`: `dtm_poses`).
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct DtmScore {
+    /// Poses in the window.
     pub poses: usize,
-    /// Horizontal and vertical position error, largest Euler angle error.
+    /// Horizontal position error, m.
     pub err_h_m: Stats,
+    /// Absolute vertical position error, m.
     pub err_v_m: Stats,
+    /// Largest Euler angle error per pose, deg.
     pub euler_err_deg: Stats,
-    /// The claimed horizontal 1-sigma; poses outside their own 3-sigma horizontal ellipse.
+    /// The claimed horizontal 1-sigma, m.
     pub sigma_h_m: Stats,
+    /// Poses outside their own 3-sigma horizontal ellipse.
     pub beyond_3sigma: usize,
 }
 
@@ -739,56 +804,84 @@ impl DtmScore {
 /// The closed-loop summary (`visnav sim --json`).
 #[derive(Debug, Clone, Serialize)]
 pub struct ClosedLoopSummary {
+    /// The scenario's name.
     pub scenario: String,
+    /// The scenario's description.
     pub description: String,
+    /// The scenario's flight duration, s.
     pub duration_s: f64,
     /// Scenario time at which the run was stopped early (Ctrl-C): the figures cover the flight
     /// up to there only.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub interrupted_at_s: Option<f64>,
+    /// The evaluation window `[from_s, until_s]` (`[evaluation]`), scenario time, s.
     pub evaluation_window_s: [f64; 2],
+    /// The GPS outage from the GPS's `until_s` to the end of the flight, s (null without GPS).
     pub gps_outage_s: Option<[f64; 2]>,
+    /// The simulated camera in words (its frame source's description).
     pub camera: String,
     /// Height of the aircraft above the camera's terrain (the surface it renders on) over the
-    /// window, m: the median, and the lowest and highest.
+    /// window, m: the median.
     pub agl_m: f64,
+    /// The lowest and highest of those heights, m.
     pub agl_range_m: [f64; 2],
     /// Accepted fixes / fix attempts in the window.
     pub fix_rate: f64,
+    /// Frames the vision daemon took in over the whole run.
     pub frames_rendered: u64,
+    /// Fix attempts on frames captured in the window.
     pub fix_attempts: usize,
+    /// Of those, the fixes the engine accepted.
     pub fixes_accepted: usize,
+    /// Frames the vision daemon dropped unfixed (superseded by a newer frame, or stale).
     pub frames_dropped: u64,
     /// Accepted fixes the filter's innovation gate rejected.
     pub fixes_filter_rejected: u64,
+    /// Horizontal error of the accepted fixes' camera position against the true camera
+    /// position at capture, m.
     pub fix_err_m: Stats,
+    /// Accepted fixes outside their own 3-sigma horizontal ellipse.
     pub fix_beyond_3sigma: usize,
+    /// Horizontal error of the vision daemon's injections of the scored kind
+    /// (`injected_message`) against the truth at arrival, m.
     pub nav_err_m: Stats,
+    /// Absolute vertical error of the same injections, m.
     pub nav_vert_err_m: Stats,
+    /// Horizontal error of the vision filter's output (10 Hz samples) against the truth at the
+    /// output's time, m.
     pub nav_output_err_m: Stats,
+    /// The same for the control filter's output, m.
     pub control_err_m: Stats,
+    /// Horizontal error of the control daemon's injections of the scored kind, m.
     pub control_injected_err_m: Stats,
-    /// Horizontal error over the filter's horizontal sigma (module doc), vision and control.
+    /// Horizontal error over the vision filter's horizontal sigma (module doc).
     pub nav_err_over_sigma: Stats,
+    /// The same for the control filter.
     pub control_err_over_sigma: Stats,
-    /// The filters' horizontal 1-sigma (major semi-axis), m.
+    /// The vision filter's horizontal 1-sigma (major semi-axis), m.
     pub nav_sigma_h_m: Stats,
+    /// The control filter's horizontal 1-sigma, m.
     pub control_sigma_h_m: Stats,
-    /// Horizontal velocity error of the vision and the control filters' outputs (10 Hz samples),
-    /// m/s: a filter whose velocity collapses while the vehicle flies on shows here.
+    /// Horizontal velocity error of the vision filter's output (10 Hz samples), m/s: a filter
+    /// whose velocity collapses while the vehicle flies on shows here.
     pub nav_vel_err_m_s: Stats,
+    /// The same for the control filter.
     pub control_vel_err_m_s: Stats,
+    /// Largest per-axis and 3-D position errors of both filters' outputs in the window.
     pub max_err_m: MaxErr,
+    /// Largest Euler angle error of both filters' outputs in the window.
     pub max_euler_err_deg: MaxEuler,
-    /// The vision daemon's visual odometry and DTM navigation over the whole run (frames, what
-    /// came out, what the filter did, refusals by reason); null when off.
+    /// The vision daemon's visual odometry over the whole run (frames, what came out, what the
+    /// filter did, refusals by reason); null when off.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub vo: Option<visnav_daemon::metrics::VoSnapshot>,
+    /// The same for its DTM navigation; null when off.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub dtm: Option<visnav_daemon::metrics::VoSnapshot>,
     /// The DTM navigator's poses in the window against the truth; null when none.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub dtm_poses: Option<DtmScore>,
+    /// Capture to fix result of the window's attempts, ms.
     pub latency_ms: Latency,
     /// Position messages of the scored kind received in the window.
     pub injections: usize,
@@ -796,6 +889,7 @@ pub struct ClosedLoopSummary {
     pub injected_message: String,
     /// Every injected position message kind: (count, horizontal error stats) in the window.
     pub nav_err_by_message: std::collections::BTreeMap<String, (usize, Stats)>,
+    /// The control daemon's position messages of the scored kind received in the window.
     pub control_injections: usize,
     /// The window's rejected attempts by class ([`visnav_core::fix::Rejection::class`]), most frequent first, each
     /// with its latest reason as the engine wrote it.
@@ -806,22 +900,27 @@ pub struct ClosedLoopSummary {
     /// Its counters at the end of a run with scripted faults.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub fault_counters: Option<FaultCounters>,
+    /// The vision filter's health at the last step (`ok`, `degraded`, `lost`, `uninitialised`).
     pub vision_final_health: String,
+    /// The control filter's health at the last step.
     pub control_final_health: String,
-    /// Horizontal error of the vision / the control filter's output at the last step with an
-    /// initialised output, m (whole flight, not the window; null: never initialised).
+    /// Horizontal error of the vision filter's output at the last step with an initialised
+    /// output, m (whole flight, not the window; null: never initialised).
     pub final_err_h_m: Option<f64>,
+    /// The same for the control filter.
     pub control_final_err_h_m: Option<f64>,
     /// Horizontal distance along the true track from the GPS loss to the end, m ([`FlightFigures`];
     /// 0 when the GPS never goes off).
     pub distance_flown_m: f64,
-    /// Largest absolute heading error of the vision / the control filter's output over the steps
-    /// from the GPS loss on, deg (null: none).
+    /// Largest absolute heading error of the vision filter's output over the steps from the GPS
+    /// loss on, deg (null: none).
     pub yaw_err_deg_max: Option<f64>,
+    /// The same for the control filter.
     pub ctl_yaw_err_deg_max: Option<f64>,
-    /// Soak figures (runs of at least twice [`SOAK_WINDOW_S`] in the window): accepted fixes
-    /// over attempts in its first and last `SOAK_WINDOW_S`.
+    /// Soak figure (runs of at least twice [`SOAK_WINDOW_S`] in the window): accepted fixes
+    /// over attempts in the window's first `SOAK_WINDOW_S`.
     pub fix_rate_first_window: Option<f64>,
+    /// The same over the window's last `SOAK_WINDOW_S`.
     pub fix_rate_last_window: Option<f64>,
     /// Resident memory of the whole process (simulator, both daemons), MB: after the first
     /// `SOAK_WINDOW_S` of the window (everything is built and warm) and at the end of the flight,
@@ -830,15 +929,18 @@ pub struct ClosedLoopSummary {
     /// whole run: `recording::resident_vec`), so the growth is the daemons', the emulators' and
     /// the camera's.
     pub rss_mb_after_first_window: Option<f64>,
+    /// Resident memory at the end of the flight, MB (as above).
     pub rss_mb_end: Option<f64>,
     /// The heap in use at the same instants (`visnav_daemon::heap`: what was allocated and not
     /// freed), total and the simulator's recordings in it (the reserved buffers of the compact
     /// steps, fix rows and injections, and the fixes' reason strings), MB.
     pub heap_mb_after_first_window: Option<HeapSample>,
+    /// The heap at the end of the flight (as above).
     pub heap_mb_end: Option<HeapSample>,
     /// Growth of the heap without the recordings over the soak (both daemons, both emulators,
     /// the camera; everything but what the simulator keeps to score the run), MB.
     pub heap_growth_mb_without_recordings: Option<f64>,
+    /// The report folder `visnav sim` writes, set by the caller (null: none).
     pub report_dir: Option<String>,
 }
 
@@ -939,8 +1041,11 @@ fn rss_mb() -> Option<f64> {
 /// since the previous sample (the start for the first), MB.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct HeapSample {
+    /// The heap in use, MB.
     pub total_mb: f64,
+    /// The simulator's recordings in it, MB.
     pub recordings_mb: f64,
+    /// The most the heap held at once since the previous sample, MB.
     pub peak_mb: f64,
 }
 
@@ -1012,10 +1117,13 @@ fn fix_rate_in(fixes: &[&FixRow], from_s: f64, until_s: f64) -> Option<f64> {
 /// Max per-axis errors of the filter outputs in the window, vision and control side by side.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct MaxErr {
+    /// The vision filter's largest error per axis.
     pub vision: Enu,
+    /// The control filter's largest error per axis.
     pub control: Enu,
-    /// The largest 3-D error (not the axes' maxima together), m.
+    /// The vision filter's largest 3-D error (not the axes' maxima together), m.
     pub vision_3d: f64,
+    /// The control filter's largest 3-D error, m.
     pub control_3d: f64,
 }
 
@@ -1023,16 +1131,22 @@ pub struct MaxErr {
 /// control filters' outputs in the window, deg (NaN: no output).
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct MaxEuler {
+    /// The vision filter's, deg.
     pub vision: f64,
+    /// The control filter's, deg.
     pub control: f64,
 }
 
 /// Everything a run produced.
 #[derive(Debug, Clone)]
 pub struct ClosedLoopRun {
+    /// The scores.
     pub summary: ClosedLoopSummary,
+    /// The run at 10 Hz, whole flight.
     pub steps: Vec<StepRow>,
+    /// Every fix attempt, scored, whole flight.
     pub fixes: Vec<FixRow>,
+    /// Every position injection both emulators received, scored, whole flight.
     pub injections: Vec<InjectionRow>,
     /// Every pose of the DTM navigator, scored (empty without `[dtm_nav]`).
     pub dtm_poses: Vec<DtmRow>,
@@ -1370,15 +1484,20 @@ fn degraded_map_copies(
 }
 
 /// The camera world of a scenario's `[closed_loop]` for a real autopilot's SITL (`visnav
-/// sitl-run --scenario`): the scene, renderer, CRS and mount [`camera_rig`] builds (the camera
+/// sitl-run --scenario`): the scene, renderer, CRS and mount `camera_rig` builds (the camera
 /// orthophoto on `camera_dem`, `camera_degrade` applied, `[closed_loop.render]`'s light, blur and
 /// noise), and `cfg`'s map orthophotos replaced by their `map_degrade` copies. The returned
 /// folder holds the copies: keep it until the map is built.
 pub struct ScenarioCamera {
+    /// The camera-year orthophoto on its terrain.
     pub scene: Arc<Scene>,
+    /// The renderer of the configured camera.
     pub renderer: Arc<Renderer>,
+    /// The scene's CRS.
     pub crs: visnav_core::geo::Crs,
+    /// The camera's mount on the vehicle (lever arm, rotation).
     pub mount: visnav_core::camera::Mount,
+    /// The folder of the map's degraded copies (None without `map_degrade`).
     pub map_copies: Option<tempfile::TempDir>,
 }
 

@@ -39,8 +39,11 @@ use crate::vo_eval::{
 /// (roll, pitch, yaw about the world axes), deg; and the guessed motion's own error, m.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct GuessError {
+    /// Position error common to both frames, map east, north, up, m.
     pub offset_m: [f64; 3],
+    /// Attitude error common to both frames: roll, pitch, yaw about the world axes, deg.
     pub turn_deg: [f64; 3],
+    /// Error of the guessed motion (added to the second frame's position), east, north, up, m.
     pub motion_err_m: [f64; 3],
 }
 
@@ -77,46 +80,63 @@ pub const FLAT_PAIR_GAP: usize = 8;
 /// The NGI figures (`visnav bench dtm --json`: the `ngi_*` keys).
 #[derive(Debug, Clone, Serialize)]
 pub struct NgiDtm {
+    /// Corners detected in the first frame.
     pub corners: usize,
-    /// Flow vectors kept by the forward-backward check, on the terrain, inliers of the solution.
+    /// Flow vectors kept by the forward-backward check.
     pub tracks: usize,
+    /// Of those, the ones on the terrain at the first guess.
     pub on_ground: usize,
+    /// Inliers of the solution.
     pub inliers: usize,
     /// The first guess's position error, m (what the solution starts from).
     pub guess_err_m: f64,
-    /// The solved first position minus the measured one (east, north, up), m, and its length.
+    /// The solved first position minus the measured one (east, north, up), m.
     pub err_m: [f64; 3],
+    /// The length of that error, m.
     pub err_norm_m: f64,
-    /// The claimed 1-sigma along the error's direction, m, and the error in those sigmas.
+    /// The claimed 1-sigma along the error's direction, m.
     pub sigma_along_err_m: f64,
+    /// The error's length in those sigmas.
     pub err_over_sigma: f64,
     /// The position error's squared Mahalanobis distance with the claimed 3x3 covariance
-    /// (chi-square, 3 dof, when honest) and the largest per-axis error in its own sigmas.
+    /// (chi-square, 3 dof, when honest).
     pub err_mahalanobis2: f64,
+    /// The largest per-axis error in its own sigmas.
     pub err_axis_sigmas: f64,
-    /// Claimed 1-sigma east, north, up, m; horizontal given the attitude.
+    /// Claimed 1-sigma east, north, up, m.
     pub sigma_m: [f64; 3],
+    /// Claimed horizontal 1-sigma were the attitudes known (what the relief alone fixes), m.
     pub sigma_h_given_attitude_m: f64,
-    /// The solved first attitude against the measured one, deg; its largest 1-sigma.
+    /// The solved first attitude against the measured one (rotation angle), deg.
     pub att_err_deg: f64,
+    /// The attitude's largest claimed 1-sigma, deg.
     pub att_sigma_deg: f64,
+    /// Reprojection RMS over the inliers, px.
     pub rms_px: f64,
+    /// A-posteriori sigma0 of the solution.
     pub sigma0: f64,
+    /// Standard deviation of the inliers' ground heights, m.
     pub relief_std_m: f64,
+    /// Mean height of the first camera centre above the inliers' ground points, m.
     pub agl_m: f64,
+    /// The minimiser of the final stage (`gauss_newton`, `levenberg_marquardt`).
     pub method: String,
+    /// Iterations of both stages.
     pub iterations: usize,
-    /// Flow (pyramids, corners, tracking both ways) and solve times on the calling thread, ms.
+    /// Flow time (pyramids, corners, tracking both ways) on the calling thread, ms.
     pub ms_flow: f64,
+    /// Solve time on the calling thread, ms.
     pub ms_solve: f64,
 }
 
 /// The flat-ground figures.
 #[derive(Debug, Clone, Serialize)]
 pub struct FlatDtm {
+    /// Frame pairs tried.
     pub pairs: usize,
-    /// Solutions accepted with the default settings and with the relief screen off.
+    /// Solutions accepted with the default settings (should be 0).
     pub accepted: usize,
+    /// Solutions accepted with the relief screen off (should be 0).
     pub accepted_unscreened: usize,
     /// One line per distinct refusal reason (first example of each), both runs.
     pub reasons: Vec<String>,
@@ -180,7 +200,9 @@ fn data_err(path: PathBuf, reason: String) -> VoEvalError {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum NgiOrder {
+    /// Frame 0182 first, flow to 0184 (the flown order).
     Forward,
+    /// Frame 0184 first, flow back to 0182.
     Reverse,
 }
 
@@ -234,13 +256,15 @@ pub fn ngi_dtm(dir: &Path, err: &GuessError, order: NgiOrder) -> Result<NgiDtm, 
 /// One guess of a sweep ([`ngi_sweep`]): where it was and what came of it.
 #[derive(Debug, Clone, Serialize)]
 pub struct SweepCase {
+    /// Which frame was the first.
     pub order: NgiOrder,
-    /// The guess's horizontal offset from the truth, m, and its direction (deg from grid east,
-    /// counter-clockwise).
+    /// The guess's horizontal offset from the truth, m.
     pub offset_m: f64,
+    /// The offset's direction, deg from grid east, counter-clockwise.
     pub direction_deg: f64,
-    /// The solution's figures when one was accepted; the refusal otherwise.
+    /// The solution's figures when one was accepted.
     pub solved: Option<NgiDtm>,
+    /// The solver's refusal in words otherwise.
     pub refused: Option<String>,
 }
 

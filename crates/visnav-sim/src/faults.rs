@@ -78,6 +78,7 @@ impl FaultKind {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FaultConfig {
+    /// What fails.
     pub kind: FaultKind,
     /// Scenario time of the start, s.
     pub at_s: f64,
@@ -162,19 +163,25 @@ const G0_M_S2: f64 = 9.806_65;
 /// What the camera does at an instant.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum CameraFault {
+    /// Frames as usual.
     None,
+    /// No frame ([`FaultKind::CameraStall`]).
     Stall,
+    /// The last image again, newly stamped ([`FaultKind::CameraFreeze`]).
     Freeze,
+    /// Torn frames ([`FaultKind::CameraCorrupt`]).
     Corrupt,
 }
 
 /// The scenario's faults, asked by scenario time (see the module doc).
 #[derive(Debug, Clone, Default)]
 pub struct FaultPlan {
+    /// The `[[faults]]` entries.
     pub faults: Vec<FaultConfig>,
 }
 
 impl FaultPlan {
+    /// The plan of a scenario's `[[faults]]` entries.
     pub fn new(faults: Vec<FaultConfig>) -> Self {
         Self { faults }
     }
@@ -332,9 +339,11 @@ pub async fn spoof_heartbeats(
 /// the expectations are docs/operations.md's fault table, checked by `tests/sim_faults.rs`).
 #[derive(Debug, Clone, Serialize)]
 pub struct FaultOutcome {
+    /// The fault's kind ([`FaultKind::name`]).
     pub kind: &'static str,
-    /// Scenario time of the fault, s.
+    /// Scenario time of the fault's start, s.
     pub from_s: f64,
+    /// Scenario time of the fault's end, s.
     pub until_s: f64,
     /// Injections of the scored message (fix type 3 for GPS_INPUT) received while the fault
     /// lasted.
@@ -354,8 +363,9 @@ pub struct FaultOutcome {
     pub err_before_p90_m: Option<f64>,
     /// p90 horizontal error of the injections in [`RECOVERY_WINDOW_S`] after the fault, m.
     pub err_after_p90_m: Option<f64>,
-    /// Vision fix attempts and accepted fixes on frames captured during the fault.
+    /// Vision fix attempts on frames captured during the fault.
     pub fixes_attempted: usize,
+    /// Of those, the accepted fixes.
     pub fixes_accepted: usize,
     /// Accepted fixes captured during the fault whose error is beyond their 3-sigma ellipse.
     pub fixes_beyond_3sigma: usize,
@@ -395,16 +405,22 @@ pub struct FaultCounters {
 /// 1-sigma m.
 #[derive(Debug, Clone, Copy)]
 pub struct ScoredOutput {
+    /// Arrival (run time), s.
     pub t_s: f64,
+    /// Horizontal error against the truth at arrival, m.
     pub err_h_m: f64,
+    /// The horizontal accuracy the message claims, m.
     pub claimed_h_m: f64,
 }
 
 /// A vision fix as the scoring needs it: capture (run) time s, accepted, beyond its 3 sigma.
 #[derive(Debug, Clone, Copy)]
 pub struct ScoredFix {
+    /// Capture (run) time, s.
     pub t_capture_s: f64,
+    /// Whether the engine accepted it.
     pub accepted: bool,
+    /// Whether its error lies beyond its own 3-sigma horizontal ellipse.
     pub beyond_3sigma: bool,
 }
 

@@ -151,9 +151,13 @@ impl HeightSigmas {
 /// vertical) and the sigmas the prior states.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PositionPriorSpec {
+    /// The prior's drawn horizontal error, 1 sigma per axis, m.
     pub error_h_m: f64,
+    /// The horizontal sigma the prior states, m.
     pub sigma_h_m: f64,
+    /// The prior's drawn altitude error, 1 sigma, m.
     pub error_v_m: f64,
+    /// The altitude sigma the prior states, m.
     pub sigma_v_m: f64,
 }
 
@@ -167,10 +171,15 @@ struct Site {
 
 /// The evaluation set-up: the 2009 reference, the fix engine and the 2014 renderer.
 pub struct NaipEval {
+    /// The orthophoto the map is built from (its first one; the Autzen map's degraded copy).
     pub map_raster: Raster,
+    /// The fix engine under test, on the map.
     pub engine: FixEngine,
+    /// The camera's scene: the camera-year orthophoto on the rendered surface.
     pub scene: Scene,
+    /// The frames' renderer (the engine's camera).
     pub renderer: Renderer,
+    /// The map's CRS.
     pub crs: Crs,
     /// Standard deviation of the prior attitude's error per axis, radians (default 0.3 deg; the
     /// prior states 0.5 deg whatever this is). The random draws do not depend on it, so runs
@@ -232,8 +241,11 @@ pub const WRONG_FIX_CHI2_H: f64 = 11.829;
 /// One random frame of the acceptance envelope.
 #[derive(Debug, Clone, Copy)]
 pub struct Case {
+    /// The true camera pose the frame is rendered from, map grid.
     pub pose: RenderPose,
+    /// The true vehicle attitude (body to NED).
     pub attitude: Attitude,
+    /// Grid convergence at the place (bearing of grid north clockwise from true north), rad.
     pub grid_convergence_rad: f64,
 }
 
@@ -249,7 +261,9 @@ struct Drawn {
 /// Errors of one fix against the truth.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Score {
+    /// Horizontal distance from the true camera centre, m.
     pub err_h_m: f64,
+    /// Absolute vertical error against the true camera centre, m.
     pub err_v_m: f64,
     /// Largest per-axis (N, E, D) error in units of the fix's own sigma.
     pub err_sigma: f64,
@@ -294,8 +308,11 @@ impl Score {
 /// Median, 90th percentile and maximum.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Stats {
+    /// The median (NaN when empty).
     pub median: f64,
+    /// The 90th percentile.
     pub p90: f64,
+    /// The largest value.
     pub max: f64,
 }
 
@@ -324,10 +341,15 @@ fn mean(v: &[f64]) -> f64 {
 /// Summary of an evaluation run.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Summary {
+    /// Frames tried.
     pub frames: usize,
+    /// Fixes the engine accepted.
     pub accepted: usize,
+    /// Accepted over tried.
     pub fix_rate: f64,
+    /// Horizontal error of the accepted fixes against the true camera centre, m.
     pub err_h_m: Stats,
+    /// Absolute vertical error of the accepted fixes, m.
     pub err_v_m: Stats,
     /// Median horizontal error in map pixels.
     pub median_err_map_px: f64,
@@ -336,19 +358,22 @@ pub struct Summary {
     /// Wrong fixes ([`Score::is_wrong`]): more than [`WRONG_FIX_M`] off the truth in 3-D, or
     /// beyond 3 sigma on an axis or jointly horizontally.
     pub wrong_fixes: usize,
-    /// Of the wrong fixes: those more than [`WRONG_FIX_M`] off (3-D), and those outside their 3
-    /// sigma (on an axis or jointly horizontally); a fix can be both.
+    /// Of the wrong fixes: those more than [`WRONG_FIX_M`] off (3-D); a fix can count here and in
+    /// `wrong_beyond_sigma`.
     pub wrong_far: usize,
+    /// Of the wrong fixes: those outside their 3 sigma (on an axis or jointly horizontally).
     pub wrong_beyond_sigma: usize,
     /// Mean 6-dof NEES of the accepted fixes' image-only poses (= `vision_only_nees6_mean`;
     /// NaN, JSON null, without an accepted fix, as the error statistics).
     pub nees6_mean: f64,
-    /// Image-only pose of the accepted fixes: mean 6-dof NEES (6 when honest) and how many fall
-    /// beyond the chi-square(6) 99 % quantile (16.8; about 1 % when honest).
+    /// Image-only pose of the accepted fixes: mean 6-dof NEES (6 when honest).
     pub vision_only_nees6_mean: f64,
+    /// Image-only poses of the accepted fixes beyond the chi-square(6) 99 % quantile (16.8; about
+    /// 1 % when honest).
     pub vision_only_beyond_chi2_99: usize,
-    /// Frame-to-fix wall time, milliseconds.
+    /// Frame-to-fix wall time over all frames, milliseconds: the median.
     pub ms_p50: f64,
+    /// The 95th percentile of that time, milliseconds.
     pub ms_p95: f64,
     /// Rejections by class (the whole reason in words without its numbers), most frequent
     /// first, each with its latest reason.

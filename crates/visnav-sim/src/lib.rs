@@ -1,3 +1,4 @@
+#![warn(missing_docs)]
 //! visnav-sim: the built-in software-in-the-loop simulator and the evaluation tooling (see
 //! docs/architecture.md): flights of the core's truth trajectories, sensor synthesis, scenario files, the runner
 //! that scores the navigation filter, a MAVLink autopilot emulator, the camera renderer, the

@@ -36,13 +36,21 @@ const FAMILY: &str = "sans-serif";
 /// DejaVu Sans (fonts-dejavu-core 2.37), cut to ASCII and a few signs; licence in `fonts/`.
 const FONT: &[u8] = include_bytes!("../fonts/DejaVuSans-subset.ttf");
 
-/// Colours of the plots.
+// Colours of the plots.
+/// The true track: near black.
 pub const TRUTH: RGBColor = RGBColor(20, 20, 20);
+/// visnav's output, its claimed bounds and its north residuals: blue.
 pub const VISNAV: RGBColor = RGBColor(0, 90, 220);
+/// The no-vision control, and fixes beyond their own 3-sigma: red.
 pub const CONTROL: RGBColor = RGBColor(220, 40, 30);
+/// Accepted fixes: green.
 pub const FIX: RGBColor = RGBColor(0, 170, 60);
+/// Rejected fix attempts: purple.
 pub const REJECTED: RGBColor = RGBColor(150, 60, 170);
+/// East residuals: orange.
 pub const EAST: RGBColor = RGBColor(235, 130, 0);
+/// The zoomed window's outline on the whole track, and the line joining truth and visnav at
+/// their largest gap: yellow.
 pub const ZOOM: RGBColor = RGBColor(255, 200, 0);
 const GPS_SHADE: RGBColor = RGBColor(228, 228, 228);
 const GRID: RGBColor = RGBColor(232, 232, 232);
@@ -52,11 +60,18 @@ const GRID: RGBColor = RGBColor(232, 232, 232);
 pub enum PlotError {
     /// The plotting library failed.
     #[error("cannot draw {file}: {message}")]
-    Draw { file: &'static str, message: String },
+    Draw {
+        /// The plot's file name.
+        file: &'static str,
+        /// The library's error in words.
+        message: String,
+    },
     /// The PNG could not be encoded or written.
     #[error("cannot write PNG {path}: {cause}")]
     Save {
+        /// The file.
         path: PathBuf,
+        /// The encoder's or the file system's error.
         cause: image::ImageError,
     },
 }
@@ -64,10 +79,13 @@ pub enum PlotError {
 /// `errors.png`'s data: one sample per step, NaN where a filter has no output.
 #[derive(Debug, Clone, Default)]
 pub struct ErrorsData {
+    /// The plot's title.
     pub title: String,
+    /// Step times, s.
     pub t_s: Vec<f64>,
-    /// visnav's horizontal error and its claimed horizontal 1-sigma, m.
+    /// visnav's horizontal error per step, m.
     pub visnav_m: Vec<f64>,
+    /// visnav's claimed horizontal 1-sigma per step, m.
     pub sigma_m: Vec<f64>,
     /// The no-vision control's horizontal error, m.
     pub control_m: Vec<f64>,
@@ -83,16 +101,21 @@ pub struct ErrorsData {
 /// `track.png`'s data: map CRS metres (x east, y north).
 #[derive(Debug, Clone, Default)]
 pub struct TrackData<'a> {
+    /// The plot's title.
     pub title: String,
     /// The CRS's name for the axis labels.
     pub crs: String,
     /// The orthophoto and its extent `[min_x, min_y, max_x, max_y]` (row 0 at the north edge).
     pub background: Option<(&'a RgbImage, [f64; 4])>,
-    /// Per step: time, truth, visnav, control, and whether GPS was lost.
+    /// Step times, s.
     pub t_s: Vec<f64>,
+    /// The true position per step.
     pub truth: Vec<(f64, f64)>,
+    /// visnav's position per step (NaN without an output).
     pub visnav: Vec<(f64, f64)>,
+    /// The control's position per step (NaN without an output).
     pub control: Vec<(f64, f64)>,
+    /// Whether GPS was lost at each step.
     pub outage: Vec<bool>,
     /// Accepted fixes' positions.
     pub fixes: Vec<(f64, f64)>,
@@ -101,8 +124,11 @@ pub struct TrackData<'a> {
 /// One accepted fix's residual.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Residual {
+    /// Capture time, s.
     pub t_s: f64,
+    /// North error against the true camera position, m.
     pub north_m: f64,
+    /// East error against the true camera position, m.
     pub east_m: f64,
     /// The fix's claimed horizontal 1-sigma, m.
     pub sigma_m: f64,
@@ -113,10 +139,13 @@ pub struct Residual {
 /// `residuals.png`'s data.
 #[derive(Debug, Clone, Default)]
 pub struct ResidualsData {
+    /// The plot's title.
     pub title: String,
+    /// The accepted fixes' residuals.
     pub accepted: Vec<Residual>,
     /// Capture times of the rejected attempts, s.
     pub rejected_t_s: Vec<f64>,
+    /// GPS-on periods `(start, end)`, s.
     pub gps_on: Vec<(f64, f64)>,
     /// The run's time span, s (the time axis).
     pub t_range: (f64, f64),
@@ -1068,7 +1097,9 @@ pub fn residual_extent(d: &ResidualsData) -> f64 {
 /// (north and east counted apart) and claimed 3-sigma bounds beyond `m`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct ResidualClipping {
+    /// Residual components beyond the range.
     pub components: usize,
+    /// Claimed 3-sigma bounds beyond the range.
     pub sigma_bounds: usize,
 }
 

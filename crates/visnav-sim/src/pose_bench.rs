@@ -14,16 +14,23 @@ use visnav_core::rng::Rng;
 /// Timing of one benchmark case.
 #[derive(Debug, Clone, PartialEq)]
 pub struct BenchResult {
+    /// 2-D/3-D correspondences per scene.
     pub correspondences: usize,
+    /// Fraction of them that are wrong.
     pub outlier_ratio: f64,
+    /// Resections timed.
     pub trials: usize,
+    /// Median wall time per resection, ms.
     pub median_ms: f64,
+    /// 95th percentile of the wall time, ms.
     pub p95_ms: f64,
+    /// Largest wall time, ms.
     pub max_ms: f64,
     /// Fixes accepted by the integrity checks.
     pub accepted: usize,
     /// Accepted fixes whose position error exceeds 3 sigma on any axis (should be 0).
     pub accepted_beyond_3_sigma: usize,
+    /// Mean RANSAC iterations per trial (trials without a fix count as 0).
     pub mean_ransac_iterations: f64,
 }
 

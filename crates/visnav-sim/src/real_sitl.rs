@@ -69,11 +69,18 @@ use super::camera_sim::TruthFeed;
 
 /// MAVLink message ids read here.
 pub mod ids {
+    /// ATTITUDE (common): carries `time_boot_ms`, requested for the time.
     pub const ATTITUDE: u32 = 30;
+    /// GLOBAL_POSITION_INT (common): carries `time_boot_ms`.
     pub const GLOBAL_POSITION_INT: u32 = 33;
+    /// SYSTEM_TIME (common): carries `time_boot_ms`.
     pub const SYSTEM_TIME: u32 = 2;
+    /// SIM_STATE (common): ArduPilot's simulator state with altitude and NED velocity.
     pub const SIM_STATE: u32 = 108;
+    /// HIL_STATE_QUATERNION (common): PX4's ground truth.
     pub const HIL_STATE_QUATERNION: u32 = 115;
+    /// SIMSTATE (ardupilotmega): ArduPilot's physics model attitude, rates, specific force and
+    /// position.
     pub const SIMSTATE: u32 = 164;
 }
 
@@ -113,10 +120,14 @@ impl SitlKind {
 /// Why a truth message was not used.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum TruthReject {
+    /// A field's value is not finite or outside its plausible range.
     #[error("{msg}: field {field} = {value} is not finite or out of range")]
     BadField {
+        /// The message's name.
         msg: &'static str,
+        /// The field's name.
         field: &'static str,
+        /// Its value (converted to the checked unit).
         value: f64,
     },
 }
@@ -154,6 +165,7 @@ fn f3(msg: &'static str, field: &'static str, v: [f32; 3]) -> Result<[f64; 3], T
 }
 
 impl TruthDecoder {
+    /// A decoder holding no SIM_STATE and no time reference yet.
     pub fn new() -> Self {
         Self::default()
     }
@@ -284,6 +296,7 @@ impl TruthDecoder {
 pub struct TruthLinkConfig {
     /// `mavlink` crate connection string, e.g. `udpin:127.0.0.1:14552`.
     pub connection: String,
+    /// Which simulator speaks there.
     pub kind: SitlKind,
     /// System id of the simulated autopilot (ArduPilot and PX4 SITL: 1).
     pub autopilot_system_id: u8,
@@ -294,6 +307,8 @@ pub struct TruthLinkConfig {
 }
 
 impl TruthLinkConfig {
+    /// The settings for `connection` and `kind`: autopilot system id 1, our system id 246,
+    /// 50 Hz.
     pub fn new(connection: impl Into<String>, kind: SitlKind) -> Self {
         Self {
             connection: connection.into(),
@@ -308,11 +323,15 @@ impl TruthLinkConfig {
 /// Why the truth connection could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum TruthLinkError {
+    /// The connection could not be opened.
     #[error("truth connection {connection}: {cause}")]
     Connect {
+        /// The connection string.
         connection: String,
+        /// Why it failed.
         cause: std::io::Error,
     },
+    /// The requested rate (Hz) is outside 1..=400.
     #[error("truth connection: rate_hz {0} must be within 1..=400")]
     Rate(f64),
 }
@@ -320,8 +339,11 @@ pub enum TruthLinkError {
 /// Counters of the truth connection.
 #[derive(Debug, Default)]
 pub struct TruthCounters {
+    /// Truth samples published (newer than the one held, or after a reboot).
     pub samples: AtomicU64,
+    /// Truth messages ignored for an unusable value.
     pub rejected: AtomicU64,
+    /// Message interval requests (MAV_CMD_SET_MESSAGE_INTERVAL) sent.
     pub requests: AtomicU64,
 }
 
@@ -329,6 +351,7 @@ pub struct TruthCounters {
 #[derive(Debug, Default)]
 pub struct SharedTruth {
     latest: Mutex<Option<(u64, TruthState)>>,
+    /// The connection's counters.
     pub counters: TruthCounters,
 }
 

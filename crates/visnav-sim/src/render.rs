@@ -67,16 +67,29 @@ use visnav_io::geo::geotiff::crs_equivalent;
 pub enum RenderError {
     /// The DEM and the orthophoto are in different CRSs.
     #[error("DEM CRS {dem} differs from the orthophoto CRS {ortho}")]
-    CrsMismatch { dem: Crs, ortho: Crs },
+    CrsMismatch {
+        /// The DEM's CRS.
+        dem: Crs,
+        /// The orthophoto's CRS.
+        ortho: Crs,
+    },
     /// Rays need metres in x, y and z.
     #[error("orthophoto CRS {0} is not projected (x, y must be metres)")]
     NotProjected(Crs),
     /// The render specification failed validation (keys relative to the spec).
     #[error("invalid render spec: {}", list.iter().map(|i| i.to_string()).collect::<Vec<_>>().join("; "))]
-    Spec { list: Vec<Invalid> },
+    Spec {
+        /// Every problem found.
+        list: Vec<Invalid>,
+    },
     /// The scene's pyramid was built for another colour mode than the spec asks for.
     #[error("scene has {scene} channels but the render spec asks for {spec}")]
-    ColourMismatch { scene: ColourMode, spec: ColourMode },
+    ColourMismatch {
+        /// The scene pyramid's colour mode.
+        scene: ColourMode,
+        /// The colour mode the spec asks for.
+        spec: ColourMode,
+    },
     /// The camera model could not be built.
     #[error("camera: {0}")]
     Camera(CameraError),
@@ -85,7 +98,10 @@ pub enum RenderError {
         "camera pose is not finite: centre {}",
         visnav_core::text::numbers(centre_map_m)
     )]
-    BadPose { centre_map_m: [f64; 3] },
+    BadPose {
+        /// The pose's projection centre, map grid, m.
+        centre_map_m: [f64; 3],
+    },
 }
 
 // Not `#[from]`: that would also make the error its `source()`, and the message already has its
@@ -214,7 +230,9 @@ impl RenderPose {
 /// validity mask (false = off-map, value = `fill_dn`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct RenderedFrame {
+    /// Width, px.
     pub width: usize,
+    /// Height, px.
     pub height: usize,
     /// 1 (grey) or 3 (RGB).
     pub channels: usize,
@@ -570,14 +588,19 @@ fn norm2(v: (f64, f64)) -> f64 {
 /// Timing of one render configuration (milliseconds, wall clock, best and median of the runs).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RenderTiming {
+    /// Frame width, px.
     pub width: usize,
+    /// Frame height, px.
     pub height: usize,
+    /// Renders timed.
     pub iterations: usize,
-    /// Geometry + anti-aliased sampling ([`Renderer::render_radiance`]).
+    /// Geometry + anti-aliased sampling ([`Renderer::render_radiance`]): the best run.
     pub radiance_min_ms: f64,
+    /// The same, the median run.
     pub radiance_median_ms: f64,
-    /// Photometric effects of the spec ([`Renderer::apply_photometric`]).
+    /// Photometric effects of the spec ([`Renderer::apply_photometric`]): the best run.
     pub photometric_min_ms: f64,
+    /// The same, the median run.
     pub photometric_median_ms: f64,
     /// Fraction of valid pixels of the frame.
     pub valid_fraction: f64,

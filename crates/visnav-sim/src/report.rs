@@ -12,7 +12,7 @@
 //! | `errors.png` | horizontal error against time: visnav with its claimed 1- and 3-sigma and the accepted fixes (linear), visnav against no-vision (log); GPS-on periods shaded |
 //! | `residuals.png` | the accepted fixes' north / east errors against time within their claimed 3-sigma, the rejected attempts' times; east against north with the median claimed 3-sigma circle |
 //!
-//! The plots are drawn by [`plot`](super::plot).
+//! The plots are drawn by [`plot`].
 //!
 //! CSV: comma separated, a header line, `NaN` for missing values (before the filter is
 //! initialised, rejected fixes), times in scenario seconds.
@@ -270,9 +270,9 @@ pub fn window_scope(window_s: [f64; 2], gps_outage_s: Option<[f64; 2]>) -> Strin
 /// from here, each number with its scope.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct FixCounts {
-    /// Accepted fixes and attempts in the window (the summary's `fixes_accepted`,
-    /// `fix_attempts`).
+    /// Accepted fixes in the window (the summary's `fixes_accepted`).
     pub accepted: usize,
+    /// Fix attempts in the window (the summary's `fix_attempts`).
     pub attempts: usize,
     /// The window in words ([`window_scope`]).
     pub scope: String,

@@ -26,16 +26,20 @@ use visnav_core::vision::{Features, GrayImage, MatchParams, VisionError, match_f
 /// A circular region: centre and radius in pixels.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Region {
+    /// Centre column, px.
     pub x: f64,
+    /// Centre row, px.
     pub y: f64,
+    /// Radius, px.
     pub radius: f64,
 }
 
 /// Scores of one image pair.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
 pub struct PairScore {
-    /// Regions of image 1 / image 2 in the common part.
+    /// Regions of image 1 in the common part.
     pub n1: usize,
+    /// Regions of image 2 in the common part.
     pub n2: usize,
     /// One-to-one region correspondences (overlap error below the limit).
     pub correspondences: usize,
@@ -243,15 +247,32 @@ pub fn score_pair(
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub enum Change {
     /// Rotation about the window centre, degrees (positive: clockwise on screen, x towards y).
-    Rotation { deg: f64 },
+    Rotation {
+        /// The angle, deg.
+        deg: f64,
+    },
     /// Zoom about the window centre (2.0: everything twice as large in image 2).
-    Zoom { factor: f64 },
+    Zoom {
+        /// The scale factor.
+        factor: f64,
+    },
     /// Gaussian blur, sigma in pixels.
-    Blur { sigma: f64 },
+    Blur {
+        /// The blur's sigma, px.
+        sigma: f64,
+    },
     /// Additive Gaussian noise, sigma in grey levels (deterministic seed).
-    Noise { sigma: f64 },
+    Noise {
+        /// The noise's sigma, grey levels.
+        sigma: f64,
+    },
     /// `v' = gain v + bias`, clamped to 0..=255.
-    Photometric { gain: f64, bias: f64 },
+    Photometric {
+        /// The gain.
+        gain: f64,
+        /// The bias, grey levels.
+        bias: f64,
+    },
 }
 
 impl Change {
@@ -270,9 +291,13 @@ impl Change {
 /// An image pair with its ground truth `p2 ~ h12 p1`.
 #[derive(Clone, Debug)]
 pub struct ImagePair {
+    /// The change in words ([`Change::label`]).
     pub label: String,
+    /// Image 1: the window of the source.
     pub img1: GrayImage,
+    /// Image 2: the window seen through the change.
     pub img2: GrayImage,
+    /// Homography from image 1 to image 2 pixels.
     pub h12: Matrix3<f64>,
 }
 

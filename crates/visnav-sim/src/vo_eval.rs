@@ -47,32 +47,51 @@ const SURF_TRACK_SIGMA_PX: f64 = 1.0;
 /// Errors of the evaluation (missing or unreadable data).
 #[derive(Debug, thiserror::Error)]
 pub enum VoEvalError {
+    /// A data file is missing or unreadable, or its data gave no result.
     #[error("{path}: {reason}")]
-    Data { path: PathBuf, reason: String },
+    Data {
+        /// The file.
+        path: PathBuf,
+        /// What went wrong, in words.
+        reason: String,
+    },
+    /// The vision code (SURF, matching, tracking, the flat ground) refused its input.
     #[error("SURF: {0}")]
     Vision(String),
     /// The data were read but the solver refused them (a measured outcome, not a fault).
     #[error("{path}: {reason}")]
-    Refused { path: PathBuf, reason: String },
+    Refused {
+        /// The file of the refused frame.
+        path: PathBuf,
+        /// The solver's refusal, in words.
+        reason: String,
+    },
 }
 
 /// The NGI figures (`visnav bench vo --json`: the `ngi_*` keys).
 #[derive(Debug, Clone, Serialize)]
 pub struct NgiVo {
+    /// SURF features in frame 0182.
     pub features_prev: usize,
+    /// SURF features in frame 0184.
     pub features_next: usize,
+    /// Mutual nearest-neighbour matches between the two.
     pub matches: usize,
+    /// Matches whose ray from the previous pose met the DEM.
     pub on_ground: usize,
+    /// Matches kept as inliers by the motion solver.
     pub inliers: usize,
-    /// Measured and estimated displacement, map grid (east, north, up), m.
+    /// Measured displacement (aerial triangulation), map grid (east, north, up), m.
     pub truth_dp_m: [f64; 3],
+    /// Estimated displacement, map grid (east, north, up), m.
     pub dp_m: [f64; 3],
     /// Angle between the estimated and the measured displacement, deg.
     pub dir_err_deg: f64,
     /// (estimated - measured) / measured length, %.
     pub len_err_pct: f64,
-    /// 1-sigma of the displacement along and across the baseline (horizontal), m.
+    /// Claimed 1-sigma of the displacement along the baseline (horizontal), m.
     pub sigma_along_m: f64,
+    /// Claimed 1-sigma of the displacement across the baseline (horizontal), m.
     pub sigma_across_m: f64,
     /// Reprojection RMS of the inliers, px.
     pub rms_px: f64,
@@ -266,30 +285,39 @@ pub struct VgaVo {
     /// Frame pairs solved.
     pub frames: usize,
     /// Per frame on one thread: the new frame's pyramid, tracking forward and backward, the
-    /// motion, and new corners when the tracks run low: median / 95th percentile / minimum, ms.
+    /// motion, and new corners when the tracks run low: the median, ms.
     pub ms_p50: f64,
+    /// The 95th percentile of that time, ms.
     pub ms_p95: f64,
+    /// The minimum of that time, ms.
     pub ms_min: f64,
-    /// Medians of the parts, ms.
+    /// Median time of the new frame's pyramid, ms.
     pub ms_pyramid: f64,
+    /// Median time of tracking forward and backward, ms.
     pub ms_track: f64,
+    /// Median time of the motion solve, ms.
     pub ms_motion: f64,
+    /// Median time of topping up the tracks (new corners when they run low), ms.
     pub ms_replenish: f64,
     /// Frames on which new corners were detected.
     pub replenished: usize,
-    /// Mean tracks in and inliers out per frame.
+    /// Mean tracks going into the motion per frame.
     pub tracks_mean: f64,
+    /// Mean inliers coming out per frame.
     pub inliers_mean: f64,
-    /// Per step: displacement error against the truth, m (median, max), and its Mahalanobis
-    /// distance (median).
+    /// Per step: displacement error against the true step, m, the median.
     pub step_err_m_p50: f64,
+    /// The largest of those errors, m.
     pub step_err_m_max: f64,
+    /// Per step: the displacement error's Mahalanobis distance under its claimed covariance,
+    /// the median.
     pub step_err_over_sigma_p50: f64,
     /// The true step, m.
     pub step_m: f64,
     /// Visual odometry alone (each motion chained onto the last estimate, no filter): distance
-    /// flown and the position error at the end, m.
+    /// flown, m.
     pub distance_m: f64,
+    /// The chained estimate's position error at the end, m.
     pub chained_err_m: f64,
 }
 
@@ -440,20 +468,26 @@ impl VgaSolver<'_> {
 /// the same VGA sequence (`visnav bench vo --json`: the `vga_surf` keys).
 #[derive(Debug, Clone, Serialize)]
 pub struct VgaSurfVo {
+    /// Frame pairs solved.
     pub frames: usize,
     /// Per frame on one thread: SURF on the new frame (the previous frame's features kept),
-    /// matching with the spatial gate, the motion: median / 95th percentile, ms.
+    /// matching with the spatial gate, the motion: the median, ms.
     pub ms_p50: f64,
+    /// The 95th percentile of that time, ms.
     pub ms_p95: f64,
-    /// Medians of the parts, ms.
+    /// Median time of SURF on the new frame, ms.
     pub ms_surf: f64,
+    /// Median time of the gated matching, ms.
     pub ms_match: f64,
+    /// Median time of the motion solve, ms.
     pub ms_motion: f64,
-    /// Mean matches in and inliers out per frame.
+    /// Mean matches going into the motion per frame.
     pub matches_mean: f64,
+    /// Mean inliers coming out per frame.
     pub inliers_mean: f64,
-    /// Per step: displacement error against the truth, m (median, max).
+    /// Per step: displacement error against the true step, m, the median.
     pub step_err_m_p50: f64,
+    /// The largest of those errors, m.
     pub step_err_m_max: f64,
 }
 

@@ -54,26 +54,38 @@ const LEVER_MAX_M: f64 = 100.0;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CameraConfig {
+    /// Image width, pixels.
     pub width_px: u32,
+    /// Image height, pixels.
     pub height_px: u32,
+    /// Focal length along u, pixels (pixel form, with `fy_px`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fx_px: Option<f64>,
+    /// Focal length along v, pixels (pixel form, with `fx_px`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fy_px: Option<f64>,
+    /// Principal point u, pixels; with `cy_px`, default the image centre.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cx_px: Option<f64>,
+    /// Principal point v, pixels; with `cx_px`, default the image centre.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cy_px: Option<f64>,
+    /// Focal length, millimetres (millimetre form, with the sensor size).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub focal_length_mm: Option<f64>,
+    /// Width of the sensor's active area across `width_px`, millimetres.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sensor_width_mm: Option<f64>,
+    /// Height of the sensor's active area across `height_px`, millimetres.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sensor_height_mm: Option<f64>,
+    /// Horizontal field of view across the image width, degrees (field-of-view form, square pixels).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub hfov_deg: Option<f64>,
+    /// Lens distortion (`[camera.distortion]`), default none.
     #[serde(default)]
     pub distortion: DistortionConfig,
+    /// Camera mount on the body (`[camera.mount]`), default nadir.
     #[serde(default)]
     pub mount: MountConfig,
 }
@@ -82,10 +94,15 @@ pub struct CameraConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct DistortionConfig {
+    /// Radial coefficient of r^2, |k1| <= 1.
     pub k1: f64,
+    /// Radial coefficient of r^4, |k2| <= 2.
     pub k2: f64,
+    /// Radial coefficient of r^6, |k3| <= 5.
     pub k3: f64,
+    /// First tangential coefficient, |p1| <= 0.05.
     pub p1: f64,
+    /// Second tangential coefficient, |p2| <= 0.05.
     pub p2: f64,
 }
 
@@ -93,9 +110,13 @@ pub struct DistortionConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct MountConfig {
+    /// Roll of the camera plate, degrees (positive tilts the view left), [-180, 180].
     pub roll_deg: f64,
+    /// Pitch of the camera plate, degrees (positive tilts the view forward; 90 = forward-looking).
     pub pitch_deg: f64,
+    /// Yaw of the camera plate, degrees (positive turns the image top to the right), [-180, 180].
     pub yaw_deg: f64,
+    /// Camera centre in the body FRD frame, metres (each component within 100 m).
     pub lever_arm_body_frd_m: [f64; 3],
 }
 

@@ -27,10 +27,15 @@ const TOLERANCE: f64 = 1e-12;
 /// Brown-Conrady coefficients (OpenCV order `k1, k2, p1, p2, k3`).
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct Distortion {
+    /// Radial coefficient of r^2.
     pub k1: f64,
+    /// Radial coefficient of r^4.
     pub k2: f64,
+    /// Radial coefficient of r^6.
     pub k3: f64,
+    /// First tangential coefficient.
     pub p1: f64,
+    /// Second tangential coefficient.
     pub p2: f64,
 }
 

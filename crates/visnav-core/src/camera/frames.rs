@@ -76,8 +76,12 @@ pub fn wrap_pi(a_rad: f64) -> f64 {
 /// `R_world_pg = Rx(omega) Ry(phi) Rz(kappa)`, world = (x east/grid east, y north/grid north, z up).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Opk {
+    /// Rotation about the world x axis (applied last), radians.
     pub omega_rad: f64,
+    /// Rotation about the y axis, radians, in [-pi/2, pi/2] when recovered from a matrix.
     pub phi_rad: f64,
+    /// Rotation about the photogrammetric camera's z axis (applied first), radians; the image
+    /// top's azimuth is -kappa.
     pub kappa_rad: f64,
 }
 
@@ -148,8 +152,11 @@ impl Opk {
 /// roll positive right wing down.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Attitude {
+    /// Roll about the body x axis, radians, positive right wing down.
     pub roll_rad: f64,
+    /// Pitch about the body y axis, radians, positive nose up.
     pub pitch_rad: f64,
+    /// Heading of the nose from true north, radians, positive towards east.
     pub yaw_rad: f64,
 }
 

@@ -17,11 +17,17 @@ use serde::{Deserialize, Serialize};
 /// Pinhole camera intrinsics (zero skew).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Intrinsics {
+    /// Focal length along u, pixels.
     pub fx_px: f64,
+    /// Focal length along v, pixels.
     pub fy_px: f64,
+    /// Principal point u, pixels (top-left pixel centre at 0).
     pub cx_px: f64,
+    /// Principal point v, pixels.
     pub cy_px: f64,
+    /// Image width, pixels.
     pub width_px: u32,
+    /// Image height, pixels.
     pub height_px: u32,
 }
 

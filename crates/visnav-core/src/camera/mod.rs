@@ -43,17 +43,28 @@ const MIN_DEPTH_M: f64 = 1e-9;
 pub enum CameraError {
     /// One parameter of a programmatic constructor is out of range.
     #[error("invalid camera parameter {name}: {reason}")]
-    InvalidParameter { name: &'static str, reason: String },
+    InvalidParameter {
+        /// Name of the parameter.
+        name: &'static str,
+        /// Why it was refused, with the value.
+        reason: String,
+    },
     /// The configuration section failed validation (dotted keys relative to the camera section).
     #[error("invalid camera configuration: {}", list.iter().map(|i| i.to_string()).collect::<Vec<_>>().join("; "))]
-    Config { list: Vec<Invalid> },
+    Config {
+        /// Every problem found, each with its key, value and accepted range.
+        list: Vec<Invalid>,
+    },
 }
 
 /// A complete camera: intrinsics, lens distortion and mount on the vehicle.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Camera {
+    /// Pinhole intrinsics and image size.
     pub intrinsics: Intrinsics,
+    /// Lens distortion on normalised coordinates.
     pub distortion: Distortion,
+    /// Orientation and lever arm of the camera on the body.
     pub mount: Mount,
     /// Cached [`Distortion::max_radius`]: largest valid normalised (undistorted) radius.
     max_radius: f64,

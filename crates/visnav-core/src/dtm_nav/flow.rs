@@ -1,7 +1,7 @@
 //! The DTM navigator's optical flow: corners of the first frame tracked into the second by
 //! pyramidal Lucas-Kanade (Bouguet 2000, OpenCV's `calcOpticalFlowPyrLK` semantics:
 //! [`crate::vision::klt`]) with the forward-backward check (Kalal et al. 2010), the second frame
-//! first warped into the first's pixels by the navigation's guess ([`PredictedWarp`] from
+//! first warped into the first's pixels by the navigation's guess ([`GroundHomography`] fitted to
 //! [`predict_px`]: a pixel's ray onto the terrain from the first guessed pose, projected with the
 //! second). The guess leaves tens of pixels to find, the pyramid ([`FLOW_MAX_LEVEL`]) the rest;
 //! the prediction is what lets two frames tens to hundreds of metres apart, rotated against each

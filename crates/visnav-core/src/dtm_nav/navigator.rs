@@ -71,18 +71,23 @@ pub enum DtmStep {
 pub struct DtmPoseFix {
     /// The pose at this frame's capture time (`fix.position.t_capture_us`).
     pub fix: PoseFix,
-    /// Capture time of the partner frame, µs, and the distance between the two, m.
+    /// Capture time of the partner (older) frame, µs.
     pub t_first_us: u64,
+    /// Distance between the two frames' camera centres as the filter gave them, m.
     pub baseline_m: f64,
-    /// Flow vectors, on the terrain, inliers; reprojection RMS, px.
+    /// Flow vectors tracked.
     pub tracks: usize,
+    /// Vectors on the terrain at the first guess.
     pub on_ground: usize,
+    /// Inliers at the solution.
     pub inliers: usize,
+    /// Reprojection RMS over the inliers, px.
     pub rms_px: f64,
-    /// What the relief alone fixes (horizontal 1-sigma given the attitude), m; height above the
-    /// ground points and their spread, m.
+    /// What the relief alone fixes (horizontal 1-sigma given the attitude), m.
     pub sigma_h_given_attitude_m: f64,
+    /// Mean height of the partner frame's centre above the inliers' ground points, m.
     pub agl_m: f64,
+    /// Standard deviation of those ground points' heights, m.
     pub relief_std_m: f64,
 }
 
@@ -95,7 +100,12 @@ pub enum DtmRefusal {
     Prior(crate::vo::VoRejection),
     /// Too few of the screen's rays reach the terrain model.
     #[error("{hits} of {rays} rays of the frame reach the terrain model")]
-    OffTerrain { hits: usize, rays: usize },
+    OffTerrain {
+        /// Rays that met the terrain model.
+        hits: usize,
+        /// Rays cast ([`FOOTPRINT_GRID`] x [`FOOTPRINT_GRID`] over the partner frame's image).
+        rays: usize,
+    },
     /// The flow could not be computed (a blank or malformed frame; its message).
     #[error("flow: {0}")]
     Flow(String),

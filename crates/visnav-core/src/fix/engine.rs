@@ -101,7 +101,7 @@ pub struct FixParams {
     /// the count obtained with the predictions displaced to unrelated places.
     pub null_factor: f64,
     /// Work budget of a global relocalisation (no position prior), millions of work units
-    /// ([`RELOC_COMPARISONS_PER_UNIT`]: one pixel through rectification and SURF, or 16 descriptor
+    /// (`RELOC_COMPARISONS_PER_UNIT`: one pixel through rectification and SURF, or 16 descriptor
     /// comparisons of the brute-force matching, which cost about the same). Counted, not timed:
     /// the same inputs give the same answer on any machine.
     pub reloc_budget_mwork: f64,
@@ -158,7 +158,7 @@ impl Default for FixParams {
 }
 
 /// The heading sigma a failed frame is searched again with, degrees (`widen_heading_sigma_deg`):
-/// +-90 deg, the 13 headings of [`HEADING_STEP_DEG`] around the prior's. A compass near motors
+/// +-90 deg, the 13 headings of `HEADING_STEP_DEG` around the prior's. A compass near motors
 /// and power leads, or a filter's heading drifting without the GPS, errs by tens of degrees;
 /// errors beyond 90 deg (a camera mounted backwards) are a configuration fault, not a drift.
 pub const WIDEN_HEADING_SIGMA_DEG: f64 = 30.0;
@@ -242,10 +242,13 @@ impl Validate for FixParams {
 /// Why an engine could not be built.
 #[derive(Debug, thiserror::Error)]
 pub enum FixError {
+    /// A fix setting is out of range (the first problem found, in words).
     #[error("fix settings: {0}")]
     Config(String),
+    /// The reference map has no pyramid levels.
     #[error("the reference map has no levels")]
     EmptyMap,
+    /// The map's SURF settings cannot build a detector.
     #[error("SURF settings of the map: {0}")]
     Surf(crate::vision::VisionError),
 }
@@ -273,19 +276,26 @@ pub struct FixEngine {
 /// Diagnostics of one attempt (for tests and benchmarks).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Attempt {
+    /// Map pyramid level matched against (0 the finest).
     pub level: usize,
+    /// Frame features kept on valid ground of the rectified frame.
     pub query_features: usize,
+    /// Map features selected under the predicted footprint.
     pub map_features: usize,
+    /// Coarse (gated nearest-neighbour) matches.
     pub coarse_matches: usize,
+    /// Coarse matches that agree with the coarse similarity (its RANSAC consensus).
     pub vote_peak: usize,
+    /// Fine matches around the coarse similarity's predictions.
     pub fine_matches: usize,
     /// Matches obtained with the predictions displaced to unrelated places (chance level).
     pub null_matches: usize,
     /// The fine matches: frame pixel (distorted) and map point (grid x, y, height AMSL).
     pub pairs: Vec<([f64; 2], [f64; 3])>,
-    /// Area correlation: the placement's peak, also when it was too weak or not unique, and
-    /// the best other place (0 when not run).
+    /// Area correlation: the placement's peak NCC, also when it was too weak or not unique
+    /// (0 when not run).
     pub area_ncc: f64,
+    /// Area correlation: the best other place's NCC (0 when not run).
     pub area_runner_up: f64,
     /// Area correlation: tie points found.
     pub area_ties: usize,

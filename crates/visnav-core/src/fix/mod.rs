@@ -25,10 +25,15 @@ use crate::camera::Attitude;
 /// (EGM96), and 1-sigma horizontal / vertical uncertainty.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PositionPriorGeo {
+    /// Geodetic latitude (WGS84), degrees.
     pub lat_deg: f64,
+    /// Geodetic longitude (WGS84), degrees.
     pub lon_deg: f64,
+    /// Altitude above mean sea level (EGM96), metres.
     pub alt_amsl_m: f64,
+    /// 1-sigma horizontal uncertainty, metres (the same along each horizontal axis).
     pub sigma_h_m: f64,
+    /// 1-sigma vertical uncertainty, metres.
     pub sigma_v_m: f64,
 }
 
@@ -40,8 +45,11 @@ pub struct PositionPriorGeo {
 /// each other in a resection over flat ground).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AttitudePriorNed {
+    /// The vehicle attitude, body FRD relative to NED.
     pub attitude: Attitude,
+    /// 1-sigma of the tilt (rotation about the north and east axes), radians.
     pub sigma_rad: f64,
+    /// 1-sigma of the heading (rotation about down), radians.
     pub sigma_yaw_rad: f64,
 }
 
@@ -60,7 +68,9 @@ impl AttitudePriorNed {
 /// lost (altitude above mean sea level, EGM96, and its 1-sigma).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AltitudePrior {
+    /// Camera altitude above mean sea level (EGM96), metres.
     pub alt_amsl_m: f64,
+    /// Its 1-sigma, metres.
     pub sigma_m: f64,
 }
 
@@ -95,6 +105,7 @@ pub struct FixPrior {
 /// number present is a number.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FixReport {
+    /// The fix passed every check: the pose below is valid.
     pub accepted: bool,
     /// Why the fix was rejected (or could not be computed); None when accepted. Serialised as
     /// `reason`: "ok" when accepted, otherwise the rejection in words.
@@ -102,28 +113,34 @@ pub struct FixReport {
     pub rejection: Option<Rejection>,
     /// Capture time copied from the prior, microseconds.
     pub t_capture_us: u64,
-    /// Camera projection centre, geodetic, altitude AMSL (EGM96), metres.
+    /// Camera projection centre: geodetic latitude (WGS84), degrees.
     #[serde(skip_serializing_if = "not_finite")]
     pub lat_deg: f64,
+    /// Camera projection centre: geodetic longitude (WGS84), degrees.
     #[serde(skip_serializing_if = "not_finite")]
     pub lon_deg: f64,
+    /// Camera projection centre: altitude above mean sea level (EGM96), metres.
     #[serde(skip_serializing_if = "not_finite")]
     pub alt_amsl_m: f64,
     /// Height above the WGS84 ellipsoid, metres.
     #[serde(skip_serializing_if = "not_finite")]
     pub h_ellip_m: f64,
-    /// Camera projection centre in the map's CRS (grid easting, northing) and height AMSL.
+    /// Camera projection centre in the map's CRS: grid easting, metres.
     #[serde(skip_serializing_if = "not_finite")]
     pub x_m: f64,
+    /// Camera projection centre in the map's CRS: grid northing, metres.
     #[serde(skip_serializing_if = "not_finite")]
     pub y_m: f64,
+    /// Camera projection centre: height above mean sea level, metres.
     #[serde(skip_serializing_if = "not_finite")]
     pub z_m: f64,
-    /// Vehicle attitude (body FRD to NED, aerospace ZYX), degrees.
+    /// Vehicle roll (body FRD to NED, aerospace ZYX), degrees.
     #[serde(skip_serializing_if = "not_finite")]
     pub roll_deg: f64,
+    /// Vehicle pitch (body FRD to NED, aerospace ZYX), degrees.
     #[serde(skip_serializing_if = "not_finite")]
     pub pitch_deg: f64,
+    /// Vehicle yaw, the heading (body FRD to NED, aerospace ZYX), degrees.
     #[serde(skip_serializing_if = "not_finite")]
     pub yaw_deg: f64,
     /// Position covariance in NED, m^2 (row-major 3x3).
@@ -132,8 +149,11 @@ pub struct FixReport {
     /// Attitude covariance as an NED rotation vector, rad^2.
     #[serde(skip_serializing_if = "not_all_finite")]
     pub cov_att_ned_rad2: [[f64; 3]; 3],
+    /// Correspondences the resection kept as inliers.
     pub inliers: usize,
+    /// Correspondences (feature matches or tie points) given to the resection.
     pub matches: usize,
+    /// RMS reprojection error of the inliers, pixels.
     #[serde(skip_serializing_if = "not_finite")]
     pub reproj_rms_px: f64,
     /// A-posteriori standard deviation of unit weight of the image-only adjustment (the RMS of
@@ -241,15 +261,18 @@ impl PriorDependenceNed {
 /// both with their correlation lets a navigation filter use its own tilt knowledge once.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct VisionOnlyPose {
-    /// Camera projection centre, geodetic, degrees.
+    /// Camera projection centre: geodetic latitude (WGS84), degrees.
     pub lat_deg: f64,
+    /// Camera projection centre: geodetic longitude (WGS84), degrees.
     pub lon_deg: f64,
     /// Height above the WGS84 ellipsoid, m.
     pub h_ellip_m: f64,
-    /// Vehicle attitude (body FRD to NED, aerospace ZYX) from the camera attitude through the
+    /// Vehicle roll (body FRD to NED, aerospace ZYX) from the camera attitude through the
     /// camera mount, degrees.
     pub roll_deg: f64,
+    /// Vehicle pitch, as `roll_deg`, degrees.
     pub pitch_deg: f64,
+    /// Vehicle yaw (heading), as `roll_deg`, degrees.
     pub yaw_deg: f64,
     /// Covariance of `[position error NED (m, 3), attitude error (rad, 3)]`, row-major 6x6. The
     /// attitude error is the NED rotation vector `psi` with `R_estimate = Exp(psi) R_true`, the

@@ -40,8 +40,9 @@ pub struct Rectification {
     pub valid: Vec<bool>,
     /// Virtual focal length, pixels.
     pub f_px: f64,
-    /// Virtual principal point, pixels.
+    /// Virtual principal point, column, pixels.
     pub cx_px: f64,
+    /// Virtual principal point, row, pixels.
     pub cy_px: f64,
     /// `R_cam_virt`: virtual-camera rays into the real camera frame.
     r_cam_virt: Rotation3<f64>,

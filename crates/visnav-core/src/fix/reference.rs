@@ -16,11 +16,16 @@ use crate::vision::{DescriptorKind, FeatureSpec, GrayImage, VisionError};
 /// scale on the ground and Laplacian sign.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RefFeature {
+    /// Map-grid easting, metres.
     pub x_m: f64,
+    /// Map-grid northing, metres.
     pub y_m: f64,
+    /// Height above mean sea level (the DEM's datum), metres.
     pub z_amsl_m: f64,
     /// SURF scale `s` on the ground, metres.
     pub scale_m: f32,
+    /// Sign of the Laplacian: -1 bright blob, +1 dark blob (SURF's); matching pairs only equal
+    /// signs.
     pub laplacian: i8,
 }
 
@@ -28,8 +33,11 @@ pub struct RefFeature {
 /// row, zero padded beyond `kind.len()`, the layout of `vision::Features`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct RefSelection {
+    /// The selected features.
     pub features: Vec<RefFeature>,
+    /// Their descriptors, one row per feature in the same order.
     pub descriptors: Vec<f32>,
+    /// The descriptor kind, which sets the row length.
     pub kind: DescriptorKind,
 }
 
@@ -115,11 +123,17 @@ pub trait Reference: Send + Sync {
 /// `(origin_x_m + (i + 0.5) gsd_m, origin_y_m - (j + 0.5) gsd_m)`; 0 = no data.
 #[derive(Debug, Clone, Copy)]
 pub struct MapImage<'a> {
+    /// The grey values, row-major, `width * height` bytes; 0 = no data.
     pub data: &'a [u8],
+    /// Width, pixels.
     pub width: usize,
+    /// Height, pixels.
     pub height: usize,
+    /// Map-grid easting of the image's west edge, metres.
     pub origin_x_m: f64,
+    /// Map-grid northing of the image's north edge, metres.
     pub origin_y_m: f64,
+    /// Ground sample distance, metres per pixel.
     pub gsd_m: f64,
 }
 

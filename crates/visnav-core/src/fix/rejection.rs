@@ -18,17 +18,33 @@ use super::area::PlaceError;
 pub enum Rejection {
     // --- Input and prior ---
     /// The frame's size is not the camera's.
-    FrameSize { frame: [usize; 2], camera: [u32; 2] },
+    FrameSize {
+        /// The frame's `[width, height]`, pixels.
+        frame: [usize; 2],
+        /// The camera's `[width, height]`, pixels.
+        camera: [u32; 2],
+    },
     /// A prior sigma is not finite and positive, or the prior altitude not finite.
     PriorSigmas,
     /// The altitude prior (no position prior) is not finite or has no positive sigma.
     AltitudePrior,
     /// A geodetic conversion failed (`stage` names which; `detail` is the geodesy's message).
-    Geodesy { stage: &'static str, detail: String },
+    Geodesy {
+        /// The conversion that failed.
+        stage: &'static str,
+        /// The geodesy library's error message.
+        detail: String,
+    },
     /// The prior altitude is not above the terrain below the camera.
-    PriorBelowTerrain { alt_amsl_m: f64 },
+    PriorBelowTerrain {
+        /// The prior's camera altitude, metres above mean sea level.
+        alt_amsl_m: f64,
+    },
     /// The altitude prior is not above the map's terrain (area relocalisation).
-    AltitudeBelowMap { alt_amsl_m: f64 },
+    AltitudeBelowMap {
+        /// The altitude prior, metres above mean sea level.
+        alt_amsl_m: f64,
+    },
     /// The frame's rays miss the ground (rectification empty).
     NoGround,
     /// The frame's centre does not see the ground.
@@ -40,48 +56,97 @@ pub enum Rejection {
     /// The map was built without level images (an older visnav).
     NoLevelImages,
     /// A computed pose or report holds a number that is not finite (`what` names it).
-    NonFinite { what: &'static str },
+    NonFinite {
+        /// The quantity that is not finite.
+        what: &'static str,
+    },
     /// An internal step failed on data it was given (`stage` names it; `detail` its message).
-    Internal { stage: &'static str, detail: String },
+    Internal {
+        /// The step that failed.
+        stage: &'static str,
+        /// Its error message.
+        detail: String,
+    },
     /// Refused before the engine ran, by a rule outside it (a simulator's scripted fault).
-    Withheld { reason: &'static str },
+    Withheld {
+        /// The words shown for the refusal.
+        reason: &'static str,
+    },
     /// A rejection read back from a record (the daemon's fix log): its words and its class as
     /// written ([`Rejection::recorded`]).
-    Recorded { class: &'static str, reason: String },
+    Recorded {
+        /// Its class: one of [`CLASSES`], "recorded" when the record's is not.
+        class: &'static str,
+        /// Its words as recorded.
+        reason: String,
+    },
 
     // --- Features ---
     /// Too few frame features on valid ground.
-    FewFeatures { n: usize },
+    FewFeatures {
+        /// Frame features kept.
+        n: usize,
+    },
     /// The footprint the prior predicts lies outside the map: `[x0, x1, y0, y1]`, metres.
     FootprintOutsideMap {
+        /// The predicted footprint grown by the coarse gate, map grid `[x0, x1, y0, y1]`, metres.
         footprint_m: [f64; 4],
+        /// The map's bounds, map grid `[x0, x1, y0, y1]`, metres.
         map_m: [f64; 4],
     },
     /// Too few map features under the footprint.
-    FewMapFeatures { n: usize },
+    FewMapFeatures {
+        /// Map features selected under the footprint.
+        n: usize,
+    },
     /// A relocalisation level holds too few features.
-    FewLevelFeatures { level: usize, n: usize },
+    FewLevelFeatures {
+        /// The map level (0 the finest).
+        level: usize,
+        /// Its features.
+        n: usize,
+    },
     /// The coarse matches agree on no similarity.
-    NoCoarseConsensus { matches: usize },
+    NoCoarseConsensus {
+        /// Coarse matches the similarity was sought among.
+        matches: usize,
+    },
     /// Fewer fine matches than chance gives plus the margin (the a-contrario count).
     BelowChance {
+        /// Fine matches found.
         matches: usize,
+        /// Matches the same matching gives against unrelated map areas.
         chance: usize,
+        /// The bar: `min_matches` plus `null_factor` times `chance`.
         needed: usize,
     },
     /// A fix of the widened heading search below the chance bar raised for its headings.
     BelowWidenedChance {
+        /// Fine matches of the fix.
         matches: usize,
+        /// Matches chance gives (as in [`Rejection::BelowChance`]).
         chance: usize,
+        /// Heading hypotheses the widened search tried.
         headings: usize,
+        /// The bar: the plain chance bar raised by `sqrt(2 chance ln(headings))`.
         needed: usize,
     },
     /// Too few correspondences for the resection.
-    FewMatches { n: usize, min: usize },
+    FewMatches {
+        /// Correspondences found.
+        n: usize,
+        /// The least the resection takes (`min_matches`).
+        min: usize,
+    },
     /// Relocalisation: no Hough cluster among the matches.
     NoHoughCluster,
     /// Relocalisation: the largest Hough cluster is too small.
-    SmallHoughCluster { n: usize, min: usize },
+    SmallHoughCluster {
+        /// Matches in the largest cluster.
+        n: usize,
+        /// The least a cluster must hold.
+        min: usize,
+    },
     /// The resection's checks refused the pose.
     Pose(crate::pose::Rejection),
 
@@ -97,82 +162,160 @@ pub enum Rejection {
     /// The correlation surface is undefined at the place.
     CorrelationUndefined,
     /// The placement stands but its patches do not agree on a similarity.
-    PatchesDisagree { ncc: f64, agree: usize },
+    PatchesDisagree {
+        /// The placement's correlation (NCC).
+        ncc: f64,
+        /// Patches matched before the similarity fit failed.
+        agree: usize,
+    },
     /// Too few tie points.
-    FewTies { ncc: f64, ties: usize, min: usize },
+    FewTies {
+        /// The placement's correlation (NCC).
+        ncc: f64,
+        /// Tie points found.
+        ties: usize,
+        /// The least the resection takes (`min_matches`).
+        min: usize,
+    },
     /// Fewer tie points than chance gives plus the margin.
     TiesBelowChance {
+        /// The placement's correlation (NCC).
         ncc: f64,
+        /// Tie points found.
         ties: usize,
+        /// Tie points chance gives.
         chance: usize,
+        /// The bar: `min_matches` plus `null_factor` times `chance`.
         needed: usize,
     },
     /// The placement leads the next place by less than the placement fix's margin.
-    PlacementMargin { ncc: f64, lead: f64, margin: f64 },
+    PlacementMargin {
+        /// The placement's correlation (NCC).
+        ncc: f64,
+        /// Its lead over the best other place, in NCC.
+        lead: f64,
+        /// The lead the placement fix needs, in NCC.
+        margin: f64,
+    },
     /// The places the correlation could not judge hold too much of the prior.
-    PlacementUnjudged { percent: f64 },
+    PlacementUnjudged {
+        /// The prior's probability on the unjudged places, percent.
+        percent: f64,
+    },
     /// Too few of the placement's grid points see the ground.
-    FewGridPoints { n: usize },
+    FewGridPoints {
+        /// Grid points on valid ground.
+        n: usize,
+    },
     /// The correlation's plateau does not close around the place.
-    PlacementOpen { delta: f64, radius_blocks: f64 },
+    PlacementOpen {
+        /// The plateau's depth below the peak, in NCC.
+        delta: f64,
+        /// How far the plateau was traced, finest blocks.
+        radius_blocks: f64,
+    },
     /// A refinement step moved the place too far.
-    RefinementMoved { block_px: usize, moved_blocks: f64 },
+    RefinementMoved {
+        /// The refinement grid's block size, pixels.
+        block_px: usize,
+        /// How far the place moved, blocks of that grid.
+        moved_blocks: f64,
+    },
     /// The placement grid's rays miss the terrain.
     RaysMissTerrain,
     /// The tie points failed and so did the placement fix.
     NoPlacementFix {
+        /// Why the tie points failed.
         ties: Box<Rejection>,
+        /// Why the placement fix failed.
         placement: Box<Rejection>,
     },
     /// A step of the placement failed (`step`: which).
     Step {
+        /// The step's name.
         step: &'static str,
+        /// Why it failed.
         inner: Box<Rejection>,
     },
 
     // --- Uniqueness ---
     /// Rectified at its own heading the fix moves to another place.
-    MovesAtOwnHeading { moved_m: f64 },
+    MovesAtOwnHeading {
+        /// Horizontal distance between the two fixes, metres.
+        moved_m: f64,
+    },
     /// A competitor has nearly as much evidence.
     Ambiguous {
+        /// The fix's matches above chance ([`crate::fix::engine::Attempt::evidence`]).
         evidence: usize,
+        /// The fix's heading, degrees.
         heading_deg: f64,
+        /// The competitor's matches above chance.
         rival_evidence: usize,
+        /// What the competitor is.
         rival: Rival,
+        /// How many times the rival's evidence the fix needs.
         ratio: f64,
     },
     /// A placement at another heading correlates nearly as well.
     AmbiguousPlacement {
+        /// The placement's correlation (NCC).
         ncc: f64,
+        /// The placement's heading, degrees.
         heading_deg: f64,
+        /// The rival placement's correlation (NCC).
         rival_ncc: f64,
+        /// The heading the rival was rectified at, degrees.
         rival_heading_deg: f64,
+        /// The lead the placement needs, in NCC.
         margin: f64,
     },
     /// The area search confirmed two places.
-    TwoPlaces { distance_m: f64, ncc: [f64; 2] },
+    TwoPlaces {
+        /// Horizontal distance between them, metres.
+        distance_m: f64,
+        /// Their area-search correlations (NCC), the first confirmed first.
+        ncc: [f64; 2],
+    },
     /// The fix was not confirmed when matched again from its own pose.
     NotConfirmed(Box<Rejection>),
     /// The area search's fix lies beyond the prior's gate.
-    FarFromPrior { distance_m: f64, limit_m: f64 },
+    FarFromPrior {
+        /// Horizontal distance from the prior, metres.
+        distance_m: f64,
+        /// The gate: `gate_sigmas` times the combined horizontal sigmas, metres.
+        limit_m: f64,
+    },
     /// No area-search candidate was confirmed; the best with its correlation.
     NoCandidateConfirmed {
+        /// Candidates the search found.
         candidates: usize,
+        /// The best refused candidate: its correlation (NCC) and why it was refused.
         best: Option<(f64, Box<Rejection>)>,
     },
 
     // --- Budgets ---
     /// The area search would need more work than the budget.
     AreaSearchBudget {
+        /// The search's estimated work, millions of units.
         needed_mwork: f64,
+        /// The budget left, millions of units (`reloc_budget_mwork`).
         budget_mwork: f64,
     },
     /// The map level's pixels exceed the budget.
-    MapLevelBudget { mpixels: f64, budget_mwork: f64 },
+    MapLevelBudget {
+        /// The map level's size, millions of pixels.
+        mpixels: f64,
+        /// The budget, millions of units (`reloc_budget_mwork`).
+        budget_mwork: f64,
+    },
     /// The relocalisation budget ran out before a level's hypotheses were all tried.
     WorkBudget {
+        /// The budget, millions of units (`reloc_budget_mwork`).
         budget_mwork: f64,
+        /// The level being searched.
         level: usize,
+        /// The rejection of the last hypothesis tried.
         last: Box<Rejection>,
     },
 
@@ -182,18 +325,31 @@ pub enum Rejection {
     /// No relocalisation level produced a fix.
     NoLevelFix,
     /// At relocalisation level `level`.
-    AtLevel { level: usize, inner: Box<Rejection> },
+    AtLevel {
+        /// The map level.
+        level: usize,
+        /// The rejection there.
+        inner: Box<Rejection>,
+    },
     /// Relocalisation (no position prior).
     Relocalisation(Box<Rejection>),
     /// A heading sweep: `tried` headings, the rejection of the one that got furthest.
-    Headings { tried: usize, best: Box<Rejection> },
+    Headings {
+        /// Headings tried.
+        tried: usize,
+        /// The rejection of the heading that got furthest.
+        best: Box<Rejection>,
+    },
     /// Each matching method's rejection, in the order tried.
     Methods(Vec<(FixMethod, Rejection)>),
     /// The stated heading failed, then the widened heading (`heading`: its +-3 sigma, degrees)
     /// and the area search of the prior's window (`near`), each when it ran.
     Widened {
+        /// The rejection at the heading prior as stated.
         stated: Box<Rejection>,
+        /// The widened heading search: its half-width (+-3 sigma, degrees) and rejection.
         heading: Option<(f64, Box<Rejection>)>,
+        /// The area search of the prior's window, when it ran.
         near: Option<Box<Rejection>>,
     },
 }
@@ -202,9 +358,15 @@ pub enum Rejection {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Rival {
     /// An accepted fix at another place, metres away.
-    Elsewhere { distance_m: f64 },
+    Elsewhere {
+        /// Horizontal distance from the fix, metres.
+        distance_m: f64,
+    },
     /// A hypothesis rectified at another heading, degrees.
-    Heading { heading_deg: f64 },
+    Heading {
+        /// The heading it was rectified at, degrees.
+        heading_deg: f64,
+    },
 }
 
 /// Every value [`Rejection::class`] returns: the label set of the rejection metrics.

@@ -16,20 +16,29 @@ pub enum Crs {
     /// EPSG:4326, x = longitude in degrees, y = latitude in degrees (GeoTIFF axis order).
     Geographic,
     /// Universal Transverse Mercator on WGS84 (EPSG:326zz north, 327zz south; NAD83 269zz treated as WGS84).
-    Utm { zone: u8, north: bool },
+    Utm {
+        /// Zone number, 1..=60.
+        zone: u8,
+        /// Northern hemisphere (false northing 0); false: southern (10 000 km).
+        north: bool,
+    },
     /// Generic transverse Mercator on WGS84: `+proj=tmerc +lat_0 +lon_0 +k +x_0 +y_0`.
     TransverseMercator {
+        /// Latitude of origin, degrees.
         lat0_deg: f64,
+        /// Central meridian, degrees east.
         lon0_deg: f64,
+        /// Scale factor on the central meridian (0.9..1.1).
         k0: f64,
+        /// Easting of the origin, metres.
         false_easting_m: f64,
+        /// Northing of the origin, metres.
         false_northing_m: f64,
     },
     /// EPSG:3857, spherical ("web") Mercator on the WGS84 semi-major axis.
     WebMercator,
 }
 
-/// A CRS given in a configuration (`[map] crs_override`): its parameters in range.
 /// What a user reads: `UTM zone 10N (WGS84)`, `WGS84 longitude / latitude (EPSG:4326)`, ...
 impl std::fmt::Display for Crs {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -58,6 +67,7 @@ impl std::fmt::Display for Crs {
     }
 }
 
+/// A CRS given in a configuration (`[map] crs_override`): its parameters in range.
 impl Validate for Crs {
     fn validate(&self, p: &mut Problems) {
         match *self {

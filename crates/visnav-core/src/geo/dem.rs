@@ -44,10 +44,18 @@ use super::raster::{GeoTransform, Raster, bilerp};
 pub enum DemError {
     /// A DEM has exactly one band.
     #[error("DEM raster has {bands} bands, expected 1 (heights)")]
-    NotOneBand { bands: usize },
+    NotOneBand {
+        /// Bands in the raster.
+        bands: usize,
+    },
     /// Bilinear cells need at least 2 x 2 samples.
     #[error("DEM raster is {width} x {height} px, need at least 2 x 2")]
-    TooSmall { width: usize, height: usize },
+    TooSmall {
+        /// Raster width, samples.
+        width: usize,
+        /// Raster height, samples.
+        height: usize,
+    },
     /// Every sample is nodata.
     #[error("DEM raster has no valid height sample")]
     NoValidHeights,
@@ -75,7 +83,10 @@ pub enum Dem {
     /// Gridded DEM/DSM.
     Grid(GridDem),
     /// Constant height everywhere, metres (valid in any CRS, unbounded).
-    Flat { height_m: f64 },
+    Flat {
+        /// The height, metres.
+        height_m: f64,
+    },
 }
 
 impl Dem {

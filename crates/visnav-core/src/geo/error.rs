@@ -10,29 +10,48 @@ use thiserror::Error;
 pub enum GeoError {
     /// An input was NaN or infinite.
     #[error("{field} is not finite ({value})")]
-    NonFinite { field: &'static str, value: f64 },
+    NonFinite {
+        /// Name of the input.
+        field: &'static str,
+        /// The value given.
+        value: f64,
+    },
     /// A latitude outside [-90, 90] degrees.
     #[error("latitude {lat_deg} deg is outside [-90, 90]")]
-    LatitudeOutOfRange { lat_deg: f64 },
+    LatitudeOutOfRange {
+        /// The latitude given, degrees.
+        lat_deg: f64,
+    },
     /// A UTM zone outside 1..=60.
     #[error("UTM zone {zone} is outside 1..=60")]
-    InvalidUtmZone { zone: u8 },
+    InvalidUtmZone {
+        /// The zone given.
+        zone: u8,
+    },
     /// A projection parameter that makes no sense (for example a scale factor <= 0).
     #[error("projection parameter {name} = {value} is invalid: {reason}")]
     InvalidParameter {
+        /// Name of the parameter.
         name: &'static str,
+        /// The value given.
         value: f64,
+        /// The rule it breaks.
         reason: &'static str,
     },
     /// The point lies where the projection is not defined or not accurate.
     #[error("point is outside the domain of {projection}: {reason}")]
     OutsideProjectionDomain {
+        /// Name of the projection.
         projection: &'static str,
+        /// Where the point is and the limit it passes.
         reason: String,
     },
     /// The operation needs a projected CRS but got geographic coordinates.
     #[error("{operation} is not defined for the geographic CRS (EPSG:4326)")]
-    NotProjected { operation: &'static str },
+    NotProjected {
+        /// The operation asked for.
+        operation: &'static str,
+    },
 }
 
 /// Returns `Err(NonFinite)` unless `value` is finite.

@@ -60,10 +60,15 @@ pub struct GridFactors {
 /// Resolved parameters of a transverse Mercator (UTM or generic).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TmParams {
+    /// Latitude of origin, degrees.
     pub lat0_deg: f64,
+    /// Central meridian, degrees east.
     pub lon0_deg: f64,
+    /// Scale factor on the central meridian.
     pub k0: f64,
+    /// Easting of the origin, metres.
     pub false_easting_m: f64,
+    /// Northing of the origin, metres.
     pub false_northing_m: f64,
 }
 

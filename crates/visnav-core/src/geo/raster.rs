@@ -49,19 +49,29 @@ pub enum RasterError {
     /// The geotransform has a non-finite coefficient or is singular.
     #[error("geotransform {} is invalid: {reason}", crate::text::numbers(coeffs))]
     BadGeoTransform {
+        /// The coefficients in GDAL order `c0..c5`.
         coeffs: [f64; 6],
+        /// What is wrong with them.
         reason: &'static str,
     },
     /// Width, height or band count is zero, or their product overflows.
     #[error("raster dimensions {width} x {height} x {bands} bands are invalid")]
     BadDimensions {
+        /// Width, pixels.
         width: usize,
+        /// Height, pixels.
         height: usize,
+        /// Bands per pixel.
         bands: usize,
     },
     /// The sample buffer length does not match width * height * bands.
     #[error("sample buffer holds {got} samples, expected {expected} (width * height * bands)")]
-    DataLength { got: usize, expected: usize },
+    DataLength {
+        /// Samples in the buffer.
+        got: usize,
+        /// `width * height * bands`.
+        expected: usize,
+    },
 }
 
 /// Affine transform between continuous pixel coordinates `(col, row)` (corner convention, see the
@@ -205,9 +215,13 @@ impl GeoTransform {
 /// Axis-aligned bounding box in map coordinates.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Bounds {
+    /// Western edge (smallest easting), metres (degrees in the geographic CRS).
     pub min_x_m: f64,
+    /// Southern edge (smallest northing).
     pub min_y_m: f64,
+    /// Eastern edge (largest easting).
     pub max_x_m: f64,
+    /// Northern edge (largest northing).
     pub max_y_m: f64,
 }
 
@@ -221,12 +235,19 @@ impl Bounds {
 /// Sample type of the source file (the storage type is in [`RasterData`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SampleType {
+    /// 8-bit unsigned integer (stored as `RasterData::U8`).
     U8,
+    /// 16-bit unsigned integer (stored as `RasterData::U16`).
     U16,
+    /// 16-bit signed integer (stored as `f32`).
     I16,
+    /// 32-bit unsigned integer (stored as `f32`).
     U32,
+    /// 32-bit signed integer (stored as `f32`).
     I32,
+    /// 32-bit float.
     F32,
+    /// 64-bit float (stored as `f32`).
     F64,
 }
 
@@ -248,8 +269,11 @@ impl std::fmt::Display for SampleType {
 /// Sample storage, band-interleaved by pixel (see the module doc).
 #[derive(Debug, Clone, PartialEq)]
 pub enum RasterData {
+    /// 8-bit unsigned samples (imagery).
     U8(Vec<u8>),
+    /// 16-bit unsigned samples (imagery).
     U16(Vec<u16>),
+    /// Float samples (heights, and every other source type converted).
     F32(Vec<f32>),
 }
 

@@ -122,21 +122,40 @@ pub fn reset_allowed(
 /// Why the held rejected fixes are not a position to reset onto.
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
 pub enum Inconsistent {
+    /// The fixes agree with each other but lie further from the filter than it could have
+    /// drifted since the last accepted fix: a reset waits until the run has lasted `wait_s`.
     #[error(
         "the rejected fixes stepped {offset_m:.0} m away in {since_s:.1} s (the filter's error \
          cannot grow that fast): waiting for {wait_s:.0} s of them before a reset"
     )]
     Step {
+        /// Size of the fixes' fitted horizontal offset from the filter's prediction, metres.
         offset_m: f64,
+        /// Time from the last accepted fix to the window's middle, seconds.
         since_s: f64,
+        /// How long the run must last before a reset (`step_reset_s`), seconds.
         wait_s: f64,
     },
+    /// Fewer than 3 fixes held: an offset and a drift leave nothing to test.
     #[error("{n} rejected fixes cannot be checked against each other")]
-    TooFew { n: usize },
+    TooFew {
+        /// Fixes held.
+        n: usize,
+    },
+    /// A held fix has a time, innovation or variance that is not finite (or a variance not
+    /// positive).
     #[error("a rejected fix has a non-finite value")]
     NonFinite,
+    /// The fixes' residuals about the fitted offset and drift fail the chi-square test.
     #[error("the {n} rejected fixes disagree with each other (chi-square {chi2:.1} > {gate:.1})")]
-    Disagree { n: usize, chi2: f64, gate: f64 },
+    Disagree {
+        /// Fixes held.
+        n: usize,
+        /// Weighted residual sum of squares of the fit.
+        chi2: f64,
+        /// The chi-square quantile it must not exceed (`2 (n - 2)` degrees of freedom).
+        gate: f64,
+    },
 }
 
 /// One rejected fix: capture time, horizontal innovation (north, east; fix minus prediction) and

@@ -321,20 +321,39 @@ impl AxisFit {
 /// Why an axis's drag law is not usable (yet).
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
 pub enum NotLearned {
+    /// Fewer samples than [`MIN_SAMPLES`].
     #[error("{n:.0} of {MIN_SAMPLES:.0} samples")]
-    FewSamples { n: f64 },
+    FewSamples {
+        /// The fit's effective sample count (older samples weigh less).
+        n: f64,
+    },
+    /// The samples cover a speed range narrower than [`MIN_SPEED_SPAN_M_S`].
     #[error("speed span {span_m_s:.1} m/s < {MIN_SPEED_SPAN_M_S} m/s")]
-    NarrowSpeedSpan { span_m_s: f64 },
+    NarrowSpeedSpan {
+        /// Fastest minus slowest body velocity seen on the axis, m/s.
+        span_m_s: f64,
+    },
+    /// The least-squares normal matrix cannot be inverted.
     #[error("singular fit")]
     SingularFit,
+    /// The law explains less of the specific force's variance than [`MIN_EXPLAINED`].
     #[error(
         "the fit explains {:.0} % of the specific force (< {:.0} %)",
         explained * 100.0,
         MIN_EXPLAINED * 100.0
     )]
-    Unexplained { explained: f64 },
+    Unexplained {
+        /// Share of the variance explained (R^2, 0 to 1).
+        explained: f64,
+    },
+    /// The fitted law does not oppose the motion over the fitted speeds (thrust, not drag).
     #[error("fitted law is not a drag (a {a:.3}, b {b:.4})")]
-    NotADrag { a: f64, b: f64 },
+    NotADrag {
+        /// Fitted linear coefficient, 1/s.
+        a: f64,
+        /// Fitted quadratic coefficient, 1/m.
+        b: f64,
+    },
 }
 
 /// Learns the drag law of both horizontal body axes from averaged specific forces and

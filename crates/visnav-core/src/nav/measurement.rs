@@ -17,11 +17,12 @@ pub struct ImuSample {
     pub dtheta_rad_body_frd: Vector3<f64>,
     /// Integrated specific force, m/s.
     pub dv_m_s_body_frd: Vector3<f64>,
-    /// 1-sigma (each axis) of the rotation and velocity change over the interval that the
-    /// increments above do not capture: a gap in the sample stream bridged by interpolation
-    /// (`daemon::inputs`), rad and m/s; 0 for an ordinary sample. Added to the filter's attitude
-    /// and velocity covariance by the propagation.
+    /// 1-sigma (each axis) of the rotation over the interval that the increments above do not
+    /// capture: a gap in the sample stream bridged by interpolation (`daemon::inputs`), rad; 0
+    /// for an ordinary sample. Added to the filter's attitude covariance by the propagation.
     pub gap_sigma_dtheta_rad: f64,
+    /// 1-sigma (each axis) of the velocity change the increments do not capture (the same gap),
+    /// m/s; 0 for an ordinary sample. Added to the filter's velocity covariance.
     pub gap_sigma_dv_m_s: f64,
 }
 

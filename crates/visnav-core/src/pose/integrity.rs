@@ -161,60 +161,156 @@ impl Validate for IntegrityConfig {
 /// Why a fix was not produced or not accepted. The message names the check and its values.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum Rejection {
+    /// The input or the configuration is unusable (non-finite, out of range); `reason` says which.
     #[error("invalid input: {reason}")]
-    InvalidInput { reason: String },
+    InvalidInput {
+        /// What is wrong, naming the value.
+        reason: String,
+    },
+    /// Fewer valid correspondences than a pose needs.
     #[error("too few valid correspondences: {valid} (need at least {required})")]
-    TooFewCorrespondences { valid: usize, required: usize },
+    TooFewCorrespondences {
+        /// Correspondences with finite values and a positive sigma.
+        valid: usize,
+        /// The fewest the solver accepts (4).
+        required: usize,
+    },
+    /// RANSAC found no hypothesis with enough support.
     #[error("no consensus: RANSAC found no pose with enough support in {iterations} iterations")]
-    NoConsensus { iterations: usize },
+    NoConsensus {
+        /// Hypotheses drawn.
+        iterations: usize,
+    },
+    /// A numerical step (refinement, covariance inversion) failed.
     #[error("numerical failure in {stage}: {detail}")]
-    NumericalFailure { stage: &'static str, detail: String },
+    NumericalFailure {
+        /// The pipeline stage that failed.
+        stage: &'static str,
+        /// What went wrong there.
+        detail: String,
+    },
+    /// Inlier count check: fewer inliers than `IntegrityConfig::min_inliers`.
     #[error("inlier count check failed: {inliers} inliers < minimum {min}")]
-    TooFewInliers { inliers: usize, min: usize },
+    TooFewInliers {
+        /// Inliers of the solution.
+        inliers: usize,
+        /// The configured minimum.
+        min: usize,
+    },
+    /// Inlier ratio check: inliers over valid correspondences below the minimum.
     #[error("inlier ratio check failed: {ratio:.3} < minimum {min:.3}")]
-    LowInlierRatio { ratio: f64, min: f64 },
+    LowInlierRatio {
+        /// Inliers / valid correspondences.
+        ratio: f64,
+        /// The configured minimum.
+        min: f64,
+    },
+    /// Reprojection check: the inliers' RMS pixel error above the maximum.
     #[error("reprojection check failed: RMS {rms_px:.2} px > maximum {max_px:.2} px")]
-    ReprojectionRms { rms_px: f64, max_px: f64 },
+    ReprojectionRms {
+        /// RMS of the 2-D reprojection error over the inliers, pixels.
+        rms_px: f64,
+        /// The configured maximum, pixels.
+        max_px: f64,
+    },
+    /// Variance factor check: residuals larger than the stated pixel sigmas.
     #[error(
         "variance factor check failed: sigma0 {sigma0:.2} > maximum {max:.2} (residuals exceed the stated pixel sigmas)"
     )]
-    Sigma0 { sigma0: f64, max: f64 },
+    Sigma0 {
+        /// A-posteriori standard deviation of unit weight.
+        sigma0: f64,
+        /// The configured maximum.
+        max: f64,
+    },
+    /// Spread check: the inliers occupy too few cells of the 3x3 image grid.
     #[error("spread check failed: inliers occupy {cells} of 9 grid cells < minimum {min}")]
-    GridCoverage { cells: usize, min: usize },
+    GridCoverage {
+        /// Occupied cells (0..=9).
+        cells: usize,
+        /// The configured minimum.
+        min: usize,
+    },
+    /// Spread check: the inliers' convex hull covers too little of the image.
     #[error(
         "spread check failed: inlier convex hull covers {fraction:.3} of the image < minimum {min:.3}"
     )]
-    HullArea { fraction: f64, min: f64 },
+    HullArea {
+        /// Hull area / image area.
+        fraction: f64,
+        /// The configured minimum.
+        min: f64,
+    },
+    /// Spread check: the inliers lie nearly on a line (a critical configuration).
     #[error(
         "spread check failed: inliers nearly collinear (eigenvalue ratio {ratio:.3} < minimum {min:.3})"
     )]
-    Collinear { ratio: f64, min: f64 },
+    Collinear {
+        /// `sqrt(lambda_min / lambda_max)` of the inliers' pixel scatter.
+        ratio: f64,
+        /// The configured minimum.
+        min: f64,
+    },
+    /// Conditioning check: the Jacobi-scaled normal matrix is near singular.
     #[error("conditioning check failed: condition number {condition:.3e} > maximum {max:.3e}")]
-    IllConditioned { condition: f64, max: f64 },
+    IllConditioned {
+        /// Its condition number.
+        condition: f64,
+        /// The configured maximum.
+        max: f64,
+    },
+    /// Horizontal position 1-sigma (semi-major axis) above the maximum.
     #[error(
         "position sigma check failed: horizontal 1-sigma {sigma_m:.1} m > maximum {max_m:.1} m"
     )]
-    HorizontalSigma { sigma_m: f64, max_m: f64 },
+    HorizontalSigma {
+        /// The fix's horizontal 1-sigma, metres.
+        sigma_m: f64,
+        /// The configured maximum, metres.
+        max_m: f64,
+    },
+    /// Vertical position 1-sigma above the maximum.
     #[error("position sigma check failed: vertical 1-sigma {sigma_m:.1} m > maximum {max_m:.1} m")]
-    VerticalSigma { sigma_m: f64, max_m: f64 },
+    VerticalSigma {
+        /// The fix's vertical 1-sigma, metres.
+        sigma_m: f64,
+        /// The configured maximum, metres.
+        max_m: f64,
+    },
+    /// Largest attitude 1-sigma above the maximum.
     #[error("attitude sigma check failed: 1-sigma {sigma_deg:.3} deg > maximum {max_deg:.3} deg")]
-    AttitudeSigma { sigma_deg: f64, max_deg: f64 },
+    AttitudeSigma {
+        /// The fix's largest attitude 1-sigma, degrees.
+        sigma_deg: f64,
+        /// The configured maximum, degrees.
+        max_deg: f64,
+    },
+    /// The vision-only position disagrees with the position prior beyond the chi-square gate.
     #[error(
         "prior consistency check failed: position Mahalanobis d^2 {d2:.1} > chi-square({dof}) gate {gate:.1} (p = {probability})"
     )]
     PriorPositionInconsistent {
+        /// Squared Mahalanobis distance with the summed covariances.
         d2: f64,
+        /// Chi-square quantile of `probability` for `dof`.
         gate: f64,
+        /// Degrees of freedom (3).
         dof: usize,
+        /// The gate's probability (`IntegrityConfig::prior_gate_probability`).
         probability: f64,
     },
+    /// The vision-only attitude disagrees with the attitude prior beyond the chi-square gate.
     #[error(
         "prior consistency check failed: attitude Mahalanobis d^2 {d2:.1} > chi-square({dof}) gate {gate:.1} (p = {probability})"
     )]
     PriorAttitudeInconsistent {
+        /// Squared Mahalanobis distance with the summed covariances.
         d2: f64,
+        /// Chi-square quantile of `probability` for `dof`.
         gate: f64,
+        /// Degrees of freedom (3).
         dof: usize,
+        /// The gate's probability (`IntegrityConfig::prior_gate_probability`).
         probability: f64,
     },
 }
@@ -247,7 +343,9 @@ impl Rejection {
 /// The decision on a fix.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Verdict {
+    /// Every check passed.
     Accepted,
+    /// The first check that failed, or why no fix could be computed.
     Rejected(Rejection),
 }
 

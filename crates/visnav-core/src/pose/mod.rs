@@ -83,11 +83,17 @@ impl Correspondence {
 /// the image size.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ImageGeometry {
+    /// Focal length along u, pixels.
     pub fx_px: f64,
+    /// Focal length along v, pixels.
     pub fy_px: f64,
+    /// Principal point u, pixels (top-left pixel centre at 0).
     pub cx_px: f64,
+    /// Principal point v, pixels.
     pub cy_px: f64,
+    /// Image width, pixels.
     pub width_px: u32,
+    /// Image height, pixels.
     pub height_px: u32,
 }
 
@@ -138,7 +144,9 @@ impl ImageGeometry {
 /// A camera pose: `R_world_cam` and the projection centre `C_world`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Pose {
+    /// Rotation taking camera-frame vectors (`_cam`: x right, y down, z forward) to the world frame.
     pub r_world_cam: Rotation3<f64>,
+    /// Projection centre in the world frame, metres.
     pub c_world: Vector3<f64>,
 }
 
@@ -176,14 +184,18 @@ impl Pose {
 /// Prior attitude: `R_world_cam` with a 3x3 covariance of the world-frame rotation-vector error, rad^2.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AttitudePrior {
+    /// The prior's camera attitude, camera to world.
     pub r_world_cam: Rotation3<f64>,
+    /// Covariance of its world-frame rotation-vector error, rad^2.
     pub cov_rad2: Matrix3<f64>,
 }
 
 /// Prior position of the projection centre with its covariance, world frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PositionPrior {
+    /// The prior projection centre, world frame, metres.
     pub c_world: Vector3<f64>,
+    /// Its covariance, world frame, m^2.
     pub cov_m2: Matrix3<f64>,
 }
 
@@ -191,15 +203,17 @@ pub struct PositionPrior {
 /// whole.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Priors {
+    /// Attitude prior: checked for consistency, and fused when `refine.use_attitude_prior` is on.
     pub attitude: Option<AttitudePrior>,
+    /// Position prior: used only for the consistency check, never fused.
     pub position: Option<PositionPrior>,
     /// How far the world points as a whole may be tilted against the true world, radians per
     /// horizontal axis (1 sigma; 0: not at all). A map's height error that changes linearly across
     /// the footprint (a constant height over sloping ground, a DEM's tilt) tilts the points about
     /// their centre: the image pins the pose against the points, which then stands turned by that
     /// tilt against the world (attitude) and displaced by it times the camera's height above them
-    /// (position). See [`MapTilt`]; with an attitude prior the tilt is estimated between the
-    /// image and the prior ([`fuse_attitude_prior`]).
+    /// (position). See `MapTilt`; with an attitude prior the tilt is estimated between the
+    /// image and the prior (`fuse_attitude_prior`).
     pub map_tilt_sigma_rad: f64,
 }
 
@@ -207,8 +221,11 @@ pub struct Priors {
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ResectionConfig {
+    /// Hypothesis search (`[pose.ransac]`).
     pub ransac: RansacConfig,
+    /// Least-squares adjustment and covariance scaling (`[pose.refine]`).
     pub refine: RefineConfig,
+    /// Accept/reject thresholds (`[pose.integrity]`).
     pub integrity: IntegrityConfig,
 }
 
@@ -341,7 +358,9 @@ fn prior_dependence(
 /// Outcome of [`resect`]: the fix when one could be computed, and the decision.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Outcome {
+    /// The fix, also when rejected (for diagnostics); None when none could be computed.
     pub fix: Option<Fix>,
+    /// Accepted, or the first failing check.
     pub verdict: Verdict,
 }
 

@@ -38,9 +38,15 @@ pub enum RobustLoss {
     /// Plain least squares.
     None,
     /// Huber: quadratic up to `k_sigma`, linear beyond.
-    Huber { k_sigma: f64 },
+    Huber {
+        /// Threshold in sigmas of the whitened residual norm.
+        k_sigma: f64,
+    },
     /// Cauchy (Lorentzian) with scale `c_sigma`.
-    Cauchy { c_sigma: f64 },
+    Cauchy {
+        /// Scale in sigmas of the whitened residual norm.
+        c_sigma: f64,
+    },
 }
 
 impl RobustLoss {
@@ -155,12 +161,19 @@ impl Validate for RefineConfig {
 /// Why the refinement failed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum RefineError {
+    /// Fewer than 3 points, or no more residual rows than the 6 parameters.
     #[error("{n} observations cannot determine 6 pose parameters")]
-    TooFewObservations { n: usize },
+    TooFewObservations {
+        /// Points given.
+        n: usize,
+    },
+    /// The normal matrix could not be factorised: degenerate geometry.
     #[error("the normal matrix is not positive definite (degenerate geometry)")]
     Singular,
+    /// A NaN or infinity appeared in the residuals, the Jacobian or the step.
     #[error("non-finite value in the adjustment")]
     NonFinite,
+    /// The attitude prior's covariance has no Cholesky factor.
     #[error("the attitude prior covariance is not positive definite")]
     BadPriorCovariance,
 }
@@ -168,6 +181,7 @@ pub enum RefineError {
 /// Result of [`refine_pose`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct Refined {
+    /// The adjusted pose.
     pub pose: Pose,
     /// A-priori covariance `(J^T W J)^-1`, order `[phi_world (rad), C_world (m)]`.
     pub cov_apriori: Matrix6<f64>,

@@ -7,8 +7,11 @@
 /// A 2-D similarity `p -> s R(theta) p + t`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Sim2 {
+    /// Scale factor `s` (1 = same size).
     pub scale: f32,
+    /// Rotation angle, radians, from +x towards +y.
     pub theta_rad: f32,
+    /// Translation, added after scaling and rotating, in the target's units.
     pub t: [f32; 2],
 }
 

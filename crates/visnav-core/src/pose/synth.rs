@@ -34,9 +34,11 @@ pub struct SceneConfig {
     pub outlier_ratio: f64,
     /// 1-sigma pixel noise of the inliers (also reported as the correspondences' sigma).
     pub noise_px: f64,
-    /// Image width / height, horizontal field of view.
+    /// Image width, pixels.
     pub width_px: u32,
+    /// Image height, pixels.
     pub height_px: u32,
+    /// Horizontal field of view, degrees.
     pub hfov_deg: f64,
     /// World coordinates of the scene origin (e.g. UTM-sized numbers to exercise the centring).
     pub origin_world: Vector3<f64>,
@@ -62,10 +64,13 @@ impl Default for SceneConfig {
 /// A generated scene.
 #[derive(Debug, Clone)]
 pub struct Scene {
+    /// The correspondences, inliers and outliers mixed, world points in absolute coordinates.
     pub corrs: Vec<Correspondence>,
     /// Ground truth inlier flags.
     pub is_inlier: Vec<bool>,
+    /// The true camera pose (absolute world coordinates).
     pub truth: Pose,
+    /// The synthetic camera's intrinsics and image size.
     pub image: ImageGeometry,
 }
 

@@ -8,7 +8,9 @@ use super::Features;
 /// A match accepted by [`gated_match`]: query index, train index.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GatedMatch {
+    /// Index of the query keypoint.
     pub query: usize,
+    /// Index of the matched train keypoint.
     pub train: usize,
 }
 

@@ -52,9 +52,11 @@ impl GrayImage {
         }
     }
 
+    /// Width, pixels.
     pub fn width(&self) -> usize {
         self.width
     }
+    /// Height, pixels.
     pub fn height(&self) -> usize {
         self.height
     }

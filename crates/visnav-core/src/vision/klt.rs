@@ -131,8 +131,11 @@ fn klt_error(msg: impl Into<String>) -> VisionError {
 /// At most `max_per_cell` corners in each cell of a `cols x rows` grid over the image.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 pub struct SpreadGrid {
+    /// Grid columns across the image.
     pub cols: usize,
+    /// Grid rows down the image.
     pub rows: usize,
+    /// Most corners kept in one cell (the strongest first).
     pub max_per_cell: usize,
 }
 
@@ -325,6 +328,7 @@ impl PyramidLevel {
             grad_y,
         }
     }
+    /// The level's image.
     pub fn image(&self) -> &GrayImage {
         &self.image
     }
@@ -1016,7 +1020,9 @@ pub enum LostReason {
 /// Tracked, or lost with the reason.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 pub enum TrackStatus {
+    /// The point was tracked and passed every check.
     Tracked,
+    /// The track was lost, for this reason.
     Lost(LostReason),
 }
 
@@ -1025,6 +1031,7 @@ pub enum TrackStatus {
 pub struct Track {
     /// The point in the next image (pixels). For a lost track, the last estimate (diagnostics).
     pub point: [f32; 2],
+    /// Tracked, or lost with the reason.
     pub status: TrackStatus,
     /// Mean absolute intensity difference over the final window, grey levels (OpenCV's `err`);
     /// `f32::INFINITY` for a lost track, so a residual gate never keeps one.
@@ -1032,6 +1039,7 @@ pub struct Track {
 }
 
 impl Track {
+    /// True when the point was tracked ([`TrackStatus::Tracked`]).
     pub fn is_tracked(&self) -> bool {
         self.status == TrackStatus::Tracked
     }

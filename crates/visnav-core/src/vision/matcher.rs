@@ -45,7 +45,9 @@ impl Default for MatchParams {
 /// A match from query keypoint `query` to train keypoint `train`.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct Match {
+    /// Index of the query keypoint.
     pub query: usize,
+    /// Index of its nearest train keypoint.
     pub train: usize,
     /// L2 distance to the nearest train descriptor.
     pub distance: f32,

@@ -41,16 +41,37 @@ pub use surf::{
 /// Errors of the vision module.
 #[derive(Debug, thiserror::Error)]
 pub enum VisionError {
+    /// An image file could not be read or decoded.
     #[error("{path}: cannot read image: {reason}")]
-    ImageRead { path: PathBuf, reason: String },
+    ImageRead {
+        /// The file.
+        path: PathBuf,
+        /// Why, in words.
+        reason: String,
+    },
+    /// An image file could not be encoded or written.
     #[error("{path}: cannot write image: {reason}")]
-    ImageWrite { path: PathBuf, reason: String },
+    ImageWrite {
+        /// The file.
+        path: PathBuf,
+        /// Why, in words.
+        reason: String,
+    },
+    /// Image dimensions or pixel data are unusable (zero size, wrong length).
     #[error("invalid image: {0}")]
     InvalidImage(String),
+    /// A detector parameter is out of range.
     #[error("invalid SURF parameter `{name}`: {reason}")]
-    InvalidParam { name: &'static str, reason: String },
+    InvalidParam {
+        /// The parameter's field name.
+        name: &'static str,
+        /// The range it breaks, in words.
+        reason: String,
+    },
+    /// The matcher's inputs or settings are inconsistent (descriptor kinds, ratio, gate).
     #[error("matcher: {0}")]
     Matcher(String),
+    /// The KLT tracker's inputs or settings are invalid.
     #[error("KLT tracker: {0}")]
     Klt(String),
 }

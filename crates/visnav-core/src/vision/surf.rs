@@ -415,9 +415,13 @@ impl Layer {
 /// `size` at the pixels `(c * step, r * step)`, `r < rows`, `c < cols`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct LayerSpec {
+    /// Box filter side, pixels (9, 15, 21, ... in the first octave).
     pub size: usize,
+    /// Sampling step, pixels.
     pub step: usize,
+    /// Sample rows.
     pub rows: usize,
+    /// Sample columns.
     pub cols: usize,
 }
 
@@ -455,7 +459,7 @@ pub fn descriptor_weights(kind: DescriptorKind) -> &'static [f32] {
     }
 }
 
-/// Where the extrema of a middle layer are searched ([`find_maxima`]'s margin): the grid cells
+/// Where the extrema of a middle layer are searched (`find_maxima`'s margin): the grid cells
 /// `c_lo..=c_hi`, `r_lo..=r_hi` at which the largest filter of the triple (`hi`) fits at every
 /// neighbour sample. `None`: nowhere.
 pub fn extrema_window(
@@ -488,9 +492,13 @@ pub fn extrema_window(
 /// Grid cells searched for extrema (inclusive bounds), see [`extrema_window`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ExtremaWindow {
+    /// First grid column searched.
     pub c_lo: usize,
+    /// Last grid column searched.
     pub c_hi: usize,
+    /// First grid row searched.
     pub r_lo: usize,
+    /// Last grid row searched.
     pub r_hi: usize,
 }
 

@@ -73,10 +73,20 @@ pub enum VoRefusal {
     Prior(VoRejection),
     /// The frame is not after the previous one (the sequence restarts).
     #[error("frame at {t_us} us is not after the previous one ({prev_us} us)")]
-    NotAfter { t_us: u64, prev_us: u64 },
+    NotAfter {
+        /// This frame's capture time (the prior's `t_capture_us`), us.
+        t_us: u64,
+        /// The previous frame's capture time, us.
+        prev_us: u64,
+    },
     /// Too long since the previous frame (the sequence restarts).
     #[error("{span_s:.2} s since the previous frame (at most {max_s} s)")]
-    Gap { span_s: f64, max_s: f64 },
+    Gap {
+        /// Time since the previous frame, s.
+        span_s: f64,
+        /// The longest span a motion may cover (`nav::VO_MAX_SPAN_S`), s.
+        max_s: f64,
+    },
     /// The frame could not be prepared for tracking (its message).
     #[error("frame: {0}")]
     Frame(String),
@@ -122,10 +132,13 @@ impl VoRefusal {
 /// A frame's motion as the filter's measurement, with the numbers behind it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct VoMotion {
+    /// The displacement (NED) and rotation between the two capture times, for the filter.
     pub fix: VoFix,
-    /// Tracks followed, tracks on the terrain, inliers of the resection.
+    /// Tracks followed into this frame.
     pub tracks: usize,
+    /// Tracks whose previous-frame ray met the terrain.
     pub on_ground: usize,
+    /// Inliers of the resection.
     pub inliers: usize,
     /// Reprojection RMS of the inliers, px.
     pub rms_px: f64,

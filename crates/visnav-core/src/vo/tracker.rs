@@ -35,6 +35,7 @@ pub struct TrackingConfig {
     /// Spread grid of the detector: at most `max_corners / (cols rows)` corners per cell, so one
     /// textured corner of the image cannot take them all.
     pub grid_cols: usize,
+    /// Rows of the spread grid (see `grid_cols`).
     pub grid_rows: usize,
     /// Tracker window side, odd, px (`winSize`).
     pub win_size_px: usize,
@@ -157,7 +158,9 @@ pub struct Tracker {
 /// A feature seen in the previous frame and found in the new one (raw pixels).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RawTrack {
+    /// Position in the previous frame, pixels as captured (distorted), `[x, y]`.
     pub prev_px: [f32; 2],
+    /// Position in the new frame, pixels as captured (distorted), `[x, y]`.
     pub next_px: [f32; 2],
 }
 

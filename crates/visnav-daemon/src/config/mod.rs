@@ -11,7 +11,7 @@
 //!
 //! The daemon's own sections sit beside this file: [`daemon`] (`[daemon]`), [`map`] (`[map]`),
 //! [`vision`] (`[vision]`), [`fix`] (`[fix]` as the engine's parameters), with the command-line
-//! and environment [`overrides`] and the generated key [`reference`].
+//! and environment [`overrides`] and the generated key [`reference`](mod@reference).
 
 use std::path::{Path, PathBuf};
 

@@ -907,7 +907,7 @@ pub struct GeoTiffInfo {
 }
 
 impl GeoTiffInfo {
-    /// Map-coordinate bounding box of the outer pixel edges (as [`Raster::bounds`]).
+    /// Map-coordinate bounding box of the outer pixel edges (as [`Raster::bounds`](visnav_core::geo::raster::Raster::bounds)).
     pub fn bounds(&self) -> Bounds {
         self.transform.bounds(self.width, self.height)
     }

@@ -43,13 +43,19 @@ const RENDER_BATCH: usize = 32;
 /// What [`write_frames`] wrote.
 #[derive(Debug, Clone, Serialize)]
 pub struct FramesWritten {
+    /// The folder of the frames.
     pub dir: PathBuf,
+    /// Frames written.
     pub frames: usize,
+    /// Frame width, px.
     pub width_px: usize,
+    /// Frame height, px.
     pub height_px: usize,
+    /// Frame rate (`[closed_loop] camera_rate_hz`), Hz.
     pub rate_hz: f64,
-    /// Capture times of the first and the last frame, s (the emulator's boot clock).
+    /// Capture time of the first frame, s (the emulator's boot clock).
     pub from_s: f64,
+    /// Capture time of the last frame, s (the emulator's boot clock).
     pub until_s: f64,
 }
 
@@ -166,7 +172,9 @@ fn capture_times_us(from_s: f64, until_s: f64, rate_hz: f64) -> Vec<u64> {
 /// What the emulator of [`autopilot_only`] received and how it scores.
 #[derive(Debug, Clone, Serialize)]
 pub struct AutopilotOnlyReport {
+    /// The scenario's name.
     pub scenario: String,
+    /// The MAVLink connection the emulator spoke on.
     pub connection: String,
     /// Scenario time flown, s.
     pub flown_s: f64,
@@ -185,7 +193,8 @@ pub struct AutopilotOnlyReport {
     pub injected_err_m: Stats,
     /// Received positions in the evaluation window.
     pub injections_scored: usize,
-    /// The largest horizontal accuracy those positions claimed, m (GPS_INPUT's `horiz_accuracy`).
+    /// The horizontal accuracy those positions claimed (median, 90th percentile, largest), m
+    /// (GPS_INPUT's `horiz_accuracy`).
     pub claimed_accuracy_m: Stats,
     /// Positions with a non-finite value (must be 0).
     pub non_finite: usize,

@@ -118,8 +118,11 @@ impl Validate for DegradeSpec {
 /// Why a copy could not be made.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum DegradeError {
+    /// The spec is invalid, or asks for what the inputs cannot give (shadows without a surface
+    /// model); the problems in words.
     #[error("degrade: {0}")]
     Spec(String),
+    /// The raster cannot be degraded (not 8-bit, not grey or RGB) or its copy cannot be built.
     #[error("degrade: {0}")]
     Raster(String),
 }

@@ -32,17 +32,29 @@ use visnav_core::rng::Rng;
 /// from the clipping to [0, 255].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PhotometricSpec {
+    /// Exposure gain on the radiance.
     pub gain: f64,
+    /// Exposure offset added after the gain, DN.
     pub offset_dn: f64,
+    /// Response curve exponent (> 1 darkens mid-tones).
     pub gamma: f64,
+    /// Fraction of light lost in the image corners.
     pub vignetting_corner: f64,
+    /// Gaussian blur sigma, px (0: none).
     pub blur_sigma_px: f64,
+    /// Motion blur length, px (0: none).
     pub motion_length_px: f64,
+    /// Motion blur direction, from image +u towards +v, deg.
     pub motion_angle_deg: f64,
+    /// Gaussian read noise, DN (1 sigma).
     pub read_noise_dn: f64,
+    /// Shot noise conversion gain, DN per photo-electron (0: none).
     pub conversion_gain_dn_per_e: f64,
+    /// Round the output to integers.
     pub quantise: bool,
+    /// Value of off-map pixels, DN.
     pub fill_dn: f64,
+    /// Noise seed (each row of each frame draws from its own stream).
     pub seed: u64,
 }
 

@@ -274,7 +274,9 @@ impl OrthoPyramid {
 /// Pyramid levels of one footprint: `level` and `level + 1` blended by `blend` (0-1).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Lod {
+    /// The finer level.
     pub level: usize,
+    /// Weight of `level + 1`, 0-1.
     pub blend: f32,
 }
 

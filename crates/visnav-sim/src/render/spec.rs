@@ -35,14 +35,23 @@ use visnav_core::validate::{Problems, Validate};
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct RenderSpec {
+    /// Grey (Rec. 601 luma) or RGB output.
     pub colour: ColourMode,
+    /// Samples per pixel side inside the pixel's ground footprint (1-4).
     pub supersample: u32,
+    /// Rays longer than this are off-map (sky, horizon), m.
     pub max_range_m: f64,
+    /// Value of off-map pixels, 8-bit digital numbers.
     pub fill_dn: f64,
+    /// Noise seed (frame k uses the stream (seed, k)).
     pub seed: u64,
+    /// Round to integers (8-bit output).
     pub quantise: bool,
+    /// `[exposure]`.
     pub exposure: ExposureSpec,
+    /// `[blur]`.
     pub blur: BlurSpec,
+    /// `[noise]`.
     pub noise: NoiseSpec,
 }
 
@@ -50,9 +59,13 @@ pub struct RenderSpec {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ExposureSpec {
+    /// Multiplies the radiance.
     pub gain: f64,
+    /// Then added, DN.
     pub offset_dn: f64,
+    /// Response `255 (v/255)^gamma`, applied after the noise.
     pub gamma: f64,
+    /// Fraction of light lost in the image corners (quadratic falloff).
     pub vignetting_corner: f64,
 }
 
@@ -60,8 +73,11 @@ pub struct ExposureSpec {
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct BlurSpec {
+    /// Gaussian blur sigma, px.
     pub sigma_px: f64,
+    /// Linear motion blur length, px.
     pub motion_length_px: f64,
+    /// Motion blur direction, from image +u towards +v, deg.
     pub motion_angle_deg: f64,
 }
 
@@ -69,7 +85,9 @@ pub struct BlurSpec {
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct NoiseSpec {
+    /// Gaussian read noise, DN (1 sigma).
     pub read_dn: f64,
+    /// Shot noise: variance = signal (DN) x this gain; 0: none.
     pub conversion_gain_dn_per_e: f64,
 }
 

@@ -65,9 +65,13 @@ const MIN_VARIANCE: f64 = 1e-3;
 /// A grey image with a validity mask.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Plane {
+    /// Width, pixels.
     pub width: usize,
+    /// Height, pixels.
     pub height: usize,
+    /// Values, row-major `width * height`; always finite (0 where invalid).
     pub data: Vec<f32>,
+    /// Row-major: true where the pixel holds data.
     pub valid: Vec<bool>,
 }
 

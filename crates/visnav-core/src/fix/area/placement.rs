@@ -73,6 +73,7 @@ pub struct TwoChannels<'a> {
 }
 
 impl<'a> TwoChannels<'a> {
+    /// `p` and its gradient magnitude, computed once.
     pub fn new(p: &'a Plane) -> Self {
         Self {
             grey: p,
@@ -262,9 +263,12 @@ pub fn rank_hypotheses(channels: &Channels, hypotheses: &[(f64, f64)]) -> Vec<(u
 pub struct SimilarPlacement {
     /// Where the template's centre `((w-1)/2, (h-1)/2)` lies in the window, pixels.
     pub centre: [f64; 2],
-    /// The winning hypothesis: the window shows the template scaled and rotated by these.
+    /// The winning hypothesis's scale: the window shows the template scaled by this.
     pub scale: f64,
+    /// The winning hypothesis's rotation of the template (image axes: positive turns x towards
+    /// y), radians.
     pub theta_rad: f64,
+    /// The channels' mean correlation (NCC) at the peak.
     pub ncc: f64,
     /// Best correlation of a local maximum (any hypothesis) whose centre lies beyond the
     /// exclusion radius (-1 when none).
@@ -346,8 +350,10 @@ pub fn unjudged_places(
 pub struct Candidate {
     /// Where the template's centre `((w-1)/2, (h-1)/2)` lies in the window, pixels.
     pub centre: [f64; 2],
-    /// The hypothesis: the window shows the template scaled and rotated by these.
+    /// The hypothesis's scale: the window shows the template scaled by this.
     pub scale: f64,
+    /// The hypothesis's rotation of the template (image axes: positive turns x towards y),
+    /// radians.
     pub theta_rad: f64,
     /// The channels' mean correlation.
     pub ncc: f64,
@@ -395,9 +401,17 @@ pub enum PlaceError {
     /// Nothing to correlate (no overlap, flat images).
     Undefined,
     /// The best peak is too weak.
-    Weak { ncc: f64 },
+    Weak {
+        /// The peak's correlation (NCC), below [`MIN_PLACEMENT_NCC`].
+        ncc: f64,
+    },
     /// Another place correlates nearly as well.
-    Ambiguous { ncc: f64, runner_up: f64 },
+    Ambiguous {
+        /// The peak's correlation (NCC).
+        ncc: f64,
+        /// The best other place's correlation, within [`UNIQUE_MARGIN`] of the peak.
+        runner_up: f64,
+    },
 }
 
 impl std::fmt::Display for PlaceError {

@@ -7,8 +7,11 @@ use super::*;
 /// Correlation values over a grid of shifts; `NaN` where undefined (too little overlap, flat).
 #[derive(Debug, Clone)]
 pub struct Surface {
+    /// Shifts along x.
     pub width: usize,
+    /// Shifts along y.
     pub height: usize,
+    /// Correlation per shift, row-major `width * height` (`NaN` where undefined).
     pub data: Vec<f64>,
     /// Shifts (indices into `data`, ascending) left undefined because the template overlapped
     /// too few of the window's valid pixels (the window's edge, a hole in the map): places that

@@ -75,9 +75,11 @@ fn accumulate_down<T: Copy + std::ops::AddAssign>(table: &mut [T], w: usize) {
 /// A square patch of a plane, zero-mean and unit-norm, ready for correlation.
 #[derive(Debug, Clone)]
 pub struct Patch {
-    /// Centre in the source plane (pixel centres at integers; `side` odd).
+    /// Centre column in the source plane (pixel centres at integers).
     pub cx: usize,
+    /// Centre row in the source plane.
     pub cy: usize,
+    /// Side length, pixels (odd).
     pub side: usize,
     /// Row-major, each row padded with zeros to `stride` values (a multiple of the dot
     /// product's 8 lanes, so the correlation's inner loop has no scalar tail).
@@ -184,9 +186,11 @@ fn dot_rows_f32<'a>(rows: impl Iterator<Item = (&'a [f32], &'a [f32])>) -> f32 {
 /// A patch's match in a plane.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TieMatch {
-    /// Patch centre in the searched plane (sub-pixel).
+    /// Patch centre in the searched plane, column (sub-pixel).
     pub x: f64,
+    /// Patch centre in the searched plane, row (sub-pixel).
     pub y: f64,
+    /// The correlation (NCC) at the match.
     pub ncc: f64,
 }
 

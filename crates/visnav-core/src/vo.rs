@@ -244,11 +244,11 @@ pub enum VoRejection {
     /// The displacement's horizontal or vertical 1-sigma exceeds
     /// [`VoConfig::max_sigma_agl_fraction`] of the height above ground.
     #[error(
-        "sigma {sigma_h_m:.1} m is over {max_fraction} of the height above ground ({agl_m:.0} m)"
+        "sigma {sigma_m:.1} m is over {max_fraction} of the height above ground ({agl_m:.0} m)"
     )]
     TooUncertain {
         /// The larger of the horizontal and vertical sigma, m.
-        sigma_h_m: f64,
+        sigma_m: f64,
         /// Height of the previous centre above the inlier ground points, m.
         agl_m: f64,
         /// [`VoConfig::max_sigma_agl_fraction`].
@@ -614,9 +614,10 @@ fn check_motion(m: &FrameMotion, cfg: &VoConfig) -> Result<(), VoRejection> {
     let h = m.cov_dp_world_m2.fixed_view::<2, 2>(0, 0);
     let sigma_h_m = h.symmetric_eigenvalues().max().max(0.0).sqrt();
     let sigma_v_m = m.cov_dp_world_m2[(2, 2)].max(0.0).sqrt();
-    if sigma_h_m.max(sigma_v_m) > cfg.max_sigma_agl_fraction * m.agl_m {
+    let sigma_m = sigma_h_m.max(sigma_v_m);
+    if sigma_m > cfg.max_sigma_agl_fraction * m.agl_m {
         return Err(VoRejection::TooUncertain {
-            sigma_h_m,
+            sigma_m,
             agl_m: m.agl_m,
             max_fraction: cfg.max_sigma_agl_fraction,
         });

@@ -568,7 +568,12 @@ impl FrameFixer for RecordingFixer {
                 0.0,
             )
         } else {
-            self.inner.fix(image, prior)
+            // The engine reads no clock; the compute time is the process's own measurement,
+            // kept in fixes.csv only (no simulated figure depends on it).
+            let start = std::time::Instant::now();
+            let mut r = self.inner.fix(image, prior);
+            r.ms = start.elapsed().as_secs_f64() * 1e3;
+            r
         };
         let t_done_us = self.emu.time_run_us() + self.delivery_us;
         let row = score_fix(t_capture_us, t_done_us, &report, &self.table, &self.mount);
@@ -706,8 +711,8 @@ pub struct FixRow {
     pub beyond_3sigma: bool,
     /// The fix's pose inliers (`FixReport::inliers`).
     pub inliers: usize,
-    /// `FixReport::ms` as the engine returned it, ms: the engine reads no clock and the daemon's
-    /// fix worker times the call only after this row is taken, so it is 0 here.
+    /// The engine's compute time for this frame, wall clock, ms (0 for a frame refused because
+    /// the scenario withholds the map).
     pub ms: f64,
 }
 

@@ -131,10 +131,9 @@ pub fn correspondences(
     size2: (usize, usize),
     max_overlap_error: f64,
 ) -> Result<Correspondences, VisionError> {
-    let h21 = h12.try_inverse().ok_or_else(|| VisionError::InvalidParam {
-        name: "h12",
-        reason: "homography is singular".into(),
-    })?;
+    let h21 = h12
+        .try_inverse()
+        .ok_or_else(|| VisionError::InvalidImage("the homography h12 is singular".into()))?;
     // Regions of image 1 mapped into image 2, kept when inside both images.
     let mut keep1 = Vec::new();
     let mut mapped1 = Vec::new();
@@ -331,10 +330,7 @@ pub fn warp(
 ) -> Result<GrayImage, VisionError> {
     let inv = h_src_to_dst
         .try_inverse()
-        .ok_or_else(|| VisionError::InvalidParam {
-            name: "homography",
-            reason: "singular".into(),
-        })?;
+        .ok_or_else(|| VisionError::InvalidImage("the warp's homography is singular".into()))?;
     let k = k.max(1);
     let mut data = Vec::with_capacity(w * h);
     for y in 0..h {

@@ -56,7 +56,7 @@ pub enum VoEvalError {
         reason: String,
     },
     /// The vision code (SURF, matching, tracking, the flat ground) refused its input.
-    #[error("SURF: {0}")]
+    #[error("vision: {0}")]
     Vision(String),
     /// The data were read but the solver refused them (a measured outcome, not a fault).
     #[error("{path}: {reason}")]

@@ -248,16 +248,16 @@ pub enum FixError {
     /// The reference map has no pyramid levels.
     #[error("the reference map has no levels")]
     EmptyMap,
-    /// The map's SURF settings cannot build a detector.
-    #[error("SURF settings of the map: {0}")]
-    Surf(crate::vision::VisionError),
+    /// The map's feature settings cannot build its detector.
+    #[error("the map's feature settings: {0}")]
+    Detector(crate::vision::VisionError),
 }
 
 // Not `#[from]`: that would also make the error its `source()`, and the message already has its
 // text (an error chain printed with `{:#}` would say it twice).
 impl From<crate::vision::VisionError> for FixError {
     fn from(e: crate::vision::VisionError) -> Self {
-        Self::Surf(e)
+        Self::Detector(e)
     }
 }
 

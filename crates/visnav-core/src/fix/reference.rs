@@ -239,10 +239,9 @@ impl MemoryReference {
         let tf = *raster.transform();
         let c = tf.coeffs();
         if !(tf.is_axis_aligned() && c[1] > 0.0 && c[5] < 0.0) {
-            return Err(VisionError::InvalidParam {
-                name: "raster",
-                reason: "the orthophoto must be north-up and axis-aligned".into(),
-            });
+            return Err(VisionError::InvalidImage(
+                "the orthophoto must be north-up and axis-aligned".into(),
+            ));
         }
         let detector = spec.detector()?;
         let b = raster.bounds();

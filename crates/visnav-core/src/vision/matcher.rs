@@ -49,9 +49,11 @@ pub struct Match {
     pub query: usize,
     /// Index of its nearest train keypoint.
     pub train: usize,
-    /// L2 distance to the nearest train descriptor.
+    /// Distance to the nearest train descriptor: Euclidean for float descriptors, bits that
+    /// differ for binary ones.
     pub distance: f32,
-    /// L2 distance to the second nearest (infinite when there was only one candidate).
+    /// Distance to the second nearest, in the same measure (infinite when there was only one
+    /// candidate).
     pub second_distance: f32,
 }
 

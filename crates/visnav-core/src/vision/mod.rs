@@ -61,8 +61,10 @@ pub enum VisionError {
     #[error("invalid image: {0}")]
     InvalidImage(String),
     /// A detector parameter is out of range.
-    #[error("invalid SURF parameter `{name}`: {reason}")]
+    #[error("invalid {detector} parameter `{name}`: {reason}")]
     InvalidParam {
+        /// The detector the parameter belongs to ("SURF", "ORB").
+        detector: &'static str,
         /// The parameter's field name.
         name: &'static str,
         /// The range it breaks, in words.

@@ -115,6 +115,7 @@ impl OrbParams {
     pub fn validate(&self) -> Result<(), VisionError> {
         let bad = |name, reason: &str| {
             Err(VisionError::InvalidParam {
+                detector: "ORB",
                 name,
                 reason: reason.to_string(),
             })

@@ -167,6 +167,7 @@ impl SurfParams {
     pub fn validate(&self) -> Result<(), VisionError> {
         let bad = |name, reason: &str| {
             Err(VisionError::InvalidParam {
+                detector: "SURF",
                 name,
                 reason: reason.to_string(),
             })
@@ -232,6 +233,7 @@ impl Features {
     ) -> Result<Self, VisionError> {
         if descriptors.len() != keypoints.len() * kind.stride() {
             return Err(VisionError::InvalidParam {
+                detector: "SURF",
                 name: "descriptors",
                 reason: format!(
                     "{} floats for {} keypoints of stride {}",

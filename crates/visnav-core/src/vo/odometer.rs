@@ -520,7 +520,7 @@ pub(crate) mod tests {
                 max: 2.0,
             })),
             VoRefusal::Motion(VoRejection::TooUncertain {
-                sigma_h_m: 9.0,
+                sigma_m: 9.0,
                 agl_m: 50.0,
                 max_fraction: 0.1,
             }),

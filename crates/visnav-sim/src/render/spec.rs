@@ -5,7 +5,7 @@
 //! supersample = 2          # samples per pixel side inside the pixel's ground footprint (1-4)
 //! max_range_m = 30000.0    # rays longer than this are off-map (sky, horizon)
 //! fill_dn = 0.0            # value of off-map pixels, 8-bit digital numbers
-//! seed = 1                 # noise seed (frame k uses the stream (seed, k))
+//! seed = 0                 # noise seed (frame k uses the stream (seed, k))
 //! quantise = true          # round to integers (8-bit output)
 //!
 //! [exposure]

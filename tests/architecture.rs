@@ -439,7 +439,6 @@ const LONG_FUNCTIONS: &[(&str, &str)] = &[
     ("visnav-sim/src/scenario.rs", "validate"),
     ("visnav-link/src/session.rs", "handle"),
     ("visnav-sim/src/autopilot.rs", "telemetry"),
-    ("visnav-io/src/image_file.rs", "check_entropy_data"),
 ];
 
 #[test]

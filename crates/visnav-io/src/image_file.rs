@@ -44,31 +44,18 @@ pub enum JpegError {
 /// coefficient and stays undetectable by any decoder (and local). Progressive and arithmetic
 /// JPEGs are not walked (the strict decoder's checks only).
 fn check_entropy_data(b: &[u8]) -> Result<(), JpegError> {
-    let bad = |m: String| JpegError::Corrupt(m);
-    let u16_at = |i: usize| -> Result<usize, JpegError> {
-        match b.get(i..i + 2) {
-            Some(v) => Ok(usize::from(u16::from_be_bytes([v[0], v[1]]))),
-            None => Err(bad("truncated marker segment".into())),
-        }
-    };
-    // (DC, AC) Huffman tables by id: per code length 1..=16 the max code (-1 none), the first
-    // code and the index of its first value.
-    let mut dc: [Option<Huffman>; 4] = Default::default();
-    let mut ac: [Option<Huffman>; 4] = Default::default();
-    // Components: (id, h, v).
-    let mut comps: Vec<(u8, usize, usize)> = Vec::new();
-    let (mut width, mut height, mut restart) = (0usize, 0usize, 0usize);
+    let mut w = JpegWalk::default();
     let mut i = 2; // after SOI
     loop {
         // Next marker (fill bytes 0xFF allowed).
         if b.get(i) != Some(&0xFF) {
-            return Err(bad(format!("expected a marker at byte {i}")));
+            return Err(corrupt(format!("expected a marker at byte {i}")));
         }
         while b.get(i) == Some(&0xFF) {
             i += 1;
         }
         let Some(&m) = b.get(i) else {
-            return Err(bad("no end-of-image marker".into()));
+            return Err(corrupt("no end-of-image marker".into()));
         };
         i += 1;
         match m {
@@ -76,128 +63,178 @@ fn check_entropy_data(b: &[u8]) -> Result<(), JpegError> {
             0xD0..=0xD7 | 0x01 => continue,
             _ => {}
         }
-        let len = u16_at(i)?;
+        let len = u16_at(b, i)?;
         let seg = b
             .get(i + 2..i + len)
-            .ok_or_else(|| bad("truncated marker segment".into()))?;
+            .ok_or_else(|| corrupt("truncated marker segment".into()))?;
         i += len;
         match m {
-            0xC0 | 0xC1 => {
-                if seg.len() < 6 {
-                    return Err(bad("short frame header".into()));
-                }
-                height = usize::from(u16::from_be_bytes([seg[1], seg[2]]));
-                width = usize::from(u16::from_be_bytes([seg[3], seg[4]]));
-                comps = seg[6..]
-                    .chunks_exact(3)
-                    .take(usize::from(seg[5]))
-                    .map(|c| (c[0], usize::from(c[1] >> 4), usize::from(c[1] & 15)))
-                    .collect();
-                if comps.is_empty() || comps.iter().any(|&(_, h, v)| h == 0 || v == 0) {
-                    return Err(bad("invalid components in the frame header".into()));
-                }
-            }
+            0xC0 | 0xC1 => w.frame_header(seg)?,
             // Progressive, lossless, arithmetic: not walked.
             0xC2 | 0xC3 | 0xC5..=0xC7 | 0xC9..=0xCB | 0xCD..=0xCF => return Ok(()),
-            0xC4 => {
-                let mut k = 0;
-                while k < seg.len() {
-                    let class_id = seg[k];
-                    let counts = seg
-                        .get(k + 1..k + 17)
-                        .ok_or_else(|| bad("short Huffman table".into()))?;
-                    let n: usize = counts.iter().map(|&c| usize::from(c)).sum();
-                    let values = seg
-                        .get(k + 17..k + 17 + n)
-                        .ok_or_else(|| bad("short Huffman table".into()))?;
-                    let t = Huffman::new(counts, values);
-                    let id = usize::from(class_id & 3);
-                    if class_id >> 4 == 0 {
-                        dc[id] = Some(t);
-                    } else {
-                        ac[id] = Some(t);
-                    }
-                    k += 17 + n;
-                }
+            0xC4 => w.huffman_tables(seg)?,
+            0xDD => w.restart = u16_at(b, i - len + 2)?,
+            0xDA => match w.scan(b, seg, i)? {
+                Some(end) => i = end,
+                None => return Ok(()),
+            },
+            _ => {}
+        }
+    }
+}
+
+fn corrupt(m: String) -> JpegError {
+    JpegError::Corrupt(m)
+}
+
+/// The big-endian 16-bit number at `b[i..i + 2]`.
+fn u16_at(b: &[u8], i: usize) -> Result<usize, JpegError> {
+    match b.get(i..i + 2) {
+        Some(v) => Ok(usize::from(u16::from_be_bytes([v[0], v[1]]))),
+        None => Err(corrupt("truncated marker segment".into())),
+    }
+}
+
+/// What [`check_entropy_data`] has read of the headers so far.
+#[derive(Default)]
+struct JpegWalk {
+    /// (DC, AC) Huffman tables by id.
+    dc: [Option<Huffman>; 4],
+    ac: [Option<Huffman>; 4],
+    /// Components: (id, h, v).
+    comps: Vec<(u8, usize, usize)>,
+    width: usize,
+    height: usize,
+    /// MCUs per restart interval (0: none).
+    restart: usize,
+}
+
+impl JpegWalk {
+    /// A baseline or extended sequential frame header (SOF0, SOF1).
+    fn frame_header(&mut self, seg: &[u8]) -> Result<(), JpegError> {
+        if seg.len() < 6 {
+            return Err(corrupt("short frame header".into()));
+        }
+        self.height = usize::from(u16::from_be_bytes([seg[1], seg[2]]));
+        self.width = usize::from(u16::from_be_bytes([seg[3], seg[4]]));
+        self.comps = seg[6..]
+            .chunks_exact(3)
+            .take(usize::from(seg[5]))
+            .map(|c| (c[0], usize::from(c[1] >> 4), usize::from(c[1] & 15)))
+            .collect();
+        if self.comps.is_empty() || self.comps.iter().any(|&(_, h, v)| h == 0 || v == 0) {
+            return Err(corrupt("invalid components in the frame header".into()));
+        }
+        Ok(())
+    }
+
+    /// A DHT segment: one or more Huffman tables.
+    fn huffman_tables(&mut self, seg: &[u8]) -> Result<(), JpegError> {
+        let mut k = 0;
+        while k < seg.len() {
+            let class_id = seg[k];
+            let counts = seg
+                .get(k + 1..k + 17)
+                .ok_or_else(|| corrupt("short Huffman table".into()))?;
+            let n: usize = counts.iter().map(|&c| usize::from(c)).sum();
+            let values = seg
+                .get(k + 17..k + 17 + n)
+                .ok_or_else(|| corrupt("short Huffman table".into()))?;
+            let t = Huffman::new(counts, values);
+            let id = usize::from(class_id & 3);
+            if class_id >> 4 == 0 {
+                self.dc[id] = Some(t);
+            } else {
+                self.ac[id] = Some(t);
             }
-            0xDD => restart = u16_at(i - len + 2)?,
-            0xDA => {
-                if width == 0 || height == 0 {
-                    return Err(bad("scan before the frame header".into()));
-                }
-                let n = usize::from(*seg.first().unwrap_or(&0));
-                let mut scan = Vec::new();
-                for c in seg.get(1..1 + 2 * n).unwrap_or(&[]).chunks_exact(2) {
-                    let &(_, h, v) = comps
-                        .iter()
-                        .find(|x| x.0 == c[0])
-                        .ok_or_else(|| bad(format!("scan names unknown component {}", c[0])))?;
-                    // Table selectors are 0-3 (T.81 B.2.3); a larger one is a corrupt header.
-                    let (Some(d), Some(a)) = (
-                        dc.get(usize::from(c[1] >> 4))
-                            .ok_or_else(|| bad(format!("DC table {} out of range", c[1] >> 4)))?,
-                        &ac[usize::from(c[1] & 3)],
-                    ) else {
-                        return Ok(()); // no tables (MJPG's default tables): not walked
-                    };
-                    scan.push((h, v, d, a));
-                }
-                if scan.is_empty() {
-                    return Err(bad("scan without components".into()));
-                }
-                let hmax = comps.iter().map(|c| c.1).max().unwrap_or(1);
-                let vmax = comps.iter().map(|c| c.2).max().unwrap_or(1);
-                // (MCUs, blocks of each component per MCU)
-                let (mcus, per): (usize, Vec<usize>) = if scan.len() == 1 {
-                    let (h, v, _, _) = scan[0];
-                    let bw = (width * h).div_ceil(hmax).div_ceil(8);
-                    let bh = (height * v).div_ceil(vmax).div_ceil(8);
-                    (bw * bh, vec![1])
-                } else {
-                    let mw = width.div_ceil(8 * hmax);
-                    let mh = height.div_ceil(8 * vmax);
-                    (mw * mh, scan.iter().map(|s| s.0 * s.1).collect())
-                };
-                let mut r = BitReader {
-                    b,
-                    pos: i,
-                    acc: 0,
-                    n: 0,
-                };
-                for mcu in 0..mcus {
-                    if restart > 0 && mcu > 0 && mcu % restart == 0 {
-                        r.n = 0; // padding of the interval's last byte
-                        let want = 0xD0 + ((mcu / restart - 1) % 8) as u8;
-                        if b.get(r.pos) != Some(&0xFF) || b.get(r.pos + 1) != Some(&want) {
-                            return Err(bad(format!(
-                                "restart marker {} missing before MCU {mcu}",
-                                want - 0xD0
-                            )));
-                        }
-                        r.pos += 2;
-                    }
-                    for (c, &nb) in scan.iter().zip(&per) {
-                        for _ in 0..nb {
-                            r.block(c.2, c.3)
-                                .map_err(|m| bad(format!("MCU {mcu}: {m}")))?;
-                        }
-                    }
-                }
-                // The scan must end here: at most the padding bits of this byte remain.
-                if !(b.get(r.pos) == Some(&0xFF) && b.get(r.pos + 1).is_some_and(|&m| m != 0)) {
-                    let rest = b
-                        .get(r.pos..)
-                        .unwrap_or(&[])
-                        .windows(2)
-                        .position(|w| w[0] == 0xFF && w[1] != 0);
-                    return Err(bad(format!(
-                        "{} bytes of entropy-coded data after the last block",
-                        rest.unwrap_or(b.len().saturating_sub(r.pos))
+            k += 17 + n;
+        }
+        Ok(())
+    }
+
+    /// A scan whose header `seg` ends at byte `start` of `b`: walks its blocks and returns where
+    /// the scan ends, or `None` when it is not walked (no tables: MJPG's default tables).
+    fn scan(&self, b: &[u8], seg: &[u8], start: usize) -> Result<Option<usize>, JpegError> {
+        if self.width == 0 || self.height == 0 {
+            return Err(corrupt("scan before the frame header".into()));
+        }
+        let n = usize::from(*seg.first().unwrap_or(&0));
+        let mut scan = Vec::new();
+        for c in seg.get(1..1 + 2 * n).unwrap_or(&[]).chunks_exact(2) {
+            let &(_, h, v) = self
+                .comps
+                .iter()
+                .find(|x| x.0 == c[0])
+                .ok_or_else(|| corrupt(format!("scan names unknown component {}", c[0])))?;
+            // Table selectors are 0-3 (T.81 B.2.3); a larger one is a corrupt header.
+            let (Some(d), Some(a)) = (
+                self.dc
+                    .get(usize::from(c[1] >> 4))
+                    .ok_or_else(|| corrupt(format!("DC table {} out of range", c[1] >> 4)))?,
+                &self.ac[usize::from(c[1] & 3)],
+            ) else {
+                return Ok(None);
+            };
+            scan.push((h, v, d, a));
+        }
+        if scan.is_empty() {
+            return Err(corrupt("scan without components".into()));
+        }
+        let (mcus, per) = self.mcus(&scan);
+        let mut r = BitReader {
+            b,
+            pos: start,
+            acc: 0,
+            n: 0,
+        };
+        for mcu in 0..mcus {
+            if self.restart > 0 && mcu > 0 && mcu % self.restart == 0 {
+                r.n = 0; // padding of the interval's last byte
+                let want = 0xD0 + ((mcu / self.restart - 1) % 8) as u8;
+                if b.get(r.pos) != Some(&0xFF) || b.get(r.pos + 1) != Some(&want) {
+                    return Err(corrupt(format!(
+                        "restart marker {} missing before MCU {mcu}",
+                        want - 0xD0
                     )));
                 }
-                i = r.pos;
+                r.pos += 2;
             }
-            _ => {}
+            for (c, &nb) in scan.iter().zip(&per) {
+                for _ in 0..nb {
+                    r.block(c.2, c.3)
+                        .map_err(|m| corrupt(format!("MCU {mcu}: {m}")))?;
+                }
+            }
+        }
+        // The scan must end here: at most the padding bits of this byte remain.
+        if !(b.get(r.pos) == Some(&0xFF) && b.get(r.pos + 1).is_some_and(|&m| m != 0)) {
+            let rest = b
+                .get(r.pos..)
+                .unwrap_or(&[])
+                .windows(2)
+                .position(|w| w[0] == 0xFF && w[1] != 0);
+            return Err(corrupt(format!(
+                "{} bytes of entropy-coded data after the last block",
+                rest.unwrap_or(b.len().saturating_sub(r.pos))
+            )));
+        }
+        Ok(Some(r.pos))
+    }
+
+    /// The scan's MCUs and the blocks of each of its components per MCU (a one-component scan
+    /// is not interleaved: one block per MCU).
+    fn mcus(&self, scan: &[(usize, usize, &Huffman, &Huffman)]) -> (usize, Vec<usize>) {
+        let hmax = self.comps.iter().map(|c| c.1).max().unwrap_or(1);
+        let vmax = self.comps.iter().map(|c| c.2).max().unwrap_or(1);
+        if scan.len() == 1 {
+            let (h, v, _, _) = scan[0];
+            let bw = (self.width * h).div_ceil(hmax).div_ceil(8);
+            let bh = (self.height * v).div_ceil(vmax).div_ceil(8);
+            (bw * bh, vec![1])
+        } else {
+            let mw = self.width.div_ceil(8 * hmax);
+            let mh = self.height.div_ceil(8 * vmax);
+            (mw * mh, scan.iter().map(|s| s.0 * s.1).collect())
         }
     }
 }

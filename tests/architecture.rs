@@ -437,7 +437,6 @@ const LONG_FUNCTIONS: &[(&str, &str)] = &[
     ("visnav-daemon/src/replay.rs", "replay"),
     ("visnav-daemon/src/daemon.rs", "start_with"),
     ("visnav-sim/src/scenario.rs", "validate"),
-    ("visnav-link/src/session.rs", "handle"),
     ("visnav-sim/src/autopilot.rs", "telemetry"),
 ];
 

@@ -1084,118 +1084,17 @@ impl Shared {
                 info!(%addr, "replying to the autopilot at {addr}");
             }
         }
-        // The boot clock: drop stale messages, confirm reboots.
-        let boot_us = match &msg {
-            MavMessage::TIMESYNC(m) if m.tc1 > 0 => Some((m.tc1 / 1000) as u64),
-            MavMessage::TIMESYNC(_) => None,
-            m => boot_time_us(m),
+        let Some(rebooted) = self.check_boot_clock(&msg, t_ns) else {
+            return;
         };
-        let mut rebooted = false;
-        if let Some(us) = boot_us {
-            let verdict = lock(&self.state).boot.observe(msg.message_id(), us, t_ns);
-            match verdict {
-                BootVerdict::Current => {}
-                BootVerdict::Stale => {
-                    self.metrics.rx_stale.inc();
-                    debug!("dropped a message behind the autopilot's clock");
-                    return;
-                }
-                BootVerdict::Reboot => rebooted = true,
-            }
-        }
-        let mut reply = None;
-        {
+        let reply = {
             let mut st = lock(&self.state);
             if rebooted {
-                st.reboots += 1;
-                st.epoch += 1;
-                st.timesync.reset();
-                st.utc.reset();
-                st.rates.clear();
-                st.streams_dirty = true;
-                st.stamp_boot.reset();
-                if !st.origin_from_autopilot || self.out.set_origin {
-                    st.origin_sent = 0;
-                }
-                st.origin_from_autopilot = false;
+                self.reset_for_reboot(&mut st);
             }
             st.rates.record(msg.message_id(), t_ns as f64 * 1e-9);
-            match &msg {
-                MavMessage::HEARTBEAT(_) => st.last_heartbeat = Some(Instant::now()),
-                MavMessage::SYSTEM_TIME(m) => {
-                    if let Some(step_us) =
-                        st.utc.observe_system_time(m.time_unix_usec, m.time_boot_ms)
-                    {
-                        self.metrics.utc_steps.inc();
-                        let text = format!(
-                            "visnav: autopilot clock stepped {:+.3} s, not followed",
-                            step_us as f64 * 1e-6
-                        );
-                        if let Some(line) = st.utc_log.hit(t_ns as f64 * 1e-9) {
-                            warn!(
-                                "{text} (SYSTEM_TIME; the output keeps its own UTC){}",
-                                line.suffix()
-                            );
-                        }
-                        if st.utc.steps.is_power_of_two() {
-                            texts.push((MavSeverity::MAV_SEVERITY_WARNING, text));
-                        }
-                    }
-                }
-                MavMessage::TIMESYNC(m) => {
-                    if m.tc1 == 0 {
-                        // The autopilot's own time sync request: answer with our clock.
-                        reply = Some(MavMessage::TIMESYNC(TIMESYNC_DATA {
-                            tc1: self.now_ns(),
-                            ts1: m.ts1,
-                            target_system: ap.0,
-                            target_component: ap.1,
-                        }));
-                    } else if let Some(i) = st.pending_ts1.iter().position(|t| *t == m.ts1) {
-                        st.pending_ts1.drain(..=i);
-                        let u = st.timesync.update(TimesyncSample {
-                            sent_companion_ns: m.ts1,
-                            autopilot_ns: m.tc1,
-                            received_companion_ns: t_ns,
-                        });
-                        if u == SyncUpdate::Accepted {
-                            self.metrics
-                                .timesync_rtt_us
-                                .set((st.timesync.last_rtt_ns / 1000.0) as u64);
-                        }
-                    }
-                }
-                MavMessage::GPS_GLOBAL_ORIGIN(m) => {
-                    // The origin in use, sent again, is taken as it is (the vehicle may have
-                    // flown far from it); a new one must be near where the vehicle is.
-                    let judged = origin_of(m).and_then(|o| {
-                        if st.origin == Some(o) {
-                            return Ok(o);
-                        }
-                        check_origin_distance(&o, st.solution, st.origin.as_ref()).map(|()| o)
-                    });
-                    match judged {
-                        Ok(o) => {
-                            if st.origin != Some(o) {
-                                info!(
-                                    "autopilot EKF origin {:.7} {:.7} {:.1} m",
-                                    o.lat_deg, o.lon_deg, o.alt_amsl_m
-                                );
-                                st.origin_unverified = st.solution.is_none();
-                            }
-                            st.origin = Some(o);
-                            st.origin_from_autopilot = true;
-                            st.origin_refused = None;
-                        }
-                        Err(why) => texts.extend(self.refuse_origin(&mut st, why, t_ns)),
-                    }
-                }
-                MavMessage::COMMAND_ACK(m) => {
-                    debug!(command = ?m.command, result = ?m.result, "COMMAND_ACK");
-                }
-                _ => {}
-            }
-        }
+            self.observe(&mut st, &msg, ap, t_ns, &mut texts)
+        };
         if rebooted {
             self.metrics.reboots.inc();
             warn!(
@@ -1224,6 +1123,143 @@ impl Shared {
         for (sev, t) in texts {
             let _ = self.status_text(sev, &t).await;
         }
+    }
+
+    /// The message's boot time against the autopilot's clock: `None` for a stale message (to be
+    /// dropped), `Some(true)` when it confirms a reboot.
+    fn check_boot_clock(&self, msg: &MavMessage, t_ns: i64) -> Option<bool> {
+        let boot_us = match msg {
+            MavMessage::TIMESYNC(m) if m.tc1 > 0 => Some((m.tc1 / 1000) as u64),
+            MavMessage::TIMESYNC(_) => None,
+            m => boot_time_us(m),
+        };
+        let Some(us) = boot_us else {
+            return Some(false);
+        };
+        match lock(&self.state).boot.observe(msg.message_id(), us, t_ns) {
+            BootVerdict::Current => Some(false),
+            BootVerdict::Stale => {
+                self.metrics.rx_stale.inc();
+                debug!("dropped a message behind the autopilot's clock");
+                None
+            }
+            BootVerdict::Reboot => Some(true),
+        }
+    }
+
+    /// After a reboot: time sync, UTC, stream rates and stamps start again; an origin the
+    /// autopilot gave is forgotten (it sends its new one), one visnav sets is sent again.
+    fn reset_for_reboot(&self, st: &mut State) {
+        st.reboots += 1;
+        st.epoch += 1;
+        st.timesync.reset();
+        st.utc.reset();
+        st.rates.clear();
+        st.streams_dirty = true;
+        st.stamp_boot.reset();
+        if !st.origin_from_autopilot || self.out.set_origin {
+            st.origin_sent = 0;
+        }
+        st.origin_from_autopilot = false;
+    }
+
+    /// What the autopilot's message tells the session: heartbeat time, UTC steps, time sync,
+    /// the EKF origin. Returns the reply to send (a time sync answer), if any; STATUSTEXTs to
+    /// send go to `texts`.
+    fn observe(
+        &self,
+        st: &mut State,
+        msg: &MavMessage,
+        ap: (u8, u8),
+        t_ns: i64,
+        texts: &mut Vec<(MavSeverity, String)>,
+    ) -> Option<MavMessage> {
+        match msg {
+            MavMessage::HEARTBEAT(_) => st.last_heartbeat = Some(Instant::now()),
+            MavMessage::SYSTEM_TIME(m) => {
+                if let Some(step_us) = st.utc.observe_system_time(m.time_unix_usec, m.time_boot_ms)
+                {
+                    self.metrics.utc_steps.inc();
+                    let text = format!(
+                        "visnav: autopilot clock stepped {:+.3} s, not followed",
+                        step_us as f64 * 1e-6
+                    );
+                    if let Some(line) = st.utc_log.hit(t_ns as f64 * 1e-9) {
+                        warn!(
+                            "{text} (SYSTEM_TIME; the output keeps its own UTC){}",
+                            line.suffix()
+                        );
+                    }
+                    if st.utc.steps.is_power_of_two() {
+                        texts.push((MavSeverity::MAV_SEVERITY_WARNING, text));
+                    }
+                }
+            }
+            MavMessage::TIMESYNC(m) => return self.on_timesync(st, m, ap, t_ns),
+            MavMessage::GPS_GLOBAL_ORIGIN(m) => {
+                // The origin in use, sent again, is taken as it is (the vehicle may have flown
+                // far from it); a new one must be near where the vehicle is.
+                let judged = origin_of(m).and_then(|o| {
+                    if st.origin == Some(o) {
+                        return Ok(o);
+                    }
+                    check_origin_distance(&o, st.solution, st.origin.as_ref()).map(|()| o)
+                });
+                match judged {
+                    Ok(o) => {
+                        if st.origin != Some(o) {
+                            info!(
+                                "autopilot EKF origin {:.7} {:.7} {:.1} m",
+                                o.lat_deg, o.lon_deg, o.alt_amsl_m
+                            );
+                            st.origin_unverified = st.solution.is_none();
+                        }
+                        st.origin = Some(o);
+                        st.origin_from_autopilot = true;
+                        st.origin_refused = None;
+                    }
+                    Err(why) => texts.extend(self.refuse_origin(st, why, t_ns)),
+                }
+            }
+            MavMessage::COMMAND_ACK(m) => {
+                debug!(command = ?m.command, result = ?m.result, "COMMAND_ACK");
+            }
+            _ => {}
+        }
+        None
+    }
+
+    /// TIMESYNC: the autopilot's own request gets our clock back; the answer to one of ours is
+    /// a time sync sample.
+    fn on_timesync(
+        &self,
+        st: &mut State,
+        m: &TIMESYNC_DATA,
+        ap: (u8, u8),
+        t_ns: i64,
+    ) -> Option<MavMessage> {
+        if m.tc1 == 0 {
+            return Some(MavMessage::TIMESYNC(TIMESYNC_DATA {
+                tc1: self.now_ns(),
+                ts1: m.ts1,
+                target_system: ap.0,
+                target_component: ap.1,
+            }));
+        }
+        if let Some(i) = st.pending_ts1.iter().position(|t| *t == m.ts1) {
+            st.pending_ts1.drain(..=i);
+            let u = st.timesync.update(TimesyncSample {
+                sent_companion_ns: m.ts1,
+                autopilot_ns: m.tc1,
+                received_companion_ns: t_ns,
+            });
+            if u == SyncUpdate::Accepted {
+                self.metrics
+                    .timesync_rtt_us
+                    .set((st.timesync.last_rtt_ns / 1000.0) as u64);
+            }
+        }
+        None
     }
 
     fn set_message_interval(&self, target: (u8, u8), id: u32, hz: f64) -> MavMessage {

@@ -435,7 +435,6 @@ const LONG_FUNCTIONS: &[(&str, &str)] = &[
     ("visnav-sim/src/closed_loop.rs", "run_until_stopped"),
     ("visnav-sim/src/run.rs", "run_with_source"),
     ("visnav-daemon/src/replay.rs", "replay"),
-    ("visnav-daemon/src/daemon.rs", "start_with"),
     ("visnav-sim/src/scenario.rs", "validate"),
     ("visnav-sim/src/autopilot.rs", "telemetry"),
 ];

@@ -27,8 +27,6 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
-// tokio's clock: real time, or the lock-step simulator's when the runtime runs paused.
-use tokio::time::Instant;
 
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
@@ -38,16 +36,16 @@ use crate::config::Config;
 use crate::config::{DaemonConfig, ImuBiasRestore};
 use crate::fixer::FrameFixer;
 use crate::frames::{self, Slot};
-use crate::inputs::{Inputs, OutputBook};
+use crate::inputs::OutputBook;
 use crate::metrics::{DaemonMetrics, MetricsSnapshot};
-use crate::nav_task::NavTask;
+use crate::nav_task::{NavTask, NavWiring};
 use crate::priors::SharedPriors;
-use crate::{fixlog, inputs, metrics, prometheus, vo_path};
+use crate::{fixlog, metrics, prometheus, vo_path, volog};
 use visnav_core::dtm_nav::DtmNavConfig;
-use visnav_core::nav::{NavConfig, NavFilter, NavOutput};
+use visnav_core::nav::{NavConfig, NavOutput};
 use visnav_io::frames::{Frame, FrameError, FrameSource, FramesConfig};
 use visnav_link::config::{LinkConfig, OutputConfig};
-use visnav_link::{Link, LinkError, LogLimiter, NavEstimate};
+use visnav_link::{Link, LinkError, NavEstimate};
 
 /// Why the daemon could not start.
 #[derive(Debug, thiserror::Error)]
@@ -231,22 +229,7 @@ impl Daemon {
         };
         let gps = setup.daemon.gps_source(&setup.output);
         info!("GPS aiding source: {gps}");
-        let fix_log = fixlog::JsonLinesLog::open_configured(setup.daemon.fix_log.as_deref())
-            .map_err(|(path, source)| DaemonError::FixLog {
-                path,
-                cause: source,
-            })?;
-        if let Some(l) = &fix_log {
-            info!(path = %l.path().display(), "vision fix log");
-        }
-        let vo_log = fixlog::JsonLinesLog::open_configured(setup.daemon.vo_log.as_deref())
-            .map_err(|(path, source)| DaemonError::VoLog {
-                path,
-                cause: source,
-            })?;
-        if let Some(l) = &vo_log {
-            info!(path = %l.path().display(), "visual odometry log");
-        }
+        let (fix_log, vo_log) = open_logs(&setup.daemon)?;
         let endpoint = match &setup.daemon.metrics_listen {
             Some(a) => Some(metrics_endpoint(a).await?),
             None => None,
@@ -278,36 +261,7 @@ impl Daemon {
         let (stop, stop_rx) = watch::channel(false);
         let (fix_tx, fix_rx) = mpsc::channel(4);
         let (vo_tx, vo_rx) = mpsc::channel(8);
-        let odometer = match (&frames, &fixer, setup.vo.enabled) {
-            (Some(_), Some(f), true) => {
-                let o = f.odometer(&setup.vo);
-                if o.is_none() {
-                    warn!("[vo] enabled, but the fix engine has no odometer: visual odometry off");
-                }
-                o
-            }
-            (None, _, true) => {
-                warn!("[vo] enabled, but there is no camera ([frames]): visual odometry off");
-                None
-            }
-            _ => None,
-        };
-        let dtm = match (&frames, &fixer, setup.dtm_nav.enabled) {
-            (Some(_), Some(f), true) => {
-                let d = f.dtm_navigator(&setup.dtm_nav);
-                if d.is_none() {
-                    warn!(
-                        "[dtm_nav] enabled, but the fix engine has no terrain model: DTM navigation off"
-                    );
-                }
-                d
-            }
-            (None, _, true) => {
-                warn!("[dtm_nav] enabled, but there is no camera ([frames]): DTM navigation off");
-                None
-            }
-            _ => None,
-        };
+        let (odometer, dtm) = motion_paths(frames.is_some(), fixer.as_ref(), &setup);
         let vo_ctx = (odometer.is_some() || dtm.is_some()).then(|| vo_path::VoCtx {
             odometer,
             dtm,
@@ -317,111 +271,46 @@ impl Daemon {
             gyro: vo_path::GyroNoise::from_nav(&setup.nav),
             last_t_us: None,
         });
-        let nav = NavTask {
-            filter: NavFilter::new(setup.nav.clone()),
-            nav_cfg: setup.nav.clone(),
-            inputs: Inputs::new(setup.daemon.clone(), gps),
-            dcfg: setup.daemon.clone(),
-            gps,
-            gps_hz: setup.link.streams.gps_raw_hz,
+        let wiring = NavWiring {
             link: link.clone(),
             shared: shared.clone(),
             metrics: metrics.clone(),
             est_tx,
             out_tx,
-            last_health: None,
-            last_reason: Default::default(),
-            last_est: None,
-            reset_sum: 0,
-            reset_counter: 0,
-            last_imu_at: None,
-            last_out_ns: None,
-            pending_reacquire: None,
-            imu_lost: false,
-            gps2_asked: None,
-            last_log: Instant::now(),
-            imu_bias_restoring: false,
-            drag_logged: [false; 2],
-            init_spacing: inputs::InitSpacing::default(),
             fix_log,
             vo_log,
-            vo_working: None,
-            dtm_working: None,
-            lag_log: LogLimiter::default(),
         };
+        let nav = NavTask::new(
+            &setup.nav,
+            &setup.daemon,
+            gps,
+            setup.link.streams.gps_raw_hz,
+            wiring,
+        );
         // Every task and thread of the daemon runs in the caller's span (the simulator labels
         // its two daemons so).
         let nav_task = tokio::spawn(nav.run(tel, fix_rx, vo_rx, stop_rx).in_current_span());
         let stop_threads = Arc::new(AtomicBool::new(false));
-        let mut threads = Vec::new();
-        let mut slots = Vec::new();
-        let mut lockstep_task = None;
-        let spawned: std::io::Result<()> = (|| {
-            if let (Some(fp), Some(fixer)) = (frames, fixer) {
-                let widening = Arc::new(frames::HeadingWidening::default());
-                let ctx = |slot: Arc<Slot<Frame>>| frames::WorkerCtx {
-                    slot,
-                    fixer: fixer.clone(),
-                    priors: shared.clone(),
-                    clock: link.clock(),
-                    max_age_s: fp.max_age_s,
-                    results: fix_tx.clone(),
-                    metrics: metrics.clone(),
-                    widening: widening.clone(),
-                };
-                if let Some(latency) = fp.lockstep_latency {
-                    let period = Duration::from_secs_f64(
-                        1.0 / fp.source.rate_hz().filter(|r| *r > 0.0).unwrap_or(1.0),
-                    );
-                    let ctx = ctx(Arc::new(Slot::default()));
-                    lockstep_task = Some(tokio::spawn(
-                        frames::lockstep_frames(
-                            fp.source,
-                            ctx,
-                            vo_ctx,
-                            period,
-                            latency,
-                            stop.subscribe(),
-                        )
-                        .in_current_span(),
-                    ));
-                    return Ok(());
+        let mut paths = FramePaths::default();
+        if let (Some(fp), Some(fixer)) = (frames, fixer) {
+            let wiring = FrameWiring {
+                fixer,
+                shared,
+                link: link.clone(),
+                results: fix_tx.clone(),
+                metrics: metrics.clone(),
+                stop: &stop,
+                stop_threads: &stop_threads,
+            };
+            if let Err(e) = paths.spawn(fp, &wiring, vo_ctx) {
+                // Stop what was started (the navigation task holds the link).
+                stop_threads.store(true, Ordering::Relaxed);
+                for s in &paths.slots {
+                    s.close();
                 }
-                let slot = Arc::new(Slot::default());
-                slots.push(slot.clone());
-                let vo_slot = match vo_ctx {
-                    Some(v) => {
-                        let s = Arc::new(Slot::default());
-                        slots.push(s.clone());
-                        threads.push(vo_path::spawn_vo(s.clone(), v, link.clock(), fp.max_age_s)?);
-                        Some(s)
-                    }
-                    None => None,
-                };
-                threads.push(frames::spawn_reader(
-                    fp.source,
-                    slot.clone(),
-                    vo_slot,
-                    fp.lossless,
-                    fp.release,
-                    link.clock(),
-                    stop_threads.clone(),
-                    metrics.clone(),
-                )?);
-                for i in 0..fp.workers.max(1) {
-                    threads.push(frames::spawn_worker(i, ctx(slot.clone()))?);
-                }
+                let _ = stop.send(true);
+                return Err(e.into());
             }
-            Ok(())
-        })();
-        if let Err(e) = spawned {
-            // Stop what was started (the navigation task holds the link).
-            stop_threads.store(true, Ordering::Relaxed);
-            for s in &slots {
-                s.close();
-            }
-            let _ = stop.send(true);
-            return Err(e.into());
         }
         drop(fix_tx);
         drop(vo_tx);
@@ -430,9 +319,9 @@ impl Daemon {
             stop,
             stop_threads,
             nav_task: Some(nav_task),
-            lockstep_task,
-            threads,
-            slots,
+            lockstep_task: paths.lockstep_task,
+            threads: paths.threads,
+            slots: paths.slots,
             metrics,
             est_rx,
             out_rx,
@@ -564,5 +453,166 @@ pub fn final_counters(m: &MetricsSnapshot) -> String {
     match serde_json::to_string(m) {
         Ok(json) => format!("final counters: {json}"),
         Err(e) => format!("final counters: cannot be written as JSON: {e}"),
+    }
+}
+
+/// The fix log and the visual odometry log, where configured.
+fn open_logs(
+    d: &DaemonConfig,
+) -> Result<(Option<fixlog::FixLog>, Option<volog::VoLog>), DaemonError> {
+    let fix_log =
+        fixlog::JsonLinesLog::open_configured(d.fix_log.as_deref()).map_err(|(path, source)| {
+            DaemonError::FixLog {
+                path,
+                cause: source,
+            }
+        })?;
+    if let Some(l) = &fix_log {
+        info!(path = %l.path().display(), "vision fix log");
+    }
+    let vo_log =
+        fixlog::JsonLinesLog::open_configured(d.vo_log.as_deref()).map_err(|(path, source)| {
+            DaemonError::VoLog {
+                path,
+                cause: source,
+            }
+        })?;
+    if let Some(l) = &vo_log {
+        info!(path = %l.path().display(), "visual odometry log");
+    }
+    Ok((fix_log, vo_log))
+}
+
+/// Visual odometry and DTM navigation, each where enabled and possible: both need a camera and
+/// an engine that has them; an enabled one that cannot run is said so.
+fn motion_paths(
+    has_frames: bool,
+    fixer: Option<&Arc<dyn FrameFixer>>,
+    setup: &DaemonSetup,
+) -> (
+    Option<visnav_core::vo::Odometer>,
+    Option<visnav_core::dtm_nav::DtmNavigator>,
+) {
+    let odometer = match (has_frames, fixer, setup.vo.enabled) {
+        (true, Some(f), true) => {
+            let o = f.odometer(&setup.vo);
+            if o.is_none() {
+                warn!("[vo] enabled, but the fix engine has no odometer: visual odometry off");
+            }
+            o
+        }
+        (false, _, true) => {
+            warn!("[vo] enabled, but there is no camera ([frames]): visual odometry off");
+            None
+        }
+        _ => None,
+    };
+    let dtm = match (has_frames, fixer, setup.dtm_nav.enabled) {
+        (true, Some(f), true) => {
+            let d = f.dtm_navigator(&setup.dtm_nav);
+            if d.is_none() {
+                warn!(
+                    "[dtm_nav] enabled, but the fix engine has no terrain model: DTM navigation off"
+                );
+            }
+            d
+        }
+        (false, _, true) => {
+            warn!("[dtm_nav] enabled, but there is no camera ([frames]): DTM navigation off");
+            None
+        }
+        _ => None,
+    };
+    (odometer, dtm)
+}
+
+/// What the frame path's threads and tasks are wired to.
+struct FrameWiring<'a> {
+    fixer: Arc<dyn FrameFixer>,
+    shared: Arc<SharedPriors>,
+    link: Arc<Link>,
+    results: mpsc::Sender<frames::FixResult>,
+    metrics: Arc<DaemonMetrics>,
+    stop: &'a watch::Sender<bool>,
+    stop_threads: &'a Arc<AtomicBool>,
+}
+
+/// The frame path once started: the reader, worker and odometry threads with their slots, or
+/// the lock-step task.
+#[derive(Default)]
+struct FramePaths {
+    threads: Vec<std::thread::JoinHandle<()>>,
+    slots: Vec<Arc<Slot<Frame>>>,
+    lockstep_task: Option<JoinHandle<()>>,
+}
+
+impl FramePaths {
+    /// Starts the frame path of `fp`. On an error, what was started is in `self` to be stopped.
+    fn spawn(
+        &mut self,
+        fp: FramePipeline,
+        w: &FrameWiring,
+        vo_ctx: Option<vo_path::VoCtx>,
+    ) -> std::io::Result<()> {
+        let widening = Arc::new(frames::HeadingWidening::default());
+        let ctx = |slot: Arc<Slot<Frame>>| frames::WorkerCtx {
+            slot,
+            fixer: w.fixer.clone(),
+            priors: w.shared.clone(),
+            clock: w.link.clock(),
+            max_age_s: fp.max_age_s,
+            results: w.results.clone(),
+            metrics: w.metrics.clone(),
+            widening: widening.clone(),
+        };
+        if let Some(latency) = fp.lockstep_latency {
+            let period = Duration::from_secs_f64(
+                1.0 / fp.source.rate_hz().filter(|r| *r > 0.0).unwrap_or(1.0),
+            );
+            let ctx = ctx(Arc::new(Slot::default()));
+            self.lockstep_task = Some(tokio::spawn(
+                frames::lockstep_frames(
+                    fp.source,
+                    ctx,
+                    vo_ctx,
+                    period,
+                    latency,
+                    w.stop.subscribe(),
+                )
+                .in_current_span(),
+            ));
+            return Ok(());
+        }
+        let slot = Arc::new(Slot::default());
+        self.slots.push(slot.clone());
+        let vo_slot = match vo_ctx {
+            Some(v) => {
+                let s = Arc::new(Slot::default());
+                self.slots.push(s.clone());
+                self.threads.push(vo_path::spawn_vo(
+                    s.clone(),
+                    v,
+                    w.link.clock(),
+                    fp.max_age_s,
+                )?);
+                Some(s)
+            }
+            None => None,
+        };
+        self.threads.push(frames::spawn_reader(
+            fp.source,
+            slot.clone(),
+            vo_slot,
+            fp.lossless,
+            fp.release,
+            w.link.clock(),
+            w.stop_threads.clone(),
+            w.metrics.clone(),
+        )?);
+        for i in 0..fp.workers.max(1) {
+            self.threads
+                .push(frames::spawn_worker(i, ctx(slot.clone()))?);
+        }
+        Ok(())
     }
 }

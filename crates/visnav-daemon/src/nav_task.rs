@@ -80,7 +80,61 @@ pub(crate) struct NavTask {
     pub(crate) lag_log: LogLimiter,
 }
 
+/// What the navigation task is wired to: the link, the shared priors, the metrics, its outputs
+/// and its logs.
+pub(crate) struct NavWiring {
+    pub(crate) link: Arc<Link>,
+    pub(crate) shared: Arc<SharedPriors>,
+    pub(crate) metrics: Arc<DaemonMetrics>,
+    pub(crate) est_tx: watch::Sender<Option<NavEstimate>>,
+    pub(crate) out_tx: watch::Sender<Option<NavOutput>>,
+    pub(crate) fix_log: Option<fixlog::FixLog>,
+    pub(crate) vo_log: Option<volog::VoLog>,
+}
+
 impl NavTask {
+    /// A task with a new filter of `nav_cfg`, before its first message.
+    pub(crate) fn new(
+        nav_cfg: &NavConfig,
+        dcfg: &DaemonConfig,
+        gps: GpsSource,
+        gps_hz: f64,
+        w: NavWiring,
+    ) -> Self {
+        Self {
+            filter: NavFilter::new(nav_cfg.clone()),
+            nav_cfg: nav_cfg.clone(),
+            inputs: Inputs::new(dcfg.clone(), gps),
+            dcfg: dcfg.clone(),
+            gps,
+            gps_hz,
+            link: w.link,
+            shared: w.shared,
+            metrics: w.metrics,
+            est_tx: w.est_tx,
+            out_tx: w.out_tx,
+            last_health: None,
+            last_reason: Default::default(),
+            last_est: None,
+            reset_sum: 0,
+            reset_counter: 0,
+            last_imu_at: None,
+            last_out_ns: None,
+            pending_reacquire: None,
+            imu_lost: false,
+            gps2_asked: None,
+            last_log: Instant::now(),
+            imu_bias_restoring: false,
+            drag_logged: [false; 2],
+            init_spacing: inputs::InitSpacing::default(),
+            fix_log: w.fix_log,
+            vo_log: w.vo_log,
+            vo_working: None,
+            dtm_working: None,
+            lag_log: LogLimiter::default(),
+        }
+    }
+
     pub(crate) async fn run(
         mut self,
         mut tel: broadcast::Receiver<Telemetry>,

@@ -328,37 +328,21 @@ pub fn replay(
     vo: &[(u64, VoFix)],
     opts: &ReplayOptions,
 ) -> ReplayReport {
-    let mut rep = ReplayReport {
-        autopilot_system_id: opts.autopilot_system_id,
-        t_span_s: [f64::NAN; 2],
-        ..Default::default()
-    };
-    let mut inputs = Inputs::new(opts.daemon.clone(), opts.gps);
-    let mut filter = NavFilter::new(opts.nav.clone());
-    let mut spacing = InitSpacing::default();
-    let mut autopilot: Option<(u32, u8)> = None;
-    let mut boot_clock = BootClock::default();
-    let mut boot_epoch = 0u32;
-    // Smallest arrival-minus-boot-time offset, µs (the boot time at arrival is arrival - this).
-    let mut min_offset_us: Option<i64> = None;
-    let mut last_gps_arrival_ns: Option<i64> = None;
-    let mut next_state_t_s = f64::NEG_INFINITY;
-    let mut nis: BTreeMap<&'static str, Vec<f64>> = BTreeMap::new();
-    let mut resets_seen = (0u64, 0u64, 0u64);
+    let mut r = Replayer::new(opts);
     let mut fixes = fixes.iter().peekable();
     let mut vo = vo.iter().peekable();
     for (unix_us, packet) in records {
-        rep.packets += 1;
+        r.rep.packets += 1;
         // Motions that arrived before this packet, as the navigation task got them.
         while let Some((_, f)) = vo.next_if(|(arrival, _)| *arrival <= *unix_us) {
-            rep.vo_motions += 1;
-            if filter.is_initialised() {
-                apply_meas(&mut filter, Measurement::Vo(*f), &mut rep, &mut nis, opts);
+            r.rep.vo_motions += 1;
+            if r.filter.is_initialised() {
+                r.apply(Measurement::Vo(*f));
             }
         }
         // Vision fixes that arrived before this packet.
         while let Some(fx) = fixes.next_if(|f| f.arrival_unix_us <= *unix_us) {
-            rep.vision_results += 1;
+            r.rep.vision_results += 1;
             let Ok(m) = vision_measurement(
                 &fx.report(),
                 fx.t_capture_us,
@@ -367,56 +351,129 @@ pub fn replay(
             ) else {
                 continue;
             };
-            if !filter.is_initialised() {
-                continue;
+            if r.filter.is_initialised() {
+                r.apply(m);
             }
-            apply_meas(&mut filter, m, &mut rep, &mut nis, opts);
         }
-        let mut reader = mavlink::MavlinkReader::new(&packet[..]);
+        if let Some(tel) = r.telemetry(*unix_us, packet) {
+            r.feed(&tel);
+        }
+    }
+    r.finish()
+}
+
+/// The replay's state: the daemon's input conversion and filter, the link's clock rules, and
+/// the report being written.
+struct Replayer<'a> {
+    opts: &'a ReplayOptions,
+    rep: ReplayReport,
+    inputs: Inputs,
+    filter: NavFilter,
+    spacing: InitSpacing,
+    autopilot: Option<(u32, u8)>,
+    boot_clock: BootClock,
+    boot_epoch: u32,
+    /// Smallest arrival-minus-boot-time offset, µs (the boot time at arrival is arrival - this).
+    min_offset_us: Option<i64>,
+    last_gps_arrival_ns: Option<i64>,
+    next_state_t_s: f64,
+    nis: BTreeMap<&'static str, Vec<f64>>,
+    /// (divergence, covariance, initialisation) resets reported so far.
+    resets_seen: (u64, u64, u64),
+}
+
+impl<'a> Replayer<'a> {
+    fn new(opts: &'a ReplayOptions) -> Self {
+        Self {
+            opts,
+            rep: ReplayReport {
+                autopilot_system_id: opts.autopilot_system_id,
+                t_span_s: [f64::NAN; 2],
+                ..Default::default()
+            },
+            inputs: Inputs::new(opts.daemon.clone(), opts.gps),
+            filter: NavFilter::new(opts.nav.clone()),
+            spacing: InitSpacing::default(),
+            autopilot: None,
+            boot_clock: BootClock::default(),
+            boot_epoch: 0,
+            min_offset_us: None,
+            last_gps_arrival_ns: None,
+            next_state_t_s: f64::NEG_INFINITY,
+            nis: BTreeMap::new(),
+            resets_seen: (0, 0, 0),
+        }
+    }
+
+    fn apply(&mut self, m: Measurement) {
+        apply_meas(&mut self.filter, m, &mut self.rep, &mut self.nis, self.opts);
+    }
+
+    /// The packet recorded at `unix_us` as the link would have handed it on: decoded, from the
+    /// autopilot it locked onto, not stale, stamped on the boot clock. `None` for any other.
+    fn telemetry(&mut self, unix_us: u64, packet: &[u8]) -> Option<Telemetry> {
+        let mut reader = mavlink::MavlinkReader::new(packet);
         let Ok((header, msg)) = reader.read_any_message::<MavMessage>() else {
-            rep.undecodable += 1;
-            continue;
+            self.rep.undecodable += 1;
+            return None;
         };
-        if autopilot.is_none()
+        if self.autopilot.is_none()
             && let MavMessage::HEARTBEAT(hb) = &msg
             && let Ok(sys) = u8::try_from(header.system_id)
             && visnav_link::is_lock_candidate(
-                opts.autopilot_system_id,
-                opts.autopilot_component_id,
+                self.opts.autopilot_system_id,
+                self.opts.autopilot_component_id,
                 sys,
                 header.component_id,
                 hb,
             )
         {
-            autopilot = Some((header.system_id, header.component_id));
-            rep.autopilot_system_id = u8::try_from(header.system_id).ok();
+            self.autopilot = Some((header.system_id, header.component_id));
+            self.rep.autopilot_system_id = u8::try_from(header.system_id).ok();
         }
-        if autopilot != Some((header.system_id, header.component_id)) {
-            continue;
+        if self.autopilot != Some((header.system_id, header.component_id)) {
+            return None;
         }
         // The stamp as the companion clock's i64 ns: one past the year 2262 is a corrupt record
         // (the arithmetic below overflowed on it: found by fuzzing).
-        let Some(t_companion_ns) = i64::try_from(*unix_us)
+        let Some(t_companion_ns) = i64::try_from(unix_us)
             .ok()
             .and_then(|t| t.checked_mul(1000))
         else {
-            rep.undecodable += 1;
-            continue;
+            self.rep.undecodable += 1;
+            return None;
         };
-        let arrival_us = t_companion_ns / 1000;
-        rep.from_autopilot += 1;
+        self.rep.from_autopilot += 1;
         // The link's own rule for stale messages and reboots (`visnav_link::time::BootClock`).
         if let Some(b) = visnav_link::boot_time_us(&msg) {
-            match boot_clock.observe(msg.message_id(), b, t_companion_ns) {
+            match self.boot_clock.observe(msg.message_id(), b, t_companion_ns) {
                 BootVerdict::Current => {}
                 BootVerdict::Stale => {
-                    rep.stale += 1;
-                    continue;
+                    self.rep.stale += 1;
+                    return None;
                 }
-                BootVerdict::Reboot => boot_epoch += 1,
+                BootVerdict::Reboot => self.boot_epoch += 1,
             }
         }
-        let boot_us = match &msg {
+        let arrival_us = t_companion_ns / 1000;
+        self.follow_boot_offset(&msg, arrival_us);
+        Some(Telemetry {
+            t_companion_ns,
+            t_boot_us: self
+                .min_offset_us
+                .and_then(|o| arrival_us.checked_sub(o))
+                .filter(|t| *t >= 0)
+                .map(|t| t as u64),
+            boot_epoch: self.boot_epoch,
+            header,
+            msg,
+        })
+    }
+
+    /// The boot clock's offset from the arrival times, from the messages that carry the sensor
+    /// time.
+    fn follow_boot_offset(&mut self, msg: &MavMessage, arrival_us: i64) {
+        let boot_us = match msg {
             MavMessage::ATTITUDE(m) => Some(i64::from(m.time_boot_ms) * 1000),
             MavMessage::SCALED_IMU(m) => Some(i64::from(m.time_boot_ms) * 1000),
             MavMessage::HIGHRES_IMU(m) => Some(m.time_usec as i64),
@@ -428,117 +485,128 @@ pub fn replay(
         {
             let off = arrival_us.saturating_sub(b);
             // A reboot moves the offset up: follow it when it jumps by more than a second.
-            min_offset_us = Some(match min_offset_us {
+            self.min_offset_us = Some(match self.min_offset_us {
                 Some(o) if off > o.saturating_add(1_000_000) => off,
                 Some(o) => o.min(off),
                 None => off,
             });
         }
-        let tel = Telemetry {
-            t_companion_ns,
-            t_boot_us: min_offset_us
-                .and_then(|o| arrival_us.checked_sub(o))
-                .filter(|t| *t >= 0)
-                .map(|t| t as u64),
-            boot_epoch,
-            header,
-            msg,
-        };
+    }
+
+    /// One message through the daemon's input conversion into the filter.
+    fn feed(&mut self, tel: &Telemetry) {
         if matches!(
             tel.msg,
             MavMessage::GPS_RAW_INT(_) | MavMessage::GPS2_RAW(_)
         ) {
-            last_gps_arrival_ns = Some(tel.t_companion_ns);
+            self.last_gps_arrival_ns = Some(tel.t_companion_ns);
         }
-        for input in inputs.convert(&tel) {
+        for input in self.inputs.convert(tel) {
             match input {
                 NavInput::Imu(s) => {
-                    rep.imu_samples += 1;
-                    filter.imu(&s);
-                    let t_s = s.t_us as f64 * 1e-6;
-                    if rep.t_span_s[0].is_nan() {
-                        rep.t_span_s[0] = t_s;
-                    }
-                    rep.t_span_s[1] = t_s;
-                    if t_s >= next_state_t_s
-                        && let Some(o) = filter.output()
-                    {
-                        next_state_t_s = t_s + opts.state_interval_s;
-                        rep.states.push(StateRow {
-                            t_s,
-                            lat_deg: o.lat_deg,
-                            lon_deg: o.lon_deg,
-                            h_m: o.h_m,
-                            v_ned_m_s: o.v_ned_m_s,
-                            rpy_deg: o.rpy_deg,
-                            accel_bias_ug: o.accel_bias_ug,
-                            gyro_bias_deg_h: o.gyro_bias_deg_h,
-                            pos_sigma_m: sd(&o.cov_pos_ned_m2),
-                            health: o.health.to_string(),
-                        });
-                    }
+                    self.rep.imu_samples += 1;
+                    self.filter.imu(&s);
+                    self.record_state(s.t_us as f64 * 1e-6);
                 }
                 NavInput::Meas(m) => {
-                    let gps_recent = last_gps_arrival_ns
+                    let gps_recent = self
+                        .last_gps_arrival_ns
                         .is_some_and(|t| (tel.t_companion_ns - t) as f64 * 1e-9 < 2.0);
-                    if !spacing.ok(filter.is_initialised(), &m, gps_recent, &opts.nav.init) {
+                    let init = self.filter.is_initialised();
+                    if !self.spacing.ok(init, &m, gps_recent, &self.opts.nav.init) {
                         continue;
                     }
-                    apply_meas(&mut filter, m, &mut rep, &mut nis, opts);
+                    self.apply(m);
                 }
                 NavInput::Reboot => {
-                    rep.reboots += 1;
-                    filter = NavFilter::new(opts.nav.clone());
-                    filter.set_multirotor(inputs.multirotor());
-                    spacing = InitSpacing::default();
+                    self.rep.reboots += 1;
+                    self.filter = NavFilter::new(self.opts.nav.clone());
+                    self.filter.set_multirotor(self.inputs.multirotor());
+                    self.spacing = InitSpacing::default();
                 }
-                NavInput::Vehicle { multirotor } => filter.set_multirotor(multirotor),
+                NavInput::Vehicle { multirotor } => self.filter.set_multirotor(multirotor),
             }
-            let c = filter.counters();
-            let now = (
-                c.divergence_resets,
-                c.covariance_resets,
-                c.hard_resets + c.initialisations,
-            );
-            if now != resets_seen {
-                let t = filter.t_us().map_or(f64::NAN, |t| t as f64 * 1e-6);
-                let what = if now.0 > resets_seen.0 {
-                    "divergence reset".to_string()
-                } else if now.1 > resets_seen.1 {
-                    "covariance reset".to_string()
-                } else {
-                    "initialised".to_string()
-                };
-                let (_, reason) = filter.health();
-                rep.resets.push((t, format!("{what}: {reason}")));
-                resets_seen = now;
-            }
+            self.note_resets();
         }
     }
-    // Drag measurements are made inside the filter from its IMU samples: counted, not gated here.
-    let d = filter.counters().drag;
-    if d.accepted + d.rejected > 0 {
-        rep.kinds.insert(
-            "drag".to_string(),
-            KindStats {
-                n: d.accepted + d.rejected + d.too_old + d.invalid,
-                accepted: d.accepted,
-                rejected: d.rejected,
-                dof: 2,
-                nis_mean: f64::NAN,
-                nis_p50: f64::NAN,
-                nis_p95: f64::NAN,
-            },
+
+    /// The span of IMU time, and a state row every `state_interval_s`.
+    fn record_state(&mut self, t_s: f64) {
+        if self.rep.t_span_s[0].is_nan() {
+            self.rep.t_span_s[0] = t_s;
+        }
+        self.rep.t_span_s[1] = t_s;
+        if t_s >= self.next_state_t_s
+            && let Some(o) = self.filter.output()
+        {
+            self.next_state_t_s = t_s + self.opts.state_interval_s;
+            self.rep.states.push(StateRow {
+                t_s,
+                lat_deg: o.lat_deg,
+                lon_deg: o.lon_deg,
+                h_m: o.h_m,
+                v_ned_m_s: o.v_ned_m_s,
+                rpy_deg: o.rpy_deg,
+                accel_bias_ug: o.accel_bias_ug,
+                gyro_bias_deg_h: o.gyro_bias_deg_h,
+                pos_sigma_m: sd(&o.cov_pos_ned_m2),
+                health: o.health.to_string(),
+            });
+        }
+    }
+
+    /// A reset or initialisation of the filter since the last look, with the filter's reason.
+    fn note_resets(&mut self) {
+        let c = self.filter.counters();
+        let now = (
+            c.divergence_resets,
+            c.covariance_resets,
+            c.hard_resets + c.initialisations,
         );
-    }
-    for (kind, v) in nis {
-        if let Some(st) = rep.kinds.get_mut(kind) {
-            st.nis_mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
-            st.nis_p50 = percentile(&v, 0.5);
-            st.nis_p95 = percentile(&v, 0.95);
+        if now == self.resets_seen {
+            return;
         }
+        let t = self.filter.t_us().map_or(f64::NAN, |t| t as f64 * 1e-6);
+        let what = if now.0 > self.resets_seen.0 {
+            "divergence reset"
+        } else if now.1 > self.resets_seen.1 {
+            "covariance reset"
+        } else {
+            "initialised"
+        };
+        let (_, reason) = self.filter.health();
+        self.rep.resets.push((t, format!("{what}: {reason}")));
+        self.resets_seen = now;
     }
-    rep
+
+    /// The report with the drag measurements and each kind's NIS statistics.
+    fn finish(mut self) -> ReplayReport {
+        // Drag measurements are made inside the filter from its IMU samples: counted, not gated
+        // here.
+        let d = self.filter.counters().drag;
+        if d.accepted + d.rejected > 0 {
+            self.rep.kinds.insert(
+                "drag".to_string(),
+                KindStats {
+                    n: d.accepted + d.rejected + d.too_old + d.invalid,
+                    accepted: d.accepted,
+                    rejected: d.rejected,
+                    dof: 2,
+                    nis_mean: f64::NAN,
+                    nis_p50: f64::NAN,
+                    nis_p95: f64::NAN,
+                },
+            );
+        }
+        for (kind, v) in self.nis {
+            if let Some(st) = self.rep.kinds.get_mut(kind) {
+                st.nis_mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
+                st.nis_p50 = percentile(&v, 0.5);
+                st.nis_p95 = percentile(&v, 0.95);
+            }
+        }
+        self.rep
+    }
 }
 
 /// The measurement rows as CSV.

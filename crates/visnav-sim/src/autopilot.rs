@@ -603,41 +603,19 @@ struct Clocks {
     utc_offset_us: i64,
 }
 
+impl Clocks {
+    /// The truth's (run) time of a boot time, s.
+    fn run_s(&self, boot_us: u64) -> f64 {
+        (boot_us + self.run_minus_boot_us) as f64 * 1e-6
+    }
+}
+
 /// The telemetry message `id` at the tick's clocks `c`.
 fn telemetry(inner: &Inner, id: u32, c: Clocks) -> Option<MavMessage> {
     let t_us = c.boot_us;
-    // The truth's (run) time of a boot time.
-    let run_s = |boot_us: u64| (boot_us + c.run_minus_boot_us) as f64 * 1e-6;
-    let t_s = run_s(t_us);
+    let t_s = c.run_s(t_us);
     let s = inner.truth.state(t_s);
     let boot_ms = (t_us / 1000) as u32;
-    // PX4: the newest sample of a 250 Hz IMU, shared by HIGHRES_IMU and SCALED_IMU.
-    let px4_sample = || {
-        let slot = t_us / PX4_IMU_SLOT_US;
-        let mut cache = lock(&inner.px4_sample);
-        match *cache {
-            Some((k, g, a)) if k == slot => (slot * PX4_IMU_SLOT_US, g, a),
-            _ => {
-                let t_slot_us = slot * PX4_IMU_SLOT_US;
-                let (g, a) = inner.truth.imu(run_s(t_slot_us));
-                *cache = Some((slot, g, a));
-                (t_slot_us, g, a)
-            }
-        }
-    };
-    let imu = || {
-        let (gyro, accel) = if inner.cfg.px4_imu {
-            let (_, g, a) = px4_sample();
-            (g, a)
-        } else {
-            inner.truth.imu(t_s)
-        };
-        // Truncated toward zero, as ArduPilot's C float-to-int16 conversion does.
-        (
-            gyro.map(|g| trunc_i16(g * 1000.0)),
-            accel.map(|a| trunc_i16(a / G0_M_S2 * 1000.0)),
-        )
-    };
     Some(match id {
         2 => MavMessage::SYSTEM_TIME(SYSTEM_TIME_DATA {
             time_unix_usec: inner
@@ -646,56 +624,10 @@ fn telemetry(inner: &Inner, id: u32, c: Clocks) -> Option<MavMessage> {
                 .map_or(0, |u| (u + t_us).saturating_add_signed(c.utc_offset_us)),
             time_boot_ms: boot_ms,
         }),
-        24 | 124 => {
-            // No fix: what a receiver without satellites reports (zero position, no sats).
-            let fix = inner.cfg.gps_fix.then(|| inner.truth.gps(t_s)).flatten();
-            let (fix_type, lat, lon, alt, sats) = match &fix {
-                Some(g) => (
-                    GpsFixType::GPS_FIX_TYPE_3D_FIX,
-                    (g.lat_deg * 1e7).round() as i32,
-                    (g.lon_deg * 1e7).round() as i32,
-                    (g.alt_amsl_m * 1000.0).round() as i32,
-                    12,
-                ),
-                None => (GpsFixType::GPS_FIX_TYPE_NO_FIX, 0, 0, 0, 0),
-            };
-            let (vel, cog) = match &fix {
-                Some(g) if inner.cfg.gps_velocity => gps_vel_cog(g.vel_ned_m_s),
-                _ => (u16::MAX, u16::MAX),
-            };
-            if id == 124 {
-                // The second receiver (the real GPS when GPS_INPUT feeds instance 0).
-                return Some(MavMessage::GPS2_RAW(GPS2_RAW_DATA {
-                    time_usec: t_us,
-                    fix_type,
-                    lat,
-                    lon,
-                    alt,
-                    eph: u16::MAX,
-                    epv: u16::MAX,
-                    vel,
-                    cog,
-                    satellites_visible: sats,
-                    ..GPS2_RAW_DATA::DEFAULT
-                }));
-            }
-            MavMessage::GPS_RAW_INT(GPS_RAW_INT_DATA {
-                time_usec: t_us,
-                fix_type,
-                lat,
-                lon,
-                alt,
-                eph: u16::MAX,
-                epv: u16::MAX,
-                vel,
-                cog,
-                satellites_visible: sats,
-                ..GPS_RAW_INT_DATA::DEFAULT
-            })
-        }
+        24 | 124 => gps_message(inner, id == 124, t_us, t_s),
         105 if inner.cfg.px4_imu => {
-            let (t_sample_us, g, a) = px4_sample();
-            let (bg, ba) = inner.truth.autopilot_imu_bias(run_s(t_sample_us));
+            let (t_sample_us, g, a) = px4_sample(inner, c);
+            let (bg, ba) = inner.truth.autopilot_imu_bias(c.run_s(t_sample_us));
             MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
                 time_usec: t_sample_us,
                 xacc: (a[0] - ba[0]) as f32,
@@ -709,7 +641,7 @@ fn telemetry(inner: &Inner, id: u32, c: Clocks) -> Option<MavMessage> {
             })
         }
         26 => {
-            let (gyro_mrad, acc_mg) = imu();
+            let (gyro_mrad, acc_mg) = imu_counts(inner, c);
             MavMessage::SCALED_IMU(SCALED_IMU_DATA {
                 time_boot_ms: boot_ms,
                 xacc: acc_mg[0],
@@ -722,7 +654,7 @@ fn telemetry(inner: &Inner, id: u32, c: Clocks) -> Option<MavMessage> {
             })
         }
         27 => {
-            let (gyro_mrad, acc_mg) = imu();
+            let (gyro_mrad, acc_mg) = imu_counts(inner, c);
             MavMessage::RAW_IMU(RAW_IMU_DATA {
                 time_usec: t_us,
                 xacc: acc_mg[0],
@@ -764,6 +696,85 @@ fn telemetry(inner: &Inner, id: u32, c: Clocks) -> Option<MavMessage> {
             hdg: (s.rpy_rad[2].to_degrees().rem_euclid(360.0) * 100.0).round() as u16 % 36000,
         }),
         _ => return None,
+    })
+}
+
+/// PX4: the newest sample of a 250 Hz IMU, shared by HIGHRES_IMU and SCALED_IMU: its boot time,
+/// gyro and accelerometer.
+fn px4_sample(inner: &Inner, c: Clocks) -> (u64, [f64; 3], [f64; 3]) {
+    let slot = c.boot_us / PX4_IMU_SLOT_US;
+    let mut cache = lock(&inner.px4_sample);
+    match *cache {
+        Some((k, g, a)) if k == slot => (slot * PX4_IMU_SLOT_US, g, a),
+        _ => {
+            let t_slot_us = slot * PX4_IMU_SLOT_US;
+            let (g, a) = inner.truth.imu(c.run_s(t_slot_us));
+            *cache = Some((slot, g, a));
+            (t_slot_us, g, a)
+        }
+    }
+}
+
+/// The IMU as SCALED_IMU / RAW_IMU carry it: mrad/s and mg, truncated toward zero as
+/// ArduPilot's C float-to-int16 conversion does.
+fn imu_counts(inner: &Inner, c: Clocks) -> ([i16; 3], [i16; 3]) {
+    let (gyro, accel) = if inner.cfg.px4_imu {
+        let (_, g, a) = px4_sample(inner, c);
+        (g, a)
+    } else {
+        inner.truth.imu(c.run_s(c.boot_us))
+    };
+    (
+        gyro.map(|g| trunc_i16(g * 1000.0)),
+        accel.map(|a| trunc_i16(a / G0_M_S2 * 1000.0)),
+    )
+}
+
+/// GPS_RAW_INT, or GPS2_RAW for the second receiver (the real GPS when GPS_INPUT feeds instance
+/// 0). No fix: what a receiver without satellites reports (zero position, no satellites).
+fn gps_message(inner: &Inner, second: bool, t_us: u64, t_s: f64) -> MavMessage {
+    let fix = inner.cfg.gps_fix.then(|| inner.truth.gps(t_s)).flatten();
+    let (fix_type, lat, lon, alt, sats) = match &fix {
+        Some(g) => (
+            GpsFixType::GPS_FIX_TYPE_3D_FIX,
+            (g.lat_deg * 1e7).round() as i32,
+            (g.lon_deg * 1e7).round() as i32,
+            (g.alt_amsl_m * 1000.0).round() as i32,
+            12,
+        ),
+        None => (GpsFixType::GPS_FIX_TYPE_NO_FIX, 0, 0, 0, 0),
+    };
+    let (vel, cog) = match &fix {
+        Some(g) if inner.cfg.gps_velocity => gps_vel_cog(g.vel_ned_m_s),
+        _ => (u16::MAX, u16::MAX),
+    };
+    if second {
+        return MavMessage::GPS2_RAW(GPS2_RAW_DATA {
+            time_usec: t_us,
+            fix_type,
+            lat,
+            lon,
+            alt,
+            eph: u16::MAX,
+            epv: u16::MAX,
+            vel,
+            cog,
+            satellites_visible: sats,
+            ..GPS2_RAW_DATA::DEFAULT
+        });
+    }
+    MavMessage::GPS_RAW_INT(GPS_RAW_INT_DATA {
+        time_usec: t_us,
+        fix_type,
+        lat,
+        lon,
+        alt,
+        eph: u16::MAX,
+        epv: u16::MAX,
+        vel,
+        cog,
+        satellites_visible: sats,
+        ..GPS_RAW_INT_DATA::DEFAULT
     })
 }
 

@@ -279,37 +279,16 @@ pub fn run_with_source(
     let dt_us = (1e6 / sc.imu.rate_hz).round() as u64;
     let dt_s = dt_us as f64 * 1e-6;
     let n_steps = (sc.duration_s() / dt_s).floor() as u64;
-    let period = |hz: f64| (1e6 / hz).round() as u64;
     let mut pending: Vec<(u64, Measurement)> = Vec::new();
     let ev = &sc.evaluation;
     let (ev0, ev1) = ((ev.from_s * 1e6) as u64, (ev.until_s * 1e6) as u64);
-    let nees_us = period(1.0 / ev.nees_interval_s);
+    let nees_us = period_us(1.0 / ev.nees_interval_s);
     let mut next_nees = ev0;
-    let (mut maxe, mut sum2, mut n_eval, mut max_h) =
-        (Enu::default(), Enu::default(), 0usize, 0.0f64);
-    let mut final_err = Enu::default();
-    let mut sum_err_ned = Vector3::zeros();
-    let mut sum_err_body = Vector3::zeros();
-    let mut final_health = String::new();
+    let mut stats = ErrorStats::default();
     let mut nees = Vec::new();
     let mut init_at = None;
     let mut prev_truth = truth.state();
-    // Next capture time of each sensor (fires at the first IMU epoch at or after it).
-    let mut next_att = 0u64;
-    let mut next_alt = 0u64;
-    let mut next_gps = 0u64;
-    let mut next_vis = 0u64;
-    let due = |next: &mut u64, t: u64, hz: f64| {
-        if t >= *next {
-            *next += period(hz);
-            if *next <= t {
-                *next = t + period(hz);
-            }
-            true
-        } else {
-            false
-        }
-    };
+    let mut next = NextCapture::default();
 
     filter.imu(&ImuSample {
         t_us: 0,
@@ -333,71 +312,27 @@ pub fn run_with_source(
         if init_at.is_none() && filter.is_initialised() {
             init_at = Some(t_us as f64 * 1e-6);
         }
-        // Evaluation.
         if let Some(o) = &out
             && t_us >= ev0
             && t_us <= ev1
         {
-            let d = earth::ned_offset_m(
-                (o.lat_deg.to_radians(), o.lon_deg.to_radians(), o.h_m),
-                (ts.lat_rad, ts.lon_rad, ts.h_m),
-            );
-            let e = Enu {
-                e: d.y,
-                n: d.x,
-                u: -d.z,
-            };
-            maxe.e = maxe.e.max(e.e.abs());
-            maxe.n = maxe.n.max(e.n.abs());
-            maxe.u = maxe.u.max(e.u.abs());
-            sum2.e += e.e * e.e;
-            sum2.n += e.n * e.n;
-            sum2.u += e.u * e.u;
-            max_h = max_h.max(e.e.hypot(e.n));
-            sum_err_ned += d;
-            sum_err_body += ts.q_nb.inverse() * d;
-            n_eval += 1;
-            final_err = e;
-            final_health = format!("{}: {}", o.health, o.reason);
+            stats.add(o, &ts);
         }
         if t_us >= next_nees
             && t_us <= ev1
-            && let (Some(st), Some(p)) = (filter.state(), filter.nav_error_covariance())
-            && let Some((bg, ba)) = filter.biases()
+            && let Some((x, p)) = nees_error(&filter, &imu_err, &ts)
         {
             next_nees += nees_us;
-            let (tbg, tba) = imu_err.biases();
-            let mut x = nalgebra::SVector::<f64, 15>::zeros();
-            x.fixed_rows_mut::<3>(0).copy_from(&earth::ned_offset_m(
-                (st.lat_rad, st.lon_rad, st.h_m),
-                (ts.lat_rad, ts.lon_rad, ts.h_m),
-            ));
-            x.fixed_rows_mut::<3>(3)
-                .copy_from(&(st.v_ned_m_s - ts.v_ned_m_s));
-            x.fixed_rows_mut::<3>(6)
-                .copy_from(&(st.q_nb * ts.q_nb.inverse()).scaled_axis());
-            x.fixed_rows_mut::<3>(9).copy_from(&(bg - tbg));
-            x.fixed_rows_mut::<3>(12).copy_from(&(ba - tba));
             if let Some(s) = NeesSample::new(t_us as f64 * 1e-6, &x, &p) {
                 nees.push(s);
             }
         }
-        // Sensors captured at this epoch.
-        if due(&mut next_att, t_us, sc.attitude.rate_hz) {
-            let a = &sc.attitude;
-            let n = Vector3::new(
-                a.sigma_tilt_deg.to_radians() * rng.normal(),
-                a.sigma_tilt_deg.to_radians() * rng.normal(),
-                a.sigma_yaw_deg.to_radians() * rng.normal(),
-            );
-            let q = UnitQuaternion::from_scaled_axis(n) * ts.q_nb;
-            filter.measure(Measurement::Attitude(AttitudeFix {
-                t_capture_us: t_us,
-                q_nb: q,
-            }));
+        // Sensors captured at this epoch, in a fixed order (the random draws follow it).
+        if due(&mut next.attitude_us, t_us, sc.attitude.rate_hz) {
+            filter.measure(attitude_measurement(sc, &ts, t_us, &mut rng));
         }
         if let Some(a) = &sc.altitude
-            && due(&mut next_alt, t_us, a.rate_hz)
+            && due(&mut next.altitude_us, t_us, a.rate_hz)
         {
             filter.measure(Measurement::Altitude(AltitudeFix {
                 t_capture_us: t_us,
@@ -405,33 +340,13 @@ pub fn run_with_source(
                 var_m2: a.sigma_m * a.sigma_m,
             }));
         }
-        if let Some(g) = &sc.gps {
-            let ts_s = t_us as f64 * 1e-6;
-            if g.available(ts_s) && due(&mut next_gps, t_us, g.rate_hz) {
-                let vcov = sym3([g.sigma_vel_m_s.powi(2); 3]);
-                let l_b = Vector3::from(g.lever_arm_body_frd_m);
-                let lv_n = ts.q_nb * truth.kin.w_nb_body_rad_s.cross(&l_b);
-                filter.measure(Measurement::GpsVelocity(VelocityFix {
-                    t_capture_us: t_us,
-                    v_ned_m_s: ts.v_ned_m_s + lv_n + rng.normal3() * g.sigma_vel_m_s,
-                    cov_ned_m2_s2: vcov,
-                }));
-                let cov = sym3([
-                    g.sigma_h_m.powi(2),
-                    g.sigma_h_m.powi(2),
-                    g.sigma_v_m.powi(2),
-                ]);
-                let n = Vector3::new(
-                    g.sigma_h_m * rng.normal(),
-                    g.sigma_h_m * rng.normal(),
-                    g.sigma_v_m * rng.normal(),
-                );
-                filter.measure(Measurement::GpsPosition(offset_fix(
-                    &ts_pos(&ts),
-                    &(ts.q_nb * l_b + n),
-                    t_us,
-                    cov,
-                )));
+        if let Some(g) = &sc.gps
+            && g.available(t_us as f64 * 1e-6)
+            && due(&mut next.gps_us, t_us, g.rate_hz)
+        {
+            let w_nb = truth.kin.w_nb_body_rad_s;
+            for m in gps_measurements(g, &ts, &w_nb, t_us, &mut rng) {
+                filter.measure(m);
             }
         }
         if let Some(v) = &sc.vision
@@ -441,31 +356,11 @@ pub fn run_with_source(
             let withheld = !opt.vision && ts_s >= ev.from_s;
             if ts_s >= v.from_s
                 && ts_s <= v.until_s
-                && due(&mut next_vis, t_us, v.rate_hz)
+                && due(&mut next.vision_us, t_us, v.rate_hz)
                 && !withheld
             {
-                // Capture at a random instant inside the last IMU interval.
-                let frac = rng.uniform();
-                let t_c = t_us - (frac * dt_us as f64) as u64;
-                let a = (t_c - (t_us - dt_us)) as f64 / dt_us as f64;
-                let p0 = ts_pos(&prev_truth);
-                let p1 = ts_pos(&ts);
-                let pi = (
-                    p0.0 + a * (p1.0 - p0.0),
-                    p0.1 + a * (p1.1 - p0.1),
-                    p0.2 + a * (p1.2 - p0.2),
-                );
-                let q_c = prev_truth.q_nb.slerp(&ts.q_nb, a);
-                let l_n = q_c * Vector3::from(v.lever_arm_body_frd_m);
-                let (n, cov) = src.sample(&mut rng, &q_c);
-                let lat_ms =
-                    v.latency_min_ms + rng.uniform() * (v.latency_max_ms - v.latency_min_ms);
-                let deliver = t_c + (lat_ms * 1e3) as u64;
-                let stamp = if opt.stamp_at_arrival { deliver } else { t_c };
-                pending.push((
-                    deliver,
-                    Measurement::Vision(offset_fix(&pi, &(l_n + n), stamp, cov)),
-                ));
+                let span = (&prev_truth, &ts, t_us, dt_us);
+                pending.push(vision_capture(v, src, span, opt.stamp_at_arrival, &mut rng));
             }
         }
         pending.sort_by_key(|p| p.0);
@@ -475,44 +370,236 @@ pub fn run_with_source(
         }
         prev_truth = ts;
     }
-    let Some((bg, ba)) = filter.biases() else {
+    let Some(biases) = filter.biases() else {
         return Err(RunError::NeverInitialised(sc.name.clone()));
     };
+    Ok(stats.result(&filter, biases, &imu_err, init_at, nees))
+}
+
+/// The period of a rate, µs.
+fn period_us(hz: f64) -> u64 {
+    (1e6 / hz).round() as u64
+}
+
+/// Whether a sensor of rate `hz` whose next capture is `next` captures at `t` (it fires at the
+/// first IMU epoch at or after its time); moves `next` on when it does.
+fn due(next: &mut u64, t: u64, hz: f64) -> bool {
+    if t < *next {
+        return false;
+    }
+    *next += period_us(hz);
+    if *next <= t {
+        *next = t + period_us(hz);
+    }
+    true
+}
+
+/// The next capture time of each sensor, µs.
+#[derive(Default)]
+struct NextCapture {
+    attitude_us: u64,
+    altitude_us: u64,
+    gps_us: u64,
+    vision_us: u64,
+}
+
+/// The output's errors against the truth over the evaluation window.
+#[derive(Default)]
+struct ErrorStats {
+    maxe: Enu,
+    sum2: Enu,
+    n_eval: usize,
+    max_h: f64,
+    final_err: Enu,
+    sum_err_ned: Vector3<f64>,
+    sum_err_body: Vector3<f64>,
+    final_health: String,
+}
+
+impl ErrorStats {
+    fn add(&mut self, o: &visnav_core::nav::NavOutput, ts: &visnav_core::nav::InsState) {
+        let d = earth::ned_offset_m(
+            (o.lat_deg.to_radians(), o.lon_deg.to_radians(), o.h_m),
+            (ts.lat_rad, ts.lon_rad, ts.h_m),
+        );
+        let e = Enu {
+            e: d.y,
+            n: d.x,
+            u: -d.z,
+        };
+        self.maxe.e = self.maxe.e.max(e.e.abs());
+        self.maxe.n = self.maxe.n.max(e.n.abs());
+        self.maxe.u = self.maxe.u.max(e.u.abs());
+        self.sum2.e += e.e * e.e;
+        self.sum2.n += e.n * e.n;
+        self.sum2.u += e.u * e.u;
+        self.max_h = self.max_h.max(e.e.hypot(e.n));
+        self.sum_err_ned += d;
+        self.sum_err_body += ts.q_nb.inverse() * d;
+        self.n_eval += 1;
+        self.final_err = e;
+        self.final_health = format!("{}: {}", o.health, o.reason);
+    }
+
+    /// The run's figures: these errors, the filter's counters and its bias errors and sigmas
+    /// (`biases`: the filter's gyro and accelerometer bias estimates) against the IMU's truth.
+    fn result(
+        self,
+        filter: &NavFilter,
+        (bg, ba): (Vector3<f64>, Vector3<f64>),
+        imu_err: &ImuErrors,
+        init_at: Option<f64>,
+        nees: Vec<NeesSample>,
+    ) -> RunResult {
+        let (tbg, tba) = imu_err.biases();
+        let sig = |i: usize, unit: f64| -> [f64; 3] {
+            let p = filter.covariance();
+            std::array::from_fn(|k| {
+                p.as_ref()
+                    .map(|p| p[(i + k, i + k)].max(0.0).sqrt() / unit)
+                    .unwrap_or(f64::NAN)
+            })
+        };
+        let n = self.n_eval.max(1) as f64;
+        RunResult {
+            max_err_m: self.maxe,
+            rms_err_m: Enu {
+                e: (self.sum2.e / n).sqrt(),
+                n: (self.sum2.n / n).sqrt(),
+                u: (self.sum2.u / n).sqrt(),
+            },
+            max_horiz_err_m: self.max_h,
+            final_err_m: self.final_err,
+            mean_err_m: Enu {
+                e: self.sum_err_ned.y / n,
+                n: self.sum_err_ned.x / n,
+                u: -self.sum_err_ned.z / n,
+            },
+            mean_err_body_frd_m: (self.sum_err_body / n).into(),
+            n_eval: self.n_eval,
+            counters: *filter.counters(),
+            final_health: self.final_health,
+            initialised_at_s: init_at,
+            nees,
+            gyro_bias_err_deg_h: ((bg - tbg) / visnav_core::nav::config::DEG_H_TO_RAD_S).into(),
+            accel_bias_err_ug: ((ba - tba) / visnav_core::nav::config::UG_TO_M_S2).into(),
+            gyro_bias_sigma_deg_h: sig(9, visnav_core::nav::config::DEG_H_TO_RAD_S),
+            accel_bias_sigma_ug: sig(12, visnav_core::nav::config::UG_TO_M_S2),
+        }
+    }
+}
+
+/// The filter's 15-state error against the truth (position, velocity, attitude, gyro and
+/// accelerometer biases) and its covariance, once the filter has a state.
+fn nees_error(
+    filter: &NavFilter,
+    imu_err: &ImuErrors,
+    ts: &visnav_core::nav::InsState,
+) -> Option<(nalgebra::SVector<f64, 15>, nalgebra::SMatrix<f64, 15, 15>)> {
+    let (st, p) = (filter.state()?, filter.nav_error_covariance()?);
+    let (bg, ba) = filter.biases()?;
     let (tbg, tba) = imu_err.biases();
-    let sig = |i: usize, unit: f64| -> [f64; 3] {
-        let p = filter.covariance();
-        std::array::from_fn(|k| {
-            p.as_ref()
-                .map(|p| p[(i + k, i + k)].max(0.0).sqrt() / unit)
-                .unwrap_or(f64::NAN)
-        })
-    };
-    let n = n_eval.max(1) as f64;
-    Ok(RunResult {
-        max_err_m: maxe,
-        rms_err_m: Enu {
-            e: (sum2.e / n).sqrt(),
-            n: (sum2.n / n).sqrt(),
-            u: (sum2.u / n).sqrt(),
-        },
-        max_horiz_err_m: max_h,
-        final_err_m: final_err,
-        mean_err_m: Enu {
-            e: sum_err_ned.y / n,
-            n: sum_err_ned.x / n,
-            u: -sum_err_ned.z / n,
-        },
-        mean_err_body_frd_m: (sum_err_body / n).into(),
-        n_eval,
-        counters: *filter.counters(),
-        final_health,
-        initialised_at_s: init_at,
-        nees,
-        gyro_bias_err_deg_h: ((bg - tbg) / visnav_core::nav::config::DEG_H_TO_RAD_S).into(),
-        accel_bias_err_ug: ((ba - tba) / visnav_core::nav::config::UG_TO_M_S2).into(),
-        gyro_bias_sigma_deg_h: sig(9, visnav_core::nav::config::DEG_H_TO_RAD_S),
-        accel_bias_sigma_ug: sig(12, visnav_core::nav::config::UG_TO_M_S2),
+    let mut x = nalgebra::SVector::<f64, 15>::zeros();
+    x.fixed_rows_mut::<3>(0).copy_from(&earth::ned_offset_m(
+        (st.lat_rad, st.lon_rad, st.h_m),
+        (ts.lat_rad, ts.lon_rad, ts.h_m),
+    ));
+    x.fixed_rows_mut::<3>(3)
+        .copy_from(&(st.v_ned_m_s - ts.v_ned_m_s));
+    x.fixed_rows_mut::<3>(6)
+        .copy_from(&(st.q_nb * ts.q_nb.inverse()).scaled_axis());
+    x.fixed_rows_mut::<3>(9).copy_from(&(bg - tbg));
+    x.fixed_rows_mut::<3>(12).copy_from(&(ba - tba));
+    Some((x, p))
+}
+
+/// The autopilot attitude: the truth turned by the scenario's tilt and yaw noise.
+fn attitude_measurement(
+    sc: &Scenario,
+    ts: &visnav_core::nav::InsState,
+    t_us: u64,
+    rng: &mut Rng,
+) -> Measurement {
+    let a = &sc.attitude;
+    let n = Vector3::new(
+        a.sigma_tilt_deg.to_radians() * rng.normal(),
+        a.sigma_tilt_deg.to_radians() * rng.normal(),
+        a.sigma_yaw_deg.to_radians() * rng.normal(),
+    );
+    Measurement::Attitude(AttitudeFix {
+        t_capture_us: t_us,
+        q_nb: UnitQuaternion::from_scaled_axis(n) * ts.q_nb,
     })
+}
+
+/// The GPS velocity and position of the antenna (lever arm `l_gps`), with their noise.
+fn gps_measurements(
+    g: &super::scenario::GpsConfig,
+    ts: &visnav_core::nav::InsState,
+    w_nb_body_rad_s: &Vector3<f64>,
+    t_us: u64,
+    rng: &mut Rng,
+) -> [Measurement; 2] {
+    let vcov = sym3([g.sigma_vel_m_s.powi(2); 3]);
+    let l_b = Vector3::from(g.lever_arm_body_frd_m);
+    let lv_n = ts.q_nb * w_nb_body_rad_s.cross(&l_b);
+    let velocity = Measurement::GpsVelocity(VelocityFix {
+        t_capture_us: t_us,
+        v_ned_m_s: ts.v_ned_m_s + lv_n + rng.normal3() * g.sigma_vel_m_s,
+        cov_ned_m2_s2: vcov,
+    });
+    let cov = sym3([
+        g.sigma_h_m.powi(2),
+        g.sigma_h_m.powi(2),
+        g.sigma_v_m.powi(2),
+    ]);
+    let n = Vector3::new(
+        g.sigma_h_m * rng.normal(),
+        g.sigma_h_m * rng.normal(),
+        g.sigma_v_m * rng.normal(),
+    );
+    let position =
+        Measurement::GpsPosition(offset_fix(&ts_pos(ts), &(ts.q_nb * l_b + n), t_us, cov));
+    [velocity, position]
+}
+
+/// A vision fix captured at a random instant inside the last IMU interval (`span`: the truth
+/// at its start and end, the epoch's time and the interval, µs): its delivery time after the
+/// latency and the measurement, stamped with its capture time (or its arrival, for the control
+/// experiment).
+fn vision_capture(
+    v: &super::scenario::VisionConfig,
+    src: &dyn VisionFixSource,
+    span: (
+        &visnav_core::nav::InsState,
+        &visnav_core::nav::InsState,
+        u64,
+        u64,
+    ),
+    stamp_at_arrival: bool,
+    rng: &mut Rng,
+) -> (u64, Measurement) {
+    let (prev, ts, t_us, dt_us) = span;
+    let frac = rng.uniform();
+    let t_c = t_us - (frac * dt_us as f64) as u64;
+    let a = (t_c - (t_us - dt_us)) as f64 / dt_us as f64;
+    let p0 = ts_pos(prev);
+    let p1 = ts_pos(ts);
+    let pi = (
+        p0.0 + a * (p1.0 - p0.0),
+        p0.1 + a * (p1.1 - p0.1),
+        p0.2 + a * (p1.2 - p0.2),
+    );
+    let q_c = prev.q_nb.slerp(&ts.q_nb, a);
+    let l_n = q_c * Vector3::from(v.lever_arm_body_frd_m);
+    let (n, cov) = src.sample(rng, &q_c);
+    let lat_ms = v.latency_min_ms + rng.uniform() * (v.latency_max_ms - v.latency_min_ms);
+    let deliver = t_c + (lat_ms * 1e3) as u64;
+    let stamp = if stamp_at_arrival { deliver } else { t_c };
+    (
+        deliver,
+        Measurement::Vision(offset_fix(&pi, &(l_n + n), stamp, cov)),
+    )
 }
 
 fn ts_pos(s: &visnav_core::nav::InsState) -> (f64, f64, f64) {

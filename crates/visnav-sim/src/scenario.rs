@@ -631,6 +631,53 @@ impl Validate for Scenario {
             p.range("speed_m_s", self.start.speed_m_s, min_speed, 400.0);
             p.range("heading_deg", self.start.heading_deg, -360.0, 360.0);
         });
+        self.validate_segments(p, min_speed);
+        let segments_ok = p.list.is_empty();
+        p.section("vehicle", |p| self.validate_vehicle(p, segments_ok));
+        let dur = self.duration_s();
+        p.section("imu", |p| self.imu.validate(p));
+        self.validate_sensors(p, dur);
+        p.section("evaluation", |p| {
+            let e = &self.evaluation;
+            p.range("from_s", e.from_s, 0.0, dur);
+            p.range("until_s", e.until_s, e.from_s, dur);
+            p.range("nees_interval_s", e.nees_interval_s, 0.01, 3600.0);
+            if let Some(t) = e.target_max_horiz_err_m {
+                p.positive("target_max_horiz_err_m", t);
+            }
+        });
+        if let Some(r) = &self.reference {
+            p.section("reference", |p| {
+                for v in r.ins_only_max_err_enu_m {
+                    p.range("ins_only_max_err_enu_m", v, 0.0, 1e7);
+                }
+                for v in r.vision_max_err_enu_m {
+                    p.range("vision_max_err_enu_m", v, 0.0, 1e7);
+                }
+            });
+        }
+        if self.gps.is_none() && self.vision.is_none() {
+            p.push(
+                "gps",
+                "a scenario needs gps or vision to initialise the filter",
+            );
+        }
+        p.section("nav", |p| self.nav.validate(p));
+        if !self.faults.is_empty() && self.closed_loop.is_none() {
+            p.push("faults", "scripted faults need a [closed_loop] section");
+        }
+        for (i, f) in self.faults.iter().enumerate() {
+            p.section(&format!("faults[{i}]"), |p| f.validate(p, dur));
+        }
+        if let Some(c) = &self.closed_loop {
+            p.section("closed_loop", |p| c.validate_in(p, dur));
+        }
+    }
+}
+
+impl Scenario {
+    /// The flight's segments: each in range and consistent with its kind.
+    fn validate_segments(&self, p: &mut Problems, min_speed: f64) {
         if self.segments.is_empty() {
             p.push("segments", "at least one segment is required");
         }
@@ -675,10 +722,10 @@ impl Validate for Scenario {
                 }
             });
         }
-        let segments_ok = p.list.is_empty();
-        p.section("vehicle", |p| self.validate_vehicle(p, segments_ok));
-        let dur = self.duration_s();
-        p.section("imu", |p| self.imu.validate(p));
+    }
+
+    /// The simulated sensors: GPS, vision, altitude and attitude streams.
+    fn validate_sensors(&self, p: &mut Problems, dur: f64) {
         if let Some(g) = &self.gps {
             p.section("gps", |p| {
                 p.range("rate_hz", g.rate_hz, 0.1, 100.0);
@@ -725,90 +772,62 @@ impl Validate for Scenario {
             p.positive("sigma_tilt_deg", self.attitude.sigma_tilt_deg);
             p.positive("sigma_yaw_deg", self.attitude.sigma_yaw_deg);
         });
-        p.section("evaluation", |p| {
-            let e = &self.evaluation;
-            p.range("from_s", e.from_s, 0.0, dur);
-            p.range("until_s", e.until_s, e.from_s, dur);
-            p.range("nees_interval_s", e.nees_interval_s, 0.01, 3600.0);
-            if let Some(t) = e.target_max_horiz_err_m {
-                p.positive("target_max_horiz_err_m", t);
-            }
-        });
-        if let Some(r) = &self.reference {
-            p.section("reference", |p| {
-                for v in r.ins_only_max_err_enu_m {
-                    p.range("ins_only_max_err_enu_m", v, 0.0, 1e7);
-                }
-                for v in r.vision_max_err_enu_m {
-                    p.range("vision_max_err_enu_m", v, 0.0, 1e7);
-                }
-            });
+    }
+}
+
+impl ClosedLoopConfig {
+    /// The closed loop's camera, AHRS, workers, map and camera worlds (`dur`: the flight's
+    /// duration, s).
+    fn validate_in(&self, p: &mut Problems, dur: f64) {
+        let c = self;
+        p.range("camera_rate_hz", c.camera_rate_hz, 0.05, 30.0);
+        p.range("camera_from_s", c.camera_from_s, 0.0, dur);
+        p.range("frame_max_age_s", c.frame_max_age_s, 0.01, 60.0);
+        p.range("ahrs_tilt_sigma_deg", c.ahrs_tilt_sigma_deg, 0.0, 20.0);
+        p.range("ahrs_yaw_sigma_deg", c.ahrs_yaw_sigma_deg, 0.0, 90.0);
+        p.range("ahrs_corr_time_s", c.ahrs_corr_time_s, 0.1, 1e6);
+        p.range(
+            "ahrs_rate_error_deg_h",
+            c.ahrs_rate_error_deg_h,
+            0.0,
+            36_000.0,
+        );
+        p.range("ahrs_rate_corr_time_s", c.ahrs_rate_corr_time_s, 0.1, 1e6);
+        if c.workers == 0 || c.workers > 16 {
+            p.push("workers", "must be 1 to 16");
         }
-        if self.gps.is_none() && self.vision.is_none() {
+        if let Some(v) = &c.vo {
+            p.section("vo", |p| v.validate(p));
+        }
+        if let Some(n) = c.map_upsample
+            && !matches!(n, 1 | 2 | 4)
+        {
+            p.push("map_upsample", format!("{n}: must be 1, 2 or 4"));
+        }
+        match (&c.camera_dem, c.camera_ground_height_amsl_m) {
+            (Some(_), Some(_)) => p.push(
+                "camera_dem",
+                "give camera_dem or camera_ground_height_amsl_m, not both",
+            ),
+            (None, None) => p.push(
+                "camera_ground_height_amsl_m",
+                "give camera_dem or camera_ground_height_amsl_m",
+            ),
+            (None, Some(h)) => p.range("camera_ground_height_amsl_m", h, -500.0, 9000.0),
+            _ => {}
+        }
+        p.section("render", |p| c.render.validate(p));
+        if let Some(d) = &c.map_degrade {
+            p.section("map_degrade", |p| d.validate(p));
+        }
+        if let Some(d) = &c.camera_degrade {
+            p.section("camera_degrade", |p| d.validate(p));
+        }
+        if c.map_degrade.is_some() && c.map_degrade == c.camera_degrade {
             p.push(
-                "gps",
-                "a scenario needs gps or vision to initialise the filter",
+                "camera_degrade",
+                "must differ from map_degrade (the camera would see the map's own image)",
             );
-        }
-        p.section("nav", |p| self.nav.validate(p));
-        if !self.faults.is_empty() && self.closed_loop.is_none() {
-            p.push("faults", "scripted faults need a [closed_loop] section");
-        }
-        for (i, f) in self.faults.iter().enumerate() {
-            p.section(&format!("faults[{i}]"), |p| f.validate(p, dur));
-        }
-        if let Some(c) = &self.closed_loop {
-            p.section("closed_loop", |p| {
-                p.range("camera_rate_hz", c.camera_rate_hz, 0.05, 30.0);
-                p.range("camera_from_s", c.camera_from_s, 0.0, dur);
-                p.range("frame_max_age_s", c.frame_max_age_s, 0.01, 60.0);
-                p.range("ahrs_tilt_sigma_deg", c.ahrs_tilt_sigma_deg, 0.0, 20.0);
-                p.range("ahrs_yaw_sigma_deg", c.ahrs_yaw_sigma_deg, 0.0, 90.0);
-                p.range("ahrs_corr_time_s", c.ahrs_corr_time_s, 0.1, 1e6);
-                p.range(
-                    "ahrs_rate_error_deg_h",
-                    c.ahrs_rate_error_deg_h,
-                    0.0,
-                    36_000.0,
-                );
-                p.range("ahrs_rate_corr_time_s", c.ahrs_rate_corr_time_s, 0.1, 1e6);
-                if c.workers == 0 || c.workers > 16 {
-                    p.push("workers", "must be 1 to 16");
-                }
-                if let Some(v) = &c.vo {
-                    p.section("vo", |p| v.validate(p));
-                }
-                if let Some(n) = c.map_upsample
-                    && !matches!(n, 1 | 2 | 4)
-                {
-                    p.push("map_upsample", format!("{n}: must be 1, 2 or 4"));
-                }
-                match (&c.camera_dem, c.camera_ground_height_amsl_m) {
-                    (Some(_), Some(_)) => p.push(
-                        "camera_dem",
-                        "give camera_dem or camera_ground_height_amsl_m, not both",
-                    ),
-                    (None, None) => p.push(
-                        "camera_ground_height_amsl_m",
-                        "give camera_dem or camera_ground_height_amsl_m",
-                    ),
-                    (None, Some(h)) => p.range("camera_ground_height_amsl_m", h, -500.0, 9000.0),
-                    _ => {}
-                }
-                p.section("render", |p| c.render.validate(p));
-                if let Some(d) = &c.map_degrade {
-                    p.section("map_degrade", |p| d.validate(p));
-                }
-                if let Some(d) = &c.camera_degrade {
-                    p.section("camera_degrade", |p| d.validate(p));
-                }
-                if c.map_degrade.is_some() && c.map_degrade == c.camera_degrade {
-                    p.push(
-                        "camera_degrade",
-                        "must differ from map_degrade (the camera would see the map's own image)",
-                    );
-                }
-            });
         }
     }
 }

@@ -25,7 +25,7 @@
 //! [`BAND_BYTES`], so a level-5 tile never needs its 32x larger level-0 footprint at once; the
 //! columns a tile's window shares with its left neighbour's are reused, not read again. Add one
 //! tile's working set (grey, integral image, SURF response layers: a few tens of MB at the default
-//! 1024 px tiles), the DEM (loaded whole: DEMs are usually much coarser than the orthophoto), and
+//! 1024 px tiles), the DEM's part under the orthophotos (`geo::dem::load_dem_covering`), and
 //! 8 bytes per index cell. Peak memory thus no longer grows with the orthophoto size
 //! (docs/map-format.md has measurements). The price is decoding time: the window margins overlap
 //! vertically and every level reads the level-0 pixels again, so each chunk is decoded about
@@ -452,7 +452,7 @@ pub fn build_map(
         .map(|g| g.upsampled(up_shift))
         .collect::<Result<Vec<_>, _>>()?;
     let bounds = union_bounds(&geoms);
-    let heights = Heights::load(spec, &crs)?;
+    let heights = Heights::load(spec, &crs, &bounds)?;
     let plan = LevelPlan::new(spec, &d, &bounds, &vgeoms, up_shift);
     tracing::info!(
         orthos = geoms.len(),
@@ -648,10 +648,10 @@ struct Heights {
 }
 
 impl Heights {
-    fn load(spec: &BuildSpec, crs: &Crs) -> Result<Self, MapError> {
+    fn load(spec: &BuildSpec, crs: &Crs, area: &Bounds) -> Result<Self, MapError> {
         match &spec.height {
             HeightSource::ConstantAmsl(h) => Self::constant(*h),
-            HeightSource::Dem(p) => Self::dem(p, spec.crs_override, crs),
+            HeightSource::Dem(p) => Self::dem(p, spec.crs_override, crs, area),
         }
     }
 
@@ -673,22 +673,39 @@ impl Heights {
         })
     }
 
-    fn dem(p: &Path, crs_override: Option<Crs>, crs: &Crs) -> Result<Self, MapError> {
-        let d = crate::geo::dem::load_dem(p, crs_override).map_err(|source| MapError::Dem {
+    /// The DEM's part under the map (`area`, the orthophotos' bounds): a DEM of a whole region is
+    /// not decoded whole. Its CRS is checked from the header first, so that the window is taken
+    /// in the orthophotos' coordinates.
+    fn dem(
+        p: &Path,
+        crs_override: Option<Crs>,
+        crs: &Crs,
+        area: &Bounds,
+    ) -> Result<Self, MapError> {
+        let dem_err = |source: crate::geo::dem::DemFileError| MapError::Dem {
             path: p.to_path_buf(),
             cause: Box::new(source),
-        })?;
+        };
+        let header_crs = open_geotiff_window(p, crs_override)
+            .map_err(|e| dem_err(e.into()))?
+            .info()
+            .crs;
+        let differs = |dc: &Crs| MapError::Input {
+            path: p.to_path_buf(),
+            reason: format!(
+                "DEM CRS {} differs from the orthophotos' {}; reproject the DEM to the orthophotos' CRS",
+                describe_crs(dc),
+                describe_crs(crs)
+            ),
+        };
+        if !crs_equivalent(&header_crs, crs) {
+            return Err(differs(&header_crs));
+        }
+        let d = crate::geo::dem::load_dem_covering(p, crs_override, area).map_err(dem_err)?;
         if let Some(dc) = d.crs()
             && !crs_equivalent(&dc, crs)
         {
-            return Err(MapError::Input {
-                path: p.to_path_buf(),
-                reason: format!(
-                    "DEM CRS {} differs from the orthophotos' {}; reproject the DEM to the orthophotos' CRS",
-                    describe_crs(&dc),
-                    describe_crs(crs)
-                ),
-            });
+            return Err(differs(&dc));
         }
         let (lo, hi) = d.height_range_m();
         Ok(Self {

@@ -1311,3 +1311,75 @@ fn corrupted_files_never_panic() {
         "the tiff crate panicked on a corrupted file (caught)"
     );
 }
+
+/// The part of a DEM under an area holds the same heights there as the whole DEM, bit for bit,
+/// and is decoded from a window only; an area off the DEM, or one that holds all of it, loads the
+/// whole DEM.
+#[test]
+fn a_dem_loaded_for_an_area_has_the_whole_dems_heights_there() {
+    use visnav_core::geo::raster::Bounds;
+    use visnav_io::geo::dem::{load_dem, load_dem_covering};
+    let Some(shared) = shared_dir() else { return };
+    for f in ["ngi_3324c/dem.tif", "autzen/autzen_dsm_1m_utm10n.tif"] {
+        let path = shared.join(f);
+        let whole = load_dem(&path, None).unwrap();
+        let r = visnav_io::geo::window::open_geotiff_window(&path, None).unwrap();
+        let b = r.info().bounds();
+        let (w, h) = (b.max_x_m - b.min_x_m, b.max_y_m - b.min_y_m);
+        // An off-centre area a fifth of the DEM's side.
+        let area = Bounds {
+            min_x_m: b.min_x_m + 0.3 * w,
+            max_x_m: b.min_x_m + 0.5 * w,
+            min_y_m: b.min_y_m + 0.55 * h,
+            max_y_m: b.min_y_m + 0.75 * h,
+        };
+        let part = load_dem_covering(&path, None, &area).unwrap();
+        let (cell_whole, cell_part) = (whole.cell_m().unwrap(), part.cell_m().unwrap());
+        assert_eq!(cell_whole, cell_part, "{f}");
+        let (lo, hi) = part.height_range_m();
+        let (wlo, whi) = whole.height_range_m();
+        assert!(
+            lo >= wlo && hi <= whi && (lo, hi) != (wlo, whi),
+            "{f}: {lo}..{hi}"
+        );
+        let mut compared = 0;
+        for i in 0..=40 {
+            for j in 0..=40 {
+                let x = area.min_x_m + (area.max_x_m - area.min_x_m) * f64::from(i) / 40.0;
+                let y = area.min_y_m + (area.max_y_m - area.min_y_m) * f64::from(j) / 40.0;
+                let (a, b) = (whole.height_at(x, y), part.height_at(x, y));
+                assert_eq!(
+                    a.map(f64::to_bits),
+                    b.map(f64::to_bits),
+                    "{f}: height at {x} {y}"
+                );
+                compared += usize::from(a.is_some());
+            }
+        }
+        assert!(compared > 1500, "{f}: {compared} heights compared");
+        // Beyond the area's margin the part has no heights.
+        let far = (
+            area.max_x_m + 10.0 * cell_whole,
+            area.max_y_m + 10.0 * cell_whole,
+        );
+        assert!(whole.height_at(far.0, far.1).is_some(), "{f}");
+        assert!(part.height_at(far.0, far.1).is_none(), "{f}");
+        // Off the DEM, or all of it: the whole DEM.
+        let off = Bounds {
+            min_x_m: b.max_x_m + 1000.0,
+            max_x_m: b.max_x_m + 2000.0,
+            min_y_m: b.min_y_m,
+            max_y_m: b.max_y_m,
+        };
+        let all = Bounds {
+            min_x_m: b.min_x_m - 100.0,
+            max_x_m: b.max_x_m + 100.0,
+            min_y_m: b.min_y_m - 100.0,
+            max_y_m: b.max_y_m + 100.0,
+        };
+        for a in [off, all] {
+            let d = load_dem_covering(&path, None, &a).unwrap();
+            assert_eq!(d.height_range_m(), whole.height_range_m(), "{f}");
+        }
+    }
+}

@@ -520,3 +520,150 @@ fn windowed_build_is_byte_identical_to_the_whole_image_build() {
         );
     }
 }
+
+/// A build of part of the orthophotos (`BuildSpec::area`) holds the whole build's features in
+/// that part: four parts meeting at an inner point, built separately, hold the whole build's
+/// features, each once, and their level images hold the whole build's pixels. An area off the
+/// orthophotos is refused by name.
+#[test]
+fn parts_of_an_area_hold_the_whole_builds_features_each_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut spec = BuildSpec::new(vec![naip2009()], HeightSource::ConstantAmsl(580.0));
+    spec.tile_px = 256;
+    spec.levels = Some(3);
+    let whole_path = dir.path().join("whole.vnm");
+    let whole = build_map(&spec, &whole_path, &mut |_| {}).unwrap();
+    let b = whole.header.bounds;
+    // An inner point off the tile and pixel grids: the parts' edges move out to the coarsest
+    // level's grid, and their features split at those edges.
+    let (mx, my) = (
+        b.min_x_m + 0.43 * (b.max_x_m - b.min_x_m),
+        b.min_y_m + 0.61 * (b.max_y_m - b.min_y_m),
+    );
+    let far = 1e5;
+    let quads = [
+        (b.min_x_m - far, mx, my, b.max_y_m + far),
+        (mx, b.max_x_m + far, my, b.max_y_m + far),
+        (b.min_x_m - far, mx, b.min_y_m - far, my),
+        (mx, b.max_x_m + far, b.min_y_m - far, my),
+    ];
+    let whole_map = ReferenceMap::open(&whole_path).unwrap();
+    let mut parts: Vec<MapFeature> = Vec::new();
+    let mut edges = Vec::new();
+    for (i, (x0, x1, y0, y1)) in quads.into_iter().enumerate() {
+        let part_spec = BuildSpec {
+            area: Some(visnav::geo::raster::Bounds {
+                min_x_m: x0,
+                max_x_m: x1,
+                min_y_m: y0,
+                max_y_m: y1,
+            }),
+            ..spec.clone()
+        };
+        let p = dir.path().join(format!("part{i}.vnm"));
+        let s = build_map(&part_spec, &p, &mut |_| {}).unwrap();
+        assert!(
+            s.header.n_features() > 50,
+            "part {i}: {}",
+            s.header.n_features()
+        );
+        edges.push(s.header.bounds);
+        let m = ReferenceMap::open(&p).unwrap();
+        parts.extend(sorted_features(&m));
+        // Every level image pixel of the part is the whole map's pixel at the same place.
+        for level in 0..3 {
+            let (pi, px) = m.level_image(level).unwrap();
+            let (wi, wx) = whole_map.level_image(level).unwrap();
+            let gsd = whole_map.header().levels[level].gsd_m;
+            let dx = ((pi.origin_x_m - wi.origin_x_m) / gsd).round() as usize;
+            let dy = ((wi.origin_y_m - pi.origin_y_m) / gsd).round() as usize;
+            assert_eq!(
+                pi.origin_x_m,
+                wi.origin_x_m + dx as f64 * gsd,
+                "part {i} level {level}"
+            );
+            for y in 0..pi.height_px as usize {
+                let a = &px[y * pi.width_px as usize..][..pi.width_px as usize];
+                let w = &wx[(y + dy) * wi.width_px as usize + dx..][..pi.width_px as usize];
+                assert_eq!(a, w, "part {i} level {level} row {y}");
+            }
+        }
+    }
+    // The parts' edges lie on the coarsest level's grid (4 x 5 m from the ortho's corner).
+    let step = 4.0 * whole_map.header().levels[0].gsd_m;
+    for e in &edges {
+        for (v, o) in [(e.min_x_m, b.min_x_m), (e.max_y_m, b.max_y_m)] {
+            let k = (v - o) / step;
+            assert!((k - k.round()).abs() < 1e-9, "edge {v} off the grid");
+        }
+    }
+    let sort = |v: &mut Vec<MapFeature>| {
+        v.sort_by(|a, b| {
+            a.level
+                .cmp(&b.level)
+                .then(a.x_m.total_cmp(&b.x_m))
+                .then(a.y_m.total_cmp(&b.y_m))
+        })
+    };
+    sort(&mut parts);
+    let all = sorted_features(&whole_map);
+    assert_eq!(parts.len(), all.len());
+    assert!(
+        parts == all,
+        "the parts' features differ from the whole build's"
+    );
+
+    let off = BuildSpec {
+        area: Some(visnav::geo::raster::Bounds {
+            min_x_m: b.max_x_m + 10.0,
+            max_x_m: b.max_x_m + 20.0,
+            min_y_m: b.min_y_m,
+            max_y_m: b.max_y_m,
+        }),
+        ..spec
+    };
+    let e = build_map(&off, &dir.path().join("off.vnm"), &mut |_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("area") && e.contains("does not overlap"), "{e}");
+}
+
+/// `visnav map build --area` builds the part of the orthophoto inside the box, and refuses a box
+/// that is not four numbers, is empty, or misses the orthophoto, naming the option.
+#[test]
+fn map_build_cli_builds_an_area_and_refuses_bad_boxes() {
+    let dir = tempfile::tempdir().unwrap();
+    let bin = env!("CARGO_BIN_EXE_visnav");
+    let ortho = naip2009();
+    let out = dir.path().join("area.vnm");
+    let run = |area: &str| {
+        Command::new(bin)
+            .args(["map", "build", "--ground-height", "580", "--area", area])
+            .arg("--ortho")
+            .arg(&ortho)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap()
+    };
+    let o = run("487000,5206000,488500,5207500");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let m = ReferenceMap::open(&out).unwrap();
+    let b = m.header().bounds;
+    assert!(b.min_x_m <= 487000.0 && b.max_x_m >= 488500.0 && b.max_x_m - b.min_x_m < 1600.0);
+    assert!(sorted_features(&m).iter().all(|f| {
+        (487000.0..488500.0).contains(&f.x_m) && f.y_m > 5206000.0 && f.y_m <= 5207500.0
+    }));
+    for (bad, says) in [
+        ("1,2,3", "four numbers"),
+        ("5,2,3,4", "MIN_X < MAX_X"),
+        ("0,0,10,10", "does not overlap"),
+    ] {
+        let o = run(bad);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success() && e.contains("area") && e.contains(says),
+            "{bad}: {e}"
+        );
+    }
+}

@@ -106,6 +106,32 @@ pub struct BuildArgs {
     /// WGS84/NAD83 UTM zone).
     #[arg(long)]
     pub crs_override_epsg: Option<u32>,
+    /// Build only this part of the orthophotos: `MIN_X,MIN_Y,MAX_X,MAX_Y`, metres in their CRS
+    /// (a flight area out of a larger orthophoto, or one part of a partition; the features are
+    /// the whole build's inside it, docs/map-format.md "Part of the orthophotos").
+    #[arg(long, value_parser = parse_area)]
+    pub area: Option<visnav::geo::raster::Bounds>,
+}
+
+/// `MIN_X,MIN_Y,MAX_X,MAX_Y` in metres, each finite, the box not empty.
+fn parse_area(s: &str) -> Result<visnav::geo::raster::Bounds, String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| "expected four numbers MIN_X,MIN_Y,MAX_X,MAX_Y (metres)".to_string())?;
+    let [min_x_m, min_y_m, max_x_m, max_y_m] = v[..] else {
+        return Err("expected four numbers MIN_X,MIN_Y,MAX_X,MAX_Y (metres)".into());
+    };
+    if !v.iter().all(|x| x.is_finite()) || max_x_m <= min_x_m || max_y_m <= min_y_m {
+        return Err("the box must be finite with MIN_X < MAX_X and MIN_Y < MAX_Y".into());
+    }
+    Ok(visnav::geo::raster::Bounds {
+        min_x_m,
+        min_y_m,
+        max_x_m,
+        max_y_m,
+    })
 }
 
 /// The feature family a map is built with.
@@ -247,6 +273,7 @@ fn build(a: BuildArgs) -> anyhow::Result<ExitCode> {
     spec.height_slope_sigma = a.height_slope_sigma;
     spec.height_point_sigma_m = a.height_point_sigma_m;
     spec.crs_override = a.crs_override_epsg.map(epsg_crs).transpose()?;
+    spec.area = a.area;
     let tty = std::io::stderr().is_terminal();
     let mut last_log = Instant::now();
     let mut progress = |p: BuildProgress| {

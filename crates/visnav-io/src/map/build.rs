@@ -120,6 +120,13 @@ pub struct BuildSpec {
     /// height sigma (what a constant height or a DEM does not hold varies per point too: roofs,
     /// trees, relief).
     pub height_point_sigma_m: Option<f64>,
+    /// Build only the part of the orthophotos inside this area (map coordinates in their CRS),
+    /// its edges moved out to the coarsest level's pixel grid of the first orthophoto; `None`:
+    /// all of them. The features are the whole build's that lie inside the area (x in
+    /// `[min, max)`, y in `(min, max]`), so the parts of a partition hold the whole build's
+    /// features, each once; the automatic level count follows the area's size, so parts meant
+    /// to go together state `levels`.
+    pub area: Option<Bounds>,
 }
 
 /// Height slope sigma of a map built on a constant ground height when the build does not state
@@ -166,6 +173,7 @@ impl BuildSpec {
             height_sigma_m: None,
             height_slope_sigma: None,
             height_point_sigma_m: None,
+            area: None,
         }
     }
 
@@ -451,9 +459,10 @@ pub fn build_map(
         .iter()
         .map(|g| g.upsampled(up_shift))
         .collect::<Result<Vec<_>, _>>()?;
-    let bounds = union_bounds(&geoms);
+    let union = union_bounds(&geoms);
+    let (bounds, n_levels) = build_area(spec, &union, &vgeoms[0], up_shift)?;
     let heights = Heights::load(spec, &crs, &bounds)?;
-    let plan = LevelPlan::new(spec, &d, &bounds, &vgeoms, up_shift);
+    let plan = LevelPlan::new(spec, &d, &bounds, &vgeoms, n_levels);
     tracing::info!(
         orthos = geoms.len(),
         levels = plan.n_levels,
@@ -479,6 +488,7 @@ pub fn build_map(
         dem: &heights.dem,
         bounds: &bounds,
         up_shift,
+        area: spec.area,
     };
     // Pass 2, last ortho first (the order of the features in the file depends on it).
     for oi in (0..geoms.len()).rev() {
@@ -603,6 +613,97 @@ fn upsample_shift(upsample: usize) -> Result<usize, MapError> {
         4 => Ok(2),
         _ => Err(param_error("upsample", "must be 1, 2 or 4")),
     }
+}
+
+/// The map's bounds and level count: the orthophotos' union, or the part of it in
+/// `BuildSpec::area` with its edges moved out to the coarsest level's pixel grid of the first
+/// orthophoto (`g0`, on the level-0 grid), so that a part's level images are the whole build's
+/// pixels.
+fn build_area(
+    spec: &BuildSpec,
+    union: &Bounds,
+    g0: &OrthoGeom,
+    up_shift: usize,
+) -> Result<(Bounds, usize), MapError> {
+    let inside = |a: &Bounds| Bounds {
+        min_x_m: a.min_x_m.max(union.min_x_m),
+        min_y_m: a.min_y_m.max(union.min_y_m),
+        max_x_m: a.max_x_m.min(union.max_x_m),
+        max_y_m: a.max_y_m.min(union.max_y_m),
+    };
+    let part = match &spec.area {
+        None => *union,
+        Some(a) => {
+            let p = inside(a);
+            if !(p.max_x_m > p.min_x_m && p.max_y_m > p.min_y_m) {
+                return Err(param_error(
+                    "area",
+                    "the area does not overlap the orthophotos (or is not a finite box)",
+                ));
+            }
+            p
+        }
+    };
+    let n_levels = level_count(spec, &part, g0.gsd_m, up_shift);
+    let Some(_) = spec.area else {
+        return Ok((part, n_levels));
+    };
+    // The coarsest level's pixel grid through the first ortho's top-left corner.
+    let c = g0.transform.coeffs();
+    let step = g0.gsd_m * f64::from(1u32 << (n_levels - 1));
+    let down = |v: f64, o: f64| o + ((v - o) / step).floor() * step;
+    let up = |v: f64, o: f64| o + ((v - o) / step).ceil() * step;
+    let snapped = Bounds {
+        min_x_m: down(part.min_x_m, c[0]),
+        max_x_m: up(part.max_x_m, c[0]),
+        min_y_m: down(part.min_y_m, c[3]),
+        max_y_m: up(part.max_y_m, c[3]),
+    };
+    Ok((inside(&snapped), n_levels))
+}
+
+/// `spec.levels`, or halving while the short side of `bounds` stays at or above
+/// [`AUTO_MIN_SIDE_PX`]: the automatic count keeps the coarsest level of a plain build, the
+/// interpolated levels come on top of the cap.
+fn level_count(spec: &BuildSpec, bounds: &Bounds, gsd0_m: f64, up_shift: usize) -> usize {
+    let short_px =
+        ((bounds.max_x_m - bounds.min_x_m).min(bounds.max_y_m - bounds.min_y_m)) / gsd0_m;
+    spec.levels.unwrap_or_else(|| {
+        (1..AUTO_MAX_LEVELS + up_shift)
+            .take_while(|&l| short_px / f64::from(1u32 << l) >= AUTO_MIN_SIDE_PX)
+            .count()
+            + 1
+    })
+}
+
+/// Whether tile `(tx, ty)` of level `level` (cores of `core` level pixels) of an ortho of
+/// level-0 size and transform `g` overlaps `area` (always, without one).
+fn core_in_area(
+    g: (usize, usize, &GeoTransform),
+    level: usize,
+    core: usize,
+    (tx, ty): (usize, usize),
+    area: Option<&Bounds>,
+) -> bool {
+    let Some(a) = area else {
+        return true;
+    };
+    let (w, h, t) = g;
+    let f = 1usize << level;
+    let (lw, lh) = (w >> level, h >> level);
+    let (x0, y0) = (tx * core, ty * core);
+    let (x1, y1) = ((x0 + core).min(lw), (y0 + core).min(lh));
+    let corners =
+        [(x0 * f, y0 * f), (x1 * f, y1 * f)].map(|(c, r)| t.pixel_to_map(c as f64, r as f64));
+    let (min_x, max_x) = (
+        corners[0].0.min(corners[1].0),
+        corners[0].0.max(corners[1].0),
+    );
+    let (min_y, max_y) = (
+        corners[0].1.min(corners[1].1),
+        corners[0].1.max(corners[1].1),
+    );
+    min_x < a.max_x_m && max_x > a.min_x_m && min_y < a.max_y_m && max_y > a.min_y_m
 }
 
 /// Pass 1: the geometry of every ortho (headers only), checked to share one CRS and pixel size.
@@ -739,19 +840,9 @@ impl LevelPlan {
         d: &Detectors,
         bounds: &Bounds,
         vgeoms: &[OrthoGeom],
-        up_shift: usize,
+        n_levels: usize,
     ) -> Self {
         let gsd0_m = vgeoms[0].gsd_m;
-        let short_px =
-            ((bounds.max_x_m - bounds.min_x_m).min(bounds.max_y_m - bounds.min_y_m)) / gsd0_m;
-        // The automatic count keeps the coarsest level of a plain build: the interpolated levels
-        // come on top of the cap.
-        let n_levels = spec.levels.unwrap_or_else(|| {
-            (1..AUTO_MAX_LEVELS + up_shift)
-                .take_while(|&l| short_px / f64::from(1u32 << l) >= AUTO_MIN_SIDE_PX)
-                .count()
-                + 1
-        });
         let step = max_step(&d.surf_params);
         let core = spec.tile_px.div_ceil(step) * step;
         let grids = (0..n_levels)
@@ -768,13 +859,26 @@ impl LevelPlan {
                 }
             })
             .collect();
+        let area = spec.area;
         let tiles_total = vgeoms
             .iter()
             .map(|g| {
                 (0..n_levels)
                     .map(|l| {
                         let (w, h) = (g.width >> l, g.height >> l);
-                        (w.div_ceil(core) * h.div_ceil(core)) as u64
+                        let cores = (0..h.div_ceil(core))
+                            .flat_map(|ty| (0..w.div_ceil(core)).map(move |tx| (tx, ty)));
+                        cores
+                            .filter(|&(tx, ty)| {
+                                core_in_area(
+                                    (g.width, g.height, &g.transform),
+                                    l,
+                                    core,
+                                    (tx, ty),
+                                    area.as_ref(),
+                                )
+                            })
+                            .count() as u64
                     })
                     .sum::<u64>()
             })
@@ -838,6 +942,9 @@ struct OrthoPass<'a> {
     dem: &'a Dem,
     bounds: &'a Bounds,
     up_shift: usize,
+    /// The area a part-build keeps (`BuildSpec::area` as given: its features split at the
+    /// given edges, its images reach out to the pixel grid).
+    area: Option<Bounds>,
 }
 
 impl OrthoPass<'_> {
@@ -865,6 +972,7 @@ impl OrthoPass<'_> {
                 cap: self.spec.max_features_per_tile,
                 dem: self.dem,
                 source: oi as u8, // ok: <= 255 orthos checked
+                area: self.area,
             };
             self.level(&ctx, source.as_mut(), sink, &mut |st: &Stats| {
                 progress(BuildProgress {
@@ -932,6 +1040,16 @@ impl OrthoPass<'_> {
         for ty in 0..lh.div_ceil(core) {
             let mut prev: Option<LevelPatch> = None;
             for tx in 0..lw.div_ceil(core) {
+                if !core_in_area(
+                    (ctx.width, ctx.height, &ctx.transform),
+                    ctx.level,
+                    core,
+                    (tx, ty),
+                    self.area.as_ref(),
+                ) {
+                    prev = None;
+                    continue;
+                }
                 let win = TileWindow::new(ctx, tx * core, ty * core);
                 let (grey, valid) = read_reusing(source, ctx.level, &win, prev.take())?;
                 // Keep the columns the next tile's window starts with.
@@ -971,6 +1089,8 @@ struct TileCtx<'a> {
     cap: usize,
     dem: &'a Dem,
     source: u8,
+    /// Keep only the features inside this area (`BuildSpec::area`).
+    area: Option<Bounds>,
 }
 
 /// A tile of a level image: core `(cx0, cy0)`, `cw x ch`, inside the window `(x0, y0)`, `w x h`
@@ -1428,6 +1548,11 @@ fn push_features(
         let col0 = (wx0 as f64 + f64::from(kp.x) + 0.5) * f;
         let row0 = (wy0 as f64 + f64::from(kp.y) + 0.5) * f;
         let (x_m, y_m) = t.pixel_to_map(col0, row0);
+        if let Some(a) = &ctx.area
+            && !(x_m >= a.min_x_m && x_m < a.max_x_m && y_m > a.min_y_m && y_m <= a.max_y_m)
+        {
+            continue;
+        }
         let Some(z) = ctx.dem.height_at(x_m, y_m) else {
             st.dropped_no_height += 1;
             continue;

@@ -667,3 +667,110 @@ fn map_build_cli_builds_an_area_and_refuses_bad_boxes() {
         );
     }
 }
+
+/// A tiled map of NAIP 2009 (2 km squares on the CRS grid): its tiles hold the whole build's
+/// features, each once; a second build keeps every square; a damaged tile is found by its
+/// checksum and built again; other settings build everything again.
+#[test]
+fn a_tiled_map_holds_the_whole_build_and_resumes() {
+    use visnav::map::tiled::{INDEX_FILE, build_tiled};
+    let dir = tempfile::tempdir().unwrap();
+    let mut spec = BuildSpec::new(vec![naip2009()], HeightSource::ConstantAmsl(580.0));
+    spec.tile_px = 256;
+    let whole_path = dir.path().join("whole.vnm");
+    let whole = build_map(&spec, &whole_path, &mut |_| {}).unwrap();
+    let tiled = dir.path().join("tiled");
+    let mut seen = 0;
+    let first = build_tiled(&spec, 2000.0, &tiled, &mut |p| {
+        seen = p.done;
+        assert!(p.done <= p.total);
+    })
+    .unwrap();
+    let ix = &first.index;
+    // 4.67 x 3.62 km from x 485 900, y 5 205 627: columns 242-245, rows 2602-2604.
+    assert_eq!(ix.tiles.len() + ix.empty.len(), 12, "{ix:?}");
+    assert_eq!((first.built, first.reused, seen), (12, 0, 12));
+    assert_eq!(ix.levels, whole.header.levels.len());
+    let mut parts: Vec<MapFeature> = Vec::new();
+    for t in &ix.tiles {
+        let m = ReferenceMap::open(&tiled.join(&t.file)).unwrap();
+        assert_eq!(m.header().n_features(), t.features);
+        assert_eq!(m.header().levels.len(), ix.levels);
+        parts.extend(sorted_features(&m));
+    }
+    parts.sort_by(|a, b| {
+        a.level
+            .cmp(&b.level)
+            .then(a.x_m.total_cmp(&b.x_m))
+            .then(a.y_m.total_cmp(&b.y_m))
+    });
+    let all = sorted_features(&ReferenceMap::open(&whole_path).unwrap());
+    assert_eq!(parts.len(), all.len());
+    assert!(
+        parts == all,
+        "the tiles' features differ from the whole build's"
+    );
+    let text = std::fs::read_to_string(tiled.join(INDEX_FILE)).unwrap();
+    assert!(
+        text.contains("\"tile_m\": 2000.0") && text.contains("crc32"),
+        "{text}"
+    );
+
+    // Again: every square kept.
+    let again = build_tiled(&spec, 2000.0, &tiled, &mut |_| {}).unwrap();
+    assert_eq!((again.built, again.reused), (0, 12));
+    assert_eq!(again.index, first.index);
+    // A damaged tile is built again, the others kept.
+    let victim = tiled.join(&first.index.tiles[0].file);
+    let mut bytes = std::fs::read(&victim).unwrap();
+    let n = bytes.len();
+    bytes[n / 2] ^= 0x40;
+    std::fs::write(&victim, bytes).unwrap();
+    let repaired = build_tiled(&spec, 2000.0, &tiled, &mut |_| {}).unwrap();
+    assert_eq!((repaired.built, repaired.reused), (1, 11));
+    // The same tiles (a rebuilt file's checksum changes with its build time).
+    let same =
+        |t: &visnav::map::tiled::TileEntry| (t.col, t.row, t.bounds, t.features, t.file_bytes);
+    let a: Vec<_> = repaired.index.tiles.iter().map(same).collect();
+    let b: Vec<_> = first.index.tiles.iter().map(same).collect();
+    assert_eq!(a, b);
+    // Other settings: all built again.
+    let other = BuildSpec {
+        max_features_per_tile: 500,
+        ..spec.clone()
+    };
+    let rebuilt = build_tiled(&other, 2000.0, &tiled, &mut |_| {}).unwrap();
+    assert_eq!((rebuilt.built, rebuilt.reused), (12, 0));
+    // A side outside the range is refused by name.
+    let e = build_tiled(&spec, 10.0, &dir.path().join("t2"), &mut |_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("tile_m"), "{e}");
+}
+
+/// `visnav map build --tile-m` writes a tiled map's folder and a second run keeps every square.
+#[test]
+fn map_build_cli_builds_a_tiled_map_and_resumes() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("tiled");
+    let run = || {
+        let o = Command::new(env!("CARGO_BIN_EXE_visnav"))
+            .args(["map", "build", "--ground-height", "580", "--tile-m", "2000"])
+            .arg("--ortho")
+            .arg(naip2009())
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stdout).to_string()
+    };
+    let first = run();
+    assert!(
+        first.contains("12 tiles of 2000 m") && first.contains("12 squares built"),
+        "{first}"
+    );
+    let second = run();
+    assert!(second.contains("0 squares built, 12 kept"), "{second}");
+    assert!(out.join("index.json").is_file() && out.join("tiles/x243_y2603.vnm").is_file());
+}

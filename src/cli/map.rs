@@ -1,7 +1,7 @@
 //! `visnav map build` (orthophoto(s) + DEM -> `.vnm` reference map) and `visnav map info`.
 
 use std::io::{IsTerminal, Write};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
@@ -111,6 +111,11 @@ pub struct BuildArgs {
     /// the whole build's inside it, docs/map-format.md "Part of the orthophotos").
     #[arg(long, value_parser = parse_area)]
     pub area: Option<visnav::geo::raster::Bounds>,
+    /// Build a tiled map instead of one file: squares of this side (metres) on the CRS grid, one
+    /// `.vnm` each, with `index.json`, into the folder `--out` (resumable: a second run keeps the
+    /// finished tiles; docs/map-format.md "Tiled maps").
+    #[arg(long, conflicts_with = "area")]
+    pub tile_m: Option<f64>,
 }
 
 /// `MIN_X,MIN_Y,MAX_X,MAX_Y` in metres, each finite, the box not empty.
@@ -274,6 +279,9 @@ fn build(a: BuildArgs) -> anyhow::Result<ExitCode> {
     spec.height_point_sigma_m = a.height_point_sigma_m;
     spec.crs_override = a.crs_override_epsg.map(epsg_crs).transpose()?;
     spec.area = a.area;
+    if let Some(t) = a.tile_m {
+        return build_tiled_cli(&spec, t, &a.out);
+    }
     let tty = std::io::stderr().is_terminal();
     let mut last_log = Instant::now();
     let mut progress = |p: BuildProgress| {
@@ -316,6 +324,37 @@ fn build(a: BuildArgs) -> anyhow::Result<ExitCode> {
         s.tiles,
         s.dropped_nodata,
         s.dropped_no_height
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `map build --tile-m`: the tiled map into the folder `out`, a line per grid square in the log.
+fn build_tiled_cli(spec: &BuildSpec, tile_m: f64, out: &Path) -> anyhow::Result<ExitCode> {
+    let t0 = Instant::now();
+    let s = visnav::map::tiled::build_tiled(spec, tile_m, out, &mut |p| {
+        tracing::info!(
+            done = p.done,
+            total = p.total,
+            kept = p.reused,
+            "tiled map build: square {} of {}",
+            p.done,
+            p.total
+        );
+    })
+    .with_context(|| format!("building the tiled map {}", out.display()))?;
+    let features: u64 = s.index.tiles.iter().map(|t| t.features).sum();
+    let bytes: u64 = s.index.tiles.iter().map(|t| t.file_bytes).sum();
+    println!(
+        "{}: {} tiles of {} m ({} squares without features), {features} features, {bytes} bytes, \
+         {} level(s); {} squares built, {} kept from an earlier build, {:.2} s",
+        out.display(),
+        s.index.tiles.len(),
+        s.index.tile_m,
+        s.index.empty.len(),
+        s.index.levels,
+        s.built,
+        s.reused,
+        t0.elapsed().as_secs_f64()
     );
     Ok(ExitCode::SUCCESS)
 }

@@ -63,6 +63,13 @@ pub const TLOG: FileKind = FileKind {
     max_bytes: 2048 * MIB,
 };
 
+/// A tiled map's `index.json`: about 300 bytes per tile, so 256 MiB lists close to a million
+/// tiles (a continent at 2 km tiles).
+pub const TILED_INDEX: FileKind = FileKind {
+    what: "a tiled map index",
+    max_bytes: 256 * MIB,
+};
+
 /// The daemon's fix or visual odometry log (JSON lines, `visnav replay --fixes / --vo-log`): a
 /// line is under 1 KiB, so 512 MiB holds more than ten hours of 10 Hz fixes.
 pub const JSON_LOG: FileKind = FileKind {

@@ -615,6 +615,18 @@ fn upsample_shift(upsample: usize) -> Result<usize, MapError> {
     }
 }
 
+/// What a whole build of `spec` would cover: the orthophotos' union (headers only), their CRS
+/// and the level count (`spec.levels` or the automatic count over the union): what the parts of
+/// a tiled map share.
+pub(crate) fn extent_of(spec: &BuildSpec) -> Result<(Bounds, Crs, usize), MapError> {
+    HeightSigmas::checked(spec)?;
+    let (geoms, crs) = read_geometry(spec)?;
+    let up_shift = upsample_shift(spec.upsample)?;
+    let g0 = geoms[0].upsampled(up_shift)?;
+    let union = union_bounds(&geoms);
+    Ok((union, crs, level_count(spec, &union, g0.gsd_m, up_shift)))
+}
+
 /// The map's bounds and level count: the orthophotos' union, or the part of it in
 /// `BuildSpec::area` with its edges moved out to the coarsest level's pixel grid of the first
 /// orthophoto (`g0`, on the level-0 grid), so that a part's level images are the whole build's

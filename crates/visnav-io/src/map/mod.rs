@@ -3,6 +3,8 @@
 //!
 //! * `build`: [`build_map`] tiles the orthophoto(s) level by level, extracts SURF per tile, attaches
 //!   DEM heights and streams the features into a `.vnm` file with bounded memory.
+//! * `tiled`: [`tiled::build_tiled`] cuts the orthophotos along a fixed grid into one `.vnm` per
+//!   square with an index (a tiled map).
 //! * `format`: the `.vnm` byte layout ([`ReferenceMap::open`], [`ReferenceMap::select`]); the full
 //!   layout is documented in `docs/map-format.md`.
 //!
@@ -37,6 +39,7 @@ pub mod build;
 pub mod coreg;
 pub mod format;
 pub mod reference;
+pub mod tiled;
 
 use std::path::PathBuf;
 
@@ -265,7 +268,7 @@ pub struct OrthoInfo {
 
 #[derive(Serialize, Deserialize)]
 #[serde(remote = "Bounds")]
-struct BoundsDef {
+pub(crate) struct BoundsDef {
     min_x_m: f64,
     min_y_m: f64,
     max_x_m: f64,

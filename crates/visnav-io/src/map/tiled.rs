@@ -253,8 +253,7 @@ fn stored_crc(path: &Path) -> Result<u32, MapError> {
 /// A checksum of everything that decides a tile's content: the build's settings and the tile
 /// side (the orthophotos by path: a moved file means a rebuild).
 fn build_digest(spec: &BuildSpec, tile_m: f64) -> String {
-    // The settings' own debug text, hashed: never shown to a user, only compared.
-    let text = format!("{spec:?} tile_m={tile_m}");
+    let text = format!("{spec:?} tile_m={tile_m}"); // debug form: hashed, never shown
     format!("{:08x}", crc32fast::hash(text.as_bytes()))
 }
 

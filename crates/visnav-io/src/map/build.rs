@@ -657,9 +657,9 @@ fn build_area(
         }
     };
     let n_levels = level_count(spec, &part, g0.gsd_m, up_shift);
-    let Some(_) = spec.area else {
+    if spec.area.is_none() {
         return Ok((part, n_levels));
-    };
+    }
     // The coarsest level's pixel grid through the first ortho's top-left corner.
     let c = g0.transform.coeffs();
     let step = g0.gsd_m * f64::from(1u32 << (n_levels - 1));

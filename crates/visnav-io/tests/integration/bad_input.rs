@@ -84,17 +84,7 @@ fn write_tiff<T: Copy>(
     d.write_tag(Tag::TileOffsets, &offsets[..]).unwrap();
     d.write_tag(Tag::TileByteCounts, &counts[..]).unwrap();
     match geo {
-        Geo::Utm => {
-            d.write_tag(Tag::ModelPixelScaleTag, &[2.0f64, 2.0, 0.0][..])
-                .unwrap();
-            d.write_tag(
-                Tag::ModelTiepointTag,
-                &[0.0f64, 0.0, 0.0, 494_000.0, 4_878_000.0, 0.0][..],
-            )
-            .unwrap();
-            let keys: [u16; 16] = [1, 1, 0, 3, 1024, 0, 1, 1, 1025, 0, 1, 1, 3072, 0, 1, 32610];
-            d.write_tag(Tag::GeoKeyDirectoryTag, &keys[..]).unwrap();
-        }
+        Geo::Utm => crate::geotiff_window::geo_tags(&mut d, None),
         Geo::Wgs84 => {
             d.write_tag(Tag::ModelPixelScaleTag, &[0.00006f64, 0.00004, 0.0][..])
                 .unwrap();

@@ -108,7 +108,7 @@ impl Lcg {
 }
 
 /// GeoTIFF tags: UTM 10N, 2 m pixels, optional GDAL_NODATA.
-fn geo_tags<W: std::io::Write + std::io::Seek>(
+pub(crate) fn geo_tags<W: std::io::Write + std::io::Seek>(
     d: &mut tiff::encoder::DirectoryEncoder<'_, W, tiff::encoder::TiffKindStandard>,
     nodata: Option<&str>,
 ) {

@@ -2,6 +2,7 @@
 //! `visnav map` CLI. Prints build/open/select timings and the descriptor-quantisation effect on
 //! nearest neighbours (numbers for the report, no timed assertions).
 
+use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
@@ -668,20 +669,23 @@ fn map_build_cli_builds_an_area_and_refuses_bad_boxes() {
     }
 }
 
-/// A tiled map of NAIP 2009 (2 km squares on the CRS grid): its tiles hold the whole build's
-/// features, each once; a second build keeps every square; a damaged tile is found by its
-/// checksum and built again; other settings build everything again.
+/// A tiled map of NAIP 2009 (2 km squares on the CRS grid, each built from its own square: its
+/// cores cut there): its tiles hold the whole build's features, each once, when the per-core cap
+/// does not bind; a second build keeps every square; a damaged tile or a lost result is found
+/// and that square alone built again; other settings build everything again.
 #[test]
 fn a_tiled_map_holds_the_whole_build_and_resumes() {
     use visnav::map::tiled::{INDEX_FILE, build_tiled};
     let dir = tempfile::tempdir().unwrap();
     let mut spec = BuildSpec::new(vec![naip2009()], HeightSource::ConstantAmsl(580.0));
     spec.tile_px = 256;
+    // The whole build's level count (a tiled map's automatic count follows its squares).
+    spec.levels = Some(2);
     let whole_path = dir.path().join("whole.vnm");
     let whole = build_map(&spec, &whole_path, &mut |_| {}).unwrap();
     let tiled = dir.path().join("tiled");
     let mut seen = 0;
-    let first = build_tiled(&spec, 2000.0, &tiled, &mut |p| {
+    let first = build_tiled(&spec, 2000.0, &tiled, None, &mut |p| {
         seen = p.done;
         assert!(p.done <= p.total);
     })
@@ -717,7 +721,7 @@ fn a_tiled_map_holds_the_whole_build_and_resumes() {
     );
 
     // Again: every square kept.
-    let again = build_tiled(&spec, 2000.0, &tiled, &mut |_| {}).unwrap();
+    let again = build_tiled(&spec, 2000.0, &tiled, None, &mut |_| {}).unwrap();
     assert_eq!((again.built, again.reused), (0, 12));
     assert_eq!(again.index, first.index);
     // A damaged tile is built again, the others kept.
@@ -726,23 +730,40 @@ fn a_tiled_map_holds_the_whole_build_and_resumes() {
     let n = bytes.len();
     bytes[n / 2] ^= 0x40;
     std::fs::write(&victim, bytes).unwrap();
-    let repaired = build_tiled(&spec, 2000.0, &tiled, &mut |_| {}).unwrap();
+    let repaired = build_tiled(&spec, 2000.0, &tiled, None, &mut |_| {}).unwrap();
     assert_eq!((repaired.built, repaired.reused), (1, 11));
-    // The same tiles (a rebuilt file's checksum changes with its build time).
+    // The same tiles.
     let same =
         |t: &visnav::map::tiled::TileEntry| (t.col, t.row, t.bounds, t.features, t.file_bytes);
     let a: Vec<_> = repaired.index.tiles.iter().map(same).collect();
     let b: Vec<_> = first.index.tiles.iter().map(same).collect();
     assert_eq!(a, b);
+    // Tiles record no build time: the same settings write the same bytes.
+    assert_eq!(repaired.index, first.index);
+    // A square whose result is lost (a build killed between its tile and its result) is built
+    // again, the others kept.
+    let t = &first.index.tiles[3];
+    std::fs::remove_file(tiled.join(t.file.replace(".vnm", ".json"))).unwrap();
+    let resumed = build_tiled(&spec, 2000.0, &tiled, None, &mut |_| {}).unwrap();
+    assert_eq!((resumed.built, resumed.reused), (1, 11));
+    assert_eq!(resumed.index, first.index);
+    // Without a stated level count the squares set it: 2 km at 5 m is 400 px, one level.
+    let auto = BuildSpec {
+        levels: None,
+        ..spec.clone()
+    };
+    let plan = visnav::map::tiled::TilePlan::new(&auto, 2000.0, None).unwrap();
+    assert_eq!(plan.levels, 1);
+    assert_eq!(plan.squares.len(), 12);
     // Other settings: all built again.
     let other = BuildSpec {
         max_features_per_tile: 500,
         ..spec.clone()
     };
-    let rebuilt = build_tiled(&other, 2000.0, &tiled, &mut |_| {}).unwrap();
+    let rebuilt = build_tiled(&other, 2000.0, &tiled, None, &mut |_| {}).unwrap();
     assert_eq!((rebuilt.built, rebuilt.reused), (12, 0));
     // A side outside the range is refused by name.
-    let e = build_tiled(&spec, 10.0, &dir.path().join("t2"), &mut |_| {})
+    let e = build_tiled(&spec, 10.0, &dir.path().join("t2"), None, &mut |_| {})
         .unwrap_err()
         .to_string();
     assert!(e.contains("tile_m"), "{e}");
@@ -773,4 +794,183 @@ fn map_build_cli_builds_a_tiled_map_and_resumes() {
     let second = run();
     assert!(second.contains("0 squares built, 12 kept"), "{second}");
     assert!(out.join("index.json").is_file() && out.join("tiles/x243_y2603.vnm").is_file());
+}
+
+/// `visnav map plan`, `map build-tile` for every square and `map gather` write the same index
+/// and tiles, byte for byte, as `map build --tile-m` on one machine; the jobs refuse what is not
+/// theirs by name; `map info` reads the tiled map.
+#[test]
+fn planned_squares_built_one_by_one_match_the_one_machine_build() {
+    let dir = tempfile::tempdir().unwrap();
+    let (planned, whole) = (dir.path().join("planned"), dir.path().join("one"));
+    fn visnav<S: AsRef<OsStr>>(args: impl IntoIterator<Item = S>) -> std::process::Output {
+        Command::new(env!("CARGO_BIN_EXE_visnav"))
+            .args(args)
+            .output()
+            .unwrap()
+    }
+    let build_args = |cmd: &str, out: &Path| -> Vec<std::ffi::OsString> {
+        let mut v: Vec<std::ffi::OsString> = ["map", cmd, "--ground-height", "580", "--tile-m"]
+            .iter()
+            .map(Into::into)
+            .collect();
+        v.extend(["2000".into(), "--ortho".into(), naip2009().into()]);
+        v.extend(["--out".into(), out.into()]);
+        v
+    };
+    let ok = |o: std::process::Output| {
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stdout).to_string()
+    };
+    let said = ok(visnav(build_args("plan", &planned)));
+    assert!(said.contains("12 squares of 2000 m"), "{said}");
+    let plan = planned.join("plan.json");
+    // Gathering before the squares are built names the first missing one.
+    let o = visnav([OsStr::new("map"), OsStr::new("gather"), planned.as_os_str()]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("square 0 of 12"), "{e}");
+    let o = visnav([
+        OsStr::new("map"),
+        OsStr::new("build-tile"),
+        plan.as_os_str(),
+        OsStr::new("12"),
+    ]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("0 to 11"), "{e}");
+    // The squares in reverse order, as machines finishing at random would.
+    for k in (0..12).rev() {
+        let k = k.to_string();
+        let said = ok(visnav([
+            OsStr::new("map"),
+            OsStr::new("build-tile"),
+            plan.as_os_str(),
+            OsStr::new(&k),
+        ]));
+        assert!(said.contains("built"), "{said}");
+    }
+    ok(visnav([
+        OsStr::new("map"),
+        OsStr::new("gather"),
+        plan.as_os_str(),
+    ]));
+    ok(visnav(build_args("build", &whole)));
+    let index = |d: &Path| std::fs::read(d.join("index.json")).unwrap();
+    assert!(index(&planned) == index(&whole), "the indexes differ");
+    let ix = visnav::map::tiled::TiledIndex::read(&whole).unwrap();
+    assert!(
+        ix.command.as_deref().is_some_and(|c| c
+            .starts_with("visnav map build --ground-height 580")
+            && !c.contains("--out")),
+        "{:?}",
+        ix.command
+    );
+    for t in &ix.tiles {
+        let a = std::fs::read(planned.join(&t.file)).unwrap();
+        assert!(
+            a == std::fs::read(whole.join(&t.file)).unwrap(),
+            "{}",
+            t.file
+        );
+    }
+    // A plan whose settings were edited is refused.
+    let text = std::fs::read_to_string(&plan).unwrap();
+    std::fs::write(
+        &plan,
+        text.replace(
+            "\"max_features_per_tile\": 4000",
+            "\"max_features_per_tile\": 9",
+        ),
+    )
+    .unwrap();
+    let o = visnav([
+        OsStr::new("map"),
+        OsStr::new("build-tile"),
+        plan.as_os_str(),
+        OsStr::new("0"),
+    ]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("digest"), "{e}");
+    // `map info` of the folder: the area, tiles, bytes per km², resolution, sources, command.
+    let info = ok(visnav([
+        OsStr::new("map"),
+        OsStr::new("info"),
+        whole.as_os_str(),
+    ]));
+    for says in [
+        "tiled map",
+        "12 tiles of 2000 m",
+        "kB per km²",
+        "level 0 5 m per pixel",
+        "naip_nd_2009.tif",
+        "build command: visnav map build",
+    ] {
+        assert!(info.contains(says), "{says}: {info}");
+    }
+}
+
+/// `scripts/map_build_dask.py` builds a plan's squares on a Dask LocalCluster of two workers;
+/// the index is byte-identical to the one-machine build's. Needs the venv with Dask
+/// (`scripts/interop/setup_venv.sh dask`); skips when it cannot be made, except under CI.
+#[test]
+fn the_dask_driver_builds_the_same_map_on_a_local_cluster() {
+    let ci = std::env::var("CI").is_ok_and(|v| v == "true" || v == "1");
+    let venv = Command::new("bash")
+        .arg(repo().join("scripts/interop/setup_venv.sh"))
+        .arg("dask")
+        .output()
+        .unwrap();
+    if !venv.status.success() {
+        assert!(
+            !ci,
+            "CI: the Dask venv could not be set up: {}",
+            String::from_utf8_lossy(&venv.stderr)
+        );
+        eprintln!("SKIP: the Dask venv could not be set up ({})", venv.status);
+        return;
+    }
+    let python = repo().join(String::from_utf8_lossy(&venv.stdout).trim());
+    let dir = tempfile::tempdir().unwrap();
+    let (planned, whole) = (dir.path().join("dask"), dir.path().join("one"));
+    let map = |cmd: &str, out: &Path| {
+        let o = Command::new(env!("CARGO_BIN_EXE_visnav"))
+            .args([
+                "map",
+                cmd,
+                "--ground-height",
+                "580",
+                "--tile-m",
+                "1000",
+                "--ortho",
+            ])
+            .arg(naip2009())
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    map("plan", &planned);
+    let o = Command::new(&python)
+        .arg(repo().join("scripts/map_build_dask.py"))
+        .arg(planned.join("plan.json"))
+        .args(["--workers", "2", "--visnav", env!("CARGO_BIN_EXE_visnav")])
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{said}\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(
+        said.contains("on 2 workers") && said.contains("squares per minute per core"),
+        "{said}"
+    );
+    eprintln!("{said}");
+    map("build", &whole);
+    let index = |d: &Path| std::fs::read(d.join("index.json")).unwrap();
+    assert!(
+        index(&planned) == index(&whole),
+        "the Dask build's index differs from one machine's"
+    );
 }

@@ -2,7 +2,8 @@
 # Creates (once) the Python venv used by the MAVLink interop test and the SITL recipes:
 # target/pyenv with pymavlink (VISNAV_PYENV overrides; a relative path is taken from the
 # repository root). With the argument `mavproxy` it also installs, once, MAVProxy into the same
-# venv (requirements-mavproxy.txt, without its GUI dependencies). Prints the venv python's
+# venv (requirements-mavproxy.txt, without its GUI dependencies); with `dask`, Dask distributed
+# (requirements-dask.txt, for scripts/map_build_dask.py). Prints the venv python's
 # absolute path on success, from any working directory. Exit 3 = python3/venv/pip unavailable
 # (the test skips).
 set -euo pipefail
@@ -20,7 +21,9 @@ case "$VENV" in
 esac
 PY="$VENV/bin/python"
 WANT_MAVPROXY=0
+WANT_DASK=0
 [ "${1:-}" = mavproxy ] && WANT_MAVPROXY=1
+[ "${1:-}" = dask ] && WANT_DASK=1
 # Tests run side by side (cargo-nextest): one creates or fills the venv, the others wait for it.
 if command -v flock >/dev/null 2>&1; then
     mkdir -p "${VENV%/*}"
@@ -39,8 +42,18 @@ add_mavproxy() {
     fi
     return 0
 }
+add_dask() {
+    if [ "$WANT_DASK" = 1 ] && ! "$PY" -c "import dask.distributed" >/dev/null 2>&1; then
+        "$PY" -m pip install --quiet --disable-pip-version-check \
+            -r "$REPO/scripts/interop/requirements-dask.txt" >&2 \
+            || { echo "setup_venv: pip install dask[distributed] failed" >&2; exit 3; }
+        "$PY" -c "import dask.distributed" >&2 || { echo "setup_venv: dask.distributed does not import" >&2; exit 3; }
+    fi
+    return 0
+}
 if [ -x "$PY" ] && "$PY" -c "import pymavlink" >/dev/null 2>&1; then
     add_mavproxy
+    add_dask
     echo "$PY"
     exit 0
 fi
@@ -50,4 +63,5 @@ python3 -m venv "$VENV" >&2 || { echo "setup_venv: python3 -m venv failed" >&2; 
     || { echo "setup_venv: pip install pymavlink failed" >&2; exit 3; }
 "$PY" -c "import pymavlink" >&2 || { echo "setup_venv: pymavlink does not import" >&2; exit 3; }
 add_mavproxy
+add_dask
 echo "$PY"

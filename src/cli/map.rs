@@ -1,4 +1,5 @@
-//! `visnav map build` (orthophoto(s) + DEM -> `.vnm` reference map) and `visnav map info`.
+//! `visnav map build` (orthophoto(s) + DEM -> `.vnm` reference map, or a tiled map), the tiled
+//! map's jobs (`map plan`, `map build-tile`, `map gather`), `visnav map info` and `map compare`.
 
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
@@ -20,8 +21,17 @@ pub struct MapArgs {
 pub enum MapCommand {
     /// Build a reference map (.vnm) from orthophoto(s) and a DEM or constant ground height.
     Build(BuildArgs),
-    /// Print a map file's header: CRS, levels, feature counts, bounds, sources.
+    /// Print a map file's header (CRS, levels, feature counts, bounds, sources), or a tiled
+    /// map's index (area, tiles, bytes per km², resolution, sources, build command).
     Info(InfoArgs),
+    /// Plan a tiled map for building across machines: the arguments of `map build` with
+    /// `--tile-m` and the folder `--out`; writes `plan.json` there, one job per grid square.
+    Plan(BuildArgs),
+    /// Build square K of a plan into the plan's folder (kept when an earlier build left it
+    /// intact); any machine that sees the plan's files may run any K.
+    BuildTile(BuildTileArgs),
+    /// Write a planned tiled map's `index.json` once every square is built.
+    Gather(GatherArgs),
     /// Measure how two orthophotos of the same area are registered to each other (e.g. the map's
     /// year against another year): per-patch shifts and their mean over footprint-sized windows.
     Compare(CompareArgs),
@@ -75,7 +85,7 @@ pub struct BuildArgs {
     /// metres (1 sigma; default 2 with --ground-height, --height-sigma-m with --dem).
     #[arg(long)]
     pub height_point_sigma_m: Option<f64>,
-    /// Output map file.
+    /// Output map file; with --tile-m, the tiled map's folder.
     #[arg(long)]
     pub out: PathBuf,
     /// Number of pyramid levels (default: halve while the short side is >= 256 px, at most 6).
@@ -113,7 +123,7 @@ pub struct BuildArgs {
     pub area: Option<visnav::geo::raster::Bounds>,
     /// Build a tiled map instead of one file: squares of this side (metres) on the CRS grid, one
     /// `.vnm` each, with `index.json`, into the folder `--out` (resumable: a second run keeps the
-    /// finished tiles; docs/map-format.md "Tiled maps").
+    /// finished tiles; about 2000 level-0 pixels a side; docs/maps.md).
     #[arg(long, conflicts_with = "area")]
     pub tile_m: Option<f64>,
 }
@@ -148,9 +158,25 @@ pub enum Detector {
     Orb,
 }
 
+/// `map build-tile`.
+#[derive(clap::Args, Debug)]
+pub struct BuildTileArgs {
+    /// The plan (`plan.json` in the tiled map's folder, from `visnav map plan`).
+    pub plan: PathBuf,
+    /// The square to build: 0 to the plan's square count minus one.
+    pub square: usize,
+}
+
+/// `map gather`.
+#[derive(clap::Args, Debug)]
+pub struct GatherArgs {
+    /// The tiled map's folder (or its `plan.json`).
+    pub dir: PathBuf,
+}
+
 #[derive(clap::Args, Debug)]
 pub struct InfoArgs {
-    /// The map file.
+    /// The map file, or a tiled map's folder (or its `index.json`).
     pub file: PathBuf,
     /// Print the header as JSON.
     #[arg(long)]
@@ -162,6 +188,9 @@ pub fn run(args: MapArgs) -> anyhow::Result<ExitCode> {
         MapCommand::Build(a) => build(a),
         MapCommand::Info(a) => info(a),
         MapCommand::Compare(a) => compare(a),
+        MapCommand::Plan(a) => plan(a),
+        MapCommand::BuildTile(a) => build_tile(a),
+        MapCommand::Gather(a) => gather(a),
     }
 }
 
@@ -258,13 +287,14 @@ fn epsg_crs(code: u32) -> anyhow::Result<Crs> {
     })
 }
 
-fn build(a: BuildArgs) -> anyhow::Result<ExitCode> {
-    let height = match (a.dem, a.ground_height) {
-        (Some(d), None) => HeightSource::Dem(d),
+/// The build `a` asks for (without its output).
+fn spec_of(a: &BuildArgs) -> anyhow::Result<BuildSpec> {
+    let height = match (&a.dem, a.ground_height) {
+        (Some(d), None) => HeightSource::Dem(d.clone()),
         (None, Some(h)) => HeightSource::ConstantAmsl(h),
         _ => anyhow::bail!("give exactly one of --dem and --ground-height"),
     };
-    let mut spec = BuildSpec::new(a.ortho, height);
+    let mut spec = BuildSpec::new(a.ortho.clone(), height);
     spec.levels = a.levels;
     spec.tile_px = a.tile_px;
     spec.max_features_per_tile = a.max_features_per_tile;
@@ -279,6 +309,47 @@ fn build(a: BuildArgs) -> anyhow::Result<ExitCode> {
     spec.height_point_sigma_m = a.height_point_sigma_m;
     spec.crs_override = a.crs_override_epsg.map(epsg_crs).transpose()?;
     spec.area = a.area;
+    Ok(spec)
+}
+
+/// The command line as the provenance of a tiled build: `visnav map build` and its arguments
+/// without `--out` (the folder is where the map is, not what it holds), so a plan run across
+/// machines and a build on one record the same.
+fn build_command() -> String {
+    let mut words = vec!["visnav".to_string(), "map".into(), "build".into()];
+    let argv: Vec<String> = std::env::args_os()
+        .map(|w| w.to_string_lossy().into_owned())
+        .collect();
+    // The arguments after `map build` / `map plan` (global options may come before `map`).
+    let start = argv
+        .windows(2)
+        .position(|w| w[0] == "map" && (w[1] == "build" || w[1] == "plan"))
+        .map_or(argv.len(), |i| i + 2);
+    let mut args = argv.into_iter().skip(start);
+    while let Some(w) = args.next() {
+        if w == "--out" {
+            args.next();
+        } else if !w.starts_with("--out=") {
+            words.push(shell_word(&w));
+        }
+    }
+    words.join(" ")
+}
+
+/// `w` quoted for a POSIX shell when it holds anything but plain path characters.
+fn shell_word(w: &str) -> String {
+    let plain = !w.is_empty()
+        && w.chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_./=,:+@%".contains(c));
+    if plain {
+        w.to_string()
+    } else {
+        format!("'{}'", w.replace('\'', "'\\''"))
+    }
+}
+
+fn build(a: BuildArgs) -> anyhow::Result<ExitCode> {
+    let spec = spec_of(&a)?;
     if let Some(t) = a.tile_m {
         return build_tiled_cli(&spec, t, &a.out);
     }
@@ -331,7 +402,7 @@ fn build(a: BuildArgs) -> anyhow::Result<ExitCode> {
 /// `map build --tile-m`: the tiled map into the folder `out`, a line per grid square in the log.
 fn build_tiled_cli(spec: &BuildSpec, tile_m: f64, out: &Path) -> anyhow::Result<ExitCode> {
     let t0 = Instant::now();
-    let s = visnav::map::tiled::build_tiled(spec, tile_m, out, &mut |p| {
+    let s = visnav::map::tiled::build_tiled(spec, tile_m, out, Some(build_command()), &mut |p| {
         tracing::info!(
             done = p.done,
             total = p.total,
@@ -359,7 +430,151 @@ fn build_tiled_cli(spec: &BuildSpec, tile_m: f64, out: &Path) -> anyhow::Result<
     Ok(ExitCode::SUCCESS)
 }
 
+/// `map plan`: the tiled build's jobs into `--out/plan.json`.
+fn plan(a: BuildArgs) -> anyhow::Result<ExitCode> {
+    use visnav::map::tiled::{PLAN_FILE, TilePlan};
+    let Some(tile_m) = a.tile_m else {
+        anyhow::bail!("map plan needs --tile-m (the side of the grid squares, metres)");
+    };
+    let spec = spec_of(&a)?;
+    let plan = TilePlan::new(&spec, tile_m, Some(build_command()))
+        .with_context(|| format!("planning the tiled map {}", a.out.display()))?;
+    plan.write(&a.out)
+        .with_context(|| format!("writing the plan into {}", a.out.display()))?;
+    let n = plan.squares.len();
+    let path = a.out.join(PLAN_FILE);
+    println!(
+        "{}: {n} squares of {tile_m} m, {} level(s) of {} m and coarser; build each with \
+         `visnav map build-tile {} K` (K = 0 to {}), then `visnav map gather {}`",
+        path.display(),
+        plan.levels,
+        plan.gsd_m,
+        path.display(),
+        n.saturating_sub(1),
+        a.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The plan and its folder, from the plan's path or the folder.
+fn read_plan(path: &Path) -> anyhow::Result<(visnav::map::tiled::TilePlan, PathBuf)> {
+    use visnav::map::tiled::{PLAN_FILE, TilePlan};
+    let (file, dir) = if path.is_dir() {
+        (path.join(PLAN_FILE), path.to_path_buf())
+    } else {
+        let dir = path
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .map_or_else(|| PathBuf::from("."), Path::to_path_buf);
+        (path.to_path_buf(), dir)
+    };
+    let plan = TilePlan::read(&file).with_context(|| format!("reading {}", file.display()))?;
+    Ok((plan, dir))
+}
+
+/// `map build-tile PLAN K`.
+fn build_tile(a: BuildTileArgs) -> anyhow::Result<ExitCode> {
+    let t0 = Instant::now();
+    let (plan, dir) = read_plan(&a.plan)?;
+    let o = plan
+        .build_square(&dir, a.square)
+        .with_context(|| format!("building square {} of {}", a.square, a.plan.display()))?;
+    let [col, row] = [o.result.col, o.result.row];
+    let what = match &o.result.tile {
+        Some(t) => format!(
+            "{}: {} features, {} bytes",
+            t.file, t.features, t.file_bytes
+        ),
+        None => "no features (no file)".into(),
+    };
+    println!(
+        "square {} of {} (x{col}_y{row}): {what}; {} in {:.2} s",
+        a.square,
+        plan.squares.len(),
+        if o.reused {
+            "kept from an earlier build"
+        } else {
+            "built"
+        },
+        t0.elapsed().as_secs_f64()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `map gather DIR`.
+fn gather(a: GatherArgs) -> anyhow::Result<ExitCode> {
+    let (plan, dir) = read_plan(&a.dir)?;
+    let ix = plan
+        .gather(&dir)
+        .with_context(|| format!("gathering the tiled map {}", dir.display()))?;
+    println!(
+        "{}: {} tiles ({} squares without features), {} features, {} bytes",
+        dir.join(visnav::map::tiled::INDEX_FILE).display(),
+        ix.tiles.len(),
+        ix.empty.len(),
+        ix.total_features(),
+        ix.total_bytes()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `map info` of a tiled map (its folder or `index.json`).
+fn tiled_info(path: &Path, json: bool) -> anyhow::Result<ExitCode> {
+    let ix = visnav::map::tiled::TiledIndex::read(path)
+        .with_context(|| format!("reading the tiled map {}", path.display()))?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&ix)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    let b = &ix.bounds;
+    let (w, h) = (b.max_x_m - b.min_x_m, b.max_y_m - b.min_y_m);
+    let km2 = ix.tiles_area_km2();
+    println!("{} (tiled map, format v{})", path.display(), ix.version);
+    println!("  built by {}", ix.built_by);
+    if let Some(c) = &ix.command {
+        println!("  build command: {c}");
+    }
+    println!("  CRS {}", ix.crs);
+    println!(
+        "  orthophotos' union x {:.2} .. {:.2} m, y {:.2} .. {:.2} m ({:.0} x {:.0} m, {:.1} km²)",
+        b.min_x_m,
+        b.max_x_m,
+        b.min_y_m,
+        b.max_y_m,
+        w,
+        h,
+        w * h / 1e6
+    );
+    println!(
+        "  {} tiles of {} m covering {km2:.1} km² ({} squares without features); {} level(s), level 0 {} m per pixel",
+        ix.tiles.len(),
+        ix.tile_m,
+        ix.empty.len(),
+        ix.levels,
+        ix.gsd_m
+    );
+    let per_km2 = if km2 > 0.0 {
+        ix.total_bytes() as f64 / km2
+    } else {
+        0.0
+    };
+    println!(
+        "  {} features, {} bytes ({:.0} kB per km², largest tile {} bytes)",
+        ix.total_features(),
+        ix.total_bytes(),
+        per_km2 / 1e3,
+        ix.tiles.iter().map(|t| t.file_bytes).max().unwrap_or(0)
+    );
+    for s in &ix.sources {
+        println!("  source {s}");
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
 fn info(a: InfoArgs) -> anyhow::Result<ExitCode> {
+    if a.file.is_dir() || a.file.extension().is_some_and(|e| e == "json") {
+        return tiled_info(&a.file, a.json);
+    }
     let t0 = Instant::now();
     let m = ReferenceMap::open(&a.file)?;
     let open_s = t0.elapsed().as_secs_f64();

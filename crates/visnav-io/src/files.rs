@@ -63,10 +63,10 @@ pub const TLOG: FileKind = FileKind {
     max_bytes: 2048 * MIB,
 };
 
-/// A tiled map's `index.json`: about 300 bytes per tile, so 256 MiB lists close to a million
-/// tiles (a continent at 2 km tiles).
+/// A tiled map's `index.json`, `plan.json` or square result: about 300 bytes per tile, so 256 MiB
+/// lists close to a million tiles (a continent at 2 km tiles).
 pub const TILED_INDEX: FileKind = FileKind {
-    what: "a tiled map index",
+    what: "a tiled map's index, plan or square result",
     max_bytes: 256 * MIB,
 };
 

@@ -67,7 +67,7 @@ pub const ORTHO_CACHE_BYTES: usize = 16 << 20;
 pub const BAND_BYTES: usize = 16 << 20;
 
 /// Where the feature heights come from.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub enum HeightSource {
     /// A one-band GeoTIFF DEM in the orthos' CRS (heights in its own vertical datum).
     Dem(PathBuf),
@@ -75,8 +75,8 @@ pub enum HeightSource {
     ConstantAmsl(f64),
 }
 
-/// What to build.
-#[derive(Clone, Debug)]
+/// What to build (a tiled map's plan stores it, `map::tiled::TilePlan`).
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct BuildSpec {
     /// Orthophotos (GeoTIFF, north-up, square pixels, one CRS, one pixel size).
     pub orthos: Vec<PathBuf>,
@@ -125,8 +125,22 @@ pub struct BuildSpec {
     /// all of them. The features are the whole build's that lie inside the area (x in
     /// `[min, max)`, y in `(min, max]`), so the parts of a partition hold the whole build's
     /// features, each once; the automatic level count follows the area's size, so parts meant
-    /// to go together state `levels`.
+    /// to go together state `levels`. Not stored in a plan (its squares are the areas).
+    #[serde(skip)]
     pub area: Option<Bounds>,
+    /// Read a part (`area`) from its area alone: every tile core is cut at the area (moved out
+    /// to the coarsest SURF sampling step) and read with the detector's margin around the cut,
+    /// so a part costs its own area at every level, where whole cores at the coarse levels span
+    /// tens of kilometres (a tiled map's squares are built so). A feature inside the area is
+    /// detected and described as in the whole build (its windows lie inside the cut core's
+    /// margin); the per-core cap ([`BuildSpec::max_features_per_tile`]) is scaled to the cut
+    /// core's share of a whole one, so where the cap binds the part keeps the same density but
+    /// not always the same features as the whole build. `false`: whole cores (the parts of a
+    /// partition then hold exactly the whole build's features).
+    pub area_local: bool,
+    /// The build time the header records, seconds since 1970; `None`: now. A tiled map's tiles
+    /// record 0, so the same settings write the same bytes on any machine at any time.
+    pub built_unix_s: Option<u64>,
 }
 
 /// Height slope sigma of a map built on a constant ground height when the build does not state
@@ -174,6 +188,8 @@ impl BuildSpec {
             height_slope_sigma: None,
             height_point_sigma_m: None,
             area: None,
+            area_local: false,
+            built_unix_s: None,
         }
     }
 
@@ -489,6 +505,8 @@ pub fn build_map(
         bounds: &bounds,
         up_shift,
         area: spec.area,
+        area_local: spec.area_local,
+        step: max_step(&d.surf_params),
     };
     // Pass 2, last ortho first (the order of the features in the file depends on it).
     for oi in (0..geoms.len()).rev() {
@@ -510,9 +528,11 @@ pub fn build_map(
         orthos: geoms.iter().map(OrthoGeom::info).collect(),
         tile_px: plan.core as u32,
         max_features_per_tile: spec.max_features_per_tile.min(u32::MAX as usize) as u32,
-        built_unix_s: std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_secs()),
+        built_unix_s: spec.built_unix_s.unwrap_or_else(|| {
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_secs())
+        }),
         built_by: format!("visnav {}", env!("CARGO_PKG_VERSION")),
     };
     let Sink { writer, st } = sink;
@@ -615,16 +635,30 @@ fn upsample_shift(upsample: usize) -> Result<usize, MapError> {
     }
 }
 
-/// What a whole build of `spec` would cover: the orthophotos' union (headers only), their CRS
-/// and the level count (`spec.levels` or the automatic count over the union): what the parts of
-/// a tiled map share.
-pub(crate) fn extent_of(spec: &BuildSpec) -> Result<(Bounds, Crs, usize), MapError> {
+/// What a whole build of `spec` would cover: the orthophotos' union (headers only), their CRS,
+/// the level-0 ground pixel and the level count (`spec.levels`, or the automatic count over a
+/// square of `part_m` metres clipped to the union, or over the union without one): what the
+/// parts of a tiled map share.
+pub(crate) fn extent_of(
+    spec: &BuildSpec,
+    part_m: Option<f64>,
+) -> Result<(Bounds, Crs, f64, usize), MapError> {
     HeightSigmas::checked(spec)?;
     let (geoms, crs) = read_geometry(spec)?;
     let up_shift = upsample_shift(spec.upsample)?;
     let g0 = geoms[0].upsampled(up_shift)?;
     let union = union_bounds(&geoms);
-    Ok((union, crs, level_count(spec, &union, g0.gsd_m, up_shift)))
+    let sized = match part_m {
+        None => union,
+        Some(t) => Bounds {
+            min_x_m: 0.0,
+            min_y_m: 0.0,
+            max_x_m: t.min(union.max_x_m - union.min_x_m),
+            max_y_m: t.min(union.max_y_m - union.min_y_m),
+        },
+    };
+    let levels = level_count(spec, &sized, g0.gsd_m, up_shift);
+    Ok((union, crs, g0.gsd_m, levels))
 }
 
 /// The map's bounds and level count: the orthophotos' union, or the part of it in
@@ -957,6 +991,10 @@ struct OrthoPass<'a> {
     /// The area a part-build keeps (`BuildSpec::area` as given: its features split at the
     /// given edges, its images reach out to the pixel grid).
     area: Option<Bounds>,
+    /// Cut the cores at the area ([`BuildSpec::area_local`]).
+    area_local: bool,
+    /// The coarsest SURF sampling step: a cut core's edges stay on its grid.
+    step: usize,
 }
 
 impl OrthoPass<'_> {
@@ -985,6 +1023,7 @@ impl OrthoPass<'_> {
                 dem: self.dem,
                 source: oi as u8, // ok: <= 255 orthos checked
                 area: self.area,
+                clip: self.clip(g, level),
             };
             self.level(&ctx, source.as_mut(), sink, &mut |st: &Stats| {
                 progress(BuildProgress {
@@ -1003,6 +1042,24 @@ impl OrthoPass<'_> {
             );
         }
         Ok(())
+    }
+
+    /// The area in level pixels of the ortho whose level-0 grid is `g`, moved out to whole
+    /// pixels and to the sampling step, when cores are cut at it.
+    fn clip(&self, g: &OrthoGeom, level: usize) -> Option<PxRect> {
+        let a = self.area.filter(|_| self.area_local)?;
+        let c = g.transform.coeffs();
+        let px_m = g.gsd_m * f64::from(1u32 << level);
+        let (lw, lh) = (g.width >> level, g.height >> level);
+        let step = self.step as f64;
+        let down = |v: f64, n: usize| ((v / step).floor() * step).clamp(0.0, n as f64) as usize; // ok: clamped
+        let up = |v: f64, n: usize| ((v / step).ceil() * step).clamp(0.0, n as f64) as usize; // ok: clamped
+        Some(PxRect {
+            x0: down((a.min_x_m - c[0]) / px_m, lw),
+            x1: up((a.max_x_m - c[0]) / px_m, lw),
+            y0: down((c[3] - a.max_y_m) / px_m, lh),
+            y1: up((c[3] - a.min_y_m) / px_m, lh),
+        })
     }
 
     /// The ortho's pixels: decoded whole when small enough, else window by window; upsampled
@@ -1062,10 +1119,13 @@ impl OrthoPass<'_> {
                     prev = None;
                     continue;
                 }
-                let win = TileWindow::new(ctx, tx * core, ty * core);
+                let Some(win) = TileWindow::new(ctx, tx * core, ty * core) else {
+                    prev = None;
+                    continue;
+                };
                 let (grey, valid) = read_reusing(source, ctx.level, &win, prev.take())?;
                 // Keep the columns the next tile's window starts with.
-                let next_x0 = (win.cx0 + core)
+                let next_x0 = ((tx + 1) * core)
                     .saturating_sub(ctx.margin)
                     .clamp(win.x0, win.x0 + win.w);
                 prev = Some(LevelPatch::columns(&win, &grey, &valid, next_x0));
@@ -1103,6 +1163,17 @@ struct TileCtx<'a> {
     source: u8,
     /// Keep only the features inside this area (`BuildSpec::area`).
     area: Option<Bounds>,
+    /// Cut the cores at this rectangle of level pixels (`BuildSpec::area_local`).
+    clip: Option<PxRect>,
+}
+
+/// A rectangle of level pixels, `[x0, x1) x [y0, y1)`.
+#[derive(Clone, Copy, Debug)]
+struct PxRect {
+    x0: usize,
+    y0: usize,
+    x1: usize,
+    y1: usize,
 }
 
 /// A tile of a level image: core `(cx0, cy0)`, `cw x ch`, inside the window `(x0, y0)`, `w x h`
@@ -1112,6 +1183,9 @@ struct TileWindow {
     cy0: usize,
     cw: usize,
     ch: usize,
+    /// The core's share of the area of the core it was cut from (below 1 where a part's area
+    /// cuts it): the cap of a cut core is scaled by it.
+    share: f64,
     x0: usize,
     y0: usize,
     w: usize,
@@ -1119,22 +1193,47 @@ struct TileWindow {
 }
 
 impl TileWindow {
-    fn new(ctx: &TileCtx, cx0: usize, cy0: usize) -> Self {
+    /// The window of the core at `(cx0, cy0)`, cut at `ctx.clip`; `None` when the cut leaves
+    /// nothing.
+    fn new(ctx: &TileCtx, cx0: usize, cy0: usize) -> Option<Self> {
         let (lw, lh) = (ctx.width >> ctx.level, ctx.height >> ctx.level);
         let (cw, ch) = (ctx.core.min(lw - cx0), ctx.core.min(lh - cy0));
+        let (cx0, cy0, cw, ch, share) = match ctx.clip {
+            None => (cx0, cy0, cw, ch, 1.0),
+            Some(r) => {
+                let (x0, y0) = (cx0.max(r.x0), cy0.max(r.y0));
+                let (x1, y1) = ((cx0 + cw).min(r.x1), (cy0 + ch).min(r.y1));
+                if x1 <= x0 || y1 <= y0 {
+                    return None;
+                }
+                let share = ((x1 - x0) * (y1 - y0)) as f64 / (cw * ch) as f64;
+                (x0, y0, x1 - x0, y1 - y0, share)
+            }
+        };
         let x0 = cx0.saturating_sub(ctx.margin);
         let y0 = cy0.saturating_sub(ctx.margin);
         let x1 = (cx0 + cw + ctx.margin).min(lw);
         let y1 = (cy0 + ch + ctx.margin).min(lh);
-        Self {
+        Some(Self {
             cx0,
             cy0,
             cw,
             ch,
+            share,
             x0,
             y0,
             w: x1 - x0,
             h: y1 - y0,
+        })
+    }
+
+    /// The cap of this core: `cap` scaled by its share of the core it was cut from (at least 1),
+    /// so a part cut at an area keeps the whole build's density.
+    fn cap(&self, cap: usize) -> usize {
+        if self.share >= 1.0 {
+            cap
+        } else {
+            ((cap as f64 * self.share).ceil() as usize).max(1) // ok: 0 < share < 1
         }
     }
 }
@@ -1537,7 +1636,7 @@ fn keep_in_core(
         k.y -= (cy0 - wy0) as f32;
         kept.push(k);
     }
-    let mut kept = visnav_core::vision::surf::select_spread(kept, ctx.cap, cw, ch);
+    let mut kept = visnav_core::vision::surf::select_spread(kept, win.cap(ctx.cap), cw, ch);
     for k in &mut kept {
         k.x += (cx0 - wx0) as f32;
         k.y += (cy0 - wy0) as f32;

@@ -1,21 +1,33 @@
-//! A tiled map: the orthophotos cut along a fixed grid in their CRS, one `.vnm` per grid square
-//! (each built with [`BuildSpec::area`], so the tiles together hold the whole build's features,
-//! each once), and `index.json` listing them with their bounds, feature counts, sizes and
-//! checksums and the build's parameters.
+//! A tiled map: the orthophotos cut along a fixed grid in their CRS, one `.vnm` per grid square,
+//! and `index.json` listing them with their bounds, feature counts, sizes and checksums, the
+//! build's parameters and its sources.
 //!
-//! The grid is anchored at the CRS origin (tile `(col, row)` covers x in
-//! `[col T, (col + 1) T)`, y in `(row T, (row + 1) T]` for tile side `T`), so the maps of
-//! neighbouring areas built with the same side share it. Every tile has the whole build's level
-//! count. The build is resumable: the index is rewritten after every tile, and a tile the index
-//! lists, built with the same parameters, whose file opens (its CRC verified) with the checksum
-//! the index recorded, is kept rather than built again; a killed build restarted finishes without
-//! rebuilding its finished tiles. Squares without features are counted, not written.
+//! The grid is anchored at the CRS origin (square `(col, row)` covers x in `[col T, (col + 1) T)`,
+//! y in `(row T, (row + 1) T]` for side `T`), so the maps of neighbouring areas built with the
+//! same side share it. Every square is built from its own area ([`BuildSpec::area`] with
+//! [`BuildSpec::area_local`]: its tile cores cut at the square, read with the detector's margin
+//! around it), so a square costs its own area whatever the map's size, and squares are
+//! independent jobs: one machine builds them in turn ([`build_tiled`]), or a plan
+//! ([`TilePlan`], `plan.json`) is written once and any number of machines build its squares by
+//! index ([`TilePlan::build_square`], `visnav map build-tile PLAN K`), each leaving a result file
+//! beside its tile; [`TilePlan::gather`] writes the index from them. Both ways run the same code
+//! and write the same bytes: a tile records build time 0 and the index no time at all.
+//!
+//! Resuming: a square whose result file names the plan's settings (their digest) and whose tile
+//! opens (its CRC verified) with the checksum the result recorded, or that recorded no feature
+//! and has no tile, is kept; a killed build run again builds only what is missing or damaged,
+//! and other settings build everything again.
+//!
+//! The level count, unless stated, follows the square (halving while its short side stays at or
+//! above 256 px, as a single file's follows its orthophotos): a square must hold a level's
+//! features without reading far outside itself, and the coarse levels of a large map (tens of
+//! metres a pixel) serve altitudes far above the ones a fine map is built for.
 
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::build::{BuildSpec, build_map, extent_of};
+use super::build::{BuildSpec, HeightSource, build_map, extent_of};
 use super::format::ReferenceMap;
 use super::{BoundsDef, MapError};
 use visnav_core::geo::Crs;
@@ -23,15 +35,19 @@ use visnav_core::geo::raster::Bounds;
 
 /// The index's file name in a tiled map's folder.
 pub const INDEX_FILE: &str = "index.json";
+/// The plan's file name in a tiled map's folder.
+pub const PLAN_FILE: &str = "plan.json";
 /// The tiles' folder in a tiled map's folder.
 pub const TILES_DIR: &str = "tiles";
-/// Version of `index.json`'s layout.
-pub const TILED_FORMAT_VERSION: u32 = 1;
+/// Version of the layout of `index.json`, `plan.json` and the square results.
+pub const TILED_FORMAT_VERSION: u32 = 2;
 /// Smallest tile side, metres: a tile narrower than a few hundred metres holds only a few SURF
 /// tile cores at 0.3-1 m and its level pyramid would stop at one level.
 pub const MIN_TILE_M: f64 = 200.0;
 /// Largest tile side, metres.
 pub const MAX_TILE_M: f64 = 1.0e6;
+/// Most grid squares one plan holds (a continent at 2 km squares is about a million).
+pub const MAX_SQUARES: usize = 4_000_000;
 
 /// One tile of a tiled map.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -63,6 +79,8 @@ pub struct TiledIndex {
     pub crs: Crs,
     /// Tile side, metres.
     pub tile_m: f64,
+    /// Ground pixel of level 0, metres.
+    pub gsd_m: f64,
     /// Pyramid levels of every tile.
     pub levels: usize,
     /// The orthophotos' union, metres.
@@ -71,12 +89,66 @@ pub struct TiledIndex {
     /// The build's parameters (orthophotos, heights, detector, tiling), as a checksum: a tile
     /// built with others is built again.
     pub build_digest: String,
-    /// The tiles with features, by row then column.
+    /// The orthophotos and the DEM, as the plan named them (absolute paths).
+    pub sources: Vec<String>,
+    /// The command that planned the build, when it was given.
+    pub command: Option<String>,
+    /// The tiles with features, by row (north first) then column.
     pub tiles: Vec<TileEntry>,
     /// Grid squares over the orthophotos without features (no file).
     pub empty: Vec<[i64; 2]>,
     /// The program that built it.
     pub built_by: String,
+}
+
+/// `plan.json`: the jobs of a tiled build, one per grid square, and everything they share.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TilePlan {
+    /// [`TILED_FORMAT_VERSION`].
+    pub version: u32,
+    /// The build every square runs (its paths absolute, `levels` stated, `area_local` on, build
+    /// time 0); each square adds its own area.
+    pub spec: BuildSpec,
+    /// Tile side, metres.
+    pub tile_m: f64,
+    /// The orthophotos' CRS.
+    pub crs: Crs,
+    /// Ground pixel of level 0, metres.
+    pub gsd_m: f64,
+    /// Pyramid levels of every tile.
+    pub levels: usize,
+    /// The orthophotos' union, metres.
+    #[serde(with = "BoundsDef")]
+    pub bounds: Bounds,
+    /// A checksum of `spec` and `tile_m` ([`TiledIndex::build_digest`]).
+    pub build_digest: String,
+    /// The command that planned the build (provenance), when given.
+    pub command: Option<String>,
+    /// The grid squares `[col, row]` over the orthophotos, by row (north first) then column:
+    /// job `k` builds `squares[k]`.
+    pub squares: Vec<[i64; 2]>,
+}
+
+/// `tiles/x{col}_y{row}.json`: what building one square gave.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SquareResult {
+    /// The plan's [`TilePlan::build_digest`].
+    pub build_digest: String,
+    /// Grid column.
+    pub col: i64,
+    /// Grid row.
+    pub row: i64,
+    /// The tile, or `None` when the square holds no feature (no file).
+    pub tile: Option<TileEntry>,
+}
+
+/// What [`TilePlan::build_square`] did.
+#[derive(Clone, Debug)]
+pub struct SquareOutcome {
+    /// The square's result.
+    pub result: SquareResult,
+    /// Whether it was kept from an earlier build.
+    pub reused: bool,
 }
 
 /// What [`build_tiled`] did.
@@ -102,138 +174,341 @@ pub struct TiledProgress {
     pub reused: bool,
 }
 
-/// Builds the tiled map of `spec` (its `area` ignored) into the folder `dir`, tiles of
-/// `tile_m` metres (module doc).
+/// Builds the tiled map of `spec` (its `area` ignored) into the folder `dir`, squares of
+/// `tile_m` metres, one after the other (each square's build uses every core): writes the plan,
+/// builds or keeps every square, then writes the index (module doc). `command` is recorded as
+/// the build's provenance.
 pub fn build_tiled(
     spec: &BuildSpec,
     tile_m: f64,
     dir: &Path,
+    command: Option<String>,
     progress: &mut dyn FnMut(TiledProgress),
 ) -> Result<TiledSummary, MapError> {
-    if !(tile_m.is_finite() && (MIN_TILE_M..=MAX_TILE_M).contains(&tile_m)) {
-        return Err(MapError::Param {
-            name: "tile_m",
-            reason: format!("{tile_m} must be {MIN_TILE_M} to {MAX_TILE_M} m"),
-        });
-    }
-    let (union, crs, levels) = extent_of(spec)?;
-    let spec = BuildSpec {
-        area: None,
-        levels: Some(levels),
-        ..spec.clone()
-    };
-    let digest = build_digest(&spec, tile_m);
-    let tiles_dir = dir.join(TILES_DIR);
-    std::fs::create_dir_all(&tiles_dir).map_err(|source| MapError::Io {
-        path: tiles_dir.clone(),
-        what: "cannot create the tiles' folder",
-        cause: source,
-    })?;
-    let (earlier, earlier_empty) = read_index(&dir.join(INDEX_FILE))
-        .filter(|i| i.build_digest == digest)
-        .map(|i| (i.tiles, i.empty))
-        .unwrap_or_default();
-    let squares = grid_squares(&union, tile_m);
-    let mut index = TiledIndex {
-        version: TILED_FORMAT_VERSION,
-        crs,
-        tile_m,
-        levels,
-        bounds: union,
-        build_digest: digest,
-        tiles: Vec::new(),
-        empty: Vec::new(),
-        built_by: format!("visnav {}", env!("CARGO_PKG_VERSION")),
-    };
+    let plan = TilePlan::new(spec, tile_m, command)?;
+    plan.write(dir)?;
     let (mut built, mut reused) = (0, 0);
-    for (k, &(col, row)) in squares.iter().enumerate() {
-        let file = format!("{TILES_DIR}/x{col}_y{row}.vnm");
-        let path = dir.join(&file);
-        let kept = earlier
-            .iter()
-            .find(|t| t.col == col && t.row == row && t.file == file)
-            .filter(|t| still_valid(&path, t));
-        let was_empty = earlier_empty.contains(&[col, row]) && !path.exists();
-        let entry = match kept {
-            Some(t) => Some(t.clone()),
-            None if was_empty => None,
-            None => {
-                built += 1;
-                build_tile(&spec, (col, row), tile_m, &path, file)?
-            }
-        };
-        let from_earlier = kept.is_some() || was_empty;
-        reused += usize::from(from_earlier);
-        match entry {
-            Some(t) => index.tiles.push(t),
-            None => index.empty.push([col, row]),
+    for k in 0..plan.squares.len() {
+        let o = plan.build_square(dir, k)?;
+        if o.reused {
+            reused += 1;
+        } else {
+            built += 1;
         }
-        write_index(&dir.join(INDEX_FILE), &index)?;
         progress(TiledProgress {
             done: k + 1,
-            total: squares.len(),
-            reused: from_earlier,
+            total: plan.squares.len(),
+            reused: o.reused,
         });
     }
     Ok(TiledSummary {
-        index,
+        index: plan.gather(dir)?,
         built,
         reused,
     })
 }
 
-/// The grid squares `(col, row)` that overlap `union`, by row (north first) then column.
-fn grid_squares(union: &Bounds, tile_m: f64) -> Vec<(i64, i64)> {
+impl TiledIndex {
+    /// The index of the tiled map in the folder `dir` (or the index file itself).
+    pub fn read(dir: &Path) -> Result<Self, MapError> {
+        let path = if dir.is_dir() {
+            dir.join(INDEX_FILE)
+        } else {
+            dir.to_path_buf()
+        };
+        let index: Self = read_json(&path)?;
+        if index.version != TILED_FORMAT_VERSION {
+            return Err(MapError::Format {
+                path,
+                reason: format!(
+                    "index version {} (this visnav reads {TILED_FORMAT_VERSION}): build it again",
+                    index.version
+                ),
+            });
+        }
+        Ok(index)
+    }
+
+    /// Sum of the tiles' file sizes, bytes.
+    pub fn total_bytes(&self) -> u64 {
+        self.tiles.iter().map(|t| t.file_bytes).sum()
+    }
+
+    /// Sum of the tiles' features.
+    pub fn total_features(&self) -> u64 {
+        self.tiles.iter().map(|t| t.features).sum()
+    }
+
+    /// Ground the tiles cover (the sum of their bounds), km².
+    pub fn tiles_area_km2(&self) -> f64 {
+        self.tiles
+            .iter()
+            .map(|t| (t.bounds.max_x_m - t.bounds.min_x_m) * (t.bounds.max_y_m - t.bounds.min_y_m))
+            .sum::<f64>()
+            / 1e6
+    }
+}
+
+impl TilePlan {
+    /// The plan of `spec` (its `area` ignored) in squares of `tile_m` metres: the paths made
+    /// absolute, the level count fixed (module doc), the squares over the orthophotos listed.
+    pub fn new(spec: &BuildSpec, tile_m: f64, command: Option<String>) -> Result<Self, MapError> {
+        if !(tile_m.is_finite() && (MIN_TILE_M..=MAX_TILE_M).contains(&tile_m)) {
+            return Err(MapError::Param {
+                name: "tile_m",
+                reason: format!("{tile_m} must be {MIN_TILE_M} to {MAX_TILE_M} m"),
+            });
+        }
+        let (bounds, crs, gsd_m, levels) = extent_of(spec, Some(tile_m))?;
+        let spec = BuildSpec {
+            orthos: spec
+                .orthos
+                .iter()
+                .map(|p| absolute(p))
+                .collect::<Result<_, _>>()?,
+            height: match &spec.height {
+                HeightSource::Dem(p) => HeightSource::Dem(absolute(p)?),
+                h => h.clone(),
+            },
+            area: None,
+            area_local: true,
+            levels: Some(levels),
+            built_unix_s: Some(0),
+            ..spec.clone()
+        };
+        let squares = grid_squares(&bounds, tile_m)?;
+        Ok(Self {
+            version: TILED_FORMAT_VERSION,
+            build_digest: build_digest(&spec, tile_m),
+            spec,
+            tile_m,
+            crs,
+            gsd_m,
+            levels,
+            bounds,
+            command,
+            squares,
+        })
+    }
+
+    /// Writes the plan to `dir/plan.json` and makes the tiles' folder.
+    pub fn write(&self, dir: &Path) -> Result<(), MapError> {
+        let tiles_dir = dir.join(TILES_DIR);
+        std::fs::create_dir_all(&tiles_dir).map_err(|source| MapError::Io {
+            path: tiles_dir.clone(),
+            what: "cannot create the tiles' folder",
+            cause: source,
+        })?;
+        write_json(&dir.join(PLAN_FILE), self)
+    }
+
+    /// The plan at `path` (`plan.json`).
+    pub fn read(path: &Path) -> Result<Self, MapError> {
+        let plan: Self = read_json(path)?;
+        if plan.version != TILED_FORMAT_VERSION {
+            return Err(MapError::Format {
+                path: path.to_path_buf(),
+                reason: format!(
+                    "plan version {} (this visnav reads {TILED_FORMAT_VERSION}): plan again",
+                    plan.version
+                ),
+            });
+        }
+        if plan.squares.len() > MAX_SQUARES
+            || build_digest(&plan.spec, plan.tile_m) != plan.build_digest
+        {
+            return Err(MapError::Format {
+                path: path.to_path_buf(),
+                reason: "the plan's settings do not match its digest (edited?): plan again".into(),
+            });
+        }
+        Ok(plan)
+    }
+
+    /// The files of square `k`: its tile and its result, relative to the map's folder.
+    fn files_of(&self, k: usize) -> (String, String) {
+        let [col, row] = self.squares[k];
+        (
+            format!("{TILES_DIR}/x{col}_y{row}.vnm"),
+            format!("{TILES_DIR}/x{col}_y{row}.json"),
+        )
+    }
+
+    /// Builds square `k` into the folder `dir` (the plan's), or keeps it when an earlier build
+    /// left it valid (module doc); writes its result file.
+    pub fn build_square(&self, dir: &Path, k: usize) -> Result<SquareOutcome, MapError> {
+        let Some(&[col, row]) = self.squares.get(k) else {
+            return Err(MapError::Param {
+                name: "square",
+                reason: format!(
+                    "{k} is not a square of the plan (0 to {})",
+                    self.squares.len().saturating_sub(1)
+                ),
+            });
+        };
+        let (file, result_file) = self.files_of(k);
+        let (path, result_path) = (dir.join(&file), dir.join(&result_file));
+        if let Some(r) = read_json::<SquareResult>(&result_path)
+            .ok()
+            .filter(|r| self.still_valid(r, col, row, &path))
+        {
+            return Ok(SquareOutcome {
+                result: r,
+                reused: true,
+            });
+        }
+        // A result that no longer holds goes first: a build killed now leaves no stale claim.
+        let _ = std::fs::remove_file(&result_path);
+        let tile = self.build_tile((col, row), &path, file)?;
+        let result = SquareResult {
+            build_digest: self.build_digest.clone(),
+            col,
+            row,
+            tile,
+        };
+        write_json(&result_path, &result)?;
+        Ok(SquareOutcome {
+            result,
+            reused: false,
+        })
+    }
+
+    /// Whether the result `r` of square `(col, row)` was made by this plan and its tile (at
+    /// `path`) is intact: the file opens with the checksum recorded, or there is none for an
+    /// empty square.
+    fn still_valid(&self, r: &SquareResult, col: i64, row: i64, path: &Path) -> bool {
+        if r.build_digest != self.build_digest || (r.col, r.row) != (col, row) {
+            return false;
+        }
+        match &r.tile {
+            Some(t) => {
+                ReferenceMap::open(path).is_ok() && stored_crc(path).is_ok_and(|c| c == t.crc32)
+            }
+            None => !path.exists(),
+        }
+    }
+
+    /// Builds grid square `(col, row)` into `path`; `None` when it holds no feature.
+    fn build_tile(
+        &self,
+        (col, row): (i64, i64),
+        path: &Path,
+        file: String,
+    ) -> Result<Option<TileEntry>, MapError> {
+        let t = self.tile_m;
+        let area = Bounds {
+            min_x_m: col as f64 * t,
+            max_x_m: (col + 1) as f64 * t,
+            min_y_m: row as f64 * t,
+            max_y_m: (row + 1) as f64 * t,
+        };
+        let part = BuildSpec {
+            area: Some(area),
+            ..self.spec.clone()
+        };
+        match build_map(&part, path, &mut |_| {}) {
+            Ok(s) => Ok(Some(TileEntry {
+                col,
+                row,
+                file,
+                bounds: s.header.bounds,
+                features: s.header.n_features(),
+                file_bytes: s.file_bytes,
+                crc32: stored_crc(path)?,
+            })),
+            Err(MapError::NoFeatures { .. } | MapError::Param { name: "area", .. }) => {
+                // No file stands for an empty square (one left by an earlier build would be
+                // stale).
+                let _ = std::fs::remove_file(path);
+                Ok(None)
+            }
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Writes `dir/index.json` from the squares' results; every square must be done (an error
+    /// names the first that is not).
+    pub fn gather(&self, dir: &Path) -> Result<TiledIndex, MapError> {
+        let mut index = TiledIndex {
+            version: TILED_FORMAT_VERSION,
+            crs: self.crs,
+            tile_m: self.tile_m,
+            gsd_m: self.gsd_m,
+            levels: self.levels,
+            bounds: self.bounds,
+            build_digest: self.build_digest.clone(),
+            sources: self.sources(),
+            command: self.command.clone(),
+            tiles: Vec::new(),
+            empty: Vec::new(),
+            built_by: format!("visnav {}", env!("CARGO_PKG_VERSION")),
+        };
+        for (k, &[col, row]) in self.squares.iter().enumerate() {
+            let (file, result_file) = self.files_of(k);
+            let done = read_json::<SquareResult>(&dir.join(&result_file))
+                .ok()
+                .filter(|r| r.build_digest == self.build_digest && (r.col, r.row) == (col, row));
+            match done {
+                Some(SquareResult { tile: Some(t), .. }) if t.file == file => index.tiles.push(t),
+                Some(SquareResult { tile: None, .. }) => index.empty.push([col, row]),
+                _ => {
+                    return Err(MapError::Input {
+                        path: dir.join(result_file),
+                        reason: format!(
+                            "square {k} of {} (x{col}_y{row}) is not built with this plan's \
+                             settings: run `visnav map build-tile` for it",
+                            self.squares.len()
+                        ),
+                    });
+                }
+            }
+        }
+        write_json(&dir.join(INDEX_FILE), &index)?;
+        Ok(index)
+    }
+
+    /// The orthophotos and the DEM, as named in the plan.
+    fn sources(&self) -> Vec<String> {
+        let mut s: Vec<String> = self
+            .spec
+            .orthos
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect();
+        if let HeightSource::Dem(p) = &self.spec.height {
+            s.push(p.display().to_string());
+        }
+        s
+    }
+}
+
+/// `p` as an absolute path without `.`/`..` (a plan's jobs may run in another folder or on
+/// another machine that mounts the same files).
+fn absolute(p: &Path) -> Result<PathBuf, MapError> {
+    std::fs::canonicalize(p).map_err(|source| MapError::Io {
+        path: p.to_path_buf(),
+        what: "cannot find the input file",
+        cause: source,
+    })
+}
+
+/// The grid squares `[col, row]` that overlap `union`, by row (north first) then column.
+fn grid_squares(union: &Bounds, tile_m: f64) -> Result<Vec<[i64; 2]>, MapError> {
     let c0 = (union.min_x_m / tile_m).floor() as i64; // ok: bounds of a real raster
     let c1 = (union.max_x_m / tile_m).ceil() as i64;
     let r0 = (union.min_y_m / tile_m).floor() as i64;
     let r1 = (union.max_y_m / tile_m).ceil() as i64;
-    (r0..r1)
-        .rev()
-        .flat_map(|r| (c0..c1).map(move |c| (c, r)))
-        .collect()
-}
-
-/// Builds grid square `(col, row)` into `path`; `None` when it holds no feature.
-fn build_tile(
-    spec: &BuildSpec,
-    (col, row): (i64, i64),
-    tile_m: f64,
-    path: &Path,
-    file: String,
-) -> Result<Option<TileEntry>, MapError> {
-    let area = Bounds {
-        min_x_m: col as f64 * tile_m,
-        max_x_m: (col + 1) as f64 * tile_m,
-        min_y_m: row as f64 * tile_m,
-        max_y_m: (row + 1) as f64 * tile_m,
-    };
-    let part = BuildSpec {
-        area: Some(area),
-        ..spec.clone()
-    };
-    match build_map(&part, path, &mut |_| {}) {
-        Ok(s) => Ok(Some(TileEntry {
-            col,
-            row,
-            file,
-            bounds: s.header.bounds,
-            features: s.header.n_features(),
-            file_bytes: s.file_bytes,
-            crc32: stored_crc(path)?,
-        })),
-        Err(MapError::NoFeatures { .. } | MapError::Param { name: "area", .. }) => {
-            // No file stands for an empty square (one left by an earlier build would be stale).
-            let _ = std::fs::remove_file(path);
-            Ok(None)
-        }
-        Err(e) => Err(e),
+    let n = (c1 - c0).saturating_mul(r1 - r0);
+    if n > MAX_SQUARES as i64 {
+        return Err(MapError::Param {
+            name: "tile_m",
+            reason: format!("{tile_m} m cuts the orthophotos into {n} squares, over {MAX_SQUARES}"),
+        });
     }
-}
-
-/// Whether the tile file at `path` opens (its checksum verified) with the checksum `t` records.
-fn still_valid(path: &Path, t: &TileEntry) -> bool {
-    ReferenceMap::open(path).is_ok() && stored_crc(path).is_ok_and(|c| c == t.crc32)
+    Ok((r0..r1)
+        .rev()
+        .flat_map(|r| (c0..c1).map(move |c| [c, r]))
+        .collect())
 }
 
 /// The CRC-32 a `.vnm` stores (bytes 56-59 of its preamble).
@@ -257,24 +532,34 @@ fn build_digest(spec: &BuildSpec, tile_m: f64) -> String {
     format!("{:08x}", crc32fast::hash(text.as_bytes()))
 }
 
-/// The index at `path`, when there is one that reads.
-fn read_index(path: &Path) -> Option<TiledIndex> {
-    let text = crate::files::read_text(path, crate::files::TILED_INDEX).ok()?;
-    serde_json::from_str(&text).ok()
+/// The JSON file at `path`, read with the tiled map's size limit.
+fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, MapError> {
+    let text = crate::files::read_text(path, crate::files::TILED_INDEX).map_err(|source| {
+        MapError::Io {
+            path: path.to_path_buf(),
+            what: "cannot read",
+            cause: source,
+        }
+    })?;
+    serde_json::from_str(&text).map_err(|e| MapError::Format {
+        path: path.to_path_buf(),
+        reason: format!("not a tiled map file of this version: {e}"),
+    })
 }
 
-/// Writes the index to a temporary name and moves it into place.
-fn write_index(path: &Path, index: &TiledIndex) -> Result<(), MapError> {
+/// Writes `value` as JSON to a temporary name and moves it into place (a reader never sees half
+/// a file).
+fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), MapError> {
     let tmp: PathBuf = path.with_extension("json.partial");
     let io = |what, source| MapError::Io {
         path: path.to_path_buf(),
         what,
         cause: source,
     };
-    let text = serde_json::to_string_pretty(index).map_err(|e| MapError::Format {
+    let text = serde_json::to_string_pretty(value).map_err(|e| MapError::Format {
         path: path.to_path_buf(),
-        reason: format!("cannot encode the index: {e}"),
+        reason: format!("cannot encode: {e}"),
     })?;
-    std::fs::write(&tmp, text).map_err(|e| io("cannot write the index", e))?;
-    std::fs::rename(&tmp, path).map_err(|e| io("cannot move the index into place", e))
+    std::fs::write(&tmp, text).map_err(|e| io("cannot write", e))?;
+    std::fs::rename(&tmp, path).map_err(|e| io("cannot move into place", e))
 }

@@ -12,6 +12,7 @@ use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
+use rayon::prelude::*;
 use tiff::encoder::TiffEncoder;
 use tiff::encoder::compression::{CompressionAlgorithm, Deflate, DeflateLevel, Lzw};
 use tiff::tags::Tag;
@@ -112,11 +113,22 @@ pub(crate) fn geo_tags<W: std::io::Write + std::io::Seek>(
     d: &mut tiff::encoder::DirectoryEncoder<'_, W, tiff::encoder::TiffKindStandard>,
     nodata: Option<&str>,
 ) {
-    d.write_tag(Tag::ModelPixelScaleTag, &[2.0f64, 2.0, 0.0][..])
+    geo_tags_at(d, nodata, 2.0, (494_000.0, 4_878_000.0));
+}
+
+/// GeoTIFF tags: UTM 10N, `pixel_m` pixels, the top-left corner at `origin` (x, y metres),
+/// optional GDAL_NODATA.
+fn geo_tags_at<W: std::io::Write + std::io::Seek>(
+    d: &mut tiff::encoder::DirectoryEncoder<'_, W, tiff::encoder::TiffKindStandard>,
+    nodata: Option<&str>,
+    pixel_m: f64,
+    origin: (f64, f64),
+) {
+    d.write_tag(Tag::ModelPixelScaleTag, &[pixel_m, pixel_m, 0.0][..])
         .unwrap();
     d.write_tag(
         Tag::ModelTiepointTag,
-        &[0.0f64, 0.0, 0.0, 494_000.0, 4_878_000.0, 0.0][..],
+        &[0.0f64, 0.0, 0.0, origin.0, origin.1, 0.0][..],
     )
     .unwrap();
     let keys: [u16; 16] = [1, 1, 0, 3, 1024, 0, 1, 1, 1025, 0, 1, 1, 3072, 0, 1, 32610];
@@ -135,6 +147,22 @@ fn write_geotiff<T: Sample>(
     bands: usize,
     layout: Layout,
     nodata: Option<&str>,
+    pixel: impl Fn(usize, usize, usize) -> T,
+) {
+    let at = (2.0, (494_000.0, 4_878_000.0));
+    write_geotiff_at(path, w, h, bands, layout, nodata, at, pixel);
+}
+
+/// [`write_geotiff`] with its pixel size and top-left corner `(pixel_m, (x, y))`.
+#[allow(clippy::too_many_arguments)]
+fn write_geotiff_at<T: Sample>(
+    path: &Path,
+    w: usize,
+    h: usize,
+    bands: usize,
+    layout: Layout,
+    nodata: Option<&str>,
+    (pixel_m, origin): (f64, (f64, f64)),
     pixel: impl Fn(usize, usize, usize) -> T,
 ) {
     let file = BufWriter::new(File::create(path).unwrap());
@@ -235,7 +263,7 @@ fn write_geotiff<T: Sample>(
         d.write_tag(Tag::StripOffsets, &offsets[..]).unwrap();
         d.write_tag(Tag::StripByteCounts, &counts[..]).unwrap();
     }
-    geo_tags(&mut d, nodata);
+    geo_tags_at(&mut d, nodata, pixel_m, origin);
     d.finish().unwrap();
 }
 
@@ -651,9 +679,10 @@ fn banded_level_windows_equal_the_whole_image_ones() {
 }
 
 /// Writes a large tiled (256 x 256, deflate) RGB GeoTIFF made by mirror-tiling the NAIP 2009
-/// excerpt, for the memory measurement of `visnav map build` (docs/map-format.md). Run with
-/// `VISNAV_LARGE_TIFF=/tmp/large.tif [VISNAV_LARGE_PX=20000] cargo test --release --test
-/// geotiff_window -- --ignored write_large_tiled_geotiff`.
+/// excerpt (or a mosaic of them), for the memory and time measurements of `visnav map build`
+/// (docs/map-format.md). Run with `VISNAV_LARGE_TIFF=/tmp/large.tif [VISNAV_LARGE_PX=20000]
+/// [VISNAV_LARGE_PIXEL_M=2] [VISNAV_LARGE_FILES=1] cargo nextest run -p visnav-io --test
+/// integration --run-ignored ignored-only -E 'test(/write_large_tiled_geotiff/)'`.
 #[test]
 #[ignore = "writes a large file; for the memory measurement"]
 fn write_large_tiled_geotiff() {
@@ -686,14 +715,49 @@ fn write_large_tiled_geotiff() {
         comp: Comp::Deflate,
         predictor: true,
     };
-    let t0 = std::time::Instant::now();
-    write_geotiff::<u8>(Path::new(&out), px, px, 3, layout, Some("0"), |x, y, b| {
-        s[(mirror(y, sh) * sw + mirror(x, sw)) * sb + b]
+    // A mosaic of n x n files (`VISNAV_LARGE_FILES=n`, named `OUT_{col}_{row}.tif`) of
+    // `VISNAV_LARGE_PIXEL_M` pixels (default 2 m), the pattern running on across them: a list of
+    // GeoTIFFs covering one area, as a country's orthophoto comes.
+    let pixel_m: f64 = std::env::var("VISNAV_LARGE_PIXEL_M")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(2.0);
+    let n: usize = std::env::var("VISNAV_LARGE_FILES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1);
+    let out = PathBuf::from(out);
+    let jobs: Vec<(usize, usize)> = (0..n).flat_map(|r| (0..n).map(move |c| (c, r))).collect();
+    jobs.par_iter().for_each(|&(col, row)| {
+        let path = if n == 1 {
+            out.clone()
+        } else {
+            out.with_file_name(format!(
+                "{}_{col}_{row}.tif",
+                out.file_stem().unwrap().to_string_lossy()
+            ))
+        };
+        let t0 = std::time::Instant::now();
+        let origin = (
+            494_000.0 + (col * px) as f64 * pixel_m,
+            4_878_000.0 - (row * px) as f64 * pixel_m,
+        );
+        let (dx, dy) = (col * px, row * px);
+        write_geotiff_at::<u8>(
+            &path,
+            px,
+            px,
+            3,
+            layout,
+            Some("0"),
+            (pixel_m, origin),
+            |x, y, b| s[(mirror(y + dy, sh) * sw + mirror(x + dx, sw)) * sb + b],
+        );
+        eprintln!(
+            "{}: {px} x {px} RGB at {pixel_m} m, {} bytes, written in {:.1} s",
+            path.display(),
+            std::fs::metadata(&path).unwrap().len(),
+            t0.elapsed().as_secs_f64()
+        );
     });
-    eprintln!(
-        "{}: {px} x {px} RGB, {} bytes, written in {:.1} s",
-        Path::new(&out).display(),
-        std::fs::metadata(&out).unwrap().len(),
-        t0.elapsed().as_secs_f64()
-    );
 }

@@ -39,6 +39,7 @@ mod link_shutdown;
 mod live_capture;
 mod map_build;
 mod map_compare;
+mod map_paged;
 mod nav_sitl;
 mod ngi_camera;
 mod pose_bench;

@@ -117,6 +117,64 @@ pub trait Reference: Send + Sync {
     fn level_image(&self, _level: usize) -> Option<MapImage<'_>> {
         None
     }
+    /// The grey image of `level` covering the map rectangle `rect_m` (`[min_x, min_y, max_x,
+    /// max_y]`) as far as the map holds it, on the level's pixel grid: a map that holds its
+    /// levels whole lends the whole image (the default); a map of tiles assembles the loaded
+    /// tiles under the rectangle. `None` when there is no level image there.
+    fn level_window(&self, level: usize, _rect_m: [f64; 4]) -> Option<LevelWindow<'_>> {
+        self.level_image(level).map(LevelWindow::Borrowed)
+    }
+}
+
+/// A level image lent by a map ([`Reference::level_window`]): the map's own bytes, or a window
+/// assembled for the caller.
+#[derive(Debug, Clone)]
+pub enum LevelWindow<'a> {
+    /// The map's whole level image.
+    Borrowed(MapImage<'a>),
+    /// A window assembled from tiles.
+    Owned(MapImageBuf),
+}
+
+impl LevelWindow<'_> {
+    /// The image as a [`MapImage`].
+    pub fn image(&self) -> MapImage<'_> {
+        match self {
+            Self::Borrowed(m) => *m,
+            Self::Owned(b) => b.image(),
+        }
+    }
+}
+
+/// An owned level image window: [`MapImage`] with its bytes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MapImageBuf {
+    /// The grey values, row-major, `width * height` bytes; 0 = no data.
+    pub data: Vec<u8>,
+    /// Width, pixels.
+    pub width: usize,
+    /// Height, pixels.
+    pub height: usize,
+    /// Map-grid easting of the image's west edge, metres.
+    pub origin_x_m: f64,
+    /// Map-grid northing of the image's north edge, metres.
+    pub origin_y_m: f64,
+    /// Ground sample distance, metres per pixel.
+    pub gsd_m: f64,
+}
+
+impl MapImageBuf {
+    /// The image as a [`MapImage`].
+    pub fn image(&self) -> MapImage<'_> {
+        MapImage {
+            data: &self.data,
+            width: self.width,
+            height: self.height,
+            origin_x_m: self.origin_x_m,
+            origin_y_m: self.origin_y_m,
+            gsd_m: self.gsd_m,
+        }
+    }
 }
 
 /// A level's grey image: `width x height` bytes, row 0 north, pixel `(i, j)` centred on

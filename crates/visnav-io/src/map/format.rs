@@ -664,6 +664,17 @@ impl ReferenceMap {
         &self.header
     }
 
+    /// The CRC-32 the file stores (verified when it was opened).
+    pub fn stored_crc(&self) -> u32 {
+        let b = &self.mmap[CRC_AT..CRC_AT + 4];
+        u32::from_le_bytes([b[0], b[1], b[2], b[3]])
+    }
+
+    /// The file's size, bytes.
+    pub fn file_len(&self) -> u64 {
+        self.mmap.len() as u64
+    }
+
     /// Features of `level` whose `(x_m, y_m)` lies inside the closed rectangle, via the spatial
     /// index (only cells overlapping the rectangle are read). An unknown level or an empty/NaN
     /// rectangle gives an empty selection. Features are in file order (cell by cell, row 0 =

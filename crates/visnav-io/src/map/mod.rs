@@ -5,6 +5,8 @@
 //!   DEM heights and streams the features into a `.vnm` file with bounded memory.
 //! * `tiled`: [`tiled::build_tiled`] cuts the orthophotos along a fixed grid into one `.vnm` per
 //!   square with an index (a tiled map).
+//! * `paged`: [`paged::PagedMap`], a tiled map in flight: the tiles near the aircraft in
+//!   memory, loaded in the background, dropped by a memory budget.
 //! * `format`: the `.vnm` byte layout ([`ReferenceMap::open`], [`ReferenceMap::select`]); the full
 //!   layout is documented in `docs/map-format.md`.
 //!
@@ -38,6 +40,7 @@
 pub mod build;
 pub mod coreg;
 pub mod format;
+pub mod paged;
 pub mod reference;
 pub mod tiled;
 

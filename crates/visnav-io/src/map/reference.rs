@@ -6,7 +6,7 @@
 
 use std::path::{Path, PathBuf};
 
-use visnav_core::fix::reference::{MapImage, RefFeature, RefSelection, Reference};
+use visnav_core::fix::reference::{MapImage, RefSelection, Reference};
 use visnav_core::geo::Crs;
 use visnav_core::geo::dem::Dem;
 use visnav_core::vision::FeatureSpec;
@@ -160,23 +160,8 @@ impl Reference for MapReference {
         })
     }
     fn select(&self, level: usize, rect_m: [f64; 4]) -> RefSelection {
-        let s = self
-            .map
-            .select(level, rect_m[0], rect_m[1], rect_m[2], rect_m[3]);
-        RefSelection {
-            features: s
-                .features
-                .iter()
-                .map(|f| RefFeature {
-                    x_m: f.x_m,
-                    y_m: f.y_m,
-                    z_amsl_m: f.z_amsl_m,
-                    scale_m: f.scale_m,
-                    laplacian: f.laplacian,
-                })
-                .collect(),
-            descriptors: s.descriptors,
-            kind: s.kind,
-        }
+        super::paged::ref_selection(self.map.select(
+            level, rect_m[0], rect_m[1], rect_m[2], rect_m[3],
+        ))
     }
 }

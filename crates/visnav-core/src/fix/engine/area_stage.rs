@@ -18,7 +18,7 @@ use crate::fix::area::{
     TwoChannels, UNIQUE_MARGIN, UNIQUE_RADIUS_COARSE_PX, best_similar, match_patch, place_similar,
     rank_hypotheses, select_patches, similar_surface, unjudged_places,
 };
-use crate::fix::reference::MapImage;
+use crate::fix::reference::LevelWindow;
 use crate::pose::similarity::{Sim2, ransac_similarity};
 
 /// The area placement runs on block means bringing the rectified frame's longer side to at most
@@ -150,7 +150,7 @@ struct Crop {
 struct AreaSearch<'a> {
     engine: &'a FixEngine,
     v: &'a View<'a>,
-    img: MapImage<'a>,
+    img: LevelWindow<'a>,
     /// The level image inside the prior's gate around the frame's footprint, and its sums.
     window: Plane,
     sums: Integral,
@@ -243,16 +243,28 @@ impl<'a> AreaSearch<'a> {
     /// prior's errors, so the frame's centre's ground point anchors it, grown by the gate.
     fn new(engine: &'a FixEngine, v: &'a View<'a>) -> Result<Self, Rejection> {
         let rect = v.rect;
-        let img = engine
-            .reference
-            .level_image(v.level)
-            .ok_or(Rejection::NoLevelImages)?;
         let (uc, vc) = (rect.width() as f64 / 2.0, rect.height() as f64 / 2.0);
         let centre = engine
             .ground_of(v, uc, vc)
             .ok_or(Rejection::CentreOffGround)?;
+        let gsd_m = engine.levels_gsd_m[v.level];
+        let gate_px = (engine.gate_m(v) / gsd_m).ceil();
+        // The map under the window below, a pixel beyond it on every side.
+        let (half_w_m, half_h_m) = ((uc + gate_px + 2.0) * gsd_m, (vc + gate_px + 2.0) * gsd_m);
+        let held = engine
+            .reference
+            .level_window(
+                v.level,
+                [
+                    centre[0] - half_w_m,
+                    centre[1] - half_h_m,
+                    centre[0] + half_w_m,
+                    centre[1] + half_h_m,
+                ],
+            )
+            .ok_or(Rejection::NoLevelImages)?;
+        let img = held.image();
         let c_px = img.to_px(centre[0], centre[1]);
-        let gate_px = (engine.gate_m(v) / img.gsd_m).ceil();
         let x0 = (c_px[0] - uc - gate_px).floor() as i64;
         let y0 = (c_px[1] - vc - gate_px).floor() as i64;
         let (ww, wh) = (
@@ -264,7 +276,7 @@ impl<'a> AreaSearch<'a> {
         Ok(Self {
             engine,
             v,
-            img,
+            img: held,
             window,
             sums,
             x0,
@@ -323,7 +335,7 @@ impl<'a> AreaSearch<'a> {
     /// Window pixel of the ground seen at rectified pixel `(u, vv)`, predicted from the prior.
     fn predict(&self, u: f64, vv: f64) -> Option<[f64; 2]> {
         let p = self.engine.ground_of(self.v, u, vv)?;
-        let m = self.img.to_px(p[0], p[1]);
+        let m = self.img.image().to_px(p[0], p[1]);
         Some([m[0] - self.x0 as f64, m[1] - self.y0 as f64])
     }
 
@@ -430,7 +442,7 @@ impl<'a> AreaSearch<'a> {
     ) -> Result<f64, Rejection> {
         let (_, q) = self.predicted_centre(f, size)?;
         let (qx, qy) = (px_to_block(q[0], f), px_to_block(q[1], f));
-        let sigma = (self.v.g.sigma_h_m / (self.img.gsd_m * f as f64)).max(1e-6);
+        let sigma = (self.v.g.sigma_h_m / (self.img.image().gsd_m * f as f64)).max(1e-6);
         let norm = 1.0 / (std::f64::consts::TAU * sigma * sigma);
         let mass: f64 = places
             .iter()
@@ -534,7 +546,7 @@ impl<'a> AreaSearch<'a> {
                     continue;
                 };
                 let w = cur.sim.apply([q[0] as f32, q[1] as f32]);
-                let xy = self.img.to_map([
+                let xy = self.img.image().to_map([
                     f64::from(w[0]) + self.x0 as f64,
                     f64::from(w[1]) + self.y0 as f64,
                 ]);
@@ -603,7 +615,7 @@ impl<'a> AreaSearch<'a> {
             });
         }
         // Blocks -> metres; window rows run south, the grid's y north.
-        let m = f as f64 * self.img.gsd_m;
+        let m = f as f64 * self.img.image().gsd_m;
         let base = (PLACEMENT_SIGMA_PX * m).powi(2);
         Ok([
             [moment[0][0] * m * m + base, -moment[0][1] * m * m],
@@ -806,6 +818,7 @@ impl<'a> AreaSearch<'a> {
                 let (p, m) = (&t.patch, m?);
                 let xy = self
                     .img
+                    .image()
                     .to_map([m.x + self.x0 as f64, m.y + self.y0 as f64]);
                 let z = self.engine.reference.height_amsl_m(xy[0], xy[1])?;
                 let px = self.v.rect.to_frame_px(p.cx as f64, p.cy as f64)?;
@@ -880,11 +893,11 @@ mod tests {
         let s = AreaSearch::new(&engine, &v).unwrap();
         // Nadir: the template's centre sees the prior's own ground point.
         let (f, size) = (2usize, [rect.width() / 2, rect.height() / 2]);
-        let c_px = s.img.to_px(x, y);
+        let c_px = s.img.image().to_px(x, y);
         // Block k covers pixels k f ..= k f + f - 1 (computed here, not with the stage's helper).
         let coarse = |u: f64| (u - (f as f64 - 1.0) / 2.0) / f as f64;
         let (qx, qy) = (coarse(c_px[0] - s.x0 as f64), coarse(c_px[1] - s.y0 as f64));
-        let sigma_cells = 50.0 / (s.img.gsd_m * f as f64);
+        let sigma_cells = 50.0 / (s.img.image().gsd_m * f as f64);
         let grid = |keep: &dyn Fn(f64, f64) -> bool| -> Vec<[f64; 2]> {
             let r = (8.0 * sigma_cells).ceil() as i64;
             let mut out = Vec::new();

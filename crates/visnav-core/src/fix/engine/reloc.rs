@@ -242,7 +242,8 @@ impl FixEngine {
         work: &mut u64,
     ) -> Result<AreaSearch, Rejection> {
         use crate::fix::area::{candidates, grey_and_gradient};
-        let (level, agl_m, img, budget) = self.area_level(alt, window, work)?;
+        let (level, agl_m, held, budget) = self.area_level(alt, window, work)?;
+        let img = held.image();
         let gsd = self.levels_gsd_m[level];
         let (lo, hi) = self.reference.dem().height_range_m();
         let (rect, tc, f) = self.area_template(frame, att, agl_m / gsd, work)?;
@@ -382,7 +383,7 @@ impl FixEngine {
         alt: &crate::fix::AltitudePrior,
         window: Option<&SearchWindow>,
         work: &mut u64,
-    ) -> Result<(usize, f64, crate::fix::reference::MapImage<'_>, u64), Rejection> {
+    ) -> Result<(usize, f64, crate::fix::reference::LevelWindow<'_>, u64), Rejection> {
         if !(alt.alt_amsl_m.is_finite() && alt.sigma_m.is_finite() && alt.sigma_m > 0.0) {
             return Err(Rejection::AltitudePrior);
         }
@@ -394,10 +395,11 @@ impl FixEngine {
             });
         }
         let level = self.pick_level(agl_m / self.camera.intrinsics.fx_px);
-        let img = self
+        let held = self
             .reference
-            .level_image(level)
+            .level_window(level, window.map_or(self.reference.bounds_m(), |w| w.rect_m))
             .ok_or(Rejection::NoLevelImages)?;
+        let img = held.image();
         // Each pixel of the level image read (and held in the working planes) counts one unit:
         // a map too large for the budget is left to the feature search before any is read.
         let budget = (self.params.reloc_budget_mwork * 1e6) as u64;
@@ -410,7 +412,7 @@ impl FixEngine {
             });
         }
         *work = work.saturating_add(map_px);
-        Ok((level, agl_m, img, budget))
+        Ok((level, agl_m, held, budget))
     }
 
     /// The confirmation of a search's accepted fix `r`: the frame matched again from that fix's

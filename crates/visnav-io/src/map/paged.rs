@@ -1,0 +1,557 @@
+//! A tiled map in flight: the fix engine's [`Reference`] over the tiles of a tiled map that are
+//! in memory now, with a loader thread that brings in the tiles asked for and a memory budget
+//! that drops the least recently used.
+//!
+//! The frame path never waits on a load: [`Reference::select`] and [`Reference::level_window`]
+//! answer from the tiles held at that moment (a short lock, no I/O); a tile the index has under
+//! the rectangle but memory does not is a **miss**: counted, and queued for loading. The daemon
+//! asks ahead with [`PagedMap::request`] (the prior's footprint and its uncertainty, then the
+//! ground ahead along the velocity): the loader takes the queue front first, and each request
+//! replaces the queue, so the newest need wins. Tiles of the latest request are never evicted
+//! for others; when even they do not fit, the loader stops short and counts it.
+//!
+//! A tile's memory is its file (memory-mapped and read whole when opened, as its checksum is
+//! verified): the budget counts file bytes. The tiles share one level-0 pixel grid (each tile's
+//! bounds are moved out to it when built), so level windows are assembled by whole-pixel offsets.
+
+use std::collections::{HashMap, HashSet, VecDeque};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+
+use visnav_core::fix::reference::{
+    HeightErrors, LevelWindow, MapImageBuf, RefFeature, RefSelection, Reference,
+};
+use visnav_core::geo::Crs;
+use visnav_core::geo::dem::Dem;
+use visnav_core::vision::FeatureSpec;
+
+use super::MapSelection;
+use super::reference::MapReferenceError;
+use super::tiled::TiledIndex;
+use super::{HeightInfo, MapError, MapHeader, ReferenceMap};
+
+/// Largest level window assembled for one call, pixels: 64 M (a 8 000 px square; a blind
+/// relocalisation over a large map asks for the whole map and is given the loaded tiles near it
+/// only if they fit).
+pub const MAX_WINDOW_PX: usize = 64 << 20;
+
+/// Paging counters since the map was opened.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct PagingStats {
+    /// Tiles loaded.
+    pub loads: u64,
+    /// Tiles dropped for the budget.
+    pub evictions: u64,
+    /// Tiles a select or level window needed that were not in memory (the frame went on without
+    /// them; they were queued).
+    pub misses: u64,
+    /// Tiles that could not be loaded (the error is logged once per tile).
+    pub load_errors: u64,
+    /// Requested tiles the budget could not take (the latest request is larger than the budget).
+    pub over_budget: u64,
+    /// Tiles in memory now.
+    pub resident_tiles: usize,
+    /// Their bytes.
+    pub resident_bytes: u64,
+    /// Tiles queued for loading now.
+    pub queued: usize,
+}
+
+/// One tile in memory.
+struct Held {
+    map: Arc<ReferenceMap>,
+    bytes: u64,
+    last_used: u64,
+}
+
+/// What the loader and the readers share.
+struct State {
+    held: HashMap<usize, Held>,
+    queue: VecDeque<usize>,
+    /// The tiles of the latest request: never evicted for others.
+    pinned: HashSet<usize>,
+    /// Tiles whose load failed: not tried again.
+    failed: HashSet<usize>,
+    tick: u64,
+    stats: PagingStats,
+    /// The loader is opening this tile now.
+    loading: Option<usize>,
+    stop: bool,
+}
+
+struct Shared {
+    state: Mutex<State>,
+    wake: Condvar,
+}
+
+impl Shared {
+    fn lock(&self) -> MutexGuard<'_, State> {
+        // A panic while holding the lock leaves counters at worst; the tiles stay usable.
+        self.state
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+}
+
+/// A tiled map opened for flight (module doc).
+pub struct PagedMap {
+    dir: PathBuf,
+    index: TiledIndex,
+    /// The tiles by grid square (`(col, row)` -> position in the index).
+    by_square: HashMap<(i64, i64), usize>,
+    /// The first tile's header: what every tile shares (CRS, detector, levels, heights).
+    header: MapHeader,
+    dem: Dem,
+    budget_bytes: u64,
+    shared: Arc<Shared>,
+    loader: Option<JoinHandle<()>>,
+}
+
+impl PagedMap {
+    /// Opens the tiled map in the folder `dir` (or its `index.json`) with a memory budget of
+    /// `memory_mb` MB for tiles, and starts its loader. The terrain: `dem` when given, else the
+    /// tiles' constant ground height (a tiled map built on a DEM needs the DEM given: it is not
+    /// read whole from the map's sources).
+    pub fn open(dir: &Path, memory_mb: u64, dem: Option<Dem>) -> Result<Self, MapReferenceError> {
+        let index = TiledIndex::read(dir)?;
+        let dir = if dir.is_dir() {
+            dir.to_path_buf()
+        } else {
+            dir.parent().map_or_else(|| PathBuf::from("."), Path::to_path_buf)
+        };
+        let Some(first) = index.tiles.first() else {
+            return Err(MapError::Input {
+                path: dir.clone(),
+                reason: "the tiled map has no tile".into(),
+            }
+            .into());
+        };
+        let header = ReferenceMap::open(&dir.join(&first.file))?.header().clone();
+        let dem = match (dem, &header.height) {
+            (Some(d), _) => d,
+            (None, HeightInfo::Constant { amsl_m }) => {
+                Dem::flat(*amsl_m).map_err(|e| MapReferenceError::Dem {
+                    map: dir.display().to_string(),
+                    dem: format!("constant {amsl_m} m"),
+                    reason: e.to_string(),
+                })?
+            }
+            (None, HeightInfo::Dem { file, .. }) => {
+                return Err(MapReferenceError::Dem {
+                    map: dir.display().to_string(),
+                    dem: file.clone(),
+                    reason: "a tiled map built on a DEM needs the DEM given ([map] dem)".into(),
+                });
+            }
+        };
+        let shared = Arc::new(Shared {
+            state: Mutex::new(State {
+                held: HashMap::new(),
+                queue: VecDeque::new(),
+                pinned: HashSet::new(),
+                failed: HashSet::new(),
+                tick: 0,
+                stats: PagingStats::default(),
+                loading: None,
+                stop: false,
+            }),
+            wake: Condvar::new(),
+        });
+        let budget_bytes = memory_mb.saturating_mul(1 << 20);
+        let loader = {
+            let (shared, dir) = (Arc::clone(&shared), dir.clone());
+            let files: Vec<(PathBuf, u32)> = index
+                .tiles
+                .iter()
+                .map(|t| (dir.join(&t.file), t.crc32))
+                .collect();
+            std::thread::Builder::new()
+                .name("visnav-tiles".into())
+                .spawn(move || load_loop(&shared, &files, budget_bytes))
+                .map_err(|e| MapError::Io {
+                    path: dir.clone(),
+                    what: "cannot start the tile loader",
+                    cause: e,
+                })?
+        };
+        let by_square = index
+            .tiles
+            .iter()
+            .enumerate()
+            .map(|(k, t)| ((t.col, t.row), k))
+            .collect();
+        Ok(Self {
+            dir,
+            index,
+            by_square,
+            header,
+            dem,
+            budget_bytes,
+            shared,
+            loader: Some(loader),
+        })
+    }
+
+    /// The map's index.
+    pub fn index(&self) -> &TiledIndex {
+        &self.index
+    }
+
+    /// The map's folder.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// The memory budget for tiles, bytes.
+    pub fn budget_bytes(&self) -> u64 {
+        self.budget_bytes
+    }
+
+    /// The paging counters now.
+    pub fn stats(&self) -> PagingStats {
+        let st = self.shared.lock();
+        PagingStats {
+            resident_tiles: st.held.len(),
+            resident_bytes: st.held.values().map(|h| h.bytes).sum(),
+            queued: st.queue.len() + usize::from(st.loading.is_some()),
+            ..st.stats
+        }
+    }
+
+    /// Asks for the tiles under `rects_m` (each `[min_x, min_y, max_x, max_y]`), most needed
+    /// first: they are loaded in that order, in the background, and kept over any other tile.
+    /// Replaces the previous request's queue.
+    pub fn request(&self, rects_m: &[[f64; 4]]) {
+        let mut order: Vec<usize> = Vec::new();
+        for r in rects_m {
+            for k in self.tiles_under(*r) {
+                if !order.contains(&k) {
+                    order.push(k);
+                }
+            }
+        }
+        let mut st = self.shared.lock();
+        st.pinned = order.iter().copied().collect();
+        st.queue = order
+            .into_iter()
+            .filter(|k| !st.held.contains_key(k) && !st.failed.contains(k))
+            .collect();
+        drop(st);
+        self.shared.wake.notify_one();
+    }
+
+    /// Waits until the loader's queue is empty (tests and start-up; never on the frame path),
+    /// at most `timeout`. Whether it emptied.
+    pub fn wait_loaded(&self, timeout: std::time::Duration) -> bool {
+        let deadline = std::time::Instant::now() + timeout;
+        let mut st = self.shared.lock();
+        while !(st.queue.is_empty() && st.loading.is_none()) {
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            if left.is_zero() {
+                return false;
+            }
+            st = self
+                .shared
+                .wake
+                .wait_timeout(st, left)
+                .unwrap_or_else(std::sync::PoisonError::into_inner)
+                .0;
+        }
+        true
+    }
+
+    /// Indices (into the index's tiles) of the tiles whose bounds overlap `r`.
+    fn tiles_under(&self, r: [f64; 4]) -> Vec<usize> {
+        let t = self.index.tile_m;
+        if !(r.iter().all(|v| v.is_finite()) && r[0] <= r[2] && r[1] <= r[3] && t > 0.0) {
+            return Vec::new();
+        }
+        // Bounds reach a little past their square (moved out to the coarsest pixel grid): look
+        // one square further and test the bounds.
+        let (c0, c1) = ((r[0] / t).floor() as i64 - 1, (r[2] / t).floor() as i64 + 1); // ok: finite
+        let (r0, r1) = ((r[1] / t).floor() as i64 - 1, (r[3] / t).floor() as i64 + 1);
+        if (c1 - c0).saturating_mul(r1 - r0) > self.index.tiles.len() as i64 {
+            return self
+                .index
+                .tiles
+                .iter()
+                .enumerate()
+                .filter(|(_, e)| overlaps(e, r))
+                .map(|(k, _)| k)
+                .collect();
+        }
+        let mut out = Vec::new();
+        for row in (r0..=r1).rev() {
+            for col in c0..=c1 {
+                if let Some(&k) = self.by_square.get(&(col, row))
+                    && overlaps(&self.index.tiles[k], r)
+                {
+                    out.push(k);
+                }
+            }
+        }
+        out
+    }
+
+    /// The held tiles under `r`, marked used, and the count of tiles under `r` not held (queued
+    /// for loading unless queued or failed already).
+    fn held_under(&self, r: [f64; 4]) -> Vec<(usize, Arc<ReferenceMap>)> {
+        let under = self.tiles_under(r);
+        let mut st = self.shared.lock();
+        st.tick += 1;
+        let tick = st.tick;
+        let mut out = Vec::with_capacity(under.len());
+        let mut missed = false;
+        for k in under {
+            if let Some(h) = st.held.get_mut(&k) {
+                h.last_used = tick;
+                out.push((k, Arc::clone(&h.map)));
+            } else if !st.failed.contains(&k) {
+                st.stats.misses += 1;
+                if st.loading != Some(k) && !st.queue.contains(&k) {
+                    st.queue.push_back(k);
+                    missed = true;
+                }
+            }
+        }
+        drop(st);
+        if missed {
+            self.shared.wake.notify_one();
+        }
+        out
+    }
+}
+
+impl Drop for PagedMap {
+    fn drop(&mut self) {
+        self.shared.lock().stop = true;
+        self.shared.wake.notify_all();
+        if let Some(h) = self.loader.take() {
+            let _ = h.join();
+        }
+    }
+}
+
+/// Whether tile `e`'s bounds overlap `r`.
+fn overlaps(e: &super::tiled::TileEntry, r: [f64; 4]) -> bool {
+    let b = &e.bounds;
+    b.min_x_m <= r[2] && b.max_x_m >= r[0] && b.min_y_m <= r[3] && b.max_y_m >= r[1]
+}
+
+/// The loader: opens queued tiles one at a time (outside the lock), evicting the least recently
+/// used unpinned tiles to stay within `budget` bytes.
+fn load_loop(shared: &Shared, files: &[(PathBuf, u32)], budget: u64) {
+    loop {
+        let k = {
+            let mut st = shared.lock();
+            loop {
+                if st.stop {
+                    return;
+                }
+                if let Some(k) = st.queue.pop_front() {
+                    if st.held.contains_key(&k) || st.failed.contains(&k) {
+                        continue;
+                    }
+                    let Some((path, _)) = files.get(k) else {
+                        continue;
+                    };
+                    let bytes = std::fs::metadata(path).map_or(0, |m| m.len());
+                    if !make_room(&mut st, bytes, budget) {
+                        st.stats.over_budget += 1;
+                        continue;
+                    }
+                    st.loading = Some(k);
+                    break k;
+                }
+                shared.wake.notify_all();
+                st = shared
+                    .wake
+                    .wait(st)
+                    .unwrap_or_else(std::sync::PoisonError::into_inner);
+            }
+        };
+        let (path, crc) = &files[k];
+        let opened = ReferenceMap::open(path).and_then(|m| {
+            if m.stored_crc() == *crc {
+                Ok(m)
+            } else {
+                Err(MapError::Format {
+                    path: path.clone(),
+                    reason: "the tile's checksum is not the one the index records (rebuilt \
+                             without gathering?)"
+                        .into(),
+                })
+            }
+        });
+        let mut st = shared.lock();
+        st.loading = None;
+        match opened {
+            Ok(m) => {
+                let bytes = m.file_len();
+                let tick = st.tick;
+                st.held.insert(
+                    k,
+                    Held {
+                        map: Arc::new(m),
+                        bytes,
+                        last_used: tick,
+                    },
+                );
+                st.stats.loads += 1;
+            }
+            Err(e) => {
+                tracing::warn!(tile = %path.display(), "tiled map: a tile cannot be loaded: {e}");
+                st.failed.insert(k);
+                st.stats.load_errors += 1;
+            }
+        }
+        drop(st);
+        shared.wake.notify_all();
+    }
+}
+
+/// Evicts least recently used unpinned tiles until `bytes` more fit in `budget`; whether they do.
+fn make_room(st: &mut State, bytes: u64, budget: u64) -> bool {
+    loop {
+        let used: u64 = st.held.values().map(|h| h.bytes).sum();
+        if used.saturating_add(bytes) <= budget {
+            return true;
+        }
+        let victim = st
+            .held
+            .iter()
+            .filter(|(k, _)| !st.pinned.contains(k))
+            .min_by_key(|(_, h)| h.last_used)
+            .map(|(k, _)| *k);
+        match victim {
+            Some(k) => {
+                st.held.remove(&k);
+                st.stats.evictions += 1;
+            }
+            None => return false,
+        }
+    }
+}
+
+/// A map selection as the fix engine's.
+pub(crate) fn ref_selection(s: MapSelection) -> RefSelection {
+    RefSelection {
+        features: s
+            .features
+            .iter()
+            .map(|f| RefFeature {
+                x_m: f.x_m,
+                y_m: f.y_m,
+                z_amsl_m: f.z_amsl_m,
+                scale_m: f.scale_m,
+                laplacian: f.laplacian,
+            })
+            .collect(),
+        descriptors: s.descriptors,
+        kind: s.kind,
+    }
+}
+
+impl Reference for PagedMap {
+    fn crs(&self) -> Crs {
+        self.header.crs
+    }
+    fn level_gsd_m(&self) -> Vec<f64> {
+        self.header.levels.iter().map(|l| l.gsd_m).collect()
+    }
+    fn ortho_pixel_m(&self) -> f64 {
+        let h = &self.header;
+        h.orthos
+            .first()
+            .map(|o| o.pixel_size_m)
+            .or_else(|| h.levels.first().map(|l| l.gsd_m))
+            .unwrap_or(0.0)
+    }
+    fn feature_spec(&self) -> FeatureSpec {
+        self.header.feature_spec()
+    }
+    fn bounds_m(&self) -> [f64; 4] {
+        let b = &self.index.bounds;
+        [b.min_x_m, b.min_y_m, b.max_x_m, b.max_y_m]
+    }
+    fn height_amsl_m(&self, x_m: f64, y_m: f64) -> Option<f64> {
+        self.dem.height_at(x_m, y_m)
+    }
+    fn dem(&self) -> &Dem {
+        &self.dem
+    }
+    fn height_sigma_m(&self) -> f64 {
+        self.header.height_sigma_m
+    }
+    fn height_errors(&self) -> HeightErrors {
+        self.header.height_errors()
+    }
+    fn select(&self, level: usize, rect_m: [f64; 4]) -> RefSelection {
+        let mut out = RefSelection::empty(self.header.descriptor_kind());
+        for (_, m) in self.held_under(rect_m) {
+            let s = m.select(level, rect_m[0], rect_m[1], rect_m[2], rect_m[3]);
+            let s = ref_selection(s);
+            out.features.extend(s.features);
+            out.descriptors.extend(s.descriptors);
+        }
+        out
+    }
+    fn level_window(&self, level: usize, rect_m: [f64; 4]) -> Option<LevelWindow<'_>> {
+        let gsd = self.header.levels.get(level)?.gsd_m;
+        let held = self.held_under(rect_m);
+        let images: Vec<_> = held
+            .iter()
+            .filter_map(|(_, m)| m.level_image(level).map(|(info, data)| (info, data)))
+            .collect();
+        let (first, _) = images.first()?;
+        // The shared pixel grid, through the first tile's image corner.
+        let (gx, gy) = (first.origin_x_m, first.origin_y_m);
+        let col = |x: f64| ((x - gx) / gsd).floor() as i64; // ok: finite map coordinates
+        let row = |y: f64| ((gy - y) / gsd).floor() as i64;
+        // The rectangle, clipped to the held tiles' images.
+        let (mut x0, mut y0, mut x1, mut y1) = (i64::MAX, i64::MAX, i64::MIN, i64::MIN);
+        for (info, _) in &images {
+            let ox = ((info.origin_x_m - gx) / gsd).round() as i64;
+            let oy = ((gy - info.origin_y_m) / gsd).round() as i64;
+            x0 = x0.min(ox);
+            y0 = y0.min(oy);
+            x1 = x1.max(ox + info.width_px as i64);
+            y1 = y1.max(oy + info.height_px as i64);
+        }
+        let (x0, y0) = (x0.max(col(rect_m[0])), y0.max(row(rect_m[3])));
+        let (x1, y1) = (x1.min(col(rect_m[2]) + 1), y1.min(row(rect_m[1]) + 1));
+        if x1 <= x0 || y1 <= y0 {
+            return None;
+        }
+        let (w, h) = ((x1 - x0) as usize, (y1 - y0) as usize);
+        if w.saturating_mul(h) > MAX_WINDOW_PX {
+            return None;
+        }
+        let mut data = vec![0u8; w * h];
+        for (info, px) in &images {
+            let ox = ((info.origin_x_m - gx) / gsd).round() as i64;
+            let oy = ((gy - info.origin_y_m) / gsd).round() as i64;
+            let (iw, ih) = (info.width_px as i64, info.height_px as i64);
+            for y in y0.max(oy)..y1.min(oy + ih) {
+                let src_row = ((y - oy) * iw) as usize;
+                let dst_row = ((y - y0) as usize) * w;
+                for x in x0.max(ox)..x1.min(ox + iw) {
+                    let v = px[src_row + (x - ox) as usize];
+                    // Tiles overlap by their grid snapping: a pixel one holds beats another's gap.
+                    if v != 0 {
+                        data[dst_row + (x - x0) as usize] = v;
+                    }
+                }
+            }
+        }
+        Some(LevelWindow::Owned(MapImageBuf {
+            data,
+            width: w,
+            height: h,
+            origin_x_m: gx + x0 as f64 * gsd,
+            origin_y_m: gy - y0 as f64 * gsd,
+            gsd_m: gsd,
+        }))
+    }
+}

@@ -5,8 +5,8 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use visnav::fix::reference::{RefSelection, Reference};
 use visnav::fix::MapReference;
+use visnav::fix::reference::{RefSelection, Reference};
 use visnav::map::paged::PagedMap;
 use visnav::map::tiled::build_tiled;
 use visnav::map::{BuildSpec, HeightSource, build_map};
@@ -75,17 +75,29 @@ fn a_paged_map_lends_the_single_files_features_and_pixels_once_loaded() {
         let a = rows(&paged.select(level, rect));
         let b = rows(&one.select(level, rect));
         assert!(!b.is_empty());
-        assert!(a == b, "level {level}: {} against {} features", a.len(), b.len());
+        assert!(
+            a == b,
+            "level {level}: {} against {} features",
+            a.len(),
+            b.len()
+        );
         // The level window: every pixel the single file has there, at the same place.
         let w = paged.level_window(level, rect).unwrap();
         let (w, whole) = (w.image(), one.level_image(level).unwrap());
         let mut compared = 0;
         for y in 0..w.height {
             for x in 0..w.width {
-                let p = whole.to_px(w.to_map([x as f64, y as f64])[0], w.to_map([x as f64, y as f64])[1]);
+                let p = whole.to_px(
+                    w.to_map([x as f64, y as f64])[0],
+                    w.to_map([x as f64, y as f64])[1],
+                );
                 let (wx, wy) = (p[0].round() as usize, p[1].round() as usize);
                 assert!((p[0] - wx as f64).abs() < 1e-6 && (p[1] - wy as f64).abs() < 1e-6);
-                assert_eq!(w.data[y * w.width + x], whole.data[wy * whole.width + wx], "level {level} ({x}, {y})");
+                assert_eq!(
+                    w.data[y * w.width + x],
+                    whole.data[wy * whole.width + wx],
+                    "level {level} ({x}, {y})"
+                );
                 compared += 1;
             }
         }
@@ -103,7 +115,13 @@ fn a_paged_map_keeps_to_its_memory_budget() {
     let dir = tempfile::tempdir().unwrap();
     let (_, tiled) = both(dir.path());
     let probe = PagedMap::open(&tiled, 1024, None).unwrap();
-    let largest = probe.index().tiles.iter().map(|t| t.file_bytes).max().unwrap();
+    let largest = probe
+        .index()
+        .tiles
+        .iter()
+        .map(|t| t.file_bytes)
+        .max()
+        .unwrap();
     drop(probe);
     // Room for two of the largest tiles (the budget is whole MB).
     let mb = (2 * largest).div_ceil(1 << 20);
@@ -155,9 +173,163 @@ fn a_paged_map_refuses_a_damaged_tile_and_goes_on() {
     paged.request(&[paged.bounds_m()]);
     assert!(paged.wait_loaded(Duration::from_secs(60)));
     let s = paged.stats();
-    assert_eq!((s.load_errors, s.loads), (1, ix.tiles.len() as u64 - 1), "{s:?}");
+    assert_eq!(
+        (s.load_errors, s.loads),
+        (1, ix.tiles.len() as u64 - 1),
+        "{s:?}"
+    );
     // Not queued again by a select over it.
     let _ = paged.select(0, paged.bounds_m());
     assert!(paged.wait_loaded(Duration::from_secs(5)));
     assert_eq!(paged.stats().load_errors, 1);
+}
+
+/// The daemon's paged fixer over a tiled NAIP map: a fix before any tile is in memory goes on at
+/// once with what is held (its misses counted and queued, nothing waited for); once the tiles
+/// asked for are loaded, the paged fixes are the single-file engine's, frame for frame. What
+/// it asks for covers the prior's footprint first, then the ground ahead along the velocity.
+#[test]
+fn the_paged_fixer_asks_ahead_and_fixes_as_the_single_file_does() {
+    use std::sync::Arc;
+    use visnav::daemon::FrameFixer;
+    use visnav::daemon::paging::{LOOKAHEAD_S, PagedFixer};
+    use visnav::fix::{FixEngine, FixParams};
+    use visnav::sitl::fixeval::NaipEval;
+    use visnav_core::rng::Rng;
+
+    let dir = tempfile::tempdir().unwrap();
+    let maps = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("sitl/maps");
+    let eval = NaipEval::new(&maps, FixParams::default()).unwrap();
+    let mut spec = BuildSpec::new(vec![naip2009()], HeightSource::ConstantAmsl(580.0));
+    spec.levels = Some(2);
+    let one_path = dir.path().join("one.vnm");
+    build_map(&spec, &one_path, &mut |_| {}).unwrap();
+    let tiled = dir.path().join("tiled");
+    build_tiled(&spec, 2000.0, &tiled, None, &mut |_| {}).unwrap();
+    let camera = *eval.engine().camera();
+    let one = FixEngine::new(
+        Arc::new(MapReference::open(&one_path, None).unwrap()),
+        camera,
+        FixParams::default(),
+    )
+    .unwrap();
+    let map = Arc::new(PagedMap::open(&tiled, 64, None).unwrap());
+    let paged = PagedFixer::new(
+        FixEngine::new(map.clone(), camera, FixParams::default()).unwrap(),
+        map.clone(),
+    );
+    let mut rng = Rng::new(7);
+    let (b, margin) = eval.frame_area_m();
+    let mut cold = true;
+    let mut agreed = 0;
+    for i in 0..8u64 {
+        let x = b[0] + margin + (b[2] - b[0] - 2.0 * margin) * rng.uniform();
+        let y = b[1] + margin + (b[3] - b[1] - 2.0 * margin) * rng.uniform();
+        let case = eval.random_case(&mut rng, x, y);
+        let img = eval.frame(&case, i, None).unwrap();
+        let prior = eval.prior(&mut rng, &case, i).unwrap();
+        // What the pager asks for: the prior's footprint first, holding the true nadir point.
+        let rects = paged.wanted(&prior);
+        let r = rects[0];
+        assert!(
+            r[0] < x && x < r[2] && r[1] < y && y < r[3],
+            "{r:?} misses ({x}, {y})"
+        );
+        if cold {
+            // Nothing in memory and nothing asked for: the engine's selects answer at once with
+            // what is held, count what they miss and queue it.
+            let bare = FixEngine::new(map.clone(), camera, FixParams::default()).unwrap();
+            let _ = bare.fix(&img, &prior);
+            let s = map.stats();
+            assert!(s.misses > 0, "{s:?}");
+            cold = false;
+        }
+        assert!(map.wait_loaded(Duration::from_secs(30)));
+        // The same frame again with its tiles in memory: the single file's fix.
+        let p = paged.fix(&img, &prior);
+        let o = one.fix(&img, &prior);
+        assert_eq!(
+            p.accepted, o.accepted,
+            "frame {i}: {:?} / {:?}",
+            p.rejection, o.rejection
+        );
+        if o.accepted {
+            // The same features in another order: the same fix up to float summation order.
+            let d = (p.x_m - o.x_m)
+                .abs()
+                .max((p.y_m - o.y_m).abs())
+                .max((p.z_m - o.z_m).abs());
+            assert!(d < 1e-3 && p.inliers == o.inliers, "frame {i}: {d} m apart");
+            agreed += 1;
+        }
+    }
+    assert!(agreed >= 3, "{agreed} accepted fixes compared");
+    // Two priors a second apart, 25 m/s east: the next asks for the ground 15 and 30 s ahead.
+    let fixer = PagedFixer::new(
+        FixEngine::new(map.clone(), camera, FixParams::default()).unwrap(),
+        map.clone(),
+    );
+    let case = eval.random_case(&mut rng, 487_000.0, 5_207_000.0);
+    let mut prior = eval.prior(&mut rng, &case, 0).unwrap();
+    prior.t_capture_us = 10_000_000;
+    fixer.wanted(&prior);
+    let crs = fixer.map().crs();
+    let p0 = prior.position.unwrap();
+    let (x0, y0) = crs.from_geodetic(p0.lat_deg, p0.lon_deg).unwrap();
+    let (lat, lon) = crs.to_geodetic(x0 + 25.0, y0).unwrap();
+    let mut next = prior;
+    next.t_capture_us += 1_000_000;
+    next.position.as_mut().unwrap().lat_deg = lat;
+    next.position.as_mut().unwrap().lon_deg = lon;
+    let rects = fixer.wanted(&next);
+    assert_eq!(rects.len(), 1 + LOOKAHEAD_S.len(), "{rects:?}");
+    for (r, s) in rects[1..].iter().zip(LOOKAHEAD_S) {
+        let cx = 0.5 * (r[0] + r[2]) - 0.5 * (rects[0][0] + rects[0][2]);
+        let cy = 0.5 * (r[1] + r[3]) - 0.5 * (rects[0][1] + rects[0][3]);
+        assert!(
+            (cx - 25.0 * s).abs() < 0.5 && cy.abs() < 0.5,
+            "{s} s ahead: ({cx}, {cy})"
+        );
+    }
+    // Without a position (relocalisation): around the last position, wider with time lost.
+    let mut lost = next;
+    lost.position = None;
+    lost.t_capture_us += 10_000_000;
+    let r = fixer.wanted(&lost)[0];
+    assert!(r[2] - r[0] > 2.0 * 600.0 && r[2] - r[0] < 1e5, "{r:?}");
+}
+
+/// `[map] file` may name a tiled map's folder, with `[map] memory_mb`: the configuration loads
+/// and passes its data check, and the daemon's fixer pages it; a folder without an index and a
+/// budget out of range are refused by key.
+#[test]
+fn a_configuration_flies_a_tiled_map_folder() {
+    use visnav::daemon::config::Config;
+    let dir = tempfile::tempdir().unwrap();
+    let (_, tiled) = both(dir.path());
+    let cfg = dir.path().join("c.toml");
+    let write = |file: &Path, memory_mb: u64| {
+        std::fs::write(
+            &cfg,
+            format!(
+                "[link]\nconnection = \"udpin:127.0.0.1:14999\"\n[camera]\nwidth_px = 640\n\
+                 height_px = 480\nhfov_deg = 60.0\n[map]\nfile = \"{}\"\nmemory_mb = {memory_mb}\n",
+                file.display()
+            ),
+        )
+        .unwrap();
+    };
+    write(&tiled, 64);
+    let c = Config::load(&cfg).unwrap();
+    c.check_data(&cfg).unwrap();
+    let fixer = visnav::daemon::fixer_from_config(&c).unwrap();
+    drop(fixer);
+    write(&tiled, 1);
+    let e = Config::load(&cfg).unwrap_err().to_string();
+    assert!(e.contains("map.memory_mb"), "{e}");
+    let empty = dir.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    write(&empty, 64);
+    let e = Config::load(&cfg).unwrap_err().to_string();
+    assert!(e.contains("map.file") && e.contains("index.json"), "{e}");
 }

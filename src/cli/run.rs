@@ -43,9 +43,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     let fixer: Option<std::sync::Arc<dyn visnav::daemon::FrameFixer>> = match &cfg.frames {
         Some(frames) => {
             tracing::info!("camera frames: {}", frames.describe_source());
-            let engine = visnav::daemon::engine_from_config(&cfg)
+            let fixer = visnav::daemon::fixer_from_config(&cfg)
                 .with_context(|| format!("{}: vision fix engine", path.display()))?;
-            Some(std::sync::Arc::new(engine))
+            Some(fixer)
         }
         None => {
             tracing::warn!("{}", super::check_config::NO_CAMERA_WARNING);

@@ -154,12 +154,9 @@ pub fn run(args: SitlRunArgs) -> anyhow::Result<ExitCode> {
             lockstep_latency: None,
             release: visnav_daemon::frames::Release::AsRead,
         };
-        let daemon = Daemon::start_with(
-            DaemonSetup::from_config(&cfg),
-            Some(Arc::new(engine)),
-            Some(pipeline),
-        )
-        .await?;
+        let daemon =
+            Daemon::start_with(DaemonSetup::from_config(&cfg), Some(engine), Some(pipeline))
+                .await?;
         let limit = async {
             match duration {
                 Some(t) => tokio::time::sleep(t).await,
@@ -202,13 +199,13 @@ struct CameraWorld {
 fn camera_world(
     args: &SitlRunArgs,
     mut cfg: Config,
-) -> anyhow::Result<(CameraWorld, visnav::fix::FixEngine)> {
+) -> anyhow::Result<(CameraWorld, Arc<dyn visnav::daemon::FrameFixer>)> {
     if let Some(path) = &args.scenario {
         let sc = visnav::sitl::Scenario::load(path)?;
         let base = path.parent().unwrap_or(std::path::Path::new("."));
         let cam = visnav::sitl::closed_loop::scenario_camera(&sc, base, &mut cfg, &args.config)
             .with_context(|| format!("--scenario {}", path.display()))?;
-        let engine = visnav::daemon::engine_from_config(&cfg)
+        let engine = visnav::daemon::fixer_from_config(&cfg)
             .with_context(|| format!("{}: vision fix engine", args.config.display()))?;
         drop(cam.map_copies);
         let world = CameraWorld {
@@ -228,7 +225,7 @@ fn camera_world(
             "give --ground-height (the configuration has no finite map.ground_height_amsl_m)"
         ),
     };
-    let engine = visnav::daemon::engine_from_config(&cfg)
+    let engine = visnav::daemon::fixer_from_config(&cfg)
         .with_context(|| format!("{}: vision fix engine", args.config.display()))?;
     let camera = cfg
         .camera

@@ -16,6 +16,7 @@ pub mod imu_bias;
 pub mod inputs;
 pub mod metrics;
 mod nav_task;
+pub mod paging;
 mod priors;
 pub mod prometheus;
 pub mod replay;
@@ -30,4 +31,4 @@ pub use daemon::{
 pub use fixer::FrameFixer;
 pub use frames::{FixResult, Slot};
 pub use metrics::{DaemonMetrics, MetricsSnapshot};
-pub use wiring::engine_from_config;
+pub use wiring::{engine_from_config, fixer_from_config};

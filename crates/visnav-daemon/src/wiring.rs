@@ -14,6 +14,7 @@ use visnav_core::vision::GrayImage;
 use visnav_io::geo::dem::DemFileError;
 use visnav_io::map::MapReference;
 use visnav_io::map::MapReferenceError;
+use visnav_io::map::paged::PagedMap;
 use visnav_io::map::{BuildSpec, HeightSource};
 
 /// Why the configuration's fix engine could not be built; each names the section and key.
@@ -52,6 +53,25 @@ pub enum WiringError {
 /// temporary file from `[map] ortho` (small areas); the camera of `[camera]`; `[fix]` settings.
 /// Paths must already be resolved (as `Config::load` does).
 pub fn engine_from_config(cfg: &Config) -> Result<FixEngine, WiringError> {
+    Ok(engine_and_pages(cfg)?.0)
+}
+
+/// The frame path's fixer a configuration describes: [`engine_from_config`]'s engine, or, when
+/// `[map] file` is a tiled map's folder, the engine over its paged tiles with the pager that asks
+/// for them ahead of each frame (`crate::paging`).
+pub fn fixer_from_config(cfg: &Config) -> Result<Arc<dyn FrameFixer>, WiringError> {
+    Ok(match engine_and_pages(cfg)? {
+        (engine, Some(map)) => Arc::new(crate::paging::PagedFixer::new(engine, map)),
+        (engine, None) => Arc::new(engine),
+    })
+}
+
+/// Default `[map] memory_mb`: tiles of 2 000 px are a few MB, so 512 MB holds a hundred of them,
+/// several times the squares a footprint and its look-ahead touch, on a 4-8 GB companion board.
+pub const DEFAULT_MAP_MEMORY_MB: u64 = 512;
+
+/// The engine, and the paged map under it when `[map] file` is a tiled map's folder.
+fn engine_and_pages(cfg: &Config) -> Result<(FixEngine, Option<Arc<PagedMap>>), WiringError> {
     let camera = cfg.camera.build().map_err(WiringError::Camera)?;
     let dem = match (&cfg.map.dem, cfg.map.ground_height_amsl_m) {
         (Some(p), _) => Some(
@@ -65,7 +85,14 @@ pub fn engine_from_config(cfg: &Config) -> Result<FixEngine, WiringError> {
         (None, Some(h)) => Some(Dem::flat(h).map_err(WiringError::GroundHeight)?),
         (None, None) => None,
     };
+    let mut pages = None;
     let reference: Arc<dyn Reference> = match &cfg.map.file {
+        Some(f) if f.is_dir() => {
+            let memory_mb = cfg.map.memory_mb.unwrap_or(DEFAULT_MAP_MEMORY_MB);
+            let map = Arc::new(PagedMap::open(f, memory_mb, dem).map_err(WiringError::MapFile)?);
+            pages = Some(Arc::clone(&map));
+            map
+        }
         Some(f) => Arc::new(MapReference::open(f, dem).map_err(WiringError::MapFile)?),
         None => {
             let height = match (&cfg.map.dem, cfg.map.ground_height_amsl_m) {
@@ -89,7 +116,7 @@ pub fn engine_from_config(cfg: &Config) -> Result<FixEngine, WiringError> {
     if let Some(backend) = feature_backend(cfg.vision.backend) {
         engine.set_feature_backend(backend);
     }
-    Ok(engine)
+    Ok((engine, pages))
 }
 
 /// The feature backend for `[vision] backend` (None: the CPU), saying what was chosen and why.

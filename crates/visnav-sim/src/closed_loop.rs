@@ -1566,10 +1566,9 @@ pub async fn run_until_stopped(
         "building the vision fix engine (map) from {}",
         cfg_path.display()
     );
-    let engine = visnav_daemon::engine_from_config(&cfg)
+    let engine = visnav_daemon::fixer_from_config(&cfg)
         .map_err(|e| setup_err(format!("{}: vision fix engine: {e}", cfg_path.display())))?;
     drop(copies);
-    let engine: Arc<dyn FrameFixer> = Arc::new(engine);
     let table =
         Arc::new(TruthTable::from_scenario(sc).map_err(|e| setup_err(format!("truth: {e}")))?);
     let duration_s = sc.duration_s();

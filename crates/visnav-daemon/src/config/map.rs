@@ -8,11 +8,18 @@ use super::*;
 #[derive(Debug, Clone, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct MapConfig {
-    /// The reference map (`.vnm`, built by `visnav map build`), relative to the config file's
-    /// folder unless absolute. With it, `ortho` may be empty and `dem` / `ground_height_amsl_m`
-    /// are optional (they override the map's own terrain).
+    /// The reference map (`.vnm`, built by `visnav map build`, or a tiled map's folder, built
+    /// with `--tile-m`: its tiles are paged in flight within `memory_mb`), relative to the config
+    /// file's folder unless absolute. With it, `ortho` may be empty and `dem` /
+    /// `ground_height_amsl_m` are optional (they override the map's own terrain; a tiled map built
+    /// on a DEM needs `dem`).
     #[serde(default)]
     pub file: Option<PathBuf>,
+    /// With a tiled map (`file` a folder): the memory its tiles may take, MB (default 512). The
+    /// tiles near the aircraft and ahead of it are loaded in the background, the least recently
+    /// used dropped beyond it (docs/maps.md, "In flight").
+    #[serde(default)]
+    pub memory_mb: Option<u64>,
     /// Orthophoto GeoTIFF file(s), relative to the config file's folder unless absolute. Without
     /// `file`, the daemon extracts their features in memory at start (small areas).
     #[serde(default)]
@@ -49,12 +56,26 @@ pub struct MapConfig {
     pub height_point_sigma_m: Option<f64>,
 }
 
+/// Smallest `[map] memory_mb`: a few tiles of 2 000 px.
+pub const MIN_MAP_MEMORY_MB: u64 = 16;
+/// Largest `[map] memory_mb` (1 TB: a bound, not a recommendation).
+pub const MAX_MAP_MEMORY_MB: u64 = 1 << 20;
+
 impl MapConfig {
     /// Validate; `file` is relative to `file_base` (the current directory when `--map` gave it),
     /// the other paths to `base` (the config file's folder).
     pub(super) fn validate_in(&self, base: &Base, file_base: &Base, p: &mut Problems) {
         if let Some(f) = &self.file {
-            check_file(p, "file", file_base, f);
+            if file_base.resolve(f).is_dir() {
+                check_file(
+                    p,
+                    "file",
+                    file_base,
+                    &f.join(visnav_io::map::tiled::INDEX_FILE),
+                );
+            } else {
+                check_file(p, "file", file_base, f);
+            }
         } else if self.ortho.is_empty() {
             p.push(
                 "ortho",
@@ -81,6 +102,14 @@ impl MapConfig {
                 visnav_io::geo::dem::MIN_TERRAIN_HEIGHT_M,
                 visnav_io::geo::dem::MAX_TERRAIN_HEIGHT_M,
             ),
+        }
+        if let Some(mb) = self.memory_mb {
+            p.range(
+                "memory_mb",
+                mb as f64,
+                MIN_MAP_MEMORY_MB as f64,
+                MAX_MAP_MEMORY_MB as f64,
+            );
         }
         if let Some(crs) = &self.crs_override {
             p.section("crs_override", |p| Validate::validate(crs, p));

@@ -407,10 +407,15 @@ impl Config {
         let mut p = Problems::default();
         let mut first_crs: Option<Crs> = None;
         p.section("map", |p| {
-            if let Some(f) = &self.map.file
-                && let Err(e) = visnav_io::map::ReferenceMap::open(f)
-            {
-                p.push("file", e.to_string());
+            if let Some(f) = &self.map.file {
+                let opened = if f.is_dir() {
+                    visnav_io::map::tiled::TiledIndex::read(f).map(|_| ())
+                } else {
+                    visnav_io::map::ReferenceMap::open(f).map(|_| ())
+                };
+                if let Err(e) = opened {
+                    p.push("file", e.to_string());
+                }
             }
             for (i, f) in self.map.ortho.iter().enumerate() {
                 match load_geotiff(f, self.map.crs_override) {

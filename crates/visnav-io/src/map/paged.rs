@@ -118,7 +118,8 @@ impl PagedMap {
         let dir = if dir.is_dir() {
             dir.to_path_buf()
         } else {
-            dir.parent().map_or_else(|| PathBuf::from("."), Path::to_path_buf)
+            dir.parent()
+                .map_or_else(|| PathBuf::from("."), Path::to_path_buf)
         };
         let Some(first) = index.tiles.first() else {
             return Err(MapError::Input {
@@ -502,7 +503,7 @@ impl Reference for PagedMap {
         let held = self.held_under(rect_m);
         let images: Vec<_> = held
             .iter()
-            .filter_map(|(_, m)| m.level_image(level).map(|(info, data)| (info, data)))
+            .filter_map(|(_, m)| m.level_image(level))
             .collect();
         let (first, _) = images.first()?;
         // The shared pixel grid, through the first tile's image corner.

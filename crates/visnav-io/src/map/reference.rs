@@ -160,8 +160,9 @@ impl Reference for MapReference {
         })
     }
     fn select(&self, level: usize, rect_m: [f64; 4]) -> RefSelection {
-        super::paged::ref_selection(self.map.select(
-            level, rect_m[0], rect_m[1], rect_m[2], rect_m[3],
-        ))
+        super::paged::ref_selection(
+            self.map
+                .select(level, rect_m[0], rect_m[1], rect_m[2], rect_m[3]),
+        )
     }
 }

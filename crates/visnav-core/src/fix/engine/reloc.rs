@@ -397,7 +397,10 @@ impl FixEngine {
         let level = self.pick_level(agl_m / self.camera.intrinsics.fx_px);
         let held = self
             .reference
-            .level_window(level, window.map_or(self.reference.bounds_m(), |w| w.rect_m))
+            .level_window(
+                level,
+                window.map_or(self.reference.bounds_m(), |w| w.rect_m),
+            )
             .ok_or(Rejection::NoLevelImages)?;
         let img = held.image();
         // Each pixel of the level image read (and held in the working planes) counts one unit:

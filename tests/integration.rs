@@ -10,6 +10,7 @@ mod architecture;
 mod closed_loop;
 mod closed_loop_copter;
 mod closed_loop_drone;
+mod closed_loop_paged;
 mod config_check;
 mod config_overrides;
 mod config_reference;

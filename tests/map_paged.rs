@@ -134,7 +134,7 @@ fn a_paged_map_keeps_to_its_memory_budget() {
         [x - 1.0, y - 1.0, x + 1.0, y + 1.0]
     };
     for k in 0..ix.tiles.len() {
-        paged.request(&[centre(k)]);
+        paged.request(&[centre(k)], 1);
         assert!(paged.wait_loaded(Duration::from_secs(30)));
         let s = paged.stats();
         assert!(s.resident_bytes <= budget, "{s:?} over {budget}");
@@ -152,10 +152,36 @@ fn a_paged_map_keeps_to_its_memory_budget() {
     drop(sel);
     // A request over the whole map: what fits is loaded, the rest counted.
     let b = paged.bounds_m();
-    paged.request(&[b]);
+    paged.request(&[b], 1);
     assert!(paged.wait_loaded(Duration::from_secs(60)));
     let s = paged.stats();
     assert!(s.over_budget > 0 && s.resident_bytes <= budget, "{s:?}");
+
+    // Prefetch: beyond the needed rectangles, tiles load only into room the budget has or that
+    // tiles outside the request free; never counted over budget, never pushing out a needed one.
+    let paged = PagedMap::open(&tiled, mb, None).unwrap();
+    let all: Vec<[f64; 4]> = (0..ix.tiles.len()).map(centre).collect();
+    paged.request(&all, 1);
+    assert!(paged.wait_loaded(Duration::from_secs(30)));
+    let s = paged.stats();
+    assert!(
+        s.loads >= 2 && s.over_budget == 0 && s.evictions == 0,
+        "{s:?}"
+    );
+    assert!(s.resident_bytes <= budget, "{s:?}");
+    let held_before = s.resident_tiles;
+    // The same request again: nothing moves (its tiles protect each other).
+    paged.request(&all, 1);
+    assert!(paged.wait_loaded(Duration::from_secs(30)));
+    assert_eq!(paged.stats().loads, s.loads);
+    // A request elsewhere frees the others for it.
+    let last = ix.tiles.len() - 1;
+    paged.request(&[centre(last)], 1);
+    assert!(paged.wait_loaded(Duration::from_secs(30)));
+    let before = paged.stats().misses;
+    let _ = paged.select(0, centre(last));
+    assert_eq!(paged.stats().misses, before, "{:?}", paged.stats());
+    assert!(held_before >= 2);
 }
 
 /// A damaged tile is refused by its checksum, counted and never retried; the others load.
@@ -170,7 +196,7 @@ fn a_paged_map_refuses_a_damaged_tile_and_goes_on() {
     bytes[n / 2] ^= 0x10;
     std::fs::write(&victim, bytes).unwrap();
     let paged = PagedMap::open(&tiled, 256, None).unwrap();
-    paged.request(&[paged.bounds_m()]);
+    paged.request(&[paged.bounds_m()], 1);
     assert!(paged.wait_loaded(Duration::from_secs(60)));
     let s = paged.stats();
     assert_eq!(
@@ -192,7 +218,7 @@ fn a_paged_map_refuses_a_damaged_tile_and_goes_on() {
 fn the_paged_fixer_asks_ahead_and_fixes_as_the_single_file_does() {
     use std::sync::Arc;
     use visnav::daemon::FrameFixer;
-    use visnav::daemon::paging::{LOOKAHEAD_S, PagedFixer};
+    use visnav::daemon::paging::{LOOKAHEAD_S, PREFETCH_S, PagedFixer};
     use visnav::fix::{FixEngine, FixParams};
     use visnav::sitl::fixeval::NaipEval;
     use visnav_core::rng::Rng;
@@ -264,7 +290,7 @@ fn the_paged_fixer_asks_ahead_and_fixes_as_the_single_file_does() {
         }
     }
     assert!(agreed >= 3, "{agreed} accepted fixes compared");
-    // Two priors a second apart, 25 m/s east: the next asks for the ground 15 and 30 s ahead.
+    // Two priors a second apart, 25 m/s east: the next asks for the ground 15 and 30 s ahead, and prefetches further.
     let fixer = PagedFixer::new(
         FixEngine::new(map.clone(), camera, FixParams::default()).unwrap(),
         map.clone(),
@@ -282,8 +308,12 @@ fn the_paged_fixer_asks_ahead_and_fixes_as_the_single_file_does() {
     next.position.as_mut().unwrap().lat_deg = lat;
     next.position.as_mut().unwrap().lon_deg = lon;
     let rects = fixer.wanted(&next);
-    assert_eq!(rects.len(), 1 + LOOKAHEAD_S.len(), "{rects:?}");
-    for (r, s) in rects[1..].iter().zip(LOOKAHEAD_S) {
+    assert_eq!(
+        rects.len(),
+        1 + LOOKAHEAD_S.len() + PREFETCH_S.len(),
+        "{rects:?}"
+    );
+    for (r, s) in rects[1..].iter().zip(LOOKAHEAD_S.iter().chain(&PREFETCH_S)) {
         let cx = 0.5 * (r[0] + r[2]) - 0.5 * (rects[0][0] + rects[0][2]);
         let cy = 0.5 * (r[1] + r[3]) - 0.5 * (rects[0][1] + rects[0][3]);
         assert!(

@@ -22,4 +22,9 @@ pub trait FrameFixer: Send + Sync + 'static {
     fn dtm_navigator(&self, _cfg: &DtmNavConfig) -> Option<DtmNavigator> {
         None
     }
+
+    /// A tiled map's paging counters now (`crate::paging`); `None`: the map is one file.
+    fn paging(&self) -> Option<visnav_io::map::paged::PagingStats> {
+        None
+    }
 }

@@ -8,7 +8,8 @@
 //!    of view, doubled for tilt and heading error);
 //! 2. the same square carried along the velocity (from the last two priors) [`LOOKAHEAD_S`]
 //!    ahead: the tiles the next frames need are loaded while this one is fixed;
-//! 3. without a position prior (relocalisation): the last position a prior gave, grown by
+//! 3. the same [`PREFETCH_S`] ahead, loaded only into room the budget has (prefetch);
+//! 4. without a position prior (relocalisation): the last position a prior gave, grown by
 //!    [`RELOC_SPEED_BOUND_M_S`] for every second since, so the search widens with the time lost
 //!    and stays near where the aircraft can be.
 
@@ -21,9 +22,14 @@ use visnav_io::map::paged::PagedMap;
 
 use crate::fixer::FrameFixer;
 
-/// Seconds ahead along the velocity whose ground is asked for: at 25-60 m/s that is 0.5-1.5 km,
-/// a 2 km tile's worth, and a tile (a few MB) loads in tens of milliseconds.
+/// Seconds ahead along the velocity whose ground is needed (kept over any other tile): at
+/// 25-60 m/s that is 0.4-1.8 km, and a tile (a few MB) loads in tens of milliseconds.
 pub const LOOKAHEAD_S: [f64; 2] = [15.0, 30.0];
+
+/// Seconds further ahead whose ground is loaded into what the memory budget has left (never
+/// pushing out a needed tile): the budget fills ahead of the aircraft early in the flight and
+/// stays full, rather than growing over the route, and a slow disk has minutes of warning.
+pub const PREFETCH_S: [f64; 3] = [60.0, 120.0, 240.0];
 
 /// The fastest the aircraft may move while no prior bounds it, m/s (a fixed-wing drone's dash):
 /// how fast the relocalisation area grows.
@@ -123,7 +129,7 @@ impl PagedFixer {
         });
         let mut rects = vec![square(xy_m, radius_m)];
         if let Some(v) = v_m_s.or(st.track.and_then(|tr| tr.v_m_s)) {
-            for s in LOOKAHEAD_S {
+            for s in LOOKAHEAD_S.iter().chain(&PREFETCH_S) {
                 rects.push(square([xy_m[0] + v[0] * s, xy_m[1] + v[1] * s], radius_m));
             }
         }
@@ -160,7 +166,8 @@ fn square(c: [f64; 2], r: f64) -> [f64; 4] {
 impl FrameFixer for PagedFixer {
     fn fix(&self, image: &GrayImage, prior: &FixPrior) -> FixReport {
         let rects = self.wanted(prior);
-        self.map.request(&rects);
+        // The footprint and the ground just ahead are needed; the rest is prefetch.
+        self.map.request(&rects, 1 + LOOKAHEAD_S.len());
         self.engine.fix(image, prior)
     }
 
@@ -170,5 +177,9 @@ impl FrameFixer for PagedFixer {
 
     fn dtm_navigator(&self, cfg: &DtmNavConfig) -> Option<DtmNavigator> {
         FrameFixer::dtm_navigator(&self.engine, cfg)
+    }
+
+    fn paging(&self) -> Option<visnav_io::map::paged::PagingStats> {
+        Some(self.map.stats())
     }
 }

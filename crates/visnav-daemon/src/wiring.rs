@@ -14,7 +14,7 @@ use visnav_core::vision::GrayImage;
 use visnav_io::geo::dem::DemFileError;
 use visnav_io::map::MapReference;
 use visnav_io::map::MapReferenceError;
-use visnav_io::map::paged::PagedMap;
+use visnav_io::map::paged::{LoadMode, PagedMap};
 use visnav_io::map::{BuildSpec, HeightSource};
 
 /// Why the configuration's fix engine could not be built; each names the section and key.
@@ -53,14 +53,23 @@ pub enum WiringError {
 /// temporary file from `[map] ortho` (small areas); the camera of `[camera]`; `[fix]` settings.
 /// Paths must already be resolved (as `Config::load` does).
 pub fn engine_from_config(cfg: &Config) -> Result<FixEngine, WiringError> {
-    Ok(engine_and_pages(cfg)?.0)
+    Ok(engine_and_pages(cfg, LoadMode::Background)?.0)
 }
 
 /// The frame path's fixer a configuration describes: [`engine_from_config`]'s engine, or, when
 /// `[map] file` is a tiled map's folder, the engine over its paged tiles with the pager that asks
 /// for them ahead of each frame (`crate::paging`).
 pub fn fixer_from_config(cfg: &Config) -> Result<Arc<dyn FrameFixer>, WiringError> {
-    Ok(match engine_and_pages(cfg)? {
+    fixer_from_config_with(cfg, LoadMode::Background)
+}
+
+/// [`fixer_from_config`] with a tiled map's tiles loaded as `tiles` says (the lock-step
+/// simulator loads them inline, so every run of a seed meets the same tiles).
+pub fn fixer_from_config_with(
+    cfg: &Config,
+    tiles: LoadMode,
+) -> Result<Arc<dyn FrameFixer>, WiringError> {
+    Ok(match engine_and_pages(cfg, tiles)? {
         (engine, Some(map)) => Arc::new(crate::paging::PagedFixer::new(engine, map)),
         (engine, None) => Arc::new(engine),
     })
@@ -71,7 +80,10 @@ pub fn fixer_from_config(cfg: &Config) -> Result<Arc<dyn FrameFixer>, WiringErro
 pub const DEFAULT_MAP_MEMORY_MB: u64 = 512;
 
 /// The engine, and the paged map under it when `[map] file` is a tiled map's folder.
-fn engine_and_pages(cfg: &Config) -> Result<(FixEngine, Option<Arc<PagedMap>>), WiringError> {
+fn engine_and_pages(
+    cfg: &Config,
+    tiles: LoadMode,
+) -> Result<(FixEngine, Option<Arc<PagedMap>>), WiringError> {
     let camera = cfg.camera.build().map_err(WiringError::Camera)?;
     let dem = match (&cfg.map.dem, cfg.map.ground_height_amsl_m) {
         (Some(p), _) => Some(
@@ -89,7 +101,9 @@ fn engine_and_pages(cfg: &Config) -> Result<(FixEngine, Option<Arc<PagedMap>>), 
     let reference: Arc<dyn Reference> = match &cfg.map.file {
         Some(f) if f.is_dir() => {
             let memory_mb = cfg.map.memory_mb.unwrap_or(DEFAULT_MAP_MEMORY_MB);
-            let map = Arc::new(PagedMap::open(f, memory_mb, dem).map_err(WiringError::MapFile)?);
+            let map = Arc::new(
+                PagedMap::open_with(f, memory_mb, dem, tiles).map_err(WiringError::MapFile)?,
+            );
             pages = Some(Arc::clone(&map));
             map
         }

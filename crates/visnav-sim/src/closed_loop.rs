@@ -552,6 +552,45 @@ struct RecordingFixer {
     delivery_us: u64,
     /// The scenario's faults (only `map_withheld` concerns the fixes).
     faults: FaultPlan,
+    /// The process's memory after the first [`RSS_PROBE_AFTER_M`] of flight.
+    rss: Mutex<RssProbe>,
+}
+
+/// Distance flown (the truth camera's track, fix by fix) after which the process's resident
+/// memory is taken as the reference for the end's: the map's first tiles, the filter's and the
+/// recorders' buffers are in place by then.
+pub const RSS_PROBE_AFTER_M: f64 = 10_000.0;
+
+/// The truth track's length at the fixes so far and the resident memory once it passed
+/// [`RSS_PROBE_AFTER_M`].
+#[derive(Default)]
+struct RssProbe {
+    last: Option<(f64, f64)>,
+    flown_m: f64,
+    rss_mb: Option<f64>,
+    /// The resident memory at every [`RSS_PROBE_AFTER_M`] flown.
+    every: Vec<f64>,
+}
+
+impl RecordingFixer {
+    /// Adds the truth camera's step to the track flown and takes the resident memory once it
+    /// passes [`RSS_PROBE_AFTER_M`].
+    fn probe_rss(&self, t_capture_us: u64) {
+        let (lat, lon, _) = truth_camera(&self.table, t_capture_us as f64 * 1e-6, &self.mount);
+        let mut p = self.rss.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some((la, lo)) = p.last {
+            let m_per_deg = 111_320.0;
+            p.flown_m +=
+                ((lat - la) * m_per_deg).hypot((lon - lo) * m_per_deg * lat.to_radians().cos());
+        }
+        p.last = Some((lat, lon));
+        if p.flown_m >= RSS_PROBE_AFTER_M * (p.every.len() + 1) as f64
+            && let Some(now) = rss_mb()
+        {
+            p.every.push(now);
+            p.rss_mb = p.rss_mb.or(Some(now));
+        }
+    }
 }
 
 impl FrameFixer for RecordingFixer {
@@ -576,6 +615,7 @@ impl FrameFixer for RecordingFixer {
             r
         };
         let t_done_us = self.emu.time_run_us() + self.delivery_us;
+        self.probe_rss(t_capture_us);
         let row = score_fix(t_capture_us, t_done_us, &report, &self.table, &self.mount);
         self.log.lock().unwrap_or_else(|e| e.into_inner()).push(row);
         report
@@ -584,6 +624,10 @@ impl FrameFixer for RecordingFixer {
     /// The engine's own odometer: visual odometry is not a fix and no fault withholds it.
     fn odometer(&self, cfg: &visnav_core::vo::VoConfig) -> Option<visnav_core::vo::Odometer> {
         self.inner.odometer(cfg)
+    }
+
+    fn paging(&self) -> Option<visnav_io::map::paged::PagingStats> {
+        self.inner.paging()
     }
 
     /// The engine's own DTM navigator (it reads no map image, so no fault withholds it), each
@@ -806,6 +850,50 @@ impl DtmScore {
     }
 }
 
+/// A tiled map's paging over a flight (`[closed_loop] map_tile_m`).
+#[derive(Debug, Clone, Serialize)]
+pub struct MapPagingSummary {
+    /// Ground the map's tiles cover, km².
+    pub area_km2: f64,
+    /// Tiles of the map.
+    pub tiles: usize,
+    /// The tiles' budget (`[map] memory_mb`), MB.
+    pub memory_mb: u64,
+    /// Tiles loaded over the flight.
+    pub loads: u64,
+    /// Tiles dropped for the budget.
+    pub evictions: u64,
+    /// Tiles a fix's select or level window needed that were not in memory.
+    pub misses: u64,
+    /// Tiles of a frame's own footprint that the look-ahead had not brought when its request
+    /// came (loaded on the frame path in lock-step; missing for the frame in real time).
+    pub late: u64,
+    /// Frames with at least one such tile (the first frame's, when nothing is in memory yet).
+    pub late_frames: u64,
+    /// Tiles that failed to load.
+    pub load_errors: u64,
+    /// Requested tiles the budget could not take.
+    pub over_budget: u64,
+    /// The tiles in memory at the end, MB.
+    pub resident_mb_end: f64,
+    /// The process's resident memory once the aircraft had flown 10 km (the truth camera's
+    /// track at the fixes), MB.
+    pub rss_mb_after_10km: Option<f64>,
+    /// The process's resident memory at the end of the flight, MB.
+    pub rss_mb_end: Option<f64>,
+    /// The process's resident memory every 10 km flown, MB (the memory's course over the route).
+    pub rss_mb_every_10km: Vec<f64>,
+    /// Fix attempts in the evaluation window whose true camera was within
+    /// [`SEAM_BAND_M`] of a square's edge (the footprint spans two or four tiles).
+    pub attempts_near_seams: usize,
+    /// Of those, the accepted share (null without any).
+    pub fix_rate_near_seams: Option<f64>,
+}
+
+/// How near a square's edge a fix counts as at a seam, m: a third of the footprint's half-width
+/// at 1 500 m with the demo's lens, so the frame sees both tiles well.
+pub const SEAM_BAND_M: f64 = 300.0;
+
 /// The closed-loop summary (`visnav sim --json`).
 #[derive(Debug, Clone, Serialize)]
 pub struct ClosedLoopSummary {
@@ -830,6 +918,9 @@ pub struct ClosedLoopSummary {
     pub agl_m: f64,
     /// The lowest and highest of those heights, m.
     pub agl_range_m: [f64; 2],
+    /// A tiled map's paging (`[closed_loop] map_tile_m`; absent for a one-file map).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub map_paging: Option<MapPagingSummary>,
     /// Accepted fixes / fix attempts in the window.
     pub fix_rate: f64,
     /// Frames the vision daemon took in over the whole run.
@@ -1430,10 +1521,12 @@ pub(crate) fn camera_rig(
     };
     let crs = raster.crs();
     let background = background_of(&raster, 1600);
-    let scene = Arc::new(
-        Scene::new(&raster, dem, ColourMode::Grey)
-            .map_err(|e| setup_err(format!("camera scene: {e}")))?,
-    );
+    let mut scene = Scene::new(&raster, dem, ColourMode::Grey)
+        .map_err(|e| setup_err(format!("camera scene: {e}")))?;
+    if let Some([cols, rows]) = cl.mosaic {
+        scene = scene.mirror_tiled(cols, rows);
+    }
+    let scene = Arc::new(scene);
     let camera = cfg
         .camera
         .build()
@@ -1486,6 +1579,129 @@ fn degraded_map_copies(
     }
     cfg.map.ortho = copies;
     Ok(Some(dir))
+}
+
+/// The map's mosaic and tiled build (`[closed_loop] mosaic`, `map_tile_m`): each map
+/// orthophoto of `cfg` repeated into the mosaic and written to a temporary folder; with
+/// `map_tile_m`, a tiled map built there from them and `cfg.map.file` naming it (the ortho list
+/// emptied). The folder lives as long as the returned guard; the area is the map's, km².
+fn mosaic_and_tiles(
+    cl: &ClosedLoopConfig,
+    cfg: &mut Config,
+) -> Result<(Option<tempfile::TempDir>, Option<f64>), ClosedLoopError> {
+    use visnav_io::map::{BuildSpec, HeightSource};
+    let setup_err = ClosedLoopError::Setup;
+    if cl.mosaic.is_none() && cl.map_tile_m.is_none() {
+        return Ok((None, None));
+    }
+    let dir = tempfile::tempdir()
+        .map_err(|e| setup_err(format!("a temporary folder for the map's mosaic: {e}")))?;
+    if let Some([cols, rows]) = cl.mosaic {
+        let mut copies = Vec::new();
+        for (i, p) in cfg.map.ortho.iter().enumerate() {
+            let what = |e: &dyn std::fmt::Display| {
+                setup_err(format!("[closed_loop] mosaic of {}: {e}", p.display()))
+            };
+            let raster = load_geotiff(p, cfg.map.crs_override).map_err(|e| what(&e))?;
+            let mosaic = mirror_mosaic(&raster, cols, rows).map_err(|e| what(&e))?;
+            let out = dir.path().join(format!("map_mosaic_{i}.tif"));
+            write_geotiff(&mosaic, &out).map_err(|e| what(&e))?;
+            copies.push(out);
+        }
+        cfg.map.ortho = copies;
+    }
+    let Some(tile_m) = cl.map_tile_m else {
+        return Ok((Some(dir), None));
+    };
+    let height = match (&cfg.map.dem, cfg.map.ground_height_amsl_m) {
+        (Some(p), _) => HeightSource::Dem(p.clone()),
+        (None, Some(h)) => HeightSource::ConstantAmsl(h),
+        (None, None) => {
+            return Err(setup_err(
+                "[closed_loop] map_tile_m: the configuration's [map] names no terrain".into(),
+            ));
+        }
+    };
+    let mut spec = BuildSpec::new(cfg.map.ortho.clone(), height);
+    spec.crs_override = cfg.map.crs_override;
+    spec.upsample = cfg.map.upsample.unwrap_or(1);
+    spec.height_sigma_m = cfg.map.height_sigma_m;
+    spec.height_slope_sigma = cfg.map.height_slope_sigma;
+    spec.height_point_sigma_m = cfg.map.height_point_sigma_m;
+    let out = dir.path().join("tiled");
+    let t0 = std::time::Instant::now();
+    let built = visnav_io::map::tiled::build_tiled(&spec, tile_m, &out, None, &mut |_| {})
+        .map_err(|e| {
+            setup_err(format!(
+                "[closed_loop] map_tile_m: building the tiled map: {e}"
+            ))
+        })?;
+    let ix = &built.index;
+    info!(
+        tiles = ix.tiles.len(),
+        features = ix.total_features(),
+        mb = ix.total_bytes() as f64 / 1e6,
+        seconds = t0.elapsed().as_secs_f64(),
+        "tiled map built"
+    );
+    let area_km2 = ix.tiles_area_km2();
+    cfg.map.file = Some(out);
+    cfg.map.ortho.clear();
+    cfg.map.upsample = None;
+    cfg.map.height_sigma_m = None;
+    cfg.map.height_slope_sigma = None;
+    cfg.map.height_point_sigma_m = None;
+    Ok((Some(dir), Some(area_km2)))
+}
+
+/// `raster` repeated `cols x rows` times east and south of its place, every other copy mirrored
+/// (as `render::OrthoPyramid::mirror_tiled` renders the camera's); its RGB bands (or its first).
+fn mirror_mosaic(
+    raster: &visnav_core::geo::raster::Raster,
+    cols: usize,
+    rows: usize,
+) -> Result<visnav_core::geo::raster::Raster, MosaicError> {
+    use visnav_core::geo::raster::{Raster, RasterData};
+    let (w, h, b) = (raster.width(), raster.height(), raster.bands());
+    // The bands the map reads (RGB of an RGB + NIR photo; the grey band), as the writer takes.
+    let kept = if b >= 3 { 3 } else { 1 };
+    let (mw, mh) = (w * cols, h * rows);
+    let fold = |v: usize, n: usize| {
+        let p = v % (2 * n);
+        if p < n { p } else { 2 * n - 1 - p }
+    };
+    let RasterData::U8(src) = raster.data() else {
+        return Err(MosaicError::NotEightBit);
+    };
+    let mut data = Vec::with_capacity(mw * mh * kept);
+    for y in 0..mh {
+        let sy = fold(y, h);
+        for x in 0..mw {
+            let s = (sy * w + fold(x, w)) * b;
+            data.extend_from_slice(&src[s..s + kept]);
+        }
+    }
+    Raster::new(
+        mw,
+        mh,
+        kept,
+        RasterData::U8(data),
+        *raster.transform(),
+        raster.crs(),
+        raster.nodata(),
+    )
+    .map_err(MosaicError::Raster)
+}
+
+/// Why an orthophoto could not be repeated into a mosaic.
+#[derive(Debug, thiserror::Error)]
+pub enum MosaicError {
+    /// Only 8-bit imagery is repeated.
+    #[error("a mosaic needs 8-bit imagery")]
+    NotEightBit,
+    /// The mosaic's raster could not be made (its size).
+    #[error("{0}")]
+    Raster(visnav_core::geo::raster::RasterError),
 }
 
 /// The camera world of a scenario's `[closed_loop]` for a real autopilot's SITL (`visnav
@@ -1562,11 +1778,26 @@ pub async fn run_until_stopped(
     } = camera_rig(cl, base, &cfg, &cfg_path)?;
     let setup_err = ClosedLoopError::Setup;
     let copies = degraded_map_copies(cl, &mut cfg)?;
+    // The tiled map is read while the aircraft flies: its folder lives to the end of the run.
+    let (_tiled_map, map_area) = mosaic_and_tiles(cl, &mut cfg)?;
+    let map_tiles = cfg
+        .map
+        .file
+        .as_deref()
+        .filter(|f| f.is_dir())
+        .and_then(|f| visnav_io::map::tiled::TiledIndex::read(f).ok())
+        .map_or(0, |ix| ix.tiles.len());
     info!(
         "building the vision fix engine (map) from {}",
         cfg_path.display()
     );
-    let engine = visnav_daemon::fixer_from_config(&cfg)
+    // In lock-step a tiled map's tiles load inline: a seed's run meets the same tiles anywhere.
+    let tiles = if cl.lockstep {
+        visnav_io::map::paged::LoadMode::Inline
+    } else {
+        visnav_io::map::paged::LoadMode::Background
+    };
+    let engine = visnav_daemon::wiring::fixer_from_config_with(&cfg, tiles)
         .map_err(|e| setup_err(format!("{}: vision fix engine: {e}", cfg_path.display())))?;
     drop(copies);
     let table =
@@ -1636,6 +1867,7 @@ pub async fn run_until_stopped(
             0
         },
         faults: FaultPlan::new(sc.faults.clone()),
+        rss: Mutex::new(RssProbe::default()),
     });
     let end_us = (duration_s * 1e6) as u64;
     let mut cam = SimCamera::new(
@@ -1810,6 +2042,27 @@ pub async fn run_until_stopped(
     }
     // The flight's end, before the daemons stop and the scoring allocates.
     let memory_end = memory_sample(&steps, &fixer.log, [&collect_v, &collect_c]);
+    let map_paging = fixer.paging().map(|s| MapPagingSummary {
+        attempts_near_seams: 0,
+        fix_rate_near_seams: None,
+        area_km2: map_area.unwrap_or(0.0),
+        tiles: map_tiles,
+        memory_mb: cfg
+            .map
+            .memory_mb
+            .unwrap_or(visnav_daemon::wiring::DEFAULT_MAP_MEMORY_MB),
+        loads: s.loads,
+        evictions: s.evictions,
+        misses: s.misses,
+        late: s.late,
+        late_frames: s.late_frames,
+        load_errors: s.load_errors,
+        over_budget: s.over_budget,
+        resident_mb_end: s.resident_bytes as f64 / 1e6,
+        rss_mb_after_10km: fixer.rss.lock().map_or(None, |p| p.rss_mb),
+        rss_mb_every_10km: fixer.rss.lock().map_or(Vec::new(), |p| p.every.clone()),
+        rss_mb_end: memory_end.rss_mb,
+    });
     let link_v = d_v.link().metrics();
     let metrics_v = d_v.shutdown().await;
     if let Some(d) = d_c {
@@ -1837,6 +2090,27 @@ pub async fn run_until_stopped(
         .map(|mut l| std::mem::take(&mut *l))
         .unwrap_or_default();
     let wf: Vec<&FixRow> = fixes.iter().filter(|f| in_window(f.t_capture_s)).collect();
+    let map_paging = map_paging.map(|mut p| {
+        let tile_m = cl.map_tile_m.unwrap_or(0.0);
+        let near: Vec<bool> = wf
+            .iter()
+            .filter(|f| {
+                let (lat, lon, _) = truth_camera(&table, f.t_capture_s, &mount);
+                crs.from_geodetic(lat, lon).is_ok_and(|(x, y)| {
+                    let edge = |v: f64| {
+                        let r = v.rem_euclid(tile_m);
+                        r.min(tile_m - r)
+                    };
+                    tile_m > 0.0 && edge(x).min(edge(y)) < SEAM_BAND_M
+                })
+            })
+            .map(|f| f.accepted)
+            .collect();
+        p.attempts_near_seams = near.len();
+        p.fix_rate_near_seams = (!near.is_empty())
+            .then(|| near.iter().filter(|a| **a).count() as f64 / near.len() as f64);
+        p
+    });
     let dtm_all: Vec<DtmRow> = fixer
         .dtm_log
         .lock()
@@ -1924,6 +2198,7 @@ pub async fn run_until_stopped(
             agl.iter().copied().fold(f64::INFINITY, f64::min),
             agl_stats.max,
         ],
+        map_paging,
         fix_rate: if wf.is_empty() {
             0.0
         } else {

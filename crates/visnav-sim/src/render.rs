@@ -138,6 +138,13 @@ impl Scene {
         })
     }
 
+    /// The scene of a mosaic: the orthophoto repeated `cols x rows` times east and south of its
+    /// place, every other copy mirrored ([`OrthoPyramid::mirror_tiled`]); the terrain is kept.
+    pub fn mirror_tiled(mut self, cols: usize, rows: usize) -> Self {
+        self.ortho = self.ortho.mirror_tiled(cols, rows);
+        self
+    }
+
     /// The orthophoto pyramid.
     pub fn ortho(&self) -> &OrthoPyramid {
         &self.ortho

@@ -390,7 +390,22 @@ pub struct ClosedLoopConfig {
     /// Replaces the configuration's `[vo]` (visual odometry between fixes) for the vision run.
     #[serde(default)]
     pub vo: Option<visnav_core::vo::VoConfig>,
+    /// `[cols, rows]`: the camera's orthophoto and the map's repeated into a mosaic of that many
+    /// copies east and south of their place, every other copy mirrored so that neighbours meet
+    /// edge to edge (a large area for paging, memory and tile-seam tests out of one real tile:
+    /// the same ground again, said so in the report). The map's copies are written to a
+    /// temporary GeoTIFF for its build.
+    #[serde(default)]
+    pub mosaic: Option<[usize; 2]>,
+    /// Build the map as a tiled map of squares of this side (metres; `visnav map build
+    /// --tile-m`) into a temporary folder and fly it paged within the configuration's `[map]
+    /// memory_mb` (loaded inline in lock-step, so a seed's run is the same on any machine).
+    #[serde(default)]
+    pub map_tile_m: Option<f64>,
 }
+
+/// Most copies of a mosaic along one axis (`[closed_loop] mosaic`).
+pub const MAX_MOSAIC_COPIES: usize = 64;
 
 fn default_lockstep_latency() -> f64 {
     0.15
@@ -798,6 +813,18 @@ impl ClosedLoopConfig {
         }
         if let Some(v) = &c.vo {
             p.section("vo", |p| v.validate(p));
+        }
+        if let Some([cols, rows]) = c.mosaic
+            && !((1..=MAX_MOSAIC_COPIES).contains(&cols) && (1..=MAX_MOSAIC_COPIES).contains(&rows))
+        {
+            p.push(
+                "mosaic",
+                format!("[{cols}, {rows}]: each must be 1 to {MAX_MOSAIC_COPIES}"),
+            );
+        }
+        if let Some(t) = c.map_tile_m {
+            use visnav_io::map::tiled::{MAX_TILE_M, MIN_TILE_M};
+            p.range("map_tile_m", t, MIN_TILE_M, MAX_TILE_M);
         }
         if let Some(n) = c.map_upsample
             && !matches!(n, 1 | 2 | 4)

@@ -48,7 +48,8 @@ pub struct PagingStats {
     pub misses: u64,
     /// Tiles that could not be loaded (the error is logged once per tile).
     pub load_errors: u64,
-    /// Requested tiles the budget could not take (the latest request is larger than the budget).
+    /// Needed tiles the budget could not take (a request's needed tiles are more than the
+    /// budget).
     pub over_budget: u64,
     /// Tiles in memory now.
     pub resident_tiles: usize,
@@ -56,6 +57,22 @@ pub struct PagingStats {
     pub resident_bytes: u64,
     /// Tiles queued for loading now.
     pub queued: usize,
+    /// Tiles of a frame's own footprint (the first rectangle of a request) that were not in
+    /// memory when its request came: the look-ahead had not brought them, so the frame met them
+    /// missing (in the background mode) or waited for them (inline).
+    pub late: u64,
+    /// Requests (frames) with at least one such tile.
+    pub late_frames: u64,
+}
+
+/// How a paged map loads its tiles.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LoadMode {
+    /// A loader thread, in the background: the frame path never waits (flight).
+    Background,
+    /// In the caller's thread at each request, and a missed tile at once (the lock-step
+    /// simulator: the same tiles at the same frames whatever the machine's speed).
+    Inline,
 }
 
 /// One tile in memory.
@@ -69,8 +86,11 @@ struct Held {
 struct State {
     held: HashMap<usize, Held>,
     queue: VecDeque<usize>,
-    /// The tiles of the latest request: never evicted for others.
+    /// The needed tiles of the latest request: never evicted for others.
     pinned: HashSet<usize>,
+    /// Every tile of the latest request (needed or ahead): an ahead tile evicts only tiles
+    /// outside it.
+    wanted: HashSet<usize>,
     /// Tiles whose load failed: not tried again.
     failed: HashSet<usize>,
     tick: u64,
@@ -106,6 +126,9 @@ pub struct PagedMap {
     budget_bytes: u64,
     shared: Arc<Shared>,
     loader: Option<JoinHandle<()>>,
+    mode: LoadMode,
+    /// Each tile's file and the checksum the index records.
+    files: Arc<Vec<(PathBuf, u32)>>,
 }
 
 impl PagedMap {
@@ -114,6 +137,16 @@ impl PagedMap {
     /// tiles' constant ground height (a tiled map built on a DEM needs the DEM given: it is not
     /// read whole from the map's sources).
     pub fn open(dir: &Path, memory_mb: u64, dem: Option<Dem>) -> Result<Self, MapReferenceError> {
+        Self::open_with(dir, memory_mb, dem, LoadMode::Background)
+    }
+
+    /// [`Self::open`] with the load mode given.
+    pub fn open_with(
+        dir: &Path,
+        memory_mb: u64,
+        dem: Option<Dem>,
+        mode: LoadMode,
+    ) -> Result<Self, MapReferenceError> {
         let index = TiledIndex::read(dir)?;
         let dir = if dir.is_dir() {
             dir.to_path_buf()
@@ -151,6 +184,7 @@ impl PagedMap {
                 held: HashMap::new(),
                 queue: VecDeque::new(),
                 pinned: HashSet::new(),
+                wanted: HashSet::new(),
                 failed: HashSet::new(),
                 tick: 0,
                 stats: PagingStats::default(),
@@ -160,21 +194,28 @@ impl PagedMap {
             wake: Condvar::new(),
         });
         let budget_bytes = memory_mb.saturating_mul(1 << 20);
-        let loader = {
-            let (shared, dir) = (Arc::clone(&shared), dir.clone());
-            let files: Vec<(PathBuf, u32)> = index
+        let files: Arc<Vec<(PathBuf, u32)>> = Arc::new(
+            index
                 .tiles
                 .iter()
                 .map(|t| (dir.join(&t.file), t.crc32))
-                .collect();
-            std::thread::Builder::new()
-                .name("visnav-tiles".into())
-                .spawn(move || load_loop(&shared, &files, budget_bytes))
-                .map_err(|e| MapError::Io {
-                    path: dir.clone(),
-                    what: "cannot start the tile loader",
-                    cause: e,
-                })?
+                .collect(),
+        );
+        let loader = match mode {
+            LoadMode::Inline => None,
+            LoadMode::Background => {
+                let (shared, files) = (Arc::clone(&shared), Arc::clone(&files));
+                Some(
+                    std::thread::Builder::new()
+                        .name("visnav-tiles".into())
+                        .spawn(move || load_loop(&shared, &files, budget_bytes))
+                        .map_err(|e| MapError::Io {
+                            path: dir.clone(),
+                            what: "cannot start the tile loader",
+                            cause: e,
+                        })?,
+                )
+            }
         };
         let by_square = index
             .tiles
@@ -190,7 +231,9 @@ impl PagedMap {
             dem,
             budget_bytes,
             shared,
-            loader: Some(loader),
+            loader,
+            mode,
+            files,
         })
     }
 
@@ -221,19 +264,44 @@ impl PagedMap {
     }
 
     /// Asks for the tiles under `rects_m` (each `[min_x, min_y, max_x, max_y]`), most needed
-    /// first: they are loaded in that order, in the background, and kept over any other tile.
-    /// Replaces the previous request's queue.
-    pub fn request(&self, rects_m: &[[f64; 4]]) {
+    /// first, the frame's own footprint first of all: they are loaded in that order (in the
+    /// background, or here in [`LoadMode::Inline`]). The first `needed` rectangles' tiles are
+    /// kept over any other tile; the rest (the ground further ahead) are loaded only into room the
+    /// budget has or that tiles outside this request free, so the budget fills ahead of the
+    /// aircraft without ever pushing out what the frames need. Replaces the previous request's
+    /// queue.
+    pub fn request(&self, rects_m: &[[f64; 4]], needed: usize) {
         let mut order: Vec<usize> = Vec::new();
-        for r in rects_m {
+        let (mut own, mut pinned) = (0, 0);
+        for (i, r) in rects_m.iter().enumerate() {
             for k in self.tiles_under(*r) {
                 if !order.contains(&k) {
                     order.push(k);
                 }
             }
+            if i == 0 {
+                own = order.len();
+            }
+            if i + 1 == needed.min(rects_m.len()) {
+                pinned = order.len();
+            }
         }
         let mut st = self.shared.lock();
-        st.pinned = order.iter().copied().collect();
+        let late = order[..own]
+            .iter()
+            .filter(|k| !st.held.contains_key(k) && !st.failed.contains(k))
+            .count();
+        st.stats.late += late as u64;
+        st.stats.late_frames += u64::from(late > 0);
+        st.pinned = order[..pinned].iter().copied().collect();
+        st.wanted = order.iter().copied().collect();
+        if self.mode == LoadMode::Inline {
+            drop(st);
+            for k in order {
+                self.load_inline(k);
+            }
+            return;
+        }
         st.queue = order
             .into_iter()
             .filter(|k| !st.held.contains_key(k) && !st.failed.contains(k))
@@ -260,6 +328,25 @@ impl PagedMap {
                 .0;
         }
         true
+    }
+
+    /// Loads tile `k` in this thread unless it is held or failed ([`LoadMode::Inline`]).
+    fn load_inline(&self, k: usize) {
+        let Some((path, crc)) = self.files.get(k) else {
+            return;
+        };
+        {
+            let mut st = self.shared.lock();
+            if st.held.contains_key(&k) || st.failed.contains(&k) {
+                return;
+            }
+            let bytes = std::fs::metadata(path).map_or(0, |m| m.len());
+            if !make_room(&mut st, k, bytes, self.budget_bytes) {
+                return;
+            }
+        }
+        let opened = open_tile(path, *crc);
+        finish_load(&mut self.shared.lock(), k, path, opened);
     }
 
     /// Indices (into the index's tiles) of the tiles whose bounds overlap `r`.
@@ -303,7 +390,7 @@ impl PagedMap {
         st.tick += 1;
         let tick = st.tick;
         let mut out = Vec::with_capacity(under.len());
-        let mut missed = false;
+        let mut missed = Vec::new();
         for k in under {
             if let Some(h) = st.held.get_mut(&k) {
                 h.last_used = tick;
@@ -311,14 +398,27 @@ impl PagedMap {
             } else if !st.failed.contains(&k) {
                 st.stats.misses += 1;
                 if st.loading != Some(k) && !st.queue.contains(&k) {
-                    st.queue.push_back(k);
-                    missed = true;
+                    missed.push(k);
                 }
             }
         }
+        if self.mode == LoadMode::Background {
+            st.queue.extend(missed.iter().copied());
+        }
         drop(st);
-        if missed {
-            self.shared.wake.notify_one();
+        match self.mode {
+            LoadMode::Background if !missed.is_empty() => self.shared.wake.notify_one(),
+            LoadMode::Inline => {
+                // Missed here: loaded at once, so the same frame gets the same tiles anywhere.
+                for k in missed {
+                    self.load_inline(k);
+                    let st = self.shared.lock();
+                    if let Some(h) = st.held.get(&k) {
+                        out.push((k, Arc::clone(&h.map)));
+                    }
+                }
+            }
+            LoadMode::Background => {}
         }
         out
     }
@@ -358,8 +458,7 @@ fn load_loop(shared: &Shared, files: &[(PathBuf, u32)], budget: u64) {
                         continue;
                     };
                     let bytes = std::fs::metadata(path).map_or(0, |m| m.len());
-                    if !make_room(&mut st, bytes, budget) {
-                        st.stats.over_budget += 1;
+                    if !make_room(&mut st, k, bytes, budget) {
                         continue;
                     }
                     st.loading = Some(k);
@@ -373,64 +472,83 @@ fn load_loop(shared: &Shared, files: &[(PathBuf, u32)], budget: u64) {
             }
         };
         let (path, crc) = &files[k];
-        let opened = ReferenceMap::open(path).and_then(|m| {
-            if m.stored_crc() == *crc {
-                Ok(m)
-            } else {
-                Err(MapError::Format {
-                    path: path.clone(),
-                    reason: "the tile's checksum is not the one the index records (rebuilt \
-                             without gathering?)"
-                        .into(),
-                })
-            }
-        });
+        let opened = open_tile(path, *crc);
         let mut st = shared.lock();
         st.loading = None;
-        match opened {
-            Ok(m) => {
-                let bytes = m.file_len();
-                let tick = st.tick;
-                st.held.insert(
-                    k,
-                    Held {
-                        map: Arc::new(m),
-                        bytes,
-                        last_used: tick,
-                    },
-                );
-                st.stats.loads += 1;
-            }
-            Err(e) => {
-                tracing::warn!(tile = %path.display(), "tiled map: a tile cannot be loaded: {e}");
-                st.failed.insert(k);
-                st.stats.load_errors += 1;
-            }
-        }
+        finish_load(&mut st, k, path, opened);
         drop(st);
         shared.wake.notify_all();
     }
 }
 
-/// Evicts least recently used unpinned tiles until `bytes` more fit in `budget`; whether they do.
-fn make_room(st: &mut State, bytes: u64, budget: u64) -> bool {
+/// Opens a tile, its checksum verified against the one the index records.
+fn open_tile(path: &Path, crc: u32) -> Result<ReferenceMap, MapError> {
+    ReferenceMap::open(path).and_then(|m| {
+        if m.stored_crc() == crc {
+            Ok(m)
+        } else {
+            Err(MapError::Format {
+                path: path.to_path_buf(),
+                reason: "the tile's checksum is not the one the index records (rebuilt without \
+                         gathering?)"
+                    .into(),
+            })
+        }
+    })
+}
+
+/// Holds the opened tile `k`, or marks it failed (logged once).
+fn finish_load(st: &mut State, k: usize, path: &Path, opened: Result<ReferenceMap, MapError>) {
+    match opened {
+        Ok(m) => {
+            let bytes = m.file_len();
+            let tick = st.tick;
+            st.held.insert(
+                k,
+                Held {
+                    map: Arc::new(m),
+                    bytes,
+                    last_used: tick,
+                },
+            );
+            st.stats.loads += 1;
+        }
+        Err(e) => {
+            tracing::warn!(tile = %path.display(), "tiled map: a tile cannot be loaded: {e}");
+            st.failed.insert(k);
+            st.stats.load_errors += 1;
+        }
+    }
+}
+
+/// Makes room for tile `k` of `bytes` within `budget`, evicting the least recently used tiles
+/// it may: a needed tile (pinned) any tile not pinned, a tile ahead only tiles outside the latest
+/// request. Whether it fits; a needed tile that does not is counted (`over_budget`).
+fn make_room(st: &mut State, k: usize, bytes: u64, budget: u64) -> bool {
+    let needed = st.pinned.contains(&k);
     loop {
         let used: u64 = st.held.values().map(|h| h.bytes).sum();
         if used.saturating_add(bytes) <= budget {
             return true;
         }
+        let protected = if needed { &st.pinned } else { &st.wanted };
         let victim = st
             .held
             .iter()
-            .filter(|(k, _)| !st.pinned.contains(k))
+            .filter(|(k, _)| !protected.contains(k))
             .min_by_key(|(_, h)| h.last_used)
             .map(|(k, _)| *k);
         match victim {
-            Some(k) => {
-                st.held.remove(&k);
+            Some(v) => {
+                st.held.remove(&v);
                 st.stats.evictions += 1;
             }
-            None => return false,
+            None => {
+                if needed {
+                    st.stats.over_budget += 1;
+                }
+                return false;
+            }
         }
     }
 }

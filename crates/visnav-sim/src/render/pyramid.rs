@@ -91,6 +91,10 @@ pub struct OrthoPyramid {
     mode: ColourMode,
     transform: GeoTransform,
     crs: Crs,
+    /// The orthophoto repeated `[cols, rows]` times east and south of its place, every other
+    /// copy mirrored so that neighbours meet edge to edge ([`Self::mirror_tiled`]); `[1, 1]`:
+    /// the orthophoto alone.
+    tiles: [usize; 2],
 }
 
 impl OrthoPyramid {
@@ -142,7 +146,22 @@ impl OrthoPyramid {
             mode,
             transform: *ortho.transform(),
             crs: ortho.crs(),
+            tiles: [1, 1],
         }
+    }
+
+    /// The pyramid of a mosaic: the orthophoto at its place and repeated to `cols x rows`
+    /// copies east and south of it, every other copy mirrored (a copy's east edge meets the next
+    /// one's mirrored east edge: no seam), without holding more than the orthophoto. A large
+    /// area for paging and memory tests, honestly the same ground again.
+    pub fn mirror_tiled(mut self, cols: usize, rows: usize) -> Self {
+        self.tiles = [cols.max(1), rows.max(1)];
+        self
+    }
+
+    /// The `[cols, rows]` of [`Self::mirror_tiled`].
+    pub fn tiles(&self) -> [usize; 2] {
+        self.tiles
     }
 
     /// Channels per pixel (1 grey, 3 RGB).
@@ -179,9 +198,20 @@ impl OrthoPyramid {
             return false;
         };
         let (w0, h0) = (self.levels[0].width as f64, self.levels[0].height as f64);
-        if !(col0 >= 0.0 && row0 >= 0.0 && col0 <= w0 && row0 <= h0) {
+        let (cols, rows) = (self.tiles[0] as f64, self.tiles[1] as f64);
+        if !(col0 >= 0.0 && row0 >= 0.0 && col0 <= w0 * cols && row0 <= h0 * rows) {
             return false; // also rejects NaN
         }
+        // A mosaic's copy folded back onto the orthophoto.
+        let fold = |v: f64, n: f64| {
+            let p = v % (2.0 * n);
+            if p <= n { p } else { 2.0 * n - p }
+        };
+        let (col0, row0) = if self.tiles == [1, 1] {
+            (col0, row0)
+        } else {
+            (fold(col0, w0), fold(row0, h0))
+        };
         let s = 1.0 / f64::from(1u32 << level.min(31));
         // Centre-index coordinates at this level, clamped to the outermost centres.
         let fx = (col0 * s - 0.5).clamp(0.0, (l.width - 1) as f64);

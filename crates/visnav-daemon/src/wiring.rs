@@ -15,7 +15,6 @@ use visnav_io::geo::dem::DemFileError;
 use visnav_io::map::MapReference;
 use visnav_io::map::MapReferenceError;
 use visnav_io::map::paged::{LoadMode, PagedMap};
-use visnav_io::map::{BuildSpec, HeightSource};
 
 /// Why the configuration's fix engine could not be built; each names the section and key.
 #[derive(Debug, thiserror::Error)]
@@ -109,19 +108,7 @@ fn engine_and_pages(
         }
         Some(f) => Arc::new(MapReference::open(f, dem).map_err(WiringError::MapFile)?),
         None => {
-            let height = match (&cfg.map.dem, cfg.map.ground_height_amsl_m) {
-                (Some(p), _) => HeightSource::Dem(p.clone()),
-                (None, Some(h)) => HeightSource::ConstantAmsl(h),
-                (None, None) => {
-                    return Err(WiringError::NoTerrain);
-                }
-            };
-            let mut spec = BuildSpec::new(cfg.map.ortho.clone(), height);
-            spec.crs_override = cfg.map.crs_override;
-            spec.upsample = cfg.map.upsample.unwrap_or(1);
-            spec.height_sigma_m = cfg.map.height_sigma_m;
-            spec.height_slope_sigma = cfg.map.height_slope_sigma;
-            spec.height_point_sigma_m = cfg.map.height_point_sigma_m;
+            let spec = cfg.map.build_spec().ok_or(WiringError::NoTerrain)?;
             Arc::new(MapReference::build_temporary(&spec, dem).map_err(WiringError::MapBuild)?)
         }
     };

@@ -1589,7 +1589,6 @@ fn mosaic_and_tiles(
     cl: &ClosedLoopConfig,
     cfg: &mut Config,
 ) -> Result<(Option<tempfile::TempDir>, Option<f64>), ClosedLoopError> {
-    use visnav_io::map::{BuildSpec, HeightSource};
     let setup_err = ClosedLoopError::Setup;
     if cl.mosaic.is_none() && cl.map_tile_m.is_none() {
         return Ok((None, None));
@@ -1613,21 +1612,9 @@ fn mosaic_and_tiles(
     let Some(tile_m) = cl.map_tile_m else {
         return Ok((Some(dir), None));
     };
-    let height = match (&cfg.map.dem, cfg.map.ground_height_amsl_m) {
-        (Some(p), _) => HeightSource::Dem(p.clone()),
-        (None, Some(h)) => HeightSource::ConstantAmsl(h),
-        (None, None) => {
-            return Err(setup_err(
-                "[closed_loop] map_tile_m: the configuration's [map] names no terrain".into(),
-            ));
-        }
-    };
-    let mut spec = BuildSpec::new(cfg.map.ortho.clone(), height);
-    spec.crs_override = cfg.map.crs_override;
-    spec.upsample = cfg.map.upsample.unwrap_or(1);
-    spec.height_sigma_m = cfg.map.height_sigma_m;
-    spec.height_slope_sigma = cfg.map.height_slope_sigma;
-    spec.height_point_sigma_m = cfg.map.height_point_sigma_m;
+    let spec = cfg.map.build_spec().ok_or_else(|| {
+        setup_err("[closed_loop] map_tile_m: the configuration's [map] names no terrain".into())
+    })?;
     let out = dir.path().join("tiled");
     let t0 = std::time::Instant::now();
     let built = visnav_io::map::tiled::build_tiled(&spec, tile_m, &out, None, &mut |_| {})

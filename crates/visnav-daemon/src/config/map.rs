@@ -62,6 +62,24 @@ pub const MIN_MAP_MEMORY_MB: u64 = 16;
 pub const MAX_MAP_MEMORY_MB: u64 = 1 << 20;
 
 impl MapConfig {
+    /// The map build `ortho` and the terrain describe (the daemon's map of small areas, built at
+    /// start); `None` when no terrain is named.
+    pub fn build_spec(&self) -> Option<visnav_io::map::BuildSpec> {
+        use visnav_io::map::{BuildSpec, HeightSource};
+        let height = match (&self.dem, self.ground_height_amsl_m) {
+            (Some(p), _) => HeightSource::Dem(p.clone()),
+            (None, Some(h)) => HeightSource::ConstantAmsl(h),
+            (None, None) => return None,
+        };
+        let mut spec = BuildSpec::new(self.ortho.clone(), height);
+        spec.crs_override = self.crs_override;
+        spec.upsample = self.upsample.unwrap_or(1);
+        spec.height_sigma_m = self.height_sigma_m;
+        spec.height_slope_sigma = self.height_slope_sigma;
+        spec.height_point_sigma_m = self.height_point_sigma_m;
+        Some(spec)
+    }
+
     /// Validate; `file` is relative to `file_base` (the current directory when `--map` gave it),
     /// the other paths to `base` (the config file's folder).
     pub(super) fn validate_in(&self, base: &Base, file_base: &Base, p: &mut Problems) {

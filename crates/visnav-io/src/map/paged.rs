@@ -165,11 +165,7 @@ impl PagedMap {
         let dem = match (dem, &header.height) {
             (Some(d), _) => d,
             (None, HeightInfo::Constant { amsl_m }) => {
-                Dem::flat(*amsl_m).map_err(|e| MapReferenceError::Dem {
-                    map: dir.display().to_string(),
-                    dem: format!("constant {amsl_m} m"),
-                    reason: e.to_string(),
-                })?
+                super::reference::constant_terrain(&dir, *amsl_m)?
             }
             (None, HeightInfo::Dem { file, .. }) => {
                 return Err(MapReferenceError::Dem {

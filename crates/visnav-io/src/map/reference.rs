@@ -51,6 +51,15 @@ pub enum MapReferenceError {
     Build(MapError),
 }
 
+/// The flat terrain of a map built on a constant ground height (`map` names it in the error).
+pub(crate) fn constant_terrain(map: &Path, amsl_m: f64) -> Result<Dem, MapReferenceError> {
+    Dem::flat(amsl_m).map_err(|e| MapReferenceError::Dem {
+        map: map.display().to_string(),
+        dem: format!("constant {amsl_m} m"),
+        reason: e.to_string(),
+    })
+}
+
 impl MapReference {
     /// Opens `path`. The terrain: `dem` when given, otherwise the map's constant ground height,
     /// or the DEM file it was built from (looked up next to the map first, then as recorded).
@@ -58,13 +67,7 @@ impl MapReference {
         let map = ReferenceMap::open(path)?;
         let dem = match (dem, &map.header().height) {
             (Some(d), _) => d,
-            (None, HeightInfo::Constant { amsl_m }) => {
-                Dem::flat(*amsl_m).map_err(|e| MapReferenceError::Dem {
-                    map: path.display().to_string(),
-                    dem: format!("constant {amsl_m} m"),
-                    reason: e.to_string(),
-                })?
-            }
+            (None, HeightInfo::Constant { amsl_m }) => constant_terrain(path, *amsl_m)?,
             (None, HeightInfo::Dem { file, .. }) => {
                 let recorded = PathBuf::from(file);
                 let beside = path

@@ -552,7 +552,7 @@ struct RecordingFixer {
     delivery_us: u64,
     /// The scenario's faults (only `map_withheld` concerns the fixes).
     faults: FaultPlan,
-    /// The process's memory after the first [`RSS_PROBE_AFTER_M`] of flight.
+    /// The process's memory every [`RSS_PROBE_AFTER_M`] of flight.
     rss: Mutex<RssProbe>,
 }
 
@@ -561,20 +561,19 @@ struct RecordingFixer {
 /// recorders' buffers are in place by then.
 pub const RSS_PROBE_AFTER_M: f64 = 10_000.0;
 
-/// The truth track's length at the fixes so far and the resident memory once it passed
-/// [`RSS_PROBE_AFTER_M`].
+/// The truth track's length at the fixes so far and the resident memory at every multiple of
+/// [`RSS_PROBE_AFTER_M`] it passed (the first is the reference for the end's).
 #[derive(Default)]
 struct RssProbe {
     last: Option<(f64, f64)>,
     flown_m: f64,
-    rss_mb: Option<f64>,
     /// The resident memory at every [`RSS_PROBE_AFTER_M`] flown.
     every: Vec<f64>,
 }
 
 impl RecordingFixer {
-    /// Adds the truth camera's step to the track flown and takes the resident memory once it
-    /// passes [`RSS_PROBE_AFTER_M`].
+    /// Adds the truth camera's step to the track flown and takes the resident memory at every
+    /// multiple of [`RSS_PROBE_AFTER_M`] it passes.
     fn probe_rss(&self, t_capture_us: u64) {
         let (lat, lon, _) = truth_camera(&self.table, t_capture_us as f64 * 1e-6, &self.mount);
         let mut p = self.rss.lock().unwrap_or_else(|e| e.into_inner());
@@ -588,7 +587,6 @@ impl RecordingFixer {
             && let Some(now) = rss_mb()
         {
             p.every.push(now);
-            p.rss_mb = p.rss_mb.or(Some(now));
         }
     }
 }
@@ -1584,11 +1582,12 @@ fn degraded_map_copies(
 /// The map's mosaic and tiled build (`[closed_loop] mosaic`, `map_tile_m`): each map
 /// orthophoto of `cfg` repeated into the mosaic and written to a temporary folder; with
 /// `map_tile_m`, a tiled map built there from them and `cfg.map.file` naming it (the ortho list
-/// emptied). The folder lives as long as the returned guard; the area is the map's, km².
+/// emptied). The folder lives as long as the returned guard; with a tiled map, its area (km²)
+/// and tile count.
 fn mosaic_and_tiles(
     cl: &ClosedLoopConfig,
     cfg: &mut Config,
-) -> Result<(Option<tempfile::TempDir>, Option<f64>), ClosedLoopError> {
+) -> Result<(Option<tempfile::TempDir>, Option<TiledMapBuilt>), ClosedLoopError> {
     let setup_err = ClosedLoopError::Setup;
     if cl.mosaic.is_none() && cl.map_tile_m.is_none() {
         return Ok((None, None));
@@ -1638,7 +1637,15 @@ fn mosaic_and_tiles(
     cfg.map.height_sigma_m = None;
     cfg.map.height_slope_sigma = None;
     cfg.map.height_point_sigma_m = None;
-    Ok((Some(dir), Some(area_km2)))
+    let tiles = ix.tiles.len();
+    Ok((Some(dir), Some(TiledMapBuilt { area_km2, tiles })))
+}
+
+/// The tiled map `mosaic_and_tiles` built.
+#[derive(Clone, Copy)]
+struct TiledMapBuilt {
+    area_km2: f64,
+    tiles: usize,
 }
 
 /// `raster` repeated `cols x rows` times east and south of its place, every other copy mirrored
@@ -1766,14 +1773,7 @@ pub async fn run_until_stopped(
     let setup_err = ClosedLoopError::Setup;
     let copies = degraded_map_copies(cl, &mut cfg)?;
     // The tiled map is read while the aircraft flies: its folder lives to the end of the run.
-    let (_tiled_map, map_area) = mosaic_and_tiles(cl, &mut cfg)?;
-    let map_tiles = cfg
-        .map
-        .file
-        .as_deref()
-        .filter(|f| f.is_dir())
-        .and_then(|f| visnav_io::map::tiled::TiledIndex::read(f).ok())
-        .map_or(0, |ix| ix.tiles.len());
+    let (_tiled_map, tiled) = mosaic_and_tiles(cl, &mut cfg)?;
     info!(
         "building the vision fix engine (map) from {}",
         cfg_path.display()
@@ -2032,8 +2032,8 @@ pub async fn run_until_stopped(
     let map_paging = fixer.paging().map(|s| MapPagingSummary {
         attempts_near_seams: 0,
         fix_rate_near_seams: None,
-        area_km2: map_area.unwrap_or(0.0),
-        tiles: map_tiles,
+        area_km2: tiled.map_or(0.0, |t| t.area_km2),
+        tiles: tiled.map_or(0, |t| t.tiles),
         memory_mb: cfg
             .map
             .memory_mb
@@ -2046,7 +2046,7 @@ pub async fn run_until_stopped(
         load_errors: s.load_errors,
         over_budget: s.over_budget,
         resident_mb_end: s.resident_bytes as f64 / 1e6,
-        rss_mb_after_10km: fixer.rss.lock().map_or(None, |p| p.rss_mb),
+        rss_mb_after_10km: fixer.rss.lock().map_or(None, |p| p.every.first().copied()),
         rss_mb_every_10km: fixer.rss.lock().map_or(Vec::new(), |p| p.every.clone()),
         rss_mb_end: memory_end.rss_mb,
     });

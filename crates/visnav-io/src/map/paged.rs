@@ -127,8 +127,8 @@ pub struct PagedMap {
     shared: Arc<Shared>,
     loader: Option<JoinHandle<()>>,
     mode: LoadMode,
-    /// Each tile's file and the checksum the index records.
-    files: Arc<Vec<(PathBuf, u32)>>,
+    /// Each tile's file, the checksum the index records and its size (the budget counts it).
+    files: Arc<Vec<TileFile>>,
 }
 
 impl PagedMap {
@@ -190,11 +190,15 @@ impl PagedMap {
             wake: Condvar::new(),
         });
         let budget_bytes = memory_mb.saturating_mul(1 << 20);
-        let files: Arc<Vec<(PathBuf, u32)>> = Arc::new(
+        let files: Arc<Vec<TileFile>> = Arc::new(
             index
                 .tiles
                 .iter()
-                .map(|t| (dir.join(&t.file), t.crc32))
+                .map(|t| TileFile {
+                    path: dir.join(&t.file),
+                    crc32: t.crc32,
+                    bytes: t.file_bytes,
+                })
                 .collect(),
         );
         let loader = match mode {
@@ -328,7 +332,7 @@ impl PagedMap {
 
     /// Loads tile `k` in this thread unless it is held or failed ([`LoadMode::Inline`]).
     fn load_inline(&self, k: usize) {
-        let Some((path, crc)) = self.files.get(k) else {
+        let Some(f) = self.files.get(k) else {
             return;
         };
         {
@@ -336,13 +340,12 @@ impl PagedMap {
             if st.held.contains_key(&k) || st.failed.contains(&k) {
                 return;
             }
-            let bytes = std::fs::metadata(path).map_or(0, |m| m.len());
-            if !make_room(&mut st, k, bytes, self.budget_bytes) {
+            if !make_room(&mut st, k, f.bytes, self.budget_bytes) {
                 return;
             }
         }
-        let opened = open_tile(path, *crc);
-        finish_load(&mut self.shared.lock(), k, path, opened);
+        let opened = open_tile(&f.path, f.crc32);
+        finish_load(&mut self.shared.lock(), k, &f.path, opened);
     }
 
     /// Indices (into the index's tiles) of the tiles whose bounds overlap `r`.
@@ -378,8 +381,8 @@ impl PagedMap {
         out
     }
 
-    /// The held tiles under `r`, marked used, and the count of tiles under `r` not held (queued
-    /// for loading unless queued or failed already).
+    /// The held tiles under `r`, marked used; the tiles under `r` not held are counted as misses
+    /// and queued for loading (or, inline, loaded now) unless queued or failed already.
     fn held_under(&self, r: [f64; 4]) -> Vec<(usize, Arc<ReferenceMap>)> {
         let under = self.tiles_under(r);
         let mut st = self.shared.lock();
@@ -430,6 +433,14 @@ impl Drop for PagedMap {
     }
 }
 
+/// A tile's file as the index records it.
+struct TileFile {
+    path: PathBuf,
+    crc32: u32,
+    /// Its size, bytes: what the budget counts before it is opened.
+    bytes: u64,
+}
+
 /// Whether tile `e`'s bounds overlap `r`.
 fn overlaps(e: &super::tiled::TileEntry, r: [f64; 4]) -> bool {
     let b = &e.bounds;
@@ -438,7 +449,7 @@ fn overlaps(e: &super::tiled::TileEntry, r: [f64; 4]) -> bool {
 
 /// The loader: opens queued tiles one at a time (outside the lock), evicting the least recently
 /// used unpinned tiles to stay within `budget` bytes.
-fn load_loop(shared: &Shared, files: &[(PathBuf, u32)], budget: u64) {
+fn load_loop(shared: &Shared, files: &[TileFile], budget: u64) {
     loop {
         let k = {
             let mut st = shared.lock();
@@ -450,11 +461,10 @@ fn load_loop(shared: &Shared, files: &[(PathBuf, u32)], budget: u64) {
                     if st.held.contains_key(&k) || st.failed.contains(&k) {
                         continue;
                     }
-                    let Some((path, _)) = files.get(k) else {
+                    let Some(f) = files.get(k) else {
                         continue;
                     };
-                    let bytes = std::fs::metadata(path).map_or(0, |m| m.len());
-                    if !make_room(&mut st, k, bytes, budget) {
+                    if !make_room(&mut st, k, f.bytes, budget) {
                         continue;
                     }
                     st.loading = Some(k);
@@ -467,8 +477,8 @@ fn load_loop(shared: &Shared, files: &[(PathBuf, u32)], budget: u64) {
                     .unwrap_or_else(std::sync::PoisonError::into_inner);
             }
         };
-        let (path, crc) = &files[k];
-        let opened = open_tile(path, *crc);
+        let f = &files[k];
+        let (path, opened) = (&f.path, open_tile(&f.path, f.crc32));
         let mut st = shared.lock();
         st.loading = None;
         finish_load(&mut st, k, path, opened);

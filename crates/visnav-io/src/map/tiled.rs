@@ -381,9 +381,7 @@ impl TilePlan {
             return false;
         }
         match &r.tile {
-            Some(t) => {
-                ReferenceMap::open(path).is_ok() && stored_crc(path).is_ok_and(|c| c == t.crc32)
-            }
+            Some(t) => ReferenceMap::open(path).is_ok_and(|m| m.stored_crc() == t.crc32),
             None => !path.exists(),
         }
     }

@@ -892,6 +892,68 @@ pub struct MapPagingSummary {
 /// at 1 500 m with the demo's lens, so the frame sees both tiles well.
 pub const SEAM_BAND_M: f64 = 300.0;
 
+/// A tiled map's paging counters and the process's memory at a flight's end.
+struct PagingEnd {
+    stats: visnav_io::map::paged::PagingStats,
+    rss_every: Vec<f64>,
+    rss_end: Option<f64>,
+}
+
+impl MapPagingSummary {
+    /// The summary of `end` over the map `tiled` within `memory_mb`, with the fix attempts at
+    /// the seams and their accepted share (`seams`).
+    fn new(
+        end: PagingEnd,
+        tiled: Option<TiledMapBuilt>,
+        memory_mb: u64,
+        seams: (usize, Option<f64>),
+    ) -> Self {
+        let s = end.stats;
+        Self {
+            area_km2: tiled.map_or(0.0, |t| t.area_km2),
+            tiles: tiled.map_or(0, |t| t.tiles),
+            memory_mb,
+            loads: s.loads,
+            evictions: s.evictions,
+            misses: s.misses,
+            late: s.late,
+            late_frames: s.late_frames,
+            load_errors: s.load_errors,
+            over_budget: s.over_budget,
+            resident_mb_end: s.resident_bytes as f64 / 1e6,
+            rss_mb_after_10km: end.rss_every.first().copied(),
+            rss_mb_every_10km: end.rss_every,
+            rss_mb_end: end.rss_end,
+            attempts_near_seams: seams.0,
+            fix_rate_near_seams: seams.1,
+        }
+    }
+}
+
+/// The fix attempts `fixes` whose true camera (`map_xy` of the capture time, map metres) lay
+/// within [`SEAM_BAND_M`] of the edge of a square of `tile_m`, and their accepted share.
+fn seam_fix_rate(
+    fixes: &[&FixRow],
+    tile_m: f64,
+    map_xy: impl Fn(f64) -> Option<(f64, f64)>,
+) -> (usize, Option<f64>) {
+    let edge = |v: f64| {
+        let r = v.rem_euclid(tile_m);
+        r.min(tile_m - r)
+    };
+    let near: Vec<bool> = fixes
+        .iter()
+        .filter(|f| {
+            tile_m > 0.0
+                && map_xy(f.t_capture_s).is_some_and(|(x, y)| edge(x).min(edge(y)) < SEAM_BAND_M)
+        })
+        .map(|f| f.accepted)
+        .collect();
+    let rate =
+        (!near.is_empty()).then(|| near.iter().filter(|a| **a).count() as f64 / near.len() as f64);
+    (near.len(), rate)
+}
+
 /// The closed-loop summary (`visnav sim --json`).
 #[derive(Debug, Clone, Serialize)]
 pub struct ClosedLoopSummary {
@@ -1778,13 +1840,7 @@ pub async fn run_until_stopped(
         "building the vision fix engine (map) from {}",
         cfg_path.display()
     );
-    // In lock-step a tiled map's tiles load inline: a seed's run meets the same tiles anywhere.
-    let tiles = if cl.lockstep {
-        visnav_io::map::paged::LoadMode::Inline
-    } else {
-        visnav_io::map::paged::LoadMode::Background
-    };
-    let engine = visnav_daemon::wiring::fixer_from_config_with(&cfg, tiles)
+    let engine = visnav_daemon::wiring::fixer_from_config_with(&cfg, cl.tile_loading())
         .map_err(|e| setup_err(format!("{}: vision fix engine: {e}", cfg_path.display())))?;
     drop(copies);
     let table =
@@ -2029,26 +2085,11 @@ pub async fn run_until_stopped(
     }
     // The flight's end, before the daemons stop and the scoring allocates.
     let memory_end = memory_sample(&steps, &fixer.log, [&collect_v, &collect_c]);
-    let map_paging = fixer.paging().map(|s| MapPagingSummary {
-        attempts_near_seams: 0,
-        fix_rate_near_seams: None,
-        area_km2: tiled.map_or(0.0, |t| t.area_km2),
-        tiles: tiled.map_or(0, |t| t.tiles),
-        memory_mb: cfg
-            .map
-            .memory_mb
-            .unwrap_or(visnav_daemon::wiring::DEFAULT_MAP_MEMORY_MB),
-        loads: s.loads,
-        evictions: s.evictions,
-        misses: s.misses,
-        late: s.late,
-        late_frames: s.late_frames,
-        load_errors: s.load_errors,
-        over_budget: s.over_budget,
-        resident_mb_end: s.resident_bytes as f64 / 1e6,
-        rss_mb_after_10km: fixer.rss.lock().map_or(None, |p| p.every.first().copied()),
-        rss_mb_every_10km: fixer.rss.lock().map_or(Vec::new(), |p| p.every.clone()),
-        rss_mb_end: memory_end.rss_mb,
+    // A tiled map's counters and the memory's course, at the flight's end.
+    let paging_end = fixer.paging().map(|stats| PagingEnd {
+        stats,
+        rss_every: fixer.rss.lock().map_or(Vec::new(), |p| p.every.clone()),
+        rss_end: memory_end.rss_mb,
     });
     let link_v = d_v.link().metrics();
     let metrics_v = d_v.shutdown().await;
@@ -2077,26 +2118,16 @@ pub async fn run_until_stopped(
         .map(|mut l| std::mem::take(&mut *l))
         .unwrap_or_default();
     let wf: Vec<&FixRow> = fixes.iter().filter(|f| in_window(f.t_capture_s)).collect();
-    let map_paging = map_paging.map(|mut p| {
-        let tile_m = cl.map_tile_m.unwrap_or(0.0);
-        let near: Vec<bool> = wf
-            .iter()
-            .filter(|f| {
-                let (lat, lon, _) = truth_camera(&table, f.t_capture_s, &mount);
-                crs.from_geodetic(lat, lon).is_ok_and(|(x, y)| {
-                    let edge = |v: f64| {
-                        let r = v.rem_euclid(tile_m);
-                        r.min(tile_m - r)
-                    };
-                    tile_m > 0.0 && edge(x).min(edge(y)) < SEAM_BAND_M
-                })
-            })
-            .map(|f| f.accepted)
-            .collect();
-        p.attempts_near_seams = near.len();
-        p.fix_rate_near_seams = (!near.is_empty())
-            .then(|| near.iter().filter(|a| **a).count() as f64 / near.len() as f64);
-        p
+    let map_paging = paging_end.map(|end| {
+        let seams = seam_fix_rate(&wf, cl.map_tile_m.unwrap_or(0.0), |t| {
+            let (lat, lon, _) = truth_camera(&table, t, &mount);
+            crs.from_geodetic(lat, lon).ok()
+        });
+        let memory_mb = cfg
+            .map
+            .memory_mb
+            .unwrap_or(visnav_daemon::wiring::DEFAULT_MAP_MEMORY_MB);
+        MapPagingSummary::new(end, tiled, memory_mb, seams)
     });
     let dtm_all: Vec<DtmRow> = fixer
         .dtm_log

@@ -791,6 +791,16 @@ impl Scenario {
 }
 
 impl ClosedLoopConfig {
+    /// How a tiled map's tiles load: inline in lock-step (a seed's run meets the same tiles on
+    /// any machine), in the background in real time (as in flight).
+    pub fn tile_loading(&self) -> visnav_io::map::paged::LoadMode {
+        if self.lockstep {
+            visnav_io::map::paged::LoadMode::Inline
+        } else {
+            visnav_io::map::paged::LoadMode::Background
+        }
+    }
+
     /// The closed loop's camera, AHRS, workers, map and camera worlds (`dur`: the flight's
     /// duration, s).
     fn validate_in(&self, p: &mut Problems, dur: f64) {

@@ -363,3 +363,111 @@ fn a_configuration_flies_a_tiled_map_folder() {
     let e = Config::load(&cfg).unwrap_err().to_string();
     assert!(e.contains("map.file") && e.contains("index.json"), "{e}");
 }
+
+/// `visnav map convert`: a single file cut into squares answers, once its tiles are loaded, with
+/// the file's own features (every one once, bit for bit) and pixels, at every level and across
+/// seams; its index names the file; an occupied folder and an impossible side are refused.
+#[test]
+fn a_converted_map_file_lends_its_own_features_and_pixels() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut spec = BuildSpec::new(vec![naip2009()], HeightSource::ConstantAmsl(580.0));
+    spec.tile_px = 256;
+    spec.levels = Some(3);
+    let one_path = dir.path().join("one.vnm");
+    build_map(&spec, &one_path, &mut |_| {}).unwrap();
+    let one = MapReference::open(&one_path, None).unwrap();
+    let tiled = dir.path().join("converted");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_visnav"))
+        .args(["map", "convert"])
+        .arg(&one_path)
+        .args(["--tile-m", "1500", "--out"])
+        .arg(&tiled)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let file = visnav::map::ReferenceMap::open(&one_path).unwrap();
+    let ix = visnav::map::tiled::TiledIndex::read(&tiled).unwrap();
+    assert_eq!(ix.total_features(), file.header().n_features());
+    assert!(ix.tiles.len() >= 9, "{}", ix.tiles.len());
+    assert!(ix.sources[0].ends_with("one.vnm"), "{:?}", ix.sources);
+    assert!(ix.command.as_deref().unwrap().contains("map convert"));
+
+    let paged =
+        PagedMap::open_with(&tiled, 256, None, visnav::map::paged::LoadMode::Inline).unwrap();
+    assert_eq!(paged.level_gsd_m(), one.level_gsd_m());
+    assert_eq!(paged.bounds_m(), one.bounds_m());
+    let b = one.bounds_m();
+    let whole = [b[0] - 10.0, b[1] - 10.0, b[2] + 10.0, b[3] + 10.0];
+    // Across the seams of squares x 487 500 / 489 000, y 5 206 500 / 5 208 000.
+    let seams = [487_100.0, 5_206_100.0, 489_400.0, 5_208_400.0];
+    for level in 0..3 {
+        for rect in [whole, seams] {
+            let (a, c) = (paged.select(level, rect), one.select(level, rect));
+            assert_eq!(a.features.len(), c.features.len(), "level {level}");
+            assert!(rows(&a) == rows(&c), "level {level} {rect:?}");
+        }
+        let w = paged.level_window(level, whole).unwrap();
+        let (w, src) = (w.image(), one.level_image(level).unwrap());
+        assert_eq!(
+            (w.width, w.height),
+            (src.width, src.height),
+            "level {level}"
+        );
+        assert_eq!(
+            (w.origin_x_m, w.origin_y_m),
+            (src.origin_x_m, src.origin_y_m)
+        );
+        let diff: Vec<usize> = (0..w.data.len()).filter(|&i| w.data[i] != src.data[i]).collect();
+        assert!(
+            diff.is_empty(),
+            "level {level}: {} pixels differ, first at ({}, {}) of {}x{}: {} vs {}",
+            diff.len(),
+            diff[0] % w.width,
+            diff[0] / w.width,
+            w.width,
+            w.height,
+            w.data[diff[0]],
+            src.data[diff[0]]
+        );
+    }
+    assert_eq!(paged.stats().load_errors, 0);
+
+    // Descriptors as stored: the fullest tile's features, byte for byte against the file.
+    let t = ix.tiles.iter().max_by_key(|t| t.features).unwrap();
+    let tile = visnav::map::ReferenceMap::open(&tiled.join(&t.file)).unwrap();
+    let mut n = 0;
+    tile.for_each_record(
+        0,
+        [
+            t.bounds.min_x_m,
+            t.bounds.min_y_m,
+            t.bounds.max_x_m,
+            t.bounds.max_y_m,
+        ],
+        |rec, desc| {
+            let x = f64::from_le_bytes(rec[0..8].try_into().unwrap());
+            let y = f64::from_le_bytes(rec[8..16].try_into().unwrap());
+            let mut found = false;
+            file.for_each_record(0, [x, y, x, y], |r2, d2| found |= r2 == rec && d2 == desc);
+            assert!(found, "feature at ({x}, {y}) is not the file's bytes");
+            n += 1;
+        },
+    );
+    assert!(n > 50, "{n}");
+
+    let again = std::process::Command::new(env!("CARGO_BIN_EXE_visnav"))
+        .args(["map", "convert"])
+        .arg(&one_path)
+        .args(["--tile-m", "1500", "--out"])
+        .arg(&tiled)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&again.stderr);
+    assert!(
+        !again.status.success() && err.contains("already holds a tiled map"),
+        "{err}"
+    );
+    let small =
+        visnav::map::convert::convert_to_tiled(&one_path, 50.0, &dir.path().join("x"), None);
+    assert!(small.unwrap_err().to_string().contains("tile_m"));
+}

@@ -32,6 +32,9 @@ pub enum MapCommand {
     BuildTile(BuildTileArgs),
     /// Write a planned tiled map's `index.json` once every square is built.
     Gather(GatherArgs),
+    /// Convert a map file (.vnm) into a tiled map: its features, level images and heights cut
+    /// along the tiled grid, bit for bit (no orthophoto needed).
+    Convert(ConvertArgs),
     /// Measure how two orthophotos of the same area are registered to each other (e.g. the map's
     /// year against another year): per-patch shifts and their mean over footprint-sized windows.
     Compare(CompareArgs),
@@ -167,6 +170,20 @@ pub struct BuildTileArgs {
     pub square: usize,
 }
 
+/// `map convert`.
+#[derive(clap::Args, Debug)]
+pub struct ConvertArgs {
+    /// The map file (.vnm) to convert.
+    pub file: PathBuf,
+    /// Side of the tiles' grid squares, metres (200 to 1 000 000; docs/maps.md says how to
+    /// choose it).
+    #[arg(long)]
+    pub tile_m: f64,
+    /// The tiled map's folder (created; one that already holds a tiled map is refused).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
 /// `map gather`.
 #[derive(clap::Args, Debug)]
 pub struct GatherArgs {
@@ -191,6 +208,7 @@ pub fn run(args: MapArgs) -> anyhow::Result<ExitCode> {
         MapCommand::Plan(a) => plan(a),
         MapCommand::BuildTile(a) => build_tile(a),
         MapCommand::Gather(a) => gather(a),
+        MapCommand::Convert(a) => convert(a),
     }
 }
 
@@ -514,6 +532,28 @@ fn gather(a: GatherArgs) -> anyhow::Result<ExitCode> {
         ix.empty.len(),
         ix.total_features(),
         ix.total_bytes()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `map convert FILE --tile-m T --out DIR`.
+fn convert(a: ConvertArgs) -> anyhow::Result<ExitCode> {
+    let t0 = Instant::now();
+    let command = format!(
+        "visnav map convert {} --tile-m {}",
+        a.file.display(),
+        a.tile_m
+    );
+    let s = visnav::map::convert::convert_to_tiled(&a.file, a.tile_m, &a.out, Some(command))
+        .with_context(|| format!("converting {} into {}", a.file.display(), a.out.display()))?;
+    println!(
+        "{}: {} tiles ({} squares without features), {} features, {} bytes, in {:.2} s",
+        a.out.join(visnav::map::tiled::INDEX_FILE).display(),
+        s.index.tiles.len(),
+        s.index.empty.len(),
+        s.features,
+        s.index.total_bytes(),
+        t0.elapsed().as_secs_f64()
     );
     Ok(ExitCode::SUCCESS)
 }

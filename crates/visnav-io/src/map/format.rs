@@ -286,14 +286,39 @@ impl SpillWriter {
         desc: &[f32],
         source: u8,
     ) -> Result<(), MapError> {
-        let grid = self.grids[level]; // ok: levels are created by the builder
-        let cell = grid.cell_of(f.x_m, f.y_m);
-        self.counts[level][cell] += 1;
         let scale = match self.kind.family() {
             Family::Float => quantise(&desc[..self.kind.len()], &mut self.qbuf),
             Family::Binary => binary_bytes(&desc[..self.kind.len()], &mut self.qbuf),
         };
         let rec = encode_record(f, scale, source);
+        let qb: Vec<u8> = self.qbuf.iter().map(|q| q.to_le_bytes()[0]).collect();
+        self.push_record(level, &rec, &qb)
+    }
+
+    /// Appends a feature as a map file stores it: its record and its descriptor's bytes (copied
+    /// from another map, so a feature moves between maps bit for bit). `level` must be one the
+    /// writer was made with.
+    pub fn push_record(
+        &mut self,
+        level: usize,
+        record: &[u8; RECORD_BYTES],
+        descriptor: &[u8],
+    ) -> Result<(), MapError> {
+        let (Some(grid), true) = (
+            self.grids.get(level).copied(),
+            descriptor.len() == descriptor_bytes(self.kind),
+        ) else {
+            return Err(MapError::Param {
+                name: "level",
+                reason: format!("feature of level {level} does not fit the map being written"),
+            });
+        };
+        let (x_m, y_m) = (
+            f64::from_le_bytes(rd8(record, 0)),
+            f64::from_le_bytes(rd8(record, 8)),
+        );
+        let cell = grid.cell_of(x_m, y_m);
+        self.counts[level][cell] += 1;
         let io = |source| MapError::Io {
             path: self.spill_path.clone(),
             what: "cannot write the temporary feature file",
@@ -305,9 +330,8 @@ impl SpillWriter {
         self.spill
             .write_all(&(cell as u64).to_le_bytes())
             .map_err(io)?;
-        self.spill.write_all(&rec).map_err(io)?;
-        let qb: Vec<u8> = self.qbuf.iter().map(|q| q.to_le_bytes()[0]).collect();
-        self.spill.write_all(&qb).map_err(io)?;
+        self.spill.write_all(record).map_err(io)?;
+        self.spill.write_all(descriptor).map_err(io)?;
         Ok(())
     }
 
@@ -693,11 +717,44 @@ impl ReferenceMap {
             descriptors: Vec::new(),
             kind,
         };
+        let stride = kind.stride();
+        let binary = kind.family() == Family::Binary;
+        let mut q = vec![0i8; descriptor_bytes(kind)];
+        self.for_each_record(level, [min_x_m, min_y_m, max_x_m, max_y_m], |rb, db| {
+            let (f, scale) = decode_record(rb);
+            sel.features.push(f);
+            for (k, v) in db.iter().enumerate() {
+                q[k] = i8::from_le_bytes([*v]);
+            }
+            let at = sel.descriptors.len();
+            sel.descriptors.resize(at + stride, 0.0);
+            let row = &mut sel.descriptors[at..at + kind.len()];
+            if binary {
+                for (w, b) in row.iter_mut().zip(db.chunks_exact(4)) {
+                    *w = f32::from_bits(u32::from_le_bytes(rd4(b, 0)));
+                }
+            } else {
+                dequantise(&q, scale, row);
+            }
+        });
+        sel
+    }
+
+    /// Calls `f` with the stored record and descriptor bytes of every feature of `level` whose
+    /// `(x_m, y_m)` lies inside the closed rectangle `[min_x, min_y, max_x, max_y]`, in file
+    /// order, reading only the index cells that overlap it (an unknown level or an empty / NaN
+    /// rectangle: none).
+    pub fn for_each_record(
+        &self,
+        level: usize,
+        [min_x_m, min_y_m, max_x_m, max_y_m]: [f64; 4],
+        mut f: impl FnMut(&[u8; RECORD_BYTES], &[u8]),
+    ) {
         let Some(info) = self.header.levels.get(level) else {
-            return sel;
+            return;
         };
         if !(min_x_m <= max_x_m && min_y_m <= max_y_m) {
-            return sel;
+            return;
         }
         let g = &info.grid;
         let (c0, c1) = (g.col_of(min_x_m), g.col_of(max_x_m));
@@ -706,43 +763,23 @@ impl ReferenceMap {
         let cells = &self.mmap[base + info.cells_offset as usize..];
         let recs = &self.mmap[base + info.records_offset as usize..];
         let descs = &self.mmap[base + info.descriptors_offset as usize..];
-        let (len, stride) = (descriptor_bytes(kind), kind.stride());
-        let binary = kind.family() == Family::Binary;
-        let mut q = vec![0i8; len];
+        let len = descriptor_bytes(self.header.descriptor_kind());
         for r in r0..=r1 {
             for c in c0..=c1 {
                 let cell = r * g.cols as usize + c;
                 let start = u64::from_le_bytes(rd8(cells, 8 * cell)) as usize;
                 let end = u64::from_le_bytes(rd8(cells, 8 * cell + 8)) as usize;
                 for i in start..end {
-                    let rb = &recs[i * RECORD_BYTES..(i + 1) * RECORD_BYTES];
-                    let x = f64::from_le_bytes(rd8(rb, 0));
-                    let y = f64::from_le_bytes(rd8(rb, 8));
-                    if !(x >= min_x_m && x <= max_x_m && y >= min_y_m && y <= max_y_m) {
-                        continue;
-                    }
-                    let (f, scale) = decode_record(rb);
-                    sel.features.push(f);
-                    for (k, v) in descs[i * len..(i + 1) * len].iter().enumerate() {
-                        q[k] = i8::from_le_bytes([*v]);
-                    }
-                    let at = sel.descriptors.len();
-                    sel.descriptors.resize(at + stride, 0.0);
-                    let row = &mut sel.descriptors[at..at + kind.len()];
-                    if binary {
-                        for (w, b) in row
-                            .iter_mut()
-                            .zip(descs[i * len..(i + 1) * len].chunks_exact(4))
-                        {
-                            *w = f32::from_bits(u32::from_le_bytes(rd4(b, 0)));
-                        }
-                    } else {
-                        dequantise(&q, scale, row);
+                    let mut rb = [0u8; RECORD_BYTES];
+                    rb.copy_from_slice(&recs[i * RECORD_BYTES..(i + 1) * RECORD_BYTES]);
+                    let x = f64::from_le_bytes(rd8(&rb, 0));
+                    let y = f64::from_le_bytes(rd8(&rb, 8));
+                    if x >= min_x_m && x <= max_x_m && y >= min_y_m && y <= max_y_m {
+                        f(&rb, &descs[i * len..(i + 1) * len]);
                     }
                 }
             }
         }
-        sel
     }
 
     /// The grey image of `level` (format 2) with its geometry; `None` for a version-1 map.

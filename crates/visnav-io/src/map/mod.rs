@@ -38,6 +38,7 @@
 //!   `-127..=127`, `scale = max|d| / 127`), then re-normalised to unit length when read.
 
 pub mod build;
+pub mod convert;
 pub mod coreg;
 pub mod format;
 pub mod paged;

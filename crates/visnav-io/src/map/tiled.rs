@@ -510,7 +510,7 @@ fn grid_squares(union: &Bounds, tile_m: f64) -> Result<Vec<[i64; 2]>, MapError> 
 }
 
 /// The CRC-32 a `.vnm` stores (bytes 56-59 of its preamble).
-fn stored_crc(path: &Path) -> Result<u32, MapError> {
+pub(super) fn stored_crc(path: &Path) -> Result<u32, MapError> {
     use std::io::Read;
     let mut b = [0u8; 60];
     std::fs::File::open(path)
@@ -547,7 +547,7 @@ fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, MapError>
 
 /// Writes `value` as JSON to a temporary name and moves it into place (a reader never sees half
 /// a file).
-fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), MapError> {
+pub(super) fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), MapError> {
     let tmp: PathBuf = path.with_extension("json.partial");
     let io = |what, source| MapError::Io {
         path: path.to_path_buf(),

@@ -708,6 +708,39 @@ def add_visnav_args(ap):
     ap.add_argument("--map-ortho", default=None, metavar="GEOTIFF",
                     help="visnav's map orthophoto instead of the configuration's (e.g. one the "
                          "camera's ground cannot be matched on: sitl/featureless_map.py)")
+    ap.add_argument("--map-tile-m", type=float, default=None, metavar="M",
+                    help="build the configuration's map as a tiled map of squares of M metres "
+                         "in the work folder (visnav map build --tile-m) and fly it paged "
+                         "([map] file = the folder, memory_mb = --map-memory-mb)")
+    ap.add_argument("--map-memory-mb", type=int, default=16, metavar="MB",
+                    help="[map] memory_mb of the tiled map (--map-tile-m; default 16, the least)")
+
+
+def tiled_map_config(text, map_dir, memory_mb):
+    """TEXT (a configuration with absolute paths) with its `[map] ortho = [...]` line replaced by
+    `file = MAP_DIR` and `memory_mb = MEMORY_MB`, and the orthophoto and the constant ground
+    height that line and `ground_height_amsl_m` named (what the tiled map is built from). Exits
+    naming what is missing."""
+    m = re.search(r"(?m)^ortho = \[[ \t]*(\"[^\"]+\")[ \t]*\][ \t]*$", text)
+    g = re.search(r"(?m)^ground_height_amsl_m = ([-0-9.eE+]+)[ \t]*$", text)
+    if m is None or g is None:
+        sys.exit("--map-tile-m: the configuration's [map] needs one `ortho = [\"...\"]` line and "
+                 "`ground_height_amsl_m = ...`")
+    ortho = json.loads(m.group(1))
+    file_lines = f"file = {json.dumps(os.path.abspath(map_dir))}\nmemory_mb = {int(memory_mb)}"
+    return text[:m.start()] + file_lines + text[m.end():], ortho, float(g.group(1))
+
+
+def build_tiled_map(exe, ortho, ground_height_m, tile_m, map_dir, log):
+    """`visnav map build` of ORTHO (flat at GROUND_HEIGHT_M) as a tiled map of TILE_M squares
+    in MAP_DIR (its output beside it, map_build.log); exits when the build fails."""
+    cmd = [exe, "map", "build", "--ortho", ortho, "--ground-height", repr(ground_height_m),
+           "--tile-m", repr(tile_m), "--out", map_dir]
+    log("visnav: " + " ".join(cmd))
+    with open(map_dir + "_build.log", "w") as out:
+        rc = subprocess.call(cmd, stdout=out, stderr=subprocess.STDOUT)
+    if rc != 0:
+        sys.exit(f"the tiled map's build failed (exit {rc}): see {map_dir}_build.log")
 
 
 def visnav_config_text(text, repo, link_port=None, vo=None, map_ortho=None):
@@ -750,7 +783,8 @@ def set_vo_enabled(text, on):
 
 
 def start_visnav(exe, config_src, workdir, kind, truth_port, camera_hz, repo, log,
-                 link_port=None, vo=None, map_ortho=None, camera_world=None):
+                 link_port=None, vo=None, map_ortho=None, camera_world=None,
+                 map_tile_m=None, map_memory_mb=16):
     """Start `visnav sitl-run` in WORKDIR (stdout: visnav.json, the metrics lines; stderr:
     visnav.log) on a copy of CONFIG_SRC with absolute map paths, a .tlog of all link traffic
     (visnav.tlog), the vision fix log (fixes.jsonl), the visual odometry log (vo.jsonl) and the
@@ -761,7 +795,8 @@ def start_visnav(exe, config_src, workdir, kind, truth_port, camera_hz, repo, lo
     folder then replays the flight through the filter offline. The camera renders the 2014 image
     (the map is the 2009 one), or with `camera_world` (a scenario file) that scenario's camera
     world (`sitl-run --scenario`: its orthophoto on its surface model, the map from another
-    degraded copy)."""
+    degraded copy). With `map_tile_m` the configuration's map is built as a tiled map in
+    WORKDIR/map and flown paged within `map_memory_mb` (tiled_map_config)."""
     if exe is None:
         for c in ("target/release/visnav", "target/debug/visnav"):
             if os.path.exists(os.path.join(repo, c)):
@@ -773,6 +808,12 @@ def start_visnav(exe, config_src, workdir, kind, truth_port, camera_hz, repo, lo
     with open(config_src) as f:
         text = f.read()
     text = visnav_config_text(text, repo, link_port, vo, map_ortho)
+    if map_tile_m is not None:
+        if camera_world is not None:
+            sys.exit("--map-tile-m: only with the NAIP scenario (its map is one orthophoto, flat)")
+        map_dir = os.path.join(workdir, "map")
+        text, ortho, ground_m = tiled_map_config(text, map_dir, map_memory_mb)
+        build_tiled_map(exe, ortho, ground_m, map_tile_m, map_dir, log)
     config = os.path.join(workdir, "visnav.toml")
     with open(config, "w") as f:
         f.write(text)

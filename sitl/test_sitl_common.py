@@ -495,6 +495,23 @@ class Ports(unittest.TestCase):
         self.assertIn('dem = "/w/shared/data/autzen/autzen_dsm_1m_utm10n.tif"', t)
         self.assertNotIn("../", t.split("[map]")[1].split("[nav]")[0])
 
+    def test_the_tiled_map_replaces_the_ortho_line(self):
+        here = os.path.dirname(os.path.abspath(__file__))
+        with open(os.path.join(here, "ardupilot", "visnav.toml")) as f:
+            t = sc.visnav_config_text(f.read(), "/w/repo")
+        out, ortho, ground = sc.tiled_map_config(t, "/w/run/map", 24)
+        self.assertEqual(ortho, "/w/repo/sitl/maps/naip_nd_2009.tif")
+        self.assertEqual(ground, 580.0)
+        section = out.split("[map]")[1].split("[nav]")[0]
+        self.assertIn('file = "/w/run/map"\nmemory_mb = 24\n', section)
+        self.assertNotIn("ortho =", section)
+        self.assertIn("ground_height_amsl_m = 580.0", section)
+        # Everything else is unchanged.
+        self.assertEqual(out.replace('file = "/w/run/map"\nmemory_mb = 24', ""),
+                         t.replace('ortho = ["/w/repo/sitl/maps/naip_nd_2009.tif"]', ""))
+        with self.assertRaises(SystemExit):
+            sc.tiled_map_config("[map]\nfile = \"x.vnm\"\n", "/w/run/map", 16)
+
     def test_heights_above_ground_count_from_the_given_home(self):
         score = sc.ErrorScore("EKF3", lambda _m: None, home_alt_m=132.0)
         home = (44.05, -123.07)

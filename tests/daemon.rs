@@ -364,6 +364,16 @@ impl FrameFixer for TruthPlusNoise {
         r.cov_ned_m2 = [[v, 0.0, 0.0], [0.0, v, 0.0], [0.0, 0.0, v]];
         r
     }
+
+    /// As a tiled map's fixer would: a tile loaded per frame, three in memory.
+    fn paging(&self) -> Option<visnav::map::paged::PagingStats> {
+        Some(visnav::map::paged::PagingStats {
+            loads: self.calls.load(Ordering::Relaxed) as u64,
+            resident_tiles: 3,
+            resident_bytes: 3 << 20,
+            ..Default::default()
+        })
+    }
 }
 
 fn y4m(dir: &std::path::Path, n: usize, fps: u32) -> std::path::PathBuf {
@@ -424,6 +434,15 @@ async fn frame_plumbing_vision_only_init_with_truth_plus_noise_fixer() {
     assert!(perr_max < 10.0, "prior error {perr_max} m");
     assert!(m.fix_latency_ms_max >= 30, "{m:?}");
     assert_eq!(m.queue_depth_max, 1);
+    // The fixer's paging counters are the daemon's metrics after every fix.
+    assert!(
+        m.map_tile_loads > 0 && m.map_tile_loads <= calls as u64,
+        "{m:?}"
+    );
+    assert_eq!(
+        (m.map_tiles_resident, m.map_tile_bytes_resident),
+        (3, 3 << 20)
+    );
     let m = d.shutdown().await;
     // The fix log has one record per result the navigation task received, with its outcome.
     let log =

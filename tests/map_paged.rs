@@ -417,7 +417,9 @@ fn a_converted_map_file_lends_its_own_features_and_pixels() {
             (w.origin_x_m, w.origin_y_m),
             (src.origin_x_m, src.origin_y_m)
         );
-        let diff: Vec<usize> = (0..w.data.len()).filter(|&i| w.data[i] != src.data[i]).collect();
+        let diff: Vec<usize> = (0..w.data.len())
+            .filter(|&i| w.data[i] != src.data[i])
+            .collect();
         assert!(
             diff.is_empty(),
             "level {level}: {} pixels differ, first at ({}, {}) of {}x{}: {} vs {}",

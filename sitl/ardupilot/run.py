@@ -269,7 +269,8 @@ def start_visnav(args, workdir, visnav_port, truth_port):
     return sitl_common.start_visnav(args.visnav, config, workdir,
                                     "ardupilot", truth_port, args.camera_hz, REPO, log,
                                     link_port=visnav_port, vo=args.vo, map_ortho=args.map_ortho,
-                                    camera_world=sc["world"])
+                                    camera_world=sc["world"], map_tile_m=args.map_tile_m,
+                                    map_memory_mb=args.map_memory_mb)
 
 
 def is_autopilot(m, hb):

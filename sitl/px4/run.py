@@ -338,7 +338,9 @@ def start_px4(args, workdir, params, net):
 def start_visnav(args, workdir, net):
     return sitl_common.start_visnav(args.visnav, args.config, workdir, "px4", net.truth,
                                     args.camera_hz, REPO, log, link_port=net.link,
-                                    vo=args.vo, map_ortho=args.map_ortho)
+                                    vo=args.vo, map_ortho=args.map_ortho,
+                                    map_tile_m=args.map_tile_m,
+                                    map_memory_mb=args.map_memory_mb)
 
 
 def is_autopilot(m, hb):

@@ -424,6 +424,9 @@ fn fix_prepared(ctx: &WorkerCtx, f: Frame, t_c: u64, prior: FixPrior) -> FixResu
     report.ms = elapsed.as_secs_f64() * 1e3;
     let latency_ms = elapsed.as_millis() as u64;
     m.latency(latency_ms);
+    if let Some(p) = ctx.fixer.paging() {
+        m.map_paging(&p);
+    }
     FixResult {
         t_capture_us: t_c,
         seq: f.seq,

@@ -109,6 +109,26 @@ visnav_metrics::metric_set! {
         /// The largest, ms.
         fix_latency_ms_max: Gauge "visnav_fix_latency_max_seconds"
             "the fix engine's largest computing time of a frame" / 1e3,
+        /// A tiled map's tiles loaded so far (`[map] file` a folder; 0 with a single file).
+        map_tile_loads: Gauge "visnav_map_tile_loads"
+            "tiles of the tiled map loaded into memory so far",
+        /// Tiles dropped for the memory budget.
+        map_tile_evictions: Gauge "visnav_map_tile_evictions"
+            "tiles of the tiled map dropped for its memory budget so far",
+        /// Tiles asked for while not in memory (the fix went on without them).
+        map_tile_misses: Gauge "visnav_map_tile_misses"
+            "tiles asked for while not in memory (the fix went on without them) so far",
+        /// Tiles of a frame's own footprint that were not in memory when it was fixed.
+        map_tiles_late: Gauge "visnav_map_tiles_late"
+            "tiles of a frame's own footprint not in memory when it was fixed, so far",
+        /// Tiles that could not be loaded (unreadable, or not the checksum the index records).
+        map_tile_load_errors: Gauge "visnav_map_tile_load_errors"
+            "tiles that could not be loaded (unreadable or damaged)",
+        /// Tiles in memory now.
+        map_tiles_resident: Gauge "visnav_map_tiles_resident" "tiles of the tiled map in memory",
+        /// Their size, bytes.
+        map_tile_bytes_resident: Gauge "visnav_map_tile_bytes_resident"
+            "bytes of the tiled map's tiles in memory",
     }
 }
 
@@ -118,6 +138,17 @@ impl DaemonMetrics {
     /// keeping the `reason` itself for the snapshot.
     pub fn engine_reject(&self, class: &'static str, reason: &str) {
         self.engine_rejected.count(class, reason);
+    }
+
+    /// Copy a tiled map's paging counters (`map::paged::PagedMap::stats`).
+    pub fn map_paging(&self, p: &visnav_io::map::paged::PagingStats) {
+        self.map_tile_loads.set(p.loads);
+        self.map_tile_evictions.set(p.evictions);
+        self.map_tile_misses.set(p.misses);
+        self.map_tiles_late.set(p.late);
+        self.map_tile_load_errors.set(p.load_errors);
+        self.map_tiles_resident.set(p.resident_tiles as u64);
+        self.map_tile_bytes_resident.set(p.resident_bytes);
     }
 
     /// Record one fix latency.

@@ -141,20 +141,34 @@ impl PagedFixer {
         });
         if t.saturating_sub(st.last_log_us) >= LOG_EVERY_US {
             st.last_log_us = t;
-            let s = self.map.stats();
-            tracing::info!(
-                loads = s.loads,
-                evictions = s.evictions,
-                misses = s.misses,
-                load_errors = s.load_errors,
-                over_budget = s.over_budget,
-                resident_tiles = s.resident_tiles,
-                resident_mb = s.resident_bytes as f64 / 1e6,
-                "tiled map paging"
-            );
+            log_stats(&self.map, "tiled map paging");
         }
         rects.retain(|r| r.iter().all(|v| v.is_finite()));
         rects
+    }
+}
+
+/// One summary line of the map's paging counters.
+fn log_stats(map: &PagedMap, what: &str) {
+    let s = map.stats();
+    tracing::info!(
+        loads = s.loads,
+        evictions = s.evictions,
+        misses = s.misses,
+        late = s.late,
+        late_frames = s.late_frames,
+        load_errors = s.load_errors,
+        over_budget = s.over_budget,
+        resident_tiles = s.resident_tiles,
+        resident_mb = s.resident_bytes as f64 / 1e6,
+        "{what}"
+    );
+}
+
+impl Drop for PagedFixer {
+    fn drop(&mut self) {
+        // The whole run's counts, however short the run (the periodic line comes once a minute).
+        log_stats(&self.map, "tiled map paging at the end");
     }
 }
 

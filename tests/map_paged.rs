@@ -473,3 +473,130 @@ fn a_converted_map_file_lends_its_own_features_and_pixels() {
         visnav::map::convert::convert_to_tiled(&one_path, 50.0, &dir.path().join("x"), None);
     assert!(small.unwrap_err().to_string().contains("tile_m"));
 }
+
+/// A DEM of relief under the NAIP tile (30 m cells, a slope and ridges, 580 +- 60 m), written as
+/// a float GeoTIFF in the orthophoto's CRS.
+fn relief_dem(dir: &Path) -> PathBuf {
+    use visnav::geo::raster::{GeoTransform, Raster, RasterData};
+    let crs = visnav::geo::geotiff::load_geotiff(&naip2009(), None)
+        .unwrap()
+        .crs();
+    let (x0, y0, cell, n) = (485_000.0, 5_210_500.0, 30.0, 220usize);
+    let data = (0..n)
+        .flat_map(|r| (0..n).map(move |c| (c, r)))
+        .map(|(c, r)| {
+            let (x, y) = (c as f64 * cell, r as f64 * cell);
+            (560.0 + 0.006 * x + 25.0 * (y / 700.0).sin() + 15.0 * (x / 450.0).cos()) as f32
+        })
+        .collect();
+    let t = GeoTransform::new([x0, cell, 0.0, y0, 0.0, -cell]).unwrap();
+    let raster = Raster::new(n, n, 1, RasterData::F32(data), t, crs, None).unwrap();
+    let p = dir.join("relief.tif");
+    visnav::geo::geotiff_write::write_geotiff(&raster, &p).unwrap();
+    p
+}
+
+/// A tiled map built on a DEM carries the DEM's heights tile by tile: opened without the DEM, it
+/// lends (once the tiles under a request are in memory) the DEM's own heights and ray hits
+/// across seams, nothing where no tile is in memory, and features with the single file's
+/// heights; a tile whose heights file is damaged is refused, and a build run again rebuilds the
+/// square whose heights went missing. A converted file carries them the same way.
+#[test]
+fn a_tiled_map_on_a_dem_pages_its_heights_with_its_tiles() {
+    let dir = tempfile::tempdir().unwrap();
+    let dem_path = relief_dem(dir.path());
+    let whole = visnav::geo::dem::load_dem(&dem_path, None).unwrap();
+    let mut spec = BuildSpec::new(vec![naip2009()], HeightSource::Dem(dem_path.clone()));
+    spec.tile_px = 256;
+    spec.levels = Some(2);
+    let one_path = dir.path().join("one.vnm");
+    build_map(&spec, &one_path, &mut |_| {}).unwrap();
+    let one = MapReference::open(&one_path, None).unwrap();
+    let tiled = dir.path().join("tiled");
+    build_tiled(&spec, 2000.0, &tiled, None, &mut |_| {}).unwrap();
+    let ix = visnav::map::tiled::TiledIndex::read(&tiled).unwrap();
+    assert!(ix.tiles.iter().all(|t| t.heights.is_some()), "{ix:?}");
+
+    let paged =
+        PagedMap::open_with(&tiled, 256, None, visnav::map::paged::LoadMode::Inline).unwrap();
+    // Nothing in memory: no height anywhere, the map's height range.
+    assert_eq!(paged.height_amsl_m(488_000.0, 5_207_000.0), None);
+    let (lo, hi) = paged.dem().height_range_m();
+    assert!(lo >= 500.0 && hi <= 660.0 && hi > lo, "{lo} {hi}");
+    // Four squares' corner (x 488 000, y 5 208 000).
+    let rect = [487_300.0, 5_207_200.0, 488_900.0, 5_208_700.0];
+    paged.request(&[rect], 1);
+    let mut compared = 0;
+    for i in 0..40 {
+        for j in 0..40 {
+            let (x, y) = (487_310.0 + 39.7 * i as f64, 5_207_210.0 + 37.1 * j as f64);
+            assert_eq!(
+                paged.height_amsl_m(x, y),
+                whole.height_at(x, y),
+                "({x}, {y})"
+            );
+            compared += 1;
+        }
+    }
+    assert_eq!(compared, 1600);
+    let dem = paged.dem();
+    for (x, y) in [
+        (487_500.0, 5_207_500.0),
+        (488_010.0, 5_207_990.0),
+        (488_700.0, 5_208_500.0),
+    ] {
+        let ray = ([x - 300.0, y + 200.0, 2_000.0], [0.2, -0.13, -1.0]);
+        let a = dem.intersect_ray(ray.0, ray.1, 1e4).unwrap();
+        let b = whole.intersect_ray(ray.0, ray.1, 1e4).unwrap();
+        assert!((0..3).all(|k| (a[k] - b[k]).abs() < 1e-6), "{a:?} {b:?}");
+    }
+    // Far from the request: no height (not a guess).
+    assert_eq!(paged.height_amsl_m(490_500.0, 5_205_100.0), None);
+    for level in 0..2 {
+        assert!(rows(&paged.select(level, rect)) == rows(&one.select(level, rect)));
+    }
+    drop(dem);
+    drop(paged);
+
+    // A damaged heights file: its tile is refused, the others load.
+    let victim = ix.tiles.iter().max_by_key(|t| t.features).unwrap();
+    let h = victim.heights.as_ref().unwrap();
+    let hp = tiled.join(&h.file);
+    let mut bytes = std::fs::read(&hp).unwrap();
+    let n = bytes.len();
+    bytes[n / 2] ^= 0x5a;
+    std::fs::write(&hp, &bytes).unwrap();
+    let paged =
+        PagedMap::open_with(&tiled, 256, None, visnav::map::paged::LoadMode::Inline).unwrap();
+    let b = victim.bounds;
+    paged.request(&[[b.min_x_m, b.min_y_m, b.max_x_m, b.max_y_m]], 1);
+    assert_eq!(paged.stats().load_errors, 1);
+    drop(paged);
+    // Gone: a build run again rebuilds that square alone.
+    std::fs::remove_file(&hp).unwrap();
+    let again = build_tiled(&spec, 2000.0, &tiled, None, &mut |_| {}).unwrap();
+    assert_eq!(
+        (again.built, again.reused),
+        (1, ix.tiles.len() + ix.empty.len() - 1)
+    );
+    assert!(visnav::map::tiled::heights_intact(h, &hp));
+
+    // Converted from the single file: the same heights come with the tiles.
+    let conv = dir.path().join("converted");
+    let s = visnav::map::convert::convert_to_tiled(&one_path, 1500.0, &conv, None).unwrap();
+    assert_eq!(s.heights_from.as_deref(), Some(dem_path.as_path()));
+    let paged =
+        PagedMap::open_with(&conv, 256, None, visnav::map::paged::LoadMode::Inline).unwrap();
+    paged.request(&[rect], 1);
+    for (x, y) in [
+        (487_400.0, 5_207_300.0),
+        (488_050.0, 5_208_020.0),
+        (488_800.0, 5_208_600.0),
+    ] {
+        assert_eq!(
+            paged.height_amsl_m(x, y),
+            whole.height_at(x, y),
+            "({x}, {y})"
+        );
+    }
+}

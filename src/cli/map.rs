@@ -555,6 +555,17 @@ fn convert(a: ConvertArgs) -> anyhow::Result<ExitCode> {
         s.index.total_bytes(),
         t0.elapsed().as_secs_f64()
     );
+    let file = ReferenceMap::open(&a.file)?;
+    match (&file.header().height, &s.heights_from) {
+        (HeightInfo::Dem { .. }, Some(dem)) => {
+            println!("  each tile carries its heights from {}", dem.display());
+        }
+        (HeightInfo::Dem { file, .. }, None) => println!(
+            "  the DEM the map names ({file}) is not at hand: the tiles carry no heights, so \
+             `[map] dem` must give them in flight"
+        ),
+        (HeightInfo::Constant { .. }, _) => {}
+    }
     Ok(ExitCode::SUCCESS)
 }
 
@@ -605,6 +616,16 @@ fn tiled_info(path: &Path, json: bool) -> anyhow::Result<ExitCode> {
         per_km2 / 1e3,
         ix.tiles.iter().map(|t| t.file_bytes).max().unwrap_or(0)
     );
+    let heights: Vec<_> = ix.tiles.iter().filter_map(|t| t.heights.as_ref()).collect();
+    if !heights.is_empty() {
+        println!(
+            "  heights carried by {} of the {} tiles: {} bytes on disk, {} bytes in memory",
+            heights.len(),
+            ix.tiles.len(),
+            heights.iter().map(|h| h.file_bytes).sum::<u64>(),
+            heights.iter().map(|h| h.memory_bytes()).sum::<u64>()
+        );
+    }
     for s in &ix.sources {
         println!("  source {s}");
     }

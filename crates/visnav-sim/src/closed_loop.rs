@@ -1694,6 +1694,10 @@ fn mosaic_and_tiles(
     );
     let area_km2 = ix.tiles_area_km2();
     cfg.map.file = Some(out);
+    if ix.tiles.iter().all(|t| t.heights.is_some()) {
+        // The tiles carry the DEM's heights: the flight pages them, as the daemon would.
+        cfg.map.dem = None;
+    }
     cfg.map.ortho.clear();
     cfg.map.upsample = None;
     cfg.map.height_sigma_m = None;

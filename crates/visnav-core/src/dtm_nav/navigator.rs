@@ -223,7 +223,7 @@ impl DtmNavigator {
         let span_us = (self.cfg.max_pair_span_s * 1e6) as u64;
         self.kept
             .retain(|k| k.t_us < t_us && t_us - k.t_us <= span_us);
-        let agl_m = fp.pose.c_world.z - ground_below(self.reference.dem(), &fp.pose);
+        let agl_m = fp.pose.c_world.z - ground_below(&self.reference.dem(), &fp.pose);
         let need_m = self.cfg.min_baseline_agl_fraction * agl_m.max(0.0);
         let partner = self
             .kept
@@ -266,7 +266,7 @@ impl DtmNavigator {
         let range = self.cfg.max_range_m;
         self.screen_footprint(&guess1)?;
         let (_, raw) = terrain_flow(&first.image, image, |p| {
-            predict_px(p, &self.camera, &guess1, &guess2, dem, range)
+            predict_px(p, &self.camera, &guess1, &guess2, &dem, range)
         })
         .map_err(|e| DtmRefusal::Flow(e.to_string()))?;
         let f32px = |v: nalgebra::Vector2<f64>| [v.x as f32, v.y as f32];
@@ -304,7 +304,7 @@ impl DtmNavigator {
             dem_shift_sigma_cells: 0.0,
             ..self.cfg.clone()
         };
-        let sol = solve(&input, dem, &cfg).map_err(DtmRefusal::Solve)?;
+        let sol = solve(&input, &dem, &cfg).map_err(DtmRefusal::Solve)?;
         let fix = self.pose_fix(&sol.second, &sol.second_cov(), fp, t_us)?;
         Ok(DtmPoseFix {
             fix,

@@ -91,8 +91,9 @@ pub trait Reference: Send + Sync {
     fn bounds_m(&self) -> [f64; 4];
     /// Ground height at a map position (AMSL, the DEM's datum), when known.
     fn height_amsl_m(&self, x_m: f64, y_m: f64) -> Option<f64>;
-    /// The terrain for ray casting (map grid coordinates, heights AMSL).
-    fn dem(&self) -> &Dem;
+    /// The terrain for ray casting (map grid coordinates, heights AMSL): the map's own, or the
+    /// part a map of tiles holds now (lent for the caller's use; a later call may lend another).
+    fn dem(&self) -> DemRef<'_>;
     /// Features of `level` whose position lies in `[min_x, min_y, max_x, max_y]`.
     fn select(&self, level: usize, rect_m: [f64; 4]) -> RefSelection;
     /// Standard deviation of the features' heights against the surface the camera sees, metres
@@ -123,6 +124,26 @@ pub trait Reference: Send + Sync {
     /// tiles under the rectangle. `None` when there is no level image there.
     fn level_window(&self, level: usize, _rect_m: [f64; 4]) -> Option<LevelWindow<'_>> {
         self.level_image(level).map(LevelWindow::Borrowed)
+    }
+}
+
+/// The terrain lent by a map ([`Reference::dem`]): the map's own, or one assembled from its tiles
+/// and shared with the map while the caller holds it. Dereferences to [`Dem`].
+#[derive(Debug, Clone)]
+pub enum DemRef<'a> {
+    /// The map's own terrain.
+    Borrowed(&'a Dem),
+    /// A terrain assembled from tiles.
+    Shared(std::sync::Arc<Dem>),
+}
+
+impl std::ops::Deref for DemRef<'_> {
+    type Target = Dem;
+    fn deref(&self) -> &Dem {
+        match self {
+            Self::Borrowed(d) => d,
+            Self::Shared(d) => d,
+        }
     }
 }
 
@@ -398,8 +419,8 @@ impl Reference for MemoryReference {
     fn height_amsl_m(&self, x_m: f64, y_m: f64) -> Option<f64> {
         self.dem.height_at(x_m, y_m)
     }
-    fn dem(&self) -> &Dem {
-        &self.dem
+    fn dem(&self) -> DemRef<'_> {
+        DemRef::Borrowed(&self.dem)
     }
     fn level_image(&self, level: usize) -> Option<MapImage<'_>> {
         let (data, width, height) = self.images.get(level)?;

@@ -250,6 +250,23 @@ impl GridDem {
     pub fn crs(&self) -> Crs {
         self.crs
     }
+    /// The grid as a one-band float raster (NaN where missing), the inverse of
+    /// [`Self::from_raster`].
+    pub fn to_raster(&self) -> Result<Raster, super::raster::RasterError> {
+        Raster::new(
+            self.width,
+            self.height,
+            1,
+            super::raster::RasterData::F32(self.heights_m.clone()),
+            self.transform,
+            self.crs,
+            None,
+        )
+    }
+    /// The height samples, row-major (`width * height`), metres; NaN where missing.
+    pub fn heights_m(&self) -> &[f32] {
+        &self.heights_m
+    }
 
     #[inline]
     fn h(&self, i: usize, j: usize) -> f64 {

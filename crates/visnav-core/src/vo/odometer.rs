@@ -262,7 +262,7 @@ impl Odometer {
     }
 
     fn ground_below(&self, pose: &Pose) -> f64 {
-        ground_below(self.reference.dem(), pose)
+        ground_below(&self.reference.dem(), pose)
     }
 
     /// The motion from the previous frame to this one as the filter's measurement.
@@ -301,7 +301,7 @@ impl Odometer {
             prev_tilt_sigma_rad: prev.tilt_sigma_rad,
             rotation_prior,
         };
-        let m = match frame_motion(&input, self.reference.dem(), &self.cfg) {
+        let m = match frame_motion(&input, &self.reference.dem(), &self.cfg) {
             Ok(m) => m,
             Err(e) => return VoStep::Refused(VoRefusal::Motion(e)),
         };

@@ -12,7 +12,8 @@ pub struct MapConfig {
     /// with `--tile-m`: its tiles are paged in flight within `memory_mb`), relative to the config
     /// file's folder unless absolute. With it, `ortho` may be empty and `dem` /
     /// `ground_height_amsl_m` are optional (they override the map's own terrain; a tiled map built
-    /// on a DEM needs `dem`).
+    /// on a DEM carries its heights tile by tile, one built before they were written needs
+    /// `dem`).
     #[serde(default)]
     pub file: Option<PathBuf>,
     /// With a tiled map (`file` a folder): the memory its tiles may take, MB (default 512). The

@@ -7,17 +7,19 @@
 //! level's image over the square's bounds moved out to the coarsest level's pixel grid through
 //! the file's image corner (the same snapping a tiled build does, so neighbouring tiles share
 //! one pixel grid and overlap by at most a coarse pixel of identical bytes). Heights come with
-//! the features; a map built on a DEM still names its DEM (`[map] dem` in flight). Squares
+//! the features; for a map built on a DEM, each tile also gets the DEM's samples under it
+//! (`tiled::TileHeights`) when the DEM its header names is at hand (else `[map] dem` gives the
+//! terrain in flight). Squares
 //! with neither a feature nor a pixel get no file and are listed as empty; one with pixels only
 //! (a sliver at the map's edge) keeps them. Memory: one square's features and
 //! images at a time.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use super::format::{RECORD_BYTES, ReferenceMap, SpillWriter};
 use super::tiled::{
     INDEX_FILE, MAX_SQUARES, MAX_TILE_M, MIN_TILE_M, TILED_FORMAT_VERSION, TILES_DIR, TileEntry,
-    TiledIndex, stored_crc, write_json,
+    TiledIndex, heights_file_of, stored_crc, write_json, write_tile_heights,
 };
 use super::{HeightInfo, IndexGrid, LevelImageInfo, LevelInfo, MapError, MapHeader};
 use visnav_core::geo::raster::Bounds;
@@ -29,6 +31,9 @@ pub struct ConvertSummary {
     pub index: TiledIndex,
     /// Features copied (all of the file's).
     pub features: u64,
+    /// The DEM the tiles' heights were cut from; `None` for a constant height, or when the DEM
+    /// the file names is not at hand (the tiles then carry no heights).
+    pub heights_from: Option<std::path::PathBuf>,
 }
 
 /// Converts the map file `src` into a tiled map of squares of `tile_m` metres in the folder
@@ -79,6 +84,10 @@ pub fn convert_to_tiled(
         empty: Vec::new(),
         built_by: format!("visnav {}", env!("CARGO_PKG_VERSION")),
     };
+    let heights_from = match &h.height {
+        HeightInfo::Dem { file, .. } if Path::new(file).is_file() => Some(PathBuf::from(file)),
+        _ => None,
+    };
     let mut copied = 0u64;
     for [col, row] in squares {
         let file = format!("{TILES_DIR}/x{col}_y{row}.vnm");
@@ -86,6 +95,19 @@ pub fn convert_to_tiled(
             Some((header, file_bytes)) => {
                 let features = header.n_features();
                 copied += features;
+                let heights = match &heights_from {
+                    Some(dem) => {
+                        let name = heights_file_of(&file);
+                        Some(write_tile_heights(
+                            dem,
+                            None,
+                            &header.bounds,
+                            &dir.join(&name),
+                            name,
+                        )?)
+                    }
+                    None => None,
+                };
                 index.tiles.push(TileEntry {
                     col,
                     row,
@@ -94,6 +116,7 @@ pub fn convert_to_tiled(
                     bounds: header.bounds,
                     features,
                     file_bytes,
+                    heights,
                 });
             }
             None => index.empty.push([col, row]),
@@ -113,6 +136,7 @@ pub fn convert_to_tiled(
     Ok(ConvertSummary {
         index,
         features: copied,
+        heights_from,
     })
 }
 

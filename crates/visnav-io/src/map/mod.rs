@@ -43,6 +43,7 @@ pub mod coreg;
 pub mod format;
 pub mod paged;
 pub mod reference;
+pub mod terrain_mosaic;
 pub mod tiled;
 
 use std::path::PathBuf;

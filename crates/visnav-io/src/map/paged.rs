@@ -11,7 +11,10 @@
 //! for others; when even they do not fit, the loader stops short and counts it.
 //!
 //! A tile's memory is its file (memory-mapped and read whole when opened, as its checksum is
-//! verified): the budget counts file bytes. The tiles share one level-0 pixel grid (each tile's
+//! verified) and, for a map built on a DEM, its heights (`tiled::TileHeights`, decoded): the
+//! budget counts both. The terrain lent to the fix ([`Reference::dem`]) is then the heights of
+//! the tiles in memory under the latest request, joined on the DEM's grid
+//! (`super::terrain_mosaic`), so no DEM is read whole; `[map] dem` given overrides it. The tiles share one level-0 pixel grid (each tile's
 //! bounds are moved out to it when built), so level windows are assembled by whole-pixel offsets.
 
 use std::collections::{HashMap, HashSet, VecDeque};
@@ -20,7 +23,7 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 
 use visnav_core::fix::reference::{
-    HeightErrors, LevelWindow, MapImageBuf, RefFeature, RefSelection, Reference,
+    DemRef, HeightErrors, LevelWindow, MapImageBuf, RefFeature, RefSelection, Reference,
 };
 use visnav_core::geo::Crs;
 use visnav_core::geo::dem::Dem;
@@ -28,7 +31,8 @@ use visnav_core::vision::FeatureSpec;
 
 use super::MapSelection;
 use super::reference::MapReferenceError;
-use super::tiled::TiledIndex;
+use super::terrain_mosaic;
+use super::tiled::{TileHeights, TiledIndex};
 use super::{HeightInfo, MapError, MapHeader, ReferenceMap};
 
 /// Largest level window assembled for one call, pixels: 64 M (a 8 000 px square; a blind
@@ -78,6 +82,8 @@ pub enum LoadMode {
 /// One tile in memory.
 struct Held {
     map: Arc<ReferenceMap>,
+    /// Its heights (a map built on a DEM).
+    heights: Option<Arc<Dem>>,
     bytes: u64,
     last_used: u64,
 }
@@ -88,6 +94,8 @@ struct State {
     queue: VecDeque<usize>,
     /// The needed tiles of the latest request: never evicted for others.
     pinned: HashSet<usize>,
+    /// The tiles under the latest request's first rectangle (the frame's own footprint).
+    own: Vec<usize>,
     /// Every tile of the latest request (needed or ahead): an ahead tile evicts only tiles
     /// outside it.
     wanted: HashSet<usize>,
@@ -122,7 +130,7 @@ pub struct PagedMap {
     by_square: HashMap<(i64, i64), usize>,
     /// The first tile's header: what every tile shares (CRS, detector, levels, heights).
     header: MapHeader,
-    dem: Dem,
+    terrain: Terrain,
     budget_bytes: u64,
     shared: Arc<Shared>,
     loader: Option<JoinHandle<()>>,
@@ -134,8 +142,8 @@ pub struct PagedMap {
 impl PagedMap {
     /// Opens the tiled map in the folder `dir` (or its `index.json`) with a memory budget of
     /// `memory_mb` MB for tiles, and starts its loader. The terrain: `dem` when given, else the
-    /// tiles' constant ground height (a tiled map built on a DEM needs the DEM given: it is not
-    /// read whole from the map's sources).
+    /// tiles' constant ground height, or the heights its tiles carry (a map built on a DEM; one
+    /// whose tiles carry none needs the DEM given).
     pub fn open(dir: &Path, memory_mb: u64, dem: Option<Dem>) -> Result<Self, MapReferenceError> {
         Self::open_with(dir, memory_mb, dem, LoadMode::Background)
     }
@@ -162,24 +170,13 @@ impl PagedMap {
             .into());
         };
         let header = ReferenceMap::open(&dir.join(&first.file))?.header().clone();
-        let dem = match (dem, &header.height) {
-            (Some(d), _) => d,
-            (None, HeightInfo::Constant { amsl_m }) => {
-                super::reference::constant_terrain(&dir, *amsl_m)?
-            }
-            (None, HeightInfo::Dem { file, .. }) => {
-                return Err(MapReferenceError::Dem {
-                    map: dir.display().to_string(),
-                    dem: file.clone(),
-                    reason: "a tiled map built on a DEM needs the DEM given ([map] dem)".into(),
-                });
-            }
-        };
+        let terrain = Terrain::of(dem, &header, &index, &dir)?;
         let shared = Arc::new(Shared {
             state: Mutex::new(State {
                 held: HashMap::new(),
                 queue: VecDeque::new(),
                 pinned: HashSet::new(),
+                own: Vec::new(),
                 wanted: HashSet::new(),
                 failed: HashSet::new(),
                 tick: 0,
@@ -197,7 +194,13 @@ impl PagedMap {
                 .map(|t| TileFile {
                     path: dir.join(&t.file),
                     crc32: t.crc32,
-                    bytes: t.file_bytes,
+                    bytes: t
+                        .file_bytes
+                        .saturating_add(t.heights.as_ref().map_or(0, TileHeights::memory_bytes)),
+                    heights: match (&terrain, &t.heights) {
+                        (Terrain::Tiles { .. }, Some(h)) => Some((dir.join(&h.file), h.clone())),
+                        _ => None,
+                    },
                 })
                 .collect(),
         );
@@ -228,7 +231,7 @@ impl PagedMap {
             index,
             by_square,
             header,
-            dem,
+            terrain,
             budget_bytes,
             shared,
             loader,
@@ -294,6 +297,7 @@ impl PagedMap {
         st.stats.late += late as u64;
         st.stats.late_frames += u64::from(late > 0);
         st.pinned = order[..pinned].iter().copied().collect();
+        st.own = order[..own].to_vec();
         st.wanted = order.iter().copied().collect();
         if self.mode == LoadMode::Inline {
             drop(st);
@@ -344,7 +348,7 @@ impl PagedMap {
                 return;
             }
         }
-        let opened = open_tile(&f.path, f.crc32);
+        let opened = open_tile(f);
         finish_load(&mut self.shared.lock(), k, &f.path, opened);
     }
 
@@ -423,6 +427,104 @@ impl PagedMap {
     }
 }
 
+/// Where a paged map's terrain comes from.
+enum Terrain {
+    /// One terrain for the whole map: `[map] dem`, or the constant height the tiles were built
+    /// on.
+    Whole(Dem),
+    /// The heights the tiles carry, joined over the tiles in memory under the latest request
+    /// (cached by that set of tiles); `none` while there is none.
+    Tiles {
+        joined: Mutex<Option<(Vec<usize>, Arc<Dem>)>>,
+        none: Arc<Dem>,
+    },
+}
+
+impl Terrain {
+    /// The terrain of a map with header `header` and index `index` in `dir`: `dem` when given,
+    /// else the tiles' constant height, else their heights (every tile must carry them).
+    fn of(
+        dem: Option<Dem>,
+        header: &MapHeader,
+        index: &TiledIndex,
+        dir: &Path,
+    ) -> Result<Self, MapReferenceError> {
+        match (dem, &header.height) {
+            (Some(d), _) => Ok(Self::Whole(d)),
+            (None, HeightInfo::Constant { amsl_m }) => Ok(Self::Whole(
+                super::reference::constant_terrain(dir, *amsl_m)?,
+            )),
+            (None, HeightInfo::Dem { file, min_m, max_m }) => {
+                let carried = index.tiles.iter().all(|t| t.heights.is_some());
+                let none = terrain_mosaic::none(&index.bounds, index.crs, *min_m, *max_m);
+                match (carried, none) {
+                    (true, Some(none)) => Ok(Self::Tiles {
+                        joined: Mutex::new(None),
+                        none: Arc::new(none),
+                    }),
+                    _ => Err(MapReferenceError::Dem {
+                        map: dir.display().to_string(),
+                        dem: file.clone(),
+                        reason: "the tiles carry no heights (a map from an older build): give \
+                                 the DEM ([map] dem) or build the map again"
+                            .into(),
+                    }),
+                }
+            }
+        }
+    }
+}
+
+impl PagedMap {
+    /// The tiles' heights joined over the needed tiles of the latest request that are in memory
+    /// (the frame's own footprint's alone when all of them would be too large; every tile in
+    /// memory before any request), or `none`.
+    fn joined_terrain(
+        &self,
+        joined: &Mutex<Option<(Vec<usize>, Arc<Dem>)>>,
+        none: &Arc<Dem>,
+    ) -> Arc<Dem> {
+        let (needed, own) = {
+            let st = self.shared.lock();
+            let with_heights = |k: &usize| st.held.get(k).and_then(|h| h.heights.clone());
+            let pick = |ks: &mut dyn Iterator<Item = usize>| -> Vec<(usize, Arc<Dem>)> {
+                let mut v: Vec<_> = ks
+                    .filter_map(|k| with_heights(&k).map(|d| (k, d)))
+                    .collect();
+                v.sort_by_key(|(k, _)| *k);
+                v
+            };
+            let needed = if st.pinned.is_empty() {
+                pick(&mut st.held.keys().copied())
+            } else {
+                pick(&mut st.pinned.iter().copied())
+            };
+            (needed, pick(&mut st.own.iter().copied()))
+        };
+        let mut cache = joined
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        for set in [needed, own] {
+            if set.is_empty() {
+                continue;
+            }
+            let key: Vec<usize> = set.iter().map(|(k, _)| *k).collect();
+            if let Some((k, d)) = cache.as_ref()
+                && *k == key
+            {
+                return Arc::clone(d);
+            }
+            let dems: Vec<Arc<Dem>> = set.into_iter().map(|(_, d)| d).collect();
+            if let Some(d) = terrain_mosaic::join(&dems) {
+                let d = Arc::new(d);
+                *cache = Some((key, Arc::clone(&d)));
+                return d;
+            }
+        }
+        Arc::clone(none)
+    }
+}
+
 impl Drop for PagedMap {
     fn drop(&mut self) {
         self.shared.lock().stop = true;
@@ -437,8 +539,11 @@ impl Drop for PagedMap {
 struct TileFile {
     path: PathBuf,
     crc32: u32,
-    /// Its size, bytes: what the budget counts before it is opened.
+    /// Its size and its heights' decoded size, bytes: what the budget counts before it is
+    /// opened.
     bytes: u64,
+    /// Its heights file and record, when the map's terrain comes from the tiles.
+    heights: Option<(PathBuf, TileHeights)>,
 }
 
 /// Whether tile `e`'s bounds overlap `r`.
@@ -478,41 +583,62 @@ fn load_loop(shared: &Shared, files: &[TileFile], budget: u64) {
             }
         };
         let f = &files[k];
-        let (path, opened) = (&f.path, open_tile(&f.path, f.crc32));
+        let opened = open_tile(f);
         let mut st = shared.lock();
         st.loading = None;
-        finish_load(&mut st, k, path, opened);
+        finish_load(&mut st, k, &f.path, opened);
         drop(st);
         shared.wake.notify_all();
     }
 }
 
-/// Opens a tile, its checksum verified against the one the index records.
-fn open_tile(path: &Path, crc: u32) -> Result<ReferenceMap, MapError> {
-    ReferenceMap::open(path).and_then(|m| {
-        if m.stored_crc() == crc {
-            Ok(m)
-        } else {
-            Err(MapError::Format {
-                path: path.to_path_buf(),
-                reason: "the tile's checksum is not the one the index records (rebuilt without \
-                         gathering?)"
-                    .into(),
-            })
-        }
-    })
+/// A tile and its heights in memory.
+type Opened = (ReferenceMap, Option<Arc<Dem>>);
+
+/// Opens a tile, its checksum verified against the one the index records, and its heights
+/// (size and checksum verified the same way) when the terrain comes from the tiles.
+fn open_tile(f: &TileFile) -> Result<Opened, MapError> {
+    let m = ReferenceMap::open(&f.path)?;
+    if m.stored_crc() != f.crc32 {
+        return Err(MapError::Format {
+            path: f.path.clone(),
+            reason: "the tile's checksum is not the one the index records (rebuilt without \
+                     gathering?)"
+                .into(),
+        });
+    }
+    let Some((path, h)) = &f.heights else {
+        return Ok((m, None));
+    };
+    if !super::tiled::heights_intact(h, path) {
+        return Err(MapError::Format {
+            path: path.clone(),
+            reason: "the tile's heights are not the file the index records (size or checksum)"
+                .into(),
+        });
+    }
+    let dem = crate::geo::dem::load_dem(path, None).map_err(|e| MapError::Dem {
+        path: path.clone(),
+        cause: Box::new(e),
+    })?;
+    Ok((m, Some(Arc::new(dem))))
 }
 
 /// Holds the opened tile `k`, or marks it failed (logged once).
-fn finish_load(st: &mut State, k: usize, path: &Path, opened: Result<ReferenceMap, MapError>) {
+fn finish_load(st: &mut State, k: usize, path: &Path, opened: Result<Opened, MapError>) {
     match opened {
-        Ok(m) => {
-            let bytes = m.file_len();
+        Ok((m, heights)) => {
+            let grid_bytes = heights.as_deref().map_or(0, |d| match d {
+                Dem::Grid(g) => 4 * (g.width() * g.height()) as u64,
+                Dem::Flat { .. } => 0,
+            });
+            let bytes = m.file_len() + grid_bytes;
             let tick = st.tick;
             st.held.insert(
                 k,
                 Held {
                     map: Arc::new(m),
+                    heights,
                     bytes,
                     last_used: tick,
                 },
@@ -601,10 +727,13 @@ impl Reference for PagedMap {
         [b.min_x_m, b.min_y_m, b.max_x_m, b.max_y_m]
     }
     fn height_amsl_m(&self, x_m: f64, y_m: f64) -> Option<f64> {
-        self.dem.height_at(x_m, y_m)
+        self.dem().height_at(x_m, y_m)
     }
-    fn dem(&self) -> &Dem {
-        &self.dem
+    fn dem(&self) -> DemRef<'_> {
+        match &self.terrain {
+            Terrain::Whole(d) => DemRef::Borrowed(d),
+            Terrain::Tiles { joined, none } => DemRef::Shared(self.joined_terrain(joined, none)),
+        }
     }
     fn height_sigma_m(&self) -> f64 {
         self.header.height_sigma_m

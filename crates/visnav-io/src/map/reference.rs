@@ -142,8 +142,8 @@ impl Reference for MapReference {
     fn height_amsl_m(&self, x_m: f64, y_m: f64) -> Option<f64> {
         self.dem.height_at(x_m, y_m)
     }
-    fn dem(&self) -> &Dem {
-        &self.dem
+    fn dem(&self) -> visnav_core::fix::reference::DemRef<'_> {
+        visnav_core::fix::reference::DemRef::Borrowed(&self.dem)
     }
     fn height_sigma_m(&self) -> f64 {
         self.map.header().height_sigma_m

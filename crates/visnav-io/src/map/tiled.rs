@@ -68,6 +68,34 @@ pub struct TileEntry {
     pub file_bytes: u64,
     /// The CRC-32 its file stores (the `.vnm` checksum).
     pub crc32: u32,
+    /// The heights under the tile, for a map built on a DEM (absent on a constant height).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub heights: Option<TileHeights>,
+}
+
+/// A tile's heights: the DEM's samples under its bounds and
+/// [`crate::geo::dem::DEM_WINDOW_MARGIN_CELLS`] around
+/// them, on the DEM's own grid, as a float GeoTIFF beside the tile (`x{col}_y{row}.dem.tif`), so
+/// a tiled map carries its terrain tile by tile and the daemon pages it with the features.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TileHeights {
+    /// The GeoTIFF, relative to the map's folder.
+    pub file: String,
+    /// Its size, bytes.
+    pub file_bytes: u64,
+    /// The CRC-32 of its bytes.
+    pub crc32: u32,
+    /// Samples across.
+    pub width: u64,
+    /// Samples down.
+    pub height: u64,
+}
+
+impl TileHeights {
+    /// Memory the decoded heights take, bytes (f32 samples).
+    pub fn memory_bytes(&self) -> u64 {
+        self.width.saturating_mul(self.height).saturating_mul(4)
+    }
 }
 
 /// `index.json`: what a tiled map holds and how it was built.
@@ -380,8 +408,18 @@ impl TilePlan {
         if r.build_digest != self.build_digest || (r.col, r.row) != (col, row) {
             return false;
         }
+        let on_dem = matches!(self.spec.height, HeightSource::Dem(_));
         match &r.tile {
-            Some(t) => ReferenceMap::open(path).is_ok_and(|m| m.stored_crc() == t.crc32),
+            Some(t) => {
+                ReferenceMap::open(path).is_ok_and(|m| m.stored_crc() == t.crc32)
+                    && match (&t.heights, on_dem) {
+                        (Some(h), true) => {
+                            heights_intact(h, &path.with_file_name(file_name_of(&h.file)))
+                        }
+                        (None, false) => true,
+                        _ => false,
+                    }
+            }
             None => !path.exists(),
         }
     }
@@ -405,15 +443,31 @@ impl TilePlan {
             ..self.spec.clone()
         };
         match build_map(&part, path, &mut |_| {}) {
-            Ok(s) => Ok(Some(TileEntry {
-                col,
-                row,
-                file,
-                bounds: s.header.bounds,
-                features: s.header.n_features(),
-                file_bytes: s.file_bytes,
-                crc32: stored_crc(path)?,
-            })),
+            Ok(s) => {
+                let heights = match &self.spec.height {
+                    HeightSource::Dem(dem) => {
+                        let name = heights_file_of(&file);
+                        Some(write_tile_heights(
+                            dem,
+                            self.spec.crs_override,
+                            &s.header.bounds,
+                            &path.with_file_name(file_name_of(&name)),
+                            name,
+                        )?)
+                    }
+                    _ => None,
+                };
+                Ok(Some(TileEntry {
+                    col,
+                    row,
+                    file,
+                    bounds: s.header.bounds,
+                    features: s.header.n_features(),
+                    file_bytes: s.file_bytes,
+                    crc32: stored_crc(path)?,
+                    heights,
+                }))
+            }
             Err(MapError::NoFeatures { .. } | MapError::Param { name: "area", .. }) => {
                 // No file stands for an empty square (one left by an earlier build would be
                 // stale).
@@ -507,6 +561,73 @@ fn grid_squares(union: &Bounds, tile_m: f64) -> Result<Vec<[i64; 2]>, MapError> 
         .rev()
         .flat_map(|r| (c0..c1).map(move |c| [c, r]))
         .collect())
+}
+
+/// The heights file of the tile file `file` (`tiles/x0_y0.vnm` -> `tiles/x0_y0.dem.tif`).
+pub(super) fn heights_file_of(file: &str) -> String {
+    format!("{}.dem.tif", file.strip_suffix(".vnm").unwrap_or(file))
+}
+
+/// The last component of a relative file name of the index.
+fn file_name_of(file: &str) -> &str {
+    file.rsplit('/').next().unwrap_or(file)
+}
+
+/// Writes the DEM `dem`'s samples under `bounds` (and
+/// [`crate::geo::dem::DEM_WINDOW_MARGIN_CELLS`] around) to
+/// `out` as a float GeoTIFF (via a temporary name); `file` is its name in the index.
+pub(super) fn write_tile_heights(
+    dem: &Path,
+    crs_override: Option<Crs>,
+    bounds: &Bounds,
+    out: &Path,
+    file: String,
+) -> Result<TileHeights, MapError> {
+    let dem_err = |reason: String| MapError::Input {
+        path: dem.to_path_buf(),
+        reason,
+    };
+    let grid = match crate::geo::dem::load_dem_covering(dem, crs_override, bounds) {
+        Ok(visnav_core::geo::dem::Dem::Grid(g)) => g,
+        Ok(visnav_core::geo::dem::Dem::Flat { .. }) => {
+            return Err(dem_err("a DEM file read as a constant height".into()));
+        }
+        Err(e) => {
+            return Err(MapError::Dem {
+                path: dem.to_path_buf(),
+                cause: Box::new(e),
+            });
+        }
+    };
+    let raster = grid.to_raster().map_err(|e| dem_err(e.to_string()))?;
+    let partial = out.with_extension("tif.partial");
+    crate::geo::geotiff_write::write_geotiff(&raster, &partial).map_err(|e| MapError::Input {
+        path: out.to_path_buf(),
+        reason: format!("cannot write the tile's heights: {e}"),
+    })?;
+    std::fs::rename(&partial, out).map_err(|source| MapError::Io {
+        path: out.to_path_buf(),
+        what: "cannot move the tile's heights into place",
+        cause: source,
+    })?;
+    let bytes = std::fs::read(out).map_err(|source| MapError::Io {
+        path: out.to_path_buf(),
+        what: "cannot read back the tile's heights",
+        cause: source,
+    })?;
+    Ok(TileHeights {
+        file,
+        file_bytes: bytes.len() as u64,
+        crc32: crc32fast::hash(&bytes),
+        width: grid.width() as u64,
+        height: grid.height() as u64,
+    })
+}
+
+/// Whether the heights file at `path` is the one `h` records (size and checksum).
+pub fn heights_intact(h: &TileHeights, path: &Path) -> bool {
+    std::fs::metadata(path).is_ok_and(|m| m.len() == h.file_bytes)
+        && std::fs::read(path).is_ok_and(|b| crc32fast::hash(&b) == h.crc32)
 }
 
 /// The CRC-32 a `.vnm` stores (bytes 56-59 of its preamble).

@@ -465,8 +465,9 @@ impl Terrain {
                     _ => Err(MapReferenceError::Dem {
                         map: dir.display().to_string(),
                         dem: file.clone(),
-                        reason: "the tiles carry no heights (a map from an older build): give \
-                                 the DEM ([map] dem) or build the map again"
+                        reason: "the tiles carry no heights (built before tiles carried \
+                                 them, or converted without the DEM at hand): give the DEM \
+                                 ([map] dem) or build the map again"
                             .into(),
                     }),
                 }

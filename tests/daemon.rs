@@ -368,7 +368,7 @@ impl FrameFixer for TruthPlusNoise {
     /// As a tiled map's fixer would: a tile loaded per frame, three in memory.
     fn paging(&self) -> Option<visnav::map::paged::PagingStats> {
         Some(visnav::map::paged::PagingStats {
-            loads: self.calls.load(Ordering::Relaxed) as u64,
+            loads: self.calls.load(Ordering::Relaxed),
             resident_tiles: 3,
             resident_bytes: 3 << 20,
             ..Default::default()
@@ -436,7 +436,7 @@ async fn frame_plumbing_vision_only_init_with_truth_plus_noise_fixer() {
     assert_eq!(m.queue_depth_max, 1);
     // The fixer's paging counters are the daemon's metrics after every fix.
     assert!(
-        m.map_tile_loads > 0 && m.map_tile_loads <= calls as u64,
+        m.map_tile_loads > 0 && m.map_tile_loads <= calls,
         "{m:?}"
     );
     assert_eq!(

@@ -435,10 +435,7 @@ async fn frame_plumbing_vision_only_init_with_truth_plus_noise_fixer() {
     assert!(m.fix_latency_ms_max >= 30, "{m:?}");
     assert_eq!(m.queue_depth_max, 1);
     // The fixer's paging counters are the daemon's metrics after every fix.
-    assert!(
-        m.map_tile_loads > 0 && m.map_tile_loads <= calls,
-        "{m:?}"
-    );
+    assert!(m.map_tile_loads > 0 && m.map_tile_loads <= calls, "{m:?}");
     assert_eq!(
         (m.map_tiles_resident, m.map_tile_bytes_resident),
         (3, 3 << 20)

@@ -377,13 +377,16 @@ fn a_converted_map_file_lends_its_own_features_and_pixels() {
     build_map(&spec, &one_path, &mut |_| {}).unwrap();
     let one = MapReference::open(&one_path, None).unwrap();
     let tiled = dir.path().join("converted");
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_visnav"))
-        .args(["map", "convert"])
-        .arg(&one_path)
-        .args(["--tile-m", "1500", "--out"])
-        .arg(&tiled)
-        .output()
-        .unwrap();
+    let convert = || {
+        std::process::Command::new(env!("CARGO_BIN_EXE_visnav"))
+            .args(["map", "convert"])
+            .arg(&one_path)
+            .args(["--tile-m", "1500", "--out"])
+            .arg(&tiled)
+            .output()
+            .unwrap()
+    };
+    let o = convert();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let file = visnav::map::ReferenceMap::open(&one_path).unwrap();
     let ix = visnav::map::tiled::TiledIndex::read(&tiled).unwrap();
@@ -457,13 +460,7 @@ fn a_converted_map_file_lends_its_own_features_and_pixels() {
     );
     assert!(n > 50, "{n}");
 
-    let again = std::process::Command::new(env!("CARGO_BIN_EXE_visnav"))
-        .args(["map", "convert"])
-        .arg(&one_path)
-        .args(["--tile-m", "1500", "--out"])
-        .arg(&tiled)
-        .output()
-        .unwrap();
+    let again = convert();
     let err = String::from_utf8_lossy(&again.stderr);
     assert!(
         !again.status.success() && err.contains("already holds a tiled map"),

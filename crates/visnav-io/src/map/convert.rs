@@ -19,7 +19,7 @@ use std::path::{Path, PathBuf};
 use super::format::{RECORD_BYTES, ReferenceMap, SpillWriter};
 use super::tiled::{
     INDEX_FILE, MAX_SQUARES, MAX_TILE_M, MIN_TILE_M, TILED_FORMAT_VERSION, TILES_DIR, TileEntry,
-    TiledIndex, heights_file_of, stored_crc, write_json, write_tile_heights,
+    TiledIndex, heights_file_of, make_tiles_dir, stored_crc, write_json, write_tile_heights,
 };
 use super::{HeightInfo, IndexGrid, LevelImageInfo, LevelInfo, MapError, MapHeader};
 use visnav_core::geo::raster::Bounds;
@@ -61,12 +61,7 @@ pub fn convert_to_tiled(
                 .into(),
         });
     }
-    let tiles_dir = dir.join(TILES_DIR);
-    std::fs::create_dir_all(&tiles_dir).map_err(|source| MapError::Io {
-        path: tiles_dir.clone(),
-        what: "cannot create the tiles' folder",
-        cause: source,
-    })?;
+    make_tiles_dir(dir)?;
     let mut index = TiledIndex {
         version: TILED_FORMAT_VERSION,
         crs: h.crs,

@@ -321,12 +321,7 @@ impl TilePlan {
 
     /// Writes the plan to `dir/plan.json` and makes the tiles' folder.
     pub fn write(&self, dir: &Path) -> Result<(), MapError> {
-        let tiles_dir = dir.join(TILES_DIR);
-        std::fs::create_dir_all(&tiles_dir).map_err(|source| MapError::Io {
-            path: tiles_dir.clone(),
-            what: "cannot create the tiles' folder",
-            cause: source,
-        })?;
+        make_tiles_dir(dir)?;
         write_json(&dir.join(PLAN_FILE), self)
     }
 
@@ -561,6 +556,16 @@ fn grid_squares(union: &Bounds, tile_m: f64) -> Result<Vec<[i64; 2]>, MapError> 
         .rev()
         .flat_map(|r| (c0..c1).map(move |c| [c, r]))
         .collect())
+}
+
+/// Makes the tiles' folder of the tiled map in `dir` (and `dir`).
+pub(super) fn make_tiles_dir(dir: &Path) -> Result<(), MapError> {
+    let tiles_dir = dir.join(TILES_DIR);
+    std::fs::create_dir_all(&tiles_dir).map_err(|source| MapError::Io {
+        path: tiles_dir.clone(),
+        what: "cannot create the tiles' folder",
+        cause: source,
+    })
 }
 
 /// The heights file of the tile file `file` (`tiles/x0_y0.vnm` -> `tiles/x0_y0.dem.tif`).

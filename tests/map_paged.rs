@@ -569,6 +569,34 @@ fn a_tiled_map_on_a_dem_pages_its_heights_with_its_tiles() {
     paged.request(&[[b.min_x_m, b.min_y_m, b.max_x_m, b.max_y_m]], 1);
     assert_eq!(paged.stats().load_errors, 1);
     drop(paged);
+    // A valid GeoTIFF of another size under the index's own checksum (a hostile or mixed-up
+    // file): refused as not the grid the index records, never joined.
+    {
+        use visnav::geo::raster::{GeoTransform, Raster, RasterData};
+        let t = GeoTransform::new([1.0e20, 30.0, 0.0, -1.0e20, 0.0, -30.0]).unwrap();
+        let crs = ix.crs;
+        let r = Raster::new(3, 3, 1, RasterData::F32(vec![600.0; 9]), t, crs, None).unwrap();
+        visnav::geo::geotiff_write::write_geotiff(&r, &hp).unwrap();
+        let bytes = std::fs::read(&hp).unwrap();
+        let mut forged = ix.clone();
+        for t in forged.tiles.iter_mut().filter(|t| t.file == victim.file) {
+            let h = t.heights.as_mut().unwrap();
+            (h.file_bytes, h.crc32) = (bytes.len() as u64, crc32fast::hash(&bytes));
+        }
+        let index_path = tiled.join("index.json");
+        let original = std::fs::read(&index_path).unwrap();
+        std::fs::write(&index_path, serde_json::to_vec(&forged).unwrap()).unwrap();
+        let paged =
+            PagedMap::open_with(&tiled, 256, None, visnav::map::paged::LoadMode::Inline).unwrap();
+        paged.request(&[[b.min_x_m, b.min_y_m, b.max_x_m, b.max_y_m]], 1);
+        assert_eq!(paged.stats().load_errors, 1);
+        let c = [0.5 * (b.min_x_m + b.max_x_m), 0.5 * (b.min_y_m + b.max_y_m)];
+        assert!(
+            paged.height_amsl_m(c[0], c[1]).is_none(),
+            "no height from a refused tile"
+        );
+        std::fs::write(&index_path, original).unwrap();
+    }
     // Gone: a build run again rebuilds that square alone.
     std::fs::remove_file(&hp).unwrap();
     let again = build_tiled(&spec, 2000.0, &tiled, None, &mut |_| {}).unwrap();

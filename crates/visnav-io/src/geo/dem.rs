@@ -80,6 +80,30 @@ pub fn load_dem_covering(
     checked_dem(path, &r.read_window(c0, r0, w, h)?)
 }
 
+/// The part of the DEM at `path` under `area` and [`DEM_WINDOW_MARGIN_CELLS`] around it, as
+/// [`load_dem_covering`] reads it, but never more: `None` where the area does not overlap the
+/// DEM by two cells each way or the window holds no height (a tiled map's tile then carries no
+/// heights rather than the whole DEM).
+pub fn load_dem_window(
+    path: &Path,
+    crs_override: Option<Crs>,
+    area: &Bounds,
+) -> Result<Option<Dem>, DemFileError> {
+    let mut r = open_geotiff_window(path, crs_override)?;
+    let (width, height) = (r.info().width, r.info().height);
+    let Some((c0, r0, w, h)) = covering_window(r.info().transform, width, height, area) else {
+        return Ok(None);
+    };
+    match checked_dem(path, &r.read_window(c0, r0, w, h)?) {
+        Ok(d) => Ok(Some(d)),
+        Err(DemFileError::Dem {
+            error: DemError::NoValidHeights,
+            ..
+        }) => Ok(None),
+        Err(e) => Err(e),
+    }
+}
+
 /// The pixel window `(col0, row0, width, height)` of a `width x height` grid with `transform`
 /// that holds `area` and the margin, clipped to the grid; `None` when that is under 2 x 2 cells
 /// or the area is not finite.

@@ -14,7 +14,7 @@
 //! (a sliver at the map's edge) keeps them. Memory: one square's features and
 //! images at a time.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use super::format::{RECORD_BYTES, ReferenceMap, SpillWriter};
 use super::tiled::{
@@ -80,8 +80,8 @@ pub fn convert_to_tiled(
         built_by: format!("visnav {}", env!("CARGO_PKG_VERSION")),
     };
     let heights_from = match &h.height {
-        HeightInfo::Dem { file, .. } if Path::new(file).is_file() => Some(PathBuf::from(file)),
-        _ => None,
+        HeightInfo::Dem { file, .. } => super::reference::find_dem(src, file),
+        HeightInfo::Constant { .. } => None,
     };
     let mut copied = 0u64;
     for [col, row] in squares {
@@ -91,15 +91,16 @@ pub fn convert_to_tiled(
                 let features = header.n_features();
                 copied += features;
                 let heights = match &heights_from {
+                    // In the map's CRS, as the map reads its DEM when it opens.
                     Some(dem) => {
                         let name = heights_file_of(&file);
-                        Some(write_tile_heights(
+                        write_tile_heights(
                             dem,
-                            None,
+                            Some(h.crs),
                             &header.bounds,
                             &dir.join(&name),
                             name,
-                        )?)
+                        )?
                     }
                     None => None,
                 };
@@ -146,8 +147,11 @@ fn squares_of(b: &Bounds, tile_m: f64) -> Result<Vec<[i64; 2]>, MapError> {
         row(b.min_y_m),
         row(b.max_y_m),
     );
-    let n = (c1 - c0 + 1).saturating_mul(r1 - r0 + 1);
-    if n > MAX_SQUARES as i64 {
+    let n = c1
+        .saturating_sub(c0)
+        .saturating_add(1)
+        .saturating_mul(r1.saturating_sub(r0).saturating_add(1));
+    if !(0..=MAX_SQUARES as i64).contains(&n) {
         return Err(MapError::Param {
             name: "tile_m",
             reason: format!("{tile_m} m cuts the map into {n} squares, over {MAX_SQUARES}"),
@@ -199,7 +203,7 @@ fn cut_square(
         map.for_each_record(l, square, |rec, _| n += u64::from(in_square(rec)));
     }
     let bounds = snapped_bounds(h, square);
-    let images = image_windows(map, &bounds);
+    let images = image_windows(map, &bounds)?;
     // A square with pixels but no feature keeps its pixels (area matching works there).
     if n == 0 && images.iter().all(|(_, px)| px.iter().all(|&v| v == 0)) {
         let _ = std::fs::remove_file(out);
@@ -292,13 +296,17 @@ fn snapped_bounds(h: &MapHeader, square: [f64; 4]) -> Bounds {
 }
 
 /// Every level's image over `bounds` (the file's pixels, 0 where it has none), with its
-/// geometry; empty when the file has no level images (format 1).
-fn image_windows(map: &ReferenceMap, bounds: &Bounds) -> Vec<(LevelImageInfo, Vec<u8>)> {
+/// geometry; empty when the file has no level images (format 1). A window larger than the
+/// file's own image (a header whose bounds and images disagree) is refused.
+fn image_windows(
+    map: &ReferenceMap,
+    bounds: &Bounds,
+) -> Result<Vec<(LevelImageInfo, Vec<u8>)>, MapError> {
     let h = map.header();
     let mut out = Vec::with_capacity(h.levels.len());
     for (l, level) in h.levels.iter().enumerate() {
         let Some((src, px)) = map.level_image(l) else {
-            return Vec::new();
+            return Ok(Vec::new());
         };
         let gsd = level.gsd_m;
         let info = LevelImageInfo {
@@ -310,6 +318,17 @@ fn image_windows(map: &ReferenceMap, bounds: &Bounds) -> Vec<(LevelImageInfo, Ve
         };
         // The window's corner on the file's pixel grid (a whole number of pixels: the bounds
         // are snapped to the coarsest level's grid through the same corner).
+        if info.width_px > src.width_px.saturating_add(2)
+            || info.height_px > src.height_px.saturating_add(2)
+        {
+            return Err(MapError::Format {
+                path: map.path().to_path_buf(),
+                reason: format!(
+                    "level {l}'s image ({} x {} px) does not cover the map's bounds",
+                    src.width_px, src.height_px
+                ),
+            });
+        }
         let x0 = ((bounds.min_x_m - src.origin_x_m) / gsd).round() as i64; // ok: finite
         let y0 = ((src.origin_y_m - bounds.max_y_m) / gsd).round() as i64;
         let (w, hh) = (info.width_px as usize, info.height_px as usize);
@@ -329,7 +348,7 @@ fn image_windows(map: &ReferenceMap, bounds: &Bounds) -> Vec<(LevelImageInfo, Ve
         }
         out.push((info, win));
     }
-    out
+    Ok(out)
 }
 
 #[cfg(test)]

@@ -94,8 +94,8 @@ struct State {
     queue: VecDeque<usize>,
     /// The needed tiles of the latest request: never evicted for others.
     pinned: HashSet<usize>,
-    /// The tiles under the latest request's first rectangle (the frame's own footprint).
-    own: Vec<usize>,
+    /// The needed tiles of the latest request in its order (the frame's own footprint first).
+    needed: Vec<usize>,
     /// Every tile of the latest request (needed or ahead): an ahead tile evicts only tiles
     /// outside it.
     wanted: HashSet<usize>,
@@ -176,7 +176,7 @@ impl PagedMap {
                 held: HashMap::new(),
                 queue: VecDeque::new(),
                 pinned: HashSet::new(),
-                own: Vec::new(),
+                needed: Vec::new(),
                 wanted: HashSet::new(),
                 failed: HashSet::new(),
                 tick: 0,
@@ -191,16 +191,22 @@ impl PagedMap {
             index
                 .tiles
                 .iter()
-                .map(|t| TileFile {
-                    path: dir.join(&t.file),
-                    crc32: t.crc32,
-                    bytes: t
-                        .file_bytes
-                        .saturating_add(t.heights.as_ref().map_or(0, TileHeights::memory_bytes)),
-                    heights: match (&terrain, &t.heights) {
+                .map(|t| {
+                    // The tile's heights are loaded (and counted) when the terrain comes from
+                    // the tiles, not when `[map] dem` gives it.
+                    let heights = match (&terrain, &t.heights) {
                         (Terrain::Tiles { .. }, Some(h)) => Some((dir.join(&h.file), h.clone())),
                         _ => None,
-                    },
+                    };
+                    TileFile {
+                        path: dir.join(&t.file),
+                        crc32: t.crc32,
+                        bytes: t
+                            .file_bytes
+                            .saturating_add(heights.as_ref().map_or(0, |(_, h)| h.memory_bytes())),
+                        heights,
+                        crs: index.crs,
+                    }
                 })
                 .collect(),
         );
@@ -297,7 +303,7 @@ impl PagedMap {
         st.stats.late += late as u64;
         st.stats.late_frames += u64::from(late > 0);
         st.pinned = order[..pinned].iter().copied().collect();
-        st.own = order[..own].to_vec();
+        st.needed = order[..pinned].to_vec();
         st.wanted = order.iter().copied().collect();
         if self.mode == LoadMode::Inline {
             drop(st);
@@ -454,75 +460,90 @@ impl Terrain {
             (None, HeightInfo::Constant { amsl_m }) => Ok(Self::Whole(
                 super::reference::constant_terrain(dir, *amsl_m)?,
             )),
-            (None, HeightInfo::Dem { file, min_m, max_m }) => {
-                let carried = index.tiles.iter().all(|t| t.heights.is_some());
-                let none = terrain_mosaic::none(&index.bounds, index.crs, *min_m, *max_m);
-                match (carried, none) {
-                    (true, Some(none)) => Ok(Self::Tiles {
-                        joined: Mutex::new(None),
-                        none: Arc::new(none),
-                    }),
-                    _ => Err(MapReferenceError::Dem {
-                        map: dir.display().to_string(),
-                        dem: file.clone(),
-                        reason: "the tiles carry no heights (built before tiles carried \
-                                 them, or converted without the DEM at hand): give the DEM \
-                                 ([map] dem) or build the map again"
-                            .into(),
-                    }),
+            (None, HeightInfo::Dem { file, .. }) => {
+                // The whole map's height range: the union of its tiles' (a tile's header holds
+                // its own area's only).
+                let (lo, hi) = index
+                    .tiles
+                    .iter()
+                    .filter_map(|t| t.heights.as_ref())
+                    .filter(|h| h.min_m.is_finite() && h.max_m.is_finite())
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), h| {
+                        (lo.min(h.min_m), hi.max(h.max_m))
+                    });
+                let refuse = |reason: &str| MapReferenceError::Dem {
+                    map: dir.display().to_string(),
+                    dem: file.clone(),
+                    reason: reason.into(),
+                };
+                if lo > hi {
+                    return Err(refuse(
+                        "the tiles carry no heights (built before tiles carried them, or \
+                         converted without the DEM at hand): give the DEM ([map] dem) or build \
+                         the map again",
+                    ));
                 }
+                let none = terrain_mosaic::none(&index.bounds, index.crs, lo, hi)
+                    .ok_or_else(|| refuse("the index's bounds or height range are not usable"))?;
+                Ok(Self::Tiles {
+                    joined: Mutex::new(None),
+                    none: Arc::new(none),
+                })
             }
         }
     }
 }
 
 impl PagedMap {
-    /// The tiles' heights joined over the needed tiles of the latest request that are in memory
-    /// (the frame's own footprint's alone when all of them would be too large; every tile in
-    /// memory before any request), or `none`.
+    /// The tiles' heights joined over the needed tiles of the latest request that are in
+    /// memory, in the request's order (the frame's own footprint first; a tile that would
+    /// make the join too large is left out: `terrain_mosaic::join`), every tile in memory
+    /// before any request, or `none`. Cached by that list of tiles.
     fn joined_terrain(
         &self,
         joined: &Mutex<Option<(Vec<usize>, Arc<Dem>)>>,
         none: &Arc<Dem>,
     ) -> Arc<Dem> {
-        let (needed, own) = {
+        let tiles: Vec<(usize, Arc<Dem>)> = {
             let st = self.shared.lock();
-            let with_heights = |k: &usize| st.held.get(k).and_then(|h| h.heights.clone());
-            let pick = |ks: &mut dyn Iterator<Item = usize>| -> Vec<(usize, Arc<Dem>)> {
-                let mut v: Vec<_> = ks
-                    .filter_map(|k| with_heights(&k).map(|d| (k, d)))
-                    .collect();
-                v.sort_by_key(|(k, _)| *k);
-                v
-            };
-            let needed = if st.pinned.is_empty() {
-                pick(&mut st.held.keys().copied())
+            let mut ks: Vec<usize> = if st.needed.is_empty() {
+                let mut all: Vec<usize> = st.held.keys().copied().collect();
+                all.sort_unstable();
+                all
             } else {
-                pick(&mut st.pinned.iter().copied())
+                st.needed.clone()
             };
-            (needed, pick(&mut st.own.iter().copied()))
+            ks.dedup();
+            ks.into_iter()
+                .filter_map(|k| {
+                    st.held
+                        .get(&k)
+                        .and_then(|h| h.heights.clone())
+                        .map(|d| (k, d))
+                })
+                .collect()
         };
+        if tiles.is_empty() {
+            return Arc::clone(none);
+        }
+        let key: Vec<usize> = tiles.iter().map(|(k, _)| *k).collect();
         let mut cache = joined
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
-        for set in [needed, own] {
-            if set.is_empty() {
-                continue;
-            }
-            let key: Vec<usize> = set.iter().map(|(k, _)| *k).collect();
-            if let Some((k, d)) = cache.as_ref()
-                && *k == key
-            {
-                return Arc::clone(d);
-            }
-            let dems: Vec<Arc<Dem>> = set.into_iter().map(|(_, d)| d).collect();
-            if let Some(d) = terrain_mosaic::join(&dems) {
+        if let Some((k, d)) = cache.as_ref()
+            && *k == key
+        {
+            return Arc::clone(d);
+        }
+        let dems: Vec<Arc<Dem>> = tiles.into_iter().map(|(_, d)| d).collect();
+        match terrain_mosaic::join(&dems) {
+            Some(d) => {
                 let d = Arc::new(d);
                 *cache = Some((key, Arc::clone(&d)));
-                return d;
+                d
             }
+            None => Arc::clone(none),
         }
-        Arc::clone(none)
     }
 }
 
@@ -545,6 +566,8 @@ struct TileFile {
     bytes: u64,
     /// Its heights file and record, when the map's terrain comes from the tiles.
     heights: Option<(PathBuf, TileHeights)>,
+    /// The map's CRS (the heights must be in it).
+    crs: Crs,
 }
 
 /// Whether tile `e`'s bounds overlap `r`.
@@ -622,6 +645,19 @@ fn open_tile(f: &TileFile) -> Result<Opened, MapError> {
         path: path.clone(),
         cause: Box::new(e),
     })?;
+    // The grid the index records, in the map's CRS: anything else is not this tile's.
+    match &dem {
+        Dem::Grid(g)
+            if g.crs() == f.crs && (g.width() as u64, g.height() as u64) == (h.width, h.height) => {
+        }
+        _ => {
+            return Err(MapError::Format {
+                path: path.clone(),
+                reason: "the tile's heights are not the grid the index records (size or CRS)"
+                    .into(),
+            });
+        }
+    }
     Ok((m, Some(Arc::new(dem))))
 }
 

@@ -60,6 +60,17 @@ pub(crate) fn constant_terrain(map: &Path, amsl_m: f64) -> Result<Dem, MapRefere
     })
 }
 
+/// The DEM a map file at `map` was built on, as its header records it (`recorded`): looked up
+/// next to the map first (maps travel with their DEM), then as recorded.
+pub(crate) fn find_dem(map: &Path, recorded: &str) -> Option<PathBuf> {
+    let recorded = PathBuf::from(recorded);
+    let beside = map
+        .parent()
+        .unwrap_or(Path::new("."))
+        .join(recorded.file_name().unwrap_or_default());
+    [beside, recorded].into_iter().find(|p| p.is_file())
+}
+
 impl MapReference {
     /// Opens `path`. The terrain: `dem` when given, otherwise the map's constant ground height,
     /// or the DEM file it was built from (looked up next to the map first, then as recorded).
@@ -69,18 +80,10 @@ impl MapReference {
             (Some(d), _) => d,
             (None, HeightInfo::Constant { amsl_m }) => constant_terrain(path, *amsl_m)?,
             (None, HeightInfo::Dem { file, .. }) => {
-                let recorded = PathBuf::from(file);
-                let beside = path
-                    .parent()
-                    .unwrap_or(Path::new("."))
-                    .join(recorded.file_name().unwrap_or_default());
-                let found = [beside, recorded]
-                    .into_iter()
-                    .find(|p| p.is_file())
-                    .ok_or_else(|| MapReferenceError::DemNotFound {
-                        map: path.display().to_string(),
-                        dem: file.clone(),
-                    })?;
+                let found = find_dem(path, file).ok_or_else(|| MapReferenceError::DemNotFound {
+                    map: path.display().to_string(),
+                    dem: file.clone(),
+                })?;
                 load_dem(&found, Some(map.header().crs)).map_err(|e| MapReferenceError::Dem {
                     map: path.display().to_string(),
                     dem: found.display().to_string(),

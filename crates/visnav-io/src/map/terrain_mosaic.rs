@@ -13,11 +13,16 @@ use visnav_core::geo::dem::Dem;
 use visnav_core::geo::raster::{Bounds, GeoTransform, Raster, RasterData};
 
 /// Most samples one joined terrain holds: 64 M (256 MB of f32; a 1 m surface model over an
-/// 8 km square). Beyond it the caller joins fewer tiles.
+/// 8 km square). A tile that would grow the union beyond it is left out.
 pub const MAX_MOSAIC_CELLS: usize = 64 << 20;
 
-/// The grids of `tiles` (gridded terrains of one DEM) as one terrain; `None` when there is none,
-/// they are not north-up on one grid, or their union exceeds [`MAX_MOSAIC_CELLS`].
+/// Largest offset between two tiles' grids, samples: a tile farther from the first is not of the
+/// same map (a damaged or hostile heights file) and is left out.
+const MAX_OFFSET_CELLS: f64 = (1u64 << 31) as f64;
+
+/// The grids of `tiles` (gridded terrains of one DEM, most needed first) as one terrain: each in
+/// turn, left out when it is not north-up on the first's grid or would grow the union beyond
+/// [`MAX_MOSAIC_CELLS`]; `None` when there is no grid (or the first is rotated).
 pub fn join(tiles: &[Arc<Dem>]) -> Option<Dem> {
     let grids: Vec<_> = tiles
         .iter()
@@ -32,38 +37,42 @@ pub fn join(tiles: &[Arc<Dem>]) -> Option<Dem> {
         return Some(Dem::Grid((*first).clone()));
     }
     let (px, py) = (c[1], c[5]);
-    // Each grid's offset from the first, whole samples (a rotated grid is not joined).
-    let mut offsets = Vec::with_capacity(grids.len());
-    for g in &grids {
+    if c[2] != 0.0 || c[4] != 0.0 {
+        return None;
+    }
+    // Each grid's offset from the first, whole samples, and the union so far.
+    let (mut c0, mut r0) = (0i64, 0i64);
+    let (mut c1, mut r1) = (first.width() as i64, first.height() as i64);
+    let mut kept = vec![(*first, (0i64, 0i64))];
+    for g in &grids[1..] {
         let k = g.transform().coeffs();
         if k[2] != 0.0 || k[4] != 0.0 || k[1] != px || k[5] != py || g.crs() != first.crs() {
-            return None;
+            continue;
         }
         let (dc, dr) = ((k[0] - c[0]) / px, (k[3] - c[3]) / py);
         let (ic, ir) = (dc.round(), dr.round());
-        if !(ic.is_finite() && ir.is_finite()) || (dc - ic).abs() > 1e-6 || (dr - ir).abs() > 1e-6 {
-            return None;
+        if !(ic.abs() <= MAX_OFFSET_CELLS && ir.abs() <= MAX_OFFSET_CELLS)
+            || (dc - ic).abs() > 1e-6
+            || (dr - ir).abs() > 1e-6
+        {
+            continue;
         }
-        offsets.push((ic as i64, ir as i64)); // ok: finite and checked whole
+        let (oc, or) = (ic as i64, ir as i64); // ok: finite, whole and bounded
+        let (gw, gh) = (g.width() as i64, g.height() as i64);
+        let (n0, m0, n1, m1) = (c0.min(oc), r0.min(or), c1.max(oc + gw), r1.max(or + gh));
+        if (n1 - n0)
+            .checked_mul(m1 - m0)
+            .is_none_or(|n| n > MAX_MOSAIC_CELLS as i64)
+        {
+            continue;
+        }
+        (c0, r0, c1, r1) = (n0, m0, n1, m1);
+        kept.push((*g, (oc, or)));
     }
-    let c0 = offsets.iter().map(|o| o.0).min()?;
-    let r0 = offsets.iter().map(|o| o.1).min()?;
-    let c1 = grids
-        .iter()
-        .zip(&offsets)
-        .map(|(g, o)| o.0 + g.width() as i64)
-        .max()?;
-    let r1 = grids
-        .iter()
-        .zip(&offsets)
-        .map(|(g, o)| o.1 + g.height() as i64)
-        .max()?;
+    // ok: the union is bounded by MAX_MOSAIC_CELLS
     let (w, h) = ((c1 - c0) as usize, (r1 - r0) as usize);
-    if w.checked_mul(h).is_none_or(|n| n > MAX_MOSAIC_CELLS) {
-        return None;
-    }
     let mut heights = vec![f32::NAN; w * h];
-    for (g, (oc, or)) in grids.iter().zip(&offsets) {
+    for (g, (oc, or)) in &kept {
         let (gw, src) = (g.width(), g.heights_m());
         for row in 0..g.height() {
             let dst = ((or - r0) as usize + row) * w + (oc - c0) as usize;
@@ -165,15 +174,13 @@ mod tests {
     }
 
     #[test]
-    fn grids_off_each_other_or_too_large_are_not_joined() {
+    fn grids_off_the_first_or_too_far_are_left_out() {
         let a = grid(1000.0, 2000.0, 3, 3, |_, _| 5.0);
-        let b = grid(1005.0, 2000.0, 3, 3, |_, _| 5.0);
-        assert!(join(&[a.clone(), b]).is_none());
-        let far = grid(1.0e9, 2000.0, 3, 3, |_, _| 5.0);
-        assert!(
-            join(&[a, far]).is_none(),
-            "a union of 1e8 x 3 samples is over the bound"
-        );
+        let off_grid = grid(1005.0, 2000.0, 3, 3, |_, _| 7.0);
+        let far = grid(1.0e9, 2000.0, 3, 3, |_, _| 9.0);
+        let hostile = grid(1.0e20, -1.0e20, 3, 3, |_, _| 9.0);
+        let joined = join(&[a.clone(), off_grid, far, hostile]).unwrap();
+        assert_eq!(joined, *a, "only the first is left");
         assert!(join(&[]).is_none());
     }
 

@@ -89,6 +89,10 @@ pub struct TileHeights {
     pub width: u64,
     /// Samples down.
     pub height: u64,
+    /// The lowest height in it, metres.
+    pub min_m: f64,
+    /// The highest, metres.
+    pub max_m: f64,
 }
 
 impl TileHeights {
@@ -411,8 +415,9 @@ impl TilePlan {
                         (Some(h), true) => {
                             heights_intact(h, &path.with_file_name(file_name_of(&h.file)))
                         }
-                        (None, false) => true,
-                        _ => false,
+                        // A constant height, or a DEM without a height under the tile.
+                        (None, _) => true,
+                        (Some(_), false) => false,
                     }
             }
             None => !path.exists(),
@@ -442,13 +447,13 @@ impl TilePlan {
                 let heights = match &self.spec.height {
                     HeightSource::Dem(dem) => {
                         let name = heights_file_of(&file);
-                        Some(write_tile_heights(
+                        write_tile_heights(
                             dem,
                             self.spec.crs_override,
                             &s.header.bounds,
                             &path.with_file_name(file_name_of(&name)),
                             name,
-                        )?)
+                        )?
                     }
                     _ => None,
                 };
@@ -579,23 +584,28 @@ fn file_name_of(file: &str) -> &str {
 }
 
 /// Writes the DEM `dem`'s samples under `bounds` (and
-/// [`crate::geo::dem::DEM_WINDOW_MARGIN_CELLS`] around) to
-/// `out` as a float GeoTIFF (via a temporary name); `file` is its name in the index.
+/// [`crate::geo::dem::DEM_WINDOW_MARGIN_CELLS`] around) to `out` as a float GeoTIFF (via a
+/// temporary name); `file` is its name in the index. `None` (and no file) where the DEM holds
+/// no height there: never more than the window.
 pub(super) fn write_tile_heights(
     dem: &Path,
     crs_override: Option<Crs>,
     bounds: &Bounds,
     out: &Path,
     file: String,
-) -> Result<TileHeights, MapError> {
+) -> Result<Option<TileHeights>, MapError> {
     let dem_err = |reason: String| MapError::Input {
         path: dem.to_path_buf(),
         reason,
     };
-    let grid = match crate::geo::dem::load_dem_covering(dem, crs_override, bounds) {
-        Ok(visnav_core::geo::dem::Dem::Grid(g)) => g,
-        Ok(visnav_core::geo::dem::Dem::Flat { .. }) => {
+    let grid = match crate::geo::dem::load_dem_window(dem, crs_override, bounds) {
+        Ok(Some(visnav_core::geo::dem::Dem::Grid(g))) => g,
+        Ok(Some(visnav_core::geo::dem::Dem::Flat { .. })) => {
             return Err(dem_err("a DEM file read as a constant height".into()));
+        }
+        Ok(None) => {
+            let _ = std::fs::remove_file(out);
+            return Ok(None);
         }
         Err(e) => {
             return Err(MapError::Dem {
@@ -620,13 +630,16 @@ pub(super) fn write_tile_heights(
         what: "cannot read back the tile's heights",
         cause: source,
     })?;
-    Ok(TileHeights {
+    let (min_m, max_m) = visnav_core::geo::dem::Dem::Grid(grid.clone()).height_range_m();
+    Ok(Some(TileHeights {
         file,
         file_bytes: bytes.len() as u64,
         crc32: crc32fast::hash(&bytes),
         width: grid.width() as u64,
         height: grid.height() as u64,
-    })
+        min_m,
+        max_m,
+    }))
 }
 
 /// Whether the heights file at `path` is the one `h` records (size and checksum).
@@ -652,7 +665,8 @@ pub(super) fn stored_crc(path: &Path) -> Result<u32, MapError> {
 /// A checksum of everything that decides a tile's content: the build's settings and the tile
 /// side (the orthophotos by path: a moved file means a rebuild).
 fn build_digest(spec: &BuildSpec, tile_m: f64) -> String {
-    let text = format!("{spec:?} tile_m={tile_m}"); // debug form: hashed, never shown
+    // "heights": tiles on a DEM carry their heights (plans from before are built again).
+    let text = format!("{spec:?} tile_m={tile_m} heights"); // debug form: hashed, never shown
     format!("{:08x}", crc32fast::hash(text.as_bytes()))
 }
 

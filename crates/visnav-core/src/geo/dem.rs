@@ -126,7 +126,7 @@ impl Dem {
     /// `(min, max)` height over all valid samples, metres.
     pub fn height_range_m(&self) -> (f64, f64) {
         match self {
-            Dem::Grid(g) => (g.min_h_m, g.max_h_m),
+            Dem::Grid(g) => g.height_range_m(),
             Dem::Flat { height_m } => (*height_m, *height_m),
         }
     }
@@ -262,6 +262,10 @@ impl GridDem {
             self.crs,
             None,
         )
+    }
+    /// `(min, max)` height over all valid samples, metres.
+    pub fn height_range_m(&self) -> (f64, f64) {
+        (self.min_h_m, self.max_h_m)
     }
     /// The height samples, row-major (`width * height`), metres; NaN where missing.
     pub fn heights_m(&self) -> &[f32] {

@@ -14,8 +14,9 @@
 //! verified) and, for a map built on a DEM, its heights (`tiled::TileHeights`, decoded): the
 //! budget counts both. The terrain lent to the fix ([`Reference::dem`]) is then the heights of
 //! the tiles in memory under the latest request, joined on the DEM's grid
-//! (`super::terrain_mosaic`), so no DEM is read whole; `[map] dem` given overrides it. The tiles share one level-0 pixel grid (each tile's
-//! bounds are moved out to it when built), so level windows are assembled by whole-pixel offsets.
+//! (`super::terrain_mosaic`), so no DEM is read whole; `[map] dem` given overrides it. The tiles
+//! share one level-0 pixel grid (each tile's bounds are moved out to it when built), so level
+//! windows are assembled by whole-pixel offsets.
 
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::path::{Path, PathBuf};
@@ -92,9 +93,8 @@ struct Held {
 struct State {
     held: HashMap<usize, Held>,
     queue: VecDeque<usize>,
-    /// The needed tiles of the latest request: never evicted for others.
-    pinned: HashSet<usize>,
-    /// The needed tiles of the latest request in its order (the frame's own footprint first).
+    /// The needed tiles of the latest request, in its order (the frame's own footprint first):
+    /// never evicted for others.
     needed: Vec<usize>,
     /// Every tile of the latest request (needed or ahead): an ahead tile evicts only tiles
     /// outside it.
@@ -175,7 +175,6 @@ impl PagedMap {
             state: Mutex::new(State {
                 held: HashMap::new(),
                 queue: VecDeque::new(),
-                pinned: HashSet::new(),
                 needed: Vec::new(),
                 wanted: HashSet::new(),
                 failed: HashSet::new(),
@@ -302,7 +301,6 @@ impl PagedMap {
             .count();
         st.stats.late += late as u64;
         st.stats.late_frames += u64::from(late > 0);
-        st.pinned = order[..pinned].iter().copied().collect();
         st.needed = order[..pinned].to_vec();
         st.wanted = order.iter().copied().collect();
         if self.mode == LoadMode::Inline {
@@ -448,7 +446,7 @@ enum Terrain {
 
 impl Terrain {
     /// The terrain of a map with header `header` and index `index` in `dir`: `dem` when given,
-    /// else the tiles' constant height, else their heights (every tile must carry them).
+    /// else the tiles' constant height, else the heights they carry (at least one must).
     fn of(
         dem: Option<Dem>,
         header: &MapHeader,
@@ -694,17 +692,23 @@ fn finish_load(st: &mut State, k: usize, path: &Path, opened: Result<Opened, Map
 /// it may: a needed tile (pinned) any tile not pinned, a tile ahead only tiles outside the latest
 /// request. Whether it fits; a needed tile that does not is counted (`over_budget`).
 fn make_room(st: &mut State, k: usize, bytes: u64, budget: u64) -> bool {
-    let needed = st.pinned.contains(&k);
+    let needed = st.needed.contains(&k);
     loop {
         let used: u64 = st.held.values().map(|h| h.bytes).sum();
         if used.saturating_add(bytes) <= budget {
             return true;
         }
-        let protected = if needed { &st.pinned } else { &st.wanted };
+        let protected = |t: &usize| {
+            if needed {
+                st.needed.contains(t)
+            } else {
+                st.wanted.contains(t)
+            }
+        };
         let victim = st
             .held
             .iter()
-            .filter(|(k, _)| !protected.contains(k))
+            .filter(|(k, _)| !protected(k))
             .min_by_key(|(_, h)| h.last_used)
             .map(|(k, _)| *k);
         match victim {

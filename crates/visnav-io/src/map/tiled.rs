@@ -630,7 +630,7 @@ pub(super) fn write_tile_heights(
         what: "cannot read back the tile's heights",
         cause: source,
     })?;
-    let (min_m, max_m) = visnav_core::geo::dem::Dem::Grid(grid.clone()).height_range_m();
+    let (min_m, max_m) = grid.height_range_m();
     Ok(Some(TileHeights {
         file,
         file_bytes: bytes.len() as u64,

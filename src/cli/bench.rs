@@ -1,6 +1,6 @@
-//! `visnav bench surf [--image F]... [--json] [--quality] [--export-pairs DIR]`: time SURF
-//! detect+describe (median of `--runs`) on 1 thread and on all threads, upright and rotation
-//! invariant, on the bench images of ../shared/data/bench; optionally run the repeatability /
+//! `visnav bench surf [--image F]... [--json] [--stages] [--quality] [--export-pairs DIR]`: time
+//! SURF detect+describe (median of `--runs`) on 1 thread and on all threads, upright and rotation
+//! invariant (with `--stages` each stage on one thread), on the bench images of ../shared/data/bench; optionally run the repeatability /
 //! matching-score table on the bundled NAIP maps and export the pairs for scripts/bench_opencv.py.
 //! `visnav bench pose`: the resection's timing suite. `visnav bench render`: the camera renderer.
 
@@ -106,6 +106,10 @@ pub struct SurfBenchArgs {
     /// software one is labelled so).
     #[arg(long, default_value = "cpu", value_parser = ["cpu", "gpu"])]
     pub backend: String,
+    /// Also time each stage on one thread (integral image, response layers, extrema,
+    /// orientation, descriptors; the median of `--runs` each).
+    #[arg(long)]
+    pub stages: bool,
 }
 
 #[derive(serde::Serialize)]
@@ -389,6 +393,7 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
         inputs.push((name, hd?));
     }
     let mut timings = Vec::new();
+    let mut stage_rows = Vec::new();
     for (path, img) in &inputs {
         let path = Path::new(path);
         let img = img.clone();
@@ -405,6 +410,19 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
             })?;
             if let Some(dir) = &a.export_features {
                 export_features(dir, path, mode, &surf, &img, a.threshold)?;
+            }
+            if a.stages
+                && let Some((_, one)) = pools.first()
+            {
+                let (stages_ms, total_ms, features) =
+                    super::bench_surf_stages::time_stages(one, &surf, &img, a.runs);
+                stage_rows.push(super::bench_surf_stages::StageTiming {
+                    image: path.display().to_string(),
+                    mode,
+                    features,
+                    stages_ms,
+                    total_ms,
+                });
             }
             for (n, pool) in &pools {
                 let (median, min, detect, feats) = time_one(pool, &surf, &img, a.runs);
@@ -448,7 +466,12 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
         None
     };
     if a.json {
-        let doc = serde_json::json!({ "surf": timings, "match": matching, "quality": quality });
+        let doc = serde_json::json!({
+            "surf": timings,
+            "stages": stage_rows,
+            "match": matching,
+            "quality": quality,
+        });
         println!("{}", serde_json::to_string_pretty(&doc)?);
     } else {
         println!(
@@ -480,6 +503,9 @@ fn run_surf(a: SurfBenchArgs) -> anyhow::Result<ExitCode> {
                 t.detect_ms,
                 t.features
             );
+        }
+        if a.stages {
+            super::bench_surf_stages::print(&stage_rows, a.runs);
         }
         if !matching.is_empty() {
             println!();

@@ -9,6 +9,8 @@ pub mod bench_dtm;
 #[cfg(feature = "sim")]
 pub mod bench_fix;
 #[cfg(feature = "sim")]
+pub mod bench_surf_stages;
+#[cfg(feature = "sim")]
 pub mod bench_vo;
 pub mod camera;
 pub mod check_config;

@@ -35,7 +35,7 @@ pub use matcher::{Match, MatchParams, match_features};
 pub use orb::{Orb, OrbParams};
 pub use surf::{
     CpuFeatures, DescriptorKind, ExtremaWindow, Family, FeatureBackend, Features, KeyPoint,
-    LayerSpec, Surf, SurfParams,
+    LayerSpec, Surf, SurfParams, SurfStage,
 };
 
 /// Errors of the vision module.

@@ -383,6 +383,43 @@ fn tables() -> &'static Tables {
     })
 }
 
+/// The stages of [`Surf::detect_and_describe_staged`], in their order.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SurfStage {
+    /// The integral image.
+    Integral,
+    /// The box-filter response layers of every octave.
+    Responses,
+    /// The 3 x 3 x 3 extrema, their quadratic refinement and the capped even spread.
+    Extrema,
+    /// Every keypoint's orientation (nothing for upright SURF).
+    Orientation,
+    /// Every keypoint's descriptor.
+    Descriptors,
+}
+
+impl SurfStage {
+    /// Every stage, in order.
+    pub const ALL: [SurfStage; 5] = [
+        SurfStage::Integral,
+        SurfStage::Responses,
+        SurfStage::Extrema,
+        SurfStage::Orientation,
+        SurfStage::Descriptors,
+    ];
+
+    /// A short name for tables and JSON.
+    pub fn name(self) -> &'static str {
+        match self {
+            SurfStage::Integral => "integral",
+            SurfStage::Responses => "responses",
+            SurfStage::Extrema => "extrema",
+            SurfStage::Orientation => "orientation",
+            SurfStage::Descriptors => "descriptors",
+        }
+    }
+}
+
 /// One response layer: `det(H)` for filter size `size` on a grid of step `step`.
 struct Layer {
     size: usize,
@@ -605,9 +642,55 @@ impl Surf {
         plan
     }
 
+    /// [`Self::detect_and_describe`] stage by stage, calling `mark` as each [`SurfStage`] ends
+    /// (the orientations of all keypoints, then all descriptors, where the one-pass path
+    /// interleaves them per keypoint). The same features, bit for bit: `visnav bench surf
+    /// --stages` times the stages with it, the caller holding the clock (no clock in the core).
+    pub fn detect_and_describe_staged(
+        &self,
+        img: &GrayImage,
+        mark: &mut dyn FnMut(SurfStage),
+    ) -> Features {
+        let ii = IntegralImage::new(img);
+        mark(SurfStage::Integral);
+        let (layers, octaves) = self.responses(&ii);
+        mark(SurfStage::Responses);
+        let mut kps = self.maxima(&ii, &layers, &octaves);
+        self.recycle(layers);
+        mark(SurfStage::Extrema);
+        let upright = self.params.upright;
+        kps.par_iter_mut().with_min_len(16).for_each(|kp| {
+            kp.orientation_rad = if upright { 0.0 } else { orientation(&ii, kp) };
+        });
+        mark(SurfStage::Orientation);
+        let kind = self.params.descriptor;
+        let stride = kind.stride();
+        let mut desc = vec![0f32; kps.len() * stride];
+        desc.par_chunks_mut(stride)
+            .zip(kps.par_iter())
+            .with_min_len(16)
+            .for_each(|(d, kp)| describe_one(&ii, kp, kind, upright, d));
+        mark(SurfStage::Descriptors);
+        Features {
+            keypoints: kps,
+            descriptors: desc,
+            kind,
+        }
+    }
+
     /// Fast-Hessian detection; keypoints strongest first (orientation not yet assigned), capped to
     /// `max_features` with an even spread.
     pub fn detect(&self, ii: &IntegralImage) -> Vec<KeyPoint> {
+        let (layers, octaves) = self.responses(ii);
+        let kps = self.maxima(ii, &layers, &octaves);
+        self.recycle(layers);
+        kps
+    }
+
+    /// Every response layer of [`Self::layer_plan`] (a layer shared with a finer octave
+    /// subsampled from it), with each octave's layer indices; the buffers come from the scratch
+    /// [`Self::recycle`] returns them to.
+    fn responses(&self, ii: &IntegralImage) -> (Vec<Layer>, Vec<Vec<usize>>) {
         let plan = self.layer_plan(ii.width(), ii.height());
         let mut layers: Vec<Layer> = Vec::new();
         // A poisoned lock only means another thread panicked mid-call: start with no buffers.
@@ -636,12 +719,15 @@ impl Surf {
             }
             octaves.push(idx);
         }
-        let kps = self.maxima(ii, &layers, &octaves);
+        (layers, octaves)
+    }
+
+    /// The response layers' buffers kept for the next image (a poisoned lock drops them).
+    fn recycle(&self, layers: Vec<Layer>) {
         if let Ok(mut g) = self.scratch.lock() {
             g.clear();
             g.extend(layers.into_iter().map(|l| l.det));
         }
-        kps
     }
 
     /// Extrema of every octave's middle layers, strongest first, capped with an even spread.
@@ -788,12 +874,14 @@ fn compute_layer(
     cols: usize,
     buf: Vec<f32>,
 ) -> Vec<f32> {
+    // A recycled buffer keeps its old values: every sample is written below (the filter's
+    // responses, and 0 where it does not fit), so only a growth is zeroed here.
     let mut det = buf;
-    det.clear();
     det.resize(rows * cols, 0.0);
     let (w, h) = (ii.width(), ii.height());
     let hs = (size - 1) / 2;
     if size > w || size > h {
+        det.fill(0.0);
         return det;
     }
     let l = size / 3;
@@ -803,6 +891,7 @@ fn compute_layer(
     let r0 = hs.div_ceil(step);
     let r1 = (h - 1 - hs) / step;
     if c1 < c0 || r1 < r0 {
+        det.fill(0.0);
         return det;
     }
     let inv_a = 1.0 / (l * (2 * l - 1)) as f32;
@@ -825,7 +914,11 @@ fn compute_layer(
             || (vec![0i32; sw], vec![0i32; sw], vec![0i32; sw]),
             |(e, sx, d), (r, out)| {
                 if r >= r0 && r <= r1 {
+                    out[..c0].fill(0.0);
+                    out[(c1 + 1).min(cols)..].fill(0.0);
                     layer_row(ii, &g, r * step, e, sx, d, out);
+                } else {
+                    out.fill(0.0);
                 }
             },
         );
@@ -972,11 +1065,11 @@ fn layer_row_body(
 }
 
 /// 3x3x3 non-maximum suppression in the middle layer and quadratic interpolation.
-fn find_maxima(
+fn find_maxima<'a>(
     ii: &IntegralImage,
-    lo: &Layer,
-    mid: &Layer,
-    hi: &Layer,
+    lo: &'a Layer,
+    mid: &'a Layer,
+    hi: &'a Layer,
     threshold: f32,
     octave: usize,
 ) -> Vec<KeyPoint> {
@@ -992,45 +1085,25 @@ fn find_maxima(
     else {
         return Vec::new();
     };
+    #[cfg(target_arch = "x86_64")]
+    let avx = std::arch::is_x86_feature_detected!("avx");
+    #[cfg(not(target_arch = "x86_64"))]
+    let avx = false;
     (r_lo..r_hi + 1)
         .into_par_iter()
         .with_min_len(4)
         .flat_map_iter(|r| {
             let mut found = Vec::new();
             let row = &mid.det[r * cols..(r + 1) * cols];
-            // Candidates: above the threshold and both row neighbours, tested 8 at a time with
-            // branch-free comparisons (vectorised) before the full 26-neighbour test.
+            let rows3 = |l: &'a Layer| -> [&'a [f32]; 3] {
+                [-1isize, 0, 1].map(|d| {
+                    let rr = (r as isize + d) as usize;
+                    &l.det[rr * cols..(rr + 1) * cols]
+                })
+            };
             let mut cands = Vec::new();
-            let mut c = c_lo;
-            while c <= c_hi {
-                let k = (c_hi + 1 - c).min(8);
-                let mut mask = 0u32;
-                let eight = (k == 8).then(|| {
-                    (
-                        <&[f32; 8]>::try_from(&row[c..c + 8]),
-                        <&[f32; 8]>::try_from(&row[c - 1..c + 7]),
-                        <&[f32; 8]>::try_from(&row[c + 1..c + 9]),
-                    )
-                });
-                // Slices of length 8 always convert.
-                if let Some((Ok(v), Ok(lft), Ok(rgt))) = eight {
-                    for q in 0..8 {
-                        let hit = (v[q] > threshold) & (v[q] > lft[q]) & (v[q] > rgt[q]);
-                        mask |= u32::from(hit) << q;
-                    }
-                } else {
-                    for q in 0..k {
-                        let v0 = row[c + q];
-                        let hit = (v0 > threshold) & (v0 > row[c + q - 1]) & (v0 > row[c + q + 1]);
-                        mask |= u32::from(hit) << q;
-                    }
-                }
-                while mask != 0 {
-                    cands.push(c + mask.trailing_zeros() as usize);
-                    mask &= mask - 1;
-                }
-                c += k;
-            }
+            let layers3 = [rows3(mid), rows3(lo), rows3(hi)];
+            row_candidates(layers3, (c_lo, c_hi), threshold, avx, &mut cands);
             for c in cands {
                 let v0 = row[c];
                 let at = |l: &Layer, dr: isize, dc: isize| -> f32 {
@@ -1077,6 +1150,100 @@ fn find_maxima(
             found.into_iter()
         })
         .collect()
+}
+
+/// The columns `c_lo..=c_hi` of the middle row of `mid` (rows `r - 1, r, r + 1` of the middle
+/// layer; `lo` and `hi` the same rows of the layers below and above) that can be maxima: above
+/// `threshold` and above both row neighbours, the test the full 26-neighbour one
+/// ([`find_maxima`]) starts from. With `avx` (the caller detected it) the CPU's 8-lane compares
+/// (whole groups of 8 columns) also drop the columns any other of the 26 neighbours equals or
+/// exceeds, which the full test refuses anyway, so the maxima are the same; in column order.
+fn row_candidates(
+    [mid, lo, hi]: [[&[f32]; 3]; 3],
+    (c_lo, c_hi): (usize, usize),
+    threshold: f32,
+    avx: bool,
+    out: &mut Vec<usize>,
+) {
+    let row = mid[1];
+    let mut c = c_lo;
+    #[cfg(target_arch = "x86_64")]
+    if avx {
+        // SAFETY: the caller found AVX on this CPU, the only feature the function enables.
+        c = unsafe { row_candidates_avx([mid, lo, hi], (c_lo, c_hi), threshold, out) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (avx, lo, hi);
+    while c <= c_hi {
+        let v = row[c];
+        if (v > threshold) & (v > row[c - 1]) & (v > row[c + 1]) {
+            out.push(c);
+        }
+        c += 1;
+    }
+}
+
+/// [`row_candidates`] 8 columns at a time in AVX registers, as far as whole groups of 8 reach;
+/// returns the first column left for the scalar loop. Each lane keeps `v > threshold`, `v >
+/// left`, `v > right` (ordered compares: NaN fails them, as the scalar `>`), and drops the lane
+/// when any other of its 26 neighbours is `>= v` (ordered: a NaN neighbour drops nothing, as the
+/// full test's `>=`). The 18 neighbours of the other layers are read only for groups with a lane
+/// left.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+fn row_candidates_avx(
+    [mid, lo, hi]: [[&[f32]; 3]; 3],
+    (c_lo, c_hi): (usize, usize),
+    threshold: f32,
+    out: &mut Vec<usize>,
+) -> usize {
+    use std::arch::x86_64::*;
+    let load = |s: &[f32], from: usize| -> __m256 {
+        let lanes = &s[from..from + 8];
+        // SAFETY: `lanes` is exactly 8 f32 long, what an unaligned 256-bit load reads.
+        unsafe { _mm256_loadu_ps(lanes.as_ptr()) }
+    };
+    let drop_ge = |keep: __m256, rows: &[&[f32]], v: __m256, c: usize| -> __m256 {
+        let mut keep = keep;
+        for n in rows {
+            for from in [c - 1, c, c + 1] {
+                keep = _mm256_andnot_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(load(n, from), v), keep);
+            }
+        }
+        keep
+    };
+    let row = mid[1];
+    let len = [mid, lo, hi]
+        .iter()
+        .flatten()
+        .map(|r| r.len())
+        .min()
+        .unwrap_or(0);
+    let thr = _mm256_set1_ps(threshold);
+    let mut c = c_lo;
+    // Columns c - 1 ..= c + 8 are read: c + 8 <= c_hi + 1, a column of every row (the extrema
+    // window keeps c_hi + 1 inside the layer, c_lo >= 1).
+    while c + 8 <= c_hi + 1 && c + 9 <= len {
+        let v = load(row, c);
+        let keep = _mm256_and_ps(
+            _mm256_cmp_ps::<_CMP_GT_OQ>(v, thr),
+            _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_GT_OQ>(v, load(row, c - 1)),
+                _mm256_cmp_ps::<_CMP_GT_OQ>(v, load(row, c + 1)),
+            ),
+        );
+        let mut keep = drop_ge(keep, &[mid[0], mid[2]], v, c);
+        if _mm256_movemask_ps(keep) != 0 {
+            keep = drop_ge(keep, &[lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]], v, c);
+        }
+        let mut mask = _mm256_movemask_ps(keep) as u32;
+        while mask != 0 {
+            out.push(c + mask.trailing_zeros() as usize);
+            mask &= mask - 1;
+        }
+        c += 8;
+    }
+    c
 }
 
 /// Solve `A o = -g` for the quadratic fit of `v(ds, dy, dx)` around its centre sample; `None` when
@@ -1610,6 +1777,116 @@ mod tests {
             }
             v
         })
+    }
+
+    /// The AVX candidates are the scalar ones less only those another of the 26 neighbours
+    /// equals or exceeds (which the full test refuses), on rows with many ties, a NaN and every
+    /// alignment of the window.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx_row_candidates_drop_only_what_the_full_test_refuses() {
+        if !std::arch::is_x86_feature_detected!("avx") {
+            eprintln!("SKIP avx_row_candidates_drop_only_what_the_full_test_refuses: no AVX");
+            return;
+        }
+        let mut s = 4242u64;
+        let mut next = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 33) % 7) as f32 * 50.0
+        };
+        let mut dropped = 0;
+        for trial in 0..200 {
+            let cols = 20 + trial % 29;
+            let mut rows: Vec<Vec<f32>> = (0..9)
+                .map(|_| (0..cols).map(|_| next()).collect())
+                .collect();
+            if trial % 5 == 0 {
+                rows[trial % 9][cols / 2] = f32::NAN;
+            }
+            let (c_lo, c_hi) = (1 + trial % 4, cols - 2 - trial % 3);
+            let r3 = |k: usize| [&rows[k][..], &rows[k + 1][..], &rows[k + 2][..]];
+            let refs = [r3(0), r3(3), r3(6)];
+            let (mut scalar, mut avx) = (Vec::new(), Vec::new());
+            row_candidates(refs, (c_lo, c_hi), 120.0, false, &mut scalar);
+            row_candidates(refs, (c_lo, c_hi), 120.0, true, &mut avx);
+            // Rows 0-2 the middle layer's (row 1 the candidates'), 3-5 and 6-8 the others.
+            let refused = |c: usize| {
+                let v = rows[1][c];
+                (0..9).any(|k| (c - 1..=c + 1).any(|cc| (k, cc) != (1, c) && rows[k][cc] >= v))
+            };
+            assert!(avx.iter().all(|c| scalar.contains(c)), "trial {trial}");
+            assert!(avx.windows(2).all(|w| w[0] < w[1]), "trial {trial}");
+            for c in scalar.iter().filter(|c| !avx.contains(c)) {
+                assert!(refused(*c), "trial {trial}: column {c} dropped");
+            }
+            dropped += scalar.len() - avx.len();
+        }
+        assert!(dropped > 100, "{dropped}");
+    }
+
+    /// The staged path gives the one-pass path's features bit for bit, every mode and
+    /// descriptor, and marks each stage once, in order.
+    #[test]
+    fn the_staged_path_gives_the_same_features_and_marks_every_stage() {
+        let mut s = 99u64;
+        let img = GrayImage::from_fn(160, 120, |x, y| {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            let blob = ((x as f32 / 9.0).sin() * (y as f32 / 7.0).cos() + 1.0) * 90.0;
+            blob + ((s >> 33) % 40) as f32
+        });
+        for upright in [true, false] {
+            for descriptor in [
+                DescriptorKind::Surf36,
+                DescriptorKind::Surf64,
+                DescriptorKind::Surf128,
+            ] {
+                let surf = Surf::new(SurfParams {
+                    upright,
+                    descriptor,
+                    ..SurfParams::default()
+                })
+                .unwrap();
+                let one = surf.detect_and_describe(&img);
+                let mut marks = Vec::new();
+                let staged = surf.detect_and_describe_staged(&img, &mut |st| marks.push(st));
+                assert_eq!(marks, SurfStage::ALL, "{upright} {descriptor:?}");
+                assert!(one.len() > 10, "{}", one.len());
+                assert_eq!(one.len(), staged.len());
+                for (a, b) in one.keypoints.iter().zip(&staged.keypoints) {
+                    assert_eq!(a.x.to_bits(), b.x.to_bits());
+                    assert_eq!(a.y.to_bits(), b.y.to_bits());
+                    assert_eq!(a.orientation_rad.to_bits(), b.orientation_rad.to_bits());
+                    assert_eq!(a.response.to_bits(), b.response.to_bits());
+                }
+                let bits = |f: &Features| -> Vec<u32> {
+                    f.descriptors.iter().map(|v| v.to_bits()).collect()
+                };
+                assert_eq!(bits(&one), bits(&staged), "{upright} {descriptor:?}");
+            }
+        }
+    }
+
+    /// A recycled buffer (any length, stale values) gives the layer a fresh one gives, also
+    /// where the filter does not fit at all.
+    #[test]
+    fn a_recycled_layer_buffer_leaves_no_stale_sample() {
+        let img = GrayImage::from_fn(70, 45, |x, y| ((x * 7 + y * 13) % 200) as f32);
+        let ii = IntegralImage::new(&img);
+        for (size, step) in [(9, 1), (27, 2), (51, 4), (99, 1)] {
+            let rows = (45 - 1) / step + 1;
+            let cols = (70 - 1) / step + 1;
+            let fresh = compute_layer(&ii, size, step, rows, cols, Vec::new());
+            for stale_len in [0, rows * cols / 2, rows * cols, rows * cols * 3] {
+                let stale = vec![f32::NAN; stale_len];
+                let got = compute_layer(&ii, size, step, rows, cols, stale);
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&got), bits(&fresh), "{size} {step} {stale_len}");
+            }
+        }
     }
 
     #[test]

@@ -1094,15 +1094,15 @@ fn find_maxima<'a>(
         .with_min_len(4)
         .flat_map_iter(|r| {
             let mut found = Vec::new();
-            let row = &mid.det[r * cols..(r + 1) * cols];
             let rows3 = |l: &'a Layer| -> [&'a [f32]; 3] {
                 [-1isize, 0, 1].map(|d| {
                     let rr = (r as isize + d) as usize;
                     &l.det[rr * cols..(rr + 1) * cols]
                 })
             };
-            let mut cands = Vec::new();
             let layers3 = [rows3(mid), rows3(lo), rows3(hi)];
+            let row = layers3[0][1];
+            let mut cands = Vec::new();
             row_candidates(layers3, (c_lo, c_hi), threshold, avx, &mut cands);
             for c in cands {
                 let v0 = row[c];

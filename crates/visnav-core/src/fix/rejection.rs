@@ -854,7 +854,7 @@ mod tests {
                 inliers: 9,
                 min: 12,
             }),
-            Place(PlaceError::Weak { ncc: 0.21 }),
+            Place(PlaceError::Weak { ncc: 0.11 }),
             NoPlacementFix {
                 ties: Box::new(FewTies {
                     ncc: 0.45,

@@ -218,7 +218,7 @@ pub enum Rejection {
     RefinementMoved {
         /// The refinement grid's block size, pixels.
         block_px: usize,
-        /// How far the place moved, blocks of that grid.
+        /// How far the place moved along the grid axis it moved most, blocks of that grid.
         moved_blocks: f64,
     },
     /// The placement grid's rays miss the terrain.

@@ -61,8 +61,8 @@ const PLACEMENT_REFINE_MARGIN_PX: f64 = 3.0;
 /// Farthest a refinement step may move the place, finer blocks along each grid axis: the
 /// coarser peak's cell and its sub-block offset put the true place within one coarser block
 /// (two finer) per axis, because the grid quantises each axis apart; a place one coarser block
-/// off along both axes lies 2.8 finer blocks away. Bounded by that distance instead, the step
-/// refused 76 of the 401 frames one `drone_naip` flight refused, nearly all moved 2.0-2.5 finer
+/// off along both axes lies 2.8 finer blocks away. Bounded by the straight-line distance
+/// instead, the step refused 76 of the 401 frames one `drone_naip` flight refused, nearly all moved 2.0-2.5 finer
 /// blocks (changed ground, where the coarse peak is broad).
 const PLACEMENT_REFINE_MAX_MOVE_PX: f64 = PLACEMENT_REFINE_MARGIN_PX - 1.0;
 /// Localisation sigma of the refined placement's peak, in blocks of its finest grid (a

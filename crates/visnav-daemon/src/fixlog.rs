@@ -47,6 +47,17 @@ pub struct FixLogRecord {
     pub inliers: usize,
     /// Reprojection RMS, px.
     pub reproj_rms_px: Option<f64>,
+    /// Correspondences given to the resection (logs written before it existed lack it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub matches: Option<usize>,
+    /// A-posteriori standard deviation of unit weight of the image-only adjustment (absent where
+    /// the engine computed none: a rejection before the adjustment, a placement fix).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sigma0: Option<f64>,
+    /// The factor on the a-priori covariance behind `cov_ned_m2` (`pose::PoseCovariance::factor`:
+    /// the variance factor, the split-sample factor and the configured inflation together).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cov_factor: Option<f64>,
     /// The image-only pose with its 6x6 covariance (logs written before it existed lack it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub vision_only: Option<VisionOnlyPose>,
@@ -90,6 +101,9 @@ impl FixLogRecord {
             cov_ned_m2: cov.iter().flatten().all(|v| v.is_finite()).then_some(cov),
             inliers: report.inliers,
             reproj_rms_px: f(report.reproj_rms_px),
+            matches: Some(report.matches),
+            sigma0: f(report.sigma0),
+            cov_factor: f(report.cov_factor),
             vision_only: report.vision_only.filter(VisionOnlyPose::is_finite),
             prior_dependence: report
                 .prior_dependence
@@ -118,6 +132,9 @@ impl FixLogRecord {
         r.cov_ned_m2 = self.cov_ned_m2.unwrap_or([[f64::NAN; 3]; 3]);
         r.inliers = self.inliers;
         r.reproj_rms_px = n(self.reproj_rms_px);
+        r.matches = self.matches.unwrap_or(0);
+        r.sigma0 = n(self.sigma0);
+        r.cov_factor = n(self.cov_factor);
         r.vision_only = self.vision_only;
         r.prior_dependence = self.prior_dependence;
         r.prior_attitude_from_filter = self.prior_attitude_from_filter;
@@ -208,6 +225,9 @@ mod tests {
         good.cov_ned_m2 = [[25.0, 1.0, 0.0], [1.0, 30.0, 0.0], [0.0, 0.0, 90.0]];
         good.inliers = 40;
         good.reproj_rms_px = 1.2;
+        good.matches = 55;
+        good.sigma0 = 1.3;
+        good.cov_factor = 2.7;
         good.method = FixMethod::Area;
         let mut cov6 = [[0.0; 6]; 6];
         for (i, row) in cov6.iter_mut().enumerate() {
@@ -237,6 +257,8 @@ mod tests {
         let rep = back[0].report();
         assert!(rep.accepted && rep.lat_deg == 47.0 && rep.cov_ned_m2[1][1] == 30.0);
         assert_eq!(rep.vision_only, good.vision_only, "image-only pose kept");
+        assert_eq!((rep.matches, rep.sigma0, rep.cov_factor), (55, 1.3, 2.7));
+        assert_eq!(back[1].sigma0, None, "a rejection has no variance factor");
         assert_eq!(back[0].method, Some(FixMethod::Area), "method kept");
         assert_eq!(rep.method, FixMethod::Area);
         assert_eq!(back[1].method, None, "a rejection has no method");
@@ -251,6 +273,7 @@ mod tests {
         let old = r#"{"arrival_unix_us":1,"t_capture_us":2,"seq":3,"latency_ms":4,"accepted":false,"reason":"x","outcome":"engine_rejected","lat_deg":null,"lon_deg":null,"h_ellip_m":null,"alt_amsl_m":null,"cov_ned_m2":null,"inliers":0,"reproj_rms_px":null}"#;
         assert_eq!(read_fix_log(old).unwrap()[0].vision_only, None);
         assert_eq!(read_fix_log(old).unwrap()[0].method, None);
+        assert_eq!(read_fix_log(old).unwrap()[0].cov_factor, None);
         assert!(back[1].report().lat_deg.is_nan());
         let e = read_fix_log("{\"arrival_unix_us\": 1}\nnot json\n")
             .unwrap_err()

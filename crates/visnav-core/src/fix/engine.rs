@@ -34,6 +34,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 mod area_stage;
+mod corroborate;
 mod features;
 mod heading;
 mod placement;
@@ -656,22 +657,19 @@ impl FixEngine {
         let mut tried = Vec::new();
         let mut report = None;
         for &method in order {
-            let r = match method {
-                FixMethod::Features => match self.feature_pairs(&view, &mut a) {
-                    Ok(p) => self.solve_pairs(&view, &p, method, t_us),
-                    Err(e) => FixReport::rejected(e, t_us, 0.0),
-                },
-                _ => match self.area_pairs(&view, &mut a, how.placement) {
-                    Ok(AreaOutcome::Ties(p)) => self.solve_pairs(&view, &p, FixMethod::Area, t_us),
-                    Ok(AreaOutcome::Placement(p)) => self.placement_report(&view, &p, t_us),
-                    Err(e) => FixReport::rejected(e, t_us, 0.0),
-                },
-            };
+            let r = self.run_method(&view, &mut a, method, how, t_us);
             if r.accepted {
                 report = Some(r);
                 break;
             }
             tried.push((method, Rejection::or_unexplained(r.rejection)));
+        }
+        // A feature fix the split-sample factor could not check is put to the area method
+        // when it would run after features anyway (`corroborate`).
+        if order == [FixMethod::Features, FixMethod::Area]
+            && let Some(feature_fix) = report.take_if(|r| corroborate::unchecked(r))
+        {
+            report = Some(self.corroborate(&view, &mut a, feature_fix, how, t_us));
         }
         let report = report.unwrap_or_else(|| {
             let why = if tried.len() == 1 {
@@ -682,6 +680,28 @@ impl FixEngine {
             FixReport::rejected(why, t_us, 0.0)
         });
         (FixReport { level, ..report }, a)
+    }
+
+    /// One method's correspondences and its fix (or the reason there is none).
+    fn run_method(
+        &self,
+        view: &View,
+        a: &mut Attempt,
+        method: FixMethod,
+        how: Single,
+        t_us: u64,
+    ) -> FixReport {
+        match method {
+            FixMethod::Features => match self.feature_pairs(view, a) {
+                Ok(p) => self.solve_pairs(view, &p, method, t_us),
+                Err(e) => FixReport::rejected(e, t_us, 0.0),
+            },
+            _ => match self.area_pairs(view, a, how.placement) {
+                Ok(AreaOutcome::Ties(p)) => self.solve_pairs(view, &p, FixMethod::Area, t_us),
+                Ok(AreaOutcome::Placement(p)) => self.placement_report(view, &p, t_us),
+                Err(e) => FixReport::rejected(e, t_us, 0.0),
+            },
+        }
     }
 
     /// Map position (grid x, y) of the ground seen at rectified pixel `(u, v)` from the prior.

@@ -164,6 +164,10 @@ pub struct FixReport {
     /// `pose::PoseCovariance::factor`).
     #[serde(skip_serializing_if = "not_finite")]
     pub cov_factor: f64,
+    /// How many image quadrants' own poses measured the covariance's split-sample factor
+    /// (`pose::split_variance_factor`): 0 when the resection had too few inliers to measure it
+    /// (its covariance unchecked for errors the inliers share) and for a placement fix.
+    pub split_groups: usize,
     /// The image-only pose and its full covariance (no attitude prior in it); `None` when no
     /// pose was computed. The pose above fuses the attitude prior when `[fix.pose.refine]
     /// use_attitude_prior` is on; a filter that supplied that prior fuses this one instead.
@@ -327,6 +331,7 @@ impl FixReport {
             reproj_rms_px: f64::NAN,
             sigma0: f64::NAN,
             cov_factor: f64::NAN,
+            split_groups: 0,
             vision_only: None,
             prior_dependence: None,
             prior_attitude_from_filter: false,

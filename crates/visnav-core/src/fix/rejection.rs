@@ -279,6 +279,17 @@ pub enum Rejection {
     },
     /// The fix was not confirmed when matched again from its own pose.
     NotConfirmed(Box<Rejection>),
+    /// A feature fix too weak to check its own covariance and the area method's fix of the same
+    /// frame disagree: the area fix lies outside the feature fix's 3-sigma ellipse.
+    MethodsDisagree {
+        /// Horizontal distance between the two fixes, metres.
+        distance_m: f64,
+        /// The area fix's squared Mahalanobis distance in the feature fix's horizontal
+        /// covariance.
+        d2: f64,
+        /// The gate: the chi-square(2) quantile of the 3-sigma probability.
+        gate: f64,
+    },
     /// The area search's fix lies beyond the prior's gate.
     FarFromPrior {
         /// Horizontal distance from the prior, metres.
@@ -417,6 +428,7 @@ pub const CLASSES: &[&str] = &[
     "ambiguous",
     "not_confirmed",
     "far_from_prior",
+    "methods_disagree",
     "no_candidate_confirmed",
     "budget",
     "no_hypothesis",
@@ -470,6 +482,7 @@ impl Rejection {
             | TwoPlaces { .. } => "ambiguous",
             NotConfirmed(_) => "not_confirmed",
             FarFromPrior { .. } => "far_from_prior",
+            MethodsDisagree { .. } => "methods_disagree",
             NoCandidateConfirmed { .. } => "no_candidate_confirmed",
             AreaSearchBudget { .. } | MapLevelBudget { .. } | WorkBudget { .. } => "budget",
             NoHypothesis => "no_hypothesis",
@@ -729,6 +742,16 @@ impl Rejection {
                 ncc[0], ncc[1]
             ),
             NotConfirmed(inner) => write!(f, "not confirmed from its own pose: {inner}"),
+            MethodsDisagree {
+                distance_m,
+                d2,
+                gate,
+            } => write!(
+                f,
+                "the feature fix (too few inliers to check its covariance) and the area fix lie \
+                 {distance_m:.1} m apart, outside the feature fix's 3 sigma (d^2 {d2:.1} > \
+                 {gate:.1})"
+            ),
             FarFromPrior {
                 distance_m,
                 limit_m,
@@ -891,6 +914,11 @@ mod tests {
                     inner: Box::new(NoHoughCluster),
                 }),
             })),
+            MethodsDisagree {
+                distance_m: 24.96,
+                d2: 17.3,
+                gate: 11.83,
+            },
         ]
     }
 
@@ -914,6 +942,7 @@ mod tests {
         assert_eq!(e[8].class(), "below_chance");
         assert_eq!(e[9].class(), "budget");
         assert_eq!(e[5].class(), "pose_few_inliers");
+        assert_eq!(e[10].class(), "methods_disagree");
         // Read back from a record: its class when it is one, otherwise "recorded".
         let back = Rejection::recorded(e[4].class(), &e[4].to_string());
         assert_eq!(
@@ -927,6 +956,11 @@ mod tests {
     #[test]
     fn display_names_the_check_and_its_numbers() {
         let e = examples();
+        assert_eq!(
+            e[10].to_string(),
+            "the feature fix (too few inliers to check its covariance) and the area fix lie 25.0 \
+             m apart, outside the feature fix's 3 sigma (d^2 17.3 > 11.8)"
+        );
         assert_eq!(
             e[4].to_string(),
             "only 24 matches where chance gives 10 (need 27)"

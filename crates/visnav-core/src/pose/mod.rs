@@ -254,6 +254,10 @@ pub struct PoseCovariance {
     pub inflation: f64,
     /// Split-sample variance factor (1 when not estimated; see [`split_variance_factor`]).
     pub split_factor: f64,
+    /// How many image quadrants' poses measured [`Self::split_factor`]: 0 when it was not
+    /// estimated (too few inliers, or off), otherwise 2-4. Without it the covariance has not
+    /// been checked for errors the inliers share.
+    pub split_groups: usize,
     /// Lower bound on `sigma0` where it scales the covariance (`refine.sigma0_floor`).
     pub sigma0_floor: f64,
 }
@@ -445,10 +449,10 @@ fn resect_stages(
         .map_err(|iterations| Rejection::NoConsensus { iterations })?;
     // 3. Vision-only LM, inliers re-selected until stable.
     let (vision, inliers, lm_vision) = refine_reselecting(&c.local, &rs, fx, fy, cfg)?;
-    let split_factor = if cfg.refine.split_variance {
+    let split = if cfg.refine.split_variance {
         split_variance_factor(&c.local, &inliers, &vision, image, &cfg.refine)
     } else {
-        1.0
+        None
     };
     let tilt = map_tilt_response(
         &c.local,
@@ -464,7 +468,8 @@ fn resect_stages(
         sigma0_sq: vision.sigma0_sq,
         dof: vision.dof,
         inflation: cfg.refine.sigma_inflation,
-        split_factor,
+        split_factor: split.map_or(1.0, |s| s.factor),
+        split_groups: split.map_or(0, |s| s.groups),
         sigma0_floor: cfg.refine.sigma0_floor,
     };
     // 5a. Prior consistency on the vision-only solution (in the centred frame).
@@ -920,19 +925,20 @@ fn verdict_of(fix: &Fix, cfg: &ResectionConfig) -> Verdict {
 /// `d_g^T Cov_g^-1 d_g / (1 - n_g/n)` over the quadrants, divided by 6: about 1 when the pixel
 /// errors are independent, larger when neighbouring observations share an error (a displaced map
 /// area, changed ground), which the residual scatter `sigma0` cannot see because a shared error is
-/// absorbed by the pose. A quadrant with fewer than 8 inliers or a failed solve is skipped;
-/// with fewer than two quadrants the factor is 1 (no evidence). This is a delete-a-group
-/// jackknife in spirit (Efron 1982), on spatial blocks as for correlated data (Kunsch 1989).
+/// absorbed by the pose. A quadrant with fewer than [`MIN_SPLIT_GROUP_INLIERS`] inliers or a
+/// failed solve is skipped; with fewer than two quadrants there is no evidence (`None`). This is
+/// a delete-a-group jackknife in spirit (Efron 1982), on spatial blocks as for correlated data
+/// (Kunsch 1989).
 pub fn split_variance_factor(
     corrs: &[Correspondence],
     inliers: &[usize],
     full: &Refined,
     image: &ImageGeometry,
     cfg: &RefineConfig,
-) -> f64 {
+) -> Option<SplitFactor> {
     let n = inliers.len();
-    if n < 16 {
-        return 1.0;
+    if n < 2 * MIN_SPLIT_GROUP_INLIERS {
+        return None;
     }
     let px: Vec<Vector2<f64>> = inliers
         .iter()
@@ -951,7 +957,7 @@ pub fn split_variance_factor(
     }
     let mut sum = 0.0;
     let mut used = 0usize;
-    for g in groups.iter().filter(|g| g.len() >= 8) {
+    for g in groups.iter().filter(|g| g.len() >= MIN_SPLIT_GROUP_INLIERS) {
         let Ok(r) = refine_pose(corrs, g, &full.pose, [image.fx_px, image.fy_px], None, cfg) else {
             continue;
         };
@@ -969,8 +975,21 @@ pub fn split_variance_factor(
             used += 1;
         }
     }
-    if used < 2 {
-        return 1.0;
-    }
-    sum / (6.0 * used as f64)
+    (used >= 2).then(|| SplitFactor {
+        factor: sum / (6.0 * used as f64),
+        groups: used,
+    })
+}
+
+/// Fewest inliers in a quadrant whose own pose enters the split-sample factor: a 6-parameter
+/// pose from fewer points has a redundancy of a few residuals, too noisy to compare.
+pub const MIN_SPLIT_GROUP_INLIERS: usize = 8;
+
+/// A measured split-sample variance factor ([`split_variance_factor`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SplitFactor {
+    /// The factor (about 1 for independent pixel errors).
+    pub factor: f64,
+    /// The quadrants whose poses measured it (2-4).
+    pub groups: usize,
 }

@@ -523,6 +523,7 @@ mod tests {
                 dof: 10,
                 inflation: u.sigma_inflation,
                 split_factor: 1.0,
+                split_groups: 0,
                 sigma0_floor: u.sigma0_floor,
             };
             assert!(cov.factor() >= 1.0 - 1e-12, "{}", cov.factor());

@@ -786,6 +786,10 @@ fn split_variance_factor_sees_shared_errors_only() {
         let out = resect(&scene.corrs, &scene.image, &Priors::default(), &cfg);
         let fix = out.accepted().unwrap_or_else(|| panic!("{}", out.verdict));
         sum += fix.covariance.split_factor;
+        assert_eq!(
+            fix.covariance.split_groups, 4,
+            "200 inliers fill every quadrant"
+        );
         n += 1;
         // Shift the observations of the top-left quadrant by 3 px (3 sigma) in x.
         let (cx, cy) = (
@@ -814,6 +818,33 @@ fn split_variance_factor_sees_shared_errors_only() {
     let s0 = shared.iter().map(|s| s.1).fold(0.0f64, f64::max);
     eprintln!("one quadrant shifted 3 px: split factor median {med:.1}, sigma0 at most {s0:.2}");
     assert!(med > 4.0, "split factor median {med} with a shared error");
+}
+
+/// With fewer inliers than two quadrants of `MIN_SPLIT_GROUP_INLIERS` the split-sample factor is
+/// not measured: 1, and `split_groups` 0 says so (the fix engine then asks the area correlation).
+#[test]
+fn split_variance_factor_is_not_measured_from_too_few_inliers() {
+    let mut rng = Rng::new(8);
+    let mut cfg = ResectionConfig::default();
+    cfg.refine.split_variance = true;
+    let few = 2 * visnav_core::pose::MIN_SPLIT_GROUP_INLIERS - 2;
+    for (n, want) in [(few, 0), (200, 4)] {
+        let scene = make_scene(
+            &SceneConfig {
+                n,
+                outlier_ratio: 0.0,
+                height_agl_m: 1500.0,
+                ..Default::default()
+            },
+            &mut rng,
+        );
+        let out = resect(&scene.corrs, &scene.image, &Priors::default(), &cfg);
+        let fix = out.accepted().unwrap_or_else(|| panic!("{}", out.verdict));
+        assert_eq!(fix.covariance.split_groups, want, "{n} inliers");
+        if want == 0 {
+            assert_eq!(fix.covariance.split_factor, 1.0);
+        }
+    }
 }
 
 /// `refine.sigma0_floor`: when the keypoints are better than their stated sigma (same-source

@@ -136,7 +136,10 @@ impl FixEngine {
         widen: bool,
     ) -> (FixReport, Attempt) {
         let (r, a) = self.fix_prior_as_stated(frame, pos, att, t_us, att_from_filter);
-        if r.accepted || !widen {
+        // Two methods that matched the frame at the stated heading and disagree do not ask for
+        // another heading: the frame was found, its fix is what is in doubt.
+        let disagree = matches!(r.rejection, Some(Rejection::MethodsDisagree { .. }));
+        if r.accepted || !widen || disagree {
             return (r, a);
         }
         let mut why = WidenedWhy {

@@ -193,6 +193,7 @@ impl FixEngine {
             reproj_rms_px: fix.quality.reprojection_rms_px,
             sigma0: fix.quality.sigma0,
             cov_factor: fix.covariance.factor(),
+            split_groups: fix.vision_covariance.split_groups,
             vision_only: self.vision_only_pose(local, fix, &r_ned_enu),
             // Position world = ENU, attitude errors as world rotation vectors: D_ned =
             // R_ned_enu G R_enu_ned (R_world_cam = R_enu_ned R_ned_body R_body_cam, so a body

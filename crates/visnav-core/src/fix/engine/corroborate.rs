@@ -1,0 +1,262 @@
+//! Corroboration of a weak feature fix by the area method (docs/fix.md, "Corroboration").
+//!
+//! A resection's covariance is checked for errors its inliers share by the split-sample factor
+//! (`pose::split_variance_factor`: the pose re-solved from the image's quadrants). With too few
+//! inliers to re-solve from two quadrants that check cannot run, and a shared error (one changed,
+//! shadowed or re-planted structure matched a few map pixels off, the rest of the frame without
+//! features) moves the fix by several of its sigmas while every residual stays small. The area
+//! method (tie points across the whole footprint, or the placement) is an independent
+//! measurement of the same frame. When it would run after features anyway
+//! (`[fix] area_matching = "fallback"`), it is asked for such a fix too:
+//!
+//! * it finds nothing: the feature fix stands as it is (no evidence either way);
+//! * its horizontal position lies outside the feature fix's own 3-sigma ellipse: the feature fix
+//!   claims what the frame does not support, and the frame is refused
+//!   ([`Rejection::MethodsDisagree`]). Which of the two is wrong is not known, so neither is
+//!   injected;
+//! * inside: the feature fix stands with the disagreement added to its horizontal covariance,
+//!   `P_h + d d^T` (`d` the area fix's offset, north and east). Two independent measurements of
+//!   one position differ by both errors; their difference is the one sample of the feature fix's
+//!   error the unchecked covariance can be held against, and adding it covers a fix whose error
+//!   is shared by all its inliers (a feature fix 3.5 sigma off with the area fix near the truth
+//!   lies about 1 sigma off after it). Vertical and attitude are left alone: the area fix's
+//!   height is the weaker of the two at high altitude and a placement has none.
+//!
+//! The gate is `d^T P_h^-1 d <= chi2_2(0.9973)` with `P_h` the feature fix's horizontal
+//! covariance: when the area fix is near the truth, the integrity criterion of the feature fix.
+
+use nalgebra::{Matrix2, Vector2};
+
+use super::{Attempt, FixEngine, Single, View};
+use crate::fix::{FixMethod, FixReport, Rejection};
+use crate::geo::{Geodetic, LocalFrame};
+
+/// Probability inside a 3-sigma interval of one normal variable: the ellipse the test uses
+/// holds the same probability in two dimensions.
+const THREE_SIGMA_PROBABILITY: f64 = 0.997_300_203_936_74;
+
+/// The chi-square(2) quantile of [`THREE_SIGMA_PROBABILITY`]: `-2 ln(1 - p)`.
+pub(super) fn three_sigma_gate_2d() -> f64 {
+    -2.0 * (1.0 - THREE_SIGMA_PROBABILITY).ln()
+}
+
+/// A feature fix whose covariance the split-sample factor did not check.
+pub(super) fn unchecked(r: &FixReport) -> bool {
+    r.accepted && r.method == FixMethod::Features && r.split_groups == 0
+}
+
+/// The area fix's horizontal offset from the feature fix (north, east, metres) and its squared
+/// Mahalanobis distance in the feature fix's horizontal covariance; `None` when either is not
+/// finite.
+pub(super) fn offset_d2(feature: &FixReport, area: &FixReport) -> Option<(Vector2<f64>, f64)> {
+    let at = |r: &FixReport| Geodetic::new(r.lat_deg, r.lon_deg, r.h_ellip_m).ok();
+    let local = LocalFrame::new(at(feature)?).ok()?;
+    let ned = local.geodetic_to_ned(&at(area)?).ok()?;
+    let d = Vector2::new(ned.x, ned.y);
+    let c = feature.cov_ned_m2;
+    let p = Matrix2::new(c[0][0], c[0][1], c[1][0], c[1][1]);
+    let d2 = (d.transpose() * p.try_inverse()? * d)[0];
+    (d2.is_finite() && d2 >= 0.0).then_some((d, d2))
+}
+
+/// `d d^T` added to the north-east block of every position covariance the report carries (the
+/// fused one, the image-only pose's and the image's share of a fused position).
+fn add_horizontal(r: &mut FixReport, d: &Vector2<f64>) {
+    let dd = d * d.transpose();
+    let add = |m: &mut [[f64; 3]; 3]| {
+        for (i, row) in m.iter_mut().take(2).enumerate() {
+            for (j, v) in row.iter_mut().take(2).enumerate() {
+                *v += dd[(i, j)];
+            }
+        }
+    };
+    add(&mut r.cov_ned_m2);
+    if let Some(p) = r.prior_dependence.as_mut() {
+        add(&mut p.image_cov_ned_m2);
+    }
+    if let Some(v) = r.vision_only.as_mut() {
+        for i in 0..2 {
+            for j in 0..2 {
+                v.cov6_ned[i][j] += dd[(i, j)];
+            }
+        }
+    }
+}
+
+/// What the corroboration decides for `feature` given the area method's report.
+pub(super) fn decide(feature: FixReport, area: &FixReport) -> FixReport {
+    if !area.accepted {
+        return feature;
+    }
+    let gate = three_sigma_gate_2d();
+    match offset_d2(&feature, area) {
+        Some((d, d2)) if d2 <= gate => {
+            let mut r = feature;
+            add_horizontal(&mut r, &d);
+            r
+        }
+        Some((d, d2)) => FixReport {
+            level: feature.level,
+            ..FixReport::rejected(
+                Rejection::MethodsDisagree {
+                    distance_m: d.norm(),
+                    d2,
+                    gate,
+                },
+                feature.t_capture_us,
+                feature.ms,
+            )
+        },
+        // Not comparable (a non-finite number slipped through): no evidence either way.
+        None => feature,
+    }
+}
+
+impl FixEngine {
+    /// Ask the area method about an unchecked feature fix ([`unchecked`]) and [`decide`]. The
+    /// attempt keeps the feature pass's figures unless the area fix refused it.
+    pub(super) fn corroborate(
+        &self,
+        view: &View,
+        a: &mut Attempt,
+        feature: FixReport,
+        how: Single,
+        t_us: u64,
+    ) -> FixReport {
+        let before = a.clone();
+        let area = self.run_method(view, a, FixMethod::Area, how, t_us);
+        let r = decide(feature, &area);
+        if r.accepted {
+            *a = before;
+        }
+        r
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fix_at(lat_deg: f64, lon_deg: f64, sigma_n_m: f64, sigma_e_m: f64) -> FixReport {
+        let mut r = FixReport::rejected(Rejection::NoHypothesis, 1_000_000, 5.0);
+        r.accepted = true;
+        r.rejection = None;
+        r.lat_deg = lat_deg;
+        r.lon_deg = lon_deg;
+        r.h_ellip_m = 900.0;
+        r.cov_ned_m2 = [
+            [sigma_n_m * sigma_n_m, 0.0, 0.0],
+            [0.0, sigma_e_m * sigma_e_m, 0.0],
+            [0.0, 0.0, 400.0],
+        ];
+        r
+    }
+
+    /// Metres north as latitude degrees near 47 deg (WGS84 meridian radius of curvature).
+    const M_PER_DEG_LAT: f64 = 111_180.0;
+
+    #[test]
+    fn the_gate_is_the_3_sigma_chi2_quantile() {
+        assert!((three_sigma_gate_2d() - 11.829).abs() < 1e-3);
+    }
+
+    #[test]
+    fn only_a_feature_fix_without_a_split_check_is_unchecked() {
+        let mut r = fix_at(47.0, -99.0, 6.0, 6.0);
+        assert!(unchecked(&r));
+        r.split_groups = 2;
+        assert!(!unchecked(&r), "a split-checked covariance");
+        r.split_groups = 0;
+        r.method = FixMethod::Area;
+        assert!(!unchecked(&r), "an area fix");
+        r.method = FixMethod::Features;
+        r.accepted = false;
+        assert!(!unchecked(&r), "a rejection");
+    }
+
+    /// An area fix 25 m north of a feature fix claiming 6 m (4.2 sigma) refuses the frame; 15 m
+    /// (2.5 sigma) corroborates it; 25 m east of a fix claiming 10 m east corroborates it too.
+    #[test]
+    fn an_area_fix_outside_the_3_sigma_ellipse_refuses_the_frame() {
+        let feature = fix_at(47.0, -99.0, 6.0, 10.0);
+        let north = |m: f64| fix_at(47.0 + m / M_PER_DEG_LAT, -99.0, 15.0, 15.0);
+        let r = decide(feature.clone(), &north(25.0));
+        assert!(!r.accepted);
+        let Some(Rejection::MethodsDisagree {
+            distance_m,
+            d2,
+            gate,
+        }) = r.rejection
+        else {
+            panic!("{:?}", r.rejection)
+        };
+        assert!((distance_m - 25.0).abs() < 0.1, "{distance_m}");
+        assert!((d2 - (25.0f64 / 6.0).powi(2)).abs() < 0.1, "{d2}");
+        assert!((gate - 11.83).abs() < 0.01);
+        assert_eq!(r.class(), "methods_disagree");
+        let c = decide(feature.clone(), &north(15.0));
+        assert!(
+            c.accepted && c.lat_deg == feature.lat_deg,
+            "the feature fix stands"
+        );
+        assert!(
+            (c.cov_ned_m2[0][0] - (36.0 + 225.0)).abs() < 0.5,
+            "{:?}",
+            c.cov_ned_m2
+        );
+        assert!(c.cov_ned_m2[0][1].abs() < 0.1 && c.cov_ned_m2[1][1] == 100.0);
+        assert_eq!(c.cov_ned_m2[2][2], 400.0, "vertical untouched");
+        let east = fix_at(
+            47.0,
+            -99.0 + 25.0 / (M_PER_DEG_LAT * 47f64.to_radians().cos()),
+            1.0,
+            1.0,
+        );
+        let c = decide(feature.clone(), &east);
+        // Longitude degrees are a little longer than this sphere says (the prime vertical radius).
+        assert!(
+            c.accepted && (c.cov_ned_m2[1][1] - 725.0).abs() < 7.0,
+            "{:?}",
+            c.cov_ned_m2
+        );
+    }
+
+    /// Every position covariance the report carries gets the disagreement.
+    #[test]
+    fn the_disagreement_reaches_the_image_only_and_image_shares() {
+        let mut feature = fix_at(47.0, -99.0, 6.0, 6.0);
+        feature.vision_only = Some(crate::fix::VisionOnlyPose {
+            lat_deg: 47.0,
+            lon_deg: -99.0,
+            h_ellip_m: 900.0,
+            roll_deg: 0.0,
+            pitch_deg: 0.0,
+            yaw_deg: 0.0,
+            cov6_ned: [[1.0; 6]; 6],
+        });
+        feature.prior_dependence = Some(crate::fix::PriorDependenceNed {
+            d_pos_d_att: [[0.0; 3]; 3],
+            image_cov_ned_m2: [[2.0; 3]; 3],
+        });
+        let area = fix_at(47.0 + 10.0 / M_PER_DEG_LAT, -99.0, 15.0, 15.0);
+        let c = decide(feature, &area);
+        let v = c.vision_only.unwrap().cov6_ned;
+        assert!((v[0][0] - 101.0).abs() < 0.5 && v[1][1] < 1.01 && v[2][2] == 1.0);
+        assert!(v[3][3] == 1.0 && v[0][3] == 1.0, "attitude rows untouched");
+        let p = c.prior_dependence.unwrap().image_cov_ned_m2;
+        assert!((p[0][0] - 102.0).abs() < 0.5 && p[2][2] == 2.0);
+    }
+
+    #[test]
+    fn without_an_area_fix_the_feature_fix_stands() {
+        let feature = fix_at(47.0, -99.0, 6.0, 6.0);
+        let none = FixReport::rejected(Rejection::NoHypothesis, 1_000_000, 5.0);
+        let same = |r: &FixReport| {
+            r.accepted && r.lat_deg == feature.lat_deg && r.cov_ned_m2 == feature.cov_ned_m2
+        };
+        assert!(same(&decide(feature.clone(), &none)));
+        let mut odd = fix_at(47.001, -99.0, 6.0, 6.0);
+        odd.lat_deg = f64::NAN;
+        assert!(same(&decide(feature.clone(), &odd)), "not comparable");
+    }
+}

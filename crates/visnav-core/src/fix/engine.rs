@@ -346,6 +346,10 @@ struct Single {
     /// fix; a search that allows it must weigh it by its correlation, [`placement_unique`], as
     /// it has no tie points).
     placement: bool,
+    /// A feature fix the split-sample factor could not check is put to the area correlation
+    /// (`corroborate`): the attempt at the prior as stated. A search's hypotheses are weighed
+    /// against each other by their own rules instead.
+    corroborate: bool,
 }
 
 impl Single {
@@ -355,6 +359,7 @@ impl Single {
         features: true,
         area: false,
         placement: false,
+        corroborate: false,
     };
 }
 
@@ -665,8 +670,9 @@ impl FixEngine {
             tried.push((method, Rejection::or_unexplained(r.rejection)));
         }
         // A feature fix the split-sample factor could not check is put to the area method
-        // when it would run after features anyway (`corroborate`).
-        if order == [FixMethod::Features, FixMethod::Area]
+        // when it would run after features anyway (`corroborate`), at the prior as stated.
+        if how.corroborate
+            && order == [FixMethod::Features, FixMethod::Area]
             && let Some(feature_fix) = report.take_if(|r| corroborate::unchecked(r))
         {
             report = Some(self.corroborate(&view, &mut a, feature_fix, how, t_us));

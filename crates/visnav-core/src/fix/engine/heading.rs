@@ -49,6 +49,7 @@ impl FixEngine {
             features: true,
             area: false,
             placement: false,
+            corroborate: false,
         };
         let (r, a) = select_unique(sweep(features), t_us);
         if r.accepted {
@@ -73,6 +74,7 @@ impl FixEngine {
             features: false,
             area: true,
             placement: true,
+            corroborate: false,
         };
         let (r2, a2) = select_unique(sweep(area), t_us);
         if !r2.accepted {
@@ -313,6 +315,7 @@ impl FixEngine {
                 features: true,
                 area: true,
                 placement: true,
+                corroborate: true,
             };
             self.fix_single(frame, pos, Plan::new(att, Some(att), how), t_us)
         }

@@ -159,6 +159,7 @@ impl FixEngine {
             features: true,
             area: true,
             placement: false,
+            corroborate: false,
         };
         // The best candidate may be confirmed by its placement alone when it leads every other
         // place searched by the placement fix's margin (there no tie point confirms it), also

@@ -63,22 +63,21 @@ pub(super) fn offset_d2(feature: &FixReport, area: &FixReport) -> Option<(Vector
 /// fused one, the image-only pose's and the image's share of a fused position).
 fn add_horizontal(r: &mut FixReport, d: &Vector2<f64>) {
     let dd = d * d.transpose();
-    let add = |m: &mut [[f64; 3]; 3]| {
-        for (i, row) in m.iter_mut().take(2).enumerate() {
-            for (j, v) in row.iter_mut().take(2).enumerate() {
-                *v += dd[(i, j)];
-            }
-        }
-    };
-    add(&mut r.cov_ned_m2);
+    add_ne(&mut r.cov_ned_m2, &dd);
     if let Some(p) = r.prior_dependence.as_mut() {
-        add(&mut p.image_cov_ned_m2);
+        add_ne(&mut p.image_cov_ned_m2, &dd);
     }
     if let Some(v) = r.vision_only.as_mut() {
-        for i in 0..2 {
-            for j in 0..2 {
-                v.cov6_ned[i][j] += dd[(i, j)];
-            }
+        add_ne(&mut v.cov6_ned, &dd);
+    }
+}
+
+/// `dd` added to the leading 2x2 block (north, east) of a covariance whose first rows are the
+/// NED position.
+fn add_ne<const N: usize>(m: &mut [[f64; N]; N], dd: &Matrix2<f64>) {
+    for (i, row) in m.iter_mut().take(2).enumerate() {
+        for (j, v) in row.iter_mut().take(2).enumerate() {
+            *v += dd[(i, j)];
         }
     }
 }
@@ -95,18 +94,15 @@ pub(super) fn decide(feature: FixReport, area: &FixReport) -> FixReport {
             add_horizontal(&mut r, &d);
             r
         }
-        Some((d, d2)) => FixReport {
-            level: feature.level,
-            ..FixReport::rejected(
-                Rejection::MethodsDisagree {
-                    distance_m: d.norm(),
-                    d2,
-                    gate,
-                },
-                feature.t_capture_us,
-                feature.ms,
-            )
-        },
+        Some((d, d2)) => FixReport::rejected(
+            Rejection::MethodsDisagree {
+                distance_m: d.norm(),
+                d2,
+                gate,
+            },
+            feature.t_capture_us,
+            feature.ms,
+        ),
         // Not comparable (a non-finite number slipped through): no evidence either way.
         None => feature,
     }

@@ -302,6 +302,10 @@ pub struct Attempt {
     pub area_ties: usize,
     /// Area correlation: tie points found with the predictions displaced (chance level).
     pub area_null_ties: usize,
+    /// The accepted fix is a feature fix the split-sample factor could not check and the area
+    /// method, asked to corroborate it, found no fix to hold it against (docs/fix.md,
+    /// "Integrity", *Corroboration*).
+    pub uncorroborated: bool,
 }
 
 impl Attempt {

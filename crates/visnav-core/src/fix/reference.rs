@@ -450,3 +450,41 @@ impl Reference for MemoryReference {
         out
     }
 }
+
+#[cfg(test)]
+impl MemoryReference {
+    /// Keeps the features `keep` accepts (at every level, descriptors with them) and moves them by
+    /// `shift_m` (east, north) while the level images stay: a map whose features share an error
+    /// its images do not have, for tests of the checks that compare the two.
+    pub(crate) fn edit_features(
+        &mut self,
+        mut keep: impl FnMut(usize, &RefFeature) -> bool,
+        shift_m: [f64; 2],
+    ) {
+        for (level, (_, sel)) in self.levels.iter_mut().enumerate() {
+            let st = sel.kind.stride();
+            let mut features = Vec::new();
+            let mut descriptors = Vec::new();
+            for (i, f) in sel.features.iter().enumerate() {
+                if keep(level, f) {
+                    features.push(RefFeature {
+                        x_m: f.x_m + shift_m[0],
+                        y_m: f.y_m + shift_m[1],
+                        ..*f
+                    });
+                    descriptors.extend_from_slice(&sel.descriptors[i * st..(i + 1) * st]);
+                }
+            }
+            sel.features = features;
+            sel.descriptors = descriptors;
+        }
+    }
+
+    /// Every level image one grey: a map whose images hold nothing to correlate, for tests of
+    /// what the features do alone.
+    pub(crate) fn blank_images(&mut self) {
+        for (bytes, _, _) in &mut self.images {
+            bytes.fill(128);
+        }
+    }
+}

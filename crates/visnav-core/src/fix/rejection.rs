@@ -290,6 +290,19 @@ pub enum Rejection {
         /// The gate: the chi-square(2) quantile of the 3-sigma probability.
         gate: f64,
     },
+    /// A feature fix too weak to check its own covariance that the area method found nothing to
+    /// compare with, and that the widened heading search did not confirm (or was not asked).
+    Unconfirmed {
+        /// Inliers of the feature fix.
+        inliers: usize,
+        /// Its fine matches.
+        matches: usize,
+        /// Matches chance gives there.
+        chance: usize,
+        /// What the widened heading search found instead (None: widening is off,
+        /// `widen_heading_sigma_deg = 0`).
+        search: Option<Box<Rejection>>,
+    },
     /// The area search's fix lies beyond the prior's gate.
     FarFromPrior {
         /// Horizontal distance from the prior, metres.
@@ -429,6 +442,7 @@ pub const CLASSES: &[&str] = &[
     "not_confirmed",
     "far_from_prior",
     "methods_disagree",
+    "unconfirmed",
     "no_candidate_confirmed",
     "budget",
     "no_hypothesis",
@@ -483,6 +497,7 @@ impl Rejection {
             NotConfirmed(_) => "not_confirmed",
             FarFromPrior { .. } => "far_from_prior",
             MethodsDisagree { .. } => "methods_disagree",
+            Unconfirmed { .. } => "unconfirmed",
             NoCandidateConfirmed { .. } => "no_candidate_confirmed",
             AreaSearchBudget { .. } | MapLevelBudget { .. } | WorkBudget { .. } => "budget",
             NoHypothesis => "no_hypothesis",
@@ -752,6 +767,21 @@ impl Rejection {
                  {distance_m:.1} m apart, outside the feature fix's 3 sigma (d^2 {d2:.1} > \
                  {gate:.1})"
             ),
+            Unconfirmed {
+                inliers,
+                matches,
+                chance,
+                search,
+            } => {
+                let head = format!(
+                    "a feature fix too weak to check ({inliers} inliers, {matches} matches where \
+                     chance gives {chance}) with no area fix to hold it against"
+                );
+                match search {
+                    Some(r) => write!(f, "{head}; the widened heading search: {r}"),
+                    None => write!(f, "{head}; the heading search is off"),
+                }
+            }
             FarFromPrior {
                 distance_m,
                 limit_m,
@@ -919,6 +949,18 @@ mod tests {
                 d2: 17.3,
                 gate: 11.83,
             },
+            Unconfirmed {
+                inliers: 12,
+                matches: 37,
+                chance: 14,
+                search: Some(Box::new(Ambiguous {
+                    evidence: 23,
+                    heading_deg: 312.0,
+                    rival_evidence: 20,
+                    rival: Rival::Heading { heading_deg: 340.0 },
+                    ratio: 1.5,
+                })),
+            },
         ]
     }
 
@@ -943,6 +985,7 @@ mod tests {
         assert_eq!(e[9].class(), "budget");
         assert_eq!(e[5].class(), "pose_few_inliers");
         assert_eq!(e[10].class(), "methods_disagree");
+        assert_eq!(e[11].class(), "unconfirmed");
         // Read back from a record: its class when it is one, otherwise "recorded".
         let back = Rejection::recorded(e[4].class(), &e[4].to_string());
         assert_eq!(

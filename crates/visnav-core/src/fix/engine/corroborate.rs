@@ -110,7 +110,9 @@ pub(super) fn decide(feature: FixReport, area: &FixReport) -> FixReport {
 
 impl FixEngine {
     /// Ask the area method about an unchecked feature fix ([`unchecked`]) and [`decide`]. The
-    /// attempt keeps the feature pass's figures unless the area fix refused it.
+    /// attempt keeps the feature pass's figures unless the area fix refused it, and says when
+    /// there was no area fix to compare with (`Attempt::uncorroborated`: the caller then asks
+    /// the heading, `FixEngine::confirm_uncorroborated`).
     pub(super) fn corroborate(
         &self,
         view: &View,
@@ -124,6 +126,7 @@ impl FixEngine {
         let r = decide(feature, &area);
         if r.accepted {
             *a = before;
+            a.uncorroborated = !area.accepted;
         }
         r
     }
@@ -254,5 +257,277 @@ mod tests {
         let mut odd = fix_at(47.001, -99.0, 6.0, 6.0);
         odd.lat_deg = f64::NAN;
         assert!(same(&decide(feature.clone(), &odd)), "not comparable");
+    }
+}
+
+/// The corroboration inside the engine: a map whose features all err by the same 25 m while its
+/// images do not. The frame sees a smoothed-noise ground from 400 m; the map keeps about 25
+/// features spread over the footprint, too few for the split-sample check (fewer than two
+/// quadrants of 8 inliers), so the feature fix is unchecked and the area method is asked.
+#[cfg(test)]
+mod engine_level {
+    use std::sync::Arc;
+
+    use crate::camera::{Attitude, Camera, Intrinsics};
+    use crate::fix::reference::MemoryReference;
+    use crate::fix::{
+        AreaMatching, AttitudePriorNed, FixEngine, FixParams, FixPrior, FixReport, PositionPriorGeo,
+    };
+    use crate::geo::Crs;
+    use crate::geo::dem::Dem;
+    use crate::geo::raster::{GeoTransform, Raster, RasterData};
+    use crate::vision::{GrayImage, SurfParams};
+    use nalgebra::{Point2, Vector3};
+
+    const GSD_M: f64 = 2.0;
+    const SIDE_PX: usize = 640;
+    const ORIGIN_M: [f64; 2] = [500_000.0, 5_200_000.0];
+    const GROUND_M: f64 = 300.0;
+    const TRUTH_M: [f64; 2] = [500_640.0, 5_199_360.0];
+    const ALT_AMSL_M: f64 = 700.0;
+    const CRS: Crs = Crs::Utm {
+        zone: 14,
+        north: true,
+    };
+    /// The error every kept map feature shares, metres east.
+    const SHIFT_EAST_M: f64 = 25.0;
+
+    /// Separable box blur of radius `r`, edges clamped.
+    fn blur(v: &[f32], r: usize) -> Vec<f32> {
+        let n = SIDE_PX;
+        let pass = |src: &[f32], along_x: bool| -> Vec<f32> {
+            let mut out = vec![0f32; src.len()];
+            for a in 0..n {
+                for b in 0..n {
+                    let mut s = 0f32;
+                    for k in 0..=2 * r {
+                        let c = (b + k).saturating_sub(r).min(n - 1);
+                        s += if along_x {
+                            src[a * n + c]
+                        } else {
+                            src[c * n + a]
+                        };
+                    }
+                    let i = if along_x { a * n + b } else { b * n + a };
+                    out[i] = s / (2 * r + 1) as f32;
+                }
+            }
+            out
+        };
+        pass(&pass(v, true), false)
+    }
+
+    /// Smoothed noise at two scales, 20-235: blobs for SURF and texture for the correlation.
+    fn texture() -> Vec<f32> {
+        let mut rng = crate::rng::Rng::new(7);
+        let noise: Vec<f32> = (0..SIDE_PX * SIDE_PX)
+            .map(|_| rng.uniform() as f32)
+            .collect();
+        let (fine, coarse) = (blur(&blur(&noise, 2), 2), blur(&blur(&noise, 6), 6));
+        let v: Vec<f32> = fine.iter().zip(&coarse).map(|(a, b)| a + 2.0 * b).collect();
+        let (lo, hi) = v
+            .iter()
+            .fold((f32::MAX, f32::MIN), |(l, h), &x| (l.min(x), h.max(x)));
+        v.iter()
+            .map(|x| 20.0 + 215.0 * (x - lo) / (hi - lo))
+            .collect()
+    }
+
+    /// Bilinear sample of the texture at a map-grid position (pixel centres at +0.5).
+    fn sample(tex: &[f32], x_m: f64, y_m: f64) -> f32 {
+        let c = (x_m - ORIGIN_M[0]) / GSD_M - 0.5;
+        let r = (ORIGIN_M[1] - y_m) / GSD_M - 0.5;
+        let max = (SIDE_PX - 2) as f64;
+        let (c, r) = (c.clamp(0.0, max), r.clamp(0.0, max));
+        let (c0, r0) = (c.floor() as usize, r.floor() as usize);
+        let (fc, fr) = ((c - c0 as f64) as f32, (r - r0 as f64) as f32);
+        let at = |cc: usize, rr: usize| tex[rr * SIDE_PX + cc];
+        (at(c0, r0) * (1.0 - fc) + at(c0 + 1, r0) * fc) * (1.0 - fr)
+            + (at(c0, r0 + 1) * (1.0 - fc) + at(c0 + 1, r0 + 1) * fc) * fr
+    }
+
+    fn camera() -> Camera {
+        Camera::pinhole(Intrinsics::from_hfov(60f64.to_radians(), 320, 240).unwrap()).unwrap()
+    }
+
+    /// The frame at the truth, level, heading north, each ray met with the flat ground; its
+    /// grey levels another exposure of the ground (gain, offset) than the map's.
+    fn frame(tex: &[f32]) -> GrayImage {
+        let cam = camera();
+        let r = cam.mount.r_enu_cam(&Attitude::new(0.0, 0.0, 0.0));
+        GrayImage::from_fn(320, 240, |u, v| {
+            let ray = r * cam
+                .unproject(&Point2::new(u as f64, v as f64))
+                .unwrap()
+                .into_inner();
+            let t = (GROUND_M - ALT_AMSL_M) / ray.z;
+            let p = Vector3::new(TRUTH_M[0], TRUTH_M[1], ALT_AMSL_M) + ray * t;
+            0.8 * sample(tex, p.x, p.y) + 25.0
+        })
+    }
+
+    /// An engine whose map keeps the first feature of each cell of a 5 x 5 grid over the
+    /// frame's footprint, each moved `shift_m` east.
+    fn engine(tex: &[f32], shift_m: f64, area: AreaMatching) -> FixEngine {
+        engine_with(tex, shift_m, area, false)
+    }
+
+    /// [`engine`], its map images blank when `blank` (nothing for the area method to find).
+    fn engine_with(tex: &[f32], shift_m: f64, area: AreaMatching, blank: bool) -> FixEngine {
+        let data = tex.iter().map(|v| v.round() as u8).collect();
+        let gt = GeoTransform::north_up(ORIGIN_M[0], ORIGIN_M[1], GSD_M, GSD_M).unwrap();
+        let raster = Raster::new(SIDE_PX, SIDE_PX, 1, RasterData::U8(data), gt, CRS, None).unwrap();
+        let surf = SurfParams {
+            upright: true,
+            ..Default::default()
+        };
+        let mut map =
+            MemoryReference::from_raster(&raster, Dem::flat(GROUND_M).unwrap(), surf, 2).unwrap();
+        // The footprint from 400 m is about 460 x 350 m; the grid stays inside it.
+        let (half_x, half_y) = (200.0, 150.0);
+        let mut taken = std::collections::HashSet::new();
+        map.edit_features(
+            |level, f| {
+                let (dx, dy) = (f.x_m - TRUTH_M[0], f.y_m - TRUTH_M[1]);
+                if dx.abs() >= half_x || dy.abs() >= half_y {
+                    return false;
+                }
+                let cell = (
+                    level,
+                    ((dx + half_x) / (0.4 * half_x)) as usize,
+                    ((dy + half_y) / (0.4 * half_y)) as usize,
+                );
+                taken.insert(cell)
+            },
+            [shift_m, 0.0],
+        );
+        if blank {
+            map.blank_images();
+        }
+        let params = FixParams {
+            area_matching: area,
+            ..FixParams::default()
+        };
+        FixEngine::new(Arc::new(map), camera(), params).unwrap()
+    }
+
+    fn fix(engine: &FixEngine, frame: &GrayImage) -> FixReport {
+        fix_widened(engine, frame, false)
+    }
+
+    /// [`fix`], the widened heading search allowed when `widen`.
+    fn fix_widened(engine: &FixEngine, frame: &GrayImage, widen: bool) -> FixReport {
+        let (lat_deg, lon_deg) = CRS.to_geodetic(TRUTH_M[0], TRUTH_M[1]).unwrap();
+        engine.fix(
+            frame,
+            &FixPrior {
+                t_capture_us: 1,
+                position: Some(PositionPriorGeo {
+                    lat_deg,
+                    lon_deg,
+                    alt_amsl_m: ALT_AMSL_M,
+                    sigma_h_m: 30.0,
+                    sigma_v_m: 10.0,
+                }),
+                attitude: Some(AttitudePriorNed::isotropic(
+                    Attitude::new(0.0, 0.0, 0.0),
+                    0.5f64.to_radians(),
+                )),
+                altitude: None,
+                attitude_from_filter: false,
+                widen_heading: widen,
+            },
+        )
+    }
+
+    /// Squared horizontal Mahalanobis distance of the fix from the truth in its own covariance
+    /// (the map grid is north-aligned on the zone's central meridian).
+    fn d2_from_truth(r: &FixReport) -> f64 {
+        let (n, e) = (r.y_m - TRUTH_M[1], r.x_m - TRUTH_M[0]);
+        let c = r.cov_ned_m2;
+        let det = c[0][0] * c[1][1] - c[0][1] * c[1][0];
+        (c[1][1] * n * n - 2.0 * c[0][1] * n * e + c[0][0] * e * e) / det
+    }
+
+    fn ne_trace(r: &FixReport) -> f64 {
+        r.cov_ned_m2[0][0] + r.cov_ned_m2[1][1]
+    }
+
+    #[test]
+    fn a_shared_feature_error_is_refused_and_an_agreeing_area_fix_widens_the_covariance() {
+        let tex = texture();
+        let frame = frame(&tex);
+        let gate = super::three_sigma_gate_2d();
+
+        // The map as it is: an unchecked feature fix near the truth...
+        let alone = fix(&engine(&tex, 0.0, AreaMatching::Off), &frame);
+        assert!(alone.accepted, "{}", alone.reason());
+        assert_eq!(alone.split_groups, 0, "{} inliers", alone.inliers);
+        assert!(d2_from_truth(&alone) < gate, "d2 {}", d2_from_truth(&alone));
+        // ...which the area method agrees with: the same place, the covariance grown by d d^T
+        // (d the area fix's offset from it).
+        let area = fix(&engine(&tex, 0.0, AreaMatching::Only), &frame);
+        assert!(area.accepted, "{}", area.reason());
+        let (d, d2) = super::offset_d2(&alone, &area).unwrap();
+        assert!(d2 < gate, "d2 {d2}");
+        let both = fix(&engine(&tex, 0.0, AreaMatching::Fallback), &frame);
+        assert!(both.accepted, "{}", both.reason());
+        assert_eq!((both.x_m, both.y_m), (alone.x_m, alone.y_m));
+        let grown = ne_trace(&both) - ne_trace(&alone);
+        assert!(
+            (grown - d.norm_squared()).abs() < 1e-6,
+            "{grown} {}",
+            d.norm_squared()
+        );
+        assert_eq!(
+            both.cov_ned_m2[2], alone.cov_ned_m2[2],
+            "the vertical stays"
+        );
+
+        // Every feature 25 m off: features alone accept a fix far beyond its own 3 sigma...
+        let wrong = fix(&engine(&tex, SHIFT_EAST_M, AreaMatching::Off), &frame);
+        assert!(wrong.accepted, "{}", wrong.reason());
+        assert_eq!(wrong.split_groups, 0, "{} inliers", wrong.inliers);
+        assert!(
+            (wrong.x_m - TRUTH_M[0] - SHIFT_EAST_M).abs() < 5.0,
+            "{}",
+            wrong.x_m
+        );
+        assert!(d2_from_truth(&wrong) > gate, "d2 {}", d2_from_truth(&wrong));
+        // ...which the area method, from the map's images, refuses.
+        let refused = fix(&engine(&tex, SHIFT_EAST_M, AreaMatching::Fallback), &frame);
+        assert!(!refused.accepted);
+        assert_eq!(refused.class(), "methods_disagree", "{}", refused.reason());
+    }
+
+    /// With no area fix to hold it against, the unchecked feature fix is put to the widened
+    /// heading search, asked for or not: kept when the search finds it again, refused when the
+    /// heading search is off.
+    #[test]
+    fn an_uncorroborated_feature_fix_is_put_to_the_heading_search() {
+        let tex = texture();
+        let frame = frame(&tex);
+        let engine = engine_with(&tex, 0.0, AreaMatching::Fallback, true);
+        let alone = fix(&engine_with(&tex, 0.0, AreaMatching::Off, true), &frame);
+        assert!(alone.accepted, "{}", alone.reason());
+        assert_eq!(alone.split_groups, 0, "{} inliers", alone.inliers);
+
+        for widen in [false, true] {
+            let searched = fix_widened(&engine, &frame, widen);
+            assert!(searched.accepted, "{}", searched.reason());
+            assert_eq!((searched.x_m, searched.y_m), (alone.x_m, alone.y_m));
+            assert_eq!(searched.cov_ned_m2, alone.cov_ned_m2);
+        }
+
+        let mut off = engine_with(&tex, 0.0, AreaMatching::Fallback, true);
+        off.params.widen_heading_sigma_deg = 0.0;
+        let refused = fix(&off, &frame);
+        assert!(!refused.accepted);
+        assert_eq!(refused.class(), "unconfirmed", "{}", refused.reason());
+        assert!(
+            refused.reason().contains("heading search is off"),
+            "{}",
+            refused.reason()
+        );
     }
 }

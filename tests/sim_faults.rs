@@ -147,6 +147,20 @@ fn map_withheld_scenario(root: &Path) -> String {
     format!("{sc}\n[[faults]]\nkind = \"map_withheld\"\nat_s = 26.0\nduration_s = 8.0\n")
 }
 
+/// The short demo with the fix prior's heading 30 deg off (claiming the filter's sigma) from
+/// 24 s to 42 s.
+fn heading_bias_scenario(root: &Path) -> String {
+    let sc = common::short_demo_scenario(root, &root.join("config/demo.toml"));
+    assert!(
+        sc.contains("until_s = 45.0"),
+        "sitl/scenarios/closed_loop_short.toml changed: update this test"
+    );
+    format!(
+        "{sc}\n[[faults]]\nkind = \"heading_bias\"\nat_s = 24.0\nduration_s = 18.0\n\
+         yaw_offset_deg = 30.0\n"
+    )
+}
+
 /// One fix of fixes.csv: capture time, accepted, reason.
 fn fix_rows(csv: &str) -> Vec<(f64, bool, String)> {
     csv.lines()
@@ -225,4 +239,60 @@ fn a_withheld_map_refuses_the_fixes_of_its_window_only() {
         let e = f64_of(&s, key);
         assert!((0.0..15.0).contains(&e), "{key} {e}");
     }
+}
+
+/// A heading prior 30 deg off at its claimed sigma: the frames fail at the stated heading, the
+/// daemon asks for the widened search after three refusals in a row, and what that search
+/// accepts is honest; the output never stops.
+#[test]
+fn a_wrong_heading_prior_is_searched_wider_and_the_fixes_stay_honest() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = std::env::temp_dir().join(format!("visnav-sim-heading-bias-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("temp folder");
+    let f = dir.join("heading_bias.toml");
+    std::fs::write(&f, heading_bias_scenario(root)).expect("write the scenario");
+    let res = Command::new(env!("CARGO_BIN_EXE_visnav"))
+        .args(["sim", "--json", "--scenario"])
+        .arg(&f)
+        .arg("--out")
+        .arg(dir.join("out"))
+        .output()
+        .expect("run visnav sim");
+    let stderr = String::from_utf8_lossy(&res.stderr);
+    assert!(res.status.success(), "visnav sim failed: {stderr}");
+    let s: serde_json::Value = serde_json::from_slice(&res.stdout).expect("JSON summary");
+    let fixes = fix_rows(&std::fs::read_to_string(dir.join("out/fixes.csv")).expect("fixes.csv"));
+    let _ = std::fs::remove_dir_all(&dir);
+    eprintln!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
+
+    // Inside the window the stated heading fails and the widened search finds the frame.
+    let inside = |t: f64| (24.5..42.0).contains(&t);
+    let accepted = fixes.iter().filter(|x| x.1 && inside(x.0)).count();
+    let widened = fixes
+        .iter()
+        .filter(|x| !x.1 && inside(x.0) && x.2.contains("heading widened"))
+        .count();
+    assert!(
+        accepted >= 4,
+        "{accepted} fixes accepted in 18 s: {fixes:?}"
+    );
+    assert!(
+        fixes.iter().filter(|x| !x.1 && inside(x.0)).count() >= 16,
+        "the stated heading should fail: {fixes:?}"
+    );
+    assert!(
+        widened <= 2,
+        "{widened} widened searches refused: {fixes:?}"
+    );
+    let faults = s["faults"].as_array().expect("faults");
+    assert_eq!(faults.len(), 1, "{s}");
+    let o = &faults[0];
+    assert_eq!(o["kind"], "heading_bias");
+    assert_eq!(u64_of(o, "fixes_beyond_3sigma"), 0, "{o}");
+    assert!(u64_of(o, "fixes_accepted") >= 4, "{o}");
+    assert!(f64_of(o, "max_output_gap_s") <= 0.5, "{o}");
+    assert!(f64_of(o, "max_err_over_claimed") < 3.0, "{o}");
+    assert_eq!(u64_of(&s, "fix_beyond_3sigma"), 0, "{s}");
 }

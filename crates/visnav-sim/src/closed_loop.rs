@@ -550,7 +550,7 @@ struct RecordingFixer {
     dtm_log: Arc<Mutex<Vec<DtmRow>>>,
     /// In lock-step the fix takes no simulated time: its result is delivered this much later.
     delivery_us: u64,
-    /// The scenario's faults (only `map_withheld` concerns the fixes).
+    /// The scenario's faults (`map_withheld` and `heading_bias` concern the fixes).
     faults: FaultPlan,
     /// The process's memory every [`RSS_PROBE_AFTER_M`] of flight.
     rss: Mutex<RssProbe>,
@@ -572,6 +572,23 @@ struct RssProbe {
 }
 
 impl RecordingFixer {
+    /// The prior with its heading turned by the scenario's `heading_bias` at the capture time
+    /// (its sigma as claimed).
+    fn biased(&self, prior: &FixPrior, t_capture_us: u64) -> FixPrior {
+        let bias_deg = self.faults.heading_bias_deg(t_capture_us as f64 * 1e-6);
+        let mut p = *prior;
+        if bias_deg != 0.0
+            && let Some(a) = p.attitude.as_mut()
+        {
+            a.attitude = visnav_core::camera::Attitude::new(
+                a.attitude.roll_rad,
+                a.attitude.pitch_rad,
+                a.attitude.yaw_rad + bias_deg.to_radians(),
+            );
+        }
+        p
+    }
+
     /// Adds the truth camera's step to the track flown and takes the resident memory at every
     /// multiple of [`RSS_PROBE_AFTER_M`] it passes.
     fn probe_rss(&self, t_capture_us: u64) {
@@ -605,10 +622,11 @@ impl FrameFixer for RecordingFixer {
                 0.0,
             )
         } else {
+            let prior = self.biased(prior, t_capture_us);
             // The engine reads no clock; the compute time is the process's own measurement,
             // kept in fixes.csv only (no simulated figure depends on it).
             let start = std::time::Instant::now();
-            let mut r = self.inner.fix(image, prior);
+            let mut r = self.inner.fix(image, &prior);
             r.ms = start.elapsed().as_secs_f64() * 1e3;
             r
         };

@@ -46,6 +46,11 @@ pub enum FaultKind {
     /// [`MAP_WITHHELD_REASON`] without running the engine. The camera still delivers its frames
     /// (visual odometry keeps working).
     MapWithheld,
+    /// For `duration_s` the attitude prior of every vision fix attempt has its heading turned
+    /// by `yaw_offset_deg` while claiming the filter's sigma (a compass near the motors, a
+    /// heading drifted without GPS): what the engine's widened heading search is for. The filter
+    /// itself is left as it is.
+    HeadingBias,
 }
 
 /// The reason of a fix refused by [`FaultKind::MapWithheld`].
@@ -70,6 +75,7 @@ impl FaultKind {
             FaultKind::CameraCorrupt => "camera_corrupt",
             FaultKind::SpoofedHeartbeat => "spoofed_heartbeat",
             FaultKind::MapWithheld => "map_withheld",
+            FaultKind::HeadingBias => "heading_bias",
         }
     }
 }
@@ -94,6 +100,9 @@ pub struct FaultConfig {
     /// `clock_jump`: the step of the autopilot's UTC clock, s.
     #[serde(default)]
     pub clock_step_s: Option<f64>,
+    /// `heading_bias`: the turn added to the fix prior's heading, degrees.
+    #[serde(default)]
+    pub yaw_offset_deg: Option<f64>,
 }
 
 impl FaultConfig {
@@ -145,6 +154,15 @@ impl FaultConfig {
             self.clock_step_s.is_some(),
             self.kind == FaultKind::ClockJump,
         );
+        param(
+            p,
+            "yaw_offset_deg",
+            self.yaw_offset_deg.is_some(),
+            self.kind == FaultKind::HeadingBias,
+        );
+        if let Some(y) = self.yaw_offset_deg {
+            p.range("yaw_offset_deg", y, -180.0, 180.0);
+        }
         for a in self.accel_g.iter().flatten() {
             p.range("accel_g", *a, -1000.0, 1000.0);
         }
@@ -260,6 +278,16 @@ impl FaultPlan {
     /// ([`FaultKind::MapWithheld`]).
     pub fn map_withheld(&self, t_s: f64) -> bool {
         self.any(FaultKind::MapWithheld, t_s)
+    }
+
+    /// The turn added to the heading of a fix attempt's attitude prior for a frame captured at
+    /// `t_s`, degrees ([`FaultKind::HeadingBias`]; 0 outside one).
+    pub fn heading_bias_deg(&self, t_s: f64) -> f64 {
+        self.faults
+            .iter()
+            .filter(|f| f.active(FaultKind::HeadingBias, t_s))
+            .filter_map(|f| f.yaw_offset_deg)
+            .sum()
     }
 
     /// Foreign HEARTBEATs are being sent to the daemon.
@@ -515,7 +543,44 @@ mod tests {
             accel_g: None,
             offset_ne_m: None,
             clock_step_s: None,
+            yaw_offset_deg: None,
         }
+    }
+
+    #[test]
+    fn a_heading_bias_turns_the_fix_prior_inside_its_window_only() {
+        let parsed: FaultConfig = toml::from_str(
+            "kind = \"heading_bias\"\nat_s = 120.0\nduration_s = 120.0\nyaw_offset_deg = 30.0\n",
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        let mut two = parsed.clone();
+        two.yaw_offset_deg = Some(-5.0);
+        two.at_s = 200.0;
+        let plan = FaultPlan::new(vec![parsed.clone(), two]);
+        assert_eq!(plan.heading_bias_deg(119.999), 0.0);
+        assert_eq!(plan.heading_bias_deg(120.0), 30.0);
+        assert_eq!(plan.heading_bias_deg(210.0), 25.0, "overlapping biases add");
+        assert_eq!(plan.heading_bias_deg(240.0), -5.0);
+        assert_eq!(plan.heading_bias_deg(320.0), 0.0);
+        assert!(!plan.map_withheld(150.0), "the map is still matched");
+        assert_eq!(FaultKind::HeadingBias.name(), "heading_bias");
+        let check = |f: FaultConfig| {
+            let mut p = Problems::default();
+            f.validate(&mut p, 400.0);
+            p.list.iter().map(|i| i.to_string()).collect::<Vec<_>>()
+        };
+        assert!(check(parsed.clone()).is_empty());
+        let e = check(fault(FaultKind::HeadingBias, 5.0, 2.0));
+        assert!(e.len() == 1 && e[0].contains("yaw_offset_deg"), "{e:?}");
+        let mut wild = parsed;
+        wild.yaw_offset_deg = Some(400.0);
+        let e = check(wild);
+        assert!(e.len() == 1 && e[0].contains("yaw_offset_deg"), "{e:?}");
+        let mut stray = fault(FaultKind::GpsJump, 5.0, 2.0);
+        stray.offset_ne_m = Some([1.0, 0.0]);
+        stray.yaw_offset_deg = Some(3.0);
+        let e = check(stray);
+        assert!(e.len() == 1 && e[0].contains("not a key"), "{e:?}");
     }
 
     #[test]

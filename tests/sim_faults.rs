@@ -161,6 +161,30 @@ fn heading_bias_scenario(root: &Path) -> String {
     )
 }
 
+/// `visnav sim --json` on `scenario` (written as `{name}.toml` in a temporary folder): the
+/// JSON summary and the rows of its fixes.csv.
+fn run_short_sim(name: &str, scenario: &str) -> (serde_json::Value, Vec<(f64, bool, String)>) {
+    let dir = std::env::temp_dir().join(format!("visnav-sim-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("temp folder");
+    let f = dir.join(format!("{name}.toml"));
+    std::fs::write(&f, scenario).expect("write the scenario");
+    let res = Command::new(env!("CARGO_BIN_EXE_visnav"))
+        .args(["sim", "--json", "--scenario"])
+        .arg(&f)
+        .arg("--out")
+        .arg(dir.join("out"))
+        .output()
+        .expect("run visnav sim");
+    let stderr = String::from_utf8_lossy(&res.stderr);
+    assert!(res.status.success(), "visnav sim failed: {stderr}");
+    let s: serde_json::Value = serde_json::from_slice(&res.stdout).expect("JSON summary");
+    let fixes = fix_rows(&std::fs::read_to_string(dir.join("out/fixes.csv")).expect("fixes.csv"));
+    let _ = std::fs::remove_dir_all(&dir);
+    eprintln!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
+    (s, fixes)
+}
+
 /// One fix of fixes.csv: capture time, accepted, reason.
 fn fix_rows(csv: &str) -> Vec<(f64, bool, String)> {
     csv.lines()
@@ -178,24 +202,7 @@ fn a_withheld_map_refuses_the_fixes_of_its_window_only() {
     const REASON: &str = "map withheld (scenario fault)";
     let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let dir = std::env::temp_dir().join(format!("visnav-sim-map-withheld-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("temp folder");
-    let f = dir.join("map_withheld.toml");
-    std::fs::write(&f, map_withheld_scenario(root)).expect("write the scenario");
-    let res = Command::new(env!("CARGO_BIN_EXE_visnav"))
-        .args(["sim", "--json", "--scenario"])
-        .arg(&f)
-        .arg("--out")
-        .arg(dir.join("out"))
-        .output()
-        .expect("run visnav sim");
-    let stderr = String::from_utf8_lossy(&res.stderr);
-    assert!(res.status.success(), "visnav sim failed: {stderr}");
-    let s: serde_json::Value = serde_json::from_slice(&res.stdout).expect("JSON summary");
-    let fixes = fix_rows(&std::fs::read_to_string(dir.join("out/fixes.csv")).expect("fixes.csv"));
-    let _ = std::fs::remove_dir_all(&dir);
-    eprintln!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
+    let (s, fixes) = run_short_sim("map_withheld", &map_withheld_scenario(root));
 
     // Every attempt on a frame captured in [26, 34) s is refused with the fault's reason, no
     // other is (fixes.csv rounds the capture time to the ms: the edges are judged by the fault's
@@ -248,24 +255,7 @@ fn a_withheld_map_refuses_the_fixes_of_its_window_only() {
 fn a_wrong_heading_prior_is_searched_wider_and_the_fixes_stay_honest() {
     let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let dir = std::env::temp_dir().join(format!("visnav-sim-heading-bias-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("temp folder");
-    let f = dir.join("heading_bias.toml");
-    std::fs::write(&f, heading_bias_scenario(root)).expect("write the scenario");
-    let res = Command::new(env!("CARGO_BIN_EXE_visnav"))
-        .args(["sim", "--json", "--scenario"])
-        .arg(&f)
-        .arg("--out")
-        .arg(dir.join("out"))
-        .output()
-        .expect("run visnav sim");
-    let stderr = String::from_utf8_lossy(&res.stderr);
-    assert!(res.status.success(), "visnav sim failed: {stderr}");
-    let s: serde_json::Value = serde_json::from_slice(&res.stdout).expect("JSON summary");
-    let fixes = fix_rows(&std::fs::read_to_string(dir.join("out/fixes.csv")).expect("fixes.csv"));
-    let _ = std::fs::remove_dir_all(&dir);
-    eprintln!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
+    let (s, fixes) = run_short_sim("heading_bias", &heading_bias_scenario(root));
 
     // Inside the window the stated heading fails and the widened search finds the frame.
     let inside = |t: f64| (24.5..42.0).contains(&t);

@@ -112,10 +112,9 @@ impl FixEngine {
         if !r2.accepted {
             return (r, a);
         }
-        let d = (r2.x_m - r.x_m).hypot(r2.y_m - r.y_m);
-        if d > SAME_PLACE_SIGMAS * sigma_h_m(&r2).hypot(sigma_h_m(&r)) {
-            let mut rej =
-                FixReport::rejected(Rejection::MovesAtOwnHeading { moved_m: d }, t_us, 0.0);
+        if !same_place(&r2, &r) {
+            let moved_m = apart_m(&r2, &r);
+            let mut rej = FixReport::rejected(Rejection::MovesAtOwnHeading { moved_m }, t_us, 0.0);
             rej.matches = r.matches;
             rej.level = r.level;
             return (rej, a);
@@ -239,8 +238,7 @@ impl FixEngine {
         if !r2.accepted {
             return refuse(Some(Rejection::or_unexplained(r2.rejection)), a);
         }
-        let d = (r2.x_m - r.x_m).hypot(r2.y_m - r.y_m);
-        if d <= SAME_PLACE_SIGMAS * sigma_h_m(&r2).hypot(sigma_h_m(&r)) {
+        if same_place(&r2, &r) {
             return (r, a);
         }
         match self.confirm_widened(&wide, (&r2, &a2)) {

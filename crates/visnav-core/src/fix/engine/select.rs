@@ -48,6 +48,18 @@ pub(super) fn sigma_h_m(r: &FixReport) -> f64 {
     r.cov_ned_m2[0][0].max(r.cov_ned_m2[1][1]).max(0.0).sqrt()
 }
 
+/// Horizontal distance between two fixes, metres (map grid).
+pub(super) fn apart_m(a: &FixReport, b: &FixReport) -> f64 {
+    (a.x_m - b.x_m).hypot(a.y_m - b.y_m)
+}
+
+/// Two accepted fixes within [`SAME_PLACE_SIGMAS`] of their combined horizontal sigmas (not
+/// shown further apart: a distance that is not a number does not separate them).
+pub(super) fn same_place(a: &FixReport, b: &FixReport) -> bool {
+    let further = apart_m(a, b) > SAME_PLACE_SIGMAS * sigma_h_m(a).hypot(sigma_h_m(b));
+    !further
+}
+
 /// The search's answer: the accepted hypothesis with the most inliers, if it is unique (its
 /// evidence at least [`UNIQUENESS_RATIO`] times its best competitor's: an accepted fix at
 /// another place, or any hypothesis rectified two or more heading steps from the fix's heading);
@@ -97,8 +109,7 @@ pub(super) fn select_unique(tries: Vec<Hypothesis>, t_us: u64) -> (FixReport, At
         .filter(|(j, _)| *j != bi)
         .filter(|(_, h)| {
             if h.report.accepted {
-                let d = (h.report.x_m - b.report.x_m).hypot(h.report.y_m - b.report.y_m);
-                d > SAME_PLACE_SIGMAS * sigma_h_m(&h.report).hypot(sigma_h_m(&b.report))
+                !same_place(&h.report, &b.report)
             } else {
                 wrap_pi(h.rect_yaw_rad - best_yaw).abs() > far_heading
             }
@@ -169,8 +180,7 @@ pub(super) fn placement_unique(
             return false;
         }
         if h.report.accepted {
-            let d = (h.report.x_m - b.report.x_m).hypot(h.report.y_m - b.report.y_m);
-            return d > SAME_PLACE_SIGMAS * sigma_h_m(&h.report).hypot(sigma_h_m(&b.report));
+            return !same_place(&h.report, &b.report);
         }
         h.attempt.area_ncc > b.attempt.area_ncc - rival_margin(h)
     });
